@@ -1,0 +1,148 @@
+"""Immutable records shared by every stage: target, window, cameras, observations, dataset.
+
+Loading and validation live in :mod:`ari_sfm.io`; these classes only hold data.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+SETS = ("stacking", "calibration", "reconstruction")
+
+
+@dataclass(frozen=True)
+class Target:
+    """A calibration target in its own frame (mm).
+
+    ``type`` is ``checkerboard`` (inner_corners [cols, rows], square_mm),
+    ``charuco`` (squares [cols, rows], square_mm, marker_mm, dictionary) or
+    ``points3d`` (points {id: xyz}).
+    """
+
+    type: str
+    square_mm: float = 0.0
+    inner_corners: tuple[int, int] | None = None
+    squares: tuple[int, int] | None = None
+    marker_mm: float | None = None
+    dictionary: str | None = None
+    points: Mapping[int, tuple[float, float, float]] | None = None
+
+    @property
+    def grid(self) -> tuple[int, int] | None:
+        """(cols, rows) of the corner grid for planar boards, else None."""
+        if self.type == "checkerboard":
+            return self.inner_corners
+        if self.type == "charuco" and self.squares is not None:
+            return (self.squares[0] - 1, self.squares[1] - 1)
+        return None
+
+    def points_3d(self) -> tuple[np.ndarray, np.ndarray]:
+        """All (ids, xyz) of the target: ids (N,) int, xyz (N, 3) in mm, target frame."""
+        if self.type == "points3d":
+            ids = np.array(sorted(self.points), dtype=int)
+            return ids, np.array([self.points[i] for i in ids], dtype=float).reshape(-1, 3)
+        cols, rows = self.grid
+        r, c = np.divmod(np.arange(cols * rows), cols)
+        xyz = np.stack([c * self.square_mm, r * self.square_mm, np.zeros(cols * rows)], axis=1)
+        if self.type == "charuco":  # OpenCV puts ChArUco corner (c, r) at ((c+1) s, (r+1) s)
+            xyz[:, :2] += self.square_mm
+        return np.arange(cols * rows), xyz.astype(float)
+
+    def num_ids(self) -> int:
+        return len(self.points_3d()[0])
+
+    def is_planar(self) -> bool:
+        return self.type != "points3d" or bool(np.ptp(self.points_3d()[1][:, 2]) == 0.0)
+
+
+@dataclass(frozen=True)
+class Interface:
+    """The flat window: plate thickness (mm), glass index, index of the medium behind it."""
+
+    thickness_mm: float
+    index: float
+    medium_index: float = 1.0
+    distance_mm: float | None = None  # optional hint: camera 0 centre to near surface
+
+    @property
+    def shift_mm(self) -> float:
+        """The paraxial shift d (1 - 1/n) of the scene toward the camera (air behind)."""
+        return self.thickness_mm * (1.0 - 1.0 / self.index)
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    """A camera of the rig as the dataset declares it (optional hints may be None)."""
+
+    name: str
+    image_size: tuple[int, int]  # (width, height) px
+    focal_px: float | None = None
+    K: np.ndarray | None = None
+    dist: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One stacking / calibration / reconstruction entry of rig.yaml.
+
+    ``key`` is the ``pose`` of a stacking entry and the ``frame`` otherwise.
+    """
+
+    set: str
+    key: str
+    images: Mapping[str, Path] = field(default_factory=dict)
+    added_mm: float | None = None
+    stage_mm: float | None = None
+
+
+@dataclass(frozen=True)
+class Observation:
+    """Detected target corners in one image.
+
+    ``frame`` is the ``pose`` for a stacking record, the ``frame`` otherwise.
+    ``added_mm`` is the plate thickness added for stacking records (else None).
+    """
+
+    camera: str
+    set: str
+    frame: str
+    ids: np.ndarray  # (N,) int
+    pixels: np.ndarray  # (N, 2) float, OpenCV pixel convention
+    added_mm: float | None = None
+    stage_mm: float | None = None
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """A dataset folder as loaded from rig.yaml / rig.json (see DATASET_FORMAT.md)."""
+
+    root: Path
+    rig_path: Path
+    target: Target
+    interface: Interface
+    cameras: Mapping[str, CameraSpec]
+    stacking: tuple[Entry, ...] = ()
+    calibration: tuple[Entry, ...] = ()
+    reconstruction: tuple[Entry, ...] = ()
+    observations: tuple[Observation, ...] | None = None  # None: detect from images
+    observations_path: Path | None = None
+
+    @property
+    def camera_names(self) -> list[str]:
+        return list(self.cameras)
+
+    def entries(self) -> tuple[Entry, ...]:
+        return self.stacking + self.calibration + self.reconstruction
+
+    def with_observations(self, observations: tuple[Observation, ...], path: Path | None = None) -> "Dataset":
+        from dataclasses import replace
+
+        return replace(self, observations=tuple(observations), observations_path=path)
+
+    def select(self, set_name: str, camera: str | None = None) -> list[Observation]:
+        """The observations of one set (and camera)."""
+        obs = self.observations or ()
+        return [o for o in obs if o.set == set_name and (camera is None or o.camera == camera)]
