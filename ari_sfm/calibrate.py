@@ -1,0 +1,127 @@
+"""calibrate(): analytical initialisation, then the GTSAM bundle adjustment."""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import numpy as np
+
+from .calibration import Calibration, CameraCalibration
+from .errors import AriSfmError
+from .evaluate import residual_stats
+from .records import Dataset, Interface
+
+log = logging.getLogger(__name__)
+
+MODELS = ("ari", "exact")
+
+
+@dataclass(frozen=True)
+class CalibrationOptions:
+    """Options of :func:`calibrate`, each with its default."""
+
+    distortion: bool = False  # estimate k1 k2 p1 p2 k3 (off: they stay as given, normally zero)
+    huber_px: float | None = None  # per-corner Huber threshold in px; None: plain least squares
+    max_iterations: int = 100  # Levenberg-Marquardt iterations per stage
+    workers: int | None = None  # threads for corner detection when the dataset has only images
+    progress: bool = False  # progress bars (the CLI turns them on)
+
+
+def _options(options: dict) -> CalibrationOptions:
+    names = {f.name for f in fields(CalibrationOptions)}
+    unknown = set(options) - names
+    if unknown:
+        raise TypeError(f"unknown calibrate option(s): {', '.join(sorted(unknown))} (known: {', '.join(sorted(names))})")
+    return CalibrationOptions(**options)
+
+
+def ensure_observations(dataset: Dataset, workers: int | None = None, progress: bool = False) -> Dataset:
+    """The dataset with observations, detecting corners in its images when it has none."""
+    if dataset.observations is not None:
+        return dataset
+    from .detection import detect_dataset
+
+    return dataset.with_observations(detect_dataset(dataset, workers=workers, progress=progress))
+
+
+def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> Calibration:
+    """Calibrate the cameras and the window of a dataset.
+
+    model "ari": the paper's paraxial model (analytic initialisation + bundle
+    adjustment); "exact": Snell's law at both faces, refined from the ari result.
+    Options: see :class:`CalibrationOptions`.
+    """
+    from .init.rig import initialise_rig
+    from .factors.rig_graph import RigGraph, RigState
+
+    opts = _options(options)
+    if model not in MODELS:
+        raise ValueError(f"unknown model {model!r} (known: {', '.join(MODELS)})")
+    if not isinstance(dataset, Dataset):
+        from .io import load_dataset
+
+        dataset = load_dataset(dataset)
+    dataset = ensure_observations(dataset, opts.workers, opts.progress)
+    t0 = time.perf_counter()
+    rig = initialise_rig(dataset, opts.distortion)
+    iface = dataset.interface
+    names = dataset.camera_names
+    underwater = iface.medium_index != 1.0
+    state = RigState(
+        {n: np.concatenate([[c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]], np.resize(c.dist, 5)]) for n, c in rig.cameras.items()},
+        rig.cam_from_world, rig.normal_world, rig.world_from_target,
+        iface.distance_mm if iface.distance_mm is not None else (_default_distance(dataset) if underwater else None),
+    )
+    stages = ["ari"] + (["exact"] if model == "exact" else [])
+    graph = None
+    iterations = {}
+    for stage in stages:
+        if stage == "exact" and state.distance_mm is None:
+            state = RigState(state.params, state.cam_from_world, state.normal_world, state.world_from_target, _default_distance(dataset))
+        graph = RigGraph.build(
+            dataset.observations, dataset.target, iface, names, state, model=stage, distortion=opts.distortion,
+            estimate_distance=underwater, huber_px=opts.huber_px,
+        )
+        t_stage = time.perf_counter()
+        state = graph.optimize(opts.max_iterations)
+        iterations[stage] = {"iterations": graph.iterations, "time_s": time.perf_counter() - t_stage}
+        log.info("%s bundle adjustment: %d iterations, %.3f s", stage, graph.iterations, iterations[stage]["time_s"])
+    elapsed = time.perf_counter() - t0
+    residuals = graph.residuals()
+    cameras = {}
+    for n in names:
+        p = state.params[n]
+        K = np.array([[p[0], 0, p[2]], [0, p[1], p[3]], [0, 0, 1.0]])
+        ec = rig.cameras[n].expansion
+        cameras[n] = CameraCalibration(
+            n, tuple(dataset.cameras[n].image_size), K, p[4:9].copy(), state.cam_from_world[n],
+            None if ec is None else ec.center_px, None if ec is None else ec.std_px,
+            residual_stats(r for o, r in residuals if o.camera == n)["rmse_px"],
+        )
+    distance = state.distance_mm if (underwater and model == "exact") or (underwater and model == "ari") else None
+    calib_frames = {o.frame for o in dataset.select("calibration")}
+    cal = Calibration(
+        model=model,
+        interface=Interface(iface.thickness_mm, iface.index, iface.medium_index, distance),
+        normal_world=state.normal_world,
+        cameras=cameras,
+        frames={f: p for f, p in state.world_from_target.items() if f in calib_frames},
+        stacking_poses={f: p for f, p in state.world_from_target.items() if f in rig.stacking_poses},
+        residuals={k: v for k, v in residual_stats(r for _, r in residuals).items()},
+        time_s=elapsed,
+        extra={"optimizer": iterations, **({"fixed_distance_mm": state.distance_mm} if model == "exact" and not underwater else {})},
+        target=dataset.target,
+    )
+    return cal
+
+
+def _default_distance(dataset: Dataset) -> float:
+    """A window distance for models that need one when the dataset gives none.
+
+    In air the exact model does not depend on it (the plate shifts each ray
+    sideways by an amount set by angle and thickness only), so any value that
+    keeps the targets behind the window will do.
+    """
+    return 10.0

@@ -1,0 +1,228 @@
+"""The calibration result: what calibration.json holds, and the models it implies."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import AriSfmError
+from .geometry import Pose
+from .records import Interface, Target
+
+FORMAT = "ari-sfm-calibration/1"
+MODELS = ("ari", "exact", "truth")
+
+
+@dataclass(frozen=True)
+class CameraCalibration:
+    """One calibrated camera."""
+
+    name: str
+    image_size: tuple[int, int]
+    K: np.ndarray
+    dist: np.ndarray  # (5,) k1 k2 p1 p2 k3
+    cam_from_world: Pose
+    expansion_center_px: np.ndarray | None = None  # measured from stacking
+    expansion_center_std_px: np.ndarray | None = None
+    rmse_px: float | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def params(self) -> np.ndarray:
+        """[fx fy cx cy k1 k2 p1 p2 k3]."""
+        return np.concatenate([[self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]], np.resize(self.dist, 5)])
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A calibrated rig behind one window (world = the first camera's frame)."""
+
+    model: str
+    interface: Interface  # distance_mm: camera 0 centre to near surface, None if unobservable
+    normal_world: np.ndarray
+    cameras: dict[str, CameraCalibration]
+    frames: dict[str, Pose]  # world_from_target of calibration frames
+    stacking_poses: dict[str, Pose] = field(default_factory=dict)
+    residuals: dict[str, float] = field(default_factory=dict)
+    time_s: float = 0.0
+    extra: dict[str, Any] = field(default_factory=dict)
+    target: Target | None = None  # the target it was calibrated with (for evaluate)
+
+    def normal_cam(self, camera: str) -> np.ndarray:
+        """The window normal in a camera's frame."""
+        return self.cameras[camera].cam_from_world.R @ self.normal_world
+
+    def distance_mm(self, camera: str) -> float | None:
+        """The distance from a camera's centre to the window's near surface."""
+        if self.interface.distance_mm is None:
+            return None
+        centre = self.cameras[camera].cam_from_world.inverse().t
+        return float(self.interface.distance_mm - self.normal_world @ centre)
+
+    def projection_model(self, camera: str, added_mm: float = 0.0, model: str | None = None):
+        """The camera's projection model (AriModel or ExactModel) in its own frame."""
+        from .models import AriModel, ExactModel, PinholeModel
+
+        cam = self.cameras[camera]
+        kind = model or ("exact" if self.model in ("exact", "truth") else "ari")
+        pinhole = PinholeModel(cam.K, cam.dist)
+        cls = ExactModel if kind == "exact" else AriModel
+        distance = self.distance_mm(camera)
+        if kind == "exact" and distance is None:
+            distance = self.extra.get("fixed_distance_mm", 1.0)
+        return cls(pinhole, self.normal_cam(camera), self.interface.thickness_mm + added_mm, self.interface.index,
+                   self.interface.medium_index, distance)
+
+    # ---- calibration.json -------------------------------------------------
+    def to_json(self) -> dict[str, Any]:
+        cams = {}
+        for name, c in self.cameras.items():
+            entry: dict[str, Any] = {
+                "image_size": [int(s) for s in c.image_size],
+                "K": c.K.tolist(),
+                "dist": np.resize(c.dist, 5).tolist(),
+                "cam_from_world": c.cam_from_world.to_json(),
+                "normal_cam": self.normal_cam(name).tolist(),
+            }
+            if c.expansion_center_px is not None:
+                entry["expansion_center_px"] = np.asarray(c.expansion_center_px).tolist()
+            if c.expansion_center_std_px is not None:
+                entry["expansion_center_std_px"] = np.asarray(c.expansion_center_std_px).tolist()
+            entry["distance_mm"] = self.distance_mm(name)
+            if c.rmse_px is not None:
+                entry["rmse_px"] = c.rmse_px
+            entry.update(c.extra)
+            cams[name] = entry
+        out = {
+            "format": FORMAT,
+            "model": self.model,
+            "interface": {
+                "normal_world": np.asarray(self.normal_world).tolist(),
+                "thickness_mm": self.interface.thickness_mm,
+                "index": self.interface.index,
+                "medium_index": self.interface.medium_index,
+                "distance_mm": self.interface.distance_mm,
+            },
+            "cameras": cams,
+            "frames": {f: {"world_from_target": p.to_json()} for f, p in self.frames.items()},
+        }
+        if self.stacking_poses:
+            out["stacking_poses"] = {f: {"world_from_target": p.to_json()} for f, p in self.stacking_poses.items()}
+        if self.target is not None:
+            out["target"] = target_to_json(self.target)
+        out["residuals"] = dict(self.residuals)
+        out["time_s"] = self.time_s
+        out.update(self.extra)
+        return out
+
+    def save(self, path: str | Path) -> None:
+        """Write calibration.json atomically."""
+        from .io import write_json_atomic
+
+        write_json_atomic(Path(path), self.to_json())
+
+    @staticmethod
+    def from_json(data: Any, path: str | Path = "calibration.json") -> "Calibration":
+        """Parse and validate a calibration.json mapping."""
+        try:
+            return _parse(data, path)
+        except AriSfmError:
+            raise
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+            what = f"missing key {exc}" if isinstance(exc, KeyError) else str(exc)
+            raise AriSfmError(path, f"malformed calibration: {what}") from None
+
+
+def _finite(a: Any, shape: tuple[int, ...], what: str, path: Any) -> np.ndarray:
+    arr = np.asarray(a, dtype=float)
+    if arr.shape != shape:
+        raise AriSfmError(path, f"{what} must have shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise AriSfmError(path, f"{what} contains non-finite values")
+    return arr
+
+
+def _pose(d: Any, what: str, path: Any) -> Pose:
+    R = _finite(d["R"], (3, 3), f"{what}.R", path)
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise AriSfmError(path, f"{what}.R is not a rotation matrix")
+    return Pose(R, _finite(d["t"], (3,), f"{what}.t", path))
+
+
+def _parse(data: Any, path: Any) -> Calibration:
+    if not isinstance(data, dict):
+        raise AriSfmError(path, "calibration must be a JSON object")
+    if data.get("format") != FORMAT:
+        raise AriSfmError(path, f"unknown format {data.get('format')!r} (expected {FORMAT!r})")
+    model = data["model"]
+    if not isinstance(model, str):
+        raise AriSfmError(path, "model must be a string")
+    iface = data["interface"]
+    thickness, index = float(iface["thickness_mm"]), float(iface["index"])
+    medium = float(iface.get("medium_index", 1.0))
+    if not (math.isfinite(thickness) and thickness >= 0):
+        raise AriSfmError(path, f"interface.thickness_mm must be >= 0 (got {thickness})")
+    if not (math.isfinite(index) and index >= 1) or not (math.isfinite(medium) and medium >= 1):
+        raise AriSfmError(path, "interface.index and medium_index must be >= 1")
+    distance = iface.get("distance_mm")
+    normal = _finite(iface["normal_world"], (3,), "interface.normal_world", path)
+    if abs(np.linalg.norm(normal) - 1) > 1e-6:
+        raise AriSfmError(path, "interface.normal_world must be a unit vector")
+    cams = {}
+    if not isinstance(data["cameras"], dict) or not data["cameras"]:
+        raise AriSfmError(path, "cameras must be a non-empty object")
+    known = {"image_size", "K", "dist", "cam_from_world", "normal_cam", "expansion_center_px",
+             "expansion_center_std_px", "rmse_px", "distance_mm"}
+    for name, c in data["cameras"].items():
+        ec = c.get("expansion_center_px")
+        es = c.get("expansion_center_std_px")
+        cams[name] = CameraCalibration(
+            name,
+            tuple(int(s) for s in c["image_size"]),
+            _finite(c["K"], (3, 3), f"cameras.{name}.K", path),
+            np.resize(_finite(c.get("dist", [0] * 5), (len(c.get("dist", [0] * 5)),), f"cameras.{name}.dist", path), 5),
+            _pose(c["cam_from_world"], f"cameras.{name}.cam_from_world", path),
+            None if ec is None else np.asarray(ec, float),
+            None if es is None else np.asarray(es, float),
+            c.get("rmse_px"),
+            {k: v for k, v in c.items() if k not in known},
+        )
+    frames = {f: _pose(v["world_from_target"], f"frames.{f}", path) for f, v in data.get("frames", {}).items()}
+    stacking = {f: _pose(v["world_from_target"], f"stacking_poses.{f}", path) for f, v in data.get("stacking_poses", {}).items()}
+    reserved = {"format", "model", "interface", "cameras", "frames", "stacking_poses", "residuals", "time_s", "target"}
+    target = target_from_json(data["target"], path) if "target" in data else None
+    return Calibration(
+        model, Interface(thickness, index, medium, None if distance is None else float(distance)), normal, cams,
+        frames, stacking, dict(data.get("residuals", {})), float(data.get("time_s", 0.0)),
+        {k: v for k, v in data.items() if k not in reserved}, target,
+    )
+
+
+def load_calibration(path: str | Path) -> Calibration:
+    """Read and validate calibration.json (or a simulator's truth.json)."""
+    from .io import read_structured
+
+    return Calibration.from_json(read_structured(Path(path)), path)
+
+
+def target_to_json(target: Target) -> dict[str, Any]:
+    """The rig.yaml form of a target."""
+    out: dict[str, Any] = {"type": target.type}
+    if target.type == "checkerboard":
+        out.update(inner_corners=list(target.inner_corners), square_mm=target.square_mm)
+    elif target.type == "charuco":
+        out.update(squares=list(target.squares), square_mm=target.square_mm, marker_mm=target.marker_mm,
+                   dictionary=target.dictionary)
+    else:
+        out["points"] = {int(k): list(map(float, v)) for k, v in target.points.items()}
+    return out
+
+
+def target_from_json(data: Any, path: Any) -> Target:
+    """Parse a target mapping (validated like rig.yaml's)."""
+    from .io.dataset import parse_target
+
+    return parse_target(data, path)

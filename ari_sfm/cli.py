@@ -1,0 +1,188 @@
+"""The ari-sfm command line. Errors print as one line: ``error: <file>: <what is wrong>``."""
+from __future__ import annotations
+
+import functools
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+
+import click
+import numpy as np
+
+from .errors import AriSfmError
+
+log = logging.getLogger("ari_sfm")
+
+
+def _setup_logging(verbose: bool) -> None:
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s: %(message)s")
+
+
+def user_errors(fn):
+    """Turn AriSfmError (and any unexpected exception) into one line on stderr and exit 1."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except AriSfmError as exc:
+            click.echo(f"error: {exc}", err=True)
+            sys.exit(1)
+        except (click.ClickException, click.exceptions.Exit, SystemExit, KeyboardInterrupt):
+            raise
+        except Exception as exc:  # noqa: BLE001 - never a traceback unless asked for
+            if os.environ.get("ARI_SFM_DEBUG"):
+                raise
+            click.echo(f"error: {type(exc).__name__}: {exc} (set ARI_SFM_DEBUG=1 for the traceback)", err=True)
+            sys.exit(1)
+
+    return wrapper
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="ari-sfm")
+@click.option("-v", "--verbose", is_flag=True, help="Log progress messages.")
+def main(verbose: bool) -> None:
+    """Calibrate cameras behind a flat refractive window (ARI equation) and measure them."""
+    _setup_logging(verbose)
+
+
+@main.command()
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option("-o", "--out", type=click.Path(path_type=Path), default=None, help="Where to write observations.json (default: DATASET/observations.json is NOT overwritten; OUT defaults to DATASET/../<name>-detections).")
+@click.option("--workers", type=int, default=None, help="Parallel detection threads (default: all cores).")
+@user_errors
+def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
+    """Detect target corners in the dataset's images; write observations.json."""
+    from .detection import detect_dataset
+    from .io import load_dataset, save_observations
+
+    ds = load_dataset(dataset)
+    t0 = time.perf_counter()
+    obs = detect_dataset(ds, workers=workers, progress=True)
+    out = out or (ds.root.parent / f"{ds.root.name}-detections")
+    out.mkdir(parents=True, exist_ok=True)
+    save_observations(out / "observations.json", obs)
+    n = sum(len(o.ids) for o in obs)
+    click.echo(f"{len(obs)} images, {n} corners in {time.perf_counter() - t0:.1f} s -> {out / 'observations.json'}")
+
+
+_model_option = click.option("--model", type=click.Choice(["ari", "exact"]), default="ari", show_default=True,
+                             help="ari: paraxial ARI model; exact: Snell's law, refined from ari.")
+_distortion_option = click.option("--distortion/--no-distortion", default=False, show_default=True, help="Estimate k1 k2 p1 p2 k3.")
+_huber_option = click.option("--huber-px", type=float, default=None, help="Per-corner Huber threshold in px (default: least squares).")
+
+
+@main.command(name="calibrate")
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder for calibration.json.")
+@_model_option
+@_distortion_option
+@_huber_option
+@user_errors
+def calibrate_cmd(dataset: Path, out: Path, model: str, distortion: bool, huber_px: float | None) -> None:
+    """Calibrate DATASET; write OUT/calibration.json (and OUT/observations.json when detected here)."""
+    from .pipelines.calibrate_rig import main as pipeline
+
+    t0 = time.perf_counter()
+    result = pipeline(dataset, out, model=model, progress=True, distortion=distortion, huber_px=huber_px)
+    _summary(result.calibration, time.perf_counter() - t0)
+    if result.observations_path:
+        click.echo(f"observations: {result.observations_path}")
+    click.echo(f"calibration:  {result.calibration_path}")
+
+
+@main.command()
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder.")
+@_model_option
+@_distortion_option
+@_huber_option
+@user_errors
+def run(dataset: Path, out: Path, model: str, distortion: bool, huber_px: float | None) -> None:
+    """The pipeline: detect corners when needed, calibrate, write the results to OUT."""
+    from .pipelines.calibrate_rig import main as pipeline
+
+    t0 = time.perf_counter()
+    click.echo(f"ari-sfm run: {dataset} -> {out}")
+    result = pipeline(dataset, out, model=model, progress=True, distortion=distortion, huber_px=huber_px)
+    _summary(result.calibration, time.perf_counter() - t0)
+    click.echo(f"calibration: {result.calibration_path}")
+
+
+@main.command(name="evaluate")
+@click.argument("calibration", type=click.Path(path_type=Path))
+@click.argument("observations", type=click.Path(path_type=Path))
+@user_errors
+def evaluate_cmd(calibration: Path, observations: Path) -> None:
+    """Reprojection errors of CALIBRATION on an OBSERVATIONS file (e.g. held-out views)."""
+    from .calibration import load_calibration
+    from .evaluate import evaluate
+
+    stats = evaluate(load_calibration(calibration), observations)
+    click.echo(f"rmse {stats['rmse_px']:.4f} px  mae {stats['mae_px']:.4f} px  max {stats['max_px']:.4f} px  ({stats['count']} corners)")
+
+
+@main.command()
+@click.argument("scenario")
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder: OUT/dataset and OUT/truth.json.")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--sigma", type=float, default=0.05, show_default=True, help="Pixel noise per coordinate.")
+@click.option("--image-scale", type=float, default=1.0, show_default=True, help="Scale of image size and focal length.")
+@click.option("--images/--no-images", default=None, help="Render PNG images (default: per scenario).")
+@user_errors
+def simulate(scenario: str, out: Path, seed: int, sigma: float, image_scale: float, images: bool | None) -> None:
+    """Write a simulated dataset (exact Snell physics) and its truth. SCENARIO: see --help of `ari-sfm scenarios`."""
+    from .simulate import SCENARIOS, simulate as run_sim
+
+    if scenario not in SCENARIOS:
+        raise AriSfmError(None, f"unknown scenario {scenario!r}; known: {', '.join(SCENARIOS)}")
+    ds, truth = run_sim(scenario, out, seed=seed, sigma_px=sigma, images=images, image_scale=image_scale)
+    click.echo(f"dataset: {ds}\ntruth:   {truth}")
+
+
+@main.command()
+def scenarios() -> None:
+    """List the simulator's scenarios."""
+    from .simulate import SCENARIOS
+
+    for name, text in SCENARIOS.items():
+        click.echo(f"{name:28s} {text}")
+
+
+@main.command()
+def doctor() -> None:
+    """Check that every dependency imports (open3d needs the system library libusb-1.0-0)."""
+    from .deps import check_dependencies
+
+    bad = False
+    for name, version in check_dependencies().items():
+        click.echo(f"{name:12s} {version}")
+        bad |= version.startswith("error")
+    sys.exit(1 if bad else 0)
+
+
+def _summary(cal, elapsed: float) -> None:
+    """A one-screen summary of a calibration."""
+    from .geometry import angle_between_deg
+
+    r = cal.residuals
+    click.echo(f"\nmodel {cal.model}: {len(cal.cameras)} camera(s), {len(cal.frames)} frames, "
+               f"window {cal.interface.thickness_mm:g} mm n={cal.interface.index:g} medium n={cal.interface.medium_index:g}")
+    nw = cal.normal_world
+    click.echo(f"normal (world) [{nw[0]:+.5f} {nw[1]:+.5f} {nw[2]:+.5f}]"
+               + (f"  distance {cal.interface.distance_mm:.3f} mm" if cal.interface.distance_mm is not None else ""))
+    click.echo(f"{'camera':10s} {'fx':>9s} {'fy':>9s} {'cx':>8s} {'cy':>8s} {'tilt':>6s} {'expansion centre (px)':>26s} {'rmse':>7s}")
+    for name, c in cal.cameras.items():
+        tilt = angle_between_deg(cal.normal_cam(name), np.array([0, 0, 1.0]))
+        ec = "-" if c.expansion_center_px is None else (
+            f"{c.expansion_center_px[0]:.1f},{c.expansion_center_px[1]:.1f} ±{max(c.expansion_center_std_px):.2f}")
+        click.echo(f"{name:10s} {c.K[0,0]:9.2f} {c.K[1,1]:9.2f} {c.K[0,2]:8.2f} {c.K[1,2]:8.2f} {tilt:5.2f}° {ec:>26s} {c.rmse_px:7.4f}")
+    click.echo(f"residuals: rmse {r['rmse_px']:.4f} px, mae {r['mae_px']:.4f} px, max {r['max_px']:.4f} px over {r['count']} corners")
+    click.echo(f"time: calibration {cal.time_s:.3f} s, total {elapsed:.2f} s")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,69 @@
+"""Reprojection errors of a calibration on observations (its own or held-out ones)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from .calibration import Calibration
+from .records import Dataset, Observation, Target
+
+
+def residual_stats(residuals: Iterable[np.ndarray]) -> dict[str, float]:
+    """rmse_px = sqrt(mean(du^2 + dv^2)), mae_px = mean distance, max_px, count."""
+    arrays = [np.asarray(r, float).reshape(-1, 2) for r in residuals]
+    d = np.linalg.norm(np.concatenate(arrays), axis=1) if arrays else np.zeros(0)
+    if len(d) == 0:
+        return {"rmse_px": float("nan"), "mae_px": float("nan"), "max_px": float("nan"), "count": 0}
+    return {"rmse_px": float(np.sqrt(np.mean(d**2))), "mae_px": float(np.mean(d)), "max_px": float(np.max(d)), "count": int(len(d))}
+
+
+def project_target(calibration: Calibration, camera: str, pose_world_from_target, points_target: np.ndarray, added_mm: float = 0.0) -> np.ndarray:
+    """Pixels (M, 2) of target points seen by a camera through the window."""
+    X_c = calibration.cameras[camera].cam_from_world.apply(pose_world_from_target.apply(points_target))
+    return calibration.projection_model(camera, added_mm).project(X_c)
+
+
+def observation_residuals(calibration: Calibration, observations: Sequence[Observation], target: Target) -> list[tuple[Observation, np.ndarray]]:
+    """(observation, residual (M, 2)) for every observation whose pose the calibration holds."""
+    ids_all, xyz_all = target.points_3d()
+    lookup = {int(i): k for k, i in enumerate(ids_all)}
+    out = []
+    for obs in observations:
+        if obs.camera not in calibration.cameras:
+            continue
+        if obs.set == "stacking":
+            pose, added = calibration.stacking_poses.get(obs.frame), obs.added_mm or 0.0
+        else:
+            pose, added = calibration.frames.get(obs.frame), 0.0
+        if pose is None:
+            continue
+        pts = xyz_all[[lookup[int(i)] for i in obs.ids]]
+        out.append((obs, project_target(calibration, obs.camera, pose, pts, added) - obs.pixels))
+    return out
+
+
+def evaluate(calibration: Calibration, observations: str | Path | Dataset | Sequence[Observation], target: Target | None = None) -> dict:
+    """Reprojection errors (rmse_px, mae_px, max_px, count, per_camera) on observations.
+
+    ``observations`` is an observations.json path, a Dataset, or loaded records.
+    Only records of frames (or stacking poses) whose poses the calibration holds count.
+    """
+    if isinstance(observations, Dataset):
+        target = target or observations.target
+        records = observations.observations or ()
+    elif isinstance(observations, (str, Path)):
+        from .io import load_observations
+
+        target = target or calibration.target
+        records = load_observations(Path(observations), target, list(calibration.cameras))
+    else:
+        records = observations
+    target = target or calibration.target
+    if target is None:
+        raise ValueError("evaluate needs the target geometry: the calibration holds none, pass target=")
+    pairs = observation_residuals(calibration, records, target)
+    stats = residual_stats(r for _, r in pairs)
+    stats["per_camera"] = {c: residual_stats(r for o, r in pairs if o.camera == c) for c in calibration.cameras}
+    return stats

@@ -1,0 +1,114 @@
+"""Analytical initialisation of a rig: per camera (expansion centre, Zhang, Eq. 5,
+Eqs. 11-12), then the cameras joined through shared frames over a spanning tree.
+"""
+from __future__ import annotations
+
+import logging
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import AriSfmError
+from ..geometry import Pose, unit
+from ..records import Dataset, Observation
+from .expansion_center import ExpansionCenter, expansion_center, normal_from_expansion_center
+from .interface_pose import real_cam_from_target
+from .zhang import calibrate_zhang, solve_pnp
+
+log = logging.getLogger(__name__)
+
+MIN_VIEWS = 3
+
+
+@dataclass(frozen=True)
+class CameraInit:
+    """One camera's analytic estimate (its own frame is the reference)."""
+
+    name: str
+    K: np.ndarray
+    dist: np.ndarray
+    expansion: ExpansionCenter | None
+    normal_cam: np.ndarray | None
+    cam_from_target: dict[str, Pose]  # real poses of calibration frames and stacking poses
+    zhang_rms_px: float
+
+
+@dataclass(frozen=True)
+class RigInit:
+    """The whole rig in the world frame (camera 0's frame)."""
+
+    cameras: dict[str, CameraInit]
+    cam_from_world: dict[str, Pose]
+    normal_world: np.ndarray
+    world_from_target: dict[str, Pose]  # calibration frames and stacking poses
+    stacking_poses: tuple[str, ...] = field(default_factory=tuple)
+
+
+def _shift(thickness_mm: float, index: float) -> float:
+    return thickness_mm * (1.0 - 1.0 / index)
+
+
+def initialise_camera(dataset: Dataset, name: str, distortion: bool = False) -> CameraInit:
+    """Expansion centre, K, normal and real target poses of one camera."""
+    views = [o for o in dataset.select("calibration", name) if len(o.ids) >= 6]
+    if len(views) < MIN_VIEWS:
+        raise AriSfmError(dataset.rig_path, f"camera {name} has {len(views)} calibration views with >= 6 corners (need >= {MIN_VIEWS})")
+    stacking = dataset.select("stacking", name)
+    zhang = calibrate_zhang(dataset.target, dataset.cameras[name], views, distortion)
+    iface = dataset.interface
+    expansion, normal = None, None
+    if stacking:
+        try:
+            expansion = expansion_center(stacking)
+        except ValueError as exc:
+            raise AriSfmError(dataset.observations_path or dataset.rig_path, f"camera {name}: {exc}") from None
+        normal = normal_from_expansion_center(expansion.center_px, zhang.K)
+    poses: dict[str, Pose] = {}
+    for frame, gen in zhang.cam_from_target.items():
+        poses[frame] = real_cam_from_target(gen, normal if normal is not None else np.zeros(3), _shift(iface.thickness_mm, iface.index))
+    for pose_name in sorted({o.frame for o in stacking}):
+        first = min((o for o in stacking if o.frame == pose_name), key=lambda o: o.added_mm or 0.0)
+        gen = solve_pnp(dataset.target, zhang.K, zhang.dist, first)
+        shift = _shift(iface.thickness_mm + (first.added_mm or 0.0), iface.index)
+        poses[pose_name] = real_cam_from_target(gen, normal if normal is not None else np.zeros(3), shift)
+    return CameraInit(name, zhang.K, zhang.dist, expansion, normal, poses, zhang.rms_px)
+
+
+def _mean_pose(poses: list[Pose]) -> Pose:
+    """Chordal mean of rotations, arithmetic mean of translations."""
+    u, _, vt = np.linalg.svd(sum(p.R for p in poses))
+    R = u @ np.diag([1, 1, np.linalg.det(u @ vt)]) @ vt
+    return Pose(R, np.mean([p.t for p in poses], axis=0))
+
+
+def initialise_rig(dataset: Dataset, distortion: bool = False) -> RigInit:
+    """Initialise every camera, then chain relative poses from camera 0 over shared frames."""
+    names = dataset.camera_names
+    cams = {n: initialise_camera(dataset, n, distortion) for n in names}
+    # Camera graph: edges weighted by the number of shared frames (calibration and stacking).
+    frames_of = {n: set(c.cam_from_target) for n, c in cams.items()}
+    cam_from_world = {names[0]: Pose.identity()}
+    queue = deque([names[0]])
+    while queue:
+        parent = queue.popleft()
+        for child in sorted(names, key=lambda c: -len(frames_of[c] & frames_of[parent])):
+            shared = sorted(frames_of[child] & frames_of[parent])
+            if child in cam_from_world or not shared:
+                continue
+            rel = _mean_pose([cams[child].cam_from_target[f].compose(cams[parent].cam_from_target[f].inverse()) for f in shared])
+            cam_from_world[child] = rel.compose(cam_from_world[parent])
+            queue.append(child)
+    missing = [n for n in names if n not in cam_from_world]
+    if missing:
+        raise AriSfmError(dataset.rig_path, f"camera {missing[0]} shares no frame with camera {names[0]} or its neighbours: the rig cannot be joined")
+    normals = [cam_from_world[n].R.T @ c.normal_cam for n, c in cams.items() if c.normal_cam is not None]
+    if not normals:
+        raise AriSfmError(dataset.rig_path, "no stacking observations: the window normal is not observable (add a stacking pose, see DATASET_FORMAT.md)")
+    normal_world = unit(np.mean(normals, axis=0))
+    world_from_target: dict[str, Pose] = {}
+    for frame in sorted(set().union(*frames_of.values())):
+        estimates = [cam_from_world[n].inverse().compose(c.cam_from_target[frame]) for n, c in cams.items() if frame in c.cam_from_target]
+        world_from_target[frame] = _mean_pose(estimates)
+    stacking = tuple(sorted({o.frame for o in dataset.select("stacking")}))
+    return RigInit(cams, cam_from_world, normal_world, world_from_target, stacking)

@@ -1,0 +1,146 @@
+"""The rig factor graph: N cameras behind one window, one shared normal.
+
+Build it from a :class:`RigState` (e.g. the analytical initialisation), add
+your own factors if you like (a prior on the normal from a level, a known
+baseline, ...), optimise with Levenberg-Marquardt and read the state back::
+
+    problem = RigGraph.build(dataset.observations, dataset.target, dataset.interface,
+                             dataset.camera_names, state, model="ari")
+    problem.graph.push_back(gtsam.PriorFactorUnit3(keys.N, gtsam.Unit3(n), noise))
+    state = problem.optimize()
+"""
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass, field, replace
+from typing import Sequence
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import gtsam
+import numpy as np
+
+from ..geometry import Pose, cam_from_world_from_pose3, pose3_from_cam_from_world, pose3_from_pose, pose_from_pose3
+from ..models import AriModel, ExactModel
+from ..records import Interface, Observation, Target
+from . import keys as K_
+from .view_factor import ViewData, ViewKeys, view_factor, view_residuals
+
+log = logging.getLogger(__name__)
+
+MODELS = {"ari": AriModel, "exact": ExactModel}
+
+
+@dataclass(frozen=True)
+class RigState:
+    """Every estimated quantity in plain numpy (world = camera 0)."""
+
+    params: dict[str, np.ndarray]  # camera -> (9,) [fx fy cx cy k1 k2 p1 p2 k3]
+    cam_from_world: dict[str, Pose]
+    normal_world: np.ndarray
+    world_from_target: dict[str, Pose]  # calibration frames and stacking poses
+    distance_mm: float | None = None  # camera 0 centre to near surface (None: not modelled)
+
+
+@dataclass
+class RigGraph:
+    """A factor graph with its initial values and the bookkeeping to read them back."""
+
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+    camera_names: list[str]
+    frame_names: list[str]
+    n_params: int
+    base_state: RigState
+    estimate_distance: bool
+    factor_views: list[tuple[str, Observation]] = field(default_factory=list)
+    factor_data: list[tuple[ViewData, ViewKeys]] = field(default_factory=list)
+    model: str = "ari"
+    iterations: int = 0
+
+    @staticmethod
+    def build(
+        observations: Sequence[Observation],
+        target: Target,
+        interface: Interface,
+        camera_names: Sequence[str],
+        state: RigState,
+        model: str = "ari",
+        distortion: bool = False,
+        estimate_distance: bool = False,
+        huber_px: float | None = None,
+        sigma_px: float = 1.0,
+        min_corners: int = 4,
+    ) -> "RigGraph":
+        """One factor per (camera, calibration or stacking image); variables from state."""
+        factory = MODELS[model]
+        names = list(camera_names)
+        frames = sorted(state.world_from_target)
+        frame_index = {f: i for i, f in enumerate(frames)}
+        n_params = 9 if distortion else 4
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        for c, name in enumerate(names):
+            values.insert(K_.K(c), np.asarray(state.params[name][:n_params], float))
+            if c > 0:
+                values.insert(K_.C(c), pose3_from_cam_from_world(state.cam_from_world[name]))
+        values.insert(K_.N, gtsam.Unit3(np.asarray(state.normal_world, float)))
+        for f, i in frame_index.items():
+            values.insert(K_.X(i), pose3_from_pose(state.world_from_target[f]))
+        if estimate_distance:
+            values.insert(K_.H, np.array([float(state.distance_mm)]))
+        ids_all, xyz_all = target.points_3d()
+        lookup = {int(i): k for k, i in enumerate(ids_all)}
+        rg = RigGraph(graph, values, names, frames, n_params, state, estimate_distance, model=model)
+        for obs in observations:
+            if obs.set not in ("calibration", "stacking") or obs.frame not in frame_index or obs.camera not in names:
+                continue
+            if len(obs.ids) < min_corners:
+                continue
+            c = names.index(obs.camera)
+            thickness = interface.thickness_mm + ((obs.added_mm or 0.0) if obs.set == "stacking" else 0.0)
+            data = ViewData(
+                xyz_all[[lookup[int(i)] for i in obs.ids]], np.asarray(obs.pixels, float), thickness,
+                interface.index, interface.medium_index, np.asarray(state.params[obs.camera], float), n_params,
+            )
+            vkeys = ViewKeys(
+                K_.K(c), K_.X(frame_index[obs.frame]), K_.N, K_.C(c) if c > 0 else None,
+                K_.H if estimate_distance else None, state.distance_mm,
+            )
+            graph.push_back(view_factor(factory, data, vkeys, sigma_px, huber_px))
+            rg.factor_views.append((obs.camera, obs))
+            rg.factor_data.append((data, vkeys))
+        return rg
+
+    def optimize(self, max_iterations: int = 100, relative_tolerance: float = 1e-10) -> RigState:
+        """Levenberg-Marquardt from the current values; updates them and returns the state."""
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(max_iterations)
+        params.setRelativeErrorTol(relative_tolerance)
+        params.setAbsoluteErrorTol(1e-12)
+        optimizer = gtsam.LevenbergMarquardtOptimizer(self.graph, self.values, params)
+        self.values = optimizer.optimize()
+        self.iterations = optimizer.iterations()
+        return self.state()
+
+    def state(self, values: gtsam.Values | None = None) -> RigState:
+        """The RigState of the current (or given) values."""
+        v = values if values is not None else self.values
+        params, cams = {}, {}
+        for c, name in enumerate(self.camera_names):
+            p = np.asarray(self.base_state.params[name], float).copy()
+            p[: self.n_params] = v.atVector(K_.K(c))
+            params[name] = p
+            cams[name] = cam_from_world_from_pose3(v.atPose3(K_.C(c))) if c > 0 else Pose.identity()
+        frames = {f: pose_from_pose3(v.atPose3(K_.X(i))) for i, f in enumerate(self.frame_names)}
+        distance = float(v.atVector(K_.H)[0]) if self.estimate_distance else self.base_state.distance_mm
+        return RigState(params, cams, v.atUnit3(K_.N).point3(), frames, distance)
+
+    def residuals(self) -> list[tuple[Observation, np.ndarray]]:
+        """Unweighted pixel residuals (M, 2) of every factor's image at the current values."""
+        factory = MODELS[self.model]
+        out = []
+        for (camera, obs), (data, vkeys) in zip(self.factor_views, self.factor_data):
+            r, _ = view_residuals(factory, data, vkeys, self.values, False, None)
+            out.append((obs, r.reshape(-1, 2)))
+        return out
