@@ -1,0 +1,170 @@
+"""The ARI model (paper Eq. 1): a pinhole camera that sees the scene shifted along the window normal.
+
+Window: a plane-parallel plate with unit normal n_c (camera frame, from the
+camera into the scene), near face at distance h from the camera centre,
+thickness d, glass index n, medium index n_m behind it.
+
+Paraxial derivation. Write a scene point as depth z = n_c . X along the normal
+plus a radial offset r (r . n_c = 0, rho = |r|), L = z - h - d the length of
+the medium column. A camera ray at incidence t has radial offset at depth z::
+
+    rho(t) = h tan t + d tan t_g + L tan t_m,   sin t = n sin t_g = n_m sin t_m.
+
+For small angles tan ~ sin ~ t, so tan t_g ~ t/n, tan t_m ~ t/n_m and::
+
+    rho ~ t (h + d/n + L/n_m).
+
+A pinhole camera sees the same ray (rho = t z_app) if the point sits at the
+*apparent depth*::
+
+    z_app = h + d/n + (z - h - d)/n_m,        lateral offset r unchanged,
+
+i.e. ``X_app = X + (z_app - z) n_c``. This is affine in X:
+``X_app = A X + a n_c`` with ``A = I + b n_c n_c^T``, ``b = 1/n_m - 1``,
+``a = h + d/n - (h + d)/n_m``.
+
+- Air behind (n_m = 1): b = 0, a = -d (1 - 1/n): every point moves by
+  ``delta = d (1 - 1/n)`` toward the camera, independent of h (paper Eq. 2's
+  translation ``d - d/n``). The ARI camera is then exactly a pinhole whose
+  centre is moved by delta along n_c.
+- A medium behind (n_m != 1): the medium column's depth scales by 1/n_m, so
+  the map is not a pure shift and h is needed (``distance_mm``).
+
+The exact model (:mod:`ari_sfm.models.exact`) differs by O(t^3): about
+75 t^3 px in air at fx ~ 3478 and z ~ 450 mm (see tests/test_models.py).
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from .pinhole import PinholeModel, as_points
+
+
+def ari_shift_mm(thickness_mm: float, index: float) -> float:
+    """The paraxial shift ``delta = d (1 - 1/n)`` of the scene toward the camera (air behind)."""
+    return float(thickness_mm) * (1.0 - 1.0 / float(index))
+
+
+def unit_normal_and_projector(normal_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normal n = v/|v| and d n / d v = (I - n n^T)/|v| of a free 3-vector v."""
+    v = np.asarray(normal_cam, dtype=float).reshape(3)
+    norm = float(np.linalg.norm(v))
+    if not np.isfinite(norm) or norm == 0.0:
+        raise ValueError(f"normal_cam must be a non-zero finite 3-vector, got {v.tolist()}")
+    n = v / norm
+    return n, (np.eye(3) - np.outer(n, n)) / norm
+
+
+def check_window(thickness_mm: float, index: float, medium_index: float,
+                 distance_mm: float | None) -> None:
+    """Raise ValueError on unphysical window parameters."""
+    if not thickness_mm >= 0.0:
+        raise ValueError(f"thickness_mm must be >= 0, got {thickness_mm}")
+    if not index >= 1.0:
+        raise ValueError(f"index must be >= 1, got {index}")
+    if not medium_index >= 1.0:
+        raise ValueError(f"medium_index must be >= 1, got {medium_index}")
+    if distance_mm is not None and not distance_mm > 0.0:
+        raise ValueError(f"distance_mm must be > 0, got {distance_mm}")
+
+
+class AriJacobians(NamedTuple):
+    """Projection and its derivatives for N points.
+
+    ``J_normal`` is d uv / d normal_cam, the 3 components of the vector passed
+    to the constructor (which normalises it); chain it with a Unit3 tangent
+    basis B (3, 2) as ``J_normal @ B``.
+    """
+
+    uv: np.ndarray  # (N, 2) pixels
+    J_point: np.ndarray  # (N, 2, 3) d uv / d X_cam
+    J_normal: np.ndarray  # (N, 2, 3) d uv / d normal_cam
+    J_params: np.ndarray  # (N, 2, 9) d uv / d [fx, fy, cx, cy, k1, k2, p1, p2, k3]
+    J_thickness: np.ndarray  # (N, 2) d uv / d thickness_mm
+    J_distance: np.ndarray  # (N, 2) d uv / d distance_mm (zeros in air)
+
+
+class AriModel:
+    """Paraxial refractive camera: ``uv = pinhole(X_app)``, ``X_app = X + (z_app - z) n_c``."""
+
+    def __init__(self, pinhole: PinholeModel, normal_cam: np.ndarray, thickness_mm: float,
+                 index: float, medium_index: float = 1.0, distance_mm: float | None = None) -> None:
+        check_window(thickness_mm, index, medium_index, distance_mm)
+        if medium_index != 1.0 and distance_mm is None:
+            raise ValueError("distance_mm is required when a medium (medium_index != 1) is behind the window")
+        self.pinhole = pinhole
+        self.normal_cam, self._dn_dv = unit_normal_and_projector(normal_cam)
+        self.thickness_mm = float(thickness_mm)
+        self.index = float(index)
+        self.medium_index = float(medium_index)
+        self.distance_mm = None if distance_mm is None else float(distance_mm)
+        h = 0.0 if self.distance_mm is None else self.distance_mm  # unused in air (b = 0, a = -delta)
+        d, n, nm = self.thickness_mm, self.index, self.medium_index
+        # X_app = X + (a + b z) n_c with z = n_c . X
+        self._a = h + d / n - (h + d) / nm
+        self._b = 1.0 / nm - 1.0
+        self._da_dd = 1.0 / n - 1.0 / nm
+        self._da_dh = 1.0 - 1.0 / nm
+
+    @classmethod
+    def from_interface(cls, pinhole: PinholeModel, normal_cam: np.ndarray, interface) -> "AriModel":
+        """Model from a :class:`ari_sfm.records.Interface`."""
+        return cls(pinhole, normal_cam, interface.thickness_mm, interface.index,
+                   interface.medium_index, interface.distance_mm)
+
+    @property
+    def shift_mm(self) -> float:
+        """delta = d (1 - 1/n), the shift toward the camera in air."""
+        return ari_shift_mm(self.thickness_mm, self.index)
+
+    def __repr__(self) -> str:
+        return (f"AriModel({self.pinhole!r}, normal_cam={self.normal_cam.tolist()}, "
+                f"thickness_mm={self.thickness_mm}, index={self.index}, "
+                f"medium_index={self.medium_index}, distance_mm={self.distance_mm})")
+
+    def apparent_points(self, X_cam: np.ndarray) -> np.ndarray:
+        """Apparent points (N, 3): ``X + (z_app - z) n_c`` (air: ``X - delta n_c``)."""
+        X = as_points(X_cam, 3)
+        s = self._a + self._b * (X @ self.normal_cam)
+        return X + s[:, None] * self.normal_cam
+
+    def project(self, X_cam: np.ndarray) -> np.ndarray:
+        """Pixels (N, 2) of camera-frame points (N, 3)."""
+        return self.pinhole.project(self.apparent_points(X_cam))
+
+    def project_with_jacobians(self, X_cam: np.ndarray) -> AriJacobians:
+        """Pixels and analytic Jacobians (see :class:`AriJacobians`)."""
+        X = as_points(X_cam, 3)
+        nc, b = self.normal_cam, self._b
+        z = X @ nc
+        s = self._a + b * z
+        X_app = X + s[:, None] * nc
+        uv, J_pin, J_params = self.pinhole.project_with_jacobians(X_app)
+        # d X_app / d X = I + b n n^T
+        J_point = J_pin + b * (J_pin @ nc)[:, :, None] * nc[None, None, :]
+        # d X_app / d n (free vector, at unit n) = s I + b n X^T; then d n / d v
+        J_n_free = s[:, None, None] * J_pin + b * (J_pin @ nc)[:, :, None] * X[:, None, :]
+        J_normal = J_n_free @ self._dn_dv
+        # d X_app / d d = (1/n - 1/n_m) n_c ; d X_app / d h = (1 - 1/n_m) n_c
+        J_thickness = self._da_dd * (J_pin @ nc)
+        J_distance = self._da_dh * (J_pin @ nc)
+        return AriJacobians(uv, J_point, J_normal, J_params, J_thickness, J_distance)
+
+    def backproject(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Scene-side rays of pixels: origins (N, 3), unit directions (N, 3).
+
+        The pinhole ray ``X_app = t v`` maps through the inverse affine map
+        ``X = A^-1 (X_app - a n_c)``, ``A^-1 = I + (n_m - 1) n_c n_c^T``, to the
+        line ``X = -a n_m n_c + t (v + (n_m - 1)(n_c . v) n_c)``. In air the
+        origin is the virtual centre ``delta n_c`` and the direction is v.
+        With a medium the origin ``-a n_m n_c`` is a virtual point on the line
+        (not where light physically leaves the window).
+        """
+        _, v = self.pinhole.backproject(uv)
+        nc, nm = self.normal_cam, self.medium_index
+        direction = v + (nm - 1.0) * (v @ nc)[:, None] * nc
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        origins = np.broadcast_to(-self._a * nm * nc, direction.shape).copy()
+        return origins, direction

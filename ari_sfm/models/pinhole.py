@@ -1,0 +1,233 @@
+"""The plain pinhole camera with OpenCV lens distortion.
+
+Conventions (stated once for all models):
+- camera frame OpenCV: x right, y down, z forward; lengths in mm;
+- pixels OpenCV: the centre of the top-left pixel is (0, 0);
+- intrinsic parameter vector ``params = [fx, fy, cx, cy, k1, k2, p1, p2, k3]``
+  (the OpenCV 5-coefficient distortion model, no skew).
+
+Projection of a camera-frame point X = (X, Y, Z), Z > 0::
+
+    x, y   = X / Z, Y / Z                                   (normalised)
+    r2     = x^2 + y^2,   R = 1 + k1 r2 + k2 r2^2 + k3 r2^3
+    xd     = x R + 2 p1 x y + p2 (r2 + 2 x^2)
+    yd     = y R + p1 (r2 + 2 y^2) + 2 p2 x y
+    u, v   = fx xd + cx,  fy yd + cy
+
+Points with Z <= 0 (behind the camera) project to NaN: a mirrored pixel would
+be a silently wrong answer.
+"""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+NUM_PARAMS = 9
+PARAM_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+
+# Undistortion: Newton on the distortion polynomial (see PinholeModel.undistort).
+_UNDISTORT_TOL_PX = 1e-12  # stop when the step (in pixels) is below this
+_UNDISTORT_FAIL_PX = 1e-9  # a final residual above this marks the point as failed (NaN)
+_UNDISTORT_MAX_ITER = 50
+
+
+def as_points(X: np.ndarray, dim: int) -> np.ndarray:
+    """Points as a float (N, dim) array; a single (dim,) point becomes (1, dim)."""
+    X = np.asarray(X, dtype=float)
+    if X.ndim == 1:
+        X = X[None, :]
+    if X.ndim != 2 or X.shape[1] != dim:
+        raise ValueError(f"expected points of shape (N, {dim}), got {X.shape}")
+    return X
+
+
+def _dist5(dist: np.ndarray | None) -> np.ndarray:
+    """OpenCV distortion coefficients as [k1, k2, p1, p2, k3]."""
+    if dist is None:
+        return np.zeros(5)
+    dist = np.asarray(dist, dtype=float).ravel()
+    if dist.size < 4:
+        raise ValueError(f"distortion needs at least 4 coefficients (k1 k2 p1 p2), got {dist.size}")
+    if dist.size > 5 and np.any(dist[5:] != 0.0):
+        raise ValueError("only the 5-coefficient OpenCV model (k1 k2 p1 p2 k3) is supported; "
+                         f"got non-zero higher coefficients {dist[5:].tolist()}")
+    out = np.zeros(5)
+    out[: min(5, dist.size)] = dist[:5]
+    return out
+
+
+class PinholeModel:
+    """A pinhole camera with K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] and OpenCV distortion."""
+
+    def __init__(self, K: np.ndarray, dist: np.ndarray | None = None) -> None:
+        K = np.asarray(K, dtype=float)
+        if K.shape != (3, 3):
+            raise ValueError(f"K must be 3x3, got {K.shape}")
+        if K[0, 1] != 0.0 or K[1, 0] != 0.0 or not np.allclose(K[2], [0.0, 0.0, 1.0]):
+            raise ValueError("K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew)")
+        self._params = np.concatenate([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], _dist5(dist)])
+        self._params.setflags(write=False)
+
+    # ----------------------------------------------------------------- params
+    @classmethod
+    def from_params(cls, params: np.ndarray) -> "PinholeModel":
+        """Model from ``[fx, fy, cx, cy, k1, k2, p1, p2, k3]``."""
+        p = np.asarray(params, dtype=float).ravel()
+        if p.size != NUM_PARAMS:
+            raise ValueError(f"params must have {NUM_PARAMS} entries {PARAM_NAMES}, got {p.size}")
+        K = np.array([[p[0], 0.0, p[2]], [0.0, p[1], p[3]], [0.0, 0.0, 1.0]])
+        return cls(K, p[4:])
+
+    @property
+    def params(self) -> np.ndarray:
+        """(9,) ``[fx, fy, cx, cy, k1, k2, p1, p2, k3]`` (read-only)."""
+        return self._params
+
+    @property
+    def K(self) -> np.ndarray:
+        fx, fy, cx, cy = self._params[:4]
+        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def dist(self) -> np.ndarray:
+        """(5,) OpenCV distortion ``[k1, k2, p1, p2, k3]``."""
+        return self._params[4:].copy()
+
+    @property
+    def has_distortion(self) -> bool:
+        return bool(np.any(self._params[4:] != 0.0))
+
+    def __repr__(self) -> str:
+        return f"PinholeModel(params={np.array2string(self._params, precision=6)})"
+
+    # ------------------------------------------------------------- distortion
+    def distort(self, xy: np.ndarray) -> np.ndarray:
+        """Distorted normalised coordinates (N, 2) of undistorted ones (N, 2)."""
+        return self.distort_with_jacobians(xy)[0]
+
+    def distort_with_jacobians(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Distort normalised coordinates.
+
+        Returns ``xyd`` (N, 2), ``J_xy`` (N, 2, 2) = d xyd / d xy and
+        ``J_dist`` (N, 2, 5) = d xyd / d [k1, k2, p1, p2, k3].
+        """
+        xy = as_points(xy, 2)
+        k1, k2, p1, p2, k3 = self._params[4:]
+        x, y = xy[:, 0], xy[:, 1]
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
+        xyd = np.empty_like(xy)
+        xyd[:, 0] = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        xyd[:, 1] = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+
+        J_xy = np.empty((len(xy), 2, 2))
+        cross = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y  # symmetric off-diagonal
+        J_xy[:, 0, 0] = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
+        J_xy[:, 0, 1] = cross
+        J_xy[:, 1, 0] = cross
+        J_xy[:, 1, 1] = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
+
+        J_dist = np.empty((len(xy), 2, 5))
+        J_dist[:, 0, 0], J_dist[:, 1, 0] = x * r2, y * r2
+        J_dist[:, 0, 1], J_dist[:, 1, 1] = x * r2**2, y * r2**2
+        J_dist[:, 0, 2], J_dist[:, 1, 2] = 2.0 * x * y, r2 + 2.0 * y * y
+        J_dist[:, 0, 3], J_dist[:, 1, 3] = r2 + 2.0 * x * x, 2.0 * x * y
+        J_dist[:, 0, 4], J_dist[:, 1, 4] = x * r2**3, y * r2**3
+        return xyd, J_xy, J_dist
+
+    def undistort(self, xyd: np.ndarray) -> np.ndarray:
+        """Undistorted normalised coordinates (N, 2) of distorted ones.
+
+        Newton's method on ``distort(xy) = xyd`` from ``xy = xyd`` with the
+        analytic 2x2 Jacobian, iterated until the step is below 1e-12 px.
+        Points whose final residual exceeds 1e-9 px (distortion not invertible
+        there, e.g. far outside the calibrated field) come back as NaN and a
+        warning is logged: never a silently wrong ray.
+        """
+        xyd = as_points(xyd, 2)
+        if not self.has_distortion:
+            return xyd.copy()
+        f = self._params[:2]
+        xy = xyd.copy()
+        active = np.all(np.isfinite(xyd), axis=1)
+        for _ in range(_UNDISTORT_MAX_ITER):
+            if not active.any():
+                break
+            cur, J, _ = self.distort_with_jacobians(xy[active])
+            res = cur - xyd[active]
+            det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+            step = np.stack([J[:, 1, 1] * res[:, 0] - J[:, 0, 1] * res[:, 1],
+                             J[:, 0, 0] * res[:, 1] - J[:, 1, 0] * res[:, 0]], axis=1) / det[:, None]
+            xy[active] -= step
+            done = np.max(np.abs(step) * f, axis=1) <= _UNDISTORT_TOL_PX
+            idx = np.flatnonzero(active)
+            active[idx[done | ~np.isfinite(step).all(axis=1)]] = False
+        residual_px = np.max(np.abs(self.distort(xy) - xyd) * f, axis=1)
+        failed = ~(residual_px <= _UNDISTORT_FAIL_PX) & np.all(np.isfinite(xyd), axis=1)
+        if failed.any():
+            logger.warning("undistortion did not converge for %d of %d points; returning NaN",
+                           int(failed.sum()), len(xyd))
+            xy[failed] = np.nan
+        return xy
+
+    # ------------------------------------------------------------- projection
+    def pixels_from_normalized(self, xy: np.ndarray) -> np.ndarray:
+        """Pixels (N, 2) of undistorted normalised coordinates (N, 2)."""
+        return self.project_normalized_with_jacobians(xy)[0]
+
+    def project_normalized_with_jacobians(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pixels of normalised coordinates with ``J_xy`` (N, 2, 2) and ``J_params`` (N, 2, 9)."""
+        fx, fy = self._params[:2]
+        xyd, J_xy, J_dist = self.distort_with_jacobians(xy)
+        uv = xyd * self._params[:2] + self._params[2:4]
+        fdiag = np.array([fx, fy])[None, :, None]
+        J_params = np.zeros((len(uv), 2, NUM_PARAMS))
+        J_params[:, 0, 0] = xyd[:, 0]  # du/dfx
+        J_params[:, 1, 1] = xyd[:, 1]  # dv/dfy
+        J_params[:, 0, 2] = 1.0  # du/dcx
+        J_params[:, 1, 3] = 1.0  # dv/dcy
+        J_params[:, :, 4:] = fdiag * J_dist
+        return uv, fdiag * J_xy, J_params
+
+    def project(self, X_cam: np.ndarray) -> np.ndarray:
+        """Pixels (N, 2) of camera-frame points (N, 3); NaN for Z <= 0."""
+        X = as_points(X_cam, 3)
+        xy = self._normalize(X)
+        return self.pixels_from_normalized(xy)
+
+    def project_with_jacobians(self, X_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pixels (N, 2), ``J_point`` (N, 2, 3) = d uv / d X_cam, ``J_params`` (N, 2, 9)."""
+        X = as_points(X_cam, 3)
+        xy = self._normalize(X)
+        uv, J_xy, J_params = self.project_normalized_with_jacobians(xy)
+        # d(x, y)/dX = [[1/Z, 0, -x/Z], [0, 1/Z, -y/Z]]
+        inv_z = 1.0 / X[:, 2]
+        J_norm = np.zeros((len(X), 2, 3))
+        J_norm[:, 0, 0] = inv_z
+        J_norm[:, 1, 1] = inv_z
+        J_norm[:, :, 2] = -xy * inv_z[:, None]
+        return uv, J_xy @ J_norm, J_params
+
+    def backproject(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rays of pixels (N, 2): origins (N, 3) = camera centre (zeros), unit directions (N, 3).
+
+        The pixel is undistorted (see :meth:`undistort`) and lifted by K^-1.
+        """
+        uv = as_points(uv, 2)
+        xyd = (uv - self._params[2:4]) / self._params[:2]
+        xy = self.undistort(xyd)
+        d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return np.zeros_like(d), d
+
+    @staticmethod
+    def _normalize(X: np.ndarray) -> np.ndarray:
+        """(X/Z, Y/Z), NaN where Z <= 0."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xy = X[:, :2] / X[:, 2:3]
+        xy[~(X[:, 2] > 0.0)] = np.nan
+        return xy
