@@ -1,0 +1,149 @@
+"""Atomic file writes: a reader sees the old file or the new one, never half of one.
+
+The text goes to a temporary file in the target's directory, is flushed and
+fsynced, then ``os.replace`` swaps it in. On any exception the temporary file
+is removed and the target is left as it was.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from pathlib import Path, PurePath
+from typing import Any, Mapping
+
+import numpy as np
+
+from ari_sfm.errors import AriSfmError
+
+
+def _current_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+_FILE_MODE = 0o666 & ~_current_umask()  # what open() would give a new file
+
+
+def write_text_atomic(path: str | Path, text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path`` atomically, creating missing parent folders.
+
+    Keeps the mode of an existing file. Raises AriSfmError if the file cannot be written.
+    """
+    if not isinstance(text, str):
+        raise TypeError(f"write_text_atomic needs str, got {type(text).__name__}")
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        mode = path.stat().st_mode & 0o7777 if path.exists() else _FILE_MODE
+        fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as exc:
+        raise AriSfmError(path, f"cannot write file: {exc.strerror or exc}") from None
+    tmp = Path(tmp_name)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, mode)
+        os.replace(tmp, path)
+    except BaseException as exc:
+        tmp.unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            raise AriSfmError(path, f"cannot write file: {exc.strerror or exc}") from exc
+        raise
+    _fsync_dir(path.parent)
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Make the rename durable (POSIX); a no-op where folders cannot be opened."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def to_jsonable(obj: Any, where: str = "", string_keys: bool = True) -> Any:
+    """``obj`` with numpy arrays/scalars, tuples and paths turned into JSON types.
+
+    Integer mapping keys become strings unless ``string_keys`` is False (YAML
+    keeps them). Raises AriSfmError(None, ...) naming the key path of a NaN or
+    infinity and TypeError for an object JSON cannot hold.
+    """
+    if obj is None or isinstance(obj, (bool, str)):
+        return obj
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        value = float(obj)
+        if not math.isfinite(value):
+            raise AriSfmError(None, f"cannot write {value} at {where or 'top level'} (JSON has no NaN or infinity)")
+        return value
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist(), where, string_keys)
+    if isinstance(obj, PurePath):
+        return obj.as_posix()
+    if isinstance(obj, Mapping):
+        out = {}
+        for key, value in obj.items():
+            if isinstance(key, (np.integer, int)) and not isinstance(key, bool):
+                key = str(int(key)) if string_keys else int(key)
+            elif not isinstance(key, str):
+                raise TypeError(f"JSON keys must be strings, got {key!r} at {where or 'top level'}")
+            out[key] = to_jsonable(value, f"{where}.{key}" if where else str(key), string_keys)
+        return out
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v, f"{where}[{i}]", string_keys) for i, v in enumerate(obj)]
+    raise TypeError(f"object of type {type(obj).__name__} at {where or 'top level'} is not JSON serializable")
+
+
+def format_json(obj: Any, indent: int = 2) -> str:
+    """Indented JSON of JSON-native ``obj``; lists of numbers stay on one line.
+
+    So a K matrix or a pixel list prints one row per line. Floats keep full
+    precision (shortest repr that reads back exactly).
+    """
+    return _format(obj, 0, indent) + "\n"
+
+
+def _is_scalar(v: Any) -> bool:
+    return v is None or isinstance(v, (bool, int, float, str))
+
+
+def _format(obj: Any, level: int, indent: int) -> str:
+    pad, inner = " " * (indent * level), " " * (indent * (level + 1))
+    if isinstance(obj, dict):
+        if not obj:
+            return "{}"
+        items = [f"{inner}{json.dumps(k)}: {_format(v, level + 1, indent)}" for k, v in obj.items()]
+        return "{\n" + ",\n".join(items) + "\n" + pad + "}"
+    if isinstance(obj, list):
+        if all(_is_scalar(v) for v in obj):
+            return "[" + ", ".join(json.dumps(v, allow_nan=False) for v in obj) + "]"
+        items = [inner + _format(v, level + 1, indent) for v in obj]
+        return "[\n" + ",\n".join(items) + "\n" + pad + "]"
+    return json.dumps(obj, allow_nan=False)
+
+
+def write_json_atomic(path: str | Path, obj: Any) -> None:
+    """Write ``obj`` as indented JSON, atomically (see :func:`write_text_atomic`).
+
+    numpy arrays and scalars are converted. A NaN or infinity raises AriSfmError
+    naming the file and the key; an unencodable object raises TypeError. Either
+    way nothing is written.
+    """
+    try:
+        text = format_json(to_jsonable(obj))
+    except AriSfmError as exc:
+        raise AriSfmError(path, exc.message) from None
+    write_text_atomic(path, text)
