@@ -112,6 +112,8 @@ class Calibration:
         if self.stacking_poses:
             out["stacking_poses"] = {f: {"world_from_target": p.to_json()} for f, p in self.stacking_poses.items()}
         if self.target is not None:
+            from .io.dataset import target_to_json
+
             out["target"] = target_to_json(self.target)
         out["residuals"] = dict(self.residuals)
         out["time_s"] = self.time_s
@@ -193,7 +195,12 @@ def _parse(data: Any, path: Any) -> Calibration:
     frames = {f: _pose(v["world_from_target"], f"frames.{f}", path) for f, v in data.get("frames", {}).items()}
     stacking = {f: _pose(v["world_from_target"], f"stacking_poses.{f}", path) for f, v in data.get("stacking_poses", {}).items()}
     reserved = {"format", "model", "interface", "cameras", "frames", "stacking_poses", "residuals", "time_s", "target"}
-    target = target_from_json(data["target"], path) if "target" in data else None
+    if "target" in data:
+        from .io.dataset import parse_target
+
+        target = parse_target(data["target"], Path(path))
+    else:
+        target = None
     return Calibration(
         model, Interface(thickness, index, medium, None if distance is None else float(distance)), normal, cams,
         frames, stacking, dict(data.get("residuals", {})), float(data.get("time_s", 0.0)),
@@ -207,22 +214,3 @@ def load_calibration(path: str | Path) -> Calibration:
 
     return Calibration.from_json(read_structured(Path(path)), path)
 
-
-def target_to_json(target: Target) -> dict[str, Any]:
-    """The rig.yaml form of a target."""
-    out: dict[str, Any] = {"type": target.type}
-    if target.type == "checkerboard":
-        out.update(inner_corners=list(target.inner_corners), square_mm=target.square_mm)
-    elif target.type == "charuco":
-        out.update(squares=list(target.squares), square_mm=target.square_mm, marker_mm=target.marker_mm,
-                   dictionary=target.dictionary)
-    else:
-        out["points"] = {int(k): list(map(float, v)) for k, v in target.points.items()}
-    return out
-
-
-def target_from_json(data: Any, path: Any) -> Target:
-    """Parse a target mapping (validated like rig.yaml's)."""
-    from .io.dataset import parse_target
-
-    return parse_target(data, path)

@@ -7,6 +7,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from .calibration import Calibration
+from .geometry import Pose
 from .records import Dataset, Observation, Target
 
 
@@ -44,11 +45,59 @@ def observation_residuals(calibration: Calibration, observations: Sequence[Obser
     return out
 
 
-def evaluate(calibration: Calibration, observations: str | Path | Dataset | Sequence[Observation], target: Target | None = None) -> dict:
+def solve_frame_poses(calibration: Calibration, observations: Sequence[Observation], target: Target,
+                      sets: tuple[str, ...] = ("calibration", "reconstruction")) -> dict[str, Pose]:
+    """world_from_target of every frame the calibration does not hold, with the rig fixed.
+
+    PnP in the first camera that sees the frame (window removed as in Eqs. 11-12),
+    then a least-squares refinement through the calibration's own model over all
+    cameras that see it. Used to judge a calibration on held-out poses.
+    """
+    import cv2
+    from scipy.optimize import least_squares
+
+    from .geometry import rotation_from_rotvec
+
+    ids_all, xyz_all = target.points_3d()
+    lookup = {int(i): k for k, i in enumerate(ids_all)}
+    by_frame: dict[str, list[Observation]] = {}
+    for o in observations:
+        if o.set in sets and o.frame not in calibration.frames and o.camera in calibration.cameras and len(o.ids) >= 4:
+            by_frame.setdefault(o.frame, []).append(o)
+    poses = {}
+    for frame, obs in by_frame.items():
+        first = obs[0]
+        cam = calibration.cameras[first.camera]
+        pts = [xyz_all[[lookup[int(i)] for i in o.ids]] for o in obs]
+        ok, rvec, tvec = cv2.solvePnP(pts[0], first.pixels.astype(float), cam.K, cam.dist)
+        if not ok:
+            continue
+        shift = calibration.interface.shift_mm * calibration.normal_cam(first.camera)
+        cam_from_target = Pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3) + shift)
+        start = cam.cam_from_world.inverse().compose(cam_from_target)
+        models = [calibration.projection_model(o.camera) for o in obs]
+
+        def residuals(x: np.ndarray) -> np.ndarray:
+            pose = Pose(start.R @ rotation_from_rotvec(x[:3]), start.t + x[3:])
+            out = [m.project(calibration.cameras[o.camera].cam_from_world.apply(pose.apply(p))) - o.pixels
+                   for m, o, p in zip(models, obs, pts)]
+            r = np.concatenate(out).ravel()
+            return np.where(np.isfinite(r), r, 1e3)
+
+        x = least_squares(residuals, np.zeros(6), x_scale=np.r_[1e-3, 1e-3, 1e-3, 1.0, 1.0, 1.0]).x
+        poses[frame] = Pose(start.R @ rotation_from_rotvec(x[:3]), start.t + x[3:])
+    return poses
+
+
+def evaluate(calibration: Calibration, observations: str | Path | Dataset | Sequence[Observation], target: Target | None = None,
+             solve_poses: bool = False) -> dict:
     """Reprojection errors (rmse_px, mae_px, max_px, count, per_camera) on observations.
 
     ``observations`` is an observations.json path, a Dataset, or loaded records.
-    Only records of frames (or stacking poses) whose poses the calibration holds count.
+    Only records of frames (or stacking poses) whose poses the calibration holds
+    count, unless ``solve_poses``: then the poses of the other frames are fitted
+    with the rig held fixed (:func:`solve_frame_poses`), which judges the rig on
+    held-out views.
     """
     if isinstance(observations, Dataset):
         target = target or observations.target
@@ -63,6 +112,12 @@ def evaluate(calibration: Calibration, observations: str | Path | Dataset | Sequ
     target = target or calibration.target
     if target is None:
         raise ValueError("evaluate needs the target geometry: the calibration holds none, pass target=")
+    if solve_poses:
+        from dataclasses import replace
+
+        extra = solve_frame_poses(calibration, records, target)
+        calibration = replace(calibration, frames={**calibration.frames, **extra})
+        records = [o if o.set != "reconstruction" else replace(o, set="calibration") for o in records]
     pairs = observation_residuals(calibration, records, target)
     stats = residual_stats(r for _, r in pairs)
     stats["per_camera"] = {c: residual_stats(r for o, r in pairs if o.camera == c) for c in calibration.cameras}
