@@ -362,3 +362,14 @@ def test_jacobian_normal_chains_with_tangent_basis(pinhole, normal):
             return cls(pinhole, n / np.linalg.norm(n), *args).project(X)
 
         assert_jacobian(J, central_diff(along, np.zeros(2), [1e-7, 1e-7]), name=cls.__name__)
+
+
+@pytest.mark.parametrize("medium", [1.0, WATER])
+def test_ari_is_the_first_newton_step(pinhole, normal, medium):
+    """Newton from u = 0 first lands on w = 1/rho'(0) = 1/z_app: the ARI ray n_c + r / z_app."""
+    ari = AriModel(pinhole, normal, THICKNESS, INDEX, medium, DISTANCE)
+    X = scene_points(normal, seed=5)
+    z = X @ normal
+    r = X - z[:, None] * normal
+    w1 = 1.0 / (DISTANCE + THICKNESS / INDEX + (z - DISTANCE - THICKNESS) / medium)
+    assert np.max(np.abs(pinhole.project(normal + w1[:, None] * r) - ari.project(X))) < 1e-9

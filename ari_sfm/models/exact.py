@@ -41,14 +41,17 @@ are NaN. A Newton iteration that does not converge raises
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from .ari import check_window, unit_normal_and_projector
 from .pinhole import PinholeModel, as_points
 
-NEWTON_MAX_ITER = 20  # observed <= 6 over the whole image of the paper camera
+if TYPE_CHECKING:
+    from ari_sfm.records import Interface
+
+NEWTON_MAX_ITER = 20  # a cap; the paper camera needs 5 (air) to 6 (water) over its whole image
 NEWTON_REL_TOL = 1e-12  # stop when |step| <= tol * w; quadratic convergence leaves ~1e-24 + rounding
 
 
@@ -127,7 +130,7 @@ class ExactModel:
         self.distance_mm = float(distance_mm)
 
     @classmethod
-    def from_interface(cls, pinhole: PinholeModel, normal_cam: np.ndarray, interface,
+    def from_interface(cls, pinhole: PinholeModel, normal_cam: np.ndarray, interface: "Interface",
                        distance_mm: float | None = None) -> "ExactModel":
         """Model from a :class:`ari_sfm.records.Interface` (``distance_mm`` overrides its hint)."""
         h = interface.distance_mm if distance_mm is None else distance_mm
@@ -140,7 +143,7 @@ class ExactModel:
                 f"medium_index={self.medium_index}, distance_mm={self.distance_mm})")
 
     # ---------------------------------------------------------------- forward
-    def _solve(self, X: np.ndarray):
+    def _solve(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
         """Common forward part: z, r, L, w (NaN where L <= 0) and the Newton step count."""
         nc = self.normal_cam
         z = X @ nc

@@ -66,7 +66,7 @@ class PinholeModel:
         K = np.asarray(K, dtype=float)
         if K.shape != (3, 3):
             raise ValueError(f"K must be 3x3, got {K.shape}")
-        if K[0, 1] != 0.0 or K[1, 0] != 0.0 or not np.allclose(K[2], [0.0, 0.0, 1.0]):
+        if K[0, 1] != 0.0 or K[1, 0] != 0.0 or K[2, 0] != 0.0 or K[2, 1] != 0.0 or abs(K[2, 2] - 1.0) > 1e-12:
             raise ValueError("K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew)")
         self._params = np.concatenate([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], _dist5(dist)])
         self._params.setflags(write=False)
@@ -75,11 +75,13 @@ class PinholeModel:
     @classmethod
     def from_params(cls, params: np.ndarray) -> "PinholeModel":
         """Model from ``[fx, fy, cx, cy, k1, k2, p1, p2, k3]``."""
-        p = np.asarray(params, dtype=float).ravel()
+        p = np.array(params, dtype=float).ravel()  # a copy
         if p.size != NUM_PARAMS:
             raise ValueError(f"params must have {NUM_PARAMS} entries {PARAM_NAMES}, got {p.size}")
-        K = np.array([[p[0], 0.0, p[2]], [0.0, p[1], p[3]], [0.0, 0.0, 1.0]])
-        return cls(K, p[4:])
+        model = cls.__new__(cls)  # skips K validation: called once per factor evaluation
+        p.setflags(write=False)
+        model._params = p
+        return model
 
     @property
     def params(self) -> np.ndarray:
@@ -164,8 +166,9 @@ class PinholeModel:
                              J[:, 0, 0] * res[:, 1] - J[:, 1, 0] * res[:, 0]], axis=1) / det[:, None]
             xy[active] -= step
             done = np.max(np.abs(step) * f, axis=1) <= _UNDISTORT_TOL_PX
+            diverged = ~np.isfinite(step).all(axis=1) | (np.abs(xy[active]).max(axis=1) > 1e3)
             idx = np.flatnonzero(active)
-            active[idx[done | ~np.isfinite(step).all(axis=1)]] = False
+            active[idx[done | diverged]] = False
         residual_px = np.max(np.abs(self.distort(xy) - xyd) * f, axis=1)
         failed = ~(residual_px <= _UNDISTORT_FAIL_PX) & np.all(np.isfinite(xyd), axis=1)
         if failed.any():
