@@ -1,0 +1,106 @@
+"""Every CLI path: --help, simulate -> calibrate -> evaluate, and bad inputs that must give
+one line `error: <file>: <problem>`, exit code 1 and no result file."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from click.testing import CliRunner
+
+from ari_sfm.cli import main
+
+
+@pytest.fixture(scope="module")
+def sim_dir(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("sim")
+    r = CliRunner().invoke(main, ["simulate", "paper_single", "-o", str(out), "--no-images", "--seed", "0"])
+    assert r.exit_code == 0, r.output
+    return out
+
+
+@pytest.mark.parametrize("cmd", [[], ["detect"], ["calibrate"], ["run"], ["evaluate"], ["simulate"], ["scenarios"], ["doctor"]])
+def test_help(cmd):
+    r = CliRunner().invoke(main, cmd + ["--help"])
+    assert r.exit_code == 0 and "Usage" in r.output
+
+
+def test_calibrate_then_evaluate(sim_dir, tmp_path):
+    runner = CliRunner()
+    r = runner.invoke(main, ["calibrate", str(sim_dir / "dataset"), "-o", str(tmp_path / "out")])
+    assert r.exit_code == 0, r.output
+    assert "rmse" in r.output and "cam0" in r.output
+    cal = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    assert cal["format"] == "ari-sfm-calibration/1" and cal["model"] == "ari"
+    assert len(cal["cameras"]["cam0"]["expansion_center_px"]) == 2
+    assert len(cal["cameras"]["cam0"]["expansion_center_std_px"]) == 2
+    assert not (tmp_path / "out" / "observations.json").exists()  # nothing was detected here
+    r = runner.invoke(main, ["evaluate", str(tmp_path / "out" / "calibration.json"), str(sim_dir / "dataset" / "observations.json")])
+    assert r.exit_code == 0, r.output
+    rmse = float(r.output.split()[1])
+    assert abs(rmse - cal["residuals"]["rmse_px"]) < 1e-4  # printed to 4 decimals
+
+
+def test_console_script_runs(sim_dir, tmp_path):
+    """The installed `ari-sfm` entry point (not only the click object) works."""
+    exe = Path(sys.executable).parent / "ari-sfm"
+    p = subprocess.run([str(exe), "calibrate", str(sim_dir / "dataset"), "-o", str(tmp_path / "o"), "--model", "exact"],
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert json.loads((tmp_path / "o" / "calibration.json").read_text())["model"] == "exact"
+
+
+def _copy_dataset(src: Path, dst: Path) -> Path:
+    import shutil
+
+    shutil.copytree(src, dst)
+    return dst
+
+
+def _edit_rig(ds: Path, fn) -> None:
+    rig = yaml.safe_load((ds / "rig.yaml").read_text())
+    fn(rig)
+    (ds / "rig.yaml").write_text(yaml.safe_dump(rig))
+
+
+def _edit_obs(ds: Path, fn) -> None:
+    obs = json.loads((ds / "observations.json").read_text())
+    fn(obs)
+    (ds / "observations.json").write_text(json.dumps(obs))
+
+
+BAD = {
+    "missing dataset": (lambda ds: None, "nonexistent", "no such"),
+    "malformed yaml": (lambda ds: (ds / "rig.yaml").write_text("format: ari-sfm/1\ntarget: [unclosed\n"), None, "rig.yaml"),
+    "unknown format": (lambda ds: _edit_rig(ds, lambda r: r.update(format="ari-sfm/99")), None, "format"),
+    "thickness <= 0": (lambda ds: _edit_rig(ds, lambda r: r["interface"].update(thickness_mm=0)), None, "thickness"),
+    "index < 1": (lambda ds: _edit_rig(ds, lambda r: r["interface"].update(index=0.9)), None, "index"),
+    "missing key": (lambda ds: _edit_rig(ds, lambda r: r.pop("target")), None, "target"),
+    "nan pixel": (lambda ds: _edit_obs(ds, lambda o: o["observations"][0]["pixels"][0].__setitem__(0, float("nan"))), None, "observations.json"),
+    "id out of range": (lambda ds: _edit_obs(ds, lambda o: o["observations"][0]["ids"].__setitem__(0, 500)), None, "observations.json"),
+    "unknown camera": (lambda ds: _edit_obs(ds, lambda o: o["observations"][0].update(camera="cam9")), None, "cam9"),
+    "malformed json": (lambda ds: (ds / "observations.json").write_text('{"format": "ari-sfm-observations/1", "observations": [}'), None, "observations.json"),
+    "no stacking": (lambda ds: (_edit_rig(ds, lambda r: r.pop("stacking", None)),
+                                _edit_obs(ds, lambda o: o.update(observations=[r for r in o["observations"] if r["set"] != "stacking"]))),
+                    None, "normal"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_input_gives_one_line_error_and_no_result(case, sim_dir, tmp_path):
+    mutate, path_override, needle = BAD[case]
+    ds = _copy_dataset(sim_dir / "dataset", tmp_path / "ds")
+    mutate(ds)
+    target = tmp_path / path_override if path_override else ds
+    out = tmp_path / "out"
+    r = CliRunner().invoke(main, ["calibrate", str(target), "-o", str(out)])
+    assert r.exit_code == 1, r.output
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()] if hasattr(r, "stderr") else r.output.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), r.output
+    assert needle.lower() in lines[0].lower(), lines[0]
+    assert "Traceback" not in r.output
+    assert not (out / "calibration.json").exists()
+    assert not list(out.glob("*.tmp*")) if out.exists() else True
