@@ -72,14 +72,14 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     state = RigState(
         {n: np.concatenate([[c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]], np.resize(c.dist, 5)]) for n, c in rig.cameras.items()},
         rig.cam_from_world, rig.normal_world, rig.world_from_target,
-        iface.distance_mm if iface.distance_mm is not None else (_default_distance(dataset) if underwater else None),
+        iface.distance_mm if iface.distance_mm is not None else (_default_distance(rig) if underwater else None),
     )
     stages = ["ari"] + (["exact"] if model == "exact" else [])
     graph = None
     iterations = {}
     for stage in stages:
         if stage == "exact" and state.distance_mm is None:
-            state = RigState(state.params, state.cam_from_world, state.normal_world, state.world_from_target, _default_distance(dataset))
+            state = RigState(state.params, state.cam_from_world, state.normal_world, state.world_from_target, _default_distance(rig))
         graph = RigGraph.build(
             dataset.observations, dataset.target, iface, names, state, model=stage, distortion=opts.distortion,
             estimate_distance=underwater, huber_px=opts.huber_px,
@@ -117,11 +117,14 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     return cal
 
 
-def _default_distance(dataset: Dataset) -> float:
-    """A window distance for models that need one when the dataset gives none.
+def _default_distance(rig) -> float:
+    """A starting distance from camera 0 to the window when the dataset gives none.
 
     In air the exact model does not depend on it (the plate shifts each ray
-    sideways by an amount set by angle and thickness only), so any value that
-    keeps the targets behind the window will do.
+    sideways by an amount set by the angle and the thickness only), so any value
+    that keeps every camera in front of the window will do: 10 mm in front of
+    the camera nearest to it. Under water it is estimated from this start.
     """
-    return 10.0
+    n = rig.normal_world
+    centres = [p.inverse().t for p in rig.cam_from_world.values()]
+    return float(max(n @ c for c in centres)) + 10.0

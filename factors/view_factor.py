@@ -75,6 +75,11 @@ def view_residuals(
     X_c = (P @ R_wt.T + t_wt - t_wc) @ R_wc
     n_c = R_cw @ n_w
     h_c = None if h0 is None else h0 - float(n_w @ t_wc)
+    if h_c is not None and h_c <= 0:
+        # An LM trial step put the camera beyond the window: a huge error rejects the step.
+        M = len(P)
+        dims = [data.n_params] + ([6] if keys.camera is not None else []) + [2, 6] + ([1] if keys.distance is not None else [])
+        return np.full(2 * M, 1e6), [np.zeros((2 * M, d)) for d in dims] if want_jacobians else []
     model = model_factory(PinholeModel.from_params(params), n_c, data.thickness_mm, data.index, data.medium_index, h_c)
     J = model.project_with_jacobians(X_c)
     r = J.uv - data.measured
