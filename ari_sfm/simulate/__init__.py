@@ -1,0 +1,192 @@
+"""Synthetic datasets with exact Snell physics and their truth.
+
+``make_scene(name)`` builds a scenario in memory (a :class:`Scene`: the
+dataset a user would hold, with observations, and the truth);
+``simulate(name, out_dir)`` writes ``out_dir/dataset/`` (rig.yaml and either
+observations.json or rendered PNG images) and ``out_dir/truth.json`` beside
+it.  Scenario names and one-line descriptions are in :data:`SCENARIOS`.
+
+Every pixel comes from :class:`~ari_sfm.models.exact.ExactModel` (Snell's
+law at both faces of the plate), never from the paraxial ARI equation the
+project calibrates with: a test on these data measures the model, not a
+tautology.
+
+Random streams: the geometry of a scenario comes from ``(seed, scenario)``
+alone, the noise from a second stream, so ``sigma_px`` and ``image_scale``
+never move a pose; ``paper_single`` and ``paper_single_images`` share the
+geometry for a seed.
+"""
+from __future__ import annotations
+
+import inspect
+import logging
+import zlib
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from ari_sfm.records import Dataset, Observation
+from ari_sfm.simulate.scenarios import REGISTRY, SCENARIOS, build_geometry
+from ari_sfm.simulate.scene import Geometry, image_path, observe, to_dataset, truth_dict
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["SCENARIOS", "Scene", "make_scene", "simulate", "images_by_default"]
+
+PLACEHOLDER_ROOT = Path("<simulated>")
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A simulated experiment in memory.
+
+    ``dataset``: what a user would hold (observations with noise, no images,
+    ``root`` a placeholder).  ``truth``: the ``calibration.json``-form truth
+    (model ``truth``).  ``geometry``: the same truth as objects.
+    ``exact_observations``: the noise-free records (same order as the dataset's).
+    """
+
+    name: str
+    dataset: Dataset
+    truth: dict
+    geometry: Geometry
+    exact_observations: tuple[Observation, ...]
+
+
+def _rng(name: str, seed: int, stream: int) -> np.random.Generator:
+    """Deterministic generator for (seed, scenario family, stream): 0 geometry, 1 noise, 2 images."""
+    family = REGISTRY[name].rng_name or name
+    return np.random.default_rng([int(seed), zlib.crc32(family.encode()), stream])
+
+
+def _check_name(name: str) -> None:
+    if name not in REGISTRY:
+        raise ValueError(f"unknown scenario {name!r}; choose one of {', '.join(SCENARIOS)}")
+
+
+def _check_overrides(name: str, overrides: dict) -> None:
+    spec = REGISTRY[name]
+    params = inspect.signature(spec.build).parameters
+    allowed = [p for p in params if p != "rng" and p not in spec.options]
+    bad = [k for k in overrides if k not in allowed]
+    if bad:
+        raise ValueError(f"scenario {name!r} has no option {', '.join(bad)}; options: {', '.join(allowed)}")
+
+
+def images_by_default(name: str) -> bool:
+    """Whether ``simulate(name, ...)`` renders images when ``images`` is None."""
+    _check_name(name)
+    return REGISTRY[name].images
+
+
+def make_scene(name: str, seed: int = 0, sigma_px: float = 0.05, **overrides) -> Scene:
+    """Build scenario ``name`` in memory.
+
+    ``sigma_px``: i.i.d. Gaussian noise per pixel coordinate on every record.
+    ``overrides``: ``image_scale`` (scales image size and K; the geometry and
+    which camera sees what do not change) and the scenario's options, e.g.
+    ``num_frames``, ``num_cameras`` (arc4, scale16).
+    """
+    _check_name(name)
+    image_scale = float(overrides.pop("image_scale", 1.0))
+    if not image_scale > 0.0:
+        raise ValueError(f"image_scale must be > 0 (got {image_scale})")
+    if sigma_px < 0.0:
+        raise ValueError(f"sigma_px must be >= 0 (got {sigma_px})")
+    _check_overrides(name, overrides)
+    geometry = build_geometry(name, _rng(name, seed, 0), **overrides).scaled(image_scale)
+    exact = observe(geometry, 0.0, _rng(name, seed, 1))
+    noise_rng = _rng(name, seed, 1)
+    noisy = tuple(o if sigma_px == 0.0 else replace(o, pixels=o.pixels + noise_rng.normal(0.0, sigma_px, o.pixels.shape))
+                  for o in exact)
+    dataset = to_dataset(geometry, noisy, PLACEHOLDER_ROOT, seen=exact)
+    truth = truth_dict(geometry, name, seed, sigma_px)
+    n_cams = {o.camera for o in exact}
+    logger.info("scenario %s seed %d: %d cameras, %d records, %d corners", name, seed, len(n_cams),
+                len(exact), sum(len(o.ids) for o in exact))
+    return Scene(name=name, dataset=dataset, truth=truth, geometry=geometry, exact_observations=exact)
+
+
+def _pixel_to_target(geometry: Geometry, camera: str, frame_pose, added_mm: float):
+    """pixels (N, 2) -> target-plane (x, y) mm of the exact scene ray of each pixel (NaN if missed)."""
+    cam = geometry.camera(camera)
+    model = geometry.window.model(cam, added_mm)
+    cam_from_target = cam.cam_from_world.compose(frame_pose)
+    R, t = cam_from_target.R, cam_from_target.t
+
+    def pixel_to_target(uv: np.ndarray) -> np.ndarray:
+        origins, dirs = model.backproject(np.asarray(uv, float))
+        o_t = (origins - t) @ R  # R^T (o - t): ray in the target frame
+        d_t = dirs @ R
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = -o_t[:, 2] / d_t[:, 2]
+            xy = o_t[:, :2] + lam[:, None] * d_t[:, :2]
+        xy[~(lam > 0.0)] = np.nan
+        return xy
+
+    return pixel_to_target
+
+
+def render_images(scene: Scene, dataset_dir: Path, seed: int = 0, supersample: int = 4,
+                  noise_sigma: float = 1.0) -> list[Path]:
+    """Render one PNG per record of ``scene`` into ``dataset_dir`` (paths of :func:`image_path`)."""
+    import cv2
+
+    from ari_sfm.simulate.render import render_target
+
+    geometry = scene.geometry
+    frames = geometry.frames()
+    written = []
+    for k, o in enumerate(scene.exact_observations):
+        rel = image_path(o.set, o.camera, o.frame, o.added_mm)
+        f = _pixel_to_target(geometry, o.camera, frames[o.frame], o.added_mm or 0.0)
+        img = render_target(geometry.target, f, geometry.camera(o.camera).image_size,
+                            supersample=supersample, noise_sigma=noise_sigma,
+                            seed=int(np.random.SeedSequence([seed, k]).generate_state(1)[0]))
+        path = dataset_dir / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if not cv2.imwrite(str(path), img):
+            raise OSError(f"could not write {path}")
+        written.append(path)
+        logger.info("rendered %s", rel)
+    return written
+
+
+def simulate(name: str, out_dir: str | Path, seed: int = 0, sigma_px: float = 0.05,
+             images: bool | None = None, image_scale: float = 1.0, **overrides) -> tuple[Path, Path]:
+    """Write scenario ``name`` to ``out_dir/dataset/`` and its truth to ``out_dir/truth.json``.
+
+    Without images the dataset holds ``observations.json`` (noisy exact
+    corners).  With images (default for ``*_images`` scenarios) it holds PNGs
+    under stack/, calib/, recon/ listed in rig.yaml and no observations: the
+    corners must be detected.  The noise-free corners are written beside the
+    truth as ``truth_observations.json`` (for judging a detector).
+    Returns (dataset_dir, truth_path).
+    """
+    from ari_sfm.io import save_observations, save_rig, write_json_atomic
+
+    _check_name(name)
+    images = REGISTRY[name].images if images is None else bool(images)
+    if images and name == "scale16":
+        raise ValueError("scale16 is observations only (16 cameras x 500 frames of images is not a test set)")
+    scene = make_scene(name, seed=seed, sigma_px=sigma_px, image_scale=image_scale, **overrides)
+    out_dir = Path(out_dir)
+    dataset_dir = out_dir / "dataset"
+    dataset_dir.mkdir(parents=True, exist_ok=True)
+    stale = dataset_dir / "observations.json"
+    if images:
+        if stale.exists():  # a previous run's detections must not stand in for the images
+            stale.unlink()
+        render_images(scene, dataset_dir, seed=seed)
+        dataset = to_dataset(scene.geometry, None, dataset_dir, seen=scene.exact_observations, with_images=True)
+    else:
+        dataset = replace(scene.dataset, root=dataset_dir, rig_path=dataset_dir / "rig.yaml",
+                          observations_path=stale)
+    save_rig(dataset_dir / "rig.yaml", dataset)  # writes observations.json too when the dataset holds them
+    truth_path = out_dir / "truth.json"
+    truth = dict(scene.truth, images=images)
+    write_json_atomic(truth_path, truth)
+    save_observations(out_dir / "truth_observations.json", scene.exact_observations)
+    logger.info("wrote %s and %s", dataset_dir, truth_path)
+    return dataset_dir, truth_path

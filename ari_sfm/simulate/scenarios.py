@@ -1,0 +1,520 @@
+"""The simulated experiments: random but valid geometries, deterministic for a seed.
+
+Each builder takes a numpy Generator and keyword options and returns a
+:class:`~ari_sfm.simulate.scene.Geometry`.  Random target poses that a
+camera that must see them does not see (a corner within 10 px of the border,
+or a point not beyond the window) are drawn again.  Geometry comes from its
+own random stream, so the noise level never changes the poses.
+
+Rig frames used while building: x right, y down, z forward (OpenCV-like);
+the world frame of the result is camera 0's frame.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ari_sfm.geometry import Pose, rotation_from_rotvec, unit
+from ari_sfm.records import Target
+from ari_sfm.simulate.scene import (
+    MARGIN_PX,
+    CameraTruth,
+    Geometry,
+    ReconstructionFrame,
+    StackingPose,
+    WindowTruth,
+    check_geometry,
+    inside,
+)
+
+logger = logging.getLogger(__name__)
+
+# ----------------------------------------------------------------- paper-like constants
+PAPER_IMAGE_SIZE = (2448, 2048)  # Daheng MER2-503-36U3M
+PAPER_FOCAL_PX = 12.0 / 3.45e-3  # 12 mm lens, 3.45 um pixels: 3478.3 px
+NBK7_INDEX = 1.5168
+WATER_INDEX = 1.333
+PAPER_TARGET = Target(type="checkerboard", inner_corners=(11, 8), square_mm=20.0)
+STACK_ADDED_MM = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0)
+STAGE_MM = tuple(float(s) for s in range(-10, 11, 2))
+MAX_TRIES = 4000  # draws per random pose before giving up (raise, never a silent bad pose)
+
+SCENARIOS: dict[str, str] = {
+    "paper_single": "one paper-like camera (2448x2048, f~3478 px) behind a 50 mm N-BK7 window "
+                    "tilted 4-8 deg; 12 calibration poses, stacking 0..50 mm",
+    "paper_single_images": "paper_single rendered to PNG images (corners must be detected)",
+    "paper_single_perpendicular": "paper_single with the window normal within 0.05 deg of the optical axis",
+    "binocular": "two cameras 120-200 mm apart, yawed 10-15 deg inward, one 50 mm window; "
+                 "15 calibration frames, stacking, 11 stage frames (-10..10 mm)",
+    "binocular_underwater": "binocular behind a 10 mm glass port with water (n=1.333) behind it",
+    "arc4": "4 cameras on an arc, window tilted ~20 deg (an outer expansion centre outside "
+            "its image), partial visibility",
+    "scale16": "16 cameras in a 4x4 grid, 500 frames (observations only) for scale tests",
+}
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _rot(axis: Sequence[float], angle_rad: float) -> np.ndarray:
+    return rotation_from_rotvec(unit(np.asarray(axis, float)) * angle_rad)
+
+
+def _rot_y(angle_rad: float) -> np.ndarray:
+    return _rot((0.0, 1.0, 0.0), angle_rad)
+
+
+def _tilted(axis: np.ndarray, tilt_rad: float, azimuth_rad: float) -> np.ndarray:
+    """``axis`` turned by ``tilt_rad`` toward the perpendicular direction at ``azimuth_rad``."""
+    axis = unit(axis)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = unit(helper - (helper @ axis) * axis)
+    e2 = np.cross(axis, e1)  # for an axis near z: e1 ~ x, e2 ~ y, the azimuth reads as usual
+    return unit(math.cos(tilt_rad) * axis
+                + math.sin(tilt_rad) * (math.cos(azimuth_rad) * e1 + math.sin(azimuth_rad) * e2))
+
+
+def _intrinsics(rng: np.random.Generator, size: tuple[int, int] = PAPER_IMAGE_SIZE,
+                focal_px: float = PAPER_FOCAL_PX, focal_spread: float = 0.01,
+                pp_spread_px: float = 20.0) -> np.ndarray:
+    """K with square pixels, fx within +-focal_spread of nominal, principal point near the centre."""
+    w, h = size
+    f = focal_px * (1.0 + rng.uniform(-focal_spread, focal_spread))
+    cx = (w - 1) / 2.0 + rng.uniform(-pp_spread_px, pp_spread_px)
+    cy = (h - 1) / 2.0 + rng.uniform(-pp_spread_px, pp_spread_px)
+    return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+
+
+def _board_outline(target: Target, per_edge: int = 6) -> np.ndarray:
+    """Points along the outer edge of the board's squares (target frame): the printed
+    pattern that must be inside an image for a detector to find the board."""
+    cols, rows = target.grid
+    s = target.square_mm
+    x0, y0, x1, y1 = -s, -s, cols * s, rows * s
+    t = np.linspace(0.0, 1.0, per_edge, endpoint=False)
+    edges = [np.stack([x0 + (x1 - x0) * t, np.full_like(t, y0)], 1),
+             np.stack([np.full_like(t, x1), y0 + (y1 - y0) * t], 1),
+             np.stack([x1 - (x1 - x0) * t, np.full_like(t, y1)], 1),
+             np.stack([np.full_like(t, x0), y1 - (y1 - y0) * t], 1)]
+    xy = np.concatenate(edges)
+    return np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
+
+
+def _board_pose(target: Target, center_world: np.ndarray, facing_world: np.ndarray,
+                down_world: np.ndarray, tilt_rad: float = 0.0, tilt_azimuth_rad: float = 0.0,
+                roll_rad: float = 0.0) -> Pose:
+    """world_from_target of a board whose corner-grid centre is at ``center_world``.
+
+    With no tilt, the board's z axis is ``facing_world`` (away from the
+    viewer) and its y axis (rows) follows ``down_world``, so a camera sees
+    corner 0 top-left as OpenCV orders it.  The tilt turns the board about an
+    in-plane axis at ``tilt_azimuth_rad``; the roll turns it about its normal.
+    """
+    z = unit(facing_world)
+    x = unit(np.cross(down_world, z))
+    y = np.cross(z, x)
+    R0 = np.column_stack([x, y, z])
+    axis = math.cos(tilt_azimuth_rad) * x + math.sin(tilt_azimuth_rad) * y
+    R = _rot(axis, tilt_rad) @ R0 @ _rot((0.0, 0.0, 1.0), roll_rad)
+    cols, rows = target.grid
+    c_local = np.array([(cols - 1) * target.square_mm / 2.0, (rows - 1) * target.square_mm / 2.0, 0.0])
+    return Pose(R, np.asarray(center_world, float) - R @ c_local)
+
+
+@dataclass(frozen=True)
+class _Checker:
+    """Visibility tests for one window and camera set (exact projection)."""
+
+    target: Target
+    window: WindowTruth
+    cameras: tuple[CameraTruth, ...]
+    margin_px: float = MARGIN_PX
+    clearance_mm: float = 10.0  # every board point this far beyond the far face
+    _models: dict = field(default_factory=dict, compare=False, repr=False)  # (camera, added) -> ExactModel
+
+    def project(self, cam: CameraTruth, X_world: np.ndarray, added: float = 0.0) -> np.ndarray:
+        """Exact pixels of world points (the model of each camera and stack is built once)."""
+        key = (cam.name, float(added))
+        if key not in self._models:
+            self._models[key] = self.window.model(cam, added)
+        return self._models[key].project(cam.cam_from_world.apply(X_world))
+
+    def sees(self, cam: CameraTruth, pose: Pose, added: Sequence[float] = (0.0,),
+             outline: bool = False) -> bool:
+        """All corners (and with ``outline`` the board's edge) inside ``cam``'s image for every stack."""
+        _, pts = self.target.points_3d()
+        if outline:
+            pts = np.concatenate([pts, _board_outline(self.target)])
+        X = pose.apply(pts)
+        if self.window.depth_beyond_far_face(X, max(added)).min() < self.clearance_mm:
+            return False
+        # A corner moves monotonically along a straight image line as glass is added (the
+        # stacking physics), so inside the image for the thinnest and the thickest stack
+        # means inside for every stack in between.
+        ends = sorted({float(min(added)), float(max(added))}, reverse=True)
+        return all(inside(self.project(cam, X, a), cam.image_size, self.margin_px) for a in ends)
+
+    def seen_by(self, pose: Pose, added: Sequence[float] = (0.0,), outline: bool = False) -> tuple[int, ...]:
+        return tuple(i for i, c in enumerate(self.cameras) if self.sees(c, pose, added, outline))
+
+    def point_at(self, cam: CameraTruth, uv: Sequence[float], depth_mm: float) -> np.ndarray:
+        """World point seen at pixel ``uv`` whose camera-frame z is ``depth_mm`` (exact ray)."""
+        origins, dirs = self.window.model(cam).backproject(np.asarray(uv, float)[None, :])
+        o, d = origins[0], dirs[0]
+        X_cam = o + (depth_mm - o[2]) / d[2] * d
+        return cam.cam_from_world.inverse().apply(X_cam)
+
+
+def _draw(name: str, sample: Callable[[], Pose | None], tries: int = MAX_TRIES) -> Pose:
+    """Call ``sample`` until it returns a pose (it returns None for a rejected draw)."""
+    for _ in range(tries):
+        pose = sample()
+        if pose is not None:
+            return pose
+    raise RuntimeError(f"simulator could not place {name} after {tries} draws; relax the scenario")
+
+
+def _in_world(rig_from_cam: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[Pose]:
+    """cam_from_world of each camera, world = camera 0, from (R rig_from_cam, centre in rig)."""
+    R0, C0 = rig_from_cam[0]
+    rig_from_world = Pose(R0, np.asarray(C0, float))
+    out = []
+    for R, C in rig_from_cam:
+        cam_from_rig = Pose(R, np.asarray(C, float)).inverse()
+        out.append(cam_from_rig.compose(rig_from_world))
+    out[0] = Pose.identity()
+    return out
+
+
+def _window_in_world(normal_rig: np.ndarray, distance_rig_mm: float, rig_from_world: Pose,
+                     thickness_mm: float, index: float, medium_index: float) -> WindowTruth:
+    """A window given in the rig frame, expressed in the world frame (camera 0)."""
+    n_w = rig_from_world.R.T @ normal_rig
+    return WindowTruth(normal_world=unit(n_w), distance_mm=float(distance_rig_mm - normal_rig @ rig_from_world.t),
+                       thickness_mm=thickness_mm, index=index, medium_index=medium_index)
+
+
+def _frame_names(prefix: str, n: int) -> list[str]:
+    width = max(3, len(str(max(n - 1, 0))))
+    return [f"{prefix}{k:0{width}d}" for k in range(n)]
+
+
+# --------------------------------------------------------------------------- paper_single
+
+
+def paper_single(rng: np.random.Generator, num_frames: int = 12, perpendicular: bool = False,
+                 stack_added_mm: Sequence[float] = STACK_ADDED_MM) -> Geometry:
+    """One paper-like camera behind a 50 mm N-BK7 plate in air (section 3 of the paper).
+
+    Poses are drawn so the whole printed board (not only the corners) is in
+    the image: the rendered images then detect.  Board centres are spread
+    over a 4 x 3 grid of image cells for coverage.
+    """
+    K = _intrinsics(rng)
+    cam = CameraTruth(name="cam0", K=K, image_size=PAPER_IMAGE_SIZE, cam_from_world=Pose.identity(),
+                      focal_hint_px=round(PAPER_FOCAL_PX, 1))
+    tilt = rng.uniform(0.0, 0.04) if perpendicular else rng.uniform(4.0, 8.0)
+    normal = _tilted(np.array([0.0, 0.0, 1.0]), math.radians(tilt), rng.uniform(0.0, 2 * math.pi))
+    window = WindowTruth(normal_world=normal, distance_mm=float(rng.uniform(30.0, 60.0)),
+                         thickness_mm=50.0, index=NBK7_INDEX, medium_index=1.0)
+    chk = _Checker(PAPER_TARGET, window, (cam,))
+    w, h = cam.image_size
+    down = np.array([0.0, 1.0, 0.0])
+
+    def stacking_sample() -> Pose | None:
+        uv = (K[0, 2] + rng.uniform(-40, 40), K[1, 2] + rng.uniform(-40, 40))
+        center = chk.point_at(cam, uv, rng.uniform(390.0, 410.0))
+        facing = _tilted(normal, math.radians(rng.uniform(0.0, 2.0)), rng.uniform(0, 2 * math.pi))
+        pose = _board_pose(PAPER_TARGET, center, facing, down, roll_rad=math.radians(rng.uniform(-2, 2)))
+        return pose if chk.sees(cam, pose, stack_added_mm, outline=True) else None
+
+    s0 = StackingPose("s0", _draw("stacking pose s0", stacking_sample), tuple(float(a) for a in stack_added_mm))
+
+    # Spread: frame k aims at cell k of a 4 x 3 grid.  A board 300-500 mm away fills much of
+    # the image, so the cell picks a place within the range of centres where this board
+    # (depth, tilt, roll drawn first) fits, not within the whole image.
+    cells = [(i / 3.0, j / 2.0) for j in range(3) for i in range(4)]  # 0 .. 1 across the feasible range
+    outline = _board_outline(PAPER_TARGET)
+    calibration: dict[str, Pose] = {}
+    for k, name in enumerate(_frame_names("f", num_frames)):
+        cu, cv = cells[k % len(cells)]
+
+        def calib_sample(cu: float = cu, cv: float = cv) -> Pose | None:
+            depth = rng.uniform(300.0, 500.0)
+            tilt = math.radians(rng.uniform(8.0, 35.0))
+            azimuth = rng.uniform(0.0, 2 * math.pi)
+            roll = math.radians(rng.uniform(-10.0, 10.0))
+
+            def pose_at(u: float, v: float) -> Pose:
+                center = chk.point_at(cam, (u, v), depth)
+                return _board_pose(PAPER_TARGET, center, center - cam.center_world, down, tilt, azimuth, roll)
+
+            uv = chk.project(cam, pose_at(K[0, 2], K[1, 2]).apply(outline))
+            if not np.all(np.isfinite(uv)):
+                return None
+            lo = chk.margin_px + 5.0 - (uv.min(axis=0) - K[:2, 2])  # feasible centre range, 5 px spare
+            hi = np.array([w - 1.0, h - 1.0]) - chk.margin_px - 5.0 - (uv.max(axis=0) - K[:2, 2])
+            if np.any(hi < lo):
+                return None
+            a = np.clip([cu + rng.uniform(-0.1, 0.1), cv + rng.uniform(-0.12, 0.12)], 0.0, 1.0)
+            u, v = lo + a * (hi - lo)
+            pose = pose_at(u, v)
+            return pose if chk.sees(cam, pose, outline=True) else None
+
+        calibration[name] = _draw(f"calibration frame {name}", calib_sample)
+
+    return Geometry(target=PAPER_TARGET, window=window, cameras=(cam,), calibration=calibration, stacking=(s0,))
+
+
+# --------------------------------------------------------------------------- binocular
+
+
+def binocular(rng: np.random.Generator, num_frames: int = 15, underwater: bool = False,
+              stack_added_mm: Sequence[float] = STACK_ADDED_MM,
+              stage_mm: Sequence[float] = STAGE_MM) -> Geometry:
+    """Two paper-like cameras toed in 10-15 deg, one window (sections 4-5 of the paper).
+
+    Air: 50 mm N-BK7.  Underwater: a 10 mm N-BK7 port with water behind.
+    Calibration frames, the stacking pose and the 11 stage frames are each
+    seen whole (board outline included) by both cameras.
+    """
+    baseline = rng.uniform(120.0, 200.0)
+    rig = []
+    for sign in (+1.0, -1.0):  # cam0 on the left turns right (+x), cam1 on the right turns left
+        yaw = sign * math.radians(rng.uniform(10.0, 15.0))
+        jitter = _rot(rng.normal(size=3), math.radians(rng.uniform(0.0, 0.7)))
+        rig.append((_rot_y(yaw) @ jitter, np.array([-sign * baseline / 2.0, rng.uniform(-2, 2), rng.uniform(-2, 2)])))
+    cam_from_world = _in_world(rig)
+    cameras = tuple(CameraTruth(name=f"cam{i}", K=_intrinsics(rng), image_size=PAPER_IMAGE_SIZE,
+                                cam_from_world=cam_from_world[i], focal_hint_px=round(PAPER_FOCAL_PX, 1))
+                    for i in range(2))
+    rig_from_world = Pose(rig[0][0], rig[0][1])
+
+    normal_rig = _tilted(np.array([0.0, 0.0, 1.0]), math.radians(rng.uniform(2.0, 5.0)), rng.uniform(0, 2 * math.pi))
+    near = max(normal_rig @ c for _, c in rig) + rng.uniform(40.0, 60.0)
+    if underwater:
+        window = _window_in_world(normal_rig, near, rig_from_world, 10.0, NBK7_INDEX, WATER_INDEX)
+        depth_range = (520.0, 680.0)  # refraction into water narrows the views: the overlap is farther
+    else:
+        window = _window_in_world(normal_rig, near, rig_from_world, 50.0, NBK7_INDEX, 1.0)
+        depth_range = (380.0, 520.0)
+    chk = _Checker(PAPER_TARGET, window, cameras)
+    world_from_rig = rig_from_world.inverse()
+    down = world_from_rig.R @ np.array([0.0, 1.0, 0.0])
+    rig_origin = world_from_rig.t
+    mid_depth = float(np.mean(depth_range))
+
+    def both(pose: Pose, added: Sequence[float] = (0.0,)) -> bool:
+        return all(chk.sees(c, pose, added, outline=True) for c in cameras)
+
+    def calib_sample() -> Pose | None:
+        c_rig = np.array([rng.uniform(-50, 50), rng.uniform(-40, 40), rng.uniform(*depth_range)])
+        center = world_from_rig.apply(c_rig)
+        pose = _board_pose(PAPER_TARGET, center, center - rig_origin, down,
+                           tilt_rad=math.radians(rng.uniform(8.0, 35.0)),
+                           tilt_azimuth_rad=rng.uniform(0.0, 2 * math.pi),
+                           roll_rad=math.radians(rng.uniform(-10.0, 10.0)))
+        return pose if both(pose) else None
+
+    calibration = {name: _draw(f"calibration frame {name}", calib_sample)
+                   for name in _frame_names("f", num_frames)}
+
+    normal_w = window.normal_world
+
+    def stacking_sample() -> Pose | None:
+        center = world_from_rig.apply(np.array([rng.uniform(-20, 20), rng.uniform(-20, 20), mid_depth]))
+        facing = _tilted(normal_w, math.radians(rng.uniform(0.0, 2.0)), rng.uniform(0, 2 * math.pi))
+        pose = _board_pose(PAPER_TARGET, center, facing, down, roll_rad=math.radians(rng.uniform(-2, 2)))
+        return pose if both(pose, stack_added_mm) else None
+
+    s0 = StackingPose("s0", _draw("stacking pose s0", stacking_sample), tuple(float(a) for a in stack_added_mm))
+
+    stage_dir = _tilted(normal_w, math.radians(rng.uniform(0.0, 1.5)), rng.uniform(0, 2 * math.pi))
+
+    def stage_sample() -> Pose | None:
+        center = world_from_rig.apply(np.array([rng.uniform(-20, 20), rng.uniform(-20, 20), mid_depth]))
+        facing = _tilted(center - rig_origin, math.radians(rng.uniform(0.0, 10.0)), rng.uniform(0, 2 * math.pi))
+        base = _board_pose(PAPER_TARGET, center, facing, down, roll_rad=math.radians(rng.uniform(-3, 3)))
+        ok = all(both(Pose(base.R, base.t + s * stage_dir)) for s in stage_mm)
+        return base if ok else None
+
+    base = _draw("reconstruction stage pose", stage_sample)
+    reconstruction = tuple(ReconstructionFrame(name, Pose(base.R, base.t + s * stage_dir), float(s))
+                           for name, s in zip(_frame_names("r", len(stage_mm)), stage_mm))
+    return Geometry(target=PAPER_TARGET, window=window, cameras=cameras, calibration=calibration,
+                    stacking=(s0,), reconstruction=reconstruction, stage_direction_world=stage_dir)
+
+
+# --------------------------------------------------------------------------- arc4
+
+
+def arc(rng: np.random.Generator, num_frames: int = 20, num_cameras: int = 4,
+        stack_added_mm: Sequence[float] = STACK_ADDED_MM) -> Geometry:
+    """Cameras on an 800 mm arc (-18..18 deg) behind one window tilted ~20 deg.
+
+    The window tilts toward camera 0's side away from camera 0's view, so the
+    expansion centre of camera 0 (an outer camera) falls outside its image.
+    Each calibration frame is drawn for a run of 2 or 3 neighbouring cameras
+    and kept only if exactly those cameras see it (partial visibility).
+    """
+    if num_cameras < 2:
+        raise ValueError("arc needs at least 2 cameras")
+    radius = 800.0
+    angles = np.radians(np.linspace(-18.0, 18.0, num_cameras))
+    rig = []
+    for a in angles:  # camera i at angle a on the arc, looking at the arc centre (0, 0, radius)
+        center = np.array([radius * math.sin(a), rng.uniform(-3, 3), radius * (1.0 - math.cos(a))])
+        jitter = _rot(rng.normal(size=3), math.radians(rng.uniform(0.0, 0.7)))
+        rig.append((_rot_y(-a) @ jitter, center))
+    cam_from_world = _in_world(rig)
+    cameras = tuple(CameraTruth(name=f"cam{i}", K=_intrinsics(rng), image_size=PAPER_IMAGE_SIZE,
+                                cam_from_world=cam_from_world[i], focal_hint_px=round(PAPER_FOCAL_PX, 1))
+                    for i in range(num_cameras))
+    rig_from_world = Pose(rig[0][0], rig[0][1])
+    world_from_rig = rig_from_world.inverse()
+
+    normal_rig = _tilted(np.array([0.0, 0.0, 1.0]), math.radians(rng.uniform(19.0, 21.0)),
+                         math.pi + rng.uniform(-0.1, 0.1))
+    near = max(normal_rig @ c for _, c in rig) + rng.uniform(40.0, 60.0)
+    window = _window_in_world(normal_rig, near, rig_from_world, 50.0, NBK7_INDEX, 1.0)
+    chk = _Checker(PAPER_TARGET, window, cameras)
+    down = world_from_rig.R @ np.array([0.0, 1.0, 0.0])
+    axes_rig = [(R[:, 2], c) for R, c in rig]
+
+    def axis_x_at(i: int, depth: float) -> float:
+        d, c = axes_rig[i]
+        return float(c[0] + (depth - c[2]) / d[2] * d[0])
+
+    runs = [tuple(range(s, s + k)) for k in (2, 3) for s in range(num_cameras - k + 1)] or [tuple(range(num_cameras))]
+    calibration: dict[str, Pose] = {}
+    for k, name in enumerate(_frame_names("f", num_frames)):
+        run = runs[k % len(runs)]
+
+        def calib_sample(run: tuple[int, ...] = run) -> Pose | None:
+            depth = rng.uniform(400.0, 750.0)
+            x = np.mean([axis_x_at(i, depth) for i in run]) + rng.uniform(-40, 40)
+            c_rig = np.array([x, rng.uniform(-40, 40), depth])
+            center = world_from_rig.apply(c_rig)
+            viewer = np.mean([cameras[i].center_world for i in run], axis=0)
+            pose = _board_pose(PAPER_TARGET, center, center - viewer, down,
+                               tilt_rad=math.radians(rng.uniform(8.0, 35.0)),
+                               tilt_azimuth_rad=rng.uniform(0.0, 2 * math.pi),
+                               roll_rad=math.radians(rng.uniform(-10.0, 10.0)))
+            return pose if chk.seen_by(pose) == run else None
+
+        calibration[name] = _draw(f"calibration frame {name} for cameras {run}", calib_sample)
+
+    best: tuple[int, Pose | None] = (0, None)
+    for _ in range(300):  # the stacking pose seen by as many cameras as can see it
+        center = world_from_rig.apply(np.array([rng.uniform(-60, 60), rng.uniform(-20, 20), rng.uniform(600, 800)]))
+        facing = _tilted(window.normal_world, math.radians(rng.uniform(0.0, 2.0)), rng.uniform(0, 2 * math.pi))
+        pose = _board_pose(PAPER_TARGET, center, facing, down, roll_rad=math.radians(rng.uniform(-2, 2)))
+        n_seen = len(chk.seen_by(pose, stack_added_mm))
+        if n_seen > best[0]:
+            best = (n_seen, pose)
+        if n_seen == num_cameras:
+            break
+    if best[0] < 2:
+        raise RuntimeError("simulator could not place a stacking pose seen by two cameras")
+    s0 = StackingPose("s0", best[1], tuple(float(a) for a in stack_added_mm))
+    return Geometry(target=PAPER_TARGET, window=window, cameras=cameras, calibration=calibration, stacking=(s0,))
+
+
+# --------------------------------------------------------------------------- scale16
+
+
+def grid(rng: np.random.Generator, num_frames: int = 500, num_cameras: int = 16,
+         spacing_mm: float = 120.0, min_views: int = 2,
+         stack_added_mm: Sequence[float] = STACK_ADDED_MM) -> Geometry:
+    """A near-square grid of paper-like cameras behind one large window (scale tests).
+
+    Cameras ``spacing_mm`` apart toe in toward a point 1.5 m ahead; each
+    frame is kept if at least ``min_views`` cameras see it.
+    """
+    cols = math.ceil(math.sqrt(num_cameras))
+    rows = math.ceil(num_cameras / cols)
+    rig = []
+    for i in range(num_cameras):
+        r, c = divmod(i, cols)
+        center = np.array([(c - (cols - 1) / 2.0) * spacing_mm, (r - (rows - 1) / 2.0) * spacing_mm, 0.0])
+        forward = unit(np.array([0.0, 0.0, 1500.0]) - center)
+        x = unit(np.cross(np.array([0.0, 1.0, 0.0]), forward))
+        R = np.column_stack([x, np.cross(forward, x), forward])
+        jitter = _rot(rng.normal(size=3), math.radians(rng.uniform(0.0, 1.0)))
+        rig.append((R @ jitter, center))
+    cam_from_world = _in_world(rig)
+    cameras = tuple(CameraTruth(name=f"cam{i}", K=_intrinsics(rng), image_size=PAPER_IMAGE_SIZE,
+                                cam_from_world=cam_from_world[i], focal_hint_px=round(PAPER_FOCAL_PX, 1))
+                    for i in range(num_cameras))
+    rig_from_world = Pose(rig[0][0], rig[0][1])
+    world_from_rig = rig_from_world.inverse()
+    normal_rig = _tilted(np.array([0.0, 0.0, 1.0]), math.radians(rng.uniform(2.0, 5.0)), rng.uniform(0, 2 * math.pi))
+    near = max(normal_rig @ c for _, c in rig) + rng.uniform(40.0, 60.0)
+    window = _window_in_world(normal_rig, near, rig_from_world, 50.0, NBK7_INDEX, 1.0)
+    chk = _Checker(PAPER_TARGET, window, cameras)
+    down = world_from_rig.R @ np.array([0.0, 1.0, 0.0])
+    half_x = (cols - 1) / 2.0 * spacing_mm + 60.0
+    half_y = (rows - 1) / 2.0 * spacing_mm + 60.0
+
+    def sample(min_views: int = min_views) -> Pose | None:
+        c_rig = np.array([rng.uniform(-half_x, half_x), rng.uniform(-half_y, half_y), rng.uniform(550.0, 900.0)])
+        center = world_from_rig.apply(c_rig)
+        viewer = world_from_rig.apply(np.array([c_rig[0], c_rig[1], 0.0]))
+        pose = _board_pose(PAPER_TARGET, center, center - viewer, down,
+                           tilt_rad=math.radians(rng.uniform(8.0, 35.0)),
+                           tilt_azimuth_rad=rng.uniform(0.0, 2 * math.pi),
+                           roll_rad=math.radians(rng.uniform(-10.0, 10.0)))
+        return pose if len(chk.seen_by(pose)) >= min_views else None
+
+    calibration = {name: _draw(f"calibration frame {name}", sample) for name in _frame_names("f", num_frames)}
+
+    best: tuple[int, Pose | None] = (0, None)
+    for _ in range(30):
+        center = world_from_rig.apply(np.array([rng.uniform(-40, 40), rng.uniform(-40, 40), rng.uniform(700, 900)]))
+        facing = _tilted(window.normal_world, math.radians(rng.uniform(0.0, 2.0)), rng.uniform(0, 2 * math.pi))
+        pose = _board_pose(PAPER_TARGET, center, facing, down)
+        n_seen = len(chk.seen_by(pose, stack_added_mm))
+        if n_seen > best[0]:
+            best = (n_seen, pose)
+    if best[0] < 2:
+        raise RuntimeError("simulator could not place a stacking pose seen by two cameras")
+    s0 = StackingPose("s0", best[1], tuple(float(a) for a in stack_added_mm))
+    return Geometry(target=PAPER_TARGET, window=window, cameras=cameras, calibration=calibration, stacking=(s0,))
+
+
+# --------------------------------------------------------------------------- registry
+
+
+@dataclass(frozen=True)
+class ScenarioSpec:
+    """How a scenario name is built: builder, its fixed options, images by default."""
+
+    build: Callable[..., Geometry]
+    options: dict
+    images: bool = False
+    rng_name: str = ""  # scenarios sharing a stream (paper_single*) get the same geometry for a seed
+
+
+REGISTRY: dict[str, ScenarioSpec] = {
+    "paper_single": ScenarioSpec(paper_single, {}, rng_name="paper_single"),
+    "paper_single_images": ScenarioSpec(paper_single, {}, images=True, rng_name="paper_single"),
+    "paper_single_perpendicular": ScenarioSpec(paper_single, {"perpendicular": True},
+                                               rng_name="paper_single_perpendicular"),
+    "binocular": ScenarioSpec(binocular, {}, rng_name="binocular"),
+    "binocular_underwater": ScenarioSpec(binocular, {"underwater": True}, rng_name="binocular_underwater"),
+    "arc4": ScenarioSpec(arc, {}, rng_name="arc4"),
+    "scale16": ScenarioSpec(grid, {}, rng_name="scale16"),
+}
+assert set(REGISTRY) == set(SCENARIOS)
+
+
+def build_geometry(name: str, rng: np.random.Generator, **overrides) -> Geometry:
+    """The truth geometry of scenario ``name`` (overrides go to its builder)."""
+    spec = REGISTRY[name]
+    geometry = spec.build(rng, **{**spec.options, **overrides})
+    check_geometry(geometry)
+    return geometry
