@@ -23,10 +23,13 @@ class CalibrationOptions:
     """Options of :func:`calibrate`, each with its default."""
 
     distortion: bool = False  # estimate k1 k2 p1 p2 k3 (off: they stay as given, normally zero)
-    huber_px: float | None = None  # per-corner Huber threshold in px; None: plain least squares
+    huber_px: float | None = 1.0  # per-corner Huber threshold in px; None: plain least squares
+    outlier_sigma: float = 5.0  # corners beyond this many sigma after convergence are reported
+    exclude_outliers: bool = False  # drop those corners and re-run the last stage
     max_iterations: int = 100  # Levenberg-Marquardt iterations per stage
     workers: int | None = None  # threads for corner detection when the dataset has only images
     progress: bool = False  # progress bars (the CLI turns them on)
+    uncertainty: bool = True  # standard deviations of every parameter from gtsam.Marginals
 
 
 def _options(options: dict) -> CalibrationOptions:
@@ -88,8 +91,26 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
         state = graph.optimize(opts.max_iterations)
         iterations[stage] = {"iterations": graph.iterations, "time_s": time.perf_counter() - t_stage}
         log.info("%s bundle adjustment: %d iterations, %.3f s", stage, graph.iterations, iterations[stage]["time_s"])
+    from .outliers import find_outliers, without
+
+    outliers, robust_sigma = find_outliers(graph.residuals(), opts.outlier_sigma)
+    if outliers and opts.exclude_outliers:
+        log.info("excluding %d outlier corners and re-running the %s stage", len(outliers), stages[-1])
+        graph = RigGraph.build(
+            without(dataset.observations, outliers), dataset.target, iface, names, state, model=stages[-1],
+            distortion=opts.distortion, estimate_distance=underwater, huber_px=opts.huber_px,
+        )
+        state = graph.optimize(opts.max_iterations)
+    if outliers:
+        log.warning("%d corners beyond %.0f sigma (%.3f px) after convergence%s", len(outliers), opts.outlier_sigma,
+                    robust_sigma, " (excluded)" if opts.exclude_outliers else "")
     elapsed = time.perf_counter() - t0
     residuals = graph.residuals()
+    uncertainty = None
+    if opts.uncertainty:
+        from .factors.uncertainty import rig_uncertainty
+
+        uncertainty = rig_uncertainty(graph)
     cameras = {}
     for n in names:
         p = state.params[n]
@@ -100,8 +121,15 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
             None if ec is None else ec.center_px, None if ec is None else ec.std_px,
             residual_stats(r for o, r in residuals if o.camera == n)["rmse_px"],
         )
-    distance = state.distance_mm if (underwater and model == "exact") or (underwater and model == "ari") else None
+    distance = state.distance_mm if underwater else None  # unobservable in air: null
     calib_frames = {o.frame for o in dataset.select("calibration")}
+    extra: dict = {"optimizer": iterations}
+    if uncertainty:
+        extra["uncertainty"] = uncertainty
+    extra["outliers"] = {"sigma_px": robust_sigma, "threshold_sigma": opts.outlier_sigma,
+                         "excluded": opts.exclude_outliers, "corners": [o.to_json() for o in outliers]}
+    if model == "exact" and not underwater:
+        extra["fixed_distance_mm"] = state.distance_mm  # any value gives the same rays in air
     cal = Calibration(
         model=model,
         interface=Interface(iface.thickness_mm, iface.index, iface.medium_index, distance),
@@ -111,7 +139,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
         stacking_poses={f: p for f, p in state.world_from_target.items() if f in rig.stacking_poses},
         residuals={k: v for k, v in residual_stats(r for _, r in residuals).items()},
         time_s=elapsed,
-        extra={"optimizer": iterations, **({"fixed_distance_mm": state.distance_mm} if model == "exact" and not underwater else {})},
+        extra=extra,
         target=dataset.target,
     )
     return cal

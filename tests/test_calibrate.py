@@ -10,8 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ari_sfm import calibrate as calibrate_mod
-from ari_sfm.calibrate import calibrate
+from ari_sfm.calibrate import CalibrationOptions, calibrate
 from ari_sfm.calibration import load_calibration
 from ari_sfm.evaluate import evaluate
 from ari_sfm.geometry import angle_between_deg
@@ -121,7 +120,7 @@ def test_huber_limits_outliers(single_scene):
             px[bad] += rng.normal(0, 15.0, (2, 2))
         obs.append(Observation(o.camera, o.set, o.frame, o.ids, px, o.added_mm, o.stage_mm))
     ds = replace(single_scene.dataset, observations=tuple(obs))
-    plain = calibrate(ds, model="exact")
+    plain = calibrate(ds, model="exact", huber_px=None)
     robust = calibrate(ds, model="exact", huber_px=0.2)
     ep, er = _errors(plain, single_scene.truth), _errors(robust, single_scene.truth)
     assert er["fx_rel"] < 0.5 * ep["fx_rel"] or er["fx_rel"] < 2e-4, (ep, er)
@@ -131,4 +130,22 @@ def test_huber_limits_outliers(single_scene):
 def test_unknown_option_is_rejected(single_scene):
     with pytest.raises(TypeError, match="unknown calibrate option"):
         calibrate(single_scene.dataset, model="ari", distorsion=True)
-    assert "distortion" in {f.name for f in calibrate_mod.CalibrationOptions.__dataclass_fields__.values()}
+    assert "distortion" in CalibrationOptions.__dataclass_fields__
+
+
+def test_outliers_are_reported_and_can_be_excluded(single_scene):
+    """A corner displaced by 2 px (40 sigma) is reported by camera, frame and id, and excluded on request."""
+    from dataclasses import replace
+
+    obs = list(single_scene.dataset.observations)
+    k = next(i for i, o in enumerate(obs) if o.set == "calibration")
+    px = obs[k].pixels.copy()
+    px[7] += [2.0, 0.0]
+    obs[k] = replace(obs[k], pixels=px)
+    ds = replace(single_scene.dataset, observations=tuple(obs))
+    cal = calibrate(ds, model="exact")
+    found = cal.extra["outliers"]["corners"]
+    assert [(o["camera"], o["frame"], o["id"]) for o in found] == [("cam0", obs[k].frame, int(obs[k].ids[7]))]
+    excluded = calibrate(ds, model="exact", exclude_outliers=True)
+    assert excluded.residuals["count"] == cal.residuals["count"] - 1
+    assert excluded.residuals["max_px"] < 0.5

@@ -1,0 +1,59 @@
+"""Corners whose residual stays beyond k sigma after convergence."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from .records import Observation
+
+
+@dataclass(frozen=True)
+class Outlier:
+    camera: str
+    set: str
+    frame: str
+    id: int
+    residual_px: float
+    added_mm: float | None = None
+
+    def to_json(self) -> dict:
+        out = {"camera": self.camera, "set": self.set, "frame": self.frame, "id": self.id, "residual_px": self.residual_px}
+        if self.added_mm is not None:
+            out["added_mm"] = self.added_mm
+        return out
+
+
+def robust_sigma_px(residuals: Iterable[np.ndarray]) -> float:
+    """sigma per coordinate from the median absolute residual (1.4826 MAD)."""
+    r = np.concatenate([np.asarray(x, float).reshape(-1) for x in residuals])
+    return float(1.4826 * np.median(np.abs(r))) if r.size else float("nan")
+
+
+def find_outliers(pairs: Sequence[tuple[Observation, np.ndarray]], k_sigma: float = 5.0) -> tuple[list[Outlier], float]:
+    """Corners with pixel distance > k_sigma * sigma (sigma: robust, per coordinate)."""
+    sigma = robust_sigma_px(r for _, r in pairs)
+    out = []
+    for obs, r in pairs:
+        d = np.linalg.norm(r, axis=1)
+        for i in np.flatnonzero(d > k_sigma * sigma):
+            out.append(Outlier(obs.camera, obs.set, obs.frame, int(obs.ids[i]), float(d[i]), obs.added_mm))
+    return out, sigma
+
+
+def without(observations: Sequence[Observation], outliers: Sequence[Outlier]) -> tuple[Observation, ...]:
+    """The observations with the outlier corners removed."""
+    from dataclasses import replace
+
+    drop: dict[tuple, set[int]] = {}
+    for o in outliers:
+        drop.setdefault((o.camera, o.set, o.frame, o.added_mm), set()).add(o.id)
+    result = []
+    for obs in observations:
+        ids = drop.get((obs.camera, obs.set, obs.frame, obs.added_mm))
+        if ids:
+            keep = np.array([int(i) not in ids for i in obs.ids])
+            obs = replace(obs, ids=obs.ids[keep], pixels=obs.pixels[keep])
+        result.append(obs)
+    return tuple(result)

@@ -1,0 +1,48 @@
+"""Standard deviations of the estimated parameters from gtsam.Marginals.
+
+The graph's factors use a unit pixel sigma, so the marginal covariances are
+scaled by the residual variance per coordinate, sigma^2 = SSR / (2N - p),
+estimated at the optimum (with the exact model this is the detector noise;
+with the paraxial model it also holds its model error).
+"""
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from . import keys as K_
+from .rig_graph import RigGraph
+
+PARAM_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+
+
+def residual_sigma_px(rg: RigGraph) -> float:
+    """sigma per pixel coordinate from the residuals at the current values."""
+    res = np.concatenate([r.reshape(-1) for _, r in rg.residuals()])
+    n_params = rg.values.dim()
+    dof = max(res.size - n_params, 1)
+    return float(np.sqrt(np.sum(res**2) / dof))
+
+
+def rig_uncertainty(rg: RigGraph, sigma_px: float | None = None) -> dict:
+    """Standard deviations: per camera fx fy cx cy (and distortion) in px, the
+    relative pose of each camera to camera 0 (rotation in degrees, translation in
+    mm, as RMS error magnitudes), the normal's angle in degrees (RMS), and the
+    window distance in mm when it is estimated."""
+    sigma = residual_sigma_px(rg) if sigma_px is None else sigma_px
+    marginals = gtsam.Marginals(rg.graph, rg.values)
+    s2 = sigma**2
+    out: dict = {"sigma_px": sigma, "cameras": {}}
+    for c, name in enumerate(rg.camera_names):
+        cov = marginals.marginalCovariance(K_.K(c)) * s2
+        entry = {PARAM_NAMES[i]: float(np.sqrt(cov[i, i])) for i in range(cov.shape[0])}
+        if c > 0:
+            pc = marginals.marginalCovariance(K_.C(c)) * s2
+            entry["rotation_deg"] = float(np.degrees(np.sqrt(np.trace(pc[:3, :3]))))
+            entry["translation_mm"] = float(np.sqrt(np.trace(pc[3:, 3:])))
+        out["cameras"][name] = entry
+    cov_n = marginals.marginalCovariance(K_.N) * s2
+    out["normal_deg"] = float(np.degrees(np.sqrt(np.trace(cov_n))))
+    if rg.estimate_distance:
+        out["distance_mm"] = float(np.sqrt(marginals.marginalCovariance(K_.H)[0, 0] * s2))
+    return out
