@@ -4,10 +4,10 @@ Build it from a :class:`RigState` (e.g. the analytical initialisation), add
 your own factors if you like (a prior on the normal from a level, a known
 baseline, ...), optimise with Levenberg-Marquardt and read the state back::
 
-    problem = RigGraph.build(dataset.observations, dataset.target, dataset.interface,
-                             dataset.camera_names, state, model="ari")
-    problem.graph.push_back(gtsam.PriorFactorUnit3(keys.N, gtsam.Unit3(n), noise))
-    state = problem.optimize()
+    problem = RigGraph.from_dataset(dataset, model="ari")     # analytic initialisation
+    noise = gtsam.noiseModel.Isotropic.Sigma(2, np.radians(0.05))  # a level, 0.05 deg
+    problem.graph.push_back(gtsam.PriorFactorUnit3(keys.N, gtsam.Unit3(n_level), noise))
+    state = problem.optimize()                                # a RigState
 """
 from __future__ import annotations
 
@@ -111,6 +111,25 @@ class RigGraph:
             rg.factor_views.append((obs.camera, obs))
             rg.factor_data.append((data, vkeys))
         return rg
+
+    @staticmethod
+    def from_dataset(dataset, model: str = "ari", distortion: bool = False, huber_px: float | None = 1.0) -> "RigGraph":
+        """The graph of a dataset with observations, initialised by the analytic pipeline
+        (expansion centre, Zhang, Eq. 5, Eqs. 11-12, spanning tree over shared frames)."""
+        from ..init.rig import initialise_rig
+
+        rig = initialise_rig(dataset, distortion)
+        underwater = dataset.interface.medium_index != 1.0
+        distance = dataset.interface.distance_mm
+        if distance is None and (underwater or model == "exact"):
+            centres = [p.inverse().t for p in rig.cam_from_world.values()]
+            distance = float(max(rig.normal_world @ c for c in centres)) + 10.0
+        state = RigState(
+            {n: np.concatenate([[c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]], np.resize(c.dist, 5)]) for n, c in rig.cameras.items()},
+            rig.cam_from_world, rig.normal_world, rig.world_from_target, distance,
+        )
+        return RigGraph.build(dataset.observations, dataset.target, dataset.interface, dataset.camera_names, state,
+                              model=model, distortion=distortion, estimate_distance=underwater, huber_px=huber_px)
 
     def optimize(self, max_iterations: int = 100, relative_tolerance: float = 1e-10) -> RigState:
         """Levenberg-Marquardt from the current values; updates them and returns the state."""
