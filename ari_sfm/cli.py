@@ -72,7 +72,9 @@ def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
 _model_option = click.option("--model", type=click.Choice(["ari", "exact"]), default="ari", show_default=True,
                              help="ari: paraxial ARI model; exact: Snell's law, refined from ari.")
 _distortion_option = click.option("--distortion/--no-distortion", default=False, show_default=True, help="Estimate k1 k2 p1 p2 k3.")
-_huber_option = click.option("--huber-px", type=float, default=None, help="Per-corner Huber threshold in px (default: least squares).")
+_huber_option = click.option("--huber-px", type=float, default=1.0, show_default=True,
+                             help="Per-corner Huber threshold in px (0: plain least squares).")
+_outlier_option = click.option("--exclude-outliers", is_flag=True, help="Drop corners beyond 5 sigma after convergence and re-run.")
 
 
 @main.command(name="calibrate")
@@ -81,13 +83,15 @@ _huber_option = click.option("--huber-px", type=float, default=None, help="Per-c
 @_model_option
 @_distortion_option
 @_huber_option
+@_outlier_option
 @user_errors
-def calibrate_cmd(dataset: Path, out: Path, model: str, distortion: bool, huber_px: float | None) -> None:
+def calibrate_cmd(dataset: Path, out: Path, model: str, distortion: bool, huber_px: float, exclude_outliers: bool) -> None:
     """Calibrate DATASET; write OUT/calibration.json (and OUT/observations.json when detected here)."""
     from .pipelines.calibrate_rig import main as pipeline
 
     t0 = time.perf_counter()
-    result = pipeline(dataset, out, model=model, progress=True, distortion=distortion, huber_px=huber_px)
+    result = pipeline(dataset, out, model=model, progress=True, distortion=distortion, huber_px=huber_px or None,
+                      exclude_outliers=exclude_outliers)
     _summary(result.calibration, time.perf_counter() - t0)
     if result.observations_path:
         click.echo(f"observations: {result.observations_path}")
@@ -100,14 +104,16 @@ def calibrate_cmd(dataset: Path, out: Path, model: str, distortion: bool, huber_
 @_model_option
 @_distortion_option
 @_huber_option
+@_outlier_option
 @user_errors
-def run(dataset: Path, out: Path, model: str, distortion: bool, huber_px: float | None) -> None:
+def run(dataset: Path, out: Path, model: str, distortion: bool, huber_px: float, exclude_outliers: bool) -> None:
     """The pipeline: detect corners when needed, calibrate, write the results to OUT."""
     from .pipelines.calibrate_rig import main as pipeline
 
     t0 = time.perf_counter()
     click.echo(f"ari-sfm run: {dataset} -> {out}")
-    result = pipeline(dataset, out, model=model, progress=True, distortion=distortion, huber_px=huber_px)
+    result = pipeline(dataset, out, model=model, progress=True, distortion=distortion, huber_px=huber_px or None,
+                      exclude_outliers=exclude_outliers)
     _summary(result.calibration, time.perf_counter() - t0)
     click.echo(f"calibration: {result.calibration_path}")
 
@@ -180,6 +186,18 @@ def _summary(cal, elapsed: float) -> None:
         ec = "-" if c.expansion_center_px is None else (
             f"{c.expansion_center_px[0]:.1f},{c.expansion_center_px[1]:.1f} ±{max(c.expansion_center_std_px):.2f}")
         click.echo(f"{name:10s} {c.K[0,0]:9.2f} {c.K[1,1]:9.2f} {c.K[0,2]:8.2f} {c.K[1,2]:8.2f} {tilt:5.2f}° {ec:>26s} {c.rmse_px:7.4f}")
+    u = cal.extra.get("uncertainty")
+    if u:
+        click.echo(f"standard deviations (sigma {u['sigma_px']:.3f} px): normal {u['normal_deg']:.4f}°"
+                   + (f", distance {u['distance_mm']:.4f} mm" if "distance_mm" in u else ""))
+        for name, s in u["cameras"].items():
+            rel = (f"  cam_from_{next(iter(cal.cameras))} ±{s['rotation_deg']:.4f}° ±{s['translation_mm']:.4f} mm"
+                   if "rotation_deg" in s else "")
+            click.echo(f"  {name:8s} fx ±{s['fx']:.3f} fy ±{s['fy']:.3f} cx ±{s['cx']:.3f} cy ±{s['cy']:.3f} px{rel}")
+    outl = cal.extra.get("outliers", {}).get("corners", [])
+    if outl:
+        click.echo(f"{len(outl)} corners beyond {cal.extra['outliers']['threshold_sigma']:g} sigma "
+                   f"({'excluded' if cal.extra['outliers']['excluded'] else 'listed in calibration.json under outliers'})")
     click.echo(f"residuals: rmse {r['rmse_px']:.4f} px, mae {r['mae_px']:.4f} px, max {r['max_px']:.4f} px over {r['count']} corners")
     click.echo(f"time: calibration {cal.time_s:.3f} s, total {elapsed:.2f} s")
 
