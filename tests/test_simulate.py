@@ -311,3 +311,43 @@ def test_written_images_dataset_has_no_observations(tmp_path):
     img = cv2.imread(str(ds.calibration[0].images["cam0"]), cv2.IMREAD_UNCHANGED)
     assert img.shape == (512, 612) and img.dtype == np.uint8
     assert img.min() < 60 and img.max() > 200  # black and white squares are there
+
+
+def test_module_command_line(tmp_path, capsys):
+    from ari_sfm.io import load_dataset
+    from ari_sfm.simulate.__main__ import main
+
+    assert main(["arc4", str(tmp_path / "a"), "--seed", "2", "--sigma", "0.1", "--num-frames", "5", "--no-images"]) == 0
+    assert "truth:" in capsys.readouterr().out
+    ds = load_dataset(tmp_path / "a" / "dataset")
+    truth = json.loads((tmp_path / "a" / "truth.json").read_text())
+    assert len(ds.calibration) == 5 and truth["seed"] == 2 and truth["sigma_px"] == 0.1
+    with pytest.raises(SystemExit):
+        main(["paper_single", str(tmp_path / "b"), "--num-cameras", "3"])
+
+
+def test_bundled_sample_matches_its_truth():
+    """datasets/sample: images only, truth beside it; the rendered corners sit where the truth says."""
+    from pathlib import Path
+
+    import cv2
+
+    from ari_sfm.io import load_dataset, load_observations
+
+    root = Path(__file__).resolve().parents[1] / "datasets"
+    ds = load_dataset(root / "sample")
+    assert ds.observations is None and not (root / "sample" / "observations.json").exists()
+    truth = json.loads((root / "sample_truth.json").read_text())
+    assert truth["scenario"] == "paper_single_images" and truth["cameras"]["cam0"]["image_size"] == [1224, 1024]
+    assert sum(f.stat().st_size for f in (root / "sample").rglob("*") if f.is_file()) < 20e6
+    exact = {(o.set, o.frame, o.added_mm): o for o in load_observations(root / "sample_truth_observations.json")}
+    entry = ds.calibration[0]
+    img = cv2.imread(str(entry.images["cam0"]), cv2.IMREAD_GRAYSCALE)
+    ok, corners = cv2.findChessboardCorners(img, (11, 8))
+    assert ok
+    corners = cv2.cornerSubPix(img, corners, (5, 5), (-1, -1),
+                               (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)).reshape(-1, 2)
+    ref = exact[("calibration", entry.key, None)].pixels
+    if np.linalg.norm(corners[0] - ref[0]) > np.linalg.norm(corners[-1] - ref[0]):
+        corners = corners[::-1]
+    assert np.sqrt(np.mean(np.sum((corners - ref) ** 2, axis=1))) < 0.15
