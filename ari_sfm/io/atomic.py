@@ -90,6 +90,11 @@ def to_jsonable(obj: Any, where: str = "", string_keys: bool = True) -> Any:
             raise AriSfmError(None, f"cannot write {value} at {where or 'top level'} (JSON has no NaN or infinity)")
         return value
     if isinstance(obj, np.ndarray):
+        if obj.dtype.kind in "biuf" and obj.ndim in (1, 2):
+            if obj.dtype.kind == "f" and not np.isfinite(obj).all():
+                index = np.unravel_index(int(np.argmin(np.isfinite(obj))), obj.shape)
+                return to_jsonable(float(obj[index]), where + "".join(f"[{i}]" for i in index))
+            return _NumberBlock(obj.tolist())
         return to_jsonable(obj.tolist(), where, string_keys)
     if isinstance(obj, PurePath):
         return obj.as_posix()
@@ -105,6 +110,10 @@ def to_jsonable(obj: Any, where: str = "", string_keys: bool = True) -> Any:
     if isinstance(obj, (list, tuple)):
         return [to_jsonable(v, f"{where}[{i}]", string_keys) for i, v in enumerate(obj)]
     raise TypeError(f"object of type {type(obj).__name__} at {where or 'top level'} is not JSON serializable")
+
+
+class _NumberBlock(list):
+    """A 1-D or 2-D list of finite numbers (from an array): formatted in one C-level dump."""
 
 
 def format_json(obj: Any, indent: int = 2) -> str:
@@ -127,6 +136,11 @@ def _format(obj: Any, level: int, indent: int) -> str:
             return "{}"
         items = [f"{inner}{json.dumps(k)}: {_format(v, level + 1, indent)}" for k, v in obj.items()]
         return "{\n" + ",\n".join(items) + "\n" + pad + "}"
+    if isinstance(obj, _NumberBlock):
+        text = json.dumps(obj, allow_nan=False)
+        if not obj or not isinstance(obj[0], list):
+            return text
+        return "[\n" + inner + text[1:-1].replace("], [", "],\n" + inner + "[") + "\n" + pad + "]"
     if isinstance(obj, list):
         if all(_is_scalar(v) for v in obj):
             return "[" + ", ".join(json.dumps(v, allow_nan=False) for v in obj) + "]"

@@ -29,7 +29,10 @@ _MISSING = object()
 # --------------------------------------------------------------------------- parsing
 
 
-class _YamlLoader(yaml.SafeLoader):
+_SafeLoader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml's parser when built
+
+
+class _YamlLoader(_SafeLoader):  # type: ignore[misc, valid-type]
     """SafeLoader that rejects duplicate keys and reads ``1e-3`` as a float (YAML 1.2)."""
 
 
@@ -48,7 +51,7 @@ def _construct_mapping(loader: _YamlLoader, node: yaml.MappingNode, deep: bool =
                 None, None, f"duplicate key {key!r}", key_node.start_mark
             )
         seen[key] = None
-    return yaml.SafeLoader.construct_mapping(loader, node, deep=deep)
+    return yaml.constructor.SafeConstructor.construct_mapping(loader, node, deep=deep)
 
 
 _YamlLoader.add_constructor("tag:yaml.org,2002:map", _construct_mapping)
