@@ -1,0 +1,169 @@
+"""``observations.json`` (format ``ari-sfm-observations/1``): detected corners, one record per image."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from ari_sfm.errors import AriSfmError
+from ari_sfm.io.atomic import write_json_atomic
+from ari_sfm.io.structured import (
+    as_finite_float,
+    as_float_array,
+    as_int_array,
+    as_list,
+    as_mapping,
+    as_name,
+    as_nonnegative_float,
+    read_structured,
+    require,
+    show,
+)
+from ari_sfm.records import SETS, Observation, Target
+
+FORMAT = "ari-sfm-observations/1"
+
+
+def check_format(data: Any, path: Path, expected: str) -> None:
+    """The top level is a mapping whose ``format`` is ``expected``."""
+    fmt = require(data, "format", path)
+    if fmt != expected:
+        raise AriSfmError(path, f"unsupported format {show(fmt)} (expected '{expected}')")
+
+
+def check_ids_in_target(ids: np.ndarray, target: Target, path: Path, where: str) -> None:
+    """Every id names a point of ``target``."""
+    if target.type == "points3d":
+        known = np.array(sorted(target.points or {}), dtype=np.int64)
+        bad = ids[~np.isin(ids, known)]
+        if bad.size:
+            raise AriSfmError(path, f"{where}: id {int(bad[0])} is not a point of the points3d target")
+        return
+    n = target.num_ids()
+    bad = ids[(ids < 0) | (ids >= n)]
+    if bad.size:
+        raise AriSfmError(path, f"{where}: id {int(bad[0])} out of range for the {target.type} target (ids 0..{n - 1})")
+
+
+def check_unique_ids(ids: np.ndarray, path: Path, where: str) -> None:
+    """No id appears twice."""
+    values, counts = np.unique(ids, return_counts=True)
+    if (counts > 1).any():
+        raise AriSfmError(path, f"{where}: duplicate id {int(values[counts > 1][0])} in ids")
+
+
+def frame_key(set_name: str) -> str:
+    """The record key that names the frame: ``pose`` for stacking, ``frame`` otherwise."""
+    return "pose" if set_name == "stacking" else "frame"
+
+
+def describe(obs: Observation) -> str:
+    """``camera cam0, frame f003`` (stacking: ``camera cam0, pose s0, added_mm 10``)."""
+    if obs.set == "stacking":
+        return f"camera {obs.camera}, pose {obs.frame}, added_mm {obs.added_mm:g}"
+    return f"camera {obs.camera}, frame {obs.frame}"
+
+
+def _need(rec: Mapping, key: str, path: Path, ctx: str) -> Any:
+    if rec.get(key) is None:
+        raise AriSfmError(path, f"{ctx}: missing key '{key}'")
+    return rec[key]
+
+
+def _parse_record(rec: Any, i: int, path: Path, target: Target | None, cameras: set[str] | None) -> Observation:
+    where = f"observation {i}"
+    rec = as_mapping(rec, path, where)
+    camera = as_name(_need(rec, "camera", path, where), path, f"{where}: camera")
+    set_name = _need(rec, "set", path, f"{where} (camera {camera})")
+    if set_name not in SETS:
+        raise AriSfmError(path, f"{where}: set must be one of {', '.join(SETS)} (got {show(set_name)})")
+    key = frame_key(set_name)
+    if rec.get(key) is None:
+        raise AriSfmError(path, f"{where} (camera {camera}): missing key '{key}' ({set_name} records name the {key})")
+    frame = as_name(rec[key], path, f"{where}.{key}")
+    ctx = f"{where} (camera {camera}, {key} {frame})"
+    if set_name == "stacking":
+        if rec.get("added_mm") is None:
+            raise AriSfmError(path, f"{ctx}: missing key 'added_mm' (stacking records need it)")
+        added = as_nonnegative_float(rec["added_mm"], path, f"{ctx}: added_mm")
+    elif rec.get("added_mm") is not None:
+        raise AriSfmError(path, f"{ctx}: added_mm is only for stacking records")
+    else:
+        added = None
+    stage = None if rec.get("stage_mm") is None else as_finite_float(rec["stage_mm"], path, f"{ctx}: stage_mm")
+    if cameras is not None and camera not in cameras:
+        raise AriSfmError(path, f"{ctx}: camera '{camera}' is not declared in the rig (cameras: {', '.join(sorted(cameras))})")
+    ids = as_int_array(_need(rec, "ids", path, ctx), path, f"{ctx}: ids")
+    pixels = as_float_array(_need(rec, "pixels", path, ctx), path, f"{ctx}: pixels", (-1, 2))
+    if len(ids) != len(pixels):
+        raise AriSfmError(path, f"{ctx}: {len(ids)} ids but {len(pixels)} pixels")
+    check_unique_ids(ids, path, ctx)
+    if target is not None:
+        check_ids_in_target(ids, target, path, ctx)
+    return Observation(camera=camera, set=set_name, frame=frame, ids=ids, pixels=pixels, added_mm=added, stage_mm=stage)
+
+
+def parse_observations(
+    data: Any, path: Path, target: Target | None = None, camera_names: Iterable[str] | None = None
+) -> tuple[Observation, ...]:
+    """Validate the parsed content of an observations file (see :func:`load_observations`)."""
+    check_format(data, path, FORMAT)
+    records = as_list(require(data, "observations", path), path, "observations")
+    cameras = None if camera_names is None else set(camera_names)
+    out: list[Observation] = []
+    seen: dict[tuple, int] = {}
+    for i, rec in enumerate(records):
+        obs = _parse_record(rec, i, path, target, cameras)
+        key = (obs.camera, obs.set, obs.frame, obs.added_mm)
+        if key in seen:
+            raise AriSfmError(path, f"observation {i} ({describe(obs)}, set {obs.set}) repeats observation {seen[key]}")
+        seen[key] = i
+        out.append(obs)
+    return tuple(out)
+
+
+def load_observations(
+    path: str | Path, target: Target | None = None, camera_names: Iterable[str] | None = None
+) -> tuple[Observation, ...]:
+    """Read and validate ``observations.json``.
+
+    Checks each record (camera, set, pose/frame, added_mm for stacking, finite
+    stage_mm, integer ids unique in the record, finite (N, 2) pixels, one pixel
+    per id), that no (camera, set, frame, added_mm) appears twice and, when
+    given, that ids belong to ``target`` and cameras to ``camera_names``.
+    """
+    path = Path(path)
+    return parse_observations(read_structured(path), path, target, camera_names)
+
+
+def observations_to_json(observations: Sequence[Observation]) -> dict:
+    """The ``observations.json`` mapping (``pose`` for stacking, ``frame`` otherwise; full precision)."""
+    records = []
+    for obs in observations:
+        rec: dict[str, Any] = {"camera": obs.camera, "set": obs.set, frame_key(obs.set): obs.frame}
+        if obs.added_mm is not None:
+            rec["added_mm"] = obs.added_mm
+        if obs.stage_mm is not None:
+            rec["stage_mm"] = obs.stage_mm
+        rec["ids"] = np.asarray(obs.ids).reshape(-1)
+        rec["pixels"] = _pixels_array(obs.pixels)
+        records.append(rec)
+    return {"format": FORMAT, "observations": records}
+
+
+def _pixels_array(pixels: Any) -> Any:
+    """Pixels as an (N, 2) float array where they can be one (else as given, for the validator)."""
+    try:
+        arr = np.asarray(pixels, dtype=float)
+    except (TypeError, ValueError):
+        return pixels
+    return arr.reshape(-1, 2) if arr.size == 0 else arr
+
+
+def save_observations(path: str | Path, observations: Sequence[Observation]) -> None:
+    """Validate and write ``observations.json`` atomically (raises AriSfmError on a bad record)."""
+    path = Path(path)
+    data = observations_to_json(observations)
+    parse_observations(data, path)  # refuse to write a file we would not read back
+    write_json_atomic(path, data)
