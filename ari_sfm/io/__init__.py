@@ -1,0 +1,55 @@
+"""Data-contract I/O (see DATASET_FORMAT.md): rig files, observations, points, atomic writes.
+
+Every ``load_*`` validates its file fully and raises
+:class:`~ari_sfm.errors.AriSfmError` (file + one-line message); every ``save_*``
+validates first and writes atomically.
+"""
+from __future__ import annotations
+
+from ari_sfm.io.atomic import write_json_atomic, write_text_atomic
+from ari_sfm.io.dataset import dump_rig, find_rig, load_dataset, save_rig
+from ari_sfm.io.observations import load_observations, save_observations
+from ari_sfm.io.points import load_points, save_points
+from ari_sfm.io.structured import (
+    as_finite_float,
+    as_float_array,
+    as_float_at_least,
+    as_int,
+    as_int_array,
+    as_int_pair,
+    as_list,
+    as_mapping,
+    as_name,
+    as_nonnegative_float,
+    as_positive_float,
+    as_str,
+    read_structured,
+    require,
+)
+
+__all__ = [
+    "as_finite_float",
+    "as_float_array",
+    "as_float_at_least",
+    "as_int",
+    "as_int_array",
+    "as_int_pair",
+    "as_list",
+    "as_mapping",
+    "as_name",
+    "as_nonnegative_float",
+    "as_positive_float",
+    "as_str",
+    "dump_rig",
+    "find_rig",
+    "load_dataset",
+    "load_observations",
+    "load_points",
+    "read_structured",
+    "require",
+    "save_observations",
+    "save_points",
+    "save_rig",
+    "write_json_atomic",
+    "write_text_atomic",
+]

@@ -1,0 +1,450 @@
+"""A dataset folder: ``rig.yaml`` / ``rig.yml`` / ``rig.json`` (format ``ari-sfm/1``), read and written.
+
+:func:`load_dataset` validates everything (see DATASET_FORMAT.md) and raises
+AriSfmError naming the file and the key at fault. :func:`dump_rig` and
+:func:`save_rig` write a :class:`~ari_sfm.records.Dataset` back, so a
+simulator can produce datasets that load to equal records.
+"""
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+import yaml
+
+from ari_sfm.errors import AriSfmError
+from ari_sfm.io.atomic import to_jsonable, write_json_atomic, write_text_atomic
+from ari_sfm.io.observations import (
+    check_format,
+    describe,
+    load_observations,
+    observations_to_json,
+    parse_observations,
+)
+from ari_sfm.io.structured import (
+    as_finite_float,
+    as_float_array,
+    as_float_at_least,
+    as_int_pair,
+    as_list,
+    as_mapping,
+    as_name,
+    as_nonnegative_float,
+    as_positive_float,
+    as_str,
+    key_path,
+    read_structured,
+    require,
+    show,
+)
+from ari_sfm.records import SETS, CameraSpec, Dataset, Entry, Interface, Observation, Target
+
+log = logging.getLogger(__name__)
+
+FORMAT = "ari-sfm/1"
+RIG_NAMES = ("rig.yaml", "rig.yml", "rig.json")
+TARGET_TYPES = ("checkerboard", "charuco", "points3d")
+DIST_LENGTHS = (4, 5, 8, 12, 14)
+
+# cv2.aruco predefined dictionaries and their marker counts (OpenCV 4.x / 5.x).
+ARUCO_DICTIONARIES: dict[str, int] = {
+    **{f"DICT_{b}X{b}_{n}": n for b in (4, 5, 6, 7) for n in (50, 100, 250, 1000)},
+    "DICT_ARUCO_ORIGINAL": 1024,
+    "DICT_APRILTAG_16h5": 30,
+    "DICT_APRILTAG_25h9": 35,
+    "DICT_APRILTAG_36h10": 2320,
+    "DICT_APRILTAG_36h11": 587,
+    "DICT_ARUCO_MIP_36h12": 250,
+}
+ARUCO_DICTIONARIES.update({k.upper(): v for k, v in list(ARUCO_DICTIONARIES.items())})  # cv2 has both spellings
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def find_rig(path: str | Path) -> Path:
+    """The rig file of a dataset folder, or ``path`` itself if it is a file."""
+    path = Path(path)
+    if path.is_file():
+        return path
+    if not path.exists():
+        raise AriSfmError(path, "no such dataset folder or rig file")
+    found = [path / name for name in RIG_NAMES if (path / name).is_file()]
+    if not found:
+        raise AriSfmError(path, f"no {', '.join(RIG_NAMES[:-1])} or {RIG_NAMES[-1]} in this folder")
+    if len(found) > 1:
+        names = " and ".join(p.name for p in found)
+        raise AriSfmError(path, f"both {names} in this folder: pass the rig file to use")
+    return found[0]
+
+
+def parse_target(data: Any, path: Path, where: str = "target") -> Target:
+    """The ``target`` mapping as a :class:`Target` (geometry checked)."""
+    data = as_mapping(data, path, where)
+    kind = require(data, "type", path, where)
+    if kind not in TARGET_TYPES:
+        raise AriSfmError(path, f"unknown {where}.type {show(kind)} (expected {', '.join(TARGET_TYPES)})")
+
+    def get(key: str) -> Any:
+        return require(data, key, path, where)
+
+    if kind == "checkerboard":
+        corners = _grid(get("inner_corners"), path, f"{where}.inner_corners")
+        return Target(
+            type=kind, inner_corners=corners, square_mm=as_positive_float(get("square_mm"), path, f"{where}.square_mm")
+        )
+    if kind == "charuco":
+        squares = _grid(get("squares"), path, f"{where}.squares")
+        square = as_positive_float(get("square_mm"), path, f"{where}.square_mm")
+        marker = as_positive_float(get("marker_mm"), path, f"{where}.marker_mm")
+        if marker >= square:
+            raise AriSfmError(path, f"{where}.marker_mm must be < square_mm ({marker:g} >= {square:g})")
+        dictionary = as_str(get("dictionary"), path, f"{where}.dictionary")
+        if dictionary not in ARUCO_DICTIONARIES:
+            raise AriSfmError(path, f"unknown {where}.dictionary {dictionary!r} (expected a cv2.aruco DICT_* name such as DICT_4X4_50)")
+        markers = squares[0] * squares[1] // 2
+        if ARUCO_DICTIONARIES[dictionary] < markers:
+            raise AriSfmError(
+                path,
+                f"{where}.dictionary {dictionary} has {ARUCO_DICTIONARIES[dictionary]} markers, "
+                f"a {squares[0]} x {squares[1]} board needs {markers}",
+            )
+        return Target(type=kind, squares=squares, square_mm=square, marker_mm=marker, dictionary=dictionary)
+    points = as_mapping(get("points"), path, f"{where}.points")
+    if not points:
+        raise AriSfmError(path, f"{where}.points must not be empty")
+    out: dict[int, tuple[float, float, float]] = {}
+    for raw_id, xyz in points.items():
+        pid = _point_id(raw_id, path, f"{where}.points")
+        if pid in out:
+            raise AriSfmError(path, f"{where}.points: duplicate id {pid}")
+        arr = as_float_array(xyz, path, f"{where}.points[{pid}]", (3,))
+        out[pid] = (float(arr[0]), float(arr[1]), float(arr[2]))
+    return Target(type=kind, points=out)
+
+
+MAX_GRID_POINTS = 1_000_000  # a board with more corners is a typo, not a target
+
+
+def _grid(value: Any, path: Path, where: str) -> tuple[int, int]:
+    """[cols, rows] of a board: two integers >= 2, at most MAX_GRID_POINTS in all."""
+    cols, rows = as_int_pair(value, path, where, minimum=2)
+    if cols * rows > MAX_GRID_POINTS:
+        raise AriSfmError(path, f"{where} {[cols, rows]} is too large (at most {MAX_GRID_POINTS} points)")
+    return cols, rows
+
+
+def _point_id(raw: Any, path: Path, where: str) -> int:
+    """A points3d id: an integer, or a string of one (JSON object keys are strings)."""
+    if isinstance(raw, (int, np.integer)) and not isinstance(raw, bool):
+        return int(raw)
+    if isinstance(raw, str):
+        try:
+            return int(raw.strip())
+        except ValueError:
+            pass
+    raise AriSfmError(path, f"{where}: ids must be integers (got {show(raw)})")
+
+
+def parse_interface(data: Any, path: Path, where: str = "interface") -> Interface:
+    """The ``interface`` mapping as an :class:`Interface`."""
+    data = as_mapping(data, path, where)
+    thickness = as_positive_float(require(data, "thickness_mm", path, where), path, f"{where}.thickness_mm")
+    index = as_float_at_least(require(data, "index", path, where), path, f"{where}.index", 1.0)
+    medium = data.get("medium_index")
+    medium = 1.0 if medium is None else as_float_at_least(medium, path, f"{where}.medium_index", 1.0)
+    distance = data.get("distance_mm")
+    distance = None if distance is None else as_positive_float(distance, path, f"{where}.distance_mm")
+    return Interface(thickness_mm=thickness, index=index, medium_index=medium, distance_mm=distance)
+
+
+def parse_camera(name: str, data: Any, path: Path, where: str) -> CameraSpec:
+    """One ``cameras`` entry: image_size [width, height] and optional hints focal_px, K, dist."""
+    data = as_mapping(data, path, where)
+    size = as_int_pair(require(data, "image_size", path, where), path, f"{where}.image_size", minimum=1)
+    focal = data.get("focal_px")
+    focal = None if focal is None else as_positive_float(focal, path, f"{where}.focal_px")
+    K = None
+    if data.get("K") is not None:
+        K = as_float_array(data["K"], path, f"{where}.K", (3, 3))
+        if K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise AriSfmError(path, f"{where}.K must have positive focal lengths (got fx={K[0, 0]:g}, fy={K[1, 1]:g})")
+        if not np.allclose(K[2], [0.0, 0.0, 1.0], atol=1e-9, rtol=0):
+            raise AriSfmError(path, f"{where}.K last row must be [0, 0, 1] (got {show(K[2])})")
+    dist = None
+    if data.get("dist") is not None:
+        dist = as_float_array(data["dist"], path, f"{where}.dist", (-1,))
+        if len(dist) not in DIST_LENGTHS:
+            raise AriSfmError(path, f"{where}.dist must have 4, 5, 8, 12 or 14 numbers (got {len(dist)})")
+    return CameraSpec(name=name, image_size=size, focal_px=focal, K=K, dist=dist)
+
+
+def parse_cameras(data: Any, path: Path, where: str = "cameras") -> dict[str, CameraSpec]:
+    """The ``cameras`` mapping (non-empty), name -> :class:`CameraSpec`, in file order."""
+    data = as_mapping(data, path, where)
+    if not data:
+        raise AriSfmError(path, f"{where} must declare at least one camera")
+    out: dict[str, CameraSpec] = {}
+    for raw_name, spec in data.items():
+        name = as_name(raw_name, path, f"{where} name")
+        if name in out:
+            raise AriSfmError(path, f"{where}: camera '{name}' declared twice")
+        out[name] = parse_camera(name, spec, path, key_path(where, name))
+    return out
+
+
+def parse_entries(
+    data: Any, set_name: str, path: Path, root: Path, cameras: Mapping[str, CameraSpec], check_files: bool = True
+) -> tuple[Entry, ...]:
+    """One of the ``stacking`` / ``calibration`` / ``reconstruction`` lists (null or absent: empty).
+
+    Image paths are made absolute (relative to ``root``) and, if ``check_files``, must exist.
+    """
+    if data is None:
+        return ()
+    items = as_list(data, path, set_name)
+    key = "pose" if set_name == "stacking" else "frame"
+    seen: dict[tuple, int] = {}
+    out: list[Entry] = []
+    for i, item in enumerate(items):
+        where = f"{set_name}[{i}]"
+        item = as_mapping(item, path, where)
+        name = as_name(require(item, key, path, where), path, f"{where}.{key}")
+        ctx = f"{where} ({key} {name})"
+        if set_name == "stacking":
+            added = as_nonnegative_float(require(item, "added_mm", path, where), path, f"{where}.added_mm")
+        elif item.get("added_mm") is not None:
+            raise AriSfmError(path, f"{ctx}: added_mm is only for stacking entries")
+        else:
+            added = None
+        stage = item.get("stage_mm")
+        stage = None if stage is None else as_finite_float(stage, path, f"{where}.stage_mm")
+        ident = (name, added)
+        if ident in seen:
+            extra = f" with added_mm {added:g}" if added is not None else ""
+            raise AriSfmError(path, f"{ctx}: {key} '{name}'{extra} is already listed in {set_name}[{seen[ident]}]")
+        seen[ident] = i
+        images = _parse_images(item.get("images"), path, root, cameras, f"{where}.images", ctx, check_files)
+        out.append(Entry(set=set_name, key=name, images=images, added_mm=added, stage_mm=stage))
+    return tuple(out)
+
+
+def _parse_images(
+    data: Any, path: Path, root: Path, cameras: Mapping[str, CameraSpec], where: str, ctx: str, check_files: bool
+) -> dict[str, Path]:
+    if data is None:
+        return {}
+    data = as_mapping(data, path, where)
+    images: dict[str, Path] = {}
+    for raw_cam, rel in data.items():
+        cam = as_name(raw_cam, path, f"{where} camera name")
+        if cam not in cameras:
+            raise AriSfmError(path, f"{ctx}: images name camera '{cam}', which is not declared in cameras ({', '.join(cameras)})")
+        rel = as_str(rel, path, f"{where}.{cam}")
+        image = Path(os.path.abspath(root / rel))
+        if check_files and not image.is_file():
+            raise AriSfmError(path, f"{ctx}: image of {cam} not found: {rel}")
+        images[cam] = image
+    return images
+
+
+def parse_rig(data: Any, rig_path: Path, check_files: bool = True) -> dict[str, Any]:
+    """Validate a parsed rig mapping; returns the Dataset fields except observations.
+
+    ``observations_path`` in the result is the absolute path the rig names (or None).
+    """
+    rig_path = Path(os.path.abspath(rig_path))
+    root = rig_path.parent
+    as_mapping(data, rig_path, "")
+    check_format(data, rig_path, FORMAT)
+    target = parse_target(require(data, "target", rig_path), rig_path)
+    interface = parse_interface(require(data, "interface", rig_path), rig_path)
+    cameras = parse_cameras(require(data, "cameras", rig_path), rig_path)
+    fields: dict[str, Any] = dict(root=root, rig_path=rig_path, target=target, interface=interface, cameras=cameras)
+    for set_name in SETS:
+        fields[set_name] = parse_entries(data.get(set_name), set_name, rig_path, root, cameras, check_files)
+    obs = data.get("observations")
+    fields["observations_path"] = None if obs is None else Path(
+        os.path.abspath(root / as_str(obs, rig_path, "observations"))
+    )
+    return fields
+
+
+def check_observations(dataset: Dataset) -> None:
+    """Cross-check a dataset's observations with its rig.
+
+    Pixels lie inside their camera's image; every entry without images has
+    observations. (Cameras and ids are checked by :func:`load_observations`.)
+    Records for frames the rig does not list are accepted.
+    """
+    obs = dataset.observations or ()
+    obs_path = dataset.observations_path or dataset.rig_path
+    for i, o in enumerate(obs):
+        w, h = dataset.cameras[o.camera].image_size
+        outside = (o.pixels[:, 0] < -0.5) | (o.pixels[:, 0] > w - 0.5) | (o.pixels[:, 1] < -0.5) | (o.pixels[:, 1] > h - 0.5)
+        if outside.any():
+            j = int(np.argmax(outside))
+            u, v = o.pixels[j]
+            raise AriSfmError(
+                obs_path, f"observation {i} ({describe(o)}): pixel ({u:g}, {v:g}) of id {int(o.ids[j])} is outside the {w} x {h} image"
+            )
+    have = {(o.set, o.frame, o.added_mm) for o in obs}
+    stage = {(o.set, o.frame): o.stage_mm for o in obs if o.stage_mm is not None}
+    for entry in dataset.entries():
+        if not entry.images and (entry.set, entry.key, entry.added_mm) not in have:
+            key = "pose" if entry.set == "stacking" else "frame"
+            extra = f" added_mm {entry.added_mm:g}" if entry.added_mm is not None else ""
+            if dataset.observations is None:
+                why = "the rig names no observations file"
+                if (dataset.root / "observations.json").is_file():
+                    why += " (observations.json is in the folder: add 'observations: observations.json')"
+            else:
+                why = f"{Path(obs_path).name} has no record of it"
+            raise AriSfmError(dataset.rig_path, f"{entry.set} {key} {entry.key}{extra} has no images and {why}")
+        seen_stage = stage.get((entry.set, entry.key))
+        if entry.stage_mm is not None and seen_stage is not None and seen_stage != entry.stage_mm:
+            log.warning(
+                "%s: %s %s has stage_mm %g in the rig but %g in the observations",
+                dataset.rig_path, entry.set, entry.key, entry.stage_mm, seen_stage,
+            )
+
+
+def load_dataset(path: str | Path, observations: str | Path | None = None) -> Dataset:
+    """Load and validate a dataset folder (with rig.yaml, rig.yml or rig.json) or rig file.
+
+    ``observations``, if given, replaces the observations file the rig names.
+    Raises AriSfmError naming the file and the problem.
+    """
+    rig_path = find_rig(path)
+    fields = parse_rig(read_structured(rig_path), rig_path)
+    if observations is not None:
+        fields["observations_path"] = Path(os.path.abspath(observations))
+    obs: tuple[Observation, ...] | None = None
+    if fields["observations_path"] is not None:
+        obs = load_observations(fields["observations_path"], fields["target"], fields["cameras"])
+    dataset = Dataset(observations=obs, **fields)
+    check_observations(dataset)
+    return dataset
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def target_to_json(target: Target) -> dict[str, Any]:
+    """The ``target`` mapping of a rig file."""
+    if target.type == "checkerboard":
+        return {"type": target.type, "inner_corners": list(target.inner_corners or ()), "square_mm": target.square_mm}
+    if target.type == "charuco":
+        return {
+            "type": target.type,
+            "squares": list(target.squares or ()),
+            "square_mm": target.square_mm,
+            "marker_mm": target.marker_mm,
+            "dictionary": target.dictionary,
+        }
+    return {"type": target.type, "points": {int(k): list(v) for k, v in (target.points or {}).items()}}
+
+
+def interface_to_json(interface: Interface) -> dict[str, Any]:
+    """The ``interface`` mapping of a rig file."""
+    out: dict[str, Any] = {
+        "thickness_mm": interface.thickness_mm,
+        "index": interface.index,
+        "medium_index": interface.medium_index,
+    }
+    if interface.distance_mm is not None:
+        out["distance_mm"] = interface.distance_mm
+    return out
+
+
+def camera_to_json(camera: CameraSpec) -> dict[str, Any]:
+    """One ``cameras`` entry of a rig file (hints only where set)."""
+    out: dict[str, Any] = {"image_size": list(camera.image_size)}
+    if camera.focal_px is not None:
+        out["focal_px"] = camera.focal_px
+    if camera.K is not None:
+        out["K"] = np.asarray(camera.K, dtype=float).tolist()
+    if camera.dist is not None:
+        out["dist"] = np.asarray(camera.dist, dtype=float).reshape(-1).tolist()
+    return out
+
+
+def _relative(path: Path, root: Path) -> str:
+    return Path(os.path.relpath(os.path.abspath(path), os.path.abspath(root))).as_posix()
+
+
+def entry_to_json(entry: Entry, root: Path) -> dict[str, Any]:
+    """One stacking / calibration / reconstruction item, image paths relative to ``root``."""
+    out: dict[str, Any] = {"pose" if entry.set == "stacking" else "frame": entry.key}
+    if entry.added_mm is not None:
+        out["added_mm"] = entry.added_mm
+    if entry.stage_mm is not None:
+        out["stage_mm"] = entry.stage_mm
+    if entry.images:
+        out["images"] = {cam: _relative(Path(p), root) for cam, p in entry.images.items()}
+    return out
+
+
+def dump_rig(dataset: Dataset, root: str | Path | None = None, observations_file: str | None = None) -> dict[str, Any]:
+    """The rig mapping of ``dataset`` (paths relative to ``root``, default ``dataset.root``).
+
+    ``observations`` is ``observations_file`` if given, else the dataset's
+    observations_path made relative, else ``observations.json`` when the
+    dataset holds observations; absent otherwise. Empty sets are left out.
+    """
+    root = Path(root if root is not None else dataset.root)
+    data: dict[str, Any] = {
+        "format": FORMAT,
+        "target": target_to_json(dataset.target),
+        "interface": interface_to_json(dataset.interface),
+        "cameras": {name: camera_to_json(cam) for name, cam in dataset.cameras.items()},
+    }
+    for set_name in SETS:
+        entries = getattr(dataset, set_name)
+        if entries:
+            data[set_name] = [entry_to_json(e, root) for e in entries]
+    if observations_file is not None:
+        data["observations"] = observations_file
+    elif dataset.observations_path is not None:
+        data["observations"] = _relative(dataset.observations_path, root)
+    elif dataset.observations is not None:
+        data["observations"] = "observations.json"
+    return data
+
+
+def save_rig(path: str | Path, dataset: Dataset) -> Path:
+    """Write ``dataset`` as a rig file (``.yaml``/``.yml``/``.json``; a folder gets ``rig.yaml``).
+
+    If the dataset holds observations they are written next to it (as the file
+    name of ``observations_path``, default ``observations.json``) and the rig
+    names them. Image paths are written relative to the rig's folder. The rig
+    is validated before writing (images need not exist yet). Returns the rig path.
+    """
+    path = Path(path)
+    if path.is_dir() or not path.suffix:
+        path = path / "rig.yaml"
+    if path.suffix.lower() not in (".yaml", ".yml", ".json"):
+        raise AriSfmError(path, "a rig file must end in .yaml, .yml or .json")
+    root = Path(os.path.abspath(path.parent))
+    obs_file = None
+    if dataset.observations is not None:
+        obs_file = dataset.observations_path.name if dataset.observations_path is not None else "observations.json"
+    as_json = path.suffix.lower() == ".json"
+    try:
+        data = to_jsonable(dump_rig(dataset, root, obs_file), string_keys=as_json)
+    except AriSfmError as exc:
+        raise AriSfmError(path, exc.message) from None
+    parse_rig(data, path, check_files=False)
+    if obs_file is not None:
+        obs_data = observations_to_json(dataset.observations)
+        parse_observations(obs_data, root / obs_file, dataset.target, dataset.cameras)
+        write_json_atomic(root / obs_file, obs_data)
+    if as_json:
+        write_json_atomic(path, data)
+    else:
+        text = yaml.safe_dump(data, sort_keys=False, default_flow_style=None, allow_unicode=True, width=120)
+        write_text_atomic(path, text)
+    return path
