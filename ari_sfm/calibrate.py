@@ -26,6 +26,7 @@ class CalibrationOptions:
     huber_px: float | None = 1.0  # per-corner Huber threshold in px; None: plain least squares
     outlier_sigma: float = 5.0  # corners beyond this many sigma after convergence are reported
     exclude_outliers: bool = False  # drop those corners and re-run the last stage
+    fix_intrinsics: bool = False  # hold K (and dist) at the rig.yaml hints of the cameras that give K
     max_iterations: int = 100  # Levenberg-Marquardt iterations per stage
     workers: int | None = None  # threads for corner detection when the dataset has only images
     progress: bool = False  # progress bars (the CLI turns them on)
@@ -77,6 +78,13 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
         rig.cam_from_world, rig.normal_world, rig.world_from_target,
         iface.distance_mm if iface.distance_mm is not None else (_default_distance(rig) if underwater else None),
     )
+    fixed = [n for n in names if dataset.cameras[n].K is not None] if opts.fix_intrinsics else []
+    if opts.fix_intrinsics and not fixed:
+        raise AriSfmError(dataset.rig_path, "fix_intrinsics needs a K hint for at least one camera (cameras.<name>.K)")
+    for n in fixed:  # start from the hint exactly
+        spec = dataset.cameras[n]
+        state.params[n][:4] = [spec.K[0, 0], spec.K[1, 1], spec.K[0, 2], spec.K[1, 2]]
+        state.params[n][4:] = np.resize(spec.dist if spec.dist is not None else np.zeros(5), 5)
     stages = ["ari"] + (["exact"] if model == "exact" else [])
     graph = None
     iterations = {}
@@ -85,7 +93,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
             state = RigState(state.params, state.cam_from_world, state.normal_world, state.world_from_target, _default_distance(rig))
         graph = RigGraph.build(
             dataset.observations, dataset.target, iface, names, state, model=stage, distortion=opts.distortion,
-            estimate_distance=underwater, huber_px=opts.huber_px,
+            estimate_distance=underwater, huber_px=opts.huber_px, fixed_intrinsics=fixed,
         )
         t_stage = time.perf_counter()
         state = graph.optimize(opts.max_iterations)
@@ -98,7 +106,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
         log.info("excluding %d outlier corners and re-running the %s stage", len(outliers), stages[-1])
         graph = RigGraph.build(
             without(dataset.observations, outliers), dataset.target, iface, names, state, model=stages[-1],
-            distortion=opts.distortion, estimate_distance=underwater, huber_px=opts.huber_px,
+            distortion=opts.distortion, estimate_distance=underwater, huber_px=opts.huber_px, fixed_intrinsics=fixed,
         )
         state = graph.optimize(opts.max_iterations)
     if outliers:

@@ -72,6 +72,7 @@ class RigGraph:
         huber_px: float | None = None,
         sigma_px: float = 1.0,
         min_corners: int = 4,
+        fixed_intrinsics: Sequence[str] = (),
     ) -> "RigGraph":
         """One factor per (camera, calibration or stacking image); variables from state."""
         factory = MODELS[model]
@@ -89,6 +90,10 @@ class RigGraph:
             values.insert(K_.X(i), pose3_from_pose(state.world_from_target[f]))
         if estimate_distance:
             values.insert(K_.H, np.array([float(state.distance_mm)]))
+        for name in fixed_intrinsics:  # known K: a prior far tighter than anything the images say
+            c = names.index(name)
+            graph.push_back(gtsam.PriorFactorVector(K_.K(c), np.asarray(state.params[name][:n_params], float),
+                                                    gtsam.noiseModel.Isotropic.Sigma(n_params, 1e-4)))
         ids_all, xyz_all = target.points_3d()
         lookup = {int(i): k for k, i in enumerate(ids_all)}
         rg = RigGraph(graph, values, names, frames, n_params, state, estimate_distance, model=model)

@@ -14,7 +14,7 @@ from ..geometry import Pose, unit
 from ..records import Dataset, Observation
 from .expansion_center import ExpansionCenter, expansion_center, normal_from_expansion_center
 from .interface_pose import real_cam_from_target
-from .zhang import calibrate_zhang, solve_pnp
+from .zhang import calibrate_views, solve_pnp
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +55,7 @@ def initialise_camera(dataset: Dataset, name: str, distortion: bool = False) -> 
     if len(views) < MIN_VIEWS:
         raise AriSfmError(dataset.rig_path, f"camera {name} has {len(views)} calibration views with >= 6 corners (need >= {MIN_VIEWS})")
     stacking = dataset.select("stacking", name)
-    zhang = calibrate_zhang(dataset.target, dataset.cameras[name], views, distortion)
+    zhang = calibrate_views(dataset.target, dataset.cameras[name], views, distortion)
     iface = dataset.interface
     expansion, normal = None, None
     if stacking:

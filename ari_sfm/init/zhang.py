@@ -37,7 +37,7 @@ def object_points(target: Target, ids: np.ndarray) -> np.ndarray:
 def initial_K(spec: CameraSpec) -> np.ndarray:
     """A starting K from the camera's hints: K, else focal_px, else a 50-degree field."""
     if spec.K is not None:
-        return np.asarray(spec.K, float)
+        return np.array(spec.K, dtype=float)  # a copy: cv2.calibrateCamera writes into its K argument
     w, h = spec.image_size
     f = spec.focal_px if spec.focal_px is not None else 0.5 * w / np.tan(np.radians(25.0))
     return np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
@@ -53,7 +53,7 @@ def calibrate_zhang(
     if not distortion:
         flags |= cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
     K0 = initial_K(spec)
-    dist0 = np.zeros(5)
+    dist0 = np.zeros(5)  # fresh arrays: OpenCV refines them in place
     criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
     rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
         obj, img, tuple(int(s) for s in spec.image_size), K0, dist0, flags=flags, criteria=criteria
@@ -62,6 +62,55 @@ def calibrate_zhang(
         v.frame: Pose(cv2.Rodrigues(r)[0], np.asarray(t, float).reshape(3)) for v, r, t in zip(views, rvecs, tvecs)
     }
     return ZhangResult(np.asarray(K, float), np.asarray(dist, float).reshape(-1)[:5], poses, float(rms))
+
+
+def dlt_projection(X: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """The 3x4 projection matrix of one view by the normalised DLT (needs >= 6 non-coplanar points)."""
+    def normaliser(p: np.ndarray) -> np.ndarray:
+        c, s = p.mean(axis=0), np.sqrt(p.shape[1]) / np.mean(np.linalg.norm(p - p.mean(axis=0), axis=1))
+        T = np.eye(p.shape[1] + 1)
+        T[:-1, :-1] *= s
+        T[:-1, -1] = -s * c
+        return T
+
+    T2, T3 = normaliser(uv), normaliser(X)
+    xn = (np.c_[uv, np.ones(len(uv))] @ T2.T)[:, :2]
+    Xn = np.c_[X, np.ones(len(X))] @ T3.T
+    rows = []
+    for (u, v), P in zip(xn, Xn):
+        rows.append(np.r_[P, np.zeros(4), -u * P])
+        rows.append(np.r_[np.zeros(4), P, -v * P])
+    _, _, vt = np.linalg.svd(np.array(rows))
+    return np.linalg.inv(T2) @ vt[-1].reshape(3, 4) @ T3
+
+
+def calibrate_dlt(
+    target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False
+) -> ZhangResult:
+    """K and generalised extrinsics from a 3D target (several planes): PnP with the
+    K hint when the dataset gives one, else DLT per view (K averaged over views),
+    then one cv2.calibrateCamera refinement from that guess."""
+    if spec.K is not None:
+        K0 = np.array(spec.K, dtype=float)
+    else:
+        Ks = []
+        for v in views:
+            P = dlt_projection(object_points(target, v.ids), v.pixels)
+            P = P * np.sign(np.linalg.det(P[:, :3]))  # points in front of the camera
+            K = cv2.decomposeProjectionMatrix(P)[0]
+            K = K @ np.diag(np.sign(np.diag(K)))  # RQ's sign ambiguity: positive focal lengths
+            Ks.append(K / K[2, 2])
+        K0 = np.median(Ks, axis=0)
+        K0[0, 1] = 0.0
+    hinted = CameraSpec(spec.name, spec.image_size, None, K0, spec.dist)
+    return calibrate_zhang(target, hinted, views, distortion)
+
+
+def calibrate_views(target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False) -> ZhangResult:
+    """Zhang's method for planar targets, DLT/PnP for 3D ones."""
+    if target.is_planar():
+        return calibrate_zhang(target, spec, views, distortion)
+    return calibrate_dlt(target, spec, views, distortion)
 
 
 def solve_pnp(target: Target, K: np.ndarray, dist: np.ndarray, view: Observation) -> Pose:
