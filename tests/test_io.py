@@ -606,3 +606,14 @@ def test_random_corruptions_raise_only_ari_sfm_error(tmp_path: Path) -> None:
             load_dataset(tmp_path)
         except AriSfmError as exc:
             assert "\n" not in str(exc) and exc.path is not None
+
+
+def test_unknown_keys_load_with_a_warning(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """New keys are allowed (the format may grow) but a typo must not pass silently."""
+    rig = _rig(interface__medium_indx=1.333, lab="tank 2")
+    folder = write_example(tmp_path / "ds", rig=yaml.safe_dump(rig), observations=_obs(1, detector="opencv"))
+    with caplog.at_level("WARNING", logger="ari_sfm.io"):
+        ds = load_dataset(folder)
+    assert ds.interface.medium_index == 1.0
+    text = caplog.text
+    assert "'interface.medium_indx'" in text and "'lab'" in text and "'observations[].detector'" in text

@@ -39,6 +39,7 @@ from ari_sfm.io.structured import (
     read_structured,
     require,
     show,
+    warn_unknown_keys,
 )
 from ari_sfm.records import SETS, CameraSpec, Dataset, Entry, Interface, Observation, Target
 
@@ -48,6 +49,15 @@ FORMAT = "ari-sfm/1"
 RIG_NAMES = ("rig.yaml", "rig.yml", "rig.json")
 TARGET_TYPES = ("checkerboard", "charuco", "points3d")
 DIST_LENGTHS = (4, 5, 8, 12, 14)
+TOP_KEYS = ("format", "target", "interface", "cameras", *SETS, "observations")
+TARGET_KEYS = {
+    "checkerboard": ("type", "inner_corners", "square_mm"),
+    "charuco": ("type", "squares", "square_mm", "marker_mm", "dictionary"),
+    "points3d": ("type", "points"),
+}
+INTERFACE_KEYS = ("thickness_mm", "index", "medium_index", "distance_mm")
+CAMERA_KEYS = ("image_size", "focal_px", "K", "dist")
+ENTRY_KEYS = ("pose", "frame", "added_mm", "stage_mm", "images")
 
 # cv2.aruco predefined dictionaries and their marker counts (OpenCV 4.x / 5.x).
 ARUCO_DICTIONARIES: dict[str, int] = {
@@ -87,6 +97,8 @@ def parse_target(data: Any, path: Path, where: str = "target") -> Target:
     kind = require(data, "type", path, where)
     if kind not in TARGET_TYPES:
         raise AriSfmError(path, f"unknown {where}.type {show(kind)} (expected {', '.join(TARGET_TYPES)})")
+
+    warn_unknown_keys(data, TARGET_KEYS[kind], path, where)
 
     def get(key: str) -> Any:
         return require(data, key, path, where)
@@ -152,6 +164,7 @@ def _point_id(raw: Any, path: Path, where: str) -> int:
 def parse_interface(data: Any, path: Path, where: str = "interface") -> Interface:
     """The ``interface`` mapping as an :class:`Interface`."""
     data = as_mapping(data, path, where)
+    warn_unknown_keys(data, INTERFACE_KEYS, path, where)
     thickness = as_positive_float(require(data, "thickness_mm", path, where), path, f"{where}.thickness_mm")
     index = as_float_at_least(require(data, "index", path, where), path, f"{where}.index", 1.0)
     medium = data.get("medium_index")
@@ -164,6 +177,7 @@ def parse_interface(data: Any, path: Path, where: str = "interface") -> Interfac
 def parse_camera(name: str, data: Any, path: Path, where: str) -> CameraSpec:
     """One ``cameras`` entry: image_size [width, height] and optional hints focal_px, K, dist."""
     data = as_mapping(data, path, where)
+    warn_unknown_keys(data, CAMERA_KEYS, path, where)
     size = as_int_pair(require(data, "image_size", path, where), path, f"{where}.image_size", minimum=1)
     focal = data.get("focal_px")
     focal = None if focal is None else as_positive_float(focal, path, f"{where}.focal_px")
@@ -212,6 +226,7 @@ def parse_entries(
     for i, item in enumerate(items):
         where = f"{set_name}[{i}]"
         item = as_mapping(item, path, where)
+        warn_unknown_keys(item, ENTRY_KEYS, path, where)
         name = as_name(require(item, key, path, where), path, f"{where}.{key}")
         ctx = f"{where} ({key} {name})"
         if set_name == "stacking":
@@ -259,6 +274,7 @@ def parse_rig(data: Any, rig_path: Path, check_files: bool = True) -> dict[str, 
     rig_path = Path(os.path.abspath(rig_path))
     root = rig_path.parent
     as_mapping(data, rig_path, "")
+    warn_unknown_keys(data, TOP_KEYS, rig_path)
     check_format(data, rig_path, FORMAT)
     target = parse_target(require(data, "target", rig_path), rig_path)
     interface = parse_interface(require(data, "interface", rig_path), rig_path)

@@ -19,10 +19,12 @@ from ari_sfm.io.structured import (
     read_structured,
     require,
     show,
+    warn_unknown_keys,
 )
 from ari_sfm.records import SETS, Observation, Target
 
 FORMAT = "ari-sfm-observations/1"
+RECORD_KEYS = ("camera", "set", "pose", "frame", "added_mm", "stage_mm", "ids", "pixels")
 
 
 def check_format(data: Any, path: Path, expected: str) -> None:
@@ -113,13 +115,17 @@ def parse_observations(
     cameras = None if camera_names is None else set(camera_names)
     out: list[Observation] = []
     seen: dict[tuple, int] = {}
+    unknown: set[str] = set()
     for i, rec in enumerate(records):
         obs = _parse_record(rec, i, path, target, cameras)
+        unknown.update(str(k) for k in rec if k not in RECORD_KEYS)
         key = (obs.camera, obs.set, obs.frame, obs.added_mm)
         if key in seen:
             raise AriSfmError(path, f"observation {i} ({describe(obs)}, set {obs.set}) repeats observation {seen[key]}")
         seen[key] = i
         out.append(obs)
+    if unknown:
+        warn_unknown_keys(dict.fromkeys(sorted(unknown)), (), path, "observations[]")
     return tuple(out)
 
 

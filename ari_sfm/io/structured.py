@@ -10,17 +10,19 @@ no ``KeyError``, ``TypeError`` or parser exception reaches the caller.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import numbers
 import re
 from pathlib import Path
-from typing import Any, Callable, Mapping, TypeVar
+from typing import Any, Callable, Iterable, Mapping, TypeVar
 
 import numpy as np
 import yaml
 
 from ari_sfm.errors import AriSfmError
 
+log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 _MISSING = object()
@@ -179,6 +181,14 @@ def optional(
     if value is None:
         return default
     return convert(value, path, key_path(where, key))
+
+
+def warn_unknown_keys(mapping: Mapping, known: Iterable[str], path: str | Path, where: str = "") -> None:
+    """Log a warning for keys the format does not define (allowed, but often a typo)."""
+    unknown = [str(k) for k in mapping if k not in set(known)]
+    if unknown:
+        log.warning("%s: unknown key%s %s ignored", path, "s" if len(unknown) > 1 else "",
+                    ", ".join(f"'{key_path(where, k)}'" for k in unknown))
 
 
 def _is_number(value: Any) -> bool:
