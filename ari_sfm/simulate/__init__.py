@@ -96,7 +96,7 @@ def make_scene(name: str, seed: int = 0, sigma_px: float = 0.05, **overrides) ->
         raise ValueError(f"sigma_px must be >= 0 (got {sigma_px})")
     _check_overrides(name, overrides)
     geometry = build_geometry(name, _rng(name, seed, 0), **overrides).scaled(image_scale)
-    exact = observe(geometry, 0.0, _rng(name, seed, 1))
+    exact = observe(geometry)
     noise_rng = _rng(name, seed, 1)
     noisy = tuple(o if sigma_px == 0.0 else replace(o, pixels=o.pixels + noise_rng.normal(0.0, sigma_px, o.pixels.shape))
                   for o in exact)

@@ -3,7 +3,7 @@
 A :class:`Geometry` is the ground truth of a simulated experiment: cameras,
 one window, target poses.  :func:`observe` projects every target corner with
 :class:`~ari_sfm.models.exact.ExactModel` (Snell's law at both faces, never
-the paraxial ARI equation) and adds Gaussian pixel noise; :func:`to_dataset`
+the paraxial ARI equation); :func:`to_dataset`
 and :func:`truth_dict` turn the result into the project's records and the
 ``calibration.json`` form of the truth (``model: truth``).
 
@@ -181,14 +181,8 @@ def expansion_center_px(camera: CameraTruth, normal_cam: np.ndarray) -> np.ndarr
 # --------------------------------------------------------------------------- observations
 
 
-def _noisy(uv: np.ndarray, sigma_px: float, rng: np.random.Generator) -> np.ndarray:
-    if sigma_px <= 0.0:
-        return uv.copy()
-    return uv + rng.normal(0.0, sigma_px, uv.shape)
-
-
-def observe(geometry: Geometry, sigma_px: float, rng: np.random.Generator) -> tuple[Observation, ...]:
-    """Every record the cameras make: exact corners plus i.i.d. N(0, sigma_px) per coordinate.
+def observe(geometry: Geometry) -> tuple[Observation, ...]:
+    """Every record the cameras make, noise-free (exact Snell projection of every corner).
 
     A camera records a frame only if all corners lie ``margin_px`` inside its
     image.  Order: stacking (pose, added, camera), calibration, reconstruction.
@@ -202,7 +196,7 @@ def observe(geometry: Geometry, sigma_px: float, rng: np.random.Generator) -> tu
             uv = project(geometry.window, cam, X, added)
             if inside(uv, cam.image_size, geometry.margin_px):
                 out.append(Observation(camera=cam.name, set=set_name, frame=frame, ids=ids.copy(),
-                                       pixels=_noisy(uv, sigma_px, rng), **extra))
+                                       pixels=uv, **extra))
 
     for s in geometry.stacking:
         for added in s.added_mm:
