@@ -1,0 +1,28 @@
+"""The bundled sample dataset (rendered images, exact physics): the README's first command."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from ari_sfm.cli import main
+from ari_sfm.geometry import angle_between_deg
+
+ROOT = Path(__file__).resolve().parents[1] / "datasets"
+
+
+@pytest.mark.parametrize("model,normal_tol,fx_tol", [("ari", 1.0, 0.015), ("exact", 0.1, 5e-4)])
+def test_sample_from_images(tmp_path, model, normal_tol, fx_tol):
+    r = CliRunner().invoke(main, ["run", str(ROOT / "sample"), "-o", str(tmp_path), "--model", model])
+    assert r.exit_code == 0, r.output
+    cal = json.loads((tmp_path / "calibration.json").read_text())
+    truth = json.loads((ROOT / "sample_truth.json").read_text())
+    assert (tmp_path / "observations.json").exists()  # detected from the images
+    c, t = cal["cameras"]["cam0"], truth["cameras"]["cam0"]
+    assert angle_between_deg(cal["interface"]["normal_world"], truth["interface"]["normal_world"]) < normal_tol
+    assert abs(c["K"][0][0] / t["K"][0][0] - 1) < fx_tol
+    assert np.linalg.norm(np.subtract(c["expansion_center_px"], t["expansion_center_px"])) < 1.0
+    assert cal["residuals"]["count"] >= 0.95 * 18 * 88  # (almost) every corner of every image found
