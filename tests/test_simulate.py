@@ -351,3 +351,27 @@ def test_bundled_sample_matches_its_truth():
     if np.linalg.norm(corners[0] - ref[0]) > np.linalg.norm(corners[-1] - ref[0]):
         corners = corners[::-1]
     assert np.sqrt(np.mean(np.sum((corners - ref) ** 2, axis=1))) < 0.15
+
+
+def test_project_detector_finds_the_true_corners_in_the_sample():
+    """Every sample image detects, with the contract's ids, at the exact corners (rendering = truth)."""
+    from pathlib import Path
+
+    import cv2
+
+    from ari_sfm.io import load_dataset, load_observations
+
+    detection = pytest.importorskip("ari_sfm.detection")
+    root = Path(__file__).resolve().parents[1] / "datasets"
+    ds = load_dataset(root / "sample")
+    exact = {(o.set, o.frame, o.added_mm): o for o in load_observations(root / "sample_truth_observations.json")}
+    errors = []
+    for entry in ds.entries():
+        found = detection.detect_corners(cv2.imread(str(entry.images["cam0"]), cv2.IMREAD_GRAYSCALE), ds.target)
+        assert found is not None, entry
+        ids, pixels = found
+        ref = exact[(entry.set, entry.key, entry.added_mm)]
+        assert np.array_equal(ids, ref.ids)
+        errors.append(pixels - ref.pixels)
+    e = np.concatenate(errors)
+    assert len(errors) == 18 and np.sqrt(np.mean(np.sum(e**2, axis=1))) < 0.05 and np.abs(e.mean(axis=0)).max() < 0.01
