@@ -279,15 +279,19 @@ def binocular(rng: np.random.Generator, num_frames: int = 15, underwater: bool =
     """Two paper-like cameras toed in 10-15 deg, one window (sections 4-5 of the paper).
 
     Air: 50 mm N-BK7.  Underwater: a 10 mm N-BK7 port with water behind.
-    Calibration frames, the stacking pose and the 11 stage frames are each
-    seen whole (board outline included) by both cameras.
+    The baseline is drawn so that the optical axes cross at least 350 mm
+    ahead (a toe-in aimed at the working distance).  Calibration frames, the
+    stacking pose and the 11 stage frames are each seen whole (board outline
+    included) by both cameras; they are placed in the depth band where a
+    board facing the rig first fits both views (:func:`_overlap_start`).
     """
-    baseline = rng.uniform(120.0, 200.0)
+    tan_yaws = np.tan(np.radians(rng.uniform(10.0, 15.0, size=2)))
+    baseline = rng.uniform(max(120.0, 350.0 * float(tan_yaws.sum())), 200.0)
     rig = []
-    for sign in (+1.0, -1.0):  # cam0 on the left turns right (+x), cam1 on the right turns left
-        yaw = sign * math.radians(rng.uniform(10.0, 15.0))
+    for sign, tan_yaw in zip((+1.0, -1.0), tan_yaws):  # cam0 on the left turns right (+x), cam1 left
         jitter = _rot(rng.normal(size=3), math.radians(rng.uniform(0.0, 0.7)))
-        rig.append((_rot_y(yaw) @ jitter, np.array([-sign * baseline / 2.0, rng.uniform(-2, 2), rng.uniform(-2, 2)])))
+        rig.append((_rot_y(sign * math.atan(tan_yaw)) @ jitter,
+                    np.array([-sign * baseline / 2.0, rng.uniform(-2, 2), rng.uniform(-2, 2)])))
     cam_from_world = _in_world(rig)
     cameras = tuple(CameraTruth(name=f"cam{i}", K=_intrinsics(rng), image_size=PAPER_IMAGE_SIZE,
                                 cam_from_world=cam_from_world[i], focal_hint_px=round(PAPER_FOCAL_PX, 1))
@@ -298,21 +302,21 @@ def binocular(rng: np.random.Generator, num_frames: int = 15, underwater: bool =
     near = max(normal_rig @ c for _, c in rig) + rng.uniform(40.0, 60.0)
     if underwater:
         window = _window_in_world(normal_rig, near, rig_from_world, 10.0, NBK7_INDEX, WATER_INDEX)
-        depth_range = (520.0, 680.0)  # refraction into water narrows the views: the overlap is farther
     else:
         window = _window_in_world(normal_rig, near, rig_from_world, 50.0, NBK7_INDEX, 1.0)
-        depth_range = (380.0, 520.0)
     chk = _Checker(PAPER_TARGET, window, cameras)
     world_from_rig = rig_from_world.inverse()
     down = world_from_rig.R @ np.array([0.0, 1.0, 0.0])
     rig_origin = world_from_rig.t
-    mid_depth = float(np.mean(depth_range))
+    depth0, x0 = _overlap_start(chk, world_from_rig, stack_added_mm)
+    depth_range = (depth0 + 20.0, depth0 + 200.0)
+    mid_depth = depth0 + 60.0
 
     def both(pose: Pose, added: Sequence[float] = (0.0,)) -> bool:
         return all(chk.sees(c, pose, added, outline=True) for c in cameras)
 
     def calib_sample() -> Pose | None:
-        c_rig = np.array([rng.uniform(-50, 50), rng.uniform(-40, 40), rng.uniform(*depth_range)])
+        c_rig = np.array([x0 + rng.uniform(-50, 50), rng.uniform(-40, 40), rng.uniform(*depth_range)])
         center = world_from_rig.apply(c_rig)
         pose = _board_pose(PAPER_TARGET, center, center - rig_origin, down,
                            tilt_rad=math.radians(rng.uniform(8.0, 35.0)),
@@ -326,7 +330,7 @@ def binocular(rng: np.random.Generator, num_frames: int = 15, underwater: bool =
     normal_w = window.normal_world
 
     def stacking_sample() -> Pose | None:
-        center = world_from_rig.apply(np.array([rng.uniform(-20, 20), rng.uniform(-20, 20), mid_depth]))
+        center = world_from_rig.apply(np.array([x0 + rng.uniform(-20, 20), rng.uniform(-20, 20), mid_depth]))
         facing = _tilted(normal_w, math.radians(rng.uniform(0.0, 2.0)), rng.uniform(0, 2 * math.pi))
         pose = _board_pose(PAPER_TARGET, center, facing, down, roll_rad=math.radians(rng.uniform(-2, 2)))
         return pose if both(pose, stack_added_mm) else None
@@ -336,7 +340,7 @@ def binocular(rng: np.random.Generator, num_frames: int = 15, underwater: bool =
     stage_dir = _tilted(normal_w, math.radians(rng.uniform(0.0, 1.5)), rng.uniform(0, 2 * math.pi))
 
     def stage_sample() -> Pose | None:
-        center = world_from_rig.apply(np.array([rng.uniform(-20, 20), rng.uniform(-20, 20), mid_depth]))
+        center = world_from_rig.apply(np.array([x0 + rng.uniform(-20, 20), rng.uniform(-20, 20), mid_depth]))
         facing = _tilted(center - rig_origin, math.radians(rng.uniform(0.0, 10.0)), rng.uniform(0, 2 * math.pi))
         base = _board_pose(PAPER_TARGET, center, facing, down, roll_rad=math.radians(rng.uniform(-3, 3)))
         ok = all(both(Pose(base.R, base.t + s * stage_dir)) for s in stage_mm)
@@ -347,6 +351,22 @@ def binocular(rng: np.random.Generator, num_frames: int = 15, underwater: bool =
                            for name, s in zip(_frame_names("r", len(stage_mm)), stage_mm))
     return Geometry(target=PAPER_TARGET, window=window, cameras=cameras, calibration=calibration,
                     stacking=(s0,), reconstruction=reconstruction, stage_direction_world=stage_dir)
+
+
+def _overlap_start(chk: _Checker, world_from_rig: Pose, added: Sequence[float]) -> tuple[float, float]:
+    """The smallest depth (rig z, mm) at which a board facing the rig origin is whole in every
+    camera for every stack, and the mean rig x of the places where it fits there."""
+    down = world_from_rig.R @ np.array([0.0, 1.0, 0.0])
+    for depth in np.arange(300.0, 1500.0, 20.0):
+        fits = []
+        for x in np.arange(-100.0, 101.0, 25.0):
+            center = world_from_rig.apply(np.array([x, 0.0, depth]))
+            pose = _board_pose(chk.target, center, center - world_from_rig.t, down)
+            if all(chk.sees(c, pose, added, outline=True) for c in chk.cameras):
+                fits.append(x)
+        if fits:
+            return float(depth), float(np.mean(fits))
+    raise RuntimeError("simulator: no depth up to 1.5 m where the board fits every camera; relax the scenario")
 
 
 # --------------------------------------------------------------------------- arc4
