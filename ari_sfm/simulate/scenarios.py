@@ -311,6 +311,8 @@ def binocular(rng: np.random.Generator, num_frames: int = 15, underwater: bool =
     depth0, x0 = _overlap_start(chk, world_from_rig, stack_added_mm)
     depth_range = (depth0 + 20.0, depth0 + 200.0)
     mid_depth = depth0 + 60.0
+    logger.debug("binocular: baseline %.1f mm, boards fit both views from %.0f mm (rig x %.0f mm)",
+                 baseline, depth0, x0)
 
     def both(pose: Pose, added: Sequence[float] = (0.0,)) -> bool:
         return all(chk.sees(c, pose, added, outline=True) for c in cameras)
