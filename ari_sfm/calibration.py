@@ -76,6 +76,17 @@ class Calibration:
         return cls(pinhole, self.normal_cam(camera), self.interface.thickness_mm + added_mm, self.interface.index,
                    self.interface.medium_index, distance)
 
+    def project_world(self, camera: str, X_world: np.ndarray, added_mm: float = 0.0) -> np.ndarray:
+        """Pixels (N, 2) of world points (N, 3) seen by a camera through the window."""
+        X_cam = self.cameras[camera].cam_from_world.apply(np.asarray(X_world, float).reshape(-1, 3))
+        return self.projection_model(camera, added_mm).project(X_cam)
+
+    def rays_world(self, camera: str, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Scene-side rays (origins (N, 3), unit directions (N, 3)) in the world frame of pixels (N, 2)."""
+        origins, directions = self.projection_model(camera).backproject(np.asarray(uv, float).reshape(-1, 2))
+        world_from_cam = self.cameras[camera].cam_from_world.inverse()
+        return world_from_cam.apply(origins), directions @ world_from_cam.R.T
+
     # ---- calibration.json -------------------------------------------------
     def to_json(self) -> dict[str, Any]:
         cams = {}
