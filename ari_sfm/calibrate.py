@@ -28,6 +28,7 @@ class CalibrationOptions:
     exclude_outliers: bool = False  # drop those corners and re-run the last stage
     fix_intrinsics: bool = False  # hold K (and dist) at the rig.yaml hints of the cameras that give K
     max_iterations: int = 100  # Levenberg-Marquardt iterations per stage
+    backend: str = "auto"  # bundle adjustment solver: "numpy" (vectorised, GTSAM's LM path), "gtsam", "auto" (= numpy)
     workers: int | None = None  # threads for corner detection when the dataset has only images
     progress: bool = False  # progress bars (the CLI turns them on)
     uncertainty: bool = True  # standard deviations of every parameter from gtsam.Marginals
@@ -59,8 +60,10 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     """
     from .init.rig import initialise_rig
     from .factors.rig_graph import RigGraph, RigState
+    from .factors.vectorized import optimize_graph, resolve_backend
 
     opts = _options(options)
+    backend = resolve_backend(opts.backend)
     if model not in MODELS:
         raise ValueError(f"unknown model {model!r} (known: {', '.join(MODELS)})")
     if not isinstance(dataset, Dataset):
@@ -96,8 +99,8 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
             estimate_distance=underwater, huber_px=opts.huber_px, fixed_intrinsics=fixed,
         )
         t_stage = time.perf_counter()
-        state = graph.optimize(opts.max_iterations)
-        iterations[stage] = {"iterations": graph.iterations, "time_s": time.perf_counter() - t_stage}
+        state = optimize_graph(graph, backend, opts.max_iterations, opts.huber_px)
+        iterations[stage] = {"iterations": graph.iterations, "time_s": time.perf_counter() - t_stage, "backend": backend}
         log.info("%s bundle adjustment: %d iterations, %.3f s", stage, graph.iterations, iterations[stage]["time_s"])
     from .outliers import find_outliers, without
 
@@ -108,7 +111,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
             without(dataset.observations, outliers), dataset.target, iface, names, state, model=stages[-1],
             distortion=opts.distortion, estimate_distance=underwater, huber_px=opts.huber_px, fixed_intrinsics=fixed,
         )
-        state = graph.optimize(opts.max_iterations)
+        state = optimize_graph(graph, backend, opts.max_iterations, opts.huber_px)
     if outliers:
         log.warning("%d corners beyond %.0f sigma (%.3f px) after convergence%s", len(outliers), opts.outlier_sigma,
                     robust_sigma, " (excluded)" if opts.exclude_outliers else "")
