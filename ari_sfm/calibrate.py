@@ -113,8 +113,10 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
         )
         state = optimize_graph(graph, backend, opts.max_iterations, opts.huber_px)
     if outliers:
-        log.warning("%d corners beyond %.0f sigma (%.3f px) after convergence%s", len(outliers), opts.outlier_sigma,
-                    robust_sigma, " (excluded)" if opts.exclude_outliers else "")
+        # With the paraxial ari model, large residuals are mostly its own error at oblique rays.
+        level = logging.INFO if stages[-1] == "ari" else logging.WARNING
+        log.log(level, "%d corners beyond %.0f sigma (%.3f px) after convergence%s", len(outliers), opts.outlier_sigma,
+                robust_sigma, " (excluded)" if opts.exclude_outliers else "")
     elapsed = time.perf_counter() - t0
     residuals = graph.residuals()
     uncertainty = None

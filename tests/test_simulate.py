@@ -167,7 +167,8 @@ def test_paper_single_geometry(scenes):
     assert sorted(o.added_mm for o in scene.dataset.select("stacking")) == [0, 10, 20, 30, 40, 50]
     for o in calib:  # 300-500 mm away, tilted 8-35 deg from the line of sight
         pose = Pose.from_json(scene.truth["frames"][o.frame]["world_from_target"])
-        centre = pose.apply(np.array([[100.0, 70.0, 0.0]]))[0]
+        t = scene.dataset.target
+        centre = pose.apply(np.array([[(t.inner_corners[0] - 1) * t.square_mm / 2, (t.inner_corners[1] - 1) * t.square_mm / 2, 0.0]]))[0]
         assert 295 < centre[2] < 505
         assert 7.9 < angle_between_deg(pose.R[:, 2], centre) < 35.1
     corners = np.concatenate([o.pixels for o in calib])  # coverage of the field

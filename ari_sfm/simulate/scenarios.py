@@ -38,7 +38,7 @@ PAPER_IMAGE_SIZE = (2448, 2048)  # Daheng MER2-503-36U3M
 PAPER_FOCAL_PX = 12.0 / 3.45e-3  # 12 mm lens, 3.45 um pixels: 3478.3 px
 NBK7_INDEX = 1.5168
 WATER_INDEX = 1.333
-PAPER_TARGET = Target(type="checkerboard", inner_corners=(11, 8), square_mm=20.0)
+PAPER_TARGET = Target(type="checkerboard", inner_corners=(11, 8), square_mm=10.0)  # the paper: 10 mm corner spacing (Fig. 14)
 STACK_ADDED_MM = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0)
 STAGE_MM = tuple(float(s) for s in range(-10, 11, 2))
 MAX_TRIES = 4000  # draws per random pose before giving up (raise, never a silent bad pose)
