@@ -84,18 +84,23 @@ def make_scene(name: str, seed: int = 0, sigma_px: float = 0.05, **overrides) ->
     """Build scenario ``name`` in memory.
 
     ``sigma_px``: i.i.d. Gaussian noise per pixel coordinate on every record.
-    ``overrides``: ``image_scale`` (scales image size and K; the geometry and
+    ``overrides``: ``dist`` (k1 k2 p1 p2 k3 lens distortion of every camera),
+    ``image_scale`` (scales image size and K; the geometry and
     which camera sees what do not change) and the scenario's options, e.g.
     ``num_frames``, ``num_cameras`` (arc4, scale16).
     """
     _check_name(name)
     image_scale = float(overrides.pop("image_scale", 1.0))
+    lens_dist = overrides.pop("dist", None)  # k1 k2 p1 p2 k3 given to every camera
     if not image_scale > 0.0:
         raise ValueError(f"image_scale must be > 0 (got {image_scale})")
     if sigma_px < 0.0:
         raise ValueError(f"sigma_px must be >= 0 (got {sigma_px})")
     _check_overrides(name, overrides)
     geometry = build_geometry(name, _rng(name, seed, 0), **overrides).scaled(image_scale)
+    if lens_dist is not None:
+        geometry = replace(geometry, cameras=tuple(replace(c, dist=np.resize(np.asarray(lens_dist, float), 5))
+                                                   for c in geometry.cameras))
     exact = observe(geometry)
     noise_rng = _rng(name, seed, 1)
     noisy = tuple(o if sigma_px == 0.0 else replace(o, pixels=o.pixels + noise_rng.normal(0.0, sigma_px, o.pixels.shape))
