@@ -1,0 +1,155 @@
+"""Reconstruct the target corners of a dataset's reconstruction frames (paper Sec. 5).
+
+``reconstruct(dataset, calibration)`` matches each reconstruction frame's
+corner ids across the cameras that saw it and triangulates every corner seen
+by at least two cameras (:func:`ari_sfm.triangulate.triangulate_pixels`:
+rays through the window, then the reprojection error through the
+calibration's own model). The result, :class:`Points`, reads and writes
+``points.json`` (DATASET_FORMAT.md).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .calibration import Calibration
+from .errors import AriSfmError
+from .records import Dataset
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FramePoints:
+    """The triangulated corners of one reconstruction frame (world frame of the calibration, mm)."""
+
+    stage_mm: float | None
+    ids: np.ndarray  # (N,) int target corner ids
+    xyz: np.ndarray  # (N, 3) world points
+    ray_gap_mm: np.ndarray  # (N,) how far the viewing rays missed each other (triangulate.py)
+    reprojection_rmse_px: float | None = None  # over the frame's corners and cameras; None when loaded
+    num_cameras: np.ndarray | None = None  # (N,) cameras that saw each corner; None when loaded
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+
+@dataclass(frozen=True)
+class Points:
+    """Reconstructed frames ``{name: FramePoints}`` (in the order of the dataset)."""
+
+    frames: dict[str, FramePoints] = field(default_factory=dict)
+    calibration: str | None = None  # the calibration file named in points.json, when loaded
+
+    @property
+    def num_points(self) -> int:
+        return sum(len(f) for f in self.frames.values())
+
+    def save(self, path: str | Path, calibration_name: str) -> None:
+        """Write ``points.json`` atomically (validated first; a bad frame writes nothing)."""
+        from .io import save_points
+
+        save_points(path, {name: {"stage_mm": f.stage_mm, "ids": f.ids, "xyz": f.xyz, "ray_gap_mm": f.ray_gap_mm}
+                           for name, f in self.frames.items()}, calibration_name)
+
+    @staticmethod
+    def load(path: str | Path) -> "Points":
+        """Read and validate ``points.json``."""
+        from .io import load_points
+
+        data = load_points(path)
+        frames = {name: FramePoints(f["stage_mm"], f["ids"], f["xyz"], f["ray_gap_mm"])
+                  for name, f in data["frames"].items()}
+        return Points(frames, data["calibration"])
+
+
+def check_rig(dataset: Dataset, calibration: Calibration, calibration_path: str | Path | None = None) -> None:
+    """Raise a one-line AriSfmError unless every camera of the dataset is in the calibration with its image size."""
+    where = calibration_path if calibration_path is not None else dataset.rig_path
+    cal_names = list(calibration.cameras)
+    for name, spec in dataset.cameras.items():
+        if name not in calibration.cameras:
+            raise AriSfmError(where, f"calibration is from another rig: camera {name} of {dataset.rig_path} "
+                                     f"is not in it (its cameras: {', '.join(cal_names)})")
+        size = tuple(int(s) for s in calibration.cameras[name].image_size)
+        if size != tuple(int(s) for s in spec.image_size):
+            raise AriSfmError(where, f"calibration is from another rig: camera {name} has image size "
+                                     f"{size[0]}x{size[1]} there but {spec.image_size[0]}x{spec.image_size[1]} "
+                                     f"in {dataset.rig_path}")
+
+
+def reconstruct(dataset: Dataset, calibration: Calibration, refine: bool = True,
+                calibration_path: str | Path | None = None) -> Points:
+    """Triangulate every corner of every reconstruction frame seen by >= 2 cameras.
+
+    The dataset must hold observations (``calibrate.ensure_observations``
+    detects them). A frame seen by one camera only is skipped with a warning
+    (an error if no frame can be triangulated); a calibration whose cameras
+    or image sizes differ from the dataset's, or a dataset without
+    reconstruction frames, raise a one-line :class:`AriSfmError`.
+    ``calibration_path`` only names the calibration in error messages.
+    """
+    from .triangulate import triangulate_pixels
+
+    if dataset.observations is None:
+        raise AriSfmError(dataset.rig_path, "no observations: detect corners first (calibrate.ensure_observations)")
+    check_rig(dataset, calibration, calibration_path)
+    records = dataset.select("reconstruction")
+    if not records:
+        raise AriSfmError(dataset.observations_path or dataset.rig_path,
+                          "no reconstruction frames to triangulate (add a `reconstruction:` list of target "
+                          "poses to rig.yaml)")
+    order = list(dict.fromkeys(o.frame for o in records))
+    stages = {e.key: e.stage_mm for e in dataset.reconstruction}
+    cameras = list(dict.fromkeys(o.camera for o in records))
+    # one big batch: (frame, id) rows x cameras
+    rows: list[tuple[str, np.ndarray, np.ndarray]] = []  # (frame, ids, pixels (N, C, 2))
+    skipped: list[str] = []
+    for frame in order:
+        recs = [o for o in records if o.frame == frame]
+        ids = np.unique(np.concatenate([o.ids for o in recs]))
+        uv = np.full((len(ids), len(cameras), 2), np.nan)
+        for o in recs:
+            uv[np.searchsorted(ids, o.ids), cameras.index(o.camera)] = o.pixels
+        seen = np.isfinite(uv).all(axis=2).sum(axis=1)
+        if not (seen >= 2).any():
+            who = sorted({o.camera for o in recs})
+            skipped.append(f"{frame} (seen by {', '.join(who)} only)" if len(who) == 1
+                           else f"{frame} (no corner seen by two of {', '.join(who)})")
+            continue
+        if (seen < 2).any():
+            log.info("frame %s: %d of %d corners seen by one camera only are not triangulated",
+                     frame, int((seen < 2).sum()), len(ids))
+        rows.append((frame, ids[seen >= 2], uv[seen >= 2]))
+        stage = stages.get(frame)
+        if stage is None:
+            stage = next((o.stage_mm for o in recs if o.stage_mm is not None), None)
+        stages[frame] = stage
+    where = dataset.observations_path or dataset.rig_path
+    if not rows:
+        raise AriSfmError(where, "no reconstruction frame can be triangulated (each needs corners seen by two "
+                                 f"cameras): {'; '.join(skipped)}")
+    for s in skipped:
+        log.warning("reconstruction frame %s: skipped, it needs corners seen by two cameras", s)
+    uv = np.concatenate([r[2] for r in rows])
+    X, gap, rmse = triangulate_pixels(calibration, {c: uv[:, k] for k, c in enumerate(cameras)}, refine=refine)
+    bad = ~np.isfinite(X).all(axis=1)
+    if bad.any():
+        log.warning("%d corners could not be triangulated (parallel rays or outside the model's domain)",
+                    int(bad.sum()))
+    frames: dict[str, FramePoints] = {}
+    start = 0
+    for frame, ids, fuv in rows:
+        sl = slice(start, start + len(ids))
+        start += len(ids)
+        ok = ~bad[sl]
+        ncam = np.isfinite(fuv).all(axis=2).sum(axis=1)
+        r = rmse[sl][ok]
+        frame_rmse = float(np.sqrt(np.sum(r**2 * ncam[ok]) / np.sum(ncam[ok]))) if ok.any() else None
+        frames[frame] = FramePoints(stages[frame], ids[ok].astype(int), X[sl][ok], gap[sl][ok], frame_rmse, ncam[ok])
+    points = Points(frames)
+    log.info("reconstructed %d corners in %d frames (%d skipped)", points.num_points, len(frames), len(skipped))
+    return points
