@@ -131,6 +131,43 @@ def evaluate_cmd(calibration: Path, observations: Path) -> None:
     click.echo(f"rmse {stats['rmse_px']:.4f} px  mae {stats['mae_px']:.4f} px  max {stats['max_px']:.4f} px  ({stats['count']} corners)")
 
 
+@main.command(name="reconstruct")
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option("--calibration", "calibration", type=click.Path(path_type=Path), required=True,
+              help="calibration.json of the same rig.")
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
+              help="Output folder: points.json, metrics.json, clouds/*.ply.")
+@click.option("--truth", type=click.Path(path_type=Path), default=None,
+              help="A simulator's truth.json: also report the 3D error against its points.")
+@click.option("--workers", type=int, default=None, help="Parallel detection threads when the dataset has only images.")
+@user_errors
+def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | None, workers: int | None) -> None:
+    """Triangulate the reconstruction frames of DATASET and measure them (flatness, stage, corner spacing)."""
+    from .reconstruct import run_reconstruction
+
+    r = run_reconstruction(dataset, calibration, out, truth, workers=workers, progress=True)
+    m = r.metrics
+    click.echo(f"{m['num_points']} points in {m['num_frames']} frames, ray gap rms {m['ray_gap_mm']['rms']:.4f} mm"
+               + (f", reprojection rmse {m['reprojection_rmse_px']:.4f} px" if m["reprojection_rmse_px"] is not None else ""))
+    click.echo(f"flatness: rmse {m['flatness_mm']['rmse']:.4f} mm, mae {m['flatness_mm']['mae']:.4f} mm, "
+               f"max {m['flatness_mm']['max']:.4f} mm")
+    if m["stage"]:
+        s = m["stage"]
+        click.echo(f"stage plane distances vs stage_mm (reference {s['reference_frame']}): error rmse "
+                   f"{s['plane_distance_error_mm']['rmse']:.4f} mm, max {s['plane_distance_error_mm']['max']:.4f} mm "
+                   f"(stage {s['angle_to_normal_deg']:.2f} deg off the normal; uncorrected max "
+                   f"{s['plane_distance_error_paper_mm']['max']:.4f} mm)")
+    if m["inter_corner_mm"]:
+        ic = m["inter_corner_mm"]
+        click.echo(f"inter-corner distances ({ic['count']} vs {ic['square_mm']:g} mm): rmse {ic['rmse']:.4f} mm, "
+                   f"mae {ic['mae']:.4f} mm, max {ic['max']:.4f} mm")
+    if m["truth"]:
+        t = m["truth"]
+        click.echo(f"vs truth: rms {t['aligned']['rms_mm']:.4f} mm after rigid alignment (max {t['aligned']['max_mm']:.4f}), "
+                   f"{t['unaligned']['rms_mm']:.4f} mm without")
+    click.echo(f"points:  {r.points_path}\nmetrics: {r.metrics_path}\nclouds:  {r.clouds['all'].parent}")
+
+
 @main.command()
 @click.argument("scenario")
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder: OUT/dataset and OUT/truth.json.")

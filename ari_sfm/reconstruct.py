@@ -10,6 +10,7 @@ calibration's own model). The result, :class:`Points`, reads and writes
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -153,3 +154,58 @@ def reconstruct(dataset: Dataset, calibration: Calibration, refine: bool = True,
     points = Points(frames)
     log.info("reconstructed %d corners in %d frames (%d skipped)", points.num_points, len(frames), len(skipped))
     return points
+
+
+METRICS_FORMAT = "ari-sfm-reconstruction-metrics/1"
+
+
+@dataclass(frozen=True)
+class ReconstructionRun:
+    """What :func:`run_reconstruction` wrote."""
+
+    points: Points
+    metrics: dict
+    points_path: Path
+    metrics_path: Path
+    clouds: dict[str, Path]
+    observations_path: Path | None  # written when corners were detected here
+
+
+def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, out_dir: str | Path,
+                       truth_path: str | Path | None = None, workers: int | None = None,
+                       progress: bool = False) -> ReconstructionRun:
+    """Load, detect corners if needed, reconstruct, measure; then write OUT/points.json, metrics.json, clouds/.
+
+    Everything is checked and computed before the first file is written, so a
+    bad input (another rig's calibration, a truth without a frame, no frame
+    seen by two cameras) leaves OUT without points.json.
+    """
+    from .calibrate import ensure_observations
+    from .calibration import load_calibration
+    from .io import load_dataset, save_observations, write_json_atomic
+    from .metrics import reconstruction_metrics, save_point_clouds
+
+    dataset = load_dataset(dataset_path)
+    calibration = load_calibration(calibration_path)
+    check_rig(dataset, calibration, calibration_path)  # before a slow detection
+    if dataset.observations is None and not dataset.reconstruction:
+        raise AriSfmError(dataset.rig_path, "no reconstruction frames to triangulate (add a `reconstruction:` "
+                                            "list of target poses to rig.yaml)")
+    detected = dataset.observations is None
+    dataset = ensure_observations(dataset, workers, progress)
+    points = reconstruct(dataset, calibration, calibration_path=calibration_path)
+    metrics = reconstruction_metrics(points, dataset.target, truth_path)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    obs_path = None
+    if detected:
+        obs_path = out / "observations.json"
+        save_observations(obs_path, dataset.observations)
+    points_path = out / "points.json"
+    name = os.path.relpath(Path(calibration_path).resolve(), out.resolve())
+    points.save(points_path, name)
+    metrics_path = out / "metrics.json"
+    write_json_atomic(metrics_path, {"format": METRICS_FORMAT, "dataset": str(dataset_path), "calibration": name,
+                                     "model": calibration.model, **metrics})
+    clouds = save_point_clouds(points, out / "clouds")
+    return ReconstructionRun(points, metrics, points_path, metrics_path, clouds, obs_path)
