@@ -168,6 +168,22 @@ def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | N
     click.echo(f"points:  {r.points_path}\nmetrics: {r.metrics_path}\nclouds:  {r.clouds['all'].parent}")
 
 
+@main.command(name="export-colmap")
+@click.argument("calibration", type=click.Path(path_type=Path))
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder for the COLMAP model.")
+@click.option("--dataset", type=click.Path(path_type=Path), default=None,
+              help="Dataset whose observations become the images' 2D points (default: observations.json beside CAL).")
+@click.option("--points", type=click.Path(path_type=Path), default=None, help="points.json of the reconstruction frames.")
+@click.option("--approximation", type=click.Choice(["pinhole", "shift"]), default="pinhole", show_default=True,
+              help="exact model / medium behind the window: refit K and pose, or only the shift along the normal.")
+@user_errors
+def export_colmap_cmd(calibration: Path, out: Path, dataset: Path | None, points: Path | None, approximation: str) -> None:
+    """Write CALIBRATION as a COLMAP model (cameras, rig, frames, images, 3D points with tracks) to OUT."""
+    from .colmap_export import export_colmap, summary
+
+    click.echo(summary(export_colmap(calibration, out, dataset=dataset, points=points, approximation=approximation)))
+
+
 @main.command()
 @click.argument("scenario")
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder: OUT/dataset and OUT/truth.json.")
