@@ -22,6 +22,8 @@ from .records import Dataset
 
 log = logging.getLogger(__name__)
 
+MISFIT_PX = 2.0  # median reprojection error (px) above which the calibration is suspected not to fit
+
 
 @dataclass(frozen=True)
 class FramePoints:
@@ -68,13 +70,23 @@ class Points:
 
 
 def check_rig(dataset: Dataset, calibration: Calibration, calibration_path: str | Path | None = None) -> None:
-    """Raise a one-line AriSfmError unless every camera of the dataset is in the calibration with its image size."""
+    """Raise a one-line AriSfmError unless the calibration is of the dataset's rig.
+
+    The same camera names, each with the same image size, and the same window
+    (thickness, glass index, medium index).
+    """
     where = calibration_path if calibration_path is not None else dataset.rig_path
     cal_names = list(calibration.cameras)
+    if set(cal_names) != set(dataset.cameras):
+        raise AriSfmError(where, f"calibration is from another rig: its cameras {', '.join(cal_names)} are not "
+                                 f"the cameras {', '.join(dataset.cameras)} of {dataset.rig_path}")
+    a, b = calibration.interface, dataset.interface
+    for what, x, y in (("thickness_mm", a.thickness_mm, b.thickness_mm), ("index", a.index, b.index),
+                       ("medium_index", a.medium_index, b.medium_index)):
+        if not np.isclose(x, y, rtol=1e-6, atol=1e-9):
+            raise AriSfmError(where, f"calibration is from another rig: window {what} {x:g} there but {y:g} in "
+                                     f"{dataset.rig_path}")
     for name, spec in dataset.cameras.items():
-        if name not in calibration.cameras:
-            raise AriSfmError(where, f"calibration is from another rig: camera {name} of {dataset.rig_path} "
-                                     f"is not in it (its cameras: {', '.join(cal_names)})")
         size = tuple(int(s) for s in calibration.cameras[name].image_size)
         if size != tuple(int(s) for s in spec.image_size):
             raise AriSfmError(where, f"calibration is from another rig: camera {name} has image size "
@@ -141,6 +153,10 @@ def reconstruct(dataset: Dataset, calibration: Calibration, refine: bool = True,
     if bad.any():
         log.warning("%d corners could not be triangulated (parallel rays or outside the model's domain)",
                     int(bad.sum()))
+    median_rmse = float(np.nanmedian(rmse)) if np.isfinite(rmse).any() else float("nan")
+    if median_rmse > MISFIT_PX:
+        log.warning("median reprojection error of the triangulated corners is %.2f px: is the calibration of "
+                    "this rig (and of its present state)?", median_rmse)
     frames: dict[str, FramePoints] = {}
     start = 0
     for frame, ids, fuv in rows:
