@@ -23,6 +23,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from ari_sfm.detection import charuco_board
 from ari_sfm.records import Target
 
 BLACK = 20.0  # grey levels of the print, kept off 0 / 255 so noise does not clip
@@ -205,15 +206,6 @@ def _checkerboard_shader(target: Target) -> Callable[[np.ndarray], np.ndarray]:
         return out
 
     return shade
-
-
-@lru_cache(maxsize=8)
-def charuco_board(squares: tuple[int, int], square_mm: float, marker_mm: float, dictionary: str) -> cv2.aruco.CharucoBoard:
-    """OpenCV's ChArUco board for the target's parameters (the detector uses the same)."""
-    if not hasattr(cv2.aruco, dictionary):
-        raise ValueError(f"unknown ArUco dictionary {dictionary!r}")
-    dict_ = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
-    return cv2.aruco.CharucoBoard(tuple(int(v) for v in squares), float(square_mm), float(marker_mm), dict_)
 
 
 @lru_cache(maxsize=4)
