@@ -50,7 +50,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Sequence
 
 import gtsam
@@ -75,11 +75,10 @@ INVALID_RESIDUAL = 1e6  # what view_residuals puts for a non-finite residual or 
 
 @dataclass(frozen=True)
 class LMParams:
-    """Levenberg-Marquardt settings: gtsam.LevenbergMarquardtParams 4.3 defaults, RigGraph.optimize's tolerances."""
+    """Levenberg-Marquardt constants: gtsam.LevenbergMarquardtParams 4.3 defaults and RigGraph.optimize's
+    absolute tolerance (the iteration cap and relative tolerance are arguments of optimize)."""
 
-    max_iterations: int = 100  # accepted steps (gtsam's iterations())
-    relative_tolerance: float = 1e-10  # stop when the relative error decrease is below this
-    absolute_tolerance: float = 1e-12  # or the absolute one
+    absolute_tolerance: float = 1e-12  # stop when the error decrease is below this
     lambda_initial: float = 1e-5
     lambda_factor: float = 10.0
     lambda_upper_bound: float = 1e5  # give up when lambda reaches this
@@ -112,10 +111,6 @@ class Variables:
     world_R_target: np.ndarray  # (F, 3, 3)
     world_t_target: np.ndarray  # (F, 3)
     distance_mm: float | None  # h0: a variable when estimated, else the fixed value (or None)
-
-    def copy(self) -> "Variables":
-        return Variables(self.intrinsics.copy(), self.world_R_cam.copy(), self.world_t_cam.copy(), self.normal,
-                         self.world_R_target.copy(), self.world_t_target.copy(), self.distance_mm)
 
 
 @dataclass(frozen=True)
@@ -313,7 +308,8 @@ class VectorizedProblem:
             if data.n_params != n_p or not 0 <= c < C or not 0 <= f < F:
                 raise ValueError(f"view {k}: n_params {data.n_params}, camera {c} or frame {f} out of range")
             if not self.estimate_distance and vkeys.fixed_distance_mm != self.x.distance_mm:
-                raise ValueError(f"view {k}: fixed distance {vkeys.fixed_distance_mm} differs from {self.x.distance_mm}")
+                raise ValueError(f"view {k}: fixed distance {vkeys.fixed_distance_mm} differs from "
+                                 f"{self.x.distance_mm}")
             tail = tuple(float(p) for p in np.asarray(data.base_params, float)[n_p:])
             group = (float(data.thickness_mm), float(data.index), float(data.medium_index), tail)
             entries.append((c, group, k, f, data, sigma))
@@ -359,8 +355,8 @@ class VectorizedProblem:
         self.n_global = self.normal_col + 2 + (1 if self.estimate_distance else 0)
         self.local_dim = n_p + 6 + 2 + (1 if self.estimate_distance else 0)
         tail_cols = [self.normal_col, self.normal_col + 1] + ([self.distance_col] if self.estimate_distance else [])
-        self.camera_cols = [np.concatenate([c * self.camera_block + np.arange(self.camera_block), tail_cols]).astype(np.int64)
-                            for c in range(C)]
+        self.camera_cols = [np.concatenate([c * self.camera_block + np.arange(self.camera_block),
+                                            tail_cols]).astype(np.int64) for c in range(C)]
         self.fixed_cols = np.arange(n_p, n_p + 6)  # camera 0's pose
         self._groups_of_camera = [[g for g in self.groups if g.camera == c] for c in range(C)]
 
@@ -375,7 +371,8 @@ class VectorizedProblem:
         h_c = None if x.distance_mm is None else x.distance_mm - x.world_t_cam @ n_w
         return _Transforms(R_ct, t_ct, R_cw, n_w, n_c, np.asarray(x.normal.basis(), float), h_c)
 
-    def _camera_eval(self, x: Variables, tr: _Transforms, c: int, jacobians: bool, huber_px: float | None) -> np.ndarray:
+    def _camera_eval(self, x: Variables, tr: _Transforms, c: int, jacobians: bool,
+                     huber_px: float | None) -> np.ndarray:
         """Camera c's corners as view_residuals computes them (Huber-weighted, not whitened).
 
         Without ``jacobians``: the residuals (m, 2). With: one array (m, 2, 6 + local_dim + 1)
@@ -445,7 +442,8 @@ class VectorizedProblem:
         out[:, :, 3:6] = JA
         if not np.all(np.isfinite(out[:, :, :-1])):
             bad_rows = ~np.isfinite(out[:, :, :-1]).all(axis=(1, 2))
-            raise RuntimeError(f"non-finite Jacobian entries in factor(s) {np.unique(self.view_order[cv[bad_rows]])[:10].tolist()} "
+            factors = np.unique(self.view_order[cv[bad_rows]])[:10].tolist()
+            raise RuntimeError(f"non-finite Jacobian entries in factor(s) {factors} "
                                "(a corner behind the window at the linearisation point)")
         return out
 
@@ -546,8 +544,12 @@ class VectorizedProblem:
     # ------------------------------------------------------------------ LM
     def optimize(self, max_iterations: int = 100, relative_tolerance: float = 1e-10,
                  params: LMParams | None = None) -> RigState:
-        """Levenberg-Marquardt from the current values (GTSAM's algorithm); updates them and returns the state."""
-        p = replace(params or LMParams(), max_iterations=max_iterations, relative_tolerance=relative_tolerance)
+        """Levenberg-Marquardt from the current values (GTSAM's algorithm); updates them and returns the state.
+
+        ``max_iterations`` caps the accepted steps (gtsam's iterations()); LM
+        stops when the relative error decrease is below ``relative_tolerance``.
+        """
+        p = params or LMParams()
         t0 = time.perf_counter()
         x = self.x
         cached = self._error_cache
@@ -557,7 +559,7 @@ class VectorizedProblem:
         stop = "max_iterations"
         if err <= 0.0:
             stop = "zero_error"
-        while stop != "zero_error" and iterations < p.max_iterations:  # gtsam's defaultOptimize
+        while stop != "zero_error" and iterations < max_iterations:  # gtsam's defaultOptimize
             cur_err = err
             sys = self._linearize(x)
             linearizations += 1
@@ -574,7 +576,7 @@ class VectorizedProblem:
                         change = err - e_new
                         if predicted > np.finfo(float).eps * sys.error:
                             step_ok = change / predicted > p.min_model_fidelity
-                        stop_searching = abs(change) < p.relative_tolerance * err
+                        stop_searching = abs(change) < relative_tolerance * err
                 if step_ok:
                     x, err = x_new, e_new
                     lam = max(p.lambda_lower_bound, lam / p.lambda_factor)
@@ -592,7 +594,7 @@ class VectorizedProblem:
             decrease = cur_err - err
             if err <= 0.0:
                 stop = "zero_error"
-            elif decrease / cur_err <= p.relative_tolerance or decrease <= p.absolute_tolerance:
+            elif decrease / cur_err <= relative_tolerance or decrease <= p.absolute_tolerance:
                 stop = gave_up or "converged"
                 break
             elif not math.isfinite(cur_err):
@@ -614,7 +616,8 @@ class VectorizedProblem:
             p[: self.n_params] = x.intrinsics[c]
             params[name] = p
             cams[name] = Pose(x.world_R_cam[c].copy(), x.world_t_cam[c].copy()).inverse() if c > 0 else Pose.identity()
-        frames = {f: Pose(x.world_R_target[i].copy(), x.world_t_target[i].copy()) for i, f in enumerate(self.frame_names)}
+        frames = {f: Pose(x.world_R_target[i].copy(), x.world_t_target[i].copy())
+                  for i, f in enumerate(self.frame_names)}
         distance = x.distance_mm if self.estimate_distance else self.base_state.distance_mm
         return RigState(params, cams, np.asarray(x.normal.point3(), float), frames, distance)
 
@@ -710,14 +713,16 @@ class VectorizedProblem:
         rw = res * self.corner_inv_sigma[:, None]
         self._error_cache = (self.x, 0.5 * float(np.einsum("ij,ij->", rw, rw)) + self._extra.error(self.x))
         view_norm = np.add.reduceat(np.abs(res).sum(axis=1), self.view_start[:-1]) if self.n_corners else np.zeros(0)
-        picks = {int(self.camera_views[c]) for c in range(len(self.camera_names)) if self.camera_views[c + 1] > self.camera_views[c]}
+        C = len(self.camera_names)
+        picks = {int(self.camera_views[c]) for c in range(C) if self.camera_views[c + 1] > self.camera_views[c]}
         picks |= set(np.argsort(view_norm)[-worst:].tolist())
         for k in sorted(picks):
             mine = res[self.view_start[k]:self.view_start[k + 1]].reshape(-1)
             theirs = np.asarray(rg.graph.at(int(self.graph_index[self.view_order[k]])).unwhitenedError(rg.values))
             if not np.allclose(mine, theirs, rtol=1e-9, atol=1e-9):
                 raise ValueError(f"factor {int(self.view_order[k])}: vectorised residuals differ from the graph's "
-                                 f"(max {np.max(np.abs(mine - theirs)):.3g}); was the graph built with huber_px={self.huber_px}?")
+                                 f"(max {np.max(np.abs(mine - theirs)):.3g}); "
+                                 f"was the graph built with huber_px={self.huber_px}?")
 
 
 # --------------------------------------------------------------------------- other factors of a graph
