@@ -44,7 +44,7 @@ log = logging.getLogger(__name__)
 
 ANALYTIC_MODELS = ("ari", "exact", "truth")  # models whose projection_model gives analytic J_point
 MAX_ITERATIONS = 50  # Levenberg-Marquardt iterations (from the ray initialisation 2-3 are needed)
-STEP_TOL_MM = 1e-10  # a point has converged when its step is below this (relative to 1 + |X|)
+STEP_TOL_MM = 1e-9  # a point has converged when its step is below this (relative to 1 + |X|)
 NUMERIC_STEP_MM = 1e-4  # central-difference step for models without analytic Jacobians
 MIN_DET = 1e-14  # det of the 3x3 ray normal matrix below this: rays (nearly) parallel -> NaN
 
@@ -81,14 +81,31 @@ def triangulate_rays(origins: np.ndarray, directions: np.ndarray,
     # A = sum_c (I - d d^T), b = sum_c (I - d d^T) o
     A = w.sum(axis=1)[:, None, None] * np.eye(3) - np.einsum("pci,pcj->pij", d0, d0)
     b = o0.sum(axis=1) - np.einsum("pci,pc->pi", d0, np.einsum("pci,pci->pc", d0, o0))
-    ok = (v.sum(axis=1) >= 2) & (np.linalg.det(A) > MIN_DET)
-    X = np.full((P, 3), np.nan)
-    if ok.any():
-        X[ok] = np.linalg.solve(A[ok], b[ok][..., None])[..., 0]
+    X, det = solve_sym3(A, b)
+    ok = (v.sum(axis=1) >= 2) & (det > MIN_DET)
+    X[~ok] = np.nan
     gap = np.full(P, np.nan)
     if ok.any():
         gap[ok] = 2.0 * np.sqrt(_mean_sq_ray_distance(X[ok], o0[ok], d0[ok], w[ok]))
     return X, gap
+
+
+def solve_sym3(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Solve symmetric 3x3 systems A (Q, 3, 3) x = b (Q, 3) by the adjugate; returns x and det(A).
+
+    ~10x faster than ``np.linalg.solve`` on many tiny systems; singular rows give non-finite x.
+    """
+    a, bb, c = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
+    d, e, f = A[:, 1, 1], A[:, 1, 2], A[:, 2, 2]
+    c00, c01, c02 = d * f - e * e, c * e - bb * f, bb * e - c * d
+    c11, c12, c22 = a * f - c * c, bb * c - a * e, a * d - bb * bb
+    det = a * c00 + bb * c01 + c * c02
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / det
+        x = np.stack([c00 * b[:, 0] + c01 * b[:, 1] + c02 * b[:, 2],
+                      c01 * b[:, 0] + c11 * b[:, 1] + c12 * b[:, 2],
+                      c02 * b[:, 0] + c12 * b[:, 1] + c22 * b[:, 2]], axis=1) * inv[:, None]
+    return x, det
 
 
 def _mean_sq_ray_distance(X: np.ndarray, o: np.ndarray, d: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -179,7 +196,7 @@ def refine_points(projectors: list[Projector], X0: np.ndarray, uv: np.ndarray, v
         g = np.einsum("qcki,qck->qi", Ja, ra)
         diag = np.einsum("qii->qi", A)
         A_damped = A + (lam[idx][:, None] * np.maximum(diag, 1e-12))[:, :, None] * np.eye(3)
-        step = -np.linalg.solve(A_damped, g[..., None])[..., 0]
+        step = -solve_sym3(A_damped, g)[0]
         X_new = X[idx] + step
         r_new, J_new, cost_new = _evaluate(projectors, X_new, uv[idx], valid[idx])
         better = cost_new <= cost[idx]

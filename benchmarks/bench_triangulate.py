@@ -1,0 +1,122 @@
+"""Triangulation throughput through the window against cv2.triangulatePoints.
+
+    python benchmarks/bench_triangulate.py [--points 20000] [--repeats 5]
+
+Pixels: random world points in the volume of the simulated calibration
+boards, projected with exact Snell physics (the truth of ``binocular`` seed 0
+for 2 cameras; of ``arc4`` seed 0, written as truth.json and read back with
+``load_calibration``, for 4 cameras, NaN where a camera does not see a point;
+kept if seen by >= 2 cameras). Each method triangulates the same pixels with
+the true calibration: ``exact`` (Snell), ``ari`` (the paper's paraxial model
+with the same parameters), linear (rays only) and refined (Levenberg-Marquardt
+on the reprojection error); cv2.triangulatePoints (DLT, 2 cameras, pinhole
+P = K [R | t], i.e. ignoring the window) is the reference. Printed side by
+side from one run: median time, points per second, time ratio to cv2 and the
+RMS 3D error against the true points.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import cv2
+import numpy as np
+
+from ari_sfm.calibration import Calibration, load_calibration
+from ari_sfm.io import write_json_atomic
+from ari_sfm.simulate import make_scene
+from ari_sfm.triangulate import triangulate_pixels
+
+
+def _median_time(fn, repeats: int) -> tuple[float, object]:
+    out, times = None, []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), out
+
+
+def _points_and_pixels(cal: Calibration, n: int, seed: int = 0) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """n world points in the boards' volume seen by >= 2 cameras, and their pixels (NaN where unseen)."""
+    rng = np.random.default_rng(seed)
+    centres = np.array([p.t for p in cal.frames.values()])
+    lo, hi = centres.min(axis=0) - 30.0, centres.max(axis=0) + 30.0
+    X_all, tracks_all = [], {c: [] for c in cal.cameras}
+    count = 0
+    while count < n:
+        X = rng.uniform(lo, hi, size=(4 * n, 3))
+        tracks = {}
+        for c, cam in cal.cameras.items():
+            with np.errstate(invalid="ignore"):
+                uv = cal.project_world(c, X)
+            w, h = cam.image_size
+            inside = np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+            uv[~inside] = np.nan
+            tracks[c] = uv
+        keep = sum(np.isfinite(t[:, 0]) for t in tracks.values()) >= 2
+        X_all.append(X[keep])
+        for c in cal.cameras:
+            tracks_all[c].append(tracks[c][keep])
+        count += int(keep.sum())
+    X = np.concatenate(X_all)[:n]
+    return X, {c: np.concatenate(v)[:n] for c, v in tracks_all.items()}
+
+
+def _rms(Y: np.ndarray, X: np.ndarray) -> float:
+    return float(np.sqrt(np.nanmean(np.sum((Y - X) ** 2, axis=1))))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--points", type=int, default=20000)
+    ap.add_argument("--repeats", type=int, default=5)
+    args = ap.parse_args()
+
+    binocular = Calibration.from_json(make_scene("binocular", seed=0, sigma_px=0.0).truth)
+    with tempfile.TemporaryDirectory() as tmp:  # arc4's truth through the file a user would hold
+        path = Path(tmp) / "truth.json"
+        write_json_atomic(path, make_scene("arc4", seed=0, sigma_px=0.0).truth)
+        arc4 = load_calibration(path)
+
+    rows = []
+    # cv2 on the 2-camera pixels: the reference time
+    X2, tracks2 = _points_and_pixels(binocular, args.points)
+    c0, c1 = list(binocular.cameras)
+    P = [binocular.cameras[c].K @ np.hstack([binocular.cameras[c].cam_from_world.R,
+                                             binocular.cameras[c].cam_from_world.t[:, None]]) for c in (c0, c1)]
+    u0, u1 = tracks2[c0].T.copy(), tracks2[c1].T.copy()
+
+    def run_cv2() -> np.ndarray:
+        Xh = cv2.triangulatePoints(P[0], P[1], u0, u1)
+        return (Xh[:3] / Xh[3]).T
+
+    t_cv2, Y = _median_time(run_cv2, args.repeats)
+    rows.append(("cv2.triangulatePoints (pinhole)", 2, len(X2), t_cv2, _rms(Y, X2)))
+    for label, cal, X, tracks in (("2 cameras", binocular, X2, tracks2),
+                                  ("4 cameras", arc4, *_points_and_pixels(arc4, args.points))):
+        for model in ("exact", "ari"):
+            c = replace(cal, model=model)
+            triangulate_pixels(c, {k: v[:10] for k, v in tracks.items()})  # warm-up
+            for refine in (False, True):
+                t, out = _median_time(lambda: triangulate_pixels(c, tracks, refine=refine), args.repeats)
+                what = f"{model} {'rays + LM' if refine else 'rays only'}"
+                rows.append((what, len(cal.cameras), len(X), t, _rms(out[0], X)))
+
+    print(f"triangulation of the same exact-physics pixels (noise-free), median of {args.repeats} runs, "
+          f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}")
+    print(f"{'method':32s} {'cams':>4s} {'points':>7s} {'time ms':>9s} {'points/s':>11s} {'time / cv2':>10s} {'RMS err mm':>11s}")
+    for what, cams, n, t, err in rows:
+        print(f"{what:32s} {cams:4d} {n:7d} {t * 1e3:9.2f} {n / t:11.0f} {t / t_cv2 * (args.points / n):10.1f} {err:11.2e}")
+    print("time / cv2: per point, relative to cv2.triangulatePoints on the 2-camera pixels")
+
+
+if __name__ == "__main__":
+    main()
