@@ -15,7 +15,7 @@ from .records import Dataset, Interface
 
 log = logging.getLogger(__name__)
 
-MODELS = ("ari", "exact")
+MODELS = ("ari", "exact", "rt", "pf", "pinhole", "pinhole_dist")  # the last four: ari_sfm.baselines
 
 
 @dataclass(frozen=True)
@@ -55,7 +55,9 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     """Calibrate the cameras and the window of a dataset.
 
     model "ari": the paper's paraxial model (analytic initialisation + bundle
-    adjustment); "exact": Snell's law at both faces, refined from the ari result.
+    adjustment); "exact": Snell's law at both faces, refined from the ari result;
+    the paper's baselines "rt" (ray tracing) and "pf" (polynomial), and "pinhole",
+    "pinhole_dist" (window ignored): see :mod:`ari_sfm.baselines`.
     Options: see :class:`CalibrationOptions`.
     """
     from .init.rig import initialise_rig
@@ -71,6 +73,10 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
 
         dataset = load_dataset(dataset)
     dataset = ensure_observations(dataset, opts.workers, opts.progress)
+    if model not in ("ari", "exact"):
+        from .baselines import calibrate_baseline
+
+        return calibrate_baseline(dataset, model, opts)
     t0 = time.perf_counter()
     rig = initialise_rig(dataset, opts.distortion)
     iface = dataset.interface
@@ -93,7 +99,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     iterations = {}
     for stage in stages:
         if stage == "exact" and state.distance_mm is None:
-            state = RigState(state.params, state.cam_from_world, state.normal_world, state.world_from_target, _default_distance(rig))
+            state = RigState(state.params, state.cam_from_world, state.normal_world, state.world_from_target, _default_distance(state))
         graph = RigGraph.build(
             dataset.observations, dataset.target, iface, names, state, model=stage, distortion=opts.distortion,
             estimate_distance=underwater, huber_px=opts.huber_px, fixed_intrinsics=fixed,
@@ -158,7 +164,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     return cal
 
 
-def _default_distance(rig) -> float:
+def _default_distance(rig) -> float:  # rig: anything with normal_world and cam_from_world (init or current state)
     """A starting distance from camera 0 to the window when the dataset gives none.
 
     In air the exact model does not depend on it (the plate shifts each ray

@@ -13,7 +13,8 @@ from .geometry import Pose
 from .records import Interface, Target
 
 FORMAT = "ari-sfm-calibration/1"
-MODELS = ("ari", "exact", "truth")
+MODELS = ("ari", "exact", "truth", "rt", "pf", "pinhole", "pinhole_dist")
+NO_WINDOW_MODELS = ("pinhole", "pinhole_dist")  # ignore the window: no normal (normal_world None)
 
 
 @dataclass(frozen=True)
@@ -42,7 +43,7 @@ class Calibration:
 
     model: str
     interface: Interface  # distance_mm: camera 0 centre to near surface, None if unobservable
-    normal_world: np.ndarray
+    normal_world: np.ndarray | None  # None for NO_WINDOW_MODELS
     cameras: dict[str, CameraCalibration]
     frames: dict[str, Pose]  # world_from_target of calibration frames
     stacking_poses: dict[str, Pose] = field(default_factory=dict)
@@ -52,22 +53,34 @@ class Calibration:
     target: Target | None = None  # the target it was calibrated with (for evaluate)
 
     def normal_cam(self, camera: str) -> np.ndarray:
-        """The window normal in a camera's frame."""
+        """The window normal in a camera's frame (the zero vector for a model without one: pinhole)."""
+        if self.normal_world is None:
+            return np.zeros(3)
         return self.cameras[camera].cam_from_world.R @ self.normal_world
 
     def distance_mm(self, camera: str) -> float | None:
         """The distance from a camera's centre to the window's near surface."""
-        if self.interface.distance_mm is None:
+        if self.interface.distance_mm is None or self.normal_world is None:
             return None
         centre = self.cameras[camera].cam_from_world.inverse().t
         return float(self.interface.distance_mm - self.normal_world @ centre)
 
     def projection_model(self, camera: str, added_mm: float = 0.0, model: str | None = None):
-        """The camera's projection model (AriModel or ExactModel) in its own frame."""
+        """The camera's projection model in its own frame: AriModel, ExactModel (exact, truth, rt),
+        PinholeModel (pinhole models: the window ignored) or the pf polynomial (world points only)."""
         from .models import AriModel, ExactModel, PinholeModel
 
         cam = self.cameras[camera]
-        kind = model or ("exact" if self.model in ("exact", "truth") else "ari")
+        kind = model or self.model
+        if kind in NO_WINDOW_MODELS or kind == "pf":
+            if added_mm:
+                raise ValueError(f"model {kind} cannot project through added glass (added_mm={added_mm})")
+            if kind == "pf":
+                from .baselines.polynomial import PolynomialMap, PolynomialModel
+
+                return PolynomialModel(PolynomialMap.from_json(cam.extra["pf"]), cam.cam_from_world.inverse())
+            return PinholeModel(cam.K, cam.dist)
+        kind = "exact" if kind in ("exact", "truth", "rt") else "ari"
         pinhole = PinholeModel(cam.K, cam.dist)
         cls = ExactModel if kind == "exact" else AriModel
         distance = self.distance_mm(camera)
@@ -96,8 +109,9 @@ class Calibration:
                 "K": c.K.tolist(),
                 "dist": np.resize(c.dist, 5).tolist(),
                 "cam_from_world": c.cam_from_world.to_json(),
-                "normal_cam": self.normal_cam(name).tolist(),
             }
+            if self.normal_world is not None:
+                entry["normal_cam"] = self.normal_cam(name).tolist()
             if c.expansion_center_px is not None:
                 entry["expansion_center_px"] = np.asarray(c.expansion_center_px).tolist()
             if c.expansion_center_std_px is not None:
@@ -111,7 +125,7 @@ class Calibration:
             "format": FORMAT,
             "model": self.model,
             "interface": {
-                "normal_world": np.asarray(self.normal_world).tolist(),
+                "normal_world": None if self.normal_world is None else np.asarray(self.normal_world).tolist(),
                 "thickness_mm": self.interface.thickness_mm,
                 "index": self.interface.index,
                 "medium_index": self.interface.medium_index,
@@ -181,8 +195,11 @@ def _parse(data: Any, path: Any) -> Calibration:
     if not (math.isfinite(index) and index >= 1) or not (math.isfinite(medium) and medium >= 1):
         raise AriSfmError(path, "interface.index and medium_index must be >= 1")
     distance = iface.get("distance_mm")
-    normal = _finite(iface["normal_world"], (3,), "interface.normal_world", path)
-    if abs(np.linalg.norm(normal) - 1) > 1e-6:
+    if iface["normal_world"] is None and model in NO_WINDOW_MODELS:
+        normal = None
+    else:
+        normal = _finite(iface["normal_world"], (3,), "interface.normal_world", path)
+    if normal is not None and abs(np.linalg.norm(normal) - 1) > 1e-6:
         raise AriSfmError(path, "interface.normal_world must be a unit vector")
     cams = {}
     if not isinstance(data["cameras"], dict) or not data["cameras"]:
@@ -203,6 +220,15 @@ def _parse(data: Any, path: Any) -> Calibration:
             c.get("rmse_px"),
             {k: v for k, v in c.items() if k not in known},
         )
+        if model == "pf":  # the polynomial is the model: validate it here, not at the first projection
+            from .baselines.polynomial import PolynomialMap
+
+            if "pf" not in c:
+                raise AriSfmError(path, f"cameras.{name}.pf is missing (model pf stores its polynomial there)")
+            try:
+                PolynomialMap.from_json(c["pf"])
+            except (KeyError, TypeError, ValueError) as exc:
+                raise AriSfmError(path, f"cameras.{name}.pf: {exc}") from None
     frames = {f: _pose(v["world_from_target"], f"frames.{f}", path) for f, v in data.get("frames", {}).items()}
     stacking = {f: _pose(v["world_from_target"], f"stacking_poses.{f}", path) for f, v in data.get("stacking_poses", {}).items()}
     reserved = {"format", "model", "interface", "cameras", "frames", "stacking_poses", "residuals", "time_s", "target"}

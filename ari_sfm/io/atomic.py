@@ -34,6 +34,11 @@ def write_text_atomic(path: str | Path, text: str) -> None:
     """
     if not isinstance(text, str):
         raise TypeError(f"write_text_atomic needs str, got {type(text).__name__}")
+    write_bytes_atomic(path, text.encode("utf-8"))
+
+
+def write_bytes_atomic(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (as :func:`write_text_atomic`; e.g. a PNG)."""
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -43,8 +48,8 @@ def write_text_atomic(path: str | Path, text: str) -> None:
         raise AriSfmError(path, f"cannot write file: {exc.strerror or exc}") from None
     tmp = Path(tmp_name)
     try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
-            f.write(text)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
             f.flush()
             os.fsync(f.fileno())
         os.chmod(tmp, mode)

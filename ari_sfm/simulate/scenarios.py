@@ -275,8 +275,13 @@ def paper_single(rng: np.random.Generator, num_frames: int = 12, perpendicular: 
 
 def binocular(rng: np.random.Generator, num_frames: int = 15, underwater: bool = False,
               stack_added_mm: Sequence[float] = STACK_ADDED_MM,
-              stage_mm: Sequence[float] = STAGE_MM) -> Geometry:
+              stage_mm: Sequence[float] = STAGE_MM, depth_band_mm: float = 180.0,
+              lateral_scale: float = 1.0) -> Geometry:
     """Two paper-like cameras toed in 10-15 deg, one window (sections 4-5 of the paper).
+
+    ``depth_band_mm``: the depth band of the calibration boards' centres and
+    ``lateral_scale`` the scale of their sideways spread (+-50 x +-40 mm): a few
+    mm and ~0 mimic the paper's rotary stage (boards turned about one point).
 
     Air: 50 mm N-BK7.  Underwater: a 10 mm N-BK7 port with water behind.
     The baseline is drawn so that the optical axes cross at least 350 mm
@@ -309,7 +314,7 @@ def binocular(rng: np.random.Generator, num_frames: int = 15, underwater: bool =
     down = world_from_rig.R @ np.array([0.0, 1.0, 0.0])
     rig_origin = world_from_rig.t
     depth0, x0 = _overlap_start(chk, world_from_rig, stack_added_mm)
-    depth_range = (depth0 + 20.0, depth0 + 200.0)
+    depth_range = (depth0 + 20.0, depth0 + 20.0 + float(depth_band_mm))
     mid_depth = depth0 + 60.0
     logger.debug("binocular: baseline %.1f mm, boards fit both views from %.0f mm (rig x %.0f mm)",
                  baseline, depth0, x0)
@@ -318,7 +323,8 @@ def binocular(rng: np.random.Generator, num_frames: int = 15, underwater: bool =
         return all(chk.sees(c, pose, added, outline=True) for c in cameras)
 
     def calib_sample() -> Pose | None:
-        c_rig = np.array([x0 + rng.uniform(-50, 50), rng.uniform(-40, 40), rng.uniform(*depth_range)])
+        c_rig = np.array([x0 + lateral_scale * rng.uniform(-50, 50), lateral_scale * rng.uniform(-40, 40),
+                          rng.uniform(*depth_range)])
         center = world_from_rig.apply(c_rig)
         pose = _board_pose(PAPER_TARGET, center, center - rig_origin, down,
                            tilt_rad=math.radians(rng.uniform(8.0, 35.0)),

@@ -1,0 +1,173 @@
+"""The PF baseline: Paolillo et al.'s 3x3x3 polynomial from world points to pixels (paper Eq. 14).
+
+Per camera, u and v are each a polynomial with every monomial x^i y^j z^k of
+total degree i + j + k <= 3 (20 terms each, 40 parameters per camera), in
+*normalised* world coordinates ``(X - mean) / scale`` (per axis), fitted to
+the observed pixels by linear least squares. The coefficients have no
+physical meaning and no ray: PF can project, not back-project, and it knows
+nothing of added glass (stacking records).
+
+World coordinates: the paper's PF needs the world position of every corner.
+Here they come from the frame poses (``world_from_target``) of an ari
+calibration of the same data; the PF calibration keeps that calibration's
+K, cam_from_world and normal only to name its world frame (and to start the
+pose solve of held-out frames), and stores its polynomial per camera under
+the camera's ``pf`` key of calibration.json::
+
+    "pf": {"world": "ari", "exponents": [[i, j, k], ...],
+           "mean": [mx, my, mz], "scale": [sx, sy, sz],
+           "coef_u": [20 numbers], "coef_v": [20 numbers], "rank": 20}
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, replace
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..geometry import Pose
+from ..init.zhang import object_points
+from ..records import Dataset, Observation
+
+log = logging.getLogger(__name__)
+
+DEGREE = 3
+# Eq. 14's order: k outermost, then j, then i.
+EXPONENTS: tuple[tuple[int, int, int], ...] = tuple(
+    (i, j, k) for k in range(DEGREE + 1) for j in range(DEGREE + 1 - k) for i in range(DEGREE + 1 - k - j))
+NUM_TERMS = len(EXPONENTS)  # 20
+
+
+def design_matrix(Xn: np.ndarray) -> np.ndarray:
+    """Monomials (N, 20) of normalised points (N, 3), columns in :data:`EXPONENTS` order."""
+    Xn = np.asarray(Xn, float).reshape(-1, 3)
+    powers = [np.ones((len(Xn), 3))]
+    for _ in range(DEGREE):
+        powers.append(powers[-1] * Xn)
+    return np.stack([powers[i][:, 0] * powers[j][:, 1] * powers[k][:, 2] for i, j, k in EXPONENTS], axis=1)
+
+
+@dataclass(frozen=True)
+class PolynomialMap:
+    """One camera's world-to-pixel polynomial (40 coefficients) and its normalisation."""
+
+    mean: np.ndarray  # (3,) mm
+    scale: np.ndarray  # (3,) mm
+    coef_u: np.ndarray  # (20,)
+    coef_v: np.ndarray  # (20,)
+    rank: int = NUM_TERMS  # rank of the design matrix at the fit (20: well posed)
+
+    def project_world(self, X_world: np.ndarray) -> np.ndarray:
+        """Pixels (N, 2) of world points (N, 3)."""
+        A = design_matrix((np.asarray(X_world, float).reshape(-1, 3) - self.mean) / self.scale)
+        return np.stack([A @ self.coef_u, A @ self.coef_v], axis=1)
+
+    def to_json(self, world: str = "ari") -> dict[str, Any]:
+        return {"world": world, "exponents": [list(e) for e in EXPONENTS], "mean": self.mean.tolist(),
+                "scale": self.scale.tolist(), "coef_u": self.coef_u.tolist(), "coef_v": self.coef_v.tolist(),
+                "rank": int(self.rank)}
+
+    @staticmethod
+    def from_json(d: dict[str, Any]) -> "PolynomialMap":
+        """Parse the camera's ``pf`` entry (ValueError on a malformed one)."""
+        if [tuple(e) for e in d.get("exponents", EXPONENTS)] != list(EXPONENTS):
+            raise ValueError("pf.exponents must be the 20 monomials of Eq. 14 in their order")
+        arrays = {}
+        for key, n in (("mean", 3), ("scale", 3), ("coef_u", NUM_TERMS), ("coef_v", NUM_TERMS)):
+            a = np.asarray(d[key], float)
+            if a.shape != (n,) or not np.all(np.isfinite(a)):
+                raise ValueError(f"pf.{key} must be {n} finite numbers")
+            arrays[key] = a
+        if np.any(arrays["scale"] <= 0):
+            raise ValueError("pf.scale must be > 0")
+        return PolynomialMap(arrays["mean"], arrays["scale"], arrays["coef_u"], arrays["coef_v"], int(d.get("rank", NUM_TERMS)))
+
+
+def fit_polynomial(X_world: np.ndarray, uv: np.ndarray) -> PolynomialMap:
+    """Linear least squares of the 40 coefficients on points (N, 3) and their pixels (N, 2)."""
+    X = np.asarray(X_world, float).reshape(-1, 3)
+    uv = np.asarray(uv, float).reshape(-1, 2)
+    if len(X) < NUM_TERMS:
+        raise ValueError(f"pf needs >= {NUM_TERMS} points per camera, got {len(X)}")
+    mean = X.mean(axis=0)
+    scale = X.std(axis=0)
+    scale = np.where(scale > 1e-9 * max(1.0, float(np.abs(X).max())), scale, 1.0)  # a flat axis keeps scale 1
+    A = design_matrix((X - mean) / scale)
+    coef, _, rank, _ = np.linalg.lstsq(A, uv, rcond=None)
+    if rank < NUM_TERMS:
+        log.warning("pf: design matrix has rank %d < %d (points do not span the volume): "
+                    "the minimum-norm fit is not unique", rank, NUM_TERMS)
+    return PolynomialMap(mean, scale, coef[:, 0].copy(), coef[:, 1].copy(), int(rank))
+
+
+class PolynomialModel:
+    """A camera-frame adapter: ``project(X_cam)`` maps to the world and evaluates the polynomial.
+
+    Lets the project's evaluation code (which projects camera-frame points)
+    use a PF camera. PF has no rays: :meth:`backproject` raises.
+    """
+
+    def __init__(self, poly: PolynomialMap, world_from_cam: Pose) -> None:
+        self.poly = poly
+        self.world_from_cam = world_from_cam
+
+    def project(self, X_cam: np.ndarray) -> np.ndarray:
+        """Pixels (N, 2) of camera-frame points (N, 3)."""
+        return self.poly.project_world(self.world_from_cam.apply(np.asarray(X_cam, float).reshape(-1, 3)))
+
+    def backproject(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        raise ValueError("model pf maps world points to pixels only: a polynomial has no rays to back-project")
+
+
+def world_points(observations: Sequence[Observation], frames: dict[str, Pose], dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
+    """World points (N, 3) and pixels (N, 2) of the calibration records whose frame has a pose."""
+    X, uv = [], []
+    for o in observations:
+        if o.set == "calibration" and o.frame in frames:
+            X.append(frames[o.frame].apply(object_points(dataset.target, o.ids)))
+            uv.append(o.pixels)
+    if not X:
+        return np.zeros((0, 3)), np.zeros((0, 2))
+    return np.concatenate(X), np.concatenate(uv)
+
+
+def calibrate_pf(dataset: Dataset, world=None, **ari_options) -> "Calibration":  # noqa: F821
+    """PF per camera on the calibration records, in the world of an ari calibration.
+
+    ``world``: a :class:`~ari_sfm.calibration.Calibration` whose frames give the
+    world coordinates (default: ``calibrate(dataset, model="ari")`` first; its
+    time is not PF's and is reported under ``pf_world``). ``time_s`` is the
+    polynomial fit alone, as in the paper's Table 2.
+    """
+    from ..calibrate import calibrate
+    from ..evaluate import residual_stats
+
+    t_world = 0.0
+    if world is None:
+        t0 = time.perf_counter()
+        world = calibrate(dataset, model="ari", **ari_options)
+        t_world = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    polys: dict[str, PolynomialMap] = {}
+    for name in dataset.camera_names:
+        X, uv = world_points(dataset.select("calibration", name), world.frames, dataset)
+        polys[name] = fit_polynomial(X, uv)
+    elapsed = time.perf_counter() - t0
+    cameras = {}
+    for name, cam in world.cameras.items():
+        X, uv = world_points(dataset.select("calibration", name), world.frames, dataset)
+        rmse = residual_stats([polys[name].project_world(X) - uv])["rmse_px"]
+        cameras[name] = replace(cam, expansion_center_px=None, expansion_center_std_px=None, rmse_px=rmse,
+                                extra={"pf": polys[name].to_json(world.model)})
+    calib_obs = dataset.select("calibration")
+    residuals = [polys[o.camera].project_world(world.frames[o.frame].apply(object_points(dataset.target, o.ids))) - o.pixels
+                 for o in calib_obs if o.frame in world.frames]
+    log.info("pf: %d cameras fitted in %.1f ms", len(polys), elapsed * 1e3)
+    return replace(
+        world, model="pf", cameras=cameras, stacking_poses={}, residuals=residual_stats(residuals), time_s=elapsed,
+        extra={"pf_world": {"model": world.model, "time_s": t_world or world.time_s,
+                            "note": "K, cam_from_world and normal_world are the world calibration's; "
+                                    "pixels come from each camera's pf polynomial"}},
+    )
