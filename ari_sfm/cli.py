@@ -69,8 +69,10 @@ def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
     click.echo(f"{len(obs)} images, {n} corners in {time.perf_counter() - t0:.1f} s -> {out / 'observations.json'}")
 
 
-_model_option = click.option("--model", type=click.Choice(["ari", "exact"]), default="ari", show_default=True,
-                             help="ari: paraxial ARI model; exact: Snell's law, refined from ari.")
+_model_option = click.option("--model", type=click.Choice(["ari", "exact", "rt", "pf", "pinhole", "pinhole_dist"]),
+                             default="ari", show_default=True,
+                             help="ari: paraxial ARI model; exact: Snell's law, refined from ari; "
+                                  "rt, pf, pinhole, pinhole_dist: the baselines of `compare`.")
 _distortion_option = click.option("--distortion/--no-distortion", default=False, show_default=True, help="Estimate k1 k2 p1 p2 k3.")
 _huber_option = click.option("--huber-px", type=float, default=1.0, show_default=True,
                              help="Per-corner Huber threshold in px (0: plain least squares).")
@@ -168,6 +170,30 @@ def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | N
     click.echo(f"points:  {r.points_path}\nmetrics: {r.metrics_path}\nclouds:  {r.clouds['all'].parent}")
 
 
+@main.command(name="compare")
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
+              help="Output folder: compare.json, compare.md, residuals_*.png.")
+@click.option("--models", default="ari,exact,rt,pf,pinhole", show_default=True,
+              help="Comma-separated: ari, exact, rt, pf, pinhole, pinhole_dist.")
+@click.option("--subset", default=None, help="center:COLSxROWS: fit on the central corners of each board, "
+                                             "judge on all (the paper's limited-data test: center:3x4).")
+@click.option("--holdout", type=click.Path(path_type=Path), default=None,
+              help="Also judge each model on this observations file (frame poses solved, rig fixed).")
+@click.option("--pf-world", type=click.Choice(["ari", "exact"]), default="ari", show_default=True,
+              help="Whose board poses give pf its world coordinates.")
+@_distortion_option
+@user_errors
+def compare_cmd(dataset: Path, out: Path, models: str, subset: str | None, holdout: Path | None, pf_world: str,
+                distortion: bool) -> None:
+    """Calibrate DATASET with several models and compare them (the paper's Tables 2-4)."""
+    from .compare import run_compare
+
+    paths = run_compare(dataset, out, models, subset, holdout, pf_world, distortion=distortion)
+    click.echo(paths["md"].read_text())
+    click.echo("\n".join(f"{k}: {v}" for k, v in paths.items()))
+
+
 @main.command(name="export-colmap")
 @click.argument("calibration", type=click.Path(path_type=Path))
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder for the COLMAP model.")
@@ -231,11 +257,14 @@ def _summary(cal, elapsed: float) -> None:
     click.echo(f"\nmodel {cal.model}: {len(cal.cameras)} camera(s), {len(cal.frames)} frames, "
                f"window {cal.interface.thickness_mm:g} mm n={cal.interface.index:g} medium n={cal.interface.medium_index:g}")
     nw = cal.normal_world
-    click.echo(f"normal (world) [{nw[0]:+.5f} {nw[1]:+.5f} {nw[2]:+.5f}]"
-               + (f"  distance {cal.interface.distance_mm:.3f} mm" if cal.interface.distance_mm is not None else ""))
+    if nw is None:
+        click.echo("normal: none (the window is ignored)")
+    else:
+        click.echo(f"normal (world) [{nw[0]:+.5f} {nw[1]:+.5f} {nw[2]:+.5f}]"
+                   + (f"  distance {cal.interface.distance_mm:.3f} mm" if cal.interface.distance_mm is not None else ""))
     click.echo(f"{'camera':10s} {'fx':>9s} {'fy':>9s} {'cx':>8s} {'cy':>8s} {'tilt':>6s} {'expansion centre (px)':>26s} {'rmse':>7s}")
     for name, c in cal.cameras.items():
-        tilt = angle_between_deg(cal.normal_cam(name), np.array([0, 0, 1.0]))
+        tilt = float("nan") if cal.normal_world is None else angle_between_deg(cal.normal_cam(name), np.array([0, 0, 1.0]))
         ec = "-" if c.expansion_center_px is None else (
             f"{c.expansion_center_px[0]:.1f},{c.expansion_center_px[1]:.1f} ±{max(c.expansion_center_std_px):.2f}")
         click.echo(f"{name:10s} {c.K[0,0]:9.2f} {c.K[1,1]:9.2f} {c.K[0,2]:8.2f} {c.K[1,2]:8.2f} {tilt:5.2f}° {ec:>26s} {c.rmse_px:7.4f}")

@@ -1,0 +1,301 @@
+"""The paper's comparison of calibration methods (Section 3.3, Tables 2-4, Figs. 6, 9-11) on any dataset.
+
+Every model calibrates the same data; each is judged by its reprojection
+errors on the calibration corners it was fitted on (in-sample) and on all
+calibration corners (with ``--subset``: the limited-data experiment, fit on
+the central corners of each board, judge on all of them), and optionally on
+a held-out observations file (frame poses solved with the rig fixed).
+Outputs: ``compare.json``, ``compare.md`` (the tables) and two PNG figures
+(residual vectors per model; error distributions side by side).
+
+Parameters per camera count what describes a camera and its window:
+intrinsics (4, or 9 with distortion) plus the window normal (2) and, under
+water, its distance (1); pf has its 40 coefficients. Board poses and the
+6 of each camera's pose in the rig are not counted.
+"""
+from __future__ import annotations
+
+import io
+import logging
+import re
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .calibration import Calibration
+from .errors import AriSfmError
+from .evaluate import evaluate, observation_residuals, residual_stats
+from .records import Dataset, Observation
+
+log = logging.getLogger(__name__)
+
+FORMAT = "ari-sfm-compare/1"
+MODELS = ("ari", "exact", "rt", "pf", "pinhole", "pinhole_dist")
+DEFAULT_MODELS = ("ari", "exact", "rt", "pf", "pinhole")
+# The paper's figures (px, ms) where it gives them: Table 2 (single camera), 3 (binocular), 4 (3x4 subset).
+PAPER = {
+    "single": {"rt": (0.31, 1.42, 0.37, 298), "pf": (0.01, 0.08, 0.02, 7), "ari": (0.03, 0.12, 0.04, 10)},
+    "binocular": {"rt": (0.35, 1.39, 0.41, 527), "pf": (0.01, 0.08, 0.02, 12), "ari": (0.04, 0.16, 0.05, 15)},
+    "subset": {"pf": (12.67, 51.57, 20.74, 6), "ari": (0.05, 0.25, 0.07, 7)},
+}
+
+
+@dataclass(frozen=True)
+class Subset:
+    """The central ``cols`` x ``rows`` corners of a planar board (the paper's 3x4 limited-data fit)."""
+
+    cols: int
+    rows: int
+
+    @staticmethod
+    def parse(text: str) -> "Subset":
+        """``center:COLSxROWS``, e.g. ``center:3x4``."""
+        m = re.fullmatch(r"center:(\d+)x(\d+)", text.strip())
+        if not m or int(m.group(1)) < 1 or int(m.group(2)) < 1:
+            raise AriSfmError("--subset", f"expected center:COLSxROWS (e.g. center:3x4), got {text!r}")
+        return Subset(int(m.group(1)), int(m.group(2)))
+
+    def ids(self, dataset: Dataset) -> np.ndarray:
+        """The corner ids in the board's central block."""
+        grid = dataset.target.grid
+        if grid is None:
+            raise AriSfmError(dataset.rig_path, "--subset center:... needs a planar grid target (checkerboard or charuco)")
+        cols, rows = grid
+        if self.cols > cols or self.rows > rows:
+            raise AriSfmError(dataset.rig_path, f"--subset {self.cols}x{self.rows} is larger than the board's "
+                                                f"{cols}x{rows} corners")
+        c0, r0 = (cols - self.cols) // 2, (rows - self.rows) // 2
+        c, r = np.meshgrid(np.arange(c0, c0 + self.cols), np.arange(r0, r0 + self.rows))
+        return np.sort((r * cols + c).ravel())
+
+    def apply(self, dataset: Dataset) -> Dataset:
+        """The dataset with each calibration record cut to the central block (stacking records kept whole)."""
+        keep = self.ids(dataset)
+        out = []
+        for o in dataset.observations or ():
+            if o.set == "calibration":
+                mask = np.isin(o.ids, keep)
+                if mask.sum() < 4:
+                    continue
+                o = replace(o, ids=o.ids[mask], pixels=o.pixels[mask])
+            out.append(o)
+        return dataset.with_observations(tuple(out), dataset.observations_path)
+
+
+@dataclass(frozen=True)
+class ModelResult:
+    """One model's calibration and its errors."""
+
+    model: str
+    calibration: Calibration
+    params_per_camera: int
+    time_ms: float  # the calibration itself (pf: the polynomial fit, as the paper times it)
+    wall_ms: float  # everything this model needed (pf: including its ari world)
+    fit: dict  # errors on the corners it was fitted on
+    all: dict  # errors on all calibration corners
+    holdout: dict | None
+    residuals: np.ndarray  # (N, 2) on all calibration corners
+    in_fit: np.ndarray  # (N,) bool: the corner was in the fit
+
+
+def params_per_camera(cal: Calibration, distortion: bool) -> int:
+    """Intrinsics + window parameters of one camera (see module docstring)."""
+    if cal.model == "pf":
+        return 40
+    intr = 9 if (distortion or cal.model == "pinhole_dist") else 4
+    if cal.model in ("pinhole", "pinhole_dist"):
+        return intr
+    return intr + 2 + (1 if cal.interface.medium_index != 1.0 else 0)
+
+
+def parse_models(text: str | Sequence[str]) -> tuple[str, ...]:
+    """Model names from ``ari,exact,...`` (unknown or repeated names are an error)."""
+    names = [m.strip() for m in text.split(",")] if isinstance(text, str) else list(text)
+    bad = [m for m in names if m not in MODELS]
+    if bad or not names or len(set(names)) != len(names):
+        raise AriSfmError("--models", f"expected a comma-separated list of distinct models from "
+                                      f"{', '.join(MODELS)}; got {text!r}")
+    return tuple(names)
+
+
+def _judge(cal: Calibration, dataset: Dataset, fit_ids: np.ndarray | None) -> tuple[dict, dict, np.ndarray, np.ndarray]:
+    """In-sample and all-corner errors on the calibration records (all corners of the full dataset)."""
+    pairs = observation_residuals(cal, dataset.select("calibration"), dataset.target)
+    res = np.concatenate([r for _, r in pairs]) if pairs else np.zeros((0, 2))
+    in_fit = (np.concatenate([np.isin(o.ids, fit_ids) for o, _ in pairs]) if fit_ids is not None and pairs
+              else np.ones(len(res), bool))
+    return residual_stats([res[in_fit]]), residual_stats([res]), res, in_fit
+
+
+def _holdout(cal: Calibration, records: Sequence[Observation], dataset: Dataset) -> dict:
+    """Errors on held-out records, every frame's pose solved with the rig fixed."""
+    held = [o for o in records if o.set != "stacking"]
+    fresh = replace(cal, frames={}, stacking_poses={})
+    stats = evaluate(fresh, held, dataset.target, solve_poses=True)
+    return {k: v for k, v in stats.items() if k != "per_camera"}
+
+
+def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Subset | None = None,
+            holdout: Sequence[Observation] | None = None, pf_world: str = "ari", **options) -> list[ModelResult]:
+    """Calibrate ``dataset`` with every model and judge each (see module docstring).
+
+    ``options`` go to :func:`ari_sfm.calibrate` (e.g. ``distortion``). pf fits
+    in the world (board poses) of the ``pf_world`` calibration, "ari" (the
+    issue's choice) or "exact" (made first when not among ``models``); its
+    errors include that world's pose errors.
+    """
+    from .baselines.polynomial import calibrate_pf
+    from .calibrate import calibrate, ensure_observations
+
+    models = parse_models(models)
+    dataset = ensure_observations(dataset)
+    fit_data = subset.apply(dataset) if subset else dataset
+    fit_ids = subset.ids(dataset) if subset else None
+    cals: dict[str, tuple[Calibration, float]] = {}
+    options.setdefault("uncertainty", False)  # marginals are not part of a method's time
+    if pf_world not in ("ari", "exact"):
+        raise AriSfmError("--pf-world", f"expected ari or exact, got {pf_world!r}")
+    needed = list(models) + ([pf_world] if "pf" in models and pf_world not in models else [])
+    for model in sorted(needed, key=lambda m: m == "pf"):  # pf last: it needs its world
+        t0 = time.perf_counter()
+        if model == "pf":
+            cal = calibrate_pf(fit_data, world=cals[pf_world][0])
+            wall = time.perf_counter() - t0 + cals[pf_world][1]
+        else:
+            cal = calibrate(fit_data, model=model, **options)
+            wall = time.perf_counter() - t0
+        cals[model] = (cal, wall)
+        log.info("compare: %s in %.1f ms", model, cal.time_s * 1e3)
+    out = []
+    for model in models:
+        cal, wall = cals[model]
+        fit, all_, res, in_fit = _judge(cal, dataset, fit_ids)
+        out.append(ModelResult(model, cal, params_per_camera(cal, bool(options.get("distortion"))), cal.time_s * 1e3,
+                               wall * 1e3, fit, all_, _holdout(cal, holdout, dataset) if holdout else None, res, in_fit))
+    return out
+
+
+# ---------------------------------------------------------------- outputs
+
+
+def to_json(results: Sequence[ModelResult], subset: Subset | None, dataset: Dataset) -> dict:
+    """compare.json: per model, parameters, times and errors (px)."""
+    pf = [r.calibration.extra["pf_world"]["model"] for r in results if r.model == "pf"]
+    return {
+        "format": FORMAT,
+        "dataset": str(dataset.root),
+        "cameras": dataset.camera_names,
+        "subset": None if subset is None else f"center:{subset.cols}x{subset.rows}",
+        "pf_world": pf[0] if pf else None,
+        "models": {r.model: {
+            "params_per_camera": r.params_per_camera, "time_ms": r.time_ms, "wall_ms": r.wall_ms,
+            "fit": r.fit, "all_corners": r.all, "holdout": r.holdout,
+            "per_camera_rmse_px": {n: c.rmse_px for n, c in r.calibration.cameras.items()},
+        } for r in results},
+    }
+
+
+def _row(name: str, p: int | str, s: dict, t: float | str) -> str:
+    t = t if isinstance(t, str) else f"{t:.0f}"
+    return f"| {name} | {p} | {s['mae_px']:.3f} | {s['max_px']:.3f} | {s['rmse_px']:.3f} | {t} |"
+
+
+def to_markdown(results: Sequence[ModelResult], subset: Subset | None, dataset: Dataset) -> str:
+    """compare.md: the paper's Table 2-4 layout, one table per set of corners judged."""
+    head = "| Method | # of para | MAE (px) | Max (px) | RMSE (px) | T (ms) |\n|---|---|---|---|---|---|"
+    n = len(dataset.camera_names)
+    pf = [r.calibration.extra["pf_world"]["model"] for r in results if r.model == "pf"]
+    lines = [f"# Calibration methods compared: {dataset.root}", "",
+             f"{n} camera(s); # of para: per camera, intrinsics and window (board and rig poses not counted); "
+             "T: the calibration itself" + (f" (pf: its polynomial fit, in the world of the {pf[0]} fit)" if pf else "")
+             + ".", ""]
+    sections = [("In-sample (corners each model was fitted on)", "fit")]
+    if subset is not None:
+        lines.insert(3, f"Fitted on the central {subset.cols}x{subset.rows} corners of each calibration board "
+                        "(the paper's limited-data experiment, Table 4).")
+        lines.insert(4, "")
+        sections.append(("All calibration corners", "all"))
+    for title, key in sections:
+        lines += [f"## {title}", "", head]
+        lines += [_row(r.model.upper(), r.params_per_camera, getattr(r, key), r.time_ms) for r in results]
+        lines.append("")
+    if any(r.holdout for r in results):
+        lines += ["## Held-out observations (frame poses solved with the rig fixed)", "", head]
+        lines += [_row(r.model.upper(), r.params_per_camera, r.holdout, "-") for r in results if r.holdout]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _png(fig) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    return buf.getvalue()
+
+
+def figures(results: Sequence[ModelResult]) -> dict[str, bytes]:
+    """PNG bytes: residual vectors per model (fitted corners red, others blue) and error distributions."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    k = len(results)
+    fig, axes = plt.subplots(1, k, figsize=(3.2 * k, 3.4), squeeze=False)
+    for ax, r in zip(axes[0], results):
+        res, fit = r.residuals, r.in_fit
+        if (~fit).any():
+            ax.scatter(res[~fit, 0], res[~fit, 1], s=3, c="tab:blue", label="not fitted")
+        ax.scatter(res[fit, 0], res[fit, 1], s=3, c="tab:red", label="fitted")
+        lim = max(float(np.nanmax(np.abs(res))) if len(res) else 1.0, 1e-3) * 1.05
+        ax.set_xlim(-lim, lim)
+        ax.set_ylim(-lim, lim)
+        ax.set_aspect("equal")
+        ax.set_title(f"{r.model.upper()}  rmse {r.all['rmse_px']:.3f} px", fontsize=9)
+        ax.set_xlabel("du (px)")
+        ax.set_ylabel("dv (px)")
+    if any((~r.in_fit).any() for r in results):
+        axes[0][0].legend(fontsize=7, markerscale=3)
+    fig.tight_layout()
+    scatter = _png(fig)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(1.6 * k + 2, 3.6))
+    data = [np.maximum(np.linalg.norm(r.residuals, axis=1), 1e-6) for r in results]
+    ax.boxplot(data, whis=(0, 100))
+    ax.set_xticks(range(1, k + 1), [r.model.upper() for r in results])
+    ax.set_yscale("log")
+    ax.set_ylabel("reprojection error, all corners (px)")
+    fig.tight_layout()
+    dist = _png(fig)
+    plt.close(fig)
+    return {"residuals_scatter.png": scatter, "residuals_distribution.png": dist}
+
+
+def run_compare(dataset_path: str | Path, out: str | Path, models: str | Sequence[str] = DEFAULT_MODELS,
+                subset: str | None = None, holdout: str | Path | None = None, pf_world: str = "ari",
+                **options) -> dict[str, Path]:
+    """Load, compare, write compare.json, compare.md and the figures to ``out``; return their paths.
+
+    Arguments are checked before any calibration runs and nothing is written on error.
+    """
+    from .io import load_dataset, load_observations, write_bytes_atomic, write_json_atomic, write_text_atomic
+
+    names = parse_models(models)
+    sub = Subset.parse(subset) if subset else None
+    dataset = load_dataset(dataset_path)
+    if sub:
+        sub.ids(dataset)
+    held = load_observations(Path(holdout), dataset.target, dataset.camera_names) if holdout else None
+    results = compare(dataset, names, sub, held, pf_world, **options)
+    out = Path(out)
+    paths = {"json": out / "compare.json", "md": out / "compare.md"}
+    pngs = figures(results)
+    write_json_atomic(paths["json"], to_json(results, sub, dataset))
+    write_text_atomic(paths["md"], to_markdown(results, sub, dataset))
+    for name, data in pngs.items():
+        paths[name] = out / name
+        write_bytes_atomic(paths[name], data)
+    return paths
