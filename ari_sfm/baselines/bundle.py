@@ -4,12 +4,11 @@
   window ignored) and the cameras joined through shared frames into camera
   0's world (chordal mean of the relative poses over a breadth-first tree);
 - the points of a dataset packed into flat arrays (camera, frame, target
-  point, pixel, added glass per corner);
+  point, pixel per corner);
 - a numeric Jacobian by forward differences whose columns are grouped by the
   sparsity of a bundle adjustment (columns that touch disjoint corners are
-  perturbed together), for ``scipy.optimize.least_squares(method="lm")``.
-
-Parameter vectors pack a pose as ``[rotation vector (3), translation (3)]``.
+  perturbed together), for ``scipy.optimize.least_squares(method="lm")``;
+- :class:`RigBundle`, the parameter vector of a rig around its start and its solve.
 """
 from __future__ import annotations
 
@@ -23,7 +22,7 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import AriSfmError
 from ..geometry import Pose
-from ..init.zhang import ZhangResult, calibrate_views, object_points, solve_pnp
+from ..init.zhang import ZhangResult, calibrate_views, object_points
 from ..records import Dataset, Observation
 
 log = logging.getLogger(__name__)
@@ -46,17 +45,6 @@ def zhang_cameras(dataset: Dataset, distortion: bool = False) -> dict[str, Zhang
             raise AriSfmError(dataset.rig_path, f"camera {name} has {len(views)} calibration views with "
                                                 f">= {MIN_CORNERS} corners (need >= {MIN_VIEWS})")
         out[name] = calibrate_views(dataset.target, dataset.cameras[name], views, distortion)
-    return out
-
-
-def stacking_start_poses(dataset: Dataset, zhang: dict[str, ZhangResult]) -> dict[str, dict[str, Pose]]:
-    """cam_from_target of each stacking pose by PnP on its thinnest stack (the window ignored)."""
-    out: dict[str, dict[str, Pose]] = {n: {} for n in zhang}
-    for name, z in zhang.items():
-        records = dataset.select("stacking", name)
-        for pose in sorted({o.frame for o in records}):
-            first = min((o for o in records if o.frame == pose), key=lambda o: o.added_mm or 0.0)
-            out[name][pose] = solve_pnp(dataset.target, z.K, z.dist, first)
     return out
 
 
@@ -96,22 +84,12 @@ def join_rig(names: Sequence[str], cam_from_target: dict[str, dict[str, Pose]],
     return cam_from_world, world_from_target
 
 
-def pose_vector(p: Pose) -> np.ndarray:
-    """[rotation vector, translation] (6,) of a pose."""
-    return np.concatenate([Rotation.from_matrix(p.R).as_rotvec(), p.t])
-
-
 def rotations(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rotation matrices (M, 3, 3) and translations (M, 3) of pose vectors (M, 6)."""
     v = np.asarray(vectors, float).reshape(-1, 6)
     if len(v) == 0:
         return np.zeros((0, 3, 3)), np.zeros((0, 3))
     return Rotation.from_rotvec(v[:, :3]).as_matrix(), v[:, 3:].copy()
-
-
-def pose_from_vector(v: np.ndarray) -> Pose:
-    R, t = rotations(v)
-    return Pose(R[0], t[0])
 
 
 @dataclass(frozen=True)
@@ -123,7 +101,6 @@ class Points:
     frame: np.ndarray  # (N,) frame index (into ``frames``)
     xyz: np.ndarray  # (N, 3) target-frame points
     uv: np.ndarray  # (N, 2) observed pixels
-    added_mm: np.ndarray  # (N,) glass added to the window (stacking), else 0
     frames: tuple[str, ...]
     slices: tuple[slice, ...]  # rows of each record
 
@@ -132,7 +109,7 @@ class Points:
         cam_index = {n: i for i, n in enumerate(names)}
         frame_index = {f: i for i, f in enumerate(frames)}
         records = tuple(o for o in records if o.camera in cam_index and o.frame in frame_index)
-        cams, fr, xyz, uv, added, slices = [], [], [], [], [], []
+        cams, fr, xyz, uv, slices = [], [], [], [], []
         start = 0
         for o in records:
             m = len(o.ids)
@@ -140,12 +117,11 @@ class Points:
             fr.append(np.full(m, frame_index[o.frame]))
             xyz.append(object_points(dataset.target, o.ids))
             uv.append(np.asarray(o.pixels, float))
-            added.append(np.full(m, float(o.added_mm or 0.0) if o.set == "stacking" else 0.0))
             slices.append(slice(start, start + m))
             start += m
         cat = (lambda a, shape: np.concatenate(a) if a else np.zeros(shape))
         return Points(records, cat(cams, (0,)).astype(int), cat(fr, (0,)).astype(int), cat(xyz, (0, 3)),
-                      cat(uv, (0, 2)), cat(added, (0,)), tuple(frames), tuple(slices))
+                      cat(uv, (0, 2)), tuple(frames), tuple(slices))
 
     def __len__(self) -> int:
         return len(self.uv)

@@ -27,6 +27,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from ..errors import AriSfmError
 from ..geometry import Pose
 from ..init.zhang import object_points
 from ..records import Dataset, Observation
@@ -149,15 +150,19 @@ def calibrate_pf(dataset: Dataset, world=None, **ari_options) -> "Calibration": 
         t0 = time.perf_counter()
         world = calibrate(dataset, model="ari", **ari_options)
         t_world = time.perf_counter() - t0
+    data = {name: world_points(dataset.select("calibration", name), world.frames, dataset)
+            for name in dataset.camera_names}
     t0 = time.perf_counter()
-    polys: dict[str, PolynomialMap] = {}
-    for name in dataset.camera_names:
-        X, uv = world_points(dataset.select("calibration", name), world.frames, dataset)
+    polys = {}
+    for name, (X, uv) in data.items():
+        if len(X) < NUM_TERMS:
+            raise AriSfmError(dataset.rig_path, f"pf: camera {name} has {len(X)} calibration corners with a "
+                                                f"world position, the polynomial needs >= {NUM_TERMS}")
         polys[name] = fit_polynomial(X, uv)
     elapsed = time.perf_counter() - t0
     cameras = {}
     for name, cam in world.cameras.items():
-        X, uv = world_points(dataset.select("calibration", name), world.frames, dataset)
+        X, uv = data[name]
         rmse = residual_stats([polys[name].project_world(X) - uv])["rmse_px"]
         cameras[name] = replace(cam, expansion_center_px=None, expansion_center_std_px=None, rmse_px=rmse,
                                 extra={"pf": polys[name].to_json(world.model)})
