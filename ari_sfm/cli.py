@@ -107,17 +107,39 @@ def calibrate_cmd(dataset: Path, out: Path, model: str, distortion: bool, huber_
 @_distortion_option
 @_huber_option
 @_outlier_option
+@click.option("--truth", type=click.Path(path_type=Path), default=None,
+              help="A simulator's truth.json: also report the reconstruction's 3D error against it.")
 @user_errors
-def run(dataset: Path, out: Path, model: str, distortion: bool, huber_px: float, exclude_outliers: bool) -> None:
-    """The pipeline: detect corners when needed, calibrate, write the results to OUT."""
-    from .pipelines.calibrate_rig import main as pipeline
+def run(dataset: Path, out: Path, model: str, distortion: bool, huber_px: float, exclude_outliers: bool,
+        truth: Path | None) -> None:
+    """The pipeline: detect corners when needed, calibrate, reconstruct (frames seen by two cameras), report."""
+    from .pipelines.run import main as pipeline
 
     t0 = time.perf_counter()
     click.echo(f"ari-sfm run: {dataset} -> {out}")
-    result = pipeline(dataset, out, model=model, progress=True, distortion=distortion, huber_px=huber_px or None,
-                      exclude_outliers=exclude_outliers)
-    _summary(result.calibration, time.perf_counter() - t0)
-    click.echo(f"calibration: {result.calibration_path}")
+    result = pipeline(dataset, out, model=model, truth=truth, progress=True, distortion=distortion,
+                      huber_px=huber_px or None, exclude_outliers=exclude_outliers)
+    _summary(result.calibrated.calibration, time.perf_counter() - t0)
+    click.echo(f"calibration: {result.calibrated.calibration_path}")
+    if result.reconstruction is None:
+        click.echo(f"info: reconstruction skipped: {result.skipped_reconstruction}")
+    else:
+        m = result.reconstruction.metrics
+        click.echo(f"reconstruction: {m['num_points']} points in {m['num_frames']} frames, flatness rmse "
+                   f"{m['flatness_mm']['rmse']:.4f} mm -> {result.reconstruction.metrics_path}")
+    click.echo(f"report: {result.report_path}")
+
+
+@main.command(name="report")
+@click.argument("out", type=click.Path(path_type=Path))
+@click.option("--dataset", type=click.Path(path_type=Path), default=None,
+              help="The dataset folder (default: from OUT/run.json, else OUT/metrics.json).")
+@user_errors
+def report_cmd(out: Path, dataset: Path | None) -> None:
+    """Write OUT/report.html: one self-contained page of the calibration, residuals and reconstruction in OUT."""
+    from .report import write_report
+
+    click.echo(f"report: {write_report(out, dataset)}")
 
 
 @main.command(name="evaluate")

@@ -189,19 +189,20 @@ class ReconstructionRun:
 
 def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, out_dir: str | Path,
                        truth_path: str | Path | None = None, workers: int | None = None,
-                       progress: bool = False) -> ReconstructionRun:
+                       progress: bool = False, observations: str | Path | None = None) -> ReconstructionRun:
     """Load, detect corners if needed, reconstruct, measure; then write OUT/points.json, metrics.json, clouds/.
 
     Everything is checked and computed before the first file is written, so a
     bad input (another rig's calibration, a truth without a frame, no frame
-    seen by two cameras) leaves OUT without points.json.
+    seen by two cameras) leaves OUT without points.json. ``observations``
+    replaces the dataset's observations file (e.g. corners detected earlier).
     """
     from .calibrate import ensure_observations
     from .calibration import load_calibration
     from .io import load_dataset, save_observations, write_json_atomic
     from .metrics import reconstruction_metrics, save_point_clouds
 
-    dataset = load_dataset(dataset_path)
+    dataset = load_dataset(dataset_path, observations)
     calibration = load_calibration(calibration_path)
     check_rig(dataset, calibration, calibration_path)  # before a slow detection
     if dataset.observations is None and not dataset.reconstruction:

@@ -2,18 +2,31 @@
 # Set up ari-sfm in ./.venv on a fresh Linux machine (Python >= 3.10):
 # the system library open3d needs (libusb-1.0-0, via apt-get where possible),
 # then the package and its test extras, editable.
+#   --tests  also install what the tests need beyond Python: Chromium
+#            (Debian package chromium) to render report.html headless.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+tests=0
+for arg in "$@"; do
+  case "$arg" in
+    --tests) tests=1 ;;
+    *) echo "setup: unknown option $arg (known: --tests)" >&2; exit 2 ;;
+  esac
+done
+
 need_apt=()
 ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || need_apt+=(libusb-1.0-0)
+if [ "$tests" -eq 1 ] && ! command -v chromium >/dev/null 2>&1 && ! command -v chromium-browser >/dev/null 2>&1; then
+  need_apt+=(chromium)
+fi
 if [ ${#need_apt[@]} -gt 0 ]; then
   if command -v apt-get >/dev/null 2>&1; then
     sudo=""
     [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null 2>&1 && sudo="sudo"
     echo "setup: installing system packages: ${need_apt[*]}" >&2
     { $sudo apt-get update -qq && $sudo apt-get install -y -qq "${need_apt[@]}" >/dev/null; } \
-      || echo "setup: warning: could not install ${need_apt[*]}; open3d will not import (ari-sfm doctor tells)" >&2
+      || echo "setup: warning: could not install ${need_apt[*]}; open3d needs libusb-1.0-0 (ari-sfm doctor tells), the report's browser test chromium" >&2
   else
     echo "setup: warning: install ${need_apt[*]} with your package manager (open3d needs it)" >&2
   fi

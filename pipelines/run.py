@@ -1,0 +1,87 @@
+"""Pipeline: detect corners when needed, calibrate, reconstruct when possible, write the report.
+
+    python -m ari_sfm.pipelines.run DATASET OUT [--model ari|exact] [--truth TRUTH]
+
+OUT gets calibration.json (+ observations.json when detected here), then,
+when the dataset has reconstruction frames seen by two or more cameras,
+points.json, metrics.json and clouds/; then run.json (what ran, and the
+dataset's absolute path, which ``ari-sfm report OUT`` reads) and report.html.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..io import load_dataset, write_json_atomic
+from ..records import Dataset
+from ..reconstruct import ReconstructionRun, run_reconstruction
+from ..report import RUN_FILE, RUN_FORMAT, write_report
+from .calibrate_rig import PipelineResult
+from .calibrate_rig import main as calibrate_rig
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RunResult:
+    calibrated: PipelineResult
+    reconstruction: ReconstructionRun | None  # None when skipped
+    skipped_reconstruction: str | None  # why it was skipped
+    run_path: Path
+    report_path: Path
+
+
+def reconstruction_frames(dataset: Dataset) -> tuple[list[str], str | None]:
+    """The reconstruction frames seen by >= 2 cameras, and why there are none (else None)."""
+    if not dataset.reconstruction:
+        return [], "the dataset has no reconstruction frames"
+    cams: dict[str, set[str]] = {}
+    for o in dataset.select("reconstruction"):
+        cams.setdefault(o.frame, set()).add(o.camera)
+    frames = [f for f, c in cams.items() if len(c) >= 2]
+    if not frames:
+        return [], "no reconstruction frame is seen by two cameras"
+    return frames, None
+
+
+def main(dataset_path: Path, out_dir: Path, model: str = "ari", truth: Path | None = None, progress: bool = False,
+         **options) -> RunResult:
+    """Calibrate (ari, or ari refined to exact), reconstruct when possible, write run.json and report.html."""
+    out_dir = Path(out_dir)
+    calibrated = calibrate_rig(dataset_path, out_dir, model=model, progress=progress, **options)
+    obs_path = calibrated.observations_path
+    dataset = load_dataset(dataset_path, obs_path)
+    frames, why = reconstruction_frames(dataset)
+    rec = None
+    if why is None:
+        rec = run_reconstruction(dataset_path, calibrated.calibration_path, out_dir, truth, progress=progress,
+                                 observations=obs_path)
+    else:
+        log.info("reconstruction skipped: %s", why)
+    run_path = out_dir / RUN_FILE
+    write_json_atomic(run_path, {
+        "format": RUN_FORMAT,
+        "dataset": str(Path(dataset_path).resolve()),
+        "observations": str(obs_path.resolve()) if obs_path else None,
+        "model": model,
+        "calibration": calibrated.calibration_path.name,
+        "reconstruction": None if rec is None else {"frames": len(rec.points.frames), "points": rec.points.num_points},
+        "reconstruction_skipped": why,
+        "truth": str(Path(truth).resolve()) if truth else None,
+    })
+    report = write_report(out_dir)
+    return RunResult(calibrated, rec, why, run_path, report)
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("dataset", type=Path)
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--model", default="ari", choices=["ari", "exact"])
+    ap.add_argument("--truth", type=Path, default=None)
+    a = ap.parse_args()
+    logging.basicConfig(level=logging.INFO)
+    r = main(a.dataset, a.out, a.model, a.truth)
+    print(r.report_path)
