@@ -117,6 +117,9 @@ def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInp
         points = {name: np.asarray(f["xyz"], float) for name, f in load_points(out / "points.json")["frames"].items()}
     if metrics is None and not points:
         notes.append("no reconstruction (points.json, metrics.json) in this folder")
+    elif (out / RUN_FILE).exists() and _read_json(out / RUN_FILE).get("reconstruction_skipped"):
+        notes.append("the last `ari-sfm run` here skipped the reconstruction: points.json and metrics.json "
+                     "are older than its calibration")
     md = (out / "compare.md").read_text() if (out / "compare.md").exists() else None
     cj = _read_json(out / "compare.json") if (out / "compare.json").exists() else None
     return ReportInputs(out, cal, ds, ds_path, tuple(observations), metrics, points, md, cj, tuple(notes))

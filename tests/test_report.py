@@ -121,6 +121,16 @@ def test_report_includes_the_model_comparison(binocular, tmp_path):
     assert "<td>ari</td><td>0.0712</td>" in text and "---" not in markdown_tables(md)
 
 
+def test_report_flags_a_reconstruction_older_than_the_last_run(binocular, tmp_path):
+    _, _, out, _ = binocular
+    for name in ("calibration.json", "points.json", "metrics.json"):
+        shutil.copy(out / name, tmp_path / name)
+    run = json.loads((out / "run.json").read_text())
+    (tmp_path / "run.json").write_text(json.dumps({**run, "reconstruction": None, "reconstruction_skipped": "x"}))
+    text = write_report(tmp_path).read_text()
+    assert "are older than its calibration" in text and "reconstruction errors" in text
+
+
 def test_report_cli_and_bad_inputs(binocular, tmp_path):
     _, _, out, _ = binocular
     r = CliRunner().invoke(main, ["report", str(out)])
