@@ -105,31 +105,34 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
             estimate_distance=underwater, huber_px=opts.huber_px, fixed_intrinsics=fixed,
         )
         t_stage = time.perf_counter()
-        state = optimize_graph(graph, backend, opts.max_iterations, opts.huber_px)
+        state, solved = optimize_graph(graph, backend, opts.max_iterations, opts.huber_px, return_problem=True)
         iterations[stage] = {"iterations": graph.iterations, "time_s": time.perf_counter() - t_stage, "backend": backend}
         log.info("%s bundle adjustment: %d iterations, %.3f s", stage, graph.iterations, iterations[stage]["time_s"])
     from .outliers import find_outliers, without
 
-    outliers, robust_sigma = find_outliers(graph.residuals(), opts.outlier_sigma)
+    # residuals and marginals from the numpy backend's solved problem (no Python callbacks); GTSAM's otherwise
+    residuals = solved.residuals() if solved is not None else graph.residuals()
+    outliers, robust_sigma = find_outliers(residuals, opts.outlier_sigma)
     if outliers and opts.exclude_outliers:
         log.info("excluding %d outlier corners and re-running the %s stage", len(outliers), stages[-1])
         graph = RigGraph.build(
             without(dataset.observations, outliers), dataset.target, iface, names, state, model=stages[-1],
             distortion=opts.distortion, estimate_distance=underwater, huber_px=opts.huber_px, fixed_intrinsics=fixed,
         )
-        state = optimize_graph(graph, backend, opts.max_iterations, opts.huber_px)
+        state, solved = optimize_graph(graph, backend, opts.max_iterations, opts.huber_px, return_problem=True)
+        residuals = solved.residuals() if solved is not None else graph.residuals()
     if outliers:
         # With the paraxial ari model, large residuals are mostly its own error at oblique rays.
         level = logging.INFO if stages[-1] == "ari" else logging.WARNING
         log.log(level, "%d corners beyond %.0f sigma (%.3f px) after convergence%s", len(outliers), opts.outlier_sigma,
                 robust_sigma, " (excluded)" if opts.exclude_outliers else "")
     elapsed = time.perf_counter() - t0
-    residuals = graph.residuals()
     uncertainty = None
     if opts.uncertainty:
         from .factors.uncertainty import rig_uncertainty
 
-        uncertainty = rig_uncertainty(graph)
+        uncertainty = rig_uncertainty(graph, marginals=solved.marginals() if solved is not None else None,
+                                      residuals=residuals)
     cameras = {}
     for n in names:
         p = state.params[n]

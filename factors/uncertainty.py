@@ -7,6 +7,8 @@ with the paraxial model it also holds its model error).
 """
 from __future__ import annotations
 
+from typing import Sequence
+
 import gtsam
 import numpy as np
 
@@ -16,21 +18,29 @@ from .rig_graph import RigGraph
 PARAM_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 
 
-def residual_sigma_px(rg: RigGraph) -> float:
-    """sigma per pixel coordinate from the residuals at the current values."""
-    res = np.concatenate([r.reshape(-1) for _, r in rg.residuals()])
+def residual_sigma_px(rg: RigGraph, residuals: Sequence[tuple[object, np.ndarray]] | None = None) -> float:
+    """sigma per pixel coordinate from the residuals at the current values
+    (``residuals``: rg.residuals(), when already at hand)."""
+    res = np.concatenate([r.reshape(-1) for _, r in (rg.residuals() if residuals is None else residuals)])
     n_params = rg.values.dim()
     dof = max(res.size - n_params, 1)
     return float(np.sqrt(np.sum(res**2) / dof))
 
 
-def rig_uncertainty(rg: RigGraph, sigma_px: float | None = None) -> dict:
+def rig_uncertainty(rg: RigGraph, sigma_px: float | None = None, marginals=None,
+                    residuals: Sequence[tuple[object, np.ndarray]] | None = None) -> dict:
     """Standard deviations: per camera fx fy cx cy (and distortion) in px, the
     relative pose of each camera to camera 0 (rotation in degrees, translation in
     mm, as RMS error magnitudes), the normal's angle in degrees (RMS), and the
-    window distance in mm when it is estimated."""
-    sigma = residual_sigma_px(rg) if sigma_px is None else sigma_px
-    marginals = gtsam.Marginals(rg.graph, rg.values)
+    window distance in mm when it is estimated.
+
+    ``marginals``: default ``gtsam.Marginals(rg.graph, rg.values)``; the numpy
+    backend's ``VectorizedProblem.marginals()`` gives the same covariances
+    without linearising the graph through its Python callbacks. ``residuals``:
+    rg.residuals(), when already at hand."""
+    sigma = residual_sigma_px(rg, residuals) if sigma_px is None else sigma_px
+    if marginals is None:
+        marginals = gtsam.Marginals(rg.graph, rg.values)
     s2 = sigma**2
     out: dict = {"sigma_px": sigma, "cameras": {}}
     for c, name in enumerate(rg.camera_names):

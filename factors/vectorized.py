@@ -50,7 +50,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import gtsam
@@ -59,6 +59,8 @@ import scipy.linalg
 
 from ..geometry import Pose
 from ..models import PinholeModel
+from ..models.ari import check_window, unit_normal_and_projector
+from ..models.exact import _q_terms, solve_incidence
 from ..records import Observation
 from . import keys as K_
 from .rig_graph import MODELS, RigGraph, RigState
@@ -200,6 +202,122 @@ def _rows_cross(J: np.ndarray, v: np.ndarray) -> np.ndarray:
 def _skew(v: np.ndarray) -> np.ndarray:
     x, y, z = v
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+# --------------------------------------------------------------------------- the models on all corners of a camera
+#
+# The arithmetic of PinholeModel / AriModel / ExactModel.project(_with_jacobians),
+# written once for all corners of a camera whatever plate they are seen through:
+# the plate thickness d is a per-corner array, so one call replaces one model call
+# per (camera, plate). Only what the solver uses is computed (no J_thickness, no
+# distortion Jacobian when the distortion is not estimated). tests/test_vectorized.py
+# checks residuals and Jacobians against view_residuals (the models) to 1e-9.
+
+
+def _pinhole_eval(D: np.ndarray, params: np.ndarray, n_p: int, jacobians: bool):
+    """PinholeModel(params).project(_with_jacobians) of points D (m, 3): uv (m, 2) and, with
+    ``jacobians``, d uv / d D (m, 2, 3) and d uv / d params[:n_p] (m, 2, n_p); NaN where Z <= 0.
+
+    With the distortion neither estimated nor present (n_p == 4, k1..k3 p1 p2 all zero) the
+    distortion polynomial is the identity (exactly, in floating point) and is skipped."""
+    Z = D[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xy = D[:, :2] / Z[:, None]
+    behind = ~(Z > 0.0)
+    if behind.any():
+        xy[behind] = np.nan
+    f = params[:2]
+    if n_p > 4 or params[4:].any():
+        xyd, J_xy, J_dist = PinholeModel.from_params(params).distort_with_jacobians(xy)
+    else:
+        xyd, J_xy, J_dist = xy, None, None
+    uv = xyd * f + params[2:4]
+    if not jacobians:
+        return uv, None, None
+    m = len(D)
+    inv_z = 1.0 / Z
+    if J_xy is None:  # diag(f) @ [[1/Z, 0, -x/Z], [0, 1/Z, -y/Z]]
+        J_pin = np.zeros((m, 2, 3))
+        J_pin[:, 0, 0] = f[0] * inv_z
+        J_pin[:, 1, 1] = f[1] * inv_z
+        J_pin[:, :, 2] = f * (-xy * inv_z[:, None])
+    else:
+        J_norm = np.zeros((m, 2, 3))
+        J_norm[:, 0, 0] = inv_z
+        J_norm[:, 1, 1] = inv_z
+        J_norm[:, :, 2] = -xy * inv_z[:, None]
+        J_pin = (f[None, :, None] * J_xy) @ J_norm
+    J_params = np.zeros((m, 2, n_p))
+    J_params[:, 0, 0] = xyd[:, 0]  # du/dfx
+    J_params[:, 1, 1] = xyd[:, 1]  # dv/dfy
+    J_params[:, 0, 2] = 1.0  # du/dcx
+    J_params[:, 1, 3] = 1.0  # dv/dcy
+    if n_p > 4:
+        J_params[:, :, 4:] = f[None, :, None] * J_dist
+    return uv, J_pin, J_params
+
+
+def _ari_eval(X, params, n_p, normal_cam, d, index, medium_index, h, jacobians):
+    """AriModel.project(_with_jacobians) of camera-frame points X (m, 3) seen through plates of
+    thickness d (m,): uv and, with ``jacobians``, (J_point, J_normal, J_params, J_distance)."""
+    if medium_index != 1.0 and h is None:
+        raise ValueError("distance_mm is required when a medium (medium_index != 1) is behind the window")
+    nc, dn_dv = unit_normal_and_projector(normal_cam)
+    hh = 0.0 if h is None else float(h)  # unused in air (b = 0, a = -delta)
+    b = 1.0 / medium_index - 1.0
+    s = (hh + d / index - (hh + d) / medium_index) + b * (X @ nc)  # X_app = X + (a + b z) n_c
+    uv, J_pin, J_params = _pinhole_eval(X + s[:, None] * nc, params, n_p, jacobians)
+    if not jacobians:
+        return uv, None
+    J_pin_n = J_pin @ nc
+    if b != 0.0:
+        J_point = J_pin + b * J_pin_n[:, :, None] * nc[None, None, :]
+        J_n_free = s[:, None, None] * J_pin + b * J_pin_n[:, :, None] * X[:, None, :]
+    else:  # air: d X_app / d X = I
+        J_point = J_pin
+        J_n_free = s[:, None, None] * J_pin
+    return uv, (J_point, J_n_free @ dn_dv, J_params, (1.0 - 1.0 / medium_index) * J_pin_n)
+
+
+def _exact_eval(X, params, n_p, normal_cam, d, index, medium_index, h, jacobians):
+    """ExactModel.project(_with_jacobians) of camera-frame points X (m, 3) seen through plates of
+    thickness d (m,): uv and, with ``jacobians``, (J_point, J_normal, J_params, J_distance)."""
+    if h is None:
+        raise ValueError("ExactModel needs distance_mm (camera centre to near face, > 0)")
+    nc, dn_dv = unit_normal_and_projector(normal_cam)
+    n, nm = index, medium_index
+    z = X @ nc
+    r = X - z[:, None] * nc
+    L = z - h - d
+    valid = (L > 0.0) & np.all(np.isfinite(X), axis=1)
+    w = np.full(len(X), np.nan)
+    if valid.all():
+        w[:], _ = solve_incidence(np.linalg.norm(r, axis=1), L, h, d, n, nm)
+    else:
+        w[valid], _ = solve_incidence(np.linalg.norm(r[valid], axis=1), L[valid], h, d[valid], n, nm)
+    uv, J_pin, J_params = _pinhole_eval(nc + w[:, None] * r, params, n_p, jacobians)
+    if not jacobians:
+        return uv, None
+    u = w * np.linalg.norm(r, axis=1)
+    Gn, Gn3 = _q_terms(u, n)
+    Gm, Gm3 = _q_terms(u, nm)
+    P = h + d * n * n * Gn3 + L * nm * nm * Gm3  # rho'(u) = dPsi/dw
+    K = d * (n * n - 1.0) * Gn3 + L * (nm * nm - 1.0) * Gm3  # H'(u) = -u K
+    w3K = w**3 * K
+    dw_dX = (w3K[:, None] * r - (w * Gm)[:, None] * nc) / P[:, None]
+    dw_dn = (-(w3K * z)[:, None] * r - (w * Gm)[:, None] * X) / P[:, None]
+    dw_dh = w * (Gm - 1.0) / P
+    J_pin_r = np.einsum("nij,nj->ni", J_pin, r)
+    J_pin_n = J_pin @ nc
+    J_point = (w[:, None, None] * (J_pin - J_pin_n[:, :, None] * nc[None, None, :])
+               + J_pin_r[:, :, None] * dw_dX[:, None, :])
+    J_n_free = ((1.0 - w * z)[:, None, None] * J_pin
+                - w[:, None, None] * J_pin_n[:, :, None] * X[:, None, :]
+                + J_pin_r[:, :, None] * dw_dn[:, None, :])
+    return uv, (J_point, J_n_free @ dn_dv, J_params, J_pin_r * dw_dh[:, None])
+
+
+_KERNELS = {"ari": _ari_eval, "exact": _exact_eval}
 
 
 # --------------------------------------------------------------------------- the problem
@@ -358,7 +476,16 @@ class VectorizedProblem:
         self.camera_cols = [np.concatenate([c * self.camera_block + np.arange(self.camera_block),
                                             tail_cols]).astype(np.int64) for c in range(C)]
         self.fixed_cols = np.arange(n_p, n_p + 6)  # camera 0's pose
-        self._groups_of_camera = [[g for g in self.groups if g.camera == c] for c in range(C)]
+        # one kernel call per camera (or per group when a camera's groups differ in more than the thickness)
+        self.corner_thickness = np.empty(M)
+        self._camera_runs: list[list[_Group]] = []
+        for c in range(C):
+            groups = [g for g in self.groups if g.camera == c]
+            for g in groups:
+                check_window(g.thickness_mm, g.index, g.medium_index, None)
+                self.corner_thickness[g.start:g.stop] = g.thickness_mm
+            same = len({(g.index, g.medium_index, tuple(g.base_params[n_p:])) for g in groups}) == 1
+            self._camera_runs.append([replace(groups[0], stop=groups[-1].stop)] if same else groups)
 
     # ------------------------------------------------------------------ evaluation
     def _transforms(self, x: Variables) -> _Transforms:
@@ -396,18 +523,15 @@ class VectorizedProblem:
             Jp, Jn, Jd = np.empty((m, 2, 3)), np.empty((m, 2, 3)), np.empty((m, 2))
             out = np.zeros((m, 2, 6 + L + 1))
             Jg = out[:, :, 6:6 + L]
-        for g in self._groups_of_camera[c]:
+        kernel = _KERNELS[self.model]
+        for g in self._camera_runs[c]:
             a, b = g.start - s, g.stop - s
             params = g.base_params.copy()
             params[:n_p] = x.intrinsics[c]
-            model = self.factory(PinholeModel.from_params(params), tr.normal_cam[c], g.thickness_mm, g.index,
-                                 g.medium_index, h)
+            uv[a:b], J = kernel(X[a:b], params, n_p, tr.normal_cam[c], self.corner_thickness[g.start:g.stop],
+                                g.index, g.medium_index, h, jacobians)
             if jacobians:
-                J = model.project_with_jacobians(X[a:b])
-                uv[a:b], Jp[a:b], Jn[a:b] = J.uv, J.J_point, J.J_normal
-                Jg[a:b, :, :n_p], Jd[a:b] = J.J_params[:, :, :n_p], J.J_distance
-            else:
-                uv[a:b] = model.project(X[a:b])
+                Jp[a:b], Jn[a:b], Jg[a:b, :, :n_p], Jd[a:b] = J
         r = uv - self.measured[s:e]
         w = np.ones(m)
         if huber_px is not None:
@@ -706,6 +830,12 @@ class VectorizedProblem:
             out[K_.H] = cov[self.distance_col:self.distance_col + 1, self.distance_col:self.distance_col + 1].copy()
         return out
 
+    def marginals(self) -> "CovarianceTable":
+        """The marginal covariances as a ``gtsam.Marginals`` stand-in (``marginalCovariance(key)``
+        for the intrinsics, camera poses, normal and distance), e.g. for
+        :func:`ari_sfm.factors.uncertainty.rig_uncertainty`."""
+        return CovarianceTable(self.marginal_covariances())
+
     # ------------------------------------------------------------------ consistency with a graph
     def _check_against(self, rg: RigGraph, worst: int = 3) -> None:
         """Compare the residuals of a few factors with GTSAM's (catches a wrong huber_px)."""
@@ -723,6 +853,20 @@ class VectorizedProblem:
                 raise ValueError(f"factor {int(self.view_order[k])}: vectorised residuals differ from the graph's "
                                  f"(max {np.max(np.abs(mine - theirs)):.3g}); "
                                  f"was the graph built with huber_px={self.huber_px}?")
+
+
+class CovarianceTable:
+    """Marginal covariances by key, with gtsam.Marginals' ``marginalCovariance(key)``."""
+
+    def __init__(self, covariances: dict[int, np.ndarray]) -> None:
+        self.covariances = covariances
+
+    def marginalCovariance(self, key: int) -> np.ndarray:  # noqa: N802 (gtsam's name)
+        try:
+            return self.covariances[key]
+        except KeyError:
+            raise KeyError(f"no marginal covariance for key {gtsam.DefaultKeyFormatter(key)} "
+                           "(the numpy backend gives them for K, C, N and H)") from None
 
 
 # --------------------------------------------------------------------------- other factors of a graph
@@ -855,12 +999,20 @@ def resolve_backend(backend: str) -> str:
 
 
 def optimize_graph(rig_graph: RigGraph, backend: str = "auto", max_iterations: int = 100,
-                   huber_px: float | None = None) -> RigState:
+                   huber_px: float | None = None, return_problem: bool = False
+                   ) -> RigState | tuple[RigState, VectorizedProblem | None]:
     """Optimise a RigGraph with GTSAM (``rig_graph.optimize``) or the numpy backend; same result either way.
 
     ``huber_px``: the threshold the graph was built with (the numpy backend
-    needs it, see :meth:`VectorizedProblem.from_rig_graph`).
+    needs it, see :meth:`VectorizedProblem.from_rig_graph`). With
+    ``return_problem``: (state, the solved VectorizedProblem, or None with
+    GTSAM), so that residuals and marginals at the optimum need no callbacks.
     """
     if resolve_backend(backend) == "gtsam":
-        return rig_graph.optimize(max_iterations)
-    return optimize_vectorized(rig_graph, max_iterations, huber_px=huber_px)
+        state = rig_graph.optimize(max_iterations)
+        return (state, None) if return_problem else state
+    problem = VectorizedProblem.from_rig_graph(rig_graph, huber_px=huber_px)
+    state = problem.optimize(max_iterations)
+    problem.write_values(rig_graph.values)
+    rig_graph.iterations = problem.iterations
+    return (state, problem) if return_problem else state

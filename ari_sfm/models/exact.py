@@ -77,11 +77,13 @@ def _q_terms(u: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
     return G, G * G * G
 
 
-def solve_incidence(rho: np.ndarray, L: np.ndarray, h: float, d: float, n: float, n_m: float,
+def solve_incidence(rho: np.ndarray, L: np.ndarray, h: float, d: float | np.ndarray, n: float, n_m: float,
                     max_iter: int = NEWTON_MAX_ITER) -> tuple[np.ndarray, int]:
     """Solve rho(u) = rho for w = u / rho (see the module docstring).
 
-    ``rho`` (N,) >= 0 radial offsets, ``L`` (N,) > 0 medium column lengths.
+    ``rho`` (N,) >= 0 radial offsets, ``L`` (N,) > 0 medium column lengths,
+    ``d`` the plate thickness, one for all points or (N,) one per point
+    (each point's Newton iteration is independent of the others').
     Returns w (N,) and the number of Newton steps the slowest point took
     (including the final step whose size met the tolerance). Raises
     :class:`ConvergenceError` if a point is not converged after ``max_iter``.
@@ -90,6 +92,9 @@ def solve_incidence(rho: np.ndarray, L: np.ndarray, h: float, d: float, n: float
     L = np.asarray(L, dtype=float)
     w = np.zeros_like(rho)
     active = np.ones(rho.shape, dtype=bool)
+    per_point = np.ndim(d) > 0
+    if per_point:
+        d = np.broadcast_to(np.asarray(d, dtype=float), rho.shape)
     iterations = 0
     while active.any():
         if iterations >= max_iter:
@@ -98,11 +103,12 @@ def solve_incidence(rho: np.ndarray, L: np.ndarray, h: float, d: float, n: float
                 f"{max_iter} iterations (h={h}, d={d}, n={n}, n_m={n_m})")
         iterations += 1
         wa, ra, La = w[active], rho[active], L[active]
+        da = d[active] if per_point else d
         u = wa * ra
         Gn, Gn3 = _q_terms(u, n)
         Gm, Gm3 = _q_terms(u, n_m)
-        psi = wa * (h + d * Gn + La * Gm) - 1.0
-        dpsi = h + d * n * n * Gn3 + La * n_m * n_m * Gm3  # = rho'(u) > 0
+        psi = wa * (h + da * Gn + La * Gm) - 1.0
+        dpsi = h + da * n * n * Gn3 + La * n_m * n_m * Gm3  # = rho'(u) > 0
         step = psi / dpsi
         w[active] = wa - step
         done = np.abs(step) <= NEWTON_REL_TOL * np.abs(w[active])
