@@ -269,14 +269,16 @@ def _ari_eval(X, params, n_p, normal_cam, d, index, medium_index, h, jacobians):
     uv, J_pin, J_params = _pinhole_eval(X + s[:, None] * nc, params, n_p, jacobians)
     if not jacobians:
         return uv, None
-    J_pin_n = J_pin @ nc
+    m = len(X)
+    J_pin_n = (J_pin.reshape(2 * m, 3) @ nc).reshape(m, 2)
     if b != 0.0:
         J_point = J_pin + b * J_pin_n[:, :, None] * nc[None, None, :]
         J_n_free = s[:, None, None] * J_pin + b * J_pin_n[:, :, None] * X[:, None, :]
     else:  # air: d X_app / d X = I
         J_point = J_pin
         J_n_free = s[:, None, None] * J_pin
-    return uv, (J_point, J_n_free @ dn_dv, J_params, (1.0 - 1.0 / medium_index) * J_pin_n)
+    J_normal = (J_n_free.reshape(2 * m, 3) @ dn_dv).reshape(m, 2, 3)
+    return uv, (J_point, J_normal, J_params, (1.0 - 1.0 / medium_index) * J_pin_n)
 
 
 def _exact_eval(X, params, n_p, normal_cam, d, index, medium_index, h, jacobians):
@@ -307,14 +309,16 @@ def _exact_eval(X, params, n_p, normal_cam, d, index, medium_index, h, jacobians
     dw_dX = (w3K[:, None] * r - (w * Gm)[:, None] * nc) / P[:, None]
     dw_dn = (-(w3K * z)[:, None] * r - (w * Gm)[:, None] * X) / P[:, None]
     dw_dh = w * (Gm - 1.0) / P
+    m = len(X)
     J_pin_r = np.einsum("nij,nj->ni", J_pin, r)
-    J_pin_n = J_pin @ nc
+    J_pin_n = (J_pin.reshape(2 * m, 3) @ nc).reshape(m, 2)
     J_point = (w[:, None, None] * (J_pin - J_pin_n[:, :, None] * nc[None, None, :])
                + J_pin_r[:, :, None] * dw_dX[:, None, :])
     J_n_free = ((1.0 - w * z)[:, None, None] * J_pin
                 - w[:, None, None] * J_pin_n[:, :, None] * X[:, None, :]
                 + J_pin_r[:, :, None] * dw_dn[:, None, :])
-    return uv, (J_point, J_n_free @ dn_dv, J_params, J_pin_r * dw_dh[:, None])
+    J_normal = (J_n_free.reshape(2 * m, 3) @ dn_dv).reshape(m, 2, 3)
+    return uv, (J_point, J_normal, J_params, J_pin_r * dw_dh[:, None])
 
 
 _KERNELS = {"ari": _ari_eval, "exact": _exact_eval}
@@ -516,22 +520,33 @@ class VectorizedProblem:
             out = np.zeros((m, 2, 6 + L + 1))
             out[:, :, -1] = INVALID_RESIDUAL
             return out
-        R_ct = tr.R_cam_target[cv]
-        X = R_ct[:, :, 0] * P[:, 0:1] + R_ct[:, :, 1] * P[:, 1:2] + R_ct[:, :, 2] * P[:, 2:3] + tr.t_cam_target[cv]
-        uv = np.empty((m, 2))
+        vs, ve = int(self.camera_views[c]), int(self.camera_views[c + 1])
+        R_v = tr.R_cam_target[vs:ve]  # (nv, 3, 3), one per view of camera c
+        X = self._per_view(c, P, np.swapaxes(R_v, 1, 2), tr.t_cam_target[vs:ve])  # R_ct P + t_ct
+        kernel = _KERNELS[self.model]
+        runs = self._camera_runs[c]
         if jacobians:
-            Jp, Jn, Jd = np.empty((m, 2, 3)), np.empty((m, 2, 3)), np.empty((m, 2))
             out = np.zeros((m, 2, 6 + L + 1))
             Jg = out[:, :, 6:6 + L]
-        kernel = _KERNELS[self.model]
-        for g in self._camera_runs[c]:
-            a, b = g.start - s, g.stop - s
-            params = g.base_params.copy()
+        if len(runs) == 1:  # the usual case: every plate of the camera in one call
+            params = runs[0].base_params.copy()
             params[:n_p] = x.intrinsics[c]
-            uv[a:b], J = kernel(X[a:b], params, n_p, tr.normal_cam[c], self.corner_thickness[g.start:g.stop],
-                                g.index, g.medium_index, h, jacobians)
+            uv, J = kernel(X, params, n_p, tr.normal_cam[c], self.corner_thickness[s:e], runs[0].index,
+                           runs[0].medium_index, h, jacobians)
             if jacobians:
-                Jp[a:b], Jn[a:b], Jg[a:b, :, :n_p], Jd[a:b] = J
+                Jp, Jn, Jg[:, :, :n_p], Jd = J
+        else:
+            uv = np.empty((m, 2))
+            if jacobians:
+                Jp, Jn, Jd = np.empty((m, 2, 3)), np.empty((m, 2, 3)), np.empty((m, 2))
+            for g in runs:
+                a, b = g.start - s, g.stop - s
+                params = g.base_params.copy()
+                params[:n_p] = x.intrinsics[c]
+                uv[a:b], J = kernel(X[a:b], params, n_p, tr.normal_cam[c], self.corner_thickness[g.start:g.stop],
+                                    g.index, g.medium_index, h, jacobians)
+                if jacobians:
+                    Jp[a:b], Jn[a:b], Jg[a:b, :, :n_p], Jd[a:b] = J
         r = uv - self.measured[s:e]
         w = np.ones(m)
         if huber_px is not None:
@@ -561,15 +576,33 @@ class VectorizedProblem:
         Jg[:, :, n_p + 6:n_p + 8] = (Jn2 @ (R_cw @ B)).reshape(m, 2, 2) + Jd[:, :, None] * (-(t_wc @ B))
         if self.estimate_distance:
             Jg[:, :, n_p + 8] = Jd
-        JA = Jp @ R_ct  # d uv / d t of the target pose: J_point R_cam_target
+        JA = self._per_view(c, Jp, R_v)  # d uv / d t of the target pose: J_point R_cam_target
         out[:, :, :3] = -_rows_cross(JA, P)
         out[:, :, 3:6] = JA
-        if not np.all(np.isfinite(out[:, :, :-1])):
+        if not np.isfinite(out.sum()) and not np.all(np.isfinite(out[:, :, :-1])):  # (the sum: one fast check)
             bad_rows = ~np.isfinite(out[:, :, :-1]).all(axis=(1, 2))
             factors = np.unique(self.view_order[cv[bad_rows]])[:10].tolist()
             raise RuntimeError(f"non-finite Jacobian entries in factor(s) {factors} "
                                "(a corner behind the window at the linearisation point)")
         return out
+
+    def _per_view(self, c: int, A: np.ndarray, M: np.ndarray, offset: np.ndarray | None = None) -> np.ndarray:
+        """Each corner's rows A (m, ..., 3) of camera c times its view's matrix M (nv, 3, k), plus its view's
+        offset (nv, k) if given: one batched matmul over the views (padded when their corner counts differ)."""
+        s, e = int(self.camera_corners[c]), int(self.camera_corners[c + 1])
+        nv, mx = int(self.camera_views[c + 1] - self.camera_views[c]), int(self.camera_max_corners[c])
+        inner = A.shape[1:-1]
+        if nv * mx == e - s:
+            out = A.reshape(nv, -1, 3) @ M
+        else:
+            slot = self.corner_slot[s:e]
+            pad = np.zeros((nv * mx,) + A.shape[1:])
+            pad[slot] = A
+            out = pad.reshape(nv, -1, 3) @ M
+        if offset is not None:
+            out += offset[:, None, :]
+        out = out.reshape((-1,) + inner + (M.shape[-1],))
+        return out if nv * mx == e - s else out[slot]
 
     def error(self, x: Variables | None = None) -> float:
         """GTSAM's graph error at x (default: the current values): 0.5 * sum of whitened squared residuals."""
