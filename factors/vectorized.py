@@ -503,8 +503,9 @@ class VectorizedProblem:
         return _Transforms(R_ct, t_ct, R_cw, n_w, n_c, np.asarray(x.normal.basis(), float), h_c)
 
     def _camera_eval(self, x: Variables, tr: _Transforms, c: int, jacobians: bool,
-                     huber_px: float | None) -> np.ndarray:
-        """Camera c's corners as view_residuals computes them (Huber-weighted, not whitened).
+                     huber_px: float | None, whiten: bool = False) -> np.ndarray:
+        """Camera c's corners as view_residuals computes them (Huber-weighted; whitened by the
+        factors' sigmas with ``whiten``).
 
         Without ``jacobians``: the residuals (m, 2). With: one array (m, 2, 6 + local_dim + 1)
         holding [J_frame | J_global (camera-local columns) | residual] per corner row.
@@ -553,18 +554,14 @@ class VectorizedProblem:
             dist = np.linalg.norm(r, axis=1)
             big = dist > huber_px
             w[big] = np.sqrt(huber_px / dist[big])
-        res = r * w[:, None]
-        bad = ~np.isfinite(res)
-        if bad.any():
-            res[bad] = INVALID_RESIDUAL  # a point fell behind the window
         if not jacobians:
-            return res
-        out[:, :, -1] = res
-        wv = w[:, None, None]
-        Jp *= wv
-        Jn *= wv
-        Jg[:, :, :n_p] *= wv
-        Jd *= w[:, None]
+            res = r * w[:, None]
+            bad = ~np.isfinite(res)
+            if bad.any():
+                res[bad] = INVALID_RESIDUAL  # a point fell behind the window
+            return res * self.corner_inv_sigma[s:e, None] if whiten else res
+        # the Jacobians unweighted; every column (and the residual) scaled by the weight once at the end
+        out[:, :, -1] = r
         R_cw, n_c, B = tr.R_cam_world[c], tr.normal_cam[c], tr.basis
         Jn2 = Jn.reshape(2 * m, 3)
         if c > 0:
@@ -577,8 +574,13 @@ class VectorizedProblem:
         if self.estimate_distance:
             Jg[:, :, n_p + 8] = Jd
         JA = self._per_view(c, Jp, R_v)  # d uv / d t of the target pose: J_point R_cam_target
-        out[:, :, :3] = -_rows_cross(JA, P)
+        out[:, :, :3] = _rows_cross(JA, -P)  # -JA [P]x
         out[:, :, 3:6] = JA
+        out *= (w * self.corner_inv_sigma[s:e])[:, None, None] if whiten else w[:, None, None]
+        res = out[:, :, -1]
+        bad = ~np.isfinite(res)
+        if bad.any():  # a point fell behind the window
+            res[bad] = INVALID_RESIDUAL * (self.corner_inv_sigma[s:e, None].repeat(2, 1)[bad] if whiten else 1.0)
         if not np.isfinite(out.sum()) and not np.all(np.isfinite(out[:, :, :-1])):  # (the sum: one fast check)
             bad_rows = ~np.isfinite(out[:, :, :-1]).all(axis=(1, 2))
             factors = np.unique(self.view_order[cv[bad_rows]])[:10].tolist()
@@ -612,9 +614,7 @@ class VectorizedProblem:
         for c in range(len(self.camera_names)):
             if self.camera_corners[c + 1] == self.camera_corners[c]:
                 continue
-            res = self._camera_eval(x, tr, c, False, self.huber_px)
-            s, e = self.camera_corners[c], self.camera_corners[c + 1]
-            rw = res * self.corner_inv_sigma[s:e, None]
+            rw = self._camera_eval(x, tr, c, False, self.huber_px, whiten=True)
             total += 0.5 * float(np.einsum("ij,ij->", rw, rw))
         return total + self._extra.error(x)
 
@@ -630,8 +630,7 @@ class VectorizedProblem:
                 continue
             vs, ve = int(self.camera_views[c]), int(self.camera_views[c + 1])
             nv, mx = ve - vs, int(self.camera_max_corners[c])
-            out = self._camera_eval(x, tr, c, True, self.huber_px)
-            out *= self.corner_inv_sigma[s:e, None, None]  # whiten
+            out = self._camera_eval(x, tr, c, True, self.huber_px, whiten=True)
             if nv * mx == e - s:  # every view has the same number of corners: no padding
                 A = out.reshape(nv, 2 * mx, K + 1)
             else:
