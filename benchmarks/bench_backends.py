@@ -23,7 +23,9 @@ The growth exponent is the slope of log(ms/iteration) against log(corners)
 over the scaling cases. The last table times calibrate() on paper_single
 (whole call: analytic initialisation, which itself runs cv2.calibrateCamera,
 both stages, outlier report, uncertainty) and its bundle adjustment alone
-against cv2.calibrateCamera on the calibration views (no distortion).
+with each backend against cv2.calibrateCamera on the calibration views (no
+distortion): bench_calibrate.py's table, which also has the binocular and
+4 x 100 cases of issue 4.
 """
 from __future__ import annotations
 
@@ -32,7 +34,6 @@ import json
 import os
 import pickle
 import resource
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -196,41 +197,14 @@ def growth_exponent(rows: list[dict], backend: str) -> float | None:
 
 
 def cv2_table(repeats: int) -> None:
-    import cv2
+    """calibrate() on paper_single with each backend against cv2.calibrateCamera (bench_calibrate's table)."""
+    from bench_calibrate import print_case, time_case  # benchmarks/ is on sys.path when run as a script
 
-    from ari_sfm.calibrate import calibrate
-    from ari_sfm.init.zhang import object_points
     from ari_sfm.simulate import make_scene
 
     ds = make_scene("paper_single", seed=0).dataset
-    calib = [o for o in ds.observations if o.set == "calibration"]
-    flags = cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
-    obj = [object_points(ds.target, v.ids).astype(np.float32) for v in calib]
-    img = [v.pixels.astype(np.float32) for v in calib]
-    size = tuple(ds.cameras[ds.camera_names[0]].image_size)
-
-    def run_cv2() -> float:
-        t = time.perf_counter()
-        cv2.calibrateCamera(obj, img, size, None, None, flags=flags)
-        return time.perf_counter() - t
-
-    calibrate(ds, model="ari")  # warm-up
-    t_cv2 = statistics.median(run_cv2() for _ in range(repeats))
-    print(f"\npaper_single: calibrate() vs cv2.calibrateCamera (median of {repeats}; BA = sum of the stages' LM time)")
-    print(f"{'what':40s} {'time ms':>9s} {'ratio to cv2':>13s}")
-    print(f"{'cv2.calibrateCamera':40s} {t_cv2 * 1e3:9.1f} {1.0:13.2f}")
-    for model in ("ari", "exact"):
-        for backend in ("gtsam", "numpy"):
-            totals, bas, its = [], [], ""
-            for _ in range(repeats):
-                t = time.perf_counter()
-                cal = calibrate(ds, model=model, backend=backend)
-                totals.append(time.perf_counter() - t)
-                bas.append(sum(s["time_s"] for s in cal.extra["optimizer"].values()))
-                its = "+".join(str(s["iterations"]) for s in cal.extra["optimizer"].values())
-            t_ba, t_tot = statistics.median(bas), statistics.median(totals)
-            print(f"{f'{model} BA, {backend} ({its} it)':40s} {t_ba * 1e3:9.1f} {t_ba / t_cv2:13.2f}")
-            print(f"{f'{model} calibrate() total, {backend}':40s} {t_tot * 1e3:9.1f} {t_tot / t_cv2:13.2f}")
+    print_case("paper_single, calibrate() per backend", ds, time_case(ds, ("ari", "exact"), repeats, ("gtsam", "numpy")),
+               repeats)
 
 
 def main() -> None:
