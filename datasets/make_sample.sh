@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Regenerate datasets/sample (images only) and its truth beside it.
+# Regenerate datasets/sample (images only) and datasets/binocular (observations
+# only, with reconstruction frames), each with its truth beside it.
 # Run from the repository root: bash datasets/make_sample.sh
 set -euo pipefail
 export OPENBLAS_NUM_THREADS=1
@@ -13,3 +14,10 @@ mv "$tmp/dataset" datasets/sample
 mv "$tmp/truth.json" datasets/sample_truth.json
 mv "$tmp/truth_observations.json" datasets/sample_truth_observations.json
 du -sh datasets/sample
+
+# binocular rig with translation-stage frames: corner pixels only (no images)
+"$PY" -m ari_sfm.simulate binocular "$tmp/bino" --seed 0
+rm -rf datasets/binocular
+mv "$tmp/bino/dataset" datasets/binocular
+mv "$tmp/bino/truth.json" datasets/binocular_truth.json
+du -sh datasets/binocular datasets/binocular_truth.json

@@ -26,3 +26,20 @@ def test_sample_from_images(tmp_path, model, normal_tol, fx_tol):
     assert abs(c["K"][0][0] / t["K"][0][0] - 1) < fx_tol
     assert np.linalg.norm(np.subtract(c["expansion_center_px"], t["expansion_center_px"])) < 1.0
     assert cal["residuals"]["count"] >= 0.95 * 18 * 88  # (almost) every corner of every image found
+
+
+def test_bundled_binocular_pipeline_meets_the_accuracy_of_issue_6(tmp_path):
+    """The README's third command: calibrate (ari -> exact), reconstruct the stage frames, report."""
+    r = CliRunner().invoke(main, ["run", str(ROOT / "binocular"), "-o", str(tmp_path), "--model", "exact",
+                                  "--truth", str(ROOT / "binocular_truth.json")])
+    assert r.exit_code == 0, r.output
+    cal = json.loads((tmp_path / "calibration.json").read_text())
+    truth = json.loads((ROOT / "binocular_truth.json").read_text())
+    assert angle_between_deg(cal["interface"]["normal_world"], truth["interface"]["normal_world"]) < 0.1
+    assert cal["residuals"]["rmse_px"] < 1.2 * 0.05 * np.sqrt(2)
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert m["flatness_mm"]["rmse"] < 0.03
+    assert m["stage"]["plane_distance_error_mm"]["max"] < 0.02
+    assert m["inter_corner_mm"]["rmse"] < 0.02
+    assert m["truth"]["aligned"]["rms_mm"] < 0.05
+    assert (tmp_path / "report.html").stat().st_size > 100_000  # figures embedded
