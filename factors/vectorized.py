@@ -56,6 +56,7 @@ from typing import Sequence
 import gtsam
 import numpy as np
 import scipy.linalg
+import scipy.linalg.lapack
 
 from ..geometry import Pose
 from ..models import PinholeModel
@@ -177,9 +178,18 @@ def se3_exp(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Wm[:, 1, 2], Wm[:, 2, 0], Wm[:, 2, 1] = -w[:, 0], -w[:, 1], w[:, 0]
     W2 = Wm @ Wm
     R = np.eye(3) + A[:, None, None] * Wm + B[:, None, None] * W2
-    wxv = np.cross(w, v)
-    t = v + B[:, None] * wxv + C[:, None] * np.cross(w, wxv)
+    wxv = _cross(w, v)
+    t = v + B[:, None] * wxv + C[:, None] * _cross(w, wxv)
     return R, t
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise a x b of (N, 3) arrays (np.cross's arithmetic without its overhead)."""
+    out = np.empty_like(a)
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
 
 
 def _retract_poses(R: np.ndarray, t: np.ndarray, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -667,11 +677,13 @@ class VectorizedProblem:
         S = sys.U - W2.T @ Y2
         S[np.diag_indices(G)] += lam
         rhs = -sys.g_global + Y2.T @ sys.g_frame.reshape(6 * F)  # W^T V^-1 g_f
-        try:
-            factor = scipy.linalg.cho_factor(S, lower=False, check_finite=False)
-        except np.linalg.LinAlgError:
+        # scipy.linalg.cho_factor / cho_solve (upper), without their wrappers' overhead
+        c, info = scipy.linalg.lapack.dpotrf(S, lower=0, clean=0, overwrite_a=1)
+        if info != 0:
             return None
-        d_global = scipy.linalg.cho_solve(factor, rhs, check_finite=False)
+        d_global, info = scipy.linalg.lapack.dpotrs(c, rhs, lower=0)
+        if info != 0:
+            return None
         if not np.all(np.isfinite(d_global)):
             return None
         d_frame = -np.einsum("fij,fj->fi", V_inv, sys.g_frame + sys.W @ d_global)
