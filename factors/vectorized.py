@@ -231,11 +231,13 @@ def _pinhole_eval(D: np.ndarray, params: np.ndarray, n_p: int, jacobians: bool):
     With the distortion neither estimated nor present (n_p == 4, k1..k3 p1 p2 all zero) the
     distortion polynomial is the identity (exactly, in floating point) and is skipped."""
     Z = D[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xy = D[:, :2] / Z[:, None]
     behind = ~(Z > 0.0)
     if behind.any():
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xy = D[:, :2] / Z[:, None]
         xy[behind] = np.nan
+    else:  # every Z > 0: nothing to silence
+        xy = D[:, :2] / Z[:, None]
     f = params[:2]
     if n_p > 4 or params[4:].any():
         xyd, J_xy, J_dist = PinholeModel.from_params(params).distort_with_jacobians(xy)
@@ -275,7 +277,9 @@ def _ari_eval(X, params, n_p, normal_cam, d, index, medium_index, h, jacobians):
     nc, dn_dv = unit_normal_and_projector(normal_cam)
     hh = 0.0 if h is None else float(h)  # unused in air (b = 0, a = -delta)
     b = 1.0 / medium_index - 1.0
-    s = (hh + d / index - (hh + d) / medium_index) + b * (X @ nc)  # X_app = X + (a + b z) n_c
+    s = hh + d / index - (hh + d) / medium_index  # X_app = X + (a + b z) n_c
+    if b != 0.0:
+        s = s + b * (X @ nc)
     uv, J_pin, J_params = _pinhole_eval(X + s[:, None] * nc, params, n_p, jacobians)
     if not jacobians:
         return uv, None
@@ -301,16 +305,17 @@ def _exact_eval(X, params, n_p, normal_cam, d, index, medium_index, h, jacobians
     z = X @ nc
     r = X - z[:, None] * nc
     L = z - h - d
-    valid = (L > 0.0) & np.all(np.isfinite(X), axis=1)
+    valid = (L > 0.0) & np.isfinite(X.sum(axis=1))
+    rho = np.sqrt(r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1] + r[:, 2] * r[:, 2])  # np.linalg.norm's arithmetic
     w = np.full(len(X), np.nan)
     if valid.all():
-        w[:], _ = solve_incidence(np.linalg.norm(r, axis=1), L, h, d, n, nm)
+        w[:], _ = solve_incidence(rho, L, h, d, n, nm)
     else:
-        w[valid], _ = solve_incidence(np.linalg.norm(r[valid], axis=1), L[valid], h, d[valid], n, nm)
+        w[valid], _ = solve_incidence(rho[valid], L[valid], h, d[valid], n, nm)
     uv, J_pin, J_params = _pinhole_eval(nc + w[:, None] * r, params, n_p, jacobians)
     if not jacobians:
         return uv, None
-    u = w * np.linalg.norm(r, axis=1)
+    u = w * rho
     Gn, Gn3 = _q_terms(u, n)
     Gm, Gm3 = _q_terms(u, nm)
     P = h + d * n * n * Gn3 + L * nm * nm * Gm3  # rho'(u) = dPsi/dw
@@ -458,6 +463,7 @@ class VectorizedProblem:
         self.measured = np.concatenate([e[4].measured for e in entries]).reshape(M, 2) if M else np.zeros((0, 2))
         self.corner_view = np.repeat(np.arange(self.n_views), sizes)
         self.corner_inv_sigma = np.repeat(np.array([1.0 / e[5] for e in entries]), sizes)
+        self.unit_sigma = bool(np.all(self.corner_inv_sigma == 1.0))  # whitening is the identity
         self.groups: list[_Group] = []
         first = 0
         for k in range(1, len(entries) + 1):  # runs of equal (camera, plate) in the sorted views
@@ -561,15 +567,15 @@ class VectorizedProblem:
         r = uv - self.measured[s:e]
         w = np.ones(m)
         if huber_px is not None:
-            dist = np.linalg.norm(r, axis=1)
+            rx, ry = r[:, 0], r[:, 1]
+            dist = np.sqrt(rx * rx + ry * ry)  # np.linalg.norm(r, axis=1)'s arithmetic, 5x faster
             big = dist > huber_px
             w[big] = np.sqrt(huber_px / dist[big])
         if not jacobians:
             res = r * w[:, None]
-            bad = ~np.isfinite(res)
-            if bad.any():
-                res[bad] = INVALID_RESIDUAL  # a point fell behind the window
-            return res * self.corner_inv_sigma[s:e, None] if whiten else res
+            if not np.isfinite(res.sum()):  # (the sum: one fast check)
+                res[~np.isfinite(res)] = INVALID_RESIDUAL  # a point fell behind the window
+            return res * self.corner_inv_sigma[s:e, None] if whiten and not self.unit_sigma else res
         # the Jacobians unweighted; every column (and the residual) scaled by the weight once at the end
         out[:, :, -1] = r
         R_cw, n_c, B = tr.R_cam_world[c], tr.normal_cam[c], tr.basis
@@ -586,7 +592,7 @@ class VectorizedProblem:
         JA = self._per_view(c, Jp, R_v)  # d uv / d t of the target pose: J_point R_cam_target
         out[:, :, :3] = _rows_cross(JA, -P)  # -JA [P]x
         out[:, :, 3:6] = JA
-        out *= (w * self.corner_inv_sigma[s:e])[:, None, None] if whiten else w[:, None, None]
+        out *= (w * self.corner_inv_sigma[s:e])[:, None, None] if whiten and not self.unit_sigma else w[:, None, None]
         res = out[:, :, -1]
         bad = ~np.isfinite(res)
         if bad.any():  # a point fell behind the window
