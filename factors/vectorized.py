@@ -22,9 +22,12 @@ This module solves *the same problem*:
   not the minimum of the cost, so where LM stops depends on the path.
 
 How: the corners are packed once into flat arrays sorted by (camera, window
-thickness, view); one model call per (camera, thickness) group evaluates all
-its corners; the chain rule of ``view_residuals`` is applied to all corners
-with per-corner rotations (einsum). The normal equations are formed per view
+thickness, view); one kernel call per camera evaluates all its corners, the
+plate thickness being a per-corner array (the models' arithmetic, written
+out in :func:`_ari_eval` / :func:`_exact_eval`; per (camera, plate) group
+only if a camera's groups differ in more than the thickness); the chain rule
+of ``view_residuals`` is applied to all corners, with one batched matmul per
+view where a view's rotation enters. The normal equations are formed per view
 with one batched matmul of the padded view Jacobians ``[J_frame J_global r]``,
 the 6x6 frame blocks are eliminated (Schur complement; frames are independent
 given the intrinsics, camera poses, normal and distance), the reduced dense
@@ -1042,7 +1045,7 @@ def optimize_vectorized(
 
 def resolve_backend(backend: str) -> str:
     """The solver a backend name stands for: "auto" is "numpy", faster at every size measured
-    (benchmarks/bench_backends.py: 1.5-3x on one or two cameras, more on larger rigs)."""
+    (benchmarks/bench_backends.py: 4-6x on one or two cameras, 8-12x on larger rigs, same LM path)."""
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r} (known: {', '.join(BACKENDS)})")
     return "numpy" if backend == "auto" else backend
