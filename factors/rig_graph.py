@@ -94,8 +94,7 @@ class RigGraph:
             c = names.index(name)
             graph.push_back(gtsam.PriorFactorVector(K_.K(c), np.asarray(state.params[name][:n_params], float),
                                                     gtsam.noiseModel.Isotropic.Sigma(n_params, 1e-4)))
-        ids_all, xyz_all = target.points_3d()
-        lookup = {int(i): k for k, i in enumerate(ids_all)}
+        from ..init.zhang import object_points
         rg = RigGraph(graph, values, names, frames, n_params, state, estimate_distance, model=model)
         for obs in observations:
             if obs.set not in ("calibration", "stacking") or obs.frame not in frame_index or obs.camera not in names:
@@ -105,7 +104,7 @@ class RigGraph:
             c = names.index(obs.camera)
             thickness = interface.thickness_mm + ((obs.added_mm or 0.0) if obs.set == "stacking" else 0.0)
             data = ViewData(
-                xyz_all[[lookup[int(i)] for i in obs.ids]], np.asarray(obs.pixels, float), thickness,
+                object_points(target, obs.ids), np.asarray(obs.pixels, float), thickness,
                 interface.index, interface.medium_index, np.asarray(state.params[obs.camera], float), n_params,
             )
             vkeys = ViewKeys(

@@ -29,9 +29,13 @@ class ZhangResult:
 
 def object_points(target: Target, ids: np.ndarray) -> np.ndarray:
     """Target-frame coordinates (N, 3) of corner ids."""
-    all_ids, xyz = target.points_3d()
-    index = {int(i): k for k, i in enumerate(all_ids)}
-    return xyz[[index[int(i)] for i in ids]]
+    all_ids, xyz = target.points_3d()  # ids ascending
+    ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+    pos = np.searchsorted(all_ids, ids)
+    unknown = (pos >= len(all_ids)) | (all_ids[np.minimum(pos, len(all_ids) - 1)] != ids) if len(all_ids) else ids == ids
+    if unknown.any():
+        raise KeyError(int(ids[np.flatnonzero(unknown)[0]]))
+    return xyz[pos]
 
 
 def initial_K(spec: CameraSpec) -> np.ndarray:
