@@ -292,18 +292,24 @@ def _summary(cal, elapsed: float) -> None:
         click.echo(f"{name:10s} {c.K[0,0]:9.2f} {c.K[1,1]:9.2f} {c.K[0,2]:8.2f} {c.K[1,2]:8.2f} {tilt:5.2f}° {ec:>26s} {c.rmse_px:7.4f}")
     u = cal.extra.get("uncertainty")
     if u:
-        click.echo(f"standard deviations (sigma {u['sigma_px']:.3f} px): normal {u['normal_deg']:.4f}°"
-                   + (f", distance {u['distance_mm']:.4f} mm" if "distance_mm" in u else ""))
+        click.echo(f"standard deviations (sigma {u['sigma_px']:.3f} px): normal {_std(u['normal_deg'], '.4f')}°"
+                   + (f", distance {_std(u['distance_mm'], '.4f')} mm" if "distance_mm" in u else ""))
         for name, s in u["cameras"].items():
-            rel = (f"  cam_from_{next(iter(cal.cameras))} ±{s['rotation_deg']:.4f}° ±{s['translation_mm']:.4f} mm"
-                   if "rotation_deg" in s else "")
-            click.echo(f"  {name:8s} fx ±{s['fx']:.3f} fy ±{s['fy']:.3f} cx ±{s['cx']:.3f} cy ±{s['cy']:.3f} px{rel}")
+            rel = (f"  cam_from_{next(iter(cal.cameras))} ±{_std(s['rotation_deg'], '.4f')}°"
+                   f" ±{_std(s['translation_mm'], '.4f')} mm" if "rotation_deg" in s else "")
+            click.echo(f"  {name:8s} fx ±{_std(s['fx'], '.3f')} fy ±{_std(s['fy'], '.3f')} cx ±{_std(s['cx'], '.3f')}"
+                       f" cy ±{_std(s['cy'], '.3f')} px{rel}")
     outl = cal.extra.get("outliers", {}).get("corners", [])
     if outl:
         click.echo(f"{len(outl)} corners beyond {cal.extra['outliers']['threshold_sigma']:g} sigma "
                    f"({'excluded' if cal.extra['outliers']['excluded'] else 'listed in calibration.json under outliers'})")
     click.echo(f"residuals: rmse {r['rmse_px']:.4f} px, mae {r['mae_px']:.4f} px, max {r['max_px']:.4f} px over {r['count']} corners")
     click.echo(f"time: calibration {cal.time_s:.3f} s, total {elapsed:.2f} s")
+
+
+def _std(value: float | None, spec: str) -> str:
+    """A standard deviation for the summary ('n/a' when the data do not determine it)."""
+    return "n/a" if value is None else format(value, spec)
 
 
 if __name__ == "__main__":

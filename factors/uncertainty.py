@@ -7,6 +7,7 @@ with the paraxial model it also holds its model error).
 """
 from __future__ import annotations
 
+import logging
 from typing import Sequence
 
 import gtsam
@@ -16,6 +17,16 @@ from . import keys as K_
 from .rig_graph import RigGraph
 
 PARAM_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+log = logging.getLogger(__name__)
+
+
+def _std(variance: float, what: str) -> float | None:
+    """sqrt(variance), or None (with a warning) when the covariance is not positive there:
+    the parameter is not determined by the data (numerically singular information)."""
+    if np.isfinite(variance) and variance >= 0.0:
+        return float(np.sqrt(variance))
+    log.warning("uncertainty of %s not determined (variance %.3g): the data barely constrain it", what, variance)
+    return None
 
 
 def residual_sigma_px(rg: RigGraph, residuals: Sequence[tuple[object, np.ndarray]] | None = None) -> float:
@@ -45,14 +56,16 @@ def rig_uncertainty(rg: RigGraph, sigma_px: float | None = None, marginals=None,
     out: dict = {"sigma_px": sigma, "cameras": {}}
     for c, name in enumerate(rg.camera_names):
         cov = marginals.marginalCovariance(K_.K(c)) * s2
-        entry = {PARAM_NAMES[i]: float(np.sqrt(cov[i, i])) for i in range(cov.shape[0])}
+        entry = {PARAM_NAMES[i]: _std(cov[i, i], f"{name} {PARAM_NAMES[i]}") for i in range(cov.shape[0])}
         if c > 0:
             pc = marginals.marginalCovariance(K_.C(c)) * s2
-            entry["rotation_deg"] = float(np.degrees(np.sqrt(np.trace(pc[:3, :3]))))
-            entry["translation_mm"] = float(np.sqrt(np.trace(pc[3:, 3:])))
+            rot = _std(np.trace(pc[:3, :3]), f"{name} rotation")
+            entry["rotation_deg"] = None if rot is None else float(np.degrees(rot))
+            entry["translation_mm"] = _std(np.trace(pc[3:, 3:]), f"{name} translation")
         out["cameras"][name] = entry
     cov_n = marginals.marginalCovariance(K_.N) * s2
-    out["normal_deg"] = float(np.degrees(np.sqrt(np.trace(cov_n))))
+    normal = _std(np.trace(cov_n), "the normal")
+    out["normal_deg"] = None if normal is None else float(np.degrees(normal))
     if rg.estimate_distance:
-        out["distance_mm"] = float(np.sqrt(marginals.marginalCovariance(K_.H)[0, 0] * s2))
+        out["distance_mm"] = _std(marginals.marginalCovariance(K_.H)[0, 0] * s2, "the window distance")
     return out
