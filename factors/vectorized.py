@@ -73,6 +73,7 @@ from .view_factor import ViewData, ViewKeys, factor_keys
 log = logging.getLogger(__name__)
 
 BACKENDS = ("gtsam", "numpy", "auto")
+STOP_RULES = ("converged", "gtsam")  # VectorizedProblem.optimize's stop=
 INVALID_RESIDUAL = 1e6  # what view_residuals puts for a non-finite residual or a camera beyond the window
 
 
@@ -103,7 +104,9 @@ class LMReport:
     error: float
     lambda_final: float
     time_s: float
-    stop: str  # "converged", "max_iterations", "lambda_upper_bound", "small_cost_change", "zero_error"
+    stop: str  # "converged", "max_iterations", "lambda_upper_bound", "small_cost_change", "zero_error",
+    #            "no_model_decrease" (stop="converged" only: see VectorizedProblem.optimize)
+    error_evaluations: int = 0  # nonlinear error evaluations (the initial one unless cached, one per tried step)
 
 
 @dataclass
@@ -720,20 +723,38 @@ class VectorizedProblem:
 
     # ------------------------------------------------------------------ LM
     def optimize(self, max_iterations: int = 100, relative_tolerance: float = 1e-10,
-                 params: LMParams | None = None) -> RigState:
+                 params: LMParams | None = None, stop: str = "converged") -> RigState:
         """Levenberg-Marquardt from the current values (GTSAM's algorithm); updates them and returns the state.
 
         ``max_iterations`` caps the accepted steps (gtsam's iterations()); LM
         stops when the relative error decrease is below ``relative_tolerance``.
+
+        ``stop="gtsam"`` is GTSAM's loop trial for trial: at convergence it
+        typically rejects a step whose predicted decrease is below
+        ``eps * error`` (GTSAM then never accepts it) and raises lambda
+        tenfold, evaluating the error each time, until the upper bound, with
+        the values unchanged. ``stop="converged"`` (the default) ends at the
+        first such trial without evaluating it: the predicted decrease of the
+        damped step never grows with lambda (its derivative is
+        ``-lambda * sum g_i^2 / (h_i + lambda)^3`` in H's eigenbasis), so no
+        later trial at this linearisation could be accepted and GTSAM would
+        end on the same values. Same steps, same values, same error; only
+        :attr:`report` (lambda, trials, evaluations, stop reason) differs.
         """
+        if stop not in STOP_RULES:
+            raise ValueError(f"unknown stop rule {stop!r} (known: {', '.join(STOP_RULES)})")
         p = params or LMParams()
         t0 = time.perf_counter()
         x = self.x
         cached = self._error_cache
-        err = cached[1] if cached is not None and cached[0] is x else self.error(x)
+        evaluations = 0
+        if cached is not None and cached[0] is x:
+            err = cached[1]
+        else:
+            err, evaluations = self.error(x), 1
         initial = err
         lam, iterations, inner, linearizations = p.lambda_initial, 0, 0, 0
-        stop = "max_iterations"
+        rule, stop = stop, "max_iterations"
         if err <= 0.0:
             stop = "zero_error"
         while stop != "zero_error" and iterations < max_iterations:  # gtsam's defaultOptimize
@@ -747,9 +768,13 @@ class VectorizedProblem:
                 if sol is not None:
                     d_global, d_frame = sol
                     predicted = self._model_decrease(sys, d_global, d_frame)
+                    if rule == "converged" and predicted <= np.finfo(float).eps * sys.error:
+                        gave_up = "no_model_decrease"  # GTSAM would reject this and every later trial
+                        break
                     if predicted >= 0.0:
                         x_new = self._retract(x, d_global, d_frame)
                         e_new = self.error(x_new)
+                        evaluations += 1
                         change = err - e_new
                         if predicted > np.finfo(float).eps * sys.error:
                             step_ok = change / predicted > p.min_model_fidelity
@@ -779,7 +804,8 @@ class VectorizedProblem:
                 break
         self.x = x
         self.iterations = iterations
-        self.report = LMReport(iterations, inner, linearizations, initial, err, lam, time.perf_counter() - t0, stop)
+        self.report = LMReport(iterations, inner, linearizations, initial, err, lam, time.perf_counter() - t0, stop,
+                               evaluations)
         log.debug("numpy LM: %s", self.report)
         return self.state()
 
@@ -1028,16 +1054,18 @@ def optimize_vectorized(
     check: bool = True,
     params: LMParams | None = None,
     return_report: bool = False,
+    stop: str = "converged",
 ) -> RigState | tuple[RigState, LMReport]:
     """Optimise a built RigGraph's problem with the numpy backend (GTSAM's LM path, no callbacks).
 
     ``huber_px`` must be the one the graph was built with (checked when
     ``check``). The graph's values and ``iterations`` are updated as
     RigGraph.optimize does; returns the state, and the :class:`LMReport`
-    (final error, lambda trials, time) with ``return_report``.
+    (final error, lambda trials, time) with ``return_report``. ``stop``:
+    see :meth:`VectorizedProblem.optimize` ("gtsam": GTSAM's trials one for one).
     """
     problem = VectorizedProblem.from_rig_graph(rig_graph, huber_px=huber_px, check=check)
-    state = problem.optimize(max_iterations, relative_tolerance, params)
+    state = problem.optimize(max_iterations, relative_tolerance, params, stop)
     problem.write_values(rig_graph.values)
     rig_graph.iterations = problem.iterations
     return (state, problem.report) if return_report else state
@@ -1052,8 +1080,8 @@ def resolve_backend(backend: str) -> str:
 
 
 def optimize_graph(rig_graph: RigGraph, backend: str = "auto", max_iterations: int = 100,
-                   huber_px: float | None = None, return_problem: bool = False, check: bool = True
-                   ) -> RigState | tuple[RigState, VectorizedProblem | None]:
+                   huber_px: float | None = None, return_problem: bool = False, check: bool = True,
+                   stop: str = "converged") -> RigState | tuple[RigState, VectorizedProblem | None]:
     """Optimise a RigGraph with GTSAM (``rig_graph.optimize``) or the numpy backend; same result either way.
 
     ``huber_px``: the threshold the graph was built with (the numpy backend
@@ -1062,13 +1090,13 @@ def optimize_graph(rig_graph: RigGraph, backend: str = "auto", max_iterations: i
     GTSAM), so that residuals and marginals at the optimum need no callbacks.
     ``check``: compare a few views with the graph's own factors (see
     from_rig_graph); a caller that has just built the graph with ``huber_px``
-    may skip it.
+    may skip it. ``stop``: the numpy backend's stop rule (:meth:`VectorizedProblem.optimize`).
     """
     if resolve_backend(backend) == "gtsam":
         state = rig_graph.optimize(max_iterations)
         return (state, None) if return_problem else state
     problem = VectorizedProblem.from_rig_graph(rig_graph, huber_px=huber_px, check=check)
-    state = problem.optimize(max_iterations)
+    state = problem.optimize(max_iterations, stop=stop)
     problem.write_values(rig_graph.values)
     rig_graph.iterations = problem.iterations
     return (state, problem) if return_problem else state
