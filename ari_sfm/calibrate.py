@@ -108,6 +108,8 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
         state, solved = optimize_graph(graph, backend, opts.max_iterations, opts.huber_px, return_problem=True,
                                        check=False)  # the graph was just built with opts.huber_px
         iterations[stage] = {"iterations": graph.iterations, "time_s": time.perf_counter() - t_stage, "backend": backend}
+        if solved is not None:  # numpy backend: it stops at convergence without GTSAM's futile lambda trials
+            iterations[stage]["error_evaluations"] = solved.report.error_evaluations
         log.info("%s bundle adjustment: %d iterations, %.3f s", stage, graph.iterations, iterations[stage]["time_s"])
     from .outliers import find_outliers, without
 

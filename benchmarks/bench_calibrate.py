@@ -22,7 +22,8 @@ on the calibration views only (it has no use for the stacking records).
 "calibrate() total" is the whole call: analytic initialisation (which itself
 runs cv2.calibrateCamera per camera), the bundle adjustment stage(s), outlier
 report, residuals and uncertainties. "BA" is the sum of the stages' solver
-time (extra["optimizer"][stage]["time_s"]). cv2 and the calibrate() calls
+time (extra["optimizer"][stage]["time_s"]); "it" its accepted steps and "ev"
+its nonlinear error evaluations, per stage. cv2 and the calibrate() calls
 are interleaved within each repeat, so that load on the machine hits them
 alike; the table gives medians and the ratios of the medians.
 """
@@ -86,6 +87,10 @@ def time_case(dataset, models=("ari", "exact"), repeats: int = 5, backends=("aut
             totals[k].append(time.perf_counter() - t)
             bas[k].append(sum(s["time_s"] for s in cal.extra["optimizer"].values()))
             its[k] = "+".join(str(s["iterations"]) for s in cal.extra["optimizer"].values())
+            if all("error_evaluations" in s for s in cal.extra["optimizer"].values()):  # numpy backend
+                its[k] += " it, " + "+".join(str(s["error_evaluations"]) for s in cal.extra["optimizer"].values()) + " ev"
+            else:
+                its[k] += " it"
     med = statistics.median
     return {"cv2": med(t_cv2), "total": {k: med(v) for k, v in totals.items()},
             "ba": {k: med(v) for k, v in bas.items()}, "iterations": its}
@@ -105,7 +110,7 @@ def print_case(name: str, dataset, result: dict, repeats: int, note: str = "") -
         tag = f"{model}, {backend}" if multi_backend else model
         ba = result["ba"][(model, backend)]
         it = result["iterations"][(model, backend)]
-        print(f"{f'{tag} bundle adjustment ({it} it)':42s} {ba * 1e3:9.1f} {ba / t_cv2:13.2f}")
+        print(f"{f'{tag} bundle adjustment ({it})':42s} {ba * 1e3:9.1f} {ba / t_cv2:13.2f}")
         print(f"{f'{tag} calibrate() total':42s} {total * 1e3:9.1f} {total / t_cv2:13.2f}")
     backends = sorted({b for _, b in result["total"]})
     for backend in backends:
