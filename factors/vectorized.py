@@ -389,6 +389,7 @@ class VectorizedProblem:
         self.report: LMReport | None = None
         self.graph_index = np.arange(len(views)) if graph_index is None else np.asarray(graph_index, dtype=np.int64)
         self._error_cache: tuple[Variables, float] | None = None
+        self._system_cache: tuple[Variables, _System] | None = None  # optimize's last linearisation, if at self.x
         self._pack(views)
         self._extra = _ExtraFactors(self, extra_factors)
 
@@ -759,7 +760,7 @@ class VectorizedProblem:
             stop = "zero_error"
         while stop != "zero_error" and iterations < max_iterations:  # gtsam's defaultOptimize
             cur_err = err
-            sys = self._linearize(x)
+            sys, x_lin = self._linearize(x), x
             linearizations += 1
             gave_up = None
             while True:  # gtsam's tryLambda, until a step is accepted or LM gives up
@@ -803,6 +804,7 @@ class VectorizedProblem:
                 stop = "non_finite"
                 break
         self.x = x
+        self._system_cache = (x, sys) if linearizations and x_lin is x else None  # for marginal_covariances
         self.iterations = iterations
         self.report = LMReport(iterations, inner, linearizations, initial, err, lam, time.perf_counter() - t0, stop,
                                evaluations)
@@ -888,7 +890,8 @@ class VectorizedProblem:
         for K(c), C(c), N and H (same tangent spaces, unit pixel sigma scaled
         by the factors' sigmas), from the Schur complement of the frames.
         """
-        sys = self._linearize(self.x)
+        cached = self._system_cache  # optimize's last linearisation when it was at the final values
+        sys = cached[1] if cached is not None and cached[0] is self.x else self._linearize(self.x)
         F, G = sys.V.shape[0], self.n_global
         V_inv = np.linalg.inv(sys.V)
         W2 = sys.W.reshape(6 * F, G)

@@ -279,6 +279,20 @@ def test_marginal_covariances_equal_gtsam_marginals(problems):
         np.testing.assert_allclose(cov, ref, rtol=0, atol=1e-7 * np.abs(ref).max())
 
 
+def test_marginals_reuse_the_last_linearisation(problems):
+    """After an optimisation that ends without moving (as at convergence), marginal_covariances reuses
+    optimize's last linearisation: the same covariances as a fresh one."""
+    problem = VectorizedProblem.from_rig_graph(_graph(problems, "paper_single", "ari", 1.0), huber_px=1.0)
+    problem.optimize()
+    assert problem.report.stop == "no_model_decrease" and problem._system_cache[0] is problem.x
+    cached = problem.marginal_covariances()
+    problem._system_cache = None
+    fresh = problem.marginal_covariances()
+    assert cached.keys() == fresh.keys()
+    for key in fresh:
+        np.testing.assert_array_equal(cached[key], fresh[key])
+
+
 # --------------------------------------------------------------------------- calibrate
 
 
