@@ -739,8 +739,11 @@ class VectorizedProblem:
         damped step never grows with lambda (its derivative is
         ``-lambda * sum g_i^2 / (h_i + lambda)^3`` in H's eigenbasis), so no
         later trial at this linearisation could be accepted and GTSAM would
-        end on the same values. Same steps, same values, same error; only
-        :attr:`report` (lambda, trials, evaluations, stop reason) differs.
+        end on the same values. It also takes the initial error from the
+        first linearisation (the same sum in another order, ~1e-15 relative)
+        instead of a separate evaluation, unless the graph has user factors.
+        Same steps, same values, same error; only :attr:`report` (lambda,
+        trials, evaluations, stop reason) differs.
         """
         if stop not in STOP_RULES:
             raise ValueError(f"unknown stop rule {stop!r} (known: {', '.join(STOP_RULES)})")
@@ -748,20 +751,28 @@ class VectorizedProblem:
         t0 = time.perf_counter()
         x = self.x
         cached = self._error_cache
-        evaluations = 0
+        evaluations, linearizations, first = 0, 0, None
         if cached is not None and cached[0] is x:
             err = cached[1]
+        elif stop == "converged" and not self._extra.factors and max_iterations > 0:
+            # the first linearisation's 0.5 r^T r is the error (the same sum, rounded in another order:
+            # ~1e-15 relative); user factors' linearised error may not be their error (robust noise models)
+            first = self._linearize(x)
+            err, linearizations = first.error, 1
         else:
             err, evaluations = self.error(x), 1
         initial = err
-        lam, iterations, inner, linearizations = p.lambda_initial, 0, 0, 0
+        lam, iterations, inner = p.lambda_initial, 0, 0
         rule, stop = stop, "max_iterations"
         if err <= 0.0:
             stop = "zero_error"
         while stop != "zero_error" and iterations < max_iterations:  # gtsam's defaultOptimize
             cur_err = err
-            sys, x_lin = self._linearize(x), x
-            linearizations += 1
+            if first is not None:
+                sys, x_lin, first = first, x, None
+            else:
+                sys, x_lin = self._linearize(x), x
+                linearizations += 1
             gave_up = None
             while True:  # gtsam's tryLambda, until a step is accepted or LM gives up
                 step_ok, stop_searching = False, False
