@@ -5,6 +5,8 @@
     calibration = ari_sfm.calibrate(dataset, model="ari")   # or "exact"
     calibration.save("out/calibration.json")
     ari_sfm.evaluate(ari_sfm.load_calibration("out/calibration.json"), dataset)
+    points = ari_sfm.reconstruct(dataset, calibration)          # frames seen by >= 2 cameras
+    X, gap_mm, rmse_px = ari_sfm.triangulate_pixels(calibration, {"cam0": uv0, "cam1": uv1})  # PTV tracks
 """
 from __future__ import annotations
 
@@ -16,14 +18,18 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from .calibrate import CalibrationOptions, calibrate  # noqa: E402
 from .calibration import Calibration, CameraCalibration, load_calibration  # noqa: E402
+from .compare import compare  # noqa: E402
 from .errors import AriSfmError  # noqa: E402
 from .evaluate import evaluate  # noqa: E402
 from .io import load_dataset, load_observations  # noqa: E402
+from .reconstruct import Points, reconstruct  # noqa: E402
 from .records import Dataset, Interface, Observation, Target  # noqa: E402
+from .triangulate import triangulate_pixels  # noqa: E402
 
 __version__ = "0.1.0"
 
 __all__ = [
     "AriSfmError", "Calibration", "CalibrationOptions", "CameraCalibration", "Dataset", "Interface",
-    "Observation", "Target", "calibrate", "evaluate", "load_calibration", "load_dataset", "load_observations",
+    "Observation", "Points", "Target", "calibrate", "compare", "evaluate", "load_calibration", "load_dataset",
+    "load_observations", "reconstruct", "triangulate_pixels",
 ]

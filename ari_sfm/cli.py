@@ -220,14 +220,24 @@ def compare_cmd(dataset: Path, out: Path, models: str, subset: str | None, holdo
 @click.argument("calibration", type=click.Path(path_type=Path))
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder for the COLMAP model.")
 @click.option("--dataset", type=click.Path(path_type=Path), default=None,
-              help="Dataset whose observations become the images' 2D points (default: observations.json beside CAL).")
-@click.option("--points", type=click.Path(path_type=Path), default=None, help="points.json of the reconstruction frames.")
+              help="Dataset whose observations become the images' 2D points (default: observations.json beside CAL, "
+                   "else the dataset named by run.json / metrics.json beside CAL).")
+@click.option("--points", type=click.Path(path_type=Path), default=None,
+              help="points.json of the reconstruction frames (default: points.json beside CAL, if any).")
 @click.option("--approximation", type=click.Choice(["pinhole", "shift"]), default="pinhole", show_default=True,
               help="exact model / medium behind the window: refit K and pose, or only the shift along the normal.")
 @user_errors
 def export_colmap_cmd(calibration: Path, out: Path, dataset: Path | None, points: Path | None, approximation: str) -> None:
     """Write CALIBRATION as a COLMAP model (cameras, rig, frames, images, 3D points with tracks) to OUT."""
     from .colmap_export import export_colmap, summary
+
+    folder = calibration.parent  # an `ari-sfm run` folder: its observations, dataset and points by default
+    if dataset is None and not (folder / "observations.json").is_file():
+        from .report import find_dataset
+
+        dataset = find_dataset(folder)
+    if points is None and (folder / "points.json").is_file():
+        points = folder / "points.json"
 
     click.echo(summary(export_colmap(calibration, out, dataset=dataset, points=points, approximation=approximation)))
 

@@ -43,3 +43,13 @@ def test_bundled_binocular_pipeline_meets_the_accuracy_of_issue_6(tmp_path):
     assert m["inter_corner_mm"]["rmse"] < 0.02
     assert m["truth"]["aligned"]["rms_mm"] < 0.05
     assert (tmp_path / "report.html").stat().st_size > 100_000  # figures embedded
+    # export-colmap finds the run folder's dataset and points.json by itself
+    r = CliRunner().invoke(main, ["export-colmap", str(tmp_path / "calibration.json"), "-o", str(tmp_path / "colmap")])
+    assert r.exit_code == 0, r.output
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(tmp_path / "colmap"))
+    points = json.loads((tmp_path / "points.json").read_text())
+    n_points = sum(len(f["ids"]) for f in points["frames"].values())
+    assert rec.num_images() > 0 and rec.num_reg_images() == rec.num_images()
+    assert rec.num_points3D() > n_points  # reconstruction points + calibration corners
