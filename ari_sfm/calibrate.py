@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -61,7 +61,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     Options: see :class:`CalibrationOptions`.
     """
     from .init.rig import initialise_rig
-    from .factors.rig_graph import RigGraph, RigState
+    from .factors.rig_graph import RigGraph, RigState, default_distance_mm
     from .factors.vectorized import optimize_graph, resolve_backend
 
     opts = _options(options)
@@ -82,11 +82,10 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     iface = dataset.interface
     names = dataset.camera_names
     underwater = iface.medium_index != 1.0
-    state = RigState(
-        {n: np.concatenate([[c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]], np.resize(c.dist, 5)]) for n, c in rig.cameras.items()},
-        rig.cam_from_world, rig.normal_world, rig.world_from_target,
-        iface.distance_mm if iface.distance_mm is not None else (_default_distance(rig) if underwater else None),
-    )
+    distance = iface.distance_mm
+    if distance is None and underwater:
+        distance = default_distance_mm(rig.normal_world, rig.cam_from_world)
+    state = RigState.from_initialisation(rig, distance)
     fixed = [n for n in names if dataset.cameras[n].K is not None] if opts.fix_intrinsics else []
     if opts.fix_intrinsics and not fixed:
         raise AriSfmError(dataset.rig_path, "fix_intrinsics needs a K hint for at least one camera (cameras.<name>.K)")
@@ -99,7 +98,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     iterations = {}
     for stage in stages:
         if stage == "exact" and state.distance_mm is None:
-            state = RigState(state.params, state.cam_from_world, state.normal_world, state.world_from_target, _default_distance(state))
+            state = replace(state, distance_mm=default_distance_mm(state.normal_world, state.cam_from_world))
         graph = RigGraph.build(
             dataset.observations, dataset.target, iface, names, state, model=stage, distortion=opts.distortion,
             estimate_distance=underwater, huber_px=opts.huber_px, fixed_intrinsics=fixed,
@@ -170,15 +169,3 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     )
     return cal
 
-
-def _default_distance(rig) -> float:  # rig: anything with normal_world and cam_from_world (init or current state)
-    """A starting distance from camera 0 to the window when the dataset gives none.
-
-    In air the exact model does not depend on it (the plate shifts each ray
-    sideways by an amount set by the angle and the thickness only), so any value
-    that keeps every camera in front of the window will do: 10 mm in front of
-    the camera nearest to it. Under water it is estimated from this start.
-    """
-    n = rig.normal_world
-    centres = [p.inverse().t for p in rig.cam_from_world.values()]
-    return float(max(n @ c for c in centres)) + 10.0

@@ -52,16 +52,14 @@ CAMERAS_SERIES = (2, 4, 8, 16)  # scale16 with 200 frames
 
 
 def _initial_state(dataset):
-    from ari_sfm.factors.rig_graph import RigState
+    from ari_sfm.factors.rig_graph import RigState, default_distance_mm
     from ari_sfm.init.rig import initialise_rig
 
     rig = initialise_rig(dataset, False)
     distance = dataset.interface.distance_mm
     if distance is None:
-        distance = float(max(rig.normal_world @ p.inverse().t for p in rig.cam_from_world.values())) + 10.0
-    params = {n: np.concatenate([[c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]], np.resize(c.dist, 5)])
-              for n, c in rig.cameras.items()}
-    return RigState(params, rig.cam_from_world, rig.normal_world, rig.world_from_target, distance)
+        distance = default_distance_mm(rig.normal_world, rig.cam_from_world)
+    return RigState.from_initialisation(rig, distance)
 
 
 def prepare(case: dict, path: str) -> dict:

@@ -42,6 +42,27 @@ class RigState:
     world_from_target: dict[str, Pose]  # calibration frames and stacking poses
     distance_mm: float | None = None  # camera 0 centre to near surface (None: not modelled)
 
+    @classmethod
+    def from_initialisation(cls, rig, distance_mm: float | None = None) -> "RigState":
+        """The state of an analytic initialisation (:class:`ari_sfm.init.rig.RigInit`):
+        params [fx fy cx cy] + the distortion padded to 5 per camera, its poses and
+        normal, and ``distance_mm`` (see :func:`default_distance_mm`)."""
+        params = {n: np.concatenate([[c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]], np.resize(c.dist, 5)])
+                  for n, c in rig.cameras.items()}
+        return cls(params, rig.cam_from_world, rig.normal_world, rig.world_from_target, distance_mm)
+
+
+def default_distance_mm(normal_world: np.ndarray, cam_from_world: dict[str, Pose]) -> float:
+    """A starting distance from camera 0 to the window when the dataset gives none.
+
+    In air the exact model does not depend on it (the plate shifts each ray
+    sideways by an amount set by the angle and the thickness only), so any value
+    that keeps every camera in front of the window will do: 10 mm in front of
+    the camera nearest to it. Under water it is estimated from this start.
+    """
+    centres = [p.inverse().t for p in cam_from_world.values()]
+    return float(max(normal_world @ c for c in centres)) + 10.0
+
 
 @dataclass
 class RigGraph:
@@ -126,12 +147,8 @@ class RigGraph:
         underwater = dataset.interface.medium_index != 1.0
         distance = dataset.interface.distance_mm
         if distance is None and (underwater or model == "exact"):
-            centres = [p.inverse().t for p in rig.cam_from_world.values()]
-            distance = float(max(rig.normal_world @ c for c in centres)) + 10.0
-        state = RigState(
-            {n: np.concatenate([[c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]], np.resize(c.dist, 5)]) for n, c in rig.cameras.items()},
-            rig.cam_from_world, rig.normal_world, rig.world_from_target, distance,
-        )
+            distance = default_distance_mm(rig.normal_world, rig.cam_from_world)
+        state = RigState.from_initialisation(rig, distance)
         return RigGraph.build(dataset.observations, dataset.target, dataset.interface, dataset.camera_names, state,
                               model=model, distortion=distortion, estimate_distance=underwater, huber_px=huber_px)
 

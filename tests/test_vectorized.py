@@ -22,7 +22,7 @@ import pytest
 
 from ari_sfm.calibrate import calibrate
 from ari_sfm.factors import keys as K_
-from ari_sfm.factors.rig_graph import MODELS, RigGraph, RigState
+from ari_sfm.factors.rig_graph import MODELS, RigGraph, RigState, default_distance_mm
 from ari_sfm.factors.vectorized import VectorizedProblem, optimize_graph, optimize_vectorized, resolve_backend, se3_exp
 from ari_sfm.factors.view_factor import view_residuals
 from ari_sfm.geometry import angle_between_deg
@@ -37,10 +37,8 @@ def _initial_state(dataset) -> RigState:
     rig = initialise_rig(dataset, False)
     distance = dataset.interface.distance_mm
     if distance is None:
-        distance = float(max(rig.normal_world @ p.inverse().t for p in rig.cam_from_world.values())) + 10.0
-    params = {n: np.concatenate([[c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]], np.resize(c.dist, 5)])
-              for n, c in rig.cameras.items()}
-    return RigState(params, rig.cam_from_world, rig.normal_world, rig.world_from_target, distance)
+        distance = default_distance_mm(rig.normal_world, rig.cam_from_world)
+    return RigState.from_initialisation(rig, distance)
 
 
 def _partial(dataset, seed: int = 5):
