@@ -9,7 +9,9 @@ Workload of every case: the exact model (the stage every ``calibrate(model=
 RigGraph.build from the analytic initialisation (ari_sfm.init.rig, window
 distance 10 mm in front of the nearest camera), then Levenberg-Marquardt with
 RigGraph.optimize's tolerances. Both backends take the same LM path (same
-iterations), so ms/iteration compares like with like. Scenes: paper_single,
+iterations; the numpy side with stop="gtsam", i.e. GTSAM's trials at
+convergence too, not calibrate's default stop="converged"), so ms/iteration
+compares like with like. Scenes: paper_single,
 binocular, and the scale16 grid (2-16 cameras, 50-1000 frames, each frame
 seen by >= 2 cameras, 88 corners per view, one stacking pose x 6 plates).
 
@@ -109,7 +111,8 @@ def measure(path: str, backend: str, model: str, huber_px: float | None, max_ite
     if backend == "gtsam":
         rg.optimize(max_iterations)
     else:
-        _, report = optimize_vectorized(rg, max_iterations, huber_px=huber_px, return_report=True)
+        _, report = optimize_vectorized(rg, max_iterations, huber_px=huber_px, return_report=True,
+                                        stop="gtsam")  # GTSAM's trials too: like for like per iteration
     t2 = time.perf_counter()
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     error = rg.graph.error(rg.values) if backend == "gtsam" else report.error  # equal: tests/test_vectorized.py
