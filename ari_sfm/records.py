@@ -5,6 +5,7 @@ Loading and validation live in :mod:`ari_sfm.io`; these classes only hold data.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Mapping
 
@@ -40,22 +41,34 @@ class Target:
         return None
 
     def points_3d(self) -> tuple[np.ndarray, np.ndarray]:
-        """All (ids, xyz) of the target: ids (N,) int, xyz (N, 3) in mm, target frame."""
+        """All (ids, xyz) of the target: ids (N,) int, xyz (N, 3) in mm, target frame (new arrays)."""
+        ids, xyz = self.points_3d_readonly
+        return ids.copy(), xyz.copy()
+
+    @cached_property
+    def points_3d_readonly(self) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`points_3d` computed once per target, as read-only arrays (for
+        look-ups done per view, e.g. :func:`ari_sfm.init.zhang.object_points`).
+        The record is frozen; its ``points`` mapping must not be changed either."""
         if self.type == "points3d":
             ids = np.array(sorted(self.points), dtype=int)
-            return ids, np.array([self.points[i] for i in ids], dtype=float).reshape(-1, 3)
-        cols, rows = self.grid
-        r, c = np.divmod(np.arange(cols * rows), cols)
-        xyz = np.stack([c * self.square_mm, r * self.square_mm, np.zeros(cols * rows)], axis=1)
-        if self.type == "charuco":  # OpenCV puts ChArUco corner (c, r) at ((c+1) s, (r+1) s)
-            xyz[:, :2] += self.square_mm
-        return np.arange(cols * rows), xyz.astype(float)
+            xyz = np.array([self.points[i] for i in ids], dtype=float).reshape(-1, 3)
+        else:
+            cols, rows = self.grid
+            r, c = np.divmod(np.arange(cols * rows), cols)
+            xyz = np.stack([c * self.square_mm, r * self.square_mm, np.zeros(cols * rows)], axis=1)
+            if self.type == "charuco":  # OpenCV puts ChArUco corner (c, r) at ((c+1) s, (r+1) s)
+                xyz[:, :2] += self.square_mm
+            ids, xyz = np.arange(cols * rows), xyz.astype(float)
+        ids.flags.writeable = False
+        xyz.flags.writeable = False
+        return ids, xyz
 
     def num_ids(self) -> int:
-        return len(self.points_3d()[0])
+        return len(self.points_3d_readonly[0])
 
     def is_planar(self) -> bool:
-        return self.type != "points3d" or bool(np.ptp(self.points_3d()[1][:, 2]) == 0.0)
+        return self.type != "points3d" or bool(np.ptp(self.points_3d_readonly[1][:, 2]) == 0.0)
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,7 @@ class ZhangResult:
 
 def object_points(target: Target, ids: np.ndarray) -> np.ndarray:
     """Target-frame coordinates (N, 3) of corner ids."""
-    all_ids, xyz = target.points_3d()  # ids ascending
+    all_ids, xyz = target.points_3d_readonly  # ids ascending; built once per target
     ids = np.asarray(ids, dtype=np.int64).reshape(-1)
     pos = np.searchsorted(all_ids, ids)
     unknown = (pos >= len(all_ids)) | (all_ids[np.minimum(pos, len(all_ids) - 1)] != ids) if len(all_ids) else ids == ids
