@@ -149,3 +149,56 @@ def test_outliers_are_reported_and_can_be_excluded(single_scene):
     excluded = calibrate(ds, model="exact", exclude_outliers=True)
     assert excluded.residuals["count"] == cal.residuals["count"] - 1
     assert excluded.residuals["max_px"] < 0.5
+
+
+_REPEATABLE_CHILD = """
+import json, sys
+import cv2
+cv2.setNumThreads(4)  # threaded OpenCV even on a small machine: the init must not depend on it
+from ari_sfm.calibrate import calibrate
+from ari_sfm.simulate import make_scene
+cal = calibrate(make_scene("paper_single", seed=0).dataset, model="exact")
+assert cv2.getNumThreads() == 4, cv2.getNumThreads()  # the caller's setting is back
+d = cal.to_json()
+d.pop("time_s")
+for stage in d["optimizer"].values():
+    stage.pop("time_s")
+sys.stdout.write(json.dumps(d, sort_keys=True))
+"""
+
+
+def test_calibrate_is_bit_identical_across_processes():
+    """The initialisation's OpenCV calls run on one thread (init.zhang.one_cv2_thread):
+    threaded, their results differed at 1e-15..1e-9 between processes and the exact
+    stage took 3 or 4 steps. Two fresh processes give the same calibration JSON (timings aside)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+    runs = [subprocess.run([sys.executable, "-c", _REPEATABLE_CHILD], capture_output=True, text=True, env=env,
+                           timeout=300) for _ in range(2)]
+    for r in runs:
+        assert r.returncode == 0, r.stderr[-2000:]
+    assert runs[0].stdout == runs[1].stdout
+
+
+def test_one_cv2_thread_nests_and_restores():
+    import cv2
+
+    from ari_sfm.init.zhang import one_cv2_thread
+
+    before = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(3)
+        with one_cv2_thread():
+            assert cv2.getNumThreads() == 1
+            with one_cv2_thread():
+                assert cv2.getNumThreads() == 1
+            assert cv2.getNumThreads() == 1
+        assert cv2.getNumThreads() == 3
+        with pytest.raises(RuntimeError), one_cv2_thread():
+            raise RuntimeError
+        assert cv2.getNumThreads() == 3
+    finally:
+        cv2.setNumThreads(before)

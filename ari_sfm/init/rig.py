@@ -14,7 +14,7 @@ from ..geometry import Pose, unit
 from ..records import Dataset, Observation
 from .expansion_center import ExpansionCenter, expansion_center, normal_from_expansion_center
 from .interface_pose import real_cam_from_target
-from .zhang import calibrate_views, solve_pnp
+from .zhang import calibrate_views, one_cv2_thread, solve_pnp
 
 log = logging.getLogger(__name__)
 
@@ -82,8 +82,12 @@ def _mean_pose(poses: list[Pose]) -> Pose:
     return Pose(R, np.mean([p.t for p in poses], axis=0))
 
 
+@one_cv2_thread()  # bit-identical across processes; one switch for all its cv2 calls
 def initialise_rig(dataset: Dataset, distortion: bool = False) -> RigInit:
-    """Initialise every camera, then chain relative poses from camera 0 over shared frames."""
+    """Initialise every camera, then chain relative poses from camera 0 over shared frames.
+
+    OpenCV runs on one thread meanwhile (see :func:`ari_sfm.init.zhang.one_cv2_thread`).
+    """
     names = dataset.camera_names
     cams = {n: initialise_camera(dataset, n, distortion) for n in names}
     # Camera graph: edges weighted by the number of shared frames (calibration and stacking).

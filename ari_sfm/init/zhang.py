@@ -7,14 +7,49 @@ whose translation still contains the shift (removed in :mod:`interface_pose`).
 """
 from __future__ import annotations
 
+import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import cv2
 import numpy as np
 
 from ..geometry import Pose
 from ..records import CameraSpec, Observation, Target
+
+
+_cv2_lock = threading.Lock()
+_cv2_depth = 0  # open one_cv2_thread() contexts (nested or in other threads)
+_cv2_saved = 1  # the caller's cv2.getNumThreads() when the first one opened
+
+
+@contextmanager
+def one_cv2_thread() -> Iterator[None]:
+    """Run OpenCV on one thread inside, restoring the caller's thread count after.
+
+    cv2.calibrateCamera and cv2.solvePnP split work over threads, and their
+    results then differ at 1e-15..1e-9 from process to process, enough to
+    change how many steps the exact stage of calibrate() takes. On one thread
+    the initialisation, hence calibrate(), is bit-identical across runs. The
+    setting is process-wide: nested and concurrent contexts share it, and the
+    last to close restores it (detection, outside any context, keeps its threads).
+    Usable as a decorator: ``@one_cv2_thread()``.
+    """
+    global _cv2_depth, _cv2_saved
+    with _cv2_lock:
+        if _cv2_depth == 0:
+            _cv2_saved = cv2.getNumThreads()
+            if _cv2_saved != 1:
+                cv2.setNumThreads(1)
+        _cv2_depth += 1
+    try:
+        yield
+    finally:
+        with _cv2_lock:
+            _cv2_depth -= 1
+            if _cv2_depth == 0 and _cv2_saved != 1:
+                cv2.setNumThreads(_cv2_saved)
 
 
 @dataclass(frozen=True)
@@ -47,6 +82,7 @@ def initial_K(spec: CameraSpec) -> np.ndarray:
     return np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
 
 
+@one_cv2_thread()
 def calibrate_zhang(
     target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False
 ) -> ZhangResult:
@@ -119,6 +155,7 @@ def calibrate_views(target: Target, spec: CameraSpec, views: Sequence[Observatio
     return calibrate_dlt(target, spec, views, distortion)
 
 
+@one_cv2_thread()
 def solve_pnp(target: Target, K: np.ndarray, dist: np.ndarray, view: Observation) -> Pose:
     """The generalised cam_from_target of one view with known K (iterative PnP)."""
     obj = object_points(target, view.ids)
