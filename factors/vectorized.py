@@ -1105,11 +1105,20 @@ def optimize_graph(rig_graph: RigGraph, backend: str = "auto", max_iterations: i
     ``check``: compare a few views with the graph's own factors (see
     from_rig_graph); a caller that has just built the graph with ``huber_px``
     may skip it. ``stop``: the numpy backend's stop rule (:meth:`VectorizedProblem.optimize`).
+    "auto" falls back to GTSAM for a graph the numpy backend cannot hold (a
+    user factor linking several target frames).
     """
-    if resolve_backend(backend) == "gtsam":
+    problem = None
+    if resolve_backend(backend) == "numpy":
+        try:
+            problem = VectorizedProblem.from_rig_graph(rig_graph, huber_px=huber_px, check=check)
+        except NotImplementedError as exc:
+            if backend != "auto":
+                raise
+            log.info("numpy backend: %s; optimising with GTSAM", exc)
+    if problem is None:
         state = rig_graph.optimize(max_iterations)
         return (state, None) if return_problem else state
-    problem = VectorizedProblem.from_rig_graph(rig_graph, huber_px=huber_px, check=check)
     state = problem.optimize(max_iterations, stop=stop)
     problem.write_values(rig_graph.values)
     rig_graph.iterations = problem.iterations

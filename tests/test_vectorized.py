@@ -260,6 +260,13 @@ def test_factors_added_to_the_graph_are_honoured(problems):
     bad.graph.push_back(gtsam.BetweenFactorPose3(K_.X(0), K_.X(1), gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1.0)))
     with pytest.raises(NotImplementedError):
         optimize_vectorized(bad, huber_px=1.0)
+    with pytest.raises(NotImplementedError):
+        optimize_graph(bad, "numpy", huber_px=1.0)
+    bad_ref = _graph(problems, "binocular", "ari", 1.0)
+    bad_ref.graph.push_back(gtsam.BetweenFactorPose3(K_.X(0), K_.X(1), gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1.0)))
+    state_auto, solved = optimize_graph(bad, "auto", huber_px=1.0, return_problem=True)  # falls back to GTSAM
+    assert solved is None
+    _assert_same_state(bad_ref.optimize(), state_auto)
 
 
 def test_a_wrong_huber_threshold_is_caught(problems):
