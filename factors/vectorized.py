@@ -64,7 +64,7 @@ import scipy.linalg.lapack
 from ..geometry import Pose
 from ..models import PinholeModel
 from ..models.ari import check_window, unit_normal_and_projector
-from ..models.exact import _q_terms, solve_incidence
+from ..models.exact import incidence_jacobians, solve_incidence
 from ..records import Observation
 from . import keys as K_
 from .rig_graph import MODELS, RigGraph, RigState
@@ -321,25 +321,10 @@ def _exact_eval(X, params, n_p, normal_cam, d, index, medium_index, h, jacobians
     uv, J_pin, J_params = _pinhole_eval(nc + w[:, None] * r, params, n_p, jacobians)
     if not jacobians:
         return uv, None
-    u = w * rho
-    Gn, Gn3 = _q_terms(u, n)
-    Gm, Gm3 = _q_terms(u, nm)
-    P = h + d * n * n * Gn3 + L * nm * nm * Gm3  # rho'(u) = dPsi/dw
-    K = d * (n * n - 1.0) * Gn3 + L * (nm * nm - 1.0) * Gm3  # H'(u) = -u K
-    w3K = w**3 * K
-    dw_dX = (w3K[:, None] * r - (w * Gm)[:, None] * nc) / P[:, None]
-    dw_dn = (-(w3K * z)[:, None] * r - (w * Gm)[:, None] * X) / P[:, None]
-    dw_dh = w * (Gm - 1.0) / P
+    J_point, J_n_free, _, J_distance = incidence_jacobians(X, z, r, L, w, nc, h, d, n, nm, J_pin)
     m = len(X)
-    J_pin_r = np.einsum("nij,nj->ni", J_pin, r)
-    J_pin_n = (J_pin.reshape(2 * m, 3) @ nc).reshape(m, 2)
-    J_point = (w[:, None, None] * (J_pin - J_pin_n[:, :, None] * nc[None, None, :])
-               + J_pin_r[:, :, None] * dw_dX[:, None, :])
-    J_n_free = ((1.0 - w * z)[:, None, None] * J_pin
-                - w[:, None, None] * J_pin_n[:, :, None] * X[:, None, :]
-                + J_pin_r[:, :, None] * dw_dn[:, None, :])
     J_normal = (J_n_free.reshape(2 * m, 3) @ dn_dv).reshape(m, 2, 3)
-    return uv, (J_point, J_normal, J_params, J_pin_r * dw_dh[:, None])
+    return uv, (J_point, J_normal, J_params, J_distance)
 
 
 _KERNELS = {"ari": _ari_eval, "exact": _exact_eval}

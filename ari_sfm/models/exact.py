@@ -120,6 +120,42 @@ def solve_incidence(rho: np.ndarray, L: np.ndarray, h: float, d: float | np.ndar
     return w, iterations
 
 
+def incidence_jacobians(X: np.ndarray, z: np.ndarray, r: np.ndarray, L: np.ndarray, w: np.ndarray,
+                        nc: np.ndarray, h: float, d: float | np.ndarray, n: float, n_m: float, J_pin: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel Jacobians of the exact projection through D = n_c + w r (implicit function theorem on
+    the incidence equation, see the module docstring), shared by ExactModel and the numpy backend.
+
+    ``X`` (N, 3) camera-frame points, ``z = X . n_c``, ``r = X - z n_c``, ``L`` the medium column,
+    ``w`` the solved incidence variable, ``J_pin`` (N, 2, 3) the pinhole's d uv / d D. Returns
+    d uv / d X (N, 2, 3), d uv / d n_c for a free (unnormalised) normal (N, 2, 3), d uv / d d and
+    d uv / d h (N, 2).
+    """
+    u = w * np.sqrt(np.einsum("ni,ni->n", r, r))
+    Gn, Gn3 = _q_terms(u, n)
+    Gm, Gm3 = _q_terms(u, n_m)
+    P = h + d * n * n * Gn3 + L * n_m * n_m * Gm3  # rho'(u) = dPsi/dw
+    K = d * (n * n - 1.0) * Gn3 + L * (n_m * n_m - 1.0) * Gm3  # H'(u) = -u K
+    w3K = w**3 * K
+    # dw/dX = (w^3 K r^T - w G_m n^T) / P
+    dw_dX = (w3K[:, None] * r - (w * Gm)[:, None] * nc) / P[:, None]
+    # dw/dn (free n) = (-w^3 K z r^T - w G_m X^T) / P   (uses r . n = 0)
+    dw_dn = (-(w3K * z)[:, None] * r - (w * Gm)[:, None] * X) / P[:, None]
+    m = len(X)
+    J_pin_r = np.einsum("nij,nj->ni", J_pin, r)  # J_pin @ r
+    J_pin_n = (J_pin.reshape(2 * m, 3) @ nc).reshape(m, 2)
+    # dD/dX = w (I - n n^T) + r dw/dX^T
+    J_point = (w[:, None, None] * (J_pin - J_pin_n[:, :, None] * nc[None, None, :])
+               + J_pin_r[:, :, None] * dw_dX[:, None, :])
+    # dD/dn = I - w z I - w n X^T + r dw/dn^T   (dr/dn = -z I - n X^T)
+    J_n_free = ((1.0 - w * z)[:, None, None] * J_pin
+                - w[:, None, None] * J_pin_n[:, :, None] * X[:, None, :]
+                + J_pin_r[:, :, None] * dw_dn[:, None, :])
+    J_thickness = J_pin_r * (w * (Gm - Gn) / P)[:, None]
+    J_distance = J_pin_r * (w * (Gm - 1.0) / P)[:, None]
+    return J_point, J_n_free, J_thickness, J_distance
+
+
 class ExactModel:
     """Refractive camera with Snell's law at both faces of the plate (see module docstring)."""
 
@@ -183,37 +219,12 @@ class ExactModel:
     def project_with_jacobians(self, X_cam: np.ndarray) -> ExactJacobians:
         """Pixels and analytic Jacobians (implicit function theorem; see module docstring)."""
         X = as_points(X_cam, 3)
-        nc, h, d = self.normal_cam, self.distance_mm, self.thickness_mm
-        n, nm = self.index, self.medium_index
+        nc = self.normal_cam
         z, r, L, w, _ = self._solve(X)
-        D = nc + w[:, None] * r
-        uv, J_pin, J_params = self.pinhole.project_with_jacobians(D)
-
-        u = w * np.linalg.norm(r, axis=1)
-        Gn, Gn3 = _q_terms(u, n)
-        Gm, Gm3 = _q_terms(u, nm)
-        P = h + d * n * n * Gn3 + L * nm * nm * Gm3  # rho'(u) = dPsi/dw
-        K = d * (n * n - 1.0) * Gn3 + L * (nm * nm - 1.0) * Gm3  # H'(u) = -u K
-        w3K = w**3 * K
-        # dw/dX = (w^3 K r^T - w G_m n^T) / P
-        dw_dX = (w3K[:, None] * r - (w * Gm)[:, None] * nc) / P[:, None]
-        # dw/dn (free n) = (-w^3 K z r^T - w G_m X^T) / P   (uses r . n = 0)
-        dw_dn = (-(w3K * z)[:, None] * r - (w * Gm)[:, None] * X) / P[:, None]
-        dw_dd = w * (Gm - Gn) / P
-        dw_dh = w * (Gm - 1.0) / P
-
-        J_pin_r = np.einsum("nij,nj->ni", J_pin, r)  # J_pin @ r
-        J_pin_n = J_pin @ nc
-        # dD/dX = w (I - n n^T) + r dw/dX^T
-        J_point = (w[:, None, None] * (J_pin - J_pin_n[:, :, None] * nc[None, None, :])
-                   + J_pin_r[:, :, None] * dw_dX[:, None, :])
-        # dD/dn = I - w z I - w n X^T + r dw/dn^T   (dr/dn = -z I - n X^T)
-        J_n_free = ((1.0 - w * z)[:, None, None] * J_pin
-                    - w[:, None, None] * J_pin_n[:, :, None] * X[:, None, :]
-                    + J_pin_r[:, :, None] * dw_dn[:, None, :])
+        uv, J_pin, J_params = self.pinhole.project_with_jacobians(nc + w[:, None] * r)
+        J_point, J_n_free, J_thickness, J_distance = incidence_jacobians(
+            X, z, r, L, w, nc, self.distance_mm, self.thickness_mm, self.index, self.medium_index, J_pin)
         J_normal = J_n_free @ self._dn_dv
-        J_thickness = J_pin_r * dw_dd[:, None]
-        J_distance = J_pin_r * dw_dh[:, None]
         return ExactJacobians(uv, J_point, J_normal, J_params, J_thickness, J_distance)
 
     # --------------------------------------------------------------- backward
