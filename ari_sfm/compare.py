@@ -31,6 +31,7 @@ from .evaluate import evaluate, observation_residuals, residual_stats
 from .records import Dataset, Observation
 
 log = logging.getLogger(__name__)
+FIGURES = ("residuals_scatter.png", "residuals_distribution.png")  # written beside compare.json
 
 FORMAT = "ari-sfm-compare/1"
 MODELS = ("ari", "exact", "rt", "pf", "pinhole", "pinhole_dist")
@@ -271,7 +272,7 @@ def figures(results: Sequence[ModelResult]) -> dict[str, bytes]:
     fig.tight_layout()
     dist = _png(fig)
     plt.close(fig)
-    return {"residuals_scatter.png": scatter, "residuals_distribution.png": dist}
+    return dict(zip(FIGURES, (scatter, dist)))
 
 
 def run_compare(dataset_path: str | Path, out: str | Path, models: str | Sequence[str] = DEFAULT_MODELS,

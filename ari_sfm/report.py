@@ -11,7 +11,7 @@ offline and can be mailed):
   there, else the dataset's own; residuals per camera and the stacking
   tracks (paper Fig. 4) need them.
 - OUT/points.json and OUT/metrics.json (optional): Figs. 13 and 14.
-- OUT/compare.md or OUT/compare.json (optional): the model comparison.
+- OUT/compare.md or OUT/compare.json (optional): the model comparison, and its PNG figures.
 
 The dataset is found from, in order: the ``dataset`` argument, OUT/run.json
 (written by ``ari-sfm run``: ``{"format": "ari-sfm-run/1", "dataset":
@@ -56,6 +56,7 @@ class ReportInputs:
     points: dict[str, np.ndarray] = field(default_factory=dict)  # frame -> (N, 3) xyz
     compare_md: str | None = None
     compare_json: dict | None = None
+    compare_figures: dict[str, bytes] = field(default_factory=dict)  # compare's PNGs by file name
     notes: tuple[str, ...] = ()  # what is missing, shown at the top
 
 
@@ -122,7 +123,10 @@ def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInp
                      "are older than its calibration")
     md = (out / "compare.md").read_text() if (out / "compare.md").exists() else None
     cj = _read_json(out / "compare.json") if (out / "compare.json").exists() else None
-    return ReportInputs(out, cal, ds, ds_path, tuple(observations), metrics, points, md, cj, tuple(notes))
+    from .compare import FIGURES
+
+    figs = {name: (out / name).read_bytes() for name in FIGURES if (out / name).exists()}
+    return ReportInputs(out, cal, ds, ds_path, tuple(observations), metrics, points, md, cj, figs, tuple(notes))
 
 
 # --------------------------------------------------------------------------- HTML pieces
@@ -334,6 +338,9 @@ def render_html(inp: ReportInputs) -> str:
         parts.append("<h2>Model comparison</h2>" + markdown_tables(inp.compare_md))
     elif inp.compare_json is not None:
         parts.append("<h2>Model comparison</h2><pre>" + html.escape(json.dumps(inp.compare_json, indent=1)) + "</pre>")
+    for name, png in inp.compare_figures.items():
+        parts.append(_img(png, f"model comparison: {name.removesuffix('.png')}",
+                          "ari-sfm compare (paper Figs. 6, 9, 11 style): " + name.removesuffix(".png").replace("_", " ")))
     body = "\n".join(parts)
     return (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>ari-sfm report: "
             f"{html.escape(inp.out.name)}</title><style>{CSS}</style></head><body>\n{body}\n</body></html>\n")

@@ -116,8 +116,12 @@ def test_report_includes_the_model_comparison(binocular, tmp_path):
         shutil.copy(out / name, tmp_path / name)
     md = "## Binocular\n\n| model | rmse (px) | time (ms) |\n|---|--:|--:|\n| ari | 0.0712 | 10 |\n| exact | 0.0702 | 40 |\n"
     (tmp_path / "compare.md").write_text(md)
+    png = io.BytesIO()
+    mpimg.imsave(png, np.tile(np.linspace(0, 1, 64), (32, 1)), format="png")
+    (tmp_path / "residuals_scatter.png").write_bytes(png.getvalue())  # what `ari-sfm compare` writes there
     text = write_report(tmp_path).read_text()
     assert "<h2>Model comparison</h2>" in text and "<h3>Binocular</h3>" in text
+    assert _images(text)["model comparison: residuals_scatter"].shape[:2] == (32, 64)
     assert "<td>ari</td><td>0.0712</td>" in text and "---" not in markdown_tables(md)
 
 
