@@ -29,7 +29,8 @@ class CalibrationOptions:
     fix_intrinsics: bool = False  # hold K (and dist) at the rig.yaml hints of the cameras that give K
     max_iterations: int = 100  # Levenberg-Marquardt iterations per stage
     backend: str = "auto"  # bundle adjustment solver: "numpy" (vectorised, GTSAM's LM path), "gtsam", "auto" (= numpy)
-    workers: int | None = None  # threads for corner detection when the dataset has only images
+    workers: int | None = None  # threads for corner detection (dataset with only images) and for the per-camera
+    # analytic initialisation; None: os.cpu_count() (at most one per camera for the initialisation)
     progress: bool = False  # progress bars (the CLI turns them on)
     uncertainty: bool = True  # standard deviations of every parameter from gtsam.Marginals
 
@@ -78,7 +79,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
 
         return calibrate_baseline(dataset, model, opts)
     t0 = time.perf_counter()
-    rig = initialise_rig(dataset, opts.distortion)
+    rig = initialise_rig(dataset, opts.distortion, opts.workers)
     iface = dataset.interface
     names = dataset.camera_names
     underwater = iface.medium_index != 1.0

@@ -79,6 +79,33 @@ def test_arc4_partial_visibility_all_cameras_exact():
     assert_exact_tolerances(cal, scene.truth)
 
 
+def test_initialisation_threads_do_not_change_the_result():
+    """initialise_rig runs the cameras' initialisations on a thread pool (OpenCV on one
+    thread in each): bit-identical to one by one, and the caller's cv2 thread count is back."""
+    import cv2
+
+    from ari_sfm.init.rig import initialise_rig
+
+    ds = make_scene("arc4", seed=0).dataset
+    before = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(3)
+        serial, pooled = initialise_rig(ds, workers=1), initialise_rig(ds, workers=4)
+        assert cv2.getNumThreads() == 3
+    finally:
+        cv2.setNumThreads(before)
+    assert list(pooled.cameras) == list(serial.cameras) == list(ds.camera_names)
+    for n, c in serial.cameras.items():
+        p = pooled.cameras[n]
+        assert np.array_equal(c.K, p.K) and np.array_equal(c.normal_cam, p.normal_cam) and c.zhang_rms_px == p.zhang_rms_px
+        assert list(c.cam_from_target) == list(p.cam_from_target)
+        for f, pose in c.cam_from_target.items():
+            assert np.array_equal(pose.R, p.cam_from_target[f].R) and np.array_equal(pose.t, p.cam_from_target[f].t)
+    for n, pose in serial.cam_from_world.items():
+        assert np.array_equal(pose.R, pooled.cam_from_world[n].R) and np.array_equal(pose.t, pooled.cam_from_world[n].t)
+    assert np.array_equal(serial.normal_world, pooled.normal_world)
+
+
 def test_camera_sharing_no_frame_is_named(binocular):
     """A camera that shares no frame with the others is a clear error naming it."""
     ds = binocular.dataset

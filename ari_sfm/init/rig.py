@@ -4,7 +4,9 @@ Eqs. 11-12), then the cameras joined through shared frames over a spanning tree.
 from __future__ import annotations
 
 import logging
+import os
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -82,14 +84,31 @@ def _mean_pose(poses: list[Pose]) -> Pose:
     return Pose(R, np.mean([p.t for p in poses], axis=0))
 
 
-@one_cv2_thread()  # bit-identical across processes; one switch for all its cv2 calls
-def initialise_rig(dataset: Dataset, distortion: bool = False) -> RigInit:
-    """Initialise every camera, then chain relative poses from camera 0 over shared frames.
+def _initialise_cameras(dataset: Dataset, names: list[str], distortion: bool, workers: int | None) -> dict[str, CameraInit]:
+    """:func:`initialise_camera` of every camera, on up to ``workers`` threads (default: one per
+    camera, at most os.cpu_count()). OpenCV releases the GIL and runs on one thread in each
+    worker, so each camera's result is the same as on its own; they are collected in camera
+    order, and the first failing camera in that order raises, as when run one by one."""
+    n_workers = min(len(names), workers if workers is not None else (os.cpu_count() or 1))
+    if n_workers <= 1:
+        return {n: initialise_camera(dataset, n, distortion) for n in names}
+    with ThreadPoolExecutor(max_workers=n_workers, thread_name_prefix="ari-init") as pool:
+        futures = {n: pool.submit(initialise_camera, dataset, n, distortion) for n in names}
+        return {n: futures[n].result() for n in names}
 
-    OpenCV runs on one thread meanwhile (see :func:`ari_sfm.init.zhang.one_cv2_thread`).
+
+# One switch for all its cv2 calls, worker threads included: cv2.setNumThreads is process-wide,
+# and the contexts opened inside the workers only nest in this one.
+@one_cv2_thread()  # bit-identical across processes
+def initialise_rig(dataset: Dataset, distortion: bool = False, workers: int | None = None) -> RigInit:
+    """Initialise every camera (concurrently, on up to ``workers`` threads, default one per
+    camera up to os.cpu_count()), then chain relative poses from camera 0 over shared frames.
+
+    OpenCV runs on one thread per worker meanwhile (see :func:`ari_sfm.init.zhang.one_cv2_thread`);
+    the result does not depend on ``workers``.
     """
     names = dataset.camera_names
-    cams = {n: initialise_camera(dataset, n, distortion) for n in names}
+    cams = _initialise_cameras(dataset, names, distortion, workers)
     # Camera graph: edges weighted by the number of shared frames (calibration and stacking).
     frames_of = {n: set(c.cam_from_target) for n, c in cams.items()}
     cam_from_world = {names[0]: Pose.identity()}
