@@ -79,13 +79,17 @@ _huber_option = click.option("--huber-px", type=float, default=1.0, show_default
 _outlier_option = click.option("--exclude-outliers", is_flag=True, help="Drop corners beyond 5 sigma after convergence and re-run.")
 
 
+def _calibration_options(fn):
+    """The options calibrate and run share: --model, --distortion, --huber-px, --exclude-outliers."""
+    for option in reversed((_model_option, _distortion_option, _huber_option, _outlier_option)):
+        fn = option(fn)
+    return fn
+
+
 @main.command(name="calibrate")
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder for calibration.json.")
-@_model_option
-@_distortion_option
-@_huber_option
-@_outlier_option
+@_calibration_options
 @user_errors
 def calibrate_cmd(dataset: Path, out: Path, model: str, distortion: bool, huber_px: float, exclude_outliers: bool) -> None:
     """Calibrate DATASET; write OUT/calibration.json (and OUT/observations.json when detected here)."""
@@ -103,10 +107,7 @@ def calibrate_cmd(dataset: Path, out: Path, model: str, distortion: bool, huber_
 @main.command()
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder.")
-@_model_option
-@_distortion_option
-@_huber_option
-@_outlier_option
+@_calibration_options
 @click.option("--truth", type=click.Path(path_type=Path), default=None,
               help="A simulator's truth.json: also report the reconstruction's 3D error against it.")
 @user_errors
