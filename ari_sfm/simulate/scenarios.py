@@ -190,6 +190,17 @@ def _in_world(rig_from_cam: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[Pos
     return out
 
 
+def _rig_cameras(rig: Sequence[tuple[np.ndarray, np.ndarray]], rng: np.random.Generator
+                 ) -> tuple[tuple[CameraTruth, ...], Pose]:
+    """Paper-like cameras (intrinsics drawn from rng in camera order) at the rig's (R, centre) poses,
+    world = camera 0; and rig_from_world."""
+    cam_from_world = _in_world(rig)
+    cameras = tuple(CameraTruth(name=f"cam{i}", K=_intrinsics(rng), image_size=PAPER_IMAGE_SIZE,
+                                cam_from_world=cam_from_world[i], focal_hint_px=round(PAPER_FOCAL_PX, 1))
+                    for i in range(len(rig)))
+    return cameras, Pose(rig[0][0], rig[0][1])
+
+
 def _window_in_world(normal_rig: np.ndarray, distance_rig_mm: float, rig_from_world: Pose,
                      thickness_mm: float, index: float, medium_index: float) -> WindowTruth:
     """A window given in the rig frame, expressed in the world frame (camera 0)."""
@@ -297,11 +308,7 @@ def binocular(rng: np.random.Generator, num_frames: int = 15, underwater: bool =
         jitter = _rot(rng.normal(size=3), math.radians(rng.uniform(0.0, 0.7)))
         rig.append((_rot_y(sign * math.atan(tan_yaw)) @ jitter,
                     np.array([-sign * baseline / 2.0, rng.uniform(-2, 2), rng.uniform(-2, 2)])))
-    cam_from_world = _in_world(rig)
-    cameras = tuple(CameraTruth(name=f"cam{i}", K=_intrinsics(rng), image_size=PAPER_IMAGE_SIZE,
-                                cam_from_world=cam_from_world[i], focal_hint_px=round(PAPER_FOCAL_PX, 1))
-                    for i in range(2))
-    rig_from_world = Pose(rig[0][0], rig[0][1])
+    cameras, rig_from_world = _rig_cameras(rig, rng)
 
     normal_rig = _tilted(np.array([0.0, 0.0, 1.0]), math.radians(rng.uniform(2.0, 5.0)), rng.uniform(0, 2 * math.pi))
     near = max(normal_rig @ c for _, c in rig) + rng.uniform(40.0, 60.0)
@@ -398,11 +405,7 @@ def arc(rng: np.random.Generator, num_frames: int = 20, num_cameras: int = 4,
         center = np.array([radius * math.sin(a), rng.uniform(-3, 3), radius * (1.0 - math.cos(a))])
         jitter = _rot(rng.normal(size=3), math.radians(rng.uniform(0.0, 0.7)))
         rig.append((_rot_y(-a) @ jitter, center))
-    cam_from_world = _in_world(rig)
-    cameras = tuple(CameraTruth(name=f"cam{i}", K=_intrinsics(rng), image_size=PAPER_IMAGE_SIZE,
-                                cam_from_world=cam_from_world[i], focal_hint_px=round(PAPER_FOCAL_PX, 1))
-                    for i in range(num_cameras))
-    rig_from_world = Pose(rig[0][0], rig[0][1])
+    cameras, rig_from_world = _rig_cameras(rig, rng)
     world_from_rig = rig_from_world.inverse()
 
     normal_rig = _tilted(np.array([0.0, 0.0, 1.0]), math.radians(rng.uniform(19.0, 21.0)),
@@ -474,11 +477,7 @@ def grid(rng: np.random.Generator, num_frames: int = 500, num_cameras: int = 16,
         R = np.column_stack([x, np.cross(forward, x), forward])
         jitter = _rot(rng.normal(size=3), math.radians(rng.uniform(0.0, 1.0)))
         rig.append((R @ jitter, center))
-    cam_from_world = _in_world(rig)
-    cameras = tuple(CameraTruth(name=f"cam{i}", K=_intrinsics(rng), image_size=PAPER_IMAGE_SIZE,
-                                cam_from_world=cam_from_world[i], focal_hint_px=round(PAPER_FOCAL_PX, 1))
-                    for i in range(num_cameras))
-    rig_from_world = Pose(rig[0][0], rig[0][1])
+    cameras, rig_from_world = _rig_cameras(rig, rng)
     world_from_rig = rig_from_world.inverse()
     normal_rig = _tilted(np.array([0.0, 0.0, 1.0]), math.radians(rng.uniform(2.0, 5.0)), rng.uniform(0, 2 * math.pi))
     near = max(normal_rig @ c for _, c in rig) + rng.uniform(40.0, 60.0)
