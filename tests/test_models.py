@@ -176,27 +176,36 @@ def test_ari_thickness_zero_is_pinhole(distorted, normal):
     assert np.max(np.abs(ari.project(X) - distorted.project(X))) < 1e-12
 
 
-@pytest.mark.parametrize("medium", [1.0, WATER])
-def test_ari_jacobians(distorted, normal, medium):
-    X = scene_points(normal, seed=1)
-    ari = AriModel(distorted, normal, THICKNESS, INDEX, medium, DISTANCE)
-    jac = ari.project_with_jacobians(X)
-    assert np.allclose(jac.uv, ari.project(X), rtol=0, atol=1e-12)
-    assert_jacobian(jac.J_point, point_jacobian_fd(ari.project, X), name="J_point")
+def assert_window_jacobians(cls, X, distorted, normal, medium):
+    """A window model's analytic Jacobians (point, normal, intrinsics, thickness, distance) against
+    central differences; returns them. In air the distance must not matter (J_distance == 0)."""
+    model = cls(distorted, normal, THICKNESS, INDEX, medium, DISTANCE)
+    jac = model.project_with_jacobians(X)
+    assert np.allclose(jac.uv, model.project(X), rtol=0, atol=1e-12)
+    assert_jacobian(jac.J_point, point_jacobian_fd(model.project, X), name="J_point")
 
     def with_(normal_=normal, params=distorted.params, d=THICKNESS, h=DISTANCE):
-        return AriModel(PinholeModel.from_params(params), normal_, d, INDEX, medium, h).project(X)
+        return cls(PinholeModel.from_params(params), normal_, d, INDEX, medium, h).project(X)
 
     assert_jacobian(jac.J_normal, central_diff(lambda v: with_(normal_=v), normal, [1e-7] * 3), name="J_normal")
     steps = np.where(np.arange(9) < 4, 1e-3, 1e-6)
     assert_jacobian(jac.J_params, central_diff(lambda p: with_(params=p), distorted.params, steps), name="J_params")
     J_d = central_diff(lambda v: with_(d=v[0]), np.array([THICKNESS]), [1e-3])[..., 0]
     assert_jacobian(jac.J_thickness, J_d, name="J_thickness")
+    J_h = central_diff(lambda v: with_(h=v[0]), np.array([DISTANCE]), [1e-3])[..., 0]
     if medium == 1.0:
-        assert np.all(jac.J_distance == 0.0)
+        assert np.max(np.abs(jac.J_distance)) < 1e-12 and np.max(np.abs(J_h)) < 1e-6
     else:
-        J_h = central_diff(lambda v: with_(h=v[0]), np.array([DISTANCE]), [1e-3])[..., 0]
         assert_jacobian(jac.J_distance, J_h, name="J_distance")
+    return jac
+
+
+@pytest.mark.parametrize("medium", [1.0, WATER])
+def test_ari_jacobians(distorted, normal, medium):
+    X = scene_points(normal, seed=1)
+    jac = assert_window_jacobians(AriModel, X, distorted, normal, medium)
+    if medium == 1.0:
+        assert np.all(jac.J_distance == 0.0)  # in air the paraxial shift does not depend on the distance at all
 
 
 # ----------------------------------------------------------------------- exact
@@ -327,25 +336,8 @@ def test_exact_points_before_far_face_are_nan(pinhole, normal):
 def test_exact_jacobians(distorted, normal, medium):
     X = scene_points(normal, seed=2)
     X[0] = 333.0 * normal  # on the normal axis: rho = 0
-    exact = ExactModel(distorted, normal, THICKNESS, INDEX, medium, DISTANCE)
-    jac = exact.project_with_jacobians(X)
+    jac = assert_window_jacobians(ExactModel, X, distorted, normal, medium)
     assert np.all(np.isfinite(jac.J_point))
-    assert np.allclose(jac.uv, exact.project(X), rtol=0, atol=1e-12)
-    assert_jacobian(jac.J_point, point_jacobian_fd(exact.project, X), name="J_point")
-
-    def with_(normal_=normal, params=distorted.params, d=THICKNESS, h=DISTANCE):
-        return ExactModel(PinholeModel.from_params(params), normal_, d, INDEX, medium, h).project(X)
-
-    assert_jacobian(jac.J_normal, central_diff(lambda v: with_(normal_=v), normal, [1e-7] * 3), name="J_normal")
-    steps = np.where(np.arange(9) < 4, 1e-3, 1e-6)
-    assert_jacobian(jac.J_params, central_diff(lambda p: with_(params=p), distorted.params, steps), name="J_params")
-    J_d = central_diff(lambda v: with_(d=v[0]), np.array([THICKNESS]), [1e-3])[..., 0]
-    assert_jacobian(jac.J_thickness, J_d, name="J_thickness")
-    J_h = central_diff(lambda v: with_(h=v[0]), np.array([DISTANCE]), [1e-3])[..., 0]
-    if medium == 1.0:
-        assert np.max(np.abs(jac.J_distance)) < 1e-12 and np.max(np.abs(J_h)) < 1e-6
-    else:
-        assert_jacobian(jac.J_distance, J_h, name="J_distance")
 
 
 def test_jacobian_normal_chains_with_tangent_basis(pinhole, normal):
