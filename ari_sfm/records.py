@@ -72,6 +72,21 @@ class Target:
 
 
 @dataclass(frozen=True)
+class WindowPlane:
+    """The window as built (DATASET_FORMAT 1.1 ``interface.plane``), in the coordinates of
+    the target frame ``frame``: the unit ``normal`` (cameras -> scene) and a point
+    ``point_mm`` on the camera-side face. A sigma of 0 holds that part fixed; > 0 makes it
+    a prior (``sigma_deg`` on the normal's direction, ``sigma_mm`` on the face's position
+    along the normal)."""
+
+    frame: str
+    normal: np.ndarray  # (3,) unit
+    point_mm: np.ndarray  # (3,)
+    sigma_deg: float = 0.0
+    sigma_mm: float = 0.0
+
+
+@dataclass(frozen=True)
 class Interface:
     """The flat window: plate thickness (mm), glass index, index of the medium behind it."""
 
@@ -79,6 +94,7 @@ class Interface:
     index: float
     medium_index: float = 1.0
     distance_mm: float | None = None  # optional hint: camera 0 centre to near surface
+    plane: WindowPlane | None = None  # optional: the window's declared pose (DATASET_FORMAT 1.1)
 
     @property
     def shift_mm(self) -> float:

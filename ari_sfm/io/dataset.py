@@ -41,7 +41,7 @@ from ari_sfm.io.structured import (
     show,
     warn_unknown_keys,
 )
-from ari_sfm.records import SETS, CameraSpec, Dataset, Entry, Interface, Observation, Target
+from ari_sfm.records import SETS, CameraSpec, Dataset, Entry, Interface, Observation, Target, WindowPlane
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +55,8 @@ TARGET_KEYS = {
     "charuco": ("type", "squares", "square_mm", "marker_mm", "dictionary"),
     "points3d": ("type", "points"),
 }
-INTERFACE_KEYS = ("thickness_mm", "index", "medium_index", "distance_mm")
+INTERFACE_KEYS = ("thickness_mm", "index", "medium_index", "distance_mm", "plane")
+PLANE_KEYS = ("frame", "normal", "point_mm", "sigma_deg", "sigma_mm")
 CAMERA_KEYS = ("image_size", "focal_px", "K", "dist")
 ENTRY_KEYS = ("pose", "frame", "added_mm", "stage_mm", "images")
 
@@ -171,7 +172,27 @@ def parse_interface(data: Any, path: Path, where: str = "interface") -> Interfac
     medium = 1.0 if medium is None else as_float_at_least(medium, path, f"{where}.medium_index", 1.0)
     distance = data.get("distance_mm")
     distance = None if distance is None else as_positive_float(distance, path, f"{where}.distance_mm")
-    return Interface(thickness_mm=thickness, index=index, medium_index=medium, distance_mm=distance)
+    plane = data.get("plane")
+    plane = None if plane is None else parse_window_plane(plane, path, f"{where}.plane")
+    return Interface(thickness_mm=thickness, index=index, medium_index=medium, distance_mm=distance, plane=plane)
+
+
+def parse_window_plane(data: Any, path: Path, where: str = "interface.plane") -> WindowPlane:
+    """The ``interface.plane`` mapping (1.1): frame, unit normal, a point of the camera-side face,
+    optional sigmas (absent or 0: held fixed)."""
+    data = as_mapping(data, path, where)
+    warn_unknown_keys(data, PLANE_KEYS, path, where)
+    frame = as_name(require(data, "frame", path, where), path, f"{where}.frame")
+    normal = as_float_array(require(data, "normal", path, where), path, f"{where}.normal", (3,))
+    norm = float(np.linalg.norm(normal))
+    if not 0.999 <= norm <= 1.001:
+        raise AriSfmError(path, f"{where}.normal must be a unit vector (got length {norm:.6g})")
+    point = as_float_array(require(data, "point_mm", path, where), path, f"{where}.point_mm", (3,))
+    sigmas = {}
+    for key in ("sigma_deg", "sigma_mm"):
+        value = data.get(key)
+        sigmas[key] = 0.0 if value is None else as_nonnegative_float(value, path, f"{where}.{key}")
+    return WindowPlane(frame, normal / norm, point, sigmas["sigma_deg"], sigmas["sigma_mm"])
 
 
 def parse_camera(name: str, data: Any, path: Path, where: str) -> CameraSpec:
@@ -373,6 +394,14 @@ def interface_to_json(interface: Interface) -> dict[str, Any]:
     }
     if interface.distance_mm is not None:
         out["distance_mm"] = interface.distance_mm
+    plane = interface.plane
+    if plane is not None:
+        out["plane"] = {"frame": plane.frame, "normal": [float(x) for x in plane.normal],
+                        "point_mm": [float(x) for x in plane.point_mm]}
+        if plane.sigma_deg > 0:
+            out["plane"]["sigma_deg"] = plane.sigma_deg
+        if plane.sigma_mm > 0:
+            out["plane"]["sigma_mm"] = plane.sigma_mm
     return out
 
 
