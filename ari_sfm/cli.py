@@ -323,5 +323,47 @@ def _std(value: float | None, spec: str) -> str:
     return "n/a" if value is None else format(value, spec)
 
 
+@main.group(name="import")
+def import_group() -> None:
+    """Import another tool's experiment as an ari-sfm dataset."""
+
+
+@import_group.command(name="openptv")
+@click.argument("experiment", type=click.Path(path_type=Path))
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="New dataset folder (rig.yaml, observations.json).")
+@user_errors
+def import_openptv_cmd(experiment: Path, out: Path) -> None:
+    """Read an OpenPTV EXPERIMENT folder (ptv.par, cal_ori.par or multi_planes.par, .fix/.crd, .ori) as a dataset."""
+    from .io import load_dataset
+    from .openptv import import_experiment
+
+    rig = import_experiment(experiment, out)
+    ds = load_dataset(rig)
+    n_obs = sum(len(o.ids) for o in ds.observations or ())
+    click.echo(f"dataset: {rig}\n{len(ds.cameras)} cameras ({', '.join(ds.cameras)}), "
+               f"{ds.target.num_ids()} body points, {n_obs} observations")
+
+
+@main.command(name="export-openptv")
+@click.argument("calibration", type=click.Path(path_type=Path))
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
+              help="OpenPTV experiment folder: writes cal/camN.tif.ori, .addpar and parameters/ptv.par.")
+@click.option("--frame", default=None, help="Calibration frame whose target coordinates become OpenPTV's world "
+                                            "(default: the first; 'world': the calibration's world).")
+@click.option("--pixel-size-mm", type=float, default=None,
+              help="Sensor pixel size (default: OUT/parameters/ptv.par's, else 0.01).")
+@user_errors
+def export_openptv_cmd(calibration: Path, out: Path, frame: str | None, pixel_size_mm: float | None) -> None:
+    """Write CALIBRATION as OpenPTV orientation files in OUT."""
+    from .openptv import export_openptv
+
+    summary = export_openptv(calibration, out, frame=frame, pixel_size_mm=pixel_size_mm)
+    click.echo(f"frame {summary.frame}, pixel size {summary.pixel_size_mm[0]:g} x {summary.pixel_size_mm[1]:g} mm")
+    for name, number in summary.numbers.items():
+        fit = summary.fit_error_px.get(name)
+        click.echo(f"  {name} -> cam{number}" + (f" (distortion fitted, max {fit:.2g} px)" if fit is not None else ""))
+    click.echo("\n".join(str(f) for f in summary.files))
+
+
 if __name__ == "__main__":
     main()

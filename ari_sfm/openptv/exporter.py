@@ -1,0 +1,169 @@
+"""``ari-sfm export-openptv``: a calibration.json as OpenPTV orientation files.
+
+Writes ``cal/camN.tif.ori``, ``cal/camN.tif.addpar`` and ``parameters/ptv.par``
+(its pixel size and multimedia part: n1 = 1, n2 = index, n3 = medium_index,
+d = thickness_mm) in the coordinates of one calibration frame's target (default:
+the first; for an imported experiment that is OpenPTV's own world), so that
+OpenPTV's correspondence and tracking run on an ari-sfm calibration. An existing
+``parameters/ptv.par`` in the folder keeps its other lines (image names, flags)
+and lends its pixel size unless ``pixel_size_mm`` is given; its image size must
+match. Cameras named ``cam1``..``camN`` keep their numbers; others are numbered
+in the calibration's order.
+
+The interior orientation is exact when the calibration has no distortion or its
+principal point is at the sensor centre; otherwise OpenPTV's distortion (about
+the sensor centre) is fitted to OpenCV's (about the principal point) and the
+largest pixel error of that fit is reported.
+"""
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ari_sfm.calibration import NO_WINDOW_MODELS, Calibration, load_calibration
+from ari_sfm.errors import AriSfmError
+from ari_sfm.geometry import Pose
+from ari_sfm.io import write_text_atomic
+
+from .conventions import exterior, fit_interior, glass_vector, interior_from_opencv
+from .files import ControlPar, Orientation, format_addpar, format_control_par, format_ori, read_control_par, \
+    update_control_par
+
+log = logging.getLogger(__name__)
+
+WORLD = "world"  # --frame world: the calibration's own world frame
+DEFAULT_PIXEL_SIZE_MM = 0.01  # any size images the same (cc and xh, yh scale with it); OpenPTV needs one
+FIT_WARN_PX = 1e-3  # a fitted interior orientation worse than this is reported as a warning
+CENTRE_TOLERANCE_MM = 1e-9  # |xh|, |yh| below this: the distortion converts exactly
+
+
+@dataclass(frozen=True)
+class ExportSummary:
+    """What export_openptv wrote: the folder, frame, pixel size, files and per-camera fit errors (px)."""
+
+    out: Path
+    frame: str
+    pixel_size_mm: tuple[float, float]
+    files: tuple[Path, ...]
+    numbers: dict[str, int] = field(default_factory=dict)
+    fit_error_px: dict[str, float] = field(default_factory=dict)
+
+
+def _camera_numbers(names: list[str]) -> dict[str, int]:
+    """cam1..camN keep their numbers; any other naming is numbered in order from 1."""
+    found = [re.fullmatch(r"cam(\d+)", n) for n in names]
+    if all(found) and sorted(int(m.group(1)) for m in found) == list(range(1, len(names) + 1)):
+        return {n: int(m.group(1)) for n, m in zip(names, found)}
+    return {n: k + 1 for k, n in enumerate(names)}
+
+
+def _target_pose(cal: Calibration, frame: str | None, path: Path) -> tuple[str, Pose]:
+    """(frame name, world_from_target) of the export frame."""
+    if frame is None:
+        frame = next(iter(cal.frames), WORLD)
+    if frame == WORLD:
+        return frame, Pose.identity()
+    if frame not in cal.frames:
+        known = ", ".join(list(cal.frames)[:8]) or "none"
+        raise AriSfmError(path, f"no calibration frame {frame!r} (frames: {known}; or 'world')")
+    return frame, cal.frames[frame]
+
+
+def _near_face_offset(cal: Calibration) -> float:
+    """n . X of the window's near face in the world frame. Without a distance (air on both sides:
+    unobservable, and the projection does not depend on it) the face is put ``fixed_distance_mm``
+    (as Calibration.projection_model does) beyond the camera nearest to it."""
+    if cal.interface.distance_mm is not None:
+        return float(cal.interface.distance_mm)
+    centres = [c.cam_from_world.inverse().t for c in cal.cameras.values()]
+    return max(float(cal.normal_world @ c) for c in centres) + float(cal.extra.get("fixed_distance_mm", 1.0))
+
+
+def _control_par(existing: ControlPar | None, numbers: dict[str, int], size: tuple[int, int],
+                 pix: tuple[float, float], cal: Calibration) -> ControlPar:
+    n = len(numbers)
+    iface = cal.interface
+    if existing is not None:
+        images, cal_images, flags, chfield = (existing.image_names, existing.cal_image_names, existing.flags,
+                                              existing.chfield)
+    else:
+        images = tuple(f"img/cam{k}." for k in range(1, n + 1))
+        cal_images = tuple(f"cal/cam{k}.tif" for k in range(1, n + 1))
+        flags, chfield = (1, 0, 1), 0
+    return ControlPar(images, cal_images, flags, size[0], size[1], pix[0], pix[1], chfield,
+                      1.0, iface.index, iface.medium_index, iface.thickness_mm)
+
+
+def export_openptv(calibration: str | Path, out: str | Path, frame: str | None = None,
+                   pixel_size_mm: float | None = None) -> ExportSummary:
+    """Write the OpenPTV files of ``calibration`` into the folder ``out`` (see the module docstring).
+
+    Everything is computed and checked before the first file is written; each file is written
+    atomically."""
+    path = Path(calibration)
+    cal = load_calibration(path)
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise AriSfmError(out, "exists and is not a folder")
+    if cal.model in NO_WINDOW_MODELS or cal.model == "pf" or cal.normal_world is None:
+        raise AriSfmError(path, f"model {cal.model} has no window to export (OpenPTV needs one)")
+    if cal.model == "ari":
+        log.warning("%s: model ari is paraxial; OpenPTV traces rays exactly, so the exported cameras project like "
+                    "ari-sfm's exact model with these parameters", path)
+    if pixel_size_mm is not None and not pixel_size_mm > 0:
+        raise AriSfmError(None, f"--pixel-size-mm must be > 0 (got {pixel_size_mm:g})")
+    frame, world_from_target = _target_pose(cal, frame, path)
+    names = list(cal.cameras)
+    numbers = _camera_numbers(names)
+    sizes = {tuple(c.image_size) for c in cal.cameras.values()}
+    if len(sizes) != 1:
+        raise AriSfmError(path, f"cameras have different image sizes {sorted(sizes)}: ptv.par holds one")
+    size = sizes.pop()
+    ptv_par = out / "parameters" / "ptv.par"
+    existing = read_control_par(ptv_par) if ptv_par.is_file() else None
+    if existing is not None:
+        if existing.num_cams != len(names):
+            raise AriSfmError(ptv_par, f"{existing.num_cams} cameras, the calibration has {len(names)}")
+        if (existing.imx, existing.imy) != size:
+            raise AriSfmError(ptv_par, f"image size {existing.imx} x {existing.imy}, the calibration's is "
+                                       f"{size[0]} x {size[1]}")
+    if pixel_size_mm is not None:
+        pix = (float(pixel_size_mm), float(pixel_size_mm))
+    elif existing is not None:
+        pix = (existing.pix_x, existing.pix_y)
+    else:
+        pix = (DEFAULT_PIXEL_SIZE_MM, DEFAULT_PIXEL_SIZE_MM)
+        log.info("pixel size %g mm (no --pixel-size-mm, no ptv.par in %s)", DEFAULT_PIXEL_SIZE_MM, out)
+    control = _control_par(existing, numbers, size, pix, cal)
+
+    target_from_world = world_from_target.inverse()
+    normal_t = world_from_target.R.T @ cal.normal_world
+    face_point_t = target_from_world.apply(_near_face_offset(cal) * cal.normal_world)
+    thickness = cal.interface.thickness_mm
+    try:
+        glass = glass_vector(normal_t, face_point_t, thickness)
+    except ValueError as exc:
+        raise AriSfmError(path, f"frame {frame}: {exc}; OpenPTV's glass vector cannot express this window "
+                                "(choose another --frame)") from None
+    texts: dict[Path, str] = {ptv_par: update_control_par(ptv_par, control) if existing else format_control_par(control)}
+    fit_errors: dict[str, float] = {}
+    for name in names:
+        cam = cal.cameras[name]
+        position, angles, dm = exterior(cam.cam_from_world.compose(world_from_target))
+        dist = np.resize(cam.dist, 5)
+        xh, yh, cc, addpar = interior_from_opencv(cam.K, dist, size, *pix)
+        if np.any(dist != 0) and max(abs(xh), abs(yh)) > CENTRE_TOLERANCE_MM:
+            xh, yh, cc, addpar, fit_errors[name] = fit_interior(cam.K, dist, size, *pix)
+            level = logging.WARNING if fit_errors[name] > FIT_WARN_PX else logging.INFO
+            log.log(level, "%s: OpenPTV's distortion (about the sensor centre) fitted to the calibration's "
+                           "(about the principal point): max error %.2g px", name, fit_errors[name])
+        base = out / control.cal_image_names[numbers[name] - 1]
+        texts[base.with_name(base.name + ".ori")] = format_ori(Orientation(position, angles, dm, xh, yh, cc, glass))
+        texts[base.with_name(base.name + ".addpar")] = format_addpar(addpar)
+    for file, text in texts.items():
+        write_text_atomic(file, text)
+    return ExportSummary(out, frame, pix, tuple(texts), numbers, fit_errors)
