@@ -251,6 +251,9 @@ def test_import_multi_planes_is_one_rigid_body(experiment, tmp_path):
         (r / "cal" / "cam1.tif.crd").read_text().replace(" 73  ", " 74  ")), "cam1.tif.crd", "ids do not match"),
     (lambda r: (r / "parameters" / "cal_ori.par").unlink(), "parameters", "neither multi_planes.par nor cal_ori.par"),
     (lambda r: (r / "cal" / "cam2.tif.crd").unlink(), "cam2.tif.crd", "file not found"),
+    (lambda r: (r / "cal" / "cam2.tif.crd").write_text("  1  -1.25  0.5\n" + "".join(
+        (r / "cal" / "cam2.tif.crd").read_text().splitlines(True)[1:])), "cam2.tif.crd", "outside the 1280 x 1024"),
+    (lambda r: (r / "cal" / "target_on_a_side.txt").write_text("1 2 3\n"), "target_on_a_side.txt", "expected 4"),
 ])
 def test_import_bad_input_is_one_line_naming_the_file(experiment, tmp_path, breakage, file, message):
     breakage(experiment)
@@ -270,6 +273,21 @@ def test_import_refuses_cameras_behind_different_windows(tmp_path):
     with pytest.raises(AriSfmError, match="different windows") as err:
         import_experiment(root, tmp_path / "ds")
     assert err.value.path.endswith("cam3.tif.ori")
+
+
+def test_import_n1_not_air_and_nearly_equal_glass_vectors(experiment, tmp_path):
+    """n1 != 1: Snell's law keeps the ratios (index n2/n1, medium n3/n1); glass vectors that differ a little
+    give cam1's plane as a prior whose sigmas are the spread."""
+    write_ptv_par(experiment / "parameters" / "ptv.par", (1, 2), n=(1.1, 1.5, 1.43))
+    ori = experiment / "cal" / "cam2.tif.ori"
+    ori.write_text(ori.read_text().replace("0.000000000000000  -125.000000000000000",
+                                           "0.500000000000000  -125.000000000000000"))
+    ds = load_dataset(import_experiment(experiment, tmp_path / "ds"))
+    assert ds.interface.index == pytest.approx(1.5 / 1.1) and ds.interface.medium_index == pytest.approx(1.3)
+    plane = ds.interface.plane
+    np.testing.assert_allclose(plane.normal, [0, 0, 1], atol=1e-15)
+    assert plane.sigma_deg == pytest.approx(np.degrees(np.arctan2(0.5, 125)), rel=1e-9)
+    assert plane.sigma_mm > 0
 
 
 def test_import_cli(experiment, tmp_path):
@@ -399,6 +417,22 @@ def test_export_of_testing_fodder_cameras_gives_back_their_ori(experiment, tmp_p
         assert (back.xh, back.yh) == pytest.approx((0, 0), abs=1e-12) and back.cc == pytest.approx(70, abs=1e-12)
     before, after = read_control_par(experiment / "parameters" / "ptv.par"), read_control_par(out / "parameters" / "ptv.par")
     assert after == before  # same names, flags, sizes, pixel size and multimedia values
+
+
+def test_export_keeps_a_padded_ptv_par_layout(tmp_path):
+    """A 2-camera ptv.par padded to four cameras (the Tcl/Tk layout older liboptv reads) keeps its padding;
+    only pixel size and the multimedia lines change."""
+    cal = simulated_calibration()
+    cal.save(tmp_path / "calibration.json")
+    ptv_par = tmp_path / "optv" / "parameters" / "ptv.par"
+    ptv_par.parent.mkdir(parents=True)
+    padded = ["2", "img/a", "cal/a.tif", "img/b", "cal/b.tif", "---", "---", "---", "---",
+              "1", "1", "1", "1280", "1024", "0.01", "0.01", "0", "1", "1.5", "1.0", "3"]
+    ptv_par.write_text("\n".join(padded) + "\n")
+    export_openptv(tmp_path / "calibration.json", tmp_path / "optv", pixel_size_mm=0.02)
+    lines = ptv_par.read_text().split()
+    assert lines[:13] == padded[:13] and lines[14:16] == ["0.02", "0.02"] and lines[17:] == ["1.0", "1.49", "1.333", "6.0"]
+    assert (tmp_path / "optv" / "cal" / "b.tif.ori").is_file() and (tmp_path / "optv" / "cal" / "a.tif.addpar").is_file()
 
 
 def test_export_bad_input_is_one_line(tmp_path):

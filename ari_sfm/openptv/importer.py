@@ -69,8 +69,8 @@ def _plane_files(root: Path, control: ControlPar) -> tuple[list[list[PlaneFiles]
     return [[PlaneFiles(root / par.fixp_name, root / f"{img}.crd") for img in par.img_names]], cal_ori
 
 
-def _read_plane(files: PlaneFiles, offset: int, body: dict[int, np.ndarray], sources: dict[int, Path]
-                ) -> tuple[np.ndarray, np.ndarray]:
+def _read_plane(files: PlaneFiles, offset: int, body: dict[int, np.ndarray], sources: dict[int, Path],
+                image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Add a camera's .fix points to the body; return its detected (ids, OpenCV pixels)."""
     fix = read_points(files.fix, 3)
     crd = read_points(files.crd, 2)
@@ -87,6 +87,10 @@ def _read_plane(files: PlaneFiles, offset: int, body: dict[int, np.ndarray], sou
         body.setdefault(key, xyz)
         sources.setdefault(key, files.fix)
         if np.all(crd[pid] != UNDETECTED):
+            if not (0 <= crd[pid][0] <= image_size[0] and 0 <= crd[pid][1] <= image_size[1]):
+                raise AriSfmError(files.crd, f"id {pid} at ({crd[pid][0]:g}, {crd[pid][1]:g}) is outside the "
+                                             f"{image_size[0]} x {image_size[1]} image (.crd files hold OpenPTV "
+                                             "pixels; metric ones are not read)")
             ids.append(key)
             pixels.append(crd[pid] - OPENPTV_PIXEL_OFFSET)
     return np.array(ids, dtype=int), np.array(pixels, dtype=float).reshape(-1, 2)
@@ -159,7 +163,7 @@ def read_experiment(root: str | Path) -> Dataset:
     per_camera: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {n: [] for n in names}
     for p, plane in enumerate(planes):
         for name, files in zip(names, plane):
-            per_camera[name].append(_read_plane(files, p * step, body, sources))
+            per_camera[name].append(_read_plane(files, p * step, body, sources, (control.imx, control.imy)))
     observations = []
     for name in names:
         ids = np.concatenate([i for i, _ in per_camera[name]])
