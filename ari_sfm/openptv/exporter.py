@@ -149,7 +149,8 @@ def export_openptv(calibration: str | Path, out: str | Path, frame: str | None =
     except ValueError as exc:
         raise AriSfmError(path, f"frame {frame}: {exc}; OpenPTV's glass vector cannot express this window "
                                 "(choose another --frame)") from None
-    texts: dict[Path, str] = {ptv_par: update_control_par(ptv_par, control) if existing else format_control_par(control)}
+    ptv_text = update_control_par(ptv_par, control) if existing else format_control_par(control)
+    texts: dict[Path, str] = {ptv_par: ptv_text}
     fit_errors: dict[str, float] = {}
     for name in names:
         cam = cal.cameras[name]
