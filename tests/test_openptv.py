@@ -111,6 +111,35 @@ def liboptv_pixels(X, cam, tol=1e-12, n_iter=1000):
     return np.array(out)
 
 
+def liboptv_ray(u_optv, v_optv, cam):
+    """pixel_to_metric, dist_to_flat (for k = p = 0: undo scx, she, then subtract xh, yh), then
+    ray_tracing.c: old_ray_tracing: the ray's point on the glass-water face and its unit direction in
+    the medium (world frame)."""
+    assert cam["k1"] == cam["k2"] == cam["k3"] == cam["p1"] == cam["p2"] == 0
+    x = (u_optv - cam["imx"] / 2.0) * cam["pix_x"]
+    y = (cam["imy"] / 2.0 - v_optv) * cam["pix_y"]
+    y = y / np.cos(cam["she"])
+    x = (x + y * np.sin(cam["she"])) / cam["scx"] - cam["xh"]
+    y = y - cam["yh"]
+    b = cam["dm"] @ (np.array([x, y, -cam["cc"]]) / np.sqrt(x * x + y * y + cam["cc"] ** 2))
+    c = np.linalg.norm(cam["glass"])
+    bn = cam["glass"] / c
+    d1 = -(bn @ cam["x0"] - (c + cam["d"])) / (bn @ b)
+    Xb1 = cam["x0"] + b * d1
+
+    def refract(a, ratio):
+        n = a @ bn
+        bp = a - bn * n
+        if np.linalg.norm(bp) > 0:
+            bp = bp / np.linalg.norm(bp)
+        p = np.sqrt(1 - n * n) * ratio
+        return p * bp - np.sqrt(1 - p * p) * bn
+
+    a2 = refract(b, cam["n1"] / cam["n2"])
+    Xb2 = Xb1 + cam["d"] / abs(bn @ a2) * a2
+    return Xb2, refract(a2, cam["n2"] / cam["n3"])
+
+
 # ----------------------------------------------------------------------------- an experiment on disk
 
 
@@ -381,6 +410,23 @@ def test_exported_ori_reprojects_like_ari_sfm(tmp_path, dist0, centred, medium):
         theirs = liboptv_pixels(body, cam) + OPENCV_FROM_OPENPTV_PX
         assert np.isfinite(ours).all() and ours.min() > 0
         assert np.abs(ours - theirs).max() < 1e-6
+
+
+def test_exported_ori_traces_rays_like_ari_sfm(tmp_path):
+    """Pixels back-projected through the exported files with liboptv's ray_tracing give ari-sfm's rays."""
+    cal = simulated_calibration()
+    cal.save(tmp_path / "calibration.json")
+    export_openptv(tmp_path / "calibration.json", tmp_path / "optv")
+    target_from_world = cal.frames["f000"].inverse()
+    uv = np.array([[0.0, 0.0], [639.5, 511.5], [1279.0, 100.0], [300.0, 1000.0]])
+    for number, name in enumerate(cal.cameras, start=1):
+        cam = read_liboptv_camera(tmp_path / "optv" / "cal" / f"cam{number}.tif.ori",
+                                  tmp_path / "optv" / "parameters" / "ptv.par")
+        origins, directions = cal.rays_world(name, uv)
+        for (u, v), o, dirn in zip(uv, target_from_world.apply(origins), directions @ target_from_world.R.T):
+            point, direction = liboptv_ray(u - OPENCV_FROM_OPENPTV_PX, v - OPENCV_FROM_OPENPTV_PX, cam)
+            np.testing.assert_allclose(point, o, atol=1e-9)
+            np.testing.assert_allclose(direction, dirn, atol=1e-12)
 
 
 def test_export_fits_distortion_about_an_offcentre_principal_point(tmp_path):

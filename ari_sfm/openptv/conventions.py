@@ -78,7 +78,7 @@ def window_plane(glass: np.ndarray, thickness_mm: float) -> tuple[np.ndarray, np
     """(normal into the scene, a point of the camera-side face) of a glass vector."""
     length = float(np.linalg.norm(glass))
     unit = np.asarray(glass, float) / length
-    return -unit, unit * (length + thickness_mm)
+    return 0.0 - unit, unit * (length + thickness_mm)  # 0.0 - x: no -0.0 in files
 
 
 def glass_vector(normal: np.ndarray, point_mm: np.ndarray, thickness_mm: float) -> np.ndarray:
