@@ -279,6 +279,9 @@ def test_import_multi_planes_is_one_rigid_body(experiment, tmp_path):
     (lambda r: (r / "cal" / "cam1.tif.crd").write_text(
         (r / "cal" / "cam1.tif.crd").read_text().replace(" 73  ", " 74  ")), "cam1.tif.crd", "ids do not match"),
     (lambda r: (r / "parameters" / "cal_ori.par").unlink(), "parameters", "neither multi_planes.par nor cal_ori.par"),
+    (lambda r: (r / "parameters" / "multi_planes.par").write_text("3\nimg/a\nimg/b\n"), "multi_planes.par",
+     "expected the number of planes"),
+    (lambda r: (r / "parameters" / "multi_planes.par").write_text("1\nimg/a\n"), "a1.tif.fix", "file not found"),
     (lambda r: (r / "cal" / "cam2.tif.crd").unlink(), "cam2.tif.crd", "file not found"),
     (lambda r: (r / "cal" / "cam2.tif.crd").write_text("  1  -1.25  0.5\n" + "".join(
         (r / "cal" / "cam2.tif.crd").read_text().splitlines(True)[1:])), "cam2.tif.crd", "outside the 1280 x 1024"),

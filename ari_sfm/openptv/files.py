@@ -203,9 +203,12 @@ def read_multi_planes_par(path: Path) -> tuple[str, ...]:
     if not lines:
         raise AriSfmError(path, "empty file")
     n = _integer(lines[0], path, "line 1 (number of planes)")
-    if n < 1 or len(lines) != n + 1:
+    if n < 1 or len(lines) < n + 1:
         raise AriSfmError(path, f"{len(lines)} lines: expected the number of planes ({lines[0]}) and one name a plane")
-    return tuple(lines[1:])
+    if len(lines) > n + 1:
+        log.warning("%s: %d names after the count %d: the first %d are read (as liboptv does)", path,
+                    len(lines) - 1, n, n)
+    return tuple(lines[1:n + 1])
 
 
 # --------------------------------------------------------------------------- .ori, .addpar
