@@ -49,7 +49,7 @@ from .levenberg_marquardt import LMParams, LMReport, levenberg_marquardt
 from .marginals import CovarianceTable, covariances_by_key
 from .rig_graph import MODELS, RigGraph, RigState
 from .schur import NormalEquations, model_decrease, solve_damped
-from .view_factor import ViewData, ViewKeys, factor_keys
+from .view_factor import ViewData, ViewKeys
 
 log = logging.getLogger(__name__)
 
@@ -152,20 +152,13 @@ class VectorizedProblem:
         views (one per camera and plate, and the worst ones) are compared with
         the graph's own factors and a mismatch raises ValueError.
         """
-        views, view_factor_index, k = [], [], 0
-        for i in range(rg.graph.size()):  # the view factors, in factor_data order (priors may come first)
-            factor = rg.graph.at(i)
-            if k < len(rg.factor_data) and isinstance(factor, gtsam.CustomFactor):
-                data, vkeys = rg.factor_data[k]
-                if list(factor.keys()) == factor_keys(vkeys) and factor.dim() == 2 * len(data.points_target):
-                    sigmas = np.asarray(factor.noiseModel().sigmas())
-                    if np.ptp(sigmas) != 0.0:
-                        raise ValueError(f"view factor {i} has a non-isotropic noise model")
-                    views.append((data, vkeys, float(sigmas[0])))
-                    view_factor_index.append(i)
-                    k += 1
-        if k != len(rg.factor_data):
-            raise ValueError(f"found {k} of the graph's {len(rg.factor_data)} view factors")
+        view_factor_index = rg.view_factor_indices()  # priors and user factors may sit among them
+        views = []
+        for i, (data, vkeys) in zip(view_factor_index, rg.factor_data):
+            sigmas = np.asarray(rg.graph.at(i).noiseModel().sigmas())
+            if np.ptp(sigmas) != 0.0:
+                raise ValueError(f"view factor {i} has a non-isotropic noise model")
+            views.append((data, vkeys, float(sigmas[0])))
         v = rg.values
         C, F = len(rg.camera_names), len(rg.frame_names)
         R_wc, t_wc = np.tile(np.eye(3), (C, 1, 1)), np.zeros((C, 3))
