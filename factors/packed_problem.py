@@ -39,7 +39,7 @@ from typing import Sequence
 import gtsam
 import numpy as np
 
-from ..geometry import Pose, cross_jacobian_rows, retract_poses, skew
+from ..geometry import Pose, retract_poses
 from ..models.ari import ari_project, check_window
 from ..models.exact import exact_project
 from ..records import Observation
@@ -49,7 +49,7 @@ from .levenberg_marquardt import LMParams, LMReport, levenberg_marquardt
 from .marginals import CovarianceTable, covariances_by_key
 from .rig_graph import MODELS, RigGraph, RigState
 from .schur import NormalEquations, model_decrease, solve_damped
-from .view_factor import ViewData, ViewKeys
+from .view_factor import ViewData, ViewKeys, chain_to_tangents
 
 log = logging.getLogger(__name__)
 
@@ -329,20 +329,10 @@ class VectorizedProblem:
             return res * self.corner_inv_sigma[s:e, None] if whiten and not self.unit_sigma else res
         # the Jacobians unweighted; every column (and the residual) scaled by the weight once at the end
         out[:, :, -1] = r
-        R_cw, n_c, B = tr.R_cam_world[c], tr.normal_cam[c], tr.basis
-        Jn2 = Jn.reshape(2 * m, 3)
-        if c > 0:
-            R_wc, t_wc = x.world_R_cam[c], x.world_t_cam[c]
-            Jg[:, :, n_p:n_p + 3] = cross_jacobian_rows(Jp, X) + (Jn2 @ skew(n_c)).reshape(m, 2, 3)
-            Jg[:, :, n_p + 3:n_p + 6] = Jd[:, :, None] * (-(tr.normal_world @ R_wc)) - Jp
-        else:
-            t_wc = x.world_t_cam[0]
-        Jg[:, :, n_p + 6:n_p + 8] = (Jn2 @ (R_cw @ B)).reshape(m, 2, 2) + Jd[:, :, None] * (-(t_wc @ B))
-        if self.estimate_distance:
-            Jg[:, :, n_p + 8] = Jd
+        R_wc = x.world_R_cam[c] if c > 0 else None  # camera 0 is the world: no pose columns
         JA = self._per_view(c, Jp, R_v)  # d uv / d t of the target pose: J_point R_cam_target
-        out[:, :, :3] = cross_jacobian_rows(JA, -P)  # -JA [P]x
-        out[:, :, 3:6] = JA
+        chain_to_tangents(out, n_p, Jp, Jn, Jd, X, P, JA, tr.normal_world, tr.basis, R_wc, x.world_t_cam[c],
+                          self.estimate_distance)
         out *= (w * self.corner_inv_sigma[s:e])[:, None, None] if whiten and not self.unit_sigma else w[:, None, None]
         res = out[:, :, -1]
         bad = ~np.isfinite(res)
