@@ -96,9 +96,9 @@ class _Transforms:
     distance_cam: np.ndarray | None  # (C,) h_c = h0 - n . C_c
 
 
-
 class VectorizedProblem:
-    """RigGraph's problem packed into flat arrays, with a Levenberg-Marquardt Schur solver.
+    """RigGraph's problem packed into flat arrays; the :class:`~ari_sfm.factors.levenberg_marquardt.LMProblem`
+    of the numpy backend (linearize, solve, model_decrease, retract, error).
 
     Mirrors RigGraph: :meth:`optimize` (updates :attr:`x`, sets
     :attr:`iterations` and :attr:`report`), :meth:`state`, :meth:`residuals`;
@@ -147,8 +147,8 @@ class VectorizedProblem:
     def from_rig_graph(rg: RigGraph, huber_px: float | None = None, check: bool = True) -> "VectorizedProblem":
         """The problem of a built RigGraph at its current values (its view factors and any factors added to it).
 
-        RigGraph does not record the Huber threshold its factors were built
-        with: pass the same ``huber_px``. With ``check`` the residuals of a few
+        Pass the Huber threshold the view factors were built with (``rg.huber_px``
+        after RigGraph.build; the factors themselves do not tell). With ``check`` the residuals of a few
         views (one per camera and plate, and the worst ones) are compared with
         the graph's own factors and a mismatch raises ValueError.
         """
