@@ -7,6 +7,9 @@
     ari_sfm.evaluate(ari_sfm.load_calibration("out/calibration.json"), dataset)
     points = ari_sfm.reconstruct(dataset, calibration)          # frames seen by >= 2 cameras
     X, gap_mm, rmse_px = ari_sfm.triangulate_pixels(calibration, {"cam0": uv0, "cam1": uv1})  # PTV tracks
+
+The factor graph (researchers, docs/RESEARCH.md): ``ari_sfm.RigGraph``, ``ari_sfm.RigState``,
+``ari_sfm.keys`` (variable keys), ``ari_sfm.marginal_covariances``; loaded on first use (gtsam).
 """
 from __future__ import annotations
 
@@ -28,8 +31,26 @@ from .triangulate import triangulate_pixels  # noqa: E402
 
 __version__ = "0.1.0"
 
+_GRAPH_EXPORTS = {  # name -> module: imported on first use, so that `import ari_sfm` does not load gtsam
+    "RigGraph": "ari_sfm.factors.rig_graph",
+    "RigState": "ari_sfm.factors.rig_graph",
+    "keys": "ari_sfm.factors.keys",
+    "marginal_covariances": "ari_sfm.factors.uncertainty",
+}
+
+
+def __getattr__(name: str):
+    module = _GRAPH_EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'ari_sfm' has no attribute {name!r}")
+    import importlib
+
+    mod = importlib.import_module(module)
+    return mod if name == "keys" else getattr(mod, name)
+
+
 __all__ = [
     "AriSfmError", "Calibration", "CalibrationOptions", "CameraCalibration", "Dataset", "Interface",
     "Observation", "Points", "Target", "calibrate", "compare", "evaluate", "load_calibration", "load_dataset",
-    "load_observations", "reconstruct", "triangulate_pixels",
+    "load_observations", "reconstruct", "triangulate_pixels", "RigGraph", "RigState", "keys", "marginal_covariances",
 ]

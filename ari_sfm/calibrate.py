@@ -32,7 +32,9 @@ class CalibrationOptions:
     workers: int | None = None  # threads for corner detection (dataset with only images) and for the per-camera
     # analytic initialisation; None: os.cpu_count() (at most one per camera for the initialisation)
     progress: bool = False  # progress bars (the CLI turns them on)
-    uncertainty: bool = True  # standard deviations of every parameter from gtsam.Marginals
+    uncertainty: bool = True  # standard deviations of every parameter (marginal covariances, physical units)
+    sigma_px: float | None = None  # the corners' pixel sigma weighting the images; None: estimated (robust,
+    # from each stage's residuals; the stage is re-solved with it when priors or extra factors share the graph)
 
 
 def _options(options: dict) -> CalibrationOptions:
@@ -52,7 +54,16 @@ def ensure_observations(dataset: Dataset, workers: int | None = None, progress: 
     return dataset.with_observations(detect_dataset(dataset, workers=workers, progress=progress))
 
 
-def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> Calibration:
+def _add_factors(graph, extra_factors) -> None:
+    """Push a user's factors (a sequence, or a callable of the RigGraph returning them) onto a stage's graph."""
+    if extra_factors is None:
+        return
+    factors = extra_factors(graph) if callable(extra_factors) else extra_factors
+    for f in factors:
+        graph.graph.push_back(f)
+
+
+def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=None, **options) -> Calibration:
     """Calibrate the cameras and the window of a dataset.
 
     model "ari": the paper's paraxial model (analytic initialisation + bundle
@@ -60,6 +71,12 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     the paper's baselines "rt" (ray tracing) and "pf" (polynomial), and "pinhole",
     "pinhole_dist" (window ignored): see :mod:`ari_sfm.baselines`.
     Options: see :class:`CalibrationOptions`.
+
+    ``extra_factors``: gtsam factors on the graph's keys (:mod:`ari_sfm.factors.keys`; e.g.
+    ``gtsam.PriorFactorUnit3(keys.N, ...)`` with a sigma in radians), or a callable taking each
+    stage's :class:`~ari_sfm.factors.rig_graph.RigGraph` and returning them: they join every
+    stage (ari, exact, the outlier re-run), the view factors being whitened by the pixel sigma,
+    so a prior weighs what its sigma says (docs/RESEARCH.md).
     """
     from .init.rig import initialise_rig
     from .factors.rig_graph import RigGraph, RigState, default_distance_mm
@@ -75,6 +92,8 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
         dataset = load_dataset(dataset)
     dataset = ensure_observations(dataset, opts.workers, opts.progress)
     if model not in ("ari", "exact"):
+        if extra_factors is not None:
+            raise ValueError(f"extra_factors need a factor-graph model (ari or exact), not {model!r}")
         from .baselines import calibrate_baseline
 
         return calibrate_baseline(dataset, model, opts)
@@ -97,34 +116,46 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     stages = ["ari"] + (["exact"] if model == "exact" else [])
     graph = None
     iterations = {}
+    from .outliers import find_outliers, robust_sigma_px, without
+
+    # the images' weight: the pixel sigma, given or estimated from each stage's residuals; a stage is
+    # re-solved with the estimate when other factors (priors, the user's) share its graph
+    sigma = 1.0 if opts.sigma_px is None else float(opts.sigma_px)
+    reweight = opts.sigma_px is None and (bool(fixed) or extra_factors is not None)
+
+    def solve(observations, stage: str, state: RigState, sigma: float):
+        graph = RigGraph.build(
+            observations, dataset.target, iface, names, state, model=stage, distortion=opts.distortion,
+            estimate_distance=underwater, huber_px=opts.huber_px, sigma_px=sigma, fixed_intrinsics=fixed,
+        )
+        _add_factors(graph, extra_factors)
+        state, solved = optimize_graph(graph, backend, opts.max_iterations, opts.huber_px, return_problem=True,
+                                       check=False)  # the graph was just built with opts.huber_px
+        # residuals from the numpy backend's solved problem (no Python callbacks); GTSAM's otherwise
+        return graph, state, solved, solved.residuals() if solved is not None else graph.residuals()
+
     for stage in stages:
         if stage == "exact" and state.distance_mm is None:
             state = replace(state, distance_mm=default_distance_mm(state.normal_world, state.cam_from_world))
-        graph = RigGraph.build(
-            dataset.observations, dataset.target, iface, names, state, model=stage, distortion=opts.distortion,
-            estimate_distance=underwater, huber_px=opts.huber_px, fixed_intrinsics=fixed,
-        )
         t_stage = time.perf_counter()
-        state, solved = optimize_graph(graph, backend, opts.max_iterations, opts.huber_px, return_problem=True,
-                                       check=False)  # the graph was just built with opts.huber_px
-        iterations[stage] = {"iterations": graph.iterations, "time_s": time.perf_counter() - t_stage, "backend": backend}
+        graph, state, solved, residuals = solve(dataset.observations, stage, state, sigma)
+        n_iterations = graph.iterations
+        if opts.sigma_px is None:
+            estimated = robust_sigma_px(r for _, r in residuals)
+            if reweight and abs(estimated / sigma - 1.0) > 1e-3:
+                graph, state, solved, residuals = solve(dataset.observations, stage, state, estimated)
+                n_iterations += graph.iterations
+            sigma = estimated
+        iterations[stage] = {"iterations": n_iterations, "time_s": time.perf_counter() - t_stage, "backend": backend,
+                             "sigma_px": graph.sigma_px}
         if solved is not None:  # numpy backend: it stops at convergence without GTSAM's futile lambda trials
             iterations[stage]["error_evaluations"] = solved.report.error_evaluations
-        log.info("%s bundle adjustment: %d iterations, %.3f s", stage, graph.iterations, iterations[stage]["time_s"])
-    from .outliers import find_outliers, without
+        log.info("%s bundle adjustment: %d iterations, %.3f s", stage, n_iterations, iterations[stage]["time_s"])
 
-    # residuals and marginals from the numpy backend's solved problem (no Python callbacks); GTSAM's otherwise
-    residuals = solved.residuals() if solved is not None else graph.residuals()
     outliers, robust_sigma = find_outliers(residuals, opts.outlier_sigma)
     if outliers and opts.exclude_outliers:
         log.info("excluding %d outlier corners and re-running the %s stage", len(outliers), stages[-1])
-        graph = RigGraph.build(
-            without(dataset.observations, outliers), dataset.target, iface, names, state, model=stages[-1],
-            distortion=opts.distortion, estimate_distance=underwater, huber_px=opts.huber_px, fixed_intrinsics=fixed,
-        )
-        state, solved = optimize_graph(graph, backend, opts.max_iterations, opts.huber_px, return_problem=True,
-                                       check=False)
-        residuals = solved.residuals() if solved is not None else graph.residuals()
+        graph, state, solved, residuals = solve(without(dataset.observations, outliers), stages[-1], state, sigma)
     if outliers:
         # With the paraxial ari model, large residuals are mostly its own error at oblique rays.
         level = logging.INFO if stages[-1] == "ari" else logging.WARNING
@@ -133,10 +164,12 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     elapsed = time.perf_counter() - t0
     uncertainty = None
     if opts.uncertainty:
-        from .factors.uncertainty import rig_uncertainty
+        from .factors.uncertainty import marginal_covariances, rig_uncertainty
 
-        uncertainty = rig_uncertainty(graph, marginals=solved.marginals() if solved is not None else None,
-                                      residuals=residuals)
+        # physical units: the graph's view factors carry the pixel sigma (rescaled to the last estimate
+        # when only view factors share the graph)
+        rescale = None if reweight or opts.sigma_px is not None else sigma
+        uncertainty = rig_uncertainty(graph, marginal_covariances(graph, solved, rescale), rescale)
     cameras = {}
     for n in names:
         p = state.params[n]

@@ -6,7 +6,8 @@ Conventions (see CONTRIBUTING.md):
   (camera to world); :func:`pose3_from_cam_from_world` and
   :func:`cam_from_world_from_pose3` are the only places that convert.
 - Pose3 tangent vectors are [rotation(3), translation(3)], right-perturbed:
-  T * Exp(xi).
+  T * Exp(xi); :func:`se3_exp` is GTSAM's Pose3.Expmap for many twists at once
+  (the numpy bundle adjustment retracts every pose with it).
 """
 from __future__ import annotations
 
@@ -117,3 +118,59 @@ def pose_from_pose3(p) -> Pose:
 def unit(v: np.ndarray) -> np.ndarray:
     v = np.asarray(v, float)
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+# --------------------------------------------------------------------------- SE(3), batched
+
+
+def se3_exp(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """GTSAM's Pose3.Expmap of twists xi (N, 6) = [w, v]: rotations (N, 3, 3) and translations (N, 3).
+
+    R = I + A W + B W^2, t = v + B w x v + C w x (w x v) with A = sin t / t,
+    B = (1 - cos t) / t^2, C = (t - sin t) / t^3 (Taylor series for small t).
+    """
+    xi = np.asarray(xi, float).reshape(-1, 6)
+    w, v = xi[:, :3], xi[:, 3:]
+    th2 = np.einsum("ni,ni->n", w, w)
+    small = th2 < 1e-6
+    th = np.sqrt(th2)
+    safe = np.where(small, 1.0, th)
+    s2 = np.sin(0.5 * safe)
+    A = np.where(small, 1.0 - th2 / 6.0 + th2 * th2 / 120.0, np.sin(safe) / safe)
+    B = np.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, 2.0 * s2 * s2 / (safe * safe))
+    C = np.where(small, 1.0 / 6.0 - th2 / 120.0 + th2 * th2 / 5040.0, (1.0 - A) / (safe * safe))
+    Wm = np.zeros((len(xi), 3, 3))
+    Wm[:, 0, 1], Wm[:, 0, 2], Wm[:, 1, 0] = -w[:, 2], w[:, 1], w[:, 2]
+    Wm[:, 1, 2], Wm[:, 2, 0], Wm[:, 2, 1] = -w[:, 0], -w[:, 1], w[:, 0]
+    W2 = Wm @ Wm
+    R = np.eye(3) + A[:, None, None] * Wm + B[:, None, None] * W2
+    wxv = cross_rows(w, v)
+    t = v + B[:, None] * wxv + C[:, None] * cross_rows(w, wxv)
+    return R, t
+
+
+def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise a x b of (N, 3) arrays (np.cross's arithmetic without its overhead)."""
+    out = np.empty_like(a)
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
+def retract_poses(R: np.ndarray, t: np.ndarray, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Right perturbation T Exp(xi) of poses (R (N,3,3), t (N,3)), as Pose3.retract."""
+    dR, dt = se3_exp(xi)
+    return R @ dR, t + np.einsum("nij,nj->ni", R, dt)
+
+
+def cross_jacobian_rows(J: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Row-wise J_a x v for J (M, 2, 3), v (M, 3): the rows of J @ skew(v)."""
+    out = np.empty_like(J)
+    vx, vy, vz = v[:, None, 0], v[:, None, 1], v[:, None, 2]
+    jx, jy, jz = J[:, :, 0], J[:, :, 1], J[:, :, 2]
+    out[:, :, 0] = jy * vz - jz * vy
+    out[:, :, 1] = jz * vx - jx * vz
+    out[:, :, 2] = jx * vy - jy * vx
+    return out
+

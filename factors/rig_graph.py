@@ -1,13 +1,23 @@
 """The rig factor graph: N cameras behind one window, one shared normal.
 
+Variables (:mod:`~ari_sfm.factors.keys`): each camera's intrinsics K(c), each
+camera's pose C(c) = world_T_cam for c > 0 (camera 0 *is* the world: it has
+no pose variable), the window normal N (a Unit3 in the world), each target
+pose X(f), and under water the window distance H. One factor per (camera,
+image), whitened by the pixel sigma ``sigma_px`` (per coordinate): a prior in
+physical units (radians, mm, px) then weighs what it says against the images.
+
 Build it from a :class:`RigState` (e.g. the analytical initialisation), add
 your own factors if you like (a prior on the normal from a level, a known
 baseline, ...), optimise with Levenberg-Marquardt and read the state back::
 
-    problem = RigGraph.from_dataset(dataset, model="ari")     # analytic initialisation
+    problem = RigGraph.from_dataset(dataset, model="ari")     # analytic initialisation, sigma_px estimated
     noise = gtsam.noiseModel.Isotropic.Sigma(2, np.radians(0.05))  # a level, 0.05 deg
     problem.graph.push_back(gtsam.PriorFactorUnit3(keys.N, gtsam.Unit3(n_level), noise))
     state = problem.optimize()                                # a RigState
+
+The production path takes the same factors: ``calibrate(dataset, extra_factors=[...])``
+(docs/RESEARCH.md).
 """
 from __future__ import annotations
 
@@ -25,7 +35,7 @@ from ..geometry import Pose, cam_from_world_from_pose3, pose3_from_cam_from_worl
 from ..models import AriModel, ExactModel
 from ..records import Interface, Observation, Target
 from . import keys as K_
-from .view_factor import ViewData, ViewKeys, view_factor, view_residuals
+from .view_factor import ViewData, ViewKeys, factor_keys, view_factor, view_residuals
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +89,8 @@ class RigGraph:
     factor_data: list[tuple[ViewData, ViewKeys]] = field(default_factory=list)
     model: str = "ari"
     iterations: int = 0
+    sigma_px: float = 1.0  # the view factors' isotropic pixel sigma (per coordinate)
+    huber_px: float | None = None  # the view factors' per-corner Huber threshold (px)
 
     @staticmethod
     def build(
@@ -95,9 +107,17 @@ class RigGraph:
         min_corners: int = 4,
         fixed_intrinsics: Sequence[str] = (),
     ) -> "RigGraph":
-        """One factor per (camera, calibration or stacking image); variables from state."""
+        """One factor per (camera, calibration or stacking image), whitened by ``sigma_px``; variables from
+        state. Camera 0 is the world frame (no pose variable): ``state.cam_from_world`` of the first
+        camera must be the identity."""
+        if not (np.isfinite(sigma_px) and sigma_px > 0.0):
+            raise ValueError(f"sigma_px must be a positive pixel sigma, got {sigma_px}")
         factory = MODELS[model]
         names = list(camera_names)
+        world = state.cam_from_world[names[0]]
+        if not (np.allclose(world.R, np.eye(3), rtol=0.0, atol=1e-9) and np.allclose(world.t, 0.0, rtol=0.0, atol=1e-9)):
+            raise ValueError(f"camera 0 ({names[0]}) is the world frame (it has no pose variable): its "
+                             "cam_from_world must be the identity; express the state in its frame")
         frames = sorted(state.world_from_target)
         frame_index = {f: i for i, f in enumerate(frames)}
         n_params = 9 if distortion else 4
@@ -116,7 +136,8 @@ class RigGraph:
             graph.push_back(gtsam.PriorFactorVector(K_.K(c), np.asarray(state.params[name][:n_params], float),
                                                     gtsam.noiseModel.Isotropic.Sigma(n_params, 1e-4)))
         from ..init.zhang import object_points
-        rg = RigGraph(graph, values, names, frames, n_params, state, estimate_distance, model=model)
+        rg = RigGraph(graph, values, names, frames, n_params, state, estimate_distance, model=model,
+                      sigma_px=float(sigma_px), huber_px=huber_px)
         for obs in observations:
             if obs.set not in ("calibration", "stacking") or obs.frame not in frame_index or obs.camera not in names:
                 continue
@@ -138,19 +159,66 @@ class RigGraph:
         return rg
 
     @staticmethod
-    def from_dataset(dataset, model: str = "ari", distortion: bool = False, huber_px: float | None = 1.0) -> "RigGraph":
-        """The graph of a dataset with observations, initialised by the analytic pipeline
-        (expansion centre, Zhang, Eq. 5, Eqs. 11-12, spanning tree over shared frames)."""
+    def from_dataset(dataset, model: str = "ari", distortion: bool = False, huber_px: float | None = 1.0,
+                     sigma_px: float | None = None, workers: int | None = None) -> "RigGraph":
+        """The graph of a dataset, initialised by the analytic pipeline (expansion centre, Zhang, Eq. 5,
+        Eqs. 11-12, spanning tree over shared frames). A dataset with images only has its corners
+        detected first (:func:`ari_sfm.calibrate.ensure_observations`).
+
+        ``sigma_px``: the pixel sigma of the view factors; None estimates it (the robust sigma of
+        the residuals after a first numpy solve of this graph, :func:`estimate_sigma_px`) so that
+        factors you add in physical units weigh what they say. The values stay at the initialisation.
+        """
+        from ..calibrate import ensure_observations
         from ..init.rig import initialise_rig
 
+        dataset = ensure_observations(dataset, workers)
         rig = initialise_rig(dataset, distortion)
         underwater = dataset.interface.medium_index != 1.0
         distance = dataset.interface.distance_mm
         if distance is None and (underwater or model == "exact"):
             distance = default_distance_mm(rig.normal_world, rig.cam_from_world)
         state = RigState.from_initialisation(rig, distance)
-        return RigGraph.build(dataset.observations, dataset.target, dataset.interface, dataset.camera_names, state,
-                              model=model, distortion=distortion, estimate_distance=underwater, huber_px=huber_px)
+
+        def build(sigma: float) -> "RigGraph":
+            return RigGraph.build(dataset.observations, dataset.target, dataset.interface, dataset.camera_names,
+                                  state, model=model, distortion=distortion, estimate_distance=underwater,
+                                  huber_px=huber_px, sigma_px=sigma)
+
+        rg = build(1.0 if sigma_px is None else sigma_px)
+        return rg if sigma_px is not None else build(estimate_sigma_px(rg))
+
+    def with_sigma(self, sigma_px: float) -> "RigGraph":
+        """The same graph (values, added factors) with its view factors whitened by ``sigma_px`` instead."""
+        if not (np.isfinite(sigma_px) and sigma_px > 0.0):
+            raise ValueError(f"sigma_px must be a positive pixel sigma, got {sigma_px}")
+        factory = MODELS[self.model]
+        views = {id(d): view_factor(factory, d, k, sigma_px, self.huber_px) for d, k in self.factor_data}
+        view_index = self.view_factor_indices()
+        graph = gtsam.NonlinearFactorGraph()
+        k = 0
+        for i in range(self.graph.size()):
+            if k < len(view_index) and i == view_index[k]:
+                graph.push_back(views[id(self.factor_data[k][0])])
+                k += 1
+            else:
+                graph.push_back(self.graph.at(i))
+        return replace(self, graph=graph, values=gtsam.Values(self.values), sigma_px=float(sigma_px),
+                       factor_views=list(self.factor_views), factor_data=list(self.factor_data))
+
+    def view_factor_indices(self) -> list[int]:
+        """The graph indices of the view factors, in factor_data order (other factors may sit among them)."""
+        out, k = [], 0
+        for i in range(self.graph.size()):
+            if k < len(self.factor_data) and isinstance(self.graph.at(i), gtsam.CustomFactor):
+                data, vkeys = self.factor_data[k]
+                f = self.graph.at(i)
+                if list(f.keys()) == factor_keys(vkeys) and f.dim() == 2 * len(data.points_target):
+                    out.append(i)
+                    k += 1
+        if k != len(self.factor_data):
+            raise ValueError(f"found {k} of the graph's {len(self.factor_data)} view factors")
+        return out
 
     def optimize(self, max_iterations: int = 100, relative_tolerance: float = 1e-10) -> RigState:
         """Levenberg-Marquardt from the current values; updates them and returns the state."""
@@ -184,3 +252,18 @@ class RigGraph:
             r, _ = view_residuals(factory, data, vkeys, self.values, False, None)
             out.append((obs, r.reshape(-1, 2)))
         return out
+
+
+def estimate_sigma_px(rg: RigGraph) -> float:
+    """The pixel sigma of a graph's images: the robust sigma (1.4826 MAD per coordinate,
+    :func:`ari_sfm.outliers.robust_sigma_px`) of the residuals after solving a copy of the graph
+    with the numpy backend (GTSAM when the graph has factors the numpy backend cannot hold).
+    ``rg`` itself is not changed."""
+    from ..outliers import robust_sigma_px
+    from .backend import optimize_graph
+
+    copy = replace(rg, values=gtsam.Values(rg.values), factor_views=list(rg.factor_views),
+                   factor_data=list(rg.factor_data))
+    _, solved = optimize_graph(copy, "auto", huber_px=rg.huber_px, return_problem=True, check=False)
+    residuals = solved.residuals() if solved is not None else copy.residuals()
+    return robust_sigma_px(r for _, r in residuals)

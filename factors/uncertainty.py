@@ -1,15 +1,18 @@
-"""Standard deviations of the estimated parameters from gtsam.Marginals.
+"""Marginal covariances and standard deviations of the estimated parameters, in physical units.
 
-The graph's factors use a unit pixel sigma, so the marginal covariances are
-scaled by the residual variance per coordinate, sigma^2 = SSR / (2N - p),
-estimated at the optimum (with the exact model this is the detector noise;
-with the paraxial model it also holds its model error).
+The view factors are whitened by the pixel sigma (``RigGraph.sigma_px``, per
+coordinate: given, or estimated from the residuals), so the inverse of the
+information matrix is already a covariance in the variables' own units
+(px for intrinsics, rad and mm for poses in their Pose3 tangent space, rad for
+the normal's Unit3 tangent, mm for the distance). :func:`marginal_covariances`
+is the one function that returns them, whichever backend solved the graph:
+``gtsam.Marginals`` of the graph, or the numpy backend's Schur complement
+(the same numbers, see tests/test_vectorized.py). :func:`rig_uncertainty`
+turns them into the standard deviations written to calibration.json.
 """
 from __future__ import annotations
 
 import logging
-from typing import Sequence
-
 import gtsam
 import numpy as np
 
@@ -29,43 +32,46 @@ def _std(variance: float, what: str) -> float | None:
     return None
 
 
-def residual_sigma_px(rg: RigGraph, residuals: Sequence[tuple[object, np.ndarray]] | None = None) -> float:
-    """sigma per pixel coordinate from the residuals at the current values
-    (``residuals``: rg.residuals(), when already at hand)."""
-    res = np.concatenate([r.reshape(-1) for _, r in (rg.residuals() if residuals is None else residuals)])
-    n_params = rg.values.dim()
-    dof = max(res.size - n_params, 1)
-    return float(np.sqrt(np.sum(res**2) / dof))
+def marginal_covariances(rg: RigGraph, solved=None, sigma_px: float | None = None) -> dict[int, np.ndarray]:
+    """Marginal covariances of the rig's global variables at the graph's current values, by key:
+    K(c) (px), C(c) for c > 0 (Pose3 tangent [rad, mm]; camera 0 is the world, no variable),
+    N (the normal's 2-D Unit3 tangent, rad) and H (mm, when estimated).
+
+    ``solved``: the numpy backend's VectorizedProblem at these values (``optimize_graph(...,
+    return_problem=True)``), else ``gtsam.Marginals(rg.graph, rg.values)`` is used. The units are
+    physical because the view factors carry ``rg.sigma_px``; ``sigma_px`` rescales to another pixel
+    sigma (exact only when every factor is a view factor: with user factors rebuild the graph with
+    :meth:`RigGraph.with_sigma` instead).
+    """
+    marginals = solved.marginals() if solved is not None else gtsam.Marginals(rg.graph, rg.values)
+    keys = [K_.K(c) for c in range(len(rg.camera_names))] + [K_.C(c) for c in range(1, len(rg.camera_names))]
+    keys += [K_.N] + ([K_.H] if rg.estimate_distance else [])
+    scale = 1.0 if sigma_px is None else (sigma_px / rg.sigma_px) ** 2
+    return {k: np.asarray(marginals.marginalCovariance(k), float) * scale for k in keys}
 
 
-def rig_uncertainty(rg: RigGraph, sigma_px: float | None = None, marginals=None,
-                    residuals: Sequence[tuple[object, np.ndarray]] | None = None) -> dict:
+def rig_uncertainty(rg: RigGraph, covariances: dict[int, np.ndarray] | None = None,
+                    sigma_px: float | None = None) -> dict:
     """Standard deviations: per camera fx fy cx cy (and distortion) in px, the
     relative pose of each camera to camera 0 (rotation in degrees, translation in
     mm, as RMS error magnitudes), the normal's angle in degrees (RMS), and the
-    window distance in mm when it is estimated.
+    window distance in mm when it is estimated; ``sigma_px`` the pixel sigma they
+    rest on (default the graph's).
 
-    ``marginals``: default ``gtsam.Marginals(rg.graph, rg.values)``; the numpy
-    backend's ``VectorizedProblem.marginals()`` gives the same covariances
-    without linearising the graph through its Python callbacks. ``residuals``:
-    rg.residuals(), when already at hand."""
-    sigma = residual_sigma_px(rg, residuals) if sigma_px is None else sigma_px
-    if marginals is None:
-        marginals = gtsam.Marginals(rg.graph, rg.values)
-    s2 = sigma**2
-    out: dict = {"sigma_px": sigma, "cameras": {}}
+    ``covariances``: :func:`marginal_covariances` of the graph (computed when not given)."""
+    cov = marginal_covariances(rg) if covariances is None else covariances
+    out: dict = {"sigma_px": float(rg.sigma_px if sigma_px is None else sigma_px), "cameras": {}}
     for c, name in enumerate(rg.camera_names):
-        cov = marginals.marginalCovariance(K_.K(c)) * s2
-        entry = {PARAM_NAMES[i]: _std(cov[i, i], f"{name} {PARAM_NAMES[i]}") for i in range(cov.shape[0])}
+        ck = cov[K_.K(c)]
+        entry = {PARAM_NAMES[i]: _std(ck[i, i], f"{name} {PARAM_NAMES[i]}") for i in range(ck.shape[0])}
         if c > 0:
-            pc = marginals.marginalCovariance(K_.C(c)) * s2
+            pc = cov[K_.C(c)]
             rot = _std(np.trace(pc[:3, :3]), f"{name} rotation")
             entry["rotation_deg"] = None if rot is None else float(np.degrees(rot))
             entry["translation_mm"] = _std(np.trace(pc[3:, 3:]), f"{name} translation")
         out["cameras"][name] = entry
-    cov_n = marginals.marginalCovariance(K_.N) * s2
-    normal = _std(np.trace(cov_n), "the normal")
+    normal = _std(np.trace(cov[K_.N]), "the normal")
     out["normal_deg"] = None if normal is None else float(np.degrees(normal))
     if rg.estimate_distance:
-        out["distance_mm"] = _std(marginals.marginalCovariance(K_.H)[0, 0] * s2, "the window distance")
+        out["distance_mm"] = _std(cov[K_.H][0, 0], "the window distance")
     return out

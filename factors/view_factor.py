@@ -3,8 +3,9 @@
 The error is the stacked pixel residuals (projected - measured), 2M long. The
 projection model (:class:`~ari_sfm.models.AriModel` or
 :class:`~ari_sfm.models.ExactModel`) supplies the derivatives w.r.t. the point,
-the normal, the intrinsics and the window distance; this module chains them to
-the GTSAM tangent spaces:
+the normal, the intrinsics and the window distance; :func:`chain_to_tangents`
+(the one copy, also used by the numpy backend) chains them to the GTSAM
+tangent spaces:
 
 - Pose3 (right perturbation T Exp([w, v])): for world_T_cam,
   dX_cam = [X_cam]x w - v and dn_cam = [n_cam]x w; for world_T_target,
@@ -25,7 +26,7 @@ from typing import Callable
 import gtsam
 import numpy as np
 
-from ..geometry import skew
+from ..geometry import cross_jacobian_rows, skew
 from ..models import PinholeModel
 
 ModelFactory = Callable[..., object]
@@ -52,6 +53,33 @@ class ViewKeys:
     camera: int | None = None  # None: the camera is the world frame (identity)
     distance: int | None = None  # None: distance fixed at fixed_distance_mm
     fixed_distance_mm: float | None = None
+
+
+def chain_to_tangents(out: np.ndarray, n_params: int, J_point: np.ndarray, J_normal: np.ndarray,
+                      J_distance: np.ndarray, X_cam: np.ndarray, P: np.ndarray, JA: np.ndarray,
+                      normal_world: np.ndarray, basis: np.ndarray, R_wc: np.ndarray | None, t_wc: np.ndarray,
+                      distance: bool) -> None:
+    """The chain rule from the model's derivatives to the variables' tangent spaces (module docstring),
+    for M corners of one camera, written into ``out`` (M, 2, >= 6 + n_params + 8 (+1)) laid out as
+    ``[X(f) (6) | K(c) (n_params, left to the caller) | C(c) (6) | N (2) | H (1, with distance)]``.
+
+    ``J_point``, ``J_normal`` (M, 2, 3) and ``J_distance`` (M, 2) from the model; ``X_cam`` (M, 3) the
+    camera-frame points, ``P`` (M, 3) the target-frame points, ``JA`` (M, 2, 3) = J_point R_cam_target
+    (per view); ``basis`` the Unit3 tangent basis (3, 2) of ``normal_world``; ``R_wc``, ``t_wc`` the
+    camera's world_T_cam (``R_wc`` None for camera 0, the world: its pose columns are left alone).
+    """
+    M, k = len(X_cam), 6 + n_params
+    Jn2 = J_normal.reshape(2 * M, 3)
+    R_cw = np.eye(3) if R_wc is None else R_wc.T
+    if R_wc is not None:  # world_T_cam: dX_cam = [X_cam]x w - v, dn_cam = [n_cam]x w, dh_c = -n_w . R_wc v
+        out[:, :, k:k + 3] = cross_jacobian_rows(J_point, X_cam) + (Jn2 @ skew(R_cw @ normal_world)).reshape(M, 2, 3)
+        out[:, :, k + 3:k + 6] = J_distance[:, :, None] * (-(normal_world @ R_wc)) - J_point
+    # Unit3: dn_world = B dxi; n_cam = R_cw n_world, h_c = h_0 - n_world . t_wc
+    out[:, :, k + 6:k + 8] = (Jn2 @ (R_cw @ basis)).reshape(M, 2, 2) + J_distance[:, :, None] * (-(t_wc @ basis))
+    if distance:
+        out[:, :, k + 8] = J_distance
+    out[:, :, :3] = cross_jacobian_rows(JA, -P)  # world_T_target: dX_cam = R_ct ([-P]x w + v)
+    out[:, :, 3:6] = JA
 
 
 def view_residuals(
@@ -93,24 +121,17 @@ def view_residuals(
         residual = np.where(np.isfinite(residual), residual, 1e6)  # a point fell behind the window
     if not want_jacobians:
         return residual, []
-    M = len(P)
-    w = weights[:, None, None]
-    Jp, Jn = J.J_point * w, J.J_normal * w
-    Jd = np.asarray(J.J_distance).reshape(M, 2, 1) * w
-    Hs = [(J.J_params[:, :, : data.n_params] * w).reshape(2 * M, data.n_params)]
-    if keys.camera is not None:
-        H_cam = np.concatenate([Jp @ skew(X_c), -Jp], axis=2)
-        H_cam[:, :, :3] += Jn @ skew(n_c)
-        H_cam[:, :, 3:] += Jd @ (-(n_w @ R_wc))[None, None, :]
-        Hs.append(H_cam.reshape(2 * M, 6))
-    B = normal.basis()
-    H_n = Jn @ (R_cw @ B) + Jd @ (-(t_wc @ B))[None, None, :]
-    Hs.append(H_n.reshape(2 * M, 2))
-    JA = Jp @ (R_cw @ R_wt)  # (M, 2, 3)
-    H_x = np.concatenate([-JA @ skew(P), JA], axis=2)
-    Hs.append(H_x.reshape(2 * M, 6))
-    if keys.distance is not None:
-        Hs.append(Jd.reshape(2 * M, 1))
+    M, n_p = len(P), data.n_params
+    out = np.zeros((M, 2, 6 + n_p + 6 + 2 + 1))
+    out[:, :, 6:6 + n_p] = J.J_params[:, :, :n_p]
+    chain_to_tangents(out, n_p, J.J_point, J.J_normal, np.asarray(J.J_distance).reshape(M, 2), X_c, P,
+                      J.J_point @ (R_cw @ R_wt), np.asarray(n_w, float), np.asarray(normal.basis(), float),
+                      R_wc if keys.camera is not None else None, t_wc, keys.distance is not None)
+    out *= weights[:, None, None]
+    k = 6 + n_p
+    blocks = [out[:, :, 6:k]] + ([out[:, :, k:k + 6]] if keys.camera is not None else [])
+    blocks += [out[:, :, k + 6:k + 8], out[:, :, :6]] + ([out[:, :, k + 8:k + 9]] if keys.distance is not None else [])
+    Hs = [b.reshape(2 * M, b.shape[2]) for b in blocks]
     return residual, Hs
 
 

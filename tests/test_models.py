@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 
 from ari_sfm.geometry import rotation_from_rotvec
+from ari_sfm.models.ari import ari_project
+from ari_sfm.models.exact import exact_project
 from ari_sfm.models import (AriModel, ConvergenceError, ExactModel, PinholeModel, ari_shift_mm,
                             solve_incidence)
 
@@ -365,3 +367,24 @@ def test_ari_is_the_first_newton_step(pinhole, normal, medium):
     r = X - z[:, None] * normal
     w1 = 1.0 / (DISTANCE + THICKNESS / INDEX + (z - DISTANCE - THICKNESS) / medium)
     assert np.max(np.abs(pinhole.project(normal + w1[:, None] * r) - ari.project(X))) < 1e-9
+
+
+@pytest.mark.parametrize("medium", [1.0, 1.333])
+@pytest.mark.parametrize("kernel,cls", [(ari_project, AriModel), (exact_project, ExactModel)])
+def test_batched_kernel_with_per_point_thickness_is_the_model(kernel, cls, distorted, normal, medium):
+    """The kernel the numpy bundle adjustment calls, with one plate thickness per point (stacked plates),
+    gives what the model gives plate by plate; with n_params=4 its intrinsics Jacobian is the first 4 columns."""
+    X = scene_points(normal, seed=3, n=60)
+    d = np.where(np.arange(60) % 3 == 0, 50.0, 70.0)
+    p = distorted.params
+    for n_params in (9, 4):
+        params = p if n_params == 9 else np.concatenate([p[:4], np.zeros(5)])
+        J = kernel(X, params, 2.0 * normal, d, 1.5168, medium, 30.0, True, n_params)
+        for t in (50.0, 70.0):
+            rows = d == t
+            ref = cls(PinholeModel.from_params(params), 2.0 * normal, t, 1.5168, medium, 30.0).project_with_jacobians(X[rows])
+            for name in ref._fields:
+                want = getattr(ref, name)[..., :n_params] if name == "J_params" else getattr(ref, name)
+                np.testing.assert_allclose(getattr(J, name)[rows], want, rtol=1e-12, atol=1e-12 * np.abs(want).max(),
+                                           err_msg=name)
+        assert kernel(X, params, 2.0 * normal, d, 1.5168, medium, 30.0, False, n_params).J_point is None

@@ -1,4 +1,4 @@
-"""The numpy backend (factors/vectorized.py) against GTSAM on the same RigGraph.
+"""The numpy backend (ari_sfm.factors.packed_problem, schur, levenberg_marquardt) against GTSAM on the same RigGraph.
 
 - its SE(3) exponential is GTSAM's Pose3.Expmap;
 - residuals and Jacobians equal view_residuals on a random state (1e-9);

@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from .pinhole import PinholeModel, as_points
+from .pinhole import NUM_PARAMS, PinholeModel, as_points, project_points
 
 if TYPE_CHECKING:
     from ari_sfm.records import Interface
@@ -93,6 +93,48 @@ class AriJacobians(NamedTuple):
     J_distance: np.ndarray  # (N, 2) d uv / d distance_mm (zeros in air)
 
 
+def ari_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
+                index: float, medium_index: float = 1.0, distance_mm: float | None = None,
+                jacobians: bool = True, n_params: int = NUM_PARAMS) -> AriJacobians:
+    """The ARI projection of camera-frame points X (m, 3): the one implementation, used by
+    :class:`AriModel` and by the numpy bundle adjustment (all corners of a camera in one call).
+
+    ``params`` (9,) intrinsics; ``thickness_mm`` one plate for all points or (m,) one per point
+    (stacked plates); ``distance_mm`` h (needed with a medium behind, unused in air).
+    Returns an :class:`AriJacobians`; without ``jacobians`` only ``uv`` is set (the rest None);
+    ``J_params`` holds the first ``n_params`` columns. ``normal_cam`` may be any non-zero vector
+    (``J_normal`` is the derivative w.r.t. its 3 components); the window's numbers are checked by
+    the model (:func:`check_window`), not here.
+    """
+    if medium_index != 1.0 and distance_mm is None:
+        raise ValueError("distance_mm is required when a medium (medium_index != 1) is behind the window")
+    nc, dn_dv = unit_normal_and_projector(normal_cam)
+    h = 0.0 if distance_mm is None else float(distance_mm)  # unused in air (b = 0, a = -delta)
+    d, n, nm = thickness_mm, index, medium_index
+    b = 1.0 / nm - 1.0
+    s = h + d / n - (h + d) / nm  # X_app = X + (a + b z) n_c, z = n_c . X
+    if b != 0.0:
+        s = s + b * (X @ nc)
+    elif np.ndim(s) == 0:
+        s = np.full(len(X), s)
+    uv, J_pin, J_params = project_points(X + s[:, None] * nc, params, n_params, jacobians)
+    if not jacobians:
+        return AriJacobians(uv, None, None, None, None, None)
+    m = len(X)
+    J_pin_n = (J_pin.reshape(2 * m, 3) @ nc).reshape(m, 2)  # J_pin n_c
+    if b != 0.0:  # d X_app / d X = I + b n n^T; d X_app / d n (free, at unit n) = s I + b n X^T
+        J_point = J_pin + b * J_pin_n[:, :, None] * nc[None, None, :]
+        J_n_free = s[:, None, None] * J_pin + b * J_pin_n[:, :, None] * X[:, None, :]
+    else:  # air: d X_app / d X = I
+        J_point = J_pin
+        J_n_free = s[:, None, None] * J_pin
+    J_normal = (J_n_free.reshape(2 * m, 3) @ dn_dv).reshape(m, 2, 3)  # then d n / d v
+    # d X_app / d d = (1/n - 1/n_m) n_c ; d X_app / d h = (1 - 1/n_m) n_c
+    J_thickness = (1.0 / n - 1.0 / nm) * J_pin_n
+    J_distance = (1.0 - 1.0 / nm) * J_pin_n
+    return AriJacobians(uv, J_point, J_normal, J_params, J_thickness, J_distance)
+
+
 class AriModel:
     """Paraxial refractive camera: ``uv = pinhole(X_app)``, ``X_app = X + (z_app - z) n_c``."""
 
@@ -102,7 +144,8 @@ class AriModel:
         if medium_index != 1.0 and distance_mm is None:
             raise ValueError("distance_mm is required when a medium (medium_index != 1) is behind the window")
         self.pinhole = pinhole
-        self.normal_cam, self._dn_dv = unit_normal_and_projector(normal_cam)
+        self.normal_cam = unit_normal_and_projector(normal_cam)[0]
+        self._normal_arg = np.array(normal_cam, dtype=float).reshape(3)  # J_normal is w.r.t. this vector
         self.thickness_mm = float(thickness_mm)
         self.index = float(index)
         self.medium_index = float(medium_index)
@@ -142,22 +185,9 @@ class AriModel:
         return self.pinhole.project(self.apparent_points(X_cam))
 
     def project_with_jacobians(self, X_cam: np.ndarray) -> AriJacobians:
-        """Pixels and analytic Jacobians (see :class:`AriJacobians`)."""
-        X = as_points(X_cam, 3)
-        nc, b = self.normal_cam, self._b
-        z = X @ nc
-        s = self._a + b * z
-        X_app = X + s[:, None] * nc
-        uv, J_pin, J_params = self.pinhole.project_with_jacobians(X_app)
-        # d X_app / d X = I + b n n^T
-        J_point = J_pin + b * (J_pin @ nc)[:, :, None] * nc[None, None, :]
-        # d X_app / d n (free vector, at unit n) = s I + b n X^T; then d n / d v
-        J_n_free = s[:, None, None] * J_pin + b * (J_pin @ nc)[:, :, None] * X[:, None, :]
-        J_normal = J_n_free @ self._dn_dv
-        # d X_app / d d = (1/n - 1/n_m) n_c ; d X_app / d h = (1 - 1/n_m) n_c
-        J_thickness = self._da_dd * (J_pin @ nc)
-        J_distance = self._da_dh * (J_pin @ nc)
-        return AriJacobians(uv, J_point, J_normal, J_params, J_thickness, J_distance)
+        """Pixels and analytic Jacobians (see :class:`AriJacobians`, :func:`ari_project`)."""
+        return ari_project(as_points(X_cam, 3), self.pinhole.params, self._normal_arg, self.thickness_mm,
+                           self.index, self.medium_index, self.distance_mm)
 
     def backproject(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Scene-side rays of pixels: origins (N, 3), unit directions (N, 3).

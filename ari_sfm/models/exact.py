@@ -46,7 +46,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from .ari import check_window, unit_normal_and_projector
-from .pinhole import PinholeModel, as_points
+from .pinhole import NUM_PARAMS, PinholeModel, as_points, project_points
 
 if TYPE_CHECKING:
     from ari_sfm.records import Interface
@@ -156,6 +156,48 @@ def incidence_jacobians(X: np.ndarray, z: np.ndarray, r: np.ndarray, L: np.ndarr
     return J_point, J_n_free, J_thickness, J_distance
 
 
+def incidence(X: np.ndarray, nc: np.ndarray, h: float, d: float | np.ndarray, n: float, n_m: float
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """Depth z = n_c . X, radial vector r, medium column L and the solved w of points X (m, 3)
+    (NaN where L <= 0 or X is not finite), and the Newton steps of the slowest point."""
+    z = X @ nc
+    r = X - z[:, None] * nc
+    L = z - h - d
+    valid = (L > 0.0) & np.isfinite(X.sum(axis=1))
+    rho = np.sqrt(r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1] + r[:, 2] * r[:, 2])  # np.linalg.norm's arithmetic
+    w = np.full(len(X), np.nan)
+    if valid.all():
+        w[:], iterations = solve_incidence(rho, L, h, d, n, n_m)
+    else:
+        w[valid], iterations = solve_incidence(rho[valid], L[valid], h, d[valid] if np.ndim(d) else d, n, n_m)
+    return z, r, L, w, iterations
+
+
+def exact_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
+                  index: float, medium_index: float, distance_mm: float, jacobians: bool = True,
+                  n_params: int = NUM_PARAMS) -> ExactJacobians:
+    """The exact projection of camera-frame points X (m, 3): the one implementation, used by
+    :class:`ExactModel` and by the numpy bundle adjustment (all corners of a camera in one call).
+
+    ``params`` (9,) intrinsics; ``thickness_mm`` one plate for all points or (m,) one per point
+    (stacked plates); ``distance_mm`` h > 0. Returns an :class:`ExactJacobians` (NaN pixels for
+    points not beyond the far face); without ``jacobians`` only ``uv`` is set; ``J_params``
+    holds the first ``n_params`` columns; ``J_normal`` is w.r.t. the 3 components of ``normal_cam``.
+    """
+    if distance_mm is None:
+        raise ValueError("ExactModel needs distance_mm (camera centre to near face, > 0)")
+    nc, dn_dv = unit_normal_and_projector(normal_cam)
+    h, d, n, nm = float(distance_mm), thickness_mm, index, medium_index
+    z, r, L, w, _ = incidence(X, nc, h, d, n, nm)
+    uv, J_pin, J_params = project_points(nc + w[:, None] * r, params, n_params, jacobians)
+    if not jacobians:
+        return ExactJacobians(uv, None, None, None, None, None)
+    J_point, J_n_free, J_thickness, J_distance = incidence_jacobians(X, z, r, L, w, nc, h, d, n, nm, J_pin)
+    m = len(X)
+    J_normal = (J_n_free.reshape(2 * m, 3) @ dn_dv).reshape(m, 2, 3)
+    return ExactJacobians(uv, J_point, J_normal, J_params, J_thickness, J_distance)
+
+
 class ExactModel:
     """Refractive camera with Snell's law at both faces of the plate (see module docstring)."""
 
@@ -165,7 +207,8 @@ class ExactModel:
             raise ValueError("ExactModel needs distance_mm (camera centre to near face, > 0)")
         check_window(thickness_mm, index, medium_index, distance_mm)
         self.pinhole = pinhole
-        self.normal_cam, self._dn_dv = unit_normal_and_projector(normal_cam)
+        self.normal_cam = unit_normal_and_projector(normal_cam)[0]
+        self._normal_arg = np.array(normal_cam, dtype=float).reshape(3)  # J_normal is w.r.t. this vector
         self.thickness_mm = float(thickness_mm)
         self.index = float(index)
         self.medium_index = float(medium_index)
@@ -187,16 +230,7 @@ class ExactModel:
     # ---------------------------------------------------------------- forward
     def _solve(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
         """Common forward part: z, r, L, w (NaN where L <= 0) and the Newton step count."""
-        nc = self.normal_cam
-        z = X @ nc
-        r = X - z[:, None] * nc
-        L = z - self.distance_mm - self.thickness_mm
-        valid = (L > 0.0) & np.all(np.isfinite(X), axis=1)
-        w = np.full(len(X), np.nan)
-        rho = np.linalg.norm(r[valid], axis=1)
-        w[valid], iterations = solve_incidence(
-            rho, L[valid], self.distance_mm, self.thickness_mm, self.index, self.medium_index)
-        return z, r, L, w, iterations
+        return incidence(X, self.normal_cam, self.distance_mm, self.thickness_mm, self.index, self.medium_index)
 
     def newton_iterations(self, X_cam: np.ndarray) -> int:
         """Newton steps the slowest of these points needs (diagnostics)."""
@@ -217,15 +251,10 @@ class ExactModel:
         return self.pinhole.project(self._directions(as_points(X_cam, 3)))
 
     def project_with_jacobians(self, X_cam: np.ndarray) -> ExactJacobians:
-        """Pixels and analytic Jacobians (implicit function theorem; see module docstring)."""
-        X = as_points(X_cam, 3)
-        nc = self.normal_cam
-        z, r, L, w, _ = self._solve(X)
-        uv, J_pin, J_params = self.pinhole.project_with_jacobians(nc + w[:, None] * r)
-        J_point, J_n_free, J_thickness, J_distance = incidence_jacobians(
-            X, z, r, L, w, nc, self.distance_mm, self.thickness_mm, self.index, self.medium_index, J_pin)
-        J_normal = J_n_free @ self._dn_dv
-        return ExactJacobians(uv, J_point, J_normal, J_params, J_thickness, J_distance)
+        """Pixels and analytic Jacobians (implicit function theorem; see module docstring and
+        :func:`exact_project`)."""
+        return exact_project(as_points(X_cam, 3), self.pinhole.params, self._normal_arg, self.thickness_mm,
+                             self.index, self.medium_index, self.distance_mm)
 
     # --------------------------------------------------------------- backward
     def backproject(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,86 @@
+"""The bundle-adjustment backend switch: GTSAM (the graph's own optimizer) or the numpy solver.
+
+Both solve the same RigGraph on the same Levenberg-Marquardt path (same
+answer to ~1e-13): ``"gtsam"`` runs ``gtsam.LevenbergMarquardtOptimizer``,
+which calls each view's Python CustomFactor at every linearisation;
+``"numpy"`` packs the graph (:class:`~ari_sfm.factors.packed_problem.VectorizedProblem`)
+and is 5-13x faster per iteration (benchmarks/bench_backends.py); ``"auto"``
+(the default of calibrate) is numpy, and GTSAM for a graph the numpy backend
+cannot hold (a user factor linking several target frames).
+"""
+from __future__ import annotations
+
+import logging
+
+from .levenberg_marquardt import LMParams, LMReport
+from .packed_problem import VectorizedProblem
+from .rig_graph import RigGraph, RigState
+
+log = logging.getLogger(__name__)
+
+BACKENDS = ("gtsam", "numpy", "auto")
+
+
+def optimize_vectorized(
+    rig_graph: RigGraph,
+    max_iterations: int = 100,
+    relative_tolerance: float = 1e-10,
+    huber_px: float | None = None,
+    check: bool = True,
+    params: LMParams | None = None,
+    return_report: bool = False,
+    stop: str = "converged",
+) -> RigState | tuple[RigState, LMReport]:
+    """Optimise a built RigGraph's problem with the numpy backend (GTSAM's LM path, no callbacks).
+
+    ``huber_px`` must be the one the graph was built with (checked when
+    ``check``). The graph's values and ``iterations`` are updated as
+    RigGraph.optimize does; returns the state, and the :class:`LMReport`
+    (final error, lambda trials, time) with ``return_report``. ``stop``:
+    see :meth:`VectorizedProblem.optimize` ("gtsam": GTSAM's trials one for one).
+    """
+    problem = VectorizedProblem.from_rig_graph(rig_graph, huber_px=huber_px, check=check)
+    state = problem.optimize(max_iterations, relative_tolerance, params, stop)
+    problem.write_values(rig_graph.values)
+    rig_graph.iterations = problem.iterations
+    return (state, problem.report) if return_report else state
+
+
+def resolve_backend(backend: str) -> str:
+    """The solver a backend name stands for: "auto" is "numpy", faster at every size measured
+    (benchmarks/bench_backends.py: 4-6x on one or two cameras, 8-12x on larger rigs, same LM path)."""
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r} (known: {', '.join(BACKENDS)})")
+    return "numpy" if backend == "auto" else backend
+
+
+def optimize_graph(rig_graph: RigGraph, backend: str = "auto", max_iterations: int = 100,
+                   huber_px: float | None = None, return_problem: bool = False, check: bool = True,
+                   stop: str = "converged") -> RigState | tuple[RigState, VectorizedProblem | None]:
+    """Optimise a RigGraph with GTSAM (``rig_graph.optimize``) or the numpy backend; same result either way.
+
+    ``huber_px``: the threshold the graph was built with (the numpy backend
+    needs it, see :meth:`VectorizedProblem.from_rig_graph`). With
+    ``return_problem``: (state, the solved VectorizedProblem, or None with
+    GTSAM), so that residuals and marginals at the optimum need no callbacks.
+    ``check``: compare a few views with the graph's own factors (see
+    from_rig_graph); a caller that has just built the graph with ``huber_px``
+    may skip it. ``stop``: the numpy backend's stop rule (:meth:`VectorizedProblem.optimize`).
+    "auto" falls back to GTSAM for a graph the numpy backend cannot hold (a
+    user factor linking several target frames).
+    """
+    problem = None
+    if resolve_backend(backend) == "numpy":
+        try:
+            problem = VectorizedProblem.from_rig_graph(rig_graph, huber_px=huber_px, check=check)
+        except NotImplementedError as exc:
+            if backend != "auto":
+                raise
+            log.info("numpy backend: %s; optimising with GTSAM", exc)
+    if problem is None:
+        state = rig_graph.optimize(max_iterations)
+        return (state, None) if return_problem else state
+    state = problem.optimize(max_iterations, stop=stop)
+    problem.write_values(rig_graph.values)
+    rig_graph.iterations = problem.iterations
+    return (state, problem) if return_problem else state

@@ -1,0 +1,179 @@
+"""Levenberg-Marquardt as gtsam.LevenbergMarquardtOptimizer does it, generic over the problem.
+
+The loop knows nothing of cameras: a problem supplies five operations
+(:class:`LMProblem`) on opaque values x, linear systems and steps::
+
+    linearize(x) -> system          # system.error: 0.5 |r|^2 of the linearisation at x
+    solve(system, lam) -> step      # the step of (H + lam I) step = -g, or None if not positive definite
+    model_decrease(system, step)    # -(g . step + 0.5 step^T H step), the decrease the linear model predicts
+    retract(x, step) -> x           # x moved by the step (on the manifold)
+    error(x) -> float               # the nonlinear error 0.5 |r(x)|^2
+
+plus ``linearized_error_is_error`` (True when system.error equals error(x), i.e.
+no robust noise model outside the problem's own residuals). It implements GTSAM
+4.3's defaults (lambda 1e-5 times/divided by 10, damping ``H + lambda I`` on
+every variable, model fidelity > 1e-3, upper bound 1e5): the same path as
+GTSAM, not only the same optimum, which matters with Huber weights (their
+Gauss-Newton fixed point is not the cost's minimum, so where LM stops depends
+on the path).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+STOP_RULES = ("converged", "gtsam")  # levenberg_marquardt's stop=
+
+
+class LMProblem(Protocol):
+    """What :func:`levenberg_marquardt` needs of a problem (see the module docstring)."""
+
+    linearized_error_is_error: bool
+
+    def linearize(self, x: Any) -> Any: ...
+    def solve(self, system: Any, lam: float) -> Any | None: ...
+    def model_decrease(self, system: Any, step: Any) -> float: ...
+    def retract(self, x: Any, step: Any) -> Any: ...
+    def error(self, x: Any) -> float: ...
+
+
+@dataclass(frozen=True)
+class LMParams:
+    """Levenberg-Marquardt constants: gtsam.LevenbergMarquardtParams 4.3 defaults and RigGraph.optimize's
+    absolute tolerance (the iteration cap and relative tolerance are arguments of optimize)."""
+
+    absolute_tolerance: float = 1e-12  # stop when the error decrease is below this
+    lambda_initial: float = 1e-5
+    lambda_factor: float = 10.0
+    lambda_upper_bound: float = 1e5  # give up when lambda reaches this
+    lambda_lower_bound: float = 0.0
+    min_model_fidelity: float = 1e-3  # accept a step when actual / predicted decrease exceeds this
+
+
+@dataclass(frozen=True)
+class LMReport:
+    """How an optimisation went. Errors are GTSAM's: 0.5 * sum of whitened squared residuals."""
+
+    iterations: int  # accepted steps, as gtsam's optimizer.iterations()
+    inner_iterations: int  # lambda trials, as gtsam's getInnerIterations()
+    linearizations: int
+    initial_error: float
+    error: float
+    lambda_final: float
+    time_s: float
+    stop: str  # "converged", "max_iterations", "lambda_upper_bound", "small_cost_change", "zero_error",
+    #            "no_model_decrease" (stop="converged" only: see VectorizedProblem.optimize)
+    error_evaluations: int = 0  # nonlinear error evaluations (the initial one unless cached, one per tried step)
+
+
+
+@dataclass(frozen=True)
+class LMResult:
+    """The final values, the report, and the last linearisation if it was taken at the final values
+    (what a covariance needs; None otherwise)."""
+
+    x: Any
+    report: LMReport
+    system_at_x: Any | None
+
+
+def levenberg_marquardt(problem: LMProblem, x: Any, max_iterations: int = 100, relative_tolerance: float = 1e-10,
+                        params: LMParams | None = None, stop: str = "converged",
+                        initial_error: float | None = None) -> LMResult:
+    """Levenberg-Marquardt from x (GTSAM's algorithm).
+
+    ``max_iterations`` caps the accepted steps (gtsam's iterations()); LM
+    stops when the relative error decrease is below ``relative_tolerance``.
+    ``initial_error``: error(x) when already known (saves an evaluation).
+
+    ``stop="gtsam"`` is GTSAM's loop trial for trial: at convergence it
+    typically rejects a step whose predicted decrease is below
+    ``eps * error`` (GTSAM then never accepts it) and raises lambda
+    tenfold, evaluating the error each time, until the upper bound, with
+    the values unchanged. ``stop="converged"`` (the default) ends at the
+    first such trial without evaluating it: the predicted decrease of the
+    damped step never grows with lambda (its derivative is
+    ``-lambda * sum g_i^2 / (h_i + lambda)^3`` in H's eigenbasis), so no
+    later trial at this linearisation could be accepted and GTSAM would
+    end on the same values. It also takes the initial error from the
+    first linearisation (the same sum in another order, ~1e-15 relative)
+    instead of a separate evaluation when ``problem.linearized_error_is_error``.
+    Same steps, same values, same error; only the report (lambda, trials,
+    evaluations, stop reason) differs.
+    """
+    if stop not in STOP_RULES:
+        raise ValueError(f"unknown stop rule {stop!r} (known: {', '.join(STOP_RULES)})")
+    p = params or LMParams()
+    t0 = time.perf_counter()
+    evaluations, linearizations, first = 0, 0, None
+    if initial_error is not None:
+        err = initial_error
+    elif stop == "converged" and problem.linearized_error_is_error and max_iterations > 0:
+        first = problem.linearize(x)
+        err, linearizations = first.error, 1
+    else:
+        err, evaluations = problem.error(x), 1
+    initial = err
+    lam, iterations, inner = p.lambda_initial, 0, 0
+    rule, stop = stop, "max_iterations"
+    sys, x_lin = None, None
+    if err <= 0.0:
+        stop = "zero_error"
+    while stop != "zero_error" and iterations < max_iterations:  # gtsam's defaultOptimize
+        cur_err = err
+        if first is not None:
+            sys, x_lin, first = first, x, None
+        else:
+            sys, x_lin = problem.linearize(x), x
+            linearizations += 1
+        gave_up = None
+        while True:  # gtsam's tryLambda, until a step is accepted or LM gives up
+            step_ok, stop_searching = False, False
+            step = problem.solve(sys, lam)
+            if step is not None:
+                predicted = problem.model_decrease(sys, step)
+                if rule == "converged" and predicted <= np.finfo(float).eps * sys.error:
+                    gave_up = "no_model_decrease"  # GTSAM would reject this and every later trial
+                    break
+                if predicted >= 0.0:
+                    x_new = problem.retract(x, step)
+                    e_new = problem.error(x_new)
+                    evaluations += 1
+                    change = err - e_new
+                    if predicted > np.finfo(float).eps * sys.error:
+                        step_ok = change / predicted > p.min_model_fidelity
+                    stop_searching = abs(change) < relative_tolerance * err
+            if step_ok:
+                x, err = x_new, e_new
+                lam = max(p.lambda_lower_bound, lam / p.lambda_factor)
+                iterations += 1
+                inner += 1
+                break
+            if stop_searching:
+                gave_up = "small_cost_change"
+                break
+            lam *= p.lambda_factor
+            inner += 1
+            if lam >= p.lambda_upper_bound:
+                gave_up = "lambda_upper_bound"
+                break
+        decrease = cur_err - err
+        if err <= 0.0:
+            stop = "zero_error"
+        elif decrease / cur_err <= relative_tolerance or decrease <= p.absolute_tolerance:
+            stop = gave_up or "converged"
+            break
+        elif not math.isfinite(cur_err):
+            stop = "non_finite"
+            break
+    report = LMReport(iterations, inner, linearizations, initial, err, lam, time.perf_counter() - t0, stop,
+                      evaluations)
+    log.debug("LM: %s", report)
+    return LMResult(x, report, sys if linearizations and x_lin is x else None)

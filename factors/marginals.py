@@ -1,0 +1,53 @@
+"""Marginal covariances of the numpy backend's global variables, keyed as gtsam.Marginals.
+
+What ``gtsam.Marginals(graph, values).marginalCovariance(key)`` gives for the
+intrinsics K(c), the camera poses C(c) (c > 0), the normal N and the distance
+H: the same tangent spaces, from the inverse Schur complement of the frames
+(:func:`~ari_sfm.factors.schur.global_covariance`). The units are those of the
+graph's factors: physical when they carry the pixel sigma (see
+:func:`ari_sfm.factors.uncertainty.marginal_covariances`, the documented entry).
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import gtsam
+import numpy as np
+
+from . import keys as K_
+from .schur import NormalEquations, global_covariance
+
+if TYPE_CHECKING:
+    from .packed_problem import VectorizedProblem
+
+
+class CovarianceTable:
+    """Marginal covariances by key, with gtsam.Marginals' ``marginalCovariance(key)``."""
+
+    def __init__(self, covariances: dict[int, np.ndarray]) -> None:
+        self.covariances = covariances
+
+    def marginalCovariance(self, key: int) -> np.ndarray:  # noqa: N802 (gtsam's name)
+        try:
+            return self.covariances[key]
+        except KeyError:
+            raise KeyError(f"no marginal covariance for key {gtsam.DefaultKeyFormatter(key)} "
+                           "(the numpy backend gives them for K, C, N and H)") from None
+
+
+def covariances_by_key(problem: "VectorizedProblem", sys: NormalEquations) -> dict[int, np.ndarray]:
+    """The marginal covariance of each global variable of a packed problem linearised as ``sys``."""
+    cov = global_covariance(sys, problem.fixed_cols)
+    out = {}
+    for c in range(len(problem.camera_names)):
+        b = c * problem.camera_block
+        out[K_.K(c)] = cov[b:b + problem.n_params, b:b + problem.n_params].copy()
+        if c > 0:
+            b += problem.n_params
+            out[K_.C(c)] = cov[b:b + 6, b:b + 6].copy()
+    n = problem.normal_col
+    out[K_.N] = cov[n:n + 2, n:n + 2].copy()
+    if problem.estimate_distance:
+        d = problem.distance_col
+        out[K_.H] = cov[d:d + 1, d:d + 1].copy()
+    return out

@@ -1,0 +1,566 @@
+"""RigGraph's problem packed into flat numpy arrays: residuals and Jacobians without Python callbacks.
+
+:class:`~ari_sfm.factors.rig_graph.RigGraph` holds one ``gtsam.CustomFactor``
+per (camera, image); GTSAM calls back into Python for every factor at every
+linearisation, and that overhead dominates its time. :class:`VectorizedProblem`
+holds *the same problem*:
+
+- the same variables and tangent spaces: intrinsics K(c) (additive),
+  world_T_cam C(c) for c > 0 and world_T_target X(f) (Pose3, right-perturbed
+  ``T Exp([w, v])``, :func:`ari_sfm.geometry.se3_exp`), the normal N (a
+  ``gtsam.Unit3``, retracted by ``Unit3.retract``), the distance H (additive,
+  optional); camera 0 is the world (no pose variable);
+- the same residuals and Jacobians as :func:`~ari_sfm.factors.view_factor.view_residuals`:
+  the projection is the model's own batched kernel
+  (:func:`ari_sfm.models.ari.ari_project`, :func:`ari_sfm.models.exact.exact_project`,
+  one call per camera for all its corners, the plate thickness a per-corner
+  array when stacked plates differ), chained to the tangent spaces here;
+  per-corner Huber square-root weights at the linearisation point, non-finite
+  residuals replaced by 1e6, a camera beyond the window gives 1e6 and zero
+  Jacobians; whitened by each factor's isotropic sigma (the pixel sigma).
+
+The normal equations are formed per view with one batched matmul of the
+padded view Jacobians ``[J_frame J_global r]`` and solved by
+:mod:`~ari_sfm.factors.schur`; :mod:`~ari_sfm.factors.levenberg_marquardt`
+drives the iterations (this class is its :class:`LMProblem`); factors a user
+added to the graph join through :mod:`~ari_sfm.factors.extra_factors`.
+
+There is deliberately no builder that skips the GTSAM graph: RigGraph.build
+costs ~60 us per view (2 % of the numpy optimisation at 16 cameras x 500
+frames), the graph stays the researcher's API (priors, gtsam.Marginals), and a
+second copy of the view selection would drift from RigGraph.build.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+from typing import Sequence
+
+import gtsam
+import numpy as np
+
+from ..geometry import Pose, retract_poses
+from ..models.ari import ari_project, check_window
+from ..models.exact import exact_project
+from ..records import Observation
+from . import keys as K_
+from .extra_factors import ExtraFactors
+from .levenberg_marquardt import LMParams, LMReport, levenberg_marquardt
+from .marginals import CovarianceTable, covariances_by_key
+from .rig_graph import MODELS, RigGraph, RigState
+from .schur import NormalEquations, model_decrease, solve_damped
+from .view_factor import ViewData, ViewKeys, chain_to_tangents
+
+log = logging.getLogger(__name__)
+
+INVALID_RESIDUAL = 1e6  # what view_residuals puts for a non-finite residual or a camera beyond the window
+_KERNELS = {"ari": ari_project, "exact": exact_project}  # the models' batched projections
+
+
+@dataclass
+class Variables:
+    """The current values of every variable, in numpy (plus the Unit3 normal)."""
+
+    intrinsics: np.ndarray  # (C, n_params)
+    world_R_cam: np.ndarray  # (C, 3, 3); camera 0 is the identity (not a variable)
+    world_t_cam: np.ndarray  # (C, 3)
+    normal: gtsam.Unit3  # the window normal in the world
+    world_R_target: np.ndarray  # (F, 3, 3)
+    world_t_target: np.ndarray  # (F, 3)
+    distance_mm: float | None  # h0: a variable when estimated, else the fixed value (or None)
+
+
+@dataclass(frozen=True)
+class _Group:
+    """Corners [start, stop) of one camera seen through one plate: one model call."""
+
+    camera: int
+    thickness_mm: float
+    index: float
+    medium_index: float
+    base_params: np.ndarray  # (9,); the first n_params come from the variables
+    start: int
+    stop: int
+
+
+@dataclass
+class _Transforms:
+    """Per-view and per-camera quantities of a Variables, shared by all corners."""
+
+    R_cam_target: np.ndarray  # (V, 3, 3)
+    t_cam_target: np.ndarray  # (V, 3)
+    R_cam_world: np.ndarray  # (C, 3, 3)
+    normal_world: np.ndarray  # (3,)
+    normal_cam: np.ndarray  # (C, 3)
+    basis: np.ndarray  # (3, 2) Unit3 tangent basis of the normal
+    distance_cam: np.ndarray | None  # (C,) h_c = h0 - n . C_c
+
+
+class VectorizedProblem:
+    """RigGraph's problem packed into flat arrays; the :class:`~ari_sfm.factors.levenberg_marquardt.LMProblem`
+    of the numpy backend (linearize, solve, model_decrease, retract, error).
+
+    Mirrors RigGraph: :meth:`optimize` (updates :attr:`x`, sets
+    :attr:`iterations` and :attr:`report`), :meth:`state`, :meth:`residuals`;
+    :meth:`write_values` copies the values into a gtsam.Values.
+    """
+
+    def __init__(
+        self,
+        views: Sequence[tuple[ViewData, ViewKeys, float]],
+        observations: Sequence[tuple[str, Observation] | None],
+        variables: Variables,
+        camera_names: Sequence[str],
+        frame_names: Sequence[str],
+        n_params: int,
+        base_state: RigState,
+        estimate_distance: bool,
+        model: str,
+        huber_px: float | None,
+        extra_factors: Sequence[gtsam.NonlinearFactor] = (),
+        graph_index: Sequence[int] | None = None,
+    ) -> None:
+        """``views``: (ViewData, ViewKeys, sigma_px) per view factor; ``observations``: (camera, obs) per
+        view factor; ``graph_index``: each view factor's index in its gtsam graph (for checks)."""
+        if model not in MODELS:
+            raise ValueError(f"unknown model {model!r} (known: {', '.join(MODELS)})")
+        self.model = model
+        self.factory = MODELS[model]
+        self.camera_names = list(camera_names)
+        self.frame_names = list(frame_names)
+        self.n_params = int(n_params)
+        self.base_state = base_state
+        self.estimate_distance = bool(estimate_distance)
+        self.huber_px = huber_px
+        self.factor_views = list(observations)
+        self.x = variables
+        self.iterations = 0
+        self.report: LMReport | None = None
+        self.graph_index = np.arange(len(views)) if graph_index is None else np.asarray(graph_index, dtype=np.int64)
+        self._error_cache: tuple[Variables, float] | None = None
+        self._system_cache: tuple[Variables, NormalEquations] | None = None  # optimize's last linearisation, if at self.x
+        self._pack(views)
+        self._extra = ExtraFactors(self, extra_factors)
+
+    # ------------------------------------------------------------------ from a graph
+    @staticmethod
+    def from_rig_graph(rg: RigGraph, huber_px: float | None = None, check: bool = True) -> "VectorizedProblem":
+        """The problem of a built RigGraph at its current values (its view factors and any factors added to it).
+
+        Pass the Huber threshold the view factors were built with (``rg.huber_px``
+        after RigGraph.build; the factors themselves do not tell). With ``check`` the residuals of a few
+        views (one per camera and plate, and the worst ones) are compared with
+        the graph's own factors and a mismatch raises ValueError.
+        """
+        view_factor_index = rg.view_factor_indices()  # priors and user factors may sit among them
+        views = []
+        for i, (data, vkeys) in zip(view_factor_index, rg.factor_data):
+            sigmas = np.asarray(rg.graph.at(i).noiseModel().sigmas())
+            if np.ptp(sigmas) != 0.0:
+                raise ValueError(f"view factor {i} has a non-isotropic noise model")
+            views.append((data, vkeys, float(sigmas[0])))
+        v = rg.values
+        C, F = len(rg.camera_names), len(rg.frame_names)
+        R_wc, t_wc = np.tile(np.eye(3), (C, 1, 1)), np.zeros((C, 3))
+        for c in range(1, C):
+            p = v.atPose3(K_.C(c))
+            R_wc[c], t_wc[c] = p.rotation().matrix(), np.asarray(p.translation())
+        R_wt, t_wt = np.empty((F, 3, 3)), np.empty((F, 3))
+        for f in range(F):
+            p = v.atPose3(K_.X(f))
+            R_wt[f], t_wt[f] = p.rotation().matrix(), np.asarray(p.translation())
+        distance = float(v.atVector(K_.H)[0]) if rg.estimate_distance else rg.base_state.distance_mm
+        variables = Variables(np.array([v.atVector(K_.K(c)) for c in range(C)], float).reshape(C, rg.n_params),
+                              R_wc, t_wc, v.atUnit3(K_.N), R_wt, t_wt, distance)
+        extra = [rg.graph.at(i) for i in sorted(set(range(rg.graph.size())) - set(view_factor_index))]
+        problem = VectorizedProblem(views, rg.factor_views, variables, rg.camera_names, rg.frame_names, rg.n_params,
+                                    rg.base_state, rg.estimate_distance, rg.model, huber_px, extra, view_factor_index)
+        if check:
+            problem._check_against(rg)
+        return problem
+
+    # ------------------------------------------------------------------ packing
+    def _pack(self, views: Sequence[tuple[ViewData, ViewKeys, float]]) -> None:
+        C, F, n_p = len(self.camera_names), len(self.frame_names), self.n_params
+        entries = []
+        for k, (data, vkeys, sigma) in enumerate(views):
+            c, f = _index(vkeys.intrinsics, "k"), _index(vkeys.frame, "x")
+            if (vkeys.camera is None) != (c == 0) or (vkeys.camera is not None and _index(vkeys.camera, "c") != c):
+                raise ValueError(f"view {k}: camera key does not match intrinsics key (camera 0 is the world)")
+            if vkeys.normal != K_.N or (vkeys.distance is not None and vkeys.distance != K_.H):
+                raise ValueError(f"view {k}: unexpected normal or distance key")
+            if (vkeys.distance is not None) != self.estimate_distance:
+                raise ValueError(f"view {k}: distance key does not match estimate_distance={self.estimate_distance}")
+            if data.n_params != n_p or not 0 <= c < C or not 0 <= f < F:
+                raise ValueError(f"view {k}: n_params {data.n_params}, camera {c} or frame {f} out of range")
+            if not self.estimate_distance and vkeys.fixed_distance_mm != self.x.distance_mm:
+                raise ValueError(f"view {k}: fixed distance {vkeys.fixed_distance_mm} differs from "
+                                 f"{self.x.distance_mm}")
+            tail = tuple(float(p) for p in np.asarray(data.base_params, float)[n_p:])
+            group = (float(data.thickness_mm), float(data.index), float(data.medium_index), tail)
+            entries.append((c, group, k, f, data, sigma))
+        entries.sort(key=lambda e: (e[0], e[1], e[2]))
+        self.n_views = len(entries)
+        self.view_order = np.array([e[2] for e in entries], dtype=np.int64)  # packed view -> factor index
+        self.view_camera = np.array([e[0] for e in entries], dtype=np.int64)
+        self.view_frame = np.array([e[3] for e in entries], dtype=np.int64)
+        sizes = np.array([len(e[4].points_target) for e in entries], dtype=np.int64)
+        self.view_start = np.concatenate([[0], np.cumsum(sizes)])
+        M = int(self.view_start[-1])
+        self.n_corners = M
+        self.points = np.concatenate([e[4].points_target for e in entries]).reshape(M, 3) if M else np.zeros((0, 3))
+        self.measured = np.concatenate([e[4].measured for e in entries]).reshape(M, 2) if M else np.zeros((0, 2))
+        self.corner_view = np.repeat(np.arange(self.n_views), sizes)
+        self.corner_inv_sigma = np.repeat(np.array([1.0 / e[5] for e in entries]), sizes)
+        self.unit_sigma = bool(np.all(self.corner_inv_sigma == 1.0))  # whitening is the identity
+        self.groups: list[_Group] = []
+        first = 0
+        for k in range(1, len(entries) + 1):  # runs of equal (camera, plate) in the sorted views
+            if k == len(entries) or entries[k][:2] != entries[first][:2]:
+                c, (d, n, nm, _) = entries[first][0], entries[first][1]
+                base = np.asarray(entries[first][4].base_params, float).copy()
+                self.groups.append(_Group(c, d, n, nm, base, int(self.view_start[first]), int(self.view_start[k])))
+                first = k
+        # camera slices of views and corners; padded slots for the per-view batched products
+        self.camera_views = np.searchsorted(self.view_camera, np.arange(C + 1))
+        self.camera_corners = self.view_start[self.camera_views]
+        self.camera_max_corners = np.zeros(C, dtype=np.int64)
+        self.corner_slot = np.empty(M, dtype=np.int64)
+        for c in range(C):
+            vs, ve = self.camera_views[c], self.camera_views[c + 1]
+            if ve == vs:
+                continue
+            mx = int(sizes[vs:ve].max())
+            self.camera_max_corners[c] = mx
+            for_view = np.repeat(np.arange(ve - vs) * mx - self.view_start[vs:ve] + self.view_start[vs], sizes[vs:ve])
+            s, e = self.camera_corners[c], self.camera_corners[c + 1]
+            self.corner_slot[s:e] = np.arange(s, e) - self.view_start[vs] + for_view
+        # global tangent layout: per camera [intrinsics, pose] (camera 0's pose fixed: zero columns), normal, distance
+        self.camera_block = n_p + 6
+        self.normal_col = C * self.camera_block
+        self.distance_col = self.normal_col + 2 if self.estimate_distance else None
+        self.n_global = self.normal_col + 2 + (1 if self.estimate_distance else 0)
+        self.local_dim = n_p + 6 + 2 + (1 if self.estimate_distance else 0)
+        tail_cols = [self.normal_col, self.normal_col + 1] + ([self.distance_col] if self.estimate_distance else [])
+        self.camera_cols = [np.concatenate([c * self.camera_block + np.arange(self.camera_block),
+                                            tail_cols]).astype(np.int64) for c in range(C)]
+        self.fixed_cols = np.arange(n_p, n_p + 6)  # camera 0's pose
+        # one kernel call per camera (or per group when a camera's groups differ in more than the thickness)
+        self.corner_thickness = np.empty(M)
+        self._camera_runs: list[list[_Group]] = []
+        for c in range(C):
+            groups = [g for g in self.groups if g.camera == c]
+            for g in groups:
+                check_window(g.thickness_mm, g.index, g.medium_index, None)
+                self.corner_thickness[g.start:g.stop] = g.thickness_mm
+            same = len({(g.index, g.medium_index, tuple(g.base_params[n_p:])) for g in groups}) == 1
+            self._camera_runs.append([replace(groups[0], stop=groups[-1].stop)] if same else groups)
+
+    # ------------------------------------------------------------------ evaluation
+    def _transforms(self, x: Variables) -> _Transforms:
+        R_cw = np.swapaxes(x.world_R_cam, 1, 2)
+        vc, vf = self.view_camera, self.view_frame
+        R_ct = R_cw[vc] @ x.world_R_target[vf]
+        t_ct = np.einsum("vij,vj->vi", R_cw[vc], x.world_t_target[vf] - x.world_t_cam[vc])
+        n_w = np.asarray(x.normal.point3(), float)
+        n_c = R_cw @ n_w
+        h_c = None if x.distance_mm is None else x.distance_mm - x.world_t_cam @ n_w
+        return _Transforms(R_ct, t_ct, R_cw, n_w, n_c, np.asarray(x.normal.basis(), float), h_c)
+
+    def _camera_eval(self, x: Variables, tr: _Transforms, c: int, jacobians: bool,
+                     huber_px: float | None, whiten: bool = False) -> np.ndarray:
+        """Camera c's corners as view_residuals computes them (Huber-weighted; whitened by the
+        factors' sigmas with ``whiten``).
+
+        Without ``jacobians``: the residuals (m, 2). With: one array (m, 2, 6 + local_dim + 1)
+        holding [J_frame | J_global (camera-local columns) | residual] per corner row.
+        """
+        s, e = int(self.camera_corners[c]), int(self.camera_corners[c + 1])
+        m, n_p, L = e - s, self.n_params, self.local_dim
+        cv = self.corner_view[s:e]
+        P = self.points[s:e]
+        h = None if tr.distance_cam is None else float(tr.distance_cam[c])
+        if h is not None and h <= 0.0:  # an LM trial put the camera beyond the window: 1e6, zero Jacobians
+            if not jacobians:
+                return np.full((m, 2), INVALID_RESIDUAL)
+            out = np.zeros((m, 2, 6 + L + 1))
+            out[:, :, -1] = INVALID_RESIDUAL
+            return out
+        vs, ve = int(self.camera_views[c]), int(self.camera_views[c + 1])
+        R_v = tr.R_cam_target[vs:ve]  # (nv, 3, 3), one per view of camera c
+        X = self._per_view(c, P, np.swapaxes(R_v, 1, 2), tr.t_cam_target[vs:ve])  # R_ct P + t_ct
+        kernel = _KERNELS[self.model]
+        runs = self._camera_runs[c]
+        if jacobians:
+            out = np.zeros((m, 2, 6 + L + 1))
+            Jg = out[:, :, 6:6 + L]
+        if len(runs) == 1:  # the usual case: every plate of the camera in one call
+            params = runs[0].base_params.copy()
+            params[:n_p] = x.intrinsics[c]
+            J = kernel(X, params, tr.normal_cam[c], self.corner_thickness[s:e], runs[0].index,
+                       runs[0].medium_index, h, jacobians, n_p)
+            uv = J.uv
+            if jacobians:
+                Jp, Jn, Jg[:, :, :n_p], Jd = J.J_point, J.J_normal, J.J_params, J.J_distance
+        else:
+            uv = np.empty((m, 2))
+            if jacobians:
+                Jp, Jn, Jd = np.empty((m, 2, 3)), np.empty((m, 2, 3)), np.empty((m, 2))
+            for g in runs:
+                a, b = g.start - s, g.stop - s
+                params = g.base_params.copy()
+                params[:n_p] = x.intrinsics[c]
+                J = kernel(X[a:b], params, tr.normal_cam[c], self.corner_thickness[g.start:g.stop],
+                           g.index, g.medium_index, h, jacobians, n_p)
+                uv[a:b] = J.uv
+                if jacobians:
+                    Jp[a:b], Jn[a:b], Jg[a:b, :, :n_p], Jd[a:b] = J.J_point, J.J_normal, J.J_params, J.J_distance
+        r = uv - self.measured[s:e]
+        w = np.ones(m)
+        if huber_px is not None:
+            rx, ry = r[:, 0], r[:, 1]
+            dist = np.sqrt(rx * rx + ry * ry)  # np.linalg.norm(r, axis=1)'s arithmetic, 5x faster
+            big = dist > huber_px
+            w[big] = np.sqrt(huber_px / dist[big])
+        if not jacobians:
+            res = r * w[:, None]
+            if not np.isfinite(res.sum()):  # (the sum: one fast check)
+                res[~np.isfinite(res)] = INVALID_RESIDUAL  # a point fell behind the window
+            return res * self.corner_inv_sigma[s:e, None] if whiten and not self.unit_sigma else res
+        # the Jacobians unweighted; every column (and the residual) scaled by the weight once at the end
+        out[:, :, -1] = r
+        R_wc = x.world_R_cam[c] if c > 0 else None  # camera 0 is the world: no pose columns
+        JA = self._per_view(c, Jp, R_v)  # d uv / d t of the target pose: J_point R_cam_target
+        chain_to_tangents(out, n_p, Jp, Jn, Jd, X, P, JA, tr.normal_world, tr.basis, R_wc, x.world_t_cam[c],
+                          self.estimate_distance)
+        out *= (w * self.corner_inv_sigma[s:e])[:, None, None] if whiten and not self.unit_sigma else w[:, None, None]
+        res = out[:, :, -1]
+        bad = ~np.isfinite(res)
+        if bad.any():  # a point fell behind the window
+            res[bad] = INVALID_RESIDUAL * (self.corner_inv_sigma[s:e, None].repeat(2, 1)[bad] if whiten else 1.0)
+        if not np.isfinite(out.sum()) and not np.all(np.isfinite(out[:, :, :-1])):  # (the sum: one fast check)
+            bad_rows = ~np.isfinite(out[:, :, :-1]).all(axis=(1, 2))
+            factors = np.unique(self.view_order[cv[bad_rows]])[:10].tolist()
+            raise RuntimeError(f"non-finite Jacobian entries in factor(s) {factors} "
+                               "(a corner behind the window at the linearisation point)")
+        return out
+
+    def _per_view(self, c: int, A: np.ndarray, M: np.ndarray, offset: np.ndarray | None = None) -> np.ndarray:
+        """Each corner's rows A (m, ..., 3) of camera c times its view's matrix M (nv, 3, k), plus its view's
+        offset (nv, k) if given: one batched matmul over the views (padded when their corner counts differ)."""
+        s, e = int(self.camera_corners[c]), int(self.camera_corners[c + 1])
+        nv, mx = int(self.camera_views[c + 1] - self.camera_views[c]), int(self.camera_max_corners[c])
+        inner = A.shape[1:-1]
+        if nv * mx == e - s:
+            out = A.reshape(nv, -1, 3) @ M
+        else:
+            slot = self.corner_slot[s:e]
+            pad = np.zeros((nv * mx,) + A.shape[1:])
+            pad[slot] = A
+            out = pad.reshape(nv, -1, 3) @ M
+        if offset is not None:
+            out += offset[:, None, :]
+        out = out.reshape((-1,) + inner + (M.shape[-1],))
+        return out if nv * mx == e - s else out[slot]
+
+    def error(self, x: Variables | None = None) -> float:
+        """GTSAM's graph error at x (default: the current values): 0.5 * sum of whitened squared residuals."""
+        x = self.x if x is None else x
+        tr = self._transforms(x)
+        total = 0.0
+        for c in range(len(self.camera_names)):
+            if self.camera_corners[c + 1] == self.camera_corners[c]:
+                continue
+            rw = self._camera_eval(x, tr, c, False, self.huber_px, whiten=True)
+            total += 0.5 * float(np.einsum("ij,ij->", rw, rw))
+        return total + self._extra.error(x)
+
+    def linearize(self, x: Variables) -> NormalEquations:
+        """The whitened normal equations at x (views and user factors)."""
+        C, F, G, K = len(self.camera_names), len(self.frame_names), self.n_global, 6 + self.local_dim
+        tr = self._transforms(x)
+        V, g_f = np.zeros((F, 6, 6)), np.zeros((F, 6))
+        W, U, g_g = np.zeros((F, 6, G)), np.zeros((G, G)), np.zeros(G)
+        err2 = 0.0
+        for c in range(C):
+            s, e = int(self.camera_corners[c]), int(self.camera_corners[c + 1])
+            if e == s:
+                continue
+            vs, ve = int(self.camera_views[c]), int(self.camera_views[c + 1])
+            nv, mx = ve - vs, int(self.camera_max_corners[c])
+            out = self._camera_eval(x, tr, c, True, self.huber_px, whiten=True)
+            if nv * mx == e - s:  # every view has the same number of corners: no padding
+                A = out.reshape(nv, 2 * mx, K + 1)
+            else:
+                A = np.zeros((nv * mx, 2, K + 1))
+                A[self.corner_slot[s:e]] = out
+                A = A.reshape(nv, 2 * mx, K + 1)
+            Hv = np.matmul(np.swapaxes(A, 1, 2), A)  # (nv, K+1, K+1): [H g; g^T r^T r] per view
+            fr = self.view_frame[vs:ve]
+            np.add.at(V, fr, Hv[:, :6, :6])
+            np.add.at(g_f, fr, Hv[:, :6, K])
+            Wc = np.zeros((F, 6, self.local_dim))
+            np.add.at(Wc, fr, Hv[:, :6, 6:K])
+            cols = self.camera_cols[c]
+            W[:, :, cols] += Wc
+            U[np.ix_(cols, cols)] += Hv[:, 6:K, 6:K].sum(axis=0)
+            g_g[cols] += Hv[:, 6:K, K].sum(axis=0)
+            err2 += float(Hv[:, K, K].sum())
+        system = NormalEquations(V, g_f, W, U, g_g, 0.5 * err2)
+        self._extra.add_to(system, x)
+        return system
+
+    # ------------------------------------------------------------------ the LMProblem interface
+    @property
+    def linearized_error_is_error(self) -> bool:
+        """The linearisation's 0.5 r^T r is the error unless user factors (robust noise models) join."""
+        return not self._extra.factors
+
+    @staticmethod
+    def solve(sys: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """(global step, frame steps) of the damped system (:func:`~ari_sfm.factors.schur.solve_damped`)."""
+        return solve_damped(sys, lam)
+
+    @staticmethod
+    def model_decrease(sys: NormalEquations, step: tuple[np.ndarray, np.ndarray]) -> float:
+        return model_decrease(sys, *step)
+
+    def retract(self, x: Variables, step: tuple[np.ndarray, np.ndarray]) -> Variables:
+        """x moved by (global step, frame steps): Pose3 right perturbations, Unit3.retract, additive rest."""
+        d_global, d_frame = step
+        C, n_p, B = len(self.camera_names), self.n_params, self.camera_block
+        blocks = d_global[: C * B].reshape(C, B)
+        R_wc, t_wc = x.world_R_cam.copy(), x.world_t_cam.copy()
+        if C > 1:
+            R_wc[1:], t_wc[1:] = retract_poses(x.world_R_cam[1:], x.world_t_cam[1:], blocks[1:, n_p:])
+        R_wt, t_wt = retract_poses(x.world_R_target, x.world_t_target, d_frame)
+        normal = x.normal.retract(d_global[self.normal_col:self.normal_col + 2])
+        h = x.distance_mm + float(d_global[self.distance_col]) if self.estimate_distance else x.distance_mm
+        return Variables(x.intrinsics + blocks[:, :n_p], R_wc, t_wc, normal, R_wt, t_wt, h)
+
+    # ------------------------------------------------------------------ LM
+    def optimize(self, max_iterations: int = 100, relative_tolerance: float = 1e-10,
+                 params: LMParams | None = None, stop: str = "converged") -> RigState:
+        """Levenberg-Marquardt from the current values (GTSAM's algorithm, see
+        :func:`~ari_sfm.factors.levenberg_marquardt.levenberg_marquardt` for ``stop``);
+        updates them, :attr:`iterations` and :attr:`report`, and returns the state."""
+        cached = self._error_cache
+        initial = cached[1] if cached is not None and cached[0] is self.x else None
+        result = levenberg_marquardt(self, self.x, max_iterations, relative_tolerance, params, stop, initial)
+        self.x = result.x
+        self._system_cache = None if result.system_at_x is None else (result.x, result.system_at_x)
+        self.iterations = result.report.iterations
+        self.report = result.report
+        return self.state()
+
+    # ------------------------------------------------------------------ reading back
+    def state(self, x: Variables | None = None) -> RigState:
+        """The RigState of the current (or given) values, as RigGraph.state."""
+        x = self.x if x is None else x
+        params, cams = {}, {}
+        for c, name in enumerate(self.camera_names):
+            p = np.asarray(self.base_state.params[name], float).copy()
+            p[: self.n_params] = x.intrinsics[c]
+            params[name] = p
+            cams[name] = Pose(x.world_R_cam[c].copy(), x.world_t_cam[c].copy()).inverse() if c > 0 else Pose.identity()
+        frames = {f: Pose(x.world_R_target[i].copy(), x.world_t_target[i].copy())
+                  for i, f in enumerate(self.frame_names)}
+        distance = x.distance_mm if self.estimate_distance else self.base_state.distance_mm
+        return RigState(params, cams, np.asarray(x.normal.point3(), float), frames, distance)
+
+    def residuals(self) -> list[tuple[Observation, np.ndarray]]:
+        """Unweighted pixel residuals (M, 2) of every view at the current values, in factor order (as RigGraph)."""
+        res = self._all_residuals(self.x, None)
+        out = [None] * self.n_views
+        for k in range(self.n_views):
+            out[self.view_order[k]] = res[self.view_start[k]:self.view_start[k + 1]]
+        return [(obs, r) for (_, obs), r in zip(self.factor_views, out)]
+
+    def _all_residuals(self, x: Variables, huber_px: float | None) -> np.ndarray:
+        tr = self._transforms(x)
+        res = np.empty((self.n_corners, 2))
+        for c in range(len(self.camera_names)):
+            s, e = self.camera_corners[c], self.camera_corners[c + 1]
+            if e > s:
+                res[s:e] = self._camera_eval(x, tr, c, False, huber_px)
+        return res
+
+    def evaluate_views(self, x: Variables | None = None) -> list[tuple[np.ndarray, list[np.ndarray]]]:
+        """Per factor (factor order): residual (2M,) and Jacobians in the factor's key order, as view_residuals.
+
+        Not whitened by sigma (view_residuals is not either). For tests.
+        """
+        x = self.x if x is None else x
+        tr = self._transforms(x)
+        n_p = self.n_params
+        out = [None] * self.n_views
+        for c in range(len(self.camera_names)):
+            s = int(self.camera_corners[c])
+            if self.camera_corners[c + 1] == s:
+                continue
+            full = self._camera_eval(x, tr, c, True, self.huber_px)
+            res, Jf, Jg = full[:, :, -1], full[:, :, :6], full[:, :, 6:-1]
+            for k in range(self.camera_views[c], self.camera_views[c + 1]):
+                a, b = self.view_start[k] - s, self.view_start[k + 1] - s
+                m2 = 2 * (b - a)
+                blocks = [Jg[a:b, :, :n_p].reshape(m2, n_p)]
+                if c > 0:
+                    blocks.append(Jg[a:b, :, n_p:n_p + 6].reshape(m2, 6))
+                blocks += [Jg[a:b, :, n_p + 6:n_p + 8].reshape(m2, 2), Jf[a:b].reshape(m2, 6)]
+                if self.estimate_distance:
+                    blocks.append(Jg[a:b, :, n_p + 8:n_p + 9].reshape(m2, 1))
+                out[self.view_order[k]] = (res[a:b].reshape(-1), blocks)
+        return out
+
+    def write_values(self, values: gtsam.Values, x: Variables | None = None) -> None:
+        """Update a gtsam.Values (holding this problem's keys) to x (default: the current values)."""
+        x = self.x if x is None else x
+        for c in range(len(self.camera_names)):
+            values.update(K_.K(c), np.asarray(x.intrinsics[c], float))
+            if c > 0:
+                values.update(K_.C(c), gtsam.Pose3(gtsam.Rot3(x.world_R_cam[c]), x.world_t_cam[c]))
+        values.update(K_.N, x.normal)
+        for f in range(len(self.frame_names)):
+            values.update(K_.X(f), gtsam.Pose3(gtsam.Rot3(x.world_R_target[f]), x.world_t_target[f]))
+        if self.estimate_distance:
+            values.update(K_.H, np.array([float(x.distance_mm)]))
+
+    def marginal_covariances(self) -> dict[int, np.ndarray]:
+        """Marginal covariances of the global variables at the current values, by key (K(c), C(c) for
+        c > 0, N, H): what ``gtsam.Marginals(graph, values).marginalCovariance(key)`` gives, in the units
+        of the factors' sigmas (see :mod:`~ari_sfm.factors.marginals`)."""
+        cached = self._system_cache  # optimize's last linearisation when it was at the final values
+        sys = cached[1] if cached is not None and cached[0] is self.x else self.linearize(self.x)
+        return covariances_by_key(self, sys)
+
+    def marginals(self) -> "CovarianceTable":
+        """The marginal covariances as a ``gtsam.Marginals`` stand-in (``marginalCovariance(key)``
+        for the intrinsics, camera poses, normal and distance), e.g. for
+        :func:`ari_sfm.factors.uncertainty.rig_uncertainty`."""
+        return CovarianceTable(self.marginal_covariances())
+
+    # ------------------------------------------------------------------ consistency with a graph
+    def _check_against(self, rg: RigGraph, worst: int = 3) -> None:
+        """Compare the residuals of a few factors with GTSAM's (catches a wrong huber_px)."""
+        res = self._all_residuals(self.x, self.huber_px)
+        rw = res * self.corner_inv_sigma[:, None]
+        self._error_cache = (self.x, 0.5 * float(np.einsum("ij,ij->", rw, rw)) + self._extra.error(self.x))
+        view_norm = np.add.reduceat(np.abs(res).sum(axis=1), self.view_start[:-1]) if self.n_corners else np.zeros(0)
+        C = len(self.camera_names)
+        picks = {int(self.camera_views[c]) for c in range(C) if self.camera_views[c + 1] > self.camera_views[c]}
+        picks |= set(np.argsort(view_norm)[-worst:].tolist())
+        for k in sorted(picks):
+            mine = res[self.view_start[k]:self.view_start[k + 1]].reshape(-1)
+            theirs = np.asarray(rg.graph.at(int(self.graph_index[self.view_order[k]])).unwhitenedError(rg.values))
+            if not np.allclose(mine, theirs, rtol=1e-9, atol=1e-9):
+                raise ValueError(f"factor {int(self.view_order[k])}: vectorised residuals differ from the graph's "
+                                 f"(max {np.max(np.abs(mine - theirs)):.3g}); "
+                                 f"was the graph built with huber_px={self.huber_px}?")
+
+
+def _index(key: int, expected: str) -> int:
+    sym = gtsam.Symbol(key)
+    if chr(sym.chr()) != expected:
+        raise ValueError(f"key {gtsam.DefaultKeyFormatter(key)} is not a {expected!r} key")
+    return int(sym.index())
+
