@@ -11,11 +11,10 @@ import numpy as np
 from .calibration import Calibration, CameraCalibration
 from .errors import AriSfmError
 from .evaluate import residual_stats
+from .models.registry import model_spec
 from .records import Dataset, Interface
 
 log = logging.getLogger(__name__)
-
-MODELS = ("ari", "exact", "rt", "pf", "pinhole", "pinhole_dist")  # the last four: ari_sfm.baselines
 
 
 @dataclass(frozen=True)
@@ -67,17 +66,14 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
 
     opts = _options(options)
     backend = resolve_backend(opts.backend)
-    if model not in MODELS:
-        raise ValueError(f"unknown model {model!r} (known: {', '.join(MODELS)})")
+    spec = model_spec(model, "model", calibratable=True)  # the models: ari_sfm.models.registry
     if not isinstance(dataset, Dataset):
         from .io import load_dataset
 
         dataset = load_dataset(dataset)
     dataset = ensure_observations(dataset, opts.workers, opts.progress)
-    if model not in ("ari", "exact"):
-        from .baselines import calibrate_baseline
-
-        return calibrate_baseline(dataset, model, opts)
+    if not spec.bundle:
+        return spec.calibrate(dataset, opts)
     t0 = time.perf_counter()
     rig = initialise_rig(dataset, opts.distortion, opts.workers)
     iface = dataset.interface
@@ -154,8 +150,6 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
         extra["uncertainty"] = uncertainty
     extra["outliers"] = {"sigma_px": robust_sigma, "threshold_sigma": opts.outlier_sigma,
                          "excluded": opts.exclude_outliers, "corners": [o.to_json() for o in outliers]}
-    if model == "exact" and not underwater:
-        extra["fixed_distance_mm"] = state.distance_mm  # any value gives the same rays in air
     cal = Calibration(
         model=model,
         interface=Interface(iface.thickness_mm, iface.index, iface.medium_index, distance),
@@ -167,6 +161,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
         time_s=elapsed,
         extra=extra,
         target=dataset.target,
+        fixed_distance_mm=state.distance_mm if model == "exact" and not underwater else None,  # any value: same rays
     )
     return cal
 

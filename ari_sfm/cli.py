@@ -12,6 +12,7 @@ import click
 import numpy as np
 
 from .errors import AriSfmError
+from .models.registry import BUNDLE, CALIBRATABLE, COMPARED, MODELS, model_spec
 
 log = logging.getLogger("ari_sfm")
 
@@ -69,10 +70,8 @@ def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
     click.echo(f"{len(obs)} images, {n} corners in {time.perf_counter() - t0:.1f} s -> {out / 'observations.json'}")
 
 
-_model_option = click.option("--model", type=click.Choice(["ari", "exact", "rt", "pf", "pinhole", "pinhole_dist"]),
-                             default="ari", show_default=True,
-                             help="ari: paraxial ARI model; exact: Snell's law, refined from ari; "
-                                  "rt, pf, pinhole, pinhole_dist: the baselines of `compare`.")
+_model_option = click.option("--model", default="ari", show_default=True, metavar="|".join(CALIBRATABLE),
+                             help="; ".join(f"{m}: {MODELS[m].summary}" for m in CALIBRATABLE) + ".")
 _distortion_option = click.option("--distortion/--no-distortion", default=False, show_default=True, help="Estimate k1 k2 p1 p2 k3.")
 _huber_option = click.option("--huber-px", type=float, default=1.0, show_default=True,
                              help="Per-corner Huber threshold in px (0: plain least squares).")
@@ -95,6 +94,7 @@ def calibrate_cmd(dataset: Path, out: Path, model: str, distortion: bool, huber_
     """Calibrate DATASET; write OUT/calibration.json (and OUT/observations.json when detected here)."""
     from .pipelines.calibrate_rig import main as pipeline
 
+    model_spec(model, "--model", calibratable=True)  # before any loading or detection
     t0 = time.perf_counter()
     result = pipeline(dataset, out, model=model, progress=True, distortion=distortion, huber_px=huber_px or None,
                       exclude_outliers=exclude_outliers)
@@ -116,6 +116,7 @@ def run(dataset: Path, out: Path, model: str, distortion: bool, huber_px: float,
     """The pipeline: detect corners when needed, calibrate, reconstruct (frames seen by two cameras), report."""
     from .pipelines.run import main as pipeline
 
+    model_spec(model, "--model", calibratable=True)  # before any loading or detection
     t0 = time.perf_counter()
     click.echo(f"ari-sfm run: {dataset} -> {out}")
     result = pipeline(dataset, out, model=model, truth=truth, progress=True, distortion=distortion,
@@ -197,13 +198,13 @@ def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | N
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
               help="Output folder: compare.json, compare.md, residuals_*.png.")
-@click.option("--models", default="ari,exact,rt,pf,pinhole", show_default=True,
-              help="Comma-separated: ari, exact, rt, pf, pinhole, pinhole_dist.")
+@click.option("--models", default=",".join(COMPARED), show_default=True,
+              help=f"Comma-separated: {', '.join(CALIBRATABLE)}.")
 @click.option("--subset", default=None, help="center:COLSxROWS: fit on the central corners of each board, "
                                              "judge on all (the paper's limited-data test: center:3x4).")
 @click.option("--holdout", type=click.Path(path_type=Path), default=None,
               help="Also judge each model on this observations file (frame poses solved, rig fixed).")
-@click.option("--pf-world", type=click.Choice(["ari", "exact"]), default="ari", show_default=True,
+@click.option("--pf-world", default="ari", show_default=True, metavar="|".join(BUNDLE),
               help="Whose board poses give pf its world coordinates.")
 @_distortion_option
 @user_errors

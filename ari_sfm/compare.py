@@ -28,14 +28,14 @@ import numpy as np
 from .calibration import Calibration
 from .errors import AriSfmError
 from .evaluate import evaluate, observation_residuals, residual_stats
+from .models.registry import BUNDLE, CALIBRATABLE, COMPARED, model_spec
 from .records import Dataset, Observation
 
 log = logging.getLogger(__name__)
 FIGURES = ("residuals_scatter.png", "residuals_distribution.png")  # written beside compare.json
 
 FORMAT = "ari-sfm-compare/1"
-MODELS = ("ari", "exact", "rt", "pf", "pinhole", "pinhole_dist")
-DEFAULT_MODELS = ("ari", "exact", "rt", "pf", "pinhole")
+DEFAULT_MODELS = COMPARED  # the models: ari_sfm.models.registry
 # The paper's figures (px, ms) where it gives them: Table 2 (single camera), 3 (binocular), 4 (3x4 subset).
 PAPER = {
     "single": {"rt": (0.31, 1.42, 0.37, 298), "pf": (0.01, 0.08, 0.02, 7), "ari": (0.03, 0.12, 0.04, 10)},
@@ -104,10 +104,11 @@ class ModelResult:
 
 def params_per_camera(cal: Calibration, distortion: bool) -> int:
     """Intrinsics + window parameters of one camera (see module docstring)."""
-    if cal.model == "pf":
-        return 40
-    intr = 9 if (distortion or cal.model == "pinhole_dist") else 4
-    if cal.model in ("pinhole", "pinhole_dist"):
+    spec = cal.spec
+    if spec.params_per_camera is not None:
+        return spec.params_per_camera
+    intr = 9 if (distortion or spec.distortion) else 4
+    if not spec.window:
         return intr
     return intr + 2 + (1 if cal.interface.medium_index != 1.0 else 0)
 
@@ -115,10 +116,10 @@ def params_per_camera(cal: Calibration, distortion: bool) -> int:
 def parse_models(text: str | Sequence[str]) -> tuple[str, ...]:
     """Model names from ``ari,exact,...`` (unknown or repeated names are an error)."""
     names = [m.strip() for m in text.split(",")] if isinstance(text, str) else list(text)
-    bad = [m for m in names if m not in MODELS]
+    bad = [m for m in names if m not in CALIBRATABLE]
     if bad or not names or len(set(names)) != len(names):
         raise AriSfmError("--models", f"expected a comma-separated list of distinct models from "
-                                      f"{', '.join(MODELS)}; got {text!r}")
+                                      f"{', '.join(CALIBRATABLE)}; got {text!r}")
     return tuple(names)
 
 
@@ -152,17 +153,17 @@ def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Su
     from .calibrate import calibrate, ensure_observations
 
     models = parse_models(models)
+    if pf_world not in BUNDLE:
+        raise AriSfmError("--pf-world", f"expected one of {', '.join(BUNDLE)}, got {pf_world!r}")
     dataset = ensure_observations(dataset)
     fit_data = subset.apply(dataset) if subset else dataset
     fit_ids = subset.ids(dataset) if subset else None
     cals: dict[str, tuple[Calibration, float]] = {}
     options.setdefault("uncertainty", False)  # marginals are not part of a method's time
-    if pf_world not in ("ari", "exact"):
-        raise AriSfmError("--pf-world", f"expected ari or exact, got {pf_world!r}")
     needed = list(models) + ([pf_world] if "pf" in models and pf_world not in models else [])
     for model in sorted(needed, key=lambda m: m == "pf"):  # pf last: it needs its world
         t0 = time.perf_counter()
-        if model == "pf":
+        if model_spec(model).projection == "polynomial":
             cal = calibrate_pf(fit_data, world=cals[pf_world][0])
             wall = time.perf_counter() - t0 + cals[pf_world][1]
         else:
@@ -285,6 +286,8 @@ def run_compare(dataset_path: str | Path, out: str | Path, models: str | Sequenc
     from .io import load_dataset, load_observations, write_bytes_atomic, write_json_atomic, write_text_atomic
 
     names = parse_models(models)
+    if pf_world not in BUNDLE:
+        raise AriSfmError("--pf-world", f"expected one of {', '.join(BUNDLE)}, got {pf_world!r}")
     sub = Subset.parse(subset) if subset else None
     dataset = load_dataset(dataset_path)
     if sub:

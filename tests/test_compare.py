@@ -148,7 +148,7 @@ def test_rt_under_water_also_finds_the_window_distance():
     scene = make_scene("binocular_underwater", seed=0, sigma_px=SIGMA, num_frames=8)
     rt = calibrate(scene.dataset, model="rt")
     truth = Calibration.from_json(scene.truth, "truth.json")
-    assert rt.interface.distance_mm is not None and "fixed_distance_mm" not in rt.extra
+    assert rt.interface.distance_mm is not None and rt.fixed_distance_mm is None
     assert abs(rt.distance_mm("cam0") - truth.distance_mm("cam0")) < 0.1
     assert angle_between_deg(rt.normal_cam("cam0"), truth.normal_cam("cam0")) < 0.3
     assert rt.residuals["rmse_px"] < 1.1 * NOISE_RMSE

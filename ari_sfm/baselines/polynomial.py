@@ -172,6 +172,7 @@ def calibrate_pf(dataset: Dataset, world=None, **ari_options) -> "Calibration": 
     log.info("pf: %d cameras fitted in %.1f ms", len(polys), elapsed * 1e3)
     return replace(
         world, model="pf", cameras=cameras, stacking_poses={}, residuals=residual_stats(residuals), time_s=elapsed,
+        fixed_distance_mm=None,
         extra={"pf_world": {"model": world.model, "time_s": t_world or world.time_s,
                             "note": "K, cam_from_world and normal_world are the world calibration's; "
                                     "pixels come from each camera's pf polynomial"}},
