@@ -13,6 +13,7 @@ from .errors import AriSfmError
 from .evaluate import residual_stats
 from .models.registry import model_spec
 from .records import Dataset, Interface
+from .results import OutlierReport
 
 log = logging.getLogger(__name__)
 
@@ -141,15 +142,10 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
         cameras[n] = CameraCalibration(
             n, tuple(dataset.cameras[n].image_size), K, p[4:9].copy(), state.cam_from_world[n],
             None if ec is None else ec.center_px, None if ec is None else ec.std_px,
-            residual_stats(r for o, r in residuals if o.camera == n)["rmse_px"],
+            residual_stats(r for o, r in residuals if o.camera == n).rmse_px,
         )
     distance = state.distance_mm if underwater else None  # unobservable in air: null
     calib_frames = {o.frame for o in dataset.select("calibration")}
-    extra: dict = {"optimizer": iterations}
-    if uncertainty:
-        extra["uncertainty"] = uncertainty
-    extra["outliers"] = {"sigma_px": robust_sigma, "threshold_sigma": opts.outlier_sigma,
-                         "excluded": opts.exclude_outliers, "corners": [o.to_json() for o in outliers]}
     cal = Calibration(
         model=model,
         interface=Interface(iface.thickness_mm, iface.index, iface.medium_index, distance),
@@ -157,11 +153,13 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
         cameras=cameras,
         frames={f: p for f, p in state.world_from_target.items() if f in calib_frames},
         stacking_poses={f: p for f, p in state.world_from_target.items() if f in rig.stacking_poses},
-        residuals={k: v for k, v in residual_stats(r for _, r in residuals).items()},
+        residuals=residual_stats(r for _, r in residuals),
         time_s=elapsed,
-        extra=extra,
+        extra={"optimizer": iterations},
         target=dataset.target,
         fixed_distance_mm=state.distance_mm if model == "exact" and not underwater else None,  # any value: same rays
+        uncertainty=uncertainty,
+        outliers=OutlierReport(robust_sigma, opts.outlier_sigma, opts.exclude_outliers, tuple(outliers)),
     )
     return cal
 

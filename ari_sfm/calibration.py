@@ -12,6 +12,7 @@ from .errors import AriSfmError
 from .geometry import Pose
 from .models.registry import ModelSpec, model_spec
 from .records import Interface, Target
+from .results import OutlierReport, PfWorld, ResidualStats, Uncertainty
 
 FORMAT = "ari-sfm-calibration/1"
 
@@ -28,7 +29,8 @@ class CameraCalibration:
     expansion_center_px: np.ndarray | None = None  # measured from stacking
     expansion_center_std_px: np.ndarray | None = None
     rmse_px: float | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)  # keys of cameras.<name> this version does not know
+    pf: Any = None  # model pf: its world-to-pixel PolynomialMap (ari_sfm.baselines.polynomial), cameras.<name>.pf
 
     @property
     def params(self) -> np.ndarray:
@@ -46,19 +48,24 @@ class Calibration:
     cameras: dict[str, CameraCalibration]
     frames: dict[str, Pose]  # world_from_target of calibration frames
     stacking_poses: dict[str, Pose] = field(default_factory=dict)
-    residuals: dict[str, float] = field(default_factory=dict)
+    residuals: ResidualStats | None = None  # on the corners it was fitted on (None: not computed, e.g. truth)
     time_s: float = 0.0
-    extra: dict[str, Any] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)  # other top-level keys (optimizer report, ...), kept as read
     target: Target | None = None  # the target it was calibrated with (for evaluate)
     fixed_distance_mm: float | None = None  # camera 0 centre to near surface at which an exact-Snell model
     # (ModelSpec.needs_distance) is evaluated in air, where no pixel depends on it and interface.distance_mm is
     # null: the value it was calibrated with, required then (no default), None otherwise
+    uncertainty: Uncertainty | None = None  # standard deviations (bundle-adjusted models, when asked for)
+    outliers: OutlierReport | None = None  # corners beyond k sigma after convergence (bundle-adjusted models)
+    pf_world: PfWorld | None = None  # model pf: the calibration whose frames are its world (required then)
 
     def __post_init__(self) -> None:
         spec = self.spec  # an unknown model name fails here
         if spec.needs_distance and self.interface.distance_mm is None and self.fixed_distance_mm is None:
             raise ValueError(f"model {self.model} with interface.distance_mm null needs fixed_distance_mm "
                              "(the distance it was evaluated at)")
+        if spec.projection == "polynomial" and (self.pf_world is None or any(c.pf is None for c in self.cameras.values())):
+            raise ValueError(f"model {self.model} needs pf_world and every camera's pf polynomial")
 
     @property
     def spec(self) -> ModelSpec:
@@ -92,7 +99,7 @@ class Calibration:
             if spec.projection == "polynomial":
                 from .baselines.polynomial import PolynomialMap, PolynomialModel
 
-                return PolynomialModel(PolynomialMap.from_json(cam.extra["pf"]), cam.cam_from_world.inverse())
+                return PolynomialModel(cam.pf, cam.cam_from_world.inverse())
             return PinholeModel(cam.K, cam.dist)
         distance = self.distance_mm(camera)
         if distance is None and spec.needs_distance:
@@ -134,6 +141,8 @@ class Calibration:
             entry["distance_mm"] = self.distance_mm(name)
             if c.rmse_px is not None:
                 entry["rmse_px"] = c.rmse_px
+            if c.pf is not None:
+                entry["pf"] = c.pf.to_json(self.pf_world.model)
             entry.update(c.extra)
             cams[name] = entry
         out = {
@@ -155,9 +164,13 @@ class Calibration:
             from .io.dataset import target_to_json
 
             out["target"] = target_to_json(self.target)
-        out["residuals"] = dict(self.residuals)
+        out["residuals"] = {} if self.residuals is None else self.residuals.to_json()
         out["time_s"] = self.time_s
         out.update(self.extra)
+        for key, record in (("pf_world", self.pf_world), ("uncertainty", self.uncertainty),
+                            ("outliers", self.outliers)):
+            if record is not None:
+                out[key] = record.to_json()
         if self.fixed_distance_mm is not None:
             out["fixed_distance_mm"] = self.fixed_distance_mm
         return out
@@ -221,10 +234,27 @@ def _parse(data: Any, path: Any) -> Calibration:
     if not isinstance(data["cameras"], dict) or not data["cameras"]:
         raise AriSfmError(path, "cameras must be a non-empty object")
     known = {"image_size", "K", "dist", "cam_from_world", "normal_cam", "expansion_center_px",
-             "expansion_center_std_px", "rmse_px", "distance_mm"}
+             "expansion_center_std_px", "rmse_px", "distance_mm", *spec.camera_keys}
+    pf_world = _record(PfWorld, data, "pf_world", path) if spec.projection == "polynomial" else None
+    if spec.projection == "polynomial" and pf_world is None:
+        raise AriSfmError(path, f"pf_world is missing (model {model} names the calibration its world comes from)")
     for name, c in data["cameras"].items():
         ec = c.get("expansion_center_px")
         es = c.get("expansion_center_std_px")
+        for key in spec.camera_keys:
+            if key not in c:
+                raise AriSfmError(path, f"cameras.{name}.{key} is missing (model {model} stores its parameters there)")
+        poly = None
+        if spec.projection == "polynomial":  # the polynomial is the model: validate it here, not at the first projection
+            from .baselines.polynomial import PolynomialMap
+
+            try:
+                poly = PolynomialMap.from_json(c["pf"])
+            except (KeyError, TypeError, ValueError) as exc:
+                raise AriSfmError(path, f"cameras.{name}.pf: {exc}") from None
+            if c["pf"].get("world", pf_world.model) != pf_world.model:
+                raise AriSfmError(path, f"cameras.{name}.pf.world is {c['pf']['world']!r}, pf_world.model "
+                                        f"{pf_world.model!r}: one world for all cameras")
         cams[name] = CameraCalibration(
             name,
             tuple(int(s) for s in c["image_size"]),
@@ -235,21 +265,12 @@ def _parse(data: Any, path: Any) -> Calibration:
             None if es is None else np.asarray(es, float),
             c.get("rmse_px"),
             {k: v for k, v in c.items() if k not in known},
+            poly,
         )
-        for key in spec.camera_keys:
-            if key not in c:
-                raise AriSfmError(path, f"cameras.{name}.{key} is missing (model {model} stores its parameters there)")
-        if spec.projection == "polynomial":  # the polynomial is the model: validate it here, not at the first projection
-            from .baselines.polynomial import PolynomialMap
-
-            try:
-                PolynomialMap.from_json(c["pf"])
-            except (KeyError, TypeError, ValueError) as exc:
-                raise AriSfmError(path, f"cameras.{name}.pf: {exc}") from None
     frames = {f: _pose(v["world_from_target"], f"frames.{f}", path) for f, v in data.get("frames", {}).items()}
     stacking = {f: _pose(v["world_from_target"], f"stacking_poses.{f}", path) for f, v in data.get("stacking_poses", {}).items()}
     reserved = {"format", "model", "interface", "cameras", "frames", "stacking_poses", "residuals", "time_s", "target",
-                "fixed_distance_mm"}
+                "fixed_distance_mm", "uncertainty", "outliers", "pf_world"}
     fixed = data.get("fixed_distance_mm")
     if fixed is not None:
         fixed = float(fixed)
@@ -266,9 +287,24 @@ def _parse(data: Any, path: Any) -> Calibration:
         target = None
     return Calibration(
         model, Interface(thickness, index, medium, None if distance is None else float(distance)), normal, cams,
-        frames, stacking, dict(data.get("residuals", {})), float(data.get("time_s", 0.0)),
+        frames, stacking, _record(ResidualStats, data, "residuals", path), float(data.get("time_s", 0.0)),
         {k: v for k, v in data.items() if k not in reserved}, target, fixed,
+        _record(Uncertainty, data, "uncertainty", path), _record(OutlierReport, data, "outliers", path), pf_world,
     )
+
+
+def _record(cls, data: dict, key: str, path: Any):
+    """``cls.from_json(data[key])`` (None when the key is absent, null or {}), errors naming the key."""
+    value = data.get(key)
+    if not value:
+        return None
+    if not isinstance(value, dict):
+        raise AriSfmError(path, f"{key} must be an object")
+    try:
+        return cls.from_json(value)
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        what = f"missing key {exc}" if isinstance(exc, KeyError) else str(exc)
+        raise AriSfmError(path, f"{key}: {what}") from None
 
 
 def load_calibration(path: str | Path) -> Calibration:

@@ -154,7 +154,7 @@ def evaluate_cmd(calibration: Path, observations: Path) -> None:
     from .evaluate import evaluate
 
     stats = evaluate(load_calibration(calibration), observations)
-    click.echo(f"rmse {stats['rmse_px']:.4f} px  mae {stats['mae_px']:.4f} px  max {stats['max_px']:.4f} px  ({stats['count']} corners)")
+    click.echo(f"rmse {stats.rmse_px:.4f} px  mae {stats.mae_px:.4f} px  max {stats.max_px:.4f} px  ({stats.count} corners)")
 
 
 @main.command(name="reconstruct")
@@ -302,20 +302,20 @@ def _summary(cal, elapsed: float) -> None:
         ec = "-" if c.expansion_center_px is None else (
             f"{c.expansion_center_px[0]:.1f},{c.expansion_center_px[1]:.1f} ±{max(c.expansion_center_std_px):.2f}")
         click.echo(f"{name:10s} {c.K[0,0]:9.2f} {c.K[1,1]:9.2f} {c.K[0,2]:8.2f} {c.K[1,2]:8.2f} {tilt:5.2f}° {ec:>26s} {c.rmse_px:7.4f}")
-    u = cal.extra.get("uncertainty")
+    u = cal.uncertainty
     if u:
-        click.echo(f"standard deviations (sigma {u['sigma_px']:.3f} px): normal {_std(u['normal_deg'], '.4f')}°"
-                   + (f", distance {_std(u['distance_mm'], '.4f')} mm" if "distance_mm" in u else ""))
-        for name, s in u["cameras"].items():
-            rel = (f"  cam_from_{next(iter(cal.cameras))} ±{_std(s['rotation_deg'], '.4f')}°"
-                   f" ±{_std(s['translation_mm'], '.4f')} mm" if "rotation_deg" in s else "")
-            click.echo(f"  {name:8s} fx ±{_std(s['fx'], '.3f')} fy ±{_std(s['fy'], '.3f')} cx ±{_std(s['cx'], '.3f')}"
-                       f" cy ±{_std(s['cy'], '.3f')} px{rel}")
-    outl = cal.extra.get("outliers", {}).get("corners", [])
-    if outl:
-        click.echo(f"{len(outl)} corners beyond {cal.extra['outliers']['threshold_sigma']:g} sigma "
-                   f"({'excluded' if cal.extra['outliers']['excluded'] else 'listed in calibration.json under outliers'})")
-    click.echo(f"residuals: rmse {r['rmse_px']:.4f} px, mae {r['mae_px']:.4f} px, max {r['max_px']:.4f} px over {r['count']} corners")
+        click.echo(f"standard deviations (sigma {u.sigma_px:.3f} px): normal {_std(u.normal_deg, '.4f')}°"
+                   + (f", distance {_std(u.distance_mm, '.4f')} mm" if u.estimates_distance else ""))
+        for name, s in u.cameras.items():
+            rel = (f"  cam_from_{next(iter(cal.cameras))} ±{_std(s.rotation_deg, '.4f')}°"
+                   f" ±{_std(s.translation_mm, '.4f')} mm" if s.relative_pose else "")
+            i = s.intrinsics
+            click.echo(f"  {name:8s} fx ±{_std(i['fx'], '.3f')} fy ±{_std(i['fy'], '.3f')} cx ±{_std(i['cx'], '.3f')}"
+                       f" cy ±{_std(i['cy'], '.3f')} px{rel}")
+    if cal.outliers is not None and cal.outliers.corners:
+        click.echo(f"{len(cal.outliers.corners)} corners beyond {cal.outliers.threshold_sigma:g} sigma "
+                   f"({'excluded' if cal.outliers.excluded else 'listed in calibration.json under outliers'})")
+    click.echo(f"residuals: rmse {r.rmse_px:.4f} px, mae {r.mae_px:.4f} px, max {r.max_px:.4f} px over {r.count} corners")
     click.echo(f"time: calibration {cal.time_s:.3f} s, total {elapsed:.2f} s")
 
 

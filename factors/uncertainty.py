@@ -13,10 +13,11 @@ from typing import Sequence
 import gtsam
 import numpy as np
 
+from ..models.pinhole import PARAM_NAMES
+from ..results import CameraUncertainty, Uncertainty
 from . import keys as K_
 from .rig_graph import RigGraph
 
-PARAM_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 log = logging.getLogger(__name__)
 
 
@@ -39,7 +40,7 @@ def residual_sigma_px(rg: RigGraph, residuals: Sequence[tuple[object, np.ndarray
 
 
 def rig_uncertainty(rg: RigGraph, sigma_px: float | None = None, marginals=None,
-                    residuals: Sequence[tuple[object, np.ndarray]] | None = None) -> dict:
+                    residuals: Sequence[tuple[object, np.ndarray]] | None = None) -> Uncertainty:
     """Standard deviations: per camera fx fy cx cy (and distortion) in px, the
     relative pose of each camera to camera 0 (rotation in degrees, translation in
     mm, as RMS error magnitudes), the normal's angle in degrees (RMS), and the
@@ -53,19 +54,20 @@ def rig_uncertainty(rg: RigGraph, sigma_px: float | None = None, marginals=None,
     if marginals is None:
         marginals = gtsam.Marginals(rg.graph, rg.values)
     s2 = sigma**2
-    out: dict = {"sigma_px": sigma, "cameras": {}}
+    cameras = {}
     for c, name in enumerate(rg.camera_names):
         cov = marginals.marginalCovariance(K_.K(c)) * s2
-        entry = {PARAM_NAMES[i]: _std(cov[i, i], f"{name} {PARAM_NAMES[i]}") for i in range(cov.shape[0])}
+        intrinsics = {PARAM_NAMES[i]: _std(cov[i, i], f"{name} {PARAM_NAMES[i]}") for i in range(cov.shape[0])}
         if c > 0:
             pc = marginals.marginalCovariance(K_.C(c)) * s2
             rot = _std(np.trace(pc[:3, :3]), f"{name} rotation")
-            entry["rotation_deg"] = None if rot is None else float(np.degrees(rot))
-            entry["translation_mm"] = _std(np.trace(pc[3:, 3:]), f"{name} translation")
-        out["cameras"][name] = entry
+            cameras[name] = CameraUncertainty(intrinsics, True, None if rot is None else float(np.degrees(rot)),
+                                              _std(np.trace(pc[3:, 3:]), f"{name} translation"))
+        else:
+            cameras[name] = CameraUncertainty(intrinsics)
     cov_n = marginals.marginalCovariance(K_.N) * s2
     normal = _std(np.trace(cov_n), "the normal")
-    out["normal_deg"] = None if normal is None else float(np.degrees(normal))
-    if rg.estimate_distance:
-        out["distance_mm"] = _std(marginals.marginalCovariance(K_.H)[0, 0] * s2, "the window distance")
-    return out
+    distance = (_std(marginals.marginalCovariance(K_.H)[0, 0] * s2, "the window distance")
+                if rg.estimate_distance else None)
+    return Uncertainty(sigma, cameras, None if normal is None else float(np.degrees(normal)), rg.estimate_distance,
+                       distance)

@@ -33,9 +33,9 @@ def binocular():
 
 
 @pytest.fixture(scope="module")
-def calibrations(binocular) -> dict[str, Calibration]:
-    """Every calibratable model on the bundled binocular dataset (air behind the window), ~2 s in all."""
-    return {m: calibrate(binocular, model=m, uncertainty=False) for m in CALIBRATABLE}
+def calibrations(binocular_calibrations) -> dict[str, Calibration]:
+    """Every calibratable model on the bundled binocular dataset (air behind the window)."""
+    return binocular_calibrations
 
 
 def test_registry_names_every_model_once():
@@ -65,7 +65,7 @@ def test_every_model_round_trips_its_calibration_json(calibrations, binocular, t
             assert type(projector) is spec.projection_class()
         X = np.array([[5.0, -3.0, 420.0], [-40.0, 25.0, 380.0]])
         assert np.allclose(back.project_world(name, X), cal.project_world(name, X), atol=1e-9)
-    assert evaluate(back, binocular)["rmse_px"] == pytest.approx(cal.residuals["rmse_px"], rel=1e-6)
+    assert evaluate(back, binocular).rmse_px == pytest.approx(cal.residuals.rmse_px, rel=1e-6)
 
 
 def test_classes_and_capabilities_per_model(calibrations):
@@ -125,8 +125,8 @@ def test_case_matters_exact_is_not_evaluated_as_ari(calibrations, binocular, tmp
     # The old loader read any unknown name as ari: "Exact" scored the exact calibration at ~3 px instead of
     # its ~0.07 px. The exact one scores at the noise floor; a misspelt one does not load at all.
     cal = calibrations["exact"]
-    assert evaluate(cal, binocular)["rmse_px"] < 1.2 * FLOOR
-    assert evaluate(replace(cal, model="ari"), binocular)["rmse_px"] > 10 * FLOOR
+    assert evaluate(cal, binocular).rmse_px < 1.2 * FLOOR
+    assert evaluate(replace(cal, model="ari"), binocular).rmse_px > 10 * FLOOR
     with pytest.raises(AriSfmError, match="unknown model 'Exact'"):
         replace(cal, model="Exact")
 

@@ -145,7 +145,7 @@ def calibrate_rt(dataset: Dataset, distortion: bool = False, max_iterations: int
     res = (pixels(result.x) - pts.uv)
     per_camera = {name: res[pts.camera == c] for c, name in enumerate(bundle.names)}
     log.info("rt: %d function evaluations, %.1f ms, rmse %.4f px", result.nfev, elapsed * 1e3,
-             residual_stats([res])["rmse_px"])
+             residual_stats([res]).rmse_px)
     extra = {"optimizer": {"rt": {"nfev": int(result.nfev), "status": int(result.status), "time_s": elapsed,
                                   "backend": "scipy.least_squares(lm), numeric Jacobian"}}}
     return Calibration(
