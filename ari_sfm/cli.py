@@ -127,8 +127,8 @@ def run(dataset: Path, out: Path, model: str, distortion: bool, huber_px: float,
         click.echo(f"info: reconstruction skipped: {result.skipped_reconstruction}")
     else:
         m = result.reconstruction.metrics
-        click.echo(f"reconstruction: {m['num_points']} points in {m['num_frames']} frames, flatness rmse "
-                   f"{m['flatness_mm']['rmse']:.4f} mm -> {result.reconstruction.metrics_path}")
+        click.echo(f"reconstruction: {m.num_points} points in {m.num_frames} frames, flatness rmse "
+                   f"{m.flatness_mm.rmse:.4f} mm -> {result.reconstruction.metrics_path}")
     click.echo(f"report: {result.report_path}")
 
 
@@ -173,24 +173,24 @@ def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | N
 
     r = run_reconstruction(dataset, calibration, out, truth, workers=workers, progress=True)
     m = r.metrics
-    click.echo(f"{m['num_points']} points in {m['num_frames']} frames, ray gap rms {m['ray_gap_mm']['rms']:.4f} mm"
-               + (f", reprojection rmse {m['reprojection_rmse_px']:.4f} px" if m["reprojection_rmse_px"] is not None else ""))
-    click.echo(f"flatness: rmse {m['flatness_mm']['rmse']:.4f} mm, mae {m['flatness_mm']['mae']:.4f} mm, "
-               f"max {m['flatness_mm']['max']:.4f} mm")
-    if m["stage"]:
-        s = m["stage"]
-        click.echo(f"stage plane distances vs stage_mm (reference {s['reference_frame']}): error rmse "
-                   f"{s['plane_distance_error_mm']['rmse']:.4f} mm, max {s['plane_distance_error_mm']['max']:.4f} mm "
-                   f"(stage {s['angle_to_normal_deg']:.2f} deg off the normal; uncorrected max "
-                   f"{s['plane_distance_error_paper_mm']['max']:.4f} mm)")
-    if m["inter_corner_mm"]:
-        ic = m["inter_corner_mm"]
-        click.echo(f"inter-corner distances ({ic['count']} vs {ic['square_mm']:g} mm): rmse {ic['rmse']:.4f} mm, "
-                   f"mae {ic['mae']:.4f} mm, max {ic['max']:.4f} mm")
-    if m["truth"]:
-        t = m["truth"]
-        click.echo(f"vs truth: rms {t['aligned']['rms_mm']:.4f} mm after rigid alignment (max {t['aligned']['max_mm']:.4f}), "
-                   f"{t['unaligned']['rms_mm']:.4f} mm without")
+    click.echo(f"{m.num_points} points in {m.num_frames} frames, ray gap rms {m.ray_gap_mm.rms:.4f} mm"
+               + (f", reprojection rmse {m.reprojection_rmse_px:.4f} px" if m.reprojection_rmse_px is not None else ""))
+    click.echo(f"flatness: rmse {m.flatness_mm.rmse:.4f} mm, mae {m.flatness_mm.mae:.4f} mm, "
+               f"max {m.flatness_mm.max:.4f} mm")
+    if m.stage:
+        s = m.stage
+        click.echo(f"stage plane distances vs stage_mm (reference {s.reference_frame}): error rmse "
+                   f"{s.plane_distance_error_mm.rmse:.4f} mm, max {s.plane_distance_error_mm.max:.4f} mm "
+                   f"(stage {s.angle_to_normal_deg:.2f} deg off the normal; uncorrected max "
+                   f"{s.plane_distance_error_paper_mm.max:.4f} mm)")
+    if m.inter_corner_mm:
+        ic = m.inter_corner_mm
+        click.echo(f"inter-corner distances ({ic.count} vs {ic.square_mm:g} mm): rmse {ic.rmse:.4f} mm, "
+                   f"mae {ic.mae:.4f} mm, max {ic.max:.4f} mm")
+    if m.truth:
+        t = m.truth
+        click.echo(f"vs truth: rms {t.aligned_rms_mm:.4f} mm after rigid alignment (max {t.aligned_max_mm:.4f}), "
+                   f"{t.unaligned_rms_mm:.4f} mm without")
     click.echo(f"points:  {r.points_path}\nmetrics: {r.metrics_path}\nclouds:  {r.clouds['all'].parent}")
 
 
