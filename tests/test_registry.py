@@ -1,6 +1,7 @@
 """The model registry: every model named once, each one's calibration.json round trip, unknown names as one line."""
 from __future__ import annotations
 
+import importlib
 import json
 import subprocess
 import sys
@@ -18,7 +19,7 @@ from ari_sfm.errors import AriSfmError
 from ari_sfm.evaluate import evaluate
 from ari_sfm.io import load_dataset
 from ari_sfm.models import AriModel, ExactModel, PinholeModel
-from ari_sfm.models.registry import CALIBRATABLE, MODELS, model_spec
+from ari_sfm.models.registry import CALIBRATABLE, MODELS, ModelSpec, model_spec
 
 ROOT = Path(__file__).resolve().parents[1]
 BINOCULAR = ROOT / "datasets" / "binocular"
@@ -44,7 +45,11 @@ def test_registry_names_every_model_once():
     assert not MODELS["truth"].calibratable
     for spec in MODELS.values():
         assert spec.name and spec.summary
-        assert spec.bundle != (spec.calibrator is not None) or spec.name == "truth"
+        if spec.calibrator is not None:  # every calibrator named resolves to a function
+            module, function = spec.calibrator.split(":")
+            assert callable(getattr(importlib.import_module(module), function)), spec.calibrator
+    with pytest.raises(ValueError, match="projection must be one of"):
+        ModelSpec("x", "a model projecting with nothing known", "fisheye", bundle=True, calibrator=None)
 
 
 @pytest.mark.parametrize("model", CALIBRATABLE)

@@ -33,6 +33,12 @@ class ModelSpec:
     params_per_camera: int | None = None  # fixed parameter count (pf's 40); None: intrinsics + window
     compared: bool = True  # among `ari-sfm compare`'s default models
 
+    def __post_init__(self) -> None:
+        if self.projection not in PROJECTIONS:
+            raise ValueError(f"model {self.name}: projection must be one of {', '.join(PROJECTIONS)}")
+        if self.bundle and self.calibrator is not None:
+            raise ValueError(f"model {self.name}: a bundle-adjusted model has no separate calibrator")
+
     @property
     def window(self) -> bool:
         """Has a window normal (calibration.json interface.normal_world is not null)."""
