@@ -11,11 +11,11 @@ import numpy as np
 from .calibration import Calibration, CameraCalibration
 from .errors import AriSfmError
 from .evaluate import residual_stats
+from .models.registry import model_spec
 from .records import Dataset, Interface
+from .results import OutlierReport
 
 log = logging.getLogger(__name__)
-
-MODELS = ("ari", "exact", "rt", "pf", "pinhole", "pinhole_dist")  # the last four: ari_sfm.baselines
 
 
 @dataclass(frozen=True)
@@ -84,19 +84,16 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=N
 
     opts = _options(options)
     backend = resolve_backend(opts.backend)
-    if model not in MODELS:
-        raise ValueError(f"unknown model {model!r} (known: {', '.join(MODELS)})")
+    spec = model_spec(model, "model", calibratable=True)  # the models: ari_sfm.models.registry
     if not isinstance(dataset, Dataset):
         from .io import load_dataset
 
         dataset = load_dataset(dataset)
     dataset = ensure_observations(dataset, opts.workers, opts.progress)
-    if model not in ("ari", "exact"):
+    if not spec.bundle:
         if extra_factors is not None:
             raise ValueError(f"extra_factors need a factor-graph model (ari or exact), not {model!r}")
-        from .baselines import calibrate_baseline
-
-        return calibrate_baseline(dataset, model, opts)
+        return spec.calibrate(dataset, opts)
     t0 = time.perf_counter()
     rig = initialise_rig(dataset, opts.distortion, opts.workers)
     iface = dataset.interface
@@ -178,17 +175,10 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=N
         cameras[n] = CameraCalibration(
             n, tuple(dataset.cameras[n].image_size), K, p[4:9].copy(), state.cam_from_world[n],
             None if ec is None else ec.center_px, None if ec is None else ec.std_px,
-            residual_stats(r for o, r in residuals if o.camera == n)["rmse_px"],
+            residual_stats(r for o, r in residuals if o.camera == n).rmse_px,
         )
     distance = state.distance_mm if underwater else None  # unobservable in air: null
     calib_frames = {o.frame for o in dataset.select("calibration")}
-    extra: dict = {"optimizer": iterations}
-    if uncertainty:
-        extra["uncertainty"] = uncertainty
-    extra["outliers"] = {"sigma_px": robust_sigma, "threshold_sigma": opts.outlier_sigma,
-                         "excluded": opts.exclude_outliers, "corners": [o.to_json() for o in outliers]}
-    if model == "exact" and not underwater:
-        extra["fixed_distance_mm"] = state.distance_mm  # any value gives the same rays in air
     cal = Calibration(
         model=model,
         interface=Interface(iface.thickness_mm, iface.index, iface.medium_index, distance),
@@ -196,10 +186,13 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=N
         cameras=cameras,
         frames={f: p for f, p in state.world_from_target.items() if f in calib_frames},
         stacking_poses={f: p for f, p in state.world_from_target.items() if f in rig.stacking_poses},
-        residuals={k: v for k, v in residual_stats(r for _, r in residuals).items()},
+        residuals=residual_stats(r for _, r in residuals),
         time_s=elapsed,
-        extra=extra,
+        extra={"optimizer": iterations},
         target=dataset.target,
+        fixed_distance_mm=state.distance_mm if model == "exact" and not underwater else None,  # any value: same rays
+        uncertainty=uncertainty,
+        outliers=OutlierReport(robust_sigma, opts.outlier_sigma, opts.exclude_outliers, tuple(outliers)),
     )
     return cal
 

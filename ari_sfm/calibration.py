@@ -10,11 +10,11 @@ import numpy as np
 
 from .errors import AriSfmError
 from .geometry import Pose
+from .models.registry import ModelSpec, model_spec
 from .records import Interface, Target
+from .results import OutlierReport, PfWorld, ResidualStats, Uncertainty
 
 FORMAT = "ari-sfm-calibration/1"
-MODELS = ("ari", "exact", "truth", "rt", "pf", "pinhole", "pinhole_dist")
-NO_WINDOW_MODELS = ("pinhole", "pinhole_dist")  # ignore the window: no normal (normal_world None)
 
 
 @dataclass(frozen=True)
@@ -29,7 +29,8 @@ class CameraCalibration:
     expansion_center_px: np.ndarray | None = None  # measured from stacking
     expansion_center_std_px: np.ndarray | None = None
     rmse_px: float | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)  # keys of cameras.<name> this version does not know
+    pf: Any = None  # model pf: its world-to-pixel PolynomialMap (ari_sfm.baselines.polynomial), cameras.<name>.pf
 
     @property
     def params(self) -> np.ndarray:
@@ -43,14 +44,33 @@ class Calibration:
 
     model: str
     interface: Interface  # distance_mm: camera 0 centre to near surface, None if unobservable
-    normal_world: np.ndarray | None  # None for NO_WINDOW_MODELS
+    normal_world: np.ndarray | None  # None for models without a window (ModelSpec.window: pinhole)
     cameras: dict[str, CameraCalibration]
     frames: dict[str, Pose]  # world_from_target of calibration frames
     stacking_poses: dict[str, Pose] = field(default_factory=dict)
-    residuals: dict[str, float] = field(default_factory=dict)
+    residuals: ResidualStats | None = None  # on the corners it was fitted on (None: not computed, e.g. truth)
     time_s: float = 0.0
-    extra: dict[str, Any] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)  # other top-level keys (optimizer report, ...), kept as read
     target: Target | None = None  # the target it was calibrated with (for evaluate)
+    fixed_distance_mm: float | None = None  # camera 0 centre to near surface at which an exact-Snell model
+    # (ModelSpec.needs_distance) is evaluated in air, where no pixel depends on it and interface.distance_mm is
+    # null: the value it was calibrated with, required then (no default), None otherwise
+    uncertainty: Uncertainty | None = None  # standard deviations (bundle-adjusted models, when asked for)
+    outliers: OutlierReport | None = None  # corners beyond k sigma after convergence (bundle-adjusted models)
+    pf_world: PfWorld | None = None  # model pf: the calibration whose frames are its world (required then)
+
+    def __post_init__(self) -> None:
+        spec = self.spec  # an unknown model name fails here
+        if spec.needs_distance and self.interface.distance_mm is None and self.fixed_distance_mm is None:
+            raise ValueError(f"model {self.model} with interface.distance_mm null needs fixed_distance_mm "
+                             "(the distance it was evaluated at)")
+        if spec.projection == "polynomial" and (self.pf_world is None or any(c.pf is None for c in self.cameras.values())):
+            raise ValueError(f"model {self.model} needs pf_world and every camera's pf polynomial")
+
+    @property
+    def spec(self) -> ModelSpec:
+        """The model's registry entry (:mod:`ari_sfm.models.registry`)."""
+        return model_spec(self.model, None)
 
     def normal_cam(self, camera: str) -> np.ndarray:
         """The window normal in a camera's frame (the zero vector for a model without one: pinhole)."""
@@ -66,28 +86,30 @@ class Calibration:
         return float(self.interface.distance_mm - self.normal_world @ centre)
 
     def projection_model(self, camera: str, added_mm: float = 0.0, model: str | None = None):
-        """The camera's projection model in its own frame: AriModel, ExactModel (exact, truth, rt),
-        PinholeModel (pinhole models: the window ignored) or the pf polynomial (world points only)."""
-        from .models import AriModel, ExactModel, PinholeModel
+        """The camera's projection model in its own frame, the class the registry names for the model
+        (or for ``model``): AriModel, ExactModel (exact, rt, truth), PinholeModel (the window ignored)
+        or the pf polynomial (world points only)."""
+        from .models import PinholeModel
 
         cam = self.cameras[camera]
-        kind = model or self.model
-        if kind in NO_WINDOW_MODELS or kind == "pf":
+        spec = self.spec if model is None else model_spec(model, None)
+        if not spec.window or spec.projection == "polynomial":
             if added_mm:
-                raise ValueError(f"model {kind} cannot project through added glass (added_mm={added_mm})")
-            if kind == "pf":
+                raise ValueError(f"model {spec.name} cannot project through added glass (added_mm={added_mm})")
+            if spec.projection == "polynomial":
                 from .baselines.polynomial import PolynomialMap, PolynomialModel
 
-                return PolynomialModel(PolynomialMap.from_json(cam.extra["pf"]), cam.cam_from_world.inverse())
+                return PolynomialModel(cam.pf, cam.cam_from_world.inverse())
             return PinholeModel(cam.K, cam.dist)
-        kind = "exact" if kind in ("exact", "truth", "rt") else "ari"
-        pinhole = PinholeModel(cam.K, cam.dist)
-        cls = ExactModel if kind == "exact" else AriModel
         distance = self.distance_mm(camera)
-        if kind == "exact" and distance is None:
-            distance = self.extra.get("fixed_distance_mm", 1.0)
-        return cls(pinhole, self.normal_cam(camera), self.interface.thickness_mm + added_mm, self.interface.index,
-                   self.interface.medium_index, distance)
+        if distance is None and spec.needs_distance:
+            if self.fixed_distance_mm is None:
+                raise ValueError(f"model {spec.name} needs a window distance: this calibration has neither "
+                                 "interface.distance_mm nor fixed_distance_mm")
+            distance = self.fixed_distance_mm - float(self.normal_world @ cam.cam_from_world.inverse().t)
+        return spec.projection_class()(PinholeModel(cam.K, cam.dist), self.normal_cam(camera),
+                                       self.interface.thickness_mm + added_mm, self.interface.index,
+                                       self.interface.medium_index, distance)
 
     def project_world(self, camera: str, X_world: np.ndarray, added_mm: float = 0.0) -> np.ndarray:
         """Pixels (N, 2) of world points (N, 3) seen by a camera through the window."""
@@ -119,6 +141,8 @@ class Calibration:
             entry["distance_mm"] = self.distance_mm(name)
             if c.rmse_px is not None:
                 entry["rmse_px"] = c.rmse_px
+            if c.pf is not None:
+                entry["pf"] = c.pf.to_json(self.pf_world.model)
             entry.update(c.extra)
             cams[name] = entry
         out = {
@@ -140,9 +164,15 @@ class Calibration:
             from .io.dataset import target_to_json
 
             out["target"] = target_to_json(self.target)
-        out["residuals"] = dict(self.residuals)
+        out["residuals"] = {} if self.residuals is None else self.residuals.to_json()
         out["time_s"] = self.time_s
         out.update(self.extra)
+        for key, record in (("pf_world", self.pf_world), ("uncertainty", self.uncertainty),
+                            ("outliers", self.outliers)):
+            if record is not None:
+                out[key] = record.to_json()
+        if self.fixed_distance_mm is not None:
+            out["fixed_distance_mm"] = self.fixed_distance_mm
         return out
 
     def save(self, path: str | Path) -> None:
@@ -184,9 +214,8 @@ def _parse(data: Any, path: Any) -> Calibration:
         raise AriSfmError(path, "calibration must be a JSON object")
     if data.get("format") != FORMAT:
         raise AriSfmError(path, f"unknown format {data.get('format')!r} (expected {FORMAT!r})")
-    model = data["model"]
-    if not isinstance(model, str):
-        raise AriSfmError(path, "model must be a string")
+    spec = model_spec(data["model"], path)
+    model = spec.name
     iface = data["interface"]
     thickness, index = float(iface["thickness_mm"]), float(iface["index"])
     medium = float(iface.get("medium_index", 1.0))
@@ -195,7 +224,7 @@ def _parse(data: Any, path: Any) -> Calibration:
     if not (math.isfinite(index) and index >= 1) or not (math.isfinite(medium) and medium >= 1):
         raise AriSfmError(path, "interface.index and medium_index must be >= 1")
     distance = iface.get("distance_mm")
-    if iface["normal_world"] is None and model in NO_WINDOW_MODELS:
+    if iface["normal_world"] is None and not spec.window:
         normal = None
     else:
         normal = _finite(iface["normal_world"], (3,), "interface.normal_world", path)
@@ -205,10 +234,27 @@ def _parse(data: Any, path: Any) -> Calibration:
     if not isinstance(data["cameras"], dict) or not data["cameras"]:
         raise AriSfmError(path, "cameras must be a non-empty object")
     known = {"image_size", "K", "dist", "cam_from_world", "normal_cam", "expansion_center_px",
-             "expansion_center_std_px", "rmse_px", "distance_mm"}
+             "expansion_center_std_px", "rmse_px", "distance_mm", *spec.camera_keys}
+    pf_world = _record(PfWorld, data, "pf_world", path) if spec.projection == "polynomial" else None
+    if spec.projection == "polynomial" and pf_world is None:
+        raise AriSfmError(path, f"pf_world is missing (model {model} names the calibration its world comes from)")
     for name, c in data["cameras"].items():
         ec = c.get("expansion_center_px")
         es = c.get("expansion_center_std_px")
+        for key in spec.camera_keys:
+            if key not in c:
+                raise AriSfmError(path, f"cameras.{name}.{key} is missing (model {model} stores its parameters there)")
+        poly = None
+        if spec.projection == "polynomial":  # the polynomial is the model: validate it here, not at the first projection
+            from .baselines.polynomial import PolynomialMap
+
+            try:
+                poly = PolynomialMap.from_json(c["pf"])
+            except (KeyError, TypeError, ValueError) as exc:
+                raise AriSfmError(path, f"cameras.{name}.pf: {exc}") from None
+            if c["pf"].get("world", pf_world.model) != pf_world.model:
+                raise AriSfmError(path, f"cameras.{name}.pf.world is {c['pf']['world']!r}, pf_world.model "
+                                        f"{pf_world.model!r}: one world for all cameras")
         cams[name] = CameraCalibration(
             name,
             tuple(int(s) for s in c["image_size"]),
@@ -219,19 +265,20 @@ def _parse(data: Any, path: Any) -> Calibration:
             None if es is None else np.asarray(es, float),
             c.get("rmse_px"),
             {k: v for k, v in c.items() if k not in known},
+            poly,
         )
-        if model == "pf":  # the polynomial is the model: validate it here, not at the first projection
-            from .baselines.polynomial import PolynomialMap
-
-            if "pf" not in c:
-                raise AriSfmError(path, f"cameras.{name}.pf is missing (model pf stores its polynomial there)")
-            try:
-                PolynomialMap.from_json(c["pf"])
-            except (KeyError, TypeError, ValueError) as exc:
-                raise AriSfmError(path, f"cameras.{name}.pf: {exc}") from None
     frames = {f: _pose(v["world_from_target"], f"frames.{f}", path) for f, v in data.get("frames", {}).items()}
     stacking = {f: _pose(v["world_from_target"], f"stacking_poses.{f}", path) for f, v in data.get("stacking_poses", {}).items()}
-    reserved = {"format", "model", "interface", "cameras", "frames", "stacking_poses", "residuals", "time_s", "target"}
+    reserved = {"format", "model", "interface", "cameras", "frames", "stacking_poses", "residuals", "time_s", "target",
+                "fixed_distance_mm", "uncertainty", "outliers", "pf_world"}
+    fixed = data.get("fixed_distance_mm")
+    if fixed is not None:
+        fixed = float(fixed)
+        if not math.isfinite(fixed):
+            raise AriSfmError(path, f"fixed_distance_mm must be a finite number (got {data['fixed_distance_mm']!r})")
+    if spec.needs_distance and distance is None and fixed is None:
+        raise AriSfmError(path, f"fixed_distance_mm is missing: model {model} with interface.distance_mm null is "
+                                "evaluated at the distance it was calibrated with (in air no pixel depends on it)")
     if "target" in data:
         from .io.dataset import parse_target
 
@@ -240,9 +287,24 @@ def _parse(data: Any, path: Any) -> Calibration:
         target = None
     return Calibration(
         model, Interface(thickness, index, medium, None if distance is None else float(distance)), normal, cams,
-        frames, stacking, dict(data.get("residuals", {})), float(data.get("time_s", 0.0)),
-        {k: v for k, v in data.items() if k not in reserved}, target,
+        frames, stacking, _record(ResidualStats, data, "residuals", path), float(data.get("time_s", 0.0)),
+        {k: v for k, v in data.items() if k not in reserved}, target, fixed,
+        _record(Uncertainty, data, "uncertainty", path), _record(OutlierReport, data, "outliers", path), pf_world,
     )
+
+
+def _record(cls, data: dict, key: str, path: Any):
+    """``cls.from_json(data[key])`` (None when the key is absent, null or {}), errors naming the key."""
+    value = data.get(key)
+    if not value:
+        return None
+    if not isinstance(value, dict):
+        raise AriSfmError(path, f"{key} must be an object")
+    try:
+        return cls.from_json(value)
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        what = f"missing key {exc}" if isinstance(exc, KeyError) else str(exc)
+        raise AriSfmError(path, f"{key}: {what}") from None
 
 
 def load_calibration(path: str | Path) -> Calibration:

@@ -12,6 +12,7 @@ import click
 import numpy as np
 
 from .errors import AriSfmError
+from .models.registry import BUNDLE, CALIBRATABLE, COMPARED, MODELS, model_spec
 
 log = logging.getLogger("ari_sfm")
 
@@ -69,10 +70,8 @@ def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
     click.echo(f"{len(obs)} images, {n} corners in {time.perf_counter() - t0:.1f} s -> {out / 'observations.json'}")
 
 
-_model_option = click.option("--model", type=click.Choice(["ari", "exact", "rt", "pf", "pinhole", "pinhole_dist"]),
-                             default="ari", show_default=True,
-                             help="ari: paraxial ARI model; exact: Snell's law, refined from ari; "
-                                  "rt, pf, pinhole, pinhole_dist: the baselines of `compare`.")
+_model_option = click.option("--model", default="ari", show_default=True, metavar="|".join(CALIBRATABLE),
+                             help="; ".join(f"{m}: {MODELS[m].summary}" for m in CALIBRATABLE) + ".")
 _distortion_option = click.option("--distortion/--no-distortion", default=False, show_default=True, help="Estimate k1 k2 p1 p2 k3.")
 _huber_option = click.option("--huber-px", type=float, default=1.0, show_default=True,
                              help="Per-corner Huber threshold in px (0: plain least squares).")
@@ -99,6 +98,7 @@ def calibrate_cmd(dataset: Path, out: Path, model: str, distortion: bool, huber_
     """Calibrate DATASET; write OUT/calibration.json (and OUT/observations.json when detected here)."""
     from .pipelines.calibrate_rig import main as pipeline
 
+    model_spec(model, "--model", calibratable=True)  # before any loading or detection
     t0 = time.perf_counter()
     result = pipeline(dataset, out, model=model, progress=True, distortion=distortion, huber_px=huber_px or None,
                       exclude_outliers=exclude_outliers, backend=backend)
@@ -120,6 +120,7 @@ def run(dataset: Path, out: Path, model: str, distortion: bool, huber_px: float,
     """The pipeline: detect corners when needed, calibrate, reconstruct (frames seen by two cameras), report."""
     from .pipelines.run import main as pipeline
 
+    model_spec(model, "--model", calibratable=True)  # before any loading or detection
     t0 = time.perf_counter()
     click.echo(f"ari-sfm run: {dataset} -> {out}")
     result = pipeline(dataset, out, model=model, truth=truth, progress=True, distortion=distortion,
@@ -130,8 +131,8 @@ def run(dataset: Path, out: Path, model: str, distortion: bool, huber_px: float,
         click.echo(f"info: reconstruction skipped: {result.skipped_reconstruction}")
     else:
         m = result.reconstruction.metrics
-        click.echo(f"reconstruction: {m['num_points']} points in {m['num_frames']} frames, flatness rmse "
-                   f"{m['flatness_mm']['rmse']:.4f} mm -> {result.reconstruction.metrics_path}")
+        click.echo(f"reconstruction: {m.num_points} points in {m.num_frames} frames, flatness rmse "
+                   f"{m.flatness_mm.rmse:.4f} mm -> {result.reconstruction.metrics_path}")
     click.echo(f"report: {result.report_path}")
 
 
@@ -157,7 +158,7 @@ def evaluate_cmd(calibration: Path, observations: Path) -> None:
     from .evaluate import evaluate
 
     stats = evaluate(load_calibration(calibration), observations)
-    click.echo(f"rmse {stats['rmse_px']:.4f} px  mae {stats['mae_px']:.4f} px  max {stats['max_px']:.4f} px  ({stats['count']} corners)")
+    click.echo(f"rmse {stats.rmse_px:.4f} px  mae {stats.mae_px:.4f} px  max {stats.max_px:.4f} px  ({stats.count} corners)")
 
 
 @main.command(name="reconstruct")
@@ -176,24 +177,24 @@ def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | N
 
     r = run_reconstruction(dataset, calibration, out, truth, workers=workers, progress=True)
     m = r.metrics
-    click.echo(f"{m['num_points']} points in {m['num_frames']} frames, ray gap rms {m['ray_gap_mm']['rms']:.4f} mm"
-               + (f", reprojection rmse {m['reprojection_rmse_px']:.4f} px" if m["reprojection_rmse_px"] is not None else ""))
-    click.echo(f"flatness: rmse {m['flatness_mm']['rmse']:.4f} mm, mae {m['flatness_mm']['mae']:.4f} mm, "
-               f"max {m['flatness_mm']['max']:.4f} mm")
-    if m["stage"]:
-        s = m["stage"]
-        click.echo(f"stage plane distances vs stage_mm (reference {s['reference_frame']}): error rmse "
-                   f"{s['plane_distance_error_mm']['rmse']:.4f} mm, max {s['plane_distance_error_mm']['max']:.4f} mm "
-                   f"(stage {s['angle_to_normal_deg']:.2f} deg off the normal; uncorrected max "
-                   f"{s['plane_distance_error_paper_mm']['max']:.4f} mm)")
-    if m["inter_corner_mm"]:
-        ic = m["inter_corner_mm"]
-        click.echo(f"inter-corner distances ({ic['count']} vs {ic['square_mm']:g} mm): rmse {ic['rmse']:.4f} mm, "
-                   f"mae {ic['mae']:.4f} mm, max {ic['max']:.4f} mm")
-    if m["truth"]:
-        t = m["truth"]
-        click.echo(f"vs truth: rms {t['aligned']['rms_mm']:.4f} mm after rigid alignment (max {t['aligned']['max_mm']:.4f}), "
-                   f"{t['unaligned']['rms_mm']:.4f} mm without")
+    click.echo(f"{m.num_points} points in {m.num_frames} frames, ray gap rms {m.ray_gap_mm.rms:.4f} mm"
+               + (f", reprojection rmse {m.reprojection_rmse_px:.4f} px" if m.reprojection_rmse_px is not None else ""))
+    click.echo(f"flatness: rmse {m.flatness_mm.rmse:.4f} mm, mae {m.flatness_mm.mae:.4f} mm, "
+               f"max {m.flatness_mm.max:.4f} mm")
+    if m.stage:
+        s = m.stage
+        click.echo(f"stage plane distances vs stage_mm (reference {s.reference_frame}): error rmse "
+                   f"{s.plane_distance_error_mm.rmse:.4f} mm, max {s.plane_distance_error_mm.max:.4f} mm "
+                   f"(stage {s.angle_to_normal_deg:.2f} deg off the normal; uncorrected max "
+                   f"{s.plane_distance_error_paper_mm.max:.4f} mm)")
+    if m.inter_corner_mm:
+        ic = m.inter_corner_mm
+        click.echo(f"inter-corner distances ({ic.count} vs {ic.square_mm:g} mm): rmse {ic.rmse:.4f} mm, "
+                   f"mae {ic.mae:.4f} mm, max {ic.max:.4f} mm")
+    if m.truth:
+        t = m.truth
+        click.echo(f"vs truth: rms {t.aligned_rms_mm:.4f} mm after rigid alignment (max {t.aligned_max_mm:.4f}), "
+                   f"{t.unaligned_rms_mm:.4f} mm without")
     click.echo(f"points:  {r.points_path}\nmetrics: {r.metrics_path}\nclouds:  {r.clouds['all'].parent}")
 
 
@@ -201,13 +202,13 @@ def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | N
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
               help="Output folder: compare.json, compare.md, residuals_*.png.")
-@click.option("--models", default="ari,exact,rt,pf,pinhole", show_default=True,
-              help="Comma-separated: ari, exact, rt, pf, pinhole, pinhole_dist.")
+@click.option("--models", default=",".join(COMPARED), show_default=True,
+              help=f"Comma-separated: {', '.join(CALIBRATABLE)}.")
 @click.option("--subset", default=None, help="center:COLSxROWS: fit on the central corners of each board, "
                                              "judge on all (the paper's limited-data test: center:3x4).")
 @click.option("--holdout", type=click.Path(path_type=Path), default=None,
               help="Also judge each model on this observations file (frame poses solved, rig fixed).")
-@click.option("--pf-world", type=click.Choice(["ari", "exact"]), default="ari", show_default=True,
+@click.option("--pf-world", default="ari", show_default=True, metavar="|".join(BUNDLE),
               help="Whose board poses give pf its world coordinates.")
 @_distortion_option
 @_backend_option
@@ -306,20 +307,20 @@ def _summary(cal, elapsed: float) -> None:
         ec = "-" if c.expansion_center_px is None else (
             f"{c.expansion_center_px[0]:.1f},{c.expansion_center_px[1]:.1f} ±{max(c.expansion_center_std_px):.2f}")
         click.echo(f"{name:10s} {c.K[0,0]:9.2f} {c.K[1,1]:9.2f} {c.K[0,2]:8.2f} {c.K[1,2]:8.2f} {tilt:5.2f}° {ec:>26s} {c.rmse_px:7.4f}")
-    u = cal.extra.get("uncertainty")
+    u = cal.uncertainty
     if u:
-        click.echo(f"standard deviations (sigma {u['sigma_px']:.3f} px): normal {_std(u['normal_deg'], '.4f')}°"
-                   + (f", distance {_std(u['distance_mm'], '.4f')} mm" if "distance_mm" in u else ""))
-        for name, s in u["cameras"].items():
-            rel = (f"  cam_from_{next(iter(cal.cameras))} ±{_std(s['rotation_deg'], '.4f')}°"
-                   f" ±{_std(s['translation_mm'], '.4f')} mm" if "rotation_deg" in s else "")
-            click.echo(f"  {name:8s} fx ±{_std(s['fx'], '.3f')} fy ±{_std(s['fy'], '.3f')} cx ±{_std(s['cx'], '.3f')}"
-                       f" cy ±{_std(s['cy'], '.3f')} px{rel}")
-    outl = cal.extra.get("outliers", {}).get("corners", [])
-    if outl:
-        click.echo(f"{len(outl)} corners beyond {cal.extra['outliers']['threshold_sigma']:g} sigma "
-                   f"({'excluded' if cal.extra['outliers']['excluded'] else 'listed in calibration.json under outliers'})")
-    click.echo(f"residuals: rmse {r['rmse_px']:.4f} px, mae {r['mae_px']:.4f} px, max {r['max_px']:.4f} px over {r['count']} corners")
+        click.echo(f"standard deviations (sigma {u.sigma_px:.3f} px): normal {_std(u.normal_deg, '.4f')}°"
+                   + (f", distance {_std(u.distance_mm, '.4f')} mm" if u.estimates_distance else ""))
+        for name, s in u.cameras.items():
+            rel = (f"  cam_from_{next(iter(cal.cameras))} ±{_std(s.rotation_deg, '.4f')}°"
+                   f" ±{_std(s.translation_mm, '.4f')} mm" if s.relative_pose else "")
+            i = s.intrinsics
+            click.echo(f"  {name:8s} fx ±{_std(i['fx'], '.3f')} fy ±{_std(i['fy'], '.3f')} cx ±{_std(i['cx'], '.3f')}"
+                       f" cy ±{_std(i['cy'], '.3f')} px{rel}")
+    if cal.outliers is not None and cal.outliers.corners:
+        click.echo(f"{len(cal.outliers.corners)} corners beyond {cal.outliers.threshold_sigma:g} sigma "
+                   f"({'excluded' if cal.outliers.excluded else 'listed in calibration.json under outliers'})")
+    click.echo(f"residuals: rmse {r.rmse_px:.4f} px, mae {r.mae_px:.4f} px, max {r.max_px:.4f} px over {r.count} corners")
     click.echo(f"time: calibration {cal.time_s:.3f} s, total {elapsed:.2f} s")
 
 

@@ -28,14 +28,15 @@ import numpy as np
 from .calibration import Calibration
 from .errors import AriSfmError
 from .evaluate import evaluate, observation_residuals, residual_stats
+from .models.registry import BUNDLE, CALIBRATABLE, COMPARED, model_spec
 from .records import Dataset, Observation
+from .results import ResidualStats
 
 log = logging.getLogger(__name__)
 FIGURES = ("residuals_scatter.png", "residuals_distribution.png")  # written beside compare.json
 
 FORMAT = "ari-sfm-compare/1"
-MODELS = ("ari", "exact", "rt", "pf", "pinhole", "pinhole_dist")
-DEFAULT_MODELS = ("ari", "exact", "rt", "pf", "pinhole")
+DEFAULT_MODELS = COMPARED  # the models: ari_sfm.models.registry
 # The paper's figures (px, ms) where it gives them: Table 2 (single camera), 3 (binocular), 4 (3x4 subset).
 PAPER = {
     "single": {"rt": (0.31, 1.42, 0.37, 298), "pf": (0.01, 0.08, 0.02, 7), "ari": (0.03, 0.12, 0.04, 10)},
@@ -95,19 +96,20 @@ class ModelResult:
     params_per_camera: int
     time_ms: float  # the calibration itself (pf: the polynomial fit, as the paper times it)
     wall_ms: float  # everything this model needed (pf: including its ari world)
-    fit: dict  # errors on the corners it was fitted on
-    all: dict  # errors on all calibration corners
-    holdout: dict | None
+    fit: ResidualStats  # errors on the corners it was fitted on
+    all: ResidualStats  # errors on all calibration corners
+    holdout: ResidualStats | None
     residuals: np.ndarray  # (N, 2) on all calibration corners
     in_fit: np.ndarray  # (N,) bool: the corner was in the fit
 
 
 def params_per_camera(cal: Calibration, distortion: bool) -> int:
     """Intrinsics + window parameters of one camera (see module docstring)."""
-    if cal.model == "pf":
-        return 40
-    intr = 9 if (distortion or cal.model == "pinhole_dist") else 4
-    if cal.model in ("pinhole", "pinhole_dist"):
+    spec = cal.spec
+    if spec.params_per_camera is not None:
+        return spec.params_per_camera
+    intr = 9 if (distortion or spec.distortion) else 4
+    if not spec.window:
         return intr
     return intr + 2 + (1 if cal.interface.medium_index != 1.0 else 0)
 
@@ -115,14 +117,15 @@ def params_per_camera(cal: Calibration, distortion: bool) -> int:
 def parse_models(text: str | Sequence[str]) -> tuple[str, ...]:
     """Model names from ``ari,exact,...`` (unknown or repeated names are an error)."""
     names = [m.strip() for m in text.split(",")] if isinstance(text, str) else list(text)
-    bad = [m for m in names if m not in MODELS]
+    bad = [m for m in names if m not in CALIBRATABLE]
     if bad or not names or len(set(names)) != len(names):
         raise AriSfmError("--models", f"expected a comma-separated list of distinct models from "
-                                      f"{', '.join(MODELS)}; got {text!r}")
+                                      f"{', '.join(CALIBRATABLE)}; got {text!r}")
     return tuple(names)
 
 
-def _judge(cal: Calibration, dataset: Dataset, fit_ids: np.ndarray | None) -> tuple[dict, dict, np.ndarray, np.ndarray]:
+def _judge(cal: Calibration, dataset: Dataset, fit_ids: np.ndarray | None
+           ) -> tuple[ResidualStats, ResidualStats, np.ndarray, np.ndarray]:
     """In-sample and all-corner errors on the calibration records (all corners of the full dataset)."""
     pairs = observation_residuals(cal, dataset.select("calibration"), dataset.target)
     res = np.concatenate([r for _, r in pairs]) if pairs else np.zeros((0, 2))
@@ -131,12 +134,11 @@ def _judge(cal: Calibration, dataset: Dataset, fit_ids: np.ndarray | None) -> tu
     return residual_stats([res[in_fit]]), residual_stats([res]), res, in_fit
 
 
-def _holdout(cal: Calibration, records: Sequence[Observation], dataset: Dataset) -> dict:
+def _holdout(cal: Calibration, records: Sequence[Observation], dataset: Dataset) -> ResidualStats:
     """Errors on held-out records, every frame's pose solved with the rig fixed."""
     held = [o for o in records if o.set != "stacking"]
     fresh = replace(cal, frames={}, stacking_poses={})
-    stats = evaluate(fresh, held, dataset.target, solve_poses=True)
-    return {k: v for k, v in stats.items() if k != "per_camera"}
+    return replace(evaluate(fresh, held, dataset.target, solve_poses=True), per_camera=None)
 
 
 def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Subset | None = None,
@@ -152,17 +154,17 @@ def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Su
     from .calibrate import calibrate, ensure_observations
 
     models = parse_models(models)
+    if pf_world not in BUNDLE:
+        raise AriSfmError("--pf-world", f"expected one of {', '.join(BUNDLE)}, got {pf_world!r}")
     dataset = ensure_observations(dataset)
     fit_data = subset.apply(dataset) if subset else dataset
     fit_ids = subset.ids(dataset) if subset else None
     cals: dict[str, tuple[Calibration, float]] = {}
     options.setdefault("uncertainty", False)  # marginals are not part of a method's time
-    if pf_world not in ("ari", "exact"):
-        raise AriSfmError("--pf-world", f"expected ari or exact, got {pf_world!r}")
     needed = list(models) + ([pf_world] if "pf" in models and pf_world not in models else [])
     for model in sorted(needed, key=lambda m: m == "pf"):  # pf last: it needs its world
         t0 = time.perf_counter()
-        if model == "pf":
+        if model_spec(model).projection == "polynomial":
             cal = calibrate_pf(fit_data, world=cals[pf_world][0])
             wall = time.perf_counter() - t0 + cals[pf_world][1]
         else:
@@ -184,7 +186,7 @@ def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Su
 
 def to_json(results: Sequence[ModelResult], subset: Subset | None, dataset: Dataset) -> dict:
     """compare.json: per model, parameters, times and errors (px)."""
-    pf = [r.calibration.extra["pf_world"]["model"] for r in results if r.model == "pf"]
+    pf = [r.calibration.pf_world.model for r in results if r.calibration.pf_world is not None]
     return {
         "format": FORMAT,
         "dataset": str(dataset.root),
@@ -193,22 +195,23 @@ def to_json(results: Sequence[ModelResult], subset: Subset | None, dataset: Data
         "pf_world": pf[0] if pf else None,
         "models": {r.model: {
             "params_per_camera": r.params_per_camera, "time_ms": r.time_ms, "wall_ms": r.wall_ms,
-            "fit": r.fit, "all_corners": r.all, "holdout": r.holdout,
+            "fit": r.fit.to_json(), "all_corners": r.all.to_json(),
+            "holdout": None if r.holdout is None else r.holdout.to_json(),
             "per_camera_rmse_px": {n: c.rmse_px for n, c in r.calibration.cameras.items()},
         } for r in results},
     }
 
 
-def _row(name: str, p: int | str, s: dict, t: float | str) -> str:
+def _row(name: str, p: int | str, s: ResidualStats, t: float | str) -> str:
     t = t if isinstance(t, str) else f"{t:.0f}"
-    return f"| {name} | {p} | {s['mae_px']:.3f} | {s['max_px']:.3f} | {s['rmse_px']:.3f} | {t} |"
+    return f"| {name} | {p} | {s.mae_px:.3f} | {s.max_px:.3f} | {s.rmse_px:.3f} | {t} |"
 
 
 def to_markdown(results: Sequence[ModelResult], subset: Subset | None, dataset: Dataset) -> str:
     """compare.md: the paper's Table 2-4 layout, one table per set of corners judged."""
     head = "| Method | # of para | MAE (px) | Max (px) | RMSE (px) | T (ms) |\n|---|---|---|---|---|---|"
     n = len(dataset.camera_names)
-    pf = [r.calibration.extra["pf_world"]["model"] for r in results if r.model == "pf"]
+    pf = [r.calibration.pf_world.model for r in results if r.calibration.pf_world is not None]
     lines = [f"# Calibration methods compared: {dataset.root}", "",
              f"{n} camera(s); # of para: per camera, intrinsics and window (board and rig poses not counted); "
              "T: the calibration itself" + (f" (pf: its polynomial fit, in the world of the {pf[0]} fit)" if pf else "")
@@ -254,7 +257,7 @@ def figures(results: Sequence[ModelResult]) -> dict[str, bytes]:
         ax.set_xlim(-lim, lim)
         ax.set_ylim(-lim, lim)
         ax.set_aspect("equal")
-        ax.set_title(f"{r.model.upper()}  rmse {r.all['rmse_px']:.3f} px", fontsize=9)
+        ax.set_title(f"{r.model.upper()}  rmse {r.all.rmse_px:.3f} px", fontsize=9)
         ax.set_xlabel("du (px)")
         ax.set_ylabel("dv (px)")
     if any((~r.in_fit).any() for r in results):
@@ -285,6 +288,8 @@ def run_compare(dataset_path: str | Path, out: str | Path, models: str | Sequenc
     from .io import load_dataset, load_observations, write_bytes_atomic, write_json_atomic, write_text_atomic
 
     names = parse_models(models)
+    if pf_world not in BUNDLE:
+        raise AriSfmError("--pf-world", f"expected one of {', '.join(BUNDLE)}, got {pf_world!r}")
     sub = Subset.parse(subset) if subset else None
     dataset = load_dataset(dataset_path)
     if sub:

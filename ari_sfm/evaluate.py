@@ -1,6 +1,7 @@
 """Reprojection errors of a calibration on observations (its own or held-out ones)."""
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -9,15 +10,12 @@ import numpy as np
 from .calibration import Calibration
 from .geometry import Pose
 from .records import Dataset, Observation, Target
+from .results import ResidualStats
 
 
-def residual_stats(residuals: Iterable[np.ndarray]) -> dict[str, float]:
+def residual_stats(residuals: Iterable[np.ndarray]) -> ResidualStats:
     """rmse_px = sqrt(mean(du^2 + dv^2)), mae_px = mean distance, max_px, count."""
-    arrays = [np.asarray(r, float).reshape(-1, 2) for r in residuals]
-    d = np.linalg.norm(np.concatenate(arrays), axis=1) if arrays else np.zeros(0)
-    if len(d) == 0:
-        return {"rmse_px": float("nan"), "mae_px": float("nan"), "max_px": float("nan"), "count": 0}
-    return {"rmse_px": float(np.sqrt(np.mean(d**2))), "mae_px": float(np.mean(d)), "max_px": float(np.max(d)), "count": int(len(d))}
+    return ResidualStats.of(residuals)
 
 
 def project_target(calibration: Calibration, camera: str, pose_world_from_target, points_target: np.ndarray, added_mm: float = 0.0) -> np.ndarray:
@@ -90,7 +88,7 @@ def solve_frame_poses(calibration: Calibration, observations: Sequence[Observati
 
 
 def evaluate(calibration: Calibration, observations: str | Path | Dataset | Sequence[Observation], target: Target | None = None,
-             solve_poses: bool = False) -> dict:
+             solve_poses: bool = False) -> ResidualStats:
     """Reprojection errors (rmse_px, mae_px, max_px, count, per_camera) on observations.
 
     ``observations`` is an observations.json path, a Dataset, or loaded records.
@@ -113,12 +111,9 @@ def evaluate(calibration: Calibration, observations: str | Path | Dataset | Sequ
     if target is None:
         raise ValueError("evaluate needs the target geometry: the calibration holds none, pass target=")
     if solve_poses:
-        from dataclasses import replace
-
         extra = solve_frame_poses(calibration, records, target)
         calibration = replace(calibration, frames={**calibration.frames, **extra})
         records = [o if o.set != "reconstruction" else replace(o, set="calibration") for o in records]
     pairs = observation_residuals(calibration, records, target)
-    stats = residual_stats(r for _, r in pairs)
-    stats["per_camera"] = {c: residual_stats(r for o, r in pairs if o.camera == c) for c in calibration.cameras}
-    return stats
+    per_camera = {c: residual_stats(r for o, r in pairs if o.camera == c) for c in calibration.cameras}
+    return replace(residual_stats(r for _, r in pairs), per_camera=per_camera)

@@ -1,8 +1,10 @@
 """Accuracy of a reconstruction (paper Sec. 5, Fig. 13): planes, stage distances, corner spacing, truth.
 
-``reconstruction_metrics(points, target, truth=None)`` returns a JSON-able
-dict. All lengths in mm; "stats" below means ``{"mae", "rmse", "max",
-"count"}`` of the absolute values of an error list (``max`` of |error|).
+``reconstruction_metrics(points, target, truth=None)`` returns a
+:class:`ReconstructionMetrics` record; its ``to_json()`` is metrics.json's
+body, laid out as below (``ReconstructionMetrics.from_json`` reads it back).
+All lengths in mm; "stats" below means ``{"mae", "rmse", "max", "count"}``
+(:class:`ErrorStats`) of the absolute values of an error list (``max`` of |error|).
 
 - ``num_points``, ``num_frames``; ``ray_gap_mm``: ``{"mean", "rms", "max"}``;
   ``reprojection_rmse_px`` (over all corners and cameras; None when the
@@ -48,6 +50,7 @@ from __future__ import annotations
 import logging
 import os
 import re
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -65,11 +68,248 @@ RANSAC_ITERATIONS = 1000
 SEED = 0  # Open3D's RANSAC is seeded: the same points give the same metrics
 
 
-def _stats(errors: np.ndarray) -> dict[str, Any]:
-    e = np.abs(np.asarray(errors, dtype=float))
-    if not len(e):
-        return {"mae": None, "rmse": None, "max": None, "count": 0}
-    return {"mae": float(e.mean()), "rmse": float(np.sqrt(np.mean(e**2))), "max": float(e.max()), "count": int(len(e))}
+# --------------------------------------------------------------------------- records (metrics.json)
+
+
+def _opt(value: Any) -> float | None:
+    return None if value is None else float(value)
+
+
+def _floats(values: Any) -> tuple[float, ...]:
+    return tuple(float(v) for v in values)
+
+
+@dataclass(frozen=True)
+class ErrorStats:
+    """"stats": of the absolute values of an error list (None and count 0 for an empty list)."""
+
+    mae: float | None
+    rmse: float | None
+    max: float | None
+    count: int
+
+    @classmethod
+    def of(cls, errors: np.ndarray) -> "ErrorStats":
+        e = np.abs(np.asarray(errors, dtype=float))
+        if not len(e):
+            return cls(None, None, None, 0)
+        return cls(float(e.mean()), float(np.sqrt(np.mean(e**2))), float(e.max()), int(len(e)))
+
+    def to_json(self) -> dict[str, Any]:
+        return {"mae": self.mae, "rmse": self.rmse, "max": self.max, "count": self.count}
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "ErrorStats":
+        return cls(_opt(d["mae"]), _opt(d["rmse"]), _opt(d["max"]), int(d["count"]))
+
+
+def _stats(errors: np.ndarray) -> ErrorStats:
+    return ErrorStats.of(errors)
+
+
+@dataclass(frozen=True)
+class Flatness(ErrorStats):
+    """Point-to-plane distances of all frames: stats plus the signed distances (histogram-ready)."""
+
+    distances: tuple[float, ...] = ()
+
+    def to_json(self) -> dict[str, Any]:
+        return dict(super().to_json(), distances=list(self.distances))
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "Flatness":
+        return cls(**vars(ErrorStats.from_json(d)), distances=_floats(d["distances"]))
+
+
+@dataclass(frozen=True)
+class InterCorner(ErrorStats):
+    """Adjacent-corner distances minus the square: stats, the square, the distances and their errors."""
+
+    square_mm: float = 0.0
+    distances: tuple[float, ...] = ()
+    errors: tuple[float, ...] = ()
+
+    def to_json(self) -> dict[str, Any]:
+        return dict(super().to_json(), square_mm=self.square_mm, distances=list(self.distances),
+                    errors=list(self.errors))
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "InterCorner":
+        return cls(**vars(ErrorStats.from_json(d)), square_mm=float(d["square_mm"]),
+                   distances=_floats(d["distances"]), errors=_floats(d["errors"]))
+
+
+@dataclass(frozen=True)
+class RayGap:
+    """``ray_gap_mm`` over all points: mean, rms, max."""
+
+    mean: float
+    rms: float
+    max: float
+
+    def to_json(self) -> dict[str, Any]:
+        return {"mean": self.mean, "rms": self.rms, "max": self.max}
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "RayGap":
+        return cls(float(d["mean"]), float(d["rms"]), float(d["max"]))
+
+
+@dataclass(frozen=True)
+class StageMetrics:
+    """The stage experiment (Fig. 13b): see the module docstring."""
+
+    reference_frame: str
+    direction_world: tuple[float, float, float]
+    travel_scale: float
+    angle_to_normal_deg: float
+    plane_distance_error_mm: ErrorStats
+    plane_distance_error_paper_mm: ErrorStats
+    displacement_error_mm: ErrorStats
+
+    def to_json(self) -> dict[str, Any]:
+        return {"reference_frame": self.reference_frame, "direction_world": list(self.direction_world),
+                "travel_scale": self.travel_scale, "angle_to_normal_deg": self.angle_to_normal_deg,
+                "plane_distance_error_mm": self.plane_distance_error_mm.to_json(),
+                "plane_distance_error_paper_mm": self.plane_distance_error_paper_mm.to_json(),
+                "displacement_error_mm": self.displacement_error_mm.to_json()}
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "StageMetrics":
+        return cls(str(d["reference_frame"]), _floats(d["direction_world"]), float(d["travel_scale"]),
+                   float(d["angle_to_normal_deg"]), ErrorStats.from_json(d["plane_distance_error_mm"]),
+                   ErrorStats.from_json(d["plane_distance_error_paper_mm"]),
+                   ErrorStats.from_json(d["displacement_error_mm"]))
+
+
+@dataclass(frozen=True)
+class FrameStage:
+    """One frame's stage numbers (frames with a stage_mm); no displacement without corners shared with the reference."""
+
+    plane_distance_mm: float
+    plane_distance_error_mm: float
+    plane_distance_error_paper_mm: float
+    plane_angle_deg: float
+    displacement_error_mm: float | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        out = {"plane_distance_mm": self.plane_distance_mm, "plane_distance_error_mm": self.plane_distance_error_mm,
+               "plane_distance_error_paper_mm": self.plane_distance_error_paper_mm,
+               "plane_angle_deg": self.plane_angle_deg}
+        if self.displacement_error_mm is not None:
+            out["displacement_error_mm"] = self.displacement_error_mm
+        return out
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "FrameStage":
+        return cls(float(d["plane_distance_mm"]), float(d["plane_distance_error_mm"]),
+                   float(d["plane_distance_error_paper_mm"]), float(d["plane_angle_deg"]),
+                   _opt(d.get("displacement_error_mm")))
+
+
+@dataclass(frozen=True)
+class FramePlane:
+    """A frame's fitted plane: unit normal, a point on it, how many points RANSAC kept."""
+
+    normal: tuple[float, float, float]
+    point: tuple[float, float, float]
+    inliers: int
+
+    def to_json(self) -> dict[str, Any]:
+        return {"normal": list(self.normal), "point": list(self.point), "inliers": self.inliers}
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "FramePlane":
+        return cls(_floats(d["normal"]), _floats(d["point"]), int(d["inliers"]))
+
+
+@dataclass(frozen=True)
+class FrameMetrics:
+    """One reconstruction frame: plane and flatness (>= 3 points), corner spacing (grid targets), stage numbers."""
+
+    stage_mm: float | None
+    num_points: int
+    plane: FramePlane | None = None
+    flatness_mm: ErrorStats | None = None
+    inter_corner_mm: ErrorStats | None = None
+    stage: FrameStage | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"stage_mm": self.stage_mm, "num_points": self.num_points}
+        if self.plane is not None:
+            out["plane"] = self.plane.to_json()
+            out["flatness_mm"] = self.flatness_mm.to_json()
+        if self.inter_corner_mm is not None:
+            out["inter_corner_mm"] = self.inter_corner_mm.to_json()
+        if self.stage is not None:
+            out.update(self.stage.to_json())
+        return out
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "FrameMetrics":
+        plane = FramePlane.from_json(d["plane"]) if "plane" in d else None
+        return cls(_opt(d["stage_mm"]), int(d["num_points"]), plane,
+                   ErrorStats.from_json(d["flatness_mm"]) if plane is not None else None,
+                   ErrorStats.from_json(d["inter_corner_mm"]) if "inter_corner_mm" in d else None,
+                   FrameStage.from_json(d) if "plane_distance_mm" in d else None)
+
+
+@dataclass(frozen=True)
+class TruthErrors:
+    """3D errors against a simulator's truth, as is and after the best rigid alignment (no scale)."""
+
+    count: int
+    unaligned_rms_mm: float
+    unaligned_max_mm: float
+    aligned_rms_mm: float
+    aligned_max_mm: float
+    rotation_deg: float  # of the alignment
+    translation_mm: float
+
+    def to_json(self) -> dict[str, Any]:
+        return {"count": self.count,
+                "unaligned": {"rms_mm": self.unaligned_rms_mm, "max_mm": self.unaligned_max_mm},
+                "aligned": {"rms_mm": self.aligned_rms_mm, "max_mm": self.aligned_max_mm,
+                            "rotation_deg": self.rotation_deg, "translation_mm": self.translation_mm}}
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "TruthErrors":
+        u, a = d["unaligned"], d["aligned"]
+        return cls(int(d["count"]), float(u["rms_mm"]), float(u["max_mm"]), float(a["rms_mm"]), float(a["max_mm"]),
+                   float(a["rotation_deg"]), float(a["translation_mm"]))
+
+
+@dataclass(frozen=True)
+class ReconstructionMetrics:
+    """Everything :func:`reconstruction_metrics` measures (metrics.json without its header keys)."""
+
+    num_points: int
+    num_frames: int
+    ray_gap_mm: RayGap
+    reprojection_rmse_px: float | None  # None when the points were loaded from a file
+    flatness_mm: Flatness
+    stage: StageMetrics | None  # None without two staged frames
+    inter_corner_mm: InterCorner | None  # None for targets without a corner grid
+    truth: TruthErrors | None  # only given a truth
+    frames: Mapping[str, FrameMetrics] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"num_points": self.num_points, "num_frames": self.num_frames, "ray_gap_mm": self.ray_gap_mm.to_json(),
+                "reprojection_rmse_px": self.reprojection_rmse_px, "flatness_mm": self.flatness_mm.to_json(),
+                "stage": None if self.stage is None else self.stage.to_json(),
+                "inter_corner_mm": None if self.inter_corner_mm is None else self.inter_corner_mm.to_json(),
+                "truth": None if self.truth is None else self.truth.to_json(),
+                "frames": {f: m.to_json() for f, m in self.frames.items()}}
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "ReconstructionMetrics":
+        """Read metrics.json's body (header keys format, dataset, calibration, model are ignored)."""
+        return cls(int(d["num_points"]), int(d["num_frames"]), RayGap.from_json(d["ray_gap_mm"]),
+                   _opt(d["reprojection_rmse_px"]), Flatness.from_json(d["flatness_mm"]),
+                   None if d["stage"] is None else StageMetrics.from_json(d["stage"]),
+                   None if d["inter_corner_mm"] is None else InterCorner.from_json(d["inter_corner_mm"]),
+                   None if d["truth"] is None else TruthErrors.from_json(d["truth"]),
+                   {f: FrameMetrics.from_json(m) for f, m in d["frames"].items()})
 
 
 # --------------------------------------------------------------------------- planes
@@ -121,7 +361,8 @@ def _reference_frame(staged: dict[str, float]) -> str:
     return ordered[len(ordered) // 2]
 
 
-def _stage_metrics(points: Points, planes: dict[str, dict[str, Any] | None]) -> tuple[dict[str, Any] | None, dict]:
+def _stage_metrics(points: Points, planes: dict[str, dict[str, Any] | None]
+                   ) -> tuple[StageMetrics | None, dict[str, FrameStage]]:
     staged = {f: fp.stage_mm for f, fp in points.frames.items() if fp.stage_mm is not None and planes.get(f)}
     if len(staged) < 2:
         return None, {}
@@ -146,7 +387,7 @@ def _stage_metrics(points: Points, planes: dict[str, dict[str, Any] | None]) -> 
     direction = travel / scale
     n_ref = rp["normal"] if rp["normal"] @ direction >= 0 else -rp["normal"]
     cos_theta = float(n_ref @ direction)
-    per_frame: dict[str, dict[str, float]] = {}
+    per_frame: dict[str, FrameStage] = {}
     err, err_paper, err_disp = [], [], []
     for f in staged:
         if f == ref:
@@ -157,25 +398,16 @@ def _stage_metrics(points: Points, planes: dict[str, dict[str, Any] | None]) -> 
         t = float(n_f @ (p["point"] - c_ref) / (n_f @ n_ref))
         e = t - ds[f] * cos_theta
         e_paper = t - ds[f]
-        rec = {"plane_distance_mm": t, "plane_distance_error_mm": e, "plane_distance_error_paper_mm": e_paper,
-               "plane_angle_deg": float(np.degrees(np.arccos(min(1.0, abs(float(n_f @ n_ref))))))}
         err.append(e)
         err_paper.append(e_paper)
-        if f in disp:
-            rec["displacement_error_mm"] = float(np.linalg.norm(disp[f]) - abs(ds[f]))
-            err_disp.append(rec["displacement_error_mm"])
-        per_frame[f] = rec
-    per_frame[ref] = {"plane_distance_mm": 0.0, "plane_distance_error_mm": 0.0,
-                      "plane_distance_error_paper_mm": 0.0, "plane_angle_deg": 0.0, "displacement_error_mm": 0.0}
-    stage = {
-        "reference_frame": ref,
-        "direction_world": direction.tolist(),
-        "travel_scale": scale,
-        "angle_to_normal_deg": float(np.degrees(np.arccos(min(1.0, cos_theta)))),
-        "plane_distance_error_mm": _stats(np.array(err)),
-        "plane_distance_error_paper_mm": _stats(np.array(err_paper)),
-        "displacement_error_mm": _stats(np.array(err_disp)),
-    }
+        displacement = float(np.linalg.norm(disp[f]) - abs(ds[f])) if f in disp else None
+        if displacement is not None:
+            err_disp.append(displacement)
+        per_frame[f] = FrameStage(t, e, e_paper, float(np.degrees(np.arccos(min(1.0, abs(float(n_f @ n_ref)))))),
+                                  displacement)
+    per_frame[ref] = FrameStage(0.0, 0.0, 0.0, 0.0, 0.0)
+    stage = StageMetrics(ref, _floats(direction), scale, float(np.degrees(np.arccos(min(1.0, cos_theta)))),
+                         _stats(np.array(err)), _stats(np.array(err_paper)), _stats(np.array(err_disp)))
     return stage, per_frame
 
 
@@ -210,7 +442,7 @@ def _truth_points(truth: Mapping[str, Any] | str | Path) -> tuple[dict[str, Any]
     return dict(truth), "truth"
 
 
-def truth_errors(points: Points, truth: Mapping[str, Any] | str | Path) -> dict[str, Any]:
+def truth_errors(points: Points, truth: Mapping[str, Any] | str | Path) -> TruthErrors:
     """3D errors against a truth's ``reconstruction_points_world``, unaligned and after rigid alignment."""
     data, where = _truth_points(truth)
     recon = data.get("reconstruction_points_world") if isinstance(data, Mapping) else None
@@ -239,10 +471,8 @@ def truth_errors(points: Points, truth: Mapping[str, Any] | str | Path) -> dict[
     R, t = rigid_alignment(A, B)
     e1 = np.linalg.norm(A @ R.T + t - B, axis=1)
     angle = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
-    return {"count": int(len(A)),
-            "unaligned": {"rms_mm": float(np.sqrt(np.mean(e0**2))), "max_mm": float(e0.max())},
-            "aligned": {"rms_mm": float(np.sqrt(np.mean(e1**2))), "max_mm": float(e1.max()),
-                        "rotation_deg": angle, "translation_mm": float(np.linalg.norm(t))}}
+    return TruthErrors(int(len(A)), float(np.sqrt(np.mean(e0**2))), float(e0.max()), float(np.sqrt(np.mean(e1**2))),
+                       float(e1.max()), angle, float(np.linalg.norm(t)))
 
 
 def rigid_alignment(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -258,37 +488,35 @@ def rigid_alignment(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 
 def reconstruction_metrics(points: Points, target: Target, truth: Mapping[str, Any] | str | Path | None = None,
-                           plane_threshold_mm: float = PLANE_THRESHOLD_MM) -> dict[str, Any]:
-    """All the metrics of the module docstring, as a JSON-able dict."""
+                           plane_threshold_mm: float = PLANE_THRESHOLD_MM) -> ReconstructionMetrics:
+    """All the metrics of the module docstring (``to_json()``: metrics.json's body)."""
     if not points.frames:
         raise AriSfmError(None, "no reconstructed frames to measure")
     truth_part = truth_errors(points, truth) if truth is not None else None  # checks the truth first
     planes = {f: _frame_plane(fp, plane_threshold_mm) for f, fp in points.frames.items()}
     stage, stage_frames = _stage_metrics(points, planes)
     grid = target.grid
-    frames: dict[str, Any] = {}
+    frames: dict[str, FrameMetrics] = {}
     all_d, all_ic = [], []
     for f, fp in points.frames.items():
         p = planes[f]
-        rec: dict[str, Any] = {"stage_mm": fp.stage_mm, "num_points": len(fp)}
+        plane = flatness = spacing = None
         if p is not None:
-            rec["plane"] = {"normal": p["normal"].tolist(), "point": p["point"].tolist(),
-                            "inliers": int(p["inliers"].sum())}
-            rec["flatness_mm"] = _stats(p["distances"])
+            plane = FramePlane(_floats(p["normal"]), _floats(p["point"]), int(p["inliers"].sum()))
+            flatness = _stats(p["distances"])
             all_d.append(p["distances"])
         if grid is not None:
             dist = inter_corner_distances(fp.ids, fp.xyz, grid[0])
-            rec["inter_corner_mm"] = _stats(dist - target.square_mm)
+            spacing = _stats(dist - target.square_mm)
             all_ic.append(dist)
-        rec.update(stage_frames.get(f, {}))
-        frames[f] = rec
+        frames[f] = FrameMetrics(fp.stage_mm, len(fp), plane, flatness, spacing, stage_frames.get(f))
     d = np.concatenate(all_d) if all_d else np.zeros(0)
-    flat = dict(_stats(d), distances=d.tolist())
+    flat = Flatness(**vars(_stats(d)), distances=_floats(d))
     inter = None
     if grid is not None:
         dist = np.concatenate(all_ic) if all_ic else np.zeros(0)
-        inter = dict(_stats(dist - target.square_mm), square_mm=float(target.square_mm),
-                     distances=dist.tolist(), errors=(dist - target.square_mm).tolist())
+        inter = InterCorner(**vars(_stats(dist - target.square_mm)), square_mm=float(target.square_mm),
+                            distances=_floats(dist), errors=_floats(dist - target.square_mm))
     gaps = np.concatenate([fp.ray_gap_mm for fp in points.frames.values()])
     rmse = [fp.reprojection_rmse_px for fp in points.frames.values()]
     if all(r is not None for r in rmse):
@@ -296,17 +524,11 @@ def reconstruction_metrics(points: Points, target: Target, truth: Mapping[str, A
         reproj = float(np.sqrt(np.sum(w * np.square(rmse)) / w.sum()))
     else:
         reproj = None
-    return {
-        "num_points": int(points.num_points),
-        "num_frames": len(points.frames),
-        "ray_gap_mm": {"mean": float(gaps.mean()), "rms": float(np.sqrt(np.mean(gaps**2))), "max": float(gaps.max())},
-        "reprojection_rmse_px": reproj,
-        "flatness_mm": flat,
-        "stage": stage,
-        "inter_corner_mm": inter,
-        "truth": truth_part,
-        "frames": frames,
-    }
+    return ReconstructionMetrics(
+        int(points.num_points), len(points.frames),
+        RayGap(float(gaps.mean()), float(np.sqrt(np.mean(gaps**2))), float(gaps.max())),
+        reproj, flat, stage, inter, truth_part, frames,
+    )
 
 
 def save_point_clouds(points: Points, out_dir: str | Path) -> dict[str, Path]:

@@ -24,6 +24,12 @@ class Outlier:
             out["added_mm"] = self.added_mm
         return out
 
+    @staticmethod
+    def from_json(d: dict) -> "Outlier":
+        added = d.get("added_mm")
+        return Outlier(str(d["camera"]), str(d["set"]), str(d["frame"]), int(d["id"]), float(d["residual_px"]),
+                       None if added is None else float(added))
+
 
 def robust_sigma_px(residuals: Iterable[np.ndarray]) -> float:
     """sigma per coordinate from the median absolute residual (1.4826 MAD)."""

@@ -180,7 +180,7 @@ class ReconstructionRun:
     """What :func:`run_reconstruction` wrote."""
 
     points: Points
-    metrics: dict
+    metrics: "ReconstructionMetrics"  # noqa: F821 - ari_sfm.metrics (imports open3d lazily)
     points_path: Path
     metrics_path: Path
     clouds: dict[str, Path]
@@ -223,6 +223,6 @@ def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, o
     points.save(points_path, name)
     metrics_path = out / "metrics.json"
     write_json_atomic(metrics_path, {"format": METRICS_FORMAT, "dataset": str(dataset_path), "calibration": name,
-                                     "model": calibration.model, **metrics})
+                                     "model": calibration.model, **metrics.to_json()})
     clouds = save_point_clouds(points, out / "clouds")
     return ReconstructionRun(points, metrics, points_path, metrics_path, clouds, obs_path)

@@ -197,7 +197,7 @@ def markdown_tables(text: str) -> str:
 
 def calibration_rows(cal: Calibration) -> list[list[Any]]:
     """[camera, parameter, value, std dev] for every calibrated parameter (std from ``uncertainty``)."""
-    unc = cal.extra.get("uncertainty") or {}
+    unc = cal.uncertainty.to_json() if cal.uncertainty is not None else {}  # the table reads the records' fields by name
     cam_unc = unc.get("cameras", {})
     rows: list[list[Any]] = []
     dist_names = ("k1", "k2", "p1", "p2", "k3")
@@ -261,13 +261,11 @@ def _summary_section(inp: ReportInputs) -> str:
     if counts:
         rows.append(["corners", ", ".join(f"{n} {s}" for s, n in counts.items())])
     r = cal.residuals
-    if r:
-        rows.append(["reprojection", f"rmse {r.get('rmse_px', float('nan')):.4f} px, mae "
-                                     f"{r.get('mae_px', float('nan')):.4f} px, max {r.get('max_px', float('nan')):.4f} px "
-                                     f"over {r.get('count', 0)} corners"])
-    unc = cal.extra.get("uncertainty")
-    if unc:
-        rows.append(["residual sigma", f"{unc['sigma_px']:.4f} px (scales the standard deviations below)"])
+    if r is not None:
+        rows.append(["reprojection", f"rmse {r.rmse_px:.4f} px, mae {r.mae_px:.4f} px, max {r.max_px:.4f} px "
+                                     f"over {r.count} corners"])
+    if cal.uncertainty is not None:
+        rows.append(["residual sigma", f"{cal.uncertainty.sigma_px:.4f} px (scales the standard deviations below)"])
     return "<h2>Dataset and rig</h2>" + _table(["", ""], rows).replace("<tr><th></th><th></th></tr>", "", 1)
 
 

@@ -42,7 +42,6 @@ from .errors import AriSfmError
 
 log = logging.getLogger(__name__)
 
-ANALYTIC_MODELS = ("ari", "exact", "truth")  # models whose projection_model gives analytic J_point
 MAX_ITERATIONS = 50  # Levenberg-Marquardt iterations (from the ray initialisation 2-3 are needed)
 STEP_TOL_MM = 1e-9  # a point has converged when its step is below this (relative to 1 + |X|)
 NUMERIC_STEP_MM = 1e-4  # central-difference step for models without analytic Jacobians
@@ -119,7 +118,12 @@ def _mean_sq_ray_distance(X: np.ndarray, o: np.ndarray, d: np.ndarray, w: np.nda
 
 
 def has_rays(calibration: Calibration) -> bool:
-    """Whether the calibration's model back-projects pixels (``rays_world``); a polynomial model does not."""
+    """Whether the calibration's model back-projects pixels (``rays_world``); a polynomial model does not.
+
+    The registry says so (``ModelSpec.rays``); a calibration whose ``rays_world`` still fails (a subclass
+    standing in for a model without rays) counts as without."""
+    if not calibration.spec.rays:
+        return False
     name = next(iter(calibration.cameras))
     cam = calibration.cameras[name]
     try:
@@ -133,7 +137,7 @@ def has_rays(calibration: Calibration) -> bool:
 
 def _projector(calibration: Calibration, camera: str) -> Projector:
     """X_world (Q, 3) -> pixels (Q, 2) and d pixels / d X_world (Q, 2, 3) for one camera."""
-    if calibration.model in ANALYTIC_MODELS:
+    if calibration.spec.analytic_jacobians:  # its projection_model gives J_point (ari_sfm.models.registry)
         model = calibration.projection_model(camera)
         pose = calibration.cameras[camera].cam_from_world
 

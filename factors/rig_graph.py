@@ -32,14 +32,14 @@ import gtsam
 import numpy as np
 
 from ..geometry import Pose, cam_from_world_from_pose3, pose3_from_cam_from_world, pose3_from_pose, pose_from_pose3
-from ..models import AriModel, ExactModel
+from ..models.registry import bundle_factories
 from ..records import Interface, Observation, Target
 from . import keys as K_
 from .view_factor import ViewData, ViewKeys, factor_keys, view_factor, view_residuals
 
 log = logging.getLogger(__name__)
 
-MODELS = {"ari": AriModel, "exact": ExactModel}
+MODELS = bundle_factories()  # the models the graph adjusts: name -> projection class (ari_sfm.models.registry)
 
 
 @dataclass(frozen=True)

@@ -16,10 +16,11 @@ import logging
 import gtsam
 import numpy as np
 
+from ..models.pinhole import PARAM_NAMES
+from ..results import CameraUncertainty, Uncertainty
 from . import keys as K_
 from .rig_graph import RigGraph
 
-PARAM_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 log = logging.getLogger(__name__)
 
 
@@ -51,7 +52,7 @@ def marginal_covariances(rg: RigGraph, solved=None, sigma_px: float | None = Non
 
 
 def rig_uncertainty(rg: RigGraph, covariances: dict[int, np.ndarray] | None = None,
-                    sigma_px: float | None = None) -> dict:
+                    sigma_px: float | None = None) -> Uncertainty:
     """Standard deviations: per camera fx fy cx cy (and distortion) in px, the
     relative pose of each camera to camera 0 (rotation in degrees, translation in
     mm, as RMS error magnitudes), the normal's angle in degrees (RMS), and the
@@ -60,18 +61,18 @@ def rig_uncertainty(rg: RigGraph, covariances: dict[int, np.ndarray] | None = No
 
     ``covariances``: :func:`marginal_covariances` of the graph (computed when not given)."""
     cov = marginal_covariances(rg) if covariances is None else covariances
-    out: dict = {"sigma_px": float(rg.sigma_px if sigma_px is None else sigma_px), "cameras": {}}
+    cameras = {}
     for c, name in enumerate(rg.camera_names):
         ck = cov[K_.K(c)]
-        entry = {PARAM_NAMES[i]: _std(ck[i, i], f"{name} {PARAM_NAMES[i]}") for i in range(ck.shape[0])}
+        intrinsics = {PARAM_NAMES[i]: _std(ck[i, i], f"{name} {PARAM_NAMES[i]}") for i in range(ck.shape[0])}
         if c > 0:
             pc = cov[K_.C(c)]
             rot = _std(np.trace(pc[:3, :3]), f"{name} rotation")
-            entry["rotation_deg"] = None if rot is None else float(np.degrees(rot))
-            entry["translation_mm"] = _std(np.trace(pc[3:, 3:]), f"{name} translation")
-        out["cameras"][name] = entry
+            cameras[name] = CameraUncertainty(intrinsics, True, None if rot is None else float(np.degrees(rot)),
+                                              _std(np.trace(pc[3:, 3:]), f"{name} translation"))
+        else:
+            cameras[name] = CameraUncertainty(intrinsics)
     normal = _std(np.trace(cov[K_.N]), "the normal")
-    out["normal_deg"] = None if normal is None else float(np.degrees(normal))
-    if rg.estimate_distance:
-        out["distance_mm"] = _std(cov[K_.H][0, 0], "the window distance")
-    return out
+    distance = _std(cov[K_.H][0, 0], "the window distance") if rg.estimate_distance else None
+    return Uncertainty(float(rg.sigma_px if sigma_px is None else sigma_px), cameras,
+                       None if normal is None else float(np.degrees(normal)), rg.estimate_distance, distance)

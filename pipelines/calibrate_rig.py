@@ -12,6 +12,7 @@ from pathlib import Path
 from ..calibrate import calibrate, ensure_observations
 from ..calibration import Calibration
 from ..io import load_dataset, save_observations
+from ..models.registry import CALIBRATABLE
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +44,7 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("dataset", type=Path)
     ap.add_argument("out", type=Path)
-    ap.add_argument("--model", default="ari", choices=["ari", "exact"])
+    ap.add_argument("--model", default="ari", choices=CALIBRATABLE)
     a = ap.parse_args()
     logging.basicConfig(level=logging.INFO)
     r = main(a.dataset, a.out, a.model)

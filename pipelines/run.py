@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..io import load_dataset, write_json_atomic
+from ..models.registry import CALIBRATABLE
 from ..records import Dataset
 from ..reconstruct import ReconstructionRun, run_reconstruction
 from ..report import RUN_FILE, RUN_FORMAT, write_report
@@ -79,7 +80,7 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("dataset", type=Path)
     ap.add_argument("out", type=Path)
-    ap.add_argument("--model", default="ari", choices=["ari", "exact"])
+    ap.add_argument("--model", default="ari", choices=CALIBRATABLE)
     ap.add_argument("--truth", type=Path, default=None)
     a = ap.parse_args()
     logging.basicConfig(level=logging.INFO)

@@ -39,14 +39,14 @@ def test_ari_single_camera_recovers_truth_within_model_limits(single_scene, sing
     assert e["ec_px"] < 1.0, e
     assert e["normal_deg"] < 0.6, e
     assert e["fx_rel"] < 0.015 and e["fy_rel"] < 0.015, e
-    assert single_ari.residuals["rmse_px"] <= 0.35, single_ari.residuals
+    assert single_ari.residuals.rmse_px <= 0.35, single_ari.residuals
     std = single_ari.cameras["cam0"].expansion_center_std_px
     assert np.all(std > 0) and np.all(std < 1.0)
 
 
 def test_exact_single_camera_reaches_the_noise_floor(single_scene, single_exact):
     e = _errors(single_exact, single_scene.truth)
-    assert single_exact.residuals["rmse_px"] <= 1.2 * FLOOR, single_exact.residuals
+    assert single_exact.residuals.rmse_px <= 1.2 * FLOOR, single_exact.residuals
     assert e["fx_rel"] < 5e-4 and e["fy_rel"] < 5e-4, e
     assert e["normal_deg"] < 0.1, e
     assert e["cx"] < 2.0 and e["cy"] < 2.0, e
@@ -58,7 +58,7 @@ def test_near_perpendicular_window_converges():
     cal = calibrate(scene.dataset, model="ari")
     e = _errors(cal, scene.truth)
     assert e["normal_deg"] < 0.6 and e["fx_rel"] < 0.015 and e["ec_px"] < 1.0, e
-    assert cal.residuals["rmse_px"] <= 0.35
+    assert cal.residuals.rmse_px <= 0.35
 
 
 def test_ari_needs_the_stacking_observations(single_scene):
@@ -84,14 +84,14 @@ def test_save_load_round_trip_and_evaluate(tmp_path, single_scene, single_ari):
         np.testing.assert_allclose(loaded.frames[f].t, p.t, atol=1e-12)
     # evaluate on the calibration's own observations reproduces the BA residuals
     stats = evaluate(loaded, single_scene.dataset)
-    assert stats["count"] == single_ari.residuals["count"]
-    assert abs(stats["rmse_px"] - single_ari.residuals["rmse_px"]) < 1e-6
+    assert stats.count == single_ari.residuals.count
+    assert abs(stats.rmse_px - single_ari.residuals.rmse_px) < 1e-6
     # ... and from an observations.json path, using the target stored in calibration.json
     from ari_sfm.io import save_observations
 
     save_observations(tmp_path / "obs.json", single_scene.dataset.observations)
     stats2 = evaluate(loaded, tmp_path / "obs.json")
-    assert abs(stats2["rmse_px"] - stats["rmse_px"]) < 1e-9
+    assert abs(stats2.rmse_px - stats.rmse_px) < 1e-9
 
 
 def test_held_out_views_judge_the_model(single_scene, single_ari, single_exact):
@@ -102,9 +102,9 @@ def test_held_out_views_judge_the_model(single_scene, single_ari, single_exact):
     records = [o for o in held.dataset.observations if o.frame in new]
     exact = evaluate(single_exact, records, single_scene.dataset.target, solve_poses=True)
     ari = evaluate(single_ari, records, single_scene.dataset.target, solve_poses=True)
-    assert exact["count"] == ari["count"] == sum(len(o.ids) for o in records)
-    assert exact["rmse_px"] < 1.3 * FLOOR, exact
-    assert ari["rmse_px"] > exact["rmse_px"], (ari, exact)  # the paraxial limit shows on new views
+    assert exact.count == ari.count == sum(len(o.ids) for o in records)
+    assert exact.rmse_px < 1.3 * FLOOR, exact
+    assert ari.rmse_px > exact.rmse_px, (ari, exact)  # the paraxial limit shows on new views
 
 
 def test_huber_limits_outliers(single_scene):
@@ -144,11 +144,11 @@ def test_outliers_are_reported_and_can_be_excluded(single_scene):
     obs[k] = replace(obs[k], pixels=px)
     ds = replace(single_scene.dataset, observations=tuple(obs))
     cal = calibrate(ds, model="exact")
-    found = cal.extra["outliers"]["corners"]
-    assert [(o["camera"], o["frame"], o["id"]) for o in found] == [("cam0", obs[k].frame, int(obs[k].ids[7]))]
+    found = cal.outliers.corners
+    assert [(o.camera, o.frame, o.id) for o in found] == [("cam0", obs[k].frame, int(obs[k].ids[7]))]
     excluded = calibrate(ds, model="exact", exclude_outliers=True)
-    assert excluded.residuals["count"] == cal.residuals["count"] - 1
-    assert excluded.residuals["max_px"] < 0.5
+    assert excluded.residuals.count == cal.residuals.count - 1
+    assert excluded.residuals.max_px < 0.5
 
 
 _REPEATABLE_CHILD = """

@@ -65,28 +65,28 @@ def test_polynomial_recovers_a_cubic_and_has_40_parameters():
 def test_pf_in_sample_fits_to_about_the_noise(rotary_full):
     pf = rotary_full["pf"]
     assert pf.params_per_camera == 40
-    assert NOISE_RMSE * 0.9 < pf.fit["rmse_px"] < 1.5 * NOISE_RMSE
-    assert pf.fit["count"] == pf.all["count"]  # no subset: in-sample is every corner
+    assert NOISE_RMSE * 0.9 < pf.fit.rmse_px < 1.5 * NOISE_RMSE
+    assert pf.fit.count == pf.all.count  # no subset: in-sample is every corner
 
 
 def test_pf_after_the_3x4_subset_fails_on_all_corners(rotary_subset):
     pf = rotary_subset["pf"]
-    assert pf.all["count"] == 88 * pf.fit["count"] // 12  # 12 of the 88 corners of each view were fitted
-    assert pf.all["rmse_px"] >= 10.0 * pf.fit["rmse_px"]
+    assert pf.all.count == 88 * pf.fit.count // 12  # 12 of the 88 corners of each view were fitted
+    assert pf.all.rmse_px >= 10.0 * pf.fit.rmse_px
 
 
 def test_exact_after_the_subset_extrapolates_to_the_noise(rotary_subset):
     exact = rotary_subset["exact"]
-    assert exact.all["rmse_px"] <= 1.5 * exact.fit["rmse_px"]
-    assert exact.all["rmse_px"] <= 1.5 * NOISE_RMSE
+    assert exact.all.rmse_px <= 1.5 * exact.fit.rmse_px
+    assert exact.all.rmse_px <= 1.5 * NOISE_RMSE
 
 
 def test_ari_after_the_subset_stays_within_its_paraxial_limit():
     """On the default binocular rig (boards spread over the volume; the issue's bound: 1.5 px)."""
     scene = make_scene("binocular", seed=0, sigma_px=SIGMA, num_frames=8)
     (ari,) = compare(scene.dataset, ("ari",), Subset(3, 4))
-    assert ari.all["rmse_px"] <= 1.5
-    assert ari.all["rmse_px"] > ari.fit["rmse_px"]  # the central corners fit better than the rest
+    assert ari.all.rmse_px <= 1.5
+    assert ari.all.rmse_px > ari.fit.rmse_px  # the central corners fit better than the rest
 
 
 def test_pf_reconstructs_without_rays(rotary, rotary_full):
@@ -125,7 +125,7 @@ def test_rt_recovers_the_simulated_rig(rotary, rotary_full):
     rt = rotary_full["rt"].calibration
     truth = Calibration.from_json(rotary.truth, "truth.json")
     assert rt.model == "rt" and rotary_full["rt"].params_per_camera == 6
-    assert rotary_full["rt"].fit["rmse_px"] < 1.1 * NOISE_RMSE
+    assert rotary_full["rt"].fit.rmse_px < 1.1 * NOISE_RMSE
     for name, cam in rt.cameras.items():
         K = truth.cameras[name].K
         np.testing.assert_allclose(cam.K[[0, 1], [0, 1]], K[[0, 1], [0, 1]], rtol=1e-3)
@@ -148,10 +148,10 @@ def test_rt_under_water_also_finds_the_window_distance():
     scene = make_scene("binocular_underwater", seed=0, sigma_px=SIGMA, num_frames=8)
     rt = calibrate(scene.dataset, model="rt")
     truth = Calibration.from_json(scene.truth, "truth.json")
-    assert rt.interface.distance_mm is not None and "fixed_distance_mm" not in rt.extra
+    assert rt.interface.distance_mm is not None and rt.fixed_distance_mm is None
     assert abs(rt.distance_mm("cam0") - truth.distance_mm("cam0")) < 0.1
     assert angle_between_deg(rt.normal_cam("cam0"), truth.normal_cam("cam0")) < 0.3
-    assert rt.residuals["rmse_px"] < 1.1 * NOISE_RMSE
+    assert rt.residuals.rmse_px < 1.1 * NOISE_RMSE
 
 
 # ------------------------------------------------------------------ calibrate / evaluate / files
@@ -166,12 +166,12 @@ def test_baselines_round_trip_through_calibration_json(rotary, model, tmp_path):
     back = load_calibration(tmp_path / "calibration.json")
     assert back.model == model
     assert (back.normal_world is None) == (model != "pf")
-    assert evaluate(back, rotary.dataset)["rmse_px"] == pytest.approx(cal.residuals["rmse_px"], rel=1e-9)
+    assert evaluate(back, rotary.dataset).rmse_px == pytest.approx(cal.residuals.rmse_px, rel=1e-9)
     if model == "pinhole_dist":  # distortion absorbs part of the window: better than the plain pinhole
         plain = calibrate(rotary.dataset, model="pinhole")
-        assert cal.residuals["rmse_px"] < plain.residuals["rmse_px"]
+        assert cal.residuals.rmse_px < plain.residuals.rmse_px
     if model != "pf":  # a camera that ignores the window cannot reach the noise behind 50 mm of glass
-        assert cal.residuals["rmse_px"] > 2 * NOISE_RMSE
+        assert cal.residuals.rmse_px > 2 * NOISE_RMSE
 
 
 def test_bad_pf_coefficients_are_a_one_line_error(rotary):

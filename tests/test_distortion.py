@@ -26,7 +26,7 @@ def test_exact_with_distortion_recovers_lens_and_window(distorted):
     K = np.array(truth["cameras"]["cam0"]["K"])
     cal = calibrate(distorted.dataset, model="exact", distortion=True)
     c = cal.cameras["cam0"]
-    assert cal.residuals["rmse_px"] <= 1.2 * FLOOR
+    assert cal.residuals.rmse_px <= 1.2 * FLOOR
     assert abs(c.K[0, 0] / K[0, 0] - 1) < 5e-4
     assert angle_between_deg(cal.normal_world, truth["interface"]["normal_world"]) < 0.1
     assert abs(c.dist[0] - DIST[0]) < 0.005  # k1
@@ -35,12 +35,12 @@ def test_exact_with_distortion_recovers_lens_and_window(distorted):
     r2 = np.linspace(0, 0.12, 50)  # (r/f)^2 up to the image corner
     radial = lambda d: 1 + d[0] * r2 + d[1] * r2**2 + d[4] * r2**3  # noqa: E731
     assert np.max(np.abs(radial(c.dist) - radial(DIST))) < 2e-4
-    assert "k1" in cal.extra["uncertainty"]["cameras"]["cam0"]
+    assert "k1" in cal.uncertainty.cameras["cam0"].intrinsics
 
 
 def test_without_distortion_terms_the_fit_fails(distorted):
     cal = calibrate(distorted.dataset, model="exact", distortion=False)
-    assert cal.residuals["rmse_px"] > 3 * FLOOR
+    assert cal.residuals.rmse_px > 3 * FLOOR
 
 
 def test_free_distortion_pinhole_absorbs_the_window_but_not_the_stacking(single_scene):
@@ -61,4 +61,4 @@ def test_free_distortion_pinhole_absorbs_the_window_but_not_the_stacking(single_
     assert stacking_rmse > 10 * FLOOR, stacking_rmse
     ours = calibrate(ds, model="exact")
     stack_fit = residual_stats(r for _, r in observation_residuals(ours, stack, ds.target))
-    assert stack_fit["rmse_px"] < 1.2 * FLOOR  # the window model explains the stacking
+    assert stack_fit.rmse_px < 1.2 * FLOOR  # the window model explains the stacking

@@ -353,7 +353,8 @@ def simulated_calibration(dist0=(0, 0, 0, 0, 0), centred=False, medium=1.333, di
     cams = {"left": CameraCalibration("left", (1280, 1024), K0, np.array(dist0, float), Pose.identity()),
             "right": CameraCalibration("right", (1280, 1024), K1, np.zeros(5), Pose(R1, -R1 @ [150.0, 5.0, 10.0]))}
     frame = Pose(_rot(0, 160.0) @ _rot(2, 20.0), np.array([20.0, -10.0, 520.0]))
-    return Calibration("exact", Interface(6.0, 1.49, medium, distance_mm=distance), normal, cams, {"f000": frame})
+    return Calibration("exact", Interface(6.0, 1.49, medium, distance_mm=distance), normal, cams, {"f000": frame},
+                       fixed_distance_mm=300.0 if distance is None else None)  # in air: where it was fitted
 
 
 def _exported_opencv(out, number):

@@ -47,7 +47,7 @@ def test_points3d_without_hint_by_dlt(body_scene):
     K = np.array(truth["cameras"]["cam0"]["K"])
     assert abs(cal.cameras["cam0"].K[0, 0] / K[0, 0] - 1) < 5e-4
     assert angle_between_deg(cal.normal_world, truth["interface"]["normal_world"]) < 0.1
-    assert cal.residuals["rmse_px"] < 1.2 * 0.05 * np.sqrt(2)
+    assert cal.residuals.rmse_px < 1.2 * 0.05 * np.sqrt(2)
 
 
 def test_points3d_with_known_K_held_fixed(body_scene):

@@ -19,7 +19,7 @@ from ari_sfm.calibrate import calibrate
 from ari_sfm.calibration import Calibration
 from ari_sfm.cli import main
 from ari_sfm.errors import AriSfmError
-from ari_sfm.metrics import reconstruction_metrics, rigid_alignment, save_point_clouds
+from ari_sfm.metrics import ReconstructionMetrics, reconstruction_metrics, rigid_alignment, save_point_clouds
 from ari_sfm.reconstruct import Points, reconstruct
 from ari_sfm.simulate import make_scene, simulate
 from ari_sfm.triangulate import triangulate_pixels, triangulate_rays
@@ -178,19 +178,21 @@ def test_refinement_lowers_the_reprojection_error(scene, cal_exact):
 def test_exact_reconstruction_meets_the_papers_figures(exact_result):
     """exact model, sigma 0.05 px: measured 0.017 mm vs truth, flatness 0.016, stage 0.004, corners 0.006."""
     points, m = exact_result
-    assert m["num_frames"] == 11 and m["num_points"] == 11 * 88
-    assert m["truth"]["aligned"]["rms_mm"] < 0.05
-    assert m["truth"]["unaligned"]["rms_mm"] < 0.1
-    assert m["flatness_mm"]["rmse"] < 0.03
-    stage = m["stage"]
-    assert stage["reference_frame"] == "r005"  # stage_mm = 0
-    assert stage["plane_distance_error_mm"]["max"] < 0.02
-    assert stage["displacement_error_mm"]["max"] < 0.02
-    assert abs(stage["travel_scale"] - 1.0) < 1e-3
-    assert m["inter_corner_mm"]["rmse"] < 0.02
-    assert m["inter_corner_mm"]["count"] == 11 * (10 * 8 + 11 * 7)  # every horizontal and vertical pair
-    assert m["reprojection_rmse_px"] < 0.05  # 2 cameras, 3 dof: sigma sqrt(2 / 4) px per point = 0.035
-    json.dumps(m)  # JSON-able
+    assert m.num_frames == 11 and m.num_points == 11 * 88
+    assert m.truth.aligned_rms_mm < 0.05
+    assert m.truth.unaligned_rms_mm < 0.1
+    assert m.flatness_mm.rmse < 0.03
+    stage = m.stage
+    assert stage.reference_frame == "r005"  # stage_mm = 0
+    assert stage.plane_distance_error_mm.max < 0.02
+    assert stage.displacement_error_mm.max < 0.02
+    assert abs(stage.travel_scale - 1.0) < 1e-3
+    assert m.inter_corner_mm.rmse < 0.02
+    assert m.inter_corner_mm.count == 11 * (10 * 8 + 11 * 7)  # every horizontal and vertical pair
+    assert m.reprojection_rmse_px < 0.05  # 2 cameras, 3 dof: sigma sqrt(2 / 4) px per point = 0.035
+    text = json.dumps(m.to_json(), allow_nan=False)  # JSON, and read back into the same record
+    assert ReconstructionMetrics.from_json(json.loads(text)) == m
+    assert m.frames["r005"].stage.displacement_error_mm == 0.0 and m.frames["r005"].plane.inliers <= 88
 
 
 def test_ari_reconstruction(scene, cal_ari):
@@ -198,11 +200,11 @@ def test_ari_reconstruction(scene, cal_ari):
     stage 0.099 max, corners 0.0076 mm RMSE (and ~0.9 deg of rotation, 7.6 mm unaligned)."""
     points = reconstruct(scene.dataset, cal_ari)
     m = reconstruction_metrics(points, scene.dataset.target, scene.truth)
-    assert m["num_points"] == 968
-    assert m["truth"]["aligned"]["rms_mm"] < 0.15
-    assert m["flatness_mm"]["rmse"] < 0.08
-    assert m["stage"]["plane_distance_error_mm"]["max"] < 0.15
-    assert m["inter_corner_mm"]["rmse"] < 0.015
+    assert m.num_points == 968
+    assert m.truth.aligned_rms_mm < 0.15
+    assert m.flatness_mm.rmse < 0.08
+    assert m.stage.plane_distance_error_mm.max < 0.15
+    assert m.inter_corner_mm.rmse < 0.015
 
 
 def test_rigid_alignment_recovers_a_known_transform():

@@ -65,14 +65,14 @@ def test_report_tables_hold_the_calibrations_numbers(binocular):
     _, _, out, _ = binocular
     text = (out / "report.html").read_text()
     cal = load_calibration(out / "calibration.json")
-    unc = cal.extra["uncertainty"]
+    unc = cal.uncertainty
     for name, cam in cal.cameras.items():
         for key, value in zip(("fx", "fy", "cx", "cy"), cam.params[:4]):
             assert f">{value:.4f}<" in text, (name, key)
-            assert f">{unc['cameras'][name][key]:.4f}<" in text, (name, key)  # its standard deviation
+            assert f">{unc.cameras[name].intrinsics[key]:.4f}<" in text, (name, key)  # its standard deviation
         assert f">{cam.expansion_center_px[0]:.4f}<" in text and f">{cam.expansion_center_std_px[1]:.4f}<" in text
-    assert f">{unc['normal_deg']:.4f}<" in text
-    assert f">{unc['cameras']['cam1']['translation_mm']:.4f}<" in text
+    assert f">{unc.normal_deg:.4f}<" in text
+    assert f">{unc.cameras['cam1'].translation_mm:.4f}<" in text
     rows = calibration_rows(cal)
     assert {r[1] for r in rows} >= {"fx (px)", "fy (px)", "cx (px)", "cy (px)", "expansion centre u (px)"}
     baseline = next(r[2] for r in rows if r[1].startswith("baseline"))

@@ -27,8 +27,8 @@ def test_research_doc_example_runs():
     ns: dict = {}
     for block in blocks:
         exec(compile(block, "docs/RESEARCH.md", "exec"), ns)
-    u = ns["cal"].extra["uncertainty"]
-    assert u["sigma_px"] == pytest.approx(0.05, rel=0.1)  # the simulated corner noise, estimated
+    u = ns["cal"].uncertainty
+    assert u.sigma_px == pytest.approx(0.05, rel=0.1)  # the simulated corner noise, estimated
     graph, cov = ns["graph"], ns["cov"]
     assert graph.sigma_px == pytest.approx(0.05, rel=0.1)
     d = np.array([1.0, -1.0, 0.0, 0.0])  # the square-pixel factor holds fx - fy to its 0.01 px
@@ -62,17 +62,18 @@ def test_extra_factors_join_every_stage(single_scene):
 
 def test_sigma_px_given_or_estimated(single_scene, single_exact):
     """The images' sigma: estimated by default (the simulated 0.05 px), or given; the marginals scale with it."""
-    est = single_exact.extra["uncertainty"]["sigma_px"]
+    est = single_exact.uncertainty.sigma_px
     assert est == pytest.approx(0.05, rel=0.1)
     stage_sigma = {k: s["sigma_px"] for k, s in single_exact.extra["optimizer"].items()}
     assert stage_sigma["ari"] == 1.0  # nothing to re-weight without priors: the first stage runs at 1 px,
     assert stage_sigma["exact"] > 1.5 * est  # the exact one at the ari residuals' sigma (paraxial error included)
     given = calibrate(single_scene.dataset, model="exact", sigma_px=0.1)
     assert {s["sigma_px"] for s in given.extra["optimizer"].values()} == {0.1}
-    u, u_est = given.extra["uncertainty"], single_exact.extra["uncertainty"]
-    assert u["sigma_px"] == 0.1
-    assert u["normal_deg"] == pytest.approx(u_est["normal_deg"] * 0.1 / est, rel=1e-3)
-    assert u["cameras"]["cam0"]["fx"] == pytest.approx(u_est["cameras"]["cam0"]["fx"] * 0.1 / est, rel=1e-3)
+    u, u_est = given.uncertainty, single_exact.uncertainty
+    assert u.sigma_px == 0.1
+    assert u.normal_deg == pytest.approx(u_est.normal_deg * 0.1 / est, rel=1e-3)
+    assert u.cameras["cam0"].intrinsics["fx"] == pytest.approx(u_est.cameras["cam0"].intrinsics["fx"] * 0.1 / est,
+                                                               rel=1e-3)
     with pytest.raises(ValueError, match="sigma_px"):
         calibrate(single_scene.dataset, model="ari", sigma_px=0.0)
 

@@ -39,7 +39,7 @@ def rig_errors(cal, truth) -> dict:
 
 def assert_exact_tolerances(cal, truth):
     e = rig_errors(cal, truth)
-    assert cal.residuals["rmse_px"] <= 1.2 * FLOOR, cal.residuals
+    assert cal.residuals.rmse_px <= 1.2 * FLOOR, cal.residuals
     assert e["normal_deg"] < 0.1, e
     for name, c in e["cameras"].items():
         assert c["fx_rel"] < 5e-4 and c["fy_rel"] < 5e-4, (name, c)
@@ -123,7 +123,7 @@ def test_uncertainty_matches_the_spread_over_noise_seeds(binocular):
         rng = np.random.default_rng(1000 + seed)
         obs = tuple(replace(o, pixels=o.pixels + rng.normal(0, 0.05, o.pixels.shape)) for o in binocular.exact_observations)
         cal = calibrate(replace(binocular.dataset, observations=obs), model="exact")
-        u = cal.extra["uncertainty"]
+        u = cal.uncertainty
         c1 = cal.cameras["cam1"]
         errors.append([
             cal.cameras["cam0"].K[0, 0] - truth["cameras"]["cam0"]["K"][0][0],
@@ -132,8 +132,8 @@ def test_uncertainty_matches_the_spread_over_noise_seeds(binocular):
             rotation_angle_deg(c1.cam_from_world.R, t_pose.R),
             float(np.linalg.norm(c1.cam_from_world.inverse().t - t_pose.inverse().t)),
         ])
-        predicted.append([u["cameras"]["cam0"]["fx"], u["cameras"]["cam1"]["cy"], u["normal_deg"],
-                          u["cameras"]["cam1"]["rotation_deg"], u["cameras"]["cam1"]["translation_mm"]])
+        predicted.append([u.cameras["cam0"].intrinsics["fx"], u.cameras["cam1"].intrinsics["cy"], u.normal_deg,
+                          u.cameras["cam1"].rotation_deg, u.cameras["cam1"].translation_mm])
     rms = np.sqrt(np.mean(np.square(errors), axis=0))  # magnitudes: RMS of the error (truth is known)
     pred = np.mean(predicted, axis=0)
     ratio = rms / pred
@@ -145,7 +145,8 @@ def test_uncertainty_is_finite_or_none_and_valid_json():
     negative numerically): the std is then None with a warning, never NaN, and calibration.json stays JSON."""
     scene = make_scene("binocular_underwater", seed=0)
     cal = calibrate(scene.dataset, model="ari")
-    u = cal.extra["uncertainty"]
-    values = [u["normal_deg"], u.get("distance_mm")] + [v for c in u["cameras"].values() for v in c.values()]
+    u = cal.uncertainty
+    assert u.estimates_distance  # under water
+    values = [u.normal_deg, u.distance_mm] + [v for c in u.cameras.values() for v in c.to_json().values()]
     assert all(v is None or (np.isfinite(v) and v >= 0) for v in values), u
     json.dumps(cal.to_json(), allow_nan=False)

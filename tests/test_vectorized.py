@@ -315,8 +315,8 @@ def test_backend_option(single_scene, single_exact):
     assert _angle_deg(ref.normal_world, single_exact.normal_world) < 1e-6
     for name, cam in ref.cameras.items():
         np.testing.assert_allclose(single_exact.cameras[name].K, cam.K, rtol=1e-9, atol=1e-9)
-    assert single_exact.residuals["rmse_px"] == pytest.approx(ref.residuals["rmse_px"], rel=1e-8)
-    assert single_exact.extra["uncertainty"]["normal_deg"] == pytest.approx(ref.extra["uncertainty"]["normal_deg"], rel=1e-6)
+    assert single_exact.residuals.rmse_px == pytest.approx(ref.residuals.rmse_px, rel=1e-8)
+    assert single_exact.uncertainty.normal_deg == pytest.approx(ref.uncertainty.normal_deg, rel=1e-6)
 
 
 def test_optimize_graph_dispatches(problems):
@@ -330,7 +330,7 @@ def test_scale16_reduced_meets_the_exact_tolerances():
     cal = calibrate(scene.dataset, model="exact", backend="numpy", uncertainty=False)
     truth = scene.truth
     assert len(cal.cameras) == 16
-    assert cal.residuals["rmse_px"] <= 1.2 * FLOOR, cal.residuals
+    assert cal.residuals.rmse_px <= 1.2 * FLOOR, cal.residuals
     assert angle_between_deg(cal.normal_world, truth["interface"]["normal_world"]) < 0.1
     for name, c in cal.cameras.items():
         K = np.array(truth["cameras"][name]["K"])

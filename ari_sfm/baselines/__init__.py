@@ -7,27 +7,32 @@
 """
 from __future__ import annotations
 
-BASELINES = ("rt", "pf", "pinhole", "pinhole_dist")
+# The calibrators ari_sfm.models.registry names, one per model: (dataset with observations,
+# CalibrationOptions) -> Calibration. rt and pinhole use ``distortion`` and ``max_iterations``;
+# pf fits in the world of an ari calibration made with all the options.
 
 
-def calibrate_baseline(dataset, model: str, options) -> "Calibration":  # noqa: F821
-    """Run baseline ``model`` on a dataset with observations (``options``: CalibrationOptions).
+def calibrate_rt_model(dataset, options) -> "Calibration":  # noqa: F821
+    from .ray_tracing import calibrate_rt
 
-    rt and pinhole use ``distortion`` and ``max_iterations``; pf fits in the
-    world of an ari calibration made with all the options.
-    """
+    return calibrate_rt(dataset, options.distortion, options.max_iterations)
+
+
+def calibrate_pinhole_model(dataset, options) -> "Calibration":  # noqa: F821
+    from .pinhole import calibrate_pinhole
+
+    return calibrate_pinhole(dataset, options.distortion, options.max_iterations)
+
+
+def calibrate_pinhole_dist_model(dataset, options) -> "Calibration":  # noqa: F821
+    from .pinhole import calibrate_pinhole
+
+    return calibrate_pinhole(dataset, True, options.max_iterations)
+
+
+def calibrate_pf_model(dataset, options) -> "Calibration":  # noqa: F821
     from dataclasses import asdict
 
-    if model == "rt":
-        from .ray_tracing import calibrate_rt
+    from .polynomial import calibrate_pf
 
-        return calibrate_rt(dataset, options.distortion, options.max_iterations)
-    if model in ("pinhole", "pinhole_dist"):
-        from .pinhole import calibrate_pinhole
-
-        return calibrate_pinhole(dataset, model == "pinhole_dist" or options.distortion, options.max_iterations)
-    if model == "pf":
-        from .polynomial import calibrate_pf
-
-        return calibrate_pf(dataset, **asdict(options))
-    raise ValueError(f"unknown baseline {model!r} (known: {', '.join(BASELINES)})")
+    return calibrate_pf(dataset, **asdict(options))

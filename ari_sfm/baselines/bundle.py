@@ -300,5 +300,5 @@ def camera_calibrations(dataset: Dataset, bundle: RigBundle, intr: np.ndarray, c
         K = np.array([[p[0], 0.0, p[2]], [0.0, p[1], p[3]], [0.0, 0.0, 1.0]])
         dist = np.resize(p[4:], 5) if len(p) == 9 else np.zeros(5)
         out[name] = CameraCalibration(name, tuple(dataset.cameras[name].image_size), K, dist, cams[c],
-                                      rmse_px=residual_stats([per_camera_residuals[name]])["rmse_px"])
+                                      rmse_px=residual_stats([per_camera_residuals[name]]).rmse_px)
     return out

@@ -41,7 +41,7 @@ def calibrate_pinhole(dataset: Dataset, distortion: bool = False, max_iterations
     res = pixels(result.x) - pts.uv
     model = "pinhole_dist" if distortion else "pinhole"
     log.info("%s: %d function evaluations, %.1f ms, rmse %.4f px", model, result.nfev, elapsed * 1e3,
-             residual_stats([res])["rmse_px"])
+             residual_stats([res]).rmse_px)
     return Calibration(
         model=model,
         interface=dataset.interface,

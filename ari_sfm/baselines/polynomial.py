@@ -31,6 +31,7 @@ from ..errors import AriSfmError
 from ..geometry import Pose
 from ..init.zhang import object_points
 from ..records import Dataset, Observation
+from ..results import PfWorld
 
 log = logging.getLogger(__name__)
 
@@ -163,16 +164,15 @@ def calibrate_pf(dataset: Dataset, world=None, **ari_options) -> "Calibration": 
     cameras = {}
     for name, cam in world.cameras.items():
         X, uv = data[name]
-        rmse = residual_stats([polys[name].project_world(X) - uv])["rmse_px"]
-        cameras[name] = replace(cam, expansion_center_px=None, expansion_center_std_px=None, rmse_px=rmse,
-                                extra={"pf": polys[name].to_json(world.model)})
+        rmse = residual_stats([polys[name].project_world(X) - uv]).rmse_px
+        cameras[name] = replace(cam, expansion_center_px=None, expansion_center_std_px=None, rmse_px=rmse, extra={},
+                                pf=polys[name])
     calib_obs = dataset.select("calibration")
     residuals = [polys[o.camera].project_world(world.frames[o.frame].apply(object_points(dataset.target, o.ids))) - o.pixels
                  for o in calib_obs if o.frame in world.frames]
     log.info("pf: %d cameras fitted in %.1f ms", len(polys), elapsed * 1e3)
     return replace(
         world, model="pf", cameras=cameras, stacking_poses={}, residuals=residual_stats(residuals), time_s=elapsed,
-        extra={"pf_world": {"model": world.model, "time_s": t_world or world.time_s,
-                            "note": "K, cam_from_world and normal_world are the world calibration's; "
-                                    "pixels come from each camera's pf polynomial"}},
+        fixed_distance_mm=None, extra={}, uncertainty=None, outliers=None,
+        pf_world=PfWorld(world.model, t_world or world.time_s),
     )

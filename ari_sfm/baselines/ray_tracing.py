@@ -145,11 +145,9 @@ def calibrate_rt(dataset: Dataset, distortion: bool = False, max_iterations: int
     res = (pixels(result.x) - pts.uv)
     per_camera = {name: res[pts.camera == c] for c, name in enumerate(bundle.names)}
     log.info("rt: %d function evaluations, %.1f ms, rmse %.4f px", result.nfev, elapsed * 1e3,
-             residual_stats([res])["rmse_px"])
+             residual_stats([res]).rmse_px)
     extra = {"optimizer": {"rt": {"nfev": int(result.nfev), "status": int(result.status), "time_s": elapsed,
                                   "backend": "scipy.least_squares(lm), numeric Jacobian"}}}
-    if not underwater:
-        extra["fixed_distance_mm"] = float(distance0)
     return Calibration(
         model="rt",
         interface=Interface(d, n, n_m, float(distance) if underwater else None),
@@ -160,6 +158,7 @@ def calibrate_rt(dataset: Dataset, distortion: bool = False, max_iterations: int
         time_s=elapsed,
         extra=extra,
         target=dataset.target,
+        fixed_distance_mm=None if underwater else float(distance0),
     )
 
 
@@ -170,7 +169,7 @@ def project_rt(calibration: "Calibration", camera: str, X_world: np.ndarray) -> 
     normal = calibration.normal_cam(camera)
     h = calibration.distance_mm(camera)
     if h is None:
-        h = calibration.extra["fixed_distance_mm"] - calibration.normal_world @ cam.cam_from_world.inverse().t
+        h = calibration.fixed_distance_mm - calibration.normal_world @ cam.cam_from_world.inverse().t
     iface = calibration.interface
     N = len(X)
     v, _ = trace_to_points(X, X, np.tile(normal, (N, 1)), np.full(N, h), iface.thickness_mm, iface.index,

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ari_sfm.calibration import NO_WINDOW_MODELS, Calibration, load_calibration
+from ari_sfm.calibration import Calibration, load_calibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose
 from ari_sfm.io import write_text_atomic
@@ -75,12 +75,16 @@ def _target_pose(cal: Calibration, frame: str | None, path: Path) -> tuple[str, 
 
 def _near_face_offset(cal: Calibration) -> float:
     """n . X of the window's near face in the world frame. Without a distance (air on both sides:
-    unobservable, and the projection does not depend on it) the face is put ``fixed_distance_mm``
-    (as Calibration.projection_model does) beyond the camera nearest to it."""
+    unobservable, and the projection does not depend on it) the face is where the model was fitted
+    (``fixed_distance_mm``, as Calibration.projection_model puts it), else (the paraxial ari model,
+    which has no face) 10 mm beyond the camera nearest to it (default_distance_mm)."""
     if cal.interface.distance_mm is not None:
         return float(cal.interface.distance_mm)
-    centres = [c.cam_from_world.inverse().t for c in cal.cameras.values()]
-    return max(float(cal.normal_world @ c) for c in centres) + float(cal.extra.get("fixed_distance_mm", 1.0))
+    if cal.fixed_distance_mm is not None:
+        return float(cal.fixed_distance_mm)
+    from ari_sfm.factors.rig_graph import default_distance_mm
+
+    return default_distance_mm(cal.normal_world, {n: c.cam_from_world for n, c in cal.cameras.items()})
 
 
 def _control_par(existing: ControlPar | None, numbers: dict[str, int], size: tuple[int, int],
@@ -109,7 +113,7 @@ def export_openptv(calibration: str | Path, out: str | Path, frame: str | None =
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise AriSfmError(out, "exists and is not a folder")
-    if cal.model in NO_WINDOW_MODELS or cal.model == "pf" or cal.normal_world is None:
+    if not cal.spec.window or not cal.spec.rays or cal.normal_world is None:
         raise AriSfmError(path, f"model {cal.model} has no window to export (OpenPTV needs one)")
     if cal.model == "ari":
         log.warning("%s: model ari is paraxial; OpenPTV traces rays exactly, so the exported cameras project like "

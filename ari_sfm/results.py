@@ -1,0 +1,144 @@
+"""What a calibration reports besides its parameters, as records: residual statistics, parameter
+uncertainty, outliers, and the world a pf fit was made in.
+
+Each record is frozen, writes exactly the calibration.json (and compare.json)
+fragment the format defines (``to_json``) and reads it back (``from_json``,
+raising ``ValueError``/``KeyError``/``TypeError`` on a malformed fragment: the
+caller names the file). The layout is DATASET_FORMAT.md's; nothing here changes it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+
+from .models.pinhole import PARAM_NAMES
+from .outliers import Outlier
+
+
+def _float_or_none(value: Any) -> float | None:
+    return None if value is None else float(value)
+
+
+@dataclass(frozen=True)
+class ResidualStats:
+    """Pixel residuals summarised: ``rmse_px = sqrt(mean(du^2 + dv^2))``, the mean and largest distance,
+    how many corners; ``per_camera`` the same per camera where a breakdown was asked for (evaluate)."""
+
+    rmse_px: float
+    mae_px: float
+    max_px: float
+    count: int
+    per_camera: Mapping[str, "ResidualStats"] | None = None
+
+    @classmethod
+    def of(cls, residuals: Iterable[np.ndarray]) -> "ResidualStats":
+        """The statistics of residual arrays (each (M, 2)); NaN and count 0 for none."""
+        arrays = [np.asarray(r, float).reshape(-1, 2) for r in residuals]
+        d = np.linalg.norm(np.concatenate(arrays), axis=1) if arrays else np.zeros(0)
+        if len(d) == 0:
+            return cls(float("nan"), float("nan"), float("nan"), 0)
+        return cls(float(np.sqrt(np.mean(d**2))), float(np.mean(d)), float(np.max(d)), int(len(d)))
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"rmse_px": self.rmse_px, "mae_px": self.mae_px, "max_px": self.max_px,
+                               "count": self.count}
+        if self.per_camera is not None:
+            out["per_camera"] = {c: s.to_json() for c, s in self.per_camera.items()}
+        return out
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "ResidualStats":
+        per = d.get("per_camera")
+        return cls(float(d["rmse_px"]), float(d["mae_px"]), float(d["max_px"]), int(d["count"]),
+                   None if per is None else {c: cls.from_json(s) for c, s in per.items()})
+
+
+@dataclass(frozen=True)
+class CameraUncertainty:
+    """Standard deviations of one camera's parameters (None: the data do not determine it)."""
+
+    intrinsics: Mapping[str, float | None]  # fx fy cx cy (px), with distortion also k1 k2 p1 p2 k3
+    relative_pose: bool = False  # the pose relative to camera 0 was estimated (every camera but the first)
+    rotation_deg: float | None = None  # RMS rotation error of that pose
+    translation_mm: float | None = None  # RMS translation error of that pose
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = dict(self.intrinsics)
+        if self.relative_pose:
+            out["rotation_deg"] = self.rotation_deg
+            out["translation_mm"] = self.translation_mm
+        return out
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "CameraUncertainty":
+        unknown = set(d) - set(PARAM_NAMES) - {"rotation_deg", "translation_mm"}
+        if unknown:
+            raise ValueError(f"unknown uncertainty key(s) {', '.join(sorted(unknown))}")
+        intr = {k: _float_or_none(d[k]) for k in PARAM_NAMES if k in d}
+        relative = "rotation_deg" in d or "translation_mm" in d
+        return cls(intr, relative, _float_or_none(d.get("rotation_deg")), _float_or_none(d.get("translation_mm")))
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """Standard deviations from the bundle adjustment's marginals, scaled by the residual sigma."""
+
+    sigma_px: float  # residual sigma per pixel coordinate that scales them
+    cameras: Mapping[str, CameraUncertainty]
+    normal_deg: float | None  # RMS angle error of the window normal
+    estimates_distance: bool = False  # the window distance was estimated (medium behind the window)
+    distance_mm: float | None = None  # its standard deviation
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"sigma_px": self.sigma_px, "cameras": {n: c.to_json() for n, c in self.cameras.items()},
+                               "normal_deg": self.normal_deg}
+        if self.estimates_distance:
+            out["distance_mm"] = self.distance_mm
+        return out
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "Uncertainty":
+        return cls(float(d["sigma_px"]), {n: CameraUncertainty.from_json(c) for n, c in d["cameras"].items()},
+                   _float_or_none(d["normal_deg"]), "distance_mm" in d, _float_or_none(d.get("distance_mm")))
+
+
+@dataclass(frozen=True)
+class OutlierReport:
+    """Corners beyond ``threshold_sigma`` robust sigmas after convergence, and whether they were dropped."""
+
+    sigma_px: float  # robust sigma per coordinate (1.4826 MAD)
+    threshold_sigma: float
+    excluded: bool  # dropped and the last stage re-run
+    corners: tuple[Outlier, ...] = field(default_factory=tuple)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"sigma_px": self.sigma_px, "threshold_sigma": self.threshold_sigma, "excluded": self.excluded,
+                "corners": [o.to_json() for o in self.corners]}
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "OutlierReport":
+        if not isinstance(d["excluded"], bool):
+            raise ValueError("outliers.excluded must be true or false")
+        return cls(float(d["sigma_px"]), float(d["threshold_sigma"]), d["excluded"],
+                   tuple(Outlier.from_json(o) for o in d["corners"]))
+
+
+@dataclass(frozen=True)
+class PfWorld:
+    """The calibration whose board poses gave a pf fit its world coordinates."""
+
+    model: str  # its model (ari or exact)
+    time_s: float  # its calibration time (not pf's)
+    note: str = ("K, cam_from_world and normal_world are the world calibration's; "
+                 "pixels come from each camera's pf polynomial")
+
+    def to_json(self) -> dict[str, Any]:
+        return {"model": self.model, "time_s": self.time_s, "note": self.note}
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "PfWorld":
+        if not isinstance(d["model"], str):
+            raise ValueError("pf_world.model must be a model name")
+        return cls(d["model"], float(d["time_s"]), str(d.get("note", cls.note)))
