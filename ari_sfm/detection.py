@@ -367,7 +367,8 @@ def detect_dataset(
     with ThreadPoolExecutor(max_workers=n_workers) as pool, tqdm(
         total=len(jobs), disable=not progress, desc="detecting corners", unit="image"
     ) as bar:
-        futures = {pool.submit(_detect_file, path, target): k for k, (_, _, path) in enumerate(jobs)}
+        futures = {pool.submit(_detect_file, path, target, dataset.cameras[cam].image_size, dataset.rig_path, cam): k
+                   for k, (_, cam, path) in enumerate(jobs)}
         unreadable: dict[int, AriSfmError] = {}
         try:
             for future in as_completed(futures):
@@ -402,12 +403,15 @@ def detect_dataset(
     return tuple(observations)
 
 
-def _detect_file(path: Path, target: Target) -> Detection | None:
-    """Read one image and detect the target; AriSfmError if the file cannot be read or decoded.
+def _detect_file(path: Path, target: Target, image_size: tuple[int, int] | None = None,
+                 rig_path: Path | None = None, camera: str = "") -> Detection | None:
+    """Read one image and detect the target; AriSfmError if the file cannot be read or decoded,
+    or if its size is not the camera's ``image_size`` [width, height] (when given).
 
     An unreadable image is an error, not a skipped view: it means a broken
     copy or a wrong file, which a warning would hide. (A truncated JPEG still
-    decodes, grey below the cut: its target is then usually not found.)
+    decodes, grey below the cut: its target is then usually not found.) So is
+    an image of another size: calibrated as is it gives wrong intrinsics silently.
     """
     try:
         data = np.fromfile(path, dtype=np.uint8)
@@ -418,6 +422,9 @@ def _detect_file(path: Path, target: Target) -> Detection | None:
     image = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
     if image is None or image.size == 0:
         raise AriSfmError(path, "cannot read image: corrupt, truncated or not an image format OpenCV decodes")
+    if image_size is not None and (image.shape[1], image.shape[0]) != tuple(image_size):
+        raise AriSfmError(path, f"image is {image.shape[1]} x {image.shape[0]} px but {rig_path or 'the rig'} "
+                                f"gives cameras.{camera}.image_size [{image_size[0]}, {image_size[1]}]")
     return detect_corners(image, target)
 
 
