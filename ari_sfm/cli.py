@@ -11,6 +11,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from .cli_checks import check_number, check_output_folder
 from .errors import AriSfmError
 
 log = logging.getLogger("ari_sfm")
@@ -30,7 +31,10 @@ def user_errors(fn):
         except AriSfmError as exc:
             click.echo(f"error: {exc}", err=True)
             sys.exit(1)
-        except (click.ClickException, click.exceptions.Exit, SystemExit, KeyboardInterrupt):
+        except KeyboardInterrupt:  # Ctrl-C: no traceback, the shell's code for SIGINT
+            click.echo("interrupted", err=True)
+            sys.exit(130)
+        except (click.ClickException, click.exceptions.Exit, SystemExit):
             raise
         except Exception as exc:  # noqa: BLE001 - never a traceback unless asked for
             if os.environ.get("ARI_SFM_DEBUG"):
@@ -59,10 +63,12 @@ def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
     from .detection import detect_dataset
     from .io import load_dataset, save_observations
 
+    if out is not None:
+        check_output_folder(out)
     ds = load_dataset(dataset)
     t0 = time.perf_counter()
     obs = detect_dataset(ds, workers=workers, progress=True)
-    out = out or (ds.root.parent / f"{ds.root.name}-detections")
+    out = out or check_output_folder(ds.root.parent / f"{ds.root.name}-detections")
     out.mkdir(parents=True, exist_ok=True)
     save_observations(out / "observations.json", obs)
     n = sum(len(o.ids) for o in obs)
@@ -95,6 +101,8 @@ def calibrate_cmd(dataset: Path, out: Path, model: str, distortion: bool, huber_
     """Calibrate DATASET; write OUT/calibration.json (and OUT/observations.json when detected here)."""
     from .pipelines.calibrate_rig import main as pipeline
 
+    check_output_folder(out)
+    check_number("--huber-px", huber_px, minimum=0.0)
     t0 = time.perf_counter()
     result = pipeline(dataset, out, model=model, progress=True, distortion=distortion, huber_px=huber_px or None,
                       exclude_outliers=exclude_outliers)
@@ -116,6 +124,8 @@ def run(dataset: Path, out: Path, model: str, distortion: bool, huber_px: float,
     """The pipeline: detect corners when needed, calibrate, reconstruct (frames seen by two cameras), report."""
     from .pipelines.run import main as pipeline
 
+    check_output_folder(out)
+    check_number("--huber-px", huber_px, minimum=0.0)
     t0 = time.perf_counter()
     click.echo(f"ari-sfm run: {dataset} -> {out}")
     result = pipeline(dataset, out, model=model, truth=truth, progress=True, distortion=distortion,
@@ -170,6 +180,7 @@ def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | N
     """Triangulate the reconstruction frames of DATASET and measure them (flatness, stage, corner spacing)."""
     from .reconstruct import run_reconstruction
 
+    check_output_folder(out)
     r = run_reconstruction(dataset, calibration, out, truth, workers=workers, progress=True)
     m = r.metrics
     click.echo(f"{m['num_points']} points in {m['num_frames']} frames, ray gap rms {m['ray_gap_mm']['rms']:.4f} mm"
@@ -212,6 +223,7 @@ def compare_cmd(dataset: Path, out: Path, models: str, subset: str | None, holdo
     """Calibrate DATASET with several models and compare them (the paper's Tables 2-4)."""
     from .compare import run_compare
 
+    check_output_folder(out)
     paths = run_compare(dataset, out, models, subset, holdout, pf_world, distortion=distortion)
     click.echo(paths["md"].read_text())
     click.echo("\n".join(f"{k}: {v}" for k, v in paths.items()))
@@ -232,6 +244,7 @@ def export_colmap_cmd(calibration: Path, out: Path, dataset: Path | None, points
     """Write CALIBRATION as a COLMAP model (cameras, rig, frames, images, 3D points with tracks) to OUT."""
     from .colmap_export import export_colmap, summary
 
+    check_output_folder(out)
     folder = calibration.parent  # an `ari-sfm run` folder: its observations, dataset and points by default
     if dataset is None and not (folder / "observations.json").is_file():
         from .report import find_dataset
@@ -257,6 +270,9 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float, image_scale: flo
 
     if scenario not in SCENARIOS:
         raise AriSfmError(None, f"unknown scenario {scenario!r}; known: {', '.join(SCENARIOS)}")
+    check_output_folder(out)
+    check_number("--sigma", sigma, minimum=0.0, maximum=100.0)
+    check_number("--image-scale", image_scale, minimum=0.0, maximum=40.0, strict_minimum=True)
     ds, truth = run_sim(scenario, out, seed=seed, sigma_px=sigma, images=images, image_scale=image_scale)
     click.echo(f"dataset: {ds}\ntruth:   {truth}")
 

@@ -210,12 +210,19 @@ def _truth_points(truth: Mapping[str, Any] | str | Path) -> tuple[dict[str, Any]
     return dict(truth), "truth"
 
 
-def truth_errors(points: Points, truth: Mapping[str, Any] | str | Path) -> dict[str, Any]:
-    """3D errors against a truth's ``reconstruction_points_world``, unaligned and after rigid alignment."""
+def check_truth(truth: Mapping[str, Any] | str | Path) -> tuple[Mapping[str, Any], str]:
+    """A truth's ``reconstruction_points_world`` mapping and its name; AriSfmError if the file is
+    missing, malformed or not a simulator truth.json (``run`` calls this before calibrating)."""
     data, where = _truth_points(truth)
     recon = data.get("reconstruction_points_world") if isinstance(data, Mapping) else None
     if not isinstance(recon, Mapping):
         raise AriSfmError(where, "has no reconstruction_points_world (not a simulator truth.json)")
+    return recon, where
+
+
+def truth_errors(points: Points, truth: Mapping[str, Any] | str | Path) -> dict[str, Any]:
+    """3D errors against a truth's ``reconstruction_points_world``, unaligned and after rigid alignment."""
+    recon, where = check_truth(truth)
     est, ref = [], []
     for name, fp in points.frames.items():
         if name not in recon:

@@ -2,6 +2,8 @@
 naming the file (or option) and the field, exit 1, and no result file."""
 from __future__ import annotations
 
+import json
+
 import cv2
 import numpy as np
 import pytest
@@ -31,3 +33,109 @@ def test_image_of_another_size_than_image_size_is_an_error_naming_it(checker_vie
     assert r.exit_code == 1 and last.startswith(f"error: {root / 'img' / 'c2.png'}: image is")
     assert not (tmp_path / "out" / "calibration.json").exists()
     assert not (tmp_path / "out" / "observations.json").exists()
+
+
+# --------------------------------------------------------------------------- options and output folders
+
+
+@pytest.fixture(scope="module")
+def sim_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim")
+    r = CliRunner().invoke(main, ["simulate", "paper_single", "-o", str(out), "--no-images", "--seed", "0"])
+    assert r.exit_code == 0, r.output
+    return out
+
+
+def _one_error_line(r, start: str) -> None:
+    assert r.exit_code == 1, r.output
+    lines = r.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(start), r.output
+
+
+@pytest.mark.parametrize("where, message", [
+    ("file", "-o/--out: is a file, expected a folder"),
+    ("under a file", "is a file, so it cannot hold the output folder"),
+    ("/proc/ari", "-o/--out: /proc is a kernel file system"),
+    ("/sys/ari", "-o/--out: /sys is a kernel file system"),
+])
+@pytest.mark.parametrize("command", ["calibrate", "run", "simulate"])
+def test_bad_output_folder_is_one_line_before_any_work(sim_dir, tmp_path, where, message, command):
+    (tmp_path / "a_file").write_text("x")
+    out = {"file": tmp_path / "a_file", "under a file": tmp_path / "a_file" / "sub" / "out"}.get(where, where)
+    args = [command, "paper_single" if command == "simulate" else str(sim_dir / "dataset"), "-o", str(out)]
+    r = CliRunner().invoke(main, args)
+    _one_error_line(r, f"error: {out}: ")
+    assert message in r.output
+    assert (tmp_path / "a_file").read_text() == "x"
+
+
+@pytest.mark.parametrize("value, message", [("-1", "--huber-px: must be >= 0 (got -1)"),
+                                            ("nan", "--huber-px: must be a finite number (got nan)"),
+                                            ("inf", "--huber-px: must be a finite number (got inf)")])
+def test_bad_huber_is_named(sim_dir, tmp_path, value, message):
+    """-1 was reported as 'non-finite Jacobian entries'; nan was accepted."""
+    r = CliRunner().invoke(main, ["calibrate", str(sim_dir / "dataset"), "-o", str(tmp_path / "o"), "--huber-px", value])
+    _one_error_line(r, f"error: {message}")
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("option, value, message", [
+    ("--sigma", "nan", "--sigma: must be a finite number"),
+    ("--sigma", "-0.1", "--sigma: must be >= 0"),
+    ("--image-scale", "0", "--image-scale: must be > 0"),
+    ("--image-scale", "1e8", "--image-scale: must be <= 40"),
+])
+def test_bad_simulate_option_is_named_not_a_file(tmp_path, option, value, message):
+    """simulate --sigma nan was blamed on a rig file never written."""
+    r = CliRunner().invoke(main, ["simulate", "paper_single", "-o", str(tmp_path / "s"), option, value])
+    _one_error_line(r, f"error: {message}")
+    assert not (tmp_path / "s").exists()
+
+
+def test_run_checks_the_truth_before_calibrating(sim_dir, tmp_path):
+    r = CliRunner().invoke(main, ["run", str(sim_dir / "dataset"), "-o", str(tmp_path / "o"),
+                                  "--truth", str(tmp_path / "missing.json")])
+    assert r.exit_code == 1 and f"error: {tmp_path / 'missing.json'}: file not found" in r.output
+    assert "model ari" not in r.output  # no calibration summary: it failed first
+    assert not (tmp_path / "o" / "calibration.json").exists()
+    (tmp_path / "other.json").write_text('{"format": "x"}')
+    r = CliRunner().invoke(main, ["run", str(sim_dir / "dataset"), "-o", str(tmp_path / "o"),
+                                  "--truth", str(tmp_path / "other.json")])
+    assert r.exit_code == 1 and "has no reconstruction_points_world" in r.output
+    assert not (tmp_path / "o" / "calibration.json").exists()
+
+
+@pytest.fixture(scope="module")
+def calibrated(sim_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("cal")
+    r = CliRunner().invoke(main, ["calibrate", str(sim_dir / "dataset"), "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    return out / "calibration.json"
+
+
+def test_evaluate_checks_pixels_like_calibrate(sim_dir, calibrated, tmp_path):
+    """A pixel at (-5000, 99999) gave 1631 px with exit 0."""
+    data = json.loads((sim_dir / "dataset" / "observations.json").read_text())
+    rec = next(o for o in data["observations"] if o["set"] == "calibration")
+    rec["pixels"][0] = [-5000.0, 99999.0]
+    bad = tmp_path / "obs.json"
+    bad.write_text(json.dumps(data))
+    r = CliRunner().invoke(main, ["evaluate", str(calibrated), str(bad)])
+    _one_error_line(r, f"error: {bad}: observation ")
+    assert "pixel (-5000, 99999)" in r.output and "is outside the" in r.output
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda c: c["cameras"]["cam0"]["K"][0].__setitem__(0, 1e308), "cameras.cam0.K focal length must be <= 1e+07 px"),
+    (lambda c: c["cameras"]["cam0"]["K"][1].__setitem__(1, -5.0), "cameras.cam0.K must have positive focal lengths"),
+    (lambda c: c["cameras"]["cam0"].__setitem__("image_size", [100_000_000, 10]), "cameras.cam0.image_size must be <= 100000 px"),
+    (lambda c: c["interface"].__setitem__("thickness_mm", 1e300), "interface.thickness_mm must be <= 10000 mm"),
+])
+def test_evaluate_refuses_an_impossible_calibration(sim_dir, calibrated, tmp_path, edit, message):
+    """fx = 1e308 gave rmse inf with exit 0."""
+    cal = json.loads(calibrated.read_text())
+    edit(cal)
+    bad = tmp_path / "calibration.json"
+    bad.write_text(json.dumps(cal))
+    r = CliRunner().invoke(main, ["evaluate", str(bad), str(sim_dir / "dataset" / "observations.json")])
+    _one_error_line(r, f"error: {bad}: {message}")
