@@ -364,23 +364,22 @@ def detect_dataset(
     cpus = os.cpu_count() or 1
     n_workers = max(1, min(cpus, workers if workers is not None else cpus, len(jobs) or 1))
     results: list[Detection | None] = [None] * len(jobs)
-    with ThreadPoolExecutor(max_workers=n_workers) as pool, tqdm(
-        total=len(jobs), disable=not progress, desc="detecting corners", unit="image"
-    ) as bar:
-        futures = {pool.submit(_detect_file, path, target, dataset.cameras[cam].image_size, dataset.rig_path, cam): k
-                   for k, (_, cam, path) in enumerate(jobs)}
-        unreadable: dict[int, AriSfmError] = {}
-        try:
+    unreadable: dict[int, AriSfmError] = {}
+    pool = ThreadPoolExecutor(max_workers=n_workers)
+    futures: dict = {}
+    try:
+        with tqdm(total=len(jobs), disable=not progress, desc="detecting corners", unit="image") as bar:
+            for k, (_, cam, path) in enumerate(jobs):
+                futures[pool.submit(_detect_file, path, target, dataset.cameras[cam].image_size,
+                                    dataset.rig_path, cam)] = k
             for future in as_completed(futures):
                 try:
                     results[futures[future]] = future.result()
                 except AriSfmError as exc:
                     unreadable[futures[future]] = exc
                 bar.update(1)
-        except BaseException:
-            for f in futures:
-                f.cancel()
-            raise
+    finally:
+        _stop_workers(pool)
     if unreadable:  # the first in dataset order (not completion order), so every run names the same file
         first = unreadable[min(unreadable)]
         more = f" (and {len(unreadable) - 1} more unreadable images)" if len(unreadable) > 1 else ""
@@ -401,6 +400,21 @@ def detect_dataset(
     observations = _drop_thin_stacking(observations)
     _check_calibration_views(dataset, jobs, observations, min_calibration_views)
     return tuple(observations)
+
+
+def _stop_workers(pool: ThreadPoolExecutor) -> None:
+    """Cancel the queued detections and wait for the running ones (each ends within one image).
+
+    On Ctrl-C the process must not exit while OpenCV still runs in a worker
+    thread: that ended in SIGABRT (3 in ~137 tries). A second Ctrl-C does not
+    cut the wait short.
+    """
+    while True:
+        try:
+            pool.shutdown(wait=True, cancel_futures=True)
+            return
+        except KeyboardInterrupt:
+            continue
 
 
 def _detect_file(path: Path, target: Target, image_size: tuple[int, int] | None = None,
