@@ -51,12 +51,13 @@ class Points:
     def num_points(self) -> int:
         return sum(len(f) for f in self.frames.values())
 
-    def save(self, path: str | Path, calibration_name: str) -> None:
-        """Write ``points.json`` atomically (validated first; a bad frame writes nothing)."""
+    def save(self, path: str | Path, calibration_name: str, provenance: dict | None = None) -> None:
+        """Write ``points.json`` atomically (validated first; a bad frame writes nothing); ``provenance``:
+        which calibration and dataset made the points (:mod:`ari_sfm.provenance`)."""
         from .io import save_points
 
         save_points(path, {name: {"stage_mm": f.stage_mm, "ids": f.ids, "xyz": f.xyz, "ray_gap_mm": f.ray_gap_mm}
-                           for name, f in self.frames.items()}, calibration_name)
+                           for name, f in self.frames.items()}, calibration_name, provenance)
 
     @staticmethod
     def load(path: str | Path) -> "Points":
@@ -201,6 +202,7 @@ def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, o
     from .calibration import load_calibration
     from .io import load_dataset, save_observations, write_json_atomic
     from .metrics import reconstruction_metrics, save_point_clouds
+    from .provenance import provenance
 
     dataset = load_dataset(dataset_path, observations)
     calibration = load_calibration(calibration_path)
@@ -220,9 +222,11 @@ def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, o
         save_observations(obs_path, dataset.observations)
     points_path = out / "points.json"
     name = os.path.relpath(Path(calibration_path).resolve(), out.resolve())
-    points.save(points_path, name)
+    made_by = provenance(calibration_path, calibration.model, dataset)
+    points.save(points_path, name, made_by)
     metrics_path = out / "metrics.json"
-    write_json_atomic(metrics_path, {"format": METRICS_FORMAT, "dataset": str(dataset_path), "calibration": name,
-                                     "model": calibration.model, **metrics})
+    write_json_atomic(metrics_path, {"format": METRICS_FORMAT, "dataset": str(Path(dataset_path).resolve()),
+                                     "calibration": name, "model": calibration.model, "provenance": made_by,
+                                     **metrics})
     clouds = save_point_clouds(points, out / "clouds")
     return ReconstructionRun(points, metrics, points_path, metrics_path, clouds, obs_path)

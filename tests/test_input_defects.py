@@ -216,3 +216,15 @@ def test_sigint_during_detect_exits_130_without_abort(tmp_path, delay_s):
     if p.returncode != 0:  # 0 only if all 18 images were done before the signal
         assert p.returncode == 130 and err.strip().splitlines()[-1].endswith("interrupted"), err
         assert not (tmp_path / "det" / "observations.json").exists()
+
+
+def test_keyboard_interrupt_outside_a_command_body_exits_130(monkeypatch):
+    import ari_sfm.simulate as sim
+
+    class Interrupting(dict):
+        def items(self):
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(sim, "SCENARIOS", Interrupting())
+    r = CliRunner().invoke(main, ["scenarios"])
+    assert r.exit_code == 130 and r.output.strip() == "interrupted"
