@@ -187,13 +187,17 @@ def evaluate_cmd(calibration: Path, observations: Path) -> None:
 @click.option("--truth", type=click.Path(path_type=Path), default=None,
               help="A simulator's truth.json: also report the 3D error against its points.")
 @click.option("--workers", type=int, default=None, help="Parallel detection threads when the dataset has only images.")
+@click.option("--reference", type=click.Path(path_type=Path), default=None,
+              help="A mesh or point cloud (.ply, .obj, .stl, ...) of the true geometry: the 3D error after "
+                   "registration onto it (Open3D ICP, point-to-mesh distances).")
 @user_errors
-def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | None, workers: int | None) -> None:
+def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | None, workers: int | None,
+                    reference: Path | None) -> None:
     """Triangulate the reconstruction frames of DATASET and measure them (flatness, stage, corner spacing)."""
     from .reconstruct import run_reconstruction
 
     check_output_folder(out)
-    r = run_reconstruction(dataset, calibration, out, truth, workers=workers, progress=True)
+    r = run_reconstruction(dataset, calibration, out, truth, workers=workers, progress=True, reference_path=reference)
     m = r.metrics
     click.echo(f"{m['num_points']} points in {m['num_frames']} frames, ray gap rms {m['ray_gap_mm']['rms']:.4f} mm"
                + (f", reprojection rmse {m['reprojection_rmse_px']:.4f} px" if m["reprojection_rmse_px"] is not None else ""))
@@ -213,6 +217,11 @@ def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | N
         t = m["truth"]
         click.echo(f"vs truth: rms {t['aligned']['rms_mm']:.4f} mm after rigid alignment (max {t['aligned']['max_mm']:.4f}), "
                    f"{t['unaligned']['rms_mm']:.4f} mm without")
+    if m.get("reference"):
+        ref, reg = m["reference"], m["reference"]["registration"]
+        click.echo(f"vs reference {ref['kind']}: distance rms {ref['distance_mm']['rms']:.4f} mm, max "
+                   f"{ref['distance_mm']['max']:.4f} mm after registration (rotation {reg['rotation_deg']:.3f} deg, "
+                   f"translation {reg['translation_mm']:.3f} mm)")
     click.echo(f"points:  {r.points_path}\nmetrics: {r.metrics_path}\nclouds:  {r.clouds['all'].parent}")
 
 

@@ -190,13 +190,17 @@ class ReconstructionRun:
 
 def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, out_dir: str | Path,
                        truth_path: str | Path | None = None, workers: int | None = None,
-                       progress: bool = False, observations: str | Path | None = None) -> ReconstructionRun:
+                       progress: bool = False, observations: str | Path | None = None,
+                       reference_path: str | Path | None = None) -> ReconstructionRun:
     """Load, detect corners if needed, reconstruct, measure; then write OUT/points.json, metrics.json, clouds/.
 
     Everything is checked and computed before the first file is written, so a
     bad input (another rig's calibration, a truth without a frame, no frame
     seen by two cameras) leaves OUT without points.json. ``observations``
     replaces the dataset's observations file (e.g. corners detected earlier).
+    ``reference_path``: a mesh or point cloud of the true geometry; metrics.json
+    then holds ``reference``, the 3D error after registration onto it
+    (:func:`ari_sfm.reference.reference_errors`).
     """
     from .calibrate import ensure_observations
     from .calibration import load_calibration
@@ -207,6 +211,10 @@ def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, o
     dataset = load_dataset(dataset_path, observations)
     calibration = load_calibration(calibration_path)
     check_rig(dataset, calibration, calibration_path)  # before a slow detection
+    if reference_path is not None:
+        from .reference import load_reference
+
+        load_reference(reference_path)  # a bad reference fails before the work, not after
     if dataset.observations is None and not dataset.reconstruction:
         raise AriSfmError(dataset.rig_path, "no reconstruction frames to triangulate (add a `reconstruction:` "
                                             "list of target poses to rig.yaml)")
@@ -214,6 +222,10 @@ def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, o
     dataset = ensure_observations(dataset, workers, progress)
     points = reconstruct(dataset, calibration, calibration_path=calibration_path)
     metrics = reconstruction_metrics(points, dataset.target, truth_path)
+    if reference_path is not None:
+        from .reference import reference_errors
+
+        metrics["reference"] = reference_errors(points, reference_path)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     obs_path = None
