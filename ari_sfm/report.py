@@ -350,7 +350,9 @@ def _reconstruction_section(inp: ReportInputs) -> str:
         parts.append(_img(point_cloud_figure(inp.points, planes), "reconstructed planes",
                           "Fig. 13(a) style: representative reconstructed frames and their fitted planes."))
         parts.append(_img(rig_figure(inp.calibration, inp.points), "rig and reconstruction",
-                          "Fig. 14 style: cameras (axes x red, y green, z blue), window and reconstructed points."))
+                          "Fig. 14 style: cameras (axes x red, y green, z blue), window and reconstructed points "
+                          "(the window dashed, at a schematic depth, where the calibration cannot observe its "
+                          "distance: in air)."))
     if m is not None:
         parts.append(_img(error_histograms(m), "reconstruction errors",
                           "Fig. 13(b-d) style: plane-distance error per stage frame, flatness, inter-corner errors."))
