@@ -211,6 +211,10 @@ def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, o
     dataset = load_dataset(dataset_path, observations)
     calibration = load_calibration(calibration_path)
     check_rig(dataset, calibration, calibration_path)  # before a slow detection
+    if truth_path is not None:
+        from .metrics import check_truth
+
+        check_truth(truth_path)
     if reference_path is not None:
         from .reference import load_reference
 
