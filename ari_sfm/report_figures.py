@@ -73,10 +73,10 @@ def residual_scatter(calibration: Calibration, residuals: Residuals) -> bytes:
 
 def residual_map(calibration: Calibration, residuals: Residuals) -> bytes:
     """Each corner's residual as a vector at its pixel (magnified), coloured by its length."""
-    return to_png(residual_map_figure(calibration, residuals))
+    return to_png(draw_residual_map(calibration, residuals))
 
 
-def residual_map_figure(calibration: Calibration, residuals: Residuals) -> Any:
+def draw_residual_map(calibration: Calibration, residuals: Residuals) -> Any:
     """The figure of :func:`residual_map`. Constrained layout keeps each colour bar and its label clear
     of the next panel (they overlapped its axis)."""
     names = list(calibration.cameras)
@@ -192,10 +192,10 @@ def point_cloud_figure(frames: Mapping[str, np.ndarray], planes: Mapping[str, Ma
 
 def rig_figure(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> bytes:
     """Fig. 14: camera centres and axes, the window (near surface) and the reconstructed points."""
-    return to_png(rig_figure_figure(calibration, frames))
+    return to_png(draw_rig(calibration, frames))
 
 
-def rig_figure_figure(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> Any:
+def draw_rig(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> Any:
     """The figure of :func:`rig_figure`. Where the calibration does not observe the window's distance
     (in air it does not change any pixel), the window is drawn dashed halfway to the target and the
     legend says its depth is schematic."""

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from ari_sfm.evaluate import observation_residuals
-from ari_sfm.report_figures import residual_map_figure, rig_figure_figure
+from ari_sfm.report_figures import draw_residual_map, draw_rig
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +31,7 @@ def _overlap(a, b) -> float:
 def test_residual_map_colour_bars_and_labels_do_not_overlap_other_axes(binocular_residuals):
     """Every pair of axes (panels and colour bars, with their tick labels and axis labels) is disjoint."""
     cal, residuals = binocular_residuals
-    fig = residual_map_figure(cal, residuals)
+    fig = draw_residual_map(cal, residuals)
     fig.canvas.draw()
     renderer = fig.canvas.get_renderer()
     boxes = [ax.get_tightbbox(renderer) for ax in fig.axes]
@@ -52,11 +52,11 @@ def test_rig_figure_says_the_window_depth_is_schematic_in_air(binocular_residual
     cal, _ = binocular_residuals
     frames = {"r": np.array([[0.0, 0.0, 500.0], [50.0, 0.0, 500.0], [0.0, 50.0, 510.0]])}
     air = replace(cal, interface=replace(cal.interface, distance_mm=None))
-    fig = rig_figure_figure(air, frames)
+    fig = draw_rig(air, frames)
     assert "depth schematic: its distance is not observable in air" in _window_label(fig)
     assert any(line.get_linestyle() == "--" for line in fig.axes[0].get_lines())  # the dashed outline
     plt.close(fig)
     known = replace(cal, interface=replace(cal.interface, distance_mm=80.0))
-    fig = rig_figure_figure(known, frames)
+    fig = draw_rig(known, frames)
     assert "schematic" not in _window_label(fig) and "at 80.0 mm" in _window_label(fig)
     plt.close(fig)
