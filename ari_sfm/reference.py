@@ -5,11 +5,14 @@
 1. reads the reference (``o3d.io.read_triangle_mesh``; a file without
    triangles is read as a point cloud), in its own coordinates (a CAD model,
    a scan, the target as built);
-2. registers the reconstructed points onto it (rigid, no scale): starting
-   from the identity and from the principal-axes alignments of the two point
-   sets, Open3D's point-to-plane ICP (``registration_icp``, coarse to fine
-   correspondence distances) against a dense sample of the mesh; the start
-   whose result lies closest to the surface wins;
+2. registers the reconstructed points onto it (rigid, no scale): from the
+   identity and the principal-axes alignments of the two point sets, Open3D's
+   point-to-point ICP (``registration_icp``, coarse correspondence distances)
+   against a dense sample of the mesh (or the cloud); the start whose result
+   lies closest to the surface goes on through the fine ICP stages and
+   Gauss-Newton point-to-plane steps on the surface itself (the mesh's
+   closest points and face normals from ``RaycastingScene``; the cloud's
+   nearest points and estimated normals);
 3. measures every point's distance to the surface: for a mesh, Open3D's
    ``RaycastingScene.compute_distance`` (exact point-to-triangle distance);
    for a cloud, the distance to the nearest reference point (which includes
@@ -97,18 +100,19 @@ def _principal_starts(source: np.ndarray, target: np.ndarray) -> list[np.ndarray
     return starts
 
 
-def _refine_on_mesh(o3d: Any, scene: Any, xyz: np.ndarray, T: np.ndarray, max_distance: float,
-                    iterations: int = 20) -> np.ndarray:
-    """Gauss-Newton point-to-plane steps against the mesh itself (its closest points and face normals from
-    ``RaycastingScene.compute_closest_points``), after ICP on the mesh's samples: removes the sampling's bias."""
+def _refine_point_to_plane(closest: Any, xyz: np.ndarray, T: np.ndarray, max_distance: float,
+                           iterations: int = 20) -> np.ndarray:
+    """Gauss-Newton point-to-plane steps after the point-to-point ICP: ``closest(X)`` gives each point's
+    closest surface point and normal (a mesh: RaycastingScene's closest point and face normal, exact; a
+    cloud: its nearest point and estimated normal). Minimum-norm steps leave alone the motions the
+    surface does not fix (slides along parallel faces)."""
     from .geometry import rotation_from_rotvec
 
     R, t = T[:3, :3].copy(), T[:3, 3].copy()
     for _ in range(iterations):
         X = xyz @ R.T + t
-        closest = scene.compute_closest_points(o3d.core.Tensor(X.astype(np.float32)))
-        n = closest["primitive_normals"].numpy().astype(float)
-        r = np.sum((X - closest["points"].numpy().astype(float)) * n, axis=1)
+        foot, n = closest(X)
+        r = np.sum((X - foot) * n, axis=1)
         use = np.abs(r) < max_distance
         if use.sum() < 6:
             break
@@ -148,8 +152,9 @@ def reference_errors(points: Points, path: str | Path) -> dict[str, Any]:
         def distances(p: np.ndarray) -> np.ndarray:
             return scene.compute_distance(o3d.core.Tensor(p.astype(np.float32))).numpy().astype(float)
 
-        def refine(T: np.ndarray) -> np.ndarray:
-            return _refine_on_mesh(o3d, scene, xyz, T, ICP_SCHEDULE[-1] * diag)
+        def closest(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            found = scene.compute_closest_points(o3d.core.Tensor(X.astype(np.float32)))
+            return found["points"].numpy().astype(float), found["primitive_normals"].numpy().astype(float)
     else:
         target = geometry
         diag_ref = float(np.linalg.norm(np.ptp(np.asarray(target.points), axis=0)))
@@ -160,8 +165,13 @@ def reference_errors(points: Points, path: str | Path) -> dict[str, Any]:
             query = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
             return np.asarray(query.compute_point_cloud_distance(target), dtype=float)
 
-        def refine(T: np.ndarray) -> np.ndarray:
-            return T
+        nns = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(np.asarray(target.points)))
+        nns.knn_index()
+        cloud_xyz, cloud_normals = np.asarray(target.points), np.asarray(target.normals)
+
+        def closest(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            index = nns.knn_search(o3d.core.Tensor(X), 1)[0].numpy().reshape(-1)
+            return cloud_xyz[index], cloud_normals[index]
     source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
     # point to point: well posed even where the faces are parallel (point-to-plane ICP slides along them)
     method = o3d.pipelines.registration.TransformationEstimationPointToPoint()
@@ -182,7 +192,7 @@ def reference_errors(points: Points, path: str | Path) -> dict[str, Any]:
     # every start through the coarse stages; the one closest to the surface through the fine ones
     coarse = [icp(start, ICP_SCHEDULE[:2])[0] for start in _principal_starts(xyz, np.asarray(target.points))]
     T, result = icp(min(coarse, key=rms_distance), ICP_SCHEDULE[2:])
-    T = refine(T)
+    T = _refine_point_to_plane(closest, xyz, T, ICP_SCHEDULE[-1] * diag)
     d = distances(xyz @ T[:3, :3].T + T[:3, 3])
     world_to_ref = np.eye(4)
     world_to_ref[:3, :3] = T[:3, :3]
