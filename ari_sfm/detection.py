@@ -27,10 +27,10 @@ from __future__ import annotations
 
 import logging
 import os
-from concurrent.futures import ThreadPoolExecutor, as_completed
+from concurrent.futures import Future, ThreadPoolExecutor, as_completed, wait
 from functools import lru_cache
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterable
 
 import cv2
 import numpy as np
@@ -379,7 +379,7 @@ def detect_dataset(
                     unreadable[futures[future]] = exc
                 bar.update(1)
     finally:
-        _stop_workers(pool)
+        _stop_workers(pool, futures)
     if unreadable:  # the first in dataset order (not completion order), so every run names the same file
         first = unreadable[min(unreadable)]
         more = f" (and {len(unreadable) - 1} more unreadable images)" if len(unreadable) > 1 else ""
@@ -402,16 +402,30 @@ def detect_dataset(
     return tuple(observations)
 
 
-def _stop_workers(pool: ThreadPoolExecutor) -> None:
-    """Cancel the queued detections and wait for the running ones (each ends within one image).
+def _stop_workers(pool: ThreadPoolExecutor, futures: Iterable[Future]) -> None:
+    """Cancel the queued detections and wait until every started one has returned (each ends within one image).
 
-    On Ctrl-C the process must not exit while OpenCV still runs in a worker
-    thread: that ended in SIGABRT (3 in ~137 tries). A second Ctrl-C does not
-    cut the wait short.
+    On Ctrl-C the process must not exit while a worker thread is inside
+    OpenCV: the interpreter's exit then unwinds it through C++ frames and the
+    process aborts (SIGABRT: "terminate called without an active exception",
+    "FATAL: exception not rethrown"). It waits on the futures, not on
+    ``Thread.join``: a join cut short by a second Ctrl-C marks a running thread
+    as stopped (CPython gh-90882), so later joins return at once. Further
+    Ctrl-Cs do not cut the wait short.
     """
+    futures = list(futures)
     while True:
         try:
-            pool.shutdown(wait=True, cancel_futures=True)
+            pool.shutdown(wait=False, cancel_futures=True)
+            pending = [f for f in futures if not f.done()]
+            if not pending:
+                break
+            wait(pending)
+        except KeyboardInterrupt:
+            continue
+    while True:  # the workers are out of OpenCV now: let them leave
+        try:
+            pool.shutdown(wait=True)
             return
         except KeyboardInterrupt:
             continue
