@@ -36,6 +36,15 @@ class CalibrationOptions:
     sigma_px: float | None = None  # the corners' pixel sigma weighting the images; None: estimated (robust,
     # from each stage's residuals; the stage is re-solved with it when priors or extra factors share the graph)
 
+    def __post_init__(self) -> None:
+        """Refuse values that would fail deep inside the solver (huber_px -1 gave 'non-finite Jacobian')."""
+        import math
+
+        if self.huber_px is not None and not (math.isfinite(self.huber_px) and self.huber_px > 0):
+            raise ValueError(f"huber_px must be a finite number > 0, or None (got {self.huber_px})")
+        if not (math.isfinite(self.outlier_sigma) and self.outlier_sigma > 0):
+            raise ValueError(f"outlier_sigma must be a finite number > 0 (got {self.outlier_sigma})")
+
 
 def _options(options: dict) -> CalibrationOptions:
     names = {f.name for f in fields(CalibrationOptions)}

@@ -209,6 +209,22 @@ def _pose(d: Any, what: str, path: Any) -> Pose:
     return Pose(R, _finite(d["t"], (3,), f"{what}.t", path))
 
 
+def _check_bounds(cams: dict[str, CameraCalibration], thickness: float, path: Any) -> None:
+    """The sane physical bounds of the rig file (io.dataset) hold for a calibration too."""
+    from .io.dataset import MAX_FOCAL_PX, MAX_IMAGE_SIDE_PX, MAX_LENGTH_MM
+    from .io.structured import check_at_most
+
+    check_at_most(thickness, MAX_LENGTH_MM, path, "interface.thickness_mm", " mm")
+    for name, c in cams.items():
+        if min(c.image_size) < 1:
+            raise AriSfmError(path, f"cameras.{name}.image_size must be two integers >= 1 (got {list(c.image_size)})")
+        check_at_most(max(c.image_size), MAX_IMAGE_SIDE_PX, path, f"cameras.{name}.image_size", " px")
+        fx, fy = float(c.K[0, 0]), float(c.K[1, 1])
+        if fx <= 0 or fy <= 0:
+            raise AriSfmError(path, f"cameras.{name}.K must have positive focal lengths (got fx={fx:g}, fy={fy:g})")
+        check_at_most(max(fx, fy), MAX_FOCAL_PX, path, f"cameras.{name}.K focal length", " px")
+
+
 def _parse(data: Any, path: Any) -> Calibration:
     if not isinstance(data, dict):
         raise AriSfmError(path, "calibration must be a JSON object")
@@ -267,6 +283,7 @@ def _parse(data: Any, path: Any) -> Calibration:
             {k: v for k, v in c.items() if k not in known},
             poly,
         )
+    _check_bounds(cams, thickness, path)
     frames = {f: _pose(v["world_from_target"], f"frames.{f}", path) for f, v in data.get("frames", {}).items()}
     stacking = {f: _pose(v["world_from_target"], f"stacking_poses.{f}", path) for f, v in data.get("stacking_poses", {}).items()}
     reserved = {"format", "model", "interface", "cameras", "frames", "stacking_poses", "residuals", "time_s", "target",

@@ -4,13 +4,16 @@ from __future__ import annotations
 import functools
 import logging
 import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
 import click
 import numpy as np
 
+from .cli_checks import check_number, check_output_folder
 from .errors import AriSfmError
 from .models.registry import BUNDLE, CALIBRATABLE, COMPARED, MODELS, model_spec
 
@@ -19,6 +22,21 @@ log = logging.getLogger("ari_sfm")
 
 def _setup_logging(verbose: bool) -> None:
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s: %(message)s")
+
+
+def _exit_interrupted(exit=sys.exit) -> None:
+    """Ctrl-C: "interrupted" on stderr and exit 130. While worker threads are still inside OpenCV
+    (a pool cut short by the signal), leave at once: the interpreter's shutdown would wait for them,
+    and a second Ctrl-C during that wait ended the process in C++'s terminate (SIGABRT)."""
+    click.echo("interrupted", err=True)
+    me = threading.current_thread()
+    if any(t.is_alive() and not t.daemon and t is not me for t in threading.enumerate()):
+        if me is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(130)
+    exit(130)
 
 
 def user_errors(fn):
@@ -31,7 +49,9 @@ def user_errors(fn):
         except AriSfmError as exc:
             click.echo(f"error: {exc}", err=True)
             sys.exit(1)
-        except (click.ClickException, click.exceptions.Exit, SystemExit, KeyboardInterrupt):
+        except KeyboardInterrupt:  # Ctrl-C: no traceback, the shell's code for SIGINT
+            _exit_interrupted()
+        except (click.ClickException, click.exceptions.Exit, SystemExit):
             raise
         except Exception as exc:  # noqa: BLE001 - never a traceback unless asked for
             if os.environ.get("ARI_SFM_DEBUG"):
@@ -42,7 +62,18 @@ def user_errors(fn):
     return wrapper
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+class _Group(click.Group):
+    """The root group: Ctrl-C outside a command's body (parsing, `scenarios`) also prints "interrupted"
+    and exits 130, where click would print "Aborted!" and exit 1."""
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt:
+            _exit_interrupted(ctx.exit)
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="ari-sfm")
 @click.option("-v", "--verbose", is_flag=True, help="Log progress messages.")
 def main(verbose: bool) -> None:
@@ -60,10 +91,12 @@ def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
     from .detection import detect_dataset
     from .io import load_dataset, save_observations
 
+    if out is not None:
+        check_output_folder(out)
     ds = load_dataset(dataset)
     t0 = time.perf_counter()
     obs = detect_dataset(ds, workers=workers, progress=True)
-    out = out or (ds.root.parent / f"{ds.root.name}-detections")
+    out = out or check_output_folder(ds.root.parent / f"{ds.root.name}-detections")
     out.mkdir(parents=True, exist_ok=True)
     save_observations(out / "observations.json", obs)
     n = sum(len(o.ids) for o in obs)
@@ -99,6 +132,8 @@ def calibrate_cmd(dataset: Path, out: Path, model: str, distortion: bool, huber_
     from .pipelines.calibrate_rig import main as pipeline
 
     model_spec(model, "--model", calibratable=True)  # before any loading or detection
+    check_output_folder(out)
+    check_number("--huber-px", huber_px, minimum=0.0)
     t0 = time.perf_counter()
     result = pipeline(dataset, out, model=model, progress=True, distortion=distortion, huber_px=huber_px or None,
                       exclude_outliers=exclude_outliers, backend=backend)
@@ -121,6 +156,8 @@ def run(dataset: Path, out: Path, model: str, distortion: bool, huber_px: float,
     from .pipelines.run import main as pipeline
 
     model_spec(model, "--model", calibratable=True)  # before any loading or detection
+    check_output_folder(out)
+    check_number("--huber-px", huber_px, minimum=0.0)
     t0 = time.perf_counter()
     click.echo(f"ari-sfm run: {dataset} -> {out}")
     result = pipeline(dataset, out, model=model, truth=truth, progress=True, distortion=distortion,
@@ -170,12 +207,17 @@ def evaluate_cmd(calibration: Path, observations: Path) -> None:
 @click.option("--truth", type=click.Path(path_type=Path), default=None,
               help="A simulator's truth.json: also report the 3D error against its points.")
 @click.option("--workers", type=int, default=None, help="Parallel detection threads when the dataset has only images.")
+@click.option("--reference", type=click.Path(path_type=Path), default=None,
+              help="A mesh or point cloud (.ply, .obj, .stl, ...) of the true geometry: the 3D error after "
+                   "registration onto it (Open3D ICP, point-to-mesh distances).")
 @user_errors
-def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | None, workers: int | None) -> None:
+def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | None, workers: int | None,
+                    reference: Path | None) -> None:
     """Triangulate the reconstruction frames of DATASET and measure them (flatness, stage, corner spacing)."""
     from .reconstruct import run_reconstruction
 
-    r = run_reconstruction(dataset, calibration, out, truth, workers=workers, progress=True)
+    check_output_folder(out)
+    r = run_reconstruction(dataset, calibration, out, truth, workers=workers, progress=True, reference_path=reference)
     m = r.metrics
     click.echo(f"{m.num_points} points in {m.num_frames} frames, ray gap rms {m.ray_gap_mm.rms:.4f} mm"
                + (f", reprojection rmse {m.reprojection_rmse_px:.4f} px" if m.reprojection_rmse_px is not None else ""))
@@ -195,6 +237,11 @@ def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | N
         t = m.truth
         click.echo(f"vs truth: rms {t.aligned_rms_mm:.4f} mm after rigid alignment (max {t.aligned_max_mm:.4f}), "
                    f"{t.unaligned_rms_mm:.4f} mm without")
+    if m.reference:
+        ref, reg = m.reference, m.reference["registration"]
+        click.echo(f"vs reference {ref['kind']}: distance rms {ref['distance_mm']['rms']:.4f} mm, max "
+                   f"{ref['distance_mm']['max']:.4f} mm after registration (rotation {reg['rotation_deg']:.3f} deg, "
+                   f"translation {reg['translation_mm']:.3f} mm)")
     click.echo(f"points:  {r.points_path}\nmetrics: {r.metrics_path}\nclouds:  {r.clouds['all'].parent}")
 
 
@@ -218,6 +265,7 @@ def compare_cmd(dataset: Path, out: Path, models: str, subset: str | None, holdo
     """Calibrate DATASET with several models and compare them (the paper's Tables 2-4)."""
     from .compare import run_compare
 
+    check_output_folder(out)
     paths = run_compare(dataset, out, models, subset, holdout, pf_world, distortion=distortion, backend=backend)
     click.echo(paths["md"].read_text())
     click.echo("\n".join(f"{k}: {v}" for k, v in paths.items()))
@@ -238,6 +286,7 @@ def export_colmap_cmd(calibration: Path, out: Path, dataset: Path | None, points
     """Write CALIBRATION as a COLMAP model (cameras, rig, frames, images, 3D points with tracks) to OUT."""
     from .colmap_export import export_colmap, summary
 
+    check_output_folder(out)
     folder = calibration.parent  # an `ari-sfm run` folder: its observations, dataset and points by default
     if dataset is None and not (folder / "observations.json").is_file():
         from .report import find_dataset
@@ -263,6 +312,9 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float, image_scale: flo
 
     if scenario not in SCENARIOS:
         raise AriSfmError(None, f"unknown scenario {scenario!r}; known: {', '.join(SCENARIOS)}")
+    check_output_folder(out)
+    check_number("--sigma", sigma, minimum=0.0, maximum=100.0)
+    check_number("--image-scale", image_scale, minimum=0.0, maximum=40.0, strict_minimum=True)
     ds, truth = run_sim(scenario, out, seed=seed, sigma_px=sigma, images=images, image_scale=image_scale)
     click.echo(f"dataset: {ds}\ntruth:   {truth}")
 

@@ -283,6 +283,29 @@ def _as_points(points: Any) -> Mapping[str, Any] | None:
     raise TypeError(f"points must be a points.json path or mapping, got {type(points).__name__}")
 
 
+def _check_points_belong(points_data: Mapping[str, Any], points: Any, calibration: Calibration,
+                         cal_path: Path | None, observations: Sequence[Observation]) -> None:
+    """points.json of another calibration or dataset is an error, not silently left without tracks.
+
+    Its recorded calibration hash (:mod:`ari_sfm.provenance`) must be the
+    calibration file's; every frame must have observations to give its tracks.
+    """
+    from .provenance import calibration_mismatch
+
+    where = points if isinstance(points, (str, Path)) else "points.json"
+    if cal_path is not None:
+        why = calibration_mismatch(points_data, cal_path, calibration.model)
+        if why:
+            raise AriSfmError(where, f"{why}: export it with its own calibration")
+    if observations:
+        seen = {o.frame for o in observations if o.set == "reconstruction"}
+        missing = [f for f in points_data["frames"] if f not in seen]
+        if missing:
+            raise AriSfmError(where, f"frame{'s' if len(missing) > 1 else ''} {', '.join(missing[:5])} "
+                                     f"{'have' if len(missing) > 1 else 'has'} no reconstruction observations in "
+                                     f"the dataset exported (points of another dataset?): no track to export")
+
+
 def _observations(calibration: Calibration, dataset: Dataset | str | Path | None,
                   calibration_path: Path | None) -> tuple[Dataset | None, Sequence[Observation]]:
     """The dataset (if any) and the observations to export (dataset's, else observations.json beside CAL)."""
@@ -329,6 +352,8 @@ def export_colmap(calibration: Calibration | str | Path, out_dir: str | Path,
         if unknown:
             log.warning("cameras %s are not in the calibration: their images are not exported", ", ".join(unknown))
     observations = [o for o in observations if o.set in EXPORT_SETS and o.camera in calibration.cameras]
+    if points_data is not None:
+        _check_points_belong(points_data, points, calibration, cal_path, observations)
     frame_points = _frame_points(calibration, points_data)
 
     # virtual cameras, fitted on the points each camera sees

@@ -4,15 +4,44 @@ from __future__ import annotations
 from .errors import AriSfmError
 
 
+def _interrupted(exc: BaseException) -> bool:
+    """True if a KeyboardInterrupt is in the cause / context chain of ``exc``."""
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
 def require_open3d():
-    """Import open3d, or fail in one line naming the missing system library."""
+    """Import open3d, or fail in one line naming the missing system library.
+
+    Ctrl-C while open3d's extension initialises surfaces as ImportError
+    ('initialization failed') with the KeyboardInterrupt as its context: that is
+    re-raised as KeyboardInterrupt (the CLI prints "interrupted", exit 130), not
+    reported as a missing package; "not installed" only when no open3d package is found.
+    """
+    import importlib.util
+
     try:
         import open3d
     except OSError as exc:  # e.g. libusb-1.0.so.0: cannot open shared object file
+        if _interrupted(exc):
+            raise KeyboardInterrupt from None
         raise AriSfmError(
             "open3d", f"cannot load ({exc}); install the system library: apt-get install libusb-1.0-0"
         ) from None
     except ImportError as exc:
+        if _interrupted(exc):
+            raise KeyboardInterrupt from None
+        try:
+            found = importlib.util.find_spec("open3d") is not None
+        except (ValueError, ImportError):  # sys.modules["open3d"] is None or has no spec
+            found = False
+        if found:
+            raise AriSfmError("open3d", f"installed but cannot load ({exc})") from None
         raise AriSfmError("open3d", f"not installed ({exc}); run scripts/setup.sh") from None
     return open3d
 

@@ -27,10 +27,10 @@ from __future__ import annotations
 
 import logging
 import os
-from concurrent.futures import ThreadPoolExecutor, as_completed
+from concurrent.futures import Future, ThreadPoolExecutor, as_completed, wait
 from functools import lru_cache
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterable
 
 import cv2
 import numpy as np
@@ -364,22 +364,22 @@ def detect_dataset(
     cpus = os.cpu_count() or 1
     n_workers = max(1, min(cpus, workers if workers is not None else cpus, len(jobs) or 1))
     results: list[Detection | None] = [None] * len(jobs)
-    with ThreadPoolExecutor(max_workers=n_workers) as pool, tqdm(
-        total=len(jobs), disable=not progress, desc="detecting corners", unit="image"
-    ) as bar:
-        futures = {pool.submit(_detect_file, path, target): k for k, (_, _, path) in enumerate(jobs)}
-        unreadable: dict[int, AriSfmError] = {}
-        try:
+    unreadable: dict[int, AriSfmError] = {}
+    pool = ThreadPoolExecutor(max_workers=n_workers)
+    futures: dict = {}
+    try:
+        with tqdm(total=len(jobs), disable=not progress, desc="detecting corners", unit="image") as bar:
+            for k, (_, cam, path) in enumerate(jobs):
+                futures[pool.submit(_detect_file, path, target, dataset.cameras[cam].image_size,
+                                    dataset.rig_path, cam)] = k
             for future in as_completed(futures):
                 try:
                     results[futures[future]] = future.result()
                 except AriSfmError as exc:
                     unreadable[futures[future]] = exc
                 bar.update(1)
-        except BaseException:
-            for f in futures:
-                f.cancel()
-            raise
+    finally:
+        _stop_workers(pool, futures)
     if unreadable:  # the first in dataset order (not completion order), so every run names the same file
         first = unreadable[min(unreadable)]
         more = f" (and {len(unreadable) - 1} more unreadable images)" if len(unreadable) > 1 else ""
@@ -402,12 +402,44 @@ def detect_dataset(
     return tuple(observations)
 
 
-def _detect_file(path: Path, target: Target) -> Detection | None:
-    """Read one image and detect the target; AriSfmError if the file cannot be read or decoded.
+def _stop_workers(pool: ThreadPoolExecutor, futures: Iterable[Future]) -> None:
+    """Cancel the queued detections and wait until every started one has returned (each ends within one image).
+
+    On Ctrl-C the process must not exit while a worker thread is inside
+    OpenCV: the interpreter's exit then unwinds it through C++ frames and the
+    process aborts (SIGABRT: "terminate called without an active exception",
+    "FATAL: exception not rethrown"). It waits on the futures, not on
+    ``Thread.join``: a join cut short by a second Ctrl-C marks a running thread
+    as stopped (CPython gh-90882), so later joins return at once. Further
+    Ctrl-Cs do not cut the wait short.
+    """
+    futures = list(futures)
+    while True:
+        try:
+            pool.shutdown(wait=False, cancel_futures=True)
+            pending = [f for f in futures if not f.done()]
+            if not pending:
+                break
+            wait(pending)
+        except KeyboardInterrupt:
+            continue
+    while True:  # the workers are out of OpenCV now: let them leave
+        try:
+            pool.shutdown(wait=True)
+            return
+        except KeyboardInterrupt:
+            continue
+
+
+def _detect_file(path: Path, target: Target, image_size: tuple[int, int] | None = None,
+                 rig_path: Path | None = None, camera: str = "") -> Detection | None:
+    """Read one image and detect the target; AriSfmError if the file cannot be read or decoded,
+    or if its size is not the camera's ``image_size`` [width, height] (when given).
 
     An unreadable image is an error, not a skipped view: it means a broken
     copy or a wrong file, which a warning would hide. (A truncated JPEG still
-    decodes, grey below the cut: its target is then usually not found.)
+    decodes, grey below the cut: its target is then usually not found.) So is
+    an image of another size: calibrated as is it gives wrong intrinsics silently.
     """
     try:
         data = np.fromfile(path, dtype=np.uint8)
@@ -418,6 +450,9 @@ def _detect_file(path: Path, target: Target) -> Detection | None:
     image = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
     if image is None or image.size == 0:
         raise AriSfmError(path, "cannot read image: corrupt, truncated or not an image format OpenCV decodes")
+    if image_size is not None and (image.shape[1], image.shape[0]) != tuple(image_size):
+        raise AriSfmError(path, f"image is {image.shape[1]} x {image.shape[0]} px but {rig_path or 'the rig'} "
+                                f"gives cameras.{camera}.image_size [{image_size[0]}, {image_size[1]}]")
     return detect_corners(image, target)
 
 

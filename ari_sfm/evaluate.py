@@ -102,9 +102,11 @@ def evaluate(calibration: Calibration, observations: str | Path | Dataset | Sequ
         records = observations.observations or ()
     elif isinstance(observations, (str, Path)):
         from .io import load_observations
+        from .io.observations import check_pixels_in_images
 
         target = target or calibration.target
         records = load_observations(Path(observations), target, list(calibration.cameras))
+        check_pixels_in_images(records, {n: c.image_size for n, c in calibration.cameras.items()}, observations)
     else:
         records = observations
     target = target or calibration.target

@@ -292,14 +292,18 @@ class ReconstructionMetrics:
     inter_corner_mm: InterCorner | None  # None for targets without a corner grid
     truth: TruthErrors | None  # only given a truth
     frames: Mapping[str, FrameMetrics] = field(default_factory=dict)
+    reference: Mapping[str, Any] | None = None  # only given a reference geometry: ari_sfm.reference.reference_errors
 
     def to_json(self) -> dict[str, Any]:
-        return {"num_points": self.num_points, "num_frames": self.num_frames, "ray_gap_mm": self.ray_gap_mm.to_json(),
-                "reprojection_rmse_px": self.reprojection_rmse_px, "flatness_mm": self.flatness_mm.to_json(),
-                "stage": None if self.stage is None else self.stage.to_json(),
-                "inter_corner_mm": None if self.inter_corner_mm is None else self.inter_corner_mm.to_json(),
-                "truth": None if self.truth is None else self.truth.to_json(),
-                "frames": {f: m.to_json() for f, m in self.frames.items()}}
+        out = {"num_points": self.num_points, "num_frames": self.num_frames, "ray_gap_mm": self.ray_gap_mm.to_json(),
+               "reprojection_rmse_px": self.reprojection_rmse_px, "flatness_mm": self.flatness_mm.to_json(),
+               "stage": None if self.stage is None else self.stage.to_json(),
+               "inter_corner_mm": None if self.inter_corner_mm is None else self.inter_corner_mm.to_json(),
+               "truth": None if self.truth is None else self.truth.to_json(),
+               "frames": {f: m.to_json() for f, m in self.frames.items()}}
+        if self.reference is not None:
+            out["reference"] = dict(self.reference)
+        return out
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> "ReconstructionMetrics":
@@ -309,7 +313,7 @@ class ReconstructionMetrics:
                    None if d["stage"] is None else StageMetrics.from_json(d["stage"]),
                    None if d["inter_corner_mm"] is None else InterCorner.from_json(d["inter_corner_mm"]),
                    None if d["truth"] is None else TruthErrors.from_json(d["truth"]),
-                   {f: FrameMetrics.from_json(m) for f, m in d["frames"].items()})
+                   {f: FrameMetrics.from_json(m) for f, m in d["frames"].items()}, d.get("reference"))
 
 
 # --------------------------------------------------------------------------- planes
@@ -442,12 +446,19 @@ def _truth_points(truth: Mapping[str, Any] | str | Path) -> tuple[dict[str, Any]
     return dict(truth), "truth"
 
 
-def truth_errors(points: Points, truth: Mapping[str, Any] | str | Path) -> TruthErrors:
-    """3D errors against a truth's ``reconstruction_points_world``, unaligned and after rigid alignment."""
+def check_truth(truth: Mapping[str, Any] | str | Path) -> tuple[Mapping[str, Any], str]:
+    """A truth's ``reconstruction_points_world`` mapping and its name; AriSfmError if the file is
+    missing, malformed or not a simulator truth.json (``run`` calls this before calibrating)."""
     data, where = _truth_points(truth)
     recon = data.get("reconstruction_points_world") if isinstance(data, Mapping) else None
     if not isinstance(recon, Mapping):
         raise AriSfmError(where, "has no reconstruction_points_world (not a simulator truth.json)")
+    return recon, where
+
+
+def truth_errors(points: Points, truth: Mapping[str, Any] | str | Path) -> TruthErrors:
+    """3D errors against a truth's ``reconstruction_points_world``, unaligned and after rigid alignment."""
+    recon, where = check_truth(truth)
     est, ref = [], []
     for name, fp in points.frames.items():
         if name not in recon:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -51,12 +51,13 @@ class Points:
     def num_points(self) -> int:
         return sum(len(f) for f in self.frames.values())
 
-    def save(self, path: str | Path, calibration_name: str) -> None:
-        """Write ``points.json`` atomically (validated first; a bad frame writes nothing)."""
+    def save(self, path: str | Path, calibration_name: str, provenance: dict | None = None) -> None:
+        """Write ``points.json`` atomically (validated first; a bad frame writes nothing); ``provenance``:
+        which calibration and dataset made the points (:mod:`ari_sfm.provenance`)."""
         from .io import save_points
 
         save_points(path, {name: {"stage_mm": f.stage_mm, "ids": f.ids, "xyz": f.xyz, "ray_gap_mm": f.ray_gap_mm}
-                           for name, f in self.frames.items()}, calibration_name)
+                           for name, f in self.frames.items()}, calibration_name, provenance)
 
     @staticmethod
     def load(path: str | Path) -> "Points":
@@ -189,22 +190,35 @@ class ReconstructionRun:
 
 def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, out_dir: str | Path,
                        truth_path: str | Path | None = None, workers: int | None = None,
-                       progress: bool = False, observations: str | Path | None = None) -> ReconstructionRun:
+                       progress: bool = False, observations: str | Path | None = None,
+                       reference_path: str | Path | None = None) -> ReconstructionRun:
     """Load, detect corners if needed, reconstruct, measure; then write OUT/points.json, metrics.json, clouds/.
 
     Everything is checked and computed before the first file is written, so a
     bad input (another rig's calibration, a truth without a frame, no frame
     seen by two cameras) leaves OUT without points.json. ``observations``
     replaces the dataset's observations file (e.g. corners detected earlier).
+    ``reference_path``: a mesh or point cloud of the true geometry; metrics.json
+    then holds ``reference``, the 3D error after registration onto it
+    (:func:`ari_sfm.reference.reference_errors`).
     """
     from .calibrate import ensure_observations
     from .calibration import load_calibration
     from .io import load_dataset, save_observations, write_json_atomic
     from .metrics import reconstruction_metrics, save_point_clouds
+    from .provenance import provenance
 
     dataset = load_dataset(dataset_path, observations)
     calibration = load_calibration(calibration_path)
     check_rig(dataset, calibration, calibration_path)  # before a slow detection
+    if truth_path is not None:
+        from .metrics import check_truth
+
+        check_truth(truth_path)
+    if reference_path is not None:
+        from .reference import load_reference
+
+        load_reference(reference_path)  # a bad reference fails before the work, not after
     if dataset.observations is None and not dataset.reconstruction:
         raise AriSfmError(dataset.rig_path, "no reconstruction frames to triangulate (add a `reconstruction:` "
                                             "list of target poses to rig.yaml)")
@@ -212,6 +226,10 @@ def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, o
     dataset = ensure_observations(dataset, workers, progress)
     points = reconstruct(dataset, calibration, calibration_path=calibration_path)
     metrics = reconstruction_metrics(points, dataset.target, truth_path)
+    if reference_path is not None:
+        from .reference import reference_errors
+
+        metrics = replace(metrics, reference=reference_errors(points, reference_path))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     obs_path = None
@@ -220,9 +238,11 @@ def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, o
         save_observations(obs_path, dataset.observations)
     points_path = out / "points.json"
     name = os.path.relpath(Path(calibration_path).resolve(), out.resolve())
-    points.save(points_path, name)
+    made_by = provenance(calibration_path, calibration.model, dataset)
+    points.save(points_path, name, made_by)
     metrics_path = out / "metrics.json"
-    write_json_atomic(metrics_path, {"format": METRICS_FORMAT, "dataset": str(dataset_path), "calibration": name,
-                                     "model": calibration.model, **metrics.to_json()})
+    write_json_atomic(metrics_path, {"format": METRICS_FORMAT, "dataset": str(Path(dataset_path).resolve()),
+                                     "calibration": name, "model": calibration.model, "provenance": made_by,
+                                     **metrics.to_json()})
     clouds = save_point_clouds(points, out / "clouds")
     return ReconstructionRun(points, metrics, points_path, metrics_path, clouds, obs_path)

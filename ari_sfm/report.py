@@ -15,9 +15,16 @@ offline and can be mailed):
 
 The dataset is found from, in order: the ``dataset`` argument, OUT/run.json
 (written by ``ari-sfm run``: ``{"format": "ari-sfm-run/1", "dataset":
-<absolute path>, ...}``), metrics.json's ``dataset`` (as given to
-``reconstruct``; tried as is and relative to OUT). Without it the report
-still has the calibration and, from OUT/observations.json, the residuals.
+<absolute path>, ...}``), metrics.json's ``provenance.dataset.path``, then its
+``dataset`` if absolute (a relative one, written by older versions, was
+relative to a working folder nobody recorded: it is not guessed). Without it
+the report still has the calibration and, from OUT/observations.json, the residuals.
+
+What does not belong together is refused or labelled: a dataset of another
+rig than calibration.json (other cameras, image sizes or window) is an error;
+points.json / metrics.json made with another calibration (their recorded
+content hash, :mod:`ari_sfm.provenance`; for older files their model) or from
+another dataset are shown under a label saying so.
 """
 from __future__ import annotations
 
@@ -58,6 +65,7 @@ class ReportInputs:
     compare_json: dict | None = None
     compare_figures: dict[str, bytes] = field(default_factory=dict)  # compare's PNGs by file name
     notes: tuple[str, ...] = ()  # what is missing, shown at the top
+    reconstruction_label: str | None = None  # why the reconstruction does not belong to this calibration / dataset
 
 
 def _read_json(path: Path) -> dict:
@@ -72,17 +80,26 @@ def _read_json(path: Path) -> dict:
 
 def find_dataset(out: Path, dataset: str | Path | None = None) -> Path | None:
     """The dataset folder of an output folder (see the module docstring), or None."""
+    from .provenance import recorded_dataset_path
+
     if dataset is not None:
         return Path(dataset)
     candidates: list[Path] = []
     if (out / RUN_FILE).exists():
         given = _read_json(out / RUN_FILE).get("dataset")
-        if isinstance(given, str):
-            candidates += [Path(given), out / given]
+        if isinstance(given, str) and Path(given).is_absolute():
+            candidates.append(Path(given))
     if (out / "metrics.json").exists():
-        given = _read_json(out / "metrics.json").get("dataset")
-        if isinstance(given, str):
-            candidates += [Path(given), out / given]
+        metrics = _read_json(out / "metrics.json")
+        recorded = recorded_dataset_path(metrics)
+        if recorded is not None:
+            candidates.append(recorded)
+        given = metrics.get("dataset")
+        if isinstance(given, str) and Path(given).is_absolute():
+            candidates.append(Path(given))
+        elif isinstance(given, str):
+            log.warning("%s: dataset %r is a relative path of an unknown working folder: pass --dataset",
+                        out / "metrics.json", given)
     return next((c for c in candidates if c.exists()), None)
 
 
@@ -102,7 +119,10 @@ def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInp
     obs_path = out / "observations.json"
     ds = None
     if ds_path is not None:
+        from .reconstruct import check_rig
+
         ds = load_dataset(ds_path, obs_path if obs_path.exists() else None)
+        check_rig(ds, cal, cal_path)  # another rig's dataset: refused, not mixed in
     else:
         notes.append("dataset not found (pass --dataset): no dataset summary")
     if ds is not None and ds.observations is not None:
@@ -114,8 +134,13 @@ def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInp
         notes.append("no observations found: no residual or expansion-centre figures")
     metrics = _read_json(out / "metrics.json") if (out / "metrics.json").exists() else None
     points = {}
+    points_data = None
     if (out / "points.json").exists():
-        points = {name: np.asarray(f["xyz"], float) for name, f in load_points(out / "points.json")["frames"].items()}
+        points_data = load_points(out / "points.json")
+        points = {name: np.asarray(f["xyz"], float) for name, f in points_data["frames"].items()}
+    label = _reconstruction_label(out, cal_path, cal, ds, metrics, points_data)
+    if label:
+        notes.append(f"reconstruction: {label}")
     if metrics is None and not points:
         notes.append("no reconstruction (points.json, metrics.json) in this folder")
     elif (out / RUN_FILE).exists() and _read_json(out / RUN_FILE).get("reconstruction_skipped"):
@@ -126,7 +151,23 @@ def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInp
     from .compare import FIGURES
 
     figs = {name: (out / name).read_bytes() for name in FIGURES if (out / name).exists()}
-    return ReportInputs(out, cal, ds, ds_path, tuple(observations), metrics, points, md, cj, figs, tuple(notes))
+    return ReportInputs(out, cal, ds, ds_path, tuple(observations), metrics, points, md, cj, figs, tuple(notes), label)
+
+
+def _reconstruction_label(out: Path, cal_path: Path, cal: Calibration, ds: Dataset | None,
+                          metrics: dict | None, points: dict | None) -> str | None:
+    """Why OUT's points.json / metrics.json do not belong to its calibration.json or the dataset, or None."""
+    from .provenance import calibration_mismatch, dataset_mismatch
+
+    why: list[str] = []
+    for name, result in (("points.json", points), ("metrics.json", metrics)):
+        if result is None:
+            continue
+        for reason in (calibration_mismatch(result, cal_path, cal.model),
+                       None if ds is None else dataset_mismatch(result, ds)):
+            if reason:
+                why.append(f"{name} was {reason}")
+    return "; ".join(why) or None
 
 
 # --------------------------------------------------------------------------- HTML pieces
@@ -274,6 +315,10 @@ def _reconstruction_section(inp: ReportInputs) -> str:
 
     m = inp.metrics
     parts = ["<h2>Reconstruction</h2>"]
+    if inp.reconstruction_label:
+        parts[0] = "<h2>Reconstruction (not of this calibration or dataset)</h2>"
+        parts.append(f'<p class="note">{html.escape(inp.reconstruction_label)}: its numbers are not '
+                     f"those of the calibration above.</p>")
     if m is not None:
         rows: list[list[Any]] = [["points", m.get("num_points"), "", ""], ["frames", m.get("num_frames"), "", ""]]
         for label, key in (("flatness (point to plane)", "flatness_mm"), ("inter-corner distance error", "inter_corner_mm")):
@@ -290,6 +335,11 @@ def _reconstruction_section(inp: ReportInputs) -> str:
             t = m["truth"]
             rows.append(["3D error vs truth after rigid alignment (mm)", None, t["aligned"]["rms_mm"], t["aligned"]["max_mm"]])
             rows.append(["3D error vs truth, unaligned (mm)", None, t["unaligned"]["rms_mm"], t["unaligned"]["max_mm"]])
+        if m.get("reference"):
+            ref = m["reference"]
+            rows.append([f"3D error vs reference {ref['kind']} {Path(ref['path']).name}, point to surface after "
+                         f"registration (mm)", ref["distance_mm"]["mean"], ref["distance_mm"]["rms"],
+                         ref["distance_mm"]["max"]])
         parts.append(_table(["", "MAE", "RMSE", "max"], rows))
         parts.append("<p>Paper (Sec. 5, real binocular rig): flatness MAE 0.07 mm, RMSE 0.10 mm; 10 mm inter-corner "
                      "distances MAE 0.008 mm, RMSE 0.011 mm; plane distances within 0.07 mm.</p>")
@@ -298,7 +348,9 @@ def _reconstruction_section(inp: ReportInputs) -> str:
         parts.append(_img(point_cloud_figure(inp.points, planes), "reconstructed planes",
                           "Fig. 13(a) style: representative reconstructed frames and their fitted planes."))
         parts.append(_img(rig_figure(inp.calibration, inp.points), "rig and reconstruction",
-                          "Fig. 14 style: cameras (axes x red, y green, z blue), window and reconstructed points."))
+                          "Fig. 14 style: cameras (axes x red, y green, z blue), window and reconstructed points "
+                          "(the window dashed, at a schematic depth, where the calibration cannot observe its "
+                          "distance: in air)."))
     if m is not None:
         parts.append(_img(error_histograms(m), "reconstruction errors",
                           "Fig. 13(b-d) style: plane-distance error per stage frame, flatness, inter-corner errors."))

@@ -36,10 +36,11 @@ def to_png(fig: Any) -> bytes:
     return buf.getvalue()
 
 
-def _grid(n: int, width: float = 5.0, height: float = 4.2, projection: str | None = None) -> tuple[Any, list]:
+def _grid(n: int, width: float = 5.0, height: float = 4.2, projection: str | None = None,
+          layout: str | None = None) -> tuple[Any, list]:
     cols = min(n, 2)
     rows = (n + cols - 1) // cols
-    fig = plt.figure(figsize=(width * cols, height * rows))
+    fig = plt.figure(figsize=(width * cols, height * rows), layout=layout)
     axes = [fig.add_subplot(rows, cols, k + 1, projection=projection) for k in range(n)]
     return fig, axes
 
@@ -72,8 +73,14 @@ def residual_scatter(calibration: Calibration, residuals: Residuals) -> bytes:
 
 def residual_map(calibration: Calibration, residuals: Residuals) -> bytes:
     """Each corner's residual as a vector at its pixel (magnified), coloured by its length."""
+    return to_png(draw_residual_map(calibration, residuals))
+
+
+def draw_residual_map(calibration: Calibration, residuals: Residuals) -> Any:
+    """The figure of :func:`residual_map`. Constrained layout keeps each colour bar and its label clear
+    of the next panel (they overlapped its axis)."""
     names = list(calibration.cameras)
-    fig, axes = _grid(len(names), 5.4, 4.6)
+    fig, axes = _grid(len(names), 5.4, 4.6, layout="constrained")
     for ax, name in zip(axes, names):
         w, h = calibration.cameras[name].image_size
         mine = [(o, r) for o, r in residuals if o.camera == name]
@@ -91,7 +98,7 @@ def residual_map(calibration: Calibration, residuals: Residuals) -> bytes:
         else:
             ax.set_title(f"{name}: no corners")
         ax.set(xlim=(0, w), ylim=(h, 0), aspect="equal", xlabel="u (px)", ylabel="v (px)")
-    return to_png(fig)
+    return fig
 
 
 def expansion_centre_figure(calibration: Calibration, stacking: Mapping[str, Sequence[Observation]]) -> bytes:
@@ -148,14 +155,20 @@ def _representative(names: Sequence[str], k: int = 6) -> list[str]:
 
 def _plane_patch(ax: Any, xyz: np.ndarray, normal: np.ndarray, point: np.ndarray, color: Any) -> None:
     """Draw the fitted plane over the extent of the frame's points."""
+    c = _plane_outline(xyz, normal, point)
+    P = np.array([[c[0], c[1]], [c[3], c[2]]])  # (2, 2, 3) grid of the rectangle's corners
+    ax.plot_surface(P[..., 0], P[..., 1], P[..., 2], color=color, alpha=0.15, linewidth=0)
+
+
+def _plane_outline(xyz: np.ndarray, normal: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """The closed outline (5, 3) of the patch :func:`_plane_patch` draws for the same points."""
     n = np.asarray(normal, float)
     a = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
     a /= np.linalg.norm(a)
     b = np.cross(n, a)
     s, t = (xyz - point) @ a, (xyz - point) @ b
-    S, T = np.meshgrid([s.min(), s.max()], [t.min(), t.max()])
-    P = point + S[..., None] * a + T[..., None] * b
-    ax.plot_surface(P[..., 0], P[..., 1], P[..., 2], color=color, alpha=0.15, linewidth=0)
+    corners = [(s.min(), t.min()), (s.max(), t.min()), (s.max(), t.max()), (s.min(), t.max()), (s.min(), t.min())]
+    return np.array([point + u * a + v * b for u, v in corners])
 
 
 def point_cloud_figure(frames: Mapping[str, np.ndarray], planes: Mapping[str, Mapping[str, Any]]) -> bytes:
@@ -179,6 +192,13 @@ def point_cloud_figure(frames: Mapping[str, np.ndarray], planes: Mapping[str, Ma
 
 def rig_figure(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> bytes:
     """Fig. 14: camera centres and axes, the window (near surface) and the reconstructed points."""
+    return to_png(draw_rig(calibration, frames))
+
+
+def draw_rig(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> Any:
+    """The figure of :func:`rig_figure`. Where the calibration does not observe the window's distance
+    (in air it does not change any pixel), the window is drawn dashed halfway to the target and the
+    legend says its depth is schematic."""
     fig = plt.figure(figsize=(7.5, 6))
     ax = fig.add_subplot(111, projection="3d")
     allxyz = np.concatenate(list(frames.values())) if frames else np.zeros((0, 3))
@@ -199,17 +219,25 @@ def rig_figure(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> by
     if n is not None:
         centres_arr = np.array(centres)
         d = calibration.interface.distance_mm
-        if d is None:  # not observable in air: draw it halfway to the target for orientation only
+        schematic = d is None
+        if schematic:  # not observable in air: draw it halfway to the target for orientation only
             d = 0.5 * float(np.median(allxyz @ n)) if len(allxyz) else 50.0
         pts = np.vstack([centres_arr, allxyz]) if len(allxyz) else centres_arr
         foot = pts - np.outer(pts @ n - d, n)  # projections onto the near surface
         _plane_patch(ax, foot, n, n * d, "tab:cyan")
-        ax.plot([], [], color="tab:cyan", lw=4, alpha=0.4, label=f"window ({calibration.interface.thickness_mm:g} mm)")
+        label = f"window ({calibration.interface.thickness_mm:g} mm)"
+        if schematic:
+            outline = _plane_outline(foot, n, n * d)
+            ax.plot(outline[:, 0], outline[:, 1], outline[:, 2], ls="--", color="tab:cyan", lw=1)
+            label += ", depth schematic: its distance is not observable in air"
+        else:
+            label += f" at {d:.1f} mm"
+        ax.plot([], [], color="tab:cyan", lw=4, alpha=0.4, ls="--" if schematic else "-", label=label)
         ax.legend(fontsize=7, loc="upper left")
     span = np.vstack([np.array(centres), allxyz]) if len(allxyz) else np.array(centres)
     ax.set_box_aspect(np.maximum(np.ptp(span, axis=0), 1e-3 * np.ptp(span).max() + 1e-9))  # true proportions
     ax.set(xlabel="x (mm)", ylabel="y (mm)", zlabel="z (mm)", title="rig, window and reconstruction (world frame)")
-    return to_png(fig)
+    return fig
 
 
 def error_histograms(metrics: Mapping[str, Any]) -> bytes:

@@ -51,6 +51,10 @@ def main(dataset_path: Path, out_dir: Path, model: str = "ari", truth: Path | No
          **options) -> RunResult:
     """Calibrate (ari, or ari refined to exact), reconstruct when possible, write run.json and report.html."""
     out_dir = Path(out_dir)
+    if truth is not None:
+        from ..metrics import check_truth
+
+        check_truth(truth)  # before the calibration, not after it
     calibrated = calibrate_rig(dataset_path, out_dir, model=model, progress=progress, **options)
     obs_path = calibrated.observations_path
     dataset = load_dataset(dataset_path, obs_path)

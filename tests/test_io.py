@@ -146,22 +146,56 @@ def test_example_dataset_loads_from_rig_file_and_json(tmp_path: Path) -> None:
     assert ds.rig_path.name == "rig.json" and len(ds.calibration) == 1
 
 
-def test_observations_only_dataset(tmp_path: Path) -> None:
-    """Entries without images, frames only in observations.json: accepted."""
+def _observations_only_folder(tmp_path: Path, extra_record: dict | None = None, drop_sets: tuple[str, ...] = ()) -> Path:
+    """The example rig without images (minus ``drop_sets``), its observations plus ``extra_record``."""
     rig = yaml.safe_load(EXAMPLE_RIG)
     for set_name in ("stacking", "calibration", "reconstruction"):
         for entry in rig[set_name]:
             del entry["images"]
     rig["stacking"] = rig["stacking"][1:]  # s0 / 10 mm has a record
+    for set_name in drop_sets:
+        del rig[set_name]
     folder = tmp_path / "ds"
     folder.mkdir()
     (folder / "rig.yaml").write_text(yaml.safe_dump(rig))
     obs = json.loads(EXAMPLE_OBSERVATIONS)
-    obs["observations"].append({"camera": "cam1", "set": "calibration", "frame": "f999", "ids": [], "pixels": []})
+    if extra_record is not None:
+        obs["observations"].append(extra_record)
     (folder / "observations.json").write_text(json.dumps(obs))
-    ds = load_dataset(folder)
+    return folder
+
+
+def test_observations_only_dataset(tmp_path: Path) -> None:
+    """Entries without images, their detections in observations.json: accepted."""
+    ds = load_dataset(_observations_only_folder(tmp_path))
     assert all(not e.images for e in ds.entries())
-    assert ds.observations[-1].frame == "f999" and ds.observations[-1].pixels.shape == (0, 2)
+    assert [o.frame for o in ds.observations] == ["s0", "f000", "r000"]
+
+
+def test_observations_of_a_set_the_rig_does_not_list_are_accepted(tmp_path: Path) -> None:
+    """A set absent from rig.yaml is taken from observations.json alone (as a rig without entries)."""
+    ds = load_dataset(_observations_only_folder(
+        tmp_path, {"camera": "cam1", "set": "calibration", "frame": "f999", "ids": [], "pixels": []},
+        drop_sets=("calibration",)))
+    assert ds.calibration == () and ds.observations[-1].frame == "f999"
+    assert ds.observations[-1].pixels.shape == (0, 2)
+
+
+@pytest.mark.parametrize("record, what", [
+    ({"camera": "cam1", "set": "calibration", "frame": "f999", "ids": [0], "pixels": [[5.0, 5.0]]},
+     "frame 'f999' is not listed in calibration"),
+    ({"camera": "cam1", "set": "reconstruction", "frame": "r00O", "ids": [0], "pixels": [[5.0, 5.0]]},
+     "frame 'r00O' is not listed in reconstruction"),
+    ({"camera": "cam1", "set": "stacking", "pose": "s0", "added_mm": 20, "ids": [0], "pixels": [[5.0, 5.0]]},
+     "pose 's0' with added_mm 20 is not listed in stacking"),
+])
+def test_observation_of_an_undeclared_frame_is_an_error(tmp_path: Path, record: dict, what: str) -> None:
+    """A typo in a frame name would split one pose in two: one line naming the frame and both files."""
+    folder = _observations_only_folder(tmp_path, record)
+    with pytest.raises(AriSfmError) as info:
+        load_dataset(folder)
+    assert info.value.path.endswith("observations.json") and what in info.value.message
+    assert "rig.yaml" in info.value.message and "\n" not in str(info.value)
 
 
 def test_dataset_with_only_observations_and_no_entries(tmp_path: Path) -> None:
@@ -204,7 +238,8 @@ def _rich_dataset(tmp_path: Path) -> Dataset:
         target=Target(type="charuco", squares=(8, 6), square_mm=15.0, marker_mm=11.0, dictionary="DICT_5X5_100"),
         interface=Interface(thickness_mm=25.4, index=1.4585, medium_index=1.333, distance_mm=80.0),
         cameras=cams,
-        stacking=(Entry("stacking", "s0", {"cam0": images["a/c0_0.png"]}, added_mm=0.0),),
+        stacking=(Entry("stacking", "s0", {"cam0": images["a/c0_0.png"]}, added_mm=0.0),
+                  Entry("stacking", "s0", {}, added_mm=12.5)),
         calibration=(
             Entry("calibration", "f000", {"cam0": images["a/c0_0.png"], "cam1": images["a/c1_0.png"]}),
             Entry("calibration", "f001", {}),
@@ -339,6 +374,18 @@ BAD_RIGS = {
     "bad dist": (_rig(cameras__cam0={"image_size": [10, 10], "dist": [0, 0, 0]}), "rig.yaml", "cameras.cam0.dist must have 4, 5, 8, 12 or 14"),
     "bad K": (_rig(cameras__cam0={"image_size": [10, 10], "K": [[1, 0], [0, 1]]}), "rig.yaml", "cameras.cam0.K must have shape 3 x 3"),
     "bad focal": (_rig(cameras__cam0={"image_size": [10, 10], "focal_px": -3}), "rig.yaml", "cameras.cam0.focal_px must be > 0"),
+    "thickness 1e300": (_rig(interface__thickness_mm=1e300), "rig.yaml", "interface.thickness_mm must be <= 10000 mm"),
+    "distance 1e9": (_rig(interface__distance_mm=1e9), "rig.yaml", "interface.distance_mm must be <= 10000 mm"),
+    "index 50": (_rig(interface__index=50), "rig.yaml", "interface.index must be <= 5"),
+    "square 1e20": (_rig(target__square_mm=1e20), "rig.yaml", "target.square_mm must be <= 10000 mm"),
+    "image size 1e8": (_rig(cameras__cam0={"image_size": [100_000_000, 10]}), "rig.yaml",
+                       "cameras.cam0.image_size must be <= 100000 px"),
+    "focal 1e308": (_rig(cameras__cam0={"image_size": [10, 10], "focal_px": 1e308}), "rig.yaml",
+                    "cameras.cam0.focal_px must be <= 1e+07 px"),
+    "K fx 1e308": (_rig(cameras__cam0={"image_size": [10, 10], "K": [[1e308, 0, 5], [0, 1e3, 5], [0, 0, 1]]}),
+                   "rig.yaml", "cameras.cam0.K focal length must be <= 1e+07 px"),
+    "added_mm 1e300": (_rig(stacking__1__added_mm=1e300), "rig.yaml", "stacking[1].added_mm must be <= 10000 mm"),
+    "stage_mm -1e300": (_rig(reconstruction__0__stage_mm=-1e300), "rig.yaml", "|reconstruction[0].stage_mm| must be <= 10000 mm"),
     "camera not declared (images)": (
         _rig(calibration__0__images={"cam0": "calib/cam0_000.png", "cam7": "calib/cam1_000.png"}),
         "rig.yaml",

@@ -19,6 +19,7 @@ from ari_sfm.errors import AriSfmError
 from ari_sfm.io.atomic import to_jsonable, write_json_atomic, write_text_atomic
 from ari_sfm.io.observations import (
     check_format,
+    check_pixels_in_images,
     describe,
     load_observations,
     observations_to_json,
@@ -35,6 +36,7 @@ from ari_sfm.io.structured import (
     as_nonnegative_float,
     as_positive_float,
     as_str,
+    check_at_most,
     key_path,
     read_structured,
     require,
@@ -59,6 +61,12 @@ INTERFACE_KEYS = ("thickness_mm", "index", "medium_index", "distance_mm", "plane
 PLANE_KEYS = ("frame", "normal", "point_mm", "sigma_deg", "sigma_mm")
 CAMERA_KEYS = ("image_size", "focal_px", "K", "dist")
 ENTRY_KEYS = ("pose", "frame", "added_mm", "stage_mm", "images")
+
+# Sane physical bounds: a value beyond one is a typo (1e300, 1e8), refused in one line naming the key.
+MAX_LENGTH_MM = 10_000.0  # thickness_mm, distance_mm, square_mm, added_mm, |stage_mm|: at most 10 m
+MAX_IMAGE_SIDE_PX = 100_000  # image_size width and height
+MAX_FOCAL_PX = 10_000_000.0  # focal_px, K fx and fy
+MAX_INDEX = 5.0  # refractive indices (germanium, the highest common optical glass, is ~4)
 
 # cv2.aruco predefined dictionaries and their marker counts (OpenCV 4.x / 5.x).
 ARUCO_DICTIONARIES: dict[str, int] = {
@@ -107,11 +115,11 @@ def parse_target(data: Any, path: Path, where: str = "target") -> Target:
     if kind == "checkerboard":
         corners = _grid(get("inner_corners"), path, f"{where}.inner_corners")
         return Target(
-            type=kind, inner_corners=corners, square_mm=as_positive_float(get("square_mm"), path, f"{where}.square_mm")
+            type=kind, inner_corners=corners, square_mm=_length(get("square_mm"), path, f"{where}.square_mm")
         )
     if kind == "charuco":
         squares = _grid(get("squares"), path, f"{where}.squares")
-        square = as_positive_float(get("square_mm"), path, f"{where}.square_mm")
+        square = _length(get("square_mm"), path, f"{where}.square_mm")
         marker = as_positive_float(get("marker_mm"), path, f"{where}.marker_mm")
         if marker >= square:
             raise AriSfmError(path, f"{where}.marker_mm must be < square_mm ({marker:g} >= {square:g})")
@@ -166,15 +174,25 @@ def parse_interface(data: Any, path: Path, where: str = "interface") -> Interfac
     """The ``interface`` mapping as an :class:`Interface`."""
     data = as_mapping(data, path, where)
     warn_unknown_keys(data, INTERFACE_KEYS, path, where)
-    thickness = as_positive_float(require(data, "thickness_mm", path, where), path, f"{where}.thickness_mm")
-    index = as_float_at_least(require(data, "index", path, where), path, f"{where}.index", 1.0)
+    thickness = _length(require(data, "thickness_mm", path, where), path, f"{where}.thickness_mm")
+    index = _index(require(data, "index", path, where), path, f"{where}.index")
     medium = data.get("medium_index")
-    medium = 1.0 if medium is None else as_float_at_least(medium, path, f"{where}.medium_index", 1.0)
+    medium = 1.0 if medium is None else _index(medium, path, f"{where}.medium_index")
     distance = data.get("distance_mm")
-    distance = None if distance is None else as_positive_float(distance, path, f"{where}.distance_mm")
+    distance = None if distance is None else _length(distance, path, f"{where}.distance_mm")
     plane = data.get("plane")
     plane = None if plane is None else parse_window_plane(plane, path, f"{where}.plane")
     return Interface(thickness_mm=thickness, index=index, medium_index=medium, distance_mm=distance, plane=plane)
+
+
+def _length(value: Any, path: Path, where: str) -> float:
+    """A length in mm: > 0 and at most MAX_LENGTH_MM."""
+    return check_at_most(as_positive_float(value, path, where), MAX_LENGTH_MM, path, where, " mm")
+
+
+def _index(value: Any, path: Path, where: str) -> float:
+    """A refractive index: >= 1 and at most MAX_INDEX."""
+    return check_at_most(as_float_at_least(value, path, where, 1.0), MAX_INDEX, path, where)
 
 
 def parse_window_plane(data: Any, path: Path, where: str = "interface.plane") -> WindowPlane:
@@ -200,13 +218,16 @@ def parse_camera(name: str, data: Any, path: Path, where: str) -> CameraSpec:
     data = as_mapping(data, path, where)
     warn_unknown_keys(data, CAMERA_KEYS, path, where)
     size = as_int_pair(require(data, "image_size", path, where), path, f"{where}.image_size", minimum=1)
+    check_at_most(max(size), MAX_IMAGE_SIDE_PX, path, f"{where}.image_size", " px")
     focal = data.get("focal_px")
-    focal = None if focal is None else as_positive_float(focal, path, f"{where}.focal_px")
+    focal = None if focal is None else check_at_most(as_positive_float(focal, path, f"{where}.focal_px"),
+                                                     MAX_FOCAL_PX, path, f"{where}.focal_px", " px")
     K = None
     if data.get("K") is not None:
         K = as_float_array(data["K"], path, f"{where}.K", (3, 3))
         if K[0, 0] <= 0 or K[1, 1] <= 0:
             raise AriSfmError(path, f"{where}.K must have positive focal lengths (got fx={K[0, 0]:g}, fy={K[1, 1]:g})")
+        check_at_most(float(max(K[0, 0], K[1, 1])), MAX_FOCAL_PX, path, f"{where}.K focal length", " px")
         if not np.allclose(K[2], [0.0, 0.0, 1.0], atol=1e-9, rtol=0):
             raise AriSfmError(path, f"{where}.K last row must be [0, 0, 1] (got {show(K[2])})")
     dist = None
@@ -251,13 +272,16 @@ def parse_entries(
         name = as_name(require(item, key, path, where), path, f"{where}.{key}")
         ctx = f"{where} ({key} {name})"
         if set_name == "stacking":
-            added = as_nonnegative_float(require(item, "added_mm", path, where), path, f"{where}.added_mm")
+            added = check_at_most(as_nonnegative_float(require(item, "added_mm", path, where), path, f"{where}.added_mm"),
+                                  MAX_LENGTH_MM, path, f"{where}.added_mm", " mm")
         elif item.get("added_mm") is not None:
             raise AriSfmError(path, f"{ctx}: added_mm is only for stacking entries")
         else:
             added = None
         stage = item.get("stage_mm")
         stage = None if stage is None else as_finite_float(stage, path, f"{where}.stage_mm")
+        if stage is not None:
+            check_at_most(abs(stage), MAX_LENGTH_MM, path, f"|{where}.stage_mm|", " mm")
         ident = (name, added)
         if ident in seen:
             extra = f" with added_mm {added:g}" if added is not None else ""
@@ -315,19 +339,15 @@ def check_observations(dataset: Dataset) -> None:
 
     Pixels lie inside their camera's image; every entry without images has
     observations. (Cameras and ids are checked by :func:`load_observations`.)
-    Records for frames the rig does not list are accepted.
+    A record of a frame (stacking: pose and added_mm) that the rig does not
+    list is an error when the rig lists entries of that set (a typo would
+    split one pose in two); a set the rig does not list at all is taken from
+    the observations alone (a dataset may hold only observations.json).
     """
     obs = dataset.observations or ()
     obs_path = dataset.observations_path or dataset.rig_path
-    for i, o in enumerate(obs):
-        w, h = dataset.cameras[o.camera].image_size
-        outside = (o.pixels[:, 0] < -0.5) | (o.pixels[:, 0] > w - 0.5) | (o.pixels[:, 1] < -0.5) | (o.pixels[:, 1] > h - 0.5)
-        if outside.any():
-            j = int(np.argmax(outside))
-            u, v = o.pixels[j]
-            raise AriSfmError(
-                obs_path, f"observation {i} ({describe(o)}): pixel ({u:g}, {v:g}) of id {int(o.ids[j])} is outside the {w} x {h} image"
-            )
+    check_pixels_in_images(obs, {n: c.image_size for n, c in dataset.cameras.items()}, obs_path)
+    check_frames_declared(dataset)
     have = {(o.set, o.frame, o.added_mm) for o in obs}
     stage = {(o.set, o.frame): o.stage_mm for o in obs if o.stage_mm is not None}
     for entry in dataset.entries():
@@ -347,6 +367,22 @@ def check_observations(dataset: Dataset) -> None:
                 "%s: %s %s has stage_mm %g in the rig but %g in the observations",
                 dataset.rig_path, entry.set, entry.key, entry.stage_mm, seen_stage,
             )
+
+
+def check_frames_declared(dataset: Dataset) -> None:
+    """Every observation of a set the rig lists names a frame (or stacking pose and added_mm) it lists."""
+    obs_path = dataset.observations_path or dataset.rig_path
+    for set_name in SETS:
+        entries = getattr(dataset, set_name)
+        if not entries:
+            continue
+        declared = {(e.key, e.added_mm) for e in entries}
+        for i, o in enumerate(dataset.observations or ()):
+            if o.set == set_name and (o.frame, o.added_mm) not in declared:
+                key = "pose" if set_name == "stacking" else "frame"
+                extra = f" with added_mm {o.added_mm:g}" if o.added_mm is not None else ""
+                raise AriSfmError(obs_path, f"observation {i} ({describe(o)}): {key} '{o.frame}'{extra} is not "
+                                            f"listed in {set_name} of {dataset.rig_path} (a typo? declare it there)")
 
 
 def load_dataset(path: str | Path, observations: str | Path | None = None) -> Dataset:

@@ -55,6 +55,23 @@ def check_unique_ids(ids: np.ndarray, path: Path, where: str) -> None:
         raise AriSfmError(path, f"{where}: duplicate id {int(values[counts > 1][0])} in ids")
 
 
+def check_pixels_in_images(observations: Iterable[Observation], image_sizes: Mapping[str, Sequence[int]],
+                           path: str | Path) -> None:
+    """Every pixel lies inside its camera's image (OpenCV centres: -0.5 .. size - 0.5); cameras
+    missing from ``image_sizes`` are not checked."""
+    for i, o in enumerate(observations):
+        if o.camera not in image_sizes:
+            continue
+        w, h = image_sizes[o.camera]
+        outside = (o.pixels[:, 0] < -0.5) | (o.pixels[:, 0] > w - 0.5) | (o.pixels[:, 1] < -0.5) | (o.pixels[:, 1] > h - 0.5)
+        if outside.any():
+            j = int(np.argmax(outside))
+            u, v = o.pixels[j]
+            raise AriSfmError(
+                path, f"observation {i} ({describe(o)}): pixel ({u:g}, {v:g}) of id {int(o.ids[j])} is outside the {w} x {h} image"
+            )
+
+
 def frame_key(set_name: str) -> str:
     """The record key that names the frame: ``pose`` for stacking, ``frame`` otherwise."""
     return "pose" if set_name == "stacking" else "frame"

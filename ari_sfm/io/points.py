@@ -49,7 +49,9 @@ def parse_points(data: Any, path: Path) -> dict[str, Any]:
     for raw, frame in frames.items():
         name = as_name(raw, path, "frames name")
         out[name] = _parse_frame(frame, path, name)
-    return {"format": FORMAT, "calibration": calibration, "frames": out}
+    provenance = data.get("provenance")
+    provenance = None if provenance is None else dict(as_mapping(provenance, path, "provenance"))
+    return {"format": FORMAT, "calibration": calibration, "frames": out, "provenance": provenance}
 
 
 def load_points(path: str | Path) -> dict[str, Any]:
@@ -63,8 +65,10 @@ def load_points(path: str | Path) -> dict[str, Any]:
     return parse_points(read_structured(path), path)
 
 
-def points_to_json(frames: Mapping[str, Mapping[str, Any]], calibration_name: str) -> dict[str, Any]:
-    """The ``points.json`` mapping (stage_mm written only where set)."""
+def points_to_json(frames: Mapping[str, Mapping[str, Any]], calibration_name: str,
+                   provenance: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The ``points.json`` mapping (stage_mm written only where set; ``provenance``: see
+    :mod:`ari_sfm.provenance`, written when given)."""
     out: dict[str, Any] = {}
     for name, frame in frames.items():
         rec: dict[str, Any] = {}
@@ -74,10 +78,14 @@ def points_to_json(frames: Mapping[str, Mapping[str, Any]], calibration_name: st
             value = frame.get(key)
             rec[key] = np.asarray(value).tolist() if isinstance(value, np.ndarray) else value
         out[str(name)] = rec
-    return {"format": FORMAT, "calibration": calibration_name, "frames": out}
+    data = {"format": FORMAT, "calibration": calibration_name, "frames": out}
+    if provenance is not None:
+        data["provenance"] = dict(provenance)
+    return data
 
 
-def save_points(path: str | Path, frames: Mapping[str, Mapping[str, Any]], calibration_name: str) -> None:
+def save_points(path: str | Path, frames: Mapping[str, Mapping[str, Any]], calibration_name: str,
+                provenance: Mapping[str, Any] | None = None) -> None:
     """Validate and write ``points.json`` atomically.
 
     ``frames`` maps a reconstruction frame name to ``{"stage_mm" (optional),
@@ -86,6 +94,6 @@ def save_points(path: str | Path, frames: Mapping[str, Mapping[str, Any]], calib
     writes nothing.
     """
     path = Path(path)
-    data = points_to_json(frames, calibration_name)
+    data = points_to_json(frames, calibration_name, provenance)
     parse_points(data, path)
     write_json_atomic(path, data)

@@ -226,6 +226,13 @@ def as_nonnegative_float(value: Any, path: str | Path, where: str) -> float:
     return as_float_at_least(value, path, where, 0.0)
 
 
+def check_at_most(value: float, limit: float, path: str | Path, where: str, unit: str = "") -> float:
+    """``value`` itself if <= ``limit`` (a sane physical bound), else AriSfmError naming ``where``."""
+    if value > limit:
+        raise AriSfmError(path, f"{where} must be <= {limit:g}{unit} (got {show(value)}): not a physical value")
+    return value
+
+
 def as_int(value: Any, path: str | Path, where: str, minimum: int | None = None) -> int:
     """An integer (not a bool, not 3.0), optionally >= ``minimum``."""
     if not isinstance(value, (numbers.Integral, np.integer)) or isinstance(value, (bool, np.bool_)):

@@ -1,0 +1,52 @@
+"""Checks of command-line values before any work starts: one AriSfmError line naming the option.
+
+The CLI calls these first thing, so a bad ``-o`` or ``--huber-px`` fails in one
+line before a slow detection or calibration, and never as an error from deep
+inside (``non-finite Jacobian entries``) or about a file that was never written.
+"""
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+from .errors import AriSfmError
+
+PSEUDO_FILE_SYSTEMS = ("/proc", "/sys", "/dev")  # kernel interfaces, not places for results
+
+
+def check_output_folder(out: str | Path, option: str = "-o/--out") -> Path:
+    """``out`` if it is, or can be created as, a writable folder; else AriSfmError naming it.
+
+    Refused: an existing file; a path under a file; a path inside /proc, /sys
+    or /dev; a folder whose nearest existing ancestor is not writable.
+    """
+    out = Path(out)
+    resolved = Path(os.path.realpath(out))
+    for root in PSEUDO_FILE_SYSTEMS:
+        if resolved == Path(root) or Path(root) in resolved.parents:
+            raise AriSfmError(out, f"{option}: {root} is a kernel file system, not a place for results")
+    if out.exists() and not out.is_dir():
+        raise AriSfmError(out, f"{option}: is a file, expected a folder")
+    ancestor = resolved
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise AriSfmError(out, f"{option}: {ancestor} is a file, so it cannot hold the output folder")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise AriSfmError(out, f"{option}: no permission to write in {ancestor}")
+    return out
+
+
+def check_number(option: str, value: float | None, minimum: float | None = None, maximum: float | None = None,
+                 strict_minimum: bool = False) -> float | None:
+    """``value`` if finite and within [minimum, maximum] (``strict_minimum``: > minimum); None passes."""
+    if value is None:
+        return None
+    if not math.isfinite(value):
+        raise AriSfmError(option, f"must be a finite number (got {value})")
+    if minimum is not None and (value <= minimum if strict_minimum else value < minimum):
+        raise AriSfmError(option, f"must be {'>' if strict_minimum else '>='} {minimum:g} (got {value:g})")
+    if maximum is not None and value > maximum:
+        raise AriSfmError(option, f"must be <= {maximum:g} (got {value:g})")
+    return value

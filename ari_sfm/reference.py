@@ -1,0 +1,220 @@
+"""The 3D error of a reconstruction against a reference geometry (a mesh or a point cloud), with Open3D.
+
+``reference_errors(points, path)``:
+
+1. reads the reference (``o3d.io.read_triangle_mesh``; a file without
+   triangles is read as a point cloud), in its own coordinates (a CAD model,
+   a scan, the target as built);
+2. registers the reconstructed points onto it (rigid, no scale): from the
+   identity and the principal-axes alignments of the two point sets, Open3D's
+   point-to-point ICP (``registration_icp``, coarse correspondence distances)
+   against a dense sample of the mesh (or the cloud); the start whose result
+   lies closest to the surface goes on through the fine ICP stages and
+   Gauss-Newton point-to-plane steps on the surface itself (the mesh's
+   closest points and face normals from ``RaycastingScene``; the cloud's
+   nearest points and estimated normals);
+3. measures every point's distance to the surface: for a mesh, Open3D's
+   ``RaycastingScene.compute_distance`` (exact point-to-triangle distance);
+   for a cloud, the distance to the nearest reference point (which includes
+   the cloud's sampling: use a mesh where one exists).
+
+Returned (JSON-able, lengths in mm): ``{"path", "kind": "mesh" | "cloud",
+"count", "registration": {"reference_from_world": 4x4, "rotation_deg",
+"translation_mm", "fitness", "inlier_rmse_mm"}, "distance_mm": {"mean",
+"rms", "max", "p95"}, "frames": {name: {"rms", "max"}}}``.
+
+Limits: what the reference's shape does not fix, registration cannot
+recover. For faces that are all parallel (a board moved along a stage), the
+slide within the plane and the turn about its normal are set by the faces'
+edges only; the distances do not depend on them while the points stay inside
+the faces. The registration absorbs any rigid error of the reconstruction
+(as ``truth`` in metrics.json does after alignment): what remains is its shape error.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .deps import require_open3d
+from .errors import AriSfmError
+from .reconstruct import Points
+
+log = logging.getLogger(__name__)
+
+ICP_SCHEDULE = (0.2, 0.05, 0.01, 0.002)  # correspondence distances, fractions of the points' bounding-box diagonal
+ICP_ITERATIONS = 100  # per stage
+SAMPLES_PER_POINT = 20  # mesh samples for ICP per reconstructed point (at least MIN_SAMPLES)
+MIN_SAMPLES = 50_000
+SEED = 0  # Open3D's sampling is seeded: the same inputs give the same figures
+
+
+def load_reference(path: str | Path) -> tuple[Any, str]:
+    """The reference geometry as an Open3D legacy TriangleMesh or PointCloud, and its kind ('mesh' / 'cloud')."""
+    o3d = require_open3d()
+    path = Path(path)
+    if not path.is_file():
+        raise AriSfmError(path, "reference geometry not found" if not path.exists() else "is not a file")
+    verbosity = o3d.utility.get_verbosity_level()
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)  # Open3D warns on stdout for unknown formats
+    try:
+        mesh = o3d.io.read_triangle_mesh(str(path))
+        if len(mesh.triangles):
+            vertices = np.asarray(mesh.vertices)
+            geometry, kind = mesh, "mesh"
+        else:
+            cloud = o3d.io.read_point_cloud(str(path))
+            vertices = np.asarray(cloud.points)
+            geometry, kind = cloud, "cloud"
+    finally:
+        o3d.utility.set_verbosity_level(verbosity)
+    if len(vertices) == 0:
+        raise AriSfmError(path, "no triangles or points read (a .ply, .obj, .stl, .off or .gltf mesh, or a point "
+                                "cloud .ply, .pcd, .xyz)")
+    if not np.isfinite(vertices).all():
+        raise AriSfmError(path, "reference holds non-finite coordinates")
+    if kind == "cloud" and len(vertices) < 3:
+        raise AriSfmError(path, f"a reference cloud needs at least 3 points (got {len(vertices)})")
+    return geometry, kind
+
+
+def _principal_starts(source: np.ndarray, target: np.ndarray) -> list[np.ndarray]:
+    """4x4 starts mapping source onto target: identity, centroid shift, and the 4 proper principal-axes matches."""
+    cs, ct = source.mean(axis=0), target.mean(axis=0)
+    starts = [np.eye(4)]
+    shift = np.eye(4)
+    shift[:3, 3] = ct - cs
+    starts.append(shift)
+    _, _, Vs = np.linalg.svd(source - cs, full_matrices=False)
+    _, _, Vt = np.linalg.svd(target - ct, full_matrices=False)
+    for signs in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+        D = np.diag([signs[0], signs[1], 1.0])
+        R = Vt.T @ D @ Vs
+        if np.linalg.det(R) < 0:
+            R = Vt.T @ np.diag([signs[0], signs[1], -1.0]) @ Vs
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, ct - R @ cs
+        starts.append(T)
+    return starts
+
+
+def _refine_point_to_plane(closest: Any, xyz: np.ndarray, T: np.ndarray, max_distance: float,
+                           iterations: int = 20) -> np.ndarray:
+    """Gauss-Newton point-to-plane steps after the point-to-point ICP: ``closest(X)`` gives each point's
+    closest surface point and normal (a mesh: RaycastingScene's closest point and face normal, exact; a
+    cloud: its nearest point and estimated normal). Minimum-norm steps leave alone the motions the
+    surface does not fix (slides along parallel faces)."""
+    from .geometry import rotation_from_rotvec
+
+    R, t = T[:3, :3].copy(), T[:3, 3].copy()
+    for _ in range(iterations):
+        X = xyz @ R.T + t
+        foot, n = closest(X)
+        r = np.sum((X - foot) * n, axis=1)
+        use = np.abs(r) < max_distance
+        if use.sum() < 6:
+            break
+        J = np.hstack([np.cross(X[use], n[use]), n[use]])
+        step = np.linalg.lstsq(J, -r[use], rcond=1e-6)[0]  # min-norm where the faces leave a motion free
+        dR = rotation_from_rotvec(step[:3])
+        R, t = dR @ R, dR @ t + step[3:]
+        if np.linalg.norm(step) < 1e-10:
+            break
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = R, t
+    return out
+
+
+def reference_errors(points: Points, path: str | Path) -> dict[str, Any]:
+    """Register the reconstruction onto the reference at ``path`` and measure point-to-surface distances."""
+    o3d = require_open3d()
+    geometry, kind = load_reference(path)
+    names = [n for n, f in points.frames.items() if len(f)]
+    xyz = np.concatenate([points.frames[n].xyz for n in names]) if names else np.zeros((0, 3))
+    if len(xyz) < 3:
+        raise AriSfmError(path, f"registration needs at least 3 reconstructed points (got {len(xyz)})")
+    diag = float(np.linalg.norm(np.ptp(xyz, axis=0))) or 1.0
+    # work around the reference's centroid: float32 distance queries keep ~1e-5 mm there
+    ref_xyz = np.asarray(geometry.vertices if kind == "mesh" else geometry.points)
+    origin = ref_xyz.mean(axis=0)
+    geometry = geometry.translate(-origin)  # legacy translate acts in place: the loaded copy only
+    if kind == "mesh":
+        geometry.compute_triangle_normals()
+        geometry.compute_vertex_normals()
+        o3d.utility.random.seed(SEED)
+        target = geometry.sample_points_uniformly(number_of_points=max(MIN_SAMPLES, SAMPLES_PER_POINT * len(xyz)),
+                                                  use_triangle_normal=True)
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(geometry))
+
+        def distances(p: np.ndarray) -> np.ndarray:
+            return scene.compute_distance(o3d.core.Tensor(p.astype(np.float32))).numpy().astype(float)
+
+        def closest(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            found = scene.compute_closest_points(o3d.core.Tensor(X.astype(np.float32)))
+            return found["points"].numpy().astype(float), found["primitive_normals"].numpy().astype(float)
+    else:
+        target = geometry
+        diag_ref = float(np.linalg.norm(np.ptp(np.asarray(target.points), axis=0)))
+        if not target.has_normals():
+            target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.02 * diag_ref, max_nn=30))
+
+        def distances(p: np.ndarray) -> np.ndarray:
+            query = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+            return np.asarray(query.compute_point_cloud_distance(target), dtype=float)
+
+        nns = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(np.asarray(target.points)))
+        nns.knn_index()
+        cloud_xyz, cloud_normals = np.asarray(target.points), np.asarray(target.normals)
+
+        def closest(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            index = nns.knn_search(o3d.core.Tensor(X), 1)[0].numpy().reshape(-1)
+            return cloud_xyz[index], cloud_normals[index]
+    source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
+    # point to point: well posed even where the faces are parallel (point-to-plane ICP slides along them)
+    method = o3d.pipelines.registration.TransformationEstimationPointToPoint()
+    criteria = o3d.pipelines.registration.ICPConvergenceCriteria(relative_fitness=1e-9, relative_rmse=1e-9,
+                                                                 max_iteration=ICP_ITERATIONS)
+
+
+    def icp(T: np.ndarray, fractions: tuple[float, ...]) -> tuple[np.ndarray, Any]:
+        result = None
+        for fraction in fractions:
+            result = o3d.pipelines.registration.registration_icp(source, target, fraction * diag, T, method, criteria)
+            T = np.asarray(result.transformation)
+        return T, result
+
+    def rms_distance(T: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(distances(xyz @ T[:3, :3].T + T[:3, 3]) ** 2)))
+
+    # every start through the coarse stages; the one closest to the surface through the fine ones
+    coarse = [icp(start, ICP_SCHEDULE[:2])[0] for start in _principal_starts(xyz, np.asarray(target.points))]
+    T, result = icp(min(coarse, key=rms_distance), ICP_SCHEDULE[2:])
+    T = _refine_point_to_plane(closest, xyz, T, ICP_SCHEDULE[-1] * diag)
+    d = distances(xyz @ T[:3, :3].T + T[:3, 3])
+    world_to_ref = np.eye(4)
+    world_to_ref[:3, :3] = T[:3, :3]
+    world_to_ref[:3, 3] = T[:3, 3] + origin  # undo the working shift
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+    frames: dict[str, dict[str, float]] = {}
+    start = 0
+    for n in names:
+        k = len(points.frames[n])
+        fd = d[start:start + k]
+        start += k
+        frames[n] = {"rms": float(np.sqrt(np.mean(fd**2))), "max": float(fd.max())}
+    log.info("reference %s: %d points registered (fitness %.3f), distance rms %.4f mm", path, len(xyz),
+             result.fitness, float(np.sqrt(np.mean(d**2))))
+    return {
+        "path": str(Path(path).resolve()),
+        "kind": kind,
+        "count": int(len(xyz)),
+        "registration": {"reference_from_world": world_to_ref.tolist(), "rotation_deg": angle,
+                         "translation_mm": float(np.linalg.norm(world_to_ref[:3, 3])),
+                         "fitness": float(result.fitness), "inlier_rmse_mm": float(result.inlier_rmse)},
+        "distance_mm": {"mean": float(d.mean()), "rms": float(np.sqrt(np.mean(d**2))), "max": float(d.max()),
+                        "p95": float(np.percentile(d, 95))},
+        "frames": frames,
+    }
