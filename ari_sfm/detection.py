@@ -85,6 +85,8 @@ def detect_corners(image: np.ndarray, target: Target, method: str = "subpix") ->
         return np.arange(grid[0] * grid[1]), corners
     if target.type == "charuco":
         return _detect_charuco(image, target, refine=method != "charuco_raw")
+    if target.type == "circles":  # dot boards: the checkerboard default "subpix" means their default
+        return detect_circles(image, target, method=None if method == "subpix" else method)
     raise ValueError(f"cannot detect a target of type {target.type!r} in images")
 
 
@@ -457,3 +459,281 @@ def _check_calibration_views(
                 f"only {found} of the {listed[cam]} calibration images of camera {cam} show the target "
                 f"(need >= {minimum})",
             )
+
+
+# --------------------------------------------------------------------------- dot boards
+#
+# A dot board (``type: circles``) is found by cv2.findCirclesGrid with a
+# SimpleBlobDetector whose area limits are tuned to the dots of the image, then
+# relabelled so that ids follow the contract (see :func:`circle_symmetries`),
+# and each centre is refined as the grey-level centroid of its dot. Measured with
+# benchmarks/bench_detection.py; the README gives the figures.
+
+CIRCLE_MIN_AREA_PX = 8.0  # smallest blob taken for a dot (px^2): ~3 px across
+CIRCLE_AREA_RANGE = 3.0  # tuned blob detector: area within [1/r, r] x the range of the dots found
+CIRCLE_GRID_TOLERANCE = 0.3  # homography residual / dot spacing above which a grid is rejected
+CIRCLE_EDGE_MARGIN_PX = 2.0  # blur margin (px) between the dot's edge and the background ring
+_RING_POINTS = 64  # polygon vertices for the image of a dot's outline (perspective bias)
+
+
+def detect_circles(image: np.ndarray, target: Target, method: str | None = None) -> Detection | None:
+    """The dot centres of a ``circles`` target in an image: (ids, pixels), or None if not found.
+
+    ``method`` (default CIRCLE_DEFAULT_METHOD) picks the centre estimate, see
+    :data:`CIRCLE_METHODS`. Dark dots on a light board are tried first, then
+    light dots on a dark board.
+    """
+    method = CIRCLE_DEFAULT_METHOD if method is None else method
+    if method not in CIRCLE_METHODS:
+        raise ValueError(f"unknown circles method {method!r} (one of {', '.join(CIRCLE_METHODS)})")
+    image = as_gray_u8(image)
+    cols, rows = (int(v) for v in target.circle_grid)
+    flags = cv2.CALIB_CB_ASYMMETRIC_GRID if target.layout == "asymmetric" else cv2.CALIB_CB_SYMMETRIC_GRID
+    for colour in (0, 255):  # dark dots, then light dots
+        detector = _tuned_blob_detector(image, cols * rows, colour)
+        if detector is None:
+            continue
+        found, centres = cv2.findCirclesGrid(image, (cols, rows), flags=flags, blobDetector=detector)
+        if not found:
+            found, centres = cv2.findCirclesGrid(image, (cols, rows), flags=flags | cv2.CALIB_CB_CLUSTERING,
+                                                 blobDetector=detector)
+        if not found:
+            continue
+        pixels = _canonical_circles(centres.reshape(-1, 2).astype(np.float64), target)
+        if pixels is None:
+            return None
+        return np.arange(cols * rows), CIRCLE_METHODS[method](image, target, pixels, colour)
+    return None
+
+
+def _blob_params(colour: int, min_area: float, max_area: float) -> cv2.SimpleBlobDetector_Params:
+    params = cv2.SimpleBlobDetector_Params()
+    params.filterByColor, params.blobColor = True, colour
+    params.filterByArea, params.minArea, params.maxArea = True, float(min_area), float(max_area)
+    params.minDistBetweenBlobs = 2.0
+    return params
+
+
+def _tuned_blob_detector(image: np.ndarray, count: int, colour: int) -> cv2.SimpleBlobDetector | None:
+    """A blob detector whose area limits bracket the dots of this image (None: fewer than ``count`` blobs).
+
+    A first pass with wide limits (CIRCLE_MIN_AREA_PX to the largest dot a
+    board of ``count`` dots can have in this image, area / count) finds the
+    blobs; the dots are the ``count`` blobs of most similar size (the tightest
+    run of sizes); the tuned limits are their size range widened by
+    CIRCLE_AREA_RANGE (perspective changes dot areas across the board), which
+    drops text, smudges and background clutter of other sizes.
+    """
+    h, w = image.shape
+    wide = cv2.SimpleBlobDetector_create(_blob_params(colour, CIRCLE_MIN_AREA_PX, max(CIRCLE_MIN_AREA_PX + 1, w * h / count)))
+    sizes = np.sort([k.size for k in wide.detect(image)])
+    if len(sizes) < count:
+        return None
+    spread = np.log(sizes[count - 1:]) - np.log(sizes[: len(sizes) - count + 1])
+    k = int(np.argmin(spread))
+    lo, hi = np.pi / 4 * sizes[k] ** 2, np.pi / 4 * sizes[k + count - 1] ** 2
+    return cv2.SimpleBlobDetector_create(_blob_params(
+        colour, max(CIRCLE_MIN_AREA_PX, lo / CIRCLE_AREA_RANGE), hi * CIRCLE_AREA_RANGE))
+
+
+def circle_symmetries(target: Target) -> list[tuple[np.ndarray, int]]:
+    """The symmetries of the dot layout: (permutation p, det) for each rotation by a multiple of
+    90 degrees (det +1) or reflection (det -1) about the board centre that maps the dots onto
+    themselves; dot i goes to the place of dot p[i]. The identity is first.
+
+    A board seen from its printed side can only be confused with its proper
+    rotations (det +1): the ids are unique iff the identity is the only one.
+    Symmetric grids always have the 180 degree turn (square ones also 90);
+    asymmetric grids have it iff rows is even (e.g. 4 x 11 is unambiguous).
+    """
+    _, xyz = target.points_3d_readonly
+    xy = xyz[:, :2] - xyz[:, :2].mean(axis=0)
+    tol = 1e-6 * max(float(target.spacing_mm), 1e-9)
+    out = []
+    for A in (np.eye(2), np.array([[0, -1], [1, 0]]), -np.eye(2), np.array([[0, 1], [-1, 0]]),
+              np.diag([1, -1]), np.diag([-1, 1]), np.array([[0, 1], [1, 0]]), np.array([[0, -1], [-1, 0]])):
+        moved = xy @ A.T
+        d = np.linalg.norm(moved[:, None, :] - xy[None, :, :], axis=2)
+        p = np.argmin(d, axis=1)
+        if np.all(d[np.arange(len(xy)), p] < tol) and len(set(p.tolist())) == len(xy):
+            out.append((p, int(round(np.linalg.det(A)))))
+    return out
+
+
+def circle_ids_unambiguous(target: Target) -> bool:
+    """True if no turn of the board in its plane maps the dot layout onto itself (see :func:`circle_symmetries`)."""
+    return sum(1 for _, det in circle_symmetries(target) if det > 0) == 1
+
+
+def _board_homography(target: Target, pixels: np.ndarray) -> np.ndarray:
+    """Least-squares homography from board (x, y) mm to the pixels of ids 0..N-1."""
+    _, xyz = target.points_3d_readonly
+    H, _ = cv2.findHomography(xyz[:, :2], pixels, 0)
+    return H
+
+
+def _apply_h(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    p = np.asarray(xy, float) @ H[:, :2].T + H[:, 2]
+    return p[:, :2] / p[:, 2:3]
+
+
+def _h_jacobian(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """d pixel / d board at board points xy (N, 2): (N, 2, 2)."""
+    p = np.asarray(xy, float) @ H[:, :2].T + H[:, 2]
+    w = p[:, 2:3, None]
+    return (H[None, :2, :2] - (p[:, :2, None] / w) * H[None, 2:3, :2]) / w
+
+
+def _canonical_circles(pixels: np.ndarray, target: Target) -> np.ndarray | None:
+    """Relabel OpenCV's dot grid so that id i is board point i seen from the printed side (None if the
+    grid is not a board: irregular, or only a mirror image fits).
+
+    Among the labellings that the layout's symmetries allow, keep those whose
+    board-to-image map keeps orientation (Jacobian det > 0 in OpenCV pixels: the
+    board seen from its printed side, its z axis away from the camera), then take the one
+    whose board x axis points most nearly to the image's right (+u): for a
+    layout with a proper symmetry the ids are fixed by this rule, i.e. they
+    stay the same while the board's in-image roll stays within +-90 degrees
+    of upright (+-45 for 4-fold layouts).
+    """
+    _, xyz = target.points_3d_readonly
+    centre = xyz[:, :2].mean(axis=0, keepdims=True)
+    best, best_cos = None, -np.inf
+    for p, _ in circle_symmetries(target):
+        candidate = np.empty_like(pixels)
+        candidate[p] = pixels  # the dot OpenCV called i is board dot p[i]
+        H = _board_homography(target, candidate)
+        if H is None:
+            return None
+        J = _h_jacobian(H, centre)[0]
+        if np.linalg.det(J) <= 0:
+            continue
+        cos = J[0, 0] / np.linalg.norm(J[:, 0])
+        if cos > best_cos + 1e-9:
+            best, best_cos = (candidate, H), cos
+    if best is None:
+        log.debug("rejected a dot grid: only a mirror image of the board fits")
+        return None
+    candidate, H = best
+    spacing = float(np.median(np.linalg.norm(_h_jacobian(H, xyz[:, :2]), axis=1))) * float(target.spacing_mm)
+    residual = float(np.linalg.norm(_apply_h(H, xyz[:, :2]) - candidate, axis=1).max())
+    if not residual <= CIRCLE_GRID_TOLERANCE * spacing:
+        log.debug("rejected a dot grid: homography residual %.1f px at spacing %.1f px", residual, spacing)
+        return None
+    return candidate
+
+
+def _nearest_neighbour_mm(target: Target) -> float:
+    return float(target.spacing_mm) * (np.sqrt(2.0) if target.layout == "asymmetric" else 1.0)
+
+
+def _dot_radius_mm(image: np.ndarray, target: Target, pixels: np.ndarray, colour: int, H: np.ndarray) -> float:
+    """The printed dot radius: half of ``diameter_mm`` if declared, else measured (dark area in a window)."""
+    if target.diameter_mm is not None:
+        return 0.5 * float(target.diameter_mm)
+    radius = 0.25 * _nearest_neighbour_mm(target)  # a first guess for the window only
+    areas = []
+    for k in range(len(pixels)):
+        w, _, _ = _dot_weights(image, target, H, k, radius, colour, normalise=True)
+        if w is not None:
+            areas.append(w)
+    if not areas:
+        return radius
+    return float(np.sqrt(np.median(areas) / np.pi))
+
+
+def _dot_weights(image: np.ndarray, target: Target, H: np.ndarray, k: int, radius_mm: float, colour: int,
+                 normalise: bool = False) -> tuple:
+    """Grey-level weights of dot k in a window around it, defined on the board through H.
+
+    The window holds the board points closer to the dot centre than halfway
+    across the gap to the nearest neighbour; the background level is the mean
+    of its outer ring (beyond the dot edge plus CIRCLE_EDGE_MARGIN_PX). Returns
+    (sum of weights, u, v) of the window's pixels with weights ``background -
+    I`` (dark dots) or ``I - background`` (light). With ``normalise`` the first
+    item is instead the dot's area in board mm^2 (weights / contrast, mapped
+    through the pixel area). (None, None, None) if the window is not in the image.
+    """
+    _, xyz = target.points_3d_readonly
+    X = xyz[k, :2]
+    gap = _nearest_neighbour_mm(target) - 2 * radius_mm
+    outer = radius_mm + 0.5 * gap
+    J = _h_jacobian(H, X[None])[0]
+    mm_per_px = 1.0 / np.sqrt(abs(np.linalg.det(J)))
+    inner = radius_mm + CIRCLE_EDGE_MARGIN_PX * mm_per_px
+    ring = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+    box = _apply_h(H, X + outer * np.stack([np.cos(ring), np.sin(ring)], axis=1))
+    h, w = image.shape
+    u0, v0 = np.floor(box.min(axis=0) - 1).astype(int)
+    u1, v1 = np.ceil(box.max(axis=0) + 1).astype(int)
+    if u0 < 0 or v0 < 0 or u1 >= w or v1 >= h:
+        return None, None, None
+    vv, uu = np.mgrid[v0 : v1 + 1, u0 : u1 + 1]
+    uv = np.stack([uu.ravel(), vv.ravel()], axis=1).astype(float)
+    board = _apply_h(np.linalg.inv(H), uv)
+    r = np.linalg.norm(board - X, axis=1)
+    values = image[vv.ravel(), uu.ravel()].astype(float)
+    in_window = r <= outer
+    background_ring = in_window & (r >= inner) if inner < outer else r >= outer - 0.5 * mm_per_px
+    if not background_ring.any():
+        return None, None, None
+    background = float(values[background_ring].mean())
+    weights = (background - values) if colour == 0 else (values - background)
+    weights = np.where(in_window, weights, 0.0)
+    if normalise:
+        core = in_window & (r <= 0.5 * radius_mm)
+        contrast = float(np.abs(values[core] - background).mean()) if core.any() else 0.0
+        return (float(weights.sum()) / contrast * mm_per_px**2 if contrast > 0 else None), None, None
+    return weights, uv[:, 0], uv[:, 1]
+
+
+def _refine_centroid(image: np.ndarray, target: Target, pixels: np.ndarray, colour: int,
+                     debias: bool = False, iterations: int = 2) -> np.ndarray:
+    """Each dot's centre as the grey-level centroid of its image (the imaged ellipse's centre).
+
+    The window around each dot is shaped by the board-to-image homography
+    (refitted after each pass). With ``debias`` the perspective bias is
+    removed: under a homography the centre of the imaged disc is not the image
+    of the disc's centre; the difference, computed from the imaged outline of
+    each dot (a polygon's area centroid minus H(centre)), is subtracted.
+    """
+    _, xyz = target.points_3d_readonly
+    out = pixels.copy()
+    for _ in range(iterations):
+        H = _board_homography(target, out)
+        radius = _dot_radius_mm(image, target, out, colour, H)
+        new = out.copy()
+        for k in range(len(out)):
+            weights, u, v = _dot_weights(image, target, H, k, radius, colour)
+            total = None if weights is None else float(weights.sum())
+            if total is None or total <= 0:
+                continue
+            new[k] = (float(weights @ u) / total, float(weights @ v) / total)
+        if debias:
+            new -= _perspective_bias(H, xyz[:, :2], radius)
+        out = new
+    return out
+
+
+def _perspective_bias(H: np.ndarray, centres_mm: np.ndarray, radius_mm: float) -> np.ndarray:
+    """Centre of the image of each disc (area centroid of its imaged outline) minus the image of its centre."""
+    t = np.linspace(0, 2 * np.pi, _RING_POINTS, endpoint=False)
+    circle = radius_mm * np.stack([np.cos(t), np.sin(t)], axis=1)
+    out = np.empty((len(centres_mm), 2))
+    for k, X in enumerate(centres_mm):
+        poly = _apply_h(H, X + circle)
+        x, y = poly[:, 0], poly[:, 1]
+        xn, yn = np.roll(x, -1), np.roll(y, -1)
+        cross = x * yn - xn * y
+        area = 0.5 * cross.sum()
+        centroid = np.array([((x + xn) * cross).sum(), ((y + yn) * cross).sum()]) / (6.0 * area)
+        out[k] = centroid - _apply_h(H, X[None])[0]
+    return out
+
+
+CIRCLE_METHODS: dict[str, Callable[[np.ndarray, Target, np.ndarray, int], np.ndarray]] = {
+    "blob": lambda image, target, pixels, colour: pixels,  # OpenCV's blob centres (relabelled)
+    "centroid": lambda image, target, pixels, colour: _refine_centroid(image, target, pixels, colour),
+    "centroid_debiased": lambda image, target, pixels, colour: _refine_centroid(image, target, pixels, colour, debias=True),
+}
+CIRCLE_DEFAULT_METHOD = "centroid_debiased"

@@ -278,7 +278,7 @@ def reconstruction_metrics(points: Points, target: Target, truth: Mapping[str, A
             all_d.append(p["distances"])
         if grid is not None:
             dist = inter_corner_distances(fp.ids, fp.xyz, grid[0])
-            rec["inter_corner_mm"] = _stats(dist - target.square_mm)
+            rec["inter_corner_mm"] = _stats(dist - target.pitch_mm)
             all_ic.append(dist)
         rec.update(stage_frames.get(f, {}))
         frames[f] = rec
@@ -287,8 +287,8 @@ def reconstruction_metrics(points: Points, target: Target, truth: Mapping[str, A
     inter = None
     if grid is not None:
         dist = np.concatenate(all_ic) if all_ic else np.zeros(0)
-        inter = dict(_stats(dist - target.square_mm), square_mm=float(target.square_mm),
-                     distances=dist.tolist(), errors=(dist - target.square_mm).tolist())
+        inter = dict(_stats(dist - target.pitch_mm), square_mm=float(target.pitch_mm),
+                     distances=dist.tolist(), errors=(dist - target.pitch_mm).tolist())
     gaps = np.concatenate([fp.ray_gap_mm for fp in points.frames.values()])
     rmse = [fp.reprojection_rmse_px for fp in points.frames.values()]
     if all(r is not None for r in rmse):
