@@ -356,6 +356,13 @@ def detect_dataset(
             "its corner ids may differ between images; use a board with cols + rows odd",
             dataset.rig_path, cols, rows,
         )
+    if target.type == "circles" and not circle_ids_unambiguous(target):
+        log.warning(
+            "%s: this %s dot grid looks the same turned in its plane: dot ids are fixed by the image direction "
+            "of the board's x axis (see ari_sfm.detection) and may differ between images of a board turned "
+            "further than 90 degrees; an asymmetric grid with an odd number of rows (e.g. 4 x 11) has unique ids",
+            dataset.rig_path, target.layout,
+        )
     cam_rank = {name: k for k, name in enumerate(dataset.camera_names)}
     jobs: list[tuple[Entry, str, Path]] = []
     for entry in dataset.entries():
@@ -471,6 +478,7 @@ def _check_calibration_views(
 
 CIRCLE_MIN_AREA_PX = 8.0  # smallest blob taken for a dot (px^2): ~3 px across
 CIRCLE_AREA_RANGE = 3.0  # tuned blob detector: area within [1/r, r] x the range of the dots found
+CIRCLE_MAX_BLOBS_FACTOR = 4  # more candidate blobs than this x dots: only the clustering grid search (fast)
 CIRCLE_GRID_TOLERANCE = 0.3  # homography residual / dot spacing above which a grid is rejected
 CIRCLE_EDGE_MARGIN_PX = 2.0  # blur margin (px) between the dot's edge and the background ring
 _RING_POINTS = 64  # polygon vertices for the image of a dot's outline (perspective bias)
@@ -490,10 +498,12 @@ def detect_circles(image: np.ndarray, target: Target, method: str | None = None)
     cols, rows = (int(v) for v in target.circle_grid)
     flags = cv2.CALIB_CB_ASYMMETRIC_GRID if target.layout == "asymmetric" else cv2.CALIB_CB_SYMMETRIC_GRID
     for colour in (0, 255):  # dark dots, then light dots
-        detector = _tuned_blob_detector(image, cols * rows, colour)
+        detector, blobs = _tuned_blob_detector(image, cols * rows, colour)
         if detector is None:
             continue
-        found, centres = cv2.findCirclesGrid(image, (cols, rows), flags=flags, blobDetector=detector)
+        found = False
+        if blobs <= CIRCLE_MAX_BLOBS_FACTOR * cols * rows:  # the grid search is slow on many blobs (a minute on noise)
+            found, centres = cv2.findCirclesGrid(image, (cols, rows), flags=flags, blobDetector=detector)
         if not found:
             found, centres = cv2.findCirclesGrid(image, (cols, rows), flags=flags | cv2.CALIB_CB_CLUSTERING,
                                                  blobDetector=detector)
@@ -514,8 +524,9 @@ def _blob_params(colour: int, min_area: float, max_area: float) -> cv2.SimpleBlo
     return params
 
 
-def _tuned_blob_detector(image: np.ndarray, count: int, colour: int) -> cv2.SimpleBlobDetector | None:
-    """A blob detector whose area limits bracket the dots of this image (None: fewer than ``count`` blobs).
+def _tuned_blob_detector(image: np.ndarray, count: int, colour: int) -> tuple[cv2.SimpleBlobDetector | None, int]:
+    """A blob detector whose area limits bracket the dots of this image, and the number of blobs
+    within those limits ((None, n): fewer than ``count`` blobs).
 
     A first pass with wide limits (CIRCLE_MIN_AREA_PX to the largest dot a
     board of ``count`` dots can have in this image, area / count) finds the
@@ -528,12 +539,13 @@ def _tuned_blob_detector(image: np.ndarray, count: int, colour: int) -> cv2.Simp
     wide = cv2.SimpleBlobDetector_create(_blob_params(colour, CIRCLE_MIN_AREA_PX, max(CIRCLE_MIN_AREA_PX + 1, w * h / count)))
     sizes = np.sort([k.size for k in wide.detect(image)])
     if len(sizes) < count:
-        return None
+        return None, len(sizes)
     spread = np.log(sizes[count - 1:]) - np.log(sizes[: len(sizes) - count + 1])
     k = int(np.argmin(spread))
-    lo, hi = np.pi / 4 * sizes[k] ** 2, np.pi / 4 * sizes[k + count - 1] ** 2
-    return cv2.SimpleBlobDetector_create(_blob_params(
-        colour, max(CIRCLE_MIN_AREA_PX, lo / CIRCLE_AREA_RANGE), hi * CIRCLE_AREA_RANGE))
+    lo = max(CIRCLE_MIN_AREA_PX, np.pi / 4 * sizes[k] ** 2 / CIRCLE_AREA_RANGE)
+    hi = np.pi / 4 * sizes[k + count - 1] ** 2 * CIRCLE_AREA_RANGE
+    areas = np.pi / 4 * sizes**2
+    return cv2.SimpleBlobDetector_create(_blob_params(colour, lo, hi)), int(np.count_nonzero((areas >= lo) & (areas <= hi)))
 
 
 def circle_symmetries(target: Target) -> list[tuple[np.ndarray, int]]:
