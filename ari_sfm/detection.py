@@ -1,4 +1,4 @@
-"""Find target corners in images: checkerboards and ChArUco boards (OpenCV), whole datasets.
+"""Find target corners in images: checkerboards, ChArUco and dot boards (OpenCV), whole datasets.
 
 Corner ids follow DATASET_FORMAT.md and are the same for the same physical
 corner in every image and camera:
@@ -16,6 +16,10 @@ corner in every image and camera:
   after a 180 degree turn: their ids are OpenCV's guess and may differ
   between images (:func:`detect_dataset` warns).
 - ChArUco: OpenCV's ids (the markers identify every corner).
+- Dot boards (``circles``): OpenCV's circle-grid ids, made independent of the
+  order findCirclesGrid returns: see :func:`detect_circles`,
+  :func:`circle_symmetries` (which layouts have unique ids) and
+  :func:`_canonical_circles` (the rule for the others).
 
 Accuracy (see ``benchmarks/bench_detection.py``): coarse corners from
 ``cv2.findChessboardCorners`` refined by ``cv2.cornerSubPix`` on a lightly
