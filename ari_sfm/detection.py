@@ -513,7 +513,11 @@ def detect_circles(image: np.ndarray, target: Target, method: str | None = None)
                                                  blobDetector=detector)
         if not found:
             continue
-        pixels = _canonical_circles(centres.reshape(-1, 2).astype(np.float64), target)
+        centres = centres.reshape(-1, 2).astype(np.float64)
+        pixels = _canonical_circles(centres, target)
+        if pixels is None:  # OpenCV's order is not a board order (asymmetric grids with rows even): our own
+            ordered = _lattice_order(centres, target)
+            pixels = None if ordered is None else _canonical_circles(ordered, target)
         if pixels is None:
             return None
         return np.arange(cols * rows), CIRCLE_METHODS[method](image, target, pixels, colour)
@@ -637,6 +641,68 @@ def _canonical_circles(pixels: np.ndarray, target: Target) -> np.ndarray | None:
         log.debug("rejected a dot grid: homography residual %.1f px at spacing %.1f px", residual, spacing)
         return None
     return candidate
+
+
+def _lattice_order(pixels: np.ndarray, target: Target) -> np.ndarray | None:
+    """The dots ordered as board ids by walking their lattice in the image (None if the walk fails).
+
+    Board dots lie on a square lattice: symmetric grids with steps (s, 0),
+    (0, s); asymmetric grids with the diagonal steps (s, s), (s, -s). From the
+    dot nearest the middle, whose two nearest non-parallel neighbours give the
+    image steps, a breadth-first walk labels each dot with integer lattice
+    coordinates, predicting every neighbour from the steps measured at its
+    parent (perspective changes them slowly). The labelled set must equal the
+    layout under one of the 8 turns and flips of the lattice plus a shift; the
+    result is one such order (:func:`_canonical_circles` picks among them).
+    """
+    n = len(pixels)
+    d = np.linalg.norm(pixels[:, None] - pixels[None], axis=2)
+    np.fill_diagonal(d, np.inf)
+    seed = int(np.argmin(np.linalg.norm(pixels - pixels.mean(axis=0), axis=1)))
+    near = np.argsort(d[seed])
+    g1 = pixels[near[0]] - pixels[seed]
+    g2 = next((pixels[j] - pixels[seed] for j in near[1:8]
+               if abs(np.dot(pixels[j] - pixels[seed], g1)) < 0.7 * np.linalg.norm(g1) * np.linalg.norm(pixels[j] - pixels[seed])), None)
+    if g2 is None:
+        return None
+    coords = {seed: (0, 0)}
+    steps = {seed: np.array([g1, g2])}
+    taken = np.zeros(n, dtype=bool)
+    taken[seed] = True
+    queue = [seed]
+    while queue:
+        k = queue.pop(0)
+        for axis in (0, 1):
+            for sign in (1, -1):
+                guess = pixels[k] + sign * steps[k][axis]
+                dist = np.linalg.norm(pixels - guess, axis=1)
+                j = int(np.argmin(dist))
+                if taken[j] or dist[j] > 0.35 * np.linalg.norm(steps[k][axis]):
+                    continue
+                taken[j] = True
+                i0, j0 = coords[k]
+                coords[j] = (i0 + sign, j0) if axis == 0 else (i0, j0 + sign)
+                steps[j] = steps[k].copy()
+                steps[j][axis] = sign * (pixels[j] - pixels[k])
+                queue.append(j)
+    if not taken.all():
+        return None
+    ij = np.array([coords[k] for k in range(n)])
+    if target.layout == "asymmetric":  # diagonal steps: board units x = i + j, y = i - j
+        ij = np.stack([ij[:, 0] + ij[:, 1], ij[:, 0] - ij[:, 1]], axis=1)
+    _, xyz = target.points_3d_readonly
+    board = np.rint(xyz[:, :2] / float(target.spacing_mm)).astype(int)
+    where = {(int(x), int(y)): k for k, (x, y) in enumerate(board)}
+    for A in (np.eye(2), np.array([[0, -1], [1, 0]]), -np.eye(2), np.array([[0, 1], [-1, 0]]),
+              np.diag([1, -1]), np.diag([-1, 1]), np.array([[0, 1], [1, 0]]), np.array([[0, -1], [-1, 0]])):
+        moved = ij @ A.T.astype(int)
+        moved = moved - moved.min(axis=0) + board.min(axis=0)
+        ids = [where.get((int(x), int(y))) for x, y in moved]
+        if None not in ids and len(set(ids)) == n:
+            out = np.empty_like(pixels)
+            out[np.array(ids)] = pixels
+            return out
+    return None
 
 
 def _nearest_neighbour_mm(target: Target) -> float:

@@ -19,7 +19,14 @@ import yaml
 from click.testing import CliRunner
 
 from ari_sfm.cli import main
-from ari_sfm.detection import circle_ids_unambiguous, circle_symmetries, detect_corners, detect_dataset
+from ari_sfm.detection import (
+    _canonical_circles,
+    _lattice_order,
+    circle_ids_unambiguous,
+    circle_symmetries,
+    detect_corners,
+    detect_dataset,
+)
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import rotation_from_rotvec
 from ari_sfm.io import load_dataset
@@ -184,6 +191,32 @@ def test_symmetric_ids_follow_the_documented_rule():
     image, exact = render(SYMMETRIC, 170, seed=1)
     _, pixels = detect_corners(image, SYMMETRIC)
     assert rms(pixels - exact[::-1]) < 0.04  # the 180 degree turn of a 7 x 6 grid reverses the ids
+
+
+def test_lattice_walk_orders_shuffled_dots_like_the_board():
+    """Our own ordering (used when OpenCV's order is no board order) recovers the ids from the dot
+    positions alone, for every layout, up to the layout's own symmetry."""
+    rng = np.random.default_rng(3)
+    rows_even = Target(type="circles", circle_grid=(4, 10), spacing_mm=10.0, layout="asymmetric", diameter_mm=6.0)
+    for target in (SYMMETRIC, ASYMMETRIC, rows_even):
+        for roll, tilt in ((0, (15, -10)), (33, (40, 20)), (-60, (-30, 10))):
+            R, t = pose(target, roll, tilt)
+            exact = project_pinhole(K, R, t, target.points_3d()[1])
+            ordered = _lattice_order(exact[rng.permutation(len(exact))], target)
+            assert ordered is not None, (target.layout, roll)
+            assert np.abs(_canonical_circles(ordered, target) - exact).max() < 1e-6, (target.layout, roll)
+    assert _lattice_order(rng.uniform(0, 500, (44, 2)), ASYMMETRIC) is None  # scattered points: no lattice
+
+
+def test_asymmetric_grid_with_even_rows_is_found(views):
+    """OpenCV returns these views of a 4 x 10 asymmetric grid in an order that is no board order;
+    the lattice walk orders them (ids up to the 180 degree turn such a grid allows: rolls here < 90)."""
+    rows_even = Target(type="circles", circle_grid=(4, 10), spacing_mm=10.0, layout="asymmetric", diameter_mm=6.0)
+    for roll, tilt in ((0, (15, -10)), (33, (35, 20))):
+        image, exact = render(rows_even, roll, tilt, spacing_px=22.0, seed=roll)
+        found = detect_corners(image, rows_even)
+        assert found is not None, roll
+        assert rms(found[1] - exact) < 0.04, roll
 
 
 def test_light_dots_on_a_dark_board_and_colour_images(views):
