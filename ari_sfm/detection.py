@@ -743,13 +743,18 @@ def _dot_weights(image: np.ndarray, target: Target, H: np.ndarray, k: int, radiu
     J = _h_jacobian(H, X[None])[0]
     mm_per_px = 1.0 / np.sqrt(abs(np.linalg.det(J)))
     inner = radius_mm + CIRCLE_EDGE_MARGIN_PX * mm_per_px
-    ring = np.linspace(0, 2 * np.pi, 16, endpoint=False)
-    box = _apply_h(H, X + outer * np.stack([np.cos(ring), np.sin(ring)], axis=1))
+    angles = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+    ring = np.stack([np.cos(angles), np.sin(angles)], axis=1)
     h, w = image.shape
-    u0, v0 = np.floor(box.min(axis=0) - 1).astype(int)
-    u1, v1 = np.ceil(box.max(axis=0) + 1).astype(int)
-    if u0 < 0 or v0 < 0 or u1 >= w or v1 >= h:
-        return None, None, None
+    while True:  # near the image border the window shrinks (down to a ring of one pixel around the dot's edge)
+        box = _apply_h(H, X + outer * ring)
+        u0, v0 = np.floor(box.min(axis=0) - 1).astype(int)
+        u1, v1 = np.ceil(box.max(axis=0) + 1).astype(int)
+        if u0 >= 0 and v0 >= 0 and u1 < w and v1 < h:
+            break
+        outer *= 0.9
+        if outer < inner + mm_per_px:
+            return None, None, None
     vv, uu = np.mgrid[v0 : v1 + 1, u0 : u1 + 1]
     uv = np.stack([uu.ravel(), vv.ravel()], axis=1).astype(float)
     board = _apply_h(np.linalg.inv(H), uv)
