@@ -142,6 +142,21 @@ def test_dot_centres_match_the_exact_projections(views, target):
                           detect_corners(views[target.layout][0][0], target, method="centroid_debiased")[1])
 
 
+def test_dot_diameter_is_measured_when_the_rig_does_not_declare_it(views):
+    """Without diameter_mm the dot radius (window and perspective correction) is measured from the
+    image: within 1 % of the printed one, and the centres as accurate as with the declared size."""
+    from dataclasses import replace
+
+    from ari_sfm.detection import _board_homography, _dot_radius_mm
+
+    small = Target(type="circles", circle_grid=(7, 6), spacing_mm=10.0, layout="symmetric", diameter_mm=3.0)
+    for target, (image, exact) in ((ASYMMETRIC, views["asymmetric"][1]), (small, render(small, 33, (35, 20)))):
+        bare = replace(target, diameter_mm=None)
+        radius = _dot_radius_mm(image, bare, exact, 0, _board_homography(bare, exact))
+        assert abs(radius / (0.5 * target.diameter_mm) - 1) < 0.01, (target.diameter_mm, radius)
+        assert rms(detect_corners(image, bare)[1] - exact) < 0.03
+
+
 def test_centroid_error_is_the_perspective_bias_of_the_imaged_ellipse():
     """Under perspective the centre of the imaged disc is not the image of the disc's centre. On a
     steeply tilted view of large dots the plain centroid's error equals that bias (computed here from
