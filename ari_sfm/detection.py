@@ -482,6 +482,7 @@ def _check_calibration_views(
 
 CIRCLE_MIN_AREA_PX = 8.0  # smallest blob taken for a dot (px^2): ~3 px across
 CIRCLE_AREA_RANGE = 3.0  # tuned blob detector: area within [1/r, r] x the range of the dots found
+CIRCLE_SIZE_PASS_SIDE_PX = 800  # the dot-size pass runs on a copy halved until its longer side is below 2x this
 CIRCLE_MAX_BLOBS_FACTOR = 4  # more candidate blobs than this x dots: only the clustering grid search (fast)
 CIRCLE_GRID_TOLERANCE = 0.3  # homography residual / dot spacing above which a grid is rejected
 CIRCLE_EDGE_MARGIN_PX = 2.0  # blur margin (px) between the dot's edge and the background ring
@@ -543,9 +544,12 @@ def _tuned_blob_detector(image: np.ndarray, count: int, colour: int) -> tuple[cv
     CIRCLE_AREA_RANGE (perspective changes dot areas across the board), which
     drops text, smudges and background clutter of other sizes.
     """
-    h, w = image.shape
-    wide = cv2.SimpleBlobDetector_create(_blob_params(colour, CIRCLE_MIN_AREA_PX, max(CIRCLE_MIN_AREA_PX + 1, w * h / count)))
-    sizes = np.sort([k.size for k in wide.detect(image)])
+    small, scale = image, 1.0
+    while max(small.shape) >= 2 * CIRCLE_SIZE_PASS_SIDE_PX:  # the wide pass runs on a smaller copy (speed)
+        small = cv2.resize(small, (small.shape[1] // 2, small.shape[0] // 2), interpolation=cv2.INTER_AREA)
+    sizes = _blob_sizes(small, count, colour) * (image.shape[1] / small.shape[1])
+    if len(sizes) < count and small is not image:  # dots too small for the copy
+        sizes = _blob_sizes(image, count, colour)
     if len(sizes) < count:
         return None, len(sizes)
     spread = np.log(sizes[count - 1:]) - np.log(sizes[: len(sizes) - count + 1])
@@ -554,6 +558,13 @@ def _tuned_blob_detector(image: np.ndarray, count: int, colour: int) -> tuple[cv
     hi = np.pi / 4 * sizes[k + count - 1] ** 2 * CIRCLE_AREA_RANGE
     areas = np.pi / 4 * sizes**2
     return cv2.SimpleBlobDetector_create(_blob_params(colour, lo, hi)), int(np.count_nonzero((areas >= lo) & (areas <= hi)))
+
+
+def _blob_sizes(image: np.ndarray, count: int, colour: int) -> np.ndarray:
+    """Sorted diameters (px) of the blobs of ``colour`` from CIRCLE_MIN_AREA_PX to area / ``count``."""
+    h, w = image.shape
+    wide = cv2.SimpleBlobDetector_create(_blob_params(colour, CIRCLE_MIN_AREA_PX, max(CIRCLE_MIN_AREA_PX + 1, w * h / count)))
+    return np.sort([k.size for k in wide.detect(image)])
 
 
 def circle_symmetries(target: Target) -> list[tuple[np.ndarray, int]]:
@@ -775,11 +786,12 @@ def _dot_weights(image: np.ndarray, target: Target, H: np.ndarray, k: int, radiu
 
 
 def _refine_centroid(image: np.ndarray, target: Target, pixels: np.ndarray, colour: int,
-                     debias: bool = False, iterations: int = 2) -> np.ndarray:
+                     debias: bool = False, iterations: int = 1) -> np.ndarray:
     """Each dot's centre as the grey-level centroid of its image (the imaged ellipse's centre).
 
     The window around each dot is shaped by the board-to-image homography
-    (refitted after each pass). With ``debias`` the perspective bias is
+    (refitted after each pass; a second pass changed nothing measurable on
+    rendered boards, so one is the default). With ``debias`` the perspective bias is
     removed: under a homography the centre of the imaged disc is not the image
     of the disc's centre; the difference, computed from the imaged outline of
     each dot (a polygon's area centroid minus H(centre)), is subtracted.
