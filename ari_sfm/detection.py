@@ -34,7 +34,7 @@ import os
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from functools import lru_cache
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import cv2
 import numpy as np
@@ -720,39 +720,52 @@ def _nearest_neighbour_mm(target: Target) -> float:
     return float(target.spacing_mm) * (np.sqrt(2.0) if target.layout == "asymmetric" else 1.0)
 
 
-def _dot_radius_mm(image: np.ndarray, target: Target, pixels: np.ndarray, colour: int, H: np.ndarray) -> float:
-    """The printed dot radius: half of ``diameter_mm`` if declared, else measured (dark area in a window)."""
+def _dot_radius_mm(image: np.ndarray, target: Target, colour: int, H: np.ndarray) -> float:
+    """The printed dot radius: half of ``diameter_mm`` if declared, else measured as the median dot area
+    (weights / contrast, in board mm^2), measured twice: the second time with windows fitted to the first."""
     if target.diameter_mm is not None:
         return 0.5 * float(target.diameter_mm)
-    radius = 0.25 * _nearest_neighbour_mm(target)  # a first guess for the window only
-    areas = []
-    for k in range(len(pixels)):
-        w, _, _ = _dot_weights(image, target, H, k, radius, colour, normalise=True)
-        if w is not None:
-            areas.append(w)
-    if not areas:
-        return radius
-    return float(np.sqrt(np.median(areas) / np.pi))
+    radius = 0.25 * _nearest_neighbour_mm(target)  # a first guess, for the windows only
+    for _ in range(2):
+        areas = []
+        for k in range(target.num_ids()):
+            window = _dot_window(image, target, H, k, radius)
+            if window is None:
+                continue
+            core = window.r_mm <= 0.5 * radius
+            contrast = float(np.abs(window.values[core] - window.background).mean()) if core.any() else 0.0
+            if contrast > 0:
+                areas.append(float(_dot_weights(window, colour).sum()) / contrast * window.mm_per_px**2)
+        if not areas:
+            return radius
+        radius = min(float(np.sqrt(np.median(areas) / np.pi)), 0.49 * _nearest_neighbour_mm(target))
+    return radius
 
 
-def _dot_weights(image: np.ndarray, target: Target, H: np.ndarray, k: int, radius_mm: float, colour: int,
-                 normalise: bool = False) -> tuple:
-    """Grey-level weights of dot k in a window around it, defined on the board through H.
+class DotWindow(NamedTuple):
+    """The pixels around one imaged dot: centres uv (P, 2), grey values (P,), distance of each pixel's
+    board point from the dot centre r_mm (P,), the window radius (mm), background grey level, mm per px."""
 
-    The window holds the board points closer to the dot centre than halfway
-    across the gap to the nearest neighbour; the background level is the mean
-    of its outer ring (beyond the dot edge plus CIRCLE_EDGE_MARGIN_PX). Returns
-    (sum of weights, u, v) of the window's pixels with weights ``background -
-    I`` (dark dots) or ``I - background`` (light). With ``normalise`` the first
-    item is instead the dot's area in board mm^2 (weights / contrast, mapped
-    through the pixel area). (None, None, None) if the window is not in the image.
+    uv: np.ndarray
+    values: np.ndarray
+    r_mm: np.ndarray
+    outer_mm: float
+    background: float
+    mm_per_px: float
+
+
+def _dot_window(image: np.ndarray, target: Target, H: np.ndarray, k: int, radius_mm: float) -> DotWindow | None:
+    """The window around dot k, defined on the board through H (None if no window fits in the image).
+
+    It holds the board points closer to the dot centre than halfway across the
+    gap to the nearest neighbour (shrunk near the image border); the background
+    level is the mean of its outer ring, beyond the dot edge plus
+    CIRCLE_EDGE_MARGIN_PX.
     """
     _, xyz = target.points_3d_readonly
     X = xyz[k, :2]
-    gap = _nearest_neighbour_mm(target) - 2 * radius_mm
-    outer = radius_mm + 0.5 * gap
-    J = _h_jacobian(H, X[None])[0]
-    mm_per_px = 1.0 / np.sqrt(abs(np.linalg.det(J)))
+    outer = radius_mm + 0.5 * (_nearest_neighbour_mm(target) - 2 * radius_mm)
+    mm_per_px = 1.0 / np.sqrt(abs(np.linalg.det(_h_jacobian(H, X[None])[0])))
     inner = radius_mm + CIRCLE_EDGE_MARGIN_PX * mm_per_px
     angles = np.linspace(0, 2 * np.pi, 16, endpoint=False)
     ring = np.stack([np.cos(angles), np.sin(angles)], axis=1)
@@ -765,24 +778,21 @@ def _dot_weights(image: np.ndarray, target: Target, H: np.ndarray, k: int, radiu
             break
         outer *= 0.9
         if outer < inner + mm_per_px:
-            return None, None, None
+            return None
     vv, uu = np.mgrid[v0 : v1 + 1, u0 : u1 + 1]
     uv = np.stack([uu.ravel(), vv.ravel()], axis=1).astype(float)
-    board = _apply_h(np.linalg.inv(H), uv)
-    r = np.linalg.norm(board - X, axis=1)
+    r = np.linalg.norm(_apply_h(np.linalg.inv(H), uv) - X, axis=1)
     values = image[vv.ravel(), uu.ravel()].astype(float)
-    in_window = r <= outer
-    background_ring = in_window & (r >= inner) if inner < outer else r >= outer - 0.5 * mm_per_px
-    if not background_ring.any():
-        return None, None, None
-    background = float(values[background_ring].mean())
-    weights = (background - values) if colour == 0 else (values - background)
-    weights = np.where(in_window, weights, 0.0)
-    if normalise:
-        core = in_window & (r <= 0.5 * radius_mm)
-        contrast = float(np.abs(values[core] - background).mean()) if core.any() else 0.0
-        return (float(weights.sum()) / contrast * mm_per_px**2 if contrast > 0 else None), None, None
-    return weights, uv[:, 0], uv[:, 1]
+    ring_mask = (r <= outer) & (r >= inner) if inner < outer else (r <= outer) & (r >= outer - 0.5 * mm_per_px)
+    if not ring_mask.any():
+        return None
+    return DotWindow(uv, values, r, outer, float(values[ring_mask].mean()), float(mm_per_px))
+
+
+def _dot_weights(window: DotWindow, colour: int) -> np.ndarray:
+    """Per pixel: how much darker (dark dots, colour 0) or lighter than the background, 0 outside the window."""
+    weights = (window.background - window.values) if colour == 0 else (window.values - window.background)
+    return np.where(window.r_mm <= window.outer_mm, weights, 0.0)
 
 
 def _refine_centroid(image: np.ndarray, target: Target, pixels: np.ndarray, colour: int,
@@ -800,14 +810,16 @@ def _refine_centroid(image: np.ndarray, target: Target, pixels: np.ndarray, colo
     out = pixels.copy()
     for _ in range(iterations):
         H = _board_homography(target, out)
-        radius = _dot_radius_mm(image, target, out, colour, H)
+        radius = _dot_radius_mm(image, target, colour, H)
         new = out.copy()
         for k in range(len(out)):
-            weights, u, v = _dot_weights(image, target, H, k, radius, colour)
-            total = None if weights is None else float(weights.sum())
-            if total is None or total <= 0:
-                continue
-            new[k] = (float(weights @ u) / total, float(weights @ v) / total)
+            window = _dot_window(image, target, H, k, radius)
+            if window is None:
+                continue  # keeps OpenCV's centre
+            weights = _dot_weights(window, colour)
+            total = float(weights.sum())
+            if total > 0:
+                new[k] = weights @ window.uv / total
         if debias:
             new -= _perspective_bias(H, xyz[:, :2], radius)
         out = new

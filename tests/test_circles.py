@@ -150,9 +150,11 @@ def test_dot_diameter_is_measured_when_the_rig_does_not_declare_it(views):
     from ari_sfm.detection import _board_homography, _dot_radius_mm
 
     small = Target(type="circles", circle_grid=(7, 6), spacing_mm=10.0, layout="symmetric", diameter_mm=3.0)
-    for target, (image, exact) in ((ASYMMETRIC, views["asymmetric"][1]), (small, render(small, 33, (35, 20)))):
+    large = Target(type="circles", circle_grid=(7, 6), spacing_mm=10.0, layout="symmetric", diameter_mm=7.5)
+    for target, (image, exact) in ((ASYMMETRIC, views["asymmetric"][1]), (small, render(small, 33, (35, 20))),
+                                   (large, render(large, -20, (25, 10), spacing_px=30.0))):
         bare = replace(target, diameter_mm=None)
-        radius = _dot_radius_mm(image, bare, exact, 0, _board_homography(bare, exact))
+        radius = _dot_radius_mm(image, bare, 0, _board_homography(bare, exact))
         assert abs(radius / (0.5 * target.diameter_mm) - 1) < 0.01, (target.diameter_mm, radius)
         assert rms(detect_corners(image, bare)[1] - exact) < 0.03
 
