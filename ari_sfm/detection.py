@@ -494,7 +494,9 @@ def detect_circles(image: np.ndarray, target: Target, method: str | None = None)
 
     ``method`` (default CIRCLE_DEFAULT_METHOD) picks the centre estimate, see
     :data:`CIRCLE_METHODS`. Dark dots on a light board are tried first, then
-    light dots on a dark board.
+    light dots on a dark board. OpenCV's plain grid search is tried before its
+    CALIB_CB_CLUSTERING one: on boards tilted 45-65 degrees (640 x 480, spacing
+    16-24 px) the plain search found 9 of 20 views, clustering all 20.
     """
     method = CIRCLE_DEFAULT_METHOD if method is None else method
     if method not in CIRCLE_METHODS:
