@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ari_sfm import detection
+from ari_sfm import circle_grid, detection
 from ari_sfm.detection import CHECKERBOARD_METHODS, detect_corners
 from ari_sfm.geometry import rotation_from_rotvec
 from ari_sfm.records import Target
@@ -101,7 +101,7 @@ def score(views: list[View], target: Target, method: str) -> Score:
     scored under the turned ids that fit best (the detector's rule picks one of them)."""
     turns = [np.arange(target.num_ids())]
     if target.type == "circles":
-        turns = [p for p, det in detection.circle_symmetries(target) if det > 0]
+        turns = [p for p, det in circle_grid.circle_symmetries(target) if det > 0]
     errors, wrong, found, elapsed = [], 0, 0, 0.0
     for view in views:
         t0 = time.perf_counter()
@@ -167,11 +167,11 @@ def main() -> None:
 
     for k, dots in enumerate(DOTS):
         views = render_views(dots, args.views, size, args.supersample, args.noise, args.seed + 2 + k)
-        scores = {name: score(views, dots, name) for name in detection.CIRCLE_METHODS}
+        scores = {name: score(views, dots, name) for name in circle_grid.CIRCLE_METHODS}
         cols, rows = dots.circle_grid
         print_table(f"dot board {cols} x {rows} {dots.layout}, {dots.diameter_mm:g} mm dots at {dots.spacing_mm:g} mm "
                     f"(spacing {min(v.square_px for v in views):.0f}-{max(v.square_px for v in views):.0f} px)",
-                    scores, detection.CIRCLE_DEFAULT_METHOD, len(views))
+                    scores, circle_grid.CIRCLE_DEFAULT_METHOD, len(views))
         bias = np.linalg.norm(np.concatenate([v.bias for v in views]), axis=1)
         print(f"perspective bias of these views (imaged dot centre - projected centre): rms {np.sqrt(np.mean(bias**2)):.4f} px, "
               f"max {bias.max():.4f} px")
@@ -221,10 +221,10 @@ def score_scenario(scale: float, name: str = "paper_single_dots", seed: int = 0)
         exact = {(o.set, o.frame, o.added_mm, o.camera): o for o in load_observations(Path(tmp) / "truth_observations.json")}
         views = [View(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE), exact[(e.set, e.key, e.added_mm, cam)].pixels, 0.0)
                  for e in dataset.entries() for cam, path in e.images.items()]
-        scores = {m: score(views, dataset.target, m) for m in detection.CIRCLE_METHODS}
+        scores = {m: score(views, dataset.target, m) for m in circle_grid.CIRCLE_METHODS}
         w, h = dataset.cameras["cam0"].image_size
         print_table(f"{name} seed {seed} rendered through the window, {w} x {h} (exact Snell centres)",
-                    scores, detection.CIRCLE_DEFAULT_METHOD, len(views))
+                    scores, circle_grid.CIRCLE_DEFAULT_METHOD, len(views))
 
 
 if __name__ == "__main__":

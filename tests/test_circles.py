@@ -19,14 +19,8 @@ import yaml
 from click.testing import CliRunner
 
 from ari_sfm.cli import main
-from ari_sfm.detection import (
-    _canonical_circles,
-    _lattice_order,
-    circle_ids_unambiguous,
-    circle_symmetries,
-    detect_corners,
-    detect_dataset,
-)
+from ari_sfm.circle_grid import _canonical_circles, _lattice_order, circle_ids_unambiguous, circle_symmetries
+from ari_sfm.detection import detect_corners, detect_dataset
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import rotation_from_rotvec
 from ari_sfm.io import load_dataset
@@ -147,7 +141,7 @@ def test_dot_diameter_is_measured_when_the_rig_does_not_declare_it(views):
     image: within 1 % of the printed one, and the centres as accurate as with the declared size."""
     from dataclasses import replace
 
-    from ari_sfm.detection import _board_homography, _dot_radius_mm
+    from ari_sfm.circle_grid import _board_homography, _dot_radius_mm
 
     small = Target(type="circles", circle_grid=(7, 6), spacing_mm=10.0, layout="symmetric", diameter_mm=3.0)
     large = Target(type="circles", circle_grid=(7, 6), spacing_mm=10.0, layout="symmetric", diameter_mm=7.5)
