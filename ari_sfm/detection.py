@@ -1,4 +1,4 @@
-"""Find target corners in images: checkerboards and ChArUco boards (OpenCV), whole datasets.
+"""Find target corners in images: checkerboards, ChArUco and dot boards (OpenCV), whole datasets.
 
 Corner ids follow DATASET_FORMAT.md and are the same for the same physical
 corner in every image and camera:
@@ -16,6 +16,8 @@ corner in every image and camera:
   after a 180 degree turn: their ids are OpenCV's guess and may differ
   between images (:func:`detect_dataset` warns).
 - ChArUco: OpenCV's ids (the markers identify every corner).
+- Dot boards (``circles``): OpenCV's circle-grid ids, made independent of the
+  order findCirclesGrid returns: see :mod:`ari_sfm.circle_grid`.
 
 Accuracy (see ``benchmarks/bench_detection.py``): coarse corners from
 ``cv2.findChessboardCorners`` refined by ``cv2.cornerSubPix`` on a lightly
@@ -36,6 +38,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from ari_sfm.circle_grid import circle_ids_unambiguous, detect_circles
 from ari_sfm.errors import AriSfmError
 from ari_sfm.records import Dataset, Entry, Observation, Target
 
@@ -85,6 +88,8 @@ def detect_corners(image: np.ndarray, target: Target, method: str = "subpix") ->
         return np.arange(grid[0] * grid[1]), corners
     if target.type == "charuco":
         return _detect_charuco(image, target, refine=method != "charuco_raw")
+    if target.type == "circles":  # dot boards: the checkerboard default "subpix" means their default
+        return detect_circles(image, target, method=None if method == "subpix" else method)
     raise ValueError(f"cannot detect a target of type {target.type!r} in images")
 
 
@@ -353,6 +358,13 @@ def detect_dataset(
             "%s: a %d x %d corner checkerboard looks the same turned by 180 degrees (cols + rows is even): "
             "its corner ids may differ between images; use a board with cols + rows odd",
             dataset.rig_path, cols, rows,
+        )
+    if target.type == "circles" and not circle_ids_unambiguous(target):
+        log.warning(
+            "%s: this %s dot grid looks the same turned in its plane: dot ids are fixed by the image direction "
+            "of the board's x axis (see ari_sfm.circle_grid) and may differ between images of a board turned "
+            "further than 90 degrees; an asymmetric grid with an odd number of rows (e.g. 4 x 11) has unique ids",
+            dataset.rig_path, target.layout,
         )
     cam_rank = {name: k for k, name in enumerate(dataset.camera_names)}
     jobs: list[tuple[Entry, str, Path]] = []

@@ -518,7 +518,7 @@ def reconstruction_metrics(points: Points, target: Target, truth: Mapping[str, A
             all_d.append(p["distances"])
         if grid is not None:
             dist = inter_corner_distances(fp.ids, fp.xyz, grid[0])
-            spacing = _stats(dist - target.square_mm)
+            spacing = _stats(dist - target.pitch_mm)
             all_ic.append(dist)
         frames[f] = FrameMetrics(fp.stage_mm, len(fp), plane, flatness, spacing, stage_frames.get(f))
     d = np.concatenate(all_d) if all_d else np.zeros(0)
@@ -526,8 +526,8 @@ def reconstruction_metrics(points: Points, target: Target, truth: Mapping[str, A
     inter = None
     if grid is not None:
         dist = np.concatenate(all_ic) if all_ic else np.zeros(0)
-        inter = InterCorner(**vars(_stats(dist - target.square_mm)), square_mm=float(target.square_mm),
-                            distances=_floats(dist), errors=_floats(dist - target.square_mm))
+        inter = InterCorner(**vars(_stats(dist - target.pitch_mm)), square_mm=float(target.pitch_mm),
+                            distances=_floats(dist), errors=_floats(dist - target.pitch_mm))
     gaps = np.concatenate([fp.ray_gap_mm for fp in points.frames.values()])
     rmse = [fp.reprojection_rmse_px for fp in points.frames.values()]
     if all(r is not None for r in rmse):

@@ -19,7 +19,9 @@ class Target:
     """A calibration target in its own frame (mm).
 
     ``type`` is ``checkerboard`` (inner_corners [cols, rows], square_mm),
-    ``charuco`` (squares [cols, rows], square_mm, marker_mm, dictionary) or
+    ``charuco`` (squares [cols, rows], square_mm, marker_mm, dictionary),
+    ``circles`` (a dot board, DATASET_FORMAT 1.1: circle_grid [cols, rows],
+    spacing_mm, layout ``symmetric`` | ``asymmetric``, optional diameter_mm) or
     ``points3d`` (points {id: xyz}).
     """
 
@@ -30,15 +32,27 @@ class Target:
     marker_mm: float | None = None
     dictionary: str | None = None
     points: Mapping[int, tuple[float, float, float]] | None = None
+    circle_grid: tuple[int, int] | None = None  # circles: [cols, rows] in OpenCV's patternSize order
+    spacing_mm: float = 0.0  # circles: s of OpenCV's calcBoardCornerPositions
+    layout: str = "symmetric"  # circles: symmetric | asymmetric
+    diameter_mm: float | None = None  # circles: printed dot diameter, if declared
 
     @property
     def grid(self) -> tuple[int, int] | None:
-        """(cols, rows) of the corner grid for planar boards, else None."""
+        """(cols, rows) of a square lattice of points, id ``r * cols + c`` at (c, r) x :attr:`pitch_mm`
+        (plus a constant offset); None for other targets (points3d, asymmetric dot grids)."""
         if self.type == "checkerboard":
             return self.inner_corners
         if self.type == "charuco" and self.squares is not None:
             return (self.squares[0] - 1, self.squares[1] - 1)
+        if self.type == "circles" and self.layout == "symmetric":
+            return self.circle_grid
         return None
+
+    @property
+    def pitch_mm(self) -> float:
+        """Distance between neighbouring points of :attr:`grid` (square or dot spacing)."""
+        return self.spacing_mm if self.type == "circles" else self.square_mm
 
     def points_3d(self) -> tuple[np.ndarray, np.ndarray]:
         """All (ids, xyz) of the target: ids (N,) int, xyz (N, 3) in mm, target frame (new arrays)."""
@@ -53,6 +67,12 @@ class Target:
         if self.type == "points3d":
             ids = np.array(sorted(self.points), dtype=int)
             xyz = np.array([self.points[i] for i in ids], dtype=float).reshape(-1, 3)
+        elif self.type == "circles":  # OpenCV's calcBoardCornerPositions for circle grids
+            cols, rows = self.circle_grid
+            r, c = np.divmod(np.arange(cols * rows), cols)
+            x = (2 * c + r % 2) if self.layout == "asymmetric" else c
+            xyz = np.stack([x * self.spacing_mm, r * self.spacing_mm, np.zeros(cols * rows)], axis=1).astype(float)
+            ids = np.arange(cols * rows)
         else:
             cols, rows = self.grid
             r, c = np.divmod(np.arange(cols * rows), cols)

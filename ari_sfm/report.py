@@ -281,9 +281,10 @@ def _summary_section(inp: ReportInputs) -> str:
                              ["window", f"{i.thickness_mm:g} mm, n = {i.index:g}, medium n = {i.medium_index:g}"]]
     target = inp.dataset.target if inp.dataset else cal.target
     if target is not None:
-        grid = target.inner_corners or target.squares
+        grid = target.inner_corners or target.squares or target.circle_grid
         rows.append(["target", f"{target.type}" + (f" {grid[0]}x{grid[1]}" if grid else "")
-                     + (f", {target.square_mm:g} mm squares" if target.square_mm else "")])
+                     + (f", {target.square_mm:g} mm squares" if target.square_mm else "")
+                     + (f" {target.layout}, {target.spacing_mm:g} mm spacing" if target.type == "circles" else "")])
     if inp.dataset is not None:
         ds = inp.dataset
         rows.insert(0, ["dataset", str(inp.dataset_path)])

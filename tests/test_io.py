@@ -360,7 +360,7 @@ BAD_RIGS = {
     "missing format": (_rig(format=None), "rig.yaml", "missing key 'format'"),
     "missing key": (_rig(target__square_mm=None), "rig.yaml", "missing key 'target.square_mm'"),
     "missing interface": (_rig(interface=None), "rig.yaml", "missing key 'interface'"),
-    "unknown target type": (_rig(target__type="circles"), "rig.yaml", "unknown target.type 'circles'"),
+    "unknown target type": (_rig(target__type="hexagons"), "rig.yaml", "unknown target.type 'hexagons'"),
     "inner corners too few": (_rig(target__inner_corners=[11, 1]), "rig.yaml", "target.inner_corners must be two integers >= 2"),
     "inner corners not ints": (_rig(target__inner_corners=[11.5, 8]), "rig.yaml", "target.inner_corners must be two integers"),
     "square negative": (_rig(target__square_mm=-1), "rig.yaml", "target.square_mm must be > 0 (got -1)"),

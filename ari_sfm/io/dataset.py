@@ -49,12 +49,14 @@ log = logging.getLogger(__name__)
 
 FORMAT = "ari-sfm/1"
 RIG_NAMES = ("rig.yaml", "rig.yml", "rig.json")
-TARGET_TYPES = ("checkerboard", "charuco", "points3d")
+TARGET_TYPES = ("checkerboard", "charuco", "circles", "points3d")
+CIRCLE_LAYOUTS = ("symmetric", "asymmetric")
 DIST_LENGTHS = (4, 5, 8, 12, 14)
 TOP_KEYS = ("format", "target", "interface", "cameras", *SETS, "observations")
 TARGET_KEYS = {
     "checkerboard": ("type", "inner_corners", "square_mm"),
     "charuco": ("type", "squares", "square_mm", "marker_mm", "dictionary"),
+    "circles": ("type", "grid", "spacing_mm", "layout", "diameter_mm"),
     "points3d": ("type", "points"),
 }
 INTERFACE_KEYS = ("thickness_mm", "index", "medium_index", "distance_mm", "plane")
@@ -134,6 +136,8 @@ def parse_target(data: Any, path: Path, where: str = "target") -> Target:
                 f"a {squares[0]} x {squares[1]} board needs {markers}",
             )
         return Target(type=kind, squares=squares, square_mm=square, marker_mm=marker, dictionary=dictionary)
+    if kind == "circles":
+        return _parse_circles(data, get, path, where)
     points = as_mapping(get("points"), path, f"{where}.points")
     if not points:
         raise AriSfmError(path, f"{where}.points must not be empty")
@@ -145,6 +149,25 @@ def parse_target(data: Any, path: Path, where: str = "target") -> Target:
         arr = as_float_array(xyz, path, f"{where}.points[{pid}]", (3,))
         out[pid] = (float(arr[0]), float(arr[1]), float(arr[2]))
     return Target(type=kind, points=out)
+
+
+def _parse_circles(data: Mapping[str, Any], get: Any, path: Path, where: str) -> Target:
+    """A dot board (1.1): grid [cols, rows] >= 2, spacing_mm > 0, layout, optional diameter_mm.
+
+    The dots must not touch: diameter < spacing (the nearest neighbours of an
+    asymmetric grid are spacing x sqrt(2) apart, of a symmetric one spacing).
+    """
+    grid = _grid(get("grid"), path, f"{where}.grid")
+    spacing = as_positive_float(get("spacing_mm"), path, f"{where}.spacing_mm")
+    layout = as_str(get("layout"), path, f"{where}.layout")
+    if layout not in CIRCLE_LAYOUTS:
+        raise AriSfmError(path, f"unknown {where}.layout {layout!r} (expected {' or '.join(CIRCLE_LAYOUTS)})")
+    diameter = data.get("diameter_mm")
+    if diameter is not None:
+        diameter = as_positive_float(diameter, path, f"{where}.diameter_mm")
+        if diameter >= spacing:
+            raise AriSfmError(path, f"{where}.diameter_mm must be < spacing_mm ({diameter:g} >= {spacing:g}): the dots would touch")
+    return Target(type="circles", circle_grid=grid, spacing_mm=spacing, layout=layout, diameter_mm=diameter)
 
 
 MAX_GRID_POINTS = 1_000_000  # a board with more corners is a typo, not a target
@@ -418,6 +441,12 @@ def target_to_json(target: Target) -> dict[str, Any]:
             "marker_mm": target.marker_mm,
             "dictionary": target.dictionary,
         }
+    if target.type == "circles":
+        out = {"type": target.type, "grid": list(target.circle_grid or ()), "spacing_mm": target.spacing_mm,
+               "layout": target.layout}
+        if target.diameter_mm is not None:
+            out["diameter_mm"] = target.diameter_mm
+        return out
     return {"type": target.type, "points": {int(k): list(v) for k, v in (target.points or {}).items()}}
 
 

@@ -13,6 +13,10 @@ Board appearance (the detector relies on it, see :mod:`ari_sfm.detection`):
   corner 0 is black. A white margin of one square surrounds the squares.
 - ChArUco: OpenCV's own board image (``CharucoBoard.generateImage``), whose
   corner (c, r) lies at ((c+1) s, (r+1) s), plus a white margin of one square.
+- dot board (``circles``, DATASET_FORMAT 1.1): black discs of ``diameter_mm``
+  (default DEFAULT_DOT_FRACTION x spacing) centred on the target points
+  (:meth:`~ari_sfm.records.Target.points_3d`) on white, with a white margin of
+  one spacing around the dots' bounding box.
 - Outside the board the background is grey.
 """
 from __future__ import annotations
@@ -31,6 +35,7 @@ WHITE = 235.0
 BACKGROUND = 128.0
 _CHUNK_SAMPLES = 1 << 20  # samples per chunk: ~1M x (2 coords + temporaries) x 8 B, tens of MB
 _CHARUCO_PX_PER_SQUARE = 128  # resolution of the board image sampled for ChArUco
+DEFAULT_DOT_FRACTION = 0.5  # dot diameter / spacing of a dot board that declares no diameter_mm
 
 PixelToTarget = Callable[[np.ndarray], np.ndarray]
 
@@ -185,6 +190,8 @@ def _shader(target: Target) -> Callable[[np.ndarray], np.ndarray]:
         return _checkerboard_shader(target)
     if target.type == "charuco":
         return _charuco_shader(target)
+    if target.type == "circles":
+        return _circles_shader(target)
     raise ValueError(f"cannot render a target of type {target.type!r}")
 
 
@@ -239,6 +246,44 @@ def _charuco_shader(target: Target) -> Callable[[np.ndarray], np.ndarray]:
         top = board_img[y0, x0] * (1 - fx) + board_img[y0, x0 + 1] * fx
         bottom = board_img[y0 + 1, x0] * (1 - fx) + board_img[y0 + 1, x0 + 1] * fx
         out[inside] = top * (1 - fy) + bottom * fy
+        return out
+
+    return shade
+
+
+def dot_diameter_mm(target: Target) -> float:
+    """The printed dot diameter of a dot board: ``diameter_mm``, else DEFAULT_DOT_FRACTION x spacing."""
+    return float(target.diameter_mm) if target.diameter_mm is not None else DEFAULT_DOT_FRACTION * float(target.spacing_mm)
+
+
+def _circles_shader(target: Target) -> Callable[[np.ndarray], np.ndarray]:
+    """Exact discs: a sample is black iff it lies within the dot radius of its nearest dot centre.
+
+    The diameter is below the spacing, so the nearest dot is in row round(y / s)
+    and, in that row, at column round((x / s - offset) / step) (asymmetric
+    layout: step 2, offset r % 2; symmetric: step 1, offset 0).
+    """
+    cols, rows = target.circle_grid
+    s = float(target.spacing_mm)
+    radius = 0.5 * dot_diameter_mm(target)
+    asymmetric = target.layout == "asymmetric"
+    step = 2.0 if asymmetric else 1.0
+    width = ((2 * (cols - 1) + (1 if rows > 1 else 0)) if asymmetric else (cols - 1)) * s
+
+    def shade(xy: np.ndarray) -> np.ndarray:
+        x, y = xy[:, 0], xy[:, 1]
+        out = np.full(len(xy), BACKGROUND, dtype=np.float32)
+        with np.errstate(invalid="ignore"):
+            on_board = (x >= -s) & (x <= width + s) & (y >= -s) & (y <= (rows - 1) * s + s)
+            out[on_board] = WHITE
+            r = np.rint(y / s)
+            offset = np.where(np.mod(r, 2) == 1, 1.0, 0.0) if asymmetric else 0.0
+            c = np.rint((x / s - offset) / step)
+            inside = (r >= 0) & (r < rows) & (c >= 0) & (c < cols)
+            dx = x - (c * step + offset) * s
+            dy = y - r * s
+            dot = inside & (dx * dx + dy * dy <= radius * radius)
+        out[dot] = BLACK
         return out
 
     return shade

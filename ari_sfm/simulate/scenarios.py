@@ -20,6 +20,7 @@ import numpy as np
 
 from ari_sfm.geometry import Pose, rotation_from_rotvec, unit
 from ari_sfm.records import Target
+from ari_sfm.simulate.render import dot_diameter_mm
 from ari_sfm.simulate.scene import (
     MARGIN_PX,
     CameraTruth,
@@ -39,6 +40,8 @@ PAPER_FOCAL_PX = 12.0 / 3.45e-3  # 12 mm lens, 3.45 um pixels: 3478.3 px
 NBK7_INDEX = 1.5168
 WATER_INDEX = 1.333
 PAPER_TARGET = Target(type="checkerboard", inner_corners=(11, 8), square_mm=10.0)  # the paper: 10 mm corner spacing (Fig. 14)
+# a dot board of about the checkerboard's size: 5 x 11 asymmetric dots (rows odd: ids unambiguous), 10 mm spacing
+DOT_TARGET = Target(type="circles", circle_grid=(5, 11), spacing_mm=10.0, layout="asymmetric", diameter_mm=6.0)
 STACK_ADDED_MM = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0)
 STAGE_MM = tuple(float(s) for s in range(-10, 11, 2))
 MAX_TRIES = 4000  # draws per random pose before giving up (raise, never a silent bad pose)
@@ -47,6 +50,8 @@ SCENARIOS: dict[str, str] = {
     "paper_single": "one paper-like camera (2448x2048, f~3478 px) behind a 50 mm N-BK7 window "
                     "tilted 4-8 deg; 12 calibration poses, stacking 0..50 mm",
     "paper_single_images": "paper_single rendered to PNG images (corners must be detected)",
+    "paper_single_dots": "paper_single with a 5 x 11 asymmetric dot board (6 mm dots, 10 mm spacing) "
+                         "rendered to PNG images (dots must be detected)",
     "paper_single_perpendicular": "paper_single with the window normal within 0.05 deg of the optical axis",
     "binocular": "two cameras 120-200 mm apart, yawed 10-15 deg inward, one 50 mm window; "
                  "15 calibration frames, stacking, 11 stage frames (-10..10 mm)",
@@ -91,7 +96,18 @@ def _intrinsics(rng: np.random.Generator, size: tuple[int, int] = PAPER_IMAGE_SI
 
 def _board_outline(target: Target, per_edge: int = 6) -> np.ndarray:
     """Points along the outer edge of the board's squares (target frame): the printed
-    pattern that must be inside an image for a detector to find the board."""
+    pattern that must be inside an image for a detector to find the board.
+    For a dot board: the bounding box of its dots."""
+    if target.type == "circles":
+        _, xyz = target.points_3d()
+        r = 0.5 * dot_diameter_mm(target)
+        (x0, y0), (x1, y1) = xyz[:, :2].min(axis=0) - r, xyz[:, :2].max(axis=0) + r
+        t = np.linspace(0.0, 1.0, per_edge, endpoint=False)
+        xy = np.concatenate([np.stack([x0 + (x1 - x0) * t, np.full_like(t, y0)], 1),
+                             np.stack([np.full_like(t, x1), y0 + (y1 - y0) * t], 1),
+                             np.stack([x1 - (x1 - x0) * t, np.full_like(t, y1)], 1),
+                             np.stack([np.full_like(t, x0), y1 - (y1 - y0) * t], 1)])
+        return np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
     cols, rows = target.grid
     s = target.square_mm
     x0, y0, x1, y1 = -s, -s, cols * s, rows * s
@@ -120,8 +136,12 @@ def _board_pose(target: Target, center_world: np.ndarray, facing_world: np.ndarr
     R0 = np.column_stack([x, y, z])
     axis = math.cos(tilt_azimuth_rad) * x + math.sin(tilt_azimuth_rad) * y
     R = _rot(axis, tilt_rad) @ R0 @ _rot((0.0, 0.0, 1.0), roll_rad)
-    cols, rows = target.grid
-    c_local = np.array([(cols - 1) * target.square_mm / 2.0, (rows - 1) * target.square_mm / 2.0, 0.0])
+    if target.type == "circles":  # the centre of the dots' bounding box
+        _, xyz = target.points_3d()
+        c_local = 0.5 * (xyz.min(axis=0) + xyz.max(axis=0))
+    else:
+        cols, rows = target.grid
+        c_local = np.array([(cols - 1) * target.square_mm / 2.0, (rows - 1) * target.square_mm / 2.0, 0.0])
     return Pose(R, np.asarray(center_world, float) - R @ c_local)
 
 
@@ -218,7 +238,7 @@ def _frame_names(prefix: str, n: int) -> list[str]:
 
 
 def paper_single(rng: np.random.Generator, num_frames: int = 12, perpendicular: bool = False,
-                 stack_added_mm: Sequence[float] = STACK_ADDED_MM) -> Geometry:
+                 stack_added_mm: Sequence[float] = STACK_ADDED_MM, target: Target = PAPER_TARGET) -> Geometry:
     """One paper-like camera behind a 50 mm N-BK7 plate in air (section 3 of the paper).
 
     Poses are drawn so the whole printed board (not only the corners) is in
@@ -232,7 +252,7 @@ def paper_single(rng: np.random.Generator, num_frames: int = 12, perpendicular: 
     normal = _tilted(np.array([0.0, 0.0, 1.0]), math.radians(tilt), rng.uniform(0.0, 2 * math.pi))
     window = WindowTruth(normal_world=normal, distance_mm=float(rng.uniform(30.0, 60.0)),
                          thickness_mm=50.0, index=NBK7_INDEX, medium_index=1.0)
-    chk = _Checker(PAPER_TARGET, window, (cam,))
+    chk = _Checker(target, window, (cam,))
     w, h = cam.image_size
     down = np.array([0.0, 1.0, 0.0])
 
@@ -240,7 +260,7 @@ def paper_single(rng: np.random.Generator, num_frames: int = 12, perpendicular: 
         uv = (K[0, 2] + rng.uniform(-40, 40), K[1, 2] + rng.uniform(-40, 40))
         center = chk.point_at(cam, uv, rng.uniform(390.0, 410.0))
         facing = _tilted(normal, math.radians(rng.uniform(0.0, 2.0)), rng.uniform(0, 2 * math.pi))
-        pose = _board_pose(PAPER_TARGET, center, facing, down, roll_rad=math.radians(rng.uniform(-2, 2)))
+        pose = _board_pose(target, center, facing, down, roll_rad=math.radians(rng.uniform(-2, 2)))
         return pose if chk.sees(cam, pose, stack_added_mm, outline=True) else None
 
     s0 = StackingPose("s0", _draw("stacking pose s0", stacking_sample), tuple(float(a) for a in stack_added_mm))
@@ -249,7 +269,7 @@ def paper_single(rng: np.random.Generator, num_frames: int = 12, perpendicular: 
     # the image, so the cell picks a place within the range of centres where this board
     # (depth, tilt, roll drawn first) fits, not within the whole image.
     cells = [(i / 3.0, j / 2.0) for j in range(3) for i in range(4)]  # 0 .. 1 across the feasible range
-    outline = _board_outline(PAPER_TARGET)
+    outline = _board_outline(target)
     calibration: dict[str, Pose] = {}
     for k, name in enumerate(_frame_names("f", num_frames)):
         cu, cv = cells[k % len(cells)]
@@ -262,7 +282,7 @@ def paper_single(rng: np.random.Generator, num_frames: int = 12, perpendicular: 
 
             def pose_at(u: float, v: float) -> Pose:
                 center = chk.point_at(cam, (u, v), depth)
-                return _board_pose(PAPER_TARGET, center, center - cam.center_world, down, tilt, azimuth, roll)
+                return _board_pose(target, center, center - cam.center_world, down, tilt, azimuth, roll)
 
             uv = chk.project(cam, pose_at(K[0, 2], K[1, 2]).apply(outline))
             if not np.all(np.isfinite(uv)):
@@ -278,7 +298,7 @@ def paper_single(rng: np.random.Generator, num_frames: int = 12, perpendicular: 
 
         calibration[name] = _draw(f"calibration frame {name}", calib_sample)
 
-    return Geometry(target=PAPER_TARGET, window=window, cameras=(cam,), calibration=calibration, stacking=(s0,))
+    return Geometry(target=target, window=window, cameras=(cam,), calibration=calibration, stacking=(s0,))
 
 
 # --------------------------------------------------------------------------- binocular
@@ -529,6 +549,7 @@ class ScenarioSpec:
 REGISTRY: dict[str, ScenarioSpec] = {
     "paper_single": ScenarioSpec(paper_single, {}, rng_name="paper_single"),
     "paper_single_images": ScenarioSpec(paper_single, {}, images=True, rng_name="paper_single"),
+    "paper_single_dots": ScenarioSpec(paper_single, {"target": DOT_TARGET}, images=True, rng_name="paper_single_dots"),
     "paper_single_perpendicular": ScenarioSpec(paper_single, {"perpendicular": True},
                                                rng_name="paper_single_perpendicular"),
     "binocular": ScenarioSpec(binocular, {}, rng_name="binocular"),

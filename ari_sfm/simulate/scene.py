@@ -259,6 +259,9 @@ def _target_json(target: Target) -> dict:
     if target.type == "checkerboard":
         return {"type": "checkerboard", "inner_corners": list(target.inner_corners),
                 "square_mm": float(target.square_mm)}
+    if target.type == "circles":
+        return {"type": "circles", "grid": list(target.circle_grid), "spacing_mm": float(target.spacing_mm),
+                "layout": target.layout, "diameter_mm": target.diameter_mm}
     ids, xyz = target.points_3d()
     return {"type": target.type, "ids": ids.tolist(), "points": xyz.tolist()}
 
