@@ -11,10 +11,13 @@ import numpy as np
 from .calibration import Calibration, CameraCalibration
 from .errors import AriSfmError
 from .evaluate import residual_stats
-from .records import Dataset, Interface
+from .records import Dataset, Interface, WindowPlane
 
 log = logging.getLogger(__name__)
 
+NO_NORMAL_MESSAGE = ("no stacking observations and no interface.plane: the ari model cannot observe the window "
+                     "normal (the normal is not observable); use --model exact (Snell's law observes it through "
+                     "refraction) or declare the window as interface.plane (DATASET_FORMAT.md 1.1)")
 MODELS = ("ari", "exact", "rt", "pf", "pinhole", "pinhole_dist")  # the last four: ari_sfm.baselines
 
 
@@ -26,7 +29,8 @@ class CalibrationOptions:
     huber_px: float | None = 1.0  # per-corner Huber threshold in px; None: plain least squares
     outlier_sigma: float = 5.0  # corners beyond this many sigma after convergence are reported
     exclude_outliers: bool = False  # drop those corners and re-run the last stage
-    fix_intrinsics: bool = False  # hold K (and dist) at the rig.yaml hints of the cameras that give K
+    fix_intrinsics: bool = False  # hold the rig.yaml hints: K (and dist) where K is given; fx = fy = focal_px
+    # (principal point free) where only focal_px is
     max_iterations: int = 100  # Levenberg-Marquardt iterations per stage
     backend: str = "auto"  # bundle adjustment solver: "numpy" (vectorised, GTSAM's LM path), "gtsam", "auto" (= numpy)
     workers: int | None = None  # threads for corner detection (dataset with only images) and for the per-camera
@@ -61,9 +65,13 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     "pinhole_dist" (window ignored): see :mod:`ari_sfm.baselines`.
     Options: see :class:`CalibrationOptions`.
     """
+    import gtsam
+
     from .init.rig import initialise_rig
+    from .factors import keys as K_
     from .factors.rig_graph import RigGraph, RigState, default_distance_mm
     from .factors.vectorized import optimize_graph, resolve_backend
+    from .factors.window_plane import plane_in_world
 
     opts = _options(options)
     backend = resolve_backend(opts.backend)
@@ -83,34 +91,57 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     iface = dataset.interface
     names = dataset.camera_names
     underwater = iface.medium_index != 1.0
-    distance = iface.distance_mm
-    if distance is None and underwater:
-        distance = default_distance_mm(rig.normal_world, rig.cam_from_world)
-    state = RigState.from_initialisation(rig, distance)
-    fixed = [n for n in names if dataset.cameras[n].K is not None] if opts.fix_intrinsics else []
-    if opts.fix_intrinsics and not fixed:
-        raise AriSfmError(dataset.rig_path, "fix_intrinsics needs a K hint for at least one camera (cameras.<name>.K)")
+    plane = _declared_plane(dataset, rig)
+    unobserved = not rig.normal_observed and plane is None  # no stacking, no declared window
+    if unobserved and model == "ari":
+        raise AriSfmError(dataset.rig_path, NO_NORMAL_MESSAGE)
+    state = RigState.from_initialisation(rig, iface.distance_mm)
+    if plane is not None:  # the declared window is the start (and, held or with its prior, the result)
+        n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
+        state = replace(state, normal_world=n_w, distance_mm=h_w)
+    elif state.distance_mm is None and underwater:
+        state = replace(state, distance_mm=default_distance_mm(state.normal_world, state.cam_from_world))
+    fixed, fixed_focal = _held_intrinsics(dataset, opts.fix_intrinsics)
     for n in fixed:  # start from the hint exactly
         spec = dataset.cameras[n]
         state.params[n][:4] = [spec.K[0, 0], spec.K[1, 1], spec.K[0, 2], spec.K[1, 2]]
         state.params[n][4:] = np.resize(spec.dist if spec.dist is not None else np.zeros(5), 5)
+    for n, f in fixed_focal.items():
+        state.params[n][:2] = f
     stages = ["ari"] + (["exact"] if model == "exact" else [])
+
+    def build(stage: str, st: RigState, observations=dataset.observations) -> RigGraph:
+        return RigGraph.build(
+            observations, dataset.target, iface, names, st, model=stage, distortion=opts.distortion,
+            estimate_distance=underwater, huber_px=opts.huber_px, fixed_intrinsics=fixed,
+            fixed_focal_px=fixed_focal, window_plane=plane,
+        )
+
+    def solve(rg: RigGraph, stage: str, max_iterations: int = opts.max_iterations):
+        if stage == "exact":
+            _check_in_front(dataset, rg, backend, opts.huber_px)
+        try:
+            return optimize_graph(rg, backend, max_iterations, opts.huber_px, return_problem=True,
+                                  check=False)  # the graph was just built with opts.huber_px
+        except RuntimeError as exc:  # the numpy backend names camera and frame; GTSAM's factor says what failed
+            raise AriSfmError(dataset.observations_path or dataset.rig_path, f"{stage} stage: {exc}") from None
+
     graph = None
     iterations = {}
     for stage in stages:
-        if stage == "exact" and state.distance_mm is None:
-            state = replace(state, distance_mm=default_distance_mm(state.normal_world, state.cam_from_world))
-        graph = RigGraph.build(
-            dataset.observations, dataset.target, iface, names, state, model=stage, distortion=opts.distortion,
-            estimate_distance=underwater, huber_px=opts.huber_px, fixed_intrinsics=fixed,
-        )
+        if stage == "exact":
+            state = _exact_start(dataset, state, underwater, plane, unobserved, build, solve, backend, opts)
+        graph = build(stage, state)
+        if stage == "ari" and unobserved:  # the ari model cannot move it: hold the normal at its start
+            graph.graph.push_back(gtsam.PriorFactorUnit3(K_.N, gtsam.Unit3(np.asarray(state.normal_world, float)),
+                                                         gtsam.noiseModel.Isotropic.Sigma(2, 1e-7)))
         t_stage = time.perf_counter()
-        state, solved = optimize_graph(graph, backend, opts.max_iterations, opts.huber_px, return_problem=True,
-                                       check=False)  # the graph was just built with opts.huber_px
+        state, solved = solve(graph, stage)
         iterations[stage] = {"iterations": graph.iterations, "time_s": time.perf_counter() - t_stage, "backend": backend}
         if solved is not None:  # numpy backend: it stops at convergence without GTSAM's futile lambda trials
             iterations[stage]["error_evaluations"] = solved.report.error_evaluations
-        log.info("%s bundle adjustment: %d iterations, %.3f s", stage, graph.iterations, iterations[stage]["time_s"])
+        log.info("%s bundle adjustment: %d iterations, %.3f s, window distance %s mm", stage, graph.iterations,
+                 iterations[stage]["time_s"], None if state.distance_mm is None else f"{state.distance_mm:.1f}")
     from .outliers import find_outliers, without
 
     # residuals and marginals from the numpy backend's solved problem (no Python callbacks); GTSAM's otherwise
@@ -118,12 +149,8 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     outliers, robust_sigma = find_outliers(residuals, opts.outlier_sigma)
     if outliers and opts.exclude_outliers:
         log.info("excluding %d outlier corners and re-running the %s stage", len(outliers), stages[-1])
-        graph = RigGraph.build(
-            without(dataset.observations, outliers), dataset.target, iface, names, state, model=stages[-1],
-            distortion=opts.distortion, estimate_distance=underwater, huber_px=opts.huber_px, fixed_intrinsics=fixed,
-        )
-        state, solved = optimize_graph(graph, backend, opts.max_iterations, opts.huber_px, return_problem=True,
-                                       check=False)
+        graph = build(stages[-1], state, without(dataset.observations, outliers))
+        state, solved = solve(graph, stages[-1])
         residuals = solved.residuals() if solved is not None else graph.residuals()
     if outliers:
         # With the paraxial ari model, large residuals are mostly its own error at oblique rays.
@@ -148,6 +175,8 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
             residual_stats(r for o, r in residuals if o.camera == n)["rmse_px"],
         )
     distance = state.distance_mm if underwater else None  # unobservable in air: null
+    if plane is not None:  # declared: known in air too
+        distance = plane_in_world(plane, state.world_from_target[plane.frame])[1]
     calib_frames = {o.frame for o in dataset.select("calibration")}
     extra: dict = {"optimizer": iterations}
     if uncertainty:
@@ -170,3 +199,106 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     )
     return cal
 
+
+
+def _declared_plane(dataset: Dataset, rig) -> WindowPlane | None:
+    """interface.plane, checked: its frame must be a calibration frame seen by a camera."""
+    plane = dataset.interface.plane
+    if plane is None:
+        return None
+    calib = {o.frame for o in dataset.select("calibration")}
+    if plane.frame not in calib or plane.frame not in rig.world_from_target:
+        known = ", ".join(sorted(calib)[:5]) + (", ..." if len(calib) > 5 else "")
+        raise AriSfmError(dataset.rig_path, f"interface.plane.frame: {plane.frame!r} is not a calibration frame "
+                                            f"seen by the cameras (calibration frames: {known or 'none'})")
+    return plane
+
+
+def _held_intrinsics(dataset: Dataset, fix: bool) -> tuple[list[str], dict[str, float]]:
+    """Cameras whose K is held (a K hint) and camera -> focal held as fx = fy (a focal_px hint only)."""
+    if not fix:
+        return [], {}
+    cams = dataset.cameras
+    fixed = [n for n in dataset.camera_names if cams[n].K is not None]
+    focal = {n: float(cams[n].focal_px) for n in dataset.camera_names if cams[n].K is None and cams[n].focal_px is not None}
+    if not fixed and not focal:
+        raise AriSfmError(dataset.rig_path, "fix_intrinsics needs a K or focal_px hint for at least one camera "
+                                            "(cameras.<name>.K or cameras.<name>.focal_px)")
+    return fixed, focal
+
+
+def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: bool, build, solve, backend: str,
+                 opts: CalibrationOptions):
+    """The exact stage's start from the ari result: a distance in front of every camera (in air any
+    will do); under water a distance searched inside the valid interval (the ari stage's can be far
+    off); without stacking or declared plane, the normal from a coarse search scored by the exact cost."""
+    import gtsam
+
+    from .factors import keys as K_
+    from .factors.rig_graph import default_distance_mm
+    from .init.window_start import search_normal
+
+    if not underwater:
+        if state.distance_mm is None:
+            state = replace(state, distance_mm=default_distance_mm(state.normal_world, state.cam_from_world))
+    elif plane is None:  # the ari stage's distance (or the hint) is one candidate
+        state = _searched_distance(dataset, state, build, opts)
+    if not unobserved:
+        return state
+
+    def score(normal: np.ndarray) -> float:
+        st = replace(state, normal_world=normal)
+        if underwater:
+            st = _searched_distance(dataset, st, build, opts)
+        elif plane is None:
+            st = replace(st, distance_mm=default_distance_mm(normal, st.cam_from_world))
+        rg = build("exact", st)
+        rg.graph.push_back(gtsam.PriorFactorUnit3(K_.N, gtsam.Unit3(np.asarray(normal, float)),
+                                                  gtsam.noiseModel.Isotropic.Sigma(2, 1e-7)))
+        try:
+            _, solved = solve(rg, "exact", NORMAL_SEARCH_ITERATIONS)
+        except AriSfmError:
+            return np.inf
+        return solved.error() if solved is not None else rg.graph.error(rg.values)
+
+    normal = search_normal(score, state.normal_world)
+    state = replace(state, normal_world=normal)
+    if underwater:
+        state = _searched_distance(dataset, state, build, opts)
+    elif plane is None:
+        state = replace(state, distance_mm=default_distance_mm(normal, state.cam_from_world))
+    return state
+
+
+NORMAL_SEARCH_ITERATIONS = 5  # LM iterations refitting K and poses for each candidate normal
+
+
+def _searched_distance(dataset: Dataset, state, build, opts: CalibrationOptions):
+    """state with its distance searched by the exact cost inside the valid interval (under water)."""
+    from .factors.vectorized import VectorizedProblem
+    from .init.window_start import distance_interval, search_distance
+
+    lo, hi = distance_interval(state, dataset.observations, dataset.target, dataset.interface.thickness_mm)
+    if not hi > lo:
+        raise AriSfmError(dataset.rig_path, f"no window distance puts every camera in front of the window and every "
+                                            f"corner beyond it (cameras up to {lo:.1f} mm, corners from {hi:.1f} mm "
+                                            "along the normal): check interface.thickness_mm and the target")
+    rg = build("exact", replace(state, distance_mm=0.5 * (lo + hi)))
+    problem = VectorizedProblem.from_rig_graph(rg, huber_px=opts.huber_px, check=False)
+    best = search_distance(lambda h: problem.error(replace(problem.x, distance_mm=h)), lo, hi, current=state.distance_mm)
+    return replace(state, distance_mm=best)
+
+
+def _check_in_front(dataset: Dataset, rg, backend: str, huber_px: float | None) -> None:
+    """One-line error naming camera and frame when a corner is not beyond the window at the start."""
+    from .factors.vectorized import INVALID_RESIDUAL, VectorizedProblem
+
+    try:
+        residuals = VectorizedProblem.from_rig_graph(rg, huber_px=huber_px, check=False).residuals()
+    except NotImplementedError:  # a graph the numpy backend cannot hold: GTSAM's own evaluation
+        residuals = rg.residuals()
+    for obs, r in residuals:
+        if np.any(np.abs(r) >= INVALID_RESIDUAL):
+            raise AriSfmError(dataset.observations_path or dataset.rig_path,
+                              f"camera {obs.camera} frame {obs.frame}: a corner is not beyond the window at the "
+                              "start of the exact stage (check interface.thickness_mm, distance_mm and plane)")

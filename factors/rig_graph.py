@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import os
 from dataclasses import dataclass, field, replace
-from typing import Sequence
+from typing import Mapping, Sequence
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -23,7 +23,7 @@ import numpy as np
 
 from ..geometry import Pose, cam_from_world_from_pose3, pose3_from_cam_from_world, pose3_from_pose, pose_from_pose3
 from ..models import AriModel, ExactModel
-from ..records import Interface, Observation, Target
+from ..records import Interface, Observation, Target, WindowPlane
 from . import keys as K_
 from .view_factor import ViewData, ViewKeys, view_factor, view_residuals
 
@@ -94,8 +94,14 @@ class RigGraph:
         sigma_px: float = 1.0,
         min_corners: int = 4,
         fixed_intrinsics: Sequence[str] = (),
+        fixed_focal_px: Mapping[str, float] | None = None,
+        window_plane: WindowPlane | None = None,
     ) -> "RigGraph":
-        """One factor per (camera, calibration or stacking image); variables from state."""
+        """One factor per (camera, calibration or stacking image); variables from state.
+
+        ``fixed_intrinsics``: cameras whose intrinsics are held at the state's; ``fixed_focal_px``:
+        camera -> focal held as fx = fy (principal point and distortion free); ``window_plane``:
+        the declared window (:mod:`ari_sfm.factors.window_plane`), its frame one of the state's."""
         factory = MODELS[model]
         names = list(camera_names)
         frames = sorted(state.world_from_target)
@@ -115,6 +121,17 @@ class RigGraph:
             c = names.index(name)
             graph.push_back(gtsam.PriorFactorVector(K_.K(c), np.asarray(state.params[name][:n_params], float),
                                                     gtsam.noiseModel.Isotropic.Sigma(n_params, 1e-4)))
+        for name, focal in (fixed_focal_px or {}).items():  # fx = fy = focal, the rest free
+            c = names.index(name)
+            prior = np.asarray(state.params[name][:n_params], float).copy()
+            prior[:2] = focal
+            sigmas = np.full(n_params, 1e6)
+            sigmas[:2] = 1e-4
+            graph.push_back(gtsam.PriorFactorVector(K_.K(c), prior, gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
+        if window_plane is not None:
+            from .window_plane import window_plane_factor
+
+            graph.push_back(window_plane_factor(window_plane, frame_index[window_plane.frame], estimate_distance))
         from ..init.zhang import object_points
         rg = RigGraph(graph, values, names, frames, n_params, state, estimate_distance, model=model)
         for obs in observations:
