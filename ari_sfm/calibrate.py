@@ -11,6 +11,7 @@ import numpy as np
 from .calibration import Calibration, CameraCalibration
 from .errors import AriSfmError
 from .evaluate import residual_stats
+from .geometry import angle_between_deg
 from .records import Dataset, Interface, WindowPlane
 
 log = logging.getLogger(__name__)
@@ -18,6 +19,7 @@ log = logging.getLogger(__name__)
 NO_NORMAL_MESSAGE = ("no stacking observations and no interface.plane: the ari model cannot observe the window "
                      "normal (the normal is not observable); use --model exact (Snell's law observes it through "
                      "refraction) or declare the window as interface.plane (DATASET_FORMAT.md 1.1)")
+PLANE_ROUNDS = 5  # ari rounds holding the declared normal at its frame's refitted pose (no stacking)
 MODELS = ("ari", "exact", "rt", "pf", "pinhole", "pinhole_dist")  # the last four: ari_sfm.baselines
 
 
@@ -108,13 +110,20 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
         state.params[n][4:] = np.resize(spec.dist if spec.dist is not None else np.zeros(5), 5)
     for n, f in fixed_focal.items():
         state.params[n][:2] = f
-    stages = ["ari"] + (["exact"] if model == "exact" else [])
+    # (label, model, normal held at its start, declared plane in the graph)
+    stages = [("ari", "ari", False, plane is not None)]
+    if not rig.normal_observed:  # no stacking: ari with the normal held at its start gives K and the poses
+        stages = [("ari" if plane is None else "ari_normal_held", "ari", True, False)]
+        if plane is not None and model == "ari":
+            stages.append(("ari", "ari", False, True))
+    if model == "exact":
+        stages.append(("exact", "exact", False, plane is not None))
 
-    def build(stage: str, st: RigState, observations=dataset.observations) -> RigGraph:
+    def build(stage: str, st: RigState, observations=dataset.observations, with_plane: bool = True) -> RigGraph:
         return RigGraph.build(
             observations, dataset.target, iface, names, st, model=stage, distortion=opts.distortion,
             estimate_distance=underwater, huber_px=opts.huber_px, fixed_intrinsics=fixed,
-            fixed_focal_px=fixed_focal, window_plane=plane,
+            fixed_focal_px=fixed_focal, window_plane=plane if with_plane else None,
         )
 
     def solve(rg: RigGraph, stage: str, max_iterations: int = opts.max_iterations):
@@ -128,33 +137,45 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
 
     graph = None
     iterations = {}
-    for stage in stages:
+    for label, stage, hold_normal, with_plane in stages:
+        if with_plane:  # the declared window, placed by the current pose of its frame
+            n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
+            state = replace(state, normal_world=n_w, distance_mm=h_w if underwater else state.distance_mm)
         if stage == "exact":
             state = _exact_start(dataset, state, underwater, plane, unobserved, build, solve, backend, opts)
-        graph = build(stage, state)
-        if stage == "ari" and unobserved:  # the ari model cannot move it: hold the normal at its start
+        graph = build(stage, state, with_plane=with_plane)
+        if hold_normal:  # the ari model cannot observe it here
             graph.graph.push_back(gtsam.PriorFactorUnit3(K_.N, gtsam.Unit3(np.asarray(state.normal_world, float)),
                                                          gtsam.noiseModel.Isotropic.Sigma(2, 1e-7)))
         t_stage = time.perf_counter()
         state, solved = solve(graph, stage)
-        iterations[stage] = {"iterations": graph.iterations, "time_s": time.perf_counter() - t_stage, "backend": backend}
+        for _ in range(PLANE_ROUNDS if hold_normal and plane is not None else 0):
+            # hold the declared normal as placed by its frame's refitted pose, until that stops moving
+            n_w = plane_in_world(plane, state.world_from_target[plane.frame])[0]
+            if angle_between_deg(n_w, state.normal_world) < 1e-3:
+                break
+            graph = build(stage, replace(state, normal_world=n_w), with_plane=False)
+            graph.graph.push_back(gtsam.PriorFactorUnit3(K_.N, gtsam.Unit3(n_w), gtsam.noiseModel.Isotropic.Sigma(2, 1e-7)))
+            state, solved = solve(graph, stage)
+        iterations[label] = {"iterations": graph.iterations, "time_s": time.perf_counter() - t_stage, "backend": backend}
         if solved is not None:  # numpy backend: it stops at convergence without GTSAM's futile lambda trials
-            iterations[stage]["error_evaluations"] = solved.report.error_evaluations
-        log.info("%s bundle adjustment: %d iterations, %.3f s, window distance %s mm", stage, graph.iterations,
-                 iterations[stage]["time_s"], None if state.distance_mm is None else f"{state.distance_mm:.1f}")
+            iterations[label]["error_evaluations"] = solved.report.error_evaluations
+        log.info("%s bundle adjustment: %d iterations, %.3f s, window distance %s mm", label, graph.iterations,
+                 iterations[label]["time_s"], None if state.distance_mm is None else f"{state.distance_mm:.1f}")
+    last_stage, last_plane = stages[-1][1], stages[-1][3]
     from .outliers import find_outliers, without
 
     # residuals and marginals from the numpy backend's solved problem (no Python callbacks); GTSAM's otherwise
     residuals = solved.residuals() if solved is not None else graph.residuals()
     outliers, robust_sigma = find_outliers(residuals, opts.outlier_sigma)
     if outliers and opts.exclude_outliers:
-        log.info("excluding %d outlier corners and re-running the %s stage", len(outliers), stages[-1])
-        graph = build(stages[-1], state, without(dataset.observations, outliers))
-        state, solved = solve(graph, stages[-1])
+        log.info("excluding %d outlier corners and re-running the %s stage", len(outliers), last_stage)
+        graph = build(last_stage, state, without(dataset.observations, outliers), with_plane=last_plane)
+        state, solved = solve(graph, last_stage)
         residuals = solved.residuals() if solved is not None else graph.residuals()
     if outliers:
         # With the paraxial ari model, large residuals are mostly its own error at oblique rays.
-        level = logging.INFO if stages[-1] == "ari" else logging.WARNING
+        level = logging.INFO if last_stage == "ari" else logging.WARNING
         log.log(level, "%d corners beyond %.0f sigma (%.3f px) after convergence%s", len(outliers), opts.outlier_sigma,
                 robust_sigma, " (excluded)" if opts.exclude_outliers else "")
     elapsed = time.perf_counter() - t0

@@ -23,8 +23,8 @@ from ..geometry import Pose, skew, unit
 from ..records import WindowPlane
 from . import keys as K_
 
-FIXED_SIGMA_RAD = 1e-7  # "held fixed": ~2e-5 deg
-FIXED_SIGMA_MM = 1e-5
+FIXED_SIGMA_RAD = 1e-6  # "held fixed": 6e-5 deg, far below what the images say
+FIXED_SIGMA_MM = 1e-4
 
 
 def plane_in_world(plane: WindowPlane, world_from_target: Pose) -> tuple[np.ndarray, float]:

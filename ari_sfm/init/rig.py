@@ -9,6 +9,7 @@ from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from ..errors import AriSfmError
@@ -62,8 +63,9 @@ def initialise_camera(dataset: Dataset, name: str, distortion: bool = False) -> 
     stacking = dataset.select("stacking", name)
     try:
         zhang = calibrate_views(dataset.target, dataset.cameras[name], views, distortion)
-    except ValueError as exc:
-        raise AriSfmError(dataset.rig_path, f"camera {name}: {exc}") from None
+    except (ValueError, cv2.error) as exc:  # DLT refused, or OpenCV refused the start
+        msg = str(exc).strip().splitlines()[-1] if isinstance(exc, cv2.error) else str(exc)
+        raise AriSfmError(dataset.rig_path, f"camera {name}: {msg}") from None
     iface = dataset.interface
     expansion, normal = None, None
     if stacking:
