@@ -270,7 +270,7 @@ def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: b
     def score(normal: np.ndarray) -> float:
         st = replace(state, normal_world=normal)
         if underwater:
-            st = _searched_distance(dataset, st, build, opts)
+            st = _searched_distance(dataset, st, build, opts, samples=12)
         elif plane is None:
             st = replace(st, distance_mm=default_distance_mm(normal, st.cam_from_world))
         rg = build("exact", st)
@@ -294,7 +294,7 @@ def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: b
 NORMAL_SEARCH_ITERATIONS = 5  # LM iterations refitting K and poses for each candidate normal
 
 
-def _searched_distance(dataset: Dataset, state, build, opts: CalibrationOptions):
+def _searched_distance(dataset: Dataset, state, build, opts: CalibrationOptions, samples: int = 48):
     """state with its distance searched by the exact cost inside the valid interval (under water)."""
     from .factors.vectorized import VectorizedProblem
     from .init.window_start import distance_interval, search_distance
@@ -306,7 +306,8 @@ def _searched_distance(dataset: Dataset, state, build, opts: CalibrationOptions)
                                             "along the normal): check interface.thickness_mm and the target")
     rg = build("exact", replace(state, distance_mm=0.5 * (lo + hi)))
     problem = VectorizedProblem.from_rig_graph(rg, huber_px=opts.huber_px, check=False)
-    best = search_distance(lambda h: problem.error(replace(problem.x, distance_mm=h)), lo, hi, current=state.distance_mm)
+    best = search_distance(lambda h: problem.error(replace(problem.x, distance_mm=h)), lo, hi, samples,
+                           current=state.distance_mm)
     return replace(state, distance_mm=best)
 
 

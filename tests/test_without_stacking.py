@@ -303,3 +303,38 @@ def test_a_start_behind_the_window_names_camera_and_frame(oblique):
     with pytest.raises(AriSfmError, match=r"camera cam\d frame f\d+: a corner is not beyond the window") as e:
         _check_in_front(ds, rg, "numpy", 1.0)
     assert "\n" not in str(e.value)
+
+
+# ------------------------------------------------------------------ the command line
+
+
+def test_cli_without_stacking(tmp_path):
+    """calibrate (ari by default) refuses in one line naming both ways out; run picks exact;
+    calibrate --model exact --fix-intrinsics holds the focal_px hint."""
+    import json
+
+    from click.testing import CliRunner
+
+    from ari_sfm.cli import main
+
+    runner = CliRunner()
+    r = runner.invoke(main, ["simulate", "paper_single_nostack", "-o", str(tmp_path / "sim"), "--no-images"])
+    assert r.exit_code == 0, r.output
+    ds = str(tmp_path / "sim" / "dataset")
+    r = runner.invoke(main, ["calibrate", ds, "-o", str(tmp_path / "a")])
+    assert r.exit_code == 1 and not (tmp_path / "a" / "calibration.json").exists()
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "--model exact" in lines[0], r.output
+    r = runner.invoke(main, ["run", ds, "-o", str(tmp_path / "run")])
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "run" / "run.json").read_text())["model"] == "exact"
+    r = runner.invoke(main, ["calibrate", ds, "-o", str(tmp_path / "f"), "--model", "exact", "--fix-intrinsics"])
+    assert r.exit_code == 0, r.output
+    cal = json.loads((tmp_path / "f" / "calibration.json").read_text())
+    truth = json.loads((tmp_path / "sim" / "truth.json").read_text())
+    import yaml
+
+    focal = yaml.safe_load((tmp_path / "sim" / "dataset" / "rig.yaml").read_text())["cameras"]["cam0"]["focal_px"]
+    K = np.array(cal["cameras"]["cam0"]["K"])
+    assert abs(K[0, 0] - focal) < 1e-3 and abs(K[1, 1] - focal) < 1e-3
+    assert abs(K[0, 2] - np.array(truth["cameras"]["cam0"]["K"])[0, 2]) < 10.0  # free (the hint is 1 % off)
