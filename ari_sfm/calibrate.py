@@ -267,8 +267,11 @@ def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: b
     if not unobserved:
         return state
 
+    frames = _search_frames(dataset, state, NORMAL_SEARCH_FRAMES)
+    subset = replace(state, world_from_target={f: state.world_from_target[f] for f in frames})
+
     def score(normal: np.ndarray) -> float:
-        st = replace(state, normal_world=normal)
+        st = replace(subset, normal_world=normal)
         if underwater:
             st = _searched_distance(dataset, st, build, opts, samples=12)
         elif plane is None:
@@ -292,6 +295,23 @@ def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: b
 
 
 NORMAL_SEARCH_ITERATIONS = 5  # LM iterations refitting K and poses for each candidate normal
+NORMAL_SEARCH_FRAMES = 12  # frames (those seen by most cameras, every camera covered) scoring the candidates
+
+
+def _search_frames(dataset: Dataset, state, count: int) -> list[str]:
+    """Up to ``count`` frames of the state seen by the most cameras, more if needed to cover every camera."""
+    cams: dict[str, set[str]] = {}
+    for o in dataset.observations:
+        if o.frame in state.world_from_target and o.set in ("calibration", "stacking"):
+            cams.setdefault(o.frame, set()).add(o.camera)
+    chosen, covered = [], set()
+    for f in sorted(cams, key=lambda f: (-len(cams[f]), f)):
+        if len(chosen) < count or not cams[f] <= covered:
+            chosen.append(f)
+            covered |= cams[f]
+        if len(chosen) >= count and covered >= set(dataset.camera_names):
+            break
+    return chosen
 
 
 def _searched_distance(dataset: Dataset, state, build, opts: CalibrationOptions, samples: int = 48):

@@ -338,3 +338,22 @@ def test_cli_without_stacking(tmp_path):
     K = np.array(cal["cameras"]["cam0"]["K"])
     assert abs(K[0, 0] - focal) < 1e-3 and abs(K[1, 1] - focal) < 1e-3
     assert abs(K[0, 2] - np.array(truth["cameras"]["cam0"]["K"])[0, 2]) < 10.0  # free (the hint is 1 % off)
+
+
+# ------------------------------------------------------------------ the start searches
+
+
+def test_tilt_candidates_and_searches():
+    from ari_sfm.init.window_start import search_distance, search_normal, tilt_candidates
+
+    axis = np.array([0.1, -0.2, 1.0]) / np.linalg.norm([0.1, -0.2, 1.0])
+    cands = tilt_candidates(axis, (4.0, 8.0), 6)
+    assert len(cands) == 13
+    angles = sorted(angle_between_deg(c, axis) for c in cands)
+    np.testing.assert_allclose(angles, [0.0] + [4.0] * 6 + [8.0] * 6, atol=1e-9)
+    hidden = cands[9]
+    np.testing.assert_allclose(search_normal(lambda n: angle_between_deg(n, hidden), axis, (4.0, 8.0), 6), hidden)
+    # a cost infinite near one end (corners behind the window there), a minimum at 37 mm
+    cost = lambda h: np.inf if h > 300 else (h - 37.0) ** 2 + 1.0  # noqa: E731
+    assert abs(search_distance(cost, 0.0, 370.0) - 37.0) < 0.05
+    assert abs(search_distance(cost, 0.0, 370.0, current=2400.0) - 37.0) < 0.05  # outside: not a candidate
