@@ -294,7 +294,7 @@ def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: b
     return state
 
 
-NORMAL_SEARCH_ITERATIONS = 5  # LM iterations refitting K and poses for each candidate normal
+NORMAL_SEARCH_ITERATIONS = 10  # LM iterations refitting K and poses for each candidate normal
 NORMAL_SEARCH_FRAMES = 12  # frames (those seen by most cameras, every camera covered) scoring the candidates
 
 

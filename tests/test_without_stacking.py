@@ -238,6 +238,19 @@ def test_window_plane_factor_jacobians():
 # ------------------------------------------------------------------ under water: never behind the window
 
 
+def _true_state(scene):
+    """The simulated truth as a RigState (calibration frames)."""
+    from ari_sfm.factors.rig_graph import RigState
+
+    tr, names = scene.truth, scene.dataset.camera_names
+    frames = {o.frame for o in scene.dataset.select("calibration")}
+    return RigState({n: np.r_[np.array(tr["cameras"][n]["K"])[[0, 1, 0, 1], [0, 1, 2, 2]], np.zeros(5)] for n in names},
+                    {n: Pose.from_json(tr["cameras"][n]["cam_from_world"]) for n in names},
+                    np.array(tr["interface"]["normal_world"]),
+                    {f: Pose.from_json(tr["frames"][f]["world_from_target"]) for f in frames},
+                    tr["interface"]["distance_mm"])
+
+
 def test_under_water_exact_recovers_when_the_ari_stage_is_far_off(oblique, caplog):
     """A distance hint of 2.4 m (true ~48 mm): the ari stage ends far off, the exact start is searched
     inside the valid interval and the exact stage reaches the noise floor."""
@@ -257,18 +270,12 @@ def test_lm_from_either_end_of_the_valid_interval(oblique, backend):
     """Started next to either end of the interval where every corner is beyond the window, LM
     (both backends) converges without abort: a trial step putting a corner behind the window costs
     >= 1e11 and is rejected."""
-    from ari_sfm.factors.rig_graph import RigGraph, RigState
+    from ari_sfm.factors.rig_graph import RigGraph
     from ari_sfm.factors.vectorized import VectorizedProblem, optimize_graph
     from ari_sfm.init.window_start import distance_interval
 
-    ds = oblique.dataset
-    tr = oblique.truth
-    names = ds.camera_names
-    state = RigState({n: np.r_[np.array(tr["cameras"][n]["K"])[[0, 1, 0, 1], [0, 1, 2, 2]], np.zeros(5)] for n in names},
-                     {n: Pose.from_json(tr["cameras"][n]["cam_from_world"]) for n in names},
-                     np.array(tr["interface"]["normal_world"]),
-                     {f: Pose.from_json(tr["frames"][f]["world_from_target"]) for f in {o.frame for o in ds.select("calibration")}},
-                     tr["interface"]["distance_mm"])
+    ds, tr, names = oblique.dataset, oblique.truth, oblique.dataset.camera_names
+    state = _true_state(oblique)
     lo, hi = distance_interval(state, ds.observations, ds.target, ds.interface.thickness_mm)
     assert lo < tr["interface"]["distance_mm"] < hi
 
@@ -289,16 +296,10 @@ def test_lm_from_either_end_of_the_valid_interval(oblique, backend):
 
 def test_a_start_behind_the_window_names_camera_and_frame(oblique):
     from ari_sfm.calibrate import _check_in_front
-    from ari_sfm.factors.rig_graph import RigGraph, RigState
+    from ari_sfm.factors.rig_graph import RigGraph
 
-    ds = oblique.dataset
-    tr = oblique.truth
-    names = ds.camera_names
-    state = RigState({n: np.r_[np.array(tr["cameras"][n]["K"])[[0, 1, 0, 1], [0, 1, 2, 2]], np.zeros(5)] for n in names},
-                     {n: Pose.from_json(tr["cameras"][n]["cam_from_world"]) for n in names},
-                     np.array(tr["interface"]["normal_world"]),
-                     {f: Pose.from_json(tr["frames"][f]["world_from_target"]) for f in {o.frame for o in ds.select("calibration")}},
-                     2400.0)
+    ds, names = oblique.dataset, oblique.dataset.camera_names
+    state = replace(_true_state(oblique), distance_mm=2400.0)
     rg = RigGraph.build(ds.observations, ds.target, ds.interface, names, state, model="exact", estimate_distance=True)
     with pytest.raises(AriSfmError, match=r"camera cam\d frame f\d+: a corner is not beyond the window") as e:
         _check_in_front(ds, rg, "numpy", 1.0)
