@@ -16,9 +16,6 @@ from .records import Dataset, Interface, WindowPlane
 
 log = logging.getLogger(__name__)
 
-NO_NORMAL_MESSAGE = ("no stacking observations and no interface.plane: the ari model cannot observe the window "
-                     "normal (the normal is not observable); use --model exact (Snell's law observes it through "
-                     "refraction) or declare the window as interface.plane (DATASET_FORMAT.md 1.1)")
 PLANE_ROUNDS = 5  # ari rounds holding the declared normal at its frame's refitted pose (no stacking)
 MODELS = ("ari", "exact", "rt", "pf", "pinhole", "pinhole_dist")  # the last four: ari_sfm.baselines
 
@@ -69,7 +66,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     """
     import gtsam
 
-    from .init.rig import initialise_rig
+    from .init.rig import NO_NORMAL_MESSAGE, initialise_rig
     from .factors import keys as K_
     from .factors.rig_graph import RigGraph, RigState, default_distance_mm
     from .factors.vectorized import optimize_graph, resolve_backend

@@ -157,17 +157,31 @@ class RigGraph:
     @staticmethod
     def from_dataset(dataset, model: str = "ari", distortion: bool = False, huber_px: float | None = 1.0) -> "RigGraph":
         """The graph of a dataset with observations, initialised by the analytic pipeline
-        (expansion centre, Zhang, Eq. 5, Eqs. 11-12, spanning tree over shared frames)."""
+        (expansion centre, Zhang, Eq. 5, Eqs. 11-12, spanning tree over shared frames); with
+        interface.plane, its factor (start: the plane at its frame's initial pose). Without
+        stacking or plane the normal starts at camera 0's axis (exact only; ari refuses)."""
         from ..init.rig import initialise_rig
 
         rig = initialise_rig(dataset, distortion)
+        plane = dataset.interface.plane
+        if not rig.normal_observed and plane is None and model == "ari":
+            from ..errors import AriSfmError
+            from ..init.rig import NO_NORMAL_MESSAGE
+
+            raise AriSfmError(dataset.rig_path, NO_NORMAL_MESSAGE)
         underwater = dataset.interface.medium_index != 1.0
         distance = dataset.interface.distance_mm
         if distance is None and (underwater or model == "exact"):
             distance = default_distance_mm(rig.normal_world, rig.cam_from_world)
         state = RigState.from_initialisation(rig, distance)
+        if plane is not None:  # the declared window as placed by its frame's initial pose
+            from .window_plane import plane_in_world
+
+            n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
+            state = replace(state, normal_world=n_w, distance_mm=h_w if underwater or model == "exact" else distance)
         return RigGraph.build(dataset.observations, dataset.target, dataset.interface, dataset.camera_names, state,
-                              model=model, distortion=distortion, estimate_distance=underwater, huber_px=huber_px)
+                              model=model, distortion=distortion, estimate_distance=underwater, huber_px=huber_px,
+                              window_plane=plane)
 
     def optimize(self, max_iterations: int = 100, relative_tolerance: float = 1e-10) -> RigState:
         """Levenberg-Marquardt from the current values; updates them and returns the state."""

@@ -358,3 +358,21 @@ def test_tilt_candidates_and_searches():
     cost = lambda h: np.inf if h > 300 else (h - 37.0) ** 2 + 1.0  # noqa: E731
     assert abs(search_distance(cost, 0.0, 370.0) - 37.0) < 0.05
     assert abs(search_distance(cost, 0.0, 370.0, current=2400.0) - 37.0) < 0.05  # outside: not a candidate
+
+
+def test_declared_plane_prior_same_in_both_backends(single):
+    plane = _declared(single, tilt_deg=0.5, sigma_deg=0.5, sigma_mm=2.0)
+    a, b = (calibrate(_with_plane(single, plane), model="exact", backend=x, uncertainty=False)
+            for x in ("numpy", "gtsam"))
+    assert angle_between_deg(a.normal_world, b.normal_world) < 1e-5
+    assert abs(a.interface.distance_mm - b.interface.distance_mm) < 1e-4
+    assert _normal_err(a, single.truth) < 0.6  # the declared normal is 0.5 deg off
+
+
+def test_rig_graph_from_dataset_without_stacking(single):
+    from ari_sfm.factors.rig_graph import RigGraph
+
+    with pytest.raises(AriSfmError, match="normal is not observable"):
+        RigGraph.from_dataset(single.dataset, model="ari")
+    rg = RigGraph.from_dataset(_with_plane(single, _declared(single)), model="ari")
+    assert rg.graph.size() == len(rg.factor_data) + 1  # the views and the plane

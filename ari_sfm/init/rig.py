@@ -22,6 +22,9 @@ from .zhang import calibrate_views, one_cv2_thread, solve_pnp
 log = logging.getLogger(__name__)
 
 MIN_VIEWS = 3  # views of a planar target per camera (Zhang)
+NO_NORMAL_MESSAGE = ("no stacking observations and no interface.plane: the ari model cannot observe the window "
+                     "normal (the normal is not observable); use --model exact (Snell's law observes it through "
+                     "refraction) or declare the window as interface.plane (DATASET_FORMAT.md 1.1)")
 MIN_VIEWS_3D = 1  # views of a 3D body (>= 6 non-coplanar points): one is complete (DLT / PnP)
 
 
