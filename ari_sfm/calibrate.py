@@ -64,10 +64,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     "pinhole_dist" (window ignored): see :mod:`ari_sfm.baselines`.
     Options: see :class:`CalibrationOptions`.
     """
-    import gtsam
-
     from .init.rig import NO_NORMAL_MESSAGE, initialise_rig
-    from .factors import keys as K_
     from .factors.rig_graph import RigGraph, RigState, default_distance_mm
     from .factors.vectorized import optimize_graph, resolve_backend
     from .factors.window_plane import plane_in_world
@@ -125,11 +122,11 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
 
     def solve(rg: RigGraph, stage: str, max_iterations: int = opts.max_iterations):
         if stage == "exact":
-            _check_in_front(dataset, rg, backend, opts.huber_px)
+            _check_in_front(dataset, rg, opts.huber_px)
         try:
             return optimize_graph(rg, backend, max_iterations, opts.huber_px, return_problem=True,
                                   check=False)  # the graph was just built with opts.huber_px
-        except RuntimeError as exc:  # the numpy backend names camera and frame; GTSAM's factor says what failed
+        except RuntimeError as exc:  # a failure inside the optimiser (e.g. non-finite Jacobian entries): one line
             raise AriSfmError(dataset.observations_path or dataset.rig_path, f"{stage} stage: {exc}") from None
 
     graph = None
@@ -139,11 +136,10 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
             n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
             state = replace(state, normal_world=n_w, distance_mm=h_w if underwater else state.distance_mm)
         if stage == "exact":
-            state = _exact_start(dataset, state, underwater, plane, unobserved, build, solve, backend, opts)
+            state = _exact_start(dataset, state, underwater, plane, unobserved, build, solve, opts)
         graph = build(stage, state, with_plane=with_plane)
         if hold_normal:  # the ari model cannot observe it here
-            graph.graph.push_back(gtsam.PriorFactorUnit3(K_.N, gtsam.Unit3(np.asarray(state.normal_world, float)),
-                                                         gtsam.noiseModel.Isotropic.Sigma(2, 1e-7)))
+            _hold_normal(graph, state.normal_world)
         t_stage = time.perf_counter()
         state, solved = solve(graph, stage)
         for _ in range(PLANE_ROUNDS if hold_normal and plane is not None else 0):
@@ -152,7 +148,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
             if angle_between_deg(n_w, state.normal_world) < 1e-3:
                 break
             graph = build(stage, replace(state, normal_world=n_w), with_plane=False)
-            graph.graph.push_back(gtsam.PriorFactorUnit3(K_.N, gtsam.Unit3(n_w), gtsam.noiseModel.Isotropic.Sigma(2, 1e-7)))
+            _hold_normal(graph, n_w)
             state, solved = solve(graph, stage)
         iterations[label] = {"iterations": graph.iterations, "time_s": time.perf_counter() - t_stage, "backend": backend}
         if solved is not None:  # numpy backend: it stops at convergence without GTSAM's futile lambda trials
@@ -219,6 +215,16 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
 
 
 
+def _hold_normal(rg, normal: np.ndarray) -> None:
+    """Hold the graph's normal at ``normal`` (a prior of 1e-7 rad)."""
+    import gtsam
+
+    from .factors import keys as K_
+
+    rg.graph.push_back(gtsam.PriorFactorUnit3(K_.N, gtsam.Unit3(np.asarray(normal, float)),
+                                              gtsam.noiseModel.Isotropic.Sigma(2, 1e-7)))
+
+
 def _declared_plane(dataset: Dataset, rig) -> WindowPlane | None:
     """interface.plane, checked: its frame must be a calibration frame seen by a camera."""
     plane = dataset.interface.plane
@@ -245,14 +251,11 @@ def _held_intrinsics(dataset: Dataset, fix: bool) -> tuple[list[str], dict[str, 
     return fixed, focal
 
 
-def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: bool, build, solve, backend: str,
+def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: bool, build, solve,
                  opts: CalibrationOptions):
     """The exact stage's start from the ari result: a distance in front of every camera (in air any
     will do); under water a distance searched inside the valid interval (the ari stage's can be far
     off); without stacking or declared plane, the normal from a coarse search scored by the exact cost."""
-    import gtsam
-
-    from .factors import keys as K_
     from .factors.rig_graph import default_distance_mm
     from .init.window_start import search_normal
 
@@ -274,8 +277,7 @@ def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: b
         elif plane is None:
             st = replace(st, distance_mm=default_distance_mm(normal, st.cam_from_world))
         rg = build("exact", st)
-        rg.graph.push_back(gtsam.PriorFactorUnit3(K_.N, gtsam.Unit3(np.asarray(normal, float)),
-                                                  gtsam.noiseModel.Isotropic.Sigma(2, 1e-7)))
+        _hold_normal(rg, normal)
         try:
             _, solved = solve(rg, "exact", NORMAL_SEARCH_ITERATIONS)
         except AriSfmError:
@@ -328,7 +330,7 @@ def _searched_distance(dataset: Dataset, state, build, opts: CalibrationOptions,
     return replace(state, distance_mm=best)
 
 
-def _check_in_front(dataset: Dataset, rg, backend: str, huber_px: float | None) -> None:
+def _check_in_front(dataset: Dataset, rg, huber_px: float | None) -> None:
     """One-line error naming camera and frame when a corner is not beyond the window at the start."""
     from .factors.vectorized import INVALID_RESIDUAL, VectorizedProblem
 

@@ -302,7 +302,7 @@ def test_a_start_behind_the_window_names_camera_and_frame(oblique):
     state = replace(_true_state(oblique), distance_mm=2400.0)
     rg = RigGraph.build(ds.observations, ds.target, ds.interface, names, state, model="exact", estimate_distance=True)
     with pytest.raises(AriSfmError, match=r"camera cam\d frame f\d+: a corner is not beyond the window") as e:
-        _check_in_front(ds, rg, "numpy", 1.0)
+        _check_in_front(ds, rg, 1.0)
     assert "\n" not in str(e.value)
 
 
