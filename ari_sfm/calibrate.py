@@ -122,7 +122,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
 
     def solve(rg: RigGraph, stage: str, max_iterations: int = opts.max_iterations):
         if stage == "exact":
-            _check_in_front(dataset, rg, opts.huber_px)
+            _check_in_front(dataset, rg.base_state)
         try:
             return optimize_graph(rg, backend, max_iterations, opts.huber_px, return_problem=True,
                                   check=False)  # the graph was just built with opts.huber_px
@@ -330,16 +330,16 @@ def _searched_distance(dataset: Dataset, state, build, opts: CalibrationOptions,
     return replace(state, distance_mm=best)
 
 
-def _check_in_front(dataset: Dataset, rg, huber_px: float | None) -> None:
-    """One-line error naming camera and frame when a corner is not beyond the window at the start."""
-    from .factors.vectorized import INVALID_RESIDUAL, VectorizedProblem
+def _check_in_front(dataset: Dataset, state) -> None:
+    """One-line error naming camera and frame when the window at the exact stage's start does not
+    lie between every camera and every corner it sees."""
+    from .init.window_start import not_beyond
 
-    try:
-        residuals = VectorizedProblem.from_rig_graph(rg, huber_px=huber_px, check=False).residuals()
-    except NotImplementedError:  # a graph the numpy backend cannot hold: GTSAM's own evaluation
-        residuals = rg.residuals()
-    for obs, r in residuals:
-        if np.any(np.abs(r) >= INVALID_RESIDUAL):
-            raise AriSfmError(dataset.observations_path or dataset.rig_path,
-                              f"camera {obs.camera} frame {obs.frame}: a corner is not beyond the window at the "
-                              "start of the exact stage (check interface.thickness_mm, distance_mm and plane)")
+    bad = not_beyond(state, dataset.observations, dataset.target, dataset.interface.thickness_mm)
+    if bad is not None:
+        camera, frame = bad
+        where = f"camera {camera}" + ("" if frame is None else f" frame {frame}")
+        what = "is not in front of the window" if frame is None else "a corner is not beyond the window"
+        raise AriSfmError(dataset.observations_path or dataset.rig_path,
+                          f"{where}: {what} at the start of the exact stage (distance {state.distance_mm:.1f} mm; "
+                          "check interface.thickness_mm, distance_mm and plane)")

@@ -295,15 +295,25 @@ def test_lm_from_either_end_of_the_valid_interval(oblique, backend):
 
 
 def test_a_start_behind_the_window_names_camera_and_frame(oblique):
+    """The geometric check agrees with the exact model (no ray where it names a view) and names
+    camera and frame in one line; a camera beyond the window is named alone."""
     from ari_sfm.calibrate import _check_in_front
     from ari_sfm.factors.rig_graph import RigGraph
+    from ari_sfm.factors.vectorized import INVALID_RESIDUAL
+    from ari_sfm.init.window_start import not_beyond
 
     ds, names = oblique.dataset, oblique.dataset.camera_names
+    args = (ds.observations, ds.target, ds.interface.thickness_mm)
+    assert not_beyond(_true_state(oblique), *args) is None
     state = replace(_true_state(oblique), distance_mm=2400.0)
+    camera, frame = not_beyond(state, *args)
     rg = RigGraph.build(ds.observations, ds.target, ds.interface, names, state, model="exact", estimate_distance=True)
-    with pytest.raises(AriSfmError, match=r"camera cam\d frame f\d+: a corner is not beyond the window") as e:
-        _check_in_front(ds, rg, 1.0)
+    r = next(r for o, r in rg.residuals() if (o.camera, o.frame) == (camera, frame))
+    assert np.all(np.abs(r) >= INVALID_RESIDUAL)
+    with pytest.raises(AriSfmError, match=rf"camera {camera} frame {frame}: a corner is not beyond the window") as e:
+        _check_in_front(ds, state)
     assert "\n" not in str(e.value)
+    assert not_beyond(replace(state, distance_mm=-5.0), *args) == ("cam0", None)
 
 
 # ------------------------------------------------------------------ the command line

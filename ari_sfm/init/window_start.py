@@ -25,6 +25,27 @@ TILTS_DEG = (4.0, 8.0, 12.0, 18.0)  # coarse tilt rings of the normal search (pl
 AZIMUTHS = 8  # directions per ring
 
 
+def not_beyond(state, observations: Sequence[Observation], target: Target, thickness_mm: float
+               ) -> tuple[str, str | None] | None:
+    """The first (camera, frame) that the window at ``state.distance_mm`` does not separate: a
+    camera not in front of its near face (frame None), or a corner of that camera's view of the
+    frame not beyond its far face (the exact model has no ray there); None when all are fine."""
+    from .zhang import object_points
+
+    n, h = np.asarray(state.normal_world, float), float(state.distance_mm)
+    for name, pose in state.cam_from_world.items():
+        if not h > n @ pose.inverse().t:
+            return name, None
+    for o in observations:
+        pose = state.world_from_target.get(o.frame)
+        if pose is None or o.set not in ("calibration", "stacking") or o.camera not in state.cam_from_world:
+            continue
+        added = (o.added_mm or 0.0) if o.set == "stacking" else 0.0
+        if not (pose.apply(object_points(target, o.ids)) @ n).min() > h + thickness_mm + added:
+            return o.camera, o.frame
+    return None
+
+
 def distance_interval(state, observations: Sequence[Observation], target: Target, thickness_mm: float
                       ) -> tuple[float, float]:
     """(lo, hi) for the distance h from camera 0 to the near face along ``state.normal_world``:
