@@ -36,12 +36,20 @@ def not_beyond(state, observations: Sequence[Observation], target: Target, thick
     for name, pose in state.cam_from_world.items():
         if not h > n @ pose.inverse().t:
             return name, None
-    for o in observations:
-        pose = state.world_from_target.get(o.frame)
-        if pose is None or o.set not in ("calibration", "stacking") or o.camera not in state.cam_from_world:
+    views = [o for o in observations if o.set in ("calibration", "stacking") and o.frame in state.world_from_target
+             and o.camera in state.cam_from_world]
+    added = {}
+    for o in views:
+        added[o.frame] = max(added.get(o.frame, 0.0), (o.added_mm or 0.0) if o.set == "stacking" else 0.0)
+    _, all_points = target.points_3d_readonly
+    # fast path: every point of the target beyond the thickest plate of the frame
+    doubtful = {f for f, a in added.items()
+                if not (state.world_from_target[f].apply(all_points) @ n).min() > h + thickness_mm + a}
+    for o in views:
+        if o.frame not in doubtful:
             continue
-        added = (o.added_mm or 0.0) if o.set == "stacking" else 0.0
-        if not (pose.apply(object_points(target, o.ids)) @ n).min() > h + thickness_mm + added:
+        a = (o.added_mm or 0.0) if o.set == "stacking" else 0.0
+        if not (state.world_from_target[o.frame].apply(object_points(target, o.ids)) @ n).min() > h + thickness_mm + a:
             return o.camera, o.frame
     return None
 
