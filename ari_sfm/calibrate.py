@@ -105,11 +105,16 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
     for n, f in fixed_focal.items():
         state.params[n][:2] = f
     # (label, model, normal held at its start, declared plane in the graph)
-    stages = [("ari", "ari", False, plane is not None)]
+    # Under water the ari poses can be far off along the normal, so a plane placed by its frame's ari
+    # pose can put the window behind the cameras: exact places it by its own poses ("exact_free" first).
+    placed_by_exact = plane is not None and underwater and model == "exact"
+    stages = [("ari", "ari", False, plane is not None and not placed_by_exact)]
     if not rig.normal_observed:  # no stacking: ari with the normal held at its start gives K and the poses
         stages = [("ari" if plane is None else "ari_normal_held", "ari", True, False)]
         if plane is not None and model == "ari":
             stages.append(("ari", "ari", False, True))
+    if placed_by_exact:
+        stages.append(("exact_free", "exact", False, False))
     if model == "exact":
         stages.append(("exact", "exact", False, plane is not None))
 
@@ -136,7 +141,9 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", **options) -> C
             n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
             state = replace(state, normal_world=n_w, distance_mm=h_w if underwater else state.distance_mm)
         if stage == "exact":
-            state = _exact_start(dataset, state, underwater, plane, unobserved, build, solve, opts)
+            stage_plane = plane if with_plane else None
+            state = _exact_start(dataset, state, underwater, stage_plane,
+                                 not rig.normal_observed and stage_plane is None, build, solve, opts)
         graph = build(stage, state, with_plane=with_plane)
         if hold_normal:  # the ari model cannot observe it here
             _hold_normal(graph, state.normal_world)
@@ -259,11 +266,14 @@ def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: b
     from .factors.rig_graph import default_distance_mm
     from .init.window_start import search_normal
 
+    def build_free(stage: str, st):  # the searches below run only without a declared plane: none in their graphs
+        return build(stage, st, with_plane=False)
+
     if not underwater:
         if state.distance_mm is None:
             state = replace(state, distance_mm=default_distance_mm(state.normal_world, state.cam_from_world))
     elif plane is None:  # the ari stage's distance (or the hint) is one candidate
-        state = _searched_distance(dataset, state, build, opts)
+        state = _searched_distance(dataset, state, build_free, opts)
     if not unobserved:
         return state
 
@@ -273,10 +283,10 @@ def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: b
     def score(normal: np.ndarray) -> float:
         st = replace(subset, normal_world=normal)
         if underwater:
-            st = _searched_distance(dataset, st, build, opts, samples=12)
+            st = _searched_distance(dataset, st, build_free, opts, samples=12)
         elif plane is None:
             st = replace(st, distance_mm=default_distance_mm(normal, st.cam_from_world))
-        rg = build("exact", st)
+        rg = build_free("exact", st)
         _hold_normal(rg, normal)
         try:
             _, solved = solve(rg, "exact", NORMAL_SEARCH_ITERATIONS)
@@ -287,7 +297,7 @@ def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: b
     normal = search_normal(score, state.normal_world)
     state = replace(state, normal_world=normal)
     if underwater:
-        state = _searched_distance(dataset, state, build, opts)
+        state = _searched_distance(dataset, state, build_free, opts)
     elif plane is None:
         state = replace(state, distance_mm=default_distance_mm(normal, state.cam_from_world))
     return state
