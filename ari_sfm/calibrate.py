@@ -11,11 +11,14 @@ import numpy as np
 from .calibration import Calibration, CameraCalibration
 from .errors import AriSfmError
 from .evaluate import residual_stats
+from .geometry import angle_between_deg
 from .models.registry import model_spec
-from .records import Dataset, Interface
+from .records import Dataset, Interface, WindowPlane
 from .results import OutlierReport
 
 log = logging.getLogger(__name__)
+
+PLANE_ROUNDS = 5  # ari rounds holding the declared normal at its frame's refitted pose (no stacking)
 
 
 @dataclass(frozen=True)
@@ -26,7 +29,8 @@ class CalibrationOptions:
     huber_px: float | None = 1.0  # per-corner Huber threshold in px; None: plain least squares
     outlier_sigma: float = 5.0  # corners beyond this many sigma after convergence are reported
     exclude_outliers: bool = False  # drop those corners and re-run the last stage
-    fix_intrinsics: bool = False  # hold K (and dist) at the rig.yaml hints of the cameras that give K
+    fix_intrinsics: bool = False  # hold the rig.yaml hints: K (and dist) where K is given; fx = fy = focal_px
+    # (principal point free) where only focal_px is
     max_iterations: int = 100  # Levenberg-Marquardt iterations per stage
     backend: str = "auto"  # bundle adjustment solver: "numpy" (vectorised, GTSAM's LM path), "gtsam", "auto" (= numpy)
     workers: int | None = None  # threads for corner detection (dataset with only images) and for the per-camera
@@ -87,9 +91,10 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=N
     stage (ari, exact, the outlier re-run), the view factors being whitened by the pixel sigma,
     so a prior weighs what its sigma says (docs/RESEARCH.md).
     """
-    from .init.rig import initialise_rig
+    from .init.rig import NO_NORMAL_MESSAGE, initialise_rig
     from .factors.rig_graph import RigGraph, RigState, default_distance_mm
     from .factors.vectorized import optimize_graph, resolve_backend
+    from .factors.window_plane import plane_in_world
 
     opts = _options(options)
     backend = resolve_backend(opts.backend)
@@ -108,63 +113,123 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=N
     iface = dataset.interface
     names = dataset.camera_names
     underwater = iface.medium_index != 1.0
-    distance = iface.distance_mm
-    if distance is None and underwater:
-        distance = default_distance_mm(rig.normal_world, rig.cam_from_world)
-    state = RigState.from_initialisation(rig, distance)
-    fixed = [n for n in names if dataset.cameras[n].K is not None] if opts.fix_intrinsics else []
-    if opts.fix_intrinsics and not fixed:
-        raise AriSfmError(dataset.rig_path, "fix_intrinsics needs a K hint for at least one camera (cameras.<name>.K)")
+    plane = _declared_plane(dataset, rig)
+    unobserved = not rig.normal_observed and plane is None  # no stacking, no declared window
+    if unobserved and model == "ari":
+        raise AriSfmError(dataset.rig_path, NO_NORMAL_MESSAGE)
+    state = RigState.from_initialisation(rig, iface.distance_mm)
+    if plane is not None:  # the declared window is the start (and, held or with its prior, the result)
+        n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
+        state = replace(state, normal_world=n_w, distance_mm=h_w)
+    elif state.distance_mm is None and underwater:
+        state = replace(state, distance_mm=default_distance_mm(state.normal_world, state.cam_from_world))
+    fixed, fixed_focal = _held_intrinsics(dataset, opts.fix_intrinsics)
     for n in fixed:  # start from the hint exactly
-        spec = dataset.cameras[n]
-        state.params[n][:4] = [spec.K[0, 0], spec.K[1, 1], spec.K[0, 2], spec.K[1, 2]]
-        state.params[n][4:] = np.resize(spec.dist if spec.dist is not None else np.zeros(5), 5)
-    stages = ["ari"] + (["exact"] if model == "exact" else [])
-    graph = None
-    iterations = {}
+        hint = dataset.cameras[n]
+        state.params[n][:4] = [hint.K[0, 0], hint.K[1, 1], hint.K[0, 2], hint.K[1, 2]]
+        state.params[n][4:] = np.resize(hint.dist if hint.dist is not None else np.zeros(5), 5)
+    for n, f in fixed_focal.items():
+        state.params[n][:2] = f
+    # (label, model, normal held at its start, declared plane in the graph)
+    # Under water the ari poses can be far off along the normal, so a plane placed by its frame's ari
+    # pose can put the window behind the cameras: exact places it by its own poses ("exact_free" first).
+    placed_by_exact = plane is not None and underwater and model == "exact"
+    stages = [("ari", "ari", False, plane is not None and not placed_by_exact)]
+    if not rig.normal_observed:  # no stacking: ari with the normal held at its start gives K and the poses
+        stages = [("ari" if plane is None else "ari_normal_held", "ari", True, False)]
+        if plane is not None and model == "ari":
+            stages.append(("ari", "ari", False, True))
+    if placed_by_exact:
+        stages.append(("exact_free", "exact", False, False))
+    if model == "exact":
+        stages.append(("exact", "exact", False, plane is not None))
+
+    # the images' weight: the pixel sigma, given, or 1 px for a stage's first solve and then estimated from
+    # its residuals; a stage is re-solved with the estimate when other factors (priors, a declared plane,
+    # the user's) share its graph. (Not started at the previous stage's estimate: GTSAM's LM damping is
+    # absolute, and an ari stage far off under water left the exact stage 100 iterations from converging.)
+    given_sigma = 1.0 if opts.sigma_px is None else float(opts.sigma_px)
+    sigma = given_sigma
+    reweight = opts.sigma_px is None and (bool(fixed) or bool(fixed_focal) or plane is not None
+                                          or extra_factors is not None)
+
+    def build(stage: str, st: RigState, observations=dataset.observations, with_plane: bool = True) -> RigGraph:
+        rg = RigGraph.build(
+            observations, dataset.target, iface, names, st, model=stage, distortion=opts.distortion,
+            estimate_distance=underwater, huber_px=opts.huber_px, sigma_px=sigma, fixed_intrinsics=fixed,
+            fixed_focal_px=fixed_focal, window_plane=plane if with_plane else None,
+        )
+        _add_factors(rg, extra_factors)
+        return rg
+
+    def solve(rg: RigGraph, stage: str, max_iterations: int = opts.max_iterations):
+        if stage == "exact":
+            _check_in_front(dataset, rg.base_state)
+        try:
+            return optimize_graph(rg, backend, max_iterations, opts.huber_px, return_problem=True,
+                                  check=False)  # the graph was just built with opts.huber_px
+        except RuntimeError as exc:  # a failure inside the optimiser (e.g. non-finite Jacobian entries): one line
+            raise AriSfmError(dataset.observations_path or dataset.rig_path, f"{stage} stage: {exc}") from None
+
     from .outliers import find_outliers, robust_sigma_px, without
 
-    # the images' weight: the pixel sigma, given or estimated from each stage's residuals; a stage is
-    # re-solved with the estimate when other factors (priors, the user's) share its graph
-    sigma = 1.0 if opts.sigma_px is None else float(opts.sigma_px)
-    reweight = opts.sigma_px is None and (bool(fixed) or extra_factors is not None)
+    def residuals_of(rg: RigGraph, solved) -> list:
+        # from the numpy backend's solved problem (no Python callbacks); GTSAM's otherwise
+        return solved.residuals() if solved is not None else rg.residuals()
 
-    def solve(observations, stage: str, state: RigState, sigma: float):
-        graph = RigGraph.build(
-            observations, dataset.target, iface, names, state, model=stage, distortion=opts.distortion,
-            estimate_distance=underwater, huber_px=opts.huber_px, sigma_px=sigma, fixed_intrinsics=fixed,
-        )
-        _add_factors(graph, extra_factors)
-        state, solved = optimize_graph(graph, backend, opts.max_iterations, opts.huber_px, return_problem=True,
-                                       check=False)  # the graph was just built with opts.huber_px
-        # residuals from the numpy backend's solved problem (no Python callbacks); GTSAM's otherwise
-        return graph, state, solved, solved.residuals() if solved is not None else graph.residuals()
-
-    for stage in stages:
-        if stage == "exact" and state.distance_mm is None:
-            state = replace(state, distance_mm=default_distance_mm(state.normal_world, state.cam_from_world))
+    graph = None
+    iterations = {}
+    for label, stage, hold_normal, with_plane in stages:
+        sigma = given_sigma
+        if with_plane:  # the declared window, placed by the current pose of its frame
+            n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
+            state = replace(state, normal_world=n_w, distance_mm=h_w if underwater else state.distance_mm)
+        if stage == "exact":
+            stage_plane = plane if with_plane else None
+            state = _exact_start(dataset, state, underwater, stage_plane,
+                                 not rig.normal_observed and stage_plane is None, build, solve, opts)
+        graph = build(stage, state, with_plane=with_plane)
+        if hold_normal:  # the ari model cannot observe it here
+            _hold_normal(graph, state.normal_world)
         t_stage = time.perf_counter()
-        graph, state, solved, residuals = solve(dataset.observations, stage, state, sigma)
+        state, solved = solve(graph, stage)
+        for _ in range(PLANE_ROUNDS if hold_normal and plane is not None else 0):
+            # hold the declared normal as placed by its frame's refitted pose, until that stops moving
+            n_w = plane_in_world(plane, state.world_from_target[plane.frame])[0]
+            if angle_between_deg(n_w, state.normal_world) < 1e-3:
+                break
+            graph = build(stage, replace(state, normal_world=n_w), with_plane=False)
+            _hold_normal(graph, n_w)
+            state, solved = solve(graph, stage)
         n_iterations = graph.iterations
+        residuals = residuals_of(graph, solved)
         if opts.sigma_px is None:
             estimated = robust_sigma_px(r for _, r in residuals)
             if reweight and abs(estimated / sigma - 1.0) > 1e-3:
-                graph, state, solved, residuals = solve(dataset.observations, stage, state, estimated)
+                sigma = estimated
+                graph = build(stage, state, with_plane=with_plane)
+                if hold_normal:
+                    _hold_normal(graph, state.normal_world)
+                state, solved = solve(graph, stage)
                 n_iterations += graph.iterations
+                residuals = residuals_of(graph, solved)
             sigma = estimated
-        iterations[stage] = {"iterations": n_iterations, "time_s": time.perf_counter() - t_stage, "backend": backend,
+        iterations[label] = {"iterations": n_iterations, "time_s": time.perf_counter() - t_stage, "backend": backend,
                              "sigma_px": graph.sigma_px}
         if solved is not None:  # numpy backend: it stops at convergence without GTSAM's futile lambda trials
-            iterations[stage]["error_evaluations"] = solved.report.error_evaluations
-        log.info("%s bundle adjustment: %d iterations, %.3f s", stage, n_iterations, iterations[stage]["time_s"])
-
+            iterations[label]["error_evaluations"] = solved.report.error_evaluations
+        log.info("%s bundle adjustment: %d iterations, %.3f s, window distance %s mm", label, n_iterations,
+                 iterations[label]["time_s"], None if state.distance_mm is None else f"{state.distance_mm:.1f}")
+    last_stage, last_plane = stages[-1][1], stages[-1][3]
     outliers, robust_sigma = find_outliers(residuals, opts.outlier_sigma)
     if outliers and opts.exclude_outliers:
-        log.info("excluding %d outlier corners and re-running the %s stage", len(outliers), stages[-1])
-        graph, state, solved, residuals = solve(without(dataset.observations, outliers), stages[-1], state, sigma)
+        log.info("excluding %d outlier corners and re-running the %s stage", len(outliers), last_stage)
+        graph = build(last_stage, state, without(dataset.observations, outliers), with_plane=last_plane)
+        state, solved = solve(graph, last_stage)
+        residuals = residuals_of(graph, solved)
     if outliers:
         # With the paraxial ari model, large residuals are mostly its own error at oblique rays.
-        level = logging.INFO if stages[-1] == "ari" else logging.WARNING
+        level = logging.INFO if last_stage == "ari" else logging.WARNING
         log.log(level, "%d corners beyond %.0f sigma (%.3f px) after convergence%s", len(outliers), opts.outlier_sigma,
                 robust_sigma, " (excluded)" if opts.exclude_outliers else "")
     elapsed = time.perf_counter() - t0
@@ -187,8 +252,10 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=N
             residual_stats(r for o, r in residuals if o.camera == n).rmse_px,
         )
     distance = state.distance_mm if underwater else None  # unobservable in air: null
+    if plane is not None:  # declared: known in air too
+        distance = plane_in_world(plane, state.world_from_target[plane.frame])[1]
     calib_frames = {o.frame for o in dataset.select("calibration")}
-    cal = Calibration(
+    return Calibration(
         model=model,
         interface=Interface(iface.thickness_mm, iface.index, iface.medium_index, distance),
         normal_world=state.normal_world,
@@ -199,9 +266,141 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=N
         time_s=elapsed,
         extra={"optimizer": iterations},
         target=dataset.target,
-        fixed_distance_mm=state.distance_mm if model == "exact" and not underwater else None,  # any value: same rays
+        # exact in air: any distance gives the same rays; the one it was fitted at (a declared plane gives it)
+        fixed_distance_mm=state.distance_mm if model == "exact" and distance is None else None,
         uncertainty=uncertainty,
         outliers=OutlierReport(robust_sigma, opts.outlier_sigma, opts.exclude_outliers, tuple(outliers)),
     )
-    return cal
 
+
+def _hold_normal(rg, normal: np.ndarray) -> None:
+    """Hold the graph's normal at ``normal`` (a prior of 1e-7 rad)."""
+    import gtsam
+
+    from .factors import keys as K_
+
+    rg.graph.push_back(gtsam.PriorFactorUnit3(K_.N, gtsam.Unit3(np.asarray(normal, float)),
+                                              gtsam.noiseModel.Isotropic.Sigma(2, 1e-7)))
+
+
+def _declared_plane(dataset: Dataset, rig) -> WindowPlane | None:
+    """interface.plane, checked: its frame must be a calibration frame seen by a camera."""
+    plane = dataset.interface.plane
+    if plane is None:
+        return None
+    calib = {o.frame for o in dataset.select("calibration")}
+    if plane.frame not in calib or plane.frame not in rig.world_from_target:
+        known = ", ".join(sorted(calib)[:5]) + (", ..." if len(calib) > 5 else "")
+        raise AriSfmError(dataset.rig_path, f"interface.plane.frame: {plane.frame!r} is not a calibration frame "
+                                            f"seen by the cameras (calibration frames: {known or 'none'})")
+    return plane
+
+
+def _held_intrinsics(dataset: Dataset, fix: bool) -> tuple[list[str], dict[str, float]]:
+    """Cameras whose K is held (a K hint) and camera -> focal held as fx = fy (a focal_px hint only)."""
+    if not fix:
+        return [], {}
+    cams = dataset.cameras
+    fixed = [n for n in dataset.camera_names if cams[n].K is not None]
+    focal = {n: float(cams[n].focal_px) for n in dataset.camera_names if cams[n].K is None and cams[n].focal_px is not None}
+    if not fixed and not focal:
+        raise AriSfmError(dataset.rig_path, "fix_intrinsics needs a K or focal_px hint for at least one camera "
+                                            "(cameras.<name>.K or cameras.<name>.focal_px)")
+    return fixed, focal
+
+
+def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: bool, build, solve,
+                 opts: CalibrationOptions):
+    """The exact stage's start from the ari result: a distance in front of every camera (in air any
+    will do); under water a distance searched inside the valid interval (the ari stage's can be far
+    off); without stacking or declared plane, the normal from a coarse search scored by the exact cost."""
+    from .factors.rig_graph import default_distance_mm
+    from .init.window_start import search_normal
+
+    def build_free(stage: str, st):  # the searches below run only without a declared plane: none in their graphs
+        return build(stage, st, with_plane=False)
+
+    if not underwater:
+        if state.distance_mm is None:
+            state = replace(state, distance_mm=default_distance_mm(state.normal_world, state.cam_from_world))
+    elif plane is None:  # the ari stage's distance (or the hint) is one candidate
+        state = _searched_distance(dataset, state, build_free, opts)
+    if not unobserved:
+        return state
+
+    frames = _search_frames(dataset, state, NORMAL_SEARCH_FRAMES)
+    subset = replace(state, world_from_target={f: state.world_from_target[f] for f in frames})
+
+    def score(normal: np.ndarray) -> float:
+        st = replace(subset, normal_world=normal)
+        if underwater:
+            st = _searched_distance(dataset, st, build_free, opts, samples=12)
+        elif plane is None:
+            st = replace(st, distance_mm=default_distance_mm(normal, st.cam_from_world))
+        rg = build_free("exact", st)
+        _hold_normal(rg, normal)
+        try:
+            _, solved = solve(rg, "exact", NORMAL_SEARCH_ITERATIONS)
+        except AriSfmError:
+            return np.inf
+        return solved.error() if solved is not None else rg.graph.error(rg.values)
+
+    normal = search_normal(score, state.normal_world)
+    state = replace(state, normal_world=normal)
+    if underwater:
+        state = _searched_distance(dataset, state, build_free, opts)
+    elif plane is None:
+        state = replace(state, distance_mm=default_distance_mm(normal, state.cam_from_world))
+    return state
+
+
+NORMAL_SEARCH_ITERATIONS = 10  # LM iterations refitting K and poses for each candidate normal
+NORMAL_SEARCH_FRAMES = 12  # frames (those seen by most cameras, every camera covered) scoring the candidates
+
+
+def _search_frames(dataset: Dataset, state, count: int) -> list[str]:
+    """Up to ``count`` frames of the state seen by the most cameras, more if needed to cover every camera."""
+    cams: dict[str, set[str]] = {}
+    for o in dataset.observations:
+        if o.frame in state.world_from_target and o.set in ("calibration", "stacking"):
+            cams.setdefault(o.frame, set()).add(o.camera)
+    chosen, covered = [], set()
+    for f in sorted(cams, key=lambda f: (-len(cams[f]), f)):
+        if len(chosen) < count or not cams[f] <= covered:
+            chosen.append(f)
+            covered |= cams[f]
+        if len(chosen) >= count and covered >= set(dataset.camera_names):
+            break
+    return chosen
+
+
+def _searched_distance(dataset: Dataset, state, build, opts: CalibrationOptions, samples: int = 48):
+    """state with its distance searched by the exact cost inside the valid interval (under water)."""
+    from .factors.vectorized import VectorizedProblem
+    from .init.window_start import distance_interval, search_distance
+
+    lo, hi = distance_interval(state, dataset.observations, dataset.target, dataset.interface.thickness_mm)
+    if not hi > lo:
+        raise AriSfmError(dataset.rig_path, f"no window distance puts every camera in front of the window and every "
+                                            f"corner beyond it (cameras up to {lo:.1f} mm, corners from {hi:.1f} mm "
+                                            "along the normal): check interface.thickness_mm and the target")
+    rg = build("exact", replace(state, distance_mm=0.5 * (lo + hi)))
+    problem = VectorizedProblem.from_rig_graph(rg, huber_px=opts.huber_px, check=False)
+    best = search_distance(lambda h: problem.error(replace(problem.x, distance_mm=h)), lo, hi, samples,
+                           current=state.distance_mm)
+    return replace(state, distance_mm=best)
+
+
+def _check_in_front(dataset: Dataset, state) -> None:
+    """One-line error naming camera and frame when the window at the exact stage's start does not
+    lie between every camera and every corner it sees."""
+    from .init.window_start import not_beyond
+
+    bad = not_beyond(state, dataset.observations, dataset.target, dataset.interface.thickness_mm)
+    if bad is not None:
+        camera, frame = bad
+        where = f"camera {camera}" + ("" if frame is None else f" frame {frame}")
+        what = "is not in front of the window" if frame is None else "a corner is not beyond the window"
+        raise AriSfmError(dataset.observations_path or dataset.rig_path,
+                          f"{where}: {what} at the start of the exact stage (distance {state.distance_mm:.1f} mm; "
+                          "check interface.thickness_mm, distance_mm and plane)")

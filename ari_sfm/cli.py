@@ -103,8 +103,9 @@ def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
     click.echo(f"{len(obs)} images, {n} corners in {time.perf_counter() - t0:.1f} s -> {out / 'observations.json'}")
 
 
-_model_option = click.option("--model", default="ari", show_default=True, metavar="|".join(CALIBRATABLE),
-                             help="; ".join(f"{m}: {MODELS[m].summary}" for m in CALIBRATABLE) + ".")
+_model_option = click.option("--model", default=None, metavar="|".join(CALIBRATABLE),
+                             help="; ".join(f"{m}: {MODELS[m].summary}" for m in CALIBRATABLE)
+                             + ". Default: ari (run: exact when the dataset has no stacking poses).")
 _distortion_option = click.option("--distortion/--no-distortion", default=False, show_default=True, help="Estimate k1 k2 p1 p2 k3.")
 _huber_option = click.option("--huber-px", type=float, default=1.0, show_default=True,
                              help="Per-corner Huber threshold in px (0: plain least squares).")
@@ -114,9 +115,16 @@ _backend_option = click.option("--backend", type=click.Choice(["auto", "numpy", 
                                     "gtsam (gtsam.LevenbergMarquardtOptimizer on the factor graph); auto = numpy.")
 
 
+_fix_option = click.option("--fix-intrinsics", is_flag=True,
+                           help="Hold the rig.yaml hints: a K hint holds K; a focal_px hint holds fx = fy = focal_px "
+                                "(principal point free).")
+
+
 def _calibration_options(fn):
-    """The options calibrate and run share: --model, --distortion, --huber-px, --exclude-outliers, --backend."""
-    for option in reversed((_model_option, _distortion_option, _huber_option, _outlier_option, _backend_option)):
+    """The options calibrate and run share: --model, --distortion, --huber-px, --exclude-outliers,
+    --fix-intrinsics, --backend."""
+    for option in reversed((_model_option, _distortion_option, _huber_option, _outlier_option, _fix_option,
+                            _backend_option)):
         fn = option(fn)
     return fn
 
@@ -126,17 +134,18 @@ def _calibration_options(fn):
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder for calibration.json.")
 @_calibration_options
 @user_errors
-def calibrate_cmd(dataset: Path, out: Path, model: str, distortion: bool, huber_px: float, exclude_outliers: bool,
-                  backend: str) -> None:
+def calibrate_cmd(dataset: Path, out: Path, model: str | None, distortion: bool, huber_px: float, exclude_outliers: bool,
+                  fix_intrinsics: bool, backend: str) -> None:
     """Calibrate DATASET; write OUT/calibration.json (and OUT/observations.json when detected here)."""
     from .pipelines.calibrate_rig import main as pipeline
 
+    model = model or "ari"
     model_spec(model, "--model", calibratable=True)  # before any loading or detection
     check_output_folder(out)
     check_number("--huber-px", huber_px, minimum=0.0)
     t0 = time.perf_counter()
     result = pipeline(dataset, out, model=model, progress=True, distortion=distortion, huber_px=huber_px or None,
-                      exclude_outliers=exclude_outliers, backend=backend)
+                      exclude_outliers=exclude_outliers, fix_intrinsics=fix_intrinsics, backend=backend)
     _summary(result.calibration, time.perf_counter() - t0)
     if result.observations_path:
         click.echo(f"observations: {result.observations_path}")
@@ -150,18 +159,20 @@ def calibrate_cmd(dataset: Path, out: Path, model: str, distortion: bool, huber_
 @click.option("--truth", type=click.Path(path_type=Path), default=None,
               help="A simulator's truth.json: also report the reconstruction's 3D error against it.")
 @user_errors
-def run(dataset: Path, out: Path, model: str, distortion: bool, huber_px: float, exclude_outliers: bool,
-        backend: str, truth: Path | None) -> None:
+def run(dataset: Path, out: Path, model: str | None, distortion: bool, huber_px: float, exclude_outliers: bool,
+        fix_intrinsics: bool, backend: str, truth: Path | None) -> None:
     """The pipeline: detect corners when needed, calibrate, reconstruct (frames seen by two cameras), report."""
     from .pipelines.run import main as pipeline
 
-    model_spec(model, "--model", calibratable=True)  # before any loading or detection
+    if model is not None:  # None: exact without stacking poses, else ari (pipelines.run.default_model)
+        model_spec(model, "--model", calibratable=True)  # before any loading or detection
     check_output_folder(out)
     check_number("--huber-px", huber_px, minimum=0.0)
     t0 = time.perf_counter()
     click.echo(f"ari-sfm run: {dataset} -> {out}")
     result = pipeline(dataset, out, model=model, truth=truth, progress=True, distortion=distortion,
-                      huber_px=huber_px or None, exclude_outliers=exclude_outliers, backend=backend)
+                      huber_px=huber_px or None, exclude_outliers=exclude_outliers, fix_intrinsics=fix_intrinsics,
+                      backend=backend)
     _summary(result.calibrated.calibration, time.perf_counter() - t0)
     click.echo(f"calibration: {result.calibrated.calibration_path}")
     if result.reconstruction is None:

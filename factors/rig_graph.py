@@ -24,7 +24,7 @@ from __future__ import annotations
 import logging
 import os
 from dataclasses import dataclass, field, replace
-from typing import Sequence
+from typing import Mapping, Sequence
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -33,7 +33,7 @@ import numpy as np
 
 from ..geometry import Pose, cam_from_world_from_pose3, pose3_from_cam_from_world, pose3_from_pose, pose_from_pose3
 from ..models.registry import bundle_factories
-from ..records import Interface, Observation, Target
+from ..records import Interface, Observation, Target, WindowPlane
 from . import keys as K_
 from .view_factor import ViewData, ViewKeys, factor_keys, view_factor, view_residuals
 
@@ -106,10 +106,16 @@ class RigGraph:
         sigma_px: float = 1.0,
         min_corners: int = 4,
         fixed_intrinsics: Sequence[str] = (),
+        fixed_focal_px: Mapping[str, float] | None = None,
+        window_plane: WindowPlane | None = None,
     ) -> "RigGraph":
         """One factor per (camera, calibration or stacking image), whitened by ``sigma_px``; variables from
         state. Camera 0 is the world frame (no pose variable): ``state.cam_from_world`` of the first
-        camera must be the identity."""
+        camera must be the identity.
+
+        ``fixed_intrinsics``: cameras whose intrinsics are held at the state's; ``fixed_focal_px``:
+        camera -> focal held as fx = fy (principal point and distortion free); ``window_plane``:
+        the declared window (:mod:`ari_sfm.factors.window_plane`), its frame one of the state's."""
         if not (np.isfinite(sigma_px) and sigma_px > 0.0):
             raise ValueError(f"sigma_px must be a positive pixel sigma, got {sigma_px}")
         factory = MODELS[model]
@@ -135,6 +141,17 @@ class RigGraph:
             c = names.index(name)
             graph.push_back(gtsam.PriorFactorVector(K_.K(c), np.asarray(state.params[name][:n_params], float),
                                                     gtsam.noiseModel.Isotropic.Sigma(n_params, 1e-4)))
+        for name, focal in (fixed_focal_px or {}).items():  # fx = fy = focal, the rest free
+            c = names.index(name)
+            prior = np.asarray(state.params[name][:n_params], float).copy()
+            prior[:2] = focal
+            sigmas = np.full(n_params, 1e6)
+            sigmas[:2] = 1e-4
+            graph.push_back(gtsam.PriorFactorVector(K_.K(c), prior, gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
+        if window_plane is not None:
+            from .window_plane import window_plane_factor
+
+            graph.push_back(window_plane_factor(window_plane, frame_index[window_plane.frame], estimate_distance))
         from ..init.zhang import object_points
         rg = RigGraph(graph, values, names, frames, n_params, state, estimate_distance, model=model,
                       sigma_px=float(sigma_px), huber_px=huber_px)
@@ -168,22 +185,35 @@ class RigGraph:
         ``sigma_px``: the pixel sigma of the view factors; None estimates it (the robust sigma of
         the residuals after a first numpy solve of this graph, :func:`estimate_sigma_px`) so that
         factors you add in physical units weigh what they say. The values stay at the initialisation.
+        With interface.plane, its factor (start: the plane at its frame's initial pose). Without
+        stacking or plane the normal starts at camera 0's axis (exact only; ari refuses).
         """
         from ..calibrate import ensure_observations
         from ..init.rig import initialise_rig
 
         dataset = ensure_observations(dataset, workers)
         rig = initialise_rig(dataset, distortion)
+        plane = dataset.interface.plane
+        if not rig.normal_observed and plane is None and model == "ari":
+            from ..errors import AriSfmError
+            from ..init.rig import NO_NORMAL_MESSAGE
+
+            raise AriSfmError(dataset.rig_path, NO_NORMAL_MESSAGE)
         underwater = dataset.interface.medium_index != 1.0
         distance = dataset.interface.distance_mm
         if distance is None and (underwater or model == "exact"):
             distance = default_distance_mm(rig.normal_world, rig.cam_from_world)
         state = RigState.from_initialisation(rig, distance)
+        if plane is not None:  # the declared window as placed by its frame's initial pose
+            from .window_plane import plane_in_world
+
+            n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
+            state = replace(state, normal_world=n_w, distance_mm=h_w if underwater or model == "exact" else distance)
 
         def build(sigma: float) -> "RigGraph":
             return RigGraph.build(dataset.observations, dataset.target, dataset.interface, dataset.camera_names,
                                   state, model=model, distortion=distortion, estimate_distance=underwater,
-                                  huber_px=huber_px, sigma_px=sigma)
+                                  huber_px=huber_px, sigma_px=sigma, window_plane=plane)
 
         rg = build(1.0 if sigma_px is None else sigma_px)
         return rg if sigma_px is not None else build(estimate_sigma_px(rg))

@@ -2,6 +2,8 @@
 
     python -m ari_sfm.pipelines.run DATASET OUT [--model ari|exact] [--truth TRUTH]
 
+Without --model: exact when the dataset has no stacking poses, else ari.
+
 OUT gets calibration.json (+ observations.json when detected here), then,
 when the dataset has reconstruction frames seen by two or more cameras,
 points.json, metrics.json and clouds/; then run.json (what ran, and the
@@ -47,14 +49,27 @@ def reconstruction_frames(dataset: Dataset) -> tuple[list[str], str | None]:
     return frames, None
 
 
-def main(dataset_path: Path, out_dir: Path, model: str = "ari", truth: Path | None = None, progress: bool = False,
-         **options) -> RunResult:
-    """Calibrate (ari, or ari refined to exact), reconstruct when possible, write run.json and report.html."""
+def default_model(dataset: Dataset) -> str:
+    """exact when the dataset has no stacking poses (the ari model cannot observe the normal then), else ari."""
+    if dataset.observations is not None:
+        stacking = any(o.set == "stacking" for o in dataset.observations)
+    else:
+        stacking = bool(dataset.stacking)
+    return "ari" if stacking else "exact"
+
+
+def main(dataset_path: Path, out_dir: Path, model: str | None = None, truth: Path | None = None,
+         progress: bool = False, **options) -> RunResult:
+    """Calibrate (ari, or ari refined to exact; None: :func:`default_model`), reconstruct when
+    possible, write run.json and report.html."""
     out_dir = Path(out_dir)
     if truth is not None:
         from ..metrics import check_truth
 
         check_truth(truth)  # before the calibration, not after it
+    if model is None:
+        model = default_model(load_dataset(dataset_path))
+        log.info("model %s (the dataset %s stacking poses)", model, "has" if model == "ari" else "has no")
     calibrated = calibrate_rig(dataset_path, out_dir, model=model, progress=progress, **options)
     obs_path = calibrated.observations_path
     dataset = load_dataset(dataset_path, obs_path)
@@ -84,7 +99,7 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("dataset", type=Path)
     ap.add_argument("out", type=Path)
-    ap.add_argument("--model", default="ari", choices=CALIBRATABLE)
+    ap.add_argument("--model", default=None, choices=CALIBRATABLE)
     ap.add_argument("--truth", type=Path, default=None)
     a = ap.parse_args()
     logging.basicConfig(level=logging.INFO)

@@ -9,6 +9,7 @@ from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from ..errors import AriSfmError
@@ -20,7 +21,11 @@ from .zhang import calibrate_views, one_cv2_thread, solve_pnp
 
 log = logging.getLogger(__name__)
 
-MIN_VIEWS = 3
+MIN_VIEWS = 3  # views of a planar target per camera (Zhang)
+NO_NORMAL_MESSAGE = ("no stacking observations and no interface.plane: the ari model cannot observe the window "
+                     "normal (the normal is not observable); use --model exact (Snell's law observes it through "
+                     "refraction) or declare the window as interface.plane (DATASET_FORMAT.md 1.1)")
+MIN_VIEWS_3D = 1  # views of a 3D body (>= 6 non-coplanar points): one is complete (DLT / PnP)
 
 
 @dataclass(frozen=True)
@@ -45,6 +50,7 @@ class RigInit:
     normal_world: np.ndarray
     world_from_target: dict[str, Pose]  # calibration frames and stacking poses
     stacking_poses: tuple[str, ...] = field(default_factory=tuple)
+    normal_observed: bool = True  # False: no stacking, normal_world is camera 0's optical axis (a start only)
 
 
 def _shift(thickness_mm: float, index: float) -> float:
@@ -54,10 +60,15 @@ def _shift(thickness_mm: float, index: float) -> float:
 def initialise_camera(dataset: Dataset, name: str, distortion: bool = False) -> CameraInit:
     """Expansion centre, K, normal and real target poses of one camera."""
     views = [o for o in dataset.select("calibration", name) if len(o.ids) >= 6]
-    if len(views) < MIN_VIEWS:
-        raise AriSfmError(dataset.rig_path, f"camera {name} has {len(views)} calibration views with >= 6 corners (need >= {MIN_VIEWS})")
+    need = MIN_VIEWS if dataset.target.is_planar() else MIN_VIEWS_3D
+    if len(views) < need:
+        raise AriSfmError(dataset.rig_path, f"camera {name} has {len(views)} calibration views with >= 6 corners (need >= {need})")
     stacking = dataset.select("stacking", name)
-    zhang = calibrate_views(dataset.target, dataset.cameras[name], views, distortion)
+    try:
+        zhang = calibrate_views(dataset.target, dataset.cameras[name], views, distortion)
+    except (ValueError, cv2.error) as exc:  # DLT refused, or OpenCV refused the start
+        msg = str(exc).strip().splitlines()[-1] if isinstance(exc, cv2.error) else str(exc)
+        raise AriSfmError(dataset.rig_path, f"camera {name}: {msg}") from None
     iface = dataset.interface
     expansion, normal = None, None
     if stacking:
@@ -126,12 +137,11 @@ def initialise_rig(dataset: Dataset, distortion: bool = False, workers: int | No
     if missing:
         raise AriSfmError(dataset.rig_path, f"camera {missing[0]} shares no frame with camera {names[0]} or its neighbours: the rig cannot be joined")
     normals = [cam_from_world[n].R.T @ c.normal_cam for n, c in cams.items() if c.normal_cam is not None]
-    if not normals:
-        raise AriSfmError(dataset.rig_path, "no stacking observations: the window normal is not observable (add a stacking pose, see DATASET_FORMAT.md)")
-    normal_world = unit(np.mean(normals, axis=0))
+    # without stacking: camera 0's optical axis, a start for the exact model or a declared plane
+    normal_world = unit(np.mean(normals, axis=0)) if normals else np.array([0.0, 0.0, 1.0])
     world_from_target: dict[str, Pose] = {}
     for frame in sorted(set().union(*frames_of.values())):
         estimates = [cam_from_world[n].inverse().compose(c.cam_from_target[frame]) for n, c in cams.items() if frame in c.cam_from_target]
         world_from_target[frame] = _mean_pose(estimates)
     stacking = tuple(sorted({o.frame for o in dataset.select("stacking")}))
-    return RigInit(cams, cam_from_world, normal_world, world_from_target, stacking)
+    return RigInit(cams, cam_from_world, normal_world, world_from_target, stacking, bool(normals))

@@ -126,24 +126,56 @@ def dlt_projection(X: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return np.linalg.inv(T2) @ vt[-1].reshape(3, 4) @ T3
 
 
+MIN_DEPTH_RATIO = 0.02  # a body whose third extent is below this fraction of its largest is "nearly planar"
+
+
+def _hinted_K(spec: CameraSpec) -> np.ndarray | None:
+    """The K a hint gives: K as given, or focal_px with the principal point at the image centre."""
+    if spec.K is not None:
+        return np.array(spec.K, dtype=float)
+    if spec.focal_px is not None:
+        w, h = spec.image_size
+        return np.array([[spec.focal_px, 0, (w - 1) / 2], [0, spec.focal_px, (h - 1) / 2], [0, 0, 1.0]])
+    return None
+
+
+def _dlt_K(target: Target, spec: CameraSpec, views: Sequence[Observation]) -> np.ndarray:
+    """K by DLT per view (median over views); ValueError, asking for a focal hint, when the
+    body is nearly planar or too shallow for DLT (principal point outside the image)."""
+    for v in views:
+        X = object_points(target, v.ids)
+        s = np.linalg.svd(X - X.mean(axis=0), compute_uv=False)
+        if len(X) < 6 or s[2] < MIN_DEPTH_RATIO * s[0]:
+            raise ValueError(f"frame {v.frame}: the body is nearly planar as seen ({len(X)} points, depth "
+                             f"{s[2] / max(s[0], 1e-12):.3f} of its extent): DLT cannot start K; "
+                             "give cameras.<name>.focal_px (or K) in rig.yaml")
+    Ks = []
+    for v in views:
+        P = dlt_projection(object_points(target, v.ids), v.pixels)
+        P = P * np.sign(np.linalg.det(P[:, :3]))  # points in front of the camera
+        K = cv2.decomposeProjectionMatrix(P)[0]
+        K = K @ np.diag(np.sign(np.diag(K)))  # RQ's sign ambiguity: positive focal lengths
+        Ks.append(K / K[2, 2])
+    K0 = np.median(Ks, axis=0)
+    K0[0, 1] = 0.0
+    w, h = spec.image_size
+    fx, fy, cx, cy = K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2]
+    if not (np.isfinite(K0).all() and 0 <= cx <= w - 1 and 0 <= cy <= h - 1 and 0.8 < fx / fy < 1.25):
+        raise ValueError(f"the body is too shallow for DLT (its K start has fx {fx:.0f}, fy {fy:.0f}, principal "
+                         f"point ({cx:.0f}, {cy:.0f}) px): give cameras.<name>.focal_px (or K) in rig.yaml")
+    return K0
+
+
 def calibrate_dlt(
     target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False
 ) -> ZhangResult:
-    """K and generalised extrinsics from a 3D target (several planes): PnP with the
-    K hint when the dataset gives one, else DLT per view (K averaged over views),
-    then one cv2.calibrateCamera refinement from that guess."""
-    if spec.K is not None:
-        K0 = np.array(spec.K, dtype=float)
-    else:
-        Ks = []
-        for v in views:
-            P = dlt_projection(object_points(target, v.ids), v.pixels)
-            P = P * np.sign(np.linalg.det(P[:, :3]))  # points in front of the camera
-            K = cv2.decomposeProjectionMatrix(P)[0]
-            K = K @ np.diag(np.sign(np.diag(K)))  # RQ's sign ambiguity: positive focal lengths
-            Ks.append(K / K[2, 2])
-        K0 = np.median(Ks, axis=0)
-        K0[0, 1] = 0.0
+    """K and generalised extrinsics from a 3D target (several planes; one view is enough):
+    K from the hint when the dataset gives one (``K`` as given, ``focal_px`` with the
+    principal point at the image centre), else DLT per view (median over views); then
+    one cv2.calibrateCamera refinement (PnP inside) from that start."""
+    K0 = _hinted_K(spec)
+    if K0 is None:
+        K0 = _dlt_K(target, spec, views)
     hinted = CameraSpec(spec.name, spec.image_size, None, K0, spec.dist)
     return calibrate_zhang(target, hinted, views, distortion)
 

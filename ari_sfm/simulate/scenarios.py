@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -59,6 +59,13 @@ SCENARIOS: dict[str, str] = {
     "arc4": "4 cameras on an arc, window tilted ~20 deg (an outer expansion centre outside "
             "its image), partial visibility",
     "scale16": "16 cameras in a 4x4 grid, 500 frames (observations only) for scale tests",
+    "paper_single_nostack": "paper_single without the stacking pose (the same geometry for a seed)",
+    "binocular_nostack": "binocular without the stacking pose (the same geometry for a seed)",
+    "binocular_underwater_oblique": "binocular behind a 10 mm glass port with water, the window 10 deg "
+                                    "oblique, no stacking (the ari stage puts the window far off)",
+    "body3d_water": "a PTV-like 3D calibration body (3 levels, 40 mm deep) in one view of 4 cameras "
+                    "through 6 mm glass into water, no stacking",
+    "body3d_shallow": "body3d_water with a body 15 mm deep at 600 mm (too shallow for DLT without a focal hint)",
 }
 
 
@@ -307,9 +314,10 @@ def paper_single(rng: np.random.Generator, num_frames: int = 12, perpendicular: 
 def binocular(rng: np.random.Generator, num_frames: int = 15, underwater: bool = False,
               stack_added_mm: Sequence[float] = STACK_ADDED_MM,
               stage_mm: Sequence[float] = STAGE_MM, depth_band_mm: float = 180.0,
-              lateral_scale: float = 1.0) -> Geometry:
+              lateral_scale: float = 1.0, tilt_deg: float | None = None) -> Geometry:
     """Two paper-like cameras toed in 10-15 deg, one window (sections 4-5 of the paper).
 
+    ``tilt_deg``: the window's tilt from the rig's z axis (default: drawn in 2-5 deg).
     ``depth_band_mm``: the depth band of the calibration boards' centres and
     ``lateral_scale`` the scale of their sideways spread (+-50 x +-40 mm): a few
     mm and ~0 mimic the paper's rotary stage (boards turned about one point).
@@ -330,7 +338,9 @@ def binocular(rng: np.random.Generator, num_frames: int = 15, underwater: bool =
                     np.array([-sign * baseline / 2.0, rng.uniform(-2, 2), rng.uniform(-2, 2)])))
     cameras, rig_from_world = _rig_cameras(rig, rng)
 
-    normal_rig = _tilted(np.array([0.0, 0.0, 1.0]), math.radians(rng.uniform(2.0, 5.0)), rng.uniform(0, 2 * math.pi))
+    tilt = rng.uniform(2.0, 5.0)  # drawn in any case: the same stream with or without tilt_deg
+    normal_rig = _tilted(np.array([0.0, 0.0, 1.0]), math.radians(tilt if tilt_deg is None else tilt_deg),
+                         rng.uniform(0, 2 * math.pi))
     near = max(normal_rig @ c for _, c in rig) + rng.uniform(40.0, 60.0)
     if underwater:
         window = _window_in_world(normal_rig, near, rig_from_world, 10.0, NBK7_INDEX, WATER_INDEX)
@@ -533,6 +543,69 @@ def grid(rng: np.random.Generator, num_frames: int = 500, num_cameras: int = 16,
     return Geometry(target=PAPER_TARGET, window=window, cameras=cameras, calibration=calibration, stacking=(s0,))
 
 
+# --------------------------------------------------------------------------- without stacking, 3D bodies
+
+
+def paper_single_nostack(rng: np.random.Generator, num_frames: int = 12) -> Geometry:
+    """paper_single's geometry for the seed, without its stacking pose (most real data)."""
+    return replace(paper_single(rng, num_frames), stacking=())
+
+
+def binocular_nostack(rng: np.random.Generator, num_frames: int = 15, underwater: bool = False,
+                      tilt_deg: float | None = None) -> Geometry:
+    """binocular's geometry for the seed (and options), without its stacking pose."""
+    return replace(binocular(rng, num_frames, underwater=underwater, tilt_deg=tilt_deg), stacking=())
+
+
+def _step_body(depth_mm: float, cells: int = 11, pitch_mm: float = 15.0) -> Target:
+    """A PTV-like body: ``cells`` x ``cells`` points, ``pitch_mm`` apart, on three levels
+    (0, depth/2, depth toward the cameras, i.e. target z = 0, -depth/2, -depth) in a diagonal pattern."""
+    pts = {}
+    for r in range(cells):
+        for c in range(cells):
+            pts[r * cells + c] = (c * pitch_mm, r * pitch_mm, -depth_mm * ((r + c) % 3) / 2.0)
+    return Target(type="points3d", points=pts)
+
+
+def _look_at(center: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """rig_from_cam rotation of a camera at ``center`` whose optical axis goes through ``point`` (y down)."""
+    z = unit(np.asarray(point, float) - center)
+    x = unit(np.cross(np.array([0.0, 1.0, 0.0]), z))
+    return np.column_stack([x, np.cross(z, x), z])
+
+
+def body3d(rng: np.random.Generator, depth_mm: float = 40.0, distance_mm: float = 500.0,
+           spacing_mm: float = 160.0, glass_mm: float = 6.0) -> Geometry:
+    """Four paper-like cameras in a 2 x 2 grid ``spacing_mm`` apart, aimed at a 3D body
+    ``distance_mm`` ahead, behind one ``glass_mm`` N-BK7 window (tilted 1-3 deg, 30-50 mm
+    ahead) with water behind; one calibration frame (the body, tilted up to 5 deg), seen
+    whole by every camera."""
+    target = _step_body(depth_mm)
+    ahead = np.array([0.0, 0.0, distance_mm])
+    rig = []
+    for i in range(4):
+        r, c = divmod(i, 2)
+        center = np.array([(c - 0.5) * spacing_mm, (r - 0.5) * spacing_mm * 0.75, 0.0])
+        jitter = _rot(rng.normal(size=3), math.radians(rng.uniform(0.0, 0.5)))
+        rig.append((_look_at(center, ahead) @ jitter, center))
+    cameras, rig_from_world = _rig_cameras(rig, rng)
+    normal_rig = _tilted(np.array([0.0, 0.0, 1.0]), math.radians(rng.uniform(1.0, 3.0)), rng.uniform(0, 2 * math.pi))
+    near = max(normal_rig @ c for _, c in rig) + rng.uniform(30.0, 50.0)
+    window = _window_in_world(normal_rig, near, rig_from_world, glass_mm, NBK7_INDEX, WATER_INDEX)
+    world_from_rig = rig_from_world.inverse()
+    _, pts = target.points_3d()
+    centroid = pts.mean(axis=0)
+    chk = _Checker(target, window, cameras)
+
+    def sample() -> Pose | None:
+        R = world_from_rig.R @ _rot(rng.normal(size=3), math.radians(rng.uniform(0.0, 5.0)))
+        center = world_from_rig.apply(ahead + np.array([rng.uniform(-10, 10), rng.uniform(-10, 10), 0.0]))
+        pose = Pose(R, center - R @ centroid)
+        return pose if len(chk.seen_by(pose)) == len(cameras) else None
+
+    return Geometry(target=target, window=window, cameras=cameras, calibration={"f000": _draw("the 3D body", sample)})
+
+
 # --------------------------------------------------------------------------- registry
 
 
@@ -556,6 +629,12 @@ REGISTRY: dict[str, ScenarioSpec] = {
     "binocular_underwater": ScenarioSpec(binocular, {"underwater": True}, rng_name="binocular_underwater"),
     "arc4": ScenarioSpec(arc, {}, rng_name="arc4"),
     "scale16": ScenarioSpec(grid, {}, rng_name="scale16"),
+    "paper_single_nostack": ScenarioSpec(paper_single_nostack, {}, rng_name="paper_single"),
+    "binocular_nostack": ScenarioSpec(binocular_nostack, {}, rng_name="binocular"),
+    "binocular_underwater_oblique": ScenarioSpec(binocular_nostack, {"underwater": True, "tilt_deg": 10.0},
+                                                 rng_name="binocular_underwater_oblique"),
+    "body3d_water": ScenarioSpec(body3d, {}, rng_name="body3d"),
+    "body3d_shallow": ScenarioSpec(body3d, {"depth_mm": 15.0, "distance_mm": 600.0}, rng_name="body3d"),
 }
 assert set(REGISTRY) == set(SCENARIOS)
 

@@ -1,0 +1,121 @@
+"""Starting values of the window for the exact model when the paraxial stage cannot give them.
+
+- The distance under water (:func:`search_distance`): the ari stage can put the
+  window metres away (its medium term is weak), and an exact model started
+  there has corners on the camera side of the window. The distance from camera 0
+  is searched inside the interval where every camera is in front of the near face
+  and every corner beyond the far face, scored by the exact cost.
+- The normal without stacking (:func:`search_normal`): the exact model observes
+  it through refraction alone; a coarse search over tilt directions, each scored
+  by the exact cost after a short refit of everything else, picks the start.
+"""
+from __future__ import annotations
+
+import logging
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..geometry import unit
+from ..records import Observation, Target
+
+log = logging.getLogger(__name__)
+
+TILTS_DEG = (4.0, 8.0, 12.0, 18.0)  # coarse tilt rings of the normal search (plus the start itself)
+AZIMUTHS = 8  # directions per ring
+
+
+def not_beyond(state, observations: Sequence[Observation], target: Target, thickness_mm: float
+               ) -> tuple[str, str | None] | None:
+    """The first (camera, frame) that the window at ``state.distance_mm`` does not separate: a
+    camera not in front of its near face (frame None), or a corner of that camera's view of the
+    frame not beyond its far face (the exact model has no ray there); None when all are fine."""
+    from .zhang import object_points
+
+    n, h = np.asarray(state.normal_world, float), float(state.distance_mm)
+    for name, pose in state.cam_from_world.items():
+        if not h > n @ pose.inverse().t:
+            return name, None
+    views = [o for o in observations if o.set in ("calibration", "stacking") and o.frame in state.world_from_target
+             and o.camera in state.cam_from_world]
+    added = {}
+    for o in views:
+        added[o.frame] = max(added.get(o.frame, 0.0), (o.added_mm or 0.0) if o.set == "stacking" else 0.0)
+    _, all_points = target.points_3d_readonly
+    # fast path: every point of the target beyond the thickest plate of the frame
+    doubtful = {f for f, a in added.items()
+                if not (state.world_from_target[f].apply(all_points) @ n).min() > h + thickness_mm + a}
+    for o in views:
+        if o.frame not in doubtful:
+            continue
+        a = (o.added_mm or 0.0) if o.set == "stacking" else 0.0
+        if not (state.world_from_target[o.frame].apply(object_points(target, o.ids)) @ n).min() > h + thickness_mm + a:
+            return o.camera, o.frame
+    return None
+
+
+def distance_interval(state, observations: Sequence[Observation], target: Target, thickness_mm: float
+                      ) -> tuple[float, float]:
+    """(lo, hi) for the distance h from camera 0 to the near face along ``state.normal_world``:
+    every camera centre in front of it (h > n . C) and every observed corner beyond the far
+    face (h < n . X - thickness - added). hi <= lo when no distance fits."""
+    from .zhang import object_points
+
+    n = np.asarray(state.normal_world, float)
+    lo = max(float(n @ p.inverse().t) for p in state.cam_from_world.values())
+    hi = np.inf
+    for o in observations:
+        pose = state.world_from_target.get(o.frame)
+        if pose is None or o.set not in ("calibration", "stacking"):
+            continue
+        added = (o.added_mm or 0.0) if o.set == "stacking" else 0.0
+        depth = pose.apply(object_points(target, o.ids)) @ n
+        hi = min(hi, float(depth.min()) - thickness_mm - added)
+    return lo, hi
+
+
+def search_distance(cost: Callable[[float], float], lo: float, hi: float, samples: int = 48,
+                    current: float | None = None) -> float:
+    """The distance in (lo, hi) of least ``cost``: a grid of ``samples`` interior points (and
+    ``current`` when inside), then a bounded 1-D minimisation between the best point's neighbours."""
+    from scipy.optimize import minimize_scalar
+
+    grid = lo + (hi - lo) * np.arange(1, samples + 1) / (samples + 1)
+    if current is not None and lo < current < hi:
+        grid = np.sort(np.append(grid, current))
+        samples += 1
+    costs = np.array([cost(float(h)) for h in grid])
+    if not np.isfinite(costs).any():
+        return float(grid[0])
+    k = int(np.nanargmin(np.where(np.isfinite(costs), costs, np.nan)))
+    a = grid[k - 1] if k > 0 else lo + 0.5 * (grid[0] - lo)
+    b = grid[k + 1] if k + 1 < samples else hi - 0.5 * (hi - grid[-1])
+    res = minimize_scalar(cost, bounds=(a, b), method="bounded", options={"xatol": 1e-3 * (b - a)})
+    best = float(res.x) if np.isfinite(res.fun) and res.fun <= costs[k] else float(grid[k])
+    log.debug("window distance start %.2f mm (searched %.1f..%.1f mm)", best, lo, hi)
+    return best
+
+
+def tilt_candidates(axis: np.ndarray, tilts_deg: Sequence[float] = TILTS_DEG, azimuths: int = AZIMUTHS
+                    ) -> list[np.ndarray]:
+    """``axis`` and, for each tilt, ``azimuths`` directions turned that far from it."""
+    axis = unit(np.asarray(axis, float))
+    helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = unit(helper - (helper @ axis) * axis)
+    e2 = np.cross(axis, e1)
+    out = [axis]
+    for t in np.radians(tilts_deg):
+        for a in 2 * np.pi * np.arange(azimuths) / azimuths:
+            out.append(unit(np.cos(t) * axis + np.sin(t) * (np.cos(a) * e1 + np.sin(a) * e2)))
+    return out
+
+
+def search_normal(score: Callable[[np.ndarray], float], axis: np.ndarray,
+                  tilts_deg: Sequence[float] = TILTS_DEG, azimuths: int = AZIMUTHS) -> np.ndarray:
+    """The candidate normal (:func:`tilt_candidates`) of least ``score``."""
+    candidates = tilt_candidates(axis, tilts_deg, azimuths)
+    scores = np.array([score(n) for n in candidates])
+    k = int(np.argmin(np.where(np.isfinite(scores), scores, np.inf)))
+    log.info("normal start: %.1f deg from the axis (coarse search over %d directions)",
+             np.degrees(np.arccos(np.clip(candidates[k] @ unit(axis), -1, 1))), len(candidates))
+    return candidates[k]
