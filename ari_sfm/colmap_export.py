@@ -588,12 +588,19 @@ def refined_reconstruction(rec: Any, model: ColmapModel, colmap_params: Sequence
     return out
 
 
-def pinhole_approximation(rec: Any) -> Any:
-    """COLMAP's own bundle adjustment of cameras and poses with the points held: the best pinhole
-    approximation (in COLMAP's cost) of cameras whose 3D points are right."""
+def pinhole_approximation(rec: Any, opencv_params: Mapping[int, np.ndarray] | None = None) -> Any:
+    """COLMAP's own bundle adjustment of cameras (principal point included) and poses with the points
+    held: the best approximation, in COLMAP's camera models, of cameras whose 3D points are right.
+    ``opencv_params``: camera_id -> OPENCV parameters [fx fy cx cy k1 k2 p1 p2] (COLMAP pixels) to
+    turn those cameras into OPENCV cameras first (their distortion absorbs much of a flat port)."""
     out = pycolmap.Reconstruction(rec)
+    for cid, params in (opencv_params or {}).items():
+        cam = out.camera(int(cid))
+        cam.model = pycolmap.CameraModelId.OPENCV
+        cam.params = np.asarray(params, float)
     options = pycolmap.BundleAdjustmentOptions()
     options.refine_points3D = False
+    options.refine_principal_point = True
     options.print_summary = False
     pycolmap.bundle_adjustment(out, options)
     out.update_point_3d_errors()

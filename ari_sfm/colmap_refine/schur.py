@@ -61,9 +61,7 @@ class NormalEquations:
     g: np.ndarray  # (G,)
     V: np.ndarray  # (P, 3, 3)
     gp: np.ndarray  # (P, 3)
-    B: np.ndarray  # (M, q, 3) = J_g^T J_p per observation
-    index: np.ndarray  # (M, q), -1 none
-    obs_point: np.ndarray
+    W: Any  # (G + 1, 3P) sparse: sum over observations of J_g^T J_p (row G: unused columns)
 
 
 def build_normal_equations(lin: Linearization, obs_point: np.ndarray, num_points: int, size: int,
@@ -86,26 +84,22 @@ def build_normal_equations(lin: Linearization, obs_point: np.ndarray, num_points
                   np.einsum("nki,nkj->nij", Jp, Jp).reshape(-1, 9).T], axis=1).reshape(-1, 3, 3)
     gp = np.stack([np.bincount(obs_point, v, num_points) for v in np.einsum("nki,nk->ni", Jp, r).T], axis=1)
     B = np.matmul(np.swapaxes(Jg, 1, 2), Jp)
-    return NormalEquations(H.reshape(G1, G1)[:size, :size], g, V, gp, B, idx, obs_point)
+    rows = np.broadcast_to(idx[:, :, None], B.shape).ravel()
+    cols = np.broadcast_to((3 * obs_point)[:, None, None] + np.arange(3), B.shape).ravel()
+    W = sparse.csr_matrix((B.ravel(), (rows, cols)), shape=(G1, 3 * num_points))
+    return NormalEquations(H.reshape(G1, G1)[:size, :size], g, V, gp, W)
 
 
 def solve_damped(ne: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray]:
-    """Reduced step dg (G,) and point steps dp (P, 3) of the system damped by ``lam * diag``.
-
-    W (G x 3P) is assembled sparse from the per-observation blocks (repeated entries summed), so
-    ``W V^-1 W^T`` is two sparse products: memory linear in the observations."""
+    """Reduced step dg (G,) and point steps dp (P, 3) of the system damped by ``lam * diag``
+    (``W V^-1 W^T``: two sparse products)."""
     size = len(ne.g)
-    G1 = size + 1
     P = len(ne.gp)
     dH = np.maximum(np.diag(ne.H), DIAG_FLOOR)
     H = ne.H + np.diag(lam * dH)
     dV = np.maximum(np.diagonal(ne.V, axis1=1, axis2=2), DIAG_FLOOR)
     Vinv = np.linalg.inv(ne.V + lam * dV[:, :, None] * np.eye(3))
-    idx, B, op = ne.index, ne.B, ne.obs_point
-    q = idx.shape[1]
-    rows = np.broadcast_to(idx[:, :, None], (len(idx), q, 3)).ravel()
-    cols = np.broadcast_to((3 * op)[:, None, None] + np.arange(3), (len(idx), q, 3)).ravel()
-    W = sparse.csr_matrix((B.ravel(), (rows, cols)), shape=(G1, 3 * P))
+    W = ne.W
     vr = np.broadcast_to((3 * np.arange(P))[:, None, None] + np.arange(3)[:, None], (P, 3, 3)).ravel()
     vc = np.broadcast_to((3 * np.arange(P))[:, None, None] + np.arange(3)[None, :], (P, 3, 3)).ravel()
     WV = W @ sparse.csr_matrix((Vinv.ravel(), (vr, vc)), shape=(3 * P, 3 * P))
