@@ -89,3 +89,161 @@ def test_jacobians_match_central_differences(mount):
         analytic = (np.einsum("nij,nj->ni", lin.J_g, np.append(dg, 0.0)[lin.index])
                     + np.einsum("nij,nj->ni", lin.J_p, dp[model.obs_point]))
         assert np.max(np.abs(numeric - analytic)) < 1e-6 * np.max(np.abs(analytic))
+
+
+# ----------------------------------------------------------------------------- recovery of the truth
+
+def scale_bar_of(truth, model) -> tuple[int, int, float]:
+    """Two far-apart points and their true distance (a scale bar a surveyor would place)."""
+    X = truth.xyz[model.point3D_ids - 1]
+    a, b = int(np.argmin(X[:, 0] + X[:, 1])), int(np.argmax(X[:, 0] + X[:, 1]))
+    return int(model.point3D_ids[a]), int(model.point3D_ids[b]), float(np.linalg.norm(X[a] - X[b]))
+
+
+def refined_errors(truth, start, result) -> dict:
+    model = adapter.model_from_reconstruction(start)
+    out = truth_errors(truth, model, result.state.xyz, poses_of(result.state, model))
+    out.update(window_errors(truth, result.state.normals, result.state.distances, result.state.rig_from_world[0]))
+    return out
+
+
+@pytest.fixture(scope="module")
+def survey():
+    """A camera in a flat-port housing (22 mm, 8 mm acrylic, water), 10 images over a relief at 2 m,
+    sigma 0.5 px; COLMAP's pinhole optimum of it, the refinement with a scale bar, and the
+    noise-limited errors (the same refinement started at the truth)."""
+    truth = port_survey(num_images=10, num_points=800, focal_px=1300, area_mm=(1800, 1200), sigma_px=0.5)
+    _, start = colmap_start(truth, truth.interface.medium_index)
+    model = adapter.model_from_reconstruction(start)
+    result = refine_colmap(start, truth.interface, "camera", scale_bar=scale_bar_of(truth, model))
+    return truth, start, result, noise_limited(truth, start, "camera")
+
+
+def test_survey_points_and_cameras_recovered(survey):
+    truth, start, result, limit = survey
+    got, colmap = refined_errors(truth, start, result), colmap_truth_errors(truth, start)
+    assert got["points_rms_mm"] <= 3.0 * limit["points_rms_mm"]
+    assert colmap["points_rms_mm"] > 10.0 * got["points_rms_mm"]  # the pinhole optimum is wrong in shape
+    assert got["centres_rms_mm"] <= 3.0 * limit["centres_rms_mm"]
+    assert abs(got["scale_error_pct"]) < 0.5  # the scale bar holds the scale
+
+
+def test_survey_reprojection_at_noise_floor(survey):
+    truth, _, result, limit = survey
+    after = result.report["after"]["rms_px"]
+    assert after <= 1.02 * limit["rms_px"]
+    assert after <= truth.sigma_px * np.sqrt(2.0)  # the floor sigma sqrt(2) less the fitted dofs
+    assert result.report["before"]["rms_px"] > 2.0 * after
+
+
+def test_survey_port_recovered(survey):
+    truth, start, result, limit = survey
+    got = refined_errors(truth, start, result)
+    assert got["normal_deg"] <= 3.0 * limit["normal_deg"] + 0.02
+    assert got["distance_mm"] <= 3.0 * limit["distance_mm"] + 1.0
+    fx_true = truth.params[0][0]
+    assert abs(result.state.colmap_params[0][0] / fx_true - 1.0) < 0.005  # the lens focal, not n_m times it
+
+
+def test_world_mount_two_camera_rig():
+    """A 2-camera rig moved along a tank wall (one window fixed in the world)."""
+    truth = tank_rig(num_frames=6, num_points=400)
+    _, start = colmap_start(truth, 1.0)
+    model = adapter.model_from_reconstruction(start)
+    result = refine_colmap(start, truth.interface, "world", scale_bar=scale_bar_of(truth, model))
+    limit = noise_limited(truth, start, "world")
+    got, colmap = refined_errors(truth, start, result), colmap_truth_errors(truth, start)
+    assert got["points_rms_mm"] <= 3.0 * limit["points_rms_mm"]
+    assert colmap["points_rms_mm"] > 5.0 * got["points_rms_mm"]
+    assert got["normal_deg"] <= 3.0 * limit["normal_deg"] + 0.02
+    assert got["distance_mm"] <= 3.0 * limit["distance_mm"] + 1.0
+    assert result.report["after"]["rms_px"] <= 1.02 * limit["rms_px"]
+    # the rig's second sensor: refined relative pose close to the truth
+    sensor = result.state.sensor_from_rig[int(np.flatnonzero(model.image_camera == 1)[0])]
+    assert np.linalg.norm(sensor.inverse().t - truth.sensor_from_rig[1].inverse().t) < 3.0
+
+
+# ----------------------------------------------------------------------------- CLI, outputs, bad input
+
+WINDOW_YAML = """interface:
+  thickness_mm: 8
+  index: 1.49
+  medium_index: 1.333
+mount: camera
+"""
+
+
+@pytest.fixture(scope="module")
+def small_model(tmp_path_factory):
+    truth = port_survey(num_images=6, num_points=300, focal_px=1300, area_mm=(1200, 800), sigma_px=0.3)
+    _, start = colmap_start(truth, truth.interface.medium_index)
+    folder = tmp_path_factory.mktemp("colmap") / "sparse"
+    folder.mkdir()
+    start.write(str(folder))
+    return truth, start, folder
+
+
+def test_cli_writes_model_calibration_and_report(small_model, tmp_path):
+    truth, start, folder = small_model
+    (tmp_path / "WINDOW.yaml").write_text(WINDOW_YAML)
+    out = tmp_path / "out"
+    res = CliRunner().invoke(main, ["refine-colmap", str(folder), "--window", str(tmp_path / "WINDOW.yaml"),
+                                    "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    rec = adapter.read_colmap(out)
+    assert sorted(rec.images) == sorted(start.images) and sorted(rec.point3D_ids()) == sorted(start.point3D_ids())
+    assert rec.compute_mean_reprojection_error() < 1.0  # COLMAP's own cameras (OPENCV) fit the refined points
+    report = __import__("json").loads((out / "refine.json").read_text())
+    assert set(report["before"]["per_image_rms_px"]) == {str(i) for i in start.images}
+    cal = load_calibration(out / "calibration.json")
+    exact = cal.projection_model("camera1")
+    h = report["window"]["distance_mm"]["camera1"]
+    assert exact.distance_mm == pytest.approx(h)
+    assert np.allclose(exact.normal_cam, report["window"]["normal_cam"]["camera1"])
+    # the calibration's exact camera, at the image poses it records, reproduces the observations
+    poses = cal.extra["refine_colmap"]["images_cam_from_world"]
+    model = adapter.model_from_reconstruction(rec)
+    k = 0
+    pose = Pose.from_json(poses[str(int(model.image_ids[k]))])
+    sel = model.obs_image == k
+    uv = exact.project(pose.apply(model.xyz[model.obs_point[sel]]))
+    assert np.sqrt(np.mean(np.sum((uv - model.obs_uv[sel]) ** 2, axis=1))) < 3 * truth.sigma_px
+
+
+@pytest.mark.parametrize("text, message", [
+    ("interface:\n  index: 1.49\nmount: camera\n", "missing key 'interface.thickness_mm'"),
+    ("interface:\n  thickness_mm: 8\n  index: 1.49\n", "missing key 'mount'"),
+    ("interface:\n  thickness_mm: 8\n  index: 1.49\nmount: housing\n", "mount must be one of camera, world"),
+])
+def test_bad_window_yaml_one_line(small_model, tmp_path, text, message):
+    _, _, folder = small_model
+    (tmp_path / "WINDOW.yaml").write_text(text)
+    res = CliRunner().invoke(main, ["refine-colmap", str(folder), "--window", str(tmp_path / "WINDOW.yaml"),
+                                    "-o", str(tmp_path / "out")])
+    assert res.exit_code == 1
+    lines = res.output.strip().splitlines()
+    assert lines[-1].startswith("error: ") and "WINDOW.yaml" in lines[-1] and message in lines[-1]
+    assert not (tmp_path / "out").exists()
+
+
+def test_model_without_points_one_line(small_model, tmp_path):
+    _, start, _ = small_model
+    empty = adapter.pycolmap.Reconstruction(start)
+    for pid in list(empty.point3D_ids()):
+        empty.delete_point3D(pid)
+    (tmp_path / "m").mkdir()
+    empty.write(str(tmp_path / "m"))
+    (tmp_path / "WINDOW.yaml").write_text(WINDOW_YAML)
+    res = CliRunner().invoke(main, ["refine-colmap", str(tmp_path / "m"), "--window", str(tmp_path / "WINDOW.yaml"),
+                                    "-o", str(tmp_path / "out")])
+    assert res.exit_code == 1 and "no points3D" in res.output.strip().splitlines()[-1]
+
+
+def test_camera_model_that_cannot_be_held(small_model):
+    truth, start, _ = small_model
+    rec = adapter.pycolmap.Reconstruction(start)
+    cam = rec.camera(1)
+    cam.model = adapter.pycolmap.CameraModelId.OPENCV_FISHEYE
+    cam.params = np.r_[cam.params[:4], 0.0, 0.0, 0.0, 0.0]
+    with pytest.raises(AriSfmError, match="OPENCV_FISHEYE cannot be held"):
+        refine_colmap(rec, truth.interface, "camera")
