@@ -141,13 +141,15 @@ class RefractiveProblem:
         centres = -np.einsum("nji,nj->ni", R, t)
         return R @ n_w, state.distances[0] - centres @ n_w
 
-    def _groups(self) -> list[tuple[np.ndarray, int, int]]:
-        """Observation groups sharing one exact model: (observations, camera, image or -1)."""
+    def _groups(self, obs_image: np.ndarray) -> list[tuple[np.ndarray, int, int]]:
+        """Groups of observations (positions in ``obs_image``) sharing one exact model:
+        (positions, camera, image or -1)."""
         m = self.model
         if self.mount == "camera":
-            return [(np.flatnonzero(self._cam_of_obs == c), c, -1) for c in range(len(m.camera_ids))]
-        order = np.argsort(m.obs_image, kind="stable")
-        starts = np.searchsorted(m.obs_image[order], np.arange(len(m.image_ids) + 1))
+            cam = m.image_camera[obs_image]
+            return [(np.flatnonzero(cam == c), c, -1) for c in range(len(m.camera_ids))]
+        order = np.argsort(obs_image, kind="stable")
+        starts = np.searchsorted(obs_image[order], np.arange(len(m.image_ids) + 1))
         return [(order[starts[i]:starts[i + 1]], int(m.image_camera[i]), i) for i in range(len(m.image_ids))]
 
     # -------------------------------------------------------------- residuals
@@ -157,20 +159,25 @@ class RefractiveProblem:
         R, t = state.cam_from_world(m)
         X_cam = np.einsum("nij,nj->ni", R[m.obs_image], state.xyz[m.obs_point]) + t[m.obs_image]
         normals, dists = self.image_windows(state)
+        if not np.all(dists > 0.0):  # a trial step put a camera beyond its window
+            return np.full((len(X_cam), 2), np.nan)
         uv = np.empty((len(X_cam), 2))
-        for obs, c, i in self._groups():
+        for obs, c, i in self._groups(m.obs_image):
             if len(obs) == 0:
                 continue
             j = i if i >= 0 else m.obs_image[obs[0]]
             uv[obs] = self._exact(state, c, normals[j], float(dists[j])).project(X_cam[obs])
         return uv - m.obs_uv
 
-    def linearize(self, state: State) -> Linearization:
-        """Residuals and analytic Jacobians of every observation (see module docstring)."""
+    def linearize(self, state: State, obs: np.ndarray | None = None) -> Linearization:
+        """Residuals and analytic Jacobians of every observation, or of the observations ``obs``
+        (see module docstring)."""
         m, lay = self.model, self.layout
+        sub = slice(None) if obs is None else obs
+        oi, op, cam_of_obs = m.obs_image[sub], m.obs_point[sub], self._cam_of_obs[sub]
         R, t = state.cam_from_world(m)
-        Ro, to = R[m.obs_image], t[m.obs_image]
-        a = np.einsum("nij,nj->ni", Ro, state.xyz[m.obs_point])  # R X
+        Ro, to = R[oi], t[oi]
+        a = np.einsum("nij,nj->ni", Ro, state.xyz[op])  # R X
         X_cam = a + to
         normals, dists = self.image_windows(state)
         M = len(X_cam)
@@ -180,20 +187,20 @@ class RefractiveProblem:
         J_h = np.empty((M, 2))
         kmax = max(len(ix) for ix in lay.intrinsics)
         J_k = np.zeros((M, 2, kmax))
-        for obs, c, i in self._groups():
-            if len(obs) == 0:
+        for grp, c, i in self._groups(oi):
+            if len(grp) == 0:
                 continue
-            j = i if i >= 0 else m.obs_image[obs[0]]
-            jac = self._exact(state, c, normals[j], float(dists[j])).project_with_jacobians(X_cam[obs])
-            uv[obs], J_X[obs], J_n[obs], J_h[obs] = jac.uv, jac.J_point, jac.J_normal, jac.J_distance
+            j = i if i >= 0 else oi[grp[0]]
+            jac = self._exact(state, c, normals[j], float(dists[j])).project_with_jacobians(X_cam[grp])
+            uv[grp], J_X[grp], J_n[grp], J_h[grp] = jac.uv, jac.J_point, jac.J_normal, jac.J_distance
             free = np.flatnonzero(m.param_map[c].any(axis=0))
-            J_k[obs, :, :len(free)] = jac.J_params @ m.param_map[c][:, free]
+            J_k[grp, :, :len(free)] = jac.J_params @ m.param_map[c][:, free]
         # image pose perturbation (w, v) of cam_from_world: dX_cam = -[a]x w + v
         J_w = -np.einsum("nij,njk->nik", J_X, _skew_rows(a))
         J_v = J_X.copy()
         wn = None
         if self.mount == "world":
-            n_cam = normals[m.obs_image]
+            n_cam = normals[oi]
             # n_cam = R n_w: dn = -[n_cam]x w;  h = plane - n_w . C:  dh = n_cam . v + n_cam^T [t]x w
             J_w += -np.einsum("nij,njk->nik", J_n, _skew_rows(n_cam))
             J_w += J_h[:, :, None] * np.einsum("ni,nij->nj", n_cam, _skew_rows(to))[:, None, :]
@@ -202,24 +209,24 @@ class RefractiveProblem:
             centres = -np.einsum("nji,nj->ni", Ro, to)
             wn = (np.einsum("nij,njk,kl->nil", J_n, Ro, B) - J_h[:, :, None] * (centres @ B)[:, None, :], J_h)
         # chain to the frame (rig_from_world) and the sensor (sensor_from_rig)
-        S = np.array([s.R for s in state.sensor_from_rig])[m.obs_image]
+        S = np.array([s.R for s in state.sensor_from_rig])[oi]
         St_P = np.array([s.R @ state.rig_from_world[f].t for s, f in zip(state.sensor_from_rig, m.image_frame)])
         J_frame = np.concatenate([J_w @ S, J_v @ S], axis=2)
-        J_sensor = np.concatenate([J_w - np.einsum("nij,njk->nik", J_v, _skew_rows(St_P[m.obs_image])), J_v], axis=2)
+        J_sensor = np.concatenate([J_w - np.einsum("nij,njk->nik", J_v, _skew_rows(St_P[oi])), J_v], axis=2)
         blocks = [J_frame, J_sensor, J_k]
-        index = [lay.frames[m.image_frame[m.obs_image]], lay.sensors[self._cam_of_obs],
-                 _pad([lay.intrinsics[c] for c in range(len(lay.intrinsics))], kmax)[self._cam_of_obs]]
+        index = [lay.frames[m.image_frame[oi]], lay.sensors[cam_of_obs],
+                 _pad([lay.intrinsics[c] for c in range(len(lay.intrinsics))], kmax)[cam_of_obs]]
         if self.mount == "camera":
-            B = np.array([tangent_basis(n) for n in state.normals])[self._cam_of_obs]
+            B = np.array([tangent_basis(n) for n in state.normals])[cam_of_obs]
             blocks.append(np.concatenate([np.einsum("nij,njk->nik", J_n, B), J_h[:, :, None]], axis=2))
-            index.append(lay.window[self._cam_of_obs])
+            index.append(lay.window[cam_of_obs])
         else:
             blocks.append(np.concatenate([wn[0], wn[1][:, :, None]], axis=2))
             index.append(np.broadcast_to(lay.window[0], (M, 3)))
         J_p = np.einsum("nij,njk->nik", J_X, Ro)
         index = np.concatenate(index, axis=1)
         used = (index >= 0).any(axis=0)  # drop columns no observation uses (e.g. no rig sensors)
-        return Linearization(uv - m.obs_uv, np.concatenate(blocks, axis=2)[:, :, used], index[:, used], J_p)
+        return Linearization(uv - m.obs_uv[sub], np.concatenate(blocks, axis=2)[:, :, used], index[:, used], J_p)
 
     # ---------------------------------------------------------------- retract
     def retract(self, state: State, dg: np.ndarray, dp: np.ndarray) -> State:

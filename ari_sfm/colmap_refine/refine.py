@@ -37,7 +37,7 @@ from ari_sfm.models import AriModel, PinholeModel
 from ari_sfm.records import Interface
 
 from .problem import MOUNTS, RefractiveProblem, State
-from .schur import (build_normal_equations, huber_cost, huber_weights, levenberg_marquardt,
+from .schur import (LMResult, build_normal_equations, huber_cost, huber_weights, levenberg_marquardt,
                     solve_damped)
 
 log = logging.getLogger(__name__)
@@ -171,9 +171,17 @@ class Solver:
     def retract(self, state: State, step) -> State:
         return self.problem.retract(state, step[0], step[1])
 
-    def run(self, state: State, max_iterations: int, progress=None):
+    def run(self, state: State, max_iterations: int, progress=None) -> LMResult:
+        """The numpy backend: points Schur + this package's LM."""
         return levenberg_marquardt(state, self.cost, self.linearize, self.solve, self.retract,
                                    max_iterations=max_iterations, progress=progress)
+
+    def run_gtsam(self, state: State, max_iterations: int) -> LMResult:
+        """The GTSAM backend (one CustomFactor per image, GTSAM's LM)."""
+        from .gtsam_graph import GtsamRefinement
+
+        refined, iterations = GtsamRefinement(self.problem, self.huber_px).optimize(state, max_iterations)
+        return LMResult(refined, self.cost(refined), self.cost(state), iterations, iterations < max_iterations)
 
 
 def _per_image_rms(model: adapter.ColmapModel, residuals: np.ndarray) -> dict[int, float]:
@@ -229,7 +237,8 @@ def _state_reconstruction(rec: Any, model: adapter.ColmapModel, problem: Refract
 def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camera", model: str = "exact",
                   units_mm: float | None = None, scale_bar: tuple[int, int, float] | None = None,
                   huber_px: float | None = 2.0, max_iterations: int = 50,
-                  distances_mm: tuple[float, ...] | None = None, approximation: str = "opencv", progress: bool = False,
+                  distances_mm: tuple[float, ...] | None = None, approximation: str = "opencv",
+                  backend: str = "numpy", progress: bool = False,
                   path: Any = "reconstruction") -> RefineResult:
     """Refine a COLMAP reconstruction made behind a flat window with the exact refractive model.
 
@@ -238,12 +247,16 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     ``mount``: ``camera`` (a housing per COLMAP camera) or ``world`` (one window fixed in the
     world); ``distances_mm``: distance candidates of the start search; ``approximation``: the COLMAP
     cameras written, ``opencv`` (pinhole + k1 k2 p1 p2, default: the distortion absorbs much of the
-    port) or ``pinhole`` (the input's camera models). See the module docstring
+    port) or ``pinhole`` (the input's camera models); ``backend``: ``numpy`` (points Schur, this
+    package's LM) or ``gtsam`` (one CustomFactor per image; slower; the start search stays numpy).
+    See the module docstring
     for the start, the gauge and the scale.
     """
     t0 = time.perf_counter()
     if model != "exact":
         raise AriSfmError(path, f"refine-colmap: model {model!r} is not supported (exact)")
+    if backend not in ("numpy", "gtsam"):
+        raise AriSfmError(path, f"backend must be numpy or gtsam (got {backend!r})")
     if approximation not in ("opencv", "pinhole"):
         raise AriSfmError(path, f"approximation must be opencv or pinhole (got {approximation!r})")
     if mount not in MOUNTS:
@@ -287,12 +300,13 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
             bar.update(1)
             bar.set_postfix(cost=f"{cost:.4g}")
 
-    result = solver.run(best[1], max_iterations, tick)
+    result = solver.run(best[1], max_iterations, tick) if backend == "numpy" else solver.run_gtsam(best[1], max_iterations)
     iterations = result.iterations + best[2]
     if scale_bar is not None:  # the scale is nearly flat in the cost: put the bar back to its length, polish
         where = {int(p): k for k, p in enumerate(cmodel.point3D_ids)}
         a, b = result.state.xyz[where[int(scale_bar[0])]], result.state.xyz[where[int(scale_bar[1])]]
-        result = solver.run(_scaled(result.state, scale_bar[2] / float(np.linalg.norm(a - b))), max_iterations, tick)
+        polish = solver.run if backend == "numpy" else solver.run_gtsam
+        result = polish(_scaled(result.state, scale_bar[2] / float(np.linalg.norm(a - b))), max_iterations)
         iterations += result.iterations
     if bar is not None:
         bar.close()
@@ -309,7 +323,7 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     calibration = _calibration(cmodel, problem, state, mount, cam_from_world)
     e = np.linalg.norm(residuals, axis=1)
     report = {
-        "mount": mount, "model": model, "units_mm": units,
+        "mount": mount, "model": model, "backend": backend, "units_mm": units,
         "interface": {"thickness_mm": interface.thickness_mm, "index": interface.index,
                       "medium_index": interface.medium_index},
         "counts": {"cameras": len(cmodel.camera_ids), "frames": len(cmodel.frame_ids),
