@@ -28,8 +28,18 @@ from .triangulate import triangulate_pixels  # noqa: E402
 
 __version__ = "0.1.0"
 
+
+def __getattr__(name: str):
+    """``ari_sfm.refine_colmap`` without importing pycolmap at package import."""
+    if name == "refine_colmap":
+        from .colmap_refine import refine_colmap
+
+        return refine_colmap
+    raise AttributeError(f"module 'ari_sfm' has no attribute {name!r}")
+
+
 __all__ = [
     "AriSfmError", "Calibration", "CalibrationOptions", "CameraCalibration", "Dataset", "Interface",
     "Observation", "Points", "Target", "calibrate", "compare", "evaluate", "load_calibration", "load_dataset",
-    "load_observations", "reconstruct", "triangulate_pixels",
+    "load_observations", "reconstruct", "refine_colmap", "triangulate_pixels",
 ]

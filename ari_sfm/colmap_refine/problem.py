@@ -29,6 +29,7 @@ import numpy as np
 from ari_sfm.colmap_export import ColmapModel
 from ari_sfm.geometry import Pose, rotation_from_rotvec
 from ari_sfm.models import ExactModel, PinholeModel
+from ari_sfm.models.exact import ConvergenceError
 from ari_sfm.records import Interface
 
 MOUNTS = ("camera", "world")
@@ -166,7 +167,10 @@ class RefractiveProblem:
             if len(obs) == 0:
                 continue
             j = i if i >= 0 else m.obs_image[obs[0]]
-            uv[obs] = self._exact(state, c, normals[j], float(dists[j])).project(X_cam[obs])
+            try:
+                uv[obs] = self._exact(state, c, normals[j], float(dists[j])).project(X_cam[obs])
+            except (ConvergenceError, ValueError):  # an unphysical trial step: rejected by its cost
+                return np.full((len(X_cam), 2), np.nan)
         return uv - m.obs_uv
 
     def linearize(self, state: State, obs: np.ndarray | None = None) -> Linearization:
