@@ -255,6 +255,12 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float, image_scale: flo
     """Write a simulated dataset (exact Snell physics) and its truth. SCENARIO: see --help of `ari-sfm scenarios`."""
     from .simulate import SCENARIOS, simulate as run_sim
 
+    if scenario == "port_survey":  # structure from motion behind a flat port (refine-colmap's truth)
+        from .simulate.port_survey import write_port_survey
+
+        write_port_survey(out, seed=seed, progress=True)
+        click.echo(f"port_survey: {out / 'images'} and {out / 'truth.json'}")
+        return
     if scenario not in SCENARIOS:
         raise AriSfmError(None, f"unknown scenario {scenario!r}; known: {', '.join(SCENARIOS)}")
     ds, truth = run_sim(scenario, out, seed=seed, sigma_px=sigma, images=images, image_scale=image_scale)

@@ -679,3 +679,36 @@ def reconstruction_from_arrays(params: Sequence[np.ndarray], image_size: tuple[i
         rec.add_point3D(np.asarray(xyz[k], float), track, np.array(CALIBRATION_COLOR, np.uint8))
     rec.update_point_3d_errors()
     return rec
+
+
+def structure_from_motion(image_dir: str | Path, work_dir: str | Path, focal_px: float | None = None,
+                          max_features: int = 4000, seed: int = 0) -> Any:
+    """COLMAP's own SfM on a folder of images (CPU SIFT, exhaustive matching, incremental mapping), one
+    PINHOLE camera for all images (``focal_px``: its prior); the largest reconstruction."""
+    image_dir, work_dir = Path(image_dir), Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    database = work_dir / "database.db"
+    if database.exists():
+        database.unlink()
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "PINHOLE"
+    if focal_px is not None:
+        import cv2
+
+        first = sorted(p for p in image_dir.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))[0]
+        h, w = cv2.imread(str(first), cv2.IMREAD_GRAYSCALE).shape
+        reader.camera_params = f"{focal_px},{focal_px},{w / 2},{h / 2}"
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.sift.max_num_features = max_features
+    extraction.use_gpu = False
+    pycolmap.extract_features(database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.use_gpu = False
+    pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
+    options = pycolmap.IncrementalPipelineOptions()
+    options.random_seed = seed
+    models = pycolmap.incremental_mapping(database, image_dir, work_dir / "sparse", options)
+    if not models:
+        raise AriSfmError(work_dir, "COLMAP's incremental mapping reconstructed nothing")
+    return max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))

@@ -179,3 +179,105 @@ def tank_rig(seed: int = 0, num_frames: int = 8, num_points: int = 800, sigma_px
                 image_camera=np.tile([0, 1], num_frames), image_frame=np.repeat(np.arange(num_frames), 2), xyz=xyz,
                 sigma_px=sigma_px, normal_world=normal, plane_mm=float(wall_mm))
     return _observe(args, np.random.default_rng(seed + 1000), min_views)
+
+
+# --------------------------------------------------------------------------- rendering (mount camera)
+
+TEXTURE_MM_PER_TEXEL = 2.0
+
+
+def relief_texture(area_mm: tuple[float, float], seed: int = 0, margin_mm: float = 600.0) -> tuple[np.ndarray, np.ndarray]:
+    """A grey texture (H, W) float32 in [0, 1] over the relief with blobs at several scales (SIFT
+    finds them), and its origin (x0, y0) in mm; one texel is TEXTURE_MM_PER_TEXEL."""
+    import cv2
+
+    rng = np.random.default_rng(seed + 7)
+    w = int((area_mm[0] + 2 * margin_mm) / TEXTURE_MM_PER_TEXEL)
+    h = int((area_mm[1] + 2 * margin_mm) / TEXTURE_MM_PER_TEXEL)
+    tex = np.zeros((h, w), np.float32)
+    for sigma, weight in ((12.0, 1.0), (5.0, 0.8), (2.5, 0.6)):
+        noise = rng.normal(0.0, 1.0, (h, w)).astype(np.float32)
+        band = cv2.GaussianBlur(noise, (0, 0), sigma)
+        tex += weight * band / band.std()
+    tex = 1.0 / (1.0 + np.exp(-1.5 * tex))  # contrast, bounded
+    return tex.astype(np.float32), np.array([-area_mm[0] / 2 - margin_mm, -area_mm[1] / 2 - margin_mm])
+
+
+def _hit_relief(origins: np.ndarray, directions: np.ndarray, depth_mm: float, amplitude_mm: float) -> np.ndarray:
+    """World points where rays (z increasing) meet the relief z = relief_height(x, y): Newton on the ray
+    parameter with a numerical slope, started at the mean depth."""
+    s = (depth_mm - origins[:, 2]) / directions[:, 2]
+    for _ in range(30):
+        P = origins + s[:, None] * directions
+        f = P[:, 2] - relief_height(P[:, :2], depth_mm, amplitude_mm)
+        eps = 1e-3
+        P2 = origins + (s + eps)[:, None] * directions
+        df = ((P2[:, 2] - relief_height(P2[:, :2], depth_mm, amplitude_mm)) - f) / eps
+        step = f / df
+        s = s - step
+        if np.max(np.abs(step)) < 1e-6:
+            break
+    return origins + s[:, None] * directions
+
+
+def render_survey_image(truth: SfmTruth, i: int, texture: np.ndarray, origin_mm: np.ndarray,
+                        depth_mm: float, amplitude_mm: float, supersample: int = 2) -> np.ndarray:
+    """8-bit image i of a port survey: every (sub)pixel back-projected through the port with the exact
+    model, intersected with the relief, the texture sampled (bilinear), averaged per pixel."""
+    import cv2
+
+    w, h = truth.image_size
+    k = supersample
+    offs = (np.arange(k) + 0.5) / k - 0.5
+    u, v = np.meshgrid(np.arange(w * k) / k + offs[0], np.arange(h * k) / k + offs[0])
+    uv = np.column_stack([u.ravel(), v.ravel()])
+    origins, directions = truth.model(i).backproject(uv)
+    world_from_cam = truth.cam_from_world(i).inverse()
+    O, D = world_from_cam.apply(origins), directions @ world_from_cam.R.T
+    P = _hit_relief(O, D, depth_mm, amplitude_mm)
+    tx = ((P[:, 0] - origin_mm[0]) / TEXTURE_MM_PER_TEXEL).astype(np.float32).reshape(h * k, w * k)
+    ty = ((P[:, 1] - origin_mm[1]) / TEXTURE_MM_PER_TEXEL).astype(np.float32).reshape(h * k, w * k)
+    sub = cv2.remap(texture, tx, ty, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    img = sub.reshape(h, k, w, k).mean(axis=(1, 3))
+    return np.clip(np.round(img * 255.0), 0, 255).astype(np.uint8)
+
+
+def write_port_survey(out_dir, seed: int = 0, num_images: int = 12, image_size: tuple[int, int] = (640, 480),
+                      focal_px: float = 600.0, area_mm: tuple[float, float] = (1600.0, 1200.0),
+                      altitude_mm: float = 2000.0, relief_mm: float = 150.0, supersample: int = 2,
+                      progress: bool = False) -> tuple[SfmTruth, "Path"]:
+    """Render a port survey to ``out_dir/images/imageNNNN.png`` with ``out_dir/truth.json`` (the housing,
+    the lens intrinsics, every image's cam_from_world, the relief); returns the truth and the images folder."""
+    from pathlib import Path
+
+    import cv2
+
+    from ari_sfm.io import write_json_atomic
+
+    out = Path(out_dir)
+    images = out / "images"
+    images.mkdir(parents=True, exist_ok=True)
+    truth = port_survey(seed=seed, num_images=num_images, num_points=10, image_size=image_size, focal_px=focal_px,
+                        altitude_mm=altitude_mm, area_mm=area_mm, relief_mm=relief_mm, min_views=1)
+    texture, origin = relief_texture(area_mm, seed)
+    names = []
+    steps = range(num_images)
+    if progress:
+        from tqdm import tqdm
+
+        steps = tqdm(steps, desc="port_survey", unit="image")
+    for i in steps:
+        name = f"image{i + 1:04d}.png"
+        img = render_survey_image(truth, i, texture, origin, altitude_mm, relief_mm, supersample)
+        ok, buf = cv2.imencode(".png", img)
+        (images / name).write_bytes(buf.tobytes())
+        names.append(name)
+    write_json_atomic(out / "truth.json", {
+        "scenario": "port_survey", "seed": seed, "mount": "camera",
+        "interface": {"thickness_mm": truth.interface.thickness_mm, "index": truth.interface.index,
+                      "medium_index": truth.interface.medium_index},
+        "camera": {"image_size": list(image_size), "params": truth.params[0].tolist(),
+                   "normal_cam": truth.normal_cam[0].tolist(), "distance_mm": truth.distance_mm[0]},
+        "relief": {"depth_mm": altitude_mm, "amplitude_mm": relief_mm, "area_mm": list(area_mm)},
+        "images": {n: truth.cam_from_world(i).to_json() for i, n in enumerate(names)}})
+    return truth, images
