@@ -32,7 +32,7 @@ import numpy as np
 from ari_sfm import colmap_export as adapter
 from ari_sfm.calibration import Calibration, CameraCalibration
 from ari_sfm.errors import AriSfmError
-from ari_sfm.geometry import Pose
+from ari_sfm.geometry import Pose, rotation_from_rotvec
 from ari_sfm.models import AriModel, PinholeModel
 from ari_sfm.records import Interface
 
@@ -208,9 +208,9 @@ def _calibration(model: adapter.ColmapModel, problem: RefractiveProblem, state: 
         if mount == "camera":
             n = state.normals[c]
             v = np.cross([0.0, 0.0, 1.0], n)
-            s, cth = np.linalg.norm(v), n[2]
-            R = np.eye(3) if s < 1e-15 else (np.eye(3) + _skew(v) + _skew(v) @ _skew(v) * ((1 - cth) / s ** 2))
-            pose = Pose(R, -R @ np.array([0.0, 0.0, plane - state.distances[c]]))  # R e_z = n_c
+            sin = float(np.linalg.norm(v))
+            R = np.eye(3) if sin < 1e-15 else rotation_from_rotvec(v / sin * np.arctan2(sin, n[2]))  # R e_z = n_c
+            pose = Pose(R, -R @ np.array([0.0, 0.0, plane - state.distances[c]]))
         else:
             i = int(np.flatnonzero(model.image_camera == c)[0])
             pose = cam_from_world[int(model.image_ids[i])]
@@ -222,10 +222,6 @@ def _calibration(model: adapter.ColmapModel, problem: RefractiveProblem, state: 
                                "images_cam_from_world": {str(i): p.to_json() for i, p in cam_from_world.items()}}}
     interface = replace(problem.interface, distance_mm=plane)
     return Calibration("exact", interface, normal_world, cams, {}, extra=extra)
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def _state_reconstruction(rec: Any, model: adapter.ColmapModel, problem: RefractiveProblem, state: State) -> Any:
