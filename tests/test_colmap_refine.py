@@ -319,3 +319,16 @@ def test_end_to_end_rendered_survey_through_colmap_sift(tmp_path):
     from ari_sfm.geometry import angle_between_deg
 
     assert angle_between_deg(result.state.normals[0], np.array(meta["camera"]["normal_cam"])) < 0.6
+
+
+def test_window_yaml_scale_bar_and_units(tmp_path):
+    from ari_sfm.colmap_refine.window import load_window
+
+    path = tmp_path / "WINDOW.yaml"
+    path.write_text(WINDOW_YAML + "scale_bar:\n  point3D_ids: [12, 873]\n  distance_mm: 500\n")
+    spec = load_window(path)
+    assert spec.scale_bar == (12, 873, 500.0) and spec.mount == "camera"
+    assert spec.interface.medium_index == pytest.approx(1.333)
+    path.write_text(WINDOW_YAML + "units_mm: -2\n")
+    with pytest.raises(AriSfmError, match="units_mm"):
+        load_window(path)
