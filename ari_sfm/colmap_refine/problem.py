@@ -72,8 +72,9 @@ class Layout:
     size: int
 
 
-def make_layout(model: ColmapModel, mount: str, estimate_distance: bool, image_is_ref: np.ndarray) -> Layout:
-    """Index the reduced variables: intrinsics, frames (first held), non-ref sensors, window."""
+def make_layout(model: ColmapModel, mount: str, estimate_distance: bool, image_is_ref: np.ndarray,
+                hold_window: bool = False) -> Layout:
+    """Index the reduced variables: intrinsics, frames (first held), non-ref sensors, window (unless held)."""
     k = 0
     intr = []
     for c, p in enumerate(model.colmap_params):
@@ -93,7 +94,7 @@ def make_layout(model: ColmapModel, mount: str, estimate_distance: bool, image_i
             k += 6
     W = C if mount == "camera" else 1
     window = -np.ones((W, 3), int)
-    for w in range(W):
+    for w in range(0 if hold_window else W):
         window[w, :2] = (k, k + 1)
         k += 2
         if estimate_distance:
@@ -116,7 +117,8 @@ class Linearization:
 class RefractiveProblem:
     """Residuals ``project(X) - observed`` of every COLMAP observation through the exact model."""
 
-    def __init__(self, model: ColmapModel, interface: Interface, mount: str, estimate_distance: bool) -> None:
+    def __init__(self, model: ColmapModel, interface: Interface, mount: str, estimate_distance: bool,
+                 hold_window: bool = False) -> None:
         if mount not in MOUNTS:
             raise ValueError(f"mount must be one of {MOUNTS}, got {mount!r}")
         self.model = model
@@ -124,7 +126,7 @@ class RefractiveProblem:
         self.mount = mount
         self.image_is_ref = np.array([np.allclose(s.R, np.eye(3)) and not np.any(s.t)
                                       for s in model.sensor_from_rig])
-        self.layout = make_layout(model, mount, estimate_distance, self.image_is_ref)
+        self.layout = make_layout(model, mount, estimate_distance, self.image_is_ref, hold_window)
         self._cam_of_obs = model.image_camera[model.obs_image]
 
     # ------------------------------------------------------------------ models

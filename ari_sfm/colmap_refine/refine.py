@@ -5,7 +5,8 @@ Start: the model as COLMAP left it, read as its paraxial virtual cameras (the ar
 behind a plate with a medium n_m sees the scene as a pinhole with focal n_m f whose centre sits
 ``n_m a`` behind it along the normal, ``a`` the ari model's apparent offset), the window normal on
 the optical axis (mount camera) or on the mean viewing direction (mount world), and the distance
-found by a search on the cost (a few LM iterations per candidate; air behind: the distance is
+found by a search on the cost: for each candidate distance, LM on everything but the window (up to
+SEARCH_ITERATIONS), the lowest cost wins; then everything is refined (air behind: the distance is
 unobservable and held).
 
 Gauge and scale: the first frame's pose is held (the world's rotation and translation). The
@@ -43,7 +44,7 @@ from .schur import (LMResult, build_normal_equations, huber_cost, huber_weights,
 log = logging.getLogger(__name__)
 
 DISTANCE_CANDIDATES_MM = (10.0, 30.0, 100.0)
-SEARCH_ITERATIONS = 3
+SEARCH_ITERATIONS = 10  # per start distance, window held (LM stops earlier when converged)
 AIR_DISTANCE_MM = 10.0  # held: unobservable in air
 
 
@@ -275,16 +276,17 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
         candidates = (AIR_DISTANCE_MM,)
     else:
         candidates = tuple(distances_mm or DISTANCE_CANDIDATES_MM)
+    held = Solver(RefractiveProblem(cmodel, interface, mount, estimate_distance, hold_window=True), huber_px)
     search = []
     best = None
-    for h in candidates:
+    for h in candidates:  # the cost profile over the distance: everything but the window refined
         start = _convert(cmodel, problem, _with_distance(cmodel, virtual, mount, h), +1)
-        res = solver.run(start, SEARCH_ITERATIONS) if len(candidates) > 1 else None
-        cost = res.cost if res is not None else solver.cost(start)
-        search.append({"distance_mm": h, "cost": cost})
-        log.info("refine-colmap: start distance %g mm: cost %.6g", h, cost)
-        if best is None or cost < best[0]:
-            best = (cost, res.state if res is not None else start, res.iterations if res is not None else 0)
+        res = held.run(start, SEARCH_ITERATIONS)
+        search.append({"distance_mm": h, "cost": res.cost, "iterations": res.iterations})
+        log.info("refine-colmap: start distance %g mm: cost %.6g after %d iterations with the window held",
+                 h, res.cost, res.iterations)
+        if best is None or res.cost < best[0]:
+            best = (res.cost, res.state, res.iterations)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -297,7 +299,7 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
             bar.set_postfix(cost=f"{cost:.4g}")
 
     result = solver.run(best[1], max_iterations, tick) if backend == "numpy" else solver.run_gtsam(best[1], max_iterations)
-    iterations = result.iterations + best[2]
+    iterations = result.iterations + sum(c["iterations"] for c in search)
     if scale_bar is not None:  # the scale is nearly flat in the cost: put the bar back to its length, polish
         where = {int(p): k for k, p in enumerate(cmodel.point3D_ids)}
         a, b = result.state.xyz[where[int(scale_bar[0])]], result.state.xyz[where[int(scale_bar[1])]]
