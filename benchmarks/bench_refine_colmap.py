@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import sys
 import time
 
@@ -63,7 +64,8 @@ def run(num_images: int, num_points: int, focal: float) -> None:
           f"{got['distance_mm']:.2f} mm (true 22), reprojection {r['after']['rms_px']:.3f} px RMS "
           f"(sigma sqrt2 = {0.5 * np.sqrt(2):.3f}), {r['iterations']} iterations, {t_ref:.2f} s")
     print(f"  written OPENCV approximation: {r['pinhole_approximation']['rms_px']:.3f} px RMS")
-    print(f"  time ratio refine-colmap / pycolmap.bundle_adjustment: {t_ref / t_ba:.1f}")
+    print(f"  time ratio refine-colmap / pycolmap.bundle_adjustment: {t_ref / t_ba:.1f}; "
+          f"peak RSS so far {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
     sys.stdout.flush()
 
 
