@@ -5,8 +5,9 @@ Start: the model as COLMAP left it, read as its paraxial virtual cameras (the ar
 behind a plate with a medium n_m sees the scene as a pinhole with focal n_m f whose centre sits
 ``n_m a`` behind it along the normal, ``a`` the ari model's apparent offset), the window normal on
 the optical axis (mount camera) or on the mean viewing direction (mount world), and the distance
-found by a search on the cost: for each candidate distance, LM on everything but the window (up to
-SEARCH_ITERATIONS), the lowest cost wins; then everything is refined (air behind: the distance is
+found by a search on the cost: for each candidate distance, LM on everything but the window (the
+middle candidate from COLMAP's model, up to SEARCH_ITERATIONS; the others warm-started from its
+result, WARM_SEARCH_ITERATIONS), the lowest cost wins; then everything is refined (air behind: the distance is
 unobservable and held).
 
 Gauge and scale: the first frame's pose is held (the world's rotation and translation). The
@@ -44,7 +45,8 @@ from .schur import (LMResult, build_normal_equations, huber_cost, huber_weights,
 log = logging.getLogger(__name__)
 
 DISTANCE_CANDIDATES_MM = (10.0, 30.0, 100.0)
-SEARCH_ITERATIONS = 10  # per start distance, window held (LM stops earlier when converged)
+SEARCH_ITERATIONS = 10  # the first start distance, window held (LM stops earlier when converged)
+WARM_SEARCH_ITERATIONS = 4  # the other start distances, warm-started
 AIR_DISTANCE_MM = 10.0  # held: unobservable in air
 
 
@@ -279,9 +281,16 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     held = Solver(RefractiveProblem(cmodel, interface, mount, estimate_distance, hold_window=True), huber_px)
     search = []
     best = None
-    for h in candidates:  # the cost profile over the distance: everything but the window refined
-        start = _convert(cmodel, problem, _with_distance(cmodel, virtual, mount, h), +1)
-        res = held.run(start, SEARCH_ITERATIONS)
+    # the cost profile over the distance, everything but the window refined: the middle candidate from
+    # COLMAP's model, the others warm-started from its result (moved to their distance, paraxially)
+    order = sorted(candidates, key=lambda h: abs(candidates.index(h) - (len(candidates) - 1) / 2))
+    warm = None
+    for h in order:
+        base = virtual if warm is None else warm
+        start = _convert(cmodel, problem, _with_distance(cmodel, base, mount, h), +1)
+        res = held.run(start, SEARCH_ITERATIONS if warm is None else WARM_SEARCH_ITERATIONS)
+        if warm is None:
+            warm = _convert(cmodel, problem, res.state, -1)
         search.append({"distance_mm": h, "cost": res.cost, "iterations": res.iterations})
         log.info("refine-colmap: start distance %g mm: cost %.6g after %d iterations with the window held",
                  h, res.cost, res.iterations)
