@@ -12,6 +12,7 @@
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +23,8 @@ from ari_sfm.io.structured import warn_unknown_keys
 from ari_sfm.records import Interface
 
 from .problem import MOUNTS
+
+log = logging.getLogger(__name__)
 
 WINDOW_KEYS = ("interface", "mount", "units_mm", "scale_bar")
 
@@ -42,6 +45,8 @@ def load_window(path: str | Path) -> WindowSpec:
     data = as_mapping(read_structured(path), path, "")
     warn_unknown_keys(data, WINDOW_KEYS, path)
     interface = parse_interface(require(data, "interface", path), path)
+    if interface.plane is not None:
+        log.warning("%s: interface.plane is not used by refine-colmap yet (the window is estimated)", path)
     mount = require(data, "mount", path)
     if mount not in MOUNTS:
         raise AriSfmError(path, f"mount must be one of {', '.join(MOUNTS)} (got {mount!r})")
