@@ -1,7 +1,12 @@
 """Export a calibration as a COLMAP model: the one pycolmap adapter of ari-sfm.
 
 Every pycolmap call of the library lives in this module (its API changed
-between 3.11, 3.12 and 4.x); the version is checked at import.
+between 3.11, 3.12 and 4.x); the version is checked at import. The way back
+(refine-colmap) uses it too: :func:`model_from_reconstruction` reads a model as
+arrays, :func:`refined_reconstruction` writes refined values into a copy (ids
+kept), :func:`pinhole_approximation`, :func:`bundle_adjust` and
+:func:`structure_from_motion` run COLMAP's own bundle adjustment and SfM (these
+need pycolmap >= 3.12: rigs and frames).
 
 What is exported. With the ``ari`` model and air behind the window, each
 camera is *exactly* a pinhole camera (same K, same R, same distortion) whose
