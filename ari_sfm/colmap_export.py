@@ -501,6 +501,7 @@ class ColmapModel:
     obs_image: np.ndarray  # (M,) image index
     obs_point: np.ndarray  # (M,) point index
     obs_uv: np.ndarray  # (M, 2) OpenCV pixels
+    image_is_ref: np.ndarray | None = None  # (I,) the image's camera is its rig's reference sensor
 
     def params9(self, c: int, colmap_params: np.ndarray | None = None) -> np.ndarray:
         """Camera c's [fx fy cx cy k1 k2 p1 p2 k3] (OpenCV pixels) from COLMAP parameters."""
@@ -539,7 +540,7 @@ def model_from_reconstruction(rec: Any, path: str | Path = "reconstruction") -> 
         offsets.append(np.r_[0.0, 0.0, -COLMAP_PIXEL_OFFSET, -COLMAP_PIXEL_OFFSET, np.zeros(5)])
     frames = sorted((fid, f) for fid, f in rec.frames.items() if f.has_pose)
     frame_index = {fid: k for k, (fid, _) in enumerate(frames)}
-    image_ids, image_names, image_camera, image_frame, sensor_from_rig = [], [], [], [], []
+    image_ids, image_names, image_camera, image_frame, sensor_from_rig, is_ref = [], [], [], [], [], []
     obs_image, obs_point, obs_uv = [], [], []
     point_ids = np.array(sorted(rec.point3D_ids()), dtype=np.int64)
     point_index = {int(p): k for k, p in enumerate(point_ids)}
@@ -549,7 +550,8 @@ def model_from_reconstruction(rec: Any, path: str | Path = "reconstruction") -> 
         frame = rec.frame(image.frame_id)
         rig = rec.rig(frame.rig_id)
         sensor = rec.camera(image.camera_id).sensor_id
-        s_from_r = (Pose.identity() if rig.is_ref_sensor(sensor) else _pose(rig.sensor_from_rig(sensor)))
+        is_ref.append(bool(rig.is_ref_sensor(sensor)))
+        s_from_r = Pose.identity() if is_ref[-1] else _pose(rig.sensor_from_rig(sensor))
         k = len(image_ids)
         image_ids.append(iid)
         image_names.append(image.name)
@@ -569,7 +571,7 @@ def model_from_reconstruction(rec: Any, path: str | Path = "reconstruction") -> 
         np.array([f for f, _ in frames]), tuple(_pose(f.rig_from_world) for _, f in frames),
         np.array(image_ids), tuple(image_names), np.array(image_camera), np.array(image_frame),
         tuple(sensor_from_rig), point_ids, xyz, np.array(obs_image), np.array(obs_point),
-        opencv_from_colmap_px(np.array(obs_uv, float).reshape(-1, 2)))
+        opencv_from_colmap_px(np.array(obs_uv, float).reshape(-1, 2)), np.array(is_ref))
 
 
 def refined_reconstruction(rec: Any, model: ColmapModel, colmap_params: Sequence[np.ndarray],

@@ -124,8 +124,8 @@ class RefractiveProblem:
         self.model = model
         self.interface = interface
         self.mount = mount
-        self.image_is_ref = np.array([np.allclose(s.R, np.eye(3)) and not np.any(s.t)
-                                      for s in model.sensor_from_rig])
+        self.image_is_ref = (model.image_is_ref if model.image_is_ref is not None else
+                             np.array([np.allclose(s.R, np.eye(3)) and not np.any(s.t) for s in model.sensor_from_rig]))
         self.layout = make_layout(model, mount, estimate_distance, self.image_is_ref, hold_window)
         self._cam_of_obs = model.image_camera[model.obs_image]
 
