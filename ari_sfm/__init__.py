@@ -8,6 +8,7 @@
     points = ari_sfm.reconstruct(dataset, calibration)          # frames seen by >= 2 cameras
     X, gap_mm, rmse_px = ari_sfm.triangulate_pixels(calibration, {"cam0": uv0, "cam1": uv1})  # PTV tracks
 
+COLMAP behind glass: ``ari_sfm.refine_colmap`` (README, COLMAP users).
 The factor graph (researchers, docs/RESEARCH.md): ``ari_sfm.RigGraph``, ``ari_sfm.RigState``,
 ``ari_sfm.keys`` (variable keys), ``ari_sfm.marginal_covariances``; loaded on first use (gtsam).
 """
@@ -31,16 +32,17 @@ from .triangulate import triangulate_pixels  # noqa: E402
 
 __version__ = "0.1.0"
 
-_GRAPH_EXPORTS = {  # name -> module: imported on first use, so that `import ari_sfm` does not load gtsam
+_LAZY_EXPORTS = {  # name -> module: imported on first use, so that `import ari_sfm` loads neither gtsam nor pycolmap
     "RigGraph": "ari_sfm.factors.rig_graph",
     "RigState": "ari_sfm.factors.rig_graph",
     "keys": "ari_sfm.factors.keys",
     "marginal_covariances": "ari_sfm.factors.uncertainty",
+    "refine_colmap": "ari_sfm.colmap_refine",
 }
 
 
 def __getattr__(name: str):
-    module = _GRAPH_EXPORTS.get(name)
+    module = _LAZY_EXPORTS.get(name)
     if module is None:
         raise AttributeError(f"module 'ari_sfm' has no attribute {name!r}")
     import importlib
@@ -52,5 +54,6 @@ def __getattr__(name: str):
 __all__ = [
     "AriSfmError", "Calibration", "CalibrationOptions", "CameraCalibration", "Dataset", "Interface",
     "Observation", "Points", "Target", "calibrate", "compare", "evaluate", "load_calibration", "load_dataset",
-    "load_observations", "reconstruct", "triangulate_pixels", "RigGraph", "RigState", "keys", "marginal_covariances",
+    "load_observations", "reconstruct", "refine_colmap", "triangulate_pixels", "RigGraph", "RigState", "keys",
+    "marginal_covariances",
 ]

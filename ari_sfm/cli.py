@@ -321,6 +321,12 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float, image_scale: flo
     """Write a simulated dataset (exact Snell physics) and its truth. SCENARIO: see --help of `ari-sfm scenarios`."""
     from .simulate import SCENARIOS, simulate as run_sim
 
+    if scenario == "port_survey":  # structure from motion behind a flat port (refine-colmap's truth)
+        from .simulate.port_survey import write_port_survey
+
+        write_port_survey(out, seed=seed, progress=True)
+        click.echo(f"port_survey: {out / 'images'} and {out / 'truth.json'}")
+        return
     if scenario not in SCENARIOS:
         raise AriSfmError(None, f"unknown scenario {scenario!r}; known: {', '.join(SCENARIOS)}")
     check_output_folder(out)
@@ -436,3 +442,28 @@ def export_openptv_cmd(calibration: Path, out: Path, frame: str | None, pixel_si
 
 if __name__ == "__main__":
     main()
+
+
+@main.command(name="refine-colmap")
+@click.argument("model_dir", type=click.Path(path_type=Path))
+@click.option("--window", "window", type=click.Path(path_type=Path), required=True,
+              help="WINDOW.yaml: interface (thickness_mm, index, medium_index) and mount (camera | world).")
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
+              help="Output folder: COLMAP model (pinhole approximation), calibration.json, refine.json.")
+@click.option("--huber-px", type=float, default=2.0, show_default=True, help="Huber threshold (px).")
+@click.option("--max-iterations", type=int, default=50, show_default=True)
+@user_errors
+def refine_colmap_cmd(model_dir: Path, window: Path, out: Path, huber_px: float, max_iterations: int) -> None:
+    """Refine the COLMAP model in MODEL_DIR (made behind a flat window) with the exact refractive model."""
+    from .colmap_refine import refine_colmap, write_refined
+    from .colmap_refine.window import load_window
+
+    spec = load_window(window)
+    result = refine_colmap(model_dir, spec.interface, mount=spec.mount, units_mm=spec.units_mm,
+                           scale_bar=spec.scale_bar, huber_px=huber_px, max_iterations=max_iterations, progress=True)
+    write_refined(result, out)
+    r = result.report
+    click.echo(f"refine-colmap: {r['counts']['images']} images, {r['counts']['points3D']} points, "
+               f"{r['iterations']} iterations, {r['time_s']:.1f} s; reprojection RMS {r['before']['rms_px']:.3f} px "
+               f"(COLMAP pinhole) -> {r['after']['rms_px']:.3f} px (exact); COLMAP cameras written as their best "
+               f"pinhole approximation ({r['pinhole_approximation']['rms_px']:.3f} px) -> {out}")

@@ -1,7 +1,12 @@
 """Export a calibration as a COLMAP model: the one pycolmap adapter of ari-sfm.
 
 Every pycolmap call of the library lives in this module (its API changed
-between 3.11, 3.12 and 4.x); the version is checked at import.
+between 3.11, 3.12 and 4.x); the version is checked at import. The way back
+(refine-colmap) uses it too: :func:`model_from_reconstruction` reads a model as
+arrays, :func:`refined_reconstruction` writes refined values into a copy (ids
+kept), :func:`pinhole_approximation`, :func:`bundle_adjust` and
+:func:`structure_from_motion` run COLMAP's own bundle adjustment and SfM (these
+need pycolmap >= 3.12: rigs and frames).
 
 What is exported. With the ``ari`` model and air behind the window, each
 camera is *exactly* a pinhole camera (same K, same R, same distortion) whose
@@ -477,3 +482,265 @@ def summary(export: ColmapExport) -> str:
     if export.ply_path is not None:
         lines.append(f"  point cloud: {export.ply_path}")
     return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- the way back: reading a model
+
+
+# COLMAP camera models a refractive camera can hold: name -> indices into the COLMAP parameter vector of
+# [fx, fy, cx, cy, k1, k2, p1, p2, k3] (-1: zero), and the COLMAP parameters that must be zero (held).
+HELD_CAMERA_MODELS: dict[str, tuple[tuple[int, ...], tuple[int, ...]]] = {
+    "SIMPLE_PINHOLE": ((0, 0, 1, 2, -1, -1, -1, -1, -1), ()),
+    "PINHOLE": ((0, 1, 2, 3, -1, -1, -1, -1, -1), ()),
+    "SIMPLE_RADIAL": ((0, 0, 1, 2, 3, -1, -1, -1, -1), ()),
+    "RADIAL": ((0, 0, 1, 2, 3, 4, -1, -1, -1), ()),
+    "OPENCV": ((0, 1, 2, 3, 4, 5, 6, 7, -1), ()),
+    "FULL_OPENCV": ((0, 1, 2, 3, 4, 5, 6, 7, 8), (9, 10, 11)),
+}
+
+
+@dataclass(frozen=True)
+class ColmapModel:
+    """A COLMAP reconstruction as arrays (OpenCV pixels, our intrinsics vector), ids kept.
+
+    Poses: ``cam_from_world`` of image i = ``sensor_from_rig[i] * rig_from_world[image_frame[i]]``.
+    ``param_map[c]`` (9, k) and ``param_offset[c]`` (9,) give camera c's [fx fy cx cy k1 k2 p1 p2 k3]
+    = map @ colmap_params + offset (the -0.5 px of COLMAP's pixel origin is in the offset).
+    """
+
+    camera_ids: np.ndarray  # (C,)
+    camera_models: tuple[str, ...]
+    image_sizes: tuple[tuple[int, int], ...]
+    colmap_params: tuple[np.ndarray, ...]  # per camera, COLMAP order
+    param_map: tuple[np.ndarray, ...]
+    param_offset: tuple[np.ndarray, ...]
+    frame_ids: np.ndarray  # (F,)
+    rig_from_world: tuple[Pose, ...]  # (F,)
+    image_ids: np.ndarray  # (I,)
+    image_names: tuple[str, ...]
+    image_camera: np.ndarray  # (I,) camera index
+    image_frame: np.ndarray  # (I,) frame index
+    sensor_from_rig: tuple[Pose, ...]  # (I,) identity for a rig's reference sensor
+    point3D_ids: np.ndarray  # (P,)
+    xyz: np.ndarray  # (P, 3)
+    obs_image: np.ndarray  # (M,) image index
+    obs_point: np.ndarray  # (M,) point index
+    obs_uv: np.ndarray  # (M, 2) OpenCV pixels
+    image_is_ref: np.ndarray | None = None  # (I,) the image's camera is its rig's reference sensor
+
+    def params9(self, c: int, colmap_params: np.ndarray | None = None) -> np.ndarray:
+        """Camera c's [fx fy cx cy k1 k2 p1 p2 k3] (OpenCV pixels) from COLMAP parameters."""
+        p = self.colmap_params[c] if colmap_params is None else colmap_params
+        return self.param_map[c] @ p + self.param_offset[c]
+
+
+def _pose(rigid: Any) -> Pose:
+    return Pose(np.array(rigid.rotation.matrix(), float), np.array(rigid.translation, float))
+
+
+def model_from_reconstruction(rec: Any, path: str | Path = "reconstruction") -> ColmapModel:
+    """Arrays of a pycolmap.Reconstruction; a model that cannot be refined raises AriSfmError (one line)."""
+    if rec.num_points3D() == 0:
+        raise AriSfmError(path, "the COLMAP model has no points3D (run the mapper first)")
+    cams = sorted(rec.cameras.items())
+    camera_index = {cid: k for k, (cid, _) in enumerate(cams)}
+    names, sizes, params, maps, offsets = [], [], [], [], []
+    for cid, cam in cams:
+        name = cam.model_name if hasattr(cam, "model_name") else str(cam.model.name)
+        if name not in HELD_CAMERA_MODELS:
+            raise AriSfmError(path, f"camera {cid}: COLMAP model {name} cannot be held by a refractive camera "
+                                    f"(supported: {', '.join(HELD_CAMERA_MODELS)})")
+        idx, zero = HELD_CAMERA_MODELS[name]
+        p = np.array(cam.params, float)
+        if zero and np.any(p[list(zero)] != 0.0):
+            raise AriSfmError(path, f"camera {cid}: {name} with non-zero k4..k6 cannot be held (OpenCV 5 coefficients)")
+        M = np.zeros((9, len(p)))
+        for row, col in enumerate(idx):
+            if col >= 0:
+                M[row, col] = 1.0
+        names.append(name)
+        sizes.append((int(cam.width), int(cam.height)))
+        params.append(p)
+        maps.append(M)
+        offsets.append(np.r_[0.0, 0.0, -COLMAP_PIXEL_OFFSET, -COLMAP_PIXEL_OFFSET, np.zeros(5)])
+    frames = sorted((fid, f) for fid, f in rec.frames.items() if f.has_pose)
+    frame_index = {fid: k for k, (fid, _) in enumerate(frames)}
+    image_ids, image_names, image_camera, image_frame, sensor_from_rig, is_ref = [], [], [], [], [], []
+    obs_image, obs_point, obs_uv = [], [], []
+    point_ids = np.array(sorted(rec.point3D_ids()), dtype=np.int64)
+    point_index = {int(p): k for k, p in enumerate(point_ids)}
+    for iid, image in sorted(rec.images.items()):
+        if not image.has_pose or image.frame_id not in frame_index:
+            continue
+        frame = rec.frame(image.frame_id)
+        rig = rec.rig(frame.rig_id)
+        sensor = rec.camera(image.camera_id).sensor_id
+        is_ref.append(bool(rig.is_ref_sensor(sensor)))
+        s_from_r = Pose.identity() if is_ref[-1] else _pose(rig.sensor_from_rig(sensor))
+        k = len(image_ids)
+        image_ids.append(iid)
+        image_names.append(image.name)
+        image_camera.append(camera_index[image.camera_id])
+        image_frame.append(frame_index[image.frame_id])
+        sensor_from_rig.append(s_from_r)
+        for p2 in image.points2D:
+            if p2.has_point3D():
+                obs_image.append(k)
+                obs_point.append(point_index[int(p2.point3D_id)])
+                obs_uv.append(p2.xy)
+    if not obs_image:
+        raise AriSfmError(path, "the COLMAP model has no observations of its points3D in posed images")
+    xyz = np.array([rec.point3D(int(p)).xyz for p in point_ids], float)
+    return ColmapModel(
+        np.array([c for c, _ in cams]), tuple(names), tuple(sizes), tuple(params), tuple(maps), tuple(offsets),
+        np.array([f for f, _ in frames]), tuple(_pose(f.rig_from_world) for _, f in frames),
+        np.array(image_ids), tuple(image_names), np.array(image_camera), np.array(image_frame),
+        tuple(sensor_from_rig), point_ids, xyz, np.array(obs_image), np.array(obs_point),
+        opencv_from_colmap_px(np.array(obs_uv, float).reshape(-1, 2)), np.array(is_ref))
+
+
+def refined_reconstruction(rec: Any, model: ColmapModel, colmap_params: Sequence[np.ndarray],
+                           rig_from_world: Sequence[Pose], sensor_from_rig: Mapping[int, Pose],
+                           xyz: np.ndarray) -> Any:
+    """A copy of ``rec`` (ids kept) with new camera parameters, frame poses, rig sensors and points."""
+    out = pycolmap.Reconstruction(rec)
+    for c, cid in enumerate(model.camera_ids):
+        cam = out.camera(int(cid))
+        cam.params = np.asarray(colmap_params[c], float)
+    for f, fid in enumerate(model.frame_ids):
+        out.frame(int(fid)).rig_from_world = _rigid3d(rig_from_world[f])
+    for cid, pose in sensor_from_rig.items():
+        sensor = out.camera(int(cid)).sensor_id
+        for rig in out.rigs.values():
+            if rig.has_sensor(sensor) and not rig.is_ref_sensor(sensor):
+                rig.set_sensor_from_rig(sensor, _rigid3d(pose))
+    for k, pid in enumerate(model.point3D_ids):
+        out.point3D(int(pid)).xyz = np.asarray(xyz[k], float)
+    out.update_point_3d_errors()
+    return out
+
+
+def pinhole_approximation(rec: Any, opencv_params: Mapping[int, np.ndarray] | None = None) -> Any:
+    """COLMAP's own bundle adjustment of cameras (principal point included) and poses with the points
+    held: the best approximation, in COLMAP's camera models, of cameras whose 3D points are right.
+    ``opencv_params``: camera_id -> OPENCV parameters [fx fy cx cy k1 k2 p1 p2] (COLMAP pixels) to
+    turn those cameras into OPENCV cameras first (their distortion absorbs much of a flat port)."""
+    out = pycolmap.Reconstruction(rec)
+    for cid, params in (opencv_params or {}).items():
+        cam = out.camera(int(cid))
+        cam.model = pycolmap.CameraModelId.OPENCV
+        cam.params = np.asarray(params, float)
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_points3D = False
+    options.refine_principal_point = True
+    options.print_summary = False
+    pycolmap.bundle_adjustment(out, options)
+    out.update_point_3d_errors()
+    return out
+
+
+def bundle_adjust(rec: Any) -> Any:
+    """pycolmap's own bundle adjustment (default options) of a copy of ``rec``."""
+    out = pycolmap.Reconstruction(rec)
+    options = pycolmap.BundleAdjustmentOptions()
+    options.print_summary = False
+    pycolmap.bundle_adjustment(out, options)
+    return out
+
+
+def image_residuals_px(rec: Any, model: ColmapModel | None = None) -> dict[int, float]:
+    """RMS reprojection error (px) per image under COLMAP's own cameras (``model``: its arrays, if read)."""
+    model = model_from_reconstruction(rec) if model is None else model
+    X_cam = np.empty((len(model.obs_image), 3))
+    for i, iid in enumerate(model.image_ids):
+        sel = model.obs_image == i
+        pose = _pose(rec.image(int(iid)).cam_from_world())
+        X_cam[sel] = pose.apply(model.xyz[model.obs_point[sel]])
+    err2 = np.zeros(len(X_cam))
+    for c, cid in enumerate(model.camera_ids):
+        sel = model.image_camera[model.obs_image] == c
+        uv = rec.camera(int(cid)).img_from_cam(X_cam[sel], check_cheirality=False)
+        err2[sel] = np.sum((opencv_from_colmap_px(uv) - model.obs_uv[sel]) ** 2, axis=1)
+    sums = np.bincount(model.obs_image, err2, len(model.image_ids))
+    counts = np.bincount(model.obs_image, minlength=len(model.image_ids))
+    return {int(iid): float(np.sqrt(sums[i] / counts[i])) for i, iid in enumerate(model.image_ids) if counts[i]}
+
+
+def reconstruction_from_arrays(params: Sequence[np.ndarray], image_size: tuple[int, int],
+                               sensor_from_rig: Sequence[Pose], rig_from_world: Sequence[Pose],
+                               image_camera: np.ndarray, image_frame: np.ndarray, xyz: np.ndarray,
+                               obs_image: np.ndarray, obs_point: np.ndarray, obs_uv: np.ndarray) -> Any:
+    """A pycolmap.Reconstruction of PINHOLE cameras ``params`` ([fx fy cx cy ...], OpenCV pixels), one rig
+    (camera 0 its reference sensor), one frame per ``rig_from_world``, image i = (image_camera[i],
+    image_frame[i]) with ids i + 1, points with ids k + 1 observed at ``obs_uv`` (OpenCV pixels)."""
+    rec = pycolmap.Reconstruction()
+    for c, p in enumerate(params):
+        cx, cy = colmap_from_opencv_px(np.asarray(p[2:4], float))
+        rec.add_camera(pycolmap.Camera(model="PINHOLE", width=int(image_size[0]), height=int(image_size[1]),
+                                       params=[float(p[0]), float(p[1]), float(cx), float(cy)], camera_id=c + 1))
+    rig = pycolmap.Rig(rig_id=1)
+    rig.add_ref_sensor(rec.camera(1).sensor_id)
+    for c in range(1, len(params)):
+        rig.add_sensor(rec.camera(c + 1).sensor_id, _rigid3d(sensor_from_rig[c]))
+    rec.add_rig(rig)
+    order = np.argsort(obs_image, kind="stable")
+    starts = np.searchsorted(obs_image[order], np.arange(len(image_camera) + 1))
+    index_in_image = np.empty(len(obs_image), int)
+    images = []
+    for i in range(len(image_camera)):
+        sel = order[starts[i]:starts[i + 1]]
+        index_in_image[sel] = np.arange(len(sel))
+        image = pycolmap.Image(name=f"image{i + 1:04d}.png", keypoints=colmap_from_opencv_px(obs_uv[sel]),
+                               camera_id=int(image_camera[i]) + 1, image_id=i + 1)
+        image.frame_id = int(image_frame[i]) + 1
+        images.append(image)
+    for f, pose in enumerate(rig_from_world):
+        frame = pycolmap.Frame(frame_id=f + 1, rig_id=1)
+        frame.rig_from_world = _rigid3d(pose)
+        for i in np.flatnonzero(np.asarray(image_frame) == f):
+            frame.add_data_id(images[i].data_id)
+        rec.add_frame(frame)
+    for image in images:
+        rec.add_image(image)
+    porder = np.argsort(obs_point, kind="stable")
+    pstarts = np.searchsorted(obs_point[porder], np.arange(len(xyz) + 1))
+    for k in range(len(xyz)):
+        track = pycolmap.Track()
+        for o in porder[pstarts[k]:pstarts[k + 1]]:
+            track.add_element(int(obs_image[o]) + 1, int(index_in_image[o]))
+        rec.add_point3D(np.asarray(xyz[k], float), track, np.array(CALIBRATION_COLOR, np.uint8))
+    rec.update_point_3d_errors()
+    return rec
+
+
+def structure_from_motion(image_dir: str | Path, work_dir: str | Path, focal_px: float | None = None,
+                          max_features: int = 4000, seed: int = 0) -> Any:
+    """COLMAP's own SfM on a folder of images (CPU SIFT, exhaustive matching, incremental mapping), one
+    PINHOLE camera for all images (``focal_px``: its prior); the largest reconstruction."""
+    image_dir, work_dir = Path(image_dir), Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    database = work_dir / "database.db"
+    if database.exists():
+        database.unlink()
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "PINHOLE"
+    if focal_px is not None:
+        import cv2
+
+        first = sorted(p for p in image_dir.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))[0]
+        h, w = cv2.imread(str(first), cv2.IMREAD_GRAYSCALE).shape
+        reader.camera_params = f"{focal_px},{focal_px},{w / 2},{h / 2}"
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.sift.max_num_features = max_features
+    extraction.use_gpu = False
+    pycolmap.extract_features(database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.use_gpu = False
+    pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
+    options = pycolmap.IncrementalPipelineOptions()
+    options.random_seed = seed
+    models = pycolmap.incremental_mapping(database, image_dir, work_dir / "sparse", options)
+    if not models:
+        raise AriSfmError(work_dir, "COLMAP's incremental mapping reconstructed nothing")
+    return max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))

@@ -1,0 +1,235 @@
+"""The same refinement as a GTSAM factor graph: one CustomFactor per image holding all its observations.
+
+Variables (keys): ``f(k)`` Pose3 rig_from_world of frame k >= 1 (frame 0 held: the gauge, not a
+variable), ``s(c)`` Pose3 sensor_from_rig of camera c (non-reference sensors), ``k(c)`` Vector of
+camera c's free COLMAP intrinsics, ``n(w)`` Unit3 window normal and ``d(w)`` Vector1 distance
+(mount camera: w = camera; mount world: w = 0), ``p(j)`` Point3 per COLMAP point3D.
+
+The residuals and Jacobians are :meth:`RefractiveProblem.linearize`'s, restricted to the image's
+observations and chained to GTSAM's tangent spaces: a Pose3 ``a_from_b`` moves as
+``T Exp([w, v])`` (R' = R exp(w), t' = t + R v), i.e. this module's left perturbation
+(exp(R w) R, t + R v); a Unit3 by its own basis. Huber as the rig graph does (square-root weights
+inside the factor, per observation). GTSAM's LM eliminates the points itself (its ordering).
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import gtsam
+import numpy as np
+
+from ari_sfm.geometry import Pose
+
+from .problem import RefractiveProblem, State, tangent_basis
+
+
+def _frame_key(f: int) -> int:
+    return gtsam.symbol("f", f)
+
+
+def _sensor_key(c: int) -> int:
+    return gtsam.symbol("s", c)
+
+
+def _intrinsics_key(c: int) -> int:
+    return gtsam.symbol("k", c)
+
+
+def _normal_key(w: int) -> int:
+    return gtsam.symbol("n", w)
+
+
+def _distance_key(w: int) -> int:
+    return gtsam.symbol("d", w)
+
+
+def _point_key(j: int) -> int:
+    return gtsam.symbol("p", j)
+
+
+def _column_owners(problem: RefractiveProblem) -> dict[int, tuple[str, int, int]]:
+    """Reduced column -> (kind, variable index, column within the variable)."""
+    lay = problem.layout
+    out: dict[int, tuple[str, int, int]] = {}
+    for c, ix in enumerate(lay.intrinsics):
+        out.update({int(g): ("k", c, j) for j, g in enumerate(ix)})
+    for kind, table in (("f", lay.frames), ("s", lay.sensors)):
+        for v, row in enumerate(table):
+            out.update({int(g): (kind, v, j) for j, g in enumerate(row) if g >= 0})
+    for w, row in enumerate(lay.window):
+        out.update({int(g): ("n" if j < 2 else "d", w, j if j < 2 else 0) for j, g in enumerate(row) if g >= 0})
+    return out
+
+
+class GtsamRefinement:
+    """Build the graph from a state, optimise with GTSAM's LM, read the state back."""
+
+    def __init__(self, problem: RefractiveProblem, huber_px: float | None = 2.0) -> None:
+        self.problem = problem
+        self.huber_px = huber_px
+        self.owners = _column_owners(problem)
+
+    # -------------------------------------------------------------- values
+    def values(self, state: State) -> gtsam.Values:
+        m, lay = self.problem.model, self.problem.layout
+        v = gtsam.Values()
+        for f, p in enumerate(state.rig_from_world):
+            if lay.frames[f, 0] >= 0:
+                v.insert(_frame_key(f), gtsam.Pose3(gtsam.Rot3(p.R), p.t))
+        for c in range(len(m.camera_ids)):
+            if lay.sensors[c, 0] >= 0:
+                p = state.sensor_from_rig[int(np.flatnonzero(m.image_camera == c)[0])]
+                v.insert(_sensor_key(c), gtsam.Pose3(gtsam.Rot3(p.R), p.t))
+            free = np.flatnonzero(m.param_map[c].any(axis=0))
+            v.insert(_intrinsics_key(c), np.asarray(state.colmap_params[c][free], float))
+        for w in range(len(state.normals)):
+            v.insert(_normal_key(w), gtsam.Unit3(state.normals[w]))
+            if lay.window[w, 2] >= 0:
+                v.insert(_distance_key(w), np.array([state.distances[w]]))
+        for j, X in enumerate(state.xyz):
+            v.insert(_point_key(j), gtsam.Point3(*X))
+        return v
+
+    def state(self, values: gtsam.Values, template: State) -> State:
+        """The state held by ``values`` (held variables from ``template``)."""
+        m, lay = self.problem.model, self.problem.layout
+
+        def pose(key: int) -> Pose:
+            p = values.atPose3(key)
+            return Pose(p.rotation().matrix(), np.asarray(p.translation(), float))
+
+        frames = tuple(pose(_frame_key(f)) if lay.frames[f, 0] >= 0 else p for f, p in enumerate(template.rig_from_world))
+        sensors = tuple(pose(_sensor_key(int(c))) if lay.sensors[c, 0] >= 0 else s
+                        for c, s in zip(m.image_camera, template.sensor_from_rig))
+        params = []
+        for c, p in enumerate(template.colmap_params):
+            p = p.copy()
+            p[np.flatnonzero(m.param_map[c].any(axis=0))] = values.atVector(_intrinsics_key(c))
+            params.append(p)
+        normals = np.array([values.atUnit3(_normal_key(w)).point3() for w in range(len(template.normals))])
+        dists = np.array([values.atVector(_distance_key(w))[0] if lay.window[w, 2] >= 0 else template.distances[w]
+                          for w in range(len(template.distances))])
+        xyz = np.array([values.atPoint3(_point_key(j)) for j in range(len(template.xyz))])
+        return replace(template, colmap_params=tuple(params), rig_from_world=frames, sensor_from_rig=sensors,
+                       normals=normals, distances=dists, xyz=xyz)
+
+    # -------------------------------------------------------------- factors
+    def _factor(self, image: int, template: State) -> gtsam.CustomFactor:
+        m, problem = self.problem.model, self.problem
+        obs = np.flatnonzero(m.obs_image == image)
+        points = m.obs_point[obs]
+        unique_points = np.unique(points)
+        probe = problem.linearize(template, obs)
+        columns = sorted({int(g) for g in probe.index.ravel() if g >= 0})
+        var_keys: list[tuple[str, int]] = []
+        for g in columns:
+            kind, v, _ = self.owners[g]
+            if (kind, v) not in var_keys:
+                var_keys.append((kind, v))
+        key_of = {"f": _frame_key, "s": _sensor_key, "k": _intrinsics_key, "n": _normal_key, "d": _distance_key}
+        keys = [key_of[kind](v) for kind, v in var_keys] + [_point_key(int(j)) for j in unique_points]
+        rows = 2 * len(obs)
+        noise = gtsam.noiseModel.Unit.Create(rows)
+        huber = self.huber_px
+        owners = self.owners
+
+        def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
+            state = self.state_subset(values, template, var_keys, unique_points)
+            if not np.all(problem.image_windows(state)[1][image] > 0.0):  # a trial step beyond the window
+                if H is not None:
+                    for i, vk in enumerate(var_keys):
+                        H[i] = np.zeros((rows, self._dim(vk, state)))
+                    for i in range(len(unique_points)):
+                        H[len(var_keys) + i] = np.zeros((rows, 3))
+                return np.full(rows, 1e6)
+            lin = problem.linearize(state, obs)
+            r = lin.residuals
+            s = np.linalg.norm(r, axis=1)
+            wgt = np.ones(len(r)) if huber is None else np.sqrt(np.where(s <= huber, 1.0, huber / np.maximum(s, 1e-300)))
+            if H is not None:
+                blocks = {vk: np.zeros((rows, self._dim(vk, state))) for vk in var_keys}
+                Jg = lin.J_g * wgt[:, None, None]
+                for col in range(lin.index.shape[1]):
+                    for g in np.unique(lin.index[:, col]):
+                        if g < 0:
+                            continue
+                        kind, v, j = owners[int(g)]
+                        sel = lin.index[:, col] == g
+                        rsel = np.repeat(sel, 2)
+                        blocks[(kind, v)][rsel, j] += Jg[sel, :, col].reshape(-1)
+                for (kind, v), B in blocks.items():
+                    if kind in ("f", "s"):  # GTSAM right perturbation: [R w, R v] in this module's terms
+                        Rv = (state.rig_from_world[v].R if kind == "f"
+                              else state.sensor_from_rig[int(np.flatnonzero(m.image_camera == v)[0])].R)
+                        B[:, :3], B[:, 3:] = B[:, :3] @ Rv, B[:, 3:] @ Rv
+                    if kind == "n":  # from the problem's tangent basis to GTSAM's Unit3 basis
+                        n = state.normals[v]
+                        B[:, :2] = (B[:, :2] @ tangent_basis(n).T) @ gtsam.Unit3(n).basis()
+                for i, vk in enumerate(var_keys):
+                    H[i] = blocks[vk]
+                Jp = lin.J_p * wgt[:, None, None]
+                for i, j in enumerate(unique_points):
+                    Hp = np.zeros((rows, 3))
+                    sel = points == j
+                    Hp[np.repeat(sel, 2)] = Jp[sel].reshape(-1, 3)
+                    H[len(var_keys) + i] = Hp
+            return (r * wgt[:, None]).reshape(-1)
+
+        return gtsam.CustomFactor(noise, keys, error)
+
+    def _dim(self, vk: tuple[str, int], state: State) -> int:
+        kind, v = vk
+        if kind in ("f", "s"):
+            return 6
+        if kind == "n":
+            return 2
+        if kind == "d":
+            return 1
+        return int(self.problem.model.param_map[v].any(axis=0).sum())
+
+    def state_subset(self, values: gtsam.Values, template: State, var_keys: list[tuple[str, int]],
+                     points: np.ndarray) -> State:
+        """``template`` with the variables one factor touches read from ``values``."""
+        m = self.problem.model
+        frames = list(template.rig_from_world)
+        sensors = list(template.sensor_from_rig)
+        params = list(template.colmap_params)
+        normals, dists = template.normals.copy(), template.distances.copy()
+        for kind, v in var_keys:
+            if kind == "f":
+                p = values.atPose3(_frame_key(v))
+                frames[v] = Pose(p.rotation().matrix(), np.asarray(p.translation(), float))
+            elif kind == "s":
+                p = values.atPose3(_sensor_key(v))
+                pose = Pose(p.rotation().matrix(), np.asarray(p.translation(), float))
+                for i in np.flatnonzero(m.image_camera == v):
+                    sensors[i] = pose
+            elif kind == "k":
+                p = params[v].copy()
+                p[np.flatnonzero(m.param_map[v].any(axis=0))] = values.atVector(_intrinsics_key(v))
+                params[v] = p
+            elif kind == "n":
+                normals[v] = values.atUnit3(_normal_key(v)).point3()
+            else:
+                dists[v] = values.atVector(_distance_key(v))[0]
+        xyz = template.xyz.copy()
+        for j in points:
+            xyz[j] = values.atPoint3(_point_key(int(j)))
+        return replace(template, colmap_params=tuple(params), rig_from_world=tuple(frames),
+                       sensor_from_rig=tuple(sensors), normals=normals, distances=dists, xyz=xyz)
+
+    def graph(self, state: State) -> gtsam.NonlinearFactorGraph:
+        g = gtsam.NonlinearFactorGraph()
+        for i in range(len(self.problem.model.image_ids)):
+            g.add(self._factor(i, state))
+        return g
+
+    def optimize(self, state: State, max_iterations: int = 100) -> tuple[State, int]:
+        """GTSAM Levenberg-Marquardt from ``state``; the refined state and the iterations."""
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(max_iterations)
+        params.setRelativeErrorTol(1e-12)
+        params.setAbsoluteErrorTol(1e-12)
+        opt = gtsam.LevenbergMarquardtOptimizer(self.graph(state), self.values(state), params)
+        values = opt.optimize()
+        return self.state(values, state), int(opt.iterations())

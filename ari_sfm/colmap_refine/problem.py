@@ -1,0 +1,282 @@
+"""The refractive structure-from-motion problem: variables, residuals and their Jacobians.
+
+Variables (what is estimated):
+
+- per COLMAP camera: its free COLMAP intrinsic parameters (all of the camera model's, in COLMAP
+  order; FULL_OPENCV's k4..k6 held at 0);
+- per rig frame: ``rig_from_world`` (6 dof), except the first frame, held fixed (the gauge:
+  rotation and translation of the world);
+- per non-reference rig sensor: ``sensor_from_rig`` (6 dof);
+- the window: mount ``camera``: per camera its housing's ``normal_cam`` (2 dof) and distance h
+  (1 dof); mount ``world``: one ``normal_world`` (2 dof) and the near face's offset ``plane_mm``
+  (near face: ``normal_world . X = plane_mm``; 1 dof). The distance is held when air is behind the
+  plate (medium_index 1: it is unobservable, PHYSICS.md);
+- per COLMAP point3D: its position (3 dof), eliminated by the Schur complement.
+
+Not estimated: the plate (thickness, indices: WINDOW.yaml). The scale is not a gauge here: the
+plate's thickness (mm) fixes it through refraction, weakly (see ``refine.py``).
+
+Perturbations (the tangent space): a pose ``(R, t)`` (X_a = R X_b + t) moves to
+``(exp(w) R, t + v)``; a unit normal n to ``(n + B e) / |n + B e|`` (B: a fixed tangent basis);
+everything else additively. Image i's ``cam_from_world = sensor_from_rig * rig_from_world``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ari_sfm.colmap_export import ColmapModel
+from ari_sfm.geometry import Pose, rotation_from_rotvec
+from ari_sfm.models import ExactModel, PinholeModel
+from ari_sfm.models.exact import ConvergenceError
+from ari_sfm.records import Interface
+
+MOUNTS = ("camera", "world")
+
+
+def tangent_basis(n: np.ndarray) -> np.ndarray:
+    """(3, 2) orthonormal basis of the plane orthogonal to the unit vector n."""
+    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    b1 = np.cross(n, a)
+    b1 /= np.linalg.norm(b1)
+    return np.column_stack([b1, np.cross(n, b1)])
+
+
+@dataclass(frozen=True)
+class State:
+    """Values of every variable (lengths in mm)."""
+
+    colmap_params: tuple[np.ndarray, ...]  # per camera, COLMAP order
+    rig_from_world: tuple[Pose, ...]  # per frame
+    sensor_from_rig: tuple[Pose, ...]  # per image (constant per camera within its rig)
+    normals: np.ndarray  # (W, 3) unit: per camera (mount camera) or (1, 3) world
+    distances: np.ndarray  # (W,) h per camera (mount camera) or (1,) plane_mm (mount world)
+    xyz: np.ndarray  # (P, 3)
+
+    def cam_from_world(self, model: ColmapModel) -> tuple[np.ndarray, np.ndarray]:
+        """(I, 3, 3) rotations and (I, 3) translations of every image's cam_from_world."""
+        R = np.array([s.R @ self.rig_from_world[f].R for s, f in zip(self.sensor_from_rig, model.image_frame)])
+        t = np.array([s.R @ self.rig_from_world[f].t + s.t for s, f in zip(self.sensor_from_rig, model.image_frame)])
+        return R, t
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where each variable lives in the reduced (non-point) tangent vector of size ``size``."""
+
+    intrinsics: tuple[np.ndarray, ...]  # per camera: indices of its free COLMAP params
+    frames: np.ndarray  # (F, 6) indices, -1 for the gauge frame
+    sensors: np.ndarray  # (C, 6) indices, -1 for reference sensors
+    window: np.ndarray  # (W, 3) indices [normal e1, e2, distance], -1 where held
+    size: int
+
+
+def make_layout(model: ColmapModel, mount: str, estimate_distance: bool, image_is_ref: np.ndarray,
+                hold_window: bool = False) -> Layout:
+    """Index the reduced variables: intrinsics, frames (first held), non-ref sensors, window (unless held)."""
+    k = 0
+    intr = []
+    for c, p in enumerate(model.colmap_params):
+        free = np.flatnonzero(model.param_map[c].any(axis=0))
+        intr.append(np.arange(k, k + len(free)))
+        k += len(free)
+    F = len(model.frame_ids)
+    frames = -np.ones((F, 6), int)
+    for f in range(1, F):
+        frames[f] = np.arange(k, k + 6)
+        k += 6
+    C = len(model.camera_ids)
+    sensors = -np.ones((C, 6), int)
+    for c in range(C):
+        if not np.all(image_is_ref[model.image_camera == c]):
+            sensors[c] = np.arange(k, k + 6)
+            k += 6
+    W = C if mount == "camera" else 1
+    window = -np.ones((W, 3), int)
+    for w in range(0 if hold_window else W):
+        window[w, :2] = (k, k + 1)
+        k += 2
+        if estimate_distance:
+            window[w, 2] = k
+            k += 1
+    return Layout(tuple(intr), frames, sensors, window, k)
+
+
+@dataclass(frozen=True)
+class Linearization:
+    """Residuals (M, 2) px and Jacobians: reduced ``J_g`` (M, 2, q) at columns ``index`` (M, q),
+    -1 = none; points ``J_p`` (M, 2, 3)."""
+
+    residuals: np.ndarray
+    J_g: np.ndarray
+    index: np.ndarray
+    J_p: np.ndarray
+
+
+class RefractiveProblem:
+    """Residuals ``project(X) - observed`` of every COLMAP observation through the exact model."""
+
+    def __init__(self, model: ColmapModel, interface: Interface, mount: str, estimate_distance: bool,
+                 hold_window: bool = False) -> None:
+        if mount not in MOUNTS:
+            raise ValueError(f"mount must be one of {MOUNTS}, got {mount!r}")
+        self.model = model
+        self.interface = interface
+        self.mount = mount
+        self.image_is_ref = (model.image_is_ref if model.image_is_ref is not None else
+                             np.array([np.allclose(s.R, np.eye(3)) and not np.any(s.t) for s in model.sensor_from_rig]))
+        self.layout = make_layout(model, mount, estimate_distance, self.image_is_ref, hold_window)
+        self._cam_of_obs = model.image_camera[model.obs_image]
+
+    # ------------------------------------------------------------------ models
+    def _exact(self, state: State, c: int, normal_cam: np.ndarray, h: float) -> ExactModel:
+        pin = PinholeModel.from_params(self.model.params9(c, state.colmap_params[c]))
+        return ExactModel.from_interface(pin, normal_cam, self.interface, distance_mm=h)
+
+    def image_windows(self, state: State) -> tuple[np.ndarray, np.ndarray]:
+        """(I, 3) normal_cam and (I,) distance h of every image's window in its camera frame."""
+        m = self.model
+        if self.mount == "camera":
+            return state.normals[m.image_camera], state.distances[m.image_camera]
+        R, t = state.cam_from_world(m)
+        n_w = state.normals[0]
+        centres = -np.einsum("nji,nj->ni", R, t)
+        return R @ n_w, state.distances[0] - centres @ n_w
+
+    def _groups(self, obs_image: np.ndarray) -> list[tuple[np.ndarray, int, int]]:
+        """Groups of observations (positions in ``obs_image``) sharing one exact model:
+        (positions, camera, image or -1)."""
+        m = self.model
+        if self.mount == "camera":
+            cam = m.image_camera[obs_image]
+            return [(np.flatnonzero(cam == c), c, -1) for c in range(len(m.camera_ids))]
+        order = np.argsort(obs_image, kind="stable")
+        starts = np.searchsorted(obs_image[order], np.arange(len(m.image_ids) + 1))
+        return [(order[starts[i]:starts[i + 1]], int(m.image_camera[i]), i) for i in range(len(m.image_ids))]
+
+    # -------------------------------------------------------------- residuals
+    def residuals(self, state: State) -> np.ndarray:
+        """(M, 2) projected minus observed pixels (NaN where a point is not beyond the window)."""
+        m = self.model
+        R, t = state.cam_from_world(m)
+        X_cam = np.einsum("nij,nj->ni", R[m.obs_image], state.xyz[m.obs_point]) + t[m.obs_image]
+        normals, dists = self.image_windows(state)
+        if not np.all(dists > 0.0):  # a trial step put a camera beyond its window
+            return np.full((len(X_cam), 2), np.nan)
+        uv = np.empty((len(X_cam), 2))
+        for obs, c, i in self._groups(m.obs_image):
+            if len(obs) == 0:
+                continue
+            j = i if i >= 0 else m.obs_image[obs[0]]
+            try:
+                uv[obs] = self._exact(state, c, normals[j], float(dists[j])).project(X_cam[obs])
+            except (ConvergenceError, ValueError):  # an unphysical trial step: rejected by its cost
+                return np.full((len(X_cam), 2), np.nan)
+        return uv - m.obs_uv
+
+    def linearize(self, state: State, obs: np.ndarray | None = None) -> Linearization:
+        """Residuals and analytic Jacobians of every observation, or of the observations ``obs``
+        (see module docstring)."""
+        m, lay = self.model, self.layout
+        sub = slice(None) if obs is None else obs
+        oi, op, cam_of_obs = m.obs_image[sub], m.obs_point[sub], self._cam_of_obs[sub]
+        R, t = state.cam_from_world(m)
+        Ro, to = R[oi], t[oi]
+        a = np.einsum("nij,nj->ni", Ro, state.xyz[op])  # R X
+        X_cam = a + to
+        normals, dists = self.image_windows(state)
+        M = len(X_cam)
+        uv = np.empty((M, 2))
+        J_X = np.empty((M, 2, 3))
+        J_n = np.empty((M, 2, 3))
+        J_h = np.empty((M, 2))
+        kmax = max(len(ix) for ix in lay.intrinsics)
+        J_k = np.zeros((M, 2, kmax))
+        for grp, c, i in self._groups(oi):
+            if len(grp) == 0:
+                continue
+            j = i if i >= 0 else oi[grp[0]]
+            jac = self._exact(state, c, normals[j], float(dists[j])).project_with_jacobians(X_cam[grp])
+            uv[grp], J_X[grp], J_n[grp], J_h[grp] = jac.uv, jac.J_point, jac.J_normal, jac.J_distance
+            free = np.flatnonzero(m.param_map[c].any(axis=0))
+            J_k[grp, :, :len(free)] = jac.J_params @ m.param_map[c][:, free]
+        # image pose perturbation (w, v) of cam_from_world: dX_cam = -[a]x w + v
+        J_w = -np.einsum("nij,njk->nik", J_X, _skew_rows(a))
+        J_v = J_X.copy()
+        wn = None
+        if self.mount == "world":
+            n_cam = normals[oi]
+            # n_cam = R n_w: dn = -[n_cam]x w;  h = plane - n_w . C:  dh = n_cam . v + n_cam^T [t]x w
+            J_w += -np.einsum("nij,njk->nik", J_n, _skew_rows(n_cam))
+            J_w += J_h[:, :, None] * np.einsum("ni,nij->nj", n_cam, _skew_rows(to))[:, None, :]
+            J_v += J_h[:, :, None] * n_cam[:, None, :]
+            B = tangent_basis(state.normals[0])
+            centres = -np.einsum("nji,nj->ni", Ro, to)
+            wn = (np.einsum("nij,njk,kl->nil", J_n, Ro, B) - J_h[:, :, None] * (centres @ B)[:, None, :], J_h)
+        # chain to the frame (rig_from_world) and the sensor (sensor_from_rig)
+        S = np.array([s.R for s in state.sensor_from_rig])[oi]
+        St_P = np.array([s.R @ state.rig_from_world[f].t for s, f in zip(state.sensor_from_rig, m.image_frame)])
+        J_frame = np.concatenate([J_w @ S, J_v @ S], axis=2)
+        J_sensor = np.concatenate([J_w - np.einsum("nij,njk->nik", J_v, _skew_rows(St_P[oi])), J_v], axis=2)
+        blocks = [J_frame, J_sensor, J_k]
+        index = [lay.frames[m.image_frame[oi]], lay.sensors[cam_of_obs],
+                 _pad([lay.intrinsics[c] for c in range(len(lay.intrinsics))], kmax)[cam_of_obs]]
+        if self.mount == "camera":
+            B = np.array([tangent_basis(n) for n in state.normals])[cam_of_obs]
+            blocks.append(np.concatenate([np.einsum("nij,njk->nik", J_n, B), J_h[:, :, None]], axis=2))
+            index.append(lay.window[cam_of_obs])
+        else:
+            blocks.append(np.concatenate([wn[0], wn[1][:, :, None]], axis=2))
+            index.append(np.broadcast_to(lay.window[0], (M, 3)))
+        J_p = np.einsum("nij,njk->nik", J_X, Ro)
+        index = np.concatenate(index, axis=1)
+        used = (index >= 0).any(axis=0)  # drop columns no observation uses (e.g. no rig sensors)
+        return Linearization(uv - m.obs_uv[sub], np.concatenate(blocks, axis=2)[:, :, used], index[:, used], J_p)
+
+    # ---------------------------------------------------------------- retract
+    def retract(self, state: State, dg: np.ndarray, dp: np.ndarray) -> State:
+        """The state moved by the reduced step ``dg`` (layout.size,) and point steps ``dp`` (P, 3)."""
+        m, lay = self.model, self.layout
+        g = np.append(dg, 0.0)  # index -1 reads 0
+
+        def pose(p: Pose, idx: np.ndarray) -> Pose:
+            d = g[idx]
+            return Pose(rotation_from_rotvec(d[:3]) @ p.R, p.t + d[3:])
+
+        params = tuple(p + _scatter_free(m.param_map[c], g[lay.intrinsics[c]])
+                       for c, p in enumerate(state.colmap_params))
+        frames = tuple(pose(p, lay.frames[f]) for f, p in enumerate(state.rig_from_world))
+        sensors_by_cam = {c: pose(state.sensor_from_rig[int(np.flatnonzero(m.image_camera == c)[0])], lay.sensors[c])
+                          for c in range(len(m.camera_ids)) if lay.sensors[c, 0] >= 0}
+        sensors = tuple(sensors_by_cam.get(int(c), s) for c, s in zip(m.image_camera, state.sensor_from_rig))
+        normals = state.normals.copy()
+        distances = state.distances.copy()
+        for w in range(len(normals)):
+            v = normals[w] + tangent_basis(normals[w]) @ g[lay.window[w, :2]]
+            normals[w] = v / np.linalg.norm(v)
+            distances[w] += g[lay.window[w, 2]]
+        return replace(state, colmap_params=params, rig_from_world=frames, sensor_from_rig=sensors,
+                       normals=normals, distances=distances, xyz=state.xyz + dp)
+
+
+def _skew_rows(a: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) skew matrices [a]x of rows a (N, 3)."""
+    out = np.zeros((len(a), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -a[:, 2], a[:, 1], -a[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = a[:, 2], -a[:, 1], a[:, 0]
+    return out
+
+
+def _pad(rows: list[np.ndarray], width: int) -> np.ndarray:
+    out = -np.ones((len(rows), width), int)
+    for k, r in enumerate(rows):
+        out[k, :len(r)] = r
+    return out
+
+
+def _scatter_free(param_map: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """A step on the free COLMAP parameters as a full COLMAP parameter vector."""
+    out = np.zeros(param_map.shape[1])
+    out[np.flatnonzero(param_map.any(axis=0))] = step
+    return out

@@ -1,0 +1,390 @@
+"""refine-colmap: a COLMAP (pinhole) reconstruction made behind a flat window, refined with the
+exact refractive model.
+
+Start: the model as COLMAP left it, read as its paraxial virtual cameras (the ari model: a camera
+behind a plate with a medium n_m sees the scene as a pinhole with focal n_m f whose centre sits
+``n_m a`` behind it along the normal, ``a`` the ari model's apparent offset), the window normal on
+the optical axis (mount camera) or on the mean viewing direction (mount world), and the distance
+found by a search on the cost: for each candidate distance, LM on everything but the window (the
+middle candidate from COLMAP's model, up to SEARCH_ITERATIONS; the others warm-started from its
+result, WARM_SEARCH_ITERATIONS), the lowest cost wins; then everything is refined (air behind: the distance is
+unobservable and held).
+
+Gauge and scale: the first frame's pose is held (the world's rotation and translation). The
+scale is *not* a gauge: the plate's thickness in mm sets it through refraction, but only weakly
+(a plate a few mm thick against a scene metres away). The input's units are taken as
+``units_mm`` mm each (``scale_bar``: two point3D ids and their distance in mm sets it; neither:
+1, the model is taken to be in mm); the result is in mm, its scale is that start refined by the
+weak refraction signal: measured on the simulated port survey (sigma 0.5 px) the cost is flat
+along the scale to 1e-6 of its value, so without a scale bar the result's scale is the input's
+(and pinhole bundle adjustment drifts it by tens of %). With a scale bar, the refined solution is
+scaled (points, poses, window distances) to the bar's length and polished; ``refine.json``
+reports the bar after. :mod:`ari_sfm.colmap_refine.problem` lists what is estimated.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ari_sfm import colmap_export as adapter
+from ari_sfm.calibration import Calibration, CameraCalibration
+from ari_sfm.errors import AriSfmError
+from ari_sfm.geometry import Pose, rotation_from_rotvec
+from ari_sfm.models import AriModel, PinholeModel
+from ari_sfm.records import Interface
+
+from .problem import MOUNTS, RefractiveProblem, State
+from .schur import (LMResult, build_normal_equations, huber_cost, huber_weights, levenberg_marquardt,
+                    solve_damped)
+
+log = logging.getLogger(__name__)
+
+DISTANCE_CANDIDATES_MM = (10.0, 30.0, 100.0)
+SEARCH_ITERATIONS = 10  # the first start distance, window held (LM stops earlier when converged)
+WARM_SEARCH_ITERATIONS = 4  # the other start distances, warm-started
+AIR_DISTANCE_MM = 10.0  # held: unobservable in air
+
+
+@dataclass(frozen=True)
+class RefineResult:
+    """What :func:`refine_colmap` returns.
+
+    ``reconstruction``: the COLMAP model to hand to COLMAP's tools: the refined 3D points (mm),
+    the cameras and poses as their best approximation in COLMAP's camera models (OPENCV by
+    default: COLMAP's own bundle adjustment with the points held; the poses are those virtual
+    cameras', not the real centres). ``refractive``: the refined model itself (real poses, the lens intrinsics
+    behind the window; its cameras are NOT pinhole cameras of the images). ``calibration``: the
+    refractive cameras (exact model) with each housing's normal_cam and distance.
+    """
+
+    reconstruction: Any
+    refractive: Any
+    calibration: Calibration
+    state: State
+    report: dict
+
+
+def _units_mm(model: adapter.ColmapModel, units_mm: float | None, scale_bar: tuple[int, int, float] | None,
+              path: Any) -> float:
+    if scale_bar is not None:
+        a, b, mm = scale_bar
+        where = {int(p): k for k, p in enumerate(model.point3D_ids)}
+        if int(a) not in where or int(b) not in where:
+            raise AriSfmError(path, f"scale bar: point3D ids {a} and {b} must both be in the model")
+        length = float(np.linalg.norm(model.xyz[where[int(a)]] - model.xyz[where[int(b)]]))
+        if not length > 0 or not mm > 0:
+            raise AriSfmError(path, "scale bar: its points coincide or its length is not positive")
+        return mm / length
+    if units_mm is None:
+        log.warning("refine-colmap: no units_mm or scale bar: the COLMAP model's units are taken as mm")
+        return 1.0
+    if not units_mm > 0:
+        raise AriSfmError(path, f"units_mm must be > 0, got {units_mm}")
+    return float(units_mm)
+
+
+def _paraxial_offset_mm(interface: Interface, normal_cam: np.ndarray, h: float) -> float:
+    """n_m a: how far the paraxial virtual centre sits behind the real one along the normal."""
+    ari = AriModel(PinholeModel(np.eye(3)), normal_cam, interface.thickness_mm, interface.index,
+                   interface.medium_index, h)
+    a = float(ari.apparent_points(np.zeros(3))[0] @ ari.normal_cam)
+    return interface.medium_index * a
+
+
+def _focal_rows(model: adapter.ColmapModel, c: int) -> np.ndarray:
+    """Mask of camera c's COLMAP parameters that are focal lengths."""
+    return model.param_map[c][:2].any(axis=0)
+
+
+def _convert(model: adapter.ColmapModel, problem: RefractiveProblem, state: State, direction: int) -> State:
+    """Paraxial virtual cameras -> refractive start (direction +1), or back (-1): focal lengths
+    divided (multiplied) by n_m, each frame's centre moved by +-n_m a along its window normal."""
+    nm = problem.interface.medium_index
+    params = []
+    for c, p in enumerate(state.colmap_params):
+        p = p.copy()
+        p[_focal_rows(model, c)] *= nm ** (-direction)
+        params.append(p)
+    normals, dists = problem.image_windows(state)
+    frames = list(state.rig_from_world)
+    for f in range(len(frames)):
+        i = int(np.flatnonzero(model.image_frame == f)[0])
+        R, t = state.cam_from_world(model)
+        n_world = R[i].T @ normals[i]
+        shift = direction * _paraxial_offset_mm(problem.interface, normals[i], max(float(dists[i]), 1e-3))
+        pose = frames[f]
+        centre = -pose.R.T @ pose.t + shift * n_world
+        frames[f] = Pose(pose.R, -pose.R @ centre)
+    return replace(state, colmap_params=tuple(params), rig_from_world=tuple(frames))
+
+
+def _initial_state(model: adapter.ColmapModel, mount: str, units: float) -> State:
+    frames = tuple(Pose(p.R, p.t * units) for p in model.rig_from_world)
+    sensors = tuple(Pose(p.R, p.t * units) for p in model.sensor_from_rig)
+    C = len(model.camera_ids)
+    state = State(tuple(p.copy() for p in model.colmap_params), frames, sensors, np.zeros((1, 3)), np.zeros(1),
+                  model.xyz * units)
+    if mount == "camera":
+        return replace(state, normals=np.tile([0.0, 0.0, 1.0], (C, 1)), distances=np.zeros(C))
+    R, _ = state.cam_from_world(model)
+    axis = R[:, 2, :].mean(axis=0)  # optical axes in the world: rows z of cam_from_world
+    return replace(state, normals=(axis / np.linalg.norm(axis))[None, :])
+
+
+def _with_distance(model: adapter.ColmapModel, state: State, mount: str, h: float) -> State:
+    """The window h in front of every camera (mount world: of the mean camera centre)."""
+    if mount == "camera":
+        return replace(state, distances=np.full(len(state.distances), h))
+    R, t = state.cam_from_world(model)
+    centres = -np.einsum("nji,nj->ni", R, t)
+    return replace(state, distances=np.array([float(np.max(centres @ state.normals[0])) + h]))
+
+
+def _scaled(state: State, s: float) -> State:
+    """Every length times s (points, translations, window distances): the cost's near-flat direction."""
+    return replace(state, xyz=state.xyz * s, rig_from_world=tuple(Pose(p.R, p.t * s) for p in state.rig_from_world),
+                   sensor_from_rig=tuple(Pose(p.R, p.t * s) for p in state.sensor_from_rig),
+                   distances=state.distances * s)
+
+
+class Solver:
+    """Binds a problem, its robust loss and its point pairs into LM's callables."""
+
+    def __init__(self, problem: RefractiveProblem, huber_px: float | None) -> None:
+        self.problem = problem
+        self.huber_px = huber_px
+        self.P = len(problem.model.point3D_ids)
+
+    def cost(self, state: State) -> float:
+        return huber_cost(self.problem.residuals(state), self.huber_px)
+
+    def linearize(self, state: State):
+        lin = self.problem.linearize(state)
+        w = huber_weights(lin.residuals, self.huber_px)
+        return build_normal_equations(lin, self.problem.model.obs_point, self.P, self.problem.layout.size, w)
+
+    def solve(self, ne, lam: float):
+        return solve_damped(ne, lam)
+
+    def retract(self, state: State, step) -> State:
+        return self.problem.retract(state, step[0], step[1])
+
+    def run(self, state: State, max_iterations: int, progress=None) -> LMResult:
+        """The numpy backend: points Schur + this package's LM."""
+        return levenberg_marquardt(state, self.cost, self.linearize, self.solve, self.retract,
+                                   max_iterations=max_iterations, progress=progress)
+
+    def run_gtsam(self, state: State, max_iterations: int) -> LMResult:
+        """The GTSAM backend (one CustomFactor per image, GTSAM's LM)."""
+        from .gtsam_graph import GtsamRefinement
+
+        refined, iterations = GtsamRefinement(self.problem, self.huber_px).optimize(state, max_iterations)
+        return LMResult(refined, self.cost(refined), self.cost(state), iterations, iterations < max_iterations)
+
+
+def _per_image_rms(model: adapter.ColmapModel, residuals: np.ndarray) -> dict[int, float]:
+    e2 = np.sum(residuals ** 2, axis=1)
+    sums = np.bincount(model.obs_image, e2, len(model.image_ids))
+    counts = np.bincount(model.obs_image, minlength=len(model.image_ids))
+    return {int(i): float(np.sqrt(sums[k] / counts[k])) for k, i in enumerate(model.image_ids) if counts[k]}
+
+
+def _calibration(model: adapter.ColmapModel, problem: RefractiveProblem, state: State, mount: str,
+                 cam_from_world: dict[int, Pose]) -> Calibration:
+    """The refractive cameras as a Calibration (exact model); see :func:`refine_colmap`."""
+    cams = {}
+    names = [f"camera{int(cid)}" for cid in model.camera_ids]
+    if mount == "camera":
+        plane = float(np.max(state.distances))
+        normal_world = np.array([0.0, 0.0, 1.0])
+    else:
+        plane = float(state.distances[0])
+        normal_world = state.normals[0]
+    for c, name in enumerate(names):
+        p9 = model.params9(c, state.colmap_params[c])
+        K = PinholeModel.from_params(p9).K
+        if mount == "camera":
+            n = state.normals[c]
+            v = np.cross([0.0, 0.0, 1.0], n)
+            sin = float(np.linalg.norm(v))
+            R = np.eye(3) if sin < 1e-15 else rotation_from_rotvec(v / sin * np.arctan2(sin, n[2]))  # R e_z = n_c
+            pose = Pose(R, -R @ np.array([0.0, 0.0, plane - state.distances[c]]))
+        else:
+            i = int(np.flatnonzero(model.image_camera == c)[0])
+            pose = cam_from_world[int(model.image_ids[i])]
+        cams[name] = CameraCalibration(name, model.image_sizes[c], K, p9[4:].copy(), pose)
+    frame_note = ("each camera's housing frame: the port's near face is the plane z = distance_mm; "
+                  "image poses: extra images_cam_from_world" if mount == "camera" else "the COLMAP model's world (mm)")
+    extra = {"refine_colmap": {"mount": mount, "world": frame_note,
+                               "camera_ids": {n: int(cid) for n, cid in zip(names, model.camera_ids)},
+                               "images_cam_from_world": {str(i): p.to_json() for i, p in cam_from_world.items()}}}
+    interface = replace(problem.interface, distance_mm=plane)
+    return Calibration("exact", interface, normal_world, cams, {}, extra=extra)
+
+
+def _state_reconstruction(rec: Any, model: adapter.ColmapModel, problem: RefractiveProblem, state: State) -> Any:
+    sensors = {int(model.camera_ids[c]): state.sensor_from_rig[int(np.flatnonzero(model.image_camera == c)[0])]
+               for c in range(len(model.camera_ids)) if problem.layout.sensors[c, 0] >= 0}
+    return adapter.refined_reconstruction(rec, model, state.colmap_params, state.rig_from_world, sensors, state.xyz)
+
+
+def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camera", model: str = "exact",
+                  units_mm: float | None = None, scale_bar: tuple[int, int, float] | None = None,
+                  huber_px: float | None = 2.0, max_iterations: int = 50,
+                  distances_mm: tuple[float, ...] | None = None, approximation: str = "opencv",
+                  backend: str = "numpy", progress: bool = False,
+                  path: Any = "reconstruction") -> RefineResult:
+    """Refine a COLMAP reconstruction made behind a flat window with the exact refractive model.
+
+    ``reconstruction``: a pycolmap.Reconstruction or a model folder; ``interface``: the plate
+    (thickness_mm, index, medium_index; distance_mm, if given, is the only distance candidate);
+    ``mount``: ``camera`` (a housing per COLMAP camera) or ``world`` (one window fixed in the
+    world); ``distances_mm``: distance candidates of the start search; ``approximation``: the COLMAP
+    cameras written, ``opencv`` (pinhole + k1 k2 p1 p2, default: the distortion absorbs much of the
+    port) or ``pinhole`` (the input's camera models); ``backend``: ``numpy`` (points Schur, this
+    package's LM) or ``gtsam`` (one CustomFactor per image; slower; the start search stays numpy).
+    See the module docstring
+    for the start, the gauge and the scale.
+    """
+    t0 = time.perf_counter()
+    if model != "exact":
+        raise AriSfmError(path, f"refine-colmap: model {model!r} is not supported (exact)")
+    if backend not in ("numpy", "gtsam"):
+        raise AriSfmError(path, f"backend must be numpy or gtsam (got {backend!r})")
+    if approximation not in ("opencv", "pinhole"):
+        raise AriSfmError(path, f"approximation must be opencv or pinhole (got {approximation!r})")
+    if mount not in MOUNTS:
+        raise AriSfmError(path, f"mount must be one of {', '.join(MOUNTS)} (got {mount!r})")
+    if not isinstance(reconstruction, (str, Path)) and hasattr(reconstruction, "num_points3D"):
+        rec = reconstruction
+    else:
+        path = Path(reconstruction)
+        rec = adapter.read_colmap(path)
+    cmodel = adapter.model_from_reconstruction(rec, path)
+    units = _units_mm(cmodel, units_mm, scale_bar, path)
+    estimate_distance = interface.medium_index != 1.0
+    problem = RefractiveProblem(cmodel, interface, mount, estimate_distance)
+    solver = Solver(problem, huber_px)
+    before = adapter.image_residuals_px(rec, cmodel)
+    virtual = _initial_state(cmodel, mount, units)
+    if interface.distance_mm is not None:
+        candidates: tuple[float, ...] = (float(interface.distance_mm),)
+    elif not estimate_distance:
+        candidates = (AIR_DISTANCE_MM,)
+    else:
+        candidates = tuple(distances_mm or DISTANCE_CANDIDATES_MM)
+    held = Solver(RefractiveProblem(cmodel, interface, mount, estimate_distance, hold_window=True), huber_px)
+    search = []
+    best = None
+    # the cost profile over the distance, everything but the window refined: the middle candidate from
+    # COLMAP's model, the others warm-started from its result (moved to their distance, paraxially)
+    order = sorted(candidates, key=lambda h: abs(candidates.index(h) - (len(candidates) - 1) / 2))
+    warm = None
+    for h in order:
+        base = virtual if warm is None else warm
+        start = _convert(cmodel, problem, _with_distance(cmodel, base, mount, h), +1)
+        res = held.run(start, SEARCH_ITERATIONS if warm is None else WARM_SEARCH_ITERATIONS)
+        if warm is None:
+            warm = _convert(cmodel, problem, res.state, -1)
+        search.append({"distance_mm": h, "cost": res.cost, "iterations": res.iterations})
+        log.info("refine-colmap: start distance %g mm: cost %.6g after %d iterations with the window held",
+                 h, res.cost, res.iterations)
+        if best is None or res.cost < best[0]:
+            best = (res.cost, res.state, res.iterations)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=max_iterations, desc="refine-colmap", unit="it", leave=False)
+
+    def tick(it: int, cost: float) -> None:
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(cost=f"{cost:.4g}")
+
+    result = solver.run(best[1], max_iterations, tick) if backend == "numpy" else solver.run_gtsam(best[1], max_iterations)
+    iterations = result.iterations + sum(c["iterations"] for c in search)
+    if scale_bar is not None:  # the scale is nearly flat in the cost: put the bar back to its length, polish
+        where = {int(p): k for k, p in enumerate(cmodel.point3D_ids)}
+        a, b = result.state.xyz[where[int(scale_bar[0])]], result.state.xyz[where[int(scale_bar[1])]]
+        polish = solver.run if backend == "numpy" else solver.run_gtsam
+        result = polish(_scaled(result.state, scale_bar[2] / float(np.linalg.norm(a - b))), max_iterations)
+        iterations += result.iterations
+    if bar is not None:
+        bar.close()
+    state = result.state
+    residuals = problem.residuals(state)
+    R, t = state.cam_from_world(cmodel)
+    cam_from_world = {int(i): Pose(R[k], t[k]) for k, i in enumerate(cmodel.image_ids)}
+    refractive = _state_reconstruction(rec, cmodel, problem, state)
+    virtual = _convert(cmodel, problem, state, -1)
+    opencv = ({int(cid): _opencv_params(cmodel, c, virtual.colmap_params[c]) for c, cid in enumerate(cmodel.camera_ids)
+               if cmodel.camera_models[c] != "FULL_OPENCV"} if approximation == "opencv" else None)
+    approx = adapter.pinhole_approximation(_state_reconstruction(rec, cmodel, problem, virtual), opencv)
+    approx_rms = adapter.image_residuals_px(approx)
+    calibration = _calibration(cmodel, problem, state, mount, cam_from_world)
+    e = np.linalg.norm(residuals, axis=1)
+    report = {
+        "mount": mount, "model": model, "backend": backend, "units_mm": units,
+        "interface": {"thickness_mm": interface.thickness_mm, "index": interface.index,
+                      "medium_index": interface.medium_index},
+        "counts": {"cameras": len(cmodel.camera_ids), "frames": len(cmodel.frame_ids),
+                   "images": len(cmodel.image_ids), "points3D": len(cmodel.point3D_ids),
+                   "observations": len(cmodel.obs_image), "reduced_variables": problem.layout.size},
+        "estimated": "intrinsics per camera, rig_from_world per frame (the first held: gauge), sensor_from_rig per "
+                     "non-reference sensor, window normal" + (" and distance" if estimate_distance else
+                                                                " (distance held: unobservable in air)")
+                     + " per " + ("camera (housing)" if mount == "camera" else "world") + ", 3D points",
+        "scale": "the input's units times units_mm, refined by refraction (weakly observable through the plate)",
+        "distance_search": search,
+        "iterations": iterations, "converged": result.converged,
+        "cost": {"start": float(result.initial_cost), "final": float(result.cost)},
+        "time_s": time.perf_counter() - t0,
+        "before": {"model": "COLMAP pinhole", "rms_px": _rms(before), "per_image_rms_px": before},
+        "after": {"model": "exact", "rms_px": float(np.sqrt(np.mean(e ** 2))), "mean_px": float(np.mean(e)),
+                  "per_image_rms_px": _per_image_rms(cmodel, residuals)},
+        "pinhole_approximation": {"camera_model": approximation.upper() if approximation == "opencv" else "input's",
+                                  "rms_px": _rms(approx_rms), "per_image_rms_px": approx_rms},
+        "window": ({"normal_cam": {f"camera{int(cid)}": state.normals[c].tolist()
+                                   for c, cid in enumerate(cmodel.camera_ids)},
+                    "distance_mm": {f"camera{int(cid)}": float(state.distances[c])
+                                    for c, cid in enumerate(cmodel.camera_ids)}} if mount == "camera" else
+                   {"normal_world": state.normals[0].tolist(), "plane_mm": float(state.distances[0])}),
+    }
+    if scale_bar is not None:
+        where = {int(p): k for k, p in enumerate(cmodel.point3D_ids)}
+        report["scale_bar"] = {"ids": [int(scale_bar[0]), int(scale_bar[1])], "declared_mm": float(scale_bar[2]),
+                               "refined_mm": float(np.linalg.norm(state.xyz[where[int(scale_bar[0])]]
+                                                                  - state.xyz[where[int(scale_bar[1])]]))}
+    log.warning("refine-colmap: the COLMAP cameras written are the best %s approximation of the refractive "
+                "cameras (poses are virtual; real poses in calibration.json): %.3f px RMS (the exact model: %.3f px)",
+                approximation, report["pinhole_approximation"]["rms_px"], report["after"]["rms_px"])
+    return RefineResult(approx, refractive, calibration, state, report)
+
+
+def _opencv_params(model: adapter.ColmapModel, c: int, colmap_params: np.ndarray) -> np.ndarray:
+    """Camera c's parameters as COLMAP OPENCV [fx fy cx cy k1 k2 p1 p2] (COLMAP pixels)."""
+    p9 = model.params9(c, colmap_params)
+    return np.r_[p9[:2], p9[2:4] + adapter.COLMAP_PIXEL_OFFSET, p9[4:8]]
+
+
+def _rms(per_image: dict[int, float]) -> float:
+    v = np.array(list(per_image.values()))
+    return float(np.sqrt(np.mean(v ** 2))) if len(v) else float("nan")
+
+
+def write_refined(result: RefineResult, out_dir: str | Path) -> Path:
+    """OUT: the COLMAP model (pinhole approximation, refined points), calibration.json, refine.json."""
+    from ari_sfm.io import write_json_atomic
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    result.reconstruction.write(str(out))
+    result.calibration.save(out / "calibration.json")
+    write_json_atomic(out / "refine.json", result.report)
+    return out

@@ -1,0 +1,60 @@
+"""WINDOW.yaml: the plate and how it is mounted, for refine-colmap.
+
+    interface:            # the data contract's keys (DATASET_FORMAT interface)
+      thickness_mm: 8
+      index: 1.49
+      medium_index: 1.333 # optional, 1 (air) by default
+    mount: camera         # camera: a housing per COLMAP camera; world: one window fixed in the world
+    units_mm: 1.0         # optional: mm per unit of the COLMAP model
+    scale_bar:            # optional, instead of units_mm: two point3D ids and their distance
+      point3D_ids: [12, 873]
+      distance_mm: 500
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+from ari_sfm.errors import AriSfmError
+from ari_sfm.io import as_float_array, as_mapping, as_positive_float, read_structured, require
+from ari_sfm.io.dataset import parse_interface
+from ari_sfm.io.structured import warn_unknown_keys
+from ari_sfm.records import Interface
+
+from .problem import MOUNTS
+
+log = logging.getLogger(__name__)
+
+WINDOW_KEYS = ("interface", "mount", "units_mm", "scale_bar")
+
+
+@dataclass(frozen=True)
+class WindowSpec:
+    """A parsed WINDOW.yaml."""
+
+    interface: Interface
+    mount: str
+    units_mm: float | None = None
+    scale_bar: tuple[int, int, float] | None = None
+
+
+def load_window(path: str | Path) -> WindowSpec:
+    """Read and validate WINDOW.yaml (one-line AriSfmError naming the file and the key)."""
+    path = Path(path)
+    data = as_mapping(read_structured(path), path, "")
+    warn_unknown_keys(data, WINDOW_KEYS, path)
+    interface = parse_interface(require(data, "interface", path), path)
+    if interface.plane is not None:
+        log.warning("%s: interface.plane is not used by refine-colmap yet (the window is estimated)", path)
+    mount = require(data, "mount", path)
+    if mount not in MOUNTS:
+        raise AriSfmError(path, f"mount must be one of {', '.join(MOUNTS)} (got {mount!r})")
+    units = data.get("units_mm")
+    units = None if units is None else as_positive_float(units, path, "units_mm")
+    bar = data.get("scale_bar")
+    if bar is not None:
+        ids = as_float_array(require(bar, "point3D_ids", path, "scale_bar"), path, "scale_bar.point3D_ids", (2,))
+        length = as_positive_float(require(bar, "distance_mm", path, "scale_bar"), path, "scale_bar.distance_mm")
+        bar = (int(ids[0]), int(ids[1]), length)
+    return WindowSpec(interface, mount, units, bar)

@@ -1,0 +1,283 @@
+"""Simulated structure-from-motion behind flat windows: truth for ``refine-colmap``.
+
+Two scenes, both with exact Snell physics (every pixel from
+:class:`~ari_sfm.models.exact.ExactModel`):
+
+- :func:`port_survey` (mount ``camera``): one camera in an underwater housing
+  with a flat port (normal ``normal_cam`` and distance ``distance_mm`` fixed in
+  the camera frame) flies a lawn-mower grid at ``altitude_mm`` over a relief
+  (a heightfield ``relief_height``); the relief's points are the structure.
+- :func:`tank_rig` (mount ``world``): a 2-camera rig moved along a tank wall
+  (a window fixed in the world) looks at a relief under water.
+
+World frame: x, y horizontal, z down (depth); cameras look along +z.
+Lengths in mm, pixels OpenCV.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ari_sfm.geometry import Pose, rotation_from_rotvec
+from ari_sfm.models import ExactModel, PinholeModel
+from ari_sfm.records import Interface
+
+ACRYLIC_INDEX = 1.49
+WATER_INDEX = 1.333
+
+
+@dataclass(frozen=True)
+class SfmTruth:
+    """A simulated SfM experiment: cameras, windows, poses, structure and noisy observations.
+
+    Image i is taken by camera ``image_camera[i]`` in frame ``image_frame[i]``:
+    ``cam_from_world = sensor_from_rig[camera] * rig_from_world[frame]``.
+    Window: ``mount == "camera"``: ``normal_cam[c]``, ``distance_mm[c]`` per camera (its housing);
+    ``mount == "world"``: ``normal_world`` and the near face ``normal_world . X = plane_mm``.
+    """
+
+    mount: str
+    interface: Interface
+    params: tuple[np.ndarray, ...]  # per camera [fx fy cx cy k1 k2 p1 p2 k3]
+    image_size: tuple[int, int]
+    sensor_from_rig: tuple[Pose, ...]  # per camera
+    rig_from_world: tuple[Pose, ...]  # per frame
+    image_camera: np.ndarray
+    image_frame: np.ndarray
+    xyz: np.ndarray  # (P, 3) structure
+    obs_image: np.ndarray
+    obs_point: np.ndarray
+    obs_uv: np.ndarray  # noisy pixels
+    obs_uv_exact: np.ndarray
+    sigma_px: float
+    normal_cam: tuple[np.ndarray, ...] = ()
+    distance_mm: tuple[float, ...] = ()
+    normal_world: np.ndarray | None = None
+    plane_mm: float | None = None
+
+    def cam_from_world(self, i: int) -> Pose:
+        return self.sensor_from_rig[self.image_camera[i]].compose(self.rig_from_world[self.image_frame[i]])
+
+    def model(self, i: int) -> ExactModel:
+        """The exact model of image i in its camera frame."""
+        c = int(self.image_camera[i])
+        pin = PinholeModel.from_params(self.params[c])
+        if self.mount == "camera":
+            n, h = self.normal_cam[c], self.distance_mm[c]
+        else:
+            pose = self.cam_from_world(i)
+            n = pose.R @ self.normal_world
+            h = float(self.plane_mm - self.normal_world @ pose.inverse().t)
+        return ExactModel.from_interface(pin, n, self.interface, distance_mm=h)
+
+
+def relief_height(xy: np.ndarray, depth_mm: float, amplitude_mm: float) -> np.ndarray:
+    """Depth z (mm) of the relief at horizontal positions (N, 2): a few smooth bumps and a slope."""
+    x, y = xy[:, 0] / 1000.0, xy[:, 1] / 1000.0
+    bumps = (np.sin(2.1 * x + 0.3) * np.cos(1.7 * y - 0.2) + 0.5 * np.exp(-((x - 0.4) ** 2 + (y + 0.3) ** 2) / 0.3)
+             - 0.4 * np.exp(-((x + 0.8) ** 2 + (y - 0.4) ** 2) / 0.2) + 0.15 * x)
+    return depth_mm + amplitude_mm * bumps
+
+
+def _observe(truth_args: dict, rng: np.random.Generator, min_views: int) -> SfmTruth:
+    """Project the structure into every image, keep points seen >= min_views times, add noise."""
+    t = SfmTruth(**truth_args, obs_image=np.zeros(0, int), obs_point=np.zeros(0, int), obs_uv=np.zeros((0, 2)),
+                 obs_uv_exact=np.zeros((0, 2)))
+    w, hgt = t.image_size
+    imgs, pts, uvs = [], [], []
+    for i in range(len(t.image_camera)):
+        uv = t.model(i).project(t.cam_from_world(i).apply(t.xyz))
+        ok = np.all(np.isfinite(uv), axis=1) & (uv[:, 0] > 2) & (uv[:, 0] < w - 3) & (uv[:, 1] > 2) & (uv[:, 1] < hgt - 3)
+        idx = np.flatnonzero(ok)
+        imgs.append(np.full(len(idx), i))
+        pts.append(idx)
+        uvs.append(uv[idx])
+    obs_image, obs_point, uv = np.concatenate(imgs), np.concatenate(pts), np.concatenate(uvs)
+    views = np.bincount(obs_point, minlength=len(t.xyz))
+    keep_pt = views >= min_views
+    new_index = np.cumsum(keep_pt) - 1
+    keep = keep_pt[obs_point]
+    args = dict(truth_args, xyz=t.xyz[keep_pt])
+    noisy = uv[keep] + rng.normal(0.0, t.sigma_px, (int(keep.sum()), 2))
+    return SfmTruth(**args, obs_image=obs_image[keep], obs_point=new_index[obs_point[keep]], obs_uv=noisy,
+                    obs_uv_exact=uv[keep])
+
+
+def _look_at(centre: np.ndarray, target: np.ndarray, rng: np.random.Generator, jitter_deg: float) -> np.ndarray:
+    """cam_from_world rotation of a camera at ``centre`` looking at ``target`` (image y toward +y),
+    with a random rotation of ``jitter_deg`` RMS per axis."""
+    z = target - centre
+    z = z / np.linalg.norm(z)
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x = x / np.linalg.norm(x)
+    R = np.vstack([x, np.cross(z, x), z])
+    return rotation_from_rotvec(rng.normal(0.0, np.radians(jitter_deg), 3)) @ R
+
+
+def port_survey(seed: int = 0, num_images: int = 28, num_points: int = 1500, sigma_px: float = 0.5,
+                image_size: tuple[int, int] = (1280, 960), focal_px: float = 900.0,
+                altitude_mm: float = 2000.0, area_mm: tuple[float, float] = (3000.0, 2000.0),
+                relief_mm: float = 150.0, distance_mm: float = 22.0, thickness_mm: float = 8.0,
+                index: float = ACRYLIC_INDEX, medium_index: float = WATER_INDEX, port_tilt_deg: float = 1.5,
+                min_views: int = 3, convergence: float = 0.4) -> SfmTruth:
+    """A camera in a flat-port housing surveying a relief (mount ``camera``; see module docstring).
+
+    Images on a lawn-mower grid (rows along x) covering ``area_mm`` at ``altitude_mm`` above the
+    relief's mean depth, each looking at ``convergence`` times its own horizontal position (oblique
+    views toward the middle make the focal length observable); the port normal is tilted
+    ``port_tilt_deg`` from the optical axis.
+    """
+    rng = np.random.default_rng(seed)
+    cols = max(2, int(round(np.sqrt(num_images * area_mm[0] / area_mm[1]))))
+    rows = int(np.ceil(num_images / cols))
+    xs = np.linspace(-0.4, 0.4, cols) * area_mm[0]
+    ys = np.linspace(-0.4, 0.4, rows) * area_mm[1]
+    poses = []
+    for r, y in enumerate(ys):
+        for x in (xs if r % 2 == 0 else xs[::-1]):
+            if len(poses) == num_images:
+                break
+            C = np.array([x, y, 0.0]) + rng.normal(0.0, 30.0, 3)
+            R = _look_at(C, np.array([convergence * x, convergence * y, altitude_mm]), rng, 2.0)
+            poses.append(Pose(R, -R @ C))
+    xy = rng.uniform(-0.5, 0.5, (num_points, 2)) * np.array(area_mm)
+    xyz = np.column_stack([xy, relief_height(xy, altitude_mm, relief_mm)])
+    az = rng.uniform(0.0, 2.0 * np.pi)
+    tilt = np.radians(port_tilt_deg)
+    normal = np.array([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)])
+    fx = focal_px
+    params = np.array([fx, fx * 1.001, image_size[0] / 2 - 0.5 + 3.0, image_size[1] / 2 - 0.5 - 2.0, 0, 0, 0, 0, 0])
+    args = dict(mount="camera", interface=Interface(thickness_mm, index, medium_index), params=(params,),
+                image_size=image_size, sensor_from_rig=(Pose.identity(),), rig_from_world=tuple(poses),
+                image_camera=np.zeros(len(poses), int), image_frame=np.arange(len(poses)), xyz=xyz,
+                sigma_px=sigma_px, normal_cam=(normal,), distance_mm=(float(distance_mm),))
+    return _observe(args, np.random.default_rng(seed + 1000), min_views)
+
+
+def tank_rig(seed: int = 0, num_frames: int = 8, num_points: int = 800, sigma_px: float = 0.3,
+             image_size: tuple[int, int] = (1024, 768), focal_px: float = 1000.0, baseline_mm: float = 150.0,
+             wall_mm: float = 60.0, thickness_mm: float = 10.0, index: float = 1.5168,
+             medium_index: float = WATER_INDEX, depth_mm: float = 900.0, min_views: int = 3) -> SfmTruth:
+    """A 2-camera rig moved along a tank wall (mount ``world``): the wall's near face is ``wall_mm``
+    in front of the first frame's rig origin, its normal ~5 deg off the rig's z axis."""
+    rng = np.random.default_rng(seed)
+    yaw = np.radians(6.0)
+    sensor = (Pose.identity(), Pose(rotation_from_rotvec([0.0, -yaw, 0.0]),
+                                    -rotation_from_rotvec([0.0, -yaw, 0.0]) @ np.array([baseline_mm, 0.0, 0.0])))
+    frames = []
+    for k in range(num_frames):
+        R = rotation_from_rotvec(rng.normal(0.0, np.radians(2.0), 3))
+        C = np.array([(k - (num_frames - 1) / 2) * 70.0, rng.normal(0.0, 40.0), rng.normal(0.0, 10.0)])
+        frames.append(Pose(R, -R @ C))
+    normal = rotation_from_rotvec([np.radians(4.0), np.radians(3.0), 0.0]) @ np.array([0.0, 0.0, 1.0])
+    xy = rng.uniform(-0.5, 0.5, (num_points, 2)) * np.array([1200.0, 800.0])
+    xyz = np.column_stack([xy, relief_height(xy, depth_mm, 80.0)])
+    params = np.array([focal_px, focal_px, image_size[0] / 2 - 0.5, image_size[1] / 2 - 0.5, 0, 0, 0, 0, 0])
+    args = dict(mount="world", interface=Interface(thickness_mm, index, medium_index), params=(params, params.copy()),
+                image_size=image_size, sensor_from_rig=sensor, rig_from_world=tuple(frames),
+                image_camera=np.tile([0, 1], num_frames), image_frame=np.repeat(np.arange(num_frames), 2), xyz=xyz,
+                sigma_px=sigma_px, normal_world=normal, plane_mm=float(wall_mm))
+    return _observe(args, np.random.default_rng(seed + 1000), min_views)
+
+
+# --------------------------------------------------------------------------- rendering (mount camera)
+
+TEXTURE_MM_PER_TEXEL = 2.0
+
+
+def relief_texture(area_mm: tuple[float, float], seed: int = 0, margin_mm: float = 600.0) -> tuple[np.ndarray, np.ndarray]:
+    """A grey texture (H, W) float32 in [0, 1] over the relief with blobs at several scales (SIFT
+    finds them), and its origin (x0, y0) in mm; one texel is TEXTURE_MM_PER_TEXEL."""
+    import cv2
+
+    rng = np.random.default_rng(seed + 7)
+    w = int((area_mm[0] + 2 * margin_mm) / TEXTURE_MM_PER_TEXEL)
+    h = int((area_mm[1] + 2 * margin_mm) / TEXTURE_MM_PER_TEXEL)
+    tex = np.zeros((h, w), np.float32)
+    for sigma, weight in ((12.0, 1.0), (5.0, 0.8), (2.5, 0.6)):
+        noise = rng.normal(0.0, 1.0, (h, w)).astype(np.float32)
+        band = cv2.GaussianBlur(noise, (0, 0), sigma)
+        tex += weight * band / band.std()
+    tex = 1.0 / (1.0 + np.exp(-1.5 * tex))  # contrast, bounded
+    return tex.astype(np.float32), np.array([-area_mm[0] / 2 - margin_mm, -area_mm[1] / 2 - margin_mm])
+
+
+def _hit_relief(origins: np.ndarray, directions: np.ndarray, depth_mm: float, amplitude_mm: float) -> np.ndarray:
+    """World points where rays (z increasing) meet the relief z = relief_height(x, y): Newton on the ray
+    parameter with a numerical slope, started at the mean depth."""
+    s = (depth_mm - origins[:, 2]) / directions[:, 2]
+    for _ in range(30):
+        P = origins + s[:, None] * directions
+        f = P[:, 2] - relief_height(P[:, :2], depth_mm, amplitude_mm)
+        eps = 1e-3
+        P2 = origins + (s + eps)[:, None] * directions
+        df = ((P2[:, 2] - relief_height(P2[:, :2], depth_mm, amplitude_mm)) - f) / eps
+        step = f / df
+        s = s - step
+        if np.max(np.abs(step)) < 1e-6:
+            break
+    return origins + s[:, None] * directions
+
+
+def render_survey_image(truth: SfmTruth, i: int, texture: np.ndarray, origin_mm: np.ndarray,
+                        depth_mm: float, amplitude_mm: float, supersample: int = 2) -> np.ndarray:
+    """8-bit image i of a port survey: every (sub)pixel back-projected through the port with the exact
+    model, intersected with the relief, the texture sampled (bilinear), averaged per pixel."""
+    import cv2
+
+    w, h = truth.image_size
+    k = supersample
+    offs = (np.arange(k) + 0.5) / k - 0.5
+    u, v = np.meshgrid(np.arange(w * k) / k + offs[0], np.arange(h * k) / k + offs[0])
+    uv = np.column_stack([u.ravel(), v.ravel()])
+    origins, directions = truth.model(i).backproject(uv)
+    world_from_cam = truth.cam_from_world(i).inverse()
+    O, D = world_from_cam.apply(origins), directions @ world_from_cam.R.T
+    P = _hit_relief(O, D, depth_mm, amplitude_mm)
+    tx = ((P[:, 0] - origin_mm[0]) / TEXTURE_MM_PER_TEXEL).astype(np.float32).reshape(h * k, w * k)
+    ty = ((P[:, 1] - origin_mm[1]) / TEXTURE_MM_PER_TEXEL).astype(np.float32).reshape(h * k, w * k)
+    sub = cv2.remap(texture, tx, ty, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    img = sub.reshape(h, k, w, k).mean(axis=(1, 3))
+    return np.clip(np.round(img * 255.0), 0, 255).astype(np.uint8)
+
+
+def write_port_survey(out_dir, seed: int = 0, num_images: int = 12, image_size: tuple[int, int] = (640, 480),
+                      focal_px: float = 600.0, area_mm: tuple[float, float] = (1600.0, 1200.0),
+                      altitude_mm: float = 2000.0, relief_mm: float = 150.0, supersample: int = 2,
+                      progress: bool = False) -> tuple[SfmTruth, "Path"]:
+    """Render a port survey to ``out_dir/images/imageNNNN.png`` with ``out_dir/truth.json`` (the housing,
+    the lens intrinsics, every image's cam_from_world, the relief); returns the truth and the images folder."""
+    from pathlib import Path
+
+    import cv2
+
+    from ari_sfm.io import write_json_atomic
+
+    out = Path(out_dir)
+    images = out / "images"
+    images.mkdir(parents=True, exist_ok=True)
+    truth = port_survey(seed=seed, num_images=num_images, num_points=10, image_size=image_size, focal_px=focal_px,
+                        altitude_mm=altitude_mm, area_mm=area_mm, relief_mm=relief_mm, min_views=1)
+    texture, origin = relief_texture(area_mm, seed)
+    names = []
+    steps = range(num_images)
+    if progress:
+        from tqdm import tqdm
+
+        steps = tqdm(steps, desc="port_survey", unit="image")
+    for i in steps:
+        name = f"image{i + 1:04d}.png"
+        img = render_survey_image(truth, i, texture, origin, altitude_mm, relief_mm, supersample)
+        ok, buf = cv2.imencode(".png", img)
+        (images / name).write_bytes(buf.tobytes())
+        names.append(name)
+    write_json_atomic(out / "truth.json", {
+        "scenario": "port_survey", "seed": seed, "mount": "camera",
+        "interface": {"thickness_mm": truth.interface.thickness_mm, "index": truth.interface.index,
+                      "medium_index": truth.interface.medium_index},
+        "camera": {"image_size": list(image_size), "params": truth.params[0].tolist(),
+                   "normal_cam": truth.normal_cam[0].tolist(), "distance_mm": truth.distance_mm[0]},
+        "relief": {"depth_mm": altitude_mm, "amplitude_mm": relief_mm, "area_mm": list(area_mm)},
+        "images": {n: truth.cam_from_world(i).to_json() for i, n in enumerate(names)}})
+    return truth, images

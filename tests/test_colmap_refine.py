@@ -1,0 +1,334 @@
+"""refine-colmap: the exact refractive refinement of a COLMAP reconstruction made behind a window.
+
+Truth from ari_sfm.simulate.port_survey (exact Snell physics); COLMAP's side is pycolmap's own
+bundle adjustment (PINHOLE cameras) of a model built from the simulated correspondences.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from ari_sfm import colmap_export as adapter
+from ari_sfm.calibration import load_calibration
+from ari_sfm.cli import main
+from ari_sfm.colmap_refine import refine_colmap, write_refined
+from ari_sfm.colmap_refine.problem import RefractiveProblem, State
+from ari_sfm.colmap_refine.refine import Solver
+from ari_sfm.colmap_refine.truth import colmap_truth_errors, truth_errors, window_errors
+from ari_sfm.errors import AriSfmError
+from ari_sfm.geometry import Pose
+from ari_sfm.simulate.port_survey import port_survey, tank_rig
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
+def colmap_start(truth, focal_scale: float):
+    """The model COLMAP would hold: PINHOLE cameras (focal times ``focal_scale``) at the simulated
+    correspondences, then pycolmap's own bundle adjustment (its pinhole optimum)."""
+    params = [np.r_[p[:2] * focal_scale, p[2:4]] for p in truth.params]
+    rec = adapter.reconstruction_from_arrays(params, truth.image_size, truth.sensor_from_rig, truth.rig_from_world,
+                                             truth.image_camera, truth.image_frame, truth.xyz, truth.obs_image,
+                                             truth.obs_point, truth.obs_uv)
+    return rec, adapter.bundle_adjust(rec)
+
+
+def truth_state(truth, model) -> State:
+    """The simulated truth as a refinement state (COLMAP PINHOLE parameters: pixel origin + 0.5)."""
+    params = tuple(np.r_[p[:2], p[2:4] + adapter.COLMAP_PIXEL_OFFSET] for p in truth.params)
+    sensors = tuple(truth.sensor_from_rig[c] for c in truth.image_camera)
+    if truth.mount == "camera":
+        normals, dists = np.array(truth.normal_cam), np.array(truth.distance_mm)
+    else:
+        normals, dists = truth.normal_world[None, :], np.array([truth.plane_mm])
+    return State(params, truth.rig_from_world, sensors, normals, dists, truth.xyz[model.point3D_ids - 1].copy())
+
+
+def poses_of(state: State, model) -> dict[int, Pose]:
+    R, t = state.cam_from_world(model)
+    return {int(i): Pose(R[k], t[k]) for k, i in enumerate(model.image_ids)}
+
+
+def noise_limited(truth, rec, mount: str) -> dict:
+    """Errors of the same refinement started at the truth: what the noise alone leaves."""
+    model = adapter.model_from_reconstruction(rec)
+    problem = RefractiveProblem(model, truth.interface, mount, estimate_distance=True)
+    res = Solver(problem, 2.0).run(truth_state(truth, model), 50)
+    e = np.linalg.norm(problem.residuals(res.state), axis=1)
+    out = truth_errors(truth, model, res.state.xyz, poses_of(res.state, model))
+    out.update(window_errors(truth, res.state.normals, res.state.distances, res.state.rig_from_world[0]))
+    out["rms_px"] = float(np.sqrt(np.mean(e ** 2)))
+    return out
+
+
+# ----------------------------------------------------------------------------- Jacobians
+
+@pytest.mark.parametrize("mount", ["camera", "world"])
+def test_jacobians_match_central_differences(mount):
+    truth = (port_survey(num_images=5, num_points=150, focal_px=1300, area_mm=(1500, 1000)) if mount == "camera"
+             else tank_rig(num_frames=3, num_points=120))
+    rec = adapter.reconstruction_from_arrays(list(truth.params), truth.image_size, truth.sensor_from_rig,
+                                             truth.rig_from_world, truth.image_camera, truth.image_frame, truth.xyz,
+                                             truth.obs_image, truth.obs_point, truth.obs_uv)
+    model = adapter.model_from_reconstruction(rec)
+    problem = RefractiveProblem(model, truth.interface, mount, estimate_distance=True)
+    state = truth_state(truth, model)
+    lin = problem.linearize(state)
+    assert np.allclose(lin.residuals, problem.residuals(state))
+    rng = np.random.default_rng(3)
+    scale = np.ones(problem.layout.size)
+    for ix in problem.layout.intrinsics:
+        scale[ix] = 1e3  # pixels-sized intrinsics take bigger steps
+    for _ in range(3):
+        dg = rng.normal(0.0, 1e-6, problem.layout.size) * scale
+        dp = rng.normal(0.0, 1e-5, state.xyz.shape)
+        numeric = (problem.residuals(problem.retract(state, dg, dp))
+                   - problem.residuals(problem.retract(state, -dg, -dp))) / 2.0
+        analytic = (np.einsum("nij,nj->ni", lin.J_g, np.append(dg, 0.0)[lin.index])
+                    + np.einsum("nij,nj->ni", lin.J_p, dp[model.obs_point]))
+        assert np.max(np.abs(numeric - analytic)) < 1e-6 * np.max(np.abs(analytic))
+
+
+# ----------------------------------------------------------------------------- recovery of the truth
+
+def scale_bar_of(truth, model) -> tuple[int, int, float]:
+    """Two far-apart points and their true distance (a scale bar a surveyor would place)."""
+    X = truth.xyz[model.point3D_ids - 1]
+    a, b = int(np.argmin(X[:, 0] + X[:, 1])), int(np.argmax(X[:, 0] + X[:, 1]))
+    return int(model.point3D_ids[a]), int(model.point3D_ids[b]), float(np.linalg.norm(X[a] - X[b]))
+
+
+def refined_errors(truth, start, result) -> dict:
+    model = adapter.model_from_reconstruction(start)
+    out = truth_errors(truth, model, result.state.xyz, poses_of(result.state, model))
+    out.update(window_errors(truth, result.state.normals, result.state.distances, result.state.rig_from_world[0]))
+    return out
+
+
+@pytest.fixture(scope="module")
+def survey():
+    """A camera in a flat-port housing (22 mm, 8 mm acrylic, water), 10 images over a relief at 2 m,
+    sigma 0.5 px; COLMAP's pinhole optimum of it, the refinement with a scale bar, and the
+    noise-limited errors (the same refinement started at the truth)."""
+    truth = port_survey(num_images=10, num_points=800, focal_px=1300, area_mm=(1800, 1200), sigma_px=0.5)
+    _, start = colmap_start(truth, truth.interface.medium_index)
+    model = adapter.model_from_reconstruction(start)
+    result = refine_colmap(start, truth.interface, "camera", scale_bar=scale_bar_of(truth, model))
+    return truth, start, result, noise_limited(truth, start, "camera")
+
+
+def test_survey_points_and_cameras_recovered(survey):
+    truth, start, result, limit = survey
+    got, colmap = refined_errors(truth, start, result), colmap_truth_errors(truth, start)
+    assert got["points_rms_mm"] <= 3.0 * limit["points_rms_mm"]
+    assert colmap["points_rms_mm"] > 10.0 * got["points_rms_mm"]  # the pinhole optimum is wrong in shape
+    assert got["centres_rms_mm"] <= 3.0 * limit["centres_rms_mm"]
+    assert abs(got["scale_error_pct"]) < 0.5  # the scale bar holds the scale
+
+
+def test_survey_reprojection_at_noise_floor(survey):
+    truth, _, result, limit = survey
+    after = result.report["after"]["rms_px"]
+    assert after <= 1.02 * limit["rms_px"]
+    assert after <= truth.sigma_px * np.sqrt(2.0)  # the floor sigma sqrt(2) less the fitted dofs
+    assert result.report["before"]["rms_px"] > 2.0 * after
+
+
+def test_survey_port_recovered(survey):
+    truth, start, result, limit = survey
+    got = refined_errors(truth, start, result)
+    assert got["normal_deg"] <= 3.0 * limit["normal_deg"] + 0.02
+    assert got["distance_mm"] <= 3.0 * limit["distance_mm"] + 1.0
+    fx_true = truth.params[0][0]
+    assert abs(result.state.colmap_params[0][0] / fx_true - 1.0) < 0.005  # the lens focal, not n_m times it
+
+
+def test_world_mount_two_camera_rig():
+    """A 2-camera rig moved along a tank wall (one window fixed in the world)."""
+    truth = tank_rig(num_frames=6, num_points=400)
+    _, start = colmap_start(truth, 1.0)
+    model = adapter.model_from_reconstruction(start)
+    result = refine_colmap(start, truth.interface, "world", scale_bar=scale_bar_of(truth, model))
+    limit = noise_limited(truth, start, "world")
+    got, colmap = refined_errors(truth, start, result), colmap_truth_errors(truth, start)
+    assert got["points_rms_mm"] <= 3.0 * limit["points_rms_mm"]
+    assert colmap["points_rms_mm"] > 5.0 * got["points_rms_mm"]
+    assert got["normal_deg"] <= 3.0 * limit["normal_deg"] + 0.02
+    assert got["distance_mm"] <= 3.0 * limit["distance_mm"] + 1.0
+    assert result.report["after"]["rms_px"] <= 1.02 * limit["rms_px"]
+    # the rig's second sensor: refined relative pose close to the truth
+    sensor = result.state.sensor_from_rig[int(np.flatnonzero(model.image_camera == 1)[0])]
+    assert np.linalg.norm(sensor.inverse().t - truth.sensor_from_rig[1].inverse().t) < 3.0
+
+
+# ----------------------------------------------------------------------------- CLI, outputs, bad input
+
+WINDOW_YAML = """interface:
+  thickness_mm: 8
+  index: 1.49
+  medium_index: 1.333
+mount: camera
+"""
+
+
+@pytest.fixture(scope="module")
+def small_model(tmp_path_factory):
+    truth = port_survey(num_images=6, num_points=300, focal_px=1300, area_mm=(1200, 800), sigma_px=0.3)
+    _, start = colmap_start(truth, truth.interface.medium_index)
+    folder = tmp_path_factory.mktemp("colmap") / "sparse"
+    folder.mkdir()
+    start.write(str(folder))
+    return truth, start, folder
+
+
+def test_cli_writes_model_calibration_and_report(small_model, tmp_path):
+    truth, start, folder = small_model
+    (tmp_path / "WINDOW.yaml").write_text(WINDOW_YAML)
+    out = tmp_path / "out"
+    res = CliRunner().invoke(main, ["refine-colmap", str(folder), "--window", str(tmp_path / "WINDOW.yaml"),
+                                    "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    rec = adapter.read_colmap(out)
+    assert sorted(rec.images) == sorted(start.images) and sorted(rec.point3D_ids()) == sorted(start.point3D_ids())
+    assert rec.compute_mean_reprojection_error() < 1.0  # COLMAP's own cameras (OPENCV) fit the refined points
+    report = __import__("json").loads((out / "refine.json").read_text())
+    assert set(report["before"]["per_image_rms_px"]) == {str(i) for i in start.images}
+    cal = load_calibration(out / "calibration.json")
+    exact = cal.projection_model("camera1")
+    h = report["window"]["distance_mm"]["camera1"]
+    assert exact.distance_mm == pytest.approx(h)
+    assert np.allclose(exact.normal_cam, report["window"]["normal_cam"]["camera1"])
+    # the calibration's exact camera, at the image poses it records, reproduces the observations
+    poses = cal.extra["refine_colmap"]["images_cam_from_world"]
+    model = adapter.model_from_reconstruction(rec)
+    k = 0
+    pose = Pose.from_json(poses[str(int(model.image_ids[k]))])
+    sel = model.obs_image == k
+    uv = exact.project(pose.apply(model.xyz[model.obs_point[sel]]))
+    assert np.sqrt(np.mean(np.sum((uv - model.obs_uv[sel]) ** 2, axis=1))) < 3 * truth.sigma_px
+
+
+@pytest.mark.parametrize("text, message", [
+    ("interface:\n  index: 1.49\nmount: camera\n", "missing key 'interface.thickness_mm'"),
+    ("interface:\n  thickness_mm: 8\n  index: 1.49\n", "missing key 'mount'"),
+    ("interface:\n  thickness_mm: 8\n  index: 1.49\nmount: housing\n", "mount must be one of camera, world"),
+])
+def test_bad_window_yaml_one_line(small_model, tmp_path, text, message):
+    _, _, folder = small_model
+    (tmp_path / "WINDOW.yaml").write_text(text)
+    res = CliRunner().invoke(main, ["refine-colmap", str(folder), "--window", str(tmp_path / "WINDOW.yaml"),
+                                    "-o", str(tmp_path / "out")])
+    assert res.exit_code == 1
+    lines = res.output.strip().splitlines()
+    assert lines[-1].startswith("error: ") and "WINDOW.yaml" in lines[-1] and message in lines[-1]
+    assert not (tmp_path / "out").exists()
+
+
+def test_model_without_points_one_line(small_model, tmp_path):
+    _, start, _ = small_model
+    empty = adapter.pycolmap.Reconstruction(start)
+    for pid in list(empty.point3D_ids()):
+        empty.delete_point3D(pid)
+    (tmp_path / "m").mkdir()
+    empty.write(str(tmp_path / "m"))
+    (tmp_path / "WINDOW.yaml").write_text(WINDOW_YAML)
+    res = CliRunner().invoke(main, ["refine-colmap", str(tmp_path / "m"), "--window", str(tmp_path / "WINDOW.yaml"),
+                                    "-o", str(tmp_path / "out")])
+    assert res.exit_code == 1 and "no points3D" in res.output.strip().splitlines()[-1]
+
+
+def test_camera_model_that_cannot_be_held(small_model):
+    truth, start, _ = small_model
+    rec = adapter.pycolmap.Reconstruction(start)
+    cam = rec.camera(1)
+    cam.model = adapter.pycolmap.CameraModelId.OPENCV_FISHEYE
+    cam.params = np.r_[cam.params[:4], 0.0, 0.0, 0.0, 0.0]
+    with pytest.raises(AriSfmError, match="OPENCV_FISHEYE cannot be held"):
+        refine_colmap(rec, truth.interface, "camera")
+
+
+# ----------------------------------------------------------------------------- GTSAM backend
+
+@pytest.mark.parametrize("mount", ["camera", "world"])
+def test_gtsam_backend_same_answer(mount):
+    """numpy (points Schur) and GTSAM (one CustomFactor per image) from the same perturbed start reach
+    the same optimum: residuals, window and the point cloud's shape. The scale is compared after
+    similarity alignment: it is a near-flat direction of the cost that the two LMs walk differently."""
+    from ari_sfm.colmap_refine.gtsam_graph import GtsamRefinement
+    from ari_sfm.colmap_refine.truth import similarity
+
+    truth = (port_survey(num_images=6, num_points=120, focal_px=1300, area_mm=(1200, 800), sigma_px=0.2)
+             if mount == "camera" else tank_rig(num_frames=3, num_points=100))
+    rec = adapter.reconstruction_from_arrays(list(truth.params), truth.image_size, truth.sensor_from_rig,
+                                             truth.rig_from_world, truth.image_camera, truth.image_frame, truth.xyz,
+                                             truth.obs_image, truth.obs_point, truth.obs_uv)
+    model = adapter.model_from_reconstruction(rec)
+    problem = RefractiveProblem(model, truth.interface, mount, estimate_distance=True)
+    rng = np.random.default_rng(1)
+    start = problem.retract(truth_state(truth, model), rng.normal(0.0, 1e-3, problem.layout.size),
+                            rng.normal(0.0, 0.5, (len(model.point3D_ids), 3)))
+    ours = Solver(problem, 2.0).run(start, 100).state
+    theirs, _ = GtsamRefinement(problem, 2.0).optimize(start, 12)
+    assert np.max(np.abs(problem.residuals(ours) - problem.residuals(theirs))) < 1e-4
+    assert np.max(np.abs(ours.normals - theirs.normals)) < 1e-5
+    s, R, t = similarity(theirs.xyz, ours.xyz)
+    assert np.max(np.abs(s * theirs.xyz @ R.T + t - ours.xyz)) < 1e-3  # mm
+    assert abs(s - 1.0) < 0.01
+
+
+# ----------------------------------------------------------------------------- end to end: images -> COLMAP -> refine
+
+def test_end_to_end_rendered_survey_through_colmap_sift(tmp_path):
+    """12 rendered 640 x 480 images of a relief behind a flat port (exact physics), COLMAP's own CPU SIFT,
+    exhaustive matching and incremental mapping, then refine-colmap. Scale from a known baseline (the
+    first and last camera centres, as navigation would give); errors after similarity alignment of the
+    camera centres; the points are judged by their height above/below the true relief."""
+    import json
+
+    from ari_sfm.colmap_refine.truth import similarity
+    from ari_sfm.records import Interface
+    from ari_sfm.simulate.port_survey import relief_height, write_port_survey
+
+    truth, images = write_port_survey(tmp_path / "survey", num_images=12, supersample=1)
+    rec = adapter.structure_from_motion(images, tmp_path / "colmap", focal_px=600 * 1.333, max_features=1000)
+    assert rec.num_reg_images() >= 10
+    meta = json.loads((tmp_path / "survey" / "truth.json").read_text())
+    model = adapter.model_from_reconstruction(rec)
+    names = [rec.image(int(i)).name for i in model.image_ids]
+    true_centres = np.array([Pose.from_json(meta["images"][n]).inverse().t for n in names])
+
+    def errors(xyz, poses):
+        centres = np.array([poses[int(i)].inverse().t for i in model.image_ids])
+        s, R, t = similarity(centres, true_centres)
+        X = s * xyz @ R.T + t
+        return (float(np.sqrt(np.mean(np.sum((s * centres @ R.T + t - true_centres) ** 2, axis=1)))),
+                float(np.sqrt(np.mean((X[:, 2] - relief_height(X[:, :2], 2000.0, 150.0)) ** 2))))
+
+    colmap_poses = {int(i): Pose(np.array(rec.image(int(i)).cam_from_world().rotation.matrix()),
+                                 np.array(rec.image(int(i)).cam_from_world().translation)) for i in model.image_ids}
+    first, last = colmap_poses[int(model.image_ids[0])].inverse().t, colmap_poses[int(model.image_ids[-1])].inverse().t
+    units = np.linalg.norm(true_centres[-1] - true_centres[0]) / np.linalg.norm(last - first)
+    result = refine_colmap(rec, Interface(**meta["interface"]), "camera", units_mm=units, max_iterations=30)
+    centres_before, surface_before = errors(model.xyz, colmap_poses)
+    centres_after, surface_after = errors(result.state.xyz, poses_of(result.state, model))
+    assert centres_after < 3.0 and surface_after < 5.0  # mm: SIFT-noise-limited
+    assert centres_before > 10.0 * centres_after and surface_before > 10.0 * surface_after
+    assert result.report["after"]["rms_px"] < 0.6 * result.report["before"]["rms_px"]
+    from ari_sfm.geometry import angle_between_deg
+
+    assert angle_between_deg(result.state.normals[0], np.array(meta["camera"]["normal_cam"])) < 0.6
+
+
+def test_window_yaml_scale_bar_and_units(tmp_path):
+    from ari_sfm.colmap_refine.window import load_window
+
+    path = tmp_path / "WINDOW.yaml"
+    path.write_text(WINDOW_YAML + "scale_bar:\n  point3D_ids: [12, 873]\n  distance_mm: 500\n")
+    spec = load_window(path)
+    assert spec.scale_bar == (12, 873, 500.0) and spec.mount == "camera"
+    assert spec.interface.medium_index == pytest.approx(1.333)
+    path.write_text(WINDOW_YAML + "units_mm: -2\n")
+    with pytest.raises(AriSfmError, match="units_mm"):
+        load_window(path)
