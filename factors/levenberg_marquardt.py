@@ -23,7 +23,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
@@ -86,12 +86,14 @@ class LMResult:
 
 def levenberg_marquardt(problem: LMProblem, x: Any, max_iterations: int = 100, relative_tolerance: float = 1e-10,
                         params: LMParams | None = None, stop: str = "converged",
-                        initial_error: float | None = None) -> LMResult:
+                        initial_error: float | None = None,
+                        progress: Callable[[int, float], None] | None = None) -> LMResult:
     """Levenberg-Marquardt from x (GTSAM's algorithm).
 
     ``max_iterations`` caps the accepted steps (gtsam's iterations()); LM
     stops when the relative error decrease is below ``relative_tolerance``.
     ``initial_error``: error(x) when already known (saves an evaluation).
+    ``progress``: called with (accepted steps, error) after each linearisation's trials.
 
     ``stop="gtsam"`` is GTSAM's loop trial for trial: at convergence it
     typically rejects a step whose predicted decrease is below
@@ -165,6 +167,8 @@ def levenberg_marquardt(problem: LMProblem, x: Any, max_iterations: int = 100, r
                 gave_up = "lambda_upper_bound"
                 break
         decrease = cur_err - err
+        if progress is not None:
+            progress(iterations, err)
         if err <= 0.0:
             stop = "zero_error"
         elif decrease / cur_err <= relative_tolerance or decrease <= p.absolute_tolerance:

@@ -39,7 +39,7 @@ from ari_sfm.models import AriModel, PinholeModel
 from ari_sfm.records import Interface
 
 from .problem import MOUNTS, RefractiveProblem, State
-from .schur import (LMResult, build_normal_equations, huber_cost, huber_weights, levenberg_marquardt,
+from .schur import (build_normal_equations, huber_cost, huber_weights, model_decrease,
                     solve_damped)
 
 log = logging.getLogger(__name__)
@@ -152,8 +152,22 @@ def _scaled(state: State, s: float) -> State:
                    distances=state.distances * s)
 
 
+@dataclass(frozen=True)
+class SolveResult:
+    """A refinement's end: the state, the robust cost before and after, accepted steps, whether it converged."""
+
+    state: State
+    cost: float
+    initial_cost: float
+    iterations: int
+    converged: bool
+
+
 class Solver:
-    """Binds a problem, its robust loss and its point pairs into LM's callables."""
+    """A problem with its robust loss as an :class:`ari_sfm.factors.levenberg_marquardt.LMProblem`
+    (points eliminated by :mod:`.schur`; Marquardt damping ``lambda * diag``)."""
+
+    linearized_error_is_error = True  # a linearization's error is the robust cost at its point
 
     def __init__(self, problem: RefractiveProblem, huber_px: float | None) -> None:
         self.problem = problem
@@ -163,28 +177,43 @@ class Solver:
     def cost(self, state: State) -> float:
         return huber_cost(self.problem.residuals(state), self.huber_px)
 
+    error = cost  # LMProblem's name
+
     def linearize(self, state: State):
         lin = self.problem.linearize(state)
         w = huber_weights(lin.residuals, self.huber_px)
-        return build_normal_equations(lin, self.problem.model.obs_point, self.P, self.problem.layout.size, w)
+        ne = build_normal_equations(lin, self.problem.model.obs_point, self.P, self.problem.layout.size, w)
+        ne.error = huber_cost(lin.residuals, self.huber_px)
+        return ne
 
     def solve(self, ne, lam: float):
         return solve_damped(ne, lam)
 
+    def model_decrease(self, ne, step) -> float:
+        return model_decrease(ne, step)
+
     def retract(self, state: State, step) -> State:
         return self.problem.retract(state, step[0], step[1])
 
-    def run(self, state: State, max_iterations: int, progress=None) -> LMResult:
-        """The numpy backend: points Schur + this package's LM."""
-        return levenberg_marquardt(state, self.cost, self.linearize, self.solve, self.retract,
-                                   max_iterations=max_iterations, progress=progress)
+    def run(self, state: State, max_iterations: int, progress=None) -> SolveResult:
+        """The numpy backend: points Schur + the project's Levenberg-Marquardt (GTSAM's algorithm)."""
+        from ..factors.levenberg_marquardt import LMParams, levenberg_marquardt
 
-    def run_gtsam(self, state: State, max_iterations: int) -> LMResult:
+        res = levenberg_marquardt(self, state, max_iterations, RELATIVE_TOLERANCE, LMParams(lambda_initial=1e-4),
+                                  progress=progress)
+        r = res.report
+        return SolveResult(res.x, r.error, r.initial_error, r.iterations,
+                           r.stop in ("converged", "small_cost_change", "zero_error", "no_model_decrease"))
+
+    def run_gtsam(self, state: State, max_iterations: int) -> SolveResult:
         """The GTSAM backend (one CustomFactor per image, GTSAM's LM)."""
         from .gtsam_graph import GtsamRefinement
 
         refined, iterations = GtsamRefinement(self.problem, self.huber_px).optimize(state, max_iterations)
-        return LMResult(refined, self.cost(refined), self.cost(state), iterations, iterations < max_iterations)
+        return SolveResult(refined, self.cost(refined), self.cost(state), iterations, iterations < max_iterations)
+
+
+RELATIVE_TOLERANCE = 1e-7  # LM stops when a step lowers the robust cost by less than this fraction
 
 
 def _per_image_rms(model: adapter.ColmapModel, residuals: np.ndarray) -> dict[int, float]:

@@ -1,4 +1,4 @@
-"""Normal equations with the 3D points eliminated (Schur complement), and a small generic LM loop.
+"""Normal equations with the 3D points eliminated (Schur complement).
 
 For residuals r (M, 2) with Jacobians J_g (reduced variables, scattered by an index) and J_p (one
 3D point per observation), the damped normal equations
@@ -14,14 +14,15 @@ observations (plus the dense reduced matrix).
 Robust loss: Huber on each observation's pixel distance, by iteratively reweighted least squares
 (weights ``min(1, k / |r|)``). Damping: Marquardt's, ``lambda * diag`` (floored) on both blocks.
 
-:func:`levenberg_marquardt` is deliberately generic (linearize / solve(lambda) / retract / cost
-callables) so that it can be unified with the rig backend's loop.
+The Levenberg-Marquardt loop is the rig backend's (:mod:`ari_sfm.factors.levenberg_marquardt`):
+:class:`ari_sfm.colmap_refine.refine.Solver` gives it these systems, :func:`solve_damped` and
+:func:`model_decrease`.
 """
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from scipy import sparse
@@ -62,6 +63,16 @@ class NormalEquations:
     V: np.ndarray  # (P, 3, 3)
     gp: np.ndarray  # (P, 3)
     W: Any  # (G + 1, 3P) sparse: sum over observations of J_g^T J_p (row G: unused columns)
+    error: float = 0.0  # the robust cost at the linearization point (LM's system.error)
+
+
+def model_decrease(ne: NormalEquations, step: tuple[np.ndarray, np.ndarray]) -> float:
+    """-(g . step + 0.5 step^T H step) of the whole (undamped) system, points included: the cost
+    decrease the linearization predicts for ``step`` = (dg, dp)."""
+    dg, dp = step
+    Wdp = (ne.W @ dp.ravel())[:len(ne.g)]
+    quadratic = dg @ ne.H @ dg + 2.0 * dg @ Wdp + np.einsum("pi,pij,pj->", dp, ne.V, dp)
+    return float(-(ne.g @ dg + np.sum(ne.gp * dp) + 0.5 * quadratic))
 
 
 def build_normal_equations(lin: Linearization, obs_point: np.ndarray, num_points: int, size: int,
@@ -112,48 +123,3 @@ def solve_damped(ne: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarra
     Wt_dg = (W.T @ np.append(dg, 0.0)).reshape(P, 3)
     dp = -np.einsum("pij,pj->pi", Vinv, ne.gp + Wt_dg)
     return dg, dp
-
-
-@dataclass(frozen=True)
-class LMResult:
-    state: Any
-    cost: float
-    initial_cost: float
-    iterations: int
-    converged: bool
-
-
-def levenberg_marquardt(state: Any, cost: Callable[[Any], float], linearize: Callable[[Any], Any],
-                        solve: Callable[[Any, float], Any], retract: Callable[[Any, Any], Any],
-                        max_iterations: int = 50, lambda0: float = 1e-4, rel_tol: float = 1e-7,
-                        progress: Callable[[int, float], None] | None = None) -> LMResult:
-    """Levenberg-Marquardt: ``linearize(state)`` -> system; ``solve(system, lam)`` -> step;
-    ``retract(state, step)`` -> state; accept a step that lowers ``cost`` (then lam / 10), else lam * 10.
-    Stops when the relative decrease is below ``rel_tol`` or after ``max_iterations`` linearizations."""
-    c0 = current = cost(state)
-    lam = lambda0
-    it = 0
-    converged = False
-    while it < max_iterations:
-        it += 1
-        system = linearize(state)
-        accepted = False
-        for _ in range(12):
-            candidate = retract(state, solve(system, lam))
-            c = cost(candidate)
-            if c < current:
-                accepted = True
-                break
-            lam *= 10.0
-        if progress is not None:
-            progress(it, c if accepted else current)
-        if not accepted:
-            converged = True
-            break
-        decrease = (current - c) / max(current, 1e-300)
-        state, current = candidate, c
-        lam = max(lam / 10.0, 1e-12)
-        if decrease < rel_tol:
-            converged = True
-            break
-    return LMResult(state, current, c0, it, converged)
