@@ -199,13 +199,17 @@ def report_cmd(out: Path, dataset: Path | None) -> None:
 @main.command(name="evaluate")
 @click.argument("calibration", type=click.Path(path_type=Path))
 @click.argument("observations", type=click.Path(path_type=Path))
+@click.option("--solve-poses", is_flag=True,
+              help="Also judge the frames the calibration does not hold (held-out views, reconstruction frames): "
+                   "their target poses are fitted with the rig fixed. Without it only the calibration's own "
+                   "frames count.")
 @user_errors
-def evaluate_cmd(calibration: Path, observations: Path) -> None:
+def evaluate_cmd(calibration: Path, observations: Path, solve_poses: bool) -> None:
     """Reprojection errors of CALIBRATION on an OBSERVATIONS file (e.g. held-out views)."""
     from .calibration import load_calibration
     from .evaluate import evaluate
 
-    stats = evaluate(load_calibration(calibration), observations)
+    stats = evaluate(load_calibration(calibration), observations, solve_poses=solve_poses)
     click.echo(f"rmse {stats.rmse_px:.4f} px  mae {stats.mae_px:.4f} px  max {stats.max_px:.4f} px  ({stats.count} corners)")
 
 
