@@ -94,6 +94,9 @@ def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
     if out is not None:
         check_output_folder(out)
     ds = load_dataset(dataset)
+    if not any(entry.images for entry in ds.entries()):
+        raise AriSfmError(ds.rig_path, "no images to detect: the dataset lists no image files (its corners are "
+                                       "already in observations.json; calibrate or run it directly)")
     t0 = time.perf_counter()
     obs = detect_dataset(ds, workers=workers, progress=True)
     out = out or check_output_folder(ds.root.parent / f"{ds.root.name}-detections")

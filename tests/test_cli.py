@@ -143,3 +143,14 @@ def test_bad_input_gives_one_line_error_and_no_result(case, sim_dir, tmp_path):
     assert "Traceback" not in r.output
     assert not (out / "calibration.json").exists()
     assert not list(out.glob("*.tmp*")) if out.exists() else True
+
+
+def test_detect_without_images_is_one_line_and_writes_nothing(sim_dir, tmp_path):
+    """A corners-only dataset (the simulator's --no-images) has nothing to detect: one line, no empty
+    observations.json beside it."""
+    ds = _copy_dataset(sim_dir / "dataset", tmp_path / "ds")
+    r = CliRunner().invoke(main, ["detect", str(ds)])
+    assert r.exit_code == 1, r.output
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "rig.yaml" in lines[0] and "no images" in lines[0]
+    assert not (tmp_path / "ds-detections").exists()
