@@ -325,7 +325,7 @@ def export_colmap_cmd(calibration: Path, out: Path, dataset: Path | None, points
 @click.option("--images/--no-images", default=None, help="Render PNG images (default: per scenario).")
 @user_errors
 def simulate(scenario: str, out: Path, seed: int, sigma: float, image_scale: float, images: bool | None) -> None:
-    """Write a simulated dataset (exact Snell physics) and its truth. SCENARIO: see --help of `ari-sfm scenarios`."""
+    """Write a simulated dataset (exact Snell physics) and its truth. SCENARIO: one of `ari-sfm scenarios`."""
     from .simulate import SCENARIOS, simulate as run_sim
 
     if scenario == "port_survey":  # structure from motion behind a flat port (refine-colmap's truth)
