@@ -83,7 +83,7 @@ def main(verbose: bool) -> None:
 
 @main.command()
 @click.argument("dataset", type=click.Path(path_type=Path))
-@click.option("-o", "--out", type=click.Path(path_type=Path), default=None, help="Where to write observations.json (default: DATASET/observations.json is NOT overwritten; OUT defaults to DATASET/../<name>-detections).")
+@click.option("-o", "--out", type=click.Path(path_type=Path), default=None, help="Output folder for observations.json (default: <name>-detections beside DATASET; the dataset's own files are never written).")
 @click.option("--workers", type=int, default=None, help="Parallel detection threads (default: all cores).")
 @user_errors
 def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
