@@ -55,6 +55,7 @@ def solve_frame_poses(calibration: Calibration, observations: Sequence[Observati
     from scipy.optimize import least_squares
 
     from .geometry import rotation_from_rotvec
+    from .init.interface_pose import real_cam_from_target
 
     ids_all, xyz_all = target.points_3d()
     lookup = {int(i): k for k, i in enumerate(ids_all)}
@@ -70,8 +71,8 @@ def solve_frame_poses(calibration: Calibration, observations: Sequence[Observati
         ok, rvec, tvec = cv2.solvePnP(pts[0], first.pixels.astype(float), cam.K, cam.dist)
         if not ok:
             continue
-        shift = calibration.interface.shift_mm * calibration.normal_cam(first.camera)
-        cam_from_target = Pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3) + shift)
+        cam_from_target = real_cam_from_target(Pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3)),
+                                               calibration.normal_cam(first.camera), calibration.interface.shift_mm)
         start = cam.cam_from_world.inverse().compose(cam_from_target)
         models = [calibration.projection_model(o.camera) for o in obs]
 

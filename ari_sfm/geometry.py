@@ -36,13 +36,6 @@ def rotation_from_rotvec(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(theta) * k + (1 - np.cos(theta)) * k @ k
 
 
-def rotvec_from_rotation(R: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`rotation_from_rotvec` (radians)."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_rotvec()
-
-
 def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
     """Angle in degrees of the rotation Ra^T Rb."""
     c = (np.trace(np.asarray(Ra).T @ np.asarray(Rb)) - 1.0) / 2.0
