@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import AriSfmError
 from ..geometry import Pose, unit
-from ..records import Dataset, Observation
+from ..records import Dataset
 from .expansion_center import ExpansionCenter, expansion_center, normal_from_expansion_center
 from .interface_pose import real_cam_from_target
 from .zhang import calibrate_views, one_cv2_thread, solve_pnp
