@@ -213,6 +213,10 @@ def evaluate_cmd(calibration: Path, observations: Path, solve_poses: bool) -> No
     from .evaluate import evaluate
 
     stats = evaluate(load_calibration(calibration), observations, solve_poses=solve_poses)
+    if stats.count == 0:
+        raise AriSfmError(observations, "no corner to judge: no observation of a calibrated camera in a frame "
+                          + ("whose pose could be fitted" if solve_poses else
+                             "the calibration holds (held-out views: add --solve-poses)"))
     click.echo(f"rmse {stats.rmse_px:.4f} px  mae {stats.mae_px:.4f} px  max {stats.max_px:.4f} px  ({stats.count} corners)")
 
 

@@ -66,6 +66,9 @@ def test_evaluate_solve_poses_judges_held_out_views(sim_dir, tmp_path):
         rmse = float(r.output.split()[1])
         assert rmse < 1.3 * 0.0707, r.output
     assert counts[True] - counts[False] == sum(len(o.ids) for o in new)
+    save_observations(tmp_path / "new.json", new)  # only frames the calibration does not hold
+    r = CliRunner().invoke(main, ["evaluate", str(tmp_path / "out" / "calibration.json"), str(tmp_path / "new.json")])
+    assert r.exit_code == 1 and "--solve-poses" in r.output and "nan" not in r.output, r.output
 
 
 def test_backend_option_picks_the_solver(sim_dir, tmp_path):
