@@ -203,16 +203,17 @@ def report_cmd(out: Path, dataset: Path | None) -> None:
 @click.argument("calibration", type=click.Path(path_type=Path))
 @click.argument("observations", type=click.Path(path_type=Path))
 @click.option("--solve-poses", is_flag=True,
-              help="Also judge the frames the calibration does not hold (held-out views, reconstruction frames): "
-                   "their target poses are fitted with the rig fixed. Without it only the calibration's own "
-                   "frames count.")
+              help="Held-out views: fit every frame's target pose with the rig fixed (as compare --holdout; "
+                   "frame names may repeat the calibration's; stacking records are left out). Without it only "
+                   "frames the calibration holds count, at its poses.")
 @user_errors
 def evaluate_cmd(calibration: Path, observations: Path, solve_poses: bool) -> None:
     """Reprojection errors of CALIBRATION on an OBSERVATIONS file (e.g. held-out views)."""
     from .calibration import load_calibration
-    from .evaluate import evaluate
+    from .evaluate import evaluate, evaluate_held_out
 
-    stats = evaluate(load_calibration(calibration), observations, solve_poses=solve_poses)
+    cal = load_calibration(calibration)
+    stats = evaluate_held_out(cal, observations) if solve_poses else evaluate(cal, observations)
     if stats.count == 0:
         raise AriSfmError(observations, "no corner to judge: no observation of a calibrated camera in a frame "
                           + ("whose pose could be fitted" if solve_poses else

@@ -27,7 +27,7 @@ import numpy as np
 
 from .calibration import Calibration
 from .errors import AriSfmError
-from .evaluate import evaluate, observation_residuals, residual_stats
+from .evaluate import evaluate_held_out, observation_residuals, residual_stats
 from .models.registry import BUNDLE, CALIBRATABLE, COMPARED, model_spec
 from .records import Dataset, Observation
 from .results import ResidualStats
@@ -136,9 +136,7 @@ def _judge(cal: Calibration, dataset: Dataset, fit_ids: np.ndarray | None
 
 def _holdout(cal: Calibration, records: Sequence[Observation], dataset: Dataset) -> ResidualStats:
     """Errors on held-out records, every frame's pose solved with the rig fixed."""
-    held = [o for o in records if o.set != "stacking"]
-    fresh = replace(cal, frames={}, stacking_poses={})
-    return replace(evaluate(fresh, held, dataset.target, solve_poses=True), per_camera=None)
+    return replace(evaluate_held_out(cal, records, dataset.target), per_camera=None)
 
 
 def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Subset | None = None,

@@ -120,3 +120,14 @@ def evaluate(calibration: Calibration, observations: str | Path | Dataset | Sequ
     pairs = observation_residuals(calibration, records, target)
     per_camera = {c: residual_stats(r for o, r in pairs if o.camera == c) for c in calibration.cameras}
     return replace(residual_stats(r for _, r in pairs), per_camera=per_camera)
+
+
+def evaluate_held_out(calibration: Calibration, observations: str | Path | Dataset | Sequence[Observation],
+                      target: Target | None = None) -> ResidualStats:
+    """Errors on held-out views: every frame's pose fitted with the rig fixed (:func:`solve_frame_poses`).
+
+    Unlike ``evaluate(..., solve_poses=True)`` the calibration's own frame poses are not used, so
+    held-out frames may repeat its frame names; stacking records are left out.
+    """
+    fresh = replace(calibration, frames={}, stacking_poses={})
+    return evaluate(fresh, observations, target, solve_poses=True)
