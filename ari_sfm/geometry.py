@@ -12,6 +12,7 @@ Conventions (see CONTRIBUTING.md):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
@@ -82,6 +83,13 @@ class Pose:
     @staticmethod
     def from_json(d: dict) -> "Pose":
         return Pose(np.asarray(d["R"], float).reshape(3, 3), np.asarray(d["t"], float).reshape(3))
+
+
+def mean_pose(poses: Sequence[Pose]) -> Pose:
+    """Chordal mean of the rotations, arithmetic mean of the translations."""
+    u, _, vt = np.linalg.svd(sum(p.R for p in poses))
+    R = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    return Pose(R, np.mean([p.t for p in poses], axis=0))
 
 
 def pose3_from_cam_from_world(cam_from_world: Pose):

@@ -21,7 +21,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import AriSfmError
-from ..geometry import Pose
+from ..geometry import Pose, mean_pose
 from ..init.zhang import ZhangResult, calibrate_views, object_points
 from ..records import Dataset, Observation
 
@@ -46,13 +46,6 @@ def zhang_cameras(dataset: Dataset, distortion: bool = False) -> dict[str, Zhang
                                                 f">= {MIN_CORNERS} corners (need >= {MIN_VIEWS})")
         out[name] = calibrate_views(dataset.target, dataset.cameras[name], views, distortion)
     return out
-
-
-def mean_pose(poses: Sequence[Pose]) -> Pose:
-    """Chordal mean of the rotations, arithmetic mean of the translations."""
-    u, _, vt = np.linalg.svd(sum(p.R for p in poses))
-    R = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-    return Pose(R, np.mean([p.t for p in poses], axis=0))
 
 
 def join_rig(names: Sequence[str], cam_from_target: dict[str, dict[str, Pose]],

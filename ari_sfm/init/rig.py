@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from ..errors import AriSfmError
-from ..geometry import Pose, unit
+from ..geometry import Pose, mean_pose, unit
 from ..records import Dataset
 from .expansion_center import ExpansionCenter, expansion_center, normal_from_expansion_center
 from .interface_pose import real_cam_from_target
@@ -88,13 +88,6 @@ def initialise_camera(dataset: Dataset, name: str, distortion: bool = False) -> 
     return CameraInit(name, zhang.K, zhang.dist, expansion, normal, poses, zhang.rms_px)
 
 
-def _mean_pose(poses: list[Pose]) -> Pose:
-    """Chordal mean of rotations, arithmetic mean of translations."""
-    u, _, vt = np.linalg.svd(sum(p.R for p in poses))
-    R = u @ np.diag([1, 1, np.linalg.det(u @ vt)]) @ vt
-    return Pose(R, np.mean([p.t for p in poses], axis=0))
-
-
 def _initialise_cameras(dataset: Dataset, names: list[str], distortion: bool, workers: int | None) -> dict[str, CameraInit]:
     """:func:`initialise_camera` of every camera, on up to ``workers`` threads (default: one per
     camera, at most os.cpu_count()). OpenCV releases the GIL and runs on one thread in each
@@ -130,7 +123,7 @@ def initialise_rig(dataset: Dataset, distortion: bool = False, workers: int | No
             shared = sorted(frames_of[child] & frames_of[parent])
             if child in cam_from_world or not shared:
                 continue
-            rel = _mean_pose([cams[child].cam_from_target[f].compose(cams[parent].cam_from_target[f].inverse()) for f in shared])
+            rel = mean_pose([cams[child].cam_from_target[f].compose(cams[parent].cam_from_target[f].inverse()) for f in shared])
             cam_from_world[child] = rel.compose(cam_from_world[parent])
             queue.append(child)
     missing = [n for n in names if n not in cam_from_world]
@@ -142,6 +135,6 @@ def initialise_rig(dataset: Dataset, distortion: bool = False, workers: int | No
     world_from_target: dict[str, Pose] = {}
     for frame in sorted(set().union(*frames_of.values())):
         estimates = [cam_from_world[n].inverse().compose(c.cam_from_target[frame]) for n, c in cams.items() if frame in c.cam_from_target]
-        world_from_target[frame] = _mean_pose(estimates)
+        world_from_target[frame] = mean_pose(estimates)
     stacking = tuple(sorted({o.frame for o in dataset.select("stacking")}))
     return RigInit(cams, cam_from_world, normal_world, world_from_target, stacking, bool(normals))
