@@ -13,7 +13,6 @@
 from __future__ import annotations
 
 import logging
-from collections import deque
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
@@ -21,7 +20,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import AriSfmError
-from ..geometry import Pose, mean_pose
+from ..geometry import Pose
+from ..init.rig import join_rig
 from ..init.zhang import ZhangResult, calibrate_views, object_points
 from ..records import Dataset, Observation
 
@@ -46,35 +46,6 @@ def zhang_cameras(dataset: Dataset, distortion: bool = False) -> dict[str, Zhang
                                                 f">= {MIN_CORNERS} corners (need >= {MIN_VIEWS})")
         out[name] = calibrate_views(dataset.target, dataset.cameras[name], views, distortion)
     return out
-
-
-def join_rig(names: Sequence[str], cam_from_target: dict[str, dict[str, Pose]],
-             path: object = None) -> tuple[dict[str, Pose], dict[str, Pose]]:
-    """cam_from_world of every camera (world = camera 0) and world_from_target of every frame.
-
-    Relative poses are chordal means over shared frames along a breadth-first
-    tree from camera 0; a frame's pose is the mean over the cameras that see it.
-    """
-    cam_from_world = {names[0]: Pose.identity()}
-    queue = deque([names[0]])
-    while queue:
-        parent = queue.popleft()
-        for child in sorted(names, key=lambda c: -len(set(cam_from_target[c]) & set(cam_from_target[parent]))):
-            shared = sorted(set(cam_from_target[child]) & set(cam_from_target[parent]))
-            if child in cam_from_world or not shared:
-                continue
-            rel = mean_pose([cam_from_target[child][f].compose(cam_from_target[parent][f].inverse()) for f in shared])
-            cam_from_world[child] = rel.compose(cam_from_world[parent])
-            queue.append(child)
-    missing = [n for n in names if n not in cam_from_world]
-    if missing:
-        raise AriSfmError(path, f"camera {missing[0]} shares no frame with camera {names[0]} or its neighbours: "
-                                "the rig cannot be joined")
-    frames = sorted(set().union(*(set(p) for p in cam_from_target.values())))
-    world_from_target = {
-        f: mean_pose([cam_from_world[n].inverse().compose(cam_from_target[n][f]) for n in names if f in cam_from_target[n]])
-        for f in frames}
-    return cam_from_world, world_from_target
 
 
 def rotations(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

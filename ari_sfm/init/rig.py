@@ -8,6 +8,7 @@ import os
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Sequence
 
 import cv2
 import numpy as np
@@ -88,6 +89,35 @@ def initialise_camera(dataset: Dataset, name: str, distortion: bool = False) -> 
     return CameraInit(name, zhang.K, zhang.dist, expansion, normal, poses, zhang.rms_px)
 
 
+def join_rig(names: Sequence[str], cam_from_target: dict[str, dict[str, Pose]],
+             path: object = None) -> tuple[dict[str, Pose], dict[str, Pose]]:
+    """cam_from_world of every camera (world = camera 0) and world_from_target of every frame.
+
+    Relative poses are chordal means over shared frames along a breadth-first
+    tree from camera 0; a frame's pose is the mean over the cameras that see it.
+    """
+    cam_from_world = {names[0]: Pose.identity()}
+    queue = deque([names[0]])
+    while queue:
+        parent = queue.popleft()
+        for child in sorted(names, key=lambda c: -len(set(cam_from_target[c]) & set(cam_from_target[parent]))):
+            shared = sorted(set(cam_from_target[child]) & set(cam_from_target[parent]))
+            if child in cam_from_world or not shared:
+                continue
+            rel = mean_pose([cam_from_target[child][f].compose(cam_from_target[parent][f].inverse()) for f in shared])
+            cam_from_world[child] = rel.compose(cam_from_world[parent])
+            queue.append(child)
+    missing = [n for n in names if n not in cam_from_world]
+    if missing:
+        raise AriSfmError(path, f"camera {missing[0]} shares no frame with camera {names[0]} or its neighbours: "
+                                "the rig cannot be joined")
+    frames = sorted(set().union(*(set(p) for p in cam_from_target.values())))
+    world_from_target = {
+        f: mean_pose([cam_from_world[n].inverse().compose(cam_from_target[n][f]) for n in names if f in cam_from_target[n]])
+        for f in frames}
+    return cam_from_world, world_from_target
+
+
 def _initialise_cameras(dataset: Dataset, names: list[str], distortion: bool, workers: int | None) -> dict[str, CameraInit]:
     """:func:`initialise_camera` of every camera, on up to ``workers`` threads (default: one per
     camera, at most os.cpu_count()). OpenCV releases the GIL and runs on one thread in each
@@ -114,27 +144,9 @@ def initialise_rig(dataset: Dataset, distortion: bool = False, workers: int | No
     names = dataset.camera_names
     cams = _initialise_cameras(dataset, names, distortion, workers)
     # Camera graph: edges weighted by the number of shared frames (calibration and stacking).
-    frames_of = {n: set(c.cam_from_target) for n, c in cams.items()}
-    cam_from_world = {names[0]: Pose.identity()}
-    queue = deque([names[0]])
-    while queue:
-        parent = queue.popleft()
-        for child in sorted(names, key=lambda c: -len(frames_of[c] & frames_of[parent])):
-            shared = sorted(frames_of[child] & frames_of[parent])
-            if child in cam_from_world or not shared:
-                continue
-            rel = mean_pose([cams[child].cam_from_target[f].compose(cams[parent].cam_from_target[f].inverse()) for f in shared])
-            cam_from_world[child] = rel.compose(cam_from_world[parent])
-            queue.append(child)
-    missing = [n for n in names if n not in cam_from_world]
-    if missing:
-        raise AriSfmError(dataset.rig_path, f"camera {missing[0]} shares no frame with camera {names[0]} or its neighbours: the rig cannot be joined")
+    cam_from_world, world_from_target = join_rig(names, {n: c.cam_from_target for n, c in cams.items()}, dataset.rig_path)
     normals = [cam_from_world[n].R.T @ c.normal_cam for n, c in cams.items() if c.normal_cam is not None]
     # without stacking: camera 0's optical axis, a start for the exact model or a declared plane
     normal_world = unit(np.mean(normals, axis=0)) if normals else np.array([0.0, 0.0, 1.0])
-    world_from_target: dict[str, Pose] = {}
-    for frame in sorted(set().union(*frames_of.values())):
-        estimates = [cam_from_world[n].inverse().compose(c.cam_from_target[frame]) for n, c in cams.items() if frame in c.cam_from_target]
-        world_from_target[frame] = mean_pose(estimates)
     stacking = tuple(sorted({o.frame for o in dataset.select("stacking")}))
     return RigInit(cams, cam_from_world, normal_world, world_from_target, stacking, bool(normals))
