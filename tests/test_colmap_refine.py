@@ -468,3 +468,26 @@ def test_cli_simulate_port_survey_small(tmp_path):
         p = Pose.from_json(pose)
         assert p.inverse().t[2] < meta["relief"]["depth_mm"] - 2 * meta["relief"]["amplitude_mm"]
         assert p.R[2, 2] > 0.9
+
+
+def test_declared_plane_held_mount_world():
+    """mount world: the tank wall declared in the COLMAP model's world (here the simulation's, mm) and
+    held: the window is the wall and the points are at least as accurate as with the wall estimated."""
+    from dataclasses import replace
+
+    from ari_sfm.records import WindowPlane
+
+    truth = tank_rig(num_frames=4, num_points=300)
+    rec = adapter.reconstruction_from_arrays(list(truth.params), truth.image_size, truth.sensor_from_rig,
+                                             truth.rig_from_world, truth.image_camera, truth.image_frame, truth.xyz,
+                                             truth.obs_image, truth.obs_point, truth.obs_uv)
+    model = adapter.model_from_reconstruction(rec)
+    wall = WindowPlane("world", truth.normal_world, truth.normal_world * truth.plane_mm)
+    free = refine_colmap(rec, truth.interface, "world", units_mm=1.0)
+    held = refine_colmap(rec, replace(truth.interface, plane=wall), "world", units_mm=1.0)
+    assert np.allclose(held.state.normals[0], truth.normal_world, atol=1e-12)
+    assert held.state.distances[0] == pytest.approx(truth.plane_mm, abs=1e-9)
+    got, without = refined_errors(truth, rec, held), refined_errors(truth, rec, free)
+    assert got["points_rms_mm"] <= 1.02 * without["points_rms_mm"]
+    assert held.report["plane"]["frame"] == "world" and held.report["plane"]["normal"] == "held"
+    assert np.array_equal(model.point3D_ids, adapter.model_from_reconstruction(held.refractive).point3D_ids)
