@@ -16,7 +16,7 @@ refine / bundle_adjustment.
 apart along a strip 2 m wide; each point seen by ~3-14 images, mean ~4.5 at 400 mm, ~6.3 at
 250 mm; about 60 % of the drawn points are seen 3 times or more and kept): the way to 200 images / 50 k points on a small machine
 (``--sizes 200:75000 --layout strip --spacing 250``). ``--declared-port``: the true port declared
-(``interface.plane``, held) and no scale bar.
+(``interface.plane``, held).
 """
 from __future__ import annotations
 
@@ -64,8 +64,7 @@ def run(num_images: int, num_points: int, focal: float, layout: str = "grid", sp
     if declared_port:  # the housing's port as built, held (interface.plane in the camera frame)
         n = truth.normal_cam[0]
         interface = replace(interface, plane=WindowPlane("camera", n, n * truth.distance_mm[0]))
-    result = refine_colmap(start, interface, "camera", scale_bar=None if declared_port else bar,
-                           units_mm=1.0 if declared_port else None)
+    result = refine_colmap(start, interface, "camera", scale_bar=bar)
     t_ref = time.perf_counter() - t0
     R, t = result.state.cam_from_world(model)
     got = truth_errors(truth, model, result.state.xyz, {int(i): Pose(R[k], t[k]) for k, i in enumerate(model.image_ids)})
@@ -95,7 +94,7 @@ def main() -> None:
     ap.add_argument("--focal", type=float, default=1300.0)
     ap.add_argument("--layout", choices=("grid", "strip"), default="grid")
     ap.add_argument("--declared-port", action="store_true",
-                    help="declare the true port as interface.plane, held (no scale bar: see README)")
+                    help="declare the true port as interface.plane, held")
     ap.add_argument("--spacing", type=float, default=400.0, help="strip: mm between images along a line")
     args = ap.parse_args()
     for size in args.sizes.split(","):
