@@ -336,7 +336,9 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float, image_scale: flo
     if scenario == "port_survey":  # structure from motion behind a flat port (refine-colmap's truth)
         from .simulate.port_survey import write_port_survey
 
-        write_port_survey(out, seed=seed, progress=True)
+        check_number("--image-scale", image_scale, minimum=0.0, maximum=40.0, strict_minimum=True)
+        size = (max(16, int(round(640 * image_scale))), max(16, int(round(480 * image_scale))))
+        write_port_survey(out, seed=seed, image_size=size, focal_px=600.0 * image_scale, progress=True)
         click.echo(f"port_survey: {out / 'images'} and {out / 'truth.json'}")
         return
     if scenario not in SCENARIOS:
@@ -472,7 +474,8 @@ def refine_colmap_cmd(model_dir: Path, window: Path, out: Path, huber_px: float,
 
     spec = load_window(window)
     result = refine_colmap(model_dir, spec.interface, mount=spec.mount, units_mm=spec.units_mm,
-                           scale_bar=spec.scale_bar, huber_px=huber_px, max_iterations=max_iterations, progress=True)
+                           scale_bar=spec.scale_bar, huber_px=huber_px, max_iterations=max_iterations, progress=True,
+                           plane_path=window)
     write_refined(result, out)
     r = result.report
     click.echo(f"refine-colmap: {r['counts']['images']} images, {r['counts']['points3D']} points, "

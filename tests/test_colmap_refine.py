@@ -332,3 +332,162 @@ def test_window_yaml_scale_bar_and_units(tmp_path):
     path.write_text(WINDOW_YAML + "units_mm: -2\n")
     with pytest.raises(AriSfmError, match="units_mm"):
         load_window(path)
+
+
+# ----------------------------------------------------------------------------- a declared window (interface.plane)
+
+def declared(truth, sigma_deg: float = 0.0, sigma_mm: float = 0.0, tilt_deg: float = 0.0, offset_mm: float = 0.0):
+    """The simulated housing's port as a WindowPlane in the camera frame, optionally moved (tilted about
+    the camera's x axis, the face shifted along the normal)."""
+    from ari_sfm.geometry import rotation_from_rotvec
+    from ari_sfm.records import WindowPlane
+
+    n = rotation_from_rotvec([np.radians(tilt_deg), 0.0, 0.0]) @ truth.normal_cam[0]
+    return WindowPlane("camera", n, n * (truth.distance_mm[0] + offset_mm), sigma_deg, sigma_mm)
+
+
+def test_declared_plane_held_is_the_window(survey):
+    """The true port declared and held: the window is the truth, not estimated, and the points are at
+    least as accurate as when the window is estimated."""
+    from dataclasses import replace
+
+    truth, start, free, _ = survey
+    model = adapter.model_from_reconstruction(start)
+    held = refine_colmap(start, replace(truth.interface, plane=declared(truth)), "camera",
+                         scale_bar=scale_bar_of(truth, model))
+    assert np.allclose(held.state.normals[0], truth.normal_cam[0], atol=1e-12)
+    assert held.state.distances[0] == pytest.approx(truth.distance_mm[0], abs=1e-9)
+    assert "none: held at the declared plane" in held.report["estimated"]
+    got, without = refined_errors(truth, start, held), refined_errors(truth, start, free)
+    assert got["points_rms_mm"] <= 1.02 * without["points_rms_mm"]
+    assert got["centres_rms_mm"] <= 1.05 * without["centres_rms_mm"] + 0.1
+    assert held.report["after"]["rms_px"] <= truth.sigma_px * np.sqrt(2.0)
+
+
+def test_declared_plane_prior_pulls_as_its_sigma_shrinks(small_model):
+    """A plane declared 1 deg and 6 mm off the truth with a prior: the refined window moves toward it
+    as the sigmas shrink, and a tight prior lands on it."""
+    from dataclasses import replace
+
+    from ari_sfm.geometry import angle_between_deg
+
+    truth, start, _ = small_model
+    angles, offsets = [], []
+    for sigma_deg, sigma_mm in ((5.0, 50.0), (0.2, 2.0), (0.002, 0.02)):
+        plane = declared(truth, sigma_deg, sigma_mm, tilt_deg=1.0, offset_mm=6.0)
+        res = refine_colmap(start, replace(truth.interface, plane=plane), "camera", units_mm=1.0)
+        angles.append(angle_between_deg(res.state.normals[0], plane.normal))
+        offsets.append(abs(res.state.distances[0] - plane.normal @ plane.point_mm))
+        assert "prior" in res.report["plane"]["normal"] and "prior" in res.report["plane"]["distance"]
+    assert angles[0] > angles[1] > angles[2] and offsets[0] > offsets[1] > offsets[2]
+    # the images alone pull the normal well away from the wrong plane (the distance, started there, weakly)
+    assert angles[0] > 0.3 and offsets[0] > 0.2
+    assert angles[2] < 0.01 and offsets[2] < 0.1
+
+
+@pytest.mark.parametrize("held_normal", [False, True])
+def test_declared_plane_prior_same_on_gtsam(held_normal):
+    """The plane's prior (and a held normal) in the numpy LM and in the GTSAM graph: the same optimum."""
+    from ari_sfm.colmap_refine.gtsam_graph import GtsamRefinement
+    from ari_sfm.colmap_refine.plane import window_prior
+
+    truth = port_survey(num_images=6, num_points=120, focal_px=1300, area_mm=(1200, 800), sigma_px=0.2)
+    rec = adapter.reconstruction_from_arrays(list(truth.params), truth.image_size, truth.sensor_from_rig,
+                                             truth.rig_from_world, truth.image_camera, truth.image_frame, truth.xyz,
+                                             truth.obs_image, truth.obs_point, truth.obs_uv)
+    model = adapter.model_from_reconstruction(rec)
+    plane = declared(truth, 0.0 if held_normal else 0.3, 1.5, tilt_deg=0.5, offset_mm=3.0)
+    problem = RefractiveProblem(model, truth.interface, "camera", estimate_distance=True, hold_normal=held_normal)
+    prior = window_prior(plane, True)
+    start = truth_state(truth, model)
+    if held_normal:
+        start = State(start.colmap_params, start.rig_from_world, start.sensor_from_rig, plane.normal[None, :],
+                      start.distances, start.xyz)
+    rng = np.random.default_rng(2)
+    start = problem.retract(start, rng.normal(0.0, 1e-3, problem.layout.size),
+                            rng.normal(0.0, 0.5, (len(model.point3D_ids), 3)))
+    ours = Solver(problem, 2.0, prior).run(start, 100).state
+    theirs, _ = GtsamRefinement(problem, 2.0, prior).optimize(start, 50)
+    assert np.max(np.abs(ours.normals - theirs.normals)) < 1e-5
+    assert abs(ours.distances[0] - theirs.distances[0]) < 1e-3
+    # a flat valley (the scale): both stop within 1e-5 of the same cost, residuals within 1 % of sigma
+    solver = Solver(problem, 2.0, prior)
+    assert abs(solver.cost(ours) - solver.cost(theirs)) < 1e-5 * solver.cost(ours)
+    assert np.max(np.abs(problem.residuals(ours) - problem.residuals(theirs))) < 0.01 * truth.sigma_px
+    assert solver.cost(ours) < solver.cost(start)
+    if held_normal:
+        assert np.array_equal(ours.normals, start.normals) and np.array_equal(theirs.normals, start.normals)
+
+
+PLANE_YAML = WINDOW_YAML.replace("mount: camera\n", "") + "  plane:\n{plane}mount: {mount}\n"
+
+
+@pytest.mark.parametrize("plane, mount, message", [
+    ("    frame: f000\n    normal: [0, 0, 1]\n    point_mm: [0, 0, 22]\n", "camera", "interface.plane.frame"),
+    ("    normal: [0, 0, 2]\n    point_mm: [0, 0, 22]\n", "camera", "interface.plane.normal must be a unit vector"),
+    ("    normal: [0, 0, -1]\n    point_mm: [0, 0, 22]\n", "camera", "interface.plane.normal must point from"),
+    ("    normal: [0, 0, 1]\n    point_mm: [0, 0, -5]\n", "camera", "interface.plane.point_mm: the camera-side face"),
+    ("    normal: [0, 0, 1]\n    point_mm: [0, 0, 22]\n    sigma_mm: -1\n", "camera", "interface.plane.sigma_mm"),
+    ("    normal: [0, 0, 1]\n    point_mm: [0, 0, -100]\n", "world", "camera centres are not on the camera side"),
+    ("    frame: camera\n    normal: [0, 0, 1]\n    point_mm: [0, 0, 500]\n", "world", "interface.plane.frame"),
+])
+def test_bad_plane_one_line(small_model, tmp_path, plane, mount, message):
+    _, _, folder = small_model
+    (tmp_path / "WINDOW.yaml").write_text(PLANE_YAML.format(plane=plane, mount=mount))
+    res = CliRunner().invoke(main, ["refine-colmap", str(folder), "--window", str(tmp_path / "WINDOW.yaml"),
+                                    "-o", str(tmp_path / "out")])
+    assert res.exit_code == 1, res.output
+    lines = res.output.strip().splitlines()
+    assert lines[-1].startswith("error: ") and "WINDOW.yaml" in lines[-1] and message in lines[-1], lines[-1]
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_simulate_port_survey_small(tmp_path):
+    """`ari-sfm simulate port_survey` at a quarter of the size: 12 PNG images of that size with texture,
+    truth.json with the documented keys, and the truth's poses reproduce the relief through the port."""
+    import json
+
+    import cv2
+
+    out = tmp_path / "survey"
+    res = CliRunner().invoke(main, ["simulate", "port_survey", "-o", str(out), "--image-scale", "0.25"])
+    assert res.exit_code == 0, res.output
+    names = sorted(p.name for p in (out / "images").glob("*.png"))
+    assert names == [f"image{i:04d}.png" for i in range(1, 13)]
+    img = cv2.imread(str(out / "images" / names[0]), cv2.IMREAD_GRAYSCALE)
+    assert img.shape == (120, 160) and img.std() > 10.0  # textured, not blank
+    meta = json.loads((out / "truth.json").read_text())
+    assert {"interface", "camera", "relief", "images"} <= set(meta)
+    assert {"thickness_mm", "index", "medium_index"} <= set(meta["interface"])
+    assert {"image_size", "params", "normal_cam", "distance_mm"} <= set(meta["camera"])
+    assert meta["camera"]["image_size"] == [160, 120] and meta["camera"]["params"][0] == pytest.approx(150.0)
+    assert sorted(meta["images"]) == names
+    assert np.linalg.norm(meta["camera"]["normal_cam"]) == pytest.approx(1.0)
+    # every camera centre above the relief (z down), looking down
+    for pose in meta["images"].values():
+        p = Pose.from_json(pose)
+        assert p.inverse().t[2] < meta["relief"]["depth_mm"] - 2 * meta["relief"]["amplitude_mm"]
+        assert p.R[2, 2] > 0.9
+
+
+def test_declared_plane_held_mount_world():
+    """mount world: the tank wall declared in the COLMAP model's world (here the simulation's, mm) and
+    held: the window is the wall and the points are at least as accurate as with the wall estimated."""
+    from dataclasses import replace
+
+    from ari_sfm.records import WindowPlane
+
+    truth = tank_rig(num_frames=4, num_points=300)
+    rec = adapter.reconstruction_from_arrays(list(truth.params), truth.image_size, truth.sensor_from_rig,
+                                             truth.rig_from_world, truth.image_camera, truth.image_frame, truth.xyz,
+                                             truth.obs_image, truth.obs_point, truth.obs_uv)
+    model = adapter.model_from_reconstruction(rec)
+    wall = WindowPlane("world", truth.normal_world, truth.normal_world * truth.plane_mm)
+    free = refine_colmap(rec, truth.interface, "world", units_mm=1.0)
+    held = refine_colmap(rec, replace(truth.interface, plane=wall), "world", units_mm=1.0)
+    assert np.allclose(held.state.normals[0], truth.normal_world, atol=1e-12)
+    assert held.state.distances[0] == pytest.approx(truth.plane_mm, abs=1e-9)
+    got, without = refined_errors(truth, rec, held), refined_errors(truth, rec, free)
+    assert got["points_rms_mm"] <= 1.02 * without["points_rms_mm"]
+    assert held.report["plane"]["frame"] == "world" and held.report["plane"]["normal"] == "held"
+    assert np.array_equal(model.point3D_ids, adapter.model_from_reconstruction(held.refractive).point3D_ids)

@@ -20,6 +20,7 @@ import numpy as np
 
 from ari_sfm.geometry import Pose
 
+from .plane import WindowPrior
 from .problem import RefractiveProblem, State, tangent_basis
 
 
@@ -64,9 +65,10 @@ def _column_owners(problem: RefractiveProblem) -> dict[int, tuple[str, int, int]
 class GtsamRefinement:
     """Build the graph from a state, optimise with GTSAM's LM, read the state back."""
 
-    def __init__(self, problem: RefractiveProblem, huber_px: float | None = 2.0) -> None:
+    def __init__(self, problem: RefractiveProblem, huber_px: float | None = 2.0, prior: WindowPrior | None = None) -> None:
         self.problem = problem
         self.huber_px = huber_px
+        self.prior = prior
         self.owners = _column_owners(problem)
 
     # -------------------------------------------------------------- values
@@ -83,7 +85,8 @@ class GtsamRefinement:
             free = np.flatnonzero(m.param_map[c].any(axis=0))
             v.insert(_intrinsics_key(c), np.asarray(state.colmap_params[c][free], float))
         for w in range(len(state.normals)):
-            v.insert(_normal_key(w), gtsam.Unit3(state.normals[w]))
+            if lay.window[w, 0] >= 0:
+                v.insert(_normal_key(w), gtsam.Unit3(state.normals[w]))
             if lay.window[w, 2] >= 0:
                 v.insert(_distance_key(w), np.array([state.distances[w]]))
         for j, X in enumerate(state.xyz):
@@ -106,7 +109,8 @@ class GtsamRefinement:
             p = p.copy()
             p[np.flatnonzero(m.param_map[c].any(axis=0))] = values.atVector(_intrinsics_key(c))
             params.append(p)
-        normals = np.array([values.atUnit3(_normal_key(w)).point3() for w in range(len(template.normals))])
+        normals = np.array([values.atUnit3(_normal_key(w)).point3() if lay.window[w, 0] >= 0 else template.normals[w]
+                            for w in range(len(template.normals))])
         dists = np.array([values.atVector(_distance_key(w))[0] if lay.window[w, 2] >= 0 else template.distances[w]
                           for w in range(len(template.distances))])
         xyz = np.array([values.atPoint3(_point_key(j)) for j in range(len(template.xyz))])
@@ -218,10 +222,32 @@ class GtsamRefinement:
         return replace(template, colmap_params=tuple(params), rig_from_world=tuple(frames),
                        sensor_from_rig=tuple(sensors), normals=normals, distances=dists, xyz=xyz)
 
+    def _prior_factor(self, w: int, template: State) -> gtsam.CustomFactor:
+        """The declared plane's prior on window w (:mod:`.plane`): keys n(w), d(w) where estimated."""
+        prior, lay = self.prior, self.problem.layout
+        has_n, has_d = lay.window[w, 0] >= 0, lay.window[w, 2] >= 0
+        keys = ([_normal_key(w)] if has_n else []) + ([_distance_key(w)] if has_d else [])
+        J_n, J_d = prior.jacobians()
+
+        def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
+            n = values.atUnit3(_normal_key(w)) if has_n else gtsam.Unit3(template.normals[w])
+            d = float(values.atVector(_distance_key(w))[0]) if has_d else float(template.distances[w])
+            if H is not None:
+                blocks = ([J_n @ np.asarray(n.basis(), float)] if has_n else []) + ([J_d[:, None]] if has_d else [])
+                for i, B in enumerate(blocks):
+                    H[i] = B
+            return prior.errors(n.point3(), d)
+
+        return gtsam.CustomFactor(gtsam.noiseModel.Diagonal.Sigmas(prior.sigmas), keys, error)
+
     def graph(self, state: State) -> gtsam.NonlinearFactorGraph:
         g = gtsam.NonlinearFactorGraph()
         for i in range(len(self.problem.model.image_ids)):
             g.add(self._factor(i, state))
+        if self.prior is not None:
+            for w in range(len(state.normals)):
+                if (self.problem.layout.window[w] >= 0).any():
+                    g.add(self._prior_factor(w, state))
         return g
 
     def optimize(self, state: State, max_iterations: int = 100) -> tuple[State, int]:

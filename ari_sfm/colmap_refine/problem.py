@@ -73,8 +73,9 @@ class Layout:
 
 
 def make_layout(model: ColmapModel, mount: str, estimate_distance: bool, image_is_ref: np.ndarray,
-                hold_window: bool = False) -> Layout:
-    """Index the reduced variables: intrinsics, frames (first held), non-ref sensors, window (unless held)."""
+                hold_window: bool = False, hold_normal: bool = False) -> Layout:
+    """Index the reduced variables: intrinsics, frames (first held), non-ref sensors, window (unless
+    held; ``hold_normal``: its normal only)."""
     k = 0
     intr = []
     for c, p in enumerate(model.colmap_params):
@@ -95,8 +96,9 @@ def make_layout(model: ColmapModel, mount: str, estimate_distance: bool, image_i
     W = C if mount == "camera" else 1
     window = -np.ones((W, 3), int)
     for w in range(0 if hold_window else W):
-        window[w, :2] = (k, k + 1)
-        k += 2
+        if not hold_normal:
+            window[w, :2] = (k, k + 1)
+            k += 2
         if estimate_distance:
             window[w, 2] = k
             k += 1
@@ -118,7 +120,7 @@ class RefractiveProblem:
     """Residuals ``project(X) - observed`` of every COLMAP observation through the exact model."""
 
     def __init__(self, model: ColmapModel, interface: Interface, mount: str, estimate_distance: bool,
-                 hold_window: bool = False) -> None:
+                 hold_window: bool = False, hold_normal: bool = False) -> None:
         if mount not in MOUNTS:
             raise ValueError(f"mount must be one of {MOUNTS}, got {mount!r}")
         self.model = model
@@ -126,7 +128,7 @@ class RefractiveProblem:
         self.mount = mount
         self.image_is_ref = (model.image_is_ref if model.image_is_ref is not None else
                              np.array([np.allclose(s.R, np.eye(3)) and not np.any(s.t) for s in model.sensor_from_rig]))
-        self.layout = make_layout(model, mount, estimate_distance, self.image_is_ref, hold_window)
+        self.layout = make_layout(model, mount, estimate_distance, self.image_is_ref, hold_window, hold_normal)
         self._cam_of_obs = model.image_camera[model.obs_image]
 
     # ------------------------------------------------------------------ models

@@ -20,6 +20,11 @@ along the scale to 1e-6 of its value, so without a scale bar the result's scale 
 (and pinhole bundle adjustment drifts it by tens of %). With a scale bar, the refined solution is
 scaled (points, poses, window distances) to the bar's length and polished; ``refine.json``
 reports the bar after. :mod:`ari_sfm.colmap_refine.problem` lists what is estimated.
+
+A declared window (``interface.plane``, :mod:`.plane`) replaces the start search: the window
+starts there; a sigma of 0 holds that part, > 0 adds a prior. A declared plane does not scale with
+the scene, so with a scale bar the rescaled state is off the near-flat valley and the polish can
+move the scale again (the report's ``scale_bar`` and a warning say by how much).
 """
 from __future__ import annotations
 
@@ -36,9 +41,10 @@ from ari_sfm.calibration import Calibration, CameraCalibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose, rotation_from_rotvec
 from ari_sfm.models import AriModel, PinholeModel
-from ari_sfm.records import Interface
+from ari_sfm.records import Interface, WindowPlane
 
-from .problem import MOUNTS, RefractiveProblem, State
+from .plane import WindowPrior, declared_window, window_prior
+from .problem import MOUNTS, RefractiveProblem, State, tangent_basis
 from .schur import (build_normal_equations, huber_cost, huber_weights, model_decrease,
                     solve_damped)
 
@@ -145,11 +151,44 @@ def _with_distance(model: adapter.ColmapModel, state: State, mount: str, h: floa
     return replace(state, distances=np.array([float(np.max(centres @ state.normals[0])) + h]))
 
 
-def _scaled(state: State, s: float) -> State:
-    """Every length times s (points, translations, window distances): the cost's near-flat direction."""
+def _scaled(state: State, s: float, window: bool = True) -> State:
+    """Every length times s (points, translations, window distances unless ``window`` is False: a
+    declared plane stays where it was declared): the cost's near-flat direction."""
     return replace(state, xyz=state.xyz * s, rig_from_world=tuple(Pose(p.R, p.t * s) for p in state.rig_from_world),
                    sensor_from_rig=tuple(Pose(p.R, p.t * s) for p in state.sensor_from_rig),
-                   distances=state.distances * s)
+                   distances=state.distances * s if window else state.distances)
+
+
+PLANE_FRAMES = {"camera": "camera", "world": "world"}  # the only frame interface.plane may name, per mount
+
+
+def _declared_start(model: adapter.ColmapModel, state: State, mount: str, plane: WindowPlane, path: Any) -> State:
+    """The start with the window at the declared plane, checked: the normal points from the cameras into
+    the scene and every camera is on the camera side of the face (one-line errors naming the field)."""
+    where = "interface.plane"
+    if plane.frame != PLANE_FRAMES[mount]:
+        raise AriSfmError(path, f"{where}.frame: refine-colmap has no target frames: with mount {mount} the plane is "
+                                f"in the {'COLMAP world (mm)' if mount == 'world' else 'camera (housing) frame'}; "
+                                f"omit frame or write {PLANE_FRAMES[mount]!r} (got {plane.frame!r})")
+    n, d = declared_window(plane)
+    if mount == "camera":
+        if n[2] <= 0:
+            raise AriSfmError(path, f"{where}.normal must point from the camera into the scene (z > 0 in the camera "
+                                    f"frame; got {n.round(4).tolist()})")
+        if d <= 0:
+            raise AriSfmError(path, f"{where}.point_mm: the camera-side face must be in front of the camera "
+                                    f"(normal . point_mm > 0; got {d:.6g} mm)")
+        return replace(state, normals=np.tile(n, (len(state.normals), 1)), distances=np.full(len(state.distances), d))
+    R, t = state.cam_from_world(model)
+    centres = -np.einsum("nji,nj->ni", R, t)
+    if float(np.mean(R[:, 2, :] @ n)) <= 0:
+        raise AriSfmError(path, f"{where}.normal must point from the cameras into the scene (got "
+                                f"{n.round(4).tolist()}, against the cameras' mean viewing direction)")
+    behind = int(np.sum(centres @ n >= d))
+    if behind:
+        raise AriSfmError(path, f"{where}.point_mm: {behind} of {len(centres)} camera centres are not on the camera "
+                                f"side of the declared face (normal . X = {d:.6g} mm in the COLMAP world, in mm)")
+    return replace(state, normals=n[None, :], distances=np.array([d]))
 
 
 @dataclass(frozen=True)
@@ -169,13 +208,32 @@ class Solver:
 
     linearized_error_is_error = True  # a linearization's error is the robust cost at its point
 
-    def __init__(self, problem: RefractiveProblem, huber_px: float | None) -> None:
+    def __init__(self, problem: RefractiveProblem, huber_px: float | None, prior: WindowPrior | None = None) -> None:
         self.problem = problem
         self.huber_px = huber_px
+        self.prior = prior
         self.P = len(problem.model.point3D_ids)
 
     def cost(self, state: State) -> float:
-        return huber_cost(self.problem.residuals(state), self.huber_px)
+        return huber_cost(self.problem.residuals(state), self.huber_px) + self._prior_cost(state)
+
+    def _prior_cost(self, state: State) -> float:
+        return 0.0 if self.prior is None else self.prior.cost(state.normals, state.distances)
+
+    def _add_prior(self, ne, state: State) -> None:
+        """The declared plane's prior rows (whitened) added to the normal equations and the error."""
+        lay, prior = self.problem.layout, self.prior
+        J_n, J_d = prior.jacobians()
+        s = prior.sigmas
+        for w, (n, d) in enumerate(zip(state.normals, state.distances)):
+            e = prior.errors(n, float(d)) / s
+            J = np.column_stack([J_n @ tangent_basis(n), J_d]) / s[:, None]  # columns [e1, e2, d]
+            cols = lay.window[w]
+            used = cols >= 0
+            J, cols = J[:, used], cols[used]
+            ne.H[np.ix_(cols, cols)] += J.T @ J
+            ne.g[cols] += J.T @ e
+        ne.error += self._prior_cost(state)
 
     error = cost  # LMProblem's name
 
@@ -184,6 +242,8 @@ class Solver:
         w = huber_weights(lin.residuals, self.huber_px)
         ne = build_normal_equations(lin, self.problem.model.obs_point, self.P, self.problem.layout.size, w)
         ne.error = huber_cost(lin.residuals, self.huber_px)
+        if self.prior is not None:
+            self._add_prior(ne, state)
         return ne
 
     def solve(self, ne, lam: float):
@@ -209,7 +269,7 @@ class Solver:
         """The GTSAM backend (one CustomFactor per image, GTSAM's LM)."""
         from .gtsam_graph import GtsamRefinement
 
-        refined, iterations = GtsamRefinement(self.problem, self.huber_px).optimize(state, max_iterations)
+        refined, iterations = GtsamRefinement(self.problem, self.huber_px, self.prior).optimize(state, max_iterations)
         return SolveResult(refined, self.cost(refined), self.cost(state), iterations, iterations < max_iterations)
 
 
@@ -267,7 +327,7 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
                   huber_px: float | None = 2.0, max_iterations: int = 50,
                   distances_mm: tuple[float, ...] | None = None, approximation: str = "opencv",
                   backend: str = "numpy", progress: bool = False,
-                  path: Any = "reconstruction") -> RefineResult:
+                  path: Any = "reconstruction", plane_path: Any = "interface.plane") -> RefineResult:
     """Refine a COLMAP reconstruction made behind a flat window with the exact refractive model.
 
     ``reconstruction``: a pycolmap.Reconstruction or a model folder; ``interface``: the plate
@@ -277,7 +337,10 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     cameras written, ``opencv`` (pinhole + k1 k2 p1 p2, default: the distortion absorbs much of the
     port) or ``pinhole`` (the input's camera models); ``backend``: ``numpy`` (points Schur, this
     package's LM) or ``gtsam`` (one CustomFactor per image; slower; the start search stays numpy).
-    See the module docstring
+    ``interface.plane`` (optional, :mod:`.plane`): the declared window, frame ``camera`` (mount camera:
+    each camera's housing frame) or ``world`` (mount world: the COLMAP world in mm); it replaces the
+    start search; a sigma of 0 holds that part, > 0 makes it a prior. ``plane_path``: the file named
+    in its errors. See the module docstring
     for the start, the gauge and the scale.
     """
     t0 = time.perf_counter()
@@ -296,13 +359,20 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
         rec = adapter.read_colmap(path)
     cmodel = adapter.model_from_reconstruction(rec, path)
     units = _units_mm(cmodel, units_mm, scale_bar, path)
-    estimate_distance = interface.medium_index != 1.0
-    problem = RefractiveProblem(cmodel, interface, mount, estimate_distance)
-    solver = Solver(problem, huber_px)
+    plane = interface.plane
+    estimate_distance = interface.medium_index != 1.0 and not (plane is not None and plane.sigma_mm == 0)
+    hold_normal = plane is not None and plane.sigma_deg == 0
+    problem = RefractiveProblem(cmodel, interface, mount, estimate_distance,
+                                hold_window=hold_normal and not estimate_distance, hold_normal=hold_normal)
+    solver = Solver(problem, huber_px, window_prior(plane, estimate_distance))
     before = adapter.image_residuals_px(rec, cmodel)
     virtual = _initial_state(cmodel, mount, units)
-    if interface.distance_mm is not None:
-        candidates: tuple[float, ...] = (float(interface.distance_mm),)
+    if plane is not None:  # the declared window is the start (held, or the prior's centre)
+        virtual = _declared_start(cmodel, virtual, mount, plane, plane_path)
+    if plane is not None:
+        candidates: tuple[float, ...] = (float(virtual.distances[0]),)
+    elif interface.distance_mm is not None:
+        candidates = (float(interface.distance_mm),)
     elif not estimate_distance:
         candidates = (AIR_DISTANCE_MM,)
     else:
@@ -316,7 +386,7 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     warm = None
     for h in order:
         base = virtual if warm is None else warm
-        start = _convert(cmodel, problem, _with_distance(cmodel, base, mount, h), +1)
+        start = _convert(cmodel, problem, base if plane is not None else _with_distance(cmodel, base, mount, h), +1)
         res = held.run(start, SEARCH_ITERATIONS if warm is None else WARM_SEARCH_ITERATIONS)
         if warm is None:
             warm = _convert(cmodel, problem, res.state, -1)
@@ -342,7 +412,8 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
         where = {int(p): k for k, p in enumerate(cmodel.point3D_ids)}
         a, b = result.state.xyz[where[int(scale_bar[0])]], result.state.xyz[where[int(scale_bar[1])]]
         polish = solver.run if backend == "numpy" else solver.run_gtsam
-        result = polish(_scaled(result.state, scale_bar[2] / float(np.linalg.norm(a - b))), max_iterations)
+        result = polish(_scaled(result.state, scale_bar[2] / float(np.linalg.norm(a - b)), plane is None),
+                        max_iterations)
         iterations += result.iterations
     if bar is not None:
         bar.close()
@@ -366,8 +437,7 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
                    "images": len(cmodel.image_ids), "points3D": len(cmodel.point3D_ids),
                    "observations": len(cmodel.obs_image), "reduced_variables": problem.layout.size},
         "estimated": "intrinsics per camera, rig_from_world per frame (the first held: gauge), sensor_from_rig per "
-                     "non-reference sensor, window normal" + (" and distance" if estimate_distance else
-                                                                " (distance held: unobservable in air)")
+                     "non-reference sensor, window " + _window_parts(hold_normal, estimate_distance, plane is not None)
                      + " per " + ("camera (housing)" if mount == "camera" else "world") + ", 3D points",
         "scale": "the input's units times units_mm, refined by refraction (weakly observable through the plate)",
         "distance_search": search,
@@ -385,15 +455,34 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
                                     for c, cid in enumerate(cmodel.camera_ids)}} if mount == "camera" else
                    {"normal_world": state.normals[0].tolist(), "plane_mm": float(state.distances[0])}),
     }
+    if plane is not None:
+        report["plane"] = {"frame": plane.frame, "declared_normal": declared_window(plane)[0].tolist(),
+                           "point_mm": np.asarray(plane.point_mm, float).tolist(),
+                           "normal": "held" if hold_normal else f"prior {plane.sigma_deg:g} deg",
+                           "distance": (f"prior {plane.sigma_mm:g} mm" if estimate_distance else "held")}
     if scale_bar is not None:
         where = {int(p): k for k, p in enumerate(cmodel.point3D_ids)}
         report["scale_bar"] = {"ids": [int(scale_bar[0]), int(scale_bar[1])], "declared_mm": float(scale_bar[2]),
                                "refined_mm": float(np.linalg.norm(state.xyz[where[int(scale_bar[0])]]
                                                                   - state.xyz[where[int(scale_bar[1])]]))}
+        if abs(report["scale_bar"]["refined_mm"] / scale_bar[2] - 1.0) > 0.01:  # the polish walked the scale valley
+            log.warning("refine-colmap: the scale bar is %.4g mm after the refinement (declared %.4g mm): the bar is "
+                        "applied by rescaling then polishing, and the polish moved the scale (a declared plane does "
+                        "not scale with the scene)", report["scale_bar"]["refined_mm"], scale_bar[2])
     log.warning("refine-colmap: the COLMAP cameras written are the best %s approximation of the refractive "
                 "cameras (poses are virtual; real poses in calibration.json): %.3f px RMS (the exact model: %.3f px)",
                 approximation, report["pinhole_approximation"]["rms_px"], report["after"]["rms_px"])
     return RefineResult(approx, refractive, calibration, state, report)
+
+
+def _window_parts(hold_normal: bool, estimate_distance: bool, declared: bool) -> str:
+    """What of the window is estimated, for the report."""
+    parts = [p for p, free in (("normal", not hold_normal), ("distance", estimate_distance)) if free]
+    why = "held at the declared plane" if declared else "distance held: unobservable in air"
+    if not parts:
+        return f"(none: {why})"
+    return " and ".join(parts) + ("" if len(parts) == 2 else f" ({why})") + (" with the declared plane's prior"
+                                                                               if declared else "")
 
 
 def _opencv_params(model: adapter.ColmapModel, c: int, colmap_params: np.ndarray) -> np.ndarray:

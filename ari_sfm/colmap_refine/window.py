@@ -4,6 +4,11 @@
       thickness_mm: 8
       index: 1.49
       medium_index: 1.333 # optional, 1 (air) by default
+      plane:              # optional: the window as built (see colmap_refine/plane.py)
+        normal: [0, 0, 1] # mount camera: in the camera (housing) frame; world: the COLMAP world
+        point_mm: [0, 0, 22]  # a point of the camera-side face (world: COLMAP coordinates in mm)
+        sigma_deg: 0.5    # optional; absent or 0: held, > 0: a prior
+        sigma_mm: 1.0
     mount: camera         # camera: a housing per COLMAP camera; world: one window fixed in the world
     units_mm: 1.0         # optional: mm per unit of the COLMAP model
     scale_bar:            # optional, instead of units_mm: two point3D ids and their distance
@@ -44,12 +49,13 @@ def load_window(path: str | Path) -> WindowSpec:
     path = Path(path)
     data = as_mapping(read_structured(path), path, "")
     warn_unknown_keys(data, WINDOW_KEYS, path)
-    interface = parse_interface(require(data, "interface", path), path)
-    if interface.plane is not None:
-        log.warning("%s: interface.plane is not used by refine-colmap yet (the window is estimated)", path)
+    raw = require(data, "interface", path)
     mount = require(data, "mount", path)
     if mount not in MOUNTS:
         raise AriSfmError(path, f"mount must be one of {', '.join(MOUNTS)} (got {mount!r})")
+    if isinstance(raw, dict) and isinstance(raw.get("plane"), dict) and raw["plane"].get("frame") is None:
+        raw = dict(raw, plane=dict(raw["plane"], frame=mount))  # no target frames here: the mount's frame
+    interface = parse_interface(raw, path)
     units = data.get("units_mm")
     units = None if units is None else as_positive_float(units, path, "units_mm")
     bar = data.get("scale_bar")

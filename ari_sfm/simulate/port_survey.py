@@ -25,6 +25,7 @@ from ari_sfm.records import Interface
 
 ACRYLIC_INDEX = 1.49
 WATER_INDEX = 1.333
+STRIP_PITCH_DEG = 10.0  # layout "strip": images pitched alternately forward and back along the line
 
 
 @dataclass(frozen=True)
@@ -87,12 +88,14 @@ def _observe(truth_args: dict, rng: np.random.Generator, min_views: int) -> SfmT
     w, hgt = t.image_size
     imgs, pts, uvs = [], [], []
     for i in range(len(t.image_camera)):
-        uv = t.model(i).project(t.cam_from_world(i).apply(t.xyz))
+        near = _maybe_visible(t, i)  # a superset of the visible points (the exact projection is the costly part)
+        uv = t.model(i).project(t.cam_from_world(i).apply(t.xyz[near]))
         ok = np.all(np.isfinite(uv), axis=1) & (uv[:, 0] > 2) & (uv[:, 0] < w - 3) & (uv[:, 1] > 2) & (uv[:, 1] < hgt - 3)
-        idx = np.flatnonzero(ok)
+        idx = near[np.flatnonzero(ok)]
+        uv = uv[np.flatnonzero(ok)]
         imgs.append(np.full(len(idx), i))
         pts.append(idx)
-        uvs.append(uv[idx])
+        uvs.append(uv)
     obs_image, obs_point, uv = np.concatenate(imgs), np.concatenate(pts), np.concatenate(uvs)
     views = np.bincount(obs_point, minlength=len(t.xyz))
     keep_pt = views >= min_views
@@ -102,6 +105,20 @@ def _observe(truth_args: dict, rng: np.random.Generator, min_views: int) -> SfmT
     noisy = uv[keep] + rng.normal(0.0, t.sigma_px, (int(keep.sum()), 2))
     return SfmTruth(**args, obs_image=obs_image[keep], obs_point=new_index[obs_point[keep]], obs_uv=noisy,
                     obs_uv_exact=uv[keep])
+
+
+def _maybe_visible(t: SfmTruth, i: int, margin: float = 0.5) -> np.ndarray:
+    """Indices of the points whose central projection through the lens (no window) falls within the
+    image widened by ``margin`` of its size on each side: a superset of what the exact model sees
+    (a flat window into a denser medium narrows the field of view; the margin covers the plate's
+    lateral shift and the port's tilt)."""
+    X = t.cam_from_world(i).apply(t.xyz)
+    fx, fy, cx, cy = t.params[int(t.image_camera[i])][:4]
+    w, h = t.image_size
+    z = np.where(X[:, 2] > 0, X[:, 2], np.inf)
+    u, v = fx * X[:, 0] / z + cx, fy * X[:, 1] / z + cy
+    return np.flatnonzero((X[:, 2] > 0) & (u > -margin * w) & (u < (1 + margin) * w)
+                          & (v > -margin * h) & (v < (1 + margin) * h))
 
 
 def _look_at(centre: np.ndarray, target: np.ndarray, rng: np.random.Generator, jitter_deg: float) -> np.ndarray:
@@ -120,27 +137,50 @@ def port_survey(seed: int = 0, num_images: int = 28, num_points: int = 1500, sig
                 altitude_mm: float = 2000.0, area_mm: tuple[float, float] = (3000.0, 2000.0),
                 relief_mm: float = 150.0, distance_mm: float = 22.0, thickness_mm: float = 8.0,
                 index: float = ACRYLIC_INDEX, medium_index: float = WATER_INDEX, port_tilt_deg: float = 1.5,
-                min_views: int = 3, convergence: float = 0.4) -> SfmTruth:
+                min_views: int = 3, convergence: float = 0.4, layout: str = "grid",
+                strip_lines: int = 2) -> SfmTruth:
     """A camera in a flat-port housing surveying a relief (mount ``camera``; see module docstring).
 
     Images on a lawn-mower grid (rows along x) covering ``area_mm`` at ``altitude_mm`` above the
     relief's mean depth, each looking at ``convergence`` times its own horizontal position (oblique
     views toward the middle make the focal length observable); the port normal is tilted
     ``port_tilt_deg`` from the optical axis.
+
+    ``layout="strip"``: a long survey with short tracks instead: ``strip_lines`` parallel lines along
+    x over ``area_mm`` (lines at y spread over the middle half of the width), images evenly spaced
+    along each line, pitched alternately +-``STRIP_PITCH_DEG`` along the line and looking toward the
+    strip's centre line (``convergence`` of the line's offset), so each point is seen by a few
+    neighbouring images of one or two lines.
     """
     rng = np.random.default_rng(seed)
-    cols = max(2, int(round(np.sqrt(num_images * area_mm[0] / area_mm[1]))))
-    rows = int(np.ceil(num_images / cols))
-    xs = np.linspace(-0.4, 0.4, cols) * area_mm[0]
-    ys = np.linspace(-0.4, 0.4, rows) * area_mm[1]
+    if layout not in ("grid", "strip"):
+        raise ValueError(f"layout must be grid or strip, got {layout!r}")
     poses = []
-    for r, y in enumerate(ys):
-        for x in (xs if r % 2 == 0 else xs[::-1]):
-            if len(poses) == num_images:
-                break
-            C = np.array([x, y, 0.0]) + rng.normal(0.0, 30.0, 3)
-            R = _look_at(C, np.array([convergence * x, convergence * y, altitude_mm]), rng, 2.0)
-            poses.append(Pose(R, -R @ C))
+    if layout == "strip":
+        per_line = int(np.ceil(num_images / strip_lines))
+        xs = np.linspace(-0.5, 0.5, per_line) * (area_mm[0] - 1.2 * altitude_mm)
+        ys = (np.linspace(-0.25, 0.25, strip_lines) if strip_lines > 1 else np.zeros(1)) * area_mm[1]
+        pitch = altitude_mm * np.tan(np.radians(STRIP_PITCH_DEG))
+        for r, y in enumerate(ys):
+            for k, x in enumerate(xs if r % 2 == 0 else xs[::-1]):
+                if len(poses) == num_images:
+                    break
+                C = np.array([x, y, 0.0]) + rng.normal(0.0, 30.0, 3)
+                target = np.array([x + (pitch if k % 2 == 0 else -pitch), (1.0 - convergence) * y, altitude_mm])
+                R = _look_at(C, target, rng, 2.0)
+                poses.append(Pose(R, -R @ C))
+    else:
+        cols = max(2, int(round(np.sqrt(num_images * area_mm[0] / area_mm[1]))))
+        rows = int(np.ceil(num_images / cols))
+        xs = np.linspace(-0.4, 0.4, cols) * area_mm[0]
+        ys = np.linspace(-0.4, 0.4, rows) * area_mm[1]
+        for r, y in enumerate(ys):
+            for x in (xs if r % 2 == 0 else xs[::-1]):
+                if len(poses) == num_images:
+                    break
+                C = np.array([x, y, 0.0]) + rng.normal(0.0, 30.0, 3)
+                R = _look_at(C, np.array([convergence * x, convergence * y, altitude_mm]), rng, 2.0)
+                poses.append(Pose(R, -R @ C))
     xy = rng.uniform(-0.5, 0.5, (num_points, 2)) * np.array(area_mm)
     xyz = np.column_stack([xy, relief_height(xy, altitude_mm, relief_mm)])
     az = rng.uniform(0.0, 2.0 * np.pi)
