@@ -463,7 +463,8 @@ if __name__ == "__main__":
 @click.option("--window", "window", type=click.Path(path_type=Path), required=True,
               help="WINDOW.yaml: interface (thickness_mm, index, medium_index) and mount (camera | world).")
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
-              help="Output folder: COLMAP model (pinhole approximation), calibration.json, refine.json.")
+              help="Output folder: COLMAP model (the cameras' best OPENCV or PINHOLE approximation), "
+                   "calibration.json, refine.json.")
 @click.option("--huber-px", type=float, default=2.0, show_default=True, help="Huber threshold (px).")
 @click.option("--max-iterations", type=int, default=50, show_default=True)
 @user_errors
@@ -481,4 +482,4 @@ def refine_colmap_cmd(model_dir: Path, window: Path, out: Path, huber_px: float,
     click.echo(f"refine-colmap: {r['counts']['images']} images, {r['counts']['points3D']} points, "
                f"{r['iterations']} iterations, {r['time_s']:.1f} s; reprojection RMS {r['before']['rms_px']:.3f} px "
                f"(COLMAP pinhole) -> {r['after']['rms_px']:.3f} px (exact); COLMAP cameras written as their best "
-               f"pinhole approximation ({r['pinhole_approximation']['rms_px']:.3f} px) -> {out}")
+               f"{r['pinhole_approximation']['camera_model']} approximation ({r['pinhole_approximation']['rms_px']:.3f} px) -> {out}")

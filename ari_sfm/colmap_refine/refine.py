@@ -497,7 +497,7 @@ def _rms(per_image: dict[int, float]) -> float:
 
 
 def write_refined(result: RefineResult, out_dir: str | Path) -> Path:
-    """OUT: the COLMAP model (pinhole approximation, refined points), calibration.json, refine.json."""
+    """OUT: the COLMAP model (the cameras' best COLMAP approximation, refined points), calibration.json, refine.json."""
     from ari_sfm.io import write_json_atomic
 
     out = Path(out_dir)
