@@ -19,7 +19,6 @@ Every pixel comes from :class:`~ari_sfm.models.exact.ExactModel`.
 """
 from __future__ import annotations
 
-import io
 import logging
 import math
 import zlib
@@ -250,15 +249,6 @@ def render_particle_image(uv: np.ndarray, image_size: tuple[int, int], diameter_
 # --------------------------------------------------------------------------- writing
 
 
-def _parquet_bytes(columns: dict[str, np.ndarray | list]) -> bytes:
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    buf = io.BytesIO()
-    pq.write_table(pa.table(columns), buf)
-    return buf.getvalue()
-
-
 def image_pattern(camera: str) -> str:
     """Where the rendered images of a camera live in the experiment folder (rig.yaml pattern)."""
     return f"images/{camera}/{{frame:05d}}.png"
@@ -271,6 +261,7 @@ def write_particle_experiment(exp: ParticleExperiment, out_dir: str | Path, rend
 
     from ari_sfm.io import save_rig, write_bytes_atomic, write_json_atomic, write_text_atomic
     from ari_sfm.io.dataset import camera_to_json, interface_to_json
+    from ari_sfm.io.particles import parquet_bytes
     import yaml
 
     out = Path(out_dir)
@@ -297,13 +288,13 @@ def write_particle_experiment(exp: ParticleExperiment, out_dir: str | Path, rend
             inten.append(peaks[f][ids[cam]])
             pid.append(ids[cam].astype(np.int64))
     frame_a = np.concatenate(frame)
-    write_bytes_atomic(exp_dir / "particles.parquet", _parquet_bytes(
+    write_bytes_atomic(exp_dir / "particles.parquet", parquet_bytes(
         {"frame": frame_a, "camera": camera, "u": np.concatenate(u), "v": np.concatenate(v),
          "intensity": np.concatenate(inten)}))
-    write_bytes_atomic(truth_dir / "detections.parquet", _parquet_bytes(
+    write_bytes_atomic(truth_dir / "detections.parquet", parquet_bytes(
         {"frame": frame_a, "camera": camera, "particle": np.concatenate(pid)}))
     P = np.concatenate(exp.positions)
-    write_bytes_atomic(truth_dir / "particles.parquet", _parquet_bytes(
+    write_bytes_atomic(truth_dir / "particles.parquet", parquet_bytes(
         {"frame": np.repeat(np.arange(len(exp.positions), dtype=np.int64), [len(X) for X in exp.positions]),
          "particle": np.concatenate([np.arange(len(X), dtype=np.int64) for X in exp.positions]),
          "x": P[:, 0], "y": P[:, 1], "z": P[:, 2]}))
