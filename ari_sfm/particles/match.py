@@ -214,8 +214,12 @@ def match_frame(calibration: Calibration, detections: Mapping[str, np.ndarray], 
     if not len(rows):
         return _empty(C)
 
-    tracks = {c: np.where((rows[:, k] >= 0)[:, None], uv[k][np.maximum(rows[:, k], 0)], np.nan)
-              for k, c in enumerate(cameras)}
+    tracks = {}
+    for k, c in enumerate(cameras):
+        t = np.full((len(rows), 2), np.nan)
+        used = rows[:, k] >= 0
+        t[used] = uv[k][rows[used, k]]
+        tracks[c] = t
     X, _, _ = triangulate_pixels(calibration, tracks)
     good = np.isfinite(X).all(axis=1)
     rows, X = rows[good], X[good]

@@ -29,7 +29,8 @@ class Volume:
     def center_world(self) -> np.ndarray:
         """The box centre in the world (x, y of an unbounded box: 0)."""
         lo, hi = self.min_mm, self.max_mm
-        c = np.where(np.isfinite(lo) & np.isfinite(hi), 0.5 * (lo + hi), 0.0)
+        bounded = np.isfinite(lo) & np.isfinite(hi)
+        c = np.where(bounded, 0.5 * (np.where(bounded, lo, 0.0) + np.where(bounded, hi, 0.0)), 0.0)
         return self.box_from_world.inverse().apply(c)
 
     def contains(self, X_world: np.ndarray, margin_mm: float = 0.0) -> np.ndarray:
