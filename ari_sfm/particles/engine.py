@@ -25,6 +25,7 @@ from ari_sfm.io import read_structured, write_json_atomic
 log = logging.getLogger(__name__)
 
 PARTS = "parts"
+SCHEDULER_TIMEOUT_S = 20.0  # connecting to --scheduler
 
 
 class PartitionError(Exception):
@@ -86,7 +87,7 @@ def dask_client(workers: int, scheduler: str | None) -> Iterator[Any]:
 
     if scheduler is not None:
         try:
-            client = Client(scheduler, timeout="20s")
+            client = Client(scheduler, timeout=f"{SCHEDULER_TIMEOUT_S}s")
         except (OSError, TimeoutError) as exc:
             raise AriSfmError("--scheduler", f"cannot reach the Dask scheduler {scheduler} ({exc})") from None
         try:
