@@ -23,6 +23,7 @@ from ari_sfm.particles.engine import PartitionError
 log = logging.getLogger(__name__)
 
 MIN_SIGNAL = 1e-3  # floor of background-subtracted intensities before the log of the Gaussian fit
+BLOB_LEVEL = 0.25  # a blob: the pixels above this fraction of its peak (reached by non-increasing steps)
 
 
 @dataclass(frozen=True)
@@ -32,7 +33,7 @@ class DetectOptions:
     diameter_px: float = 3.0  # e^-2 diameter hint (rig.yaml particles.diameter_px)
     threshold_sigma: float = 6.0  # peak above the background, in units of the image noise
     min_peak: float = 8.0  # and at least this many grey levels
-    max_width_ratio: float = 1.25  # a blob wider than this times one particle's width is two merged: dropped
+    max_width_ratio: float = 1.18  # a blob wider than this times one particle's width is two merged: dropped
 
 
 def _fit_axis(lm: np.ndarray, l0: np.ndarray, lp: np.ndarray) -> np.ndarray:
@@ -93,7 +94,15 @@ def _blob_masks(sig: np.ndarray, ys: np.ndarray, xs: np.ndarray, peak: np.ndarra
     Y = np.clip(ys[:, None, None] + dy, 0, h - 1)
     X = np.clip(xs[:, None, None] + dx, 0, w - 1)
     patch = sig[Y, X]
-    above = patch >= 0.5 * peak[:, None, None]
+    above = patch >= BLOB_LEVEL * peak[:, None, None]
+    if len(xs) > 1:  # pixels nearer another peak (a resolved neighbour) are not this blob's
+        from scipy.spatial import cKDTree
+
+        pts = np.stack([xs, ys], 1).astype(float)
+        _, nn = cKDTree(pts).query(pts, k=2)
+        ox, oy = (pts[nn[:, 1]] - pts).T
+        nearer = (dx - ox[:, None, None]) ** 2 + (dy - oy[:, None, None]) ** 2 < dx ** 2 + dy ** 2
+        above &= ~nearer
     inside = np.zeros_like(above)
     inside[:, r, r] = True
     radius = np.hypot(dy, dx)
@@ -138,7 +147,7 @@ def _half_peak_moment(sigma: float) -> float:
         gx = 0.5 * (erf((off + 0.5 - c) / s2) - erf((off - 0.5 - c) / s2))
         gy = 0.5 * (erf((off + 0.5) / s2) - erf((off - 0.5) / s2))
         g = gy[:, None] * gx[None, :]
-        wts = np.where(g >= 0.5 * g.max(), g, 0.0)
+        wts = np.where(g >= BLOB_LEVEL * g.max(), g, 0.0)
         m = (wts * off[None, :]).sum() / wts.sum()
         best = max(best, float((wts * (off[None, :] - m) ** 2).sum() / wts.sum()))
     return max(best, 1.0 / 12.0)
