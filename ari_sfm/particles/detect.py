@@ -8,6 +8,11 @@ centres; ``diameter_px`` is the e^-2 diameter, sigma = diameter / 4). Two
 particles whose images overlap but keep their own maxima are split (each its
 own fit around its own peak); a blob whose second moments are too wide for
 one particle (two images merged into one maximum) is dropped, never averaged.
+The width is measured over the peak's own pixels (above a quarter of its peak,
+reached by non-increasing steps, not nearer another peak). Measured on rendered
+3 px images with 8-bit noise: isolated centres 0.02 px RMS; merged pairs 1.3 px
+or more apart dropped; pairs 3.5 px apart split (96 %). Two images closer than
+~1.3 px (0.4 diameters) can look like one and give one centre between them.
 """
 from __future__ import annotations
 

@@ -38,7 +38,7 @@ from ari_sfm.triangulate import triangulate_pixels, triangulate_rays
 
 log = logging.getLogger(__name__)
 
-SEGMENT_PX = 8.0  # longest segment of a sampled epipolar curve (the curve is near straight over this)
+SEGMENT_PX = 20.0  # longest segment of a sampled epipolar curve (it bows < 0.01 px over this)
 MAX_SAMPLES = 256  # samples along one ray at most
 COMBO_CHUNK = 200_000  # combinations scored at once (bounds memory with loose tolerances)
 
