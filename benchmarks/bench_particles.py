@@ -128,6 +128,12 @@ def dask_speedup(folder: Path, frames: int) -> None:
 
     from ari_sfm.particles.reconstruct import MatchOptions, reconstruct_particles
 
+    t = time.perf_counter()
+    s = reconstruct_particles(folder / "experiment", folder / "truth" / "rig_b.json", Path(tempfile.mkdtemp()),
+                              MatchOptions(frames_per_partition=1), workers=0)
+    wall = time.perf_counter() - t
+    print(f"in process (--workers 0): {s['particles']} particles in {frames} frames in {wall:.1f} s wall, "
+          f"{s['particles'] / wall:.0f} particles/s")
     walls = {}
     for workers in (1, 2):
         t0 = time.perf_counter()
