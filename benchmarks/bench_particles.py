@@ -121,6 +121,13 @@ def openptv(exp, calibration_path: Path, folder: Path, volume: Volume) -> tuple[
     return total, cpu
 
 
+def _warm_up() -> None:
+    """Imports on a worker, out of the timing."""
+    import scipy.spatial  # noqa: F401
+
+    import ari_sfm.particles.reconstruct  # noqa: F401
+
+
 def dask_speedup(folder: Path, frames: int) -> None:
     """reconstruct_particles on a LocalCluster of 1 and 2 workers: the cluster's start (processes, imports)
     apart from the run on the started cluster (``scheduler=``: what a long experiment sees)."""
@@ -139,7 +146,7 @@ def dask_speedup(folder: Path, frames: int) -> None:
         t0 = time.perf_counter()
         with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
                 Client(cluster) as client:
-            client.run(lambda: __import__("ari_sfm.particles.reconstruct") and None)  # imports on every worker
+            client.run(_warm_up)
             started = time.perf_counter() - t0
             t = time.perf_counter()
             s = reconstruct_particles(folder / "experiment", folder / "truth" / "rig_b.json", Path(tempfile.mkdtemp()),
