@@ -293,6 +293,12 @@ def test_bad_inputs_are_one_line(written, tmp_path):
     assert "dataset folder" in _cli_error(["particles", exp, "--calibration", cal, "-o", exp, "--workers", "0"])
     assert "dataset folder" in _cli_error(["detect-particles", written / "experiment", "-o", written / "experiment",
                                            "--workers", "0"])
+    # images only: no detections to match
+    rig = (exp / "rig.yaml").read_text().replace("detections: particles.parquet", "")
+    (tmp_path / "imgonly").mkdir()
+    (tmp_path / "imgonly" / "rig.yaml").write_text(rig)
+    assert "detect-particles" in _cli_error(["particles", tmp_path / "imgonly", "--calibration", cal, "-o",
+                                             tmp_path / "o6", "--workers", "0"])
     # more cameras than the rig has
     assert "--min-cameras" in _cli_error(["particles", exp, "--calibration", cal, "-o", tmp_path / "o5",
                                           "--workers", "0", "--min-cameras", "5"])
