@@ -180,7 +180,9 @@ def detect_partition(patterns: dict[str, str], frames: list[int], options: Detec
             v.append(uv[:, 1])
             inten.append(peak)
     cat = lambda a, dt=float: np.concatenate(a).astype(dt) if a else np.empty(0, dt)  # noqa: E731
-    return {"frame": cat(frame, np.int64), "camera": np.asarray(camera, dtype=object),
+    import pyarrow as pa
+
+    return {"frame": cat(frame, np.int64), "camera": pa.array(camera, type=pa.string()),  # typed when empty
             "u": cat(u), "v": cat(v), "intensity": cat(inten)}
 
 
@@ -196,7 +198,7 @@ def detect_experiment(dataset_path: str | Path, out: str | Path, options: Detect
 
     from ari_sfm.errors import AriSfmError
     from ari_sfm.io import write_json_atomic
-    from ari_sfm.io.particles import load_particle_dataset, write_parquet_atomic
+    from ari_sfm.io.particles import load_particle_dataset, write_table_atomic
     from ari_sfm.particles.engine import (
         Partition,
         check_run_settings,
@@ -232,12 +234,11 @@ def detect_experiment(dataset_path: str | Path, out: str | Path, options: Detect
             tqdm(total=len(partitions), disable=not progress, desc="detecting", unit="partition") as bar:
         paths = run_partitions(detect_partition, partitions, out, client, lambda p, s: bar.update(1))
     table = merge_partitions(paths)
-    cols = {name: table.column(name).to_numpy(zero_copy_only=False) for name in table.column_names}
-    cols["camera"] = [str(c) for c in cols["camera"]]
-    write_parquet_atomic(out / "particles.parquet", cols)
-    counts = {cam: int(sum(1 for c in cols["camera"] if c == cam)) for cam in patterns}
+    write_table_atomic(out / "particles.parquet", table)
+    cams, n = np.unique(table.column("camera").to_numpy(zero_copy_only=False).astype(str), return_counts=True)
+    counts = {cam: int(dict(zip(cams.tolist(), n.tolist())).get(cam, 0)) for cam in patterns}
     summary = {"format": "ari-sfm-detect-particles/1", "dataset": str(dataset.rig_path), "frames": [first, last],
-               "detections": int(len(cols["frame"])), "per_camera": counts,
+               "detections": int(table.num_rows), "per_camera": counts,
                "options": settings["options"], "time_s": time.perf_counter() - t0,
                "workers": workers if scheduler is None else None, "scheduler": scheduler}
     write_json_atomic(out / "detect-particles.json", summary)
