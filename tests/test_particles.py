@@ -158,6 +158,16 @@ def test_true_calibration_finds_the_particles(experiment):
     assert total.rms_error_mm < 0.04
 
 
+def test_noise_free_images_round_trip_to_the_particles(experiment):
+    """Exact (noise-free) images: every particle found, its point at the truth to 1e-6 mm and its rays
+    through it (ray gap ~0): the curves, the triangulation and the truth share one physics."""
+    m = match_frame(experiment.truth_b, experiment.exact_pixels[0], 0.5, volume=_volume(experiment))
+    s = _score(experiment, 0, m)
+    assert s.found == s.seen == SMALL.particles_per_frame and s.ghosts == 0
+    assert s.rms_error_mm < 1e-6
+    assert m.ray_gap_mm.max() < 1e-6
+
+
 def test_rows_index_each_detection_once(experiment):
     m = match_frame(experiment.truth_b, experiment.detections[0], 0.5, volume=_volume(experiment))
     for k in range(m.rows.shape[1]):
