@@ -25,7 +25,14 @@ from ari_sfm.io.particles import (
     read_detections,
     write_parquet_atomic,
 )
-from ari_sfm.particles.engine import Partition, check_run_settings, dask_client, merge_partitions, run_partitions, split_frames
+from ari_sfm.particles.engine import (
+    Partition,
+    check_run_settings,
+    dask_client,
+    merge_partitions,
+    run_partitions,
+    split_frames,
+)
 from ari_sfm.particles.match import match_frame
 from ari_sfm.particles.volume import Volume
 
