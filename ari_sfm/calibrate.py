@@ -50,12 +50,17 @@ class CalibrationOptions:
             raise ValueError(f"outlier_sigma must be a finite number > 0 (got {self.outlier_sigma})")
 
 
-def _options(options: dict) -> CalibrationOptions:
+def _options(options: CalibrationOptions | None, overrides: dict) -> CalibrationOptions:
+    """``options`` (default: the defaults) with the keyword ``overrides`` applied."""
     names = {f.name for f in fields(CalibrationOptions)}
-    unknown = set(options) - names
+    unknown = set(overrides) - names
     if unknown:
         raise TypeError(f"unknown calibrate option(s): {', '.join(sorted(unknown))} (known: {', '.join(sorted(names))})")
-    return CalibrationOptions(**options)
+    if options is None:
+        return CalibrationOptions(**overrides)
+    if not isinstance(options, CalibrationOptions):
+        raise TypeError(f"options must be a CalibrationOptions (got {type(options).__name__})")
+    return replace(options, **overrides)
 
 
 def ensure_observations(dataset: Dataset, workers: int | None = None, progress: bool = False) -> Dataset:
@@ -76,14 +81,16 @@ def _add_factors(graph, extra_factors) -> None:
         graph.graph.push_back(f)
 
 
-def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=None, **options) -> Calibration:
+def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=None,
+              options: CalibrationOptions | None = None, **overrides) -> Calibration:
     """Calibrate the cameras and the window of a dataset.
 
     model "ari": the paper's paraxial model (analytic initialisation + bundle
     adjustment); "exact": Snell's law at both faces, refined from the ari result;
     the paper's baselines "rt" (ray tracing) and "pf" (polynomial), and "pinhole",
     "pinhole_dist" (window ignored): see :mod:`ari_sfm.baselines`.
-    Options: see :class:`CalibrationOptions`.
+    Options: a :class:`CalibrationOptions` as ``options=``, and/or its fields as keywords
+    (``calibrate(ds, fix_intrinsics=True)``), which override ``options``.
 
     ``extra_factors``: gtsam factors on the graph's keys (:mod:`ari_sfm.factors.keys`; e.g.
     ``gtsam.PriorFactorUnit3(keys.N, ...)`` with a sigma in radians), or a callable taking each
@@ -96,7 +103,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=N
     from .factors.vectorized import optimize_graph, resolve_backend
     from .factors.window_plane import plane_in_world
 
-    opts = _options(options)
+    opts = _options(options, overrides)
     backend = resolve_backend(opts.backend)
     spec = model_spec(model, "model", calibratable=True)  # the models: ari_sfm.models.registry
     if not isinstance(dataset, Dataset):
@@ -109,7 +116,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=N
             raise ValueError(f"extra_factors need a factor-graph model (ari or exact), not {model!r}")
         return spec.calibrate(dataset, opts)
     t0 = time.perf_counter()
-    rig = initialise_rig(dataset, opts.distortion, opts.workers)
+    rig = initialise_rig(dataset, opts.distortion, opts.workers, opts.fix_intrinsics)
     iface = dataset.interface
     names = dataset.camera_names
     underwater = iface.medium_index != 1.0
@@ -132,7 +139,8 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=N
         state.params[n][:2] = f
     # (label, model, normal held at its start, declared plane in the graph)
     # Under water the ari poses can be far off along the normal, so a plane placed by its frame's ari
-    # pose can put the window behind the cameras: exact places it by its own poses ("exact_free" first).
+    # pose can put the window behind the cameras: then exact places it by its own poses ("exact_free"
+    # first; skipped when the plane placed by the ari poses separates every camera from its corners).
     placed_by_exact = plane is not None and underwater and model == "exact"
     stages = [("ari", "ari", False, plane is not None and not placed_by_exact)]
     if not rig.normal_observed:  # no stacking: ari with the normal held at its start gives K and the poses
@@ -179,8 +187,16 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=N
 
     graph = None
     iterations = {}
+    from .init.window_start import not_beyond
+
     for label, stage, hold_normal, with_plane in stages:
         sigma = given_sigma
+        if label == "exact_free":
+            n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
+            if not_beyond(replace(state, normal_world=n_w, distance_mm=h_w), dataset.observations, dataset.target,
+                          iface.thickness_mm) is None:
+                log.info("exact_free stage skipped: the declared plane at the ari poses separates cameras and corners")
+                continue
         if with_plane:  # the declared window, placed by the current pose of its frame
             n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
             state = replace(state, normal_world=n_w, distance_mm=h_w if underwater else state.distance_mm)
