@@ -99,6 +99,7 @@ def test_declared_window_fixed_focal_reaches_the_floor(ptv, held_out):
     ds = ptv.dataset
     cal = calibrate(_without_plane(ds, held_out), model="exact", fix_intrinsics=True, uncertainty=False)
     assert 0.9 * FLOOR_PX < cal.residuals.rmse_px < 1.1 * FLOOR_PX
+    assert cal.quality.ok and cal.quality.starts == ("default",)
     truth = Calibration.from_json({k: v for k, v in ptv.truth.items() if k != "target"})
     noise_share = _held_out_rms_mm(truth, ds, held_out)
     got = _held_out_rms_mm(cal, ds, held_out)
