@@ -139,7 +139,9 @@ def _calibration_options(fn):
 @user_errors
 def calibrate_cmd(dataset: Path, out: Path, model: str | None, distortion: bool, huber_px: float, exclude_outliers: bool,
                   fix_intrinsics: bool, backend: str) -> None:
-    """Calibrate DATASET; write OUT/calibration.json (and OUT/observations.json when detected here)."""
+    """Calibrate DATASET; write OUT/calibration.json (and OUT/observations.json when detected here).
+
+    Exit code 3: the calibration converged but failed its quality gate (written with quality.ok false)."""
     from .pipelines.calibrate_rig import main as pipeline
 
     model = model or "ari"
@@ -165,7 +167,9 @@ def calibrate_cmd(dataset: Path, out: Path, model: str | None, distortion: bool,
 @user_errors
 def run(dataset: Path, out: Path, model: str | None, distortion: bool, huber_px: float, exclude_outliers: bool,
         fix_intrinsics: bool, backend: str, truth: Path | None) -> None:
-    """The pipeline: detect corners when needed, calibrate, reconstruct (frames seen by two cameras), report."""
+    """The pipeline: detect corners when needed, calibrate, reconstruct (frames seen by two cameras), report.
+
+    Exit code 3: the calibration failed its quality gate (no reconstruction)."""
     from .pipelines.run import main as pipeline
 
     if model is not None:  # None: exact without stacking poses, else ari (pipelines.run.default_model)
