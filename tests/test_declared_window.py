@@ -118,3 +118,54 @@ def test_calibrate_takes_an_options_record(ptv):
     assert any(c.K[0, 0] != pytest.approx(ds.cameras[n].focal_px, rel=1e-6) for n, c in b.cameras.items())
     with pytest.raises(TypeError, match="CalibrationOptions"):
         calibrate(ds, model="exact", options={"fix_intrinsics": True})
+
+
+def test_ptv_multiplane_is_what_import_openptv_reads(tmp_path):
+    """The scenario written as an OpenPTV experiment (the truth exported with export-openptv in frame
+    f000, one .fix / .crd per plane and camera, multi_planes.par) and imported back gives the same
+    dataset: plane, focal hints, body points and pixels (the importer numbers plane p's dots p * 100 + i
+    for 24 dots a plane, the scenario p * 1000 + i)."""
+    from ari_sfm.openptv import export_openptv
+    from ari_sfm.openptv.importer import read_experiment
+    from ari_sfm.simulate.scenarios import PTV_PLANE_ID_STEP
+
+    scene = make_scene("ptv_multiplane", seed=2, sigma_px=0.0, grid=(6, 4))
+    ds = scene.dataset
+    Calibration.from_json({k: v for k, v in scene.truth.items() if k != "target"}).save(tmp_path / "truth.json")
+    root = tmp_path / "exp"
+    export_openptv(tmp_path / "truth.json", root, frame="f000", pixel_size_mm=0.01)
+    all_ids, xyz = ds.target.points_3d()
+    bases = [f"img/plane{p}_cam" for p in range(4)]
+    (root / "img").mkdir()
+    (root / "parameters" / "multi_planes.par").write_text("4\n" + "".join(b + "\n" for b in bases))
+    for o in ds.observations:
+        k = int(o.camera[3:])
+        for p, base in enumerate(bases):
+            m = ptv_plane_of(o.ids) == p
+            local = o.ids[m] % PTV_PLANE_ID_STEP
+            pts = object_points(ds.target, o.ids[m])
+            (root / f"{base}{k}.tif.fix").write_text("".join(
+                f"{i} {x:.6f} {y:.6f} {z:.6f}\n" for i, (x, y, z) in zip(local, pts)))
+            (root / f"{base}{k}.tif.crd").write_text("".join(
+                f"{i} {u + 0.5:.5f} {v + 0.5:.5f}\n" for i, (u, v) in zip(local, o.pixels[m])))
+    imported = read_experiment(root)
+    step = 100
+    to_imported = lambda ids: ptv_plane_of(ids) * step + ids % PTV_PLANE_ID_STEP  # noqa: E731
+    plane, got = ds.interface.plane, imported.interface.plane
+    # held (sigma_deg: the importer's arccos of identical tilted unit normals is ~1e-6 deg, not 0)
+    assert got.frame == plane.frame and got.sigma_deg < 1e-5 and got.sigma_mm == 0.0
+    np.testing.assert_allclose(got.normal, plane.normal, atol=1e-9)
+    assert abs(plane.normal @ (got.point_mm - plane.point_mm)) < 1e-6
+    for name, cam in ds.cameras.items():
+        assert imported.cameras[name].focal_px == pytest.approx(cam.focal_px, rel=1e-9)
+    imp_ids, imp_xyz = imported.target.points_3d()
+    np.testing.assert_array_equal(imp_ids, np.sort(to_imported(all_ids)))
+    np.testing.assert_allclose(imp_xyz[np.searchsorted(imp_ids, to_imported(all_ids))], xyz, atol=1e-6)
+    for o in ds.observations:
+        (io,) = [x for x in imported.observations if x.camera == o.camera]
+        order = np.argsort(to_imported(o.ids))
+        np.testing.assert_array_equal(io.ids, to_imported(o.ids)[order])
+        np.testing.assert_allclose(io.pixels, o.pixels[order], atol=1e-9)
+    # and the imported experiment calibrates as OpenPTV users run it: declared plane, focal held
+    cal = calibrate(imported, model="exact", fix_intrinsics=True, uncertainty=False)
+    assert cal.quality.ok and cal.residuals.rmse_px < 1.1 * FLOOR_PX
