@@ -125,7 +125,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=N
         try:
             cal, residuals = _calibrate_from(dataset, model, extra_factors, opts, backend, start)
         except AriSfmError as exc:  # e.g. no window distance fits these poses: the next start may do better
-            log.warning("calibration from the %s start failed: %s", start.name, exc.message)
+            log.info("calibration from the %s start failed: %s", start.name, exc.message)
             first_error = first_error or exc
             continue
         if not opts.quality:
