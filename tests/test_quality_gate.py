@@ -95,3 +95,32 @@ def test_cli_good_calibration_exits_0(tmp_path):
     assert r.exit_code == 0, r.output
     assert "quality: ok" in r.output
     assert json.loads((tmp_path / "out" / "calibration.json").read_text())["quality"]["ok"] is True
+
+
+def test_a_failed_start_is_retried_from_the_next(coarse, monkeypatch):
+    """The default start refused (as main refused a split of the real body): the next start is solved and
+    kept when it passes; every start refused: the first refusal is raised."""
+    import importlib
+
+    from ari_sfm.errors import AriSfmError
+
+    C = importlib.import_module("ari_sfm.calibrate")  # the module (ari_sfm.calibrate is also the function)
+
+    solve = C._calibrate_from
+
+    def refuse_default(dataset, model, extra, opts, backend, start):
+        if start.name == "default":
+            raise AriSfmError(dataset.rig_path, "no window distance puts every camera in front of the window")
+        return solve(dataset, model, extra, opts, backend, start)
+
+    monkeypatch.setattr(C, "_calibrate_from", refuse_default)
+    cal = calibrate(coarse.dataset, model="ari", fix_intrinsics=True, uncertainty=False)
+    assert cal.quality.ok and cal.quality.starts == ("default", "hints free in the start")
+    assert cal.residuals.rmse_px < 0.4
+
+    def refuse_all(dataset, model, extra, opts, backend, start):
+        raise AriSfmError(dataset.rig_path, f"refused from {start.name}")
+
+    monkeypatch.setattr(C, "_calibrate_from", refuse_all)
+    with pytest.raises(AriSfmError, match="refused from default"):
+        calibrate(coarse.dataset, model="ari", fix_intrinsics=True)
