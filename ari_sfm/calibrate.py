@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
@@ -39,6 +40,7 @@ class CalibrationOptions:
     uncertainty: bool = True  # standard deviations of every parameter (marginal covariances, physical units)
     sigma_px: float | None = None  # the corners' pixel sigma weighting the images; None: estimated (robust,
     # from each stage's residuals; the stage is re-solved with it when priors or extra factors share the graph)
+    quality: bool = True  # judge the result (ari_sfm.quality) and, when it fails, re-try from the other starts
 
     def __post_init__(self) -> None:
         """Refuse values that would fail deep inside the solver (huber_px -1 gave 'non-finite Jacobian')."""
@@ -50,12 +52,17 @@ class CalibrationOptions:
             raise ValueError(f"outlier_sigma must be a finite number > 0 (got {self.outlier_sigma})")
 
 
-def _options(options: dict) -> CalibrationOptions:
+def _options(options: CalibrationOptions | None, overrides: dict) -> CalibrationOptions:
+    """``options`` (default: the defaults) with the keyword ``overrides`` applied."""
     names = {f.name for f in fields(CalibrationOptions)}
-    unknown = set(options) - names
+    unknown = set(overrides) - names
     if unknown:
         raise TypeError(f"unknown calibrate option(s): {', '.join(sorted(unknown))} (known: {', '.join(sorted(names))})")
-    return CalibrationOptions(**options)
+    if options is None:
+        return CalibrationOptions(**overrides)
+    if not isinstance(options, CalibrationOptions):
+        raise TypeError(f"options must be a CalibrationOptions (got {type(options).__name__})")
+    return replace(options, **overrides)
 
 
 def ensure_observations(dataset: Dataset, workers: int | None = None, progress: bool = False) -> Dataset:
@@ -76,14 +83,16 @@ def _add_factors(graph, extra_factors) -> None:
         graph.graph.push_back(f)
 
 
-def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=None, **options) -> Calibration:
+def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=None,
+              options: CalibrationOptions | None = None, **overrides) -> Calibration:
     """Calibrate the cameras and the window of a dataset.
 
     model "ari": the paper's paraxial model (analytic initialisation + bundle
     adjustment); "exact": Snell's law at both faces, refined from the ari result;
     the paper's baselines "rt" (ray tracing) and "pf" (polynomial), and "pinhole",
     "pinhole_dist" (window ignored): see :mod:`ari_sfm.baselines`.
-    Options: see :class:`CalibrationOptions`.
+    Options: a :class:`CalibrationOptions` as ``options=``, and/or its fields as keywords
+    (``calibrate(ds, fix_intrinsics=True)``), which override ``options``.
 
     ``extra_factors``: gtsam factors on the graph's keys (:mod:`ari_sfm.factors.keys`; e.g.
     ``gtsam.PriorFactorUnit3(keys.N, ...)`` with a sigma in radians), or a callable taking each
@@ -91,12 +100,10 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=N
     stage (ari, exact, the outlier re-run), the view factors being whitened by the pixel sigma,
     so a prior weighs what its sigma says (docs/RESEARCH.md).
     """
-    from .init.rig import NO_NORMAL_MESSAGE, initialise_rig
-    from .factors.rig_graph import RigGraph, RigState, default_distance_mm
-    from .factors.vectorized import optimize_graph, resolve_backend
-    from .factors.window_plane import plane_in_world
+    from .factors.vectorized import resolve_backend
+    from .quality import judge, pinhole_dist_rmse_px
 
-    opts = _options(options)
+    opts = _options(options, overrides)
     backend = resolve_backend(opts.backend)
     spec = model_spec(model, "model", calibratable=True)  # the models: ari_sfm.models.registry
     if not isinstance(dataset, Dataset):
@@ -109,7 +116,68 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=N
             raise ValueError(f"extra_factors need a factor-graph model (ari or exact), not {model!r}")
         return spec.calibrate(dataset, opts)
     t0 = time.perf_counter()
-    rig = initialise_rig(dataset, opts.distortion, opts.workers)
+    tried: list[str] = []
+    judged: list = []  # (Calibration with its quality)
+    first_error = None
+    pinhole = None
+    for start in _starts(dataset, model, opts):
+        tried.append(start.name)
+        try:
+            cal, residuals = _calibrate_from(dataset, model, extra_factors, opts, backend, start)
+        except AriSfmError as exc:  # e.g. no window distance fits these poses: the next start may do better
+            log.info("calibration from the %s start failed: %s", start.name, exc.message)
+            first_error = first_error or exc
+            continue
+        if not opts.quality:
+            return replace(cal, time_s=time.perf_counter() - t0)
+        if pinhole is None:
+            pinhole = (pinhole_dist_rmse_px(dataset),)
+        quality = judge(model, cal.residuals.rmse_px, (r for _, r in residuals), pinhole[0], cal.uncertainty, tuple(tried))
+        judged.append(replace(cal, quality=quality))
+        if quality.ok:
+            break
+        log.warning("quality gate: the %s start gives a failed calibration (%s)", start.name, quality.why)
+    if not judged:
+        raise first_error
+    best = next((c for c in judged if c.quality.ok), None)
+    if best is None:  # every start failed: the one of least robust RMSE, said to have failed
+        best = min(judged, key=lambda c: (not math.isfinite(c.quality.robust_rmse_px), c.quality.robust_rmse_px))
+        best = replace(best, quality=replace(best.quality, starts=tuple(tried)))
+    return replace(best, time_s=time.perf_counter() - t0)
+
+
+@dataclass(frozen=True)
+class Start:
+    """One way to start the bundle adjustment (the quality gate tries the next when a result fails)."""
+
+    name: str
+    held_hints: bool  # the analytic start holds what --fix-intrinsics holds (else K runs free in it)
+    free_window_first: bool = False  # declared plane under water: exact fits a free window first (tilt and
+    # distance searched), then the plane is placed by its poses
+
+
+def _starts(dataset: Dataset, model: str, opts: CalibrationOptions) -> list[Start]:
+    """The starts, in order: the default; a free window first (a declared plane under water, exact);
+    the hints free in the analytic start (with --fix-intrinsics)."""
+    starts = [Start("default", opts.fix_intrinsics)]
+    iface = dataset.interface
+    if iface.plane is not None and iface.medium_index != 1.0 and model == "exact":
+        starts.append(Start("free window", opts.fix_intrinsics, free_window_first=True))
+    if opts.fix_intrinsics:
+        starts.append(Start("hints free in the start", False))
+    return starts
+
+
+def _calibrate_from(dataset: Dataset, model: str, extra_factors, opts: CalibrationOptions, backend: str,
+                    start: Start) -> tuple[Calibration, list]:
+    """One bundle adjustment of ``model`` from ``start``: the calibration and its (observation, residuals)."""
+    from .init.rig import NO_NORMAL_MESSAGE, initialise_rig
+    from .factors.rig_graph import RigGraph, RigState, default_distance_mm
+    from .factors.vectorized import optimize_graph
+    from .factors.window_plane import plane_in_world
+
+    t0 = time.perf_counter()
+    rig = initialise_rig(dataset, opts.distortion, opts.workers, start.held_hints)
     iface = dataset.interface
     names = dataset.camera_names
     underwater = iface.medium_index != 1.0
@@ -132,7 +200,8 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=N
         state.params[n][:2] = f
     # (label, model, normal held at its start, declared plane in the graph)
     # Under water the ari poses can be far off along the normal, so a plane placed by its frame's ari
-    # pose can put the window behind the cameras: exact places it by its own poses ("exact_free" first).
+    # pose can put the window behind the cameras: then exact places it by its own poses ("exact_free"
+    # first; skipped when the plane placed by the ari poses separates every camera from its corners).
     placed_by_exact = plane is not None and underwater and model == "exact"
     stages = [("ari", "ari", False, plane is not None and not placed_by_exact)]
     if not rig.normal_observed:  # no stacking: ari with the normal held at its start gives K and the poses
@@ -179,8 +248,16 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=N
 
     graph = None
     iterations = {}
+    from .init.window_start import not_beyond
+
     for label, stage, hold_normal, with_plane in stages:
         sigma = given_sigma
+        if label == "exact_free" and not start.free_window_first:
+            n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
+            if not_beyond(replace(state, normal_world=n_w, distance_mm=h_w), dataset.observations, dataset.target,
+                          iface.thickness_mm) is None:
+                log.info("exact_free stage skipped: the declared plane at the ari poses separates cameras and corners")
+                continue
         if with_plane:  # the declared window, placed by the current pose of its frame
             n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
             state = replace(state, normal_world=n_w, distance_mm=h_w if underwater else state.distance_mm)
@@ -270,7 +347,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=N
         fixed_distance_mm=state.distance_mm if model == "exact" and distance is None else None,
         uncertainty=uncertainty,
         outliers=OutlierReport(robust_sigma, opts.outlier_sigma, opts.exclude_outliers, tuple(outliers)),
-    )
+    ), residuals
 
 
 def _hold_normal(rg, normal: np.ndarray) -> None:

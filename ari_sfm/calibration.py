@@ -13,6 +13,7 @@ from .geometry import Pose
 from .models.registry import ModelSpec, model_spec
 from .records import Interface, Target
 from .results import OutlierReport, PfWorld, ResidualStats, Uncertainty
+from .quality import Quality
 
 FORMAT = "ari-sfm-calibration/1"
 
@@ -58,6 +59,7 @@ class Calibration:
     uncertainty: Uncertainty | None = None  # standard deviations (bundle-adjusted models, when asked for)
     outliers: OutlierReport | None = None  # corners beyond k sigma after convergence (bundle-adjusted models)
     pf_world: PfWorld | None = None  # model pf: the calibration whose frames are its world (required then)
+    quality: Quality | None = None  # the quality gate's verdict (ari, exact; ari_sfm.quality)
 
     def __post_init__(self) -> None:
         spec = self.spec  # an unknown model name fails here
@@ -168,7 +170,7 @@ class Calibration:
         out["time_s"] = self.time_s
         out.update(self.extra)
         for key, record in (("pf_world", self.pf_world), ("uncertainty", self.uncertainty),
-                            ("outliers", self.outliers)):
+                            ("outliers", self.outliers), ("quality", self.quality)):
             if record is not None:
                 out[key] = record.to_json()
         if self.fixed_distance_mm is not None:
@@ -287,7 +289,7 @@ def _parse(data: Any, path: Any) -> Calibration:
     frames = {f: _pose(v["world_from_target"], f"frames.{f}", path) for f, v in data.get("frames", {}).items()}
     stacking = {f: _pose(v["world_from_target"], f"stacking_poses.{f}", path) for f, v in data.get("stacking_poses", {}).items()}
     reserved = {"format", "model", "interface", "cameras", "frames", "stacking_poses", "residuals", "time_s", "target",
-                "fixed_distance_mm", "uncertainty", "outliers", "pf_world"}
+                "fixed_distance_mm", "uncertainty", "outliers", "pf_world", "quality"}
     fixed = data.get("fixed_distance_mm")
     if fixed is not None:
         fixed = float(fixed)
@@ -307,6 +309,7 @@ def _parse(data: Any, path: Any) -> Calibration:
         frames, stacking, _record(ResidualStats, data, "residuals", path), float(data.get("time_s", 0.0)),
         {k: v for k, v in data.items() if k not in reserved}, target, fixed,
         _record(Uncertainty, data, "uncertainty", path), _record(OutlierReport, data, "outliers", path), pf_world,
+        _record(Quality, data, "quality", path),
     )
 
 

@@ -139,7 +139,9 @@ def _calibration_options(fn):
 @user_errors
 def calibrate_cmd(dataset: Path, out: Path, model: str | None, distortion: bool, huber_px: float, exclude_outliers: bool,
                   fix_intrinsics: bool, backend: str) -> None:
-    """Calibrate DATASET; write OUT/calibration.json (and OUT/observations.json when detected here)."""
+    """Calibrate DATASET; write OUT/calibration.json (and OUT/observations.json when detected here).
+
+    Exit code 3: the calibration converged but failed its quality gate (written with quality.ok false)."""
     from .pipelines.calibrate_rig import main as pipeline
 
     model = model or "ari"
@@ -153,6 +155,7 @@ def calibrate_cmd(dataset: Path, out: Path, model: str | None, distortion: bool,
     if result.observations_path:
         click.echo(f"observations: {result.observations_path}")
     click.echo(f"calibration:  {result.calibration_path}")
+    _exit_if_failed(result.calibration)
 
 
 @main.command()
@@ -164,7 +167,9 @@ def calibrate_cmd(dataset: Path, out: Path, model: str | None, distortion: bool,
 @user_errors
 def run(dataset: Path, out: Path, model: str | None, distortion: bool, huber_px: float, exclude_outliers: bool,
         fix_intrinsics: bool, backend: str, truth: Path | None) -> None:
-    """The pipeline: detect corners when needed, calibrate, reconstruct (frames seen by two cameras), report."""
+    """The pipeline: detect corners when needed, calibrate, reconstruct (frames seen by two cameras), report.
+
+    Exit code 3: the calibration failed its quality gate (no reconstruction)."""
     from .pipelines.run import main as pipeline
 
     if model is not None:  # None: exact without stacking poses, else ari (pipelines.run.default_model)
@@ -185,6 +190,7 @@ def run(dataset: Path, out: Path, model: str | None, distortion: bool, huber_px:
         click.echo(f"reconstruction: {m.num_points} points in {m.num_frames} frames, flatness rmse "
                    f"{m.flatness_mm.rmse:.4f} mm -> {result.reconstruction.metrics_path}")
     click.echo(f"report: {result.report_path}")
+    _exit_if_failed(result.calibrated.calibration)
 
 
 @main.command(name="report")
@@ -506,11 +512,23 @@ def doctor() -> None:
     sys.exit(1 if bad else 0)
 
 
+QUALITY_FAILED_EXIT = 3  # the calibration was written but failed its quality gate (ari_sfm.quality)
+
+
+def _exit_if_failed(cal) -> None:
+    """Exit 3 when the calibration failed its quality gate (its summary said so)."""
+    if cal.quality is not None and not cal.quality.ok:
+        sys.exit(QUALITY_FAILED_EXIT)
+
+
 def _summary(cal, elapsed: float) -> None:
     """A one-screen summary of a calibration."""
     from .geometry import angle_between_deg
 
     r = cal.residuals
+    q = cal.quality
+    if q is not None and not q.ok:
+        click.echo(f"\nQUALITY GATE FAILED (exit 3): {q.why} [starts tried: {', '.join(q.starts)}]")
     click.echo(f"\nmodel {cal.model}: {len(cal.cameras)} camera(s), {len(cal.frames)} frames, "
                f"window {cal.interface.thickness_mm:g} mm n={cal.interface.index:g} medium n={cal.interface.medium_index:g}")
     nw = cal.normal_world
@@ -539,6 +557,9 @@ def _summary(cal, elapsed: float) -> None:
         click.echo(f"{len(cal.outliers.corners)} corners beyond {cal.outliers.threshold_sigma:g} sigma "
                    f"({'excluded' if cal.outliers.excluded else 'listed in calibration.json under outliers'})")
     click.echo(f"residuals: rmse {r.rmse_px:.4f} px, mae {r.mae_px:.4f} px, max {r.max_px:.4f} px over {r.count} corners")
+    if q is not None and q.ok:
+        pin = "n/a" if q.pinhole_dist_rmse_px is None else f"{q.pinhole_dist_rmse_px:.4f} px"
+        click.echo(f"quality: ok (robust rmse {q.robust_rmse_px:.4f} px; free pinhole + distortion {pin})")
     click.echo(f"time: calibration {cal.time_s:.3f} s, total {elapsed:.2f} s")
 
 

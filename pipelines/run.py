@@ -74,6 +74,9 @@ def main(dataset_path: Path, out_dir: Path, model: str | None = None, truth: Pat
     obs_path = calibrated.observations_path
     dataset = load_dataset(dataset_path, obs_path)
     frames, why = reconstruction_frames(dataset)
+    quality = calibrated.calibration.quality
+    if quality is not None and not quality.ok:  # stop before reconstructing with a failed calibration
+        why = f"the calibration failed its quality gate: {quality.why}"
     rec = None
     if why is None:
         rec = run_reconstruction(dataset_path, calibrated.calibration_path, out_dir, truth, progress=progress,

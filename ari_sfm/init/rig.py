@@ -18,7 +18,7 @@ from ..geometry import Pose, mean_pose, unit
 from ..records import Dataset
 from .expansion_center import ExpansionCenter, expansion_center, normal_from_expansion_center
 from .interface_pose import real_cam_from_target
-from .zhang import calibrate_views, one_cv2_thread, solve_pnp
+from .zhang import calibrate_views, held_intrinsics, one_cv2_thread, solve_pnp
 
 log = logging.getLogger(__name__)
 
@@ -58,15 +58,20 @@ def _shift(thickness_mm: float, index: float) -> float:
     return thickness_mm * (1.0 - 1.0 / index)
 
 
-def initialise_camera(dataset: Dataset, name: str, distortion: bool = False) -> CameraInit:
-    """Expansion centre, K, normal and real target poses of one camera."""
+def initialise_camera(dataset: Dataset, name: str, distortion: bool = False,
+                      fix_intrinsics: bool = False) -> CameraInit:
+    """Expansion centre, K, normal and real target poses of one camera; ``fix_intrinsics``: the
+    hints the calibration will hold (:func:`~.zhang.held_intrinsics`) are held here too, so the
+    poses are those of the held K (a shallow body's single view lets K run far from it)."""
     views = [o for o in dataset.select("calibration", name) if len(o.ids) >= 6]
     need = MIN_VIEWS if dataset.target.is_planar() else MIN_VIEWS_3D
     if len(views) < need:
         raise AriSfmError(dataset.rig_path, f"camera {name} has {len(views)} calibration views with >= 6 corners (need >= {need})")
     stacking = dataset.select("stacking", name)
     try:
-        zhang = calibrate_views(dataset.target, dataset.cameras[name], views, distortion)
+        spec = dataset.cameras[name]
+        zhang = calibrate_views(dataset.target, spec, views, distortion,
+                                held_intrinsics(spec) if fix_intrinsics else None)
     except (ValueError, cv2.error) as exc:  # DLT refused, or OpenCV refused the start
         msg = str(exc).strip().splitlines()[-1] if isinstance(exc, cv2.error) else str(exc)
         raise AriSfmError(dataset.rig_path, f"camera {name}: {msg}") from None
@@ -118,23 +123,25 @@ def join_rig(names: Sequence[str], cam_from_target: dict[str, dict[str, Pose]],
     return cam_from_world, world_from_target
 
 
-def _initialise_cameras(dataset: Dataset, names: list[str], distortion: bool, workers: int | None) -> dict[str, CameraInit]:
+def _initialise_cameras(dataset: Dataset, names: list[str], distortion: bool, workers: int | None,
+                        fix_intrinsics: bool = False) -> dict[str, CameraInit]:
     """:func:`initialise_camera` of every camera, on up to ``workers`` threads (default: one per
     camera, at most os.cpu_count()). OpenCV releases the GIL and runs on one thread in each
     worker, so each camera's result is the same as on its own; they are collected in camera
     order, and the first failing camera in that order raises, as when run one by one."""
     n_workers = min(len(names), workers if workers is not None else (os.cpu_count() or 1))
     if n_workers <= 1:
-        return {n: initialise_camera(dataset, n, distortion) for n in names}
+        return {n: initialise_camera(dataset, n, distortion, fix_intrinsics) for n in names}
     with ThreadPoolExecutor(max_workers=n_workers, thread_name_prefix="ari-init") as pool:
-        futures = {n: pool.submit(initialise_camera, dataset, n, distortion) for n in names}
+        futures = {n: pool.submit(initialise_camera, dataset, n, distortion, fix_intrinsics) for n in names}
         return {n: futures[n].result() for n in names}
 
 
 # One switch for all its cv2 calls, worker threads included: cv2.setNumThreads is process-wide,
 # and the contexts opened inside the workers only nest in this one.
 @one_cv2_thread()  # bit-identical across processes
-def initialise_rig(dataset: Dataset, distortion: bool = False, workers: int | None = None) -> RigInit:
+def initialise_rig(dataset: Dataset, distortion: bool = False, workers: int | None = None,
+                   fix_intrinsics: bool = False) -> RigInit:
     """Initialise every camera (concurrently, on up to ``workers`` threads, default one per
     camera up to os.cpu_count()), then chain relative poses from camera 0 over shared frames.
 
@@ -142,7 +149,7 @@ def initialise_rig(dataset: Dataset, distortion: bool = False, workers: int | No
     the result does not depend on ``workers``.
     """
     names = dataset.camera_names
-    cams = _initialise_cameras(dataset, names, distortion, workers)
+    cams = _initialise_cameras(dataset, names, distortion, workers, fix_intrinsics)
     # Camera graph: edges weighted by the number of shared frames (calibration and stacking).
     cam_from_world, world_from_target = join_rig(names, {n: c.cam_from_target for n, c in cams.items()}, dataset.rig_path)
     normals = [cam_from_world[n].R.T @ c.normal_cam for n, c in cams.items() if c.normal_cam is not None]

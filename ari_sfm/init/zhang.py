@@ -82,18 +82,39 @@ def initial_K(spec: CameraSpec) -> np.ndarray:
     return np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
 
 
+HELD_FLAGS = {  # cv2.calibrateCamera flags holding what calibrate(fix_intrinsics=True) will hold
+    "K": cv2.CALIB_FIX_FOCAL_LENGTH | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
+    | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_TANGENT_DIST,
+    "focal": cv2.CALIB_FIX_FOCAL_LENGTH | cv2.CALIB_FIX_PRINCIPAL_POINT,
+}
+
+
+def held_intrinsics(spec: CameraSpec) -> str | None:
+    """What ``--fix-intrinsics`` holds of a camera: "K" (a K hint, with its dist), "focal" (a
+    focal_px hint: fx = fy), None (no hint)."""
+    if spec.K is not None:
+        return "K"
+    return "focal" if spec.focal_px is not None else None
+
+
 @one_cv2_thread()
 def calibrate_zhang(
-    target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False
+    target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False,
+    hold: str | None = None,
 ) -> ZhangResult:
-    """cv2.calibrateCamera on planar views (needs >= 3 views of >= 6 corners each)."""
+    """cv2.calibrateCamera on planar views (needs >= 3 views of >= 6 corners each); ``hold``
+    ("K", "focal", see :func:`held_intrinsics`) keeps those intrinsics at the hint."""
     obj = [object_points(target, v.ids).astype(np.float32) for v in views]
     img = [v.pixels.astype(np.float32).reshape(-1, 1, 2) for v in views]
     flags = cv2.CALIB_USE_INTRINSIC_GUESS
     if not distortion:
         flags |= cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
+    if hold is not None:
+        flags |= HELD_FLAGS[hold]
     K0 = initial_K(spec)
     dist0 = np.zeros(5)  # fresh arrays: OpenCV refines them in place
+    if hold == "K" and spec.dist is not None:
+        dist0 = np.resize(np.asarray(spec.dist, float), 5).copy()
     # a start for the bundle adjustment: 1e-9 relative parameter change gives K to ~1e-8 px of the 1e-12
     # result in ~60 % of the time (measured on paper_single)
     criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-9)
@@ -167,24 +188,26 @@ def _dlt_K(target: Target, spec: CameraSpec, views: Sequence[Observation]) -> np
 
 
 def calibrate_dlt(
-    target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False
+    target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False,
+    hold: str | None = None,
 ) -> ZhangResult:
     """K and generalised extrinsics from a 3D target (several planes; one view is enough):
     K from the hint when the dataset gives one (``K`` as given, ``focal_px`` with the
     principal point at the image centre), else DLT per view (median over views); then
-    one cv2.calibrateCamera refinement (PnP inside) from that start."""
+    one cv2.calibrateCamera refinement (PnP inside) from that start, ``hold`` kept at the hint."""
     K0 = _hinted_K(spec)
     if K0 is None:
         K0 = _dlt_K(target, spec, views)
     hinted = CameraSpec(spec.name, spec.image_size, None, K0, spec.dist)
-    return calibrate_zhang(target, hinted, views, distortion)
+    return calibrate_zhang(target, hinted, views, distortion, hold)
 
 
-def calibrate_views(target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False) -> ZhangResult:
-    """Zhang's method for planar targets, DLT/PnP for 3D ones."""
+def calibrate_views(target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False,
+                    hold: str | None = None) -> ZhangResult:
+    """Zhang's method for planar targets, DLT/PnP for 3D ones; ``hold``: see :func:`calibrate_zhang`."""
     if target.is_planar():
-        return calibrate_zhang(target, spec, views, distortion)
-    return calibrate_dlt(target, spec, views, distortion)
+        return calibrate_zhang(target, spec, views, distortion, hold)
+    return calibrate_dlt(target, spec, views, distortion, hold)
 
 
 @one_cv2_thread()

@@ -66,6 +66,9 @@ SCENARIOS: dict[str, str] = {
     "body3d_water": "a PTV-like 3D calibration body (3 levels, 40 mm deep) in one view of 4 cameras "
                     "through 6 mm glass into water, no stacking",
     "body3d_shallow": "body3d_water with a body 15 mm deep at 600 mm (too shallow for DLT without a focal hint)",
+    "ptv_multiplane": "an OpenPTV multi-plane experiment: 4 cameras 12-26 deg oblique to 6 mm glass, 560-620 mm "
+                      "from a 130 x 70 mm dot plate at 4 depths (15 mm) 7-25 mm into water, one view; pixels "
+                      "quantised to 0.5 px, focal hints, interface.plane declared in the body's (OpenPTV's) frame",
 }
 
 
@@ -606,6 +609,86 @@ def body3d(rng: np.random.Generator, depth_mm: float = 40.0, distance_mm: float 
     return Geometry(target=target, window=window, cameras=cameras, calibration={"f000": _draw("the 3D body", sample)})
 
 
+# --------------------------------------------------------------------------- ptv_multiplane
+
+PTV_IMAGE_SIZE = (1280, 1024)
+PTV_FOCAL_PX = 3400.0  # nominal: a 130 mm body about 700 px wide at 600 mm
+PTV_PLANE_ID_STEP = 1000  # id of dot i of plane p: p * step + i (as `import openptv` numbers multi_planes)
+PTV_PIXEL_STEP_PX = 0.5  # OpenPTV's .crd centres as found on real data: quantised to half pixels
+
+
+def ptv_plate_body(grid: tuple[int, int] = (14, 8), size_mm: tuple[float, float] = (130.0, 70.0),
+                   plane_z_mm: Sequence[float] = (0.0, -5.0, -10.0, -15.0)) -> Target:
+    """OpenPTV's multi-plane body in its own world frame: one ``grid`` dot plate (``size_mm``, centred
+    on the z axis) imaged at each z of ``plane_z_mm`` (z toward the cameras), all one rigid body;
+    dot i of plane p has id ``p * PTV_PLANE_ID_STEP + i``."""
+    cols, rows = grid
+    xs = np.linspace(-size_mm[0] / 2, size_mm[0] / 2, cols)
+    ys = np.linspace(-size_mm[1] / 2, size_mm[1] / 2, rows)
+    if cols * rows > PTV_PLANE_ID_STEP:
+        raise ValueError(f"at most {PTV_PLANE_ID_STEP} dots per plane")
+    pts = {}
+    for p, z in enumerate(plane_z_mm):
+        for i, (y, x) in enumerate((y, x) for y in ys for x in xs):
+            pts[p * PTV_PLANE_ID_STEP + i] = (float(x), float(y), float(z))
+    return Target(type="points3d", points=pts)
+
+
+def ptv_plane_of(ids: np.ndarray) -> np.ndarray:
+    """The plane index of each dot id of :func:`ptv_plate_body`."""
+    return np.asarray(ids, dtype=np.int64) // PTV_PLANE_ID_STEP
+
+
+def ptv_multiplane(rng: np.random.Generator, grid: tuple[int, int] = (14, 8), glass_mm: float = 6.0,
+                   tilt_range_deg: tuple[float, float] = (12.0, 26.0),
+                   range_mm: tuple[float, float] = (560.0, 620.0)) -> Geometry:
+    """An OpenPTV multi-plane calibration as a user imports it (``ari-sfm import openptv``).
+
+    Built in OpenPTV's world frame, which is the body's frame ``f000``: the dot plate at 4 depths
+    (:func:`ptv_plate_body`), the glass vector G (OpenPTV's: from the water toward the cameras, |G|
+    the distance of the glass-water face from the origin, 7-10 mm, tilted 0-1 deg from z), 4 cameras
+    12-26 deg oblique to the window at 560-620 mm, each aimed near the body's centre. The window is
+    declared as the importer declares it (:func:`ari_sfm.openptv.conventions.window_plane` of G and
+    the thickness, in frame ``f000``); the focal hints are the true focal lengths (OpenPTV's own cc,
+    rounded to 0.1 px); pixels are quantised to 0.5 px (see ``pixel_step_px``)."""
+    from ari_sfm.openptv.conventions import window_plane
+    from ari_sfm.records import WindowPlane
+
+    target = ptv_plate_body(grid)
+    _, pts = target.points_3d()
+    centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+    g_hat = _tilted(np.array([0.0, 0.0, 1.0]), math.radians(rng.uniform(0.0, 1.0)), rng.uniform(0, 2 * math.pi))
+    glass = g_hat * rng.uniform(7.0, 10.0)  # the glass-water face 7-10 mm above the top plane (z = 0)
+    normal_body, point_body = window_plane(glass, glass_mm)
+    rig = []  # (body_from_cam rotation, centre in the body frame)
+    for k in range(4):
+        tilt = math.radians(rng.uniform(*tilt_range_deg))
+        azimuth = math.radians(45.0 + 90.0 * k + rng.uniform(-15.0, 15.0))
+        centre_k = centre + rng.uniform(*range_mm) * _tilted(g_hat, tilt, azimuth)
+        aim = centre + np.array([rng.uniform(-10, 10), rng.uniform(-10, 10), 0.0])
+        roll = _rot((0.0, 0.0, 1.0), math.radians(rng.uniform(-5.0, 5.0)))
+        rig.append((_look_at(centre_k, aim) @ roll, centre_k))
+    cam_from_world = _in_world(rig)
+    cameras = []
+    for i in range(4):
+        K = _intrinsics(rng, PTV_IMAGE_SIZE, PTV_FOCAL_PX, focal_spread=0.03)
+        K[1, 1] = K[0, 0] = round(float(K[0, 0]), 1)  # the hint is OpenPTV's cc: the focal length itself
+        cameras.append(CameraTruth(name=f"cam{i + 1}", K=K, image_size=PTV_IMAGE_SIZE,
+                                   cam_from_world=cam_from_world[i], focal_hint_px=float(K[0, 0])))
+    rig_from_world = Pose(rig[0][0], rig[0][1])  # body_from_cam1: world = cam1
+    window = _window_in_world(normal_body, float(normal_body @ point_body), rig_from_world, glass_mm,
+                              NBK7_INDEX, WATER_INDEX)
+    world_from_body = rig_from_world.inverse()
+    geometry = Geometry(target=target, window=window, cameras=tuple(cameras), calibration={"f000": world_from_body},
+                        declared_plane=WindowPlane("f000", normal_body, point_body),
+                        pixel_step_px=PTV_PIXEL_STEP_PX)
+    chk = _Checker(target, window, geometry.cameras, clearance_mm=3.0)
+    missing = [c.name for c in geometry.cameras if not chk.sees(c, world_from_body)]
+    if missing:
+        raise RuntimeError(f"simulator: the body is not whole in {', '.join(missing)}; relax the scenario")
+    return geometry
+
+
 # --------------------------------------------------------------------------- registry
 
 
@@ -635,6 +718,7 @@ REGISTRY: dict[str, ScenarioSpec] = {
                                                  rng_name="binocular_underwater_oblique"),
     "body3d_water": ScenarioSpec(body3d, {}, rng_name="body3d"),
     "body3d_shallow": ScenarioSpec(body3d, {"depth_mm": 15.0, "distance_mm": 600.0}, rng_name="body3d"),
+    "ptv_multiplane": ScenarioSpec(ptv_multiplane, {}, rng_name="ptv_multiplane"),
 }
 assert set(REGISTRY) == set(SCENARIOS)
 

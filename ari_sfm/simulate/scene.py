@@ -24,7 +24,7 @@ import numpy as np
 from ari_sfm.geometry import Pose
 from ari_sfm.models.exact import ExactModel
 from ari_sfm.models.pinhole import PinholeModel
-from ari_sfm.records import CameraSpec, Dataset, Entry, Interface, Observation, Target
+from ari_sfm.records import CameraSpec, Dataset, Entry, Interface, Observation, Target, WindowPlane
 
 logger = logging.getLogger(__name__)
 
@@ -130,6 +130,8 @@ class Geometry:
     stage_direction_world: np.ndarray | None = None  # unit direction of the stage line
     margin_px: float = MARGIN_PX
     scale: float = 1.0  # image scale applied to the cameras (1 = as designed)
+    declared_plane: WindowPlane | None = None  # the window as the dataset declares it (interface.plane)
+    pixel_step_px: float | None = None  # the dataset's pixels are rounded to this step (after the noise)
 
     def camera(self, name: str) -> CameraTruth:
         for cam in self.cameras:
@@ -141,8 +143,9 @@ class Geometry:
         """All cameras scaled by ``scale``; the margin scales too, so visibility is unchanged."""
         if scale == 1.0:
             return self
+        step = None if self.pixel_step_px is None else self.pixel_step_px * scale
         return replace(self, cameras=tuple(c.scaled(scale) for c in self.cameras),
-                       margin_px=self.margin_px * scale, scale=self.scale * scale)
+                       margin_px=self.margin_px * scale, scale=self.scale * scale, pixel_step_px=step)
 
     def frames(self) -> dict[str, Pose]:
         """world_from_target of every frame: stacking poses, calibration, reconstruction."""
@@ -225,10 +228,16 @@ def to_dataset(geometry: Geometry, observations: tuple[Observation, ...] | None,
     nominal focal hint, one entry per (pose, stack) / frame listing the cameras that saw it.
 
     ``seen`` are the records that decide which cameras list an image (the
-    noise-free ones); ``observations`` fill the dataset (None: detect from images).
+    noise-free ones); ``observations`` fill the dataset (None: detect from images), their pixels
+    rounded to ``geometry.pixel_step_px`` when it is set; ``geometry.declared_plane`` becomes
+    ``interface.plane``.
     """
     w = geometry.window
-    interface = Interface(thickness_mm=w.thickness_mm, index=w.index, medium_index=w.medium_index)
+    interface = Interface(thickness_mm=w.thickness_mm, index=w.index, medium_index=w.medium_index,
+                          plane=geometry.declared_plane)
+    step = geometry.pixel_step_px
+    if observations is not None and step:
+        observations = tuple(replace(o, pixels=np.round(o.pixels / step) * step) for o in observations)
     cameras = {c.name: CameraSpec(name=c.name, image_size=tuple(c.image_size), focal_px=c.focal_hint_px)
                for c in geometry.cameras}
     by_key: dict[tuple, list[str]] = {}

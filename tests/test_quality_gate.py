@@ -1,0 +1,126 @@
+"""The quality gate (issue 14 item 2): a calibration stuck in a wrong minimum says so, and the CLI exits 3.
+
+A declared window turned 10 deg from the truth and held (``interface.plane`` with sigmas 0) cannot fit
+the corners of ``ptv_multiplane`` (4 cameras through 6 mm glass into water): every start ends far above
+what a free pinhole + distortion model of each camera reaches on the same corners.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from ari_sfm.calibrate import calibrate
+from ari_sfm.calibration import Calibration
+from ari_sfm.cli import main
+from ari_sfm.geometry import rotation_from_rotvec
+from ari_sfm.io import load_dataset, save_rig
+from ari_sfm.quality import PINHOLE_TOLERANCE, judge, robust_rmse_px
+from ari_sfm.simulate import make_scene, simulate
+
+GRID = (6, 4)  # a coarse dot grid: the gate's retries stay a few seconds
+
+
+def _turned(dataset, deg: float = 10.0):
+    plane = dataset.interface.plane
+    R = rotation_from_rotvec(np.radians(deg) * np.array([1.0, 0.0, 0.0]))
+    return replace(dataset, interface=replace(dataset.interface, plane=replace(plane, normal=R @ plane.normal)))
+
+
+@pytest.fixture(scope="module")
+def coarse():
+    return make_scene("ptv_multiplane", seed=2, sigma_px=0.0, grid=GRID)
+
+
+def test_right_plane_passes_and_wrong_plane_fails(coarse):
+    good = calibrate(coarse.dataset, model="exact", fix_intrinsics=True, uncertainty=True)
+    q = good.quality
+    assert q.ok and q.why is None and q.starts == ("default",)
+    assert q.rmse_px == good.residuals.rmse_px and q.robust_rmse_px < 0.4 and q.max_pose_sigma_deg < 1.0
+    bad = calibrate(_turned(coarse.dataset), model="exact", fix_intrinsics=True)
+    q = bad.quality
+    assert not q.ok and "pinhole + distortion" in q.why
+    assert q.starts == ("default", "free window", "hints free in the start")  # every start was tried
+    ratio, margin = PINHOLE_TOLERANCE["exact"]
+    assert q.robust_rmse_px > ratio * q.pinhole_dist_rmse_px + margin
+    again = Calibration.from_json(json.loads(json.dumps(bad.to_json())))  # the verdict survives calibration.json
+    assert again.quality == q
+
+
+def test_judge_thresholds():
+    """Residuals at the pinhole's level pass, 2x + 0.25 px above fail (exact); a flat pose fails; NaN fails."""
+    rng = np.random.default_rng(0)
+    r = [rng.normal(0.0, 0.1, (500, 2))]
+    assert robust_rmse_px(r) == pytest.approx(0.1 * np.sqrt(2), rel=0.1)
+    assert judge("exact", 0.14, r, 0.14, None).ok
+    assert not judge("exact", 0.14, [x * 5 for x in r], 0.14, None).ok  # 0.71 px > 2 x 0.14 + 0.25
+    assert judge("ari", 0.14, [x * 5 for x in r], 0.14, None).ok  # ari: its paraxial error is allowed for
+    assert not judge("exact", float("nan"), r, 0.14, None).ok
+
+    class Cam:
+        relative_pose, rotation_deg = True, 40.0
+
+    class U:
+        cameras = {"cam2": Cam()}
+
+    q = judge("exact", 0.14, r, 0.14, U())
+    assert not q.ok and "undetermined" in q.why and q.max_pose_sigma_deg == 40.0
+
+
+def test_cli_exits_3_on_a_failed_calibration(tmp_path):
+    """calibrate writes calibration.json with quality.ok false, says so in one line and exits 3;
+    run exits 3 too, without reconstructing."""
+    ds_dir, _ = simulate("ptv_multiplane", tmp_path / "sim", seed=2, sigma_px=0.0, grid=GRID)
+    save_rig(ds_dir / "rig.yaml", _turned(load_dataset(ds_dir)))
+    r = CliRunner().invoke(main, ["calibrate", str(ds_dir), "-o", str(tmp_path / "out"), "--model", "ari"])
+    assert r.exit_code == 3, r.output
+    lines = [ln for ln in r.output.splitlines() if "QUALITY GATE FAILED" in ln]
+    assert len(lines) == 1 and "pinhole + distortion" in lines[0]
+    data = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    assert data["quality"]["ok"] is False and data["quality"]["why"]
+    r = CliRunner().invoke(main, ["run", str(ds_dir), "-o", str(tmp_path / "run"), "--model", "ari"])
+    assert r.exit_code == 3, r.output
+    run = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert run["reconstruction"] is None and "quality gate" in run["reconstruction_skipped"]
+    assert not (tmp_path / "run" / "points.json").exists()
+
+
+def test_cli_good_calibration_exits_0(tmp_path):
+    ds_dir, _ = simulate("ptv_multiplane", tmp_path / "sim", seed=2, sigma_px=0.0, grid=GRID)
+    r = CliRunner().invoke(main, ["calibrate", str(ds_dir), "-o", str(tmp_path / "out"), "--model", "exact",
+                                  "--fix-intrinsics"])
+    assert r.exit_code == 0, r.output
+    assert "quality: ok" in r.output
+    assert json.loads((tmp_path / "out" / "calibration.json").read_text())["quality"]["ok"] is True
+
+
+def test_a_failed_start_is_retried_from_the_next(coarse, monkeypatch):
+    """The default start refused (as main refused a split of the real body): the next start is solved and
+    kept when it passes; every start refused: the first refusal is raised."""
+    import importlib
+
+    from ari_sfm.errors import AriSfmError
+
+    C = importlib.import_module("ari_sfm.calibrate")  # the module (ari_sfm.calibrate is also the function)
+
+    solve = C._calibrate_from
+
+    def refuse_default(dataset, model, extra, opts, backend, start):
+        if start.name == "default":
+            raise AriSfmError(dataset.rig_path, "no window distance puts every camera in front of the window")
+        return solve(dataset, model, extra, opts, backend, start)
+
+    monkeypatch.setattr(C, "_calibrate_from", refuse_default)
+    cal = calibrate(coarse.dataset, model="ari", fix_intrinsics=True, uncertainty=False)
+    assert cal.quality.ok and cal.quality.starts == ("default", "hints free in the start")
+    assert cal.residuals.rmse_px < 0.4
+
+    def refuse_all(dataset, model, extra, opts, backend, start):
+        raise AriSfmError(dataset.rig_path, f"refused from {start.name}")
+
+    monkeypatch.setattr(C, "_calibrate_from", refuse_all)
+    with pytest.raises(AriSfmError, match="refused from default"):
+        calibrate(coarse.dataset, model="ari", fix_intrinsics=True)
