@@ -108,8 +108,14 @@ def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
 
 _model_option = click.option("--model", default=None, metavar="|".join(CALIBRATABLE),
                              help="; ".join(f"{m}: {MODELS[m].summary}" for m in CALIBRATABLE)
-                             + ". Default: ari (run: exact when the dataset has no stacking poses).")
+                             + ". Default: exact, the best model (its ari stage's figures shown beside it); "
+                               "ari: the paper's model alone.")
 _distortion_option = click.option("--distortion/--no-distortion", default=False, show_default=True, help="Estimate k1 k2 p1 p2 k3.")
+_auto_distortion_option = click.option(
+    "--distortion/--no-distortion", default=None,
+    help="Estimate k1 k2 p1 p2 k3, or hold them at zero. Default: estimated with the exact model when the views "
+         "support it (every camera with >= 6 calibration views whose corners cover >= 30 % of its image; "
+         "otherwise one line says why not).")
 _huber_option = click.option("--huber-px", type=float, default=1.0, show_default=True,
                              help="Per-corner Huber threshold in px (0: plain least squares).")
 _outlier_option = click.option("--exclude-outliers", is_flag=True, help="Drop corners beyond 5 sigma after convergence and re-run.")
@@ -126,7 +132,7 @@ _fix_option = click.option("--fix-intrinsics", is_flag=True,
 def _calibration_options(fn):
     """The options calibrate and run share: --model, --distortion, --huber-px, --exclude-outliers,
     --fix-intrinsics, --backend."""
-    for option in reversed((_model_option, _distortion_option, _huber_option, _outlier_option, _fix_option,
+    for option in reversed((_model_option, _auto_distortion_option, _huber_option, _outlier_option, _fix_option,
                             _backend_option)):
         fn = option(fn)
     return fn
@@ -137,19 +143,20 @@ def _calibration_options(fn):
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder for calibration.json.")
 @_calibration_options
 @user_errors
-def calibrate_cmd(dataset: Path, out: Path, model: str | None, distortion: bool, huber_px: float, exclude_outliers: bool,
+def calibrate_cmd(dataset: Path, out: Path, model: str | None, distortion: bool | None, huber_px: float, exclude_outliers: bool,
                   fix_intrinsics: bool, backend: str) -> None:
     """Calibrate DATASET; write OUT/calibration.json (and OUT/observations.json when detected here)."""
+    from .calibrate import DEFAULT_MODEL
     from .pipelines.calibrate_rig import main as pipeline
 
-    model = model or "ari"
+    model = model or DEFAULT_MODEL
     model_spec(model, "--model", calibratable=True)  # before any loading or detection
     check_output_folder(out)
     check_number("--huber-px", huber_px, minimum=0.0)
     t0 = time.perf_counter()
     result = pipeline(dataset, out, model=model, progress=True, distortion=distortion, huber_px=huber_px or None,
                       exclude_outliers=exclude_outliers, fix_intrinsics=fix_intrinsics, backend=backend)
-    _summary(result.calibration, time.perf_counter() - t0)
+    _summary(result.calibration, time.perf_counter() - t0, "corner detection, calibration, files")
     if result.observations_path:
         click.echo(f"observations: {result.observations_path}")
     click.echo(f"calibration:  {result.calibration_path}")
@@ -162,12 +169,12 @@ def calibrate_cmd(dataset: Path, out: Path, model: str | None, distortion: bool,
 @click.option("--truth", type=click.Path(path_type=Path), default=None,
               help="A simulator's truth.json: also report the reconstruction's 3D error against it.")
 @user_errors
-def run(dataset: Path, out: Path, model: str | None, distortion: bool, huber_px: float, exclude_outliers: bool,
+def run(dataset: Path, out: Path, model: str | None, distortion: bool | None, huber_px: float, exclude_outliers: bool,
         fix_intrinsics: bool, backend: str, truth: Path | None) -> None:
     """The pipeline: detect corners when needed, calibrate, reconstruct (frames seen by two cameras), report."""
     from .pipelines.run import main as pipeline
 
-    if model is not None:  # None: exact without stacking poses, else ari (pipelines.run.default_model)
+    if model is not None:  # None: the best model (calibrate.DEFAULT_MODEL)
         model_spec(model, "--model", calibratable=True)  # before any loading or detection
     check_output_folder(out)
     check_number("--huber-px", huber_px, minimum=0.0)
@@ -176,7 +183,10 @@ def run(dataset: Path, out: Path, model: str | None, distortion: bool, huber_px:
     result = pipeline(dataset, out, model=model, truth=truth, progress=True, distortion=distortion,
                       huber_px=huber_px or None, exclude_outliers=exclude_outliers, fix_intrinsics=fix_intrinsics,
                       backend=backend)
-    _summary(result.calibrated.calibration, time.perf_counter() - t0)
+    _summary(result.calibrated.calibration, time.perf_counter() - t0,
+             "corner detection, calibration, reconstruction, report")
+    if result.truth_errors is not None:
+        _truth_summary(result.truth_errors)
     click.echo(f"calibration: {result.calibrated.calibration_path}")
     if result.reconstruction is None:
         click.echo(f"info: reconstruction skipped: {result.skipped_reconstruction}")
@@ -184,6 +194,10 @@ def run(dataset: Path, out: Path, model: str | None, distortion: bool, huber_px:
         m = result.reconstruction.metrics
         click.echo(f"reconstruction: {m.num_points} points in {m.num_frames} frames, flatness rmse "
                    f"{m.flatness_mm.rmse:.4f} mm -> {result.reconstruction.metrics_path}")
+        if m.truth:
+            t = m.truth
+            click.echo(f"3D error vs truth: rms {t.aligned_rms_mm:.4f} mm after rigid alignment (max "
+                       f"{t.aligned_max_mm:.4f} mm), {t.unaligned_rms_mm:.4f} mm without")
     click.echo(f"report: {result.report_path}")
 
 
@@ -371,7 +385,32 @@ def doctor() -> None:
     sys.exit(1 if bad else 0)
 
 
-def _summary(cal, elapsed: float) -> None:
+def _truth_summary(errors) -> None:
+    """The calibrated parameters' errors against a simulator's truth (calibrated minus true)."""
+    head = f"vs truth (calibrated - true): normal {_std(errors.normal_deg, '.4f')}°"
+    if errors.distance_mm is not None:
+        head += f", window distance {errors.distance_mm:+.3f} mm"
+    click.echo(head)
+    for c in errors.cameras:
+        rel = ("" if c.rotation_deg is None else
+               f"  cam_from_{errors.reference_camera} {c.rotation_deg:.4f}° {c.translation_mm:.4f} mm")
+        click.echo(f"  {c.name:8s} fx {c.fx_pct:+.4f} % fy {c.fy_pct:+.4f} % cx {c.cx_px:+.3f} px "
+                   f"cy {c.cy_px:+.3f} px k1 {c.k1:+.5f}{rel}")
+
+
+def _stages_summary(cal) -> None:
+    """Each stage's residuals and focal lengths beside the final model's (calibration.json ``stages``)."""
+    stages = cal.extra.get("stages") or []
+    if len(stages) < 2:
+        return
+    click.echo("stages:")
+    for st in stages:
+        fx = " ".join(f"{n} fx {c['fx']:.2f}" for n, c in list(st["cameras"].items())[:4])
+        click.echo(f"  {st['stage']:16s} {st['model']:6s} rmse {st['rmse_px']:.4f} px, max {st['max_px']:.4f} px"
+                   f"{', distortion' if st.get('distortion') else ''}; {fx}")
+
+
+def _summary(cal, elapsed: float, covers: str = "the whole command") -> None:
     """A one-screen summary of a calibration."""
     from .geometry import angle_between_deg
 
@@ -404,7 +443,9 @@ def _summary(cal, elapsed: float) -> None:
         click.echo(f"{len(cal.outliers.corners)} corners beyond {cal.outliers.threshold_sigma:g} sigma "
                    f"({'excluded' if cal.outliers.excluded else 'listed in calibration.json under outliers'})")
     click.echo(f"residuals: rmse {r.rmse_px:.4f} px, mae {r.mae_px:.4f} px, max {r.max_px:.4f} px over {r.count} corners")
-    click.echo(f"time: calibration {cal.time_s:.3f} s, total {elapsed:.2f} s")
+    _stages_summary(cal)
+    click.echo(f"time: calibration {cal.time_s:.3f} s (analytic start and bundle-adjustment stages), "
+               f"total {elapsed:.2f} s ({covers})")
 
 
 def _std(value: float | None, spec: str) -> str:
