@@ -335,6 +335,59 @@ def export_colmap_cmd(calibration: Path, out: Path, dataset: Path | None, points
     click.echo(summary(export_colmap(calibration, out, dataset=dataset, points=points, approximation=approximation)))
 
 
+_units_option = click.option("--units-mm", type=float, default=1000.0, show_default=True,
+                             help="mm per length unit of the fork's model (int_dist, int_thick, poses, points): "
+                                  "1000 = metres, as in the fork's examples.")
+
+
+@main.command(name="export-colmap-fork")
+@click.argument("calibration", type=click.Path(path_type=Path))
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
+              help="Output folder: cameras.txt (FLATPORT), images.txt, points3D.txt of the refractive COLMAP fork.")
+@click.option("--dataset", type=click.Path(path_type=Path), default=None,
+              help="Dataset whose calibration corners become the images' 2D points and the 3D points (default: "
+                   "observations.json beside CAL, else cameras and poses only).")
+@_units_option
+@user_errors
+def export_colmap_fork_cmd(calibration: Path, out: Path, dataset: Path | None, units_mm: float) -> None:
+    """Write an exact CALIBRATION as a model of the refractive COLMAP fork (colmap_underwater, FLATPORT cameras)."""
+    from .calibration import load_calibration
+    from .colmap_fork import export_colmap_fork
+    from .io import load_dataset, load_observations
+
+    check_output_folder(out)
+    check_number("--units-mm", units_mm, minimum=0.0, strict_minimum=True)
+    cal = load_calibration(calibration)
+    observations = None
+    if dataset is not None:
+        observations = load_dataset(dataset).observations
+    elif (calibration.parent / "observations.json").is_file():
+        observations = load_observations(calibration.parent / "observations.json", cal.target, list(cal.cameras))
+    done = export_colmap_fork(cal, out, observations, units_mm)
+    click.echo(f"{done.cameras} FLATPORT camera(s), {done.images} images, {done.points3D} points3D "
+               f"(lengths in units of {units_mm:g} mm) -> {out}")
+
+
+@main.command(name="import-colmap-fork")
+@click.argument("model_dir", type=click.Path(path_type=Path))
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder for calibration.json.")
+@_units_option
+@user_errors
+def import_colmap_fork_cmd(model_dir: Path, out: Path, units_mm: float) -> None:
+    """Read the FLATPORT cameras of a refractive COLMAP fork text model (MODEL_DIR/cameras.txt, images.txt) as
+    an exact-model calibration.json."""
+    from .colmap_fork import import_colmap_fork
+
+    check_output_folder(out)
+    check_number("--units-mm", units_mm, minimum=0.0, strict_minimum=True)
+    if out.resolve() == model_dir.resolve():
+        raise AriSfmError(out, "-o/--out: is the input model folder (choose another folder)")
+    cal = import_colmap_fork(model_dir, units_mm)
+    cal.save(out / "calibration.json")
+    click.echo(f"{len(cal.cameras)} camera(s) ({', '.join(cal.cameras)}), window {cal.interface.thickness_mm:g} mm "
+               f"n={cal.interface.index:g} medium n={cal.interface.medium_index:g} -> {out / 'calibration.json'}")
+
+
 @main.command()
 @click.argument("scenario")
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder: OUT/dataset and OUT/truth.json.")
