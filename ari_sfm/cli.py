@@ -335,6 +335,55 @@ def export_colmap_cmd(calibration: Path, out: Path, dataset: Path | None, points
     click.echo(summary(export_colmap(calibration, out, dataset=dataset, points=points, approximation=approximation)))
 
 
+
+@main.command(name="sfm")
+@click.argument("images", type=click.Path(path_type=Path))
+@click.option("--window", "window", type=click.Path(path_type=Path), required=True,
+              help="WINDOW.yaml: interface (thickness_mm, index, medium_index), mount (camera | world), "
+                   "optional units_mm or scale_bar (see refine-colmap).")
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
+              help="Output folder: colmap/ (COLMAP's database and pinhole model), refined/ (refine-colmap's "
+                   "model, calibration.json, refine.json), sfm.json.")
+@click.option("--matcher", type=click.Choice(["auto", "exhaustive", "sequential"]), default="auto", show_default=True,
+              help="Image pairs to match: all (exhaustive), or each image with its --overlap successors in name "
+                   "order (sequential: long surveys, no vocabulary tree); auto: exhaustive up to 200 images.")
+@click.option("--overlap", type=int, default=10, show_default=True, help="Sequential matching: successors per image.")
+@click.option("--focal-px", type=float, default=None, help="Focal length prior (px) of the camera behind the window.")
+@click.option("--baseline", type=(str, str, float), default=None, metavar="IMAGE IMAGE MM",
+              help="The scale: the distance (mm) between two images' camera centres (e.g. from navigation).")
+@click.option("--max-features", type=int, default=4000, show_default=True, help="SIFT features per image.")
+@click.option("--huber-px", type=float, default=2.0, show_default=True, help="refine-colmap's Huber threshold (px).")
+@click.option("--max-iterations", type=int, default=50, show_default=True, help="refine-colmap's iterations.")
+@click.option("--threads", type=int, default=-1, show_default=True, help="COLMAP's threads (-1: all cores).")
+@user_errors
+def sfm_cmd(images: Path, window: Path, out: Path, matcher: str, overlap: int, focal_px: float | None,
+            baseline: tuple[str, str, float] | None, max_features: int, huber_px: float, max_iterations: int,
+            threads: int) -> None:
+    """Structure from motion behind a flat window: COLMAP's SIFT, matching and incremental mapping (CPU),
+    then refine-colmap with the exact refractive model, in one command."""
+    from .sfm import SfmOptions, run_sfm
+
+    check_output_folder(out)
+    check_number("--overlap", overlap, minimum=1)
+    check_number("--focal-px", focal_px, minimum=0.0, strict_minimum=True)
+    check_number("--max-features", max_features, minimum=1)
+    check_number("--huber-px", huber_px, minimum=0.0, strict_minimum=True)
+    check_number("--max-iterations", max_iterations, minimum=1)
+    if baseline is not None:
+        check_number("--baseline", baseline[2], minimum=0.0, strict_minimum=True)
+    result = run_sfm(images, window, out, SfmOptions(
+        matcher=matcher, overlap=overlap, max_features=max_features, focal_px=focal_px, baseline=baseline,
+        huber_px=huber_px, max_iterations=max_iterations, num_threads=threads, progress=True))
+    report = result.refine.report
+    rms = ""
+    if isinstance(report, dict) and "before" in report and "after" in report:
+        rms = (f"; reprojection RMS {report['before']['rms_px']:.3f} px (COLMAP pinhole) -> "
+               f"{report['after']['rms_px']:.3f} px (exact)")
+    click.echo(f"COLMAP: {result.registered} of {result.images} images registered, {result.points3D} points "
+               f"-> {result.colmap_model}")
+    click.echo(f"refine-colmap{rms} -> {result.refined}")
+    click.echo(f"summary: {result.summary_path}")
+
 _units_option = click.option("--units-mm", type=float, default=1000.0, show_default=True,
                              help="mm per length unit of the fork's model (int_dist, int_thick, poses, points): "
                                   "1000 = metres, as in the fork's examples.")
