@@ -20,6 +20,7 @@ TIMES = {"time_s"}  # keys whose values are wall-clock times: differ between run
 # the uncertainty's key structure is compared; the optimizer's report is not a result.
 STRUCTURE_ONLY = {"uncertainty"}
 SKIPPED = {"optimizer"}
+ADDED = {"stages"}  # keys the writer added since (each stage's figures): an extension, absent from the old files
 
 
 def _structure(a):
@@ -64,7 +65,7 @@ def test_previous_writers_file_loads_and_writes_back_the_same_json(model):
 @pytest.mark.parametrize("model", CALIBRATABLE)
 def test_writer_gives_the_previous_writers_calibration_json(binocular_calibrations, model):
     old = json.loads((OLD / f"{model}.json").read_text())
-    new = json.loads(json.dumps(binocular_calibrations[model].to_json()))
+    new = {k: v for k, v in json.loads(json.dumps(binocular_calibrations[model].to_json())).items() if k not in ADDED}
     assert _differences(old, new) == []
 
 
