@@ -21,7 +21,7 @@ log = logging.getLogger(__name__)
 PLANE_ROUNDS = 5  # ari rounds holding the declared normal at its frame's refitted pose (no stacking)
 DEFAULT_MODEL = "exact"  # the best model: Snell's law refined from the ari stage (distortion: resolve_distortion)
 DISTORTION_MIN_VIEWS = 6  # calibration views per camera below which lens distortion is not estimated by default
-DISTORTION_MIN_COVERAGE = 0.3  # fraction of a camera's image inside the convex hull of its corners, likewise
+DISTORTION_MIN_COVERAGE = 0.2  # fraction of a camera's image inside the convex hull of its corners, likewise
 
 
 @dataclass(frozen=True)

@@ -114,7 +114,7 @@ _distortion_option = click.option("--distortion/--no-distortion", default=False,
 _auto_distortion_option = click.option(
     "--distortion/--no-distortion", default=None,
     help="Estimate k1 k2 p1 p2 k3, or hold them at zero. Default: estimated with the exact model when the views "
-         "support it (every camera with >= 6 calibration views whose corners cover >= 30 % of its image; "
+         "support it (every camera with >= 6 calibration views whose corners cover >= 20 % of its image, and stacking poses; "
          "otherwise one line says why not).")
 _huber_option = click.option("--huber-px", type=float, default=1.0, show_default=True,
                              help="Per-corner Huber threshold in px (0: plain least squares).")
