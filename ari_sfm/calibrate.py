@@ -67,7 +67,7 @@ def distortion_support(dataset: Dataset) -> str | None:
     when they can: every camera needs DISTORTION_MIN_VIEWS calibration views and corners whose convex
     hull covers DISTORTION_MIN_COVERAGE of its image (distortion grows toward the edges), and the
     dataset stacking poses (without them the exact model finds the window normal through refraction
-    alone, and free distortion absorbs part of it: simulated single camera 0.38 deg instead of 0.2;
+    alone, and free distortion absorbs part of it: simulated single camera 0.38 deg instead of 0.08;
     under water, oblique, the fit diverged)."""
     import cv2
 
