@@ -394,8 +394,9 @@ _units_option = click.option("--units-mm", type=float, default=1000.0, show_defa
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
               help="Output folder: cameras.txt (FLATPORT), images.txt, points3D.txt of the refractive COLMAP fork.")
 @click.option("--dataset", type=click.Path(path_type=Path), default=None,
-              help="Dataset whose calibration corners become the images' 2D points and the 3D points (default: "
-                   "observations.json beside CAL, else cameras and poses only).")
+              help="Dataset whose calibration corners become the images' 2D points and the 3D points (default: a "
+                   "refine-colmap output's COLMAP model beside CAL, its images at their real poses and the refined "
+                   "points; else observations.json beside CAL; else cameras and poses only).")
 @_units_option
 @user_errors
 def export_colmap_fork_cmd(calibration: Path, out: Path, dataset: Path | None, units_mm: float) -> None:
@@ -407,12 +408,15 @@ def export_colmap_fork_cmd(calibration: Path, out: Path, dataset: Path | None, u
     check_output_folder(out)
     check_number("--units-mm", units_mm, minimum=0.0, strict_minimum=True)
     cal = load_calibration(calibration)
-    observations = None
-    if dataset is not None:
+    observations, refined = None, None
+    folder = calibration.parent
+    if dataset is None and "refine_colmap" in cal.extra and any((folder / f"cameras.{x}").is_file() for x in ("bin", "txt")):
+        refined = folder  # a refine-colmap output: its images at their real poses and the refined points
+    elif dataset is not None:
         observations = load_dataset(dataset).observations
-    elif (calibration.parent / "observations.json").is_file():
-        observations = load_observations(calibration.parent / "observations.json", cal.target, list(cal.cameras))
-    done = export_colmap_fork(cal, out, observations, units_mm)
+    elif (folder / "observations.json").is_file():
+        observations = load_observations(folder / "observations.json", cal.target, list(cal.cameras))
+    done = export_colmap_fork(cal, out, observations, units_mm, refined_model=refined)
     click.echo(f"{done.cameras} FLATPORT camera(s), {done.images} images, {done.points3D} points3D "
                f"(lengths in units of {units_mm:g} mm) -> {out}")
 

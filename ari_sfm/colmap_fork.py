@@ -27,7 +27,8 @@ A calibration is written as one COLMAP camera per rig camera (ids in the calibra
 one image per camera and calibration frame (``<camera>/<frame>``: every image of a camera has its
 ``cam_from_world``, the rig being static in the calibration's world), with the target corners as
 3D points when observations are at hand; without them one image per camera (``<camera>``) keeps
-the rig's poses. Reading back: the cameras' poses from their images (equal for a static rig; one
+the rig's poses. A refine-colmap output (mount camera) is written with COLMAP's camera and image
+ids, every image at its refined real pose with its 2D points, and the refined points. Reading back: the cameras' poses from their images (equal for a static rig; one
 camera that moves, as in a survey, is read at its first image), re-expressed in the first camera's
 frame, which must see one window shared by every camera.
 """
@@ -222,11 +223,78 @@ def _camera_window(cal: Calibration, name: str) -> float:
     return distance
 
 
+@dataclass(frozen=True)
+class _Image:
+    """An image to write: its camera, name, pose (mm) and 2D points (OpenCV pixels) with their point ids."""
+
+    camera: str
+    name: str
+    cam_from_world: Pose
+    uv: np.ndarray  # (n, 2)
+    point_ids: np.ndarray  # (n,)
+
+
+def _target_images(cal: Calibration, observations: Sequence[Observation] | None
+                   ) -> tuple[list[_Image], dict[int, np.ndarray]]:
+    """One image per (camera, calibration frame) with its corners, the corners as points (mm)."""
+    used = [o for o in (observations or ()) if o.set == "calibration" and o.frame in cal.frames
+            and o.camera in cal.cameras and len(o.ids)]
+    if not used or cal.target is None:
+        if used:
+            log.warning("the calibration holds no target: exporting cameras and poses only")
+        return [_Image(n, n, c.cam_from_world, np.zeros((0, 2)), np.zeros(0, int)) for n, c in cal.cameras.items()], {}
+    ids, xyz = cal.target.points_3d_readonly
+    where = {int(i): k for k, i in enumerate(ids.tolist())}
+    point_ids: dict[tuple[str, int], int] = {}
+    points: dict[int, np.ndarray] = {}
+    images = []
+    for o in used:
+        pids = []
+        for corner in o.ids.tolist():
+            key = (o.frame, int(corner))
+            if key not in point_ids:
+                point_ids[key] = len(point_ids) + 1
+                points[point_ids[key]] = cal.frames[o.frame].apply(xyz[where[int(corner)]])
+            pids.append(point_ids[key])
+        images.append(_Image(o.camera, f"{o.camera}/{o.frame}", cal.cameras[o.camera].cam_from_world,
+                             np.asarray(o.pixels, float), np.asarray(pids, int)))
+    return images, points
+
+
+def _refined_images(cal: Calibration, model_dir: Path) -> tuple[dict[str, int], list[_Image], dict[int, np.ndarray]]:
+    """A refine-colmap output (its calibration.json and the COLMAP model beside it): COLMAP's camera
+    ids, every image at its real pose with its 2D points, the refined points (mm)."""
+    from . import colmap_export as adapter
+
+    info = cal.extra.get("refine_colmap") or {}
+    camera_ids, poses = info.get("camera_ids"), info.get("images_cam_from_world")
+    if not isinstance(camera_ids, dict) or not isinstance(poses, dict) or info.get("mount") != "camera":
+        raise AriSfmError(model_dir / "calibration.json", "not a refine-colmap output of mount camera (refine_colmap."
+                                                          "camera_ids and images_cam_from_world are needed)")
+    model = adapter.model_from_reconstruction(adapter.read_colmap(model_dir), model_dir)
+    name_of = {int(cid): name for name, cid in camera_ids.items()}
+    images = []
+    for i, image_id in enumerate(model.image_ids.tolist()):
+        sel = np.flatnonzero(model.obs_image == i)
+        pose = poses.get(str(image_id))
+        if pose is None:
+            raise AriSfmError(model_dir / "calibration.json", f"refine_colmap.images_cam_from_world has no image {image_id}")
+        images.append(_Image(name_of[int(model.camera_ids[model.image_camera[i]])], model.image_names[i],
+                             Pose.from_json(pose), model.obs_uv[sel], model.point3D_ids[model.obs_point[sel]]))
+    points = {int(pid): model.xyz[k] for k, pid in enumerate(model.point3D_ids.tolist())}
+    return {n: int(c) for n, c in camera_ids.items()}, images, points
+
+
 def export_colmap_fork(calibration: Calibration | str | Path, out_dir: str | Path,
                        observations: Sequence[Observation] | None = None,
-                       units_mm: float = DEFAULT_UNITS_MM) -> ForkExport:
+                       units_mm: float = DEFAULT_UNITS_MM, refined_model: str | Path | None = None) -> ForkExport:
     """Write ``calibration`` (an exact-Snell model) as the fork's text model in ``out_dir``:
-    cameras.txt (FLATPORT), images.txt, points3D.txt (lengths in units of ``units_mm`` mm)."""
+    cameras.txt (FLATPORT), images.txt, points3D.txt (lengths in units of ``units_mm`` mm).
+
+    Images and points: ``refined_model`` (a refine-colmap output folder: its COLMAP model beside the
+    calibration) gives every image at its real pose and the refined points; else ``observations``
+    give one image per camera and calibration frame with the target corners; else one image per
+    camera (its pose)."""
     from .io import write_text_atomic
 
     path = Path(calibration) if isinstance(calibration, (str, Path)) else Path("calibration.json")
@@ -238,7 +306,11 @@ def export_colmap_fork(calibration: Calibration | str | Path, out_dir: str | Pat
         raise AriSfmError(None, f"--units-mm must be a number > 0 (got {units_mm})")
     out = Path(out_dir)
     names = list(cal.cameras)
-    camera_ids = {n: i + 1 for i, n in enumerate(names)}
+    if refined_model is not None:
+        camera_ids, images, points = _refined_images(cal, Path(refined_model))
+    else:
+        camera_ids = {n: i + 1 for i, n in enumerate(names)}
+        images, points = _target_images(cal, observations)
     cam_lines = ["# Camera list with one line of data per camera:",
                  f"#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[] {REFRAC_MODEL} Nx Ny Nz int_dist int_thick na ng nw",
                  f"# Number of cameras: {len(names)}; lengths in units of {units_mm:g} mm (written by ari-sfm)"]
@@ -246,50 +318,33 @@ def export_colmap_fork(calibration: Calibration | str | Path, out_dir: str | Pat
         c = cal.cameras[n]
         cam_lines.append(format_camera_line(camera_ids[n], c.image_size, c.params, cal.normal_cam(n),
                                             _camera_window(cal, n), cal.interface, units_mm))
-
-    # images: one per (camera, calibration frame) with its corners; else one per camera
-    used = [o for o in (observations or ()) if o.set == "calibration" and o.frame in cal.frames
-            and o.camera in cal.cameras and len(o.ids)]
-    point_ids: dict[tuple[str, int], int] = {}
-    tracks: dict[int, list[tuple[int, int]]] = {}
-    image_rows: list[tuple[int, str, str, list[str]]] = []  # id, camera, name, 2D point items
-    if used and cal.target is not None:
-        for image_id, o in enumerate(used, start=1):
-            items = []
-            uv = o.pixels + COLMAP_PIXEL_OFFSET
-            for k, (corner, (u, v)) in enumerate(zip(o.ids.tolist(), uv.tolist())):
-                pid = point_ids.setdefault((o.frame, int(corner)), len(point_ids) + 1)
-                tracks.setdefault(pid, []).append((image_id, k))
-                items += [repr(u), repr(v), str(pid)]
-            image_rows.append((image_id, o.camera, f"{o.camera}/{o.frame}", items))
-    else:
-        if used:
-            log.warning("the calibration holds no target: exporting cameras and poses only")
-        image_rows = [(i + 1, n, n, []) for i, n in enumerate(names)]
     img_lines = ["# Image list with two lines of data per image:",
                  "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
                  "#   POINTS2D[] as (X, Y, POINT3D_ID)",
-                 f"# Number of images: {len(image_rows)}"]
-    for image_id, camera, name, items in image_rows:
-        pose = cal.cameras[camera].cam_from_world
+                 f"# Number of images: {len(images)}"]
+    tracks: dict[int, list[tuple[int, int]]] = {}
+    for image_id, im in enumerate(images, start=1):
+        pose = im.cam_from_world
         img_lines.append(" ".join([str(image_id)] + [repr(float(x)) for x in _quaternion_wxyz(pose.R)]
-                                  + [repr(float(x)) for x in pose.t / units_mm] + [str(camera_ids[camera]), name]))
+                                  + [repr(float(x)) for x in pose.t / units_mm] + [str(camera_ids[im.camera]),
+                                                                                   im.name]))
+        items = []
+        for k, ((u, v), pid) in enumerate(zip((im.uv + COLMAP_PIXEL_OFFSET).tolist(), im.point_ids.tolist())):
+            tracks.setdefault(int(pid), []).append((image_id, k))
+            items += [repr(u), repr(v), str(int(pid))]
         img_lines.append(" ".join(items))
     pts_lines = ["# 3D point list with one line of data per point:",
                  "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
-                 f"# Number of points: {len(point_ids)}"]
-    if point_ids:
-        ids, xyz = cal.target.points_3d_readonly
-        where = {int(i): k for k, i in enumerate(ids.tolist())}
-        for (frame, corner), pid in point_ids.items():
-            X = cal.frames[frame].apply(xyz[where[corner]]) / units_mm
-            track = " ".join(f"{i} {k}" for i, k in tracks[pid])
-            pts_lines.append(f"{pid} {X[0]!r} {X[1]!r} {X[2]!r} 150 150 150 0 {track}")
+                 f"# Number of points: {len(tracks)}"]
+    for pid in sorted(tracks):
+        X = (np.asarray(points[pid], float) / units_mm).tolist()
+        track = " ".join(f"{i} {k}" for i, k in tracks[pid])
+        pts_lines.append(f"{pid} {X[0]!r} {X[1]!r} {X[2]!r} 150 150 150 0 {track}")
     files = []
     for fname, lines in (("cameras.txt", cam_lines), ("images.txt", img_lines), ("points3D.txt", pts_lines)):
         write_text_atomic(out / fname, "\n".join(lines) + "\n")
         files.append(out / fname)
-    return ForkExport(tuple(files), len(names), len(image_rows), len(point_ids), units_mm)
+    return ForkExport(tuple(files), len(names), len(images), len(tracks), units_mm)
 
 
 # --------------------------------------------------------------------------- import

@@ -138,6 +138,16 @@ def read_fork_text(folder):
     return cams, images
 
 
+def read_fork_points(folder) -> dict[int, np.ndarray]:
+    """points3D.txt -> {id: xyz}."""
+    xyz = {}
+    for line in (folder / "points3D.txt").read_text().splitlines():
+        if not line.startswith("#"):
+            items = line.split()
+            xyz[int(items[0])] = np.array(items[1:4], float)
+    return xyz
+
+
 # ----------------------------------------------------------------------------- scenes
 
 @pytest.fixture(scope="module", params=["binocular_underwater", "binocular"])
@@ -159,6 +169,8 @@ def test_fork_projection_equals_ours_and_reads_back(scene, tmp_path):
     written = export_colmap_fork(cal, out, scene.dataset.observations)
     assert written.cameras == 2 and written.images > 10 and written.points3D > 100
     cams, images = read_fork_text(out)
+    points = read_fork_points(out)
+    assert len(points) == written.points3D and all(np.all(np.isfinite(X)) for X in points.values())
     assert {m for m, _, _ in cams.values()} == {"FULL_OPENCV"}
     assert all(refrac[3] < 1.0 for _, _, refrac in cams.values())  # metres: int_dist ~0.05-0.1
     ids, xyz = cal.target.points_3d()
@@ -261,3 +273,47 @@ def test_export_refuses_the_paraxial_model_and_missing_folder(tmp_path, scene):
     assert not (tmp_path / "fork" / "cameras.txt").exists()
     with pytest.raises(AriSfmError, match="cameras.txt"):
         import_colmap_fork(tmp_path)
+
+
+def test_refined_model_moves_to_the_fork(tmp_path):
+    """A refine-colmap output (simulated flat-port survey through pycolmap's bundle adjustment, refined a few
+    iterations) exported with its COLMAP model: every image at its real pose with its 2D points, the refined
+    points; the fork's projection of each point through its image gives our exact model's pixels to 1e-6 px,
+    and its cameras read back as the refined housings."""
+    from ari_sfm import colmap_export as adapter
+    from ari_sfm.colmap_refine import refine_colmap, write_refined
+    from ari_sfm.simulate.port_survey import port_survey
+
+    truth = port_survey(num_images=5, num_points=200, focal_px=1300, area_mm=(1200, 800), sigma_px=0.3)
+    rec = adapter.bundle_adjust(adapter.reconstruction_from_arrays(
+        truth.params, truth.image_size, truth.sensor_from_rig, truth.rig_from_world, truth.image_camera,
+        truth.image_frame, truth.xyz, truth.obs_image, truth.obs_point, truth.obs_uv))
+    result = refine_colmap(rec, truth.interface, "camera", units_mm=1.0, max_iterations=3)
+    write_refined(result, tmp_path / "refined")
+    r = CliRunner().invoke(main, ["export-colmap-fork", str(tmp_path / "refined" / "calibration.json"),
+                                  "-o", str(tmp_path / "fork"), "--units-mm", "1"])
+    assert r.exit_code == 0, r.output
+    cal = load_calibration(tmp_path / "refined" / "calibration.json")
+    cams, images = read_fork_text(tmp_path / "fork")
+    assert len(images) == 5 and len(cams) == 1
+    xyz = read_fork_points(tmp_path / "fork")
+    assert len(xyz) > 100
+    name = next(iter(cal.cameras))
+    lines = [ln for ln in (tmp_path / "fork" / "images.txt").read_text().splitlines() if not ln.startswith("#")]
+    worst = 0.0
+    for (camera_id, _, R, t), points in zip(images, lines[1::2]):
+        items = points.split()
+        pids = [int(p) for p in items[2::3]][::9]
+        X_cam = np.array([xyz[p] for p in pids]) @ R.T + t
+        ours = cal.projection_model(name).project(X_cam) + 0.5
+        model, p, refrac = cams[camera_id]
+        fork = np.array([flatport_img_from_cam(model, p, refrac, X) for X in X_cam])
+        worst = max(worst, float(np.max(np.abs(fork - ours))))
+        observed = np.array(items, float).reshape(-1, 3)[::9, :2]
+        assert np.sqrt(np.mean(np.sum((observed - ours) ** 2, axis=1))) < 3.0  # the refined fit (sigma 0.3)
+    assert worst < 1e-6, worst
+    back = import_colmap_fork(tmp_path / "fork", units_mm=1.0)
+    b = next(iter(back.cameras.values()))
+    np.testing.assert_allclose(b.params, cal.cameras[name].params, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(back.normal_cam(b.name), cal.normal_cam(name), atol=1e-12)
+    assert back.projection_model(b.name).distance_mm == pytest.approx(cal.projection_model(name).distance_mm)
