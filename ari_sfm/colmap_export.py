@@ -728,6 +728,19 @@ def structure_from_motion(image_dir: str | Path, work_dir: str | Path, focal_px:
     each step, ``on_image()`` when the mapper registers an image (progress)."""
     if matcher not in SFM_MATCHERS:
         raise ValueError(f"matcher must be one of {', '.join(SFM_MATCHERS)} (got {matcher!r})")
+    level = getattr(pycolmap.logging, "minloglevel", None)
+    if level is not None and not log.isEnabledFor(logging.INFO):  # COLMAP's own INFO lines only with -v
+        pycolmap.logging.minloglevel = 1
+    try:
+        return _structure_from_motion(image_dir, work_dir, focal_px, max_features, seed, matcher, overlap,
+                                      num_threads, on_step, on_image)
+    finally:
+        if level is not None:
+            pycolmap.logging.minloglevel = level
+
+
+def _structure_from_motion(image_dir, work_dir, focal_px, max_features, seed, matcher, overlap, num_threads,
+                           on_step, on_image) -> Any:
     image_dir, work_dir = Path(image_dir), Path(work_dir)
     step = on_step or (lambda name: None)
     work_dir.mkdir(parents=True, exist_ok=True)

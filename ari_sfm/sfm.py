@@ -135,21 +135,26 @@ def run_sfm(images: str | Path, window: str | Path, out: str | Path, options: Sf
         shutil.rmtree(partial)
     t0 = time.perf_counter()
     times: dict[str, float] = {}
-    bar = None
-    if options.progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(files), desc="COLMAP mapping", unit="image", leave=False)
+    bar = None  # progress: one bar for the steps, then the images the mapper registers
+    what = {"features": f"SIFT features of {len(files)} images (CPU)", "matching": f"{matcher} matching",
+            "mapping": "incremental mapping"}
     clock = {"step": None, "t": t0}
 
     def on_step(name: str) -> None:
+        nonlocal bar
         now = time.perf_counter()
         if clock["step"] is not None:
             times[clock["step"]] = now - clock["t"]
         clock.update(step=name, t=now)
-        log.info("COLMAP %s (%s)", {"features": f"SIFT features of {len(files)} images, CPU",
-                                    "matching": f"{matcher} matching",
-                                    "mapping": "incremental mapping"}[name], images)
+        log.info("COLMAP %s (%s)", what[name], images)
+        if options.progress:
+            from tqdm import tqdm
+
+            if bar is not None:
+                bar.close()
+            mapping = name == "mapping"
+            bar = tqdm(total=len(files) if mapping else None, desc=f"COLMAP {what[name]}", leave=False,
+                       unit="image" if mapping else "it", bar_format=None if mapping else "{desc} ({elapsed})")
 
     try:
         try:
