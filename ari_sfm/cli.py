@@ -339,8 +339,8 @@ def export_colmap_cmd(calibration: Path, out: Path, dataset: Path | None, points
 @main.command(name="sfm")
 @click.argument("images", type=click.Path(path_type=Path))
 @click.option("--window", "window", type=click.Path(path_type=Path), required=True,
-              help="WINDOW.yaml: interface (thickness_mm, index, medium_index), mount (camera | world), "
-                   "optional units_mm or scale_bar (see refine-colmap).")
+              help="WINDOW.yaml: interface (thickness_mm, index, medium_index), mount (camera | world), and the "
+                   "scale: units_mm or scale_bar (see refine-colmap), unless --baseline gives it.")
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
               help="Output folder: colmap/ (COLMAP's database and pinhole model), refined/ (refine-colmap's "
                    "model, calibration.json, refine.json), sfm.json.")
