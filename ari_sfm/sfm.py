@@ -90,13 +90,15 @@ def check_sfm_paths(images: Path, out: Path) -> None:
 
 def _units_from_baseline(rec: Any, baseline: tuple[str, str, float], images: Path) -> float:
     """mm per COLMAP unit from the distance between two registered images' camera centres."""
+    from .colmap_export import model_from_reconstruction
+
     a, b, mm = baseline
+    model = model_from_reconstruction(rec, images)
     centres = {}
-    for image_id in rec.reg_image_ids():
-        image = rec.image(image_id)
-        if image.name in (a, b):
-            pose = image.cam_from_world()
-            centres[image.name] = -np.asarray(pose.rotation.matrix()).T @ np.asarray(pose.translation)
+    for i, name in enumerate(model.image_names):
+        if name in (a, b):
+            pose = model.sensor_from_rig[i].compose(model.rig_from_world[model.image_frame[i]])
+            centres[name] = pose.inverse().t
     missing = [n for n in (a, b) if n not in centres]
     if missing:
         raise AriSfmError(images, f"--baseline: image {missing[0]} is not among the images COLMAP registered")
@@ -122,6 +124,11 @@ def run_sfm(images: str | Path, window: str | Path, out: str | Path, options: Sf
     if options.baseline is None and spec.units_mm is None and spec.scale_bar is None:
         raise AriSfmError(window, "no scale: COLMAP's model has no unit and the refraction depends on it (the plate "
                                   "is in mm): give units_mm or scale_bar here, or --baseline IMAGE IMAGE MM")
+    if options.baseline is not None:
+        names = {p.name for p in files}
+        missing = [n for n in options.baseline[:2] if n not in names]
+        if missing:
+            raise AriSfmError(images, f"--baseline: no image {missing[0]} in this folder")
     matcher = options.matcher
     if matcher == "auto":
         matcher = "exhaustive" if len(files) <= EXHAUSTIVE_MAX_IMAGES else "sequential"

@@ -106,6 +106,9 @@ def test_sfm_bad_inputs_one_line(tmp_path):
     r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "W.yaml"),
                              "-o", str(tmp_path / "imgs" / "out")])
     _one_error_line(r, "images folder")
+    r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "W.yaml"), "-o", str(tmp_path / "o"),
+                             "--baseline", "i0.png", "nope.png", "100"])
+    _one_error_line(r, "imgs", "--baseline: no image nope.png")
     assert not (tmp_path / "o").exists() and not (tmp_path / "imgs" / "out").exists()
 
 
