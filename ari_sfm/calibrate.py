@@ -20,13 +20,17 @@ from .results import OutlierReport
 log = logging.getLogger(__name__)
 
 PLANE_ROUNDS = 5  # ari rounds holding the declared normal at its frame's refitted pose (no stacking)
+DEFAULT_MODEL = "exact"  # the best model: Snell's law refined from the ari stage (distortion: resolve_distortion)
+DISTORTION_MIN_VIEWS = 6  # calibration views per camera below which lens distortion is not estimated by default
+DISTORTION_MIN_COVERAGE = 0.2  # fraction of a camera's image inside the convex hull of its corners, likewise
 
 
 @dataclass(frozen=True)
 class CalibrationOptions:
     """Options of :func:`calibrate`, each with its default."""
 
-    distortion: bool = False  # estimate k1 k2 p1 p2 k3 (off: they stay as given, normally zero)
+    distortion: bool | None = None  # estimate k1 k2 p1 p2 k3; None: for the exact model when the views support
+    # it (distortion_support), else off; False: they stay as given (normally zero)
     huber_px: float | None = 1.0  # per-corner Huber threshold in px; None: plain least squares
     outlier_sigma: float = 5.0  # corners beyond this many sigma after convergence are reported
     exclude_outliers: bool = False  # drop those corners and re-run the last stage
@@ -65,6 +69,50 @@ def _options(options: CalibrationOptions | None, overrides: dict) -> Calibration
     return replace(options, **overrides)
 
 
+def distortion_support(dataset: Dataset) -> str | None:
+    """Why the dataset's views cannot support estimating lens distortion (k1 k2 p1 p2 k3), or None
+    when they can: every camera needs DISTORTION_MIN_VIEWS calibration views and corners whose convex
+    hull covers DISTORTION_MIN_COVERAGE of its image (distortion grows toward the edges), and the
+    dataset stacking poses (without them the exact model finds the window normal through refraction
+    alone, and free distortion absorbs part of it: simulated single camera 0.38 deg instead of 0.08;
+    under water, oblique, the fit diverged)."""
+    import cv2
+
+    if not dataset.select("stacking"):
+        return ("the dataset has no stacking poses: the window normal is then found through refraction alone, "
+                "which free distortion would absorb (--distortion estimates it anyway)")
+    for name in dataset.camera_names:
+        views = dataset.select("calibration", name)
+        frames = {o.frame for o in views if len(o.ids)}
+        if len(frames) < DISTORTION_MIN_VIEWS:
+            return (f"{name} has {len(frames)} calibration view{'s' * (len(frames) != 1)} "
+                    f"(at least {DISTORTION_MIN_VIEWS} needed)")
+        pixels = np.concatenate([o.pixels for o in views if len(o.ids)]).astype(np.float32)
+        w, h = dataset.cameras[name].image_size
+        coverage = float(cv2.contourArea(cv2.convexHull(pixels))) / float(w * h)
+        if coverage < DISTORTION_MIN_COVERAGE:
+            return (f"{name}'s corners cover {100 * coverage:.0f} % of its image (at least "
+                    f"{100 * DISTORTION_MIN_COVERAGE:.0f} % needed: add views near its edges)")
+    return None
+
+
+def resolve_distortion(dataset: Dataset, model: str, opts: CalibrationOptions) -> bool:
+    """``opts.distortion`` as given, or (None) estimated for the exact model when the views support
+    it and no intrinsics are held; when they do not, one log line says why."""
+    if opts.distortion is not None:
+        return bool(opts.distortion)
+    if model != "exact":  # the paper's ari model and the baselines keep their published form
+        return False
+    if opts.fix_intrinsics:
+        log.info("lens distortion not estimated: the intrinsics hints are held (fix_intrinsics)")
+        return False
+    why = distortion_support(dataset)
+    if why is not None:
+        log.warning("lens distortion not estimated: %s", why)
+        return False
+    return True
+
+
 def ensure_observations(dataset: Dataset, workers: int | None = None, progress: bool = False) -> Dataset:
     """The dataset with observations, detecting corners in its images when it has none."""
     if dataset.observations is not None:
@@ -83,12 +131,14 @@ def _add_factors(graph, extra_factors) -> None:
         graph.graph.push_back(f)
 
 
-def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=None,
+def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_factors=None,
               options: CalibrationOptions | None = None, **overrides) -> Calibration:
     """Calibrate the cameras and the window of a dataset.
 
-    model "ari": the paper's paraxial model (analytic initialisation + bundle
-    adjustment); "exact": Snell's law at both faces, refined from the ari result;
+    model "exact" (default, the best model): Snell's law at both faces, refined from the ari
+    result, with lens distortion estimated when the views support it (``distortion`` None; the
+    ari stage's figures are kept in ``extra["stages"]``); "ari": the paper's paraxial model alone
+    (analytic initialisation + bundle adjustment);
     the paper's baselines "rt" (ray tracing) and "pf" (polynomial), and "pinhole",
     "pinhole_dist" (window ignored): see :mod:`ari_sfm.baselines`.
     Options: a :class:`CalibrationOptions` as ``options=``, and/or its fields as keywords
@@ -111,6 +161,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = "ari", extra_factors=N
 
         dataset = load_dataset(dataset)
     dataset = ensure_observations(dataset, opts.workers, opts.progress)
+    opts = replace(opts, distortion=resolve_distortion(dataset, model, opts))
     if not spec.bundle:
         if extra_factors is not None:
             raise ValueError(f"extra_factors need a factor-graph model (ari or exact), not {model!r}")
@@ -250,6 +301,7 @@ def _calibrate_from(dataset: Dataset, model: str, extra_factors, opts: Calibrati
     iterations = {}
     from .init.window_start import not_beyond
 
+    stages_done: list[dict] = []  # each stage's model and figures (calibration.json "stages")
     for label, stage, hold_normal, with_plane in stages:
         sigma = given_sigma
         if label == "exact_free" and not start.free_window_first:
@@ -291,6 +343,7 @@ def _calibrate_from(dataset: Dataset, model: str, extra_factors, opts: Calibrati
                 n_iterations += graph.iterations
                 residuals = residuals_of(graph, solved)
             sigma = estimated
+        stages_done.append(_stage_record(label, stage, state, residuals, opts.distortion))
         iterations[label] = {"iterations": n_iterations, "time_s": time.perf_counter() - t_stage, "backend": backend,
                              "sigma_px": graph.sigma_px}
         if solved is not None:  # numpy backend: it stops at convergence without GTSAM's futile lambda trials
@@ -304,6 +357,7 @@ def _calibrate_from(dataset: Dataset, model: str, extra_factors, opts: Calibrati
         graph = build(last_stage, state, without(dataset.observations, outliers), with_plane=last_plane)
         state, solved = solve(graph, last_stage)
         residuals = residuals_of(graph, solved)
+        stages_done[-1] = _stage_record(stages[-1][0], last_stage, state, residuals, opts.distortion)
     if outliers:
         # With the paraxial ari model, large residuals are mostly its own error at oblique rays.
         level = logging.INFO if last_stage == "ari" else logging.WARNING
@@ -341,13 +395,26 @@ def _calibrate_from(dataset: Dataset, model: str, extra_factors, opts: Calibrati
         stacking_poses={f: p for f, p in state.world_from_target.items() if f in rig.stacking_poses},
         residuals=residual_stats(r for _, r in residuals),
         time_s=elapsed,
-        extra={"optimizer": iterations},
+        extra={"optimizer": iterations, "stages": stages_done},
         target=dataset.target,
         # exact in air: any distance gives the same rays; the one it was fitted at (a declared plane gives it)
         fixed_distance_mm=state.distance_mm if model == "exact" and distance is None else None,
         uncertainty=uncertainty,
         outliers=OutlierReport(robust_sigma, opts.outlier_sigma, opts.exclude_outliers, tuple(outliers)),
     ), residuals
+
+
+def _stage_record(label: str, model: str, state, residuals, distortion: bool) -> dict:
+    """One stage's figures for calibration.json ``stages``: its model, residuals and parameters."""
+    stats = residual_stats(r for _, r in residuals)
+    return {
+        "stage": label, "model": model, "distortion": bool(distortion),
+        "rmse_px": stats.rmse_px, "max_px": stats.max_px, "count": stats.count,
+        "normal_world": np.asarray(state.normal_world, float).tolist(),
+        "distance_mm": None if state.distance_mm is None else float(state.distance_mm),
+        "cameras": {n: {"fx": float(p[0]), "fy": float(p[1]), "cx": float(p[2]), "cy": float(p[3]),
+                        "dist": [float(v) for v in np.resize(p[4:9], 5)]} for n, p in state.params.items()},
+    }
 
 
 def _hold_normal(rg, normal: np.ndarray) -> None:

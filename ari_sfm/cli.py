@@ -108,8 +108,14 @@ def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
 
 _model_option = click.option("--model", default=None, metavar="|".join(CALIBRATABLE),
                              help="; ".join(f"{m}: {MODELS[m].summary}" for m in CALIBRATABLE)
-                             + ". Default: ari (run: exact when the dataset has no stacking poses).")
+                             + ". Default: exact, the best model (its ari stage's figures shown beside it); "
+                               "ari: the paper's model alone.")
 _distortion_option = click.option("--distortion/--no-distortion", default=False, show_default=True, help="Estimate k1 k2 p1 p2 k3.")
+_auto_distortion_option = click.option(
+    "--distortion/--no-distortion", default=None,
+    help="Estimate k1 k2 p1 p2 k3, or hold them at zero. Default: estimated with the exact model when the views "
+         "support it (every camera with >= 6 calibration views whose corners cover >= 20 % of its image, and stacking poses; "
+         "otherwise one line says why not).")
 _huber_option = click.option("--huber-px", type=float, default=1.0, show_default=True,
                              help="Per-corner Huber threshold in px (0: plain least squares).")
 _outlier_option = click.option("--exclude-outliers", is_flag=True, help="Drop corners beyond 5 sigma after convergence and re-run.")
@@ -126,7 +132,7 @@ _fix_option = click.option("--fix-intrinsics", is_flag=True,
 def _calibration_options(fn):
     """The options calibrate and run share: --model, --distortion, --huber-px, --exclude-outliers,
     --fix-intrinsics, --backend."""
-    for option in reversed((_model_option, _distortion_option, _huber_option, _outlier_option, _fix_option,
+    for option in reversed((_model_option, _auto_distortion_option, _huber_option, _outlier_option, _fix_option,
                             _backend_option)):
         fn = option(fn)
     return fn
@@ -137,21 +143,22 @@ def _calibration_options(fn):
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder for calibration.json.")
 @_calibration_options
 @user_errors
-def calibrate_cmd(dataset: Path, out: Path, model: str | None, distortion: bool, huber_px: float, exclude_outliers: bool,
+def calibrate_cmd(dataset: Path, out: Path, model: str | None, distortion: bool | None, huber_px: float, exclude_outliers: bool,
                   fix_intrinsics: bool, backend: str) -> None:
     """Calibrate DATASET; write OUT/calibration.json (and OUT/observations.json when detected here).
 
     Exit code 3: the calibration converged but failed its quality gate (written with quality.ok false)."""
+    from .calibrate import DEFAULT_MODEL
     from .pipelines.calibrate_rig import main as pipeline
 
-    model = model or "ari"
+    model = model or DEFAULT_MODEL
     model_spec(model, "--model", calibratable=True)  # before any loading or detection
     check_output_folder(out)
     check_number("--huber-px", huber_px, minimum=0.0)
     t0 = time.perf_counter()
     result = pipeline(dataset, out, model=model, progress=True, distortion=distortion, huber_px=huber_px or None,
                       exclude_outliers=exclude_outliers, fix_intrinsics=fix_intrinsics, backend=backend)
-    _summary(result.calibration, time.perf_counter() - t0)
+    _summary(result.calibration, time.perf_counter() - t0, "corner detection, calibration, files")
     if result.observations_path:
         click.echo(f"observations: {result.observations_path}")
     click.echo(f"calibration:  {result.calibration_path}")
@@ -165,14 +172,14 @@ def calibrate_cmd(dataset: Path, out: Path, model: str | None, distortion: bool,
 @click.option("--truth", type=click.Path(path_type=Path), default=None,
               help="A simulator's truth.json: also report the reconstruction's 3D error against it.")
 @user_errors
-def run(dataset: Path, out: Path, model: str | None, distortion: bool, huber_px: float, exclude_outliers: bool,
+def run(dataset: Path, out: Path, model: str | None, distortion: bool | None, huber_px: float, exclude_outliers: bool,
         fix_intrinsics: bool, backend: str, truth: Path | None) -> None:
     """The pipeline: detect corners when needed, calibrate, reconstruct (frames seen by two cameras), report.
 
     Exit code 3: the calibration failed its quality gate (no reconstruction)."""
     from .pipelines.run import main as pipeline
 
-    if model is not None:  # None: exact without stacking poses, else ari (pipelines.run.default_model)
+    if model is not None:  # None: the best model (calibrate.DEFAULT_MODEL)
         model_spec(model, "--model", calibratable=True)  # before any loading or detection
     check_output_folder(out)
     check_number("--huber-px", huber_px, minimum=0.0)
@@ -181,7 +188,10 @@ def run(dataset: Path, out: Path, model: str | None, distortion: bool, huber_px:
     result = pipeline(dataset, out, model=model, truth=truth, progress=True, distortion=distortion,
                       huber_px=huber_px or None, exclude_outliers=exclude_outliers, fix_intrinsics=fix_intrinsics,
                       backend=backend)
-    _summary(result.calibrated.calibration, time.perf_counter() - t0)
+    _summary(result.calibrated.calibration, time.perf_counter() - t0,
+             "corner detection, calibration, reconstruction, report")
+    if result.truth_errors is not None:
+        _truth_summary(result.truth_errors)
     click.echo(f"calibration: {result.calibrated.calibration_path}")
     if result.reconstruction is None:
         click.echo(f"info: reconstruction skipped: {result.skipped_reconstruction}")
@@ -189,6 +199,10 @@ def run(dataset: Path, out: Path, model: str | None, distortion: bool, huber_px:
         m = result.reconstruction.metrics
         click.echo(f"reconstruction: {m.num_points} points in {m.num_frames} frames, flatness rmse "
                    f"{m.flatness_mm.rmse:.4f} mm -> {result.reconstruction.metrics_path}")
+        if m.truth:
+            t = m.truth
+            click.echo(f"3D error vs truth: rms {t.aligned_rms_mm:.4f} mm after rigid alignment (max "
+                       f"{t.aligned_max_mm:.4f} mm), {t.unaligned_rms_mm:.4f} mm without")
     click.echo(f"report: {result.report_path}")
     _exit_if_failed(result.calibrated.calibration)
 
@@ -325,6 +339,112 @@ def export_colmap_cmd(calibration: Path, out: Path, dataset: Path | None, points
         points = folder / "points.json"
 
     click.echo(summary(export_colmap(calibration, out, dataset=dataset, points=points, approximation=approximation)))
+
+
+
+@main.command(name="sfm")
+@click.argument("images", type=click.Path(path_type=Path))
+@click.option("--window", "window", type=click.Path(path_type=Path), required=True,
+              help="WINDOW.yaml: interface (thickness_mm, index, medium_index), mount (camera | world), and the "
+                   "scale: units_mm or scale_bar (see refine-colmap), unless --baseline gives it.")
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
+              help="Output folder: colmap/ (COLMAP's database and pinhole model), refined/ (refine-colmap's "
+                   "model, calibration.json, refine.json), sfm.json.")
+@click.option("--matcher", type=click.Choice(["auto", "exhaustive", "sequential"]), default="auto", show_default=True,
+              help="Image pairs to match: all (exhaustive), or each image with its --overlap successors in name "
+                   "order (sequential: long surveys, no vocabulary tree); auto: exhaustive up to 200 images.")
+@click.option("--overlap", type=int, default=10, show_default=True, help="Sequential matching: successors per image.")
+@click.option("--focal-px", type=float, default=None, help="Focal length prior (px) of the camera behind the window.")
+@click.option("--baseline", type=(str, str, float), default=None, metavar="IMAGE IMAGE MM",
+              help="The scale: the distance (mm) between two images' camera centres (e.g. from navigation).")
+@click.option("--max-features", type=int, default=4000, show_default=True, help="SIFT features per image.")
+@click.option("--huber-px", type=float, default=2.0, show_default=True, help="refine-colmap's Huber threshold (px).")
+@click.option("--max-iterations", type=int, default=50, show_default=True, help="refine-colmap's iterations.")
+@click.option("--threads", type=int, default=-1, show_default=True, help="COLMAP's threads (-1: all cores).")
+@user_errors
+def sfm_cmd(images: Path, window: Path, out: Path, matcher: str, overlap: int, focal_px: float | None,
+            baseline: tuple[str, str, float] | None, max_features: int, huber_px: float, max_iterations: int,
+            threads: int) -> None:
+    """Structure from motion behind a flat window: COLMAP's SIFT, matching and incremental mapping (CPU),
+    then refine-colmap with the exact refractive model, in one command."""
+    from .sfm import SfmOptions, run_sfm
+
+    check_output_folder(out)
+    check_number("--overlap", overlap, minimum=1)
+    check_number("--focal-px", focal_px, minimum=0.0, strict_minimum=True)
+    check_number("--max-features", max_features, minimum=1)
+    check_number("--huber-px", huber_px, minimum=0.0, strict_minimum=True)
+    check_number("--max-iterations", max_iterations, minimum=1)
+    if baseline is not None:
+        check_number("--baseline", baseline[2], minimum=0.0, strict_minimum=True)
+    result = run_sfm(images, window, out, SfmOptions(
+        matcher=matcher, overlap=overlap, max_features=max_features, focal_px=focal_px, baseline=baseline,
+        huber_px=huber_px, max_iterations=max_iterations, num_threads=threads, progress=True))
+    report = result.refine.report
+    rms = ""
+    if isinstance(report, dict) and "before" in report and "after" in report:
+        rms = (f"; reprojection RMS {report['before']['rms_px']:.3f} px (COLMAP pinhole) -> "
+               f"{report['after']['rms_px']:.3f} px (exact)")
+    click.echo(f"COLMAP: {result.registered} of {result.images} images registered, {result.points3D} points "
+               f"-> {result.colmap_model}")
+    click.echo(f"refine-colmap{rms} -> {result.refined}")
+    click.echo(f"summary: {result.summary_path}")
+
+_units_option = click.option("--units-mm", type=float, default=1000.0, show_default=True,
+                             help="mm per length unit of the fork's model (int_dist, int_thick, poses, points): "
+                                  "1000 = metres, as in the fork's examples.")
+
+
+@main.command(name="export-colmap-fork")
+@click.argument("calibration", type=click.Path(path_type=Path))
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
+              help="Output folder: cameras.txt (FLATPORT), images.txt, points3D.txt of the refractive COLMAP fork.")
+@click.option("--dataset", type=click.Path(path_type=Path), default=None,
+              help="Dataset whose calibration corners become the images' 2D points and the 3D points (default: a "
+                   "refine-colmap output's COLMAP model beside CAL, its images at their real poses and the refined "
+                   "points; else observations.json beside CAL; else cameras and poses only).")
+@_units_option
+@user_errors
+def export_colmap_fork_cmd(calibration: Path, out: Path, dataset: Path | None, units_mm: float) -> None:
+    """Write an exact CALIBRATION as a model of the refractive COLMAP fork (colmap_underwater, FLATPORT cameras)."""
+    from .calibration import load_calibration
+    from .colmap_fork import export_colmap_fork
+    from .io import load_dataset, load_observations
+
+    check_output_folder(out)
+    check_number("--units-mm", units_mm, minimum=0.0, strict_minimum=True)
+    cal = load_calibration(calibration)
+    observations, refined = None, None
+    folder = calibration.parent
+    if dataset is None and "refine_colmap" in cal.extra and any((folder / f"cameras.{x}").is_file() for x in ("bin", "txt")):
+        refined = folder  # a refine-colmap output: its images at their real poses and the refined points
+    elif dataset is not None:
+        observations = load_dataset(dataset).observations
+    elif (folder / "observations.json").is_file():
+        observations = load_observations(folder / "observations.json", cal.target, list(cal.cameras))
+    done = export_colmap_fork(cal, out, observations, units_mm, refined_model=refined)
+    click.echo(f"{done.cameras} FLATPORT camera(s), {done.images} images, {done.points3D} points3D "
+               f"(lengths in units of {units_mm:g} mm) -> {out}")
+
+
+@main.command(name="import-colmap-fork")
+@click.argument("model_dir", type=click.Path(path_type=Path))
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder for calibration.json.")
+@_units_option
+@user_errors
+def import_colmap_fork_cmd(model_dir: Path, out: Path, units_mm: float) -> None:
+    """Read the FLATPORT cameras of a refractive COLMAP fork text model (MODEL_DIR/cameras.txt, images.txt) as
+    an exact-model calibration.json."""
+    from .colmap_fork import import_colmap_fork
+
+    check_output_folder(out)
+    check_number("--units-mm", units_mm, minimum=0.0, strict_minimum=True)
+    if out.resolve() == model_dir.resolve():
+        raise AriSfmError(out, "-o/--out: is the input model folder (choose another folder)")
+    cal = import_colmap_fork(model_dir, units_mm)
+    cal.save(out / "calibration.json")
+    click.echo(f"{len(cal.cameras)} camera(s) ({', '.join(cal.cameras)}), window {cal.interface.thickness_mm:g} mm "
+               f"n={cal.interface.index:g} medium n={cal.interface.medium_index:g} -> {out / 'calibration.json'}")
 
 
 @main.command()
@@ -521,7 +641,32 @@ def _exit_if_failed(cal) -> None:
         sys.exit(QUALITY_FAILED_EXIT)
 
 
-def _summary(cal, elapsed: float) -> None:
+def _truth_summary(errors) -> None:
+    """The calibrated parameters' errors against a simulator's truth (calibrated minus true)."""
+    head = f"vs truth (calibrated - true): normal {_std(errors.normal_deg, '.4f')}°"
+    if errors.distance_mm is not None:
+        head += f", window distance {errors.distance_mm:+.3f} mm"
+    click.echo(head)
+    for c in errors.cameras:
+        rel = ("" if c.rotation_deg is None else
+               f"  cam_from_{errors.reference_camera} {c.rotation_deg:.4f}° {c.translation_mm:.4f} mm")
+        click.echo(f"  {c.name:8s} fx {c.fx_pct:+.4f} % fy {c.fy_pct:+.4f} % cx {c.cx_px:+.3f} px "
+                   f"cy {c.cy_px:+.3f} px k1 {c.k1:+.5f}{rel}")
+
+
+def _stages_summary(cal) -> None:
+    """Each stage's residuals and focal lengths beside the final model's (calibration.json ``stages``)."""
+    stages = cal.extra.get("stages") or []
+    if len(stages) < 2:
+        return
+    click.echo("stages:")
+    for st in stages:
+        fx = " ".join(f"{n} fx {c['fx']:.2f}" for n, c in list(st["cameras"].items())[:4])
+        click.echo(f"  {st['stage']:16s} {st['model']:6s} rmse {st['rmse_px']:.4f} px, max {st['max_px']:.4f} px"
+                   f"{', distortion' if st.get('distortion') else ''}; {fx}")
+
+
+def _summary(cal, elapsed: float, covers: str = "the whole command") -> None:
     """A one-screen summary of a calibration."""
     from .geometry import angle_between_deg
 
@@ -560,7 +705,9 @@ def _summary(cal, elapsed: float) -> None:
     if q is not None and q.ok:
         pin = "n/a" if q.pinhole_dist_rmse_px is None else f"{q.pinhole_dist_rmse_px:.4f} px"
         click.echo(f"quality: ok (robust rmse {q.robust_rmse_px:.4f} px; free pinhole + distortion {pin})")
-    click.echo(f"time: calibration {cal.time_s:.3f} s, total {elapsed:.2f} s")
+    _stages_summary(cal)
+    click.echo(f"time: calibration {cal.time_s:.3f} s (analytic start and bundle-adjustment stages), "
+               f"total {elapsed:.2f} s ({covers})")
 
 
 def _std(value: float | None, spec: str) -> str:

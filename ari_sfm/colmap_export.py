@@ -713,11 +713,36 @@ def reconstruction_from_arrays(params: Sequence[np.ndarray], image_size: tuple[i
     return rec
 
 
+SFM_MATCHERS = ("exhaustive", "sequential")  # structure_from_motion's image pairings
+SFM_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+
+
 def structure_from_motion(image_dir: str | Path, work_dir: str | Path, focal_px: float | None = None,
-                          max_features: int = 4000, seed: int = 0) -> Any:
-    """COLMAP's own SfM on a folder of images (CPU SIFT, exhaustive matching, incremental mapping), one
-    PINHOLE camera for all images (``focal_px``: its prior); the largest reconstruction."""
+                          max_features: int = 4000, seed: int = 0, matcher: str = "exhaustive",
+                          overlap: int = 10, num_threads: int = -1, on_step: Any = None,
+                          on_image: Any = None) -> Any:
+    """COLMAP's own SfM on a folder of images (CPU SIFT, exhaustive or sequential matching, incremental
+    mapping), one PINHOLE camera for all images (``focal_px``: its prior); the largest reconstruction.
+    ``matcher`` "sequential" pairs each image with its ``overlap`` successors in name order (no
+    vocabulary tree: for long surveys); ``num_threads`` -1: all cores; ``on_step(name)`` is called before
+    each step, ``on_image()`` when the mapper registers an image (progress)."""
+    if matcher not in SFM_MATCHERS:
+        raise ValueError(f"matcher must be one of {', '.join(SFM_MATCHERS)} (got {matcher!r})")
+    level = getattr(pycolmap.logging, "minloglevel", None)
+    if level is not None and not log.isEnabledFor(logging.INFO):  # COLMAP's own INFO lines only with -v
+        pycolmap.logging.minloglevel = 1
+    try:
+        return _structure_from_motion(image_dir, work_dir, focal_px, max_features, seed, matcher, overlap,
+                                      num_threads, on_step, on_image)
+    finally:
+        if level is not None:
+            pycolmap.logging.minloglevel = level
+
+
+def _structure_from_motion(image_dir, work_dir, focal_px, max_features, seed, matcher, overlap, num_threads,
+                           on_step, on_image) -> Any:
     image_dir, work_dir = Path(image_dir), Path(work_dir)
+    step = on_step or (lambda name: None)
     work_dir.mkdir(parents=True, exist_ok=True)
     database = work_dir / "database.db"
     if database.exists():
@@ -727,20 +752,33 @@ def structure_from_motion(image_dir: str | Path, work_dir: str | Path, focal_px:
     if focal_px is not None:
         import cv2
 
-        first = sorted(p for p in image_dir.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))[0]
+        first = sorted(p for p in image_dir.iterdir() if p.suffix.lower() in SFM_IMAGE_SUFFIXES)[0]
         h, w = cv2.imread(str(first), cv2.IMREAD_GRAYSCALE).shape
         reader.camera_params = f"{focal_px},{focal_px},{w / 2},{h / 2}"
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.max_num_features = max_features
     extraction.use_gpu = False
+    extraction.num_threads = num_threads
+    step("features")
     pycolmap.extract_features(database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
                               extraction_options=extraction, device=pycolmap.Device.cpu)
     matching = pycolmap.FeatureMatchingOptions()
     matching.use_gpu = False
-    pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
+    matching.num_threads = num_threads
+    step("matching")
+    if matcher == "sequential":
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = int(overlap)
+        pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing,
+                                  device=pycolmap.Device.cpu)
+    else:
+        pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = seed
-    models = pycolmap.incremental_mapping(database, image_dir, work_dir / "sparse", options)
+    options.num_threads = num_threads
+    step("mapping")
+    models = pycolmap.incremental_mapping(database, image_dir, work_dir / "sparse", options,
+                                          next_image_callback=on_image)
     if not models:
         raise AriSfmError(work_dir, "COLMAP's incremental mapping reconstructed nothing")
     return max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))

@@ -1,6 +1,6 @@
 """Pipeline: detect corners when needed, calibrate, write the results.
 
-    python -m ari_sfm.pipelines.calibrate_rig DATASET OUT [--model ari|exact]
+    python -m ari_sfm.pipelines.calibrate_rig DATASET OUT [--model exact|ari]  (default exact)
 """
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..calibrate import calibrate, ensure_observations
+from ..calibrate import DEFAULT_MODEL, calibrate, ensure_observations
 from ..calibration import Calibration
 from ..io import load_dataset, save_observations
 from ..models.registry import CALIBRATABLE
@@ -24,7 +24,7 @@ class PipelineResult:
     observations_path: Path | None  # written when corners were detected here
 
 
-def main(dataset_path: Path, out_dir: Path, model: str = "ari", progress: bool = False, **options) -> PipelineResult:
+def main(dataset_path: Path, out_dir: Path, model: str = DEFAULT_MODEL, progress: bool = False, **options) -> PipelineResult:
     """Load, detect (if the dataset has only images), calibrate; write calibration.json."""
     dataset = load_dataset(dataset_path)
     detected = dataset.observations is None
@@ -44,7 +44,7 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("dataset", type=Path)
     ap.add_argument("out", type=Path)
-    ap.add_argument("--model", default="ari", choices=CALIBRATABLE)
+    ap.add_argument("--model", default=DEFAULT_MODEL, choices=CALIBRATABLE)
     a = ap.parse_args()
     logging.basicConfig(level=logging.INFO)
     r = main(a.dataset, a.out, a.model)

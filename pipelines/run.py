@@ -2,7 +2,10 @@
 
     python -m ari_sfm.pipelines.run DATASET OUT [--model ari|exact] [--truth TRUTH]
 
-Without --model: exact when the dataset has no stacking poses, else ari.
+Without --model: the best model (exact refined from ari, lens distortion estimated when the views
+support it: :func:`ari_sfm.calibrate.resolve_distortion`); ``--model ari``: the paper's model alone.
+With a truth: the calibrated parameters' errors against it (:mod:`ari_sfm.calibration_errors`, also
+in run.json ``calibration_vs_truth``) and the reconstruction's 3D error (metrics.json).
 
 OUT gets calibration.json (+ observations.json when detected here), then,
 when the dataset has reconstruction frames seen by two or more cameras,
@@ -16,6 +19,8 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..calibrate import DEFAULT_MODEL
+from ..calibration_errors import CalibrationErrors, calibration_errors
 from ..io import load_dataset, write_json_atomic
 from ..models.registry import CALIBRATABLE
 from ..records import Dataset
@@ -34,6 +39,7 @@ class RunResult:
     skipped_reconstruction: str | None  # why it was skipped
     run_path: Path
     report_path: Path
+    truth_errors: CalibrationErrors | None = None  # the calibration against --truth
 
 
 def reconstruction_frames(dataset: Dataset) -> tuple[list[str], str | None]:
@@ -49,27 +55,16 @@ def reconstruction_frames(dataset: Dataset) -> tuple[list[str], str | None]:
     return frames, None
 
 
-def default_model(dataset: Dataset) -> str:
-    """exact when the dataset has no stacking poses (the ari model cannot observe the normal then), else ari."""
-    if dataset.observations is not None:
-        stacking = any(o.set == "stacking" for o in dataset.observations)
-    else:
-        stacking = bool(dataset.stacking)
-    return "ari" if stacking else "exact"
-
-
 def main(dataset_path: Path, out_dir: Path, model: str | None = None, truth: Path | None = None,
          progress: bool = False, **options) -> RunResult:
-    """Calibrate (ari, or ari refined to exact; None: :func:`default_model`), reconstruct when
-    possible, write run.json and report.html."""
+    """Calibrate (None: the best model, ``DEFAULT_MODEL``), reconstruct when possible, write run.json
+    and report.html."""
     out_dir = Path(out_dir)
     if truth is not None:
         from ..metrics import check_truth
 
         check_truth(truth)  # before the calibration, not after it
-    if model is None:
-        model = default_model(load_dataset(dataset_path))
-        log.info("model %s (the dataset %s stacking poses)", model, "has" if model == "ari" else "has no")
+    model = model or DEFAULT_MODEL
     calibrated = calibrate_rig(dataset_path, out_dir, model=model, progress=progress, **options)
     obs_path = calibrated.observations_path
     dataset = load_dataset(dataset_path, obs_path)
@@ -83,6 +78,11 @@ def main(dataset_path: Path, out_dir: Path, model: str | None = None, truth: Pat
                                  observations=obs_path)
     else:
         log.info("reconstruction skipped: %s", why)
+    errors = None
+    if truth is not None:
+        from ..calibration import load_calibration
+
+        errors = calibration_errors(calibrated.calibration, load_calibration(truth))
     run_path = out_dir / RUN_FILE
     write_json_atomic(run_path, {
         "format": RUN_FORMAT,
@@ -93,9 +93,10 @@ def main(dataset_path: Path, out_dir: Path, model: str | None = None, truth: Pat
         "reconstruction": None if rec is None else {"frames": len(rec.points.frames), "points": rec.points.num_points},
         "reconstruction_skipped": why,
         "truth": str(Path(truth).resolve()) if truth else None,
+        "calibration_vs_truth": None if errors is None else errors.to_json(),
     })
     report = write_report(out_dir)
-    return RunResult(calibrated, rec, why, run_path, report)
+    return RunResult(calibrated, rec, why, run_path, report, errors)
 
 
 if __name__ == "__main__":

@@ -70,7 +70,7 @@ def test_ari_needs_the_stacking_observations(single_scene):
     ds = single_scene.dataset
     no_stack = replace(ds, observations=tuple(o for o in ds.observations if o.set != "stacking"))
     with pytest.raises(AriSfmError, match="normal is not observable"):
-        calibrate(no_stack)
+        calibrate(no_stack, model="ari")
 
 
 def test_save_load_round_trip_and_evaluate(tmp_path, single_scene, single_ari):

@@ -34,7 +34,8 @@ def test_calibrate_then_evaluate(sim_dir, tmp_path):
     assert r.exit_code == 0, r.output
     assert "rmse" in r.output and "cam0" in r.output
     cal = json.loads((tmp_path / "out" / "calibration.json").read_text())
-    assert cal["format"] == "ari-sfm-calibration/1" and cal["model"] == "ari"
+    assert cal["format"] == "ari-sfm-calibration/1" and cal["model"] == "exact"  # the default: the best model
+    assert [st["model"] for st in cal["stages"]] == ["ari", "exact"] and "stages:" in r.output
     assert len(cal["cameras"]["cam0"]["expansion_center_px"]) == 2
     assert len(cal["cameras"]["cam0"]["expansion_center_std_px"]) == 2
     assert not (tmp_path / "out" / "observations.json").exists()  # nothing was detected here
@@ -145,7 +146,8 @@ def test_bad_input_gives_one_line_error_and_no_result(case, sim_dir, tmp_path):
     mutate(ds)
     target = tmp_path / path_override if path_override else ds
     out = tmp_path / "out"
-    r = CliRunner().invoke(main, ["calibrate", str(target), "-o", str(out)])
+    model = ["--model", "ari"] if case == "no stacking" else []  # the paper's model cannot see the normal then
+    r = CliRunner().invoke(main, ["calibrate", str(target), "-o", str(out)] + model)
     assert r.exit_code == 1, r.output
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()] if hasattr(r, "stderr") else r.output.splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: "), r.output

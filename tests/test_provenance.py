@@ -20,7 +20,7 @@ def run_dir(tmp_path_factory):
     base = tmp_path_factory.mktemp("prov")
     ds, _ = simulate("binocular", base / "sim", seed=0, images=False)
     out = base / "out"
-    r = CliRunner().invoke(main, ["run", str(ds), "-o", str(out)])
+    r = CliRunner().invoke(main, ["run", str(ds), "-o", str(out), "--model", "ari"])
     assert r.exit_code == 0, r.output
     return Path(ds), out
 

@@ -157,13 +157,6 @@ def test_ari_without_stacking_names_both_ways_out(single):
     assert "\n" not in msg and "--model exact" in msg and "interface.plane" in msg
 
 
-def test_run_chooses_exact_without_stacking(single):
-    from ari_sfm.pipelines.run import default_model
-
-    assert default_model(single.dataset) == "exact"
-    assert default_model(make_scene("paper_single").dataset) == "ari"
-
-
 # ------------------------------------------------------------------ a declared window
 
 
@@ -335,7 +328,7 @@ def test_cli_without_stacking(tmp_path):
     r = runner.invoke(main, ["simulate", "paper_single_nostack", "-o", str(tmp_path / "sim"), "--no-images"])
     assert r.exit_code == 0, r.output
     ds = str(tmp_path / "sim" / "dataset")
-    r = runner.invoke(main, ["calibrate", ds, "-o", str(tmp_path / "a")])
+    r = runner.invoke(main, ["calibrate", ds, "-o", str(tmp_path / "a"), "--model", "ari"])
     assert r.exit_code == 1 and not (tmp_path / "a" / "calibration.json").exists()
     lines = [ln for ln in r.output.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: ") and "--model exact" in lines[0], r.output

@@ -1,0 +1,72 @@
+"""A calibration's parameter errors against a simulator's truth (truth.json, calibration.json form).
+
+Frames are compared where both calibrations agree on them: the window normal and distance in the
+first camera's frame, the other cameras' poses relative to the first (``cam_from_cam0``), so the
+two worlds need not coincide.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from .calibration import Calibration
+from .errors import AriSfmError
+from .geometry import angle_between_deg
+
+
+@dataclass(frozen=True)
+class CameraErrors:
+    """One camera's errors (calibrated minus true)."""
+
+    name: str
+    fx_pct: float
+    fy_pct: float
+    cx_px: float
+    cy_px: float
+    k1: float  # radial distortion coefficient difference
+    rotation_deg: float | None  # of cam_from_<first camera>; None for the first camera
+    translation_mm: float | None
+
+
+@dataclass(frozen=True)
+class CalibrationErrors:
+    """Errors of a calibration against the truth."""
+
+    reference_camera: str
+    normal_deg: float | None  # None: a model without a window
+    distance_mm: float | None  # first camera's centre to the window; None where either has none
+    cameras: tuple[CameraErrors, ...]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"reference_camera": self.reference_camera, "normal_deg": self.normal_deg,
+                "distance_mm": self.distance_mm, "cameras": [asdict(c) for c in self.cameras]}
+
+
+def calibration_errors(cal: Calibration, truth: Calibration) -> CalibrationErrors:
+    """Parameter errors of ``cal`` against ``truth`` (same camera names)."""
+    missing = [n for n in cal.cameras if n not in truth.cameras]
+    if missing:
+        raise AriSfmError("truth", f"camera {missing[0]} is not in the truth (its cameras: {', '.join(truth.cameras)})")
+    first = next(iter(cal.cameras))
+    normal = distance = None
+    if cal.normal_world is not None and truth.normal_world is not None:
+        normal = angle_between_deg(cal.normal_cam(first), truth.normal_cam(first))
+        d_cal, d_true = cal.distance_mm(first), truth.distance_mm(first)
+        if d_cal is not None and d_true is not None:
+            distance = d_cal - d_true
+    cams = []
+    for name, c in cal.cameras.items():
+        t = truth.cameras[name]
+        p, q = c.params, t.params
+        rotation = translation = None
+        if name != first:
+            rel = c.cam_from_world.compose(cal.cameras[first].cam_from_world.inverse())
+            rel_true = t.cam_from_world.compose(truth.cameras[first].cam_from_world.inverse())
+            cos = (np.trace(rel.R @ rel_true.R.T) - 1.0) / 2.0
+            rotation = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+            translation = float(np.linalg.norm(rel.t - rel_true.t))
+        cams.append(CameraErrors(name, 100.0 * (p[0] / q[0] - 1.0), 100.0 * (p[1] / q[1] - 1.0), p[2] - q[2],
+                                 p[3] - q[3], p[4] - q[4], rotation, translation))
+    return CalibrationErrors(first, normal, distance, tuple(cams))
