@@ -90,6 +90,9 @@ def find_rig(path: str | Path) -> Path:
     """The rig file of a dataset folder, or ``path`` itself if it is a file."""
     path = Path(path)
     if path.is_file():
+        if path.suffix.lower() not in (".yaml", ".yml", ".json") and not _is_text(path):
+            raise AriSfmError(path, "not a dataset: expected a dataset folder (with rig.yaml) or a rig file, "
+                                    "got a binary file (an image?)")
         return path
     if not path.exists():
         raise AriSfmError(path, "no such dataset folder or rig file")
@@ -100,6 +103,22 @@ def find_rig(path: str | Path) -> Path:
         names = " and ".join(p.name for p in found)
         raise AriSfmError(path, f"both {names} in this folder: pass the rig file to use")
     return found[0]
+
+
+def _is_text(path: Path) -> bool:
+    """True if the file's first 4 KB are UTF-8 text without NUL bytes (unreadable: True, the reader says why)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return True
+    if b"\0" in head:
+        return False
+    try:
+        head.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        return exc.start >= len(head) - 3  # a character cut at the 4 KB boundary
+    return True
 
 
 def parse_target(data: Any, path: Path, where: str = "target") -> Target:
