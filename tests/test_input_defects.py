@@ -469,3 +469,50 @@ def test_simulate_port_survey_on_a_full_disk_leaves_no_truncated_png(tmp_path, m
     assert r.exit_code == 1 and last == f"error: {out / 'images' / 'image0002.png'}: cannot write file: No space left on device"
     assert sorted(p.name for p in (out / "images").iterdir()) == ["image0001.png"]  # complete; no partial second
     assert cv2.imread(str(out / "images" / "image0001.png")) is not None and not (out / "truth.json").exists()
+
+
+@pytest.fixture(scope="module")
+def binocular_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("binocular")
+    r = CliRunner().invoke(main, ["simulate", "binocular", "-o", str(out), "--no-images"])
+    assert r.exit_code == 0, r.output
+    return out
+
+
+def _run_refused(r, start: str) -> None:
+    """`run` prints its first line ("ari-sfm run: DATASET -> OUT"), then the one error line."""
+    assert r.exit_code == 1, r.output
+    lines = r.output.strip().splitlines()
+    assert len(lines) == 2 and lines[0].startswith("ari-sfm run: ") and lines[1].startswith(start), r.output
+
+
+def test_run_refuses_the_truth_of_another_dataset_before_calibrating(sim_dir, binocular_dir, tmp_path):
+    """The truth of another dataset was found out only after calibrating (calibration.json left behind)."""
+    out = tmp_path / "o"
+    r = CliRunner().invoke(main, ["run", str(binocular_dir / "dataset"), "-o", str(out),
+                                  "--truth", str(sim_dir / "truth.json")])
+    _run_refused(r, f"error: {sim_dir / 'truth.json'}: not the truth of {binocular_dir / 'dataset' / 'rig.yaml'}: "
+                    "its reconstruction frame r000 is not in the truth")
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_two_runs_of_different_datasets_into_one_folder(sim_dir, binocular_dir, tmp_path):
+    """Two runs into one -o left run.json of one and points/metrics of the other: a run into a folder holding
+    another dataset's results is refused before any work; the stale reconstruction of an earlier run of the
+    same dataset is removed when this run has none."""
+    out = tmp_path / "o"
+    (out / "clouds").mkdir(parents=True)
+    (out / "clouds" / "all.ply").write_text("ply")
+    made_by = {"provenance": {"dataset": {"path": str((sim_dir / "dataset").resolve())}}}
+    for name in ("points.json", "metrics.json"):
+        (out / name).write_text(json.dumps(made_by))
+    r = CliRunner().invoke(main, ["run", str(binocular_dir / "dataset"), "-o", str(out)])
+    _run_refused(r, f"error: {out}: -o/--out: holds the results of another dataset "
+                    f"({(sim_dir / 'dataset').resolve()}, in points.json): choose an empty folder")
+    r = CliRunner().invoke(main, ["run", str(sim_dir / "dataset"), "-o", str(out)])  # paper_single: no reconstruction
+    assert r.exit_code == 0 and "reconstruction skipped" in r.output, r.output
+    assert sorted(p.name for p in out.iterdir()) == ["calibration.json", "report.html", "run.json"]
+    r = CliRunner().invoke(main, ["run", str(binocular_dir / "dataset"), "-o", str(out)])
+    _run_refused(r, f"error: {out}: -o/--out: holds the results of another dataset "
+                    f"({(sim_dir / 'dataset').resolve()}, in run.json): choose an empty folder")
+    assert json.loads((out / "run.json").read_text())["dataset"] == str((sim_dir / "dataset").resolve())
