@@ -54,6 +54,7 @@ import numpy as np
 from .calibration import Calibration, load_calibration
 from .errors import AriSfmError
 from .geometry import Pose
+from .provenance import observations_mismatch
 from .records import Dataset, Observation
 
 log = logging.getLogger(__name__)
@@ -363,6 +364,9 @@ def export_colmap(calibration: Calibration | str | Path, out_dir: str | Path,
         cal_path = Path(calibration)
         calibration = load_calibration(cal_path)
     dataset, observations = _observations(calibration, dataset, cal_path)
+    why = observations_mismatch(calibration, observations, dataset.target if dataset is not None else None)
+    if why:  # the calibration's frames with another capture's corners: tracks of nonsense
+        raise AriSfmError(dataset.root if dataset is not None else cal_path.parent / "observations.json", why)
     points_data = _as_points(points)
     out_dir = Path(out_dir)
     names = list(calibration.cameras)

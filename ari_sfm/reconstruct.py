@@ -189,6 +189,20 @@ class ReconstructionRun:
     observations_path: Path | None  # written when corners were detected here
 
 
+def check_same_capture(dataset: Dataset, calibration: Calibration, where: str | Path | None = None) -> None:
+    """AriSfmError if the dataset's corners are not the ones ``calibration`` was made from (a byte-identical
+    rig.yaml of another capture; :func:`ari_sfm.provenance.observations_mismatch`). For ``report`` and
+    ``export-colmap``, which show or export the calibration's frames with these corners; ``reconstruct``
+    may triangulate another capture of a calibrated rig."""
+    from .provenance import observations_mismatch
+
+    if dataset.observations is None:
+        return
+    why = observations_mismatch(calibration, dataset.observations, dataset.target)
+    if why:
+        raise AriSfmError(where or dataset.root, why)
+
+
 def check_truth_matches(dataset: Dataset, truth_path: str | Path) -> None:
     """AriSfmError if a simulator's truth.json is not this dataset's: a reconstruction frame (from rig.yaml,
     or observed) or an observed corner id it does not hold. ``run`` calls this before calibrating, so the

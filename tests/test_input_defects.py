@@ -516,3 +516,54 @@ def test_two_runs_of_different_datasets_into_one_folder(sim_dir, binocular_dir, 
     _run_refused(r, f"error: {out}: -o/--out: holds the results of another dataset "
                     f"({(sim_dir / 'dataset').resolve()}, in run.json): choose an empty folder")
     assert json.loads((out / "run.json").read_text())["dataset"] == str((sim_dir / "dataset").resolve())
+
+
+@pytest.fixture(scope="module")
+def other_capture(sim_dir, tmp_path_factory):
+    """sim_dir's dataset with a byte-identical rig.yaml but the corners of another capture (seed 1)."""
+    import shutil
+
+    out = tmp_path_factory.mktemp("capture")
+    r = CliRunner().invoke(main, ["simulate", "paper_single", "-o", str(out / "sim1"), "--no-images", "--seed", "1"])
+    assert r.exit_code == 0, r.output
+    shutil.copytree(sim_dir / "dataset", out / "dataset")
+    shutil.copy(out / "sim1" / "dataset" / "observations.json", out / "dataset" / "observations.json")
+    return out / "dataset"
+
+
+def test_report_and_export_colmap_refuse_another_capture_of_the_same_rig(sim_dir, calibrated, other_capture, tmp_path):
+    """A byte-identical rig.yaml with other corners: the report's table said 0.070 px, its figure 489 px."""
+    assert (other_capture / "rig.yaml").read_bytes() == (sim_dir / "dataset" / "rig.yaml").read_bytes()
+    r = CliRunner().invoke(main, ["report", str(calibrated.parent), "--dataset", str(other_capture)])
+    _one_error_line(r, f"error: {other_capture}: its corners are not the ones the calibration was made from: rmse ")
+    r = CliRunner().invoke(main, ["export-colmap", str(calibrated), "--dataset", str(other_capture),
+                                  "-o", str(tmp_path / "colmap")])
+    _one_error_line(r, f"error: {other_capture}: its corners are not the ones the calibration was made from")
+    assert not (tmp_path / "colmap").exists() or not any((tmp_path / "colmap").iterdir())
+    r = CliRunner().invoke(main, ["report", str(calibrated.parent), "--dataset", str(sim_dir / "dataset")])
+    assert r.exit_code == 0, r.output  # its own capture
+
+
+def test_provenance_covers_the_corners_and_images_not_only_rig_yaml(sim_dir, other_capture):
+    from ari_sfm.provenance import dataset_mismatch, dataset_record
+
+    own, other = load_dataset(sim_dir / "dataset"), load_dataset(other_capture)
+    result = {"provenance": {"dataset": dataset_record(own)}}
+    assert dataset_record(own)["rig_sha256"] == dataset_record(other)["rig_sha256"]
+    assert dataset_mismatch(result, own) is None
+    why = dataset_mismatch(result, other)
+    assert why is not None and why.startswith(f"made from other corners than {other.root}'s")
+
+
+def test_provenance_covers_the_image_files(tmp_path):
+    import shutil
+
+    from ari_sfm.provenance import dataset_mismatch, dataset_record
+
+    shutil.copytree(SAMPLE, tmp_path / "sample")
+    result = {"provenance": {"dataset": dataset_record(load_dataset(tmp_path / "sample"))}}
+    assert dataset_mismatch(result, load_dataset(tmp_path / "sample")) is None
+    image = sorted((tmp_path / "sample").rglob("*.png"))[0]
+    cv2.imwrite(str(image), 255 - cv2.imread(str(image)))  # another capture under the same name
+    why = dataset_mismatch(result, load_dataset(tmp_path / "sample"))
+    assert why is not None and why.startswith("made from other images than")
