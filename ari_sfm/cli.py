@@ -511,6 +511,7 @@ def export_openptv_cmd(calibration: Path, out: Path, frame: str | None, pixel_si
     """Write CALIBRATION as OpenPTV orientation files in OUT."""
     from .openptv import export_openptv
 
+    check_output_folder(out)
     summary = export_openptv(calibration, out, frame=frame, pixel_size_mm=pixel_size_mm)
     click.echo(f"frame {summary.frame}, pixel size {summary.pixel_size_mm[0]:g} x {summary.pixel_size_mm[1]:g} mm")
     for name, number in summary.numbers.items():

@@ -141,8 +141,9 @@ def test_evaluate_checks_pixels_like_calibrate(sim_dir, calibrated, tmp_path):
     (lambda c: c["interface"].__setitem__("medium_index", 0.5), "interface.medium_index must be >= 1 (got 0.5)"),
     (lambda c: c["cameras"]["cam0"].__setitem__("dist", [0.1, 0.0, 0.0]),
      "cameras.cam0.dist must have 4 or 5 numbers, k1 k2 p1 p2 [k3] (got 3)"),
-    (lambda c: c["interface"].__setitem__("distance_mm", 1e6), "interface.distance_mm must be <= 10000 mm (got 1000000.0)"),
-    (lambda c: c["interface"].__setitem__("distance_mm", -5.0), "interface.distance_mm must be > 0 (got -5"),
+    (lambda c: c["interface"].__setitem__("distance_mm", 1e6), "|interface.distance_mm| must be <= 10000 mm (got 1000000.0)"),
+    (lambda c: c["interface"].__setitem__("distance_mm", -5.0), "interface.distance_mm -5 puts camera cam0 -5 mm from the "
+                                                                 "window's near face (must be in front of it"),
     (lambda c: c["interface"].__setitem__("thickness_mm", 0), "interface.thickness_mm must be > 0 (got 0)"),
 ])
 def test_evaluate_refuses_an_impossible_calibration(sim_dir, calibrated, tmp_path, edit, message):

@@ -9,9 +9,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Mapping
 
+import numpy as np
+
 from ari_sfm.errors import AriSfmError
 from ari_sfm.io.dataset import MAX_INDEX, MAX_LENGTH_MM
-from ari_sfm.io.structured import as_float_array, as_float_at_least, as_positive_float, check_at_most
+from ari_sfm.io.structured import (as_finite_float, as_float_array, as_float_at_least, as_positive_float,
+                                   check_at_most)
 
 CALIBRATION_DIST_LENGTHS = (4, 5)  # k1 k2 p1 p2 [k3]: what the models use (calibration.json writes 5)
 
@@ -19,7 +22,8 @@ CALIBRATION_DIST_LENGTHS = (4, 5)  # k1 k2 p1 p2 [k3]: what the models use (cali
 def check_calibration_values(data: Any, path: str | Path, window: bool = True) -> None:
     """AriSfmError naming the key of the first value outside rig.yaml's bounds: ``interface.thickness_mm``
     (> 0 for a model with a window, >= 0 otherwise), ``index`` and ``medium_index`` (1..MAX_INDEX),
-    ``distance_mm`` and ``fixed_distance_mm`` (0 < d <= MAX_LENGTH_MM, or null), each camera's ``dist``
+    ``distance_mm`` and ``fixed_distance_mm`` (|offset| <= MAX_LENGTH_MM, or null; every camera in front of
+    the window, at most MAX_LENGTH_MM from it), each camera's ``dist``
     (4 or 5 finite numbers). Structure errors are left to the parser."""
     if not isinstance(data, Mapping):
         return
@@ -35,9 +39,10 @@ def check_calibration_values(data: Any, path: str | Path, window: bool = True) -
                 index = as_float_at_least(iface[key], path, f"interface.{key}", 1.0)
                 check_at_most(index, MAX_INDEX, path, f"interface.{key}")
         if iface.get("distance_mm") is not None:
-            _distance(iface["distance_mm"], path, "interface.distance_mm")
+            distance = _offset(iface["distance_mm"], path, "interface.distance_mm")
+            _check_camera_distances(data, iface, distance, path)
     if data.get("fixed_distance_mm") is not None:
-        _distance(data["fixed_distance_mm"], path, "fixed_distance_mm")
+        _offset(data["fixed_distance_mm"], path, "fixed_distance_mm")
     cameras = data.get("cameras")
     if isinstance(cameras, Mapping):
         for name, camera in cameras.items():
@@ -48,5 +53,27 @@ def check_calibration_values(data: Any, path: str | Path, window: bool = True) -
                                             f"(got {len(dist)})")
 
 
-def _distance(value: Any, path: str | Path, where: str) -> float:
-    return check_at_most(as_positive_float(value, path, where), MAX_LENGTH_MM, path, where, " mm")
+def _offset(value: Any, path: str | Path, where: str) -> float:
+    """The window plane's offset n . X in the world frame (any sign: the world need not be a camera's)."""
+    value = as_finite_float(value, path, where)
+    check_at_most(abs(value), MAX_LENGTH_MM, path, f"|{where}|", " mm")
+    return value
+
+
+def _check_camera_distances(data: Mapping, iface: Mapping, distance: float, path: str | Path) -> None:
+    """Each camera's centre lies in front of the window's near face, at most MAX_LENGTH_MM from it (a malformed
+    normal or pose is left to the parser)."""
+    try:
+        normal = np.asarray(iface["normal_world"], dtype=float).reshape(3)
+        poses = {name: (np.asarray(c["cam_from_world"]["R"], float).reshape(3, 3),
+                        np.asarray(c["cam_from_world"]["t"], float).reshape(3))
+                 for name, c in data["cameras"].items()}
+    except (KeyError, TypeError, ValueError, AttributeError):
+        return
+    if not np.isfinite(normal).all() or not all(np.isfinite(R).all() and np.isfinite(t).all() for R, t in poses.values()):
+        return
+    for name, (R, t) in poses.items():
+        h = distance - float(normal @ (-R.T @ t))  # camera centre to the near face along the normal
+        if not 0.0 < h <= MAX_LENGTH_MM:
+            raise AriSfmError(path, f"interface.distance_mm {distance:g} puts camera {name} {h:.4g} mm from the "
+                                    f"window's near face (must be in front of it, 0 < distance <= {MAX_LENGTH_MM:g} mm)")
