@@ -565,3 +565,29 @@ def test_export_never_writes_outside_the_output_folder(tmp_path, name):
     assert r.exit_code == 1 and r.output.startswith(f"error: {ptv_par}: calibration image name leads outside"), r.output
     assert {p: p.read_bytes() for p in (tmp_path / "o").rglob("*") if p.is_file()} == before
     assert not (tmp_path / "outside").exists() and not (tmp_path / "abs").exists()
+
+
+@pytest.mark.parametrize("breakage, file, message", [
+    (lambda r: write_ptv_par(r / "parameters" / "ptv.par", (1, 2), n=(1.0, 6.0, 1.46)), "parameters/ptv.par",
+     "not importable: interface.index must be <= 5 (got 6.0)"),
+    (lambda r: write_ptv_par(r / "parameters" / "ptv.par", (1, 2), d=1e5), "parameters/ptv.par",
+     "not importable: interface.thickness_mm must be <= 10000 mm"),
+    (lambda r: write_ptv_par(r / "parameters" / "ptv.par", (1, 2), pix=1e-9), "cal/cam1.tif.ori",
+     "not importable: cameras.cam1.focal_px must be <= 1e+07 px"),
+    (None, None, None),  # a .fix point at 1e300 (below)
+])
+def test_import_errors_name_the_openptv_file_not_a_temporary_rig(experiment, tmp_path, breakage, file, message):
+    """Errors named the deleted temporary rig.yaml (.ds.xyz/rig.yaml) instead of ptv.par."""
+    if file is None:  # a .fix point at 1e300 imported, then failed inside OpenCV
+        fix = experiment / "cal" / "target_on_a_side.txt"
+        lines = fix.read_text().splitlines()
+        pid = lines[0].split()[0]
+        lines[0] = f"{pid}  1e300  0.0  0.0"
+        fix.write_text("\n".join(lines) + "\n")
+        file, message = "cal/target_on_a_side.txt", f"point {int(pid)} at [1e+300, 0.0, 0.0]: beyond 10000 mm"
+    else:
+        breakage(experiment)
+    r = CliRunner().invoke(main, ["import", "openptv", str(experiment), "-o", str(tmp_path / "ds")])
+    assert r.exit_code == 1 and r.output.startswith(f"error: {experiment / file}: {message}"), r.output
+    assert r.output.count("\n") == 1 and "rig.yaml" not in r.output
+    assert not (tmp_path / "ds").exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".ds.")]

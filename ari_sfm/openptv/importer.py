@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from ari_sfm.errors import AriSfmError
+from ari_sfm.io.dataset import MAX_LENGTH_MM
 from ari_sfm.records import CameraSpec, Dataset, Entry, Interface, Observation, Target, WindowPlane
 
 from .conventions import OPENPTV_PIXEL_OFFSET, window_plane
@@ -81,6 +82,9 @@ def _read_plane(files: PlaneFiles, offset: int, body: dict[int, np.ndarray], sou
     ids, pixels = [], []
     for pid, xyz in fix.items():
         key = offset + pid
+        if not np.all(np.abs(xyz) <= MAX_LENGTH_MM):  # 1e300 imported, then failed inside OpenCV
+            raise AriSfmError(files.fix, f"point {pid} at {xyz.tolist()}: beyond {MAX_LENGTH_MM:g} mm, not a "
+                                         "body coordinate in mm")
         if key in body and np.max(np.abs(body[key] - xyz)) > FIX_TOLERANCE_MM:
             raise AriSfmError(files.fix, f"point {pid} is at {xyz.tolist()} but at {body[key].tolist()} in "
                                          f"{sources[key]}")
@@ -178,6 +182,25 @@ def read_experiment(root: str | Path) -> Dataset:
                    calibration=(Entry("calibration", FRAME),), observations=tuple(observations))
 
 
+def _source_of(message: str, root: Path, dataset: Dataset) -> Path:
+    """The OpenPTV file a rig.yaml key came from: interface.plane from cam1's .ori glass vector, the rest of
+    interface and image sizes from ptv.par, a camera's focal_px / K from its .ori (cc / pixel size), target
+    points from the .fix files, observations from the .crd files."""
+    control = read_control_par(root / "parameters" / "ptv.par")
+    oris = {f"cam{k + 1}": root / f"{cal}.ori" for k, cal in enumerate(control.cal_image_names)}
+    key = message.split()[0] if message else ""
+    if key.startswith("interface.plane"):
+        return oris["cam1"]
+    if key.startswith("cameras."):
+        name = key.split(".")[1]
+        return root / "parameters" / "ptv.par" if ".image_size" in key or name not in oris else oris[name]
+    if key.startswith("target"):
+        return _plane_files(root, control)[1]
+    if key.startswith("observation"):
+        return root / "cal"
+    return root / "parameters" / "ptv.par"
+
+
 def _max_id(planes: list[list[PlaneFiles]]) -> int:
     """The largest point id of all planes' .fix files (for the id step between planes)."""
     return max(max(read_points(f.fix, 3)) for plane in planes for f in plane)
@@ -198,7 +221,13 @@ def import_experiment(root: str | Path, out: str | Path) -> Path:
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; the dataset is an ordinary folder
-        save_rig(tmp / "rig.yaml", dataset)
+        try:
+            save_rig(tmp / "rig.yaml", dataset)
+        except AriSfmError as exc:  # named the temporary rig.yaml, deleted below: name the OpenPTV file instead
+            if exc.path is None or Path(exc.path).parent != tmp:
+                raise
+            raise AriSfmError(_source_of(exc.message, Path(os.path.abspath(root)), dataset),
+                              f"not importable: {exc.message}") from None
         if out.exists():
             out.rmdir()
         os.replace(tmp, out)
