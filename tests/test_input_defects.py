@@ -568,3 +568,31 @@ def test_provenance_covers_the_image_files(tmp_path):
     cv2.imwrite(str(image), 255 - cv2.imread(str(image)))  # another capture under the same name
     why = dataset_mismatch(result, load_dataset(tmp_path / "sample"))
     assert why is not None and why.startswith("made from other images than")
+
+
+@pytest.mark.parametrize("old, new, message", [
+    ("square_mm: 10.0", "square_mm: 1.0e-9", "target.square_mm must be >= 0.001 mm (got 1e-09): not a physical value"),
+    ("focal_px: 3478.3", "focal_px: 1.0e-6", "cameras.cam0.focal_px must be >= 1 px (got 1e-06): not a physical value"),
+    ("thickness_mm: 50.0", "thickness_mm: 1.0e-9", "interface.thickness_mm must be >= 0.001 mm (got 1e-09)"),
+])
+def test_unphysically_small_sizes_are_named_up_front(sim_dir, tmp_path, old, new, message):
+    """A 1e-9 mm square or a 1e-6 px focal failed as "non-finite Jacobian ... a corner behind the window"."""
+    import shutil
+
+    ds = tmp_path / "ds"
+    shutil.copytree(sim_dir / "dataset", ds)
+    rig = (ds / "rig.yaml").read_text()
+    assert old in rig
+    (ds / "rig.yaml").write_text(rig.replace(old, new))
+    r = CliRunner().invoke(main, ["calibrate", str(ds), "-o", str(tmp_path / "o")])
+    _one_error_line(r, f"error: {ds / 'rig.yaml'}: {message}")
+    assert not (tmp_path / "o").exists()
+
+
+def test_evaluate_refuses_a_calibration_with_a_sub_pixel_focal(sim_dir, calibrated, tmp_path):
+    cal = json.loads(calibrated.read_text())
+    cal["cameras"]["cam0"]["K"][0][0] = 1e-6
+    bad = tmp_path / "calibration.json"
+    bad.write_text(json.dumps(cal))
+    r = CliRunner().invoke(main, ["evaluate", str(bad), str(sim_dir / "dataset" / "observations.json")])
+    _one_error_line(r, f"error: {bad}: cameras.cam0.K focal length must be >= 1 px (got 1e-06)")

@@ -12,7 +12,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from ari_sfm.errors import AriSfmError
-from ari_sfm.io.dataset import MAX_INDEX, MAX_LENGTH_MM
+from ari_sfm.io.dataset import MAX_INDEX, MAX_LENGTH_MM, MIN_FOCAL_PX, check_at_least
 from ari_sfm.io.structured import (as_finite_float, as_float_array, as_float_at_least, as_positive_float,
                                    check_at_most)
 
@@ -46,6 +46,11 @@ def check_calibration_values(data: Any, path: str | Path, window: bool = True) -
     cameras = data.get("cameras")
     if isinstance(cameras, Mapping):
         for name, camera in cameras.items():
+            if isinstance(camera, Mapping) and camera.get("K") is not None:
+                K = as_float_array(camera["K"], path, f"cameras.{name}.K", (3, 3))
+                if min(K[0, 0], K[1, 1]) > 0:  # a sign error is the parser's message
+                    check_at_least(float(min(K[0, 0], K[1, 1])), MIN_FOCAL_PX, path, f"cameras.{name}.K focal length",
+                                   " px")
             if isinstance(camera, Mapping) and camera.get("dist") is not None:
                 dist = as_float_array(camera["dist"], path, f"cameras.{name}.dist", (-1,))
                 if len(dist) not in CALIBRATION_DIST_LENGTHS:
