@@ -596,3 +596,29 @@ def test_evaluate_refuses_a_calibration_with_a_sub_pixel_focal(sim_dir, calibrat
     bad.write_text(json.dumps(cal))
     r = CliRunner().invoke(main, ["evaluate", str(bad), str(sim_dir / "dataset" / "observations.json")])
     _one_error_line(r, f"error: {bad}: cameras.cam0.K focal length must be >= 1 px (got 1e-06)")
+
+
+@pytest.mark.parametrize("pixel, kept", [((-0.6, None), True), ((None, 2047.9), True), ((-1.4, None), True),
+                                         ((-1.6, None), False), ((-5.0, None), False), ((None, 2100.0), False)])
+def test_a_corner_just_beyond_the_border_is_kept_a_far_one_is_an_error(sim_dir, tmp_path, pixel, kept):
+    """A corner 0.1 px outside the image (a sub-pixel centre at the border, or noise) made calibrate refuse the
+    whole dataset: within 1 px of the edge (-0.5 .. size - 0.5) it is kept, as it is; beyond, an error."""
+    import shutil
+
+    ds = tmp_path / "ds"
+    shutil.copytree(sim_dir / "dataset", ds)
+    data = json.loads((ds / "observations.json").read_text())
+    rec = next(o for o in data["observations"] if o["set"] == "calibration")
+    u, v = rec["pixels"][0]
+    rec["pixels"][0] = [u if pixel[0] is None else pixel[0], v if pixel[1] is None else pixel[1]]
+    (ds / "observations.json").write_text(json.dumps(data))
+    r = CliRunner().invoke(main, ["calibrate", str(ds), "-o", str(tmp_path / "o")])
+    if kept:
+        assert r.exit_code == 0, r.output
+        assert load_dataset(ds).observations is not None  # loads, the pixel unchanged:
+        first = next(o for o in load_dataset(ds).observations if o.set == "calibration")
+        assert tuple(first.pixels[0]) == tuple(rec["pixels"][0])
+    else:
+        _one_error_line(r, f"error: {ds / 'observations.json'}: observation ")
+        assert "is outside the 2448 x 2048 image (more than 1 px beyond its edge)" in r.output
+        assert not (tmp_path / "o" / "calibration.json").exists()

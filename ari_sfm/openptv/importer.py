@@ -32,6 +32,7 @@ import numpy as np
 
 from ari_sfm.errors import AriSfmError
 from ari_sfm.io.dataset import MAX_LENGTH_MM
+from ari_sfm.io.observations import BORDER_TOLERANCE_PX
 from ari_sfm.records import CameraSpec, Dataset, Entry, Interface, Observation, Target, WindowPlane
 
 from .conventions import OPENPTV_PIXEL_OFFSET, window_plane
@@ -91,7 +92,8 @@ def _read_plane(files: PlaneFiles, offset: int, body: dict[int, np.ndarray], sou
         body.setdefault(key, xyz)
         sources.setdefault(key, files.fix)
         if np.all(crd[pid] != UNDETECTED):
-            if not (0 <= crd[pid][0] <= image_size[0] and 0 <= crd[pid][1] <= image_size[1]):
+            margin = BORDER_TOLERANCE_PX  # as the dataset's own pixel check: a centre just beyond the edge is kept
+            if not (-margin <= crd[pid][0] <= image_size[0] + margin and -margin <= crd[pid][1] <= image_size[1] + margin):
                 raise AriSfmError(files.crd, f"id {pid} at ({crd[pid][0]:g}, {crd[pid][1]:g}) is outside the "
                                              f"{image_size[0]} x {image_size[1]} image (.crd files hold OpenPTV "
                                              "pixels; metric ones are not read)")
