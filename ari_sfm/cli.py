@@ -287,9 +287,12 @@ def evaluate_cmd(calibration: Path, observations: Path, solve_poses: bool) -> No
 def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | None, workers: int | None,
                     reference: Path | None) -> None:
     """Triangulate the reconstruction frames of DATASET and measure them (flatness, stage, corner spacing)."""
+    from .io import find_rig
     from .reconstruct import run_reconstruction
 
     check_output_folder(out)
+    check_not_input_folder(out, find_rig(dataset).parent, "the dataset's own folder (points.json, metrics.json and "
+                           "detected corners would be written into the dataset)")
     r = run_reconstruction(dataset, calibration, out, truth, workers=workers, progress=True, reference_path=reference)
     m = r.metrics
     click.echo(f"{m.num_points} points in {m.num_frames} frames, ray gap rms {m.ray_gap_mm.rms:.4f} mm"
@@ -491,6 +494,7 @@ def import_openptv_cmd(experiment: Path, out: Path) -> None:
     from .io import load_dataset
     from .openptv import import_experiment
 
+    check_output_folder(out)
     rig = import_experiment(experiment, out)
     ds = load_dataset(rig)
     n_obs = sum(len(o.ids) for o in ds.observations or ())

@@ -622,3 +622,21 @@ def test_a_corner_just_beyond_the_border_is_kept_a_far_one_is_an_error(sim_dir, 
         _one_error_line(r, f"error: {ds / 'observations.json'}: observation ")
         assert "is outside the 2448 x 2048 image (more than 1 px beyond its edge)" in r.output
         assert not (tmp_path / "o" / "calibration.json").exists()
+
+
+def test_reconstruct_refuses_to_write_into_the_dataset(sim_dir, calibrated):
+    ds = sim_dir / "dataset"
+    before = sorted(p.name for p in ds.iterdir())
+    r = CliRunner().invoke(main, ["reconstruct", str(ds), "--calibration", str(calibrated), "-o", str(ds)])
+    _one_error_line(r, f"error: {ds}: -o/--out: is the dataset's own folder")
+    assert sorted(p.name for p in ds.iterdir()) == before
+
+
+@pytest.mark.parametrize("where, message", [("file", "-o/--out: is a file, expected a folder"),
+                                            ("/proc/ari", "-o/--out: /proc is a kernel file system")])
+def test_import_openptv_and_export_openptv_check_the_output_folder(calibrated, tmp_path, where, message):
+    (tmp_path / "a_file").write_text("x")
+    out = tmp_path / "a_file" if where == "file" else where
+    for args in (["import", "openptv", str(tmp_path), "-o", str(out)], ["export-openptv", str(calibrated), "-o", str(out)]):
+        r = CliRunner().invoke(main, args)
+        _one_error_line(r, f"error: {out}: {message}")
