@@ -640,3 +640,17 @@ def test_import_openptv_and_export_openptv_check_the_output_folder(calibrated, t
     for args in (["import", "openptv", str(tmp_path), "-o", str(out)], ["export-openptv", str(calibrated), "-o", str(out)]):
         r = CliRunner().invoke(main, args)
         _one_error_line(r, f"error: {out}: {message}")
+
+
+def test_a_binary_file_given_for_a_json_file_is_named_binary(sim_dir, calibrated, tmp_path):
+    png = tmp_path / "view.png"
+    ok, buf = cv2.imencode(".png", np.zeros((8, 8), np.uint8))
+    png.write_bytes(buf.tobytes())
+    for args in (["evaluate", str(png), str(sim_dir / "dataset" / "observations.json")],
+                 ["evaluate", str(calibrated), str(png)], ["export-openptv", str(png), "-o", str(tmp_path / "o")]):
+        r = CliRunner().invoke(main, args)
+        _one_error_line(r, f"error: {png}: a binary file (an image?), not YAML or JSON text (byte 0 is not UTF-8)")
+    broken = tmp_path / "calibration.json"
+    broken.write_bytes(b'{"format": "ari-sfm-calibration/1", "model": "caf\xe9"}')
+    r = CliRunner().invoke(main, ["evaluate", str(broken), str(sim_dir / "dataset" / "observations.json")])
+    _one_error_line(r, f"error: {broken}: not UTF-8 text (byte 49 is not UTF-8)")
