@@ -246,6 +246,8 @@ def report_cmd(out: Path, dataset: Path | None) -> None:
     """Write OUT/report.html: one self-contained page of the calibration, residuals and reconstruction in OUT."""
     from .report import write_report
 
+    if out.exists() and not out.is_dir():
+        raise AriSfmError(out, "is a file, expected the output folder of `ari-sfm run` or `calibrate`")
     click.echo(f"report: {write_report(out, dataset)}")
 
 

@@ -654,3 +654,11 @@ def test_a_binary_file_given_for_a_json_file_is_named_binary(sim_dir, calibrated
     broken.write_bytes(b'{"format": "ari-sfm-calibration/1", "model": "caf\xe9"}')
     r = CliRunner().invoke(main, ["evaluate", str(broken), str(sim_dir / "dataset" / "observations.json")])
     _one_error_line(r, f"error: {broken}: not UTF-8 text (byte 49 is not UTF-8)")
+
+
+def test_a_file_given_for_a_folder_is_named_a_file(tmp_path):
+    (tmp_path / "a_file").write_text("x")
+    r = CliRunner().invoke(main, ["report", str(tmp_path / "a_file")])
+    _one_error_line(r, f"error: {tmp_path / 'a_file'}: is a file, expected the output folder")
+    r = CliRunner().invoke(main, ["import", "openptv", str(tmp_path / "a_file"), "-o", str(tmp_path / "ds")])
+    _one_error_line(r, f"error: {tmp_path / 'a_file'}: is a file, expected an OpenPTV experiment folder")

@@ -137,6 +137,8 @@ def _interface(control: ControlPar, glasses: list[np.ndarray], ori_paths: list[P
 def read_experiment(root: str | Path) -> Dataset:
     """The dataset of an OpenPTV experiment folder (records only; nothing is written)."""
     root = Path(os.path.abspath(root))
+    if root.exists() and not root.is_dir():
+        raise AriSfmError(root, "is a file, expected an OpenPTV experiment folder (with parameters/ptv.par)")
     if not root.is_dir():
         raise AriSfmError(root, "no such OpenPTV experiment folder")
     ptv_par = root / "parameters" / "ptv.par"
