@@ -196,10 +196,29 @@ def write_files_atomic(out_dir: str | Path, writer: Callable[[Path], None],
         except OSError as exc:
             raise AriSfmError(out_dir, f"cannot write the files: {exc.strerror or exc}") from None
         written = []
-        for name in names:
-            os.replace(tmp / name, out_dir / name)
-            written.append(out_dir / name)
+        with _signals_held():  # Ctrl-C or SIGTERM waits until every file is in place: all old or all new
+            for name in names:
+                os.replace(tmp / name, out_dir / name)
+                written.append(out_dir / name)
         _fsync_dir(out_dir)
         return written
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+class _signals_held:
+    """Block SIGINT and SIGTERM for a few renames (main thread, POSIX); they are delivered on leaving."""
+
+    def __enter__(self) -> None:
+        import signal
+        import threading
+
+        self.mask = None
+        if hasattr(signal, "pthread_sigmask") and threading.current_thread() is threading.main_thread():
+            self.mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+
+    def __exit__(self, *exc: object) -> None:
+        import signal
+
+        if self.mask is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, self.mask)
