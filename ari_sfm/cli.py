@@ -13,7 +13,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from .cli_checks import check_not_input_folder, check_number, check_output_folder
+from .cli_checks import check_not_an_output, check_not_input_folder, check_number, check_output_folder
 from .errors import AriSfmError
 from .models.registry import BUNDLE, CALIBRATABLE, COMPARED, MODELS, model_spec
 
@@ -141,6 +141,7 @@ def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
 
     if out is not None:
         check_output_folder(out)
+    check_number("--workers", workers, minimum=1)
     ds = load_dataset(dataset)
     if out is not None:
         check_not_input_folder(out, ds.root, "the dataset's own folder (its observations.json would be overwritten)")
@@ -293,8 +294,11 @@ def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | N
     from .reconstruct import run_reconstruction
 
     check_output_folder(out)
+    check_number("--workers", workers, minimum=1)
     check_not_input_folder(out, find_rig(dataset).parent, "the dataset's own folder (points.json, metrics.json and "
                            "detected corners would be written into the dataset)")
+    for option, given in (("--reference", reference), ("--truth", truth)):
+        check_not_an_output(given, out, option)
     r = run_reconstruction(dataset, calibration, out, truth, workers=workers, progress=True, reference_path=reference)
     m = r.metrics
     click.echo(f"{m.num_points} points in {m.num_frames} frames, ray gap rms {m.ray_gap_mm.rms:.4f} mm"

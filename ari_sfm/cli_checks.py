@@ -64,3 +64,17 @@ def check_not_input_folder(out: str | Path, input_folder: str | Path, what: str,
     """AriSfmError if ``out`` is ``input_folder`` (after symbolic links): a command never writes into its input."""
     if Path(os.path.realpath(out)) == Path(os.path.realpath(input_folder)):
         raise AriSfmError(out, f"{option}: is {what}: choose another folder")
+
+
+RECONSTRUCTION_OUTPUTS = ("points.json", "metrics.json", "observations.json")  # and clouds/*.ply
+
+
+def check_not_an_output(given: str | Path | None, out: str | Path, option: str) -> None:
+    """AriSfmError if an input file is one ``reconstruct -o OUT`` would overwrite (OUT/points.json,
+    metrics.json, observations.json, clouds/*)."""
+    if given is None:
+        return
+    resolved = Path(os.path.realpath(given))
+    out = Path(os.path.realpath(out))
+    if resolved in [out / name for name in RECONSTRUCTION_OUTPUTS] or out / "clouds" in resolved.parents:
+        raise AriSfmError(given, f"{option}: is a file this command writes in -o: copy it elsewhere first")

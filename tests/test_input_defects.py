@@ -663,3 +663,23 @@ def test_a_file_given_for_a_folder_is_named_a_file(tmp_path):
     _one_error_line(r, f"error: {tmp_path / 'a_file'}: is a file, expected the output folder")
     r = CliRunner().invoke(main, ["import", "openptv", str(tmp_path / "a_file"), "-o", str(tmp_path / "ds")])
     _one_error_line(r, f"error: {tmp_path / 'a_file'}: is a file, expected an OpenPTV experiment folder")
+
+
+@pytest.mark.parametrize("command", ["detect", "reconstruct"])
+def test_workers_below_one_is_an_error(sim_dir, calibrated, tmp_path, command):
+    """--workers -3 silently ran on one thread."""
+    args = [command, str(sim_dir / "dataset"), "-o", str(tmp_path / "o"), "--workers", "-3"]
+    if command == "reconstruct":
+        args += ["--calibration", str(calibrated)]
+    r = CliRunner().invoke(main, args)
+    _one_error_line(r, "error: --workers: must be >= 1 (got -3)")
+
+
+def test_reconstruct_refuses_a_reference_it_would_overwrite(sim_dir, calibrated, tmp_path):
+    out = tmp_path / "o"
+    (out / "clouds").mkdir(parents=True)
+    (out / "clouds" / "all.ply").write_bytes(b"ply\n")
+    r = CliRunner().invoke(main, ["reconstruct", str(sim_dir / "dataset"), "--calibration", str(calibrated),
+                                  "-o", str(out), "--reference", str(out / "clouds" / "all.ply")])
+    _one_error_line(r, f"error: {out / 'clouds' / 'all.ply'}: --reference: is a file this command writes in -o")
+    assert (out / "clouds" / "all.ply").read_bytes() == b"ply\n"
