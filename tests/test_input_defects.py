@@ -145,6 +145,8 @@ def test_evaluate_checks_pixels_like_calibrate(sim_dir, calibrated, tmp_path):
     (lambda c: c["interface"].__setitem__("distance_mm", -5.0), "interface.distance_mm -5 puts camera cam0 -5 mm from the "
                                                                  "window's near face (must be in front of it"),
     (lambda c: c["interface"].__setitem__("thickness_mm", 0), "interface.thickness_mm must be > 0 (got 0)"),
+    (lambda c: c["cameras"]["cam0"].__setitem__("image_size", [2448.5, 2048]),
+     "cameras.cam0.image_size must be two integers >= 1 (got [2448.5, 2048])"),
 ])
 def test_evaluate_refuses_an_impossible_calibration(sim_dir, calibrated, tmp_path, edit, message):
     """fx = 1e308 gave rmse inf with exit 0."""

@@ -13,8 +13,8 @@ import numpy as np
 
 from ari_sfm.errors import AriSfmError
 from ari_sfm.io.dataset import MAX_INDEX, MAX_LENGTH_MM, MIN_FOCAL_PX, check_at_least
-from ari_sfm.io.structured import (as_finite_float, as_float_array, as_float_at_least, as_positive_float,
-                                   check_at_most)
+from ari_sfm.io.structured import (as_finite_float, as_float_array, as_float_at_least, as_int_pair,
+                                   as_positive_float, check_at_most)
 
 CALIBRATION_DIST_LENGTHS = (4, 5)  # k1 k2 p1 p2 [k3]: what the models use (calibration.json writes 5)
 
@@ -46,6 +46,8 @@ def check_calibration_values(data: Any, path: str | Path, window: bool = True) -
     cameras = data.get("cameras")
     if isinstance(cameras, Mapping):
         for name, camera in cameras.items():
+            if isinstance(camera, Mapping) and camera.get("image_size") is not None:  # 2448.5 was cut to 2448
+                as_int_pair(camera["image_size"], path, f"cameras.{name}.image_size", minimum=1)
             if isinstance(camera, Mapping) and camera.get("K") is not None:
                 K = as_float_array(camera["K"], path, f"cameras.{name}.K", (3, 3))
                 if min(K[0, 0], K[1, 1]) > 0:  # a sign error is the parser's message
