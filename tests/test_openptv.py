@@ -591,3 +591,10 @@ def test_import_errors_name_the_openptv_file_not_a_temporary_rig(experiment, tmp
     assert r.exit_code == 1 and r.output.startswith(f"error: {experiment / file}: {message}"), r.output
     assert r.output.count("\n") == 1 and "rig.yaml" not in r.output
     assert not (tmp_path / "ds").exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".ds.")]
+
+
+def test_import_refuses_to_write_into_the_experiment(experiment):
+    before = sorted(p.relative_to(experiment) for p in experiment.rglob("*"))
+    r = CliRunner().invoke(main, ["import", "openptv", str(experiment), "-o", str(experiment)])
+    assert r.exit_code == 1 and r.output == f"error: {experiment}: already exists and is not empty: give a new folder\n"
+    assert sorted(p.relative_to(experiment) for p in experiment.rglob("*")) == before
