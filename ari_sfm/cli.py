@@ -408,6 +408,7 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_sca
                                          "motion finds the features and their noise)")
         if images is False:
             raise AriSfmError("--no-images", "port_survey is only images (structure from motion starts from them)")
+        check_number("--image-scale", image_scale, maximum=MAX_PORT_SURVEY_SCALE)  # rendered supersampled
         size = (max(16, int(round(640 * image_scale))), max(16, int(round(480 * image_scale))))
         write_port_survey(out, seed=seed, image_size=size, focal_px=600.0 * image_scale, progress=True)
         click.echo(f"port_survey: {out / 'images'} and {out / 'truth.json'}")
@@ -418,6 +419,7 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_sca
 
 
 MIN_IMAGE_SCALE = 0.05  # smaller: port_survey's 640 x 480 images become 32 x 24 px, paper_single's focal 174 px
+MAX_PORT_SURVEY_SCALE = 8.0  # 5120 x 3840 px images (rendered at twice that): larger ones exhaust memory
 
 
 @main.command()

@@ -319,6 +319,7 @@ def test_an_image_given_as_dataset_is_named_not_a_dataset(tmp_path):
     (["--sigma", "0.1"], "--sigma: does not apply to port_survey"),
     (["--no-images"], "--no-images: port_survey is only images"),
     (["--image-scale", "1e-6"], "--image-scale: must be >= 0.05 (got 1e-06)"),
+    (["--image-scale", "30"], "--image-scale: must be <= 8 (got 30)"),
     (["--seed", "-1"], "--seed: must be >= 0 (got -1)"),
 ])
 def test_simulate_port_survey_options_are_checked(tmp_path, args, message):
