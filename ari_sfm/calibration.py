@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from .errors import AriSfmError
+from .io.calibration_checks import check_calibration_values
 from .geometry import Pose
 from .models.registry import ModelSpec, model_spec
 from .records import Interface, Target
@@ -234,6 +235,7 @@ def _parse(data: Any, path: Any) -> Calibration:
         raise AriSfmError(path, f"unknown format {data.get('format')!r} (expected {FORMAT!r})")
     spec = model_spec(data["model"], path)
     model = spec.name
+    check_calibration_values(data, path, window=spec.window)  # rig.yaml's bounds (ari_sfm.io.calibration_checks)
     iface = data["interface"]
     thickness, index = float(iface["thickness_mm"]), float(iface["index"])
     medium = float(iface.get("medium_index", 1.0))

@@ -13,7 +13,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from .cli_checks import check_number, check_output_folder
+from .cli_checks import check_not_an_output, check_not_input_folder, check_number, check_output_folder
 from .errors import AriSfmError
 from .models.registry import BUNDLE, CALIBRATABLE, COMPARED, MODELS, model_spec
 
@@ -24,40 +24,86 @@ def _setup_logging(verbose: bool) -> None:
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s: %(message)s")
 
 
-def _exit_interrupted(exit=sys.exit) -> None:
-    """Ctrl-C: "interrupted" on stderr and exit 130. While worker threads are still inside OpenCV
-    (a pool cut short by the signal), leave at once: the interpreter's shutdown would wait for them,
-    and a second Ctrl-C during that wait ended the process in C++'s terminate (SIGABRT)."""
-    click.echo("interrupted", err=True)
+class Terminated(BaseException):
+    """SIGTERM, raised in the main thread by the CLI's handler (a BaseException, as KeyboardInterrupt: no
+    ``except Exception`` of a library swallows it), so atomic writes drop their temporary files."""
+
+
+_signalled: list[int] = []  # the signals received while the current command ran (SIGINT, SIGTERM)
+
+
+def _on_signal(signum: int, frame) -> None:
+    """SIGINT -> KeyboardInterrupt, SIGTERM -> Terminated, both remembered in ``_signalled``: an exception a
+    library turns the interrupt into (open3d's extension init: ImportError 'initialization failed', sometimes
+    without the interrupt as its context) is still reported as the interrupt it is."""
+    _signalled.append(signum)
+    raise KeyboardInterrupt if signum == signal.SIGINT else Terminated
+
+
+def _install_signal_handlers() -> dict[int, object] | None:
+    """Install :func:`_on_signal` for SIGINT and SIGTERM (main thread only); the previous handlers, or None.
+    A SIGINT ignored by the parent (``cmd &`` in a non-interactive shell) stays ignored."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    _signalled.clear()
+    for signum, handler in previous.items():
+        if handler is not signal.SIG_IGN:
+            signal.signal(signum, _on_signal)
+    return previous
+
+
+def _restore_signal_handlers(previous: dict[int, object] | None) -> None:
+    for signum, handler in (previous or {}).items():
+        if handler is not None:
+            signal.signal(signum, handler)
+
+
+def _exit_interrupted(exit=sys.exit, terminated: bool = False) -> None:
+    """Ctrl-C: "interrupted" on stderr and exit 130; SIGTERM: "terminated" and exit 143. While worker threads
+    are still inside OpenCV (a pool cut short by the signal), leave at once: the interpreter's shutdown would
+    wait for them, and a second Ctrl-C during that wait ended the process in C++'s terminate (SIGABRT)."""
+    code = 143 if terminated else 130
+    click.echo("terminated" if terminated else "interrupted", err=True)
     me = threading.current_thread()
     if any(t.is_alive() and not t.daemon and t is not me for t in threading.enumerate()):
         if me is threading.main_thread():
             signal.signal(signal.SIGINT, signal.SIG_IGN)
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
         sys.stdout.flush()
         sys.stderr.flush()
-        os._exit(130)
-    exit(130)
+        os._exit(code)
+    exit(code)
 
 
 def user_errors(fn):
-    """Turn AriSfmError (and any unexpected exception) into one line on stderr and exit 1."""
+    """Turn AriSfmError (and any unexpected exception) into one line on stderr and exit 1; Ctrl-C into
+    "interrupted" (exit 130) and SIGTERM into "terminated" (exit 143), also when a library turned the
+    signal into an error of its own."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
+        previous = _install_signal_handlers()
         try:
             return fn(*args, **kwargs)
-        except AriSfmError as exc:
-            click.echo(f"error: {exc}", err=True)
-            sys.exit(1)
         except KeyboardInterrupt:  # Ctrl-C: no traceback, the shell's code for SIGINT
             _exit_interrupted()
+        except Terminated:
+            _exit_interrupted(terminated=True)
         except (click.ClickException, click.exceptions.Exit, SystemExit):
             raise
         except Exception as exc:  # noqa: BLE001 - never a traceback unless asked for
+            if _signalled:  # the signal surfaced as another error (e.g. inside a native import)
+                _exit_interrupted(terminated=_signalled[-1] == signal.SIGTERM)
+            if isinstance(exc, AriSfmError):
+                click.echo(f"error: {exc}", err=True)
+                sys.exit(1)
             if os.environ.get("ARI_SFM_DEBUG"):
                 raise
             click.echo(f"error: {type(exc).__name__}: {exc} (set ARI_SFM_DEBUG=1 for the traceback)", err=True)
             sys.exit(1)
+        finally:
+            _restore_signal_handlers(previous)
 
     return wrapper
 
@@ -71,6 +117,8 @@ class _Group(click.Group):
             return super().invoke(ctx)
         except KeyboardInterrupt:
             _exit_interrupted(ctx.exit)
+        except Terminated:
+            _exit_interrupted(ctx.exit, terminated=True)
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
@@ -93,7 +141,10 @@ def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
 
     if out is not None:
         check_output_folder(out)
+    check_number("--workers", workers, minimum=1)
     ds = load_dataset(dataset)
+    if out is not None:
+        check_not_input_folder(out, ds.root, "the dataset's own folder (its observations.json would be overwritten)")
     if not any(entry.images for entry in ds.entries()):
         raise AriSfmError(ds.rig_path, "no images to detect: the dataset lists no image files (its corners are "
                                        "already in observations.json; calibrate or run it directly)")
@@ -216,6 +267,8 @@ def report_cmd(out: Path, dataset: Path | None) -> None:
     """Write OUT/report.html: one self-contained page of the calibration, residuals and reconstruction in OUT."""
     from .report import write_report
 
+    if out.exists() and not out.is_dir():
+        raise AriSfmError(out, "is a file, expected the output folder of `ari-sfm run` or `calibrate`")
     click.echo(f"report: {write_report(out, dataset)}")
 
 
@@ -257,9 +310,15 @@ def evaluate_cmd(calibration: Path, observations: Path, solve_poses: bool) -> No
 def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | None, workers: int | None,
                     reference: Path | None) -> None:
     """Triangulate the reconstruction frames of DATASET and measure them (flatness, stage, corner spacing)."""
+    from .io import find_rig
     from .reconstruct import run_reconstruction
 
     check_output_folder(out)
+    check_number("--workers", workers, minimum=1)
+    check_not_input_folder(out, find_rig(dataset).parent, "the dataset's own folder (points.json, metrics.json and "
+                           "detected corners would be written into the dataset)")
+    for option, given in (("--reference", reference), ("--truth", truth)):
+        check_not_an_output(given, out, option)
     r = run_reconstruction(dataset, calibration, out, truth, workers=workers, progress=True, reference_path=reference)
     m = r.metrics
     click.echo(f"{m.num_points} points in {m.num_frames} frames, ray gap rms {m.ray_gap_mm.rms:.4f} mm"
@@ -450,10 +509,12 @@ def import_colmap_fork_cmd(model_dir: Path, out: Path, units_mm: float) -> None:
 @main.command()
 @click.argument("scenario")
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder: OUT/dataset and OUT/truth.json.")
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--sigma", type=float, default=None, help="Pixel noise per coordinate (default 0.05; particles: 0.1).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Random seed (>= 0).")
+@click.option("--sigma", type=float, default=None, help="Pixel noise per coordinate (default 0.05; particles: 0.1; "
+                                                        "not for port_survey, whose images are rendered).")
 @click.option("--image-scale", type=float, default=1.0, show_default=True, help="Scale of image size and focal length.")
-@click.option("--images/--no-images", default=None, help="Render PNG images (default: per scenario).")
+@click.option("--images/--no-images", default=None, help="Render PNG images (default: per scenario; port_survey: "
+                                                         "always).")
 @click.option("--cameras", "num_cameras", type=int, default=4, show_default=True, help="particles: cameras on a ring.")
 @click.option("--particles", "particles_per_frame", type=int, default=2000, show_default=True,
               help="particles: particles per frame (60 x 40 x 30 mm volume at ~400 mm, 10 mm glass, water).")
@@ -473,26 +534,31 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_sca
     """Write a simulated dataset (exact Snell physics) and its truth. SCENARIO: one of `ari-sfm scenarios`."""
     from .simulate import SCENARIOS, simulate as run_sim
 
+    if scenario not in SCENARIOS and scenario not in ("port_survey", "particles"):
+        raise AriSfmError(None, f"unknown scenario {scenario!r}; known: {', '.join([*SCENARIOS, 'port_survey', 'particles'])}")
+    check_number("--seed", seed, minimum=0)
     if scenario == "particles":  # a particle experiment: rig A's target calibration, drifted rig B, particles
         _simulate_particles(out, seed, 0.1 if sigma is None else sigma, num_cameras, particles_per_frame, num_frames,
                             render_frames, drift_deg, drift_mm, drift_cameras)
         return
-    sigma = 0.05 if sigma is None else sigma
-
+    check_output_folder(out)
+    check_number("--sigma", sigma, minimum=0.0, maximum=100.0)
+    check_number("--image-scale", image_scale, minimum=MIN_IMAGE_SCALE, maximum=40.0)
     if scenario == "port_survey":  # structure from motion behind a flat port (refine-colmap's truth)
         from .simulate.port_survey import write_port_survey
 
-        check_number("--image-scale", image_scale, minimum=0.0, maximum=40.0, strict_minimum=True)
+        if sigma is not None:
+            raise AriSfmError("--sigma", "does not apply to port_survey: its images are rendered (structure from "
+                                         "motion finds the features and their noise)")
+        if images is False:
+            raise AriSfmError("--no-images", "port_survey is only images (structure from motion starts from them)")
+        check_number("--image-scale", image_scale, maximum=MAX_PORT_SURVEY_SCALE)  # rendered supersampled
         size = (max(16, int(round(640 * image_scale))), max(16, int(round(480 * image_scale))))
         write_port_survey(out, seed=seed, image_size=size, focal_px=600.0 * image_scale, progress=True)
         click.echo(f"port_survey: {out / 'images'} and {out / 'truth.json'}")
         return
-    if scenario not in SCENARIOS:
-        raise AriSfmError(None, f"unknown scenario {scenario!r}; known: {', '.join(SCENARIOS)}")
-    check_output_folder(out)
-    check_number("--sigma", sigma, minimum=0.0, maximum=100.0)
-    check_number("--image-scale", image_scale, minimum=0.0, maximum=40.0, strict_minimum=True)
-    ds, truth = run_sim(scenario, out, seed=seed, sigma_px=sigma, images=images, image_scale=image_scale)
+    ds, truth = run_sim(scenario, out, seed=seed, sigma_px=0.05 if sigma is None else sigma, images=images,
+                        image_scale=image_scale)
     click.echo(f"dataset: {ds}\ntruth:   {truth}")
 
 
@@ -609,15 +675,23 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
     click.echo(f"particles: {out / 'particles3d.parquet'}\nsummary:   {out / 'particles3d.json'}")
 
 
+MIN_IMAGE_SCALE = 0.05  # smaller: port_survey's 640 x 480 images become 32 x 24 px, paper_single's focal 174 px
+MAX_PORT_SURVEY_SCALE = 8.0  # 5120 x 3840 px images (rendered at twice that): larger ones exhaust memory
+
+
 @main.command()
 def scenarios() -> None:
     """List the simulator's scenarios."""
     from .simulate import SCENARIOS
 
-    for name, text in SCENARIOS.items():
+    for name, text in [*SCENARIOS.items(), ("port_survey", PORT_SURVEY)]:
         click.echo(f"{name:28s} {text}")
     click.echo(f"{'particles':28s} a particle experiment: 4 cameras, 10 mm glass into water, 2000 particles per frame "
                "in 60 x 40 x 30 mm at ~400 mm, 0.1 px noise; rig A's body calibration, drifted rig B, images, truth")
+
+
+PORT_SURVEY = ("rendered images of a lawn-mower survey by one camera in a flat-port housing over a relief "
+               "(OUT/images, OUT/truth.json: structure from motion, then refine-colmap)")
 
 
 @main.command()
@@ -729,6 +803,7 @@ def import_openptv_cmd(experiment: Path, out: Path) -> None:
     from .io import load_dataset
     from .openptv import import_experiment
 
+    check_output_folder(out)
     rig = import_experiment(experiment, out)
     ds = load_dataset(rig)
     n_obs = sum(len(o.ids) for o in ds.observations or ())
@@ -749,16 +824,13 @@ def export_openptv_cmd(calibration: Path, out: Path, frame: str | None, pixel_si
     """Write CALIBRATION as OpenPTV orientation files in OUT."""
     from .openptv import export_openptv
 
+    check_output_folder(out)
     summary = export_openptv(calibration, out, frame=frame, pixel_size_mm=pixel_size_mm)
     click.echo(f"frame {summary.frame}, pixel size {summary.pixel_size_mm[0]:g} x {summary.pixel_size_mm[1]:g} mm")
     for name, number in summary.numbers.items():
         fit = summary.fit_error_px.get(name)
         click.echo(f"  {name} -> cam{number}" + (f" (distortion fitted, max {fit:.2g} px)" if fit is not None else ""))
     click.echo("\n".join(str(f) for f in summary.files))
-
-
-if __name__ == "__main__":
-    main()
 
 
 @main.command(name="refine-colmap")
@@ -786,3 +858,7 @@ def refine_colmap_cmd(model_dir: Path, window: Path, out: Path, huber_px: float,
                f"{r['iterations']} iterations, {r['time_s']:.1f} s; reprojection RMS {r['before']['rms_px']:.3f} px "
                f"(COLMAP pinhole) -> {r['after']['rms_px']:.3f} px (exact); COLMAP cameras written as their best "
                f"{r['pinhole_approximation']['camera_model']} approximation ({r['pinhole_approximation']['rms_px']:.3f} px) -> {out}")
+
+
+if __name__ == "__main__":  # last, after every command is defined (python -m ari_sfm.cli refine-colmap)
+    main()

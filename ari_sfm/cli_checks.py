@@ -6,6 +6,7 @@ inside (``non-finite Jacobian entries``) or about a file that was never written.
 """
 from __future__ import annotations
 
+import errno
 import math
 import os
 from pathlib import Path
@@ -22,6 +23,13 @@ def check_output_folder(out: str | Path, option: str = "-o/--out") -> Path:
     or /dev; a folder whose nearest existing ancestor is not writable.
     """
     out = Path(out)
+    try:
+        os.stat(out)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise AriSfmError(out, f"{option}: a loop of symbolic links, not a folder") from None
+        if os.path.islink(out):
+            raise AriSfmError(out, f"{option}: a symbolic link to {os.readlink(out)}, which does not exist") from None
     resolved = Path(os.path.realpath(out))
     for root in PSEUDO_FILE_SYSTEMS:
         if resolved == Path(root) or Path(root) in resolved.parents:
@@ -50,3 +58,23 @@ def check_number(option: str, value: float | None, minimum: float | None = None,
     if maximum is not None and value > maximum:
         raise AriSfmError(option, f"must be <= {maximum:g} (got {value:g})")
     return value
+
+
+def check_not_input_folder(out: str | Path, input_folder: str | Path, what: str, option: str = "-o/--out") -> None:
+    """AriSfmError if ``out`` is ``input_folder`` (after symbolic links): a command never writes into its input."""
+    if Path(os.path.realpath(out)) == Path(os.path.realpath(input_folder)):
+        raise AriSfmError(out, f"{option}: is {what}: choose another folder")
+
+
+RECONSTRUCTION_OUTPUTS = ("points.json", "metrics.json", "observations.json")  # and clouds/*.ply
+
+
+def check_not_an_output(given: str | Path | None, out: str | Path, option: str) -> None:
+    """AriSfmError if an input file is one ``reconstruct -o OUT`` would overwrite (OUT/points.json,
+    metrics.json, observations.json, clouds/*)."""
+    if given is None:
+        return
+    resolved = Path(os.path.realpath(given))
+    out = Path(os.path.realpath(out))
+    if resolved in [out / name for name in RECONSTRUCTION_OUTPUTS] or out / "clouds" in resolved.parents:
+        raise AriSfmError(given, f"{option}: is a file this command writes in -o: copy it elsewhere first")

@@ -54,6 +54,7 @@ import numpy as np
 from .calibration import Calibration, load_calibration
 from .errors import AriSfmError
 from .geometry import Pose
+from .provenance import observations_mismatch
 from .records import Dataset, Observation
 
 log = logging.getLogger(__name__)
@@ -70,11 +71,25 @@ def _version(text: str) -> tuple[int, int]:
     return (parts + [0, 0])[0], (parts + [0, 0])[1]
 
 
-try:
-    import pycolmap
-except ImportError as exc:  # pragma: no cover - pycolmap is a dependency
-    raise ImportError(f"ari_sfm.colmap_export needs pycolmap >= {MIN_PYCOLMAP[0]}.{MIN_PYCOLMAP[1]} "
-                      f"(pip install pycolmap): {exc}") from exc
+def _import_pycolmap() -> Any:
+    """Import pycolmap, keeping Python's SIGTERM handler: pycolmap installs glog's failure-signal handler,
+    which answers a plain SIGTERM with a native stack dump (and so does not let the CLI leave cleanly)."""
+    import signal
+    import threading
+
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.getsignal(signal.SIGTERM) if main else None
+    try:
+        import pycolmap
+    except ImportError as exc:  # pragma: no cover - pycolmap is a dependency
+        raise ImportError(f"ari_sfm.colmap_export needs pycolmap >= {MIN_PYCOLMAP[0]}.{MIN_PYCOLMAP[1]} "
+                          f"(pip install pycolmap): {exc}") from exc
+    if previous is not None:
+        signal.signal(signal.SIGTERM, previous)
+    return pycolmap
+
+
+pycolmap = _import_pycolmap()
 
 PYCOLMAP_VERSION = _version(getattr(pycolmap, "__version__", "0.0"))
 if PYCOLMAP_VERSION < MIN_PYCOLMAP:  # pragma: no cover - depends on the installed version
@@ -349,6 +364,9 @@ def export_colmap(calibration: Calibration | str | Path, out_dir: str | Path,
         cal_path = Path(calibration)
         calibration = load_calibration(cal_path)
     dataset, observations = _observations(calibration, dataset, cal_path)
+    why = observations_mismatch(calibration, observations, dataset.target if dataset is not None else None)
+    if why:  # the calibration's frames with another capture's corners: tracks of nonsense
+        raise AriSfmError(dataset.root if dataset is not None else cal_path.parent / "observations.json", why)
     points_data = _as_points(points)
     out_dir = Path(out_dir)
     names = list(calibration.cameras)
@@ -422,12 +440,51 @@ def export_colmap(calibration: Calibration | str | Path, out_dir: str | Path,
         point3D_ids[(frame, corner)] = rec.add_point3D(np.asarray(frame_points[frame][corner], float), track,
                                                        np.array(color, dtype=np.uint8))
     rec.update_point_3d_errors()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    rec.write(str(out_dir))
+    write_model(rec, out_dir)
     ply = out_dir / "points3D.ply"
-    rec.export_PLY(str(ply))
     log.info("COLMAP model: %d cameras, %d images, %d points -> %s", len(names), len(image_ids), len(point3D_ids), out_dir)
     return ColmapExport(rec, out_dir, virtual, camera_ids, image_ids, point3D_ids, warnings, ply)
+
+
+def write_model(rec: Any, out_dir: str | Path, ply: bool = True) -> None:
+    """Write ``rec`` (binary model, and ``points3D.ply`` when ``ply``) to ``out_dir``: every file complete or
+    none replaced. pycolmap does not report a failed write (a full disk left truncated .bin files with exit 0),
+    so each file's size is checked against the bytes its content needs before anything is replaced (reading
+    a truncated model back is no check: pycolmap then allocates by garbage counts)."""
+    from .io import write_files_atomic
+
+    def writer(tmp: Path) -> None:
+        rec.write(str(tmp))
+        if ply:
+            rec.export_PLY(str(tmp / "points3D.ply"))
+
+    def check(tmp: Path) -> None:
+        for name, size in _minimum_sizes(rec).items():
+            if not (tmp / name).is_file() or (tmp / name).stat().st_size < size:
+                raise OSError(f"{name} was written short (a full disk?)")
+        if ply:
+            head = (tmp / "points3D.ply").read_bytes()[:4096]
+            end = head.find(b"end_header\n")
+            size = end + len(b"end_header\n") + 15 * rec.num_points3D()  # float xyz, uchar rgb per vertex
+            if end < 0 or (tmp / "points3D.ply").stat().st_size < size:
+                raise OSError("points3D.ply was written short (a full disk?)")
+
+    write_files_atomic(out_dir, writer, check)
+
+
+def _minimum_sizes(rec: Any) -> dict[str, int]:
+    """The bytes COLMAP's binary format needs for ``rec``'s cameras, images and points (uint64 counts, then
+    per record: ids, model, sizes, doubles; per 2D point x, y, point3D id; per track element two uint32)."""
+    sizes = {
+        "cameras.bin": 8 + sum(24 + 8 * len(c.params) for c in rec.cameras.values()),
+        "images.bin": 8 + sum(4 + 56 + 4 + len(i.name.encode()) + 1 + 8 + 24 * len(i.points2D)
+                              for i in rec.images.values()),
+        "points3D.bin": 8 + sum(51 + 8 * p.track.length() for p in rec.points3D.values()),
+    }
+    if HAS_RIGS:
+        sizes["frames.bin"] = 8 + sum(68 + 16 * f.num_data_ids() for f in rec.frames.values())
+        sizes["rigs.bin"] = 8 + 16 * len(rec.rigs)
+    return sizes
 
 
 def _colmap_image(obs: Observation, dataset: Dataset | None, image_id: int, camera_id: int, frame_id: int,

@@ -3,21 +3,30 @@
 ``reconstruct`` records a ``provenance`` mapping in points.json and metrics.json::
 
     {"calibration": {"path": <absolute>, "sha256": <of the file's bytes>, "model": "ari"},
-     "dataset": {"path": <absolute folder>, "rig": <absolute rig file>, "rig_sha256": <of its bytes>}}
+     "dataset": {"path": <absolute folder>, "rig": <absolute rig file>, "rig_sha256": <of its bytes>,
+                 "observations_sha256": <of the corners>, "images_sha256": <of the image files' names and sizes>}}
 
 ``report`` and ``export-colmap`` compare it with the calibration.json and the
 dataset they are given (:func:`calibration_mismatch`, :func:`dataset_mismatch`),
 so an older reconstruction is not shown under a newer calibration, nor a
-dataset of another rig under either, without saying so.
+dataset of another rig or another capture (a byte-identical rig.yaml with
+other corners or images) under either, without saying so. A calibration.json
+records no provenance of its own: :func:`observations_mismatch` judges by its
+residuals whether a dataset's corners are the ones it was calibrated on.
 """
 from __future__ import annotations
 
 import hashlib
 import os
 from pathlib import Path
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
-from .records import Dataset
+import numpy as np
+
+from .records import Dataset, Observation, Target
+
+if TYPE_CHECKING:
+    from .calibration import Calibration
 
 
 def file_sha256(path: str | Path) -> str:
@@ -34,10 +43,38 @@ def calibration_record(path: str | Path, model: str) -> dict[str, Any]:
     return {"path": os.path.abspath(path), "sha256": file_sha256(path), "model": model}
 
 
+def observations_sha256(observations: Sequence[Observation]) -> str:
+    """Hex SHA-256 of the corners themselves (camera, set, frame, added_mm, ids, pixels), whatever file they came from."""
+    digest = hashlib.sha256()
+    for o in sorted(observations, key=lambda o: (o.set, o.frame, o.camera, o.added_mm or 0.0)):
+        digest.update(f"{o.camera}\0{o.set}\0{o.frame}\0{o.added_mm!r}\0".encode())
+        digest.update(np.ascontiguousarray(o.ids, dtype=np.int64).tobytes())
+        digest.update(np.ascontiguousarray(o.pixels, dtype=np.float64).tobytes())
+    return digest.hexdigest()
+
+
+def images_sha256(dataset: Dataset) -> str | None:
+    """Hex SHA-256 of the dataset's image list (names and byte sizes; cheap for thousands of images), or None."""
+    listed = sorted((e.set, e.key, camera, str(path)) for e in dataset.entries() for camera, path in e.images.items())
+    if not listed:
+        return None
+    digest = hashlib.sha256()
+    for *names, path in listed:
+        size = os.path.getsize(path) if os.path.isfile(path) else -1
+        digest.update(("\0".join([*names, os.path.basename(path), str(size)]) + "\n").encode())
+    return digest.hexdigest()
+
+
 def dataset_record(dataset: Dataset) -> dict[str, Any]:
     """The ``provenance.dataset`` mapping of a loaded dataset."""
-    return {"path": str(Path(os.path.abspath(dataset.root))), "rig": str(Path(os.path.abspath(dataset.rig_path))),
-            "rig_sha256": file_sha256(dataset.rig_path)}
+    record = {"path": str(Path(os.path.abspath(dataset.root))), "rig": str(Path(os.path.abspath(dataset.rig_path))),
+              "rig_sha256": file_sha256(dataset.rig_path)}
+    if dataset.observations is not None:
+        record["observations_sha256"] = observations_sha256(dataset.observations)
+    images = images_sha256(dataset)
+    if images is not None:
+        record["images_sha256"] = images
+    return record
 
 
 def provenance(calibration_path: str | Path, model: str, dataset: Dataset) -> dict[str, Any]:
@@ -72,14 +109,42 @@ def calibration_mismatch(result: Mapping[str, Any] | None, calibration_path: str
 
 
 def dataset_mismatch(result: Mapping[str, Any] | None, dataset: Dataset) -> str | None:
-    """Why ``result`` was not made from ``dataset`` (another rig file content), or None (also when unrecorded)."""
+    """Why ``result`` was not made from ``dataset`` (another rig file content, other corners or another image
+    list), or None (also when unrecorded)."""
     rec = _recorded(result, "dataset")
     if rec is None or not isinstance(rec.get("rig_sha256"), str):
         return None
-    if rec["rig_sha256"] == file_sha256(dataset.rig_path):
+    if rec["rig_sha256"] != file_sha256(dataset.rig_path):
+        return (f"made from the dataset {rec.get('path')} (rig sha256 {rec['rig_sha256'][:12]}), not from "
+                f"{dataset.root} (rig sha256 {file_sha256(dataset.rig_path)[:12]})")
+    now = dataset_record(dataset)
+    for key, what in (("observations_sha256", "corners"), ("images_sha256", "images")):
+        if isinstance(rec.get(key), str) and key in now and rec[key] != now[key]:
+            return (f"made from other {what} than {dataset.root}'s (the same rig.yaml, another capture: {key} "
+                    f"{rec[key][:12]}, now {now[key][:12]})")
+    return None
+
+
+RESIDUAL_MISMATCH_FACTOR = 5.0  # a dataset's corners at the calibration's own poses: rmse above
+RESIDUAL_MISMATCH_PX = 2.0  # factor x recorded + px: not the corners it was calibrated on
+
+
+def observations_mismatch(calibration: Calibration, observations: Sequence[Observation],
+                          target: Target | None = None) -> str | None:
+    """Why ``observations`` are not the corners ``calibration`` was made from (their rmse at its own frame
+    poses far above the rmse it records), or None (also when no frame of it is observed)."""
+    from .evaluate import evaluate
+
+    recorded = calibration.residuals.rmse_px if calibration.residuals is not None else None
+    target = target or calibration.target
+    if recorded is None or target is None:
         return None
-    return (f"made from the dataset {rec.get('path')} (rig sha256 {rec['rig_sha256'][:12]}), not from "
-            f"{dataset.root} (rig sha256 {file_sha256(dataset.rig_path)[:12]})")
+    held = [o for o in observations if o.set in ("calibration", "stacking")]
+    stats = evaluate(calibration, held, target)
+    if stats.count == 0 or stats.rmse_px <= RESIDUAL_MISMATCH_FACTOR * recorded + RESIDUAL_MISMATCH_PX:
+        return None
+    return (f"its corners are not the ones the calibration was made from: rmse {stats.rmse_px:.4g} px at the "
+            f"calibration's frame poses, {recorded:.4g} px recorded (the same rig, another capture?)")
 
 
 def recorded_dataset_path(result: Mapping[str, Any] | None) -> Path | None:

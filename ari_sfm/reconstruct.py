@@ -13,6 +13,7 @@ import logging
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Mapping
 
 import numpy as np
 
@@ -188,6 +189,43 @@ class ReconstructionRun:
     observations_path: Path | None  # written when corners were detected here
 
 
+def check_same_capture(dataset: Dataset, calibration: Calibration, where: str | Path | None = None) -> None:
+    """AriSfmError if the dataset's corners are not the ones ``calibration`` was made from (a byte-identical
+    rig.yaml of another capture; :func:`ari_sfm.provenance.observations_mismatch`). For ``report`` and
+    ``export-colmap``, which show or export the calibration's frames with these corners; ``reconstruct``
+    may triangulate another capture of a calibrated rig."""
+    from .provenance import observations_mismatch
+
+    if dataset.observations is None:
+        return
+    why = observations_mismatch(calibration, dataset.observations, dataset.target)
+    if why:
+        raise AriSfmError(where or dataset.root, why)
+
+
+def check_truth_matches(dataset: Dataset, truth_path: str | Path) -> None:
+    """AriSfmError if a simulator's truth.json is not this dataset's: a reconstruction frame (from rig.yaml,
+    or observed) or an observed corner id it does not hold. ``run`` calls this before calibrating, so the
+    truth of another dataset leaves no calibration.json behind."""
+    from .metrics import check_truth
+
+    recon, where = check_truth(truth_path)
+    frames = [e.key for e in dataset.reconstruction]
+    observed = dataset.select("reconstruction") if dataset.observations is not None else []
+    frames += [o.frame for o in observed if o.frame not in frames]
+    missing = [f for f in frames if f not in recon]
+    if missing:
+        raise AriSfmError(where, f"not the truth of {dataset.rig_path}: its reconstruction frame "
+                                 f"{missing[0]} is not in the truth (frames: {', '.join(map(str, recon)) or 'none'})")
+    for o in observed:
+        ids = recon[o.frame].get("ids") if isinstance(recon[o.frame], Mapping) else None
+        known = {int(i) for i in ids} if isinstance(ids, list) else set()
+        extra = [int(i) for i in o.ids if int(i) not in known]
+        if extra:
+            raise AriSfmError(where, f"not the truth of {dataset.rig_path}: corner id {extra[0]} of frame {o.frame} "
+                                     "is not in the truth")
+
+
 def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, out_dir: str | Path,
                        truth_path: str | Path | None = None, workers: int | None = None,
                        progress: bool = False, observations: str | Path | None = None,
@@ -212,9 +250,7 @@ def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, o
     calibration = load_calibration(calibration_path)
     check_rig(dataset, calibration, calibration_path)  # before a slow detection
     if truth_path is not None:
-        from .metrics import check_truth
-
-        check_truth(truth_path)
+        check_truth_matches(dataset, truth_path)
     if reference_path is not None:
         from .reference import load_reference
 

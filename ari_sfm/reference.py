@@ -51,12 +51,63 @@ MIN_SAMPLES = 50_000
 SEED = 0  # Open3D's sampling is seeded: the same inputs give the same figures
 
 
+MAX_COORDINATE_MM = 1e7  # a reference coordinate beyond 10 km is not in mm (or not a coordinate)
+MIN_FITNESS = 0.5  # registered: at least half the points within REGISTERED_FRACTION of the points' extent
+REGISTERED_FRACTION = 0.05  # of the bounding-box diagonal (ICP_SCHEDULE's second stage)
+PLY_TYPES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+             "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+def check_ply(path: Path) -> None:
+    """AriSfmError if a .ply file is shorter than its header declares (a truncated copy or download), found
+    here rather than by RPly, which prints its own error line and returns part of the geometry."""
+    with open(path, "rb") as f:
+        head = f.read(65536)
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        raise AriSfmError(path, "not a PLY file (no 'ply' ... 'end_header' header)")
+    body_start = head.index(b"\n", end) + 1 if b"\n" in head[end:] else len(head)
+    lines = head[:end].decode("ascii", errors="replace").splitlines()
+    fmt, elements = None, []  # (name, count, fixed bytes, minimum list bytes)
+    for line in lines:
+        words = line.split()
+        if words[:1] == ["format"] and len(words) > 1:
+            fmt = words[1]
+        elif words[:1] == ["element"] and len(words) == 3 and words[2].isdigit():
+            elements.append([words[1], int(words[2]), 0])
+        elif words[:1] == ["property"] and elements and len(words) >= 3:
+            if words[1] == "list" and len(words) >= 5:
+                items = 3 if words[4] in ("vertex_indices", "vertex_index") else 0  # a face has >= 3 corners
+                elements[-1][2] += PLY_TYPES.get(words[2], 1) + items * PLY_TYPES.get(words[3], 4)
+            else:
+                elements[-1][2] += PLY_TYPES.get(words[1], 4)
+    size = path.stat().st_size
+    if fmt in ("binary_little_endian", "binary_big_endian"):
+        needed = body_start + sum(count * nbytes for _, count, nbytes in elements)
+        if size < needed:
+            raise AriSfmError(path, f"truncated: its header declares {', '.join(f'{c} {n}' for n, c, _ in elements)} "
+                                    f"({needed} bytes at least), the file has {size} bytes")
+    elif fmt == "ascii":
+        with open(path, "rb") as f:
+            f.seek(body_start)
+            rows = sum(1 for line in f if line.strip())
+        declared = sum(count for _, count, _ in elements)
+        if rows < declared:
+            raise AriSfmError(path, f"truncated: its header declares {declared} rows "
+                                    f"({', '.join(f'{c} {n}' for n, c, _ in elements)}), the file has {rows}")
+
+
 def load_reference(path: str | Path) -> tuple[Any, str]:
-    """The reference geometry as an Open3D legacy TriangleMesh or PointCloud, and its kind ('mesh' / 'cloud')."""
+    """The reference geometry as an Open3D legacy TriangleMesh or PointCloud, and its kind ('mesh' / 'cloud').
+
+    Refused in one line: a missing, empty or truncated file; non-finite coordinates or coordinates beyond
+    MAX_COORDINATE_MM; points that are all one point or on one line (nothing to register onto)."""
     o3d = require_open3d()
     path = Path(path)
     if not path.is_file():
         raise AriSfmError(path, "reference geometry not found" if not path.exists() else "is not a file")
+    if path.suffix.lower() == ".ply":
+        check_ply(path)
     verbosity = o3d.utility.get_verbosity_level()
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)  # Open3D warns on stdout for unknown formats
     try:
@@ -77,6 +128,16 @@ def load_reference(path: str | Path) -> tuple[Any, str]:
         raise AriSfmError(path, "reference holds non-finite coordinates")
     if kind == "cloud" and len(vertices) < 3:
         raise AriSfmError(path, f"a reference cloud needs at least 3 points (got {len(vertices)})")
+    largest = float(np.abs(vertices).max())
+    if largest > MAX_COORDINATE_MM:
+        raise AriSfmError(path, f"coordinates up to {largest:.3g}: out of range (lengths in mm, at most "
+                                f"{MAX_COORDINATE_MM:g})")
+    spread = np.linalg.svd(vertices - vertices.mean(axis=0), compute_uv=False)
+    if spread[0] <= 1e-9 * max(largest, 1.0):
+        raise AriSfmError(path, f"degenerate: all its {len(vertices)} points are one point")
+    if len(spread) < 2 or spread[1] <= 1e-9 * spread[0]:
+        raise AriSfmError(path, f"degenerate: all its {len(vertices)} points lie on one line (registration "
+                                "needs a surface)")
     return geometry, kind
 
 
@@ -194,6 +255,11 @@ def reference_errors(points: Points, path: str | Path) -> dict[str, Any]:
     T, result = icp(min(coarse, key=rms_distance), ICP_SCHEDULE[2:])
     T = _refine_point_to_plane(closest, xyz, T, ICP_SCHEDULE[-1] * diag)
     d = distances(xyz @ T[:3, :3].T + T[:3, 3])
+    registered = float(np.mean(d <= REGISTERED_FRACTION * diag))
+    if not registered >= MIN_FITNESS:  # the figures would measure a failed registration (distances ~1e30 mm)
+        raise AriSfmError(path, f"registration failed: {registered:.0%} of the {len(xyz)} reconstructed points lie "
+                                f"within {REGISTERED_FRACTION * diag:.3g} mm of the reference after ICP (at least "
+                                f"{MIN_FITNESS:.0%} needed): is it this scene's geometry, in mm, covering the points?")
     world_to_ref = np.eye(4)
     world_to_ref[:3, :3] = T[:3, :3]
     world_to_ref[:3, 3] = T[:3, 3] + origin  # undo the working shift

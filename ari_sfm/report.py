@@ -119,10 +119,11 @@ def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInp
     obs_path = out / "observations.json"
     ds = None
     if ds_path is not None:
-        from .reconstruct import check_rig
+        from .reconstruct import check_rig, check_same_capture
 
         ds = load_dataset(ds_path, obs_path if obs_path.exists() else None)
         check_rig(ds, cal, cal_path)  # another rig's dataset: refused, not mixed in
+        check_same_capture(ds, cal)  # nor another capture of the same rig
     else:
         notes.append("dataset not found (pass --dataset): no dataset summary")
     if ds is not None and ds.observations is not None:

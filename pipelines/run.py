@@ -55,15 +55,58 @@ def reconstruction_frames(dataset: Dataset) -> tuple[list[str], str | None]:
     return frames, None
 
 
+RECONSTRUCTION_FILES = ("points.json", "metrics.json")
+
+
+def _dataset_folder(path: str | Path) -> Path:
+    """The dataset folder of a folder or rig-file path, symbolic links resolved."""
+    path = Path(path).resolve()
+    return path.parent if path.is_file() else path
+
+
+def check_run_folder(out_dir: Path, dataset_path: str | Path) -> None:
+    """AriSfmError if ``out_dir`` holds the run (run.json) or reconstruction (metrics.json, points.json) of
+    another dataset: a second run would leave run.json of one and results of the other."""
+    from ..errors import AriSfmError
+    from ..io import read_structured
+    from ..provenance import recorded_dataset_path
+
+    here = _dataset_folder(dataset_path)
+    for name in (RUN_FILE, *RECONSTRUCTION_FILES):
+        path = out_dir / name
+        if not path.is_file():
+            continue
+        try:
+            data = read_structured(path)
+        except AriSfmError:
+            continue  # unreadable: replaced by this run
+        recorded = data.get("dataset") if name == RUN_FILE and isinstance(data, dict) else recorded_dataset_path(data)
+        if isinstance(recorded, (str, Path)) and _dataset_folder(recorded) != here:
+            raise AriSfmError(out_dir, f"-o/--out: holds the results of another dataset ({recorded}, in {name}): "
+                                       "choose an empty folder")
+
+
+def remove_stale_reconstruction(out_dir: Path) -> None:
+    """Remove points.json, metrics.json and clouds/ of an earlier run of this dataset (this run has none)."""
+    import shutil
+
+    for name in RECONSTRUCTION_FILES:
+        if (out_dir / name).is_file():
+            log.info("removing %s of an earlier run", out_dir / name)
+            (out_dir / name).unlink()
+    shutil.rmtree(out_dir / "clouds", ignore_errors=True)
+
+
 def main(dataset_path: Path, out_dir: Path, model: str | None = None, truth: Path | None = None,
          progress: bool = False, **options) -> RunResult:
     """Calibrate (None: the best model, ``DEFAULT_MODEL``), reconstruct when possible, write run.json
     and report.html."""
     out_dir = Path(out_dir)
+    check_run_folder(out_dir, dataset_path)  # another dataset's run there: refused before any work
     if truth is not None:
-        from ..metrics import check_truth
+        from ..reconstruct import check_truth_matches
 
-        check_truth(truth)  # before the calibration, not after it
+        check_truth_matches(load_dataset(dataset_path), truth)  # before the calibration, not after it
     model = model or DEFAULT_MODEL
     calibrated = calibrate_rig(dataset_path, out_dir, model=model, progress=progress, **options)
     obs_path = calibrated.observations_path
@@ -78,6 +121,7 @@ def main(dataset_path: Path, out_dir: Path, model: str | None = None, truth: Pat
                                  observations=obs_path)
     else:
         log.info("reconstruction skipped: %s", why)
+        remove_stale_reconstruction(out_dir)
     errors = None
     if truth is not None:
         from ..calibration import load_calibration

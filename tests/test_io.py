@@ -466,7 +466,7 @@ BAD_OBSERVATIONS = {
     "unknown set": (_obs(2, set="test"), "set must be one of stacking, calibration, reconstruction"),
     "stacking without added_mm": (_obs(0, added_mm=None), "missing key 'added_mm'"),
     "added_mm outside stacking": (_obs(1, added_mm=3), "added_mm is only for stacking records"),
-    "pixel outside image": (_obs(1, pixels=[[1.0, 2.0], [2448.0, 3.0]]), "pixel (2448, 3) of id 1 is outside the 2448 x 2048 image"),
+    "pixel outside image": (_obs(1, pixels=[[1.0, 2.0], [2449.0, 3.0]]), "pixel (2449, 3) of id 1 is outside the 2448 x 2048 image"),
     "duplicate record": (
         json.dumps({"format": "ari-sfm-observations/1",
                     "observations": [json.loads(EXAMPLE_OBSERVATIONS)["observations"][1]] * 2}),

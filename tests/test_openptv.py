@@ -513,3 +513,88 @@ def test_import_then_calibrate_exact_recovers_testing_fodder_cameras(experiment,
     assert cal.residuals.rmse_px < 0.01  # the .crd are liboptv's exact pixels to 5 decimals
     for k in (1, 2):
         assert cal.cameras[f"cam{k}"].K[0, 0] == pytest.approx(70 / 0.012, rel=1e-3)
+
+
+@pytest.mark.parametrize("value", ["inf", "1e300", "1e-12", "nan", "-0.01"])
+def test_export_refuses_an_unphysical_pixel_size(tmp_path, value):
+    """--pixel-size-mm inf / 1e300 / 1e-12 wrote .ori files holding nan or inf."""
+    simulated_calibration().save(tmp_path / "calibration.json")
+    r = CliRunner().invoke(main, ["export-openptv", str(tmp_path / "calibration.json"), "-o", str(tmp_path / "o"),
+                                  "--pixel-size-mm", value])
+    assert r.exit_code == 1 and r.output.count("\n") == 1, r.output
+    assert r.output.startswith("error: --pixel-size-mm: must be a pixel size in mm between 0.0001 and 1 (got ")
+    assert not (tmp_path / "o").exists()
+
+
+def test_export_refuses_an_existing_ptv_par_with_an_unphysical_pixel_size(tmp_path):
+    simulated_calibration().save(tmp_path / "calibration.json")
+    export_openptv(tmp_path / "calibration.json", tmp_path / "o")
+    ptv_par = tmp_path / "o" / "parameters" / "ptv.par"
+    lines = ptv_par.read_text().splitlines()
+    lines[-7] = "1e300"  # pix_x (then pix_y, chfield, n1, n2, n3, d)
+    ptv_par.write_text("\n".join(lines) + "\n")
+    ori = (tmp_path / "o" / "cal" / "cam1.tif.ori").read_text()
+    with pytest.raises(AriSfmError) as err:
+        export_openptv(tmp_path / "calibration.json", tmp_path / "o")
+    assert err.value.path == str(ptv_par) and err.value.message.startswith("pixel size x must be a pixel size in mm")
+    assert (tmp_path / "o" / "cal" / "cam1.tif.ori").read_text() == ori
+
+
+def test_export_with_cal_a_file_writes_nothing(tmp_path):
+    """OUT/cal a file: ptv.par was written before the .ori failed."""
+    simulated_calibration().save(tmp_path / "calibration.json")
+    (tmp_path / "o").mkdir()
+    (tmp_path / "o" / "cal").write_text("not a folder")
+    r = CliRunner().invoke(main, ["export-openptv", str(tmp_path / "calibration.json"), "-o", str(tmp_path / "o")])
+    assert r.exit_code == 1 and r.output == f"error: {tmp_path / 'o' / 'cal'}: is a file, so cam1.tif.ori cannot be written there\n"
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["cal"]
+
+
+@pytest.mark.parametrize("name", ["../../outside/cam1.tif", "/ABS/cam1.tif"])
+def test_export_never_writes_outside_the_output_folder(tmp_path, name):
+    """An existing ptv.par's calibration image names led the .ori/.addpar files outside -o."""
+    name = name.replace("/ABS", str(tmp_path / "abs"))
+    simulated_calibration().save(tmp_path / "calibration.json")
+    export_openptv(tmp_path / "calibration.json", tmp_path / "o")
+    ptv_par = tmp_path / "o" / "parameters" / "ptv.par"
+    lines = ptv_par.read_text().splitlines()
+    lines[2] = name  # camera 1's calibration image
+    ptv_par.write_text("\n".join(lines) + "\n")
+    before = {p: p.read_bytes() for p in (tmp_path / "o").rglob("*") if p.is_file()}
+    r = CliRunner().invoke(main, ["export-openptv", str(tmp_path / "calibration.json"), "-o", str(tmp_path / "o")])
+    assert r.exit_code == 1 and r.output.startswith(f"error: {ptv_par}: calibration image name leads outside"), r.output
+    assert {p: p.read_bytes() for p in (tmp_path / "o").rglob("*") if p.is_file()} == before
+    assert not (tmp_path / "outside").exists() and not (tmp_path / "abs").exists()
+
+
+@pytest.mark.parametrize("breakage, file, message", [
+    (lambda r: write_ptv_par(r / "parameters" / "ptv.par", (1, 2), n=(1.0, 6.0, 1.46)), "parameters/ptv.par",
+     "not importable: interface.index must be <= 5 (got 6.0)"),
+    (lambda r: write_ptv_par(r / "parameters" / "ptv.par", (1, 2), d=1e5), "parameters/ptv.par",
+     "not importable: interface.thickness_mm must be <= 10000 mm"),
+    (lambda r: write_ptv_par(r / "parameters" / "ptv.par", (1, 2), pix=1e-9), "cal/cam1.tif.ori",
+     "not importable: cameras.cam1.focal_px must be <= 1e+07 px"),
+    (None, None, None),  # a .fix point at 1e300 (below)
+])
+def test_import_errors_name_the_openptv_file_not_a_temporary_rig(experiment, tmp_path, breakage, file, message):
+    """Errors named the deleted temporary rig.yaml (.ds.xyz/rig.yaml) instead of ptv.par."""
+    if file is None:  # a .fix point at 1e300 imported, then failed inside OpenCV
+        fix = experiment / "cal" / "target_on_a_side.txt"
+        lines = fix.read_text().splitlines()
+        pid = lines[0].split()[0]
+        lines[0] = f"{pid}  1e300  0.0  0.0"
+        fix.write_text("\n".join(lines) + "\n")
+        file, message = "cal/target_on_a_side.txt", f"point {int(pid)} at [1e+300, 0.0, 0.0]: beyond 10000 mm"
+    else:
+        breakage(experiment)
+    r = CliRunner().invoke(main, ["import", "openptv", str(experiment), "-o", str(tmp_path / "ds")])
+    assert r.exit_code == 1 and r.output.startswith(f"error: {experiment / file}: {message}"), r.output
+    assert r.output.count("\n") == 1 and "rig.yaml" not in r.output
+    assert not (tmp_path / "ds").exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".ds.")]
+
+
+def test_import_refuses_to_write_into_the_experiment(experiment):
+    before = sorted(p.relative_to(experiment) for p in experiment.rglob("*"))
+    r = CliRunner().invoke(main, ["import", "openptv", str(experiment), "-o", str(experiment)])
+    assert r.exit_code == 1 and r.output == f"error: {experiment}: already exists and is not empty: give a new folder\n"
+    assert sorted(p.relative_to(experiment) for p in experiment.rglob("*")) == before

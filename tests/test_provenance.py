@@ -11,6 +11,8 @@ import pytest
 from click.testing import CliRunner
 
 from ari_sfm.cli import main
+from ari_sfm.io import load_dataset
+from ari_sfm.provenance import observations_sha256
 from ari_sfm.simulate import simulate
 
 
@@ -41,7 +43,8 @@ def test_points_and_metrics_record_their_calibration_and_dataset(run_dir):
         assert prov["calibration"] == {"path": str((out / "calibration.json").resolve()),
                                        "sha256": _sha(out / "calibration.json"), "model": "ari"}
         assert prov["dataset"] == {"path": str(ds.resolve()), "rig": str((ds / "rig.yaml").resolve()),
-                                   "rig_sha256": _sha(ds / "rig.yaml")}
+                                   "rig_sha256": _sha(ds / "rig.yaml"),
+                                   "observations_sha256": observations_sha256(load_dataset(ds).observations)}
     assert json.loads((out / "metrics.json").read_text())["dataset"] == str(ds.resolve())  # absolute
 
 

@@ -108,7 +108,7 @@ def test_a_point_cloud_reference_registers_too(tilted_boards, tmp_path):
 
 @pytest.mark.parametrize("content, message", [(None, "reference geometry not found"),
                                               (b"ply\nformat ascii 1.0\nend_header\n", "no triangles or points read"),
-                                              (b"not a mesh", "no triangles or points read")])
+                                              (b"not a mesh", "not a PLY file")])
 def test_bad_reference_is_one_line(tilted_boards, tmp_path, content, message):
     _, points, _ = tilted_boards
     path = tmp_path / "ref.ply"
@@ -158,3 +158,58 @@ def test_cli_bad_reference_fails_before_writing(tmp_path):
                                   "--reference", str(tmp_path / "missing.ply")])
     assert r.exit_code == 1 and r.output.strip() == f"error: {tmp_path / 'missing.ply'}: reference geometry not found"
     assert not (tmp_path / "o" / "points.json").exists()
+
+
+def _boards_vertices_faces(tilted_boards, tmp_path):
+    scene, _, poses = tilted_boards
+    mesh = o3d.io.read_triangle_mesh(str(board_mesh(poses, scene.dataset.target, tmp_path / "boards.ply")))
+    return np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+
+
+def _write(path: Path, vertices: np.ndarray, faces: np.ndarray | None = None, ascii: bool = False) -> Path:
+    if faces is None:
+        geometry = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(vertices))
+        assert o3d.io.write_point_cloud(str(path), geometry, write_ascii=ascii)
+    else:
+        geometry = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(faces))
+        assert o3d.io.write_triangle_mesh(str(path), geometry, write_ascii=ascii)
+    return path
+
+
+@pytest.mark.parametrize("case, message", [
+    ("truncated binary mesh", "truncated: its header declares 60 vertex, 30 face"),
+    ("truncated ascii mesh", "truncated: its header declares 90 rows (60 vertex, 30 face), the file has"),
+    ("truncated cloud", "truncated: its header declares 50000 vertex"),
+    ("out of range", "coordinates up to 8.3e+30: out of range (lengths in mm, at most 1e+07)"),
+    ("one point", "degenerate: all its 100 points are one point"),
+    ("one line", "degenerate: all its 100 points lie on one line"),
+    ("far and small", "registration failed: 3% of the 1320 reconstructed points lie within 16.4 mm"),
+])
+def test_reference_that_cannot_give_a_figure_is_refused(tilted_boards, tmp_path, capfd, case, message):
+    """A far, degenerate, out-of-range or truncated reference printed results (registration fitness ~0,
+    distances 4.99e30 mm) or RPly's own error line."""
+    _, points, _ = tilted_boards
+    vertices, faces = _boards_vertices_faces(tilted_boards, tmp_path)
+    path = tmp_path / "ref.ply"
+    if case.startswith("truncated"):
+        if case == "truncated cloud":
+            cloud = o3d.io.read_triangle_mesh(str(tmp_path / "boards.ply")).sample_points_uniformly(50_000)
+            _write(path, np.asarray(cloud.points))
+        else:
+            _write(path, vertices, faces, ascii="ascii" in case)
+        data = path.read_bytes()
+        path.write_bytes(data[:len(data) * 2 // 3])
+    elif case == "out of range":
+        _write(path, vertices * 1e28, faces)
+    elif case == "one point":
+        _write(path, np.tile([[1.0, 2.0, 3.0]], (100, 1)))
+    elif case == "one line":
+        _write(path, np.outer(np.linspace(0, 100, 100), [1.0, 2.0, 2.0]))
+    else:  # the boards 1000 x smaller (a reference in m) and 5 m away
+        _write(path, vertices * 1e-3 + 5000.0, faces)
+    capfd.readouterr()
+    with pytest.raises(AriSfmError) as info:
+        reference_errors(points, path)
+    assert info.value.path == str(path) and info.value.message.startswith(message), info.value.message
+    captured = capfd.readouterr()
+    assert captured.out == "" and captured.err == ""  # no RPly or Open3D line of its own

@@ -6,7 +6,7 @@ validates first and writes atomically.
 """
 from __future__ import annotations
 
-from ari_sfm.io.atomic import write_bytes_atomic, write_json_atomic, write_text_atomic
+from ari_sfm.io.atomic import write_bytes_atomic, write_files_atomic, write_json_atomic, write_text_atomic
 from ari_sfm.io.dataset import dump_rig, find_rig, load_dataset, save_rig
 from ari_sfm.io.observations import load_observations, save_observations
 from ari_sfm.io.points import load_points, save_points
@@ -51,6 +51,7 @@ __all__ = [
     "save_points",
     "save_rig",
     "write_bytes_atomic",
+    "write_files_atomic",
     "write_json_atomic",
     "write_text_atomic",
 ]

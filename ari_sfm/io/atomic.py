@@ -9,9 +9,10 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import tempfile
 from pathlib import Path, PurePath
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -166,3 +167,58 @@ def write_json_atomic(path: str | Path, obj: Any) -> None:
     except AriSfmError as exc:
         raise AriSfmError(path, exc.message) from None
     write_text_atomic(path, text)
+
+
+def write_files_atomic(out_dir: str | Path, writer: Callable[[Path], None],
+                       check: Callable[[Path], None] | None = None) -> list[Path]:
+    """Files a native writer puts in a folder (a COLMAP model, a .ply), each complete or not there at all.
+
+    ``writer(tmp)`` writes into a fresh temporary folder inside ``out_dir``; ``check(tmp)`` (e.g. reading
+    the model back) may raise to reject what was written (a full disk that the writer did not report);
+    then each file is fsynced and renamed into ``out_dir``, replacing an older one. On any failure or
+    interrupt the temporary folder is removed and ``out_dir`` keeps its old files. Returns the paths written.
+    """
+    out_dir = Path(out_dir)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(dir=out_dir, prefix=".partial-"))
+    except OSError as exc:
+        raise AriSfmError(out_dir, f"cannot write in this folder: {exc.strerror or exc}") from None
+    try:
+        try:
+            writer(tmp)
+            if check is not None:
+                check(tmp)
+            names = sorted(p.name for p in tmp.iterdir() if p.is_file())
+            for name in names:
+                with open(tmp / name, "rb") as f:
+                    os.fsync(f.fileno())
+        except OSError as exc:
+            raise AriSfmError(out_dir, f"cannot write the files: {exc.strerror or exc}") from None
+        written = []
+        with _signals_held():  # Ctrl-C or SIGTERM waits until every file is in place: all old or all new
+            for name in names:
+                os.replace(tmp / name, out_dir / name)
+                written.append(out_dir / name)
+        _fsync_dir(out_dir)
+        return written
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+class _signals_held:
+    """Block SIGINT and SIGTERM for a few renames (main thread, POSIX); they are delivered on leaving."""
+
+    def __enter__(self) -> None:
+        import signal
+        import threading
+
+        self.mask = None
+        if hasattr(signal, "pthread_sigmask") and threading.current_thread() is threading.main_thread():
+            self.mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+
+    def __exit__(self, *exc: object) -> None:
+        import signal
+
+        if self.mask is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, self.mask)

@@ -69,6 +69,8 @@ MAX_LENGTH_MM = 10_000.0  # thickness_mm, distance_mm, square_mm, added_mm, |sta
 MAX_IMAGE_SIDE_PX = 100_000  # image_size width and height
 MAX_FOCAL_PX = 10_000_000.0  # focal_px, K fx and fy
 MAX_INDEX = 5.0  # refractive indices (germanium, the highest common optical glass, is ~4)
+MIN_LENGTH_MM = 1e-3  # thickness_mm, distance_mm, square_mm, spacing_mm: 1 um (1e-9 failed as a
+MIN_FOCAL_PX = 1.0  # focal_px, K fx and fy          "non-finite Jacobian ... corner behind the window")
 
 # cv2.aruco predefined dictionaries and their marker counts (OpenCV 4.x / 5.x).
 ARUCO_DICTIONARIES: dict[str, int] = {
@@ -90,6 +92,9 @@ def find_rig(path: str | Path) -> Path:
     """The rig file of a dataset folder, or ``path`` itself if it is a file."""
     path = Path(path)
     if path.is_file():
+        if path.suffix.lower() not in (".yaml", ".yml", ".json") and not _is_text(path):
+            raise AriSfmError(path, "not a dataset: expected a dataset folder (with rig.yaml) or a rig file, "
+                                    "got a binary file (an image?)")
         return path
     if not path.exists():
         raise AriSfmError(path, "no such dataset folder or rig file")
@@ -100,6 +105,22 @@ def find_rig(path: str | Path) -> Path:
         names = " and ".join(p.name for p in found)
         raise AriSfmError(path, f"both {names} in this folder: pass the rig file to use")
     return found[0]
+
+
+def _is_text(path: Path) -> bool:
+    """True if the file's first 4 KB are UTF-8 text without NUL bytes (unreadable: True, the reader says why)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return True
+    if b"\0" in head:
+        return False
+    try:
+        head.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        return exc.start >= len(head) - 3  # a character cut at the 4 KB boundary
+    return True
 
 
 def parse_target(data: Any, path: Path, where: str = "target") -> Target:
@@ -158,7 +179,7 @@ def _parse_circles(data: Mapping[str, Any], get: Any, path: Path, where: str) ->
     asymmetric grid are spacing x sqrt(2) apart, of a symmetric one spacing).
     """
     grid = _grid(get("grid"), path, f"{where}.grid")
-    spacing = as_positive_float(get("spacing_mm"), path, f"{where}.spacing_mm")
+    spacing = _length(get("spacing_mm"), path, f"{where}.spacing_mm")
     layout = as_str(get("layout"), path, f"{where}.layout")
     if layout not in CIRCLE_LAYOUTS:
         raise AriSfmError(path, f"unknown {where}.layout {layout!r} (expected {' or '.join(CIRCLE_LAYOUTS)})")
@@ -209,8 +230,16 @@ def parse_interface(data: Any, path: Path, where: str = "interface") -> Interfac
 
 
 def _length(value: Any, path: Path, where: str) -> float:
-    """A length in mm: > 0 and at most MAX_LENGTH_MM."""
-    return check_at_most(as_positive_float(value, path, where), MAX_LENGTH_MM, path, where, " mm")
+    """A length in mm: > 0, at least MIN_LENGTH_MM and at most MAX_LENGTH_MM."""
+    return check_at_most(check_at_least(as_positive_float(value, path, where), MIN_LENGTH_MM, path, where, " mm"),
+                         MAX_LENGTH_MM, path, where, " mm")
+
+
+def check_at_least(value: float, limit: float, path: str | Path, where: str, unit: str = "") -> float:
+    """``value`` itself if >= ``limit`` (a sane physical bound), else AriSfmError naming ``where``."""
+    if value < limit:
+        raise AriSfmError(path, f"{where} must be >= {limit:g}{unit} (got {value:g}): not a physical value")
+    return value
 
 
 def _index(value: Any, path: Path, where: str) -> float:
@@ -243,14 +272,16 @@ def parse_camera(name: str, data: Any, path: Path, where: str) -> CameraSpec:
     size = as_int_pair(require(data, "image_size", path, where), path, f"{where}.image_size", minimum=1)
     check_at_most(max(size), MAX_IMAGE_SIDE_PX, path, f"{where}.image_size", " px")
     focal = data.get("focal_px")
-    focal = None if focal is None else check_at_most(as_positive_float(focal, path, f"{where}.focal_px"),
-                                                     MAX_FOCAL_PX, path, f"{where}.focal_px", " px")
+    focal = None if focal is None else check_at_most(
+        check_at_least(as_positive_float(focal, path, f"{where}.focal_px"), MIN_FOCAL_PX, path, f"{where}.focal_px", " px"),
+        MAX_FOCAL_PX, path, f"{where}.focal_px", " px")
     K = None
     if data.get("K") is not None:
         K = as_float_array(data["K"], path, f"{where}.K", (3, 3))
         if K[0, 0] <= 0 or K[1, 1] <= 0:
             raise AriSfmError(path, f"{where}.K must have positive focal lengths (got fx={K[0, 0]:g}, fy={K[1, 1]:g})")
         check_at_most(float(max(K[0, 0], K[1, 1])), MAX_FOCAL_PX, path, f"{where}.K focal length", " px")
+        check_at_least(float(min(K[0, 0], K[1, 1])), MIN_FOCAL_PX, path, f"{where}.K focal length", " px")
         if not np.allclose(K[2], [0.0, 0.0, 1.0], atol=1e-9, rtol=0):
             raise AriSfmError(path, f"{where}.K last row must be [0, 0, 1] (got {show(K[2])})")
     dist = None

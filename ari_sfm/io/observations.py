@@ -55,20 +55,27 @@ def check_unique_ids(ids: np.ndarray, path: Path, where: str) -> None:
         raise AriSfmError(path, f"{where}: duplicate id {int(values[counts > 1][0])} in ids")
 
 
+BORDER_TOLERANCE_PX = 1.0  # a corner's sub-pixel centre may lie this far beyond the image's edge (noise, a
+# centre fitted at the border); farther out it is an error
+
+
 def check_pixels_in_images(observations: Iterable[Observation], image_sizes: Mapping[str, Sequence[int]],
                            path: str | Path) -> None:
-    """Every pixel lies inside its camera's image (OpenCV centres: -0.5 .. size - 0.5); cameras
-    missing from ``image_sizes`` are not checked."""
+    """Every pixel lies inside its camera's image (OpenCV centres: the edges at -0.5 and size - 0.5), or at
+    most BORDER_TOLERANCE_PX beyond an edge (kept as it is); cameras missing from ``image_sizes`` are not checked."""
+    lo = -0.5 - BORDER_TOLERANCE_PX
     for i, o in enumerate(observations):
         if o.camera not in image_sizes:
             continue
         w, h = image_sizes[o.camera]
-        outside = (o.pixels[:, 0] < -0.5) | (o.pixels[:, 0] > w - 0.5) | (o.pixels[:, 1] < -0.5) | (o.pixels[:, 1] > h - 0.5)
+        hi_u, hi_v = w - 0.5 + BORDER_TOLERANCE_PX, h - 0.5 + BORDER_TOLERANCE_PX
+        outside = (o.pixels[:, 0] < lo) | (o.pixels[:, 0] > hi_u) | (o.pixels[:, 1] < lo) | (o.pixels[:, 1] > hi_v)
         if outside.any():
             j = int(np.argmax(outside))
             u, v = o.pixels[j]
             raise AriSfmError(
-                path, f"observation {i} ({describe(o)}): pixel ({u:g}, {v:g}) of id {int(o.ids[j])} is outside the {w} x {h} image"
+                path, f"observation {i} ({describe(o)}): pixel ({u:g}, {v:g}) of id {int(o.ids[j])} is outside the "
+                      f"{w} x {h} image (more than {BORDER_TOLERANCE_PX:g} px beyond its edge)"
             )
 
 

@@ -94,7 +94,9 @@ def read_structured(path: str | Path) -> Any:
     except IsADirectoryError:
         raise AriSfmError(path, "is a directory, expected a file") from None
     except UnicodeDecodeError as exc:
-        raise AriSfmError(path, f"not UTF-8 text (byte {exc.start})") from None
+        binary = b"\0" in exc.object[:4096] or exc.start < 16  # an image or other binary file, not broken text
+        what = "a binary file (an image?), not YAML or JSON text" if binary else "not UTF-8 text"
+        raise AriSfmError(path, f"{what} (byte {exc.start} is not UTF-8)") from None
     except OSError as exc:
         raise AriSfmError(path, f"cannot read file: {exc.strerror or exc}") from None
     if path.suffix.lower() == ".json":

@@ -18,6 +18,7 @@ largest pixel error of that fit is reported.
 from __future__ import annotations
 
 import logging
+import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -118,8 +119,8 @@ def export_openptv(calibration: str | Path, out: str | Path, frame: str | None =
     if cal.model == "ari":
         log.warning("%s: model ari is paraxial; OpenPTV traces rays exactly, so the exported cameras project like "
                     "ari-sfm's exact model with these parameters", path)
-    if pixel_size_mm is not None and not pixel_size_mm > 0:
-        raise AriSfmError(None, f"--pixel-size-mm must be > 0 (got {pixel_size_mm:g})")
+    if pixel_size_mm is not None:
+        check_pixel_size(pixel_size_mm, "--pixel-size-mm")
     frame, world_from_target = _target_pose(cal, frame, path)
     names = list(cal.cameras)
     numbers = _camera_numbers(names)
@@ -138,7 +139,8 @@ def export_openptv(calibration: str | Path, out: str | Path, frame: str | None =
     if pixel_size_mm is not None:
         pix = (float(pixel_size_mm), float(pixel_size_mm))
     elif existing is not None:
-        pix = (existing.pix_x, existing.pix_y)
+        pix = (check_pixel_size(existing.pix_x, ptv_par, "pixel size x"),
+               check_pixel_size(existing.pix_y, ptv_par, "pixel size y"))
     else:
         pix = (DEFAULT_PIXEL_SIZE_MM, DEFAULT_PIXEL_SIZE_MM)
         log.info("pixel size %g mm (no --pixel-size-mm, no ptv.par in %s)", DEFAULT_PIXEL_SIZE_MM, out)
@@ -169,6 +171,38 @@ def export_openptv(calibration: str | Path, out: str | Path, frame: str | None =
         base = out / control.cal_image_names[numbers[name] - 1]
         texts[base.with_name(base.name + ".ori")] = format_ori(Orientation(position, angles, dm, xh, yh, cc, glass))
         texts[base.with_name(base.name + ".addpar")] = format_addpar(addpar)
-    for file, text in texts.items():
+    _check_targets(out, texts, ptv_par)
+    for file, text in [*texts.items()][1:] + [(ptv_par, ptv_text)]:  # ptv.par last: it names the others
         write_text_atomic(file, text)
     return ExportSummary(out, frame, pix, tuple(texts), numbers, fit_errors)
+
+
+MIN_PIXEL_SIZE_MM, MAX_PIXEL_SIZE_MM = 1e-4, 1.0  # 0.1 um .. 1 mm: sensor pixels are ~1-20 um
+
+
+def check_pixel_size(value: float, where: str | Path, what: str | None = None) -> float:
+    """``value`` if a physical pixel size in mm (finite, MIN_PIXEL_SIZE_MM..MAX_PIXEL_SIZE_MM), else AriSfmError:
+    inf, 1e300 or 1e-12 wrote .ori files with nan or inf."""
+    prefix = f"{what} " if what else ""
+    if not (np.isfinite(value) and MIN_PIXEL_SIZE_MM <= value <= MAX_PIXEL_SIZE_MM):
+        raise AriSfmError(where, f"{prefix}must be a pixel size in mm between {MIN_PIXEL_SIZE_MM:g} and "
+                                 f"{MAX_PIXEL_SIZE_MM:g} (got {value:g})")
+    return float(value)
+
+
+def _check_targets(out: Path, texts: dict[Path, str], ptv_par: Path) -> None:
+    """Before the first write: every file lies inside ``out`` (an existing ptv.par's calibration image names
+    may point elsewhere: '../x', '/abs'), no folder on the way is a file, and every number is finite."""
+    root = Path(os.path.realpath(out))
+    for file, text in texts.items():
+        resolved = Path(os.path.realpath(file))
+        if root != resolved.parent and root not in resolved.parents:
+            raise AriSfmError(ptv_par, f"calibration image name leads outside {out} ({file}): the export writes "
+                                       "only inside -o; fix the names in ptv.par")
+        folder = file.parent
+        while folder != out and folder not in out.parents:
+            if folder.exists() and not folder.is_dir():
+                raise AriSfmError(folder, f"is a file, so {file.name} cannot be written there")
+            folder = folder.parent
+        if file != ptv_par and re.search(r"(?<![A-Za-z])(nan|inf)(?![A-Za-z])", text, re.IGNORECASE):
+            raise AriSfmError(file, "would hold a non-finite number (nan or inf): nothing written")

@@ -31,6 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from ari_sfm.errors import AriSfmError
+from ari_sfm.io.dataset import MAX_LENGTH_MM
+from ari_sfm.io.observations import BORDER_TOLERANCE_PX
 from ari_sfm.records import CameraSpec, Dataset, Entry, Interface, Observation, Target, WindowPlane
 
 from .conventions import OPENPTV_PIXEL_OFFSET, window_plane
@@ -81,13 +83,17 @@ def _read_plane(files: PlaneFiles, offset: int, body: dict[int, np.ndarray], sou
     ids, pixels = [], []
     for pid, xyz in fix.items():
         key = offset + pid
+        if not np.all(np.abs(xyz) <= MAX_LENGTH_MM):  # 1e300 imported, then failed inside OpenCV
+            raise AriSfmError(files.fix, f"point {pid} at {xyz.tolist()}: beyond {MAX_LENGTH_MM:g} mm, not a "
+                                         "body coordinate in mm")
         if key in body and np.max(np.abs(body[key] - xyz)) > FIX_TOLERANCE_MM:
             raise AriSfmError(files.fix, f"point {pid} is at {xyz.tolist()} but at {body[key].tolist()} in "
                                          f"{sources[key]}")
         body.setdefault(key, xyz)
         sources.setdefault(key, files.fix)
         if np.all(crd[pid] != UNDETECTED):
-            if not (0 <= crd[pid][0] <= image_size[0] and 0 <= crd[pid][1] <= image_size[1]):
+            margin = BORDER_TOLERANCE_PX  # as the dataset's own pixel check: a centre just beyond the edge is kept
+            if not (-margin <= crd[pid][0] <= image_size[0] + margin and -margin <= crd[pid][1] <= image_size[1] + margin):
                 raise AriSfmError(files.crd, f"id {pid} at ({crd[pid][0]:g}, {crd[pid][1]:g}) is outside the "
                                              f"{image_size[0]} x {image_size[1]} image (.crd files hold OpenPTV "
                                              "pixels; metric ones are not read)")
@@ -131,6 +137,8 @@ def _interface(control: ControlPar, glasses: list[np.ndarray], ori_paths: list[P
 def read_experiment(root: str | Path) -> Dataset:
     """The dataset of an OpenPTV experiment folder (records only; nothing is written)."""
     root = Path(os.path.abspath(root))
+    if root.exists() and not root.is_dir():
+        raise AriSfmError(root, "is a file, expected an OpenPTV experiment folder (with parameters/ptv.par)")
     if not root.is_dir():
         raise AriSfmError(root, "no such OpenPTV experiment folder")
     ptv_par = root / "parameters" / "ptv.par"
@@ -178,6 +186,25 @@ def read_experiment(root: str | Path) -> Dataset:
                    calibration=(Entry("calibration", FRAME),), observations=tuple(observations))
 
 
+def _source_of(message: str, root: Path, dataset: Dataset) -> Path:
+    """The OpenPTV file a rig.yaml key came from: interface.plane from cam1's .ori glass vector, the rest of
+    interface and image sizes from ptv.par, a camera's focal_px / K from its .ori (cc / pixel size), target
+    points from the .fix files, observations from the .crd files."""
+    control = read_control_par(root / "parameters" / "ptv.par")
+    oris = {f"cam{k + 1}": root / f"{cal}.ori" for k, cal in enumerate(control.cal_image_names)}
+    key = message.split()[0] if message else ""
+    if key.startswith("interface.plane"):
+        return oris["cam1"]
+    if key.startswith("cameras."):
+        name = key.split(".")[1]
+        return root / "parameters" / "ptv.par" if ".image_size" in key or name not in oris else oris[name]
+    if key.startswith("target"):
+        return _plane_files(root, control)[1]
+    if key.startswith("observation"):
+        return root / "cal"
+    return root / "parameters" / "ptv.par"
+
+
 def _max_id(planes: list[list[PlaneFiles]]) -> int:
     """The largest point id of all planes' .fix files (for the id step between planes)."""
     return max(max(read_points(f.fix, 3)) for plane in planes for f in plane)
@@ -198,7 +225,13 @@ def import_experiment(root: str | Path, out: str | Path) -> Path:
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; the dataset is an ordinary folder
-        save_rig(tmp / "rig.yaml", dataset)
+        try:
+            save_rig(tmp / "rig.yaml", dataset)
+        except AriSfmError as exc:  # named the temporary rig.yaml, deleted below: name the OpenPTV file instead
+            if exc.path is None or Path(exc.path).parent != tmp:
+                raise
+            raise AriSfmError(_source_of(exc.message, Path(os.path.abspath(root)), dataset),
+                              f"not importable: {exc.message}") from None
         if out.exists():
             out.rmdir()
         os.replace(tmp, out)

@@ -292,7 +292,7 @@ def write_port_survey(out_dir, seed: int = 0, num_images: int = 12, image_size: 
 
     import cv2
 
-    from ari_sfm.io import write_json_atomic
+    from ari_sfm.io import write_bytes_atomic, write_json_atomic
 
     out = Path(out_dir)
     images = out / "images"
@@ -310,7 +310,7 @@ def write_port_survey(out_dir, seed: int = 0, num_images: int = 12, image_size: 
         name = f"image{i + 1:04d}.png"
         img = render_survey_image(truth, i, texture, origin, altitude_mm, relief_mm, supersample)
         ok, buf = cv2.imencode(".png", img)
-        (images / name).write_bytes(buf.tobytes())
+        write_bytes_atomic(images / name, buf.tobytes())  # a full disk leaves no truncated PNG
         names.append(name)
     write_json_atomic(out / "truth.json", {
         "scenario": "port_survey", "seed": seed, "mount": "camera",

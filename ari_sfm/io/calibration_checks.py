@@ -1,0 +1,86 @@
+"""The values of a calibration.json (or a simulator's truth.json) held to the bounds of rig.yaml.
+
+A hand-edited or foreign calibration with an index of 6, a 3-number ``dist``,
+a window 1e6 mm away or 0 mm thick used to be evaluated into NaN or nonsense
+numbers; :func:`check_calibration_values` refuses it in one line naming the key.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from ari_sfm.errors import AriSfmError
+from ari_sfm.io.dataset import MAX_INDEX, MAX_LENGTH_MM, MIN_FOCAL_PX, check_at_least
+from ari_sfm.io.structured import (as_finite_float, as_float_array, as_float_at_least, as_int_pair,
+                                   as_positive_float, check_at_most)
+
+CALIBRATION_DIST_LENGTHS = (4, 5)  # k1 k2 p1 p2 [k3]: what the models use (calibration.json writes 5)
+
+
+def check_calibration_values(data: Any, path: str | Path, window: bool = True) -> None:
+    """AriSfmError naming the key of the first value outside rig.yaml's bounds: ``interface.thickness_mm``
+    (> 0 for a model with a window, >= 0 otherwise), ``index`` and ``medium_index`` (1..MAX_INDEX),
+    ``distance_mm`` and ``fixed_distance_mm`` (|offset| <= MAX_LENGTH_MM, or null; every camera in front of
+    the window, at most MAX_LENGTH_MM from it), each camera's ``dist``
+    (4 or 5 finite numbers). Structure errors are left to the parser."""
+    if not isinstance(data, Mapping):
+        return
+    iface = data.get("interface")
+    if isinstance(iface, Mapping):
+        thickness = iface.get("thickness_mm")
+        if thickness is not None:
+            where = "interface.thickness_mm"
+            value = as_positive_float(thickness, path, where) if window else as_float_at_least(thickness, path, where, 0.0)
+            check_at_most(value, MAX_LENGTH_MM, path, where, " mm")
+        for key in ("index", "medium_index"):
+            if iface.get(key) is not None:
+                index = as_float_at_least(iface[key], path, f"interface.{key}", 1.0)
+                check_at_most(index, MAX_INDEX, path, f"interface.{key}")
+        if iface.get("distance_mm") is not None:
+            distance = _offset(iface["distance_mm"], path, "interface.distance_mm")
+            _check_camera_distances(data, iface, distance, path)
+    if data.get("fixed_distance_mm") is not None:
+        _offset(data["fixed_distance_mm"], path, "fixed_distance_mm")
+    cameras = data.get("cameras")
+    if isinstance(cameras, Mapping):
+        for name, camera in cameras.items():
+            if isinstance(camera, Mapping) and camera.get("image_size") is not None:  # 2448.5 was cut to 2448
+                as_int_pair(camera["image_size"], path, f"cameras.{name}.image_size", minimum=1)
+            if isinstance(camera, Mapping) and camera.get("K") is not None:
+                K = as_float_array(camera["K"], path, f"cameras.{name}.K", (3, 3))
+                if min(K[0, 0], K[1, 1]) > 0:  # a sign error is the parser's message
+                    check_at_least(float(min(K[0, 0], K[1, 1])), MIN_FOCAL_PX, path, f"cameras.{name}.K focal length",
+                                   " px")
+            if isinstance(camera, Mapping) and camera.get("dist") is not None:
+                dist = as_float_array(camera["dist"], path, f"cameras.{name}.dist", (-1,))
+                if len(dist) not in CALIBRATION_DIST_LENGTHS:
+                    raise AriSfmError(path, f"cameras.{name}.dist must have 4 or 5 numbers, k1 k2 p1 p2 [k3] "
+                                            f"(got {len(dist)})")
+
+
+def _offset(value: Any, path: str | Path, where: str) -> float:
+    """The window plane's offset n . X in the world frame (any sign: the world need not be a camera's)."""
+    value = as_finite_float(value, path, where)
+    check_at_most(abs(value), MAX_LENGTH_MM, path, f"|{where}|", " mm")
+    return value
+
+
+def _check_camera_distances(data: Mapping, iface: Mapping, distance: float, path: str | Path) -> None:
+    """Each camera's centre lies in front of the window's near face, at most MAX_LENGTH_MM from it (a malformed
+    normal or pose is left to the parser)."""
+    try:
+        normal = np.asarray(iface["normal_world"], dtype=float).reshape(3)
+        poses = {name: (np.asarray(c["cam_from_world"]["R"], float).reshape(3, 3),
+                        np.asarray(c["cam_from_world"]["t"], float).reshape(3))
+                 for name, c in data["cameras"].items()}
+    except (KeyError, TypeError, ValueError, AttributeError):
+        return
+    if not np.isfinite(normal).all() or not all(np.isfinite(R).all() and np.isfinite(t).all() for R, t in poses.values()):
+        return
+    for name, (R, t) in poses.items():
+        h = distance - float(normal @ (-R.T @ t))  # camera centre to the near face along the normal
+        if not 0.0 < h <= MAX_LENGTH_MM:
+            raise AriSfmError(path, f"interface.distance_mm {distance:g} puts camera {name} {h:.4g} mm from the "
+                                    f"window's near face (must be in front of it, 0 < distance <= {MAX_LENGTH_MM:g} mm)")
