@@ -107,7 +107,10 @@ def test_sfm_bad_inputs_one_line(tmp_path):
                              "-o", str(tmp_path / "imgs" / "out")])
     _one_error_line(r, "images folder")
     r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "W.yaml"), "-o", str(tmp_path / "o"),
-                             "--baseline", "i0.png", "nope.png", "100"])
+                             "--baseline", "i0.png", "i1.png", "100"])
+    _one_error_line(r, "W.yaml", "give it once")
+    r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "noscale.yaml"),
+                             "-o", str(tmp_path / "o"), "--baseline", "i0.png", "nope.png", "100"])
     _one_error_line(r, "imgs", "--baseline: no image nope.png")
     assert not (tmp_path / "o").exists() and not (tmp_path / "imgs" / "out").exists()
 
