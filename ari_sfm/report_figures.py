@@ -243,7 +243,7 @@ def draw_residual_by_frame(calibration: Calibration, residuals: Residuals) -> An
         ax.axhline(float(np.median(list(per.values()))), color="0.4", ls="--", lw=1, label="median image")
     step = max(1, len(frames) // 16)
     ax.set_xticks(range(0, len(frames), step), [frames[i][1] for i in range(0, len(frames), step)],
-                  rotation=45, ha="right", rotation_mode="anchor")
+                  rotation=90)
     ax.set(xlabel="frame (stacking poses after the calibration frames)", ylabel="RMS residual (px)",
            ylim=(0, None))
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1), borderaxespad=0, markerscale=1)
@@ -311,7 +311,10 @@ def draw_expansion_centre(calibration: Calibration, stacking: Mapping[str, Seque
     from .init.expansion_center import fit_lines, intersect_lines, trajectories
 
     names = [n for n in calibration.cameras if stacking.get(n)]
-    fig, axes = _panels(len(names), 3.4 if len(names) >= 3 else 4.0, cols=2)
+    fig, axes = _panels(max(len(names), 1), 3.4 if len(names) >= 3 else 4.0, cols=2)
+    if not names:
+        axes[0].text(0.5, 0.5, "no stacking observations", ha="center", va="center", transform=axes[0].transAxes)
+        axes[0].set_axis_off()
     for ax, name in zip(axes, names):
         w, h = calibration.cameras[name].image_size
         obs = stacking[name]
