@@ -64,7 +64,7 @@ def to_png(fig: Any) -> bytes:
     return buf.getvalue()
 
 
-def _panels(n: int, height_per_row: float, cols: int | None = None, **kw: Any) -> tuple[Any, list]:
+def panels(n: int, height_per_row: float, cols: int | None = None, **kw: Any) -> tuple[Any, list]:
     """A full-width figure with n panels, 2 or 3 (or ``cols``) a row (one camera takes half the width),
     constrained layout."""
     cols = cols or min(max(n, 2), 3)
@@ -100,7 +100,7 @@ def draw_residual_scatter(calibration: Calibration, residuals: Residuals) -> Any
     allr = np.concatenate([r for _, r in residuals]) if residuals else np.zeros((0, 2))
     lim = max(float(np.abs(allr).max()) * 1.08, 1e-3) if len(allr) else 1.0
     cols = min(max(len(names), 2), 3)
-    fig, axes = _panels(len(names), FIG_WIDTH_IN / cols * 0.85 + 1.2, sharex=True, sharey=True)
+    fig, axes = panels(len(names), FIG_WIDTH_IN / cols * 0.85 + 1.2, sharex=True, sharey=True)
     for ax, name in zip(axes, names):
         mine = [(o, r) for o, r in residuals if o.camera == name]
         for set_name, color in SET_COLORS.items():
@@ -156,7 +156,7 @@ def draw_residual_map(calibration: Calibration, residuals: Residuals) -> Any:
     scale = map_magnification(calibration, residuals)
     mags = [np.linalg.norm(r, axis=1) for _, r in residuals]
     vmax = float(np.percentile(np.concatenate(mags), 99)) if mags else 1.0
-    fig, axes = _panels(len(names), 3.0 if len(names) >= 3 else 3.6, sharex=True, sharey=True)
+    fig, axes = panels(len(names), 3.0 if len(names) >= 3 else 3.6, sharex=True, sharey=True)
     sc = None
     for ax, name in zip(axes, names):
         w, h = calibration.cameras[name].image_size
@@ -201,7 +201,7 @@ def draw_residual_regions(calibration: Calibration, residuals: Residuals) -> Any
     grids = [region_grid(calibration, residuals, n) for n in names]
     judged = np.concatenate([g.rms_px[g.count >= 5] for g in grids])  # a cell of 1-4 corners is noise
     vmax = float(judged.max()) if len(judged) else 1.0
-    fig, axes = _panels(len(names), 3.0 if len(names) >= 3 else 3.5)
+    fig, axes = panels(len(names), 3.0 if len(names) >= 3 else 3.5)
     im = None
     for ax, g in zip(axes, grids):
         w, h = g.image_size
@@ -311,7 +311,7 @@ def draw_expansion_centre(calibration: Calibration, stacking: Mapping[str, Seque
     from .init.expansion_center import fit_lines, intersect_lines, trajectories
 
     names = [n for n in calibration.cameras if stacking.get(n)]
-    fig, axes = _panels(max(len(names), 1), 3.4 if len(names) >= 3 else 4.0, cols=2)
+    fig, axes = panels(max(len(names), 1), 3.4 if len(names) >= 3 else 4.0, cols=2)
     if not names:
         axes[0].text(0.5, 0.5, "no stacking observations", ha="center", va="center", transform=axes[0].transAxes)
         axes[0].set_axis_off()

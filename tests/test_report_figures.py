@@ -3,12 +3,14 @@ or overlapping another, shared ranges between cameras, an honest window depth.""
 from __future__ import annotations
 
 from dataclasses import replace
+from types import SimpleNamespace
 
 import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 from matplotlib.text import Text
 
+from ari_sfm.compare import draw_figures
 from ari_sfm.evaluate import observation_residuals
 from ari_sfm.report_figures import (FIG_WIDTH_IN, PRINT_WIDTH_IN, draw_error_histograms, draw_expansion_centre,
                                     draw_point_cloud, draw_residual_by_depth, draw_residual_by_frame,
@@ -86,6 +88,30 @@ def _overlap(a, b) -> float:
     return max(w, 0.0) * max(h, 0.0)
 
 
+def _check_print(name: str, fig) -> None:
+    """Fonts >= 9 pt at print size; no text clipped by the figure's edge or overlapping another (3D: fonts only)."""
+    assert fig.get_figwidth() == pytest.approx(FIG_WIDTH_IN), name
+    renderer = fig.canvas.get_renderer()
+    texts = _drawn_texts(fig)
+    assert texts, name
+    frame = fig.bbox
+    is_3d = any(ax.name == "3d" for ax in fig.axes)  # a 3D projection's labels follow matplotlib's own 3D layout
+    boxes = []
+    for t in texts:
+        printed = t.get_fontsize() * PRINT_WIDTH_IN / FIG_WIDTH_IN
+        assert printed >= 9.0, (name, t.get_text(), printed)
+        box = t.get_window_extent(renderer)
+        boxes.append(box)
+        if not is_3d:
+            assert box.x0 >= frame.x0 - 1 and box.x1 <= frame.x1 + 1 and box.y0 >= frame.y0 - 1 \
+                and box.y1 <= frame.y1 + 1, (name, t.get_text(), "clipped")
+    if not is_3d:
+        for i in range(len(texts)):
+            for j in range(i + 1, len(texts)):
+                assert _overlap(boxes[i], boxes[j]) < 4.0, (name, texts[i].get_text(), texts[j].get_text())
+    plt.close(fig)
+
+
 @pytest.mark.parametrize("single", [False, True], ids=["binocular", "one camera"])
 def test_every_figure_prints_at_9pt_with_no_text_clipped_or_overlapping(binocular_residuals, single):
     cal, residuals, dataset = binocular_residuals
@@ -93,28 +119,22 @@ def test_every_figure_prints_at_9pt_with_no_text_clipped_or_overlapping(binocula
         cal = replace(cal, cameras={"cam0": cal.cameras["cam0"]})
         residuals = [(o, r) for o, r in residuals if o.camera == "cam0"]
     for name, fig in _figures(cal, residuals, dataset).items():
-        assert fig.get_figwidth() == pytest.approx(FIG_WIDTH_IN), name
-        renderer = fig.canvas.get_renderer()
-        texts = _drawn_texts(fig)
-        assert texts, name
-        frame = fig.bbox
-        boxes = []
-        for t in texts:
-            printed = t.get_fontsize() * PRINT_WIDTH_IN / FIG_WIDTH_IN
-            assert printed >= 9.0, (name, t.get_text(), printed)
-            box = t.get_window_extent(renderer)
-            boxes.append(box)
-            if name == "cloud":  # a 3D projection's tick labels are placed by matplotlib's own 3D layout
-                continue
-            assert box.x0 >= frame.x0 - 1 and box.x1 <= frame.x1 + 1 and box.y0 >= frame.y0 - 1 \
-                and box.y1 <= frame.y1 + 1, (name, t.get_text(), "clipped")
-        if name == "cloud":
-            plt.close(fig)
-            continue
-        for i in range(len(texts)):
-            for j in range(i + 1, len(texts)):
-                assert _overlap(boxes[i], boxes[j]) < 4.0, (name, texts[i].get_text(), texts[j].get_text())
-        plt.close(fig)
+        _check_print(name, fig)
+
+
+def test_compared_models_share_one_range(binocular_residuals):
+    """compare's scatter: every model on the same axes, so that they compare by eye (and print like the report)."""
+    rng = np.random.default_rng(1)
+    results = [SimpleNamespace(model=m, residuals=rng.normal(0, s, (400, 2)), in_fit=np.arange(400) < 300,
+                               all=SimpleNamespace(rmse_px=s * np.sqrt(2)))
+               for m, s in (("ari", 0.3), ("exact", 0.05), ("rt", 0.05), ("pf", 0.6))]
+    scatter, distribution = draw_figures(results)
+    panels = [ax for ax in scatter.axes if ax.get_visible()]
+    assert len(panels) == 4 and len({ax.get_xlim() for ax in panels}) == 1 and len({ax.get_ylim() for ax in panels}) == 1
+    lim = max(np.abs(r.residuals).max() for r in results)
+    assert panels[0].get_xlim()[1] >= lim and panels[0].get_ylim()[0] >= lim  # v down, as in the image
+    _check_print("compare scatter", scatter)
+    _check_print("compare distribution", distribution)
 
 
 def test_cameras_share_ranges_ticks_and_colour_scales(binocular_residuals):
