@@ -2,16 +2,22 @@
 
 ``write_report(out)`` reads what ``ari-sfm run`` (or ``calibrate``,
 ``reconstruct``, ``compare``) wrote to OUT and renders one HTML file with
-every figure embedded as a base64 PNG (no external resource: it opens
-offline and can be mailed):
+every figure embedded as a base64 PNG and the interactive 3D view's
+plotly.js inlined (no external resource: it opens offline and can be mailed):
 
 - OUT/calibration.json (required): rig summary and the calibration table,
-  every parameter with its standard deviation (``uncertainty``).
+  every parameter with its standard deviation (``uncertainty``); its
+  ``stages`` list, when present, as a table of the stages side by side.
 - the observations: OUT/observations.json when corners were detected
-  there, else the dataset's own; residuals per camera and the stacking
-  tracks (paper Fig. 4) need them.
+  there, else the dataset's own; the residual figures (per camera, by image
+  region, by frame, by depth), the recommendations and the stacking tracks
+  (paper Fig. 4) need them.
 - OUT/points.json and OUT/metrics.json (optional): Figs. 13 and 14.
 - OUT/compare.md or OUT/compare.json (optional): the model comparison, and its PNG figures.
+
+The page is a list of sections, :data:`SECTIONS`: functions of a
+:class:`ReportContext` returning HTML (or "" when they have nothing to show).
+A module adds one with a single call, ``add_section(name, render, after=...)``.
 
 The dataset is found from, in order: the ``dataset`` argument, OUT/run.json
 (written by ``ari-sfm run``: ``{"format": "ari-sfm-run/1", "dataset":

@@ -17,6 +17,7 @@ evaluated at (or halfway to the points) and the legend says it is schematic.
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import replace
 from typing import Any, Mapping
 
@@ -24,6 +25,8 @@ import numpy as np
 
 from .calibration import Calibration
 from .report_figures import window_depth
+
+log = logging.getLogger(__name__)
 
 RAY_GRID = (4, 3)  # pixels per camera: columns x rows, inset from the image border
 RAY_INSET = 0.08  # share of the image width / height left out at each border
@@ -103,7 +106,11 @@ def rig_view_figure(calibration: Calibration, points: Mapping[str, np.ndarray],
     fig = go.Figure()
     ray_ends = []
     for k, name in enumerate(calibration.cameras):
-        rays = sample_rays(traced, name, end_depth)
+        try:
+            rays = sample_rays(traced, name, end_depth)
+        except ValueError as exc:  # e.g. a schematic window that this camera does not look through
+            log.warning("3D view: no rays for %s: %s", name, exc)
+            continue
         ray_ends.append(rays[:, 1:3].reshape(-1, 3))
         line = np.concatenate([np.vstack([r, [np.nan] * 3]) for r in rays]) if len(rays) else np.zeros((0, 3))
         fig.add_trace(go.Scatter3d(x=line[:, 0], y=line[:, 1], z=line[:, 2], mode="lines",
