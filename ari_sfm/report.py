@@ -506,7 +506,8 @@ def _reconstruction_rows(m: Mapping[str, Any]) -> list[list[Any]]:
                      t["unaligned"]["max_mm"]])
     if m.get("reference"):
         ref = m["reference"]
-        rows.append([f"distance to the reference {ref['kind']} {Path(ref['path']).name} after registration (mm)",
+        rows.append([f"3D error vs reference {ref['kind']} {Path(ref['path']).name}: distance to its surface after "
+                     "registration (mm)",
                      ref["distance_mm"]["mean"], ref["distance_mm"]["rms"], ref["distance_mm"]["max"]])
     return rows
 

@@ -30,6 +30,7 @@ log = logging.getLogger(__name__)
 
 RAY_GRID = (4, 3)  # pixels per camera: columns x rows, inset from the image border
 RAY_INSET = 0.08  # share of the image width / height left out at each border
+RAY_COLOURS = ("#d62728", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#bcbd22")  # per camera
 MAX_POINTS = 20000  # reconstructed points drawn (an even subsample beyond)
 
 
@@ -78,7 +79,7 @@ def _window_box(calibration: Calibration, d: float, extent: np.ndarray) -> tuple
     a /= np.linalg.norm(a)
     b = np.cross(n, a)
     s, t_ = extent @ a, extent @ b
-    ms, mt = 0.1 * max(np.ptp(s), 10.0), 0.1 * max(np.ptp(t_), 10.0)
+    ms, mt = 0.25 * max(np.ptp(s), 20.0), 0.25 * max(np.ptp(t_), 20.0)
     corners = [(s.min() - ms, t_.min() - mt), (s.max() + ms, t_.min() - mt), (s.max() + ms, t_.max() + mt),
                (s.min() - ms, t_.max() + mt)]
     thickness = calibration.interface.thickness_mm
@@ -114,7 +115,7 @@ def rig_view_figure(calibration: Calibration, points: Mapping[str, np.ndarray],
         ray_ends.append(rays[:, 1:3].reshape(-1, 3))
         line = np.concatenate([np.vstack([r, [np.nan] * 3]) for r in rays]) if len(rays) else np.zeros((0, 3))
         fig.add_trace(go.Scatter3d(x=line[:, 0], y=line[:, 1], z=line[:, 2], mode="lines",
-                                   line=dict(color=f"rgba(214,39,40,{0.9 - 0.25 * (k % 3):.2f})", width=2),
+                                   line=dict(color=RAY_COLOURS[k % len(RAY_COLOURS)], width=2),
                                    name=f"rays of {name} (exact model)", hoverinfo="skip"))
     if calibration.normal_world is not None:
         d, _ = window_depth(calibration, scene)
@@ -131,7 +132,8 @@ def rig_view_figure(calibration: Calibration, points: Mapping[str, np.ndarray],
         c = centres[name]
         tip = c + cam.cam_from_world.R[2] * axis_len
         fig.add_trace(go.Scatter3d(x=[c[0], tip[0]], y=[c[1], tip[1]], z=[c[2], tip[2]], mode="lines+markers+text",
-                                   text=[name, ""], textposition="top center", marker=dict(size=[5, 2], color="black"),
+                                   text=[name, ""], textposition="top center", textfont=dict(size=15),
+                                   marker=dict(size=[5, 2], color="black"),
                                    line=dict(color="black", width=5), name=name, showlegend=False))
     if len(boards):
         fig.add_trace(go.Scatter3d(x=boards[:, 0], y=boards[:, 1], z=boards[:, 2], mode="markers",
@@ -146,9 +148,9 @@ def rig_view_figure(calibration: Calibration, points: Mapping[str, np.ndarray],
             name=f"reconstructed points ({len(xyz)}{', every ' + str(len(xyz) // len(keep)) + 'th' if len(keep) < len(xyz) else ''})"))
     fig.update_layout(
         height=620, margin=dict(l=0, r=0, t=30, b=0), legend=dict(x=0, y=1, bgcolor="rgba(255,255,255,0.7)"),
-        font=dict(size=13),
+        font=dict(size=14),
         scene=dict(aspectmode="data", xaxis_title="x (mm)", yaxis_title="y (mm)", zaxis_title="z (mm)",
-                   camera=dict(up=dict(x=0, y=-1, z=0), eye=dict(x=1.4, y=-1.1, z=-1.3))))
+                   camera=dict(up=dict(x=0, y=-1, z=0), eye=dict(x=1.6, y=-1.25, z=-1.5))))
     return fig
 
 

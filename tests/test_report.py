@@ -273,11 +273,9 @@ def test_recommendation_depth(scene_residuals):
     assert len(advice) == 2 and "from cam0, beyond the" in advice[0] and "add calibration views" in advice[0]
 
 
-def test_report_sections_stages_and_reconstruction_table(binocular, tmp_path):
+def test_report_reconstruction_table_and_stages(binocular):
     _, _, out, _ = binocular
-    for name in ("calibration.json", "metrics.json", "points.json", "run.json"):
-        shutil.copy(out / name, tmp_path / name)
-    text = write_report(tmp_path).read_text()
+    text = (out / "report.html").read_text()
     assert "Calibration stages" not in text  # shown only when calibration.json has a stages list
     m = json.loads((out / "metrics.json").read_text())
     assert f"<p>{m['num_points']} points in {m['num_frames']} frames" in text  # counts are not in the MAE column
@@ -288,16 +286,19 @@ def test_report_sections_stages_and_reconstruction_table(binocular, tmp_path):
     st = m["stage"]
     assert f"{st['plane_distance_error_mm']['rmse']:.4f}" == f"{st['displacement_error_mm']['rmse']:.4f}"
     assert any("corners' displacement" in r[0] and "the same numbers" in r[0] for r in rows)  # folded, and said
-    assert "s - s_ref" not in text and "cos(theta)" not in text
-    cal = json.loads((out / "calibration.json").read_text())
-    cal["stages"] = [{"model": "ari", "distortion": False,
-                      "residuals": {"rmse_px": 0.1234, "mae_px": 0.1, "max_px": 0.5, "count": 3696}},
-                     {"model": "exact", "distortion": False, "rmse_px": 0.0702}]
-    (tmp_path / "calibration.json").write_text(json.dumps(cal))
-    text = write_report(tmp_path).read_text()
-    assert "<h3>Calibration stages</h3>" in text
-    assert "<td>1</td><td>ari</td><td>no</td><td class=\"n\">0.1234</td>" in text
-    assert "<td>2</td><td>exact</td><td>no</td><td class=\"n\">0.0702</td>" in text
+    assert "s - s_ref" not in text and "cos(theta)" not in text  # plain words instead
+    ctx = report.report_context(report.load_inputs(out))
+    cal = ctx.calibration
+    stages = [{"model": "ari", "distortion": False,
+               "residuals": {"rmse_px": 0.1234, "mae_px": 0.1, "max_px": 0.5, "count": 3696}},
+              {"model": "exact", "distortion": False, "rmse_px": 0.0702}]
+    with_stages = replace(ctx, inputs=replace(ctx.inputs, calibration=replace(cal, extra={**cal.extra,
+                                                                                          "stages": stages})))
+    html_part = report._stages_section(with_stages)
+    assert "<h3>Calibration stages</h3>" in html_part
+    assert '<td>1</td><td>ari</td><td>no</td><td class="n">0.1234</td>' in html_part
+    assert '<td>2</td><td>exact</td><td>no</td><td class="n">0.0702</td>' in html_part
+    assert report._stages_section(ctx) == ""
 
 
 def test_a_section_is_added_by_one_call(binocular, tmp_path, monkeypatch):
