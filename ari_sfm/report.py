@@ -218,7 +218,8 @@ def _fmt(x: Any, digits: int = 4) -> str:
 def _table(header: list[str], rows: list[list[Any]], digits: int = 4) -> str:
     head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
     def cell(v: Any) -> str:
-        num = isinstance(v, (int, float, np.integer, np.floating)) or v is None
+        num = isinstance(v, (int, float, np.integer, np.floating)) or v is None or (
+            isinstance(v, str) and re.fullmatch(r"[-+]?\d+(\.\d+)?", v.strip()) is not None)  # e.g. compare.md's
         return f'<td class="n">{_fmt(v, digits)}</td>' if num else f"<td>{_fmt(v, digits)}</td>"
 
     body = "".join("<tr>" + "".join(cell(v) for v in r) + "</tr>" for r in rows)

@@ -29,7 +29,7 @@ GRID_COLS, GRID_ROWS = 8, 6  # image cells for coverage and residuals by region
 COVERAGE_MIN = 0.6  # below this share of cells with a calibration corner: add views near the image edges
 REGION_RATIO = 1.6  # a cell's RMS above this multiple of the camera's RMS: a pattern the model misses
 REGION_MIN_CORNERS = 10  # ... judged only on cells with at least this many corners (RMS of pure noise: +-16 %)
-FRAME_RATIO = 3.0  # a frame's RMS above this multiple of the median frame's: check that image
+FRAME_RATIO = 3.0  # a calibration image's RMS above this multiple of the median one's: check that image
 FRAME_MIN_PX = 0.1  # ... and above this (px), so that noise-level differences never trigger
 DISTANCE_REL_STD = 0.05  # window distance std / distance above this: barely determined
 DEPTH_MARGIN = 0.10  # reconstruction deeper or nearer than the calibrated depths by this share of their span
@@ -110,10 +110,12 @@ def point_depths(calibration: Calibration, points: Mapping[str, np.ndarray], cam
 
 
 def region_name(row: int, col: int) -> str:
-    """'top left', 'right', 'centre', ... of a grid cell."""
+    """'top left corner', 'right edge', 'centre', ... of a grid cell (the image cut in thirds each way)."""
     v = ("top", "", "bottom")[min(3 * row // GRID_ROWS, 2)]
     u = ("left", "", "right")[min(3 * col // GRID_COLS, 2)]
-    return f"{v} {u}".strip() or "centre"
+    if v and u:
+        return f"{v} {u} corner"
+    return f"{v or u} edge" if (v or u) else "centre"
 
 
 def recommendations(calibration: Calibration, residuals: Residuals, target: Target | None = None,
@@ -133,14 +135,16 @@ def recommendations(calibration: Calibration, residuals: Residuals, target: Targ
         judged = np.where(grid.count >= REGION_MIN_CORNERS, grid.rms_px, np.nan)
         if np.isfinite(judged).any() and np.nanmax(judged) > REGION_RATIO * cam_rms:
             row, col = np.unravel_index(int(np.nanargmax(judged)), judged.shape)
-            fix = ("try --model exact (Snell's law instead of the paraxial approximation)" if cal.model == "ari"
+            spec = cal.spec
+            fix = ("try --model exact (Snell's law at the window)"
+                   if cal.model == "ari" or not spec.window or spec.projection == "polynomial"
                    else "try --distortion" if not np.any(cal.cameras[name].dist)
                    else "check the corner detections there")
-            out.append(f"{name}'s residuals in the {region_name(row, col)} of its image are "
+            out.append(f"{name}'s residuals near the {region_name(row, col)} of its image are "
                        f"{judged[row, col] / cam_rms:.1f} x its RMS ({judged[row, col]:.3f} vs {cam_rms:.3f} px): "
                        f"a pattern the model does not capture; {fix}.")
-    per_frame = frame_rmse(residuals)
-    if len(per_frame) >= 3:
+    per_frame = frame_rmse([(o, r) for o, r in residuals if o.set == "calibration"])  # stacking images differ
+    if len(per_frame) >= 3:  # by design (added glass): judged on the calibration images only
         median = float(np.median(list(per_frame.values())))
         bad = [(k, v) for k, v in per_frame.items() if v > FRAME_RATIO * median and v > FRAME_MIN_PX]
         for (set_name, frame, camera), value in sorted(bad, key=lambda kv: -kv[1])[:3]:

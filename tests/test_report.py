@@ -135,7 +135,7 @@ def test_report_includes_the_model_comparison(binocular, tmp_path):
     text = write_report(tmp_path).read_text()
     assert "<h2>Model comparison</h2>" in text and "<h3>Binocular</h3>" in text
     assert _images(text)["model comparison: residuals_scatter"].shape[:2] == (32, 64)
-    assert "<td>ari</td><td>0.0712</td>" in text and "---" not in markdown_tables(md)
+    assert "<td>ari</td><td class=\"n\">0.0712</td>" in text and "---" not in markdown_tables(md)
 
 
 def test_report_flags_a_reconstruction_older_than_the_last_run(binocular, tmp_path):
@@ -228,11 +228,14 @@ def test_recommendation_residual_pattern_by_region(scene_residuals):
     pairs = [p for p in _full_cover(cal) if p[0].camera == "cam1"]
     pairs += [_grid_observations(cal, "cam0", f"f{k}", seed=k, extra=top_right) for k in range(4)]
     advice = [a for a in recommendations(cal, pairs) if "pattern" in a]
-    assert len(advice) == 1 and advice[0].startswith("cam0's residuals in the top right of its image are ")
+    assert len(advice) == 1 and advice[0].startswith("cam0's residuals near the top right corner of its image are ")
     assert advice[0].endswith("try --distortion.")  # an exact model without distortion
     ari = replace(cal, model="ari")
     assert [a for a in recommendations(ari, pairs) if "pattern" in a][0].endswith(
-        "try --model exact (Snell's law instead of the paraxial approximation).")
+        "try --model exact (Snell's law at the window).")
+    pinhole = replace(cal, model="pinhole", normal_world=None)  # a model without the window
+    assert [a for a in recommendations(pinhole, pairs) if "pattern" in a][0].endswith("try --model exact (Snell's "
+                                                                                       "law at the window).")
 
 
 def test_recommendation_frame(scene_residuals):
