@@ -425,7 +425,7 @@ def _residuals_section(ctx: ReportContext) -> str:
                   "model misses."),
              _img(residual_regions(cal, res), "residuals by image region",
                   f"RMS residual in each cell of a {GRID_COLS} x {GRID_ROWS} grid over the image; hatched: no "
-                  "corner there, where the calibration is extrapolated. The title gives the share of cells with a "
+                  "corner there, where the calibration is extrapolated. Covered: the share of cells with a "
                   "calibration corner."),
              _img(residual_by_frame(cal, res), "residuals by frame",
                   "RMS residual of each image (one marker per camera, colour: calibration or glass-stacking set); "

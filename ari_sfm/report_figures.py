@@ -210,7 +210,7 @@ def draw_residual_regions(calibration: Calibration, residuals: Residuals) -> Any
         im = ax.imshow(np.ma.masked_invalid(g.rms_px), extent=(0, w, h, 0), cmap="magma_r", vmin=0, vmax=vmax,
                        interpolation="nearest", zorder=1)
         ax.set(xlim=(0, w), ylim=(h, 0), aspect="equal", xlabel="u (px)",
-               title=f"{g.camera}: corners in {100 * g.coverage:.0f} % of cells")
+               title=f"{g.camera}: {100 * g.coverage:.0f} % covered")
         ax.xaxis.set_major_locator(MaxNLocator(4))
         ax.yaxis.set_major_locator(MaxNLocator(4))
     axes[0].set_ylabel("v (px), down")
@@ -458,8 +458,7 @@ def draw_rig(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> Any:
         for j, (name, c) in enumerate(centres.items()):
             tip = c + optical[name] * 0.12 * (zlim[1] - zlim[0])
             ax.annotate("", xy=(tip[2], tip[k]), xytext=(c[2], c[k]), arrowprops=dict(arrowstyle="->", lw=1.2))
-            ax.plot(c[2], c[k], CAMERA_MARKERS[j % len(CAMERA_MARKERS)], color="k", ms=6)
-            ax.annotate(name, (c[2], c[k]), xytext=(3, 5), textcoords="offset points", ha="left", va="bottom")
+            ax.plot(c[2], c[k], CAMERA_MARKERS[j % len(CAMERA_MARKERS)], color="k", ms=7, mfc="w" if j % 2 else "k")
         if n is not None and abs(n[2]) > 1e-6:
             other = 1 - k  # the coordinate held at the rig's middle for this section
             s = np.array(lims[k])
@@ -474,7 +473,9 @@ def draw_rig(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> Any:
     axes[0].set_title("seen from above")
     axes[1].set_title("seen from the side")
     axes[1].set_xlabel("z (mm), depth from cam0")
-    handles = []
+    handles = [axes[0].plot([], [], CAMERA_MARKERS[j % len(CAMERA_MARKERS)], color="k", ms=7,
+                            mfc="w" if j % 2 else "k", label=f"{name} (arrow: optical axis)" if j == 0 else name)[0]
+               for j, name in enumerate(centres)]
     if n is not None:
         label = f"window ({t:g} mm)" + (", depth schematic: its distance is not observable in air" if schematic
                                          else f" at {d:.1f} mm")
@@ -483,7 +484,7 @@ def draw_rig(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> Any:
         handles += axes[0].plot([], [], "o", color=cmap(0.0), ms=5, label=f"points, frame {names[0]}")
         handles += axes[0].plot([], [], "o", color=cmap(1.0), ms=5, label=f"... to frame {names[-1]}")
     if handles:
-        fig.legend(handles=handles, loc="outside lower center", ncols=1 if n is not None else 2, frameon=False)
+        fig.legend(handles=handles, loc="outside lower center", ncols=2, frameon=False)
     return fig
 
 

@@ -112,12 +112,20 @@ def _check_print(name: str, fig) -> None:
     plt.close(fig)
 
 
-@pytest.mark.parametrize("single", [False, True], ids=["binocular", "one camera"])
-def test_every_figure_prints_at_9pt_with_no_text_clipped_or_overlapping(binocular_residuals, single):
+@pytest.mark.parametrize("rig", ["binocular", "one camera", "arc4"])
+def test_every_figure_prints_at_9pt_with_no_text_clipped_or_overlapping(binocular_residuals, rig):
     cal, residuals, dataset = binocular_residuals
-    if single:  # the sample's layout: one camera
+    if rig == "one camera":  # the sample's layout
         cal = replace(cal, cameras={"cam0": cal.cameras["cam0"]})
         residuals = [(o, r) for o, r in residuals if o.camera == "cam0"]
+    elif rig == "arc4":  # four cameras: two rows of panels
+        from ari_sfm.calibration import Calibration
+        from ari_sfm.simulate import make_scene
+
+        scene = make_scene("arc4", seed=0)
+        cal = Calibration.from_json(scene.truth, "truth.json")
+        dataset = scene.dataset
+        residuals = observation_residuals(cal, dataset.observations, dataset.target)
     for name, fig in _figures(cal, residuals, dataset).items():
         _check_print(name, fig)
 
