@@ -426,7 +426,8 @@ def _residuals_section(ctx: ReportContext) -> str:
              _img(residual_regions(cal, res), "residuals by image region",
                   f"RMS residual in each cell of a {GRID_COLS} x {GRID_ROWS} grid over the image; hatched: no "
                   "corner there, where the calibration is extrapolated. Covered: the share of cells with a "
-                  "calibration corner."),
+                  "calibration corner. The colour scale ends at twice the overall RMS (or the worst cell): "
+                  "noise alone is mid-scale."),
              _img(residual_by_frame(cal, res), "residuals by frame",
                   "RMS residual of each image (one marker per camera, colour: calibration or glass-stacking set); "
                   "dashed: the median image. An image far above the line has a detection problem."),

@@ -150,7 +150,7 @@ def rig_view_figure(calibration: Calibration, points: Mapping[str, np.ndarray],
         height=620, margin=dict(l=0, r=0, t=30, b=0), legend=dict(x=0, y=1, bgcolor="rgba(255,255,255,0.7)"),
         font=dict(size=14),
         scene=dict(aspectmode="data", xaxis_title="x (mm)", yaxis_title="y (mm)", zaxis_title="z (mm)",
-                   camera=dict(up=dict(x=0, y=-1, z=0), eye=dict(x=1.6, y=-1.25, z=-1.5))))
+                   camera=dict(up=dict(x=0, y=-1, z=0), eye=dict(x=1.45, y=-1.15, z=-1.35))))
     return fig
 
 

@@ -195,12 +195,13 @@ def residual_regions(calibration: Calibration, residuals: Residuals) -> bytes:
 @styled
 def draw_residual_regions(calibration: Calibration, residuals: Residuals) -> Any:
     """RMS residual per cell of a GRID_COLS x GRID_ROWS grid over each image, one colour scale for all
-    cameras (its top: the worst cell of >= 5 corners); cells without a corner hatched grey (coverage: the
-    share of cells with a calibration corner, in each title)."""
+    cameras (its top: twice the overall RMS, or the worst cell of >= 5 corners if higher); cells without a
+    corner hatched grey (coverage: the share of cells with a calibration corner, in each title)."""
     names = list(calibration.cameras)
     grids = [region_grid(calibration, residuals, n) for n in names]
     judged = np.concatenate([g.rms_px[g.count >= 5] for g in grids])  # a cell of 1-4 corners is noise
-    vmax = float(judged.max()) if len(judged) else 1.0
+    overall = rms(np.concatenate([r for _, r in residuals])) if residuals else 1.0
+    vmax = max(float(judged.max()) if len(judged) else 0.0, 2.0 * overall)  # pure noise: mid-scale
     fig, axes = panels(len(names), 3.0 if len(names) >= 3 else 3.5)
     im = None
     for ax, g in zip(axes, grids):
@@ -229,7 +230,9 @@ def draw_residual_by_frame(calibration: Calibration, residuals: Residuals) -> An
     """RMS residual of every image (camera x frame), frames in the order observed, one marker per camera,
     coloured by set; dashed: the median image."""
     per = frame_rmse(residuals)
-    frames = list(dict.fromkeys((s, f) for s, f, _ in per))
+    order = list(SET_COLORS)
+    frames = sorted(dict.fromkeys((s, f) for s, f, _ in per), key=lambda sf: order.index(sf[0]) if sf[0] in order
+                    else len(order))  # calibration, then stacking, each in the order observed
     x = {k: i for i, k in enumerate(frames)}
     fig, ax = plt.subplots(figsize=(FIG_WIDTH_IN, 3.4), layout="constrained")
     for k, name in enumerate(calibration.cameras):
@@ -244,7 +247,7 @@ def draw_residual_by_frame(calibration: Calibration, residuals: Residuals) -> An
     step = max(1, len(frames) // 16)
     ax.set_xticks(range(0, len(frames), step), [frames[i][1] for i in range(0, len(frames), step)],
                   rotation=90)
-    ax.set(xlabel="frame (stacking poses after the calibration frames)", ylabel="RMS residual (px)",
+    ax.set(xlabel="frame (calibration frames, then stacking poses)", ylabel="RMS residual (px)",
            ylim=(0, None))
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1), borderaxespad=0, markerscale=1)
     return fig
@@ -385,7 +388,7 @@ def point_cloud_figure(frames: Mapping[str, np.ndarray], planes: Mapping[str, Ma
 @styled
 def draw_point_cloud(frames: Mapping[str, np.ndarray], planes: Mapping[str, Mapping[str, Any]]) -> Any:
     """Fig. 13a: representative reconstructed frames (points and fitted planes), world frame, mm."""
-    fig = plt.figure(figsize=(FIG_WIDTH_IN, 4.8), layout="constrained")
+    fig = plt.figure(figsize=(FIG_WIDTH_IN, 4.4), layout="constrained")
     ax = fig.add_subplot(111, projection="3d")
     ax.set_zlabel("z (mm)", labelpad=10)
     chosen = _representative(list(frames))
@@ -400,7 +403,7 @@ def draw_point_cloud(frames: Mapping[str, np.ndarray], planes: Mapping[str, Mapp
             P = np.array([[c[0], c[1]], [c[3], c[2]]])
             ax.plot_surface(P[..., 0], P[..., 1], P[..., 2], color=color, alpha=0.15, linewidth=0)
     allxyz = np.concatenate([frames[n] for n in chosen])
-    ax.set_box_aspect(np.maximum(np.ptp(allxyz, axis=0), 0.25 * np.ptp(allxyz, axis=0).max()))
+    ax.set_box_aspect(np.maximum(np.ptp(allxyz, axis=0), 0.25 * np.ptp(allxyz, axis=0).max()), zoom=1.15)
     for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
         axis.set_major_locator(MaxNLocator(4))
     ax.set(xlabel="x (mm)", ylabel="y (mm)")
