@@ -299,8 +299,8 @@ def test_report_reconstruction_table_and_stages(binocular):
                                                                                           "stages": stages})))
     html_part = report._stages_section(with_stages)
     assert "<h3>Calibration stages</h3>" in html_part
-    assert '<td>1</td><td>ari</td><td>no</td><td class="n">0.1234</td>' in html_part
-    assert '<td>2</td><td>exact</td><td>no</td><td class="n">0.0702</td>' in html_part
+    assert '<td class="n">1</td><td>ari</td><td>no</td><td class="n">0.1234</td>' in html_part
+    assert '<td class="n">2</td><td>exact</td><td>no</td><td class="n">0.0702</td>' in html_part
     assert report._stages_section(ctx) == ""
 
 
