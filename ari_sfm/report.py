@@ -72,7 +72,7 @@ class ReportInputs:
     compare_figures: dict[str, bytes] = field(default_factory=dict)  # compare's PNGs by file name
     notes: tuple[str, ...] = ()  # what is missing or does not belong, shown at the top as a warning
     reconstruction_label: str | None = None  # why the reconstruction does not belong to this calibration / dataset
-    info: tuple[str, ...] = ()  # steps that do not apply here (neutral wording, not a warning)
+    info: tuple[str, ...] = ()  # why the reconstruction section is empty (neutral wording, not a warning)
 
 
 def _read_json(path: Path) -> dict:
@@ -152,11 +152,11 @@ def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInp
     skipped = _read_json(out / RUN_FILE).get("reconstruction_skipped") if (out / RUN_FILE).exists() else None
     if metrics is None and not points:
         if ds is not None and not ds.reconstruction:
-            info.append("Reconstruction: not applicable, the dataset has no reconstruction frames.")
+            info.append("Not applicable: the dataset has no reconstruction frames.")
         elif skipped:
-            info.append(f"Reconstruction: not run ({skipped}).")
+            info.append(f"Not run: {skipped}.")
         else:
-            info.append("Reconstruction: none in this folder (run `ari-sfm reconstruct` or `ari-sfm run` to add "
+            info.append("None in this folder (run `ari-sfm reconstruct` or `ari-sfm run` to add "
                         "points.json and metrics.json).")
     elif skipped:
         notes.append("the last `ari-sfm run` here skipped the reconstruction: points.json and metrics.json "

@@ -120,7 +120,7 @@ def test_report_without_reconstruction_or_dataset(binocular, tmp_path):
     write_report(tmp_path, ds)  # with the dataset: residuals and the stacking tracks, no reconstruction
     text = path.read_text()
     assert set(_images(text)) == RESIDUAL_FIGURES | {"expansion centre"}
-    assert '<p class="info">Reconstruction: none in this folder' in text and "sim" in text
+    assert '<h2>Reconstruction</h2><p class="info">None in this folder' in text and "sim" in text
 
 
 def test_report_includes_the_model_comparison(binocular, tmp_path):
@@ -171,7 +171,7 @@ def test_run_on_the_single_camera_sample_skips_reconstruction(tmp_path):
     text = (tmp_path / "report.html").read_text()
     assert set(_images(text)) == RESIDUAL_FIGURES | {"expansion centre"}
     # a step that does not apply is said neutrally, not as a warning
-    assert '<p class="info">Reconstruction: not applicable, the dataset has no reconstruction frames.</p>' in text
+    assert '<h2>Reconstruction</h2><p class="info">Not applicable: the dataset has no reconstruction frames.</p>' in text
     assert 'class="note"' not in text
     assert 'id="rig-3d"' in text  # the 3D view shows the rig, window, rays and the calibration boards
 
