@@ -145,7 +145,8 @@ def rig_view_figure(calibration: Calibration, points: Mapping[str, np.ndarray],
             x=xyz[keep, 0], y=xyz[keep, 1], z=xyz[keep, 2], mode="markers",
             marker=dict(size=2, color=frame_of[keep], colorscale="Viridis", cmin=0, cmax=max(len(names) - 1, 1)),
             text=[names[int(i)] for i in frame_of[keep]], hovertemplate="%{text}<br>%{x:.1f}, %{y:.1f}, %{z:.1f} mm",
-            name=f"reconstructed points ({len(xyz)}{', every ' + str(len(xyz) // len(keep)) + 'th' if len(keep) < len(xyz) else ''})"))
+            name=f"reconstructed points ({len(xyz)}"
+                 + (f", every {len(xyz) // len(keep)}th shown)" if len(keep) < len(xyz) else ")")))
     fig.update_layout(
         height=620, margin=dict(l=0, r=0, t=30, b=0), legend=dict(x=0, y=1, bgcolor="rgba(255,255,255,0.7)"),
         font=dict(size=14),

@@ -31,8 +31,7 @@ from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from .calibration import Calibration  # noqa: E402
 from .records import Observation, Target  # noqa: E402
-from .report_diagnostics import (GRID_COLS, GRID_ROWS, corner_depths, frame_rmse, point_depths,  # noqa: E402
-                                 region_grid, rms)
+from .report_diagnostics import corner_depths, frame_rmse, point_depths, region_grid, rms  # noqa: E402
 
 DPI = 150
 FIG_WIDTH_IN = 8.0  # every figure; shown at the page's width
@@ -447,8 +446,8 @@ def draw_rig(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> Any:
     z_lo, z_hi = min(span[:, 2].min(), d - 5), max(span[:, 2].max(), d + t + 5)
     pad = 0.04 * (z_hi - z_lo)
     zlim = (z_lo - pad, z_hi + pad)
-    lims = [(span[:, k].min() - 0.15 * max(np.ptp(span[:, k]), 20.0), span[:, k].max() + 0.15 * max(np.ptp(span[:, k]), 20.0))
-            for k in (0, 1)]
+    margin = [0.15 * max(float(np.ptp(span[:, k])), 20.0) for k in (0, 1)]
+    lims = [(span[:, k].min() - margin[k], span[:, k].max() + margin[k]) for k in (0, 1)]
     heights = np.array([hi - lo for lo, hi in lims]) / (zlim[1] - zlim[0]) * (FIG_WIDTH_IN - 1.2)
     heights = np.clip(heights, 1.2, 3.5)
     fig, axes = plt.subplots(2, 1, figsize=(FIG_WIDTH_IN, heights.sum() + 2.4), layout="constrained",

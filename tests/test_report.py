@@ -171,7 +171,8 @@ def test_run_on_the_single_camera_sample_skips_reconstruction(tmp_path):
     text = (tmp_path / "report.html").read_text()
     assert set(_images(text)) == RESIDUAL_FIGURES | {"expansion centre"}
     # a step that does not apply is said neutrally, not as a warning
-    assert '<h2>Reconstruction</h2><p class="info">Not applicable: the dataset has no reconstruction frames.</p>' in text
+    assert ('<h2>Reconstruction</h2><p class="info">Not applicable: the dataset has no reconstruction frames.</p>'
+            in text)
     assert 'class="note"' not in text
     assert 'id="rig-3d"' in text  # the 3D view shows the rig, window, rays and the calibration boards
 

@@ -138,7 +138,8 @@ def test_compared_models_share_one_range(binocular_residuals):
                for m, s in (("ari", 0.3), ("exact", 0.05), ("rt", 0.05), ("pf", 0.6))]
     scatter, distribution = draw_figures(results)
     panels = [ax for ax in scatter.axes if ax.get_visible()]
-    assert len(panels) == 4 and len({ax.get_xlim() for ax in panels}) == 1 and len({ax.get_ylim() for ax in panels}) == 1
+    assert len(panels) == 4
+    assert len({ax.get_xlim() for ax in panels}) == 1 and len({ax.get_ylim() for ax in panels}) == 1
     lim = max(np.abs(r.residuals).max() for r in results)
     assert panels[0].get_xlim()[1] >= lim and panels[0].get_ylim()[0] >= lim  # v down, as in the image
     _check_print("compare scatter", scatter)
