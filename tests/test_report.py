@@ -29,7 +29,7 @@ from ari_sfm.evaluate import observation_residuals
 from ari_sfm.outliers import Outlier
 from ari_sfm.records import Observation
 from ari_sfm.report import _reconstruction_rows, calibration_rows, markdown_tables, write_report
-from ari_sfm.report_3d import RAY_GRID, RAY_INSET, sample_rays
+from ari_sfm.report_3d import RAY_GRID, RAY_INSET, rig_view_figure, sample_rays
 from ari_sfm.report_diagnostics import recommendations
 from ari_sfm.results import OutlierReport, Uncertainty
 from ari_sfm.simulate import simulate
@@ -335,6 +335,23 @@ def test_3d_view_rays_follow_the_exact_model(scene_residuals):
         bend = [np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1)))
                 for a, b in zip(paths[:, 1] - paths[:, 0], paths[:, 3] - paths[:, 2])]
         assert max(bend) > 1.0  # refracted into water: the rays bend
+
+
+def test_3d_view_window_schematic_in_air_and_absent_without_one(scene_residuals):
+    cal, _, target = scene_residuals
+    boards = report.board_corners(cal, target)
+    air = replace(cal, model="ari", interface=replace(cal.interface, distance_mm=None), fixed_distance_mm=None)
+    names = [t.name for t in rig_view_figure(air, {}, boards).data]
+    assert any(n.startswith("window, 50 mm (depth schematic") for n in names)
+    assert {"rays of cam0 (exact model)", "rays of cam1 (exact model)", "calibration board corners"} <= set(names)
+    pinhole = replace(cal, model="pinhole", normal_world=None)
+    fig = rig_view_figure(pinhole, {"r": boards[:50]}, boards)
+    assert not any(t.type == "mesh3d" for t in fig.data)  # no window to draw
+    rays = sample_rays(pinhole, "cam1", 400.0)  # straight from the centre, each back onto its pixel
+    w, h = cal.cameras["cam1"].image_size
+    u, v = np.meshgrid(np.linspace(RAY_INSET * w, (1 - RAY_INSET) * w, RAY_GRID[0]),
+                       np.linspace(RAY_INSET * h, (1 - RAY_INSET) * h, RAY_GRID[1]))
+    np.testing.assert_allclose(pinhole.project_world("cam1", rays[:, 3]), np.c_[u.ravel(), v.ravel()], atol=1e-6)
 
 
 # --------------------------------------------------------------------------- in a browser
