@@ -375,34 +375,43 @@ def _calibration_section(ctx: ReportContext) -> str:
             + _table(["camera", "parameter", "value", "std dev"], calibration_rows(ctx.calibration)))
 
 
-def stage_rows(stages: Any) -> list[list[Any]]:
-    """[stage, model, distortion, RMSE, MAE, max, corners] of calibration.json's ``stages`` list (each an
-    object with ``model`` and its ``residuals`` as in the top-level ``residuals``, or a bare ``rmse_px``);
-    [] when there is none or it is not a list."""
+def stage_table(stages: Any) -> tuple[list[str], list[list[Any]]]:
+    """(header, rows) of calibration.json's ``stages`` list: per stage its name (``stage``), ``model``,
+    ``distortion``, reprojection RMSE / max / corner count (top-level ``rmse_px`` ... or a ``residuals``
+    object in the top-level ``residuals`` form), window ``distance_mm`` and each camera's fx
+    (``cameras.<name>.fx``); ([], []) when there is no list."""
     if not isinstance(stages, list):
-        return []
+        return [], []
+    entries = [st for st in stages if isinstance(st, dict)]
+    cameras = list(dict.fromkeys(n for st in entries if isinstance(st.get("cameras"), dict) for n in st["cameras"]))
+    with_distance = any(isinstance(st.get("distance_mm"), (int, float)) for st in entries)
+    header = ["stage", "model", "distortion", "RMSE (px)", "max (px)", "corners"]
+    header += ["window distance (mm)"] if with_distance else []
+    header += [f"{c} fx (px)" for c in cameras]
     rows = []
-    for k, st in enumerate(stages):
-        if not isinstance(st, dict):
-            continue
+    for k, st in enumerate(entries):
         res = st.get("residuals") if isinstance(st.get("residuals"), dict) else st
-        num = lambda key: float(res[key]) if isinstance(res.get(key), (int, float)) else None  # noqa: E731
+
+        def num(d: Any, key: str) -> float | None:
+            return float(d[key]) if isinstance(d, dict) and isinstance(d.get(key), (int, float)) else None
+
         dist = st.get("distortion")
-        rows.append([str(st.get("name", k + 1)), str(st.get("model", "?")),
-                     "" if dist is None else ("yes" if dist else "no"),
-                     num("rmse_px"), num("mae_px"), num("max_px"),
-                     int(res["count"]) if isinstance(res.get("count"), int) else None])
-    return rows
+        row: list[Any] = [str(st.get("stage", st.get("name", k + 1))), str(st.get("model", "?")),
+                          "" if dist is None else ("yes" if dist else "no"), num(res, "rmse_px"), num(res, "max_px"),
+                          int(res["count"]) if isinstance(res.get("count"), int) else None]
+        row += [num(st, "distance_mm")] if with_distance else []
+        row += [num((st.get("cameras") or {}).get(c), "fx") for c in cameras]
+        rows.append(row)
+    return header, rows
 
 
 def _stages_section(ctx: ReportContext) -> str:
     """The stages the calibration went through (e.g. ari, then exact), side by side; nothing without them."""
-    rows = stage_rows(ctx.calibration.extra.get("stages"))
-    if not rows:
+    header, rows = stage_table(ctx.calibration.extra.get("stages"))
+    if len(rows) < 2:
         return ""
     return ("<h3>Calibration stages</h3><p>Each stage starts from the one before; the last is the calibration "
-            "above. Reprojection errors on the corners each stage was fitted on.</p>"
-            + _table(["stage", "model", "distortion", "RMSE (px)", "MAE (px)", "max (px)", "corners"], rows))
+            "above. Reprojection errors on the corners each stage was fitted on.</p>" + _table(header, rows))
 
 
 def _residuals_section(ctx: ReportContext) -> str:

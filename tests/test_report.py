@@ -293,15 +293,18 @@ def test_report_reconstruction_table_and_stages(binocular):
     assert "s - s_ref" not in text and "cos(theta)" not in text  # plain words instead
     ctx = report.report_context(report.load_inputs(out))
     cal = ctx.calibration
-    stages = [{"model": "ari", "distortion": False,
-               "residuals": {"rmse_px": 0.1234, "mae_px": 0.1, "max_px": 0.5, "count": 3696}},
-              {"model": "exact", "distortion": False, "rmse_px": 0.0702}]
+    stages = [{"stage": "ari", "model": "ari", "distortion": False, "rmse_px": 0.1234, "max_px": 0.5, "count": 3696,
+               "distance_mm": None, "cameras": {"cam0": {"fx": 3400.5}, "cam1": {"fx": 3401.25}}},
+              {"stage": "exact", "model": "exact", "distortion": True,
+               "residuals": {"rmse_px": 0.0702, "mae_px": 0.06, "max_px": 0.21, "count": 3696},
+               "cameras": {"cam0": {"fx": 3453.12}, "cam1": {"fx": 3461.08}}}]
     with_stages = replace(ctx, inputs=replace(ctx.inputs, calibration=replace(cal, extra={**cal.extra,
                                                                                           "stages": stages})))
     html_part = report._stages_section(with_stages)
-    assert "<h3>Calibration stages</h3>" in html_part
-    assert '<td class="n">1</td><td>ari</td><td>no</td><td class="n">0.1234</td>' in html_part
-    assert '<td class="n">2</td><td>exact</td><td>no</td><td class="n">0.0702</td>' in html_part
+    assert "<h3>Calibration stages</h3>" in html_part and "<th>cam1 fx (px)</th>" in html_part
+    assert ('<td>ari</td><td>ari</td><td>no</td><td class="n">0.1234</td><td class="n">0.5000</td>'
+            '<td class="n">3696</td><td class="n">3400.5000</td><td class="n">3401.2500</td>') in html_part
+    assert '<td>exact</td><td>exact</td><td>yes</td><td class="n">0.0702</td>' in html_part
     assert report._stages_section(ctx) == ""
 
 
