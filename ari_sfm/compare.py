@@ -15,7 +15,6 @@ water, its distance (1); pf has its 40 coefficients. Board poses and the
 """
 from __future__ import annotations
 
-import io
 import logging
 import re
 import time
@@ -231,49 +230,53 @@ def to_markdown(results: Sequence[ModelResult], subset: Subset | None, dataset: 
     return "\n".join(lines)
 
 
-def _png(fig) -> bytes:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    return buf.getvalue()
-
-
 def figures(results: Sequence[ModelResult]) -> dict[str, bytes]:
-    """PNG bytes: residual vectors per model (fitted corners red, others blue) and error distributions."""
-    import matplotlib
+    """PNG bytes of :func:`draw_figures`: residual scatter per model, error distributions."""
+    from .report_figures import to_png
 
-    matplotlib.use("Agg")
+    return dict(zip(FIGURES, (to_png(f) for f in draw_figures(results))))
+
+
+def draw_figures(results: Sequence[ModelResult]) -> tuple:
+    """The two Figures (report_figures' print style): every model's residuals on one shared range (fitted
+    corners red, others blue; dv down as in the image; dashed circle: RMSE), and the error distributions."""
     import matplotlib.pyplot as plt
 
-    k = len(results)
-    fig, axes = plt.subplots(1, k, figsize=(3.2 * k, 3.4), squeeze=False)
-    for ax, r in zip(axes[0], results):
-        res, fit = r.residuals, r.in_fit
-        if (~fit).any():
-            ax.scatter(res[~fit, 0], res[~fit, 1], s=3, c="tab:blue", label="not fitted")
-        ax.scatter(res[fit, 0], res[fit, 1], s=3, c="tab:red", label="fitted")
-        lim = max(float(np.nanmax(np.abs(res))) if len(res) else 1.0, 1e-3) * 1.05
-        ax.set_xlim(-lim, lim)
-        ax.set_ylim(-lim, lim)
-        ax.set_aspect("equal")
-        ax.set_title(f"{r.model.upper()}  rmse {r.all.rmse_px:.3f} px", fontsize=9)
-        ax.set_xlabel("du (px)")
-        ax.set_ylabel("dv (px)")
-    if any((~r.in_fit).any() for r in results):
-        axes[0][0].legend(fontsize=7, markerscale=3)
-    fig.tight_layout()
-    scatter = _png(fig)
-    plt.close(fig)
+    from .report_figures import FIG_WIDTH_IN, STYLE, panels
 
-    fig, ax = plt.subplots(figsize=(1.6 * k + 2, 3.6))
-    data = [np.maximum(np.linalg.norm(r.residuals, axis=1), 1e-6) for r in results]
-    ax.boxplot(data, whis=(0, 100))
-    ax.set_xticks(range(1, k + 1), [r.model.upper() for r in results])
-    ax.set_yscale("log")
-    ax.set_ylabel("reprojection error, all corners (px)")
-    fig.tight_layout()
-    dist = _png(fig)
-    plt.close(fig)
-    return dict(zip(FIGURES, (scatter, dist)))
+    with plt.rc_context(STYLE):
+        k = len(results)
+        cols = min(max(k, 2), 3)
+        allres = np.concatenate([r.residuals for r in results]) if results else np.zeros((0, 2))
+        finite = allres[np.all(np.isfinite(allres), axis=1)]
+        lim = max(float(np.abs(finite).max()) if len(finite) else 1.0, 1e-3) * 1.05
+        fig, axes = panels(k, FIG_WIDTH_IN / cols * 0.85 + 1.0, sharex=True, sharey=True)
+        for ax, r in zip(axes, results):
+            res, fit = r.residuals, r.in_fit
+            if (~fit).any():
+                ax.scatter(res[~fit, 0], res[~fit, 1], s=3, c="tab:blue", label="not fitted", rasterized=True)
+            ax.scatter(res[fit, 0], res[fit, 1], s=3, c="tab:red", label="fitted", rasterized=True)
+            ax.add_patch(plt.Circle((0, 0), r.all.rmse_px, fill=False, color="k", lw=1, ls="--"))
+            ax.set_title(f"{r.model.upper()}: RMSE {r.all.rmse_px:.3f} px")
+            ax.set_box_aspect(1)
+        for i, ax in enumerate(axes):
+            if i + cols >= k:  # the lowest panel of its column: its own ticks and label
+                ax.tick_params(labelbottom=True)
+                ax.set_xlabel("du (px), + right")
+        for row_start in range(0, k, cols):
+            axes[row_start].set_ylabel("dv (px), + down")
+        axes[0].set(xlim=(-lim, lim), ylim=(lim, -lim))  # shared by every panel: one scale for all models
+        if any((~r.in_fit).any() for r in results):
+            axes[0].legend(markerscale=3)
+        scatter = fig
+
+        fig, ax = plt.subplots(figsize=(FIG_WIDTH_IN, 3.4), layout="constrained")
+        data = [np.maximum(np.linalg.norm(r.residuals, axis=1), 1e-6) for r in results]
+        ax.boxplot(data, whis=(0, 100))
+        ax.set_xticks(range(1, k + 1), [r.model.upper() for r in results])
+        ax.set_yscale("log")
+        ax.set_ylabel("reprojection error,\nall corners (px)")
+        return scatter, fig
 
 
 def run_compare(dataset_path: str | Path, out: str | Path, models: str | Sequence[str] = DEFAULT_MODELS,

@@ -2,16 +2,22 @@
 
 ``write_report(out)`` reads what ``ari-sfm run`` (or ``calibrate``,
 ``reconstruct``, ``compare``) wrote to OUT and renders one HTML file with
-every figure embedded as a base64 PNG (no external resource: it opens
-offline and can be mailed):
+every figure embedded as a base64 PNG and the interactive 3D view's
+plotly.js inlined (no external resource: it opens offline and can be mailed):
 
 - OUT/calibration.json (required): rig summary and the calibration table,
-  every parameter with its standard deviation (``uncertainty``).
+  every parameter with its standard deviation (``uncertainty``); its
+  ``stages`` list, when present, as a table of the stages side by side.
 - the observations: OUT/observations.json when corners were detected
-  there, else the dataset's own; residuals per camera and the stacking
-  tracks (paper Fig. 4) need them.
+  there, else the dataset's own; the residual figures (per camera, by image
+  region, by frame, by depth), the recommendations and the stacking tracks
+  (paper Fig. 4) need them.
 - OUT/points.json and OUT/metrics.json (optional): Figs. 13 and 14.
 - OUT/compare.md or OUT/compare.json (optional): the model comparison, and its PNG figures.
+
+The page is a list of sections, :data:`SECTIONS`: functions of a
+:class:`ReportContext` returning HTML (or "" when they have nothing to show).
+A module adds one with a single call, ``add_section(name, render, after=...)``.
 
 The dataset is found from, in order: the ``dataset`` argument, OUT/run.json
 (written by ``ari-sfm run``: ``{"format": "ari-sfm-run/1", "dataset":
@@ -35,13 +41,13 @@ import logging
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
 from .calibration import Calibration, load_calibration
 from .errors import AriSfmError
-from .records import Dataset, Observation
+from .records import Dataset, Observation, Target
 
 log = logging.getLogger(__name__)
 
@@ -64,8 +70,9 @@ class ReportInputs:
     compare_md: str | None = None
     compare_json: dict | None = None
     compare_figures: dict[str, bytes] = field(default_factory=dict)  # compare's PNGs by file name
-    notes: tuple[str, ...] = ()  # what is missing, shown at the top
+    notes: tuple[str, ...] = ()  # what is missing or does not belong, shown at the top as a warning
     reconstruction_label: str | None = None  # why the reconstruction does not belong to this calibration / dataset
+    info: tuple[str, ...] = ()  # why the reconstruction section is empty (neutral wording, not a warning)
 
 
 def _read_json(path: Path) -> dict:
@@ -142,9 +149,17 @@ def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInp
     label = _reconstruction_label(out, cal_path, cal, ds, metrics, points_data)
     if label:
         notes.append(f"reconstruction: {label}")
+    info: list[str] = []
+    skipped = _read_json(out / RUN_FILE).get("reconstruction_skipped") if (out / RUN_FILE).exists() else None
     if metrics is None and not points:
-        notes.append("no reconstruction (points.json, metrics.json) in this folder")
-    elif (out / RUN_FILE).exists() and _read_json(out / RUN_FILE).get("reconstruction_skipped"):
+        if ds is not None and not ds.reconstruction:
+            info.append("Not applicable: the dataset has no reconstruction frames.")
+        elif skipped:
+            info.append(f"Not run: {skipped}.")
+        else:
+            info.append("None in this folder (run `ari-sfm reconstruct` or `ari-sfm run` to add "
+                        "points.json and metrics.json).")
+    elif skipped:
         notes.append("the last `ari-sfm run` here skipped the reconstruction: points.json and metrics.json "
                      "are older than its calibration")
     md = (out / "compare.md").read_text() if (out / "compare.md").exists() else None
@@ -152,7 +167,8 @@ def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInp
     from .compare import FIGURES
 
     figs = {name: (out / name).read_bytes() for name in FIGURES if (out / name).exists()}
-    return ReportInputs(out, cal, ds, ds_path, tuple(observations), metrics, points, md, cj, figs, tuple(notes), label)
+    return ReportInputs(out, cal, ds, ds_path, tuple(observations), metrics, points, md, cj, figs, tuple(notes), label,
+                        tuple(info))
 
 
 def _reconstruction_label(out: Path, cal_path: Path, cal: Calibration, ds: Dataset | None,
@@ -174,14 +190,19 @@ def _reconstruction_label(out: Path, cal_path: Path, cal: Calibration, ds: Datas
 # --------------------------------------------------------------------------- HTML pieces
 
 CSS = """
-body{font-family:sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}
+body{font-family:sans-serif;max-width:1200px;margin:1.5em auto;padding:0 1.5em;color:#222;line-height:1.35}
 table{border-collapse:collapse;margin:0.6em 0}
-td,th{border:1px solid #bbb;padding:2px 8px;text-align:left;font-size:0.9em}
+td,th{border:1px solid #bbb;padding:2px 8px;text-align:left;font-size:0.92em}
 th{background:#eee}
 td.n{text-align:right;font-variant-numeric:tabular-nums}
-img{max-width:100%;display:block;margin:0.5em 0}
+figure{margin:1em 0;break-inside:avoid}
+img{width:100%;height:auto;display:block}
+figcaption{font-size:0.9em;color:#444;margin-top:0.3em}
 .note{color:#a40}
-figcaption{font-size:0.85em;color:#555}
+.info{color:#555;font-style:italic}
+ul.advice li{margin:0.25em 0}
+h2{border-bottom:1px solid #ccc;padding-bottom:0.15em;margin-top:1.6em;break-after:avoid}
+@media print{body{max-width:none;margin:0;padding:0}#rig-3d-section{break-inside:avoid}}
 """
 
 
@@ -198,7 +219,8 @@ def _fmt(x: Any, digits: int = 4) -> str:
 def _table(header: list[str], rows: list[list[Any]], digits: int = 4) -> str:
     head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
     def cell(v: Any) -> str:
-        num = isinstance(v, (int, float, np.integer, np.floating)) or v is None
+        num = isinstance(v, (int, float, np.integer, np.floating)) or v is None or (
+            isinstance(v, str) and re.fullmatch(r"[-+]?\d+(\.\d+)?", v.strip()) is not None)  # e.g. compare.md's
         return f'<td class="n">{_fmt(v, digits)}</td>' if num else f"<td>{_fmt(v, digits)}</td>"
 
     body = "".join("<tr>" + "".join(cell(v) for v in r) + "</tr>" for r in rows)
@@ -275,12 +297,33 @@ def calibration_rows(cal: Calibration) -> list[list[Any]]:
     return rows
 
 
-def _summary_section(inp: ReportInputs) -> str:
+
+# --------------------------------------------------------------------------- sections
+
+
+@dataclass(frozen=True)
+class ReportContext:
+    """What every section reads: the loaded inputs and, computed once, the residuals of the observations."""
+
+    inputs: ReportInputs
+    target: Target | None
+    residuals: tuple[tuple[Observation, np.ndarray], ...]  # evaluate.observation_residuals
+
+    @property
+    def calibration(self) -> Calibration:
+        return self.inputs.calibration
+
+
+Section = Callable[[ReportContext], str]  # returns HTML ("" when it has nothing to show)
+
+
+def _summary_section(ctx: ReportContext) -> str:
+    inp = ctx.inputs
     cal = inp.calibration
     i = cal.interface
     rows: list[list[Any]] = [["model", cal.model], ["cameras", ", ".join(cal.cameras)],
                              ["window", f"{i.thickness_mm:g} mm, n = {i.index:g}, medium n = {i.medium_index:g}"]]
-    target = inp.dataset.target if inp.dataset else cal.target
+    target = ctx.target
     if target is not None:
         grid = target.inner_corners or target.squares or target.circle_grid
         rows.append(["target", f"{target.type}" + (f" {grid[0]}x{grid[1]}" if grid else "")
@@ -292,8 +335,8 @@ def _summary_section(inp: ReportInputs) -> str:
         for cam, spec in ds.cameras.items():
             rows.append([f"camera {cam}", f"{spec.image_size[0]}x{spec.image_size[1]} px"])
         added = sorted({e.added_mm for e in ds.stacking if e.added_mm is not None})
-        rows.append(["stacking", f"{len({e.key for e in ds.stacking})} pose(s), added glass "
-                                 + ", ".join(f"{a:g}" for a in added) + " mm" if ds.stacking else "none"])
+        rows.append(["glass stacking", f"{len({e.key for e in ds.stacking})} pose(s), added glass "
+                                       + ", ".join(f"{a:g}" for a in added) + " mm" if ds.stacking else "none"])
         rows.append(["calibration frames", len(ds.calibration)])
         stages = [e.stage_mm for e in ds.reconstruction if e.stage_mm is not None]
         rows.append(["reconstruction frames", f"{len(ds.reconstruction)}"
@@ -305,94 +348,273 @@ def _summary_section(inp: ReportInputs) -> str:
         rows.append(["corners", ", ".join(f"{n} {s}" for s, n in counts.items())])
     r = cal.residuals
     if r is not None:
-        rows.append(["reprojection", f"rmse {r.rmse_px:.4f} px, mae {r.mae_px:.4f} px, max {r.max_px:.4f} px "
-                                     f"over {r.count} corners"])
+        rows.append(["reprojection error", f"RMSE {r.rmse_px:.4f} px, MAE {r.mae_px:.4f} px, max {r.max_px:.4f} px "
+                                           f"over {r.count} corners"])
     if cal.uncertainty is not None:
         rows.append(["residual sigma", f"{cal.uncertainty.sigma_px:.4f} px (scales the standard deviations below)"])
     return "<h2>Dataset and rig</h2>" + _table(["", ""], rows).replace("<tr><th></th><th></th></tr>", "", 1)
 
 
-def _reconstruction_section(inp: ReportInputs) -> str:
+def _advice_section(ctx: ReportContext) -> str:
+    from .report_diagnostics import recommendations
+
+    if not ctx.residuals:
+        return ""
+    advice = recommendations(ctx.calibration, ctx.residuals, ctx.target, ctx.inputs.points)
+    parts = ["<h2>Recommendations</h2>"]
+    if advice:
+        parts.append('<ul class="advice">' + "".join(f"<li>{html.escape(a)}</li>" for a in advice) + "</ul>")
+    else:
+        parts.append('<p class="info">None: the corners cover the images, no image region, frame or depth stands '
+                     "out in the residuals, and every estimated quantity is determined (thresholds in "
+                     "ari_sfm/report_diagnostics.py).</p>")
+    return "\n".join(parts)
+
+
+def _calibration_section(ctx: ReportContext) -> str:
+    return ("<h2>Calibration</h2>"
+            + _table(["camera", "parameter", "value", "std dev"], calibration_rows(ctx.calibration)))
+
+
+def stage_table(stages: Any) -> tuple[list[str], list[list[Any]]]:
+    """(header, rows) of calibration.json's ``stages`` list: per stage its name (``stage``), ``model``,
+    ``distortion``, reprojection RMSE / max / corner count (top-level ``rmse_px`` ... or a ``residuals``
+    object in the top-level ``residuals`` form), window ``distance_mm`` and each camera's fx
+    (``cameras.<name>.fx``); ([], []) when there is no list."""
+    if not isinstance(stages, list):
+        return [], []
+    entries = [st for st in stages if isinstance(st, dict)]
+    cameras = list(dict.fromkeys(n for st in entries if isinstance(st.get("cameras"), dict) for n in st["cameras"]))
+    with_distance = any(isinstance(st.get("distance_mm"), (int, float)) for st in entries)
+    header = ["stage", "model", "distortion", "RMSE (px)", "max (px)", "corners"]
+    header += ["window distance (mm)"] if with_distance else []
+    header += [f"{c} fx (px)" for c in cameras]
+    rows = []
+    for k, st in enumerate(entries):
+        res = st.get("residuals") if isinstance(st.get("residuals"), dict) else st
+
+        def num(d: Any, key: str) -> float | None:
+            return float(d[key]) if isinstance(d, dict) and isinstance(d.get(key), (int, float)) else None
+
+        dist = st.get("distortion")
+        row: list[Any] = [str(st.get("stage", st.get("name", k + 1))), str(st.get("model", "?")),
+                          "" if dist is None else ("yes" if dist else "no"), num(res, "rmse_px"), num(res, "max_px"),
+                          int(res["count"]) if isinstance(res.get("count"), int) else None]
+        row += [num(st, "distance_mm")] if with_distance else []
+        row += [num((st.get("cameras") or {}).get(c), "fx") for c in cameras]
+        rows.append(row)
+    return header, rows
+
+
+def _stages_section(ctx: ReportContext) -> str:
+    """The stages the calibration went through (e.g. ari, then exact), side by side; nothing without them."""
+    header, rows = stage_table(ctx.calibration.extra.get("stages"))
+    if len(rows) < 2:
+        return ""
+    return ("<h3>Calibration stages</h3><p>Each stage starts from the one before; the last is the calibration "
+            "above. Reprojection errors on the corners each stage was fitted on.</p>" + _table(header, rows))
+
+
+def _residuals_section(ctx: ReportContext) -> str:
+    from .report_figures import (map_magnification, residual_by_depth, residual_by_frame, residual_map,
+                                 residual_regions, residual_scatter)
+    from .report_diagnostics import GRID_COLS, GRID_ROWS
+
+    cal, res = ctx.calibration, list(ctx.residuals)
+    if not res:
+        return ""
+    mag = map_magnification(cal, res)
+    parts = ["<h2>Reprojection residuals</h2>",
+             _img(residual_scatter(cal, res), "residual scatter",
+                  "Residuals (projected minus detected pixel) of every corner, one panel per camera on the same "
+                  "scale; dv is positive downwards, as v runs in the image. Dashed circle: the camera's RMSE."),
+             _img(residual_map(cal, res), "residual map",
+                  f"Residuals as arrows at their corners, magnified {mag:g} times (the same for every camera; the "
+                  f"key arrow above each panel is drawn {mag:g} times its labelled length). Colour: the residual's "
+                  "length, one scale for all cameras. A random pattern is noise; arrows that line up show what the "
+                  "model misses."),
+             _img(residual_regions(cal, res), "residuals by image region",
+                  f"RMS residual in each cell of a {GRID_COLS} x {GRID_ROWS} grid over the image; hatched: no "
+                  "corner there, where the calibration is extrapolated. Covered: the share of cells with a "
+                  "calibration corner. The colour scale ends at twice the overall RMS (or the worst cell): "
+                  "noise alone is mid-scale."),
+             _img(residual_by_frame(cal, res), "residuals by frame",
+                  "RMS residual of each image (one marker per camera, colour: calibration or glass-stacking set); "
+                  "dashed: the median image. An image far above the line has a detection problem."),
+             ]
+    if ctx.target is not None:
+        parts.append(_img(residual_by_depth(cal, res, ctx.target, ctx.inputs.points or None), "residuals by depth",
+                          "Corners (top) and their RMS residual (bottom) by depth along each camera's optical axis; "
+                          "shaded: the depths of the reconstructed points. Depths with few corners are where the "
+                          "calibration is weakest."))
+    return "\n".join(parts)
+
+
+def _expansion_section(ctx: ReportContext) -> str:
+    from .report_figures import expansion_centre_figure
+
+    inp, cal = ctx.inputs, ctx.calibration
+    stacking = {c: [o for o in inp.observations if o.set == "stacking" and o.camera == c] for c in cal.cameras}
+    if not any(len({o.added_mm for o in v}) >= 2 for v in stacking.values()):
+        return ""
+    return ("<h2>Expansion centre</h2>"
+            + _img(expansion_centre_figure(cal, stacking), "expansion centre",
+                   "Paper Fig. 4: corner tracks as glass is added (red), their fitted lines (yellow; grey: "
+                   "rejected), the lines' common point (green), the centre in calibration.json (blue x) and the "
+                   "image of the fitted window normal, K n (+). Image axes: v down."))
+
+
+def board_corners(calibration: Calibration, target: Target | None) -> np.ndarray:
+    """World coordinates (N, 3) of the target's points on every calibration board pose."""
+    if target is None or not calibration.frames:
+        return np.zeros((0, 3))
+    _, xyz = target.points_3d()
+    return np.concatenate([pose.apply(xyz) for pose in calibration.frames.values()])
+
+
+def _view_3d_section(ctx: ReportContext) -> str:
+    from .report_3d import rig_view_html
+
+    cal = ctx.calibration
+    boards = board_corners(cal, ctx.target)
+    if not ctx.inputs.points and not len(boards):
+        return ""
+    return ('<section id="rig-3d-section"><h2>Rig in 3D (interactive)</h2>'
+            "<p>Drag to turn, scroll to zoom, click a legend entry to hide it. World frame: cam0's (x right, "
+            "y down, z along its optical axis), mm. Rays: a grid of pixels of each camera traced through the "
+            "window with the exact (Snell) model's back-projection.</p>"
+            + rig_view_html(cal, ctx.inputs.points, boards) + "</section>")
+
+
+def _reconstruction_rows(m: Mapping[str, Any]) -> list[list[Any]]:
+    """[quantity, MAE, RMSE, max] of metrics.json; a row whose three numbers repeat the previous one's
+    (to the table's 4 decimals) is folded into it."""
+    rows: list[list[Any]] = []
+    for label, key in (("flatness: distance of each point to its frame's fitted plane (mm)", "flatness_mm"),
+                       ("spacing of neighbouring corners vs the square size (mm)", "inter_corner_mm")):
+        s = m.get(key)
+        if s:
+            rows.append([label, s["mae"], s["rmse"], s["max"]])
+    st = m.get("stage")
+    if st:
+        for label, key in (("distance between stage planes vs the stage travel along their normal (mm)",
+                            "plane_distance_error_mm"),
+                           ("distance between stage planes vs the stage reading, as in the paper (mm)",
+                            "plane_distance_error_paper_mm"),
+                           ("stage travel measured from the corners' displacement vs the stage reading (mm)",
+                            "displacement_error_mm")):
+            s = st[key]
+            row = [label, s["mae"], s["rmse"], s["max"]]
+            same = [r for r in rows if [_fmt(v) for v in r[1:]] == [_fmt(v) for v in row[1:]]]
+            if same:
+                same[0][0] += f"; {label.removesuffix(' (mm)')}: the same numbers"
+            else:
+                rows.append(row)
+    if m.get("truth"):
+        t = m["truth"]
+        rows.append(["3D error vs the truth after the best rigid alignment (mm)", None, t["aligned"]["rms_mm"],
+                     t["aligned"]["max_mm"]])
+        rows.append(["3D error vs the truth as reconstructed (mm)", None, t["unaligned"]["rms_mm"],
+                     t["unaligned"]["max_mm"]])
+    if m.get("reference"):
+        ref = m["reference"]
+        rows.append([f"3D error vs reference {ref['kind']} {Path(ref['path']).name}: distance to its surface after "
+                     "registration (mm)",
+                     ref["distance_mm"]["mean"], ref["distance_mm"]["rms"], ref["distance_mm"]["max"]])
+    return rows
+
+
+def _reconstruction_section(ctx: ReportContext) -> str:
     from .report_figures import error_histograms, point_cloud_figure, rig_figure
 
+    inp = ctx.inputs
     m = inp.metrics
+    if m is None and not inp.points:
+        return "".join(f'<h2>Reconstruction</h2><p class="info">{html.escape(i)}</p>' for i in inp.info[:1])
     parts = ["<h2>Reconstruction</h2>"]
     if inp.reconstruction_label:
         parts[0] = "<h2>Reconstruction (not of this calibration or dataset)</h2>"
         parts.append(f'<p class="note">{html.escape(inp.reconstruction_label)}: its numbers are not '
                      f"those of the calibration above.</p>")
     if m is not None:
-        rows: list[list[Any]] = [["points", m.get("num_points"), "", ""], ["frames", m.get("num_frames"), "", ""]]
-        for label, key in (("flatness (point to plane)", "flatness_mm"), ("inter-corner distance error", "inter_corner_mm")):
-            s = m.get(key)
-            if s:
-                rows.append([f"{label} (mm)", s["mae"], s["rmse"], s["max"]])
-        if m.get("stage"):
-            for label, key in (("plane distance error (mm)", "plane_distance_error_mm"),
-                               ("plane distance error vs s - s_ref (mm)", "plane_distance_error_paper_mm"),
-                               ("stage displacement error (mm)", "displacement_error_mm")):
-                s = m["stage"][key]
-                rows.append([label, s["mae"], s["rmse"], s["max"]])
-        if m.get("truth"):
-            t = m["truth"]
-            rows.append(["3D error vs truth after rigid alignment (mm)", None, t["aligned"]["rms_mm"], t["aligned"]["max_mm"]])
-            rows.append(["3D error vs truth, unaligned (mm)", None, t["unaligned"]["rms_mm"], t["unaligned"]["max_mm"]])
-        if m.get("reference"):
-            ref = m["reference"]
-            rows.append([f"3D error vs reference {ref['kind']} {Path(ref['path']).name}, point to surface after "
-                         f"registration (mm)", ref["distance_mm"]["mean"], ref["distance_mm"]["rms"],
-                         ref["distance_mm"]["max"]])
-        parts.append(_table(["", "MAE", "RMSE", "max"], rows))
-        parts.append("<p>Paper (Sec. 5, real binocular rig): flatness MAE 0.07 mm, RMSE 0.10 mm; 10 mm inter-corner "
-                     "distances MAE 0.008 mm, RMSE 0.011 mm; plane distances within 0.07 mm.</p>")
+        parts.append(f"<p>{_fmt(m.get('num_points'))} points in {_fmt(m.get('num_frames'))} frames "
+                     "(every corner seen by two or more cameras, triangulated through the window).</p>")
+        parts.append(_table(["error", "MAE", "RMSE", "max"], _reconstruction_rows(m)))
+        parts.append("<p>Paper (Sec. 5, real binocular rig): flatness MAE 0.07 mm, RMSE 0.10 mm; 10 mm corner "
+                     "spacing MAE 0.008 mm, RMSE 0.011 mm; stage plane distances within 0.07 mm.</p>")
     if inp.points:
         planes = {k: f.get("plane") for k, f in (m or {}).get("frames", {}).items() if f.get("plane")}
         parts.append(_img(point_cloud_figure(inp.points, planes), "reconstructed planes",
-                          "Fig. 13(a) style: representative reconstructed frames and their fitted planes."))
+                          "Paper Fig. 13(a): representative reconstructed frames and their fitted planes."))
         parts.append(_img(rig_figure(inp.calibration, inp.points), "rig and reconstruction",
-                          "Fig. 14 style: cameras (axes x red, y green, z blue), window and reconstructed points "
-                          "(the window dashed, at a schematic depth, where the calibration cannot observe its "
-                          "distance: in air)."))
+                          "Paper Fig. 14, true to scale: the cameras (centre and optical axis), a section through "
+                          "the window and the reconstructed points (colour: frame), seen from above and from the "
+                          "side; y runs down as in cam0's image."))
     if m is not None:
         parts.append(_img(error_histograms(m), "reconstruction errors",
-                          "Fig. 13(b-d) style: plane-distance error per stage frame, flatness, inter-corner errors."))
+                          "Paper Fig. 13(b-d): (b) error of each stage plane's distance from the reference plane, "
+                          "against the stage travel along the plane's normal and against the stage reading itself; "
+                          "(c) distance of each point to its frame's plane; (d) spacing of neighbouring corners "
+                          "minus the square size."))
     return "\n".join(parts)
 
 
-def render_html(inp: ReportInputs) -> str:
-    """The whole report as one HTML string."""
-    from .evaluate import observation_residuals
-    from .report_figures import expansion_centre_figure, residual_map, residual_scatter
-
-    cal = inp.calibration
-    target = inp.dataset.target if inp.dataset else cal.target
-    parts = [f"<h1>ari-sfm report: {html.escape(inp.out.name)}</h1>"]
-    parts += [f'<p class="note">{html.escape(n)}</p>' for n in inp.notes]
-    parts.append(_summary_section(inp))
-    parts.append("<h2>Calibration</h2>")
-    parts.append(_table(["camera", "parameter", "value", "std dev"], calibration_rows(cal)))
-    residuals = observation_residuals(cal, inp.observations, target) if inp.observations and target else []
-    if residuals:
-        parts.append("<h2>Reprojection residuals</h2>")
-        parts.append(_img(residual_scatter(cal, residuals), "residual scatter",
-                          "Residuals (projected - detected) per camera; dashed circle: RMSE."))
-        parts.append(_img(residual_map(cal, residuals), "residual map",
-                          "Residual vectors across each image (magnified), coloured by length."))
-    stacking = {c: [o for o in inp.observations if o.set == "stacking" and o.camera == c] for c in cal.cameras}
-    if any(len({o.added_mm for o in v}) >= 2 for v in stacking.values()):
-        parts.append("<h2>Expansion centre</h2>")
-        parts.append(_img(expansion_centre_figure(cal, stacking), "expansion centre",
-                          "Fig. 4 style: corner tracks as glass is added (red), TLS lines (yellow), their common "
-                          "point (green), the centre in calibration.json (blue x) and K n of the fitted normal (+)."))
-    if inp.metrics is not None or inp.points:
-        parts.append(_reconstruction_section(inp))
+def _comparison_section(ctx: ReportContext) -> str:
+    inp = ctx.inputs
+    parts = []
     if inp.compare_md is not None:
         parts.append("<h2>Model comparison</h2>" + markdown_tables(inp.compare_md))
     elif inp.compare_json is not None:
         parts.append("<h2>Model comparison</h2><pre>" + html.escape(json.dumps(inp.compare_json, indent=1)) + "</pre>")
+    captions = {"residuals_scatter.png": "Residuals of every calibration corner per model, all on the same "
+                                         "scale (paper Figs. 6, 9, 11); dv positive downwards as in the image.",
+                "residuals_distribution.png": "Distribution of the reprojection error per model (box: quartiles, "
+                                              "whiskers: min and max; log scale)."}
     for name, png in inp.compare_figures.items():
         parts.append(_img(png, f"model comparison: {name.removesuffix('.png')}",
-                          "ari-sfm compare (paper Figs. 6, 9, 11 style): " + name.removesuffix(".png").replace("_", " ")))
+                          "ari-sfm compare: " + captions.get(name, name.removesuffix(".png").replace("_", " "))))
+    return "\n".join(parts)
+
+
+# The report's sections in order: (name, function). A module adding a section appends or inserts one
+# entry, e.g. ``add_section("disparity", disparity_section, after="residuals")``.
+SECTIONS: list[tuple[str, Section]] = [
+    ("summary", _summary_section),
+    ("recommendations", _advice_section),
+    ("calibration", _calibration_section),
+    ("stages", _stages_section),
+    ("residuals", _residuals_section),
+    ("expansion_centre", _expansion_section),
+    ("view_3d", _view_3d_section),
+    ("reconstruction", _reconstruction_section),
+    ("comparison", _comparison_section),
+]
+
+
+def add_section(name: str, render: Section, after: str | None = None) -> None:
+    """Add a section to every report (at the end, or after the named one); a name already there is replaced."""
+    names = [n for n, _ in SECTIONS]
+    if name in names:
+        SECTIONS[names.index(name)] = (name, render)
+        return
+    SECTIONS.insert(names.index(after) + 1 if after is not None else len(SECTIONS), (name, render))
+
+
+def report_context(inp: ReportInputs) -> ReportContext:
+    """The inputs with their residuals computed (once, for every section)."""
+    from .evaluate import observation_residuals
+
+    target = inp.dataset.target if inp.dataset else inp.calibration.target
+    residuals = observation_residuals(inp.calibration, inp.observations, target) if inp.observations and target else []
+    return ReportContext(inp, target, tuple(residuals))
+
+
+def render_html(inp: ReportInputs) -> str:
+    """The whole report as one HTML string."""
+    ctx = report_context(inp)
+    parts = [f"<h1>ari-sfm report: {html.escape(inp.out.name)}</h1>"]
+    parts += [f'<p class="note">{html.escape(n)}</p>' for n in inp.notes]
+    parts += [html_part for _, section in SECTIONS if (html_part := section(ctx))]
     body = "\n".join(parts)
     return (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>ari-sfm report: "
             f"{html.escape(inp.out.name)}</title><style>{CSS}</style></head><body>\n{body}\n</body></html>\n")

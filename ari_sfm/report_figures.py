@@ -1,112 +1,322 @@
-"""The report's figures (matplotlib, Agg): each function returns PNG bytes.
+"""The report's figures (matplotlib, Agg): each ``draw_*`` returns a Figure, each public name its PNG bytes.
 
-- :func:`residual_scatter` and :func:`residual_map`: reprojection residuals
-  per camera, as (du, dv) scatter and as vectors across the image.
+Made for print: every figure is ``FIG_WIDTH_IN`` wide and shown at the page's
+full width, so its fonts print at ``size * PRINT_WIDTH_IN / FIG_WIDTH_IN``
+(>= 9 pt with :data:`STYLE`; tests/test_report_figures.py checks every text).
+Panels of several cameras share their axis ranges, tick steps and colour
+scales; image axes run like the image (u right, v down) and say so.
+
+- :func:`residual_scatter`, :func:`residual_map`: reprojection residuals per
+  camera, as (du, dv) scatter and as magnified vectors across the image;
+- :func:`residual_regions`: RMS residual per image cell (and where no corner
+  fell); :func:`residual_by_frame`; :func:`residual_by_depth`;
 - :func:`expansion_centre_figure`: the paper's Fig. 4, corner tracks under
-  plate stacking, their TLS lines and common point.
-- :func:`point_cloud_figure`: Fig. 13a, the reconstructed frames in 3D with
-  their fitted planes; :func:`rig_figure`: Fig. 14, the cameras, the window
-  and the reconstruction in one frame.
-- :func:`error_histograms`: Fig. 13b-d, plane-distance errors per stage
-  frame, flatness and inter-corner distance errors.
+  plate stacking, their TLS lines and common point;
+- :func:`point_cloud_figure`: Fig. 13a; :func:`rig_figure`: Fig. 14, the rig,
+  the window and the reconstruction seen from above and from the side;
+- :func:`error_histograms`: Fig. 13b-d.
 """
 from __future__ import annotations
 
+import functools
 import io
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from .calibration import Calibration  # noqa: E402
-from .records import Observation  # noqa: E402
+from .records import Observation, Target  # noqa: E402
+from .report_diagnostics import corner_depths, frame_rmse, point_depths, region_grid, rms  # noqa: E402
 
-DPI = 90
+DPI = 150
+FIG_WIDTH_IN = 8.0  # every figure; shown at the page's width
+PRINT_WIDTH_IN = 7.0  # the text width of an A4 / letter page: what FIG_WIDTH_IN prints at
+STYLE = {"font.size": 11, "axes.titlesize": 11.5, "axes.labelsize": 11, "xtick.labelsize": 10.5,
+         "ytick.labelsize": 10.5, "legend.fontsize": 10.5, "figure.titlesize": 12, "figure.dpi": DPI,
+         "axes.titlelocation": "left"}  # smallest 10.5 pt -> 9.2 pt printed
 SET_COLORS = {"calibration": "tab:blue", "stacking": "tab:orange", "reconstruction": "tab:green"}
-
-
-def to_png(fig: Any) -> bytes:
-    """PNG bytes of a figure (closed afterwards)."""
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
-    plt.close(fig)
-    return buf.getvalue()
-
-
-def _grid(n: int, width: float = 5.0, height: float = 4.2, projection: str | None = None,
-          layout: str | None = None) -> tuple[Any, list]:
-    cols = min(n, 2)
-    rows = (n + cols - 1) // cols
-    fig = plt.figure(figsize=(width * cols, height * rows), layout=layout)
-    axes = [fig.add_subplot(rows, cols, k + 1, projection=projection) for k in range(n)]
-    return fig, axes
-
+CAMERA_MARKERS = "os^Dv<>p"
 
 Residuals = Sequence[tuple[Observation, np.ndarray]]  # evaluate.observation_residuals
 
 
+def styled(draw: Callable[..., Any]) -> Callable[..., Any]:
+    """Run a ``draw_*`` function under :data:`STYLE` (fonts are fixed when artists are made)."""
+    @functools.wraps(draw)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        with plt.rc_context(STYLE):
+            return draw(*args, **kwargs)
+    return wrapper
+
+
+def to_png(fig: Any) -> bytes:
+    """PNG bytes of a figure at its own size (no tight crop: the print size stays FIG_WIDTH_IN); closes it."""
+    buf = io.BytesIO()
+    with plt.rc_context(STYLE):
+        fig.savefig(buf, format="png", dpi=DPI)
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def panels(n: int, height_per_row: float, cols: int | None = None, **kw: Any) -> tuple[Any, list]:
+    """A full-width figure with n panels, 2 or 3 (or ``cols``) a row (one camera takes half the width),
+    constrained layout."""
+    cols = cols or min(max(n, 2), 3)
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(FIG_WIDTH_IN, height_per_row * rows), squeeze=False,
+                             layout="constrained", **kw)
+    flat = list(axes.ravel())
+    for ax in flat[n:]:
+        ax.set_visible(False)
+    return fig, flat[:n]
+
+
+def _camera_residuals(residuals: Residuals, camera: str) -> tuple[np.ndarray, np.ndarray]:
+    """(pixels, residuals) of one camera, each (N, 2)."""
+    mine = [(o, r) for o, r in residuals if o.camera == camera]
+    if not mine:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    return np.concatenate([o.pixels for o, _ in mine]), np.concatenate([r for _, r in mine])
+
+
+# --------------------------------------------------------------------------- residuals
+
+
 def residual_scatter(calibration: Calibration, residuals: Residuals) -> bytes:
-    """(du, dv) of every corner, one panel per camera, coloured by set, with the RMSE circle."""
+    """PNG of :func:`draw_residual_scatter`."""
+    return to_png(draw_residual_scatter(calibration, residuals))
+
+
+@styled
+def draw_residual_scatter(calibration: Calibration, residuals: Residuals) -> Any:
+    """(du, dv) of every corner, one panel per camera on one shared range, coloured by set, RMSE circle."""
     names = list(calibration.cameras)
-    fig, axes = _grid(len(names), 4.6, 4.4)
+    allr = np.concatenate([r for _, r in residuals]) if residuals else np.zeros((0, 2))
+    lim = max(float(np.abs(allr).max()) * 1.08, 1e-3) if len(allr) else 1.0
+    cols = min(max(len(names), 2), 3)
+    fig, axes = panels(len(names), FIG_WIDTH_IN / cols * 0.85 + 1.2, sharex=True, sharey=True)
     for ax, name in zip(axes, names):
         mine = [(o, r) for o, r in residuals if o.camera == name]
-        allr = np.concatenate([r for _, r in mine]) if mine else np.zeros((0, 2))
         for set_name, color in SET_COLORS.items():
             r = [r for o, r in mine if o.set == set_name]
             if r:
                 r = np.concatenate(r)
-                ax.scatter(r[:, 0], r[:, 1], s=3, alpha=0.5, color=color, label=f"{set_name} ({len(r)})")
-        rmse = float(np.sqrt(np.mean(np.sum(allr**2, axis=1)))) if len(allr) else float("nan")
-        ax.add_patch(plt.Circle((0, 0), rmse, fill=False, color="k", lw=1, ls="--"))
-        lim = max(float(np.abs(allr).max()) * 1.1, 1e-3) if len(allr) else 1.0
-        ax.set(xlim=(-lim, lim), ylim=(lim, -lim), aspect="equal", xlabel="du (px)", ylabel="dv (px)",
-               title=f"{name}: rmse {rmse:.4f} px")
+                ax.scatter(r[:, 0], r[:, 1], s=3, alpha=0.5, color=color, label=f"{set_name} ({len(r)})",
+                           rasterized=True)
+        value = rms(_camera_residuals(residuals, name)[1])
+        ax.add_patch(plt.Circle((0, 0), value, fill=False, color="k", lw=1, ls="--"))
         ax.axhline(0, color="0.7", lw=0.5)
         ax.axvline(0, color="0.7", lw=0.5)
-        ax.legend(loc="upper right", fontsize=7, markerscale=3)
-    return to_png(fig)
-
-
-def residual_map(calibration: Calibration, residuals: Residuals) -> bytes:
-    """Each corner's residual as a vector at its pixel (magnified), coloured by its length."""
-    return to_png(draw_residual_map(calibration, residuals))
-
-
-def draw_residual_map(calibration: Calibration, residuals: Residuals) -> Any:
-    """The figure of :func:`residual_map`. Constrained layout keeps each colour bar and its label clear
-    of the next panel (they overlapped its axis)."""
-    names = list(calibration.cameras)
-    fig, axes = _grid(len(names), 5.4, 4.6, layout="constrained")
-    for ax, name in zip(axes, names):
-        w, h = calibration.cameras[name].image_size
-        mine = [(o, r) for o, r in residuals if o.camera == name]
-        ax.add_patch(plt.Rectangle((0, 0), w, h, fill=False, color="k", lw=1))
-        if mine:
-            uv = np.concatenate([o.pixels for o, _ in mine])
-            r = np.concatenate([r for _, r in mine])
-            mag = np.linalg.norm(r, axis=1)
-            scale = 0.04 * max(w, h) / max(float(np.percentile(mag, 95)), 1e-9)  # p95 residual = 4% of the image
-            sc = ax.scatter(uv[:, 0], uv[:, 1], c=mag, s=4, cmap="viridis")
-            ax.quiver(uv[:, 0], uv[:, 1], r[:, 0] * scale, r[:, 1] * scale, mag, angles="xy", scale_units="xy",
-                      scale=1, cmap="viridis", width=0.002)
-            fig.colorbar(sc, ax=ax, label="|residual| (px)")
-            ax.set_title(f"{name}: residuals x{scale:.0f}")
-        else:
-            ax.set_title(f"{name}: no corners")
-        ax.set(xlim=(0, w), ylim=(h, 0), aspect="equal", xlabel="u (px)", ylabel="v (px)")
+        ax.set_title(f"{name}: RMSE {value:.3f} px")
+        ax.set_xlabel("du (px), + right")
+        ax.legend(loc="upper right", markerscale=3, handletextpad=0.2, borderpad=0.3)
+    axes[0].set_ylabel("dv (px), + down")
+    axes[0].set(xlim=(-lim, lim), ylim=(lim, -lim))  # v down, as in the image
+    for ax in axes:
+        ax.set_box_aspect(1)  # equal scales: the limits are equal
+        ax.xaxis.set_major_locator(MaxNLocator(5, symmetric=True))
+        ax.yaxis.set_major_locator(MaxNLocator(5, symmetric=True))
     return fig
 
 
+def residual_map(calibration: Calibration, residuals: Residuals) -> bytes:
+    """PNG of :func:`draw_residual_map`."""
+    return to_png(draw_residual_map(calibration, residuals))
+
+
+def map_magnification(calibration: Calibration, residuals: Residuals) -> float:
+    """How much :func:`draw_residual_map` lengthens the residual arrows (the same for every camera):
+    the 95th-percentile residual drawn as 8 % of the largest image side, rounded to 1, 2 or 5 x 10^k."""
+    allr = np.concatenate([r for _, r in residuals]) if residuals else np.zeros((0, 2))
+    if not len(allr):
+        return 1.0
+    side = max(max(c.image_size) for c in calibration.cameras.values())
+    raw = 0.08 * side / max(float(np.percentile(np.linalg.norm(allr, axis=1), 95)), 1e-9)
+    k = 10.0 ** np.floor(np.log10(raw))
+    return float(max(m for m in (1, 2, 5, 10) if m * k <= raw) * k)
+
+
+def _nice(x: float) -> float:
+    """The smallest 1, 2 or 5 x 10^k not below x (x > 0)."""
+    k = 10.0 ** np.floor(np.log10(max(x, 1e-12)))
+    return float(min(m for m in (1, 2, 5, 10) if m * k >= x * (1 - 1e-9)) * k)
+
+
+@styled
+def draw_residual_map(calibration: Calibration, residuals: Residuals) -> Any:
+    """Each corner's residual as an arrow at its pixel, magnified the same for every camera, coloured by
+    its length on one shared colour scale (one colour bar)."""
+    names = list(calibration.cameras)
+    scale = map_magnification(calibration, residuals)
+    mags = [np.linalg.norm(r, axis=1) for _, r in residuals]
+    vmax = float(np.percentile(np.concatenate(mags), 99)) if mags else 1.0
+    fig, axes = panels(len(names), 3.0 if len(names) >= 3 else 3.6, sharex=True, sharey=True)
+    sc = None
+    for ax, name in zip(axes, names):
+        w, h = calibration.cameras[name].image_size
+        uv, r = _camera_residuals(residuals, name)
+        ax.add_patch(plt.Rectangle((0, 0), w, h, fill=False, color="k", lw=1))
+        if len(r):
+            mag = np.linalg.norm(r, axis=1)
+            q = ax.quiver(uv[:, 0], uv[:, 1], r[:, 0] * scale, r[:, 1] * scale, mag, angles="xy",
+                          scale_units="xy", scale=1, cmap="viridis", clim=(0, vmax), width=0.003)
+            sc = q
+            ref = _nice(float(np.percentile(np.concatenate(mags), 95)))
+            ax.quiverkey(q, 0.97, 0.94, ref * scale, f"{ref:g} px", labelpos="W", coordinates="axes",
+                         color="k")
+            ax.set_title(name)
+        else:
+            ax.set_title(f"{name}: no corners")
+        ax.set_xlabel("u (px)")
+    for ax in axes:
+        ax.xaxis.set_major_locator(MaxNLocator(4))
+        ax.yaxis.set_major_locator(MaxNLocator(4))
+    w_max = max(c.image_size[0] for c in calibration.cameras.values())
+    h_max = max(c.image_size[1] for c in calibration.cameras.values())
+    axes[0].set(xlim=(0, w_max), ylim=(h_max, 0), ylabel="v (px), down")
+    for ax in axes:
+        ax.set_aspect("equal")
+    if sc is not None:
+        fig.colorbar(sc, ax=axes, label="|residual| (px)", shrink=0.9)
+    return fig
+
+
+def residual_regions(calibration: Calibration, residuals: Residuals) -> bytes:
+    """PNG of :func:`draw_residual_regions`."""
+    return to_png(draw_residual_regions(calibration, residuals))
+
+
+@styled
+def draw_residual_regions(calibration: Calibration, residuals: Residuals) -> Any:
+    """RMS residual per cell of a GRID_COLS x GRID_ROWS grid over each image, one colour scale for all
+    cameras (its top: twice the overall RMS, or the worst cell of >= 5 corners if higher); cells without a
+    corner hatched grey (coverage: the share of cells with a calibration corner, in each title)."""
+    names = list(calibration.cameras)
+    grids = [region_grid(calibration, residuals, n) for n in names]
+    judged = np.concatenate([g.rms_px[g.count >= 5] for g in grids])  # a cell of 1-4 corners is noise
+    overall = rms(np.concatenate([r for _, r in residuals])) if residuals else 1.0
+    vmax = max(float(judged.max()) if len(judged) else 0.0, 2.0 * overall)  # pure noise: mid-scale
+    fig, axes = panels(len(names), 3.0 if len(names) >= 3 else 3.5)
+    im = None
+    for ax, g in zip(axes, grids):
+        w, h = g.image_size
+        ax.add_patch(plt.Rectangle((0, 0), w, h, facecolor="0.85", hatch="//", edgecolor="0.6", lw=0,
+                                   zorder=0))
+        im = ax.imshow(np.ma.masked_invalid(g.rms_px), extent=(0, w, h, 0), cmap="magma_r", vmin=0, vmax=vmax,
+                       interpolation="nearest", zorder=1)
+        ax.set(xlim=(0, w), ylim=(h, 0), aspect="equal", xlabel="u (px)",
+               title=f"{g.camera}: {100 * g.coverage:.0f} % covered")
+        ax.xaxis.set_major_locator(MaxNLocator(4))
+        ax.yaxis.set_major_locator(MaxNLocator(4))
+    axes[0].set_ylabel("v (px), down")
+    if im is not None:
+        fig.colorbar(im, ax=axes, label="RMS residual (px)", shrink=0.9, extend="max")
+    return fig
+
+
+def residual_by_frame(calibration: Calibration, residuals: Residuals) -> bytes:
+    """PNG of :func:`draw_residual_by_frame`."""
+    return to_png(draw_residual_by_frame(calibration, residuals))
+
+
+@styled
+def draw_residual_by_frame(calibration: Calibration, residuals: Residuals) -> Any:
+    """RMS residual of every image (camera x frame), frames in the order observed, one marker per camera,
+    coloured by set; dashed: the median image."""
+    per = frame_rmse(residuals)
+    order = list(SET_COLORS)
+    frames = sorted(dict.fromkeys((s, f) for s, f, _ in per), key=lambda sf: order.index(sf[0]) if sf[0] in order
+                    else len(order))  # calibration, then stacking, each in the order observed
+    x = {k: i for i, k in enumerate(frames)}
+    fig, ax = plt.subplots(figsize=(FIG_WIDTH_IN, 3.4), layout="constrained")
+    for k, name in enumerate(calibration.cameras):
+        for set_name, color in SET_COLORS.items():
+            pts = [(x[(s, f)], v) for (s, f, c), v in per.items() if c == name and s == set_name]
+            if pts:
+                xs, ys = zip(*pts)
+                ax.plot(xs, ys, CAMERA_MARKERS[k % len(CAMERA_MARKERS)], color=color, ms=6, mfc="none", mew=1.4,
+                        label=f"{name}, {set_name}")
+    if per:
+        ax.axhline(float(np.median(list(per.values()))), color="0.4", ls="--", lw=1, label="median image")
+    step = max(1, len(frames) // 16)
+    ax.set_xticks(range(0, len(frames), step), [frames[i][1] for i in range(0, len(frames), step)],
+                  rotation=90)
+    ax.set(xlabel="frame (calibration frames, then stacking poses)", ylabel="RMS residual (px)",
+           ylim=(0, None))
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1), borderaxespad=0, markerscale=1)
+    return fig
+
+
+def residual_by_depth(calibration: Calibration, residuals: Residuals, target: Target,
+                      points: Mapping[str, np.ndarray] | None = None) -> bytes:
+    """PNG of :func:`draw_residual_by_depth`."""
+    return to_png(draw_residual_by_depth(calibration, residuals, target, points))
+
+
+@styled
+def draw_residual_by_depth(calibration: Calibration, residuals: Residuals, target: Target,
+                           points: Mapping[str, np.ndarray] | None = None, bins: int = 10) -> Any:
+    """Corners per depth bin (top) and their RMS residual (bottom), per camera; shaded: the depths of
+    the reconstructed points, where the calibration is used."""
+    depths = corner_depths(calibration, residuals, target)
+    allz = np.concatenate(depths) if depths else np.zeros(0)
+    allz = allz[np.isfinite(allz)]
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(FIG_WIDTH_IN, 4.6), sharex=True, layout="constrained",
+                                      height_ratios=(1, 1.3))
+    if not len(allz):
+        return fig
+    edges = np.linspace(allz.min(), allz.max() + 1e-9, bins + 1)
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    names = list(calibration.cameras)
+    width = (edges[1] - edges[0]) / (len(names) + 1)
+    for k, name in enumerate(names):
+        z = np.concatenate([d for (o, _), d in zip(residuals, depths) if o.camera == name] or [np.zeros(0)])
+        r = np.concatenate([r for o, r in residuals if o.camera == name] or [np.zeros((0, 2))])
+        ok = np.isfinite(z)
+        z, r = z[ok], r[ok]
+        idx = np.clip(np.searchsorted(edges, z, side="right") - 1, 0, bins - 1)
+        count = np.bincount(idx, minlength=bins)
+        value = np.array([rms(r[idx == b]) if count[b] else np.nan for b in range(bins)])
+        color = f"C{k}"
+        top.bar(centres + (k - (len(names) - 1) / 2) * width, count, width, color=color, label=name)
+        bottom.plot(centres, value, "-" + CAMERA_MARKERS[k % len(CAMERA_MARKERS)], color=color, label=name)
+        if points:
+            pz = point_depths(calibration, points, name)
+            for ax in (top, bottom):
+                ax.axvspan(pz.min(), pz.max(), color=color, alpha=0.08, lw=0)
+    if points:
+        bottom.plot([], [], color="0.5", alpha=0.3, lw=8, label="reconstructed points")
+    top.set(ylabel="corners")
+    bottom.set(xlabel="depth of the corner along the camera's optical axis (mm)", ylabel="RMS residual (px)",
+               ylim=(0, None))
+    top.legend(loc="upper right", ncols=len(names))
+    bottom.legend(loc="lower right", ncols=len(names) + (1 if points else 0))
+    return fig
+
+
+# --------------------------------------------------------------------------- Fig. 4
+
+
 def expansion_centre_figure(calibration: Calibration, stacking: Mapping[str, Sequence[Observation]]) -> bytes:
+    """PNG of :func:`draw_expansion_centre`."""
+    return to_png(draw_expansion_centre(calibration, stacking))
+
+
+@styled
+def draw_expansion_centre(calibration: Calibration, stacking: Mapping[str, Sequence[Observation]]) -> Any:
     """Fig. 4: corner tracks under stacking (points), TLS lines, measured and calibrated expansion centres."""
     from .init.expansion_center import fit_lines, intersect_lines, trajectories
 
     names = [n for n in calibration.cameras if stacking.get(n)]
-    fig, axes = _grid(len(names), 5.4, 4.6)
+    fig, axes = panels(max(len(names), 1), 3.4 if len(names) >= 3 else 4.0, cols=2)
+    if not names:
+        axes[0].text(0.5, 0.5, "no stacking observations", ha="center", va="center", transform=axes[0].transAxes)
+        axes[0].set_axis_off()
     for ax, name in zip(axes, names):
         w, h = calibration.cameras[name].image_size
         obs = stacking[name]
@@ -125,7 +335,7 @@ def expansion_centre_figure(calibration: Calibration, stacking: Mapping[str, Seq
                 t = (c - ln.centroid) @ ln.direction
                 seg = ln.centroid + np.outer([0.0, t], ln.direction)
                 ax.plot(seg[:, 0], seg[:, 1], "-", color="gold" if ok else "0.6", lw=0.4, alpha=0.7)
-            ax.plot(*c, "o", color="tab:green", ms=7, label=f"measured ({c[0]:.1f}, {c[1]:.1f}) ±{max(ec.std_px):.2f}")
+            ax.plot(*c, "o", color="tab:green", ms=7, label=f"measured ±{max(ec.std_px):.2f} px")
             xs.append(float(c[0]))
             ys.append(float(c[1]))
             title = f"{name}: {len(lines)} tracks, {int(ec.inliers.sum())} inliers"
@@ -141,9 +351,14 @@ def expansion_centre_figure(calibration: Calibration, stacking: Mapping[str, Seq
                 ax.plot(p[0], p[1], "+", color="tab:purple", ms=11, mew=1.5, label="K n (fitted normal)")
         pad = 0.05 * max(w, h)
         ax.set(xlim=(min(xs) - pad, max(xs) + pad), ylim=(max(ys) + pad, min(ys) - pad), aspect="equal",
-               xlabel="u (px)", ylabel="v (px)", title=title)
-        ax.legend(loc="lower left", fontsize=7)
-    return to_png(fig)
+               xlabel="u (px)", ylabel="v (px), down", title=title)
+        ax.xaxis.set_major_locator(MaxNLocator(4))
+        ax.yaxis.set_major_locator(MaxNLocator(4))
+        ax.legend(loc="lower left", handletextpad=0.3, borderpad=0.3)
+    return fig
+
+
+# --------------------------------------------------------------------------- Figs. 13, 14
 
 
 def _representative(names: Sequence[str], k: int = 6) -> list[str]:
@@ -153,15 +368,8 @@ def _representative(names: Sequence[str], k: int = 6) -> list[str]:
     return [names[int(round(i))] for i in np.linspace(0, len(names) - 1, k)]
 
 
-def _plane_patch(ax: Any, xyz: np.ndarray, normal: np.ndarray, point: np.ndarray, color: Any) -> None:
-    """Draw the fitted plane over the extent of the frame's points."""
-    c = _plane_outline(xyz, normal, point)
-    P = np.array([[c[0], c[1]], [c[3], c[2]]])  # (2, 2, 3) grid of the rectangle's corners
-    ax.plot_surface(P[..., 0], P[..., 1], P[..., 2], color=color, alpha=0.15, linewidth=0)
-
-
 def _plane_outline(xyz: np.ndarray, normal: np.ndarray, point: np.ndarray) -> np.ndarray:
-    """The closed outline (5, 3) of the patch :func:`_plane_patch` draws for the same points."""
+    """The closed outline (5, 3) of the plane through ``point`` over the extent of the points xyz."""
     n = np.asarray(normal, float)
     a = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
     a /= np.linalg.norm(a)
@@ -172,111 +380,159 @@ def _plane_outline(xyz: np.ndarray, normal: np.ndarray, point: np.ndarray) -> np
 
 
 def point_cloud_figure(frames: Mapping[str, np.ndarray], planes: Mapping[str, Mapping[str, Any]]) -> bytes:
+    """PNG of :func:`draw_point_cloud`."""
+    return to_png(draw_point_cloud(frames, planes))
+
+
+@styled
+def draw_point_cloud(frames: Mapping[str, np.ndarray], planes: Mapping[str, Mapping[str, Any]]) -> Any:
     """Fig. 13a: representative reconstructed frames (points and fitted planes), world frame, mm."""
-    fig = plt.figure(figsize=(7.5, 6))
+    fig = plt.figure(figsize=(FIG_WIDTH_IN, 4.4), layout="constrained")
     ax = fig.add_subplot(111, projection="3d")
+    ax.set_zlabel("z (mm)", labelpad=10)
     chosen = _representative(list(frames))
     cmap = plt.get_cmap("viridis")
     for k, name in enumerate(chosen):
         xyz = frames[name]
         color = cmap(k / max(len(chosen) - 1, 1))
-        ax.scatter(xyz[:, 0], xyz[:, 1], xyz[:, 2], s=4, color=color, label=name)
+        ax.scatter(xyz[:, 0], xyz[:, 1], xyz[:, 2], s=5, color=color, label=name)
         plane = planes.get(name)
         if plane and plane.get("normal") is not None:
-            _plane_patch(ax, xyz, np.asarray(plane["normal"]), np.asarray(plane["point"]), color)
-    ax.set(xlabel="x (mm)", ylabel="y (mm)", zlabel="z (mm)",
-           title=f"{len(chosen)} of {len(frames)} reconstructed frames")
-    ax.legend(fontsize=7, loc="upper left")
-    return to_png(fig)
+            c = _plane_outline(xyz, np.asarray(plane["normal"]), np.asarray(plane["point"]))
+            P = np.array([[c[0], c[1]], [c[3], c[2]]])
+            ax.plot_surface(P[..., 0], P[..., 1], P[..., 2], color=color, alpha=0.15, linewidth=0)
+    allxyz = np.concatenate([frames[n] for n in chosen])
+    ax.set_box_aspect(np.maximum(np.ptp(allxyz, axis=0), 0.25 * np.ptp(allxyz, axis=0).max()), zoom=1.15)
+    for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+        axis.set_major_locator(MaxNLocator(4))
+    ax.set(xlabel="x (mm)", ylabel="y (mm)")
+    ax.zaxis.set_tick_params(pad=6)
+    fig.suptitle(f"{len(chosen)} of {len(frames)} reconstructed frames")
+    fig.legend(*ax.get_legend_handles_labels(), loc="outside right center")
+    return fig
 
 
 def rig_figure(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> bytes:
-    """Fig. 14: camera centres and axes, the window (near surface) and the reconstructed points."""
+    """PNG of :func:`draw_rig`."""
     return to_png(draw_rig(calibration, frames))
 
 
-def draw_rig(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> Any:
-    """The figure of :func:`rig_figure`. Where the calibration does not observe the window's distance
-    (in air it does not change any pixel), the window is drawn dashed halfway to the target and the
-    legend says its depth is schematic."""
-    fig = plt.figure(figsize=(7.5, 6))
-    ax = fig.add_subplot(111, projection="3d")
-    allxyz = np.concatenate(list(frames.values())) if frames else np.zeros((0, 3))
-    centres = []
-    for name, cam in calibration.cameras.items():
-        world_from_cam = cam.cam_from_world.inverse()
-        c = world_from_cam.t
-        centres.append(c)
-        ax.scatter(*c, color="k", s=20)
-        ax.text(*c, f" {name}", fontsize=8)
-        axis_len = 40.0
-        for k, color in enumerate(("r", "g", "b")):
-            tip = c + world_from_cam.R[:, k] * axis_len
-            ax.plot(*np.c_[c, tip], color=color, lw=1.2)
-    if len(allxyz):
-        ax.scatter(allxyz[:, 0], allxyz[:, 1], allxyz[:, 2], s=1, color="tab:gray", alpha=0.6)
+def window_depth(calibration: Calibration, points: np.ndarray) -> tuple[float, bool]:
+    """(near-surface distance along normal_world from the world origin, schematic?). Where the calibration
+    does not observe the distance (in air it changes no pixel) it is the distance an exact model was
+    evaluated at (fixed_distance_mm), else halfway to the points."""
     n = calibration.normal_world
+    d = calibration.interface.distance_mm
+    if d is not None:
+        return float(d), False
+    if calibration.fixed_distance_mm is not None:
+        return float(calibration.fixed_distance_mm), True
+    return (0.5 * float(np.median(points @ n)) if len(points) else 50.0), True
+
+
+@styled
+def draw_rig(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> Any:
+    """Fig. 14 as two true-scale views on one depth axis: from above (z, x) and from the side (z, y, down).
+    Cameras (centre and optical axis), the window's section through the rig's middle (near and far faces;
+    dashed where its depth is schematic, see :func:`window_depth`) and the points coloured by frame."""
+    names = list(frames)
+    allxyz = np.concatenate([np.asarray(frames[f], float) for f in names]) if names else np.zeros((0, 3))
+    centres = {n: c.cam_from_world.inverse().t for n, c in calibration.cameras.items()}
+    optical = {n: c.cam_from_world.R[2] for n, c in calibration.cameras.items()}  # optical axes in the world
+    span = np.vstack([np.array(list(centres.values())), allxyz]) if len(allxyz) else np.array(list(centres.values()))
+    n = calibration.normal_world
+    d, schematic = window_depth(calibration, allxyz) if n is not None else (0.0, False)
+    t = calibration.interface.thickness_mm
+    z_lo, z_hi = min(span[:, 2].min(), d - 5), max(span[:, 2].max(), d + t + 5)
+    pad = 0.04 * (z_hi - z_lo)
+    zlim = (z_lo - pad, z_hi + pad)
+    margin = [0.15 * max(float(np.ptp(span[:, k])), 20.0) for k in (0, 1)]
+    lims = [(span[:, k].min() - margin[k], span[:, k].max() + margin[k]) for k in (0, 1)]
+    heights = np.array([hi - lo for lo, hi in lims]) / (zlim[1] - zlim[0]) * (FIG_WIDTH_IN - 1.2)
+    heights = np.clip(heights, 1.2, 3.5)
+    fig, axes = plt.subplots(2, 1, figsize=(FIG_WIDTH_IN, heights.sum() + 2.4), layout="constrained",
+                             height_ratios=heights)
+    cmap = plt.get_cmap("viridis")
+    for ax, k, label in zip(axes, (0, 1), ("x (mm)", "y (mm), down")):
+        for i, f in enumerate(names):
+            xyz = np.asarray(frames[f], float)
+            ax.scatter(xyz[:, 2], xyz[:, k], s=2, color=cmap(i / max(len(names) - 1, 1)), rasterized=True)
+        for j, (name, c) in enumerate(centres.items()):
+            tip = c + optical[name] * 0.12 * (zlim[1] - zlim[0])
+            ax.annotate("", xy=(tip[2], tip[k]), xytext=(c[2], c[k]), arrowprops=dict(arrowstyle="->", lw=1.2))
+            ax.plot(c[2], c[k], CAMERA_MARKERS[j % len(CAMERA_MARKERS)], color="k", ms=7, mfc="w" if j % 2 else "k")
+        if n is not None and abs(n[2]) > 1e-6:
+            other = 1 - k  # the coordinate held at the rig's middle for this section
+            s = np.array(lims[k])
+            mid = span[:, other].mean()
+            z_near = (d - n[k] * s - n[other] * mid) / n[2]
+            for z in (z_near, z_near + t / n[2]):
+                ax.plot(z, s, ls="--" if schematic else "-", color="tab:cyan", lw=1.5)
+            ax.fill_betweenx(s, z_near, z_near + t / n[2], color="tab:cyan", alpha=0.3, lw=0)
+        ax.set(xlim=zlim, ylim=lims[k], ylabel=label)
+        ax.set_aspect("equal", adjustable="box")
+    axes[1].invert_yaxis()
+    axes[0].set_title("seen from above")
+    axes[1].set_title("seen from the side")
+    axes[1].set_xlabel("z (mm), depth from cam0")
+    handles = [axes[0].plot([], [], CAMERA_MARKERS[j % len(CAMERA_MARKERS)], color="k", ms=7,
+                            mfc="w" if j % 2 else "k", label=f"{name} (arrow: optical axis)" if j == 0 else name)[0]
+               for j, name in enumerate(centres)]
     if n is not None:
-        centres_arr = np.array(centres)
-        d = calibration.interface.distance_mm
-        schematic = d is None
-        if schematic:  # not observable in air: draw it halfway to the target for orientation only
-            d = 0.5 * float(np.median(allxyz @ n)) if len(allxyz) else 50.0
-        pts = np.vstack([centres_arr, allxyz]) if len(allxyz) else centres_arr
-        foot = pts - np.outer(pts @ n - d, n)  # projections onto the near surface
-        _plane_patch(ax, foot, n, n * d, "tab:cyan")
-        label = f"window ({calibration.interface.thickness_mm:g} mm)"
-        if schematic:
-            outline = _plane_outline(foot, n, n * d)
-            ax.plot(outline[:, 0], outline[:, 1], outline[:, 2], ls="--", color="tab:cyan", lw=1)
-            label += ", depth schematic: its distance is not observable in air"
-        else:
-            label += f" at {d:.1f} mm"
-        ax.plot([], [], color="tab:cyan", lw=4, alpha=0.4, ls="--" if schematic else "-", label=label)
-        ax.legend(fontsize=7, loc="upper left")
-    span = np.vstack([np.array(centres), allxyz]) if len(allxyz) else np.array(centres)
-    ax.set_box_aspect(np.maximum(np.ptp(span, axis=0), 1e-3 * np.ptp(span).max() + 1e-9))  # true proportions
-    ax.set(xlabel="x (mm)", ylabel="y (mm)", zlabel="z (mm)", title="rig, window and reconstruction (world frame)")
+        label = f"window ({t:g} mm)" + (", depth schematic: its distance is not observable in air" if schematic
+                                         else f" at {d:.1f} mm")
+        handles += axes[0].plot([], [], color="tab:cyan", lw=4, alpha=0.5, ls="--" if schematic else "-", label=label)
+    if names:
+        handles += axes[0].plot([], [], "o", color=cmap(0.0), ms=5, label=f"points, frame {names[0]}")
+        handles += axes[0].plot([], [], "o", color=cmap(1.0), ms=5, label=f"... to frame {names[-1]}")
+    if handles:
+        fig.legend(handles=handles, loc="outside lower center", ncols=2, frameon=False)
     return fig
 
 
 def error_histograms(metrics: Mapping[str, Any]) -> bytes:
-    """Fig. 13b-d: plane-distance error per stage frame, flatness and inter-corner distance errors."""
-    panels = []
+    """PNG of :func:`draw_error_histograms`."""
+    return to_png(draw_error_histograms(metrics))
+
+
+@styled
+def draw_error_histograms(metrics: Mapping[str, Any]) -> Any:
+    """Fig. 13b-d: plane-distance error per stage frame (full width), flatness and inter-corner errors."""
     stage_frames = {k: f for k, f in metrics.get("frames", {}).items() if f.get("plane_distance_error_mm") is not None}
+    hists = [p for p, ok in (("flatness", metrics.get("flatness_mm", {}).get("distances")),
+                             ("corners", (metrics.get("inter_corner_mm") or {}).get("errors"))) if ok]
+    layout = ([["stage"] * max(len(hists), 1)] if stage_frames else []) + ([hists] if hists else [])
+    if not layout:
+        fig, ax = plt.subplots(figsize=(FIG_WIDTH_IN, 1.5), layout="constrained")
+        ax.text(0.5, 0.5, "no errors to show", ha="center", va="center")
+        ax.set_axis_off()
+        return fig
+    fig, axd = plt.subplot_mosaic(layout, figsize=(FIG_WIDTH_IN, 3.3 * len(layout)), layout="constrained")
     if stage_frames:
-        panels.append("stage")
-    if metrics.get("flatness_mm", {}).get("distances"):
-        panels.append("flatness")
-    if metrics.get("inter_corner_mm") and metrics["inter_corner_mm"].get("errors"):
-        panels.append("corners")
-    fig, axes = plt.subplots(1, max(len(panels), 1), figsize=(4.6 * max(len(panels), 1), 3.8), squeeze=False)
-    axes = axes[0]
-    for ax, panel in zip(axes, panels):
-        if panel == "stage":
-            names = list(stage_frames)
-            err = [stage_frames[n]["plane_distance_error_mm"] for n in names]
-            paper = [stage_frames[n]["plane_distance_error_paper_mm"] for n in names]
-            x = np.arange(len(names))
-            ax.bar(x - 0.2, err, 0.4, label="vs (s - s_ref) cos(theta)")
-            ax.bar(x + 0.2, paper, 0.4, label="vs s - s_ref (paper)")
-            ax.set_xticks(x, [f"{stage_frames[n]['stage_mm']:g}" for n in names], fontsize=7)
-            ax.set(xlabel="stage (mm)", ylabel="plane distance error (mm)", title="(b) plane distances")
-            ax.axhline(0, color="k", lw=0.5)
-            ax.legend(fontsize=7)
-        elif panel == "flatness":
-            d = np.asarray(metrics["flatness_mm"]["distances"], float)
-            f = metrics["flatness_mm"]
-            ax.hist(d, bins=40, color="tab:blue")
-            ax.set(xlabel="point-to-plane distance (mm)", ylabel="corners",
-                   title=f"(c) flatness: MAE {f['mae']:.4f}, RMSE {f['rmse']:.4f} mm")
-        else:
-            ic = metrics["inter_corner_mm"]
-            ax.hist(np.asarray(ic["errors"], float), bins=40, color="tab:green")
-            ax.set(xlabel=f"distance - {ic['square_mm']:g} mm (mm)", ylabel="pairs",
-                   title=f"(d) inter-corner: MAE {ic['mae']:.4f}, RMSE {ic['rmse']:.4f} mm")
-    if not panels:
-        axes[0].text(0.5, 0.5, "no errors to show", ha="center", va="center")
-        axes[0].set_axis_off()
-    fig.tight_layout()
-    return to_png(fig)
+        ax = axd["stage"]
+        names = sorted(stage_frames, key=lambda n: stage_frames[n]["stage_mm"])
+        err = [stage_frames[n]["plane_distance_error_mm"] for n in names]
+        paper = [stage_frames[n]["plane_distance_error_paper_mm"] for n in names]
+        x = np.arange(len(names))
+        ax.bar(x - 0.2, err, 0.4, label="vs the stage travel along the plane's normal")
+        ax.bar(x + 0.2, paper, 0.4, label="vs the stage reading itself (the paper's comparison)")
+        ax.set_xticks(x, [f"{stage_frames[n]['stage_mm']:g}" for n in names])
+        ax.set(xlabel="stage position (mm)", ylabel="error (mm)",
+               title="(b) distance of each stage plane from the reference plane: error")
+        ax.axhline(0, color="k", lw=0.5)
+        ax.yaxis.set_major_locator(MaxNLocator(5))
+        ax.legend(loc="best")
+    if "flatness" in hists:
+        ax = axd["flatness"]
+        f = metrics["flatness_mm"]
+        ax.hist(np.asarray(f["distances"], float), bins=30, color="tab:blue")
+        ax.set(xlabel="point to fitted plane (mm)", ylabel="points", title=f"(c) flatness, RMSE {f['rmse']:.4f} mm")
+        ax.xaxis.set_major_locator(MaxNLocator(4, symmetric=True))
+    if "corners" in hists:
+        ax = axd["corners"]
+        ic = metrics["inter_corner_mm"]
+        ax.hist(np.asarray(ic["errors"], float), bins=30, color="tab:green")
+        ax.set(xlabel=f"neighbour distance - {ic['square_mm']:g} mm (mm)", ylabel="pairs",
+               title=f"(d) corner spacing, RMSE {ic['rmse']:.4f} mm")
+        ax.xaxis.set_major_locator(MaxNLocator(4, symmetric=True))
+    return fig

@@ -14,6 +14,7 @@ import os
 import re
 import shutil
 import subprocess
+from dataclasses import replace
 from pathlib import Path
 
 import matplotlib.image as mpimg
@@ -23,11 +24,20 @@ from click.testing import CliRunner
 
 from ari_sfm.calibration import load_calibration
 from ari_sfm.cli import main
-from ari_sfm.report import calibration_rows, markdown_tables, write_report
+from ari_sfm import report
+from ari_sfm.evaluate import observation_residuals
+from ari_sfm.outliers import Outlier
+from ari_sfm.records import Observation
+from ari_sfm.report import _reconstruction_rows, calibration_rows, markdown_tables, write_report
+from ari_sfm.report_3d import RAY_GRID, RAY_INSET, rig_view_figure, sample_rays
+from ari_sfm.report_diagnostics import recommendations
+from ari_sfm.results import OutlierReport, Uncertainty
 from ari_sfm.simulate import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 IMG = re.compile(r'<img alt="([^"]*)" src="data:image/png;base64,([A-Za-z0-9+/=]+)">')
+RESIDUAL_FIGURES = {"residual scatter", "residual map", "residuals by image region", "residuals by frame",
+                    "residuals by depth"}
 
 
 @pytest.fixture(scope="module")
@@ -88,13 +98,16 @@ def test_report_embeds_every_figure_and_fetches_nothing(binocular):
     _, _, out, _ = binocular
     text = (out / "report.html").read_text()
     images = _images(text)
-    assert set(images) == {"residual scatter", "residual map", "expansion centre", "reconstructed planes",
-                           "rig and reconstruction", "reconstruction errors"}
+    assert set(images) == RESIDUAL_FIGURES | {"expansion centre", "reconstructed planes", "rig and reconstruction",
+                                              "reconstruction errors"}
     assert text.count("<img") == len(images)  # every <img> is an embedded PNG
     for alt, a in images.items():
-        assert a.shape[0] > 200 and a.shape[1] > 300, alt
+        assert a.shape[0] > 200 and a.shape[1] == 1200, alt  # every figure 8 in wide at 150 dpi: one print scale
         assert a[..., :3].std() > 0.05, alt  # not a blank canvas
-    assert not re.search(r'(src|href)="(https?:)?//', text) and "@import" not in text and "url(" not in text
+    page = re.sub(r"<script\b.*?</script>", "", text, flags=re.S)  # plotly.js (inlined) names URLs it never loads
+    assert not re.search(r'(src|href)="(https?:)?//', page) and "@import" not in page and "url(" not in page
+    assert not re.search(r"<script[^>]*\bsrc=", text)  # no script comes from elsewhere
+    assert text.count("plotly.js v") == 1 and text.count('id="rig-3d"') == 1  # plotly inlined once, one 3D view
 
 
 def test_report_without_reconstruction_or_dataset(binocular, tmp_path):
@@ -106,8 +119,8 @@ def test_report_without_reconstruction_or_dataset(binocular, tmp_path):
     assert "dataset not found" in text and "no observations found" in text and "<img" not in text
     write_report(tmp_path, ds)  # with the dataset: residuals and the stacking tracks, no reconstruction
     text = path.read_text()
-    assert set(_images(text)) == {"residual scatter", "residual map", "expansion centre"}
-    assert "no reconstruction" in text and "sim" in text
+    assert set(_images(text)) == RESIDUAL_FIGURES | {"expansion centre"}
+    assert '<h2>Reconstruction</h2><p class="info">None in this folder' in text and "sim" in text
 
 
 def test_report_includes_the_model_comparison(binocular, tmp_path):
@@ -122,7 +135,7 @@ def test_report_includes_the_model_comparison(binocular, tmp_path):
     text = write_report(tmp_path).read_text()
     assert "<h2>Model comparison</h2>" in text and "<h3>Binocular</h3>" in text
     assert _images(text)["model comparison: residuals_scatter"].shape[:2] == (32, 64)
-    assert "<td>ari</td><td>0.0712</td>" in text and "---" not in markdown_tables(md)
+    assert "<td>ari</td><td class=\"n\">0.0712</td>" in text and "---" not in markdown_tables(md)
 
 
 def test_report_flags_a_reconstruction_older_than_the_last_run(binocular, tmp_path):
@@ -155,18 +168,210 @@ def test_run_on_the_single_camera_sample_skips_reconstruction(tmp_path):
     assert r.exit_code == 0, r.output
     assert "info: reconstruction skipped: the dataset has no reconstruction frames" in r.output
     assert f"report: {tmp_path / 'report.html'}" in r.output and not (tmp_path / "points.json").exists()
-    images = _images((tmp_path / "report.html").read_text())
-    assert set(images) == {"residual scatter", "residual map", "expansion centre"}
+    text = (tmp_path / "report.html").read_text()
+    assert set(_images(text)) == RESIDUAL_FIGURES | {"expansion centre"}
+    # a step that does not apply is said neutrally, not as a warning
+    assert ('<h2>Reconstruction</h2><p class="info">Not applicable: the dataset has no reconstruction frames.</p>'
+            in text)
+    assert 'class="note"' not in text
+    assert 'id="rig-3d"' in text  # the 3D view shows the rig, window, rays and the calibration boards
+
+
+# --------------------------------------------------------------------------- recommendations, stages, 3D
+
+
+@pytest.fixture(scope="module")
+def scene_residuals():
+    """The simulated binocular rig's true calibration and its (noise-only) residuals."""
+    from ari_sfm.calibration import Calibration
+    from ari_sfm.simulate import make_scene
+
+    scene = make_scene("binocular", seed=0)
+    cal = Calibration.from_json(scene.truth, "truth.json")
+    return cal, observation_residuals(cal, scene.dataset.observations, scene.dataset.target), scene.dataset.target
+
+
+def _grid_observations(cal, camera, frame, u_range=(0.0, 1.0), v_range=(0.0, 1.0), n=24, sigma=0.05, seed=0,
+                       extra=None):
+    """An observation with n x n corners spread over a part of the image and its noise residuals (+ extra(uv))."""
+    w, h = cal.cameras[camera].image_size
+    u, v = np.meshgrid(np.linspace(*u_range, n) * (w - 1), np.linspace(*v_range, n) * (h - 1))
+    uv = np.c_[u.ravel(), v.ravel()]
+    r = np.random.default_rng(seed).normal(0, sigma, uv.shape)
+    if extra is not None:
+        r = r + extra(uv)
+    return Observation(camera, "calibration", frame, np.arange(len(uv)), uv), r
+
+
+def _full_cover(cal, sigma=0.05):
+    return [_grid_observations(cal, c, f"f{k}", sigma=sigma, seed=10 * i + k)
+            for i, c in enumerate(cal.cameras) for k in range(4)]
+
+
+def test_recommendation_coverage(scene_residuals):
+    cal = scene_residuals[0]
+    assert not any("cover" in a for a in recommendations(cal, _full_cover(cal)))
+    corner = [p for p in _full_cover(cal) if p[0].camera == "cam0"]
+    corner += [_grid_observations(cal, "cam1", f"f{k}", (0, 0.49), (0, 0.49), seed=k) for k in range(4)]
+    advice = [a for a in recommendations(cal, corner) if "cover" in a]
+    assert advice == ["The calibration corners cover 25 % of cam1's image (cells of an 8 x 6 grid): add views with "
+                      "the board near the edges and corners of its image."]
+
+
+def test_recommendation_residual_pattern_by_region(scene_residuals):
+    cal = scene_residuals[0]
+    assert not any("pattern" in a for a in recommendations(cal, _full_cover(cal)))
+
+    def top_right(uv):  # 0.3 px more in the image's top-right cells: what a missing model term looks like
+        w, h = cal.cameras["cam0"].image_size
+        return np.where(((uv[:, 0] > 7 / 8 * w) & (uv[:, 1] < h / 6))[:, None], 0.3, 0.0) * np.ones((1, 2))
+
+    pairs = [p for p in _full_cover(cal) if p[0].camera == "cam1"]
+    pairs += [_grid_observations(cal, "cam0", f"f{k}", seed=k, extra=top_right) for k in range(4)]
+    advice = [a for a in recommendations(cal, pairs) if "pattern" in a]
+    assert len(advice) == 1 and advice[0].startswith("cam0's residuals near the top right corner of its image are ")
+    assert advice[0].endswith("try --distortion.")  # an exact model without distortion
+    ari = replace(cal, model="ari")
+    assert [a for a in recommendations(ari, pairs) if "pattern" in a][0].endswith(
+        "try --model exact (Snell's law at the window).")
+    pinhole = replace(cal, model="pinhole", normal_world=None)  # a model without the window
+    assert [a for a in recommendations(pinhole, pairs) if "pattern" in a][0].endswith("try --model exact (Snell's "
+                                                                                       "law at the window).")
+
+
+def test_recommendation_frame(scene_residuals):
+    cal = scene_residuals[0]
+    pairs = _full_cover(cal)
+    assert not any("median image" in a for a in recommendations(cal, pairs))
+    o, r = pairs[2]
+    pairs[2] = (o, r * 10.0)  # one image 10 x noisier: a bad detection
+    advice = [a for a in recommendations(cal, pairs) if "median image" in a]
+    assert len(advice) == 1 and advice[0].startswith(f"The calibration image {o.frame} of {o.camera} has ")
+
+
+def test_recommendation_window_distance(scene_residuals):
+    cal, residuals, _ = scene_residuals
+    water = replace(cal, interface=replace(cal.interface, distance_mm=80.0, medium_index=1.333))
+    for std, expected in ((0.8, False), (8.0, True)):  # 1 % and 10 % of the distance
+        unc = Uncertainty(0.05, {}, 0.01, estimates_distance=True, distance_mm=std)
+        advice = recommendations(replace(water, uncertainty=unc), residuals)
+        assert any(a.startswith("The window distance is barely determined (80.0 ± 8.0 mm, 10 %): declare it")
+                   for a in advice) == expected, advice
+
+
+def test_recommendation_outliers(scene_residuals):
+    cal, residuals, _ = scene_residuals
+    corners = tuple(Outlier("cam0", "calibration", "f000", i, 0.5) for i in range(3))
+    for excluded, expected in ((True, False), (False, True)):
+        advice = recommendations(replace(cal, outliers=OutlierReport(0.05, 5.0, excluded, corners)), residuals)
+        assert any(a.startswith("3 corners lie beyond 5 sigma") for a in advice) == expected
+
+
+def test_recommendation_depth(scene_residuals):
+    cal, residuals, target = scene_residuals
+    z = [p.t[2] for p in cal.frames.values()]
+    inside = {"r": np.array([[0.0, 0.0, float(np.median(z))]])}
+    assert not any("beyond the" in a for a in recommendations(cal, residuals, target, inside))
+    far = {"r": np.array([[0.0, 0.0, 2.0 * max(z)]])}
+    advice = [a for a in recommendations(cal, residuals, target, far) if "beyond the" in a]
+    assert len(advice) == 2 and "from cam0, beyond the" in advice[0] and "add calibration views" in advice[0]
+
+
+def test_report_reconstruction_table_and_stages(binocular):
+    _, _, out, _ = binocular
+    text = (out / "report.html").read_text()
+    assert "Calibration stages" not in text  # shown only when calibration.json has a stages list
+    m = json.loads((out / "metrics.json").read_text())
+    assert f"<p>{m['num_points']} points in {m['num_frames']} frames" in text  # counts are not in the MAE column
+    rows = _reconstruction_rows(m)
+    assert not any(r[0] in ("points", "frames") for r in rows)
+    numbers = [tuple(f"{v:.4f}" for v in r[1:] if v is not None) for r in rows]
+    assert len(set(numbers)) == len(numbers)  # no two rows with the same numbers
+    st = m["stage"]
+    assert f"{st['plane_distance_error_mm']['rmse']:.4f}" == f"{st['displacement_error_mm']['rmse']:.4f}"
+    assert any("corners' displacement" in r[0] and "the same numbers" in r[0] for r in rows)  # folded, and said
+    assert "s - s_ref" not in text and "cos(theta)" not in text  # plain words instead
+    ctx = report.report_context(report.load_inputs(out))
+    cal = ctx.calibration
+    stages = [{"stage": "ari", "model": "ari", "distortion": False, "rmse_px": 0.1234, "max_px": 0.5, "count": 3696,
+               "distance_mm": None, "cameras": {"cam0": {"fx": 3400.5}, "cam1": {"fx": 3401.25}}},
+              {"stage": "exact", "model": "exact", "distortion": True,
+               "residuals": {"rmse_px": 0.0702, "mae_px": 0.06, "max_px": 0.21, "count": 3696},
+               "cameras": {"cam0": {"fx": 3453.12}, "cam1": {"fx": 3461.08}}}]
+    with_stages = replace(ctx, inputs=replace(ctx.inputs, calibration=replace(cal, extra={**cal.extra,
+                                                                                          "stages": stages})))
+    html_part = report._stages_section(with_stages)
+    assert "<h3>Calibration stages</h3>" in html_part and "<th>cam1 fx (px)</th>" in html_part
+    assert ('<td>ari</td><td>ari</td><td>no</td><td class="n">0.1234</td><td class="n">0.5000</td>'
+            '<td class="n">3696</td><td class="n">3400.5000</td><td class="n">3401.2500</td>') in html_part
+    assert '<td>exact</td><td>exact</td><td>yes</td><td class="n">0.0702</td>' in html_part
+    assert report._stages_section(ctx) == ""
+
+
+def test_a_section_is_added_by_one_call(binocular, tmp_path, monkeypatch):
+    _, _, out, _ = binocular
+    shutil.copy(out / "calibration.json", tmp_path / "calibration.json")
+    monkeypatch.setattr(report, "SECTIONS", list(report.SECTIONS))
+    report.add_section("disparity", lambda ctx: f"<h2>Disparity</h2><p>{len(ctx.calibration.cameras)}</p>",
+                       after="calibration")
+    text = write_report(tmp_path).read_text()
+    assert "<h2>Disparity</h2><p>2</p>" in text
+    assert text.index("<h2>Calibration</h2>") < text.index("<h2>Disparity</h2>")
+
+
+def test_3d_view_rays_follow_the_exact_model(scene_residuals):
+    """Each sample ray starts at its camera, meets the near face at distance d and the far face at d + t,
+    and its medium-side end projects back (exact model) to the pixel it was traced from."""
+    cal = scene_residuals[0]
+    water = replace(cal, model="exact", interface=replace(cal.interface, distance_mm=30.0, medium_index=1.333))
+    n = water.normal_world
+    for name, cam in water.cameras.items():
+        paths = sample_rays(water, name, end_depth_mm=400.0)
+        assert paths.shape == (RAY_GRID[0] * RAY_GRID[1], 4, 3)
+        np.testing.assert_allclose(paths[:, 0], np.tile(cam.cam_from_world.inverse().t, (len(paths), 1)), atol=1e-9)
+        np.testing.assert_allclose(paths[:, 1] @ n, 30.0, atol=1e-9)
+        np.testing.assert_allclose(paths[:, 2] @ n, 30.0 + water.interface.thickness_mm, atol=1e-9)
+        w, h = cam.image_size
+        u, v = np.meshgrid(np.linspace(RAY_INSET * w, (1 - RAY_INSET) * w, RAY_GRID[0]),
+                           np.linspace(RAY_INSET * h, (1 - RAY_INSET) * h, RAY_GRID[1]))
+        np.testing.assert_allclose(water.project_world(name, paths[:, 3]), np.c_[u.ravel(), v.ravel()], atol=1e-6)
+        bend = [np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1)))
+                for a, b in zip(paths[:, 1] - paths[:, 0], paths[:, 3] - paths[:, 2])]
+        assert max(bend) > 1.0  # refracted into water: the rays bend
+
+
+def test_3d_view_window_schematic_in_air_and_absent_without_one(scene_residuals):
+    cal, _, target = scene_residuals
+    boards = report.board_corners(cal, target)
+    air = replace(cal, model="ari", interface=replace(cal.interface, distance_mm=None), fixed_distance_mm=None)
+    names = [t.name for t in rig_view_figure(air, {}, boards).data]
+    assert any(n.startswith("window, 50 mm (depth schematic") for n in names)
+    assert {"rays of cam0 (exact model)", "rays of cam1 (exact model)", "calibration board corners"} <= set(names)
+    pinhole = replace(cal, model="pinhole", normal_world=None)
+    fig = rig_view_figure(pinhole, {"r": boards[:50]}, boards)
+    assert not any(t.type == "mesh3d" for t in fig.data)  # no window to draw
+    rays = sample_rays(pinhole, "cam1", 400.0)  # straight from the centre, each back onto its pixel
+    w, h = cal.cameras["cam1"].image_size
+    u, v = np.meshgrid(np.linspace(RAY_INSET * w, (1 - RAY_INSET) * w, RAY_GRID[0]),
+                       np.linspace(RAY_INSET * h, (1 - RAY_INSET) * h, RAY_GRID[1]))
+    np.testing.assert_allclose(pinhole.project_world("cam1", rays[:, 3]), np.c_[u.ravel(), v.ravel()], atol=1e-6)
 
 
 # --------------------------------------------------------------------------- in a browser
 
-PROBE = ("<script>window.addEventListener('load',function(){var im=Array.prototype.slice.call(document.images);"
-         "document.body.setAttribute('data-images',im.length);document.body.setAttribute('data-loaded',"
-         "im.filter(function(i){return i.complete&&i.naturalWidth>0;}).length);});</script>")
+PROBE = ("<script>window.addEventListener('load',function(){setTimeout(function(){"
+         "var im=Array.prototype.slice.call(document.images);var b=document.body;"
+         "b.setAttribute('data-images',im.length);b.setAttribute('data-loaded',"
+         "im.filter(function(i){return i.complete&&i.naturalWidth>0;}).length);"
+         "b.setAttribute('data-plotly',typeof Plotly);"
+         "b.setAttribute('data-svg',document.querySelectorAll('#rig-3d .plot-container svg.main-svg').length);"
+         "b.setAttribute('data-gl',document.querySelectorAll('#rig-3d .gl-container canvas').length);"
+         "b.setAttribute('data-nogl',document.body.innerText.indexOf('WebGL is not supported')>=0?1:0);"
+         "},500);});</script>")
+# --proxy-server to a closed port: any request for the network fails, so what renders came from the file
 CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                   "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--hide-scrollbars"]
+                  "--hide-scrollbars", "--proxy-server=127.0.0.1:9", "--proxy-bypass-list=<-loopback>"]
 
 
 def _chromium() -> str:
@@ -178,30 +383,38 @@ def _chromium() -> str:
     return exe
 
 
-def _loaded_images(exe: str, page: Path, profile: Path) -> tuple[int, int]:
-    """(images, images loaded) of a page, counted by a script in Chromium after the load event."""
+def _probe(exe: str, page: Path, profile: Path) -> dict[str, str]:
+    """What a script in Chromium found after the load event: images (and loaded), the 3D view's parts."""
     probe = page.with_name("probe_" + page.name)
     probe.write_text(page.read_text().replace("</body>", PROBE + "</body>"))
-    dom = subprocess.run([exe, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "--virtual-time-budget=10000",
-                          "--dump-dom", probe.as_uri()], capture_output=True, text=True, timeout=120).stdout
-    found = re.search(r'<body[^>]*data-images="(\d+)"[^>]*data-loaded="(\d+)"', dom)
-    assert found, dom[:500]
-    return int(found.group(1)), int(found.group(2))
+    dom = subprocess.run([exe, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "--virtual-time-budget=15000",
+                          "--dump-dom", probe.as_uri()], capture_output=True, text=True, timeout=180).stdout
+    body = re.search(r"<body[^>]*>", dom)
+    assert body and "data-images" in body.group(0), dom[:500]
+    return dict(re.findall(r'data-([a-z]+)="([^"]*)"', body.group(0)))
 
 
-def test_report_renders_in_chromium(binocular, tmp_path):
+def test_report_renders_in_chromium_offline(binocular, tmp_path):
     exe = _chromium()
     _, _, out, _ = binocular
     page = tmp_path / "report.html"
     shutil.copy(out / "report.html", page)  # file:// page in a folder of its own: nothing else to load
     shot = tmp_path / "shot.png"
     subprocess.run([exe, *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'profile'}", "--window-size=1200,4000",
-                    f"--screenshot={shot}", page.as_uri()], capture_output=True, timeout=120, check=True)
+                    "--virtual-time-budget=15000", f"--screenshot={shot}", page.as_uri()],
+                   capture_output=True, timeout=180, check=True)
     a = mpimg.imread(shot)[..., :3]
     assert a.shape[:2] == (4000, 1200)
     ink = (a.min(axis=2) < 0.9).mean()  # share of pixels that are not (near) white
     assert ink > 0.05 and a.std() > 0.05, f"screenshot looks blank: {ink:.3f} non-white"
-    assert _loaded_images(exe, page, tmp_path / "profile") == (6, 6)
-    broken = tmp_path / "broken.html"  # the probe itself tells a broken image
-    broken.write_text(page.read_text().replace("base64,iVBOR", "base64,AAAA", 1))
-    assert _loaded_images(exe, broken, tmp_path / "profile") == (6, 5)
+    found = _probe(exe, page, tmp_path / "profile")
+    assert found["images"] == found["loaded"] == "9", found
+    assert found["plotly"] == "object"  # plotly.js ran from the page itself, the network being closed
+    assert int(found["svg"]) >= 1 and int(found["gl"]) >= 1 and found["nogl"] == "0", found  # the 3D view drew
+    broken = tmp_path / "broken.html"  # the probe itself tells a broken image and a missing plotly
+    text = page.read_text()
+    script = re.search(r"<script>/\*\*\s*\* plotly\.js v.*?</script>", text, re.S)
+    assert script, "plotly.js is not inlined"
+    broken.write_text(text.replace("base64,iVBOR", "base64,AAAA", 1).replace(script.group(0), ""))
+    found = _probe(exe, broken, tmp_path / "profile")
+    assert (found["images"], found["loaded"], found["plotly"], found["svg"]) == ("9", "8", "undefined", "0")
