@@ -173,6 +173,6 @@ def calibrate_pf(dataset: Dataset, world=None, **ari_options) -> "Calibration": 
     log.info("pf: %d cameras fitted in %.1f ms", len(polys), elapsed * 1e3)
     return replace(
         world, model="pf", cameras=cameras, stacking_poses={}, residuals=residual_stats(residuals), time_s=elapsed,
-        fixed_distance_mm=None, extra={}, uncertainty=None, outliers=None, quality=None,  # pf is not judged
+        fixed_distance_mm=None, extra={}, optimizer=None, uncertainty=None, outliers=None, quality=None,  # pf is not judged
         pf_world=PfWorld(world.model, t_world or world.time_s),
     )
