@@ -191,7 +191,8 @@ class ReconstructionRun:
 def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, out_dir: str | Path,
                        truth_path: str | Path | None = None, workers: int | None = None,
                        progress: bool = False, observations: str | Path | None = None,
-                       reference_path: str | Path | None = None) -> ReconstructionRun:
+                       reference_path: str | Path | None = None, dataset: Dataset | None = None,
+                       calibration: Calibration | None = None) -> ReconstructionRun:
     """Load, detect corners if needed, reconstruct, measure; then write OUT/points.json, metrics.json, clouds/.
 
     Everything is checked and computed before the first file is written, so a
@@ -200,16 +201,18 @@ def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, o
     replaces the dataset's observations file (e.g. corners detected earlier).
     ``reference_path``: a mesh or point cloud of the true geometry; metrics.json
     then holds ``reference``, the 3D error after registration onto it
-    (:func:`ari_sfm.reference.reference_errors`).
+    (:func:`ari_sfm.reference.reference_errors`). ``dataset``, ``calibration``: the records already
+    loaded from ``dataset_path`` (with ``observations``) and ``calibration_path`` (``run`` passes
+    them on), not read again.
     """
-    from .calibrate import ensure_observations
+    from .detection import ensure_observations
     from .calibration import load_calibration
     from .io import load_dataset, save_observations, write_json_atomic
     from .metrics import reconstruction_metrics, save_point_clouds
     from .provenance import provenance
 
-    dataset = load_dataset(dataset_path, observations)
-    calibration = load_calibration(calibration_path)
+    dataset = load_dataset(dataset_path, observations) if dataset is None else dataset
+    calibration = load_calibration(calibration_path) if calibration is None else calibration
     check_rig(dataset, calibration, calibration_path)  # before a slow detection
     if truth_path is not None:
         from .metrics import check_truth
