@@ -100,7 +100,7 @@ class Calibration:
             if added_mm:
                 raise ValueError(f"model {spec.name} cannot project through added glass (added_mm={added_mm})")
             if spec.projection == "polynomial":
-                from .baselines.polynomial import PolynomialMap, PolynomialModel
+                from .models.polynomial import PolynomialMap, PolynomialModel
 
                 return PolynomialModel(cam.pf, cam.cam_from_world.inverse())
             return PinholeModel(cam.K, cam.dist)
@@ -267,7 +267,7 @@ def _parse(data: Any, path: Any) -> Calibration:
                 raise AriSfmError(path, f"cameras.{name}.{key} is missing (model {model} stores its parameters there)")
         poly = None
         if spec.projection == "polynomial":  # the polynomial is the model: validate it here, not at the first projection
-            from .baselines.polynomial import PolynomialMap
+            from .models.polynomial import PolynomialMap
 
             try:
                 poly = PolynomialMap.from_json(c["pf"])
