@@ -4,7 +4,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +15,7 @@ from .evaluate import residual_stats
 from .geometry import angle_between_deg
 from .models.registry import model_spec
 from .records import Dataset, Interface, WindowPlane
-from .results import OutlierReport
+from .results import OptimizerReport, OptimizerRun, OutlierReport
 
 log = logging.getLogger(__name__)
 
@@ -27,17 +27,30 @@ DISTORTION_MIN_COVERAGE = 0.2  # fraction of a camera's image inside the convex 
 
 @dataclass(frozen=True)
 class CalibrationOptions:
-    """Options of :func:`calibrate`, each with its default."""
+    """Options of :func:`calibrate`, each with its default (the one place: the command line's options are
+    made from the fields whose metadata names a ``cli`` flag: ``ari_sfm.cli``; ``{name}`` in a help text
+    is that field's default)."""
 
-    distortion: bool | None = None  # estimate k1 k2 p1 p2 k3; None: for the exact model when the views support
-    # it (distortion_support), else off; False: they stay as given (normally zero)
-    huber_px: float | None = 1.0  # per-corner Huber threshold in px; None: plain least squares
+    distortion: bool | None = field(default=None, metadata={
+        "cli": "--distortion/--no-distortion",
+        "help": "Estimate k1 k2 p1 p2 k3, or hold them at zero. Default: estimated with the exact model when the "
+                f"views support it (every camera with >= {DISTORTION_MIN_VIEWS} calibration views whose corners cover "
+                f">= {100 * DISTORTION_MIN_COVERAGE:.0f} % of its image, and stacking poses; otherwise one line says "
+                "why not)."})
+    # None: for the exact model when the views support it (distortion_support), else off; False: as given (zero)
+    huber_px: float | None = field(default=1.0, metadata={
+        "cli": "--huber-px", "help": "Per-corner Huber threshold in px (0: plain least squares)."})  # None: plain
     outlier_sigma: float = 5.0  # corners beyond this many sigma after convergence are reported
-    exclude_outliers: bool = False  # drop those corners and re-run the last stage
-    fix_intrinsics: bool = False  # hold the rig.yaml hints: K (and dist) where K is given; fx = fy = focal_px
-    # (principal point free) where only focal_px is
+    exclude_outliers: bool = field(default=False, metadata={
+        "cli": "--exclude-outliers", "help": "Drop corners beyond {outlier_sigma:g} sigma after convergence and re-run."})
+    fix_intrinsics: bool = field(default=False, metadata={
+        "cli": "--fix-intrinsics", "help": "Hold the rig.yaml hints: a K hint holds K (and dist); a focal_px hint holds "
+                                           "fx = fy = focal_px (principal point free)."})
     max_iterations: int = 100  # Levenberg-Marquardt iterations per stage
-    backend: str = "auto"  # bundle adjustment solver: "numpy" (vectorised, GTSAM's LM path), "gtsam", "auto" (= numpy)
+    backend: str = field(default="auto", metadata={
+        "cli": "--backend", "choices": ("auto", "numpy", "gtsam"),
+        "help": "Bundle-adjustment solver: numpy (vectorised, GTSAM's LM path, 5-13x faster), gtsam "
+                "(gtsam.LevenbergMarquardtOptimizer on the factor graph); auto = numpy."})
     workers: int | None = None  # threads for corner detection (dataset with only images) and for the per-camera
     # analytic initialisation; None: os.cpu_count() (at most one per camera for the initialisation)
     progress: bool = False  # progress bars (the CLI turns them on)
@@ -114,12 +127,11 @@ def resolve_distortion(dataset: Dataset, model: str, opts: CalibrationOptions) -
 
 
 def ensure_observations(dataset: Dataset, workers: int | None = None, progress: bool = False) -> Dataset:
-    """The dataset with observations, detecting corners in its images when it has none."""
-    if dataset.observations is not None:
-        return dataset
-    from .detection import detect_dataset
+    """The dataset with observations, detecting corners in its images when it has none
+    (:func:`ari_sfm.detection.ensure_observations`, re-exported here)."""
+    from .detection import ensure_observations as ensure
 
-    return dataset.with_observations(detect_dataset(dataset, workers=workers, progress=progress))
+    return ensure(dataset, workers, progress)
 
 
 def _add_factors(graph, extra_factors) -> None:
@@ -129,6 +141,93 @@ def _add_factors(graph, extra_factors) -> None:
     factors = extra_factors(graph) if callable(extra_factors) else extra_factors
     for f in factors:
         graph.graph.push_back(f)
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One bundle adjustment of calibrate()'s plan (:func:`plan_stages`)."""
+
+    label: str  # its name in calibration.json "stages" and in the optimizer report
+    model: str  # the graph's projection model (a bundle model of ari_sfm.models.registry)
+    distortion: bool = False  # k1 k2 p1 p2 k3 estimated
+    hold_normal: bool = False  # the normal held at its start (ari without stacking cannot observe it)
+    with_plane: bool = False  # the declared plane's factor in the graph, the window placed by its frame's pose
+    skippable: bool = False  # skipped (unless the start asks for a free window first) when the declared plane,
+    # placed by the previous stage's poses, already separates every camera from the corners it sees
+
+    @property
+    def snell(self) -> bool:
+        """Projects with Snell's law: needs a window distance in front of every camera (:func:`_exact_start`)."""
+        return model_spec(self.model).needs_distance
+
+
+def plan_stages(dataset: Dataset, model: str, options: CalibrationOptions = CalibrationOptions()) -> tuple[Stage, ...]:
+    """The bundle adjustments calibrating ``model`` on ``dataset``, in order (none for the baselines,
+    which have their own calibrators). No side effect: reads the dataset's sets and window only.
+
+    ari first (the analytic start's model); without stacking the normal is held in it (then, with a
+    declared plane and model ari, a second ari stage with the plane). A Snell model follows, refined
+    from the ari result; with a declared plane under water, a free-window Snell stage first
+    ("exact_free": the ari poses can put a plane placed by them behind the cameras).
+    ``options.distortion`` must be resolved (:func:`resolve_distortion`)."""
+    spec = model_spec(model, "model", calibratable=True)
+    if not spec.bundle:
+        return ()
+    iface = dataset.interface
+    plane = iface.plane is not None
+    normal_observed = bool(dataset.select("stacking"))  # as initialise_rig finds it: expansion centres
+    if not normal_observed and not plane and not spec.needs_distance:
+        from .init.rig import NO_NORMAL_MESSAGE
+
+        raise AriSfmError(dataset.rig_path, NO_NORMAL_MESSAGE)
+    distortion = bool(options.distortion)
+    placed_by_snell = plane and iface.medium_index != 1.0 and spec.needs_distance
+    if normal_observed:
+        stages = [Stage("ari", "ari", distortion, with_plane=plane and not placed_by_snell)]
+    else:
+        stages = [Stage("ari_normal_held" if plane else "ari", "ari", distortion, hold_normal=True)]
+        if plane and not spec.needs_distance:
+            stages.append(Stage("ari", "ari", distortion, with_plane=True))
+    if placed_by_snell:
+        stages.append(Stage(f"{spec.name}_free", spec.name, distortion, skippable=True))
+    if spec.needs_distance:
+        stages.append(Stage(spec.name, spec.name, distortion, with_plane=plane))
+    return tuple(stages)
+
+
+@dataclass(frozen=True)
+class StageResult:
+    """What one stage left: the state after it, its residuals and how the solve went."""
+
+    stage: Stage
+    state: "RigState"  # noqa: F821 (ari_sfm.factors.rig_graph, imported lazily: gtsam)
+    residuals: list  # (observation, (n, 2) residuals in px)
+    iterations: int
+    time_s: float
+    backend: str
+    sigma_px: float  # the pixel sigma its last graph was whitened by
+    estimated_sigma_px: float  # the images' sigma after it: given, or the robust estimate from its residuals
+    error_evaluations: int | None  # numpy backend only
+    graph: "RigGraph"  # noqa: F821 (its last graph: uncertainty, the outlier re-run)
+    solved: object | None  # the numpy backend's solved problem (None with gtsam)
+
+    def record(self) -> dict:
+        """Its figures for calibration.json ``stages``: model, residuals and parameters."""
+        stats = residual_stats(r for _, r in self.residuals)
+        state = self.state
+        return {
+            "stage": self.stage.label, "model": self.stage.model, "distortion": bool(self.stage.distortion),
+            "rmse_px": stats.rmse_px, "max_px": stats.max_px, "count": stats.count,
+            "normal_world": np.asarray(state.normal_world, float).tolist(),
+            "distance_mm": None if state.distance_mm is None else float(state.distance_mm),
+            "cameras": {n: {"fx": float(p[0]), "fy": float(p[1]), "cx": float(p[2]), "cy": float(p[3]),
+                            "dist": [float(v) for v in np.resize(p[4:9], 5)]} for n, p in state.params.items()},
+        }
+
+    def report(self) -> OptimizerRun:
+        """Its entry in the optimizer report (numpy's error_evaluations: it stops at convergence without
+        GTSAM's futile lambda trials)."""
+        return OptimizerRun(self.time_s, self.backend, self.iterations, self.sigma_px, self.error_evaluations)
 
 
 def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_factors=None,
@@ -149,6 +248,10 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
     stage's :class:`~ari_sfm.factors.rig_graph.RigGraph` and returning them: they join every
     stage (ari, exact, the outlier re-run), the view factors being whitened by the pixel sigma,
     so a prior weighs what its sigma says (docs/RESEARCH.md).
+
+    Steps: options, load, plan (:func:`plan_stages`), then for each start of the quality gate
+    (:func:`_starts`): initial state, the stages (:func:`run_stage`), the result; judged
+    (:mod:`ari_sfm.quality`) until one passes.
     """
     from .factors.vectorized import resolve_backend
     from .quality import judge, pinhole_dist_rmse_px
@@ -166,6 +269,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
         if extra_factors is not None:
             raise ValueError(f"extra_factors need a factor-graph model (ari or exact), not {model!r}")
         return spec.calibrate(dataset, opts)
+    plan = plan_stages(dataset, model, opts)
     t0 = time.perf_counter()
     tried: list[str] = []
     judged: list = []  # (Calibration with its quality)
@@ -174,7 +278,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
     for start in _starts(dataset, model, opts):
         tried.append(start.name)
         try:
-            cal, residuals = _calibrate_from(dataset, model, extra_factors, opts, backend, start)
+            cal, residuals = _calibrate_from(_Solver(dataset, opts, backend, extra_factors), model, plan, start)
         except AriSfmError as exc:  # e.g. no window distance fits these poses: the next start may do better
             log.info("calibration from the %s start failed: %s", start.name, exc.message)
             first_error = first_error or exc
@@ -208,159 +312,185 @@ class Start:
 
 
 def _starts(dataset: Dataset, model: str, opts: CalibrationOptions) -> list[Start]:
-    """The starts, in order: the default; a free window first (a declared plane under water, exact);
-    the hints free in the analytic start (with --fix-intrinsics)."""
+    """The starts, in order: the default; a free window first (a declared plane under water, a Snell
+    model); the hints free in the analytic start (with --fix-intrinsics)."""
     starts = [Start("default", opts.fix_intrinsics)]
     iface = dataset.interface
-    if iface.plane is not None and iface.medium_index != 1.0 and model == "exact":
+    if iface.plane is not None and iface.medium_index != 1.0 and model_spec(model).needs_distance:
         starts.append(Start("free window", opts.fix_intrinsics, free_window_first=True))
     if opts.fix_intrinsics:
         starts.append(Start("hints free in the start", False))
     return starts
 
 
-def _calibrate_from(dataset: Dataset, model: str, extra_factors, opts: CalibrationOptions, backend: str,
-                    start: Start) -> tuple[Calibration, list]:
-    """One bundle adjustment of ``model`` from ``start``: the calibration and its (observation, residuals)."""
-    from .init.rig import NO_NORMAL_MESSAGE, initialise_rig
-    from .factors.rig_graph import RigGraph, RigState, default_distance_mm
-    from .factors.vectorized import optimize_graph
-    from .factors.window_plane import plane_in_world
+@dataclass(frozen=True)
+class _Solver:
+    """What every stage of one calibration builds and solves its graphs with."""
 
-    t0 = time.perf_counter()
-    rig = initialise_rig(dataset, opts.distortion, opts.workers, start.held_hints)
-    iface = dataset.interface
-    names = dataset.camera_names
-    underwater = iface.medium_index != 1.0
-    plane = _declared_plane(dataset, rig)
-    unobserved = not rig.normal_observed and plane is None  # no stacking, no declared window
-    if unobserved and model == "ari":
-        raise AriSfmError(dataset.rig_path, NO_NORMAL_MESSAGE)
-    state = RigState.from_initialisation(rig, iface.distance_mm)
-    if plane is not None:  # the declared window is the start (and, held or with its prior, the result)
-        n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
-        state = replace(state, normal_world=n_w, distance_mm=h_w)
-    elif state.distance_mm is None and underwater:
-        state = replace(state, distance_mm=default_distance_mm(state.normal_world, state.cam_from_world))
-    fixed, fixed_focal = _held_intrinsics(dataset, opts.fix_intrinsics)
-    for n in fixed:  # start from the hint exactly
-        hint = dataset.cameras[n]
-        state.params[n][:4] = [hint.K[0, 0], hint.K[1, 1], hint.K[0, 2], hint.K[1, 2]]
-        state.params[n][4:] = np.resize(hint.dist if hint.dist is not None else np.zeros(5), 5)
-    for n, f in fixed_focal.items():
-        state.params[n][:2] = f
-    # (label, model, normal held at its start, declared plane in the graph)
-    # Under water the ari poses can be far off along the normal, so a plane placed by its frame's ari
-    # pose can put the window behind the cameras: then exact places it by its own poses ("exact_free"
-    # first; skipped when the plane placed by the ari poses separates every camera from its corners).
-    placed_by_exact = plane is not None and underwater and model == "exact"
-    stages = [("ari", "ari", False, plane is not None and not placed_by_exact)]
-    if not rig.normal_observed:  # no stacking: ari with the normal held at its start gives K and the poses
-        stages = [("ari" if plane is None else "ari_normal_held", "ari", True, False)]
-        if plane is not None and model == "ari":
-            stages.append(("ari", "ari", False, True))
-    if placed_by_exact:
-        stages.append(("exact_free", "exact", False, False))
-    if model == "exact":
-        stages.append(("exact", "exact", False, plane is not None))
+    dataset: Dataset
+    opts: CalibrationOptions
+    backend: str
+    extra_factors: object = None
+    fixed: tuple[str, ...] = ()  # cameras whose K is held
+    fixed_focal: dict | None = None  # camera -> focal held as fx = fy
 
-    # the images' weight: the pixel sigma, given, or 1 px for a stage's first solve and then estimated from
-    # its residuals; a stage is re-solved with the estimate when other factors (priors, a declared plane,
-    # the user's) share its graph. (Not started at the previous stage's estimate: GTSAM's LM damping is
-    # absolute, and an ari stage far off under water left the exact stage 100 iterations from converging.)
-    given_sigma = 1.0 if opts.sigma_px is None else float(opts.sigma_px)
-    sigma = given_sigma
-    reweight = opts.sigma_px is None and (bool(fixed) or bool(fixed_focal) or plane is not None
-                                          or extra_factors is not None)
+    @property
+    def plane(self) -> WindowPlane | None:
+        return self.dataset.interface.plane
 
-    def build(stage: str, st: RigState, observations=dataset.observations, with_plane: bool = True) -> RigGraph:
+    @property
+    def underwater(self) -> bool:
+        return self.dataset.interface.medium_index != 1.0
+
+    @property
+    def given_sigma(self) -> float:
+        """The images' weight for a stage's first solve: the pixel sigma given, else 1 px."""
+        return 1.0 if self.opts.sigma_px is None else float(self.opts.sigma_px)
+
+    @property
+    def reweight(self) -> bool:
+        """A stage is re-solved with its estimated sigma when other factors (priors, a declared plane,
+        the user's) share its graph."""
+        return self.opts.sigma_px is None and (bool(self.fixed) or bool(self.fixed_focal) or self.plane is not None
+                                               or self.extra_factors is not None)
+
+    def build(self, model: str, state, sigma: float, observations=None, with_plane: bool = True):
+        """The stage's RigGraph (:meth:`~ari_sfm.factors.rig_graph.RigGraph.build`) with the user's factors."""
+        from .factors.rig_graph import RigGraph
+
+        ds = self.dataset
         rg = RigGraph.build(
-            observations, dataset.target, iface, names, st, model=stage, distortion=opts.distortion,
-            estimate_distance=underwater, huber_px=opts.huber_px, sigma_px=sigma, fixed_intrinsics=fixed,
-            fixed_focal_px=fixed_focal, window_plane=plane if with_plane else None,
+            ds.observations if observations is None else observations, ds.target, ds.interface, ds.camera_names,
+            state, model=model, distortion=self.opts.distortion, estimate_distance=self.underwater,
+            huber_px=self.opts.huber_px, sigma_px=sigma, fixed_intrinsics=self.fixed,
+            fixed_focal_px=self.fixed_focal, window_plane=self.plane if with_plane else None,
         )
-        _add_factors(rg, extra_factors)
+        _add_factors(rg, self.extra_factors)
         return rg
 
-    def solve(rg: RigGraph, stage: str, max_iterations: int = opts.max_iterations):
-        if stage == "exact":
-            _check_in_front(dataset, rg.base_state)
+    def solve(self, rg, model: str, max_iterations: int | None = None):
+        """(state, solved problem or None) of the graph; a failure inside the optimiser is one line."""
+        from .factors.vectorized import optimize_graph
+
+        if model_spec(model).needs_distance:
+            _check_in_front(self.dataset, rg.base_state)
         try:
-            return optimize_graph(rg, backend, max_iterations, opts.huber_px, return_problem=True,
-                                  check=False)  # the graph was just built with opts.huber_px
-        except RuntimeError as exc:  # a failure inside the optimiser (e.g. non-finite Jacobian entries): one line
-            raise AriSfmError(dataset.observations_path or dataset.rig_path, f"{stage} stage: {exc}") from None
+            return optimize_graph(rg, self.backend, self.opts.max_iterations if max_iterations is None else max_iterations,
+                                  self.opts.huber_px, return_problem=True, check=False)  # built with opts.huber_px
+        except RuntimeError as exc:  # e.g. non-finite Jacobian entries
+            raise AriSfmError(self.dataset.observations_path or self.dataset.rig_path, f"{model} stage: {exc}") from None
 
-    from .outliers import find_outliers, robust_sigma_px, without
 
-    def residuals_of(rg: RigGraph, solved) -> list:
-        # from the numpy backend's solved problem (no Python callbacks); GTSAM's otherwise
-        return solved.residuals() if solved is not None else rg.residuals()
+def _residuals_of(rg, solved) -> list:
+    """From the numpy backend's solved problem (no Python callbacks); GTSAM's otherwise."""
+    return solved.residuals() if solved is not None else rg.residuals()
 
-    graph = None
-    iterations = {}
+
+def run_stage(solver: _Solver, stage: Stage, state, normal_observed: bool = True) -> StageResult:
+    """One stage from ``state``: its start (a Snell stage's distance, and normal without stacking), the
+    solve, the declared normal's rounds (held normal), the re-solve at the estimated pixel sigma."""
+    from .factors.window_plane import plane_in_world
+    from .outliers import robust_sigma_px
+
+    plane = solver.plane
+    sigma = solver.given_sigma
+    # (Not started at the previous stage's sigma estimate: GTSAM's LM damping is absolute, and an ari stage far
+    # off under water left the exact stage 100 iterations from converging.)
+    if stage.with_plane:  # the declared window, placed by the current pose of its frame
+        n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
+        state = replace(state, normal_world=n_w, distance_mm=h_w if solver.underwater else state.distance_mm)
+
+    def build(model: str, st, with_plane: bool = True):
+        return solver.build(model, st, sigma, with_plane=with_plane)
+
+    if stage.snell:
+        stage_plane = plane if stage.with_plane else None
+        state = _exact_start(solver.dataset, state, solver.underwater, stage_plane,
+                             not normal_observed and stage_plane is None, build, solver.solve, solver.opts)
+    graph = build(stage.model, state, with_plane=stage.with_plane)
+    if stage.hold_normal:  # the ari model cannot observe it here
+        _hold_normal(graph, state.normal_world)
+    t_stage = time.perf_counter()
+    state, solved = solver.solve(graph, stage.model)
+    for _ in range(PLANE_ROUNDS if stage.hold_normal and plane is not None else 0):
+        # hold the declared normal as placed by its frame's refitted pose, until that stops moving
+        n_w = plane_in_world(plane, state.world_from_target[plane.frame])[0]
+        if angle_between_deg(n_w, state.normal_world) < 1e-3:
+            break
+        graph = build(stage.model, replace(state, normal_world=n_w), with_plane=False)
+        _hold_normal(graph, n_w)
+        state, solved = solver.solve(graph, stage.model)
+    n_iterations = graph.iterations
+    residuals = _residuals_of(graph, solved)
+    if solver.opts.sigma_px is None:
+        estimated = robust_sigma_px(r for _, r in residuals)
+        if solver.reweight and abs(estimated / sigma - 1.0) > 1e-3:
+            sigma = estimated
+            graph = build(stage.model, state, with_plane=stage.with_plane)
+            if stage.hold_normal:
+                _hold_normal(graph, state.normal_world)
+            state, solved = solver.solve(graph, stage.model)
+            n_iterations += graph.iterations
+            residuals = _residuals_of(graph, solved)
+        sigma = estimated
+    result = StageResult(stage, state, residuals, n_iterations, time.perf_counter() - t_stage, solver.backend,
+                         graph.sigma_px, sigma, None if solved is None else solved.report.error_evaluations,
+                         graph, solved)
+    log.info("%s bundle adjustment: %d iterations, %.3f s, window distance %s mm", stage.label, n_iterations,
+             result.time_s, None if state.distance_mm is None else f"{state.distance_mm:.1f}")
+    return result
+
+
+def _start_state(solver: _Solver, plan: tuple[Stage, ...], start: Start):
+    """(analytic initialisation, the solver with the held intrinsics, the initial state) of one start."""
+    from .factors.rig_graph import held_intrinsics, initial_state
+    from .init.rig import initialise_rig
+
+    dataset, opts = solver.dataset, solver.opts
+    rig = initialise_rig(dataset, opts.distortion, opts.workers, start.held_hints)
+    fixed, fixed_focal = held_intrinsics(dataset, opts.fix_intrinsics)
+    solver = replace(solver, fixed=tuple(fixed), fixed_focal=fixed_focal)
+    return rig, solver, initial_state(dataset, rig, plan[0].model, opts.fix_intrinsics)
+
+
+def _plane_separates(solver: _Solver, state) -> bool:
+    """The declared plane placed by its frame's pose in ``state`` lies between every camera and its corners."""
+    from .factors.window_plane import plane_in_world
     from .init.window_start import not_beyond
 
-    stages_done: list[dict] = []  # each stage's model and figures (calibration.json "stages")
-    for label, stage, hold_normal, with_plane in stages:
-        sigma = given_sigma
-        if label == "exact_free" and not start.free_window_first:
-            n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
-            if not_beyond(replace(state, normal_world=n_w, distance_mm=h_w), dataset.observations, dataset.target,
-                          iface.thickness_mm) is None:
-                log.info("exact_free stage skipped: the declared plane at the ari poses separates cameras and corners")
-                continue
-        if with_plane:  # the declared window, placed by the current pose of its frame
-            n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
-            state = replace(state, normal_world=n_w, distance_mm=h_w if underwater else state.distance_mm)
-        if stage == "exact":
-            stage_plane = plane if with_plane else None
-            state = _exact_start(dataset, state, underwater, stage_plane,
-                                 not rig.normal_observed and stage_plane is None, build, solve, opts)
-        graph = build(stage, state, with_plane=with_plane)
-        if hold_normal:  # the ari model cannot observe it here
-            _hold_normal(graph, state.normal_world)
-        t_stage = time.perf_counter()
-        state, solved = solve(graph, stage)
-        for _ in range(PLANE_ROUNDS if hold_normal and plane is not None else 0):
-            # hold the declared normal as placed by its frame's refitted pose, until that stops moving
-            n_w = plane_in_world(plane, state.world_from_target[plane.frame])[0]
-            if angle_between_deg(n_w, state.normal_world) < 1e-3:
-                break
-            graph = build(stage, replace(state, normal_world=n_w), with_plane=False)
-            _hold_normal(graph, n_w)
-            state, solved = solve(graph, stage)
-        n_iterations = graph.iterations
-        residuals = residuals_of(graph, solved)
-        if opts.sigma_px is None:
-            estimated = robust_sigma_px(r for _, r in residuals)
-            if reweight and abs(estimated / sigma - 1.0) > 1e-3:
-                sigma = estimated
-                graph = build(stage, state, with_plane=with_plane)
-                if hold_normal:
-                    _hold_normal(graph, state.normal_world)
-                state, solved = solve(graph, stage)
-                n_iterations += graph.iterations
-                residuals = residuals_of(graph, solved)
-            sigma = estimated
-        stages_done.append(_stage_record(label, stage, state, residuals, opts.distortion))
-        iterations[label] = {"iterations": n_iterations, "time_s": time.perf_counter() - t_stage, "backend": backend,
-                             "sigma_px": graph.sigma_px}
-        if solved is not None:  # numpy backend: it stops at convergence without GTSAM's futile lambda trials
-            iterations[label]["error_evaluations"] = solved.report.error_evaluations
-        log.info("%s bundle adjustment: %d iterations, %.3f s, window distance %s mm", label, n_iterations,
-                 iterations[label]["time_s"], None if state.distance_mm is None else f"{state.distance_mm:.1f}")
-    last_stage, last_plane = stages[-1][1], stages[-1][3]
-    outliers, robust_sigma = find_outliers(residuals, opts.outlier_sigma)
+    plane, ds = solver.plane, solver.dataset
+    n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
+    return not_beyond(replace(state, normal_world=n_w, distance_mm=h_w), ds.observations, ds.target,
+                      ds.interface.thickness_mm) is None
+
+
+def _calibrate_from(solver: _Solver, model: str, plan: tuple[Stage, ...], start: Start) -> tuple[Calibration, list]:
+    """The plan's bundle adjustments from ``start``: the calibration and its (observation, residuals)."""
+    from .outliers import find_outliers, without
+
+    t0 = time.perf_counter()
+    rig, solver, state = _start_state(solver, plan, start)
+    dataset, opts = solver.dataset, solver.opts
+    results: list[StageResult] = []
+    for stage in plan:
+        if stage.skippable and not start.free_window_first and _plane_separates(solver, state):
+            log.info("%s stage skipped: the declared plane at the ari poses separates cameras and corners", stage.label)
+            continue
+        results.append(run_stage(solver, stage, state, rig.normal_observed))
+        state = results[-1].state
+    last = results[-1]
+    outliers, robust_sigma = find_outliers(last.residuals, opts.outlier_sigma)
     if outliers and opts.exclude_outliers:
-        log.info("excluding %d outlier corners and re-running the %s stage", len(outliers), last_stage)
-        graph = build(last_stage, state, without(dataset.observations, outliers), with_plane=last_plane)
-        state, solved = solve(graph, last_stage)
-        residuals = residuals_of(graph, solved)
-        stages_done[-1] = _stage_record(stages[-1][0], last_stage, state, residuals, opts.distortion)
+        log.info("excluding %d outlier corners and re-running the %s stage", len(outliers), last.stage.model)
+        graph = solver.build(last.stage.model, state, last.estimated_sigma_px, without(dataset.observations, outliers),
+                             with_plane=last.stage.with_plane)
+        state, solved = solver.solve(graph, last.stage.model)
+        # the optimizer report keeps the stage's own solve; the stage's figures are those after the re-run
+        last = replace(last, state=state, graph=graph, solved=solved, residuals=_residuals_of(graph, solved))
+        results[-1] = last
     if outliers:
         # With the paraxial ari model, large residuals are mostly its own error at oblique rays.
-        level = logging.INFO if last_stage == "ari" else logging.WARNING
+        level = logging.WARNING if last.stage.snell else logging.INFO
         log.log(level, "%d corners beyond %.0f sigma (%.3f px) after convergence%s", len(outliers), opts.outlier_sigma,
                 robust_sigma, " (excluded)" if opts.exclude_outliers else "")
     elapsed = time.perf_counter() - t0
@@ -370,10 +500,21 @@ def _calibrate_from(dataset: Dataset, model: str, extra_factors, opts: Calibrati
 
         # physical units: the graph's view factors carry the pixel sigma (rescaled to the last estimate
         # when only view factors share the graph)
-        rescale = None if reweight or opts.sigma_px is not None else sigma
-        uncertainty = rig_uncertainty(graph, marginal_covariances(graph, solved, rescale), rescale)
+        rescale = None if solver.reweight or opts.sigma_px is not None else last.estimated_sigma_px
+        uncertainty = rig_uncertainty(last.graph, marginal_covariances(last.graph, last.solved, rescale), rescale)
+    return _assemble(solver, model, rig, results, uncertainty, elapsed,
+                     OutlierReport(robust_sigma, opts.outlier_sigma, opts.exclude_outliers, tuple(outliers))), last.residuals
+
+
+def _assemble(solver: _Solver, model: str, rig, results: list[StageResult], uncertainty, elapsed: float,
+              outliers: OutlierReport) -> Calibration:
+    """The Calibration of the last stage's state, with every stage's figures and the optimizer report."""
+    from .factors.window_plane import plane_in_world
+
+    dataset, plane, last = solver.dataset, solver.plane, results[-1]
+    state, residuals, iface = last.state, last.residuals, dataset.interface
     cameras = {}
-    for n in names:
+    for n in dataset.camera_names:
         p = state.params[n]
         K = np.array([[p[0], 0, p[2]], [0, p[1], p[3]], [0, 0, 1.0]])
         ec = rig.cameras[n].expansion
@@ -382,7 +523,7 @@ def _calibrate_from(dataset: Dataset, model: str, extra_factors, opts: Calibrati
             None if ec is None else ec.center_px, None if ec is None else ec.std_px,
             residual_stats(r for o, r in residuals if o.camera == n).rmse_px,
         )
-    distance = state.distance_mm if underwater else None  # unobservable in air: null
+    distance = state.distance_mm if solver.underwater else None  # unobservable in air: null
     if plane is not None:  # declared: known in air too
         distance = plane_in_world(plane, state.world_from_target[plane.frame])[1]
     calib_frames = {o.frame for o in dataset.select("calibration")}
@@ -395,26 +536,14 @@ def _calibrate_from(dataset: Dataset, model: str, extra_factors, opts: Calibrati
         stacking_poses={f: p for f, p in state.world_from_target.items() if f in rig.stacking_poses},
         residuals=residual_stats(r for _, r in residuals),
         time_s=elapsed,
-        extra={"optimizer": iterations, "stages": stages_done},
+        optimizer=OptimizerReport({r.stage.label: r.report() for r in results}),
+        extra={"stages": [r.record() for r in results]},
         target=dataset.target,
         # exact in air: any distance gives the same rays; the one it was fitted at (a declared plane gives it)
-        fixed_distance_mm=state.distance_mm if model == "exact" and distance is None else None,
+        fixed_distance_mm=state.distance_mm if model_spec(model).needs_distance and distance is None else None,
         uncertainty=uncertainty,
-        outliers=OutlierReport(robust_sigma, opts.outlier_sigma, opts.exclude_outliers, tuple(outliers)),
-    ), residuals
-
-
-def _stage_record(label: str, model: str, state, residuals, distortion: bool) -> dict:
-    """One stage's figures for calibration.json ``stages``: its model, residuals and parameters."""
-    stats = residual_stats(r for _, r in residuals)
-    return {
-        "stage": label, "model": model, "distortion": bool(distortion),
-        "rmse_px": stats.rmse_px, "max_px": stats.max_px, "count": stats.count,
-        "normal_world": np.asarray(state.normal_world, float).tolist(),
-        "distance_mm": None if state.distance_mm is None else float(state.distance_mm),
-        "cameras": {n: {"fx": float(p[0]), "fy": float(p[1]), "cx": float(p[2]), "cy": float(p[3]),
-                        "dist": [float(v) for v in np.resize(p[4:9], 5)]} for n, p in state.params.items()},
-    }
+        outliers=outliers,
+    )
 
 
 def _hold_normal(rg, normal: np.ndarray) -> None:
@@ -425,32 +554,6 @@ def _hold_normal(rg, normal: np.ndarray) -> None:
 
     rg.graph.push_back(gtsam.PriorFactorUnit3(K_.N, gtsam.Unit3(np.asarray(normal, float)),
                                               gtsam.noiseModel.Isotropic.Sigma(2, 1e-7)))
-
-
-def _declared_plane(dataset: Dataset, rig) -> WindowPlane | None:
-    """interface.plane, checked: its frame must be a calibration frame seen by a camera."""
-    plane = dataset.interface.plane
-    if plane is None:
-        return None
-    calib = {o.frame for o in dataset.select("calibration")}
-    if plane.frame not in calib or plane.frame not in rig.world_from_target:
-        known = ", ".join(sorted(calib)[:5]) + (", ..." if len(calib) > 5 else "")
-        raise AriSfmError(dataset.rig_path, f"interface.plane.frame: {plane.frame!r} is not a calibration frame "
-                                            f"seen by the cameras (calibration frames: {known or 'none'})")
-    return plane
-
-
-def _held_intrinsics(dataset: Dataset, fix: bool) -> tuple[list[str], dict[str, float]]:
-    """Cameras whose K is held (a K hint) and camera -> focal held as fx = fy (a focal_px hint only)."""
-    if not fix:
-        return [], {}
-    cams = dataset.cameras
-    fixed = [n for n in dataset.camera_names if cams[n].K is not None]
-    focal = {n: float(cams[n].focal_px) for n in dataset.camera_names if cams[n].K is None and cams[n].focal_px is not None}
-    if not fixed and not focal:
-        raise AriSfmError(dataset.rig_path, "fix_intrinsics needs a K or focal_px hint for at least one camera "
-                                            "(cameras.<name>.K or cameras.<name>.focal_px)")
-    return fixed, focal
 
 
 def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: bool, build, solve,

@@ -13,7 +13,7 @@ from .io.calibration_checks import check_calibration_values
 from .geometry import Pose
 from .models.registry import ModelSpec, model_spec
 from .records import Interface, Target
-from .results import OutlierReport, PfWorld, ResidualStats, Uncertainty
+from .results import OptimizerReport, OutlierReport, PfWorld, ResidualStats, Uncertainty
 from .quality import Quality
 
 FORMAT = "ari-sfm-calibration/1"
@@ -52,7 +52,7 @@ class Calibration:
     stacking_poses: dict[str, Pose] = field(default_factory=dict)
     residuals: ResidualStats | None = None  # on the corners it was fitted on (None: not computed, e.g. truth)
     time_s: float = 0.0
-    extra: dict[str, Any] = field(default_factory=dict)  # other top-level keys (optimizer report, ...), kept as read
+    extra: dict[str, Any] = field(default_factory=dict)  # other top-level keys (stages, ...), kept as read
     target: Target | None = None  # the target it was calibrated with (for evaluate)
     fixed_distance_mm: float | None = None  # camera 0 centre to near surface at which an exact-Snell model
     # (ModelSpec.needs_distance) is evaluated in air, where no pixel depends on it and interface.distance_mm is
@@ -61,6 +61,7 @@ class Calibration:
     outliers: OutlierReport | None = None  # corners beyond k sigma after convergence (bundle-adjusted models)
     pf_world: PfWorld | None = None  # model pf: the calibration whose frames are its world (required then)
     quality: Quality | None = None  # the quality gate's verdict (ari, exact; ari_sfm.quality)
+    optimizer: OptimizerReport | None = None  # how each stage's solve went (not a result: times)
 
     def __post_init__(self) -> None:
         spec = self.spec  # an unknown model name fails here
@@ -100,7 +101,7 @@ class Calibration:
             if added_mm:
                 raise ValueError(f"model {spec.name} cannot project through added glass (added_mm={added_mm})")
             if spec.projection == "polynomial":
-                from .baselines.polynomial import PolynomialMap, PolynomialModel
+                from .models.polynomial import PolynomialMap, PolynomialModel
 
                 return PolynomialModel(cam.pf, cam.cam_from_world.inverse())
             return PinholeModel(cam.K, cam.dist)
@@ -169,6 +170,8 @@ class Calibration:
             out["target"] = target_to_json(self.target)
         out["residuals"] = {} if self.residuals is None else self.residuals.to_json()
         out["time_s"] = self.time_s
+        if self.optimizer is not None:
+            out["optimizer"] = self.optimizer.to_json()
         out.update(self.extra)
         for key, record in (("pf_world", self.pf_world), ("uncertainty", self.uncertainty),
                             ("outliers", self.outliers), ("quality", self.quality)):
@@ -266,7 +269,7 @@ def _parse(data: Any, path: Any) -> Calibration:
                 raise AriSfmError(path, f"cameras.{name}.{key} is missing (model {model} stores its parameters there)")
         poly = None
         if spec.projection == "polynomial":  # the polynomial is the model: validate it here, not at the first projection
-            from .baselines.polynomial import PolynomialMap
+            from .models.polynomial import PolynomialMap
 
             try:
                 poly = PolynomialMap.from_json(c["pf"])
@@ -291,7 +294,7 @@ def _parse(data: Any, path: Any) -> Calibration:
     frames = {f: _pose(v["world_from_target"], f"frames.{f}", path) for f, v in data.get("frames", {}).items()}
     stacking = {f: _pose(v["world_from_target"], f"stacking_poses.{f}", path) for f, v in data.get("stacking_poses", {}).items()}
     reserved = {"format", "model", "interface", "cameras", "frames", "stacking_poses", "residuals", "time_s", "target",
-                "fixed_distance_mm", "uncertainty", "outliers", "pf_world", "quality"}
+                "fixed_distance_mm", "uncertainty", "outliers", "pf_world", "quality", "optimizer"}
     fixed = data.get("fixed_distance_mm")
     if fixed is not None:
         fixed = float(fixed)
@@ -311,7 +314,7 @@ def _parse(data: Any, path: Any) -> Calibration:
         frames, stacking, _record(ResidualStats, data, "residuals", path), float(data.get("time_s", 0.0)),
         {k: v for k, v in data.items() if k not in reserved}, target, fixed,
         _record(Uncertainty, data, "uncertainty", path), _record(OutlierReport, data, "outliers", path), pf_world,
-        _record(Quality, data, "quality", path),
+        _record(Quality, data, "quality", path), _record(OptimizerReport, data, "optimizer", path),
     )
 
 

@@ -162,31 +162,55 @@ _model_option = click.option("--model", default=None, metavar="|".join(CALIBRATA
                              + ". Default: exact, the best model (its ari stage's figures shown beside it); "
                                "ari: the paper's model alone.")
 _distortion_option = click.option("--distortion/--no-distortion", default=False, show_default=True, help="Estimate k1 k2 p1 p2 k3.")
-_auto_distortion_option = click.option(
-    "--distortion/--no-distortion", default=None,
-    help="Estimate k1 k2 p1 p2 k3, or hold them at zero. Default: estimated with the exact model when the views "
-         "support it (every camera with >= 6 calibration views whose corners cover >= 20 % of its image, and stacking poses; "
-         "otherwise one line says why not).")
-_huber_option = click.option("--huber-px", type=float, default=1.0, show_default=True,
-                             help="Per-corner Huber threshold in px (0: plain least squares).")
-_outlier_option = click.option("--exclude-outliers", is_flag=True, help="Drop corners beyond 5 sigma after convergence and re-run.")
-_backend_option = click.option("--backend", type=click.Choice(["auto", "numpy", "gtsam"]), default="auto", show_default=True,
-                               help="Bundle-adjustment solver: numpy (vectorised, GTSAM's LM path, 5-13x faster), "
-                                    "gtsam (gtsam.LevenbergMarquardtOptimizer on the factor graph); auto = numpy.")
 
 
-_fix_option = click.option("--fix-intrinsics", is_flag=True,
-                           help="Hold the rig.yaml hints: a K hint holds K; a focal_px hint holds fx = fy = focal_px "
-                                "(principal point free).")
+def _field_option(name: str):
+    """The click option of a CalibrationOptions field: flag, default and help from the field's metadata
+    (the one place each default is declared); ``{field}`` in a help text is that field's default."""
+    from dataclasses import fields
+
+    from .calibrate import CalibrationOptions
+
+    every = {f.name: f for f in fields(CalibrationOptions)}
+    f = every[name]
+    meta = f.metadata
+    kwargs = {"default": f.default, "help": meta["help"].format(**{k: v.default for k, v in every.items()})}
+    if "/" not in meta["cli"]:  # "--x/--no-x": True, False or the default (None: decided from the data)
+        if isinstance(f.default, bool):
+            kwargs["is_flag"] = True
+        elif "choices" in meta:
+            kwargs.update(type=click.Choice(list(meta["choices"])), show_default=True)
+        else:
+            kwargs.update(type=type(f.default), show_default=True)
+    return click.option(meta["cli"], name, **kwargs)
+
+
+def _cli_fields() -> tuple[str, ...]:
+    """The CalibrationOptions fields calibrate and run offer (those with a ``cli`` flag), in field order."""
+    from dataclasses import fields
+
+    from .calibrate import CalibrationOptions
+
+    return tuple(f.name for f in fields(CalibrationOptions) if "cli" in f.metadata)
+
+
+_backend_option = _field_option("backend")
 
 
 def _calibration_options(fn):
-    """The options calibrate and run share: --model, --distortion, --huber-px, --exclude-outliers,
-    --fix-intrinsics, --backend."""
-    for option in reversed((_model_option, _auto_distortion_option, _huber_option, _outlier_option, _fix_option,
-                            _backend_option)):
+    """--model and every CalibrationOptions field with a ``cli`` flag (--distortion, --huber-px,
+    --exclude-outliers, --fix-intrinsics, --backend), made from the dataclass."""
+    for option in reversed((_model_option, *(_field_option(name) for name in _cli_fields()))):
         fn = option(fn)
     return fn
+
+
+def _calibration_record(values: dict, **more):
+    """The CalibrationOptions of the command line's values (--huber-px 0: plain least squares), checked."""
+    from .calibrate import CalibrationOptions
+
+    check_number("--huber-px", values["huber_px"], minimum=0.0)
+    return CalibrationOptions(**{**values, "huber_px": values["huber_px"] or None}, **more)
 
 
 @main.command(name="calibrate")
@@ -194,8 +218,7 @@ def _calibration_options(fn):
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder for calibration.json.")
 @_calibration_options
 @user_errors
-def calibrate_cmd(dataset: Path, out: Path, model: str | None, distortion: bool | None, huber_px: float, exclude_outliers: bool,
-                  fix_intrinsics: bool, backend: str) -> None:
+def calibrate_cmd(dataset: Path, out: Path, model: str | None, **options) -> None:
     """Calibrate DATASET; write OUT/calibration.json (and OUT/observations.json when detected here).
 
     Exit code 3: the calibration converged but failed its quality gate (written with quality.ok false)."""
@@ -205,10 +228,9 @@ def calibrate_cmd(dataset: Path, out: Path, model: str | None, distortion: bool 
     model = model or DEFAULT_MODEL
     model_spec(model, "--model", calibratable=True)  # before any loading or detection
     check_output_folder(out)
-    check_number("--huber-px", huber_px, minimum=0.0)
+    opts = _calibration_record(options, progress=True)
     t0 = time.perf_counter()
-    result = pipeline(dataset, out, model=model, progress=True, distortion=distortion, huber_px=huber_px or None,
-                      exclude_outliers=exclude_outliers, fix_intrinsics=fix_intrinsics, backend=backend)
+    result = pipeline(dataset, out, model=model, progress=True, options=opts)
     _summary(result.calibration, time.perf_counter() - t0, "corner detection, calibration, files")
     if result.observations_path:
         click.echo(f"observations: {result.observations_path}")
@@ -223,8 +245,7 @@ def calibrate_cmd(dataset: Path, out: Path, model: str | None, distortion: bool 
 @click.option("--truth", type=click.Path(path_type=Path), default=None,
               help="A simulator's truth.json: also report the reconstruction's 3D error against it.")
 @user_errors
-def run(dataset: Path, out: Path, model: str | None, distortion: bool | None, huber_px: float, exclude_outliers: bool,
-        fix_intrinsics: bool, backend: str, truth: Path | None) -> None:
+def run(dataset: Path, out: Path, model: str | None, truth: Path | None, **options) -> None:
     """The pipeline: detect corners when needed, calibrate, reconstruct (frames seen by two cameras), report.
 
     Exit code 3: the calibration failed its quality gate (no reconstruction)."""
@@ -233,12 +254,10 @@ def run(dataset: Path, out: Path, model: str | None, distortion: bool | None, hu
     if model is not None:  # None: the best model (calibrate.DEFAULT_MODEL)
         model_spec(model, "--model", calibratable=True)  # before any loading or detection
     check_output_folder(out)
-    check_number("--huber-px", huber_px, minimum=0.0)
+    opts = _calibration_record(options, progress=True)
     t0 = time.perf_counter()
     click.echo(f"ari-sfm run: {dataset} -> {out}")
-    result = pipeline(dataset, out, model=model, truth=truth, progress=True, distortion=distortion,
-                      huber_px=huber_px or None, exclude_outliers=exclude_outliers, fix_intrinsics=fix_intrinsics,
-                      backend=backend)
+    result = pipeline(dataset, out, model=model, truth=truth, progress=True, options=opts)
     _summary(result.calibrated.calibration, time.perf_counter() - t0,
              "corner detection, calibration, reconstruction, report")
     if result.truth_errors is not None:

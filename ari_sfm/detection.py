@@ -504,3 +504,10 @@ def _check_calibration_views(
                 f"only {found} of the {listed[cam]} calibration images of camera {cam} show the target "
                 f"(need >= {minimum})",
             )
+
+
+def ensure_observations(dataset, workers: int | None = None, progress: bool = False):
+    """The dataset with observations, detecting corners in its images (:func:`detect_dataset`) when it has none."""
+    if dataset.observations is not None:
+        return dataset
+    return dataset.with_observations(detect_dataset(dataset, workers=workers, progress=progress))

@@ -58,7 +58,7 @@ import numpy as np
 
 from .deps import require_open3d
 from .errors import AriSfmError
-from .reconstruct import FramePoints, Points
+from .points import FramePoints, Points
 from .records import Target
 
 log = logging.getLogger(__name__)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Mapping
 
@@ -19,56 +19,12 @@ import numpy as np
 
 from .calibration import Calibration
 from .errors import AriSfmError
+from .points import FramePoints, Points  # noqa: F401 (the records: points.py; re-exported)
 from .records import Dataset
 
 log = logging.getLogger(__name__)
 
 MISFIT_PX = 2.0  # median reprojection error (px) above which the calibration is suspected not to fit
-
-
-@dataclass(frozen=True)
-class FramePoints:
-    """The triangulated corners of one reconstruction frame (world frame of the calibration, mm)."""
-
-    stage_mm: float | None
-    ids: np.ndarray  # (N,) int target corner ids
-    xyz: np.ndarray  # (N, 3) world points
-    ray_gap_mm: np.ndarray  # (N,) how far the viewing rays missed each other (triangulate.py)
-    reprojection_rmse_px: float | None = None  # over the frame's corners and cameras; None when loaded
-    num_cameras: np.ndarray | None = None  # (N,) cameras that saw each corner; None when loaded
-
-    def __len__(self) -> int:
-        return len(self.ids)
-
-
-@dataclass(frozen=True)
-class Points:
-    """Reconstructed frames ``{name: FramePoints}`` (in the order of the dataset)."""
-
-    frames: dict[str, FramePoints] = field(default_factory=dict)
-    calibration: str | None = None  # the calibration file named in points.json, when loaded
-
-    @property
-    def num_points(self) -> int:
-        return sum(len(f) for f in self.frames.values())
-
-    def save(self, path: str | Path, calibration_name: str, provenance: dict | None = None) -> None:
-        """Write ``points.json`` atomically (validated first; a bad frame writes nothing); ``provenance``:
-        which calibration and dataset made the points (:mod:`ari_sfm.provenance`)."""
-        from .io import save_points
-
-        save_points(path, {name: {"stage_mm": f.stage_mm, "ids": f.ids, "xyz": f.xyz, "ray_gap_mm": f.ray_gap_mm}
-                           for name, f in self.frames.items()}, calibration_name, provenance)
-
-    @staticmethod
-    def load(path: str | Path) -> "Points":
-        """Read and validate ``points.json``."""
-        from .io import load_points
-
-        data = load_points(path)
-        frames = {name: FramePoints(f["stage_mm"], f["ids"], f["xyz"], f["ray_gap_mm"])
-                  for name, f in data["frames"].items()}
-        return Points(frames, data["calibration"])
 
 
 def check_rig(dataset: Dataset, calibration: Calibration, calibration_path: str | Path | None = None) -> None:
@@ -229,7 +185,8 @@ def check_truth_matches(dataset: Dataset, truth_path: str | Path) -> None:
 def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, out_dir: str | Path,
                        truth_path: str | Path | None = None, workers: int | None = None,
                        progress: bool = False, observations: str | Path | None = None,
-                       reference_path: str | Path | None = None) -> ReconstructionRun:
+                       reference_path: str | Path | None = None, dataset: Dataset | None = None,
+                       calibration: Calibration | None = None) -> ReconstructionRun:
     """Load, detect corners if needed, reconstruct, measure; then write OUT/points.json, metrics.json, clouds/.
 
     Everything is checked and computed before the first file is written, so a
@@ -238,16 +195,18 @@ def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, o
     replaces the dataset's observations file (e.g. corners detected earlier).
     ``reference_path``: a mesh or point cloud of the true geometry; metrics.json
     then holds ``reference``, the 3D error after registration onto it
-    (:func:`ari_sfm.reference.reference_errors`).
+    (:func:`ari_sfm.reference.reference_errors`). ``dataset``, ``calibration``: the records already
+    loaded from ``dataset_path`` (with ``observations``) and ``calibration_path`` (``run`` passes
+    them on), not read again.
     """
-    from .calibrate import ensure_observations
+    from .detection import ensure_observations
     from .calibration import load_calibration
     from .io import load_dataset, save_observations, write_json_atomic
     from .metrics import reconstruction_metrics, save_point_clouds
     from .provenance import provenance
 
-    dataset = load_dataset(dataset_path, observations)
-    calibration = load_calibration(calibration_path)
+    dataset = load_dataset(dataset_path, observations) if dataset is None else dataset
+    calibration = load_calibration(calibration_path) if calibration is None else calibration
     check_rig(dataset, calibration, calibration_path)  # before a slow detection
     if truth_path is not None:
         check_truth_matches(dataset, truth_path)

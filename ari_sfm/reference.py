@@ -40,7 +40,7 @@ import numpy as np
 
 from .deps import require_open3d
 from .errors import AriSfmError
-from .reconstruct import Points
+from .points import Points
 
 log = logging.getLogger(__name__)
 

@@ -1,5 +1,5 @@
 """What a calibration reports besides its parameters, as records: residual statistics, parameter
-uncertainty, outliers, and the world a pf fit was made in.
+uncertainty, outliers, the world a pf fit was made in, and the optimizer's report.
 
 Each record is frozen, writes exactly the calibration.json (and compare.json)
 fragment the format defines (``to_json``) and reads it back (``from_json``,
@@ -142,3 +142,51 @@ class PfWorld:
         if not isinstance(d["model"], str):
             raise ValueError("pf_world.model must be a model name")
         return cls(d["model"], float(d["time_s"]), str(d.get("note", cls.note)))
+
+
+@dataclass(frozen=True)
+class OptimizerRun:
+    """How one optimizer run of a calibration went: calibration.json ``optimizer.<stage>``. Not a result
+    (times differ between runs); the bundle adjustment fills iterations, sigma_px (and error_evaluations,
+    numpy backend), the scipy baselines nfev and status."""
+
+    time_s: float
+    backend: str
+    iterations: int | None = None  # accepted Levenberg-Marquardt steps
+    sigma_px: float | None = None  # the pixel sigma its view factors were whitened by
+    error_evaluations: int | None = None  # cost evaluations (numpy backend)
+    nfev: int | None = None  # scipy.optimize.least_squares' function evaluations
+    status: int | None = None  # and its status
+    extra: Mapping[str, Any] = field(default_factory=dict)  # other keys, kept as read
+
+    _ORDER = ("iterations", "nfev", "status", "time_s", "backend", "sigma_px", "error_evaluations")
+
+    def to_json(self) -> dict[str, Any]:
+        out = {k: getattr(self, k) for k in self._ORDER if getattr(self, k) is not None}
+        out.update(self.extra)
+        return out
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "OptimizerRun":
+        def opt(key: str, kind: type):
+            return None if d.get(key) is None else kind(d[key])
+
+        return cls(float(d["time_s"]), str(d["backend"]), opt("iterations", int), opt("sigma_px", float),
+                   opt("error_evaluations", int), opt("nfev", int), opt("status", int),
+                   {k: v for k, v in d.items() if k not in cls._ORDER})
+
+
+@dataclass(frozen=True)
+class OptimizerReport:
+    """Every optimizer run of a calibration, by stage (``ari``, ``exact``, ...; a baseline's own name), in order."""
+
+    runs: Mapping[str, OptimizerRun]
+
+    def to_json(self) -> dict[str, Any]:
+        return {stage: run.to_json() for stage, run in self.runs.items()}
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "OptimizerReport":
+        if not isinstance(d, Mapping):
+            raise TypeError(f"optimizer must be a mapping of stages (got {type(d).__name__})")
+        return cls({str(stage): OptimizerRun.from_json(run) for stage, run in d.items()})

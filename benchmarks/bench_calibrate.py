@@ -22,7 +22,7 @@ on the calibration views only (it has no use for the stacking records).
 "calibrate() total" is the whole call: analytic initialisation (which itself
 runs cv2.calibrateCamera per camera), the bundle adjustment stage(s), outlier
 report, residuals and uncertainties. "BA" is the sum of the stages' solver
-time (extra["optimizer"][stage]["time_s"]); "it" its accepted steps and "ev"
+time (optimizer.runs[stage].time_s); "it" its accepted steps and "ev"
 its nonlinear error evaluations, per stage. cv2 and the calibrate() calls
 are interleaved within each repeat, so that load on the machine hits them
 alike; the table gives medians and the ratios of the medians.
@@ -85,10 +85,10 @@ def time_case(dataset, models=("ari", "exact"), repeats: int = 5, backends=("aut
             t = time.perf_counter()
             cal = calibrate(dataset, model=k[0], backend=k[1])
             totals[k].append(time.perf_counter() - t)
-            bas[k].append(sum(s["time_s"] for s in cal.extra["optimizer"].values()))
-            its[k] = "+".join(str(s["iterations"]) for s in cal.extra["optimizer"].values())
-            if all("error_evaluations" in s for s in cal.extra["optimizer"].values()):  # numpy backend
-                its[k] += " it, " + "+".join(str(s["error_evaluations"]) for s in cal.extra["optimizer"].values()) + " ev"
+            bas[k].append(sum(s["time_s"] for s in cal.optimizer.to_json().values()))
+            its[k] = "+".join(str(s["iterations"]) for s in cal.optimizer.to_json().values())
+            if all("error_evaluations" in s for s in cal.optimizer.to_json().values()):  # numpy backend
+                its[k] += " it, " + "+".join(str(s["error_evaluations"]) for s in cal.optimizer.to_json().values()) + " ev"
             else:
                 its[k] += " it"
     med = statistics.median

@@ -32,7 +32,8 @@ import gtsam
 import numpy as np
 
 from ..geometry import Pose, cam_from_world_from_pose3, pose3_from_cam_from_world, pose3_from_pose, pose_from_pose3
-from ..models.registry import bundle_factories
+from ..errors import AriSfmError
+from ..models.registry import bundle_factories, model_spec
 from ..records import Interface, Observation, Target, WindowPlane
 from . import keys as K_
 from .view_factor import ViewData, ViewKeys, factor_keys, view_factor, view_residuals
@@ -72,6 +73,60 @@ def default_distance_mm(normal_world: np.ndarray, cam_from_world: dict[str, Pose
     """
     centres = [p.inverse().t for p in cam_from_world.values()]
     return float(max(normal_world @ c for c in centres)) + 10.0
+
+
+def declared_plane(dataset, rig) -> WindowPlane | None:
+    """interface.plane, checked: its frame must be a calibration frame the initialisation placed."""
+    plane = dataset.interface.plane
+    if plane is None:
+        return None
+    calib = {o.frame for o in dataset.select("calibration")}
+    if plane.frame not in calib or plane.frame not in rig.world_from_target:
+        known = ", ".join(sorted(calib)[:5]) + (", ..." if len(calib) > 5 else "")
+        raise AriSfmError(dataset.rig_path, f"interface.plane.frame: {plane.frame!r} is not a calibration frame "
+                                            f"seen by the cameras (calibration frames: {known or 'none'})")
+    return plane
+
+
+def held_intrinsics(dataset, fix: bool) -> tuple[list[str], dict[str, float]]:
+    """Cameras whose K is held (a K hint) and camera -> focal held as fx = fy (a focal_px hint only)."""
+    if not fix:
+        return [], {}
+    cams = dataset.cameras
+    fixed = [n for n in dataset.camera_names if cams[n].K is not None]
+    focal = {n: float(cams[n].focal_px) for n in dataset.camera_names if cams[n].K is None and cams[n].focal_px is not None}
+    if not fixed and not focal:
+        raise AriSfmError(dataset.rig_path, "fix_intrinsics needs a K or focal_px hint for at least one camera "
+                                            "(cameras.<name>.K or cameras.<name>.focal_px)")
+    return fixed, focal
+
+
+def initial_state(dataset, rig, model: str = "ari", fix_intrinsics: bool = False) -> "RigState":
+    """The one starting state of a bundle adjustment from an analytic initialisation ``rig``
+    (:func:`ari_sfm.init.rig.initialise_rig`); ``model``: the first graph's model.
+
+    A declared plane (interface.plane) gives the normal and the distance, placed by its frame's initial
+    pose, in air too (there the rays do not depend on the distance, but the plane says where the window
+    is); else the rig.yaml distance, or (None) :func:`default_distance_mm` where the first graph needs
+    one: under water (estimated) or for a Snell model. ``fix_intrinsics``: the held hints
+    (:func:`held_intrinsics`) replace the initialisation's K (and distortion)."""
+    from .window_plane import plane_in_world
+
+    state = RigState.from_initialisation(rig, dataset.interface.distance_mm)
+    plane = declared_plane(dataset, rig)
+    if plane is not None:
+        n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
+        state = replace(state, normal_world=n_w, distance_mm=h_w)
+    elif state.distance_mm is None and (dataset.interface.medium_index != 1.0 or model_spec(model).needs_distance):
+        state = replace(state, distance_mm=default_distance_mm(state.normal_world, state.cam_from_world))
+    fixed, fixed_focal = held_intrinsics(dataset, fix_intrinsics)
+    for n in fixed:  # start from the hint exactly
+        hint = dataset.cameras[n]
+        state.params[n][:4] = [hint.K[0, 0], hint.K[1, 1], hint.K[0, 2], hint.K[1, 2]]
+        state.params[n][4:] = np.resize(hint.dist if hint.dist is not None else np.zeros(5), 5)
+    for n, f in fixed_focal.items():
+        state.params[n][:2] = f
+    return state
 
 
 @dataclass
@@ -180,7 +235,7 @@ class RigGraph:
                      sigma_px: float | None = None, workers: int | None = None) -> "RigGraph":
         """The graph of a dataset, initialised by the analytic pipeline (expansion centre, Zhang, Eq. 5,
         Eqs. 11-12, spanning tree over shared frames). A dataset with images only has its corners
-        detected first (:func:`ari_sfm.calibrate.ensure_observations`).
+        detected first (:func:`ari_sfm.detection.ensure_observations`).
 
         ``sigma_px``: the pixel sigma of the view factors; None estimates it (the robust sigma of
         the residuals after a first numpy solve of this graph, :func:`estimate_sigma_px`) so that
@@ -188,27 +243,16 @@ class RigGraph:
         With interface.plane, its factor (start: the plane at its frame's initial pose). Without
         stacking or plane the normal starts at camera 0's axis (exact only; ari refuses).
         """
-        from ..calibrate import ensure_observations
-        from ..init.rig import initialise_rig
+        from ..detection import ensure_observations
+        from ..init.rig import NO_NORMAL_MESSAGE, initialise_rig
 
         dataset = ensure_observations(dataset, workers)
         rig = initialise_rig(dataset, distortion)
         plane = dataset.interface.plane
-        if not rig.normal_observed and plane is None and model == "ari":
-            from ..errors import AriSfmError
-            from ..init.rig import NO_NORMAL_MESSAGE
-
+        if not rig.normal_observed and plane is None and not model_spec(model).needs_distance:
             raise AriSfmError(dataset.rig_path, NO_NORMAL_MESSAGE)
         underwater = dataset.interface.medium_index != 1.0
-        distance = dataset.interface.distance_mm
-        if distance is None and (underwater or model == "exact"):
-            distance = default_distance_mm(rig.normal_world, rig.cam_from_world)
-        state = RigState.from_initialisation(rig, distance)
-        if plane is not None:  # the declared window as placed by its frame's initial pose
-            from .window_plane import plane_in_world
-
-            n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
-            state = replace(state, normal_world=n_w, distance_mm=h_w if underwater or model == "exact" else distance)
+        state = initial_state(dataset, rig, model)
 
         def build(sigma: float) -> "RigGraph":
             return RigGraph.build(dataset.observations, dataset.target, dataset.interface, dataset.camera_names,

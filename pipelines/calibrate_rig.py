@@ -9,10 +9,12 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..calibrate import DEFAULT_MODEL, calibrate, ensure_observations
+from ..calibrate import DEFAULT_MODEL, CalibrationOptions, calibrate
 from ..calibration import Calibration
+from ..detection import ensure_observations
 from ..io import load_dataset, save_observations
 from ..models.registry import CALIBRATABLE
+from ..records import Dataset
 
 log = logging.getLogger(__name__)
 
@@ -22,22 +24,26 @@ class PipelineResult:
     calibration: Calibration
     calibration_path: Path
     observations_path: Path | None  # written when corners were detected here
+    dataset: Dataset | None = None  # the dataset calibrated, with its observations (detected or read)
 
 
-def main(dataset_path: Path, out_dir: Path, model: str = DEFAULT_MODEL, progress: bool = False, **options) -> PipelineResult:
-    """Load, detect (if the dataset has only images), calibrate; write calibration.json."""
-    dataset = load_dataset(dataset_path)
+def main(dataset_path: Path, out_dir: Path, model: str = DEFAULT_MODEL, progress: bool = False,
+         dataset: Dataset | None = None, options: CalibrationOptions | None = None, **overrides) -> PipelineResult:
+    """Load (unless ``dataset``, loaded from ``dataset_path``, is given), detect (if the dataset has only
+    images), calibrate with ``options`` and/or its fields as keywords; write calibration.json."""
+    dataset = load_dataset(dataset_path) if dataset is None else dataset
     detected = dataset.observations is None
-    dataset = ensure_observations(dataset, options.get("workers"), progress)
+    workers = overrides.get("workers", None if options is None else options.workers)
+    dataset = ensure_observations(dataset, workers, progress)
     out_dir.mkdir(parents=True, exist_ok=True)
     obs_path = None
     if detected:
         obs_path = out_dir / "observations.json"
         save_observations(obs_path, dataset.observations)
-    cal = calibrate(dataset, model=model, progress=progress, **options)
+    cal = calibrate(dataset, model=model, options=options, progress=progress, **overrides)
     cal_path = out_dir / "calibration.json"
     cal.save(cal_path)
-    return PipelineResult(cal, cal_path, obs_path)
+    return PipelineResult(cal, cal_path, obs_path, dataset)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,8 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..calibrate import DEFAULT_MODEL
+from ..calibrate import DEFAULT_MODEL, CalibrationOptions
+from ..calibration import Calibration
 from ..calibration_errors import CalibrationErrors, calibration_errors
 from ..io import load_dataset, write_json_atomic
 from ..models.registry import CALIBRATABLE
@@ -98,9 +99,9 @@ def remove_stale_reconstruction(out_dir: Path) -> None:
 
 
 def main(dataset_path: Path, out_dir: Path, model: str | None = None, truth: Path | None = None,
-         progress: bool = False, **options) -> RunResult:
-    """Calibrate (None: the best model, ``DEFAULT_MODEL``), reconstruct when possible, write run.json
-    and report.html."""
+         progress: bool = False, options: CalibrationOptions | None = None, **overrides) -> RunResult:
+    """Calibrate (None: the best model, ``DEFAULT_MODEL``; ``options`` and/or its fields as keywords),
+    reconstruct when possible, write run.json and report.html."""
     out_dir = Path(out_dir)
     check_run_folder(out_dir, dataset_path)  # another dataset's run there: refused before any work
     if truth is not None:
@@ -108,17 +109,22 @@ def main(dataset_path: Path, out_dir: Path, model: str | None = None, truth: Pat
 
         check_truth_matches(load_dataset(dataset_path), truth)  # before the calibration, not after it
     model = model or DEFAULT_MODEL
-    calibrated = calibrate_rig(dataset_path, out_dir, model=model, progress=progress, **options)
+    # the dataset is read once; the records travel in memory (the files written are what they hold)
+    calibrated = calibrate_rig(dataset_path, out_dir, model=model, progress=progress,
+                               dataset=load_dataset(dataset_path), options=options, **overrides)
     obs_path = calibrated.observations_path
-    dataset = load_dataset(dataset_path, obs_path)
+    dataset = calibrated.dataset
     frames, why = reconstruction_frames(dataset)
     quality = calibrated.calibration.quality
     if quality is not None and not quality.ok:  # stop before reconstructing with a failed calibration
         why = f"the calibration failed its quality gate: {quality.why}"
     rec = None
     if why is None:
+        # the calibration as calibration.json holds it (its poses are written as JSON): the points are then
+        # those `ari-sfm reconstruct` gives from that file, which the provenance names by its hash
+        as_saved = Calibration.from_json(calibrated.calibration.to_json(), calibrated.calibration_path)
         rec = run_reconstruction(dataset_path, calibrated.calibration_path, out_dir, truth, progress=progress,
-                                 observations=obs_path)
+                                 observations=obs_path, dataset=dataset, calibration=as_saved)
     else:
         log.info("reconstruction skipped: %s", why)
         remove_stale_reconstruction(out_dir)

@@ -108,18 +108,18 @@ def test_a_failed_start_is_retried_from_the_next(coarse, monkeypatch):
 
     solve = C._calibrate_from
 
-    def refuse_default(dataset, model, extra, opts, backend, start):
+    def refuse_default(solver, model, plan, start):
         if start.name == "default":
-            raise AriSfmError(dataset.rig_path, "no window distance puts every camera in front of the window")
-        return solve(dataset, model, extra, opts, backend, start)
+            raise AriSfmError(solver.dataset.rig_path, "no window distance puts every camera in front of the window")
+        return solve(solver, model, plan, start)
 
     monkeypatch.setattr(C, "_calibrate_from", refuse_default)
     cal = calibrate(coarse.dataset, model="ari", fix_intrinsics=True, uncertainty=False)
     assert cal.quality.ok and cal.quality.starts == ("default", "hints free in the start")
     assert cal.residuals.rmse_px < 0.4
 
-    def refuse_all(dataset, model, extra, opts, backend, start):
-        raise AriSfmError(dataset.rig_path, f"refused from {start.name}")
+    def refuse_all(solver, model, plan, start):
+        raise AriSfmError(solver.dataset.rig_path, f"refused from {start.name}")
 
     monkeypatch.setattr(C, "_calibrate_from", refuse_all)
     with pytest.raises(AriSfmError, match="refused from default"):

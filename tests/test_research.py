@@ -64,10 +64,10 @@ def test_sigma_px_given_or_estimated(single_scene, single_exact):
     """The images' sigma: estimated by default (the simulated 0.05 px), or given; the marginals scale with it."""
     est = single_exact.uncertainty.sigma_px
     assert est == pytest.approx(0.05, rel=0.1)
-    stage_sigma = {k: s["sigma_px"] for k, s in single_exact.extra["optimizer"].items()}
+    stage_sigma = {k: s["sigma_px"] for k, s in single_exact.optimizer.to_json().items()}
     assert stage_sigma == {"ari": 1.0, "exact": 1.0}  # nothing to re-weight without priors: each stage at 1 px
     given = calibrate(single_scene.dataset, model="exact", sigma_px=0.1)
-    assert {s["sigma_px"] for s in given.extra["optimizer"].values()} == {0.1}
+    assert {s["sigma_px"] for s in given.optimizer.to_json().values()} == {0.1}
     u, u_est = given.uncertainty, single_exact.uncertainty
     assert u.sigma_px == 0.1
     assert u.normal_deg == pytest.approx(u_est.normal_deg * 0.1 / est, rel=1e-3)

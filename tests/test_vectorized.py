@@ -307,11 +307,11 @@ def test_backend_option(single_scene, single_exact):
     assert resolve_backend("auto") == "numpy"
     with pytest.raises(ValueError, match="backend"):
         calibrate(single_scene.dataset, model="ari", backend="cuda")
-    assert all(s["backend"] == "numpy" for s in single_exact.extra["optimizer"].values())  # the default, "auto"
+    assert all(s["backend"] == "numpy" for s in single_exact.optimizer.to_json().values())  # the default, "auto"
     ref = calibrate(single_scene.dataset, model="exact", backend="gtsam")
-    assert all(s["backend"] == "gtsam" for s in ref.extra["optimizer"].values())
-    for stage, s in ref.extra["optimizer"].items():
-        assert abs(single_exact.extra["optimizer"][stage]["iterations"] - s["iterations"]) <= 1
+    assert all(s["backend"] == "gtsam" for s in ref.optimizer.to_json().values())
+    for stage, s in ref.optimizer.to_json().items():
+        assert abs(single_exact.optimizer.to_json()[stage]["iterations"] - s["iterations"]) <= 1
     assert _angle_deg(ref.normal_world, single_exact.normal_world) < 1e-6
     for name, cam in ref.cameras.items():
         np.testing.assert_allclose(single_exact.cameras[name].K, cam.K, rtol=1e-9, atol=1e-9)

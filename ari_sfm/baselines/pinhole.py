@@ -16,6 +16,7 @@ import numpy as np
 
 from ..evaluate import residual_stats
 from ..records import Dataset
+from ..results import OptimizerReport, OptimizerRun
 from .bundle import camera_calibrations, intrinsics_vector, project_directions, start_bundle
 
 log = logging.getLogger(__name__)
@@ -51,8 +52,8 @@ def calibrate_pinhole(dataset: Dataset, distortion: bool = False, max_iterations
         frames=dict(zip(pts.frames, frames)),
         residuals=residual_stats([res]),
         time_s=elapsed,
-        extra={"optimizer": {model: {"nfev": int(result.nfev), "status": int(result.status), "time_s": elapsed,
-                                     "backend": "scipy.least_squares(lm), numeric Jacobian"}},
-               "window_ignored": True},
+        optimizer=OptimizerReport({model: OptimizerRun(elapsed, "scipy.least_squares(lm), numeric Jacobian",
+                                                       nfev=int(result.nfev), status=int(result.status))}),
+        extra={"window_ignored": True},
         target=dataset.target,
     )

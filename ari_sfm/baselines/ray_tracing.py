@@ -32,6 +32,7 @@ from ..errors import AriSfmError
 from ..evaluate import residual_stats
 from ..geometry import unit
 from ..records import Dataset, Interface
+from ..results import OptimizerReport, OptimizerRun
 from .bundle import camera_calibrations, intrinsics_vector, project_directions, start_bundle
 
 log = logging.getLogger(__name__)
@@ -146,8 +147,8 @@ def calibrate_rt(dataset: Dataset, distortion: bool = False, max_iterations: int
     per_camera = {name: res[pts.camera == c] for c, name in enumerate(bundle.names)}
     log.info("rt: %d function evaluations, %.1f ms, rmse %.4f px", result.nfev, elapsed * 1e3,
              residual_stats([res]).rmse_px)
-    extra = {"optimizer": {"rt": {"nfev": int(result.nfev), "status": int(result.status), "time_s": elapsed,
-                                  "backend": "scipy.least_squares(lm), numeric Jacobian"}}}
+    optimizer = OptimizerReport({"rt": OptimizerRun(elapsed, "scipy.least_squares(lm), numeric Jacobian",
+                                                    nfev=int(result.nfev), status=int(result.status))})
     return Calibration(
         model="rt",
         interface=Interface(d, n, n_m, float(distance) if underwater else None),
@@ -156,7 +157,7 @@ def calibrate_rt(dataset: Dataset, distortion: bool = False, max_iterations: int
         frames=dict(zip(pts.frames, frames)),
         residuals=residual_stats([res]),
         time_s=elapsed,
-        extra=extra,
+        optimizer=optimizer,
         target=dataset.target,
         fixed_distance_mm=None if underwater else float(distance0),
     )
