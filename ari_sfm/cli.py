@@ -325,13 +325,33 @@ def export_colmap_cmd(calibration: Path, out: Path, dataset: Path | None, points
 @click.argument("scenario")
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder: OUT/dataset and OUT/truth.json.")
 @click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--sigma", type=float, default=0.05, show_default=True, help="Pixel noise per coordinate.")
+@click.option("--sigma", type=float, default=None, help="Pixel noise per coordinate (default 0.05; particles: 0.1).")
 @click.option("--image-scale", type=float, default=1.0, show_default=True, help="Scale of image size and focal length.")
 @click.option("--images/--no-images", default=None, help="Render PNG images (default: per scenario).")
+@click.option("--cameras", "num_cameras", type=int, default=4, show_default=True, help="particles: cameras on a ring.")
+@click.option("--particles", "particles_per_frame", type=int, default=2000, show_default=True,
+              help="particles: particles per frame (60 x 40 x 30 mm volume at ~400 mm, 10 mm glass, water).")
+@click.option("--frames", "num_frames", type=int, default=10, show_default=True, help="particles: frames.")
+@click.option("--render-frames", type=int, default=2, show_default=True,
+              help="particles: frames rendered as images (Gaussian particle images).")
+@click.option("--drift-deg", type=float, default=0.05, show_default=True,
+              help="particles: rotation of each drifted camera after the target calibration.")
+@click.option("--drift-mm", type=float, default=0.3, show_default=True,
+              help="particles: translation of each drifted camera after the target calibration.")
+@click.option("--drift-cameras", default="1,2,3", show_default=True,
+              help="particles: indices of the drifted cameras (comma-separated; '' for none).")
 @user_errors
-def simulate(scenario: str, out: Path, seed: int, sigma: float, image_scale: float, images: bool | None) -> None:
+def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_scale: float, images: bool | None,
+             num_cameras: int, particles_per_frame: int, num_frames: int, render_frames: int, drift_deg: float,
+             drift_mm: float, drift_cameras: str) -> None:
     """Write a simulated dataset (exact Snell physics) and its truth. SCENARIO: one of `ari-sfm scenarios`."""
     from .simulate import SCENARIOS, simulate as run_sim
+
+    if scenario == "particles":  # a particle experiment: rig A's target calibration, drifted rig B, particles
+        _simulate_particles(out, seed, 0.1 if sigma is None else sigma, num_cameras, particles_per_frame, num_frames,
+                            render_frames, drift_deg, drift_mm, drift_cameras)
+        return
+    sigma = 0.05 if sigma is None else sigma
 
     if scenario == "port_survey":  # structure from motion behind a flat port (refine-colmap's truth)
         from .simulate.port_survey import write_port_survey
@@ -350,6 +370,119 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float, image_scale: flo
     click.echo(f"dataset: {ds}\ntruth:   {truth}")
 
 
+def _simulate_particles(out: Path, seed: int, sigma: float, num_cameras: int, particles_per_frame: int,
+                        num_frames: int, render_frames: int, drift_deg: float, drift_mm: float, drift_cameras: str) -> None:
+    """`simulate particles`: write OUT/calibration, OUT/experiment, OUT/truth (ari_sfm.simulate.particles)."""
+    from .simulate.particles import ParticleSimOptions, simulate_particle_experiment, write_particle_experiment
+
+    check_output_folder(out)
+    check_number("--sigma", sigma, minimum=0.0, maximum=100.0)
+    check_number("--cameras", num_cameras, minimum=2, maximum=8)
+    check_number("--particles", particles_per_frame, minimum=1, maximum=1e6)
+    check_number("--frames", num_frames, minimum=1, maximum=1e6)
+    check_number("--render-frames", render_frames, minimum=0, maximum=num_frames)
+    check_number("--drift-deg", drift_deg, minimum=0.0, maximum=10.0)
+    check_number("--drift-mm", drift_mm, minimum=0.0, maximum=100.0)
+    try:
+        drifted = tuple(int(c) for c in drift_cameras.split(",") if c.strip())
+    except ValueError:
+        raise AriSfmError("--drift-cameras", f"must be camera indices separated by commas (got {drift_cameras!r})") from None
+    bad = [c for c in drifted if not 0 <= c < num_cameras]
+    if bad:
+        raise AriSfmError("--drift-cameras", f"{bad} not among the cameras 0..{num_cameras - 1}")
+    options = ParticleSimOptions(num_cameras=num_cameras, particles_per_frame=particles_per_frame,
+                                 num_frames=num_frames, sigma_px=sigma, drift_cameras=drifted, drift_deg=drift_deg,
+                                 drift_mm=drift_mm, seed=seed)
+    paths = write_particle_experiment(simulate_particle_experiment(options), out, render_frames=render_frames)
+    click.echo(f"calibration dataset (rig A): {paths['calibration']}\nexperiment (rig B):          "
+               f"{paths['experiment']}\ntruth:                       {paths['truth']} (rig_a.json, rig_b.json, "
+               "particles.parquet, detections.parquet)")
+
+
+_workers_option = click.option("--workers", type=int, default=1, show_default=True,
+                               help="Dask LocalCluster worker processes, one thread each (0: in this process).")
+_scheduler_option = click.option("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                                 help="An existing Dask scheduler (e.g. a SLURM cluster via dask-jobqueue) "
+                                      "instead of a LocalCluster.")
+
+
+@main.command(name="detect-particles")
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
+              help="Output folder: particles.parquet, detect-particles.json, parts/ (resumable).")
+@click.option("--diameter-px", type=float, default=None, help="Particle image diameter (default: rig.yaml's, else 3).")
+@click.option("--threshold-sigma", type=float, default=6.0, show_default=True,
+              help="Peaks above the background by this many noise sigmas.")
+@click.option("--frames-per-partition", type=int, default=20, show_default=True)
+@_workers_option
+@_scheduler_option
+@user_errors
+def detect_particles_cmd(dataset: Path, out: Path, diameter_px: float | None, threshold_sigma: float,
+                         frames_per_partition: int, workers: int, scheduler: str | None) -> None:
+    """Find the particle images of DATASET's particles.images; write OUT/particles.parquet."""
+    from .io.particles import load_particle_dataset
+    from .particles.detect import DetectOptions, detect_experiment
+
+    check_output_folder(out)
+    check_number("--diameter-px", diameter_px, minimum=0.0, maximum=1000.0, strict_minimum=True)
+    check_number("--threshold-sigma", threshold_sigma, minimum=0.0, strict_minimum=True)
+    check_number("--frames-per-partition", frames_per_partition, minimum=1)
+    check_number("--workers", workers, minimum=0, maximum=1024)
+    if diameter_px is None:
+        diameter_px = load_particle_dataset(dataset).diameter_px or DetectOptions.diameter_px
+    s = detect_experiment(dataset, out, DetectOptions(diameter_px=diameter_px, threshold_sigma=threshold_sigma),
+                          frames_per_partition=frames_per_partition, workers=workers, scheduler=scheduler,
+                          progress=True)
+    click.echo(f"{s['detections']} particle images in frames {s['frames'][0]}..{s['frames'][1]} "
+               f"({', '.join(f'{c}: {n}' for c, n in s['per_camera'].items())}) in {s['time_s']:.1f} s "
+               f"-> {out / 'particles.parquet'}")
+
+
+@main.command(name="particles")
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option("--calibration", type=click.Path(path_type=Path), required=True, help="calibration.json of the rig.")
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
+              help="Output folder: particles3d.parquet, particles3d.json, parts/ (resumable).")
+@click.option("--detections", type=click.Path(path_type=Path), default=None,
+              help="A particles.parquet (default: the one rig.yaml names; e.g. detect-particles' output).")
+@click.option("--tolerance-px", type=float, default=0.5, show_default=True,
+              help="Distance of a candidate from the refracted epipolar curve, and of each ray from the point.")
+@click.option("--min-cameras", type=int, default=3, show_default=True, help="Images per particle.")
+@click.option("--depth-range", type=float, nargs=2, default=None, metavar="ZMIN ZMAX",
+              help="World z range (mm) of the particles, instead of rig.yaml's particles.volume_mm.")
+@click.option("--frames-per-partition", type=int, default=50, show_default=True)
+@_workers_option
+@_scheduler_option
+@user_errors
+def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path | None, tolerance_px: float,
+                  min_cameras: int, depth_range: tuple[float, float] | None, frames_per_partition: int, workers: int,
+                  scheduler: str | None) -> None:
+    """Match particle images through the window and triangulate them: OUT/particles3d.parquet."""
+    from .particles.reconstruct import MatchOptions, reconstruct_particles
+
+    check_output_folder(out)
+    check_number("--tolerance-px", tolerance_px, minimum=0.0, maximum=100.0, strict_minimum=True)
+    check_number("--min-cameras", min_cameras, minimum=2, maximum=64)
+    check_number("--frames-per-partition", frames_per_partition, minimum=1)
+    check_number("--workers", workers, minimum=0, maximum=1024)
+    if depth_range is not None:
+        for v in depth_range:
+            check_number("--depth-range", v)
+        if not depth_range[1] > depth_range[0]:
+            raise AriSfmError("--depth-range", f"ZMAX must exceed ZMIN (got {depth_range[0]:g} {depth_range[1]:g})")
+    options = MatchOptions(tolerance_px=tolerance_px, min_cameras=min_cameras,
+                           depth_range_mm=None if depth_range is None else tuple(depth_range),
+                           frames_per_partition=frames_per_partition)
+    s = reconstruct_particles(dataset, calibration, out, options, detections_path=detections, workers=workers,
+                              scheduler=scheduler, progress=True)
+    gap = "n/a" if s["mean_ray_gap_mm"] is None else f"{s['mean_ray_gap_mm']:.4f} mm"
+    click.echo(f"{s['particles']} particles in {len(s['frames'])} frames, {100 * s['matched_fraction']:.1f} % of "
+               f"the particle images matched, mean ray gap {gap}, {s['time_s']:.1f} s "
+               f"({s['particles_per_second']:.0f} particles/s)"
+               + (f", {len(s['partitions']['skipped'])} partitions resumed" if s["partitions"]["skipped"] else ""))
+    click.echo(f"particles: {out / 'particles3d.parquet'}\nsummary:   {out / 'particles3d.json'}")
+
+
 @main.command()
 def scenarios() -> None:
     """List the simulator's scenarios."""
@@ -357,6 +490,8 @@ def scenarios() -> None:
 
     for name, text in SCENARIOS.items():
         click.echo(f"{name:28s} {text}")
+    click.echo(f"{'particles':28s} a particle experiment: 4 cameras, 10 mm glass into water, 2000 particles per frame "
+               "in 60 x 40 x 30 mm at ~400 mm, 0.1 px noise; rig A's body calibration, drifted rig B, images, truth")
 
 
 @main.command()

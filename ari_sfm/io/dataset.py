@@ -52,7 +52,7 @@ RIG_NAMES = ("rig.yaml", "rig.yml", "rig.json")
 TARGET_TYPES = ("checkerboard", "charuco", "circles", "points3d")
 CIRCLE_LAYOUTS = ("symmetric", "asymmetric")
 DIST_LENGTHS = (4, 5, 8, 12, 14)
-TOP_KEYS = ("format", "target", "interface", "cameras", *SETS, "observations")
+TOP_KEYS = ("format", "target", "interface", "cameras", *SETS, "observations", "particles")  # particles: io/particles.py
 TARGET_KEYS = {
     "checkerboard": ("type", "inner_corners", "square_mm"),
     "charuco": ("type", "squares", "square_mm", "marker_mm", "dictionary"),

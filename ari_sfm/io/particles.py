@@ -1,0 +1,258 @@
+"""A particle experiment (DATASET_FORMAT.md, 1.2): rig.yaml ``particles:``, the detections table
+``particles.parquet`` and the reconstruction table ``particles3d.parquet``.
+
+Every reader validates fully and raises :class:`~ari_sfm.errors.AriSfmError` (file + one line);
+every writer writes atomically.
+"""
+from __future__ import annotations
+
+import io
+import os
+import string
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from ari_sfm.errors import AriSfmError
+from ari_sfm.io.atomic import write_bytes_atomic
+from ari_sfm.io.dataset import find_rig, parse_cameras, parse_interface
+from ari_sfm.io.observations import check_format
+from ari_sfm.io.structured import (
+    as_float_array,
+    as_int_pair,
+    as_mapping,
+    as_name,
+    as_positive_float,
+    as_str,
+    read_structured,
+    require,
+    warn_unknown_keys,
+)
+from ari_sfm.records import CameraSpec, Interface
+
+PARTICLES_KEYS = ("detections", "images", "frames", "diameter_px", "volume_mm")
+VOLUME_KEYS = ("frame", "min", "max")
+DETECTION_COLUMNS = ("frame", "camera", "u", "v")  # + optional intensity
+RECONSTRUCTION_COLUMNS = ("frame", "x", "y", "z", "ray_gap_mm", "cameras")  # + row_<camera>
+
+
+@dataclass(frozen=True)
+class VolumeSpec:
+    """rig.yaml ``particles.volume_mm``: an axis-aligned box in a camera's frame."""
+
+    frame: str
+    min_mm: np.ndarray
+    max_mm: np.ndarray
+
+
+@dataclass(frozen=True)
+class ParticleDataset:
+    """A dataset folder's rig with its ``particles`` entry (target and frame entries are not needed)."""
+
+    root: Path
+    rig_path: Path
+    interface: Interface
+    cameras: Mapping[str, CameraSpec]
+    detections: Path | None  # absolute
+    images: Mapping[str, str] | None  # camera -> absolute path pattern with {frame}
+    frames: tuple[int, int] | None  # first and last frame of the images, inclusive
+    diameter_px: float | None
+    volume: VolumeSpec | None
+
+    @property
+    def camera_names(self) -> list[str]:
+        return list(self.cameras)
+
+    def image_path(self, camera: str, frame: int) -> Path:
+        return Path(self.images[camera].format(frame=frame))
+
+
+@dataclass(frozen=True)
+class Detections:
+    """A detections table, checked. Rows in file order; ``rows_of(frame, camera)`` indexes them."""
+
+    path: Path
+    frame: np.ndarray  # (N,) int64
+    camera: np.ndarray  # (N,) str (object)
+    uv: np.ndarray  # (N, 2)
+    intensity: np.ndarray | None  # (N,)
+
+    @property
+    def frames(self) -> np.ndarray:
+        return np.unique(self.frame)
+
+    def by_frame(self, cameras: list[str]) -> dict[int, dict[str, np.ndarray]]:
+        """frame -> camera -> the file rows (int64) of its detections, in file order."""
+        out: dict[int, dict[str, np.ndarray]] = {}
+        order = np.lexsort((np.arange(len(self.frame)), self.frame))
+        f_sorted = self.frame[order]
+        bounds = np.flatnonzero(np.diff(f_sorted)) + 1
+        for rows in np.split(order, bounds):
+            if not len(rows):
+                continue
+            cams = self.camera[rows]
+            out[int(self.frame[rows[0]])] = {c: rows[cams == c] for c in cameras}
+        return out
+
+
+# --------------------------------------------------------------------------- rig.yaml
+
+
+def _pattern(value: Any, path: Path, where: str, root: Path) -> str:
+    pattern = as_str(value, path, where)
+    try:
+        fields = [f for _, f, _, _ in string.Formatter().parse(pattern) if f is not None]
+        pattern.format(frame=0)
+    except (ValueError, KeyError, IndexError) as exc:
+        raise AriSfmError(path, f"{where}: not a pattern with {{frame}} ({exc})") from None
+    if fields != ["frame"]:
+        raise AriSfmError(path, f"{where}: the pattern must hold {{frame}} once and no other field (got {pattern!r})")
+    return os.path.abspath(root / pattern)
+
+
+def load_particle_dataset(path: str | Path) -> ParticleDataset:
+    """The rig of a particle experiment (a folder with rig.yaml / rig.json, or the file)."""
+    rig_path = Path(os.path.abspath(find_rig(path)))
+    root = rig_path.parent
+    data = read_structured(rig_path)
+    as_mapping(data, rig_path, "")
+    check_format(data, rig_path, "ari-sfm/1")
+    interface = parse_interface(require(data, "interface", rig_path), rig_path)
+    cameras = parse_cameras(require(data, "cameras", rig_path), rig_path)
+    if data.get("particles") is None:
+        raise AriSfmError(rig_path, "no 'particles' entry: not a particle experiment (DATASET_FORMAT.md 1.2)")
+    p = as_mapping(data["particles"], rig_path, "particles")
+    warn_unknown_keys(p, PARTICLES_KEYS, rig_path, "particles")
+    detections = None
+    if p.get("detections") is not None:
+        detections = Path(os.path.abspath(root / as_str(p["detections"], rig_path, "particles.detections")))
+    images = frames = None
+    if p.get("images") is not None:
+        raw = as_mapping(p["images"], rig_path, "particles.images")
+        images = {}
+        for cam, pattern in raw.items():
+            name = as_name(cam, rig_path, "particles.images camera")
+            if name not in cameras:
+                raise AriSfmError(rig_path, f"particles.images: camera '{name}' is not declared under cameras "
+                                            f"({', '.join(cameras)})")
+            images[name] = _pattern(pattern, rig_path, f"particles.images.{name}", root)
+        first, last = as_int_pair(require(p, "frames", rig_path, "particles"), rig_path, "particles.frames", minimum=0)
+        if last < first:
+            raise AriSfmError(rig_path, f"particles.frames: last frame {last} before the first {first}")
+        frames = (first, last)
+    if detections is None and images is None:
+        raise AriSfmError(rig_path, "particles: needs 'detections' (a parquet table) or 'images' (patterns per camera)")
+    diameter = p.get("diameter_px")
+    diameter = None if diameter is None else as_positive_float(diameter, rig_path, "particles.diameter_px")
+    volume = None
+    if p.get("volume_mm") is not None:
+        v = as_mapping(p["volume_mm"], rig_path, "particles.volume_mm")
+        warn_unknown_keys(v, VOLUME_KEYS, rig_path, "particles.volume_mm")
+        frame = as_name(v.get("frame", next(iter(cameras))), rig_path, "particles.volume_mm.frame")
+        if frame not in cameras:
+            raise AriSfmError(rig_path, f"particles.volume_mm.frame: '{frame}' is not a camera of the rig")
+        lo = as_float_array(require(v, "min", rig_path, "particles.volume_mm"), rig_path, "particles.volume_mm.min", (3,))
+        hi = as_float_array(require(v, "max", rig_path, "particles.volume_mm"), rig_path, "particles.volume_mm.max", (3,))
+        if not np.all(hi > lo):
+            raise AriSfmError(rig_path, "particles.volume_mm: max must exceed min on every axis")
+        volume = VolumeSpec(frame, lo, hi)
+    return ParticleDataset(root=root, rig_path=rig_path, interface=interface, cameras=cameras,
+                           detections=detections, images=images, frames=frames, diameter_px=diameter, volume=volume)
+
+
+# --------------------------------------------------------------------------- parquet
+
+
+def _read_table(path: Path):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    if not path.is_file():
+        raise AriSfmError(path, "no such file (a particles parquet table)")
+    try:
+        return pq.read_table(path)
+    except (pa.ArrowException, OSError) as exc:
+        raise AriSfmError(path, f"not a readable parquet table ({str(exc).splitlines()[0]})") from None
+
+
+def _column(table, name: str, path: Path, kind: str) -> np.ndarray:
+    import pyarrow as pa
+
+    if name not in table.column_names:
+        raise AriSfmError(path, f"missing column '{name}' (columns: {', '.join(table.column_names)})")
+    col = table.column(name)
+    t = col.type
+    if col.null_count:
+        raise AriSfmError(path, f"column '{name}' has {col.null_count} empty (null) values")
+    if kind == "int" and not pa.types.is_integer(t):
+        raise AriSfmError(path, f"column '{name}' must be integer (got {t})")
+    if kind == "float" and not (pa.types.is_floating(t) or pa.types.is_integer(t)):
+        raise AriSfmError(path, f"column '{name}' must be a number (got {t})")
+    if kind == "str" and not (pa.types.is_string(t) or pa.types.is_large_string(t) or pa.types.is_dictionary(t)):
+        raise AriSfmError(path, f"column '{name}' must be a string (got {t})")
+    if kind == "str":
+        return np.asarray(col.to_pylist(), dtype=object)
+    return col.to_numpy().astype(np.int64 if kind == "int" else float)
+
+
+def read_detections(path: str | Path, cameras: Mapping[str, CameraSpec] | list[str]) -> Detections:
+    """Read and check ``particles.parquet`` against the rig's cameras (names; pixels finite)."""
+    path = Path(path)
+    table = _read_table(path)
+    frame = _column(table, "frame", path, "int")
+    camera = _column(table, "camera", path, "str")
+    u = _column(table, "u", path, "float")
+    v = _column(table, "v", path, "float")
+    intensity = _column(table, "intensity", path, "float") if "intensity" in table.column_names else None
+    names = list(cameras)
+    known = np.isin(camera, names)
+    if not known.all():
+        k = int(np.flatnonzero(~known)[0])
+        raise AriSfmError(path, f"row {k}: camera '{camera[k]}' is not declared in rig.yaml ({', '.join(names)})")
+    bad = ~(np.isfinite(u) & np.isfinite(v))
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise AriSfmError(path, f"row {k}: u, v must be finite numbers (got {u[k]}, {v[k]}); "
+                                f"{int(bad.sum())} such rows")
+    if (frame < 0).any():
+        raise AriSfmError(path, f"row {int(np.flatnonzero(frame < 0)[0])}: frame must be >= 0")
+    return Detections(path, frame, camera, np.stack([u, v], axis=1), intensity)
+
+
+def parquet_bytes(columns: Mapping[str, Any]) -> bytes:
+    """A parquet file of the given columns (numpy arrays or lists), in memory."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    buf = io.BytesIO()
+    pq.write_table(pa.table(dict(columns)), buf)
+    return buf.getvalue()
+
+
+def write_parquet_atomic(path: str | Path, columns: Mapping[str, Any]) -> None:
+    """Write a parquet table atomically (a reader never sees half of it)."""
+    write_bytes_atomic(path, parquet_bytes(columns))
+
+
+def write_detections(path: str | Path, frame: np.ndarray, camera: list[str] | np.ndarray, uv: np.ndarray,
+                     intensity: np.ndarray | None = None) -> None:
+    """Write a detections table (contract columns, file order as given)."""
+    cols: dict[str, Any] = {"frame": np.asarray(frame, np.int64), "camera": [str(c) for c in camera],
+                            "u": np.asarray(uv, float).reshape(-1, 2)[:, 0],
+                            "v": np.asarray(uv, float).reshape(-1, 2)[:, 1]}
+    if intensity is not None:
+        cols["intensity"] = np.asarray(intensity, float)
+    write_parquet_atomic(path, cols)
+
+
+def read_reconstruction(path: str | Path, cameras: list[str]) -> dict[str, np.ndarray]:
+    """Read ``particles3d.parquet``: its columns as arrays (contract columns checked)."""
+    path = Path(path)
+    table = _read_table(path)
+    out = {name: _column(table, name, path, "int" if name in ("frame", "cameras") else "float")
+           for name in RECONSTRUCTION_COLUMNS}
+    for cam in cameras:
+        out[f"row_{cam}"] = _column(table, f"row_{cam}", path, "int")
+    return out

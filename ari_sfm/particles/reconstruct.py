@@ -1,0 +1,208 @@
+"""``ari-sfm particles``: every frame of a particle experiment matched and triangulated.
+
+Writes ``OUT/particles3d.parquet`` (DATASET_FORMAT.md 1.2: frame, x, y, z,
+ray_gap_mm, cameras, row_<camera>) and ``OUT/particles3d.json`` (counts per
+frame, matched fraction, mean ray gap, tolerance, time), through partitions
+(:mod:`ari_sfm.particles.engine`) so a long run resumes.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ari_sfm.calibration import Calibration, load_calibration
+from ari_sfm.errors import AriSfmError
+from ari_sfm.io import write_json_atomic
+from ari_sfm.io.particles import (
+    ParticleDataset,
+    load_particle_dataset,
+    read_detections,
+    write_parquet_atomic,
+)
+from ari_sfm.particles.engine import Partition, check_run_settings, dask_client, merge_partitions, run_partitions, split_frames
+from ari_sfm.particles.match import match_frame
+from ari_sfm.particles.volume import Volume
+
+log = logging.getLogger(__name__)
+
+SUMMARY_FORMAT = "ari-sfm-particles3d/1"
+
+
+@dataclass(frozen=True)
+class MatchOptions:
+    """How frames are matched."""
+
+    tolerance_px: float = 0.5  # distance of a candidate from the refracted epipolar curve; of each ray from the point
+    min_cameras: int = 3  # images per particle
+    depth_range_mm: tuple[float, float] | None = None  # world z slab, instead of rig.yaml volume_mm
+    frames_per_partition: int = 50  # one task and one parts/ file per this many frames
+
+
+def check_calibration_fits(calibration: Calibration, dataset: ParticleDataset, path: Path) -> None:
+    """The calibration is of the dataset's rig: the same camera names and image sizes."""
+    if set(calibration.cameras) != set(dataset.cameras):
+        raise AriSfmError(path, f"a calibration of another rig: cameras {', '.join(calibration.cameras)}, "
+                                f"the dataset's are {', '.join(dataset.cameras)}")
+    for name, spec in dataset.cameras.items():
+        if tuple(calibration.cameras[name].image_size) != tuple(spec.image_size):
+            raise AriSfmError(path, f"a calibration of another rig: {name} has image size "
+                                    f"{list(calibration.cameras[name].image_size)}, the dataset's {list(spec.image_size)}")
+    if not calibration.spec.rays:
+        raise AriSfmError(path, f"model {calibration.model} has no rays through the window: particles need "
+                                "a model with one (exact, ari, rt)")
+
+
+def volume_for(dataset: ParticleDataset, calibration: Calibration, depth_range_mm: tuple[float, float] | None
+               ) -> Volume:
+    """The measured volume in the calibration's world: ``--depth-range`` (world z) if given, else rig.yaml's."""
+    if depth_range_mm is not None:
+        return Volume.depth_range(*depth_range_mm)
+    if dataset.volume is None:
+        raise AriSfmError(dataset.rig_path, "particles.volume_mm is not given: declare the measured volume there "
+                                            "or pass --depth-range ZMIN ZMAX (mm, world z)")
+    v = dataset.volume
+    return Volume(v.min_mm, v.max_mm, calibration.cameras[v.frame].cam_from_world)
+
+
+def match_partition(calibration_json: dict, volume: Volume, tolerance_px: float, min_cameras: int,
+                    frames: list[int], pixels: list[dict[str, np.ndarray]], rows: list[dict[str, np.ndarray]]
+                    ) -> dict[str, np.ndarray]:
+    """One partition's particles3d columns (a Dask task: plain arguments, no files)."""
+    calibration = Calibration.from_json(calibration_json)
+    cameras = list(calibration.cameras)
+    cols: dict[str, list] = {k: [] for k in ("frame", "x", "y", "z", "ray_gap_mm", "cameras")}
+    file_rows: list[np.ndarray] = []
+    for frame, px, rw in zip(frames, pixels, rows):
+        m = match_frame(calibration, px, tolerance_px, volume=volume, min_cameras=min_cameras)
+        n = len(m.xyz)
+        cols["frame"].append(np.full(n, frame, np.int64))
+        for k, axis in enumerate("xyz"):
+            cols[axis].append(m.xyz[:, k])
+        cols["ray_gap_mm"].append(m.ray_gap_mm)
+        cols["cameras"].append(m.num_cameras.astype(np.int64))
+        g = np.full(m.rows.shape, -1, np.int64)
+        for k, cam in enumerate(cameras):
+            used = m.rows[:, k] >= 0
+            g[used, k] = rw[cam][m.rows[used, k]]
+        file_rows.append(g)
+    out = {k: np.concatenate(v) if v else np.empty(0) for k, v in cols.items()}
+    out["frame"] = out["frame"].astype(np.int64)
+    out["cameras"] = out["cameras"].astype(np.int64)
+    g = np.concatenate(file_rows) if file_rows else np.empty((0, len(cameras)), np.int64)
+    for k, cam in enumerate(cameras):
+        out[f"row_{cam}"] = g[:, k]
+    return out
+
+
+def reconstruct_particles(dataset_path: str | Path, calibration_path: str | Path, out: str | Path,
+                          options: MatchOptions = MatchOptions(), detections_path: str | Path | None = None,
+                          workers: int = 0, scheduler: str | None = None, progress: bool = False) -> dict[str, Any]:
+    """Match and triangulate every frame; write OUT/particles3d.parquet and OUT/particles3d.json.
+
+    ``workers``: LocalCluster processes (0: this process); ``scheduler``: an existing Dask
+    scheduler's address instead. Returns the summary (what particles3d.json holds).
+    """
+    t0 = time.perf_counter()
+    out = Path(out)
+    dataset = load_particle_dataset(dataset_path)
+    if Path(os.path.realpath(out)) == Path(os.path.realpath(dataset.root)):
+        raise AriSfmError(out, "-o/--out is the dataset folder: write the results elsewhere")
+    calibration_path = Path(calibration_path)
+    calibration = load_calibration(calibration_path)
+    check_calibration_fits(calibration, dataset, calibration_path)
+    if not 2 <= options.min_cameras <= len(calibration.cameras):
+        raise AriSfmError("--min-cameras", f"must be 2..{len(calibration.cameras)} for this rig "
+                                           f"(got {options.min_cameras})")
+    det_path = Path(detections_path) if detections_path is not None else dataset.detections
+    if det_path is None:
+        raise AriSfmError(dataset.rig_path, "particles: names no detections table: run `ari-sfm detect-particles` "
+                                            "and pass its particles.parquet with --detections")
+    detections = read_detections(det_path, dataset.cameras)
+    volume = volume_for(dataset, calibration, options.depth_range_mm)
+    cameras = list(calibration.cameras)
+    by_frame = detections.by_frame(cameras)
+    cal_json = calibration.to_json()
+    settings = {"task": "particles", "tolerance_px": options.tolerance_px, "min_cameras": options.min_cameras,
+                "depth_range_mm": None if options.depth_range_mm is None else list(options.depth_range_mm),
+                "frames_per_partition": options.frames_per_partition,
+                "calibration": str(Path(os.path.abspath(calibration_path))),
+                "detections": str(Path(os.path.abspath(det_path))),
+                "detections_rows": int(len(detections.frame))}
+    out.mkdir(parents=True, exist_ok=True)
+    check_run_settings(out, settings)
+    partitions = []
+    for chunk in split_frames(by_frame, options.frames_per_partition):
+        pixels = [{c: detections.uv[by_frame[f][c]] for c in cameras} for f in chunk]
+        rows = [{c: by_frame[f][c] for c in cameras} for f in chunk]
+        partitions.append(Partition(chunk[0], chunk[-1], (cal_json, volume, options.tolerance_px,
+                                                          options.min_cameras, chunk, pixels, rows)))
+    skipped = []
+    from tqdm import tqdm
+
+    with dask_client(workers, scheduler) as client, \
+            tqdm(total=len(partitions), disable=not progress, desc="matching", unit="partition") as bar:
+        def done(p: Partition, was_skipped: bool) -> None:
+            bar.update(1)
+            if was_skipped:
+                skipped.append(p.name)
+
+        paths = run_partitions(match_partition, partitions, out, client, done)
+    table = merge_partitions(paths)
+    cols = {name: table.column(name).to_numpy() for name in table.column_names} if table is not None else \
+        match_partition(cal_json, volume, options.tolerance_px, options.min_cameras, [], [], [])
+    write_parquet_atomic(out / "particles3d.parquet", cols)
+    elapsed = time.perf_counter() - t0
+    summary = _summary(cols, by_frame, cameras, options, volume, elapsed, workers, scheduler, skipped,
+                       len(partitions), calibration_path, det_path, dataset)
+    write_json_atomic(out / "particles3d.json", summary)
+    log.info("%d particles in %d frames -> %s", summary["particles"], len(by_frame), out)
+    return summary
+
+
+def _summary(cols: dict[str, np.ndarray], by_frame: dict[int, dict[str, np.ndarray]], cameras: list[str],
+             options: MatchOptions, volume: Volume, elapsed: float, workers: int, scheduler: str | None,
+             skipped: list[str], n_partitions: int, calibration_path: Path, det_path: Path,
+             dataset: ParticleDataset) -> dict[str, Any]:
+    frame = np.asarray(cols["frame"], np.int64)
+    ncam = np.asarray(cols["cameras"], np.int64)
+    uniq, inverse = np.unique(frame, return_inverse=True)
+    n_of = dict(zip(uniq.tolist(), np.bincount(inverse, minlength=len(uniq)).tolist()))
+    used_of = dict(zip(uniq.tolist(), np.bincount(inverse, weights=ncam, minlength=len(uniq)).astype(int).tolist()))
+    frames = {}
+    used_total = det_total = 0
+    for f, per_cam in sorted(by_frame.items()):
+        n_det = sum(len(r) for r in per_cam.values())
+        used = used_of.get(f, 0)
+        frames[str(f)] = {"particles": n_of.get(f, 0), "detections": {c: int(len(per_cam[c])) for c in cameras},
+                          "matched_fraction": used / n_det if n_det else 0.0}
+        used_total += used
+        det_total += n_det
+    gap = np.asarray(cols["ray_gap_mm"], float)
+    n_particles = int(len(frame))
+    return {
+        "format": SUMMARY_FORMAT,
+        "dataset": str(dataset.rig_path),
+        "calibration": str(calibration_path),
+        "detections": str(det_path),
+        "tolerance_px": options.tolerance_px,
+        "min_cameras": options.min_cameras,
+        "volume": {"min_mm": volume.min_mm.tolist(), "max_mm": volume.max_mm.tolist()} if np.isfinite(
+            volume.min_mm).all() and np.isfinite(volume.max_mm).all() else {"depth_range_mm": list(options.depth_range_mm)},
+        "particles": n_particles,
+        "cameras_per_particle": {str(k): int(v) for k, v in enumerate(np.bincount(
+            np.asarray(cols["cameras"], np.int64), minlength=len(cameras) + 1)) if v},
+        "matched_fraction": used_total / det_total if det_total else 0.0,
+        "mean_ray_gap_mm": float(gap.mean()) if len(gap) else None,
+        "time_s": elapsed,
+        "particles_per_second": n_particles / elapsed if elapsed > 0 else None,
+        "workers": workers if scheduler is None else None,
+        "scheduler": scheduler,
+        "partitions": {"total": n_partitions, "skipped": skipped},
+        "frames": frames,
+    }

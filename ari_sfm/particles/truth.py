@@ -1,0 +1,60 @@
+"""Reconstructed particles judged against a simulation's truth (tests, benchmarks, self-calibration)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ParticleScore:
+    """Found / ghost fractions and the 3D error of one or more frames."""
+
+    found: int  # true particles reconstructed from their own images only
+    seen: int  # true particles with images in >= min_cameras cameras
+    reconstructed: int
+    ghosts: int  # reconstructed from images of different particles
+    rms_error_mm: float  # over the correct ones, against the true positions
+
+    @property
+    def found_fraction(self) -> float:
+        return self.found / self.seen if self.seen else 0.0
+
+    @property
+    def ghost_fraction(self) -> float:
+        return self.ghosts / self.reconstructed if self.reconstructed else 0.0
+
+    def __add__(self, other: "ParticleScore") -> "ParticleScore":
+        n1, n2 = self.found, other.found
+        sq = (self.rms_error_mm ** 2 * n1 if n1 else 0.0) + (other.rms_error_mm ** 2 * n2 if n2 else 0.0)
+        return ParticleScore(n1 + n2, self.seen + other.seen, self.reconstructed + other.reconstructed,
+                             self.ghosts + other.ghosts, float(np.sqrt(sq / (n1 + n2))) if n1 + n2 else float("nan"))
+
+
+def true_ids(rows: np.ndarray, cameras: list[str], particle_ids: Mapping[str, np.ndarray]) -> np.ndarray:
+    """(M, C) the true particle of each image a reconstruction uses (-1 where it uses none)."""
+    out = np.full(rows.shape, -1, np.int64)
+    for k, cam in enumerate(cameras):
+        used = rows[:, k] >= 0
+        out[used, k] = np.asarray(particle_ids[cam])[rows[used, k]]
+    return out
+
+
+def score_frame(xyz: np.ndarray, rows: np.ndarray, cameras: list[str], particle_ids: Mapping[str, np.ndarray],
+                positions: np.ndarray, min_cameras: int = 3) -> ParticleScore:
+    """Score one frame: ``rows`` (M, C) index each camera's detections, whose true particles are
+    ``particle_ids[camera]`` (rows of ``positions``)."""
+    ids = true_ids(rows, cameras, particle_ids)
+    used = ids >= 0
+    first = np.where(used, ids, -1).max(axis=1)
+    correct = np.all(~used | (ids == first[:, None]), axis=1) & (first >= 0)
+    n_views = np.zeros(len(positions), int)
+    for cam in cameras:
+        n_views[np.unique(np.asarray(particle_ids[cam]))] += 1
+    seen = int((n_views >= min_cameras).sum())
+    found = len(np.unique(first[correct]))
+    err = np.linalg.norm(xyz[correct] - positions[first[correct]], axis=1)
+    rms = float(np.sqrt(np.mean(err ** 2))) if len(err) else float("nan")
+    return ParticleScore(found=found, seen=seen, reconstructed=len(rows), ghosts=int((~correct).sum()),
+                         rms_error_mm=rms)
