@@ -7,11 +7,12 @@ volume when a camera has moved since the target calibration.
 
 The volume is cut into cells (e.g. 3 x 3 x 3); per camera and cell the map holds the robust
 centre of the disparities of the particles in that cell and how many supported it. Loose matches
-(a few px of tolerance) contain ghosts whose disparities spread over the tolerance disc, while the
-true matches pile up at the camera's systematic offset: the centre is the peak of a 2-D histogram
-refined by a flat-kernel mean shift (``peak_radius_px``), not the mean, so ghosts do not bias it.
-A match is an *inlier* when, in every camera it uses, its disparity lies within the peak radius
-of its cell's centre.
+(a few px of tolerance) are mostly ghosts (measured: ~5 % true at 5 px with three cameras drifted),
+whose disparities spread over the tolerance disc, while the true matches pile up at each camera's
+systematic offset. The peak is searched in all cameras at once: the match with the most others
+within ``peak_radius_px`` in every camera they share, refined by a flat-kernel mean shift (a ghost
+may land near the peak in one camera, almost never in all). A match is an *inlier* when, in every
+camera it uses, its disparity lies within the peak radius of its cell's centre.
 
 RMS per camera: ``sqrt(mean |d|^2)`` over the inliers (pixel distances, PHYSICS.md); with the
 right calibration and noise sigma per coordinate it is about ``1.1 sigma`` for 4 cameras.
@@ -25,9 +26,9 @@ import numpy as np
 
 from ..calibration import Calibration
 
-HISTOGRAM_BIN_PX = 0.1  # the peak search's histogram bins (then refined by mean shift)
 MEAN_SHIFT_STEPS = 20
-MAX_HISTOGRAM_PX = 20.0  # the peak is searched within this many px of zero (drifts are a few px)
+GLOBAL_SAMPLE = 4000  # matches the whole-volume peak is searched among
+PAIR_CHUNK = 2_000_000  # pairwise disparity differences computed at once in the peak search
 MIN_PEAK_COUNT = 3  # fewer supporting particles: the cell has no estimate (NaN, count 0)
 
 
@@ -122,55 +123,74 @@ def particle_disparities(calibration: Calibration, particles: ParticleSet) -> np
     return out
 
 
-def _peak(d: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """Robust centre of 2-D disparities d (n, 2): the top of the smoothed histogram, then a flat-kernel mean
-    shift of the given radius. Returns the centre and the mask of the points within the radius."""
-    extent = min(float(np.quantile(np.abs(d), 0.9)), MAX_HISTOGRAM_PX) + radius  # far strays cannot be the peak
-    bins = max(3, int(np.ceil(2 * extent / HISTOGRAM_BIN_PX)))
-    hist, xe, ye = np.histogram2d(d[:, 0], d[:, 1], bins=bins, range=[[-extent, extent], [-extent, extent]])
-    from scipy.ndimage import gaussian_filter
+def _joint_distance(d: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """(n,) largest pixel distance over the cameras a match uses between its disparities d (n, C, 2) and
+    a centre (C, 2) (cameras where the centre is NaN are not compared)."""
+    diff = np.linalg.norm(d - centre[None], axis=2)
+    return np.where(np.isnan(diff), 0.0, diff).max(axis=1)
 
-    # a Gaussian (not a box: a box's plateau has no single top) of half the kernel radius
-    smooth = gaussian_filter(hist, sigma=max(1.0, 0.5 * radius / HISTOGRAM_BIN_PX), mode="constant")
-    i, j = np.unravel_index(int(np.argmax(smooth)), smooth.shape)
-    centre = np.array([0.5 * (xe[i] + xe[i + 1]), 0.5 * (ye[j] + ye[j + 1])])
+
+def _joint_peak(d: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Robust centre (C, 2) of the disparities d (n, C, 2) (NaN: camera unused) of one cell's matches,
+    all cameras at once: the match with the most others within ``radius`` in every camera they share
+    (ghosts, spread over the tolerance disc in each camera, almost never agree in all of them), then a
+    flat-kernel mean shift. Returns the centre and the mask of the matches within the radius."""
+    n = len(d)
+    counts = np.zeros(n, int)
+    step = max(1, PAIR_CHUNK // max(1, n * d.shape[1]))
+    for s in range(0, n, step):  # pairwise joint distances, a chunk of rows at a time
+        diff = np.linalg.norm(d[s:s + step, None] - d[None], axis=3)  # (k, n, C)
+        joint = np.where(np.isnan(diff), 0.0, diff).max(axis=2)
+        shared = (~np.isnan(diff)).sum(axis=2) >= 2
+        counts[s:s + step] = ((joint <= radius) & shared).sum(axis=1)
+    best = int(np.argmax(counts + 0.5 * np.isfinite(d).all(axis=(1, 2))))  # ties: a match with every camera
+    centre = d[best].copy()
     for _ in range(MEAN_SHIFT_STEPS):
-        inside = np.einsum("ni,ni->n", d - centre, d - centre) <= radius * radius
-        if not inside.any():
-            break
-        new = d[inside].mean(axis=0)
-        moved = float(np.linalg.norm(new - centre))
+        inside = _joint_distance(d, centre) <= radius
+        with np.errstate(invalid="ignore"):
+            new = np.nanmean(np.where(inside[:, None, None], d, np.nan), axis=0) if inside.any() else centre
+        new = np.where(np.isnan(new), centre, new)
+        moved = float(np.nanmax(np.abs(new - centre))) if np.isfinite(new).any() else 0.0
         centre = new
         if moved < 1e-4 * radius:
             break
-    inside = np.einsum("ni,ni->n", d - centre, d - centre) <= radius * radius
-    return centre, inside
+    return centre, _joint_distance(d, centre) <= radius
 
 
 def disparity_map(cameras: Sequence[str], cells: Cells, particles: ParticleSet, disparities: np.ndarray,
-                  peak_radius_px: float) -> DisparityMap:
-    """Robust per-cell disparity of every camera (module docstring) and the inlier matches."""
+                  peak_radius_px: float, field_radius_px: float | None = None, seed: int = 0) -> DisparityMap:
+    """Robust per-cell disparity of every camera (module docstring) and the inlier matches.
+
+    ``field_radius_px``: first the peak of the whole volume (at most ``GLOBAL_SAMPLE`` matches), and
+    each cell's peak searched only among the matches within this radius of it: a cell
+    with few true matches then cannot elect a chance cluster of ghosts (the drift field varies by a
+    few tenths of a px over the volume)."""
     C, K = len(cameras), cells.count
     cell = cells.index(particles.xyz)
-    valid = np.isfinite(disparities).all(axis=2)
+    used = np.isfinite(disparities).all(axis=2)
+    d = np.where(used[:, :, None], disparities, np.nan)
+    valid, field = used, None
+    if field_radius_px is not None and valid.any():
+        pool = np.flatnonzero(valid.any(axis=1))
+        sample = pool if len(pool) <= GLOBAL_SAMPLE else np.random.default_rng(seed).choice(pool, GLOBAL_SAMPLE, False)
+        field, _ = _joint_peak(d[sample], peak_radius_px)
+        near_field = _joint_distance(d, field) <= field_radius_px
+        valid = valid & near_field[:, None]
     vector = np.full((C, K, 2), np.nan)
     count = np.zeros((C, K), int)
     total = np.zeros((C, K), int)
-    consistent = np.ones(valid.shape, dtype=bool)  # (P, C): within the peak where used
-    for c in range(C):
-        for k in range(K):
-            sel = np.flatnonzero(valid[:, c] & (cell == k))
-            total[c, k] = len(sel)
-            if len(sel) < MIN_PEAK_COUNT:
-                consistent[sel, c] = False
-                continue
-            centre, inside = _peak(disparities[sel, c], peak_radius_px)
-            if inside.sum() < MIN_PEAK_COUNT:
-                consistent[sel, c] = False
-                continue
-            vector[c, k], count[c, k] = centre, int(inside.sum())
-            consistent[sel[~inside], c] = False
-    inlier = (consistent | ~valid).all(axis=1) & valid.any(axis=1)
+    inlier = np.zeros(len(d), dtype=bool)
+    for k in range(K):
+        sel = np.flatnonzero((cell == k) & valid.any(axis=1))
+        total[:, k] = used[cell == k].sum(axis=0)
+        if len(sel) < MIN_PEAK_COUNT:
+            continue
+        centre, inside = _joint_peak(d[sel], peak_radius_px)
+        if inside.sum() < MIN_PEAK_COUNT:
+            continue
+        inlier[sel[inside]] = True
+        count[:, k] = valid[sel[inside]].sum(axis=0)
+        vector[:, k] = np.where((count[:, k] >= MIN_PEAK_COUNT)[:, None], centre, np.nan)
     rms = np.full(C, np.nan)
     for c in range(C):
         m = inlier & valid[:, c]

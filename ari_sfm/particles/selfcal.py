@@ -62,7 +62,8 @@ class SelfCalOptions:
     final_tolerance_px: float = 0.5  # the tolerance the rounds tighten to (halving)
     min_cameras: int = 4  # cameras a match must use (4: ghosts are rare, the peak is clear)
     cells: tuple[int, int, int] = (3, 3, 3)  # sub-volumes (x, y, z) of the disparity maps
-    peak_radius_px: float = 1.0  # flat-kernel radius of the disparity peak at the first round
+    peak_radius_px: float = 0.5  # a match is on its cell's peak within this many px in every camera
+    field_radius_px: float = 1.5  # cells' peaks searched within this many px of the whole volume's peak
     max_rounds: int = 6
     min_improvement: float = 0.05  # stop when the inlier RMS falls by less than this fraction
     max_landmarks: int = 20000  # particles in one bundle adjustment (random subset beyond)
@@ -138,10 +139,10 @@ def match_particles(calibration: Calibration, frame: int, detections: Detections
     for c, n in enumerate(names):
         m = rows[:, c] >= 0
         pixels[m, c] = np.asarray(detections[n], float)[rows[m, c]]
-    if len(rows):
-        xyz, _, _ = triangulate_pixels(calibration, {n: pixels[:, c] for c, n in enumerate(names)})
-    else:
-        xyz = np.zeros((0, 3))
+    xyz = getattr(found, "xyz", None)  # match_frame triangulates with the exact model already
+    if xyz is None or len(xyz) != len(rows):
+        xyz = (triangulate_pixels(calibration, {n: pixels[:, c] for c, n in enumerate(names)})[0] if len(rows)
+               else np.zeros((0, 3)))
     return FrameParticles(int(frame), rows, pixels, xyz)
 
 
@@ -355,10 +356,6 @@ def _subset(particles: ParticleSet, mask: np.ndarray, limit: int, seed: int) -> 
     return ParticleSet(particles.pixels[idx], particles.xyz[idx], particles.frame[idx])
 
 
-def _peak_radius(options: SelfCalOptions, tolerance_px: float) -> float:
-    return float(min(options.peak_radius_px, tolerance_px / 2.0))
-
-
 MapFrames = Callable[[Callable[[int], FrameParticles], Sequence[int]], list[FrameParticles]]
 
 
@@ -407,7 +404,7 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
         if cells is None:
             cells = Cells.around(particles.xyz, options.cells)
         dmap = disparity_map(names, cells, particles, particle_disparities(current, particles),
-                             _peak_radius(options, tol))
+                             options.peak_radius_px, options.field_radius_px, options.seed)
         rms = float(np.nanmax(dmap.rms_px))
         log.info("self-calibration round %d: tolerance %.3g px, %d matches, %d inliers, disparity RMS %s px",
                  r, tol, len(particles.xyz), int(dmap.inlier.sum()), np.round(dmap.rms_px, 3).tolist())
@@ -433,7 +430,7 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
         tol = last.tolerance_px
         particles = matched(current, tol)
         dmap = disparity_map(names, cells, particles, particle_disparities(current, particles),
-                             _peak_radius(options, tol))
+                             options.peak_radius_px, options.field_radius_px, options.seed)
         rounds.append(Round(tol, len(particles.xyz), dmap, None))
     before, after = rounds[0].disparity, rounds[-1].disparity
     report = _report(calibration, current, options, frames, rounds, baseline, time.perf_counter() - t0)
