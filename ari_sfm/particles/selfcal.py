@@ -356,11 +356,18 @@ def _subset(particles: ParticleSet, mask: np.ndarray, limit: int, seed: int) -> 
     return ParticleSet(particles.pixels[idx], particles.xyz[idx], particles.frame[idx])
 
 
-MapFrames = Callable[[Callable[[int], FrameParticles], Sequence[int]], list[FrameParticles]]
+MapFrames = Callable[[Callable[..., FrameParticles], list[tuple]], list[FrameParticles]]
 
 
-def _serial(fn: Callable[[int], FrameParticles], frames: Sequence[int]) -> list[FrameParticles]:
-    return [fn(f) for f in frames]
+def _serial(fn: Callable[..., FrameParticles], args: list[tuple]) -> list[FrameParticles]:
+    return [fn(*a) for a in args]
+
+
+def dask_map(client: Any) -> MapFrames:
+    """Run the frames' matching as tasks on a dask.distributed Client (one task per frame), in frame order."""
+    def run(fn: Callable[..., FrameParticles], args: list[tuple]) -> list[FrameParticles]:
+        return client.gather([client.submit(fn, *a, pure=False) for a in args])
+    return run
 
 
 def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections],
@@ -370,7 +377,8 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
     """Volume self-calibration (module docstring) from ``detections`` {frame: {camera: (N, 2) px}}.
 
     ``match``: match_frame's signature (default: :func:`ari_sfm.particles.match.match_frame`);
-    ``map_frames(fn, frames)``: how frames are run (default serial; the CLI passes a Dask map);
+    ``map_frames(fn, args)``: how the frames' matching tasks ``fn(*a)`` run (default in this process;
+    :func:`dask_map` on a Client);
     ``cells_box``: the disparity maps' box (default: the first round's matched particles).
     """
     t0 = time.perf_counter()
@@ -386,9 +394,8 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
     run = map_frames or _serial
 
     def matched(cal: Calibration, tol: float) -> ParticleSet:
-        def one(f: int) -> FrameParticles:
-            return match_particles(cal, f, detections[f], tol, options.min_cameras, volume, depth_range_mm, match)
-        return _stack(run(one, frames))
+        return _stack(run(match_particles, [(cal, f, detections[f], tol, options.min_cameras, volume, depth_range_mm,
+                                             match) for f in frames]))
 
     baseline = sum_baselines_mm(calibration)
     current, rounds, cells, prev_rms, tol = calibration, [], cells_box, None, float(options.tolerance_px)
@@ -485,3 +492,64 @@ def write_self_calibration(result: SelfCalResult, out_dir) -> None:
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "disparity.json", disparity_json(result))
     result.calibration.save(out / "calibration.json")
+
+
+# --------------------------------------------------------------------------- a dataset
+
+
+def pick_frames(frames: Sequence[int], count: int | None) -> list[int]:
+    """``count`` frames spread evenly over ``frames`` (all of them when None or more than there are)."""
+    frames = sorted(int(f) for f in frames)
+    if count is None or count >= len(frames):
+        return frames
+    return [frames[int(round(k))] for k in np.linspace(0, len(frames) - 1, count)]
+
+
+def self_calibrate_dataset(dataset_path, calibration_path, out, options: SelfCalOptions = SelfCalOptions(),
+                           detections_path=None, frames: int | None = 10,
+                           depth_range_mm: tuple[float, float] | None = None, workers: int = 0,
+                           scheduler: str | None = None) -> SelfCalResult:
+    """``ari-sfm self-calibrate``: a particle experiment (DATASET_FORMAT 1.2) and its rig's calibration ->
+    OUT/calibration.json (the corrected calibration, ``self_calibration`` key) and OUT/disparity.json.
+    ``frames``: how many of the detections' frames to use (spread evenly); ``workers``/``scheduler``: the
+    frames' matching on Dask (:func:`ari_sfm.particles.engine.dask_client`)."""
+    import os
+    from pathlib import Path
+
+    from ..calibration import load_calibration
+    from ..io.particles import load_particle_dataset, read_detections
+    from .engine import dask_client
+    from .reconstruct import check_calibration_fits, volume_for
+
+    out = Path(out)
+    dataset = load_particle_dataset(dataset_path)
+    if Path(os.path.realpath(out)) == Path(os.path.realpath(dataset.root)):
+        raise AriSfmError(out, "-o/--out is the dataset folder: write the results elsewhere")
+    calibration_path = Path(calibration_path)
+    calibration = load_calibration(calibration_path)
+    check_calibration_fits(calibration, dataset, calibration_path)
+    check_calibration(calibration, list(dataset.cameras), calibration_path)
+    det_path = Path(detections_path) if detections_path is not None else dataset.detections
+    if det_path is None:
+        raise AriSfmError(dataset.rig_path, "particles: names no detections table: run `ari-sfm detect-particles` "
+                                            "and pass its particles.parquet with --detections")
+    cameras = list(calibration.cameras)
+    det = read_detections(det_path, dataset.cameras)
+    by_frame = det.by_frame(cameras)
+    if not by_frame:
+        raise AriSfmError(det_path, "holds no particle detections")
+    chosen = pick_frames(by_frame, frames)
+    detections = {f: {c: det.uv[by_frame[f][c]] for c in cameras} for f in chosen}
+    volume = volume_for(dataset, calibration, depth_range_mm)
+    with dask_client(workers, scheduler) as client:
+        result = self_calibrate(calibration, detections, options, volume=volume,
+                                map_frames=None if client is None else dask_map(client), path=calibration_path)
+    report = {**result.report, "dataset": str(Path(os.path.abspath(dataset.rig_path))),
+              "calibration": str(Path(os.path.abspath(calibration_path))),
+              "detections": str(Path(os.path.abspath(det_path))), "workers": workers if scheduler is None else None,
+              "scheduler": scheduler}
+    result = replace(result, report=report,
+                     calibration=replace(result.calibration, extra={**result.calibration.extra,
+                                                                    "self_calibration": report}))
+    write_self_calibration(result, out)
+    return result
