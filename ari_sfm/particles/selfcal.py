@@ -275,6 +275,18 @@ def _gtsam_refinement(problem, huber_px: float | None, baseline_mm: float, state
                     v.insert(gg._intrinsics_key(c), np.zeros(0))
             return super().state(v, template)
 
+        def optimize(self, st, max_iterations: int = 100):
+            """GTSAM's LM with Marquardt's diagonal damping, as the numpy solver (the stiff scale prior
+            beside the points makes lambda I crawl)."""
+            params = gtsam.LevenbergMarquardtParams()
+            params.setMaxIterations(max_iterations)
+            params.setRelativeErrorTol(1e-12)
+            params.setAbsoluteErrorTol(1e-12)
+            params.setDiagonalDamping(True)
+            opt = gtsam.LevenbergMarquardtOptimizer(self.graph(st), self.values(st), params)
+            values = opt.optimize()
+            return self.state(values, st), int(opt.iterations())
+
         def graph(self, st):
             g = super().graph(st)
             keys = [gg._sensor_key(c) for c in cams]
