@@ -392,6 +392,9 @@ def render_html(inp: ReportInputs) -> str:
     for name, png in inp.compare_figures.items():
         parts.append(_img(png, f"model comparison: {name.removesuffix('.png')}",
                           "ari-sfm compare (paper Figs. 6, 9, 11 style): " + name.removesuffix(".png").replace("_", " ")))
+    from .particles.figures import self_calibration_section
+
+    parts.append(self_calibration_section(inp.out, _img))  # OUT/disparity.json of `self-calibrate`, if any
     body = "\n".join(parts)
     return (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>ari-sfm report: "
             f"{html.escape(inp.out.name)}</title><style>{CSS}</style></head><body>\n{body}\n</body></html>\n")

@@ -236,6 +236,10 @@ def test_cli_self_calibrate_writes_a_calibration_every_command_loads(written, tm
     r = _run(["particles", written / "experiment", "--calibration", out / "calibration.json", "-o", tmp_path / "p",
               "--workers", "0"])
     assert r.exit_code == 0, r.output
+    r = _run(["report", out])  # the report of a self-calibration folder shows the disparity maps
+    assert r.exit_code == 0, r.output
+    page = (out / "report.html").read_text()
+    assert "Volume self-calibration" in page and 'alt="disparity maps"' in page
 
 
 def test_cli_bad_inputs_are_one_line(written, tmp_path):
