@@ -158,6 +158,16 @@ def test_true_calibration_finds_the_particles(experiment):
     assert total.rms_error_mm < 0.04
 
 
+def test_noise_free_images_round_trip_to_the_particles(experiment):
+    """Exact (noise-free) images: every particle found, its point at the truth to 1e-6 mm and its rays
+    through it (ray gap ~0): the curves, the triangulation and the truth share one physics."""
+    m = match_frame(experiment.truth_b, experiment.exact_pixels[0], 0.5, volume=_volume(experiment))
+    s = _score(experiment, 0, m)
+    assert s.found == s.seen == SMALL.particles_per_frame and s.ghosts == 0
+    assert s.rms_error_mm < 1e-6
+    assert m.ray_gap_mm.max() < 1e-6
+
+
 def test_rows_index_each_detection_once(experiment):
     m = match_frame(experiment.truth_b, experiment.detections[0], 0.5, volume=_volume(experiment))
     for k in range(m.rows.shape[1]):
@@ -293,6 +303,12 @@ def test_bad_inputs_are_one_line(written, tmp_path):
     assert "dataset folder" in _cli_error(["particles", exp, "--calibration", cal, "-o", exp, "--workers", "0"])
     assert "dataset folder" in _cli_error(["detect-particles", written / "experiment", "-o", written / "experiment",
                                            "--workers", "0"])
+    # images only: no detections to match
+    rig = (exp / "rig.yaml").read_text().replace("detections: particles.parquet", "")
+    (tmp_path / "imgonly").mkdir()
+    (tmp_path / "imgonly" / "rig.yaml").write_text(rig)
+    assert "detect-particles" in _cli_error(["particles", tmp_path / "imgonly", "--calibration", cal, "-o",
+                                             tmp_path / "o6", "--workers", "0"])
     # more cameras than the rig has
     assert "--min-cameras" in _cli_error(["particles", exp, "--calibration", cal, "-o", tmp_path / "o5",
                                           "--workers", "0", "--min-cameras", "5"])

@@ -236,6 +236,15 @@ def write_parquet_atomic(path: str | Path, columns: Mapping[str, Any]) -> None:
     write_bytes_atomic(path, parquet_bytes(columns))
 
 
+def write_table_atomic(path: str | Path, table: Any) -> None:
+    """Write a pyarrow table as parquet, atomically."""
+    import pyarrow.parquet as pq
+
+    buf = io.BytesIO()
+    pq.write_table(table, buf)
+    write_bytes_atomic(path, buf.getvalue())
+
+
 def write_detections(path: str | Path, frame: np.ndarray, camera: list[str] | np.ndarray, uv: np.ndarray,
                      intensity: np.ndarray | None = None) -> None:
     """Write a detections table (contract columns, file order as given)."""

@@ -8,6 +8,11 @@ centres; ``diameter_px`` is the e^-2 diameter, sigma = diameter / 4). Two
 particles whose images overlap but keep their own maxima are split (each its
 own fit around its own peak); a blob whose second moments are too wide for
 one particle (two images merged into one maximum) is dropped, never averaged.
+The width is measured over the peak's own pixels (above a quarter of its peak,
+reached by non-increasing steps, not nearer another peak). Measured on rendered
+3 px images with 8-bit noise: isolated centres 0.02 px RMS; merged pairs 1.3 px
+or more apart dropped; pairs 3.5 px apart split (96 %). Two images closer than
+~1.3 px (0.4 diameters) can look like one and give one centre between them.
 """
 from __future__ import annotations
 
@@ -23,6 +28,7 @@ from ari_sfm.particles.engine import PartitionError
 log = logging.getLogger(__name__)
 
 MIN_SIGNAL = 1e-3  # floor of background-subtracted intensities before the log of the Gaussian fit
+BLOB_LEVEL = 0.25  # a blob: the pixels above this fraction of its peak (reached by non-increasing steps)
 
 
 @dataclass(frozen=True)
@@ -32,7 +38,7 @@ class DetectOptions:
     diameter_px: float = 3.0  # e^-2 diameter hint (rig.yaml particles.diameter_px)
     threshold_sigma: float = 6.0  # peak above the background, in units of the image noise
     min_peak: float = 8.0  # and at least this many grey levels
-    max_width_ratio: float = 1.25  # a blob wider than this times one particle's width is two merged: dropped
+    max_width_ratio: float = 1.18  # a blob wider than this times one particle's width is two merged: dropped
 
 
 def _fit_axis(lm: np.ndarray, l0: np.ndarray, lp: np.ndarray) -> np.ndarray:
@@ -93,7 +99,15 @@ def _blob_masks(sig: np.ndarray, ys: np.ndarray, xs: np.ndarray, peak: np.ndarra
     Y = np.clip(ys[:, None, None] + dy, 0, h - 1)
     X = np.clip(xs[:, None, None] + dx, 0, w - 1)
     patch = sig[Y, X]
-    above = patch >= 0.5 * peak[:, None, None]
+    above = patch >= BLOB_LEVEL * peak[:, None, None]
+    if len(xs) > 1:  # pixels nearer another peak (a resolved neighbour) are not this blob's
+        from scipy.spatial import cKDTree
+
+        pts = np.stack([xs, ys], 1).astype(float)
+        _, nn = cKDTree(pts).query(pts, k=2)
+        ox, oy = (pts[nn[:, 1]] - pts).T
+        nearer = (dx - ox[:, None, None]) ** 2 + (dy - oy[:, None, None]) ** 2 < dx ** 2 + dy ** 2
+        above &= ~nearer
     inside = np.zeros_like(above)
     inside[:, r, r] = True
     radius = np.hypot(dy, dx)
@@ -138,7 +152,7 @@ def _half_peak_moment(sigma: float) -> float:
         gx = 0.5 * (erf((off + 0.5 - c) / s2) - erf((off - 0.5 - c) / s2))
         gy = 0.5 * (erf((off + 0.5) / s2) - erf((off - 0.5) / s2))
         g = gy[:, None] * gx[None, :]
-        wts = np.where(g >= 0.5 * g.max(), g, 0.0)
+        wts = np.where(g >= BLOB_LEVEL * g.max(), g, 0.0)
         m = (wts * off[None, :]).sum() / wts.sum()
         best = max(best, float((wts * (off[None, :] - m) ** 2).sum() / wts.sum()))
     return max(best, 1.0 / 12.0)
@@ -166,7 +180,9 @@ def detect_partition(patterns: dict[str, str], frames: list[int], options: Detec
             v.append(uv[:, 1])
             inten.append(peak)
     cat = lambda a, dt=float: np.concatenate(a).astype(dt) if a else np.empty(0, dt)  # noqa: E731
-    return {"frame": cat(frame, np.int64), "camera": np.asarray(camera, dtype=object),
+    import pyarrow as pa
+
+    return {"frame": cat(frame, np.int64), "camera": pa.array(camera, type=pa.string()),  # typed when empty
             "u": cat(u), "v": cat(v), "intensity": cat(inten)}
 
 
@@ -182,7 +198,7 @@ def detect_experiment(dataset_path: str | Path, out: str | Path, options: Detect
 
     from ari_sfm.errors import AriSfmError
     from ari_sfm.io import write_json_atomic
-    from ari_sfm.io.particles import load_particle_dataset, write_parquet_atomic
+    from ari_sfm.io.particles import load_particle_dataset, write_table_atomic
     from ari_sfm.particles.engine import (
         Partition,
         check_run_settings,
@@ -218,12 +234,11 @@ def detect_experiment(dataset_path: str | Path, out: str | Path, options: Detect
             tqdm(total=len(partitions), disable=not progress, desc="detecting", unit="partition") as bar:
         paths = run_partitions(detect_partition, partitions, out, client, lambda p, s: bar.update(1))
     table = merge_partitions(paths)
-    cols = {name: table.column(name).to_numpy(zero_copy_only=False) for name in table.column_names}
-    cols["camera"] = [str(c) for c in cols["camera"]]
-    write_parquet_atomic(out / "particles.parquet", cols)
-    counts = {cam: int(sum(1 for c in cols["camera"] if c == cam)) for cam in patterns}
+    write_table_atomic(out / "particles.parquet", table)
+    cams, n = np.unique(table.column("camera").to_numpy(zero_copy_only=False).astype(str), return_counts=True)
+    counts = {cam: int(dict(zip(cams.tolist(), n.tolist())).get(cam, 0)) for cam in patterns}
     summary = {"format": "ari-sfm-detect-particles/1", "dataset": str(dataset.rig_path), "frames": [first, last],
-               "detections": int(len(cols["frame"])), "per_camera": counts,
+               "detections": int(table.num_rows), "per_camera": counts,
                "options": settings["options"], "time_s": time.perf_counter() - t0,
                "workers": workers if scheduler is None else None, "scheduler": scheduler}
     write_json_atomic(out / "detect-particles.json", summary)

@@ -38,7 +38,7 @@ from ari_sfm.triangulate import triangulate_pixels, triangulate_rays
 
 log = logging.getLogger(__name__)
 
-SEGMENT_PX = 8.0  # longest segment of a sampled epipolar curve (the curve is near straight over this)
+SEGMENT_PX = 20.0  # longest segment of a sampled epipolar curve (it bows < 0.01 px over this)
 MAX_SAMPLES = 256  # samples along one ray at most
 COMBO_CHUNK = 200_000  # combinations scored at once (bounds memory with loose tolerances)
 
@@ -99,13 +99,14 @@ def _candidates(calibration: Calibration, camera: str, uv: np.ndarray, tree, ori
     if not len(seg):
         return np.empty(0, np.int64), np.empty(0, np.int64)
     mid = 0.5 * (a[seg] + b[seg])
-    radius = 0.5 * np.linalg.norm(b[seg] - a[seg], axis=1) + tolerance_px
-    hits = tree.query_ball_point(mid, radius, return_sorted=False)
-    counts = np.fromiter((len(h) for h in hits), np.int64, len(hits))
-    if not counts.sum():
+    reach = float(0.5 * np.linalg.norm(b[seg] - a[seg], axis=1).max()) + tolerance_px
+    from scipy.spatial import cKDTree
+
+    near = cKDTree(mid).sparse_distance_matrix(tree, reach, output_type="ndarray")  # (segment, detection) pairs
+    if not len(near):
         return np.empty(0, np.int64), np.empty(0, np.int64)
-    seg_of = np.repeat(seg, counts)
-    j = np.fromiter((x for h in hits for x in h), np.int64, int(counts.sum()))
+    seg_of = seg[near["i"]]
+    j = near["j"].astype(np.int64)
     A, B, P = a[seg_of], b[seg_of], uv[j]
     AB = B - A
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -118,19 +119,41 @@ def _candidates(calibration: Calibration, camera: str, uv: np.ndarray, tree, ori
     return key // len(uv), key % len(uv)
 
 
-def _join(combos: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray, col: int) -> np.ndarray:
-    """Cross join of ``combos`` (Q, C) (column 0 .. : rows, ``combos[:, ref]`` the reference detection,
-    stored in the last column) with pairs (i, j) on i, plus the option "none" (-1) in column ``col``."""
+def _reference_pairs(calibration: Calibration, cameras: list[str], uv: list[np.ndarray], rays, trees,
+                     volume: Volume, r: int, wanted: np.ndarray, tolerance_px: float
+                     ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Candidate pairs (reference detection, detection) of the ``wanted`` detections of camera r
+    whose ray crosses the volume, in every camera after r."""
+    o, d = rays[r]
+    out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    live = np.empty(0, np.int64)
+    if len(o):
+        s0, s1 = volume.clip_rays(o, d)
+        live = np.flatnonzero(wanted & np.isfinite(s0) & np.isfinite(d).all(axis=1))
+    for c in range(r + 1, len(cameras)):
+        if trees[c] is None or not len(live):
+            out[c] = (np.empty(0, np.int64), np.empty(0, np.int64))
+            continue
+        i_loc, pj = _candidates(calibration, cameras[c], uv[c], trees[c], o[live], d[live], s0[live], s1[live],
+                                tolerance_px)
+        out[c] = (live[i_loc], pj)
+    return out
+
+
+def _join(combos: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray, col: int, allow_none: bool = True) -> np.ndarray:
+    """Cross join of ``combos`` (Q, C + 1) (the reference detection in the last column) with pairs (i, j)
+    on i into column ``col``, plus (``allow_none``) the option "none" (-1) there."""
     ref = combos[:, -1]
     order = np.argsort(pair_i, kind="stable")
     pi, pj = pair_i[order], pair_j[order]
     start = np.searchsorted(pi, ref, side="left")
     stop = np.searchsorted(pi, ref, side="right")
-    count = stop - start + 1  # + the "none" option
+    extra = 1 if allow_none else 0
+    count = stop - start + extra  # + the "none" option
     rows = np.repeat(np.arange(len(combos)), count)
     out = combos[rows].copy()
     first = np.repeat(np.cumsum(count) - count, count)
-    k = np.arange(len(rows)) - first  # 0 .. count-1 within each group; the last is "none"
+    k = np.arange(len(rows)) - first  # 0 .. count-1 within each group; the last is "none" (allow_none)
     real = k < (stop - start)[rows]
     out[:, col] = -1
     out[real, col] = pj[(start[rows] + k)[real]]
@@ -175,50 +198,44 @@ def match_frame(calibration: Calibration, detections: Mapping[str, np.ndarray], 
         rays.append((o, d))
     trees = [cKDTree(a) if len(a) else None for a in uv]
 
+    used = [np.zeros(len(a), bool) for a in uv]
+    pairs: dict[int, dict[int, tuple[np.ndarray, np.ndarray]]] = {}  # ref camera -> camera -> candidate pairs
     chosen: list[np.ndarray] = []
-    for r in range(C - min_cameras + 1):
-        o, d = rays[r]
-        if not len(o):
+    for n in range(C, min_cameras - 1, -1):  # all n-camera particles before any (n-1)-camera one
+        stage = []
+        for r in range(C - n + 1):  # a combination's reference is its lowest camera
+            if r not in pairs:  # once, for the reference images still free when first needed
+                pairs[r] = _reference_pairs(calibration, cameras, uv, rays, trees, volume, r, ~used[r], tolerance_px)
+            free_ref = np.flatnonzero(~used[r])
+            combos = np.full((len(free_ref), C + 1), -1, np.int64)
+            combos[:, r] = free_ref
+            combos[:, -1] = free_ref
+            for c in range(r + 1, C):
+                pi, pj = pairs[r][c]
+                free = ~used[c][pj]
+                combos = _join(combos, pi[free], pj[free], c, allow_none=n < C - r)
+                have = (combos[:, :C] >= 0).sum(axis=1)
+                combos = combos[(have <= n) & (have + (C - 1 - c) >= n)]
+            stage.append(combos[:, :C])
+        combos = np.concatenate(stage)
+        if not len(combos):
             continue
-        s0, s1 = volume.clip_rays(o, d)
-        live = np.flatnonzero(np.isfinite(s0) & np.isfinite(d).all(axis=1))
-        combos = np.full((len(live), C + 1), -1, np.int64)
-        combos[:, r] = live
-        combos[:, -1] = live
-        for c in range(r + 1, C):
-            if trees[c] is None:
-                pi = pj = np.empty(0, np.int64)
-            else:
-                i_loc, pj = _candidates(calibration, cameras[c], uv[c], trees[c], o[live], d[live], s0[live],
-                                        s1[live], tolerance_px)
-                pi = live[i_loc]
-            combos = _join(combos, pi, pj, c)
-            # prune: not enough cameras left to reach min_cameras
-            have = (combos[:, :C] >= 0).sum(axis=1)
-            combos = combos[have + (C - 1 - c) >= min_cameras]
-        combos = combos[(combos[:, :C] >= 0).sum(axis=1) >= min_cameras, :C]
-        chosen.append(combos)
-    combos = np.concatenate(chosen) if chosen else np.empty((0, C), np.int64)
-    if not len(combos):
-        return _empty(C)
-
-    accepted, scores = [], []
-    for k0 in range(0, len(combos), COMBO_CHUNK):
-        part = combos[k0:k0 + COMBO_CHUNK]
-        ok, score = _score(part, rays, footprint, volume, tolerance_px)
-        accepted.append(part[ok])
-        scores.append(score[ok])
-    combos = np.concatenate(accepted)
-    score = np.concatenate(scores)
-    rows = _greedy(combos, score, [len(a) for a in uv])
+        acc_c, acc_s = [], []
+        for k0 in range(0, len(combos), COMBO_CHUNK):
+            part = combos[k0:k0 + COMBO_CHUNK]
+            ok, score = _score(part, rays, footprint, volume, tolerance_px)
+            acc_c.append(part[ok])
+            acc_s.append(score[ok])
+        chosen.append(_greedy(np.concatenate(acc_c), np.concatenate(acc_s), used))
+    rows = np.concatenate(chosen) if chosen else np.empty((0, C), np.int64)
     if not len(rows):
         return _empty(C)
 
     tracks = {}
     for k, c in enumerate(cameras):
         t = np.full((len(rows), 2), np.nan)
-        used = rows[:, k] >= 0
-        t[used] = uv[k][rows[used, k]]
+        seen = rows[:, k] >= 0
+        t[seen] = uv[k][rows[seen, k]]
         tracks[c] = t
     X, _, _ = triangulate_pixels(calibration, tracks)
     good = np.isfinite(X).all(axis=1)
@@ -262,22 +279,17 @@ def _score(combos: np.ndarray, rays, footprint: np.ndarray, volume: Volume, tole
     return ok, score
 
 
-def _greedy(combos: np.ndarray, score: np.ndarray, sizes: list[int]) -> np.ndarray:
-    """Best first (more cameras, then smaller score), each detection used once: the chosen rows."""
-    if not len(combos):
-        return combos
-    ncam = (combos >= 0).sum(axis=1)
-    order = np.lexsort((score, -ncam))
-    used = [np.zeros(n + 1, bool) for n in sizes]  # the extra slot absorbs -1
+def _greedy(combos: np.ndarray, score: np.ndarray, used: list[np.ndarray]) -> np.ndarray:
+    """Best first (smaller score), each detection used once (``used`` per camera, updated): the chosen rows."""
     keep = []
     C = combos.shape[1]
-    for q in order:
+    for q in np.argsort(score, kind="stable"):
         row = combos[q]
-        if any(used[c][row[c]] for c in range(C) if row[c] >= 0):
+        cams = [c for c in range(C) if row[c] >= 0]
+        if any(used[c][row[c]] for c in cams):
             continue
-        for c in range(C):
-            if row[c] >= 0:
-                used[c][row[c]] = True
+        for c in cams:
+            used[c][row[c]] = True
         keep.append(q)
     return combos[np.asarray(keep, np.int64)]
 

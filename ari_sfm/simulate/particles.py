@@ -77,7 +77,7 @@ class ParticleExperiment:
 
     options: ParticleSimOptions
     rig_a: Geometry  # the target calibration: cameras, window, body poses
-    rig_b: Geometry  # the experiment: rig A with the drifted cameras (no target frames)
+    rig_b: Geometry  # the experiment: rig A with the drifted cameras (body poses as in rig A)
     calibration_dataset: Dataset  # rig A's noisy body observations (root: a placeholder)
     truth_a: Calibration  # model truth
     truth_b: Calibration
@@ -154,7 +154,7 @@ def _drifted(rig_a: Geometry, options: ParticleSimOptions, rng: np.random.Genera
             R = R_d @ cam.cam_from_world.R
             cam = replace(cam, cam_from_world=Pose(R, -R @ centre))
         cams.append(cam)
-    return replace(rig_a, cameras=tuple(cams), calibration={})
+    return replace(rig_a, cameras=tuple(cams))  # the body poses stay (camera 0, the world, does not move)
 
 
 def _calibration(geometry: Geometry, seed: int) -> Calibration:
