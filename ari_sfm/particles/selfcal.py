@@ -4,9 +4,10 @@ A target calibration drifts: a camera bumped by 0.05 deg moves its particle imag
 strict matching then finds almost nothing (PHYSICS.md). Self-calibration corrects it from the
 particle images themselves, in rounds:
 
-1. match every chosen frame with the current calibration at the round's tolerance
-   (``particles.match.match_frame``; loose at first, e.g. 5 px, all 4 cameras), triangulate
-   each match with the exact model (:func:`ari_sfm.triangulate.triangulate_pixels`);
+1. match the frames with the current calibration at the round's tolerance
+   (``particles.match.match_frame``; loose at first, e.g. 5 px, all 4 cameras: then only
+   ``coarse_frames`` of them, the loose matching being slow and a few hundred inliers enough),
+   each match triangulated with the exact model;
 2. disparity maps per camera per cell of the volume (:mod:`.disparity`): the robust peak of
    ``detected - reprojected``; the matches on their cells' peaks in every camera are the inliers
    (ghosts spread over the tolerance disc and fall out);
@@ -24,10 +25,10 @@ particle images themselves, in rounds:
      particles barely determine the scale (PHYSICS.md: ~1.3 mm on that sum for 35k particles), and
      one sum spreads the drift of single cameras over all baselines;
    - the other cameras' poses (sensor_from_rig) and the particles are estimated (Huber loss);
-4. the next round matches again with a tighter tolerance (halved, down to ``final_tolerance_px``);
-   the rounds stop when the inliers' disparity RMS falls by less than ``min_improvement`` at the
-   final tolerance (or after ``max_rounds``). A last matching with the final calibration gives the
-   disparity maps "after".
+4. the next round matches again with a tighter tolerance (halved, down to ``final_tolerance_px``;
+   straight to it once the inliers' disparity RMS falls by less than ``min_improvement``); the
+   rounds stop when it no longer falls at the final tolerance (or after ``max_rounds``). The
+   disparity maps "after" are the last round's: the final calibration at the final tolerance.
 """
 from __future__ import annotations
 
@@ -48,6 +49,7 @@ log = logging.getLogger(__name__)
 
 SCALE_SIGMA_MM = 1e-4  # the scale prior's sigma on the sum of camera-0 baselines (effectively held)
 BACKENDS = ("numpy", "gtsam")
+COARSE_PX = 2.0  # rounds with a tolerance above this match only options.coarse_frames frames
 MIN_MATCHES = 10  # fewer matches (or inliers) in a round: no correction from it
 PROJECTING_EXACT = ("exact", "rt", "truth")  # models whose projection is the exact Snell model
 
@@ -66,6 +68,8 @@ class SelfCalOptions:
     field_radius_px: float = 1.5  # cells' peaks searched within this many px of the whole volume's peak
     max_rounds: int = 6
     min_improvement: float = 0.05  # stop when the inlier RMS falls by less than this fraction
+    coarse_frames: int = 3  # frames matched in rounds looser than COARSE_PX (the slow, ghost-ridden matching:
+    # a few hundred inliers suffice for the first correction)
     max_landmarks: int = 20000  # particles in one bundle adjustment (random subset beyond)
     huber_px: float = 1.0  # Huber threshold of the bundle adjustment
     max_iterations: int = 30  # Levenberg-Marquardt iterations per round
@@ -406,8 +410,9 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
     run = map_frames or _serial
 
     def matched(cal: Calibration, tol: float) -> ParticleSet:
+        use = pick_frames(frames, options.coarse_frames) if tol > COARSE_PX else frames
         return _stack(run(match_particles, [(cal, f, detections[f], tol, options.min_cameras, volume, depth_range_mm,
-                                             match) for f in frames]))
+                                             match) for f in use]))
 
     baseline = sum_baselines_mm(calibration)
     current, rounds, cells, prev_rms, tol = calibration, [], cells_box, None, float(options.tolerance_px)
