@@ -257,3 +257,17 @@ def test_cli_bad_inputs_are_one_line(written, tmp_path):
     assert not (tmp_path / "o3" / "calibration.json").exists()
     assert "--min-cameras" in _cli_error(["self-calibrate", exp, "--calibration", cal, "-o", tmp_path / "o4",
                                           "--min-cameras", 2])
+
+
+def test_dask_local_cluster_gives_the_serial_result(written, tmp_path):
+    from ari_sfm.particles.selfcal import self_calibrate_dataset
+
+    args = (written / "experiment", written / "truth" / "rig_a.json")
+    options = SelfCalOptions(cells=(2, 2, 1), max_rounds=2)
+    serial = self_calibrate_dataset(*args, tmp_path / "serial", options, workers=0)
+    dask = self_calibrate_dataset(*args, tmp_path / "dask", options, workers=1)  # frames as tasks on a LocalCluster
+    for name in serial.calibration.cameras:
+        assert np.array_equal(serial.calibration.cameras[name].cam_from_world.R,
+                              dask.calibration.cameras[name].cam_from_world.R)
+    assert json.loads((tmp_path / "serial" / "disparity.json").read_text()) == \
+        json.loads((tmp_path / "dask" / "disparity.json").read_text())
