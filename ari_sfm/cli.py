@@ -492,6 +492,8 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
 @click.option("--detections", type=click.Path(path_type=Path), default=None,
               help="A particles.parquet (default: the one rig.yaml names).")
 @click.option("--frames", type=int, default=10, show_default=True, help="Frames used (spread over the experiment).")
+@click.option("--coarse-frames", type=int, default=3, show_default=True,
+              help="Frames matched in the loose rounds (tolerance > 2 px): the slow, ghost-ridden ones.")
 @click.option("--tolerance-px", type=float, default=5.0, show_default=True,
               help="First round's matching tolerance: the drift must fit in it.")
 @click.option("--final-tolerance-px", type=float, default=0.5, show_default=True,
@@ -512,8 +514,8 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
 @_scheduler_option
 @user_errors
 def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: Path | None, frames: int,
-                       tolerance_px: float, final_tolerance_px: float, min_cameras: int, cells: tuple[int, int, int],
-                       peak_radius_px: float, max_rounds: int, refine_window: bool, refine_intrinsics: bool,
+                       coarse_frames: int, tolerance_px: float, final_tolerance_px: float, min_cameras: int,
+                       cells: tuple[int, int, int], peak_radius_px: float, max_rounds: int, refine_window: bool, refine_intrinsics: bool,
                        backend: str, depth_range: tuple[float, float] | None, workers: int,
                        scheduler: str | None) -> None:
     """Volume self-calibration through the window: correct a drifted calibration from particle images."""
@@ -521,6 +523,7 @@ def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: 
 
     check_output_folder(out)
     check_number("--frames", frames, minimum=1)
+    check_number("--coarse-frames", coarse_frames, minimum=1)
     check_number("--tolerance-px", tolerance_px, minimum=0.0, maximum=100.0, strict_minimum=True)
     check_number("--final-tolerance-px", final_tolerance_px, minimum=0.0, maximum=tolerance_px, strict_minimum=True)
     check_number("--min-cameras", min_cameras, minimum=3, maximum=64)
@@ -533,6 +536,7 @@ def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: 
         raise AriSfmError("--depth-range", f"ZMAX must exceed ZMIN (got {depth_range[0]:g} {depth_range[1]:g})")
     options = SelfCalOptions(tolerance_px=tolerance_px, final_tolerance_px=final_tolerance_px, min_cameras=min_cameras,
                              cells=tuple(cells), peak_radius_px=peak_radius_px, max_rounds=max_rounds,
+                             coarse_frames=coarse_frames,
                              refine_window=refine_window, refine_intrinsics=refine_intrinsics, backend=backend)
     r = self_calibrate_dataset(dataset, calibration, out, options, detections_path=detections, frames=frames,
                                depth_range_mm=None if depth_range is None else tuple(depth_range), workers=workers,
