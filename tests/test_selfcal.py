@@ -253,7 +253,7 @@ def test_cli_bad_inputs_are_one_line(written, tmp_path):
                                         tmp_path / "o2", "--workers", "0"])
     line = _cli_error(["self-calibrate", exp, "--calibration", cal, "-o", tmp_path / "o3", "--workers", "0",
                        "--tolerance-px", 0.2, "--final-tolerance-px", 0.1])
-    assert "no confident matches" in line and "--tolerance" in line
+    assert "no confident matches" in line and "--tolerance-px" in line
     assert not (tmp_path / "o3" / "calibration.json").exists()
     assert "--min-cameras" in _cli_error(["self-calibrate", exp, "--calibration", cal, "-o", tmp_path / "o4",
                                           "--min-cameras", 2])

@@ -39,7 +39,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from ..calibration import Calibration, CameraCalibration
+from ..calibration import Calibration
 from ..errors import AriSfmError
 from ..geometry import Pose, rotation_angle_deg
 from ..models import PinholeModel
@@ -102,6 +102,9 @@ class Round:
 
 @dataclass(frozen=True)
 class SelfCalResult:
+    """The corrected calibration (its ``self_calibration`` key = ``report``) and the disparity maps: with the
+    starting calibration (first round), with the corrected one (last round), and every round's."""
+
     calibration: Calibration
     before: DisparityMap
     after: DisparityMap
@@ -416,14 +419,16 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
 
     baseline = sum_baselines_mm(calibration)
     current, rounds, cells, prev_rms, tol = calibration, [], cells_box, None, float(options.tolerance_px)
+    exhausted = False
     for r in range(options.max_rounds):
         particles = matched(current, tol)
         if len(particles.xyz) < MIN_MATCHES:
             if r == 0:
+                used = len(pick_frames(frames, options.coarse_frames)) if tol > COARSE_PX else len(frames)
                 raise AriSfmError(path, f"no confident matches: {len(particles.xyz)} particles matched in "
-                                        f"{options.min_cameras} cameras at {tol:g} px over {len(frames)} frames; try a "
-                                        "looser --tolerance (the drift must fit in it), --min-cameras 3, or check "
-                                        "that the calibration is of this rig")
+                                        f"{options.min_cameras} cameras at {tol:g} px over {used} frames; try a "
+                                        "looser --tolerance-px (the drift must fit in it), --min-cameras 3, more "
+                                        "--coarse-frames, or check that the calibration is of this rig")
             break
         if cells is None:
             cells = Cells.around(particles.xyz, options.cells)
@@ -435,7 +440,8 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
         if dmap.inlier.sum() < MIN_MATCHES:
             if r == 0:
                 raise AriSfmError(path, f"no confident matches: {len(particles.xyz)} matches at {tol:g} px but no "
-                                        "disparity peak in the cells; try a looser --tolerance or fewer --cells")
+                                        "disparity peak in the cells; try a looser --tolerance-px, more "
+                                        "--coarse-frames or fewer --cells")
             break
         stalled = prev_rms is not None and rms > (1.0 - options.min_improvement) * prev_rms
         if stalled and tol <= options.final_tolerance_px:  # the disparities stopped falling: done
@@ -447,11 +453,13 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
         rounds.append(Round(tol, len(particles.xyz), dmap, adjustment))
         # tighter next round: halved, or straight to the final tolerance once the disparities stall
         tol = options.final_tolerance_px if stalled else max(options.final_tolerance_px, tol / 2.0)
+    else:
+        exhausted = True  # max_rounds reached: the final check at the next round's tolerance
     if not rounds:
         raise AriSfmError(path, "no confident matches (see the log)")
     last = rounds[-1]
     if last.adjustment is not None:  # the final check: match with the final calibration
-        tol = last.tolerance_px
+        tol = tol if exhausted else last.tolerance_px  # (after a round that found too little: the last good one's)
         particles = matched(current, tol)
         dmap = disparity_map(names, cells, particles, particle_disparities(current, particles),
                              options.peak_radius_px, options.field_radius_px, options.seed)
