@@ -131,8 +131,10 @@ def _warm_up() -> None:
 def dask_speedup(folder: Path, frames: int) -> None:
     """reconstruct_particles on a LocalCluster of 1 and 2 workers: the cluster's start (processes, imports)
     apart from the run on the started cluster (``scheduler=``: what a long experiment sees)."""
+    import dask
     from dask.distributed import Client, LocalCluster
 
+    from ari_sfm.particles.engine import local_worker_environ
     from ari_sfm.particles.reconstruct import MatchOptions, reconstruct_particles
 
     t, cpu = time.perf_counter(), time.process_time()
@@ -144,7 +146,8 @@ def dask_speedup(folder: Path, frames: int) -> None:
     walls = {}
     for workers in (1, 2):
         t0 = time.perf_counter()
-        with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+        with dask.config.set({"distributed.nanny.pre-spawn-environ": local_worker_environ()}), \
+                LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
                 Client(cluster) as client:  # as engine.dask_client starts it
             client.run(_warm_up)
             started = time.perf_counter() - t0

@@ -84,6 +84,13 @@ def test_partitions_of_another_run_are_refused(sim, tmp_path):
                                   "--frames-per-partition", "2", "--tolerance-px", "0.7"])
     assert r.exit_code == 1 and r.output.count("\n") == 1
     assert "another run" in r.output and "tolerance_px" in r.output
+    other = tmp_path / "cal.json"  # the same path's content changed: also another run
+    other.write_text((sim / "truth" / "rig_a.json").read_text())
+    reconstruct_particles(sim / "experiment", other, tmp_path / "b", MatchOptions(frames_per_partition=2), workers=0)
+    other.write_text((sim / "truth" / "rig_b.json").read_text())
+    r = CliRunner().invoke(main, ["particles", str(sim / "experiment"), "--calibration", str(other),
+                                  "-o", str(tmp_path / "b"), "--workers", "0", "--frames-per-partition", "2"])
+    assert r.exit_code == 1 and "calibration_sha256" in r.output
 
 
 def _free_port() -> int:

@@ -25,7 +25,14 @@ from ari_sfm.io.particles import (
     read_detections,
     write_parquet_atomic,
 )
-from ari_sfm.particles.engine import Partition, check_run_settings, dask_client, merge_partitions, run_partitions, split_frames
+from ari_sfm.particles.engine import (
+    Partition,
+    check_run_settings,
+    dask_client,
+    merge_partitions,
+    run_partitions,
+    split_frames,
+)
 from ari_sfm.particles.match import match_frame
 from ari_sfm.particles.volume import Volume
 
@@ -42,6 +49,17 @@ class MatchOptions:
     min_cameras: int = 3  # images per particle
     depth_range_mm: tuple[float, float] | None = None  # world z slab, instead of rig.yaml volume_mm
     frames_per_partition: int = 50  # one task and one parts/ file per this many frames
+
+
+def _sha256(path: Path) -> str:
+    """A file's content hash (a resumed run must use the same calibration and detections)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def check_calibration_fits(calibration: Calibration, dataset: ParticleDataset, path: Path) -> None:
@@ -132,8 +150,9 @@ def reconstruct_particles(dataset_path: str | Path, calibration_path: str | Path
                 "depth_range_mm": None if options.depth_range_mm is None else list(options.depth_range_mm),
                 "frames_per_partition": options.frames_per_partition,
                 "calibration": str(Path(os.path.abspath(calibration_path))),
+                "calibration_sha256": _sha256(calibration_path),
                 "detections": str(Path(os.path.abspath(det_path))),
-                "detections_rows": int(len(detections.frame))}
+                "detections_sha256": _sha256(det_path)}
     out.mkdir(parents=True, exist_ok=True)
     check_run_settings(out, settings)
     partitions = []

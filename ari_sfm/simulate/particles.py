@@ -29,7 +29,7 @@ import numpy as np
 
 from ari_sfm.calibration import Calibration
 from ari_sfm.geometry import Pose, rotation_from_rotvec, unit
-from ari_sfm.records import Dataset, Observation
+from ari_sfm.records import Dataset
 from ari_sfm.simulate.scenarios import (
     NBK7_INDEX,
     WATER_INDEX,
