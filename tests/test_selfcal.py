@@ -257,6 +257,11 @@ def test_cli_bad_inputs_are_one_line(written, tmp_path):
     assert not (tmp_path / "o3" / "calibration.json").exists()
     assert "--min-cameras" in _cli_error(["self-calibrate", exp, "--calibration", cal, "-o", tmp_path / "o4",
                                           "--min-cameras", 2])
+    pinhole = json.loads(cal.read_text())
+    pinhole["model"] = "pinhole"
+    (tmp_path / "pinhole.json").write_text(json.dumps(pinhole))
+    assert "exact" in _cli_error(["self-calibrate", exp, "--calibration", tmp_path / "pinhole.json", "-o",
+                                  tmp_path / "o5", "--workers", "0"])
 
 
 def test_dask_local_cluster_gives_the_serial_result(written, tmp_path):
