@@ -496,6 +496,8 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
               help="Frames matched in the loose rounds (tolerance > 2 px): the slow, ghost-ridden ones.")
 @click.option("--tolerance-px", type=float, default=5.0, show_default=True,
               help="First round's matching tolerance: the drift must fit in it.")
+@click.option("--max-tolerance-px", type=float, default=12.0, show_default=True,
+              help="The first round widens its tolerance (x1.6) up to this while it finds no disparity peak.")
 @click.option("--final-tolerance-px", type=float, default=0.5, show_default=True,
               help="The tolerance the rounds tighten to (halving).")
 @click.option("--min-cameras", type=int, default=4, show_default=True, help="Images per match used.")
@@ -514,7 +516,7 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
 @_scheduler_option
 @user_errors
 def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: Path | None, frames: int,
-                       coarse_frames: int, tolerance_px: float, final_tolerance_px: float, min_cameras: int,
+                       coarse_frames: int, tolerance_px: float, max_tolerance_px: float, final_tolerance_px: float, min_cameras: int,
                        cells: tuple[int, int, int], peak_radius_px: float, max_rounds: int, refine_window: bool, refine_intrinsics: bool,
                        backend: str, depth_range: tuple[float, float] | None, workers: int,
                        scheduler: str | None) -> None:
@@ -525,6 +527,7 @@ def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: 
     check_number("--frames", frames, minimum=1)
     check_number("--coarse-frames", coarse_frames, minimum=1)
     check_number("--tolerance-px", tolerance_px, minimum=0.0, maximum=100.0, strict_minimum=True)
+    check_number("--max-tolerance-px", max_tolerance_px, minimum=tolerance_px, maximum=100.0)
     check_number("--final-tolerance-px", final_tolerance_px, minimum=0.0, maximum=tolerance_px, strict_minimum=True)
     check_number("--min-cameras", min_cameras, minimum=3, maximum=64)
     for n in cells:
@@ -534,7 +537,8 @@ def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: 
     check_number("--workers", workers, minimum=0, maximum=1024)
     if depth_range is not None and not depth_range[1] > depth_range[0]:
         raise AriSfmError("--depth-range", f"ZMAX must exceed ZMIN (got {depth_range[0]:g} {depth_range[1]:g})")
-    options = SelfCalOptions(tolerance_px=tolerance_px, final_tolerance_px=final_tolerance_px, min_cameras=min_cameras,
+    options = SelfCalOptions(tolerance_px=tolerance_px, max_tolerance_px=max_tolerance_px,
+                             final_tolerance_px=final_tolerance_px, min_cameras=min_cameras,
                              cells=tuple(cells), peak_radius_px=peak_radius_px, max_rounds=max_rounds,
                              coarse_frames=coarse_frames,
                              refine_window=refine_window, refine_intrinsics=refine_intrinsics, backend=backend)
@@ -544,6 +548,10 @@ def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: 
     for name, d in r.report["disparity_rms_px"].items():
         click.echo(f"{name}: disparity RMS {d['before']:.3f} px -> {d['after']:.3f} px, rotated "
                    f"{r.report['rotation_change_deg'][name]:.4f} deg")
+    if not r.report["converged"]:
+        click.echo("warning: the disparities did not fall to a common noise level (see self_calibration.rounds in "
+                   "calibration.json): the first round's peak may have been ghosts; try more --frames or "
+                   "--coarse-frames")
     click.echo(f"{len(r.rounds)} rounds, {r.report['particles_used']} particles in {len(r.report['frames'])} frames; "
                f"scale held: {r.report['scale']['how']} ({r.report['scale']['sum_mm']:.3f} mm)")
     click.echo(f"calibration: {out / 'calibration.json'}\ndisparity:   {out / 'disparity.json'}")

@@ -15,7 +15,7 @@ from ari_sfm.geometry import rotation_angle_deg
 from ari_sfm.metrics import rigid_alignment
 from ari_sfm.particles.disparity import Cells, ParticleSet, _joint_peak, disparity_map
 from ari_sfm.particles.match import match_frame
-from ari_sfm.particles.selfcal import (SelfCalOptions, disparity_json, refine_with_landmarks, self_calibrate,
+from ari_sfm.particles.selfcal import (SelfCalOptions, converged, disparity_json, refine_with_landmarks, self_calibrate,
                                        sum_baselines_mm, write_self_calibration)
 from ari_sfm.particles.truth import score_frame, true_ids
 from ari_sfm.particles.volume import Volume
@@ -110,6 +110,9 @@ def test_the_drift_shows_and_the_disparity_falls_to_the_noise(corrected):
     assert before.max() > 1.5  # drifted cameras move their images by px
     assert np.all(after <= 1.5 * SIGMA_PX), after  # PHYSICS.md: ~1.1 sigma for 4 cameras
     assert corrected.after.inlier.sum() >= 0.95 * 2 * 400 * 0.9
+    assert corrected.report["converged"]
+    ghost_fit = replace(corrected.after, rms_px=np.array([0.11, 0.62, 0.43, 0.21]))  # a correction from a ghost peak
+    assert not converged(ghost_fit, SelfCalOptions())
 
 
 def test_camera_rotations_recover_rig_b(experiment, corrected):
@@ -252,8 +255,8 @@ def test_cli_bad_inputs_are_one_line(written, tmp_path):
     assert "another rig" in _cli_error(["self-calibrate", exp, "--calibration", tmp_path / "other.json", "-o",
                                         tmp_path / "o2", "--workers", "0"])
     line = _cli_error(["self-calibrate", exp, "--calibration", cal, "-o", tmp_path / "o3", "--workers", "0",
-                       "--tolerance-px", 0.2, "--final-tolerance-px", 0.1])
-    assert "no confident matches" in line and "--tolerance-px" in line
+                       "--tolerance-px", 0.2, "--max-tolerance-px", 0.2, "--final-tolerance-px", 0.1])
+    assert "no confident matches" in line and "--max-tolerance-px" in line
     assert not (tmp_path / "o3" / "calibration.json").exists()
     assert "--min-cameras" in _cli_error(["self-calibrate", exp, "--calibration", cal, "-o", tmp_path / "o4",
                                           "--min-cameras", 2])

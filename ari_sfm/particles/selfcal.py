@@ -49,7 +49,10 @@ log = logging.getLogger(__name__)
 
 SCALE_SIGMA_MM = 1e-4  # the scale prior's sigma on the sum of camera-0 baselines (effectively held)
 BACKENDS = ("numpy", "gtsam")
-COARSE_PX = 2.0  # rounds with a tolerance above this match only options.coarse_frames frames
+COARSE_PX = 2.0  # rounds with a tolerance above this match only the coarse frames (_coarse_frames)
+FIRST_PEAK_MIN = 30  # inliers the first round needs (else its tolerance is widened by WIDEN)
+WIDEN = 1.6
+COARSE_IMAGES = 6000  # ... at least options.coarse_frames, more until the first camera has this many images
 MIN_MATCHES = 10  # fewer matches (or inliers) in a round: no correction from it
 PROJECTING_EXACT = ("exact", "rt", "truth")  # models whose projection is the exact Snell model
 
@@ -61,6 +64,7 @@ class SelfCalOptions:
     """What self-calibration does (defaults for the 4-camera PTV set-up of PHYSICS.md)."""
 
     tolerance_px: float = 5.0  # first round's matching tolerance (loose: the drift must fit in it)
+    max_tolerance_px: float = 12.0  # the first round widens its tolerance up to this while it finds no peak
     final_tolerance_px: float = 0.5  # the tolerance the rounds tighten to (halving)
     min_cameras: int = 4  # cameras a match must use (4: ghosts are rare, the peak is clear)
     cells: tuple[int, int, int] = (3, 3, 3)  # sub-volumes (x, y, z) of the disparity maps
@@ -68,7 +72,8 @@ class SelfCalOptions:
     field_radius_px: float = 1.5  # cells' peaks searched within this many px of the whole volume's peak
     max_rounds: int = 6
     min_improvement: float = 0.05  # stop when the inlier RMS falls by less than this fraction
-    coarse_frames: int = 3  # frames matched in rounds looser than COARSE_PX (the slow, ghost-ridden matching:
+    coarse_frames: int = 3  # at least this many frames (more while the first camera has < COARSE_IMAGES images)
+    # are matched in rounds looser than COARSE_PX (the slow, ghost-ridden matching:
     # a few hundred inliers suffice for the first correction)
     max_landmarks: int = 20000  # particles in one bundle adjustment (random subset beyond)
     huber_px: float = 1.0  # Huber threshold of the bundle adjustment
@@ -378,6 +383,17 @@ def _subset(particles: ParticleSet, mask: np.ndarray, limit: int, seed: int) -> 
 MapFrames = Callable[[Callable[..., FrameParticles], list[tuple]], list[FrameParticles]]
 
 
+def _coarse_frames(frames: Sequence[int], detections: Mapping[int, Detections], first: str, minimum: int) -> list[int]:
+    """The frames of the loose rounds: ``minimum`` spread over the experiment, more (spread) until the first
+    camera has COARSE_IMAGES images in them (sparse seeding needs more frames for the same peaks)."""
+    count = min(minimum, len(frames))
+    while True:
+        use = pick_frames(frames, count)
+        if count >= len(frames) or sum(len(detections[f].get(first, ())) for f in use) >= COARSE_IMAGES:
+            return use
+        count += 1
+
+
 def _serial(fn: Callable[..., FrameParticles], args: list[tuple]) -> list[FrameParticles]:
     return [fn(*a) for a in args]
 
@@ -413,36 +429,45 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
     run = map_frames or _serial
 
     def matched(cal: Calibration, tol: float) -> ParticleSet:
-        use = pick_frames(frames, options.coarse_frames) if tol > COARSE_PX else frames
+        use = coarse if tol > COARSE_PX else frames
         return _stack(run(match_particles, [(cal, f, detections[f], tol, options.min_cameras, volume, depth_range_mm,
                                              match) for f in use]))
 
+    coarse = _coarse_frames(frames, detections, names[0], options.coarse_frames)
     baseline = sum_baselines_mm(calibration)
     current, rounds, cells, prev_rms, tol = calibration, [], cells_box, None, float(options.tolerance_px)
     exhausted = False
-    for r in range(options.max_rounds):
-        particles = matched(current, tol)
+    def measure(cal: Calibration, tol: float, box: Cells | None):
+        """One round's matches, its cells' box and disparity map (None with too few matches)."""
+        particles = matched(cal, tol)
         if len(particles.xyz) < MIN_MATCHES:
-            if r == 0:
-                used = len(pick_frames(frames, options.coarse_frames)) if tol > COARSE_PX else len(frames)
-                raise AriSfmError(path, f"no confident matches: {len(particles.xyz)} particles matched in "
-                                        f"{options.min_cameras} cameras at {tol:g} px over {used} frames; try a "
-                                        "looser --tolerance-px (the drift must fit in it), --min-cameras 3, more "
-                                        "--coarse-frames, or check that the calibration is of this rig")
-            break
-        if cells is None:
-            cells = Cells.around(particles.xyz, options.cells)
-        dmap = disparity_map(names, cells, particles, particle_disparities(current, particles),
+            return particles, box, None
+        box = box or Cells.around(particles.xyz, options.cells)
+        dmap = disparity_map(names, box, particles, particle_disparities(cal, particles),
                              options.peak_radius_px, options.field_radius_px, options.seed)
-        rms = float(np.nanmax(dmap.rms_px))
-        log.info("self-calibration round %d: tolerance %.3g px, %d matches, %d inliers, disparity RMS %s px",
-                 r, tol, len(particles.xyz), int(dmap.inlier.sum()), np.round(dmap.rms_px, 3).tolist())
-        if dmap.inlier.sum() < MIN_MATCHES:
+        log.info("self-calibration: tolerance %.3g px, %d matches, %d inliers, disparity RMS %s px",
+                 tol, len(particles.xyz), int(dmap.inlier.sum()), np.round(dmap.rms_px, 3).tolist())
+        return particles, box, dmap
+
+    for r in range(options.max_rounds):
+        particles, box, dmap = measure(current, tol, cells)
+        # the first round: no clear peak yet -> the drift may exceed the tolerance: widen it (up to max_tolerance_px)
+        while r == 0 and (dmap is None or dmap.inlier.sum() < FIRST_PEAK_MIN) and tol < options.max_tolerance_px:
+            tol = min(WIDEN * tol, options.max_tolerance_px)
+            log.info("self-calibration: no clear disparity peak: tolerance widened to %.3g px", tol)
+            particles, box, dmap = measure(current, tol, cells)
+        if dmap is None or dmap.inlier.sum() < (FIRST_PEAK_MIN if r == 0 else MIN_MATCHES):
             if r == 0:
-                raise AriSfmError(path, f"no confident matches: {len(particles.xyz)} matches at {tol:g} px but no "
-                                        "disparity peak in the cells; try a looser --tolerance-px, more "
-                                        "--coarse-frames or fewer --cells")
+                used = len(coarse) if tol > COARSE_PX else len(frames)
+                what = (f"{len(particles.xyz)} particles matched" if dmap is None else
+                        f"{len(particles.xyz)} matches but no disparity peak ({int(dmap.inlier.sum())} on it)")
+                raise AriSfmError(path, f"no confident matches: {what} in {options.min_cameras} cameras at up to "
+                                        f"{tol:g} px over {used} frames; try a larger --max-tolerance-px (the drift "
+                                        "must fit in it), more --coarse-frames, fewer --cells, --min-cameras 3, or "
+                                        "check that the calibration is of this rig")
             break
+        cells = box
+        rms = float(np.nanmax(dmap.rms_px))
         stalled = prev_rms is not None and rms > (1.0 - options.min_improvement) * prev_rms
         if stalled and tol <= options.final_tolerance_px:  # the disparities stopped falling: done
             rounds.append(Round(tol, len(particles.xyz), dmap, None))
@@ -466,8 +491,18 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
         rounds.append(Round(tol, len(particles.xyz), dmap, None))
     before, after = rounds[0].disparity, rounds[-1].disparity
     report = _report(calibration, current, options, frames, rounds, baseline, time.perf_counter() - t0)
+    if not report["converged"]:
+        log.warning("self-calibration: the disparity RMS after (%s px) is not one noise level in every camera: "
+                    "the correction may be wrong", np.round(after.rms_px, 3).tolist())
     corrected = replace(current, extra={**current.extra, "self_calibration": report})
     return SelfCalResult(corrected, before, after, tuple(rounds), report)
+
+
+def converged(after: DisparityMap, options: SelfCalOptions) -> bool:
+    """Whether the final disparities are one noise level: every camera's RMS finite, within 1.5x of the
+    smallest and below half the peak radius (a correction from a ghost peak leaves px in some cameras)."""
+    rms = after.rms_px
+    return bool(np.all(np.isfinite(rms)) and rms.max() <= 1.5 * rms.min() and rms.max() < 0.5 * options.peak_radius_px)
 
 
 def _report(start: Calibration, final: Calibration, options: SelfCalOptions, frames: Sequence[int],
@@ -490,6 +525,7 @@ def _report(start: Calibration, final: Calibration, options: SelfCalOptions, fra
         "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in options.__dict__.items()},
         "disparity_rms_px": {n: {"before": float(before.rms_px[c]), "after": float(after.rms_px[c])}
                              for c, n in enumerate(names)},
+        "converged": converged(after, options),
         "rounds": [{"tolerance_px": r.tolerance_px, "matches": r.matches, "inliers": int(r.disparity.inlier.sum()),
                     "disparity_rms_px": [float(v) for v in r.disparity.rms_px],
                     "adjustment": r.adjustment} for r in rounds],
