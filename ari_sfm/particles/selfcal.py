@@ -52,7 +52,7 @@ BACKENDS = ("numpy", "gtsam")
 COARSE_PX = 2.0  # rounds with a tolerance above this match only the coarse frames (_coarse_frames)
 FIRST_PEAK_MIN = 30  # inliers the first round needs (else its tolerance is widened by WIDEN)
 WIDEN = 1.6
-COARSE_IMAGES = 6000  # ... at least options.coarse_frames, more until the first camera has this many images
+COARSE_IMAGES = 5000  # ... at least options.coarse_frames, more until the first camera has this many images
 MIN_MATCHES = 10  # fewer matches (or inliers) in a round: no correction from it
 PROJECTING_EXACT = ("exact", "rt", "truth")  # models whose projection is the exact Snell model
 
