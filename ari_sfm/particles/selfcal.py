@@ -6,8 +6,9 @@ particle images themselves, in rounds:
 
 1. match the frames with the current calibration at the round's tolerance
    (``particles.match.match_frame``; loose at first, e.g. 5 px, all 4 cameras: then only
-   ``coarse_frames`` of them, the loose matching being slow and a few hundred inliers enough),
-   each match triangulated with the exact model;
+   ``coarse_frames`` of them (more with sparse seeding), the loose matching being slow and a few
+   hundred inliers enough; while the first round finds no disparity peak its tolerance is widened
+   by ``WIDEN`` up to ``max_tolerance_px``), each match triangulated with the exact model;
 2. disparity maps per camera per cell of the volume (:mod:`.disparity`): the robust peak of
    ``detected - reprojected``; the matches on their cells' peaks in every camera are the inliers
    (ghosts spread over the tolerance disc and fall out);
