@@ -694,6 +694,80 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
     click.echo(f"particles: {out / 'particles3d.parquet'}\nsummary:   {out / 'particles3d.json'}")
 
 
+@main.command(name="self-calibrate")
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option("--calibration", type=click.Path(path_type=Path), required=True,
+              help="calibration.json of the rig (exact model), e.g. from its target calibration.")
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
+              help="Output folder: calibration.json (corrected), disparity.json.")
+@click.option("--detections", type=click.Path(path_type=Path), default=None,
+              help="A particles.parquet (default: the one rig.yaml names).")
+@click.option("--frames", type=int, default=10, show_default=True, help="Frames used (spread over the experiment).")
+@click.option("--coarse-frames", type=int, default=3, show_default=True,
+              help="Frames matched in the loose rounds (tolerance > 2 px): the slow, ghost-ridden ones.")
+@click.option("--tolerance-px", type=float, default=5.0, show_default=True,
+              help="First round's matching tolerance: the drift must fit in it.")
+@click.option("--max-tolerance-px", type=float, default=12.0, show_default=True,
+              help="The first round widens its tolerance (x1.6) up to this while it finds no disparity peak.")
+@click.option("--final-tolerance-px", type=float, default=0.5, show_default=True,
+              help="The tolerance the rounds tighten to (halving).")
+@click.option("--min-cameras", type=int, default=4, show_default=True, help="Images per match used.")
+@click.option("--cells", type=int, nargs=3, default=(3, 3, 3), show_default=True, metavar="NX NY NZ",
+              help="Sub-volumes of the disparity maps.")
+@click.option("--peak-radius-px", type=float, default=0.5, show_default=True,
+              help="A match is on its cell's disparity peak within this distance in every camera.")
+@click.option("--max-rounds", type=int, default=6, show_default=True)
+@click.option("--refine-window", is_flag=True, help="Also estimate the window (normal; distance under water).")
+@click.option("--refine-intrinsics", is_flag=True, help="Also estimate fx fy cx cy (distortion held).")
+@click.option("--backend", type=click.Choice(["numpy", "gtsam"]), default="numpy", show_default=True,
+              help="Bundle-adjustment solver (the same problem).")
+@click.option("--depth-range", type=float, nargs=2, default=None, metavar="ZMIN ZMAX",
+              help="World z range (mm) of the particles, instead of rig.yaml's particles.volume_mm.")
+@_workers_option
+@_scheduler_option
+@user_errors
+def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: Path | None, frames: int,
+                       coarse_frames: int, tolerance_px: float, max_tolerance_px: float, final_tolerance_px: float, min_cameras: int,
+                       cells: tuple[int, int, int], peak_radius_px: float, max_rounds: int, refine_window: bool, refine_intrinsics: bool,
+                       backend: str, depth_range: tuple[float, float] | None, workers: int,
+                       scheduler: str | None) -> None:
+    """Volume self-calibration through the window: correct a drifted calibration from particle images."""
+    from .particles.selfcal import SelfCalOptions, self_calibrate_dataset
+
+    check_output_folder(out)
+    check_number("--frames", frames, minimum=1)
+    check_number("--coarse-frames", coarse_frames, minimum=1)
+    check_number("--tolerance-px", tolerance_px, minimum=0.0, maximum=100.0, strict_minimum=True)
+    check_number("--max-tolerance-px", max_tolerance_px, minimum=tolerance_px, maximum=100.0)
+    check_number("--final-tolerance-px", final_tolerance_px, minimum=0.0, maximum=tolerance_px, strict_minimum=True)
+    check_number("--min-cameras", min_cameras, minimum=3, maximum=64)
+    for n in cells:
+        check_number("--cells", n, minimum=1, maximum=50)
+    check_number("--peak-radius-px", peak_radius_px, minimum=0.0, maximum=100.0, strict_minimum=True)
+    check_number("--max-rounds", max_rounds, minimum=1, maximum=100)
+    check_number("--workers", workers, minimum=0, maximum=1024)
+    if depth_range is not None and not depth_range[1] > depth_range[0]:
+        raise AriSfmError("--depth-range", f"ZMAX must exceed ZMIN (got {depth_range[0]:g} {depth_range[1]:g})")
+    options = SelfCalOptions(tolerance_px=tolerance_px, max_tolerance_px=max_tolerance_px,
+                             final_tolerance_px=final_tolerance_px, min_cameras=min_cameras,
+                             cells=tuple(cells), peak_radius_px=peak_radius_px, max_rounds=max_rounds,
+                             coarse_frames=coarse_frames,
+                             refine_window=refine_window, refine_intrinsics=refine_intrinsics, backend=backend)
+    r = self_calibrate_dataset(dataset, calibration, out, options, detections_path=detections, frames=frames,
+                               depth_range_mm=None if depth_range is None else tuple(depth_range), workers=workers,
+                               scheduler=scheduler)
+    for name, d in r.report["disparity_rms_px"].items():
+        click.echo(f"{name}: disparity RMS {d['before']:.3f} px -> {d['after']:.3f} px, rotated "
+                   f"{r.report['rotation_change_deg'][name]:.4f} deg")
+    if not r.report["converged"]:
+        click.echo("warning: the disparities did not fall to a common noise level (see self_calibration.rounds in "
+                   "calibration.json): the first round's peak may have been ghosts; try more --frames or "
+                   "--coarse-frames")
+    click.echo(f"{len(r.rounds)} rounds, {r.report['particles_used']} particles in {len(r.report['frames'])} frames; "
+               f"scale held: {r.report['scale']['how']} ({r.report['scale']['sum_mm']:.3f} mm)")
+    click.echo(f"calibration: {out / 'calibration.json'}\ndisparity:   {out / 'disparity.json'}")
+
+
 MIN_IMAGE_SCALE = 0.05  # smaller: port_survey's 640 x 480 images become 32 x 24 px, paper_single's focal 174 px
 MAX_PORT_SURVEY_SCALE = 8.0  # 5120 x 3840 px images (rendered at twice that): larger ones exhaust memory
 

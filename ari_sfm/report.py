@@ -576,6 +576,13 @@ def _comparison_section(ctx: ReportContext) -> str:
     return "\n".join(parts)
 
 
+def _self_calibration_section(ctx: ReportContext) -> str:
+    """Volume self-calibration's disparity maps before/after (OUT/disparity.json of `self-calibrate`), if any."""
+    from .particles.figures import self_calibration_section
+
+    return self_calibration_section(ctx.inputs.out, _img)
+
+
 # The report's sections in order: (name, function). A module adding a section appends or inserts one
 # entry, e.g. ``add_section("disparity", disparity_section, after="residuals")``.
 SECTIONS: list[tuple[str, Section]] = [
@@ -588,6 +595,7 @@ SECTIONS: list[tuple[str, Section]] = [
     ("view_3d", _view_3d_section),
     ("reconstruction", _reconstruction_section),
     ("comparison", _comparison_section),
+    ("self_calibration", _self_calibration_section),
 ]
 
 

@@ -1,0 +1,80 @@
+"""Self-calibration's figures for the report: disparity maps before and after (PNG bytes)."""
+from __future__ import annotations
+
+import html
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+DISPARITY_FILE = "disparity.json"
+
+
+def disparity_figure(disparity: dict[str, Any]) -> bytes:
+    """One row per camera, before and after: each cell's disparity vector (px) drawn at the cell's
+    centre (world x, y; z layers in colour, side by side); each column has its own arrow scale."""
+    from ..report_figures import plt, to_png
+
+    centres = np.asarray(disparity["cell_centres_mm"], float)
+    lower, upper = (np.asarray(disparity["cells"][k], float) for k in ("lower_mm", "upper_mm"))
+    shape = disparity["cells"]["shape"]
+    layer = np.arange(len(centres)) // (shape[0] * shape[1])
+    cameras = list(disparity["before"]["cameras"])
+
+    def vectors(when: str, cam: str) -> np.ndarray:
+        return np.array([[np.nan, np.nan] if v[0] is None else v for v in disparity[when]["cameras"][cam]["vector_px"]],
+                        float)
+
+    cell = float(np.min((upper - lower)[:2] / np.asarray(shape[:2])))
+    scale = {}
+    for when in ("before", "after"):
+        longest = max(float(np.nanmax(np.linalg.norm(vectors(when, c), axis=1), initial=0.0)) for c in cameras)
+        scale[when] = 0.45 * cell / longest if longest > 0 else 1.0  # the longest arrow: about half a cell
+    shift = (layer - 0.5 * (shape[2] - 1)) * 0.12 * cell  # z layers side by side
+    fig, axes = plt.subplots(len(cameras), 2, figsize=(9.0, 3.2 * len(cameras)), squeeze=False)
+    colours = plt.cm.viridis(np.linspace(0.0, 0.85, max(shape[2], 1)))
+    for row, cam in enumerate(cameras):
+        for col, when in enumerate(("before", "after")):
+            ax = axes[row][col]
+            v = vectors(when, cam)
+            ok = np.isfinite(v).all(axis=1)
+            for z in range(shape[2]):
+                m = ok & (layer == z)
+                ax.quiver(centres[m, 0] + shift[m], centres[m, 1], v[m, 0] * scale[when], v[m, 1] * scale[when],
+                          angles="xy",
+                          scale_units="xy", scale=1.0, color=colours[z], width=0.006,
+                          label=f"z {centres[layer == z, 2].mean():.0f} mm" if row == 0 and col == 0 else None)
+            ax.plot(centres[~ok, 0], centres[~ok, 1], "x", color="0.6", ms=4)
+            ax.set_xlim(lower[0], upper[0])
+            ax.set_ylim(upper[1], lower[1])  # y down, as in the images
+            ax.set_aspect("equal")
+            rms = disparity[when]["cameras"][cam]["rms_px"]
+            ax.set_title(f"{cam} {when}: RMS {rms:.3f} px (1 px = {scale[when]:.2g} mm)", fontsize=9)
+            ax.tick_params(labelsize=7)
+            if row == len(cameras) - 1:
+                ax.set_xlabel("world x (mm)", fontsize=8)
+            if col == 0:
+                ax.set_ylabel("world y (mm)", fontsize=8)
+    axes[0][0].legend(fontsize=7, loc="upper right")
+    fig.suptitle("disparity per cell, detected minus reprojected (x: too few particles)", fontsize=10)
+    fig.tight_layout()
+    return to_png(fig)
+
+
+def self_calibration_section(out: Path, image: Any) -> str:
+    """The report's section for a self-calibration folder (OUT/disparity.json), or "" without one.
+    ``image(png, alt, caption)`` renders a figure as the report does."""
+    path = Path(out) / DISPARITY_FILE
+    if not path.is_file():
+        return ""
+    disparity = json.loads(path.read_text())
+    rows = "".join(f"<tr><td>{html.escape(cam)}</td><td>{disparity['before']['cameras'][cam]['rms_px']:.3f}</td>"
+                   f"<td>{disparity['after']['cameras'][cam]['rms_px']:.3f}</td></tr>"
+                   for cam in disparity["before"]["cameras"])
+    table = ("<table><tr><th>camera</th><th>disparity RMS before (px)</th><th>after (px)</th></tr>"
+             f"{rows}</table>")
+    return ("<h2>Volume self-calibration</h2>" + table
+            + image(disparity_figure(disparity), "disparity maps",
+                    "Mean disparity (detected minus reprojected particle image) per cell of the volume and camera, "
+                    "with the starting calibration (loose matches) and the corrected one."))
