@@ -11,7 +11,9 @@ needs: thousands of particles per frame, 2-8 cameras):
   (``Calibration.rays_world``: after the window, so refraction is in them),
   then Levenberg-Marquardt on the reprojection error through
   ``Calibration.project_world`` for all points at once (one 3x3 normal
-  equation per point).
+  equation per point). Through the exact model (exact, rt, truth) both steps run
+  per point in one compiled kernel (:func:`ari_sfm.models.kernels.triangulate_exact`,
+  the same algorithm, points in parallel): no intermediate arrays.
 
 Ray gap (``ray_gap_mm``, the ``points.json`` key). For a point with rays
 ``o_c + s d_c`` (unit ``d_c``) the linear point X minimises
@@ -39,6 +41,8 @@ import numpy as np
 
 from .calibration import Calibration
 from .errors import AriSfmError
+from .models import kernels
+from .models.exact import ExactModel
 
 log = logging.getLogger(__name__)
 
@@ -252,6 +256,9 @@ def triangulate_pixels(calibration: Calibration, tracks: Mapping[str, np.ndarray
     model has no rays).
     """
     cameras, uv = _tracks_array(calibration, tracks)
+    exact = _exact_cameras(calibration, cameras)
+    if exact is not None:
+        return _triangulate_exact(exact, uv, refine)
     P, C, _ = uv.shape
     valid = np.isfinite(uv).all(axis=2)
     enough = valid.sum(axis=1) >= 2
@@ -281,6 +288,35 @@ def triangulate_pixels(calibration: Calibration, tracks: Mapping[str, np.ndarray
         gap = 2.0 * np.sqrt(_first_order_sq_distance(r, J, valid) / n)
         gap[~enough | ~np.isfinite(X).all(axis=1)] = np.nan
     X[~enough] = np.nan
+    return X, gap, rmse
+
+
+def _exact_cameras(calibration: Calibration, cameras: list[str]) -> tuple[np.ndarray, ...] | None:
+    """The arrays :func:`ari_sfm.models.kernels.triangulate_exact` takes (R, t, params, unit normals,
+    [h, d, n, n_m] per camera) when every camera's model is the exact one (exact, rt, truth), else None."""
+    if not (calibration.spec.window and calibration.spec.rays):
+        return None
+    models = [calibration.projection_model(c) for c in cameras]
+    if not all(type(m) is ExactModel for m in models):
+        return None
+    poses = [calibration.cameras[c].cam_from_world for c in cameras]
+    return (np.array([p.R for p in poses], dtype=float), np.array([p.t for p in poses], dtype=float),
+            np.array([m.pinhole.params for m in models], dtype=float),
+            np.array([m.normal_cam for m in models], dtype=float),
+            np.array([[m.distance_mm, m.thickness_mm, m.index, m.medium_index] for m in models], dtype=float))
+
+
+def _triangulate_exact(cameras: tuple[np.ndarray, ...], uv: np.ndarray, refine: bool
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`triangulate_pixels` through the exact model: one compiled kernel per point (rays, linear
+    point, Levenberg-Marquardt with analytic Jacobians), the points in parallel."""
+    X, gap, rmse, unconverged, undistort_failed = kernels.triangulate_exact(
+        np.ascontiguousarray(uv, dtype=float), *cameras, bool(refine), MAX_ITERATIONS, 1e-6, STEP_TOL_MM, MIN_DET)
+    if undistort_failed.any():
+        log.warning("undistortion did not converge for %d pixels; their rays are NaN", int(undistort_failed.sum()))
+    if unconverged.any():
+        log.warning("triangulation: %d of %d points not converged after %d iterations",
+                    int(unconverged.sum()), len(X), MAX_ITERATIONS)
     return X, gap, rmse
 
 

@@ -110,3 +110,50 @@ def test_undistort_round_trip():
     pin = PinholeModel.from_params(params)
     xy = rng.uniform(-0.4, 0.4, (500, 2))
     assert np.abs(pin.undistort(pin.distort(xy)) - xy).max() * params[0] < 1e-10
+
+
+@pytest.fixture(scope="module")
+def arc4_truth():
+    from ari_sfm.calibration import Calibration
+    from ari_sfm.simulate import make_scene
+
+    return Calibration.from_json(make_scene("arc4", seed=0, sigma_px=0.0).truth)
+
+
+def test_triangulation_kernel_is_the_numpy_algorithm(arc4_truth):
+    """The compiled per-point triangulation gives the points of the numpy route (rays -> linear point ->
+    Levenberg-Marquardt through ExactModel.project_with_jacobians) and recovers noise-free truth."""
+    from ari_sfm import triangulate as T
+
+    cal = arc4_truth
+    rng = np.random.default_rng(0)
+    centres = np.array([p.t for p in cal.frames.values()])
+    X_true = rng.uniform(centres.min(axis=0) - 20, centres.max(axis=0) + 20, (300, 3))
+    tracks = {c: cal.project_world(c, X_true) for c in cal.cameras}
+    tracks[next(iter(cal.cameras))][:20] = np.nan  # some points seen by fewer cameras
+    X, gap, rmse = T.triangulate_pixels(cal, tracks)
+    seen = sum(np.isfinite(t[:, 0]) for t in tracks.values()) >= 2
+    assert seen.sum() > 250
+    assert np.nanmax(np.linalg.norm(X[seen] - X_true[seen], axis=1)) < 1e-6
+    assert np.all(np.isnan(X[~seen]))
+    noisy = {c: t + rng.normal(0, 0.3, t.shape) for c, t in tracks.items()}
+    cameras, uv = T._tracks_array(cal, noisy)
+    valid = np.isfinite(uv).all(axis=2)
+    valid &= (valid.sum(axis=1) >= 2)[:, None]
+    origins = np.full(uv.shape[:2] + (3,), np.nan)
+    directions = np.full_like(origins, np.nan)
+    for c, cam in enumerate(cameras):
+        m = valid[:, c]
+        origins[m, c], directions[m, c] = cal.rays_world(cam, uv[m, c])
+    X0, gap0 = T.triangulate_rays(origins, directions, valid)
+    X1, r1, _ = T.refine_points([T._projector(cal, c) for c in cameras], X0, uv, valid)
+    rmse1 = np.sqrt(np.einsum("pck,pck->p", r1, r1) / np.maximum(valid.sum(axis=1), 1))
+    for refine, X_ref in ((False, X0), (True, X1)):
+        X, gap, rmse = T.triangulate_pixels(cal, noisy, refine=refine)
+        ok = np.isfinite(X_ref).all(axis=1)
+        assert np.array_equal(ok, np.isfinite(X).all(axis=1))
+        tol = 1e-9 if not refine else 2 * T.STEP_TOL_MM * (1 + np.abs(X_ref).max())  # the LM's step tolerance
+        assert np.abs(X[ok] - X_ref[ok]).max() < tol
+        assert np.allclose(gap[ok], gap0[ok], rtol=1e-9, atol=1e-12)
+    assert np.allclose(rmse[ok], rmse1[ok], rtol=1e-8)
+    assert 0.1 < np.median(rmse[ok]) < 0.5  # the 0.3 px noise, not a converged-to-nothing point

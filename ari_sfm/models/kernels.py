@@ -38,7 +38,7 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy")
 # --------------------------------------------------------------------------- pinhole + distortion
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def distort_point(x, y, dist, J_xy, J_dist):
     """OpenCV distortion of one normalised point; fills J_xy (2, 2) = d xyd / d xy and
     J_dist (2, 5) = d xyd / d [k1, k2, p1, p2, k3]; returns (xd, yd)."""
@@ -62,7 +62,7 @@ def distort_point(x, y, dist, J_xy, J_dist):
     return xd, yd
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def pinhole_point(D0, D1, D2, params, n_params, jacobians, uv, J_point, J_params, J_xy, J_dist):
     """Pixel of one camera-frame direction D (NaN if D2 <= 0) into uv (2,); with ``jacobians``
     J_point (2, 3) = d uv / d D and J_params (2, n_params); J_xy (2, 2), J_dist (2, 5) are scratch."""
@@ -169,19 +169,26 @@ def undistort_batch(xyd, dist, fx, fy):
 # --------------------------------------------------------------------------- exact model, forward
 
 
+@njit(inline="always", **_JIT)
+def newton_step(w, rho, L, h, d, n2, m2):
+    """One Newton step on Psi(w) = w H(w rho) - 1 (module docstring of .exact); n2, m2 the squared
+    glass and medium indices."""
+    u = w * rho
+    Gn = 1.0 / math.sqrt(n2 + (n2 - 1.0) * u * u)
+    Gm = 1.0 / math.sqrt(m2 + (m2 - 1.0) * u * u)
+    psi = w * (h + d * Gn + L * Gm) - 1.0
+    dpsi = h + d * n2 * (Gn * Gn * Gn) + L * m2 * (Gm * Gm * Gm)  # = rho'(u) > 0
+    return psi / dpsi
+
+
 @njit(**_JIT)
 def solve_w(rho, L, h, d, n, n_m, max_iter):
-    """Newton on Psi(w) = w H(w rho) - 1 from w = 0 (module docstring of .exact). Returns
-    (w, steps); steps is NEWTON_NOT_CONVERGED or NEWTON_NOT_FINITE on failure."""
+    """Newton from w = 0 for one point until |step| <= NEWTON_REL_TOL |w|. Returns (w, steps);
+    steps is NEWTON_NOT_CONVERGED or NEWTON_NOT_FINITE on failure."""
     w = 0.0
     n2, m2 = n * n, n_m * n_m
     for it in range(1, max_iter + 1):
-        u = w * rho
-        Gn = 1.0 / math.sqrt(n2 + (n2 - 1.0) * u * u)
-        Gm = 1.0 / math.sqrt(m2 + (m2 - 1.0) * u * u)
-        psi = w * (h + d * Gn + L * Gm) - 1.0
-        dpsi = h + d * n2 * (Gn * Gn * Gn) + L * m2 * (Gm * Gm * Gm)  # = rho'(u) > 0
-        step = psi / dpsi
+        step = newton_step(w, rho, L, h, d, n2, m2)
         w = w - step
         if not math.isfinite(step):
             return w, NEWTON_NOT_FINITE
@@ -191,80 +198,99 @@ def solve_w(rho, L, h, d, n, n_m, max_iter):
 
 
 @njit(**_JIT)
-def solve_w_batch(rho, L, h, d, n, n_m, max_iter):
-    """w (N,) and the slowest point's steps; a negative count is the first failure's status."""
+def solve_w_lanes(rho, L, h, d, n, n_m, max_iter, w):
+    """Newton from w = 0 for many points in lock-step (a branch-free inner loop the compiler
+    vectorises): every point takes the steps of the slowest, which stops when all steps are
+    <= NEWTON_REL_TOL |w| (the extra steps of converged points change w by rounding only).
+    ``rho``, ``L``, ``d`` (m,) (rho = 0, L = 1 stand in for points without a ray). Fills w (m,);
+    returns the steps taken, or NEWTON_NOT_CONVERGED / NEWTON_NOT_FINITE, and the failed points."""
     m = rho.shape[0]
-    w = np.empty(m)
-    worst = 0
-    failures = 0
-    status = 0
+    n2, m2 = n * n, n_m * n_m
     for i in range(m):
-        di = d[0] if d.shape[0] == 1 else d[i]
-        w[i], it = solve_w(rho[i], L[i], h, di, n, n_m, max_iter)
-        if it < 0:
-            failures += 1
-            if status == 0 or it == NEWTON_NOT_CONVERGED:
-                status = it
-        elif it > worst:
-            worst = it
-    if failures:
-        return w, status, failures
-    return w, worst, 0
+        w[i] = 0.0
+    for it in range(1, max_iter + 1):
+        worst = 0.0
+        for i in range(m):
+            step = newton_step(w[i], rho[i], L[i], h, d[i], n2, m2)
+            wi = w[i] - step
+            w[i] = wi
+            worst = max(worst, abs(step) - NEWTON_REL_TOL * abs(wi))
+        if worst <= 0.0:
+            return it, 0
+        if not math.isfinite(worst):
+            break
+    bad = 0
+    not_finite = False
+    for i in range(m):
+        step = newton_step(w[i], rho[i], L[i], h, d[i], n2, m2)
+        if not math.isfinite(step):
+            not_finite = True
+            bad += 1
+        elif abs(step) > NEWTON_REL_TOL * abs(w[i] - step):
+            bad += 1
+    return (NEWTON_NOT_FINITE if not_finite else NEWTON_NOT_CONVERGED), max(bad, 1)
 
 
 @njit(**_JIT)
-def incidence_batch(X, nc, h, d, n, n_m, max_iter):
-    """Depth z, radial vector r, medium column L, w (NaN where L <= 0 or X not finite) of X (m, 3);
-    the slowest point's steps (or a failure status) and the number of failed points."""
-    m = X.shape[0]
-    z = np.empty(m)
-    r = np.empty((m, 3))
-    L = np.empty(m)
+def solve_w_batch(rho, L, h, d, n, n_m, max_iter):
+    """w (N,) of radial offsets rho and medium columns L with one thickness d (1,) or one per
+    point (N,); the steps taken (or a failure status) and the number of failed points."""
+    m = rho.shape[0]
+    dd = np.empty(m)
+    for i in range(m):
+        dd[i] = d[0] if d.shape[0] == 1 else d[i]
     w = np.empty(m)
-    worst, failures, status = 0, 0, 0
+    steps, failures = solve_w_lanes(rho, L, h, dd, n, n_m, max_iter, w)
+    return w, steps, failures
+
+
+@njit(**_JIT)
+def _incidence_lanes(X, nc, h, d, n, n_m, max_iter, z, r, L, w):
+    """Depth z, radial vector r, medium column L (filled) and w (NaN where L <= 0 or X is not finite)
+    of X (m, 3); returns the steps taken (or a failure status) and the failed points."""
+    m = X.shape[0]
+    rho = np.empty(m)
+    Lw = np.empty(m)
+    dd = np.empty(m)
     for i in range(m):
         zi = X[i, 0] * nc[0] + X[i, 1] * nc[1] + X[i, 2] * nc[2]
         r0, r1, r2 = X[i, 0] - zi * nc[0], X[i, 1] - zi * nc[1], X[i, 2] - zi * nc[2]
         di = d[0] if d.shape[0] == 1 else d[i]
         Li = zi - h - di
-        z[i], L[i] = zi, Li
+        z[i], L[i], dd[i] = zi, Li, di
         r[i, 0], r[i, 1], r[i, 2] = r0, r1, r2
-        if not (Li > 0.0 and math.isfinite(X[i, 0] + X[i, 1] + X[i, 2])):
+        if Li > 0.0 and math.isfinite(X[i, 0] + X[i, 1] + X[i, 2]):
+            rho[i], Lw[i] = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2), Li
+        else:
+            rho[i], Lw[i] = 0.0, 1.0  # a stand-in: no ray (w set to NaN below)
+    steps, failures = solve_w_lanes(rho, Lw, h, dd, n, n_m, max_iter, w)
+    for i in range(m):
+        if not (L[i] > 0.0 and math.isfinite(X[i, 0] + X[i, 1] + X[i, 2])):
             w[i] = np.nan
-            continue
-        rho = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
-        w[i], it = solve_w(rho, Li, h, di, n, n_m, max_iter)
-        if it < 0:
-            failures += 1
-            if status == 0 or it == NEWTON_NOT_CONVERGED:
-                status = it
-        elif it > worst:
-            worst = it
-    if failures:
-        return z, r, L, w, status, failures
-    return z, r, L, w, worst, 0
+    return steps, failures
 
 
 @njit(**_JIT)
-def exact_point(X0, X1, X2, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians,
+def incidence_batch(X, nc, h, d, n, n_m, max_iter):
+    """z, r, L, w of X (m, 3) (see _incidence_lanes), the steps taken or a failure status, and the
+    number of failed points."""
+    m = X.shape[0]
+    z, r, L, w = np.empty(m), np.empty((m, 3)), np.empty(m), np.empty(m)
+    steps, failures = _incidence_lanes(X, nc, h, d, n, n_m, max_iter, z, r, L, w)
+    return z, r, L, w, steps, failures
+
+
+@njit(inline="always", **_JIT)
+def exact_pixel(X0, X1, X2, z, r0, r1, r2, L, w, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians,
                 uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist):
-    """The exact projection of one camera-frame point into uv (2,) and, with ``jacobians``, its
-    Jacobians J_point (2, 3), J_normal (2, 3) (w.r.t. the free normal vector, via dn_dv),
-    J_params (2, n_params), J_td (2, 2) = [d uv/d thickness, d uv/d distance]; J_pin (2, 3),
-    J_xy, J_dist scratch. Returns the Newton steps (negative: failure; 0: no ray, L <= 0)."""
-    z = X0 * nc[0] + X1 * nc[1] + X2 * nc[2]
-    r0, r1, r2 = X0 - z * nc[0], X1 - z * nc[1], X2 - z * nc[2]
-    L = z - h - d
-    steps = 0
-    if L > 0.0 and math.isfinite(X0 + X1 + X2):
-        rho = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
-        w, steps = solve_w(rho, L, h, d, n, n_m, NEWTON_MAX_ITER)
-    else:
-        w = np.nan
+    """Pixel uv (2,) of one camera-frame point X with its solved incidence w (depth z, radial r,
+    medium column L) and, with ``jacobians``, J_point (2, 3), J_normal (2, 3) (w.r.t. the free
+    normal vector, via dn_dv), J_params (2, n_params), J_td (2, 2) = [d uv/d thickness,
+    d uv/d distance]; J_pin (2, 3), J_xy, J_dist are scratch."""
     pinhole_point(nc[0] + w * r0, nc[1] + w * r1, nc[2] + w * r2, params, n_params, jacobians,
                   uv, J_pin, J_params, J_xy, J_dist)
     if not jacobians:
-        return steps
+        return
     # implicit function theorem on the incidence equation (module docstring of .exact)
     u = w * math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
     n2, m2 = n * n, n_m * n_m
@@ -291,6 +317,23 @@ def exact_point(X0, X1, X2, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians
             J_normal[k, j] = jn0 * dn_dv[0, j] + jn1 * dn_dv[1, j] + jn2 * dn_dv[2, j]
         J_td[k, 0] = Jr * (w * (Gm - Gn) / P)
         J_td[k, 1] = Jr * (w * (Gm - 1.0) / P)
+
+
+@njit(**_JIT)
+def exact_point(X0, X1, X2, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians,
+                uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist):
+    """:func:`exact_pixel` of one point with its own Newton solve; returns the Newton steps
+    (negative: failure; 0: no ray, L <= 0)."""
+    z = X0 * nc[0] + X1 * nc[1] + X2 * nc[2]
+    r0, r1, r2 = X0 - z * nc[0], X1 - z * nc[1], X2 - z * nc[2]
+    L = z - h - d
+    steps = 0
+    if L > 0.0 and math.isfinite(X0 + X1 + X2):
+        w, steps = solve_w(math.sqrt(r0 * r0 + r1 * r1 + r2 * r2), L, h, d, n, n_m, NEWTON_MAX_ITER)
+    else:
+        w = np.nan
+    exact_pixel(X0, X1, X2, z, r0, r1, r2, L, w, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians,
+                uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist)
     return steps
 
 
@@ -298,8 +341,10 @@ def exact_point(X0, X1, X2, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians
 def exact_batch(X, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians):
     """The exact projection of X (m, 3) with one plate thickness d (1,) or one per point (m,).
     Returns uv, J_point, J_normal, J_params, J_thickness, J_distance (empty (0, ...) arrays
-    without ``jacobians``), the slowest point's Newton steps and the failure status/count."""
+    without ``jacobians``), the Newton steps taken (or a failure status) and the failed points."""
     m = X.shape[0]
+    z, r, L, w = np.empty(m), np.empty((m, 3)), np.empty(m), np.empty(m)
+    steps, failures = _incidence_lanes(X, nc, h, d, n, n_m, NEWTON_MAX_ITER, z, r, L, w)
     mj = m if jacobians else 1
     uv = np.empty((m, 2))
     J_point = np.empty((mj, 2, 3))
@@ -309,22 +354,15 @@ def exact_batch(X, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians):
     J_pin = np.empty((2, 3))
     J_xy = np.empty((2, 2))
     J_dist = np.empty((2, 5))
-    worst, failures, status = 0, 0, 0
     for i in range(m):
         k = i if jacobians else 0
         di = d[0] if d.shape[0] == 1 else d[i]
-        it = exact_point(X[i, 0], X[i, 1], X[i, 2], params, nc, dn_dv, h, di, n, n_m, n_params, jacobians,
-                         uv[i], J_point[k], J_normal[k], J_params[k], J_td[k], J_pin, J_xy, J_dist)
-        if it < 0:
-            failures += 1
-            if status == 0 or it == NEWTON_NOT_CONVERGED:
-                status = it
-        elif it > worst:
-            worst = it
+        exact_pixel(X[i, 0], X[i, 1], X[i, 2], z[i], r[i, 0], r[i, 1], r[i, 2], L[i], w[i], params, nc, dn_dv,
+                    h, di, n, n_m, n_params, jacobians, uv[i], J_point[k], J_normal[k], J_params[k], J_td[k],
+                    J_pin, J_xy, J_dist)
     if not jacobians:
         J_point, J_normal, J_params, J_td = J_point[:0], J_normal[:0], J_params[:0], J_td[:0]
-    return uv, J_point, J_normal, J_params, J_td[:, :, 0].copy(), J_td[:, :, 1].copy(), \
-        (status if failures else worst), failures
+    return uv, J_point, J_normal, J_params, J_td[:, :, 0].copy(), J_td[:, :, 1].copy(), steps, failures
 
 
 # --------------------------------------------------------------------------- exact model, backward
@@ -392,9 +430,10 @@ def _solve_sym3(A, b, x):
 
 
 @njit(**_JIT)
-def _cost_and_normal(Xw, uv, ok, R, t, params, nc, window, n_params, A, g, res, scratch):
-    """Reprojection cost of world point Xw over the cameras ok[c], the Gauss-Newton matrix A = J^T J
-    and gradient g = J^T r (world coordinates); residuals into res (C, 2). Cost inf if a pixel is NaN."""
+def _cost_and_normal(Xw, uv, ok, R, t, params, nc, window, jacobians, A, g, scratch):
+    """Reprojection cost of world point Xw over the cameras ok[c] and, with ``jacobians``, the
+    Gauss-Newton matrix A = J^T J and gradient g = J^T r (world coordinates). Cost inf if a pixel
+    is NaN."""
     C = uv.shape[0]
     J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist, dn_dv, pix = scratch
     for i in range(3):
@@ -404,17 +443,16 @@ def _cost_and_normal(Xw, uv, ok, R, t, params, nc, window, n_params, A, g, res, 
     cost = 0.0
     for c in range(C):
         if not ok[c]:
-            res[c, 0] = 0.0
-            res[c, 1] = 0.0
             continue
         Xc0 = R[c, 0, 0] * Xw[0] + R[c, 0, 1] * Xw[1] + R[c, 0, 2] * Xw[2] + t[c, 0]
         Xc1 = R[c, 1, 0] * Xw[0] + R[c, 1, 1] * Xw[1] + R[c, 1, 2] * Xw[2] + t[c, 1]
         Xc2 = R[c, 2, 0] * Xw[0] + R[c, 2, 1] * Xw[1] + R[c, 2, 2] * Xw[2] + t[c, 2]
         exact_point(Xc0, Xc1, Xc2, params[c], nc[c], dn_dv, window[c, 0], window[c, 1], window[c, 2],
-                    window[c, 3], n_params, True, pix, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist)
+                    window[c, 3], 4, jacobians, pix, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist)
         r0, r1 = pix[0] - uv[c, 0], pix[1] - uv[c, 1]
-        res[c, 0], res[c, 1] = r0, r1
         cost += r0 * r0 + r1 * r1
+        if not jacobians:
+            continue
         for k in range(2):
             rk = r0 if k == 0 else r1
             Jw0 = J_point[k, 0] * R[c, 0, 0] + J_point[k, 1] * R[c, 1, 0] + J_point[k, 2] * R[c, 2, 0]
@@ -479,14 +517,12 @@ def _triangulate_chunk(start, stop, uv, R, t, params, nc, window, refine, max_it
     X = np.empty(3)
     scratch = (np.empty((2, 3)), np.empty((2, 3)), np.empty((2, 9)), np.empty((2, 2)), np.empty((2, 3)),
                J_xy, J_dist, np.zeros((3, 3)), np.empty(2))
-    res = np.empty((C, 2))
     An = np.empty((3, 3))
     g = np.empty(3)
     X_new = np.empty(3)
     step = np.empty(3)
     A_new = np.empty((3, 3))
     g_new = np.empty(3)
-    res_new = np.empty((C, 2))
     Ad = np.empty((3, 3))
     for p in range(start, stop):
         n_seen = 0
@@ -539,7 +575,7 @@ def _triangulate_chunk(start, stop, uv, R, t, params, nc, window, refine, max_it
                 sq += q0 * q0 + q1 * q1 + q2 * q2
         gap_out[p] = 2.0 * math.sqrt(sq / n_ok)
         # Levenberg-Marquardt on the reprojection error, Marquardt damping lam diag(J^T J)
-        cost = _cost_and_normal(X, uv[p], seen, R, t, params, nc, window, 4, An, g, res, scratch)
+        cost = _cost_and_normal(X, uv[p], seen, R, t, params, nc, window, refine, An, g, scratch)
         if refine and math.isfinite(cost):
             lam = damping
             converged = False
@@ -551,8 +587,15 @@ def _triangulate_chunk(start, stop, uv, R, t, params, nc, window, refine, max_it
                 _solve_sym3(Ad, g, step)
                 for i in range(3):
                     X_new[i] = X[i] - step[i]
-                cost_new = _cost_and_normal(X_new, uv[p], seen, R, t, params, nc, window, 4, A_new, g_new,
-                                            res_new, scratch)
+                step_norm = math.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2)
+                new_norm = math.sqrt(X_new[0] ** 2 + X_new[1] ** 2 + X_new[2] ** 2)
+                if step_norm <= step_tol * (1.0 + new_norm):
+                    # converged: refine_points would also stop after this step; X moves by less than
+                    # the tolerance, so keep X and its cost instead of paying one more evaluation
+                    converged = True
+                    break
+                cost_new = _cost_and_normal(X_new, uv[p], seen, R, t, params, nc, window, True, A_new, g_new,
+                                            scratch)
                 if cost_new <= cost:
                     cost = cost_new
                     for i in range(3):
@@ -563,9 +606,7 @@ def _triangulate_chunk(start, stop, uv, R, t, params, nc, window, refine, max_it
                     lam = max(lam / 10.0, 1e-12)
                 else:
                     lam *= 10.0
-                step_norm = math.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2)
-                new_norm = math.sqrt(X_new[0] ** 2 + X_new[1] ** 2 + X_new[2] ** 2)
-                if step_norm <= step_tol * (1.0 + new_norm) or lam > 1e12:
+                if lam > 1e12:
                     converged = True
                     break
             unconverged[p] = not converged
