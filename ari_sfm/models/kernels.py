@@ -182,19 +182,23 @@ def newton_step(w, rho, L, h, d, n2, m2):
 
 
 @njit(**_JIT)
-def solve_w(rho, L, h, d, n, n_m, max_iter):
-    """Newton from w = 0 for one point until |step| <= NEWTON_REL_TOL |w|. Returns (w, steps);
-    steps is NEWTON_NOT_CONVERGED or NEWTON_NOT_FINITE on failure."""
-    w = 0.0
+def solve_w(rho, L, h, d, n, n_m, max_iter, w0=0.0):
+    """Newton for one point until |step| <= NEWTON_REL_TOL |w|, from w = 0 (converges monotonically)
+    or from a guess ``w0`` (e.g. the previous solve of a nearby point; falls back to w = 0 if the
+    guess does not converge). Returns (w, steps); steps is NEWTON_NOT_CONVERGED or
+    NEWTON_NOT_FINITE on failure."""
     n2, m2 = n * n, n_m * n_m
-    for it in range(1, max_iter + 1):
-        step = newton_step(w, rho, L, h, d, n2, m2)
-        w = w - step
-        if not math.isfinite(step):
-            return w, NEWTON_NOT_FINITE
-        if abs(step) <= NEWTON_REL_TOL * abs(w):
-            return w, it
-    return w, NEWTON_NOT_CONVERGED
+    w = w0
+    for attempt in range(2 if w0 != 0.0 else 1):
+        w = w0 if attempt == 0 else 0.0
+        for it in range(1, max_iter + 1):
+            step = newton_step(w, rho, L, h, d, n2, m2)
+            w = w - step
+            if not math.isfinite(step):
+                break
+            if abs(step) <= NEWTON_REL_TOL * abs(w):
+                return w, it
+    return w, (NEWTON_NOT_FINITE if not math.isfinite(w) else NEWTON_NOT_CONVERGED)
 
 
 @njit(**_JIT)
@@ -321,20 +325,22 @@ def exact_pixel(X0, X1, X2, z, r0, r1, r2, L, w, params, nc, dn_dv, h, d, n, n_m
 
 @njit(**_JIT)
 def exact_point(X0, X1, X2, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians,
-                uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist):
-    """:func:`exact_pixel` of one point with its own Newton solve; returns the Newton steps
-    (negative: failure; 0: no ray, L <= 0)."""
+                uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist, u0=0.0):
+    """:func:`exact_pixel` of one point with its own Newton solve, started from the incidence
+    ``u0`` = tan t when given (a nearby point's; see :func:`solve_w`). Returns the Newton steps
+    (negative: failure; 0: no ray, L <= 0) and the solved tan t."""
     z = X0 * nc[0] + X1 * nc[1] + X2 * nc[2]
     r0, r1, r2 = X0 - z * nc[0], X1 - z * nc[1], X2 - z * nc[2]
     L = z - h - d
     steps = 0
+    rho = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
     if L > 0.0 and math.isfinite(X0 + X1 + X2):
-        w, steps = solve_w(math.sqrt(r0 * r0 + r1 * r1 + r2 * r2), L, h, d, n, n_m, NEWTON_MAX_ITER)
+        w, steps = solve_w(rho, L, h, d, n, n_m, NEWTON_MAX_ITER, u0 / rho if rho > 0.0 else 0.0)
     else:
         w = np.nan
     exact_pixel(X0, X1, X2, z, r0, r1, r2, L, w, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians,
                 uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist)
-    return steps
+    return steps, w * rho
 
 
 @njit(**_JIT)
@@ -372,7 +378,7 @@ def exact_batch(X, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians):
 def exact_ray(u, v, params, nc, h, d, n, n_m, J_xy, J_dist, origin, direction):
     """Medium-side ray of one pixel by vector Snell at both faces: origin on the far face and unit
     direction into origin (3,), direction (3,) (NaN if the pixel's ray misses the window).
-    Returns whether undistortion failed."""
+    Returns whether undistortion failed and tan t of the camera-side ray (t its incidence)."""
     xd, yd = (u - params[2]) / params[0], (v - params[3]) / params[1]
     x, y, failed = undistort_point(xd, yd, params[4:], params[0], params[1], J_xy, J_dist)
     s = 1.0 / math.sqrt(x * x + y * y + 1.0)
@@ -394,7 +400,7 @@ def exact_ray(u, v, params, nc, h, d, n, n_m, J_xy, J_dist, origin, direction):
     m0, m1, m2 = eta * g0 + a * nc[0], eta * g1 + a * nc[1], eta * g2 + a * nc[2]
     norm = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
     direction[0], direction[1], direction[2] = m0 / norm, m1 / norm, m2 / norm
-    return failed
+    return failed, math.sqrt(max(1.0 - c * c, 0.0)) / c
 
 
 @njit(**_JIT)
@@ -407,7 +413,7 @@ def exact_rays_batch(uv, params, nc, h, d, n, n_m):
     J_xy = np.empty((2, 2))
     J_dist = np.empty((2, 5))
     for i in range(m):
-        failed[i] = exact_ray(uv[i, 0], uv[i, 1], params, nc, h, d, n, n_m, J_xy, J_dist, origins[i], directions[i])
+        failed[i] = exact_ray(uv[i, 0], uv[i, 1], params, nc, h, d, n, n_m, J_xy, J_dist, origins[i], directions[i])[0]
     return origins, directions, failed
 
 
@@ -430,10 +436,10 @@ def _solve_sym3(A, b, x):
 
 
 @njit(**_JIT)
-def _cost_and_normal(Xw, uv, ok, R, t, params, nc, window, jacobians, A, g, scratch):
+def _cost_and_normal(Xw, uv, ok, R, t, params, nc, window, jacobians, A, g, scratch, u_start):
     """Reprojection cost of world point Xw over the cameras ok[c] and, with ``jacobians``, the
     Gauss-Newton matrix A = J^T J and gradient g = J^T r (world coordinates). Cost inf if a pixel
-    is NaN."""
+    is NaN. Each camera's Newton solve starts from u_start[c] (tan t), which gets the solved one."""
     C = uv.shape[0]
     J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist, dn_dv, pix = scratch
     for i in range(3):
@@ -447,8 +453,11 @@ def _cost_and_normal(Xw, uv, ok, R, t, params, nc, window, jacobians, A, g, scra
         Xc0 = R[c, 0, 0] * Xw[0] + R[c, 0, 1] * Xw[1] + R[c, 0, 2] * Xw[2] + t[c, 0]
         Xc1 = R[c, 1, 0] * Xw[0] + R[c, 1, 1] * Xw[1] + R[c, 1, 2] * Xw[2] + t[c, 1]
         Xc2 = R[c, 2, 0] * Xw[0] + R[c, 2, 1] * Xw[1] + R[c, 2, 2] * Xw[2] + t[c, 2]
-        exact_point(Xc0, Xc1, Xc2, params[c], nc[c], dn_dv, window[c, 0], window[c, 1], window[c, 2],
-                    window[c, 3], 4, jacobians, pix, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist)
+        _, u_solved = exact_point(Xc0, Xc1, Xc2, params[c], nc[c], dn_dv, window[c, 0], window[c, 1], window[c, 2],
+                                  window[c, 3], 4, jacobians, pix, J_point, J_normal, J_params, J_td, J_pin, J_xy,
+                                  J_dist, u_start[c])
+        if math.isfinite(u_solved):
+            u_start[c] = u_solved
         r0, r1 = pix[0] - uv[c, 0], pix[1] - uv[c, 1]
         cost += r0 * r0 + r1 * r1
         if not jacobians:
@@ -510,6 +519,7 @@ def _triangulate_chunk(start, stop, uv, R, t, params, nc, window, refine, max_it
     dd = np.empty((C, 3))
     ok = np.zeros(C, dtype=np.bool_)
     seen = np.zeros(C, dtype=np.bool_)
+    u_start = np.zeros(C)
     oc = np.empty(3)
     dc = np.empty(3)
     A = np.empty((3, 3))
@@ -541,9 +551,10 @@ def _triangulate_chunk(start, stop, uv, R, t, params, nc, window, refine, max_it
         for c in range(C):
             if not seen[c]:
                 continue
-            if exact_ray(uv[p, c, 0], uv[p, c, 1], params[c], nc[c], window[c, 0], window[c, 1], window[c, 2],
-                         window[c, 3], J_xy, J_dist, oc, dc):
-                undistort_failed[p] += 1
+            failed, u_ray = exact_ray(uv[p, c, 0], uv[p, c, 1], params[c], nc[c], window[c, 0], window[c, 1],
+                                      window[c, 2], window[c, 3], J_xy, J_dist, oc, dc)
+            undistort_failed[p] += failed
+            u_start[c] = u_ray if math.isfinite(u_ray) else 0.0  # the observed pixel's incidence: a close start
             for i in range(3):
                 o[c, i] = (R[c, 0, i] * (oc[0] - t[c, 0]) + R[c, 1, i] * (oc[1] - t[c, 1])
                            + R[c, 2, i] * (oc[2] - t[c, 2]))
@@ -575,7 +586,7 @@ def _triangulate_chunk(start, stop, uv, R, t, params, nc, window, refine, max_it
                 sq += q0 * q0 + q1 * q1 + q2 * q2
         gap_out[p] = 2.0 * math.sqrt(sq / n_ok)
         # Levenberg-Marquardt on the reprojection error, Marquardt damping lam diag(J^T J)
-        cost = _cost_and_normal(X, uv[p], seen, R, t, params, nc, window, refine, An, g, scratch)
+        cost = _cost_and_normal(X, uv[p], seen, R, t, params, nc, window, refine, An, g, scratch, u_start)
         if refine and math.isfinite(cost):
             lam = damping
             converged = False
@@ -595,7 +606,7 @@ def _triangulate_chunk(start, stop, uv, R, t, params, nc, window, refine, max_it
                     converged = True
                     break
                 cost_new = _cost_and_normal(X_new, uv[p], seen, R, t, params, nc, window, True, A_new, g_new,
-                                            scratch)
+                                            scratch, u_start)
                 if cost_new <= cost:
                     cost = cost_new
                     for i in range(3):
