@@ -223,7 +223,7 @@ def fig_openptv(repeats: int) -> None:
     cal.save(folder / "calibration.json")
     summary = export_openptv(folder / "calibration.json", folder / "optv")
     cpar = ControlParams(len(dataset.camera_names))
-    cpar.read_control_par(str(folder / "optv" / "parameters" / "ptv.par").encode())
+    cpar.read_control_par(str(folder / "optv" / "parameters" / "ptv.par"))
     per_camera = []
     for name in dataset.camera_names:
         obs = next(o for o in dataset.observations if o.camera == name)
@@ -236,7 +236,7 @@ def fig_openptv(repeats: int) -> None:
             t = targets[k]
             t.set_pos((u, v))
             t.set_pnr(k)
-        per_camera.append((str(ori).encode(), str(addpar).encode(), ref, targets))
+        per_camera.append((str(ori), str(addpar), ref, targets))
 
     def run_optv() -> None:
         for ori, addpar, ref, targets in per_camera:
