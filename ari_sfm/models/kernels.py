@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 NEWTON_MAX_ITER = 20  # a cap; the paper camera needs 5 (air) to 6 (water) over its whole image
 NEWTON_REL_TOL = 1e-12  # stop when |step| <= tol * w; quadratic convergence leaves ~1e-24 + rounding
@@ -482,36 +482,24 @@ def _cost_and_normal(Xw, uv, ok, R, t, params, nc, window, jacobians, A, g, scra
     return cost
 
 
-TRIANGULATE_CHUNK = 256  # points per parallel task (each task allocates its scratch once)
-
-
-@njit(parallel=True, **_JIT)
-def triangulate_exact(uv, R, t, params, nc, window, refine, max_iterations, damping, step_tol, min_det):
+@njit(**_JIT)
+def triangulate_exact(uv, R, t, params, nc, window, refine, max_iterations, damping, step_tol, min_det,
+                      X_out, gap_out, rmse_out, unconverged, undistort_failed):
     """World points of pixel tracks uv (P, C, 2) (NaN: not seen) through the exact model of C
     cameras: cam_from_world R (C, 3, 3), t (C, 3); params (C, 9); unit normals nc (C, 3) in each
-    camera; window (C, 4) = [h, d, n, n_m]. Per point (chunks of points in parallel):
-    back-projection, the least-squares point of the rays (``ray_gap_mm``), then, with ``refine``,
-    Levenberg-Marquardt on the reprojection error with the analytic Jacobians (the algorithm of
-    :func:`ari_sfm.triangulate.refine_points`, per point). Returns X (P, 3), ray_gap_mm (P,),
-    reprojection_rmse_px (P,), unconverged (P,) bool and undistortion failures (P,) int."""
-    P = uv.shape[0]
-    X_out = np.full((P, 3), np.nan)
-    gap_out = np.full(P, np.nan)
-    rmse_out = np.full(P, np.nan)
-    unconverged = np.zeros(P, dtype=np.bool_)
-    undistort_failed = np.zeros(P, dtype=np.int64)
-    n_chunks = (P + TRIANGULATE_CHUNK - 1) // TRIANGULATE_CHUNK
-    for chunk in prange(n_chunks):
-        _triangulate_chunk(chunk * TRIANGULATE_CHUNK, min(P, (chunk + 1) * TRIANGULATE_CHUNK), uv, R, t, params,
-                           nc, window, refine, max_iterations, damping, step_tol, min_det,
-                           X_out, gap_out, rmse_out, unconverged, undistort_failed)
-    return X_out, gap_out, rmse_out, unconverged, undistort_failed
+    camera; window (C, 4) = [h, d, n, n_m]. Per point: back-projection, the least-squares point of
+    the rays (``ray_gap_mm``), then, with ``refine``, Levenberg-Marquardt on the reprojection error
+    with the analytic Jacobians (the algorithm of :func:`ari_sfm.triangulate.refine_points`, per
+    point). Fills X_out (P, 3), gap_out (P,), rmse_out (P,) (NaN where no point), unconverged (P,)
+    and undistort_failed (P,). Releases the GIL: threads may run it on separate slices of points."""
+    _triangulate_chunk(0, uv.shape[0], uv, R, t, params, nc, window, refine, max_iterations, damping, step_tol,
+                       min_det, X_out, gap_out, rmse_out, unconverged, undistort_failed)
 
 
 @njit(**_JIT)
 def _triangulate_chunk(start, stop, uv, R, t, params, nc, window, refine, max_iterations, damping, step_tol,
                        min_det, X_out, gap_out, rmse_out, unconverged, undistort_failed):
-    """Points start..stop of :func:`triangulate_exact` (scratch allocated once for the chunk)."""
+    """Points start..stop of :func:`triangulate_exact` (scratch allocated once)."""
     C = uv.shape[1]
     J_xy = np.empty((2, 2))
     J_dist = np.empty((2, 5))
