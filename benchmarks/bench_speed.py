@@ -273,36 +273,75 @@ def fig_openptv(repeats: int) -> None:
     report("openptv", f"calibrate(exact) PTV body {n_obs} obs / optv full_calibration x 4", run)
 
 
+def reset_peak_memory() -> None:
+    """Start a new peak-RSS window (Linux: /proc/self/clear_refs 5; elsewhere the process peak stays)."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass
+
+
+def peak_memory_mb() -> float:
+    """Peak RSS since the last reset_peak_memory (VmHWM), else the process peak (ru_maxrss)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+COLD_START = """
+import time
+w0, c0 = time.perf_counter(), time.process_time()
+def lap(label):
+    global w0, c0
+    w, c = time.perf_counter(), time.process_time()
+    print(f"{label}|{w - w0:.2f}|{c - c0:.2f}")
+    w0, c0 = w, c
+import numpy as np
+from ari_sfm.calibrate import calibrate
+from ari_sfm.calibration import Calibration
+from ari_sfm.models.exact import exact_project
+from ari_sfm.simulate import make_scene
+from ari_sfm.triangulate import triangulate_pixels
+lap("import ari_sfm (numba included)")
+exact_project(np.array([[1.0, 2.0, 400.0]]), np.r_[3000., 3000, 1000, 800, np.zeros(5)], np.array([0, 0, 1.0]),
+              6.0, 1.5168, 1.333, 40.0)
+lap("first exact_project (+ Jacobians)")
+scene = make_scene("binocular", seed=0)
+lap("make_scene binocular")
+calibrate(scene.dataset, model="exact")
+lap("first calibrate(exact)")
+truth = Calibration.from_json(scene.truth)
+X = np.array([p.t for p in truth.frames.values()])
+triangulate_pixels(truth, {c: truth.project_world(c, X) for c in truth.cameras})
+lap("first triangulate_pixels (exact)")
+calibrate(scene.dataset, model="exact")
+lap("calibrate(exact) again")
+for line in open("/proc/self/status"):
+    if line.startswith("VmHWM:"):
+        print(f"peak RSS MB|{int(line.split()[1]) / 1024:.0f}|")
+"""
+
+
 def cold_start() -> None:
-    """First calls in a fresh process with an empty numba cache, then again with the cache filled."""
-    code = ("import time; t0 = time.perf_counter()\n"
-            "from ari_sfm.calibrate import calibrate\n"
-            "from ari_sfm.simulate import make_scene\n"
-            "from ari_sfm.calibration import Calibration\n"
-            "from ari_sfm.triangulate import triangulate_pixels\n"
-            "sc = make_scene('binocular', seed=0)\n"
-            "t1 = time.perf_counter(); cal = calibrate(sc.dataset, model='exact'); t2 = time.perf_counter()\n"
-            "tr = Calibration.from_json(sc.truth)\n"
-            "import numpy as np; X = np.array([p.t for p in tr.frames.values()])\n"
-            "t3 = time.perf_counter(); triangulate_pixels(tr, {c: tr.project_world(c, X) for c in tr.cameras}); "
-            "t4 = time.perf_counter()\n"
-            "cal = calibrate(sc.dataset, model='exact'); t5 = time.perf_counter()\n"
-            "import resource; print(t2 - t1, t4 - t3, t5 - t4, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n")
+    """A fresh process with an empty numba cache (what the first run after an install pays: numba compiles
+    every kernel it calls), then the same with the cache filled; wall and CPU seconds per step."""
     with tempfile.TemporaryDirectory() as cache:
         env = dict(os.environ, NUMBA_CACHE_DIR=cache)
-        rows = []
-        for label in ("cold (empty numba cache)", "warm (cache filled)"):
+        runs = []
+        for _ in ("cold", "warm"):
             t = time.perf_counter()
-            out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-            total = time.perf_counter() - t
-            first_cal, first_tri, again, rss = (float(v) for v in out.stdout.split())
-            rows.append((label, total, first_cal, first_tri, again, rss))
-    print("\ncold start: a fresh process (NUMBA_CACHE_DIR empty, then filled) calibrating binocular (exact) "
-          "and triangulating")
-    print(f"{'':26s} {'process s':>9s} {'1st calibrate s':>15s} {'1st triangulate s':>17s} {'2nd calibrate s':>15s} "
-          f"{'peak RSS MB':>11s}")
-    for label, total, first_cal, first_tri, again, rss in rows:
-        print(f"{label:26s} {total:9.2f} {first_cal:15.2f} {first_tri:17.2f} {again:15.2f} {rss / 1024:11.0f}")
+            out = subprocess.run([sys.executable, "-c", COLD_START], env=env, capture_output=True, text=True, check=True)
+            rows = [line.split("|") for line in out.stdout.strip().splitlines()]
+            runs.append((time.perf_counter() - t, rows))
+    print("\ncold start: fresh processes with NUMBA_CACHE_DIR empty (cold), then filled (warm); wall / CPU s")
+    print(f"{'step':36s} {'cold wall':>9s} {'cold CPU':>9s} {'warm wall':>9s} {'warm CPU':>9s}")
+    for (label, *cold), (_, *warm) in zip(runs[0][1], runs[1][1]):
+        print(f"{label:36s} {cold[0]:>9s} {cold[1]:>9s} {warm[0]:>9s} {warm[1]:>9s}")
+    print(f"{'whole process (python start included)':36s} {runs[0][0]:9.2f} {'':9s} {runs[1][0]:9.2f}")
 
 
 FIGURES = ("calibrate_single", "calibrate_4x100", "triangulate", "forward", "openptv")
@@ -319,17 +358,18 @@ def main() -> None:
     print(f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}, {os.cpu_count()} CPUs, "
           f"load average {os.getloadavg()[0]:.2f}; {args.repeats} alternating pairs per figure")
     print(f"{'figure':17s} {'ours / reference':58s} {'ours ms':>9s} {'ref ms':>9s} {'median':>7s} [min-max]")
-    if "calibrate_single" in only:
-        fig_calibrate_single(args.repeats)
-    if "calibrate_4x100" in only:
-        fig_calibrate_4x100(max(3, args.repeats // 2))
-    if "triangulate" in only:
-        fig_triangulate(args.repeats, args.points)
-    if "forward" in only:
-        fig_forward(args.repeats, args.points)
-    if "openptv" in only:
-        fig_openptv(max(3, args.repeats // 2))
-    print(f"peak RSS of this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+    runs = {"calibrate_single": lambda: fig_calibrate_single(args.repeats),
+            "calibrate_4x100": lambda: fig_calibrate_4x100(max(3, args.repeats // 2)),
+            "triangulate": lambda: fig_triangulate(args.repeats, args.points),
+            "forward": lambda: fig_forward(args.repeats, args.points),
+            "openptv": lambda: fig_openptv(max(3, args.repeats // 2))}
+    peaks = {}
+    for name in FIGURES:
+        if name in only:
+            reset_peak_memory()
+            runs[name]()
+            peaks[name] = peak_memory_mb()
+    print("peak RSS MB while each ran (both commands): " + ", ".join(f"{k} {v:.0f}" for k, v in peaks.items()))
     if "cold_start" in only:
         cold_start()
     print(f"\nload average {os.getloadavg()[0]:.2f}")
