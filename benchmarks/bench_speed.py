@@ -5,7 +5,9 @@
 
 For every figure the two commands run in alternation, ``--repeats`` pairs (after one
 warm-up of each); the ratio of each pair is taken and the median ratio printed with its
-spread (min-max over the pairs), next to the median times and the goal. Then the cold
+spread (min-max over the pairs), next to the median times and the goal, and the median
+ratio of the process CPU times (all threads), which a loaded machine disturbs less (for a
+multi-threaded command it is the cost, not the wall time, on an idle machine). Then the cold
 start (a fresh process with an empty numba cache: imports, compiling every kernel a
 calibration and a triangulation use, against the same process with the cache filled) and
 the peak memory (ru_maxrss) of this process.
@@ -75,26 +77,30 @@ GOALS = {  # figure: (what the ratio is, goal text, ratio meets the goal)
 def alternate(ours: Callable[[], object], reference: Callable[[], object], repeats: int) -> dict:
     """Run both once (warm-up), then ``repeats`` alternating pairs; per-pair times and ratios."""
     ours(), reference()
-    t_ours, t_ref, extra = [], [], []
+    t_ours, t_ref, c_ours, c_ref, extra = [], [], [], [], []
     for _ in range(repeats):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         out = ours()
         t_ours.append(time.perf_counter() - t)
+        c_ours.append(time.process_time() - c)
         extra.append(out)
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         reference()
         t_ref.append(time.perf_counter() - t)
-    return {"ours": t_ours, "ref": t_ref, "ratios": [a / b for a, b in zip(t_ours, t_ref)], "extra": extra}
+        c_ref.append(time.process_time() - c)
+    return {"ours": t_ours, "ref": t_ref, "ratios": [a / b for a, b in zip(t_ours, t_ref)],
+            "cpu_ratios": [a / b for a, b in zip(c_ours, c_ref)], "extra": extra}
 
 
 def report(name: str, what: str, run: dict, invert: bool = False, note: str = "") -> dict:
     """Print one figure's line; ``invert``: the ratio is a throughput (reference time / ours)."""
     ratios = [1.0 / r for r in run["ratios"]] if invert else run["ratios"]
+    cpu = statistics.median(1.0 / r if invert else r for r in run["cpu_ratios"])
     med = statistics.median(ratios)
     kind, goal, ok = GOALS[name]
     print(f"{name:17s} {what:58s} {1e3 * statistics.median(run['ours']):9.1f} {1e3 * statistics.median(run['ref']):9.1f} "
           f"{med:7.3f} [{min(ratios):.3f}-{max(ratios):.3f}] {kind} goal {goal}: {'met' if ok(med) else 'NOT met'}"
-          + (f"  ({note})" if note else ""))
+          f"; CPU-time ratio {cpu:.3f}" + (f"  ({note})" if note else ""))
     return {"median": med, "min": min(ratios), "max": max(ratios)}
 
 
