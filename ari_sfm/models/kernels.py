@@ -4,17 +4,19 @@ Jacobians, Snell back-projection and triangulation through the window (numba, ``
 These kernels are THE implementation: :mod:`.pinhole`, :mod:`.ari`, :mod:`.exact`, the numpy
 bundle adjustment, the GTSAM factors, refine-colmap and :mod:`ari_sfm.triangulate` all call them
 through the public functions of those modules. The maths is derived in the docstrings of
-:mod:`.pinhole` (distortion) and :mod:`.exact` (incidence equation, implicit-function Jacobians);
-each kernel works on one point with scalars, so a batch allocates only its outputs.
+:mod:`.pinhole` (distortion) and :mod:`.exact` (incidence equation, implicit-function Jacobians).
+The per-point parts work on scalars; a batch solves the incidence equation of all its points in
+lock-step (a loop the compiler vectorises) and allocates its outputs and a few (m,) arrays.
 
 They live in one module on purpose: numba's cache is invalidated by the source file of the
 function it compiled, not by the files of the functions it calls, so a kernel calling a kernel
 of another module could run a stale copy after an upgrade.
 
-Compilation: the first call of each kernel in a fresh install compiles it (a few seconds in all,
-see README "Performance") and writes the machine code next to this file (``__pycache__``) or, when
-that folder is read-only (a system site-packages), to numba's user-wide cache
-(``NUMBA_CACHE_DIR``, default ``~/.cache/numba``); later processes load it in milliseconds.
+Compilation: the first call of each kernel in a fresh install compiles it (measured: ~6 s CPU for
+the exact projection, ~13 s more for triangulation; README "Performance") and numba caches the
+machine code: in ``NUMBA_CACHE_DIR`` when set, else next to this file (``__pycache__``), else,
+when that folder is read-only (a system site-packages), in its user-wide cache
+(``~/.cache/numba``); later processes load it in milliseconds.
 """
 from __future__ import annotations
 
