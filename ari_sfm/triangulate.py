@@ -11,7 +11,9 @@ needs: thousands of particles per frame, 2-8 cameras):
   (``Calibration.rays_world``: after the window, so refraction is in them),
   then Levenberg-Marquardt on the reprojection error through
   ``Calibration.project_world`` for all points at once (one 3x3 normal
-  equation per point).
+  equation per point). Through the exact model (exact, rt, truth) both steps run
+  per point in one compiled kernel (:func:`ari_sfm.models.kernels.triangulate_exact`,
+  the same algorithm, slices of points on one thread per core): no intermediate arrays.
 
 Ray gap (``ray_gap_mm``, the ``points.json`` key). For a point with rays
 ``o_c + s d_c`` (unit ``d_c``) the linear point X minimises
@@ -33,12 +35,16 @@ the pixel residual: the smallest 3D move that removes the residual).
 from __future__ import annotations
 
 import logging
+import os
+from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Mapping
 
 import numpy as np
 
 from .calibration import Calibration
 from .errors import AriSfmError
+from .models import kernels
+from .models.exact import ExactModel
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +52,7 @@ MAX_ITERATIONS = 50  # Levenberg-Marquardt iterations (from the ray initialisati
 STEP_TOL_MM = 1e-9  # a point has converged when its step is below this (relative to 1 + |X|)
 NUMERIC_STEP_MM = 1e-4  # central-difference step for models without analytic Jacobians
 MIN_DET = 1e-14  # det of the 3x3 ray normal matrix below this: rays (nearly) parallel -> NaN
+PARALLEL_MIN_POINTS = 2000  # points per thread of the exact model's triangulation kernel (fewer: one thread)
 
 Projector = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -252,6 +259,9 @@ def triangulate_pixels(calibration: Calibration, tracks: Mapping[str, np.ndarray
     model has no rays).
     """
     cameras, uv = _tracks_array(calibration, tracks)
+    exact = _exact_cameras(calibration, cameras)
+    if exact is not None:
+        return _triangulate_exact(exact, uv, refine)
     P, C, _ = uv.shape
     valid = np.isfinite(uv).all(axis=2)
     enough = valid.sum(axis=1) >= 2
@@ -281,6 +291,49 @@ def triangulate_pixels(calibration: Calibration, tracks: Mapping[str, np.ndarray
         gap = 2.0 * np.sqrt(_first_order_sq_distance(r, J, valid) / n)
         gap[~enough | ~np.isfinite(X).all(axis=1)] = np.nan
     X[~enough] = np.nan
+    return X, gap, rmse
+
+
+def _exact_cameras(calibration: Calibration, cameras: list[str]) -> tuple[np.ndarray, ...] | None:
+    """The arrays :func:`ari_sfm.models.kernels.triangulate_exact` takes (R, t, params, unit normals,
+    [h, d, n, n_m] per camera) when every camera's model is the exact one (exact, rt, truth), else None."""
+    if not (calibration.spec.window and calibration.spec.rays):
+        return None
+    models = [calibration.projection_model(c) for c in cameras]
+    if not all(type(m) is ExactModel for m in models):
+        return None
+    poses = [calibration.cameras[c].cam_from_world for c in cameras]
+    return (np.array([p.R for p in poses], dtype=float), np.array([p.t for p in poses], dtype=float),
+            np.array([m.pinhole.params for m in models], dtype=float),
+            np.array([m.normal_cam for m in models], dtype=float),
+            np.array([[m.distance_mm, m.thickness_mm, m.index, m.medium_index] for m in models], dtype=float))
+
+
+def _triangulate_exact(cameras: tuple[np.ndarray, ...], uv: np.ndarray, refine: bool
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`triangulate_pixels` through the exact model: one compiled kernel per point (rays, linear
+    point, Levenberg-Marquardt with analytic Jacobians), slices of points on one thread per core."""
+    uv = np.ascontiguousarray(uv, dtype=float)
+    P = len(uv)
+    X, gap, rmse = np.full((P, 3), np.nan), np.full(P, np.nan), np.full(P, np.nan)
+    unconverged, undistort_failed = np.zeros(P, dtype=bool), np.zeros(P, dtype=np.int64)
+
+    def run(a: int, b: int) -> None:
+        kernels.triangulate_exact(uv[a:b], *cameras, bool(refine), MAX_ITERATIONS, 1e-6, STEP_TOL_MM, MIN_DET,
+                                  X[a:b], gap[a:b], rmse[a:b], unconverged[a:b], undistort_failed[a:b])
+
+    workers = min(os.cpu_count() or 1, max(1, P // PARALLEL_MIN_POINTS))
+    if workers == 1:
+        run(0, P)
+    else:  # the kernel releases the GIL: one slice of points per thread
+        bounds = np.linspace(0, P, workers + 1).astype(int)
+        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="ari-triangulate") as pool:
+            list(pool.map(run, bounds[:-1], bounds[1:]))
+    if undistort_failed.any():
+        log.warning("undistortion did not converge for %d pixels; their rays are NaN", int(undistort_failed.sum()))
+    if unconverged.any():
+        log.warning("triangulation: %d of %d points not converged after %d iterations",
+                    int(unconverged.sum()), len(X), MAX_ITERATIONS)
     return X, gap, rmse
 
 

@@ -226,8 +226,11 @@ def test_converged_stop_rule_ends_on_gtsams_values(stop_rules, name, model):
 def test_converged_stop_rule_saves_error_evaluations(stop_rules):
     faithful = {k: v[0][1].error_evaluations for k, v in stop_rules.items()}
     converged = {k: v[1][1].error_evaluations for k, v in stop_rules.items()}
-    assert faithful[("paper_single", "ari")] >= converged[("paper_single", "ari")] + 10  # 23 -> 6 when measured
-    assert converged[("binocular", "exact")] < faithful[("binocular", "exact")]
+    # binocular exact ends on a step with no model decrease left: the converged rule saves the initial
+    # evaluation and GTSAM's futile trial(s) there (5 -> 3 when measured). (paper_single ari saved 17 of 23
+    # from the cv2.calibrateCamera start; from the closed-form start its Huber path
+    # ends at lambda's bound in both rules, saving the initial evaluation only.)
+    assert faithful[("binocular", "exact")] >= converged[("binocular", "exact")] + 2
     assert sum(converged.values()) < sum(faithful.values())
     with pytest.raises(ValueError, match="stop rule"):
         optimize_vectorized(stop_rules[("paper_single", "ari")][0][2], huber_px=1.0, stop="early")
@@ -289,7 +292,7 @@ def test_marginal_covariances_equal_gtsam_marginals(problems):
 def test_marginals_reuse_the_last_linearisation(problems):
     """After an optimisation that ends without moving (as at convergence), marginal_covariances reuses
     optimize's last linearisation: the same covariances as a fresh one."""
-    problem = VectorizedProblem.from_rig_graph(_graph(problems, "paper_single", "ari", 1.0), huber_px=1.0)
+    problem = VectorizedProblem.from_rig_graph(_graph(problems, "binocular", "exact", 1.0), huber_px=1.0)
     problem.optimize()
     assert problem.report.stop == "no_model_decrease" and problem._system_cache[0] is problem.x
     cached = problem.marginal_covariances()

@@ -1,4 +1,4 @@
-"""Zhang's planar calibration (via OpenCV) for K and the generalised extrinsics.
+"""Zhang's planar calibration (closed form via OpenCV) for K and the generalised extrinsics.
 
 With the ARI model the window only shifts the scene by delta along the normal,
 so the camera is a pinhole with the true K and R (paper Eqs. 6-10): Zhang's
@@ -82,13 +82,6 @@ def initial_K(spec: CameraSpec) -> np.ndarray:
     return np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
 
 
-HELD_FLAGS = {  # cv2.calibrateCamera flags holding what calibrate(fix_intrinsics=True) will hold
-    "K": cv2.CALIB_FIX_FOCAL_LENGTH | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
-    | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_TANGENT_DIST,
-    "focal": cv2.CALIB_FIX_FOCAL_LENGTH | cv2.CALIB_FIX_PRINCIPAL_POINT,
-}
-
-
 def held_intrinsics(spec: CameraSpec) -> str | None:
     """What ``--fix-intrinsics`` holds of a camera: "K" (a K hint, with its dist), "focal" (a
     focal_px hint: fx = fy), None (no hint)."""
@@ -97,34 +90,85 @@ def held_intrinsics(spec: CameraSpec) -> str | None:
     return "focal" if spec.focal_px is not None else None
 
 
+def _zhang_K(obj: list[np.ndarray], img: list[np.ndarray]) -> np.ndarray | None:
+    """Zhang's closed-form K (no skew) from the views' homographies: each view gives two linear
+    constraints h1^T B h2 = 0, h1^T B h1 = h2^T B h2 on B = K^-T K^-1 (B11, B22, B13, B23, B33);
+    None when they do not determine a camera (fewer than 3 views, degenerate poses)."""
+    rows = []
+    for o, i in zip(obj, img):
+        H, _ = cv2.findHomography(o[:, :2], i, 0)
+        if H is None:
+            return None
+        H = H / np.linalg.norm(H[:, :2])
+
+        def v(a: int, b: int) -> np.ndarray:
+            ha, hb = H[:, a], H[:, b]
+            return np.array([ha[0] * hb[0], ha[1] * hb[1], ha[0] * hb[2] + ha[2] * hb[0],
+                             ha[1] * hb[2] + ha[2] * hb[1], ha[2] * hb[2]])
+
+        rows += [v(0, 1), v(0, 0) - v(1, 1)]
+    if len(rows) < 6:
+        return None
+    b11, b22, b13, b23, b33 = np.linalg.svd(np.array(rows))[2][-1]
+    cx, cy = -b13 / b11, -b23 / b22
+    lam = b33 - b13 * b13 / b11 - b23 * b23 / b22
+    if not (lam / b11 > 0 and lam / b22 > 0):
+        return None
+    return np.array([[np.sqrt(lam / b11), 0, cx], [0, np.sqrt(lam / b22), cy], [0, 0, 1.0]])
+
+
+def _closed_form_K(obj: list[np.ndarray], img: list[np.ndarray], spec: CameraSpec) -> np.ndarray:
+    """K without an iterative fit: the hint ``K`` as given; else, for a planar target, Zhang's closed
+    form (:func:`_zhang_K`), or when its principal point is outside the image, the focal lengths of
+    cv2.initCameraMatrix2D (principal point at the image centre); else :func:`initial_K`."""
+    if spec.K is not None:
+        return np.array(spec.K, dtype=float)
+    w, h = spec.image_size
+    if all(np.all(o[:, 2] == 0) for o in obj):
+        K = _zhang_K(obj, img)
+        if K is not None and np.isfinite(K).all() and 0 <= K[0, 2] <= w - 1 and 0 <= K[1, 2] <= h - 1 \
+                and 0.8 < K[0, 0] / K[1, 1] < 1.25:
+            return K
+        K = cv2.initCameraMatrix2D([o.astype(np.float32) for o in obj], [i.astype(np.float32) for i in img],
+                                   (int(w), int(h)))
+        fx, fy = K[0, 0], K[1, 1]
+        if np.isfinite(K).all() and fx > 0 and fy > 0 and 0.8 < fx / fy < 1.25:
+            return np.array([[fx, 0, (w - 1) / 2], [0, fy, (h - 1) / 2], [0, 0, 1.0]])
+    return initial_K(spec)
+
+
 @one_cv2_thread()
 def calibrate_zhang(
     target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False,
     hold: str | None = None,
 ) -> ZhangResult:
-    """cv2.calibrateCamera on planar views (needs >= 3 views of >= 6 corners each); ``hold``
-    ("K", "focal", see :func:`held_intrinsics`) keeps those intrinsics at the hint."""
-    obj = [object_points(target, v.ids).astype(np.float32) for v in views]
-    img = [v.pixels.astype(np.float32).reshape(-1, 1, 2) for v in views]
-    flags = cv2.CALIB_USE_INTRINSIC_GUESS
-    if not distortion:
-        flags |= cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
-    if hold is not None:
-        flags |= HELD_FLAGS[hold]
-    K0 = initial_K(spec)
-    dist0 = np.zeros(5)  # fresh arrays: OpenCV refines them in place
+    """The closed-form start of a camera from planar (or, with a K hint, any) views: K from the
+    homographies (:func:`_closed_form_K`, Zhang's closed form), no distortion, each view's generalised
+    pose by PnP (IPPE for a planar target, iterative otherwise). ``hold`` ("K", "focal": see
+    :func:`held_intrinsics`) starts from the hint exactly as calibrate will hold it: a K hint with its
+    distortion, a focal hint with the principal point at the image centre (a K fitted to refracted
+    views and then replaced by the held hint would leave poses solved with the wrong K).
+
+    No iterative calibration (cv2.calibrateCamera) runs here: the bundle adjustment that follows
+    refines K, distortion and poses anyway, so a second Levenberg-Marquardt on the same views
+    would only repeat its work (``distortion`` is kept for the signature: the start has none).
+    """
+    obj = [object_points(target, v.ids).astype(np.float64) for v in views]
+    img = [v.pixels.astype(np.float64).reshape(-1, 2) for v in views]
+    K = initial_K(spec) if hold == "focal" else _closed_form_K(obj, img, spec)
+    dist = np.zeros(5)
     if hold == "K" and spec.dist is not None:
-        dist0 = np.resize(np.asarray(spec.dist, float), 5).copy()
-    # a start for the bundle adjustment: 1e-9 relative parameter change gives K to ~1e-8 px of the 1e-12
-    # result in ~60 % of the time (measured on paper_single)
-    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-9)
-    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
-        obj, img, tuple(int(s) for s in spec.image_size), K0, dist0, flags=flags, criteria=criteria
-    )
-    poses = {
-        v.frame: Pose(cv2.Rodrigues(r)[0], np.asarray(t, float).reshape(3)) for v, r, t in zip(views, rvecs, tvecs)
-    }
-    return ZhangResult(np.asarray(K, float), np.asarray(dist, float).reshape(-1)[:5], poses, float(rms))
+        dist = np.resize(np.asarray(spec.dist, float), 5).copy()
+    poses, sq, n = {}, 0.0, 0
+    for v, o, i in zip(views, obj, img):
+        planar = bool(np.all(o[:, 2] == 0))
+        ok, rvec, tvec = cv2.solvePnP(o, i, K, dist, flags=cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_ITERATIVE)
+        if not ok:
+            raise ValueError(f"PnP failed for frame {v.frame}")
+        poses[v.frame] = Pose(cv2.Rodrigues(rvec)[0], np.asarray(tvec, float).reshape(3))
+        res = cv2.projectPoints(o, rvec, tvec, K, dist)[0].reshape(-1, 2) - i
+        sq, n = sq + float(np.sum(res * res)), n + len(i)
+    return ZhangResult(K, dist, poses, float(np.sqrt(sq / max(n, 1))))
 
 
 def dlt_projection(X: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -193,8 +237,8 @@ def calibrate_dlt(
 ) -> ZhangResult:
     """K and generalised extrinsics from a 3D target (several planes; one view is enough):
     K from the hint when the dataset gives one (``K`` as given, ``focal_px`` with the
-    principal point at the image centre), else DLT per view (median over views); then
-    one cv2.calibrateCamera refinement (PnP inside) from that start, ``hold`` kept at the hint."""
+    principal point at the image centre), else DLT per view (median over views); then each
+    view's pose by PnP with that K (the bundle adjustment refines both)."""
     K0 = _hinted_K(spec)
     if K0 is None:
         K0 = _dlt_K(target, spec, views)

@@ -38,21 +38,28 @@ and rho drho = r . dr (smooth at r = 0).
 Points not beyond the far face (L <= 0) have no refracted ray: their pixels
 are NaN. A Newton iteration that does not converge raises
 :class:`ConvergenceError` (never a silently wrong pixel).
+
+The arithmetic runs in the compiled kernels of :mod:`ari_sfm.models.kernels` (one point at a
+time, no temporaries); the functions here are their checked Python entry points.
 """
 from __future__ import annotations
 
+import logging
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
+from . import kernels
 from .ari import check_window, unit_normal_and_projector
-from .pinhole import NUM_PARAMS, PinholeModel, as_points, project_points
+from .pinhole import NUM_PARAMS, PinholeModel, as_points
 
 if TYPE_CHECKING:
     from ari_sfm.records import Interface
 
-NEWTON_MAX_ITER = 20  # a cap; the paper camera needs 5 (air) to 6 (water) over its whole image
-NEWTON_REL_TOL = 1e-12  # stop when |step| <= tol * w; quadratic convergence leaves ~1e-24 + rounding
+logger = logging.getLogger(__name__)
+
+NEWTON_MAX_ITER = kernels.NEWTON_MAX_ITER  # a cap; the paper camera needs 5 (air) to 6 (water) over its whole image
+NEWTON_REL_TOL = kernels.NEWTON_REL_TOL  # stop when |step| <= tol * w
 
 
 class ConvergenceError(RuntimeError):
@@ -70,11 +77,23 @@ class ExactJacobians(NamedTuple):
     J_distance: np.ndarray  # (N, 2) d uv / d distance_mm (zero in air: h unobservable)
 
 
-def _q_terms(u: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
-    """G_k(u) = q^-1/2 and q^-3/2 with q = k^2 + (k^2 - 1) u^2."""
-    q = k * k + (k * k - 1.0) * u * u
-    G = 1.0 / np.sqrt(q)
-    return G, G * G * G
+def _thickness_array(d: float | np.ndarray, m: int) -> np.ndarray:
+    """The plate thickness as the kernels take it: (1,) for all points or (m,) one per point."""
+    d = np.array(d, dtype=np.float64).reshape(-1)  # a fresh writable contiguous copy
+    if d.size not in (1, m):
+        raise ValueError(f"thickness_mm must be one value or one per point ({m}), got {d.size}")
+    return d
+
+
+def _check_newton(status: int, failures: int, max_iter: int, h: float, d, n: float, n_m: float) -> int:
+    """The slowest point's Newton steps, or ConvergenceError when a kernel reported failures."""
+    if failures:
+        if status == kernels.NEWTON_NOT_FINITE:
+            raise ConvergenceError(f"exact projection: non-finite Newton step for {failures} points")
+        raise ConvergenceError(
+            f"exact projection: Newton not converged for {failures} points after "
+            f"{max_iter} iterations (h={h}, d={d}, n={n}, n_m={n_m})")
+    return status
 
 
 def solve_incidence(rho: np.ndarray, L: np.ndarray, h: float, d: float | np.ndarray, n: float, n_m: float,
@@ -82,102 +101,43 @@ def solve_incidence(rho: np.ndarray, L: np.ndarray, h: float, d: float | np.ndar
     """Solve rho(u) = rho for w = u / rho (see the module docstring).
 
     ``rho`` (N,) >= 0 radial offsets, ``L`` (N,) > 0 medium column lengths,
-    ``d`` the plate thickness, one for all points or (N,) one per point
-    (each point's Newton iteration is independent of the others').
+    ``d`` the plate thickness, one for all points or (N,) one per point.
     Returns w (N,) and the number of Newton steps the slowest point took
     (including the final step whose size met the tolerance). Raises
     :class:`ConvergenceError` if a point is not converged after ``max_iter``.
     """
-    rho = np.asarray(rho, dtype=float)
-    L = np.asarray(L, dtype=float)
-    w = np.zeros_like(rho)
-    active = np.ones(rho.shape, dtype=bool)
-    per_point = np.ndim(d) > 0
-    if per_point:
-        d = np.broadcast_to(np.asarray(d, dtype=float), rho.shape)
-    iterations = 0
-    while active.any():
-        if iterations >= max_iter:
-            raise ConvergenceError(
-                f"exact projection: Newton not converged for {int(active.sum())} points after "
-                f"{max_iter} iterations (h={h}, d={d}, n={n}, n_m={n_m})")
-        iterations += 1
-        wa, ra, La = w[active], rho[active], L[active]
-        da = d[active] if per_point else d
-        u = wa * ra
-        Gn, Gn3 = _q_terms(u, n)
-        Gm, Gm3 = _q_terms(u, n_m)
-        psi = wa * (h + da * Gn + La * Gm) - 1.0
-        dpsi = h + da * n * n * Gn3 + La * n_m * n_m * Gm3  # = rho'(u) > 0
-        step = psi / dpsi
-        w[active] = wa - step
-        done = np.abs(step) <= NEWTON_REL_TOL * np.abs(w[active])
-        bad = ~np.isfinite(step)
-        if bad.any():
-            raise ConvergenceError(f"exact projection: non-finite Newton step for {int(bad.sum())} points")
-        idx = np.flatnonzero(active)
-        active[idx[done]] = False
-    return w, iterations
-
-
-def incidence_jacobians(X: np.ndarray, z: np.ndarray, r: np.ndarray, L: np.ndarray, w: np.ndarray,
-                        nc: np.ndarray, h: float, d: float | np.ndarray, n: float, n_m: float, J_pin: np.ndarray
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Pixel Jacobians of the exact projection through D = n_c + w r (implicit function theorem on
-    the incidence equation, see the module docstring), shared by ExactModel and the numpy backend.
-
-    ``X`` (N, 3) camera-frame points, ``z = X . n_c``, ``r = X - z n_c``, ``L`` the medium column,
-    ``w`` the solved incidence variable, ``J_pin`` (N, 2, 3) the pinhole's d uv / d D. Returns
-    d uv / d X (N, 2, 3), d uv / d n_c for a free (unnormalised) normal (N, 2, 3), d uv / d d and
-    d uv / d h (N, 2).
-    """
-    u = w * np.sqrt(np.einsum("ni,ni->n", r, r))
-    Gn, Gn3 = _q_terms(u, n)
-    Gm, Gm3 = _q_terms(u, n_m)
-    P = h + d * n * n * Gn3 + L * n_m * n_m * Gm3  # rho'(u) = dPsi/dw
-    K = d * (n * n - 1.0) * Gn3 + L * (n_m * n_m - 1.0) * Gm3  # H'(u) = -u K
-    w3K = w**3 * K
-    # dw/dX = (w^3 K r^T - w G_m n^T) / P
-    dw_dX = (w3K[:, None] * r - (w * Gm)[:, None] * nc) / P[:, None]
-    # dw/dn (free n) = (-w^3 K z r^T - w G_m X^T) / P   (uses r . n = 0)
-    dw_dn = (-(w3K * z)[:, None] * r - (w * Gm)[:, None] * X) / P[:, None]
-    m = len(X)
-    J_pin_r = np.einsum("nij,nj->ni", J_pin, r)  # J_pin @ r
-    J_pin_n = (J_pin.reshape(2 * m, 3) @ nc).reshape(m, 2)
-    # dD/dX = w (I - n n^T) + r dw/dX^T
-    J_point = (w[:, None, None] * (J_pin - J_pin_n[:, :, None] * nc[None, None, :])
-               + J_pin_r[:, :, None] * dw_dX[:, None, :])
-    # dD/dn = I - w z I - w n X^T + r dw/dn^T   (dr/dn = -z I - n X^T)
-    J_n_free = ((1.0 - w * z)[:, None, None] * J_pin
-                - w[:, None, None] * J_pin_n[:, :, None] * X[:, None, :]
-                + J_pin_r[:, :, None] * dw_dn[:, None, :])
-    J_thickness = J_pin_r * (w * (Gm - Gn) / P)[:, None]
-    J_distance = J_pin_r * (w * (Gm - 1.0) / P)[:, None]
-    return J_point, J_n_free, J_thickness, J_distance
+    rho = np.array(rho, dtype=np.float64).reshape(-1)
+    L = np.array(L, dtype=np.float64).reshape(-1)
+    w, status, failures = kernels.solve_w_batch(rho, L, float(h), _thickness_array(d, len(rho)), float(n),
+                                                float(n_m), int(max_iter))
+    return w, _check_newton(status, failures, max_iter, h, d, n, n_m)
 
 
 def incidence(X: np.ndarray, nc: np.ndarray, h: float, d: float | np.ndarray, n: float, n_m: float
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """Depth z = n_c . X, radial vector r, medium column L and the solved w of points X (m, 3)
     (NaN where L <= 0 or X is not finite), and the Newton steps of the slowest point."""
-    z = X @ nc
-    r = X - z[:, None] * nc
-    L = z - h - d
-    valid = (L > 0.0) & np.isfinite(X.sum(axis=1))
-    rho = np.sqrt(r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1] + r[:, 2] * r[:, 2])  # np.linalg.norm's arithmetic
-    w = np.full(len(X), np.nan)
-    if valid.all():
-        w[:], iterations = solve_incidence(rho, L, h, d, n, n_m)
-    else:
-        w[valid], iterations = solve_incidence(rho[valid], L[valid], h, d[valid] if np.ndim(d) else d, n, n_m)
-    return z, r, L, w, iterations
+    X = _points(X)
+    z, r, L, w, status, failures = kernels.incidence_batch(X, np.array(nc, dtype=np.float64), float(h),
+                                                           _thickness_array(d, len(X)), float(n), float(n_m),
+                                                           NEWTON_MAX_ITER)
+    return z, r, L, w, _check_newton(status, failures, NEWTON_MAX_ITER, h, d, n, n_m)
+
+
+def _points(X: np.ndarray) -> np.ndarray:
+    """X as the kernels take it: a writable C-contiguous float64 (m, 3) array (copied only if needed)."""
+    X = np.asarray(X, dtype=np.float64)
+    if not (X.flags.c_contiguous and X.flags.writeable):
+        X = np.array(X, dtype=np.float64, order="C")
+    return X
 
 
 def exact_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
                   index: float, medium_index: float, distance_mm: float, jacobians: bool = True,
                   n_params: int = NUM_PARAMS) -> ExactJacobians:
-    """The exact projection of camera-frame points X (m, 3): the one implementation, used by
-    :class:`ExactModel` and by the numpy bundle adjustment (all corners of a camera in one call).
+    """The exact projection of camera-frame points X (m, 3): the one implementation (the compiled
+    :func:`ari_sfm.models.kernels.exact_point`), used by :class:`ExactModel` and by the numpy
+    bundle adjustment (all corners of a camera in one call).
 
     ``params`` (9,) intrinsics; ``thickness_mm`` one plate for all points or (m,) one per point
     (stacked plates); ``distance_mm`` h > 0. Returns an :class:`ExactJacobians` (NaN pixels for
@@ -187,14 +147,14 @@ def exact_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thi
     if distance_mm is None:
         raise ValueError("ExactModel needs distance_mm (camera centre to near face, > 0)")
     nc, dn_dv = unit_normal_and_projector(normal_cam)
-    h, d, n, nm = float(distance_mm), thickness_mm, index, medium_index
-    z, r, L, w, _ = incidence(X, nc, h, d, n, nm)
-    uv, J_pin, J_params = project_points(nc + w[:, None] * r, params, n_params, jacobians)
+    X = _points(X)
+    h = float(distance_mm)
+    uv, J_point, J_normal, J_params, J_thickness, J_distance, status, failures = kernels.exact_batch(
+        X, np.array(params, dtype=np.float64), nc, dn_dv, h, _thickness_array(thickness_mm, len(X)),
+        float(index), float(medium_index), int(n_params), bool(jacobians))
+    _check_newton(status, failures, NEWTON_MAX_ITER, h, thickness_mm, index, medium_index)
     if not jacobians:
         return ExactJacobians(uv, None, None, None, None, None)
-    J_point, J_n_free, J_thickness, J_distance = incidence_jacobians(X, z, r, L, w, nc, h, d, n, nm, J_pin)
-    m = len(X)
-    J_normal = (J_n_free.reshape(2 * m, 3) @ dn_dv).reshape(m, 2, 3)
     return ExactJacobians(uv, J_point, J_normal, J_params, J_thickness, J_distance)
 
 
@@ -248,7 +208,8 @@ class ExactModel:
 
     def project(self, X_cam: np.ndarray) -> np.ndarray:
         """Pixels (N, 2) of camera-frame points (N, 3); NaN for points not beyond the far face."""
-        return self.pinhole.project(self._directions(as_points(X_cam, 3)))
+        return exact_project(as_points(X_cam, 3), self.pinhole.params, self.normal_cam, self.thickness_mm,
+                             self.index, self.medium_index, self.distance_mm, jacobians=False).uv
 
     def project_with_jacobians(self, X_cam: np.ndarray) -> ExactJacobians:
         """Pixels and analytic Jacobians (implicit function theorem; see module docstring and
@@ -265,19 +226,10 @@ class ExactModel:
         ``cos_t = sqrt(1 - eta^2 (1 - cos_i^2))``. Pixels whose ray does not
         head into the window (n_c . v <= 0) give NaN.
         """
-        _, v = self.pinhole.backproject(uv)
-        nc, h, d = self.normal_cam, self.distance_mm, self.thickness_mm
-        n, nm = self.index, self.medium_index
-        c = v @ nc
-        with np.errstate(invalid="ignore", divide="ignore"):
-            c = np.where(c > 0.0, c, np.nan)
-            p_near = v * (h / c)[:, None]  # hits the near face n_c . X = h
-            eta = 1.0 / n
-            c_g = np.sqrt(1.0 - eta * eta * (1.0 - c * c))
-            v_g = eta * v + (c_g - eta * c)[:, None] * nc
-            p_far = p_near + v_g * (d / c_g)[:, None]  # n_c . v_g = c_g
-            eta = n / nm
-            c_m = np.sqrt(1.0 - eta * eta * (1.0 - c_g * c_g))
-            v_m = eta * v_g + (c_m - eta * c_g)[:, None] * nc
-        v_m /= np.linalg.norm(v_m, axis=1, keepdims=True)
-        return p_far, v_m
+        origins, directions, failed = kernels.exact_rays_batch(
+            np.array(as_points(uv, 2), dtype=np.float64), np.array(self.pinhole.params), self.normal_cam,
+            self.distance_mm, self.thickness_mm, self.index, self.medium_index)
+        if failed.any():
+            logger.warning("undistortion did not converge for %d of %d points; returning NaN",
+                           int(failed.sum()), len(failed))
+        return origins, directions

@@ -23,15 +23,13 @@ import logging
 
 import numpy as np
 
+from . import kernels
+
 logger = logging.getLogger(__name__)
 
 NUM_PARAMS = 9
 PARAM_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 
-# Undistortion: Newton on the distortion polynomial (see PinholeModel.undistort).
-_UNDISTORT_TOL_PX = 1e-12  # stop when the step (in pixels) is below this
-_UNDISTORT_FAIL_PX = 1e-9  # a final residual above this marks the point as failed (NaN)
-_UNDISTORT_MAX_ITER = 50
 
 
 def as_points(X: np.ndarray, dim: int) -> np.ndarray:
@@ -59,81 +57,34 @@ def _dist5(dist: np.ndarray | None) -> np.ndarray:
     return out
 
 
+def _f64(a: np.ndarray, dim: int) -> np.ndarray:
+    """A writable C-contiguous float64 (N, dim) array for the kernels (copied only if needed)."""
+    a = np.asarray(a, dtype=np.float64)
+    if not (a.flags.c_contiguous and a.flags.writeable):
+        a = np.array(a, dtype=np.float64, order="C")
+    return a.reshape(-1, dim)
+
+
 def project_points(D: np.ndarray, params: np.ndarray, n_params: int = NUM_PARAMS, jacobians: bool = True
                    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """The pinhole projection of camera-frame points D (m, 3): the one implementation, used by
-    :meth:`PinholeModel.project_with_jacobians`, the window models and the numpy bundle adjustment.
+    """The pinhole projection of camera-frame points D (m, 3): the one implementation (the compiled
+    :func:`ari_sfm.models.kernels.pinhole_point`), used by :class:`PinholeModel`, the window models
+    and the numpy bundle adjustment.
 
     Returns pixels (m, 2) and, with ``jacobians``, ``J_point`` = d uv / d D (m, 2, 3) and
     ``J_params`` = d uv / d params[:n_params] (m, 2, n_params); NaN where Z <= 0.
-    With no distortion to estimate (``n_params`` 4) nor present (k1..k3, p1, p2 all zero) the
-    distortion polynomial is the identity (exactly, in floating point) and is skipped.
     """
-    Z = D[:, 2]
-    behind = ~(Z > 0.0)
-    if behind.any():
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xy = D[:, :2] / Z[:, None]
-        xy[behind] = np.nan
-    else:  # every Z > 0: nothing to silence
-        xy = D[:, :2] / Z[:, None]
-    f = params[:2]
-    if n_params > 4 or params[4:].any():
-        xyd, J_xy, J_dist = _distort(xy, params[4:])
-    else:
-        xyd, J_xy, J_dist = xy, None, None
-    uv = xyd * f + params[2:4]
+    uv, J_point, J_params = kernels.pinhole_batch(_f64(D, 3), np.array(params, dtype=np.float64), int(n_params),
+                                                  bool(jacobians))
     if not jacobians:
         return uv, None, None
-    m = len(D)
-    inv_z = 1.0 / Z
-    if J_xy is None:  # diag(f) @ [[1/Z, 0, -x/Z], [0, 1/Z, -y/Z]]
-        J_point = np.zeros((m, 2, 3))
-        J_point[:, 0, 0] = f[0] * inv_z
-        J_point[:, 1, 1] = f[1] * inv_z
-        J_point[:, :, 2] = f * (-xy * inv_z[:, None])
-    else:  # diag(f) J_xy d(x, y)/dD
-        J_norm = np.zeros((m, 2, 3))
-        J_norm[:, 0, 0] = inv_z
-        J_norm[:, 1, 1] = inv_z
-        J_norm[:, :, 2] = -xy * inv_z[:, None]
-        J_point = (f[None, :, None] * J_xy) @ J_norm
-    J_params = np.zeros((m, 2, n_params))
-    J_params[:, 0, 0] = xyd[:, 0]  # du/dfx
-    J_params[:, 1, 1] = xyd[:, 1]  # dv/dfy
-    J_params[:, 0, 2] = 1.0  # du/dcx
-    J_params[:, 1, 3] = 1.0  # dv/dcy
-    if n_params > 4:
-        J_params[:, :, 4:] = f[None, :, None] * J_dist[:, :, : n_params - 4]
     return uv, J_point, J_params
 
 
 def _distort(xy: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """OpenCV distortion of normalised coordinates xy (N, 2) with ``dist`` = [k1, k2, p1, p2, k3]:
     ``xyd`` (N, 2), ``J_xy`` (N, 2, 2) = d xyd / d xy, ``J_dist`` (N, 2, 5) = d xyd / d dist."""
-    k1, k2, p1, p2, k3 = dist
-    x, y = xy[:, 0], xy[:, 1]
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
-    xyd = np.empty_like(xy)
-    xyd[:, 0] = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-    xyd[:, 1] = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-
-    J_xy = np.empty((len(xy), 2, 2))
-    cross = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y  # symmetric off-diagonal
-    J_xy[:, 0, 0] = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
-    J_xy[:, 0, 1] = cross
-    J_xy[:, 1, 0] = cross
-    J_xy[:, 1, 1] = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
-
-    J_dist = np.empty((len(xy), 2, 5))
-    J_dist[:, 0, 0], J_dist[:, 1, 0] = x * r2, y * r2
-    J_dist[:, 0, 1], J_dist[:, 1, 1] = x * r2**2, y * r2**2
-    J_dist[:, 0, 2], J_dist[:, 1, 2] = 2.0 * x * y, r2 + 2.0 * y * y
-    J_dist[:, 0, 3], J_dist[:, 1, 3] = r2 + 2.0 * x * x, 2.0 * x * y
-    J_dist[:, 0, 4], J_dist[:, 1, 4] = x * r2**3, y * r2**3
-    return xyd, J_xy, J_dist
+    return kernels.distort_batch(_f64(xy, 2), np.array(dist, dtype=np.float64))
 
 
 class PinholeModel:
@@ -207,28 +158,11 @@ class PinholeModel:
         xyd = as_points(xyd, 2)
         if not self.has_distortion:
             return xyd.copy()
-        f = self._params[:2]
-        xy = xyd.copy()
-        active = np.all(np.isfinite(xyd), axis=1)
-        for _ in range(_UNDISTORT_MAX_ITER):
-            if not active.any():
-                break
-            cur, J, _ = self.distort_with_jacobians(xy[active])
-            res = cur - xyd[active]
-            det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-            step = np.stack([J[:, 1, 1] * res[:, 0] - J[:, 0, 1] * res[:, 1],
-                             J[:, 0, 0] * res[:, 1] - J[:, 1, 0] * res[:, 0]], axis=1) / det[:, None]
-            xy[active] -= step
-            done = np.max(np.abs(step) * f, axis=1) <= _UNDISTORT_TOL_PX
-            diverged = ~np.isfinite(step).all(axis=1) | (np.abs(xy[active]).max(axis=1) > 1e3)
-            idx = np.flatnonzero(active)
-            active[idx[done | diverged]] = False
-        residual_px = np.max(np.abs(self.distort(xy) - xyd) * f, axis=1)
-        failed = ~(residual_px <= _UNDISTORT_FAIL_PX) & np.all(np.isfinite(xyd), axis=1)
+        xy, failed = kernels.undistort_batch(_f64(xyd, 2), np.array(self._params[4:]), self._params[0],
+                                             self._params[1])
         if failed.any():
             logger.warning("undistortion did not converge for %d of %d points; returning NaN",
                            int(failed.sum()), len(xyd))
-            xy[failed] = np.nan
         return xy
 
     # ------------------------------------------------------------- projection
@@ -252,9 +186,7 @@ class PinholeModel:
 
     def project(self, X_cam: np.ndarray) -> np.ndarray:
         """Pixels (N, 2) of camera-frame points (N, 3); NaN for Z <= 0."""
-        X = as_points(X_cam, 3)
-        xy = self._normalize(X)
-        return self.pixels_from_normalized(xy)
+        return project_points(as_points(X_cam, 3), self._params, jacobians=False)[0]
 
     def project_with_jacobians(self, X_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Pixels (N, 2), ``J_point`` (N, 2, 3) = d uv / d X_cam, ``J_params`` (N, 2, 9) (see
@@ -272,11 +204,3 @@ class PinholeModel:
         d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         return np.zeros_like(d), d
-
-    @staticmethod
-    def _normalize(X: np.ndarray) -> np.ndarray:
-        """(X/Z, Y/Z), NaN where Z <= 0."""
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xy = X[:, :2] / X[:, 2:3]
-        xy[~(X[:, 2] > 0.0)] = np.nan
-        return xy

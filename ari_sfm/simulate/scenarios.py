@@ -578,12 +578,12 @@ def _look_at(center: np.ndarray, point: np.ndarray) -> np.ndarray:
 
 
 def body3d(rng: np.random.Generator, depth_mm: float = 40.0, distance_mm: float = 500.0,
-           spacing_mm: float = 160.0, glass_mm: float = 6.0) -> Geometry:
+           spacing_mm: float = 160.0, glass_mm: float = 6.0, cells: int = 11, pitch_mm: float = 15.0) -> Geometry:
     """Four paper-like cameras in a 2 x 2 grid ``spacing_mm`` apart, aimed at a 3D body
-    ``distance_mm`` ahead, behind one ``glass_mm`` N-BK7 window (tilted 1-3 deg, 30-50 mm
-    ahead) with water behind; one calibration frame (the body, tilted up to 5 deg), seen
-    whole by every camera."""
-    target = _step_body(depth_mm)
+    (``cells`` x ``cells`` points ``pitch_mm`` apart on three levels) ``distance_mm`` ahead,
+    behind one ``glass_mm`` N-BK7 window (tilted 1-3 deg, 30-50 mm ahead) with water behind;
+    one calibration frame (the body, tilted up to 5 deg), seen whole by every camera."""
+    target = _step_body(depth_mm, cells, pitch_mm)
     ahead = np.array([0.0, 0.0, distance_mm])
     rig = []
     for i in range(4):

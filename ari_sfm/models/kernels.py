@@ -1,0 +1,616 @@
+"""The compiled physics: pinhole + OpenCV distortion, the exact model's Newton solve and analytic
+Jacobians, Snell back-projection and triangulation through the window (numba, ``cache=True``).
+
+These kernels are THE implementation: :mod:`.pinhole`, :mod:`.ari`, :mod:`.exact`, the numpy
+bundle adjustment, the GTSAM factors, refine-colmap and :mod:`ari_sfm.triangulate` all call them
+through the public functions of those modules. The maths is derived in the docstrings of
+:mod:`.pinhole` (distortion) and :mod:`.exact` (incidence equation, implicit-function Jacobians).
+The per-point parts work on scalars; a batch solves the incidence equation of all its points in
+lock-step (a loop the compiler vectorises) and allocates its outputs and a few (m,) arrays.
+
+They live in one module on purpose: numba's cache is invalidated by the source file of the
+function it compiled, not by the files of the functions it calls, so a kernel calling a kernel
+of another module could run a stale copy after an upgrade.
+
+Compilation: the first call of each kernel in a fresh install compiles it (measured: ~6 s CPU for
+the exact projection, ~13 s more for triangulation; README "Performance") and numba caches the
+machine code: in ``NUMBA_CACHE_DIR`` when set, else next to this file (``__pycache__``), else,
+when that folder is read-only (a system site-packages), in its user-wide cache
+(``~/.cache/numba``); later processes load it in milliseconds.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+NEWTON_MAX_ITER = 20  # a cap; the paper camera needs 5 (air) to 6 (water) over its whole image
+NEWTON_REL_TOL = 1e-12  # stop when |step| <= tol * w; quadratic convergence leaves ~1e-24 + rounding
+NEWTON_NOT_CONVERGED = -1  # solve_w status: no convergence within max_iter
+NEWTON_NOT_FINITE = -2  # solve_w status: a non-finite Newton step
+
+UNDISTORT_TOL_PX = 1e-12  # stop when the step (in pixels) is below this
+UNDISTORT_FAIL_PX = 1e-9  # a final residual above this marks the point as failed (NaN)
+UNDISTORT_MAX_ITER = 50
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+
+
+# --------------------------------------------------------------------------- pinhole + distortion
+
+
+@njit(inline="always", **_JIT)
+def distort_point(x, y, dist, J_xy, J_dist):
+    """OpenCV distortion of one normalised point; fills J_xy (2, 2) = d xyd / d xy and
+    J_dist (2, 5) = d xyd / d [k1, k2, p1, p2, k3]; returns (xd, yd)."""
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    cross = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y  # symmetric off-diagonal
+    J_xy[0, 0] = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
+    J_xy[0, 1] = cross
+    J_xy[1, 0] = cross
+    J_xy[1, 1] = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
+    r4 = r2 * r2
+    J_dist[0, 0], J_dist[1, 0] = x * r2, y * r2
+    J_dist[0, 1], J_dist[1, 1] = x * r4, y * r4
+    J_dist[0, 2], J_dist[1, 2] = 2.0 * x * y, r2 + 2.0 * y * y
+    J_dist[0, 3], J_dist[1, 3] = r2 + 2.0 * x * x, 2.0 * x * y
+    J_dist[0, 4], J_dist[1, 4] = x * r4 * r2, y * r4 * r2
+    return xd, yd
+
+
+@njit(inline="always", **_JIT)
+def pinhole_point(D0, D1, D2, params, n_params, jacobians, uv, J_point, J_params, J_xy, J_dist):
+    """Pixel of one camera-frame direction D (NaN if D2 <= 0) into uv (2,); with ``jacobians``
+    J_point (2, 3) = d uv / d D and J_params (2, n_params); J_xy (2, 2), J_dist (2, 5) are scratch."""
+    if D2 > 0.0:
+        x, y = D0 / D2, D1 / D2
+    else:
+        x, y = np.nan, np.nan
+    fx, fy = params[0], params[1]
+    xd, yd = distort_point(x, y, params[4:], J_xy, J_dist)
+    uv[0] = xd * fx + params[2]
+    uv[1] = yd * fy + params[3]
+    if not jacobians:
+        return
+    inv_z = 1.0 / D2
+    # diag(f) J_xy [[1/Z, 0, -x/Z], [0, 1/Z, -y/Z]]
+    for k in range(2):
+        f = fx if k == 0 else fy
+        a, b = f * J_xy[k, 0], f * J_xy[k, 1]
+        J_point[k, 0] = a * inv_z
+        J_point[k, 1] = b * inv_z
+        J_point[k, 2] = a * (-x * inv_z) + b * (-y * inv_z)
+    for j in range(n_params):
+        J_params[0, j] = 0.0
+        J_params[1, j] = 0.0
+    J_params[0, 0] = xd
+    J_params[1, 1] = yd
+    J_params[0, 2] = 1.0
+    J_params[1, 3] = 1.0
+    for j in range(4, n_params):
+        J_params[0, j] = fx * J_dist[0, j - 4]
+        J_params[1, j] = fy * J_dist[1, j - 4]
+
+
+@njit(**_JIT)
+def pinhole_batch(D, params, n_params, jacobians):
+    """Pixels (m, 2), J_point (m, 2, 3), J_params (m, 2, n_params) of directions D (m, 3)."""
+    m = D.shape[0]
+    uv = np.empty((m, 2))
+    mj = m if jacobians else 1
+    J_point = np.empty((mj, 2, 3))
+    J_params = np.empty((mj, 2, n_params))
+    J_xy = np.empty((2, 2))
+    J_dist = np.empty((2, 5))
+    for i in range(m):
+        k = i if jacobians else 0
+        pinhole_point(D[i, 0], D[i, 1], D[i, 2], params, n_params, jacobians, uv[i], J_point[k], J_params[k],
+                      J_xy, J_dist)
+    if not jacobians:
+        return uv, J_point[:0], J_params[:0]
+    return uv, J_point, J_params
+
+
+@njit(**_JIT)
+def distort_batch(xy, dist):
+    """xyd (N, 2), J_xy (N, 2, 2), J_dist (N, 2, 5) of normalised points xy (N, 2)."""
+    m = xy.shape[0]
+    xyd = np.empty((m, 2))
+    J_xy = np.empty((m, 2, 2))
+    J_dist = np.empty((m, 2, 5))
+    for i in range(m):
+        xyd[i, 0], xyd[i, 1] = distort_point(xy[i, 0], xy[i, 1], dist, J_xy[i], J_dist[i])
+    return xyd, J_xy, J_dist
+
+
+@njit(**_JIT)
+def undistort_point(xd, yd, dist, fx, fy, J_xy, J_dist):
+    """Undistorted normalised (x, y) of distorted (xd, yd) by Newton from (xd, yd) (steps below
+    UNDISTORT_TOL_PX px); NaN when the final residual exceeds UNDISTORT_FAIL_PX px. Returns
+    (x, y, failed)."""
+    if not (math.isfinite(xd) and math.isfinite(yd)):
+        return np.nan, np.nan, False
+    x, y = xd, yd
+    for _ in range(UNDISTORT_MAX_ITER):
+        cx, cy = distort_point(x, y, dist, J_xy, J_dist)
+        rx, ry = cx - xd, cy - yd
+        det = J_xy[0, 0] * J_xy[1, 1] - J_xy[0, 1] * J_xy[1, 0]
+        sx = (J_xy[1, 1] * rx - J_xy[0, 1] * ry) / det
+        sy = (J_xy[0, 0] * ry - J_xy[1, 0] * rx) / det
+        x -= sx
+        y -= sy
+        if max(abs(sx) * fx, abs(sy) * fy) <= UNDISTORT_TOL_PX:
+            break
+        if not (math.isfinite(sx) and math.isfinite(sy)) or max(abs(x), abs(y)) > 1e3:
+            break
+    cx, cy = distort_point(x, y, dist, J_xy, J_dist)
+    if not (max(abs(cx - xd) * fx, abs(cy - yd) * fy) <= UNDISTORT_FAIL_PX):
+        return np.nan, np.nan, True
+    return x, y, False
+
+
+@njit(**_JIT)
+def undistort_batch(xyd, dist, fx, fy):
+    """Undistorted xy (N, 2) and the failed mask (N,) (see undistort_point)."""
+    m = xyd.shape[0]
+    xy = np.empty((m, 2))
+    failed = np.zeros(m, dtype=np.bool_)
+    J_xy = np.empty((2, 2))
+    J_dist = np.empty((2, 5))
+    for i in range(m):
+        xy[i, 0], xy[i, 1], failed[i] = undistort_point(xyd[i, 0], xyd[i, 1], dist, fx, fy, J_xy, J_dist)
+    return xy, failed
+
+
+# --------------------------------------------------------------------------- exact model, forward
+
+
+@njit(inline="always", **_JIT)
+def newton_step(w, rho, L, h, d, n2, m2):
+    """One Newton step on Psi(w) = w H(w rho) - 1 (module docstring of .exact); n2, m2 the squared
+    glass and medium indices."""
+    u = w * rho
+    Gn = 1.0 / math.sqrt(n2 + (n2 - 1.0) * u * u)
+    Gm = 1.0 / math.sqrt(m2 + (m2 - 1.0) * u * u)
+    psi = w * (h + d * Gn + L * Gm) - 1.0
+    dpsi = h + d * n2 * (Gn * Gn * Gn) + L * m2 * (Gm * Gm * Gm)  # = rho'(u) > 0
+    return psi / dpsi
+
+
+@njit(**_JIT)
+def solve_w(rho, L, h, d, n, n_m, max_iter, w0=0.0):
+    """Newton for one point until |step| <= NEWTON_REL_TOL |w|, from w = 0 (converges monotonically)
+    or from a guess ``w0`` (e.g. the previous solve of a nearby point; falls back to w = 0 if the
+    guess does not converge). Returns (w, steps); steps is NEWTON_NOT_CONVERGED or
+    NEWTON_NOT_FINITE on failure."""
+    n2, m2 = n * n, n_m * n_m
+    w = w0
+    for attempt in range(2 if w0 != 0.0 else 1):
+        w = w0 if attempt == 0 else 0.0
+        for it in range(1, max_iter + 1):
+            step = newton_step(w, rho, L, h, d, n2, m2)
+            w = w - step
+            if not math.isfinite(step):
+                break
+            if abs(step) <= NEWTON_REL_TOL * abs(w):
+                return w, it
+    return w, (NEWTON_NOT_FINITE if not math.isfinite(w) else NEWTON_NOT_CONVERGED)
+
+
+@njit(**_JIT)
+def solve_w_lanes(rho, L, h, d, n, n_m, max_iter, w):
+    """Newton from w = 0 for many points in lock-step (a branch-free inner loop the compiler
+    vectorises): every point takes the steps of the slowest, which stops when all steps are
+    <= NEWTON_REL_TOL |w| (the extra steps of converged points change w by rounding only).
+    ``rho``, ``L``, ``d`` (m,) (rho = 0, L = 1 stand in for points without a ray). Fills w (m,);
+    returns the steps taken, or NEWTON_NOT_CONVERGED / NEWTON_NOT_FINITE, and the failed points."""
+    m = rho.shape[0]
+    n2, m2 = n * n, n_m * n_m
+    for i in range(m):
+        w[i] = 0.0
+    for it in range(1, max_iter + 1):
+        worst = 0.0
+        for i in range(m):
+            step = newton_step(w[i], rho[i], L[i], h, d[i], n2, m2)
+            wi = w[i] - step
+            w[i] = wi
+            worst = max(worst, abs(step) - NEWTON_REL_TOL * abs(wi))
+        if worst <= 0.0:
+            return it, 0
+        if not math.isfinite(worst):
+            break
+    bad = 0
+    not_finite = False
+    for i in range(m):
+        step = newton_step(w[i], rho[i], L[i], h, d[i], n2, m2)
+        if not math.isfinite(step):
+            not_finite = True
+            bad += 1
+        elif abs(step) > NEWTON_REL_TOL * abs(w[i] - step):
+            bad += 1
+    return (NEWTON_NOT_FINITE if not_finite else NEWTON_NOT_CONVERGED), max(bad, 1)
+
+
+@njit(**_JIT)
+def solve_w_batch(rho, L, h, d, n, n_m, max_iter):
+    """w (N,) of radial offsets rho and medium columns L with one thickness d (1,) or one per
+    point (N,); the steps taken (or a failure status) and the number of failed points."""
+    m = rho.shape[0]
+    dd = np.empty(m)
+    for i in range(m):
+        dd[i] = d[0] if d.shape[0] == 1 else d[i]
+    w = np.empty(m)
+    steps, failures = solve_w_lanes(rho, L, h, dd, n, n_m, max_iter, w)
+    return w, steps, failures
+
+
+@njit(**_JIT)
+def _incidence_lanes(X, nc, h, d, n, n_m, max_iter, z, r, L, w):
+    """Depth z, radial vector r, medium column L (filled) and w (NaN where L <= 0 or X is not finite)
+    of X (m, 3); returns the steps taken (or a failure status) and the failed points."""
+    m = X.shape[0]
+    rho = np.empty(m)
+    Lw = np.empty(m)
+    dd = np.empty(m)
+    for i in range(m):
+        zi = X[i, 0] * nc[0] + X[i, 1] * nc[1] + X[i, 2] * nc[2]
+        r0, r1, r2 = X[i, 0] - zi * nc[0], X[i, 1] - zi * nc[1], X[i, 2] - zi * nc[2]
+        di = d[0] if d.shape[0] == 1 else d[i]
+        Li = zi - h - di
+        z[i], L[i], dd[i] = zi, Li, di
+        r[i, 0], r[i, 1], r[i, 2] = r0, r1, r2
+        if Li > 0.0 and math.isfinite(X[i, 0] + X[i, 1] + X[i, 2]):
+            rho[i], Lw[i] = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2), Li
+        else:
+            rho[i], Lw[i] = 0.0, 1.0  # a stand-in: no ray (w set to NaN below)
+    steps, failures = solve_w_lanes(rho, Lw, h, dd, n, n_m, max_iter, w)
+    for i in range(m):
+        if not (L[i] > 0.0 and math.isfinite(X[i, 0] + X[i, 1] + X[i, 2])):
+            w[i] = np.nan
+    return steps, failures
+
+
+@njit(**_JIT)
+def incidence_batch(X, nc, h, d, n, n_m, max_iter):
+    """z, r, L, w of X (m, 3) (see _incidence_lanes), the steps taken or a failure status, and the
+    number of failed points."""
+    m = X.shape[0]
+    z, r, L, w = np.empty(m), np.empty((m, 3)), np.empty(m), np.empty(m)
+    steps, failures = _incidence_lanes(X, nc, h, d, n, n_m, max_iter, z, r, L, w)
+    return z, r, L, w, steps, failures
+
+
+@njit(inline="always", **_JIT)
+def exact_pixel(X0, X1, X2, z, r0, r1, r2, L, w, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians,
+                uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist):
+    """Pixel uv (2,) of one camera-frame point X with its solved incidence w (depth z, radial r,
+    medium column L) and, with ``jacobians``, J_point (2, 3), J_normal (2, 3) (w.r.t. the free
+    normal vector, via dn_dv), J_params (2, n_params), J_td (2, 2) = [d uv/d thickness,
+    d uv/d distance]; J_pin (2, 3), J_xy, J_dist are scratch."""
+    pinhole_point(nc[0] + w * r0, nc[1] + w * r1, nc[2] + w * r2, params, n_params, jacobians,
+                  uv, J_pin, J_params, J_xy, J_dist)
+    if not jacobians:
+        return
+    # implicit function theorem on the incidence equation (module docstring of .exact)
+    u = w * math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+    n2, m2 = n * n, n_m * n_m
+    Gn = 1.0 / math.sqrt(n2 + (n2 - 1.0) * u * u)
+    Gm = 1.0 / math.sqrt(m2 + (m2 - 1.0) * u * u)
+    Gn3, Gm3 = Gn * Gn * Gn, Gm * Gm * Gm
+    P = h + d * n2 * Gn3 + L * m2 * Gm3  # rho'(u) = dPsi/dw
+    K = d * (n2 - 1.0) * Gn3 + L * (m2 - 1.0) * Gm3  # H'(u) = -u K
+    w3K = w * w * w * K
+    wGm = w * Gm
+    for k in range(2):
+        Jr = J_pin[k, 0] * r0 + J_pin[k, 1] * r1 + J_pin[k, 2] * r2  # J_pin @ r
+        Jn = J_pin[k, 0] * nc[0] + J_pin[k, 1] * nc[1] + J_pin[k, 2] * nc[2]  # J_pin @ n
+        # dw/dX = (w^3 K r - w G_m n) / P ;  dw/dn (free n) = (-w^3 K z r - w G_m X) / P  (r . n = 0)
+        # dD/dX = w (I - n n^T) + r dw/dX^T ;  dD/dn = (1 - w z) I - w n X^T + r dw/dn^T
+        J_point[k, 0] = w * (J_pin[k, 0] - Jn * nc[0]) + Jr * ((w3K * r0 - wGm * nc[0]) / P)
+        J_point[k, 1] = w * (J_pin[k, 1] - Jn * nc[1]) + Jr * ((w3K * r1 - wGm * nc[1]) / P)
+        J_point[k, 2] = w * (J_pin[k, 2] - Jn * nc[2]) + Jr * ((w3K * r2 - wGm * nc[2]) / P)
+        a = 1.0 - w * z
+        jn0 = a * J_pin[k, 0] - w * Jn * X0 + Jr * ((-(w3K * z) * r0 - wGm * X0) / P)
+        jn1 = a * J_pin[k, 1] - w * Jn * X1 + Jr * ((-(w3K * z) * r1 - wGm * X1) / P)
+        jn2 = a * J_pin[k, 2] - w * Jn * X2 + Jr * ((-(w3K * z) * r2 - wGm * X2) / P)
+        for j in range(3):
+            J_normal[k, j] = jn0 * dn_dv[0, j] + jn1 * dn_dv[1, j] + jn2 * dn_dv[2, j]
+        J_td[k, 0] = Jr * (w * (Gm - Gn) / P)
+        J_td[k, 1] = Jr * (w * (Gm - 1.0) / P)
+
+
+@njit(**_JIT)
+def exact_point(X0, X1, X2, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians,
+                uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist, u0=0.0):
+    """:func:`exact_pixel` of one point with its own Newton solve, started from the incidence
+    ``u0`` = tan t when given (a nearby point's; see :func:`solve_w`). Returns the Newton steps
+    (negative: failure; 0: no ray, L <= 0) and the solved tan t."""
+    z = X0 * nc[0] + X1 * nc[1] + X2 * nc[2]
+    r0, r1, r2 = X0 - z * nc[0], X1 - z * nc[1], X2 - z * nc[2]
+    L = z - h - d
+    steps = 0
+    rho = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+    if L > 0.0 and math.isfinite(X0 + X1 + X2):
+        w, steps = solve_w(rho, L, h, d, n, n_m, NEWTON_MAX_ITER, u0 / rho if rho > 0.0 else 0.0)
+    else:
+        w = np.nan
+    exact_pixel(X0, X1, X2, z, r0, r1, r2, L, w, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians,
+                uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist)
+    return steps, w * rho
+
+
+@njit(**_JIT)
+def exact_batch(X, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians):
+    """The exact projection of X (m, 3) with one plate thickness d (1,) or one per point (m,).
+    Returns uv, J_point, J_normal, J_params, J_thickness, J_distance (empty (0, ...) arrays
+    without ``jacobians``), the Newton steps taken (or a failure status) and the failed points."""
+    m = X.shape[0]
+    z, r, L, w = np.empty(m), np.empty((m, 3)), np.empty(m), np.empty(m)
+    steps, failures = _incidence_lanes(X, nc, h, d, n, n_m, NEWTON_MAX_ITER, z, r, L, w)
+    mj = m if jacobians else 1
+    uv = np.empty((m, 2))
+    J_point = np.empty((mj, 2, 3))
+    J_normal = np.empty((mj, 2, 3))
+    J_params = np.empty((mj, 2, n_params))
+    J_td = np.empty((mj, 2, 2))
+    J_pin = np.empty((2, 3))
+    J_xy = np.empty((2, 2))
+    J_dist = np.empty((2, 5))
+    for i in range(m):
+        k = i if jacobians else 0
+        di = d[0] if d.shape[0] == 1 else d[i]
+        exact_pixel(X[i, 0], X[i, 1], X[i, 2], z[i], r[i, 0], r[i, 1], r[i, 2], L[i], w[i], params, nc, dn_dv,
+                    h, di, n, n_m, n_params, jacobians, uv[i], J_point[k], J_normal[k], J_params[k], J_td[k],
+                    J_pin, J_xy, J_dist)
+    if not jacobians:
+        J_point, J_normal, J_params, J_td = J_point[:0], J_normal[:0], J_params[:0], J_td[:0]
+    return uv, J_point, J_normal, J_params, J_td[:, :, 0].copy(), J_td[:, :, 1].copy(), steps, failures
+
+
+# --------------------------------------------------------------------------- exact model, backward
+
+
+@njit(**_JIT)
+def exact_ray(u, v, params, nc, h, d, n, n_m, J_xy, J_dist, origin, direction):
+    """Medium-side ray of one pixel by vector Snell at both faces: origin on the far face and unit
+    direction into origin (3,), direction (3,) (NaN if the pixel's ray misses the window).
+    Returns whether undistortion failed and tan t of the camera-side ray (t its incidence)."""
+    xd, yd = (u - params[2]) / params[0], (v - params[3]) / params[1]
+    x, y, failed = undistort_point(xd, yd, params[4:], params[0], params[1], J_xy, J_dist)
+    s = 1.0 / math.sqrt(x * x + y * y + 1.0)
+    v0, v1, v2 = x * s, y * s, s
+    c = v0 * nc[0] + v1 * nc[1] + v2 * nc[2]
+    if not c > 0.0:
+        c = np.nan
+    t = h / c  # hits the near face n_c . X = h
+    eta = 1.0 / n
+    c_g = math.sqrt(1.0 - eta * eta * (1.0 - c * c)) if c == c else np.nan
+    a = c_g - eta * c
+    g0, g1, g2 = eta * v0 + a * nc[0], eta * v1 + a * nc[1], eta * v2 + a * nc[2]
+    tg = d / c_g  # n_c . v_g = c_g
+    origin[0], origin[1], origin[2] = v0 * t + g0 * tg, v1 * t + g1 * tg, v2 * t + g2 * tg
+    eta = n / n_m
+    arg = 1.0 - eta * eta * (1.0 - c_g * c_g)
+    c_m = math.sqrt(arg) if arg >= 0.0 else np.nan
+    a = c_m - eta * c_g
+    m0, m1, m2 = eta * g0 + a * nc[0], eta * g1 + a * nc[1], eta * g2 + a * nc[2]
+    norm = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+    direction[0], direction[1], direction[2] = m0 / norm, m1 / norm, m2 / norm
+    return failed, math.sqrt(max(1.0 - c * c, 0.0)) / c
+
+
+@njit(**_JIT)
+def exact_rays_batch(uv, params, nc, h, d, n, n_m):
+    """Origins (N, 3), unit directions (N, 3) and the undistortion failures (N,) of pixels (N, 2)."""
+    m = uv.shape[0]
+    origins = np.empty((m, 3))
+    directions = np.empty((m, 3))
+    failed = np.zeros(m, dtype=np.bool_)
+    J_xy = np.empty((2, 2))
+    J_dist = np.empty((2, 5))
+    for i in range(m):
+        failed[i] = exact_ray(uv[i, 0], uv[i, 1], params, nc, h, d, n, n_m, J_xy, J_dist, origins[i], directions[i])[0]
+    return origins, directions, failed
+
+
+# --------------------------------------------------------------------------- triangulation
+
+
+@njit(**_JIT)
+def _solve_sym3(A, b, x):
+    """x = A^-1 b for a symmetric 3x3 A by the adjugate; returns det(A)."""
+    a, bb, c = A[0, 0], A[0, 1], A[0, 2]
+    d, e, f = A[1, 1], A[1, 2], A[2, 2]
+    c00, c01, c02 = d * f - e * e, c * e - bb * f, bb * e - c * d
+    c11, c12, c22 = a * f - c * c, bb * c - a * e, a * d - bb * bb
+    det = a * c00 + bb * c01 + c * c02
+    inv = 1.0 / det
+    x[0] = (c00 * b[0] + c01 * b[1] + c02 * b[2]) * inv
+    x[1] = (c01 * b[0] + c11 * b[1] + c12 * b[2]) * inv
+    x[2] = (c02 * b[0] + c12 * b[1] + c22 * b[2]) * inv
+    return det
+
+
+@njit(**_JIT)
+def _cost_and_normal(Xw, uv, ok, R, t, params, nc, window, jacobians, A, g, scratch, u_start):
+    """Reprojection cost of world point Xw over the cameras ok[c] and, with ``jacobians``, the
+    Gauss-Newton matrix A = J^T J and gradient g = J^T r (world coordinates). Cost inf if a pixel
+    is NaN. Each camera's Newton solve starts from u_start[c] (tan t), which gets the solved one."""
+    C = uv.shape[0]
+    J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist, dn_dv, pix = scratch
+    for i in range(3):
+        g[i] = 0.0
+        for j in range(3):
+            A[i, j] = 0.0
+    cost = 0.0
+    for c in range(C):
+        if not ok[c]:
+            continue
+        Xc0 = R[c, 0, 0] * Xw[0] + R[c, 0, 1] * Xw[1] + R[c, 0, 2] * Xw[2] + t[c, 0]
+        Xc1 = R[c, 1, 0] * Xw[0] + R[c, 1, 1] * Xw[1] + R[c, 1, 2] * Xw[2] + t[c, 1]
+        Xc2 = R[c, 2, 0] * Xw[0] + R[c, 2, 1] * Xw[1] + R[c, 2, 2] * Xw[2] + t[c, 2]
+        _, u_solved = exact_point(Xc0, Xc1, Xc2, params[c], nc[c], dn_dv, window[c, 0], window[c, 1], window[c, 2],
+                                  window[c, 3], 4, jacobians, pix, J_point, J_normal, J_params, J_td, J_pin, J_xy,
+                                  J_dist, u_start[c])
+        if math.isfinite(u_solved):
+            u_start[c] = u_solved
+        r0, r1 = pix[0] - uv[c, 0], pix[1] - uv[c, 1]
+        cost += r0 * r0 + r1 * r1
+        if not jacobians:
+            continue
+        for k in range(2):
+            rk = r0 if k == 0 else r1
+            Jw0 = J_point[k, 0] * R[c, 0, 0] + J_point[k, 1] * R[c, 1, 0] + J_point[k, 2] * R[c, 2, 0]
+            Jw1 = J_point[k, 0] * R[c, 0, 1] + J_point[k, 1] * R[c, 1, 1] + J_point[k, 2] * R[c, 2, 1]
+            Jw2 = J_point[k, 0] * R[c, 0, 2] + J_point[k, 1] * R[c, 1, 2] + J_point[k, 2] * R[c, 2, 2]
+            g[0] += Jw0 * rk
+            g[1] += Jw1 * rk
+            g[2] += Jw2 * rk
+            A[0, 0] += Jw0 * Jw0
+            A[0, 1] += Jw0 * Jw1
+            A[0, 2] += Jw0 * Jw2
+            A[1, 1] += Jw1 * Jw1
+            A[1, 2] += Jw1 * Jw2
+            A[2, 2] += Jw2 * Jw2
+    A[1, 0], A[2, 0], A[2, 1] = A[0, 1], A[0, 2], A[1, 2]
+    if not math.isfinite(cost):
+        cost = np.inf
+    return cost
+
+
+@njit(**_JIT)
+def triangulate_exact(uv, R, t, params, nc, window, refine, max_iterations, damping, step_tol, min_det,
+                      X_out, gap_out, rmse_out, unconverged, undistort_failed):
+    """World points of pixel tracks uv (P, C, 2) (NaN: not seen) through the exact model of C
+    cameras: cam_from_world R (C, 3, 3), t (C, 3); params (C, 9); unit normals nc (C, 3) in each
+    camera; window (C, 4) = [h, d, n, n_m]. Per point: back-projection, the least-squares point of
+    the rays (``ray_gap_mm``), then, with ``refine``, Levenberg-Marquardt on the reprojection error
+    with the analytic Jacobians (the algorithm of :func:`ari_sfm.triangulate.refine_points`, per
+    point). Fills X_out (P, 3), gap_out (P,), rmse_out (P,) (NaN where no point), unconverged (P,)
+    and undistort_failed (P,). Releases the GIL: threads may run it on separate slices of points."""
+    _triangulate_chunk(0, uv.shape[0], uv, R, t, params, nc, window, refine, max_iterations, damping, step_tol,
+                       min_det, X_out, gap_out, rmse_out, unconverged, undistort_failed)
+
+
+@njit(**_JIT)
+def _triangulate_chunk(start, stop, uv, R, t, params, nc, window, refine, max_iterations, damping, step_tol,
+                       min_det, X_out, gap_out, rmse_out, unconverged, undistort_failed):
+    """Points start..stop of :func:`triangulate_exact` (scratch allocated once)."""
+    C = uv.shape[1]
+    J_xy = np.empty((2, 2))
+    J_dist = np.empty((2, 5))
+    o = np.empty((C, 3))
+    dd = np.empty((C, 3))
+    ok = np.zeros(C, dtype=np.bool_)
+    seen = np.zeros(C, dtype=np.bool_)
+    u_start = np.zeros(C)
+    oc = np.empty(3)
+    dc = np.empty(3)
+    A = np.empty((3, 3))
+    b = np.empty(3)
+    X = np.empty(3)
+    scratch = (np.empty((2, 3)), np.empty((2, 3)), np.empty((2, 9)), np.empty((2, 2)), np.empty((2, 3)),
+               J_xy, J_dist, np.zeros((3, 3)), np.empty(2))
+    An = np.empty((3, 3))
+    g = np.empty(3)
+    X_new = np.empty(3)
+    step = np.empty(3)
+    A_new = np.empty((3, 3))
+    g_new = np.empty(3)
+    Ad = np.empty((3, 3))
+    for p in range(start, stop):
+        n_seen = 0
+        for c in range(C):
+            seen[c] = math.isfinite(uv[p, c, 0]) and math.isfinite(uv[p, c, 1])
+            ok[c] = False
+            n_seen += seen[c]
+        if n_seen < 2:
+            continue
+        # scene-side rays in the world (X_world = R^T (X_cam - t)); A = sum (I - d d^T), b = sum (I - d d^T) o
+        for i in range(3):
+            b[i] = 0.0
+            for j in range(3):
+                A[i, j] = 0.0
+        n_ok = 0
+        for c in range(C):
+            if not seen[c]:
+                continue
+            failed, u_ray = exact_ray(uv[p, c, 0], uv[p, c, 1], params[c], nc[c], window[c, 0], window[c, 1],
+                                      window[c, 2], window[c, 3], J_xy, J_dist, oc, dc)
+            undistort_failed[p] += failed
+            u_start[c] = u_ray if math.isfinite(u_ray) else 0.0  # the observed pixel's incidence: a close start
+            for i in range(3):
+                o[c, i] = (R[c, 0, i] * (oc[0] - t[c, 0]) + R[c, 1, i] * (oc[1] - t[c, 1])
+                           + R[c, 2, i] * (oc[2] - t[c, 2]))
+                dd[c, i] = R[c, 0, i] * dc[0] + R[c, 1, i] * dc[1] + R[c, 2, i] * dc[2]
+            norm = math.sqrt(dd[c, 0] ** 2 + dd[c, 1] ** 2 + dd[c, 2] ** 2)
+            fin = math.isfinite(norm)
+            for i in range(3):
+                dd[c, i] /= norm
+                fin = fin and math.isfinite(o[c, i]) and math.isfinite(dd[c, i])
+            if not fin:
+                continue
+            ok[c] = True
+            n_ok += 1
+            do = dd[c, 0] * o[c, 0] + dd[c, 1] * o[c, 1] + dd[c, 2] * o[c, 2]
+            for i in range(3):
+                A[i, i] += 1.0
+                b[i] += o[c, i] - dd[c, i] * do
+                for j in range(3):
+                    A[i, j] -= dd[c, i] * dd[c, j]
+        det = _solve_sym3(A, b, X)
+        if n_ok < 2 or not det > min_det:
+            continue
+        sq = 0.0
+        for c in range(C):
+            if ok[c]:
+                r0, r1, r2 = X[0] - o[c, 0], X[1] - o[c, 1], X[2] - o[c, 2]
+                s = r0 * dd[c, 0] + r1 * dd[c, 1] + r2 * dd[c, 2]
+                q0, q1, q2 = r0 - s * dd[c, 0], r1 - s * dd[c, 1], r2 - s * dd[c, 2]
+                sq += q0 * q0 + q1 * q1 + q2 * q2
+        gap_out[p] = 2.0 * math.sqrt(sq / n_ok)
+        # Levenberg-Marquardt on the reprojection error, Marquardt damping lam diag(J^T J)
+        cost = _cost_and_normal(X, uv[p], seen, R, t, params, nc, window, refine, An, g, scratch, u_start)
+        if refine and math.isfinite(cost):
+            lam = damping
+            converged = False
+            for _ in range(max_iterations):
+                for i in range(3):
+                    for j in range(3):
+                        Ad[i, j] = An[i, j]
+                    Ad[i, i] += lam * max(An[i, i], 1e-12)
+                _solve_sym3(Ad, g, step)
+                for i in range(3):
+                    X_new[i] = X[i] - step[i]
+                step_norm = math.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2)
+                new_norm = math.sqrt(X_new[0] ** 2 + X_new[1] ** 2 + X_new[2] ** 2)
+                if step_norm <= step_tol * (1.0 + new_norm):
+                    # converged: refine_points would also stop after this step; X moves by less than
+                    # the tolerance, so keep X and its cost instead of paying one more evaluation
+                    converged = True
+                    break
+                cost_new = _cost_and_normal(X_new, uv[p], seen, R, t, params, nc, window, True, A_new, g_new,
+                                            scratch, u_start)
+                if cost_new <= cost:
+                    cost = cost_new
+                    for i in range(3):
+                        X[i] = X_new[i]
+                        g[i] = g_new[i]
+                        for j in range(3):
+                            An[i, j] = A_new[i, j]
+                    lam = max(lam / 10.0, 1e-12)
+                else:
+                    lam *= 10.0
+                if lam > 1e12:
+                    converged = True
+                    break
+            unconverged[p] = not converged
+        X_out[p, 0], X_out[p, 1], X_out[p, 2] = X[0], X[1], X[2]
+        if math.isfinite(cost):  # inf: a pixel the point does not reach (NaN projection), no RMSE
+            rmse_out[p] = math.sqrt(cost / n_seen)

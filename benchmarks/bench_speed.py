@@ -1,0 +1,385 @@
+"""Issue 15's speed figures from one run: each a ratio of two commands run alternately.
+
+    OPENBLAS_NUM_THREADS=1 python benchmarks/bench_speed.py            # all figures, ~3 min on 2 cores
+    python benchmarks/bench_speed.py --only triangulate,forward --repeats 9
+
+For every figure the two commands run in alternation, ``--repeats`` pairs (after one
+warm-up of each); the ratio of each pair is taken and the median ratio printed with its
+spread (min-max over the pairs), next to the median times and the goal, and the median
+ratio of the process CPU times (all threads), which a loaded machine disturbs less (for a
+multi-threaded command it is the cost, not the wall time, on an idle machine). Then the cold
+start (a fresh process with an empty numba cache: imports, compiling every kernel a
+calibration and a triangulation use, against the same process with the cache filled) and
+the peak memory (ru_maxrss) of this process.
+
+Figures (ours / reference):
+
+- ``calibrate_single``: ``calibrate(model="ari")`` on paper_single (seed 0) / one
+  ``cv2.calibrateCamera`` on its calibration views (bench_calibrate.py's baseline: no
+  distortion); also the bundle adjustment alone / cv2.
+- ``calibrate_4x100``: ``calibrate(model="exact")`` on scale16 with 4 cameras x 100 frames
+  / four cv2.calibrateCamera calls (one per camera).
+- ``triangulate_2``, ``triangulate_4``: ``triangulate_pixels`` with the true exact
+  calibration (binocular; arc4) on 20k random points of the boards' volume, as points per
+  second / ``cv2.triangulatePoints`` (DLT, pinhole: the window ignored) on the binocular
+  pixels; printed as a throughput ratio (>= 1: at least cv2's points per second).
+- ``forward``, ``forward_jac``: ``exact_project`` of 20k points (6 mm glass into water, no
+  lens distortion) without and with Jacobians / the numpy pinhole projection of the same
+  points (ari_sfm.models.pinhole's project_points as it was in numpy, kept below as the
+  baseline); ``forward_dist*``: the same with lens distortion on both sides. Each timing is
+  five calls (a single one lasts about a millisecond).
+- ``openptv``: ``calibrate(model="exact")`` on a simulated 4-camera PTV body (body3d_water
+  with 1600 points on three levels, 6 mm glass into water, one view) / liboptv's
+  ``full_calibration`` (the optv wheel; exterior orientation + xh, yh, as the real experiment)
+  of the same four cameras on the same points, started from the ari-sfm result exported by
+  ``export_openptv``.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Callable
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_calibrate import cv2_baseline  # noqa: E402
+from bench_triangulate import _points_and_pixels  # noqa: E402
+
+from ari_sfm.calibrate import calibrate  # noqa: E402
+from ari_sfm.calibration import Calibration  # noqa: E402
+from ari_sfm.simulate import make_scene  # noqa: E402
+
+GOALS = {  # figure: (what the ratio is, goal text, ratio meets the goal)
+    "calibrate_single": ("time ratio", "<= 1.0", lambda r: r <= 1.0),
+    "calibrate_4x100": ("time ratio", "<= 1.0", lambda r: r <= 1.0),
+    "triangulate_2": ("points/s ratio", ">= 1.0", lambda r: r >= 1.0),
+    "triangulate_4": ("points/s ratio", ">= 1.0", lambda r: r >= 1.0),
+    "forward": ("time ratio", "<= 10", lambda r: r <= 10.0),
+    "forward_jac": ("time ratio", "<= 10", lambda r: r <= 10.0),
+    "forward_dist": ("time ratio", "<= 10", lambda r: r <= 10.0),
+    "forward_dist_jac": ("time ratio", "<= 10", lambda r: r <= 10.0),
+    "openptv": ("time ratio", "<= 10", lambda r: r <= 10.0),
+}
+
+
+def alternate(ours: Callable[[], object], reference: Callable[[], object], repeats: int) -> dict:
+    """Run both once (warm-up), then ``repeats`` alternating pairs; per-pair times and ratios."""
+    ours(), reference()
+    t_ours, t_ref, c_ours, c_ref, extra = [], [], [], [], []
+    for _ in range(repeats):
+        t, c = time.perf_counter(), time.process_time()
+        out = ours()
+        t_ours.append(time.perf_counter() - t)
+        c_ours.append(time.process_time() - c)
+        extra.append(out)
+        t, c = time.perf_counter(), time.process_time()
+        reference()
+        t_ref.append(time.perf_counter() - t)
+        c_ref.append(time.process_time() - c)
+    return {"ours": t_ours, "ref": t_ref, "ratios": [a / b for a, b in zip(t_ours, t_ref)],
+            "cpu_ratios": [a / b for a, b in zip(c_ours, c_ref)], "extra": extra}
+
+
+def report(name: str, what: str, run: dict, invert: bool = False, note: str = "") -> dict:
+    """Print one figure's line; ``invert``: the ratio is a throughput (reference time / ours)."""
+    ratios = [1.0 / r for r in run["ratios"]] if invert else run["ratios"]
+    cpu = statistics.median(1.0 / r if invert else r for r in run["cpu_ratios"])
+    med = statistics.median(ratios)
+    kind, goal, ok = GOALS[name]
+    print(f"{name:17s} {what:58s} {1e3 * statistics.median(run['ours']):9.1f} {1e3 * statistics.median(run['ref']):9.1f} "
+          f"{med:7.3f} [{min(ratios):.3f}-{max(ratios):.3f}] {kind} goal {goal}: {'met' if ok(med) else 'NOT met'}"
+          f"; CPU-time ratio {cpu:.3f}" + (f"  ({note})" if note else ""))
+    return {"median": med, "min": min(ratios), "max": max(ratios)}
+
+
+# --------------------------------------------------------------------------- figures
+
+
+def fig_calibrate_single(repeats: int) -> None:
+    dataset = make_scene("paper_single", seed=0).dataset
+    run = alternate(lambda: calibrate(dataset, model="ari"), cv2_baseline(dataset), repeats)
+    report("calibrate_single", "calibrate(ari) paper_single / cv2.calibrateCamera", run)
+    ba = [sum(s["time_s"] for s in cal.extra["optimizer"].values()) for cal in run["extra"]]
+    its = "+".join(str(s["iterations"]) for s in run["extra"][0].extra["optimizer"].values())
+    print(f"{'':17s} {'  of which the bundle adjustment (' + its + ' iterations) / cv2':58s} "
+          f"{1e3 * statistics.median(ba):9.1f} {'':9s} {statistics.median(a / b for a, b in zip(ba, run['ref'])):7.3f}")
+
+
+def fig_calibrate_4x100(repeats: int) -> None:
+    dataset = make_scene("scale16", seed=0, num_cameras=4, num_frames=100).dataset
+    run = alternate(lambda: calibrate(dataset, model="exact"), cv2_baseline(dataset), repeats)
+    report("calibrate_4x100", "calibrate(exact) 4 cameras x 100 frames / 4 x cv2.calibrateCamera", run)
+    ba = [sum(s["time_s"] for s in cal.extra["optimizer"].values()) for cal in run["extra"]]
+    print(f"{'':17s} {'  of which the bundle adjustment / cv2':58s} {1e3 * statistics.median(ba):9.1f} {'':9s} "
+          f"{statistics.median(a / b for a, b in zip(ba, run['ref'])):7.3f}")
+
+
+def fig_triangulate(repeats: int, points: int) -> None:
+    from ari_sfm.triangulate import triangulate_pixels
+
+    binocular = Calibration.from_json(make_scene("binocular", seed=0, sigma_px=0.0).truth)
+    arc4 = Calibration.from_json(make_scene("arc4", seed=0, sigma_px=0.0).truth)
+    X2, tracks2 = _points_and_pixels(binocular, points)
+    c0, c1 = list(binocular.cameras)
+    P = [binocular.cameras[c].K @ np.hstack([binocular.cameras[c].cam_from_world.R,
+                                             binocular.cameras[c].cam_from_world.t[:, None]]) for c in (c0, c1)]
+    u0, u1 = tracks2[c0].T.copy(), tracks2[c1].T.copy()
+
+    def run_cv2() -> None:
+        cv2.triangulatePoints(P[0], P[1], u0, u1)
+
+    X4, tracks4 = _points_and_pixels(arc4, points)
+    for name, cal, X, tracks in (("triangulate_2", binocular, X2, tracks2), ("triangulate_4", arc4, X4, tracks4)):
+        run = alternate(lambda: triangulate_pixels(cal, tracks), run_cv2, repeats)
+        err = np.sqrt(np.nanmean(np.sum((run["extra"][0][0] - X) ** 2, axis=1)))
+        pps = len(X) / statistics.median(run["ours"])
+        report(name, f"exact, {len(cal.cameras)} cameras, {len(X)} points (cv2: 2 cameras) points/s", run,
+               invert=True, note=f"{pps:,.0f} points/s, RMS error {err:.1e} mm")
+
+
+def _numpy_pinhole(D: np.ndarray, params: np.ndarray, jacobians: bool) -> tuple:
+    """The baseline: ari_sfm's pinhole projection as it was in numpy (main 3807e0e, models/pinhole.py's
+    project_points, which skips the distortion polynomial when every coefficient is zero)."""
+    Z = D[:, 2]
+    xy = D[:, :2] / Z[:, None]
+    f = params[:2]
+    if not params[4:].any():
+        uv = xy * f + params[2:4]
+        if not jacobians:
+            return uv, None, None
+        m = len(D)
+        inv_z = 1.0 / Z
+        J_point = np.zeros((m, 2, 3))
+        J_point[:, 0, 0] = f[0] * inv_z
+        J_point[:, 1, 1] = f[1] * inv_z
+        J_point[:, :, 2] = f * (-xy * inv_z[:, None])
+        J_params = np.zeros((m, 2, 9))
+        J_params[:, 0, 0] = xy[:, 0]
+        J_params[:, 1, 1] = xy[:, 1]
+        J_params[:, 0, 2] = 1.0
+        J_params[:, 1, 3] = 1.0
+        return uv, J_point, J_params
+    k1, k2, p1, p2, k3 = params[4:]
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xyd = np.empty_like(xy)
+    xyd[:, 0] = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    xyd[:, 1] = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    uv = xyd * f + params[2:4]
+    if not jacobians:
+        return uv, None, None
+    m = len(D)
+    dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    J_xy = np.empty((m, 2, 2))
+    cross = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
+    J_xy[:, 0, 0] = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
+    J_xy[:, 0, 1] = cross
+    J_xy[:, 1, 0] = cross
+    J_xy[:, 1, 1] = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
+    J_dist = np.empty((m, 2, 5))
+    J_dist[:, 0, 0], J_dist[:, 1, 0] = x * r2, y * r2
+    J_dist[:, 0, 1], J_dist[:, 1, 1] = x * r2**2, y * r2**2
+    J_dist[:, 0, 2], J_dist[:, 1, 2] = 2.0 * x * y, r2 + 2.0 * y * y
+    J_dist[:, 0, 3], J_dist[:, 1, 3] = r2 + 2.0 * x * x, 2.0 * x * y
+    J_dist[:, 0, 4], J_dist[:, 1, 4] = x * r2**3, y * r2**3
+    inv_z = 1.0 / Z
+    J_norm = np.zeros((m, 2, 3))
+    J_norm[:, 0, 0] = inv_z
+    J_norm[:, 1, 1] = inv_z
+    J_norm[:, :, 2] = -xy * inv_z[:, None]
+    J_point = (f[None, :, None] * J_xy) @ J_norm
+    J_params = np.zeros((m, 2, 9))
+    J_params[:, 0, 0] = xyd[:, 0]
+    J_params[:, 1, 1] = xyd[:, 1]
+    J_params[:, 0, 2] = 1.0
+    J_params[:, 1, 3] = 1.0
+    J_params[:, :, 4:] = f[None, :, None] * J_dist
+    return uv, J_point, J_params
+
+
+def fig_forward(repeats: int, points: int) -> None:
+    from ari_sfm.models.exact import exact_project
+    from ari_sfm.models.pinhole import project_points
+
+    rng = np.random.default_rng(0)
+    z = rng.uniform(150.0, 900.0, points)
+    X = np.c_[rng.uniform(-0.3, 0.3, (points, 2)) * z[:, None], z]
+    normal = np.array([0.05, -0.03, 1.0])
+    lens = np.array([-0.08, 0.12, 4e-4, -3e-4, -0.05])
+    for name, jac, dist in (("forward", False, 0.0), ("forward_jac", True, 0.0), ("forward_dist", False, 1.0),
+                            ("forward_dist_jac", True, 1.0)):
+        params = np.r_[3478.0, 3480.0, 1230.0, 1020.0, dist * lens]
+        uv_np = _numpy_pinhole(X, params, False)[0]
+        assert np.abs(project_points(X, params)[0] - uv_np).max() < 1e-9  # the baseline is the same pinhole
+        run = alternate(lambda: [exact_project(X, params, normal, 6.0, 1.5168, 1.333, 40.0, jacobians=jac)
+                                 for _ in range(5)],
+                        lambda: [_numpy_pinhole(X, params, jac) for _ in range(5)], repeats)
+        report(name, f"exact_project {points} points{' + Jacobians' if jac else ''}"
+                     f"{', distortion' if dist else ''} / numpy pinhole (x5)", run)
+
+
+def _ptv_body():
+    """The simulated PTV body: body3d_water (4 cameras, 6 mm glass into water, one view) with 40 x 40
+    points 4 mm apart on three levels (1600 points, 6400 observations)."""
+    return make_scene("body3d_water", seed=0, cells=40, pitch_mm=4.0)
+
+
+def fig_openptv(repeats: int) -> None:
+    from optv.calibration import Calibration as OptvCalibration
+    from optv.orientation import full_calibration
+    from optv.parameters import ControlParams
+    from optv.tracking_framebuf import TargetArray
+
+    from ari_sfm.init.zhang import object_points
+    from ari_sfm.openptv import export_openptv
+
+    scene = _ptv_body()
+    dataset = scene.dataset
+    n_obs = sum(len(o.ids) for o in dataset.observations)
+    cal = calibrate(dataset, model="exact")
+    folder = Path(tempfile.mkdtemp(prefix="bench_speed_optv_"))
+    cal.save(folder / "calibration.json")
+    summary = export_openptv(folder / "calibration.json", folder / "optv")
+    cpar = ControlParams(len(dataset.camera_names))
+    cpar.read_control_par(str(folder / "optv" / "parameters" / "ptv.par"))
+    per_camera = []
+    for name in dataset.camera_names:
+        obs = next(o for o in dataset.observations if o.camera == name)
+        number = summary.numbers[name]
+        ori = folder / "optv" / "cal" / f"cam{number}.tif.ori"
+        addpar = folder / "optv" / "cal" / f"cam{number}.tif.addpar"
+        ref = np.ascontiguousarray(object_points(dataset.target, obs.ids), dtype=np.float64)
+        targets = TargetArray(len(obs.ids))
+        for k, (u, v) in enumerate(obs.pixels - (-0.5)):  # OpenCV -> OpenPTV pixels (segmentation.c: +0.5)
+            t = targets[k]
+            t.set_pos((u, v))
+            t.set_pnr(k)
+        per_camera.append((str(ori), str(addpar), ref, targets))
+
+    def run_optv() -> None:
+        for ori, addpar, ref, targets in per_camera:
+            c = OptvCalibration()
+            c.from_file(ori, addpar)
+            full_calibration(c, ref, targets, cpar, ["xh", "yh"])
+
+    run = alternate(lambda: calibrate(dataset, model="exact"), run_optv, repeats)
+    report("openptv", f"calibrate(exact) PTV body {n_obs} obs / optv full_calibration x 4", run)
+
+
+def reset_peak_memory() -> None:
+    """Start a new peak-RSS window (Linux: /proc/self/clear_refs 5; elsewhere the process peak stays)."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass
+
+
+def peak_memory_mb() -> float:
+    """Peak RSS since the last reset_peak_memory (VmHWM), else the process peak (ru_maxrss)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+COLD_START = """
+import time
+w0, c0 = time.perf_counter(), time.process_time()
+def lap(label):
+    global w0, c0
+    w, c = time.perf_counter(), time.process_time()
+    print(f"{label}|{w - w0:.2f}|{c - c0:.2f}")
+    w0, c0 = w, c
+import numpy as np
+from ari_sfm.calibrate import calibrate
+from ari_sfm.calibration import Calibration
+from ari_sfm.models.exact import exact_project
+from ari_sfm.simulate import make_scene
+from ari_sfm.triangulate import triangulate_pixels
+lap("import ari_sfm (numba included)")
+exact_project(np.array([[1.0, 2.0, 400.0]]), np.r_[3000., 3000, 1000, 800, np.zeros(5)], np.array([0, 0, 1.0]),
+              6.0, 1.5168, 1.333, 40.0)
+lap("first exact_project (+ Jacobians)")
+scene = make_scene("binocular", seed=0)
+lap("make_scene binocular")
+calibrate(scene.dataset, model="exact")
+lap("first calibrate(exact)")
+truth = Calibration.from_json(scene.truth)
+X = np.array([p.t for p in truth.frames.values()])
+triangulate_pixels(truth, {c: truth.project_world(c, X) for c in truth.cameras})
+lap("first triangulate_pixels (exact)")
+calibrate(scene.dataset, model="exact")
+lap("calibrate(exact) again")
+for line in open("/proc/self/status"):
+    if line.startswith("VmHWM:"):
+        print(f"peak RSS MB|{int(line.split()[1]) / 1024:.0f}|")
+"""
+
+
+def cold_start() -> None:
+    """A fresh process with an empty numba cache (what the first run after an install pays: numba compiles
+    every kernel it calls), then the same with the cache filled; wall and CPU seconds per step."""
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+        runs = []
+        for _ in ("cold", "warm"):
+            t = time.perf_counter()
+            out = subprocess.run([sys.executable, "-c", COLD_START], env=env, capture_output=True, text=True, check=True)
+            rows = [line.split("|") for line in out.stdout.strip().splitlines()]
+            runs.append((time.perf_counter() - t, rows))
+    print("\ncold start: fresh processes with NUMBA_CACHE_DIR empty (cold), then filled (warm); wall / CPU s")
+    print(f"{'step':36s} {'cold wall':>9s} {'cold CPU':>9s} {'warm wall':>9s} {'warm CPU':>9s}")
+    for (label, *cold), (_, *warm) in zip(runs[0][1], runs[1][1]):
+        print(f"{label:36s} {cold[0]:>9s} {cold[1]:>9s} {warm[0]:>9s} {warm[1]:>9s}")
+    print(f"{'whole process (python start included)':36s} {runs[0][0]:9.2f} {'':9s} {runs[1][0]:9.2f}")
+
+
+FIGURES = ("calibrate_single", "calibrate_4x100", "triangulate", "forward", "openptv")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--only", default=",".join(FIGURES) + ",cold_start",
+                    help=f"comma-separated subset of {', '.join(FIGURES)}, cold_start")
+    ap.add_argument("--repeats", type=int, default=7, help="alternating pairs per figure (default 7)")
+    ap.add_argument("--points", type=int, default=20000, help="points for triangulate and forward")
+    args = ap.parse_args()
+    only = set(args.only.split(","))
+    print(f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}, {os.cpu_count()} CPUs, "
+          f"load average {os.getloadavg()[0]:.2f}; {args.repeats} alternating pairs per figure")
+    print(f"{'figure':17s} {'ours / reference':58s} {'ours ms':>9s} {'ref ms':>9s} {'median':>7s} [min-max]")
+    runs = {"calibrate_single": lambda: fig_calibrate_single(args.repeats),
+            "calibrate_4x100": lambda: fig_calibrate_4x100(max(3, args.repeats // 2)),
+            "triangulate": lambda: fig_triangulate(args.repeats, args.points),
+            "forward": lambda: fig_forward(args.repeats, args.points),
+            "openptv": lambda: fig_openptv(max(3, args.repeats // 2))}
+    peaks = {}
+    for name in FIGURES:
+        if name in only:
+            reset_peak_memory()
+            runs[name]()
+            peaks[name] = peak_memory_mb()
+    print("peak RSS MB while each ran (both commands): " + ", ".join(f"{k} {v:.0f}" for k, v in peaks.items()))
+    if "cold_start" in only:
+        cold_start()
+    print(f"\nload average {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,52 @@
+"""The closed-form start of a camera (ari_sfm.init.zhang.calibrate_zhang): Zhang's K from the
+views' homographies and PnP per view, without an iterative calibration, on a pinhole camera
+(no window) whose truth is known."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from ari_sfm.geometry import rotation_from_rotvec
+from ari_sfm.init.zhang import calibrate_zhang, object_points
+from ari_sfm.records import CameraSpec, Observation, Target
+
+K_TRUE = np.array([[3478.0, 0.0, 1180.5], [0.0, 3471.0, 1050.2], [0.0, 0.0, 1.0]])
+SIZE = (2448, 2048)
+
+
+def views(sigma_px: float, seed: int = 0) -> tuple[Target, list[Observation], dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """Twelve tilted views of a 11 x 8 checkerboard at ~450 mm, pixels with ``sigma_px`` noise."""
+    rng = np.random.default_rng(seed)
+    target = Target(type="checkerboard", square_mm=10.0, inner_corners=(11, 8))
+    ids = np.arange(88)
+    X = object_points(target, ids)
+    obs, truth = [], {}
+    for k in range(12):
+        R = rotation_from_rotvec(np.radians(rng.uniform(-25, 25, 3)) * [1, 1, 0.3])
+        t = np.array([rng.uniform(-40, 40) - 50, rng.uniform(-30, 30) - 35, rng.uniform(400, 500)])
+        uv = cv2.projectPoints(X, cv2.Rodrigues(R)[0], t, K_TRUE, None)[0].reshape(-1, 2)
+        obs.append(Observation("cam0", "calibration", f"f{k:02d}", ids, uv + rng.normal(0, sigma_px, uv.shape)))
+        truth[f"f{k:02d}"] = (R, t)
+    return target, obs, truth
+
+
+def test_noise_free_views_give_the_true_camera():
+    target, obs, truth = views(0.0)
+    z = calibrate_zhang(target, CameraSpec("cam0", SIZE), obs)
+    # exact up to cv2.findHomography's own convergence (~3e-7 relative in the focal length)
+    assert np.allclose(z.K, K_TRUE, rtol=1e-6, atol=1e-3)
+    assert np.all(z.dist == 0) and z.rms_px < 1e-4
+    for frame, (R, t) in truth.items():
+        pose = z.cam_from_target[frame]
+        assert np.abs(pose.R - R).max() < 1e-6 and np.abs(pose.t - t).max() < 1e-3
+
+
+def test_noisy_views_give_a_start_near_the_truth_and_a_hint_is_kept():
+    target, obs, _ = views(0.1)
+    z = calibrate_zhang(target, CameraSpec("cam0", SIZE), obs)
+    assert z.K[0, 0] == pytest.approx(K_TRUE[0, 0], rel=0.02) and z.K[1, 1] == pytest.approx(K_TRUE[1, 1], rel=0.02)
+    assert abs(z.K[0, 2] - K_TRUE[0, 2]) < 60 and abs(z.K[1, 2] - K_TRUE[1, 2]) < 60
+    assert z.rms_px < 3.0  # a start: the bundle adjustment refines it
+    hinted = calibrate_zhang(target, CameraSpec("cam0", SIZE, K=K_TRUE * 1.01 + np.diag([0, 0, -0.01])), obs)
+    assert np.array_equal(hinted.K, K_TRUE * 1.01 + np.diag([0, 0, -0.01]))  # a K hint is taken as given
