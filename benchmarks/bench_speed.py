@@ -111,8 +111,8 @@ def fig_calibrate_single(repeats: int) -> None:
     dataset = make_scene("paper_single", seed=0).dataset
     run = alternate(lambda: calibrate(dataset, model="ari"), cv2_baseline(dataset), repeats)
     report("calibrate_single", "calibrate(ari) paper_single / cv2.calibrateCamera", run)
-    ba = [sum(s["time_s"] for s in cal.extra["optimizer"].values()) for cal in run["extra"]]
-    its = "+".join(str(s["iterations"]) for s in run["extra"][0].extra["optimizer"].values())
+    ba = [sum(s["time_s"] for s in cal.optimizer.to_json().values()) for cal in run["extra"]]
+    its = "+".join(str(s["iterations"]) for s in run["extra"][0].optimizer.to_json().values())
     print(f"{'':17s} {'  of which the bundle adjustment (' + its + ' iterations) / cv2':58s} "
           f"{1e3 * statistics.median(ba):9.1f} {'':9s} {statistics.median(a / b for a, b in zip(ba, run['ref'])):7.3f}")
 
@@ -121,7 +121,7 @@ def fig_calibrate_4x100(repeats: int) -> None:
     dataset = make_scene("scale16", seed=0, num_cameras=4, num_frames=100).dataset
     run = alternate(lambda: calibrate(dataset, model="exact"), cv2_baseline(dataset), repeats)
     report("calibrate_4x100", "calibrate(exact) 4 cameras x 100 frames / 4 x cv2.calibrateCamera", run)
-    ba = [sum(s["time_s"] for s in cal.extra["optimizer"].values()) for cal in run["extra"]]
+    ba = [sum(s["time_s"] for s in cal.optimizer.to_json().values()) for cal in run["extra"]]
     print(f"{'':17s} {'  of which the bundle adjustment / cv2':58s} {1e3 * statistics.median(ba):9.1f} {'':9s} "
           f"{statistics.median(a / b for a, b in zip(ba, run['ref'])):7.3f}")
 
