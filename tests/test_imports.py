@@ -36,7 +36,9 @@ def import_graph() -> dict[str, set[str]]:
             elif isinstance(node, ast.ImportFrom):
                 base = ".".join(here[:len(here) - node.level + 1] + ([node.module] if node.module else [])) \
                     if node.level else (node.module or "")
-                targets = [base] + [f"{base}.{a.name}" for a in node.names]  # a name may be a submodule
+                subs = [f"{base}.{a.name}" for a in node.names if f"{base}.{a.name}" in mods]
+                # `from pkg import sub` imports the submodule; pkg itself only for names that are not submodules
+                targets = subs + ([base] if len(subs) < len(node.names) else [])
             else:
                 continue
             graph[name] |= {t for t in targets if t in mods and t != name}
