@@ -45,6 +45,7 @@ from ari_sfm.records import Interface, WindowPlane
 
 from .plane import WindowPrior, declared_window, window_prior
 from .problem import MOUNTS, RefractiveProblem, State, tangent_basis
+from .scale_bar import ScaleBar
 from .schur import (build_normal_equations, huber_cost, huber_weights, model_decrease,
                     solve_damped)
 
@@ -77,21 +78,99 @@ class RefineResult:
 
 def _units_mm(model: adapter.ColmapModel, units_mm: float | None, scale_bar: tuple[int, int, float] | None,
               path: Any) -> float:
+    """mm per unit of the COLMAP model (``path``: the WINDOW.yaml named in errors)."""
     if scale_bar is not None:
         a, b, mm = scale_bar
         where = {int(p): k for k, p in enumerate(model.point3D_ids)}
-        if int(a) not in where or int(b) not in where:
-            raise AriSfmError(path, f"scale bar: point3D ids {a} and {b} must both be in the model")
+        missing = [int(i) for i in (a, b) if int(i) not in where]
+        if missing:
+            raise AriSfmError(path, f"scale_bar.point3D_ids: {', '.join(map(str, missing))} not in the model's points3D")
+        if int(a) == int(b):
+            raise AriSfmError(path, "scale_bar.point3D_ids: the two ids are the same point")
         length = float(np.linalg.norm(model.xyz[where[int(a)]] - model.xyz[where[int(b)]]))
         if not length > 0 or not mm > 0:
-            raise AriSfmError(path, "scale bar: its points coincide or its length is not positive")
-        return mm / length
-    if units_mm is None:
+            raise AriSfmError(path, "scale_bar: its points coincide in the model or its distance_mm is not positive")
+        units = mm / length
+    elif units_mm is None:
         log.warning("refine-colmap: no units_mm or scale bar: the COLMAP model's units are taken as mm")
-        return 1.0
-    if not units_mm > 0:
+        units = 1.0
+    elif not units_mm > 0:
         raise AriSfmError(path, f"units_mm must be > 0, got {units_mm}")
-    return float(units_mm)
+    else:
+        units = float(units_mm)
+    extent = float(np.max(np.abs(model.xyz))) * units
+    if not (np.isfinite(units) and np.isfinite(extent) and extent < MAX_COORDINATE_MM):
+        raise AriSfmError(path, f"{'scale_bar' if scale_bar is not None else 'units_mm'}: {units:.6g} mm per model "
+                                f"unit puts the model's points up to {extent:.3g} mm from its origin (more than "
+                                f"{MAX_COORDINATE_MM:.0e} mm)")
+    return units
+
+
+MAX_COORDINATE_MM = 1e9  # 1000 km: a units_mm beyond this is a typo
+SCENE_CLEARANCE = 0.5  # a start distance's window (plus plate) must be nearer than this times the near points
+
+
+def _check_finite(model: adapter.ColmapModel, path: Any) -> None:
+    """One line naming the first point3D, camera or image with a non-finite value."""
+    bad = np.flatnonzero(~np.all(np.isfinite(model.xyz), axis=1))
+    if len(bad):
+        raise AriSfmError(path, f"point3D {int(model.point3D_ids[bad[0]])} has a non-finite position "
+                                f"({len(bad)} such points3D)")
+    for c, p in enumerate(model.colmap_params):
+        if not np.all(np.isfinite(p)):
+            raise AriSfmError(path, f"camera {int(model.camera_ids[c])}: non-finite parameters {p.tolist()}")
+    for f, pose in enumerate(model.rig_from_world):
+        if not (np.all(np.isfinite(pose.R)) and np.all(np.isfinite(pose.t))):
+            raise AriSfmError(path, f"frame {int(model.frame_ids[f])}: non-finite pose")
+    if not np.all(np.isfinite(model.obs_uv)):
+        raise AriSfmError(path, "an image has a non-finite keypoint observed by a point3D")
+
+
+def _candidates_inside_scene(model: adapter.ColmapModel, state: State, interface: Interface,
+                             candidates: tuple[float, ...], units_given: bool, declared: bool,
+                             path: Any) -> tuple[float, ...]:
+    """The start distances whose window (plus plate) lies well in front of the near points (the 5th
+    percentile of the observations' depths): in COLMAP's arbitrary units read as mm a scene can lie
+    inside the port; then one line asks for units_mm or a scale bar."""
+    R, t = state.cam_from_world(model)
+    depth = np.einsum("nj,nj->n", R[model.obs_image, 2, :], state.xyz[model.obs_point]) + t[model.obs_image, 2]
+    near = float(np.percentile(depth, 5))
+    if not near > 0:
+        raise AriSfmError(path, f"most of the COLMAP model's observed points are behind their cameras "
+                                f"(5th percentile depth {near:.3g} mm)")
+    keep = tuple(h for h in candidates if h + interface.thickness_mm < SCENE_CLEARANCE * near)
+    if declared or keep:
+        return candidates if declared else keep
+    how = ("check units_mm / scale_bar" if units_given else
+           "the model is in COLMAP's arbitrary units: give units_mm (mm per model unit) or a scale_bar")
+    raise AriSfmError(path, f"the COLMAP model's points are only {near:.3g} mm in front of its cameras (5th "
+                            f"percentile, read as mm): a {interface.thickness_mm:g} mm plate {min(candidates):g} mm "
+                            f"or more in front of the lens would lie among them; {how}")
+
+
+def _distance_search(model: adapter.ColmapModel, problem: RefractiveProblem, interface: Interface, mount: str,
+                     estimate_distance: bool, huber_px: float | None, bar: ScaleBar | None, virtual: State,
+                     candidates: tuple[float, ...], declared: bool) -> tuple[list[dict], tuple[float, State, int]]:
+    """The cost profile over the start distance, everything but the window refined (the window held):
+    the middle candidate from COLMAP's model, the others warm-started from its result (moved to their
+    distance, paraxially); the lowest cost wins. Returns the profile and (cost, state, iterations)."""
+    held = Solver(RefractiveProblem(model, interface, mount, estimate_distance, hold_window=True), huber_px, bar=bar)
+    search: list[dict] = []
+    best = None
+    order = sorted(candidates, key=lambda h: abs(candidates.index(h) - (len(candidates) - 1) / 2))
+    warm = None
+    for h in order:
+        base = virtual if warm is None else warm
+        start = _convert(model, problem, base if declared else _with_distance(model, base, mount, h), +1)
+        res = held.run(start, SEARCH_ITERATIONS if warm is None else WARM_SEARCH_ITERATIONS)
+        if warm is None:
+            warm = _convert(model, problem, res.state, -1)
+        search.append({"distance_mm": h, "cost": res.cost, "iterations": res.iterations})
+        log.info("refine-colmap: start distance %g mm: cost %.6g after %d iterations with the window held",
+                 h, res.cost, res.iterations)
+        if best is None or res.cost < best[0]:
+            best = (res.cost, res.state, res.iterations)
+    return search, best
 
 
 def _paraxial_offset_mm(interface: Interface, normal_cam: np.ndarray, h: float) -> float:
@@ -208,14 +287,18 @@ class Solver:
 
     linearized_error_is_error = True  # a linearization's error is the robust cost at its point
 
-    def __init__(self, problem: RefractiveProblem, huber_px: float | None, prior: WindowPrior | None = None) -> None:
+    def __init__(self, problem: RefractiveProblem, huber_px: float | None, prior: WindowPrior | None = None,
+                 bar: ScaleBar | None = None) -> None:
         self.problem = problem
         self.huber_px = huber_px
         self.prior = prior
+        self.bar = bar
         self.P = len(problem.model.point3D_ids)
+        self.size = problem.layout.size + (6 if bar is not None else 0)  # the bar's two points are reduced
 
     def cost(self, state: State) -> float:
-        return huber_cost(self.problem.residuals(state), self.huber_px) + self._prior_cost(state)
+        return (huber_cost(self.problem.residuals(state), self.huber_px) + self._prior_cost(state)
+                + (0.0 if self.bar is None else self.bar.cost(state.xyz)))
 
     def _prior_cost(self, state: State) -> float:
         return 0.0 if self.prior is None else self.prior.cost(state.normals, state.distances)
@@ -239,12 +322,36 @@ class Solver:
 
     def linearize(self, state: State):
         lin = self.problem.linearize(state)
+        if self.bar is not None:
+            lin = self._bar_points_reduced(lin)
         w = huber_weights(lin.residuals, self.huber_px)
-        ne = build_normal_equations(lin, self.problem.model.obs_point, self.P, self.problem.layout.size, w)
+        ne = build_normal_equations(lin, self.problem.model.obs_point, self.P, self.size, w)
         ne.error = huber_cost(lin.residuals, self.huber_px)
         if self.prior is not None:
             self._add_prior(ne, state)
+        if self.bar is not None:
+            e, J = self.bar.error(state.xyz), self.bar.jacobian(state.xyz)
+            cols = np.arange(self.size - 6, self.size)
+            ne.H[np.ix_(cols, cols)] += np.outer(J, J)
+            ne.g[cols] += J * e
+            ne.error += 0.5 * e * e
         return ne
+
+    def _bar_points_reduced(self, lin):
+        """The scale bar's two points as reduced variables (columns size-6.. size-1): their
+        observations' point Jacobians moved into J_g, their Schur blocks left empty."""
+        base = self.problem.layout.size
+        op = self.problem.model.obs_point
+        M = len(op)
+        J_g = np.concatenate([lin.J_g, np.zeros((M, 2, 3))], axis=2)
+        index = np.concatenate([lin.index, -np.ones((M, 3), int)], axis=1)
+        J_p = lin.J_p.copy()
+        for k, p in enumerate((self.bar.a, self.bar.b)):
+            obs = np.flatnonzero(op == p)
+            J_g[obs, :, -3:] = J_p[obs]
+            index[obs, -3:] = base + 3 * k + np.arange(3)
+            J_p[obs] = 0.0
+        return replace(lin, J_g=J_g, index=index, J_p=J_p)
 
     def solve(self, ne, lam: float):
         return solve_damped(ne, lam)
@@ -253,7 +360,13 @@ class Solver:
         return model_decrease(ne, step)
 
     def retract(self, state: State, step) -> State:
-        return self.problem.retract(state, step[0], step[1])
+        dg, dp = step
+        if self.bar is not None:
+            base = self.problem.layout.size
+            dp = dp.copy()
+            dp[self.bar.a], dp[self.bar.b] = dg[base:base + 3], dg[base + 3:base + 6]
+            dg = dg[:base]
+        return self.problem.retract(state, dg, dp)
 
     def run(self, state: State, max_iterations: int, progress=None) -> SolveResult:
         """The numpy backend: points Schur + the project's Levenberg-Marquardt (GTSAM's algorithm)."""
@@ -269,7 +382,8 @@ class Solver:
         """The GTSAM backend (one CustomFactor per image, GTSAM's LM)."""
         from .gtsam_graph import GtsamRefinement
 
-        refined, iterations = GtsamRefinement(self.problem, self.huber_px, self.prior).optimize(state, max_iterations)
+        refined, iterations = GtsamRefinement(self.problem, self.huber_px, self.prior, self.bar).optimize(
+            state, max_iterations)
         return SolveResult(refined, self.cost(refined), self.cost(state), iterations, iterations < max_iterations)
 
 
@@ -358,13 +472,19 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
         path = Path(reconstruction)
         rec = adapter.read_colmap(path)
     cmodel = adapter.model_from_reconstruction(rec, path)
-    units = _units_mm(cmodel, units_mm, scale_bar, path)
+    _check_finite(cmodel, path)
+    window_path = plane_path
+    units = _units_mm(cmodel, units_mm, scale_bar, window_path)
+    bar = None
+    if scale_bar is not None:
+        where = {int(p): k for k, p in enumerate(cmodel.point3D_ids)}
+        bar = ScaleBar(where[int(scale_bar[0])], where[int(scale_bar[1])], float(scale_bar[2]))
     plane = interface.plane
     estimate_distance = interface.medium_index != 1.0 and not (plane is not None and plane.sigma_mm == 0)
     hold_normal = plane is not None and plane.sigma_deg == 0
     problem = RefractiveProblem(cmodel, interface, mount, estimate_distance,
                                 hold_window=hold_normal and not estimate_distance, hold_normal=hold_normal)
-    solver = Solver(problem, huber_px, window_prior(plane, estimate_distance))
+    solver = Solver(problem, huber_px, window_prior(plane, estimate_distance), bar)
     before = adapter.image_residuals_px(rec, cmodel)
     virtual = _initial_state(cmodel, mount, units)
     if plane is not None:  # the declared window is the start (held, or the prior's centre)
@@ -377,46 +497,30 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
         candidates = (AIR_DISTANCE_MM,)
     else:
         candidates = tuple(distances_mm or DISTANCE_CANDIDATES_MM)
-    held = Solver(RefractiveProblem(cmodel, interface, mount, estimate_distance, hold_window=True), huber_px)
-    search = []
-    best = None
-    # the cost profile over the distance, everything but the window refined: the middle candidate from
-    # COLMAP's model, the others warm-started from its result (moved to their distance, paraxially)
-    order = sorted(candidates, key=lambda h: abs(candidates.index(h) - (len(candidates) - 1) / 2))
-    warm = None
-    for h in order:
-        base = virtual if warm is None else warm
-        start = _convert(cmodel, problem, base if plane is not None else _with_distance(cmodel, base, mount, h), +1)
-        res = held.run(start, SEARCH_ITERATIONS if warm is None else WARM_SEARCH_ITERATIONS)
-        if warm is None:
-            warm = _convert(cmodel, problem, res.state, -1)
-        search.append({"distance_mm": h, "cost": res.cost, "iterations": res.iterations})
-        log.info("refine-colmap: start distance %g mm: cost %.6g after %d iterations with the window held",
-                 h, res.cost, res.iterations)
-        if best is None or res.cost < best[0]:
-            best = (res.cost, res.state, res.iterations)
-    bar = None
+    candidates = _candidates_inside_scene(cmodel, virtual, interface, candidates, units_mm is not None or bar is not None,
+                                          plane is not None or interface.distance_mm is not None, window_path)
+    search, best = _distance_search(cmodel, problem, interface, mount, estimate_distance, huber_px, bar, virtual,
+                                    candidates, plane is not None)
+    start = best[1]
+    if not np.all(np.isfinite(problem.residuals(start))):
+        raise AriSfmError(window_path, "no start puts every point beyond the window (the window is between a camera "
+                                       "and points it sees at every candidate distance): check units_mm / scale_bar "
+                                       "and the plate")
+    pbar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=max_iterations, desc="refine-colmap", unit="it", leave=False)
+        pbar = tqdm(total=max_iterations, desc="refine-colmap", unit="it", leave=False)
 
     def tick(it: int, cost: float) -> None:
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix(cost=f"{cost:.4g}")
+        if pbar is not None:
+            pbar.update(1)
+            pbar.set_postfix(cost=f"{cost:.4g}")
 
-    result = solver.run(best[1], max_iterations, tick) if backend == "numpy" else solver.run_gtsam(best[1], max_iterations)
+    result = solver.run(start, max_iterations, tick) if backend == "numpy" else solver.run_gtsam(start, max_iterations)
     iterations = result.iterations + sum(c["iterations"] for c in search)
-    if scale_bar is not None:  # the scale is nearly flat in the cost: put the bar back to its length, polish
-        where = {int(p): k for k, p in enumerate(cmodel.point3D_ids)}
-        a, b = result.state.xyz[where[int(scale_bar[0])]], result.state.xyz[where[int(scale_bar[1])]]
-        polish = solver.run if backend == "numpy" else solver.run_gtsam
-        result = polish(_scaled(result.state, scale_bar[2] / float(np.linalg.norm(a - b)), plane is None),
-                        max_iterations)
-        iterations += result.iterations
-    if bar is not None:
-        bar.close()
+    if pbar is not None:
+        pbar.close()
     state = result.state
     residuals = problem.residuals(state)
     R, t = state.cam_from_world(cmodel)
@@ -460,15 +564,13 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
                            "point_mm": np.asarray(plane.point_mm, float).tolist(),
                            "normal": "held" if hold_normal else f"prior {plane.sigma_deg:g} deg",
                            "distance": (f"prior {plane.sigma_mm:g} mm" if estimate_distance else "held")}
-    if scale_bar is not None:
-        where = {int(p): k for k, p in enumerate(cmodel.point3D_ids)}
-        report["scale_bar"] = {"ids": [int(scale_bar[0]), int(scale_bar[1])], "declared_mm": float(scale_bar[2]),
-                               "refined_mm": float(np.linalg.norm(state.xyz[where[int(scale_bar[0])]]
-                                                                  - state.xyz[where[int(scale_bar[1])]]))}
-        if abs(report["scale_bar"]["refined_mm"] / scale_bar[2] - 1.0) > 0.01:  # the polish walked the scale valley
-            log.warning("refine-colmap: the scale bar is %.4g mm after the refinement (declared %.4g mm): the bar is "
-                        "applied by rescaling then polishing, and the polish moved the scale (a declared plane does "
-                        "not scale with the scene)", report["scale_bar"]["refined_mm"], scale_bar[2])
+    if bar is not None:
+        refined_mm = bar.length(state.xyz)
+        report["scale_bar"] = {"ids": [int(scale_bar[0]), int(scale_bar[1])], "declared_mm": bar.length_mm,
+                               "sigma_mm": bar.sigma_mm, "refined_mm": refined_mm}
+        if abs(refined_mm / bar.length_mm - 1.0) > 1e-3:
+            log.warning("refine-colmap: the scale bar is %.6g mm after the refinement (declared %.6g mm): the images "
+                        "pull against it", refined_mm, bar.length_mm)
     log.warning("refine-colmap: the COLMAP cameras written are the best %s approximation of the refractive "
                 "cameras (poses are virtual; real poses in calibration.json): %.3f px RMS (the exact model: %.3f px)",
                 approximation, report["pinhole_approximation"]["rms_px"], report["after"]["rms_px"])
