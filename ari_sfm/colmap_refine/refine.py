@@ -46,6 +46,7 @@ from ari_sfm.records import Interface, WindowPlane
 from .plane import WindowPrior, declared_window, window_prior
 from .problem import MOUNTS, RefractiveProblem, State, tangent_basis
 from .scale_bar import ScaleBar
+from .uncertainty import uncertainty
 from .schur import (build_normal_equations, huber_cost, huber_weights, model_decrease,
                     solve_damped)
 
@@ -148,29 +149,73 @@ def _candidates_inside_scene(model: adapter.ColmapModel, state: State, interface
                             f"or more in front of the lens would lie among them; {how}")
 
 
+SEARCH_OBSERVATIONS = 20_000  # the distance search runs on a subset of the points with about this many observations
+
+
+def _subsample(model: adapter.ColmapModel, bar: ScaleBar | None, max_observations: int
+               ) -> tuple[adapter.ColmapModel, np.ndarray, ScaleBar | None]:
+    """The model restricted to every k-th point3D (and the scale bar's two), so that it has about
+    ``max_observations`` observations; the kept point indices and the bar re-indexed."""
+    M, P = len(model.obs_point), len(model.point3D_ids)
+    if M <= max_observations:
+        return model, np.arange(P), bar
+    step = int(np.ceil(M / max_observations))
+    chosen = np.zeros(P, bool)
+    chosen[::step] = True
+    if bar is not None:
+        chosen[[bar.a, bar.b]] = True
+    keep = np.flatnonzero(chosen)
+    new_index = np.cumsum(chosen) - 1
+    obs = chosen[model.obs_point]
+    sub = replace(model, point3D_ids=model.point3D_ids[keep], xyz=model.xyz[keep], obs_image=model.obs_image[obs],
+                  obs_point=new_index[model.obs_point[obs]], obs_uv=model.obs_uv[obs])
+    sub_bar = None if bar is None else ScaleBar(int(new_index[bar.a]), int(new_index[bar.b]), bar.length_mm)
+    return sub, keep, sub_bar
+
+
+DISTANCE_COLLAPSE = 0.1  # a refined distance below this fraction of the smallest start candidate "ran to 0"
+
+
+def _collapsed(state: State, problem: RefractiveProblem, candidates: tuple[float, ...]) -> bool:
+    """The refined window distance ran toward 0 (where the cost is flat the refinement can slide there)."""
+    return bool(np.min(problem.image_windows(state)[1]) < DISTANCE_COLLAPSE * min(candidates))
+
+
 def _distance_search(model: adapter.ColmapModel, problem: RefractiveProblem, interface: Interface, mount: str,
                      estimate_distance: bool, huber_px: float | None, bar: ScaleBar | None, virtual: State,
-                     candidates: tuple[float, ...], declared: bool) -> tuple[list[dict], tuple[float, State, int]]:
+                     candidates: tuple[float, ...], declared: bool
+                     ) -> tuple[list[dict], tuple[float, State, int], list[tuple[float, State, int]]]:
     """The cost profile over the start distance, everything but the window refined (the window held):
     the middle candidate from COLMAP's model, the others warm-started from its result (moved to their
-    distance, paraxially); the lowest cost wins. Returns the profile and (cost, state, iterations)."""
+    distance, paraxially); the lowest cost wins. Returns the profile, the best (cost, state, iterations)
+    and the other candidates' ends (cheapest first)."""
+    full_xyz = virtual.xyz
+    model, keep, bar = _subsample(model, bar, SEARCH_OBSERVATIONS)
+    virtual = replace(virtual, xyz=virtual.xyz[keep])
     held = Solver(RefractiveProblem(model, interface, mount, estimate_distance, hold_window=True), huber_px, bar=bar)
+    sub = RefractiveProblem(model, interface, mount, estimate_distance)
     search: list[dict] = []
     best = None
+    others = []
     order = sorted(candidates, key=lambda h: abs(candidates.index(h) - (len(candidates) - 1) / 2))
     warm = None
     for h in order:
         base = virtual if warm is None else warm
-        start = _convert(model, problem, base if declared else _with_distance(model, base, mount, h), +1)
+        start = _convert(model, sub, base if declared else _with_distance(model, base, mount, h), +1)
         res = held.run(start, SEARCH_ITERATIONS if warm is None else WARM_SEARCH_ITERATIONS)
         if warm is None:
-            warm = _convert(model, problem, res.state, -1)
+            warm = _convert(model, sub, res.state, -1)
         search.append({"distance_mm": h, "cost": res.cost, "iterations": res.iterations})
         log.info("refine-colmap: start distance %g mm: cost %.6g after %d iterations with the window held",
                  h, res.cost, res.iterations)
+        end = (res.cost, replace(res.state, xyz=full_xyz), res.iterations)  # every point, at its start position
         if best is None or res.cost < best[0]:
-            best = (res.cost, res.state, res.iterations)
-    return search, best
+            if best is not None:
+                others.append(best)
+            best = end
+        else:
+            others.append(end)
+    return search, best, sorted(others, key=lambda o: o[0])
 
 
 def _paraxial_offset_mm(interface: Interface, normal_cam: np.ndarray, h: float) -> float:
@@ -499,7 +544,7 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
         candidates = tuple(distances_mm or DISTANCE_CANDIDATES_MM)
     candidates = _candidates_inside_scene(cmodel, virtual, interface, candidates, units_mm is not None or bar is not None,
                                           plane is not None or interface.distance_mm is not None, window_path)
-    search, best = _distance_search(cmodel, problem, interface, mount, estimate_distance, huber_px, bar, virtual,
+    search, best, others = _distance_search(cmodel, problem, interface, mount, estimate_distance, huber_px, bar, virtual,
                                     candidates, plane is not None)
     start = best[1]
     if not np.all(np.isfinite(problem.residuals(start))):
@@ -517,12 +562,26 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
             pbar.update(1)
             pbar.set_postfix(cost=f"{cost:.4g}")
 
-    result = solver.run(start, max_iterations, tick) if backend == "numpy" else solver.run_gtsam(start, max_iterations)
+    run = (lambda x: solver.run(x, max_iterations, tick)) if backend == "numpy" else (
+        lambda x: solver.run_gtsam(x, max_iterations))
+    result = run(start)
     iterations = result.iterations + sum(c["iterations"] for c in search)
+    restarts = []
+    collapsed = estimate_distance and plane is None and _collapsed(result.state, problem, candidates)
+    for _, other, _ in (others if collapsed else []):  # the distance ran toward 0: the other starts, lowest cost wins
+        res = run(other)
+        iterations += res.iterations
+        restarts.append({"distance_mm": problem.image_windows(res.state)[1].min().item(), "cost": res.cost})
+        log.info("refine-colmap: the distance ran toward 0 from the best start; restart: cost %.6g (was %.6g)",
+                 res.cost, result.cost)
+        if res.cost < result.cost:
+            result = res
     if pbar is not None:
         pbar.close()
     state = result.state
     residuals = problem.residuals(state)
+    names = [f"camera{int(cid)}" for cid in cmodel.camera_ids]
+    sigmas = uncertainty(solver, state, names)
     R, t = state.cam_from_world(cmodel)
     cam_from_world = {int(i): Pose(R[k], t[k]) for k, i in enumerate(cmodel.image_ids)}
     refractive = _state_reconstruction(rec, cmodel, problem, state)
@@ -545,7 +604,9 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
                      + " per " + ("camera (housing)" if mount == "camera" else "world") + ", 3D points",
         "scale": "the input's units times units_mm, refined by refraction (weakly observable through the plate)",
         "distance_search": search,
+        "restarts": restarts,
         "iterations": iterations, "converged": result.converged,
+        "uncertainty": sigmas,
         "cost": {"start": float(result.initial_cost), "final": float(result.cost)},
         "time_s": time.perf_counter() - t0,
         "before": {"model": "COLMAP pinhole", "rms_px": _rms(before), "per_image_rms_px": before},

@@ -141,7 +141,9 @@ def reduce_points(ne: NormalEquations, lam_points: float) -> ReducedSystem:
     """The reduced system with the point blocks damped by ``lam_points * diag`` (module docstring)."""
     G, P = len(ne.g), len(ne.gp)
     dV = np.maximum(np.diagonal(ne.V, axis1=1, axis2=2), DIAG_FLOOR)
-    Vinv = np.linalg.inv(ne.V + lam_points * dV[:, :, None] * np.eye(3))
+    Vd = ne.V + lam_points * dV[:, :, None] * np.eye(3)
+    Vd[np.trace(ne.V, axis1=1, axis2=2) == 0.0] = np.eye(3)  # points moved into the reduced variables
+    Vinv = np.linalg.inv(Vd)
     Vinv = 0.5 * (Vinv + np.swapaxes(Vinv, 1, 2))
     L = np.linalg.cholesky(Vinv)
     Z = np.matmul(ne.B, L[ne.obs_point])  # (M, q, 3)
