@@ -29,6 +29,7 @@ move the scale again (the report's ``scale_bar`` and a warning say by how much).
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -109,6 +110,54 @@ def _units_mm(model: adapter.ColmapModel, units_mm: float | None, scale_bar: tup
 
 MAX_COORDINATE_MM = 1e9  # 1000 km: a units_mm beyond this is a typo
 SCENE_CLEARANCE = 0.5  # a start distance's window (plus plate) must be nearer than this times the near points
+
+
+MODEL_FILES = ("cameras", "images", "points3D")
+MIN_REDUNDANCY = 1.5  # observations (coordinates) per unknown below which refine-colmap refuses
+
+
+def read_model(path: Path) -> Any:
+    """A COLMAP model folder as a pycolmap.Reconstruction; one line naming the folder or the file that
+    is missing, unreadable or truncated (a binary file must be what pycolmap writes back from it)."""
+    import tempfile
+
+    if not path.is_dir():
+        raise AriSfmError(path, "not a COLMAP model folder" + (" (it is a file)" if path.exists() else " (missing)"))
+    text = sum((path / f"{n}.txt").exists() for n in MODEL_FILES) > sum((path / f"{n}.bin").exists() for n in MODEL_FILES)
+    kind = "txt" if text else "bin"
+    for n in MODEL_FILES:
+        f = path / f"{n}.{kind}"
+        if not f.is_file():
+            raise AriSfmError(f, "not a file" if f.exists() else
+                              "missing: a COLMAP model folder holds cameras, images and points3D (.bin or .txt)")
+        if not os.access(path / f"{n}.{kind}", os.R_OK):
+            raise AriSfmError(path / f"{n}.{kind}", "no permission to read")
+    try:
+        rec = adapter.read_colmap(path)
+    except AriSfmError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - pycolmap's reader raises plain errors for damaged files
+        why = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+        raise AriSfmError(path, f"cannot read the COLMAP model (a truncated or damaged file?): {why}") from None
+    if kind == "bin":  # a truncated file reads as fewer or garbled records: compare with what they write back
+        with tempfile.TemporaryDirectory() as tmp:
+            rec.write(tmp)
+            for n in MODEL_FILES + ("rigs", "frames"):
+                f, back = path / f"{n}.bin", Path(tmp) / f"{n}.bin"
+                if f.is_file() and back.is_file() and f.stat().st_size != back.stat().st_size:
+                    raise AriSfmError(f, f"truncated or damaged: its {f.stat().st_size} bytes read as records that "
+                                         f"take {back.stat().st_size}")
+    return rec
+
+
+def _check_redundancy(model: adapter.ColmapModel, path: Any) -> None:
+    """Refuse a model with too few observations for its unknowns (it would "converge" to 0 px)."""
+    unknowns = sum(len(p) for p in model.colmap_params) + 6 * (len(model.frame_ids) - 1) + 3 + 3 * len(model.point3D_ids)
+    coordinates = 2 * len(model.obs_point)
+    if coordinates < MIN_REDUNDANCY * unknowns:
+        raise AriSfmError(path, f"too few observations to refine: {len(model.point3D_ids)} points3D seen "
+                                f"{len(model.obs_point)} times give {coordinates} coordinates for {unknowns} unknowns "
+                                f"(cameras, poses, window, points); at least {MIN_REDUNDANCY:g} per unknown needed")
 
 
 def _check_finite(model: adapter.ColmapModel, path: Any) -> None:
@@ -515,9 +564,10 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
         rec = reconstruction
     else:
         path = Path(reconstruction)
-        rec = adapter.read_colmap(path)
+        rec = read_model(path)
     cmodel = adapter.model_from_reconstruction(rec, path)
     _check_finite(cmodel, path)
+    _check_redundancy(cmodel, path)
     window_path = plane_path
     units = _units_mm(cmodel, units_mm, scale_bar, window_path)
     bar = None
@@ -660,12 +710,35 @@ def _rms(per_image: dict[int, float]) -> float:
 
 
 def write_refined(result: RefineResult, out_dir: str | Path) -> Path:
-    """OUT: the COLMAP model (the cameras' best COLMAP approximation, refined points), calibration.json, refine.json."""
+    """OUT: the COLMAP model (the cameras' best COLMAP approximation, refined points), calibration.json,
+    refine.json. Everything is written into a temporary folder inside OUT first, then renamed into
+    place file by file (refine.json last): a failed write (a full disk, a signal) leaves OUT's
+    previous files as they were and no partial file."""
+    import shutil
+    import tempfile
+
     from ari_sfm.io import write_json_atomic
 
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    result.reconstruction.write(str(out))
-    result.calibration.save(out / "calibration.json")
-    write_json_atomic(out / "refine.json", result.report)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=".refine-colmap.", dir=out))
+    except OSError as exc:
+        raise AriSfmError(out, f"cannot write: {exc.strerror or exc}") from None
+    try:
+        _write_model(result.reconstruction, tmp)
+        result.calibration.save(tmp / "calibration.json")
+        write_json_atomic(tmp / "refine.json", result.report)
+        names = sorted(p.name for p in tmp.iterdir() if p.name != "refine.json") + ["refine.json"]
+        for name in names:
+            os.replace(tmp / name, out / name)
+    except (OSError, RuntimeError) as exc:  # pycolmap's writer raises RuntimeError
+        raise AriSfmError(out, f"cannot write: {getattr(exc, 'strerror', None) or exc}") from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     return out
+
+
+def _write_model(reconstruction: Any, folder: Path) -> None:
+    """The COLMAP model's binary files in ``folder`` (pycolmap's writer)."""
+    reconstruction.write(str(folder))
