@@ -484,7 +484,7 @@ def refine_colmap_cmd(model_dir: Path, window: Path, out: Path, huber_px: float,
     spec = load_window(window)
     result = refine_colmap(model_dir, spec.interface, mount=spec.mount, units_mm=spec.units_mm,
                            scale_bar=spec.scale_bar, huber_px=huber_px, max_iterations=max_iterations, progress=True,
-                           plane_path=window)
+                           plane_path=window, window_path=window)
     write_refined(result, out)
     r = result.report
     u = r["uncertainty"]

@@ -308,11 +308,33 @@ def test_end_to_end_rendered_survey_through_colmap_sift(tmp_path):
 
     colmap_poses = {int(i): Pose(np.array(rec.image(int(i)).cam_from_world().rotation.matrix()),
                                  np.array(rec.image(int(i)).cam_from_world().translation)) for i in model.image_ids}
-    first, last = colmap_poses[int(model.image_ids[0])].inverse().t, colmap_poses[int(model.image_ids[-1])].inverse().t
-    units = np.linalg.norm(true_centres[-1] - true_centres[0]) / np.linalg.norm(last - first)
-    result = refine_colmap(rec, Interface(**meta["interface"]), "camera", units_mm=units, max_iterations=30)
+    interface = Interface(**meta["interface"])
+    # COLMAP's units are arbitrary (the scene is a few units deep): one line asks for units_mm or a scale bar
+    with pytest.raises(AriSfmError, match="give units_mm .* or a scale_bar"):
+        refine_colmap(rec, interface, "camera", max_iterations=30)
+    # a scale bar between two far-apart points3D, their true positions from one observation each
+    # (back-projected through the true camera onto the relief)
+    from ari_sfm.simulate.port_survey import _hit_relief, port_survey
+
+    sim = port_survey(seed=0, num_images=12, num_points=10, image_size=(640, 480), focal_px=600.0,
+                      area_mm=(1600.0, 1200.0), min_views=1)  # write_port_survey's cameras
+    along = (model.xyz - model.xyz.mean(axis=0)) @ np.linalg.svd(model.xyz - model.xyz.mean(axis=0))[2][0]
+    ends = []
+    for k in (int(np.argmin(along)), int(np.argmax(along))):
+        o = int(np.flatnonzero(model.obs_point == k)[0])
+        i = int(names[model.obs_image[o]][5:9]) - 1
+        O, D = sim.model(i).backproject(model.obs_uv[o][None])
+        world = sim.cam_from_world(i).inverse()
+        ends.append(_hit_relief(world.apply(O), D @ world.R.T, 2000.0, 150.0)[0])
+    bar = (int(model.point3D_ids[np.argmin(along)]), int(model.point3D_ids[np.argmax(along)]),
+           float(np.linalg.norm(ends[0] - ends[1])))
+    result = refine_colmap(rec, interface, "camera", scale_bar=bar, max_iterations=30)
     centres_before, surface_before = errors(model.xyz, colmap_poses)
     centres_after, surface_after = errors(result.state.xyz, poses_of(result.state, model))
+    centres = np.array([poses_of(result.state, model)[int(i)].inverse().t for i in model.image_ids])
+    assert abs(similarity(centres, true_centres)[0] - 1.0) < 0.005  # the bar holds the scale (was 35 % off)
+    u = result.report["uncertainty"]
+    assert abs(result.state.distances[0] - meta["camera"]["distance_mm"]) < 3.0 * u["distance_mm"]["camera1"]
     assert centres_after < 3.0 and surface_after < 5.0  # mm: SIFT-noise-limited
     assert centres_before > 10.0 * centres_after and surface_before > 10.0 * surface_after
     assert result.report["after"]["rms_px"] < 0.6 * result.report["before"]["rms_px"]

@@ -535,7 +535,8 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
                   huber_px: float | None = 2.0, max_iterations: int = 50,
                   distances_mm: tuple[float, ...] | None = None, approximation: str = "opencv",
                   backend: str = "numpy", progress: bool = False,
-                  path: Any = "reconstruction", plane_path: Any = "interface.plane") -> RefineResult:
+                  path: Any = "reconstruction", plane_path: Any = "interface.plane",
+                  window_path: Any = "WINDOW.yaml") -> RefineResult:
     """Refine a COLMAP reconstruction made behind a flat window with the exact refractive model.
 
     ``reconstruction``: a pycolmap.Reconstruction or a model folder; ``interface``: the plate
@@ -548,7 +549,7 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     ``interface.plane`` (optional, :mod:`.plane`): the declared window, frame ``camera`` (mount camera:
     each camera's housing frame) or ``world`` (mount world: the COLMAP world in mm); it replaces the
     start search; a sigma of 0 holds that part, > 0 makes it a prior. ``plane_path``: the file named
-    in its errors. See the module docstring
+    in its errors; ``window_path``: the file named in errors about units and the scale bar. See the module docstring
     for the start, the gauge and the scale.
     """
     t0 = time.perf_counter()
@@ -568,7 +569,6 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     cmodel = adapter.model_from_reconstruction(rec, path)
     _check_finite(cmodel, path)
     _check_redundancy(cmodel, path)
-    window_path = plane_path
     units = _units_mm(cmodel, units_mm, scale_bar, window_path)
     bar = None
     if scale_bar is not None:
