@@ -198,7 +198,7 @@ def _candidates_inside_scene(model: adapter.ColmapModel, state: State, interface
                             f"or more in front of the lens would lie among them; {how}")
 
 
-SEARCH_OBSERVATIONS = 20_000  # the distance search runs on a subset of the points with about this many observations
+SEARCH_OBSERVATIONS = 6_000  # the distance search runs on a subset of the points with about this many observations
 
 
 def _subsample(model: adapter.ColmapModel, bar: ScaleBar | None, max_observations: int
@@ -254,7 +254,8 @@ def _distance_search(model: adapter.ColmapModel, problem: RefractiveProblem, int
         res = held.run(start, SEARCH_ITERATIONS if warm is None else WARM_SEARCH_ITERATIONS)
         if warm is None:
             warm = _convert(model, sub, res.state, -1)
-        search.append({"distance_mm": h, "cost": res.cost, "iterations": res.iterations})
+        search.append({"distance_mm": h, "cost": res.cost, "iterations": res.iterations,
+                       "linearizations": res.linearizations, "observations": len(model.obs_point)})
         log.info("refine-colmap: start distance %g mm: cost %.6g after %d iterations with the window held",
                  h, res.cost, res.iterations)
         end = (res.cost, replace(res.state, xyz=full_xyz), res.iterations)  # every point, at its start position
@@ -373,6 +374,7 @@ class SolveResult:
     initial_cost: float
     iterations: int
     converged: bool
+    linearizations: int = 0  # Jacobian evaluations (numpy backend)
 
 
 class Solver:
@@ -470,7 +472,8 @@ class Solver:
                                   progress=progress)
         r = res.report
         return SolveResult(res.x, r.error, r.initial_error, r.iterations,
-                           r.stop in ("converged", "small_cost_change", "zero_error", "no_model_decrease"))
+                           r.stop in ("converged", "small_cost_change", "zero_error", "no_model_decrease"),
+                           r.linearizations)
 
     def run_gtsam(self, state: State, max_iterations: int) -> SolveResult:
         """The GTSAM backend (one CustomFactor per image, GTSAM's LM)."""
@@ -616,11 +619,13 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
         lambda x: solver.run_gtsam(x, max_iterations))
     result = run(start)
     iterations = result.iterations + sum(c["iterations"] for c in search)
+    linearizations = result.linearizations
     restarts = []
     collapsed = estimate_distance and plane is None and _collapsed(result.state, problem, candidates)
     for _, other, _ in (others if collapsed else []):  # the distance ran toward 0: the other starts, lowest cost wins
         res = run(other)
         iterations += res.iterations
+        linearizations += res.linearizations
         restarts.append({"distance_mm": problem.image_windows(res.state)[1].min().item(), "cost": res.cost})
         log.info("refine-colmap: the distance ran toward 0 from the best start; restart: cost %.6g (was %.6g)",
                  res.cost, result.cost)
@@ -656,6 +661,7 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
         "distance_search": search,
         "restarts": restarts,
         "iterations": iterations, "converged": result.converged,
+        "linearizations": {"final": linearizations, "search": sum(c["linearizations"] for c in search)},
         "uncertainty": sigmas,
         "cost": {"start": float(result.initial_cost), "final": float(result.cost)},
         "time_s": time.perf_counter() - t0,
