@@ -724,3 +724,35 @@ def test_full_disk_leaves_no_partial_file(small_model, tmp_path, monkeypatch):
     monkeypatch.setattr(refine_module, "_write_model", full_disk)
     one_line_error(run_cli(folder, tmp_path, "--max-iterations", "3", out=out), "No space left on device")
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_schur_step_is_the_damped_full_system_step():
+    """The reduced camera system (built once per linearization) gives the step of the whole damped
+    system: at the first trial lambda damps every block (Marquardt, lambda diag); a later trial damps
+    the camera block with its own lambda and the points with the first trial's."""
+    from ari_sfm.colmap_refine.schur import build_normal_equations, huber_weights, solve_damped
+
+    truth = port_survey(num_images=5, num_points=150, focal_px=1300, area_mm=(1500, 1000))
+    rec = adapter.reconstruction_from_arrays(list(truth.params), truth.image_size, truth.sensor_from_rig,
+                                             truth.rig_from_world, truth.image_camera, truth.image_frame, truth.xyz,
+                                             truth.obs_image, truth.obs_point, truth.obs_uv)
+    model = adapter.model_from_reconstruction(rec)
+    problem = RefractiveProblem(model, truth.interface, "camera", estimate_distance=True)
+    lin = problem.linearize(truth_state(truth, model))
+    w = huber_weights(lin.residuals, 0.5)  # some observations down-weighted
+    G, P = problem.layout.size, len(model.point3D_ids)
+    ne = build_normal_equations(lin, model.obs_point, P, G, w)
+    J = np.zeros((2 * len(w), G + 3 * P))  # the dense whole Jacobian, whitened
+    for o in range(len(w)):
+        cols = lin.index[o] >= 0
+        J[2 * o:2 * o + 2, lin.index[o][cols]] = lin.J_g[o][:, cols] * np.sqrt(w[o])
+        J[2 * o:2 * o + 2, G + 3 * model.obs_point[o] + np.arange(3)] = lin.J_p[o] * np.sqrt(w[o])
+    r = (lin.residuals * np.sqrt(w)[:, None]).ravel()
+    A, b = J.T @ J, -J.T @ r
+    d = np.maximum(np.diag(A), 1e-9)
+    for lam_cameras, lam_points in ((1e-3, 1e-3), (1e-1, 1e-3)):  # the first trial, then a later one
+        damping = np.r_[np.full(G, lam_cameras), np.full(3 * P, lam_points)] * d
+        full = np.linalg.solve(A + np.diag(damping), b)
+        dg, dp = solve_damped(ne, lam_cameras)
+        assert np.allclose(dg, full[:G], rtol=1e-7, atol=1e-10 * np.abs(full).max())
+        assert np.allclose(dp.ravel(), full[G:], rtol=1e-7, atol=1e-10 * np.abs(full).max())
