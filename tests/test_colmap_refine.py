@@ -756,3 +756,13 @@ def test_schur_step_is_the_damped_full_system_step():
         dg, dp = solve_damped(ne, lam_cameras)
         assert np.allclose(dg, full[:G], rtol=1e-7, atol=1e-10 * np.abs(full).max())
         assert np.allclose(dp.ravel(), full[G:], rtol=1e-7, atol=1e-10 * np.abs(full).max())
+
+
+def test_restarts_when_the_distance_runs_toward_zero(small_model):
+    """A refined distance far below every start candidate (here: candidates 300-500 mm, the port at
+    22 mm) counts as "ran toward 0": the other starts are refined too, the lowest cost is kept."""
+    truth, start, _ = small_model
+    result = refine_colmap(start, truth.interface, "camera", distances_mm=(300.0, 400.0, 500.0), max_iterations=15)
+    restarts = result.report["restarts"]
+    assert len(restarts) == 2
+    assert result.report["cost"]["final"] <= min(r["cost"] for r in restarts) + 1e-9

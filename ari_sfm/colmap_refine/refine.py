@@ -238,7 +238,7 @@ def _distance_search(model: adapter.ColmapModel, problem: RefractiveProblem, int
     the middle candidate from COLMAP's model, the others warm-started from its result (moved to their
     distance, paraxially); the lowest cost wins. Returns the profile, the best (cost, state, iterations)
     and the other candidates' ends (cheapest first)."""
-    full_xyz = virtual.xyz
+    full_xyz, full_model, full_virtual, full_bar = virtual.xyz, model, virtual, bar
     model, keep, bar = _subsample(model, bar, SEARCH_OBSERVATIONS)
     virtual = replace(virtual, xyz=virtual.xyz[keep])
     held = Solver(RefractiveProblem(model, interface, mount, estimate_distance, hold_window=True), huber_px, bar=bar)
@@ -265,6 +265,18 @@ def _distance_search(model: adapter.ColmapModel, problem: RefractiveProblem, int
             best = end
         else:
             others.append(end)
+    if len(keep) < len(full_xyz) and not np.all(np.isfinite(problem.residuals(best[1]))):
+        # the subsample's poses put some of the other points (at their start) before the window: the
+        # best distance again, on every point
+        held_full = Solver(RefractiveProblem(full_model, interface, mount, estimate_distance, hold_window=True),
+                           huber_px, bar=full_bar)
+        h = search[[c["cost"] for c in search].index(best[0])]["distance_mm"]
+        start = _convert(full_model, problem, full_virtual if declared else
+                         _with_distance(full_model, full_virtual, mount, h), +1)
+        res = held_full.run(start, SEARCH_ITERATIONS)
+        search.append({"distance_mm": h, "cost": res.cost, "iterations": res.iterations,
+                       "linearizations": res.linearizations, "observations": len(full_model.obs_point)})
+        best = (res.cost, res.state, res.iterations)
     return search, best, sorted(others, key=lambda o: o[0])
 
 
