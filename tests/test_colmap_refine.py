@@ -758,11 +758,21 @@ def test_schur_step_is_the_damped_full_system_step():
         assert np.allclose(dp.ravel(), full[G:], rtol=1e-7, atol=1e-10 * np.abs(full).max())
 
 
-def test_restarts_when_the_distance_runs_toward_zero(small_model):
-    """A refined distance far below every start candidate (here: candidates 300-500 mm, the port at
-    22 mm) counts as "ran toward 0": the other starts are refined too, the lowest cost is kept."""
+def test_restarts_when_the_distance_runs_toward_zero(small_model, monkeypatch):
+    """A refined distance far below every start candidate counts as "ran toward 0"; then the other
+    starts are refined too and the lowest cost is kept."""
+    from dataclasses import replace as dc_replace
+
+    from ari_sfm.colmap_refine import refine as refine_module
+
     truth, start, _ = small_model
-    result = refine_colmap(start, truth.interface, "camera", distances_mm=(300.0, 400.0, 500.0), max_iterations=15)
+    model = adapter.model_from_reconstruction(start)
+    problem = RefractiveProblem(model, truth.interface, "camera", estimate_distance=True)
+    state = truth_state(truth, model)
+    assert not refine_module._collapsed(state, problem, (10.0, 30.0, 100.0))  # 22 mm
+    assert refine_module._collapsed(dc_replace(state, distances=np.array([0.5])), problem, (10.0, 30.0, 100.0))
+    monkeypatch.setattr(refine_module, "_collapsed", lambda *args: True)
+    result = refine_colmap(start, truth.interface, "camera", max_iterations=10)
     restarts = result.report["restarts"]
     assert len(restarts) == 2
     assert result.report["cost"]["final"] <= min(r["cost"] for r in restarts) + 1e-9

@@ -258,7 +258,9 @@ def _distance_search(model: adapter.ColmapModel, problem: RefractiveProblem, int
                        "linearizations": res.linearizations, "observations": len(model.obs_point)})
         log.info("refine-colmap: start distance %g mm: cost %.6g after %d iterations with the window held",
                  h, res.cost, res.iterations)
-        end = (res.cost, replace(res.state, xyz=full_xyz), res.iterations)  # every point, at its start position
+        xyz = full_xyz.copy()
+        xyz[keep] = res.state.xyz  # the subsample's points refined, the others at their start
+        end = (res.cost, replace(res.state, xyz=xyz), res.iterations)
         if best is None or res.cost < best[0]:
             if best is not None:
                 others.append(best)
@@ -435,6 +437,8 @@ class Solver:
         w = huber_weights(lin.residuals, self.huber_px)
         ne = build_normal_equations(lin, self.problem.model.obs_point, self.P, self.size, w)
         ne.error = huber_cost(lin.residuals, self.huber_px)
+        if self.bar is not None:
+            ne.damping = np.diag(ne.H).copy()  # damping from the images only (the bar is stiff)
         if self.prior is not None:
             self._add_prior(ne, state)
         if self.bar is not None:
@@ -645,6 +649,10 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
             result = res
     if pbar is not None:
         pbar.close()
+    if not result.converged:
+        log.warning("refine-colmap: not converged in %d iterations (max_iterations %d): the result and its sigmas "
+                    "describe the last state, not an optimum; raise --max-iterations, or declare the port "
+                    "(interface.plane) on surveys with short tracks", result.iterations, max_iterations)
     state = result.state
     residuals = problem.residuals(state)
     names = [f"camera{int(cid)}" for cid in cmodel.camera_ids]

@@ -79,6 +79,8 @@ class NormalEquations:
     obs_point: np.ndarray  # (M,)
     error: float = 0.0  # the robust cost at the linearization point (LM's system.error)
     reduced: Any = None  # ReducedSystem, built by the first solve_damped
+    damping: Any = None  # (G,) the diagonal Marquardt's damping scales (default diag H): the images' part only,
+    #                      so that a stiff prior term (a scale bar) does not freeze its variables' other directions
 
     def W_times(self, dp: np.ndarray) -> np.ndarray:
         """W dp (G,) for point steps dp (P, 3)."""
@@ -184,7 +186,7 @@ def solve_damped(ne: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarra
     if ne.reduced is None:
         ne.reduced = reduce_points(ne, lam)
     red = ne.reduced
-    dH = np.maximum(np.diag(ne.H), DIAG_FLOOR)
+    dH = np.maximum(np.diag(ne.H) if ne.damping is None else ne.damping, DIAG_FLOOR)
     S = red.S + np.diag(lam * dH)
     try:
         dg = cho_solve(cho_factor(S), red.b)
