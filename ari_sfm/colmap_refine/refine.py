@@ -12,19 +12,18 @@ unobservable and held).
 
 Gauge and scale: the first frame's pose is held (the world's rotation and translation). The
 scale is *not* a gauge: the plate's thickness in mm sets it through refraction, but only weakly
-(a plate a few mm thick against a scene metres away). The input's units are taken as
-``units_mm`` mm each (``scale_bar``: two point3D ids and their distance in mm sets it; neither:
-1, the model is taken to be in mm); the result is in mm, its scale is that start refined by the
-weak refraction signal: measured on the simulated port survey (sigma 0.5 px) the cost is flat
-along the scale to 1e-6 of its value, so without a scale bar the result's scale is the input's
-(and pinhole bundle adjustment drifts it by tens of %). With a scale bar, the refined solution is
-scaled (points, poses, window distances) to the bar's length and polished; ``refine.json``
-reports the bar after. :mod:`ari_sfm.colmap_refine.problem` lists what is estimated.
+(a plate a few mm thick against a scene metres away; ``uncertainty.scale_rel`` says how weakly).
+The input's units are taken as ``units_mm`` mm each (a start only; ``scale_bar``: its factor;
+neither: 1, the model is taken to be in mm, and a scene that would then lie inside the port is
+refused with one line). A scale bar is a term of the solver (:mod:`.scale_bar`): the refinement
+first runs without it (the scale free, along its near-flat valley), the result is rescaled to
+the bar, and the refinement runs again with the bar held; going straight to the held bar left a
+short-track strip in a wrong-scale valley (40-image strip: 1.80 px, points 47 mm; this way 0.62 px,
+1.2 mm). :mod:`ari_sfm.colmap_refine.problem` lists what is estimated.
 
 A declared window (``interface.plane``, :mod:`.plane`) replaces the start search: the window
-starts there; a sigma of 0 holds that part, > 0 adds a prior. A declared plane does not scale with
-the scene, so with a scale bar the rescaled state is off the near-flat valley and the polish can
-move the scale again (the report's ``scale_bar`` and a warning say by how much).
+starts there; a sigma of 0 holds that part, > 0 adds a prior (a held plane does not scale with the
+scene when the state is rescaled to the bar; the bar, a term of the solver, is held anyway).
 """
 from __future__ import annotations
 
@@ -222,6 +221,7 @@ def _subsample(model: adapter.ColmapModel, bar: ScaleBar | None, max_observation
     return sub, keep, sub_bar
 
 
+FREE_SCALE_FIRST = True  # with a scale bar: refine without it, rescale to it, then refine with it held
 DISTANCE_COLLAPSE = 0.1  # a refined distance below this fraction of the smallest start candidate "ran to 0"
 
 
@@ -633,9 +633,16 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
 
     run = (lambda x: solver.run(x, max_iterations, tick)) if backend == "numpy" else (
         lambda x: solver.run_gtsam(x, max_iterations))
+    pre = None
+    if bar is not None and FREE_SCALE_FIRST:  # the scale's valley first, without the bar, then the bar held
+        free = Solver(problem, huber_px, window_prior(plane, estimate_distance))
+        pre = free.run(start, max_iterations, tick) if backend == "numpy" else free.run_gtsam(start, max_iterations)
+        start = _scaled(pre.state, bar.length_mm / bar.length(pre.state.xyz), plane is None)
+        log.info("refine-colmap: without the bar: cost %.6g in %d iterations; rescaled by %.6g to the bar",
+                 pre.cost, pre.iterations, bar.length_mm / bar.length(pre.state.xyz))
     result = run(start)
-    iterations = result.iterations + sum(c["iterations"] for c in search)
-    linearizations = result.linearizations
+    iterations = result.iterations + sum(c["iterations"] for c in search) + (pre.iterations if pre else 0)
+    linearizations = result.linearizations + (pre.linearizations if pre else 0)
     restarts = []
     collapsed = estimate_distance and plane is None and _collapsed(result.state, problem, candidates)
     for _, other, _ in (others if collapsed else []):  # the distance ran toward 0: the other starts, lowest cost wins
