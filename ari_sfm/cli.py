@@ -929,28 +929,51 @@ def export_openptv_cmd(calibration: Path, out: Path, frame: str | None, pixel_si
 @main.command(name="refine-colmap")
 @click.argument("model_dir", type=click.Path(path_type=Path))
 @click.option("--window", "window", type=click.Path(path_type=Path), required=True,
-              help="WINDOW.yaml: interface (thickness_mm, index, medium_index) and mount (camera | world).")
+              help="WINDOW.yaml: interface (thickness_mm, index, medium_index), mount (camera | world), "
+                   "units_mm or scale_bar.")
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
-              help="Output folder: COLMAP model (the cameras' best OPENCV or PINHOLE approximation), "
-                   "calibration.json, refine.json.")
-@click.option("--huber-px", type=float, default=2.0, show_default=True, help="Huber threshold (px).")
-@click.option("--max-iterations", type=int, default=50, show_default=True)
+              help="Output folder (not MODEL_DIR): COLMAP model (the cameras' best OPENCV or PINHOLE "
+                   "approximation), calibration.json, refine.json.")
+@click.option("--huber-px", type=float, default=2.0, show_default=True, help="Huber threshold (px, > 0).")
+@click.option("--max-iterations", type=int, default=50, show_default=True,
+              help="Cap on the accepted Levenberg-Marquardt steps of the final refinement (>= 1).")
 @user_errors
 def refine_colmap_cmd(model_dir: Path, window: Path, out: Path, huber_px: float, max_iterations: int) -> None:
     """Refine the COLMAP model in MODEL_DIR (made behind a flat window) with the exact refractive model."""
     from .colmap_refine import refine_colmap, write_refined
     from .colmap_refine.window import load_window
 
+    check_number("--huber-px", huber_px, 0.0, strict_minimum=True)
+    check_number("--max-iterations", max_iterations, 1)
+    check_output_folder(out)
+    if out.exists() and model_dir.exists() and os.path.realpath(out) == os.path.realpath(model_dir):
+        raise AriSfmError(out, "-o/--out: is MODEL_DIR: refine-colmap does not overwrite its input model "
+                               "(write to another folder)")
     spec = load_window(window)
     result = refine_colmap(model_dir, spec.interface, mount=spec.mount, units_mm=spec.units_mm,
                            scale_bar=spec.scale_bar, huber_px=huber_px, max_iterations=max_iterations, progress=True,
-                           plane_path=window)
+                           plane_path=window, window_path=window)
     write_refined(result, out)
     r = result.report
+    u = r["uncertainty"]
     click.echo(f"refine-colmap: {r['counts']['images']} images, {r['counts']['points3D']} points, "
-               f"{r['iterations']} iterations, {r['time_s']:.1f} s; reprojection RMS {r['before']['rms_px']:.3f} px "
-               f"(COLMAP pinhole) -> {r['after']['rms_px']:.3f} px (exact); COLMAP cameras written as their best "
-               f"{r['pinhole_approximation']['camera_model']} approximation ({r['pinhole_approximation']['rms_px']:.3f} px) -> {out}")
+               f"{r['iterations']} iterations ({'converged' if r['converged'] else 'NOT converged'}), "
+               f"{r['time_s']:.1f} s; reprojection RMS {r['before']['rms_px']:.3f} px "
+               f"(COLMAP pinhole) -> {r['after']['rms_px']:.3f} px (exact)")
+    for name in u["distance_mm"] | u["normal_deg"]:
+        d = r["window"]["distance_mm"].get(name) if "distance_mm" in r["window"] else r["window"]["plane_mm"]
+        parts = [f"distance {d:.2f} +- {u['distance_mm'][name]:.2g} mm" if name in u["distance_mm"] else "",
+                 f"normal +- {u['normal_deg'][name]:.2g} deg" if name in u["normal_deg"] else ""]
+        click.echo(f"  window {name}: " + ", ".join(p for p in parts if p) + " (1 sigma)")
+    if u["scale_rel"] is not None:
+        click.echo(f"  scale: +- {100 * u['scale_rel']:.2g} % (1 sigma)"
+                   + (f"; scale bar {r['scale_bar']['refined_mm']:.6g} mm (declared {r['scale_bar']['declared_mm']:.6g})"
+                      if "scale_bar" in r else ""))
+    if u["weak"]:
+        click.echo(f"  barely determined by these images: {', '.join(u['weak'])} (see the warnings)")
+    click.echo(f"  COLMAP cameras written as their best "
+               f"{r['pinhole_approximation']['camera_model']} approximation ({r['pinhole_approximation']['rms_px']:.3f} px) "
+               f"-> {out}")
 
 
 if __name__ == "__main__":  # last, after every command is defined (python -m ari_sfm.cli refine-colmap)

@@ -17,6 +17,15 @@ apart along a strip 2 m wide; each point seen by ~3-14 images, mean ~4.5 at 400 
 250 mm; about 60 % of the drawn points are seen 3 times or more and kept): the way to 200 images / 50 k points on a small machine
 (``--sizes 200:75000 --layout strip --spacing 250``). ``--declared-port``: the true port declared
 (``interface.plane``, held).
+
+Speed (``--repeats N``, default 3): pycolmap.bundle_adjustment (Ceres, its default options and threads)
+started from COLMAP's model with every point perturbed (N(0, 0.2 % of the camera altitude) per
+coordinate, so that it iterates) and refine_colmap from COLMAP's model, run alternately N times each.
+Printed: the medians and spreads (min-max) of both times, the whole-solve ratio, the per-iteration ratio
+(seconds per Jacobian evaluation: refine-colmap's final refinement, including its share of the start
+search's evaluations at their smaller size, against Ceres' ``num_jacobian_evaluations``), the ratio
+of CPU times (Ceres runs on every core; on a loaded machine this one is the steadier), and the
+process's peak RSS.
 """
 from __future__ import annotations
 
@@ -39,8 +48,26 @@ from ari_sfm.records import WindowPlane
 from ari_sfm.simulate.port_survey import port_survey
 
 
+def _timed_pycolmap_ba(start, rng: np.random.Generator, sigma: float) -> tuple[float, int]:
+    """pycolmap's bundle adjustment (default options) of a copy of ``start`` with its points perturbed:
+    wall and CPU seconds (all of Ceres' threads) and Ceres' Jacobian evaluations."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(start)
+    for pid in rec.point3D_ids():
+        rec.point3D(pid).xyz = rec.point3D(pid).xyz + rng.normal(0.0, sigma, 3)
+    options = pycolmap.BundleAdjustmentOptions()
+    options.print_summary = False
+    config = pycolmap.BundleAdjustmentConfig()
+    for i in rec.reg_image_ids():
+        config.add_image(i)
+    t0, c0 = time.perf_counter(), time.process_time()
+    summary = pycolmap.create_default_bundle_adjuster(options, config, rec).solve()
+    return (time.perf_counter() - t0, time.process_time() - c0, int(summary.ceres_summary.num_jacobian_evaluations))
+
+
 def run(num_images: int, num_points: int, focal: float, layout: str = "grid", spacing: float = 400.0,
-        declared_port: bool = False) -> None:
+        declared_port: bool = False, repeats: int = 3) -> None:
     if layout == "strip":
         area = (num_images / 2 * spacing + 2400.0, 2000.0)
     else:
@@ -52,20 +79,30 @@ def run(num_images: int, num_points: int, focal: float, layout: str = "grid", sp
     rec = adapter.reconstruction_from_arrays(params, truth.image_size, truth.sensor_from_rig, truth.rig_from_world,
                                              truth.image_camera, truth.image_frame, truth.xyz, truth.obs_image,
                                              truth.obs_point, truth.obs_uv)
-    t0 = time.perf_counter()
     start = adapter.bundle_adjust(rec)
-    t_ba = time.perf_counter() - t0
     model = adapter.model_from_reconstruction(start)
     X = truth.xyz[model.point3D_ids - 1]
     a, b = int(np.argmin(X[:, 0] + X[:, 1])), int(np.argmax(X[:, 0] + X[:, 1]))
     bar = (int(model.point3D_ids[a]), int(model.point3D_ids[b]), float(np.linalg.norm(X[a] - X[b])))
-    t0 = time.perf_counter()
     interface = truth.interface
     if declared_port:  # the housing's port as built, held (interface.plane in the camera frame)
         n = truth.normal_cam[0]
         interface = replace(interface, plane=WindowPlane("camera", n, n * truth.distance_mm[0]))
-    result = refine_colmap(start, interface, "camera", scale_bar=bar)
-    t_ref = time.perf_counter() - t0
+    t_ba, t_ref, it_ba, it_ref, cpu_ba, cpu_ref = [], [], [], [], [], []
+    rng = np.random.default_rng(1)
+    for _ in range(repeats):  # alternately, so that both see the same machine load
+        seconds, cpu, evaluations = _timed_pycolmap_ba(start, rng, 0.002 * 2000.0)
+        t_ba.append(seconds)
+        cpu_ba.append(cpu)
+        it_ba.append(seconds / max(evaluations, 1))
+        t0, c0 = time.perf_counter(), time.process_time()
+        result = refine_colmap(start, interface, "camera", scale_bar=bar)
+        t_ref.append(time.perf_counter() - t0)
+        cpu_ref.append(time.process_time() - c0)
+        lin = result.report["linearizations"]
+        search_obs = sum(c["linearizations"] * c["observations"] for c in result.report["distance_search"])
+        equivalent = lin["final"] + search_obs / len(model.obs_image)  # search evaluations at their size
+        it_ref.append(t_ref[-1] / max(equivalent, 1.0))
     R, t = result.state.cam_from_world(model)
     got = truth_errors(truth, model, result.state.xyz, {int(i): Pose(R[k], t[k]) for k, i in enumerate(model.image_ids)})
     got.update(window_errors(truth, result.state.normals, result.state.distances))
@@ -77,14 +114,27 @@ def run(num_images: int, num_points: int, focal: float, layout: str = "grid", sp
           f"{truth.image_size[0]}x{truth.image_size[1]})")
     print(f"  COLMAP pinhole BA : points {before['points_rms_mm']:.2f} mm RMS, centres {before['centres_rms_mm']:.1f} mm, "
           f"scale {before['scale_error_pct']:+.2f} %, reprojection {r['before']['rms_px']:.3f} px RMS "
-          f"({start.compute_mean_reprojection_error():.3f} px mean), {t_ba:.2f} s")
+          f"({start.compute_mean_reprojection_error():.3f} px mean)")
+    u = r["uncertainty"]
+    print(f"  sigmas (1 sigma): normal {u['normal_deg']['camera1']:.3f} deg, distance {u['distance_mm']['camera1']:.2f} mm, "
+          f"scale {100 * u['scale_rel']:.3f} %, fx {u['fx_px']['camera1']:.2f} px; weak: {u['weak'] or 'none'}")
     print(f"  refine-colmap     : points {got['points_rms_mm']:.2f} mm RMS, centres {got['centres_rms_mm']:.1f} mm, "
           f"scale {got['scale_error_pct']:+.3f} %, normal {got['normal_deg']:.3f} deg, distance "
           f"{got['distance_mm']:.2f} mm (true 22), reprojection {r['after']['rms_px']:.3f} px RMS "
-          f"(sigma sqrt2 = {0.5 * np.sqrt(2):.3f}), {r['iterations']} iterations, {t_ref:.2f} s")
+          f"(sigma sqrt2 = {0.5 * np.sqrt(2):.3f}), {r['iterations']} iterations, converged {r['converged']}")
     print(f"  written OPENCV approximation: {r['pinhole_approximation']['rms_px']:.3f} px RMS")
-    print(f"  time ratio refine-colmap / pycolmap.bundle_adjustment: {t_ref / t_ba:.1f}; "
-          f"peak RSS so far {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+    med = {k: float(np.median(v)) for k, v in (("ba", t_ba), ("ref", t_ref), ("it_ba", it_ba), ("it_ref", it_ref))}
+    ratio = np.array(t_ref) / np.array(t_ba)
+    per_it = np.array(it_ref) / np.array(it_ba)
+    print(f"  time ({repeats} alternating runs, median [min-max]): pycolmap BA {med['ba']:.2f} s "
+          f"[{min(t_ba):.2f}-{max(t_ba):.2f}], {1e3 * med['it_ba']:.0f} ms/iteration; refine-colmap {med['ref']:.2f} s "
+          f"[{min(t_ref):.2f}-{max(t_ref):.2f}], {1e3 * med['it_ref']:.0f} ms/iteration "
+          f"({r['linearizations']['final']} + {r['linearizations']['search']} search linearizations)")
+    print(f"  ratio refine-colmap / pycolmap.bundle_adjustment: whole solve {np.median(ratio):.2f} "
+          f"[{ratio.min():.2f}-{ratio.max():.2f}], per iteration {np.median(per_it):.2f} "
+          f"[{per_it.min():.2f}-{per_it.max():.2f}]; CPU time (both of Ceres' threads counted) "
+          f"{np.median(np.array(cpu_ref) / np.array(cpu_ba)):.2f}; "
+          f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
     sys.stdout.flush()
 
 
@@ -96,10 +146,11 @@ def main() -> None:
     ap.add_argument("--declared-port", action="store_true",
                     help="declare the true port as interface.plane, held")
     ap.add_argument("--spacing", type=float, default=400.0, help="strip: mm between images along a line")
+    ap.add_argument("--repeats", type=int, default=3, help="alternating timed runs of each solver")
     args = ap.parse_args()
     for size in args.sizes.split(","):
         n, p = (int(v) for v in size.split(":"))
-        run(n, p, args.focal, args.layout, args.spacing, args.declared_port)
+        run(n, p, args.focal, args.layout, args.spacing, args.declared_port, args.repeats)
 
 
 if __name__ == "__main__":

@@ -308,11 +308,33 @@ def test_end_to_end_rendered_survey_through_colmap_sift(tmp_path):
 
     colmap_poses = {int(i): Pose(np.array(rec.image(int(i)).cam_from_world().rotation.matrix()),
                                  np.array(rec.image(int(i)).cam_from_world().translation)) for i in model.image_ids}
-    first, last = colmap_poses[int(model.image_ids[0])].inverse().t, colmap_poses[int(model.image_ids[-1])].inverse().t
-    units = np.linalg.norm(true_centres[-1] - true_centres[0]) / np.linalg.norm(last - first)
-    result = refine_colmap(rec, Interface(**meta["interface"]), "camera", units_mm=units, max_iterations=30)
+    interface = Interface(**meta["interface"])
+    # COLMAP's units are arbitrary (the scene is a few units deep): one line asks for units_mm or a scale bar
+    with pytest.raises(AriSfmError, match="give units_mm .* or a scale_bar"):
+        refine_colmap(rec, interface, "camera", max_iterations=30)
+    # a scale bar between two far-apart points3D, their true positions from one observation each
+    # (back-projected through the true camera onto the relief)
+    from ari_sfm.simulate.port_survey import _hit_relief, port_survey
+
+    sim = port_survey(seed=0, num_images=12, num_points=10, image_size=(640, 480), focal_px=600.0,
+                      area_mm=(1600.0, 1200.0), min_views=1)  # write_port_survey's cameras
+    along = (model.xyz - model.xyz.mean(axis=0)) @ np.linalg.svd(model.xyz - model.xyz.mean(axis=0))[2][0]
+    ends = []
+    for k in (int(np.argmin(along)), int(np.argmax(along))):
+        o = int(np.flatnonzero(model.obs_point == k)[0])
+        i = int(names[model.obs_image[o]][5:9]) - 1
+        O, D = sim.model(i).backproject(model.obs_uv[o][None])
+        world = sim.cam_from_world(i).inverse()
+        ends.append(_hit_relief(world.apply(O), D @ world.R.T, 2000.0, 150.0)[0])
+    bar = (int(model.point3D_ids[np.argmin(along)]), int(model.point3D_ids[np.argmax(along)]),
+           float(np.linalg.norm(ends[0] - ends[1])))
+    result = refine_colmap(rec, interface, "camera", scale_bar=bar, max_iterations=30)
     centres_before, surface_before = errors(model.xyz, colmap_poses)
     centres_after, surface_after = errors(result.state.xyz, poses_of(result.state, model))
+    centres = np.array([poses_of(result.state, model)[int(i)].inverse().t for i in model.image_ids])
+    assert abs(similarity(centres, true_centres)[0] - 1.0) < 0.005  # the bar holds the scale (was 35 % off)
+    u = result.report["uncertainty"]
+    assert abs(result.state.distances[0] - meta["camera"]["distance_mm"]) < 3.0 * u["distance_mm"]["camera1"]
     assert centres_after < 3.0 and surface_after < 5.0  # mm: SIFT-noise-limited
     assert centres_before > 10.0 * centres_after and surface_before > 10.0 * surface_after
     assert result.report["after"]["rms_px"] < 0.6 * result.report["before"]["rms_px"]
@@ -491,3 +513,266 @@ def test_declared_plane_held_mount_world():
     assert got["points_rms_mm"] <= 1.02 * without["points_rms_mm"]
     assert held.report["plane"]["frame"] == "world" and held.report["plane"]["normal"] == "held"
     assert np.array_equal(model.point3D_ids, adapter.model_from_reconstruction(held.refractive).point3D_ids)
+
+
+# ----------------------------------------------------------------------------- units, scale bar, uncertainty
+
+def test_scale_bar_held_by_the_solver_and_sigmas_cover_the_truth(survey):
+    """The bar is a term of the solver: the refined bar keeps its length and the scale is right; the
+    reported sigmas (Schur complement) cover the true port within 3 sigma and are not absurdly large."""
+    truth, start, result, _ = survey
+    r = result.report
+    assert r["scale_bar"]["refined_mm"] == pytest.approx(r["scale_bar"]["declared_mm"], rel=1e-3)
+    assert abs(refined_errors(truth, start, result)["scale_error_pct"]) < 0.5
+    u = r["uncertainty"]
+    err = window_errors(truth, result.state.normals, result.state.distances)
+    assert 0.0 < u["normal_deg"]["camera1"] < 1.0 and 0.0 < u["distance_mm"]["camera1"] < 10.0  # 10 images: weak
+    assert err["normal_deg"] < 3.0 * u["normal_deg"]["camera1"]
+    assert err["distance_mm"] < 3.0 * u["distance_mm"]["camera1"]
+    assert u["scale_rel"] < 5e-3 and u["fx_px"]["camera1"] > 0.0 and "scale_rel" not in u["weak"]
+    assert u["sigma0"] == pytest.approx(truth.sigma_px, rel=0.3)
+
+
+def test_sigmas_match_the_spread_over_noise_draws():
+    """The reported sigma of the port distance and normal against the spread of the estimates over
+    independent noise draws of one survey (started at the truth: the sigma describes the optimum)."""
+    draws = []
+    for seed in range(6):
+        truth = port_survey(seed=0, num_images=8, num_points=500, focal_px=1300, area_mm=(1600, 1100), sigma_px=0.5)
+        rng = np.random.default_rng(100 + seed)
+        truth = __import__("dataclasses").replace(truth, obs_uv=truth.obs_uv_exact + rng.normal(0, 0.5, truth.obs_uv.shape))
+        rec = adapter.reconstruction_from_arrays(list(truth.params), truth.image_size, truth.sensor_from_rig,
+                                                 truth.rig_from_world, truth.image_camera, truth.image_frame, truth.xyz,
+                                                 truth.obs_image, truth.obs_point, truth.obs_uv)
+        model = adapter.model_from_reconstruction(rec)
+        problem = RefractiveProblem(model, truth.interface, "camera", estimate_distance=True)
+        from ari_sfm.colmap_refine.scale_bar import ScaleBar
+        from ari_sfm.colmap_refine.uncertainty import uncertainty
+
+        a, b, mm = scale_bar_of(truth, model)
+        where = {int(p): k for k, p in enumerate(model.point3D_ids)}
+        solver = Solver(problem, None, bar=ScaleBar(where[a], where[b], mm))
+        res = solver.run(truth_state(truth, model), 30)
+        u = uncertainty(solver, res.state, ["camera1"])
+        draws.append((res.state.distances[0], u["distance_mm"]["camera1"]))
+    d, s = np.array(draws).T
+    assert np.std(d) < 2.5 * np.mean(s) and np.std(d) > 0.3 * np.mean(s)
+    assert np.all(np.abs(d - 22.0) < 4.0 * s)
+
+
+def test_without_a_scale_bar_the_scale_is_reported_weak(small_model, caplog):
+    truth, start, _ = small_model
+    with caplog.at_level("WARNING"):
+        result = refine_colmap(start, truth.interface, "camera")
+    u = result.report["uncertainty"]
+    assert "scale_rel" in u["weak"] and u["scale_rel"] > 0.01
+    assert any("scale is barely determined" in m and "scale_bar" in m for m in caplog.messages)
+
+
+def test_scene_in_arbitrary_units_asks_for_units(small_model, tmp_path):
+    """COLMAP's units are arbitrary: a scene a few units deep read as mm lies inside the port. One line
+    asks for units_mm or a scale bar (no crash); with units_mm the same model runs."""
+    truth, start, _ = small_model
+    rec = adapter.pycolmap.Reconstruction(start)
+    rec.transform(adapter.pycolmap.Sim3d(0.01, adapter.pycolmap.Rotation3d(), np.zeros(3)))
+    with pytest.raises(AriSfmError, match="give units_mm .* or a scale_bar"):
+        refine_colmap(rec, truth.interface, "camera", max_iterations=3)
+    res = refine_colmap(rec, truth.interface, "camera", units_mm=100.0, max_iterations=3)
+    assert np.isfinite(res.report["after"]["rms_px"])
+
+
+# ----------------------------------------------------------------------------- bad inputs: one line each
+
+def run_cli(folder, tmp_path, *extra, window=None, out=None):
+    path = tmp_path / "WINDOW.yaml"
+    path.write_text(window if window is not None else WINDOW_YAML)
+    out = out if out is not None else tmp_path / "out"
+    return CliRunner().invoke(main, ["refine-colmap", str(folder), "--window", str(path), "-o", str(out), *extra])
+
+
+def one_line_error(res, *words):
+    assert res.exit_code == 1, res.output
+    last = res.output.strip().splitlines()[-1]
+    assert last.startswith("error: ") and "Traceback" not in res.output and "ARI_SFM_DEBUG" not in res.output, res.output
+    for w in words:
+        assert w in last, last
+    return last
+
+
+def copy_model(folder, tmp_path):
+    import shutil
+
+    dst = tmp_path / "model"
+    shutil.copytree(folder, dst)
+    return dst
+
+
+def test_out_is_the_input_model_refused(small_model, tmp_path):
+    _, _, folder = small_model
+    model = copy_model(folder, tmp_path)
+    before = {p.name: p.read_bytes() for p in model.iterdir()}
+    one_line_error(run_cli(model, tmp_path, out=model), "MODEL_DIR", "overwrite")
+    assert {p.name: p.read_bytes() for p in model.iterdir()} == before
+
+
+@pytest.mark.parametrize("extra, words", [
+    (["--huber-px", "-1"], ["--huber-px", "> 0"]),
+    (["--huber-px", "nan"], ["--huber-px", "finite"]),
+    (["--max-iterations", "0"], ["--max-iterations", ">= 1"]),
+])
+def test_bad_options_one_line(small_model, tmp_path, extra, words):
+    _, _, folder = small_model
+    one_line_error(run_cli(folder, tmp_path, *extra), *words)
+    assert not (tmp_path / "out").exists()
+
+
+def test_max_iterations_has_help():
+    res = CliRunner().invoke(main, ["refine-colmap", "--help"])
+    assert "--max-iterations" in res.output and "Levenberg-Marquardt" in res.output
+
+
+@pytest.mark.parametrize("bad", ["file", "proc", "readonly"])
+def test_bad_out_folder_checked_before_the_refinement(small_model, tmp_path, bad, monkeypatch):
+    _, _, folder = small_model
+    import ari_sfm.colmap_refine as cr
+
+    monkeypatch.setattr(cr, "refine_colmap", lambda *a, **k: pytest.fail("refined before checking -o"))
+    if bad == "file":
+        out = tmp_path / "a_file"
+        out.write_text("x")
+    elif bad == "proc":
+        out = __import__("pathlib").Path("/proc/x")
+    else:
+        if os.geteuid() == 0:
+            pytest.skip("root writes anywhere")
+        ro = tmp_path / "ro"
+        ro.mkdir()
+        ro.chmod(0o500)
+        out = ro / "out"
+    one_line_error(run_cli(folder, tmp_path, out=out), "-o/--out")
+
+
+@pytest.mark.parametrize("name", ["cameras.bin", "images.bin", "points3D.bin"])
+def test_missing_model_file_named(small_model, tmp_path, name):
+    _, _, folder = small_model
+    model = copy_model(folder, tmp_path)
+    (model / name).unlink()
+    one_line_error(run_cli(model, tmp_path), name, "missing")
+
+
+@pytest.mark.parametrize("name, named", [("cameras.bin", "cameras.bin"), ("points3D.bin", "model"),
+                                         ("images.bin", "model")])
+def test_truncated_model_file_refused(small_model, tmp_path, name, named):
+    """A truncated cameras.bin used to run (1207 px -> 0.57 px on garbage): now one line."""
+    _, _, folder = small_model
+    model = copy_model(folder, tmp_path)
+    data = (model / name).read_bytes()
+    (model / name).write_bytes(data[:len(data) - 2])
+    one_line_error(run_cli(model, tmp_path), named, "truncated or damaged")
+
+
+@pytest.mark.parametrize("yaml_extra, words", [
+    ("scale_bar:\n  point3D_ids: [1.7, 2.9]\n  distance_mm: 100\n", ["scale_bar.point3D_ids", "integers"]),
+    ("scale_bar:\n  point3D_ids: [1, 999999]\n  distance_mm: 100\n", ["scale_bar.point3D_ids", "999999"]),
+    ("units_mm: 1e300\n", ["units_mm", "mm per model unit"]),
+    ("units_mm: 1e-300\n", ["units_mm", "check units_mm"]),
+])
+def test_bad_scale_one_line(small_model, tmp_path, yaml_extra, words):
+    _, _, folder = small_model
+    one_line_error(run_cli(folder, tmp_path, window=WINDOW_YAML + yaml_extra), "WINDOW.yaml", *words)
+    assert not (tmp_path / "out").exists()
+
+
+def test_nan_point_named(small_model, tmp_path):
+    _, start, _ = small_model
+    rec = adapter.pycolmap.Reconstruction(start)
+    pid = sorted(rec.point3D_ids())[3]
+    rec.point3D(pid).xyz = np.array([np.nan, 0.0, 1.0])
+    (tmp_path / "m").mkdir()
+    rec.write(str(tmp_path / "m"))
+    one_line_error(run_cli(tmp_path / "m", tmp_path), f"point3D {pid}", "non-finite")
+
+
+def test_too_few_points_refused(small_model, tmp_path):
+    """3 points used to "converge" to 0.000 px: too few observations for the unknowns."""
+    _, start, _ = small_model
+    rec = adapter.pycolmap.Reconstruction(start)
+    for pid in sorted(rec.point3D_ids())[3:]:
+        rec.delete_point3D(pid)
+    (tmp_path / "m").mkdir()
+    rec.write(str(tmp_path / "m"))
+    one_line_error(run_cli(tmp_path / "m", tmp_path), "too few observations")
+
+
+def test_full_disk_leaves_no_partial_file(small_model, tmp_path, monkeypatch):
+    """A write failing midway (ENOSPC while writing points3D.bin) leaves OUT's earlier results as they
+    were and no partial or temporary file."""
+    import errno
+
+    from ari_sfm.colmap_refine import refine as refine_module
+
+    _, _, folder = small_model
+    out = tmp_path / "out"
+    assert run_cli(folder, tmp_path, "--max-iterations", "2", out=out).exit_code == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+
+    def full_disk(reconstruction, where):
+        (where / "cameras.bin").write_bytes(b"\0" * 16)
+        (where / "points3D.bin").write_bytes(b"\0" * 7)
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(refine_module, "_write_model", full_disk)
+    one_line_error(run_cli(folder, tmp_path, "--max-iterations", "3", out=out), "No space left on device")
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_schur_step_is_the_damped_full_system_step():
+    """The reduced camera system (built once per linearization) gives the step of the whole damped
+    system: at the first trial lambda damps every block (Marquardt, lambda diag); a later trial damps
+    the camera block with its own lambda and the points with the first trial's."""
+    from ari_sfm.colmap_refine.schur import build_normal_equations, huber_weights, solve_damped
+
+    truth = port_survey(num_images=5, num_points=150, focal_px=1300, area_mm=(1500, 1000))
+    rec = adapter.reconstruction_from_arrays(list(truth.params), truth.image_size, truth.sensor_from_rig,
+                                             truth.rig_from_world, truth.image_camera, truth.image_frame, truth.xyz,
+                                             truth.obs_image, truth.obs_point, truth.obs_uv)
+    model = adapter.model_from_reconstruction(rec)
+    problem = RefractiveProblem(model, truth.interface, "camera", estimate_distance=True)
+    lin = problem.linearize(truth_state(truth, model))
+    w = huber_weights(lin.residuals, 0.5)  # some observations down-weighted
+    G, P = problem.layout.size, len(model.point3D_ids)
+    ne = build_normal_equations(lin, model.obs_point, P, G, w)
+    J = np.zeros((2 * len(w), G + 3 * P))  # the dense whole Jacobian, whitened
+    for o in range(len(w)):
+        cols = lin.index[o] >= 0
+        J[2 * o:2 * o + 2, lin.index[o][cols]] = lin.J_g[o][:, cols] * np.sqrt(w[o])
+        J[2 * o:2 * o + 2, G + 3 * model.obs_point[o] + np.arange(3)] = lin.J_p[o] * np.sqrt(w[o])
+    r = (lin.residuals * np.sqrt(w)[:, None]).ravel()
+    A, b = J.T @ J, -J.T @ r
+    d = np.maximum(np.diag(A), 1e-9)
+    for lam_cameras, lam_points in ((1e-3, 1e-3), (1e-1, 1e-3)):  # the first trial, then a later one
+        damping = np.r_[np.full(G, lam_cameras), np.full(3 * P, lam_points)] * d
+        full = np.linalg.solve(A + np.diag(damping), b)
+        dg, dp = solve_damped(ne, lam_cameras)
+        assert np.allclose(dg, full[:G], rtol=1e-7, atol=1e-10 * np.abs(full).max())
+        assert np.allclose(dp.ravel(), full[G:], rtol=1e-7, atol=1e-10 * np.abs(full).max())
+
+
+def test_restarts_when_the_distance_runs_toward_zero(small_model, monkeypatch):
+    """A refined distance far below every start candidate counts as "ran toward 0"; then the other
+    starts are refined too and the lowest cost is kept."""
+    from dataclasses import replace as dc_replace
+
+    from ari_sfm.colmap_refine import refine as refine_module
+
+    truth, start, _ = small_model
+    model = adapter.model_from_reconstruction(start)
+    problem = RefractiveProblem(model, truth.interface, "camera", estimate_distance=True)
+    state = truth_state(truth, model)
+    assert not refine_module._collapsed(state, problem, (10.0, 30.0, 100.0))  # 22 mm
+    assert refine_module._collapsed(dc_replace(state, distances=np.array([0.5])), problem, (10.0, 30.0, 100.0))
+    monkeypatch.setattr(refine_module, "_collapsed", lambda *args: True)
+    result = refine_colmap(start, truth.interface, "camera", max_iterations=10)
+    restarts = result.report["restarts"]
+    assert len(restarts) == 2
+    assert result.report["cost"]["final"] <= min(r["cost"] for r in restarts) + 1e-9

@@ -22,6 +22,7 @@ from ari_sfm.geometry import Pose
 
 from .plane import WindowPrior
 from .problem import RefractiveProblem, State, tangent_basis
+from .scale_bar import ScaleBar
 
 
 def _frame_key(f: int) -> int:
@@ -65,10 +66,12 @@ def _column_owners(problem: RefractiveProblem) -> dict[int, tuple[str, int, int]
 class GtsamRefinement:
     """Build the graph from a state, optimise with GTSAM's LM, read the state back."""
 
-    def __init__(self, problem: RefractiveProblem, huber_px: float | None = 2.0, prior: WindowPrior | None = None) -> None:
+    def __init__(self, problem: RefractiveProblem, huber_px: float | None = 2.0, prior: WindowPrior | None = None,
+                 bar: ScaleBar | None = None) -> None:
         self.problem = problem
         self.huber_px = huber_px
         self.prior = prior
+        self.bar = bar
         self.owners = _column_owners(problem)
 
     # -------------------------------------------------------------- values
@@ -240,6 +243,21 @@ class GtsamRefinement:
 
         return gtsam.CustomFactor(gtsam.noiseModel.Diagonal.Sigmas(prior.sigmas), keys, error)
 
+    def _bar_factor(self) -> gtsam.CustomFactor:
+        """The scale bar (:mod:`.scale_bar`, already whitened) on its two points."""
+        bar = self.bar
+
+        def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
+            xyz = {bar.a: np.asarray(values.atPoint3(_point_key(bar.a))), bar.b: np.asarray(values.atPoint3(_point_key(bar.b)))}
+            e = np.array([bar.error(xyz)])
+            if H is not None:
+                J = bar.jacobian(xyz)
+                H[0] = J[None, :3]
+                H[1] = J[None, 3:]
+            return e
+
+        return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(1), [_point_key(bar.a), _point_key(bar.b)], error)
+
     def graph(self, state: State) -> gtsam.NonlinearFactorGraph:
         g = gtsam.NonlinearFactorGraph()
         for i in range(len(self.problem.model.image_ids)):
@@ -248,6 +266,8 @@ class GtsamRefinement:
             for w in range(len(state.normals)):
                 if (self.problem.layout.window[w] >= 0).any():
                     g.add(self._prior_factor(w, state))
+        if self.bar is not None:
+            g.add(self._bar_factor())
         return g
 
     def optimize(self, state: State, max_iterations: int = 100) -> tuple[State, int]:

@@ -12,23 +12,23 @@ unobservable and held).
 
 Gauge and scale: the first frame's pose is held (the world's rotation and translation). The
 scale is *not* a gauge: the plate's thickness in mm sets it through refraction, but only weakly
-(a plate a few mm thick against a scene metres away). The input's units are taken as
-``units_mm`` mm each (``scale_bar``: two point3D ids and their distance in mm sets it; neither:
-1, the model is taken to be in mm); the result is in mm, its scale is that start refined by the
-weak refraction signal: measured on the simulated port survey (sigma 0.5 px) the cost is flat
-along the scale to 1e-6 of its value, so without a scale bar the result's scale is the input's
-(and pinhole bundle adjustment drifts it by tens of %). With a scale bar, the refined solution is
-scaled (points, poses, window distances) to the bar's length and polished; ``refine.json``
-reports the bar after. :mod:`ari_sfm.colmap_refine.problem` lists what is estimated.
+(a plate a few mm thick against a scene metres away; ``uncertainty.scale_rel`` says how weakly).
+The input's units are taken as ``units_mm`` mm each (a start only; ``scale_bar``: its factor;
+neither: 1, the model is taken to be in mm, and a scene that would then lie inside the port is
+refused with one line). A scale bar is a term of the solver (:mod:`.scale_bar`): the refinement
+first runs without it (the scale free, along its near-flat valley), the result is rescaled to
+the bar, and the refinement runs again with the bar held; going straight to the held bar left a
+short-track strip in a wrong-scale valley (40-image strip: 1.80 px, points 47 mm; this way 0.62 px,
+1.2 mm). :mod:`ari_sfm.colmap_refine.problem` lists what is estimated.
 
 A declared window (``interface.plane``, :mod:`.plane`) replaces the start search: the window
-starts there; a sigma of 0 holds that part, > 0 adds a prior. A declared plane does not scale with
-the scene, so with a scale bar the rescaled state is off the near-flat valley and the polish can
-move the scale again (the report's ``scale_bar`` and a warning say by how much).
+starts there; a sigma of 0 holds that part, > 0 adds a prior (a held plane does not scale with the
+scene when the state is rescaled to the bar; the bar, a term of the solver, is held anyway).
 """
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -45,6 +45,8 @@ from ari_sfm.records import Interface, WindowPlane
 
 from .plane import WindowPrior, declared_window, window_prior
 from .problem import MOUNTS, RefractiveProblem, State, tangent_basis
+from .scale_bar import ScaleBar
+from .uncertainty import uncertainty
 from .schur import (build_normal_equations, huber_cost, huber_weights, model_decrease,
                     solve_damped)
 
@@ -77,21 +79,207 @@ class RefineResult:
 
 def _units_mm(model: adapter.ColmapModel, units_mm: float | None, scale_bar: tuple[int, int, float] | None,
               path: Any) -> float:
+    """mm per unit of the COLMAP model (``path``: the WINDOW.yaml named in errors)."""
     if scale_bar is not None:
         a, b, mm = scale_bar
         where = {int(p): k for k, p in enumerate(model.point3D_ids)}
-        if int(a) not in where or int(b) not in where:
-            raise AriSfmError(path, f"scale bar: point3D ids {a} and {b} must both be in the model")
+        missing = [int(i) for i in (a, b) if int(i) not in where]
+        if missing:
+            raise AriSfmError(path, f"scale_bar.point3D_ids: {', '.join(map(str, missing))} not in the model's points3D")
+        if int(a) == int(b):
+            raise AriSfmError(path, "scale_bar.point3D_ids: the two ids are the same point")
         length = float(np.linalg.norm(model.xyz[where[int(a)]] - model.xyz[where[int(b)]]))
         if not length > 0 or not mm > 0:
-            raise AriSfmError(path, "scale bar: its points coincide or its length is not positive")
-        return mm / length
-    if units_mm is None:
+            raise AriSfmError(path, "scale_bar: its points coincide in the model or its distance_mm is not positive")
+        units = mm / length
+    elif units_mm is None:
         log.warning("refine-colmap: no units_mm or scale bar: the COLMAP model's units are taken as mm")
-        return 1.0
-    if not units_mm > 0:
+        units = 1.0
+    elif not units_mm > 0:
         raise AriSfmError(path, f"units_mm must be > 0, got {units_mm}")
-    return float(units_mm)
+    else:
+        units = float(units_mm)
+    extent = float(np.max(np.abs(model.xyz))) * units
+    if not (np.isfinite(units) and np.isfinite(extent) and extent < MAX_COORDINATE_MM):
+        raise AriSfmError(path, f"{'scale_bar' if scale_bar is not None else 'units_mm'}: {units:.6g} mm per model "
+                                f"unit puts the model's points up to {extent:.3g} mm from its origin (more than "
+                                f"{MAX_COORDINATE_MM:.0e} mm)")
+    return units
+
+
+MAX_COORDINATE_MM = 1e9  # 1000 km: a units_mm beyond this is a typo
+SCENE_CLEARANCE = 0.5  # a start distance's window (plus plate) must be nearer than this times the near points
+
+
+MODEL_FILES = ("cameras", "images", "points3D")
+MIN_REDUNDANCY = 1.5  # observations (coordinates) per unknown below which refine-colmap refuses
+
+
+def read_model(path: Path) -> Any:
+    """A COLMAP model folder as a pycolmap.Reconstruction; one line naming the folder or the file that
+    is missing, unreadable or truncated (a binary file must be what pycolmap writes back from it)."""
+    import tempfile
+
+    if not path.is_dir():
+        raise AriSfmError(path, "not a COLMAP model folder" + (" (it is a file)" if path.exists() else " (missing)"))
+    text = sum((path / f"{n}.txt").exists() for n in MODEL_FILES) > sum((path / f"{n}.bin").exists() for n in MODEL_FILES)
+    kind = "txt" if text else "bin"
+    for n in MODEL_FILES:
+        f = path / f"{n}.{kind}"
+        if not f.is_file():
+            raise AriSfmError(f, "not a file" if f.exists() else
+                              "missing: a COLMAP model folder holds cameras, images and points3D (.bin or .txt)")
+        if not os.access(path / f"{n}.{kind}", os.R_OK):
+            raise AriSfmError(path / f"{n}.{kind}", "no permission to read")
+    try:
+        rec = adapter.read_colmap(path)
+    except AriSfmError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - pycolmap's reader raises plain errors for damaged files
+        why = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+        raise AriSfmError(path, f"cannot read the COLMAP model (a truncated or damaged file?): {why}") from None
+    if kind == "bin":  # a truncated file reads as fewer or garbled records: compare with what they write back
+        with tempfile.TemporaryDirectory() as tmp:
+            rec.write(tmp)
+            for n in MODEL_FILES + ("rigs", "frames"):
+                f, back = path / f"{n}.bin", Path(tmp) / f"{n}.bin"
+                if f.is_file() and back.is_file() and f.stat().st_size != back.stat().st_size:
+                    raise AriSfmError(f, f"truncated or damaged: its {f.stat().st_size} bytes read as records that "
+                                         f"take {back.stat().st_size}")
+    return rec
+
+
+def _check_redundancy(model: adapter.ColmapModel, path: Any) -> None:
+    """Refuse a model with too few observations for its unknowns (it would "converge" to 0 px)."""
+    unknowns = sum(len(p) for p in model.colmap_params) + 6 * (len(model.frame_ids) - 1) + 3 + 3 * len(model.point3D_ids)
+    coordinates = 2 * len(model.obs_point)
+    if coordinates < MIN_REDUNDANCY * unknowns:
+        raise AriSfmError(path, f"too few observations to refine: {len(model.point3D_ids)} points3D seen "
+                                f"{len(model.obs_point)} times give {coordinates} coordinates for {unknowns} unknowns "
+                                f"(cameras, poses, window, points); at least {MIN_REDUNDANCY:g} per unknown needed")
+
+
+def _check_finite(model: adapter.ColmapModel, path: Any) -> None:
+    """One line naming the first point3D, camera or image with a non-finite value."""
+    bad = np.flatnonzero(~np.all(np.isfinite(model.xyz), axis=1))
+    if len(bad):
+        raise AriSfmError(path, f"point3D {int(model.point3D_ids[bad[0]])} has a non-finite position "
+                                f"({len(bad)} such points3D)")
+    for c, p in enumerate(model.colmap_params):
+        if not np.all(np.isfinite(p)):
+            raise AriSfmError(path, f"camera {int(model.camera_ids[c])}: non-finite parameters {p.tolist()}")
+    for f, pose in enumerate(model.rig_from_world):
+        if not (np.all(np.isfinite(pose.R)) and np.all(np.isfinite(pose.t))):
+            raise AriSfmError(path, f"frame {int(model.frame_ids[f])}: non-finite pose")
+    if not np.all(np.isfinite(model.obs_uv)):
+        raise AriSfmError(path, "an image has a non-finite keypoint observed by a point3D")
+
+
+def _candidates_inside_scene(model: adapter.ColmapModel, state: State, interface: Interface,
+                             candidates: tuple[float, ...], units_given: bool, declared: bool,
+                             path: Any) -> tuple[float, ...]:
+    """The start distances whose window (plus plate) lies well in front of the near points (the 5th
+    percentile of the observations' depths): in COLMAP's arbitrary units read as mm a scene can lie
+    inside the port; then one line asks for units_mm or a scale bar."""
+    R, t = state.cam_from_world(model)
+    depth = np.einsum("nj,nj->n", R[model.obs_image, 2, :], state.xyz[model.obs_point]) + t[model.obs_image, 2]
+    near = float(np.percentile(depth, 5))
+    if not near > 0:
+        raise AriSfmError(path, f"most of the COLMAP model's observed points are behind their cameras "
+                                f"(5th percentile depth {near:.3g} mm)")
+    keep = tuple(h for h in candidates if h + interface.thickness_mm < SCENE_CLEARANCE * near)
+    if declared or keep:
+        return candidates if declared else keep
+    how = ("check units_mm / scale_bar" if units_given else
+           "the model is in COLMAP's arbitrary units: give units_mm (mm per model unit) or a scale_bar")
+    raise AriSfmError(path, f"the COLMAP model's points are only {near:.3g} mm in front of its cameras (5th "
+                            f"percentile, read as mm): a {interface.thickness_mm:g} mm plate {min(candidates):g} mm "
+                            f"or more in front of the lens would lie among them; {how}")
+
+
+SEARCH_OBSERVATIONS = 6_000  # the distance search runs on a subset of the points with about this many observations
+
+
+def _subsample(model: adapter.ColmapModel, bar: ScaleBar | None, max_observations: int
+               ) -> tuple[adapter.ColmapModel, np.ndarray, ScaleBar | None]:
+    """The model restricted to every k-th point3D (and the scale bar's two), so that it has about
+    ``max_observations`` observations; the kept point indices and the bar re-indexed."""
+    M, P = len(model.obs_point), len(model.point3D_ids)
+    if M <= max_observations:
+        return model, np.arange(P), bar
+    step = int(np.ceil(M / max_observations))
+    chosen = np.zeros(P, bool)
+    chosen[::step] = True
+    if bar is not None:
+        chosen[[bar.a, bar.b]] = True
+    keep = np.flatnonzero(chosen)
+    new_index = np.cumsum(chosen) - 1
+    obs = chosen[model.obs_point]
+    sub = replace(model, point3D_ids=model.point3D_ids[keep], xyz=model.xyz[keep], obs_image=model.obs_image[obs],
+                  obs_point=new_index[model.obs_point[obs]], obs_uv=model.obs_uv[obs])
+    sub_bar = None if bar is None else ScaleBar(int(new_index[bar.a]), int(new_index[bar.b]), bar.length_mm)
+    return sub, keep, sub_bar
+
+
+FREE_SCALE_FIRST = True  # with a scale bar: refine without it, rescale to it, then refine with it held
+DISTANCE_COLLAPSE = 0.1  # a refined distance below this fraction of the smallest start candidate "ran to 0"
+
+
+def _collapsed(state: State, problem: RefractiveProblem, candidates: tuple[float, ...]) -> bool:
+    """The refined window distance ran toward 0 (where the cost is flat the refinement can slide there)."""
+    return bool(np.min(problem.image_windows(state)[1]) < DISTANCE_COLLAPSE * min(candidates))
+
+
+def _distance_search(model: adapter.ColmapModel, problem: RefractiveProblem, interface: Interface, mount: str,
+                     estimate_distance: bool, huber_px: float | None, bar: ScaleBar | None, virtual: State,
+                     candidates: tuple[float, ...], declared: bool
+                     ) -> tuple[list[dict], tuple[float, State, int], list[tuple[float, State, int]]]:
+    """The cost profile over the start distance, everything but the window refined (the window held):
+    the middle candidate from COLMAP's model, the others warm-started from its result (moved to their
+    distance, paraxially); the lowest cost wins. Returns the profile, the best (cost, state, iterations)
+    and the other candidates' ends (cheapest first)."""
+    full_xyz, full_model, full_virtual, full_bar = virtual.xyz, model, virtual, bar
+    model, keep, bar = _subsample(model, bar, SEARCH_OBSERVATIONS)
+    virtual = replace(virtual, xyz=virtual.xyz[keep])
+    held = Solver(RefractiveProblem(model, interface, mount, estimate_distance, hold_window=True), huber_px, bar=bar)
+    sub = RefractiveProblem(model, interface, mount, estimate_distance)
+    search: list[dict] = []
+    best = None
+    others = []
+    order = sorted(candidates, key=lambda h: abs(candidates.index(h) - (len(candidates) - 1) / 2))
+    warm = None
+    for h in order:
+        base = virtual if warm is None else warm
+        start = _convert(model, sub, base if declared else _with_distance(model, base, mount, h), +1)
+        res = held.run(start, SEARCH_ITERATIONS if warm is None else WARM_SEARCH_ITERATIONS)
+        if warm is None:
+            warm = _convert(model, sub, res.state, -1)
+        search.append({"distance_mm": h, "cost": res.cost, "iterations": res.iterations,
+                       "linearizations": res.linearizations, "observations": len(model.obs_point)})
+        log.info("refine-colmap: start distance %g mm: cost %.6g after %d iterations with the window held",
+                 h, res.cost, res.iterations)
+        xyz = full_xyz.copy()
+        xyz[keep] = res.state.xyz  # the subsample's points refined, the others at their start
+        end = (res.cost, replace(res.state, xyz=xyz), res.iterations)
+        if best is None or res.cost < best[0]:
+            if best is not None:
+                others.append(best)
+            best = end
+        else:
+            others.append(end)
+    if len(keep) < len(full_xyz) and not np.all(np.isfinite(problem.residuals(best[1]))):
+        # the subsample's poses put some of the other points (at their start) before the window: the
+        # best distance again, on every point
+        held_full = Solver(RefractiveProblem(full_model, interface, mount, estimate_distance, hold_window=True),
+                           huber_px, bar=full_bar)
+        h = search[[c["cost"] for c in search].index(best[0])]["distance_mm"]
+        start = _convert(full_model, problem, full_virtual if declared else
+                         _with_distance(full_model, full_virtual, mount, h), +1)
+        res = held_full.run(start, SEARCH_ITERATIONS)
+        search.append({"distance_mm": h, "cost": res.cost, "iterations": res.iterations,
+                       "linearizations": res.linearizations, "observations": len(full_model.obs_point)})
+        best = (res.cost, res.state, res.iterations)
+    return search, best, sorted(others, key=lambda o: o[0])
 
 
 def _paraxial_offset_mm(interface: Interface, normal_cam: np.ndarray, h: float) -> float:
@@ -200,6 +388,7 @@ class SolveResult:
     initial_cost: float
     iterations: int
     converged: bool
+    linearizations: int = 0  # Jacobian evaluations (numpy backend)
 
 
 class Solver:
@@ -208,14 +397,18 @@ class Solver:
 
     linearized_error_is_error = True  # a linearization's error is the robust cost at its point
 
-    def __init__(self, problem: RefractiveProblem, huber_px: float | None, prior: WindowPrior | None = None) -> None:
+    def __init__(self, problem: RefractiveProblem, huber_px: float | None, prior: WindowPrior | None = None,
+                 bar: ScaleBar | None = None) -> None:
         self.problem = problem
         self.huber_px = huber_px
         self.prior = prior
+        self.bar = bar
         self.P = len(problem.model.point3D_ids)
+        self.size = problem.layout.size + (6 if bar is not None else 0)  # the bar's two points are reduced
 
     def cost(self, state: State) -> float:
-        return huber_cost(self.problem.residuals(state), self.huber_px) + self._prior_cost(state)
+        return (huber_cost(self.problem.residuals(state), self.huber_px) + self._prior_cost(state)
+                + (0.0 if self.bar is None else self.bar.cost(state.xyz)))
 
     def _prior_cost(self, state: State) -> float:
         return 0.0 if self.prior is None else self.prior.cost(state.normals, state.distances)
@@ -239,12 +432,38 @@ class Solver:
 
     def linearize(self, state: State):
         lin = self.problem.linearize(state)
+        if self.bar is not None:
+            lin = self._bar_points_reduced(lin)
         w = huber_weights(lin.residuals, self.huber_px)
-        ne = build_normal_equations(lin, self.problem.model.obs_point, self.P, self.problem.layout.size, w)
+        ne = build_normal_equations(lin, self.problem.model.obs_point, self.P, self.size, w)
         ne.error = huber_cost(lin.residuals, self.huber_px)
+        if self.bar is not None:
+            ne.damping = np.diag(ne.H).copy()  # damping from the images only (the bar is stiff)
         if self.prior is not None:
             self._add_prior(ne, state)
+        if self.bar is not None:
+            e, J = self.bar.error(state.xyz), self.bar.jacobian(state.xyz)
+            cols = np.arange(self.size - 6, self.size)
+            ne.H[np.ix_(cols, cols)] += np.outer(J, J)
+            ne.g[cols] += J * e
+            ne.error += 0.5 * e * e
         return ne
+
+    def _bar_points_reduced(self, lin):
+        """The scale bar's two points as reduced variables (columns size-6.. size-1): their
+        observations' point Jacobians moved into J_g, their Schur blocks left empty."""
+        base = self.problem.layout.size
+        op = self.problem.model.obs_point
+        M = len(op)
+        J_g = np.concatenate([lin.J_g, np.zeros((M, 2, 3))], axis=2)
+        index = np.concatenate([lin.index, -np.ones((M, 3), int)], axis=1)
+        J_p = lin.J_p.copy()
+        for k, p in enumerate((self.bar.a, self.bar.b)):
+            obs = np.flatnonzero(op == p)
+            J_g[obs, :, -3:] = J_p[obs]
+            index[obs, -3:] = base + 3 * k + np.arange(3)
+            J_p[obs] = 0.0
+        return replace(lin, J_g=J_g, index=index, J_p=J_p)
 
     def solve(self, ne, lam: float):
         return solve_damped(ne, lam)
@@ -253,7 +472,13 @@ class Solver:
         return model_decrease(ne, step)
 
     def retract(self, state: State, step) -> State:
-        return self.problem.retract(state, step[0], step[1])
+        dg, dp = step
+        if self.bar is not None:
+            base = self.problem.layout.size
+            dp = dp.copy()
+            dp[self.bar.a], dp[self.bar.b] = dg[base:base + 3], dg[base + 3:base + 6]
+            dg = dg[:base]
+        return self.problem.retract(state, dg, dp)
 
     def run(self, state: State, max_iterations: int, progress=None) -> SolveResult:
         """The numpy backend: points Schur + the project's Levenberg-Marquardt (GTSAM's algorithm)."""
@@ -263,13 +488,15 @@ class Solver:
                                   progress=progress)
         r = res.report
         return SolveResult(res.x, r.error, r.initial_error, r.iterations,
-                           r.stop in ("converged", "small_cost_change", "zero_error", "no_model_decrease"))
+                           r.stop in ("converged", "small_cost_change", "zero_error", "no_model_decrease"),
+                           r.linearizations)
 
     def run_gtsam(self, state: State, max_iterations: int) -> SolveResult:
         """The GTSAM backend (one CustomFactor per image, GTSAM's LM)."""
         from .gtsam_graph import GtsamRefinement
 
-        refined, iterations = GtsamRefinement(self.problem, self.huber_px, self.prior).optimize(state, max_iterations)
+        refined, iterations = GtsamRefinement(self.problem, self.huber_px, self.prior, self.bar).optimize(
+            state, max_iterations)
         return SolveResult(refined, self.cost(refined), self.cost(state), iterations, iterations < max_iterations)
 
 
@@ -327,7 +554,8 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
                   huber_px: float | None = 2.0, max_iterations: int = 50,
                   distances_mm: tuple[float, ...] | None = None, approximation: str = "opencv",
                   backend: str = "numpy", progress: bool = False,
-                  path: Any = "reconstruction", plane_path: Any = "interface.plane") -> RefineResult:
+                  path: Any = "reconstruction", plane_path: Any = "interface.plane",
+                  window_path: Any = "WINDOW.yaml") -> RefineResult:
     """Refine a COLMAP reconstruction made behind a flat window with the exact refractive model.
 
     ``reconstruction``: a pycolmap.Reconstruction or a model folder; ``interface``: the plate
@@ -340,7 +568,7 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     ``interface.plane`` (optional, :mod:`.plane`): the declared window, frame ``camera`` (mount camera:
     each camera's housing frame) or ``world`` (mount world: the COLMAP world in mm); it replaces the
     start search; a sigma of 0 holds that part, > 0 makes it a prior. ``plane_path``: the file named
-    in its errors. See the module docstring
+    in its errors; ``window_path``: the file named in errors about units and the scale bar. See the module docstring
     for the start, the gauge and the scale.
     """
     t0 = time.perf_counter()
@@ -356,15 +584,21 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
         rec = reconstruction
     else:
         path = Path(reconstruction)
-        rec = adapter.read_colmap(path)
+        rec = read_model(path)
     cmodel = adapter.model_from_reconstruction(rec, path)
-    units = _units_mm(cmodel, units_mm, scale_bar, path)
+    _check_finite(cmodel, path)
+    _check_redundancy(cmodel, path)
+    units = _units_mm(cmodel, units_mm, scale_bar, window_path)
+    bar = None
+    if scale_bar is not None:
+        where = {int(p): k for k, p in enumerate(cmodel.point3D_ids)}
+        bar = ScaleBar(where[int(scale_bar[0])], where[int(scale_bar[1])], float(scale_bar[2]))
     plane = interface.plane
     estimate_distance = interface.medium_index != 1.0 and not (plane is not None and plane.sigma_mm == 0)
     hold_normal = plane is not None and plane.sigma_deg == 0
     problem = RefractiveProblem(cmodel, interface, mount, estimate_distance,
                                 hold_window=hold_normal and not estimate_distance, hold_normal=hold_normal)
-    solver = Solver(problem, huber_px, window_prior(plane, estimate_distance))
+    solver = Solver(problem, huber_px, window_prior(plane, estimate_distance), bar)
     before = adapter.image_residuals_px(rec, cmodel)
     virtual = _initial_state(cmodel, mount, units)
     if plane is not None:  # the declared window is the start (held, or the prior's centre)
@@ -377,48 +611,59 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
         candidates = (AIR_DISTANCE_MM,)
     else:
         candidates = tuple(distances_mm or DISTANCE_CANDIDATES_MM)
-    held = Solver(RefractiveProblem(cmodel, interface, mount, estimate_distance, hold_window=True), huber_px)
-    search = []
-    best = None
-    # the cost profile over the distance, everything but the window refined: the middle candidate from
-    # COLMAP's model, the others warm-started from its result (moved to their distance, paraxially)
-    order = sorted(candidates, key=lambda h: abs(candidates.index(h) - (len(candidates) - 1) / 2))
-    warm = None
-    for h in order:
-        base = virtual if warm is None else warm
-        start = _convert(cmodel, problem, base if plane is not None else _with_distance(cmodel, base, mount, h), +1)
-        res = held.run(start, SEARCH_ITERATIONS if warm is None else WARM_SEARCH_ITERATIONS)
-        if warm is None:
-            warm = _convert(cmodel, problem, res.state, -1)
-        search.append({"distance_mm": h, "cost": res.cost, "iterations": res.iterations})
-        log.info("refine-colmap: start distance %g mm: cost %.6g after %d iterations with the window held",
-                 h, res.cost, res.iterations)
-        if best is None or res.cost < best[0]:
-            best = (res.cost, res.state, res.iterations)
-    bar = None
+    candidates = _candidates_inside_scene(cmodel, virtual, interface, candidates, units_mm is not None or bar is not None,
+                                          plane is not None or interface.distance_mm is not None, window_path)
+    search, best, others = _distance_search(cmodel, problem, interface, mount, estimate_distance, huber_px, bar, virtual,
+                                    candidates, plane is not None)
+    start = best[1]
+    if not np.all(np.isfinite(problem.residuals(start))):
+        raise AriSfmError(window_path, "no start puts every point beyond the window (the window is between a camera "
+                                       "and points it sees at every candidate distance): check units_mm / scale_bar "
+                                       "and the plate")
+    pbar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=max_iterations, desc="refine-colmap", unit="it", leave=False)
+        pbar = tqdm(total=max_iterations, desc="refine-colmap", unit="it", leave=False)
 
     def tick(it: int, cost: float) -> None:
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix(cost=f"{cost:.4g}")
+        if pbar is not None:
+            pbar.update(1)
+            pbar.set_postfix(cost=f"{cost:.4g}")
 
-    result = solver.run(best[1], max_iterations, tick) if backend == "numpy" else solver.run_gtsam(best[1], max_iterations)
-    iterations = result.iterations + sum(c["iterations"] for c in search)
-    if scale_bar is not None:  # the scale is nearly flat in the cost: put the bar back to its length, polish
-        where = {int(p): k for k, p in enumerate(cmodel.point3D_ids)}
-        a, b = result.state.xyz[where[int(scale_bar[0])]], result.state.xyz[where[int(scale_bar[1])]]
-        polish = solver.run if backend == "numpy" else solver.run_gtsam
-        result = polish(_scaled(result.state, scale_bar[2] / float(np.linalg.norm(a - b)), plane is None),
-                        max_iterations)
-        iterations += result.iterations
-    if bar is not None:
-        bar.close()
+    run = (lambda x: solver.run(x, max_iterations, tick)) if backend == "numpy" else (
+        lambda x: solver.run_gtsam(x, max_iterations))
+    pre = None
+    if bar is not None and FREE_SCALE_FIRST:  # the scale's valley first, without the bar, then the bar held
+        free = Solver(problem, huber_px, window_prior(plane, estimate_distance))
+        pre = free.run(start, max_iterations, tick) if backend == "numpy" else free.run_gtsam(start, max_iterations)
+        start = _scaled(pre.state, bar.length_mm / bar.length(pre.state.xyz), plane is None)
+        log.info("refine-colmap: without the bar: cost %.6g in %d iterations; rescaled by %.6g to the bar",
+                 pre.cost, pre.iterations, bar.length_mm / bar.length(pre.state.xyz))
+    result = run(start)
+    iterations = result.iterations + sum(c["iterations"] for c in search) + (pre.iterations if pre else 0)
+    linearizations = result.linearizations + (pre.linearizations if pre else 0)
+    restarts = []
+    collapsed = estimate_distance and plane is None and _collapsed(result.state, problem, candidates)
+    for _, other, _ in (others if collapsed else []):  # the distance ran toward 0: the other starts, lowest cost wins
+        res = run(other)
+        iterations += res.iterations
+        linearizations += res.linearizations
+        restarts.append({"distance_mm": problem.image_windows(res.state)[1].min().item(), "cost": res.cost})
+        log.info("refine-colmap: the distance ran toward 0 from the best start; restart: cost %.6g (was %.6g)",
+                 res.cost, result.cost)
+        if res.cost < result.cost:
+            result = res
+    if pbar is not None:
+        pbar.close()
+    if not result.converged:
+        log.warning("refine-colmap: not converged in %d iterations (max_iterations %d): the result and its sigmas "
+                    "describe the last state, not an optimum; raise --max-iterations, or declare the port "
+                    "(interface.plane) on surveys with short tracks", result.iterations, max_iterations)
     state = result.state
     residuals = problem.residuals(state)
+    names = [f"camera{int(cid)}" for cid in cmodel.camera_ids]
+    sigmas = uncertainty(solver, state, names)
     R, t = state.cam_from_world(cmodel)
     cam_from_world = {int(i): Pose(R[k], t[k]) for k, i in enumerate(cmodel.image_ids)}
     refractive = _state_reconstruction(rec, cmodel, problem, state)
@@ -441,7 +686,10 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
                      + " per " + ("camera (housing)" if mount == "camera" else "world") + ", 3D points",
         "scale": "the input's units times units_mm, refined by refraction (weakly observable through the plate)",
         "distance_search": search,
+        "restarts": restarts,
         "iterations": iterations, "converged": result.converged,
+        "linearizations": {"final": linearizations, "search": sum(c["linearizations"] for c in search)},
+        "uncertainty": sigmas,
         "cost": {"start": float(result.initial_cost), "final": float(result.cost)},
         "time_s": time.perf_counter() - t0,
         "before": {"model": "COLMAP pinhole", "rms_px": _rms(before), "per_image_rms_px": before},
@@ -460,15 +708,13 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
                            "point_mm": np.asarray(plane.point_mm, float).tolist(),
                            "normal": "held" if hold_normal else f"prior {plane.sigma_deg:g} deg",
                            "distance": (f"prior {plane.sigma_mm:g} mm" if estimate_distance else "held")}
-    if scale_bar is not None:
-        where = {int(p): k for k, p in enumerate(cmodel.point3D_ids)}
-        report["scale_bar"] = {"ids": [int(scale_bar[0]), int(scale_bar[1])], "declared_mm": float(scale_bar[2]),
-                               "refined_mm": float(np.linalg.norm(state.xyz[where[int(scale_bar[0])]]
-                                                                  - state.xyz[where[int(scale_bar[1])]]))}
-        if abs(report["scale_bar"]["refined_mm"] / scale_bar[2] - 1.0) > 0.01:  # the polish walked the scale valley
-            log.warning("refine-colmap: the scale bar is %.4g mm after the refinement (declared %.4g mm): the bar is "
-                        "applied by rescaling then polishing, and the polish moved the scale (a declared plane does "
-                        "not scale with the scene)", report["scale_bar"]["refined_mm"], scale_bar[2])
+    if bar is not None:
+        refined_mm = bar.length(state.xyz)
+        report["scale_bar"] = {"ids": [int(scale_bar[0]), int(scale_bar[1])], "declared_mm": bar.length_mm,
+                               "sigma_mm": bar.sigma_mm, "refined_mm": refined_mm}
+        if abs(refined_mm / bar.length_mm - 1.0) > 1e-3:
+            log.warning("refine-colmap: the scale bar is %.6g mm after the refinement (declared %.6g mm): the images "
+                        "pull against it", refined_mm, bar.length_mm)
     log.warning("refine-colmap: the COLMAP cameras written are the best %s approximation of the refractive "
                 "cameras (poses are virtual; real poses in calibration.json): %.3f px RMS (the exact model: %.3f px)",
                 approximation, report["pinhole_approximation"]["rms_px"], report["after"]["rms_px"])
@@ -497,12 +743,35 @@ def _rms(per_image: dict[int, float]) -> float:
 
 
 def write_refined(result: RefineResult, out_dir: str | Path) -> Path:
-    """OUT: the COLMAP model (the cameras' best COLMAP approximation, refined points), calibration.json, refine.json."""
+    """OUT: the COLMAP model (the cameras' best COLMAP approximation, refined points), calibration.json,
+    refine.json. Everything is written into a temporary folder inside OUT first, then renamed into
+    place file by file (refine.json last): a failed write (a full disk, a signal) leaves OUT's
+    previous files as they were and no partial file."""
+    import shutil
+    import tempfile
+
     from ari_sfm.io import write_json_atomic
 
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    result.reconstruction.write(str(out))
-    result.calibration.save(out / "calibration.json")
-    write_json_atomic(out / "refine.json", result.report)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=".refine-colmap.", dir=out))
+    except OSError as exc:
+        raise AriSfmError(out, f"cannot write: {exc.strerror or exc}") from None
+    try:
+        _write_model(result.reconstruction, tmp)
+        result.calibration.save(tmp / "calibration.json")
+        write_json_atomic(tmp / "refine.json", result.report)
+        names = sorted(p.name for p in tmp.iterdir() if p.name != "refine.json") + ["refine.json"]
+        for name in names:
+            os.replace(tmp / name, out / name)
+    except (OSError, RuntimeError) as exc:  # pycolmap's writer raises RuntimeError
+        raise AriSfmError(out, f"cannot write: {getattr(exc, 'strerror', None) or exc}") from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     return out
+
+
+def _write_model(reconstruction: Any, folder: Path) -> None:
+    """The COLMAP model's binary files in ``folder`` (pycolmap's writer)."""
+    reconstruction.write(str(folder))

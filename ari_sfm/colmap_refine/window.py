@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ari_sfm.errors import AriSfmError
-from ari_sfm.io import as_float_array, as_mapping, as_positive_float, read_structured, require
+from ari_sfm.io import as_int_array, as_mapping, as_positive_float, read_structured, require
 from ari_sfm.io.dataset import parse_interface
 from ari_sfm.io.structured import warn_unknown_keys
 from ari_sfm.records import Interface
@@ -60,7 +60,10 @@ def load_window(path: str | Path) -> WindowSpec:
     units = None if units is None else as_positive_float(units, path, "units_mm")
     bar = data.get("scale_bar")
     if bar is not None:
-        ids = as_float_array(require(bar, "point3D_ids", path, "scale_bar"), path, "scale_bar.point3D_ids", (2,))
+        bar = as_mapping(bar, path, "scale_bar")
+        ids = as_int_array(require(bar, "point3D_ids", path, "scale_bar"), path, "scale_bar.point3D_ids")
+        if len(ids) != 2 or ids[0] == ids[1]:
+            raise AriSfmError(path, f"scale_bar.point3D_ids must be two different point3D ids (got {ids.tolist()})")
         length = as_positive_float(require(bar, "distance_mm", path, "scale_bar"), path, "scale_bar.distance_mm")
         bar = (int(ids[0]), int(ids[1]), length)
     return WindowSpec(interface, mount, units, bar)
