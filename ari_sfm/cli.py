@@ -47,13 +47,24 @@ def _install_signal_handlers() -> dict[int, object] | None:
         return None
     previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     _signalled.clear()
+    sys.unraisablehook = _unraisable
     for signum, handler in previous.items():
         if handler is not signal.SIG_IGN:
             signal.signal(signum, _on_signal)
     return previous
 
 
+def _unraisable(args) -> None:
+    """A signal whose exception was raised inside a C callback (numba's compiler caching an object) cannot
+    propagate there: Python would print it as "Exception ignored ... Traceback". It is already in
+    ``_signalled``; :func:`user_errors` acts on it when the command returns."""
+    if isinstance(args.exc_value, (KeyboardInterrupt, Terminated)):
+        return
+    sys.__unraisablehook__(args)
+
+
 def _restore_signal_handlers(previous: dict[int, object] | None) -> None:
+    sys.unraisablehook = sys.__unraisablehook__
     for signum, handler in (previous or {}).items():
         if handler is not None:
             signal.signal(signum, handler)
@@ -85,7 +96,10 @@ def user_errors(fn):
     def wrapper(*args, **kwargs):
         previous = _install_signal_handlers()
         try:
-            return fn(*args, **kwargs)
+            result = fn(*args, **kwargs)
+            if _signalled:  # swallowed inside a C callback (see _unraisable): the command ran to its end
+                _exit_interrupted(terminated=_signalled[-1] == signal.SIGTERM)
+            return result
         except KeyboardInterrupt:  # Ctrl-C: no traceback, the shell's code for SIGINT
             _exit_interrupted()
         except Terminated:

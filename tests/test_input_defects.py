@@ -452,6 +452,33 @@ def test_sigterm_during_export_colmap_is_clean(sim_dir, calibrated, tmp_path):
             assert files == model
 
 
+SWALLOWED_SIGNAL = """
+import ctypes, os, signal
+from ari_sfm.cli import user_errors
+
+@ctypes.CFUNCTYPE(None)
+def callback():  # as numba's compiler calls back into Python while it caches an object
+    os.kill(os.getpid(), signal.SIGTERM)
+    for _ in range(10000):  # the handler runs here, inside the C callback: its exception cannot propagate
+        pass
+
+@user_errors
+def command():
+    callback()
+    print("finished")
+
+command()
+"""
+
+
+def test_a_sigterm_swallowed_inside_a_c_callback_still_ends_as_terminated():
+    """SIGTERM while numba compiled (a ctypes callback of llvmlite) printed "Exception ignored ... Traceback"
+    and the command went on to exit 0: now no traceback, the command's writes finish (atomic), exit 143."""
+    p = subprocess.run([sys.executable, "-c", SWALLOWED_SIGNAL], capture_output=True, text=True, env=ENV, timeout=60)
+    assert p.returncode == 143, (p.returncode, p.stderr)
+    assert p.stdout.strip() == "finished" and p.stderr.strip().splitlines() == ["terminated"], p.stderr
+
+
 def test_simulate_port_survey_on_a_full_disk_leaves_no_truncated_png(tmp_path, monkeypatch):
     """A full disk left a truncated PNG."""
     import errno
