@@ -62,6 +62,17 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+def load_experiment(dataset_path: str | Path, calibration_path: Path, out: Path) -> tuple[ParticleDataset, Calibration]:
+    """The particle dataset and the calibration of its rig, for a command writing to ``out`` (not the
+    dataset's own folder)."""
+    dataset = load_particle_dataset(dataset_path)
+    if Path(os.path.realpath(out)) == Path(os.path.realpath(dataset.root)):
+        raise AriSfmError(out, "-o/--out is the dataset folder: write the results elsewhere")
+    calibration = load_calibration(calibration_path)
+    check_calibration_fits(calibration, dataset, calibration_path)
+    return dataset, calibration
+
+
 def check_calibration_fits(calibration: Calibration, dataset: ParticleDataset, path: Path) -> None:
     """The calibration is of the dataset's rig: the same camera names and image sizes."""
     if set(calibration.cameras) != set(dataset.cameras):
@@ -128,12 +139,8 @@ def reconstruct_particles(dataset_path: str | Path, calibration_path: str | Path
     """
     t0 = time.perf_counter()
     out = Path(out)
-    dataset = load_particle_dataset(dataset_path)
-    if Path(os.path.realpath(out)) == Path(os.path.realpath(dataset.root)):
-        raise AriSfmError(out, "-o/--out is the dataset folder: write the results elsewhere")
     calibration_path = Path(calibration_path)
-    calibration = load_calibration(calibration_path)
-    check_calibration_fits(calibration, dataset, calibration_path)
+    dataset, calibration = load_experiment(dataset_path, calibration_path, out)
     if not 2 <= options.min_cameras <= len(calibration.cameras):
         raise AriSfmError("--min-cameras", f"must be 2..{len(calibration.cameras)} for this rig "
                                            f"(got {options.min_cameras})")

@@ -578,18 +578,13 @@ def self_calibrate_dataset(dataset_path, calibration_path, out, options: SelfCal
     import os
     from pathlib import Path
 
-    from ..calibration import load_calibration
-    from ..io.particles import load_particle_dataset, read_detections
+    from ..io.particles import read_detections
     from .engine import dask_client
-    from .reconstruct import check_calibration_fits, volume_for
+    from .reconstruct import load_experiment, volume_for
 
     out = Path(out)
-    dataset = load_particle_dataset(dataset_path)
-    if Path(os.path.realpath(out)) == Path(os.path.realpath(dataset.root)):
-        raise AriSfmError(out, "-o/--out is the dataset folder: write the results elsewhere")
     calibration_path = Path(calibration_path)
-    calibration = load_calibration(calibration_path)
-    check_calibration_fits(calibration, dataset, calibration_path)
+    dataset, calibration = load_experiment(dataset_path, calibration_path, out)
     check_calibration(calibration, list(dataset.cameras), calibration_path)
     det_path = Path(detections_path) if detections_path is not None else dataset.detections
     if det_path is None:
