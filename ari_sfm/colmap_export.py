@@ -52,6 +52,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from .calibration import Calibration, load_calibration
+from .deps import import_pycolmap
 from .errors import AriSfmError
 from .geometry import Pose
 from .provenance import observations_mismatch
@@ -71,25 +72,7 @@ def _version(text: str) -> tuple[int, int]:
     return (parts + [0, 0])[0], (parts + [0, 0])[1]
 
 
-def _import_pycolmap() -> Any:
-    """Import pycolmap, keeping Python's SIGTERM handler: pycolmap installs glog's failure-signal handler,
-    which answers a plain SIGTERM with a native stack dump (and so does not let the CLI leave cleanly)."""
-    import signal
-    import threading
-
-    main = threading.current_thread() is threading.main_thread()
-    previous = signal.getsignal(signal.SIGTERM) if main else None
-    try:
-        import pycolmap
-    except ImportError as exc:  # pragma: no cover - pycolmap is a dependency
-        raise ImportError(f"ari_sfm.colmap_export needs pycolmap >= {MIN_PYCOLMAP[0]}.{MIN_PYCOLMAP[1]} "
-                          f"(pip install pycolmap): {exc}") from exc
-    if previous is not None:
-        signal.signal(signal.SIGTERM, previous)
-    return pycolmap
-
-
-pycolmap = _import_pycolmap()
+pycolmap = import_pycolmap(MIN_PYCOLMAP)
 
 PYCOLMAP_VERSION = _version(getattr(pycolmap, "__version__", "0.0"))
 if PYCOLMAP_VERSION < MIN_PYCOLMAP:  # pragma: no cover - depends on the installed version

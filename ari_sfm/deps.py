@@ -1,6 +1,8 @@
 """Optional heavy dependencies, imported with one clear message when they cannot load."""
 from __future__ import annotations
 
+from typing import Any
+
 from .errors import AriSfmError
 
 
@@ -46,6 +48,24 @@ def require_open3d():
     return open3d
 
 
+def import_pycolmap(min_version: tuple[int, int] = (3, 11)) -> Any:
+    """Import pycolmap, keeping Python's SIGTERM handler: pycolmap installs glog's failure-signal handler,
+    which answers a plain SIGTERM with a native stack dump (and so does not let the CLI leave cleanly)."""
+    import signal
+    import threading
+
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.getsignal(signal.SIGTERM) if main else None
+    try:
+        import pycolmap
+    except ImportError as exc:  # pragma: no cover - pycolmap is a dependency
+        raise ImportError(f"ari-sfm needs pycolmap >= {min_version[0]}.{min_version[1]} "
+                          f"(pip install pycolmap): {exc}") from exc
+    if previous is not None:
+        signal.signal(signal.SIGTERM, previous)
+    return pycolmap
+
+
 def check_dependencies() -> dict[str, str]:
     """Versions of the libraries ari-sfm rests on, or the one-line reason one fails."""
     out = {}
@@ -53,6 +73,8 @@ def check_dependencies() -> dict[str, str]:
         try:
             if name == "open3d":
                 mod = require_open3d()
+            elif name == "pycolmap":
+                mod = import_pycolmap()  # without glog's SIGTERM handler
             else:
                 mod = __import__(name)
             out[name] = getattr(mod, "__version__", "installed")

@@ -716,3 +716,21 @@ def test_reconstruct_refuses_a_reference_it_would_overwrite(sim_dir, calibrated,
                                   "-o", str(out), "--reference", str(out / "clouds" / "all.ply")])
     _one_error_line(r, f"error: {out / 'clouds' / 'all.ply'}: --reference: is a file this command writes in -o")
     assert (out / "clouds" / "all.ply").read_bytes() == b"ply\n"
+
+
+DOCTOR_THEN_SIGTERM = """
+import os, signal, sys, time
+signal.signal(signal.SIGTERM, lambda *a: sys.exit(143))
+from ari_sfm.deps import check_dependencies
+check_dependencies()  # what `ari-sfm doctor` runs: imports pycolmap
+os.kill(os.getpid(), signal.SIGTERM)
+time.sleep(5)
+"""
+
+
+def test_doctor_keeps_python_sigterm_handler_over_glogs():
+    """`doctor` imported pycolmap plainly: glog's failure-signal handler then answered SIGTERM with a native
+    stack dump ("*** Aborted at ... SIGTERM ... stack trace"); through deps.import_pycolmap it does not."""
+    p = subprocess.run([sys.executable, "-c", DOCTOR_THEN_SIGTERM], capture_output=True, text=True, env=ENV,
+                       timeout=120)
+    assert p.returncode == 143 and "stack trace" not in p.stderr and "Aborted at" not in p.stderr, p.stderr
