@@ -1,0 +1,118 @@
+"""The input care of the newer commands (sfm's own cases are in test_sfm.py): -o on their own input is
+refused with one line and nothing written, a full disk leaves no truncated result, SIGTERM leaves cleanly
+("terminated", 143) without a partial result."""
+from __future__ import annotations
+
+import errno
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from ari_sfm.cli import main
+
+ARI_SFM = Path(sys.executable).parent / "ari-sfm"
+ENV = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+
+
+@pytest.fixture(scope="module")
+def experiment(tmp_path_factory):
+    """A small simulated particle experiment, its rig's true calibration (exact) and a fork export of it."""
+    root = tmp_path_factory.mktemp("care")
+    r = CliRunner().invoke(main, ["simulate", "particles", "-o", str(root / "sim"), "--particles", "200",
+                                  "--frames", "2", "--render-frames", "1"])
+    assert r.exit_code == 0, r.output
+    cal = root / "sim" / "truth" / "rig_b.json"
+    fork = root / "fork"
+    r = CliRunner().invoke(main, ["export-colmap-fork", str(cal), "-o", str(fork)])
+    assert r.exit_code == 0, r.output
+    return root / "sim" / "experiment", cal, fork
+
+
+def _args(command: str, experiment) -> list[str]:
+    dataset, cal, fork = experiment
+    return {"detect-particles": ["detect-particles", str(dataset), "-o", str(dataset)],
+            "particles": ["particles", str(dataset), "--calibration", str(cal), "-o", str(dataset)],
+            "self-calibrate": ["self-calibrate", str(dataset), "--calibration", str(cal), "-o", str(dataset)],
+            "import-colmap-fork": ["import-colmap-fork", str(fork), "-o", str(fork)]}[command]
+
+
+@pytest.mark.parametrize("command", ["detect-particles", "particles", "self-calibrate", "import-colmap-fork"])
+def test_output_on_its_own_input_is_refused_and_nothing_written(experiment, command):
+    args = _args(command, experiment)
+    folder = Path(args[-1])
+    before = sorted(p.name for p in folder.iterdir())
+    r = CliRunner().invoke(main, args)
+    lines = r.output.strip().splitlines()
+    assert r.exit_code == 1 and len(lines) == 1 and lines[0].startswith(f"error: {folder}"), r.output
+    assert "-o/--out" in lines[0]
+    assert sorted(p.name for p in folder.iterdir()) == before
+
+
+def _full_disk(monkeypatch):
+    import ari_sfm.io.atomic as atomic
+
+    real_fdopen = os.fdopen
+
+    def fdopen(fd, *args, **kwargs):
+        f = real_fdopen(fd, *args, **kwargs)
+        f.close()
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(atomic.os, "fdopen", fdopen)
+
+
+def test_particles_on_a_full_disk_leaves_no_table(experiment, tmp_path, monkeypatch):
+    dataset, cal, _ = experiment
+    _full_disk(monkeypatch)
+    out = tmp_path / "p3d"
+    r = CliRunner().invoke(main, ["particles", str(dataset), "--calibration", str(cal), "-o", str(out),
+                                  "--workers", "0"])
+    assert r.exit_code == 1 and r.output.strip().splitlines()[-1].endswith("No space left on device"), r.output
+    left = [p.name for p in out.rglob("*") if p.is_file()] if out.exists() else []
+    assert not any(n.endswith(".parquet") or n.endswith(".tmp") for n in left), left
+
+
+def test_export_colmap_fork_on_a_full_disk_leaves_no_model_file(experiment, tmp_path, monkeypatch):
+    _, cal, _ = experiment
+    _full_disk(monkeypatch)
+    out = tmp_path / "fork"
+    r = CliRunner().invoke(main, ["export-colmap-fork", str(cal), "-o", str(out)])
+    assert r.exit_code == 1 and r.output.strip().splitlines()[-1].endswith("No space left on device"), r.output
+    assert not out.exists() or not [p for p in out.iterdir()], list(out.iterdir())
+
+
+def test_sigterm_during_particles_leaves_cleanly(experiment, tmp_path):
+    """SIGTERM once the command has started (its first log line): 'terminated' and 143 with no partial table
+    (nothing, or when the signal lands at the end the whole result), or a complete run and 0."""
+    dataset, cal, _ = experiment
+    out = tmp_path / "p3d"
+    p = subprocess.Popen([str(ARI_SFM), "-v", "particles", str(dataset), "--calibration", str(cal), "-o", str(out),
+                          "--workers", "0"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV)
+    seen = b""
+    while b"INFO" not in seen:
+        chunk = p.stderr.read1(256)
+        if not chunk:
+            break
+        seen += chunk
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=120)
+    err = (seen + err).decode(errors="replace")
+    assert "Traceback" not in err and "stack trace" not in err, err
+    assert p.returncode in (143, 0), (p.returncode, err)
+    files = [q.name for q in out.rglob("*") if q.is_file()] if out.exists() else []
+    assert not any(n.endswith(".tmp") for n in files), files
+    complete = {"particles3d.parquet", "particles3d.json"} <= set(files)
+    if complete:  # written through atomic renames: a complete table, never a truncated one
+        import pyarrow.parquet as pq
+
+        assert pq.read_table(out / "particles3d.parquet").num_rows > 0
+    if p.returncode == 143:
+        assert err.strip().splitlines()[-1] == "terminated", err
+        assert complete or "particles3d.parquet" not in files  # nothing, or (signal at the end) the whole result
+    else:
+        assert complete
