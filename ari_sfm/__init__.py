@@ -20,6 +20,10 @@ import os
 # bundle adjustment; set before numpy/gtsam load OpenBLAS.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+from . import _startup  # noqa: E402
+
+_startup.guard_loading()  # Ctrl-C while `ari-sfm` loads: "interrupted", exit 130 (no traceback)
+
 from .calibrate import CalibrationOptions, calibrate  # noqa: E402
 from .calibration import Calibration, CameraCalibration, load_calibration  # noqa: E402
 from .compare import compare  # noqa: E402

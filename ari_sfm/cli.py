@@ -13,6 +13,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from . import _startup
 from .cli_checks import check_not_an_output, check_not_input_folder, check_number, check_output_folder
 from .errors import AriSfmError
 from .models.registry import BUNDLE, CALIBRATABLE, COMPARED, MODELS, model_spec
@@ -73,11 +74,16 @@ def _restore_signal_handlers(previous: dict[int, object] | None) -> None:
 def _exit_interrupted(exit=sys.exit, terminated: bool = False) -> None:
     """Ctrl-C: "interrupted" on stderr and exit 130; SIGTERM: "terminated" and exit 143. While worker threads
     are still inside OpenCV (a pool cut short by the signal), leave at once: the interpreter's shutdown would
-    wait for them, and a second Ctrl-C during that wait ended the process in C++'s terminate (SIGABRT)."""
+    wait for them, and a second Ctrl-C during that wait ended the process in C++'s terminate (SIGABRT).
+    By then every atomic write has dropped its temporary file (the exception unwound through it)."""
     code = 143 if terminated else 130
+    _signalled.clear()  # acted on: the SystemExit below is not a second interrupt
     click.echo("terminated" if terminated else "interrupted", err=True)
     me = threading.current_thread()
-    if any(t.is_alive() and not t.daemon and t is not me for t in threading.enumerate()):
+    # The command line itself leaves at once too: a native library cut short while loading (open3d) ran
+    # its C++ destructors at the interpreter's exit and turned 130 into 1.
+    if _startup.is_command_line() or any(t.is_alive() and not t.daemon and t is not me
+                                         for t in threading.enumerate()):
         if me is threading.main_thread():
             signal.signal(signal.SIGINT, signal.SIG_IGN)
             signal.signal(signal.SIGTERM, signal.SIG_IGN)
@@ -105,6 +111,8 @@ def user_errors(fn):
         except Terminated:
             _exit_interrupted(terminated=True)
         except (click.ClickException, click.exceptions.Exit, SystemExit):
+            if _signalled:  # the command ended on its own after a library swallowed the signal
+                _exit_interrupted(terminated=_signalled[-1] == signal.SIGTERM)
             raise
         except Exception as exc:  # noqa: BLE001 - never a traceback unless asked for
             if _signalled:  # the signal surfaced as another error (e.g. inside a native import)
@@ -802,12 +810,16 @@ PORT_SURVEY = ("rendered images of a lawn-mower survey by one camera in a flat-p
 
 
 @main.command()
+@user_errors
 def doctor() -> None:
     """Check that every dependency imports (open3d needs the system library libusb-1.0-0)."""
     from .deps import check_dependencies
 
+    versions = check_dependencies()
+    if _signalled:  # an import turned Ctrl-C into its own error (pycolmap: "Cannot import the C++ backend")
+        _exit_interrupted(terminated=_signalled[-1] == signal.SIGTERM)
     bad = False
-    for name, version in check_dependencies().items():
+    for name, version in versions.items():
         click.echo(f"{name:12s} {version}")
         bad |= version.startswith("error")
     sys.exit(1 if bad else 0)
@@ -988,6 +1000,9 @@ def refine_colmap_cmd(model_dir: Path, window: Path, out: Path, huber_px: float,
     click.echo(f"  COLMAP cameras written as their best "
                f"{r['pinhole_approximation']['camera_model']} approximation ({r['pinhole_approximation']['rms_px']:.3f} px) "
                f"-> {out}")
+
+
+_startup.loaded()  # every command is defined: the commands' own handlers (user_errors) from here on
 
 
 if __name__ == "__main__":  # last, after every command is defined (python -m ari_sfm.cli refine-colmap)
