@@ -373,10 +373,10 @@ def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | N
         click.echo(f"vs truth: rms {t.aligned_rms_mm:.4f} mm after rigid alignment (max {t.aligned_max_mm:.4f}), "
                    f"{t.unaligned_rms_mm:.4f} mm without")
     if m.reference:
-        ref, reg = m.reference, m.reference["registration"]
-        click.echo(f"vs reference {ref['kind']}: distance rms {ref['distance_mm']['rms']:.4f} mm, max "
-                   f"{ref['distance_mm']['max']:.4f} mm after registration (rotation {reg['rotation_deg']:.3f} deg, "
-                   f"translation {reg['translation_mm']:.3f} mm)")
+        ref, reg = m.reference, m.reference.registration
+        click.echo(f"vs reference {ref.kind}: distance rms {ref.distance_mm.rms:.4f} mm, max "
+                   f"{ref.distance_mm.max:.4f} mm after registration (rotation {reg.rotation_deg:.3f} deg, "
+                   f"translation {reg.translation_mm:.3f} mm)")
     click.echo(f"points:  {r.points_path}\nmetrics: {r.metrics_path}\nclouds:  {r.clouds['all'].parent}")
 
 

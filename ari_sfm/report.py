@@ -48,6 +48,7 @@ import numpy as np
 from .calibration import Calibration, load_calibration
 from .errors import AriSfmError
 from .records import Dataset, Observation, Target
+from .reference import ReferenceErrors
 
 log = logging.getLogger(__name__)
 
@@ -517,10 +518,9 @@ def _reconstruction_rows(m: Mapping[str, Any]) -> list[list[Any]]:
         rows.append(["3D error vs the truth as reconstructed (mm)", None, t["unaligned"]["rms_mm"],
                      t["unaligned"]["max_mm"]])
     if m.get("reference"):
-        ref = m["reference"]
-        rows.append([f"3D error vs reference {ref['kind']} {Path(ref['path']).name}: distance to its surface after "
-                     "registration (mm)",
-                     ref["distance_mm"]["mean"], ref["distance_mm"]["rms"], ref["distance_mm"]["max"]])
+        ref = ReferenceErrors.from_json(m["reference"])
+        rows.append([f"3D error vs reference {ref.kind} {Path(ref.path).name}: distance to its surface after "
+                     "registration (mm)", ref.distance_mm.mean, ref.distance_mm.rms, ref.distance_mm.max])
     return rows
 
 

@@ -61,11 +61,11 @@ def main() -> None:
             t0 = time.perf_counter()
             r = reference_errors(points, path)
             elapsed = time.perf_counter() - t0
-            M = np.array(r["registration"]["reference_from_world"])
+            M = np.array(r.registration.reference_from_world)
             dR = M[:3, :3] @ R_KNOWN.T
             angle = np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))
             print(f"{label:10s} {angle:18.4f} {np.linalg.norm(M[:3, 3] - T_KNOWN):20.4f} "
-                  f"{r['distance_mm']['rms']:9.5f} {r['distance_mm']['max']:9.5f} {elapsed:8.2f}")
+                  f"{r.distance_mm.rms:9.5f} {r.distance_mm.max:9.5f} {elapsed:8.2f}")
 
 
 if __name__ == "__main__":
