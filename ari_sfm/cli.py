@@ -473,10 +473,8 @@ def sfm_cmd(images: Path, window: Path, out: Path, matcher: str, overlap: int, f
         matcher=matcher, overlap=overlap, max_features=max_features, focal_px=focal_px, baseline=baseline,
         huber_px=huber_px, max_iterations=max_iterations, num_threads=threads, progress=True))
     report = result.refine.report
-    rms = ""
-    if isinstance(report, dict) and "before" in report and "after" in report:
-        rms = (f"; reprojection RMS {report['before']['rms_px']:.3f} px (COLMAP pinhole) -> "
-               f"{report['after']['rms_px']:.3f} px (exact)")
+    rms = (f"; reprojection RMS {report.before.rms_px:.3f} px (COLMAP pinhole) -> "
+           f"{report.after.rms_px:.3f} px (exact)")
     click.echo(f"COLMAP: {result.registered} of {result.images} images registered, {result.points3D} points "
                f"-> {result.colmap_model}")
     click.echo(f"refine-colmap{rms} -> {result.refined}")
@@ -969,24 +967,24 @@ def refine_colmap_cmd(model_dir: Path, window: Path, out: Path, huber_px: float,
                            plane_path=window, window_path=window)
     write_refined(result, out)
     r = result.report
-    u = r["uncertainty"]
-    click.echo(f"refine-colmap: {r['counts']['images']} images, {r['counts']['points3D']} points, "
-               f"{r['iterations']} iterations ({'converged' if r['converged'] else 'NOT converged'}), "
-               f"{r['time_s']:.1f} s; reprojection RMS {r['before']['rms_px']:.3f} px "
-               f"(COLMAP pinhole) -> {r['after']['rms_px']:.3f} px (exact)")
-    for name in u["distance_mm"] | u["normal_deg"]:
-        d = r["window"]["distance_mm"].get(name) if "distance_mm" in r["window"] else r["window"]["plane_mm"]
-        parts = [f"distance {d:.2f} +- {u['distance_mm'][name]:.2g} mm" if name in u["distance_mm"] else "",
-                 f"normal +- {u['normal_deg'][name]:.2g} deg" if name in u["normal_deg"] else ""]
+    u = r.uncertainty
+    click.echo(f"refine-colmap: {r.counts.images} images, {r.counts.points3D} points, "
+               f"{r.iterations} iterations ({'converged' if r.converged else 'NOT converged'}), "
+               f"{r.time_s:.1f} s; reprojection RMS {r.before.rms_px:.3f} px "
+               f"(COLMAP pinhole) -> {r.after.rms_px:.3f} px (exact)")
+    for name in u.distance_mm | u.normal_deg:
+        d = r.window.distance_of(name)
+        parts = [f"distance {d:.2f} +- {u.distance_mm[name]:.2g} mm" if name in u.distance_mm else "",
+                 f"normal +- {u.normal_deg[name]:.2g} deg" if name in u.normal_deg else ""]
         click.echo(f"  window {name}: " + ", ".join(p for p in parts if p) + " (1 sigma)")
-    if u["scale_rel"] is not None:
-        click.echo(f"  scale: +- {100 * u['scale_rel']:.2g} % (1 sigma)"
-                   + (f"; scale bar {r['scale_bar']['refined_mm']:.6g} mm (declared {r['scale_bar']['declared_mm']:.6g})"
-                      if "scale_bar" in r else ""))
-    if u["weak"]:
-        click.echo(f"  barely determined by these images: {', '.join(u['weak'])} (see the warnings)")
+    if u.scale_rel is not None:
+        click.echo(f"  scale: +- {100 * u.scale_rel:.2g} % (1 sigma)"
+                   + (f"; scale bar {r.scale_bar.refined_mm:.6g} mm (declared {r.scale_bar.declared_mm:.6g})"
+                      if r.scale_bar is not None else ""))
+    if u.weak:
+        click.echo(f"  barely determined by these images: {', '.join(u.weak)} (see the warnings)")
     click.echo(f"  COLMAP cameras written as their best "
-               f"{r['pinhole_approximation']['camera_model']} approximation ({r['pinhole_approximation']['rms_px']:.3f} px) "
+               f"{r.pinhole_approximation.model} approximation ({r.pinhole_approximation.rms_px:.3f} px) "
                f"-> {out}")
 
 
