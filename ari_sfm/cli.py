@@ -315,7 +315,7 @@ def report_cmd(out: Path, dataset: Path | None) -> None:
 @user_errors
 def evaluate_cmd(calibration: Path, observations: Path, solve_poses: bool) -> None:
     """Reprojection errors of CALIBRATION on an OBSERVATIONS file (e.g. held-out views)."""
-    from .calibration import load_calibration
+    from .io import load_calibration
     from .evaluate import evaluate, evaluate_held_out
 
     cal = load_calibration(calibration)
@@ -497,9 +497,8 @@ _units_option = click.option("--units-mm", type=float, default=1000.0, show_defa
 @user_errors
 def export_colmap_fork_cmd(calibration: Path, out: Path, dataset: Path | None, units_mm: float) -> None:
     """Write an exact CALIBRATION as a model of the refractive COLMAP fork (colmap_underwater, FLATPORT cameras)."""
-    from .calibration import load_calibration
     from .colmap_fork import export_colmap_fork
-    from .io import load_dataset, load_observations
+    from .io import load_calibration, load_dataset, load_observations
 
     check_output_folder(out)
     check_number("--units-mm", units_mm, minimum=0.0, strict_minimum=True)
@@ -526,13 +525,14 @@ def import_colmap_fork_cmd(model_dir: Path, out: Path, units_mm: float) -> None:
     """Read the FLATPORT cameras of a refractive COLMAP fork text model (MODEL_DIR/cameras.txt, images.txt) as
     an exact-model calibration.json."""
     from .colmap_fork import import_colmap_fork
+    from .io import save_calibration
 
     check_output_folder(out)
     check_number("--units-mm", units_mm, minimum=0.0, strict_minimum=True)
     if out.resolve() == model_dir.resolve():
         raise AriSfmError(out, "-o/--out: is the input model folder (choose another folder)")
     cal = import_colmap_fork(model_dir, units_mm)
-    cal.save(out / "calibration.json")
+    save_calibration(cal, out / "calibration.json")
     click.echo(f"{len(cal.cameras)} camera(s) ({', '.join(cal.cameras)}), window {cal.interface.thickness_mm:g} mm "
                f"n={cal.interface.index:g} medium n={cal.interface.medium_index:g} -> {out / 'calibration.json'}")
 

@@ -45,8 +45,9 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from .calibration import Calibration, load_calibration
+from .calibration import Calibration
 from .errors import AriSfmError
+from .io import load_calibration
 from .records import Dataset, Observation, Target
 from .reference import ReferenceErrors
 

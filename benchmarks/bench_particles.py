@@ -62,7 +62,7 @@ def openptv(exp, calibration_path: Path, folder: Path, volume: Volume) -> tuple[
     from optv.parameters import ControlParams, VolumeParams
     from optv.tracking_framebuf import TargetArray
 
-    from ari_sfm.calibration import load_calibration
+    from ari_sfm.io import load_calibration
     from ari_sfm.openptv import export_openptv
 
     export_openptv(calibration_path, folder, frame="f000")

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from ari_sfm.calibration import Calibration
+from ari_sfm.io import parse_calibration
 from ari_sfm.geometry import rotation_from_rotvec
 from ari_sfm.reconstruct import reconstruct
 from ari_sfm.reference import reference_errors
@@ -32,7 +32,7 @@ T_KNOWN = np.array([40.0, -25.0, 300.0])
 
 def main() -> None:
     scene = make_scene("binocular", seed=0)
-    cal = Calibration.from_json(scene.truth, "truth.json")
+    cal = parse_calibration(scene.truth, "truth.json")
     obs = tuple(replace(o, set="reconstruction") for o in scene.dataset.observations if o.set == "calibration")
     points = reconstruct(replace(scene.dataset, observations=obs, calibration=(), reconstruction=()), cal)
     target = scene.dataset.target

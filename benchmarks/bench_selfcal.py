@@ -68,13 +68,13 @@ def relative_rotation_deg(cal, truth, name: str) -> float:
 def body_calibration(exp):
     """Rig A calibrated from the simulated body views with the exact model (as `ari-sfm calibrate`)."""
     from ari_sfm.calibrate import calibrate
-    from ari_sfm.calibration import load_calibration
+    from ari_sfm.io import load_calibration, save_calibration
     from ari_sfm.io import load_dataset
 
     folder = Path(tempfile.mkdtemp())
     write_particle_experiment(exp, folder, render_frames=0)
     cal = calibrate(load_dataset(folder / "calibration"), model="exact")
-    cal.save(folder / "cal.json")
+    save_calibration(cal, folder / "cal.json")
     return load_calibration(folder / "cal.json")
 
 

@@ -13,7 +13,7 @@ import pytest
 from click.testing import CliRunner
 
 from ari_sfm import colmap_export as adapter
-from ari_sfm.calibration import load_calibration
+from ari_sfm.io import load_calibration
 from ari_sfm.cli import main
 from ari_sfm.colmap_refine import refine_colmap, write_refined
 from ari_sfm.colmap_refine.problem import RefractiveProblem, State

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.calibration import Calibration
+from ari_sfm.io import parse_calibration
 from ari_sfm.cli import main
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import rotation_from_rotvec
@@ -51,7 +51,7 @@ def plane_distances(points, poses) -> np.ndarray:
 def tilted_boards():
     """The binocular scene's 15 calibration boards (15 orientations) triangulated with the true rig."""
     scene = make_scene("binocular", seed=0)
-    cal = Calibration.from_json(scene.truth, "truth.json")
+    cal = parse_calibration(scene.truth, "truth.json")
     obs = tuple(replace(o, set="reconstruction") for o in scene.dataset.observations if o.set == "calibration")
     points = reconstruct(replace(scene.dataset, observations=obs, calibration=(), reconstruction=()), cal)
     poses = {f: (np.array(scene.truth["frames"][f]["world_from_target"]["R"]),

@@ -22,10 +22,10 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.calibration import load_calibration
 from ari_sfm.cli import main
 from ari_sfm import report
 from ari_sfm.evaluate import observation_residuals
+from ari_sfm.io import load_calibration, parse_calibration
 from ari_sfm.outliers import Outlier
 from ari_sfm.records import Observation
 from ari_sfm.report import _reconstruction_rows, calibration_rows, markdown_tables, write_report
@@ -187,7 +187,7 @@ def scene_residuals():
     from ari_sfm.simulate import make_scene
 
     scene = make_scene("binocular", seed=0)
-    cal = Calibration.from_json(scene.truth, "truth.json")
+    cal = parse_calibration(scene.truth, "truth.json")
     return cal, observation_residuals(cal, scene.dataset.observations, scene.dataset.target), scene.dataset.target
 
 
@@ -421,3 +421,4 @@ def test_report_renders_in_chromium_offline(binocular, tmp_path):
     broken.write_text(text.replace("base64,iVBOR", "base64,AAAA", 1).replace(script.group(0), ""))
     found = _probe(exe, broken, tmp_path / "profile")
     assert (found["images"], found["loaded"], found["plotly"], found["svg"]) == ("9", "8", "undefined", "0")
+

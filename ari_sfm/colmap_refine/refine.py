@@ -38,6 +38,7 @@ import numpy as np
 
 from ari_sfm import colmap_export as adapter
 from ari_sfm.calibration import Calibration, CameraCalibration
+from ari_sfm.io import save_calibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose, rotation_from_rotvec
 from ari_sfm.models import AriModel, PinholeModel
@@ -755,7 +756,7 @@ def write_refined(result: RefineResult, out_dir: str | Path) -> Path:
         raise AriSfmError(out, f"cannot write: {exc.strerror or exc}") from None
     try:
         _write_model(result.reconstruction, tmp)
-        result.calibration.save(tmp / "calibration.json")
+        save_calibration(result.calibration, tmp / "calibration.json")
         write_json_atomic(tmp / "refine.json", result.report.to_json())
         names = sorted(p.name for p in tmp.iterdir() if p.name != "refine.json") + ["refine.json"]
         for name in names:

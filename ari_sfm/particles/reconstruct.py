@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from ari_sfm.calibration import Calibration, load_calibration
+from ari_sfm.calibration import Calibration
+from ari_sfm.io import calibration_to_json, load_calibration, parse_calibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.io import write_json_atomic
 from ari_sfm.io.particles import (
@@ -103,7 +104,7 @@ def match_partition(calibration_json: dict, volume: Volume, tolerance_px: float,
                     frames: list[int], pixels: list[dict[str, np.ndarray]], rows: list[dict[str, np.ndarray]]
                     ) -> dict[str, np.ndarray]:
     """One partition's particles3d columns (a Dask task: plain arguments, no files)."""
-    calibration = Calibration.from_json(calibration_json)
+    calibration = parse_calibration(calibration_json)
     cameras = list(calibration.cameras)
     cols: dict[str, list] = {k: [] for k in ("frame", "x", "y", "z", "ray_gap_mm", "cameras")}
     file_rows: list[np.ndarray] = []
@@ -152,7 +153,7 @@ def reconstruct_particles(dataset_path: str | Path, calibration_path: str | Path
     volume = volume_for(dataset, calibration, options.depth_range_mm)
     cameras = list(calibration.cameras)
     by_frame = detections.by_frame(cameras)
-    cal_json = calibration.to_json()
+    cal_json = calibration_to_json(calibration)
     settings = {"task": "particles", "tolerance_px": options.tolerance_px, "min_cameras": options.min_cameras,
                 "depth_range_mm": None if options.depth_range_mm is None else list(options.depth_range_mm),
                 "frames_per_partition": options.frames_per_partition,

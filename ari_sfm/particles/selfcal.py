@@ -41,6 +41,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from ..calibration import Calibration
+from ..io import save_calibration
 from ..errors import AriSfmError
 from ..geometry import Pose, rotation_angle_deg
 from ..models import PinholeModel
@@ -553,7 +554,7 @@ def write_self_calibration(result: SelfCalResult, out_dir) -> None:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "disparity.json", disparity_json(result))
-    result.calibration.save(out / "calibration.json")
+    save_calibration(result.calibration, out / "calibration.json")
 
 
 # --------------------------------------------------------------------------- a dataset
