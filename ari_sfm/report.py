@@ -204,7 +204,10 @@ figcaption{font-size:0.9em;color:#444;margin-top:0.3em}
 .info{color:#555;font-style:italic}
 ul.advice li{margin:0.25em 0}
 h2{border-bottom:1px solid #ccc;padding-bottom:0.15em;margin-top:1.6em;break-after:avoid}
-@media print{body{max-width:none;margin:0;padding:0}#rig-3d-section{break-inside:avoid}}
+thead{display:table-header-group}
+tr,figure,img{break-inside:avoid}
+h2,h3{break-after:avoid}
+@media print{body{max-width:none;margin:0;padding:0}#rig-3d-section{break-inside:avoid}img,figure,table,.js-plotly-plot{max-width:100%}}
 """
 
 
@@ -226,7 +229,7 @@ def _table(header: list[str], rows: list[list[Any]], digits: int = 4) -> str:
         return f'<td class="n">{_fmt(v, digits)}</td>' if num else f"<td>{_fmt(v, digits)}</td>"
 
     body = "".join("<tr>" + "".join(cell(v) for v in r) + "</tr>" for r in rows)
-    return f"<table><tr>{head}</tr>{body}</table>"
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"  # thead: repeated on each printed page
 
 
 def _img(png: bytes, alt: str, caption: str) -> str:
@@ -354,7 +357,7 @@ def _summary_section(ctx: ReportContext) -> str:
                                            f"over {r.count} corners"])
     if cal.uncertainty is not None:
         rows.append(["residual sigma", f"{cal.uncertainty.sigma_px:.4f} px (scales the standard deviations below)"])
-    return "<h2>Dataset and rig</h2>" + _table(["", ""], rows).replace("<tr><th></th><th></th></tr>", "", 1)
+    return "<h2>Dataset and rig</h2>" + _table(["", ""], rows).replace("<thead><tr><th></th><th></th></tr></thead>", "", 1)
 
 
 def _advice_section(ctx: ReportContext) -> str:
