@@ -656,8 +656,8 @@ def detect_particles_cmd(dataset: Path, out: Path, diameter_px: float | None, th
     s = detect_experiment(dataset, out, DetectOptions(diameter_px=diameter_px, threshold_sigma=threshold_sigma),
                           frames_per_partition=frames_per_partition, workers=workers, scheduler=scheduler,
                           progress=True)
-    click.echo(f"{s['detections']} particle images in frames {s['frames'][0]}..{s['frames'][1]} "
-               f"({', '.join(f'{c}: {n}' for c, n in s['per_camera'].items())}) in {s['time_s']:.1f} s "
+    click.echo(f"{s.detections} particle images in frames {s.frames[0]}..{s.frames[1]} "
+               f"({', '.join(f'{c}: {n}' for c, n in s.per_camera.items())}) in {s.time_s:.1f} s "
                f"-> {out / 'particles.parquet'}")
 
 
@@ -698,11 +698,11 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
                            frames_per_partition=frames_per_partition)
     s = reconstruct_particles(dataset, calibration, out, options, detections_path=detections, workers=workers,
                               scheduler=scheduler, progress=True)
-    gap = "n/a" if s["mean_ray_gap_mm"] is None else f"{s['mean_ray_gap_mm']:.4f} mm"
-    click.echo(f"{s['particles']} particles in {len(s['frames'])} frames, {100 * s['matched_fraction']:.1f} % of "
-               f"the particle images matched, mean ray gap {gap}, {s['time_s']:.1f} s "
-               f"({s['particles_per_second']:.0f} particles/s)"
-               + (f", {len(s['partitions']['skipped'])} partitions resumed" if s["partitions"]["skipped"] else ""))
+    gap = "n/a" if s.mean_ray_gap_mm is None else f"{s.mean_ray_gap_mm:.4f} mm"
+    click.echo(f"{s.particles} particles in {len(s.frames)} frames, {100 * s.matched_fraction:.1f} % of "
+               f"the particle images matched, mean ray gap {gap}, {s.time_s:.1f} s "
+               f"({s.particles_per_second:.0f} particles/s)"
+               + (f", {len(s.partitions_skipped)} partitions resumed" if s.partitions_skipped else ""))
     click.echo(f"particles: {out / 'particles3d.parquet'}\nsummary:   {out / 'particles3d.json'}")
 
 
