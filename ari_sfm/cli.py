@@ -768,15 +768,15 @@ def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: 
     r = self_calibrate_dataset(dataset, calibration, out, options, detections_path=detections, frames=frames,
                                depth_range_mm=None if depth_range is None else tuple(depth_range), workers=workers,
                                scheduler=scheduler)
-    for name, d in r.report["disparity_rms_px"].items():
-        click.echo(f"{name}: disparity RMS {d['before']:.3f} px -> {d['after']:.3f} px, rotated "
-                   f"{r.report['rotation_change_deg'][name]:.4f} deg")
-    if not r.report["converged"]:
+    for name, d in r.report.disparity_rms_px.items():
+        click.echo(f"{name}: disparity RMS {d.before:.3f} px -> {d.after:.3f} px, rotated "
+                   f"{r.report.rotation_change_deg[name]:.4f} deg")
+    if not r.report.converged:
         click.echo("warning: the disparities did not fall to a common noise level (see self_calibration.rounds in "
                    "calibration.json): the first round's peak may have been ghosts; try more --frames or "
                    "--coarse-frames")
-    click.echo(f"{len(r.rounds)} rounds, {r.report['particles_used']} particles in {len(r.report['frames'])} frames; "
-               f"scale held: {r.report['scale']['how']} ({r.report['scale']['sum_mm']:.3f} mm)")
+    click.echo(f"{len(r.rounds)} rounds, {r.report.particles_used} particles in {len(r.report.frames)} frames; "
+               f"scale held: {r.report.scale_how} ({r.report.scale_sum_mm:.3f} mm)")
     click.echo(f"calibration: {out / 'calibration.json'}\ndisparity:   {out / 'disparity.json'}")
 
 
