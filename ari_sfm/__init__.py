@@ -3,7 +3,7 @@
     import ari_sfm
     dataset = ari_sfm.load_dataset("datasets/sample")
     calibration = ari_sfm.calibrate(dataset, model="ari")   # or "exact"
-    calibration.save("out/calibration.json")
+    ari_sfm.save_calibration(calibration, "out/calibration.json")
     ari_sfm.evaluate(ari_sfm.load_calibration("out/calibration.json"), dataset)
     points = ari_sfm.reconstruct(dataset, calibration)          # frames seen by >= 2 cameras
     X, gap_mm, rmse_px = ari_sfm.triangulate_pixels(calibration, {"cam0": uv0, "cam1": uv1})  # PTV tracks
@@ -25,11 +25,11 @@ from . import _startup  # noqa: E402
 _startup.guard_loading()  # Ctrl-C while `ari-sfm` loads: "interrupted", exit 130 (no traceback)
 
 from .calibrate import CalibrationOptions, calibrate  # noqa: E402
-from .calibration import Calibration, CameraCalibration, load_calibration  # noqa: E402
+from .calibration import Calibration, CameraCalibration  # noqa: E402
 from .compare import compare  # noqa: E402
 from .errors import AriSfmError  # noqa: E402
 from .evaluate import evaluate  # noqa: E402
-from .io import load_dataset, load_observations  # noqa: E402
+from .io import load_calibration, load_dataset, load_observations, save_calibration  # noqa: E402
 from .reconstruct import Points, reconstruct  # noqa: E402
 from .records import Dataset, Interface, Observation, Target  # noqa: E402
 from .triangulate import triangulate_pixels  # noqa: E402
@@ -58,6 +58,6 @@ def __getattr__(name: str):
 __all__ = [
     "AriSfmError", "Calibration", "CalibrationOptions", "CameraCalibration", "Dataset", "Interface",
     "Observation", "Points", "Target", "calibrate", "compare", "evaluate", "load_calibration", "load_dataset",
-    "load_observations", "reconstruct", "refine_colmap", "triangulate_pixels", "RigGraph", "RigState", "keys",
+    "load_observations", "reconstruct", "refine_colmap", "save_calibration", "triangulate_pixels", "RigGraph", "RigState", "keys",
     "marginal_covariances",
 ]

@@ -323,7 +323,7 @@ def report_cmd(out: Path, dataset: Path | None) -> None:
 @user_errors
 def evaluate_cmd(calibration: Path, observations: Path, solve_poses: bool) -> None:
     """Reprojection errors of CALIBRATION on an OBSERVATIONS file (e.g. held-out views)."""
-    from .calibration import load_calibration
+    from .io import load_calibration
     from .evaluate import evaluate, evaluate_held_out
 
     cal = load_calibration(calibration)
@@ -381,10 +381,10 @@ def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | N
         click.echo(f"vs truth: rms {t.aligned_rms_mm:.4f} mm after rigid alignment (max {t.aligned_max_mm:.4f}), "
                    f"{t.unaligned_rms_mm:.4f} mm without")
     if m.reference:
-        ref, reg = m.reference, m.reference["registration"]
-        click.echo(f"vs reference {ref['kind']}: distance rms {ref['distance_mm']['rms']:.4f} mm, max "
-                   f"{ref['distance_mm']['max']:.4f} mm after registration (rotation {reg['rotation_deg']:.3f} deg, "
-                   f"translation {reg['translation_mm']:.3f} mm)")
+        ref, reg = m.reference, m.reference.registration
+        click.echo(f"vs reference {ref.kind}: distance rms {ref.distance_mm.rms:.4f} mm, max "
+                   f"{ref.distance_mm.max:.4f} mm after registration (rotation {reg.rotation_deg:.3f} deg, "
+                   f"translation {reg.translation_mm:.3f} mm)")
     click.echo(f"points:  {r.points_path}\nmetrics: {r.metrics_path}\nclouds:  {r.clouds['all'].parent}")
 
 
@@ -481,10 +481,8 @@ def sfm_cmd(images: Path, window: Path, out: Path, matcher: str, overlap: int, f
         matcher=matcher, overlap=overlap, max_features=max_features, focal_px=focal_px, baseline=baseline,
         huber_px=huber_px, max_iterations=max_iterations, num_threads=threads, progress=True))
     report = result.refine.report
-    rms = ""
-    if isinstance(report, dict) and "before" in report and "after" in report:
-        rms = (f"; reprojection RMS {report['before']['rms_px']:.3f} px (COLMAP pinhole) -> "
-               f"{report['after']['rms_px']:.3f} px (exact)")
+    rms = (f"; reprojection RMS {report.before.rms_px:.3f} px (COLMAP pinhole) -> "
+           f"{report.after.rms_px:.3f} px (exact)")
     click.echo(f"COLMAP: {result.registered} of {result.images} images registered, {result.points3D} points "
                f"-> {result.colmap_model}")
     click.echo(f"refine-colmap{rms} -> {result.refined}")
@@ -507,9 +505,8 @@ _units_option = click.option("--units-mm", type=float, default=1000.0, show_defa
 @user_errors
 def export_colmap_fork_cmd(calibration: Path, out: Path, dataset: Path | None, units_mm: float) -> None:
     """Write an exact CALIBRATION as a model of the refractive COLMAP fork (colmap_underwater, FLATPORT cameras)."""
-    from .calibration import load_calibration
     from .colmap_fork import export_colmap_fork
-    from .io import load_dataset, load_observations
+    from .io import load_calibration, load_dataset, load_observations
 
     check_output_folder(out)
     check_number("--units-mm", units_mm, minimum=0.0, strict_minimum=True)
@@ -536,13 +533,14 @@ def import_colmap_fork_cmd(model_dir: Path, out: Path, units_mm: float) -> None:
     """Read the FLATPORT cameras of a refractive COLMAP fork text model (MODEL_DIR/cameras.txt, images.txt) as
     an exact-model calibration.json."""
     from .colmap_fork import import_colmap_fork
+    from .io import save_calibration
 
     check_output_folder(out)
     check_number("--units-mm", units_mm, minimum=0.0, strict_minimum=True)
     if out.resolve() == model_dir.resolve():
         raise AriSfmError(out, "-o/--out: is the input model folder (choose another folder)")
     cal = import_colmap_fork(model_dir, units_mm)
-    cal.save(out / "calibration.json")
+    save_calibration(cal, out / "calibration.json")
     click.echo(f"{len(cal.cameras)} camera(s) ({', '.join(cal.cameras)}), window {cal.interface.thickness_mm:g} mm "
                f"n={cal.interface.index:g} medium n={cal.interface.medium_index:g} -> {out / 'calibration.json'}")
 
@@ -666,8 +664,8 @@ def detect_particles_cmd(dataset: Path, out: Path, diameter_px: float | None, th
     s = detect_experiment(dataset, out, DetectOptions(diameter_px=diameter_px, threshold_sigma=threshold_sigma),
                           frames_per_partition=frames_per_partition, workers=workers, scheduler=scheduler,
                           progress=True)
-    click.echo(f"{s['detections']} particle images in frames {s['frames'][0]}..{s['frames'][1]} "
-               f"({', '.join(f'{c}: {n}' for c, n in s['per_camera'].items())}) in {s['time_s']:.1f} s "
+    click.echo(f"{s.detections} particle images in frames {s.frames[0]}..{s.frames[1]} "
+               f"({', '.join(f'{c}: {n}' for c, n in s.per_camera.items())}) in {s.time_s:.1f} s "
                f"-> {out / 'particles.parquet'}")
 
 
@@ -708,11 +706,11 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
                            frames_per_partition=frames_per_partition)
     s = reconstruct_particles(dataset, calibration, out, options, detections_path=detections, workers=workers,
                               scheduler=scheduler, progress=True)
-    gap = "n/a" if s["mean_ray_gap_mm"] is None else f"{s['mean_ray_gap_mm']:.4f} mm"
-    click.echo(f"{s['particles']} particles in {len(s['frames'])} frames, {100 * s['matched_fraction']:.1f} % of "
-               f"the particle images matched, mean ray gap {gap}, {s['time_s']:.1f} s "
-               f"({s['particles_per_second']:.0f} particles/s)"
-               + (f", {len(s['partitions']['skipped'])} partitions resumed" if s["partitions"]["skipped"] else ""))
+    gap = "n/a" if s.mean_ray_gap_mm is None else f"{s.mean_ray_gap_mm:.4f} mm"
+    click.echo(f"{s.particles} particles in {len(s.frames)} frames, {100 * s.matched_fraction:.1f} % of "
+               f"the particle images matched, mean ray gap {gap}, {s.time_s:.1f} s "
+               f"({s.particles_per_second:.0f} particles/s)"
+               + (f", {len(s.partitions_skipped)} partitions resumed" if s.partitions_skipped else ""))
     click.echo(f"particles: {out / 'particles3d.parquet'}\nsummary:   {out / 'particles3d.json'}")
 
 
@@ -778,15 +776,15 @@ def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: 
     r = self_calibrate_dataset(dataset, calibration, out, options, detections_path=detections, frames=frames,
                                depth_range_mm=None if depth_range is None else tuple(depth_range), workers=workers,
                                scheduler=scheduler)
-    for name, d in r.report["disparity_rms_px"].items():
-        click.echo(f"{name}: disparity RMS {d['before']:.3f} px -> {d['after']:.3f} px, rotated "
-                   f"{r.report['rotation_change_deg'][name]:.4f} deg")
-    if not r.report["converged"]:
+    for name, d in r.report.disparity_rms_px.items():
+        click.echo(f"{name}: disparity RMS {d.before:.3f} px -> {d.after:.3f} px, rotated "
+                   f"{r.report.rotation_change_deg[name]:.4f} deg")
+    if not r.report.converged:
         click.echo("warning: the disparities did not fall to a common noise level (see self_calibration.rounds in "
                    "calibration.json): the first round's peak may have been ghosts; try more --frames or "
                    "--coarse-frames")
-    click.echo(f"{len(r.rounds)} rounds, {r.report['particles_used']} particles in {len(r.report['frames'])} frames; "
-               f"scale held: {r.report['scale']['how']} ({r.report['scale']['sum_mm']:.3f} mm)")
+    click.echo(f"{len(r.rounds)} rounds, {r.report.particles_used} particles in {len(r.report.frames)} frames; "
+               f"scale held: {r.report.scale_how} ({r.report.scale_sum_mm:.3f} mm)")
     click.echo(f"calibration: {out / 'calibration.json'}\ndisparity:   {out / 'disparity.json'}")
 
 
@@ -981,24 +979,24 @@ def refine_colmap_cmd(model_dir: Path, window: Path, out: Path, huber_px: float,
                            plane_path=window, window_path=window)
     write_refined(result, out)
     r = result.report
-    u = r["uncertainty"]
-    click.echo(f"refine-colmap: {r['counts']['images']} images, {r['counts']['points3D']} points, "
-               f"{r['iterations']} iterations ({'converged' if r['converged'] else 'NOT converged'}), "
-               f"{r['time_s']:.1f} s; reprojection RMS {r['before']['rms_px']:.3f} px "
-               f"(COLMAP pinhole) -> {r['after']['rms_px']:.3f} px (exact)")
-    for name in u["distance_mm"] | u["normal_deg"]:
-        d = r["window"]["distance_mm"].get(name) if "distance_mm" in r["window"] else r["window"]["plane_mm"]
-        parts = [f"distance {d:.2f} +- {u['distance_mm'][name]:.2g} mm" if name in u["distance_mm"] else "",
-                 f"normal +- {u['normal_deg'][name]:.2g} deg" if name in u["normal_deg"] else ""]
+    u = r.uncertainty
+    click.echo(f"refine-colmap: {r.counts.images} images, {r.counts.points3D} points, "
+               f"{r.iterations} iterations ({'converged' if r.converged else 'NOT converged'}), "
+               f"{r.time_s:.1f} s; reprojection RMS {r.before.rms_px:.3f} px "
+               f"(COLMAP pinhole) -> {r.after.rms_px:.3f} px (exact)")
+    for name in u.distance_mm | u.normal_deg:
+        d = r.window.distance_of(name)
+        parts = [f"distance {d:.2f} +- {u.distance_mm[name]:.2g} mm" if name in u.distance_mm else "",
+                 f"normal +- {u.normal_deg[name]:.2g} deg" if name in u.normal_deg else ""]
         click.echo(f"  window {name}: " + ", ".join(p for p in parts if p) + " (1 sigma)")
-    if u["scale_rel"] is not None:
-        click.echo(f"  scale: +- {100 * u['scale_rel']:.2g} % (1 sigma)"
-                   + (f"; scale bar {r['scale_bar']['refined_mm']:.6g} mm (declared {r['scale_bar']['declared_mm']:.6g})"
-                      if "scale_bar" in r else ""))
-    if u["weak"]:
-        click.echo(f"  barely determined by these images: {', '.join(u['weak'])} (see the warnings)")
+    if u.scale_rel is not None:
+        click.echo(f"  scale: +- {100 * u.scale_rel:.2g} % (1 sigma)"
+                   + (f"; scale bar {r.scale_bar.refined_mm:.6g} mm (declared {r.scale_bar.declared_mm:.6g})"
+                      if r.scale_bar is not None else ""))
+    if u.weak:
+        click.echo(f"  barely determined by these images: {', '.join(u.weak)} (see the warnings)")
     click.echo(f"  COLMAP cameras written as their best "
-               f"{r['pinhole_approximation']['camera_model']} approximation ({r['pinhole_approximation']['rms_px']:.3f} px) "
+               f"{r.pinhole_approximation.model} approximation ({r.pinhole_approximation.rms_px:.3f} px) "
                f"-> {out}")
 
 

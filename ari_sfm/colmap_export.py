@@ -51,7 +51,8 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from .calibration import Calibration, load_calibration
+from .calibration import Calibration
+from .io import load_calibration
 from .deps import import_pycolmap
 from .errors import AriSfmError
 from .geometry import Pose

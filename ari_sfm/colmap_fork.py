@@ -42,7 +42,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .calibration import Calibration, CameraCalibration, load_calibration
+from .calibration import Calibration, CameraCalibration
+from .io import load_calibration
 from .errors import AriSfmError
 from .geometry import Pose, angle_between_deg
 from .records import Interface, Observation

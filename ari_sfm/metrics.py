@@ -60,6 +60,7 @@ from .deps import require_open3d
 from .errors import AriSfmError
 from .points import FramePoints, Points
 from .records import Target
+from .reference import ReferenceErrors
 
 log = logging.getLogger(__name__)
 
@@ -292,7 +293,7 @@ class ReconstructionMetrics:
     inter_corner_mm: InterCorner | None  # None for targets without a corner grid
     truth: TruthErrors | None  # only given a truth
     frames: Mapping[str, FrameMetrics] = field(default_factory=dict)
-    reference: Mapping[str, Any] | None = None  # only given a reference geometry: ari_sfm.reference.reference_errors
+    reference: ReferenceErrors | None = None  # only given a reference geometry: ari_sfm.reference.reference_errors
 
     def to_json(self) -> dict[str, Any]:
         out = {"num_points": self.num_points, "num_frames": self.num_frames, "ray_gap_mm": self.ray_gap_mm.to_json(),
@@ -302,7 +303,7 @@ class ReconstructionMetrics:
                "truth": None if self.truth is None else self.truth.to_json(),
                "frames": {f: m.to_json() for f, m in self.frames.items()}}
         if self.reference is not None:
-            out["reference"] = dict(self.reference)
+            out["reference"] = self.reference.to_json()
         return out
 
     @classmethod
@@ -313,7 +314,8 @@ class ReconstructionMetrics:
                    None if d["stage"] is None else StageMetrics.from_json(d["stage"]),
                    None if d["inter_corner_mm"] is None else InterCorner.from_json(d["inter_corner_mm"]),
                    None if d["truth"] is None else TruthErrors.from_json(d["truth"]),
-                   {f: FrameMetrics.from_json(m) for f, m in d["frames"].items()}, d.get("reference"))
+                   {f: FrameMetrics.from_json(m) for f, m in d["frames"].items()},
+                   None if d.get("reference") is None else ReferenceErrors.from_json(d["reference"]))
 
 
 # --------------------------------------------------------------------------- planes

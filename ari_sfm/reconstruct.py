@@ -200,7 +200,7 @@ def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, o
     them on), not read again.
     """
     from .detection import ensure_observations
-    from .calibration import load_calibration
+    from .io import load_calibration
     from .io import load_dataset, save_observations, write_json_atomic
     from .metrics import reconstruction_metrics, save_point_clouds
     from .provenance import provenance

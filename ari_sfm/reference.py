@@ -18,10 +18,10 @@
    for a cloud, the distance to the nearest reference point (which includes
    the cloud's sampling: use a mesh where one exists).
 
-Returned (JSON-able, lengths in mm): ``{"path", "kind": "mesh" | "cloud",
-"count", "registration": {"reference_from_world": 4x4, "rotation_deg",
-"translation_mm", "fitness", "inlier_rmse_mm"}, "distance_mm": {"mean",
-"rms", "max", "p95"}, "frames": {name: {"rms", "max"}}}``.
+Returned: a :class:`ReferenceErrors` (lengths in mm); its ``to_json()`` is metrics.json's
+``reference``: ``{"path", "kind": "mesh" | "cloud", "count", "registration": {"reference_from_world": 4x4,
+"rotation_deg", "translation_mm", "fitness", "inlier_rmse_mm"}, "distance_mm": {"mean", "rms", "max",
+"p95"}, "frames": {name: {"rms", "max"}}}``.
 
 Limits: what the reference's shape does not fix, registration cannot
 recover. For faces that are all parallel (a board moved along a stage), the
@@ -33,8 +33,9 @@ the faces. The registration absorbs any rigid error of the reconstruction
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -49,6 +50,78 @@ ICP_ITERATIONS = 100  # per stage
 SAMPLES_PER_POINT = 20  # mesh samples for ICP per reconstructed point (at least MIN_SAMPLES)
 MIN_SAMPLES = 50_000
 SEED = 0  # Open3D's sampling is seeded: the same inputs give the same figures
+
+
+@dataclass(frozen=True)
+class Registration:
+    """The rigid motion that puts the reconstruction on the reference, and ICP's figures."""
+
+    reference_from_world: np.ndarray  # (4, 4), mm
+    rotation_deg: float
+    translation_mm: float
+    fitness: float  # ICP's fraction of points with a correspondence
+    inlier_rmse_mm: float
+
+    def to_json(self) -> dict[str, Any]:
+        return {"reference_from_world": np.asarray(self.reference_from_world, float).tolist(),
+                "rotation_deg": self.rotation_deg, "translation_mm": self.translation_mm,
+                "fitness": self.fitness, "inlier_rmse_mm": self.inlier_rmse_mm}
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "Registration":
+        return cls(np.asarray(d["reference_from_world"], float), float(d["rotation_deg"]),
+                   float(d["translation_mm"]), float(d["fitness"]), float(d["inlier_rmse_mm"]))
+
+
+@dataclass(frozen=True)
+class SurfaceDistances:
+    """Point-to-surface distances after registration (mm)."""
+
+    mean: float
+    rms: float
+    max: float
+    p95: float
+
+    def to_json(self) -> dict[str, float]:
+        return {"mean": self.mean, "rms": self.rms, "max": self.max, "p95": self.p95}
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "SurfaceDistances":
+        return cls(float(d["mean"]), float(d["rms"]), float(d["max"]), float(d["p95"]))
+
+
+@dataclass(frozen=True)
+class FrameDistances:
+    """One frame's point-to-surface distances (mm)."""
+
+    rms: float
+    max: float
+
+    def to_json(self) -> dict[str, float]:
+        return {"rms": self.rms, "max": self.max}
+
+
+@dataclass(frozen=True)
+class ReferenceErrors:
+    """What :func:`reference_errors` measures: metrics.json's ``reference`` (``to_json``/``from_json``)."""
+
+    path: str  # the reference file, absolute
+    kind: str  # "mesh" or "cloud"
+    count: int  # reconstructed points registered
+    registration: Registration
+    distance_mm: SurfaceDistances
+    frames: Mapping[str, FrameDistances] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"path": self.path, "kind": self.kind, "count": self.count,
+                "registration": self.registration.to_json(), "distance_mm": self.distance_mm.to_json(),
+                "frames": {n: f.to_json() for n, f in self.frames.items()}}
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "ReferenceErrors":
+        return cls(str(d["path"]), str(d["kind"]), int(d["count"]), Registration.from_json(d["registration"]),
+                   SurfaceDistances.from_json(d["distance_mm"]),
+                   {n: FrameDistances(float(f["rms"]), float(f["max"])) for n, f in d["frames"].items()})
 
 
 MAX_COORDINATE_MM = 1e7  # a reference coordinate beyond 10 km is not in mm (or not a coordinate)
@@ -188,7 +261,7 @@ def _refine_point_to_plane(closest: Any, xyz: np.ndarray, T: np.ndarray, max_dis
     return out
 
 
-def reference_errors(points: Points, path: str | Path) -> dict[str, Any]:
+def reference_errors(points: Points, path: str | Path) -> ReferenceErrors:
     """Register the reconstruction onto the reference at ``path`` and measure point-to-surface distances."""
     o3d = require_open3d()
     geometry, kind = load_reference(path)
@@ -264,23 +337,18 @@ def reference_errors(points: Points, path: str | Path) -> dict[str, Any]:
     world_to_ref[:3, :3] = T[:3, :3]
     world_to_ref[:3, 3] = T[:3, 3] + origin  # undo the working shift
     angle = float(np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
-    frames: dict[str, dict[str, float]] = {}
+    frames: dict[str, FrameDistances] = {}
     start = 0
     for n in names:
         k = len(points.frames[n])
         fd = d[start:start + k]
         start += k
-        frames[n] = {"rms": float(np.sqrt(np.mean(fd**2))), "max": float(fd.max())}
+        frames[n] = FrameDistances(float(np.sqrt(np.mean(fd**2))), float(fd.max()))
     log.info("reference %s: %d points registered (fitness %.3f), distance rms %.4f mm", path, len(xyz),
              result.fitness, float(np.sqrt(np.mean(d**2))))
-    return {
-        "path": str(Path(path).resolve()),
-        "kind": kind,
-        "count": int(len(xyz)),
-        "registration": {"reference_from_world": world_to_ref.tolist(), "rotation_deg": angle,
-                         "translation_mm": float(np.linalg.norm(world_to_ref[:3, 3])),
-                         "fitness": float(result.fitness), "inlier_rmse_mm": float(result.inlier_rmse)},
-        "distance_mm": {"mean": float(d.mean()), "rms": float(np.sqrt(np.mean(d**2))), "max": float(d.max()),
-                        "p95": float(np.percentile(d, 95))},
-        "frames": frames,
-    }
+    return ReferenceErrors(
+        str(Path(path).resolve()), kind, int(len(xyz)),
+        Registration(world_to_ref, angle, float(np.linalg.norm(world_to_ref[:3, 3])), float(result.fitness),
+                     float(result.inlier_rmse)),
+        SurfaceDistances(float(d.mean()), float(np.sqrt(np.mean(d**2))), float(d.max()), float(np.percentile(d, 95))),
+        frames)

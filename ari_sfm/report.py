@@ -45,9 +45,11 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from .calibration import Calibration, load_calibration
+from .calibration import Calibration
 from .errors import AriSfmError
+from .io import load_calibration
 from .records import Dataset, Observation, Target
+from .reference import ReferenceErrors
 
 log = logging.getLogger(__name__)
 
@@ -202,7 +204,10 @@ figcaption{font-size:0.9em;color:#444;margin-top:0.3em}
 .info{color:#555;font-style:italic}
 ul.advice li{margin:0.25em 0}
 h2{border-bottom:1px solid #ccc;padding-bottom:0.15em;margin-top:1.6em;break-after:avoid}
-@media print{body{max-width:none;margin:0;padding:0}#rig-3d-section{break-inside:avoid}}
+thead{display:table-header-group}
+tr,figure,img{break-inside:avoid}
+h2,h3{break-after:avoid}
+@media print{body{max-width:none;margin:0;padding:0}#rig-3d-section{break-inside:avoid}img,figure,table,.js-plotly-plot{max-width:100%}}
 """
 
 
@@ -224,7 +229,7 @@ def _table(header: list[str], rows: list[list[Any]], digits: int = 4) -> str:
         return f'<td class="n">{_fmt(v, digits)}</td>' if num else f"<td>{_fmt(v, digits)}</td>"
 
     body = "".join("<tr>" + "".join(cell(v) for v in r) + "</tr>" for r in rows)
-    return f"<table><tr>{head}</tr>{body}</table>"
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"  # thead: repeated on each printed page
 
 
 def _img(png: bytes, alt: str, caption: str) -> str:
@@ -352,7 +357,7 @@ def _summary_section(ctx: ReportContext) -> str:
                                            f"over {r.count} corners"])
     if cal.uncertainty is not None:
         rows.append(["residual sigma", f"{cal.uncertainty.sigma_px:.4f} px (scales the standard deviations below)"])
-    return "<h2>Dataset and rig</h2>" + _table(["", ""], rows).replace("<tr><th></th><th></th></tr>", "", 1)
+    return "<h2>Dataset and rig</h2>" + _table(["", ""], rows).replace("<thead><tr><th></th><th></th></tr></thead>", "", 1)
 
 
 def _advice_section(ctx: ReportContext) -> str:
@@ -517,10 +522,9 @@ def _reconstruction_rows(m: Mapping[str, Any]) -> list[list[Any]]:
         rows.append(["3D error vs the truth as reconstructed (mm)", None, t["unaligned"]["rms_mm"],
                      t["unaligned"]["max_mm"]])
     if m.get("reference"):
-        ref = m["reference"]
-        rows.append([f"3D error vs reference {ref['kind']} {Path(ref['path']).name}: distance to its surface after "
-                     "registration (mm)",
-                     ref["distance_mm"]["mean"], ref["distance_mm"]["rms"], ref["distance_mm"]["max"]])
+        ref = ReferenceErrors.from_json(m["reference"])
+        rows.append([f"3D error vs reference {ref.kind} {Path(ref.path).name}: distance to its surface after "
+                     "registration (mm)", ref.distance_mm.mean, ref.distance_mm.rms, ref.distance_mm.max])
     return rows
 
 

@@ -30,6 +30,15 @@ log = logging.getLogger(__name__)
 
 RAY_GRID = (4, 3)  # pixels per camera: columns x rows, inset from the image border
 RAY_INSET = 0.08  # share of the image width / height left out at each border
+PRINT_WIDTH_PX = 680  # the view's width while printing: fits A4 and Letter at the browser's default margins
+# The view keeps the pixel width it was drawn at on screen: printed from a wide window it would stick out of the
+# page and Chromium would shrink the whole report to fit it. Redrawn at PRINT_WIDTH_PX for the print (beforeprint
+# runs before the print layout; Plotly.relayout draws synchronously), back to the window's width after it.
+PRINT_FIT_SCRIPT = (
+    "<script>(function(){var d=document.getElementById('rig-3d');if(!d||!window.Plotly)return;"
+    "window.addEventListener('beforeprint',function(){Plotly.relayout(d,{width:%d});});"
+    "window.addEventListener('afterprint',function(){Plotly.relayout(d,{width:null,autosize:true});});})();</script>"
+    % PRINT_WIDTH_PX)
 RAY_COLOURS = ("#d62728", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#bcbd22")  # per camera
 MAX_POINTS = 20000  # reconstructed points drawn (an even subsample beyond)
 
@@ -160,4 +169,4 @@ def rig_view_html(calibration: Calibration, points: Mapping[str, np.ndarray],
     """The view as an HTML fragment (a div and its scripts; plotly.js inlined unless told otherwise)."""
     fig = rig_view_figure(calibration, points, boards)
     return fig.to_html(full_html=False, include_plotlyjs=include_plotlyjs, div_id="rig-3d",
-                       config={"displaylogo": False, "responsive": True})
+                       config={"displaylogo": False, "responsive": True}) + PRINT_FIT_SCRIPT

@@ -24,11 +24,14 @@ import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .errors import AriSfmError
+
+if TYPE_CHECKING:
+    from .colmap_refine.refine import RefineResult
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +66,7 @@ class SfmResult:
     colmap_model: Path  # COLMAP's own (pinhole) model
     refined: Path  # refine-colmap's outputs
     summary_path: Path  # sfm.json
-    refine: Any  # the RefineResult
+    refine: RefineResult  # its report: refine.json's record (RefineResult.report)
 
 
 def list_images(folder: Path) -> list[Path]:

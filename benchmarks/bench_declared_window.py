@@ -24,6 +24,7 @@ import numpy as np
 
 from ari_sfm.calibrate import calibrate
 from ari_sfm.calibration import Calibration
+from ari_sfm.io import parse_calibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import rotation_from_rotvec
 from ari_sfm.init.zhang import object_points
@@ -68,7 +69,7 @@ def main() -> None:
     for seed in a.seeds:
         scene = make_scene("ptv_multiplane", seed=seed, sigma_px=0.0)
         ds = scene.dataset
-        truth = Calibration.from_json({k: v for k, v in scene.truth.items() if k != "target"})
+        truth = parse_calibration({k: v for k, v in scene.truth.items() if k != "target"})
         for plane in range(4):
             train = without_plane(ds, plane)
             cells = []

@@ -26,6 +26,7 @@ import numpy as np  # noqa: E402
 
 import test_openptv as T  # noqa: E402
 from ari_sfm.openptv import export_openptv  # noqa: E402
+from ari_sfm.io import save_calibration
 
 CASES = (
     ("water, no distortion, pp off-centre", (0,) * 5, False, 1.333),
@@ -42,7 +43,7 @@ def main() -> None:
         folder = Path(tempfile.mkdtemp())
         cal = T.simulated_calibration(dist0, centred=centred, medium=medium,
                                       distance=None if medium == 1.0 else 300.0)
-        cal.save(folder / "calibration.json")
+        save_calibration(cal, folder / "calibration.json")
         start = time.perf_counter()
         summary = export_openptv(folder / "calibration.json", folder / "optv")
         elapsed_ms = 1e3 * (time.perf_counter() - start)

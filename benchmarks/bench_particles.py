@@ -62,7 +62,7 @@ def openptv(exp, calibration_path: Path, folder: Path, volume: Volume) -> tuple[
     from optv.parameters import ControlParams, VolumeParams
     from optv.tracking_framebuf import TargetArray
 
-    from ari_sfm.calibration import load_calibration
+    from ari_sfm.io import load_calibration
     from ari_sfm.openptv import export_openptv
 
     export_openptv(calibration_path, folder, frame="f000")
@@ -141,8 +141,8 @@ def dask_speedup(folder: Path, frames: int) -> None:
     s = reconstruct_particles(folder / "experiment", folder / "truth" / "rig_b.json", Path(tempfile.mkdtemp()),
                               MatchOptions(frames_per_partition=1), workers=0)
     wall, cpu = time.perf_counter() - t, time.process_time() - cpu
-    print(f"in process (--workers 0): {s['particles']} particles in {frames} frames in {wall:.1f} s wall, "
-          f"{s['particles'] / wall:.0f} particles/s (CPU {cpu:.1f} s: {s['particles'] / cpu:.0f} per CPU second)")
+    print(f"in process (--workers 0): {s.particles} particles in {frames} frames in {wall:.1f} s wall, "
+          f"{s.particles / wall:.0f} particles/s (CPU {cpu:.1f} s: {s.particles / cpu:.0f} per CPU second)")
     walls = {}
     for workers in (1, 2):
         t0 = time.perf_counter()
@@ -157,9 +157,9 @@ def dask_speedup(folder: Path, frames: int) -> None:
                                       MatchOptions(frames_per_partition=1), scheduler=cluster.scheduler_address)
             walls[workers] = time.perf_counter() - t
             cpu = sum(client.run(time.process_time).values()) - cpu0
-        print(f"dask LocalCluster {workers} worker(s): start {started:.1f} s; {s['particles']} particles in {frames} "
-              f"frames in {walls[workers]:.1f} s wall, {s['particles'] / walls[workers]:.0f} particles/s "
-              f"(workers' CPU {cpu:.1f} s: {s['particles'] / cpu:.0f} particles per CPU second)")
+        print(f"dask LocalCluster {workers} worker(s): start {started:.1f} s; {s.particles} particles in {frames} "
+              f"frames in {walls[workers]:.1f} s wall, {s.particles / walls[workers]:.0f} particles/s "
+              f"(workers' CPU {cpu:.1f} s: {s.particles / cpu:.0f} particles per CPU second)")
     print(f"speed-up 1 -> 2 workers: {walls[1] / walls[2]:.2f}x (2 cores shared with other work: load average "
           f"{os.getloadavg()[0]:.1f})")
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from ari_sfm.calibration import Calibration
+from ari_sfm.io import parse_calibration
 from ari_sfm.geometry import rotation_from_rotvec
 from ari_sfm.reconstruct import reconstruct
 from ari_sfm.reference import reference_errors
@@ -32,7 +32,7 @@ T_KNOWN = np.array([40.0, -25.0, 300.0])
 
 def main() -> None:
     scene = make_scene("binocular", seed=0)
-    cal = Calibration.from_json(scene.truth, "truth.json")
+    cal = parse_calibration(scene.truth, "truth.json")
     obs = tuple(replace(o, set="reconstruction") for o in scene.dataset.observations if o.set == "calibration")
     points = reconstruct(replace(scene.dataset, observations=obs, calibration=(), reconstruction=()), cal)
     target = scene.dataset.target
@@ -61,11 +61,11 @@ def main() -> None:
             t0 = time.perf_counter()
             r = reference_errors(points, path)
             elapsed = time.perf_counter() - t0
-            M = np.array(r["registration"]["reference_from_world"])
+            M = np.array(r.registration.reference_from_world)
             dR = M[:3, :3] @ R_KNOWN.T
             angle = np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))
             print(f"{label:10s} {angle:18.4f} {np.linalg.norm(M[:3, 3] - T_KNOWN):20.4f} "
-                  f"{r['distance_mm']['rms']:9.5f} {r['distance_mm']['max']:9.5f} {elapsed:8.2f}")
+                  f"{r.distance_mm.rms:9.5f} {r.distance_mm.max:9.5f} {elapsed:8.2f}")
 
 
 if __name__ == "__main__":

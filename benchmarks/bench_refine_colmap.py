@@ -99,9 +99,8 @@ def run(num_images: int, num_points: int, focal: float, layout: str = "grid", sp
         result = refine_colmap(start, interface, "camera", scale_bar=bar)
         t_ref.append(time.perf_counter() - t0)
         cpu_ref.append(time.process_time() - c0)
-        lin = result.report["linearizations"]
-        search_obs = sum(c["linearizations"] * c["observations"] for c in result.report["distance_search"])
-        equivalent = lin["final"] + search_obs / len(model.obs_image)  # search evaluations at their size
+        search_obs = sum(c["linearizations"] * c["observations"] for c in result.report.distance_search)
+        equivalent = result.report.linearizations + search_obs / len(model.obs_image)  # search evaluations at their size
         it_ref.append(t_ref[-1] / max(equivalent, 1.0))
     R, t = result.state.cam_from_world(model)
     got = truth_errors(truth, model, result.state.xyz, {int(i): Pose(R[k], t[k]) for k, i in enumerate(model.image_ids)})
@@ -113,23 +112,23 @@ def run(num_images: int, num_points: int, focal: float, layout: str = "grid", sp
           f"track length mean {track.mean():.1f} max {track.max()} (focal {focal:g} px, "
           f"{truth.image_size[0]}x{truth.image_size[1]})")
     print(f"  COLMAP pinhole BA : points {before['points_rms_mm']:.2f} mm RMS, centres {before['centres_rms_mm']:.1f} mm, "
-          f"scale {before['scale_error_pct']:+.2f} %, reprojection {r['before']['rms_px']:.3f} px RMS "
+          f"scale {before['scale_error_pct']:+.2f} %, reprojection {r.before.rms_px:.3f} px RMS "
           f"({start.compute_mean_reprojection_error():.3f} px mean)")
-    u = r["uncertainty"]
-    print(f"  sigmas (1 sigma): normal {u['normal_deg']['camera1']:.3f} deg, distance {u['distance_mm']['camera1']:.2f} mm, "
-          f"scale {100 * u['scale_rel']:.3f} %, fx {u['fx_px']['camera1']:.2f} px; weak: {u['weak'] or 'none'}")
+    u = r.uncertainty
+    print(f"  sigmas (1 sigma): normal {u.normal_deg['camera1']:.3f} deg, distance {u.distance_mm['camera1']:.2f} mm, "
+          f"scale {100 * u.scale_rel:.3f} %, fx {u.fx_px['camera1']:.2f} px; weak: {', '.join(u.weak) or 'none'}")
     print(f"  refine-colmap     : points {got['points_rms_mm']:.2f} mm RMS, centres {got['centres_rms_mm']:.1f} mm, "
           f"scale {got['scale_error_pct']:+.3f} %, normal {got['normal_deg']:.3f} deg, distance "
-          f"{got['distance_mm']:.2f} mm (true 22), reprojection {r['after']['rms_px']:.3f} px RMS "
-          f"(sigma sqrt2 = {0.5 * np.sqrt(2):.3f}), {r['iterations']} iterations, converged {r['converged']}")
-    print(f"  written OPENCV approximation: {r['pinhole_approximation']['rms_px']:.3f} px RMS")
+          f"{got['distance_mm']:.2f} mm (true 22), reprojection {r.after.rms_px:.3f} px RMS "
+          f"(sigma sqrt2 = {0.5 * np.sqrt(2):.3f}), {r.iterations} iterations, converged {r.converged}")
+    print(f"  written OPENCV approximation: {r.pinhole_approximation.rms_px:.3f} px RMS")
     med = {k: float(np.median(v)) for k, v in (("ba", t_ba), ("ref", t_ref), ("it_ba", it_ba), ("it_ref", it_ref))}
     ratio = np.array(t_ref) / np.array(t_ba)
     per_it = np.array(it_ref) / np.array(it_ba)
     print(f"  time ({repeats} alternating runs, median [min-max]): pycolmap BA {med['ba']:.2f} s "
           f"[{min(t_ba):.2f}-{max(t_ba):.2f}], {1e3 * med['it_ba']:.0f} ms/iteration; refine-colmap {med['ref']:.2f} s "
           f"[{min(t_ref):.2f}-{max(t_ref):.2f}], {1e3 * med['it_ref']:.0f} ms/iteration "
-          f"({r['linearizations']['final']} + {r['linearizations']['search']} search linearizations)")
+          f"({r.linearizations} + {r.search_linearizations} search linearizations)")
     print(f"  ratio refine-colmap / pycolmap.bundle_adjustment: whole solve {np.median(ratio):.2f} "
           f"[{ratio.min():.2f}-{ratio.max():.2f}], per iteration {np.median(per_it):.2f} "
           f"[{per_it.min():.2f}-{per_it.max():.2f}]; CPU time (both of Ceres' threads counted) "

@@ -68,13 +68,13 @@ def relative_rotation_deg(cal, truth, name: str) -> float:
 def body_calibration(exp):
     """Rig A calibrated from the simulated body views with the exact model (as `ari-sfm calibrate`)."""
     from ari_sfm.calibrate import calibrate
-    from ari_sfm.calibration import load_calibration
+    from ari_sfm.io import load_calibration, save_calibration
     from ari_sfm.io import load_dataset
 
     folder = Path(tempfile.mkdtemp())
     write_particle_experiment(exp, folder, render_frames=0)
     cal = calibrate(load_dataset(folder / "calibration"), model="exact")
-    cal.save(folder / "cal.json")
+    save_calibration(cal, folder / "cal.json")
     return load_calibration(folder / "cal.json")
 
 
@@ -104,16 +104,17 @@ def main() -> None:
         res = self_calibrate(start, dict(enumerate(exp.detections)), SelfCalOptions(backend=args.backend),
                              volume=volume)
     wall = time.perf_counter() - t0
-    rounds = res.report["rounds"]
+    rounds = res.report.rounds
     print(f"self-calibration: {wall:.1f} s wall, {len(rounds)} rounds "
-          + ", ".join(f"{r['tolerance_px']:g} px: {r['matches']} matches / {r['inliers']} inliers" for r in rounds))
+          + ", ".join(f"{r.tolerance_px:g} px: {r.matches} matches / {int(r.disparity.inlier.sum())} inliers"
+                     for r in rounds))
     c, a, b = res.calibration, start, exp.truth_b
     print(f"{'camera':7s} {'disp before':>11s} {'disp after':>10s} {'rot err start':>13s} {'rot err after':>13s} "
           f"{'centre err mm':>13s}")
     for k, name in enumerate(b.cameras):
-        d = res.report["disparity_rms_px"][name]
+        d = res.report.disparity_rms_px[name]
         centre = np.linalg.norm(c.cameras[name].cam_from_world.inverse().t - b.cameras[name].cam_from_world.inverse().t)
-        print(f"{name:7s} {d['before']:11.3f} {d['after']:10.3f} {relative_rotation_deg(a, b, name):13.4f} "
+        print(f"{name:7s} {d.before:11.3f} {d.after:10.3f} {relative_rotation_deg(a, b, name):13.4f} "
               f"{relative_rotation_deg(c, b, name):13.4f} {centre:13.3f}")
     print(f"{'calibration':15s} {'particles':>9s} {'found':>7s} {'ghosts':>7s} {'right rows':>10s} {'3D rms mm':>10s}"
           " (after a rigid alignment)")

@@ -58,7 +58,7 @@ from bench_calibrate import cv2_baseline  # noqa: E402
 from bench_triangulate import _points_and_pixels  # noqa: E402
 
 from ari_sfm.calibrate import calibrate  # noqa: E402
-from ari_sfm.calibration import Calibration  # noqa: E402
+from ari_sfm.io import parse_calibration, save_calibration  # noqa: E402
 from ari_sfm.simulate import make_scene  # noqa: E402
 
 GOALS = {  # figure: (what the ratio is, goal text, ratio meets the goal)
@@ -129,8 +129,8 @@ def fig_calibrate_4x100(repeats: int) -> None:
 def fig_triangulate(repeats: int, points: int) -> None:
     from ari_sfm.triangulate import triangulate_pixels
 
-    binocular = Calibration.from_json(make_scene("binocular", seed=0, sigma_px=0.0).truth)
-    arc4 = Calibration.from_json(make_scene("arc4", seed=0, sigma_px=0.0).truth)
+    binocular = parse_calibration(make_scene("binocular", seed=0, sigma_px=0.0).truth)
+    arc4 = parse_calibration(make_scene("arc4", seed=0, sigma_px=0.0).truth)
     X2, tracks2 = _points_and_pixels(binocular, points)
     c0, c1 = list(binocular.cameras)
     P = [binocular.cameras[c].K @ np.hstack([binocular.cameras[c].cam_from_world.R,
@@ -251,7 +251,7 @@ def fig_openptv(repeats: int) -> None:
     n_obs = sum(len(o.ids) for o in dataset.observations)
     cal = calibrate(dataset, model="exact")
     folder = Path(tempfile.mkdtemp(prefix="bench_speed_optv_"))
-    cal.save(folder / "calibration.json")
+    save_calibration(cal, folder / "calibration.json")
     summary = export_openptv(folder / "calibration.json", folder / "optv")
     cpar = ControlParams(len(dataset.camera_names))
     cpar.read_control_par(str(folder / "optv" / "parameters" / "ptv.par"))
@@ -308,7 +308,7 @@ def lap(label):
     w0, c0 = w, c
 import numpy as np
 from ari_sfm.calibrate import calibrate
-from ari_sfm.calibration import Calibration
+from ari_sfm.io import parse_calibration
 from ari_sfm.models.exact import exact_project
 from ari_sfm.simulate import make_scene
 from ari_sfm.triangulate import triangulate_pixels
@@ -320,7 +320,7 @@ scene = make_scene("binocular", seed=0)
 lap("make_scene binocular")
 calibrate(scene.dataset, model="exact")
 lap("first calibrate(exact)")
-truth = Calibration.from_json(scene.truth)
+truth = parse_calibration(scene.truth)
 X = np.array([p.t for p in truth.frames.values()])
 triangulate_pixels(truth, {c: truth.project_world(c, X) for c in truth.cameras})
 lap("first triangulate_pixels (exact)")

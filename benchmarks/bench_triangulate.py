@@ -29,7 +29,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import cv2
 import numpy as np
 
-from ari_sfm.calibration import Calibration, load_calibration
+from ari_sfm.calibration import Calibration
+from ari_sfm.io import load_calibration, parse_calibration
 from ari_sfm.io import write_json_atomic
 from ari_sfm.simulate import make_scene
 from ari_sfm.triangulate import triangulate_pixels
@@ -80,7 +81,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     args = ap.parse_args()
 
-    binocular = Calibration.from_json(make_scene("binocular", seed=0, sigma_px=0.0).truth)
+    binocular = parse_calibration(make_scene("binocular", seed=0, sigma_px=0.0).truth)
     with tempfile.TemporaryDirectory() as tmp:  # arc4's truth through the file a user would hold
         path = Path(tmp) / "truth.json"
         write_json_atomic(path, make_scene("arc4", seed=0, sigma_px=0.0).truth)

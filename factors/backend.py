@@ -14,7 +14,7 @@ import logging
 
 from .levenberg_marquardt import LMParams, LMReport
 from .packed_problem import VectorizedProblem
-from .rig_graph import RigGraph, RigState
+from .variables import GraphLike, RigState
 
 log = logging.getLogger(__name__)
 
@@ -22,7 +22,7 @@ BACKENDS = ("gtsam", "numpy", "auto")
 
 
 def optimize_vectorized(
-    rig_graph: RigGraph,
+    rig_graph: GraphLike,
     max_iterations: int = 100,
     relative_tolerance: float = 1e-10,
     huber_px: float | None = None,
@@ -54,7 +54,7 @@ def resolve_backend(backend: str) -> str:
     return "numpy" if backend == "auto" else backend
 
 
-def optimize_graph(rig_graph: RigGraph, backend: str = "auto", max_iterations: int = 100,
+def optimize_graph(rig_graph: GraphLike, backend: str = "auto", max_iterations: int = 100,
                    huber_px: float | None = None, return_problem: bool = False, check: bool = True,
                    stop: str = "converged") -> RigState | tuple[RigState, VectorizedProblem | None]:
     """Optimise a RigGraph with GTSAM (``rig_graph.optimize``) or the numpy backend; same result either way.

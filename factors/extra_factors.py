@@ -11,16 +11,14 @@ frames would break the frames' block-diagonal structure: NotImplementedError
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Sequence
+from typing import Sequence
 
 import gtsam
 import numpy as np
 
 from . import keys as K_
 from .schur import NormalEquations
-
-if TYPE_CHECKING:
-    from .packed_problem import VectorizedProblem, Variables
+from .variables import PackedColumns, Variables
 
 
 class ExtraFactors:
@@ -29,7 +27,7 @@ class ExtraFactors:
     Supported: factors on global variables (K, C, N, H) and at most one frame X(f).
     """
 
-    def __init__(self, problem: "VectorizedProblem", factors: Sequence[gtsam.NonlinearFactor]) -> None:
+    def __init__(self, problem: PackedColumns, factors: Sequence[gtsam.NonlinearFactor]) -> None:
         self.problem = problem
         self.factors = list(factors)
         self.keys = sorted({k for f in self.factors for k in f.keys()})

@@ -9,16 +9,12 @@ graph's factors: physical when they carry the pixel sigma (see
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import gtsam
 import numpy as np
 
 from . import keys as K_
 from .schur import NormalEquations, global_covariance
-
-if TYPE_CHECKING:
-    from .packed_problem import VectorizedProblem
+from .variables import PackedColumns
 
 
 class CovarianceTable:
@@ -35,7 +31,7 @@ class CovarianceTable:
                            "(the numpy backend gives them for K, C, N and H)") from None
 
 
-def covariances_by_key(problem: "VectorizedProblem", sys: NormalEquations) -> dict[int, np.ndarray]:
+def covariances_by_key(problem: PackedColumns, sys: NormalEquations) -> dict[int, np.ndarray]:
     """The marginal covariance of each global variable of a packed problem linearised as ``sys``."""
     cov = global_covariance(sys, problem.fixed_cols)
     out = {}

@@ -47,27 +47,14 @@ from . import keys as K_
 from .extra_factors import ExtraFactors
 from .levenberg_marquardt import LMParams, LMReport, levenberg_marquardt
 from .marginals import CovarianceTable, covariances_by_key
-from .rig_graph import MODELS, RigGraph, RigState
 from .schur import NormalEquations, model_decrease, solve_damped
+from .variables import MODELS, GraphLike, RigState, Variables
 from .view_factor import ViewData, ViewKeys, chain_to_tangents
 
 log = logging.getLogger(__name__)
 
 INVALID_RESIDUAL = 1e6  # what view_residuals puts for a non-finite residual or a camera beyond the window
 _KERNELS = {"ari": ari_project, "exact": exact_project}  # the models' batched projections
-
-
-@dataclass
-class Variables:
-    """The current values of every variable, in numpy (plus the Unit3 normal)."""
-
-    intrinsics: np.ndarray  # (C, n_params)
-    world_R_cam: np.ndarray  # (C, 3, 3); camera 0 is the identity (not a variable)
-    world_t_cam: np.ndarray  # (C, 3)
-    normal: gtsam.Unit3  # the window normal in the world
-    world_R_target: np.ndarray  # (F, 3, 3)
-    world_t_target: np.ndarray  # (F, 3)
-    distance_mm: float | None  # h0: a variable when estimated, else the fixed value (or None)
 
 
 @dataclass(frozen=True)
@@ -144,7 +131,7 @@ class VectorizedProblem:
 
     # ------------------------------------------------------------------ from a graph
     @staticmethod
-    def from_rig_graph(rg: RigGraph, huber_px: float | None = None, check: bool = True) -> "VectorizedProblem":
+    def from_rig_graph(rg: GraphLike, huber_px: float | None = None, check: bool = True) -> "VectorizedProblem":
         """The problem of a built RigGraph at its current values (its view factors and any factors added to it).
 
         Pass the Huber threshold the view factors were built with (``rg.huber_px``
@@ -540,7 +527,7 @@ class VectorizedProblem:
         return CovarianceTable(self.marginal_covariances())
 
     # ------------------------------------------------------------------ consistency with a graph
-    def _check_against(self, rg: RigGraph, worst: int = 3) -> None:
+    def _check_against(self, rg: GraphLike, worst: int = 3) -> None:
         """Compare the residuals of a few factors with GTSAM's (catches a wrong huber_px)."""
         res = self._all_residuals(self.x, self.huber_px)
         rw = res * self.corner_inv_sigma[:, None]

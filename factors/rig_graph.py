@@ -33,35 +33,14 @@ import numpy as np
 
 from ..geometry import Pose, cam_from_world_from_pose3, pose3_from_cam_from_world, pose3_from_pose, pose_from_pose3
 from ..errors import AriSfmError
-from ..models.registry import bundle_factories, model_spec
+from ..models.registry import model_spec
 from ..records import Interface, Observation, Target, WindowPlane
 from . import keys as K_
+from .backend import optimize_graph
+from .variables import MODELS, RigState
 from .view_factor import ViewData, ViewKeys, factor_keys, view_factor, view_residuals
 
 log = logging.getLogger(__name__)
-
-MODELS = bundle_factories()  # the models the graph adjusts: name -> projection class (ari_sfm.models.registry)
-
-
-@dataclass(frozen=True)
-class RigState:
-    """Every estimated quantity in plain numpy (world = camera 0)."""
-
-    params: dict[str, np.ndarray]  # camera -> (9,) [fx fy cx cy k1 k2 p1 p2 k3]
-    cam_from_world: dict[str, Pose]
-    normal_world: np.ndarray
-    world_from_target: dict[str, Pose]  # calibration frames and stacking poses
-    distance_mm: float | None = None  # camera 0 centre to near surface (None: not modelled)
-
-    @classmethod
-    def from_initialisation(cls, rig, distance_mm: float | None = None) -> "RigState":
-        """The state of an analytic initialisation (:class:`ari_sfm.init.rig.RigInit`):
-        params [fx fy cx cy] + the distortion padded to 5 per camera, its poses and
-        normal, and ``distance_mm`` (see :func:`default_distance_mm`)."""
-        params = {n: np.concatenate([[c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]], np.resize(c.dist, 5)])
-                  for n, c in rig.cameras.items()}
-        return cls(params, rig.cam_from_world, rig.normal_world, rig.world_from_target, distance_mm)
-
 
 def default_distance_mm(normal_world: np.ndarray, cam_from_world: dict[str, Pose]) -> float:
     """A starting distance from camera 0 to the window when the dataset gives none.
@@ -334,7 +313,6 @@ def estimate_sigma_px(rg: RigGraph) -> float:
     with the numpy backend (GTSAM when the graph has factors the numpy backend cannot hold).
     ``rg`` itself is not changed."""
     from ..outliers import robust_sigma_px
-    from .backend import optimize_graph
 
     copy = replace(rg, values=gtsam.Values(rg.values), factor_views=list(rg.factor_views),
                    factor_data=list(rg.factor_data))

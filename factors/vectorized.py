@@ -14,7 +14,8 @@ from ..geometry import se3_exp
 from .backend import BACKENDS, optimize_graph, optimize_vectorized, resolve_backend
 from .levenberg_marquardt import STOP_RULES, LMParams, LMReport
 from .marginals import CovarianceTable
-from .packed_problem import INVALID_RESIDUAL, Variables, VectorizedProblem
+from .packed_problem import INVALID_RESIDUAL, VectorizedProblem
+from .variables import Variables
 
 __all__ = ["BACKENDS", "STOP_RULES", "INVALID_RESIDUAL", "CovarianceTable", "LMParams", "LMReport", "Variables",
            "VectorizedProblem", "optimize_graph", "optimize_vectorized", "resolve_backend", "se3_exp"]

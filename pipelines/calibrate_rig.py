@@ -11,6 +11,7 @@ from pathlib import Path
 
 from ..calibrate import DEFAULT_MODEL, CalibrationOptions, calibrate
 from ..calibration import Calibration
+from ..io import save_calibration
 from ..detection import ensure_observations
 from ..io import load_dataset, save_observations
 from ..models.registry import CALIBRATABLE
@@ -42,7 +43,7 @@ def main(dataset_path: Path, out_dir: Path, model: str = DEFAULT_MODEL, progress
         save_observations(obs_path, dataset.observations)
     cal = calibrate(dataset, model=model, options=options, progress=progress, **overrides)
     cal_path = out_dir / "calibration.json"
-    cal.save(cal_path)
+    save_calibration(cal, cal_path)
     return PipelineResult(cal, cal_path, obs_path, dataset)
 
 

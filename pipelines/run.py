@@ -20,9 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..calibrate import DEFAULT_MODEL, CalibrationOptions
-from ..calibration import Calibration
 from ..calibration_errors import CalibrationErrors, calibration_errors
-from ..io import load_dataset, write_json_atomic
+from ..io import calibration_to_json, load_calibration, load_dataset, parse_calibration, write_json_atomic
 from ..models.registry import CALIBRATABLE
 from ..records import Dataset
 from ..reconstruct import ReconstructionRun, run_reconstruction
@@ -122,7 +121,7 @@ def main(dataset_path: Path, out_dir: Path, model: str | None = None, truth: Pat
     if why is None:
         # the calibration as calibration.json holds it (its poses are written as JSON): the points are then
         # those `ari-sfm reconstruct` gives from that file, which the provenance names by its hash
-        as_saved = Calibration.from_json(calibrated.calibration.to_json(), calibrated.calibration_path)
+        as_saved = parse_calibration(calibration_to_json(calibrated.calibration), calibrated.calibration_path)
         rec = run_reconstruction(dataset_path, calibrated.calibration_path, out_dir, truth, progress=progress,
                                  observations=obs_path, dataset=dataset, calibration=as_saved)
     else:
@@ -130,8 +129,6 @@ def main(dataset_path: Path, out_dir: Path, model: str | None = None, truth: Pat
         remove_stale_reconstruction(out_dir)
     errors = None
     if truth is not None:
-        from ..calibration import load_calibration
-
         errors = calibration_errors(calibrated.calibration, load_calibration(truth))
     run_path = out_dir / RUN_FILE
     write_json_atomic(run_path, {

@@ -12,7 +12,7 @@ import pytest
 from click.testing import CliRunner
 
 from ari_sfm.calibrate import calibrate, distortion_support
-from ari_sfm.calibration import Calibration
+from ari_sfm.io import parse_calibration
 from ari_sfm.calibration_errors import calibration_errors
 from ari_sfm.cli import main
 from ari_sfm.simulate import make_scene
@@ -47,7 +47,7 @@ def test_distortion_by_default_reaches_the_floor(scenario):
     """Lenses with k1 = -0.05: the default estimates the distortion and reaches the noise floor with the
     relative rotations right; held at zero (the old default) the fit stays well above the floor."""
     scene = make_scene(scenario, seed=0, sigma_px=SIGMA, dist=[K1, 0, 0, 0, 0])
-    truth = Calibration.from_json(scene.truth)
+    truth = parse_calibration(scene.truth)
     cal = calibrate(scene.dataset, uncertainty=False)
     assert cal.model == "exact" and all(s["distortion"] for s in cal.extra["stages"])
     assert cal.residuals.rmse_px <= 1.05 * FLOOR, cal.residuals

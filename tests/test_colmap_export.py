@@ -16,7 +16,7 @@ import pytest
 from click.testing import CliRunner
 
 from ari_sfm.calibrate import calibrate
-from ari_sfm.calibration import load_calibration
+from ari_sfm.io import load_calibration, save_calibration
 from ari_sfm.cli import main
 from ari_sfm.colmap_export import COLMAP_PIXEL_OFFSET, colmap_from_opencv_px, export_colmap, opencv_from_colmap_px
 from ari_sfm.io import load_dataset, save_points
@@ -159,7 +159,7 @@ def test_point_cloud_opens_in_open3d(binocular, binocular_ari, tmp_path):
 def test_cli_export_and_cameras_only(binocular, binocular_ari, tmp_path):
     dataset, points = binocular
     cal_path = tmp_path / "out" / "calibration.json"
-    binocular_ari.save(cal_path)
+    save_calibration(binocular_ari, cal_path)
     r = CliRunner().invoke(main, ["export-colmap", str(cal_path), "-o", str(tmp_path / "model"),
                                   "--dataset", str(dataset.root), "--points", str(points)])
     assert r.exit_code == 0, r.output

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.calibration import Calibration, load_calibration
+from ari_sfm.calibration import Calibration
+from ari_sfm.io import load_calibration, parse_calibration, save_calibration
 from ari_sfm.cli import main
 from ari_sfm.colmap_fork import export_colmap_fork, import_colmap_fork
 from ari_sfm.errors import AriSfmError
@@ -157,7 +158,7 @@ def scene(request):
 
 
 def truth_calibration(scene) -> Calibration:
-    return Calibration.from_json(scene.truth)
+    return parse_calibration(scene.truth)
 
 
 def test_fork_projection_equals_ours_and_reads_back(scene, tmp_path):
@@ -208,7 +209,7 @@ def test_cli_round_trip_and_refractive_token(scene, tmp_path):
     """export-colmap-fork then import-colmap-fork through the command line (mm units here), and the
     later fork's form with a REFRAC token before FLATPORT reads the same."""
     cal = truth_calibration(scene)
-    cal.save(tmp_path / "calibration.json")
+    save_calibration(cal, tmp_path / "calibration.json")
     runner = CliRunner()
     r = runner.invoke(main, ["export-colmap-fork", str(tmp_path / "calibration.json"), "-o", str(tmp_path / "fork"),
                              "--units-mm", "1"])

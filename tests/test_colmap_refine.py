@@ -5,6 +5,7 @@ bundle adjustment (PINHOLE cameras) of a model built from the simulated correspo
 """
 from __future__ import annotations
 
+import json
 import os
 
 import numpy as np
@@ -12,7 +13,7 @@ import pytest
 from click.testing import CliRunner
 
 from ari_sfm import colmap_export as adapter
-from ari_sfm.calibration import load_calibration
+from ari_sfm.io import load_calibration
 from ari_sfm.cli import main
 from ari_sfm.colmap_refine import refine_colmap, write_refined
 from ari_sfm.colmap_refine.problem import RefractiveProblem, State
@@ -130,10 +131,10 @@ def test_survey_points_and_cameras_recovered(survey):
 
 def test_survey_reprojection_at_noise_floor(survey):
     truth, _, result, limit = survey
-    after = result.report["after"]["rms_px"]
+    after = result.report.after.rms_px
     assert after <= 1.02 * limit["rms_px"]
     assert after <= truth.sigma_px * np.sqrt(2.0)  # the floor sigma sqrt(2) less the fitted dofs
-    assert result.report["before"]["rms_px"] > 2.0 * after
+    assert result.report.before.rms_px > 2.0 * after
 
 
 def test_survey_port_recovered(survey):
@@ -157,7 +158,7 @@ def test_world_mount_two_camera_rig():
     assert colmap["points_rms_mm"] > 5.0 * got["points_rms_mm"]
     assert got["normal_deg"] <= 3.0 * limit["normal_deg"] + 0.02
     assert got["distance_mm"] <= 3.0 * limit["distance_mm"] + 1.0
-    assert result.report["after"]["rms_px"] <= 1.02 * limit["rms_px"]
+    assert result.report.after.rms_px <= 1.02 * limit["rms_px"]
     # the rig's second sensor: refined relative pose close to the truth
     sensor = result.state.sensor_from_rig[int(np.flatnonzero(model.image_camera == 1)[0])]
     assert np.linalg.norm(sensor.inverse().t - truth.sensor_from_rig[1].inverse().t) < 3.0
@@ -333,11 +334,11 @@ def test_end_to_end_rendered_survey_through_colmap_sift(tmp_path):
     centres_after, surface_after = errors(result.state.xyz, poses_of(result.state, model))
     centres = np.array([poses_of(result.state, model)[int(i)].inverse().t for i in model.image_ids])
     assert abs(similarity(centres, true_centres)[0] - 1.0) < 0.005  # the bar holds the scale (was 35 % off)
-    u = result.report["uncertainty"]
-    assert abs(result.state.distances[0] - meta["camera"]["distance_mm"]) < 3.0 * u["distance_mm"]["camera1"]
+    u = result.report.uncertainty
+    assert abs(result.state.distances[0] - meta["camera"]["distance_mm"]) < 3.0 * u.distance_mm["camera1"]
     assert centres_after < 3.0 and surface_after < 5.0  # mm: SIFT-noise-limited
     assert centres_before > 10.0 * centres_after and surface_before > 10.0 * surface_after
-    assert result.report["after"]["rms_px"] < 0.6 * result.report["before"]["rms_px"]
+    assert result.report.after.rms_px < 0.6 * result.report.before.rms_px
     from ari_sfm.geometry import angle_between_deg
 
     assert angle_between_deg(result.state.normals[0], np.array(meta["camera"]["normal_cam"])) < 0.6
@@ -379,11 +380,11 @@ def test_declared_plane_held_is_the_window(survey):
                          scale_bar=scale_bar_of(truth, model))
     assert np.allclose(held.state.normals[0], truth.normal_cam[0], atol=1e-12)
     assert held.state.distances[0] == pytest.approx(truth.distance_mm[0], abs=1e-9)
-    assert "none: held at the declared plane" in held.report["estimated"]
+    assert "none: held at the declared plane" in held.report.estimated
     got, without = refined_errors(truth, start, held), refined_errors(truth, start, free)
     assert got["points_rms_mm"] <= 1.02 * without["points_rms_mm"]
     assert got["centres_rms_mm"] <= 1.05 * without["centres_rms_mm"] + 0.1
-    assert held.report["after"]["rms_px"] <= truth.sigma_px * np.sqrt(2.0)
+    assert held.report.after.rms_px <= truth.sigma_px * np.sqrt(2.0)
 
 
 def test_declared_plane_prior_pulls_as_its_sigma_shrinks(small_model):
@@ -400,7 +401,7 @@ def test_declared_plane_prior_pulls_as_its_sigma_shrinks(small_model):
         res = refine_colmap(start, replace(truth.interface, plane=plane), "camera", units_mm=1.0)
         angles.append(angle_between_deg(res.state.normals[0], plane.normal))
         offsets.append(abs(res.state.distances[0] - plane.normal @ plane.point_mm))
-        assert "prior" in res.report["plane"]["normal"] and "prior" in res.report["plane"]["distance"]
+        assert "prior" in res.report.plane.normal and "prior" in res.report.plane.distance
     assert angles[0] > angles[1] > angles[2] and offsets[0] > offsets[1] > offsets[2]
     # the images alone pull the normal well away from the wrong plane (the distance, started there, weakly)
     assert angles[0] > 0.3 and offsets[0] > 0.2
@@ -511,7 +512,7 @@ def test_declared_plane_held_mount_world():
     assert held.state.distances[0] == pytest.approx(truth.plane_mm, abs=1e-9)
     got, without = refined_errors(truth, rec, held), refined_errors(truth, rec, free)
     assert got["points_rms_mm"] <= 1.02 * without["points_rms_mm"]
-    assert held.report["plane"]["frame"] == "world" and held.report["plane"]["normal"] == "held"
+    assert held.report.plane.frame == "world" and held.report.plane.normal == "held"
     assert np.array_equal(model.point3D_ids, adapter.model_from_reconstruction(held.refractive).point3D_ids)
 
 
@@ -522,15 +523,15 @@ def test_scale_bar_held_by_the_solver_and_sigmas_cover_the_truth(survey):
     reported sigmas (Schur complement) cover the true port within 3 sigma and are not absurdly large."""
     truth, start, result, _ = survey
     r = result.report
-    assert r["scale_bar"]["refined_mm"] == pytest.approx(r["scale_bar"]["declared_mm"], rel=1e-3)
+    assert r.scale_bar.refined_mm == pytest.approx(r.scale_bar.declared_mm, rel=1e-3)
     assert abs(refined_errors(truth, start, result)["scale_error_pct"]) < 0.5
-    u = r["uncertainty"]
+    u = r.uncertainty
     err = window_errors(truth, result.state.normals, result.state.distances)
-    assert 0.0 < u["normal_deg"]["camera1"] < 1.0 and 0.0 < u["distance_mm"]["camera1"] < 10.0  # 10 images: weak
-    assert err["normal_deg"] < 3.0 * u["normal_deg"]["camera1"]
-    assert err["distance_mm"] < 3.0 * u["distance_mm"]["camera1"]
-    assert u["scale_rel"] < 5e-3 and u["fx_px"]["camera1"] > 0.0 and "scale_rel" not in u["weak"]
-    assert u["sigma0"] == pytest.approx(truth.sigma_px, rel=0.3)
+    assert 0.0 < u.normal_deg["camera1"] < 1.0 and 0.0 < u.distance_mm["camera1"] < 10.0  # 10 images: weak
+    assert err["normal_deg"] < 3.0 * u.normal_deg["camera1"]
+    assert err["distance_mm"] < 3.0 * u.distance_mm["camera1"]
+    assert u.scale_rel < 5e-3 and u.fx_px["camera1"] > 0.0 and "scale_rel" not in u.weak
+    assert u.sigma0 == pytest.approx(truth.sigma_px, rel=0.3)
 
 
 def test_sigmas_match_the_spread_over_noise_draws():
@@ -554,7 +555,7 @@ def test_sigmas_match_the_spread_over_noise_draws():
         solver = Solver(problem, None, bar=ScaleBar(where[a], where[b], mm))
         res = solver.run(truth_state(truth, model), 30)
         u = uncertainty(solver, res.state, ["camera1"])
-        draws.append((res.state.distances[0], u["distance_mm"]["camera1"]))
+        draws.append((res.state.distances[0], u.distance_mm["camera1"]))
     d, s = np.array(draws).T
     assert np.std(d) < 2.5 * np.mean(s) and np.std(d) > 0.3 * np.mean(s)
     assert np.all(np.abs(d - 22.0) < 4.0 * s)
@@ -564,8 +565,8 @@ def test_without_a_scale_bar_the_scale_is_reported_weak(small_model, caplog):
     truth, start, _ = small_model
     with caplog.at_level("WARNING"):
         result = refine_colmap(start, truth.interface, "camera")
-    u = result.report["uncertainty"]
-    assert "scale_rel" in u["weak"] and u["scale_rel"] > 0.01
+    u = result.report.uncertainty
+    assert "scale_rel" in u.weak and u.scale_rel > 0.01
     assert any("scale is barely determined" in m and "scale_bar" in m for m in caplog.messages)
 
 
@@ -578,7 +579,7 @@ def test_scene_in_arbitrary_units_asks_for_units(small_model, tmp_path):
     with pytest.raises(AriSfmError, match="give units_mm .* or a scale_bar"):
         refine_colmap(rec, truth.interface, "camera", max_iterations=3)
     res = refine_colmap(rec, truth.interface, "camera", units_mm=100.0, max_iterations=3)
-    assert np.isfinite(res.report["after"]["rms_px"])
+    assert np.isfinite(res.report.after.rms_px)
 
 
 # ----------------------------------------------------------------------------- bad inputs: one line each
@@ -773,6 +774,27 @@ def test_restarts_when_the_distance_runs_toward_zero(small_model, monkeypatch):
     assert refine_module._collapsed(dc_replace(state, distances=np.array([0.5])), problem, (10.0, 30.0, 100.0))
     monkeypatch.setattr(refine_module, "_collapsed", lambda *args: True)
     result = refine_colmap(start, truth.interface, "camera", max_iterations=10)
-    restarts = result.report["restarts"]
+    restarts = result.report.restarts
     assert len(restarts) == 2
-    assert result.report["cost"]["final"] <= min(r["cost"] for r in restarts) + 1e-9
+    assert result.report.cost_final <= min(r["cost"] for r in restarts) + 1e-9
+
+
+def test_the_report_record_is_refine_json(survey, tmp_path):
+    """refine_colmap's RefineReport: read by attribute; its to_json() is refine.json as documented
+    (docs/DATASET_FORMAT.md), the file write_refined writes."""
+    truth, start, result, _ = survey
+    r = result.report
+    write_refined(result, tmp_path / "out")
+    j = json.loads((tmp_path / "out" / "refine.json").read_text())
+    assert j == json.loads(json.dumps(r.to_json()))
+    assert set(j) == {"mount", "model", "backend", "units_mm", "interface", "counts", "estimated", "scale",
+                      "distance_search", "restarts", "iterations", "converged", "linearizations", "uncertainty",
+                      "cost", "time_s", "before", "after", "pinhole_approximation", "window", "scale_bar"}
+    assert j["after"] == {"model": "exact", "rms_px": r.after.rms_px, "mean_px": r.after.mean_px,
+                          "per_image_rms_px": {str(i): v for i, v in r.after.per_image_rms_px.items()}}
+    assert set(j["pinhole_approximation"]) == {"camera_model", "rms_px", "per_image_rms_px"}
+    assert j["linearizations"] == {"final": r.linearizations, "search": r.search_linearizations}
+    assert j["cost"] == {"start": r.cost_start, "final": r.cost_final} and r.cost_final <= r.cost_start
+    assert j["window"]["distance_mm"]["camera1"] == r.window.distance_of("camera1") == result.state.distances[0]
+    assert set(j["uncertainty"]) == {"sigma0", "normal_deg", "distance_mm", "fx_px", "scale_rel", "weak"}
+    assert j["scale_bar"]["ids"] == list(r.scale_bar.ids) and r.counts.images == len(start.images)

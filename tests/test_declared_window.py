@@ -14,6 +14,7 @@ import pytest
 
 from ari_sfm.calibrate import CalibrationOptions, calibrate
 from ari_sfm.calibration import Calibration
+from ari_sfm.io import parse_calibration, save_calibration
 from ari_sfm.geometry import angle_between_deg
 from ari_sfm.init.zhang import object_points
 from ari_sfm.openptv.conventions import glass_vector, window_plane
@@ -101,7 +102,7 @@ def test_declared_window_fixed_focal_reaches_the_floor(ptv, held_out):
     cal = calibrate(_without_plane(ds, held_out), model="exact", fix_intrinsics=True, uncertainty=False)
     assert 0.9 * FLOOR_PX < cal.residuals.rmse_px < 1.1 * FLOOR_PX
     assert cal.quality.ok and cal.quality.starts == ("default",)
-    truth = Calibration.from_json({k: v for k, v in ptv.truth.items() if k != "target"})
+    truth = parse_calibration({k: v for k, v in ptv.truth.items() if k != "target"})
     noise_share = _held_out_rms_mm(truth, ds, held_out)
     got = _held_out_rms_mm(cal, ds, held_out)
     assert got < 1.3 * noise_share + 0.01, (got, noise_share)
@@ -132,7 +133,7 @@ def test_ptv_multiplane_is_what_import_openptv_reads(tmp_path):
 
     scene = make_scene("ptv_multiplane", seed=2, sigma_px=0.0, grid=(6, 4))
     ds = scene.dataset
-    Calibration.from_json({k: v for k, v in scene.truth.items() if k != "target"}).save(tmp_path / "truth.json")
+    save_calibration(parse_calibration({k: v for k, v in scene.truth.items() if k != "target"}), tmp_path / "truth.json")
     root = tmp_path / "exp"
     export_openptv(tmp_path / "truth.json", root, frame="f000", pixel_size_mm=0.01)
     all_ids, xyz = ds.target.points_3d()

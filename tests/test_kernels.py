@@ -13,6 +13,7 @@ import pytest
 
 from ari_sfm.models import ExactModel, PinholeModel
 from ari_sfm.models.exact import exact_project, incidence
+from ari_sfm.io import parse_calibration
 
 INDEX = 1.5168
 
@@ -114,10 +115,9 @@ def test_undistort_round_trip():
 
 @pytest.fixture(scope="module")
 def arc4_truth():
-    from ari_sfm.calibration import Calibration
     from ari_sfm.simulate import make_scene
 
-    return Calibration.from_json(make_scene("arc4", seed=0, sigma_px=0.0).truth)
+    return parse_calibration(make_scene("arc4", seed=0, sigma_px=0.0).truth)
 
 
 def test_triangulation_kernel_is_the_numpy_algorithm(arc4_truth):

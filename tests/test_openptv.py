@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.calibration import Calibration, CameraCalibration, load_calibration
+from ari_sfm.calibration import Calibration, CameraCalibration
+from ari_sfm.io import load_calibration, save_calibration
 from ari_sfm.cli import main
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose
@@ -371,7 +372,7 @@ def _exported_opencv(out, number):
 @pytest.mark.parametrize("dist0", [(0, 0, 0, 0, 0), (-0.08, 0.12, 3e-4, -2e-4, 0.01)])
 def test_export_round_trip_every_parameter(tmp_path, dist0):
     cal = simulated_calibration(dist0, centred=True)
-    cal.save(tmp_path / "calibration.json")
+    save_calibration(cal, tmp_path / "calibration.json")
     summary = export_openptv(tmp_path / "calibration.json", tmp_path / "optv", pixel_size_mm=0.0055)
     assert summary.frame == "f000" and summary.numbers == {"left": 1, "right": 2} and not summary.fit_error_px
     control = read_control_par(tmp_path / "optv" / "parameters" / "ptv.par")
@@ -403,7 +404,7 @@ def test_exported_ori_reprojects_like_ari_sfm(tmp_path, dist0, centred, medium):
     """Body points through the exported .ori/.addpar/ptv.par with liboptv's formulas vs ari-sfm's exact model."""
     cal = simulated_calibration(dist0, centred=centred, medium=medium,
                                 distance=None if medium == 1.0 else 300.0)
-    cal.save(tmp_path / "calibration.json")
+    save_calibration(cal, tmp_path / "calibration.json")
     export_openptv(tmp_path / "calibration.json", tmp_path / "optv")
     _, body = _body()
     X_world = cal.frames["f000"].apply(body)
@@ -419,7 +420,7 @@ def test_exported_ori_reprojects_like_ari_sfm(tmp_path, dist0, centred, medium):
 def test_exported_ori_traces_rays_like_ari_sfm(tmp_path):
     """Pixels back-projected through the exported files with liboptv's ray_tracing give ari-sfm's rays."""
     cal = simulated_calibration()
-    cal.save(tmp_path / "calibration.json")
+    save_calibration(cal, tmp_path / "calibration.json")
     export_openptv(tmp_path / "calibration.json", tmp_path / "optv")
     target_from_world = cal.frames["f000"].inverse()
     uv = np.array([[0.0, 0.0], [639.5, 511.5], [1279.0, 100.0], [300.0, 1000.0]])
@@ -435,7 +436,7 @@ def test_exported_ori_traces_rays_like_ari_sfm(tmp_path):
 
 def test_export_fits_distortion_about_an_offcentre_principal_point(tmp_path):
     cal = simulated_calibration((-0.08, 0.12, 3e-4, -2e-4, 0.0), centred=False)
-    cal.save(tmp_path / "calibration.json")
+    save_calibration(cal, tmp_path / "calibration.json")
     summary = export_openptv(tmp_path / "calibration.json", tmp_path / "optv")
     assert set(summary.fit_error_px) == {"left"} and summary.fit_error_px["left"] < 0.05
     _, body = _body()
@@ -455,7 +456,7 @@ def test_export_of_testing_fodder_cameras_gives_back_their_ori(experiment, tmp_p
         cams[f"cam{k}"] = CameraCalibration(f"cam{k}", (1280, 1024), K, np.zeros(5), cam_from_world(ori))
     cal = Calibration("exact", Interface(6.0, 1.33, 1.46, distance_mm=-131.0), np.array([0, 0, 1.0]), cams,
                       {"f000": Pose.identity()})
-    cal.save(tmp_path / "calibration.json")
+    save_calibration(cal, tmp_path / "calibration.json")
     out = tmp_path / "exp_copy"
     shutil.copytree(experiment, out)
     r = CliRunner().invoke(main, ["export-openptv", str(tmp_path / "calibration.json"), "-o", str(out)])
@@ -474,7 +475,7 @@ def test_export_keeps_a_padded_ptv_par_layout(tmp_path):
     """A 2-camera ptv.par padded to four cameras (the Tcl/Tk layout older liboptv reads) keeps its padding;
     only pixel size and the multimedia lines change."""
     cal = simulated_calibration()
-    cal.save(tmp_path / "calibration.json")
+    save_calibration(cal, tmp_path / "calibration.json")
     ptv_par = tmp_path / "optv" / "parameters" / "ptv.par"
     ptv_par.parent.mkdir(parents=True)
     padded = ["2", "img/a", "cal/a.tif", "img/b", "cal/b.tif", "---", "---", "---", "---",
@@ -490,7 +491,7 @@ def test_export_keeps_a_padded_ptv_par_layout(tmp_path):
 
 def test_export_bad_input_is_one_line(tmp_path):
     cal = simulated_calibration()
-    cal.save(tmp_path / "calibration.json")
+    save_calibration(cal, tmp_path / "calibration.json")
     r = CliRunner().invoke(main, ["export-openptv", str(tmp_path / "calibration.json"), "-o", str(tmp_path / "o"),
                                   "--frame", "f999"])
     assert r.exit_code == 1 and "no calibration frame 'f999'" in r.output and r.output.count("\n") == 1
@@ -518,7 +519,7 @@ def test_import_then_calibrate_exact_recovers_testing_fodder_cameras(experiment,
 @pytest.mark.parametrize("value", ["inf", "1e300", "1e-12", "nan", "-0.01"])
 def test_export_refuses_an_unphysical_pixel_size(tmp_path, value):
     """--pixel-size-mm inf / 1e300 / 1e-12 wrote .ori files holding nan or inf."""
-    simulated_calibration().save(tmp_path / "calibration.json")
+    save_calibration(simulated_calibration(), tmp_path / "calibration.json")
     r = CliRunner().invoke(main, ["export-openptv", str(tmp_path / "calibration.json"), "-o", str(tmp_path / "o"),
                                   "--pixel-size-mm", value])
     assert r.exit_code == 1 and r.output.count("\n") == 1, r.output
@@ -527,7 +528,7 @@ def test_export_refuses_an_unphysical_pixel_size(tmp_path, value):
 
 
 def test_export_refuses_an_existing_ptv_par_with_an_unphysical_pixel_size(tmp_path):
-    simulated_calibration().save(tmp_path / "calibration.json")
+    save_calibration(simulated_calibration(), tmp_path / "calibration.json")
     export_openptv(tmp_path / "calibration.json", tmp_path / "o")
     ptv_par = tmp_path / "o" / "parameters" / "ptv.par"
     lines = ptv_par.read_text().splitlines()
@@ -542,7 +543,7 @@ def test_export_refuses_an_existing_ptv_par_with_an_unphysical_pixel_size(tmp_pa
 
 def test_export_with_cal_a_file_writes_nothing(tmp_path):
     """OUT/cal a file: ptv.par was written before the .ori failed."""
-    simulated_calibration().save(tmp_path / "calibration.json")
+    save_calibration(simulated_calibration(), tmp_path / "calibration.json")
     (tmp_path / "o").mkdir()
     (tmp_path / "o" / "cal").write_text("not a folder")
     r = CliRunner().invoke(main, ["export-openptv", str(tmp_path / "calibration.json"), "-o", str(tmp_path / "o")])
@@ -554,7 +555,7 @@ def test_export_with_cal_a_file_writes_nothing(tmp_path):
 def test_export_never_writes_outside_the_output_folder(tmp_path, name):
     """An existing ptv.par's calibration image names led the .ori/.addpar files outside -o."""
     name = name.replace("/ABS", str(tmp_path / "abs"))
-    simulated_calibration().save(tmp_path / "calibration.json")
+    save_calibration(simulated_calibration(), tmp_path / "calibration.json")
     export_openptv(tmp_path / "calibration.json", tmp_path / "o")
     ptv_par = tmp_path / "o" / "parameters" / "ptv.par"
     lines = ptv_par.read_text().splitlines()

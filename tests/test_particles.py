@@ -19,6 +19,7 @@ from ari_sfm.particles.match import _candidates, footprint_mm_per_px, match_fram
 from ari_sfm.particles.truth import score_frame
 from ari_sfm.particles.volume import Volume
 from ari_sfm.simulate.particles import ParticleSimOptions, simulate_particle_experiment, write_particle_experiment
+from ari_sfm.io import load_calibration
 
 SMALL = ParticleSimOptions(particles_per_frame=300, num_frames=2, seed=3)
 
@@ -74,7 +75,6 @@ def test_detections_are_exact_projections_plus_the_noise(experiment):
 
 
 def test_written_layout_loads(written):
-    from ari_sfm.calibration import load_calibration
     from ari_sfm.io import load_dataset
     from ari_sfm.io.particles import load_particle_dataset, read_detections
 

@@ -51,7 +51,7 @@ def test_local_cluster_equals_serial(sim, serial, tmp_path):
     s = reconstruct_particles(sim / "experiment", sim / "truth" / "rig_b.json", tmp_path,
                               MatchOptions(frames_per_partition=1), workers=2)
     _same(_table(tmp_path / "particles3d.parquet"), serial)
-    assert s["workers"] == 2 and s["partitions"]["total"] == 4
+    assert s.workers == 2 and s.partitions_total == 4
     assert sorted(p.name for p in (tmp_path / "parts").glob("*.parquet")) == [
         f"frames_{f:05d}-{f:05d}.parquet" for f in range(4)]
     assert len(serial["frame"]) >= 0.95 * 4 * OPTIONS.particles_per_frame
@@ -62,14 +62,14 @@ def test_resume_skips_an_existing_partition(sim, serial, tmp_path):
     partition holds only its first two particles keeps exactly that."""
     first = reconstruct_particles(sim / "experiment", sim / "truth" / "rig_b.json", tmp_path,
                                   MatchOptions(frames_per_partition=1), workers=0)
-    assert first["partitions"]["skipped"] == []
+    assert first.partitions_skipped == ()
     part = tmp_path / "parts" / "frames_00001-00001.parquet"
     pq.write_table(pq.read_table(part).slice(0, 2), part)
     (tmp_path / "parts" / "frames_00002-00002.parquet").unlink()  # not finished before the kill
     (tmp_path / "particles3d.parquet").unlink()
     again = reconstruct_particles(sim / "experiment", sim / "truth" / "rig_b.json", tmp_path,
                                   MatchOptions(frames_per_partition=1), workers=0)
-    assert again["partitions"]["skipped"] == ["frames_00000-00000", "frames_00001-00001", "frames_00003-00003"]
+    assert list(again.partitions_skipped) == ["frames_00000-00000", "frames_00001-00001", "frames_00003-00003"]
     t = _table(tmp_path / "particles3d.parquet")
     assert (t["frame"] == 1).sum() == 2
     for f in (0, 2, 3):

@@ -11,6 +11,7 @@ from ari_sfm.calibrate import CalibrationOptions, Stage, plan_stages
 from ari_sfm.errors import AriSfmError
 from ari_sfm.records import WindowPlane
 from ari_sfm.simulate import make_scene
+from ari_sfm.io import calibration_to_json, load_calibration, save_calibration
 
 OPTS = CalibrationOptions(distortion=False)
 
@@ -59,7 +60,7 @@ def test_the_stage_records_are_the_plans(single_exact, single_scene):
     """calibration.json's stages and optimizer report: one entry per planned stage, in order, the last
     stage's figures those of the result."""
     plan = plan_stages(single_scene.dataset, "exact", OPTS)
-    d = single_exact.to_json()
+    d = calibration_to_json(single_exact)
     assert [s["stage"] for s in d["stages"]] == [s.label for s in plan]
     assert [s["model"] for s in d["stages"]] == [s.model for s in plan]
     assert list(single_exact.optimizer.runs) == list(d["optimizer"]) == [s.label for s in plan]
@@ -142,13 +143,12 @@ def test_the_command_line_options_are_the_dataclass_fields(command, tmp_path, mo
 
 def test_the_optimizer_report_is_a_record(single_exact, tmp_path):
     """calibration.json's optimizer report read back as the same record, written as the same JSON."""
-    from ari_sfm.calibration import load_calibration
     from ari_sfm.results import OptimizerReport, OptimizerRun
 
-    single_exact.save(tmp_path / "c.json")
+    save_calibration(single_exact, tmp_path / "c.json")
     back = load_calibration(tmp_path / "c.json")
     assert back.optimizer == single_exact.optimizer and "optimizer" not in back.extra
-    assert back.to_json()["optimizer"] == single_exact.to_json()["optimizer"]
+    assert calibration_to_json(back)["optimizer"] == calibration_to_json(single_exact)["optimizer"]
     scipy_run = {"nfev": 12, "status": 2, "time_s": 0.5, "backend": "scipy", "note": "kept"}
     run = OptimizerRun.from_json(scipy_run)
     assert (run.nfev, run.status, run.iterations, run.extra) == (12, 2, None, {"note": "kept"})
@@ -163,13 +163,13 @@ def test_run_reads_the_dataset_once(tmp_path, monkeypatch):
     import json
     from pathlib import Path
 
-    import ari_sfm.calibration as calibration_module
     import ari_sfm.io as io_module
+    import ari_sfm.io.calibration_file as calibration_file
     from ari_sfm.pipelines import calibrate_rig, run
     from ari_sfm.provenance import file_sha256
 
     loads, cal_reads = [], []
-    load_dataset, load_calibration = io_module.load_dataset, calibration_module.load_calibration
+    load_dataset, load_calibration = io_module.load_dataset, calibration_file.load_calibration
 
     def counting_load(*args, **kwargs):
         loads.append(args)
@@ -181,7 +181,8 @@ def test_run_reads_the_dataset_once(tmp_path, monkeypatch):
 
     for module in (io_module, run, calibrate_rig):
         monkeypatch.setattr(module, "load_dataset", counting_load)
-    monkeypatch.setattr(calibration_module, "load_calibration", counting_cal)
+    for module in (io_module, calibration_file, run):  # every name calibration.json is read through
+        monkeypatch.setattr(module, "load_calibration", counting_cal)
     monkeypatch.setattr(run, "write_report", lambda out: Path(out) / "report.html")  # the report reads its files
     dataset = Path(__file__).resolve().parents[1] / "datasets" / "binocular"
     result = run.main(dataset, tmp_path, model="ari", uncertainty=False)

@@ -14,7 +14,7 @@ import pytest
 from click.testing import CliRunner
 
 from ari_sfm.calibrate import calibrate
-from ari_sfm.calibration import Calibration
+from ari_sfm.io import calibration_to_json, parse_calibration
 from ari_sfm.cli import main
 from ari_sfm.geometry import rotation_from_rotvec
 from ari_sfm.io import load_dataset, save_rig
@@ -52,7 +52,7 @@ def test_right_plane_passes_and_wrong_plane_fails(coarse):
     assert fits_badly or undetermined
     assert ("pinhole + distortion" in q.why) == fits_badly and ("undetermined" in q.why) == undetermined
     assert q.rmse_px > 5 * good.residuals.rmse_px  # far from the floor the right plane reaches
-    again = Calibration.from_json(json.loads(json.dumps(bad.to_json())))  # the verdict survives calibration.json
+    again = parse_calibration(json.loads(json.dumps(calibration_to_json(bad))))  # the verdict survives calibration.json
     assert again.quality == q
 
 

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.calibration import Calibration
+from ari_sfm.io import parse_calibration
 from ari_sfm.cli import main
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import rotation_from_rotvec
 from ari_sfm.reconstruct import reconstruct
-from ari_sfm.reference import reference_errors
+from ari_sfm.reference import ReferenceErrors, reference_errors
 from ari_sfm.simulate import make_scene, simulate
 
 o3d = pytest.importorskip("open3d")
@@ -51,7 +51,7 @@ def plane_distances(points, poses) -> np.ndarray:
 def tilted_boards():
     """The binocular scene's 15 calibration boards (15 orientations) triangulated with the true rig."""
     scene = make_scene("binocular", seed=0)
-    cal = Calibration.from_json(scene.truth, "truth.json")
+    cal = parse_calibration(scene.truth, "truth.json")
     obs = tuple(replace(o, set="reconstruction") for o in scene.dataset.observations if o.set == "calibration")
     points = reconstruct(replace(scene.dataset, observations=obs, calibration=(), reconstruction=()), cal)
     poses = {f: (np.array(scene.truth["frames"][f]["world_from_target"]["R"]),
@@ -66,15 +66,15 @@ def test_registration_recovers_the_known_transform_and_the_known_error(tilted_bo
     scene, points, poses = tilted_boards
     known = np.abs(plane_distances(points, poses))
     r = reference_errors(points, board_mesh(poses, scene.dataset.target, tmp_path / "boards.ply"))
-    M = np.array(r["registration"]["reference_from_world"])
+    M = np.array(r.registration.reference_from_world)
     dR = M[:3, :3] @ R_KNOWN.T
     assert np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))) < 0.02
     assert np.linalg.norm(M[:3, 3] - T_KNOWN) < 0.05
-    assert r["kind"] == "mesh" and r["count"] == points.num_points == len(known)
+    assert r.kind == "mesh" and r.count == points.num_points == len(known)
     known_rms = float(np.sqrt(np.mean(known**2)))
-    assert 0.98 * known_rms <= r["distance_mm"]["rms"] <= known_rms * 1.0001
+    assert 0.98 * known_rms <= r.distance_mm.rms <= known_rms * 1.0001
     assert 0.005 < known_rms < 0.05  # a real error to find (0.05 px pixel noise), not zero
-    assert set(r["frames"]) == set(points.frames)
+    assert set(r.frames) == set(points.frames)
     xyz = np.concatenate([f.xyz for f in points.frames.values()])
     o3d_scene = o3d.t.geometry.RaycastingScene()
     mesh = o3d.io.read_triangle_mesh(str(tmp_path / "boards.ply"))
@@ -83,7 +83,13 @@ def test_registration_recovers_the_known_transform_and_the_known_error(tilted_bo
     per_point = o3d_scene.compute_distance(
         o3d.core.Tensor((xyz @ M[:3, :3].T + M[:3, 3] - center).astype(np.float32))).numpy()
     assert np.max(np.abs(per_point - known)) < 0.01
-    assert abs(r["distance_mm"]["max"] - known.max()) < 0.01
+    assert abs(r.distance_mm.max - known.max()) < 0.01
+    j = r.to_json()  # metrics.json's `reference` (docs/DATASET_FORMAT.md), and back
+    assert set(j) == {"path", "kind", "count", "registration", "distance_mm", "frames"}
+    assert set(j["registration"]) == {"reference_from_world", "rotation_deg", "translation_mm", "fitness",
+                                      "inlier_rmse_mm"}
+    assert set(j["distance_mm"]) == {"mean", "rms", "max", "p95"} and j["distance_mm"]["rms"] == r.distance_mm.rms
+    assert ReferenceErrors.from_json(json.loads(json.dumps(j))).to_json() == j
 
 
 def test_a_point_cloud_reference_registers_too(tilted_boards, tmp_path):
@@ -96,14 +102,14 @@ def test_a_point_cloud_reference_registers_too(tilted_boards, tmp_path):
     spacing = np.sqrt(mesh.get_surface_area() / n)  # ~1.9 mm
     assert o3d.io.write_point_cloud(str(tmp_path / "boards_cloud.ply"), cloud)
     r = reference_errors(points, tmp_path / "boards_cloud.ply")
-    M = np.array(r["registration"]["reference_from_world"])
+    M = np.array(r.registration.reference_from_world)
     dR = M[:3, :3] @ R_KNOWN.T
-    assert r["kind"] == "cloud"
+    assert r.kind == "cloud"
     angle = np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))
     print(f"cloud reference: rotation error {angle:.4f} deg, translation error {np.linalg.norm(M[:3, 3] - T_KNOWN):.4f} mm, "
-          f"distance rms {r['distance_mm']['rms']:.4f} mm")
+          f"distance rms {r.distance_mm.rms:.4f} mm")
     assert angle < 0.1 and np.linalg.norm(M[:3, 3] - T_KNOWN) < 0.25  # measured 0.037 deg, 0.061 mm
-    assert r["distance_mm"]["rms"] < spacing  # ~ the nearest sample's distance, not the reconstruction's error
+    assert r.distance_mm.rms < spacing  # ~ the nearest sample's distance, not the reconstruction's error
 
 
 @pytest.mark.parametrize("content, message", [(None, "reference geometry not found"),

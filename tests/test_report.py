@@ -22,10 +22,10 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.calibration import load_calibration
 from ari_sfm.cli import main
 from ari_sfm import report
 from ari_sfm.evaluate import observation_residuals
+from ari_sfm.io import load_calibration, parse_calibration
 from ari_sfm.outliers import Outlier
 from ari_sfm.records import Observation
 from ari_sfm.report import _reconstruction_rows, calibration_rows, markdown_tables, write_report
@@ -187,7 +187,7 @@ def scene_residuals():
     from ari_sfm.simulate import make_scene
 
     scene = make_scene("binocular", seed=0)
-    cal = Calibration.from_json(scene.truth, "truth.json")
+    cal = parse_calibration(scene.truth, "truth.json")
     return cal, observation_residuals(cal, scene.dataset.observations, scene.dataset.target), scene.dataset.target
 
 
@@ -421,3 +421,53 @@ def test_report_renders_in_chromium_offline(binocular, tmp_path):
     broken.write_text(text.replace("base64,iVBOR", "base64,AAAA", 1).replace(script.group(0), ""))
     found = _probe(exe, broken, tmp_path / "profile")
     assert (found["images"], found["loaded"], found["plotly"], found["svg"]) == ("9", "8", "undefined", "0")
+
+
+def _print_to_pdf(exe: str, page: Path, pdf: Path, profile: Path) -> list:
+    """``page`` printed by headless Chromium from a 1600 px wide window (a desktop browser's print)."""
+    from pdf_reader import read_pdf
+
+    subprocess.run([exe, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "--window-size=1600,1000",
+                    "--virtual-time-budget=15000", "--no-pdf-header-footer", f"--print-to-pdf={pdf}", page.as_uri()],
+                   capture_output=True, timeout=180, check=True)
+    return read_pdf(pdf.read_bytes())
+
+
+def _outside(box: tuple, pages_boxes: list) -> list:
+    x0, y0, x1, y1 = box
+    return [b for b in pages_boxes if b[0] < x0 - 0.5 or b[1] < y0 - 0.5 or b[2] > x1 + 0.5 or b[3] > y1 + 0.5]
+
+
+def test_report_prints_on_paper(binocular, tmp_path):
+    """The report printed to PDF by Chromium from a wide window: one paper size, a sensible page count, every
+    image and table inside the page (nothing cut at the right edge), the text at 100 % (nothing shrunk to fit a
+    too-wide element) and extractable. Without the 3D view's print fit the same check fails: the view keeps
+    its screen width, sticks out of the page and Chromium shrinks the whole report to 2/3."""
+    exe = _chromium()
+    _, _, out, _ = binocular
+    text = (out / "report.html").read_text()
+    assert "img,figure,table,.js-plotly-plot{max-width:100%}" in text and "figure{margin:1em 0;break-inside:avoid}" in text
+    assert "thead{display:table-header-group}" in text and text.count("<thead>") >= 3  # headers repeat per page
+    page = tmp_path / "report.html"
+    page.write_text(text)
+    pages = _print_to_pdf(exe, page, tmp_path / "report.pdf", tmp_path / "profile")
+    assert 5 <= len(pages) <= 16, len(pages)
+    boxes = {p.box for p in pages}
+    assert len(boxes) == 1, boxes
+    box = boxes.pop()
+    assert (round(box[2] - box[0]), round(box[3] - box[1])) in {(612, 792), (595, 842)}  # Letter or A4, portrait
+    assert sum(len(p.images) for p in pages) >= 9  # the report's 9 figures (and the 3D view's canvas)
+    for k, p in enumerate(pages):
+        assert not _outside(box, p.images + p.rects), f"page {k + 1}: {_outside(box, p.images + p.rects)}"
+        assert p.text_scales and np.allclose(p.text_scales, 0.75), f"page {k + 1} shrunk: {set(p.text_scales)}"
+    words = re.sub(r"\s", "", "".join(p.text for p in pages))
+    for phrase in ("ari-sfm report", "Recommendations", "Reprojection residuals", "Rig in 3D (interactive)",
+                   "Reconstruction", "Paper Fig. 14, true to scale", "window tilt to the optical axis (deg)"):
+        assert re.sub(r"\s", "", phrase) in words, phrase
+    from ari_sfm.report_3d import PRINT_FIT_SCRIPT
+
+    unfit = tmp_path / "unfit.html"  # the check itself tells the defect
+    unfit.write_text(text.replace(PRINT_FIT_SCRIPT, "", 1))
+    pages = _print_to_pdf(exe, unfit, tmp_path / "unfit.pdf", tmp_path / "profile")
+    assert max(max(p.text_scales) for p in pages) < 0.7
+    assert any(_outside(box, p.images) for p in pages)

@@ -12,6 +12,7 @@ from matplotlib.text import Text
 
 from ari_sfm.compare import draw_figures
 from ari_sfm.evaluate import observation_residuals
+from ari_sfm.io import parse_calibration
 from ari_sfm.report_figures import (FIG_WIDTH_IN, PRINT_WIDTH_IN, draw_error_histograms, draw_expansion_centre,
                                     draw_point_cloud, draw_residual_by_depth, draw_residual_by_frame,
                                     draw_residual_map, draw_residual_regions, draw_residual_scatter, draw_rig)
@@ -19,11 +20,10 @@ from ari_sfm.report_figures import (FIG_WIDTH_IN, PRINT_WIDTH_IN, draw_error_his
 
 @pytest.fixture(scope="module")
 def binocular_residuals():
-    from ari_sfm.calibration import Calibration
     from ari_sfm.simulate import make_scene
 
     scene = make_scene("binocular", seed=0)
-    cal = Calibration.from_json(scene.truth, "truth.json")
+    cal = parse_calibration(scene.truth, "truth.json")
     return cal, observation_residuals(cal, scene.dataset.observations, scene.dataset.target), scene.dataset
 
 
@@ -119,11 +119,10 @@ def test_every_figure_prints_at_9pt_with_no_text_clipped_or_overlapping(binocula
         cal = replace(cal, cameras={"cam0": cal.cameras["cam0"]})
         residuals = [(o, r) for o, r in residuals if o.camera == "cam0"]
     elif rig == "arc4":  # four cameras: two rows of panels
-        from ari_sfm.calibration import Calibration
         from ari_sfm.simulate import make_scene
 
         scene = make_scene("arc4", seed=0)
-        cal = Calibration.from_json(scene.truth, "truth.json")
+        cal = parse_calibration(scene.truth, "truth.json")
         dataset = scene.dataset
         residuals = observation_residuals(cal, dataset.observations, dataset.target)
     for name, fig in _figures(cal, residuals, dataset).items():

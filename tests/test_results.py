@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ari_sfm.calibration import load_calibration
+from ari_sfm.io import calibration_to_json, load_calibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.models.registry import CALIBRATABLE
 from ari_sfm.outliers import Outlier
@@ -63,7 +63,7 @@ def _differences(a, b, where: str = "") -> list[str]:
 def test_previous_writers_file_loads_and_writes_back_the_same_json(model):
     text = (OLD / f"{model}.json").read_text()
     cal = load_calibration(OLD / f"{model}.json")
-    assert json.dumps(cal.to_json()) == json.dumps(json.loads(text))  # same keys, order and values
+    assert json.dumps(calibration_to_json(cal)) == json.dumps(json.loads(text))  # same keys, order and values
     if model in ("exact", "rt"):
         assert cal.fixed_distance_mm == json.loads(text)["fixed_distance_mm"]
     if model in ("ari", "exact"):
@@ -75,7 +75,7 @@ def test_previous_writers_file_loads_and_writes_back_the_same_json(model):
 @pytest.mark.parametrize("model", CALIBRATABLE)
 def test_writer_gives_the_previous_writers_calibration_json(binocular_calibrations, model):
     old = json.loads((OLD / f"{model}.json").read_text())
-    new = json.loads(json.dumps(binocular_calibrations[model].to_json()))
+    new = json.loads(json.dumps(calibration_to_json(binocular_calibrations[model])))
     if model in ("ari", "exact"):  # the window models are judged (ari_sfm.quality); the rest is as before
         assert new.pop("quality")["ok"] is True
     new.pop("stages", None)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.calibration import load_calibration
+from ari_sfm.io import load_calibration
 from ari_sfm.cli import main
 from ari_sfm.geometry import rotation_angle_deg
 from ari_sfm.metrics import rigid_alignment
@@ -110,7 +110,7 @@ def test_the_drift_shows_and_the_disparity_falls_to_the_noise(corrected):
     assert before.max() > 1.5  # drifted cameras move their images by px
     assert np.all(after <= 1.5 * SIGMA_PX), after  # PHYSICS.md: ~1.1 sigma for 4 cameras
     assert corrected.after.inlier.sum() >= 0.95 * 2 * 400 * 0.9
-    assert corrected.report["converged"]
+    assert corrected.report.converged
     ghost_fit = replace(corrected.after, rms_px=np.array([0.11, 0.62, 0.43, 0.21]))  # a correction from a ghost peak
     assert not converged(ghost_fit, SelfCalOptions())
 
@@ -186,7 +186,7 @@ def test_gtsam_backend_solves_the_same_problem(experiment):
                                   gtsam_cal.cameras[name].cam_from_world.R) < 1e-4
         assert np.allclose(numpy_cal.cameras[name].cam_from_world.t, gtsam_cal.cameras[name].cam_from_world.t,
                            atol=1e-4)
-    assert abs(report["sum_baselines_mm"]["final"] - report["sum_baselines_mm"]["held"]) < 1e-3
+    assert abs(report.sum_baselines_final_mm - report.sum_baselines_held_mm) < 1e-3
 
 
 def test_window_and_intrinsics_only_move_when_asked(experiment):

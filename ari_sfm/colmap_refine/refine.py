@@ -38,6 +38,7 @@ import numpy as np
 
 from ari_sfm import colmap_export as adapter
 from ari_sfm.calibration import Calibration, CameraCalibration
+from ari_sfm.io import save_calibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose, rotation_from_rotvec
 from ari_sfm.models import AriModel, PinholeModel
@@ -45,6 +46,8 @@ from ari_sfm.records import Interface, WindowPlane
 
 from .plane import WindowPrior, declared_window, window_prior
 from .problem import MOUNTS, RefractiveProblem, State, tangent_basis
+from .report import (DeclaredPlaneReport, Plate, RefineCounts, RefineReport, Reprojection, ScaleBarReport,
+                     WindowEstimate)
 from .scale_bar import ScaleBar
 from .uncertainty import uncertainty
 from .schur import (build_normal_equations, huber_cost, huber_weights, model_decrease,
@@ -74,7 +77,7 @@ class RefineResult:
     refractive: Any
     calibration: Calibration
     state: State
-    report: dict
+    report: RefineReport
 
 
 def _units_mm(model: adapter.ColmapModel, units_mm: float | None, scale_bar: tuple[int, int, float] | None,
@@ -674,50 +677,43 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     approx_rms = adapter.image_residuals_px(approx)
     calibration = _calibration(cmodel, problem, state, mount, cam_from_world)
     e = np.linalg.norm(residuals, axis=1)
-    report = {
-        "mount": mount, "model": model, "backend": backend, "units_mm": units,
-        "interface": {"thickness_mm": interface.thickness_mm, "index": interface.index,
-                      "medium_index": interface.medium_index},
-        "counts": {"cameras": len(cmodel.camera_ids), "frames": len(cmodel.frame_ids),
-                   "images": len(cmodel.image_ids), "points3D": len(cmodel.point3D_ids),
-                   "observations": len(cmodel.obs_image), "reduced_variables": problem.layout.size},
-        "estimated": "intrinsics per camera, rig_from_world per frame (the first held: gauge), sensor_from_rig per "
-                     "non-reference sensor, window " + _window_parts(hold_normal, estimate_distance, plane is not None)
-                     + " per " + ("camera (housing)" if mount == "camera" else "world") + ", 3D points",
-        "scale": "the input's units times units_mm, refined by refraction (weakly observable through the plate)",
-        "distance_search": search,
-        "restarts": restarts,
-        "iterations": iterations, "converged": result.converged,
-        "linearizations": {"final": linearizations, "search": sum(c["linearizations"] for c in search)},
-        "uncertainty": sigmas,
-        "cost": {"start": float(result.initial_cost), "final": float(result.cost)},
-        "time_s": time.perf_counter() - t0,
-        "before": {"model": "COLMAP pinhole", "rms_px": _rms(before), "per_image_rms_px": before},
-        "after": {"model": "exact", "rms_px": float(np.sqrt(np.mean(e ** 2))), "mean_px": float(np.mean(e)),
-                  "per_image_rms_px": _per_image_rms(cmodel, residuals)},
-        "pinhole_approximation": {"camera_model": approximation.upper() if approximation == "opencv" else "input's",
-                                  "rms_px": _rms(approx_rms), "per_image_rms_px": approx_rms},
-        "window": ({"normal_cam": {f"camera{int(cid)}": state.normals[c].tolist()
-                                   for c, cid in enumerate(cmodel.camera_ids)},
-                    "distance_mm": {f"camera{int(cid)}": float(state.distances[c])
-                                    for c, cid in enumerate(cmodel.camera_ids)}} if mount == "camera" else
-                   {"normal_world": state.normals[0].tolist(), "plane_mm": float(state.distances[0])}),
-    }
-    if plane is not None:
-        report["plane"] = {"frame": plane.frame, "declared_normal": declared_window(plane)[0].tolist(),
-                           "point_mm": np.asarray(plane.point_mm, float).tolist(),
-                           "normal": "held" if hold_normal else f"prior {plane.sigma_deg:g} deg",
-                           "distance": (f"prior {plane.sigma_mm:g} mm" if estimate_distance else "held")}
-    if bar is not None:
-        refined_mm = bar.length(state.xyz)
-        report["scale_bar"] = {"ids": [int(scale_bar[0]), int(scale_bar[1])], "declared_mm": bar.length_mm,
-                               "sigma_mm": bar.sigma_mm, "refined_mm": refined_mm}
-        if abs(refined_mm / bar.length_mm - 1.0) > 1e-3:
-            log.warning("refine-colmap: the scale bar is %.6g mm after the refinement (declared %.6g mm): the images "
-                        "pull against it", refined_mm, bar.length_mm)
+    ids = [f"camera{int(cid)}" for cid in cmodel.camera_ids]
+    window = (WindowEstimate(normal_cam={n: state.normals[c].copy() for c, n in enumerate(ids)},
+                             distance_mm={n: float(state.distances[c]) for c, n in enumerate(ids)})
+              if mount == "camera" else WindowEstimate(normal_world=state.normals[0].copy(),
+                                                       plane_mm=float(state.distances[0])))
+    report = RefineReport(
+        mount=mount, model=model, backend=backend, units_mm=units,
+        interface=Plate(interface.thickness_mm, interface.index, interface.medium_index),
+        counts=RefineCounts(len(cmodel.camera_ids), len(cmodel.frame_ids), len(cmodel.image_ids),
+                            len(cmodel.point3D_ids), len(cmodel.obs_image), problem.layout.size),
+        estimated="intrinsics per camera, rig_from_world per frame (the first held: gauge), sensor_from_rig per "
+                  "non-reference sensor, window " + _window_parts(hold_normal, estimate_distance, plane is not None)
+                  + " per " + ("camera (housing)" if mount == "camera" else "world") + ", 3D points",
+        scale="the input's units times units_mm, refined by refraction (weakly observable through the plate)",
+        distance_search=tuple(search), restarts=tuple(restarts),
+        iterations=iterations, converged=result.converged,
+        linearizations=linearizations, search_linearizations=sum(c["linearizations"] for c in search),
+        uncertainty=sigmas, cost_start=float(result.initial_cost), cost_final=float(result.cost),
+        time_s=time.perf_counter() - t0,
+        before=Reprojection("COLMAP pinhole", _rms(before), before),
+        after=Reprojection("exact", float(np.sqrt(np.mean(e ** 2))), _per_image_rms(cmodel, residuals),
+                           mean_px=float(np.mean(e))),
+        pinhole_approximation=Reprojection(approximation.upper() if approximation == "opencv" else "input's",
+                                           _rms(approx_rms), approx_rms, model_key="camera_model"),
+        window=window,
+        plane=None if plane is None else DeclaredPlaneReport(
+            plane.frame, declared_window(plane)[0], np.asarray(plane.point_mm, float),
+            "held" if hold_normal else f"prior {plane.sigma_deg:g} deg",
+            f"prior {plane.sigma_mm:g} mm" if estimate_distance else "held"),
+        scale_bar=None if bar is None else ScaleBarReport((int(scale_bar[0]), int(scale_bar[1])), bar.length_mm,
+                                                          bar.sigma_mm, bar.length(state.xyz)))
+    if bar is not None and abs(report.scale_bar.refined_mm / bar.length_mm - 1.0) > 1e-3:
+        log.warning("refine-colmap: the scale bar is %.6g mm after the refinement (declared %.6g mm): the images "
+                    "pull against it", report.scale_bar.refined_mm, bar.length_mm)
     log.warning("refine-colmap: the COLMAP cameras written are the best %s approximation of the refractive "
                 "cameras (poses are virtual; real poses in calibration.json): %.3f px RMS (the exact model: %.3f px)",
-                approximation, report["pinhole_approximation"]["rms_px"], report["after"]["rms_px"])
+                approximation, report.pinhole_approximation.rms_px, report.after.rms_px)
     return RefineResult(approx, refractive, calibration, state, report)
 
 
@@ -760,8 +756,8 @@ def write_refined(result: RefineResult, out_dir: str | Path) -> Path:
         raise AriSfmError(out, f"cannot write: {exc.strerror or exc}") from None
     try:
         _write_model(result.reconstruction, tmp)
-        result.calibration.save(tmp / "calibration.json")
-        write_json_atomic(tmp / "refine.json", result.report)
+        save_calibration(result.calibration, tmp / "calibration.json")
+        write_json_atomic(tmp / "refine.json", result.report.to_json())
         names = sorted(p.name for p in tmp.iterdir() if p.name != "refine.json") + ["refine.json"]
         for name in names:
             os.replace(tmp / name, out / name)

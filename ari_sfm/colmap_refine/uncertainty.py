@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from .report import RefineUncertainty
 from .schur import huber_weights, reduce_points
 
 log = logging.getLogger(__name__)
@@ -61,10 +62,10 @@ def _frame_spread_gradient(state: Any, frame_cols: np.ndarray, size: int) -> tup
     return s, grad[:size]
 
 
-def uncertainty(solver: Any, state: Any, names: list[str]) -> dict:
+def uncertainty(solver: Any, state: Any, names: list[str]) -> RefineUncertainty:
     """The sigmas (1 sigma) of ``solver``'s refined ``state`` (see the module docstring):
     ``normal_deg``, ``distance_mm`` per housing (mount camera) or of the world window, ``fx_px`` per
-    camera (the lens behind the window), ``scale_rel``, ``sigma0`` and the list ``weak``."""
+    camera (the lens behind the window), ``scale_rel``, ``sigma0`` and ``weak``."""
     problem = solver.problem
     model, lay = problem.model, problem.layout
     ne = solver.linearize(state)
@@ -93,8 +94,8 @@ def uncertainty(solver: Any, state: Any, names: list[str]) -> dict:
     s, grad = _frame_spread_gradient(state, lay.frames, solver.size)
     if s > 0.0:
         out["scale_rel"] = float(np.sqrt(max(grad @ cov @ grad, 0.0)) / s)
-    out["weak"] = _weak(out, state, model, problem.mount, names)
-    return out
+    return RefineUncertainty(s0, out["normal_deg"], out["distance_mm"], out["fx_px"], out["scale_rel"],
+                             tuple(_weak(out, state, model, problem.mount, names)))
 
 
 def _weak(u: dict, state: Any, model: Any, mount: str, names: list[str]) -> list[str]:

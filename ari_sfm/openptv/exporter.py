@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ari_sfm.calibration import Calibration, load_calibration
+from ari_sfm.calibration import Calibration
+from ari_sfm.io import load_calibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose
 from ari_sfm.io import write_text_atomic

@@ -18,8 +18,9 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -29,6 +30,25 @@ log = logging.getLogger(__name__)
 
 MIN_SIGNAL = 1e-3  # floor of background-subtracted intensities before the log of the Gaussian fit
 BLOB_LEVEL = 0.25  # a blob: the pixels above this fraction of its peak (reached by non-increasing steps)
+
+
+@dataclass(frozen=True)
+class DetectSummary:
+    """What :func:`detect_experiment` found; ``to_json()`` is detect-particles.json."""
+
+    dataset: str
+    frames: tuple[int, int]  # first, last
+    detections: int
+    per_camera: Mapping[str, int]
+    time_s: float
+    workers: int | None  # None with a scheduler
+    scheduler: str | None
+    options: Mapping[str, Any] = field(default_factory=dict)  # the DetectOptions used
+
+    def to_json(self) -> dict[str, Any]:
+        return {"format": "ari-sfm-detect-particles/1", "dataset": self.dataset, "frames": list(self.frames),
+                "detections": self.detections, "per_camera": dict(self.per_camera), "options": dict(self.options),
+                "time_s": self.time_s, "workers": self.workers, "scheduler": self.scheduler}
 
 
 @dataclass(frozen=True)
@@ -194,9 +214,9 @@ def detect_partition(patterns: dict[str, str], frames: list[int], options: Detec
 
 def detect_experiment(dataset_path: str | Path, out: str | Path, options: DetectOptions | None = None,
                       frames_per_partition: int = 20, workers: int = 0, scheduler: str | None = None,
-                      progress: bool = False) -> dict:
+                      progress: bool = False) -> DetectSummary:
     """Detect the particle images of every frame of ``particles.images``; write OUT/particles.parquet
-    (through OUT/parts/, resumable) and OUT/detect-particles.json. Returns that summary."""
+    (through OUT/parts/, resumable) and OUT/detect-particles.json. Returns that summary (its to_json())."""
     import os
     import time
 
@@ -243,9 +263,8 @@ def detect_experiment(dataset_path: str | Path, out: str | Path, options: Detect
     write_table_atomic(out / "particles.parquet", table)
     cams, n = np.unique(table.column("camera").to_numpy(zero_copy_only=False).astype(str), return_counts=True)
     counts = {cam: int(dict(zip(cams.tolist(), n.tolist())).get(cam, 0)) for cam in patterns}
-    summary = {"format": "ari-sfm-detect-particles/1", "dataset": str(dataset.rig_path), "frames": [first, last],
-               "detections": int(table.num_rows), "per_camera": counts,
-               "options": settings["options"], "time_s": time.perf_counter() - t0,
-               "workers": workers if scheduler is None else None, "scheduler": scheduler}
-    write_json_atomic(out / "detect-particles.json", summary)
+    summary = DetectSummary(str(dataset.rig_path), (first, last), int(table.num_rows), counts,
+                            time.perf_counter() - t0, workers if scheduler is None else None, scheduler,
+                            settings["options"])
+    write_json_atomic(out / "detect-particles.json", summary.to_json())
     return summary

@@ -10,15 +10,15 @@ from __future__ import annotations
 import logging
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
-from ari_sfm.calibration import Calibration, load_calibration
+from ari_sfm.calibration import Calibration
 from ari_sfm.errors import AriSfmError
-from ari_sfm.io import write_json_atomic
+from ari_sfm.io import calibration_to_json, load_calibration, parse_calibration, write_json_atomic
 from ari_sfm.io.particles import (
     ParticleDataset,
     load_particle_dataset,
@@ -39,6 +39,53 @@ from ari_sfm.particles.volume import Volume
 log = logging.getLogger(__name__)
 
 SUMMARY_FORMAT = "ari-sfm-particles3d/1"
+
+
+@dataclass(frozen=True)
+class FrameSummary:
+    """One frame of :class:`ParticlesSummary`."""
+
+    particles: int
+    detections: Mapping[str, int]  # particle images per camera
+    matched_fraction: float  # of its particle images, the share in a reconstructed particle
+
+    def to_json(self) -> dict[str, Any]:
+        return {"particles": self.particles, "detections": dict(self.detections),
+                "matched_fraction": self.matched_fraction}
+
+
+@dataclass(frozen=True)
+class ParticlesSummary:
+    """What :func:`reconstruct_particles` did and found; ``to_json()`` is particles3d.json."""
+
+    dataset: str
+    calibration: str
+    detections: str
+    tolerance_px: float
+    min_cameras: int
+    volume: Mapping[str, Any]  # {"min_mm", "max_mm"} or {"depth_range_mm"}
+    particles: int
+    cameras_per_particle: Mapping[str, int]  # number of cameras -> particles
+    matched_fraction: float
+    mean_ray_gap_mm: float | None  # None without particles
+    time_s: float
+    particles_per_second: float | None
+    workers: int | None  # None with a scheduler
+    scheduler: str | None
+    partitions_total: int
+    partitions_skipped: tuple[str, ...]  # resumed from an earlier run
+    frames: Mapping[str, FrameSummary] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"format": SUMMARY_FORMAT, "dataset": self.dataset, "calibration": self.calibration,
+                "detections": self.detections, "tolerance_px": self.tolerance_px, "min_cameras": self.min_cameras,
+                "volume": dict(self.volume), "particles": self.particles,
+                "cameras_per_particle": dict(self.cameras_per_particle), "matched_fraction": self.matched_fraction,
+                "mean_ray_gap_mm": self.mean_ray_gap_mm, "time_s": self.time_s,
+                "particles_per_second": self.particles_per_second, "workers": self.workers,
+                "scheduler": self.scheduler,
+                "partitions": {"total": self.partitions_total, "skipped": list(self.partitions_skipped)},
+                "frames": {f: m.to_json() for f, m in self.frames.items()}}
 
 
 @dataclass(frozen=True)
@@ -103,7 +150,7 @@ def match_partition(calibration_json: dict, volume: Volume, tolerance_px: float,
                     frames: list[int], pixels: list[dict[str, np.ndarray]], rows: list[dict[str, np.ndarray]]
                     ) -> dict[str, np.ndarray]:
     """One partition's particles3d columns (a Dask task: plain arguments, no files)."""
-    calibration = Calibration.from_json(calibration_json)
+    calibration = parse_calibration(calibration_json)
     cameras = list(calibration.cameras)
     cols: dict[str, list] = {k: [] for k in ("frame", "x", "y", "z", "ray_gap_mm", "cameras")}
     file_rows: list[np.ndarray] = []
@@ -131,11 +178,11 @@ def match_partition(calibration_json: dict, volume: Volume, tolerance_px: float,
 
 def reconstruct_particles(dataset_path: str | Path, calibration_path: str | Path, out: str | Path,
                           options: MatchOptions = MatchOptions(), detections_path: str | Path | None = None,
-                          workers: int = 0, scheduler: str | None = None, progress: bool = False) -> dict[str, Any]:
+                          workers: int = 0, scheduler: str | None = None, progress: bool = False) -> ParticlesSummary:
     """Match and triangulate every frame; write OUT/particles3d.parquet and OUT/particles3d.json.
 
     ``workers``: LocalCluster processes (0: this process); ``scheduler``: an existing Dask
-    scheduler's address instead. Returns the summary (what particles3d.json holds).
+    scheduler's address instead. Returns the summary (its to_json() is particles3d.json).
     """
     t0 = time.perf_counter()
     out = Path(out)
@@ -152,7 +199,7 @@ def reconstruct_particles(dataset_path: str | Path, calibration_path: str | Path
     volume = volume_for(dataset, calibration, options.depth_range_mm)
     cameras = list(calibration.cameras)
     by_frame = detections.by_frame(cameras)
-    cal_json = calibration.to_json()
+    cal_json = calibration_to_json(calibration)
     settings = {"task": "particles", "tolerance_px": options.tolerance_px, "min_cameras": options.min_cameras,
                 "depth_range_mm": None if options.depth_range_mm is None else list(options.depth_range_mm),
                 "frames_per_partition": options.frames_per_partition,
@@ -186,15 +233,15 @@ def reconstruct_particles(dataset_path: str | Path, calibration_path: str | Path
     elapsed = time.perf_counter() - t0
     summary = _summary(cols, by_frame, cameras, options, volume, elapsed, workers, scheduler, skipped,
                        len(partitions), calibration_path, det_path, dataset)
-    write_json_atomic(out / "particles3d.json", summary)
-    log.info("%d particles in %d frames -> %s", summary["particles"], len(by_frame), out)
+    write_json_atomic(out / "particles3d.json", summary.to_json())
+    log.info("%d particles in %d frames -> %s", summary.particles, len(by_frame), out)
     return summary
 
 
 def _summary(cols: dict[str, np.ndarray], by_frame: dict[int, dict[str, np.ndarray]], cameras: list[str],
              options: MatchOptions, volume: Volume, elapsed: float, workers: int, scheduler: str | None,
              skipped: list[str], n_partitions: int, calibration_path: Path, det_path: Path,
-             dataset: ParticleDataset) -> dict[str, Any]:
+             dataset: ParticleDataset) -> ParticlesSummary:
     frame = np.asarray(cols["frame"], np.int64)
     ncam = np.asarray(cols["cameras"], np.int64)
     uniq, inverse = np.unique(frame, return_inverse=True)
@@ -205,30 +252,22 @@ def _summary(cols: dict[str, np.ndarray], by_frame: dict[int, dict[str, np.ndarr
     for f, per_cam in sorted(by_frame.items()):
         n_det = sum(len(r) for r in per_cam.values())
         used = used_of.get(f, 0)
-        frames[str(f)] = {"particles": n_of.get(f, 0), "detections": {c: int(len(per_cam[c])) for c in cameras},
-                          "matched_fraction": used / n_det if n_det else 0.0}
+        frames[str(f)] = FrameSummary(n_of.get(f, 0), {c: int(len(per_cam[c])) for c in cameras},
+                                      used / n_det if n_det else 0.0)
         used_total += used
         det_total += n_det
     gap = np.asarray(cols["ray_gap_mm"], float)
     n_particles = int(len(frame))
-    return {
-        "format": SUMMARY_FORMAT,
-        "dataset": str(dataset.rig_path),
-        "calibration": str(calibration_path),
-        "detections": str(det_path),
-        "tolerance_px": options.tolerance_px,
-        "min_cameras": options.min_cameras,
-        "volume": {"min_mm": volume.min_mm.tolist(), "max_mm": volume.max_mm.tolist()} if np.isfinite(
+    return ParticlesSummary(
+        dataset=str(dataset.rig_path), calibration=str(calibration_path), detections=str(det_path),
+        tolerance_px=options.tolerance_px, min_cameras=options.min_cameras,
+        volume={"min_mm": volume.min_mm.tolist(), "max_mm": volume.max_mm.tolist()} if np.isfinite(
             volume.min_mm).all() and np.isfinite(volume.max_mm).all() else {"depth_range_mm": list(options.depth_range_mm)},
-        "particles": n_particles,
-        "cameras_per_particle": {str(k): int(v) for k, v in enumerate(np.bincount(
+        particles=n_particles,
+        cameras_per_particle={str(k): int(v) for k, v in enumerate(np.bincount(
             np.asarray(cols["cameras"], np.int64), minlength=len(cameras) + 1)) if v},
-        "matched_fraction": used_total / det_total if det_total else 0.0,
-        "mean_ray_gap_mm": float(gap.mean()) if len(gap) else None,
-        "time_s": elapsed,
-        "particles_per_second": n_particles / elapsed if elapsed > 0 else None,
-        "workers": workers if scheduler is None else None,
-        "scheduler": scheduler,
-        "partitions": {"total": n_partitions, "skipped": skipped},
-        "frames": frames,
-    }
+        matched_fraction=used_total / det_total if det_total else 0.0,
+        mean_ray_gap_mm=float(gap.mean()) if len(gap) else None,
+        time_s=elapsed, particles_per_second=n_particles / elapsed if elapsed > 0 else None,
+        workers=workers if scheduler is None else None, scheduler=scheduler,
+        partitions_total=n_partitions, partitions_skipped=tuple(skipped), frames=frames)

@@ -35,12 +35,13 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
 from ..calibration import Calibration
+from ..io import save_calibration
 from ..errors import AriSfmError
 from ..geometry import Pose, rotation_angle_deg
 from ..models import PinholeModel
@@ -96,6 +97,28 @@ class FrameParticles:
 
 
 @dataclass(frozen=True)
+class Adjustment:
+    """One bundle adjustment with the particles as landmarks (:func:`refine_with_landmarks`)."""
+
+    landmarks: int
+    observations: int
+    iterations: int
+    cost_start: float
+    cost_final: float
+    rms_px: float
+    sum_baselines_held_mm: float  # the scale prior's value: camera 0 to the others, summed
+    sum_baselines_final_mm: float
+    rotation_change_deg: Mapping[str, float]
+    time_s: float
+
+    def to_json(self) -> dict[str, Any]:
+        return {"landmarks": self.landmarks, "observations": self.observations, "iterations": self.iterations,
+                "cost": {"start": self.cost_start, "final": self.cost_final}, "rms_px": self.rms_px,
+                "sum_baselines_mm": {"held": self.sum_baselines_held_mm, "final": self.sum_baselines_final_mm},
+                "rotation_change_deg": dict(self.rotation_change_deg), "time_s": self.time_s}
+
+
+@dataclass(frozen=True)
 class Round:
     """One round: its tolerance, the disparity measured with the calibration it started from, and the
     bundle adjustment that followed (None for the final check)."""
@@ -103,19 +126,80 @@ class Round:
     tolerance_px: float
     matches: int
     disparity: DisparityMap
-    adjustment: dict[str, Any] | None
+    adjustment: Adjustment | None
+
+    def to_json(self) -> dict[str, Any]:
+        """The round as the report lists it."""
+        return {"tolerance_px": self.tolerance_px, "matches": self.matches,
+                "inliers": int(self.disparity.inlier.sum()),
+                "disparity_rms_px": [float(v) for v in self.disparity.rms_px],
+                "adjustment": None if self.adjustment is None else self.adjustment.to_json()}
+
+
+@dataclass(frozen=True)
+class BeforeAfter:
+    """A camera's disparity RMS (px) with the starting and the corrected calibration."""
+
+    before: float
+    after: float
+
+
+@dataclass(frozen=True)
+class SelfCalInputs:
+    """The files a dataset's self-calibration read (:func:`self_calibrate_dataset`), absolute."""
+
+    dataset: str
+    calibration: str
+    detections: str
+    workers: int | None  # None with a scheduler
+    scheduler: str | None
+
+
+@dataclass(frozen=True)
+class SelfCalReport:
+    """What self-calibration did: ``to_json()`` is calibration.json's ``self_calibration``."""
+
+    frames: tuple[int, ...]
+    particles_used: int  # landmarks of the largest round
+    landmarks_all_rounds: int
+    held: tuple[str, ...]  # what was not estimated, in words
+    scale_how: str
+    scale_sum_mm: float
+    scale_sigma_mm: float
+    backend: str
+    options: Mapping[str, Any]  # the SelfCalOptions, as JSON
+    disparity_rms_px: Mapping[str, BeforeAfter]
+    converged: bool  # the final disparities are one noise level (:func:`converged`)
+    rounds: tuple[Round, ...]
+    rotation_change_deg: Mapping[str, float]
+    time_s: float
+    inputs: SelfCalInputs | None = None  # from a dataset's files
+
+    def to_json(self) -> dict[str, Any]:
+        out = {"frames": list(self.frames), "particles_used": self.particles_used,
+               "landmarks_all_rounds": self.landmarks_all_rounds, "held": list(self.held),
+               "scale": {"how": self.scale_how, "sum_mm": self.scale_sum_mm, "sigma_mm": self.scale_sigma_mm},
+               "backend": self.backend, "options": dict(self.options),
+               "disparity_rms_px": {n: {"before": d.before, "after": d.after} for n, d in self.disparity_rms_px.items()},
+               "converged": self.converged, "rounds": [r.to_json() for r in self.rounds],
+               "rotation_change_deg": dict(self.rotation_change_deg), "time_s": self.time_s}
+        if self.inputs is not None:
+            i = self.inputs
+            out.update({"dataset": i.dataset, "calibration": i.calibration, "detections": i.detections,
+                        "workers": i.workers, "scheduler": i.scheduler})
+        return out
 
 
 @dataclass(frozen=True)
 class SelfCalResult:
-    """The corrected calibration (its ``self_calibration`` key = ``report``) and the disparity maps: with the
-    starting calibration (first round), with the corrected one (last round), and every round's."""
+    """The corrected calibration (its ``self_calibration`` key = ``report.to_json()``) and the disparity maps:
+    with the starting calibration (first round), with the corrected one (last round), and every round's."""
 
     calibration: Calibration
     before: DisparityMap
     after: DisparityMap
     rounds: tuple[Round, ...]
-    report: dict[str, Any] = field(default_factory=dict)
+    report: SelfCalReport
 
 
 # --------------------------------------------------------------------------- matching
@@ -319,7 +403,7 @@ def _gtsam_refinement(problem, huber_px: float | None, baseline_mm: float, state
 
 
 def refine_with_landmarks(calibration: Calibration, particles: ParticleSet, options: SelfCalOptions,
-                          baseline_mm: float | None = None) -> tuple[Calibration, dict[str, Any]]:
+                          baseline_mm: float | None = None) -> tuple[Calibration, Adjustment]:
     """The calibration corrected by a bundle adjustment with the particles as landmarks (module
     docstring, step 3). ``baseline_mm``: the held sum of camera-0 baselines (default: this calibration's)."""
     from ..colmap_refine.problem import RefractiveProblem, State
@@ -360,14 +444,12 @@ def refine_with_landmarks(calibration: Calibration, particles: ParticleSet, opti
     corrected = replace(calibration, cameras=cameras, interface=interface, normal_world=normal,
                         model="exact" if calibration.model == "truth" else calibration.model)
     e = np.linalg.norm(problem.residuals(final), axis=1)
-    report = {"landmarks": int(len(particles.xyz)), "observations": int(len(e)), "iterations": int(iterations),
-              "cost": {"start": float(cost0), "final": float(cost1)}, "rms_px": float(np.sqrt(np.mean(e ** 2))),
-              "sum_baselines_mm": {"held": float(held), "final": float(_sum_baselines(final)[0])},
-              "rotation_change_deg": {n: rotation_angle_deg(calibration.cameras[n].cam_from_world.R, R[c])
-                                      for c, n in enumerate(names)},
-              "time_s": time.perf_counter() - t0}
+    report = Adjustment(int(len(particles.xyz)), int(len(e)), int(iterations), float(cost0), float(cost1),
+                        float(np.sqrt(np.mean(e ** 2))), float(held), float(_sum_baselines(final)[0]),
+                        {n: rotation_angle_deg(calibration.cameras[n].cam_from_world.R, R[c])
+                         for c, n in enumerate(names)}, time.perf_counter() - t0)
     log.info("self-calibration: bundle adjustment of %d particles: %.3f px RMS after %d iterations",
-             len(particles.xyz), report["rms_px"], iterations)
+             len(particles.xyz), report.rms_px, iterations)
     return corrected, report
 
 
@@ -492,10 +574,10 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
         rounds.append(Round(tol, len(particles.xyz), dmap, None))
     before, after = rounds[0].disparity, rounds[-1].disparity
     report = _report(calibration, current, options, frames, rounds, baseline, time.perf_counter() - t0)
-    if not report["converged"]:
+    if not report.converged:
         log.warning("self-calibration: the disparity RMS after (%s px) is not one noise level in every camera: "
                     "the correction may be wrong", np.round(after.rms_px, 3).tolist())
-    corrected = replace(current, extra={**current.extra, "self_calibration": report})
+    corrected = replace(current, extra={**current.extra, "self_calibration": report.to_json()})
     return SelfCalResult(corrected, before, after, tuple(rounds), report)
 
 
@@ -507,33 +589,27 @@ def converged(after: DisparityMap, options: SelfCalOptions) -> bool:
 
 
 def _report(start: Calibration, final: Calibration, options: SelfCalOptions, frames: Sequence[int],
-            rounds: Sequence[Round], baseline: float, seconds: float) -> dict[str, Any]:
+            rounds: Sequence[Round], baseline: float, seconds: float) -> SelfCalReport:
     names = list(start.cameras)
     before, after = rounds[0].disparity, rounds[-1].disparity
     held = ["camera 0's pose (" + names[0] + ", the world frame)"]
     held.append("the window (normal and distance)" if not options.refine_window else
                 "nothing of the window (normal and distance estimated)")
     held.append("the intrinsics" if not options.refine_intrinsics else "the distortion (fx fy cx cy estimated)")
-    landmarks = sum(r.adjustment["landmarks"] for r in rounds if r.adjustment)
-    return {
-        "frames": [int(f) for f in frames],
-        "particles_used": int(max((r.adjustment["landmarks"] for r in rounds if r.adjustment), default=0)),
-        "landmarks_all_rounds": int(landmarks),
-        "held": held,
-        "scale": {"how": "prior on the sum of the distances from camera 0's centre to the other cameras' centres, "
-                         "at the starting calibration's value", "sum_mm": baseline, "sigma_mm": SCALE_SIGMA_MM},
-        "backend": options.backend,
-        "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in options.__dict__.items()},
-        "disparity_rms_px": {n: {"before": float(before.rms_px[c]), "after": float(after.rms_px[c])}
-                             for c, n in enumerate(names)},
-        "converged": converged(after, options),
-        "rounds": [{"tolerance_px": r.tolerance_px, "matches": r.matches, "inliers": int(r.disparity.inlier.sum()),
-                    "disparity_rms_px": [float(v) for v in r.disparity.rms_px],
-                    "adjustment": r.adjustment} for r in rounds],
-        "rotation_change_deg": {n: rotation_angle_deg(start.cameras[n].cam_from_world.R,
-                                                      final.cameras[n].cam_from_world.R) for n in names},
-        "time_s": seconds,
-    }
+    landmarks = sum(r.adjustment.landmarks for r in rounds if r.adjustment)
+    return SelfCalReport(
+        frames=tuple(int(f) for f in frames),
+        particles_used=int(max((r.adjustment.landmarks for r in rounds if r.adjustment), default=0)),
+        landmarks_all_rounds=int(landmarks), held=tuple(held),
+        scale_how="prior on the sum of the distances from camera 0's centre to the other cameras' centres, "
+                  "at the starting calibration's value", scale_sum_mm=baseline, scale_sigma_mm=SCALE_SIGMA_MM,
+        backend=options.backend,
+        options={k: (list(v) if isinstance(v, tuple) else v) for k, v in options.__dict__.items()},
+        disparity_rms_px={n: BeforeAfter(float(before.rms_px[c]), float(after.rms_px[c])) for c, n in enumerate(names)},
+        converged=converged(after, options), rounds=tuple(rounds),
+        rotation_change_deg={n: rotation_angle_deg(start.cameras[n].cam_from_world.R, final.cameras[n].cam_from_world.R)
+                             for n in names},
+        time_s=seconds)
 
 
 def disparity_json(result: SelfCalResult) -> dict[str, Any]:
@@ -553,7 +629,7 @@ def write_self_calibration(result: SelfCalResult, out_dir) -> None:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "disparity.json", disparity_json(result))
-    result.calibration.save(out / "calibration.json")
+    save_calibration(result.calibration, out / "calibration.json")
 
 
 # --------------------------------------------------------------------------- a dataset
@@ -601,12 +677,11 @@ def self_calibrate_dataset(dataset_path, calibration_path, out, options: SelfCal
     with dask_client(workers, scheduler) as client:
         result = self_calibrate(calibration, detections, options, volume=volume,
                                 map_frames=None if client is None else dask_map(client), path=calibration_path)
-    report = {**result.report, "dataset": str(Path(os.path.abspath(dataset.rig_path))),
-              "calibration": str(Path(os.path.abspath(calibration_path))),
-              "detections": str(Path(os.path.abspath(det_path))), "workers": workers if scheduler is None else None,
-              "scheduler": scheduler}
+    report = replace(result.report, inputs=SelfCalInputs(
+        str(Path(os.path.abspath(dataset.rig_path))), str(Path(os.path.abspath(calibration_path))),
+        str(Path(os.path.abspath(det_path))), workers if scheduler is None else None, scheduler))
     result = replace(result, report=report,
                      calibration=replace(result.calibration, extra={**result.calibration.extra,
-                                                                    "self_calibration": report}))
+                                                                    "self_calibration": report.to_json()}))
     write_self_calibration(result, out)
     return result

@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ari_sfm.calibration import Calibration
+from ari_sfm.io import calibration_to_json, parse_calibration
 from ari_sfm.geometry import Pose, rotation_from_rotvec, unit
 from ari_sfm.records import Dataset
 from ari_sfm.simulate.scenarios import (
@@ -164,7 +165,7 @@ def _calibration(geometry: Geometry, seed: int) -> Calibration:
     data["target"] = target_to_json(geometry.target)  # scene's truth form lists points3d as arrays
     for key in ("scenario", "seed", "sigma_px", "image_scale", "stacking", "reconstruction_points_world"):
         data.pop(key, None)
-    return Calibration.from_json(data, "<simulated truth>")
+    return parse_calibration(data, "<simulated truth>")
 
 
 def simulate_particle_experiment(options: ParticleSimOptions = ParticleSimOptions()) -> ParticleExperiment:
@@ -272,8 +273,8 @@ def write_particle_experiment(exp: ParticleExperiment, out_dir: str | Path, rend
     ds = replace(exp.calibration_dataset, root=calib_dir, rig_path=calib_dir / "rig.yaml",
                  observations_path=calib_dir / "observations.json")
     save_rig(calib_dir / "rig.yaml", ds)
-    write_json_atomic(truth_dir / "rig_a.json", exp.truth_a.to_json())
-    write_json_atomic(truth_dir / "rig_b.json", exp.truth_b.to_json())
+    write_json_atomic(truth_dir / "rig_a.json", calibration_to_json(exp.truth_a))
+    write_json_atomic(truth_dir / "rig_b.json", calibration_to_json(exp.truth_b))
 
     frame, camera, u, v, inten, pid = [], [], [], [], [], []
     intensity_rng = _rng(o.seed, 3)

@@ -1,0 +1,228 @@
+"""calibration.json read, validated and written (docs/DATASET_FORMAT.md), as the rig files are by
+:mod:`ari_sfm.io.dataset`: :func:`load_calibration`, :func:`save_calibration` (atomic),
+:func:`parse_calibration` (a parsed mapping, e.g. a simulator's truth) and :func:`calibration_to_json`.
+A defect is one line, ``AriSfmError(path, message)``, naming the key; values are held to rig.yaml's
+bounds (:mod:`ari_sfm.io.calibration_checks`). The record itself is :class:`ari_sfm.calibration.Calibration`."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ari_sfm.calibration import Calibration, CameraCalibration
+from ari_sfm.errors import AriSfmError
+from ari_sfm.geometry import Pose
+from ari_sfm.io.atomic import write_json_atomic
+from ari_sfm.io.calibration_checks import check_calibration_values
+from ari_sfm.io.dataset import MAX_FOCAL_PX, MAX_IMAGE_SIDE_PX, MAX_LENGTH_MM, parse_target, target_to_json
+from ari_sfm.io.structured import check_at_most, read_structured
+from ari_sfm.models.polynomial import PolynomialMap
+from ari_sfm.models.registry import model_spec
+from ari_sfm.quality import Quality
+from ari_sfm.records import Interface
+from ari_sfm.results import OptimizerReport, OutlierReport, PfWorld, ResidualStats, Uncertainty
+
+FORMAT = "ari-sfm-calibration/1"
+
+
+def load_calibration(path: str | Path) -> Calibration:
+    """Read and validate calibration.json (or a simulator's truth.json)."""
+    return parse_calibration(read_structured(Path(path)), path)
+
+
+def save_calibration(calibration: Calibration, path: str | Path) -> None:
+    """Write calibration.json atomically."""
+    write_json_atomic(Path(path), calibration_to_json(calibration))
+
+
+def calibration_to_json(cal: Calibration) -> dict[str, Any]:
+    """The calibration.json mapping of a calibration (docs/DATASET_FORMAT.md)."""
+    cams = {}
+    for name, c in cal.cameras.items():
+        entry: dict[str, Any] = {
+            "image_size": [int(s) for s in c.image_size],
+            "K": c.K.tolist(),
+            "dist": np.resize(c.dist, 5).tolist(),
+            "cam_from_world": c.cam_from_world.to_json(),
+        }
+        if cal.normal_world is not None:
+            entry["normal_cam"] = cal.normal_cam(name).tolist()
+        if c.expansion_center_px is not None:
+            entry["expansion_center_px"] = np.asarray(c.expansion_center_px).tolist()
+        if c.expansion_center_std_px is not None:
+            entry["expansion_center_std_px"] = np.asarray(c.expansion_center_std_px).tolist()
+        entry["distance_mm"] = cal.distance_mm(name)
+        if c.rmse_px is not None:
+            entry["rmse_px"] = c.rmse_px
+        if c.pf is not None:
+            entry["pf"] = c.pf.to_json(cal.pf_world.model)
+        entry.update(c.extra)
+        cams[name] = entry
+    out = {
+        "format": FORMAT,
+        "model": cal.model,
+        "interface": {
+            "normal_world": None if cal.normal_world is None else np.asarray(cal.normal_world).tolist(),
+            "thickness_mm": cal.interface.thickness_mm,
+            "index": cal.interface.index,
+            "medium_index": cal.interface.medium_index,
+            "distance_mm": cal.interface.distance_mm,
+        },
+        "cameras": cams,
+        "frames": {f: {"world_from_target": p.to_json()} for f, p in cal.frames.items()},
+    }
+    if cal.stacking_poses:
+        out["stacking_poses"] = {f: {"world_from_target": p.to_json()} for f, p in cal.stacking_poses.items()}
+    if cal.target is not None:
+        out["target"] = target_to_json(cal.target)
+    out["residuals"] = {} if cal.residuals is None else cal.residuals.to_json()
+    out["time_s"] = cal.time_s
+    if cal.optimizer is not None:
+        out["optimizer"] = cal.optimizer.to_json()
+    out.update(cal.extra)
+    for key, record in (("pf_world", cal.pf_world), ("uncertainty", cal.uncertainty),
+                        ("outliers", cal.outliers), ("quality", cal.quality)):
+        if record is not None:
+            out[key] = record.to_json()
+    if cal.fixed_distance_mm is not None:
+        out["fixed_distance_mm"] = cal.fixed_distance_mm
+    return out
+
+
+def parse_calibration(data: Any, path: str | Path = "calibration.json") -> Calibration:
+    """Parse and validate a calibration.json mapping; AriSfmError(path, one line) when it is not one."""
+    try:
+        return _parse(data, path)
+    except AriSfmError:
+        raise
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+        what = f"missing key {exc}" if isinstance(exc, KeyError) else str(exc)
+        raise AriSfmError(path, f"malformed calibration: {what}") from None
+
+
+def _finite(a: Any, shape: tuple[int, ...], what: str, path: Any) -> np.ndarray:
+    arr = np.asarray(a, dtype=float)
+    if arr.shape != shape:
+        raise AriSfmError(path, f"{what} must have shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise AriSfmError(path, f"{what} contains non-finite values")
+    return arr
+
+
+def _pose(d: Any, what: str, path: Any) -> Pose:
+    R = _finite(d["R"], (3, 3), f"{what}.R", path)
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise AriSfmError(path, f"{what}.R is not a rotation matrix")
+    return Pose(R, _finite(d["t"], (3,), f"{what}.t", path))
+
+
+def _check_bounds(cams: dict[str, CameraCalibration], thickness: float, path: Any) -> None:
+    """The sane physical bounds of the rig file (io.dataset) hold for a calibration too."""
+    check_at_most(thickness, MAX_LENGTH_MM, path, "interface.thickness_mm", " mm")
+    for name, c in cams.items():
+        if min(c.image_size) < 1:
+            raise AriSfmError(path, f"cameras.{name}.image_size must be two integers >= 1 (got {list(c.image_size)})")
+        check_at_most(max(c.image_size), MAX_IMAGE_SIDE_PX, path, f"cameras.{name}.image_size", " px")
+        fx, fy = float(c.K[0, 0]), float(c.K[1, 1])
+        if fx <= 0 or fy <= 0:
+            raise AriSfmError(path, f"cameras.{name}.K must have positive focal lengths (got fx={fx:g}, fy={fy:g})")
+        check_at_most(max(fx, fy), MAX_FOCAL_PX, path, f"cameras.{name}.K focal length", " px")
+
+
+def _parse(data: Any, path: Any) -> Calibration:
+    if not isinstance(data, dict):
+        raise AriSfmError(path, "calibration must be a JSON object")
+    if data.get("format") != FORMAT:
+        raise AriSfmError(path, f"unknown format {data.get('format')!r} (expected {FORMAT!r})")
+    spec = model_spec(data["model"], path)
+    model = spec.name
+    check_calibration_values(data, path, window=spec.window)  # rig.yaml's bounds (ari_sfm.io.calibration_checks)
+    iface = data["interface"]
+    thickness, index = float(iface["thickness_mm"]), float(iface["index"])
+    medium = float(iface.get("medium_index", 1.0))
+    if not (math.isfinite(thickness) and thickness >= 0):
+        raise AriSfmError(path, f"interface.thickness_mm must be >= 0 (got {thickness})")
+    if not (math.isfinite(index) and index >= 1) or not (math.isfinite(medium) and medium >= 1):
+        raise AriSfmError(path, "interface.index and medium_index must be >= 1")
+    distance = iface.get("distance_mm")
+    if iface["normal_world"] is None and not spec.window:
+        normal = None
+    else:
+        normal = _finite(iface["normal_world"], (3,), "interface.normal_world", path)
+    if normal is not None and abs(np.linalg.norm(normal) - 1) > 1e-6:
+        raise AriSfmError(path, "interface.normal_world must be a unit vector")
+    cams = {}
+    if not isinstance(data["cameras"], dict) or not data["cameras"]:
+        raise AriSfmError(path, "cameras must be a non-empty object")
+    known = {"image_size", "K", "dist", "cam_from_world", "normal_cam", "expansion_center_px",
+             "expansion_center_std_px", "rmse_px", "distance_mm", *spec.camera_keys}
+    pf_world = _record(PfWorld, data, "pf_world", path) if spec.projection == "polynomial" else None
+    if spec.projection == "polynomial" and pf_world is None:
+        raise AriSfmError(path, f"pf_world is missing (model {model} names the calibration its world comes from)")
+    for name, c in data["cameras"].items():
+        ec = c.get("expansion_center_px")
+        es = c.get("expansion_center_std_px")
+        for key in spec.camera_keys:
+            if key not in c:
+                raise AriSfmError(path, f"cameras.{name}.{key} is missing (model {model} stores its parameters there)")
+        poly = None
+        if spec.projection == "polynomial":  # the polynomial is the model: validate it here, not at the first projection
+            try:
+                poly = PolynomialMap.from_json(c["pf"])
+            except (KeyError, TypeError, ValueError) as exc:
+                raise AriSfmError(path, f"cameras.{name}.pf: {exc}") from None
+            if c["pf"].get("world", pf_world.model) != pf_world.model:
+                raise AriSfmError(path, f"cameras.{name}.pf.world is {c['pf']['world']!r}, pf_world.model "
+                                        f"{pf_world.model!r}: one world for all cameras")
+        cams[name] = CameraCalibration(
+            name,
+            tuple(int(s) for s in c["image_size"]),
+            _finite(c["K"], (3, 3), f"cameras.{name}.K", path),
+            np.resize(_finite(c.get("dist", [0] * 5), (len(c.get("dist", [0] * 5)),), f"cameras.{name}.dist", path), 5),
+            _pose(c["cam_from_world"], f"cameras.{name}.cam_from_world", path),
+            None if ec is None else np.asarray(ec, float),
+            None if es is None else np.asarray(es, float),
+            c.get("rmse_px"),
+            {k: v for k, v in c.items() if k not in known},
+            poly,
+        )
+    _check_bounds(cams, thickness, path)
+    frames = {f: _pose(v["world_from_target"], f"frames.{f}", path) for f, v in data.get("frames", {}).items()}
+    stacking = {f: _pose(v["world_from_target"], f"stacking_poses.{f}", path) for f, v in data.get("stacking_poses", {}).items()}
+    reserved = {"format", "model", "interface", "cameras", "frames", "stacking_poses", "residuals", "time_s", "target",
+                "fixed_distance_mm", "uncertainty", "outliers", "pf_world", "quality", "optimizer"}
+    fixed = data.get("fixed_distance_mm")
+    if fixed is not None:
+        fixed = float(fixed)
+        if not math.isfinite(fixed):
+            raise AriSfmError(path, f"fixed_distance_mm must be a finite number (got {data['fixed_distance_mm']!r})")
+    if spec.needs_distance and distance is None and fixed is None:
+        raise AriSfmError(path, f"fixed_distance_mm is missing: model {model} with interface.distance_mm null is "
+                                "evaluated at the distance it was calibrated with (in air no pixel depends on it)")
+    if "target" in data:
+        target = parse_target(data["target"], Path(path))
+    else:
+        target = None
+    return Calibration(
+        model, Interface(thickness, index, medium, None if distance is None else float(distance)), normal, cams,
+        frames, stacking, _record(ResidualStats, data, "residuals", path), float(data.get("time_s", 0.0)),
+        {k: v for k, v in data.items() if k not in reserved}, target, fixed,
+        _record(Uncertainty, data, "uncertainty", path), _record(OutlierReport, data, "outliers", path), pf_world,
+        _record(Quality, data, "quality", path), _record(OptimizerReport, data, "optimizer", path),
+    )
+
+
+def _record(cls, data: dict, key: str, path: Any):
+    """``cls.from_json(data[key])`` (None when the key is absent, null or {}), errors naming the key."""
+    value = data.get(key)
+    if not value:
+        return None
+    if not isinstance(value, dict):
+        raise AriSfmError(path, f"{key} must be an object")
+    try:
+        return cls.from_json(value)
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        what = f"missing key {exc}" if isinstance(exc, KeyError) else str(exc)
+        raise AriSfmError(path, f"{key}: {what}") from None
