@@ -285,6 +285,147 @@ def _distance_search(model: adapter.ColmapModel, problem: RefractiveProblem, int
     return search, best, sorted(others, key=lambda o: o[0])
 
 
+GROW_MIN_FRAMES = 41  # a model with more frames than this is a long chain: its start grows from a middle block
+GROW_FIRST_FRAMES = 30  # the first block: the frames nearest the middle (a block this size converges from COLMAP's)
+GROW_FACTOR = 1.6  # each block has this many times the previous one's frames
+GROW_ITERATIONS = 100  # LM iterations per block at most (a converged block stops earlier)
+ALIGN_MIN_POINTS = 10  # a frame's pose is re-aligned by the block points it sees when it sees at least this many
+BLOCK_MIN_VIEWS = 2  # a point is in a block when block images see it this many times
+
+
+@dataclass(frozen=True)
+class Block:
+    """A part of the model: its sub-model and the indices of its frames, images and points in the whole."""
+
+    model: adapter.ColmapModel
+    frames: np.ndarray
+    images: np.ndarray
+    points: np.ndarray
+
+
+def _block(model: adapter.ColmapModel, frames: np.ndarray) -> Block:
+    """The sub-model of ``frames`` (indices): their images, the points they see BLOCK_MIN_VIEWS times or more,
+    and those observations (frames left with no observation dropped)."""
+    F, P = len(model.frame_ids), len(model.point3D_ids)
+    fkeep = np.zeros(F, bool)
+    fkeep[frames] = True
+    for _ in range(3):  # dropping a frame can drop points seen by the others: until stable
+        ikeep = fkeep[model.image_frame]
+        obs = ikeep[model.obs_image]
+        pkeep = np.bincount(model.obs_point[obs], minlength=P) >= BLOCK_MIN_VIEWS
+        obs &= pkeep[model.obs_point]
+        seen = np.bincount(model.image_frame[model.obs_image[obs]], minlength=F) > 0
+        if np.all(seen[fkeep]):
+            break
+        fkeep &= seen
+    images, points = np.flatnonzero(ikeep), np.flatnonzero(pkeep)
+    new_frame, new_image, new_point = np.cumsum(fkeep) - 1, np.cumsum(ikeep) - 1, np.cumsum(pkeep) - 1
+    sub = replace(model, frame_ids=model.frame_ids[fkeep],
+                  rig_from_world=tuple(model.rig_from_world[f] for f in np.flatnonzero(fkeep)),
+                  image_ids=model.image_ids[images], image_names=tuple(model.image_names[i] for i in images),
+                  image_camera=model.image_camera[images], image_frame=new_frame[model.image_frame[images]],
+                  sensor_from_rig=tuple(model.sensor_from_rig[i] for i in images),
+                  point3D_ids=model.point3D_ids[points], xyz=model.xyz[points],
+                  obs_image=new_image[model.obs_image[obs]], obs_point=new_point[model.obs_point[obs]],
+                  obs_uv=model.obs_uv[obs],
+                  image_is_ref=None if model.image_is_ref is None else model.image_is_ref[images])
+    return Block(sub, np.flatnonzero(fkeep), images, points)
+
+
+def _block_state(state: State, block: Block) -> State:
+    """The state's values of a block's variables."""
+    return replace(state, rig_from_world=tuple(state.rig_from_world[f] for f in block.frames),
+                   sensor_from_rig=tuple(state.sensor_from_rig[i] for i in block.images), xyz=state.xyz[block.points])
+
+
+def _centres(state: State) -> np.ndarray:
+    return np.array([-p.R.T @ p.t for p in state.rig_from_world])
+
+
+def _aligned(model: adapter.ColmapModel, state: State, block: Block, refined: State) -> State:
+    """The whole state with the block's refined values, and every other frame and point moved by the
+    similarity that carries the block points it sees from where they were to where the block's
+    refinement put them (a frame that sees fewer than ALIGN_MIN_POINTS of them: its nearest such
+    frame's): the start built frame by frame, so that a bend the input accumulated along a long chain
+    is not carried beyond the refined block."""
+    from .truth import similarity
+
+    F = len(model.frame_ids)
+    in_block = np.zeros(len(model.point3D_ids), bool)
+    in_block[block.points] = True
+    new_xyz = state.xyz.copy()
+    new_xyz[block.points] = refined.xyz
+    frame_of_obs = model.image_frame[model.obs_image]
+    sims: dict[int, tuple[float, np.ndarray, np.ndarray]] = {}
+    for f in range(F):
+        pts = np.unique(model.obs_point[(frame_of_obs == f) & in_block[model.obs_point]])
+        if len(pts) >= ALIGN_MIN_POINTS:
+            sims[f] = similarity(state.xyz[pts], new_xyz[pts])
+    if not sims:
+        return state
+    centres = _centres(state)
+    have = np.array(sorted(sims))
+    frames = list(state.rig_from_world)
+    sim_of = {}
+    for f in range(F):
+        g = f if f in sims else int(have[np.argmin(np.linalg.norm(centres[have] - centres[f], axis=1))])
+        s, R, t = sims[g]
+        sim_of[f] = (s, R, t)
+        pose = frames[f]  # X_rig = R_f X + t_f with X = R^T (X' - t) / s; the rig frame scaled by s with the world
+        frames[f] = Pose(pose.R @ R.T, s * pose.t - pose.R @ R.T @ t)
+    for k, f in enumerate(block.frames):
+        frames[f] = refined.rig_from_world[k]
+    sensors = list(state.sensor_from_rig)
+    for k, i in enumerate(block.images):
+        sensors[i] = refined.sensor_from_rig[k]
+    out = ~in_block[model.obs_point]  # a point outside the block: the mean of its frames' similarities
+    moved = np.zeros((len(new_xyz), 3))
+    for f, (s, R, t) in sim_of.items():
+        sel = out & (frame_of_obs == f)
+        p = model.obs_point[sel]
+        np.add.at(moved, p, s * state.xyz[p] @ R.T + t)
+    count = np.bincount(model.obs_point[out], minlength=len(new_xyz))
+    rest = count > 0
+    new_xyz[rest] = moved[rest] / count[rest, None]
+    return replace(refined, rig_from_world=tuple(frames), sensor_from_rig=tuple(sensors), xyz=new_xyz)
+
+
+def _first_block(model: adapter.ColmapModel, state: State) -> Block | None:
+    """The first block of a long chain (more than GROW_MIN_FRAMES frames): the GROW_FIRST_FRAMES frames
+    nearest the middle of the frame centres; None for a shorter model or when the block lacks a camera."""
+    if len(model.frame_ids) <= GROW_MIN_FRAMES:
+        return None
+    centres = _centres(state)
+    block = _block(model, np.argsort(np.linalg.norm(centres - np.median(centres, axis=0), axis=1),
+                                     kind="stable")[:GROW_FIRST_FRAMES])
+    return block if len(np.unique(block.model.image_camera)) == len(model.camera_ids) else None
+
+
+def _grown_start(model: adapter.ColmapModel, state: State, first: Block, make_solver
+                 ) -> tuple[State, list[dict]]:
+    """A long chain's start: ``first`` (the block of GROW_FIRST_FRAMES frames nearest the middle) is
+    refined (``make_solver(block_model)``: the window held), the rest aligned to it frame by frame
+    (:func:`_aligned`), then the block grows by GROW_FACTOR and again, until it would hold every
+    frame. Returns the start and the blocks' records."""
+    F = len(model.frame_ids)
+    centres = _centres(state)
+    order = np.argsort(np.linalg.norm(centres - np.median(centres, axis=0), axis=1), kind="stable")
+    size = GROW_FIRST_FRAMES
+    block = first
+    blocks = []
+    while True:
+        res = make_solver(block.model).run(_block_state(state, block), GROW_ITERATIONS)
+        state = _aligned(model, state, block, res.state)
+        blocks.append({"frames": len(block.frames), "points3D": len(block.points), "cost": res.cost,
+                       "iterations": res.iterations, "linearizations": res.linearizations})
+        log.info("refine-colmap: block of %d frames (%d points3D), the window held: cost %.6g after %d iterations",
+                 len(block.frames), len(block.points), res.cost, res.iterations)
+        if len(block.frames) == F or size >= F:
+            return state, blocks
+        size = min(F, int(np.ceil(size * GROW_FACTOR)))
+        block = _block(model, order[:size])
+
+
 def _paraxial_offset_mm(interface: Interface, normal_cam: np.ndarray, h: float) -> float:
     """n_m a: how far the paraxial virtual centre sits behind the real one along the normal."""
     ari = AriModel(PinholeModel(np.eye(3)), normal_cam, interface.thickness_mm, interface.index,
@@ -340,6 +481,11 @@ def _with_distance(model: adapter.ColmapModel, state: State, mount: str, h: floa
     R, t = state.cam_from_world(model)
     centres = -np.einsum("nji,nj->ni", R, t)
     return replace(state, distances=np.array([float(np.max(centres @ state.normals[0])) + h]))
+
+
+def _restart_at(model: adapter.ColmapModel, problem: RefractiveProblem, state: State, mount: str, h: float) -> State:
+    """``state`` with its window moved to distance h, paraxially (the virtual cameras kept)."""
+    return _convert(model, problem, _with_distance(model, _convert(model, problem, state, -1), mount, h), +1)
 
 
 def _scaled(state: State, s: float, window: bool = True) -> State:
@@ -616,9 +762,23 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
         candidates = tuple(distances_mm or DISTANCE_CANDIDATES_MM)
     candidates = _candidates_inside_scene(cmodel, virtual, interface, candidates, units_mm is not None or bar is not None,
                                           plane is not None or interface.distance_mm is not None, window_path)
-    search, best, others = _distance_search(cmodel, problem, interface, mount, estimate_distance, huber_px, bar, virtual,
-                                    candidates, plane is not None)
-    start = best[1]
+    blocks: list[dict] = []
+    first = _first_block(cmodel, virtual)
+    if first is not None:  # a long chain: the start grown from a middle block, the window held at the middle start
+        h = candidates[(len(candidates) - 1) // 2] if len(candidates) > 1 else candidates[0]
+        whole = _convert(cmodel, problem, virtual if plane is not None else _with_distance(cmodel, virtual, mount, h), +1)
+        start, blocks = _grown_start(cmodel, whole, first,
+                                     lambda m: Solver(RefractiveProblem(m, interface, mount, estimate_distance,
+                                                                        hold_window=True), huber_px))
+        if bar is not None:
+            start = _scaled(start, bar.length_mm / bar.length(start.xyz), plane is None)
+        search = []
+        others = [(0.0, _restart_at(cmodel, problem, start, mount, c), 0) for c in candidates
+                  if c != h and plane is None]
+    else:
+        search, best, others = _distance_search(cmodel, problem, interface, mount, estimate_distance, huber_px, bar,
+                                                virtual, candidates, plane is not None)
+        start = best[1]
     if not np.all(np.isfinite(problem.residuals(start))):
         raise AriSfmError(window_path, "no start puts every point beyond the window (the window is between a camera "
                                        "and points it sees at every candidate distance): check units_mm / scale_bar "
@@ -637,15 +797,16 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     run = (lambda x: solver.run(x, max_iterations, tick)) if backend == "numpy" else (
         lambda x: solver.run_gtsam(x, max_iterations))
     pre = None
-    if bar is not None and FREE_SCALE_FIRST:  # the scale's valley first, without the bar, then the bar held
+    if bar is not None and FREE_SCALE_FIRST and not blocks:  # the scale's valley first, without the bar, then the bar held
         free = Solver(problem, huber_px, window_prior(plane, estimate_distance))
         pre = free.run(start, max_iterations, tick) if backend == "numpy" else free.run_gtsam(start, max_iterations)
         start = _scaled(pre.state, bar.length_mm / bar.length(pre.state.xyz), plane is None)
         log.info("refine-colmap: without the bar: cost %.6g in %d iterations; rescaled by %.6g to the bar",
                  pre.cost, pre.iterations, bar.length_mm / bar.length(pre.state.xyz))
     result = run(start)
-    iterations = result.iterations + sum(c["iterations"] for c in search) + (pre.iterations if pre else 0)
-    linearizations = result.linearizations + (pre.linearizations if pre else 0)
+    iterations = (result.iterations + sum(c["iterations"] for c in search) + (pre.iterations if pre else 0)
+                  + sum(b["iterations"] for b in blocks))
+    linearizations = result.linearizations + (pre.linearizations if pre else 0) + sum(b["linearizations"] for b in blocks)
     restarts = []
     collapsed = estimate_distance and plane is None and _collapsed(result.state, problem, candidates)
     for _, other, _ in (others if collapsed else []):  # the distance ran toward 0: the other starts, lowest cost wins
