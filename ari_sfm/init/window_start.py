@@ -75,9 +75,10 @@ def distance_interval(state, observations: Sequence[Observation], target: Target
 
 
 def search_distance(cost: Callable[[float], float], lo: float, hi: float, samples: int = 48,
-                    current: float | None = None) -> float:
+                    current: float | None = None, refine: bool = True) -> float:
     """The distance in (lo, hi) of least ``cost``: a grid of ``samples`` interior points (and
-    ``current`` when inside), then a bounded 1-D minimisation between the best point's neighbours."""
+    ``current`` when inside), then (``refine``) a bounded 1-D minimisation between the best point's
+    neighbours."""
     from scipy.optimize import minimize_scalar
 
     grid = lo + (hi - lo) * np.arange(1, samples + 1) / (samples + 1)
@@ -88,6 +89,8 @@ def search_distance(cost: Callable[[float], float], lo: float, hi: float, sample
     if not np.isfinite(costs).any():
         return float(grid[0])
     k = int(np.nanargmin(np.where(np.isfinite(costs), costs, np.nan)))
+    if not refine:
+        return float(grid[k])
     a = grid[k - 1] if k > 0 else lo + 0.5 * (grid[0] - lo)
     b = grid[k + 1] if k + 1 < samples else hi - 0.5 * (hi - grid[-1])
     res = minimize_scalar(cost, bounds=(a, b), method="bounded", options={"xatol": 1e-3 * (b - a)})
