@@ -255,7 +255,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
     (:mod:`ari_sfm.quality`) until one passes.
     """
     from .factors.vectorized import resolve_backend
-    from .quality import judge, pinhole_dist_rmse_px
+    from .quality import PARAXIAL_MODELS, fits, floor_rmse_px, judge
 
     opts = _options(options, overrides)
     backend = resolve_backend(opts.backend)
@@ -275,7 +275,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
     tried: list[str] = []
     judged: list = []  # (Calibration with its quality)
     first_error = None
-    pinhole = None
+    floor = None
     for start in _starts(dataset, model, opts):
         tried.append(start.name)
         try:
@@ -286,9 +286,13 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
             continue
         if not opts.quality:
             return replace(cal, time_s=time.perf_counter() - t0)
-        if pinhole is None:
-            pinhole = (pinhole_dist_rmse_px(dataset),)
-        quality = judge(model, cal.residuals.rmse_px, (r for _, r in residuals), pinhole[0], cal.uncertainty, tuple(tried))
+        if floor is None:
+            floor = (floor_rmse_px(dataset),)
+        res = [r for _, r in residuals]
+        exact_robust = None
+        if model in PARAXIAL_MODELS and not fits(model, res, floor[0]):  # its paraxial error, or a wrong window?
+            exact_robust = _exact_robust_rmse(_Solver(dataset, opts, backend, extra_factors), start)
+        quality = judge(model, cal.residuals.rmse_px, res, floor[0], cal.uncertainty, tuple(tried), exact_robust)
         judged.append(replace(cal, quality=quality))
         if quality.ok:
             break
@@ -300,6 +304,20 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
         best = min(judged, key=lambda c: (not math.isfinite(c.quality.robust_rmse_px), c.quality.robust_rmse_px))
         best = replace(best, quality=replace(best.quality, starts=tuple(tried)))
     return replace(best, time_s=time.perf_counter() - t0)
+
+
+def _exact_robust_rmse(solver: "_Solver", start: "Start") -> float | None:
+    """The quality gate's re-evaluation of a paraxial result: the exact model's robust RMSE from the same
+    start with the same window, hints and options; None when the exact model cannot be started there."""
+    from .quality import robust_rmse_px
+
+    solver = replace(solver, opts=replace(solver.opts, uncertainty=False))
+    try:
+        _, residuals = _calibrate_from(solver, "exact", plan_stages(solver.dataset, "exact", solver.opts), start)
+    except AriSfmError as exc:
+        log.info("quality gate: no exact re-evaluation from the %s start (%s)", start.name, exc.message)
+        return None
+    return robust_rmse_px(r for _, r in residuals)
 
 
 @dataclass(frozen=True)
