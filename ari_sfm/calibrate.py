@@ -6,6 +6,7 @@ import math
 import time
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -14,7 +15,7 @@ from .errors import AriSfmError
 from .evaluate import residual_stats
 from .geometry import angle_between_deg
 from .models.registry import model_spec
-from .records import Dataset, Interface, WindowPlane
+from .records import Dataset, Interface, Observation, WindowPlane
 from .results import OptimizerReport, OptimizerRun, OutlierReport
 
 log = logging.getLogger(__name__)
@@ -254,7 +255,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
     (:mod:`ari_sfm.quality`) until one passes.
     """
     from .factors.vectorized import resolve_backend
-    from .quality import judge, pinhole_dist_rmse_px
+    from .quality import PARAXIAL_MODELS, fits, floor_rmse_px, judge
 
     opts = _options(options, overrides)
     backend = resolve_backend(opts.backend)
@@ -274,7 +275,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
     tried: list[str] = []
     judged: list = []  # (Calibration with its quality)
     first_error = None
-    pinhole = None
+    floor = None
     for start in _starts(dataset, model, opts):
         tried.append(start.name)
         try:
@@ -285,9 +286,13 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
             continue
         if not opts.quality:
             return replace(cal, time_s=time.perf_counter() - t0)
-        if pinhole is None:
-            pinhole = (pinhole_dist_rmse_px(dataset),)
-        quality = judge(model, cal.residuals.rmse_px, (r for _, r in residuals), pinhole[0], cal.uncertainty, tuple(tried))
+        if floor is None:
+            floor = (floor_rmse_px(dataset),)
+        res = [r for _, r in residuals]
+        exact_robust = None
+        if model in PARAXIAL_MODELS and not fits(model, res, floor[0]):  # its paraxial error, or a wrong window?
+            exact_robust = _exact_robust_rmse(_Solver(dataset, opts, backend, extra_factors), start)
+        quality = judge(model, cal.residuals.rmse_px, res, floor[0], cal.uncertainty, tuple(tried), exact_robust)
         judged.append(replace(cal, quality=quality))
         if quality.ok:
             break
@@ -299,6 +304,20 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
         best = min(judged, key=lambda c: (not math.isfinite(c.quality.robust_rmse_px), c.quality.robust_rmse_px))
         best = replace(best, quality=replace(best.quality, starts=tuple(tried)))
     return replace(best, time_s=time.perf_counter() - t0)
+
+
+def _exact_robust_rmse(solver: "_Solver", start: "Start") -> float | None:
+    """The quality gate's re-evaluation of a paraxial result: the exact model's robust RMSE from the same
+    start with the same window, hints and options; None when the exact model cannot be started there."""
+    from .quality import robust_rmse_px
+
+    solver = replace(solver, opts=replace(solver.opts, uncertainty=False))
+    try:
+        _, residuals = _calibrate_from(solver, "exact", plan_stages(solver.dataset, "exact", solver.opts), start)
+    except AriSfmError as exc:
+        log.info("quality gate: no exact re-evaluation from the %s start (%s)", start.name, exc.message)
+        return None
+    return robust_rmse_px(r for _, r in residuals)
 
 
 @dataclass(frozen=True)
@@ -400,8 +419,8 @@ def run_stage(solver: _Solver, stage: Stage, state, normal_observed: bool = True
         n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
         state = replace(state, normal_world=n_w, distance_mm=h_w if solver.underwater else state.distance_mm)
 
-    def build(model: str, st, with_plane: bool = True):
-        return solver.build(model, st, sigma, with_plane=with_plane)
+    def build(model: str, st, with_plane: bool = True, observations=None):
+        return solver.build(model, st, sigma, observations, with_plane=with_plane)
 
     if stage.snell:
         stage_plane = plane if stage.with_plane else None
@@ -564,8 +583,8 @@ def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: b
     from .factors.rig_graph import default_distance_mm
     from .init.window_start import search_normal
 
-    def build_free(stage: str, st):  # the searches below run only without a declared plane: none in their graphs
-        return build(stage, st, with_plane=False)
+    def build_free(stage: str, st, observations=None):  # the searches below run only without a declared plane
+        return build(stage, st, with_plane=False, observations=observations)
 
     if not underwater:
         if state.distance_mm is None:
@@ -577,14 +596,18 @@ def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: b
 
     frames = _search_frames(dataset, state, NORMAL_SEARCH_FRAMES)
     subset = replace(state, world_from_target={f: state.world_from_target[f] for f in frames})
+    scoring = _search_corners(dataset.observations, frames, NORMAL_SEARCH_CORNERS)
+
+    def build_scoring(stage: str, st):
+        return build_free(stage, st, scoring)
 
     def score(normal: np.ndarray) -> float:
         st = replace(subset, normal_world=normal)
         if underwater:
-            st = _searched_distance(dataset, st, build_free, opts, samples=12)
+            st = _searched_distance(dataset, st, build_scoring, opts, NORMAL_SEARCH_DISTANCES, scoring, refine=False)
         elif plane is None:
             st = replace(st, distance_mm=default_distance_mm(normal, st.cam_from_world))
-        rg = build_free("exact", st)
+        rg = build_scoring("exact", st)
         _hold_normal(rg, normal)
         try:
             _, solved = solve(rg, "exact", NORMAL_SEARCH_ITERATIONS)
@@ -601,8 +624,27 @@ def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: b
     return state
 
 
-NORMAL_SEARCH_ITERATIONS = 10  # LM iterations refitting K and poses for each candidate normal
+NORMAL_SEARCH_DISTANCES = 8  # distances sampled for each candidate (under water; its LM refines the best)
+NORMAL_SEARCH_ITERATIONS = 10  # LM iterations refitting K and poses for each candidate normal (5 misranks a far-off ari start)
 NORMAL_SEARCH_FRAMES = 12  # frames (those seen by most cameras, every camera covered) scoring the candidates
+NORMAL_SEARCH_CORNERS = 160  # corners per view scoring the candidates (a larger view: an even random subset)
+
+
+def _search_corners(observations: Sequence[Observation], frames: Sequence[str], per_view: int
+                    ) -> tuple[Observation, ...]:
+    """The calibration/stacking views of ``frames``, each cut to at most ``per_view`` corners (a fixed
+    random subset, the same on every run): the candidates' scores need the refraction's pattern over
+    the view, not every corner of a 1600-point body."""
+    keep = set(frames)
+    out = []
+    for o in observations:
+        if o.frame not in keep or o.set not in ("calibration", "stacking"):
+            continue
+        if len(o.ids) > per_view:
+            idx = np.sort(np.random.default_rng(len(o.ids)).choice(len(o.ids), per_view, replace=False))
+            o = replace(o, ids=o.ids[idx], pixels=o.pixels[idx])
+        out.append(o)
+    return tuple(out)
 
 
 def _search_frames(dataset: Dataset, state, count: int) -> list[str]:
@@ -621,12 +663,16 @@ def _search_frames(dataset: Dataset, state, count: int) -> list[str]:
     return chosen
 
 
-def _searched_distance(dataset: Dataset, state, build, opts: CalibrationOptions, samples: int = 48):
-    """state with its distance searched by the exact cost inside the valid interval (under water)."""
+def _searched_distance(dataset: Dataset, state, build, opts: CalibrationOptions, samples: int = 48,
+                       observations: Sequence[Observation] | None = None, refine: bool = True):
+    """state with its distance searched by the exact cost inside the valid interval (under water);
+    ``observations``: those ``build`` puts in its graph (default the dataset's); ``refine``: a 1-D
+    minimisation after the grid (:func:`~ari_sfm.init.window_start.search_distance`)."""
     from .factors.vectorized import VectorizedProblem
     from .init.window_start import distance_interval, search_distance
 
-    lo, hi = distance_interval(state, dataset.observations, dataset.target, dataset.interface.thickness_mm)
+    observations = dataset.observations if observations is None else observations
+    lo, hi = distance_interval(state, observations, dataset.target, dataset.interface.thickness_mm)
     if not hi > lo:
         raise AriSfmError(dataset.rig_path, f"no window distance puts every camera in front of the window and every "
                                             f"corner beyond it (cameras up to {lo:.1f} mm, corners from {hi:.1f} mm "
@@ -634,7 +680,7 @@ def _searched_distance(dataset: Dataset, state, build, opts: CalibrationOptions,
     rg = build("exact", replace(state, distance_mm=0.5 * (lo + hi)))
     problem = VectorizedProblem.from_rig_graph(rg, huber_px=opts.huber_px, check=False)
     best = search_distance(lambda h: problem.error(replace(problem.x, distance_mm=h)), lo, hi, samples,
-                           current=state.distance_mm)
+                           current=state.distance_mm, refine=refine)
     return replace(state, distance_mm=best)
 
 
