@@ -459,13 +459,15 @@ def test_report_prints_on_paper(binocular, tmp_path):
     assert sum(len(p.images) for p in pages) >= 9  # the report's 9 figures (and the 3D view's canvas)
     for k, p in enumerate(pages):
         assert not _outside(box, p.images + p.rects), f"page {k + 1}: {_outside(box, p.images + p.rects)}"
-        assert p.text_scales and np.allclose(p.text_scales, 0.75), f"page {k + 1} shrunk: {set(p.text_scales)}"
+        assert np.allclose(p.text_scales, 0.75), f"page {k + 1} shrunk: {set(p.text_scales)}"
+    assert sum(bool(p.text.strip()) for p in pages) == len(pages)  # every page has text a reader can copy
     words = re.sub(r"\s", "", "".join(p.text for p in pages))
     for phrase in ("ari-sfm report", "Recommendations", "Reprojection residuals", "Rig in 3D (interactive)",
                    "Reconstruction", "Paper Fig. 14, true to scale", "window tilt to the optical axis (deg)"):
         assert re.sub(r"\s", "", phrase) in words, phrase
     from ari_sfm.report_3d import PRINT_FIT_SCRIPT
 
+    assert PRINT_FIT_SCRIPT in text
     unfit = tmp_path / "unfit.html"  # the check itself tells the defect
     unfit.write_text(text.replace(PRINT_FIT_SCRIPT, "", 1))
     pages = _print_to_pdf(exe, unfit, tmp_path / "unfit.pdf", tmp_path / "profile")
