@@ -35,6 +35,24 @@ from ari_sfm.records import Interface
 MOUNTS = ("camera", "world")
 
 
+def huber_weights(residuals: np.ndarray, huber_px: float | None) -> np.ndarray:
+    """IRLS weights (M,) of the Huber loss on each observation's pixel distance (1 without a loss)."""
+    if huber_px is None:
+        return np.ones(len(residuals))
+    s = np.linalg.norm(residuals, axis=1)
+    return np.where(s <= huber_px, 1.0, huber_px / np.maximum(s, 1e-300))
+
+
+def huber_cost(residuals: np.ndarray, huber_px: float | None) -> float:
+    """Sum over observations of rho(|r|): |r|^2 / 2 inside the threshold, k |r| - k^2 / 2 outside."""
+    s = np.linalg.norm(residuals, axis=1)
+    if not np.all(np.isfinite(s)):
+        return float("inf")
+    if huber_px is None:
+        return float(0.5 * np.sum(s * s))
+    return float(np.sum(np.where(s <= huber_px, 0.5 * s * s, huber_px * s - 0.5 * huber_px ** 2)))
+
+
 def tangent_basis(n: np.ndarray) -> np.ndarray:
     """(3, 2) orthonormal basis of the plane orthogonal to the unit vector n."""
     a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])

@@ -44,11 +44,10 @@ from ari_sfm.models import AriModel, PinholeModel
 from ari_sfm.records import Interface, WindowPlane
 
 from .plane import WindowPrior, declared_window, window_prior
-from .problem import MOUNTS, RefractiveProblem, State, tangent_basis
+from ..factors.schur import assemble_from_observations, model_decrease, solve_damped
+from .problem import MOUNTS, RefractiveProblem, State, huber_cost, huber_weights, tangent_basis
 from .scale_bar import ScaleBar
 from .uncertainty import uncertainty
-from .schur import (build_normal_equations, huber_cost, huber_weights, model_decrease,
-                    solve_damped)
 
 log = logging.getLogger(__name__)
 
@@ -393,7 +392,8 @@ class SolveResult:
 
 class Solver:
     """A problem with its robust loss as an :class:`ari_sfm.factors.levenberg_marquardt.LMProblem`
-    (points eliminated by :mod:`.schur`; Marquardt damping ``lambda * diag``)."""
+    (points eliminated by the bundle-adjustment core :mod:`ari_sfm.factors.schur`, blocks of 3;
+    Marquardt damping ``lambda * diag``)."""
 
     linearized_error_is_error = True  # a linearization's error is the robust cost at its point
 
@@ -424,8 +424,8 @@ class Solver:
             cols = lay.window[w]
             used = cols >= 0
             J, cols = J[:, used], cols[used]
-            ne.H[np.ix_(cols, cols)] += J.T @ J
-            ne.g[cols] += J.T @ e
+            ne.U[np.ix_(cols, cols)] += J.T @ J
+            ne.g_global[cols] += J.T @ e
         ne.error += self._prior_cost(state)
 
     error = cost  # LMProblem's name
@@ -435,17 +435,18 @@ class Solver:
         if self.bar is not None:
             lin = self._bar_points_reduced(lin)
         w = huber_weights(lin.residuals, self.huber_px)
-        ne = build_normal_equations(lin, self.problem.model.obs_point, self.P, self.size, w)
+        ne = assemble_from_observations(lin.residuals, lin.J_g, lin.index, lin.J_p, self.problem.model.obs_point,
+                                        self.P, self.size, w, marquardt=True)
         ne.error = huber_cost(lin.residuals, self.huber_px)
         if self.bar is not None:
-            ne.damping = np.diag(ne.H).copy()  # damping from the images only (the bar is stiff)
+            ne.damping = np.diag(ne.U).copy()  # damping from the images only (the bar is stiff)
         if self.prior is not None:
             self._add_prior(ne, state)
         if self.bar is not None:
             e, J = self.bar.error(state.xyz), self.bar.jacobian(state.xyz)
             cols = np.arange(self.size - 6, self.size)
-            ne.H[np.ix_(cols, cols)] += np.outer(J, J)
-            ne.g[cols] += J * e
+            ne.U[np.ix_(cols, cols)] += np.outer(J, J)
+            ne.g_global[cols] += J * e
             ne.error += 0.5 * e * e
         return ne
 
@@ -469,7 +470,7 @@ class Solver:
         return solve_damped(ne, lam)
 
     def model_decrease(self, ne, step) -> float:
-        return model_decrease(ne, step)
+        return model_decrease(ne, *step)
 
     def retract(self, state: State, step) -> State:
         dg, dp = step
