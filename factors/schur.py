@@ -125,22 +125,23 @@ def reduce(sys: NormalEquations, lam_blocks: float) -> ReducedSystem | None:
         S = sys.U - W2.T @ Y2
         b = -sys.g_global + Y2.T @ sys.g_frame.reshape(k * N)  # W^T V^-1 g_block
         return ReducedSystem(S, b, V_inv, lam_blocks)
+    from .schur_kernels import fill_y
+
     V_inv = 0.5 * (V_inv + np.swapaxes(V_inv, 1, 2))
     L = np.linalg.cholesky(V_inv)
-    Z = np.matmul(np.swapaxes(sys.W, 1, 2), L[sys.W_rows])  # (E, q, k): entry e's rows of Y^T
     rows = sys.W_rows
     order = np.argsort(rows, kind="stable")
     starts = np.searchsorted(rows[order], np.arange(N + 1))
     G1 = G + 1
     per = max(1, Y_CHUNK_ENTRIES // (k * G1))
     S = sys.U.copy()
+    Y = np.empty((k * min(N, per), G1))
     for n0 in range(0, N, per):
         n1 = min(N, n0 + per)
-        ent = order[starts[n0]:starts[n1]]
-        col = k * (rows[ent] - n0)[:, None, None] + np.arange(k)  # (m, 1, k)
-        flat = (col * G1 + sys.W_cols[ent][:, :, None]).ravel()  # Y stored (k n, G + 1), row-major
-        Y = np.bincount(flat, Z[ent].ravel(), k * (n1 - n0) * G1).reshape(k * (n1 - n0), G1)[:, :G]
-        S -= Y.T @ Y
+        Yc = Y[:k * (n1 - n0)]
+        fill_y(sys.W, rows, sys.W_cols, L, order, starts[n0], starts[n1], n0, Yc)
+        Yg = Yc[:, :G]
+        S -= Yg.T @ Yg
     u = np.einsum("nij,nj->ni", V_inv, sys.g_frame)
     b = -sys.g_global + sys.coupling_to_global(u)
     return ReducedSystem(S, b, V_inv, lam_blocks)
@@ -224,37 +225,13 @@ def assemble_from_observations(residuals: np.ndarray, J_global: np.ndarray, cols
     """Normal equations (entries layout) of per-observation residuals (M, d) with Jacobians ``J_global``
     (M, d, q) at global columns ``cols`` (M, q; -1 none) and ``J_block`` (M, d, k) on block ``rows``
     (M,), each observation weighted by ``weights`` (M,) (IRLS; 1 without). ``error`` is left 0."""
+    from .schur_kernels import assemble_entries
+
     G = n_global
-    if weights is not None:
-        sw = np.sqrt(weights)[:, None, None]
-        J_global, J_block, residuals = J_global * sw, J_block * sw, residuals * sw[:, :, 0]
     idx = np.where(cols >= 0, cols, G)  # a dummy column G, dropped
-    G1, q = G + 1, idx.shape[1]
-    U = np.zeros((G1, G1))
-    # observations with the same columns (an image's, in practice) add one dense block J^T J
-    keys, group = _unique_rows(idx)
-    order = np.argsort(group, kind="stable")
-    starts = np.searchsorted(group[order], np.arange(len(keys) + 1))
-    for n, c in enumerate(keys):
-        J = J_global[order[starts[n]:starts[n + 1]]].reshape(-1, q)
-        U[np.ix_(c, c)] += J.T @ J  # a row's real columns are distinct (the dummy's value is dropped)
-    g = np.bincount(idx.ravel(), np.einsum("nki,nk->ni", J_global, residuals).ravel(), G1)[:G]
-    k = J_block.shape[2]
-    V = np.stack([np.bincount(rows, v, n_blocks) for v in
-                  np.einsum("nri,nrj->nij", J_block, J_block).reshape(-1, k * k).T], axis=1).reshape(-1, k, k)
-    gb = np.stack([np.bincount(rows, v, n_blocks) for v in np.einsum("nri,nr->ni", J_block, residuals).T], axis=1)
-    W = np.matmul(np.swapaxes(J_block, 1, 2), J_global)  # (M, k, q)
-    return NormalEquations(V, gb, W, U[:G, :G].copy(), g, 0.0, W_rows=rows, W_cols=idx, marquardt=marquardt)
-
-
-def _unique_rows(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct rows of an int array (M, q) and each row's group: by a 64-bit hash of the row,
-    checked (np.unique over rows, ~10x slower, if two rows share a hash)."""
-    weights = np.random.default_rng(0).integers(1, 2 ** 62, idx.shape[1], dtype=np.int64)
-    with np.errstate(over="ignore"):
-        h = idx.astype(np.int64) @ weights
-    _, first, group = np.unique(h, return_index=True, return_inverse=True)
-    keys = idx[first]
-    if not np.array_equal(keys[group.ravel()], idx):
-        keys, group = np.unique(idx, axis=0, return_inverse=True)
-    return keys, group.ravel()
+    w = np.ones(len(rows)) if weights is None else np.asarray(weights, float)
+    U, g, V, gb, W = assemble_entries(np.ascontiguousarray(residuals, float), np.ascontiguousarray(J_global, float),
+                                      idx, np.ascontiguousarray(J_block, float), np.asarray(rows), w, n_blocks, G)
+    U = U[:G, :G]
+    U = U + U.T - np.diag(np.diag(U))  # the kernel fills each pair of columns once
+    return NormalEquations(V, gb, W, U, g[:G], 0.0, W_rows=rows, W_cols=idx, marquardt=marquardt)
