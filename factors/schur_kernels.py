@@ -22,35 +22,36 @@ def assemble_entries(residuals, J_global, cols, J_block, rows, weights, n_blocks
     V = np.zeros((n_blocks, k, k))
     gb = np.zeros((n_blocks, k))
     W = np.empty((M, k, q))
+    P = np.empty((q, q))  # one observation's J_global^T J_global
     for o in range(M):
         w = weights[o]
         n = rows[o]
-        for i in range(q):
-            ci = cols[o, i]
-            s = 0.0
-            for r in range(d):
-                s += J_global[o, r, i] * residuals[o, r]
-            g[ci] += w * s
-            for j in range(i, q):
-                s = 0.0
-                for r in range(d):
-                    s += J_global[o, r, i] * J_global[o, r, j]
-                U[ci, cols[o, j]] += w * s
-        for a in range(k):
-            s = 0.0
-            for r in range(d):
-                s += J_block[o, r, a] * residuals[o, r]
-            gb[n, a] += w * s
-            for b in range(k):
-                s = 0.0
-                for r in range(d):
-                    s += J_block[o, r, a] * J_block[o, r, b]
-                V[n, a, b] += w * s
+        c = cols[o]
+        Jg, Jb, res = J_global[o], J_block[o], residuals[o]  # (d, q), (d, k), (d,)
+        P[:] = 0.0
+        We = W[o]
+        We[:] = 0.0
+        Vn, gbn = V[n], gb[n]
+        for r in range(d):  # the row index outermost: the inner loops run over contiguous columns
+            Jr, Br, e = Jg[r], Jb[r], w * res[r]
             for i in range(q):
-                s = 0.0
-                for r in range(d):
-                    s += J_block[o, r, a] * J_global[o, r, i]
-                W[o, a, i] = w * s
+                wi = w * Jr[i]
+                g[c[i]] += e * Jr[i]
+                Pi = P[i]
+                for j in range(i, q):
+                    Pi[j] += wi * Jr[j]
+            for a in range(k):
+                wa = w * Br[a]
+                gbn[a] += e * Br[a]
+                for b in range(k):
+                    Vn[a, b] += wa * Br[b]
+                Wa = We[a]
+                for i in range(q):
+                    Wa[i] += wa * Jr[i]
+        for i in range(q):
+            Urow, Pi = U[c[i]], P[i]
+            for j in range(i, q):
+                Urow[c[j]] += Pi[j]
     return U, g, V, gb, W
 
 
@@ -64,9 +65,11 @@ def fill_y(W, rows, cols, L, order, start, stop, n0, Y):
         e = order[t]
         n = rows[e]
         base = k * (n - n0)
+        c, We, Ln = cols[e], W[e], L[n]
         for a in range(k):
+            Ya = Y[base + a]
             for i in range(q):
                 s = 0.0
                 for b in range(k):
-                    s += L[n, b, a] * W[e, b, i]
-                Y[base + a, cols[e, i]] += s
+                    s += Ln[b, a] * We[b, i]
+                Ya[c[i]] += s
