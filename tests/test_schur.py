@@ -1,4 +1,5 @@
-"""The bundle-adjustment core (ari_sfm.factors.schur) against dense solves of the full normal equations.
+"""The bundle-adjustment core (ari_sfm.factors.schur) against dense solves of the full normal equations;
+the unit-normal chart (ari_sfm.geometry.unit3_*) against gtsam.Unit3.
 
 Both layouts and both damping policies: dense coupling with blocks of 6 (the rig's frames, lambda I)
 and per-observation entries with blocks of 3 (COLMAP's points, Marquardt's lambda diag); the step,
@@ -131,3 +132,20 @@ def test_a_singular_system(marquardt):
         assert out is not None and abs(out[0][5]) < 1e-12 and np.all(np.isfinite(out[1]))
     else:
         assert out is None
+
+
+def test_unit_normal_chart_is_gtsams_unit3():
+    """The one chart of window normals (refine-colmap's problem; the rig holds gtsam.Unit3 itself):
+    basis and retraction equal gtsam.Unit3's, near the optical axis and anywhere, small and large steps."""
+    gtsam = pytest.importorskip("gtsam")
+    from ari_sfm.geometry import unit3_basis, unit3_retract
+
+    rng = np.random.default_rng(8)
+    for k in range(300):
+        n = rng.normal(size=3) if k % 2 else np.array([0.0, 0.0, 1.0]) + 1e-3 * rng.normal(size=3)
+        n /= np.linalg.norm(n)
+        v = rng.normal(size=2) * 10.0 ** rng.uniform(-12, 0)
+        B = unit3_basis(n)
+        assert np.allclose(B, gtsam.Unit3(n).basis(), atol=1e-14, rtol=0)
+        assert np.allclose(B.T @ B, np.eye(2), atol=1e-14) and np.allclose(n @ B, 0.0, atol=1e-14)
+        assert np.allclose(unit3_retract(n, v), gtsam.Unit3(n).retract(v).point3(), atol=1e-14, rtol=0)

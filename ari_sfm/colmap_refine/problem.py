@@ -17,7 +17,8 @@ Not estimated: the plate (thickness, indices: WINDOW.yaml). The scale is not a g
 plate's thickness (mm) fixes it through refraction, weakly (see ``refine.py``).
 
 Perturbations (the tangent space): a pose ``(R, t)`` (X_a = R X_b + t) moves to
-``(exp(w) R, t + v)``; a unit normal n to ``(n + B e) / |n + B e|`` (B: a fixed tangent basis);
+``(exp(w) R, t + v)``; a unit normal as gtsam.Unit3 (``geometry.unit3_basis`` / ``unit3_retract``, the
+rig's chart too);
 everything else additively. Image i's ``cam_from_world = sensor_from_rig * rig_from_world``.
 """
 from __future__ import annotations
@@ -27,7 +28,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ari_sfm.colmap_export import ColmapModel
-from ari_sfm.geometry import Pose, rotation_from_rotvec
+from ari_sfm.geometry import Pose, rotation_from_rotvec, unit3_basis, unit3_retract
 from ari_sfm.models import ExactModel, PinholeModel
 from ari_sfm.models.exact import ConvergenceError
 from ari_sfm.records import Interface
@@ -53,14 +54,6 @@ def huber_cost(residuals: np.ndarray, huber_px: float | None) -> float:
     if huber_px is None:
         return float(0.5 * np.sum(s * s))
     return float(np.sum(np.where(s <= huber_px, 0.5 * s * s, huber_px * s - 0.5 * huber_px ** 2)))
-
-
-def tangent_basis(n: np.ndarray) -> np.ndarray:
-    """(3, 2) orthonormal basis of the plane orthogonal to the unit vector n."""
-    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    b1 = np.cross(n, a)
-    b1 /= np.linalg.norm(b1)
-    return np.column_stack([b1, np.cross(n, b1)])
 
 
 @dataclass(frozen=True)
@@ -230,11 +223,11 @@ class RefractiveProblem:
         StP_img = np.array([s.R @ state.rig_from_world[f].t for s, f in zip(state.sensor_from_rig, m.image_frame)])
         if world:
             n_cam = normals[oi]
-            B = np.broadcast_to(tangent_basis(state.normals[0]), (M, 3, 2))
+            B = np.broadcast_to(unit3_basis(state.normals[0]), (M, 3, 2))
             centres = -np.einsum("nji,nj->ni", Ro, to)
         else:
             n_cam = centres = np.zeros((1, 3))
-            B = np.array([tangent_basis(n) for n in state.normals])[cam_of_obs]
+            B = np.array([unit3_basis(n) for n in state.normals])[cam_of_obs]
         J_p = np.empty((M, 2, 3))
         chain_observations(J_X, J_n, J_h, a, np.ascontiguousarray(Ro), np.ascontiguousarray(to), S_img[oi], StP_img[oi],
                            world, np.ascontiguousarray(n_cam), np.ascontiguousarray(B), np.ascontiguousarray(centres),
@@ -265,8 +258,7 @@ class RefractiveProblem:
         normals = state.normals.copy()
         distances = state.distances.copy()
         for w in range(len(normals)):
-            v = normals[w] + tangent_basis(normals[w]) @ g[lay.window[w, :2]]
-            normals[w] = v / np.linalg.norm(v)
+            normals[w] = unit3_retract(normals[w], g[lay.window[w, :2]])
             distances[w] += g[lay.window[w, 2]]
         return replace(state, colmap_params=params, rig_from_world=frames, sensor_from_rig=sensors,
                        normals=normals, distances=distances, xyz=state.xyz + dp)

@@ -39,13 +39,13 @@ import numpy as np
 from ari_sfm import colmap_export as adapter
 from ari_sfm.calibration import Calibration, CameraCalibration
 from ari_sfm.errors import AriSfmError
-from ari_sfm.geometry import Pose, rotation_from_rotvec
+from ari_sfm.geometry import Pose, rotation_from_rotvec, unit3_basis
 from ari_sfm.models import AriModel, PinholeModel
 from ari_sfm.records import Interface, WindowPlane
 
 from .plane import WindowPrior, declared_window, window_prior
 from ..factors.schur import assemble_from_observations, model_decrease, solve_damped
-from .problem import MOUNTS, RefractiveProblem, State, huber_cost, huber_weights, tangent_basis
+from .problem import MOUNTS, RefractiveProblem, State, huber_cost, huber_weights
 from .scale_bar import ScaleBar
 from .uncertainty import uncertainty
 
@@ -423,7 +423,7 @@ class Solver:
         s = prior.sigmas
         for w, (n, d) in enumerate(zip(state.normals, state.distances)):
             e = prior.errors(n, float(d)) / s
-            J = np.column_stack([J_n @ tangent_basis(n), J_d]) / s[:, None]  # columns [e1, e2, d]
+            J = np.column_stack([J_n @ unit3_basis(n), J_d]) / s[:, None]  # columns [e1, e2, d]
             cols = lay.window[w]
             used = cols >= 0
             J, cols = J[:, used], cols[used]
