@@ -143,6 +143,7 @@ class RefractiveProblem:
                              np.array([np.allclose(s.R, np.eye(3)) and not np.any(s.t) for s in model.sensor_from_rig]))
         self.layout = make_layout(model, mount, estimate_distance, self.image_is_ref, hold_window, hold_normal)
         self._cam_of_obs = model.image_camera[model.obs_image]
+        self._all_columns: tuple[np.ndarray, np.ndarray] | None = None  # linearize's columns of every observation
 
     # ------------------------------------------------------------------ models
     def _exact(self, state: State, c: int, normal_cam: np.ndarray, h: float) -> ExactModel:
@@ -232,12 +233,29 @@ class RefractiveProblem:
         chain_observations(J_X, J_n, J_h, a, np.ascontiguousarray(Ro), np.ascontiguousarray(to), S_img[oi], StP_img[oi],
                            world, np.ascontiguousarray(n_cam), np.ascontiguousarray(B), np.ascontiguousarray(centres),
                            J_all, frame0, sensor0, window0, J_p)
-        index = np.concatenate([lay.frames[m.image_frame[oi]], lay.sensors[cam_of_obs],
+        index, used = self._columns(obs)
+        return Linearization(uv - m.obs_uv[sub], J_all[:, :, used], index, J_p)
+
+    def _columns(self, obs: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The reduced columns (M, q) of the observations ``obs`` (all: cached) in linearize's layout
+        [frame, sensor, intrinsics, window], and which of those columns any observation uses."""
+        if obs is None and self._all_columns is not None:
+            return self._all_columns
+        m, lay = self.model, self.layout
+        sub = slice(None) if obs is None else obs
+        cam_of_obs = self._cam_of_obs[sub]
+        kmax = max(len(ix) for ix in lay.intrinsics)
+        M = len(cam_of_obs)
+        index = np.concatenate([lay.frames[m.image_frame[m.obs_image[sub]]], lay.sensors[cam_of_obs],
                                 _pad([lay.intrinsics[c] for c in range(len(lay.intrinsics))], kmax)[cam_of_obs],
-                                lay.window[cam_of_obs] if not world else np.broadcast_to(lay.window[0], (M, 3))],
-                               axis=1)
+                                lay.window[cam_of_obs] if self.mount == "camera" else
+                                np.broadcast_to(lay.window[0], (M, 3))], axis=1)
         used = (index >= 0).any(axis=0)  # drop columns no observation uses (e.g. no rig sensors)
-        return Linearization(uv - m.obs_uv[sub], J_all[:, :, used], index[:, used], J_p)
+        out = (np.ascontiguousarray(index[:, used]), used)
+        out[0].flags.writeable = False  # shared by every linearization
+        if obs is None:
+            self._all_columns = out
+        return out
 
     # ---------------------------------------------------------------- retract
     def retract(self, state: State, dg: np.ndarray, dp: np.ndarray) -> State:

@@ -391,6 +391,7 @@ class SolveResult:
     iterations: int
     converged: bool
     linearizations: int = 0  # Jacobian evaluations (numpy backend)
+    system: Any = None  # the normal equations at ``state`` when LM's last linearization was there (numpy backend)
 
 
 class Solver:
@@ -495,7 +496,7 @@ class Solver:
         r = res.report
         return SolveResult(res.x, r.error, r.initial_error, r.iterations,
                            r.stop in ("converged", "small_cost_change", "zero_error", "no_model_decrease"),
-                           r.linearizations)
+                           r.linearizations, res.system_at_x)
 
     def run_gtsam(self, state: State, max_iterations: int) -> SolveResult:
         """The GTSAM backend (one CustomFactor per image, GTSAM's LM)."""
@@ -669,7 +670,7 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     state = result.state
     residuals = problem.residuals(state)
     names = [f"camera{int(cid)}" for cid in cmodel.camera_ids]
-    sigmas = uncertainty(solver, state, names)
+    sigmas = uncertainty(solver, state, names, result.system)
     R, t = state.cam_from_world(cmodel)
     cam_from_world = {int(i): Pose(R[k], t[k]) for k, i in enumerate(cmodel.image_ids)}
     refractive = _state_reconstruction(rec, cmodel, problem, state)

@@ -52,13 +52,14 @@ def _frame_spread_gradient(state: Any, frame_cols: np.ndarray, size: int) -> tup
     return s, grad[:size]
 
 
-def uncertainty(solver: Any, state: Any, names: list[str]) -> dict:
+def uncertainty(solver: Any, state: Any, names: list[str], system: Any = None) -> dict:
     """The sigmas (1 sigma) of ``solver``'s refined ``state`` (see the module docstring):
     ``normal_deg``, ``distance_mm`` per housing (mount camera) or of the world window, ``fx_px`` per
-    camera (the lens behind the window), ``scale_rel``, ``sigma0`` and the list ``weak``."""
+    camera (the lens behind the window), ``scale_rel``, ``sigma0`` and the list ``weak``. ``system``:
+    ``solver``'s normal equations at ``state``, if LM left them (else linearized here)."""
     problem = solver.problem
     model, lay = problem.model, problem.layout
-    ne = solver.linearize(state)
+    ne = solver.linearize(state) if system is None else system
     residuals = problem.residuals(state)
     w = huber_weights(residuals, solver.huber_px)
     chi2 = float(np.sum(w * np.sum(residuals ** 2, axis=1)))
