@@ -147,10 +147,10 @@ def reduce(sys: NormalEquations, lam_blocks: float) -> ReducedSystem | None:
     return ReducedSystem(S, b, V_inv, lam_blocks)
 
 
-def _cholesky_solve(S: np.ndarray, b: np.ndarray) -> np.ndarray | None:
+def _cholesky_solve(S: np.ndarray, b: np.ndarray, overwrite: bool) -> np.ndarray | None:
     """S^-1 b by Cholesky (LAPACK directly: scipy's cho_factor / cho_solve without their checks); None
-    if S is not positive definite."""
-    c, info = scipy.linalg.lapack.dpotrf(S, lower=0, clean=0, overwrite_a=1)
+    if S is not positive definite. ``overwrite``: S may be overwritten."""
+    c, info = scipy.linalg.lapack.dpotrf(S, lower=0, clean=0, overwrite_a=int(overwrite))
     if info != 0:
         return None
     x, info = scipy.linalg.lapack.dpotrs(c, b, lower=0)
@@ -179,7 +179,7 @@ def solve_damped(sys: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarr
         S[np.diag_indices(G)] += lam
     if not np.all(np.isfinite(S)):
         return None
-    d_global = _cholesky_solve(S, red.b)
+    d_global = _cholesky_solve(S, red.b, overwrite=not sys.marquardt)  # Marquardt's falls back on S
     if d_global is None:
         if not sys.marquardt:
             return None
