@@ -121,6 +121,31 @@ def unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
+# --------------------------------------------------------------------------- S^2: unit normals
+
+
+def unit3_basis(n: np.ndarray) -> np.ndarray:
+    """(3, 2) tangent basis of the unit vector n, as gtsam.Unit3.basis(): b1 = n x a / |n x a| with a
+    the axis of n's smallest component, b2 = n x b1. Every window normal's 2-dof tangent space."""
+    n = np.asarray(n, float)
+    m = np.abs(n)
+    axis = np.zeros(3)
+    axis[0 if m[0] <= m[1] and m[0] <= m[2] else 1 if m[1] <= m[0] and m[1] <= m[2] else 2] = 1.0
+    b1 = np.cross(n, axis)
+    b1 /= np.linalg.norm(b1)
+    return np.column_stack([b1, np.cross(n, b1)])
+
+
+def unit3_retract(n: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The unit vector n moved by the tangent step v (2,), as gtsam.Unit3.retract (the exponential map:
+    cos|xi| n + sin|xi| xi / |xi| with xi = B v)."""
+    n = np.asarray(n, float)
+    xi = unit3_basis(n) @ np.asarray(v, float)
+    theta = float(np.linalg.norm(xi))
+    out = n + xi if theta < np.finfo(float).eps else np.cos(theta) * n + (np.sin(theta) / theta) * xi
+    return out / np.linalg.norm(out)
+
+
 # --------------------------------------------------------------------------- SE(3), batched
 
 

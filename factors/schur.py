@@ -1,86 +1,237 @@
-"""Normal equations of a bundle adjustment with many small frame blocks, solved by the Schur complement.
+"""The bundle-adjustment core: normal equations with many small independent blocks, solved by the
+Schur complement. Shared by the rig calibration (:mod:`ari_sfm.factors.packed_problem`: the blocks
+are the target frames, k = 6) and refine-colmap (:class:`ari_sfm.colmap_refine.refine.Solver`: the
+blocks are the 3D points, k = 3).
 
-The variables split into frames (one 6-dof block each, independent of each
-other given the rest) and G global variables (intrinsics, camera poses, the
-normal, the distance). The Gauss-Newton system ``H delta = -g`` then reads::
+The variables split into N blocks of k (independent of each other given the rest) and G global
+variables (intrinsics, camera poses, the window). The Gauss-Newton system ``H delta = -g`` reads::
 
-    [V   W] [d_frame ]     [g_frame ]      V block diagonal (F blocks 6 x 6),
-    [W^T U] [d_global] = - [g_global],     W (F, 6, G), U (G, G).
+    [V   W] [d_block ]     [g_block ]      V block diagonal (N blocks k x k),
+    [W^T U] [d_global] = - [g_global],     U (G, G).
 
-The frames are eliminated: ``S = U - W^T V^-1 W`` (dense G x G, small), solved
-by Cholesky, and the frame steps are back-substituted. The same complement,
-inverted, gives the marginal covariances of the global variables.
+The coupling W is held in one of two layouts:
+
+- dense, ``W`` (N, k, G): every block couples to most global columns (the rig's frames);
+- entries, ``W`` (E, k, q) with ``W_rows`` (E,) and ``W_cols`` (E, q): entry e adds ``W[e]`` at
+  block ``W_rows[e]`` and global columns ``W_cols[e]`` (G: none). One entry per observation
+  (COLMAP's points): W is never formed, memory stays linear in the observations.
+
+The blocks are eliminated: ``S = U - W^T V^-1 W`` (dense G x G) and ``b = -g_global + W^T V^-1
+g_block`` are built once per block damping (:func:`reduce`; dense: one product ``W^T (V^-1 W)``;
+entries: with ``V_n^-1 = L_n L_n^T``, ``W^T V^-1 W = Y^T Y`` where Y's rows for block n are the sum
+of its entries' ``L_n^T W_e`` scattered to their columns, filled densely for a chunk of blocks at a
+time, one BLAS product per chunk), S is solved by Cholesky and the block steps back-substituted
+(``d_block = -V^-1 (g_block + W d_global)``).
+
+Damping, by the system's ``marquardt`` flag:
+
+- False (GTSAM's, the rig): ``H + lambda I`` on every variable; the reduced system is rebuilt for
+  every lambda trial (the exact damped step); None when not positive definite.
+- True (Marquardt's, refine-colmap): ``lambda * diag`` (floored at DIAG_FLOOR; the global part's
+  diagonal from ``damping`` if given). The blocks are damped with the lambda of the linearisation's
+  first trial (the reduced system is built once per linearisation); every trial damps S with its own
+  lambda. The first trial (the one LM usually accepts) is the exact Marquardt step of the whole
+  system; a later one keeps the blocks' damping at lambda_0 while the global block's grows (the
+  Marquardt step of the blocks-eliminated problem). A block with V = 0 (a point moved into the global
+  variables) is left out. A singular S is solved by least squares.
+
+LM (:mod:`ari_sfm.factors.levenberg_marquardt`) judges every trial by the decrease the whole
+undamped model predicts for the joint step (:func:`model_decrease`). The inverse of the undamped
+complement is the covariance of the global variables (:func:`global_covariance`).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import scipy.linalg.lapack
 
+DIAG_FLOOR = 1e-9  # Marquardt damping: the smallest diagonal entry damped
+Y_CHUNK_ENTRIES = 2_000_000  # entries layout: floats of one dense chunk of Y (k rows per block, G + 1 columns)
+
 
 @dataclass
 class NormalEquations:
-    """J^T J and J^T r (whitened residuals r) split into frame and global blocks."""
+    """J^T J and J^T r (whitened residuals r) split into block and global parts (module docstring).
+    The names say "frame" for a block (the rig's); refine-colmap's blocks are points."""
 
-    V: np.ndarray  # (F, 6, 6)
-    g_frame: np.ndarray  # (F, 6)
-    W: np.ndarray  # (F, 6, G) frame-global coupling
+    V: np.ndarray  # (N, k, k)
+    g_frame: np.ndarray  # (N, k)
+    W: np.ndarray  # (N, k, G) dense, or (E, k, q) entries
     U: np.ndarray  # (G, G)
     g_global: np.ndarray  # (G,)
-    error: float  # 0.5 r^T r at the linearisation point (gtsam's oldLinearizedError)
+    error: float  # the cost at the linearisation point (0.5 r^T r; gtsam's oldLinearizedError)
+    W_rows: np.ndarray | None = None  # (E,) each entry's block (entries layout)
+    W_cols: np.ndarray | None = None  # (E, q) each entry's global columns, G where none (entries layout)
+    marquardt: bool = False  # damping lambda * diag (else lambda I), blocks damped at the first trial's lambda
+    damping: np.ndarray | None = None  # (G,) Marquardt's scales of the global part (default diag U)
+    reduced: Any = field(default=None, repr=False)  # the ReducedSystem last built
 
     @staticmethod
-    def zeros(n_frames: int, n_global: int) -> "NormalEquations":
-        F, G = n_frames, n_global
-        return NormalEquations(np.zeros((F, 6, 6)), np.zeros((F, 6)), np.zeros((F, 6, G)), np.zeros((G, G)),
+    def zeros(n_frames: int, n_global: int, k: int = 6) -> "NormalEquations":
+        """A dense-layout system of zeros."""
+        N, G = n_frames, n_global
+        return NormalEquations(np.zeros((N, k, k)), np.zeros((N, k)), np.zeros((N, k, G)), np.zeros((G, G)),
                                np.zeros(G), 0.0)
+
+    def coupling_to_blocks(self, d_global: np.ndarray) -> np.ndarray:
+        """W d_global (N, k)."""
+        if self.W_rows is None:
+            return self.W @ d_global
+        v = np.einsum("nki,ni->nk", self.W, np.append(d_global, 0.0)[self.W_cols])
+        N, k = self.g_frame.shape
+        return np.stack([np.bincount(self.W_rows, v[:, j], N) for j in range(k)], axis=1)
+
+    def coupling_to_global(self, d_block: np.ndarray) -> np.ndarray:
+        """W^T d_block (G,)."""
+        G = len(self.g_global)
+        if self.W_rows is None:
+            return np.einsum("nkg,nk->g", self.W, d_block)
+        v = np.einsum("nki,nk->ni", self.W, d_block[self.W_rows])
+        return np.bincount(self.W_cols.ravel(), v.ravel(), G + 1)[:G]
+
+
+@dataclass(frozen=True)
+class ReducedSystem:
+    """``S = U - W V_d^-1 W^T`` and ``b = -g_global + W^T V_d^-1 g_block`` with the blocks damped by
+    ``lam_blocks`` (V_d); ``V_inv`` = V_d^-1 (N, k, k)."""
+
+    S: np.ndarray
+    b: np.ndarray
+    V_inv: np.ndarray
+    lam_blocks: float
+
+
+def reduce(sys: NormalEquations, lam_blocks: float) -> ReducedSystem | None:
+    """The reduced system with the blocks damped by ``lam_blocks`` (I or diag, by the system's
+    policy); None when a damped block is not positive definite (GTSAM's damping)."""
+    N, k = sys.g_frame.shape
+    G = len(sys.g_global)
+    if sys.marquardt:
+        dV = np.maximum(np.diagonal(sys.V, axis1=1, axis2=2), DIAG_FLOOR)
+        Vd = sys.V + lam_blocks * dV[:, :, None] * np.eye(k)
+        Vd[np.trace(sys.V, axis1=1, axis2=2) == 0.0] = np.eye(k)  # blocks moved into the global variables
+    else:
+        Vd = sys.V + lam_blocks * np.eye(k)
+        try:
+            np.linalg.cholesky(Vd)
+        except np.linalg.LinAlgError:
+            return None
+    V_inv = np.linalg.inv(Vd)
+    if sys.W_rows is None:
+        Y = np.matmul(V_inv, sys.W)  # (N, k, G)
+        W2, Y2 = sys.W.reshape(k * N, G), Y.reshape(k * N, G)
+        S = sys.U - W2.T @ Y2
+        b = -sys.g_global + Y2.T @ sys.g_frame.reshape(k * N)  # W^T V^-1 g_block
+        return ReducedSystem(S, b, V_inv, lam_blocks)
+    from .schur_kernels import fill_y
+
+    V_inv = 0.5 * (V_inv + np.swapaxes(V_inv, 1, 2))
+    L = np.linalg.cholesky(V_inv)
+    rows = sys.W_rows
+    order = np.argsort(rows, kind="stable")
+    starts = np.searchsorted(rows[order], np.arange(N + 1))
+    G1 = G + 1
+    per = max(1, Y_CHUNK_ENTRIES // (k * G1))
+    S = sys.U.copy()
+    Y = np.empty((k * min(N, per), G1))
+    for n0 in range(0, N, per):
+        n1 = min(N, n0 + per)
+        Yc = Y[:k * (n1 - n0)]
+        fill_y(sys.W, rows, sys.W_cols, L, order, starts[n0], starts[n1], n0, Yc)
+        Yg = Yc[:, :G]
+        S -= Yg.T @ Yg
+    u = np.einsum("nij,nj->ni", V_inv, sys.g_frame)
+    b = -sys.g_global + sys.coupling_to_global(u)
+    return ReducedSystem(S, b, V_inv, lam_blocks)
+
+
+def _cholesky_solve(S: np.ndarray, b: np.ndarray, overwrite: bool) -> np.ndarray | None:
+    """S^-1 b by Cholesky (LAPACK directly: scipy's cho_factor / cho_solve without their checks); None
+    if S is not positive definite. ``overwrite``: S may be overwritten."""
+    c, info = scipy.linalg.lapack.dpotrf(S, lower=0, clean=0, overwrite_a=int(overwrite))
+    if info != 0:
+        return None
+    x, info = scipy.linalg.lapack.dpotrs(c, b, lower=0)
+    return x if info == 0 else None
 
 
 def solve_damped(sys: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray] | None:
-    """(global step, frame steps) of ``(H + lam I) delta = -g`` via the Schur complement; None if not PD."""
-    F, G = sys.V.shape[0], sys.U.shape[0]
-    Vd = sys.V + lam * np.eye(6)
-    try:
-        np.linalg.cholesky(Vd)
-    except np.linalg.LinAlgError:
+    """(global step, block steps) of the system damped by ``lam`` (module docstring); None if the
+    damped system cannot be solved."""
+    if sys.marquardt:
+        lam_blocks = lam if sys.reduced is None else sys.reduced.lam_blocks  # the first trial's
+    else:
+        lam_blocks = lam
+    if sys.reduced is None or sys.reduced.lam_blocks != lam_blocks:
+        red = reduce(sys, lam_blocks)
+        if red is None:
+            return None
+        sys.reduced = red
+    red = sys.reduced
+    G = len(sys.g_global)
+    if sys.marquardt:
+        scale = np.maximum(np.diag(sys.U) if sys.damping is None else sys.damping, DIAG_FLOOR)
+        S = red.S + np.diag(lam * scale)
+    else:
+        S = red.S.copy()
+        S[np.diag_indices(G)] += lam
+    if not np.all(np.isfinite(S)):
         return None
-    V_inv = np.linalg.inv(Vd)
-    Y = np.matmul(V_inv, sys.W)  # (F, 6, G)
-    W2, Y2 = sys.W.reshape(6 * F, G), Y.reshape(6 * F, G)
-    S = sys.U - W2.T @ Y2
-    S[np.diag_indices(G)] += lam
-    rhs = -sys.g_global + Y2.T @ sys.g_frame.reshape(6 * F)  # W^T V^-1 g_f
-    # scipy.linalg.cho_factor / cho_solve (upper), without their wrappers' overhead
-    c, info = scipy.linalg.lapack.dpotrf(S, lower=0, clean=0, overwrite_a=1)
-    if info != 0:
-        return None
-    d_global, info = scipy.linalg.lapack.dpotrs(c, rhs, lower=0)
-    if info != 0:
-        return None
+    d_global = _cholesky_solve(S, red.b, overwrite=not sys.marquardt)  # Marquardt's falls back on S
+    if d_global is None:
+        if not sys.marquardt:
+            return None
+        d_global = np.linalg.lstsq(S, red.b, rcond=None)[0]
     if not np.all(np.isfinite(d_global)):
         return None
-    d_frame = -np.einsum("fij,fj->fi", V_inv, sys.g_frame + sys.W @ d_global)
-    return d_global, d_frame
+    d_block = -np.einsum("nij,nj->ni", red.V_inv, sys.g_frame + sys.coupling_to_blocks(d_global))
+    return d_global, d_block
 
 
-def model_decrease(sys: NormalEquations, d_global: np.ndarray, d_frame: np.ndarray) -> float:
-    """Decrease of the linearised error 0.5 |J d + r|^2 from d = 0: -(g.d + 0.5 d^T H d)."""
-    Wd = sys.W @ d_global  # (F, 6)
-    quad = d_global @ sys.U @ d_global + 2.0 * np.einsum("fi,fi->", d_frame, Wd)
-    quad += np.einsum("fi,fij,fj->", d_frame, sys.V, d_frame)
-    lin = sys.g_global @ d_global + np.einsum("fi,fi->", sys.g_frame, d_frame)
-    return -(lin + 0.5 * quad)
+def model_decrease(sys: NormalEquations, d_global: np.ndarray, d_block: np.ndarray) -> float:
+    """Decrease of the linearised cost from d = 0 for the joint step, undamped: -(g.d + 0.5 d^T H d)."""
+    Wd = sys.coupling_to_blocks(d_global)  # (N, k)
+    quad = d_global @ sys.U @ d_global + 2.0 * np.einsum("fi,fi->", d_block, Wd)
+    quad += np.einsum("fi,fij,fj->", d_block, sys.V, d_block)
+    lin = sys.g_global @ d_global + np.einsum("fi,fi->", sys.g_frame, d_block)
+    return float(-(lin + 0.5 * quad))
 
 
-def global_covariance(sys: NormalEquations, fixed: np.ndarray) -> np.ndarray:
-    """(G, G) covariance of the global variables, H^-1 restricted to them: the inverse of the Schur
-    complement of the frames; the ``fixed`` columns (not variables) get zero rows and columns."""
-    F, G = sys.V.shape[0], sys.U.shape[0]
-    V_inv = np.linalg.inv(sys.V)
-    W2 = sys.W.reshape(6 * F, G)
-    S = sys.U - W2.T @ np.matmul(V_inv, sys.W).reshape(6 * F, G)
-    free = np.setdiff1d(np.arange(G), fixed)
+def global_covariance(sys: NormalEquations, fixed: np.ndarray | None = None) -> np.ndarray:
+    """(G, G) covariance of the global variables, H^-1 restricted to them: the inverse of the undamped
+    Schur complement of the blocks (Cholesky; the pseudo-inverse if singular). The ``fixed`` columns
+    (not variables) get zero rows and columns."""
+    G = len(sys.g_global)
+    red = reduce(sys, 0.0)
+    if red is None:
+        raise np.linalg.LinAlgError("a block of the normal equations is not positive definite")
+    free = np.arange(G) if fixed is None else np.setdiff1d(np.arange(G), fixed)
+    S = red.S[np.ix_(free, free)]
+    try:
+        Li = np.linalg.inv(np.linalg.cholesky(S))
+        inv = Li.T @ Li
+    except np.linalg.LinAlgError:
+        inv = np.linalg.pinv(S, hermitian=True)
     cov = np.zeros((G, G))
-    cov[np.ix_(free, free)] = np.linalg.inv(S[np.ix_(free, free)])
+    cov[np.ix_(free, free)] = inv
     return cov
+
+
+def assemble_from_observations(residuals: np.ndarray, J_global: np.ndarray, cols: np.ndarray,
+                               J_block: np.ndarray, rows: np.ndarray, n_blocks: int, n_global: int,
+                               weights: np.ndarray | None = None, marquardt: bool = True) -> NormalEquations:
+    """Normal equations (entries layout) of per-observation residuals (M, d) with Jacobians ``J_global``
+    (M, d, q) at global columns ``cols`` (M, q; -1 none) and ``J_block`` (M, d, k) on block ``rows``
+    (M,), each observation weighted by ``weights`` (M,) (IRLS; 1 without). ``error`` is left 0."""
+    from .schur_kernels import assemble_entries
+
+    G = n_global
+    idx = np.where(cols >= 0, cols, G)  # a dummy column G, dropped
+    w = np.ones(len(rows)) if weights is None else np.asarray(weights, float)
+    U, g, V, gb, W = assemble_entries(np.ascontiguousarray(residuals, float), np.ascontiguousarray(J_global, float),
+                                      idx, np.ascontiguousarray(J_block, float), np.asarray(rows), w, n_blocks, G)
+    U = U[:G, :G]
+    U = U + U.T - np.diag(np.diag(U))  # the kernel fills each pair of columns once
+    return NormalEquations(V, gb, W, U, g[:G], 0.0, W_rows=rows, W_cols=idx, marquardt=marquardt)

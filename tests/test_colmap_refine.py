@@ -731,7 +731,8 @@ def test_schur_step_is_the_damped_full_system_step():
     """The reduced camera system (built once per linearization) gives the step of the whole damped
     system: at the first trial lambda damps every block (Marquardt, lambda diag); a later trial damps
     the camera block with its own lambda and the points with the first trial's."""
-    from ari_sfm.colmap_refine.schur import build_normal_equations, huber_weights, solve_damped
+    from ari_sfm.colmap_refine.problem import huber_weights
+    from ari_sfm.factors.schur import assemble_from_observations, solve_damped
 
     truth = port_survey(num_images=5, num_points=150, focal_px=1300, area_mm=(1500, 1000))
     rec = adapter.reconstruction_from_arrays(list(truth.params), truth.image_size, truth.sensor_from_rig,
@@ -742,7 +743,7 @@ def test_schur_step_is_the_damped_full_system_step():
     lin = problem.linearize(truth_state(truth, model))
     w = huber_weights(lin.residuals, 0.5)  # some observations down-weighted
     G, P = problem.layout.size, len(model.point3D_ids)
-    ne = build_normal_equations(lin, model.obs_point, P, G, w)
+    ne = assemble_from_observations(lin.residuals, lin.J_g, lin.index, lin.J_p, model.obs_point, P, G, w)
     J = np.zeros((2 * len(w), G + 3 * P))  # the dense whole Jacobian, whitened
     for o in range(len(w)):
         cols = lin.index[o] >= 0

@@ -21,7 +21,7 @@ import numpy as np
 from ari_sfm.geometry import Pose
 
 from .plane import WindowPrior
-from .problem import RefractiveProblem, State, tangent_basis
+from .problem import RefractiveProblem, State
 from .scale_bar import ScaleBar
 
 
@@ -169,9 +169,7 @@ class GtsamRefinement:
                         Rv = (state.rig_from_world[v].R if kind == "f"
                               else state.sensor_from_rig[int(np.flatnonzero(m.image_camera == v)[0])].R)
                         B[:, :3], B[:, 3:] = B[:, :3] @ Rv, B[:, 3:] @ Rv
-                    if kind == "n":  # from the problem's tangent basis to GTSAM's Unit3 basis
-                        n = state.normals[v]
-                        B[:, :2] = (B[:, :2] @ tangent_basis(n).T) @ gtsam.Unit3(n).basis()
+                    # the normal: the problem's tangent basis is GTSAM's Unit3 basis (geometry.unit3_basis)
                 for i, vk in enumerate(var_keys):
                     H[i] = blocks[vk]
                 Jp = lin.J_p * wgt[:, None, None]

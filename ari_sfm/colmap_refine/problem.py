@@ -17,7 +17,8 @@ Not estimated: the plate (thickness, indices: WINDOW.yaml). The scale is not a g
 plate's thickness (mm) fixes it through refraction, weakly (see ``refine.py``).
 
 Perturbations (the tangent space): a pose ``(R, t)`` (X_a = R X_b + t) moves to
-``(exp(w) R, t + v)``; a unit normal n to ``(n + B e) / |n + B e|`` (B: a fixed tangent basis);
+``(exp(w) R, t + v)``; a unit normal as gtsam.Unit3 (``geometry.unit3_basis`` / ``unit3_retract``, the
+rig's chart too);
 everything else additively. Image i's ``cam_from_world = sensor_from_rig * rig_from_world``.
 """
 from __future__ import annotations
@@ -27,20 +28,32 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ari_sfm.colmap_export import ColmapModel
-from ari_sfm.geometry import Pose, rotation_from_rotvec
+from ari_sfm.geometry import Pose, rotation_from_rotvec, unit3_basis, unit3_retract
 from ari_sfm.models import ExactModel, PinholeModel
 from ari_sfm.models.exact import ConvergenceError
 from ari_sfm.records import Interface
 
+from .chain_kernels import chain_observations
+
 MOUNTS = ("camera", "world")
 
 
-def tangent_basis(n: np.ndarray) -> np.ndarray:
-    """(3, 2) orthonormal basis of the plane orthogonal to the unit vector n."""
-    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    b1 = np.cross(n, a)
-    b1 /= np.linalg.norm(b1)
-    return np.column_stack([b1, np.cross(n, b1)])
+def huber_weights(residuals: np.ndarray, huber_px: float | None) -> np.ndarray:
+    """IRLS weights (M,) of the Huber loss on each observation's pixel distance (1 without a loss)."""
+    if huber_px is None:
+        return np.ones(len(residuals))
+    s = np.linalg.norm(residuals, axis=1)
+    return np.where(s <= huber_px, 1.0, huber_px / np.maximum(s, 1e-300))
+
+
+def huber_cost(residuals: np.ndarray, huber_px: float | None) -> float:
+    """Sum over observations of rho(|r|): |r|^2 / 2 inside the threshold, k |r| - k^2 / 2 outside."""
+    s = np.linalg.norm(residuals, axis=1)
+    if not np.all(np.isfinite(s)):
+        return float("inf")
+    if huber_px is None:
+        return float(0.5 * np.sum(s * s))
+    return float(np.sum(np.where(s <= huber_px, 0.5 * s * s, huber_px * s - 0.5 * huber_px ** 2)))
 
 
 @dataclass(frozen=True)
@@ -130,6 +143,7 @@ class RefractiveProblem:
                              np.array([np.allclose(s.R, np.eye(3)) and not np.any(s.t) for s in model.sensor_from_rig]))
         self.layout = make_layout(model, mount, estimate_distance, self.image_is_ref, hold_window, hold_normal)
         self._cam_of_obs = model.image_camera[model.obs_image]
+        self._all_columns: tuple[np.ndarray, np.ndarray] | None = None  # linearize's columns of every observation
 
     # ------------------------------------------------------------------ models
     def _exact(self, state: State, c: int, normal_cam: np.ndarray, h: float) -> ExactModel:
@@ -194,7 +208,8 @@ class RefractiveProblem:
         J_n = np.empty((M, 2, 3))
         J_h = np.empty((M, 2))
         kmax = max(len(ix) for ix in lay.intrinsics)
-        J_k = np.zeros((M, 2, kmax))
+        frame0, sensor0, intr0, window0 = 0, 6, 12, 12 + kmax
+        J_all = np.zeros((M, 2, window0 + 3))  # [frame 6, sensor 6, intrinsics kmax, window 3]
         for grp, c, i in self._groups(oi):
             if len(grp) == 0:
                 continue
@@ -202,39 +217,45 @@ class RefractiveProblem:
             jac = self._exact(state, c, normals[j], float(dists[j])).project_with_jacobians(X_cam[grp])
             uv[grp], J_X[grp], J_n[grp], J_h[grp] = jac.uv, jac.J_point, jac.J_normal, jac.J_distance
             free = np.flatnonzero(m.param_map[c].any(axis=0))
-            J_k[grp, :, :len(free)] = jac.J_params @ m.param_map[c][:, free]
-        # image pose perturbation (w, v) of cam_from_world: dX_cam = -[a]x w + v
-        J_w = -np.einsum("nij,njk->nik", J_X, _skew_rows(a))
-        J_v = J_X.copy()
-        wn = None
-        if self.mount == "world":
+            J_all[grp, :, intr0:intr0 + len(free)] = jac.J_params @ m.param_map[c][:, free]
+        # the chain to the tangent spaces (chain_kernels' docstring)
+        world = self.mount == "world"
+        S_img = np.array([s.R for s in state.sensor_from_rig])
+        StP_img = np.array([s.R @ state.rig_from_world[f].t for s, f in zip(state.sensor_from_rig, m.image_frame)])
+        if world:
             n_cam = normals[oi]
-            # n_cam = R n_w: dn = -[n_cam]x w;  h = plane - n_w . C:  dh = n_cam . v + n_cam^T [t]x w
-            J_w += -np.einsum("nij,njk->nik", J_n, _skew_rows(n_cam))
-            J_w += J_h[:, :, None] * np.einsum("ni,nij->nj", n_cam, _skew_rows(to))[:, None, :]
-            J_v += J_h[:, :, None] * n_cam[:, None, :]
-            B = tangent_basis(state.normals[0])
+            B = np.broadcast_to(unit3_basis(state.normals[0]), (M, 3, 2))
             centres = -np.einsum("nji,nj->ni", Ro, to)
-            wn = (np.einsum("nij,njk,kl->nil", J_n, Ro, B) - J_h[:, :, None] * (centres @ B)[:, None, :], J_h)
-        # chain to the frame (rig_from_world) and the sensor (sensor_from_rig)
-        S = np.array([s.R for s in state.sensor_from_rig])[oi]
-        St_P = np.array([s.R @ state.rig_from_world[f].t for s, f in zip(state.sensor_from_rig, m.image_frame)])
-        J_frame = np.concatenate([J_w @ S, J_v @ S], axis=2)
-        J_sensor = np.concatenate([J_w - np.einsum("nij,njk->nik", J_v, _skew_rows(St_P[oi])), J_v], axis=2)
-        blocks = [J_frame, J_sensor, J_k]
-        index = [lay.frames[m.image_frame[oi]], lay.sensors[cam_of_obs],
-                 _pad([lay.intrinsics[c] for c in range(len(lay.intrinsics))], kmax)[cam_of_obs]]
-        if self.mount == "camera":
-            B = np.array([tangent_basis(n) for n in state.normals])[cam_of_obs]
-            blocks.append(np.concatenate([np.einsum("nij,njk->nik", J_n, B), J_h[:, :, None]], axis=2))
-            index.append(lay.window[cam_of_obs])
         else:
-            blocks.append(np.concatenate([wn[0], wn[1][:, :, None]], axis=2))
-            index.append(np.broadcast_to(lay.window[0], (M, 3)))
-        J_p = np.einsum("nij,njk->nik", J_X, Ro)
-        index = np.concatenate(index, axis=1)
+            n_cam = centres = np.zeros((1, 3))
+            B = np.array([unit3_basis(n) for n in state.normals])[cam_of_obs]
+        J_p = np.empty((M, 2, 3))
+        chain_observations(J_X, J_n, J_h, a, np.ascontiguousarray(Ro), np.ascontiguousarray(to), S_img[oi], StP_img[oi],
+                           world, np.ascontiguousarray(n_cam), np.ascontiguousarray(B), np.ascontiguousarray(centres),
+                           J_all, frame0, sensor0, window0, J_p)
+        index, used = self._columns(obs)
+        return Linearization(uv - m.obs_uv[sub], J_all[:, :, used], index, J_p)
+
+    def _columns(self, obs: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The reduced columns (M, q) of the observations ``obs`` (all: cached) in linearize's layout
+        [frame, sensor, intrinsics, window], and which of those columns any observation uses."""
+        if obs is None and self._all_columns is not None:
+            return self._all_columns
+        m, lay = self.model, self.layout
+        sub = slice(None) if obs is None else obs
+        cam_of_obs = self._cam_of_obs[sub]
+        kmax = max(len(ix) for ix in lay.intrinsics)
+        M = len(cam_of_obs)
+        index = np.concatenate([lay.frames[m.image_frame[m.obs_image[sub]]], lay.sensors[cam_of_obs],
+                                _pad([lay.intrinsics[c] for c in range(len(lay.intrinsics))], kmax)[cam_of_obs],
+                                lay.window[cam_of_obs] if self.mount == "camera" else
+                                np.broadcast_to(lay.window[0], (M, 3))], axis=1)
         used = (index >= 0).any(axis=0)  # drop columns no observation uses (e.g. no rig sensors)
-        return Linearization(uv - m.obs_uv[sub], np.concatenate(blocks, axis=2)[:, :, used], index[:, used], J_p)
+        out = (np.ascontiguousarray(index[:, used]), used)
+        out[0].flags.writeable = False  # shared by every linearization
+        if obs is None:
+            self._all_columns = out
+        return out
 
     # ---------------------------------------------------------------- retract
     def retract(self, state: State, dg: np.ndarray, dp: np.ndarray) -> State:
@@ -255,19 +276,10 @@ class RefractiveProblem:
         normals = state.normals.copy()
         distances = state.distances.copy()
         for w in range(len(normals)):
-            v = normals[w] + tangent_basis(normals[w]) @ g[lay.window[w, :2]]
-            normals[w] = v / np.linalg.norm(v)
+            normals[w] = unit3_retract(normals[w], g[lay.window[w, :2]])
             distances[w] += g[lay.window[w, 2]]
         return replace(state, colmap_params=params, rig_from_world=frames, sensor_from_rig=sensors,
                        normals=normals, distances=distances, xyz=state.xyz + dp)
-
-
-def _skew_rows(a: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) skew matrices [a]x of rows a (N, 3)."""
-    out = np.zeros((len(a), 3, 3))
-    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -a[:, 2], a[:, 1], -a[:, 0]
-    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = a[:, 2], -a[:, 1], a[:, 0]
-    return out
 
 
 def _pad(rows: list[np.ndarray], width: int) -> np.ndarray:

@@ -40,24 +40,25 @@ from ari_sfm import colmap_export as adapter
 from ari_sfm.calibration import Calibration, CameraCalibration
 from ari_sfm.io import save_calibration
 from ari_sfm.errors import AriSfmError
-from ari_sfm.geometry import Pose, rotation_from_rotvec
+from ari_sfm.geometry import Pose, rotation_from_rotvec, unit3_basis
 from ari_sfm.models import AriModel, PinholeModel
 from ari_sfm.records import Interface, WindowPlane
 
 from .plane import WindowPrior, declared_window, window_prior
-from .problem import MOUNTS, RefractiveProblem, State, tangent_basis
+from ..factors.schur import assemble_from_observations, model_decrease, solve_damped
+from .problem import MOUNTS, RefractiveProblem, State, huber_cost, huber_weights
 from .report import (DeclaredPlaneReport, Plate, RefineCounts, RefineReport, Reprojection, ScaleBarReport,
                      WindowEstimate)
 from .scale_bar import ScaleBar
 from .uncertainty import uncertainty
-from .schur import (build_normal_equations, huber_cost, huber_weights, model_decrease,
-                    solve_damped)
 
 log = logging.getLogger(__name__)
 
 DISTANCE_CANDIDATES_MM = (10.0, 30.0, 100.0)
 SEARCH_ITERATIONS = 10  # the first start distance, window held (LM stops earlier when converged)
 WARM_SEARCH_ITERATIONS = 4  # the other start distances, warm-started
+SEARCH_RELATIVE_TOLERANCE = 1e-2  # the search's LM stops at a relative decrease below this: it ranks the starts,
+#                                   the final refinement converges (28 images: 8 search linearizations instead of 13)
 AIR_DISTANCE_MM = 10.0  # held: unobservable in air
 
 
@@ -254,7 +255,8 @@ def _distance_search(model: adapter.ColmapModel, problem: RefractiveProblem, int
     for h in order:
         base = virtual if warm is None else warm
         start = _convert(model, sub, base if declared else _with_distance(model, base, mount, h), +1)
-        res = held.run(start, SEARCH_ITERATIONS if warm is None else WARM_SEARCH_ITERATIONS)
+        res = held.run(start, SEARCH_ITERATIONS if warm is None else WARM_SEARCH_ITERATIONS,
+                       relative_tolerance=SEARCH_RELATIVE_TOLERANCE)
         if warm is None:
             warm = _convert(model, sub, res.state, -1)
         search.append({"distance_mm": h, "cost": res.cost, "iterations": res.iterations,
@@ -450,9 +452,9 @@ def _convert(model: adapter.ColmapModel, problem: RefractiveProblem, state: Stat
         params.append(p)
     normals, dists = problem.image_windows(state)
     frames = list(state.rig_from_world)
+    R, t = state.cam_from_world(model)
     for f in range(len(frames)):
         i = int(np.flatnonzero(model.image_frame == f)[0])
-        R, t = state.cam_from_world(model)
         n_world = R[i].T @ normals[i]
         shift = direction * _paraxial_offset_mm(problem.interface, normals[i], max(float(dists[i]), 1e-3))
         pose = frames[f]
@@ -538,11 +540,13 @@ class SolveResult:
     iterations: int
     converged: bool
     linearizations: int = 0  # Jacobian evaluations (numpy backend)
+    system: Any = None  # the normal equations at ``state`` when LM's last linearization was there (numpy backend)
 
 
 class Solver:
     """A problem with its robust loss as an :class:`ari_sfm.factors.levenberg_marquardt.LMProblem`
-    (points eliminated by :mod:`.schur`; Marquardt damping ``lambda * diag``)."""
+    (points eliminated by the bundle-adjustment core :mod:`ari_sfm.factors.schur`, blocks of 3;
+    Marquardt damping ``lambda * diag``)."""
 
     linearized_error_is_error = True  # a linearization's error is the robust cost at its point
 
@@ -569,12 +573,12 @@ class Solver:
         s = prior.sigmas
         for w, (n, d) in enumerate(zip(state.normals, state.distances)):
             e = prior.errors(n, float(d)) / s
-            J = np.column_stack([J_n @ tangent_basis(n), J_d]) / s[:, None]  # columns [e1, e2, d]
+            J = np.column_stack([J_n @ unit3_basis(n), J_d]) / s[:, None]  # columns [e1, e2, d]
             cols = lay.window[w]
             used = cols >= 0
             J, cols = J[:, used], cols[used]
-            ne.H[np.ix_(cols, cols)] += J.T @ J
-            ne.g[cols] += J.T @ e
+            ne.U[np.ix_(cols, cols)] += J.T @ J
+            ne.g_global[cols] += J.T @ e
         ne.error += self._prior_cost(state)
 
     error = cost  # LMProblem's name
@@ -584,17 +588,18 @@ class Solver:
         if self.bar is not None:
             lin = self._bar_points_reduced(lin)
         w = huber_weights(lin.residuals, self.huber_px)
-        ne = build_normal_equations(lin, self.problem.model.obs_point, self.P, self.size, w)
+        ne = assemble_from_observations(lin.residuals, lin.J_g, lin.index, lin.J_p, self.problem.model.obs_point,
+                                        self.P, self.size, w, marquardt=True)
         ne.error = huber_cost(lin.residuals, self.huber_px)
         if self.bar is not None:
-            ne.damping = np.diag(ne.H).copy()  # damping from the images only (the bar is stiff)
+            ne.damping = np.diag(ne.U).copy()  # damping from the images only (the bar is stiff)
         if self.prior is not None:
             self._add_prior(ne, state)
         if self.bar is not None:
             e, J = self.bar.error(state.xyz), self.bar.jacobian(state.xyz)
             cols = np.arange(self.size - 6, self.size)
-            ne.H[np.ix_(cols, cols)] += np.outer(J, J)
-            ne.g[cols] += J * e
+            ne.U[np.ix_(cols, cols)] += np.outer(J, J)
+            ne.g_global[cols] += J * e
             ne.error += 0.5 * e * e
         return ne
 
@@ -618,7 +623,7 @@ class Solver:
         return solve_damped(ne, lam)
 
     def model_decrease(self, ne, step) -> float:
-        return model_decrease(ne, step)
+        return model_decrease(ne, *step)
 
     def retract(self, state: State, step) -> State:
         dg, dp = step
@@ -629,16 +634,18 @@ class Solver:
             dg = dg[:base]
         return self.problem.retract(state, dg, dp)
 
-    def run(self, state: State, max_iterations: int, progress=None) -> SolveResult:
-        """The numpy backend: points Schur + the project's Levenberg-Marquardt (GTSAM's algorithm)."""
+    def run(self, state: State, max_iterations: int, progress=None,
+            relative_tolerance: float | None = None) -> SolveResult:
+        """The numpy backend: points Schur + the project's Levenberg-Marquardt (GTSAM's algorithm);
+        ``relative_tolerance``: LM's (default RELATIVE_TOLERANCE)."""
         from ..factors.levenberg_marquardt import LMParams, levenberg_marquardt
 
-        res = levenberg_marquardt(self, state, max_iterations, RELATIVE_TOLERANCE, LMParams(lambda_initial=1e-4),
-                                  progress=progress)
+        tol = RELATIVE_TOLERANCE if relative_tolerance is None else relative_tolerance
+        res = levenberg_marquardt(self, state, max_iterations, tol, LMParams(lambda_initial=1e-4), progress=progress)
         r = res.report
         return SolveResult(res.x, r.error, r.initial_error, r.iterations,
                            r.stop in ("converged", "small_cost_change", "zero_error", "no_model_decrease"),
-                           r.linearizations)
+                           r.linearizations, res.system_at_x)
 
     def run_gtsam(self, state: State, max_iterations: int) -> SolveResult:
         """The GTSAM backend (one CustomFactor per image, GTSAM's LM)."""
@@ -827,7 +834,7 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     state = result.state
     residuals = problem.residuals(state)
     names = [f"camera{int(cid)}" for cid in cmodel.camera_ids]
-    sigmas = uncertainty(solver, state, names)
+    sigmas = uncertainty(solver, state, names, result.system)
     R, t = state.cam_from_world(cmodel)
     cam_from_world = {int(i): Pose(R[k], t[k]) for k, i in enumerate(cmodel.image_ids)}
     refractive = _state_reconstruction(rec, cmodel, problem, state)
@@ -835,7 +842,7 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     opencv = ({int(cid): _opencv_params(cmodel, c, virtual.colmap_params[c]) for c, cid in enumerate(cmodel.camera_ids)
                if cmodel.camera_models[c] != "FULL_OPENCV"} if approximation == "opencv" else None)
     approx = adapter.pinhole_approximation(_state_reconstruction(rec, cmodel, problem, virtual), opencv)
-    approx_rms = adapter.image_residuals_px(approx)
+    approx_rms = adapter.image_residuals_px(approx, replace(cmodel, xyz=virtual.xyz))  # its points are the state's
     calibration = _calibration(cmodel, problem, state, mount, cam_from_world)
     e = np.linalg.norm(residuals, axis=1)
     ids = [f"camera{int(cid)}" for cid in cmodel.camera_ids]

@@ -2,7 +2,7 @@
 
 Covariance of the reduced variables (cameras, poses, window; the points eliminated):
 ``s0^2 S^-1`` with ``S = H_gg - W V^-1 W^T`` the undamped Schur complement at the solution
-(:func:`ari_sfm.colmap_refine.schur.reduce_points`) and ``s0^2`` the a-posteriori variance factor
+(:func:`ari_sfm.factors.schur.global_covariance`, the bundle-adjustment core's) and ``s0^2`` the a-posteriori variance factor
 (Huber-weighted residuals over the degrees of freedom), so the sigmas follow the residuals actually
 reached. The gauge (the first frame) is held; the scale is a direction of the problem, determined
 by refraction only (or by a scale bar), so a scale the images barely determine shows as a large
@@ -18,8 +18,9 @@ from typing import Any
 
 import numpy as np
 
+from ..factors.schur import global_covariance
+from .problem import huber_weights
 from .report import RefineUncertainty
-from .schur import huber_weights, reduce_points
 
 log = logging.getLogger(__name__)
 
@@ -27,16 +28,6 @@ WEAK_NORMAL_DEG = 1.0  # a port normal sigma above this is "barely determined"
 WEAK_DISTANCE_REL = 0.2  # a distance sigma above this fraction of the distance
 WEAK_SCALE_REL = 0.01  # a scale sigma above 1 %
 WEAK_FOCAL_REL = 0.01  # a focal-length sigma above 1 %
-
-
-def _inverse(S: np.ndarray) -> np.ndarray:
-    """S^-1 of a symmetric positive (semi)definite matrix (pseudo-inverse if singular)."""
-    try:
-        L = np.linalg.cholesky(S)
-        Li = np.linalg.inv(L)
-        return Li.T @ Li
-    except np.linalg.LinAlgError:
-        return np.linalg.pinv(S, hermitian=True)
 
 
 def _frame_spread_gradient(state: Any, frame_cols: np.ndarray, size: int) -> tuple[float, np.ndarray]:
@@ -62,21 +53,21 @@ def _frame_spread_gradient(state: Any, frame_cols: np.ndarray, size: int) -> tup
     return s, grad[:size]
 
 
-def uncertainty(solver: Any, state: Any, names: list[str]) -> RefineUncertainty:
+def uncertainty(solver: Any, state: Any, names: list[str], system: Any = None) -> RefineUncertainty:
     """The sigmas (1 sigma) of ``solver``'s refined ``state`` (see the module docstring):
     ``normal_deg``, ``distance_mm`` per housing (mount camera) or of the world window, ``fx_px`` per
-    camera (the lens behind the window), ``scale_rel``, ``sigma0`` and ``weak``."""
+    camera (the lens behind the window), ``scale_rel``, ``sigma0`` and the list ``weak``. ``system``:
+    ``solver``'s normal equations at ``state``, if LM left them (else linearized here)."""
     problem = solver.problem
     model, lay = problem.model, problem.layout
-    ne = solver.linearize(state)
-    red = reduce_points(ne, 0.0)
+    ne = solver.linearize(state) if system is None else system
     residuals = problem.residuals(state)
     w = huber_weights(residuals, solver.huber_px)
     chi2 = float(np.sum(w * np.sum(residuals ** 2, axis=1)))
     reduced_points = 2 if solver.bar is not None else 0
     dof = 2 * len(residuals) - solver.size - 3 * (len(state.xyz) - reduced_points)
     s0 = float(np.sqrt(chi2 / dof)) if dof > 0 else float("nan")
-    cov = s0 ** 2 * _inverse(red.S)
+    cov = s0 ** 2 * global_covariance(ne)
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     window_names = names if problem.mount == "camera" else ["world"]
     out: dict = {"sigma0": s0, "normal_deg": {}, "distance_mm": {}, "fx_px": {}, "scale_rel": None, "weak": []}

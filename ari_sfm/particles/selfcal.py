@@ -340,8 +340,8 @@ def _solvers():
             free = cols[:, 0] >= 0
             idx = cols[free].ravel()
             J = (grad[free] / self.sigma_mm).ravel()
-            ne.H[np.ix_(idx, idx)] += np.outer(J, J)
-            ne.g[idx] += J * e
+            ne.U[np.ix_(idx, idx)] += np.outer(J, J)
+            ne.g_global[idx] += J * e
             ne.error += 0.5 * e * e
             return ne
 
