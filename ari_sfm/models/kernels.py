@@ -129,7 +129,7 @@ def distort_batch(xy, dist):
     return xyd, J_xy, J_dist
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def undistort_point(xd, yd, dist, fx, fy, J_xy, J_dist):
     """Undistorted normalised (x, y) of distorted (xd, yd) by Newton from (xd, yd) (steps below
     UNDISTORT_TOL_PX px); NaN when the final residual exceeds UNDISTORT_FAIL_PX px. Returns
@@ -183,7 +183,7 @@ def newton_step(w, rho, L, h, d, n2, m2):
     return psi / dpsi
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def solve_w(rho, L, h, d, n, n_m, max_iter, w0=0.0):
     """Newton for one point until |step| <= NEWTON_REL_TOL |w|, from w = 0 (converges monotonically)
     or from a guess ``w0`` (e.g. the previous solve of a nearby point; falls back to w = 0 if the
@@ -288,11 +288,12 @@ def incidence_batch(X, nc, h, d, n, n_m, max_iter):
 
 @njit(inline="always", **_JIT)
 def exact_pixel(X0, X1, X2, z, r0, r1, r2, L, w, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians,
-                uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist):
+                uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist, window_jacobians=True):
     """Pixel uv (2,) of one camera-frame point X with its solved incidence w (depth z, radial r,
     medium column L) and, with ``jacobians``, J_point (2, 3), J_normal (2, 3) (w.r.t. the free
     normal vector, via dn_dv), J_params (2, n_params), J_td (2, 2) = [d uv/d thickness,
-    d uv/d distance]; J_pin (2, 3), J_xy, J_dist are scratch."""
+    d uv/d distance] (J_normal and J_td left unset without ``window_jacobians``: triangulation
+    needs J_point only); J_pin (2, 3), J_xy, J_dist are scratch."""
     pinhole_point(nc[0] + w * r0, nc[1] + w * r1, nc[2] + w * r2, params, n_params, jacobians,
                   uv, J_pin, J_params, J_xy, J_dist)
     if not jacobians:
@@ -315,6 +316,8 @@ def exact_pixel(X0, X1, X2, z, r0, r1, r2, L, w, params, nc, dn_dv, h, d, n, n_m
         J_point[k, 0] = w * (J_pin[k, 0] - Jn * nc[0]) + Jr * ((w3K * r0 - wGm * nc[0]) / P)
         J_point[k, 1] = w * (J_pin[k, 1] - Jn * nc[1]) + Jr * ((w3K * r1 - wGm * nc[1]) / P)
         J_point[k, 2] = w * (J_pin[k, 2] - Jn * nc[2]) + Jr * ((w3K * r2 - wGm * nc[2]) / P)
+        if not window_jacobians:
+            continue
         a = 1.0 - w * z
         jn0 = a * J_pin[k, 0] - w * Jn * X0 + Jr * ((-(w3K * z) * r0 - wGm * X0) / P)
         jn1 = a * J_pin[k, 1] - w * Jn * X1 + Jr * ((-(w3K * z) * r1 - wGm * X1) / P)
@@ -327,7 +330,7 @@ def exact_pixel(X0, X1, X2, z, r0, r1, r2, L, w, params, nc, dn_dv, h, d, n, n_m
 
 @njit(**_JIT)
 def exact_point(X0, X1, X2, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians,
-                uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist, u0=0.0):
+                uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist, u0=0.0, window_jacobians=True):
     """:func:`exact_pixel` of one point with its own Newton solve, started from the incidence
     ``u0`` = tan t when given (a nearby point's; see :func:`solve_w`). Returns the Newton steps
     (negative: failure; 0: no ray, L <= 0) and the solved tan t."""
@@ -341,7 +344,7 @@ def exact_point(X0, X1, X2, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians
     else:
         w = np.nan
     exact_pixel(X0, X1, X2, z, r0, r1, r2, L, w, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians,
-                uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist)
+                uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist, window_jacobians)
     return steps, w * rho
 
 
@@ -464,7 +467,7 @@ def _cost_and_normal(Xw, uv, p, ok, R, t, params, nc, window, jacobians, A, g, s
         Xc2 = R[c, 2, 0] * Xw[0] + R[c, 2, 1] * Xw[1] + R[c, 2, 2] * Xw[2] + t[c, 2]
         _, u_solved = _exact_point_inline(Xc0, Xc1, Xc2, params[c], nc[c], dn_dv, window[c, 0], window[c, 1],
                                           window[c, 2], window[c, 3], 4, jacobians, pix, J_point, J_normal,
-                                          J_params, J_td, J_pin, J_xy, J_dist, u_start[c])
+                                          J_params, J_td, J_pin, J_xy, J_dist, u_start[c], False)
         if math.isfinite(u_solved):
             u_start[c] = u_solved
         r0, r1 = pix[0] - uv[p, c, 0], pix[1] - uv[p, c, 1]
