@@ -13,7 +13,8 @@ needs: thousands of particles per frame, 2-8 cameras):
   ``Calibration.project_world`` for all points at once (one 3x3 normal
   equation per point). Through the exact model (exact, rt, truth) both steps run
   per point in one compiled kernel (:func:`ari_sfm.models.kernels.triangulate_exact`,
-  the same algorithm, slices of points on one thread per core): no intermediate arrays.
+  the same algorithm, slices of points handed out in turn to one thread per core): no
+  intermediate arrays.
 
 Ray gap (``ray_gap_mm``, the ``points.json`` key). For a point with rays
 ``o_c + s d_c`` (unit ``d_c``) the linear point X minimises
