@@ -75,7 +75,8 @@ def _points_and_pixels(cal: Calibration, n: int, seed: int = 0) -> tuple[np.ndar
     return X, {c: np.concatenate(v)[:n] for c, v in tracks_all.items()}
 
 
-def cv2_pairs(cal: Calibration, tracks: dict[str, np.ndarray]) -> tuple[Callable[[], list], Callable[[list], np.ndarray]]:
+def cv2_pairs(cal: Calibration, tracks: dict[str, np.ndarray]
+              ) -> tuple[Callable[[], list], Callable[[list], np.ndarray]]:
     """cv2.triangulatePoints (DLT, pinhole P = K [R | t]: the window ignored) on the same points: each point
     from the first two cameras that see it, one call per camera pair on that pair's pixels (grouped here,
     outside the timing). Returns the timed call and the assembly of its outputs into (P, 3) points."""
@@ -128,7 +129,8 @@ def main() -> None:
             tracks = {k: v + rng.normal(0.0, args.noise_px, v.shape) for k, v in tracks.items()}
         run_cv2, cv2_points = cv2_pairs(cal, tracks)
         t_cv2, outs = _median_time(run_cv2, args.repeats)
-        rows.append(("cv2.triangulatePoints (pinhole)", len(cal.cameras), len(X), t_cv2, t_cv2, _rms(cv2_points(outs), X)))
+        rows.append(("cv2.triangulatePoints (pinhole)", len(cal.cameras), len(X), t_cv2, t_cv2,
+                     _rms(cv2_points(outs), X)))
         for model in ("exact", "ari"):
             c = replace(cal, model=model)
             triangulate_pixels(c, {k: v[:10] for k, v in tracks.items()})  # warm-up
