@@ -328,7 +328,7 @@ def exact_pixel(X0, X1, X2, z, r0, r1, r2, L, w, params, nc, dn_dv, h, d, n, n_m
         J_td[k, 1] = Jr * (w * (Gm - 1.0) / P)
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def exact_point(X0, X1, X2, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians,
                 uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist, u0=0.0, window_jacobians=True):
     """:func:`exact_pixel` of one point with its own Newton solve, started from the incidence
@@ -379,7 +379,7 @@ def exact_batch(X, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians):
 # --------------------------------------------------------------------------- exact model, backward
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def exact_ray(u, v, params, nc, h, d, n, n_m, J_xy, J_dist, origin, direction):
     """Medium-side ray of one pixel by vector Snell at both faces: origin on the far face and unit
     direction into origin (3,), direction (3,) (NaN if the pixel's ray misses the window).
@@ -423,13 +423,9 @@ def exact_rays_batch(uv, params, nc, h, d, n, n_m):
 
 
 # --------------------------------------------------------------------------- triangulation
-# The per-point triangulation calls each piece of physics (exact_ray, exact_point) at a single site and
-# compiles it into its loop (numba-level inlining of the same source: _INLINE below), which removes a
-# call with a dozen array arguments per camera and evaluation and keeps the compiled code (and the
-# cold start) small.
-
-_exact_ray_inline = njit(inline="always", **_JIT)(exact_ray.py_func)
-_exact_point_inline = njit(inline="always", **_JIT)(exact_point.py_func)
+# The per-point triangulation calls each piece of physics (exact_ray, exact_point: inline="always") at a
+# single site, so numba compiles one copy of it into the loop: no call with a dozen array arguments per
+# camera and evaluation, and no more compiled code (nor cold start) than the calls had.
 
 
 @njit(inline="always", **_JIT)
@@ -465,9 +461,9 @@ def _cost_and_normal(Xw, uv, p, ok, R, t, params, nc, window, jacobians, A, g, s
         Xc0 = R[c, 0, 0] * Xw[0] + R[c, 0, 1] * Xw[1] + R[c, 0, 2] * Xw[2] + t[c, 0]
         Xc1 = R[c, 1, 0] * Xw[0] + R[c, 1, 1] * Xw[1] + R[c, 1, 2] * Xw[2] + t[c, 1]
         Xc2 = R[c, 2, 0] * Xw[0] + R[c, 2, 1] * Xw[1] + R[c, 2, 2] * Xw[2] + t[c, 2]
-        _, u_solved = _exact_point_inline(Xc0, Xc1, Xc2, params[c], nc[c], dn_dv, window[c, 0], window[c, 1],
-                                          window[c, 2], window[c, 3], 4, jacobians, pix, J_point, J_normal,
-                                          J_params, J_td, J_pin, J_xy, J_dist, u_start[c], False)
+        _, u_solved = exact_point(Xc0, Xc1, Xc2, params[c], nc[c], dn_dv, window[c, 0], window[c, 1], window[c, 2],
+                                  window[c, 3], 4, jacobians, pix, J_point, J_normal, J_params, J_td, J_pin, J_xy,
+                                  J_dist, u_start[c], False)
         if math.isfinite(u_solved):
             u_start[c] = u_solved
         r0, r1 = pix[0] - uv[p, c, 0], pix[1] - uv[p, c, 1]
@@ -543,8 +539,8 @@ def triangulate_exact(uv, R, t, params, nc, window, refine, max_iterations, damp
         for c in range(C):
             if not seen[c]:
                 continue
-            failed, u_ray = _exact_ray_inline(uv[p, c, 0], uv[p, c, 1], params[c], nc[c], window[c, 0],
-                                              window[c, 1], window[c, 2], window[c, 3], J_xy, J_dist, oc, dc)
+            failed, u_ray = exact_ray(uv[p, c, 0], uv[p, c, 1], params[c], nc[c], window[c, 0], window[c, 1],
+                                      window[c, 2], window[c, 3], J_xy, J_dist, oc, dc)
             undistort_failed[p] += failed
             u_start[c] = u_ray if math.isfinite(u_ray) else 0.0  # the observed pixel's incidence: a close start
             for i in range(3):
