@@ -13,7 +13,8 @@ needs: thousands of particles per frame, 2-8 cameras):
   ``Calibration.project_world`` for all points at once (one 3x3 normal
   equation per point). Through the exact model (exact, rt, truth) both steps run
   per point in one compiled kernel (:func:`ari_sfm.models.kernels.triangulate_exact`,
-  the same algorithm, slices of points on one thread per core): no intermediate arrays.
+  the same algorithm, slices of points handed out in turn to one thread per core): no
+  intermediate arrays.
 
 Ray gap (``ray_gap_mm``, the ``points.json`` key). For a point with rays
 ``o_c + s d_c`` (unit ``d_c``) the linear point X minimises
@@ -53,6 +54,8 @@ STEP_TOL_MM = 1e-9  # a point has converged when its step is below this (relativ
 NUMERIC_STEP_MM = 1e-4  # central-difference step for models without analytic Jacobians
 MIN_DET = 1e-14  # det of the 3x3 ray normal matrix below this: rays (nearly) parallel -> NaN
 PARALLEL_MIN_POINTS = 2000  # points per thread of the exact model's triangulation kernel (fewer: one thread)
+SLICES_PER_THREAD = 8  # slices of points per thread, handed out in turn (a loaded core does fewer)
+PARALLEL_CHUNK_POINTS = 500  # but no slice smaller than this (each kernel call costs ~10 us)
 
 Projector = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -322,11 +325,11 @@ def _triangulate_exact(cameras: tuple[np.ndarray, ...], uv: np.ndarray, refine: 
         kernels.triangulate_exact(uv[a:b], *cameras, bool(refine), MAX_ITERATIONS, 1e-6, STEP_TOL_MM, MIN_DET,
                                   X[a:b], gap[a:b], rmse[a:b], unconverged[a:b], undistort_failed[a:b])
 
-    workers = min(os.cpu_count() or 1, max(1, P // PARALLEL_MIN_POINTS))
-    if workers == 1:
+    workers = min(_cores(), P // PARALLEL_MIN_POINTS)
+    if workers <= 1:
         run(0, P)
-    else:  # the kernel releases the GIL: one slice of points per thread
-        bounds = np.linspace(0, P, workers + 1).astype(int)
+    else:  # the kernel releases the GIL; slices handed out in turn, so a thread the machine slows does fewer
+        bounds = np.linspace(0, P, min(P // PARALLEL_CHUNK_POINTS, SLICES_PER_THREAD * workers) + 1).astype(int)
         with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="ari-triangulate") as pool:
             list(pool.map(run, bounds[:-1], bounds[1:]))
     if undistort_failed.any():
@@ -335,6 +338,14 @@ def _triangulate_exact(cameras: tuple[np.ndarray, ...], uv: np.ndarray, refine: 
         log.warning("triangulation: %d of %d points not converged after %d iterations",
                     int(unconverged.sum()), len(X), MAX_ITERATIONS)
     return X, gap, rmse
+
+
+def _cores() -> int:
+    """CPU cores this process may run on (its affinity mask where the system has one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
 
 
 def _first_order_sq_distance(r: np.ndarray, J: np.ndarray, valid: np.ndarray) -> np.ndarray:

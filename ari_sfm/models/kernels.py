@@ -129,7 +129,7 @@ def distort_batch(xy, dist):
     return xyd, J_xy, J_dist
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def undistort_point(xd, yd, dist, fx, fy, J_xy, J_dist):
     """Undistorted normalised (x, y) of distorted (xd, yd) by Newton from (xd, yd) (steps below
     UNDISTORT_TOL_PX px); NaN when the final residual exceeds UNDISTORT_FAIL_PX px. Returns
@@ -183,7 +183,7 @@ def newton_step(w, rho, L, h, d, n2, m2):
     return psi / dpsi
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def solve_w(rho, L, h, d, n, n_m, max_iter, w0=0.0):
     """Newton for one point until |step| <= NEWTON_REL_TOL |w|, from w = 0 (converges monotonically)
     or from a guess ``w0`` (e.g. the previous solve of a nearby point; falls back to w = 0 if the
@@ -288,11 +288,12 @@ def incidence_batch(X, nc, h, d, n, n_m, max_iter):
 
 @njit(inline="always", **_JIT)
 def exact_pixel(X0, X1, X2, z, r0, r1, r2, L, w, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians,
-                uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist):
+                uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist, window_jacobians=True):
     """Pixel uv (2,) of one camera-frame point X with its solved incidence w (depth z, radial r,
     medium column L) and, with ``jacobians``, J_point (2, 3), J_normal (2, 3) (w.r.t. the free
     normal vector, via dn_dv), J_params (2, n_params), J_td (2, 2) = [d uv/d thickness,
-    d uv/d distance]; J_pin (2, 3), J_xy, J_dist are scratch."""
+    d uv/d distance] (J_normal and J_td left unset without ``window_jacobians``: triangulation
+    needs J_point only); J_pin (2, 3), J_xy, J_dist are scratch."""
     pinhole_point(nc[0] + w * r0, nc[1] + w * r1, nc[2] + w * r2, params, n_params, jacobians,
                   uv, J_pin, J_params, J_xy, J_dist)
     if not jacobians:
@@ -315,6 +316,8 @@ def exact_pixel(X0, X1, X2, z, r0, r1, r2, L, w, params, nc, dn_dv, h, d, n, n_m
         J_point[k, 0] = w * (J_pin[k, 0] - Jn * nc[0]) + Jr * ((w3K * r0 - wGm * nc[0]) / P)
         J_point[k, 1] = w * (J_pin[k, 1] - Jn * nc[1]) + Jr * ((w3K * r1 - wGm * nc[1]) / P)
         J_point[k, 2] = w * (J_pin[k, 2] - Jn * nc[2]) + Jr * ((w3K * r2 - wGm * nc[2]) / P)
+        if not window_jacobians:
+            continue
         a = 1.0 - w * z
         jn0 = a * J_pin[k, 0] - w * Jn * X0 + Jr * ((-(w3K * z) * r0 - wGm * X0) / P)
         jn1 = a * J_pin[k, 1] - w * Jn * X1 + Jr * ((-(w3K * z) * r1 - wGm * X1) / P)
@@ -325,9 +328,9 @@ def exact_pixel(X0, X1, X2, z, r0, r1, r2, L, w, params, nc, dn_dv, h, d, n, n_m
         J_td[k, 1] = Jr * (w * (Gm - 1.0) / P)
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def exact_point(X0, X1, X2, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians,
-                uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist, u0=0.0):
+                uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist, u0=0.0, window_jacobians=True):
     """:func:`exact_pixel` of one point with its own Newton solve, started from the incidence
     ``u0`` = tan t when given (a nearby point's; see :func:`solve_w`). Returns the Newton steps
     (negative: failure; 0: no ray, L <= 0) and the solved tan t."""
@@ -341,7 +344,7 @@ def exact_point(X0, X1, X2, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians
     else:
         w = np.nan
     exact_pixel(X0, X1, X2, z, r0, r1, r2, L, w, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians,
-                uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist)
+                uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist, window_jacobians)
     return steps, w * rho
 
 
@@ -376,7 +379,7 @@ def exact_batch(X, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians):
 # --------------------------------------------------------------------------- exact model, backward
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def exact_ray(u, v, params, nc, h, d, n, n_m, J_xy, J_dist, origin, direction):
     """Medium-side ray of one pixel by vector Snell at both faces: origin on the far face and unit
     direction into origin (3,), direction (3,) (NaN if the pixel's ray misses the window).
@@ -420,9 +423,12 @@ def exact_rays_batch(uv, params, nc, h, d, n, n_m):
 
 
 # --------------------------------------------------------------------------- triangulation
+# The per-point triangulation calls each piece of physics (exact_ray, exact_point: inline="always") at a
+# single site, so numba compiles one copy of it into the loop: no call with a dozen array arguments per
+# camera and evaluation, and no more compiled code (nor cold start) than the calls had.
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _solve_sym3(A, b, x):
     """x = A^-1 b for a symmetric 3x3 A by the adjugate; returns det(A)."""
     a, bb, c = A[0, 0], A[0, 1], A[0, 2]
@@ -437,12 +443,12 @@ def _solve_sym3(A, b, x):
     return det
 
 
-@njit(**_JIT)
-def _cost_and_normal(Xw, uv, ok, R, t, params, nc, window, jacobians, A, g, scratch, u_start):
-    """Reprojection cost of world point Xw over the cameras ok[c] and, with ``jacobians``, the
-    Gauss-Newton matrix A = J^T J and gradient g = J^T r (world coordinates). Cost inf if a pixel
+@njit(inline="always", **_JIT)
+def _cost_and_normal(Xw, uv, p, ok, R, t, params, nc, window, jacobians, A, g, scratch, u_start):
+    """Reprojection cost of world point Xw over the cameras ok[c] (pixels uv[p]) and, with ``jacobians``,
+    the Gauss-Newton matrix A = J^T J and gradient g = J^T r (world coordinates). Cost inf if a pixel
     is NaN. Each camera's Newton solve starts from u_start[c] (tan t), which gets the solved one."""
-    C = uv.shape[0]
+    C = uv.shape[1]
     J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist, dn_dv, pix = scratch
     for i in range(3):
         g[i] = 0.0
@@ -457,10 +463,10 @@ def _cost_and_normal(Xw, uv, ok, R, t, params, nc, window, jacobians, A, g, scra
         Xc2 = R[c, 2, 0] * Xw[0] + R[c, 2, 1] * Xw[1] + R[c, 2, 2] * Xw[2] + t[c, 2]
         _, u_solved = exact_point(Xc0, Xc1, Xc2, params[c], nc[c], dn_dv, window[c, 0], window[c, 1], window[c, 2],
                                   window[c, 3], 4, jacobians, pix, J_point, J_normal, J_params, J_td, J_pin, J_xy,
-                                  J_dist, u_start[c])
+                                  J_dist, u_start[c], False)
         if math.isfinite(u_solved):
             u_start[c] = u_solved
-        r0, r1 = pix[0] - uv[c, 0], pix[1] - uv[c, 1]
+        r0, r1 = pix[0] - uv[p, c, 0], pix[1] - uv[p, c, 1]
         cost += r0 * r0 + r1 * r1
         if not jacobians:
             continue
@@ -494,14 +500,6 @@ def triangulate_exact(uv, R, t, params, nc, window, refine, max_iterations, damp
     with the analytic Jacobians (the algorithm of :func:`ari_sfm.triangulate.refine_points`, per
     point). Fills X_out (P, 3), gap_out (P,), rmse_out (P,) (NaN where no point), unconverged (P,)
     and undistort_failed (P,). Releases the GIL: threads may run it on separate slices of points."""
-    _triangulate_chunk(0, uv.shape[0], uv, R, t, params, nc, window, refine, max_iterations, damping, step_tol,
-                       min_det, X_out, gap_out, rmse_out, unconverged, undistort_failed)
-
-
-@njit(**_JIT)
-def _triangulate_chunk(start, stop, uv, R, t, params, nc, window, refine, max_iterations, damping, step_tol,
-                       min_det, X_out, gap_out, rmse_out, unconverged, undistort_failed):
-    """Points start..stop of :func:`triangulate_exact` (scratch allocated once)."""
     C = uv.shape[1]
     J_xy = np.empty((2, 2))
     J_dist = np.empty((2, 5))
@@ -524,7 +522,7 @@ def _triangulate_chunk(start, stop, uv, R, t, params, nc, window, refine, max_it
     A_new = np.empty((3, 3))
     g_new = np.empty(3)
     Ad = np.empty((3, 3))
-    for p in range(start, stop):
+    for p in range(uv.shape[0]):
         n_seen = 0
         for c in range(C):
             seen[c] = math.isfinite(uv[p, c, 0]) and math.isfinite(uv[p, c, 1])
@@ -575,41 +573,55 @@ def _triangulate_chunk(start, stop, uv, R, t, params, nc, window, refine, max_it
                 q0, q1, q2 = r0 - s * dd[c, 0], r1 - s * dd[c, 1], r2 - s * dd[c, 2]
                 sq += q0 * q0 + q1 * q1 + q2 * q2
         gap_out[p] = 2.0 * math.sqrt(sq / n_ok)
-        # Levenberg-Marquardt on the reprojection error, Marquardt damping lam diag(J^T J)
-        cost = _cost_and_normal(X, uv[p], seen, R, t, params, nc, window, refine, An, g, scratch, u_start)
-        if refine and math.isfinite(cost):
-            lam = damping
-            converged = False
-            for _ in range(max_iterations):
-                for i in range(3):
-                    for j in range(3):
-                        Ad[i, j] = An[i, j]
-                    Ad[i, i] += lam * max(An[i, i], 1e-12)
-                _solve_sym3(Ad, g, step)
-                for i in range(3):
-                    X_new[i] = X[i] - step[i]
-                step_norm = math.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2)
-                new_norm = math.sqrt(X_new[0] ** 2 + X_new[1] ** 2 + X_new[2] ** 2)
-                if step_norm <= step_tol * (1.0 + new_norm):
-                    # converged: refine_points would also stop after this step; X moves by less than
-                    # the tolerance, so keep X and its cost instead of paying one more evaluation
-                    converged = True
-                    break
-                cost_new = _cost_and_normal(X_new, uv[p], seen, R, t, params, nc, window, True, A_new, g_new,
-                                            scratch, u_start)
-                if cost_new <= cost:
-                    cost = cost_new
-                    for i in range(3):
-                        X[i] = X_new[i]
-                        g[i] = g_new[i]
-                        for j in range(3):
-                            An[i, j] = A_new[i, j]
+        # Levenberg-Marquardt on the reprojection error, Marquardt damping lam diag(J^T J). One evaluation
+        # site: the first evaluates the linear point (its cost, with ``refine`` its normal equations), each
+        # later one the step's point X_new, accepted if its cost is not higher.
+        for i in range(3):
+            X_new[i] = X[i]
+        cost = np.inf
+        lam = damping
+        converged = False
+        lm = False  # whether Levenberg-Marquardt runs (refine, and the linear point's cost is finite)
+        iterations = 0
+        while True:
+            cost_new = _cost_and_normal(X_new, uv, p, seen, R, t, params, nc, window, refine, A_new, g_new,
+                                        scratch, u_start)
+            if iterations == 0 or cost_new <= cost:
+                if iterations > 0:
                     lam = max(lam / 10.0, 1e-12)
-                else:
-                    lam *= 10.0
-                if lam > 1e12:
-                    converged = True
+                cost = cost_new
+                for i in range(3):
+                    X[i] = X_new[i]
+                    g[i] = g_new[i]
+                    for j in range(3):
+                        An[i, j] = A_new[i, j]
+            else:
+                lam *= 10.0
+            if iterations == 0:
+                lm = refine and math.isfinite(cost)
+                if not lm:
                     break
+            elif lam > 1e12:
+                converged = True
+                break
+            if iterations == max_iterations:
+                break
+            iterations += 1
+            for i in range(3):
+                for j in range(3):
+                    Ad[i, j] = An[i, j]
+                Ad[i, i] += lam * max(An[i, i], 1e-12)
+            _solve_sym3(Ad, g, step)
+            for i in range(3):
+                X_new[i] = X[i] - step[i]
+            step_norm = math.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2)
+            new_norm = math.sqrt(X_new[0] ** 2 + X_new[1] ** 2 + X_new[2] ** 2)
+            if step_norm <= step_tol * (1.0 + new_norm):
+                # converged: refine_points would also stop after this step; X moves by less than
+                # the tolerance, so keep X and its cost instead of paying one more evaluation
+                converged = True
+                break
+        if lm:
             unconverged[p] = not converged
         X_out[p, 0], X_out[p, 1], X_out[p, 2] = X[0], X[1], X[2]
         if math.isfinite(cost):  # inf: a pixel the point does not reach (NaN projection), no RMSE
