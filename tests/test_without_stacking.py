@@ -382,3 +382,39 @@ def test_rig_graph_from_dataset_without_stacking(single):
         RigGraph.from_dataset(single.dataset, model="ari")
     rg = RigGraph.from_dataset(_with_plane(single, _declared(single)), model="ari")
     assert rg.graph.size() == len(rg.factor_data) + 1  # the views and the plane
+
+
+def test_coarse_to_fine_normal_search_is_the_grids_best():
+    """On a one-minimum landscape (the angle to a hidden normal anywhere within 20 deg) the coarse-to-fine
+    search returns the whole grid's best candidate, scoring at most 24 of its 33 directions."""
+    from ari_sfm.init.window_start import search_normal, tilt_candidates
+
+    axis = np.array([0.1, -0.2, 1.0]) / np.linalg.norm([0.1, -0.2, 1.0])
+    grid = tilt_candidates(axis)
+    e1 = np.cross(axis, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    rng = np.random.default_rng(0)
+    for _ in range(60):
+        t, a = np.radians(rng.uniform(0.0, 20.0)), rng.uniform(0.0, 2 * np.pi)
+        hidden = np.cos(t) * axis + np.sin(t) * (np.cos(a) * e1 + np.sin(a) * e2)
+        calls = []
+        found = search_normal(lambda n: calls.append(1) or angle_between_deg(n, hidden), axis)
+        best = grid[int(np.argmin([angle_between_deg(n, hidden) for n in grid]))]
+        np.testing.assert_allclose(found, best)
+        assert len(calls) <= 24
+
+
+def test_search_corners_cut_large_views_the_same_way_every_time():
+    import importlib
+
+    from ari_sfm.records import Observation
+
+    C = importlib.import_module("ari_sfm.calibrate")
+    big = Observation("cam0", "calibration", "f000", np.arange(1600), np.zeros((1600, 2)))
+    small = Observation("cam1", "calibration", "f000", np.arange(50), np.zeros((50, 2)))
+    other = Observation("cam1", "calibration", "f001", np.arange(1600), np.zeros((1600, 2)))
+    cut = C._search_corners((big, small, other), ["f000"], 160)
+    assert [o.camera for o in cut] == ["cam0", "cam1"]  # only the searched frames
+    assert len(cut[0].ids) == 160 and len(set(cut[0].ids)) == 160 and cut[1] is small
+    np.testing.assert_array_equal(cut[0].ids, C._search_corners((big,), ["f000"], 160)[0].ids)
