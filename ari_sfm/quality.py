@@ -16,7 +16,9 @@ what the same corners allow. After convergence a window-model calibration (ari, 
   is ari's paraxial error at this geometry (PHYSICS.md: ~t^3, 1.4-2 px on binocular_underwater)
   and the result passes; when it does not, the window or a hint is wrong and ari fails too;
 - physically absurd standard deviations: a camera's pose relative to camera 0 known to worse
-  than ``MAX_POSE_SIGMA_DEG`` (a flat, wrong minimum: +-40 deg was seen);
+  than ``MAX_POSE_SIGMA_DEG`` (a flat, wrong minimum: +-40 deg was seen), or not determined at all
+  (no finite sigma: a singular or indefinite information matrix, see
+  :func:`ari_sfm.factors.schur.global_covariance`);
 - a non-finite RMSE.
 """
 from __future__ import annotations
@@ -165,10 +167,14 @@ def judge(model: str, rmse_px: float, residuals: Iterable[np.ndarray], floor_rms
                        f"{floor_rmse:.3f} px{also}): a wrong minimum, or a wrong declared window or hint")
     sigma = None
     if uncertainty is not None:
-        sigmas = [c.rotation_deg for c in uncertainty.cameras.values() if c.relative_pose]
-        sigmas = [math.inf if s is None or not math.isfinite(s) else s for s in sigmas]
-        sigma = max(sigmas) if sigmas else None
-        if sigma is not None and sigma > MAX_POSE_SIGMA_DEG:
+        sigmas = {name: math.inf if c.rotation_deg is None or not math.isfinite(c.rotation_deg) else c.rotation_deg
+                  for name, c in uncertainty.cameras.items() if c.relative_pose}
+        sigma = max(sigmas.values()) if sigmas else None
+        undetermined = [name for name, s in sigmas.items() if not math.isfinite(s)]
+        if undetermined:
+            why.append(f"the relative pose of {', '.join(undetermined)} is not determined by the data (no finite "
+                       "rotation sigma: a singular or indefinite information matrix)")
+        elif sigma is not None and sigma > MAX_POSE_SIGMA_DEG:
             why.append(f"a camera's pose is undetermined (rotation sigma {sigma:.1f} deg)")
     return Quality(not why, "; ".join(why) or None, float(rmse_px), robust, None,
                    None if sigma is None or not math.isfinite(sigma) else float(sigma), tuple(starts), floor_rmse,

@@ -41,13 +41,18 @@ complement is the covariance of the global variables (:func:`global_covariance`)
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import logging
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 import scipy.linalg.lapack
 
+log = logging.getLogger(__name__)
+
 DIAG_FLOOR = 1e-9  # Marquardt damping: the smallest diagonal entry damped
+RANK_TOLERANCE = 64 * np.finfo(float).eps  # global_covariance: a Jacobi-scaled eigenvalue below this x the largest: undetermined
+NULL_SHARE = 1e-6  # global_covariance: a variable with more than this share in undetermined directions is one
 Y_CHUNK_ENTRIES = 2_000_000  # entries layout: floats of one dense chunk of Y (k rows per block, G + 1 columns)
 
 
@@ -199,22 +204,73 @@ def model_decrease(sys: NormalEquations, d_global: np.ndarray, d_block: np.ndarr
     return float(-(lin + 0.5 * quad))
 
 
+def _scaled_eigh(A: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eigen-decomposition of ``D^-1 A D^-1`` with ``D = sqrt(diag A)`` (Jacobi scaling, so that the
+    variables' units do not decide what is small): (eigenvalues, eigenvectors, D); a zero or
+    non-finite diagonal entry is scaled by 1 (its row and column zeroed)."""
+    d = np.diagonal(A, axis1=-2, axis2=-1)
+    good = np.isfinite(d) & (d > 0.0)
+    D = np.where(good, np.sqrt(np.where(good, d, 1.0)), 1.0)
+    As = np.where(good[..., :, None] & good[..., None, :], A, 0.0) / (D[..., :, None] * D[..., None, :])
+    As = 0.5 * (As + np.swapaxes(As, -1, -2))
+    w, Q = np.linalg.eigh(np.nan_to_num(As, nan=0.0, posinf=0.0, neginf=0.0))
+    return w, Q, D
+
+
+def _determined_blocks(V: np.ndarray) -> tuple[np.ndarray, int]:
+    """The blocks ``V`` (N, k, k) with every direction the data do not determine (a Jacobi-scaled
+    eigenvalue below ``RANK_TOLERANCE`` x the largest, or negative) given the block's largest
+    eigenvalue instead: a prior that holds that direction of the block, so that the blocks can be
+    eliminated (exact when H is positive semi-definite: an undetermined block direction then
+    couples to no global variable); and how many blocks were changed. A zero block (a block moved
+    into the global variables) is kept."""
+    w, Q, D = _scaled_eigh(V)
+    top = w.max(axis=1, keepdims=True)
+    bad = np.any(w <= RANK_TOLERANCE * top, axis=1) & (np.trace(V, axis1=1, axis2=2) != 0.0)
+    bad |= ~np.all(np.isfinite(V), axis=(1, 2))
+    if not bad.any():
+        return V, 0
+    top = np.maximum(top, 1e-300)
+    w = np.where(w > RANK_TOLERANCE * top, w, top)
+    held = np.einsum("nij,nj,nkj->nik", Q, w, Q) * (D[:, :, None] * D[:, None, :])
+    return np.where(bad[:, None, None], held, V), int(bad.sum())
+
+
 def global_covariance(sys: NormalEquations, fixed: np.ndarray | None = None) -> np.ndarray:
     """(G, G) covariance of the global variables, H^-1 restricted to them: the inverse of the undamped
-    Schur complement of the blocks (Cholesky; the pseudo-inverse if singular). The ``fixed`` columns
-    (not variables) get zero rows and columns."""
+    Schur complement of the blocks. The ``fixed`` columns (not variables) get zero rows and columns.
+
+    A singular or indefinite information matrix is a fact about the data, not an error: a block
+    direction the data do not determine is held (:func:`_determined_blocks`); a global variable
+    with a component along an undetermined direction of the complement (Jacobi-scaled eigenvalue
+    below ``RANK_TOLERANCE`` x the largest, or negative) gets variance inf and NaN covariances;
+    the determined ones get the pseudo-inverse restricted to the determined subspace."""
     G = len(sys.g_global)
+    V, n_held = _determined_blocks(sys.V)
+    if n_held:  # blocks the data do not place (e.g. a frame seen in a lost optimum)
+        log.warning("%d of %d blocks of the normal equations are singular: their undetermined directions held",
+                    n_held, len(V))
+        sys = replace(sys, V=V, reduced=None)
     red = reduce(sys, 0.0)
-    if red is None:
-        raise np.linalg.LinAlgError("a block of the normal equations is not positive definite")
     free = np.arange(G) if fixed is None else np.setdiff1d(np.arange(G), fixed)
     S = red.S[np.ix_(free, free)]
+    cov = np.zeros((G, G))
     try:
         Li = np.linalg.inv(np.linalg.cholesky(S))
         inv = Li.T @ Li
+        if np.all(np.isfinite(inv)):
+            cov[np.ix_(free, free)] = inv
+            return cov
     except np.linalg.LinAlgError:
-        inv = np.linalg.pinv(S, hermitian=True)
-    cov = np.zeros((G, G))
+        pass
+    w, Q, D = _scaled_eigh(S)
+    top = max(float(w.max(initial=0.0)), 1e-300)
+    null = w <= RANK_TOLERANCE * top
+    inv = (Q[:, ~null] / w[~null]) @ Q[:, ~null].T / np.outer(D, D)
+    undetermined = np.sum(Q[:, null] ** 2, axis=1) > NULL_SHARE
+    inv[undetermined, :] = np.nan
+    inv[:, undetermined] = np.nan
+    inv[undetermined, undetermined] = np.inf
     cov[np.ix_(free, free)] = inv
     return cov
 

@@ -175,3 +175,19 @@ def test_cli_ari_with_a_wrong_declared_plane_exits_3(tmp_path):
     q = json.loads((tmp_path / "bad" / "calibration.json").read_text())["quality"]
     assert q["ok"] is False and "the data allow" in q["why"]
     assert allowance_px(q["floor_rmse_px"]) < q["robust_rmse_px"] < 3.0  # a small misfit, not a lost solve
+
+
+
+def test_undetermined_covariance_fails_the_gate_not_a_traceback():
+    """Issue 14: ari with fixed focal lengths and the declared plane turned 10 deg (ptv_multiplane seed 0,
+    in memory: the files' rounding leads elsewhere) ends in a lost optimum whose information matrix is
+    singular (the target's pose block) and indefinite: this raised LinAlgError in the covariance. Now
+    the undetermined parameters get no sigma and the gate fails the result naming them (the CLI then
+    writes calibration.json and exits 3, test_cli_exits_3_on_a_failed_calibration)."""
+    ds = _turned(make_scene("ptv_multiplane", seed=0, sigma_px=0.0).dataset)
+    cal = calibrate(ds, model="ari", fix_intrinsics=True, uncertainty=True)
+    q = cal.quality
+    assert q.ok is False and "not determined by the data" in q.why
+    assert q.max_pose_sigma_deg is None
+    assert all(c.rotation_deg is None for c in cal.uncertainty.cameras.values() if c.relative_pose)
+    assert json.loads(json.dumps(calibration_to_json(cal)))["quality"]["ok"] is False

@@ -3,6 +3,7 @@ contract of docs/DATASET_FORMAT.md) and its parts. Built at the end of
 :func:`~ari_sfm.colmap_refine.refine.refine_colmap`; read by the CLI, ``ari-sfm sfm`` and the benchmarks."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
@@ -69,8 +70,14 @@ class RefineUncertainty:
     weak: tuple[str, ...] = ()  # what the data barely determine, e.g. "distance_mm.camera1", "scale_rel"
 
     def to_json(self) -> dict[str, Any]:
-        return {"sigma0": self.sigma0, "normal_deg": dict(self.normal_deg), "distance_mm": dict(self.distance_mm),
-                "fx_px": dict(self.fx_px), "scale_rel": self.scale_rel, "weak": list(self.weak)}
+        """A sigma the data do not determine (inf or NaN: a singular information matrix) is written null."""
+        def finite(v: float | None) -> float | None:
+            return v if v is not None and math.isfinite(v) else None
+
+        return {"sigma0": finite(self.sigma0), "normal_deg": {k: finite(v) for k, v in self.normal_deg.items()},
+                "distance_mm": {k: finite(v) for k, v in self.distance_mm.items()},
+                "fx_px": {k: finite(v) for k, v in self.fx_px.items()}, "scale_rel": finite(self.scale_rel),
+                "weak": list(self.weak)}
 
 
 @dataclass(frozen=True)

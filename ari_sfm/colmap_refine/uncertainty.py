@@ -6,7 +6,8 @@ Covariance of the reduced variables (cameras, poses, window; the points eliminat
 (Huber-weighted residuals over the degrees of freedom), so the sigmas follow the residuals actually
 reached. The gauge (the first frame) is held; the scale is a direction of the problem, determined
 by refraction only (or by a scale bar), so a scale the images barely determine shows as a large
-``scale_rel`` and, through it, a large distance sigma.
+``scale_rel`` and, through it, a large distance sigma. A parameter the data do not determine at all
+(a singular or indefinite S) has an inf or NaN sigma: it is listed in ``weak`` and written null.
 
 ``scale_rel``: the relative sigma of the scene's scale, measured as the RMS distance of the frames'
 centres from their mean (a function of the frame poses, linearized).
@@ -14,6 +15,7 @@ centres from their mean (a function of the frame poses, linearized).
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any
 
 import numpy as np
@@ -74,7 +76,7 @@ def uncertainty(solver: Any, state: Any, names: list[str], system: Any = None) -
     for k, name in enumerate(window_names):
         cols = lay.window[k]
         if cols[0] >= 0:
-            out["normal_deg"][name] = float(np.degrees(np.sqrt(max(np.trace(cov[np.ix_(cols[:2], cols[:2])]), 0.0))))
+            out["normal_deg"][name] = float(np.degrees(np.sqrt(np.maximum(np.trace(cov[np.ix_(cols[:2], cols[:2])]), 0.0))))
         if cols[2] >= 0:
             out["distance_mm"][name] = float(sd[cols[2]])
     for c, name in enumerate(names):
@@ -84,7 +86,8 @@ def uncertainty(solver: Any, state: Any, names: list[str], system: Any = None) -
             out["fx_px"][name] = float(sd[lay.intrinsics[c][fx[0]]])
     s, grad = _frame_spread_gradient(state, lay.frames, solver.size)
     if s > 0.0:
-        out["scale_rel"] = float(np.sqrt(max(grad @ cov @ grad, 0.0)) / s)
+        var = float(grad @ cov @ grad)  # NaN when the scale leans on an undetermined direction
+        out["scale_rel"] = float(np.sqrt(var) / s) if var >= 0.0 else (math.nan if math.isnan(var) else 0.0)
     return RefineUncertainty(s0, out["normal_deg"], out["distance_mm"], out["fx_px"], out["scale_rel"],
                              tuple(_weak(out, state, model, problem.mount, names)))
 
@@ -94,23 +97,23 @@ def _weak(u: dict, state: Any, model: Any, mount: str, names: list[str]) -> list
     weak = []
     face = "interface.plane" + (" (in the camera frame)" if mount == "camera" else " (in the COLMAP world, mm)")
     for k, (name, sig) in enumerate(u["normal_deg"].items()):
-        if sig > WEAK_NORMAL_DEG:
+        if not sig <= WEAK_NORMAL_DEG:  # NaN / inf too: not determined at all
             weak.append(f"normal_deg.{name}")
             log.warning("refine-colmap: the port normal of %s is barely determined by these images (+-%.2g deg, "
                         "1 sigma): declare it in WINDOW.yaml (%s normal, sigma_deg for a prior)", name, sig, face)
     for k, (name, sig) in enumerate(u["distance_mm"].items()):
         d = float(state.distances[k])
-        if sig > WEAK_DISTANCE_REL * max(abs(d), 1.0):
+        if not sig <= WEAK_DISTANCE_REL * max(abs(d), 1.0):
             weak.append(f"distance_mm.{name}")
             log.warning("refine-colmap: the port distance of %s is barely determined by these images (%.3g +- %.2g mm, "
                         "1 sigma): declare it in WINDOW.yaml (%s point_mm, sigma_mm for a prior)", name, d, sig, face)
-    if u["scale_rel"] is not None and u["scale_rel"] > WEAK_SCALE_REL:
+    if u["scale_rel"] is not None and not u["scale_rel"] <= WEAK_SCALE_REL:
         weak.append("scale_rel")
         log.warning("refine-colmap: the scale is barely determined by these images (+-%.2g %%, 1 sigma): declare a "
                     "scale_bar in WINDOW.yaml (two point3D ids and their distance)", 100.0 * u["scale_rel"])
     for c, (name, sig) in enumerate(u["fx_px"].items()):
         fx = float(model.params9(c, state.colmap_params[c])[0])
-        if sig > WEAK_FOCAL_REL * fx:
+        if not sig <= WEAK_FOCAL_REL * fx:
             weak.append(f"fx_px.{name}")
             log.warning("refine-colmap: the focal length of %s is barely determined (%.1f +- %.2g px, 1 sigma): add "
                         "oblique views or views at other distances", name, fx, sig)
