@@ -604,7 +604,10 @@ def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: b
     def score(normal: np.ndarray) -> float:
         st = replace(subset, normal_world=normal)
         if underwater:
-            st = _searched_distance(dataset, st, build_scoring, opts, NORMAL_SEARCH_DISTANCES, scoring, refine=False)
+            try:
+                st = _searched_distance(dataset, st, build_scoring, opts, NORMAL_SEARCH_DISTANCES, scoring, refine=False)
+            except AriSfmError:  # no window separates cameras and corners along this candidate: not a start
+                return np.inf
         elif plane is None:
             st = replace(st, distance_mm=default_distance_mm(normal, st.cam_from_world))
         rg = build_scoring("exact", st)
@@ -667,21 +670,42 @@ def _searched_distance(dataset: Dataset, state, build, opts: CalibrationOptions,
                        observations: Sequence[Observation] | None = None, refine: bool = True):
     """state with its distance searched by the exact cost inside the valid interval (under water);
     ``observations``: those ``build`` puts in its graph (default the dataset's); ``refine``: a 1-D
-    minimisation after the grid (:func:`~ari_sfm.init.window_start.search_distance`)."""
+    minimisation after the grid (:func:`~ari_sfm.init.window_start.search_distance`).
+
+    The targets are held where the state has them; when that leaves no valid distance (the ari
+    stage's targets sit at the apparent depths of its own, far window: issue 14), they move with the
+    window, keeping those apparent depths (:func:`~ari_sfm.init.window_start.moved_window`)."""
     from .factors.vectorized import VectorizedProblem
-    from .init.window_start import distance_interval, search_distance
+    from .init.window_start import distance_interval, moved_window, search_distance, target_shift_mm
 
     observations = dataset.observations if observations is None else observations
-    lo, hi = distance_interval(state, observations, dataset.target, dataset.interface.thickness_mm)
+    n_m, t = dataset.interface.medium_index, dataset.interface.thickness_mm
+    moving = None
+    lo, hi = distance_interval(state, observations, dataset.target, t)
+    if not hi > lo and state.distance_mm is not None:
+        held = (lo, hi)
+        moving = n_m
+        lo, hi = distance_interval(state, observations, dataset.target, t, n_m)
+        log.info("no window distance separates the cameras from the targets where they are (cameras up to %.1f mm, "
+                 "corners from %.1f mm): the targets move with the window at their apparent depths (%.1f-%.1f mm)",
+                 *held, lo, hi)
     if not hi > lo:
         raise AriSfmError(dataset.rig_path, f"no window distance puts every camera in front of the window and every "
                                             f"corner beyond it (cameras up to {lo:.1f} mm, corners from {hi:.1f} mm "
                                             "along the normal): check interface.thickness_mm and the target")
-    rg = build("exact", replace(state, distance_mm=0.5 * (lo + hi)))
+    mid = moved_window(state, 0.5 * (lo + hi), n_m if moving else 1.0)
+    rg = build("exact", mid)
     problem = VectorizedProblem.from_rig_graph(rg, huber_px=opts.huber_px, check=False)
-    best = search_distance(lambda h: problem.error(replace(problem.x, distance_mm=h)), lo, hi, samples,
-                           current=state.distance_mm, refine=refine)
-    return replace(state, distance_mm=best)
+    x0, normal = problem.x, np.asarray(mid.normal_world, float)
+
+    def cost(h: float) -> float:
+        if not moving:
+            return problem.error(replace(x0, distance_mm=h))
+        step = target_shift_mm(n_m, mid.distance_mm, h) * normal
+        return problem.error(replace(x0, distance_mm=h, world_t_target=x0.world_t_target + step))
+
+    best = search_distance(cost, lo, hi, samples, current=state.distance_mm, refine=refine)
+    return moved_window(state, best, n_m if moving else 1.0)
 
 
 def _check_in_front(dataset: Dataset, state) -> None:

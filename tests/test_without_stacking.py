@@ -261,6 +261,46 @@ def test_under_water_exact_recovers_when_the_ari_stage_is_far_off(oblique, caplo
     assert _normal_err(cal, oblique.truth) < 0.3
 
 
+def test_oblique_seed_1_ari_start_at_its_own_window_calibrates():
+    """Issue 14: the ari stage ends with the window at ~1090 mm and the targets where that window puts
+    their apparent depths (15-180 mm from the cameras; truth 380-540 mm): with the targets held, no
+    distance separated cameras and corners and calibrate refused. The exact start moves the targets
+    with the window (keeping their apparent depths) and recovers the truth."""
+    scene = make_scene("binocular_underwater_oblique", seed=1, sigma_px=SIGMA)
+    cal = calibrate(scene.dataset, model="exact", uncertainty=False)
+    assert cal.residuals.rmse_px <= FLOOR
+    assert _normal_err(cal, scene.truth) < 0.3
+    assert _fx_rel(cal, scene.truth) < 5e-4
+    assert abs(cal.interface.distance_mm - scene.truth["interface"]["distance_mm"]) < 0.2
+
+
+def test_moving_the_window_moves_the_targets_at_their_apparent_depth(oblique):
+    """A state like the ari stage's (window 1090 mm, targets at the apparent depths it implies):
+    held targets leave no valid distance or exclude the truth; moved with the window the interval
+    holds the truth, and moving the window back is the truth again (a round trip)."""
+    from ari_sfm.init.window_start import distance_interval, moved_window, target_shift_mm
+
+    ds, tr = oblique.dataset, oblique.truth
+    n_m, t, h = ds.interface.medium_index, ds.interface.thickness_mm, tr["interface"]["distance_mm"]
+    assert target_shift_mm(1.0, 1090.0, h) == 0.0  # in air the targets stay
+    truth = _true_state(oblique)
+    far = moved_window(truth, 1090.0, n_m)
+    f = next(iter(far.world_from_target))
+    shift = (far.world_from_target[f].t - truth.world_from_target[f].t) @ truth.normal_world
+    assert shift == pytest.approx(-(n_m - 1.0) * (1090.0 - h))
+    lo, hi = distance_interval(far, ds.observations, ds.target, t)
+    assert not lo < h < hi
+    lo, hi = distance_interval(far, ds.observations, ds.target, t, n_m)
+    assert lo < h < hi
+    # the interval's far end: the nearest corner exactly on the far face after the move
+    edge = moved_window(far, hi, n_m)
+    lo_e, hi_e = distance_interval(edge, ds.observations, ds.target, t)
+    assert hi_e == pytest.approx(hi, abs=1e-9)
+    back = moved_window(far, h, n_m)
+    for fr, pose in truth.world_from_target.items():
+        np.testing.assert_allclose(back.world_from_target[fr].t, pose.t, atol=1e-9)
+
+
 @pytest.mark.parametrize("backend", ["numpy", "gtsam"])
 def test_lm_from_either_end_of_the_valid_interval(oblique, backend):
     """Started next to either end of the interval where every corner is beyond the window, LM

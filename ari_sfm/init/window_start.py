@@ -4,7 +4,17 @@
   window metres away (its medium term is weak), and an exact model started
   there has corners on the camera side of the window. The distance from camera 0
   is searched inside the interval where every camera is in front of the near face
-  and every corner beyond the far face, scored by the exact cost.
+  and every corner beyond the far face, scored by the exact cost. The ari
+  stage's targets sit where its own window puts them: behind water the paraxial
+  apparent depth along N is ``h + t/n_g + (z - h - t)/n_m``, so moving the window
+  from h0 to h with the images kept moves every target by ``(n_m - 1)(h0 - h)``
+  along N (:func:`moved_window`; 360 mm on binocular_underwater_oblique seed 1,
+  whose ari stage ends at 1090 mm with targets 15-180 mm from the cameras, so
+  that no distance separates cameras and held targets). When the held targets
+  leave no valid distance, the interval and the candidates move them with the
+  window (:func:`distance_interval` with ``medium_index``); otherwise they are
+  held (a moved start from a far-off normal can lead the normal search astray:
+  the 2400 mm hint on seed 0).
 - The normal without stacking (:func:`search_normal`): the exact model observes
   it through refraction alone; a coarse-to-fine search over a grid of tilt
   directions, each scored by the exact cost after a short refit of everything
@@ -55,15 +65,41 @@ def not_beyond(state, observations: Sequence[Observation], target: Target, thick
     return None
 
 
-def distance_interval(state, observations: Sequence[Observation], target: Target, thickness_mm: float
-                      ) -> tuple[float, float]:
+def target_shift_mm(medium_index: float, from_mm: float, to_mm: float) -> float:
+    """How far (mm, along the normal, away from the cameras) the targets move when the window moves
+    from ``from_mm`` to ``to_mm`` with their paraxial apparent depths kept: ``(n_m - 1)(from - to)``
+    (module docstring; 0 in air, where the distance is unobservable)."""
+    return (float(medium_index) - 1.0) * (float(from_mm) - float(to_mm))
+
+
+def moved_window(state, distance_mm: float, medium_index: float):
+    """``state`` with the window at ``distance_mm`` and every target (frames and stacking poses) moved
+    along the normal so that each keeps its paraxial apparent depth (:func:`target_shift_mm`); the
+    state unchanged but for the distance when it has none."""
+    from dataclasses import replace
+
+    from ..geometry import Pose
+
+    if state.distance_mm is None or not np.isfinite(state.distance_mm):
+        return replace(state, distance_mm=float(distance_mm))
+    step = target_shift_mm(medium_index, state.distance_mm, distance_mm) * np.asarray(state.normal_world, float)
+    frames = {f: Pose(p.R, p.t + step) for f, p in state.world_from_target.items()}
+    return replace(state, world_from_target=frames, distance_mm=float(distance_mm))
+
+
+def distance_interval(state, observations: Sequence[Observation], target: Target, thickness_mm: float,
+                      medium_index: float | None = None) -> tuple[float, float]:
     """(lo, hi) for the distance h from camera 0 to the near face along ``state.normal_world``:
     every camera centre in front of it (h > n . C) and every observed corner beyond the far
-    face (h < n . X - thickness - added). hi <= lo when no distance fits."""
+    face (h < n . X - thickness - added). hi <= lo when no distance fits. ``medium_index``: the
+    targets move with the window (:func:`moved_window` from ``state.distance_mm``), so a corner at
+    depth z is beyond it while ``h < (z - thickness - added + (n_m - 1) h0) / n_m``; None: they stay."""
     from .zhang import object_points
 
     n = np.asarray(state.normal_world, float)
     lo = max(float(n @ p.inverse().t) for p in state.cam_from_world.values())
+    moving = medium_index is not None and state.distance_mm is not None and np.isfinite(state.distance_mm)
+    n_m, h0 = (float(medium_index), float(state.distance_mm)) if moving else (1.0, 0.0)
     hi = np.inf
     for o in observations:
         pose = state.world_from_target.get(o.frame)
@@ -71,7 +107,7 @@ def distance_interval(state, observations: Sequence[Observation], target: Target
             continue
         added = (o.added_mm or 0.0) if o.set == "stacking" else 0.0
         depth = pose.apply(object_points(target, o.ids)) @ n
-        hi = min(hi, float(depth.min()) - thickness_mm - added)
+        hi = min(hi, (float(depth.min()) - thickness_mm - added + (n_m - 1.0) * h0) / n_m)
     return lo, hi
 
 
