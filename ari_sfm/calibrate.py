@@ -605,7 +605,8 @@ def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: b
         st = replace(subset, normal_world=normal)
         if underwater:
             try:
-                st = _searched_distance(dataset, st, build_scoring, opts, NORMAL_SEARCH_DISTANCES, scoring, refine=False)
+                st = _searched_distance(dataset, st, build_scoring, opts, NORMAL_SEARCH_DISTANCES, scoring,
+                                        refine=False)
             except AriSfmError:  # no window separates cameras and corners along this candidate: not a start
                 return np.inf
         elif plane is None:

@@ -51,7 +51,7 @@ import scipy.linalg.lapack
 log = logging.getLogger(__name__)
 
 DIAG_FLOOR = 1e-9  # Marquardt damping: the smallest diagonal entry damped
-RANK_TOLERANCE = 64 * np.finfo(float).eps  # global_covariance: a Jacobi-scaled eigenvalue below this x the largest: undetermined
+RANK_TOLERANCE = 64 * np.finfo(float).eps  # global_covariance: Jacobi-scaled eigenvalue / largest below: undetermined
 NULL_SHARE = 1e-6  # global_covariance: a variable with more than this share in undetermined directions is one
 Y_CHUNK_ENTRIES = 2_000_000  # entries layout: floats of one dense chunk of Y (k rows per block, G + 1 columns)
 

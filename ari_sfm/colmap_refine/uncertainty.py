@@ -76,7 +76,8 @@ def uncertainty(solver: Any, state: Any, names: list[str], system: Any = None) -
     for k, name in enumerate(window_names):
         cols = lay.window[k]
         if cols[0] >= 0:
-            out["normal_deg"][name] = float(np.degrees(np.sqrt(np.maximum(np.trace(cov[np.ix_(cols[:2], cols[:2])]), 0.0))))
+            var = np.trace(cov[np.ix_(cols[:2], cols[:2])])  # inf when undetermined
+            out["normal_deg"][name] = float(np.degrees(np.sqrt(np.maximum(var, 0.0))))
         if cols[2] >= 0:
             out["distance_mm"][name] = float(sd[cols[2]])
     for c, name in enumerate(names):
