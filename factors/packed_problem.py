@@ -15,7 +15,7 @@ holds *the same problem*:
   (:func:`ari_sfm.models.ari.ari_project`, :func:`ari_sfm.models.exact.exact_project`,
   one call per camera for all its corners, the plate thickness a per-corner
   array when stacked plates differ), chained to the tangent spaces here;
-  per-corner Huber square-root weights at the linearisation point, non-finite
+  the per-corner Huber loss of :func:`~ari_sfm.factors.robust.huber_scales`, non-finite
   residuals replaced by 1e6, a camera beyond the window gives 1e6 and zero
   Jacobians; whitened by each factor's isotropic sigma (the pixel sigma).
 
@@ -47,6 +47,7 @@ from . import keys as K_
 from .extra_factors import ExtraFactors
 from .levenberg_marquardt import LMParams, LMReport, levenberg_marquardt
 from .marginals import CovarianceTable, covariances_by_key
+from .robust import huber_scales
 from .schur import NormalEquations, model_decrease, solve_damped
 from .variables import MODELS, GraphLike, RigState, Variables
 from .view_factor import ViewData, ViewKeys, chain_to_tangents
@@ -303,24 +304,26 @@ class VectorizedProblem:
                 if jacobians:
                     Jp[a:b], Jn[a:b], Jg[a:b, :, :n_p], Jd[a:b] = J.J_point, J.J_normal, J.J_params, J.J_distance
         r = uv - self.measured[s:e]
-        w = np.ones(m)
         if huber_px is not None:
             rx, ry = r[:, 0], r[:, 1]
             dist = np.sqrt(rx * rx + ry * ry)  # np.linalg.norm(r, axis=1)'s arithmetic, 5x faster
-            big = dist > huber_px
-            w[big] = np.sqrt(huber_px / dist[big])
+            res_scale, jac_scale = huber_scales(dist, huber_px)
+        else:
+            res_scale = jac_scale = np.ones(m)
         if not jacobians:
-            res = r * w[:, None]
+            res = r * res_scale[:, None]
             if not np.isfinite(res.sum()):  # (the sum: one fast check)
                 res[~np.isfinite(res)] = INVALID_RESIDUAL  # a point fell behind the window
             return res * self.corner_inv_sigma[s:e, None] if whiten and not self.unit_sigma else res
-        # the Jacobians unweighted; every column (and the residual) scaled by the weight once at the end
-        out[:, :, -1] = r
+        # the Jacobians unscaled; every column times w / s once at the end (the residual column: r s / (w / s))
+        with np.errstate(divide="ignore", invalid="ignore"):  # w / s = 0 only where d is not finite
+            out[:, :, -1] = r * (res_scale / jac_scale)[:, None]
         R_wc = x.world_R_cam[c] if c > 0 else None  # camera 0 is the world: no pose columns
         JA = self._per_view(c, Jp, R_v)  # d uv / d t of the target pose: J_point R_cam_target
         chain_to_tangents(out, n_p, Jp, Jn, Jd, X, P, JA, tr.normal_world, tr.basis, R_wc, x.world_t_cam[c],
                           self.estimate_distance)
-        out *= (w * self.corner_inv_sigma[s:e])[:, None, None] if whiten and not self.unit_sigma else w[:, None, None]
+        scale = jac_scale * self.corner_inv_sigma[s:e] if whiten and not self.unit_sigma else jac_scale
+        out *= scale[:, None, None]
         res = out[:, :, -1]
         bad = ~np.isfinite(res)
         if bad.any():  # a point fell behind the window

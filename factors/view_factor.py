@@ -14,9 +14,11 @@ tangent spaces:
 - The camera's distance to the near surface is h_c = h_0 - n_world . C_c,
   C_c the camera centre in the world.
 
-Optional Huber weighting is per corner (on the pixel distance), applied as
-square-root weights inside the factor, because a robust noise model on a
-2M-vector would down-weight whole images instead of single corners.
+Optional Huber loss per corner (on the pixel distance), applied inside the
+factor (:func:`~ari_sfm.factors.robust.huber_scales`: the error is the true
+Huber loss and the linearisation's gradient its gradient), because a robust
+noise model on a 2M-vector would down-weight whole images instead of single
+corners.
 """
 from __future__ import annotations
 
@@ -28,6 +30,7 @@ import numpy as np
 
 from ..geometry import cross_jacobian_rows, skew
 from ..models import PinholeModel
+from .robust import huber_scales
 
 ModelFactory = Callable[..., object]
 
@@ -111,12 +114,8 @@ def view_residuals(
     model = model_factory(PinholeModel.from_params(params), n_c, data.thickness_mm, data.index, data.medium_index, h_c)
     J = model.project_with_jacobians(X_c)
     r = J.uv - data.measured
-    weights = np.ones(len(r))
-    if huber_px is not None:
-        dist = np.linalg.norm(r, axis=1)
-        big = dist > huber_px
-        weights[big] = np.sqrt(huber_px / dist[big])
-    residual = (r * weights[:, None]).reshape(-1)
+    res_scale, jac_scale = huber_scales(np.linalg.norm(r, axis=1), huber_px)
+    residual = (r * res_scale[:, None]).reshape(-1)
     if not np.all(np.isfinite(residual)):
         residual = np.where(np.isfinite(residual), residual, 1e6)  # a point fell behind the window
     if not want_jacobians:
@@ -127,7 +126,7 @@ def view_residuals(
     chain_to_tangents(out, n_p, J.J_point, J.J_normal, np.asarray(J.J_distance).reshape(M, 2), X_c, P,
                       J.J_point @ (R_cw @ R_wt), np.asarray(n_w, float), np.asarray(normal.basis(), float),
                       R_wc if keys.camera is not None else None, t_wc, keys.distance is not None)
-    out *= weights[:, None, None]
+    out *= jac_scale[:, None, None]
     k = 6 + n_p
     blocks = [out[:, :, 6:k]] + ([out[:, :, k:k + 6]] if keys.camera is not None else [])
     blocks += [out[:, :, k + 6:k + 8], out[:, :, :6]] + ([out[:, :, k + 8:k + 9]] if keys.distance is not None else [])

@@ -8,8 +8,9 @@ camera c's free COLMAP intrinsics, ``n(w)`` Unit3 window normal and ``d(w)`` Vec
 The residuals and Jacobians are :meth:`RefractiveProblem.linearize`'s, restricted to the image's
 observations and chained to GTSAM's tangent spaces: a Pose3 ``a_from_b`` moves as
 ``T Exp([w, v])`` (R' = R exp(w), t' = t + R v), i.e. this module's left perturbation
-(exp(R w) R, t + R v); a Unit3 by its own basis. Huber as the rig graph does (square-root weights
-inside the factor, per observation). GTSAM's LM eliminates the points itself (its ordering).
+(exp(R w) R, t + R v); a Unit3 by its own basis. Huber as the rig graph does (per observation inside
+the factor, :func:`ari_sfm.factors.robust.huber_scales`: the error is the true Huber loss). GTSAM's
+LM eliminates the points itself (its ordering).
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from dataclasses import replace
 import gtsam
 import numpy as np
 
+from ari_sfm.factors.robust import huber_scales
 from ari_sfm.geometry import Pose
 
 from .plane import WindowPrior
@@ -151,8 +153,7 @@ class GtsamRefinement:
                 return np.full(rows, 1e6)
             lin = problem.linearize(state, obs)
             r = lin.residuals
-            s = np.linalg.norm(r, axis=1)
-            wgt = np.ones(len(r)) if huber is None else np.sqrt(np.where(s <= huber, 1.0, huber / np.maximum(s, 1e-300)))
+            res_scale, wgt = huber_scales(np.linalg.norm(r, axis=1), huber)  # wgt: the Jacobians' scale
             if H is not None:
                 blocks = {vk: np.zeros((rows, self._dim(vk, state))) for vk in var_keys}
                 Jg = lin.J_g * wgt[:, None, None]
@@ -178,7 +179,7 @@ class GtsamRefinement:
                     sel = points == j
                     Hp[np.repeat(sel, 2)] = Jp[sel].reshape(-1, 3)
                     H[len(var_keys) + i] = Hp
-            return (r * wgt[:, None]).reshape(-1)
+            return (r * res_scale[:, None]).reshape(-1)
 
         return gtsam.CustomFactor(noise, keys, error)
 
