@@ -15,7 +15,8 @@ holds *the same problem*:
   (:func:`ari_sfm.models.ari.ari_project`, :func:`ari_sfm.models.exact.exact_project`,
   one call per camera for all its corners, the plate thickness a per-corner
   array when stacked plates differ), chained to the tangent spaces here;
-  the per-corner Huber loss of :func:`~ari_sfm.factors.robust.huber_scales`, non-finite
+  the per-corner Huber loss of :mod:`~ari_sfm.factors.robust` (the error its sum, the linear
+  system IRLS-weighted: the same gradient, Ceres' way rather than view_residuals'), non-finite
   residuals replaced by 1e6, a camera beyond the window gives 1e6 and zero
   Jacobians; whitened by each factor's isotropic sigma (the pixel sigma).
 
@@ -47,7 +48,7 @@ from . import keys as K_
 from .extra_factors import ExtraFactors
 from .levenberg_marquardt import LMParams, LMReport, levenberg_marquardt
 from .marginals import CovarianceTable, covariances_by_key
-from .robust import huber_scales
+from .robust import huber_irls, huber_scales
 from .schur import NormalEquations, model_decrease, solve_damped
 from .variables import MODELS, GraphLike, RigState, Variables
 from .view_factor import ViewData, ViewKeys, chain_to_tangents
@@ -257,11 +258,13 @@ class VectorizedProblem:
 
     def _camera_eval(self, x: Variables, tr: _Transforms, c: int, jacobians: bool,
                      huber_px: float | None, whiten: bool = False) -> np.ndarray:
-        """Camera c's corners as view_residuals computes them (Huber-weighted; whitened by the
-        factors' sigmas with ``whiten``).
+        """Camera c's corners (whitened by the factors' sigmas with ``whiten``).
 
-        Without ``jacobians``: the residuals (m, 2). With: one array (m, 2, 6 + local_dim + 1)
-        holding [J_frame | J_global (camera-local columns) | residual] per corner row.
+        Without ``jacobians``: the residuals (m, 2) as view_residuals computes them (Huber: s r, so
+        0.5 |.|^2 is the loss). With: one array (m, 2, 6 + local_dim + 1) holding [J_frame | J_global
+        (camera-local columns) | residual] per corner row, Huber as IRLS (residual and Jacobian times
+        sqrt(w), :func:`~ari_sfm.factors.robust.huber_irls`), and the error's excess over the rows'
+        0.5 r^T r (a float, 0 without Huber).
         """
         s, e = int(self.camera_corners[c]), int(self.camera_corners[c + 1])
         m, n_p, L = e - s, self.n_params, self.local_dim
@@ -273,7 +276,7 @@ class VectorizedProblem:
                 return np.full((m, 2), INVALID_RESIDUAL)
             out = np.zeros((m, 2, 6 + L + 1))
             out[:, :, -1] = INVALID_RESIDUAL
-            return out
+            return out, 0.0
         vs, ve = int(self.camera_views[c]), int(self.camera_views[c + 1])
         R_v = tr.R_cam_target[vs:ve]  # (nv, 3, 3), one per view of camera c
         X = self._per_view(c, P, np.swapaxes(R_v, 1, 2), tr.t_cam_target[vs:ve])  # R_ct P + t_ct
@@ -304,26 +307,30 @@ class VectorizedProblem:
                 if jacobians:
                     Jp[a:b], Jn[a:b], Jg[a:b, :, :n_p], Jd[a:b] = J.J_point, J.J_normal, J.J_params, J.J_distance
         r = uv - self.measured[s:e]
+        inv_sigma = self.corner_inv_sigma[s:e] if whiten and not self.unit_sigma else None
+        dist = None
         if huber_px is not None:
             rx, ry = r[:, 0], r[:, 1]
             dist = np.sqrt(rx * rx + ry * ry)  # np.linalg.norm(r, axis=1)'s arithmetic, 5x faster
-            res_scale, jac_scale = huber_scales(dist, huber_px)
-        else:
-            res_scale = jac_scale = np.ones(m)
         if not jacobians:
-            res = r * res_scale[:, None]
+            res = r if dist is None else r * huber_scales(dist, huber_px)[0][:, None]
             if not np.isfinite(res.sum()):  # (the sum: one fast check)
                 res[~np.isfinite(res)] = INVALID_RESIDUAL  # a point fell behind the window
-            return res * self.corner_inv_sigma[s:e, None] if whiten and not self.unit_sigma else res
-        # the Jacobians unscaled; every column times w / s once at the end (the residual column: r s / (w / s))
-        with np.errstate(divide="ignore", invalid="ignore"):  # w / s = 0 only where d is not finite
-            out[:, :, -1] = r * (res_scale / jac_scale)[:, None]
+            return res if inv_sigma is None else res * inv_sigma[:, None]
+        excess = 0.0
+        if dist is None:
+            scale = np.ones(m)
+        else:
+            scale, extra = huber_irls(dist, huber_px)
+            ok = np.isfinite(dist)  # a corner behind the window counts as its 1e6 residual
+            excess = float(np.sum(extra[ok] if inv_sigma is None else extra[ok] * inv_sigma[ok] ** 2))
+        # the Jacobians unscaled; every column (and the residual) times sqrt(w) once at the end
+        out[:, :, -1] = r
         R_wc = x.world_R_cam[c] if c > 0 else None  # camera 0 is the world: no pose columns
         JA = self._per_view(c, Jp, R_v)  # d uv / d t of the target pose: J_point R_cam_target
         chain_to_tangents(out, n_p, Jp, Jn, Jd, X, P, JA, tr.normal_world, tr.basis, R_wc, x.world_t_cam[c],
                           self.estimate_distance)
-        scale = jac_scale * self.corner_inv_sigma[s:e] if whiten and not self.unit_sigma else jac_scale
-        out *= scale[:, None, None]
+        out *= (scale if inv_sigma is None else scale * inv_sigma)[:, None, None]
         res = out[:, :, -1]
         bad = ~np.isfinite(res)
         if bad.any():  # a point fell behind the window
@@ -333,7 +340,7 @@ class VectorizedProblem:
             factors = np.unique(self.view_order[cv[bad_rows]])[:10].tolist()
             raise RuntimeError(f"non-finite Jacobian entries in factor(s) {factors} "
                                "(a corner behind the window at the linearisation point)")
-        return out
+        return out, excess
 
     def _per_view(self, c: int, A: np.ndarray, M: np.ndarray, offset: np.ndarray | None = None) -> np.ndarray:
         """Each corner's rows A (m, ..., 3) of camera c times its view's matrix M (nv, 3, k), plus its view's
@@ -371,14 +378,15 @@ class VectorizedProblem:
         tr = self._transforms(x)
         V, g_f = np.zeros((F, 6, 6)), np.zeros((F, 6))
         W, U, g_g = np.zeros((F, 6, G)), np.zeros((G, G)), np.zeros(G)
-        err2 = 0.0
+        err2, err_excess = 0.0, 0.0
         for c in range(C):
             s, e = int(self.camera_corners[c]), int(self.camera_corners[c + 1])
             if e == s:
                 continue
             vs, ve = int(self.camera_views[c]), int(self.camera_views[c + 1])
             nv, mx = ve - vs, int(self.camera_max_corners[c])
-            out = self._camera_eval(x, tr, c, True, self.huber_px, whiten=True)
+            out, excess = self._camera_eval(x, tr, c, True, self.huber_px, whiten=True)
+            err_excess += excess
             if nv * mx == e - s:  # every view has the same number of corners: no padding
                 A = out.reshape(nv, 2 * mx, K + 1)
             else:
@@ -396,7 +404,7 @@ class VectorizedProblem:
             U[np.ix_(cols, cols)] += Hv[:, 6:K, 6:K].sum(axis=0)
             g_g[cols] += Hv[:, 6:K, K].sum(axis=0)
             err2 += float(Hv[:, K, K].sum())
-        system = NormalEquations(V, g_f, W, U, g_g, 0.5 * err2)
+        system = NormalEquations(V, g_f, W, U, g_g, 0.5 * err2 + err_excess)
         self._extra.add_to(system, x)
         return system
 
@@ -488,8 +496,10 @@ class VectorizedProblem:
             s = int(self.camera_corners[c])
             if self.camera_corners[c + 1] == s:
                 continue
-            full = self._camera_eval(x, tr, c, True, self.huber_px)
-            res, Jf, Jg = full[:, :, -1], full[:, :, :6], full[:, :, 6:-1]
+            full, _ = self._camera_eval(x, tr, c, True, None)  # then view_residuals' Huber scales
+            res_scale, jac_scale = huber_scales(np.linalg.norm(full[:, :, -1], axis=1), self.huber_px)
+            res, Jf, Jg = full[:, :, -1] * res_scale[:, None], full[:, :, :6], full[:, :, 6:-1]
+            Jf, Jg = Jf * jac_scale[:, None, None], Jg * jac_scale[:, None, None]
             for k in range(self.camera_views[c], self.camera_views[c + 1]):
                 a, b = self.view_start[k] - s, self.view_start[k + 1] - s
                 m2 = 2 * (b - a)

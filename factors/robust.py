@@ -1,17 +1,23 @@
 """The Huber loss on each corner's pixel distance: the one copy both backends and refine-colmap use.
 
-For a corner with residual r (2,), distance d = |r| and threshold k:
+For a corner with residual r (2,), distance d = |r| and threshold k: the loss is
+rho(d) = d^2 / 2 (d <= k), k d - k^2 / 2 (d > k); its IRLS weight w = rho'(d) / d = min(1, k / d).
+Every optimiser's error is the sum of rho and its linear system's gradient is rho's, sum w J^T r:
 
-- loss rho(d) = d^2 / 2 (d <= k), k d - k^2 / 2 (d > k); its IRLS weight w = rho'(d) / d = min(1, k / d);
-- inside a least-squares factor (GTSAM's error is 0.5 ||residual||^2) the corner's residual is
-  ``s r`` with s = sqrt(2 rho(d)) / d, so 0.5 |s r|^2 = rho(d) exactly, and its Jacobian rows are
-  ``(w / s) J``, so the linearisation's gradient (w/s J)^T (s r) = w J^T r is rho's true gradient.
-  Beyond k: s = sqrt(k (2 d - k)) / d and w / s = sqrt(k / (2 d - k)); both are 1 at d = k (no kink)
-  and the Gauss-Newton matrix (w/s)^2 J^T J = k / (2 d - k) J^T J stays positive semi-definite.
+- a GTSAM CustomFactor's error is 0.5 ||residual||^2, so the corner's residual is ``s r`` with
+  s = sqrt(2 rho(d)) / d (0.5 |s r|^2 = rho(d) exactly) and its Jacobian rows ``(w / s) J``
+  (:func:`huber_scales`; beyond k: s = sqrt(k (2 d - k)) / d, w / s = sqrt(k / (2 d - k)), both 1
+  at d = k). Its Gauss-Newton curvature k / (2 d - k) is about half the IRLS weight for far
+  outliers;
+- the numpy backend evaluates the error apart from its linear system, as Ceres does (its
+  ``Corrector`` for rho'' <= 0): residual and Jacobian times sqrt(w), curvature w, and the error
+  the sum of rho (:func:`huber_irls` gives sqrt(w) and rho - w d^2 / 2 per corner). From a start
+  hundreds of pixels off (binocular_underwater's ari stage) the half curvature let LM's model
+  promise decreases no step gave, up to lambda's bound; the IRLS system does not.
 
-Square-root IRLS weights (residual and Jacobian both times sqrt(w)) would make the error
-0.5 w d^2 = k d / 2, whose gradient is half the linear system's: LM then rejects its steps near the
-optimum and stops at a point that is not the Huber M-estimate (issue 15).
+Both give the same optimum (the same gradient). Square-root IRLS weights with the error
+0.5 ||sqrt(w) r||^2 = k d / 2 (before issue 15) had half the system's gradient: LM rejected its
+steps near the optimum and stopped at a point that was not the Huber M-estimate.
 """
 from __future__ import annotations
 
@@ -54,3 +60,19 @@ def huber_scales(dist: np.ndarray, huber_px: float | None) -> tuple[np.ndarray, 
         jac_scale[big] = np.sqrt(k / excess)
     return res_scale, jac_scale
 
+
+
+def huber_irls(dist: np.ndarray, huber_px: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """(sqrt(w), rho(d) - w d^2 / 2) per corner: the IRLS scale of residual and Jacobian, and what the
+    error adds to the scaled residual's 0.5 w d^2 (0 inside the threshold; k (d - k) / 2 beyond)."""
+    dist = np.asarray(dist, float)
+    sqrt_w, excess = np.ones(dist.shape), np.zeros(dist.shape)
+    if huber_px is None:
+        return sqrt_w, excess
+    k = float(huber_px)
+    big = dist > k
+    if big.any():
+        d = dist[big]
+        sqrt_w[big] = np.sqrt(k / d)
+        excess[big] = 0.5 * k * (d - k)
+    return sqrt_w, excess

@@ -2,8 +2,8 @@
 
 - 0.5 |s r|^2 is the Huber loss rho(|r|), continuous at the threshold, and (w / s) s = rho'(d) / d;
 - the gradient of the linearisation equals a central difference of the error, for the numpy
-  backend (VectorizedProblem.linearize / error) and for the GTSAM CustomFactors (graph.linearize
-  gradientAtZero / graph.error), at paper_single's initial state with corners on both sides of the threshold
+  backend (VectorizedProblem.linearize, IRLS-weighted, / error) and for the GTSAM CustomFactors
+  (graph.linearize gradientAtZero / graph.error; both errors equal), at paper_single's initial state with corners on both sides of the threshold
   (square-root IRLS weights gave twice the gradient of their error for the outliers);
 - refine-colmap's GTSAM factor's error is its numpy cost (huber_cost).
 """
@@ -63,7 +63,8 @@ def test_numpy_gradient_is_the_errors_gradient(graph):
     problem = VectorizedProblem.from_rig_graph(graph, huber_px=HUBER_PX)
     x = problem.x
     sys = problem.linearize(x)
-    assert sys.error == pytest.approx(problem.error(x), rel=1e-12)
+    assert sys.error == pytest.approx(problem.error(x), rel=1e-12)  # the IRLS system carries the true error
+    assert problem.error(x) == pytest.approx(graph.graph.error(graph.values), rel=1e-12)  # GTSAM's factors' error
     rng = np.random.default_rng(7)
     scale = np.ones(len(sys.g_global))
     scale[:problem.n_params] = 0.1  # px of the intrinsics; the rest rad / mm
