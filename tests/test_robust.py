@@ -94,3 +94,43 @@ def test_gtsam_gradient_is_the_errors_gradient(graph):
             return fg.error(values.retract(step))
 
         assert gradient.dot(delta) == pytest.approx(_central(error), rel=1e-6)
+
+
+def test_refine_colmap_gtsam_factor_error_is_the_huber_cost():
+    """refine-colmap's GTSAM graph (one CustomFactor per image) has the numpy solver's error, the sum of
+    rho over the observations, and its linearisation's gradient is that error's, at a perturbed start
+    with observations on both sides of the threshold."""
+    from ari_sfm import colmap_export as adapter
+    from ari_sfm.colmap_refine.gtsam_graph import GtsamRefinement
+    from ari_sfm.colmap_refine.problem import RefractiveProblem
+    from ari_sfm.colmap_refine.refine import Solver
+    from ari_sfm.simulate.port_survey import port_survey
+    from test_colmap_refine import truth_state
+
+    truth = port_survey(num_images=4, num_points=60, focal_px=1300, area_mm=(1200, 800), sigma_px=0.2)
+    rec = adapter.reconstruction_from_arrays(list(truth.params), truth.image_size, truth.sensor_from_rig,
+                                             truth.rig_from_world, truth.image_camera, truth.image_frame, truth.xyz,
+                                             truth.obs_image, truth.obs_point, truth.obs_uv)
+    model = adapter.model_from_reconstruction(rec)
+    problem = RefractiveProblem(model, truth.interface, "camera", estimate_distance=True)
+    rng = np.random.default_rng(1)
+    start = problem.retract(truth_state(truth, model), rng.normal(0.0, 1e-4, problem.layout.size),
+                            rng.normal(0.0, 0.3, (len(model.point3D_ids), 3)))
+    huber = 0.5
+    d = np.linalg.norm(problem.residuals(start), axis=1)
+    assert np.sum(d <= huber) > 30 and np.sum(d > huber) > 30
+    refinement = GtsamRefinement(problem, huber)
+    graph, values = refinement.graph(start), refinement.values(start)
+    assert graph.error(values) == pytest.approx(Solver(problem, huber).cost(start), rel=1e-10)
+    gradient = graph.linearize(values).gradientAtZero()
+    delta = gtsam.VectorValues()
+    for key in values.keys():
+        delta.insert(key, rng.normal(0, 1e-3, gradient.at(key).size))
+
+    def error(t: float) -> float:
+        step = gtsam.VectorValues()
+        for key in values.keys():
+            step.insert(key, t * delta.at(key))
+        return graph.error(values.retract(step))
+
+    assert gradient.dot(delta) == pytest.approx(_central(error), rel=1e-6)
