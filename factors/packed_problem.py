@@ -16,7 +16,7 @@ holds *the same problem*:
   one call per camera for all its corners, the plate thickness a per-corner
   array when stacked plates differ), chained to the tangent spaces here;
   the per-corner Huber loss of :mod:`~ari_sfm.factors.robust` (the error its sum, the linear
-  system IRLS-weighted: the same gradient, Ceres' way rather than view_residuals'), non-finite
+  system IRLS-weighted, as view_residuals' rows and excess row), non-finite
   residuals replaced by 1e6, a camera beyond the window gives 1e6 and zero
   Jacobians; whitened by each factor's isotropic sigma (the pixel sigma).
 
@@ -48,7 +48,7 @@ from . import keys as K_
 from .extra_factors import ExtraFactors
 from .levenberg_marquardt import LMParams, LMReport, levenberg_marquardt
 from .marginals import CovarianceTable, covariances_by_key
-from .robust import huber_irls, huber_scales
+from .robust import huber_irls, huber_residual_scale, huber_view_residual
 from .schur import NormalEquations, model_decrease, solve_damped
 from .variables import MODELS, GraphLike, RigState, Variables
 from .view_factor import ViewData, ViewKeys, chain_to_tangents
@@ -260,8 +260,8 @@ class VectorizedProblem:
                      huber_px: float | None, whiten: bool = False) -> np.ndarray:
         """Camera c's corners (whitened by the factors' sigmas with ``whiten``).
 
-        Without ``jacobians``: the residuals (m, 2) as view_residuals computes them (Huber: s r, so
-        0.5 |.|^2 is the loss). With: one array (m, 2, 6 + local_dim + 1) holding [J_frame | J_global
+        Without ``jacobians``: the residuals (m, 2) (Huber: s r, so 0.5 |.|^2 is the loss: what
+        error() sums; view_residuals' factor holds sqrt(w) r and the excess row instead). With: one array (m, 2, 6 + local_dim + 1) holding [J_frame | J_global
         (camera-local columns) | residual] per corner row, Huber as IRLS (residual and Jacobian times
         sqrt(w), :func:`~ari_sfm.factors.robust.huber_irls`), and the error's excess over the rows'
         0.5 r^T r (a float, 0 without Huber).
@@ -313,7 +313,7 @@ class VectorizedProblem:
             rx, ry = r[:, 0], r[:, 1]
             dist = np.sqrt(rx * rx + ry * ry)  # np.linalg.norm(r, axis=1)'s arithmetic, 5x faster
         if not jacobians:
-            res = r if dist is None else r * huber_scales(dist, huber_px)[0][:, None]
+            res = r if dist is None else r * huber_residual_scale(dist, huber_px)[:, None]  # 0.5 |.|^2 = rho
             if not np.isfinite(res.sum()):  # (the sum: one fast check)
                 res[~np.isfinite(res)] = INVALID_RESIDUAL  # a point fell behind the window
             return res if inv_sigma is None else res * inv_sigma[:, None]
@@ -496,10 +496,9 @@ class VectorizedProblem:
             s = int(self.camera_corners[c])
             if self.camera_corners[c + 1] == s:
                 continue
-            full, _ = self._camera_eval(x, tr, c, True, None)  # then view_residuals' Huber scales
-            res_scale, jac_scale = huber_scales(np.linalg.norm(full[:, :, -1], axis=1), self.huber_px)
-            res, Jf, Jg = full[:, :, -1] * res_scale[:, None], full[:, :, :6], full[:, :, 6:-1]
-            Jf, Jg = Jf * jac_scale[:, None, None], Jg * jac_scale[:, None, None]
+            full, _ = self._camera_eval(x, tr, c, True, self.huber_px)  # rows times sqrt(w)
+            res, Jf, Jg = full[:, :, -1], full[:, :, :6], full[:, :, 6:-1]
+            raw = self._camera_eval(x, tr, c, False, None)
             for k in range(self.camera_views[c], self.camera_views[c + 1]):
                 a, b = self.view_start[k] - s, self.view_start[k + 1] - s
                 m2 = 2 * (b - a)
@@ -509,7 +508,11 @@ class VectorizedProblem:
                 blocks += [Jg[a:b, :, n_p + 6:n_p + 8].reshape(m2, 2), Jf[a:b].reshape(m2, 6)]
                 if self.estimate_distance:
                     blocks.append(Jg[a:b, :, n_p + 8:n_p + 9].reshape(m2, 1))
-                out[self.view_order[k]] = (res[a:b].reshape(-1), blocks)
+                r = res[a:b].reshape(-1)
+                if self.huber_px is not None:  # the excess row, its Jacobian zero
+                    r = np.append(r, huber_view_residual(raw[a:b], self.huber_px)[0][-1])
+                    blocks = [np.vstack([B, np.zeros((1, B.shape[1]))]) for B in blocks]
+                out[self.view_order[k]] = (r, blocks)
         return out
 
     def write_values(self, values: gtsam.Values, x: Variables | None = None) -> None:
@@ -549,13 +552,18 @@ class VectorizedProblem:
         C = len(self.camera_names)
         picks = {int(self.camera_views[c]) for c in range(C) if self.camera_views[c + 1] > self.camera_views[c]}
         picks |= set(np.argsort(view_norm)[-worst:].tolist())
+        raw = self._all_residuals(self.x, None)
         for k in sorted(picks):
-            mine = res[self.view_start[k]:self.view_start[k + 1]].reshape(-1)
+            r = raw[self.view_start[k]:self.view_start[k + 1]]
+            if self.huber_px is not None and np.any(np.abs(r) >= INVALID_RESIDUAL):
+                continue  # a corner behind the window: 1e6 here, its weighted row there
+            mine = r.reshape(-1) if self.huber_px is None else huber_view_residual(r, self.huber_px)[0]
             theirs = np.asarray(rg.graph.at(int(self.graph_index[self.view_order[k]])).unwhitenedError(rg.values))
-            if not np.allclose(mine, theirs, rtol=1e-9, atol=1e-9):
+            if mine.shape != theirs.shape or not np.allclose(mine, theirs, rtol=1e-9, atol=1e-9):
+                size = (f"{theirs.size} rows, not {mine.size}" if mine.shape != theirs.shape
+                        else f"max {np.max(np.abs(mine - theirs)):.3g}")
                 raise ValueError(f"factor {int(self.view_order[k])}: vectorised residuals differ from the graph's "
-                                 f"(max {np.max(np.abs(mine - theirs)):.3g}); "
-                                 f"was the graph built with huber_px={self.huber_px}?")
+                                 f"({size}); was the graph built with huber_px={self.huber_px}?")
 
 
 def _index(key: int, expected: str) -> int:

@@ -1,9 +1,10 @@
 """The Huber loss inside the factors (ari_sfm.factors.robust, issue 15).
 
-- 0.5 |s r|^2 is the Huber loss rho(|r|), continuous at the threshold, and (w / s) s = rho'(d) / d;
+- 0.5 |s r|^2 is the Huber loss rho(|r|), continuous at the threshold; the IRLS rows' 0.5 w d^2 plus
+  the excess is rho, and a view factor's residual (rows and excess row) has 0.5 |.|^2 = sum of rho;
 - the gradient of the linearisation equals a central difference of the error, for the numpy
-  backend (VectorizedProblem.linearize, IRLS-weighted, / error) and for the GTSAM CustomFactors
-  (graph.linearize gradientAtZero / graph.error; both errors equal), at paper_single's initial state with corners on both sides of the threshold
+  backend (VectorizedProblem.linearize / error) and for the GTSAM CustomFactors (graph.linearize
+  gradientAtZero / graph.error; both errors equal), at paper_single's initial state with corners on both sides of the threshold
   (square-root IRLS weights gave twice the gradient of their error for the outliers);
 - refine-colmap's GTSAM factor's error is its numpy cost (huber_cost).
 """
@@ -14,7 +15,7 @@ import numpy as np
 import pytest
 
 from ari_sfm.factors.rig_graph import MODELS, RigGraph
-from ari_sfm.factors.robust import huber_loss, huber_scales, huber_weight
+from ari_sfm.factors.robust import huber_irls, huber_loss, huber_residual_scale, huber_view_residual, huber_weight
 from ari_sfm.factors.vectorized import VectorizedProblem
 from ari_sfm.factors.view_factor import view_residuals
 from test_vectorized import _initial_state
@@ -25,15 +26,26 @@ HUBER_PX = 0.15  # about half of the corners beyond it at the initial state
 def test_scaled_residual_is_the_huber_loss():
     k = 0.7
     d = np.array([0.0, 0.1, 0.7, 0.7 + 1e-12, 1.0, 5.0, 1e6])
-    s, j = huber_scales(d, k)
+    s = huber_residual_scale(d, k)
     np.testing.assert_allclose(0.5 * (s * d) ** 2, huber_loss(d, k), rtol=1e-12, atol=0)
     np.testing.assert_allclose(huber_loss(d[4:], k), k * d[4:] - 0.5 * k * k, rtol=1e-12)
-    np.testing.assert_allclose(s * j, huber_weight(d, k), rtol=1e-12)  # the linearisation's gradient weight
     np.testing.assert_allclose(huber_weight(d[4:], k), k / d[4:], rtol=1e-12)
-    assert s[3] == pytest.approx(1.0, abs=1e-9) and j[3] == pytest.approx(1.0, abs=1e-9)  # no kink at k
-    assert np.all(s[:3] == 1.0) and np.all(j[:3] == 1.0)
-    s0, j0 = huber_scales(d, None)
-    assert np.all(s0 == 1.0) and np.all(j0 == 1.0)
+    assert s[3] == pytest.approx(1.0, abs=1e-9) and np.all(s[:3] == 1.0)  # no kink at k
+    sqrt_w, excess = huber_irls(d, k)
+    np.testing.assert_allclose(sqrt_w ** 2, huber_weight(d, k), rtol=1e-12)
+    np.testing.assert_allclose(0.5 * sqrt_w ** 2 * d ** 2 + excess, huber_loss(d, k), rtol=1e-12)
+    # a view's factor residual: 0.5 |.|^2 is the sum of rho (one corner behind the window adds none)
+    r = np.random.default_rng(0).normal(0, 1.0, (40, 2))
+    res, scale = huber_view_residual(r, k)
+    assert res.shape == (81,) and np.array_equal(scale, sqrt_w_of(r, k))
+    assert 0.5 * res @ res == pytest.approx(huber_loss(np.linalg.norm(r, axis=1), k).sum(), rel=1e-12)
+    r[3] = np.inf
+    res, _ = huber_view_residual(r, k)
+    assert np.isfinite(res[-1]) and not np.all(np.isfinite(res[6:8]))
+
+
+def sqrt_w_of(r: np.ndarray, k: float) -> np.ndarray:
+    return np.sqrt(huber_weight(np.linalg.norm(r, axis=1), k))
 
 
 @pytest.fixture(scope="module")
