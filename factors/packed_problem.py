@@ -15,7 +15,8 @@ holds *the same problem*:
   (:func:`ari_sfm.models.ari.ari_project`, :func:`ari_sfm.models.exact.exact_project`,
   one call per camera for all its corners, the plate thickness a per-corner
   array when stacked plates differ), chained to the tangent spaces here;
-  per-corner Huber square-root weights at the linearisation point, non-finite
+  the per-corner Huber loss of :mod:`~ari_sfm.factors.robust` (the error its sum, the linear
+  system IRLS-weighted, as view_residuals' rows and excess row), non-finite
   residuals replaced by 1e6, a camera beyond the window gives 1e6 and zero
   Jacobians; whitened by each factor's isotropic sigma (the pixel sigma).
 
@@ -47,6 +48,7 @@ from . import keys as K_
 from .extra_factors import ExtraFactors
 from .levenberg_marquardt import LMParams, LMReport, levenberg_marquardt
 from .marginals import CovarianceTable, covariances_by_key
+from .robust import huber_irls, huber_residual_scale, huber_view_residual
 from .schur import NormalEquations, model_decrease, solve_damped
 from .variables import MODELS, GraphLike, RigState, Variables
 from .view_factor import ViewData, ViewKeys, chain_to_tangents
@@ -256,11 +258,13 @@ class VectorizedProblem:
 
     def _camera_eval(self, x: Variables, tr: _Transforms, c: int, jacobians: bool,
                      huber_px: float | None, whiten: bool = False) -> np.ndarray:
-        """Camera c's corners as view_residuals computes them (Huber-weighted; whitened by the
-        factors' sigmas with ``whiten``).
+        """Camera c's corners (whitened by the factors' sigmas with ``whiten``).
 
-        Without ``jacobians``: the residuals (m, 2). With: one array (m, 2, 6 + local_dim + 1)
-        holding [J_frame | J_global (camera-local columns) | residual] per corner row.
+        Without ``jacobians``: the residuals (m, 2) (Huber: s r, so 0.5 |.|^2 is the loss: what
+        error() sums; view_residuals' factor holds sqrt(w) r and the excess row instead). With: one array (m, 2, 6 + local_dim + 1) holding [J_frame | J_global
+        (camera-local columns) | residual] per corner row, Huber as IRLS (residual and Jacobian times
+        sqrt(w), :func:`~ari_sfm.factors.robust.huber_irls`), and the error's excess over the rows'
+        0.5 r^T r (a float, 0 without Huber).
         """
         s, e = int(self.camera_corners[c]), int(self.camera_corners[c + 1])
         m, n_p, L = e - s, self.n_params, self.local_dim
@@ -272,7 +276,7 @@ class VectorizedProblem:
                 return np.full((m, 2), INVALID_RESIDUAL)
             out = np.zeros((m, 2, 6 + L + 1))
             out[:, :, -1] = INVALID_RESIDUAL
-            return out
+            return out, 0.0
         vs, ve = int(self.camera_views[c]), int(self.camera_views[c + 1])
         R_v = tr.R_cam_target[vs:ve]  # (nv, 3, 3), one per view of camera c
         X = self._per_view(c, P, np.swapaxes(R_v, 1, 2), tr.t_cam_target[vs:ve])  # R_ct P + t_ct
@@ -303,24 +307,30 @@ class VectorizedProblem:
                 if jacobians:
                     Jp[a:b], Jn[a:b], Jg[a:b, :, :n_p], Jd[a:b] = J.J_point, J.J_normal, J.J_params, J.J_distance
         r = uv - self.measured[s:e]
-        w = np.ones(m)
+        inv_sigma = self.corner_inv_sigma[s:e] if whiten and not self.unit_sigma else None
+        dist = None
         if huber_px is not None:
             rx, ry = r[:, 0], r[:, 1]
             dist = np.sqrt(rx * rx + ry * ry)  # np.linalg.norm(r, axis=1)'s arithmetic, 5x faster
-            big = dist > huber_px
-            w[big] = np.sqrt(huber_px / dist[big])
         if not jacobians:
-            res = r * w[:, None]
+            res = r if dist is None else r * huber_residual_scale(dist, huber_px)[:, None]  # 0.5 |.|^2 = rho
             if not np.isfinite(res.sum()):  # (the sum: one fast check)
                 res[~np.isfinite(res)] = INVALID_RESIDUAL  # a point fell behind the window
-            return res * self.corner_inv_sigma[s:e, None] if whiten and not self.unit_sigma else res
-        # the Jacobians unweighted; every column (and the residual) scaled by the weight once at the end
+            return res if inv_sigma is None else res * inv_sigma[:, None]
+        excess = 0.0
+        if dist is None:
+            scale = np.ones(m)
+        else:
+            scale, extra = huber_irls(dist, huber_px)
+            ok = np.isfinite(dist)  # a corner behind the window counts as its 1e6 residual
+            excess = float(np.sum(extra[ok] if inv_sigma is None else extra[ok] * inv_sigma[ok] ** 2))
+        # the Jacobians unscaled; every column (and the residual) times sqrt(w) once at the end
         out[:, :, -1] = r
         R_wc = x.world_R_cam[c] if c > 0 else None  # camera 0 is the world: no pose columns
         JA = self._per_view(c, Jp, R_v)  # d uv / d t of the target pose: J_point R_cam_target
         chain_to_tangents(out, n_p, Jp, Jn, Jd, X, P, JA, tr.normal_world, tr.basis, R_wc, x.world_t_cam[c],
                           self.estimate_distance)
-        out *= (w * self.corner_inv_sigma[s:e])[:, None, None] if whiten and not self.unit_sigma else w[:, None, None]
+        out *= (scale if inv_sigma is None else scale * inv_sigma)[:, None, None]
         res = out[:, :, -1]
         bad = ~np.isfinite(res)
         if bad.any():  # a point fell behind the window
@@ -330,7 +340,7 @@ class VectorizedProblem:
             factors = np.unique(self.view_order[cv[bad_rows]])[:10].tolist()
             raise RuntimeError(f"non-finite Jacobian entries in factor(s) {factors} "
                                "(a corner behind the window at the linearisation point)")
-        return out
+        return out, excess
 
     def _per_view(self, c: int, A: np.ndarray, M: np.ndarray, offset: np.ndarray | None = None) -> np.ndarray:
         """Each corner's rows A (m, ..., 3) of camera c times its view's matrix M (nv, 3, k), plus its view's
@@ -368,14 +378,15 @@ class VectorizedProblem:
         tr = self._transforms(x)
         V, g_f = np.zeros((F, 6, 6)), np.zeros((F, 6))
         W, U, g_g = np.zeros((F, 6, G)), np.zeros((G, G)), np.zeros(G)
-        err2 = 0.0
+        err2, err_excess = 0.0, 0.0
         for c in range(C):
             s, e = int(self.camera_corners[c]), int(self.camera_corners[c + 1])
             if e == s:
                 continue
             vs, ve = int(self.camera_views[c]), int(self.camera_views[c + 1])
             nv, mx = ve - vs, int(self.camera_max_corners[c])
-            out = self._camera_eval(x, tr, c, True, self.huber_px, whiten=True)
+            out, excess = self._camera_eval(x, tr, c, True, self.huber_px, whiten=True)
+            err_excess += excess
             if nv * mx == e - s:  # every view has the same number of corners: no padding
                 A = out.reshape(nv, 2 * mx, K + 1)
             else:
@@ -393,7 +404,7 @@ class VectorizedProblem:
             U[np.ix_(cols, cols)] += Hv[:, 6:K, 6:K].sum(axis=0)
             g_g[cols] += Hv[:, 6:K, K].sum(axis=0)
             err2 += float(Hv[:, K, K].sum())
-        system = NormalEquations(V, g_f, W, U, g_g, 0.5 * err2)
+        system = NormalEquations(V, g_f, W, U, g_g, 0.5 * err2 + err_excess)
         self._extra.add_to(system, x)
         return system
 
@@ -485,8 +496,9 @@ class VectorizedProblem:
             s = int(self.camera_corners[c])
             if self.camera_corners[c + 1] == s:
                 continue
-            full = self._camera_eval(x, tr, c, True, self.huber_px)
+            full, _ = self._camera_eval(x, tr, c, True, self.huber_px)  # rows times sqrt(w)
             res, Jf, Jg = full[:, :, -1], full[:, :, :6], full[:, :, 6:-1]
+            raw = self._camera_eval(x, tr, c, False, None)
             for k in range(self.camera_views[c], self.camera_views[c + 1]):
                 a, b = self.view_start[k] - s, self.view_start[k + 1] - s
                 m2 = 2 * (b - a)
@@ -496,7 +508,11 @@ class VectorizedProblem:
                 blocks += [Jg[a:b, :, n_p + 6:n_p + 8].reshape(m2, 2), Jf[a:b].reshape(m2, 6)]
                 if self.estimate_distance:
                     blocks.append(Jg[a:b, :, n_p + 8:n_p + 9].reshape(m2, 1))
-                out[self.view_order[k]] = (res[a:b].reshape(-1), blocks)
+                r = res[a:b].reshape(-1)
+                if self.huber_px is not None:  # the excess row, its Jacobian zero
+                    r = np.append(r, huber_view_residual(raw[a:b], self.huber_px)[0][-1])
+                    blocks = [np.vstack([B, np.zeros((1, B.shape[1]))]) for B in blocks]
+                out[self.view_order[k]] = (r, blocks)
         return out
 
     def write_values(self, values: gtsam.Values, x: Variables | None = None) -> None:
@@ -536,13 +552,18 @@ class VectorizedProblem:
         C = len(self.camera_names)
         picks = {int(self.camera_views[c]) for c in range(C) if self.camera_views[c + 1] > self.camera_views[c]}
         picks |= set(np.argsort(view_norm)[-worst:].tolist())
+        raw = self._all_residuals(self.x, None)
         for k in sorted(picks):
-            mine = res[self.view_start[k]:self.view_start[k + 1]].reshape(-1)
+            r = raw[self.view_start[k]:self.view_start[k + 1]]
+            if self.huber_px is not None and np.any(np.abs(r) >= INVALID_RESIDUAL):
+                continue  # a corner behind the window: 1e6 here, its weighted row there
+            mine = r.reshape(-1) if self.huber_px is None else huber_view_residual(r, self.huber_px)[0]
             theirs = np.asarray(rg.graph.at(int(self.graph_index[self.view_order[k]])).unwhitenedError(rg.values))
-            if not np.allclose(mine, theirs, rtol=1e-9, atol=1e-9):
+            if mine.shape != theirs.shape or not np.allclose(mine, theirs, rtol=1e-9, atol=1e-9):
+                size = (f"{theirs.size} rows, not {mine.size}" if mine.shape != theirs.shape
+                        else f"max {np.max(np.abs(mine - theirs)):.3g}")
                 raise ValueError(f"factor {int(self.view_order[k])}: vectorised residuals differ from the graph's "
-                                 f"(max {np.max(np.abs(mine - theirs)):.3g}); "
-                                 f"was the graph built with huber_px={self.huber_px}?")
+                                 f"({size}); was the graph built with huber_px={self.huber_px}?")
 
 
 def _index(key: int, expected: str) -> int:

@@ -266,7 +266,8 @@ class RigGraph:
             if k < len(self.factor_data) and isinstance(self.graph.at(i), gtsam.CustomFactor):
                 data, vkeys = self.factor_data[k]
                 f = self.graph.at(i)
-                if list(f.keys()) == factor_keys(vkeys) and f.dim() == 2 * len(data.points_target):
+                rows = 2 * len(data.points_target) + (self.huber_px is not None)  # Huber: the excess row
+                if list(f.keys()) == factor_keys(vkeys) and f.dim() == rows:
                     out.append(i)
                     k += 1
         if k != len(self.factor_data):

@@ -14,9 +14,11 @@ tangent spaces:
 - The camera's distance to the near surface is h_c = h_0 - n_world . C_c,
   C_c the camera centre in the world.
 
-Optional Huber weighting is per corner (on the pixel distance), applied as
-square-root weights inside the factor, because a robust noise model on a
-2M-vector would down-weight whole images instead of single corners.
+Optional Huber loss per corner (on the pixel distance), applied inside the
+factor because a robust noise model on a 2M-vector would down-weight whole
+images instead of single corners: the corners' rows IRLS-weighted and one more
+row that makes the error the Huber loss
+(:func:`~ari_sfm.factors.robust.huber_view_residual`).
 """
 from __future__ import annotations
 
@@ -28,6 +30,7 @@ import numpy as np
 
 from ..geometry import cross_jacobian_rows, skew
 from ..models import PinholeModel
+from .robust import huber_view_residual
 
 ModelFactory = Callable[..., object]
 
@@ -105,18 +108,16 @@ def view_residuals(
     h_c = None if h0 is None else h0 - float(n_w @ t_wc)
     if h_c is not None and h_c <= 0:
         # An LM trial step put the camera beyond the window: a huge error rejects the step.
-        M = len(P)
+        rows = 2 * len(P) + (huber_px is not None)
         dims = [data.n_params] + ([6] if keys.camera is not None else []) + [2, 6] + ([1] if keys.distance is not None else [])
-        return np.full(2 * M, 1e6), [np.zeros((2 * M, d)) for d in dims] if want_jacobians else []
+        return np.full(rows, 1e6), [np.zeros((rows, d)) for d in dims] if want_jacobians else []
     model = model_factory(PinholeModel.from_params(params), n_c, data.thickness_mm, data.index, data.medium_index, h_c)
     J = model.project_with_jacobians(X_c)
     r = J.uv - data.measured
-    weights = np.ones(len(r))
-    if huber_px is not None:
-        dist = np.linalg.norm(r, axis=1)
-        big = dist > huber_px
-        weights[big] = np.sqrt(huber_px / dist[big])
-    residual = (r * weights[:, None]).reshape(-1)
+    if huber_px is None:
+        residual, scale = r.reshape(-1), None
+    else:
+        residual, scale = huber_view_residual(r, huber_px)
     if not np.all(np.isfinite(residual)):
         residual = np.where(np.isfinite(residual), residual, 1e6)  # a point fell behind the window
     if not want_jacobians:
@@ -127,11 +128,12 @@ def view_residuals(
     chain_to_tangents(out, n_p, J.J_point, J.J_normal, np.asarray(J.J_distance).reshape(M, 2), X_c, P,
                       J.J_point @ (R_cw @ R_wt), np.asarray(n_w, float), np.asarray(normal.basis(), float),
                       R_wc if keys.camera is not None else None, t_wc, keys.distance is not None)
-    out *= weights[:, None, None]
     k = 6 + n_p
     blocks = [out[:, :, 6:k]] + ([out[:, :, k:k + 6]] if keys.camera is not None else [])
     blocks += [out[:, :, k + 6:k + 8], out[:, :, :6]] + ([out[:, :, k + 8:k + 9]] if keys.distance is not None else [])
     Hs = [b.reshape(2 * M, b.shape[2]) for b in blocks]
+    if scale is not None:  # the rows times sqrt(w); the excess row's Jacobian is zero
+        Hs = [np.vstack([H * np.repeat(scale, 2)[:, None], np.zeros((1, H.shape[1]))]) for H in Hs]
     return residual, Hs
 
 
@@ -152,7 +154,7 @@ def view_factor(
     """A CustomFactor for all corners of one image (model: AriModel or ExactModel)."""
     key_list = factor_keys(keys)
     dims = [data.n_params] + ([6] if keys.camera is not None else []) + [2, 6] + ([1] if keys.distance is not None else [])
-    rows = 2 * len(data.points_target)
+    rows = 2 * len(data.points_target) + (huber_px is not None)  # (Huber: the excess row)
     noise = gtsam.noiseModel.Isotropic.Sigma(rows, sigma_px)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:

@@ -6,7 +6,7 @@
   same optimum (parameters 1e-6 relative, normal 1e-6 deg, cost 1e-8
   relative) for ari and exact, air and water, one and two cameras, with and
   without Huber; the default stop="converged" ends on the same values with
-  fewer error evaluations;
+  fewer error evaluations; Huber runs end without rejected lambda trials (issue 15);
 - factors a researcher adds to the graph are honoured; marginal covariances
   equal gtsam.Marginals;
 - calibrate(backend=...) gives the same calibration, and a reduced scale16 rig
@@ -227,13 +227,29 @@ def test_converged_stop_rule_saves_error_evaluations(stop_rules):
     faithful = {k: v[0][1].error_evaluations for k, v in stop_rules.items()}
     converged = {k: v[1][1].error_evaluations for k, v in stop_rules.items()}
     # binocular exact ends on a step with no model decrease left: the converged rule saves the initial
-    # evaluation and GTSAM's futile trial(s) there (5 -> 3 when measured). (paper_single ari saved 17 of 23
-    # from the cv2.calibrateCamera start; from the closed-form start its Huber path
-    # ends at lambda's bound in both rules, saving the initial evaluation only.)
+    # evaluation and GTSAM's futile trial(s) there. (Before issue 15's true Huber loss paper_single ari's
+    # path ended at lambda's bound in both rules, saving the initial evaluation only.)
     assert faithful[("binocular", "exact")] >= converged[("binocular", "exact")] + 2
     assert sum(converged.values()) < sum(faithful.values())
     with pytest.raises(ValueError, match="stop rule"):
         optimize_vectorized(stop_rules[("paper_single", "ari")][0][2], huber_px=1.0, stop="early")
+
+
+@pytest.mark.parametrize("name", ["paper_single", "binocular"])
+@pytest.mark.parametrize("model", ["ari", "exact"])
+def test_huber_runs_end_without_rejected_trials(stop_rules, name, model):
+    """Issue 15: with square-root IRLS weights the error's gradient was half the linear system's for the
+    corners beyond the threshold; near the optimum every lambda trial was rejected up to lambda's bound
+    (paper_single ari: 2 iterations, 14 trials, stop lambda_upper_bound). With the true Huber loss
+    (factors.robust) each trial is accepted and the run ends by its convergence tests; restarted at
+    its optimum LM takes at most one more step."""
+    _, report, rg = stop_rules[name, model][1]
+    assert report.stop in ("converged", "small_cost_change", "no_model_decrease")
+    assert report.inner_iterations == report.iterations > 0
+    again = VectorizedProblem.from_rig_graph(rg, huber_px=1.0, check=False)
+    again.optimize()
+    assert again.report.iterations <= 1 and again.report.inner_iterations <= 2
+    assert again.report.error == pytest.approx(report.error, rel=1e-9)
 
 
 def test_factors_added_to_the_graph_are_honoured(problems):

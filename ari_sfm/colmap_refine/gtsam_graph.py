@@ -8,8 +8,10 @@ camera c's free COLMAP intrinsics, ``n(w)`` Unit3 window normal and ``d(w)`` Vec
 The residuals and Jacobians are :meth:`RefractiveProblem.linearize`'s, restricted to the image's
 observations and chained to GTSAM's tangent spaces: a Pose3 ``a_from_b`` moves as
 ``T Exp([w, v])`` (R' = R exp(w), t' = t + R v), i.e. this module's left perturbation
-(exp(R w) R, t + R v); a Unit3 by its own basis. Huber as the rig graph does (square-root weights
-inside the factor, per observation). GTSAM's LM eliminates the points itself (its ordering).
+(exp(R w) R, t + R v); a Unit3 by its own basis. Huber as the rig graph does (per observation inside
+the factor, :func:`ari_sfm.factors.robust.huber_view_residual`: IRLS rows and an excess row, the
+error the Huber loss). GTSAM's
+LM eliminates the points itself (its ordering).
 """
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ from dataclasses import replace
 import gtsam
 import numpy as np
 
+from ari_sfm.factors.robust import huber_view_residual
 from ari_sfm.geometry import Pose
 
 from .plane import WindowPrior
@@ -136,8 +139,9 @@ class GtsamRefinement:
         key_of = {"f": _frame_key, "s": _sensor_key, "k": _intrinsics_key, "n": _normal_key, "d": _distance_key}
         keys = [key_of[kind](v) for kind, v in var_keys] + [_point_key(int(j)) for j in unique_points]
         rows = 2 * len(obs)
-        noise = gtsam.noiseModel.Unit.Create(rows)
         huber = self.huber_px
+        total = rows + (huber is not None)  # Huber: the excess row (factors.robust.huber_view_residual)
+        noise = gtsam.noiseModel.Unit.Create(total)
         owners = self.owners
 
         def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
@@ -145,14 +149,16 @@ class GtsamRefinement:
             if not np.all(problem.image_windows(state)[1][image] > 0.0):  # a trial step beyond the window
                 if H is not None:
                     for i, vk in enumerate(var_keys):
-                        H[i] = np.zeros((rows, self._dim(vk, state)))
+                        H[i] = np.zeros((total, self._dim(vk, state)))
                     for i in range(len(unique_points)):
-                        H[len(var_keys) + i] = np.zeros((rows, 3))
-                return np.full(rows, 1e6)
+                        H[len(var_keys) + i] = np.zeros((total, 3))
+                return np.full(total, 1e6)
             lin = problem.linearize(state, obs)
             r = lin.residuals
-            s = np.linalg.norm(r, axis=1)
-            wgt = np.ones(len(r)) if huber is None else np.sqrt(np.where(s <= huber, 1.0, huber / np.maximum(s, 1e-300)))
+            if huber is None:
+                residual, wgt = r.reshape(-1), np.ones(len(r))
+            else:  # rows times sqrt(w), the Jacobians too; the excess row's Jacobian zero
+                residual, wgt = huber_view_residual(r, huber)
             if H is not None:
                 blocks = {vk: np.zeros((rows, self._dim(vk, state))) for vk in var_keys}
                 Jg = lin.J_g * wgt[:, None, None]
@@ -178,7 +184,10 @@ class GtsamRefinement:
                     sel = points == j
                     Hp[np.repeat(sel, 2)] = Jp[sel].reshape(-1, 3)
                     H[len(var_keys) + i] = Hp
-            return (r * wgt[:, None]).reshape(-1)
+                if huber is not None:
+                    for i in range(len(H)):
+                        H[i] = np.vstack([H[i], np.zeros((1, H[i].shape[1]))])
+            return residual
 
         return gtsam.CustomFactor(noise, keys, error)
 

@@ -28,6 +28,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ari_sfm.colmap_export import ColmapModel
+from ari_sfm.factors.robust import huber_loss, huber_weight
 from ari_sfm.geometry import Pose, rotation_from_rotvec, unit3_basis, unit3_retract
 from ari_sfm.models import ExactModel, PinholeModel
 from ari_sfm.models.exact import ConvergenceError
@@ -39,21 +40,17 @@ MOUNTS = ("camera", "world")
 
 
 def huber_weights(residuals: np.ndarray, huber_px: float | None) -> np.ndarray:
-    """IRLS weights (M,) of the Huber loss on each observation's pixel distance (1 without a loss)."""
-    if huber_px is None:
-        return np.ones(len(residuals))
-    s = np.linalg.norm(residuals, axis=1)
-    return np.where(s <= huber_px, 1.0, huber_px / np.maximum(s, 1e-300))
+    """IRLS weights (M,) of the Huber loss on each observation's pixel distance (1 without a loss):
+    :func:`ari_sfm.factors.robust.huber_weight`."""
+    return huber_weight(np.linalg.norm(residuals, axis=1), huber_px)
 
 
 def huber_cost(residuals: np.ndarray, huber_px: float | None) -> float:
-    """Sum over observations of rho(|r|): |r|^2 / 2 inside the threshold, k |r| - k^2 / 2 outside."""
+    """Sum over observations of rho(|r|) (:func:`ari_sfm.factors.robust.huber_loss`; inf if one is not finite)."""
     s = np.linalg.norm(residuals, axis=1)
     if not np.all(np.isfinite(s)):
         return float("inf")
-    if huber_px is None:
-        return float(0.5 * np.sum(s * s))
-    return float(np.sum(np.where(s <= huber_px, 0.5 * s * s, huber_px * s - 0.5 * huber_px ** 2)))
+    return float(np.sum(huber_loss(s, huber_px)))
 
 
 @dataclass(frozen=True)
