@@ -825,6 +825,14 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     residuals = problem.residuals(state)
     names = [f"camera{int(cid)}" for cid in cmodel.camera_ids]
     sigmas = uncertainty(solver, state, names)
+    if collapsed and _collapsed(state, problem, candidates):  # still at ~0 after the restarts: say so, name it
+        ran = (["distance_mm.world"] if mount == "world" else
+               [f"distance_mm.{names[c]}" for c, d in enumerate(state.distances) if d < DISTANCE_COLLAPSE * min(candidates)])
+        sigmas["weak"] = sigmas["weak"] + [w for w in ran if w not in sigmas["weak"]]
+        log.warning("refine-colmap: the port distance ran to %.3g mm from every start (%s mm): these images do not "
+                    "determine it, and it follows the scale; declare a scale_bar or check units_mm, or declare the "
+                    "port in WINDOW.yaml (interface.plane point_mm, sigma_mm for a prior)",
+                    float(problem.image_windows(state)[1].min()), ", ".join(f"{c:g}" for c in candidates))
     R, t = state.cam_from_world(cmodel)
     cam_from_world = {int(i): Pose(R[k], t[k]) for k, i in enumerate(cmodel.image_ids)}
     refractive = _state_reconstruction(rec, cmodel, problem, state)
