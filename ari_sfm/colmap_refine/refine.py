@@ -21,6 +21,17 @@ the bar, and the refinement runs again with the bar held; going straight to the 
 short-track strip in a wrong-scale valley (40-image strip: 1.80 px, points 47 mm; this way 0.62 px,
 1.2 mm). :mod:`ari_sfm.colmap_refine.problem` lists what is estimated.
 
+A long chain (more than GROW_MIN_FRAMES frames: a strip survey) starts otherwise: COLMAP's pinhole
+model of it is bent (measured on the simulated 100-image strip: it turns ~120 deg end to end, its
+local scale 44 % off the end-to-end bar's), and LM from it crawls (1.45 px, points 1.3 m after 100
+iterations). The start is grown instead (:func:`_grown_start`): the GROW_FIRST_FRAMES frames nearest
+the middle are refined with the window held at the middle start distance, every other frame and
+point is moved by the similarity that carries the block points it sees onto their refined positions
+(:func:`_aligned`), the block grows by GROW_FACTOR and is refined again, up to the whole model; then
+it is rescaled to the bar (with the port distance: the images fix distance / scale, not each) and
+refined with everything free. No distance search on that path (held-window runs do not tell the
+candidates apart before the chain is straight); the other candidates remain the restarts.
+
 A declared window (``interface.plane``, :mod:`.plane`) replaces the start search: the window
 starts there; a sigma of 0 holds that part, > 0 adds a prior (a held plane does not scale with the
 scene when the state is rescaled to the bar; the bar, a term of the solver, is held anyway).
@@ -286,6 +297,7 @@ GROW_MIN_FRAMES = 41  # a model with more frames than this is a long chain: its 
 GROW_FIRST_FRAMES = 30  # the first block: the frames nearest the middle (a block this size converges from COLMAP's)
 GROW_FACTOR = 1.6  # each block has this many times the previous one's frames
 GROW_ITERATIONS = 100  # LM iterations per block at most (a converged block stops earlier)
+GROW_TOLERANCE = 1e-7  # a block's LM stops when a step lowers its cost by less than this fraction
 ALIGN_MIN_POINTS = 10  # a frame's pose is re-aligned by the block points it sees when it sees at least this many
 BLOCK_MIN_VIEWS = 2  # a point is in a block when block images see it this many times
 
@@ -411,7 +423,7 @@ def _grown_start(model: adapter.ColmapModel, state: State, first: Block, make_so
     block = first
     blocks = []
     while True:
-        res = make_solver(block.model).run(_block_state(state, block), GROW_ITERATIONS)
+        res = make_solver(block.model).run(_block_state(state, block), GROW_ITERATIONS, relative_tolerance=GROW_TOLERANCE)
         state = _aligned(model, state, block, res.state)
         blocks.append({"frames": len(block.frames), "points3D": len(block.points), "cost": res.cost,
                        "iterations": res.iterations, "linearizations": res.linearizations})
@@ -626,11 +638,13 @@ class Solver:
             dg = dg[:base]
         return self.problem.retract(state, dg, dp)
 
-    def run(self, state: State, max_iterations: int, progress=None) -> SolveResult:
+    def run(self, state: State, max_iterations: int, progress=None,
+            relative_tolerance: float | None = None) -> SolveResult:
         """The numpy backend: points Schur + the project's Levenberg-Marquardt (GTSAM's algorithm)."""
         from ..factors.levenberg_marquardt import LMParams, levenberg_marquardt
 
-        res = levenberg_marquardt(self, state, max_iterations, RELATIVE_TOLERANCE, LMParams(lambda_initial=1e-4),
+        tolerance = RELATIVE_TOLERANCE if relative_tolerance is None else relative_tolerance
+        res = levenberg_marquardt(self, state, max_iterations, tolerance, LMParams(lambda_initial=1e-4),
                                   progress=progress)
         r = res.report
         return SolveResult(res.x, r.error, r.initial_error, r.iterations,
