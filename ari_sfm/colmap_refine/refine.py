@@ -21,7 +21,7 @@ the bar, and the refinement runs again with the bar held; going straight to the 
 short-track strip in a wrong-scale valley (40-image strip: 1.80 px, points 47 mm; this way 0.62 px,
 1.2 mm). :mod:`ari_sfm.colmap_refine.problem` lists what is estimated.
 
-A long chain (more than GROW_MIN_FRAMES frames: a strip survey) starts otherwise: COLMAP's pinhole
+A long chain (mount camera, more than GROW_MIN_FRAMES frames: a strip survey) starts otherwise: COLMAP's pinhole
 model of it is bent (measured on the simulated 100-image strip: it turns ~120 deg end to end, its
 local scale 44 % off the end-to-end bar's), and LM from it crawls (1.45 px, points 1.3 m after 100
 iterations). The start is grown instead (:func:`_grown_start`): the GROW_FIRST_FRAMES frames nearest
@@ -399,10 +399,12 @@ def _aligned(model: adapter.ColmapModel, state: State, block: Block, refined: St
     return replace(refined, rig_from_world=tuple(frames), sensor_from_rig=tuple(sensors), xyz=new_xyz)
 
 
-def _first_block(model: adapter.ColmapModel, state: State) -> Block | None:
-    """The first block of a long chain (more than GROW_MIN_FRAMES frames): the GROW_FIRST_FRAMES frames
-    nearest the middle of the frame centres; None for a shorter model or when the block lacks a camera."""
-    if len(model.frame_ids) <= GROW_MIN_FRAMES:
+def _first_block(model: adapter.ColmapModel, state: State, mount: str) -> Block | None:
+    """The first block of a long chain (mount camera, more than GROW_MIN_FRAMES frames): the
+    GROW_FIRST_FRAMES frames nearest the middle of the frame centres; None for a shorter model, mount
+    world (a window fixed in the world does not move with the aligned frames) or when the block lacks
+    a camera."""
+    if len(model.frame_ids) <= GROW_MIN_FRAMES or mount != "camera":
         return None
     centres = _centres(state)
     block = _block(model, np.argsort(np.linalg.norm(centres - np.median(centres, axis=0), axis=1),
@@ -774,7 +776,7 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     candidates = _candidates_inside_scene(cmodel, virtual, interface, candidates, units_mm is not None or bar is not None,
                                           plane is not None or interface.distance_mm is not None, window_path)
     blocks: list[dict] = []
-    first = _first_block(cmodel, virtual)
+    first = _first_block(cmodel, virtual, mount)
     if first is not None:  # a long chain: the start grown from a middle block, the window held at the middle start
         h = candidates[(len(candidates) - 1) // 2] if len(candidates) > 1 else candidates[0]
         whole = _convert(cmodel, problem, virtual if plane is not None else _with_distance(cmodel, virtual, mount, h), +1)
