@@ -15,8 +15,10 @@ refine / bundle_adjustment.
 ``--layout strip``: a long survey with short tracks instead (two lines of images ``--spacing`` mm
 apart along a strip 2 m wide; each point seen by ~3-14 images, mean ~4.5 at 400 mm, ~6.3 at
 250 mm; about 60 % of the drawn points are seen 3 times or more and kept): the way to 200 images / 50 k points on a small machine
-(``--sizes 200:75000 --layout strip --spacing 250``). ``--declared-port``: the true port declared
-(``interface.plane``, held).
+(``--sizes 200:75000 --layout strip --spacing 250``). COLMAP's pinhole optimum of such a strip is
+bent (the 100-image one turns ~120 deg end to end); refine-colmap then grows its start from a middle
+block (more than 41 frames: ``refine._grown_start``), so the 100- and 200-image strips converge.
+``--declared-port``: the true port declared (``interface.plane``, held).
 
 Speed (``--repeats N``, default 3): pycolmap.bundle_adjustment (Ceres, its default options and threads)
 started from COLMAP's model with every point perturbed (N(0, 0.2 % of the camera altitude) per

@@ -799,3 +799,31 @@ def test_the_report_record_is_refine_json(survey, tmp_path):
     assert j["window"]["distance_mm"]["camera1"] == r.window.distance_of("camera1") == result.state.distances[0]
     assert set(j["uncertainty"]) == {"sigma0", "normal_deg", "distance_mm", "fx_px", "scale_rel", "weak"}
     assert j["scale_bar"]["ids"] == list(r.scale_bar.ids) and r.counts.images == len(start.images)
+
+
+def test_distance_still_at_zero_after_the_restarts_is_named(small_model, monkeypatch, caplog):
+    """A distance that ran toward 0 from every start is not reported silently: one warning naming it
+    and the remedy, and the port distance in uncertainty.weak."""
+    from ari_sfm.colmap_refine import refine as refine_module
+
+    truth, start, _ = small_model
+    monkeypatch.setattr(refine_module, "_collapsed", lambda *args: True)
+    with caplog.at_level("WARNING", logger="ari_sfm.colmap_refine.refine"):
+        result = refine_colmap(start, truth.interface, "camera", max_iterations=10)
+    assert "distance_mm.camera1" in result.report.uncertainty.weak
+    assert any("ran to" in r.message and "scale_bar" in r.message and "interface.plane" in r.message
+               for r in caplog.records)
+
+
+def test_units_far_too_small_run_the_distance_down_and_say_so(small_model, caplog):
+    """Reproduced: with units_mm 10x too small (the scene 10x too near) the port distance follows the
+    scale far below the true 22 mm (the data fix only distance / scale); the result says the distance
+    and the scale are barely determined and names the remedy (a scale bar), not a silent success."""
+    truth, start, _ = small_model
+    with caplog.at_level("WARNING"):
+        result = refine_colmap(start, truth.interface, "camera", units_mm=0.1)
+    assert result.state.distances[0] < 0.5 * truth.distance_mm[0]
+    weak = result.report.uncertainty.weak
+    assert "distance_mm.camera1" in weak and "scale_rel" in weak
+    assert any("port distance" in r.message and "barely determined" in r.message for r in caplog.records)
+    assert any("scale_bar" in r.message for r in caplog.records)

@@ -21,6 +21,17 @@ the bar, and the refinement runs again with the bar held; going straight to the 
 short-track strip in a wrong-scale valley (40-image strip: 1.80 px, points 47 mm; this way 0.62 px,
 1.2 mm). :mod:`ari_sfm.colmap_refine.problem` lists what is estimated.
 
+A long chain (mount camera, more than GROW_MIN_FRAMES frames: a strip survey) starts otherwise: COLMAP's pinhole
+model of it is bent (measured on the simulated 100-image strip: it turns ~120 deg end to end, its
+local scale 44 % off the end-to-end bar's), and LM from it crawls (1.45 px, points 1.3 m after 100
+iterations). The start is grown instead (:func:`_grown_start`): the GROW_FIRST_FRAMES frames nearest
+the middle are refined with the window held at the middle start distance, every other frame and
+point is moved by the similarity that carries the block points it sees onto their refined positions
+(:func:`_aligned`), the block grows by GROW_FACTOR and is refined again, up to the whole model; then
+it is rescaled to the bar (with the port distance: the images fix distance / scale, not each) and
+refined with everything free. No distance search on that path (held-window runs do not tell the
+candidates apart before the chain is straight); the other candidates remain the restarts.
+
 A declared window (``interface.plane``, :mod:`.plane`) replaces the start search: the window
 starts there; a sigma of 0 holds that part, > 0 adds a prior (a held plane does not scale with the
 scene when the state is rescaled to the bar; the bar, a term of the solver, is held anyway).
@@ -291,6 +302,7 @@ GROW_MIN_FRAMES = 41  # a model with more frames than this is a long chain: its 
 GROW_FIRST_FRAMES = 30  # the first block: the frames nearest the middle (a block this size converges from COLMAP's)
 GROW_FACTOR = 1.6  # each block has this many times the previous one's frames
 GROW_ITERATIONS = 100  # LM iterations per block at most (a converged block stops earlier)
+GROW_TOLERANCE = 1e-7  # a block's LM stops when a step lowers its cost by less than this fraction
 ALIGN_MIN_POINTS = 10  # a frame's pose is re-aligned by the block points it sees when it sees at least this many
 BLOCK_MIN_VIEWS = 2  # a point is in a block when block images see it this many times
 
@@ -392,10 +404,12 @@ def _aligned(model: adapter.ColmapModel, state: State, block: Block, refined: St
     return replace(refined, rig_from_world=tuple(frames), sensor_from_rig=tuple(sensors), xyz=new_xyz)
 
 
-def _first_block(model: adapter.ColmapModel, state: State) -> Block | None:
-    """The first block of a long chain (more than GROW_MIN_FRAMES frames): the GROW_FIRST_FRAMES frames
-    nearest the middle of the frame centres; None for a shorter model or when the block lacks a camera."""
-    if len(model.frame_ids) <= GROW_MIN_FRAMES:
+def _first_block(model: adapter.ColmapModel, state: State, mount: str) -> Block | None:
+    """The first block of a long chain (mount camera, more than GROW_MIN_FRAMES frames): the
+    GROW_FIRST_FRAMES frames nearest the middle of the frame centres; None for a shorter model, mount
+    world (a window fixed in the world does not move with the aligned frames) or when the block lacks
+    a camera."""
+    if len(model.frame_ids) <= GROW_MIN_FRAMES or mount != "camera":
         return None
     centres = _centres(state)
     block = _block(model, np.argsort(np.linalg.norm(centres - np.median(centres, axis=0), axis=1),
@@ -416,7 +430,7 @@ def _grown_start(model: adapter.ColmapModel, state: State, first: Block, make_so
     block = first
     blocks = []
     while True:
-        res = make_solver(block.model).run(_block_state(state, block), GROW_ITERATIONS)
+        res = make_solver(block.model).run(_block_state(state, block), GROW_ITERATIONS, relative_tolerance=GROW_TOLERANCE)
         state = _aligned(model, state, block, res.state)
         blocks.append({"frames": len(block.frames), "points3D": len(block.points), "cost": res.cost,
                        "iterations": res.iterations, "linearizations": res.linearizations})
@@ -770,7 +784,7 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     candidates = _candidates_inside_scene(cmodel, virtual, interface, candidates, units_mm is not None or bar is not None,
                                           plane is not None or interface.distance_mm is not None, window_path)
     blocks: list[dict] = []
-    first = _first_block(cmodel, virtual)
+    first = _first_block(cmodel, virtual, mount)
     if first is not None:  # a long chain: the start grown from a middle block, the window held at the middle start
         h = candidates[(len(candidates) - 1) // 2] if len(candidates) > 1 else candidates[0]
         whole = _convert(cmodel, problem, virtual if plane is not None else _with_distance(cmodel, virtual, mount, h), +1)
@@ -835,6 +849,14 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     residuals = problem.residuals(state)
     names = [f"camera{int(cid)}" for cid in cmodel.camera_ids]
     sigmas = uncertainty(solver, state, names, result.system)
+    if collapsed and _collapsed(state, problem, candidates):  # still at ~0 after the restarts: say so, name it
+        ran = (["distance_mm.world"] if mount == "world" else
+               [f"distance_mm.{names[c]}" for c, d in enumerate(state.distances) if d < DISTANCE_COLLAPSE * min(candidates)])
+        sigmas = replace(sigmas, weak=sigmas.weak + tuple(w for w in ran if w not in sigmas.weak))
+        log.warning("refine-colmap: the port distance ran to %.3g mm from every start (%s mm): these images do not "
+                    "determine it, and it follows the scale; declare a scale_bar or check units_mm, or declare the "
+                    "port in WINDOW.yaml (interface.plane point_mm, sigma_mm for a prior)",
+                    float(problem.image_windows(state)[1].min()), ", ".join(f"{c:g}" for c in candidates))
     R, t = state.cam_from_world(cmodel)
     cam_from_world = {int(i): Pose(R[k], t[k]) for k, i in enumerate(cmodel.image_ids)}
     refractive = _state_reconstruction(rec, cmodel, problem, state)
