@@ -217,7 +217,11 @@ def _fmt(x: Any, digits: int = 4) -> str:
     if isinstance(x, (int, np.integer)):
         return str(int(x))
     if isinstance(x, (float, np.floating)):
-        return "nan" if not np.isfinite(x) else f"{x:.{digits}f}"
+        if not np.isfinite(x):
+            return "nan"
+        if x != 0.0 and abs(x) < 0.5 * 10.0 ** -digits:  # e.g. tangential distortion: significant digits, not 0.0000
+            return f"{x:.{digits - 1}e}".replace("e-0", "e-")
+        return f"{x:.{digits}f}"
     return html.escape(str(x))
 
 

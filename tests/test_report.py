@@ -94,6 +94,15 @@ def test_report_tables_hold_the_calibrations_numbers(binocular):
     assert f">{m['truth']['aligned']['rms_mm']:.4f}<" in text
 
 
+def test_report_table_keeps_small_values_significant():
+    """A tangential coefficient of 2.5e-05 and its sigma print with significant digits, not as 0.0000;
+    ordinary values keep four decimals, zero stays 0.0000."""
+    html = report._table(["parameter", "value", "std dev"], [["p1", 2.5287e-05, 2.864e-05], ["fx", 3453.14444, 0.0]])
+    assert ">2.529e-5<" in html and ">2.864e-5<" in html
+    assert ">3453.1444<" in html and ">0.0000<" in html
+    assert "0.0000<" not in html.split("fx")[0]
+
+
 def test_report_embeds_every_figure_and_fetches_nothing(binocular):
     _, _, out, _ = binocular
     text = (out / "report.html").read_text()
