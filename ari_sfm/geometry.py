@@ -188,15 +188,3 @@ def retract_poses(R: np.ndarray, t: np.ndarray, xi: np.ndarray) -> tuple[np.ndar
     """Right perturbation T Exp(xi) of poses (R (N,3,3), t (N,3)), as Pose3.retract."""
     dR, dt = se3_exp(xi)
     return R @ dR, t + np.einsum("nij,nj->ni", R, dt)
-
-
-def cross_jacobian_rows(J: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Row-wise J_a x v for J (M, 2, 3), v (M, 3): the rows of J @ skew(v)."""
-    out = np.empty_like(J)
-    vx, vy, vz = v[:, None, 0], v[:, None, 1], v[:, None, 2]
-    jx, jy, jz = J[:, :, 0], J[:, :, 1], J[:, :, 2]
-    out[:, :, 0] = jy * vz - jz * vy
-    out[:, :, 1] = jz * vx - jx * vz
-    out[:, :, 2] = jx * vy - jy * vx
-    return out
-
