@@ -571,8 +571,8 @@ def _hold_normal(rg, normal: np.ndarray) -> None:
 
     from .factors import keys as K_
 
-    rg.graph.push_back(gtsam.PriorFactorUnit3(K_.N, gtsam.Unit3(np.asarray(normal, float)),
-                                              gtsam.noiseModel.Isotropic.Sigma(2, 1e-7)))
+    rg.add_factor(gtsam.PriorFactorUnit3(K_.N, gtsam.Unit3(np.asarray(normal, float)),
+                                         gtsam.noiseModel.Isotropic.Sigma(2, 1e-7)))
 
 
 def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: bool, build, solve,

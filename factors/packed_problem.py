@@ -27,10 +27,10 @@ The normal equations are formed per camera in one compiled pass
 drives the iterations (this class is its :class:`LMProblem`); factors a user
 added to the graph join through :mod:`~ari_sfm.factors.extra_factors`.
 
-There is deliberately no builder that skips the GTSAM graph: RigGraph.build
-costs ~60 us per view (2 % of the numpy optimisation at 16 cameras x 500
-frames), the graph stays the researcher's API (priors, gtsam.Marginals), and a
-second copy of the view selection would drift from RigGraph.build.
+It is built from what RigGraph.build selected (:meth:`RigGraph.packed_factors`: each view's
+data, keys and sigma, and the other factors), without making the GTSAM view factors the numpy
+backend never calls (RigGraph makes its graph on first access, e.g. a researcher's
+``rg.graph.push_back``; then the graph is read).
 """
 from __future__ import annotations
 
@@ -121,10 +121,9 @@ class VectorizedProblem:
         model: str,
         huber_px: float | None,
         extra_factors: Sequence[gtsam.NonlinearFactor] = (),
-        graph_index: Sequence[int] | None = None,
     ) -> None:
         """``views``: (ViewData, ViewKeys, sigma_px) per view factor; ``observations``: (camera, obs) per
-        view factor; ``graph_index``: each view factor's index in its gtsam graph (for checks)."""
+        view factor."""
         if model not in MODELS:
             raise ValueError(f"unknown model {model!r} (known: {', '.join(MODELS)})")
         self.model = model
@@ -139,7 +138,6 @@ class VectorizedProblem:
         self.x = variables
         self.iterations = 0
         self.report: LMReport | None = None
-        self.graph_index = np.arange(len(views)) if graph_index is None else np.asarray(graph_index, dtype=np.int64)
         self._error_cache: tuple[Variables, float] | None = None
         self._system_cache: tuple[Variables, NormalEquations] | None = None  # optimize's last linearisation, if at self.x
         self._pack(views)
@@ -155,13 +153,7 @@ class VectorizedProblem:
         views (one per camera and plate, and the worst ones) are compared with
         the graph's own factors and a mismatch raises ValueError.
         """
-        view_factor_index = rg.view_factor_indices()  # priors and user factors may sit among them
-        views = []
-        for i, (data, vkeys) in zip(view_factor_index, rg.factor_data):
-            sigmas = np.asarray(rg.graph.at(i).noiseModel().sigmas())
-            if np.ptp(sigmas) != 0.0:
-                raise ValueError(f"view factor {i} has a non-isotropic noise model")
-            views.append((data, vkeys, float(sigmas[0])))
+        views, extra = rg.packed_factors()
         v = rg.values
         C, F = len(rg.camera_names), len(rg.frame_names)
         R_wc, t_wc = np.tile(np.eye(3), (C, 1, 1)), np.zeros((C, 3))
@@ -175,9 +167,8 @@ class VectorizedProblem:
         distance = float(v.atVector(K_.H)[0]) if rg.estimate_distance else rg.base_state.distance_mm
         variables = Variables(np.array([v.atVector(K_.K(c)) for c in range(C)], float).reshape(C, rg.n_params),
                               R_wc, t_wc, v.atUnit3(K_.N), R_wt, t_wt, distance)
-        extra = [rg.graph.at(i) for i in sorted(set(range(rg.graph.size())) - set(view_factor_index))]
         problem = VectorizedProblem(views, rg.factor_views, variables, rg.camera_names, rg.frame_names, rg.n_params,
-                                    rg.base_state, rg.estimate_distance, rg.model, huber_px, extra, view_factor_index)
+                                    rg.base_state, rg.estimate_distance, rg.model, huber_px, extra)
         if check:
             problem._check_against(rg)
         return problem
@@ -558,7 +549,7 @@ class VectorizedProblem:
             if self.huber_px is not None and np.any(np.abs(r) >= INVALID_RESIDUAL):
                 continue  # a corner behind the window: 1e6 here, its weighted row there
             mine = r.reshape(-1) if self.huber_px is None else huber_view_residual(r, self.huber_px)[0]
-            theirs = np.asarray(rg.graph.at(int(self.graph_index[self.view_order[k]])).unwhitenedError(rg.values))
+            theirs = np.asarray(rg.view_factor_at(int(self.view_order[k])).unwhitenedError(rg.values))
             if mine.shape != theirs.shape or not np.allclose(mine, theirs, rtol=1e-9, atol=1e-9):
                 size = (f"{theirs.size} rows, not {mine.size}" if mine.shape != theirs.shape
                         else f"max {np.max(np.abs(mine - theirs)):.3g}")
