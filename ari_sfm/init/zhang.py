@@ -99,22 +99,20 @@ def _zhang_K(obj: list[np.ndarray], img: list[np.ndarray]) -> np.ndarray | None:
     """Zhang's closed-form K (no skew) from the views' homographies: each view gives two linear
     constraints h1^T B h2 = 0, h1^T B h1 = h2^T B h2 on B = K^-T K^-1 (B11, B22, B13, B23, B33);
     None when they do not determine a camera (fewer than 3 views, degenerate poses)."""
-    rows = []
-    for o, i in zip(obj, img):
-        H, _ = cv2.findHomography(o[:, :2], i, 0)
-        if H is None:
-            return None
-        H = H / np.linalg.norm(H[:, :2])
+    homographies = [cv2.findHomography(o[:, :2], i, 0)[0] for o, i in zip(obj, img)]
+    if any(H is None for H in homographies):
+        return None
+    H = np.array([h / np.linalg.norm(h[:, :2]) for h in homographies]).reshape(-1, 3, 3)
 
-        def v(a: int, b: int) -> np.ndarray:
-            ha, hb = H[:, a], H[:, b]
-            return np.array([ha[0] * hb[0], ha[1] * hb[1], ha[0] * hb[2] + ha[2] * hb[0],
-                             ha[1] * hb[2] + ha[2] * hb[1], ha[2] * hb[2]])
+    def v(a: int, b: int) -> np.ndarray:
+        ha, hb = H[:, :, a], H[:, :, b]
+        return np.stack([ha[:, 0] * hb[:, 0], ha[:, 1] * hb[:, 1], ha[:, 0] * hb[:, 2] + ha[:, 2] * hb[:, 0],
+                         ha[:, 1] * hb[:, 2] + ha[:, 2] * hb[:, 1], ha[:, 2] * hb[:, 2]], axis=1)
 
-        rows += [v(0, 1), v(0, 0) - v(1, 1)]
+    rows = np.stack([v(0, 1), v(0, 0) - v(1, 1)], axis=1).reshape(-1, 5)  # two per view, in view order
     if len(rows) < 6:
         return None
-    b11, b22, b13, b23, b33 = np.linalg.svd(np.array(rows))[2][-1]
+    b11, b22, b13, b23, b33 = np.linalg.svd(rows)[2][-1]
     cx, cy = -b13 / b11, -b23 / b22
     lam = b33 - b13 * b13 / b11 - b23 * b23 / b22
     if not (lam / b11 > 0 and lam / b22 > 0):
