@@ -228,6 +228,9 @@ class VectorizedProblem:
         self.camera_cols = [np.concatenate([c * self.camera_block + np.arange(self.camera_block),
                                             tail_cols]).astype(np.int64) for c in range(C)]
         self.fixed_cols = np.arange(n_p, n_p + 6)  # camera 0's pose
+        # the columns of each camera's rows in linearize (camera 0's without its pose)
+        self.camera_row_cols = [cols if c > 0 else np.delete(cols, np.arange(n_p, n_p + 6))
+                                for c, cols in enumerate(self.camera_cols)]
         # one kernel call per camera (or per group when a camera's groups differ in more than the thickness)
         self.corner_thickness = np.empty(M)
         self._camera_runs: list[list[_Group]] = []
@@ -390,7 +393,7 @@ class VectorizedProblem:
             err2 += accumulate_views(model.J_point, model.J_normal, model.J_distance, model.J_params, model.X,
                                      self.points[s:e], tr.R_cam_target[vs:ve], self.view_start[vs:ve + 1] - s,
                                      self.view_frame[vs:ve], *self._camera_terms(x, tr, c), scale, res,
-                                     self.camera_cols[c], V, g_f, W, U, g_g, bad)
+                                     self.camera_row_cols[c], V, g_f, W, U, g_g, bad)
             if bad.any():
                 factors = np.unique(self.view_order[self.corner_view[s:e][bad]])[:10].tolist()
                 raise RuntimeError(f"non-finite Jacobian entries in factor(s) {factors} "

@@ -28,8 +28,10 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 @njit(inline="always", **_JIT)
 def _tangent_row(J_point, J_normal, J_distance, o, j, X_cam, P, R_ct, n_cam, cam_shift, normal_map, normal_shift,
-                 pose, distance, k, row):
-    """Pixel row j of corner o into ``row`` (module docstring), except the intrinsics' columns 6..k."""
+                 pose, distance, k, kn, row):
+    """Pixel row j of corner o into ``row`` (module docstring): the target pose at 0..6, the camera pose
+    at k..k + 6 (only with ``pose``), the normal at kn, kn + 1, the distance at kn + 2 (with ``distance``);
+    the intrinsics' columns 6..k are left to the caller."""
     j0, j1, j2 = J_point[o, j, 0], J_point[o, j, 1], J_point[o, j, 2]
     a0 = j0 * R_ct[0, 0] + j1 * R_ct[1, 0] + j2 * R_ct[2, 0]  # J_A = J_X R_ct
     a1 = j0 * R_ct[0, 1] + j1 * R_ct[1, 1] + j2 * R_ct[2, 1]
@@ -52,13 +54,10 @@ def _tangent_row(J_point, J_normal, J_distance, o, j, X_cam, P, R_ct, n_cam, cam
         row[k + 3] = h * cam_shift[0] - j0
         row[k + 4] = h * cam_shift[1] - j1
         row[k + 5] = h * cam_shift[2] - j2
-    else:
-        for i in range(6):
-            row[k + i] = 0.0
-    row[k + 6] = (n0 * normal_map[0, 0] + n1 * normal_map[1, 0] + n2 * normal_map[2, 0]) + h * normal_shift[0]
-    row[k + 7] = (n0 * normal_map[0, 1] + n1 * normal_map[1, 1] + n2 * normal_map[2, 1]) + h * normal_shift[1]
+    row[kn] = (n0 * normal_map[0, 0] + n1 * normal_map[1, 0] + n2 * normal_map[2, 0]) + h * normal_shift[0]
+    row[kn + 1] = (n0 * normal_map[0, 1] + n1 * normal_map[1, 1] + n2 * normal_map[2, 1]) + h * normal_shift[1]
     if distance:
-        row[k + 8] = h
+        row[kn + 2] = h
 
 
 @njit(**_JIT)
@@ -77,15 +76,16 @@ def transform_points(P, R_view, t_view, view_start):
 @njit(**_JIT)
 def chain_rows(J_point, J_normal, J_distance, X_cam, P, R_view, view_start, n_cam, cam_shift, normal_map,
                normal_shift, pose, distance, n_params, out):
-    """Every corner's tangent-space rows into ``out`` (m, 2, >= 6 + n_params + 8 (+1)), the intrinsics'
-    columns 6..6 + n_params left to the caller; corners grouped by view (``R_view`` (nv, 3, 3) = R_ct)."""
+    """Every corner's tangent-space rows into ``out`` (m, 2, >= 6 + n_params + 8 (+1)), zeros where the
+    camera has no pose, the intrinsics' columns 6..6 + n_params left to the caller; corners grouped by view
+    (``R_view`` (nv, 3, 3) = R_ct)."""
     k = 6 + n_params
     for v in range(len(view_start) - 1):
         R_ct = R_view[v]
         for o in range(view_start[v], view_start[v + 1]):
             for j in range(2):
                 _tangent_row(J_point, J_normal, J_distance, o, j, X_cam, P, R_ct, n_cam, cam_shift, normal_map,
-                             normal_shift, pose, distance, k, out[o, j])
+                             normal_shift, pose, distance, k, k + 6, out[o, j])
 
 
 @njit(**_JIT)
@@ -96,15 +96,17 @@ def accumulate_views(J_point, J_normal, J_distance, J_params, X_cam, P, R_view, 
     view's ``A^T A`` of its whitened rows ``A = [J_frame | J_camera | r]`` (filled in a scratch of the
     largest view's size, multiplied by BLAS).
 
-    Rows: :func:`chain_rows` with the intrinsics from ``J_params`` (m, 2, n_params), each corner's
-    Jacobian times ``row_scale`` (m,) (sqrt of the IRLS weight over sigma); ``residual`` (m, 2) already
-    whitened. ``cols`` (L,): the global columns of the camera's local tangent block; ``view_frame``
-    (nv,) each view's frame. ``bad`` (m,) is set True where a Jacobian entry is not finite.
+    Rows: :func:`chain_rows` with the intrinsics from ``J_params`` (m, 2, n_params), without the pose
+    columns when the camera has none (camera 0), each corner's Jacobian times ``row_scale`` (m,) (sqrt of
+    the IRLS weight over sigma); ``residual`` (m, 2) already whitened. ``cols`` (L,): the global columns
+    of the row's camera block (intrinsics, pose if any, normal, distance); ``view_frame`` (nv,) each
+    view's frame. ``bad`` (m,) is set True where a Jacobian entry is not finite.
     Returns the sum of the squared residuals."""
     n_params = J_params.shape[2]
     L = cols.shape[0]
     K = 6 + L
     k = 6 + n_params
+    kn = k + 6 if pose else k
     most = 0
     for v in range(len(view_start) - 1):
         most = max(most, view_start[v + 1] - view_start[v])
@@ -119,7 +121,7 @@ def accumulate_views(J_point, J_normal, J_distance, J_params, X_cam, P, R_view, 
             for j in range(2):
                 row = A[2 * (o - first) + j]
                 _tangent_row(J_point, J_normal, J_distance, o, j, X_cam, P, R_ct, n_cam, cam_shift, normal_map,
-                             normal_shift, pose, distance, k, row)
+                             normal_shift, pose, distance, k, kn, row)
                 for i in range(n_params):
                     row[6 + i] = J_params[o, j, i]
                 check = 0.0
