@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from ..geometry import Pose
+from ..models.pinhole import project_points
 from ..records import CameraSpec, Observation, Target
 
 
@@ -162,16 +163,20 @@ def calibrate_zhang(
     dist = np.zeros(5)
     if hold == "K" and spec.dist is not None:
         dist = np.resize(np.asarray(spec.dist, float), 5).copy()
-    poses, sq, n = {}, 0.0, 0
+    poses, cam_points = {}, []
     for v, o, i in zip(views, obj, img):
         planar = bool(np.all(o[:, 2] == 0))
         ok, rvec, tvec = cv2.solvePnP(o, i, K, dist, flags=cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_ITERATIVE)
         if not ok:
             raise ValueError(f"PnP failed for frame {v.frame}")
-        poses[v.frame] = Pose(cv2.Rodrigues(rvec)[0], np.asarray(tvec, float).reshape(3))
-        res = cv2.projectPoints(o, rvec, tvec, K, dist)[0].reshape(-1, 2) - i
-        sq, n = sq + float(np.sum(res * res)), n + len(i)
-    return ZhangResult(K, dist, poses, float(np.sqrt(sq / max(n, 1))))
+        pose = Pose(cv2.Rodrigues(rvec)[0], np.asarray(tvec, float).reshape(3))
+        poses[v.frame] = pose
+        cam_points.append(pose.apply(o))
+    if not views:
+        return ZhangResult(K, dist, poses, 0.0)
+    uv = project_points(np.concatenate(cam_points), np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist], 4, False)[0]
+    res = uv - np.concatenate(img)  # every view's reprojection at once (the pinhole kernel)
+    return ZhangResult(K, dist, poses, float(np.sqrt(np.sum(res * res) / len(res))))
 
 
 def dlt_projection(X: np.ndarray, uv: np.ndarray) -> np.ndarray:
