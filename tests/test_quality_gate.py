@@ -180,11 +180,13 @@ def test_cli_ari_with_a_wrong_declared_plane_exits_3(tmp_path):
 
 def test_cli_undetermined_covariance_exits_3_not_a_traceback(tmp_path):
     """Issue 14: ari with fixed focal lengths and the declared plane turned 10 deg ends in a lost optimum
-    whose information matrix is singular and indefinite (seed 1 on the coarse grid since the true Huber
-    loss; seed 4 before, as benchmarks/bench_declared_window.py's seed 0): the covariance raised LinAlgError
-    (exit 1). The undetermined parameters now get no sigma, the gate fails the result naming the
-    cameras, calibration.json is written, exit 3."""
-    ds_dir, _ = simulate("ptv_multiplane", tmp_path / "sim", seed=1, sigma_px=0.0, grid=GRID)
+    whose information matrix is singular and indefinite: the covariance raised LinAlgError (exit 1). Which
+    seed's lost optimum is singular moves with rounding (the held normal's 1e-7 rad prior makes the first
+    steps ill-conditioned): seed 2 on the coarse grid since the compiled linearisation (seeds 2, 5 and 6
+    of 1-6; seed 1 before it, since the true Huber loss; seed 4 before that, as
+    benchmarks/bench_declared_window.py's seed 0). The undetermined parameters now get no sigma, the gate
+    fails the result naming the cameras, calibration.json is written, exit 3."""
+    ds_dir, _ = simulate("ptv_multiplane", tmp_path / "sim", seed=2, sigma_px=0.0, grid=GRID)
     save_rig(ds_dir / "rig.yaml", _turned(load_dataset(ds_dir)))
     r = CliRunner().invoke(main, ["calibrate", str(ds_dir), "-o", str(tmp_path / "bad"), "--model", "ari",
                                   "--fix-intrinsics"])
