@@ -140,6 +140,7 @@ class VectorizedProblem:
         self.report: LMReport | None = None
         self._error_cache: tuple[Variables, float] | None = None
         self._system_cache: tuple[Variables, NormalEquations] | None = None  # optimize's last linearisation, if at self.x
+        self._transforms_cache: tuple[Variables, _Transforms] | None = None
         self._pack(views)
         self._extra = ExtraFactors(self, extra_factors)
 
@@ -244,6 +245,16 @@ class VectorizedProblem:
 
     # ------------------------------------------------------------------ evaluation
     def _transforms(self, x: Variables) -> _Transforms:
+        """The per-view and per-camera quantities of x (the last x's kept: LM evaluates the error at a
+        trial step, then linearises there)."""
+        cached = self._transforms_cache
+        if cached is not None and cached[0] is x:
+            return cached[1]
+        tr = self._compute_transforms(x)
+        self._transforms_cache = (x, tr)
+        return tr
+
+    def _compute_transforms(self, x: Variables) -> _Transforms:
         R_cw = np.swapaxes(x.world_R_cam, 1, 2)
         vc, vf = self.view_camera, self.view_frame
         R_ct = R_cw[vc] @ x.world_R_target[vf]
