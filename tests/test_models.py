@@ -388,37 +388,3 @@ def test_batched_kernel_with_per_point_thickness_is_the_model(kernel, cls, disto
                 np.testing.assert_allclose(getattr(J, name)[rows], want, rtol=1e-12, atol=1e-12 * np.abs(want).max(),
                                            err_msg=name)
         assert kernel(X, params, 2.0 * normal, d, 1.5168, medium, 30.0, False, n_params).J_point is None
-
-
-def _numpy_ari(X, params, normal_cam, thickness_mm, index, medium_index, distance_mm, n_params):
-    """The oracle: ari_project as it was in numpy (main e40d0d9), around the pinhole kernel."""
-    from ari_sfm.models.ari import unit_normal_and_projector
-    from ari_sfm.models.pinhole import project_points
-
-    nc, dn_dv = unit_normal_and_projector(normal_cam)
-    h, d, n, nm = distance_mm, thickness_mm, index, medium_index
-    b = 1.0 / nm - 1.0
-    s = h + d / n - (h + d) / nm
-    s = s + b * (X @ nc) if b != 0.0 else np.broadcast_to(s, len(X)).astype(float)
-    uv, J_pin, J_params = project_points(X + s[:, None] * nc, params, n_params, True)
-    m = len(X)
-    J_pin_n = (J_pin.reshape(2 * m, 3) @ nc).reshape(m, 2)
-    J_point = J_pin + b * J_pin_n[:, :, None] * nc[None, None, :]
-    J_n_free = s[:, None, None] * J_pin + b * J_pin_n[:, :, None] * X[:, None, :]
-    J_normal = (J_n_free.reshape(2 * m, 3) @ dn_dv).reshape(m, 2, 3)
-    return uv, J_point, J_normal, J_params, (1.0 / n - 1.0 / nm) * J_pin_n, (1.0 - 1.0 / nm) * J_pin_n
-
-
-@pytest.mark.parametrize("medium", [1.0, WATER])
-def test_compiled_ari_equals_the_numpy_ari(distorted, normal, medium):
-    """ari_project (the compiled kernels.ari_batch) against the numpy code it replaced, 1e-12."""
-    X = scene_points(normal, seed=8, n=50)
-    d = np.where(np.arange(50) % 2 == 0, 50.0, 62.0)
-    for n_params in (9, 4):
-        ours = ari_project(X, distorted.params, 1.3 * normal, d, INDEX, medium, DISTANCE, True, n_params)
-        ref = _numpy_ari(X, distorted.params, 1.3 * normal, d, INDEX, medium, DISTANCE, n_params)
-        for name, want in zip(ours._fields, ref):
-            np.testing.assert_allclose(getattr(ours, name), want, rtol=1e-12, atol=1e-12 * np.abs(want).max(),
-                                       err_msg=name)
-        uv = ari_project(X, distorted.params, 1.3 * normal, d, INDEX, medium, DISTANCE, False, n_params).uv
-        np.testing.assert_array_equal(uv, ours.uv)

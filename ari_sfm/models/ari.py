@@ -43,8 +43,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from . import kernels
-from .pinhole import NUM_PARAMS, PinholeModel, as_points
+from .pinhole import NUM_PARAMS, PinholeModel, as_points, project_points
 
 if TYPE_CHECKING:
     from ari_sfm.records import Interface
@@ -97,9 +96,8 @@ class AriJacobians(NamedTuple):
 def ari_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
                 index: float, medium_index: float = 1.0, distance_mm: float | None = None,
                 jacobians: bool = True, n_params: int = NUM_PARAMS) -> AriJacobians:
-    """The ARI projection of camera-frame points X (m, 3): the one implementation (the compiled
-    :func:`ari_sfm.models.kernels.ari_batch`), used by :class:`AriModel` and by the numpy bundle
-    adjustment (all corners of a camera in one call).
+    """The ARI projection of camera-frame points X (m, 3): the one implementation, used by
+    :class:`AriModel` and by the numpy bundle adjustment (all corners of a camera in one call).
 
     ``params`` (9,) intrinsics; ``thickness_mm`` one plate for all points or (m,) one per point
     (stacked plates); ``distance_mm`` h (needed with a medium behind, unused in air).
@@ -112,17 +110,28 @@ def ari_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thick
         raise ValueError("distance_mm is required when a medium (medium_index != 1) is behind the window")
     nc, dn_dv = unit_normal_and_projector(normal_cam)
     h = 0.0 if distance_mm is None else float(distance_mm)  # unused in air (b = 0, a = -delta)
-    X = np.asarray(X, dtype=np.float64)
-    if not X.flags.c_contiguous:
-        X = np.ascontiguousarray(X)
-    d = np.array(thickness_mm, dtype=np.float64).reshape(-1)
-    if d.size not in (1, len(X)):
-        raise ValueError(f"thickness_mm must be one value or one per point ({len(X)}), got {d.size}")
-    uv, J_point, J_normal, J_params, J_thickness, J_distance = kernels.ari_batch(
-        X.reshape(-1, 3), np.array(params, dtype=np.float64), nc, dn_dv, h, d, float(index), float(medium_index),
-        int(n_params), bool(jacobians))
+    d, n, nm = thickness_mm, index, medium_index
+    b = 1.0 / nm - 1.0
+    s = h + d / n - (h + d) / nm  # X_app = X + (a + b z) n_c, z = n_c . X
+    if b != 0.0:
+        s = s + b * (X @ nc)
+    elif np.ndim(s) == 0:
+        s = np.full(len(X), s)
+    uv, J_pin, J_params = project_points(X + s[:, None] * nc, params, n_params, jacobians)
     if not jacobians:
         return AriJacobians(uv, None, None, None, None, None)
+    m = len(X)
+    J_pin_n = (J_pin.reshape(2 * m, 3) @ nc).reshape(m, 2)  # J_pin n_c
+    if b != 0.0:  # d X_app / d X = I + b n n^T; d X_app / d n (free, at unit n) = s I + b n X^T
+        J_point = J_pin + b * J_pin_n[:, :, None] * nc[None, None, :]
+        J_n_free = s[:, None, None] * J_pin + b * J_pin_n[:, :, None] * X[:, None, :]
+    else:  # air: d X_app / d X = I
+        J_point = J_pin
+        J_n_free = s[:, None, None] * J_pin
+    J_normal = (J_n_free.reshape(2 * m, 3) @ dn_dv).reshape(m, 2, 3)  # then d n / d v
+    # d X_app / d d = (1/n - 1/n_m) n_c ; d X_app / d h = (1 - 1/n_m) n_c
+    J_thickness = (1.0 / n - 1.0 / nm) * J_pin_n
+    J_distance = (1.0 - 1.0 / nm) * J_pin_n
     return AriJacobians(uv, J_point, J_normal, J_params, J_thickness, J_distance)
 
 
@@ -173,8 +182,7 @@ class AriModel:
 
     def project(self, X_cam: np.ndarray) -> np.ndarray:
         """Pixels (N, 2) of camera-frame points (N, 3)."""
-        return ari_project(as_points(X_cam, 3), self.pinhole.params, self._normal_arg, self.thickness_mm,
-                           self.index, self.medium_index, self.distance_mm, jacobians=False).uv
+        return self.pinhole.project(self.apparent_points(X_cam))
 
     def project_with_jacobians(self, X_cam: np.ndarray) -> AriJacobians:
         """Pixels and analytic Jacobians (see :class:`AriJacobians`, :func:`ari_project`)."""

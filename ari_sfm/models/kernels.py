@@ -376,55 +376,6 @@ def exact_batch(X, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians):
     return uv, J_point, J_normal, J_params, J_td[:, :, 0].copy(), J_td[:, :, 1].copy(), steps, failures
 
 
-# --------------------------------------------------------------------------- ARI model (paraxial)
-
-
-@njit(**_JIT)
-def ari_batch(X, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians):
-    """The ARI projection of X (m, 3) (:mod:`.ari`: ``X_app = X + s n_c``, ``s = h + d/n - (h + d)/n_m
-    + b z``, ``b = 1/n_m - 1``, z = n_c . X), one plate thickness d (1,) or one per point (m,). Returns
-    uv, J_point, J_normal (w.r.t. the free normal vector, via dn_dv), J_params, J_thickness, J_distance
-    (empty (0, ...) arrays without ``jacobians``)."""
-    m = X.shape[0]
-    b = 1.0 / n_m - 1.0
-    dt, dh = 1.0 / n - 1.0 / n_m, 1.0 - 1.0 / n_m  # d s / d thickness, d s / d distance
-    mj = m if jacobians else 1
-    uv = np.empty((m, 2))
-    J_point = np.empty((mj, 2, 3))
-    J_normal = np.empty((mj, 2, 3))
-    J_params = np.empty((mj, 2, n_params))
-    J_thickness = np.empty((mj, 2))
-    J_distance = np.empty((mj, 2))
-    J_pin = np.empty((2, 3))
-    J_free = np.empty(3)
-    J_xy = np.empty((2, 2))
-    J_dist = np.empty((2, 5))
-    for i in range(m):
-        k = i if jacobians else 0
-        di = d[0] if d.shape[0] == 1 else d[i]
-        X0, X1, X2 = X[i, 0], X[i, 1], X[i, 2]
-        s = h + di / n - (h + di) / n_m
-        if b != 0.0:
-            s = s + b * (X0 * nc[0] + X1 * nc[1] + X2 * nc[2])
-        pinhole_point(X0 + s * nc[0], X1 + s * nc[1], X2 + s * nc[2], params, n_params, jacobians, uv[i], J_pin,
-                      J_params[k], J_xy, J_dist)
-        if not jacobians:
-            continue
-        for r in range(2):
-            pn = J_pin[r, 0] * nc[0] + J_pin[r, 1] * nc[1] + J_pin[r, 2] * nc[2]  # J_pin n_c
-            # d X_app / d X = I + b n n^T; d X_app / d n (free, at unit n) = s I + b n X^T
-            for c in range(3):
-                J_point[k, r, c] = J_pin[r, c] + b * pn * nc[c] if b != 0.0 else J_pin[r, c]
-                J_free[c] = s * J_pin[r, c] + b * pn * X[i, c] if b != 0.0 else s * J_pin[r, c]
-            for c in range(3):
-                J_normal[k, r, c] = J_free[0] * dn_dv[0, c] + J_free[1] * dn_dv[1, c] + J_free[2] * dn_dv[2, c]
-            J_thickness[k, r] = dt * pn
-            J_distance[k, r] = dh * pn
-    if not jacobians:
-        return uv, J_point[:0], J_normal[:0], J_params[:0], J_thickness[:0], J_distance[:0]
-    return uv, J_point, J_normal, J_params, J_thickness, J_distance
-
-
 # --------------------------------------------------------------------------- exact model, backward
 
 
