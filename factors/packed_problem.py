@@ -34,6 +34,7 @@ backend never calls (RigGraph makes its graph on first access, e.g. a researcher
 """
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass, replace
 from typing import Sequence
@@ -571,6 +572,7 @@ class VectorizedProblem:
                                  f"({size}); was the graph built with huber_px={self.huber_px}?")
 
 
+@functools.lru_cache(maxsize=4096)  # a rig's few keys, looked up once per view and packing
 def _index(key: int, expected: str) -> int:
     sym = gtsam.Symbol(key)
     if chr(sym.chr()) != expected:
