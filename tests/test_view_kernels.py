@@ -6,13 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ari_sfm.factors.rig_graph import RigGraph
+from ari_sfm.factors.rig_graph import RigGraph, RigState, default_distance_mm
 from ari_sfm.factors.vectorized import VectorizedProblem
 from ari_sfm.factors.view_factor import chain_to_tangents
 from ari_sfm.geometry import rotation_from_rotvec, skew
 from ari_sfm.init.rig import initialise_rig
-from ari_sfm.factors.variables import RigState
-from ari_sfm.factors.rig_graph import default_distance_mm
 from ari_sfm.simulate import make_scene
 
 
