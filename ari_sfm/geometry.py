@@ -87,9 +87,29 @@ class Pose:
 
 def mean_pose(poses: Sequence[Pose]) -> Pose:
     """Chordal mean of the rotations, arithmetic mean of the translations."""
-    u, _, vt = np.linalg.svd(sum(p.R for p in poses))
-    R = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-    return Pose(R, np.mean([p.t for p in poses], axis=0))
+    return mean_poses([poses])[0]
+
+
+def mean_poses(groups: Sequence[Sequence[Pose]]) -> list[Pose]:
+    """:func:`mean_pose` of each group (the groups of one size at once)."""
+    out: list[Pose | None] = [None] * len(groups)
+    by_size: dict[int, list[int]] = {}
+    for g, poses in enumerate(groups):
+        by_size.setdefault(len(poses), []).append(g)
+    for size, index in by_size.items():
+        R = np.array([[p.R for p in groups[g]] for g in index]).reshape(len(index), size, 3, 3)
+        t = np.array([[p.t for p in groups[g]] for g in index]).reshape(len(index), size, 3)
+        total = R[:, 0].copy()
+        for k in range(1, size):  # summed in order, as sum() does
+            total += R[:, k]
+        u, _, vt = np.linalg.svd(total)
+        d = np.ones((len(index), 3))
+        d[:, 2] = np.linalg.det(u @ vt)
+        R_mean = (u * d[:, None, :]) @ vt
+        t_mean = np.mean(t, axis=1)
+        for j, g in enumerate(index):
+            out[g] = Pose(R_mean[j], t_mean[j])
+    return out
 
 
 def pose3_from_cam_from_world(cam_from_world: Pose):
@@ -188,15 +208,3 @@ def retract_poses(R: np.ndarray, t: np.ndarray, xi: np.ndarray) -> tuple[np.ndar
     """Right perturbation T Exp(xi) of poses (R (N,3,3), t (N,3)), as Pose3.retract."""
     dR, dt = se3_exp(xi)
     return R @ dR, t + np.einsum("nij,nj->ni", R, dt)
-
-
-def cross_jacobian_rows(J: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Row-wise J_a x v for J (M, 2, 3), v (M, 3): the rows of J @ skew(v)."""
-    out = np.empty_like(J)
-    vx, vy, vz = v[:, None, 0], v[:, None, 1], v[:, None, 2]
-    jx, jy, jz = J[:, :, 0], J[:, :, 1], J[:, :, 2]
-    out[:, :, 0] = jy * vz - jz * vy
-    out[:, :, 1] = jz * vx - jx * vz
-    out[:, :, 2] = jx * vy - jy * vx
-    return out
-

@@ -84,59 +84,73 @@ def robust_rmse_px(residuals: Iterable[np.ndarray]) -> float:
 
 
 def _normalised(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Points (N, 2) centred and scaled to an RMS radius of sqrt(2) (Hartley), and that 3x3 map."""
-    c = p.mean(axis=0)
-    scale = math.sqrt(2.0) / max(float(np.sqrt(np.mean(np.sum((p - c) ** 2, axis=1)))), 1e-12)
-    return (p - c) * scale, np.array([[scale, 0.0, -scale * c[0]], [0.0, scale, -scale * c[1]], [0.0, 0.0, 1.0]])
+    """Planes' points (V, N, 2) centred and scaled to an RMS radius of sqrt(2) (Hartley), and those
+    3x3 maps (V, 3, 3)."""
+    c = p.mean(axis=1)
+    radius = np.sqrt(np.mean(np.sum((p - c[:, None]) ** 2, axis=2), axis=1))
+    scale = math.sqrt(2.0) / np.maximum(radius, 1e-12)
+    T = np.zeros((len(p), 3, 3))
+    T[:, 0, 0], T[:, 1, 1], T[:, 2, 2] = scale, scale, 1.0
+    T[:, :2, 2] = -scale[:, None] * c
+    return (p - c[:, None]) * scale[:, None, None], T
 
 
-def _warp_residuals(xy: np.ndarray, uv: np.ndarray) -> np.ndarray | None:
-    """Residuals (N, 2) of a plane's corners ``xy`` (target plane) against their pixels ``uv`` after a
-    homography (normalised DLT) and a polynomial warp in image coordinates, scaled by sqrt(N / (N - p))
-    for the p parameters fitted per coordinate (so that they estimate the noise, not less); None if
-    unfitted."""
-    n = len(xy)
+def _warp_residuals(xy: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (V, N, 2) of V planes' corners ``xy`` (target plane) against their pixels ``uv`` (each
+    (V, N, 2)) after a homography (normalised DLT) and a polynomial warp in image coordinates (the least
+    squares fit of numpy's lstsq: the residual's part outside the design's numerical range), scaled by
+    sqrt(N / (N - p)) for the p parameters fitted per coordinate (so that they estimate the noise, not
+    less); and which planes were fitted (V,)."""
+    V, n = xy.shape[:2]
     a, Ta = _normalised(xy)
     b, Tb = _normalised(uv)
-    one, zero = np.ones(n), np.zeros(n)
-    rows = np.concatenate([np.stack([a[:, 0], a[:, 1], one, zero, zero, zero, -b[:, 0] * a[:, 0], -b[:, 0] * a[:, 1],
-                                     -b[:, 0]], axis=1),
-                           np.stack([zero, zero, zero, a[:, 0], a[:, 1], one, -b[:, 1] * a[:, 0], -b[:, 1] * a[:, 1],
-                                     -b[:, 1]], axis=1)])
-    H = np.linalg.solve(Tb, np.linalg.svd(rows, full_matrices=False)[2][-1].reshape(3, 3) @ Ta)
-    w = xy @ H[2, :2] + H[2, 2]
-    if not (np.isfinite(H).all() and np.all(np.abs(w) > 1e-12)):
-        return None
-    r = uv - (xy @ H[:2, :2].T + H[:2, 2]) / w[:, None]
+    one, zero = np.ones((V, n)), np.zeros((V, n))
+    ax, ay, bx, by = a[..., 0], a[..., 1], b[..., 0], b[..., 1]
+    rows = np.concatenate([np.stack([ax, ay, one, zero, zero, zero, -bx * ax, -bx * ay, -bx], axis=2),
+                           np.stack([zero, zero, zero, ax, ay, one, -by * ax, -by * ay, -by], axis=2)], axis=1)
+    H = np.linalg.solve(Tb, np.linalg.svd(rows, full_matrices=False)[2][:, -1].reshape(V, 3, 3) @ Ta)
+    w = np.einsum("vnk,vk->vn", xy, H[:, 2, :2]) + H[:, 2, 2, None]
+    fitted = np.isfinite(H).all(axis=(1, 2)) & np.all(np.abs(w) > 1e-12, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = uv - (xy @ np.swapaxes(H[:, :2, :2], 1, 2) + H[:, None, :2, 2]) / w[..., None]
     degree = WARP_DEGREE
     while degree > 0 and (degree + 1) * (degree + 2) // 2 * CORNERS_PER_TERM > n:
         degree -= 1
     s = b / math.sqrt(2.0)
-    A = np.stack([s[:, 0] ** i * s[:, 1] ** j for i in range(degree + 1) for j in range(degree + 1 - i)], axis=1)
-    coef, *_ = np.linalg.lstsq(A, r, rcond=None)
-    p = A.shape[1] + 4  # the polynomial's terms and the homography's 8 / 2 per coordinate
-    return (r - A @ coef) * math.sqrt(n / (n - p)) if n > p else None
+    A = np.stack([s[..., 0] ** i * s[..., 1] ** j for i in range(degree + 1) for j in range(degree + 1 - i)], axis=2)
+    p = A.shape[2] + 4  # the polynomial's terms and the homography's 8 / 2 per coordinate
+    if n <= p:
+        return np.full((V, n, 2), np.nan), np.zeros(V, dtype=bool)
+    r = np.where(fitted[:, None, None], r, 0.0)
+    Q, sv, _ = np.linalg.svd(A, full_matrices=False)
+    rank = sv > np.finfo(float).eps * max(n, A.shape[2]) * sv[:, :1]  # lstsq's rcond
+    Q = Q * rank[:, None, :]
+    r = r - Q @ (np.swapaxes(Q, 1, 2) @ r)
+    return r * math.sqrt(n / (n - p)), fitted
 
 
 def floor_rmse_px(dataset) -> float | None:
     """The robust RMSE the corners allow (module docstring): every plane of up to ``MAX_FLOOR_VIEWS``
     calibration and stacking views (evenly picked) with >= ``MIN_PLANE_CORNERS`` corners fitted by its
-    own homography + polynomial warp; a 3D body's planes are its corners' distinct target z. None
-    when no plane was fitted."""
+    own homography + polynomial warp (planes of the same corner count at once); a 3D body's planes are its
+    corners' distinct target z. None when no plane was fitted."""
     from .init.zhang import object_points
 
-    residuals, planar = [], dataset.target.is_planar()
+    planar = dataset.target.is_planar()
     views = [o for o in dataset.observations if o.set in ("calibration", "stacking") and len(o.ids) >= MIN_PLANE_CORNERS]
     if len(views) > MAX_FLOOR_VIEWS:
         views = [views[i] for i in np.linspace(0, len(views) - 1, MAX_FLOOR_VIEWS).round().astype(int)]
+    by_size: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
     for o in views:
         X, uv = object_points(dataset.target, o.ids), np.asarray(o.pixels, float)
         planes = [slice(None)] if planar else [X[:, 2] == z for z in np.unique(X[:, 2])]
         for on in planes:
             if len(X[on]) >= MIN_PLANE_CORNERS:
-                r = _warp_residuals(X[on, :2], uv[on])
-                if r is not None:
-                    residuals.append(r)
+                by_size.setdefault(len(X[on]), []).append((X[on, :2], uv[on]))
+    residuals = []
+    for planes in by_size.values():
+        r, fitted = _warp_residuals(np.array([xy for xy, _ in planes]), np.array([uv for _, uv in planes]))
+        residuals += list(r[fitted])
     return robust_rmse_px(residuals) if residuals else None
 
 

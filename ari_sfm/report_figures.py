@@ -331,9 +331,9 @@ def draw_expansion_centre(calibration: Calibration, stacking: Mapping[str, Seque
         if len(lines) >= 2:
             ec = intersect_lines(lines)
             c = ec.center_px
-            for ln, ok in zip(lines, ec.inliers):
-                t = (c - ln.centroid) @ ln.direction
-                seg = ln.centroid + np.outer([0.0, t], ln.direction)
+            for centroid, direction, ok in zip(lines.centroid, lines.direction, ec.inliers):
+                t = (c - centroid) @ direction
+                seg = centroid + np.outer([0.0, t], direction)
                 ax.plot(seg[:, 0], seg[:, 1], "-", color="gold" if ok else "0.6", lw=0.4, alpha=0.7)
             ax.plot(*c, "o", color="tab:green", ms=7, label=f"measured ±{max(ec.std_px):.2f} px")
             xs.append(float(c[0]))

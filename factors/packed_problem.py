@@ -14,25 +14,27 @@ holds *the same problem*:
   the projection is the model's own batched kernel
   (:func:`ari_sfm.models.ari.ari_project`, :func:`ari_sfm.models.exact.exact_project`,
   one call per camera for all its corners, the plate thickness a per-corner
-  array when stacked plates differ), chained to the tangent spaces here;
+  array when stacked plates differ), chained to the tangent spaces by the compiled
+  :mod:`~ari_sfm.factors.view_kernels` (the one copy, the GTSAM factor's too);
   the per-corner Huber loss of :mod:`~ari_sfm.factors.robust` (the error its sum, the linear
   system IRLS-weighted, as view_residuals' rows and excess row), non-finite
   residuals replaced by 1e6, a camera beyond the window gives 1e6 and zero
   Jacobians; whitened by each factor's isotropic sigma (the pixel sigma).
 
-The normal equations are formed per view with one batched matmul of the
-padded view Jacobians ``[J_frame J_global r]`` and solved by
-:mod:`~ari_sfm.factors.schur`; :mod:`~ari_sfm.factors.levenberg_marquardt`
+The normal equations are formed per camera in one compiled pass
+(:func:`~ari_sfm.factors.view_kernels.accumulate_views`: the chain rule and each view's
+``A^T A`` of its rows ``[J_frame J_global r]``) and solved by :mod:`~ari_sfm.factors.schur`; :mod:`~ari_sfm.factors.levenberg_marquardt`
 drives the iterations (this class is its :class:`LMProblem`); factors a user
 added to the graph join through :mod:`~ari_sfm.factors.extra_factors`.
 
-There is deliberately no builder that skips the GTSAM graph: RigGraph.build
-costs ~60 us per view (2 % of the numpy optimisation at 16 cameras x 500
-frames), the graph stays the researcher's API (priors, gtsam.Marginals), and a
-second copy of the view selection would drift from RigGraph.build.
+It is built from what RigGraph.build selected (:meth:`RigGraph.packed_factors`: each view's
+data, keys and sigma, and the other factors), without making the GTSAM view factors the numpy
+backend never calls (RigGraph makes its graph on first access, e.g. a researcher's
+``rg.graph.push_back``; then the graph is read).
 """
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass, replace
 from typing import Sequence
@@ -51,7 +53,8 @@ from .marginals import CovarianceTable, covariances_by_key
 from .robust import huber_irls, huber_residual_scale, huber_view_residual
 from .schur import NormalEquations, model_decrease, solve_damped
 from .variables import MODELS, GraphLike, RigState, Variables
-from .view_factor import ViewData, ViewKeys, chain_to_tangents
+from .view_factor import ViewData, ViewKeys, camera_terms
+from .view_kernels import accumulate_views, chain_rows, transform_points
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +73,18 @@ class _Group:
     base_params: np.ndarray  # (9,); the first n_params come from the variables
     start: int
     stop: int
+
+
+@dataclass(frozen=True)
+class _CameraModel:
+    """The model at one camera's corners: camera-frame points and pixels, with Jacobians the model's derivatives."""
+
+    X: np.ndarray  # (m, 3)
+    uv: np.ndarray  # (m, 2)
+    J_point: np.ndarray | None = None  # (m, 2, 3)
+    J_normal: np.ndarray | None = None  # (m, 2, 3)
+    J_params: np.ndarray | None = None  # (m, 2, n_params)
+    J_distance: np.ndarray | None = None  # (m, 2)
 
 
 @dataclass
@@ -107,10 +122,9 @@ class VectorizedProblem:
         model: str,
         huber_px: float | None,
         extra_factors: Sequence[gtsam.NonlinearFactor] = (),
-        graph_index: Sequence[int] | None = None,
     ) -> None:
         """``views``: (ViewData, ViewKeys, sigma_px) per view factor; ``observations``: (camera, obs) per
-        view factor; ``graph_index``: each view factor's index in its gtsam graph (for checks)."""
+        view factor."""
         if model not in MODELS:
             raise ValueError(f"unknown model {model!r} (known: {', '.join(MODELS)})")
         self.model = model
@@ -125,9 +139,9 @@ class VectorizedProblem:
         self.x = variables
         self.iterations = 0
         self.report: LMReport | None = None
-        self.graph_index = np.arange(len(views)) if graph_index is None else np.asarray(graph_index, dtype=np.int64)
         self._error_cache: tuple[Variables, float] | None = None
         self._system_cache: tuple[Variables, NormalEquations] | None = None  # optimize's last linearisation, if at self.x
+        self._transforms_cache: tuple[Variables, _Transforms] | None = None
         self._pack(views)
         self._extra = ExtraFactors(self, extra_factors)
 
@@ -141,13 +155,7 @@ class VectorizedProblem:
         views (one per camera and plate, and the worst ones) are compared with
         the graph's own factors and a mismatch raises ValueError.
         """
-        view_factor_index = rg.view_factor_indices()  # priors and user factors may sit among them
-        views = []
-        for i, (data, vkeys) in zip(view_factor_index, rg.factor_data):
-            sigmas = np.asarray(rg.graph.at(i).noiseModel().sigmas())
-            if np.ptp(sigmas) != 0.0:
-                raise ValueError(f"view factor {i} has a non-isotropic noise model")
-            views.append((data, vkeys, float(sigmas[0])))
+        views, extra = rg.packed_factors()
         v = rg.values
         C, F = len(rg.camera_names), len(rg.frame_names)
         R_wc, t_wc = np.tile(np.eye(3), (C, 1, 1)), np.zeros((C, 3))
@@ -161,9 +169,8 @@ class VectorizedProblem:
         distance = float(v.atVector(K_.H)[0]) if rg.estimate_distance else rg.base_state.distance_mm
         variables = Variables(np.array([v.atVector(K_.K(c)) for c in range(C)], float).reshape(C, rg.n_params),
                               R_wc, t_wc, v.atUnit3(K_.N), R_wt, t_wt, distance)
-        extra = [rg.graph.at(i) for i in sorted(set(range(rg.graph.size())) - set(view_factor_index))]
         problem = VectorizedProblem(views, rg.factor_views, variables, rg.camera_names, rg.frame_names, rg.n_params,
-                                    rg.base_state, rg.estimate_distance, rg.model, huber_px, extra, view_factor_index)
+                                    rg.base_state, rg.estimate_distance, rg.model, huber_px, extra)
         if check:
             problem._check_against(rg)
         return problem
@@ -210,20 +217,9 @@ class VectorizedProblem:
                 base = np.asarray(entries[first][4].base_params, float).copy()
                 self.groups.append(_Group(c, d, n, nm, base, int(self.view_start[first]), int(self.view_start[k])))
                 first = k
-        # camera slices of views and corners; padded slots for the per-view batched products
+        # camera slices of views and corners
         self.camera_views = np.searchsorted(self.view_camera, np.arange(C + 1))
         self.camera_corners = self.view_start[self.camera_views]
-        self.camera_max_corners = np.zeros(C, dtype=np.int64)
-        self.corner_slot = np.empty(M, dtype=np.int64)
-        for c in range(C):
-            vs, ve = self.camera_views[c], self.camera_views[c + 1]
-            if ve == vs:
-                continue
-            mx = int(sizes[vs:ve].max())
-            self.camera_max_corners[c] = mx
-            for_view = np.repeat(np.arange(ve - vs) * mx - self.view_start[vs:ve] + self.view_start[vs], sizes[vs:ve])
-            s, e = self.camera_corners[c], self.camera_corners[c + 1]
-            self.corner_slot[s:e] = np.arange(s, e) - self.view_start[vs] + for_view
         # global tangent layout: per camera [intrinsics, pose] (camera 0's pose fixed: zero columns), normal, distance
         self.camera_block = n_p + 6
         self.normal_col = C * self.camera_block
@@ -234,6 +230,9 @@ class VectorizedProblem:
         self.camera_cols = [np.concatenate([c * self.camera_block + np.arange(self.camera_block),
                                             tail_cols]).astype(np.int64) for c in range(C)]
         self.fixed_cols = np.arange(n_p, n_p + 6)  # camera 0's pose
+        # the columns of each camera's rows in linearize (camera 0's without its pose)
+        self.camera_row_cols = [cols if c > 0 else np.delete(cols, np.arange(n_p, n_p + 6))
+                                for c, cols in enumerate(self.camera_cols)]
         # one kernel call per camera (or per group when a camera's groups differ in more than the thickness)
         self.corner_thickness = np.empty(M)
         self._camera_runs: list[list[_Group]] = []
@@ -247,6 +246,16 @@ class VectorizedProblem:
 
     # ------------------------------------------------------------------ evaluation
     def _transforms(self, x: Variables) -> _Transforms:
+        """The per-view and per-camera quantities of x (the last x's kept: LM evaluates the error at a
+        trial step, then linearises there)."""
+        cached = self._transforms_cache
+        if cached is not None and cached[0] is x:
+            return cached[1]
+        tr = self._compute_transforms(x)
+        self._transforms_cache = (x, tr)
+        return tr
+
+    def _compute_transforms(self, x: Variables) -> _Transforms:
         R_cw = np.swapaxes(x.world_R_cam, 1, 2)
         vc, vf = self.view_camera, self.view_frame
         R_ct = R_cw[vc] @ x.world_R_target[vf]
@@ -256,109 +265,109 @@ class VectorizedProblem:
         h_c = None if x.distance_mm is None else x.distance_mm - x.world_t_cam @ n_w
         return _Transforms(R_ct, t_ct, R_cw, n_w, n_c, np.asarray(x.normal.basis(), float), h_c)
 
-    def _camera_eval(self, x: Variables, tr: _Transforms, c: int, jacobians: bool,
-                     huber_px: float | None, whiten: bool = False) -> np.ndarray:
-        """Camera c's corners (whitened by the factors' sigmas with ``whiten``).
-
-        Without ``jacobians``: the residuals (m, 2) (Huber: s r, so 0.5 |.|^2 is the loss: what
-        error() sums; view_residuals' factor holds sqrt(w) r and the excess row instead). With: one array (m, 2, 6 + local_dim + 1) holding [J_frame | J_global
-        (camera-local columns) | residual] per corner row, Huber as IRLS (residual and Jacobian times
-        sqrt(w), :func:`~ari_sfm.factors.robust.huber_irls`), and the error's excess over the rows'
-        0.5 r^T r (a float, 0 without Huber).
-        """
+    def _camera_model(self, x: Variables, tr: _Transforms, c: int, jacobians: bool) -> _CameraModel | None:
+        """The model at camera c's corners (one kernel call per run of its plates); None when the camera is
+        beyond the window (h <= 0: an LM trial put it there)."""
         s, e = int(self.camera_corners[c]), int(self.camera_corners[c + 1])
-        m, n_p, L = e - s, self.n_params, self.local_dim
-        cv = self.corner_view[s:e]
-        P = self.points[s:e]
+        m, n_p = e - s, self.n_params
         h = None if tr.distance_cam is None else float(tr.distance_cam[c])
-        if h is not None and h <= 0.0:  # an LM trial put the camera beyond the window: 1e6, zero Jacobians
-            if not jacobians:
-                return np.full((m, 2), INVALID_RESIDUAL)
-            out = np.zeros((m, 2, 6 + L + 1))
-            out[:, :, -1] = INVALID_RESIDUAL
-            return out, 0.0
+        if h is not None and h <= 0.0:
+            return None
         vs, ve = int(self.camera_views[c]), int(self.camera_views[c + 1])
-        R_v = tr.R_cam_target[vs:ve]  # (nv, 3, 3), one per view of camera c
-        X = self._per_view(c, P, np.swapaxes(R_v, 1, 2), tr.t_cam_target[vs:ve])  # R_ct P + t_ct
+        X = transform_points(self.points[s:e], tr.R_cam_target[vs:ve], tr.t_cam_target[vs:ve],
+                             self.view_start[vs:ve + 1] - s)
         kernel = _KERNELS[self.model]
         runs = self._camera_runs[c]
-        if jacobians:
-            out = np.zeros((m, 2, 6 + L + 1))
-            Jg = out[:, :, 6:6 + L]
         if len(runs) == 1:  # the usual case: every plate of the camera in one call
             params = runs[0].base_params.copy()
             params[:n_p] = x.intrinsics[c]
             J = kernel(X, params, tr.normal_cam[c], self.corner_thickness[s:e], runs[0].index,
                        runs[0].medium_index, h, jacobians, n_p)
-            uv = J.uv
+            if not jacobians:
+                return _CameraModel(X, J.uv)
+            return _CameraModel(X, J.uv, J.J_point, J.J_normal, J.J_params, np.ascontiguousarray(J.J_distance))
+        uv = np.empty((m, 2))
+        if jacobians:
+            Jp, Jn, Jpar, Jd = np.empty((m, 2, 3)), np.empty((m, 2, 3)), np.empty((m, 2, n_p)), np.empty((m, 2))
+        for g in runs:
+            a, b = g.start - s, g.stop - s
+            params = g.base_params.copy()
+            params[:n_p] = x.intrinsics[c]
+            J = kernel(X[a:b], params, tr.normal_cam[c], self.corner_thickness[g.start:g.stop],
+                       g.index, g.medium_index, h, jacobians, n_p)
+            uv[a:b] = J.uv
             if jacobians:
-                Jp, Jn, Jg[:, :, :n_p], Jd = J.J_point, J.J_normal, J.J_params, J.J_distance
-        else:
-            uv = np.empty((m, 2))
-            if jacobians:
-                Jp, Jn, Jd = np.empty((m, 2, 3)), np.empty((m, 2, 3)), np.empty((m, 2))
-            for g in runs:
-                a, b = g.start - s, g.stop - s
-                params = g.base_params.copy()
-                params[:n_p] = x.intrinsics[c]
-                J = kernel(X[a:b], params, tr.normal_cam[c], self.corner_thickness[g.start:g.stop],
-                           g.index, g.medium_index, h, jacobians, n_p)
-                uv[a:b] = J.uv
-                if jacobians:
-                    Jp[a:b], Jn[a:b], Jg[a:b, :, :n_p], Jd[a:b] = J.J_point, J.J_normal, J.J_params, J.J_distance
-        r = uv - self.measured[s:e]
-        inv_sigma = self.corner_inv_sigma[s:e] if whiten and not self.unit_sigma else None
-        dist = None
+                Jp[a:b], Jn[a:b], Jpar[a:b], Jd[a:b] = J.J_point, J.J_normal, J.J_params, J.J_distance
+        return _CameraModel(X, uv) if not jacobians else _CameraModel(X, uv, Jp, Jn, Jpar, Jd)
+
+    def _camera_residuals(self, x: Variables, tr: _Transforms, c: int, huber_px: float | None,
+                          whiten: bool = False) -> np.ndarray:
+        """Camera c's residuals (m, 2), whitened by the factors' sigmas with ``whiten``; Huber: s r, so
+        that 0.5 |.|^2 is the loss (what error() sums; view_residuals' factor holds sqrt(w) r and the
+        excess row instead). A corner behind the window gives 1e6, a camera beyond it 1e6 everywhere."""
+        s, e = int(self.camera_corners[c]), int(self.camera_corners[c + 1])
+        model = self._camera_model(x, tr, c, False)
+        if model is None:
+            return np.full((e - s, 2), INVALID_RESIDUAL)
+        r = model.uv - self.measured[s:e]
         if huber_px is not None:
             rx, ry = r[:, 0], r[:, 1]
             dist = np.sqrt(rx * rx + ry * ry)  # np.linalg.norm(r, axis=1)'s arithmetic, 5x faster
-        if not jacobians:
-            res = r if dist is None else r * huber_residual_scale(dist, huber_px)[:, None]  # 0.5 |.|^2 = rho
-            if not np.isfinite(res.sum()):  # (the sum: one fast check)
-                res[~np.isfinite(res)] = INVALID_RESIDUAL  # a point fell behind the window
-            return res if inv_sigma is None else res * inv_sigma[:, None]
+            r = r * huber_residual_scale(dist, huber_px)[:, None]  # 0.5 |.|^2 = rho
+        if not np.isfinite(r.sum()):  # (the sum: one fast check)
+            r[~np.isfinite(r)] = INVALID_RESIDUAL  # a point fell behind the window
+        return r * self.corner_inv_sigma[s:e, None] if whiten and not self.unit_sigma else r
+
+    def _camera_weights(self, model: _CameraModel, c: int, huber_px: float | None, whiten: bool
+                        ) -> tuple[np.ndarray, np.ndarray, float]:
+        """(each corner's Jacobian scale sqrt(w) / sigma (m,), the scaled residuals (m, 2), the error's
+        excess over their 0.5 r^T r): Huber as IRLS (:func:`~ari_sfm.factors.robust.huber_irls`), a corner
+        behind the window at 1e6 (whitened)."""
+        s, e = int(self.camera_corners[c]), int(self.camera_corners[c + 1])
+        r = model.uv - self.measured[s:e]
+        inv_sigma = self.corner_inv_sigma[s:e] if whiten and not self.unit_sigma else None
         excess = 0.0
-        if dist is None:
-            scale = np.ones(m)
+        if huber_px is None:
+            scale = np.ones(e - s)
         else:
+            rx, ry = r[:, 0], r[:, 1]
+            dist = np.sqrt(rx * rx + ry * ry)
             scale, extra = huber_irls(dist, huber_px)
             ok = np.isfinite(dist)  # a corner behind the window counts as its 1e6 residual
             excess = float(np.sum(extra[ok] if inv_sigma is None else extra[ok] * inv_sigma[ok] ** 2))
-        # the Jacobians unscaled; every column (and the residual) times sqrt(w) once at the end
-        out[:, :, -1] = r
-        R_wc = x.world_R_cam[c] if c > 0 else None  # camera 0 is the world: no pose columns
-        JA = self._per_view(c, Jp, R_v)  # d uv / d t of the target pose: J_point R_cam_target
-        chain_to_tangents(out, n_p, Jp, Jn, Jd, X, P, JA, tr.normal_world, tr.basis, R_wc, x.world_t_cam[c],
-                          self.estimate_distance)
-        out *= (scale if inv_sigma is None else scale * inv_sigma)[:, None, None]
-        res = out[:, :, -1]
+        if inv_sigma is not None:
+            scale = scale * inv_sigma
+        res = r * scale[:, None]
         bad = ~np.isfinite(res)
         if bad.any():  # a point fell behind the window
             res[bad] = INVALID_RESIDUAL * (self.corner_inv_sigma[s:e, None].repeat(2, 1)[bad] if whiten else 1.0)
-        if not np.isfinite(out.sum()) and not np.all(np.isfinite(out[:, :, :-1])):  # (the sum: one fast check)
-            bad_rows = ~np.isfinite(out[:, :, :-1]).all(axis=(1, 2))
-            factors = np.unique(self.view_order[cv[bad_rows]])[:10].tolist()
-            raise RuntimeError(f"non-finite Jacobian entries in factor(s) {factors} "
-                               "(a corner behind the window at the linearisation point)")
-        return out, excess
+        return scale, res, excess
 
-    def _per_view(self, c: int, A: np.ndarray, M: np.ndarray, offset: np.ndarray | None = None) -> np.ndarray:
-        """Each corner's rows A (m, ..., 3) of camera c times its view's matrix M (nv, 3, k), plus its view's
-        offset (nv, k) if given: one batched matmul over the views (padded when their corner counts differ)."""
+    def _camera_terms(self, x: Variables, tr: _Transforms, c: int) -> tuple:
+        """The chain rule's per-camera arguments (:func:`~ari_sfm.factors.view_factor.camera_terms`, then
+        whether the camera has a pose and the window distance is estimated)."""
+        R_wc = x.world_R_cam[c] if c > 0 else None  # camera 0 is the world: no pose columns
+        return camera_terms(tr.normal_world, tr.basis, R_wc, x.world_t_cam[c]) + (c > 0, self.estimate_distance)
+
+    def _camera_rows(self, x: Variables, tr: _Transforms, c: int, huber_px: float | None) -> np.ndarray:
+        """Camera c's rows (m, 2, 6 + local_dim + 1): [J_frame | J_global (camera-local columns) | residual],
+        Huber as IRLS (rows times sqrt(w)), not whitened; the excess row left out. For evaluate_views:
+        linearize forms the same rows inside :func:`~ari_sfm.factors.view_kernels.accumulate_views`."""
         s, e = int(self.camera_corners[c]), int(self.camera_corners[c + 1])
-        nv, mx = int(self.camera_views[c + 1] - self.camera_views[c]), int(self.camera_max_corners[c])
-        inner = A.shape[1:-1]
-        if nv * mx == e - s:
-            out = A.reshape(nv, -1, 3) @ M
-        else:
-            slot = self.corner_slot[s:e]
-            pad = np.zeros((nv * mx,) + A.shape[1:])
-            pad[slot] = A
-            out = pad.reshape(nv, -1, 3) @ M
-        if offset is not None:
-            out += offset[:, None, :]
-        out = out.reshape((-1,) + inner + (M.shape[-1],))
-        return out if nv * mx == e - s else out[slot]
+        m, n_p, L = e - s, self.n_params, self.local_dim
+        out = np.zeros((m, 2, 6 + L + 1))
+        model = self._camera_model(x, tr, c, True)
+        if model is None:
+            out[:, :, -1] = INVALID_RESIDUAL
+            return out
+        vs, ve = int(self.camera_views[c]), int(self.camera_views[c + 1])
+        chain_rows(model.J_point, model.J_normal, model.J_distance, model.X, self.points[s:e],
+                   tr.R_cam_target[vs:ve], self.view_start[vs:ve + 1] - s, *self._camera_terms(x, tr, c), n_p, out)
+        out[:, :, 6:6 + n_p] = model.J_params
+        scale, res, _ = self._camera_weights(model, c, huber_px, whiten=False)
+        out[:, :, :-1] *= scale[:, None, None]
+        out[:, :, -1] = res
+        return out
 
     def error(self, x: Variables | None = None) -> float:
         """GTSAM's graph error at x (default: the current values): 0.5 * sum of whitened squared residuals."""
@@ -368,13 +377,15 @@ class VectorizedProblem:
         for c in range(len(self.camera_names)):
             if self.camera_corners[c + 1] == self.camera_corners[c]:
                 continue
-            rw = self._camera_eval(x, tr, c, False, self.huber_px, whiten=True)
+            rw = self._camera_residuals(x, tr, c, self.huber_px, whiten=True)
             total += 0.5 * float(np.einsum("ij,ij->", rw, rw))
         return total + self._extra.error(x)
 
     def linearize(self, x: Variables) -> NormalEquations:
-        """The whitened normal equations at x (views and user factors)."""
-        C, F, G, K = len(self.camera_names), len(self.frame_names), self.n_global, 6 + self.local_dim
+        """The whitened normal equations at x (views and user factors): per camera, the model's derivatives
+        chained to the tangent spaces and each view's A^T A added in one compiled pass
+        (:func:`~ari_sfm.factors.view_kernels.accumulate_views`)."""
+        C, F, G = len(self.camera_names), len(self.frame_names), self.n_global
         tr = self._transforms(x)
         V, g_f = np.zeros((F, 6, 6)), np.zeros((F, 6))
         W, U, g_g = np.zeros((F, 6, G)), np.zeros((G, G)), np.zeros(G)
@@ -383,27 +394,22 @@ class VectorizedProblem:
             s, e = int(self.camera_corners[c]), int(self.camera_corners[c + 1])
             if e == s:
                 continue
-            vs, ve = int(self.camera_views[c]), int(self.camera_views[c + 1])
-            nv, mx = ve - vs, int(self.camera_max_corners[c])
-            out, excess = self._camera_eval(x, tr, c, True, self.huber_px, whiten=True)
+            model = self._camera_model(x, tr, c, True)
+            if model is None:  # the camera beyond the window: residuals 1e6, Jacobians zero
+                err2 += 2 * (e - s) * INVALID_RESIDUAL ** 2
+                continue
+            scale, res, excess = self._camera_weights(model, c, self.huber_px, whiten=True)
             err_excess += excess
-            if nv * mx == e - s:  # every view has the same number of corners: no padding
-                A = out.reshape(nv, 2 * mx, K + 1)
-            else:
-                A = np.zeros((nv * mx, 2, K + 1))
-                A[self.corner_slot[s:e]] = out
-                A = A.reshape(nv, 2 * mx, K + 1)
-            Hv = np.matmul(np.swapaxes(A, 1, 2), A)  # (nv, K+1, K+1): [H g; g^T r^T r] per view
-            fr = self.view_frame[vs:ve]
-            np.add.at(V, fr, Hv[:, :6, :6])
-            np.add.at(g_f, fr, Hv[:, :6, K])
-            Wc = np.zeros((F, 6, self.local_dim))
-            np.add.at(Wc, fr, Hv[:, :6, 6:K])
-            cols = self.camera_cols[c]
-            W[:, :, cols] += Wc
-            U[np.ix_(cols, cols)] += Hv[:, 6:K, 6:K].sum(axis=0)
-            g_g[cols] += Hv[:, 6:K, K].sum(axis=0)
-            err2 += float(Hv[:, K, K].sum())
+            vs, ve = int(self.camera_views[c]), int(self.camera_views[c + 1])
+            bad = np.zeros(e - s, dtype=np.bool_)
+            err2 += accumulate_views(model.J_point, model.J_normal, model.J_distance, model.J_params, model.X,
+                                     self.points[s:e], tr.R_cam_target[vs:ve], self.view_start[vs:ve + 1] - s,
+                                     self.view_frame[vs:ve], *self._camera_terms(x, tr, c), scale, res,
+                                     self.camera_row_cols[c], V, g_f, W, U, g_g, bad)
+            if bad.any():
+                factors = np.unique(self.view_order[self.corner_view[s:e][bad]])[:10].tolist()
+                raise RuntimeError(f"non-finite Jacobian entries in factor(s) {factors} "
+                                   "(a corner behind the window at the linearisation point)")
         system = NormalEquations(V, g_f, W, U, g_g, 0.5 * err2 + err_excess)
         self._extra.add_to(system, x)
         return system
@@ -480,7 +486,7 @@ class VectorizedProblem:
         for c in range(len(self.camera_names)):
             s, e = self.camera_corners[c], self.camera_corners[c + 1]
             if e > s:
-                res[s:e] = self._camera_eval(x, tr, c, False, huber_px)
+                res[s:e] = self._camera_residuals(x, tr, c, huber_px)
         return res
 
     def evaluate_views(self, x: Variables | None = None) -> list[tuple[np.ndarray, list[np.ndarray]]]:
@@ -496,9 +502,9 @@ class VectorizedProblem:
             s = int(self.camera_corners[c])
             if self.camera_corners[c + 1] == s:
                 continue
-            full, _ = self._camera_eval(x, tr, c, True, self.huber_px)  # rows times sqrt(w)
+            full = self._camera_rows(x, tr, c, self.huber_px)  # rows times sqrt(w)
             res, Jf, Jg = full[:, :, -1], full[:, :, :6], full[:, :, 6:-1]
-            raw = self._camera_eval(x, tr, c, False, None)
+            raw = self._camera_residuals(x, tr, c, None)
             for k in range(self.camera_views[c], self.camera_views[c + 1]):
                 a, b = self.view_start[k] - s, self.view_start[k + 1] - s
                 m2 = 2 * (b - a)
@@ -558,7 +564,7 @@ class VectorizedProblem:
             if self.huber_px is not None and np.any(np.abs(r) >= INVALID_RESIDUAL):
                 continue  # a corner behind the window: 1e6 here, its weighted row there
             mine = r.reshape(-1) if self.huber_px is None else huber_view_residual(r, self.huber_px)[0]
-            theirs = np.asarray(rg.graph.at(int(self.graph_index[self.view_order[k]])).unwhitenedError(rg.values))
+            theirs = np.asarray(rg.view_factor_at(int(self.view_order[k])).unwhitenedError(rg.values))
             if mine.shape != theirs.shape or not np.allclose(mine, theirs, rtol=1e-9, atol=1e-9):
                 size = (f"{theirs.size} rows, not {mine.size}" if mine.shape != theirs.shape
                         else f"max {np.max(np.abs(mine - theirs)):.3g}")
@@ -566,6 +572,7 @@ class VectorizedProblem:
                                  f"({size}); was the graph built with huber_px={self.huber_px}?")
 
 
+@functools.lru_cache(maxsize=4096)  # a rig's few keys, looked up once per view and packing
 def _index(key: int, expected: str) -> int:
     sym = gtsam.Symbol(key)
     if chr(sym.chr()) != expected:

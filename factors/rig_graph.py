@@ -110,9 +110,14 @@ def initial_state(dataset, rig, model: str = "ari", fix_intrinsics: bool = False
 
 @dataclass
 class RigGraph:
-    """A factor graph with its initial values and the bookkeeping to read them back."""
+    """A factor graph with its initial values and the bookkeeping to read them back.
 
-    graph: gtsam.NonlinearFactorGraph
+    Its gtsam graph (:attr:`graph`: the view factors and every other factor, in the order added) is
+    made on first access: the numpy backend packs the views' data (:attr:`factor_data`) and the other
+    factors (:attr:`other_factors`) without it. Factors pushed onto :attr:`graph` join as before;
+    :meth:`add_factor` adds one without making the graph.
+    """
+
     values: gtsam.Values
     camera_names: list[str]
     frame_names: list[str]
@@ -125,6 +130,53 @@ class RigGraph:
     iterations: int = 0
     sigma_px: float = 1.0  # the view factors' isotropic pixel sigma (per coordinate)
     huber_px: float | None = None  # the view factors' per-corner Huber threshold (px)
+    other_factors: list[gtsam.NonlinearFactor] = field(default_factory=list)  # priors, the plane, the user's
+    views_at: int = 0  # the view factors' place among other_factors (the ones before them: build's priors, plane)
+    built_graph: gtsam.NonlinearFactorGraph | None = field(default=None, repr=False)  # once made: the graph
+
+    @property
+    def graph(self) -> gtsam.NonlinearFactorGraph:
+        """The gtsam graph (made on first access; from then on it holds every factor)."""
+        if self.built_graph is None:
+            graph = gtsam.NonlinearFactorGraph()
+            for f in self.other_factors[:self.views_at]:
+                graph.push_back(f)
+            for k in range(len(self.factor_data)):
+                graph.push_back(self.view_factor_at(k))
+            for f in self.other_factors[self.views_at:]:
+                graph.push_back(f)
+            self.built_graph = graph
+        return self.built_graph
+
+    def add_factor(self, factor: gtsam.NonlinearFactor) -> None:
+        """Add a factor (a prior, the user's) after those already there."""
+        if self.built_graph is None:
+            self.other_factors.append(factor)
+        else:
+            self.built_graph.push_back(factor)
+
+    def view_factor_at(self, k: int) -> gtsam.CustomFactor:
+        """The k-th view's factor (factor_data order): the graph's once made, else a new one."""
+        if self.built_graph is not None:
+            return self.built_graph.at(self.view_factor_indices()[k])
+        data, vkeys = self.factor_data[k]
+        return view_factor(MODELS[self.model], data, vkeys, self.sigma_px, self.huber_px)
+
+    def packed_factors(self) -> tuple[list[tuple[ViewData, ViewKeys, float]], list[gtsam.NonlinearFactor]]:
+        """What the numpy backend packs: (data, keys, isotropic pixel sigma) per view and the other factors;
+        read from the graph once made (ValueError for a view factor with a non-isotropic noise model)."""
+        if self.built_graph is None:
+            return [(data, vkeys, self.sigma_px) for data, vkeys in self.factor_data], list(self.other_factors)
+        index = self.view_factor_indices()  # priors and user factors may sit among them
+        views = []
+        for i, (data, vkeys) in zip(index, self.factor_data):
+            sigmas = np.asarray(self.built_graph.at(i).noiseModel().sigmas())
+            if np.ptp(sigmas) != 0.0:
+                raise ValueError(f"view factor {i} has a non-isotropic noise model")
+            views.append((data, vkeys, float(sigmas[0])))
+        views_set = set(index)
+        other = [self.built_graph.at(i) for i in range(self.built_graph.size()) if i not in views_set]
+        return views, other
 
     @staticmethod
     def build(
@@ -152,7 +204,6 @@ class RigGraph:
         the declared window (:mod:`ari_sfm.factors.window_plane`), its frame one of the state's."""
         if not (np.isfinite(sigma_px) and sigma_px > 0.0):
             raise ValueError(f"sigma_px must be a positive pixel sigma, got {sigma_px}")
-        factory = MODELS[model]
         names = list(camera_names)
         world = state.cam_from_world[names[0]]
         if not (np.allclose(world.R, np.eye(3), rtol=0.0, atol=1e-9) and np.allclose(world.t, 0.0, rtol=0.0, atol=1e-9)):
@@ -161,7 +212,8 @@ class RigGraph:
         frames = sorted(state.world_from_target)
         frame_index = {f: i for i, f in enumerate(frames)}
         n_params = 9 if distortion else 4
-        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        other: list[gtsam.NonlinearFactor] = []
+        values = gtsam.Values()
         for c, name in enumerate(names):
             values.insert(K_.K(c), np.asarray(state.params[name][:n_params], float))
             if c > 0:
@@ -173,22 +225,22 @@ class RigGraph:
             values.insert(K_.H, np.array([float(state.distance_mm)]))
         for name in fixed_intrinsics:  # known K: a prior far tighter than anything the images say
             c = names.index(name)
-            graph.push_back(gtsam.PriorFactorVector(K_.K(c), np.asarray(state.params[name][:n_params], float),
-                                                    gtsam.noiseModel.Isotropic.Sigma(n_params, 1e-4)))
+            other.append(gtsam.PriorFactorVector(K_.K(c), np.asarray(state.params[name][:n_params], float),
+                                                 gtsam.noiseModel.Isotropic.Sigma(n_params, 1e-4)))
         for name, focal in (fixed_focal_px or {}).items():  # fx = fy = focal, the rest free
             c = names.index(name)
             prior = np.asarray(state.params[name][:n_params], float).copy()
             prior[:2] = focal
             sigmas = np.full(n_params, 1e6)
             sigmas[:2] = 1e-4
-            graph.push_back(gtsam.PriorFactorVector(K_.K(c), prior, gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
+            other.append(gtsam.PriorFactorVector(K_.K(c), prior, gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
         if window_plane is not None:
             from .window_plane import window_plane_factor
 
-            graph.push_back(window_plane_factor(window_plane, frame_index[window_plane.frame], estimate_distance))
+            other.append(window_plane_factor(window_plane, frame_index[window_plane.frame], estimate_distance))
         from ..init.zhang import object_points
-        rg = RigGraph(graph, values, names, frames, n_params, state, estimate_distance, model=model,
-                      sigma_px=float(sigma_px), huber_px=huber_px)
+        rg = RigGraph(values, names, frames, n_params, state, estimate_distance, model=model,
+                      sigma_px=float(sigma_px), huber_px=huber_px, other_factors=other, views_at=len(other))
         for obs in observations:
             if obs.set not in ("calibration", "stacking") or obs.frame not in frame_index or obs.camera not in names:
                 continue
@@ -204,7 +256,6 @@ class RigGraph:
                 K_.K(c), K_.X(frame_index[obs.frame]), K_.N, K_.C(c) if c > 0 else None,
                 K_.H if estimate_distance else None, state.distance_mm,
             )
-            graph.push_back(view_factor(factory, data, vkeys, sigma_px, huber_px))
             rg.factor_views.append((obs.camera, obs))
             rg.factor_data.append((data, vkeys))
         return rg
@@ -245,27 +296,32 @@ class RigGraph:
         """The same graph (values, added factors) with its view factors whitened by ``sigma_px`` instead."""
         if not (np.isfinite(sigma_px) and sigma_px > 0.0):
             raise ValueError(f"sigma_px must be a positive pixel sigma, got {sigma_px}")
-        factory = MODELS[self.model]
-        views = {id(d): view_factor(factory, d, k, sigma_px, self.huber_px) for d, k in self.factor_data}
-        view_index = self.view_factor_indices()
+        copy = replace(self, values=gtsam.Values(self.values), sigma_px=float(sigma_px),
+                       factor_views=list(self.factor_views), factor_data=list(self.factor_data),
+                       other_factors=list(self.other_factors), built_graph=None)
+        if self.built_graph is None:
+            return copy
+        views = set(self.view_factor_indices())
         graph = gtsam.NonlinearFactorGraph()
         k = 0
-        for i in range(self.graph.size()):
-            if k < len(view_index) and i == view_index[k]:
-                graph.push_back(views[id(self.factor_data[k][0])])
+        for i in range(self.built_graph.size()):
+            if i in views:
+                graph.push_back(copy.view_factor_at(k))
                 k += 1
             else:
-                graph.push_back(self.graph.at(i))
-        return replace(self, graph=graph, values=gtsam.Values(self.values), sigma_px=float(sigma_px),
-                       factor_views=list(self.factor_views), factor_data=list(self.factor_data))
+                graph.push_back(self.built_graph.at(i))
+        copy.built_graph = graph
+        return copy
 
     def view_factor_indices(self) -> list[int]:
         """The graph indices of the view factors, in factor_data order (other factors may sit among them)."""
+        if self.built_graph is None:
+            return list(range(self.views_at, self.views_at + len(self.factor_data)))
         out, k = [], 0
-        for i in range(self.graph.size()):
-            if k < len(self.factor_data) and isinstance(self.graph.at(i), gtsam.CustomFactor):
+        for i in range(self.built_graph.size()):
+            if k < len(self.factor_data) and isinstance(self.built_graph.at(i), gtsam.CustomFactor):
                 data, vkeys = self.factor_data[k]
-                f = self.graph.at(i)
+                f = self.built_graph.at(i)
                 rows = 2 * len(data.points_target) + (self.huber_px is not None)  # Huber: the excess row
                 if list(f.keys()) == factor_keys(vkeys) and f.dim() == rows:
                     out.append(i)
@@ -316,7 +372,7 @@ def estimate_sigma_px(rg: RigGraph) -> float:
     from ..outliers import robust_sigma_px
 
     copy = replace(rg, values=gtsam.Values(rg.values), factor_views=list(rg.factor_views),
-                   factor_data=list(rg.factor_data))
+                   factor_data=list(rg.factor_data), other_factors=list(rg.other_factors))
     _, solved = optimize_graph(copy, "auto", huber_px=rg.huber_px, return_problem=True, check=False)
     residuals = solved.residuals() if solved is not None else copy.residuals()
     return robust_sigma_px(r for _, r in residuals)

@@ -59,7 +59,6 @@ class Variables:
 class GraphLike(Protocol):
     """What the numpy backend reads of a :class:`~ari_sfm.factors.rig_graph.RigGraph`."""
 
-    graph: gtsam.NonlinearFactorGraph
     values: gtsam.Values
     camera_names: list[str]
     frame_names: list[str]
@@ -71,7 +70,9 @@ class GraphLike(Protocol):
     factor_data: list[tuple[Any, Any]]
     iterations: int
 
-    def view_factor_indices(self) -> list[int]: ...
+    def packed_factors(self) -> tuple[list[tuple[Any, Any, float]], list[gtsam.NonlinearFactor]]: ...
+
+    def view_factor_at(self, k: int) -> gtsam.NonlinearFactor: ...
 
     def optimize(self, max_iterations: int = 100, relative_tolerance: float = 1e-10) -> RigState: ...
 

@@ -4,8 +4,8 @@ The error is the stacked pixel residuals (projected - measured), 2M long. The
 projection model (:class:`~ari_sfm.models.AriModel` or
 :class:`~ari_sfm.models.ExactModel`) supplies the derivatives w.r.t. the point,
 the normal, the intrinsics and the window distance; :func:`chain_to_tangents`
-(the one copy, also used by the numpy backend) chains them to the GTSAM
-tangent spaces:
+(the one copy, compiled in :mod:`~ari_sfm.factors.view_kernels`, also used by the numpy backend)
+chains them to the GTSAM tangent spaces:
 
 - Pose3 (right perturbation T Exp([w, v])): for world_T_cam,
   dX_cam = [X_cam]x w - v and dn_cam = [n_cam]x w; for world_T_target,
@@ -28,9 +28,9 @@ from typing import Callable
 import gtsam
 import numpy as np
 
-from ..geometry import cross_jacobian_rows, skew
 from ..models import PinholeModel
 from .robust import huber_view_residual
+from .view_kernels import chain_rows
 
 ModelFactory = Callable[..., object]
 
@@ -58,31 +58,34 @@ class ViewKeys:
     fixed_distance_mm: float | None = None
 
 
+def camera_terms(normal_world: np.ndarray, basis: np.ndarray, R_wc: np.ndarray | None, t_wc: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What the chain rule needs of one camera (:mod:`~ari_sfm.factors.view_kernels`): ``n_cam`` =
+    R_cw n_world, ``a`` = -(n_world R_wc), ``M`` = R_cw B, ``b`` = -(t_wc B); ``R_wc`` None for camera 0
+    (the world: R_cw = I)."""
+    R_cw = np.eye(3) if R_wc is None else R_wc.T
+    n_cam = R_cw @ normal_world
+    cam_shift = np.zeros(3) if R_wc is None else -(normal_world @ R_wc)
+    return n_cam, cam_shift, np.ascontiguousarray(R_cw @ basis), -(t_wc @ basis)
+
+
 def chain_to_tangents(out: np.ndarray, n_params: int, J_point: np.ndarray, J_normal: np.ndarray,
-                      J_distance: np.ndarray, X_cam: np.ndarray, P: np.ndarray, JA: np.ndarray,
-                      normal_world: np.ndarray, basis: np.ndarray, R_wc: np.ndarray | None, t_wc: np.ndarray,
-                      distance: bool) -> None:
-    """The chain rule from the model's derivatives to the variables' tangent spaces (module docstring),
-    for M corners of one camera, written into ``out`` (M, 2, >= 6 + n_params + 8 (+1)) laid out as
-    ``[X(f) (6) | K(c) (n_params, left to the caller) | C(c) (6) | N (2) | H (1, with distance)]``.
+                      J_distance: np.ndarray, X_cam: np.ndarray, P: np.ndarray, R_view: np.ndarray,
+                      view_start: np.ndarray, normal_world: np.ndarray, basis: np.ndarray, R_wc: np.ndarray | None,
+                      t_wc: np.ndarray, distance: bool) -> None:
+    """The chain rule from the model's derivatives to the variables' tangent spaces (module docstring;
+    compiled: :func:`~ari_sfm.factors.view_kernels.chain_rows`), for M corners of one camera grouped by
+    view, written into ``out`` (M, 2, >= 6 + n_params + 8 (+1)) laid out as
+    ``[X(f) (6) | K(c) (n_params, left to the caller) | C(c) (6, zero for camera 0) | N (2) | H (1, with distance)]``.
 
     ``J_point``, ``J_normal`` (M, 2, 3) and ``J_distance`` (M, 2) from the model; ``X_cam`` (M, 3) the
-    camera-frame points, ``P`` (M, 3) the target-frame points, ``JA`` (M, 2, 3) = J_point R_cam_target
-    (per view); ``basis`` the Unit3 tangent basis (3, 2) of ``normal_world``; ``R_wc``, ``t_wc`` the
-    camera's world_T_cam (``R_wc`` None for camera 0, the world: its pose columns are left alone).
+    camera-frame points, ``P`` (M, 3) the target-frame points; ``R_view`` (V, 3, 3) each view's
+    R_cam_target, its corners ``view_start[v]:view_start[v + 1]``; ``basis`` the Unit3 tangent basis
+    (3, 2) of ``normal_world``; ``R_wc``, ``t_wc`` the camera's world_T_cam (``R_wc`` None for camera 0).
     """
-    M, k = len(X_cam), 6 + n_params
-    Jn2 = J_normal.reshape(2 * M, 3)
-    R_cw = np.eye(3) if R_wc is None else R_wc.T
-    if R_wc is not None:  # world_T_cam: dX_cam = [X_cam]x w - v, dn_cam = [n_cam]x w, dh_c = -n_w . R_wc v
-        out[:, :, k:k + 3] = cross_jacobian_rows(J_point, X_cam) + (Jn2 @ skew(R_cw @ normal_world)).reshape(M, 2, 3)
-        out[:, :, k + 3:k + 6] = J_distance[:, :, None] * (-(normal_world @ R_wc)) - J_point
-    # Unit3: dn_world = B dxi; n_cam = R_cw n_world, h_c = h_0 - n_world . t_wc
-    out[:, :, k + 6:k + 8] = (Jn2 @ (R_cw @ basis)).reshape(M, 2, 2) + J_distance[:, :, None] * (-(t_wc @ basis))
-    if distance:
-        out[:, :, k + 8] = J_distance
-    out[:, :, :3] = cross_jacobian_rows(JA, -P)  # world_T_target: dX_cam = R_ct ([-P]x w + v)
-    out[:, :, 3:6] = JA
+    n_cam, cam_shift, normal_map, normal_shift = camera_terms(normal_world, basis, R_wc, t_wc)
+    chain_rows(J_point, J_normal, J_distance, X_cam, P, R_view, view_start, n_cam, cam_shift, normal_map,
+               normal_shift, R_wc is not None, bool(distance), int(n_params), out)
 
 
 def view_residuals(
@@ -125,9 +128,10 @@ def view_residuals(
     M, n_p = len(P), data.n_params
     out = np.zeros((M, 2, 6 + n_p + 6 + 2 + 1))
     out[:, :, 6:6 + n_p] = J.J_params[:, :, :n_p]
-    chain_to_tangents(out, n_p, J.J_point, J.J_normal, np.asarray(J.J_distance).reshape(M, 2), X_c, P,
-                      J.J_point @ (R_cw @ R_wt), np.asarray(n_w, float), np.asarray(normal.basis(), float),
-                      R_wc if keys.camera is not None else None, t_wc, keys.distance is not None)
+    chain_to_tangents(out, n_p, J.J_point, J.J_normal, np.ascontiguousarray(J.J_distance).reshape(M, 2), X_c,
+                      np.ascontiguousarray(P, float), (R_cw @ R_wt)[None], np.array([0, M]), np.asarray(n_w, float),
+                      np.asarray(normal.basis(), float), R_wc if keys.camera is not None else None, t_wc,
+                      keys.distance is not None)
     k = 6 + n_p
     blocks = [out[:, :, 6:k]] + ([out[:, :, k:k + 6]] if keys.camera is not None else [])
     blocks += [out[:, :, k + 6:k + 8], out[:, :, :6]] + ([out[:, :, k + 8:k + 9]] if keys.distance is not None else [])

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from ari_sfm.geometry import Pose, rotation_from_rotvec
-from ari_sfm.init.expansion_center import expansion_center, fit_line_tls, normal_from_expansion_center
+from ari_sfm.init.expansion_center import (expansion_center, fit_line_tls, fit_lines, normal_from_expansion_center,
+                                           trajectories)
 from ari_sfm.init.interface_pose import real_cam_from_target, solve_eq12
 from ari_sfm.models import AriModel, ExactModel, PinholeModel
 from ari_sfm.records import Observation, Target
@@ -98,3 +99,30 @@ def test_degenerate_stacking_is_a_clear_error():
     obs = [obs[0], Observation("cam0", "stacking", "s0", obs[0].ids, obs[0].pixels.copy(), added_mm=10.0)]
     with pytest.raises(ValueError, match="trajector"):
         expansion_center(obs)
+
+
+def test_tracks_and_lines_equal_the_per_corner_fits():
+    """trajectories and fit_lines (vectorised over all corners, closed-form 2 x 2 TLS) against the per-corner
+    dictionary and SVD fits they replaced (main e40d0d9), on records in another order with corners missing."""
+    rng = np.random.default_rng(2)
+    obs = []
+    for o in _stacking(_normal(6.0), 0.05)[::-1]:
+        keep = np.sort(rng.choice(len(o.ids), 60, replace=False))
+        obs.append(Observation(o.camera, o.set, o.frame, o.ids[keep], o.pixels[keep], added_mm=o.added_mm))
+    tracks = {}
+    for o in obs:
+        for i, px in zip(o.ids.tolist(), o.pixels):
+            tracks.setdefault((o.frame, int(i)), []).append((float(o.added_mm or 0.0), px))
+    ref = {k: np.array([p for _, p in sorted(v, key=lambda e: e[0])]) for k, v in tracks.items() if len(v) >= 2}
+    ours = trajectories(obs)
+    assert list(ours) == list(ref) and all(np.array_equal(ours[k], ref[k]) for k in ref)
+    lines = fit_lines(obs)
+    assert lines.id.tolist() == [i for _, i in ref]
+    for k, pts in enumerate(ref.values()):
+        centroid = pts.mean(axis=0)
+        _, s, vt = np.linalg.svd(pts - centroid, full_matrices=False)
+        np.testing.assert_allclose(lines.centroid[k], centroid, rtol=1e-14)
+        assert abs(abs(lines.direction[k] @ vt[0]) - 1.0) < 1e-14
+        assert lines.spread[k] == pytest.approx(s[0] ** 2, rel=1e-12)
+        assert lines.rms_px[k] == pytest.approx(s[1] / np.sqrt(len(pts)), rel=1e-9)
+        assert lines.offset[k] == pytest.approx(lines.normal[k] @ centroid, rel=1e-14)

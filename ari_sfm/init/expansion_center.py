@@ -19,17 +19,20 @@ log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class TrajectoryLine:
-    """A TLS line through one corner's trajectory: points p with normal . p = offset."""
+class TrajectoryLines:
+    """TLS lines through corner trajectories, one row each: points p with normal . p = offset."""
 
-    id: int
-    centroid: np.ndarray  # (2,)
-    direction: np.ndarray  # (2,) unit
-    normal: np.ndarray  # (2,) unit, perpendicular to direction
-    offset: float
-    spread: float  # sum of squared positions along the line about the centroid (px^2)
-    count: int
-    rms_px: float  # perpendicular RMS of the points about the line
+    id: np.ndarray  # (T,) corner ids
+    centroid: np.ndarray  # (T, 2)
+    direction: np.ndarray  # (T, 2) unit
+    normal: np.ndarray  # (T, 2) unit, perpendicular to direction
+    offset: np.ndarray  # (T,)
+    spread: np.ndarray  # (T,) sum of squared positions along the line about the centroid (px^2)
+    count: np.ndarray  # (T,) points
+    rms_px: np.ndarray  # (T,) perpendicular RMS of the points about the line
+
+    def __len__(self) -> int:
+        return len(self.id)
 
 
 @dataclass(frozen=True)
@@ -38,57 +41,83 @@ class ExpansionCenter:
 
     center_px: np.ndarray  # (2,)
     std_px: np.ndarray  # (2,) standard error of u and v
-    lines: tuple[TrajectoryLine, ...]
+    lines: TrajectoryLines
     inliers: np.ndarray  # (len(lines),) bool
     residual_rms_px: float  # RMS perpendicular distance of the inlier lines to the centre
 
 
+def _track_lines(points: np.ndarray, start: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Total-least-squares lines through tracks: points (N, 2), track t = points[start[t]:start[t + 1]].
+    Closed form of the 2 x 2 scatter S = sum q q^T (q = p - centroid): the direction (cos a, sin a) with
+    a = atan2(2 S_xy, S_xx - S_yy) / 2 (S's first eigenvector); the spread sum (d . q)^2 and the
+    perpendicular RMS sqrt(mean (n . q)^2) summed from the points. Returns (centroid (T, 2), direction
+    (T, 2), spread (T,), rms (T,), count (T,))."""
+    count = np.diff(start)
+    centroid = np.add.reduceat(points, start[:-1], axis=0) / count[:, None]
+    q = points - np.repeat(centroid, count, axis=0)
+    sxx, syy, sxy = (np.add.reduceat(v, start[:-1]) for v in (q[:, 0] ** 2, q[:, 1] ** 2, q[:, 0] * q[:, 1]))
+    angle = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
+    direction = np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    d = np.repeat(direction, count, axis=0)
+    along = q[:, 0] * d[:, 0] + q[:, 1] * d[:, 1]
+    across = q[:, 1] * d[:, 0] - q[:, 0] * d[:, 1]
+    spread = np.add.reduceat(along * along, start[:-1])
+    rms = np.sqrt(np.add.reduceat(across * across, start[:-1]) / count)
+    return centroid, direction, spread, rms, count
+
+
 def fit_line_tls(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
     """Total-least-squares line through points (K, 2): (centroid, unit direction, spread, rms)."""
-    centroid = points.mean(axis=0)
-    centered = points - centroid
-    _, s, vt = np.linalg.svd(centered, full_matrices=False)
-    direction = vt[0]
-    spread = float(s[0] ** 2)
-    rms = float(s[1] / np.sqrt(len(points))) if len(s) > 1 else 0.0
-    return centroid, direction, spread, rms
+    centroid, direction, spread, rms, _ = _track_lines(np.asarray(points, float), np.array([0, len(points)]))
+    return centroid[0], direction[0], float(spread[0]), float(rms[0])
+
+
+def _tracks(observations: Sequence[Observation]) -> tuple[list[tuple[str, int]], np.ndarray, np.ndarray]:
+    """Corner tracks of one camera's stacking records, in order of first appearance: their (pose, id),
+    the pixels (N, 2) sorted by track then added_mm (records in order for equal thickness), and the
+    tracks' starts (T + 1,); tracks of one point are left out."""
+    if not observations:
+        return [], np.zeros((0, 2)), np.zeros(1, dtype=np.int64)
+    frames = list(dict.fromkeys(o.frame for o in observations))
+    frame_of = {f: i for i, f in enumerate(frames)}
+    size = [len(o.ids) for o in observations]
+    frame = np.repeat([frame_of[o.frame] for o in observations], size)
+    ids = np.concatenate([np.asarray(o.ids, dtype=np.int64).reshape(-1) for o in observations])
+    added = np.repeat([float(o.added_mm or 0.0) for o in observations], size)
+    pixels = np.concatenate([np.asarray(o.pixels, float).reshape(-1, 2) for o in observations])
+    low = int(ids.min())
+    span = int(ids.max()) - low + 1
+    _, first, track = np.unique(frame * span + (ids - low), return_index=True, return_inverse=True)
+    by_appearance = np.argsort(first, kind="stable")
+    rank = np.empty(len(first), dtype=np.int64)
+    rank[by_appearance] = np.arange(len(first))
+    order = np.lexsort((np.arange(len(ids)), added, rank[track]))
+    count = np.bincount(rank[track], minlength=len(first))
+    keep = np.repeat(count >= 2, count)
+    firsts = first[by_appearance]
+    names = [(frames[f], i) for f, i, n in zip(frame[firsts].tolist(), ids[firsts].tolist(), count.tolist()) if n >= 2]
+    kept = count[count >= 2]
+    return names, pixels[order][keep], np.concatenate([[0], np.cumsum(kept)])
 
 
 def trajectories(observations: Sequence[Observation]) -> dict[tuple[str, int], np.ndarray]:
     """Corner tracks of one camera's stacking records: {(pose, id): (K, 2) pixels by added_mm}."""
-    tracks: dict[tuple[str, int], list[tuple[float, np.ndarray]]] = {}
-    for obs in observations:
-        for i, px in zip(obs.ids.tolist(), obs.pixels):
-            tracks.setdefault((obs.frame, int(i)), []).append((float(obs.added_mm or 0.0), px))
-    return {k: np.array([p for _, p in sorted(v, key=lambda e: e[0])]) for k, v in tracks.items() if len(v) >= 2}
+    names, pixels, start = _tracks(observations)
+    return {name: pixels[start[k]:start[k + 1]] for k, name in enumerate(names)}
 
 
-def fit_lines(observations: Sequence[Observation], min_length_px: float = 1e-3) -> list[TrajectoryLine]:
+def fit_lines(observations: Sequence[Observation], min_length_px: float = 1e-3) -> TrajectoryLines:
     """One TLS line per corner trajectory with at least two thicknesses and a visible motion."""
-    tracks = list(trajectories(observations).items())
-    fits: list = [None] * len(tracks)
-    by_length: dict[int, list[int]] = {}
-    for k, (_, pts) in enumerate(tracks):
-        by_length.setdefault(len(pts), []).append(k)
-    for count, idx in by_length.items():  # fit_line_tls on all tracks of one length at once (batched SVD)
-        pts = np.stack([tracks[k][1] for k in idx])
-        centroid = pts.mean(axis=1)
-        _, sv, vt = np.linalg.svd(pts - centroid[:, None, :], full_matrices=False)
-        for j, k in enumerate(idx):
-            rms = float(sv[j, 1] / np.sqrt(count)) if sv.shape[1] > 1 else 0.0
-            fits[k] = (centroid[j], vt[j, 0], float(sv[j, 0] ** 2), rms)
-    lines = []
-    for ((_, corner_id), pts), (centroid, direction, spread, rms) in zip(tracks, fits):
-        if np.sqrt(spread) < min_length_px:
-            continue
-        normal = np.array([-direction[1], direction[0]])
-        lines.append(TrajectoryLine(corner_id, centroid, direction, normal, float(normal @ centroid), spread, len(pts), rms))
-    return lines
+    names, pixels, start = _tracks(observations)
+    centroid, direction, spread, rms, count = _track_lines(pixels, start)
+    normal = np.stack([-direction[:, 1], direction[:, 0]], axis=1).reshape(-1, 2)
+    keep = np.sqrt(spread) >= min_length_px
+    ids = np.array([corner_id for _, corner_id in names], dtype=np.int64)
+    return TrajectoryLines(ids[keep], centroid[keep], direction[keep], normal[keep],
+                           np.einsum("ij,ij->i", normal[keep], centroid[keep]), spread[keep], count[keep], rms[keep])
 
 
-def intersect_lines(
-    lines: Sequence[TrajectoryLine], reject_sigma: float = 3.0, max_rounds: int = 10
-) -> ExpansionCenter:
+def intersect_lines(lines: TrajectoryLines, reject_sigma: float = 3.0, max_rounds: int = 10) -> ExpansionCenter:
     """Weighted least-squares common point of the lines with outlier rejection.
 
     A line's perpendicular error at the centre grows with the centre's distance D
@@ -98,11 +127,8 @@ def intersect_lines(
     """
     if len(lines) < 2:
         raise ValueError(f"need at least 2 corner trajectories for the expansion centre, got {len(lines)}")
-    A = np.array([ln.normal for ln in lines])
-    b = np.array([ln.offset for ln in lines])
-    centroids = np.array([ln.centroid for ln in lines])
-    spread = np.array([ln.spread for ln in lines])
-    count = np.array([ln.count for ln in lines], dtype=float)
+    A, b, centroids, spread = lines.normal, lines.offset, lines.centroid, lines.spread
+    count = lines.count.astype(float)
     inliers = np.ones(len(lines), dtype=bool)
     center = _solve(A, b, np.ones(len(lines)), inliers)
     for _ in range(max_rounds):
@@ -125,7 +151,7 @@ def intersect_lines(
     perp = (A @ center - b)[inliers]
     if (~inliers).any():
         log.info("expansion centre: rejected %d of %d trajectories", int((~inliers).sum()), len(lines))
-    return ExpansionCenter(center, np.sqrt(np.diag(cov)), tuple(lines), inliers, float(np.sqrt(np.mean(perp**2))))
+    return ExpansionCenter(center, np.sqrt(np.diag(cov)), lines, inliers, float(np.sqrt(np.mean(perp**2))))
 
 
 def _solve(A: np.ndarray, b: np.ndarray, weights: np.ndarray, inliers: np.ndarray) -> np.ndarray:

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from ..errors import AriSfmError
-from ..geometry import Pose, mean_pose, unit
+from ..geometry import Pose, mean_pose, mean_poses, unit
 from ..records import Dataset
 from .expansion_center import ExpansionCenter, expansion_center, normal_from_expansion_center
 from .interface_pose import real_cam_from_target
@@ -117,9 +117,10 @@ def join_rig(names: Sequence[str], cam_from_target: dict[str, dict[str, Pose]],
         raise AriSfmError(path, f"camera {missing[0]} shares no frame with camera {names[0]} or its neighbours: "
                                 "the rig cannot be joined")
     frames = sorted(set().union(*(set(p) for p in cam_from_target.values())))
-    world_from_target = {
-        f: mean_pose([cam_from_world[n].inverse().compose(cam_from_target[n][f]) for n in names if f in cam_from_target[n]])
-        for f in frames}
+    world_from_cam = {n: cam_from_world[n].inverse() for n in names}
+    means = mean_poses([[world_from_cam[n].compose(cam_from_target[n][f]) for n in names if f in cam_from_target[n]]
+                        for f in frames])
+    world_from_target = dict(zip(frames, means))
     return cam_from_world, world_from_target
 
 

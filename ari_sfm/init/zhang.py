@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from ..geometry import Pose
+from ..models.pinhole import project_points
 from ..records import CameraSpec, Observation, Target
 
 
@@ -66,6 +67,11 @@ def object_points(target: Target, ids: np.ndarray) -> np.ndarray:
     """Target-frame coordinates (N, 3) of corner ids."""
     all_ids, xyz = target.points_3d_readonly  # ids ascending; built once per target
     ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+    n = len(all_ids)
+    if n and all_ids[0] == 0 and all_ids[-1] == n - 1:  # ids 0..n-1 (every board): an id is its row
+        if len(ids) and not (0 <= ids.min() and ids.max() < n):
+            raise KeyError(int(ids[np.flatnonzero((ids < 0) | (ids >= n))[0]]))
+        return xyz[ids]
     pos = np.searchsorted(all_ids, ids)
     unknown = (pos >= len(all_ids)) | (all_ids[np.minimum(pos, len(all_ids) - 1)] != ids) if len(all_ids) else ids == ids
     if unknown.any():
@@ -94,22 +100,20 @@ def _zhang_K(obj: list[np.ndarray], img: list[np.ndarray]) -> np.ndarray | None:
     """Zhang's closed-form K (no skew) from the views' homographies: each view gives two linear
     constraints h1^T B h2 = 0, h1^T B h1 = h2^T B h2 on B = K^-T K^-1 (B11, B22, B13, B23, B33);
     None when they do not determine a camera (fewer than 3 views, degenerate poses)."""
-    rows = []
-    for o, i in zip(obj, img):
-        H, _ = cv2.findHomography(o[:, :2], i, 0)
-        if H is None:
-            return None
-        H = H / np.linalg.norm(H[:, :2])
+    homographies = [cv2.findHomography(o[:, :2], i, 0)[0] for o, i in zip(obj, img)]
+    if any(H is None for H in homographies):
+        return None
+    H = np.array([h / np.linalg.norm(h[:, :2]) for h in homographies]).reshape(-1, 3, 3)
 
-        def v(a: int, b: int) -> np.ndarray:
-            ha, hb = H[:, a], H[:, b]
-            return np.array([ha[0] * hb[0], ha[1] * hb[1], ha[0] * hb[2] + ha[2] * hb[0],
-                             ha[1] * hb[2] + ha[2] * hb[1], ha[2] * hb[2]])
+    def v(a: int, b: int) -> np.ndarray:
+        ha, hb = H[:, :, a], H[:, :, b]
+        return np.stack([ha[:, 0] * hb[:, 0], ha[:, 1] * hb[:, 1], ha[:, 0] * hb[:, 2] + ha[:, 2] * hb[:, 0],
+                         ha[:, 1] * hb[:, 2] + ha[:, 2] * hb[:, 1], ha[:, 2] * hb[:, 2]], axis=1)
 
-        rows += [v(0, 1), v(0, 0) - v(1, 1)]
+    rows = np.stack([v(0, 1), v(0, 0) - v(1, 1)], axis=1).reshape(-1, 5)  # two per view, in view order
     if len(rows) < 6:
         return None
-    b11, b22, b13, b23, b33 = np.linalg.svd(np.array(rows))[2][-1]
+    b11, b22, b13, b23, b33 = np.linalg.svd(rows)[2][-1]
     cx, cy = -b13 / b11, -b23 / b22
     lam = b33 - b13 * b13 / b11 - b23 * b23 / b22
     if not (lam / b11 > 0 and lam / b22 > 0):
@@ -159,16 +163,20 @@ def calibrate_zhang(
     dist = np.zeros(5)
     if hold == "K" and spec.dist is not None:
         dist = np.resize(np.asarray(spec.dist, float), 5).copy()
-    poses, sq, n = {}, 0.0, 0
+    poses, cam_points = {}, []
     for v, o, i in zip(views, obj, img):
         planar = bool(np.all(o[:, 2] == 0))
         ok, rvec, tvec = cv2.solvePnP(o, i, K, dist, flags=cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_ITERATIVE)
         if not ok:
             raise ValueError(f"PnP failed for frame {v.frame}")
-        poses[v.frame] = Pose(cv2.Rodrigues(rvec)[0], np.asarray(tvec, float).reshape(3))
-        res = cv2.projectPoints(o, rvec, tvec, K, dist)[0].reshape(-1, 2) - i
-        sq, n = sq + float(np.sum(res * res)), n + len(i)
-    return ZhangResult(K, dist, poses, float(np.sqrt(sq / max(n, 1))))
+        pose = Pose(cv2.Rodrigues(rvec)[0], np.asarray(tvec, float).reshape(3))
+        poses[v.frame] = pose
+        cam_points.append(pose.apply(o))
+    if not views:
+        return ZhangResult(K, dist, poses, 0.0)
+    uv = project_points(np.concatenate(cam_points), np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist], 4, False)[0]
+    res = uv - np.concatenate(img)  # every view's reprojection at once (the pinhole kernel)
+    return ZhangResult(K, dist, poses, float(np.sqrt(np.sum(res * res) / len(res))))
 
 
 def dlt_projection(X: np.ndarray, uv: np.ndarray) -> np.ndarray:

@@ -1,0 +1,151 @@
+"""The view factor's chain rule to the tangent spaces, compiled: the one copy, called by the GTSAM factor
+(:func:`~ari_sfm.factors.view_factor.view_residuals`, through :func:`chain_rows`) and by the numpy
+backend (:meth:`~ari_sfm.factors.packed_problem.VectorizedProblem.linearize`, through
+:func:`accumulate_views`, which also forms each view's normal equations in the same pass).
+numba, ``cache=True``; the model's derivatives come in as arrays (the physics stays in
+:mod:`ari_sfm.models.kernels`), the Huber weights from :mod:`~ari_sfm.factors.robust`.
+
+One corner of one camera and one view, pixel row j (row vectors; ``j x v`` is ``j^T [v]x``), from
+the model's ``J_X``, ``J_n`` (3,) and ``J_h`` (scalar) at ``X = R_ct P + t_ct``
+(:mod:`~ari_sfm.factors.view_factor`'s module docstring derives it)::
+
+    target pose (rotation, translation):  J_A x (-P),  J_A        with J_A = J_X R_ct
+    camera pose (rotation):                J_X x X + J_n x n_cam   with n_cam = R_cw n_world
+    camera pose (translation):             J_h a - J_X             with a = -(n_world R_wc)
+    normal (Unit3 tangent):                J_n M + J_h b           with M = R_cw B, b = -(t_wc B)
+    distance:                              J_h
+
+Row layout: ``[X(f) (6) | K(c) (n_params, the model's J_params) | C(c) (6) | N (2) | H (1, if estimated)]``;
+camera 0 (the world) has no pose variable: its C columns are zero.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+_JIT = dict(cache=True, nogil=True)  # no division anywhere: numba's default error model compiles faster
+
+
+@njit(inline="always", **_JIT)
+def _tangent_row(J_point, J_normal, J_distance, o, j, X_cam, P, R_ct, n_cam, cam_shift, normal_map, normal_shift,
+                 pose, distance, k, kn, row):
+    """Pixel row j of corner o into ``row`` (module docstring): the target pose at 0..6, the camera pose
+    at k..k + 6 (only with ``pose``), the normal at kn, kn + 1, the distance at kn + 2 (with ``distance``);
+    the intrinsics' columns 6..k are left to the caller."""
+    j0, j1, j2 = J_point[o, j, 0], J_point[o, j, 1], J_point[o, j, 2]
+    a0 = j0 * R_ct[0, 0] + j1 * R_ct[1, 0] + j2 * R_ct[2, 0]  # J_A = J_X R_ct
+    a1 = j0 * R_ct[0, 1] + j1 * R_ct[1, 1] + j2 * R_ct[2, 1]
+    a2 = j0 * R_ct[0, 2] + j1 * R_ct[1, 2] + j2 * R_ct[2, 2]
+    p0, p1, p2 = -P[o, 0], -P[o, 1], -P[o, 2]
+    row[0] = a1 * p2 - a2 * p1
+    row[1] = a2 * p0 - a0 * p2
+    row[2] = a0 * p1 - a1 * p0
+    row[3] = a0
+    row[4] = a1
+    row[5] = a2
+    n0, n1, n2 = J_normal[o, j, 0], J_normal[o, j, 1], J_normal[o, j, 2]
+    h = J_distance[o, j]
+    if pose:
+        x0, x1, x2 = X_cam[o, 0], X_cam[o, 1], X_cam[o, 2]
+        c0, c1, c2 = n_cam[0], n_cam[1], n_cam[2]
+        row[k] = (j1 * x2 - j2 * x1) + (n1 * c2 - n2 * c1)
+        row[k + 1] = (j2 * x0 - j0 * x2) + (n2 * c0 - n0 * c2)
+        row[k + 2] = (j0 * x1 - j1 * x0) + (n0 * c1 - n1 * c0)
+        row[k + 3] = h * cam_shift[0] - j0
+        row[k + 4] = h * cam_shift[1] - j1
+        row[k + 5] = h * cam_shift[2] - j2
+    row[kn] = (n0 * normal_map[0, 0] + n1 * normal_map[1, 0] + n2 * normal_map[2, 0]) + h * normal_shift[0]
+    row[kn + 1] = (n0 * normal_map[0, 1] + n1 * normal_map[1, 1] + n2 * normal_map[2, 1]) + h * normal_shift[1]
+    if distance:
+        row[kn + 2] = h
+
+
+@njit(**_JIT)
+def transform_points(P, R_view, t_view, view_start):
+    """``R P + t`` (m, 3) of corners P (m, 3) grouped by view (view v: corners view_start[v]..[v + 1])."""
+    X = np.empty_like(P)
+    for v in range(len(view_start) - 1):
+        R, t = R_view[v], t_view[v]
+        for o in range(view_start[v], view_start[v + 1]):
+            q0, q1, q2 = P[o, 0], P[o, 1], P[o, 2]
+            for i in range(3):
+                X[o, i] = q0 * R[i, 0] + q1 * R[i, 1] + q2 * R[i, 2] + t[i]
+    return X
+
+
+@njit(**_JIT)
+def chain_rows(J_point, J_normal, J_distance, X_cam, P, R_view, view_start, n_cam, cam_shift, normal_map,
+               normal_shift, pose, distance, n_params, out):
+    """Every corner's tangent-space rows into ``out`` (m, 2, >= 6 + n_params + 8 (+1)), zeros where the
+    camera has no pose, the intrinsics' columns 6..6 + n_params left to the caller; corners grouped by view
+    (``R_view`` (nv, 3, 3) = R_ct)."""
+    k = 6 + n_params
+    for v in range(len(view_start) - 1):
+        R_ct = R_view[v]
+        for o in range(view_start[v], view_start[v + 1]):
+            for j in range(2):
+                _tangent_row(J_point, J_normal, J_distance, o, j, X_cam, P, R_ct, n_cam, cam_shift, normal_map,
+                             normal_shift, pose, distance, k, k + 6, out[o, j])
+
+
+@njit(**_JIT)
+def accumulate_views(J_point, J_normal, J_distance, J_params, X_cam, P, R_view, view_start, view_frame, n_cam,
+                     cam_shift, normal_map, normal_shift, pose, distance, row_scale, residual, cols,
+                     V, g_frame, W, U, g_global, bad):
+    """One camera's views added to the normal equations (V, g_frame, W, U, g_global, in place), each
+    view's ``A^T A`` of its whitened rows ``A = [J_frame | J_camera | r]`` (filled in a scratch of the
+    largest view's size, multiplied by BLAS).
+
+    Rows: :func:`chain_rows` with the intrinsics from ``J_params`` (m, 2, n_params), without the pose
+    columns when the camera has none (camera 0), each corner's Jacobian times ``row_scale`` (m,) (sqrt of
+    the IRLS weight over sigma); ``residual`` (m, 2) already whitened. ``cols`` (L,): the global columns
+    of the row's camera block (intrinsics, pose if any, normal, distance); ``view_frame`` (nv,) each
+    view's frame. ``bad`` (m,) is set True where a Jacobian entry is not finite.
+    Returns the sum of the squared residuals."""
+    n_params = J_params.shape[2]
+    L = cols.shape[0]
+    K = 6 + L
+    k = 6 + n_params
+    kn = k + 6 if pose else k
+    most = 0
+    for v in range(len(view_start) - 1):
+        most = max(most, view_start[v + 1] - view_start[v])
+    A = np.empty((2 * most, K + 1))  # one view's rows
+    U_camera = np.zeros((L, L))
+    err2 = 0.0
+    for v in range(len(view_start) - 1):
+        R_ct = R_view[v]
+        first, n = view_start[v], view_start[v + 1] - view_start[v]
+        for o in range(first, first + n):
+            s = row_scale[o]
+            for j in range(2):
+                row = A[2 * (o - first) + j]
+                _tangent_row(J_point, J_normal, J_distance, o, j, X_cam, P, R_ct, n_cam, cam_shift, normal_map,
+                             normal_shift, pose, distance, k, kn, row)
+                for i in range(n_params):
+                    row[6 + i] = J_params[o, j, i]
+                check = 0.0
+                for i in range(K):
+                    row[i] *= s
+                    check += row[i]
+                if not np.isfinite(check):
+                    bad[o] = True
+                row[K] = residual[o, j]
+        Av = A[:2 * n]
+        H = np.dot(Av.T, Av)
+        f = view_frame[v]
+        for a in range(6):
+            for b in range(6):
+                V[f, a, b] += H[a, b]
+            g_frame[f, a] += H[a, K]
+            for b in range(L):
+                W[f, a, cols[b]] += H[a, 6 + b]
+        for a in range(L):
+            for b in range(L):
+                U_camera[a, b] += H[6 + a, 6 + b]
+            g_global[cols[a]] += H[6 + a, K]
+        err2 += H[K, K]
+    for a in range(L):
+        for b in range(L):
+            U[cols[a], cols[b]] += U_camera[a, b]
+    return err2
