@@ -50,19 +50,26 @@ def require_open3d():
 
 def import_pycolmap(min_version: tuple[int, int] = (3, 11)) -> Any:
     """Import pycolmap, keeping Python's SIGTERM handler: pycolmap installs glog's failure-signal handler,
-    which answers a plain SIGTERM with a native stack dump (and so does not let the CLI leave cleanly)."""
+    which answers a plain SIGTERM with a native stack dump (and so does not let the CLI leave cleanly).
+    SIGINT and SIGTERM are blocked while the import runs and Python's handlers are back, so that one
+    arriving in between is delivered to Python's handler afterwards, not to glog's."""
     import signal
     import threading
 
     main = threading.current_thread() is threading.main_thread()
     previous = signal.getsignal(signal.SIGTERM) if main else None
+    held = {signal.SIGINT, signal.SIGTERM}
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, held) if main else None
     try:
         import pycolmap
     except ImportError as exc:  # pragma: no cover - pycolmap is a dependency
         raise ImportError(f"ari-sfm needs pycolmap >= {min_version[0]}.{min_version[1]} "
                           f"(pip install pycolmap): {exc}") from exc
-    if previous is not None:
-        signal.signal(signal.SIGTERM, previous)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+        if mask is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # a pending signal reaches Python's handler now
     return pycolmap
 
 

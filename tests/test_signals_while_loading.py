@@ -62,3 +62,20 @@ def test_importing_the_library_leaves_the_signal_handlers_alone():
             "assert not s.is_command_line(); print('ok')")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV, timeout=120)
     assert p.returncode == 0 and p.stdout.strip() == "ok", p.stderr
+
+
+def test_a_signal_during_pycolmaps_import_reaches_pythons_handler(tmp_path):
+    """pycolmap's import installs glog's SIGTERM handler, which deps.import_pycolmap replaces with Python's
+    again; a SIGTERM arriving in between (here: sent by the module itself, after installing a stand-in for
+    glog's handler) must reach Python's handler once the import is done, never the stand-in (which, as glog's,
+    would dump a native stack or hang)."""
+    (tmp_path / "pycolmap.py").write_text(
+        "import os, signal\n"
+        "signal.signal(signal.SIGTERM, lambda *a: os._exit(99))  # glog's handler, installed by the import\n"
+        "os.kill(os.getpid(), signal.SIGTERM)  # a SIGTERM arriving while the import runs\n")
+    code = ("import signal, sys; seen = []; signal.signal(signal.SIGTERM, lambda *a: seen.append('python')); "
+            "from ari_sfm.deps import import_pycolmap; m = import_pycolmap(); "
+            "assert m.__file__.startswith(sys.path[0]), m.__file__; print(seen)")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                       env={**ENV, "PYTHONPATH": str(tmp_path)})
+    assert p.returncode == 0 and p.stdout.strip() == "['python']", (p.returncode, p.stdout, p.stderr)
