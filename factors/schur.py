@@ -18,9 +18,10 @@ The coupling W is held in one of two layouts:
 
 The blocks are eliminated: ``S = U - W^T V^-1 W`` (dense G x G) and ``b = -g_global + W^T V^-1
 g_block`` are built once per block damping (:func:`reduce`; dense: one product ``W^T (V^-1 W)``;
-entries: with ``V_n^-1 = L_n L_n^T``, ``W^T V^-1 W = Y^T Y`` where Y's rows for block n are the sum
-of its entries' ``L_n^T W_e`` scattered to their columns, filled densely for a chunk of blocks at a
-time, one BLAS product per chunk), S is solved by Cholesky and the block steps back-substituted
+entries: with ``V_n^-1 = L_n L_n^T``, ``W^T V^-1 W = sum_n Y_n^T Y_n`` where ``Y_n`` is the sum of block
+n's entries' ``L_n^T W_e`` on the global columns they touch, each ``Y_n^T Y_n`` (its columns squared:
+~50 for a point of a short track, not G) added by a compiled loop), S is solved by Cholesky and the
+block steps back-substituted
 (``d_block = -V^-1 (g_block + W d_global)``).
 
 Damping, by the system's ``marquardt`` flag:
@@ -53,7 +54,6 @@ log = logging.getLogger(__name__)
 DIAG_FLOOR = 1e-9  # Marquardt damping: the smallest diagonal entry damped
 RANK_TOLERANCE = 64 * np.finfo(float).eps  # global_covariance: Jacobi-scaled eigenvalue / largest below: undetermined
 NULL_SHARE = 1e-6  # global_covariance: a variable with more than this share in undetermined directions is one
-Y_CHUNK_ENTRIES = 2_000_000  # entries layout: floats of one dense chunk of Y (k rows per block, G + 1 columns)
 
 
 @dataclass
@@ -130,23 +130,16 @@ def reduce(sys: NormalEquations, lam_blocks: float) -> ReducedSystem | None:
         S = sys.U - W2.T @ Y2
         b = -sys.g_global + Y2.T @ sys.g_frame.reshape(k * N)  # W^T V^-1 g_block
         return ReducedSystem(S, b, V_inv, lam_blocks)
-    from .schur_kernels import fill_y
+    from .schur_kernels import subtract_block_products
 
     V_inv = 0.5 * (V_inv + np.swapaxes(V_inv, 1, 2))
     L = np.linalg.cholesky(V_inv)
     rows = sys.W_rows
     order = np.argsort(rows, kind="stable")
     starts = np.searchsorted(rows[order], np.arange(N + 1))
-    G1 = G + 1
-    per = max(1, Y_CHUNK_ENTRIES // (k * G1))
     S = sys.U.copy()
-    Y = np.empty((k * min(N, per), G1))
-    for n0 in range(0, N, per):
-        n1 = min(N, n0 + per)
-        Yc = Y[:k * (n1 - n0)]
-        fill_y(sys.W, rows, sys.W_cols, L, order, starts[n0], starts[n1], n0, Yc)
-        Yg = Yc[:, :G]
-        S -= Yg.T @ Yg
+    subtract_block_products(sys.W, rows, sys.W_cols, L, order, starts, S)  # on the upper triangle
+    S = np.triu(S) + np.triu(S, 1).T
     u = np.einsum("nij,nj->ni", V_inv, sys.g_frame)
     b = -sys.g_global + sys.coupling_to_global(u)
     return ReducedSystem(S, b, V_inv, lam_blocks)
