@@ -321,9 +321,9 @@ class Block:
     points: np.ndarray
 
 
-def _block(model: adapter.ColmapModel, frames: np.ndarray) -> Block:
-    """The sub-model of ``frames`` (indices): their images, the points they see BLOCK_MIN_VIEWS times or more,
-    and those observations (frames left with no observation dropped)."""
+def _block(model: adapter.ColmapModel, frames: np.ndarray, points: np.ndarray | None = None) -> Block:
+    """The sub-model of ``frames`` (indices): their images, the points they see BLOCK_MIN_VIEWS times or more
+    (among ``points``, a mask, if given), and those observations (frames left with no observation dropped)."""
     F, P = len(model.frame_ids), len(model.point3D_ids)
     fkeep = np.zeros(F, bool)
     fkeep[frames] = True
@@ -331,6 +331,8 @@ def _block(model: adapter.ColmapModel, frames: np.ndarray) -> Block:
         ikeep = fkeep[model.image_frame]
         obs = ikeep[model.obs_image]
         pkeep = np.bincount(model.obs_point[obs], minlength=P) >= BLOCK_MIN_VIEWS
+        if points is not None:
+            pkeep &= points
         obs &= pkeep[model.obs_point]
         seen = np.bincount(model.image_frame[model.obs_image[obs]], minlength=F) > 0
         if np.all(seen[fkeep]):
@@ -436,9 +438,9 @@ def _slid_start(model: adapter.ColmapModel, state: State, first: Block, make_sol
                 new_frames: int | None = None) -> tuple[State, list[dict]]:
     """A long chain's start by sliding blocks: ``first`` is refined from ``state`` (the input's start;
     ``make_solver(block_model, None)``), then again and again the ``new_frames`` (SLIDE_NEW_FRAMES)
-    frames that see the most refined points, aligned to them (:func:`_aligned`), with the refined frames
-    that share ALIGN_MIN_POINTS points with them held (``make_solver(block_model, held)``, ``held`` their
-    indices in the block), until every frame is refined. Every solve is small and starts near its
+    frames that see the most refined points, aligned to them (:func:`_aligned`), with their points and
+    the refined frames that see ALIGN_MIN_POINTS of those, held (``make_solver(block_model, held)``,
+    ``held`` their indices in the block), until every frame is refined. Every solve is small and starts near its
     optimum. Returns the start and the blocks' records."""
     F, P = len(model.frame_ids), len(model.point3D_ids)
     step = new_frames or SLIDE_NEW_FRAMES
@@ -461,9 +463,9 @@ def _slid_start(model: adapter.ColmapModel, state: State, first: Block, make_sol
         sees = np.where(done, -1, seen[:, refined].sum(axis=1))
         new = np.argsort(-sees, kind="stable")[:min(step, int((~done).sum()))]
         state = _aligned(model, ref, state, refined, new)
-        shares = (seen[new].astype(np.int32) @ seen.T.astype(np.int32)).max(axis=0)
-        anchors = np.flatnonzero(done & (shares >= ALIGN_MIN_POINTS))
-        block = _block(model, np.union1d(new, anchors))
+        theirs = seen[new].any(axis=0)  # the new frames' points, with every refined frame's view of them
+        anchors = np.flatnonzero(done & (seen[:, theirs].sum(axis=1) >= ALIGN_MIN_POINTS))
+        block = _block(model, np.union1d(new, anchors), theirs)
         held = np.flatnonzero(np.isin(block.frames, anchors))
         if len(held) == 0:  # nothing refined sees them (a model in pieces): the block's own gauge
             held = None
@@ -817,10 +819,10 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
         whole = _convert(cmodel, problem, virtual if plane is not None else _with_distance(cmodel, virtual, mount, h), +1)
 
         def block_solver(m: adapter.ColmapModel, held: np.ndarray | None) -> Solver:
-            """The first block (``held`` None): the normal free unless declared; a later one: its held frames,
-            the window and the intrinsics held at the first block's."""
-            return Solver(RefractiveProblem(m, interface, mount, False, hold_window=held is not None or plane is not None,
-                                            held_frames=held, hold_intrinsics=held is not None), huber_px)
+            """A block: its ``held`` frames (None: the first frame, the gauge), the distance held, the normal
+            free unless declared."""
+            return Solver(RefractiveProblem(m, interface, mount, False, hold_window=plane is not None,
+                                            held_frames=held), huber_px)
 
         start, blocks = _slid_start(cmodel, whole, first, block_solver)
         if bar is not None:
