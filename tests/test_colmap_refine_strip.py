@@ -17,7 +17,7 @@ from ari_sfm import colmap_export as adapter
 from ari_sfm.colmap_refine import refine as refine_module
 from ari_sfm.colmap_refine.problem import RefractiveProblem, State
 from ari_sfm.colmap_refine.scale_bar import ScaleBar
-from ari_sfm.colmap_refine.truth import truth_errors
+from ari_sfm.colmap_refine.truth import truth_errors, truth_state
 from ari_sfm.geometry import Pose, rotation_from_rotvec
 from ari_sfm.simulate.port_survey import port_survey
 
@@ -30,11 +30,7 @@ def _state_and_model(truth):
                                              truth.image_camera, truth.image_frame, truth.xyz, truth.obs_image,
                                              truth.obs_point, truth.obs_uv)
     model = adapter.model_from_reconstruction(rec)
-    params = tuple(np.r_[p[:2], p[2:4] + adapter.COLMAP_PIXEL_OFFSET] for p in truth.params)
-    sensors = tuple(truth.sensor_from_rig[c] for c in truth.image_camera)
-    state = State(params, tuple(truth.rig_from_world[int(f) - 1] for f in model.frame_ids), sensors,
-                  np.array(truth.normal_cam), np.array(truth.distance_mm), truth.xyz[model.point3D_ids - 1].copy())
-    return model, state
+    return model, truth_state(truth, model)
 
 
 def _bent(state: State, radius_mm: float) -> State:
@@ -76,18 +72,21 @@ def test_block_residuals_are_the_whole_models(strip):
     assert np.allclose(np.sort(r_sub.ravel()), np.sort(r_all[kept].ravel()), atol=1e-9)
 
 
-def test_held_frames_are_not_variables(strip):
-    """A problem with held frames has no columns for them (the first frame is then free), and its steps
-    leave them."""
+def test_held_frames_and_intrinsics_are_not_variables(strip):
+    """A problem with held frames and intrinsics has no columns for them (the first frame is then free),
+    and its steps leave them."""
     truth, model, state = strip
-    problem = RefractiveProblem(model, truth.interface, "camera", False, hold_window=True, held_frames=np.array([3, 7]))
+    problem = RefractiveProblem(model, truth.interface, "camera", False, hold_window=True, held_frames=np.array([3, 7]),
+                                hold_intrinsics=True)
     lay = problem.layout
     assert np.all(lay.frames[[3, 7]] == -1) and np.all(lay.frames[[0, 1, 8]] >= 0)
-    assert lay.size == 4 + 6 * (len(model.frame_ids) - 2)  # fx fy cx cy and the free frames
+    assert all(np.all(ix == -1) for ix in lay.intrinsics)
+    assert lay.size == 6 * (len(model.frame_ids) - 2)
     moved = problem.retract(state, np.full(lay.size, 1e-3), np.zeros_like(state.xyz))
     for f in (3, 7):
         assert np.array_equal(moved.rig_from_world[f].R, state.rig_from_world[f].R)
         assert np.array_equal(moved.rig_from_world[f].t, state.rig_from_world[f].t)
+    assert np.array_equal(moved.colmap_params[0], state.colmap_params[0])
     assert not np.allclose(moved.rig_from_world[0].R, state.rig_from_world[0].R)
 
 
@@ -113,8 +112,9 @@ def test_aligned_carries_the_refined_points_similarity_to_the_rest(strip):
 
 def test_slid_start_straightens_a_bent_strip(strip):
     """From the strip bent by +-34 deg end to end (points 360 mm off after similarity), sliding blocks
-    (12 middle frames, then 6 new frames at a time with the refined ones that see their points held;
-    the normal free, the distance held) refine every frame once and end near the optimum: the whole refinement from there
+    (12 middle frames with the normal and intrinsics free, the distance held; then 6 new frames at a
+    time with the refined ones that see their points held, the window and intrinsics too) refine every
+    frame once and end near the optimum: the whole refinement from there
     (rescaled to a bar, as refine_colmap does) converges in a few iterations to the truth-started
     refinement's optimum, below the noise floor.
     (Plain LM reaches it too on this synthetic bend given many iterations: the bent pinhole model
@@ -123,8 +123,9 @@ def test_slid_start_straightens_a_bent_strip(strip):
     bent = _bent(state, 6000.0)
     tilted = replace(bent, normals=np.array([[0.0, 0.0, 1.0]]))  # the start's normal: the optical axis
 
-    def make_solver(m, held):  # as refine_colmap's: the distance held, the normal free
-        return refine_module.Solver(RefractiveProblem(m, truth.interface, "camera", False, held_frames=held), 2.0)
+    def make_solver(m, held):  # as refine_colmap's: the distance held; the normal and intrinsics free in the first
+        return refine_module.Solver(RefractiveProblem(m, truth.interface, "camera", False, hold_window=held is not None,
+                                                      held_frames=held, hold_intrinsics=held is not None), 2.0)
 
     centres = refine_module._centres(bent)
     first = refine_module._block(model, np.argsort(np.abs(centres[:, 0] - np.median(centres[:, 0])))[:12])
@@ -152,3 +153,27 @@ def test_slid_start_straightens_a_bent_strip(strip):
     assert from_slid.cost == pytest.approx(from_truth.cost, rel=1e-6)
     assert rms < 0.3 * np.sqrt(2.0)  # below sigma sqrt 2: the points and poses absorb part of the noise
     assert points_mm(from_slid.state) < 2.0 * points_mm(from_truth.state)
+
+
+def test_a_block_left_above_the_noise_is_taken_again_with_fewer_frames(strip):
+    """A sliding block that ends far above the first block's cost per observation (here made to) is
+    dropped and taken again with half as many new frames; every frame is still refined once."""
+    truth, model, state = strip
+    calls = []
+
+    class Spoiled(refine_module.Solver):
+        def run(self, *args, **kwargs):
+            res = super().run(*args, **kwargs)
+            calls.append(res.cost)
+            return replace(res, cost=100.0 * res.cost) if len(calls) == 2 else res
+
+    def make_solver(m, held):
+        return Spoiled(RefractiveProblem(m, truth.interface, "camera", False, hold_window=held is not None,
+                                         held_frames=held, hold_intrinsics=held is not None), 2.0)
+
+    centres = refine_module._centres(state)
+    first = refine_module._block(model, np.argsort(np.abs(centres[:, 0] - np.median(centres[:, 0])))[:12])
+    _, blocks = refine_module._slid_start(model, state, first, make_solver, new_frames=8)
+    assert blocks[1].get("dropped") and blocks[1]["frames"] - blocks[1]["held"] == 8
+    assert blocks[2]["frames"] - blocks[2]["held"] == 4 and not blocks[2].get("dropped")
+    assert sum(b["frames"] - b["held"] for b in blocks if not b.get("dropped")) == len(model.frame_ids)

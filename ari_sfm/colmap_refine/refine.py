@@ -21,16 +21,19 @@ the bar, and the refinement runs again with the bar held; going straight to the 
 short-track strip in a wrong-scale valley (40-image strip: 1.80 px, points 47 mm; this way 0.62 px,
 1.2 mm). :mod:`ari_sfm.colmap_refine.problem` lists what is estimated.
 
-A long chain (mount camera, more than CHAIN_MIN_FRAMES frames, short tracks: a strip survey) starts otherwise: COLMAP's pinhole
-model of it is bent (measured on the simulated 100-image strip: it turns ~120 deg end to end, its
-local scale 44 % off the end-to-end bar's), and LM from it crawls (1.45 px, points 1.3 m after 100
-iterations). The start is grown instead (:func:`_grown_start`): the FIRST_BLOCK_FRAMES frames nearest
-the middle are refined with the window held at the middle start distance, every other frame and
-point is moved by the similarity that carries the block points it sees onto their refined positions
-(:func:`_aligned`), the block grows by GROW_FACTOR and is refined again, up to the whole model; then
-it is rescaled to the bar (with the port distance: the images fix distance / scale, not each) and
-refined with everything free. No distance search on that path (held-window runs do not tell the
-candidates apart before the chain is straight); the other candidates remain the restarts.
+A long chain (mount camera, more than CHAIN_MIN_FRAMES frames, short tracks: a strip survey) starts
+otherwise: COLMAP's pinhole model of it is bent (measured on the simulated 100-image strip: it turns
+~120 deg end to end, its local scale 44 % off the end-to-end bar's), and LM from it crawls along the
+chain's soft bending mode (1.45 px, points 1.3 m after 100 iterations); so did LM on blocks grown to
+the whole chain. The start slides instead (:func:`_slid_start`): the FIRST_BLOCK_FRAMES frames
+nearest the middle are refined (the distance held at the middle start distance, the normal and
+intrinsics free), then SLIDE_NEW_FRAMES frames at a time, those that see the most refined points,
+each placed by the similarity that carries the refined points it sees from COLMAP's model onto their
+refined places (:func:`_aligned`), are refined with their points, the refined frames that see them
+held (the window and intrinsics too): every solve is small, starts near its optimum and converges in
+a few iterations. Then the chain is rescaled to the bar (with the port distance: the images fix
+distance / scale, not each) and refined with everything free, from within the noise of the optimum.
+No distance search on that path; the other candidates remain the restarts.
 
 A declared window (``interface.plane``, :mod:`.plane`) replaces the start search: the window
 starts there; a sigma of 0 holds that part, > 0 adds a prior (a held plane does not scale with the
@@ -303,7 +306,9 @@ CHAIN_MAX_TRACK_FRACTION = 0.15  # ... when a point is seen, on average, in less
 #   (simulated strips: 100 images 0.045, 200 images 0.03; the 100-image grid 0.30: it converges from
 #   COLMAP's start with the distance search, 2x faster than through blocks, to the same 0.83 mm)
 FIRST_BLOCK_FRAMES = 30  # the first block: the frames nearest the middle (a block this size converges from COLMAP's)
-SLIDE_NEW_FRAMES = 10  # each later block refines this many new frames (with the refined ones they see held)
+SLIDE_NEW_FRAMES = 10  # each later block refines this many new frames (with the refined ones they see held;
+#   200-image strip: 20 converged too; 30 took in so much of the input's bend that blocks stopped bent or failed)
+SLIDE_RETRY_COST = 4.0  # a block ending above this times the first block's cost per observation is taken again
 BLOCK_ITERATIONS = 100  # LM iterations per block at most (a converged block stops earlier)
 BLOCK_TOLERANCE = 1e-7  # a block's LM stops when a step lowers its cost by less than this fraction
 ALIGN_MIN_POINTS = 10  # a frame is aligned by the refined points it sees when it sees at least this many
@@ -440,24 +445,33 @@ def _slid_start(model: adapter.ColmapModel, state: State, first: Block, make_sol
     ``make_solver(block_model, None)``), then again and again the ``new_frames`` (SLIDE_NEW_FRAMES)
     frames that see the most refined points, aligned to them (:func:`_aligned`), with their points and
     the refined frames that see ALIGN_MIN_POINTS of those, held (``make_solver(block_model, held)``,
-    ``held`` their indices in the block), until every frame is refined. Every solve is small and starts near its
-    optimum. Returns the start and the blocks' records."""
+    ``held`` their indices in the block), until every frame is refined. Every solve is small and starts
+    near its optimum; a block that ends above SLIDE_RETRY_COST times the first block's cost per
+    observation is dropped and taken again with half as many new frames. Returns the start and the
+    blocks' records."""
     F, P = len(model.frame_ids), len(model.point3D_ids)
     step = new_frames or SLIDE_NEW_FRAMES
     seen = np.zeros((F, P), bool)
     seen[model.image_frame[model.obs_image], model.obs_point] = True
     done, refined = np.zeros(F, bool), np.zeros(P, bool)
-    ref, block, held, blocks = state, first, None, []
+    ref, block, held, blocks, floor = state, first, None, [], None
     while True:
         res = make_solver(block.model, held).run(_block_state(state, block), BLOCK_ITERATIONS,
                                                  relative_tolerance=BLOCK_TOLERANCE)
-        state = _with_block(state, block, res.state)
-        done[block.frames], refined[block.points] = True, True
+        per_observation = res.cost / len(block.model.obs_point)
         blocks.append({"frames": len(block.frames), "held": 0 if held is None else len(held),
                        "points3D": len(block.points), "cost": res.cost, "iterations": res.iterations,
                        "linearizations": res.linearizations})
         log.info("refine-colmap: block of %d frames (%d held), %d points3D: cost %.6g after %d iterations",
                  len(block.frames), blocks[-1]["held"], len(block.points), res.cost, res.iterations)
+        if floor is not None and per_observation > SLIDE_RETRY_COST * floor and step > 1:
+            step = max(1, step // 2)  # too far a step along the chain for the aligned start: a shorter one
+            blocks[-1]["dropped"] = True
+            log.info("refine-colmap: that block did not converge to the noise: again with %d new frames", step)
+        else:
+            floor = per_observation if floor is None else floor
+            state = _with_block(state, block, res.state)
+            done[block.frames], refined[block.points] = True, True
         if done.all():
             return _aligned(model, ref, state, refined, np.zeros(0, int)), blocks  # points no block held
         sees = np.where(done, -1, seen[:, refined].sum(axis=1))
@@ -819,10 +833,11 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
         whole = _convert(cmodel, problem, virtual if plane is not None else _with_distance(cmodel, virtual, mount, h), +1)
 
         def block_solver(m: adapter.ColmapModel, held: np.ndarray | None) -> Solver:
-            """A block: its ``held`` frames (None: the first frame, the gauge), the distance held, the normal
-            free unless declared."""
-            return Solver(RefractiveProblem(m, interface, mount, False, hold_window=plane is not None,
-                                            held_frames=held), huber_px)
+            """The first block (``held`` None): the distance held, the normal free unless declared; a later
+            one: its ``held`` frames, the window and the intrinsics held at the first block's (a block
+            that fails cannot spoil what the others rely on)."""
+            return Solver(RefractiveProblem(m, interface, mount, False, hold_window=held is not None or plane is not None,
+                                            held_frames=held, hold_intrinsics=held is not None), huber_px)
 
         start, blocks = _slid_start(cmodel, whole, first, block_solver)
         if bar is not None:
