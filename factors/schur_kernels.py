@@ -1,5 +1,5 @@
 """Compiled accumulations of the bundle-adjustment core (:mod:`ari_sfm.factors.schur`), entries layout:
-the normal equations from per-observation Jacobians, and the Schur complement's block products. One pass
+the normal equations from per-observation Jacobians, and the Schur complement's Y matrix. One pass
 over the observations each, no temporaries of the observations' size (numba, ``cache=True``)."""
 from __future__ import annotations
 
@@ -56,62 +56,21 @@ def assemble_entries(residuals, J_global, cols, J_block, rows, weights, n_blocks
 
 
 @njit(**_JIT)
-def subtract_block_products(W, rows, cols, L, order, starts, S):
-    """S -= W^T V^-1 W block by block (entries layout), on S's upper triangle only: for block n with
-    entries ``order[starts[n]:starts[n+1]]``, ``Y_n = L_n^T W_n`` on the global columns its entries
-    touch (dense on those only), then ``S[c, c'] -= (Y_n^T Y_n)[c, c']`` for c <= c'. Cost per block: k
-    times its columns squared / 2 (a point of a short track: ~50 columns of thousands)."""
+def fill_y(W, rows, rank, cols, local, L, order, start, stop, r0, Y):
+    """Y (k (r1 - r0), columns) of the blocks ranked r0.. whose entries are ``order[start:stop]``: block
+    n's k rows (at ``rank[n] - r0``) are the sum of its entries' ``L_n^T W_e``, entry column c at Y's
+    column ``local[c]`` (``W^T V^-1 W = sum over chunks of Y^T Y``)."""
     k, q = W.shape[1], W.shape[2]
-    G = S.shape[0]
-    N = len(starts) - 1
-    pos = -np.ones(G + 1, np.int64)
-    local = np.empty(G + 1, np.int64)
-    Y = np.zeros((k, G + 1))
-    P = np.zeros((64, 64))  # the local Gram matrix (grown when a block touches more columns)
-    for n in range(N):
-        m = 0
-        Ln = L[n]
-        for t in range(starts[n], starts[n + 1]):
-            e = order[t]
-            c, We = cols[e], W[e]
+    Y[:] = 0.0
+    for t in range(start, stop):
+        e = order[t]
+        n = rows[e]
+        base = k * (rank[n] - r0)
+        c, We, Ln = cols[e], W[e], L[n]
+        for a in range(k):
+            Ya = Y[base + a]
             for i in range(q):
-                ci = c[i]
-                if ci >= G:
-                    continue
-                j = pos[ci]
-                if j < 0:
-                    j = m
-                    pos[ci] = m
-                    local[m] = ci
-                    for a in range(k):
-                        Y[a, m] = 0.0
-                    m += 1
-                for a in range(k):
-                    s = 0.0
-                    for b in range(k):
-                        s += Ln[b, a] * We[b, i]
-                    Y[a, j] += s
-        if P.shape[0] < m:
-            P = np.zeros((2 * m, 2 * m))
-        for i in range(m):
-            Pi = P[i]
-            for j in range(i, m):
-                Pi[j] = 0.0
-        for a in range(k):  # the local Gram matrix, upper triangle, contiguous inner loop
-            Ya = Y[a]
-            for i in range(m):
-                yai = Ya[i]
-                Pi = P[i]
-                for j in range(i, m):
-                    Pi[j] += yai * Ya[j]
-        for i in range(m):
-            ci = local[i]
-            Pi = P[i]
-            for j in range(i, m):
-                cj = local[j]
-                if ci <= cj:
-                    S[ci, cj] -= Pi[j]
-                else:
-                    S[cj, ci] -= Pi[j]
-        for i in range(m):
-            pos[local[i]] = -1
+                s = 0.0
+                for b in range(k):
+                    s += Ln[b, a] * We[b, i]
+                Ya[local[c[i]]] += s

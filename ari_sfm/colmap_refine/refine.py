@@ -379,24 +379,28 @@ def _with_block(state: State, block: Block, refined: State) -> State:
     return replace(refined, rig_from_world=tuple(frames), sensor_from_rig=tuple(sensors), xyz=xyz)
 
 
-def _aligned(model: adapter.ColmapModel, ref: State, state: State, refined: np.ndarray, frames: np.ndarray
-             ) -> State:
-    """``state`` with ``frames`` (indices) and every point not ``refined`` (mask) placed from ``ref`` (the
-    input's start) by similarities: each frame's carries the refined points it sees from their place in
-    ``ref`` to their place in ``state`` (a frame that sees fewer than ALIGN_MIN_POINTS of them, or
-    nearly collinear ones: its nearest such frame's); a point takes the mean of its frames' images.
-    The start built frame by frame from the input's local shape, so that a bend the input accumulated
-    along a long chain is not carried beyond the refined part."""
+def _aligned(model: adapter.ColmapModel, ref: State, state: State, refined: np.ndarray, frames: np.ndarray,
+             points: np.ndarray | None = None) -> State:
+    """``state`` with ``frames`` (indices) and the points not ``refined`` (mask; among ``points``, a mask,
+    if given) placed from ``ref`` (the input's start) by similarities: each frame's carries the refined
+    points it sees from their place in ``ref`` to their place in ``state`` (a frame that sees fewer than
+    ALIGN_MIN_POINTS of them, or nearly collinear ones: its nearest such frame's); a point takes the
+    mean of its frames' images. The start built frame by frame from the input's local shape, so that a
+    bend the input accumulated along a long chain is not carried beyond the refined part."""
     from .truth import similarity
 
     F = len(model.frame_ids)
     frame_of_obs = model.image_frame[model.obs_image]
+    placed = ~refined if points is None else ~refined & points
+    needed = np.zeros(F, bool)  # the frames placed and those that see a point placed
+    needed[frames] = True
+    needed[frame_of_obs[placed[model.obs_point]]] = True
     by_frame = np.argsort(frame_of_obs, kind="stable")
     starts = np.searchsorted(frame_of_obs[by_frame], np.arange(F + 1))
-    points_of = [model.obs_point[by_frame[starts[f]:starts[f + 1]]] for f in range(F)]
+    points_of = {f: model.obs_point[by_frame[starts[f]:starts[f + 1]]] for f in np.flatnonzero(needed)}
     sims: dict[int, tuple[float, np.ndarray, np.ndarray]] = {}
-    for f in range(F):
-        pts = np.unique(points_of[f][refined[points_of[f]]])
+    for f, seen in points_of.items():
+        pts = np.unique(seen[refined[seen]])
         if len(pts) >= ALIGN_MIN_POINTS:
             spread = np.sqrt(np.maximum(np.linalg.eigvalsh(np.cov(ref.xyz[pts].T)), 0.0))
             if spread[1] >= ALIGN_MIN_SPREAD * spread[2]:
@@ -406,17 +410,17 @@ def _aligned(model: adapter.ColmapModel, ref: State, state: State, refined: np.n
     centres = _centres(ref)
     have = np.array(sorted(sims))
     sim_of = {f: sims[f] if f in sims else sims[int(have[np.argmin(np.linalg.norm(centres[have] - centres[f], axis=1))])]
-              for f in range(F)}
+              for f in points_of}
     poses = list(state.rig_from_world)
     for f in frames:
         s, R, t = sim_of[int(f)]
         pose = ref.rig_from_world[f]  # X_rig = R_f X + t_f with X = R^T (X' - t) / s; the rig frame scaled by s
         poses[f] = Pose(pose.R @ R.T, s * pose.t - pose.R @ R.T @ t)
-    moved = np.zeros((len(ref.xyz), 3))  # an unrefined point: the mean of its frames' similarities
+    moved = np.zeros((len(ref.xyz), 3))  # a placed point: the mean of its frames' similarities
     for f, (s, R, t) in sim_of.items():
-        p = points_of[f][~refined[points_of[f]]]
+        p = points_of[f][placed[points_of[f]]]
         np.add.at(moved, p, s * ref.xyz[p] @ R.T + t)
-    count = np.bincount(model.obs_point[~refined[model.obs_point]], minlength=len(ref.xyz))
+    count = np.bincount(model.obs_point[placed[model.obs_point]], minlength=len(ref.xyz))
     xyz = state.xyz.copy()
     rest = count > 0
     xyz[rest] = moved[rest] / count[rest, None]
@@ -476,8 +480,8 @@ def _slid_start(model: adapter.ColmapModel, state: State, first: Block, make_sol
             return _aligned(model, ref, state, refined, np.zeros(0, int)), blocks  # points no block held
         sees = np.where(done, -1, seen[:, refined].sum(axis=1))
         new = np.argsort(-sees, kind="stable")[:min(step, int((~done).sum()))]
-        state = _aligned(model, ref, state, refined, new)
         theirs = seen[new].any(axis=0)  # the new frames' points, with every refined frame's view of them
+        state = _aligned(model, ref, state, refined, new, theirs)
         anchors = np.flatnonzero(done & (seen[:, theirs].sum(axis=1) >= ALIGN_MIN_POINTS))
         block = _block(model, np.union1d(new, anchors), theirs)
         held = np.flatnonzero(np.isin(block.frames, anchors))
