@@ -409,8 +409,8 @@ def _aligned(model: adapter.ColmapModel, ref: State, state: State, refined: np.n
         return state
     centres = _centres(ref)
     have = np.array(sorted(sims))
-    sim_of = {f: sims[f] if f in sims else sims[int(have[np.argmin(np.linalg.norm(centres[have] - centres[f], axis=1))])]
-              for f in points_of}
+    nearest = {f: int(have[np.argmin(np.linalg.norm(centres[have] - centres[f], axis=1))]) for f in points_of}
+    sim_of = {f: sims[f if f in sims else nearest[f]] for f in points_of}
     poses = list(state.rig_from_world)
     for f in frames:
         s, R, t = sim_of[int(f)]
@@ -832,7 +832,7 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
                                           plane is not None or interface.distance_mm is not None, window_path)
     blocks: list[dict] = []
     first = _first_block(cmodel, virtual, mount)
-    if first is not None:  # a long chain: the start slid outward from a middle block, the distance held at the middle start
+    if first is not None:  # a long chain: the start slides outward from a middle block (the middle start distance)
         h = candidates[(len(candidates) - 1) // 2] if len(candidates) > 1 else candidates[0]
         whole = _convert(cmodel, problem, virtual if plane is not None else _with_distance(cmodel, virtual, mount, h), +1)
 
@@ -840,8 +840,9 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
             """The first block (``held`` None): the distance held, the normal free unless declared; a later
             one: its ``held`` frames, the window and the intrinsics held at the first block's (a block
             that fails cannot spoil what the others rely on)."""
-            return Solver(RefractiveProblem(m, interface, mount, False, hold_window=held is not None or plane is not None,
-                                            held_frames=held, hold_intrinsics=held is not None), huber_px)
+            later = held is not None
+            return Solver(RefractiveProblem(m, interface, mount, False, hold_window=later or plane is not None,
+                                            held_frames=held, hold_intrinsics=later), huber_px)
 
         start, blocks = _slid_start(cmodel, whole, first, block_solver)
         if bar is not None:
