@@ -19,8 +19,11 @@ The coupling W is held in one of two layouts:
 The blocks are eliminated: ``S = U - W^T V^-1 W`` (dense G x G) and ``b = -g_global + W^T V^-1
 g_block`` are built once per block damping (:func:`reduce`; dense: one product ``W^T (V^-1 W)``;
 entries: with ``V_n^-1 = L_n L_n^T``, ``W^T V^-1 W = Y^T Y`` where Y's rows for block n are the sum
-of its entries' ``L_n^T W_e`` scattered to their columns, filled densely for a chunk of blocks at a
-time, one BLAS product per chunk), S is solved by Cholesky and the block steps back-substituted
+of its entries' ``L_n^T W_e`` scattered to their columns; Y is filled densely for a chunk of blocks
+at a time, over the columns that chunk touches only, one BLAS product per chunk; the blocks are
+taken in the order of their entries' smallest median column, so that on a chain (short tracks: each point seen
+by a few neighbouring frames) a chunk touches a few dozen frames' columns, not all G), S is solved by
+Cholesky and the block steps back-substituted
 (``d_block = -V^-1 (g_block + W d_global)``).
 
 Damping, by the system's ``marquardt`` flag:
@@ -51,9 +54,10 @@ import scipy.linalg.lapack
 log = logging.getLogger(__name__)
 
 DIAG_FLOOR = 1e-9  # Marquardt damping: the smallest diagonal entry damped
+Y_CHUNK_ENTRIES = 2_000_000  # entries layout: Y is filled for this many floats' worth of blocks (k rows each,
+#                              G + 1 columns at most) at a time
 RANK_TOLERANCE = 64 * np.finfo(float).eps  # global_covariance: Jacobi-scaled eigenvalue / largest below: undetermined
 NULL_SHARE = 1e-6  # global_covariance: a variable with more than this share in undetermined directions is one
-Y_CHUNK_ENTRIES = 2_000_000  # entries layout: floats of one dense chunk of Y (k rows per block, G + 1 columns)
 
 
 @dataclass
@@ -134,19 +138,30 @@ def reduce(sys: NormalEquations, lam_blocks: float) -> ReducedSystem | None:
 
     V_inv = 0.5 * (V_inv + np.swapaxes(V_inv, 1, 2))
     L = np.linalg.cholesky(V_inv)
-    rows = sys.W_rows
-    order = np.argsort(rows, kind="stable")
-    starts = np.searchsorted(rows[order], np.arange(N + 1))
-    G1 = G + 1
-    per = max(1, Y_CHUNK_ENTRIES // (k * G1))
+    rows, cols = sys.W_rows, sys.W_cols
+    first = np.full(N, G)  # each block's first entry median column (past the columns every entry shares, e.g.
+    np.minimum.at(first, rows, np.sort(cols, axis=1)[:, cols.shape[1] // 2])  # intrinsics: a frame's)
+    rank = np.empty(N, np.int64)
+    rank[np.argsort(first, kind="stable")] = np.arange(N)
+    ranked = rank[rows]
+    order = np.argsort(ranked, kind="stable")
+    starts = np.searchsorted(ranked[order], np.arange(N + 1))
+    per = max(1, Y_CHUNK_ENTRIES // (k * (G + 1)))
     S = sys.U.copy()
-    Y = np.empty((k * min(N, per), G1))
-    for n0 in range(0, N, per):
-        n1 = min(N, n0 + per)
-        Yc = Y[:k * (n1 - n0)]
-        fill_y(sys.W, rows, sys.W_cols, L, order, starts[n0], starts[n1], n0, Yc)
-        Yg = Yc[:, :G]
-        S -= Yg.T @ Yg
+    local = np.full(G + 1, -1, np.int64)
+    for r0 in range(0, N, per):
+        r1 = min(N, r0 + per)
+        touched = np.unique(cols[order[starts[r0]:starts[r1]]])
+        touched = touched[touched < G]
+        local[touched] = np.arange(len(touched))
+        local[G] = len(touched)  # the dummy column, dropped
+        Y = np.empty((k * (r1 - r0), len(touched) + 1))
+        fill_y(sys.W, rows, rank, cols, local, L, order, starts[r0], starts[r1], r0, Y)
+        Yg = Y[:, :-1]
+        if len(touched) == G:
+            S -= Yg.T @ Yg
+        else:
+            S[np.ix_(touched, touched)] -= Yg.T @ Yg
     u = np.einsum("nij,nj->ni", V_inv, sys.g_frame)
     b = -sys.g_global + sys.coupling_to_global(u)
     return ReducedSystem(S, b, V_inv, lam_blocks)

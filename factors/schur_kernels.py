@@ -56,15 +56,16 @@ def assemble_entries(residuals, J_global, cols, J_block, rows, weights, n_blocks
 
 
 @njit(**_JIT)
-def fill_y(W, rows, cols, L, order, start, stop, n0, Y):
-    """Y (k (n1 - n0), G + 1) of the blocks n0.. whose entries are ``order[start:stop]``: block n's k
-    rows are the sum of its entries' ``L_n^T W_e`` at their columns (``W^T V^-1 W = Y^T Y``)."""
+def fill_y(W, rows, rank, cols, local, L, order, start, stop, r0, Y):
+    """Y (k (r1 - r0), columns) of the blocks ranked r0.. whose entries are ``order[start:stop]``: block
+    n's k rows (at ``rank[n] - r0``) are the sum of its entries' ``L_n^T W_e``, entry column c at Y's
+    column ``local[c]`` (``W^T V^-1 W = sum over chunks of Y^T Y``)."""
     k, q = W.shape[1], W.shape[2]
     Y[:] = 0.0
     for t in range(start, stop):
         e = order[t]
         n = rows[e]
-        base = k * (n - n0)
+        base = k * (rank[n] - r0)
         c, We, Ln = cols[e], W[e], L[n]
         for a in range(k):
             Ya = Y[base + a]
@@ -72,4 +73,4 @@ def fill_y(W, rows, cols, L, order, start, stop, n0, Y):
                 s = 0.0
                 for b in range(k):
                     s += Ln[b, a] * We[b, i]
-                Ya[c[i]] += s
+                Ya[local[c[i]]] += s

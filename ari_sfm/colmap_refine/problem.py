@@ -83,18 +83,22 @@ class Layout:
 
 
 def make_layout(model: ColmapModel, mount: str, estimate_distance: bool, image_is_ref: np.ndarray,
-                hold_window: bool = False, hold_normal: bool = False) -> Layout:
-    """Index the reduced variables: intrinsics, frames (first held), non-ref sensors, window (unless
-    held; ``hold_normal``: its normal only)."""
+                hold_window: bool = False, hold_normal: bool = False, held_frames: np.ndarray | None = None,
+                hold_intrinsics: bool = False) -> Layout:
+    """Index the reduced variables: intrinsics (unless ``hold_intrinsics``), frames (the first held, or the
+    ``held_frames`` indices when given), non-ref sensors, window (unless held; ``hold_normal``: its normal
+    only)."""
     k = 0
     intr = []
     for c, p in enumerate(model.colmap_params):
         free = np.flatnonzero(model.param_map[c].any(axis=0))
-        intr.append(np.arange(k, k + len(free)))
-        k += len(free)
+        intr.append(-np.ones(len(free), int) if hold_intrinsics else np.arange(k, k + len(free)))
+        k += 0 if hold_intrinsics else len(free)
     F = len(model.frame_ids)
     frames = -np.ones((F, 6), int)
-    for f in range(1, F):
+    held = np.zeros(F, bool)
+    held[[0] if held_frames is None else held_frames] = True
+    for f in np.flatnonzero(~held):
         frames[f] = np.arange(k, k + 6)
         k += 6
     C = len(model.camera_ids)
@@ -130,7 +134,8 @@ class RefractiveProblem:
     """Residuals ``project(X) - observed`` of every COLMAP observation through the exact model."""
 
     def __init__(self, model: ColmapModel, interface: Interface, mount: str, estimate_distance: bool,
-                 hold_window: bool = False, hold_normal: bool = False) -> None:
+                 hold_window: bool = False, hold_normal: bool = False, held_frames: np.ndarray | None = None,
+                 hold_intrinsics: bool = False) -> None:
         if mount not in MOUNTS:
             raise ValueError(f"mount must be one of {MOUNTS}, got {mount!r}")
         self.model = model
@@ -138,7 +143,8 @@ class RefractiveProblem:
         self.mount = mount
         self.image_is_ref = (model.image_is_ref if model.image_is_ref is not None else
                              np.array([np.allclose(s.R, np.eye(3)) and not np.any(s.t) for s in model.sensor_from_rig]))
-        self.layout = make_layout(model, mount, estimate_distance, self.image_is_ref, hold_window, hold_normal)
+        self.layout = make_layout(model, mount, estimate_distance, self.image_is_ref, hold_window, hold_normal,
+                                  held_frames, hold_intrinsics)
         self._cam_of_obs = model.image_camera[model.obs_image]
         self._all_columns: tuple[np.ndarray, np.ndarray] | None = None  # linearize's columns of every observation
 

@@ -5,9 +5,11 @@ from typing import Any
 
 import numpy as np
 
-from ari_sfm.colmap_export import ColmapModel, model_from_reconstruction
+from ari_sfm.colmap_export import COLMAP_PIXEL_OFFSET, ColmapModel, model_from_reconstruction
 from ari_sfm.geometry import Pose, angle_between_deg
 from ari_sfm.simulate.port_survey import SfmTruth
+
+from .problem import State
 
 
 def similarity(A: np.ndarray, B: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -61,3 +63,16 @@ def window_errors(truth: SfmTruth, normals: np.ndarray, distances: np.ndarray,
         dist = abs((float(distances[0]) - normals[0] @ est.inverse().t)
                    - (truth.plane_mm - truth.normal_world @ tru.inverse().t))
     return {"normal_deg": float(ang), "distance_mm": float(dist)}
+
+
+def truth_state(truth: SfmTruth, model: ColmapModel) -> State:
+    """The simulated truth as a refine-colmap state of ``model`` (ids as in :func:`truth_errors`): the
+    start of the truth-started refinement, the yardstick of a refinement from COLMAP's model."""
+    params = tuple(np.r_[p[:2], p[2:4] + COLMAP_PIXEL_OFFSET] for p in truth.params)
+    sensors = tuple(truth.sensor_from_rig[c] for c in model.image_camera)
+    frames = tuple(truth.rig_from_world[int(f) - 1] for f in model.frame_ids)
+    if truth.mount == "camera":
+        normals, distances = np.array(truth.normal_cam), np.array(truth.distance_mm)
+    else:
+        normals, distances = truth.normal_world[None, :], np.array([truth.plane_mm])
+    return State(params, frames, sensors, normals, distances, truth.xyz[model.point3D_ids - 1].copy())
