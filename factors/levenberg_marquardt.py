@@ -125,6 +125,10 @@ def levenberg_marquardt(problem: LMProblem, x: Any, max_iterations: int = 100, r
     initial = err
     lam, iterations, inner = p.lambda_initial, 0, 0
     rule, stop = stop, "max_iterations"
+    # A problem whose linearisation costs little more than its error (getattr: opt-in) has each trial
+    # linearised instead of evaluated: an accepted step (most are) then needs no second pass.
+    linearize_trials = (rule == "converged" and problem.linearized_error_is_error
+                        and getattr(problem, "linearize_trials", False))
     sys, x_lin = None, None
     if err <= 0.0:
         stop = "zero_error"
@@ -146,7 +150,12 @@ def levenberg_marquardt(problem: LMProblem, x: Any, max_iterations: int = 100, r
                     break
                 if predicted >= 0.0:
                     x_new = problem.retract(x, step)
-                    e_new = problem.error(x_new)
+                    if linearize_trials:  # the trial's linearisation: its error, and the next system if accepted
+                        sys_new = problem.linearize(x_new)
+                        e_new = sys_new.error
+                        linearizations += 1
+                    else:
+                        e_new = problem.error(x_new)
                     evaluations += 1
                     change = err - e_new
                     if predicted > np.finfo(float).eps * sys.error:
@@ -154,6 +163,8 @@ def levenberg_marquardt(problem: LMProblem, x: Any, max_iterations: int = 100, r
                     stop_searching = abs(change) < relative_tolerance * err
             if step_ok:
                 x, err = x_new, e_new
+                if linearize_trials:
+                    first = sys_new  # the next linearisation, taken already
                 lam = max(p.lambda_lower_bound, lam / p.lambda_factor)
                 iterations += 1
                 inner += 1
@@ -180,4 +191,5 @@ def levenberg_marquardt(problem: LMProblem, x: Any, max_iterations: int = 100, r
     report = LMReport(iterations, inner, linearizations, initial, err, lam, time.perf_counter() - t0, stop,
                       evaluations)
     log.debug("LM: %s", report)
-    return LMResult(x, report, sys if linearizations and x_lin is x else None)
+    at_x = first if first is not None else (sys if linearizations and x_lin is x else None)
+    return LMResult(x, report, at_x)

@@ -415,6 +415,8 @@ class VectorizedProblem:
         return system
 
     # ------------------------------------------------------------------ the LMProblem interface
+    linearize_trials = True  # a linearisation costs ~2 error evaluations: LM linearises its trials
+
     @property
     def linearized_error_is_error(self) -> bool:
         """The linearisation's 0.5 r^T r is the error unless user factors (robust noise models) join."""
