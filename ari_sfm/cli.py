@@ -14,6 +14,7 @@ import click
 import numpy as np
 
 from . import _startup
+from .colmap_refine import settings as REFINE
 from .cli_checks import check_not_an_output, check_not_input_folder, check_number, check_output_folder
 from .errors import AriSfmError
 from .models.registry import BUNDLE, CALIBRATABLE, COMPARED, MODELS, model_spec
@@ -458,8 +459,10 @@ def export_colmap_cmd(calibration: Path, out: Path, dataset: Path | None, points
 @click.option("--baseline", type=(str, str, float), default=None, metavar="IMAGE IMAGE MM",
               help="The scale: the distance (mm) between two images' camera centres (e.g. from navigation).")
 @click.option("--max-features", type=int, default=4000, show_default=True, help="SIFT features per image.")
-@click.option("--huber-px", type=float, default=2.0, show_default=True, help="refine-colmap's Huber threshold (px).")
-@click.option("--max-iterations", type=int, default=50, show_default=True, help="refine-colmap's iterations.")
+@click.option("--huber-px", type=float, default=REFINE.HUBER_PX, show_default=True,
+              help="refine-colmap's Huber threshold (px).")
+@click.option("--max-iterations", type=int, default=REFINE.MAX_ITERATIONS, show_default=True,
+              help="Cap on refine-colmap's accepted Levenberg-Marquardt steps (>= 1).")
 @click.option("--threads", type=int, default=-1, show_default=True, help="COLMAP's threads (-1: all cores).")
 @user_errors
 def sfm_cmd(images: Path, window: Path, out: Path, matcher: str, overlap: int, focal_px: float | None,
@@ -959,8 +962,8 @@ def export_openptv_cmd(calibration: Path, out: Path, frame: str | None, pixel_si
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
               help="Output folder (not MODEL_DIR): COLMAP model (the cameras' best OPENCV or PINHOLE "
                    "approximation), calibration.json, refine.json.")
-@click.option("--huber-px", type=float, default=2.0, show_default=True, help="Huber threshold (px, > 0).")
-@click.option("--max-iterations", type=int, default=50, show_default=True,
+@click.option("--huber-px", type=float, default=REFINE.HUBER_PX, show_default=True, help="Huber threshold (px, > 0).")
+@click.option("--max-iterations", type=int, default=REFINE.MAX_ITERATIONS, show_default=True,
               help="Cap on the accepted Levenberg-Marquardt steps of the final refinement (>= 1).")
 @user_errors
 def refine_colmap_cmd(model_dir: Path, window: Path, out: Path, huber_px: float, max_iterations: int) -> None:

@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from .colmap_refine import settings as REFINE
 from .errors import AriSfmError
 
 if TYPE_CHECKING:
@@ -49,8 +50,8 @@ class SfmOptions:
     max_features: int = 4000  # SIFT features per image
     focal_px: float | None = None  # the camera's focal length prior (px); None: COLMAP's (1.2 x the larger side)
     baseline: tuple[str, str, float] | None = None  # (image name, image name, mm between their camera centres)
-    huber_px: float = 2.0  # refine-colmap's Huber threshold
-    max_iterations: int = 50  # refine-colmap's iterations
+    huber_px: float = REFINE.HUBER_PX  # refine-colmap's Huber threshold
+    max_iterations: int = REFINE.MAX_ITERATIONS  # refine-colmap's cap on accepted LM steps
     num_threads: int = -1  # COLMAP's threads; -1: all cores
     seed: int = 0  # COLMAP's mapper random seed
     progress: bool = False  # a progress bar while the mapper registers images

@@ -26,6 +26,7 @@ from ari_sfm.geometry import Pose
 from .plane import WindowPrior
 from .problem import RefractiveProblem, State
 from .scale_bar import ScaleBar
+from .settings import HUBER_PX
 
 
 def _frame_key(f: int) -> int:
@@ -69,7 +70,7 @@ def _column_owners(problem: RefractiveProblem) -> dict[int, tuple[str, int, int]
 class GtsamRefinement:
     """Build the graph from a state, optimise with GTSAM's LM, read the state back."""
 
-    def __init__(self, problem: RefractiveProblem, huber_px: float | None = 2.0, prior: WindowPrior | None = None,
+    def __init__(self, problem: RefractiveProblem, huber_px: float | None = HUBER_PX, prior: WindowPrior | None = None,
                  bar: ScaleBar | None = None) -> None:
         self.problem = problem
         self.huber_px = huber_px

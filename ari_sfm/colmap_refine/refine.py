@@ -64,6 +64,7 @@ from .problem import MOUNTS, RefractiveProblem, State, huber_cost, huber_weights
 from .report import (DeclaredPlaneReport, Plate, RefineCounts, RefineReport, Reprojection, ScaleBarReport,
                      WindowEstimate)
 from .scale_bar import ScaleBar
+from .settings import HUBER_PX, MAX_ITERATIONS
 from .uncertainty import uncertainty
 
 log = logging.getLogger(__name__)
@@ -768,7 +769,7 @@ def _state_reconstruction(rec: Any, model: adapter.ColmapModel, problem: Refract
 
 def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camera", model: str = "exact",
                   units_mm: float | None = None, scale_bar: tuple[int, int, float] | None = None,
-                  huber_px: float | None = 2.0, max_iterations: int = 50,
+                  huber_px: float | None = HUBER_PX, max_iterations: int = MAX_ITERATIONS,
                   distances_mm: tuple[float, ...] | None = None, approximation: str = "opencv",
                   backend: str = "numpy", progress: bool = False,
                   path: Any = "reconstruction", plane_path: Any = "interface.plane",
