@@ -27,14 +27,15 @@ def is_command_line() -> bool:
     return "-m" in argv[:-1] and argv[argv.index("-m") + 1] in ("ari_sfm", "ari_sfm.cli")
 
 
-def _leave(signum: int, frame) -> None:
-    """Leave at once: nothing has been written while the libraries load."""
+def leave(signum: int, frame) -> None:
+    """Leave at once with the signal's exit code: while the libraries load nothing has been written, and
+    after a command (:func:`ari_sfm.cli.user_errors`) everything has."""
     os.write(2, b"interrupted\n" if signum == signal.SIGINT else b"terminated\n")
     os._exit(130 if signum == signal.SIGINT else 143)
 
 
 def guard_loading() -> None:
-    """Install :func:`_leave` for SIGINT and SIGTERM while the command line loads (a signal ignored by the
+    """Install :func:`leave` for SIGINT and SIGTERM while the command line loads (a signal ignored by the
     parent, ``cmd &``, stays ignored)."""
     if _previous or threading.current_thread() is not threading.main_thread() or not is_command_line():
         return
@@ -42,7 +43,7 @@ def guard_loading() -> None:
         handler = signal.getsignal(signum)
         if handler is not signal.SIG_IGN and handler is not None:
             _previous[signum] = handler
-            signal.signal(signum, _leave)
+            signal.signal(signum, leave)
 
 
 def loaded() -> None:

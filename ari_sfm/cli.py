@@ -66,10 +66,18 @@ def _unraisable(args) -> None:
 
 
 def _restore_signal_handlers(previous: dict[int, object] | None) -> None:
+    """The handlers from before the command; on the command line, where those are the defaults, a signal
+    after the command (the interpreter's shutdown) leaves at once with "terminated"/143 or
+    "interrupted"/130 (:func:`ari_sfm._startup.leave`): its results are written, and the default SIGTERM
+    would end the process as killed (-15)."""
     sys.unraisablehook = sys.__unraisablehook__
+    command_line = _startup.is_command_line()
     for signum, handler in (previous or {}).items():
-        if handler is not None:
-            signal.signal(signum, handler)
+        if handler is None:
+            continue
+        if command_line and handler in (signal.SIG_DFL, signal.default_int_handler):
+            handler = _startup.leave
+        signal.signal(signum, handler)
 
 
 def _exit_interrupted(exit=sys.exit, terminated: bool = False) -> None:

@@ -79,3 +79,16 @@ def test_a_signal_during_pycolmaps_import_reaches_pythons_handler(tmp_path):
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                        env={**ENV, "PYTHONPATH": str(tmp_path)})
     assert p.returncode == 0 and p.stdout.strip() == "['python']", (p.returncode, p.stdout, p.stderr)
+
+
+@pytest.mark.parametrize("signum, code, line", [(signal.SIGTERM, 143, "terminated"), (signal.SIGINT, 130, "interrupted")])
+def test_a_signal_after_the_command_returned_leaves_with_its_code(signum, code, line):
+    """A signal after a command's body (its results written; the interpreter shutting down, which can take
+    seconds with dask or numba loaded): one line and the signal's code, not a process killed by it (-15)."""
+    script = ("import os, signal, sys, time; sys.argv[0] = 'ari-sfm'; "
+              "from ari_sfm.cli import user_errors; "
+              "user_errors(lambda: print('done', flush=True))(); "
+              f"os.kill(os.getpid(), {int(signum)}); time.sleep(5); print('not left')")
+    p = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=ENV, timeout=120)
+    assert p.returncode == code and p.stdout.strip() == "done", (p.returncode, p.stdout, p.stderr)
+    assert p.stderr.strip().splitlines()[-1] == line and "Traceback" not in p.stderr, p.stderr
