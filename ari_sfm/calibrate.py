@@ -4,7 +4,6 @@ from __future__ import annotations
 import logging
 import math
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Sequence
@@ -276,29 +275,27 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
     tried: list[str] = []
     judged: list = []  # (Calibration with its quality)
     first_error = None
-    # the gate's yardstick depends on the corners only: computed on a second thread meanwhile
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="ari-floor") as pool:
-        floor = pool.submit(floor_rmse_px, dataset) if opts.quality else None
-        for start in _starts(dataset, model, opts):
-            tried.append(start.name)
-            try:
-                cal, residuals = _calibrate_from(_Solver(dataset, opts, backend, extra_factors), model, plan, start)
-            except AriSfmError as exc:  # e.g. no window distance fits these poses: the next start may do better
-                log.info("calibration from the %s start failed: %s", start.name, exc.message)
-                first_error = first_error or exc
-                continue
-            if not opts.quality:
-                return replace(cal, time_s=time.perf_counter() - t0)
-            res = [r for _, r in residuals]
-            exact_robust = None
-            if model in PARAXIAL_MODELS and not fits(model, res, floor.result()):  # its paraxial error, or a wrong window?
-                exact_robust = _exact_robust_rmse(_Solver(dataset, opts, backend, extra_factors), start)
-            quality = judge(model, cal.residuals.rmse_px, res, floor.result(), cal.uncertainty, tuple(tried),
-                            exact_robust)
-            judged.append(replace(cal, quality=quality))
-            if quality.ok:
-                break
-            log.warning("quality gate: the %s start gives a failed calibration (%s)", start.name, quality.why)
+    floor = floor_rmse_px(dataset) if opts.quality else None  # the gate's yardstick: the corners' own noise
+    for start in _starts(dataset, model, opts):
+        tried.append(start.name)
+        try:
+            cal, residuals = _calibrate_from(_Solver(dataset, opts, backend, extra_factors), model, plan, start)
+        except AriSfmError as exc:  # e.g. no window distance fits these poses: the next start may do better
+            log.info("calibration from the %s start failed: %s", start.name, exc.message)
+            first_error = first_error or exc
+            continue
+        if not opts.quality:
+            return replace(cal, time_s=time.perf_counter() - t0)
+        res = [r for _, r in residuals]
+        exact_robust = None
+        if model in PARAXIAL_MODELS and not fits(model, res, floor):  # its paraxial error, or a wrong window?
+            exact_robust = _exact_robust_rmse(_Solver(dataset, opts, backend, extra_factors), start)
+        quality = judge(model, cal.residuals.rmse_px, res, floor, cal.uncertainty, tuple(tried),
+                        exact_robust)
+        judged.append(replace(cal, quality=quality))
+        if quality.ok:
+            break
+        log.warning("quality gate: the %s start gives a failed calibration (%s)", start.name, quality.why)
     if not judged:
         raise first_error
     best = next((c for c in judged if c.quality.ok), None)

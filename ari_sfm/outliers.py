@@ -39,12 +39,17 @@ def robust_sigma_px(residuals: Iterable[np.ndarray]) -> float:
 
 def find_outliers(pairs: Sequence[tuple[Observation, np.ndarray]], k_sigma: float = 5.0) -> tuple[list[Outlier], float]:
     """Corners with pixel distance > k_sigma * sigma (sigma: robust, per coordinate)."""
-    sigma = robust_sigma_px(r for _, r in pairs)
+    if not pairs:
+        return [], float("nan")
+    r = np.concatenate([np.asarray(x, float).reshape(-1, 2) for _, x in pairs])
+    sigma = robust_sigma_px([r])
+    d = np.sqrt(np.einsum("ij,ij->i", r, r))
+    start = np.cumsum([0] + [len(x) for _, x in pairs])
     out = []
-    for obs, r in pairs:
-        d = np.linalg.norm(r, axis=1)
-        for i in np.flatnonzero(d > k_sigma * sigma):
-            out.append(Outlier(obs.camera, obs.set, obs.frame, int(obs.ids[i]), float(d[i]), obs.added_mm))
+    for k in np.flatnonzero(d > k_sigma * sigma):  # few: pairs located by their offsets
+        p = int(np.searchsorted(start, k, side="right")) - 1
+        obs, i = pairs[p][0], k - start[p]
+        out.append(Outlier(obs.camera, obs.set, obs.frame, int(obs.ids[i]), float(d[k]), obs.added_mm))
     return out, sigma
 
 

@@ -30,6 +30,8 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 
+from .homography import homographies, normalised
+
 log = logging.getLogger(__name__)
 
 # The model may fit up to ratio x the floor plus the margin (exact at its optimum: 0.9-1.1 x the floor on the
@@ -83,18 +85,6 @@ def robust_rmse_px(residuals: Iterable[np.ndarray]) -> float:
     return float(math.sqrt(2.0) * MAD_TO_SIGMA * np.median(np.abs(r))) if r.size else math.nan
 
 
-def _normalised(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Planes' points (V, N, 2) centred and scaled to an RMS radius of sqrt(2) (Hartley), and those
-    3x3 maps (V, 3, 3)."""
-    c = p.mean(axis=1)
-    radius = np.sqrt(np.mean(np.sum((p - c[:, None]) ** 2, axis=2), axis=1))
-    scale = math.sqrt(2.0) / np.maximum(radius, 1e-12)
-    T = np.zeros((len(p), 3, 3))
-    T[:, 0, 0], T[:, 1, 1], T[:, 2, 2] = scale, scale, 1.0
-    T[:, :2, 2] = -scale[:, None] * c
-    return (p - c[:, None]) * scale[:, None, None], T
-
-
 def _warp_residuals(xy: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Residuals (V, N, 2) of V planes' corners ``xy`` (target plane) against their pixels ``uv`` (each
     (V, N, 2)) after a homography (normalised DLT) and a polynomial warp in image coordinates (the least
@@ -102,13 +92,8 @@ def _warp_residuals(xy: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndar
     sqrt(N / (N - p)) for the p parameters fitted per coordinate (so that they estimate the noise, not
     less); and which planes were fitted (V,)."""
     V, n = xy.shape[:2]
-    a, Ta = _normalised(xy)
-    b, Tb = _normalised(uv)
-    one, zero = np.ones((V, n)), np.zeros((V, n))
-    ax, ay, bx, by = a[..., 0], a[..., 1], b[..., 0], b[..., 1]
-    rows = np.concatenate([np.stack([ax, ay, one, zero, zero, zero, -bx * ax, -bx * ay, -bx], axis=2),
-                           np.stack([zero, zero, zero, ax, ay, one, -by * ax, -by * ay, -by], axis=2)], axis=1)
-    H = np.linalg.solve(Tb, np.linalg.svd(rows, full_matrices=False)[2][:, -1].reshape(V, 3, 3) @ Ta)
+    H = homographies(xy, uv)
+    b = normalised(uv)[0]
     w = np.einsum("vnk,vk->vn", xy, H[:, 2, :2]) + H[:, 2, 2, None]
     fitted = np.isfinite(H).all(axis=(1, 2)) & np.all(np.abs(w) > 1e-12, axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):

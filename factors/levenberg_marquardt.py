@@ -32,6 +32,12 @@ log = logging.getLogger(__name__)
 STOP_RULES = ("converged", "gtsam")  # levenberg_marquardt's stop=
 
 
+class NonFiniteJacobian(RuntimeError):
+    """A linearisation point with a non-finite Jacobian entry (e.g. a corner behind the window). A problem's
+    ``linearize`` raises it; a trial linearised in its place (``linearize_trials``) is then judged by its
+    error instead, as any trial is without ``linearize_trials``."""
+
+
 class LMProblem(Protocol):
     """What :func:`levenberg_marquardt` needs of a problem (see the module docstring)."""
 
@@ -151,9 +157,12 @@ def levenberg_marquardt(problem: LMProblem, x: Any, max_iterations: int = 100, r
                 if predicted >= 0.0:
                     x_new = problem.retract(x, step)
                     if linearize_trials:  # the trial's linearisation: its error, and the next system if accepted
-                        sys_new = problem.linearize(x_new)
-                        e_new = sys_new.error
-                        linearizations += 1
+                        try:
+                            sys_new = problem.linearize(x_new)
+                            e_new = sys_new.error
+                            linearizations += 1
+                        except NonFiniteJacobian:  # e.g. a corner behind the window: its error says how bad
+                            sys_new, e_new = None, problem.error(x_new)
                     else:
                         e_new = problem.error(x_new)
                     evaluations += 1
@@ -164,7 +173,7 @@ def levenberg_marquardt(problem: LMProblem, x: Any, max_iterations: int = 100, r
             if step_ok:
                 x, err = x_new, e_new
                 if linearize_trials:
-                    first = sys_new  # the next linearisation, taken already
+                    first = sys_new  # the next linearisation, taken already (None: made at the loop's top)
                 lam = max(p.lambda_lower_bound, lam / p.lambda_factor)
                 iterations += 1
                 inner += 1

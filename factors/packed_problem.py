@@ -48,7 +48,7 @@ from ..models.exact import exact_project
 from ..records import Observation
 from . import keys as K_
 from .extra_factors import ExtraFactors
-from .levenberg_marquardt import LMParams, LMReport, levenberg_marquardt
+from .levenberg_marquardt import LMParams, LMReport, NonFiniteJacobian, levenberg_marquardt
 from .marginals import CovarianceTable, covariances_by_key
 from .robust import huber_irls, huber_residual_scale, huber_view_residual
 from .schur import NormalEquations, model_decrease, solve_damped
@@ -408,7 +408,7 @@ class VectorizedProblem:
                                      self.camera_row_cols[c], V, g_f, W, U, g_g, bad)
             if bad.any():
                 factors = np.unique(self.view_order[self.corner_view[s:e][bad]])[:10].tolist()
-                raise RuntimeError(f"non-finite Jacobian entries in factor(s) {factors} "
+                raise NonFiniteJacobian(f"non-finite Jacobian entries in factor(s) {factors} "
                                    "(a corner behind the window at the linearisation point)")
         system = NormalEquations(V, g_f, W, U, g_g, 0.5 * err2 + err_excess)
         self._extra.add_to(system, x)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from ari_sfm.factors.levenberg_marquardt import levenberg_marquardt
+from ari_sfm.factors.levenberg_marquardt import NonFiniteJacobian, levenberg_marquardt
 
 
 @dataclass
@@ -106,3 +106,40 @@ def test_linearized_trials_take_the_same_steps_in_fewer_passes():
     # one pass fewer per accepted step but the last, after which the plain loop stops without a
     # linearisation at the optimum (a covariance then takes one more); the check above linearised once more
     assert a.system_at_x is None and plain.passes - (trials.passes - 1) == a.report.iterations - 1
+
+
+class WalledFit(CountingFit):
+    """The fit with a forbidden region b > wall (as a corner behind the window): there the error is huge
+    and the linearisation raises NonFiniteJacobian."""
+
+    wall = -1.2
+
+    def __init__(self, t: np.ndarray, y: np.ndarray, linearize_trials: bool) -> None:
+        super().__init__(t, y, linearize_trials)
+        self.walls_hit = 0
+
+    def error(self, x: np.ndarray) -> float:
+        return 1e12 if x[1] > self.wall else super().error(x)
+
+    def linearize(self, x: np.ndarray) -> _Dense:
+        if x[1] > self.wall:
+            self.walls_hit += 1
+            raise NonFiniteJacobian("b beyond the wall")
+        return super().linearize(x)
+
+
+def test_a_linearised_trial_beyond_a_wall_is_rejected_by_its_error():
+    """A trial whose linearisation raises NonFiniteJacobian (a step that puts a corner behind the window) is
+    judged by its error, as without ``linearize_trials``: rejected, the same steps and optimum."""
+    rng = np.random.default_rng(2)
+    t = np.linspace(0.0, 2.0, 50)
+    y = 2.0 * np.exp(-1.3 * t) + 0.5 + rng.normal(0.0, 1e-3, t.size)
+    start = np.array([1.0, -3.0, 0.0])
+    plain = levenberg_marquardt(WalledFit(t, y, False), start)
+    walled = WalledFit(t, y, True)
+    trials = levenberg_marquardt(walled, start)
+    assert walled.walls_hit > 0  # some trial went beyond the wall
+    np.testing.assert_array_equal(plain.x, trials.x)
+    assert (plain.report.iterations, plain.report.inner_iterations) == (trials.report.iterations,
+                                                                       trials.report.inner_iterations)
+    assert trials.x[1] == pytest.approx(-1.3, abs=0.02)

@@ -156,10 +156,13 @@ def intersect_lines(lines: TrajectoryLines, reject_sigma: float = 3.0, max_round
 
 def _solve(A: np.ndarray, b: np.ndarray, weights: np.ndarray, inliers: np.ndarray) -> np.ndarray:
     w = weights * inliers
-    M = (A * w[:, None]).T @ A
-    if np.linalg.cond(M) > 1e12:
+    Aw = A * w[:, None]
+    M = Aw.T @ A
+    # M's condition number in closed form (symmetric 2x2: its eigenvalues m +- r)
+    m, r = 0.5 * (M[0, 0] + M[1, 1]), np.hypot(0.5 * (M[0, 0] - M[1, 1]), M[0, 1])
+    if not (m - r > 0.0 and (m + r) / (m - r) <= 1e12):
         raise ValueError("corner trajectories are (nearly) parallel: the expansion centre is undetermined")
-    return np.linalg.solve(M, (A * w[:, None]).T @ b)
+    return np.linalg.solve(M, Aw.T @ b)
 
 
 def expansion_center(observations: Sequence[Observation]) -> ExpansionCenter:

@@ -1,0 +1,39 @@
+"""The batched normalised DLT (ari_sfm.homography) against known homographies and OpenCV's."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ari_sfm.homography import homographies_of
+
+
+def _views(rng: np.random.Generator, sizes: list[int]) -> tuple[list, list, list]:
+    xy, uv, truth = [], [], []
+    for n in sizes:
+        H = np.array([[900.0, 40.0, 1200.0], [-30.0, 950.0, 1000.0], [0.0, 0.0, 1.0]])
+        H[2, :2] = rng.uniform(-2e-3, 2e-3, 2)
+        H[:2, :2] += rng.normal(0, 50, (2, 2))
+        p = rng.uniform(-60, 60, (n, 2))
+        q = np.c_[p, np.ones(n)] @ H.T
+        xy.append(p), uv.append(q[:, :2] / q[:, 2:]), truth.append(H)
+    return xy, uv, truth
+
+
+def test_noise_free_views_of_any_sizes_give_their_homographies():
+    xy, uv, truth = _views(np.random.default_rng(0), [88, 88, 30, 4, 88])
+    H = homographies_of(xy, uv)
+    for h, t in zip(H, truth):
+        assert np.allclose(h / h[2, 2], t, rtol=1e-8, atol=1e-8)
+
+
+def test_noisy_views_agree_with_opencv_and_too_few_points_give_nan():
+    rng = np.random.default_rng(1)
+    xy, uv, _ = _views(rng, [88, 50, 3])
+    uv = [q + rng.normal(0, 0.5, q.shape) for q in uv]
+    H = homographies_of(xy, uv)
+    for h, p, q in zip(H[:2], xy[:2], uv[:2]):
+        ref = cv2.findHomography(p, q, 0)[0]  # the same DLT, then refined: within the noise's effect
+        grid = np.c_[np.mgrid[-60:61:20, -60:61:20].reshape(2, -1).T, np.ones(49)]
+        a, b = grid @ (h / h[2, 2]).T, grid @ ref.T
+        assert np.abs(a[:, :2] / a[:, 2:] - b[:, :2] / b[:, 2:]).max() < 0.5
+    assert np.isnan(H[2]).all()
