@@ -1,16 +1,14 @@
 """Plane-to-image homographies by the normalised direct linear transform, many views at once.
 
-The one implementation of the DLT homography: Zhang's closed-form K
-(:mod:`ari_sfm.init.zhang`) and the quality gate's floor (:mod:`ari_sfm.quality`) use it.
-Points are normalised per view (Hartley: centred, RMS radius sqrt(2)), so the estimate is
-that of ``cv2.findHomography(..., 0)`` before its iterative refinement of the geometric error
-(a start; the bundle adjustment refines what follows from it).
+Used by the quality gate's floor (:mod:`ari_sfm.quality`: every plane of up to eight views mapped
+by its own homography). Points are normalised per view (Hartley: centred, RMS radius sqrt(2)),
+so the estimate is that of ``cv2.findHomography(..., 0)`` before its iterative refinement of the
+geometric error. (Zhang's start keeps OpenCV's refined homographies: started from these, the
+exact stage's coarse normal search of a far-off under-water case picked another direction.)
 """
 from __future__ import annotations
 
 import math
-from typing import Sequence
-
 import numpy as np
 
 
@@ -42,15 +40,3 @@ def homographies(xy: np.ndarray, uv: np.ndarray) -> np.ndarray:
     except np.linalg.LinAlgError:  # non-finite points
         return np.full((V, 3, 3), np.nan)
     return np.linalg.solve(Tb, h.reshape(V, 3, 3) @ Ta)
-
-
-def homographies_of(xy: Sequence[np.ndarray], uv: Sequence[np.ndarray]) -> np.ndarray:
-    """:func:`homographies` of views with any numbers of points (each (N_v, 2)): views of one size at once."""
-    out = np.full((len(xy), 3, 3), np.nan)
-    by_size: dict[int, list[int]] = {}
-    for i, p in enumerate(xy):
-        by_size.setdefault(len(p), []).append(i)
-    for n, idx in by_size.items():
-        if n >= 4:
-            out[idx] = homographies(np.array([xy[i] for i in idx]), np.array([uv[i] for i in idx]))
-    return out

@@ -1,4 +1,4 @@
-"""Zhang's planar calibration (closed form: DLT homographies, PnP via OpenCV) for K and the generalised extrinsics.
+"""Zhang's planar calibration (closed form via OpenCV) for K and the generalised extrinsics.
 
 With the ARI model the window only shifts the scene by delta along the normal,
 so the camera is a pinhole with the true K and R (paper Eqs. 6-10): Zhang's
@@ -16,7 +16,6 @@ import cv2
 import numpy as np
 
 from ..geometry import Pose
-from ..homography import homographies_of
 from ..models.pinhole import project_points
 from ..records import CameraSpec, Observation, Target
 
@@ -101,10 +100,10 @@ def _zhang_K(obj: list[np.ndarray], img: list[np.ndarray]) -> np.ndarray | None:
     """Zhang's closed-form K (no skew) from the views' homographies: each view gives two linear
     constraints h1^T B h2 = 0, h1^T B h1 = h2^T B h2 on B = K^-T K^-1 (B11, B22, B13, B23, B33);
     None when they do not determine a camera (fewer than 3 views, degenerate poses)."""
-    H = homographies_of([o[:, :2] for o in obj], img)  # normalised DLT, views of one size at once
-    if not np.isfinite(H).all():
+    homographies = [cv2.findHomography(o[:, :2], i, 0)[0] for o, i in zip(obj, img)]
+    if any(H is None for H in homographies):
         return None
-    H = H / np.linalg.norm(H[:, :, :2], axis=(1, 2))[:, None, None]
+    H = np.array([h / np.linalg.norm(h[:, :2]) for h in homographies]).reshape(-1, 3, 3)
 
     def v(a: int, b: int) -> np.ndarray:
         ha, hb = H[:, :, a], H[:, :, b]
