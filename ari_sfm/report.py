@@ -225,11 +225,14 @@ def _fmt(x: Any, digits: int = 4) -> str:
     return html.escape(str(x))
 
 
-def _table(header: list[str], rows: list[list[Any]], digits: int = 4) -> str:
+def _table(header: list[str], rows: list[list[Any]], digits: int = 4, align_numbers: bool = True) -> str:
+    """An HTML table; numbers right-aligned in their column unless ``align_numbers`` is False (a key-value
+    table, whose value column mixes numbers and text)."""
     head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
+
     def cell(v: Any) -> str:
-        num = isinstance(v, (int, float, np.integer, np.floating)) or v is None or (
-            isinstance(v, str) and re.fullmatch(r"[-+]?\d+(\.\d+)?", v.strip()) is not None)  # e.g. compare.md's
+        num = align_numbers and (isinstance(v, (int, float, np.integer, np.floating)) or v is None or (
+            isinstance(v, str) and re.fullmatch(r"[-+]?\d+(\.\d+)?", v.strip()) is not None))  # e.g. compare.md's
         return f'<td class="n">{_fmt(v, digits)}</td>' if num else f"<td>{_fmt(v, digits)}</td>"
 
     body = "".join("<tr>" + "".join(cell(v) for v in r) + "</tr>" for r in rows)
@@ -361,7 +364,7 @@ def _summary_section(ctx: ReportContext) -> str:
                                            f"over {r.count} corners"])
     if cal.uncertainty is not None:
         rows.append(["residual sigma", f"{cal.uncertainty.sigma_px:.4f} px (scales the standard deviations below)"])
-    return "<h2>Dataset and rig</h2>" + _table(["", ""], rows).replace("<thead><tr><th></th><th></th></tr></thead>", "", 1)
+    return "<h2>Dataset and rig</h2>" + _table(["", ""], rows, align_numbers=False).replace("<thead><tr><th></th><th></th></tr></thead>", "", 1)
 
 
 def _advice_section(ctx: ReportContext) -> str:

@@ -103,6 +103,14 @@ def test_report_table_keeps_small_values_significant():
     assert "0.0000<" not in html.split("fx")[0]
 
 
+def test_a_key_value_table_aligns_its_values_alike():
+    """The dataset table's values, numbers and text, sit left-aligned in one column; a column of numbers
+    (the calibration table) is right-aligned."""
+    kv = report._table(["", ""], [["calibration frames", 15], ["window", "50 mm"]], align_numbers=False)
+    assert "<td>15</td>" in kv and 'class="n"' not in kv
+    assert '<td class="n">15</td>' in report._table(["", ""], [["calibration frames", 15]])
+
+
 def test_report_embeds_every_figure_and_fetches_nothing(binocular):
     _, _, out, _ = binocular
     text = (out / "report.html").read_text()
