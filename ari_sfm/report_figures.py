@@ -247,9 +247,16 @@ def draw_residual_by_frame(calibration: Calibration, residuals: Residuals) -> An
     ax.set_xticks(range(0, len(frames), step), [frames[i][1] for i in range(0, len(frames), step)],
                   rotation=90)
     ax.set(xlabel="frame (calibration frames, then stacking poses)", ylabel="RMS residual (px)",
-           ylim=(0, None))
+           ylim=(0, _headroom(per.values())))
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1), borderaxespad=0, markerscale=1)
     return fig
+
+
+def _headroom(values) -> float | None:
+    """An axis top 10 % above the largest finite value (from 0, matplotlib's margin left the largest markers
+    cut by the frame); None (automatic) without one."""
+    v = np.array([x for x in values if np.isfinite(x)], float)
+    return 1.1 * float(v.max()) if v.size and v.max() > 0 else None
 
 
 def residual_by_depth(calibration: Calibration, residuals: Residuals, target: Target,
@@ -293,7 +300,7 @@ def draw_residual_by_depth(calibration: Calibration, residuals: Residuals, targe
         bottom.plot([], [], color="0.5", alpha=0.3, lw=8, label="reconstructed points")
     top.set(ylabel="corners")
     bottom.set(xlabel="depth of the corner along the camera's optical axis (mm)", ylabel="RMS residual (px)",
-               ylim=(0, None))
+               ylim=(0, _headroom(v for line in bottom.get_lines() for v in np.asarray(line.get_ydata(), float))))
     top.legend(loc="upper right", ncols=len(names))
     bottom.legend(loc="lower right", ncols=len(names) + (1 if points else 0))
     return fig

@@ -180,3 +180,19 @@ def test_rig_figure_says_the_window_depth_is_schematic_in_air(binocular_residual
     assert "schematic" not in _window_label(fig) and "at 80.0 mm" in _window_label(fig)
     assert not any(line.get_linestyle() == "--" for line in fig.axes[0].get_lines())
     plt.close(fig)
+
+
+def test_per_frame_and_depth_residuals_leave_room_above_the_largest_value(binocular_residuals):
+    """The largest RMS marker sits below the frame's top (from 0, matplotlib's margin put it on the frame,
+    half cut), and every value is inside the view."""
+    cal, residuals, dataset = binocular_residuals
+    figs = {"frames": draw_residual_by_frame(cal, residuals),
+            "depth": draw_residual_by_depth(cal, residuals, dataset.target, _points(cal, dataset))}
+    for name, fig in figs.items():
+        ax = fig.axes[-1]
+        values = np.concatenate([np.asarray(ln.get_ydata(), float) for ln in ax.get_lines()
+                                 if len(ln.get_ydata()) and ln.get_linestyle() != "--"])
+        values = values[np.isfinite(values)]
+        lo, hi = ax.get_ylim()
+        assert lo == 0.0 and values.max() <= hi / 1.05, (name, values.max(), hi)
+        plt.close(fig)
