@@ -9,6 +9,7 @@ exact stage's coarse normal search of a far-off under-water case picked another 
 from __future__ import annotations
 
 import math
+
 import numpy as np
 
 
@@ -27,7 +28,7 @@ def normalised(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def homographies(xy: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """The homographies (V, 3, 3) mapping V views' plane points ``xy`` to their pixels ``uv`` (each
-    (V, N, 2), N >= 4), each up to scale; NaN where the SVD fails."""
+    (V, N, 2), N >= 4), each up to scale; not finite when points are not."""
     V, n = xy.shape[:2]
     a, Ta = normalised(np.asarray(xy, float))
     b, Tb = normalised(np.asarray(uv, float))
