@@ -290,8 +290,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
         exact_robust = None
         if model in PARAXIAL_MODELS and not fits(model, res, floor):  # its paraxial error, or a wrong window?
             exact_robust = _exact_robust_rmse(_Solver(dataset, opts, backend, extra_factors), start)
-        quality = judge(model, cal.residuals.rmse_px, res, floor, cal.uncertainty, tuple(tried),
-                        exact_robust)
+        quality = judge(model, cal.residuals.rmse_px, res, floor, cal.uncertainty, tuple(tried), exact_robust)
         judged.append(replace(cal, quality=quality))
         if quality.ok:
             break

@@ -409,7 +409,7 @@ class VectorizedProblem:
             if bad.any():
                 factors = np.unique(self.view_order[self.corner_view[s:e][bad]])[:10].tolist()
                 raise NonFiniteJacobian(f"non-finite Jacobian entries in factor(s) {factors} "
-                                   "(a corner behind the window at the linearisation point)")
+                                        "(a corner behind the window at the linearisation point)")
         system = NormalEquations(V, g_f, W, U, g_g, 0.5 * err2 + err_excess)
         self._extra.add_to(system, x)
         return system

@@ -139,8 +139,10 @@ def reduce(sys: NormalEquations, lam_blocks: float) -> ReducedSystem | None:
     V_inv = 0.5 * (V_inv + np.swapaxes(V_inv, 1, 2))
     L = np.linalg.cholesky(V_inv)
     rows, cols = sys.W_rows, sys.W_cols
-    first = np.full(N, G)  # each block's first entry median column (past the columns every entry shares, e.g.
-    np.minimum.at(first, rows, np.sort(cols, axis=1)[:, cols.shape[1] // 2])  # intrinsics: a frame's)
+    # blocks ordered by their entries' smallest median column (the median skips the columns every entry
+    # shares, e.g. the intrinsics, and lands on a frame's)
+    first = np.full(N, G)
+    np.minimum.at(first, rows, np.sort(cols, axis=1)[:, cols.shape[1] // 2])
     rank = np.empty(N, np.int64)
     rank[np.argsort(first, kind="stable")] = np.arange(N)
     ranked = rank[rows]

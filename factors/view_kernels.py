@@ -76,9 +76,9 @@ def transform_points(P, R_view, t_view, view_start):
 @njit(**_JIT)
 def chain_rows(J_point, J_normal, J_distance, X_cam, P, R_view, view_start, n_cam, cam_shift, normal_map,
                normal_shift, pose, distance, n_params, out):
-    """Every corner's tangent-space rows into ``out`` (m, 2, >= 6 + n_params + 8 (+1)), zeros where the
-    camera has no pose, the intrinsics' columns 6..6 + n_params left to the caller; corners grouped by view
-    (``R_view`` (nv, 3, 3) = R_ct)."""
+    """Every corner's tangent-space rows into ``out`` (m, 2, >= 6 + n_params + 8 (+1)), the intrinsics'
+    columns 6..6 + n_params and, for a camera without a pose (camera 0), its pose columns left as the
+    caller's (zeros); corners grouped by view (``R_view`` (nv, 3, 3) = R_ct)."""
     k = 6 + n_params
     for v in range(len(view_start) - 1):
         R_ct = R_view[v]
