@@ -97,8 +97,10 @@ def _truth_started(truth, model, interface, bar: tuple[int, int, float]) -> None
           f"iterations, converged {res.converged}, {time.perf_counter() - t0:.0f} s")
 
 
-def run(num_images: int, num_points: int, focal: float, layout: str = "grid", spacing: float = 400.0,
-        declared_port: bool = False, repeats: int = 3, truth_start: bool = False) -> None:
+def survey_start(num_images: int, num_points: int, focal: float, layout: str = "grid", spacing: float = 400.0,
+                 declared_port: bool = False):
+    """The simulated survey (truth), COLMAP's pinhole optimum of it (start, model), the scale bar between the
+    two farthest-apart points and the interface refine-colmap gets."""
     if layout == "strip":
         area = (num_images / 2 * spacing + 2400.0, 2000.0)
     else:
@@ -119,20 +121,36 @@ def run(num_images: int, num_points: int, focal: float, layout: str = "grid", sp
     if declared_port:  # the housing's port as built, held (interface.plane in the camera frame)
         n = truth.normal_cam[0]
         interface = replace(interface, plane=WindowPlane("camera", n, n * truth.distance_mm[0]))
-    t_ba, t_ref, it_ba, it_ref, cpu_ba, cpu_ref = [], [], [], [], [], []
+    return truth, start, model, bar, interface
+
+
+def alternate_timings(start, model, interface, bar: tuple[int, int, float], repeats: int) -> tuple[dict, object]:
+    """pycolmap's bundle adjustment (points perturbed) and refine_colmap run alternately ``repeats`` times:
+    lists of wall and CPU seconds and seconds per iteration of each ("ba", "ref", "cpu_ba", "cpu_ref", "it_ba",
+    "it_ref"), and the last refinement's result."""
+    times = {k: [] for k in ("ba", "ref", "cpu_ba", "cpu_ref", "it_ba", "it_ref")}
     rng = np.random.default_rng(1)
     for _ in range(repeats):  # alternately, so that both see the same machine load
         seconds, cpu, evaluations = _timed_pycolmap_ba(start, rng, 0.002 * 2000.0)
-        t_ba.append(seconds)
-        cpu_ba.append(cpu)
-        it_ba.append(seconds / max(evaluations, 1))
+        times["ba"].append(seconds)
+        times["cpu_ba"].append(cpu)
+        times["it_ba"].append(seconds / max(evaluations, 1))
         t0, c0 = time.perf_counter(), time.process_time()
         result = refine_colmap(start, interface, "camera", scale_bar=bar)
-        t_ref.append(time.perf_counter() - t0)
-        cpu_ref.append(time.process_time() - c0)
+        times["ref"].append(time.perf_counter() - t0)
+        times["cpu_ref"].append(time.process_time() - c0)
         search_obs = sum(c["linearizations"] * c["observations"] for c in result.report.distance_search)
         equivalent = result.report.linearizations + search_obs / len(model.obs_image)  # search evaluations at their size
-        it_ref.append(t_ref[-1] / max(equivalent, 1.0))
+        times["it_ref"].append(times["ref"][-1] / max(equivalent, 1.0))
+    return times, result
+
+
+def run(num_images: int, num_points: int, focal: float, layout: str = "grid", spacing: float = 400.0,
+        declared_port: bool = False, repeats: int = 3, truth_start: bool = False) -> None:
+    truth, start, model, bar, interface = survey_start(num_images, num_points, focal, layout, spacing, declared_port)
+    times, result = alternate_timings(start, model, interface, bar, repeats)
+    t_ba, t_ref, it_ba, it_ref, cpu_ba, cpu_ref = (times[k] for k in ("ba", "ref", "it_ba", "it_ref", "cpu_ba",
+                                                                       "cpu_ref"))
     R, t = result.state.cam_from_world(model)
     got = truth_errors(truth, model, result.state.xyz, {int(i): Pose(R[k], t[k]) for k, i in enumerate(model.image_ids)})
     got.update(window_errors(truth, result.state.normals, result.state.distances))

@@ -1,6 +1,6 @@
 """Issue 15's speed figures from one run: each a ratio of two commands run alternately.
 
-    OPENBLAS_NUM_THREADS=1 python benchmarks/bench_speed.py            # all figures, ~3 min on 2 cores
+    OPENBLAS_NUM_THREADS=1 python benchmarks/bench_speed.py            # all figures, ~4 min on 2 cores
     python benchmarks/bench_speed.py --only triangulate,forward --repeats 9
 
 For every figure the two commands run in alternation, ``--repeats`` pairs (after one
@@ -73,6 +73,8 @@ GOALS = {  # figure: (what the ratio is, goal text, ratio meets the goal)
     "forward_dist": ("time ratio", "<= 10", lambda r: r <= 10.0),
     "forward_dist_jac": ("time ratio", "<= 10", lambda r: r <= 10.0),
     "openptv": ("time ratio", "<= 10", lambda r: r <= 10.0),
+    "refine_colmap": ("time ratio", "<= 2", lambda r: r <= 2.0),
+    "refine_colmap_it": ("time ratio", "<= 3", lambda r: r <= 3.0),
 }
 
 
@@ -273,6 +275,23 @@ def fig_openptv(repeats: int) -> None:
     report("openptv", f"calibrate(exact) PTV body {n_obs} obs / optv full_calibration x 4", run)
 
 
+def fig_refine_colmap(repeats: int) -> None:
+    from bench_refine_colmap import alternate_timings, survey_start
+
+    _, start, model, bar, interface = survey_start(28, 1500, 1300.0)
+    alternate_timings(start, model, interface, bar, 1)  # warm-up of both
+    times, result = alternate_timings(start, model, interface, bar, repeats)
+    n_obs = len(model.obs_image)
+    whole = {"ours": times["ref"], "ref": times["ba"], "ratios": [a / b for a, b in zip(times["ref"], times["ba"])],
+             "cpu_ratios": [a / b for a, b in zip(times["cpu_ref"], times["cpu_ba"])]}
+    report("refine_colmap", f"refine-colmap 28-image survey ({n_obs} obs) / pycolmap BA", whole,
+           note=f"{result.report.iterations} iterations, converged {result.report.converged}")
+    per_it = {"ours": times["it_ref"], "ref": times["it_ba"],
+              "ratios": [a / b for a, b in zip(times["it_ref"], times["it_ba"])], "cpu_ratios": whole["cpu_ratios"]}
+    report("refine_colmap_it", "  the same, per iteration (Jacobian evaluation)", per_it,
+           note="CPU-time ratio: of the whole solves")
+
+
 def reset_peak_memory() -> None:
     """Start a new peak-RSS window (Linux: /proc/self/clear_refs 5; elsewhere the process peak stays)."""
     try:
@@ -344,7 +363,7 @@ def cold_start() -> None:
     print(f"{'whole process (python start included)':36s} {runs[0][0]:9.2f} {'':9s} {runs[1][0]:9.2f}")
 
 
-FIGURES = ("calibrate_single", "calibrate_4x100", "triangulate", "forward", "openptv")
+FIGURES = ("calibrate_single", "calibrate_4x100", "triangulate", "forward", "openptv", "refine_colmap")
 
 
 def main() -> None:
@@ -362,7 +381,8 @@ def main() -> None:
             "calibrate_4x100": lambda: fig_calibrate_4x100(max(3, args.repeats // 2)),
             "triangulate": lambda: fig_triangulate(args.repeats, args.points),
             "forward": lambda: fig_forward(args.repeats, args.points),
-            "openptv": lambda: fig_openptv(max(3, args.repeats // 2))}
+            "openptv": lambda: fig_openptv(max(3, args.repeats // 2)),
+            "refine_colmap": lambda: fig_refine_colmap(max(3, args.repeats // 2))}
     peaks = {}
     for name in FIGURES:
         if name in only:
