@@ -50,3 +50,33 @@ def test_noisy_views_give_a_start_near_the_truth_and_a_hint_is_kept():
     assert z.rms_px < 3.0  # a start: the bundle adjustment refines it
     hinted = calibrate_zhang(target, CameraSpec("cam0", SIZE, K=K_TRUE * 1.01 + np.diag([0, 0, -0.01])), obs)
     assert np.array_equal(hinted.K, K_TRUE * 1.01 + np.diag([0, 0, -0.01]))  # a K hint is taken as given
+
+
+def test_the_start_on_two_threads_is_the_start_on_one():
+    target, obs, _ = views(0.1, seed=3)
+    one, two = calibrate_zhang(target, CameraSpec("cam0", SIZE), obs), \
+        calibrate_zhang(target, CameraSpec("cam0", SIZE), obs, threads=2)
+    assert np.array_equal(one.K, two.K) and one.rms_px == two.rms_px
+    for frame, pose in one.cam_from_target.items():
+        assert np.array_equal(pose.R, two.cam_from_target[frame].R) and np.array_equal(pose.t, two.cam_from_target[frame].t)
+
+
+def test_opencv_map_keeps_the_order_splits_the_work_and_raises_the_first_failure():
+    import threading
+
+    from ari_sfm.init.zhang import opencv_map
+
+    ran_on = {}
+
+    def square(x: int) -> int:
+        ran_on[x] = threading.current_thread().name
+        if x in (5, 7):
+            raise ValueError(f"item {x}")
+        return x * x
+
+    assert opencv_map(square, [0, 1, 2, 3], threads=2) == [0, 1, 4, 9]
+    assert ran_on[0] == ran_on[1] == threading.current_thread().name and ran_on[2] == ran_on[3] != ran_on[0]
+    assert opencv_map(square, [1, 2, 3], threads=2) == [1, 4, 9]  # too few to split
+    for items in ([0, 1, 2, 3, 4, 5, 6, 7], [5, 0, 1, 2, 7, 3]):  # the failure in the second half, in both
+        with pytest.raises(ValueError, match=f"item {items[[i for i, x in enumerate(items) if x in (5, 7)][0]]}"):
+            opencv_map(square, items, threads=2)

@@ -59,10 +59,11 @@ def _shift(thickness_mm: float, index: float) -> float:
 
 
 def initialise_camera(dataset: Dataset, name: str, distortion: bool = False,
-                      fix_intrinsics: bool = False) -> CameraInit:
+                      fix_intrinsics: bool = False, threads: int = 1) -> CameraInit:
     """Expansion centre, K, normal and real target poses of one camera; ``fix_intrinsics``: the
     hints the calibration will hold (:func:`~.zhang.held_intrinsics`) are held here too, so the
-    poses are those of the held K (a shallow body's single view lets K run far from it)."""
+    poses are those of the held K (a shallow body's single view lets K run far from it);
+    ``threads``: its per-view OpenCV calls on up to this many threads (the same result)."""
     views = [o for o in dataset.select("calibration", name) if len(o.ids) >= 6]
     need = MIN_VIEWS if dataset.target.is_planar() else MIN_VIEWS_3D
     if len(views) < need:
@@ -71,7 +72,7 @@ def initialise_camera(dataset: Dataset, name: str, distortion: bool = False,
     try:
         spec = dataset.cameras[name]
         zhang = calibrate_views(dataset.target, spec, views, distortion,
-                                held_intrinsics(spec) if fix_intrinsics else None)
+                                held_intrinsics(spec) if fix_intrinsics else None, threads)
     except (ValueError, cv2.error) as exc:  # DLT refused, or OpenCV refused the start
         msg = str(exc).strip().splitlines()[-1] if isinstance(exc, cv2.error) else str(exc)
         raise AriSfmError(dataset.rig_path, f"camera {name}: {msg}") from None
@@ -127,12 +128,15 @@ def join_rig(names: Sequence[str], cam_from_target: dict[str, dict[str, Pose]],
 def _initialise_cameras(dataset: Dataset, names: list[str], distortion: bool, workers: int | None,
                         fix_intrinsics: bool = False) -> dict[str, CameraInit]:
     """:func:`initialise_camera` of every camera, on up to ``workers`` threads (default: one per
-    camera, at most os.cpu_count()). OpenCV releases the GIL and runs on one thread in each
-    worker, so each camera's result is the same as on its own; they are collected in camera
+    camera, at most os.cpu_count()); threads left over split each camera's per-view OpenCV calls
+    (a single camera: its views on two threads). OpenCV releases the GIL and runs on one thread in
+    each worker, so each camera's result is the same as on its own; they are collected in camera
     order, and the first failing camera in that order raises, as when run one by one."""
-    n_workers = min(len(names), workers if workers is not None else (os.cpu_count() or 1))
+    available = workers if workers is not None else (os.cpu_count() or 1)
+    n_workers = min(len(names), available)
+    threads = max(1, available // max(n_workers, 1))
     if n_workers <= 1:
-        return {n: initialise_camera(dataset, n, distortion, fix_intrinsics) for n in names}
+        return {n: initialise_camera(dataset, n, distortion, fix_intrinsics, threads) for n in names}
     with ThreadPoolExecutor(max_workers=n_workers, thread_name_prefix="ari-init") as pool:
         futures = {n: pool.submit(initialise_camera, dataset, n, distortion, fix_intrinsics) for n in names}
         return {n: futures[n].result() for n in names}

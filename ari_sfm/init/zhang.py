@@ -10,7 +10,7 @@ from __future__ import annotations
 import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Iterator, Sequence
+from typing import Callable, Iterator, Sequence, TypeVar
 
 import cv2
 import numpy as np
@@ -51,6 +51,37 @@ def one_cv2_thread() -> Iterator[None]:
             _cv2_depth -= 1
             if _cv2_depth == 0 and _cv2_saved != 1:
                 cv2.setNumThreads(_cv2_saved)
+
+
+_T = TypeVar("_T")
+_R = TypeVar("_R")
+
+
+def opencv_map(fn: Callable[[_T], _R], items: Sequence[_T], threads: int = 1) -> list[_R]:
+    """``[fn(x) for x in items]``, with ``threads`` >= 2 the second half on another thread: for
+    independent OpenCV calls (which release the GIL) inside :func:`one_cv2_thread`, so each call runs
+    as it would alone and the results are those of the loop. The first failing item in order raises,
+    after both halves have ended."""
+    if threads < 2 or len(items) < 4:
+        return [fn(x) for x in items]
+    half = (len(items) + 1) // 2
+    second: list = []
+
+    def run_second() -> None:
+        try:
+            second.append([fn(x) for x in items[half:]])
+        except BaseException as exc:  # raised in the caller, after the first half
+            second.append(exc)
+
+    worker = threading.Thread(target=run_second, name="ari-opencv", daemon=True)
+    worker.start()
+    try:
+        first = [fn(x) for x in items[:half]]
+    finally:
+        worker.join()
+    if isinstance(second[0], BaseException):
+        raise second[0]
+    return first + second[0]
 
 
 @dataclass(frozen=True)
@@ -96,11 +127,12 @@ def held_intrinsics(spec: CameraSpec) -> str | None:
     return "focal" if spec.focal_px is not None else None
 
 
-def _zhang_K(obj: list[np.ndarray], img: list[np.ndarray]) -> np.ndarray | None:
-    """Zhang's closed-form K (no skew) from the views' homographies: each view gives two linear
-    constraints h1^T B h2 = 0, h1^T B h1 = h2^T B h2 on B = K^-T K^-1 (B11, B22, B13, B23, B33);
-    None when they do not determine a camera (fewer than 3 views, degenerate poses)."""
-    homographies = [cv2.findHomography(o[:, :2], i, 0)[0] for o, i in zip(obj, img)]
+def _zhang_K(obj: list[np.ndarray], img: list[np.ndarray], threads: int = 1) -> np.ndarray | None:
+    """Zhang's closed-form K (no skew) from the views' homographies (OpenCV's, on up to ``threads``
+    threads: :func:`opencv_map`): each view gives two linear constraints h1^T B h2 = 0,
+    h1^T B h1 = h2^T B h2 on B = K^-T K^-1 (B11, B22, B13, B23, B33); None when they do not determine
+    a camera (fewer than 3 views, degenerate poses)."""
+    homographies = opencv_map(lambda oi: cv2.findHomography(oi[0][:, :2], oi[1], 0)[0], list(zip(obj, img)), threads)
     if any(H is None for H in homographies):
         return None
     H = np.array([h / np.linalg.norm(h[:, :2]) for h in homographies]).reshape(-1, 3, 3)
@@ -121,7 +153,7 @@ def _zhang_K(obj: list[np.ndarray], img: list[np.ndarray]) -> np.ndarray | None:
     return np.array([[np.sqrt(lam / b11), 0, cx], [0, np.sqrt(lam / b22), cy], [0, 0, 1.0]])
 
 
-def _closed_form_K(obj: list[np.ndarray], img: list[np.ndarray], spec: CameraSpec) -> np.ndarray:
+def _closed_form_K(obj: list[np.ndarray], img: list[np.ndarray], spec: CameraSpec, threads: int = 1) -> np.ndarray:
     """K without an iterative fit: the hint ``K`` as given; else, for a planar target, Zhang's closed
     form (:func:`_zhang_K`), or when its principal point is outside the image, the focal lengths of
     cv2.initCameraMatrix2D (principal point at the image centre); else :func:`initial_K`."""
@@ -129,7 +161,7 @@ def _closed_form_K(obj: list[np.ndarray], img: list[np.ndarray], spec: CameraSpe
         return np.array(spec.K, dtype=float)
     w, h = spec.image_size
     if all(np.all(o[:, 2] == 0) for o in obj):
-        K = _zhang_K(obj, img)
+        K = _zhang_K(obj, img, threads)
         if K is not None and np.isfinite(K).all() and 0 <= K[0, 2] <= w - 1 and 0 <= K[1, 2] <= h - 1 \
                 and 0.8 < K[0, 0] / K[1, 1] < 1.25:
             return K
@@ -144,7 +176,7 @@ def _closed_form_K(obj: list[np.ndarray], img: list[np.ndarray], spec: CameraSpe
 @one_cv2_thread()
 def calibrate_zhang(
     target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False,
-    hold: str | None = None,
+    hold: str | None = None, threads: int = 1,
 ) -> ZhangResult:
     """The closed-form start of a camera from planar (or, with a K hint, any) views: K from the
     homographies (:func:`_closed_form_K`, Zhang's closed form), no distortion, each view's generalised
@@ -156,22 +188,27 @@ def calibrate_zhang(
     No iterative calibration (cv2.calibrateCamera) runs here: the bundle adjustment that follows
     refines K, distortion and poses anyway, so a second Levenberg-Marquardt on the same views
     would only repeat its work (``distortion`` is kept for the signature: the start has none).
+    ``threads``: the per-view OpenCV calls on up to this many threads (:func:`opencv_map`; the same
+    result).
     """
     obj = [object_points(target, v.ids).astype(np.float64) for v in views]
     img = [v.pixels.astype(np.float64).reshape(-1, 2) for v in views]
-    K = initial_K(spec) if hold == "focal" else _closed_form_K(obj, img, spec)
+    K = initial_K(spec) if hold == "focal" else _closed_form_K(obj, img, spec, threads)
     dist = np.zeros(5)
     if hold == "K" and spec.dist is not None:
         dist = np.resize(np.asarray(spec.dist, float), 5).copy()
-    poses, cam_points = {}, []
-    for v, o, i in zip(views, obj, img):
+
+    def pnp(view: tuple[Observation, np.ndarray, np.ndarray]) -> Pose:
+        v, o, i = view
         planar = bool(np.all(o[:, 2] == 0))
         ok, rvec, tvec = cv2.solvePnP(o, i, K, dist, flags=cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_ITERATIVE)
         if not ok:
             raise ValueError(f"PnP failed for frame {v.frame}")
-        pose = Pose(cv2.Rodrigues(rvec)[0], np.asarray(tvec, float).reshape(3))
-        poses[v.frame] = pose
-        cam_points.append(pose.apply(o))
+        return Pose(cv2.Rodrigues(rvec)[0], np.asarray(tvec, float).reshape(3))
+
+    found = opencv_map(pnp, list(zip(views, obj, img)), threads)
+    poses = {v.frame: pose for v, pose in zip(views, found)}
+    cam_points = [pose.apply(o) for pose, o in zip(found, obj)]
     if not views:
         return ZhangResult(K, dist, poses, 0.0)
     uv = project_points(np.concatenate(cam_points), np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist], 4, False)[0]
@@ -241,7 +278,7 @@ def _dlt_K(target: Target, spec: CameraSpec, views: Sequence[Observation]) -> np
 
 def calibrate_dlt(
     target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False,
-    hold: str | None = None,
+    hold: str | None = None, threads: int = 1,
 ) -> ZhangResult:
     """K and generalised extrinsics from a 3D target (several planes; one view is enough):
     K from the hint when the dataset gives one (``K`` as given, ``focal_px`` with the
@@ -251,15 +288,16 @@ def calibrate_dlt(
     if K0 is None:
         K0 = _dlt_K(target, spec, views)
     hinted = CameraSpec(spec.name, spec.image_size, None, K0, spec.dist)
-    return calibrate_zhang(target, hinted, views, distortion, hold)
+    return calibrate_zhang(target, hinted, views, distortion, hold, threads)
 
 
 def calibrate_views(target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False,
-                    hold: str | None = None) -> ZhangResult:
-    """Zhang's method for planar targets, DLT/PnP for 3D ones; ``hold``: see :func:`calibrate_zhang`."""
+                    hold: str | None = None, threads: int = 1) -> ZhangResult:
+    """Zhang's method for planar targets, DLT/PnP for 3D ones; ``hold``, ``threads``: see
+    :func:`calibrate_zhang`."""
     if target.is_planar():
-        return calibrate_zhang(target, spec, views, distortion, hold)
-    return calibrate_dlt(target, spec, views, distortion, hold)
+        return calibrate_zhang(target, spec, views, distortion, hold, threads)
+    return calibrate_dlt(target, spec, views, distortion, hold, threads)
 
 
 @one_cv2_thread()
