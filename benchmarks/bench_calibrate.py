@@ -52,9 +52,10 @@ CASES = {  # name: (scenario, overrides, what the issues ask)
 CV2_FLAGS = cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
 
 
-def cv2_baseline(dataset):
-    """A function running cv2.calibrateCamera once per camera on its calibration views."""
-    calib = [o for o in dataset.observations if o.set == "calibration"]
+def cv2_baseline(dataset, sets: tuple[str, ...] = ("calibration",)):
+    """A function running cv2.calibrateCamera once per camera on its views of ``sets`` (default: the
+    calibration views, what a user who ignores the window runs)."""
+    calib = [o for o in dataset.observations if o.set in sets]
     per_camera = []
     for cam in dataset.camera_names:
         views = [o for o in calib if o.camera == cam]
