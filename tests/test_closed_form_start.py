@@ -58,7 +58,8 @@ def test_the_start_on_two_threads_is_the_start_on_one():
         calibrate_zhang(target, CameraSpec("cam0", SIZE), obs, threads=2)
     assert np.array_equal(one.K, two.K) and one.rms_px == two.rms_px
     for frame, pose in one.cam_from_target.items():
-        assert np.array_equal(pose.R, two.cam_from_target[frame].R) and np.array_equal(pose.t, two.cam_from_target[frame].t)
+        other = two.cam_from_target[frame]
+        assert np.array_equal(pose.R, other.R) and np.array_equal(pose.t, other.t)
 
 
 def test_opencv_map_keeps_the_order_splits_the_work_and_raises_the_first_failure():
@@ -77,6 +78,9 @@ def test_opencv_map_keeps_the_order_splits_the_work_and_raises_the_first_failure
     assert opencv_map(square, [0, 1, 2, 3], threads=2) == [0, 1, 4, 9]
     assert ran_on[0] == ran_on[1] == threading.current_thread().name and ran_on[2] == ran_on[3] != ran_on[0]
     assert opencv_map(square, [1, 2, 3], threads=2) == [1, 4, 9]  # too few to split
-    for items in ([0, 1, 2, 3, 4, 5, 6, 7], [5, 0, 1, 2, 7, 3]):  # the failure in the second half, in both
-        with pytest.raises(ValueError, match=f"item {items[[i for i, x in enumerate(items) if x in (5, 7)][0]]}"):
+    # failures only in the second half (5 and 7: the 5 raises), and one in each half (5 first, 7 second)
+    for items in ([0, 1, 2, 3, 4, 5, 6, 7], [5, 0, 1, 2, 7, 3]):
+        with pytest.raises(ValueError, match="item 5"):
             opencv_map(square, items, threads=2)
+    with pytest.raises(ValueError, match="item 7"):  # the worker's failure, after the first half's items
+        opencv_map(square, [0, 1, 2, 3, 7, 4], threads=2)
