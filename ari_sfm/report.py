@@ -364,7 +364,8 @@ def _summary_section(ctx: ReportContext) -> str:
                                            f"over {r.count} corners"])
     if cal.uncertainty is not None:
         rows.append(["residual sigma", f"{cal.uncertainty.sigma_px:.4f} px (scales the standard deviations below)"])
-    return "<h2>Dataset and rig</h2>" + _table(["", ""], rows, align_numbers=False).replace("<thead><tr><th></th><th></th></tr></thead>", "", 1)
+    table = _table(["", ""], rows, align_numbers=False)
+    return "<h2>Dataset and rig</h2>" + table.replace("<thead><tr><th></th><th></th></tr></thead>", "", 1)
 
 
 def _advice_section(ctx: ReportContext) -> str:

@@ -201,10 +201,7 @@ def calibrate_zhang(
     def pnp(view: tuple[Observation, np.ndarray, np.ndarray]) -> Pose:
         v, o, i = view
         planar = bool(np.all(o[:, 2] == 0))
-        ok, rvec, tvec = cv2.solvePnP(o, i, K, dist, flags=cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_ITERATIVE)
-        if not ok:
-            raise ValueError(f"PnP failed for frame {v.frame}")
-        return Pose(cv2.Rodrigues(rvec)[0], np.asarray(tvec, float).reshape(3))
+        return _pnp_pose(o, i, K, dist, cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_ITERATIVE, v.frame)
 
     found = opencv_map(pnp, list(zip(views, obj, img)), threads)
     poses = {v.frame: pose for v, pose in zip(views, found)}
@@ -303,8 +300,13 @@ def calibrate_views(target: Target, spec: CameraSpec, views: Sequence[Observatio
 @one_cv2_thread()
 def solve_pnp(target: Target, K: np.ndarray, dist: np.ndarray, view: Observation) -> Pose:
     """The generalised cam_from_target of one view with known K (iterative PnP)."""
-    obj = object_points(target, view.ids)
-    ok, rvec, tvec = cv2.solvePnP(obj, view.pixels.astype(np.float64), K, dist, flags=cv2.SOLVEPNP_ITERATIVE)
+    return _pnp_pose(object_points(target, view.ids), view.pixels.astype(np.float64), K, dist,
+                     cv2.SOLVEPNP_ITERATIVE, view.frame)
+
+
+def _pnp_pose(obj: np.ndarray, pixels: np.ndarray, K: np.ndarray, dist: np.ndarray, flags: int, frame: str) -> Pose:
+    """cam_from_target of one view by cv2.solvePnP with ``flags``; ValueError naming ``frame`` if it fails."""
+    ok, rvec, tvec = cv2.solvePnP(obj, pixels, K, dist, flags=flags)
     if not ok:
-        raise ValueError(f"PnP failed for frame {view.frame}")
-    return Pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3))
+        raise ValueError(f"PnP failed for frame {frame}")
+    return Pose(cv2.Rodrigues(rvec)[0], np.asarray(tvec, float).reshape(3))
