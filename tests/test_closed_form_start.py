@@ -84,3 +84,19 @@ def test_opencv_map_keeps_the_order_splits_the_work_and_raises_the_first_failure
             opencv_map(square, items, threads=2)
     with pytest.raises(ValueError, match="item 7"):  # the worker's failure, after the first half's items
         opencv_map(square, [0, 1, 2, 3, 7, 4], threads=2)
+
+
+def _split_squares(_: int) -> list[int]:
+    from ari_sfm.init.zhang import opencv_map
+
+    return opencv_map(lambda x: x * x, list(range(6)), threads=2)
+
+
+def test_opencv_map_works_in_a_forked_child_of_a_process_that_used_its_pool():
+    import multiprocessing
+
+    from ari_sfm.init.zhang import opencv_map
+
+    assert opencv_map(lambda x: x + 1, [0, 1, 2, 3], threads=2) == [1, 2, 3, 4]  # the parent's pool exists
+    with multiprocessing.get_context("fork").Pool(1) as pool:  # the child has none of its threads
+        assert pool.apply_async(_split_squares, (0,)).get(timeout=20) == [0, 1, 4, 9, 16, 25]
