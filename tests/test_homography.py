@@ -39,3 +39,20 @@ def test_noisy_views_agree_with_opencv_and_non_finite_points_give_nan():
         assert np.abs(a[:, :2] / a[:, 2:] - b[:, :2] / b[:, 2:]).max() < 0.5
     uv[0, 3, 0] = np.nan
     assert not np.isfinite(homographies(np.array(xy), uv)).all()
+
+
+def test_inverse_iteration_converges_to_the_least_eigenvector_even_at_ten_pixels_of_noise():
+    from ari_sfm.homography import homographies_normalised, normalised
+
+    rng = np.random.default_rng(2)
+    for sigma in (0.0, 0.5, 10.0):
+        xy, uv, _ = _views(rng, [12, 88, 200])
+        for p, q in zip(xy, uv):
+            a, b = normalised(p[None])[0], normalised((q + rng.normal(0, sigma, q.shape))[None])[0]
+            h = homographies_normalised(a, b)[0].ravel()
+            ax, ay, bx, by = a[0, :, 0], a[0, :, 1], b[0, :, 0], b[0, :, 1]
+            one, zero = np.ones_like(ax), np.zeros_like(ax)
+            rows = np.r_[np.c_[ax, ay, one, zero, zero, zero, -bx * ax, -bx * ay, -bx],
+                         np.c_[zero, zero, zero, ax, ay, one, -by * ax, -by * ay, -by]]
+            least = np.linalg.eigh(rows.T @ rows)[1][:, 0]
+            assert min(np.abs(h - least).max(), np.abs(h + least).max()) < 1e-10
