@@ -173,38 +173,18 @@ def se3_exp(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """GTSAM's Pose3.Expmap of twists xi (N, 6) = [w, v]: rotations (N, 3, 3) and translations (N, 3).
 
     R = I + A W + B W^2, t = v + B w x v + C w x (w x v) with A = sin t / t,
-    B = (1 - cos t) / t^2, C = (t - sin t) / t^3 (Taylor series for small t).
+    B = (1 - cos t) / t^2, C = (t - sin t) / t^3 (Taylor series for small t); compiled
+    (:mod:`ari_sfm.se3_kernel`).
     """
-    xi = np.asarray(xi, float).reshape(-1, 6)
-    w, v = xi[:, :3], xi[:, 3:]
-    th2 = np.einsum("ni,ni->n", w, w)
-    small = th2 < 1e-6
-    th = np.sqrt(th2)
-    safe = np.where(small, 1.0, th)
-    s2 = np.sin(0.5 * safe)
-    A = np.where(small, 1.0 - th2 / 6.0 + th2 * th2 / 120.0, np.sin(safe) / safe)
-    B = np.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, 2.0 * s2 * s2 / (safe * safe))
-    C = np.where(small, 1.0 / 6.0 - th2 / 120.0 + th2 * th2 / 5040.0, (1.0 - A) / (safe * safe))
-    Wm = np.zeros((len(xi), 3, 3))
-    Wm[:, 0, 1], Wm[:, 0, 2], Wm[:, 1, 0] = -w[:, 2], w[:, 1], w[:, 2]
-    Wm[:, 1, 2], Wm[:, 2, 0], Wm[:, 2, 1] = -w[:, 0], -w[:, 1], w[:, 0]
-    W2 = Wm @ Wm
-    R = np.eye(3) + A[:, None, None] * Wm + B[:, None, None] * W2
-    wxv = cross_rows(w, v)
-    t = v + B[:, None] * wxv + C[:, None] * cross_rows(w, wxv)
-    return R, t
+    from .se3_kernel import se3_exp_kernel
 
-
-def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise a x b of (N, 3) arrays (np.cross's arithmetic without its overhead)."""
-    out = np.empty_like(a)
-    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
-    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
-    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-    return out
+    return se3_exp_kernel(np.ascontiguousarray(np.asarray(xi, float).reshape(-1, 6)))
 
 
 def retract_poses(R: np.ndarray, t: np.ndarray, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Right perturbation T Exp(xi) of poses (R (N,3,3), t (N,3)), as Pose3.retract."""
-    dR, dt = se3_exp(xi)
-    return R @ dR, t + np.einsum("nij,nj->ni", R, dt)
+    """Right perturbation T Exp(xi) of poses (R (N,3,3), t (N,3)), as Pose3.retract (compiled:
+    :mod:`ari_sfm.se3_kernel`)."""
+    from .se3_kernel import retract_poses_kernel
+
+    return retract_poses_kernel(np.ascontiguousarray(R, float), np.ascontiguousarray(t, float),
+                                np.ascontiguousarray(np.asarray(xi, float).reshape(-1, 6)))
