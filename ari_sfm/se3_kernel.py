@@ -12,23 +12,11 @@ product on 18 poses costs numpy ~10 us of calls; the whole retraction here ~5 us
 from __future__ import annotations
 
 import numpy as np
-from llvmlite import ir
-from numba import njit, types
-from numba.extending import intrinsic
+from numba import njit
+
+from .models.kernels import fma as _fma  # an intrinsic: inlined LLVM, no cached code of that module's
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
-
-
-@intrinsic
-def _fma(typingctx, a, b, c):
-    """a * b + c rounded once (LLVM's llvm.fma.f64: the hardware's FMA, or libm's exact one)."""
-    sig = types.float64(types.float64, types.float64, types.float64)
-
-    def codegen(context, builder, signature, args):
-        d = ir.DoubleType()
-        return builder.call(builder.module.declare_intrinsic("llvm.fma", [d], ir.FunctionType(d, [d, d, d])), args)
-
-    return sig, codegen
 
 
 @njit(inline="always", **_JIT)

@@ -43,7 +43,8 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from .pinhole import NUM_PARAMS, PinholeModel, as_points, project_points
+from . import kernels
+from .pinhole import NUM_PARAMS, PinholeModel, as_points
 
 if TYPE_CHECKING:
     from ari_sfm.records import Interface
@@ -110,28 +111,13 @@ def ari_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thick
         raise ValueError("distance_mm is required when a medium (medium_index != 1) is behind the window")
     nc, dn_dv = unit_normal_and_projector(normal_cam)
     h = 0.0 if distance_mm is None else float(distance_mm)  # unused in air (b = 0, a = -delta)
-    d, n, nm = thickness_mm, index, medium_index
-    b = 1.0 / nm - 1.0
-    s = h + d / n - (h + d) / nm  # X_app = X + (a + b z) n_c, z = n_c . X
-    if b != 0.0:
-        s = s + b * (X @ nc)
-    elif np.ndim(s) == 0:
-        s = np.full(len(X), s)
-    uv, J_pin, J_params = project_points(X + s[:, None] * nc, params, n_params, jacobians)
+    X = np.ascontiguousarray(X, dtype=np.float64).reshape(-1, 3)
+    d = np.ascontiguousarray(np.broadcast_to(np.asarray(thickness_mm, dtype=np.float64), (len(X),)))
+    uv, J_point, J_normal, J_params, J_thickness, J_distance = kernels.ari_batch(
+        X, np.array(params, dtype=np.float64), nc, np.ascontiguousarray(dn_dv), d, float(index), float(medium_index), h,
+        int(n_params), bool(jacobians))
     if not jacobians:
         return AriJacobians(uv, None, None, None, None, None)
-    m = len(X)
-    J_pin_n = (J_pin.reshape(2 * m, 3) @ nc).reshape(m, 2)  # J_pin n_c
-    if b != 0.0:  # d X_app / d X = I + b n n^T; d X_app / d n (free, at unit n) = s I + b n X^T
-        J_point = J_pin + b * J_pin_n[:, :, None] * nc[None, None, :]
-        J_n_free = s[:, None, None] * J_pin + b * J_pin_n[:, :, None] * X[:, None, :]
-    else:  # air: d X_app / d X = I
-        J_point = J_pin
-        J_n_free = s[:, None, None] * J_pin
-    J_normal = (J_n_free.reshape(2 * m, 3) @ dn_dv).reshape(m, 2, 3)  # then d n / d v
-    # d X_app / d d = (1/n - 1/n_m) n_c ; d X_app / d h = (1 - 1/n_m) n_c
-    J_thickness = (1.0 / n - 1.0 / nm) * J_pin_n
-    J_distance = (1.0 - 1.0 / nm) * J_pin_n
     return AriJacobians(uv, J_point, J_normal, J_params, J_thickness, J_distance)
 
 

@@ -23,7 +23,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.extending import intrinsic
 
 NEWTON_MAX_ITER = 20  # a cap; the paper camera needs 5 (air) to 6 (water) over its whole image
 NEWTON_REL_TOL = 1e-12  # stop when |step| <= tol * w; quadratic convergence leaves ~1e-24 + rounding
@@ -35,6 +37,20 @@ UNDISTORT_FAIL_PX = 1e-9  # a final residual above this marks the point as faile
 UNDISTORT_MAX_ITER = 50
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
+
+
+@intrinsic
+def fma(typingctx, a, b, c):
+    """a * b + c rounded once (LLVM's llvm.fma.f64: the CPU's fused multiply-add, else libm's). Numba
+    never fuses ``a * b + c`` unasked; the kernels that reproduce numpy's BLAS-backed products bit for
+    bit (OpenBLAS fuses) call this."""
+    sig = types.float64(types.float64, types.float64, types.float64)
+
+    def codegen(context, builder, signature, args):
+        d = ir.DoubleType()
+        return builder.call(builder.module.declare_intrinsic("llvm.fma", [d], ir.FunctionType(d, [d, d, d])), args)
+
+    return sig, codegen
 
 
 # --------------------------------------------------------------------------- pinhole + distortion
@@ -115,6 +131,51 @@ def pinhole_batch(D, params, n_params, jacobians):
     if not jacobians:
         return uv, J_point[:0], J_params[:0]
     return uv, J_point, J_params
+
+
+@njit(**_JIT)
+def ari_batch(X, params, nc, dn_dv, thickness, index, medium_index, h, n_params, jacobians):
+    """The ARI projection (:func:`ari_sfm.models.ari.ari_project`, whose docstring and module derive it)
+    of camera-frame points X (m, 3) with one plate thickness per point (m,): uv (m, 2) and, with
+    ``jacobians``, J_point, J_normal (m, 2, 3), J_params (m, 2, n_params), J_thickness, J_distance (m, 2).
+
+    Written as the numpy expressions it replaced, operation for operation (``X @ n_c`` as OpenBLAS's
+    gemv: ``fma(x2 n2, fma(x0 n0, x1 n1))``; ``(2m, 3) @ (3, 3)`` as its gemm: ``fma(a2 b2, fma(a1 b1,
+    a0 b0))``), so its results are those bits."""
+    m = X.shape[0]
+    b = 1.0 / medium_index - 1.0
+    da_dd, da_dh = 1.0 / index - 1.0 / medium_index, 1.0 - 1.0 / medium_index
+    mj = m if jacobians else 0
+    uv = np.empty((m, 2))
+    J_point, J_normal, J_params = np.empty((mj, 2, 3)), np.empty((mj, 2, 3)), np.empty((mj, 2, n_params))
+    J_thickness, J_distance = np.empty((mj, 2)), np.empty((mj, 2))
+    J_pin, J_par, J_xy, J_dist, free = np.empty((2, 3)), np.empty((2, n_params)), np.empty((2, 2)), np.empty((2, 5)), \
+        np.empty(3)
+    for i in range(m):
+        d = thickness[i]
+        si = h + d / index - (h + d) / medium_index  # X_app = X + s n_c, s = a + b z
+        if b != 0.0:
+            si = si + b * fma(X[i, 2], nc[2], fma(X[i, 0], nc[0], X[i, 1] * nc[1]))
+        pinhole_point(X[i, 0] + si * nc[0], X[i, 1] + si * nc[1], X[i, 2] + si * nc[2], params, n_params, jacobians,
+                      uv[i], J_pin, J_params[i] if jacobians else J_par, J_xy, J_dist)
+        if not jacobians:
+            continue
+        for k in range(2):
+            J = J_pin[k]
+            pn = fma(J[2], nc[2], fma(J[0], nc[0], J[1] * nc[1]))  # J_pin n_c
+            if b != 0.0:  # d X_app / d X = I + b n n^T; d X_app / d n (free, at unit n) = s I + b n X^T
+                for j in range(3):
+                    J_point[i, k, j] = J[j] + b * pn * nc[j]
+                    free[j] = si * J[j] + b * pn * X[i, j]
+            else:
+                for j in range(3):
+                    J_point[i, k, j] = J[j]
+                    free[j] = si * J[j]
+            for j in range(3):  # then d n / d v
+                J_normal[i, k, j] = fma(free[2], dn_dv[2, j], fma(free[1], dn_dv[1, j], free[0] * dn_dv[0, j]))
+            J_thickness[i, k] = da_dd * pn
+            J_distance[i, k] = da_dh * pn
+    return uv, J_point, J_normal, J_params, J_thickness, J_distance
 
 
 @njit(**_JIT)
