@@ -103,3 +103,28 @@ def test_refine_report_writes_an_undetermined_sigma_as_null():
     d = json.loads(json.dumps(u.to_json(), allow_nan=False))
     assert d["normal_deg"]["world"] is None and d["distance_mm"]["world"] == 2.0
     assert d["fx_px"]["camera1"] is None and d["scale_rel"] is None
+
+
+def test_the_quick_determined_test_never_passes_a_block_the_eigenvalues_call_undetermined():
+    """_clearly_determined (no eigen-decomposition) against the eigenvalue rule it stands in for, on
+    blocks of condition 1 to 1e20, indefinite ones and badly scaled ones: it may defer (False), never err."""
+    from ari_sfm.factors.schur import RANK_TOLERANCE, _clearly_determined, _scaled_eigh
+
+    rng = np.random.default_rng(7)
+    said_yes = 0
+    for trial in range(400):
+        Q = np.linalg.qr(rng.normal(size=(6, 6)))[0]
+        w = np.logspace(0, -rng.uniform(0, 20), 6)
+        if trial % 5 == 0:
+            w[rng.integers(6)] *= -1e-3 if trial % 10 else -1.0  # indefinite
+        scale = np.diag(10 ** rng.uniform(-6, 6, 6))  # units: the Jacobi scaling must undo them
+        block = scale @ (Q * w) @ Q.T @ scale
+        blocks = np.stack([block, np.eye(6)])
+        ws = _scaled_eigh(blocks)[0]
+        determined = np.all(ws > RANK_TOLERANCE * ws.max(axis=1, keepdims=True))
+        if _clearly_determined(blocks):
+            assert determined, (trial, ws)
+            said_yes += 1
+    assert said_yes > 100  # and it does pass the well-conditioned ones (the point of it)
+    assert _clearly_determined(np.stack([np.diag([4.0, 1, 1, 1, 1, 1e-6])] * 3))
+    assert not _clearly_determined(np.stack([np.eye(6), np.diag([1.0, 1, 1, 1, 1, 0])]))
