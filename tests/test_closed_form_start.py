@@ -62,8 +62,9 @@ def test_the_start_on_two_threads_is_the_start_on_one():
         assert np.array_equal(pose.R, other.R) and np.array_equal(pose.t, other.t)
 
 
-def test_opencv_map_keeps_the_order_splits_the_work_and_raises_the_first_failure():
+def test_opencv_map_keeps_the_order_shares_the_work_and_raises_the_first_failure():
     import threading
+    import time
 
     from ari_sfm.init.zhang import opencv_map
 
@@ -71,19 +72,22 @@ def test_opencv_map_keeps_the_order_splits_the_work_and_raises_the_first_failure
 
     def square(x: int) -> int:
         ran_on[x] = threading.current_thread().name
+        time.sleep(0.005)  # releases the GIL, as OpenCV's calls do
         if x in (5, 7):
             raise ValueError(f"item {x}")
         return x * x
 
-    assert opencv_map(square, [0, 1, 2, 3], threads=2) == [0, 1, 4, 9]
-    assert ran_on[0] == ran_on[1] == threading.current_thread().name and ran_on[2] == ran_on[3] != ran_on[0]
-    assert opencv_map(square, [1, 2, 3], threads=2) == [1, 4, 9]  # too few to split
-    # failures only in the second half (5 and 7: the 5 raises), and one in each half (5 first, 7 second)
-    for items in ([0, 1, 2, 3, 4, 5, 6, 7], [5, 0, 1, 2, 7, 3]):
-        with pytest.raises(ValueError, match="item 5"):
+    assert opencv_map(square, [0, 1, 2, 3, 4, 6, 8, 9], threads=2) == [0, 1, 4, 9, 16, 36, 64, 81]
+    assert len(set(ran_on.values())) == 2 and ran_on[0] == threading.current_thread().name
+    ran_on.clear()
+    assert opencv_map(square, [1, 2, 3], threads=2) == [1, 4, 9]  # too few to share
+    assert set(ran_on.values()) == {threading.current_thread().name}
+    # failures: the first in the items' order raises, whichever thread met it and whenever
+    for items, first in (([0, 1, 2, 3, 4, 5, 6, 7], 5), ([5, 0, 1, 2, 7, 3], 5), ([0, 1, 2, 3, 7, 4, 5], 7)):
+        ran_on.clear()
+        with pytest.raises(ValueError, match=f"item {first}"):
             opencv_map(square, items, threads=2)
-    with pytest.raises(ValueError, match="item 7"):  # the worker's failure, after the first half's items
-        opencv_map(square, [0, 1, 2, 3, 7, 4], threads=2)
+        assert set(ran_on) == set(items)  # every item ran
 
 
 def _split_squares(_: int) -> list[int]:

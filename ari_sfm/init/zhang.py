@@ -7,6 +7,7 @@ whose translation still contains the shift (removed in :mod:`interface_pose`).
 """
 from __future__ import annotations
 
+import itertools
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -82,29 +83,35 @@ os.register_at_fork(after_in_child=_forget_pool)
 
 
 def opencv_map(fn: Callable[[_T], _R], items: Sequence[_T], threads: int = 1) -> list[_R]:
-    """``[fn(x) for x in items]``, with ``threads`` >= 2 the second half on another thread: for
-    independent OpenCV calls (which release the GIL) inside :func:`one_cv2_thread`, so each call runs
-    as it would alone and the results are those of the loop. The first failing item in order raises,
-    after both halves have ended."""
+    """``[fn(x) for x in items]``, with ``threads`` >= 2 shared with another thread: for independent
+    OpenCV calls (which release the GIL) inside :func:`one_cv2_thread`, so each call runs as it would
+    alone and the results are those of the loop. Each thread takes the next item not yet taken (the
+    second starts ~0.05 ms late; a fixed half each left the first waiting ~0.25 ms a call). The first
+    failing item in order raises, after every item has run."""
     if threads < 2 or len(items) < 4:
         return [fn(x) for x in items]
-    half = (len(items) + 1) // 2
-    second: list = []
+    taken = itertools.count()  # next() is atomic under the GIL
+    results: list = [None] * len(items)
+    failed: dict[int, BaseException] = {}
 
-    def run_second() -> None:
-        try:
-            second.append([fn(x) for x in items[half:]])
-        except BaseException as exc:  # raised in the caller, after the first half
-            second.append(exc)
+    def run() -> None:
+        for i in iter(taken.__next__, None):
+            if i >= len(items):
+                return
+            try:
+                results[i] = fn(items[i])
+            except BaseException as exc:  # raised in the caller, in order, after every item
+                failed[i] = exc
 
-    worker = _opencv_pool().submit(run_second)
+    worker = _opencv_pool().submit(run)
     try:
-        first = [fn(x) for x in items[:half]]
+        run()
     finally:
         worker.result()
-    if isinstance(second[0], BaseException):
-        raise second[0]
-    return first + second[0]
+    if failed:
+        raise failed[min(failed)]
+    return results
+
 
 
 @dataclass(frozen=True)
