@@ -50,7 +50,7 @@ from . import keys as K_
 from .extra_factors import ExtraFactors
 from .levenberg_marquardt import LMParams, LMReport, NonFiniteJacobian, levenberg_marquardt
 from .marginals import CovarianceTable, covariances_by_key
-from .robust import huber_irls, huber_residual_scale, huber_view_residual
+from .robust import huber_residual_scale, huber_view_residual, weighted_residuals
 from .schur import NormalEquations, model_decrease, solve_damped
 from .variables import MODELS, GraphLike, RigState, Variables
 from .view_factor import ViewData, ViewKeys, camera_terms
@@ -321,26 +321,17 @@ class VectorizedProblem:
     def _camera_weights(self, model: _CameraModel, c: int, huber_px: float | None, whiten: bool
                         ) -> tuple[np.ndarray, np.ndarray, float]:
         """(each corner's Jacobian scale sqrt(w) / sigma (m,), the scaled residuals (m, 2), the error's
-        excess over their 0.5 r^T r): Huber as IRLS (:func:`~ari_sfm.factors.robust.huber_irls`), a corner
-        behind the window at 1e6 (whitened)."""
+        excess over their 0.5 r^T r): Huber as IRLS (:func:`~ari_sfm.factors.robust.weighted_residuals`), a
+        corner behind the window at 1e6 (whitened)."""
         s, e = int(self.camera_corners[c]), int(self.camera_corners[c + 1])
-        r = model.uv - self.measured[s:e]
-        inv_sigma = self.corner_inv_sigma[s:e] if whiten and not self.unit_sigma else None
+        inv_sigma = self.corner_inv_sigma[s:e]
+        scale, res, dist, extra, beyond = weighted_residuals(
+            model.uv, self.measured[s:e], -1.0 if huber_px is None else float(huber_px), inv_sigma, whiten,
+            INVALID_RESIDUAL)
         excess = 0.0
-        if huber_px is None:
-            scale = np.ones(e - s)
-        else:
-            rx, ry = r[:, 0], r[:, 1]
-            dist = np.sqrt(rx * rx + ry * ry)
-            scale, extra = huber_irls(dist, huber_px)
+        if beyond:  # (numpy's pairwise sum over the corners beyond the threshold, as before)
             ok = np.isfinite(dist)  # a corner behind the window counts as its 1e6 residual
-            excess = float(np.sum(extra[ok] if inv_sigma is None else extra[ok] * inv_sigma[ok] ** 2))
-        if inv_sigma is not None:
-            scale = scale * inv_sigma
-        res = r * scale[:, None]
-        bad = ~np.isfinite(res)
-        if bad.any():  # a point fell behind the window
-            res[bad] = INVALID_RESIDUAL * (self.corner_inv_sigma[s:e, None].repeat(2, 1)[bad] if whiten else 1.0)
+            excess = float(np.sum(extra[ok] if not whiten or self.unit_sigma else extra[ok] * inv_sigma[ok] ** 2))
         return scale, res, excess
 
     def _camera_terms(self, x: Variables, tr: _Transforms, c: int) -> tuple:

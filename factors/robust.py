@@ -22,6 +22,9 @@ no step gave and it stopped at lambda's bound after one step.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 
 def huber_loss(dist: np.ndarray, huber_px: float | None) -> np.ndarray:
@@ -55,20 +58,55 @@ def huber_residual_scale(dist: np.ndarray, huber_px: float) -> np.ndarray:
     return scale
 
 
+@njit(inline="always", **_JIT)
+def _irls_one(d: float, k: float) -> tuple[float, float]:
+    """(sqrt(w), rho(d) - w d^2 / 2) of one corner's distance d beyond threshold k; (1, 0) within."""
+    if d > k:
+        return np.sqrt(k / d), 0.5 * k * (d - k)
+    return 1.0, 0.0
+
+
+@njit(**_JIT)
+def _irls_batch(dist, k):
+    sqrt_w, excess = np.ones(len(dist)), np.zeros(len(dist))
+    for i in range(len(dist)):
+        sqrt_w[i], excess[i] = _irls_one(dist[i], k)
+    return sqrt_w, excess
+
+
 def huber_irls(dist: np.ndarray, huber_px: float | None) -> tuple[np.ndarray, np.ndarray]:
     """(sqrt(w), rho(d) - w d^2 / 2) per corner: the IRLS scale of residual and Jacobian, and what the
     error adds to the scaled residual's 0.5 w d^2 (0 inside the threshold; k (d - k) / 2 beyond)."""
-    dist = np.asarray(dist, float)
-    sqrt_w, excess = np.ones(dist.shape), np.zeros(dist.shape)
+    dist = np.ascontiguousarray(dist, dtype=np.float64).reshape(-1)
     if huber_px is None:
-        return sqrt_w, excess
-    k = float(huber_px)
-    big = dist > k
-    if big.any():
-        d = dist[big]
-        sqrt_w[big] = np.sqrt(k / d)
-        excess[big] = 0.5 * k * (d - k)
-    return sqrt_w, excess
+        return np.ones(dist.shape), np.zeros(dist.shape)
+    return _irls_batch(dist, float(huber_px))
+
+
+@njit(**_JIT)
+def weighted_residuals(uv, measured, huber_px, inv_sigma, whitened, invalid):
+    """One camera's IRLS rows in one pass (the numpy backend's linearisation): per corner r = uv -
+    measured, its distance, the Jacobian scale sqrt(w) (times ``inv_sigma`` with ``whitened``; Huber off
+    when ``huber_px`` < 0), the scaled residual (m, 2) with non-finite entries set to ``invalid`` (times
+    the corner's ``inv_sigma`` when whitened), and the error's excess per corner. Returns (scale, res,
+    dist, excess, any beyond the threshold)."""
+    m = uv.shape[0]
+    scale, res, dist, excess = np.empty(m), np.empty((m, 2)), np.empty(m), np.zeros(m)
+    beyond = False
+    for i in range(m):
+        rx, ry = uv[i, 0] - measured[i, 0], uv[i, 1] - measured[i, 1]
+        d = np.sqrt(rx * rx + ry * ry)
+        s = 1.0
+        if huber_px >= 0.0:
+            s, excess[i] = _irls_one(d, huber_px)
+            beyond |= d > huber_px
+        if whitened:
+            s = s * inv_sigma[i]
+        dist[i], scale[i] = d, s
+        for j, r in ((0, rx), (1, ry)):
+            v = r * s
+            res[i, j] = v if np.isfinite(v) else invalid * (inv_sigma[i] if whitened else 1.0)
+    return scale, res, dist, excess, beyond
 
 
 def huber_view_residual(r: np.ndarray, huber_px: float) -> tuple[np.ndarray, np.ndarray]:

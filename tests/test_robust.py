@@ -146,3 +146,28 @@ def test_refine_colmap_gtsam_factor_error_is_the_huber_cost():
         return graph.error(values.retract(step))
 
     assert gradient.dot(delta) == pytest.approx(_central(error), rel=1e-6)
+
+
+def test_weighted_residuals_are_the_irls_rows_and_mark_corners_behind_the_window():
+    from ari_sfm.factors.robust import weighted_residuals
+
+    rng = np.random.default_rng(3)
+    measured = rng.uniform(0, 1000, (50, 2))
+    uv = measured + rng.normal(0, 1.5, (50, 2))
+    uv[7] = np.nan  # a corner behind the window
+    inv_sigma = rng.uniform(0.5, 2.0, 50)
+    k = 1.0
+    for whitened in (False, True):
+        scale, res, dist, excess, beyond = weighted_residuals(uv, measured, k, inv_sigma, whitened, 1e6)
+        r = uv - measured
+        d = np.linalg.norm(r, axis=1)
+        sqrt_w, extra = huber_irls(d, k)
+        want_scale = sqrt_w * (inv_sigma if whitened else 1.0)
+        ok = np.isfinite(d)
+        np.testing.assert_allclose(scale[ok], want_scale[ok], rtol=1e-15)
+        np.testing.assert_allclose(res[ok], r[ok] * want_scale[ok, None], rtol=1e-15)
+        np.testing.assert_array_equal(res[7], 1e6 * (inv_sigma[7] if whitened else 1.0))
+        np.testing.assert_allclose(excess[ok], 0.5 * k * np.maximum(d[ok] - k, 0.0), rtol=1e-15)
+        assert beyond and np.isnan(dist[7])
+    scale, res, _, excess, beyond = weighted_residuals(uv, measured, -1.0, inv_sigma, False, 1e6)  # no Huber
+    assert not beyond and np.all(scale == 1.0) and np.all(excess == 0.0)
