@@ -54,7 +54,7 @@ from .robust import huber_residual_scale, huber_view_residual, weighted_residual
 from .schur import NormalEquations, model_decrease, solve_damped
 from .variables import MODELS, GraphLike, RigState, Variables
 from .view_factor import ViewData, ViewKeys, camera_terms
-from .view_kernels import accumulate_views, chain_rows, transform_points
+from .view_kernels import accumulate_views, chain_rows, rig_transforms, transform_points
 
 log = logging.getLogger(__name__)
 
@@ -256,14 +256,13 @@ class VectorizedProblem:
         return tr
 
     def _compute_transforms(self, x: Variables) -> _Transforms:
-        R_cw = np.swapaxes(x.world_R_cam, 1, 2)
-        vc, vf = self.view_camera, self.view_frame
-        R_ct = R_cw[vc] @ x.world_R_target[vf]
-        t_ct = np.einsum("vij,vj->vi", R_cw[vc], x.world_t_target[vf] - x.world_t_cam[vc])
         n_w = np.asarray(x.normal.point3(), float)
-        n_c = R_cw @ n_w
-        h_c = None if x.distance_mm is None else x.distance_mm - x.world_t_cam @ n_w
-        return _Transforms(R_ct, t_ct, R_cw, n_w, n_c, np.asarray(x.normal.basis(), float), h_c)
+        with_distance = x.distance_mm is not None
+        R_ct, t_ct, n_c, h_c = rig_transforms(
+            x.world_R_cam, x.world_t_cam, x.world_R_target, x.world_t_target, self.view_camera, self.view_frame, n_w,
+            float(x.distance_mm) if with_distance else 0.0, with_distance)
+        return _Transforms(R_ct, t_ct, np.swapaxes(x.world_R_cam, 1, 2), n_w, n_c, np.asarray(x.normal.basis(), float),
+                           h_c if with_distance else None)
 
     def _camera_model(self, x: Variables, tr: _Transforms, c: int, jacobians: bool) -> _CameraModel | None:
         """The model at camera c's corners (one kernel call per run of its plates); None when the camera is

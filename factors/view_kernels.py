@@ -23,6 +23,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from ..models.kernels import fma  # an intrinsic: inlined LLVM, no cached code of that module's
+
 _JIT = dict(cache=True, nogil=True)  # no division anywhere: numba's default error model compiles faster
 
 
@@ -58,6 +60,42 @@ def _tangent_row(J_point, J_normal, J_distance, o, j, X_cam, P, R_ct, n_cam, cam
     row[kn + 1] = (n0 * normal_map[0, 1] + n1 * normal_map[1, 1] + n2 * normal_map[2, 1]) + h * normal_shift[1]
     if distance:
         row[kn + 2] = h
+
+
+@njit(**_JIT)
+def rig_transforms(world_R_cam, world_t_cam, world_R_target, world_t_target, view_camera, view_frame, normal_world,
+                   distance, with_distance):
+    """The packed problem's per-view and per-camera quantities (:class:`~ari_sfm.factors.packed_problem.
+    _Transforms`): R_ct = R_cw R_wt and t_ct = R_cw (t_wt - t_wc) per view, n_c = R_cw n_w and (with
+    ``with_distance``) h_c = h - t_wc . n_w per camera, R_cw = R_wc^T.
+
+    Written as the numpy expressions they replaced, operation for operation (found by testing: the
+    stacked 3x3 ``@``: ``fma(a2 b2, fma(a1 b1, a0 b0))``; einsum over the transposed matrices and the
+    transposed matrices times n_w: ``(x0 + x1) + x2``; ``t_wc @ n_w``: the same for one camera, else
+    ``fma(x2, fma(x0, x1))``), so the results are those bits."""
+    V, C = view_camera.shape[0], world_R_cam.shape[0]
+    R_ct, t_ct = np.empty((V, 3, 3)), np.empty((V, 3))
+    for v in range(V):
+        R, Rt, c = world_R_cam[view_camera[v]], world_R_target[view_frame[v]], view_camera[v]
+        for i in range(3):  # row i of R_cw: column i of R_wc
+            for j in range(3):
+                R_ct[v, i, j] = fma(R[2, i], Rt[2, j], fma(R[1, i], Rt[1, j], R[0, i] * Rt[0, j]))
+        d0 = world_t_target[view_frame[v], 0] - world_t_cam[c, 0]
+        d1 = world_t_target[view_frame[v], 1] - world_t_cam[c, 1]
+        d2 = world_t_target[view_frame[v], 2] - world_t_cam[c, 2]
+        for i in range(3):
+            t_ct[v, i] = (R[0, i] * d0 + R[1, i] * d1) + R[2, i] * d2
+    n_c, h_c = np.empty((C, 3)), np.empty(C if with_distance else 0)
+    n0, n1, n2 = normal_world[0], normal_world[1], normal_world[2]
+    for c in range(C):
+        R = world_R_cam[c]
+        for i in range(3):
+            n_c[c, i] = (R[0, i] * n0 + R[1, i] * n1) + R[2, i] * n2
+        if with_distance:
+            t = world_t_cam[c]
+            tn = (t[0] * n0 + t[1] * n1) + t[2] * n2 if C == 1 else fma(t[2], n2, fma(t[0], n0, t[1] * n1))
+            h_c[c] = distance - tn
+    return R_ct, t_ct, n_c, h_c
 
 
 @njit(**_JIT)

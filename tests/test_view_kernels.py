@@ -111,3 +111,30 @@ def test_linearize_equals_the_numpy_normal_equations(name, model, huber_px, sigm
     excess = sys.error - err  # the Huber loss's excess over the rows' 0.5 r^T r
     assert excess >= 0.0 and (huber_px is not None or excess == pytest.approx(0.0, abs=1e-9 * err))
     assert sys.error == pytest.approx(problem.error(), rel=1e-12)
+
+
+@pytest.mark.parametrize("cameras", [1, 2, 4])
+def test_rig_transforms_are_the_poses_composed(cameras):
+    """rig_transforms against the poses composed in numpy: R_ct = R_wc^T R_wt, t_ct = R_wc^T (t_wt - t_wc),
+    n_c = R_wc^T n_w, h_c = h - t_wc . n_w, to 1e-12 (the kernel reproduces numpy's own bits; tested on
+    the calibrations)."""
+    from ari_sfm.factors.view_kernels import rig_transforms
+
+    rng = np.random.default_rng(cameras)
+    R_wc = np.array([rotation_from_rotvec(rng.normal(0, 0.5, 3)) for _ in range(cameras)])
+    R_wt = np.array([rotation_from_rotvec(rng.normal(0, 0.5, 3)) for _ in range(5)])
+    t_wc, t_wt = rng.normal(0, 300, (cameras, 3)), rng.normal(0, 300, (5, 3))
+    vc, vf = rng.integers(0, cameras, 12), rng.integers(0, 5, 12)
+    n_w = rng.normal(size=3)
+    n_w /= np.linalg.norm(n_w)
+    for with_distance in (False, True):
+        R_ct, t_ct, n_c, h_c = rig_transforms(R_wc, t_wc, R_wt, t_wt, vc, vf, n_w, 42.0, with_distance)
+        for v in range(12):
+            c, f = vc[v], vf[v]
+            np.testing.assert_allclose(R_ct[v], R_wc[c].T @ R_wt[f], rtol=0, atol=1e-14)
+            np.testing.assert_allclose(t_ct[v], R_wc[c].T @ (t_wt[f] - t_wc[c]), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(n_c, np.einsum("cji,j->ci", R_wc, n_w), rtol=0, atol=1e-15)
+        if with_distance:
+            np.testing.assert_allclose(h_c, 42.0 - t_wc @ n_w, rtol=0, atol=1e-12)
+        else:
+            assert h_c.shape == (0,)
