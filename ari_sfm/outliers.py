@@ -45,11 +45,12 @@ def find_outliers(pairs: Sequence[tuple[Observation, np.ndarray]], k_sigma: floa
     sigma = robust_sigma_px([r])
     d = np.sqrt(np.einsum("ij,ij->i", r, r))
     start = np.cumsum([0] + [len(x) for _, x in pairs])
+    beyond = np.flatnonzero(d > k_sigma * sigma)
+    pair = np.searchsorted(start, beyond, side="right") - 1  # each corner's pair, by the pairs' offsets
     out = []
-    for k in np.flatnonzero(d > k_sigma * sigma):  # few: pairs located by their offsets
-        p = int(np.searchsorted(start, k, side="right")) - 1
-        obs, i = pairs[p][0], k - start[p]
-        out.append(Outlier(obs.camera, obs.set, obs.frame, int(obs.ids[i]), float(d[k]), obs.added_mm))
+    for k, p in zip(beyond.tolist(), pair.tolist()):
+        obs = pairs[p][0]
+        out.append(Outlier(obs.camera, obs.set, obs.frame, int(obs.ids[k - start[p]]), float(d[k]), obs.added_mm))
     return out, sigma
 
 

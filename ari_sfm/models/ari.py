@@ -39,6 +39,7 @@ at u = 0, is exactly this paraxial model.
 """
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -56,13 +57,14 @@ def ari_shift_mm(thickness_mm: float, index: float) -> float:
 
 
 def unit_normal_and_projector(normal_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normal n = v/|v| and d n / d v = (I - n n^T)/|v| of a free 3-vector v."""
-    v = np.asarray(normal_cam, dtype=float).reshape(3)
-    norm = float(np.linalg.norm(v))
-    if not np.isfinite(norm) or norm == 0.0:
-        raise ValueError(f"normal_cam must be a non-zero finite 3-vector, got {v.tolist()}")
-    n = v / norm
-    return n, (np.eye(3) - np.outer(n, n)) / norm
+    """Unit normal n = v/|v| and d n / d v = (I - n n^T)/|v| of a free 3-vector v (in scalar arithmetic,
+    that of ``np.linalg.norm`` and ``np.outer``: a called-per-linearisation helper, 4x faster so)."""
+    v0, v1, v2 = np.asarray(normal_cam, dtype=float).reshape(3).tolist()
+    norm = math.sqrt((v0 * v0 + v1 * v1) + v2 * v2)  # norm's v.dot(v), in its order
+    if not math.isfinite(norm) or norm == 0.0:
+        raise ValueError(f"normal_cam must be a non-zero finite 3-vector, got {[v0, v1, v2]}")
+    n = (v0 / norm, v1 / norm, v2 / norm)
+    return np.array(n), np.array([[((1.0 if i == j else 0.0) - n[i] * n[j]) / norm for j in range(3)] for i in range(3)])
 
 
 def check_window(thickness_mm: float, index: float, medium_index: float,
