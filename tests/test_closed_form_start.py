@@ -104,3 +104,22 @@ def test_opencv_map_works_in_a_forked_child_of_a_process_that_used_its_pool():
     assert opencv_map(lambda x: x + 1, [0, 1, 2, 3], threads=2) == [1, 2, 3, 4]  # the parent's pool exists
     with multiprocessing.get_context("fork").Pool(1) as pool:  # the child has none of its threads
         assert pool.apply_async(_split_squares, (0,)).get(timeout=20) == [0, 1, 4, 9, 16, 25]
+
+
+def test_opencv_map_leaves_no_thread_that_would_hold_the_exit_and_never_waits_for_a_busy_helper():
+    import threading
+    import time
+
+    from ari_sfm.init.zhang import _helper_thread, opencv_map
+
+    assert opencv_map(lambda x: -x, [1, 2, 3, 4], threads=2) == [-1, -2, -3, -4]
+    me = threading.current_thread()
+    # the CLI leaves by os._exit on Ctrl-C while a non-daemon thread lives (cli._exit_interrupted)
+    assert all(t.daemon for t in threading.enumerate() if t is not me and t.name == "ari-opencv")
+    release = threading.Event()
+    _helper_thread().run(lambda: release.wait(5))  # the helper busy elsewhere
+    ran_on = []
+    t0 = time.perf_counter()
+    assert opencv_map(lambda x: ran_on.append(threading.current_thread()) or x, [1, 2, 3, 4], threads=2) == [1, 2, 3, 4]
+    assert time.perf_counter() - t0 < 1.0 and set(ran_on) == {me}  # done alone, its helper task dropped
+    release.set()

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import itertools
 import os
+import queue
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Callable, Iterator, Sequence, TypeVar
@@ -60,26 +60,65 @@ _T = TypeVar("_T")
 _R = TypeVar("_R")
 
 
-_pool: ThreadPoolExecutor | None = None  # opencv_map's second thread, kept (a thread's start costs ~0.15 ms)
-_pool_lock = threading.Lock()
+class _HelperThread:
+    """One kept daemon thread running :func:`opencv_map`'s second share (a thread's start costs
+    ~0.15 ms; a ThreadPoolExecutor's threads are not daemons, and the command line leaves at once
+    on Ctrl-C while a non-daemon thread lives: :func:`ari_sfm.cli._exit_interrupted`). A task the
+    thread has not started when its caller is done is dropped, not waited for."""
+
+    def __init__(self) -> None:
+        self.tasks: queue.SimpleQueue = queue.SimpleQueue()
+        self.lock = threading.Lock()
+        threading.Thread(target=self._serve, name="ari-opencv", daemon=True).start()
+
+    def _serve(self) -> None:
+        while True:
+            fn, state, done = self.tasks.get()
+            with self.lock:
+                if state["dropped"]:
+                    continue
+                state["started"] = True
+            try:
+                fn()  # (opencv_map's share catches its items' exceptions)
+            except BaseException:  # never ends the thread
+                pass
+            finally:
+                done.set()
+
+    def run(self, fn: Callable[[], None]) -> Callable[[], None]:
+        """Queue ``fn``; returns the caller's wait: until ``fn`` has run, or at once if it had not started."""
+        state, done = {"started": False, "dropped": False}, threading.Event()
+        self.tasks.put((fn, state, done))
+
+        def wait() -> None:
+            with self.lock:
+                if not state["started"]:
+                    state["dropped"] = True
+                    return
+            done.wait()
+
+        return wait
 
 
-def _opencv_pool() -> ThreadPoolExecutor:
-    """The process's pool for :func:`opencv_map`'s second halves (created on first use; a forked
-    child makes its own, its parent's threads not being there)."""
-    global _pool
-    with _pool_lock:
-        if _pool is None:
-            _pool = ThreadPoolExecutor(max_workers=os.cpu_count() or 2, thread_name_prefix="ari-opencv")
-        return _pool
+_helper: _HelperThread | None = None
+_helper_lock = threading.Lock()
 
 
-def _forget_pool() -> None:
-    global _pool
-    _pool = None
+def _helper_thread() -> _HelperThread:
+    """The process's helper (started on first use; a forked child starts its own)."""
+    global _helper
+    with _helper_lock:
+        if _helper is None:
+            _helper = _HelperThread()
+        return _helper
 
 
-os.register_at_fork(after_in_child=_forget_pool)
+def _forget_helper() -> None:
+    global _helper, _helper_lock
+    _helper, _helper_lock = None, threading.Lock()  # (held by another thread at the fork: never released)
+
+
+os.register_at_fork(after_in_child=_forget_helper)
 
 
 def opencv_map(fn: Callable[[_T], _R], items: Sequence[_T], threads: int = 1) -> list[_R]:
@@ -103,11 +142,11 @@ def opencv_map(fn: Callable[[_T], _R], items: Sequence[_T], threads: int = 1) ->
             except BaseException as exc:  # raised in the caller, in order, after every item
                 failed[i] = exc
 
-    worker = _opencv_pool().submit(run)
+    wait = _helper_thread().run(run)
     try:
         run()
     finally:
-        worker.result()
+        wait()
     if failed:
         raise failed[min(failed)]
     return results
