@@ -18,7 +18,7 @@ from ..geometry import Pose, mean_pose, mean_poses, unit
 from ..records import Dataset
 from .expansion_center import ExpansionCenter, expansion_center, normal_from_expansion_center
 from .interface_pose import real_cam_from_target
-from .zhang import calibrate_views, held_intrinsics, one_cv2_thread, solve_pnp
+from .zhang import calibrate_views, held_intrinsics, one_cv2_thread
 
 log = logging.getLogger(__name__)
 
@@ -69,10 +69,12 @@ def initialise_camera(dataset: Dataset, name: str, distortion: bool = False,
     if len(views) < need:
         raise AriSfmError(dataset.rig_path, f"camera {name} has {len(views)} calibration views with >= 6 corners (need >= {need})")
     stacking = dataset.select("stacking", name)
+    firsts = [min((o for o in stacking if o.frame == pose), key=lambda o: o.added_mm or 0.0)
+              for pose in sorted({o.frame for o in stacking})]  # each stacking pose's thinnest view: its PnP
     try:
         spec = dataset.cameras[name]
         zhang = calibrate_views(dataset.target, spec, views, distortion,
-                                held_intrinsics(spec) if fix_intrinsics else None, threads)
+                                held_intrinsics(spec) if fix_intrinsics else None, threads, also=firsts)
     except (ValueError, cv2.error) as exc:  # DLT refused, or OpenCV refused the start
         msg = str(exc).strip().splitlines()[-1] if isinstance(exc, cv2.error) else str(exc)
         raise AriSfmError(dataset.rig_path, f"camera {name}: {msg}") from None
@@ -87,11 +89,10 @@ def initialise_camera(dataset: Dataset, name: str, distortion: bool = False,
     poses: dict[str, Pose] = {}
     for frame, gen in zhang.cam_from_target.items():
         poses[frame] = real_cam_from_target(gen, normal if normal is not None else np.zeros(3), _shift(iface.thickness_mm, iface.index))
-    for pose_name in sorted({o.frame for o in stacking}):
-        first = min((o for o in stacking if o.frame == pose_name), key=lambda o: o.added_mm or 0.0)
-        gen = solve_pnp(dataset.target, zhang.K, zhang.dist, first)
+    for first in firsts:
         shift = _shift(iface.thickness_mm + (first.added_mm or 0.0), iface.index)
-        poses[pose_name] = real_cam_from_target(gen, normal if normal is not None else np.zeros(3), shift)
+        poses[first.frame] = real_cam_from_target(zhang.also[first.frame], normal if normal is not None else np.zeros(3),
+                                                  shift)
     return CameraInit(name, zhang.K, zhang.dist, expansion, normal, poses, zhang.rms_px)
 
 

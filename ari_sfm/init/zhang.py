@@ -12,7 +12,7 @@ import os
 import queue
 import threading
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Iterator, Sequence, TypeVar
 
 import cv2
@@ -161,6 +161,7 @@ class ZhangResult:
     dist: np.ndarray  # (5,) k1 k2 p1 p2 k3
     cam_from_target: dict[str, Pose]  # generalised (virtual-pinhole) poses by frame
     rms_px: float
+    also: dict[str, Pose] = field(default_factory=dict)  # the ``also`` views' poses (iterative PnP) by frame
 
 
 def object_points(target: Target, ids: np.ndarray) -> np.ndarray:
@@ -245,7 +246,7 @@ def _closed_form_K(obj: list[np.ndarray], img: list[np.ndarray], spec: CameraSpe
 @one_cv2_thread()
 def calibrate_zhang(
     target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False,
-    hold: str | None = None, threads: int = 1,
+    hold: str | None = None, threads: int = 1, also: Sequence[Observation] = (),
 ) -> ZhangResult:
     """The closed-form start of a camera from planar (or, with a K hint, any) views: K from the
     homographies (:func:`_closed_form_K`, Zhang's closed form), no distortion, each view's generalised
@@ -258,7 +259,8 @@ def calibrate_zhang(
     refines K, distortion and poses anyway, so a second Levenberg-Marquardt on the same views
     would only repeat its work (``distortion`` is kept for the signature: the start has none).
     ``threads``: the per-view OpenCV calls on up to this many threads (:func:`opencv_map`; the same
-    result).
+    result). ``also``: more views posed with that K by :func:`solve_pnp` among the others' calls
+    (a camera's stacking poses), in ``ZhangResult.also``; not part of K or the RMS.
     """
     obj = [object_points(target, v.ids).astype(np.float64) for v in views]
     img = [v.pixels.astype(np.float64).reshape(-1, 2) for v in views]
@@ -267,19 +269,23 @@ def calibrate_zhang(
     if hold == "K" and spec.dist is not None:
         dist = np.resize(np.asarray(spec.dist, float), 5).copy()
 
-    def pnp(view: tuple[Observation, np.ndarray, np.ndarray]) -> Pose:
+    def pnp(view: tuple[Observation, np.ndarray | None, np.ndarray | None]) -> Pose:
         v, o, i = view
+        if o is None:  # an ``also`` view
+            return solve_pnp(target, K, dist, v)
         planar = bool(np.all(o[:, 2] == 0))
         return _pnp_pose(o, i, K, dist, cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_ITERATIVE, v.frame)
 
-    found = opencv_map(pnp, list(zip(views, obj, img)), threads)
+    found = opencv_map(pnp, list(zip(views, obj, img)) + [(v, None, None) for v in also], threads)
+    found, also_found = found[:len(views)], found[len(views):]
     poses = {v.frame: pose for v, pose in zip(views, found)}
+    extra = {v.frame: pose for v, pose in zip(also, also_found)}
     cam_points = [pose.apply(o) for pose, o in zip(found, obj)]
     if not views:
-        return ZhangResult(K, dist, poses, 0.0)
+        return ZhangResult(K, dist, poses, 0.0, extra)
     uv = project_points(np.concatenate(cam_points), np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist], 4, False)[0]
     res = uv - np.concatenate(img)  # every view's reprojection at once (the pinhole kernel)
-    return ZhangResult(K, dist, poses, float(np.sqrt(np.sum(res * res) / len(res))))
+    return ZhangResult(K, dist, poses, float(np.sqrt(np.sum(res * res) / len(res))), extra)
 
 
 def dlt_projection(X: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -344,7 +350,7 @@ def _dlt_K(target: Target, spec: CameraSpec, views: Sequence[Observation]) -> np
 
 def calibrate_dlt(
     target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False,
-    hold: str | None = None, threads: int = 1,
+    hold: str | None = None, threads: int = 1, also: Sequence[Observation] = (),
 ) -> ZhangResult:
     """K and generalised extrinsics from a 3D target (several planes; one view is enough):
     K from the hint when the dataset gives one (``K`` as given, ``focal_px`` with the
@@ -354,16 +360,16 @@ def calibrate_dlt(
     if K0 is None:
         K0 = _dlt_K(target, spec, views)
     hinted = CameraSpec(spec.name, spec.image_size, None, K0, spec.dist)
-    return calibrate_zhang(target, hinted, views, distortion, hold, threads)
+    return calibrate_zhang(target, hinted, views, distortion, hold, threads, also)
 
 
 def calibrate_views(target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False,
-                    hold: str | None = None, threads: int = 1) -> ZhangResult:
-    """Zhang's method for planar targets, DLT/PnP for 3D ones; ``hold``, ``threads``: see
+                    hold: str | None = None, threads: int = 1, also: Sequence[Observation] = ()) -> ZhangResult:
+    """Zhang's method for planar targets, DLT/PnP for 3D ones; ``hold``, ``threads``, ``also``: see
     :func:`calibrate_zhang`."""
     if target.is_planar():
-        return calibrate_zhang(target, spec, views, distortion, hold, threads)
-    return calibrate_dlt(target, spec, views, distortion, hold, threads)
+        return calibrate_zhang(target, spec, views, distortion, hold, threads, also)
+    return calibrate_dlt(target, spec, views, distortion, hold, threads, also)
 
 
 @one_cv2_thread()
