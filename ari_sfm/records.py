@@ -87,6 +87,12 @@ class Target:
     def num_ids(self) -> int:
         return len(self.points_3d_readonly[0])
 
+    @cached_property
+    def ids_are_rows(self) -> bool:
+        """Whether the point ids are 0..n-1 (every board): an id is then its row in :attr:`points_3d_readonly`."""
+        ids = self.points_3d_readonly[0]
+        return bool(len(ids) and ids[0] == 0 and ids[-1] == len(ids) - 1)
+
     def is_planar(self) -> bool:
         return self.type != "points3d" or bool(np.ptp(self.points_3d_readonly[1][:, 2]) == 0.0)
 

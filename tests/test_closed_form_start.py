@@ -123,3 +123,20 @@ def test_opencv_map_leaves_no_thread_that_would_hold_the_exit_and_never_waits_fo
     assert opencv_map(lambda x: ran_on.append(threading.current_thread()) or x, [1, 2, 3, 4], threads=2) == [1, 2, 3, 4]
     assert time.perf_counter() - t0 < 1.0 and set(ran_on) == {me}  # done alone, its helper task dropped
     release.set()
+
+
+def test_object_points_are_the_targets_rows_and_unknown_ids_raise():
+    from ari_sfm.simulate import make_scene
+
+    board = make_scene("paper_single", seed=0).dataset.target
+    ids, xyz = board.points_3d()
+    assert board.ids_are_rows
+    np.testing.assert_array_equal(object_points(board, [5, 0, 87]), xyz[[5, 0, 87]])
+    for bad in ([-1, 3], [0, len(ids)]):  # a negative id must not wrap around to the last rows
+        with pytest.raises(KeyError):
+            object_points(board, np.array(bad))
+    body = Target(type="points3d", points={10: (0.0, 0.0, 0.0), 12: (1.0, 2.0, 3.0), 30: (4.0, 5.0, 6.0)})
+    assert not body.ids_are_rows
+    np.testing.assert_array_equal(object_points(body, [30, 10]), [[4.0, 5.0, 6.0], [0.0, 0.0, 0.0]])
+    with pytest.raises(KeyError):
+        object_points(body, [11])

@@ -169,8 +169,8 @@ def object_points(target: Target, ids: np.ndarray) -> np.ndarray:
     all_ids, xyz = target.points_3d_readonly  # ids ascending; built once per target
     ids = np.asarray(ids, dtype=np.int64).reshape(-1)
     n = len(all_ids)
-    if n and all_ids[0] == 0 and all_ids[-1] == n - 1:  # ids 0..n-1 (every board): an id is its row
-        if len(ids) and not (0 <= ids.min() and ids.max() < n):
+    if target.ids_are_rows:  # ids 0..n-1 (every board): an id is its row
+        if len(ids) and ids.view(np.uint64).max() >= n:  # (a negative id is a huge unsigned one)
             raise KeyError(int(ids[np.flatnonzero((ids < 0) | (ids >= n))[0]]))
         return xyz[ids]
     pos = np.searchsorted(all_ids, ids)
