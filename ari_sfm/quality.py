@@ -30,7 +30,6 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 
-from .homography import denormalised, homographies_normalised, normalised
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +42,6 @@ MAD_TO_SIGMA = 1.4826
 WARP_DEGREE = 4  # highest degree of the floor's polynomial warp (image coordinates), lowered for small planes
 MIN_PLANE_CORNERS = 12  # corners of one plane of one view needed to fit its warp
 CORNERS_PER_TERM = 3  # at least this many corners per polynomial term (else a lower degree)
-CHOLESKY_PIVOT = 1e-8  # a warp design's Cholesky pivot below this share of its column's norm: the SVD decides its rank
 MAX_FLOOR_VIEWS = 8  # views in the floor's fit (evenly picked: a noise estimate needs no more, bounded cost)
 
 
@@ -88,54 +86,19 @@ def robust_rmse_px(residuals: Iterable[np.ndarray]) -> float:
 
 def _warp_residuals(xy: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Residuals (V, N, 2) of V planes' corners ``xy`` (target plane) against their pixels ``uv`` (each
-    (V, N, 2)) after a homography (normalised DLT) and a polynomial warp in image coordinates (the least
-    squares fit, numpy's lstsq's: the residual's part outside the design's numerical range), scaled by
-    sqrt(N / (N - p)) for the p parameters fitted per coordinate (so that they estimate the noise, not
-    less); and which planes were fitted (V,)."""
+    (V, N, 2)) after a homography and a polynomial warp in image coordinates, scaled for the parameters
+    fitted (:func:`ari_sfm.floor_fit.warp_residuals`; the warp's degree lowered for small planes: at
+    least ``CORNERS_PER_TERM`` corners per term); and which planes were fitted (V,)."""
+    from .floor_fit import warp_residuals
+
     V, n = xy.shape[:2]
-    a, ca, sa = normalised(xy)
-    b, cb, sb = normalised(uv)
-    H = denormalised(homographies_normalised(a, b), ca, sa, cb, sb)
-    w = np.einsum("vnk,vk->vn", xy, H[:, 2, :2]) + H[:, 2, 2, None]
-    fitted = np.isfinite(H).all(axis=(1, 2)) & np.all(np.abs(w) > 1e-12, axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        r = uv - (xy @ np.swapaxes(H[:, :2, :2], 1, 2) + H[:, None, :2, 2]) / w[..., None]
     degree = WARP_DEGREE
     while degree > 0 and (degree + 1) * (degree + 2) // 2 * CORNERS_PER_TERM > n:
         degree -= 1
-    A = _warp_design(b / math.sqrt(2.0), degree)
-    p = A.shape[2] + 4  # the polynomial's terms and the homography's 8 / 2 per coordinate
-    if n <= p:
+    if n <= (degree + 1) * (degree + 2) // 2 + 4:  # no residual degree of freedom left
         return np.full((V, n, 2), np.nan), np.zeros(V, dtype=bool)
-    r = np.where(fitted[:, None, None], r, 0.0)
-    r = r - (Q := _range_basis(A)) @ (np.swapaxes(Q, 1, 2) @ r)
-    return r * math.sqrt(n / (n - p)), fitted
-
-
-def _warp_design(s: np.ndarray, degree: int) -> np.ndarray:
-    """The polynomial warp's design (V, N, terms): s_x^i s_y^j, i + j <= degree, of points s (V, N, 2)."""
-    x, y = [np.ones(s.shape[:2])], [np.ones(s.shape[:2])]
-    for _ in range(degree):
-        x.append(x[-1] * s[..., 0])
-        y.append(y[-1] * s[..., 1])
-    return np.stack([x[i] * y[j] for i in range(degree + 1) for j in range(degree + 1 - i)], axis=2)
-
-
-def _range_basis(A: np.ndarray) -> np.ndarray:
-    """An orthonormal basis (V, N, terms) of each design's numerical range (columns of zeros where it is
-    rank-deficient): ``A L^-T`` of the Cholesky factor of ``A^T A`` when every pivot is well above
-    rounding (8x faster than the SVD), else the left singular vectors above lstsq's rcond."""
-    n, terms = A.shape[1:]
-    G = np.swapaxes(A, 1, 2) @ A
-    try:
-        L = np.linalg.cholesky(G)
-        pivot = np.diagonal(L, axis1=1, axis2=2) ** 2 / np.diagonal(G, axis1=1, axis2=2)
-        if np.all(pivot > CHOLESKY_PIVOT):
-            return A @ np.swapaxes(np.linalg.inv(L), 1, 2)
-    except np.linalg.LinAlgError:
-        pass
-    Q, sv, _ = np.linalg.svd(A, full_matrices=False)
-    return Q * (sv > np.finfo(float).eps * max(n, terms) * sv[:, :1])[:, None, :]  # lstsq's rcond
+    return warp_residuals(np.ascontiguousarray(xy, dtype=np.float64), np.ascontiguousarray(uv, dtype=np.float64),
+                          degree)
 
 
 def floor_rmse_px(dataset) -> float | None:
