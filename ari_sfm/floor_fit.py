@@ -93,7 +93,7 @@ def plane_homographies(xy, uv):
     H = np.empty((V, 3, 3))
     M, L, keep = np.empty((9, 9)), np.empty((9, 9)), np.empty(9, dtype=np.bool_)
     m = M.shape[0]  # 9, not a literal: LLVM unrolling the 9 x 9 loops made this take seconds to compile
-    r1, r2, h, y = np.zeros(9), np.zeros(9), np.empty(9), np.empty(9)  # (r1[3:6], r2[:3] stay 0)
+    r1, r2, h, y = np.zeros(9), np.zeros(9), np.empty(9), np.empty(9)
     for v in range(V):
         ax0, ay0, sa = _normalise(xy, v)
         bx0, by0, sb = _normalise(uv, v)
@@ -103,18 +103,14 @@ def plane_homographies(xy, uv):
         for i in range(n):
             ax, ay = (xy[v, i, 0] - ax0) * sa, (xy[v, i, 1] - ay0) * sa
             bx, by = (uv[v, i, 0] - bx0) * sb, (uv[v, i, 1] - by0) * sb
-            r1[0] = ax
-            r1[1] = ay
-            r1[2] = 1.0
-            r1[6] = -bx * ax
-            r1[7] = -bx * ay
-            r1[8] = -bx
-            r2[3] = ax
-            r2[4] = ay
-            r2[5] = 1.0
-            r2[6] = -by * ax
-            r2[7] = -by * ay
-            r2[8] = -by
+            for k in range(2):  # the DLT's two rows of this point (r1[3:6] and r2[:3] stay 0)
+                row, b = (r1, bx) if k == 0 else (r2, by)
+                row[3 * k] = ax
+                row[3 * k + 1] = ay
+                row[3 * k + 2] = 1.0
+                row[6] = -b * ax
+                row[7] = -b * ay
+                row[8] = -b
             for a in range(m):
                 for b in range(a + 1):
                     M[a, b] += r1[a] * r1[b] + r2[a] * r2[b]
