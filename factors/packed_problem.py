@@ -100,6 +100,35 @@ class _Transforms:
     distance_cam: np.ndarray | None  # (C,) h_c = h0 - n . C_c
 
 
+def _variables_of(rg: GraphLike) -> Variables:
+    """The packed variables of a graph's values, or of its base state while its values are still to be
+    made (a RigGraph's, on first access): the same numbers (a Pose3 or Unit3 stored in a gtsam.Values
+    reads back exactly as made)."""
+    C, F, n_p = len(rg.camera_names), len(rg.frame_names), rg.n_params
+    R_wc, t_wc = np.tile(np.eye(3), (C, 1, 1)), np.zeros((C, 3))
+    R_wt, t_wt = np.empty((F, 3, 3)), np.empty((F, 3))
+    if getattr(rg, "made_values", True) is None and getattr(rg, "unwritten", None) is None:
+        st = rg.base_state
+        for c in range(1, C):
+            inv = st.cam_from_world[rg.camera_names[c]].inverse()  # world_T_cam, as pose3_from_cam_from_world
+            R_wc[c], t_wc[c] = inv.R, inv.t
+        for f, name in enumerate(rg.frame_names):
+            R_wt[f], t_wt[f] = st.world_from_target[name].R, np.asarray(st.world_from_target[name].t, float)
+        intrinsics = np.array([np.asarray(st.params[n][:n_p], float) for n in rg.camera_names]).reshape(C, n_p)
+        distance = float(st.distance_mm) if rg.estimate_distance else st.distance_mm
+        return Variables(intrinsics, R_wc, t_wc, gtsam.Unit3(np.asarray(st.normal_world, float)), R_wt, t_wt, distance)
+    v = rg.values
+    for c in range(1, C):
+        p = v.atPose3(K_.C(c))
+        R_wc[c], t_wc[c] = p.rotation().matrix(), np.asarray(p.translation())
+    for f in range(F):
+        p = v.atPose3(K_.X(f))
+        R_wt[f], t_wt[f] = p.rotation().matrix(), np.asarray(p.translation())
+    distance = float(v.atVector(K_.H)[0]) if rg.estimate_distance else rg.base_state.distance_mm
+    return Variables(np.array([v.atVector(K_.K(c)) for c in range(C)], float).reshape(C, n_p),
+                     R_wc, t_wc, v.atUnit3(K_.N), R_wt, t_wt, distance)
+
+
 class VectorizedProblem:
     """RigGraph's problem packed into flat arrays; the :class:`~ari_sfm.factors.levenberg_marquardt.LMProblem`
     of the numpy backend (linearize, solve, model_decrease, retract, error).
@@ -156,19 +185,7 @@ class VectorizedProblem:
         the graph's own factors and a mismatch raises ValueError.
         """
         views, extra = rg.packed_factors()
-        v = rg.values
-        C, F = len(rg.camera_names), len(rg.frame_names)
-        R_wc, t_wc = np.tile(np.eye(3), (C, 1, 1)), np.zeros((C, 3))
-        for c in range(1, C):
-            p = v.atPose3(K_.C(c))
-            R_wc[c], t_wc[c] = p.rotation().matrix(), np.asarray(p.translation())
-        R_wt, t_wt = np.empty((F, 3, 3)), np.empty((F, 3))
-        for f in range(F):
-            p = v.atPose3(K_.X(f))
-            R_wt[f], t_wt[f] = p.rotation().matrix(), np.asarray(p.translation())
-        distance = float(v.atVector(K_.H)[0]) if rg.estimate_distance else rg.base_state.distance_mm
-        variables = Variables(np.array([v.atVector(K_.K(c)) for c in range(C)], float).reshape(C, rg.n_params),
-                              R_wc, t_wc, v.atUnit3(K_.N), R_wt, t_wt, distance)
+        variables = _variables_of(rg)
         problem = VectorizedProblem(views, rg.factor_views, variables, rg.camera_names, rg.frame_names, rg.n_params,
                                     rg.base_state, rg.estimate_distance, rg.model, huber_px, extra)
         if check:

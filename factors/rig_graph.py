@@ -24,7 +24,7 @@ from __future__ import annotations
 import logging
 import os
 from dataclasses import dataclass, field, replace
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -118,7 +118,7 @@ class RigGraph:
     :meth:`add_factor` adds one without making the graph.
     """
 
-    values: gtsam.Values
+    made_values: gtsam.Values | None  # None: :attr:`values` made from base_state on first access
     camera_names: list[str]
     frame_names: list[str]
     n_params: int
@@ -133,6 +133,49 @@ class RigGraph:
     other_factors: list[gtsam.NonlinearFactor] = field(default_factory=list)  # priors, the plane, the user's
     views_at: int = 0  # the view factors' place among other_factors (the ones before them: build's priors, plane)
     built_graph: gtsam.NonlinearFactorGraph | None = field(default=None, repr=False)  # once made: the graph
+    unwritten: Callable[[gtsam.Values], None] | None = field(default=None, repr=False)  # a numpy solve's result
+
+    @property
+    def values(self) -> gtsam.Values:
+        """The graph's values: made from :attr:`base_state` on first access (the numpy backend reads the
+        state without them), a numpy solve's result written in then (:meth:`set_solution`)."""
+        if self.made_values is None:
+            self.made_values = self._values_of(self.base_state)
+        if self.unwritten is not None:
+            write, self.unwritten = self.unwritten, None
+            write(self.made_values)
+        return self.made_values
+
+    @values.setter
+    def values(self, values: gtsam.Values) -> None:
+        self.made_values, self.unwritten = values, None
+
+    def set_solution(self, write: Callable[[gtsam.Values], None]) -> None:
+        """A solver's result, ``write(values)`` updating every variable: done now if the values exist,
+        else when they are first read."""
+        if self.made_values is None:
+            self.unwritten = write
+        else:
+            self.unwritten = None
+            write(self.made_values)
+
+    def values_copy(self) -> gtsam.Values | None:
+        """A copy of the values for a copy of the graph (None while they are still to be made)."""
+        return None if self.made_values is None and self.unwritten is None else gtsam.Values(self.values)
+
+    def _values_of(self, state: RigState) -> gtsam.Values:
+        """The gtsam.Values of a state: K(c), C(c) (c > 0), N, X(i) and H (estimated distance)."""
+        values = gtsam.Values()
+        for c, name in enumerate(self.camera_names):
+            values.insert(K_.K(c), np.asarray(state.params[name][:self.n_params], float))
+            if c > 0:
+                values.insert(K_.C(c), pose3_from_cam_from_world(state.cam_from_world[name]))
+        values.insert(K_.N, gtsam.Unit3(np.asarray(state.normal_world, float)))
+        for i, f in enumerate(self.frame_names):
+            values.insert(K_.X(i), pose3_from_pose(state.world_from_target[f]))
+        if self.estimate_distance:
+            values.insert(K_.H, np.array([float(state.distance_mm)]))
+        return values
 
     @property
     def graph(self) -> gtsam.NonlinearFactorGraph:
@@ -213,16 +256,6 @@ class RigGraph:
         frame_index = {f: i for i, f in enumerate(frames)}
         n_params = 9 if distortion else 4
         other: list[gtsam.NonlinearFactor] = []
-        values = gtsam.Values()
-        for c, name in enumerate(names):
-            values.insert(K_.K(c), np.asarray(state.params[name][:n_params], float))
-            if c > 0:
-                values.insert(K_.C(c), pose3_from_cam_from_world(state.cam_from_world[name]))
-        values.insert(K_.N, gtsam.Unit3(np.asarray(state.normal_world, float)))
-        for f, i in frame_index.items():
-            values.insert(K_.X(i), pose3_from_pose(state.world_from_target[f]))
-        if estimate_distance:
-            values.insert(K_.H, np.array([float(state.distance_mm)]))
         for name in fixed_intrinsics:  # known K: a prior far tighter than anything the images say
             c = names.index(name)
             other.append(gtsam.PriorFactorVector(K_.K(c), np.asarray(state.params[name][:n_params], float),
@@ -239,7 +272,7 @@ class RigGraph:
 
             other.append(window_plane_factor(window_plane, frame_index[window_plane.frame], estimate_distance))
         from ..init.zhang import object_points
-        rg = RigGraph(values, names, frames, n_params, state, estimate_distance, model=model,
+        rg = RigGraph(None, names, frames, n_params, state, estimate_distance, model=model,
                       sigma_px=float(sigma_px), huber_px=huber_px, other_factors=other, views_at=len(other))
         for obs in observations:
             if obs.set not in ("calibration", "stacking") or obs.frame not in frame_index or obs.camera not in names:
@@ -296,7 +329,7 @@ class RigGraph:
         """The same graph (values, added factors) with its view factors whitened by ``sigma_px`` instead."""
         if not (np.isfinite(sigma_px) and sigma_px > 0.0):
             raise ValueError(f"sigma_px must be a positive pixel sigma, got {sigma_px}")
-        copy = replace(self, values=gtsam.Values(self.values), sigma_px=float(sigma_px),
+        copy = replace(self, made_values=self.values_copy(), unwritten=None, sigma_px=float(sigma_px),
                        factor_views=list(self.factor_views), factor_data=list(self.factor_data),
                        other_factors=list(self.other_factors), built_graph=None)
         if self.built_graph is None:
@@ -371,7 +404,7 @@ def estimate_sigma_px(rg: RigGraph) -> float:
     ``rg`` itself is not changed."""
     from ..outliers import robust_sigma_px
 
-    copy = replace(rg, values=gtsam.Values(rg.values), factor_views=list(rg.factor_views),
+    copy = replace(rg, made_values=rg.values_copy(), unwritten=None, factor_views=list(rg.factor_views),
                    factor_data=list(rg.factor_data), other_factors=list(rg.other_factors))
     _, solved = optimize_graph(copy, "auto", huber_px=rg.huber_px, return_problem=True, check=False)
     residuals = solved.residuals() if solved is not None else copy.residuals()

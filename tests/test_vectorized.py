@@ -354,3 +354,30 @@ def test_scale16_reduced_meets_the_exact_tolerances():
     for name, c in cal.cameras.items():
         K = np.array(truth["cameras"][name]["K"])
         assert abs(c.K[0, 0] / K[0, 0] - 1) < 5e-4, name
+
+
+def test_a_graphs_values_are_made_lazily_and_read_back_as_the_state_gave_them():
+    """RigGraph.build makes no gtsam.Values: the numpy backend packs the base state (the same numbers the
+    values hold, bit for bit), and a numpy solve's result is written into the values when first read."""
+    from ari_sfm.factors.packed_problem import _variables_of
+
+    ds = make_scene("binocular_underwater", seed=0).dataset
+    rg = RigGraph.from_dataset(ds, model="exact", sigma_px=1.0)
+    assert rg.made_values is None
+    lazy = _variables_of(rg)
+    assert replace(rg, made_values=rg.values_copy()).made_values is None  # a copy stays lazy
+    rg.values.exists(K_.N)  # made on this first read
+    assert rg.made_values is not None
+    made = _variables_of(rg)
+    for a, b in zip((lazy.intrinsics, lazy.world_R_cam, lazy.world_t_cam, lazy.world_R_target, lazy.world_t_target),
+                    (made.intrinsics, made.world_R_cam, made.world_t_cam, made.world_R_target, made.world_t_target)):
+        assert np.array_equal(a, b)
+    assert np.array_equal(lazy.normal.point3(), made.normal.point3()) and lazy.distance_mm == made.distance_mm
+    fresh = RigGraph.from_dataset(ds, model="exact", sigma_px=1.0)
+    state = optimize_graph(fresh, "numpy", huber_px=1.0, check=False)  # (the check reads the values)
+    assert fresh.made_values is None and fresh.unwritten is not None  # solved, not yet written
+    back = fresh.state()  # reads fresh.values: made from the start, the solution written in
+    assert fresh.unwritten is None
+    assert np.allclose(back.normal_world, state.normal_world, atol=1e-15) and back.distance_mm == state.distance_mm
+    for name in ds.camera_names:
+        assert np.array_equal(back.params[name], state.params[name])
