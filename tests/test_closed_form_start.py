@@ -108,7 +108,6 @@ def test_opencv_map_works_in_a_forked_child_of_a_process_that_used_its_pool():
 
 def test_opencv_map_leaves_no_thread_that_would_hold_the_exit_and_never_waits_for_a_busy_helper():
     import threading
-    import time
 
     from ari_sfm.init.zhang import _helper_thread, opencv_map
 
@@ -116,12 +115,16 @@ def test_opencv_map_leaves_no_thread_that_would_hold_the_exit_and_never_waits_fo
     me = threading.current_thread()
     # the CLI leaves by os._exit on Ctrl-C while a non-daemon thread lives (cli._exit_interrupted)
     assert all(t.daemon for t in threading.enumerate() if t is not me and t.name == "ari-opencv")
-    release = threading.Event()
-    _helper_thread().run(lambda: release.wait(5))  # the helper busy elsewhere
+    release, busy_done = threading.Event(), threading.Event()
+
+    def busy() -> None:  # the helper busy elsewhere, until released (or 30 s)
+        release.wait(30)
+        busy_done.set()
+
+    _helper_thread().run(busy)
     ran_on = []
-    t0 = time.perf_counter()
     assert opencv_map(lambda x: ran_on.append(threading.current_thread()) or x, [1, 2, 3, 4], threads=2) == [1, 2, 3, 4]
-    assert time.perf_counter() - t0 < 1.0 and set(ran_on) == {me}  # done alone, its helper task dropped
+    assert not busy_done.is_set() and set(ran_on) == {me}  # done alone, not waiting: its helper task dropped
     release.set()
 
 
