@@ -172,7 +172,7 @@ sys.stdout.write(json.dumps(out, sort_keys=True))
 
 
 def test_calibrate_is_bit_identical_across_processes():
-    """The initialisation's OpenCV calls run on one thread (init.zhang.one_cv2_thread):
+    """The initialisation's OpenCV calls run on one thread (init.opencv_threads.one_cv2_thread):
     threaded, their results differed at 1e-15..1e-9 between processes and the exact
     stage took 3 or 4 steps. Two fresh processes give the same calibration JSON (timings aside)."""
     import os
@@ -190,7 +190,7 @@ def test_calibrate_is_bit_identical_across_processes():
 def test_one_cv2_thread_nests_and_restores():
     import cv2
 
-    from ari_sfm.init.zhang import one_cv2_thread
+    from ari_sfm.init.opencv_threads import one_cv2_thread
 
     before = cv2.getNumThreads()
     try:

@@ -66,7 +66,7 @@ def test_opencv_map_keeps_the_order_shares_the_work_and_raises_the_first_failure
     import threading
     import time
 
-    from ari_sfm.init.zhang import opencv_map
+    from ari_sfm.init.opencv_threads import opencv_map
 
     ran_on = {}
 
@@ -91,7 +91,7 @@ def test_opencv_map_keeps_the_order_shares_the_work_and_raises_the_first_failure
 
 
 def _split_squares(_: int) -> list[int]:
-    from ari_sfm.init.zhang import opencv_map
+    from ari_sfm.init.opencv_threads import opencv_map
 
     return opencv_map(lambda x: x * x, list(range(6)), threads=2)
 
@@ -99,7 +99,7 @@ def _split_squares(_: int) -> list[int]:
 def test_opencv_map_works_in_a_forked_child_of_a_process_that_used_its_pool():
     import multiprocessing
 
-    from ari_sfm.init.zhang import opencv_map
+    from ari_sfm.init.opencv_threads import opencv_map
 
     assert opencv_map(lambda x: x + 1, [0, 1, 2, 3], threads=2) == [1, 2, 3, 4]  # the parent's pool exists
     with multiprocessing.get_context("fork").Pool(1) as pool:  # the child has none of its threads
@@ -109,7 +109,7 @@ def test_opencv_map_works_in_a_forked_child_of_a_process_that_used_its_pool():
 def test_opencv_map_leaves_no_thread_that_would_hold_the_exit_and_never_waits_for_a_busy_helper():
     import threading
 
-    from ari_sfm.init.zhang import _helper_thread, opencv_map
+    from ari_sfm.init.opencv_threads import _helper_thread, opencv_map
 
     assert opencv_map(lambda x: -x, [1, 2, 3, 4], threads=2) == [-1, -2, -3, -4]
     me = threading.current_thread()

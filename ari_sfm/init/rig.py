@@ -18,7 +18,8 @@ from ..geometry import Pose, mean_pose, mean_poses, unit
 from ..records import Dataset
 from .expansion_center import ExpansionCenter, expansion_center, normal_from_expansion_center
 from .interface_pose import real_cam_from_target
-from .zhang import calibrate_views, held_intrinsics, one_cv2_thread
+from .opencv_threads import one_cv2_thread
+from .zhang import calibrate_views, held_intrinsics
 
 log = logging.getLogger(__name__)
 
@@ -151,7 +152,7 @@ def initialise_rig(dataset: Dataset, distortion: bool = False, workers: int | No
     """Initialise every camera (concurrently, on up to ``workers`` threads, default one per
     camera up to os.cpu_count()), then chain relative poses from camera 0 over shared frames.
 
-    OpenCV runs on one thread per worker meanwhile (see :func:`ari_sfm.init.zhang.one_cv2_thread`);
+    OpenCV runs on one thread per worker meanwhile (see :func:`ari_sfm.init.opencv_threads.one_cv2_thread`);
     the result does not depend on ``workers``.
     """
     names = dataset.camera_names
