@@ -92,7 +92,7 @@ def plane_homographies(xy, uv):
     V, n = xy.shape[0], xy.shape[1]
     H = np.empty((V, 3, 3))
     M, L, keep = np.empty((9, 9)), np.empty((9, 9)), np.empty(9, dtype=np.bool_)
-    m = M.shape[0]  # 9, not a literal: LLVM unrolling the 9 x 9 loops made this take seconds to compile
+    m = M.shape[0]  # 9: the DLT's unknowns
     r1, r2, h, y = np.zeros(9), np.zeros(9), np.empty(9), np.empty(9)
     for v in range(V):
         ax0, ay0, sa = _normalise(xy, v)
