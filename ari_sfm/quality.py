@@ -30,7 +30,6 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 
-
 log = logging.getLogger(__name__)
 
 # The model may fit up to ratio x the floor plus the margin (exact at its optimum: 0.9-1.1 x the floor on the
@@ -84,6 +83,11 @@ def robust_rmse_px(residuals: Iterable[np.ndarray]) -> float:
     return float(math.sqrt(2.0) * MAD_TO_SIGMA * np.median(np.abs(r))) if r.size else math.nan
 
 
+def _warp_terms(degree: int) -> int:
+    """The polynomial warp's terms s_x^i s_y^j, i + j <= degree."""
+    return (degree + 1) * (degree + 2) // 2
+
+
 def _warp_residuals(xy: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Residuals (V, N, 2) of V planes' corners ``xy`` (target plane) against their pixels ``uv`` (each
     (V, N, 2)) after a homography and a polynomial warp in image coordinates, scaled for the parameters
@@ -93,9 +97,9 @@ def _warp_residuals(xy: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndar
 
     V, n = xy.shape[:2]
     degree = WARP_DEGREE
-    while degree > 0 and (degree + 1) * (degree + 2) // 2 * CORNERS_PER_TERM > n:
+    while degree > 0 and _warp_terms(degree) * CORNERS_PER_TERM > n:
         degree -= 1
-    if n <= (degree + 1) * (degree + 2) // 2 + 4:  # no residual degree of freedom left
+    if n <= _warp_terms(degree) + 4:  # the warp's and the homography's 4 per coordinate: nothing left
         return np.full((V, n, 2), np.nan), np.zeros(V, dtype=bool)
     return warp_residuals(np.ascontiguousarray(xy, dtype=np.float64), np.ascontiguousarray(uv, dtype=np.float64),
                           degree)

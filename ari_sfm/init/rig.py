@@ -140,7 +140,7 @@ def _initialise_cameras(dataset: Dataset, names: list[str], distortion: bool, wo
     if n_workers <= 1:
         return {n: initialise_camera(dataset, n, distortion, fix_intrinsics, threads) for n in names}
     with ThreadPoolExecutor(max_workers=n_workers, thread_name_prefix="ari-init") as pool:
-        futures = {n: pool.submit(initialise_camera, dataset, n, distortion, fix_intrinsics) for n in names}
+        futures = {n: pool.submit(initialise_camera, dataset, n, distortion, fix_intrinsics, threads) for n in names}
         return {n: futures[n].result() for n in names}
 
 
