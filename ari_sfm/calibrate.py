@@ -10,7 +10,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .calibration import Calibration, CameraCalibration
+from .calibration import Calibration, CameraCalibration, WindowCalibration
 from .errors import AriSfmError
 from .evaluate import residual_stats
 from .geometry import angle_between_deg
@@ -174,15 +174,17 @@ def plan_stages(dataset: Dataset, model: str, options: CalibrationOptions = Cali
     spec = model_spec(model, "model", calibratable=True)
     if not spec.bundle:
         return ()
-    iface = dataset.interface
-    plane = iface.plane is not None
-    normal_observed = bool(dataset.select("stacking"))  # as initialise_rig finds it: expansion centres
-    if not normal_observed and not plane and not spec.needs_distance:
+    windows = dataset.window_list()
+    planes = [w.interface.plane is not None for w in windows]
+    plane = any(planes)
+    stacked = stacked_windows(dataset)  # as initialise_rig finds it: expansion centres
+    normal_observed = all(stacked)
+    if any(not (s or p) for s, p in zip(stacked, planes)) and not spec.needs_distance:
         from .init.rig import NO_NORMAL_MESSAGE
 
         raise AriSfmError(dataset.rig_path, NO_NORMAL_MESSAGE)
     distortion = bool(options.distortion)
-    placed_by_snell = plane and iface.medium_index != 1.0 and spec.needs_distance
+    placed_by_snell = plane and dataset.medium_index != 1.0 and spec.needs_distance
     if normal_observed:
         stages = [Stage("ari", "ari", distortion, with_plane=plane and not placed_by_snell)]
     else:
@@ -194,6 +196,12 @@ def plan_stages(dataset: Dataset, model: str, options: CalibrationOptions = Cali
     if spec.needs_distance:
         stages.append(Stage(spec.name, spec.name, distortion, with_plane=plane))
     return tuple(stages)
+
+
+def stacked_windows(dataset: Dataset) -> list[bool]:
+    """Per window (the dataset's order): whether stacking views of its cameras observe its normal."""
+    cameras = {o.camera for o in dataset.select("stacking")}
+    return [bool(cameras & set(w.cameras)) for w in dataset.window_list()]
 
 
 @dataclass(frozen=True)
@@ -216,7 +224,7 @@ class StageResult:
         """Its figures for calibration.json ``stages``: model, residuals and parameters."""
         stats = residual_stats(r for _, r in self.residuals)
         state = self.state
-        return {
+        out = {
             "stage": self.stage.label, "model": self.stage.model, "distortion": bool(self.stage.distortion),
             "rmse_px": stats.rmse_px, "max_px": stats.max_px, "count": stats.count,
             "normal_world": np.asarray(state.normal_world, float).tolist(),
@@ -224,6 +232,11 @@ class StageResult:
             "cameras": {n: {"fx": float(p[0]), "fy": float(p[1]), "cx": float(p[2]), "cy": float(p[3]),
                             "dist": [float(v) for v in np.resize(p[4:9], 5)]} for n, p in state.params.items()},
         }
+        if state.window_count > 1:  # every window: its normal and plane offset (from camera 0, the world's origin)
+            out["windows"] = [{"normal_world": np.asarray(state.normal(w), float).tolist(),
+                               "plane_mm": None if state.offset(w) is None else float(state.offset(w))}
+                              for w in range(state.window_count)]
+        return out
 
     def report(self) -> OptimizerRun:
         """Its entry in the optimizer report (numpy's error_evaluations: it stops at convergence without
@@ -332,8 +345,8 @@ def _starts(dataset: Dataset, model: str, opts: CalibrationOptions) -> list[Star
     """The starts, in order: the default; a free window first (a declared plane under water, a Snell
     model); the hints free in the analytic start (with --fix-intrinsics)."""
     starts = [Start("default", opts.fix_intrinsics)]
-    iface = dataset.interface
-    if iface.plane is not None and iface.medium_index != 1.0 and model_spec(model).needs_distance:
+    planes = any(w.interface.plane is not None for w in dataset.window_list())
+    if planes and dataset.medium_index != 1.0 and model_spec(model).needs_distance:
         starts.append(Start("free window", opts.fix_intrinsics, free_window_first=True))
     if opts.fix_intrinsics:
         starts.append(Start("hints free in the start", False))
@@ -350,14 +363,21 @@ class _Solver:
     extra_factors: object = None
     fixed: tuple[str, ...] = ()  # cameras whose K is held
     fixed_focal: dict | None = None  # camera -> focal held as fx = fy
+    observed: tuple[bool, ...] | None = None  # per window: its normal observed by stacking (the start's)
+
+    @property
+    def planes(self) -> list[WindowPlane | None]:
+        """Each window's declared plane (None where not declared)."""
+        return [w.interface.plane for w in self.dataset.window_list()]
 
     @property
     def plane(self) -> WindowPlane | None:
-        return self.dataset.interface.plane
+        """Some window's declared plane (the first), None when no window declares one."""
+        return next((p for p in self.planes if p is not None), None)
 
     @property
     def underwater(self) -> bool:
-        return self.dataset.interface.medium_index != 1.0
+        return self.dataset.medium_index != 1.0
 
     @property
     def given_sigma(self) -> float:
@@ -380,7 +400,8 @@ class _Solver:
             ds.observations if observations is None else observations, ds.target, ds.interface, ds.camera_names,
             state, model=model, distortion=self.opts.distortion, estimate_distance=self.underwater,
             huber_px=self.opts.huber_px, sigma_px=sigma, fixed_intrinsics=self.fixed,
-            fixed_focal_px=self.fixed_focal, window_plane=self.plane if with_plane else None,
+            fixed_focal_px=self.fixed_focal, windows=ds.window_list(),
+            window_planes=self.planes if with_plane else None,
         )
         _add_factors(rg, self.extra_factors)
         return rg
@@ -409,33 +430,41 @@ def run_stage(solver: _Solver, stage: Stage, state, normal_observed: bool = True
     from .factors.window_plane import plane_in_world
     from .outliers import robust_sigma_px
 
-    plane = solver.plane
+    planes = solver.planes
     sigma = solver.given_sigma
     # (Not started at the previous stage's sigma estimate: GTSAM's LM damping is absolute, and an ari stage far
     # off under water left the exact stage 100 iterations from converging.)
-    if stage.with_plane:  # the declared window, placed by the current pose of its frame
-        n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
-        state = replace(state, normal_world=n_w, distance_mm=h_w if solver.underwater else state.distance_mm)
+    if stage.with_plane:  # each declared window, placed by the current pose of its frame
+        for w, plane in enumerate(planes):
+            if plane is not None:
+                n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
+                state = state.with_window(w, n_w, h_w if solver.underwater else "keep")
 
     def build(model: str, st, with_plane: bool = True, observations=None):
         return solver.build(model, st, sigma, observations, with_plane=with_plane)
 
+    observed = solver.observed if solver.observed is not None else [normal_observed] * len(planes)
     if stage.snell:
-        stage_plane = plane if stage.with_plane else None
-        state = _exact_start(solver.dataset, state, solver.underwater, stage_plane,
-                             not normal_observed and stage_plane is None, build, solver.solve, solver.opts)
+        stage_planes = planes if stage.with_plane else [None] * len(planes)
+        unobserved = [w for w in range(len(planes)) if not observed[w] and stage_planes[w] is None]
+        state = _exact_start(solver.dataset, state, solver.underwater, stage_planes, unobserved, build, solver.solve,
+                             solver.opts)
+    held = [w for w in range(len(planes)) if not observed[w]]  # the ari model cannot observe them here
     graph = build(stage.model, state, with_plane=stage.with_plane)
-    if stage.hold_normal:  # the ari model cannot observe it here
-        _hold_normal(graph, state.normal_world)
+    if stage.hold_normal:
+        _hold_normals(graph, state, held)
     t_stage = time.perf_counter()
     state, solved = solver.solve(graph, stage.model)
-    for _ in range(PLANE_ROUNDS if stage.hold_normal and plane is not None else 0):
-        # hold the declared normal as placed by its frame's refitted pose, until that stops moving
-        n_w = plane_in_world(plane, state.world_from_target[plane.frame])[0]
-        if angle_between_deg(n_w, state.normal_world) < 1e-3:
+    placed = [w for w in held if planes[w] is not None]
+    for _ in range(PLANE_ROUNDS if stage.hold_normal and placed else 0):
+        # hold the declared normals as placed by their frames' refitted poses, until they stop moving
+        moved = state
+        for w in placed:
+            moved = moved.with_window(w, plane_in_world(planes[w], state.world_from_target[planes[w].frame])[0])
+        if max(angle_between_deg(moved.normal(w), state.normal(w)) for w in placed) < 1e-3:
             break
-        graph = build(stage.model, replace(state, normal_world=n_w), with_plane=False)
-        _hold_normal(graph, n_w)
+        graph = build(stage.model, moved, with_plane=False)
+        _hold_normals(graph, moved, held)
         state, solved = solver.solve(graph, stage.model)
     n_iterations = graph.iterations
     residuals = _residuals_of(graph, solved)
@@ -445,7 +474,7 @@ def run_stage(solver: _Solver, stage: Stage, state, normal_observed: bool = True
             sigma = estimated
             graph = build(stage.model, state, with_plane=stage.with_plane)
             if stage.hold_normal:
-                _hold_normal(graph, state.normal_world)
+                _hold_normals(graph, state, held)
             state, solved = solver.solve(graph, stage.model)
             n_iterations += graph.iterations
             residuals = _residuals_of(graph, solved)
@@ -453,8 +482,9 @@ def run_stage(solver: _Solver, stage: Stage, state, normal_observed: bool = True
     result = StageResult(stage, state, residuals, n_iterations, time.perf_counter() - t_stage, solver.backend,
                          graph.sigma_px, sigma, None if solved is None else solved.report.error_evaluations,
                          graph, solved)
-    log.info("%s bundle adjustment: %d iterations, %.3f s, window distance %s mm", stage.label, n_iterations,
-             result.time_s, None if state.distance_mm is None else f"{state.distance_mm:.1f}")
+    log.info("%s bundle adjustment: %d iterations, %.3f s%s", stage.label, n_iterations, result.time_s,
+             f", window distance {state.distance_mm:.1f} mm" if solver.underwater and state.distance_mm is not None
+             else "")
     return result
 
 
@@ -466,19 +496,29 @@ def _start_state(solver: _Solver, plan: tuple[Stage, ...], start: Start):
     dataset, opts = solver.dataset, solver.opts
     rig = initialise_rig(dataset, opts.distortion, opts.workers, start.held_hints)
     fixed, fixed_focal = held_intrinsics(dataset, opts.fix_intrinsics)
-    solver = replace(solver, fixed=tuple(fixed), fixed_focal=fixed_focal)
+    solver = replace(solver, fixed=tuple(fixed), fixed_focal=fixed_focal, observed=tuple(rig.normals_observed))
     return rig, solver, initial_state(dataset, rig, plan[0].model, opts.fix_intrinsics)
 
 
 def _plane_separates(solver: _Solver, state) -> bool:
-    """The declared plane placed by its frame's pose in ``state`` lies between every camera and its corners."""
+    """Each declared plane placed by its frame's pose in ``state`` lies between its cameras and their corners."""
     from .factors.window_plane import plane_in_world
     from .init.window_start import not_beyond
 
-    plane, ds = solver.plane, solver.dataset
-    n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
-    return not_beyond(replace(state, normal_world=n_w, distance_mm=h_w), ds.observations, ds.target,
-                      ds.interface.thickness_mm) is None
+    ds = solver.dataset
+    for w, (window, plane) in enumerate(zip(ds.window_list(), solver.planes)):
+        if plane is None:
+            continue
+        n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
+        if not_beyond(state.with_window(w, n_w, h_w), ds.observations, ds.target, window.interface.thickness_mm, w,
+                      _cameras_of(ds, w)) is not None:
+            return False
+    return True
+
+
+def _cameras_of(dataset: Dataset, window: int) -> tuple[str, ...] | None:
+    """The cameras behind window ``window`` (None: every camera, when the rig has one window)."""
+    return dataset.window_list()[window].cameras if dataset.windows else None
 
 
 def _calibrate_from(solver: _Solver, model: str, plan: tuple[Stage, ...], start: Start) -> tuple[Calibration, list]:
@@ -528,8 +568,8 @@ def _assemble(solver: _Solver, model: str, rig, results: list[StageResult], unce
     """The Calibration of the last stage's state, with every stage's figures and the optimizer report."""
     from .factors.window_plane import plane_in_world
 
-    dataset, plane, last = solver.dataset, solver.plane, results[-1]
-    state, residuals, iface = last.state, last.residuals, dataset.interface
+    dataset, last = solver.dataset, results[-1]
+    state, residuals = last.state, last.residuals
     cameras = {}
     for n in dataset.camera_names:
         p = state.params[n]
@@ -540,14 +580,24 @@ def _assemble(solver: _Solver, model: str, rig, results: list[StageResult], unce
             None if ec is None else ec.center_px, None if ec is None else ec.std_px,
             residual_stats(r for o, r in residuals if o.camera == n).rmse_px,
         )
-    distance = state.distance_mm if solver.underwater else None  # unobservable in air: null
-    if plane is not None:  # declared: known in air too
-        distance = plane_in_world(plane, state.world_from_target[plane.frame])[1]
+    windows = []
+    for w, (window, plane) in enumerate(zip(dataset.window_list(), solver.planes)):
+        offset = state.offset(w) if solver.underwater else None  # unobservable in air: null
+        if plane is not None:  # declared: known in air too
+            offset = plane_in_world(plane, state.world_from_target[plane.frame])[1]
+        # calibration.json gives distances from the window's first camera's centre (camera 0, the origin, for one)
+        reference = float(state.normal(w) @ state.cam_from_world[window.cameras[0]].inverse().t)
+        distance = None if offset is None else offset - reference
+        # exact in air: any distance gives the same rays; the one it was fitted at (a declared plane gives it)
+        fixed = state.offset(w) - reference if model_spec(model).needs_distance and distance is None else None
+        iface = window.interface
+        windows.append(WindowCalibration(window.name, Interface(iface.thickness_mm, iface.index, iface.medium_index,
+                                                                distance), state.normal(w), window.cameras, fixed))
     calib_frames = {o.frame for o in dataset.select("calibration")}
     return Calibration(
         model=model,
-        interface=Interface(iface.thickness_mm, iface.index, iface.medium_index, distance),
-        normal_world=state.normal_world,
+        interface=windows[0].interface,
+        normal_world=windows[0].normal_world,
         cameras=cameras,
         frames={f: p for f, p in state.world_from_target.items() if f in calib_frames},
         stacking_poses={f: p for f, p in state.world_from_target.items() if f in rig.stacking_poses},
@@ -556,73 +606,90 @@ def _assemble(solver: _Solver, model: str, rig, results: list[StageResult], unce
         optimizer=OptimizerReport({r.stage.label: r.report() for r in results}),
         extra={"stages": [r.record() for r in results]},
         target=dataset.target,
-        # exact in air: any distance gives the same rays; the one it was fitted at (a declared plane gives it)
-        fixed_distance_mm=state.distance_mm if model_spec(model).needs_distance and distance is None else None,
+        fixed_distance_mm=windows[0].fixed_distance_mm,
         uncertainty=uncertainty,
         outliers=outliers,
+        windows=tuple(windows) if dataset.windows else (),
     )
 
 
-def _hold_normal(rg, normal: np.ndarray) -> None:
-    """Hold the graph's normal at ``normal`` (a prior of 1e-7 rad)."""
+def _hold_normal(rg, normal: np.ndarray, window: int = 0) -> None:
+    """Hold a window's normal (default the only one) at ``normal`` (a prior of 1e-7 rad)."""
     import gtsam
 
     from .factors import keys as K_
 
-    rg.add_factor(gtsam.PriorFactorUnit3(K_.N, gtsam.Unit3(np.asarray(normal, float)),
+    rg.add_factor(gtsam.PriorFactorUnit3(K_.window_normal(window), gtsam.Unit3(np.asarray(normal, float)),
                                          gtsam.noiseModel.Isotropic.Sigma(2, 1e-7)))
 
 
-def _exact_start(dataset: Dataset, state, underwater: bool, plane, unobserved: bool, build, solve,
+def _hold_normals(rg, state, windows: Sequence[int]) -> None:
+    """Hold the normals of ``windows`` where ``state`` has them."""
+    for w in windows:
+        _hold_normal(rg, state.normal(w), w)
+
+
+def _exact_start(dataset: Dataset, state, underwater: bool, planes: Sequence, unobserved: Sequence[int], build, solve,
                  opts: CalibrationOptions):
-    """The exact stage's start from the ari result: a distance in front of every camera (in air any
-    will do); under water a distance searched inside the valid interval (the ari stage's can be far
-    off); without stacking or declared plane, the normal from a coarse search scored by the exact cost."""
+    """The exact stage's start from the ari result, window by window: a distance in front of its cameras (in
+    air any will do); under water a distance searched inside the valid interval (the ari stage's can be far
+    off); a window without stacking or declared plane (``unobserved``) its normal from a coarse search scored
+    by the exact cost (the other windows held where they are)."""
     from .factors.rig_graph import default_distance_mm
     from .init.window_start import search_normal
 
     def build_free(stage: str, st, observations=None):  # the searches below run only without a declared plane
         return build(stage, st, with_plane=False, observations=observations)
 
-    if not underwater:
-        if state.distance_mm is None:
-            state = replace(state, distance_mm=default_distance_mm(state.normal_world, state.cam_from_world))
-    elif plane is None:  # the ari stage's distance (or the hint) is one candidate
-        state = _searched_distance(dataset, state, build_free, opts)
-    if not unobserved:
-        return state
+    for w in range(state.window_count):
+        if not underwater:
+            if state.offset(w) is None:
+                state = state.with_window(w, offset=default_distance_mm(state.normal(w), state.cam_from_world,
+                                                                        _cameras_of(dataset, w)))
+        elif planes[w] is None:  # the ari stage's distance (or the hint) is one candidate
+            state = _searched_distance(dataset, state, build_free, opts, window=w)
+    for w in unobserved:
+        state = _searched_normal(dataset, state, w, underwater, planes[w], build_free, solve, opts, search_normal)
+    return state
+
+
+def _searched_normal(dataset: Dataset, state, w: int, underwater: bool, plane, build_free, solve,
+                     opts: CalibrationOptions, search_normal):
+    """``state`` with window ``w``'s normal from the coarse search (:func:`_exact_start`), then its distance."""
+    from .factors.rig_graph import default_distance_mm
 
     frames = _search_frames(dataset, state, NORMAL_SEARCH_FRAMES)
     subset = replace(state, world_from_target={f: state.world_from_target[f] for f in frames})
     scoring = _search_corners(dataset.observations, frames, NORMAL_SEARCH_CORNERS)
+    cameras = _cameras_of(dataset, w)
 
     def build_scoring(stage: str, st):
         return build_free(stage, st, scoring)
 
     def score(normal: np.ndarray) -> float:
-        st = replace(subset, normal_world=normal)
+        st = subset.with_window(w, normal)
         if underwater:
             try:
                 st = _searched_distance(dataset, st, build_scoring, opts, NORMAL_SEARCH_DISTANCES, scoring,
-                                        refine=False)
+                                        refine=False, window=w)
             except AriSfmError:  # no window separates cameras and corners along this candidate: not a start
                 return np.inf
         elif plane is None:
-            st = replace(st, distance_mm=default_distance_mm(normal, st.cam_from_world))
+            st = st.with_window(w, offset=default_distance_mm(normal, st.cam_from_world, cameras))
         rg = build_scoring("exact", st)
-        _hold_normal(rg, normal)
+        _hold_normal(rg, normal, w)
         try:
             _, solved = solve(rg, "exact", NORMAL_SEARCH_ITERATIONS)
         except AriSfmError:
             return np.inf
         return solved.error() if solved is not None else rg.graph.error(rg.values)
 
-    normal = search_normal(score, state.normal_world)
-    state = replace(state, normal_world=normal)
+    normal = search_normal(score, state.normal(w))
+    state = state.with_window(w, normal)
     if underwater:
-        state = _searched_distance(dataset, state, build_free, opts)
+        state = _searched_distance(dataset, state, build_free, opts, window=w)
     elif plane is None:
-        state = replace(state, distance_mm=default_distance_mm(normal, state.cam_from_world))
+        state = state.with_window(w, offset=default_distance_mm(normal, state.cam_from_world, cameras))
     return state
 
 
@@ -666,22 +733,24 @@ def _search_frames(dataset: Dataset, state, count: int) -> list[str]:
 
 
 def _searched_distance(dataset: Dataset, state, build, opts: CalibrationOptions, samples: int = 48,
-                       observations: Sequence[Observation] | None = None, refine: bool = True):
-    """state with its distance searched by the exact cost inside the valid interval (under water);
-    ``observations``: those ``build`` puts in its graph (default the dataset's); ``refine``: a 1-D
+                       observations: Sequence[Observation] | None = None, refine: bool = True, window: int = 0):
+    """state with window ``window``'s distance searched by the exact cost inside the valid interval (under
+    water); ``observations``: those ``build`` puts in its graph (default the dataset's); ``refine``: a 1-D
     minimisation after the grid (:func:`~ari_sfm.init.window_start.search_distance`).
 
     The targets are held where the state has them; when that leaves no valid distance (the ari
-    stage's targets sit at the apparent depths of its own, far window: issue 14), they move with the
-    window, keeping those apparent depths (:func:`~ari_sfm.init.window_start.moved_window`)."""
+    stage's targets sit at the apparent depths of its own, far window), they move with the
+    window, keeping those apparent depths (:func:`~ari_sfm.init.window_start.moved_window`; one window only:
+    with several, moving the targets would move them for the other windows' cameras too)."""
     from .factors.vectorized import VectorizedProblem
     from .init.window_start import distance_interval, moved_window, search_distance, target_shift_mm
 
     observations = dataset.observations if observations is None else observations
-    n_m, t = dataset.interface.medium_index, dataset.interface.thickness_mm
+    iface, cameras = dataset.window_list()[window].interface, _cameras_of(dataset, window)
+    n_m, t = iface.medium_index, iface.thickness_mm
     moving = None
-    lo, hi = distance_interval(state, observations, dataset.target, t)
-    if not hi > lo and state.distance_mm is not None:
+    lo, hi = distance_interval(state, observations, dataset.target, t, window=window, cameras=cameras)
+    if not hi > lo and state.offset(window) is not None and not dataset.windows:
         held = (lo, hi)
         moving = n_m
         lo, hi = distance_interval(state, observations, dataset.target, t, n_m)
@@ -689,34 +758,39 @@ def _searched_distance(dataset: Dataset, state, build, opts: CalibrationOptions,
                  "corners from %.1f mm): the targets move with the window at their apparent depths (%.1f-%.1f mm)",
                  *held, lo, hi)
     if not hi > lo:
-        raise AriSfmError(dataset.rig_path, f"no window distance puts every camera in front of the window and every "
+        name = "the window" if not dataset.windows else f"window {dataset.window_list()[window].name}"
+        raise AriSfmError(dataset.rig_path, f"no window distance puts every camera in front of {name} and every "
                                             f"corner beyond it (cameras up to {lo:.1f} mm, corners from {hi:.1f} mm "
-                                            "along the normal): check interface.thickness_mm and the target")
-    mid = moved_window(state, 0.5 * (lo + hi), n_m if moving else 1.0)
+                                            "along the normal): check the thickness_mm and the target")
+    mid = moved_window(state, 0.5 * (lo + hi), n_m if moving else 1.0, window)
     rg = build("exact", mid)
     problem = VectorizedProblem.from_rig_graph(rg, huber_px=opts.huber_px, check=False)
-    x0, normal = problem.x, np.asarray(mid.normal_world, float)
+    x0, normal = problem.x, np.asarray(mid.normal(window), float)
 
     def cost(h: float) -> float:
         if not moving:
-            return problem.error(replace(x0, distance_mm=h))
-        step = target_shift_mm(n_m, mid.distance_mm, h) * normal
-        return problem.error(replace(x0, distance_mm=h, world_t_target=x0.world_t_target + step))
+            return problem.error(x0.with_distance(window, h))
+        step = target_shift_mm(n_m, mid.offset(window), h) * normal
+        return problem.error(x0.with_distance(window, h, x0.world_t_target + step))
 
-    best = search_distance(cost, lo, hi, samples, current=state.distance_mm, refine=refine)
-    return moved_window(state, best, n_m if moving else 1.0)
+    best = search_distance(cost, lo, hi, samples, current=state.offset(window), refine=refine)
+    return moved_window(state, best, n_m if moving else 1.0, window)
 
 
 def _check_in_front(dataset: Dataset, state) -> None:
-    """One-line error naming camera and frame when the window at the exact stage's start does not
-    lie between every camera and every corner it sees."""
+    """One-line error naming camera and frame when a window at the exact stage's start does not
+    lie between its cameras and every corner they see."""
     from .init.window_start import not_beyond
 
-    bad = not_beyond(state, dataset.observations, dataset.target, dataset.interface.thickness_mm)
-    if bad is not None:
-        camera, frame = bad
-        where = f"camera {camera}" + ("" if frame is None else f" frame {frame}")
-        what = "is not in front of the window" if frame is None else "a corner is not beyond the window"
-        raise AriSfmError(dataset.observations_path or dataset.rig_path,
-                          f"{where}: {what} at the start of the exact stage (distance {state.distance_mm:.1f} mm; "
-                          "check interface.thickness_mm, distance_mm and plane)")
+    for w, window in enumerate(dataset.window_list()):
+        bad = not_beyond(state, dataset.observations, dataset.target, window.interface.thickness_mm, w,
+                         _cameras_of(dataset, w))
+        if bad is not None:
+            camera, frame = bad
+            where = f"camera {camera}" + ("" if frame is None else f" frame {frame}")
+            name = "the window" if not dataset.windows else f"window {window.name}"
+            what = f"is not in front of {name}" if frame is None else f"a corner is not beyond {name}"
+            key = "interface" if not dataset.windows else f"interfaces.{window.name}"
+            raise AriSfmError(dataset.observations_path or dataset.rig_path,
+                              f"{where}: {what} at the start of the exact stage (distance {state.offset(w):.1f} mm; "
+                              f"check {key}.thickness_mm, distance_mm and plane)")

@@ -11,7 +11,7 @@ import numpy as np
 
 from .geometry import Pose
 from .models.registry import ModelSpec, model_spec
-from .records import Interface, Target
+from .records import SINGLE_WINDOW, Interface, Target
 from .results import OptimizerReport, OutlierReport, PfWorld, ResidualStats, Uncertainty
 from .quality import Quality
 
@@ -38,11 +38,34 @@ class CameraCalibration:
 
 
 @dataclass(frozen=True)
+class WindowCalibration:
+    """One calibrated window: its plate, its normal in the world and the cameras behind it."""
+
+    name: str
+    interface: Interface  # distance_mm: the first of ``cameras``' centre to the near face (None: unobservable)
+    normal_world: np.ndarray | None  # None for models without a window
+    cameras: tuple[str, ...]
+    fixed_distance_mm: float | None = None  # exact model in air: the distance (same reference) it is evaluated at
+
+    def plane_mm(self, calibration: "Calibration") -> float | None:
+        """The near face as the world plane ``normal_world . X = plane_mm``: from distance_mm, else from
+        fixed_distance_mm (in air), else None."""
+        d = self.interface.distance_mm if self.interface.distance_mm is not None else self.fixed_distance_mm
+        if d is None or self.normal_world is None:
+            return None
+        return float(d + self.normal_world @ calibration.cameras[self.cameras[0]].cam_from_world.inverse().t)
+
+
+@dataclass(frozen=True)
 class Calibration:
-    """A calibrated rig behind one window (world = the first camera's frame)."""
+    """A calibrated rig (world = the first camera's frame) behind one window, or several (``windows``).
+
+    With one window, ``interface``, ``normal_world`` and ``fixed_distance_mm`` are it, for every camera;
+    with several (DATASET_FORMAT 1.3), ``windows`` lists them and those three fields repeat the first
+    window's: per-camera questions go through :meth:`window_of`."""
 
     model: str
-    interface: Interface  # distance_mm: camera 0 centre to near surface, None if unobservable
+    interface: Interface  # distance_mm: the first camera's centre to the near surface, None if unobservable
     normal_world: np.ndarray | None  # None for models without a window (ModelSpec.window: pinhole)
     cameras: dict[str, CameraCalibration]
     frames: dict[str, Pose]  # world_from_target of calibration frames
@@ -59,12 +82,25 @@ class Calibration:
     pf_world: PfWorld | None = None  # model pf: the calibration whose frames are its world (required then)
     quality: Quality | None = None  # the quality gate's verdict (ari, exact; ari_sfm.quality)
     optimizer: OptimizerReport | None = None  # how each stage's solve went (not a result: times)
+    windows: tuple[WindowCalibration, ...] = ()  # several windows (1.3); (): one, the fields above, for all
 
     def __post_init__(self) -> None:
         spec = self.spec  # an unknown model name fails here
-        if spec.needs_distance and self.interface.distance_mm is None and self.fixed_distance_mm is None:
-            raise ValueError(f"model {self.model} with interface.distance_mm null needs fixed_distance_mm "
-                             "(the distance it was evaluated at)")
+        if self.windows:
+            from .records import Window, check_windows
+
+            check_windows(tuple(Window(w.name, w.interface, w.cameras) for w in self.windows), list(self.cameras))
+            first, mine = self.windows[0], self.interface
+            same = (first.interface.thickness_mm, first.interface.index, first.interface.medium_index,
+                    first.interface.distance_mm, first.fixed_distance_mm) == (
+                mine.thickness_mm, mine.index, mine.medium_index, mine.distance_mm, self.fixed_distance_mm)
+            if not same or (first.normal_world is None) != (self.normal_world is None) or (
+                    first.normal_world is not None and not np.array_equal(first.normal_world, self.normal_world)):
+                raise ValueError("interface, normal_world and fixed_distance_mm must be the first window's")
+        for w in self.window_list():
+            if spec.needs_distance and w.interface.distance_mm is None and w.fixed_distance_mm is None:
+                raise ValueError(f"model {self.model} with interface.distance_mm null needs fixed_distance_mm "
+                                 f"(the distance it was evaluated at){'' if not self.windows else ' for window ' + w.name}")
         if spec.projection == "polynomial" and (self.pf_world is None or any(c.pf is None for c in self.cameras.values())):
             raise ValueError(f"model {self.model} needs pf_world and every camera's pf polynomial")
 
@@ -73,18 +109,50 @@ class Calibration:
         """The model's registry entry (:mod:`ari_sfm.models.registry`)."""
         return model_spec(self.model, None)
 
+    def window_list(self) -> tuple[WindowCalibration, ...]:
+        """Every window with its cameras (one window named ``window`` for every camera when not several)."""
+        return self.windows or (WindowCalibration(SINGLE_WINDOW, self.interface, self.normal_world, tuple(self.cameras),
+                                                  self.fixed_distance_mm),)
+
+    def window_of(self, camera: str) -> WindowCalibration:
+        """The window a camera looks through."""
+        for w in self.window_list():
+            if camera in w.cameras:
+                return w
+        raise KeyError(camera)
+
+    def interface_of(self, camera: str) -> Interface:
+        """The plate a camera looks through."""
+        return self.window_of(camera).interface
+
     def normal_cam(self, camera: str) -> np.ndarray:
-        """The window normal in a camera's frame (the zero vector for a model without one: pinhole)."""
-        if self.normal_world is None:
+        """The normal of a camera's window in its frame (the zero vector for a model without one: pinhole)."""
+        normal = self.window_of(camera).normal_world
+        if normal is None:
             return np.zeros(3)
-        return self.cameras[camera].cam_from_world.R @ self.normal_world
+        return self.cameras[camera].cam_from_world.R @ normal
 
     def distance_mm(self, camera: str) -> float | None:
-        """The distance from a camera's centre to the window's near surface."""
-        if self.interface.distance_mm is None or self.normal_world is None:
+        """The distance from a camera's centre to its window's near surface (None where unobservable)."""
+        w = self.window_of(camera)
+        if w.interface.distance_mm is None or w.normal_world is None:
             return None
+        return self._from_reference(w, camera, float(w.interface.distance_mm))
+
+    def evaluation_distance_mm(self, camera: str) -> float | None:
+        """The distance a Snell model of the camera is evaluated at: :meth:`distance_mm`, or in air the one it
+        was calibrated with (fixed_distance_mm); None when the calibration has neither."""
+        d = self.distance_mm(camera)
+        w = self.window_of(camera)
+        if d is not None or w.fixed_distance_mm is None or w.normal_world is None:
+            return d
+        return self._from_reference(w, camera, float(w.fixed_distance_mm))
+
+    def _from_reference(self, w: WindowCalibration, camera: str, distance: float) -> float:
+        """A distance given from the window's first camera's centre, moved to ``camera``'s."""
         centre = self.cameras[camera].cam_from_world.inverse().t
-        return float(self.interface.distance_mm - self.normal_world @ centre)
+        reference = self.cameras[w.cameras[0]].cam_from_world.inverse().t
+        return float(distance - w.normal_world @ (centre - reference))
 
     def projection_model(self, camera: str, added_mm: float = 0.0, model: str | None = None):
         """The camera's projection model in its own frame, the class the registry names for the model
@@ -104,13 +172,13 @@ class Calibration:
             return PinholeModel(cam.K, cam.dist)
         distance = self.distance_mm(camera)
         if distance is None and spec.needs_distance:
-            if self.fixed_distance_mm is None:
+            distance = self.evaluation_distance_mm(camera)
+            if distance is None:
                 raise ValueError(f"model {spec.name} needs a window distance: this calibration has neither "
                                  "interface.distance_mm nor fixed_distance_mm")
-            distance = self.fixed_distance_mm - float(self.normal_world @ cam.cam_from_world.inverse().t)
+        iface = self.interface_of(camera)
         return spec.projection_class()(PinholeModel(cam.K, cam.dist), self.normal_cam(camera),
-                                       self.interface.thickness_mm + added_mm, self.interface.index,
-                                       self.interface.medium_index, distance)
+                                       iface.thickness_mm + added_mm, iface.index, iface.medium_index, distance)
 
     def project_world(self, camera: str, X_world: np.ndarray, added_mm: float = 0.0) -> np.ndarray:
         """Pixels (N, 2) of world points (N, 3) seen by a camera through the window."""

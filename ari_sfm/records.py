@@ -119,13 +119,26 @@ class Interface:
     thickness_mm: float
     index: float
     medium_index: float = 1.0
-    distance_mm: float | None = None  # optional hint: camera 0 centre to near surface
+    distance_mm: float | None = None  # optional hint: the window's first camera's centre to near surface
     plane: WindowPlane | None = None  # optional: the window's declared pose (DATASET_FORMAT 1.1)
 
     @property
     def shift_mm(self) -> float:
         """The paraxial shift d (1 - 1/n) of the scene toward the camera (air behind)."""
         return self.thickness_mm * (1.0 - 1.0 / self.index)
+
+
+@dataclass(frozen=True)
+class Window:
+    """One window of a rig and the cameras that look through it (DATASET_FORMAT 1.3 ``interfaces``;
+    a rig with one ``interface`` has one window, named ``window``, for every camera)."""
+
+    name: str
+    interface: Interface
+    cameras: tuple[str, ...]
+
+
+SINGLE_WINDOW = "window"  # the name of the one window of a rig declared with ``interface``
 
 
 @dataclass(frozen=True)
@@ -151,6 +164,7 @@ class Entry:
     images: Mapping[str, Path] = field(default_factory=dict)
     added_mm: float | None = None
     stage_mm: float | None = None
+    window: str | None = None  # stacking with several windows: the window the plates were added to
 
 
 @dataclass(frozen=True)
@@ -172,7 +186,10 @@ class Observation:
 
 @dataclass(frozen=True)
 class Dataset:
-    """A dataset folder as loaded from rig.yaml / rig.json (see DATASET_FORMAT.md)."""
+    """A dataset folder as loaded from rig.yaml / rig.json (see DATASET_FORMAT.md).
+
+    ``interface`` is the window of a one-window rig; with several windows (``windows``, DATASET_FORMAT
+    1.3) it is the first window's, and every per-camera question goes through :meth:`interface_of`."""
 
     root: Path
     rig_path: Path
@@ -184,10 +201,35 @@ class Dataset:
     reconstruction: tuple[Entry, ...] = ()
     observations: tuple[Observation, ...] | None = None  # None: detect from images
     observations_path: Path | None = None
+    windows: tuple[Window, ...] = ()  # several windows (1.3), each camera behind one; (): `interface` for all
+
+    def __post_init__(self) -> None:
+        if self.windows:
+            check_windows(self.windows, list(self.cameras))
 
     @property
     def camera_names(self) -> list[str]:
         return list(self.cameras)
+
+    def window_list(self) -> tuple[Window, ...]:
+        """Every window with its cameras (one window named ``window`` for a rig with one ``interface``)."""
+        return self.windows or (Window(SINGLE_WINDOW, self.interface, tuple(self.cameras)),)
+
+    def window_of(self, camera: str) -> Window:
+        """The window a camera looks through."""
+        for w in self.window_list():
+            if camera in w.cameras:
+                return w
+        raise KeyError(camera)
+
+    def interface_of(self, camera: str) -> Interface:
+        """The plate a camera looks through (its window's)."""
+        return self.window_of(camera).interface
+
+    @property
+    def medium_index(self) -> float:
+        """The medium behind every window (one tank: the windows agree)."""
+        return self.window_list()[0].interface.medium_index
 
     def entries(self) -> tuple[Entry, ...]:
         return self.stacking + self.calibration + self.reconstruction
@@ -201,3 +243,27 @@ class Dataset:
         """The observations of one set (and camera)."""
         obs = self.observations or ()
         return [o for o in obs if o.set == set_name and (camera is None or o.camera == camera)]
+
+
+def check_windows(windows: tuple[Window, ...], cameras: list[str]) -> None:
+    """ValueError unless every camera is behind exactly one window, every window has a camera, names
+    are distinct and the windows share one medium."""
+    names = [w.name for w in windows]
+    if len(set(names)) != len(names):
+        raise ValueError(f"window names repeat: {names}")
+    seen: dict[str, str] = {}
+    for w in windows:
+        if not w.cameras:
+            raise ValueError(f"window {w.name} has no camera")
+        for c in w.cameras:
+            if c not in cameras:
+                raise ValueError(f"window {w.name} names camera {c}, which the rig does not declare")
+            if c in seen:
+                raise ValueError(f"camera {c} is behind windows {seen[c]} and {w.name}: one window per camera")
+            seen[c] = w.name
+    missing = [c for c in cameras if c not in seen]
+    if missing:
+        raise ValueError(f"camera {missing[0]} is behind no window (every camera is listed under one window)")
+    media = {w.interface.medium_index for w in windows}
+    if len(media) > 1:
+        raise ValueError(f"the windows' medium_index differ ({sorted(media)}): one tank has one medium")

@@ -82,26 +82,45 @@ class CameraUncertainty:
 
 
 @dataclass(frozen=True)
+class WindowUncertainty:
+    """One window's standard deviations (a rig with several windows)."""
+
+    normal_deg: float | None  # RMS angle error of its normal
+    distance_mm: float | None = None  # of its near face's position along its normal (when estimated)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"normal_deg": self.normal_deg, "distance_mm": self.distance_mm}
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "WindowUncertainty":
+        return cls(_float_or_none(d.get("normal_deg")), _float_or_none(d.get("distance_mm")))
+
+
+@dataclass(frozen=True)
 class Uncertainty:
     """Standard deviations from the bundle adjustment's marginals, scaled by the residual sigma."""
 
     sigma_px: float  # residual sigma per pixel coordinate that scales them
     cameras: Mapping[str, CameraUncertainty]
-    normal_deg: float | None  # RMS angle error of the window normal
+    normal_deg: float | None  # RMS angle error of the window normal (the first window's with several)
     estimates_distance: bool = False  # the window distance was estimated (medium behind the window)
     distance_mm: float | None = None  # its standard deviation
+    windows: Mapping[str, WindowUncertainty] = field(default_factory=dict)  # several windows: each one's
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {"sigma_px": self.sigma_px, "cameras": {n: c.to_json() for n, c in self.cameras.items()},
                                "normal_deg": self.normal_deg}
         if self.estimates_distance:
             out["distance_mm"] = self.distance_mm
+        if self.windows:
+            out["windows"] = {n: w.to_json() for n, w in self.windows.items()}
         return out
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> "Uncertainty":
+        windows = {str(n): WindowUncertainty.from_json(w) for n, w in (d.get("windows") or {}).items()}
         return cls(float(d["sigma_px"]), {n: CameraUncertainty.from_json(c) for n, c in d["cameras"].items()},
-                   _float_or_none(d["normal_deg"]), "distance_mm" in d, _float_or_none(d.get("distance_mm")))
+                   _float_or_none(d["normal_deg"]), "distance_mm" in d, _float_or_none(d.get("distance_mm")), windows)
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,6 @@ from typing import Sequence
 import gtsam
 import numpy as np
 
-from . import keys as K_
 from .schur import NormalEquations
 from .variables import PackedColumns, Variables
 
@@ -24,7 +23,7 @@ from .variables import PackedColumns, Variables
 class ExtraFactors:
     """Factors a user added to a RigGraph: linearised by GTSAM, added to the packed normal equations.
 
-    Supported: factors on global variables (K, C, N, H) and at most one frame X(f).
+    Supported: factors on global variables (K, C, N(w), H(w)) and at most one frame X(f).
     """
 
     def __init__(self, problem: PackedColumns, factors: Sequence[gtsam.NonlinearFactor]) -> None:
@@ -47,10 +46,10 @@ class ExtraFactors:
             return "global", i * p.camera_block + np.arange(p.n_params)
         if ch == "c" and 0 < i < len(p.camera_names):
             return "global", i * p.camera_block + p.n_params + np.arange(6)
-        if key == K_.N:
-            return "global", p.normal_col + np.arange(2)
-        if key == K_.H and p.estimate_distance:
-            return "global", np.array([p.distance_col])
+        if ch == "n" and i < len(p.normal_cols):
+            return "global", p.normal_cols[i] + np.arange(2)
+        if ch == "h" and p.estimate_distance and i < len(p.distance_cols):
+            return "global", np.array([p.distance_cols[i]])
         if ch == "x" and i < len(p.frame_names):
             return "frame", int(i)
         raise ValueError(f"added factor uses key {gtsam.DefaultKeyFormatter(key)}, not a variable of this problem")
@@ -65,10 +64,10 @@ class ExtraFactors:
                 v.insert(key, gtsam.Pose3(gtsam.Rot3(x.world_R_cam[i]), x.world_t_cam[i]))
             elif ch == "x":
                 v.insert(key, gtsam.Pose3(gtsam.Rot3(x.world_R_target[i]), x.world_t_target[i]))
-            elif key == K_.N:
-                v.insert(key, x.normal)
+            elif ch == "n":
+                v.insert(key, x.normals[i])
             else:
-                v.insert(key, np.array([float(x.distance_mm)]))
+                v.insert(key, np.array([float(x.distances[i])]))
         return v
 
     def error(self, x: Variables) -> float:

@@ -2,9 +2,11 @@
 
 - K(c): intrinsics of camera c, a Vector [fx, fy, cx, cy(, k1, k2, p1, p2, k3)]
 - C(c): world_T_cam of camera c (GTSAM convention; camera 0 is the world, no variable)
-- N: the window normal in the world frame, a Unit3 shared by every camera
+- N(w): the normal of window w in the world frame, a Unit3 shared by the cameras behind it
+  (``N`` = N(0): the window of a one-window rig)
 - X(f): world_T_target of target frame f (calibration frames and stacking poses)
-- H: distance (mm) from camera 0's centre to the window's near surface, a Vector1
+- H(w): window w's near face as the world plane ``N(w) . X = H(w)`` (mm), a Vector1; for the window
+  of camera 0 (the world's origin) the distance from camera 0's centre (``H`` = H(0))
 """
 from __future__ import annotations
 
@@ -23,5 +25,15 @@ def X(frame_index: int) -> int:
     return gtsam.symbol("x", frame_index)
 
 
-N = gtsam.symbol("n", 0)
-H = gtsam.symbol("h", 0)
+def window_normal(window_index: int) -> int:
+    """N(w): window w's normal."""
+    return gtsam.symbol("n", window_index)
+
+
+def window_plane(window_index: int) -> int:
+    """H(w): window w's near face offset."""
+    return gtsam.symbol("h", window_index)
+
+
+N = window_normal(0)
+H = window_plane(0)

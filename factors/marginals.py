@@ -28,7 +28,7 @@ class CovarianceTable:
             return self.covariances[key]
         except KeyError:
             raise KeyError(f"no marginal covariance for key {gtsam.DefaultKeyFormatter(key)} "
-                           "(the numpy backend gives them for K, C, N and H)") from None
+                           "(the numpy backend gives them for K, C, N(w) and H(w))") from None
 
 
 def covariances_by_key(problem: PackedColumns, sys: NormalEquations) -> dict[int, np.ndarray]:
@@ -41,9 +41,9 @@ def covariances_by_key(problem: PackedColumns, sys: NormalEquations) -> dict[int
         if c > 0:
             b += problem.n_params
             out[K_.C(c)] = cov[b:b + 6, b:b + 6].copy()
-    n = problem.normal_col
-    out[K_.N] = cov[n:n + 2, n:n + 2].copy()
-    if problem.estimate_distance:
-        d = problem.distance_col
-        out[K_.H] = cov[d:d + 1, d:d + 1].copy()
+    for w, n in enumerate(problem.normal_cols):
+        out[K_.window_normal(w)] = cov[n:n + 2, n:n + 2].copy()
+        if problem.estimate_distance:
+            d = problem.distance_cols[w]
+            out[K_.window_plane(w)] = cov[d:d + 1, d:d + 1].copy()
     return out

@@ -94,10 +94,10 @@ class _Transforms:
     R_cam_target: np.ndarray  # (V, 3, 3)
     t_cam_target: np.ndarray  # (V, 3)
     R_cam_world: np.ndarray  # (C, 3, 3)
-    normal_world: np.ndarray  # (3,)
-    normal_cam: np.ndarray  # (C, 3)
-    basis: np.ndarray  # (3, 2) Unit3 tangent basis of the normal
-    distance_cam: np.ndarray | None  # (C,) h_c = h0 - n . C_c
+    normal_world: np.ndarray  # (W, 3) each window's
+    normal_cam: np.ndarray  # (C, 3) each camera's window's normal
+    basis: list[np.ndarray]  # per window: the (3, 2) Unit3 tangent basis of its normal
+    distance_cam: np.ndarray | None  # (C,) h_c = h_w - n_w . C_c for the camera's window w
 
 
 def _variables_of(rg: GraphLike) -> Variables:
@@ -105,6 +105,7 @@ def _variables_of(rg: GraphLike) -> Variables:
     made (a RigGraph's, on first access): the same numbers (a Pose3 or Unit3 stored in a gtsam.Values
     reads back exactly as made)."""
     C, F, n_p = len(rg.camera_names), len(rg.frame_names), rg.n_params
+    W = max(rg.camera_windows) + 1
     R_wc, t_wc = np.tile(np.eye(3), (C, 1, 1)), np.zeros((C, 3))
     R_wt, t_wt = np.empty((F, 3, 3)), np.empty((F, 3))
     if getattr(rg, "made_values", True) is None and getattr(rg, "unwritten", None) is None:
@@ -115,8 +116,9 @@ def _variables_of(rg: GraphLike) -> Variables:
         for f, name in enumerate(rg.frame_names):
             R_wt[f], t_wt[f] = st.world_from_target[name].R, np.asarray(st.world_from_target[name].t, float)
         intrinsics = np.array([np.asarray(st.params[n][:n_p], float) for n in rg.camera_names]).reshape(C, n_p)
-        distance = float(st.distance_mm) if rg.estimate_distance else st.distance_mm
-        return Variables(intrinsics, R_wc, t_wc, gtsam.Unit3(np.asarray(st.normal_world, float)), R_wt, t_wt, distance)
+        normals = tuple(gtsam.Unit3(np.asarray(st.normal(w), float)) for w in range(W))
+        distances = tuple(float(st.offset(w)) if rg.estimate_distance else st.offset(w) for w in range(W))
+        return Variables(intrinsics, R_wc, t_wc, normals, R_wt, t_wt, distances)
     v = rg.values
     for c in range(1, C):
         p = v.atPose3(K_.C(c))
@@ -124,9 +126,10 @@ def _variables_of(rg: GraphLike) -> Variables:
     for f in range(F):
         p = v.atPose3(K_.X(f))
         R_wt[f], t_wt[f] = p.rotation().matrix(), np.asarray(p.translation())
-    distance = float(v.atVector(K_.H)[0]) if rg.estimate_distance else rg.base_state.distance_mm
+    distances = tuple(float(v.atVector(K_.window_plane(w))[0]) if rg.estimate_distance else rg.base_state.offset(w)
+                      for w in range(W))
     return Variables(np.array([v.atVector(K_.K(c)) for c in range(C)], float).reshape(C, n_p),
-                     R_wc, t_wc, v.atUnit3(K_.N), R_wt, t_wt, distance)
+                     R_wc, t_wc, tuple(v.atUnit3(K_.window_normal(w)) for w in range(W)), R_wt, t_wt, distances)
 
 
 class VectorizedProblem:
@@ -151,9 +154,10 @@ class VectorizedProblem:
         model: str,
         huber_px: float | None,
         extra_factors: Sequence[gtsam.NonlinearFactor] = (),
+        camera_windows: Sequence[int] | None = None,
     ) -> None:
         """``views``: (ViewData, ViewKeys, sigma_px) per view factor; ``observations``: (camera, obs) per
-        view factor."""
+        view factor; ``camera_windows``: each camera's window index (default: one window for all)."""
         if model not in MODELS:
             raise ValueError(f"unknown model {model!r} (known: {', '.join(MODELS)})")
         self.model = model
@@ -162,6 +166,8 @@ class VectorizedProblem:
         self.frame_names = list(frame_names)
         self.n_params = int(n_params)
         self.base_state = base_state
+        self.camera_windows = [0] * len(self.camera_names) if camera_windows is None else [int(w) for w in camera_windows]
+        self.n_windows = max(self.camera_windows) + 1
         self.estimate_distance = bool(estimate_distance)
         self.huber_px = huber_px
         self.factor_views = list(observations)
@@ -187,7 +193,7 @@ class VectorizedProblem:
         views, extra = rg.packed_factors()
         variables = _variables_of(rg)
         problem = VectorizedProblem(views, rg.factor_views, variables, rg.camera_names, rg.frame_names, rg.n_params,
-                                    rg.base_state, rg.estimate_distance, rg.model, huber_px, extra)
+                                    rg.base_state, rg.estimate_distance, rg.model, huber_px, extra, rg.camera_windows)
         if check:
             problem._check_against(rg)
         return problem
@@ -200,15 +206,17 @@ class VectorizedProblem:
             c, f = _index(vkeys.intrinsics, "k"), _index(vkeys.frame, "x")
             if (vkeys.camera is None) != (c == 0) or (vkeys.camera is not None and _index(vkeys.camera, "c") != c):
                 raise ValueError(f"view {k}: camera key does not match intrinsics key (camera 0 is the world)")
-            if vkeys.normal != K_.N or (vkeys.distance is not None and vkeys.distance != K_.H):
-                raise ValueError(f"view {k}: unexpected normal or distance key")
-            if (vkeys.distance is not None) != self.estimate_distance:
-                raise ValueError(f"view {k}: distance key does not match estimate_distance={self.estimate_distance}")
             if data.n_params != n_p or not 0 <= c < C or not 0 <= f < F:
                 raise ValueError(f"view {k}: n_params {data.n_params}, camera {c} or frame {f} out of range")
-            if not self.estimate_distance and vkeys.fixed_distance_mm != self.x.distance_mm:
+            w = self.camera_windows[c]
+            if vkeys.normal != K_.window_normal(w) or (vkeys.distance is not None
+                                                       and vkeys.distance != K_.window_plane(w)):
+                raise ValueError(f"view {k}: its normal or distance key is not its camera's window's ({w})")
+            if (vkeys.distance is not None) != self.estimate_distance:
+                raise ValueError(f"view {k}: distance key does not match estimate_distance={self.estimate_distance}")
+            if not self.estimate_distance and vkeys.fixed_distance_mm != self.x.distances[w]:
                 raise ValueError(f"view {k}: fixed distance {vkeys.fixed_distance_mm} differs from "
-                                 f"{self.x.distance_mm}")
+                                 f"{self.x.distances[w]}")
             tail = tuple(float(p) for p in np.asarray(data.base_params, float)[n_p:])
             group = (float(data.thickness_mm), float(data.index), float(data.medium_index), tail)
             entries.append((c, group, k, f, data, sigma))
@@ -237,15 +245,17 @@ class VectorizedProblem:
         # camera slices of views and corners
         self.camera_views = np.searchsorted(self.view_camera, np.arange(C + 1))
         self.camera_corners = self.view_start[self.camera_views]
-        # global tangent layout: per camera [intrinsics, pose] (camera 0's pose fixed: zero columns), normal, distance
+        # global tangent layout: per camera [intrinsics, pose] (camera 0's pose fixed: zero columns), then per
+        # window [normal (2), distance (1, if estimated)]
         self.camera_block = n_p + 6
-        self.normal_col = C * self.camera_block
-        self.distance_col = self.normal_col + 2 if self.estimate_distance else None
-        self.n_global = self.normal_col + 2 + (1 if self.estimate_distance else 0)
-        self.local_dim = n_p + 6 + 2 + (1 if self.estimate_distance else 0)
-        tail_cols = [self.normal_col, self.normal_col + 1] + ([self.distance_col] if self.estimate_distance else [])
+        window_block = 2 + (1 if self.estimate_distance else 0)
+        self.normal_cols = [C * self.camera_block + w * window_block for w in range(self.n_windows)]
+        self.distance_cols = [n + 2 for n in self.normal_cols] if self.estimate_distance else None
+        self.n_global = C * self.camera_block + self.n_windows * window_block
+        self.local_dim = n_p + 6 + window_block
         self.camera_cols = [np.concatenate([c * self.camera_block + np.arange(self.camera_block),
-                                            tail_cols]).astype(np.int64) for c in range(C)]
+                                            self.normal_cols[self.camera_windows[c]] + np.arange(window_block)]
+                                           ).astype(np.int64) for c in range(C)]
         self.fixed_cols = np.arange(n_p, n_p + 6)  # camera 0's pose
         # the columns of each camera's rows in linearize (camera 0's without its pose)
         self.camera_row_cols = [cols if c > 0 else np.delete(cols, np.arange(n_p, n_p + 6))
@@ -273,12 +283,21 @@ class VectorizedProblem:
         return tr
 
     def _compute_transforms(self, x: Variables) -> _Transforms:
-        n_w = np.asarray(x.normal.point3(), float)
-        with_distance = x.distance_mm is not None
+        normals = np.array([np.asarray(n.point3(), float) for n in x.normals])
+        with_distance = x.distances[0] is not None
         R_ct, t_ct, n_c, h_c = rig_transforms(
-            x.world_R_cam, x.world_t_cam, x.world_R_target, x.world_t_target, self.view_camera, self.view_frame, n_w,
-            float(x.distance_mm) if with_distance else 0.0, with_distance)
-        return _Transforms(R_ct, t_ct, np.swapaxes(x.world_R_cam, 1, 2), n_w, n_c, np.asarray(x.normal.basis(), float),
+            x.world_R_cam, x.world_t_cam, x.world_R_target, x.world_t_target, self.view_camera, self.view_frame,
+            normals[0], float(x.distances[0]) if with_distance else 0.0, with_distance)
+        for w in range(1, self.n_windows):  # the other windows' cameras: their own normal and plane
+            _, _, n_w, h_w = rig_transforms(x.world_R_cam, x.world_t_cam, x.world_R_target[:0], x.world_t_target[:0],
+                                            self.view_camera[:0], self.view_frame[:0], normals[w],
+                                            float(x.distances[w]) if with_distance else 0.0, with_distance)
+            mine = np.array(self.camera_windows) == w
+            n_c[mine] = n_w[mine]
+            if with_distance:
+                h_c[mine] = h_w[mine]
+        bases = [np.asarray(n.basis(), float) for n in x.normals]  # (their own memory layout: the BLAS path)
+        return _Transforms(R_ct, t_ct, np.swapaxes(x.world_R_cam, 1, 2), normals, n_c, bases,
                            h_c if with_distance else None)
 
     def _camera_model(self, x: Variables, tr: _Transforms, c: int, jacobians: bool) -> _CameraModel | None:
@@ -354,7 +373,8 @@ class VectorizedProblem:
         """The chain rule's per-camera arguments (:func:`~ari_sfm.factors.view_factor.camera_terms`, then
         whether the camera has a pose and the window distance is estimated)."""
         R_wc = x.world_R_cam[c] if c > 0 else None  # camera 0 is the world: no pose columns
-        return camera_terms(tr.normal_world, tr.basis, R_wc, x.world_t_cam[c]) + (c > 0, self.estimate_distance)
+        w = self.camera_windows[c]
+        return camera_terms(tr.normal_world[w], tr.basis[w], R_wc, x.world_t_cam[c]) + (c > 0, self.estimate_distance)
 
     def _camera_rows(self, x: Variables, tr: _Transforms, c: int, huber_px: float | None) -> np.ndarray:
         """Camera c's rows (m, 2, 6 + local_dim + 1): [J_frame | J_global (camera-local columns) | residual],
@@ -447,9 +467,12 @@ class VectorizedProblem:
         if C > 1:
             R_wc[1:], t_wc[1:] = retract_poses(x.world_R_cam[1:], x.world_t_cam[1:], blocks[1:, n_p:])
         R_wt, t_wt = retract_poses(x.world_R_target, x.world_t_target, d_frame)
-        normal = x.normal.retract(d_global[self.normal_col:self.normal_col + 2])
-        h = x.distance_mm + float(d_global[self.distance_col]) if self.estimate_distance else x.distance_mm
-        return Variables(x.intrinsics + blocks[:, :n_p], R_wc, t_wc, normal, R_wt, t_wt, h)
+        normals = tuple(n.retract(d_global[col:col + 2]) for n, col in zip(x.normals, self.normal_cols))
+        if self.estimate_distance:
+            distances = tuple(h + float(d_global[col]) for h, col in zip(x.distances, self.distance_cols))
+        else:
+            distances = x.distances
+        return Variables(x.intrinsics + blocks[:, :n_p], R_wc, t_wc, normals, R_wt, t_wt, distances)
 
     # ------------------------------------------------------------------ LM
     def optimize(self, max_iterations: int = 100, relative_tolerance: float = 1e-10,
@@ -478,8 +501,10 @@ class VectorizedProblem:
             cams[name] = Pose(x.world_R_cam[c].copy(), x.world_t_cam[c].copy()).inverse() if c > 0 else Pose.identity()
         frames = {f: Pose(x.world_R_target[i].copy(), x.world_t_target[i].copy())
                   for i, f in enumerate(self.frame_names)}
-        distance = x.distance_mm if self.estimate_distance else self.base_state.distance_mm
-        return RigState(params, cams, np.asarray(x.normal.point3(), float), frames, distance)
+        distances = [x.distances[w] if self.estimate_distance else self.base_state.offset(w)
+                     for w in range(self.n_windows)]
+        more = tuple((np.asarray(x.normals[w].point3(), float), distances[w]) for w in range(1, self.n_windows))
+        return RigState(params, cams, np.asarray(x.normal.point3(), float), frames, distances[0], more)
 
     def residuals(self) -> list[tuple[Observation, np.ndarray]]:
         """Unweighted pixel residuals (M, 2) of every view at the current values, in factor order (as RigGraph)."""
@@ -520,7 +545,7 @@ class VectorizedProblem:
                 blocks = [Jg[a:b, :, :n_p].reshape(m2, n_p)]
                 if c > 0:
                     blocks.append(Jg[a:b, :, n_p:n_p + 6].reshape(m2, 6))
-                blocks += [Jg[a:b, :, n_p + 6:n_p + 8].reshape(m2, 2), Jf[a:b].reshape(m2, 6)]
+                blocks += [Jg[a:b, :, n_p + 6:n_p + 8].reshape(m2, 2), Jf[a:b].reshape(m2, 6)]  # its window's N
                 if self.estimate_distance:
                     blocks.append(Jg[a:b, :, n_p + 8:n_p + 9].reshape(m2, 1))
                 r = res[a:b].reshape(-1)
@@ -537,15 +562,16 @@ class VectorizedProblem:
             values.update(K_.K(c), np.asarray(x.intrinsics[c], float))
             if c > 0:
                 values.update(K_.C(c), gtsam.Pose3(gtsam.Rot3(x.world_R_cam[c]), x.world_t_cam[c]))
-        values.update(K_.N, x.normal)
+        for w in range(self.n_windows):
+            values.update(K_.window_normal(w), x.normals[w])
+            if self.estimate_distance:
+                values.update(K_.window_plane(w), np.array([float(x.distances[w])]))
         for f in range(len(self.frame_names)):
             values.update(K_.X(f), gtsam.Pose3(gtsam.Rot3(x.world_R_target[f]), x.world_t_target[f]))
-        if self.estimate_distance:
-            values.update(K_.H, np.array([float(x.distance_mm)]))
 
     def marginal_covariances(self) -> dict[int, np.ndarray]:
         """Marginal covariances of the global variables at the current values, by key (K(c), C(c) for
-        c > 0, N, H): what ``gtsam.Marginals(graph, values).marginalCovariance(key)`` gives, in the units
+        c > 0, N(w), H(w)): what ``gtsam.Marginals(graph, values).marginalCovariance(key)`` gives, in the units
         of the factors' sigmas (see :mod:`~ari_sfm.factors.marginals`)."""
         cached = self._system_cache  # optimize's last linearisation when it was at the final values
         sys = cached[1] if cached is not None and cached[0] is self.x else self.linearize(self.x)

@@ -1,10 +1,11 @@
-"""The rig factor graph: N cameras behind one window, one shared normal.
+"""The rig factor graph: N cameras behind one window (or several), each window's normal shared by its cameras.
 
 Variables (:mod:`~ari_sfm.factors.keys`): each camera's intrinsics K(c), each
 camera's pose C(c) = world_T_cam for c > 0 (camera 0 *is* the world: it has
-no pose variable), the window normal N (a Unit3 in the world), each target
-pose X(f), and under water the window distance H. One factor per (camera,
-image), whitened by the pixel sigma ``sigma_px`` (per coordinate): a prior in
+no pose variable), each window's normal N(w) (a Unit3 in the world; N = N(0) for
+one window), each target pose X(f), and under water each window's plane H(w). One
+factor per (camera, image), on the camera's own window's N(w) and H(w), whitened by
+the pixel sigma ``sigma_px`` (per coordinate): a prior in
 physical units (radians, mm, px) then weighs what it says against the images.
 
 Build it from a :class:`RigState` (e.g. the analytical initialisation), add
@@ -34,7 +35,7 @@ import numpy as np
 from ..geometry import Pose, cam_from_world_from_pose3, pose3_from_cam_from_world, pose3_from_pose, pose_from_pose3
 from ..errors import AriSfmError
 from ..models.registry import model_spec
-from ..records import Interface, Observation, Target, WindowPlane
+from ..records import Interface, Observation, Target, Window, WindowPlane
 from . import keys as K_
 from .backend import optimize_graph
 from .variables import MODELS, RigState
@@ -42,29 +43,42 @@ from .view_factor import ViewData, ViewKeys, factor_keys, view_factor, view_resi
 
 log = logging.getLogger(__name__)
 
-def default_distance_mm(normal_world: np.ndarray, cam_from_world: dict[str, Pose]) -> float:
-    """A starting distance from camera 0 to the window when the dataset gives none.
+def default_distance_mm(normal_world: np.ndarray, cam_from_world: dict[str, Pose],
+                        cameras: Sequence[str] | None = None) -> float:
+    """A starting plane offset of a window when the dataset gives none (from camera 0, the world's origin).
 
     In air the exact model does not depend on it (the plate shifts each ray
     sideways by an amount set by the angle and the thickness only), so any value
-    that keeps every camera in front of the window will do: 10 mm in front of
+    that keeps every camera (of ``cameras``, default all) in front of the window will do: 10 mm in front of
     the camera nearest to it. Under water it is estimated from this start.
     """
-    centres = [p.inverse().t for p in cam_from_world.values()]
+    centres = [p.inverse().t for n, p in cam_from_world.items() if cameras is None or n in cameras]
     return float(max(normal_world @ c for c in centres)) + 10.0
 
 
-def declared_plane(dataset, rig) -> WindowPlane | None:
-    """interface.plane, checked: its frame must be a calibration frame the initialisation placed."""
-    plane = dataset.interface.plane
+def window_key(dataset, w: int) -> str:
+    """How rig.yaml names window ``w``: ``interface``, or ``interfaces.<name>`` with several."""
+    return "interface" if not dataset.windows else f"interfaces.{dataset.window_list()[w].name}"
+
+
+def declared_plane(dataset, rig, window: int = 0) -> WindowPlane | None:
+    """A window's declared plane (interface.plane), checked: its frame must be a calibration frame the
+    initialisation placed."""
+    plane = dataset.window_list()[window].interface.plane
     if plane is None:
         return None
     calib = {o.frame for o in dataset.select("calibration")}
     if plane.frame not in calib or plane.frame not in rig.world_from_target:
         known = ", ".join(sorted(calib)[:5]) + (", ..." if len(calib) > 5 else "")
-        raise AriSfmError(dataset.rig_path, f"interface.plane.frame: {plane.frame!r} is not a calibration frame "
-                                            f"seen by the cameras (calibration frames: {known or 'none'})")
+        raise AriSfmError(dataset.rig_path, f"{window_key(dataset, window)}.plane.frame: {plane.frame!r} is not a "
+                                            f"calibration frame seen by the cameras (calibration frames: "
+                                            f"{known or 'none'})")
     return plane
+
+
+def declared_planes(dataset, rig) -> list[WindowPlane | None]:
+    """Every window's declared plane (None where it has none)."""
+    return [declared_plane(dataset, rig, w) for w in range(len(dataset.window_list()))]
 
 
 def held_intrinsics(dataset, fix: bool) -> tuple[list[str], dict[str, float]]:
@@ -91,13 +105,19 @@ def initial_state(dataset, rig, model: str = "ari", fix_intrinsics: bool = False
     (:func:`held_intrinsics`) replace the initialisation's K (and distortion)."""
     from .window_plane import plane_in_world
 
-    state = RigState.from_initialisation(rig, dataset.interface.distance_mm)
-    plane = declared_plane(dataset, rig)
-    if plane is not None:
-        n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
-        state = replace(state, normal_world=n_w, distance_mm=h_w)
-    elif state.distance_mm is None and (dataset.interface.medium_index != 1.0 or model_spec(model).needs_distance):
-        state = replace(state, distance_mm=default_distance_mm(state.normal_world, state.cam_from_world))
+    state = RigState.from_initialisation(rig)
+    for w, window in enumerate(dataset.window_list()):
+        plane = declared_plane(dataset, rig, w)
+        hint = window.interface.distance_mm  # from the window's first camera
+        if plane is not None:
+            n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
+            state = state.with_window(w, n_w, h_w)
+        elif hint is not None:
+            first = state.cam_from_world[window.cameras[0]].inverse().t
+            state = state.with_window(w, offset=float(hint + state.normal(w) @ first))
+        elif dataset.medium_index != 1.0 or model_spec(model).needs_distance:
+            state = state.with_window(w, offset=default_distance_mm(state.normal(w), state.cam_from_world,
+                                                                    window.cameras))
     fixed, fixed_focal = held_intrinsics(dataset, fix_intrinsics)
     for n in fixed:  # start from the hint exactly
         hint = dataset.cameras[n]
@@ -124,6 +144,8 @@ class RigGraph:
     n_params: int
     base_state: RigState
     estimate_distance: bool
+    camera_windows: list[int] = field(default_factory=list)  # each camera's window index (N(w), H(w))
+    window_names: list[str] = field(default_factory=list)  # the windows' names, by index
     factor_views: list[tuple[str, Observation]] = field(default_factory=list)
     factor_data: list[tuple[ViewData, ViewKeys]] = field(default_factory=list)
     model: str = "ari"
@@ -163,18 +185,24 @@ class RigGraph:
         """A copy of the values for a copy of the graph (None while they are still to be made)."""
         return None if self.made_values is None and self.unwritten is None else gtsam.Values(self.values)
 
+    @property
+    def n_windows(self) -> int:
+        return max(self.camera_windows, default=0) + 1
+
     def _values_of(self, state: RigState) -> gtsam.Values:
-        """The gtsam.Values of a state: K(c), C(c) (c > 0), N, X(i) and H (estimated distance)."""
+        """The gtsam.Values of a state: K(c), C(c) (c > 0), N(w), X(i) and H(w) (estimated distances)."""
         values = gtsam.Values()
         for c, name in enumerate(self.camera_names):
             values.insert(K_.K(c), np.asarray(state.params[name][:self.n_params], float))
             if c > 0:
                 values.insert(K_.C(c), pose3_from_cam_from_world(state.cam_from_world[name]))
-        values.insert(K_.N, gtsam.Unit3(np.asarray(state.normal_world, float)))
+        for w in range(self.n_windows):
+            values.insert(K_.window_normal(w), gtsam.Unit3(np.asarray(state.normal(w), float)))
         for i, f in enumerate(self.frame_names):
             values.insert(K_.X(i), pose3_from_pose(state.world_from_target[f]))
         if self.estimate_distance:
-            values.insert(K_.H, np.array([float(state.distance_mm)]))
+            for w in range(self.n_windows):
+                values.insert(K_.window_plane(w), np.array([float(state.offset(w))]))
         return values
 
     @property
@@ -237,6 +265,8 @@ class RigGraph:
         fixed_intrinsics: Sequence[str] = (),
         fixed_focal_px: Mapping[str, float] | None = None,
         window_plane: WindowPlane | None = None,
+        windows: Sequence[Window] | None = None,
+        window_planes: Sequence[WindowPlane | None] | None = None,
     ) -> "RigGraph":
         """One factor per (camera, calibration or stacking image), whitened by ``sigma_px``; variables from
         state. Camera 0 is the world frame (no pose variable): ``state.cam_from_world`` of the first
@@ -244,10 +274,23 @@ class RigGraph:
 
         ``fixed_intrinsics``: cameras whose intrinsics are held at the state's; ``fixed_focal_px``:
         camera -> focal held as fx = fy (principal point and distortion free); ``window_plane``:
-        the declared window (:mod:`ari_sfm.factors.window_plane`), its frame one of the state's."""
+        the declared window (:mod:`ari_sfm.factors.window_plane`), its frame one of the state's.
+        ``windows``: several windows (each camera's factors on its own window's N(w), H(w) and plate;
+        default one window, ``interface``, for every camera) and ``window_planes`` their declared planes
+        (None where not declared; replaces ``window_plane``)."""
         if not (np.isfinite(sigma_px) and sigma_px > 0.0):
             raise ValueError(f"sigma_px must be a positive pixel sigma, got {sigma_px}")
         names = list(camera_names)
+        if windows is None:
+            windows = (Window("window", interface, tuple(names)),)
+        window_of = {c: w for w, win in enumerate(windows) for c in win.cameras}
+        missing = [n for n in names if n not in window_of]
+        if missing:
+            raise ValueError(f"camera {missing[0]} is behind none of the windows")
+        camera_windows = [window_of[n] for n in names]
+        if state.window_count != len(windows):
+            raise ValueError(f"the state has {state.window_count} window(s), the rig {len(windows)}")
+        planes = list(window_planes) if window_planes is not None else [window_plane] + [None] * (len(windows) - 1)
         world = state.cam_from_world[names[0]]
         if not (np.abs(world.R - np.eye(3)).max() <= 1e-9 and np.abs(world.t).max() <= 1e-9):  # (NaN: not)
             raise ValueError(f"camera 0 ({names[0]}) is the world frame (it has no pose variable): its "
@@ -267,12 +310,14 @@ class RigGraph:
             sigmas = np.full(n_params, 1e6)
             sigmas[:2] = 1e-4
             other.append(gtsam.PriorFactorVector(K_.K(c), prior, gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
-        if window_plane is not None:
-            from .window_plane import window_plane_factor
+        for w, plane in enumerate(planes):
+            if plane is not None:
+                from .window_plane import window_plane_factor
 
-            other.append(window_plane_factor(window_plane, frame_index[window_plane.frame], estimate_distance))
+                other.append(window_plane_factor(plane, frame_index[plane.frame], estimate_distance, w))
         from ..init.zhang import object_points
-        rg = RigGraph(None, names, frames, n_params, state, estimate_distance, model=model,
+        rg = RigGraph(None, names, frames, n_params, state, estimate_distance, camera_windows,
+                      [win.name for win in windows], model=model,
                       sigma_px=float(sigma_px), huber_px=huber_px, other_factors=other, views_at=len(other))
         for obs in observations:
             if obs.set not in ("calibration", "stacking") or obs.frame not in frame_index or obs.camera not in names:
@@ -280,14 +325,16 @@ class RigGraph:
             if len(obs.ids) < min_corners:
                 continue
             c = names.index(obs.camera)
-            thickness = interface.thickness_mm + ((obs.added_mm or 0.0) if obs.set == "stacking" else 0.0)
+            w = camera_windows[c]
+            iface = windows[w].interface
+            thickness = iface.thickness_mm + ((obs.added_mm or 0.0) if obs.set == "stacking" else 0.0)
             data = ViewData(
                 object_points(target, obs.ids), np.asarray(obs.pixels, float), thickness,
-                interface.index, interface.medium_index, np.asarray(state.params[obs.camera], float), n_params,
+                iface.index, iface.medium_index, np.asarray(state.params[obs.camera], float), n_params,
             )
             vkeys = ViewKeys(
-                K_.K(c), K_.X(frame_index[obs.frame]), K_.N, K_.C(c) if c > 0 else None,
-                K_.H if estimate_distance else None, state.distance_mm,
+                K_.K(c), K_.X(frame_index[obs.frame]), K_.window_normal(w), K_.C(c) if c > 0 else None,
+                K_.window_plane(w) if estimate_distance else None, state.offset(w),
             )
             rg.factor_views.append((obs.camera, obs))
             rg.factor_data.append((data, vkeys))
@@ -311,16 +358,18 @@ class RigGraph:
 
         dataset = ensure_observations(dataset, workers)
         rig = initialise_rig(dataset, distortion)
-        plane = dataset.interface.plane
-        if not rig.normal_observed and plane is None and not model_spec(model).needs_distance:
+        planes = declared_planes(dataset, rig)
+        unobserved = [w for w, p in enumerate(planes) if not rig.normals_observed[w] and p is None]
+        if unobserved and not model_spec(model).needs_distance:
             raise AriSfmError(dataset.rig_path, NO_NORMAL_MESSAGE)
-        underwater = dataset.interface.medium_index != 1.0
+        underwater = dataset.medium_index != 1.0
         state = initial_state(dataset, rig, model)
 
         def build(sigma: float) -> "RigGraph":
             return RigGraph.build(dataset.observations, dataset.target, dataset.interface, dataset.camera_names,
                                   state, model=model, distortion=distortion, estimate_distance=underwater,
-                                  huber_px=huber_px, sigma_px=sigma, window_plane=plane)
+                                  huber_px=huber_px, sigma_px=sigma, windows=dataset.window_list(),
+                                  window_planes=planes)
 
         rg = build(1.0 if sigma_px is None else sigma_px)
         return rg if sigma_px is not None else build(estimate_sigma_px(rg))
@@ -384,8 +433,10 @@ class RigGraph:
             params[name] = p
             cams[name] = cam_from_world_from_pose3(v.atPose3(K_.C(c))) if c > 0 else Pose.identity()
         frames = {f: pose_from_pose3(v.atPose3(K_.X(i))) for i, f in enumerate(self.frame_names)}
-        distance = float(v.atVector(K_.H)[0]) if self.estimate_distance else self.base_state.distance_mm
-        return RigState(params, cams, v.atUnit3(K_.N).point3(), frames, distance)
+        offsets = [float(v.atVector(K_.window_plane(w))[0]) if self.estimate_distance else self.base_state.offset(w)
+                   for w in range(self.n_windows)]
+        more = tuple((v.atUnit3(K_.window_normal(w)).point3(), offsets[w]) for w in range(1, self.n_windows))
+        return RigState(params, cams, v.atUnit3(K_.N).point3(), frames, offsets[0], more)
 
     def residuals(self) -> list[tuple[Observation, np.ndarray]]:
         """Unweighted pixel residuals (M, 2) of every factor's image at the current values."""

@@ -17,7 +17,7 @@ import gtsam
 import numpy as np
 
 from ..models.pinhole import PARAM_NAMES
-from ..results import CameraUncertainty, Uncertainty
+from ..results import CameraUncertainty, Uncertainty, WindowUncertainty
 from . import keys as K_
 from .rig_graph import RigGraph
 
@@ -36,7 +36,7 @@ def _std(variance: float, what: str) -> float | None:
 def marginal_covariances(rg: RigGraph, solved=None, sigma_px: float | None = None) -> dict[int, np.ndarray]:
     """Marginal covariances of the rig's global variables at the graph's current values, by key:
     K(c) (px), C(c) for c > 0 (Pose3 tangent [rad, mm]; camera 0 is the world, no variable),
-    N (the normal's 2-D Unit3 tangent, rad) and H (mm, when estimated).
+    N(w) (each window's normal, its 2-D Unit3 tangent, rad) and H(w) (mm, when estimated).
 
     ``solved``: the numpy backend's VectorizedProblem at these values (``optimize_graph(...,
     return_problem=True)``), else ``gtsam.Marginals(rg.graph, rg.values)`` is used. The units are
@@ -46,7 +46,8 @@ def marginal_covariances(rg: RigGraph, solved=None, sigma_px: float | None = Non
     """
     marginals = solved.marginals() if solved is not None else gtsam.Marginals(rg.graph, rg.values)
     keys = [K_.K(c) for c in range(len(rg.camera_names))] + [K_.C(c) for c in range(1, len(rg.camera_names))]
-    keys += [K_.N] + ([K_.H] if rg.estimate_distance else [])
+    for w in range(rg.n_windows):
+        keys += [K_.window_normal(w)] + ([K_.window_plane(w)] if rg.estimate_distance else [])
     scale = 1.0 if sigma_px is None else (sigma_px / rg.sigma_px) ** 2
     return {k: np.asarray(marginals.marginalCovariance(k), float) * scale for k in keys}
 
@@ -56,7 +57,8 @@ def rig_uncertainty(rg: RigGraph, covariances: dict[int, np.ndarray] | None = No
     """Standard deviations: per camera fx fy cx cy (and distortion) in px, the
     relative pose of each camera to camera 0 (rotation in degrees, translation in
     mm, as RMS error magnitudes), the normal's angle in degrees (RMS), and the
-    window distance in mm when it is estimated; ``sigma_px`` the pixel sigma they
+    window distance in mm when it is estimated (with several windows, each window's: the
+    distance's as its near face's position along its normal); ``sigma_px`` the pixel sigma they
     rest on (default the graph's).
 
     ``covariances``: :func:`marginal_covariances` of the graph (computed when not given)."""
@@ -72,7 +74,11 @@ def rig_uncertainty(rg: RigGraph, covariances: dict[int, np.ndarray] | None = No
                                               _std(np.trace(pc[3:, 3:]), f"{name} translation"))
         else:
             cameras[name] = CameraUncertainty(intrinsics)
-    normal = _std(np.trace(cov[K_.N]), "the normal")
-    distance = _std(cov[K_.H][0, 0], "the window distance") if rg.estimate_distance else None
-    return Uncertainty(float(rg.sigma_px if sigma_px is None else sigma_px), cameras,
-                       None if normal is None else float(np.degrees(normal)), rg.estimate_distance, distance)
+    windows = []
+    for w in range(rg.n_windows):
+        normal = _std(np.trace(cov[K_.window_normal(w)]), "the normal")
+        distance = _std(cov[K_.window_plane(w)][0, 0], "the window distance") if rg.estimate_distance else None
+        windows.append(WindowUncertainty(None if normal is None else float(np.degrees(normal)), distance))
+    names = rg.window_names if rg.n_windows > 1 else []
+    return Uncertainty(float(rg.sigma_px if sigma_px is None else sigma_px), cameras, windows[0].normal_deg,
+                       rg.estimate_distance, windows[0].distance_mm, dict(zip(names, windows)))

@@ -28,22 +28,23 @@ FIXED_SIGMA_MM = 1e-4
 
 
 def plane_in_world(plane: WindowPlane, world_from_target: Pose) -> tuple[np.ndarray, float]:
-    """(normal_world, distance_mm of the camera-side face from the world origin = camera 0)."""
+    """(normal_world, the camera-side face's offset normal . X in the world: for camera 0's window, the
+    distance from camera 0, the world's origin)."""
     n_w = unit(world_from_target.R @ np.asarray(plane.normal, float))
     return n_w, float(n_w @ world_from_target.apply(np.asarray(plane.point_mm, float)[None, :])[0])
 
 
 def plane_errors(plane: WindowPlane, values: gtsam.Values, frame_key: int, with_distance: bool,
-                 want_jacobians: bool) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Unwhitened errors [e_n (3), e_h (1, with_distance)] and Jacobians in key order [N, X(f), H]."""
+                 want_jacobians: bool, window: int = 0) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Unwhitened errors [e_n (3), e_h (1, with_distance)] and Jacobians in key order [N(w), X(f), H(w)]."""
     n_t, p_t = np.asarray(plane.normal, float), np.asarray(plane.point_mm, float)
-    N = values.atUnit3(K_.N)
+    N = values.atUnit3(K_.window_normal(window))
     X = values.atPose3(frame_key)
     R, t = X.rotation().matrix(), np.asarray(X.translation(), float)
     Rn = R @ n_t
     e = [N.point3() - Rn]
     if with_distance:
-        e.append(np.array([float(values.atVector(K_.H)[0]) - n_t @ p_t - Rn @ t]))
+        e.append(np.array([float(values.atVector(K_.window_plane(window))[0]) - n_t @ p_t - Rn @ t]))
     error = np.concatenate(e)
     if not want_jacobians:
         return error, []
@@ -61,16 +62,18 @@ def plane_errors(plane: WindowPlane, values: gtsam.Values, frame_key: int, with_
     return error, Hs
 
 
-def window_plane_factor(plane: WindowPlane, frame_index: int, with_distance: bool) -> gtsam.CustomFactor:
-    """One factor tying the normal N, the frame pose X(frame_index) and (with_distance) H to the plane."""
+def window_plane_factor(plane: WindowPlane, frame_index: int, with_distance: bool, window: int = 0
+                        ) -> gtsam.CustomFactor:
+    """One factor tying window ``window``'s normal N(w), the frame pose X(frame_index) and (with_distance) its
+    plane H(w) to the declared plane."""
     sigma_n = np.radians(plane.sigma_deg) if plane.sigma_deg > 0 else FIXED_SIGMA_RAD
     sigma_h = plane.sigma_mm if plane.sigma_mm > 0 else FIXED_SIGMA_MM
     sigmas = np.array([sigma_n] * 3 + ([sigma_h] if with_distance else []))
     frame_key = K_.X(frame_index)
-    keys = [K_.N, frame_key] + ([K_.H] if with_distance else [])
+    keys = [K_.window_normal(window), frame_key] + ([K_.window_plane(window)] if with_distance else [])
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, Hs = plane_errors(plane, values, frame_key, with_distance, H is not None)
+        e, Hs = plane_errors(plane, values, frame_key, with_distance, H is not None, window)
         if H is not None:
             for i, Hi in enumerate(Hs):
                 H[i] = Hi

@@ -236,7 +236,8 @@ def test_testing_fodder_cameras_project_like_liboptv(experiment, tmp_path):
         f = ori.cc / 0.012
         K = np.array([[f, 0, 640 - 0.5 + ori.xh / 0.012], [0, f, 512 - 0.5 - ori.yh / 0.012], [0, 0, 1]])
         plane = ds.interface.plane
-        cal = Calibration("exact", Interface(6.0, 1.33, 1.46, distance_mm=float(plane.normal @ plane.point_mm)),
+        centre = pose.inverse().t  # the contract's distance_mm: from the (first) camera's centre
+        cal = Calibration("exact", Interface(6.0, 1.33, 1.46, distance_mm=float(plane.normal @ (plane.point_mm - centre))),
                           plane.normal, {obs.camera: CameraCalibration(obs.camera, (1280, 1024), K, np.zeros(5), pose)},
                           {"f000": Pose.identity()})
         uv = cal.project_world(obs.camera, xyz[np.searchsorted(ids, obs.ids)])
@@ -454,8 +455,9 @@ def test_export_of_testing_fodder_cameras_gives_back_their_ori(experiment, tmp_p
         ori = oris[k] = read_ori(FODDER / "cal" / f"cam{k}.tif.ori")
         K = np.array([[70 / 0.012, 0, 639.5], [0, 70 / 0.012, 511.5], [0, 0, 1]])
         cams[f"cam{k}"] = CameraCalibration(f"cam{k}", (1280, 1024), K, np.zeros(5), cam_from_world(ori))
-    cal = Calibration("exact", Interface(6.0, 1.33, 1.46, distance_mm=-131.0), np.array([0, 0, 1.0]), cams,
-                      {"f000": Pose.identity()})
+    first = cams["cam1"].cam_from_world.inverse().t  # distance_mm is from the first camera's centre
+    cal = Calibration("exact", Interface(6.0, 1.33, 1.46, distance_mm=-131.0 - first[2]), np.array([0, 0, 1.0]),
+                      cams, {"f000": Pose.identity()})
     save_calibration(cal, tmp_path / "calibration.json")
     out = tmp_path / "exp_copy"
     shutil.copytree(experiment, out)

@@ -239,17 +239,21 @@ def test_every_scenario_builds_valid(scenes, name):
     assert ds.observations and set(truth["cameras"]) == set(ds.cameras)
     keys = {o.frame for o in ds.observations}
     assert keys <= set(truth["frames"]) and set(truth["frames"]) <= keys | set()
-    itf = truth["interface"]
-    n = np.array(itf["normal_world"])
-    for name_, cam in truth["cameras"].items():  # cameras on the near side, looking into the window
-        C = Pose.from_json(cam["cam_from_world"]).inverse().t
-        assert itf["distance_mm"] - n @ C == pytest.approx(cam["distance_mm"])
-        assert cam["distance_mm"] > 5.0 and cam["normal_cam"][2] > 0
+    windows = truth.get("interfaces") or {"window": {**truth["interface"], "cameras": list(truth["cameras"])}}
+    assert ("interfaces" in truth) == bool(ds.windows)
     max_added = max((o.added_mm or 0.0) for o in ds.observations)
     ids, pts = ds.target.points_3d()
-    for frame, f in truth["frames"].items():  # every target beyond the far face of the thickest stack
-        X = Pose.from_json(f["world_from_target"]).apply(pts)
-        assert (X @ n - itf["distance_mm"] - itf["thickness_mm"] - max_added).min() > 5.0
+    centre = {n_: Pose.from_json(c["cam_from_world"]).inverse().t for n_, c in truth["cameras"].items()}
+    for itf in windows.values():  # each window's distance is from its first camera
+        n = np.array(itf["normal_world"])
+        plane = itf["distance_mm"] + n @ centre[itf["cameras"][0]]  # its near face: n . X = plane
+        for name_ in itf["cameras"]:  # cameras on the near side, looking into the window
+            cam = truth["cameras"][name_]
+            assert plane - n @ centre[name_] == pytest.approx(cam["distance_mm"])
+            assert cam["distance_mm"] > 5.0 and cam["normal_cam"][2] > 0
+        for frame, f in truth["frames"].items():  # every target beyond the far face of the thickest stack
+            X = Pose.from_json(f["world_from_target"]).apply(pts)
+            assert (X @ n - plane - itf["thickness_mm"] - max_added).min() > 5.0
     for o in ds.observations:  # ids follow the contract, pixels inside the image
         w, h = ds.cameras[o.camera].image_size
         assert np.array_equal(o.ids, ids)

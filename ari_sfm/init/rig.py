@@ -49,10 +49,17 @@ class RigInit:
 
     cameras: dict[str, CameraInit]
     cam_from_world: dict[str, Pose]
-    normal_world: np.ndarray
+    normal_world: np.ndarray  # window 0's (the only one of a one-window rig)
     world_from_target: dict[str, Pose]  # calibration frames and stacking poses
     stacking_poses: tuple[str, ...] = field(default_factory=tuple)
     normal_observed: bool = True  # False: no stacking, normal_world is camera 0's optical axis (a start only)
+    window_normals: tuple[np.ndarray, ...] = ()  # every window's normal (the dataset's window order)
+    normals_observed: tuple[bool, ...] = ()  # per window: from its cameras' expansion centres (else an axis)
+
+    def __post_init__(self) -> None:
+        if not self.window_normals:  # built for one window
+            object.__setattr__(self, "window_normals", (self.normal_world,))
+            object.__setattr__(self, "normals_observed", (self.normal_observed,))
 
 
 def _shift(thickness_mm: float, index: float) -> float:
@@ -79,7 +86,7 @@ def initialise_camera(dataset: Dataset, name: str, distortion: bool = False,
     except (ValueError, cv2.error) as exc:  # DLT refused, or OpenCV refused the start
         msg = str(exc).strip().splitlines()[-1] if isinstance(exc, cv2.error) else str(exc)
         raise AriSfmError(dataset.rig_path, f"camera {name}: {msg}") from None
-    iface = dataset.interface
+    iface = dataset.interface_of(name)
     expansion, normal = None, None
     if stacking:
         try:
@@ -159,8 +166,16 @@ def initialise_rig(dataset: Dataset, distortion: bool = False, workers: int | No
     cams = _initialise_cameras(dataset, names, distortion, workers, fix_intrinsics)
     # Camera graph: edges weighted by the number of shared frames (calibration and stacking).
     cam_from_world, world_from_target = join_rig(names, {n: c.cam_from_target for n, c in cams.items()}, dataset.rig_path)
-    normals = [cam_from_world[n].R.T @ c.normal_cam for n, c in cams.items() if c.normal_cam is not None]
-    # without stacking: camera 0's optical axis, a start for the exact model or a declared plane
-    normal_world = unit(np.mean(normals, axis=0)) if normals else np.array([0.0, 0.0, 1.0])
+    window_normals, observed = [], []
+    for window in dataset.window_list():
+        normals = [cam_from_world[n].R.T @ cams[n].normal_cam for n in window.cameras if cams[n].normal_cam is not None]
+        # without stacking: the mean of the window's cameras' optical axes (oblique cameras usually look through a
+        # wall from either side of its normal), a start for the exact model or a declared plane
+        axis = unit(np.mean([cam_from_world[n].R.T @ np.array([0.0, 0.0, 1.0]) for n in window.cameras], axis=0))
+        window_normals.append(unit(np.mean(normals, axis=0)) if normals else axis)
+        observed.append(bool(normals))
+    if not dataset.windows:  # one window: camera 0's axis (the world's z), as the start it has always been
+        window_normals[0] = window_normals[0] if observed[0] else np.array([0.0, 0.0, 1.0])
     stacking = tuple(sorted({o.frame for o in dataset.select("stacking")}))
-    return RigInit(cams, cam_from_world, normal_world, world_from_target, stacking, bool(normals))
+    return RigInit(cams, cam_from_world, window_normals[0], world_from_target, stacking, all(observed),
+                   tuple(window_normals), tuple(observed))

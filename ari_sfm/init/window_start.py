@@ -36,19 +36,21 @@ TILTS_DEG = (4.0, 8.0, 12.0, 18.0)  # coarse tilt rings of the normal search (pl
 AZIMUTHS = 8  # directions per ring
 
 
-def not_beyond(state, observations: Sequence[Observation], target: Target, thickness_mm: float
-               ) -> tuple[str, str | None] | None:
-    """The first (camera, frame) that the window at ``state.distance_mm`` does not separate: a
-    camera not in front of its near face (frame None), or a corner of that camera's view of the
-    frame not beyond its far face (the exact model has no ray there); None when all are fine."""
+def not_beyond(state, observations: Sequence[Observation], target: Target, thickness_mm: float, window: int = 0,
+               cameras: Sequence[str] | None = None) -> tuple[str, str | None] | None:
+    """The first (camera, frame) that window ``window`` (its plane ``state.offset(window)``) does not
+    separate: a camera of ``cameras`` (default all: the window's cameras) not in front of its near face
+    (frame None), or a corner of that camera's view of the frame not beyond its far face (the exact model
+    has no ray there); None when all are fine."""
     from .zhang import object_points
 
-    n, h = np.asarray(state.normal_world, float), float(state.distance_mm)
+    n, h = np.asarray(state.normal(window), float), float(state.offset(window))
+    mine = set(state.cam_from_world if cameras is None else cameras)
     for name, pose in state.cam_from_world.items():
-        if not h > n @ pose.inverse().t:
+        if name in mine and not h > n @ pose.inverse().t:
             return name, None
     views = [o for o in observations if o.set in ("calibration", "stacking") and o.frame in state.world_from_target
-             and o.camera in state.cam_from_world]
+             and o.camera in state.cam_from_world and o.camera in mine]
     added = {}
     for o in views:
         added[o.frame] = max(added.get(o.frame, 0.0), (o.added_mm or 0.0) if o.set == "stacking" else 0.0)
@@ -72,38 +74,42 @@ def target_shift_mm(medium_index: float, from_mm: float, to_mm: float) -> float:
     return (float(medium_index) - 1.0) * (float(from_mm) - float(to_mm))
 
 
-def moved_window(state, distance_mm: float, medium_index: float):
-    """``state`` with the window at ``distance_mm`` and every target (frames and stacking poses) moved
-    along the normal so that each keeps its paraxial apparent depth (:func:`target_shift_mm`); the
+def moved_window(state, distance_mm: float, medium_index: float, window: int = 0):
+    """``state`` with window ``window`` at ``distance_mm`` and every target (frames and stacking poses) moved
+    along its normal so that each keeps its paraxial apparent depth (:func:`target_shift_mm`); the
     state unchanged but for the distance when it has none."""
     from dataclasses import replace
 
     from ..geometry import Pose
 
-    if state.distance_mm is None or not np.isfinite(state.distance_mm):
-        return replace(state, distance_mm=float(distance_mm))
-    step = target_shift_mm(medium_index, state.distance_mm, distance_mm) * np.asarray(state.normal_world, float)
+    h0 = state.offset(window)
+    if h0 is None or not np.isfinite(h0):
+        return state.with_window(window, offset=float(distance_mm))
+    step = target_shift_mm(medium_index, h0, distance_mm) * np.asarray(state.normal(window), float)
     frames = {f: Pose(p.R, p.t + step) for f, p in state.world_from_target.items()}
-    return replace(state, world_from_target=frames, distance_mm=float(distance_mm))
+    return replace(state, world_from_target=frames).with_window(window, offset=float(distance_mm))
 
 
 def distance_interval(state, observations: Sequence[Observation], target: Target, thickness_mm: float,
-                      medium_index: float | None = None) -> tuple[float, float]:
-    """(lo, hi) for the distance h from camera 0 to the near face along ``state.normal_world``:
-    every camera centre in front of it (h > n . C) and every observed corner beyond the far
-    face (h < n . X - thickness - added). hi <= lo when no distance fits. ``medium_index``: the
-    targets move with the window (:func:`moved_window` from ``state.distance_mm``), so a corner at
+                      medium_index: float | None = None, window: int = 0, cameras: Sequence[str] | None = None
+                      ) -> tuple[float, float]:
+    """(lo, hi) for window ``window``'s plane offset h (from camera 0 along its normal): every camera of
+    ``cameras`` (default all: the window's) in front of it (h > n . C) and every corner they observe beyond
+    the far face (h < n . X - thickness - added). hi <= lo when no distance fits. ``medium_index``: the
+    targets move with the window (:func:`moved_window` from its offset), so a corner at
     depth z is beyond it while ``h < (z - thickness - added + (n_m - 1) h0) / n_m``; None: they stay."""
     from .zhang import object_points
 
-    n = np.asarray(state.normal_world, float)
-    lo = max(float(n @ p.inverse().t) for p in state.cam_from_world.values())
-    moving = medium_index is not None and state.distance_mm is not None and np.isfinite(state.distance_mm)
-    n_m, h0 = (float(medium_index), float(state.distance_mm)) if moving else (1.0, 0.0)
+    n = np.asarray(state.normal(window), float)
+    mine = set(state.cam_from_world if cameras is None else cameras)
+    lo = max(float(n @ p.inverse().t) for name, p in state.cam_from_world.items() if name in mine)
+    h_now = state.offset(window)
+    moving = medium_index is not None and h_now is not None and np.isfinite(h_now)
+    n_m, h0 = (float(medium_index), float(h_now)) if moving else (1.0, 0.0)
     hi = np.inf
     for o in observations:
         pose = state.world_from_target.get(o.frame)
-        if pose is None or o.set not in ("calibration", "stacking"):
+        if pose is None or o.set not in ("calibration", "stacking") or o.camera not in mine:
             continue
         added = (o.added_mm or 0.0) if o.set == "stacking" else 0.0
         depth = pose.apply(object_points(target, o.ids)) @ n

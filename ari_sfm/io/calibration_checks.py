@@ -27,20 +27,17 @@ def check_calibration_values(data: Any, path: str | Path, window: bool = True) -
     (4 or 5 finite numbers). Structure errors are left to the parser."""
     if not isinstance(data, Mapping):
         return
-    iface = data.get("interface")
-    if isinstance(iface, Mapping):
-        thickness = iface.get("thickness_mm")
-        if thickness is not None:
-            where = "interface.thickness_mm"
-            value = as_positive_float(thickness, path, where) if window else as_float_at_least(thickness, path, where, 0.0)
-            check_at_most(value, MAX_LENGTH_MM, path, where, " mm")
-        for key in ("index", "medium_index"):
-            if iface.get(key) is not None:
-                index = as_float_at_least(iface[key], path, f"interface.{key}", 1.0)
-                check_at_most(index, MAX_INDEX, path, f"interface.{key}")
-        if iface.get("distance_mm") is not None:
-            distance = _offset(iface["distance_mm"], path, "interface.distance_mm")
-            _check_camera_distances(data, iface, distance, path)
+    windows = []
+    if isinstance(data.get("interface"), Mapping):
+        cameras = list(data["cameras"]) if isinstance(data.get("cameras"), Mapping) else []
+        windows.append(("interface", data["interface"], cameras))
+    if isinstance(data.get("interfaces"), Mapping):
+        for name, iface in data["interfaces"].items():
+            if isinstance(iface, Mapping):
+                listed = iface.get("cameras")
+                windows.append((f"interfaces.{name}", iface, list(listed) if isinstance(listed, list) else []))
+    for where, iface, cameras in windows:
+        _check_window(iface, where, cameras, data, path, window)
     if data.get("fixed_distance_mm") is not None:
         _offset(data["fixed_distance_mm"], path, "fixed_distance_mm")
     cameras = data.get("cameras")
@@ -60,27 +57,49 @@ def check_calibration_values(data: Any, path: str | Path, window: bool = True) -
                                             f"(got {len(dist)})")
 
 
+def _check_window(iface: Mapping, where: str, cameras: list, data: Mapping, path: str | Path, window: bool) -> None:
+    """One window's thickness, indices and distance (its cameras in front of it)."""
+    thickness = iface.get("thickness_mm")
+    if thickness is not None:
+        key = f"{where}.thickness_mm"
+        value = as_positive_float(thickness, path, key) if window else as_float_at_least(thickness, path, key, 0.0)
+        check_at_most(value, MAX_LENGTH_MM, path, key, " mm")
+    for key in ("index", "medium_index"):
+        if iface.get(key) is not None:
+            index = as_float_at_least(iface[key], path, f"{where}.{key}", 1.0)
+            check_at_most(index, MAX_INDEX, path, f"{where}.{key}")
+    if iface.get("distance_mm") is not None:
+        distance = _offset(iface["distance_mm"], path, f"{where}.distance_mm")
+        _check_camera_distances(data, iface, distance, cameras, where, path)
+    if iface.get("fixed_distance_mm") is not None:
+        _offset(iface["fixed_distance_mm"], path, f"{where}.fixed_distance_mm")
+
+
 def _offset(value: Any, path: str | Path, where: str) -> float:
-    """The window plane's offset n . X in the world frame (any sign: the world need not be a camera's)."""
+    """A window distance (mm, any sign here; the cameras' side is checked apart)."""
     value = as_finite_float(value, path, where)
     check_at_most(abs(value), MAX_LENGTH_MM, path, f"|{where}|", " mm")
     return value
 
 
-def _check_camera_distances(data: Mapping, iface: Mapping, distance: float, path: str | Path) -> None:
-    """Each camera's centre lies in front of the window's near face, at most MAX_LENGTH_MM from it (a malformed
-    normal or pose is left to the parser)."""
+def _check_camera_distances(data: Mapping, iface: Mapping, distance: float, cameras: list, where: str,
+                            path: str | Path) -> None:
+    """Each of the window's cameras lies in front of its near face, at most MAX_LENGTH_MM from it; the distance is
+    given from the first camera's centre (a malformed normal or pose is left to the parser)."""
     try:
         normal = np.asarray(iface["normal_world"], dtype=float).reshape(3)
-        poses = {name: (np.asarray(c["cam_from_world"]["R"], float).reshape(3, 3),
-                        np.asarray(c["cam_from_world"]["t"], float).reshape(3))
-                 for name, c in data["cameras"].items()}
+        poses = {name: (np.asarray(data["cameras"][name]["cam_from_world"]["R"], float).reshape(3, 3),
+                        np.asarray(data["cameras"][name]["cam_from_world"]["t"], float).reshape(3))
+                 for name in cameras}
     except (KeyError, TypeError, ValueError, AttributeError):
         return
-    if not np.isfinite(normal).all() or not all(np.isfinite(R).all() and np.isfinite(t).all() for R, t in poses.values()):
+    if not poses or not np.isfinite(normal).all() or not all(np.isfinite(R).all() and np.isfinite(t).all()
+                                                             for R, t in poses.values()):
         return
+    R0, t0 = poses[cameras[0]]
+    reference = float(normal @ (-R0.T @ t0))
     for name, (R, t) in poses.items():
-        h = distance - float(normal @ (-R.T @ t))  # camera centre to the near face along the normal
+        h = distance - (float(normal @ (-R.T @ t)) - reference)  # camera centre to the near face along the normal
         if not 0.0 < h <= MAX_LENGTH_MM:
-            raise AriSfmError(path, f"interface.distance_mm {distance:g} puts camera {name} {h:.4g} mm from the "
+            raise AriSfmError(path, f"{where}.distance_mm {distance:g} puts camera {name} {h:.4g} mm from the "
                                     f"window's near face (must be in front of it, 0 < distance <= {MAX_LENGTH_MM:g} mm)")

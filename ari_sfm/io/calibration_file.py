@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from ari_sfm.calibration import Calibration, CameraCalibration
+from ari_sfm.calibration import Calibration, CameraCalibration, WindowCalibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose
 from ari_sfm.io.atomic import write_json_atomic
@@ -47,7 +47,9 @@ def calibration_to_json(cal: Calibration) -> dict[str, Any]:
             "dist": np.resize(c.dist, 5).tolist(),
             "cam_from_world": c.cam_from_world.to_json(),
         }
-        if cal.normal_world is not None:
+        if cal.windows:
+            entry["window"] = cal.window_of(name).name
+        if cal.window_of(name).normal_world is not None:
             entry["normal_cam"] = cal.normal_cam(name).tolist()
         if c.expansion_center_px is not None:
             entry["expansion_center_px"] = np.asarray(c.expansion_center_px).tolist()
@@ -60,16 +62,16 @@ def calibration_to_json(cal: Calibration) -> dict[str, Any]:
             entry["pf"] = c.pf.to_json(cal.pf_world.model)
         entry.update(c.extra)
         cams[name] = entry
+    if cal.windows:
+        windows: dict[str, Any] = {"interfaces": {w.name: {"cameras": list(w.cameras), **_window_json(w)}
+                                                  for w in cal.windows}}
+    else:
+        windows = {"interface": _window_json(cal.window_list()[0])}
+        windows["interface"].pop("fixed_distance_mm", None)  # top-level in a one-window calibration
     out = {
         "format": FORMAT,
         "model": cal.model,
-        "interface": {
-            "normal_world": None if cal.normal_world is None else np.asarray(cal.normal_world).tolist(),
-            "thickness_mm": cal.interface.thickness_mm,
-            "index": cal.interface.index,
-            "medium_index": cal.interface.medium_index,
-            "distance_mm": cal.interface.distance_mm,
-        },
+        **windows,
         "cameras": cams,
         "frames": {f: {"world_from_target": p.to_json()} for f, p in cal.frames.items()},
     }
@@ -86,8 +88,18 @@ def calibration_to_json(cal: Calibration) -> dict[str, Any]:
                         ("outliers", cal.outliers), ("quality", cal.quality)):
         if record is not None:
             out[key] = record.to_json()
-    if cal.fixed_distance_mm is not None:
+    if cal.fixed_distance_mm is not None and not cal.windows:
         out["fixed_distance_mm"] = cal.fixed_distance_mm
+    return out
+
+
+def _window_json(w: WindowCalibration) -> dict[str, Any]:
+    """A window's ``interface`` mapping (with ``fixed_distance_mm`` when it has one)."""
+    out = {"normal_world": None if w.normal_world is None else np.asarray(w.normal_world).tolist(),
+           "thickness_mm": w.interface.thickness_mm, "index": w.interface.index,
+           "medium_index": w.interface.medium_index, "distance_mm": w.interface.distance_mm}
+    if w.fixed_distance_mm is not None:
+        out["fixed_distance_mm"] = w.fixed_distance_mm
     return out
 
 
@@ -139,25 +151,19 @@ def _parse(data: Any, path: Any) -> Calibration:
     spec = model_spec(data["model"], path)
     model = spec.name
     check_calibration_values(data, path, window=spec.window)  # rig.yaml's bounds (ari_sfm.io.calibration_checks)
-    iface = data["interface"]
-    thickness, index = float(iface["thickness_mm"]), float(iface["index"])
-    medium = float(iface.get("medium_index", 1.0))
-    if not (math.isfinite(thickness) and thickness >= 0):
-        raise AriSfmError(path, f"interface.thickness_mm must be >= 0 (got {thickness})")
-    if not (math.isfinite(index) and index >= 1) or not (math.isfinite(medium) and medium >= 1):
-        raise AriSfmError(path, "interface.index and medium_index must be >= 1")
-    distance = iface.get("distance_mm")
-    if iface["normal_world"] is None and not spec.window:
-        normal = None
+    if "interface" in data and "interfaces" in data:
+        raise AriSfmError(path, "give interface (one window) or interfaces (several), not both")
+    if "interfaces" in data:
+        if not isinstance(data["interfaces"], dict) or not data["interfaces"]:
+            raise AriSfmError(path, "interfaces must be a non-empty object (window name -> window)")
+        parsed = [(str(name), *_parse_window(w, f"interfaces.{name}", spec, path)) for name, w in data["interfaces"].items()]
     else:
-        normal = _finite(iface["normal_world"], (3,), "interface.normal_world", path)
-    if normal is not None and abs(np.linalg.norm(normal) - 1) > 1e-6:
-        raise AriSfmError(path, "interface.normal_world must be a unit vector")
+        parsed = [("window", *_parse_window(data["interface"], "interface", spec, path))]
     cams = {}
     if not isinstance(data["cameras"], dict) or not data["cameras"]:
         raise AriSfmError(path, "cameras must be a non-empty object")
     known = {"image_size", "K", "dist", "cam_from_world", "normal_cam", "expansion_center_px",
-             "expansion_center_std_px", "rmse_px", "distance_mm", *spec.camera_keys}
+             "expansion_center_std_px", "rmse_px", "distance_mm", "window", *spec.camera_keys}
     pf_world = _record(PfWorld, data, "pf_world", path) if spec.projection == "polynomial" else None
     if spec.projection == "polynomial" and pf_world is None:
         raise AriSfmError(path, f"pf_world is missing (model {model} names the calibration its world comes from)")
@@ -188,30 +194,92 @@ def _parse(data: Any, path: Any) -> Calibration:
             {k: v for k, v in c.items() if k not in known},
             poly,
         )
-    _check_bounds(cams, thickness, path)
+    for _, interface, _, listed, _ in parsed:
+        _check_bounds(cams, interface.thickness_mm, path)
     frames = {f: _pose(v["world_from_target"], f"frames.{f}", path) for f, v in data.get("frames", {}).items()}
     stacking = {f: _pose(v["world_from_target"], f"stacking_poses.{f}", path) for f, v in data.get("stacking_poses", {}).items()}
-    reserved = {"format", "model", "interface", "cameras", "frames", "stacking_poses", "residuals", "time_s", "target",
-                "fixed_distance_mm", "uncertainty", "outliers", "pf_world", "quality", "optimizer"}
-    fixed = data.get("fixed_distance_mm")
-    if fixed is not None:
-        fixed = float(fixed)
-        if not math.isfinite(fixed):
-            raise AriSfmError(path, f"fixed_distance_mm must be a finite number (got {data['fixed_distance_mm']!r})")
-    if spec.needs_distance and distance is None and fixed is None:
-        raise AriSfmError(path, f"fixed_distance_mm is missing: model {model} with interface.distance_mm null is "
-                                "evaluated at the distance it was calibrated with (in air no pixel depends on it)")
+    reserved = {"format", "model", "interface", "interfaces", "cameras", "frames", "stacking_poses", "residuals",
+                "time_s", "target", "fixed_distance_mm", "uncertainty", "outliers", "pf_world", "quality", "optimizer"}
+    windows = _windows(parsed, data, cams, path)
+    for w in windows:
+        if spec.needs_distance and w.interface.distance_mm is None and w.fixed_distance_mm is None:
+            where = "interface" if len(windows) == 1 else f"interfaces.{w.name}"
+            raise AriSfmError(path, f"fixed_distance_mm is missing: model {model} with {where}.distance_mm null is "
+                                    "evaluated at the distance it was calibrated with (in air no pixel depends on it)")
     if "target" in data:
         target = parse_target(data["target"], Path(path))
     else:
         target = None
+    first = windows[0]
     return Calibration(
-        model, Interface(thickness, index, medium, None if distance is None else float(distance)), normal, cams,
+        model, first.interface, first.normal_world, cams,
         frames, stacking, _record(ResidualStats, data, "residuals", path), float(data.get("time_s", 0.0)),
-        {k: v for k, v in data.items() if k not in reserved}, target, fixed,
+        {k: v for k, v in data.items() if k not in reserved}, target, first.fixed_distance_mm,
         _record(Uncertainty, data, "uncertainty", path), _record(OutlierReport, data, "outliers", path), pf_world,
         _record(Quality, data, "quality", path), _record(OptimizerReport, data, "optimizer", path),
+        windows=windows if len(windows) > 1 else (),
     )
+
+
+def _parse_window(iface: Any, where: str, spec, path: Any) -> tuple[Interface, np.ndarray | None, list | None,
+                                                                    float | None]:
+    """(interface, normal_world, listed cameras or None, fixed_distance_mm or None) of one window mapping."""
+    if not isinstance(iface, dict):
+        raise AriSfmError(path, f"{where} must be an object")
+    thickness, index = float(iface["thickness_mm"]), float(iface["index"])
+    medium = float(iface.get("medium_index", 1.0))
+    if not (math.isfinite(thickness) and thickness >= 0):
+        raise AriSfmError(path, f"{where}.thickness_mm must be >= 0 (got {thickness})")
+    if not (math.isfinite(index) and index >= 1) or not (math.isfinite(medium) and medium >= 1):
+        raise AriSfmError(path, f"{where}.index and medium_index must be >= 1")
+    distance = iface.get("distance_mm")
+    if iface["normal_world"] is None and not spec.window:
+        normal = None
+    else:
+        normal = _finite(iface["normal_world"], (3,), f"{where}.normal_world", path)
+    if normal is not None and abs(np.linalg.norm(normal) - 1) > 1e-6:
+        raise AriSfmError(path, f"{where}.normal_world must be a unit vector")
+    listed = iface.get("cameras")
+    if listed is not None and (not isinstance(listed, list) or not all(isinstance(c, str) for c in listed)):
+        raise AriSfmError(path, f"{where}.cameras must be a list of camera names")
+    fixed = iface.get("fixed_distance_mm")
+    if fixed is not None:
+        fixed = float(fixed)
+        if not math.isfinite(fixed):
+            raise AriSfmError(path, f"{where}.fixed_distance_mm must be a finite number (got {iface['fixed_distance_mm']!r})")
+    return Interface(thickness, index, medium, None if distance is None else float(distance)), normal, listed, fixed
+
+
+def _windows(parsed: list, data: dict, cams: dict[str, CameraCalibration], path: Any) -> tuple[WindowCalibration, ...]:
+    """The calibration's windows: one for every camera (``interface``; fixed_distance_mm top-level), or those of
+    ``interfaces``, each camera behind the one it names (``cameras.<name>.window``) and listed there."""
+    if len(parsed) == 1 and "interfaces" not in data:
+        name, interface, normal, _, _ = parsed[0]
+        fixed = data.get("fixed_distance_mm")
+        if fixed is not None:
+            fixed = float(fixed)
+            if not math.isfinite(fixed):
+                raise AriSfmError(path, f"fixed_distance_mm must be a finite number (got {data['fixed_distance_mm']!r})")
+        return (WindowCalibration(name, interface, normal, tuple(cams), fixed),)
+    out = []
+    for name, interface, normal, listed, fixed in parsed:
+        if listed is None:
+            raise AriSfmError(path, f"interfaces.{name}.cameras is missing (the cameras behind this window)")
+        for c in listed:
+            if c not in cams:
+                raise AriSfmError(path, f"interfaces.{name}.cameras names {c!r}, which is not under cameras")
+            said = data["cameras"][c].get("window")
+            if said is not None and said != name:
+                raise AriSfmError(path, f"cameras.{c}.window is {said!r} but interfaces.{name}.cameras lists it")
+        out.append(WindowCalibration(name, interface, normal, tuple(listed), fixed))
+    media = {w.interface.medium_index for w in out}
+    if len(media) > 1:
+        raise AriSfmError(path, f"interfaces: the windows' medium_index differ ({sorted(media)}): one tank, one medium")
+    placed = [c for w in out for c in w.cameras]
+    for c in cams:
+        if placed.count(c) != 1:
+            raise AriSfmError(path, f"camera {c} is listed under {placed.count(c)} windows of interfaces (one needed)")
+    return tuple(out)
 
 
 def _record(cls, data: dict, key: str, path: Any):

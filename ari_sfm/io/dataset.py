@@ -43,7 +43,8 @@ from ari_sfm.io.structured import (
     show,
     warn_unknown_keys,
 )
-from ari_sfm.records import SETS, CameraSpec, Dataset, Entry, Interface, Observation, Target, WindowPlane
+from ari_sfm.records import SETS, CameraSpec, Dataset, Entry, Interface, Observation, Target, Window, WindowPlane, \
+    check_windows
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +53,7 @@ RIG_NAMES = ("rig.yaml", "rig.yml", "rig.json")
 TARGET_TYPES = ("checkerboard", "charuco", "circles", "points3d")
 CIRCLE_LAYOUTS = ("symmetric", "asymmetric")
 DIST_LENGTHS = (4, 5, 8, 12, 14)
-TOP_KEYS = ("format", "target", "interface", "cameras", *SETS, "observations", "particles")  # particles: io/particles.py
+TOP_KEYS = ("format", "target", "interface", "interfaces", "cameras", *SETS, "observations", "particles")  # particles: io/particles.py
 TARGET_KEYS = {
     "checkerboard": ("type", "inner_corners", "square_mm"),
     "charuco": ("type", "squares", "square_mm", "marker_mm", "dictionary"),
@@ -60,9 +61,10 @@ TARGET_KEYS = {
     "points3d": ("type", "points"),
 }
 INTERFACE_KEYS = ("thickness_mm", "index", "medium_index", "distance_mm", "plane")
+WINDOW_KEYS = ("cameras", *INTERFACE_KEYS)  # an entry of ``interfaces`` (1.3)
 PLANE_KEYS = ("frame", "normal", "point_mm", "sigma_deg", "sigma_mm")
 CAMERA_KEYS = ("image_size", "focal_px", "K", "dist")
-ENTRY_KEYS = ("pose", "frame", "added_mm", "stage_mm", "images")
+ENTRY_KEYS = ("pose", "frame", "added_mm", "stage_mm", "images", "window")
 
 # Sane physical bounds: a value beyond one is a typo (1e300, 1e8), refused in one line naming the key.
 MAX_LENGTH_MM = 10_000.0  # thickness_mm, distance_mm, square_mm, added_mm, |stage_mm|: at most 10 m
@@ -214,10 +216,11 @@ def _point_id(raw: Any, path: Path, where: str) -> int:
     raise AriSfmError(path, f"{where}: ids must be integers (got {show(raw)})")
 
 
-def parse_interface(data: Any, path: Path, where: str = "interface") -> Interface:
-    """The ``interface`` mapping as an :class:`Interface`."""
+def parse_interface(data: Any, path: Path, where: str = "interface", keys: tuple[str, ...] = INTERFACE_KEYS
+                    ) -> Interface:
+    """The ``interface`` mapping (or one entry of ``interfaces``) as an :class:`Interface`."""
     data = as_mapping(data, path, where)
-    warn_unknown_keys(data, INTERFACE_KEYS, path, where)
+    warn_unknown_keys(data, keys, path, where)
     thickness = _length(require(data, "thickness_mm", path, where), path, f"{where}.thickness_mm")
     index = _index(require(data, "index", path, where), path, f"{where}.index")
     medium = data.get("medium_index")
@@ -227,6 +230,33 @@ def parse_interface(data: Any, path: Path, where: str = "interface") -> Interfac
     plane = data.get("plane")
     plane = None if plane is None else parse_window_plane(plane, path, f"{where}.plane")
     return Interface(thickness_mm=thickness, index=index, medium_index=medium, distance_mm=distance, plane=plane)
+
+
+def parse_windows(data: Any, path: Path, cameras: Mapping[str, CameraSpec]) -> tuple[Window, ...]:
+    """The ``interfaces`` mapping (1.3): name -> a window's plate and its ``cameras``; every camera of
+    ``cameras`` behind exactly one window, one medium behind all of them."""
+    data = as_mapping(data, path, "interfaces")
+    if not data:
+        raise AriSfmError(path, "interfaces must declare at least one window")
+    windows = []
+    for raw_name, item in data.items():
+        name = as_name(raw_name, path, "interfaces name")
+        where = key_path("interfaces", name)
+        item = as_mapping(item, path, where)
+        listed = as_list(require(item, "cameras", path, where), path, f"{where}.cameras")
+        names = tuple(as_name(c, path, f"{where}.cameras") for c in listed)
+        for c in names:
+            if c not in cameras:
+                raise AriSfmError(path, f"{where}.cameras: camera '{c}' is not declared in cameras "
+                                        f"({', '.join(cameras)})")
+        if len(set(names)) != len(names):
+            raise AriSfmError(path, f"{where}.cameras lists a camera twice")
+        windows.append(Window(name, parse_interface(item, path, where, WINDOW_KEYS), names))
+    try:
+        check_windows(tuple(windows), list(cameras))
+    except ValueError as exc:
+        raise AriSfmError(path, f"interfaces: {exc}") from None
+    return tuple(windows)
 
 
 def _length(value: Any, path: Path, where: str) -> float:
@@ -307,12 +337,13 @@ def parse_cameras(data: Any, path: Path, where: str = "cameras") -> dict[str, Ca
 
 
 def parse_entries(
-    data: Any, set_name: str, path: Path, root: Path, cameras: Mapping[str, CameraSpec], check_files: bool = True
+    data: Any, set_name: str, path: Path, root: Path, cameras: Mapping[str, CameraSpec], check_files: bool = True,
+    windows: tuple[Window, ...] = (),
 ) -> tuple[Entry, ...]:
     """One of the ``stacking`` / ``calibration`` / ``reconstruction`` lists (null or absent: empty).
 
-    Image paths are made absolute (relative to ``root``) and, if ``check_files``, must exist.
-    """
+    Image paths are made absolute (relative to ``root``) and, if ``check_files``, must exist. With several
+    ``windows`` a stacking entry names the window its plates were added to (``window``, 1.3)."""
     if data is None:
         return ()
     items = as_list(data, path, set_name)
@@ -342,8 +373,38 @@ def parse_entries(
             raise AriSfmError(path, f"{ctx}: {key} '{name}'{extra} is already listed in {set_name}[{seen[ident]}]")
         seen[ident] = i
         images = _parse_images(item.get("images"), path, root, cameras, f"{where}.images", ctx, check_files)
-        out.append(Entry(set=set_name, key=name, images=images, added_mm=added, stage_mm=stage))
+        window = _entry_window(item, set_name, images, windows, path, where, ctx)
+        out.append(Entry(set=set_name, key=name, images=images, added_mm=added, stage_mm=stage, window=window))
     return tuple(out)
+
+
+def _entry_window(item: Mapping[str, Any], set_name: str, images: Mapping[str, Path], windows: tuple[Window, ...],
+                  path: Path, where: str, ctx: str) -> str | None:
+    """A stacking entry's ``window`` (1.3): required with several windows (unless its images name it), checked
+    against the cameras whose images it lists; refused elsewhere."""
+    raw = item.get("window")
+    if raw is None:
+        if set_name != "stacking" or len(windows) < 2:
+            return None
+        behind = {w.name for w in windows for c in images if c in w.cameras}
+        if len(behind) == 1:
+            return behind.pop()
+        raise AriSfmError(path, f"{ctx}: with several windows a stacking entry names its window (window: "
+                                f"{' | '.join(w.name for w in windows)})")
+    name = as_name(raw, path, f"{where}.window")
+    if set_name != "stacking":
+        raise AriSfmError(path, f"{ctx}: window is only for stacking entries")
+    known = [w.name for w in windows]
+    if len(windows) < 2:
+        raise AriSfmError(path, f"{ctx}: window names one of several windows (interfaces), and this rig has one")
+    if name not in known:
+        raise AriSfmError(path, f"{ctx}: window '{name}' is not declared in interfaces ({', '.join(known)})")
+    window = next(w for w in windows if w.name == name)
+    outside = [c for c in images if c not in window.cameras]
+    if outside:
+        raise AriSfmError(path, f"{ctx}: camera {outside[0]} is not behind window {name}: the plates added to a "
+                                "window are seen by its own cameras")
+    return name
 
 
 def _parse_images(
@@ -376,16 +437,32 @@ def parse_rig(data: Any, rig_path: Path, check_files: bool = True) -> dict[str, 
     warn_unknown_keys(data, TOP_KEYS, rig_path)
     check_format(data, rig_path, FORMAT)
     target = parse_target(require(data, "target", rig_path), rig_path)
-    interface = parse_interface(require(data, "interface", rig_path), rig_path)
     cameras = parse_cameras(require(data, "cameras", rig_path), rig_path)
-    fields: dict[str, Any] = dict(root=root, rig_path=rig_path, target=target, interface=interface, cameras=cameras)
+    interface, windows = parse_window_keys(data, rig_path, cameras)
+    fields: dict[str, Any] = dict(root=root, rig_path=rig_path, target=target, interface=interface, cameras=cameras,
+                                  windows=windows)
     for set_name in SETS:
-        fields[set_name] = parse_entries(data.get(set_name), set_name, rig_path, root, cameras, check_files)
+        fields[set_name] = parse_entries(data.get(set_name), set_name, rig_path, root, cameras, check_files, windows)
     obs = data.get("observations")
     fields["observations_path"] = None if obs is None else Path(
         os.path.abspath(root / as_str(obs, rig_path, "observations"))
     )
     return fields
+
+
+def parse_window_keys(data: Mapping[str, Any], rig_path: Path, cameras: Mapping[str, CameraSpec]
+                      ) -> tuple[Interface, tuple[Window, ...]]:
+    """(interface, windows) of a rig mapping: ``interface`` (one window for every camera, windows ()) or
+    ``interfaces`` (1.3: several; the interface returned is the first window's), never both."""
+    if "interface" in data and "interfaces" in data:
+        raise AriSfmError(rig_path, "give interface (one window for every camera) or interfaces (several "
+                                    "windows), not both")
+    if "interfaces" not in data:
+        return parse_interface(require(data, "interface", rig_path), rig_path), ()
+    windows = parse_windows(data["interfaces"], rig_path, cameras)
+    if len(windows) == 1:  # one window for every camera, written the 1.3 way: the same as `interface`
+        return windows[0].interface, ()
+    return windows[0].interface, windows
 
 
 def check_observations(dataset: Dataset) -> None:
@@ -501,6 +578,14 @@ def interface_to_json(interface: Interface) -> dict[str, Any]:
     return out
 
 
+def windows_to_json(dataset: Dataset) -> dict[str, Any]:
+    """``{"interface": ...}`` of a one-window rig, ``{"interfaces": {name: ...}}`` of several (1.3)."""
+    if not dataset.windows:
+        return {"interface": interface_to_json(dataset.interface)}
+    return {"interfaces": {w.name: {"cameras": list(w.cameras), **interface_to_json(w.interface)}
+                           for w in dataset.windows}}
+
+
 def camera_to_json(camera: CameraSpec) -> dict[str, Any]:
     """One ``cameras`` entry of a rig file (hints only where set)."""
     out: dict[str, Any] = {"image_size": list(camera.image_size)}
@@ -526,6 +611,8 @@ def entry_to_json(entry: Entry, root: Path) -> dict[str, Any]:
         out["stage_mm"] = entry.stage_mm
     if entry.images:
         out["images"] = {cam: _relative(Path(p), root) for cam, p in entry.images.items()}
+    if entry.window is not None:
+        out["window"] = entry.window
     return out
 
 
@@ -540,7 +627,7 @@ def dump_rig(dataset: Dataset, root: str | Path | None = None, observations_file
     data: dict[str, Any] = {
         "format": FORMAT,
         "target": target_to_json(dataset.target),
-        "interface": interface_to_json(dataset.interface),
+        **windows_to_json(dataset),
         "cameras": {name: camera_to_json(cam) for name, cam in dataset.cameras.items()},
     }
     for set_name in SETS:

@@ -17,7 +17,7 @@ import numpy as np
 
 from ari_sfm.errors import AriSfmError
 from ari_sfm.io.atomic import write_bytes_atomic
-from ari_sfm.io.dataset import find_rig, parse_cameras, parse_interface
+from ari_sfm.io.dataset import find_rig, parse_cameras, parse_window_keys
 from ari_sfm.io.observations import check_format
 from ari_sfm.io.structured import (
     as_float_array,
@@ -30,7 +30,7 @@ from ari_sfm.io.structured import (
     require,
     warn_unknown_keys,
 )
-from ari_sfm.records import CameraSpec, Interface
+from ari_sfm.records import CameraSpec, Interface, Window
 
 PARTICLES_KEYS = ("detections", "images", "frames", "diameter_px", "volume_mm")
 VOLUME_KEYS = ("frame", "min", "max")
@@ -53,13 +53,14 @@ class ParticleDataset:
 
     root: Path
     rig_path: Path
-    interface: Interface
+    interface: Interface  # the first window's with several (windows)
     cameras: Mapping[str, CameraSpec]
     detections: Path | None  # absolute
     images: Mapping[str, str] | None  # camera -> absolute path pattern with {frame}
     frames: tuple[int, int] | None  # first and last frame of the images, inclusive
     diameter_px: float | None
     volume: VolumeSpec | None
+    windows: tuple[Window, ...] = ()  # several windows (1.3); (): interface for every camera
 
     @property
     def camera_names(self) -> list[str]:
@@ -119,8 +120,8 @@ def load_particle_dataset(path: str | Path) -> ParticleDataset:
     data = read_structured(rig_path)
     as_mapping(data, rig_path, "")
     check_format(data, rig_path, "ari-sfm/1")
-    interface = parse_interface(require(data, "interface", rig_path), rig_path)
     cameras = parse_cameras(require(data, "cameras", rig_path), rig_path)
+    interface, windows = parse_window_keys(data, rig_path, cameras)
     if data.get("particles") is None:
         raise AriSfmError(rig_path, "no 'particles' entry: not a particle experiment (DATASET_FORMAT.md 1.2)")
     p = as_mapping(data["particles"], rig_path, "particles")
@@ -159,7 +160,8 @@ def load_particle_dataset(path: str | Path) -> ParticleDataset:
             raise AriSfmError(rig_path, "particles.volume_mm: max must exceed min on every axis")
         volume = VolumeSpec(frame, lo, hi)
     return ParticleDataset(root=root, rig_path=rig_path, interface=interface, cameras=cameras,
-                           detections=detections, images=images, frames=frames, diameter_px=diameter, volume=volume)
+                           detections=detections, images=images, frames=frames, diameter_px=diameter, volume=volume,
+                           windows=windows)
 
 
 # --------------------------------------------------------------------------- parquet

@@ -4,7 +4,8 @@ Writes ``cal/camN.tif.ori``, ``cal/camN.tif.addpar`` and ``parameters/ptv.par``
 (its pixel size and multimedia part: n1 = 1, n2 = index, n3 = medium_index,
 d = thickness_mm) in the coordinates of one calibration frame's target (default:
 the first; for an imported experiment that is OpenPTV's own world), so that
-OpenPTV's correspondence and tracking run on an ari-sfm calibration. An existing
+OpenPTV's correspondence and tracking run on an ari-sfm calibration. Each camera's glass vector is
+its own window's (a rig with several windows, DATASET_FORMAT 1.3). An existing
 ``parameters/ptv.par`` in the folder keeps its other lines (image names, flags)
 and lends its pixel size unless ``pixel_size_mm`` is given; its image size must
 match. Cameras named ``cam1``..``camN`` keep their numbers; others are numbered
@@ -25,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ari_sfm.calibration import Calibration
+from ari_sfm.calibration import Calibration, WindowCalibration
 from ari_sfm.io import load_calibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose
@@ -75,23 +76,27 @@ def _target_pose(cal: Calibration, frame: str | None, path: Path) -> tuple[str, 
     return frame, cal.frames[frame]
 
 
-def _near_face_offset(cal: Calibration) -> float:
-    """n . X of the window's near face in the world frame. Without a distance (air on both sides:
+def _near_face_offset(cal: Calibration, window: WindowCalibration) -> float:
+    """n . X of a window's near face in the world frame. Without a distance (air on both sides:
     unobservable, and the projection does not depend on it) the face is where the model was fitted
     (``fixed_distance_mm``, as Calibration.projection_model puts it), else (the paraxial ari model,
     which has no face) 10 mm beyond the camera nearest to it (default_distance_mm)."""
-    if cal.interface.distance_mm is not None:
-        return float(cal.interface.distance_mm)
-    if cal.fixed_distance_mm is not None:
-        return float(cal.fixed_distance_mm)
+    plane = window.plane_mm(cal)
+    if plane is not None:
+        return plane
     from ari_sfm.factors.rig_graph import default_distance_mm
 
-    return default_distance_mm(cal.normal_world, {n: c.cam_from_world for n, c in cal.cameras.items()})
+    return default_distance_mm(window.normal_world, {n: c.cam_from_world for n, c in cal.cameras.items()},
+                               window.cameras)
 
 
 def _control_par(existing: ControlPar | None, numbers: dict[str, int], size: tuple[int, int],
-                 pix: tuple[float, float], cal: Calibration) -> ControlPar:
+                 pix: tuple[float, float], cal: Calibration, path: Path) -> ControlPar:
     n = len(numbers)
+    plates = {(w.interface.index, w.interface.medium_index, w.interface.thickness_mm) for w in cal.window_list()}
+    if len(plates) > 1:
+        raise AriSfmError(path, "the windows differ in thickness or index, and ptv.par holds one glass for every "
+                                f"camera ({sorted(plates)})")
     iface = cal.interface
     if existing is not None:
         images, cal_images, flags, chfield = (existing.image_names, existing.cal_image_names, existing.flags,
@@ -145,17 +150,20 @@ def export_openptv(calibration: str | Path, out: str | Path, frame: str | None =
     else:
         pix = (DEFAULT_PIXEL_SIZE_MM, DEFAULT_PIXEL_SIZE_MM)
         log.info("pixel size %g mm (no --pixel-size-mm, no ptv.par in %s)", DEFAULT_PIXEL_SIZE_MM, out)
-    control = _control_par(existing, numbers, size, pix, cal)
+    control = _control_par(existing, numbers, size, pix, cal, path)
 
     target_from_world = world_from_target.inverse()
-    normal_t = world_from_target.R.T @ cal.normal_world
-    face_point_t = target_from_world.apply(_near_face_offset(cal) * cal.normal_world)
-    thickness = cal.interface.thickness_mm
-    try:
-        glass = glass_vector(normal_t, face_point_t, thickness)
-    except ValueError as exc:
-        raise AriSfmError(path, f"frame {frame}: {exc}; OpenPTV's glass vector cannot express this window "
-                                "(choose another --frame)") from None
+    glasses = {}
+    for window in cal.window_list():  # OpenPTV gives every camera its own glass vector: its window's
+        normal_t = world_from_target.R.T @ window.normal_world
+        face_point_t = target_from_world.apply(_near_face_offset(cal, window) * window.normal_world)
+        try:
+            glass = glass_vector(normal_t, face_point_t, window.interface.thickness_mm)
+        except ValueError as exc:
+            which = "" if not cal.windows else f" (window {window.name})"
+            raise AriSfmError(path, f"frame {frame}: {exc}{which}; OpenPTV's glass vector cannot express this "
+                                    "window (choose another --frame)") from None
+        glasses.update({c: glass for c in window.cameras})
     ptv_text = update_control_par(ptv_par, control) if existing else format_control_par(control)
     texts: dict[Path, str] = {ptv_par: ptv_text}
     fit_errors: dict[str, float] = {}
@@ -170,7 +178,8 @@ def export_openptv(calibration: str | Path, out: str | Path, frame: str | None =
             log.log(level, "%s: OpenPTV's distortion (about the sensor centre) fitted to the calibration's "
                            "(about the principal point): max error %.2g px", name, fit_errors[name])
         base = out / control.cal_image_names[numbers[name] - 1]
-        texts[base.with_name(base.name + ".ori")] = format_ori(Orientation(position, angles, dm, xh, yh, cc, glass))
+        texts[base.with_name(base.name + ".ori")] = format_ori(Orientation(position, angles, dm, xh, yh, cc,
+                                                                           glasses[name]))
         texts[base.with_name(base.name + ".addpar")] = format_addpar(addpar)
     _check_targets(out, texts, ptv_par)
     for file, text in [*texts.items()][1:] + [(ptv_par, ptv_text)]:  # ptv.par last: it names the others

@@ -116,7 +116,7 @@ def make_scene(name: str, seed: int = 0, sigma_px: float = 0.05, **overrides) ->
 def _pixel_to_target(geometry: Geometry, camera: str, frame_pose, added_mm: float):
     """pixels (N, 2) -> target-plane (x, y) mm of the exact scene ray of each pixel (NaN if missed)."""
     cam = geometry.camera(camera)
-    model = geometry.window.model(cam, added_mm)
+    model = geometry.window_of(camera).model(cam, added_mm)
     cam_from_target = cam.cam_from_world.compose(frame_pose)
     R, t = cam_from_target.R, cam_from_target.t
 

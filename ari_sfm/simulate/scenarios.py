@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field, replace
-from typing import Callable, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -27,6 +27,7 @@ from ari_sfm.simulate.scene import (
     Geometry,
     ReconstructionFrame,
     StackingPose,
+    WindowGroup,
     WindowTruth,
     check_geometry,
     inside,
@@ -66,6 +67,11 @@ SCENARIOS: dict[str, str] = {
     "body3d_water": "a PTV-like 3D calibration body (3 levels, 40 mm deep) in one view of 4 cameras "
                     "through 6 mm glass into water, no stacking",
     "body3d_shallow": "body3d_water with a body 15 mm deep at 600 mm (too shallow for DLT without a focal hint)",
+    "tank_opposite": "a tank seen through two opposite walls (like OpenPTV's test_cavity): 2 + 2 cameras 12-26 "
+                     "deg oblique to 6 mm glass walls 120 mm either side of the centre, water between; a 3D dot "
+                     "body (5 rows on 3 levels, 16 mm deep) in 5 poses, each seen by every camera",
+    "tank_adjacent": "a tank seen through two adjacent walls at 90 deg: 2 + 2 cameras 12-26 deg oblique to 6 mm "
+                     "glass walls, water inside; the 3D dot body turned 45 deg to face both walls, 5 poses",
     "ptv_multiplane": "an OpenPTV multi-plane experiment: 4 cameras 12-26 deg oblique to 6 mm glass, 560-620 mm "
                       "from a 130 x 70 mm dot plate at 4 depths (15 mm) 7-25 mm into water, one view; pixels "
                       "quantised to 0.5 px, focal hints, interface.plane declared in the body's (OpenPTV's) frame",
@@ -157,7 +163,7 @@ def _board_pose(target: Target, center_world: np.ndarray, facing_world: np.ndarr
 
 @dataclass(frozen=True)
 class _Checker:
-    """Visibility tests for one window and camera set (exact projection)."""
+    """Visibility tests for one window (or one per camera) and a camera set (exact projection)."""
 
     target: Target
     window: WindowTruth
@@ -165,12 +171,16 @@ class _Checker:
     margin_px: float = MARGIN_PX
     clearance_mm: float = 10.0  # every board point this far beyond the far face
     _models: dict = field(default_factory=dict, compare=False, repr=False)  # (camera, added) -> ExactModel
+    windows: Mapping[str, WindowTruth] | None = None  # camera -> its window (several windows)
+
+    def window_of(self, cam: CameraTruth) -> WindowTruth:
+        return self.window if self.windows is None else self.windows[cam.name]
 
     def project(self, cam: CameraTruth, X_world: np.ndarray, added: float = 0.0) -> np.ndarray:
         """Exact pixels of world points (the model of each camera and stack is built once)."""
         key = (cam.name, float(added))
         if key not in self._models:
-            self._models[key] = self.window.model(cam, added)
+            self._models[key] = self.window_of(cam).model(cam, added)
         return self._models[key].project(cam.cam_from_world.apply(X_world))
 
     def sees(self, cam: CameraTruth, pose: Pose, added: Sequence[float] = (0.0,),
@@ -180,7 +190,7 @@ class _Checker:
         if outline:
             pts = np.concatenate([pts, _board_outline(self.target)])
         X = pose.apply(pts)
-        if self.window.depth_beyond_far_face(X, max(added)).min() < self.clearance_mm:
+        if self.window_of(cam).depth_beyond_far_face(X, max(added)).min() < self.clearance_mm:
             return False
         # A corner moves monotonically along a straight image line as glass is added (the
         # stacking physics), so inside the image for the thinnest and the thickest stack
@@ -193,7 +203,7 @@ class _Checker:
 
     def point_at(self, cam: CameraTruth, uv: Sequence[float], depth_mm: float) -> np.ndarray:
         """World point seen at pixel ``uv`` whose camera-frame z is ``depth_mm`` (exact ray)."""
-        origins, dirs = self.window.model(cam).backproject(np.asarray(uv, float)[None, :])
+        origins, dirs = self.window_of(cam).model(cam).backproject(np.asarray(uv, float)[None, :])
         o, d = origins[0], dirs[0]
         X_cam = o + (depth_mm - o[2]) / d[2] * d
         return cam.cam_from_world.inverse().apply(X_cam)
@@ -689,6 +699,91 @@ def ptv_multiplane(rng: np.random.Generator, grid: tuple[int, int] = (14, 8), gl
     return geometry
 
 
+# --------------------------------------------------------------------------- two-window tanks
+
+TANK_IMAGE_SIZE = (1280, 1024)  # test_cavity's cameras
+TANK_FOCAL_PX = 4800.0  # an 80 mm body about 700 px wide at 550 mm
+
+
+def cavity_body(columns: int = 15, pitch_mm: float = 5.0) -> Target:
+    """A test_cavity-like 3D body: 5 rows of dots (y = -25, -15, 0, 15, 25 mm) on three levels (z = 8, 0, -8,
+    0, 8 mm), ``columns`` dots ``pitch_mm`` apart along x, centred on the origin; dots visible from both sides."""
+    rows = ((-25.0, 8.0), (-15.0, 0.0), (0.0, -8.0), (15.0, 0.0), (25.0, 8.0))
+    xs = (np.arange(columns) - (columns - 1) / 2.0) * pitch_mm
+    pts, k = {}, 1
+    for y, z in rows:
+        for x in xs:
+            pts[k] = (float(x), y, z)
+            k += 1
+    return Target(type="points3d", points=pts)
+
+
+def _tank_camera(rng: np.random.Generator, wall_normal: np.ndarray, azimuth_deg: float,
+                 tilt_range_deg: tuple[float, float], range_mm: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """(tank_from_cam rotation, centre) of a camera looking through the wall whose inward normal is
+    ``wall_normal``, tilted 12-26 deg from it toward ``azimuth_deg``, aimed near the tank's centre."""
+    tilt = math.radians(rng.uniform(*tilt_range_deg))
+    axis = _tilted(wall_normal, tilt, math.radians(azimuth_deg + rng.uniform(-15.0, 15.0)))
+    centre = -rng.uniform(*range_mm) * axis
+    aim = np.array([rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-5, 5)])
+    roll = _rot((0.0, 0.0, 1.0), math.radians(rng.uniform(-5.0, 5.0)))
+    return _look_at(centre, aim) @ roll, centre
+
+
+def tank(rng: np.random.Generator, adjacent: bool = False, frames: int = 5, glass_mm: float = 6.0,
+         wall_mm: float = 120.0, tilt_range_deg: tuple[float, float] = (12.0, 26.0),
+         range_mm: tuple[float, float] = (480.0, 600.0)) -> Geometry:
+    """A tank seen through two walls, 2 + 2 cameras (test_cavity's shape), in the tank's frame first.
+
+    Walls: the ``front`` wall's inner (glass-water) face at z = -wall_mm, normal +z (cameras at z < 0); the
+    ``back`` wall at z = +wall_mm, normal -z (``adjacent``: the ``side`` wall at x = -wall_mm, normal +x);
+    each wall tilted 0-1 deg; ``glass_mm`` of N-BK7, water inside. Two cameras per wall, 12-26 deg oblique
+    to it (one to each side), 480-600 mm from the centre. The :func:`cavity_body` in ``frames`` poses near
+    the centre (shifted up to 12 mm, turned up to 8 deg; facing 45 deg between the walls when adjacent),
+    each seen whole by every camera. World = the first camera."""
+    target = cavity_body()
+    inward = [np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]) if adjacent else np.array([0.0, 0.0, -1.0])]
+    names = ["front", "side" if adjacent else "back"]
+    rig, groups = [], []
+    for w, n in enumerate(inward):
+        n_w = _tilted(n, math.radians(rng.uniform(0.0, 1.0)), rng.uniform(0, 2 * math.pi))
+        inward[w] = n_w
+        for side in (0.0, 180.0):
+            rig.append(_tank_camera(rng, n_w, side + (90.0 if adjacent and w == 1 else 0.0), tilt_range_deg,
+                                    range_mm))
+        groups.append((names[w], (f"cam{2 * w + 1}", f"cam{2 * w + 2}")))
+    cam_from_world = _in_world(rig)
+    cameras = []
+    for i in range(4):
+        K = _intrinsics(rng, TANK_IMAGE_SIZE, TANK_FOCAL_PX, focal_spread=0.03)
+        cameras.append(CameraTruth(name=f"cam{i + 1}", K=K, image_size=TANK_IMAGE_SIZE,
+                                   cam_from_world=cam_from_world[i], focal_hint_px=round(float(K[0, 0]), 1)))
+    rig_from_world = Pose(rig[0][0], rig[0][1])  # tank_from_cam1: world = cam1
+    windows = []
+    for (name, cams), n_w in zip(groups, inward):
+        # near (camera-side) face: the inner face at wall_mm from the centre, the glass outside it
+        near = -(wall_mm + glass_mm)
+        windows.append(WindowGroup(name, _window_in_world(n_w, near, rig_from_world, glass_mm, NBK7_INDEX,
+                                                          WATER_INDEX), cams))
+    by_camera = {c: g.window for g in windows for c in g.cameras}
+    world_from_tank = rig_from_world.inverse()
+    _, pts = target.points_3d()
+    chk = _Checker(target, windows[0].window, tuple(cameras), clearance_mm=20.0, windows=by_camera)
+    facing = unit(inward[0] + inward[1]) if adjacent else inward[0]
+    base = _look_at(np.zeros(3), -facing)  # the body's z axis toward the cameras of the first wall
+
+    def sample() -> Pose | None:
+        turn = _rot(rng.normal(size=3), math.radians(rng.uniform(0.0, 8.0)))
+        R = world_from_tank.R @ base @ turn
+        centre = world_from_tank.apply(rng.uniform(-12.0, 12.0, 3))
+        pose = Pose(R, centre - R @ pts.mean(axis=0))
+        return pose if len(chk.seen_by(pose)) == len(cameras) else None
+
+    calibration = {name: _draw(f"the body's pose {name}", sample) for name in _frame_names("f", frames)}
+    return Geometry(target=target, window=windows[0].window, cameras=tuple(cameras), calibration=calibration,
+                    windows=tuple(windows))
+
+
 # --------------------------------------------------------------------------- registry
 
 
@@ -719,6 +814,8 @@ REGISTRY: dict[str, ScenarioSpec] = {
     "body3d_water": ScenarioSpec(body3d, {}, rng_name="body3d"),
     "body3d_shallow": ScenarioSpec(body3d, {"depth_mm": 15.0, "distance_mm": 600.0}, rng_name="body3d"),
     "ptv_multiplane": ScenarioSpec(ptv_multiplane, {}, rng_name="ptv_multiplane"),
+    "tank_opposite": ScenarioSpec(tank, {}, rng_name="tank_opposite"),
+    "tank_adjacent": ScenarioSpec(tank, {"adjacent": True}, rng_name="tank_adjacent"),
 }
 assert set(REGISTRY) == set(SCENARIOS)
 

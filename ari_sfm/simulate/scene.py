@@ -1,7 +1,7 @@
 """Synthetic truth and what the cameras see of it, with exact Snell physics.
 
 A :class:`Geometry` is the ground truth of a simulated experiment: cameras,
-one window, target poses.  :func:`observe` projects every target corner with
+one window (or several, each with its cameras), target poses.  :func:`observe` projects every target corner with
 :class:`~ari_sfm.models.exact.ExactModel` (Snell's law at both faces, never
 the paraxial ARI equation); :func:`to_dataset`
 and :func:`truth_dict` turn the result into the project's records and the
@@ -24,7 +24,7 @@ import numpy as np
 from ari_sfm.geometry import Pose
 from ari_sfm.models.exact import ExactModel
 from ari_sfm.models.pinhole import PinholeModel
-from ari_sfm.records import CameraSpec, Dataset, Entry, Interface, Observation, Target, WindowPlane
+from ari_sfm.records import CameraSpec, Dataset, Entry, Interface, Observation, Target, Window, WindowPlane
 
 logger = logging.getLogger(__name__)
 
@@ -100,6 +100,15 @@ class WindowTruth:
 
 
 @dataclass(frozen=True)
+class WindowGroup:
+    """One of several windows (a tank seen through more than one wall) and the cameras behind it."""
+
+    name: str
+    window: WindowTruth
+    cameras: tuple[str, ...]
+
+
+@dataclass(frozen=True)
 class StackingPose:
     """A target pose imaged with several plate stacks (the target does not move)."""
 
@@ -132,6 +141,20 @@ class Geometry:
     scale: float = 1.0  # image scale applied to the cameras (1 = as designed)
     declared_plane: WindowPlane | None = None  # the window as the dataset declares it (interface.plane)
     pixel_step_px: float | None = None  # the dataset's pixels are rounded to this step (after the noise)
+    windows: tuple[WindowGroup, ...] = ()  # several windows (``window`` is then the first one's); (): one for all
+
+    def window_of(self, camera: str) -> WindowTruth:
+        """The window a camera looks through."""
+        for g in self.windows:
+            if camera in g.cameras:
+                return g.window
+        if self.windows:
+            raise KeyError(camera)
+        return self.window
+
+    def window_groups(self) -> tuple[WindowGroup, ...]:
+        """Every window with its cameras (one named ``window`` for all when not several)."""
+        return self.windows or (WindowGroup("window", self.window, tuple(c.name for c in self.cameras)),)
 
     def camera(self, name: str) -> CameraTruth:
         for cam in self.cameras:
@@ -196,7 +219,7 @@ def observe(geometry: Geometry) -> tuple[Observation, ...]:
     def record(set_name: str, frame: str, pose: Pose, added: float = 0.0, **extra) -> None:
         X = pose.apply(pts)
         for cam in geometry.cameras:
-            uv = project(geometry.window, cam, X, added)
+            uv = project(geometry.window_of(cam.name), cam, X, added)
             if inside(uv, cam.image_size, geometry.margin_px):
                 out.append(Observation(camera=cam.name, set=set_name, frame=frame, ids=ids.copy(),
                                        pixels=uv, **extra))
@@ -235,6 +258,10 @@ def to_dataset(geometry: Geometry, observations: tuple[Observation, ...] | None,
     w = geometry.window
     interface = Interface(thickness_mm=w.thickness_mm, index=w.index, medium_index=w.medium_index,
                           plane=geometry.declared_plane)
+    windows = tuple(Window(g.name, Interface(g.window.thickness_mm, g.window.index, g.window.medium_index), g.cameras)
+                    for g in geometry.windows)
+    if windows:
+        interface = windows[0].interface
     step = geometry.pixel_step_px
     if observations is not None and step:
         observations = tuple(replace(o, pixels=np.round(o.pixels / step) * step) for o in observations)
@@ -261,7 +288,7 @@ def to_dataset(geometry: Geometry, observations: tuple[Observation, ...] | None,
     return Dataset(root=root, rig_path=root / "rig.yaml", target=geometry.target, interface=interface,
                    cameras=cameras, stacking=stacking, calibration=calibration,
                    reconstruction=reconstruction, observations=observations,
-                   observations_path=None if observations is None else root / "observations.json")
+                   observations_path=None if observations is None else root / "observations.json", windows=windows)
 
 
 def _target_json(target: Target) -> dict:
@@ -277,9 +304,9 @@ def _target_json(target: Target) -> dict:
 
 def truth_dict(geometry: Geometry, scenario: str, seed: int, sigma_px: float) -> dict:
     """The truth in the ``calibration.json`` form (model ``truth``) plus the scenario keys."""
-    w = geometry.window
     cameras = {}
     for cam in geometry.cameras:
+        w = geometry.window_of(cam.name)
         n_c = w.normal_cam(cam)
         cameras[cam.name] = {
             "image_size": [int(cam.image_size[0]), int(cam.image_size[1])],
@@ -290,18 +317,28 @@ def truth_dict(geometry: Geometry, scenario: str, seed: int, sigma_px: float) ->
             "distance_mm": w.camera_distance_mm(cam),
             "expansion_center_px": expansion_center_px(cam, n_c).tolist(),
         }
+        if geometry.windows:
+            cameras[cam.name]["window"] = next(g.name for g in geometry.windows if cam.name in g.cameras)
     ids, pts = geometry.target.points_3d()
     frames = {name: {"world_from_target": pose.to_json()} for name, pose in geometry.frames().items()}
     recon_points = {r.name: {"stage_mm": float(r.stage_mm), "ids": ids.tolist(),
                              "xyz": r.world_from_target.apply(pts).tolist()}
                     for r in geometry.reconstruction}
+    def window_json(w: WindowTruth, first: CameraTruth) -> dict:
+        return {"normal_world": np.asarray(w.normal_world, float).tolist(), "thickness_mm": float(w.thickness_mm),
+                "index": float(w.index), "medium_index": float(w.medium_index),
+                "distance_mm": w.camera_distance_mm(first)}
+
+    if geometry.windows:
+        windows = {"interfaces": {g.name: {"cameras": list(g.cameras),
+                                           **window_json(g.window, geometry.camera(g.cameras[0]))}
+                                  for g in geometry.windows}}
+    else:
+        windows = {"interface": window_json(geometry.window, geometry.cameras[0])}
     truth = {
         "format": TRUTH_FORMAT,
         "model": "truth",
-        "interface": {"normal_world": np.asarray(w.normal_world, float).tolist(),
-                      "thickness_mm": float(w.thickness_mm), "index": float(w.index),
-                      "medium_index": float(w.medium_index),
-                      "distance_mm": w.camera_distance_mm(geometry.cameras[0])},
+        **windows,
         "cameras": cameras,
         "frames": frames,
         "scenario": scenario,
@@ -324,21 +361,24 @@ def check_geometry(geometry: Geometry, clearance_mm: float = 5.0) -> None:
     lies at least ``clearance_mm`` beyond the far face of the thickest stack
     used with it (the plate is between the cameras and the targets).
     """
-    w = geometry.window
-    if abs(np.linalg.norm(w.normal_world) - 1.0) > 1e-9:
-        raise ValueError("window normal is not a unit vector")
+    for g in geometry.window_groups():
+        if abs(np.linalg.norm(g.window.normal_world) - 1.0) > 1e-9:
+            raise ValueError(f"window {g.name}'s normal is not a unit vector")
     for cam in geometry.cameras:
+        w = geometry.window_of(cam.name)
         h = w.camera_distance_mm(cam)
         if h <= clearance_mm:
             raise ValueError(f"camera {cam.name} is {h:.1f} mm from the window's near surface")
         if w.normal_cam(cam)[2] <= 0.0:
             raise ValueError(f"camera {cam.name} looks away from the window")
     _, pts = geometry.target.points_3d()
-    for s in geometry.stacking:
-        depth = w.depth_beyond_far_face(s.world_from_target.apply(pts), max(s.added_mm, default=0.0))
-        if depth.min() < clearance_mm:
-            raise ValueError(f"stacking pose {s.name} is not beyond the far face of the stacked plate")
-    for name, pose in list(geometry.calibration.items()) + [
-            (r.name, r.world_from_target) for r in geometry.reconstruction]:
-        if w.depth_beyond_far_face(pose.apply(pts)).min() < clearance_mm:
-            raise ValueError(f"frame {name} is not beyond the far face of the window")
+    for g in geometry.window_groups():
+        w = g.window
+        for s in geometry.stacking:
+            depth = w.depth_beyond_far_face(s.world_from_target.apply(pts), max(s.added_mm, default=0.0))
+            if depth.min() < clearance_mm:
+                raise ValueError(f"stacking pose {s.name} is not beyond the far face of the stacked plate")
+        for name, pose in list(geometry.calibration.items()) + [
+                (r.name, r.world_from_target) for r in geometry.reconstruction]:
+            if w.depth_beyond_far_face(pose.apply(pts)).min() < clearance_mm:
+                raise ValueError(f"frame {name} is not beyond the far face of window {g.name}")
