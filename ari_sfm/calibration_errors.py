@@ -31,17 +31,30 @@ class CameraErrors:
 
 
 @dataclass(frozen=True)
+class WindowErrors:
+    """One window's errors, in the frame of its first camera (a rig with several windows)."""
+
+    name: str
+    normal_deg: float | None
+    distance_mm: float | None  # its first camera's centre to it; None where either has none
+
+
+@dataclass(frozen=True)
 class CalibrationErrors:
     """Errors of a calibration against the truth."""
 
     reference_camera: str
-    normal_deg: float | None  # None: a model without a window
+    normal_deg: float | None  # None: a model without a window (the first camera's window with several)
     distance_mm: float | None  # first camera's centre to the window; None where either has none
     cameras: tuple[CameraErrors, ...]
+    windows: tuple[WindowErrors, ...] = ()  # several windows: each one's
 
     def to_json(self) -> dict[str, Any]:
-        return {"reference_camera": self.reference_camera, "normal_deg": self.normal_deg,
-                "distance_mm": self.distance_mm, "cameras": [asdict(c) for c in self.cameras]}
+        out = {"reference_camera": self.reference_camera, "normal_deg": self.normal_deg,
+               "distance_mm": self.distance_mm, "cameras": [asdict(c) for c in self.cameras]}
+        if self.windows:
+            out["windows"] = [asdict(w) for w in self.windows]
+        return out
 
 
 def calibration_errors(cal: Calibration, truth: Calibration) -> CalibrationErrors:
@@ -50,12 +63,9 @@ def calibration_errors(cal: Calibration, truth: Calibration) -> CalibrationError
     if missing:
         raise AriSfmError("truth", f"camera {missing[0]} is not in the truth (its cameras: {', '.join(truth.cameras)})")
     first = next(iter(cal.cameras))
-    normal = distance = None
-    if cal.normal_world is not None and truth.normal_world is not None:
-        normal = angle_between_deg(cal.normal_cam(first), truth.normal_cam(first))
-        d_cal, d_true = cal.distance_mm(first), truth.distance_mm(first)
-        if d_cal is not None and d_true is not None:
-            distance = d_cal - d_true
+    windows = tuple(_window_errors(cal, truth, w.name, w.cameras[0]) for w in cal.window_list())
+    mine = next(w for w in windows if first in cal.window_of(first).cameras and w.name == cal.window_of(first).name)
+    normal, distance = mine.normal_deg, mine.distance_mm
     cams = []
     for name, c in cal.cameras.items():
         t = truth.cameras[name]
@@ -69,4 +79,15 @@ def calibration_errors(cal: Calibration, truth: Calibration) -> CalibrationError
             translation = float(np.linalg.norm(rel.t - rel_true.t))
         cams.append(CameraErrors(name, 100.0 * (p[0] / q[0] - 1.0), 100.0 * (p[1] / q[1] - 1.0), p[2] - q[2],
                                  p[3] - q[3], p[4] - q[4], rotation, translation))
-    return CalibrationErrors(first, normal, distance, tuple(cams))
+    return CalibrationErrors(first, normal, distance, tuple(cams), windows if cal.windows else ())
+
+
+def _window_errors(cal: Calibration, truth: Calibration, name: str, camera: str) -> WindowErrors:
+    """A window's normal and distance errors, seen from ``camera`` (its first)."""
+    normal = distance = None
+    if cal.window_of(camera).normal_world is not None and truth.window_of(camera).normal_world is not None:
+        normal = angle_between_deg(cal.normal_cam(camera), truth.normal_cam(camera))
+        d_cal, d_true = cal.distance_mm(camera), truth.distance_mm(camera)
+        if d_cal is not None and d_true is not None:
+            distance = d_cal - d_true
+    return WindowErrors(name, normal, distance)

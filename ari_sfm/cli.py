@@ -556,6 +556,7 @@ def import_colmap_fork_cmd(model_dir: Path, out: Path, units_mm: float) -> None:
                f"n={cal.interface.index:g} medium n={cal.interface.medium_index:g} -> {out / 'calibration.json'}")
 
 
+
 @main.command()
 @click.argument("scenario")
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder: OUT/dataset and OUT/truth.json.")
@@ -849,6 +850,9 @@ def _truth_summary(errors) -> None:
     if errors.distance_mm is not None:
         head += f", window distance {errors.distance_mm:+.3f} mm"
     click.echo(head)
+    for w in errors.windows:
+        click.echo(f"  window {w.name}: normal {_std(w.normal_deg, '.4f')}°"
+                   + ("" if w.distance_mm is None else f", distance {w.distance_mm:+.3f} mm"))
     for c in errors.cameras:
         rel = ("" if c.rotation_deg is None else
                f"  cam_from_{errors.reference_camera} {c.rotation_deg:.4f}° {c.translation_mm:.4f} mm")
@@ -877,23 +881,34 @@ def _summary(cal, elapsed: float, covers: str = "the whole command") -> None:
     if q is not None and not q.ok:
         click.echo(f"\nQUALITY GATE FAILED (exit 3): {q.why} [starts tried: {', '.join(q.starts)}]")
     click.echo(f"\nmodel {cal.model}: {len(cal.cameras)} camera(s), {len(cal.frames)} frames, "
-               f"window {cal.interface.thickness_mm:g} mm n={cal.interface.index:g} medium n={cal.interface.medium_index:g}")
-    nw = cal.normal_world
-    if nw is None:
-        click.echo("normal: none (the window is ignored)")
-    else:
-        click.echo(f"normal (world) [{nw[0]:+.5f} {nw[1]:+.5f} {nw[2]:+.5f}]"
-                   + (f"  distance {cal.interface.distance_mm:.3f} mm" if cal.interface.distance_mm is not None else ""))
+               + ", ".join(f"window{' ' + w.name if cal.windows else ''} {w.interface.thickness_mm:g} mm "
+                           f"n={w.interface.index:g}" for w in cal.window_list())
+               + f" medium n={cal.interface.medium_index:g}")
+    for w in cal.window_list():
+        nw, label = w.normal_world, f"window {w.name} ({', '.join(w.cameras)}): " if cal.windows else ""
+        if nw is None:
+            click.echo("normal: none (the window is ignored)")
+        else:
+            click.echo(f"{label}normal (world) [{nw[0]:+.5f} {nw[1]:+.5f} {nw[2]:+.5f}]"
+                       + (f"  distance {w.interface.distance_mm:.3f} mm" + (f" from {w.cameras[0]}" if cal.windows else "")
+                          if w.interface.distance_mm is not None else ""))
     click.echo(f"{'camera':10s} {'fx':>9s} {'fy':>9s} {'cx':>8s} {'cy':>8s} {'tilt':>6s} {'expansion centre (px)':>26s} {'rmse':>7s}")
     for name, c in cal.cameras.items():
-        tilt = float("nan") if cal.normal_world is None else angle_between_deg(cal.normal_cam(name), np.array([0, 0, 1.0]))
+        tilt = (float("nan") if cal.window_of(name).normal_world is None
+                else angle_between_deg(cal.normal_cam(name), np.array([0, 0, 1.0])))
         ec = "-" if c.expansion_center_px is None else (
             f"{c.expansion_center_px[0]:.1f},{c.expansion_center_px[1]:.1f} ±{max(c.expansion_center_std_px):.2f}")
         click.echo(f"{name:10s} {c.K[0,0]:9.2f} {c.K[1,1]:9.2f} {c.K[0,2]:8.2f} {c.K[1,2]:8.2f} {tilt:5.2f}° {ec:>26s} {c.rmse_px:7.4f}")
     u = cal.uncertainty
     if u:
-        click.echo(f"standard deviations (sigma {u.sigma_px:.3f} px): normal {_std(u.normal_deg, '.4f')}°"
-                   + (f", distance {_std(u.distance_mm, '.4f')} mm" if u.estimates_distance else ""))
+        if u.windows:
+            click.echo(f"standard deviations (sigma {u.sigma_px:.3f} px): "
+                       + "; ".join(f"window {n} normal {_std(w.normal_deg, '.4f')}°"
+                                   + (f", distance {_std(w.distance_mm, '.4f')} mm" if u.estimates_distance else "")
+                                   for n, w in u.windows.items()))
+        else:
+            click.echo(f"standard deviations (sigma {u.sigma_px:.3f} px): normal {_std(u.normal_deg, '.4f')}°"
+                       + (f", distance {_std(u.distance_mm, '.4f')} mm" if u.estimates_distance else ""))
         for name, s in u.cameras.items():
             rel = (f"  cam_from_{next(iter(cal.cameras))} ±{_std(s.rotation_deg, '.4f')}°"
                    f" ±{_std(s.translation_mm, '.4f')} mm" if s.relative_pose else "")

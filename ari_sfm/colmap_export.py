@@ -173,11 +173,11 @@ def virtual_camera(calibration: Calibration, camera: str, points_world: np.ndarr
     X_world, target_px = X_world[ok], target_px[ok]
     X_cam = cam.cam_from_world.apply(X_world)
     no_window = type(model) is PinholeModel  # a model that ignores the window: the camera itself
-    exact = no_window or (isinstance(model, AriModel) and calibration.interface.medium_index == 1.0)
+    exact = no_window or (isinstance(model, AriModel) and calibration.interface_of(camera).medium_index == 1.0)
     if no_window or not has_normal:
         shift = 0.0
     elif exact:
-        shift = calibration.interface.shift_mm
+        shift = calibration.interface_of(camera).shift_mm
     else:
         ari = calibration.projection_model(camera, model="ari")
         start = float(np.median((X_cam - ari.apparent_points(X_cam)) @ n_cam))

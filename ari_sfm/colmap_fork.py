@@ -30,7 +30,8 @@ one image per camera and calibration frame (``<camera>/<frame>``: every image of
 the rig's poses. A refine-colmap output (mount camera) is written with COLMAP's camera and image
 ids, every image at its refined real pose with its 2D points, and the refined points. Reading back: the cameras' poses from their images (equal for a static rig; one
 camera that moves, as in a survey, is read at its first image), re-expressed in the first camera's
-frame, which must see one window shared by every camera.
+frame; cameras whose FLATPORT planes coincide share a window, others get windows of their own (a rig
+behind several walls, DATASET_FORMAT 1.3: each camera's FLATPORT is written from its own window).
 """
 from __future__ import annotations
 
@@ -42,7 +43,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .calibration import Calibration, CameraCalibration
+from .calibration import Calibration, CameraCalibration, WindowCalibration
 from .io import load_calibration
 from .errors import AriSfmError
 from .geometry import Pose, angle_between_deg
@@ -216,12 +217,8 @@ def _rotation_from_wxyz(q: Sequence[float]) -> np.ndarray:
 
 
 def _camera_window(cal: Calibration, name: str) -> float:
-    """A camera's distance to the window's near face (mm), also for an exact calibration in air."""
-    distance = cal.distance_mm(name)
-    if distance is None:
-        centre = cal.cameras[name].cam_from_world.inverse().t
-        distance = float(cal.fixed_distance_mm - cal.normal_world @ centre)
-    return distance
+    """A camera's distance to its window's near face (mm), also for an exact calibration in air."""
+    return float(cal.evaluation_distance_mm(name))
 
 
 @dataclass(frozen=True)
@@ -318,7 +315,7 @@ def export_colmap_fork(calibration: Calibration | str | Path, out_dir: str | Pat
     for n in names:
         c = cal.cameras[n]
         cam_lines.append(format_camera_line(camera_ids[n], c.image_size, c.params, cal.normal_cam(n),
-                                            _camera_window(cal, n), cal.interface, units_mm))
+                                            _camera_window(cal, n), cal.interface_of(n), units_mm))
     img_lines = ["# Image list with two lines of data per image:",
                  "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
                  "#   POINTS2D[] as (X, Y, POINT3D_ID)",
@@ -442,32 +439,40 @@ def import_colmap_fork(model_dir: str | Path, units_mm: float = DEFAULT_UNITS_MM
                                                     "cameras come from their images")
     first = fork_cams[0]
     world_from_first = (poses[first.camera_id] or Pose.identity()).inverse()
-    ref = first.indices, first.thickness_mm
     names = [_camera_name(c, images) for c in fork_cams]
     if len(set(names)) != len(names):
         names = [f"cam{c.camera_id}" for c in fork_cams]
-    cameras = {}
-    normal_world = first.normal_cam
-    h0 = first.distance_mm
+    media = {c.indices[2] for c in fork_cams}
+    if len(media) > 1:
+        raise AriSfmError(cams_path, f"the cameras' water indices (nw) differ ({sorted(media)}): one tank, one medium")
+    cameras, groups = {}, []  # groups: [normal_world, plane offset, thickness, indices, camera names]
     for name, c in zip(names, fork_cams):
-        if (c.indices, c.thickness_mm) != ref:
-            raise AriSfmError(cams_path, f"camera {c.camera_id}: its window (thickness, na ng nw) differs from camera "
-                                         f"{first.camera_id}'s: ari-sfm calibrates one window shared by the rig")
         cam_from_world = (poses[c.camera_id] or Pose.identity()).compose(world_from_first)
         n_w = cam_from_world.R.T @ c.normal_cam
-        centre = cam_from_world.inverse().t
-        if angle_between_deg(n_w, normal_world) > WINDOW_TOLERANCE_DEG or \
-                abs(h0 - float(normal_world @ centre) - c.distance_mm) > WINDOW_TOLERANCE_MM * max(1.0, h0):
-            raise AriSfmError(cams_path, f"camera {c.camera_id}'s window is not camera {first.camera_id}'s (normal "
-                                         f"{angle_between_deg(n_w, normal_world):.3g} deg apart, or another plane): "
-                                         "ari-sfm calibrates one window shared by the rig")
+        plane = c.distance_mm + float(n_w @ cam_from_world.inverse().t)  # its near face: n_w . X = plane
+        same = next((g for g in groups if (g[2], g[3]) == (c.thickness_mm, c.indices)
+                     and angle_between_deg(n_w, g[0]) <= WINDOW_TOLERANCE_DEG
+                     and abs(plane - g[1]) <= WINDOW_TOLERANCE_MM * max(1.0, abs(g[1]))), None)
+        if same is None:  # a window of its own: FLATPORT cameras behind another wall (DATASET_FORMAT 1.3)
+            groups.append([n_w, plane, c.thickness_mm, c.indices, [name]])
+        else:
+            same[4].append(name)
         p = c.params
         K = np.array([[p[0], 0.0, p[2]], [0.0, p[1], p[3]], [0.0, 0.0, 1.0]])
         cameras[name] = CameraCalibration(name, c.image_size, K, p[4:9].copy(), cam_from_world)
-    _, ng, nw = first.indices
-    in_air = nw == 1.0
-    interface = Interface(first.thickness_mm, ng, nw, None if in_air else h0)
-    return Calibration(model="exact", interface=interface, normal_world=normal_world, cameras=cameras, frames={},
-                       extra={"imported_from": {"format": f"COLMAP {REFRAC_MODEL} (colmap_underwater)",
-                                                "path": str(model_dir), "units_mm": units_mm}},
-                       fixed_distance_mm=h0 if in_air else None)
+    in_air = first.indices[2] == 1.0
+    windows = []
+    for k, (n_w, plane, thickness, (_, ng, nw), members) in enumerate(groups):
+        reference = float(n_w @ cameras[members[0]].cam_from_world.inverse().t)
+        distance = plane - reference  # from the window's first camera, as calibration.json says
+        windows.append(WindowCalibration(f"window{k + 1}" if len(groups) > 1 else "window",
+                                         Interface(thickness, ng, nw, None if in_air else distance), n_w,
+                                         tuple(members), distance if in_air else None))
+    if len(windows) > 1:
+        log.info("%s: %d windows (cameras behind different walls: %s)", cams_path, len(windows),
+                 "; ".join(f"{w.name}: {', '.join(w.cameras)}" for w in windows))
+    head = windows[0]
+    return Calibration(model="exact", interface=head.interface, normal_world=head.normal_world, cameras=cameras,
+                       frames={}, extra={"imported_from": {"format": f"COLMAP {REFRAC_MODEL} (colmap_underwater)",
+                                                          "path": str(model_dir), "units_mm": units_mm}},
+                       fixed_distance_mm=head.fixed_distance_mm, windows=tuple(windows) if len(windows) > 1 else ())

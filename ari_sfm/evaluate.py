@@ -72,7 +72,8 @@ def solve_frame_poses(calibration: Calibration, observations: Sequence[Observati
         if not ok:
             continue
         cam_from_target = real_cam_from_target(Pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3)),
-                                               calibration.normal_cam(first.camera), calibration.interface.shift_mm)
+                                               calibration.normal_cam(first.camera),
+                                               calibration.interface_of(first.camera).shift_mm)
         start = cam.cam_from_world.inverse().compose(cam_from_target)
         models = [calibration.projection_model(o.camera) for o in obs]
 

@@ -30,7 +30,7 @@ MISFIT_PX = 2.0  # median reprojection error (px) above which the calibration is
 def check_rig(dataset: Dataset, calibration: Calibration, calibration_path: str | Path | None = None) -> None:
     """Raise a one-line AriSfmError unless the calibration is of the dataset's rig.
 
-    The same camera names, each with the same image size, and the same window
+    The same camera names, each with the same image size, and behind each camera the same window
     (thickness, glass index, medium index).
     """
     where = calibration_path if calibration_path is not None else dataset.rig_path
@@ -38,12 +38,21 @@ def check_rig(dataset: Dataset, calibration: Calibration, calibration_path: str 
     if set(cal_names) != set(dataset.cameras):
         raise AriSfmError(where, f"calibration is from another rig: its cameras {', '.join(cal_names)} are not "
                                  f"the cameras {', '.join(dataset.cameras)} of {dataset.rig_path}")
-    a, b = calibration.interface, dataset.interface
-    for what, x, y in (("thickness_mm", a.thickness_mm, b.thickness_mm), ("index", a.index, b.index),
-                       ("medium_index", a.medium_index, b.medium_index)):
-        if not np.isclose(x, y, rtol=1e-6, atol=1e-9):
-            raise AriSfmError(where, f"calibration is from another rig: window {what} {x:g} there but {y:g} in "
-                                     f"{dataset.rig_path}")
+    if not calibration.spec.window:  # a model that ignores the window (pinhole): nothing more to compare
+        pass
+    elif len(calibration.window_list()) != len(dataset.window_list()):
+        raise AriSfmError(where, f"calibration is from another rig: {len(calibration.window_list())} window(s) there "
+                                 f"but {len(dataset.window_list())} in {dataset.rig_path}")
+    for name in dataset.cameras if calibration.spec.window else ():
+        a, b = calibration.interface_of(name), dataset.interface_of(name)
+        for what, x, y in (("thickness_mm", a.thickness_mm, b.thickness_mm), ("index", a.index, b.index),
+                           ("medium_index", a.medium_index, b.medium_index)):
+            if not np.isclose(x, y, rtol=1e-6, atol=1e-9):
+                raise AriSfmError(where, f"calibration is from another rig: camera {name}'s window {what} {x:g} "
+                                         f"there but {y:g} in {dataset.rig_path}")
+        if dataset.windows and set(calibration.window_of(name).cameras) != set(dataset.window_of(name).cameras):
+            raise AriSfmError(where, f"calibration is from another rig: camera {name} shares its window with other "
+                                     f"cameras there than in {dataset.rig_path}")
     for name, spec in dataset.cameras.items():
         size = tuple(int(s) for s in calibration.cameras[name].image_size)
         if size != tuple(int(s) for s in spec.image_size):

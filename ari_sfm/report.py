@@ -285,10 +285,13 @@ def calibration_rows(cal: Calibration) -> list[list[Any]]:
         for key, value in zip(dist_names, cam.params[4:]):
             if value != 0.0 or key in u:
                 rows.append([name, key, float(value), u.get(key)])
-        if cal.normal_world is not None:
+        if cal.window_of(name).normal_world is not None:
             n = cal.normal_cam(name)
             tilt = float(np.degrees(np.arccos(np.clip(n[2], -1, 1))))
-            rows.append([name, "window tilt to the optical axis (deg)", tilt, unc.get("normal_deg")])
+            sigma = unc.get("windows", {}).get(cal.window_of(name).name, {}).get("normal_deg", unc.get("normal_deg"))
+            label = "window tilt to the optical axis (deg)" if not cal.windows else \
+                f"window {cal.window_of(name).name}: tilt to the optical axis (deg)"
+            rows.append([name, label, tilt, sigma])
         if cam.expansion_center_px is not None:
             std = cam.expansion_center_std_px if cam.expansion_center_std_px is not None else (None, None)
             rows.append([name, "expansion centre u (px)", float(cam.expansion_center_px[0]), std[0]])
@@ -300,12 +303,16 @@ def calibration_rows(cal: Calibration) -> list[list[Any]]:
             angle = float(np.degrees(np.arccos(np.clip((np.trace(rel.R) - 1) / 2, -1, 1))))
             rows.append([name, f"rotation from {first} (deg)", angle, u.get("rotation_deg")])
         rows.append([name, "reprojection rmse (px)", cam.rmse_px, None])
-    if cal.normal_world is not None:
-        n = cal.normal_world
-        rows.append(["window", "normal (world); std: angle (deg)", f"[{n[0]:+.5f} {n[1]:+.5f} {n[2]:+.5f}]",
-                     unc.get("normal_deg")])
-    if cal.interface.distance_mm is not None:
-        rows.append(["window", "distance (mm)", cal.interface.distance_mm, unc.get("distance_mm")])
+    for w in cal.window_list():
+        label = "window" if not cal.windows else f"window {w.name}"
+        wu = unc.get("windows", {}).get(w.name, unc if not cal.windows else {})
+        if w.normal_world is not None:
+            n = w.normal_world
+            rows.append([label, "normal (world); std: angle (deg)", f"[{n[0]:+.5f} {n[1]:+.5f} {n[2]:+.5f}]",
+                         wu.get("normal_deg")])
+        if w.interface.distance_mm is not None:
+            rows.append([label, f"distance from {w.cameras[0]} (mm)" if cal.windows else "distance (mm)",
+                         w.interface.distance_mm, wu.get("distance_mm")])
     return rows
 
 
@@ -332,9 +339,11 @@ Section = Callable[[ReportContext], str]  # returns HTML ("" when it has nothing
 def _summary_section(ctx: ReportContext) -> str:
     inp = ctx.inputs
     cal = inp.calibration
-    i = cal.interface
-    rows: list[list[Any]] = [["model", cal.model], ["cameras", ", ".join(cal.cameras)],
-                             ["window", f"{i.thickness_mm:g} mm, n = {i.index:g}, medium n = {i.medium_index:g}"]]
+    rows: list[list[Any]] = [["model", cal.model], ["cameras", ", ".join(cal.cameras)]]
+    for w in cal.window_list():
+        i = w.interface
+        rows.append(["window" if not cal.windows else f"window {w.name} ({', '.join(w.cameras)})",
+                     f"{i.thickness_mm:g} mm, n = {i.index:g}, medium n = {i.medium_index:g}"])
     target = ctx.target
     if target is not None:
         grid = target.inner_corners or target.squares or target.circle_grid

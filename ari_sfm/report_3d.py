@@ -45,10 +45,17 @@ MAX_POINTS = 20000  # reconstructed points drawn (an even subsample beyond)
 
 def _tracing_calibration(calibration: Calibration, points: np.ndarray) -> tuple[Calibration, bool]:
     """The calibration the rays are traced with (exact needs a window distance) and whether it is schematic."""
-    d, schematic = window_depth(calibration, points)
-    if calibration.interface.distance_mm is None:
-        calibration = replace(calibration, fixed_distance_mm=d)
-    return calibration, schematic
+    windows, schematic = [], False
+    for w in calibration.window_list():
+        d, guessed = window_depth(calibration, points, w)
+        schematic |= guessed
+        if w.interface.distance_mm is None:  # as a distance from the window's first camera
+            d -= float(w.normal_world @ calibration.cameras[w.cameras[0]].cam_from_world.inverse().t)
+            w = replace(w, fixed_distance_mm=d)
+        windows.append(w)
+    first = windows[0]
+    return replace(calibration, fixed_distance_mm=first.fixed_distance_mm,
+                   windows=tuple(windows) if calibration.windows else ()), schematic
 
 
 def sample_rays(calibration: Calibration, camera: str, end_depth_mm: float,
@@ -60,7 +67,7 @@ def sample_rays(calibration: Calibration, camera: str, end_depth_mm: float,
     u, v = np.meshgrid(np.linspace(RAY_INSET * w, (1 - RAY_INSET) * w, grid[0]),
                        np.linspace(RAY_INSET * h, (1 - RAY_INSET) * h, grid[1]))
     uv = np.stack([u.ravel(), v.ravel()], axis=1)
-    if calibration.normal_world is None:
+    if calibration.window_of(camera).normal_world is None:
         from .models import PinholeModel
 
         _, ray = PinholeModel(cam.K, cam.dist).backproject(uv)
@@ -80,10 +87,10 @@ def sample_rays(calibration: Calibration, camera: str, end_depth_mm: float,
     return out[np.all(np.isfinite(out), axis=(1, 2))]
 
 
-def _window_box(calibration: Calibration, d: float, extent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (8, 3) and triangles (12, 3) of the plate between n.X = d and n.X = d + t, over the
+def _window_box(window, d: float, extent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (8, 3) and triangles (12, 3) of a window's plate between n.X = d and n.X = d + t, over the
     extent of the given points projected on the near face (plus a margin)."""
-    n = calibration.normal_world
+    n = window.normal_world
     a = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
     a /= np.linalg.norm(a)
     b = np.cross(n, a)
@@ -91,7 +98,7 @@ def _window_box(calibration: Calibration, d: float, extent: np.ndarray) -> tuple
     ms, mt = 0.25 * max(np.ptp(s), 20.0), 0.25 * max(np.ptp(t_), 20.0)
     corners = [(s.min() - ms, t_.min() - mt), (s.max() + ms, t_.min() - mt), (s.max() + ms, t_.max() + mt),
                (s.min() - ms, t_.max() + mt)]
-    thickness = calibration.interface.thickness_mm
+    thickness = window.interface.thickness_mm
     verts = np.array([n * (d + off) + p * a + q * b for off in (0.0, thickness) for p, q in corners])
     faces = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4], [1, 2, 6], [1, 6, 5],
                       [2, 3, 7], [2, 7, 6], [3, 0, 4], [3, 4, 7]])
@@ -114,25 +121,29 @@ def rig_view_figure(calibration: Calibration, points: Mapping[str, np.ndarray],
     centres = {n: c.cam_from_world.inverse().t for n, c in calibration.cameras.items()}
     end_depth = float(np.median(scene[:, 2])) if len(scene) else 500.0
     fig = go.Figure()
-    ray_ends = []
+    ray_ends: dict[str, list[np.ndarray]] = {}
     for k, name in enumerate(calibration.cameras):
         try:
             rays = sample_rays(traced, name, end_depth)
         except ValueError as exc:  # e.g. a schematic window that this camera does not look through
             log.warning("3D view: no rays for %s: %s", name, exc)
             continue
-        ray_ends.append(rays[:, 1:3].reshape(-1, 3))
+        ray_ends.setdefault(calibration.window_of(name).name, []).append(rays[:, 1:3].reshape(-1, 3))
         line = np.concatenate([np.vstack([r, [np.nan] * 3]) for r in rays]) if len(rays) else np.zeros((0, 3))
         fig.add_trace(go.Scatter3d(x=line[:, 0], y=line[:, 1], z=line[:, 2], mode="lines",
                                    line=dict(color=RAY_COLOURS[k % len(RAY_COLOURS)], width=2),
                                    name=f"rays of {name} (exact model)", hoverinfo="skip"))
-    if calibration.normal_world is not None:
-        d, _ = window_depth(calibration, scene)
-        near_far = np.concatenate(ray_ends) if ray_ends else np.zeros((0, 3))
-        verts, faces = _window_box(calibration, d, np.vstack([near_far, np.array(list(centres.values()))]))
+    for w in calibration.window_list():  # every window, over its own cameras and rays
+        if w.normal_world is None:
+            continue
+        d, _ = window_depth(calibration, scene, w)
+        ends = ray_ends.get(w.name, [])
+        near_far = np.concatenate(ends) if ends else np.zeros((0, 3))
+        verts, faces = _window_box(w, d, np.vstack([near_far, np.array([centres[c] for c in w.cameras])]))
+        label = "window" if not calibration.windows else f"window {w.name}"
         fig.add_trace(go.Mesh3d(x=verts[:, 0], y=verts[:, 1], z=verts[:, 2], i=faces[:, 0], j=faces[:, 1],
                                 k=faces[:, 2], color="#17becf", opacity=0.25, flatshading=True, hoverinfo="name",
-                                name=f"window, {calibration.interface.thickness_mm:g} mm"
+                                name=f"{label}, {w.interface.thickness_mm:g} mm"
                                      + (" (depth schematic: not observable in air)" if schematic else ""),
                                 showlegend=True))
     span = np.vstack([scene, np.array(list(centres.values()))])

@@ -151,12 +151,14 @@ def recommendations(calibration: Calibration, residuals: Residuals, target: Targ
             out.append(f"The {set_name} image {frame} of {camera} has {value / median:.1f} x the median image's "
                        f"RMS ({value:.3f} vs {median:.3f} px): check its corner detection or leave it out.")
     u = cal.uncertainty
-    d = cal.interface.distance_mm
-    if (u is not None and u.estimates_distance and d and u.distance_mm is not None
-            and u.distance_mm / abs(d) > DISTANCE_REL_STD):
-        out.append(f"The window distance is barely determined ({d:.1f} ± {u.distance_mm:.1f} mm, "
-                   f"{100 * u.distance_mm / abs(d):.0f} %): declare it (interface.plane in rig.yaml: a board "
-                   "lying on the window) or add views over a wider range of depths and angles.")
+    for w in cal.window_list():
+        d = w.interface.distance_mm
+        s = None if u is None else (u.windows[w.name].distance_mm if w.name in u.windows else u.distance_mm)
+        if u is not None and u.estimates_distance and d and s is not None and s / abs(d) > DISTANCE_REL_STD:
+            which = "window" if not cal.windows else f"window {w.name}"
+            out.append(f"The {which} distance is barely determined ({d:.1f} ± {s:.1f} mm, "
+                       f"{100 * s / abs(d):.0f} %): declare it (its plane in rig.yaml: a board "
+                       "lying on the window) or add views over a wider range of depths and angles.")
     if cal.outliers is not None and cal.outliers.corners and not cal.outliers.excluded:
         out.append(f"{len(cal.outliers.corners)} corners lie beyond {cal.outliers.threshold_sigma:g} sigma "
                    "(listed in calibration.json under outliers): check them, or re-run with --exclude-outliers.")

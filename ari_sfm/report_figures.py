@@ -351,7 +351,7 @@ def draw_expansion_centre(calibration: Calibration, stacking: Mapping[str, Seque
             ax.plot(*cal_c, "x", color="tab:blue", ms=9, mew=2, label="in calibration.json")
             xs.append(float(cal_c[0]))
             ys.append(float(cal_c[1]))
-        if calibration.normal_world is not None:  # the model's own centre: K n_cam
+        if calibration.window_of(name).normal_world is not None:  # the model's own centre: K n_cam
             n = calibration.normal_cam(name)
             if n[2] > 1e-6:
                 p = calibration.cameras[name].K @ (n / n[2])
@@ -424,17 +424,17 @@ def rig_figure(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> by
     return to_png(draw_rig(calibration, frames))
 
 
-def window_depth(calibration: Calibration, points: np.ndarray) -> tuple[float, bool]:
-    """(near-surface distance along normal_world from the world origin, schematic?). Where the calibration
-    does not observe the distance (in air it changes no pixel) it is the distance an exact model was
-    evaluated at (fixed_distance_mm), else halfway to the points."""
-    n = calibration.normal_world
-    d = calibration.interface.distance_mm
-    if d is not None:
-        return float(d), False
-    if calibration.fixed_distance_mm is not None:
-        return float(calibration.fixed_distance_mm), True
-    return (0.5 * float(np.median(points @ n)) if len(points) else 50.0), True
+def window_depth(calibration: Calibration, points: np.ndarray, window=None) -> tuple[float, bool]:
+    """(a window's near face as the plane offset ``normal . X`` in the world, schematic?) of ``window``
+    (default the first). Where the calibration does not observe the distance (in air it changes no pixel)
+    it is where an exact model was evaluated (fixed_distance_mm), else halfway from its cameras to the points."""
+    w = calibration.window_list()[0] if window is None else window
+    n = w.normal_world
+    plane = w.plane_mm(calibration)
+    if plane is not None:
+        return plane, w.interface.distance_mm is None
+    first = calibration.cameras[w.cameras[0]].cam_from_world.inverse().t
+    return (float(n @ first + 0.5 * (np.median(points @ n) - n @ first)) if len(points) else float(n @ first) + 50.0), True
 
 
 @styled
@@ -447,10 +447,14 @@ def draw_rig(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> Any:
     centres = {n: c.cam_from_world.inverse().t for n, c in calibration.cameras.items()}
     optical = {n: c.cam_from_world.R[2] for n, c in calibration.cameras.items()}  # optical axes in the world
     span = np.vstack([np.array(list(centres.values())), allxyz]) if len(allxyz) else np.array(list(centres.values()))
-    n = calibration.normal_world
-    d, schematic = window_depth(calibration, allxyz) if n is not None else (0.0, False)
-    t = calibration.interface.thickness_mm
-    z_lo, z_hi = min(span[:, 2].min(), d - 5), max(span[:, 2].max(), d + t + 5)
+    windows = [(w, *window_depth(calibration, allxyz, w), w.interface.thickness_mm) for w in calibration.window_list()
+               if w.normal_world is not None]  # (window, plane offset, schematic, thickness)
+    z_lo, z_hi = span[:, 2].min(), span[:, 2].max()
+    for w, d, _, t in windows:  # the faces' depths along z at the rig's middle
+        if abs(w.normal_world[2]) > 1e-6:
+            z_mid = (d - w.normal_world[:2] @ span[:, :2].mean(axis=0)) / w.normal_world[2]
+            z_lo, z_hi = min(z_lo, z_mid - 5, z_mid + t / w.normal_world[2] - 5), \
+                max(z_hi, z_mid + 5, z_mid + t / w.normal_world[2] + 5)
     pad = 0.04 * (z_hi - z_lo)
     zlim = (z_lo - pad, z_hi + pad)
     margin = [0.15 * max(float(np.ptp(span[:, k])), 20.0) for k in (0, 1)]
@@ -468,7 +472,10 @@ def draw_rig(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> Any:
             tip = c + optical[name] * 0.12 * (zlim[1] - zlim[0])
             ax.annotate("", xy=(tip[2], tip[k]), xytext=(c[2], c[k]), arrowprops=dict(arrowstyle="->", lw=1.2))
             ax.plot(c[2], c[k], CAMERA_MARKERS[j % len(CAMERA_MARKERS)], color="k", ms=7, mfc="w" if j % 2 else "k")
-        if n is not None and abs(n[2]) > 1e-6:
+        for w, d, schematic, t in windows:
+            n = w.normal_world
+            if abs(n[2]) <= 1e-6:  # a wall seen edge-on in this section
+                continue
             other = 1 - k  # the coordinate held at the rig's middle for this section
             s = np.array(lims[k])
             mid = span[:, other].mean()
@@ -485,9 +492,10 @@ def draw_rig(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> Any:
     handles = [axes[0].plot([], [], CAMERA_MARKERS[j % len(CAMERA_MARKERS)], color="k", ms=7,
                             mfc="w" if j % 2 else "k", label=f"{name} (arrow: optical axis)" if j == 0 else name)[0]
                for j, name in enumerate(centres)]
-    if n is not None:
-        label = f"window ({t:g} mm)" + (", depth schematic: its distance is not observable in air" if schematic
-                                         else f" at {d:.1f} mm")
+    for w, d, schematic, t in windows:
+        name = "window" if not calibration.windows else f"window {w.name}"
+        label = f"{name} ({t:g} mm)" + (", depth schematic: its distance is not observable in air" if schematic
+                                        else f" at {w.interface.distance_mm:.1f} mm from {w.cameras[0]}")
         handles += axes[0].plot([], [], color="tab:cyan", lw=4, alpha=0.5, ls="--" if schematic else "-", label=label)
     if names:
         handles += axes[0].plot([], [], "o", color=cmap(0.0), ms=5, label=f"points, frame {names[0]}")

@@ -105,6 +105,11 @@ def calibrate_rt(dataset: Dataset, distortion: bool = False, max_iterations: int
     from ..calibration import Calibration
 
     t0 = time.perf_counter()
+    if dataset.windows:
+        from ..errors import AriSfmError
+
+        raise AriSfmError(dataset.rig_path, "model rt (the paper's ray-tracing baseline) models one window for every "
+                                            "camera; this rig has several (interfaces): use the exact model")
     iface = dataset.interface
     underwater = iface.medium_index != 1.0
     bundle, zhang = start_bundle(dataset, distortion, 3 if underwater else 2)

@@ -24,6 +24,7 @@ everything else additively. Image i's ``cam_from_world = sensor_from_rig * rig_f
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Sequence
 
 import numpy as np
 
@@ -84,7 +85,7 @@ class Layout:
 
 def make_layout(model: ColmapModel, mount: str, estimate_distance: bool, image_is_ref: np.ndarray,
                 hold_window: bool = False, hold_normal: bool = False, held_frames: np.ndarray | None = None,
-                hold_intrinsics: bool = False) -> Layout:
+                hold_intrinsics: bool = False, windows: int = 1) -> Layout:
     """Index the reduced variables: intrinsics (unless ``hold_intrinsics``), frames (the first held, or the
     ``held_frames`` indices when given), non-ref sensors, window (unless held; ``hold_normal``: its normal
     only)."""
@@ -107,7 +108,7 @@ def make_layout(model: ColmapModel, mount: str, estimate_distance: bool, image_i
         if not np.all(image_is_ref[model.image_camera == c]):
             sensors[c] = np.arange(k, k + 6)
             k += 6
-    W = C if mount == "camera" else 1
+    W = C if mount == "camera" else windows
     window = -np.ones((W, 3), int)
     for w in range(0 if hold_window else W):
         if not hold_normal:
@@ -135,23 +136,34 @@ class RefractiveProblem:
 
     def __init__(self, model: ColmapModel, interface: Interface, mount: str, estimate_distance: bool,
                  hold_window: bool = False, hold_normal: bool = False, held_frames: np.ndarray | None = None,
-                 hold_intrinsics: bool = False) -> None:
+                 hold_intrinsics: bool = False, camera_windows: Sequence[int] | None = None,
+                 interfaces: Sequence[Interface] | None = None) -> None:
+        """``camera_windows`` (mount world): each camera's window index into ``State.normals`` and
+        ``distances`` (default: one window, 0, for every camera); ``interfaces``: each window's plate
+        (default ``interface`` for all)."""
         if mount not in MOUNTS:
             raise ValueError(f"mount must be one of {MOUNTS}, got {mount!r}")
         self.model = model
         self.interface = interface
         self.mount = mount
+        C = len(model.camera_ids)
+        self.camera_windows = np.zeros(C, int) if camera_windows is None else np.asarray(camera_windows, int)
+        if mount == "camera" and camera_windows is not None:
+            raise ValueError("camera_windows is for mount world (mount camera: one window per camera)")
+        W = int(self.camera_windows.max()) + 1 if C else 1
+        self.interfaces = tuple(interfaces) if interfaces is not None else (interface,) * W
         self.image_is_ref = (model.image_is_ref if model.image_is_ref is not None else
                              np.array([np.allclose(s.R, np.eye(3)) and not np.any(s.t) for s in model.sensor_from_rig]))
         self.layout = make_layout(model, mount, estimate_distance, self.image_is_ref, hold_window, hold_normal,
-                                  held_frames, hold_intrinsics)
+                                  held_frames, hold_intrinsics, W)
         self._cam_of_obs = model.image_camera[model.obs_image]
         self._all_columns: tuple[np.ndarray, np.ndarray] | None = None  # linearize's columns of every observation
 
     # ------------------------------------------------------------------ models
     def _exact(self, state: State, c: int, normal_cam: np.ndarray, h: float) -> ExactModel:
         pin = PinholeModel.from_params(self.model.params9(c, state.colmap_params[c]))
-        return ExactModel.from_interface(pin, normal_cam, self.interface, distance_mm=h)
+        plate = self.interface if self.mount == "camera" else self.interfaces[self.camera_windows[c]]
+        return ExactModel.from_interface(pin, normal_cam, plate, distance_mm=h)
 
     def image_windows(self, state: State) -> tuple[np.ndarray, np.ndarray]:
         """(I, 3) normal_cam and (I,) distance h of every image's window in its camera frame."""
@@ -159,9 +171,13 @@ class RefractiveProblem:
         if self.mount == "camera":
             return state.normals[m.image_camera], state.distances[m.image_camera]
         R, t = state.cam_from_world(m)
-        n_w = state.normals[0]
         centres = -np.einsum("nji,nj->ni", R, t)
-        return R @ n_w, state.distances[0] - centres @ n_w
+        if len(state.normals) == 1:
+            n_w = state.normals[0]
+            return R @ n_w, state.distances[0] - centres @ n_w
+        w = self.camera_windows[m.image_camera]  # each image's camera's window
+        n_w = state.normals[w]
+        return np.einsum("nij,nj->ni", R, n_w), state.distances[w] - np.einsum("ni,ni->n", centres, n_w)
 
     def _groups(self, obs_image: np.ndarray) -> list[tuple[np.ndarray, int, int]]:
         """Groups of observations (positions in ``obs_image``) sharing one exact model:
@@ -227,7 +243,8 @@ class RefractiveProblem:
         StP_img = np.array([s.R @ state.rig_from_world[f].t for s, f in zip(state.sensor_from_rig, m.image_frame)])
         if world:
             n_cam = normals[oi]
-            B = np.broadcast_to(unit3_basis(state.normals[0]), (M, 3, 2))
+            bases = np.array([unit3_basis(n) for n in state.normals])
+            B = bases[self.camera_windows[cam_of_obs]]
             centres = -np.einsum("nji,nj->ni", Ro, to)
         else:
             n_cam = centres = np.zeros((1, 3))
@@ -252,7 +269,7 @@ class RefractiveProblem:
         index = np.concatenate([lay.frames[m.image_frame[m.obs_image[sub]]], lay.sensors[cam_of_obs],
                                 _pad([lay.intrinsics[c] for c in range(len(lay.intrinsics))], kmax)[cam_of_obs],
                                 lay.window[cam_of_obs] if self.mount == "camera" else
-                                np.broadcast_to(lay.window[0], (M, 3))], axis=1)
+                                lay.window[self.camera_windows[cam_of_obs]]], axis=1)
         used = (index >= 0).any(axis=0)  # drop columns no observation uses (e.g. no rig sensors)
         out = (np.ascontiguousarray(index[:, used]), used)
         out[0].flags.writeable = False  # shared by every linearization

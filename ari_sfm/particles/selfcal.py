@@ -290,10 +290,29 @@ def _landmark_model(calibration: Calibration, particles: ParticleSet, refine_int
         image_is_ref=np.arange(C) == 0)
 
 
-def _plane_mm(calibration: Calibration) -> float:
-    """The near face's offset along the normal in the world (``normal . X = plane`` on the face)."""
-    d = calibration.interface.distance_mm
-    return float(calibration.fixed_distance_mm if d is None else d)
+def _window_planes(calibration: Calibration) -> tuple[np.ndarray, np.ndarray]:
+    """Every window's normal (W, 3) and near face offset (W,) in the world (``normal . X = plane`` on the face)."""
+    windows = calibration.window_list()
+    return (np.array([np.asarray(w.normal_world, float) for w in windows]),
+            np.array([w.plane_mm(calibration) for w in windows], dtype=float))
+
+
+def _with_windows(calibration: Calibration, normals: np.ndarray, planes: np.ndarray, estimated: bool) -> Calibration:
+    """``calibration`` (its cameras already moved) with each window at ``normals``, ``planes`` in the world; the
+    distances (from each window's first camera, as calibration.json gives them) follow the cameras; a window whose
+    distance was not observed (``estimated`` False in air) keeps it as the evaluation distance."""
+    windows = []
+    for w, n, h in zip(calibration.window_list(), normals, planes):
+        centre = calibration.cameras[w.cameras[0]].cam_from_world.inverse().t
+        d = float(h - n @ centre)
+        if w.interface.distance_mm is not None:
+            w = replace(w, interface=replace(w.interface, distance_mm=d), normal_world=n.copy())
+        else:
+            w = replace(w, normal_world=n.copy(), fixed_distance_mm=d if w.fixed_distance_mm is not None else None)
+        windows.append(w)
+    first = windows[0]
+    return replace(calibration, interface=first.interface, normal_world=first.normal_world,
+                   fixed_distance_mm=first.fixed_distance_mm, windows=tuple(windows) if calibration.windows else ())
 
 
 def sum_baselines_mm(calibration: Calibration) -> float:
@@ -412,10 +431,14 @@ def refine_with_landmarks(calibration: Calibration, particles: ParticleSet, opti
     names = list(calibration.cameras)
     model = _landmark_model(calibration, particles, options.refine_intrinsics)
     estimate_distance = options.refine_window and calibration.interface.medium_index != 1.0
+    windows = calibration.window_list()
+    window_of = [next(k for k, w in enumerate(windows) if n in w.cameras) for n in names]
+    normals0, planes0 = _window_planes(calibration)
     problem = RefractiveProblem(model, calibration.interface, "world", estimate_distance,
+                                camera_windows=window_of, interfaces=[w.interface for w in windows],
                                 hold_window=not options.refine_window)
     state = State(model.colmap_params, model.rig_from_world, model.sensor_from_rig,
-                  np.asarray(calibration.normal_world, float)[None, :], np.array([_plane_mm(calibration)]),
+                  normals0, planes0,
                   model.xyz.copy())
     held = _sum_baselines(state)[0] if baseline_mm is None else baseline_mm
     if options.backend == "numpy":
@@ -436,13 +459,10 @@ def refine_with_landmarks(calibration: Calibration, particles: ParticleSet, opti
         p9 = model.params9(c, final.colmap_params[c])
         cameras[n] = replace(cam, K=PinholeModel.from_params(p9).K, dist=p9[4:].copy(), cam_from_world=Pose(R[c], t[c]),
                              rmse_px=None)
-    interface, normal = calibration.interface, calibration.normal_world
-    if options.refine_window:
-        normal = final.normals[0].copy()
-        if estimate_distance:
-            interface = replace(interface, distance_mm=float(final.distances[0]))
-    corrected = replace(calibration, cameras=cameras, interface=interface, normal_world=normal,
-                        model="exact" if calibration.model == "truth" else calibration.model)
+    normals, planes = (final.normals, final.distances) if options.refine_window else (normals0, planes0)
+    corrected = _with_windows(replace(calibration, cameras=cameras), np.asarray(normals, float),
+                              np.asarray(planes, float), estimate_distance)
+    corrected = replace(corrected, model="exact" if calibration.model == "truth" else calibration.model)
     e = np.linalg.norm(problem.residuals(final), axis=1)
     report = Adjustment(int(len(particles.xyz)), int(len(e)), int(iterations), float(cost0), float(cost1),
                         float(np.sqrt(np.mean(e ** 2))), float(held), float(_sum_baselines(final)[0]),

@@ -22,6 +22,7 @@ from typing import Mapping
 import numpy as np
 
 from ari_sfm.geometry import Pose
+from ari_sfm.io.dataset import target_to_json
 from ari_sfm.models.exact import ExactModel
 from ari_sfm.models.pinhole import PinholeModel
 from ari_sfm.records import CameraSpec, Dataset, Entry, Interface, Observation, Target, Window, WindowPlane
@@ -291,17 +292,6 @@ def to_dataset(geometry: Geometry, observations: tuple[Observation, ...] | None,
                    observations_path=None if observations is None else root / "observations.json", windows=windows)
 
 
-def _target_json(target: Target) -> dict:
-    if target.type == "checkerboard":
-        return {"type": "checkerboard", "inner_corners": list(target.inner_corners),
-                "square_mm": float(target.square_mm)}
-    if target.type == "circles":
-        return {"type": "circles", "grid": list(target.circle_grid), "spacing_mm": float(target.spacing_mm),
-                "layout": target.layout, "diameter_mm": target.diameter_mm}
-    ids, xyz = target.points_3d()
-    return {"type": target.type, "ids": ids.tolist(), "points": xyz.tolist()}
-
-
 def truth_dict(geometry: Geometry, scenario: str, seed: int, sigma_px: float) -> dict:
     """The truth in the ``calibration.json`` form (model ``truth``) plus the scenario keys."""
     cameras = {}
@@ -345,7 +335,7 @@ def truth_dict(geometry: Geometry, scenario: str, seed: int, sigma_px: float) ->
         "seed": int(seed),
         "sigma_px": float(sigma_px),
         "image_scale": float(geometry.scale),
-        "target": _target_json(geometry.target),
+        "target": target_to_json(geometry.target),  # the contract's form: calibration.json's target
         "stacking": {s.name: {"added_mm": [float(a) for a in s.added_mm]} for s in geometry.stacking},
         "reconstruction_points_world": recon_points,
     }
