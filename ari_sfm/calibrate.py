@@ -220,21 +220,23 @@ class StageResult:
     graph: "RigGraph"  # noqa: F821 (its last graph: uncertainty, the outlier re-run)
     solved: object | None  # the numpy backend's solved problem (None with gtsam)
 
-    def record(self) -> dict:
-        """Its figures for calibration.json ``stages``: model, residuals and parameters."""
+    def record(self, observable_distance: bool = True) -> dict:
+        """Its figures for calibration.json ``stages``: model, residuals and parameters; the window distance only
+        where the data observe it (``observable_distance``: under water; in air it is null, as calibration.json's)."""
         stats = residual_stats(r for _, r in self.residuals)
         state = self.state
         out = {
             "stage": self.stage.label, "model": self.stage.model, "distortion": bool(self.stage.distortion),
             "rmse_px": stats.rmse_px, "max_px": stats.max_px, "count": stats.count,
             "normal_world": np.asarray(state.normal_world, float).tolist(),
-            "distance_mm": None if state.distance_mm is None else float(state.distance_mm),
+            "distance_mm": None if state.distance_mm is None or not observable_distance else float(state.distance_mm),
             "cameras": {n: {"fx": float(p[0]), "fy": float(p[1]), "cx": float(p[2]), "cy": float(p[3]),
                             "dist": [float(v) for v in np.resize(p[4:9], 5)]} for n, p in state.params.items()},
         }
         if state.window_count > 1:  # every window: its normal and plane offset (from camera 0, the world's origin)
             out["windows"] = [{"normal_world": np.asarray(state.normal(w), float).tolist(),
-                               "plane_mm": None if state.offset(w) is None else float(state.offset(w))}
+                               "plane_mm": None if state.offset(w) is None or not observable_distance
+                               else float(state.offset(w))}
                               for w in range(state.window_count)]
         return out
 
@@ -539,7 +541,13 @@ def _calibrate_from(solver: _Solver, model: str, plan: tuple[Stage, ...], start:
     outliers, robust_sigma = find_outliers(last.residuals, opts.outlier_sigma)
     if outliers and opts.exclude_outliers:
         log.info("excluding %d outlier corners and re-running the %s stage", len(outliers), last.stage.model)
-        graph = solver.build(last.stage.model, state, last.estimated_sigma_px, without(dataset.observations, outliers),
+        kept = without(dataset.observations, outliers)
+        seen = {o.frame for o in kept if o.set in ("calibration", "stacking") and len(o.ids) >= 4}
+        lost = sorted(set(state.world_from_target) - seen)
+        if lost:  # every corner of these frames was an outlier: nothing places them any more
+            log.warning("frame(s) %s left out: all their corners were outliers", ", ".join(lost))
+            state = replace(state, world_from_target={f: p for f, p in state.world_from_target.items() if f in seen})
+        graph = solver.build(last.stage.model, state, last.estimated_sigma_px, kept,
                              with_plane=last.stage.with_plane)
         state, solved = solver.solve(graph, last.stage.model)
         # the optimizer report keeps the stage's own solve; the stage's figures are those after the re-run
@@ -604,7 +612,7 @@ def _assemble(solver: _Solver, model: str, rig, results: list[StageResult], unce
         residuals=residual_stats(r for _, r in residuals),
         time_s=elapsed,
         optimizer=OptimizerReport({r.stage.label: r.report() for r in results}),
-        extra={"stages": [r.record() for r in results]},
+        extra={"stages": [r.record(solver.underwater) for r in results]},
         target=dataset.target,
         fixed_distance_mm=windows[0].fixed_distance_mm,
         uncertainty=uncertainty,

@@ -292,6 +292,11 @@ def global_covariance(sys: NormalEquations, fixed: np.ndarray | None = None) -> 
     if n_held:  # blocks the data do not place (e.g. a frame seen in a lost optimum)
         log.warning("%d of %d blocks of the normal equations are singular: their undetermined directions held",
                     n_held, len(V))
+    empty = np.trace(V, axis1=1, axis2=2) == 0.0  # blocks no factor touches (their coupling rows are zero too)
+    if empty.any():
+        V = V.copy()
+        V[empty] = np.eye(V.shape[1])
+    if n_held or empty.any():
         sys = replace(sys, V=V, reduced=None)
     red = reduce(sys, 0.0)
     free = np.arange(G) if fixed is None else np.setdiff1d(np.arange(G), fixed)
