@@ -6,7 +6,9 @@ calibration corners (with ``--subset``: the limited-data experiment, fit on
 the central corners of each board, judge on all of them), and optionally on
 a held-out observations file (frame poses solved with the rig fixed).
 Outputs: ``compare.json``, ``compare.md`` (the tables) and two PNG figures
-(residual vectors per model; error distributions side by side).
+(residual vectors per model; error distributions side by side). Each model is calibrated twice and
+timed by its faster run: the first calibration of a model in a process also pays its one-time costs
+(imports, compiled kernels loaded), which would otherwise be charged to whichever model runs first.
 
 Parameters per camera count what describes a camera and its window:
 intrinsics (4, or 9 with distortion) plus the window normal (2) and, under
@@ -35,6 +37,7 @@ log = logging.getLogger(__name__)
 FIGURES = ("residuals_scatter.png", "residuals_distribution.png")  # written beside compare.json
 
 FORMAT = "ari-sfm-compare/1"
+TIMED_RUNS = 2  # each model calibrated this many times; its time the fastest (not the process's start-up)
 DEFAULT_MODELS = COMPARED  # the models: ari_sfm.models.registry
 # The paper's figures (px, ms) where it gives them: Table 2 (single camera), 3 (binocular), 4 (3x4 subset).
 PAPER = {
@@ -160,14 +163,18 @@ def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Su
     options.setdefault("uncertainty", False)  # marginals are not part of a method's time
     needed = list(models) + ([pf_world] if "pf" in models and pf_world not in models else [])
     for model in sorted(needed, key=lambda m: m == "pf"):  # pf last: it needs its world
-        t0 = time.perf_counter()
-        if model_spec(model).projection == "polynomial":
-            cal = calibrate_pf(fit_data, world=cals[pf_world][0])
-            wall = time.perf_counter() - t0 + cals[pf_world][1]
-        else:
-            cal = calibrate(fit_data, model=model, **options)
-            wall = time.perf_counter() - t0
-        cals[model] = (cal, wall)
+        runs = []
+        for _ in range(TIMED_RUNS):  # the first run of a model in a process also pays its one-time costs
+            t0 = time.perf_counter()
+            if model_spec(model).projection == "polynomial":
+                cal = calibrate_pf(fit_data, world=cals[pf_world][0])
+                wall = time.perf_counter() - t0 + cals[pf_world][1]
+            else:
+                cal = calibrate(fit_data, model=model, **options)
+                wall = time.perf_counter() - t0
+            runs.append((cal, wall))
+        cal, wall = min(runs, key=lambda r: r[0].time_s)
+        cals[model] = (cal, min(w for _, w in runs))
         log.info("compare: %s in %.1f ms", model, cal.time_s * 1e3)
     out = []
     for model in models:
