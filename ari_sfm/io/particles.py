@@ -40,7 +40,8 @@ RECONSTRUCTION_COLUMNS = ("frame", "x", "y", "z", "ray_gap_mm", "cameras")  # + 
 
 @dataclass(frozen=True)
 class VolumeSpec:
-    """rig.yaml ``particles.volume_mm``: an axis-aligned box in a camera's frame."""
+    """rig.yaml ``particles.volume_mm``: an axis-aligned box in a camera's frame, or in the target coordinates of
+    a calibration frame (OpenPTV's observation volume is in its calibration body's coordinates)."""
 
     frame: str
     min_mm: np.ndarray
@@ -152,8 +153,7 @@ def load_particle_dataset(path: str | Path) -> ParticleDataset:
         v = as_mapping(p["volume_mm"], rig_path, "particles.volume_mm")
         warn_unknown_keys(v, VOLUME_KEYS, rig_path, "particles.volume_mm")
         frame = as_name(v.get("frame", next(iter(cameras))), rig_path, "particles.volume_mm.frame")
-        if frame not in cameras:
-            raise AriSfmError(rig_path, f"particles.volume_mm.frame: '{frame}' is not a camera of the rig")
+        # a camera's frame, or (1.3) a calibration frame's target coordinates: resolved with the calibration
         lo = as_float_array(require(v, "min", rig_path, "particles.volume_mm"), rig_path, "particles.volume_mm.min", (3,))
         hi = as_float_array(require(v, "max", rig_path, "particles.volume_mm"), rig_path, "particles.volume_mm.max", (3,))
         if not np.all(hi > lo):

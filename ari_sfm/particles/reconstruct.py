@@ -143,7 +143,13 @@ def volume_for(dataset: ParticleDataset, calibration: Calibration, depth_range_m
         raise AriSfmError(dataset.rig_path, "particles.volume_mm is not given: declare the measured volume there "
                                             "or pass --depth-range ZMIN ZMAX (mm, world z)")
     v = dataset.volume
-    return Volume(v.min_mm, v.max_mm, calibration.cameras[v.frame].cam_from_world)
+    if v.frame in calibration.cameras:
+        return Volume(v.min_mm, v.max_mm, calibration.cameras[v.frame].cam_from_world)
+    if v.frame in calibration.frames:  # a calibration frame: the box in its target coordinates
+        return Volume(v.min_mm, v.max_mm, calibration.frames[v.frame].inverse())
+    known = ", ".join(list(calibration.cameras) + list(calibration.frames)[:5])
+    raise AriSfmError(dataset.rig_path, f"particles.volume_mm.frame: '{v.frame}' is neither a camera nor a calibration "
+                                        f"frame of the calibration ({known})")
 
 
 def match_partition(calibration_json: dict, volume: Volume, tolerance_px: float, min_cameras: int,
