@@ -24,6 +24,8 @@ PLANE_ROUNDS = 5  # ari rounds holding the declared normal at its frame's refitt
 DEFAULT_MODEL = "exact"  # the best model: Snell's law refined from the ari stage (distortion: resolve_distortion)
 DISTORTION_MIN_VIEWS = 6  # calibration views per camera below which lens distortion is not estimated by default
 DISTORTION_MIN_COVERAGE = 0.2  # fraction of a camera's image inside the convex hull of its corners, likewise
+PRINCIPAL_POINT_MODES = ("auto", "free", "centre")
+PRINCIPAL_POINT_MAX_SIGMA = 0.02  # auto: a principal point less determined than this share of the image is held
 
 
 @dataclass(frozen=True)
@@ -47,6 +49,12 @@ class CalibrationOptions:
     fix_intrinsics: bool = field(default=False, metadata={
         "cli": "--fix-intrinsics", "help": "Hold the rig.yaml hints: a K hint holds K (and dist); a focal_px hint holds "
                                            "fx = fy = focal_px (principal point free)."})
+    principal_point: str = field(default="auto", metadata={
+        "cli": "--principal-point", "choices": ("auto", "free", "centre"),
+        "help": "Estimate each camera's principal point (free), or hold it at the image centre (centre). Default "
+                "(auto): estimated, and held for the cameras whose views leave it undetermined (standard deviation "
+                f"above {100 * PRINCIPAL_POINT_MAX_SIGMA:g} % of the image: one view of a shallow body cannot tell it "
+                "from the camera's rotation), the calibration then solved again; one line says which."})
     max_iterations: int = 100  # Levenberg-Marquardt iterations per stage
     backend: str = field(default="auto", metadata={
         "cli": "--backend", "choices": ("auto", "numpy", "gtsam"),
@@ -68,6 +76,9 @@ class CalibrationOptions:
             raise ValueError(f"huber_px must be a finite number > 0, or None (got {self.huber_px})")
         if not (math.isfinite(self.outlier_sigma) and self.outlier_sigma > 0):
             raise ValueError(f"outlier_sigma must be a finite number > 0 (got {self.outlier_sigma})")
+        if self.principal_point not in PRINCIPAL_POINT_MODES:
+            raise ValueError(f"principal_point must be one of {', '.join(PRINCIPAL_POINT_MODES)} "
+                             f"(got {self.principal_point!r})")
 
 
 def _options(options: CalibrationOptions | None, overrides: dict) -> CalibrationOptions:
@@ -125,6 +136,37 @@ def resolve_distortion(dataset: Dataset, model: str, opts: CalibrationOptions) -
         log.warning("lens distortion not estimated: %s", why)
         return False
     return True
+
+
+def centred_principal_points(dataset: Dataset, opts: CalibrationOptions, undetermined: Sequence[str] = ()
+                             ) -> dict[str, tuple[float, float]]:
+    """camera -> its image centre, for the cameras whose principal point is held there (``principal_point``:
+    every camera without a K hint with "centre", none with "free"; "auto": the ``undetermined`` ones, those
+    whose principal point a first solve left undetermined, :func:`undetermined_principal_points`)."""
+    def centre(name: str) -> tuple[float, float]:
+        w, h = dataset.cameras[name].image_size
+        return (w - 1) / 2.0, (h - 1) / 2.0
+
+    if opts.principal_point == "free":
+        return {}
+    names = dataset.camera_names if opts.principal_point == "centre" else list(undetermined)
+    return {n: centre(n) for n in names if dataset.cameras[n].K is None}
+
+
+def undetermined_principal_points(cal: Calibration) -> list[str]:
+    """The cameras whose principal point the data leave undetermined: a standard deviation of cx or cy above
+    PRINCIPAL_POINT_MAX_SIGMA of the image's larger side, or none at all (one view of a shallow body cannot
+    tell the principal point from the camera's rotation)."""
+    if cal.uncertainty is None:
+        return []
+    out = []
+    for name, cam in cal.cameras.items():
+        s = cal.uncertainty.cameras[name].intrinsics
+        limit = PRINCIPAL_POINT_MAX_SIGMA * max(cam.image_size)
+        sigmas = [s.get("cx"), s.get("cy")]
+        if any(v is None or not math.isfinite(v) or v > limit for v in sigmas):
+            out.append(name)
+    return out
 
 
 def ensure_observations(dataset: Dataset, workers: int | None = None, progress: bool = False) -> Dataset:
@@ -295,6 +337,16 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
         tried.append(start.name)
         try:
             cal, residuals = _calibrate_from(_Solver(dataset, opts, backend, extra_factors), model, plan, start)
+            for _ in range(len(dataset.camera_names) if opts.principal_point == "auto" else 0):
+                loose = [n for n in undetermined_principal_points(cal) if n not in start.centred]
+                if not loose:
+                    break
+                # what the data do not determine is held, and said so
+                log.warning("principal point of %s held at the image centre: the views leave it undetermined (its "
+                            "standard deviation above %g %% of the image; --principal-point free estimates it anyway)",
+                            ", ".join(loose), 100 * PRINCIPAL_POINT_MAX_SIGMA)
+                start = replace(start, centred=start.centred + tuple(loose))
+                cal, residuals = _calibrate_from(_Solver(dataset, opts, backend, extra_factors), model, plan, start)
         except AriSfmError as exc:  # e.g. no window distance fits these poses: the next start may do better
             log.info("calibration from the %s start failed: %s", start.name, exc.message)
             first_error = first_error or exc
@@ -341,6 +393,7 @@ class Start:
     held_hints: bool  # the analytic start holds what --fix-intrinsics holds (else K runs free in it)
     free_window_first: bool = False  # declared plane under water: exact fits a free window first (tilt and
     # distance searched), then the plane is placed by its poses
+    centred: tuple[str, ...] = ()  # principal_point auto: cameras whose principal point is held at the image centre
 
 
 def _starts(dataset: Dataset, model: str, opts: CalibrationOptions) -> list[Start]:
@@ -365,6 +418,7 @@ class _Solver:
     extra_factors: object = None
     fixed: tuple[str, ...] = ()  # cameras whose K is held
     fixed_focal: dict | None = None  # camera -> focal held as fx = fy
+    centred: dict | None = None  # camera -> principal point held (its image centre)
     observed: tuple[bool, ...] | None = None  # per window: its normal observed by stacking (the start's)
 
     @property
@@ -390,7 +444,8 @@ class _Solver:
     def reweight(self) -> bool:
         """A stage is re-solved with its estimated sigma when other factors (priors, a declared plane,
         the user's) share its graph."""
-        return self.opts.sigma_px is None and (bool(self.fixed) or bool(self.fixed_focal) or self.plane is not None
+        return self.opts.sigma_px is None and (bool(self.fixed) or bool(self.fixed_focal) or bool(self.centred)
+                                               or self.plane is not None
                                                or self.extra_factors is not None)
 
     def build(self, model: str, state, sigma: float, observations=None, with_plane: bool = True):
@@ -403,7 +458,7 @@ class _Solver:
             state, model=model, distortion=self.opts.distortion, estimate_distance=self.underwater,
             huber_px=self.opts.huber_px, sigma_px=sigma, fixed_intrinsics=self.fixed,
             fixed_focal_px=self.fixed_focal, windows=ds.window_list(),
-            window_planes=self.planes if with_plane else None,
+            window_planes=self.planes if with_plane else None, centred_principal_points=self.centred,
         )
         _add_factors(rg, self.extra_factors)
         return rg
@@ -496,10 +551,15 @@ def _start_state(solver: _Solver, plan: tuple[Stage, ...], start: Start):
     from .init.rig import initialise_rig
 
     dataset, opts = solver.dataset, solver.opts
-    rig = initialise_rig(dataset, opts.distortion, opts.workers, start.held_hints)
+    centred = centred_principal_points(dataset, opts, start.centred)
+    rig = initialise_rig(dataset, opts.distortion, opts.workers, start.held_hints, frozenset(centred))
     fixed, fixed_focal = held_intrinsics(dataset, opts.fix_intrinsics)
-    solver = replace(solver, fixed=tuple(fixed), fixed_focal=fixed_focal, observed=tuple(rig.normals_observed))
-    return rig, solver, initial_state(dataset, rig, plan[0].model, opts.fix_intrinsics)
+    solver = replace(solver, fixed=tuple(fixed), fixed_focal=fixed_focal, observed=tuple(rig.normals_observed),
+                     centred=centred)
+    state = initial_state(dataset, rig, plan[0].model, opts.fix_intrinsics)
+    for name, (cx, cy) in centred.items():  # start where it is held
+        state.params[name][2:4] = cx, cy
+    return rig, solver, state
 
 
 def _plane_separates(solver: _Solver, state) -> bool:

@@ -267,6 +267,7 @@ class RigGraph:
         window_plane: WindowPlane | None = None,
         windows: Sequence[Window] | None = None,
         window_planes: Sequence[WindowPlane | None] | None = None,
+        centred_principal_points: Mapping[str, tuple[float, float]] | None = None,
     ) -> "RigGraph":
         """One factor per (camera, calibration or stacking image), whitened by ``sigma_px``; variables from
         state. Camera 0 is the world frame (no pose variable): ``state.cam_from_world`` of the first
@@ -277,7 +278,8 @@ class RigGraph:
         the declared window (:mod:`ari_sfm.factors.window_plane`), its frame one of the state's.
         ``windows``: several windows (each camera's factors on its own window's N(w), H(w) and plate;
         default one window, ``interface``, for every camera) and ``window_planes`` their declared planes
-        (None where not declared; replaces ``window_plane``)."""
+        (None where not declared; replaces ``window_plane``). ``centred_principal_points``: camera -> (cx, cy)
+        held there (the image centre of a camera whose views cannot separate it from its rotation)."""
         if not (np.isfinite(sigma_px) and sigma_px > 0.0):
             raise ValueError(f"sigma_px must be a positive pixel sigma, got {sigma_px}")
         names = list(camera_names)
@@ -309,6 +311,15 @@ class RigGraph:
             prior[:2] = focal
             sigmas = np.full(n_params, 1e6)
             sigmas[:2] = 1e-4
+            other.append(gtsam.PriorFactorVector(K_.K(c), prior, gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
+        for name, centre in (centred_principal_points or {}).items():  # cx, cy held, the rest free
+            if name in fixed_intrinsics:
+                continue
+            c = names.index(name)
+            prior = np.asarray(state.params[name][:n_params], float).copy()
+            prior[2:4] = centre
+            sigmas = np.full(n_params, 1e6)
+            sigmas[2:4] = 1e-4
             other.append(gtsam.PriorFactorVector(K_.K(c), prior, gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
         for w, plane in enumerate(planes):
             if plane is not None:

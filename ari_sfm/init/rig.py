@@ -67,11 +67,12 @@ def _shift(thickness_mm: float, index: float) -> float:
 
 
 def initialise_camera(dataset: Dataset, name: str, distortion: bool = False,
-                      fix_intrinsics: bool = False, threads: int = 1) -> CameraInit:
+                      fix_intrinsics: bool = False, threads: int = 1, centred: bool = False) -> CameraInit:
     """Expansion centre, K, normal and real target poses of one camera; ``fix_intrinsics``: the
     hints the calibration will hold (:func:`~.zhang.held_intrinsics`) are held here too, so the
     poses are those of the held K (a shallow body's single view lets K run far from it);
-    ``threads``: its per-view OpenCV calls on up to this many threads (the same result)."""
+    ``threads``: its per-view OpenCV calls on up to this many threads (the same result); ``centred``: its
+    principal point held at the image centre (the poses solved with it there)."""
     views = [o for o in dataset.select("calibration", name) if len(o.ids) >= 6]
     need = MIN_VIEWS if dataset.target.is_planar() else MIN_VIEWS_3D
     if len(views) < need:
@@ -82,7 +83,8 @@ def initialise_camera(dataset: Dataset, name: str, distortion: bool = False,
     try:
         spec = dataset.cameras[name]
         zhang = calibrate_views(dataset.target, spec, views, distortion,
-                                held_intrinsics(spec) if fix_intrinsics else None, threads, also=firsts)
+                                held_intrinsics(spec) if fix_intrinsics else None, threads, also=firsts,
+                                centred=centred)
     except (ValueError, cv2.error) as exc:  # DLT refused, or OpenCV refused the start
         msg = str(exc).strip().splitlines()[-1] if isinstance(exc, cv2.error) else str(exc)
         raise AriSfmError(dataset.rig_path, f"camera {name}: {msg}") from None
@@ -135,7 +137,7 @@ def join_rig(names: Sequence[str], cam_from_target: dict[str, dict[str, Pose]],
 
 
 def _initialise_cameras(dataset: Dataset, names: list[str], distortion: bool, workers: int | None,
-                        fix_intrinsics: bool = False) -> dict[str, CameraInit]:
+                        fix_intrinsics: bool = False, centred: frozenset[str] = frozenset()) -> dict[str, CameraInit]:
     """:func:`initialise_camera` of every camera, on up to ``workers`` threads (default: one per
     camera, at most os.cpu_count()); threads left over split each camera's per-view OpenCV calls
     (a single camera: its views on two threads). OpenCV releases the GIL and runs on one thread in
@@ -145,9 +147,10 @@ def _initialise_cameras(dataset: Dataset, names: list[str], distortion: bool, wo
     n_workers = min(len(names), available)
     threads = max(1, available // max(n_workers, 1))
     if n_workers <= 1:
-        return {n: initialise_camera(dataset, n, distortion, fix_intrinsics, threads) for n in names}
+        return {n: initialise_camera(dataset, n, distortion, fix_intrinsics, threads, n in centred) for n in names}
     with ThreadPoolExecutor(max_workers=n_workers, thread_name_prefix="ari-init") as pool:
-        futures = {n: pool.submit(initialise_camera, dataset, n, distortion, fix_intrinsics, threads) for n in names}
+        futures = {n: pool.submit(initialise_camera, dataset, n, distortion, fix_intrinsics, threads, n in centred)
+                   for n in names}
         return {n: futures[n].result() for n in names}
 
 
@@ -155,7 +158,7 @@ def _initialise_cameras(dataset: Dataset, names: list[str], distortion: bool, wo
 # and the contexts opened inside the workers only nest in this one.
 @one_cv2_thread()  # bit-identical across processes
 def initialise_rig(dataset: Dataset, distortion: bool = False, workers: int | None = None,
-                   fix_intrinsics: bool = False) -> RigInit:
+                   fix_intrinsics: bool = False, centred: frozenset[str] = frozenset()) -> RigInit:
     """Initialise every camera (concurrently, on up to ``workers`` threads, default one per
     camera up to os.cpu_count()), then chain relative poses from camera 0 over shared frames.
 
@@ -163,7 +166,7 @@ def initialise_rig(dataset: Dataset, distortion: bool = False, workers: int | No
     the result does not depend on ``workers``.
     """
     names = dataset.camera_names
-    cams = _initialise_cameras(dataset, names, distortion, workers, fix_intrinsics)
+    cams = _initialise_cameras(dataset, names, distortion, workers, fix_intrinsics, centred)
     # Camera graph: edges weighted by the number of shared frames (calibration and stacking).
     cam_from_world, world_from_target = join_rig(names, {n: c.cam_from_target for n, c in cams.items()}, dataset.rig_path)
     window_normals, observed = [], []

@@ -7,6 +7,8 @@ whose translation still contains the shift (removed in :mod:`interface_pose`).
 """
 from __future__ import annotations
 
+import logging
+
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -28,6 +30,8 @@ class ZhangResult:
     cam_from_target: dict[str, Pose]  # generalised (virtual-pinhole) poses by frame
     rms_px: float
     also: dict[str, Pose] = field(default_factory=dict)  # the ``also`` views' poses (iterative PnP) by frame
+
+log = logging.getLogger(__name__)
 
 
 def object_points(target: Target, ids: np.ndarray) -> np.ndarray:
@@ -216,26 +220,85 @@ def _dlt_K(target: Target, spec: CameraSpec, views: Sequence[Observation]) -> np
 
 def calibrate_dlt(
     target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False,
-    hold: str | None = None, threads: int = 1, also: Sequence[Observation] = (),
+    hold: str | None = None, threads: int = 1, also: Sequence[Observation] = (), centred: bool = False,
 ) -> ZhangResult:
     """K and generalised extrinsics from a 3D target (several planes; one view is enough):
     K from the hint when the dataset gives one (``K`` as given, ``focal_px`` with the
     principal point at the image centre), else DLT per view (median over views); then each
-    view's pose by PnP with that K (the bundle adjustment refines both)."""
+    view's pose by PnP with that K (the bundle adjustment refines both). A body too shallow for DLT
+    starts with the principal point at the image centre and the focal length from a resection over it
+    (:func:`focal_by_resection`); ``centred``: the principal point held there in any case."""
     K0 = _hinted_K(spec)
     if K0 is None:
-        K0 = _dlt_K(target, spec, views)
+        try:
+            K0 = _dlt_K(target, spec, views)
+        except ValueError as exc:  # too shallow for DLT: the focal length of a centred camera, if the views tell it
+            log.info("%s: %s; trying a resection with the principal point at the image centre", spec.name, exc)
+            K0 = None
+        w, h = spec.image_size
+        if centred and K0 is not None:
+            K0 = np.array([[0.5 * (K0[0, 0] + K0[1, 1]), 0, (w - 1) / 2], [0, 0.5 * (K0[0, 0] + K0[1, 1]), (h - 1) / 2],
+                           [0, 0, 1.0]])
+        if K0 is None:
+            f = focal_by_resection(target, spec, views)
+            K0 = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
+    elif centred and spec.K is None:
+        w, h = spec.image_size
+        K0[0, 2], K0[1, 2] = (w - 1) / 2, (h - 1) / 2
     hinted = CameraSpec(spec.name, spec.image_size, None, K0, spec.dist)
     return calibrate_zhang(target, hinted, views, distortion, hold, threads, also)
 
 
 def calibrate_views(target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False,
-                    hold: str | None = None, threads: int = 1, also: Sequence[Observation] = ()) -> ZhangResult:
+                    hold: str | None = None, threads: int = 1, also: Sequence[Observation] = (),
+                    centred: bool = False) -> ZhangResult:
     """Zhang's method for planar targets, DLT/PnP for 3D ones; ``hold``, ``threads``, ``also``: see
-    :func:`calibrate_zhang`."""
+    :func:`calibrate_zhang`; ``centred`` (3D bodies): see :func:`calibrate_dlt`."""
     if target.is_planar():
         return calibrate_zhang(target, spec, views, distortion, hold, threads, also)
-    return calibrate_dlt(target, spec, views, distortion, hold, threads, also)
+    return calibrate_dlt(target, spec, views, distortion, hold, threads, also, centred)
+
+
+FOCAL_RANGE = (0.3, 30.0)  # focal lengths searched by focal_by_resection, in image widths (a 120 to 2 deg field)
+FOCAL_SAMPLES = 60  # log-spaced focal lengths of its first pass
+
+
+@one_cv2_thread()
+def focal_by_resection(target: Target, spec: CameraSpec, views: Sequence[Observation]) -> float:
+    """The focal length (px) of a camera whose principal point is at the image centre, from its views of a
+    3D body: each candidate's PnP pose (square pixels, no distortion), the sum of the views' squared
+    reprojection errors minimised over log-spaced candidates, then by a bounded 1-D search around the best.
+    ValueError (asking for focal_px) when the minimum lies at the end of the range: the views do not
+    determine it."""
+    from scipy.optimize import minimize_scalar
+
+    w, h = spec.image_size
+    data = [(object_points(target, v.ids).astype(np.float64), v.pixels.astype(np.float64)) for v in views]
+
+    def cost(log_f: float) -> float:
+        f = float(np.exp(log_f))
+        K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
+        total = 0.0
+        for X, uv in data:
+            ok, rvec, tvec = cv2.solvePnP(X, uv, K, None, flags=cv2.SOLVEPNP_SQPNP)
+            if not ok:
+                return np.inf
+            proj, _ = cv2.projectPoints(X, rvec, tvec, K, None)
+            total += float(np.sum((proj.reshape(-1, 2) - uv) ** 2))
+        return total
+
+    grid = np.linspace(np.log(FOCAL_RANGE[0] * w), np.log(FOCAL_RANGE[1] * w), FOCAL_SAMPLES)
+    costs = np.array([cost(g) for g in grid])
+    k = int(np.argmin(costs))
+    if k in (0, len(grid) - 1) or not np.isfinite(costs[k]):
+        raise ValueError(f"the body is too shallow for DLT and its views do not determine the focal length "
+                         f"(the best lies at {np.exp(grid[k]):.0f} px, the end of the range searched): give "
+                         f"cameras.<name>.focal_px (or K) in rig.yaml")
+    best = minimize_scalar(cost, bounds=(grid[k - 1], grid[k + 1]), method="bounded")
+    f = float(np.exp(best.x if best.fun <= costs[k] else grid[k]))
+    log.info("%s: focal length %.0f px from a resection of its 3D body (principal point at the image centre; "
+             "no focal_px hint)", spec.name, f)
+    return f
 
 
 @one_cv2_thread()
