@@ -261,6 +261,7 @@ def calibrate_views(target: Target, spec: CameraSpec, views: Sequence[Observatio
 
 FOCAL_RANGE = (0.3, 30.0)  # focal lengths searched by focal_by_resection, in image widths (a 120 to 2 deg field)
 FOCAL_SAMPLES = 60  # log-spaced focal lengths of its first pass
+FOCAL_DETERMINED = 0.2  # a focal length that fits as well 20 % off (within the noise) is not determined
 
 
 @one_cv2_thread()
@@ -280,7 +281,13 @@ def focal_by_resection(target: Target, spec: CameraSpec, views: Sequence[Observa
         K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
         total = 0.0
         for X, uv in data:
-            ok, rvec, tvec = cv2.solvePnP(X, uv, K, None, flags=cv2.SOLVEPNP_SQPNP)
+            try:
+                ok, rvec, tvec = cv2.solvePnP(X, uv, K, None, flags=cv2.SOLVEPNP_SQPNP)
+            except cv2.error:  # SQPnP refuses a small point spread: the iterative solver then
+                try:
+                    ok, rvec, tvec = cv2.solvePnP(X, uv, K, None, flags=cv2.SOLVEPNP_ITERATIVE)
+                except cv2.error:
+                    return np.inf
             if not ok:
                 return np.inf
             proj, _ = cv2.projectPoints(X, rvec, tvec, K, None)
@@ -295,7 +302,17 @@ def focal_by_resection(target: Target, spec: CameraSpec, views: Sequence[Observa
                          f"(the best lies at {np.exp(grid[k]):.0f} px, the end of the range searched): give "
                          f"cameras.<name>.focal_px (or K) in rig.yaml")
     best = minimize_scalar(cost, bounds=(grid[k - 1], grid[k + 1]), method="bounded")
-    f = float(np.exp(best.x if best.fun <= costs[k] else grid[k]))
+    log_f, minimum = (best.x, best.fun) if best.fun <= costs[k] else (grid[k], costs[k])
+    f = float(np.exp(log_f))
+    # determined? the profile of the cost over the focal length must rise by the noise variance (one sigma)
+    # within FOCAL_DETERMINED of it (the noise from the residuals at the minimum: 7 parameters a view)
+    count = sum(len(uv) for _, uv in data)
+    noise = minimum / max(2 * count - 7 * len(data), 1)
+    rise = min(cost(log_f + np.log1p(FOCAL_DETERMINED)), cost(log_f + np.log1p(-FOCAL_DETERMINED))) - minimum
+    if not rise > noise:
+        raise ValueError(f"the body is too shallow for DLT and its views do not determine the focal length "
+                         f"(from {f:.0f} px, {100 * FOCAL_DETERMINED:.0f} % more or less fits as well): give "
+                         f"cameras.<name>.focal_px (or K) in rig.yaml")
     log.info("%s: focal length %.0f px from a resection of its 3D body (principal point at the image centre; "
              "no focal_px hint)", spec.name, f)
     return f
