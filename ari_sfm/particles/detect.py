@@ -1,18 +1,36 @@
 """Particle images -> sub-pixel centres (``ari-sfm detect-particles``).
 
-Per image: the background and its noise from the median and the MAD; local
-maxima (3 x 3, on the image smoothed at a third of the particle's sigma) above
-``background + threshold_sigma * noise``; the centre of each by a three-point
-Gaussian fit along u and along v (exact for a Gaussian image sampled at pixel
-centres; ``diameter_px`` is the e^-2 diameter, sigma = diameter / 4). Two
-particles whose images overlap but keep their own maxima are split (each its
-own fit around its own peak); a blob whose second moments are too wide for
-one particle (two images merged into one maximum) is dropped, never averaged.
-The width is measured over the peak's own pixels (above a quarter of its peak,
-reached by non-increasing steps, not nearer another peak). Measured on rendered
-3 px images with 8-bit noise: isolated centres 0.02 px RMS; merged pairs 1.3 px
-or more apart dropped; pairs 3.5 px apart split (96 %). Two images closer than
-~1.3 px (0.4 diameters) can look like one and give one centre between them.
+Per image (8 or 16 bit, read without losing the 16-bit range; colour: the mean
+of the channels):
+
+1. the local background and noise (:mod:`ari_sfm.particles.background`): an
+   uneven background, glare, a few big bright blobs and dense particles move
+   neither, as a global median and MAD of the frame would;
+2. single hot pixels (far above all eight neighbours, more than any particle
+   image of ``diameter_px`` / 2 or more allows) are replaced by their
+   neighbours' median;
+3. candidates: local maxima (3 x 3) of the residual smoothed at half a
+   particle's sigma, above ``threshold_sigma`` times that smoothed image's own
+   local noise (and ``min_peak`` grey levels, 0 by default);
+4. a candidate must look like an image, not a cluster of hot pixels: along u
+   and along v a neighbour holds at least AXIS_SUPPORT of its peak, and the
+   diagonal pixel between those two neighbours what a separable profile gives
+   (both within two noise sigmas);
+5. centres: a three-point Gaussian fit along u and along v (exact for a
+   Gaussian sampled at pixel centres; ``diameter_px`` is the e^-2 diameter,
+   sigma = diameter / 4), refined by DEBLEND_ITERATIONS rounds in which every
+   other particle's fitted Gaussian is subtracted first: overlapping images
+   that keep their own maxima are split, each centre freed of its
+   neighbour's tail; a saturated peak (flat top) is centred on its own
+   pixels' intensity centroid;
+6. a blob too wide for one particle AND elongated (two images merged into one
+   maximum; its width measured over its own pixels, above a quarter of its
+   peak, reached by non-increasing steps, neighbours subtracted) is dropped,
+   never averaged: a larger round particle is kept.
+
+Two images closer than ~1.3 px (0.4 diameters) can look like one and give one
+centre between them. Measured figures: README, particles section
+(``benchmarks/bench_particle_detection.py``).
 """
 from __future__ import annotations
 
@@ -24,12 +42,26 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from ari_sfm.particles.background import estimate_background
 from ari_sfm.particles.engine import PartitionError
 
 log = logging.getLogger(__name__)
 
 MIN_SIGNAL = 1e-3  # floor of background-subtracted intensities before the log of the Gaussian fit
-BLOB_LEVEL = 0.25  # a blob: the pixels above this fraction of its peak (reached by non-increasing steps)
+SMOOTH_FRACTION = 0.5  # the candidates' image: the residual smoothed at this fraction of a particle's sigma
+AXIS_SUPPORT = 0.1  # a particle image (e^-2 diameter >= ~1.5 px) lends each axis' brighter neighbour >= this of its peak
+DIAGONAL_SUPPORT = 0.25  # and its diagonal pixel >= this fraction of the separable profile's value there
+SUPPORT_SIGMAS = 2.0  # the support tests' allowance for noise, in noise sigmas
+DEBLEND_ITERATIONS = 3  # rounds of centre fits with the other particles' Gaussians subtracted
+SIGMA_RANGE = (0.5, 2.0)  # a fitted sigma is clipped to this range times the hint's
+RIDGE_RADIUS_SIGMAS = 3.5  # a ridge (a streak, a blob's rim): both sides this far along a line stay ...
+RIDGE_LEVEL = 0.35  # ... above this fraction of the peak (two noise sigmas allowed); a particle image falls to ~0
+SPLIT_RANGE_PX = (0.4, 1.5)  # half the distance of a split pair's first centres
+PAIR_WINDOW_SIGMAS = 2.0  # a merged pair's two-Gaussian fit uses the pixels within this many sigmas (+ 0.5 px)
+PAIR_ITERATIONS = 15  # Levenberg-Marquardt iterations of that fit
+MIN_SPLIT_PX = 0.8  # a pair fitted closer than this stays one image
+MODEL_NOISE = 0.03  # the shape fit's relative noise floor per pixel (shot noise, a profile not quite Gaussian)
+MODEL_RADIUS_SIGMAS = 3.0  # a particle's fitted Gaussian is subtracted out to this many of its sigmas
 
 
 @dataclass(frozen=True)
@@ -56,132 +88,432 @@ class DetectOptions:
     """How particle images are found."""
 
     diameter_px: float = 3.0  # e^-2 diameter hint (rig.yaml particles.diameter_px)
-    threshold_sigma: float = 6.0  # peak above the background, in units of the image noise
-    min_peak: float = 8.0  # and at least this many grey levels
-    max_width_ratio: float = 1.18  # a blob wider than this times one particle's width is two merged: dropped
+    threshold_sigma: float = 5.0  # smoothed peak above the local background, in units of its local noise
+    min_peak: float = 0.0  # and at least this many grey levels above it (0: the noise alone decides)
+    max_width_ratio: float = 2.5  # a blob wider than this times one particle image is not one: dropped
+    max_elongation: float = 1.2  # longer than wide by this ratio beyond the noise: two merged, dropped
+    background_px: int = 32  # blocks of the local background's offset and of the local noise
 
 
-def _fit_axis(lm: np.ndarray, l0: np.ndarray, lp: np.ndarray) -> np.ndarray:
-    """Three-point Gaussian peak offset from the log intensities at -1, 0, +1."""
-    den = 2.0 * (lm - 2.0 * l0 + lp)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        off = (lm - lp) / den
-    return np.where(np.isfinite(off) & (den < 0), np.clip(off, -0.5, 0.5), 0.0)
+def _grey(image: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """A float32 grey image, its grey level step (1 integer, 0 float) and its saturation level."""
+    img = np.asarray(image)
+    if img.ndim == 3:
+        dtype = img.dtype
+        img = img.mean(axis=2)
+    else:
+        dtype = img.dtype
+    if np.issubdtype(dtype, np.integer):
+        return img.astype(np.float32), 1.0, float(np.iinfo(dtype).max)
+    return np.nan_to_num(img.astype(np.float32)), 0.0, math.inf
 
 
 def detect_particles_in_image(image: np.ndarray, options: DetectOptions = DetectOptions()
                               ) -> tuple[np.ndarray, np.ndarray]:
-    """Centres (N, 2) (OpenCV pixel convention) and peak intensities above the background (N,)."""
+    """Centres (N, 2) (OpenCV pixel convention) and peak intensities above the local background (N,),
+    in the image's grey levels."""
     import cv2
 
-    img = np.asarray(image, np.float32)
-    if img.ndim == 3:
-        img = img.mean(axis=2)
-    sample = img[::3, ::3]  # the background statistics from a ninth of the pixels
-    background = float(np.median(sample))
-    noise = 1.4826 * float(np.median(np.abs(sample - background))) or 1.0
-    sig = img - np.float32(background)
-    sigma = options.diameter_px / 4.0
-    smooth = cv2.GaussianBlur(sig, (0, 0), max(sigma / 3.0, 0.3))
-    peak_min = max(options.threshold_sigma * noise, options.min_peak)
-    local = cv2.dilate(smooth, np.ones((3, 3), np.uint8))  # 3 x 3 maximum
+    img, quantum, saturation = _grey(image)
     h, w = img.shape
-    ys, xs = np.nonzero(sig >= peak_min)
-    at_max = smooth[ys, xs] == local[ys, xs]
-    ys, xs = ys[at_max], xs[at_max]
-    inner = (xs >= 1) & (xs < w - 1) & (ys >= 1) & (ys < h - 1)
-    ys, xs = ys[inner], xs[inner]
+    empty = (np.empty((0, 2)), np.empty(0))
+    if h < 3 or w < 3:
+        return empty
+    sigma = options.diameter_px / 4.0
+    block = int(options.background_px)
+    background = estimate_background(img, options.diameter_px, block, quantum)
+    res = img - background.level
+    noise = background.noise
+    clean = _without_hot_pixels(res, noise)
+    s_smooth = max(SMOOTH_FRACTION * sigma, 0.3)
+    smooth = cv2.GaussianBlur(clean, (0, 0), s_smooth, borderType=cv2.BORDER_REPLICATE)
+    noise_smooth = noise * _smoothing_gain(s_smooth)
+    threshold = np.maximum(options.threshold_sigma * noise_smooth, options.min_peak)
+    ys, xs = _local_maxima(smooth, threshold)
+    if len(xs):
+        ok = _supported(clean, ys, xs, noise[ys, xs])
+        ys, xs = ys[ok], xs[ok]
     if not len(xs):
-        return np.empty((0, 2)), np.empty(0)
-    # plateaus: one maximum per 8-connected group of equal maxima
-    keep = np.ones(len(xs), bool)
-    taken = np.zeros(img.shape, bool)  # (a Python loop over the maxima only)
-    for k in np.argsort(-smooth[ys, xs], kind="stable"):
-        y, x = ys[k], xs[k]
-        if taken[y - 1:y + 2, x - 1:x + 2].any():
-            keep[k] = False
-        taken[y, x] = True
-    ys, xs = ys[keep], xs[keep]
-    def log_at(dy: int, dx: int) -> np.ndarray:
-        return np.log(np.maximum(sig[ys + dy, xs + dx].astype(float), MIN_SIGNAL))
-
-    centre = log_at(0, 0)
-    du = _fit_axis(log_at(0, -1), centre, log_at(0, 1))
-    dv = _fit_axis(log_at(-1, 0), centre, log_at(1, 0))
-    peak = sig[ys, xs].astype(float)
-    single = _single(sig, ys, xs, peak, sigma, options.max_width_ratio)
-    uv = np.stack([xs + du, ys + dv], axis=1)[single]
-    return uv, peak[single]
+        return empty
+    saturated = img[ys, xs] >= saturation
+    fit = _deblended_fit(clean, noise, ys, xs, sigma, saturated, options.max_elongation)
+    single = _single(fit, sigma, options.max_width_ratio, options.max_elongation)
+    return fit.uv[single], fit.peak[single]
 
 
-def _blob_masks(sig: np.ndarray, ys: np.ndarray, xs: np.ndarray, peak: np.ndarray, sigma: float
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Weights (N, k, k) of each peak's own blob: pixels above half its peak reached from the peak by
-    non-increasing steps (a neighbour's slope is not part of it); and the window offsets dy, dx."""
-    h, w = sig.shape
-    r = int(math.ceil(2.0 * sigma + 1.0))
+def _smoothing_gain(sigma: float) -> float:
+    """How much a Gaussian blur of ``sigma`` px lowers white noise: the root sum of its squared weights."""
+    import cv2
+
+    k = cv2.getGaussianKernel(2 * int(math.ceil(4 * sigma)) + 1, sigma)
+    return float(np.sum(k * k))  # (sum of squares in 1-D) squared under the root: the 2-D blur is separable
+
+
+def _without_hot_pixels(res: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """``res`` with single hot pixels replaced by the median of their 8 neighbours: a pixel whose
+    neighbours, even SUPPORT_SIGMAS noise sigmas up, all stay below AXIS_SUPPORT of it."""
+    import cv2
+
+    ring = np.ones((3, 3), np.uint8)
+    ring[1, 1] = 0
+    brightest = cv2.dilate(res, ring, borderType=cv2.BORDER_REPLICATE)
+    hot = (brightest + SUPPORT_SIGMAS * noise < AXIS_SUPPORT * res)
+    hot[0, :] = hot[-1, :] = hot[:, 0] = hot[:, -1] = False
+    ys, xs = np.nonzero(hot)
+    if not len(ys):
+        return res
+    out = res.copy()
+    dy = np.array([-1, -1, -1, 0, 0, 1, 1, 1])
+    dx = np.array([-1, 0, 1, -1, 1, -1, 0, 1])
+    out[ys, xs] = np.median(res[ys[:, None] + dy, xs[:, None] + dx], axis=1)
+    return out
+
+
+def _local_maxima(smooth: np.ndarray, threshold: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (rows, cols) at the maximum of their 3 x 3 neighbourhood and above ``threshold``, off the
+    border; of a plateau of equal values, the pixels above and left of which no plateau pixel lies."""
+    import cv2
+
+    local = cv2.dilate(smooth, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    peak = (smooth >= local) & (smooth >= threshold)
+    peak[0, :] = peak[-1, :] = peak[:, 0] = peak[:, -1] = False
+    ys, xs = np.nonzero(peak)
+    s0 = smooth[ys, xs]
+    first = ((s0 > smooth[ys - 1, xs - 1]) & (s0 > smooth[ys - 1, xs]) & (s0 > smooth[ys - 1, xs + 1])
+             & (s0 > smooth[ys, xs - 1]))
+    return ys[first], xs[first]
+
+
+def _supported(res: np.ndarray, ys: np.ndarray, xs: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """(N,) True where a candidate's 3 x 3 pixels look like a particle image, not a hot cluster (a pair,
+    a line or an L of hot pixels): step 4 of the module docstring."""
+    r0 = res[ys, xs]
+    left, right = res[ys, xs - 1], res[ys, xs + 1]
+    up, down = res[ys - 1, xs], res[ys + 1, xs]
+    su, sv = np.maximum(left, right), np.maximum(up, down)
+    margin = SUPPORT_SIGMAS * noise
+    axes = (su + margin >= AXIS_SUPPORT * r0) & (sv + margin >= AXIS_SUPPORT * r0)
+    du = np.where(right >= left, 1, -1)
+    dv = np.where(down >= up, 1, -1)
+    diag = res[ys + dv, xs + du]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        separable = np.where(r0 > 0, np.maximum(su, 0) * np.maximum(sv, 0) / r0, 0.0)
+    return axes & (diag + margin >= DIAGONAL_SUPPORT * separable)
+
+
+@dataclass(frozen=True)
+class _State:
+    """Particle images being fitted (arrays over the images)."""
+
+    anchor_y: np.ndarray  # the pixel each started from; its peak pixel stays within one pixel of it
+    anchor_x: np.ndarray
+    y0: np.ndarray  # its peak pixel
+    x0: np.ndarray
+    u: np.ndarray  # its Gaussian: centre, peak above the background, sigmas along u and v
+    v: np.ndarray
+    A: np.ndarray
+    su: np.ndarray
+    sv: np.ndarray
+    saturated: np.ndarray  # bool: its peak pixel is saturated (a flat top: centred by its centroid)
+    fixed: np.ndarray  # bool: one of a split pair, fitted as such: held in the rounds of fits
+
+    def take(self, rows: np.ndarray) -> "_State":
+        return _State(*(getattr(self, f)[rows] for f in self.__dataclass_fields__))
+
+    def join(self, other: "_State") -> "_State":
+        return _State(*(np.concatenate([getattr(self, f), getattr(other, f)]) for f in self.__dataclass_fields__))
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """The fitted particle images of a frame."""
+
+    uv: np.ndarray  # (N, 2) centres
+    peak: np.ndarray  # (N,) Gaussian peaks above the background (a saturated one: its brightest pixel)
+    shape: "ImageShape"  # from its own 3 x 3 pixels, the others' Gaussians subtracted
+    ridge: np.ndarray  # (N,) bool: on a ridge (a streak, a blob's rim), not a particle image
+    saturated: np.ndarray  # (N,) bool
+    fixed: np.ndarray  # (N,) bool: one of a pair split by a two-Gaussian fit
+
+
+@dataclass(frozen=True)
+class ImageShape:
+    """The Gaussian shape of particle images (arrays over the images), see :func:`image_shape`."""
+
+    sigma_major: np.ndarray  # sigma along the widest axis (inf: not a peak)
+    elongation: np.ndarray  # widest over narrowest sigma (inf: not a peak)
+    sigma_major_sure: np.ndarray  # the widest sigma with the curvature two standard errors up
+    elongation_sure: np.ndarray  # the elongation with the anisotropy two standard errors down (1: none)
+    axis: np.ndarray  # (N, 2) the widest axis (unit vector, u v)
+    half_split: np.ndarray  # half the distance of two equal round images that would look like this one
+
+
+def _log_parabola(lm: np.ndarray, l0: np.ndarray, lp: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertex offset, curvature (< 0 for a peak) and vertex height of the parabola through the log
+    intensities at -1, 0, +1."""
+    b = 0.5 * (lp - lm)
+    c = 0.5 * (lp - 2.0 * l0 + lm)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        off = -b / (2.0 * c)
+        top = l0 - b * b / (4.0 * c)
+    return off, c, top
+
+
+def _gaussian(A: np.ndarray, u: np.ndarray, v: np.ndarray, su: np.ndarray, sv: np.ndarray,
+              X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """Each particle's Gaussian (sampled at pixel centres) at its pixels X, Y (N, ...)."""
+    ex = (X - u[:, None]) ** 2 / (2.0 * su[:, None] ** 2) + (Y - v[:, None]) ** 2 / (2.0 * sv[:, None] ** 2)
+    return A[:, None] * np.exp(-ex)
+
+
+def _offsets(r: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column offsets of a (2 r + 1)^2 window, row-major."""
     off = np.arange(-r, r + 1)
     dy, dx = np.meshgrid(off, off, indexing="ij")
-    Y = np.clip(ys[:, None, None] + dy, 0, h - 1)
-    X = np.clip(xs[:, None, None] + dx, 0, w - 1)
-    patch = sig[Y, X]
-    above = patch >= BLOB_LEVEL * peak[:, None, None]
-    if len(xs) > 1:  # pixels nearer another peak (a resolved neighbour) are not this blob's
-        from scipy.spatial import cKDTree
-
-        pts = np.stack([xs, ys], 1).astype(float)
-        _, nn = cKDTree(pts).query(pts, k=2)
-        ox, oy = (pts[nn[:, 1]] - pts).T
-        nearer = (dx - ox[:, None, None]) ** 2 + (dy - oy[:, None, None]) ** 2 < dx ** 2 + dy ** 2
-        above &= ~nearer
-    inside = np.zeros_like(above)
-    inside[:, r, r] = True
-    radius = np.hypot(dy, dx)
-    for k in np.argsort(radius, axis=None, kind="stable")[1:]:  # outward: the parent is one step inward
-        iy, ix = divmod(int(k), 2 * r + 1)
-        py = iy - int(np.sign(iy - r)) if abs(iy - r) >= abs(ix - r) / 2 else iy
-        px = ix - int(np.sign(ix - r)) if abs(ix - r) >= abs(iy - r) / 2 else ix
-        inside[:, iy, ix] = above[:, iy, ix] & inside[:, py, px] & (patch[:, iy, ix] <= patch[:, py, px])
-    return np.where(inside, patch, 0.0), dy, dx
+    return dy.ravel(), dx.ravel()
 
 
-def _single(sig: np.ndarray, ys: np.ndarray, xs: np.ndarray, peak: np.ndarray, sigma: float,
-            max_ratio: float) -> np.ndarray:
-    """(N,) True where a peak's blob is as narrow as one particle image: its intensity-weighted second
-    moment along the widest axis within ``max_ratio**2`` of one particle's."""
-    return blob_width_ratio(sig, ys, xs, peak, sigma) <= max_ratio
+def _deblended_fit(res: np.ndarray, noise: np.ndarray, ys: np.ndarray, xs: np.ndarray, sigma: float,
+                   saturated: np.ndarray, max_elongation: float) -> _Fit:
+    """Centres by three-point Gaussian fits, every other particle's Gaussian subtracted; merged pairs
+    split (step 5)."""
+    n = len(ys)
+    A = np.maximum(res[ys, xs].astype(float), MIN_SIGNAL)
+    state = _State(ys, xs, ys, xs, xs.astype(float), ys.astype(float), A, np.full(n, sigma), np.full(n, sigma),
+                   saturated, np.zeros(n, bool))
+    state, model = _fit_rounds(res, state, sigma, DEBLEND_ITERATIONS)
+    ridge = _on_ridge(res, noise, state, sigma)
+    shape = image_shape(_own_pixels(res, model, state, *_offsets(1)), noise[state.y0, state.x0])
+    split = (shape.elongation_sure > max_elongation) & np.isfinite(shape.elongation) & ~ridge & ~state.saturated
+    if split.any():
+        state, ridge, _ = _split_pairs(res, noise, model, state, shape, split, ridge)
+        if state.fixed.any():
+            state, model = _fit_rounds(res, state, sigma, 1, _render(*res.shape, state, *_model_offsets(sigma)))
+        shape = image_shape(_own_pixels(res, model, state, *_offsets(1)), noise[state.y0, state.x0])
+    return _Fit(uv=np.stack([state.u, state.v], axis=1), peak=state.A, shape=shape, ridge=ridge,
+                saturated=state.saturated, fixed=state.fixed)
 
 
-def blob_width_ratio(sig: np.ndarray, ys: np.ndarray, xs: np.ndarray, peak: np.ndarray, sigma: float) -> np.ndarray:
-    """(N,) RMS width of each peak's blob along its widest axis over one particle image's."""
-    wts, dy, dx = _blob_masks(sig, ys, xs, peak, sigma)
-    total = wts.sum(axis=(1, 2))
-    mx = (wts * dx).sum(axis=(1, 2)) / total
-    my = (wts * dy).sum(axis=(1, 2)) / total
-    cxx = (wts * (dx - mx[:, None, None]) ** 2).sum(axis=(1, 2)) / total
-    cyy = (wts * (dy - my[:, None, None]) ** 2).sum(axis=(1, 2)) / total
-    cxy = (wts * (dx - mx[:, None, None]) * (dy - my[:, None, None])).sum(axis=(1, 2)) / total
-    major = 0.5 * (cxx + cyy) + np.sqrt(0.25 * (cxx - cyy) ** 2 + cxy ** 2)
-    return np.sqrt(major / _half_peak_moment(sigma))
+def _fit_rounds(res: np.ndarray, state: _State, sigma: float, rounds: int,
+                model: np.ndarray | None = None) -> tuple[_State, np.ndarray]:
+    """``rounds`` rounds of three-point Gaussian fits along u and v, each particle's own pixels being the
+    residual minus the other particles' Gaussians of the round before. Returns the state and its model."""
+    h, w = res.shape
+    s_lo, s_hi = SIGMA_RANGE[0] * sigma, max(SIGMA_RANGE[1] * sigma, 0.5)
+    model_dy, model_dx = _model_offsets(sigma)
+    centroid_dy, centroid_dx = _offsets(int(math.ceil(2.0 * sigma + 1.0)))
+    stencil_dy = np.array([0, 0, 0, -1, 1])  # centre, left, right, up, down
+    stencil_dx = np.array([0, -1, 1, 0, 0])
+    s = state
+    for _ in range(rounds):
+        own = _own_pixels(res, model, s, stencil_dy, stencil_dx)
+        lg = np.log(np.maximum(own, MIN_SIGNAL))
+        ou, cu, tu = _log_parabola(lg[:, 1], lg[:, 0], lg[:, 2])
+        ov, cv, tv = _log_parabola(lg[:, 3], lg[:, 0], lg[:, 4])
+        good = (cu < 0) & (cv < 0) & np.isfinite(ou) & np.isfinite(ov) & ~s.saturated
+        ou, ov = np.clip(np.where(good, ou, 0.0), -1.0, 1.0), np.clip(np.where(good, ov, 0.0), -1.0, 1.0)
+        u, v = s.x0 + ou, s.y0 + ov
+        with np.errstate(divide="ignore", invalid="ignore"):
+            su = np.where(good, np.clip(np.sqrt(-0.5 / cu), s_lo, s_hi), sigma)
+            sv = np.where(good, np.clip(np.sqrt(-0.5 / cv), s_lo, s_hi), sigma)
+        A = np.where(good, np.exp(0.5 * (tu + tv)), np.maximum(own[:, 0], MIN_SIGNAL))
+        bad = ~good  # flat tops (saturated) and failed fits: the centroid of the own pixels above half the peak
+        if bad.any():
+            pb = _own_pixels(res, model, s.take(bad), centroid_dy, centroid_dx)
+            wts = np.where(pb >= 0.5 * pb.max(axis=1, keepdims=True), pb, 0.0)
+            total = np.maximum(wts.sum(axis=1), MIN_SIGNAL)
+            u[bad] = s.x0[bad] + (wts * centroid_dx).sum(axis=1) / total
+            v[bad] = s.y0[bad] + (wts * centroid_dy).sum(axis=1) / total
+        # the peak pixel follows the centre (at most one pixel from where it started)
+        y0 = np.clip(np.rint(v).astype(int), np.maximum(s.anchor_y - 1, 1), np.minimum(s.anchor_y + 1, h - 2))
+        x0 = np.clip(np.rint(u).astype(int), np.maximum(s.anchor_x - 1, 1), np.minimum(s.anchor_x + 1, w - 2))
+        held = s.fixed
+        s = _State(s.anchor_y, s.anchor_x, np.where(held, s.y0, y0), np.where(held, s.x0, x0),
+                   np.where(held, s.u, u), np.where(held, s.v, v), np.where(held, s.A, A), np.where(held, s.su, su),
+                   np.where(held, s.sv, sv), s.saturated, s.fixed)
+        model = _render(h, w, s, model_dy, model_dx)
+    return s, model
 
 
-def _half_peak_moment(sigma: float) -> float:
-    """The widest-axis second moment of one pixel-integrated Gaussian image's blob (as measured by
-    :func:`blob_width_ratio`, worst sub-pixel phase)."""
-    from scipy.special import erf
+def _model_offsets(sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """The window over which a particle's fitted Gaussian is subtracted from the others'."""
+    return _offsets(int(math.ceil(MODEL_RADIUS_SIGMAS * max(SIGMA_RANGE[1] * sigma, 0.5))))
 
-    r = int(math.ceil(2.0 * sigma + 1.0))
-    off = np.arange(-r, r + 1, dtype=float)
-    s2 = math.sqrt(2.0) * sigma
-    best = 0.0
-    for c in (0.0, 0.25, 0.5):
-        gx = 0.5 * (erf((off + 0.5 - c) / s2) - erf((off - 0.5 - c) / s2))
-        gy = 0.5 * (erf((off + 0.5) / s2) - erf((off - 0.5) / s2))
-        g = gy[:, None] * gx[None, :]
-        wts = np.where(g >= BLOB_LEVEL * g.max(), g, 0.0)
-        m = (wts * off[None, :]).sum() / wts.sum()
-        best = max(best, float((wts * (off[None, :] - m) ** 2).sum() / wts.sum()))
-    return max(best, 1.0 / 12.0)
+
+def _split_pairs(res: np.ndarray, noise: np.ndarray, model: np.ndarray, state: _State, shape: ImageShape,
+                 split: np.ndarray, ridge: np.ndarray) -> tuple[_State, np.ndarray, np.ndarray]:
+    """Each elongated image fitted as two round Gaussians (a small least-squares fit of both centres, both
+    peaks and one sigma to its own pixels, the other particles' Gaussians subtracted), started
+    ``half_split`` either side of its centre along its widest axis. Where both peaks stand above
+    SUPPORT_SIGMAS noise sigmas and the centres end up at least MIN_SPLIT_PX apart, the image becomes
+    those two, held (``fixed``) from then on. Returns the state, its ridge flags and which were split."""
+    rows = np.flatnonzero(split)
+    s = state.take(rows)
+    dy, dx = _offsets(max(2, int(math.ceil(PAIR_WINDOW_SIGMAS * float(np.median(s.su)) + 0.5))))
+    data = _own_pixels(res, model, s, dy, dx)
+    X = np.clip(s.x0[:, None] + dx, 0, res.shape[1] - 1).astype(float)
+    Y = np.clip(s.y0[:, None] + dy, 0, res.shape[0] - 1).astype(float)
+    a = np.clip(shape.half_split[rows], SPLIT_RANGE_PX[0], SPLIT_RANGE_PX[1])
+    du, dv = a * shape.axis[rows, 0], a * shape.axis[rows, 1]
+    p = np.stack([s.u - du, s.v - dv, s.u + du, s.v + dv, 0.6 * s.A, 0.6 * s.A,
+                  np.sqrt(0.5 * (s.su ** 2 + s.sv ** 2))], axis=1)
+    p, ok = _levenberg_marquardt_pair(p, X, Y, data)
+    sep = np.hypot(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
+    level = SUPPORT_SIGMAS * noise[s.y0, s.x0]
+    accept = ok & (sep >= MIN_SPLIT_PX) & (np.minimum(p[:, 4], p[:, 5]) >= level)
+    accept &= np.hypot(0.5 * (p[:, 0] + p[:, 2]) - s.u, 0.5 * (p[:, 1] + p[:, 3]) - s.v) <= 1.0
+    if not accept.any():
+        return state, ridge, np.zeros(len(state.u), bool)
+    rows, p, s = rows[accept], p[accept], s.take(accept)
+    h, w = res.shape
+    twins = []
+    for k in (0, 1):
+        u, v = p[:, 2 * k], p[:, 2 * k + 1]
+        y0 = np.clip(np.rint(v).astype(int), 1, h - 2)
+        x0 = np.clip(np.rint(u).astype(int), 1, w - 2)
+        twins.append(_State(y0, x0, y0, x0, u, v, p[:, 4 + k], p[:, 6], p[:, 6], s.saturated,
+                            np.ones(len(rows), bool)))
+    keep = np.ones(len(state.u), bool)
+    keep[rows] = False
+    out = state.take(keep).join(twins[0]).join(twins[1])
+    was_split = np.concatenate([np.zeros(keep.sum(), bool), np.ones(2 * len(rows), bool)])
+    return out, np.concatenate([ridge[keep], ridge[rows], ridge[rows]]), was_split
+
+
+def _levenberg_marquardt_pair(p: np.ndarray, X: np.ndarray, Y: np.ndarray, data: np.ndarray
+                              ) -> tuple[np.ndarray, np.ndarray]:
+    """Fit two round Gaussians, parameters (N, 7) = u1, v1, u2, v2, A1, A2, sigma, to ``data`` (N, P) at
+    pixels X, Y (N, P) by Levenberg-Marquardt (batched). Returns the parameters and where it converged."""
+    lam = np.full(len(p), 1e-2)
+
+    def residual_and_jacobian(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        s2 = q[:, 6:7] ** 2
+        ex1, ey1 = X - q[:, 0:1], Y - q[:, 1:2]
+        ex2, ey2 = X - q[:, 2:3], Y - q[:, 3:4]
+        g1 = np.exp(-(ex1 ** 2 + ey1 ** 2) / (2 * s2))
+        g2 = np.exp(-(ex2 ** 2 + ey2 ** 2) / (2 * s2))
+        m1, m2 = q[:, 4:5] * g1, q[:, 5:6] * g2
+        J = np.stack([m1 * ex1 / s2, m1 * ey1 / s2, m2 * ex2 / s2, m2 * ey2 / s2, g1, g2,
+                      (m1 * (ex1 ** 2 + ey1 ** 2) + m2 * (ex2 ** 2 + ey2 ** 2)) / (s2 * q[:, 6:7])], axis=2)
+        return data - m1 - m2, J
+
+    r, J = residual_and_jacobian(p)
+    cost = (r * r).sum(axis=1)
+    for _ in range(PAIR_ITERATIONS):
+        JtJ = np.einsum("npi,npj->nij", J, J)
+        Jtr = np.einsum("npi,np->ni", J, r)
+        damped = JtJ + lam[:, None, None] * (np.eye(7) * np.diagonal(JtJ, axis1=1, axis2=2)[:, None, :] + 1e-9 * np.eye(7))
+        try:
+            step = np.linalg.solve(damped, Jtr[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:
+            break
+        trial = p + step
+        trial[:, 4:6] = np.maximum(trial[:, 4:6], MIN_SIGNAL)
+        trial[:, 6] = np.clip(trial[:, 6], 0.3, 3.0)
+        r_t, J_t = residual_and_jacobian(trial)
+        cost_t = (r_t * r_t).sum(axis=1)
+        better = cost_t < cost
+        p = np.where(better[:, None], trial, p)
+        r = np.where(better[:, None], r_t, r)
+        J = np.where(better[:, None, None], J_t, J)
+        cost = np.where(better, cost_t, cost)
+        lam = np.where(better, lam * 0.3, lam * 10.0)
+    return p, np.isfinite(p).all(axis=1) & (lam < 1e6)
+
+
+def _own_pixels(res: np.ndarray, model: np.ndarray | None, s: _State, dy: np.ndarray, dx: np.ndarray) -> np.ndarray:
+    """(N, len(dy)) the residual at each particle's pixels (y0 + dy, x0 + dx), clamped to the frame,
+    minus the other particles' Gaussians (the whole model minus its own)."""
+    h, w = res.shape
+    Y = np.clip(s.y0[:, None] + dy, 0, h - 1)
+    X = np.clip(s.x0[:, None] + dx, 0, w - 1)
+    out = res[Y, X].astype(float)
+    if model is not None:
+        out -= model[Y, X] - _gaussian(s.A, s.u, s.v, s.su, s.sv, X, Y)
+    return out
+
+
+def _render(h: int, w: int, s: _State, dy: np.ndarray, dx: np.ndarray) -> np.ndarray:
+    """The sum of the particles' Gaussians (h, w) over a (2R + 1)^2 window each."""
+    Y = np.rint(s.v).astype(int)[:, None] + dy
+    X = np.rint(s.u).astype(int)[:, None] + dx
+    vals = _gaussian(s.A, s.u, s.v, s.su, s.sv, X, Y)
+    inside = (X >= 0) & (X < w) & (Y >= 0) & (Y < h)
+    flat = np.bincount((Y * w + X)[inside], weights=vals[inside], minlength=h * w)
+    return flat.reshape(h, w)
+
+
+def _on_ridge(res: np.ndarray, noise: np.ndarray, s: _State, sigma: float) -> np.ndarray:
+    """(N,) True where an image lies on a ridge (a streak, a blob's rim): along one of u, v and the two
+    diagonals, the residual (other candidates kept: a streak is a chain of them) stays above RIDGE_LEVEL
+    of its peak on both sides at r and 2 r (r = RIDGE_RADIUS_SIGMAS sigmas), two noise sigmas allowed."""
+    r = max(2, int(math.ceil(RIDGE_RADIUS_SIGMAS * sigma)))
+    rd = max(1, int(round(r / math.sqrt(2.0))))
+    dy = np.array([0, 0, -r, r, -rd, rd, -rd, rd])
+    dx = np.array([-r, r, 0, 0, -rd, rd, rd, -rd])
+    ring = _own_pixels(res, None, s, np.concatenate([dy, 2 * dy]), np.concatenate([dx, 2 * dx]))
+    sure = ring - SUPPORT_SIGMAS * noise[s.y0, s.x0][:, None]
+    both = np.minimum(sure[:, 0::2], sure[:, 1::2])  # per direction, at r and at 2 r
+    return (np.minimum(both[:, :4], both[:, 4:]) >= RIDGE_LEVEL * s.A[:, None]).any(axis=1) & ~s.saturated
+
+
+def image_shape(own: np.ndarray, noise: np.ndarray) -> ImageShape:
+    """The Gaussian shape of particle images from their own 3 x 3 pixels ``own`` (N, 9), row-major around
+    the peak pixel, and the noise there (N,): the Hessian of the log intensities by weighted least squares
+    (a quadratic in the pixel offsets; weights: each log's inverse variance, (I / noise)^2 with a
+    MODEL_NOISE relative floor for shot noise and the profile's departure from a Gaussian). Exact for a
+    Gaussian of any orientation, wherever its centre lies in the peak pixel. Two equal round images of
+    sigma s, 2 a apart, look like one with log curvatures 1 / s^2 across and 1 / s^2 - a^2 / s^4 along:
+    ``half_split`` is that a."""
+    n = len(own)
+    noise = np.maximum(np.asarray(noise, float), 1e-9)[:, None]
+    I = np.maximum(own, 0.5 * noise)
+    weight = 1.0 / ((noise / I) ** 2 + MODEL_NOISE ** 2)
+    dy, dx = (a.astype(float) for a in _offsets(1))
+    design = np.stack([np.ones(9), dx, dy, 0.5 * dx * dx, dx * dy, 0.5 * dy * dy], axis=1)  # (9, 6)
+    normal = np.einsum("pi,np,pj->nij", design, weight, design)
+    rhs = np.einsum("pi,np->ni", design, weight * np.log(I))
+    ok = np.linalg.cond(normal) < 1e12
+    cov = np.full((n, 6, 6), np.nan)
+    cov[ok] = np.linalg.inv(normal[ok])
+    params = np.einsum("nij,nj->ni", cov, rhs)
+    h_uu, h_uv, h_vv = params[:, 3], params[:, 4], params[:, 5]
+    m = -0.5 * (h_uu + h_vv)  # the eigenvalues of -H: m -/+ d
+    q = 0.5 * (h_uu - h_vv)
+    d = np.hypot(q, h_uv)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gd = np.stack([q / (2 * d), h_uv / d, -q / (2 * d)], axis=1)  # d(d) / d(h_uu, h_uv, h_vv)
+        gd = np.where((d > 0)[:, None], gd, np.array([0.5, 1.0, 0.5]) / math.sqrt(1.5))
+        gl = np.stack([-0.5 - gd[:, 0], -gd[:, 1], -0.5 - gd[:, 2]], axis=1)  # d(m - d)
+        c3 = cov[:, 3:, 3:]
+        sd_d = np.sqrt(np.einsum("ni,nij,nj->n", gd, c3, gd))
+        sd_low = np.sqrt(np.einsum("ni,nij,nj->n", gl, c3, gl))
+        low, high = m - d, m + d  # the smallest and largest curvature of -log I
+        peak = (low > 0) & np.isfinite(m)
+        sigma_major = np.where(peak, 1.0 / np.sqrt(low), np.inf)
+        elongation = np.where(peak, np.sqrt(high / low), np.inf)
+        low_sure = low + 2.0 * sd_low
+        sigma_sure = np.where(low_sure > 0, 1.0 / np.sqrt(low_sure), np.inf)
+        d_sure = np.maximum(d - 2.0 * sd_d, 0.0)
+        el_sure = np.where(m > d_sure, np.sqrt((m + d_sure) / (m - d_sure)), np.inf)
+        half_split = np.where(high > 0, np.sqrt(np.maximum(2.0 * d, 0.0)) / high, 0.0)
+        # the widest axis: the eigenvector of -H for its smallest eigenvalue, at angle atan2(.) / 2 + 90 deg
+        angle = 0.5 * np.arctan2(-2.0 * h_uv, -(h_uu - h_vv)) + 0.5 * math.pi
+    bad = ~np.isfinite(m)
+    inf = np.full(n, np.inf)
+    return ImageShape(sigma_major=np.where(bad, inf, sigma_major), elongation=np.where(bad, inf, elongation),
+                      sigma_major_sure=np.where(bad, inf, sigma_sure), elongation_sure=np.where(bad, inf, el_sure),
+                      axis=np.stack([np.cos(angle), np.sin(angle)], axis=1), half_split=np.nan_to_num(half_split))
+
+
+def _single(fit: _Fit, sigma: float, max_width_ratio: float, max_elongation: float) -> np.ndarray:
+    """(N,) False where a blob is not one particle image (step 6): longer than wide by more than
+    ``max_elongation`` beyond the noise (two images merged into one maximum that would not split), wider
+    than ``max_width_ratio`` times the hint's sigma, or on a ridge. A saturated (flat-topped) image is kept."""
+    eff = math.sqrt(sigma * sigma + 1.0 / 12.0)  # a pixel-integrated image of the hint's sigma
+    shape = fit.shape
+    ok = (shape.elongation_sure <= max_elongation) & (shape.sigma_major_sure <= max_width_ratio * eff) & ~fit.ridge
+    return fit.saturated | fit.fixed | ok
 
 
 def read_image(path: Path) -> np.ndarray:
