@@ -16,14 +16,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 
-LINE_LENGTH = 1.7  # the line segments of the opening, in opening discs
-LINE_DIRECTIONS = 8  # their directions over 180 degrees
-_VARIANT: dict = {}
 HIGH_PASS_GAIN = math.sqrt(1.25)  # the noise of a pixel minus its four neighbours' mean, per unit noise
+BLOCK_SAMPLE_STEP = 2  # a block's statistics from every second pixel along rows and columns
 CLIP_SIGMAS = 3.0  # the noise: residuals within this many robust sigmas of the block's median
 CLIP_FLOOR = 2.0  # and at least this many grey level steps (quantised dark frames: the MAD can be 0)
 CLIPPED_STD_FACTOR = 0.9866  # std of a unit Gaussian clipped at +-3 sigma (sqrt of 0.97333)
@@ -47,19 +44,12 @@ def estimate_background(img: np.ndarray, diameter_px: float, block_px: int, quan
     level step (1 for integer images, 0 for float ones)."""
     import cv2
 
-    opened = None
-    for element in structuring_elements(diameter_px):
-        o = cv2.morphologyEx(img, cv2.MORPH_OPEN, element, borderType=cv2.BORDER_REPLICATE)
-        opened = o if opened is None else np.maximum(opened, o, out=opened)
-    if _VARIANT.get("blur"):
-        k = opening_size(diameter_px)
-        opened = cv2.blur(opened, (k, k), borderType=cv2.BORDER_REPLICATE)
-    residual = img - opened
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (opening_size(diameter_px),) * 2)
+    opened = cv2.morphologyEx(img, cv2.MORPH_OPEN, disc, borderType=cv2.BORDER_REPLICATE)
     grid = BlockGrid(img.shape, block_px)
-    offset = grid.values(residual, "median", quantum)
-    level = opened + grid.interpolate(offset)
+    level = opened + grid.interpolate(grid.values(img - opened, "median", quantum))
     block_noise = grid.values(_pixel_differences(img), "noise", quantum) / HIGH_PASS_GAIN
-    block_level = grid.values(level, "median", quantum)
+    block_level = grid.at_centres(level)
     a, b = _noise_model(block_level.ravel(), block_noise.ravel() ** 2, quantum)
     noise = np.sqrt(np.maximum(a + b * level, max(quantum * quantum / 12.0, 1e-12)))
     noise = np.maximum(noise, grid.interpolate(block_noise))
@@ -90,68 +80,57 @@ def _noise_model(level: np.ndarray, variance: np.ndarray, quantum: float) -> tup
     return a, b
 
 
-@lru_cache(maxsize=8)
-def structuring_elements(diameter_px: float) -> tuple[np.ndarray, ...]:
-    """The opening's elements: a disc of :func:`opening_size` and LINE_DIRECTIONS line segments of
-    LINE_LENGTH discs (a streak, however thin, holds one of them; a particle image holds none)."""
-    import cv2
-
-    k = opening_size(diameter_px)
-    length = int(round(LINE_LENGTH * k)) | 1
-    c = length // 2
-    t = np.linspace(-c, c, 4 * length)
-    lines = []
-    for angle in np.arange(LINE_DIRECTIONS) * math.pi / LINE_DIRECTIONS:
-        line = np.zeros((length, length), np.uint8)
-        line[np.rint(c + t * math.sin(angle)).astype(int), np.rint(c + t * math.cos(angle)).astype(int)] = 1
-        lines.append(line)
-    return (cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)), *lines)
-
-
 class BlockGrid:
-    """Blocks of ~``block_px`` covering a frame; a statistic per block, bilinear between block centres."""
+    """Blocks of ``block_px`` (fewer, overlapping a little, where the frame is not a whole number of them)
+    covering a frame; a statistic per block, bilinear between block centres."""
 
     def __init__(self, shape: tuple[int, int], block_px: int) -> None:
         h, w = shape
-        b = int(max(4, min(block_px, h, w)))
         self.shape = (h, w)
-        self.ny, self.nx = max(1, round(h / b)), max(1, round(w / b))
-        self.ys = np.linspace(0, h, self.ny + 1).astype(int)
-        self.xs = np.linspace(0, w, self.nx + 1).astype(int)
+        self.by, self.bx = int(max(2, min(block_px, h))), int(max(2, min(block_px, w)))
+        ny, nx = max(1, math.ceil(h / self.by)), max(1, math.ceil(w / self.bx))
+        self.y0 = np.rint(np.linspace(0, h - self.by, ny)).astype(int)  # first row of each block
+        self.x0 = np.rint(np.linspace(0, w - self.bx, nx)).astype(int)
 
     def values(self, img: np.ndarray, what: str, quantum: float = 1.0) -> np.ndarray:
-        """(ny, nx) the statistic (``median`` or ``noise``) of each block of ``img``."""
-        out = np.empty((self.ny, self.nx), np.float32)
-        for i in range(self.ny):
-            rows = img[self.ys[i]:self.ys[i + 1]]
-            for j in range(self.nx):
-                out[i, j] = _statistic(rows[:, self.xs[j]:self.xs[j + 1]].ravel(), what, quantum)
-        return out
+        """(ny, nx) the statistic of each block of ``img``: ``median``, or ``noise`` (the standard deviation
+        of the values within CLIP_SIGMAS robust sigmas, or CLIP_FLOOR grey level steps, of the median)."""
+        step = BLOCK_SAMPLE_STEP if min(self.by, self.bx) >= 8 * BLOCK_SAMPLE_STEP else 1
+        rows = self.y0[:, None] + np.arange(0, self.by, step)
+        cols = self.x0[:, None] + np.arange(0, self.bx, step)
+        blocks = img[rows[:, :, None, None], cols[None, None, :, :]]  # (ny, by, nx, bx)
+        values = blocks.transpose(0, 2, 1, 3).reshape(len(self.y0), len(self.x0), -1).astype(np.float32)
+        med = np.median(values, axis=-1)
+        if what == "median":
+            return med
+        dev = np.abs(values - med[..., None])
+        mad = 1.4826 * np.median(dev, axis=-1)
+        robust = CLIP_SIGMAS * mad >= CLIP_FLOOR * quantum
+        half = np.where(robust, CLIP_SIGMAS * mad, CLIP_FLOOR * quantum)
+        kept = dev <= half[..., None]
+        count = np.maximum(kept.sum(axis=-1), 1)
+        mean = np.where(kept, values, 0.0).sum(axis=-1) / count
+        var = np.where(kept, (values - mean[..., None]) ** 2, 0.0).sum(axis=-1) / np.maximum(count - 1, 1)
+        std = np.sqrt(var) / np.where(robust, CLIPPED_STD_FACTOR, 1.0)
+        return np.maximum(std, max(quantum / math.sqrt(12.0), 1e-6)).astype(np.float32)  # flat: quantisation
+
+    def at_centres(self, img: np.ndarray) -> np.ndarray:
+        """(ny, nx) ``img`` at the pixel nearest each block's centre."""
+        cy = np.rint(self.y0 + 0.5 * (self.by - 1)).astype(int)
+        cx = np.rint(self.x0 + 0.5 * (self.bx - 1)).astype(int)
+        return img[cy[:, None], cx[None, :]]
 
     def interpolate(self, values: np.ndarray) -> np.ndarray:
         """(h, w) float32: ``values`` at the block centres, bilinear between them, constant beyond."""
         import cv2
 
         h, w = self.shape
-        if self.ny == 1 and self.nx == 1:
-            return np.full((h, w), values[0, 0], np.float32)
-        cy = 0.5 * (self.ys[:-1] + self.ys[1:]) - 0.5
-        cx = 0.5 * (self.xs[:-1] + self.xs[1:]) - 0.5
-        fy = np.interp(np.arange(h), cy, np.arange(self.ny)).astype(np.float32)
-        fx = np.interp(np.arange(w), cx, np.arange(self.nx)).astype(np.float32)
+        if values.size == 1:
+            return np.full((h, w), float(values.ravel()[0]), np.float32)
+        cy = self.y0 + 0.5 * (self.by - 1)
+        cx = self.x0 + 0.5 * (self.bx - 1)
+        fy = np.interp(np.arange(h), cy, np.arange(len(cy))).astype(np.float32)
+        fx = np.interp(np.arange(w), cx, np.arange(len(cx))).astype(np.float32)
         map_x, map_y = np.meshgrid(fx, fy)
         return cv2.remap(np.asarray(values, np.float32), map_x, map_y, cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_REPLICATE)
-
-
-def _statistic(values: np.ndarray, what: str, quantum: float) -> float:
-    med = float(np.median(values))
-    if what == "median":
-        return med
-    mad = 1.4826 * float(np.median(np.abs(values - med)))
-    half = max(CLIP_SIGMAS * mad, CLIP_FLOOR * quantum)
-    kept = values[np.abs(values - med) <= half]
-    floor = max(quantum / math.sqrt(12.0), 1e-6)  # a flat block: the quantisation's own noise
-    if len(kept) < 2:
-        return max(mad, floor)
-    return max(float(kept.std()) / (CLIPPED_STD_FACTOR if half == CLIP_SIGMAS * mad else 1.0), floor)

@@ -42,7 +42,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ari_sfm.particles.background import estimate_background
+from ari_sfm.particles.background import estimate_background, opening_size
 from ari_sfm.particles.engine import PartitionError
 
 log = logging.getLogger(__name__)
@@ -51,6 +51,7 @@ MIN_SIGNAL = 1e-3  # floor of background-subtracted intensities before the log o
 SMOOTH_FRACTION = 0.5  # the candidates' image: the residual smoothed at this fraction of a particle's sigma
 AXIS_SUPPORT = 0.1  # a particle image (e^-2 diameter >= ~1.5 px) lends each axis' brighter neighbour >= this of its peak
 DIAGONAL_SUPPORT = 0.25  # and its diagonal pixel >= this fraction of the separable profile's value there
+HOT_SIGMA_FRACTION = 0.6  # a pixel sharper than an image of this fraction of the hint's sigma is hot
 SUPPORT_SIGMAS = 2.0  # the support tests' allowance for noise, in noise sigmas
 DEBLEND_ITERATIONS = 3  # rounds of centre fits with the other particles' Gaussians subtracted
 SIGMA_RANGE = (0.5, 2.0)  # a fitted sigma is clipped to this range times the hint's
@@ -61,7 +62,7 @@ PAIR_WINDOW_SIGMAS = 2.0  # a merged pair's two-Gaussian fit uses the pixels wit
 PAIR_ITERATIONS = 15  # Levenberg-Marquardt iterations of that fit
 MIN_SPLIT_PX = 0.8  # a pair fitted closer than this stays one image
 MODEL_NOISE = 0.03  # the shape fit's relative noise floor per pixel (shot noise, a profile not quite Gaussian)
-MODEL_RADIUS_SIGMAS = 3.0  # a particle's fitted Gaussian is subtracted out to this many of its sigmas
+MODEL_RADIUS_SIGMAS = 4.0  # a particle's fitted Gaussian is subtracted out to this many of the hint's sigmas
 
 
 @dataclass(frozen=True)
@@ -124,14 +125,14 @@ def detect_particles_in_image(image: np.ndarray, options: DetectOptions = Detect
     background = estimate_background(img, options.diameter_px, block, quantum)
     res = img - background.level
     noise = background.noise
-    clean = _without_hot_pixels(res, noise)
+    clean = _without_hot_pixels(res, noise, sigma)
     s_smooth = max(SMOOTH_FRACTION * sigma, 0.3)
     smooth = cv2.GaussianBlur(clean, (0, 0), s_smooth, borderType=cv2.BORDER_REPLICATE)
     noise_smooth = noise * _smoothing_gain(s_smooth)
     threshold = np.maximum(options.threshold_sigma * noise_smooth, options.min_peak)
     ys, xs = _local_maxima(smooth, threshold)
     if len(xs):
-        ok = _supported(clean, ys, xs, noise[ys, xs])
+        ok = _supported(clean, ys, xs, noise[ys, xs]) & ~_near_saturated_blob(img, saturation, options.diameter_px)[ys, xs]
         ys, xs = ys[ok], xs[ok]
     if not len(xs):
         return empty
@@ -149,19 +150,34 @@ def _smoothing_gain(sigma: float) -> float:
     return float(np.sum(k * k))  # (sum of squares in 1-D) squared under the root: the 2-D blur is separable
 
 
-def _without_hot_pixels(res: np.ndarray, noise: np.ndarray) -> np.ndarray:
-    """``res`` with single hot pixels replaced by the median of their 8 neighbours: a pixel whose
-    neighbours, even SUPPORT_SIGMAS noise sigmas up, all stay below AXIS_SUPPORT of it."""
+def _near_saturated_blob(img: np.ndarray, saturation: float, diameter_px: float) -> np.ndarray:
+    """(h, w) bool: within an opening disc of a saturated region wider than that disc (a blob, a glare:
+    its rim is no particle, and a particle there cannot be measured)."""
     import cv2
 
-    ring = np.ones((3, 3), np.uint8)
-    ring[1, 1] = 0
-    brightest = cv2.dilate(res, ring, borderType=cv2.BORDER_REPLICATE)
-    hot = (brightest + SUPPORT_SIGMAS * noise < AXIS_SUPPORT * res)
-    hot[0, :] = hot[-1, :] = hot[:, 0] = hot[:, -1] = False
-    ys, xs = np.nonzero(hot)
+    saturated = (img >= saturation).astype(np.uint8)
+    if not saturated.any():
+        return np.zeros(img.shape, bool)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (opening_size(diameter_px),) * 2)
+    big = cv2.morphologyEx(saturated, cv2.MORPH_OPEN, disc)
+    return cv2.dilate(big, disc).astype(bool) if big.any() else np.zeros(img.shape, bool)
+
+
+def _without_hot_pixels(res: np.ndarray, noise: np.ndarray, sigma: float) -> np.ndarray:
+    """``res`` with hot pixels replaced by the median of their 8 neighbours: a pixel sharper along u and
+    along v than any particle image of HOT_SIGMA_FRACTION of the hint's sigma can be (log curvature
+    2 ln I0 - ln I-1 - ln I+1 > 1 / s^2, intensities floored at the noise), also on a particle's skirt."""
+    eff = HOT_SIGMA_FRACTION * math.sqrt(sigma * sigma + 1.0 / 12.0)
+    limit = 1.0 / (eff * eff)
+    floor = np.maximum(noise, 1e-6)
+    lg = np.log(np.maximum(res, floor))
+    inner = lg[1:-1, 1:-1]
+    sharp_u = 2.0 * inner - lg[1:-1, :-2] - lg[1:-1, 2:] > limit
+    sharp_v = 2.0 * inner - lg[:-2, 1:-1] - lg[2:, 1:-1] > limit
+    ys, xs = np.nonzero(sharp_u & sharp_v)
     if not len(ys):
         return res
+    ys, xs = ys + 1, xs + 1
     out = res.copy()
     dy = np.array([-1, -1, -1, 0, 0, 1, 1, 1])
     dx = np.array([-1, 0, 1, -1, 1, -1, 0, 1])
@@ -288,7 +304,7 @@ def _deblended_fit(res: np.ndarray, noise: np.ndarray, ys: np.ndarray, xs: np.nd
     if split.any():
         state, ridge, _ = _split_pairs(res, noise, model, state, shape, split, ridge)
         if state.fixed.any():
-            state, model = _fit_rounds(res, state, sigma, 1, _render(*res.shape, state, *_model_offsets(sigma)))
+            state, model = _fit_rounds(res, state, sigma, 1, _render(*res.shape, state, _model_radius(sigma)))
         shape = image_shape(_own_pixels(res, model, state, *_offsets(1)), noise[state.y0, state.x0])
     return _Fit(uv=np.stack([state.u, state.v], axis=1), peak=state.A, shape=shape, ridge=ridge,
                 saturated=state.saturated, fixed=state.fixed)
@@ -300,7 +316,7 @@ def _fit_rounds(res: np.ndarray, state: _State, sigma: float, rounds: int,
     residual minus the other particles' Gaussians of the round before. Returns the state and its model."""
     h, w = res.shape
     s_lo, s_hi = SIGMA_RANGE[0] * sigma, max(SIGMA_RANGE[1] * sigma, 0.5)
-    model_dy, model_dx = _model_offsets(sigma)
+    model_r = _model_radius(sigma)
     centroid_dy, centroid_dx = _offsets(int(math.ceil(2.0 * sigma + 1.0)))
     stencil_dy = np.array([0, 0, 0, -1, 1])  # centre, left, right, up, down
     stencil_dx = np.array([0, -1, 1, 0, 0])
@@ -331,13 +347,13 @@ def _fit_rounds(res: np.ndarray, state: _State, sigma: float, rounds: int,
         s = _State(s.anchor_y, s.anchor_x, np.where(held, s.y0, y0), np.where(held, s.x0, x0),
                    np.where(held, s.u, u), np.where(held, s.v, v), np.where(held, s.A, A), np.where(held, s.su, su),
                    np.where(held, s.sv, sv), s.saturated, s.fixed)
-        model = _render(h, w, s, model_dy, model_dx)
+        model = _render(h, w, s, model_r)
     return s, model
 
 
-def _model_offsets(sigma: float) -> tuple[np.ndarray, np.ndarray]:
-    """The window over which a particle's fitted Gaussian is subtracted from the others'."""
-    return _offsets(int(math.ceil(MODEL_RADIUS_SIGMAS * max(SIGMA_RANGE[1] * sigma, 0.5))))
+def _model_radius(sigma: float) -> int:
+    """The half-width of the window over which a particle's fitted Gaussian is subtracted from the others'."""
+    return max(2, int(math.ceil(MODEL_RADIUS_SIGMAS * sigma)))
 
 
 def _split_pairs(res: np.ndarray, noise: np.ndarray, model: np.ndarray, state: _State, shape: ImageShape,
@@ -433,14 +449,17 @@ def _own_pixels(res: np.ndarray, model: np.ndarray | None, s: _State, dy: np.nda
     return out
 
 
-def _render(h: int, w: int, s: _State, dy: np.ndarray, dx: np.ndarray) -> np.ndarray:
-    """The sum of the particles' Gaussians (h, w) over a (2R + 1)^2 window each."""
-    Y = np.rint(s.v).astype(int)[:, None] + dy
-    X = np.rint(s.u).astype(int)[:, None] + dx
-    vals = _gaussian(s.A, s.u, s.v, s.su, s.sv, X, Y)
-    inside = (X >= 0) & (X < w) & (Y >= 0) & (Y < h)
-    flat = np.bincount((Y * w + X)[inside], weights=vals[inside], minlength=h * w)
-    return flat.reshape(h, w)
+def _render(h: int, w: int, s: _State, r: int) -> np.ndarray:
+    """The sum of the particles' Gaussians (h, w) over a (2 r + 1)^2 window each (separable)."""
+    off = np.arange(-r, r + 1)
+    xs = np.rint(s.u).astype(int)[:, None] + off  # (N, 2r+1)
+    ys = np.rint(s.v).astype(int)[:, None] + off
+    gx = np.exp(-((xs - s.u[:, None]) ** 2) / (2.0 * s.su[:, None] ** 2))
+    gy = s.A[:, None] * np.exp(-((ys - s.v[:, None]) ** 2) / (2.0 * s.sv[:, None] ** 2))
+    vals = gy[:, :, None] * gx[:, None, :]
+    flat = ys[:, :, None] * w + xs[:, None, :]
+    inside = ((xs >= 0) & (xs < w))[:, None, :] & ((ys >= 0) & (ys < h))[:, :, None]
+    return np.bincount(flat[inside], weights=vals[inside], minlength=h * w).reshape(h, w)
 
 
 def _on_ridge(res: np.ndarray, noise: np.ndarray, s: _State, sigma: float) -> np.ndarray:
@@ -453,8 +472,8 @@ def _on_ridge(res: np.ndarray, noise: np.ndarray, s: _State, sigma: float) -> np
     dx = np.array([-r, r, 0, 0, -rd, rd, rd, -rd])
     ring = _own_pixels(res, None, s, np.concatenate([dy, 2 * dy]), np.concatenate([dx, 2 * dx]))
     sure = ring - SUPPORT_SIGMAS * noise[s.y0, s.x0][:, None]
-    both = np.minimum(sure[:, 0::2], sure[:, 1::2])  # per direction, at r and at 2 r
-    return (np.minimum(both[:, :4], both[:, 4:]) >= RIDGE_LEVEL * s.A[:, None]).any(axis=1) & ~s.saturated
+    both = np.minimum(sure[:, 0::2], sure[:, 1::2]) / np.maximum(s.A, MIN_SIGNAL)[:, None]  # per direction
+    return ((both[:, :4] >= RIDGE_LEVEL) & (both[:, 4:] >= 0.5 * RIDGE_LEVEL)).any(axis=1)
 
 
 def image_shape(own: np.ndarray, noise: np.ndarray) -> ImageShape:
@@ -471,11 +490,9 @@ def image_shape(own: np.ndarray, noise: np.ndarray) -> ImageShape:
     weight = 1.0 / ((noise / I) ** 2 + MODEL_NOISE ** 2)
     dy, dx = (a.astype(float) for a in _offsets(1))
     design = np.stack([np.ones(9), dx, dy, 0.5 * dx * dx, dx * dy, 0.5 * dy * dy], axis=1)  # (9, 6)
-    normal = np.einsum("pi,np,pj->nij", design, weight, design)
-    rhs = np.einsum("pi,np->ni", design, weight * np.log(I))
-    ok = np.linalg.cond(normal) < 1e12
-    cov = np.full((n, 6, 6), np.nan)
-    cov[ok] = np.linalg.inv(normal[ok])
+    normal = (weight @ (design[:, :, None] * design[:, None, :]).reshape(9, 36)).reshape(n, 6, 6)
+    rhs = (weight * np.log(I)) @ design
+    cov = np.linalg.inv(normal)  # positive definite: nine pixels, positive weights, six parameters
     params = np.einsum("nij,nj->ni", cov, rhs)
     h_uu, h_uv, h_vv = params[:, 3], params[:, 4], params[:, 5]
     m = -0.5 * (h_uu + h_vv)  # the eigenvalues of -H: m -/+ d
@@ -512,8 +529,8 @@ def _single(fit: _Fit, sigma: float, max_width_ratio: float, max_elongation: flo
     than ``max_width_ratio`` times the hint's sigma, or on a ridge. A saturated (flat-topped) image is kept."""
     eff = math.sqrt(sigma * sigma + 1.0 / 12.0)  # a pixel-integrated image of the hint's sigma
     shape = fit.shape
-    ok = (shape.elongation_sure <= max_elongation) & (shape.sigma_major_sure <= max_width_ratio * eff) & ~fit.ridge
-    return fit.saturated | fit.fixed | ok
+    one = (shape.elongation_sure <= max_elongation) & (shape.sigma_major_sure <= max_width_ratio * eff)
+    return (one | fit.saturated | fit.fixed) & ~fit.ridge
 
 
 def read_image(path: Path) -> np.ndarray:
