@@ -51,16 +51,19 @@ MIN_SIGNAL = 1e-3  # floor of background-subtracted intensities before the log o
 SMOOTH_FRACTION = 0.5  # the candidates' image: the residual smoothed at this fraction of a particle's sigma
 AXIS_SUPPORT = 0.1  # a particle image (e^-2 diameter >= ~1.5 px) lends each axis' brighter neighbour >= this of its peak
 DIAGONAL_SUPPORT = 0.25  # and its diagonal pixel >= this fraction of the separable profile's value there
-HOT_SIGMA_FRACTION = 0.6  # a pixel sharper than an image of this fraction of the hint's sigma is hot
+HOT_SIGMA_PX = 0.4  # a pixel sharper than a Gaussian image of this sigma (px, pixel-integrated >= 0.29) is hot
 SUPPORT_SIGMAS = 2.0  # the support tests' allowance for noise, in noise sigmas
-DEBLEND_ITERATIONS = 3  # rounds of centre fits with the other particles' Gaussians subtracted
+SIGNIFICANT_SIGMAS = 3.0  # or a bright sharp image's neighbours along an axis stand this far above the noise
+DEBLEND_ITERATIONS = 2  # rounds of centre fits with the other particles' Gaussians subtracted
 SIGMA_RANGE = (0.5, 2.0)  # a fitted sigma is clipped to this range times the hint's
 RIDGE_RADIUS_SIGMAS = 3.5  # a ridge (a streak, a blob's rim): both sides this far along a line stay ...
 RIDGE_LEVEL = 0.35  # ... above this fraction of the peak (two noise sigmas allowed); a particle image falls to ~0
 SPLIT_RANGE_PX = (0.4, 1.5)  # half the distance of a split pair's first centres
 PAIR_WINDOW_SIGMAS = 2.0  # a merged pair's two-Gaussian fit uses the pixels within this many sigmas (+ 0.5 px)
-PAIR_ITERATIONS = 15  # Levenberg-Marquardt iterations of that fit
+FIT_ITERATIONS = 10  # Levenberg-Marquardt iterations of the fits of elongated images
+SPLIT_EVIDENCE = 9.0  # two Gaussians must fit an elongated image better than one by this (squared noise sigmas)
 MIN_SPLIT_PX = 0.8  # a pair fitted closer than this stays one image
+MAX_LOG_OVERSHOOT = 1.0  # a fitted Gaussian's peak is at most e times its peak pixel (a flat fit's cap)
 MODEL_NOISE = 0.03  # the shape fit's relative noise floor per pixel (shot noise, a profile not quite Gaussian)
 MODEL_RADIUS_SIGMAS = 4.0  # a particle's fitted Gaussian is subtracted out to this many of the hint's sigmas
 
@@ -125,7 +128,7 @@ def detect_particles_in_image(image: np.ndarray, options: DetectOptions = Detect
     background = estimate_background(img, options.diameter_px, block, quantum)
     res = img - background.level
     noise = background.noise
-    clean = _without_hot_pixels(res, noise, sigma)
+    clean = _without_hot_pixels(res, noise)
     s_smooth = max(SMOOTH_FRACTION * sigma, 0.3)
     smooth = cv2.GaussianBlur(clean, (0, 0), s_smooth, borderType=cv2.BORDER_REPLICATE)
     noise_smooth = noise * _smoothing_gain(s_smooth)
@@ -163,12 +166,11 @@ def _near_saturated_blob(img: np.ndarray, saturation: float, diameter_px: float)
     return cv2.dilate(big, disc).astype(bool) if big.any() else np.zeros(img.shape, bool)
 
 
-def _without_hot_pixels(res: np.ndarray, noise: np.ndarray, sigma: float) -> np.ndarray:
+def _without_hot_pixels(res: np.ndarray, noise: np.ndarray) -> np.ndarray:
     """``res`` with hot pixels replaced by the median of their 8 neighbours: a pixel sharper along u and
-    along v than any particle image of HOT_SIGMA_FRACTION of the hint's sigma can be (log curvature
-    2 ln I0 - ln I-1 - ln I+1 > 1 / s^2, intensities floored at the noise), also on a particle's skirt."""
-    eff = HOT_SIGMA_FRACTION * math.sqrt(sigma * sigma + 1.0 / 12.0)
-    limit = 1.0 / (eff * eff)
+    along v than any image through a lens can be (log curvature 2 ln I0 - ln I-1 - ln I+1 > 1 / s^2,
+    s = HOT_SIGMA_PX, intensities floored at the noise), also on a particle's skirt."""
+    limit = 1.0 / (HOT_SIGMA_PX * HOT_SIGMA_PX)
     floor = np.maximum(noise, 1e-6)
     lg = np.log(np.maximum(res, floor))
     inner = lg[1:-1, 1:-1]
@@ -202,13 +204,18 @@ def _local_maxima(smooth: np.ndarray, threshold: np.ndarray) -> tuple[np.ndarray
 
 def _supported(res: np.ndarray, ys: np.ndarray, xs: np.ndarray, noise: np.ndarray) -> np.ndarray:
     """(N,) True where a candidate's 3 x 3 pixels look like a particle image, not a hot cluster (a pair,
-    a line or an L of hot pixels): step 4 of the module docstring."""
+    a line or an L of hot pixels): along u and along v, its brighter neighbour holds AXIS_SUPPORT of its
+    peak (SUPPORT_SIGMAS noise sigmas allowed: a faint image) or its two neighbours together stand
+    SIGNIFICANT_SIGMAS above the noise (a bright sharp image); and the diagonal pixel between the two
+    brighter neighbours holds DIAGONAL_SUPPORT of what a separable profile puts there."""
     r0 = res[ys, xs]
     left, right = res[ys, xs - 1], res[ys, xs + 1]
     up, down = res[ys - 1, xs], res[ys + 1, xs]
     su, sv = np.maximum(left, right), np.maximum(up, down)
     margin = SUPPORT_SIGMAS * noise
-    axes = (su + margin >= AXIS_SUPPORT * r0) & (sv + margin >= AXIS_SUPPORT * r0)
+    significant = SIGNIFICANT_SIGMAS * math.sqrt(2.0) * noise  # the two neighbours' sum against its noise
+    axes = (((su + margin >= AXIS_SUPPORT * r0) | (left + right >= significant))
+            & ((sv + margin >= AXIS_SUPPORT * r0) | (up + down >= significant)))
     du = np.where(right >= left, 1, -1)
     dv = np.where(down >= up, 1, -1)
     diag = res[ys + dv, xs + du]
@@ -249,7 +256,7 @@ class _Fit:
     shape: "ImageShape"  # from its own 3 x 3 pixels, the others' Gaussians subtracted
     ridge: np.ndarray  # (N,) bool: on a ridge (a streak, a blob's rim), not a particle image
     saturated: np.ndarray  # (N,) bool
-    fixed: np.ndarray  # (N,) bool: one of a pair split by a two-Gaussian fit
+    fixed: np.ndarray  # (N,) bool: an elongated image fitted as one elliptical Gaussian or as two round ones
 
 
 @dataclass(frozen=True)
@@ -262,6 +269,12 @@ class ImageShape:
     elongation_sure: np.ndarray  # the elongation with the anisotropy two standard errors down (1: none)
     axis: np.ndarray  # (N, 2) the widest axis (unit vector, u v)
     half_split: np.ndarray  # half the distance of two equal round images that would look like this one
+
+    def take(self, rows: np.ndarray) -> "ImageShape":
+        return ImageShape(*(getattr(self, f)[rows] for f in self.__dataclass_fields__))
+
+    def join(self, other: "ImageShape") -> "ImageShape":
+        return ImageShape(*(np.concatenate([getattr(self, f), getattr(other, f)]) for f in self.__dataclass_fields__))
 
 
 def _log_parabola(lm: np.ndarray, l0: np.ndarray, lp: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -300,20 +313,24 @@ def _deblended_fit(res: np.ndarray, noise: np.ndarray, ys: np.ndarray, xs: np.nd
     state, model = _fit_rounds(res, state, sigma, DEBLEND_ITERATIONS)
     ridge = _on_ridge(res, noise, state, sigma)
     shape = image_shape(_own_pixels(res, model, state, *_offsets(1)), noise[state.y0, state.x0])
-    split = (shape.elongation_sure > max_elongation) & np.isfinite(shape.elongation) & ~ridge & ~state.saturated
-    if split.any():
-        state, ridge, _ = _split_pairs(res, noise, model, state, shape, split, ridge)
-        if state.fixed.any():
-            state, model = _fit_rounds(res, state, sigma, 1, _render(*res.shape, state, _model_radius(sigma)))
-        shape = image_shape(_own_pixels(res, model, state, *_offsets(1)), noise[state.y0, state.x0])
+    elongated = (shape.elongation_sure > max_elongation) & np.isfinite(shape.elongation) & ~ridge & ~state.saturated
+    if elongated.any():
+        state, kept = _fit_elongated(res, noise, model, state, shape, elongated)
+        ridge = np.concatenate([ridge[kept], np.zeros(len(state.u) - len(kept), bool)])
+        model = _render(*res.shape, state, _model_radius(sigma))
+        twins = state.take(np.arange(len(kept), len(state.u)))
+        shape = shape.take(kept).join(image_shape(_own_pixels(res, model, twins, *_offsets(1)),
+                                                  noise[twins.y0, twins.x0]))
+        state, _ = _fit_rounds(res, state, sigma, 1, model, render_last=False)  # the neighbours of split pairs
     return _Fit(uv=np.stack([state.u, state.v], axis=1), peak=state.A, shape=shape, ridge=ridge,
                 saturated=state.saturated, fixed=state.fixed)
 
 
-def _fit_rounds(res: np.ndarray, state: _State, sigma: float, rounds: int,
-                model: np.ndarray | None = None) -> tuple[_State, np.ndarray]:
+def _fit_rounds(res: np.ndarray, state: _State, sigma: float, rounds: int, model: np.ndarray | None = None,
+                render_last: bool = True) -> tuple[_State, np.ndarray | None]:
     """``rounds`` rounds of three-point Gaussian fits along u and v, each particle's own pixels being the
-    residual minus the other particles' Gaussians of the round before. Returns the state and its model."""
+    residual minus the other particles' Gaussians of the round before (``model``: those of the start).
+    Returns the state and its model (None if not ``render_last``)."""
     h, w = res.shape
     s_lo, s_hi = SIGMA_RANGE[0] * sigma, max(SIGMA_RANGE[1] * sigma, 0.5)
     model_r = _model_radius(sigma)
@@ -321,7 +338,7 @@ def _fit_rounds(res: np.ndarray, state: _State, sigma: float, rounds: int,
     stencil_dy = np.array([0, 0, 0, -1, 1])  # centre, left, right, up, down
     stencil_dx = np.array([0, -1, 1, 0, 0])
     s = state
-    for _ in range(rounds):
+    for k in range(rounds):
         own = _own_pixels(res, model, s, stencil_dy, stencil_dx)
         lg = np.log(np.maximum(own, MIN_SIGNAL))
         ou, cu, tu = _log_parabola(lg[:, 1], lg[:, 0], lg[:, 2])
@@ -332,7 +349,8 @@ def _fit_rounds(res: np.ndarray, state: _State, sigma: float, rounds: int,
         with np.errstate(divide="ignore", invalid="ignore"):
             su = np.where(good, np.clip(np.sqrt(-0.5 / cu), s_lo, s_hi), sigma)
             sv = np.where(good, np.clip(np.sqrt(-0.5 / cv), s_lo, s_hi), sigma)
-        A = np.where(good, np.exp(0.5 * (tu + tv)), np.maximum(own[:, 0], MIN_SIGNAL))
+        top = np.minimum(np.where(good, 0.5 * (tu + tv), lg[:, 0]), lg[:, 0] + MAX_LOG_OVERSHOOT)
+        A = np.where(good, np.exp(top), np.maximum(own[:, 0], MIN_SIGNAL))
         bad = ~good  # flat tops (saturated) and failed fits: the centroid of the own pixels above half the peak
         if bad.any():
             pb = _own_pixels(res, model, s.take(bad), centroid_dy, centroid_dx)
@@ -347,7 +365,7 @@ def _fit_rounds(res: np.ndarray, state: _State, sigma: float, rounds: int,
         s = _State(s.anchor_y, s.anchor_x, np.where(held, s.y0, y0), np.where(held, s.x0, x0),
                    np.where(held, s.u, u), np.where(held, s.v, v), np.where(held, s.A, A), np.where(held, s.su, su),
                    np.where(held, s.sv, sv), s.saturated, s.fixed)
-        model = _render(h, w, s, model_r)
+        model = _render(h, w, s, model_r) if render_last or k < rounds - 1 else None
     return s, model
 
 
@@ -356,85 +374,143 @@ def _model_radius(sigma: float) -> int:
     return max(2, int(math.ceil(MODEL_RADIUS_SIGMAS * sigma)))
 
 
-def _split_pairs(res: np.ndarray, noise: np.ndarray, model: np.ndarray, state: _State, shape: ImageShape,
-                 split: np.ndarray, ridge: np.ndarray) -> tuple[_State, np.ndarray, np.ndarray]:
-    """Each elongated image fitted as two round Gaussians (a small least-squares fit of both centres, both
-    peaks and one sigma to its own pixels, the other particles' Gaussians subtracted), started
-    ``half_split`` either side of its centre along its widest axis. Where both peaks stand above
-    SUPPORT_SIGMAS noise sigmas and the centres end up at least MIN_SPLIT_PX apart, the image becomes
-    those two, held (``fixed``) from then on. Returns the state, its ridge flags and which were split."""
-    rows = np.flatnonzero(split)
+def _fit_elongated(res: np.ndarray, noise: np.ndarray, model: np.ndarray, state: _State, shape: ImageShape,
+                   elongated: np.ndarray) -> tuple[_State, np.ndarray]:
+    """Each elongated image fitted two ways to its own pixels (the other particles' Gaussians subtracted):
+    as one elliptical Gaussian and as two round ones (both centres, both peaks, one sigma; started
+    ``half_split`` either side of its centre along its widest axis), by Levenberg-Marquardt. It becomes
+    two images where two fit better by more than SPLIT_EVIDENCE (squared noise sigmas), both peaks stand
+    above SUPPORT_SIGMAS noise sigmas and the centres lie at least MIN_SPLIT_PX apart; else it stays one,
+    centred by the elliptical fit. Either way it is held (``fixed``) from then on. Returns the state (the
+    images not split, in their order, then the first and the second of each split pair) and the rows of
+    ``state`` it keeps."""
+    rows = np.flatnonzero(elongated)
     s = state.take(rows)
     dy, dx = _offsets(max(2, int(math.ceil(PAIR_WINDOW_SIGMAS * float(np.median(s.su)) + 0.5))))
     data = _own_pixels(res, model, s, dy, dx)
-    X = np.clip(s.x0[:, None] + dx, 0, res.shape[1] - 1).astype(float)
-    Y = np.clip(s.y0[:, None] + dy, 0, res.shape[0] - 1).astype(float)
-    a = np.clip(shape.half_split[rows], SPLIT_RANGE_PX[0], SPLIT_RANGE_PX[1])
-    du, dv = a * shape.axis[rows, 0], a * shape.axis[rows, 1]
-    p = np.stack([s.u - du, s.v - dv, s.u + du, s.v + dv, 0.6 * s.A, 0.6 * s.A,
-                  np.sqrt(0.5 * (s.su ** 2 + s.sv ** 2))], axis=1)
-    p, ok = _levenberg_marquardt_pair(p, X, Y, data)
-    sep = np.hypot(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
-    level = SUPPORT_SIGMAS * noise[s.y0, s.x0]
-    accept = ok & (sep >= MIN_SPLIT_PX) & (np.minimum(p[:, 4], p[:, 5]) >= level)
-    accept &= np.hypot(0.5 * (p[:, 0] + p[:, 2]) - s.u, 0.5 * (p[:, 1] + p[:, 3]) - s.v) <= 1.0
-    if not accept.any():
-        return state, ridge, np.zeros(len(state.u), bool)
-    rows, p, s = rows[accept], p[accept], s.take(accept)
     h, w = res.shape
-    twins = []
-    for k in (0, 1):
-        u, v = p[:, 2 * k], p[:, 2 * k + 1]
-        y0 = np.clip(np.rint(v).astype(int), 1, h - 2)
-        x0 = np.clip(np.rint(u).astype(int), 1, w - 2)
-        twins.append(_State(y0, x0, y0, x0, u, v, p[:, 4 + k], p[:, 6], p[:, 6], s.saturated,
-                            np.ones(len(rows), bool)))
+    X = np.clip(s.x0[:, None] + dx, 0, w - 1).astype(float)
+    Y = np.clip(s.y0[:, None] + dy, 0, h - 1).astype(float)
+    # one elliptical Gaussian: u, v, A and the inverse covariance (a, b, c), started from the shape's Hessian
+    a0, b0 = _inverse_covariance(shape, rows)
+    one = np.stack([s.u, s.v, s.A, a0[:, 0], a0[:, 1], b0], axis=1)
+    one, ssr_one = _levenberg_marquardt(one, X, Y, data, _ellipse)
+    # two round Gaussians: u1, v1, u2, v2, A1, A2, sigma
+    half = np.clip(shape.half_split[rows], SPLIT_RANGE_PX[0], SPLIT_RANGE_PX[1])
+    du, dv = half * shape.axis[rows, 0], half * shape.axis[rows, 1]
+    two = np.stack([s.u - du, s.v - dv, s.u + du, s.v + dv, 0.6 * s.A, 0.6 * s.A,
+                    np.sqrt(0.5 * (s.su ** 2 + s.sv ** 2))], axis=1)
+    two, ssr_two = _levenberg_marquardt(two, X, Y, data, _pair)
+    sep = np.hypot(two[:, 2] - two[:, 0], two[:, 3] - two[:, 1])
+    n2 = noise[s.y0, s.x0] ** 2
+    split = ((ssr_one - ssr_two > SPLIT_EVIDENCE * n2) & (sep >= MIN_SPLIT_PX)
+             & (np.minimum(two[:, 4], two[:, 5]) >= SUPPORT_SIGMAS * np.sqrt(n2))
+             & (np.hypot(0.5 * (two[:, 0] + two[:, 2]) - s.u, 0.5 * (two[:, 1] + two[:, 3]) - s.v) <= 1.0))
+    # the ones that stay one: the elliptical centre (where it converged near the start), held
+    held = np.ones(len(rows), bool)
+    good = np.isfinite(one).all(axis=1) & (np.hypot(one[:, 0] - s.u, one[:, 1] - s.v) <= 1.0)
+    det = one[:, 3] * one[:, 5] - one[:, 4] ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        su = np.where(good & (det > 0), np.sqrt(one[:, 5] / det), s.su)  # the ellipse's marginal sigmas
+        sv = np.where(good & (det > 0), np.sqrt(one[:, 3] / det), s.sv)
+    single = _State(s.anchor_y, s.anchor_x, s.y0, s.x0, np.where(good, one[:, 0], s.u), np.where(good, one[:, 1], s.v),
+                    np.where(good, one[:, 2], s.A), su, sv, s.saturated, held)
     keep = np.ones(len(state.u), bool)
-    keep[rows] = False
-    out = state.take(keep).join(twins[0]).join(twins[1])
-    was_split = np.concatenate([np.zeros(keep.sum(), bool), np.ones(2 * len(rows), bool)])
-    return out, np.concatenate([ridge[keep], ridge[rows], ridge[rows]]), was_split
+    keep[rows[split]] = False
+    out = state.take(np.flatnonzero(keep))
+    # write the singles back in place
+    rows_kept = np.flatnonzero(keep)
+    pos = np.searchsorted(rows_kept, rows[~split])
+    fields = {f: getattr(out, f).copy() for f in out.__dataclass_fields__}
+    for f in fields:
+        fields[f][pos] = getattr(single, f)[~split]
+    out = _State(**fields)
+    if split.any():
+        p, t = two[split], s.take(split)
+        twins = []
+        for k in (0, 1):
+            u, v = p[:, 2 * k], p[:, 2 * k + 1]
+            y0 = np.clip(np.rint(v).astype(int), 1, h - 2)
+            x0 = np.clip(np.rint(u).astype(int), 1, w - 2)
+            twins.append(_State(y0, x0, y0, x0, u, v, p[:, 4 + k], p[:, 6], p[:, 6], t.saturated,
+                                np.ones(len(p), bool)))
+        out = out.join(twins[0]).join(twins[1])
+    return out, rows_kept
 
 
-def _levenberg_marquardt_pair(p: np.ndarray, X: np.ndarray, Y: np.ndarray, data: np.ndarray
-                              ) -> tuple[np.ndarray, np.ndarray]:
-    """Fit two round Gaussians, parameters (N, 7) = u1, v1, u2, v2, A1, A2, sigma, to ``data`` (N, P) at
-    pixels X, Y (N, P) by Levenberg-Marquardt (batched). Returns the parameters and where it converged."""
+def _inverse_covariance(shape: ImageShape, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2) the diagonal (a, c) and (N,) the off-diagonal b of each image's inverse covariance, from
+    its widest sigma, elongation and axis (round at the hint where those are not finite)."""
+    major = shape.sigma_major[rows]
+    el = shape.elongation[rows]
+    ok = np.isfinite(major) & np.isfinite(el) & (el > 0)
+    lam_low = np.where(ok, 1.0 / np.where(ok, major, 1.0) ** 2, 1.0)
+    lam_high = np.where(ok, lam_low * np.where(ok, el, 1.0) ** 2, 1.0)
+    cu, cv = shape.axis[rows, 0], shape.axis[rows, 1]  # the widest axis: eigenvalue lam_low
+    a = lam_low * cu * cu + lam_high * cv * cv
+    c = lam_low * cv * cv + lam_high * cu * cu
+    b = (lam_low - lam_high) * cu * cv
+    return np.stack([a, c], axis=1), b
+
+
+def _ellipse(q: np.ndarray, X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """An elliptical Gaussian (u, v, A, a, c, b: exp(-(a dx^2 + 2 b dx dy + c dy^2) / 2)) at X, Y and its
+    Jacobian (N, P, 6)."""
+    ex, ey = X - q[:, 0:1], Y - q[:, 1:2]
+    a, c, b = q[:, 3:4], q[:, 4:5], q[:, 5:6]
+    proper = (a > 0) & (c > 0) & (a * c > b * b)  # else NaN: a trial step outside the ellipses, refused
+    g = np.where(proper, np.exp(-0.5 * np.maximum(a * ex * ex + 2.0 * b * ex * ey + c * ey * ey, 0.0)), np.nan)
+    m = q[:, 2:3] * g
+    J = np.stack([m * (a * ex + b * ey), m * (b * ex + c * ey), g, -0.5 * m * ex * ex, -0.5 * m * ey * ey,
+                  -m * ex * ey], axis=2)
+    return m, J
+
+
+def _pair(q: np.ndarray, X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two round Gaussians (u1, v1, u2, v2, A1, A2, sigma) at X, Y and their Jacobian (N, P, 7)."""
+    s2 = q[:, 6:7] ** 2
+    ex1, ey1 = X - q[:, 0:1], Y - q[:, 1:2]
+    ex2, ey2 = X - q[:, 2:3], Y - q[:, 3:4]
+    g1 = np.exp(-(ex1 ** 2 + ey1 ** 2) / (2 * s2))
+    g2 = np.exp(-(ex2 ** 2 + ey2 ** 2) / (2 * s2))
+    m1, m2 = q[:, 4:5] * g1, q[:, 5:6] * g2
+    J = np.stack([m1 * ex1 / s2, m1 * ey1 / s2, m2 * ex2 / s2, m2 * ey2 / s2, g1, g2,
+                  (m1 * (ex1 ** 2 + ey1 ** 2) + m2 * (ex2 ** 2 + ey2 ** 2)) / (s2 * q[:, 6:7])], axis=2)
+    return m1 + m2, J
+
+
+def _levenberg_marquardt(p: np.ndarray, X: np.ndarray, Y: np.ndarray, data: np.ndarray, model
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Fit ``model(params, X, Y) -> (values, Jacobian)`` to ``data`` (N, P) by Levenberg-Marquardt, batched
+    over N. Returns the parameters and each fit's sum of squared residuals."""
+    k = p.shape[1]
     lam = np.full(len(p), 1e-2)
+    eye = np.eye(k)
 
-    def residual_and_jacobian(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        s2 = q[:, 6:7] ** 2
-        ex1, ey1 = X - q[:, 0:1], Y - q[:, 1:2]
-        ex2, ey2 = X - q[:, 2:3], Y - q[:, 3:4]
-        g1 = np.exp(-(ex1 ** 2 + ey1 ** 2) / (2 * s2))
-        g2 = np.exp(-(ex2 ** 2 + ey2 ** 2) / (2 * s2))
-        m1, m2 = q[:, 4:5] * g1, q[:, 5:6] * g2
-        J = np.stack([m1 * ex1 / s2, m1 * ey1 / s2, m2 * ex2 / s2, m2 * ey2 / s2, g1, g2,
-                      (m1 * (ex1 ** 2 + ey1 ** 2) + m2 * (ex2 ** 2 + ey2 ** 2)) / (s2 * q[:, 6:7])], axis=2)
-        return data - m1 - m2, J
+    def evaluate(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        with np.errstate(over="ignore", invalid="ignore"):
+            m, J = model(q, X, Y)
+        r = data - m
+        return r, J, np.where(np.isfinite(r).all(axis=1), (r * r).sum(axis=1), np.inf)
 
-    r, J = residual_and_jacobian(p)
-    cost = (r * r).sum(axis=1)
-    for _ in range(PAIR_ITERATIONS):
+    r, J, cost = evaluate(p)
+    for _ in range(FIT_ITERATIONS):
         JtJ = np.einsum("npi,npj->nij", J, J)
         Jtr = np.einsum("npi,np->ni", J, r)
-        damped = JtJ + lam[:, None, None] * (np.eye(7) * np.diagonal(JtJ, axis1=1, axis2=2)[:, None, :] + 1e-9 * np.eye(7))
-        try:
-            step = np.linalg.solve(damped, Jtr[:, :, None])[:, :, 0]
-        except np.linalg.LinAlgError:
-            break
+        diag = np.einsum("nii->ni", JtJ)
+        damped = JtJ + lam[:, None, None] * (eye * diag[:, None, :] + 1e-9 * eye)
+        ok = np.isfinite(damped).all(axis=(1, 2))
+        step = np.zeros_like(p)
+        step[ok] = np.linalg.solve(damped[ok], Jtr[ok][:, :, None])[:, :, 0]
         trial = p + step
-        trial[:, 4:6] = np.maximum(trial[:, 4:6], MIN_SIGNAL)
-        trial[:, 6] = np.clip(trial[:, 6], 0.3, 3.0)
-        r_t, J_t = residual_and_jacobian(trial)
-        cost_t = (r_t * r_t).sum(axis=1)
+        r_t, J_t, cost_t = evaluate(trial)
         better = cost_t < cost
         p = np.where(better[:, None], trial, p)
         r = np.where(better[:, None], r_t, r)
         J = np.where(better[:, None, None], J_t, J)
         cost = np.where(better, cost_t, cost)
-        lam = np.where(better, lam * 0.3, lam * 10.0)
-    return p, np.isfinite(p).all(axis=1) & (lam < 1e6)
+        lam = np.clip(np.where(better, lam * 0.3, lam * 10.0), 1e-9, 1e9)
+    return p, cost
 
 
 def _own_pixels(res: np.ndarray, model: np.ndarray | None, s: _State, dy: np.ndarray, dx: np.ndarray) -> np.ndarray:
@@ -492,9 +568,13 @@ def image_shape(own: np.ndarray, noise: np.ndarray) -> ImageShape:
     design = np.stack([np.ones(9), dx, dy, 0.5 * dx * dx, dx * dy, 0.5 * dy * dy], axis=1)  # (9, 6)
     normal = (weight @ (design[:, :, None] * design[:, None, :]).reshape(9, 36)).reshape(n, 6, 6)
     rhs = (weight * np.log(I)) @ design
-    cov = np.linalg.inv(normal)  # positive definite: nine pixels, positive weights, six parameters
-    params = np.einsum("nij,nj->ni", cov, rhs)
-    h_uu, h_uv, h_vv = params[:, 3], params[:, 4], params[:, 5]
+    # positive definite (nine pixels, positive weights, six parameters): the parameters and the
+    # covariance of the Hessian's three in one solve
+    unit = np.zeros((n, 6, 3))
+    unit[:, 3, 0] = unit[:, 4, 1] = unit[:, 5, 2] = 1.0
+    solved = np.linalg.solve(normal, np.concatenate([rhs[:, :, None], unit], axis=2))
+    h_uu, h_uv, h_vv = solved[:, 3, 0], solved[:, 4, 0], solved[:, 5, 0]
+    c3 = solved[:, 3:, 1:]
     m = -0.5 * (h_uu + h_vv)  # the eigenvalues of -H: m -/+ d
     q = 0.5 * (h_uu - h_vv)
     d = np.hypot(q, h_uv)
@@ -502,7 +582,6 @@ def image_shape(own: np.ndarray, noise: np.ndarray) -> ImageShape:
         gd = np.stack([q / (2 * d), h_uv / d, -q / (2 * d)], axis=1)  # d(d) / d(h_uu, h_uv, h_vv)
         gd = np.where((d > 0)[:, None], gd, np.array([0.5, 1.0, 0.5]) / math.sqrt(1.5))
         gl = np.stack([-0.5 - gd[:, 0], -gd[:, 1], -0.5 - gd[:, 2]], axis=1)  # d(m - d)
-        c3 = cov[:, 3:, 3:]
         sd_d = np.sqrt(np.einsum("ni,nij,nj->n", gd, c3, gd))
         sd_low = np.sqrt(np.einsum("ni,nij,nj->n", gl, c3, gl))
         low, high = m - d, m + d  # the smallest and largest curvature of -log I
@@ -529,8 +608,10 @@ def _single(fit: _Fit, sigma: float, max_width_ratio: float, max_elongation: flo
     than ``max_width_ratio`` times the hint's sigma, or on a ridge. A saturated (flat-topped) image is kept."""
     eff = math.sqrt(sigma * sigma + 1.0 / 12.0)  # a pixel-integrated image of the hint's sigma
     shape = fit.shape
-    one = (shape.elongation_sure <= max_elongation) & (shape.sigma_major_sure <= max_width_ratio * eff)
-    return (one | fit.saturated | fit.fixed) & ~fit.ridge
+    round_enough = (shape.elongation_sure <= max_elongation) | fit.fixed | fit.saturated
+    small_enough = (shape.sigma_major_sure <= max_width_ratio * eff) | fit.saturated
+    not_hot = shape.sigma_major >= HOT_SIGMA_PX  # sharper than any optical image along every axis: hot pixels
+    return round_enough & small_enough & not_hot & ~fit.ridge
 
 
 def read_image(path: Path) -> np.ndarray:
