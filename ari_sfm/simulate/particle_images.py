@@ -96,8 +96,11 @@ class TankFrame:
 
 
 def render_tank_frame(uv: np.ndarray, image_size: tuple[int, int], diameter_px: float, look: TankLook = TankLook(),
-                      rng: np.random.Generator | None = None) -> TankFrame:
-    """Particle images at ``uv`` (N, 2) (OpenCV pixel convention) as a camera behind a tank records them."""
+                      rng: np.random.Generator | None = None, peak: np.ndarray | None = None,
+                      diameter_px_each: np.ndarray | None = None) -> TankFrame:
+    """Particle images at ``uv`` (N, 2) (OpenCV pixel convention) as a camera behind a tank records them.
+    Each particle's peak (8-bit grey levels) and diameter are drawn from ``look`` unless given (the same
+    particle seen by several cameras)."""
     if look.bit_depth not in FULL_SCALE:
         raise ValueError(f"bit_depth must be 8 or 16 (got {look.bit_depth})")
     rng = rng or np.random.default_rng(0)
@@ -105,8 +108,10 @@ def render_tank_frame(uv: np.ndarray, image_size: tuple[int, int], diameter_px: 
     uv = np.asarray(uv, float).reshape(-1, 2)
     n = len(uv)
     lo, hi = look.peak
-    peak = np.exp(rng.uniform(math.log(lo), math.log(hi), n))
-    diameter = diameter_px * rng.uniform(1.0 - look.diameter_spread, 1.0 + look.diameter_spread, n)
+    drawn_peak = np.exp(rng.uniform(math.log(lo), math.log(hi), n))
+    drawn_diameter = diameter_px * rng.uniform(1.0 - look.diameter_spread, 1.0 + look.diameter_spread, n)
+    peak = drawn_peak if peak is None else np.broadcast_to(np.asarray(peak, float), (n,))
+    diameter = drawn_diameter if diameter_px_each is None else np.broadcast_to(np.asarray(diameter_px_each, float), (n,))
     scene = _uneven_background((h, w), look.background, rng)
     clutter = np.zeros((h, w))
     for _ in range(look.streaks):
