@@ -1,16 +1,18 @@
 """The local background of a particle frame and its noise, robust to particles, blobs and hot pixels.
 
 Background: a grey opening with a disc wider than a particle image (a
-particle, a hot pixel or a thin streak is removed, anything wider than the
-disc, a big blob, a glare band, the uneven illumination, is kept), smoothed by
-a box of the disc's size; the opening sits on the noise's lower envelope, so
-the median of the residual in blocks of ``block_px`` (particles are a minority
-of a block's pixels) is added back. Noise: in the same blocks, the standard
-deviation of the residual clipped at 3 robust sigmas (the MAD, floored at two
-grey levels so that an 8-bit frame whose dark background sits on one or two
-levels still has a noise), interpolated between block centres. A few bright
-blobs or a dense cloud of particles thus move neither the background nor the
-noise of the rest of the frame, as a global median and MAD would.
+particle, a hot pixel, anything narrower than the disc is removed; the uneven
+illumination, glare, a big blob are kept); the opening sits on the noise's
+lower envelope, so the median of the residual in blocks of ``block_px``
+(particles are a minority of a block's pixels) is added back. Noise: per
+block, the standard deviation of each pixel minus the mean of its four
+neighbours (a smooth background gives nothing; clipped at 3 robust sigmas,
+or two grey levels so that an 8-bit frame whose dark background sits on one
+or two levels still has a noise), and a sensor's noise model fitted over the
+blocks (variance = read + gain x level: the shot noise on a bright blob's
+skirt), the larger of the two at each pixel. A few bright blobs or a dense
+cloud of particles thus move neither the background nor the noise of the rest
+of the frame, as a global median and MAD would.
 """
 from __future__ import annotations
 

@@ -1,36 +1,39 @@
 """Particle images -> sub-pixel centres (``ari-sfm detect-particles``).
 
-Per image (8 or 16 bit, read without losing the 16-bit range; colour: the mean
-of the channels):
+Per image (8 or 16 bit, read without losing the 16-bit range; float images as
+they are; colour: the mean of the channels):
 
 1. the local background and noise (:mod:`ari_sfm.particles.background`): an
-   uneven background, glare, a few big bright blobs and dense particles move
+   uneven background, glare, big bright blobs and dense particles move
    neither, as a global median and MAD of the frame would;
-2. single hot pixels (far above all eight neighbours, more than any particle
-   image of ``diameter_px`` / 2 or more allows) are replaced by their
-   neighbours' median;
+2. hot pixels (sharper along u and along v than any image through a lens:
+   HOT_SIGMA_PX) are replaced by their neighbours' median, also on a
+   particle's skirt;
 3. candidates: local maxima (3 x 3) of the residual smoothed at half a
-   particle's sigma, above ``threshold_sigma`` times that smoothed image's own
-   local noise (and ``min_peak`` grey levels, 0 by default);
-4. a candidate must look like an image, not a cluster of hot pixels: along u
-   and along v a neighbour holds at least AXIS_SUPPORT of its peak, and the
-   diagonal pixel between those two neighbours what a separable profile gives
-   (both within two noise sigmas);
-5. centres: a three-point Gaussian fit along u and along v (exact for a
+   particle's sigma, above ``threshold_sigma`` times that smoothed image's
+   local noise (and ``min_peak`` grey levels, 0 by default); not within an
+   opening disc of a saturated region wider than it (a blob's rim);
+4. a candidate must look like an image, not a cluster of hot pixels (a pair,
+   a line, an L): support along u and along v, and on the diagonal between
+   (:func:`_supported`);
+5. centres: three-point Gaussian fits along u and along v (exact for a
    Gaussian sampled at pixel centres; ``diameter_px`` is the e^-2 diameter,
    sigma = diameter / 4), refined by DEBLEND_ITERATIONS rounds in which every
    other particle's fitted Gaussian is subtracted first: overlapping images
    that keep their own maxima are split, each centre freed of its
    neighbour's tail; a saturated peak (flat top) is centred on its own
    pixels' intensity centroid;
-6. a blob too wide for one particle AND elongated (two images merged into one
-   maximum; its width measured over its own pixels, above a quarter of its
-   peak, reached by non-increasing steps, neighbours subtracted) is dropped,
-   never averaged: a larger round particle is kept.
+6. an image elongated beyond the noise (``max_elongation``; its shape from a
+   weighted fit of the log intensities of its 3 x 3 pixels,
+   :func:`image_shape`) is fitted as one elliptical Gaussian and as two
+   round ones: two images merged into one maximum are split where the data
+   show two (SPLIT_EVIDENCE), else it stays one, centred by the elliptical fit;
+7. dropped: images on a ridge (a streak, a blob's rim: :func:`_on_ridge`),
+   wider than ``max_width_ratio`` times the hint, or sharper than any optical
+   image along every axis (hot pixels beside a particle).
 
-Two images closer than ~1.3 px (0.4 diameters) can look like one and give one
-centre between them. Measured figures: README, particles section
-(``benchmarks/bench_particle_detection.py``).
+Two images closer than ~0.8 px (MIN_SPLIT_PX) stay one. Measured figures:
+README, particles section (``benchmarks/bench_particle_detection.py``).
 """
 from __future__ import annotations
 
@@ -100,13 +103,12 @@ class DetectOptions:
 
 
 def _grey(image: np.ndarray) -> tuple[np.ndarray, float, float]:
-    """A float32 grey image, its grey level step (1 integer, 0 float) and its saturation level."""
+    """A float32 grey image (colour: the mean of the colour channels, an alpha channel left out), its grey
+    level step (1 integer, 0 float) and its saturation level."""
     img = np.asarray(image)
+    dtype = img.dtype
     if img.ndim == 3:
-        dtype = img.dtype
-        img = img.mean(axis=2)
-    else:
-        dtype = img.dtype
+        img = img[:, :, :3 if img.shape[2] >= 3 else 1].mean(axis=2)
     if np.issubdtype(dtype, np.integer):
         return img.astype(np.float32), 1.0, float(np.iinfo(dtype).max)
     return np.nan_to_num(img.astype(np.float32)), 0.0, math.inf
@@ -482,34 +484,40 @@ def _pair(q: np.ndarray, X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.n
 def _levenberg_marquardt(p: np.ndarray, X: np.ndarray, Y: np.ndarray, data: np.ndarray, model
                          ) -> tuple[np.ndarray, np.ndarray]:
     """Fit ``model(params, X, Y) -> (values, Jacobian)`` to ``data`` (N, P) by Levenberg-Marquardt, batched
-    over N. Returns the parameters and each fit's sum of squared residuals."""
+    over N (a fit leaves the batch once its cost stops falling). Returns the parameters and each fit's sum
+    of squared residuals."""
     k = p.shape[1]
+    p = p.copy()
     lam = np.full(len(p), 1e-2)
     eye = np.eye(k)
 
-    def evaluate(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def evaluate(q: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         with np.errstate(over="ignore", invalid="ignore"):
-            m, J = model(q, X, Y)
-        r = data - m
+            m, J = model(q, X[rows], Y[rows])
+        r = data[rows] - m
         return r, J, np.where(np.isfinite(r).all(axis=1), (r * r).sum(axis=1), np.inf)
 
-    r, J, cost = evaluate(p)
+    active = np.arange(len(p))
+    r, J, cost = evaluate(p, active)
     for _ in range(FIT_ITERATIONS):
-        JtJ = np.einsum("npi,npj->nij", J, J)
-        Jtr = np.einsum("npi,np->ni", J, r)
-        diag = np.einsum("nii->ni", JtJ)
-        damped = JtJ + lam[:, None, None] * (eye * diag[:, None, :] + 1e-9 * eye)
+        if not len(active):
+            break
+        Ja, ra = J[active], r[active]
+        Jt = Ja.transpose(0, 2, 1)
+        JtJ = Jt @ Ja
+        damped = JtJ + lam[active, None, None] * (eye * np.diagonal(JtJ, axis1=1, axis2=2)[:, None, :] + 1e-9 * eye)
         ok = np.isfinite(damped).all(axis=(1, 2))
-        step = np.zeros_like(p)
-        step[ok] = np.linalg.solve(damped[ok], Jtr[ok][:, :, None])[:, :, 0]
-        trial = p + step
-        r_t, J_t, cost_t = evaluate(trial)
-        better = cost_t < cost
-        p = np.where(better[:, None], trial, p)
-        r = np.where(better[:, None], r_t, r)
-        J = np.where(better[:, None, None], J_t, J)
-        cost = np.where(better, cost_t, cost)
-        lam = np.clip(np.where(better, lam * 0.3, lam * 10.0), 1e-9, 1e9)
+        step = np.zeros((len(active), k))
+        step[ok] = np.linalg.solve(damped[ok], (Jt[ok] @ ra[ok][:, :, None]))[:, :, 0]
+        trial = p[active] + step
+        r_t, J_t, cost_t = evaluate(trial, active)
+        better = cost_t < cost[active]
+        rows = active[better]
+        settled = np.zeros(len(active), bool)
+        settled[better] = cost[rows] - cost_t[better] <= 1e-6 * cost[rows]
+        p[rows], r[rows], J[rows], cost[rows] = trial[better], r_t[better], J_t[better], cost_t[better]
+        lam[active] = np.clip(np.where(better, lam[active] * 0.3, lam[active] * 10.0), 1e-9, 1e9)
+        active = active[~settled & (lam[active] < 1e8)]
     return p, cost
 
 
