@@ -313,8 +313,8 @@ def _deblended_fit(res: np.ndarray, noise: np.ndarray, ys: np.ndarray, xs: np.nd
     state = _State(ys, xs, ys, xs, xs.astype(float), ys.astype(float), A, np.full(n, sigma), np.full(n, sigma),
                    saturated, np.zeros(n, bool))
     state, model = _fit_rounds(res, state, sigma, DEBLEND_ITERATIONS)
-    ridge = _on_ridge(res, noise, state, sigma)
     shape = image_shape(_own_pixels(res, model, state, *_offsets(1)), noise[state.y0, state.x0])
+    ridge = _on_ridge(res, noise, state, sigma, shape.axis)
     elongated = (shape.elongation_sure > max_elongation) & np.isfinite(shape.elongation) & ~ridge & ~state.saturated
     if elongated.any():
         state, kept = _fit_elongated(res, noise, model, state, shape, elongated)
@@ -546,18 +546,26 @@ def _render(h: int, w: int, s: _State, r: int) -> np.ndarray:
     return np.bincount(flat[inside], weights=vals[inside], minlength=h * w).reshape(h, w)
 
 
-def _on_ridge(res: np.ndarray, noise: np.ndarray, s: _State, sigma: float) -> np.ndarray:
-    """(N,) True where an image lies on a ridge (a streak, a blob's rim): along one of u, v and the two
-    diagonals, the residual (other candidates kept: a streak is a chain of them) stays above RIDGE_LEVEL
-    of its peak on both sides at r and 2 r (r = RIDGE_RADIUS_SIGMAS sigmas), two noise sigmas allowed."""
+def _on_ridge(res: np.ndarray, noise: np.ndarray, s: _State, sigma: float, axis: np.ndarray) -> np.ndarray:
+    """(N,) True where an image lies on a ridge (a streak, a blob's rim): along its widest axis (``axis``,
+    (N, 2)) or one of u, v and the two diagonals, the residual (other candidates kept: a streak is a chain
+    of them) stays above RIDGE_LEVEL of its peak on both sides at r and half that at 2 r
+    (r = RIDGE_RADIUS_SIGMAS sigmas, nearest pixels), two noise sigmas allowed."""
     r = max(2, int(math.ceil(RIDGE_RADIUS_SIGMAS * sigma)))
-    rd = max(1, int(round(r / math.sqrt(2.0))))
-    dy = np.array([0, 0, -r, r, -rd, rd, -rd, rd])
-    dx = np.array([-r, r, 0, 0, -rd, rd, rd, -rd])
-    ring = _own_pixels(res, None, s, np.concatenate([dy, 2 * dy]), np.concatenate([dx, 2 * dx]))
-    sure = ring - SUPPORT_SIGMAS * noise[s.y0, s.x0][:, None]
-    both = np.minimum(sure[:, 0::2], sure[:, 1::2]) / np.maximum(s.A, MIN_SIGNAL)[:, None]  # per direction
-    return ((both[:, :4] >= RIDGE_LEVEL) & (both[:, 4:] >= 0.5 * RIDGE_LEVEL)).any(axis=1)
+    c = 1.0 / math.sqrt(2.0)
+    units = np.array([[1.0, 0.0], [0.0, 1.0], [c, c], [c, -c]])  # (u, v) directions
+    directions = np.concatenate([np.broadcast_to(units, (len(s.u), 4, 2)), axis[:, None, :]], axis=1)  # (N, 5, 2)
+    h, w = res.shape
+    levels = []
+    for distance, level in ((r, RIDGE_LEVEL), (2 * r, 0.5 * RIDGE_LEVEL)):
+        sides = []
+        for sign in (-1.0, 1.0):
+            X = np.clip(np.rint(s.u[:, None] + sign * distance * directions[:, :, 0]).astype(int), 0, w - 1)
+            Y = np.clip(np.rint(s.v[:, None] + sign * distance * directions[:, :, 1]).astype(int), 0, h - 1)
+            sides.append(res[Y, X])
+        sure = np.minimum(*sides) - SUPPORT_SIGMAS * noise[s.y0, s.x0][:, None]
+        levels.append(sure >= level * np.maximum(s.A, MIN_SIGNAL)[:, None])
+    return (levels[0] & levels[1]).any(axis=1)
 
 
 def image_shape(own: np.ndarray, noise: np.ndarray) -> ImageShape:
