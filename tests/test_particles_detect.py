@@ -225,8 +225,8 @@ def test_simulated_tank_experiment_16_bit_through_detect_particles(tmp_path):
 
     run = CliRunner().invoke
     r = run(main, ["simulate", "particles", "-o", str(tmp_path / "sim"), "--cameras", "2", "--particles", "300",
-                   "--frames", "1", "--render-frames", "1", "--drift-cameras", "1", "--look", "tank", "--bit-depth", "16",
-                   "--seed", "3"])
+                   "--frames", "1", "--render-frames", "1", "--drift-cameras", "1", "--look", "tank",
+                   "--bit-depth", "16", "--seed", "3"])
     assert r.exit_code == 0, r.output
     image = cv2.imread(str(tmp_path / "sim" / "experiment" / "images" / "cam0" / "00000.tif"), cv2.IMREAD_UNCHANGED)
     assert image.dtype == np.uint16

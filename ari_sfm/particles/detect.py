@@ -52,7 +52,7 @@ log = logging.getLogger(__name__)
 
 MIN_SIGNAL = 1e-3  # floor of background-subtracted intensities before the log of the Gaussian fit
 SMOOTH_FRACTION = 0.5  # the candidates' image: the residual smoothed at this fraction of a particle's sigma
-AXIS_SUPPORT = 0.1  # a particle image (e^-2 diameter >= ~1.5 px) lends each axis' brighter neighbour >= this of its peak
+AXIS_SUPPORT = 0.1  # a particle image (e^-2 diameter >= ~1.5 px) lends each axis' brighter neighbour this of its peak
 DIAGONAL_SUPPORT = 0.25  # and its diagonal pixel >= this fraction of the separable profile's value there
 HOT_SIGMA_PX = 0.4  # a pixel sharper than a Gaussian image of this sigma (px, pixel-integrated >= 0.29) is hot
 SUPPORT_SIGMAS = 2.0  # the support tests' allowance for noise, in noise sigmas
@@ -97,8 +97,8 @@ class DetectOptions:
     diameter_px: float = 3.0  # e^-2 diameter hint (rig.yaml particles.diameter_px)
     threshold_sigma: float = 5.0  # smoothed peak above the local background, in units of its local noise
     min_peak: float = 0.0  # and at least this many grey levels above it (0: the noise alone decides)
-    max_width_ratio: float = 2.5  # a blob wider than this times one particle image is not one: dropped
-    max_elongation: float = 1.2  # longer than wide by this ratio beyond the noise: two merged, dropped
+    max_width_ratio: float = 2.5  # a blob wider than this times the hint's image (its sigma) is none: dropped
+    max_elongation: float = 1.2  # longer than wide by this beyond the noise: fitted as one or two (step 6)
     background_px: int = 32  # blocks of the local background's offset and of the local noise
 
 
@@ -137,7 +137,8 @@ def detect_particles_in_image(image: np.ndarray, options: DetectOptions = Detect
     threshold = np.maximum(options.threshold_sigma * noise_smooth, options.min_peak)
     ys, xs = _local_maxima(smooth, threshold)
     if len(xs):
-        ok = _supported(clean, ys, xs, noise[ys, xs]) & ~_near_saturated_blob(img, saturation, options.diameter_px)[ys, xs]
+        blob = _near_saturated_blob(img, saturation, options.diameter_px)
+        ok = _supported(clean, ys, xs, noise[ys, xs]) & ~blob[ys, xs]
         ys, xs = ys[ok], xs[ok]
     if not len(xs):
         return empty

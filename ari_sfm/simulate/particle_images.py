@@ -111,7 +111,8 @@ def render_tank_frame(uv: np.ndarray, image_size: tuple[int, int], diameter_px: 
     drawn_peak = np.exp(rng.uniform(math.log(lo), math.log(hi), n))
     drawn_diameter = diameter_px * rng.uniform(1.0 - look.diameter_spread, 1.0 + look.diameter_spread, n)
     peak = drawn_peak if peak is None else np.broadcast_to(np.asarray(peak, float), (n,))
-    diameter = drawn_diameter if diameter_px_each is None else np.broadcast_to(np.asarray(diameter_px_each, float), (n,))
+    diameter = (drawn_diameter if diameter_px_each is None
+                else np.broadcast_to(np.asarray(diameter_px_each, float), (n,)))
     scene = _uneven_background((h, w), look.background, rng)
     clutter = np.zeros((h, w))
     for _ in range(look.streaks):
