@@ -578,10 +578,15 @@ def import_colmap_fork_cmd(model_dir: Path, out: Path, units_mm: float) -> None:
               help="particles: translation of each drifted camera after the target calibration.")
 @click.option("--drift-cameras", default="1,2,3", show_default=True,
               help="particles: indices of the drifted cameras (comma-separated; '' for none).")
+@click.option("--look", type=click.Choice(["plain", "tank"]), default="plain", show_default=True,
+              help="particles: rendered images on a flat background, or as a real tank looks (uneven background, "
+                   "a reflection streak, bright blobs, shot noise, particles of varying brightness and size).")
+@click.option("--bit-depth", type=click.Choice(["8", "16"]), default="8", show_default=True,
+              help="particles: rendered images 8-bit (PNG) or 16-bit (TIFF).")
 @user_errors
 def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_scale: float, images: bool | None,
              num_cameras: int, particles_per_frame: int, num_frames: int, render_frames: int, drift_deg: float,
-             drift_mm: float, drift_cameras: str) -> None:
+             drift_mm: float, drift_cameras: str, look: str, bit_depth: str) -> None:
     """Write a simulated dataset (exact Snell physics) and its truth. SCENARIO: one of `ari-sfm scenarios`."""
     from .simulate import SCENARIOS, simulate as run_sim
 
@@ -590,7 +595,7 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_sca
     check_number("--seed", seed, minimum=0)
     if scenario == "particles":  # a particle experiment: rig A's target calibration, drifted rig B, particles
         _simulate_particles(out, seed, 0.1 if sigma is None else sigma, num_cameras, particles_per_frame, num_frames,
-                            render_frames, drift_deg, drift_mm, drift_cameras)
+                            render_frames, drift_deg, drift_mm, drift_cameras, look, int(bit_depth))
         return
     check_output_folder(out)
     check_number("--sigma", sigma, minimum=0.0, maximum=100.0)
@@ -614,7 +619,8 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_sca
 
 
 def _simulate_particles(out: Path, seed: int, sigma: float, num_cameras: int, particles_per_frame: int,
-                        num_frames: int, render_frames: int, drift_deg: float, drift_mm: float, drift_cameras: str) -> None:
+                        num_frames: int, render_frames: int, drift_deg: float, drift_mm: float, drift_cameras: str,
+                        look: str = "plain", bit_depth: int = 8) -> None:
     """`simulate particles`: write OUT/calibration, OUT/experiment, OUT/truth (ari_sfm.simulate.particles)."""
     from .simulate.particles import ParticleSimOptions, simulate_particle_experiment, write_particle_experiment
 
@@ -635,7 +641,7 @@ def _simulate_particles(out: Path, seed: int, sigma: float, num_cameras: int, pa
         raise AriSfmError("--drift-cameras", f"{bad} not among the cameras 0..{num_cameras - 1}")
     options = ParticleSimOptions(num_cameras=num_cameras, particles_per_frame=particles_per_frame,
                                  num_frames=num_frames, sigma_px=sigma, drift_cameras=drifted, drift_deg=drift_deg,
-                                 drift_mm=drift_mm, seed=seed)
+                                 drift_mm=drift_mm, look=look, bit_depth=bit_depth, seed=seed)
     paths = write_particle_experiment(simulate_particle_experiment(options), out, render_frames=render_frames)
     click.echo(f"calibration dataset (rig A): {paths['calibration']}\nexperiment (rig B):          "
                f"{paths['experiment']}\ntruth:                       {paths['truth']} (rig_a.json, rig_b.json, "
@@ -654,14 +660,17 @@ _scheduler_option = click.option("--scheduler", default=None, metavar="tcp://HOS
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
               help="Output folder: particles.parquet, detect-particles.json, parts/ (resumable).")
 @click.option("--diameter-px", type=float, default=None, help="Particle image diameter (default: rig.yaml's, else 3).")
-@click.option("--threshold-sigma", type=float, default=6.0, show_default=True,
-              help="Peaks above the background by this many noise sigmas.")
+@click.option("--threshold-sigma", type=float, default=None,
+              help="Peaks above the local background by this many local noise sigmas (default 5).")
+@click.option("--min-peak", type=float, default=None,
+              help="And at least this many grey levels above it (default 0: the noise alone decides; e.g. to keep "
+                   "only bright particles, as OpenPTV's grey-sum threshold does).")
 @click.option("--frames-per-partition", type=int, default=20, show_default=True)
 @_workers_option
 @_scheduler_option
 @user_errors
-def detect_particles_cmd(dataset: Path, out: Path, diameter_px: float | None, threshold_sigma: float,
-                         frames_per_partition: int, workers: int, scheduler: str | None) -> None:
+def detect_particles_cmd(dataset: Path, out: Path, diameter_px: float | None, threshold_sigma: float | None,
+                         min_peak: float | None, frames_per_partition: int, workers: int, scheduler: str | None) -> None:
     """Find the particle images of DATASET's particles.images; write OUT/particles.parquet."""
     from .io.particles import load_particle_dataset
     from .particles.detect import DetectOptions, detect_experiment
@@ -669,11 +678,14 @@ def detect_particles_cmd(dataset: Path, out: Path, diameter_px: float | None, th
     check_output_folder(out)
     check_number("--diameter-px", diameter_px, minimum=0.0, maximum=1000.0, strict_minimum=True)
     check_number("--threshold-sigma", threshold_sigma, minimum=0.0, strict_minimum=True)
+    check_number("--min-peak", min_peak, minimum=0.0)
     check_number("--frames-per-partition", frames_per_partition, minimum=1)
     check_number("--workers", workers, minimum=0, maximum=1024)
     if diameter_px is None:
         diameter_px = load_particle_dataset(dataset).diameter_px or DetectOptions.diameter_px
-    s = detect_experiment(dataset, out, DetectOptions(diameter_px=diameter_px, threshold_sigma=threshold_sigma),
+    given = {"threshold_sigma": threshold_sigma, "min_peak": min_peak}
+    options = DetectOptions(diameter_px=diameter_px, **{k: v for k, v in given.items() if v is not None})
+    s = detect_experiment(dataset, out, options,
                           frames_per_partition=frames_per_partition, workers=workers, scheduler=scheduler,
                           progress=True)
     click.echo(f"{s.detections} particle images in frames {s.frames[0]}..{s.frames[1]} "

@@ -1,18 +1,39 @@
 """Particle images -> sub-pixel centres (``ari-sfm detect-particles``).
 
-Per image: the background and its noise from the median and the MAD; local
-maxima (3 x 3, on the image smoothed at a third of the particle's sigma) above
-``background + threshold_sigma * noise``; the centre of each by a three-point
-Gaussian fit along u and along v (exact for a Gaussian image sampled at pixel
-centres; ``diameter_px`` is the e^-2 diameter, sigma = diameter / 4). Two
-particles whose images overlap but keep their own maxima are split (each its
-own fit around its own peak); a blob whose second moments are too wide for
-one particle (two images merged into one maximum) is dropped, never averaged.
-The width is measured over the peak's own pixels (above a quarter of its peak,
-reached by non-increasing steps, not nearer another peak). Measured on rendered
-3 px images with 8-bit noise: isolated centres 0.02 px RMS; merged pairs 1.3 px
-or more apart dropped; pairs 3.5 px apart split (96 %). Two images closer than
-~1.3 px (0.4 diameters) can look like one and give one centre between them.
+Per image (8 or 16 bit, read without losing the 16-bit range; float images as
+they are; colour: the mean of the channels):
+
+1. the local background and noise (:mod:`ari_sfm.particles.background`): an
+   uneven background, glare, big bright blobs and dense particles move
+   neither, as a global median and MAD of the frame would;
+2. hot pixels (sharper along u and along v than any image through a lens:
+   HOT_SIGMA_PX) are replaced by their neighbours' median, also on a
+   particle's skirt;
+3. candidates: local maxima (3 x 3) of the residual smoothed at half a
+   particle's sigma, above ``threshold_sigma`` times that smoothed image's
+   local noise (and ``min_peak`` grey levels, 0 by default); not within an
+   opening disc of a saturated region wider than it (a blob's rim);
+4. a candidate must look like an image, not a cluster of hot pixels (a pair,
+   a line, an L): support along u and along v, and on the diagonal between
+   (:func:`_supported`);
+5. centres: three-point Gaussian fits along u and along v (exact for a
+   Gaussian sampled at pixel centres; ``diameter_px`` is the e^-2 diameter,
+   sigma = diameter / 4), refined by DEBLEND_ITERATIONS rounds in which every
+   other particle's fitted Gaussian is subtracted first: overlapping images
+   that keep their own maxima are split, each centre freed of its
+   neighbour's tail; a saturated peak (flat top) is centred on its own
+   pixels' intensity centroid;
+6. an image elongated beyond the noise (``max_elongation``; its shape from a
+   weighted fit of the log intensities of its 3 x 3 pixels,
+   :func:`image_shape`) is fitted as one elliptical Gaussian and as two
+   round ones: two images merged into one maximum are split where the data
+   show two (SPLIT_EVIDENCE), else it stays one, centred by the elliptical fit;
+7. dropped: images on a ridge (a streak, a blob's rim: :func:`_on_ridge`),
+   wider than ``max_width_ratio`` times the hint, or sharper than any optical
+   image along every axis (hot pixels beside a particle).
+
+Two images closer than ~0.8 px (MIN_SPLIT_PX) stay one. Measured figures:
+README, particles section (``benchmarks/bench_particle_detection.py``).
 """
 from __future__ import annotations
 
@@ -24,12 +45,30 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from ari_sfm.particles.background import estimate_background, opening_size
 from ari_sfm.particles.engine import PartitionError
 
 log = logging.getLogger(__name__)
 
 MIN_SIGNAL = 1e-3  # floor of background-subtracted intensities before the log of the Gaussian fit
-BLOB_LEVEL = 0.25  # a blob: the pixels above this fraction of its peak (reached by non-increasing steps)
+SMOOTH_FRACTION = 0.5  # the candidates' image: the residual smoothed at this fraction of a particle's sigma
+AXIS_SUPPORT = 0.1  # a particle image (e^-2 diameter >= ~1.5 px) lends each axis' brighter neighbour this of its peak
+DIAGONAL_SUPPORT = 0.25  # and its diagonal pixel >= this fraction of the separable profile's value there
+HOT_SIGMA_PX = 0.4  # a pixel sharper than a Gaussian image of this sigma (px, pixel-integrated >= 0.29) is hot
+SUPPORT_SIGMAS = 2.0  # the support tests' allowance for noise, in noise sigmas
+SIGNIFICANT_SIGMAS = 3.0  # or a bright sharp image's neighbours along an axis stand this far above the noise
+DEBLEND_ITERATIONS = 2  # rounds of centre fits with the other particles' Gaussians subtracted
+SIGMA_RANGE = (0.5, 2.0)  # a fitted sigma is clipped to this range times the hint's
+RIDGE_RADIUS_SIGMAS = 3.5  # a ridge (a streak, a blob's rim): both sides this far along a line stay ...
+RIDGE_LEVEL = 0.35  # ... above this fraction of the peak (two noise sigmas allowed); a particle image falls to ~0
+SPLIT_RANGE_PX = (0.4, 1.5)  # half the distance of a split pair's first centres
+PAIR_WINDOW_SIGMAS = 2.0  # a merged pair's two-Gaussian fit uses the pixels within this many sigmas (+ 0.5 px)
+FIT_ITERATIONS = 10  # Levenberg-Marquardt iterations of the fits of elongated images
+SPLIT_EVIDENCE = 9.0  # two Gaussians must fit an elongated image better than one by this (squared noise sigmas)
+MIN_SPLIT_PX = 0.8  # a pair fitted closer than this stays one image
+MAX_LOG_OVERSHOOT = 1.0  # a fitted Gaussian's peak is at most e times its peak pixel (a flat fit's cap)
+MODEL_NOISE = 0.03  # the shape fit's relative noise floor per pixel (shot noise, a profile not quite Gaussian)
+MODEL_RADIUS_SIGMAS = 4.0  # a particle's fitted Gaussian is subtracted out to this many of the hint's sigmas
 
 
 @dataclass(frozen=True)
@@ -56,132 +95,540 @@ class DetectOptions:
     """How particle images are found."""
 
     diameter_px: float = 3.0  # e^-2 diameter hint (rig.yaml particles.diameter_px)
-    threshold_sigma: float = 6.0  # peak above the background, in units of the image noise
-    min_peak: float = 8.0  # and at least this many grey levels
-    max_width_ratio: float = 1.18  # a blob wider than this times one particle's width is two merged: dropped
+    threshold_sigma: float = 5.0  # smoothed peak above the local background, in units of its local noise
+    min_peak: float = 0.0  # and at least this many grey levels above it (0: the noise alone decides)
+    max_width_ratio: float = 2.5  # a blob wider than this times the hint's image (its sigma) is none: dropped
+    max_elongation: float = 1.2  # longer than wide by this beyond the noise: fitted as one or two (step 6)
+    background_px: int = 32  # blocks of the local background's offset and of the local noise
 
 
-def _fit_axis(lm: np.ndarray, l0: np.ndarray, lp: np.ndarray) -> np.ndarray:
-    """Three-point Gaussian peak offset from the log intensities at -1, 0, +1."""
-    den = 2.0 * (lm - 2.0 * l0 + lp)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        off = (lm - lp) / den
-    return np.where(np.isfinite(off) & (den < 0), np.clip(off, -0.5, 0.5), 0.0)
+def _grey(image: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """A float32 grey image (colour: the mean of the colour channels, an alpha channel left out), its grey
+    level step (1 integer, 0 float) and its saturation level."""
+    img = np.asarray(image)
+    dtype = img.dtype
+    if img.ndim == 3:
+        img = img[:, :, :3 if img.shape[2] >= 3 else 1].mean(axis=2)
+    if np.issubdtype(dtype, np.integer):
+        return img.astype(np.float32), 1.0, float(np.iinfo(dtype).max)
+    return np.nan_to_num(img.astype(np.float32)), 0.0, math.inf
 
 
 def detect_particles_in_image(image: np.ndarray, options: DetectOptions = DetectOptions()
                               ) -> tuple[np.ndarray, np.ndarray]:
-    """Centres (N, 2) (OpenCV pixel convention) and peak intensities above the background (N,)."""
+    """Centres (N, 2) (OpenCV pixel convention) and peak intensities above the local background (N,),
+    in the image's grey levels."""
     import cv2
 
-    img = np.asarray(image, np.float32)
-    if img.ndim == 3:
-        img = img.mean(axis=2)
-    sample = img[::3, ::3]  # the background statistics from a ninth of the pixels
-    background = float(np.median(sample))
-    noise = 1.4826 * float(np.median(np.abs(sample - background))) or 1.0
-    sig = img - np.float32(background)
-    sigma = options.diameter_px / 4.0
-    smooth = cv2.GaussianBlur(sig, (0, 0), max(sigma / 3.0, 0.3))
-    peak_min = max(options.threshold_sigma * noise, options.min_peak)
-    local = cv2.dilate(smooth, np.ones((3, 3), np.uint8))  # 3 x 3 maximum
+    img, quantum, saturation = _grey(image)
     h, w = img.shape
-    ys, xs = np.nonzero(sig >= peak_min)
-    at_max = smooth[ys, xs] == local[ys, xs]
-    ys, xs = ys[at_max], xs[at_max]
-    inner = (xs >= 1) & (xs < w - 1) & (ys >= 1) & (ys < h - 1)
-    ys, xs = ys[inner], xs[inner]
+    empty = (np.empty((0, 2)), np.empty(0))
+    if h < 3 or w < 3:
+        return empty
+    sigma = options.diameter_px / 4.0
+    block = int(options.background_px)
+    background = estimate_background(img, options.diameter_px, block, quantum)
+    res = img - background.level
+    noise = background.noise
+    clean = _without_hot_pixels(res, noise)
+    s_smooth = max(SMOOTH_FRACTION * sigma, 0.3)
+    smooth = cv2.GaussianBlur(clean, (0, 0), s_smooth, borderType=cv2.BORDER_REPLICATE)
+    noise_smooth = noise * _smoothing_gain(s_smooth)
+    threshold = np.maximum(options.threshold_sigma * noise_smooth, options.min_peak)
+    ys, xs = _local_maxima(smooth, threshold)
+    if len(xs):
+        blob = _near_saturated_blob(img, saturation, options.diameter_px)
+        ok = _supported(clean, ys, xs, noise[ys, xs]) & ~blob[ys, xs]
+        ys, xs = ys[ok], xs[ok]
     if not len(xs):
-        return np.empty((0, 2)), np.empty(0)
-    # plateaus: one maximum per 8-connected group of equal maxima
-    keep = np.ones(len(xs), bool)
-    taken = np.zeros(img.shape, bool)  # (a Python loop over the maxima only)
-    for k in np.argsort(-smooth[ys, xs], kind="stable"):
-        y, x = ys[k], xs[k]
-        if taken[y - 1:y + 2, x - 1:x + 2].any():
-            keep[k] = False
-        taken[y, x] = True
-    ys, xs = ys[keep], xs[keep]
-    def log_at(dy: int, dx: int) -> np.ndarray:
-        return np.log(np.maximum(sig[ys + dy, xs + dx].astype(float), MIN_SIGNAL))
-
-    centre = log_at(0, 0)
-    du = _fit_axis(log_at(0, -1), centre, log_at(0, 1))
-    dv = _fit_axis(log_at(-1, 0), centre, log_at(1, 0))
-    peak = sig[ys, xs].astype(float)
-    single = _single(sig, ys, xs, peak, sigma, options.max_width_ratio)
-    uv = np.stack([xs + du, ys + dv], axis=1)[single]
-    return uv, peak[single]
+        return empty
+    saturated = img[ys, xs] >= saturation
+    fit = _deblended_fit(clean, noise, ys, xs, sigma, saturated, options.max_elongation)
+    single = _single(fit, sigma, options.max_width_ratio, options.max_elongation)
+    return fit.uv[single], fit.peak[single]
 
 
-def _blob_masks(sig: np.ndarray, ys: np.ndarray, xs: np.ndarray, peak: np.ndarray, sigma: float
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Weights (N, k, k) of each peak's own blob: pixels above half its peak reached from the peak by
-    non-increasing steps (a neighbour's slope is not part of it); and the window offsets dy, dx."""
-    h, w = sig.shape
-    r = int(math.ceil(2.0 * sigma + 1.0))
+def _smoothing_gain(sigma: float) -> float:
+    """How much a Gaussian blur of ``sigma`` px lowers white noise: the root sum of its squared weights."""
+    import cv2
+
+    k = cv2.getGaussianKernel(2 * int(math.ceil(4 * sigma)) + 1, sigma)
+    return float(np.sum(k * k))  # (sum of squares in 1-D) squared under the root: the 2-D blur is separable
+
+
+def _near_saturated_blob(img: np.ndarray, saturation: float, diameter_px: float) -> np.ndarray:
+    """(h, w) bool: within an opening disc of a saturated region wider than that disc (a blob, a glare:
+    its rim is no particle, and a particle there cannot be measured)."""
+    import cv2
+
+    saturated = (img >= saturation).astype(np.uint8)
+    if not saturated.any():
+        return np.zeros(img.shape, bool)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (opening_size(diameter_px),) * 2)
+    big = cv2.morphologyEx(saturated, cv2.MORPH_OPEN, disc)
+    return cv2.dilate(big, disc).astype(bool) if big.any() else np.zeros(img.shape, bool)
+
+
+def _without_hot_pixels(res: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """``res`` with hot pixels replaced by the median of their 8 neighbours: a pixel sharper along u and
+    along v than any image through a lens can be (log curvature 2 ln I0 - ln I-1 - ln I+1 > 1 / s^2,
+    s = HOT_SIGMA_PX, intensities floored at the noise), also on a particle's skirt."""
+    limit = 1.0 / (HOT_SIGMA_PX * HOT_SIGMA_PX)
+    floor = np.maximum(noise, 1e-6)
+    lg = np.log(np.maximum(res, floor))
+    inner = lg[1:-1, 1:-1]
+    sharp_u = 2.0 * inner - lg[1:-1, :-2] - lg[1:-1, 2:] > limit
+    sharp_v = 2.0 * inner - lg[:-2, 1:-1] - lg[2:, 1:-1] > limit
+    ys, xs = np.nonzero(sharp_u & sharp_v)
+    if not len(ys):
+        return res
+    ys, xs = ys + 1, xs + 1
+    out = res.copy()
+    dy = np.array([-1, -1, -1, 0, 0, 1, 1, 1])
+    dx = np.array([-1, 0, 1, -1, 1, -1, 0, 1])
+    out[ys, xs] = np.median(res[ys[:, None] + dy, xs[:, None] + dx], axis=1)
+    return out
+
+
+def _local_maxima(smooth: np.ndarray, threshold: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (rows, cols) at the maximum of their 3 x 3 neighbourhood and above ``threshold``, off the
+    border; of a plateau of equal values, the pixels above and left of which no plateau pixel lies."""
+    import cv2
+
+    local = cv2.dilate(smooth, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    peak = (smooth >= local) & (smooth >= threshold)
+    peak[0, :] = peak[-1, :] = peak[:, 0] = peak[:, -1] = False
+    ys, xs = np.nonzero(peak)
+    s0 = smooth[ys, xs]
+    first = ((s0 > smooth[ys - 1, xs - 1]) & (s0 > smooth[ys - 1, xs]) & (s0 > smooth[ys - 1, xs + 1])
+             & (s0 > smooth[ys, xs - 1]))
+    return ys[first], xs[first]
+
+
+def _supported(res: np.ndarray, ys: np.ndarray, xs: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """(N,) True where a candidate's 3 x 3 pixels look like a particle image, not a hot cluster (a pair,
+    a line or an L of hot pixels): along u and along v, its brighter neighbour holds AXIS_SUPPORT of its
+    peak (SUPPORT_SIGMAS noise sigmas allowed: a faint image) or its two neighbours together stand
+    SIGNIFICANT_SIGMAS above the noise (a bright sharp image); and the diagonal pixel between the two
+    brighter neighbours holds DIAGONAL_SUPPORT of what a separable profile puts there."""
+    r0 = res[ys, xs]
+    left, right = res[ys, xs - 1], res[ys, xs + 1]
+    up, down = res[ys - 1, xs], res[ys + 1, xs]
+    su, sv = np.maximum(left, right), np.maximum(up, down)
+    margin = SUPPORT_SIGMAS * noise
+    significant = SIGNIFICANT_SIGMAS * math.sqrt(2.0) * noise  # the two neighbours' sum against its noise
+    axes = (((su + margin >= AXIS_SUPPORT * r0) | (left + right >= significant))
+            & ((sv + margin >= AXIS_SUPPORT * r0) | (up + down >= significant)))
+    du = np.where(right >= left, 1, -1)
+    dv = np.where(down >= up, 1, -1)
+    diag = res[ys + dv, xs + du]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        separable = np.where(r0 > 0, np.maximum(su, 0) * np.maximum(sv, 0) / r0, 0.0)
+    return axes & (diag + margin >= DIAGONAL_SUPPORT * separable)
+
+
+@dataclass(frozen=True)
+class _State:
+    """Particle images being fitted (arrays over the images)."""
+
+    anchor_y: np.ndarray  # the pixel each started from; its peak pixel stays within one pixel of it
+    anchor_x: np.ndarray
+    y0: np.ndarray  # its peak pixel
+    x0: np.ndarray
+    u: np.ndarray  # its Gaussian: centre, peak above the background, sigmas along u and v
+    v: np.ndarray
+    A: np.ndarray
+    su: np.ndarray
+    sv: np.ndarray
+    saturated: np.ndarray  # bool: its peak pixel is saturated (a flat top: centred by its centroid)
+    fixed: np.ndarray  # bool: one of a split pair, fitted as such: held in the rounds of fits
+
+    def take(self, rows: np.ndarray) -> "_State":
+        return _State(*(getattr(self, f)[rows] for f in self.__dataclass_fields__))
+
+    def join(self, other: "_State") -> "_State":
+        return _State(*(np.concatenate([getattr(self, f), getattr(other, f)]) for f in self.__dataclass_fields__))
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """The fitted particle images of a frame."""
+
+    uv: np.ndarray  # (N, 2) centres
+    peak: np.ndarray  # (N,) Gaussian peaks above the background (a saturated one: its brightest pixel)
+    shape: "ImageShape"  # from its own 3 x 3 pixels, the others' Gaussians subtracted
+    ridge: np.ndarray  # (N,) bool: on a ridge (a streak, a blob's rim), not a particle image
+    saturated: np.ndarray  # (N,) bool
+    fixed: np.ndarray  # (N,) bool: an elongated image fitted as one elliptical Gaussian or as two round ones
+
+
+@dataclass(frozen=True)
+class ImageShape:
+    """The Gaussian shape of particle images (arrays over the images), see :func:`image_shape`."""
+
+    sigma_major: np.ndarray  # sigma along the widest axis (inf: not a peak)
+    elongation: np.ndarray  # widest over narrowest sigma (inf: not a peak)
+    sigma_major_sure: np.ndarray  # the widest sigma with the curvature two standard errors up
+    elongation_sure: np.ndarray  # the elongation with the anisotropy two standard errors down (1: none)
+    axis: np.ndarray  # (N, 2) the widest axis (unit vector, u v)
+    half_split: np.ndarray  # half the distance of two equal round images that would look like this one
+
+    def take(self, rows: np.ndarray) -> "ImageShape":
+        return ImageShape(*(getattr(self, f)[rows] for f in self.__dataclass_fields__))
+
+    def join(self, other: "ImageShape") -> "ImageShape":
+        return ImageShape(*(np.concatenate([getattr(self, f), getattr(other, f)]) for f in self.__dataclass_fields__))
+
+
+def _log_parabola(lm: np.ndarray, l0: np.ndarray, lp: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertex offset, curvature (< 0 for a peak) and vertex height of the parabola through the log
+    intensities at -1, 0, +1."""
+    b = 0.5 * (lp - lm)
+    c = 0.5 * (lp - 2.0 * l0 + lm)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        off = -b / (2.0 * c)
+        top = l0 - b * b / (4.0 * c)
+    return off, c, top
+
+
+def _gaussian(A: np.ndarray, u: np.ndarray, v: np.ndarray, su: np.ndarray, sv: np.ndarray,
+              X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """Each particle's Gaussian (sampled at pixel centres) at its pixels X, Y (N, ...)."""
+    ex = (X - u[:, None]) ** 2 / (2.0 * su[:, None] ** 2) + (Y - v[:, None]) ** 2 / (2.0 * sv[:, None] ** 2)
+    return A[:, None] * np.exp(-ex)
+
+
+def _offsets(r: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column offsets of a (2 r + 1)^2 window, row-major."""
     off = np.arange(-r, r + 1)
     dy, dx = np.meshgrid(off, off, indexing="ij")
-    Y = np.clip(ys[:, None, None] + dy, 0, h - 1)
-    X = np.clip(xs[:, None, None] + dx, 0, w - 1)
-    patch = sig[Y, X]
-    above = patch >= BLOB_LEVEL * peak[:, None, None]
-    if len(xs) > 1:  # pixels nearer another peak (a resolved neighbour) are not this blob's
-        from scipy.spatial import cKDTree
-
-        pts = np.stack([xs, ys], 1).astype(float)
-        _, nn = cKDTree(pts).query(pts, k=2)
-        ox, oy = (pts[nn[:, 1]] - pts).T
-        nearer = (dx - ox[:, None, None]) ** 2 + (dy - oy[:, None, None]) ** 2 < dx ** 2 + dy ** 2
-        above &= ~nearer
-    inside = np.zeros_like(above)
-    inside[:, r, r] = True
-    radius = np.hypot(dy, dx)
-    for k in np.argsort(radius, axis=None, kind="stable")[1:]:  # outward: the parent is one step inward
-        iy, ix = divmod(int(k), 2 * r + 1)
-        py = iy - int(np.sign(iy - r)) if abs(iy - r) >= abs(ix - r) / 2 else iy
-        px = ix - int(np.sign(ix - r)) if abs(ix - r) >= abs(iy - r) / 2 else ix
-        inside[:, iy, ix] = above[:, iy, ix] & inside[:, py, px] & (patch[:, iy, ix] <= patch[:, py, px])
-    return np.where(inside, patch, 0.0), dy, dx
+    return dy.ravel(), dx.ravel()
 
 
-def _single(sig: np.ndarray, ys: np.ndarray, xs: np.ndarray, peak: np.ndarray, sigma: float,
-            max_ratio: float) -> np.ndarray:
-    """(N,) True where a peak's blob is as narrow as one particle image: its intensity-weighted second
-    moment along the widest axis within ``max_ratio**2`` of one particle's."""
-    return blob_width_ratio(sig, ys, xs, peak, sigma) <= max_ratio
+def _deblended_fit(res: np.ndarray, noise: np.ndarray, ys: np.ndarray, xs: np.ndarray, sigma: float,
+                   saturated: np.ndarray, max_elongation: float) -> _Fit:
+    """Centres by three-point Gaussian fits, every other particle's Gaussian subtracted; merged pairs
+    split (step 5)."""
+    n = len(ys)
+    A = np.maximum(res[ys, xs].astype(float), MIN_SIGNAL)
+    state = _State(ys, xs, ys, xs, xs.astype(float), ys.astype(float), A, np.full(n, sigma), np.full(n, sigma),
+                   saturated, np.zeros(n, bool))
+    state, model = _fit_rounds(res, state, sigma, DEBLEND_ITERATIONS)
+    shape = image_shape(_own_pixels(res, model, state, *_offsets(1)), noise[state.y0, state.x0])
+    ridge = _on_ridge(res, noise, state, sigma, shape.axis)
+    elongated = (shape.elongation_sure > max_elongation) & np.isfinite(shape.elongation) & ~ridge & ~state.saturated
+    if elongated.any():
+        state, kept = _fit_elongated(res, noise, model, state, shape, elongated)
+        ridge = np.concatenate([ridge[kept], np.zeros(len(state.u) - len(kept), bool)])
+        model = _render(*res.shape, state, _model_radius(sigma))
+        twins = state.take(np.arange(len(kept), len(state.u)))
+        shape = shape.take(kept).join(image_shape(_own_pixels(res, model, twins, *_offsets(1)),
+                                                  noise[twins.y0, twins.x0]))
+        state, _ = _fit_rounds(res, state, sigma, 1, model, render_last=False)  # the neighbours of split pairs
+    return _Fit(uv=np.stack([state.u, state.v], axis=1), peak=state.A, shape=shape, ridge=ridge,
+                saturated=state.saturated, fixed=state.fixed)
 
 
-def blob_width_ratio(sig: np.ndarray, ys: np.ndarray, xs: np.ndarray, peak: np.ndarray, sigma: float) -> np.ndarray:
-    """(N,) RMS width of each peak's blob along its widest axis over one particle image's."""
-    wts, dy, dx = _blob_masks(sig, ys, xs, peak, sigma)
-    total = wts.sum(axis=(1, 2))
-    mx = (wts * dx).sum(axis=(1, 2)) / total
-    my = (wts * dy).sum(axis=(1, 2)) / total
-    cxx = (wts * (dx - mx[:, None, None]) ** 2).sum(axis=(1, 2)) / total
-    cyy = (wts * (dy - my[:, None, None]) ** 2).sum(axis=(1, 2)) / total
-    cxy = (wts * (dx - mx[:, None, None]) * (dy - my[:, None, None])).sum(axis=(1, 2)) / total
-    major = 0.5 * (cxx + cyy) + np.sqrt(0.25 * (cxx - cyy) ** 2 + cxy ** 2)
-    return np.sqrt(major / _half_peak_moment(sigma))
+def _fit_rounds(res: np.ndarray, state: _State, sigma: float, rounds: int, model: np.ndarray | None = None,
+                render_last: bool = True) -> tuple[_State, np.ndarray | None]:
+    """``rounds`` rounds of three-point Gaussian fits along u and v, each particle's own pixels being the
+    residual minus the other particles' Gaussians of the round before (``model``: those of the start).
+    Returns the state and its model (None if not ``render_last``)."""
+    h, w = res.shape
+    s_lo, s_hi = SIGMA_RANGE[0] * sigma, max(SIGMA_RANGE[1] * sigma, 0.5)
+    model_r = _model_radius(sigma)
+    centroid_dy, centroid_dx = _offsets(int(math.ceil(2.0 * sigma + 1.0)))
+    stencil_dy = np.array([0, 0, 0, -1, 1])  # centre, left, right, up, down
+    stencil_dx = np.array([0, -1, 1, 0, 0])
+    s = state
+    for k in range(rounds):
+        own = _own_pixels(res, model, s, stencil_dy, stencil_dx)
+        lg = np.log(np.maximum(own, MIN_SIGNAL))
+        ou, cu, tu = _log_parabola(lg[:, 1], lg[:, 0], lg[:, 2])
+        ov, cv, tv = _log_parabola(lg[:, 3], lg[:, 0], lg[:, 4])
+        good = (cu < 0) & (cv < 0) & np.isfinite(ou) & np.isfinite(ov) & ~s.saturated
+        ou, ov = np.clip(np.where(good, ou, 0.0), -1.0, 1.0), np.clip(np.where(good, ov, 0.0), -1.0, 1.0)
+        u, v = s.x0 + ou, s.y0 + ov
+        with np.errstate(divide="ignore", invalid="ignore"):
+            su = np.where(good, np.clip(np.sqrt(-0.5 / cu), s_lo, s_hi), sigma)
+            sv = np.where(good, np.clip(np.sqrt(-0.5 / cv), s_lo, s_hi), sigma)
+        top = np.minimum(np.where(good, 0.5 * (tu + tv), lg[:, 0]), lg[:, 0] + MAX_LOG_OVERSHOOT)
+        A = np.where(good, np.exp(top), np.maximum(own[:, 0], MIN_SIGNAL))
+        bad = ~good  # flat tops (saturated) and failed fits: the centroid of the own pixels above half the peak
+        if bad.any():
+            pb = _own_pixels(res, model, s.take(bad), centroid_dy, centroid_dx)
+            wts = np.where(pb >= 0.5 * pb.max(axis=1, keepdims=True), pb, 0.0)
+            total = np.maximum(wts.sum(axis=1), MIN_SIGNAL)
+            u[bad] = s.x0[bad] + (wts * centroid_dx).sum(axis=1) / total
+            v[bad] = s.y0[bad] + (wts * centroid_dy).sum(axis=1) / total
+        # the peak pixel follows the centre (at most one pixel from where it started)
+        y0 = np.clip(np.rint(v).astype(int), np.maximum(s.anchor_y - 1, 1), np.minimum(s.anchor_y + 1, h - 2))
+        x0 = np.clip(np.rint(u).astype(int), np.maximum(s.anchor_x - 1, 1), np.minimum(s.anchor_x + 1, w - 2))
+        held = s.fixed
+        s = _State(s.anchor_y, s.anchor_x, np.where(held, s.y0, y0), np.where(held, s.x0, x0),
+                   np.where(held, s.u, u), np.where(held, s.v, v), np.where(held, s.A, A), np.where(held, s.su, su),
+                   np.where(held, s.sv, sv), s.saturated, s.fixed)
+        model = _render(h, w, s, model_r) if render_last or k < rounds - 1 else None
+    return s, model
 
 
-def _half_peak_moment(sigma: float) -> float:
-    """The widest-axis second moment of one pixel-integrated Gaussian image's blob (as measured by
-    :func:`blob_width_ratio`, worst sub-pixel phase)."""
-    from scipy.special import erf
+def _model_radius(sigma: float) -> int:
+    """The half-width of the window over which a particle's fitted Gaussian is subtracted from the others'."""
+    return max(2, int(math.ceil(MODEL_RADIUS_SIGMAS * sigma)))
 
-    r = int(math.ceil(2.0 * sigma + 1.0))
-    off = np.arange(-r, r + 1, dtype=float)
-    s2 = math.sqrt(2.0) * sigma
-    best = 0.0
-    for c in (0.0, 0.25, 0.5):
-        gx = 0.5 * (erf((off + 0.5 - c) / s2) - erf((off - 0.5 - c) / s2))
-        gy = 0.5 * (erf((off + 0.5) / s2) - erf((off - 0.5) / s2))
-        g = gy[:, None] * gx[None, :]
-        wts = np.where(g >= BLOB_LEVEL * g.max(), g, 0.0)
-        m = (wts * off[None, :]).sum() / wts.sum()
-        best = max(best, float((wts * (off[None, :] - m) ** 2).sum() / wts.sum()))
-    return max(best, 1.0 / 12.0)
+
+def _fit_elongated(res: np.ndarray, noise: np.ndarray, model: np.ndarray, state: _State, shape: ImageShape,
+                   elongated: np.ndarray) -> tuple[_State, np.ndarray]:
+    """Each elongated image fitted two ways to its own pixels (the other particles' Gaussians subtracted):
+    as one elliptical Gaussian and as two round ones (both centres, both peaks, one sigma; started
+    ``half_split`` either side of its centre along its widest axis), by Levenberg-Marquardt. It becomes
+    two images where two fit better by more than SPLIT_EVIDENCE (squared noise sigmas), both peaks stand
+    above SUPPORT_SIGMAS noise sigmas and the centres lie at least MIN_SPLIT_PX apart; else it stays one,
+    centred by the elliptical fit. Either way it is held (``fixed``) from then on. Returns the state (the
+    images not split, in their order, then the first and the second of each split pair) and the rows of
+    ``state`` it keeps."""
+    rows = np.flatnonzero(elongated)
+    s = state.take(rows)
+    dy, dx = _offsets(max(2, int(math.ceil(PAIR_WINDOW_SIGMAS * float(np.median(s.su)) + 0.5))))
+    data = _own_pixels(res, model, s, dy, dx)
+    h, w = res.shape
+    X = np.clip(s.x0[:, None] + dx, 0, w - 1).astype(float)
+    Y = np.clip(s.y0[:, None] + dy, 0, h - 1).astype(float)
+    # one elliptical Gaussian: u, v, A and the inverse covariance (a, b, c), started from the shape's Hessian
+    a0, b0 = _inverse_covariance(shape, rows)
+    one = np.stack([s.u, s.v, s.A, a0[:, 0], a0[:, 1], b0], axis=1)
+    one, ssr_one = _levenberg_marquardt(one, X, Y, data, _ellipse)
+    # two round Gaussians: u1, v1, u2, v2, A1, A2, sigma
+    half = np.clip(shape.half_split[rows], SPLIT_RANGE_PX[0], SPLIT_RANGE_PX[1])
+    du, dv = half * shape.axis[rows, 0], half * shape.axis[rows, 1]
+    two = np.stack([s.u - du, s.v - dv, s.u + du, s.v + dv, 0.6 * s.A, 0.6 * s.A,
+                    np.sqrt(0.5 * (s.su ** 2 + s.sv ** 2))], axis=1)
+    two, ssr_two = _levenberg_marquardt(two, X, Y, data, _pair)
+    sep = np.hypot(two[:, 2] - two[:, 0], two[:, 3] - two[:, 1])
+    n2 = noise[s.y0, s.x0] ** 2
+    split = ((ssr_one - ssr_two > SPLIT_EVIDENCE * n2) & (sep >= MIN_SPLIT_PX)
+             & (np.minimum(two[:, 4], two[:, 5]) >= SUPPORT_SIGMAS * np.sqrt(n2))
+             & (np.hypot(0.5 * (two[:, 0] + two[:, 2]) - s.u, 0.5 * (two[:, 1] + two[:, 3]) - s.v) <= 1.0))
+    # the ones that stay one: the elliptical centre (where it converged near the start), held
+    held = np.ones(len(rows), bool)
+    good = np.isfinite(one).all(axis=1) & (np.hypot(one[:, 0] - s.u, one[:, 1] - s.v) <= 1.0)
+    det = one[:, 3] * one[:, 5] - one[:, 4] ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        su = np.where(good & (det > 0), np.sqrt(one[:, 5] / det), s.su)  # the ellipse's marginal sigmas
+        sv = np.where(good & (det > 0), np.sqrt(one[:, 3] / det), s.sv)
+    single = _State(s.anchor_y, s.anchor_x, s.y0, s.x0, np.where(good, one[:, 0], s.u), np.where(good, one[:, 1], s.v),
+                    np.where(good, one[:, 2], s.A), su, sv, s.saturated, held)
+    keep = np.ones(len(state.u), bool)
+    keep[rows[split]] = False
+    out = state.take(np.flatnonzero(keep))
+    # write the singles back in place
+    rows_kept = np.flatnonzero(keep)
+    pos = np.searchsorted(rows_kept, rows[~split])
+    fields = {f: getattr(out, f).copy() for f in out.__dataclass_fields__}
+    for f in fields:
+        fields[f][pos] = getattr(single, f)[~split]
+    out = _State(**fields)
+    if split.any():
+        p, t = two[split], s.take(split)
+        twins = []
+        for k in (0, 1):
+            u, v = p[:, 2 * k], p[:, 2 * k + 1]
+            y0 = np.clip(np.rint(v).astype(int), 1, h - 2)
+            x0 = np.clip(np.rint(u).astype(int), 1, w - 2)
+            twins.append(_State(y0, x0, y0, x0, u, v, p[:, 4 + k], p[:, 6], p[:, 6], t.saturated,
+                                np.ones(len(p), bool)))
+        out = out.join(twins[0]).join(twins[1])
+    return out, rows_kept
+
+
+def _inverse_covariance(shape: ImageShape, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2) the diagonal (a, c) and (N,) the off-diagonal b of each image's inverse covariance, from
+    its widest sigma, elongation and axis (round at the hint where those are not finite)."""
+    major = shape.sigma_major[rows]
+    el = shape.elongation[rows]
+    ok = np.isfinite(major) & np.isfinite(el) & (el > 0)
+    lam_low = np.where(ok, 1.0 / np.where(ok, major, 1.0) ** 2, 1.0)
+    lam_high = np.where(ok, lam_low * np.where(ok, el, 1.0) ** 2, 1.0)
+    cu, cv = shape.axis[rows, 0], shape.axis[rows, 1]  # the widest axis: eigenvalue lam_low
+    a = lam_low * cu * cu + lam_high * cv * cv
+    c = lam_low * cv * cv + lam_high * cu * cu
+    b = (lam_low - lam_high) * cu * cv
+    return np.stack([a, c], axis=1), b
+
+
+def _ellipse(q: np.ndarray, X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """An elliptical Gaussian (u, v, A, a, c, b: exp(-(a dx^2 + 2 b dx dy + c dy^2) / 2)) at X, Y and its
+    Jacobian (N, P, 6)."""
+    ex, ey = X - q[:, 0:1], Y - q[:, 1:2]
+    a, c, b = q[:, 3:4], q[:, 4:5], q[:, 5:6]
+    proper = (a > 0) & (c > 0) & (a * c > b * b)  # else NaN: a trial step outside the ellipses, refused
+    g = np.where(proper, np.exp(-0.5 * np.maximum(a * ex * ex + 2.0 * b * ex * ey + c * ey * ey, 0.0)), np.nan)
+    m = q[:, 2:3] * g
+    J = np.stack([m * (a * ex + b * ey), m * (b * ex + c * ey), g, -0.5 * m * ex * ex, -0.5 * m * ey * ey,
+                  -m * ex * ey], axis=2)
+    return m, J
+
+
+def _pair(q: np.ndarray, X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two round Gaussians (u1, v1, u2, v2, A1, A2, sigma) at X, Y and their Jacobian (N, P, 7)."""
+    s2 = q[:, 6:7] ** 2
+    ex1, ey1 = X - q[:, 0:1], Y - q[:, 1:2]
+    ex2, ey2 = X - q[:, 2:3], Y - q[:, 3:4]
+    g1 = np.exp(-(ex1 ** 2 + ey1 ** 2) / (2 * s2))
+    g2 = np.exp(-(ex2 ** 2 + ey2 ** 2) / (2 * s2))
+    m1, m2 = q[:, 4:5] * g1, q[:, 5:6] * g2
+    J = np.stack([m1 * ex1 / s2, m1 * ey1 / s2, m2 * ex2 / s2, m2 * ey2 / s2, g1, g2,
+                  (m1 * (ex1 ** 2 + ey1 ** 2) + m2 * (ex2 ** 2 + ey2 ** 2)) / (s2 * q[:, 6:7])], axis=2)
+    return m1 + m2, J
+
+
+def _levenberg_marquardt(p: np.ndarray, X: np.ndarray, Y: np.ndarray, data: np.ndarray, model
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Fit ``model(params, X, Y) -> (values, Jacobian)`` to ``data`` (N, P) by Levenberg-Marquardt, batched
+    over N (a fit leaves the batch once its cost stops falling). Returns the parameters and each fit's sum
+    of squared residuals."""
+    k = p.shape[1]
+    p = p.copy()
+    lam = np.full(len(p), 1e-2)
+    eye = np.eye(k)
+
+    def evaluate(q: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        with np.errstate(over="ignore", invalid="ignore"):
+            m, J = model(q, X[rows], Y[rows])
+        r = data[rows] - m
+        return r, J, np.where(np.isfinite(r).all(axis=1), (r * r).sum(axis=1), np.inf)
+
+    active = np.arange(len(p))
+    r, J, cost = evaluate(p, active)
+    for _ in range(FIT_ITERATIONS):
+        if not len(active):
+            break
+        Ja, ra = J[active], r[active]
+        Jt = Ja.transpose(0, 2, 1)
+        JtJ = Jt @ Ja
+        damped = JtJ + lam[active, None, None] * (eye * np.diagonal(JtJ, axis1=1, axis2=2)[:, None, :] + 1e-9 * eye)
+        ok = np.isfinite(damped).all(axis=(1, 2))
+        step = np.zeros((len(active), k))
+        step[ok] = np.linalg.solve(damped[ok], (Jt[ok] @ ra[ok][:, :, None]))[:, :, 0]
+        trial = p[active] + step
+        r_t, J_t, cost_t = evaluate(trial, active)
+        better = cost_t < cost[active]
+        rows = active[better]
+        settled = np.zeros(len(active), bool)
+        settled[better] = cost[rows] - cost_t[better] <= 1e-6 * cost[rows]
+        p[rows], r[rows], J[rows], cost[rows] = trial[better], r_t[better], J_t[better], cost_t[better]
+        lam[active] = np.clip(np.where(better, lam[active] * 0.3, lam[active] * 10.0), 1e-9, 1e9)
+        active = active[~settled & (lam[active] < 1e8)]
+    return p, cost
+
+
+def _own_pixels(res: np.ndarray, model: np.ndarray | None, s: _State, dy: np.ndarray, dx: np.ndarray) -> np.ndarray:
+    """(N, len(dy)) the residual at each particle's pixels (y0 + dy, x0 + dx), clamped to the frame,
+    minus the other particles' Gaussians (the whole model minus its own)."""
+    h, w = res.shape
+    Y = np.clip(s.y0[:, None] + dy, 0, h - 1)
+    X = np.clip(s.x0[:, None] + dx, 0, w - 1)
+    out = res[Y, X].astype(float)
+    if model is not None:
+        out -= model[Y, X] - _gaussian(s.A, s.u, s.v, s.su, s.sv, X, Y)
+    return out
+
+
+def _render(h: int, w: int, s: _State, r: int) -> np.ndarray:
+    """The sum of the particles' Gaussians (h, w) over a (2 r + 1)^2 window each (separable)."""
+    off = np.arange(-r, r + 1)
+    xs = np.rint(s.u).astype(int)[:, None] + off  # (N, 2r+1)
+    ys = np.rint(s.v).astype(int)[:, None] + off
+    gx = np.exp(-((xs - s.u[:, None]) ** 2) / (2.0 * s.su[:, None] ** 2))
+    gy = s.A[:, None] * np.exp(-((ys - s.v[:, None]) ** 2) / (2.0 * s.sv[:, None] ** 2))
+    vals = gy[:, :, None] * gx[:, None, :]
+    flat = ys[:, :, None] * w + xs[:, None, :]
+    inside = ((xs >= 0) & (xs < w))[:, None, :] & ((ys >= 0) & (ys < h))[:, :, None]
+    return np.bincount(flat[inside], weights=vals[inside], minlength=h * w).reshape(h, w)
+
+
+def _on_ridge(res: np.ndarray, noise: np.ndarray, s: _State, sigma: float, axis: np.ndarray) -> np.ndarray:
+    """(N,) True where an image lies on a ridge (a streak, a blob's rim): along its widest axis (``axis``,
+    (N, 2)) or one of u, v and the two diagonals, the residual (other candidates kept: a streak is a chain
+    of them) stays above RIDGE_LEVEL of its peak on both sides at r and half that at 2 r
+    (r = RIDGE_RADIUS_SIGMAS sigmas, nearest pixels), two noise sigmas allowed."""
+    r = max(2, int(math.ceil(RIDGE_RADIUS_SIGMAS * sigma)))
+    c = 1.0 / math.sqrt(2.0)
+    units = np.array([[1.0, 0.0], [0.0, 1.0], [c, c], [c, -c]])  # (u, v) directions
+    directions = np.concatenate([np.broadcast_to(units, (len(s.u), 4, 2)), axis[:, None, :]], axis=1)  # (N, 5, 2)
+    h, w = res.shape
+    levels = []
+    for distance, level in ((r, RIDGE_LEVEL), (2 * r, 0.5 * RIDGE_LEVEL)):
+        sides = []
+        for sign in (-1.0, 1.0):
+            X = np.clip(np.rint(s.u[:, None] + sign * distance * directions[:, :, 0]).astype(int), 0, w - 1)
+            Y = np.clip(np.rint(s.v[:, None] + sign * distance * directions[:, :, 1]).astype(int), 0, h - 1)
+            sides.append(res[Y, X])
+        sure = np.minimum(*sides) - SUPPORT_SIGMAS * noise[s.y0, s.x0][:, None]
+        levels.append(sure >= level * np.maximum(s.A, MIN_SIGNAL)[:, None])
+    return (levels[0] & levels[1]).any(axis=1)
+
+
+def image_shape(own: np.ndarray, noise: np.ndarray) -> ImageShape:
+    """The Gaussian shape of particle images from their own 3 x 3 pixels ``own`` (N, 9), row-major around
+    the peak pixel, and the noise there (N,): the Hessian of the log intensities by weighted least squares
+    (a quadratic in the pixel offsets; weights: each log's inverse variance, (I / noise)^2 with a
+    MODEL_NOISE relative floor for shot noise and the profile's departure from a Gaussian). Exact for a
+    Gaussian of any orientation, wherever its centre lies in the peak pixel. Two equal round images of
+    sigma s, 2 a apart, look like one with log curvatures 1 / s^2 across and 1 / s^2 - a^2 / s^4 along:
+    ``half_split`` is that a."""
+    n = len(own)
+    noise = np.maximum(np.asarray(noise, float), 1e-9)[:, None]
+    I = np.maximum(own, 0.5 * noise)
+    weight = 1.0 / ((noise / I) ** 2 + MODEL_NOISE ** 2)
+    dy, dx = (a.astype(float) for a in _offsets(1))
+    design = np.stack([np.ones(9), dx, dy, 0.5 * dx * dx, dx * dy, 0.5 * dy * dy], axis=1)  # (9, 6)
+    normal = (weight @ (design[:, :, None] * design[:, None, :]).reshape(9, 36)).reshape(n, 6, 6)
+    rhs = (weight * np.log(I)) @ design
+    # positive definite (nine pixels, positive weights, six parameters): the parameters and the
+    # covariance of the Hessian's three in one solve
+    unit = np.zeros((n, 6, 3))
+    unit[:, 3, 0] = unit[:, 4, 1] = unit[:, 5, 2] = 1.0
+    solved = np.linalg.solve(normal, np.concatenate([rhs[:, :, None], unit], axis=2))
+    h_uu, h_uv, h_vv = solved[:, 3, 0], solved[:, 4, 0], solved[:, 5, 0]
+    c3 = solved[:, 3:, 1:]
+    m = -0.5 * (h_uu + h_vv)  # the eigenvalues of -H: m -/+ d
+    q = 0.5 * (h_uu - h_vv)
+    d = np.hypot(q, h_uv)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gd = np.stack([q / (2 * d), h_uv / d, -q / (2 * d)], axis=1)  # d(d) / d(h_uu, h_uv, h_vv)
+        gd = np.where((d > 0)[:, None], gd, np.array([0.5, 1.0, 0.5]) / math.sqrt(1.5))
+        gl = np.stack([-0.5 - gd[:, 0], -gd[:, 1], -0.5 - gd[:, 2]], axis=1)  # d(m - d)
+        sd_d = np.sqrt(np.einsum("ni,nij,nj->n", gd, c3, gd))
+        sd_low = np.sqrt(np.einsum("ni,nij,nj->n", gl, c3, gl))
+        low, high = m - d, m + d  # the smallest and largest curvature of -log I
+        peak = (low > 0) & np.isfinite(m)
+        sigma_major = np.where(peak, 1.0 / np.sqrt(low), np.inf)
+        elongation = np.where(peak, np.sqrt(high / low), np.inf)
+        low_sure = low + 2.0 * sd_low
+        sigma_sure = np.where(low_sure > 0, 1.0 / np.sqrt(low_sure), np.inf)
+        d_sure = np.maximum(d - 2.0 * sd_d, 0.0)
+        el_sure = np.where(m > d_sure, np.sqrt((m + d_sure) / (m - d_sure)), np.inf)
+        half_split = np.where(high > 0, np.sqrt(np.maximum(2.0 * d, 0.0)) / high, 0.0)
+        # the widest axis: the eigenvector of -H for its smallest eigenvalue, at angle atan2(.) / 2 + 90 deg
+        angle = 0.5 * np.arctan2(-2.0 * h_uv, -(h_uu - h_vv)) + 0.5 * math.pi
+    bad = ~np.isfinite(m)
+    inf = np.full(n, np.inf)
+    return ImageShape(sigma_major=np.where(bad, inf, sigma_major), elongation=np.where(bad, inf, elongation),
+                      sigma_major_sure=np.where(bad, inf, sigma_sure), elongation_sure=np.where(bad, inf, el_sure),
+                      axis=np.stack([np.cos(angle), np.sin(angle)], axis=1), half_split=np.nan_to_num(half_split))
+
+
+def _single(fit: _Fit, sigma: float, max_width_ratio: float, max_elongation: float) -> np.ndarray:
+    """(N,) False where a blob is not one particle image (step 6): longer than wide by more than
+    ``max_elongation`` beyond the noise (two images merged into one maximum that would not split), wider
+    than ``max_width_ratio`` times the hint's sigma, or on a ridge. A saturated (flat-topped) image is kept."""
+    eff = math.sqrt(sigma * sigma + 1.0 / 12.0)  # a pixel-integrated image of the hint's sigma
+    shape = fit.shape
+    round_enough = (shape.elongation_sure <= max_elongation) | fit.fixed | fit.saturated
+    small_enough = (shape.sigma_major_sure <= max_width_ratio * eff) | fit.saturated
+    not_hot = shape.sigma_major >= HOT_SIGMA_PX  # sharper than any optical image along every axis: hot pixels
+    return round_enough & small_enough & not_hot & ~fit.ridge
 
 
 def read_image(path: Path) -> np.ndarray:

@@ -58,3 +58,62 @@ def score_frame(xyz: np.ndarray, rows: np.ndarray, cameras: list[str], particle_
     rms = float(np.sqrt(np.mean(err ** 2))) if len(err) else float("nan")
     return ParticleScore(found=found, seen=seen, reconstructed=len(rows), ghosts=int((~correct).sum()),
                          rms_error_mm=rms)
+
+
+@dataclass(frozen=True)
+class ImageScore:
+    """Particle images found in one or more frames against the true image centres."""
+
+    true_images: int
+    detections: int
+    found: int  # true images with their own detection within ``tolerance_px`` (one detection each)
+    ghosts: int  # detections with no true image within ``tolerance_px``
+    ghosts_1px: int  # detections with no true image within 1 px
+    rms_error_px: float  # over the found ones
+    tolerance_px: float
+
+    @property
+    def recall(self) -> float:
+        return self.found / self.true_images if self.true_images else 0.0
+
+    @property
+    def ghost_fraction(self) -> float:
+        return self.ghosts / self.detections if self.detections else 0.0
+
+    @property
+    def ghost_fraction_1px(self) -> float:
+        return self.ghosts_1px / self.detections if self.detections else 0.0
+
+    def __add__(self, other: "ImageScore") -> "ImageScore":
+        n1, n2 = self.found, other.found
+        sq = (self.rms_error_px ** 2 * n1 if n1 else 0.0) + (other.rms_error_px ** 2 * n2 if n2 else 0.0)
+        return ImageScore(self.true_images + other.true_images, self.detections + other.detections, n1 + n2,
+                          self.ghosts + other.ghosts, self.ghosts_1px + other.ghosts_1px,
+                          float(np.sqrt(sq / (n1 + n2))) if n1 + n2 else float("nan"), self.tolerance_px)
+
+
+def score_image(found_uv: np.ndarray, true_uv: np.ndarray, tolerance_px: float = 0.5) -> ImageScore:
+    """Detections (N, 2) against true image centres (M, 2), one to one: the closest pairs within
+    ``tolerance_px`` first (a detection between two true images counts for one of them at most)."""
+    from scipy.spatial import cKDTree
+
+    found_uv = np.asarray(found_uv, float).reshape(-1, 2)
+    true_uv = np.asarray(true_uv, float).reshape(-1, 2)
+    n, m = len(found_uv), len(true_uv)
+    if n == 0 or m == 0:
+        return ImageScore(m, n, 0, n, n, float("nan"), tolerance_px)
+    tree = cKDTree(true_uv)
+    pairs = tree.query_ball_point(found_uv, r=tolerance_px)
+    det = np.repeat(np.arange(n), [len(p) for p in pairs])
+    tru = np.fromiter((t for p in pairs for t in p), np.int64, len(det))
+    dist = np.linalg.norm(found_uv[det] - true_uv[tru], axis=1)
+    used_d, used_t = np.zeros(n, bool), np.zeros(m, bool)
+    err = []
+    for k in np.argsort(dist, kind="stable"):
+        if not used_d[det[k]] and not used_t[tru[k]]:
+            used_d[det[k]] = used_t[tru[k]] = True
+            err.append(dist[k])
+    nearest = tree.query(found_uv)[0]
+    rms = float(np.sqrt(np.mean(np.square(err)))) if err else float("nan")
+    return ImageScore(m, n, len(err), int((nearest > tolerance_px).sum()), int((nearest > 1.0).sum()), rms,
+                      tolerance_px)

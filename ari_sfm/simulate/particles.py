@@ -9,7 +9,8 @@ writes it in the data contract's form (DATASET_FORMAT.md, 1.2)::
 
     OUT/calibration/   rig.yaml + observations.json: the target calibration of rig A
     OUT/experiment/    rig.yaml (interface, cameras, particles:), particles.parquet,
-                       images/<camera>/<frame:05d>.png (Gaussian particle images, a few frames)
+                       images/<camera>/<frame:05d>.png (Gaussian particle images, a few frames;
+                       ``look="tank"``: as a real tank looks, ``bit_depth=16``: .tif)
     OUT/truth/         rig_a.json, rig_b.json (calibration.json form, model truth),
                        particles.parquet (frame, particle, x, y, z),
                        detections.parquet (row-aligned with experiment/particles.parquet:
@@ -44,11 +45,13 @@ from ari_sfm.simulate.scenarios import (
     _tilted,
     _window_in_world,
 )
+from ari_sfm.simulate.particle_images import TankLook, render_particle_image, render_tank_frame
 from ari_sfm.simulate.scene import Geometry, check_geometry, observe, project, to_dataset, truth_dict
 
 log = logging.getLogger(__name__)
 
 IMAGE_MARGIN_PX = 5.0  # a particle image closer than this to the border is not detected
+LOOKS = ("plain", "tank")  # how the particle images are rendered (ParticleSimOptions.look)
 
 
 @dataclass(frozen=True)
@@ -69,6 +72,8 @@ class ParticleSimOptions:
     calibration_frames: int = 3  # views of the 3D calibration body
     calibration_sigma_px: float = 0.05  # corner noise of the calibration body
     diameter_px: float = 3.0  # particle image diameter (e^-2) for rendering
+    look: str = "plain"  # rendered images: "plain" (flat background, 8-bit noise) or "tank" (TankLook: a real tank's)
+    bit_depth: int = 8  # of the rendered images: 8 (PNG) or 16 (TIFF)
     seed: int = 0
 
 
@@ -107,6 +112,10 @@ def _check(options: ParticleSimOptions) -> None:
         raise ValueError("particles_per_frame and num_frames must be >= 1")
     if not (o.sigma_px >= 0 and o.drift_deg >= 0 and o.drift_mm >= 0 and o.diameter_px > 0):
         raise ValueError("sigma_px, drift_deg, drift_mm must be >= 0 and diameter_px > 0")
+    if o.look not in LOOKS:
+        raise ValueError(f"look must be one of {', '.join(LOOKS)} (got {o.look!r})")
+    if o.bit_depth not in (8, 16):
+        raise ValueError(f"bit_depth must be 8 or 16 (got {o.bit_depth})")
     bad = [c for c in o.drift_cameras if not 0 <= c < o.num_cameras]
     if bad:
         raise ValueError(f"drift_cameras {bad} not among the {o.num_cameras} cameras")
@@ -212,47 +221,38 @@ def simulate_particle_experiment(options: ParticleSimOptions = ParticleSimOption
 # --------------------------------------------------------------------------- images
 
 
-def render_particle_image(uv: np.ndarray, image_size: tuple[int, int], diameter_px: float,
-                          peak: np.ndarray | float = 180.0, background: float = 10.0, noise_sigma: float = 2.0,
-                          rng: np.random.Generator | None = None) -> np.ndarray:
-    """An 8-bit image of Gaussian particle images (e^-2 diameter ``diameter_px``, pixel-integrated)
-    centred at ``uv`` (N, 2), OpenCV pixel convention, plus Gaussian camera noise."""
-    from scipy.special import erf
-
-    w, h = image_size
-    img = np.full((h, w), float(background))
-    sigma = diameter_px / 4.0
-    r = int(math.ceil(3 * sigma)) + 1
-    uv = np.asarray(uv, float).reshape(-1, 2)
-    peak = np.broadcast_to(np.asarray(peak, float), (len(uv),))
-    offs = np.arange(-r, r + 1)
-    cu, cv = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
-    s2 = math.sqrt(2.0) * sigma
-
-    def integrated(centres: np.ndarray, pix: np.ndarray) -> np.ndarray:
-        return 0.5 * (erf((pix + 0.5 - centres[:, None]) / s2) - erf((pix - 0.5 - centres[:, None]) / s2))
-
-    xs = cu[:, None] + offs  # (N, 2r+1)
-    ys = cv[:, None] + offs
-    gx = integrated(uv[:, 0], xs)
-    gy = integrated(uv[:, 1], ys)
-    norm = 2.0 * math.pi * sigma * sigma  # peak of the integrated profile ~ 1 / norm per unit flux
-    vals = peak[:, None, None] * norm * gy[:, :, None] * gx[:, None, :]
-    X = np.broadcast_to(xs[:, None, :], vals.shape)
-    Y = np.broadcast_to(ys[:, :, None], vals.shape)
-    ok = (X >= 0) & (X < w) & (Y >= 0) & (Y < h)
-    np.add.at(img, (Y[ok], X[ok]), vals[ok])
-    if noise_sigma > 0:
-        img += (rng or np.random.default_rng(0)).normal(0.0, noise_sigma, img.shape)
-    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
-
-
 # --------------------------------------------------------------------------- writing
 
 
-def image_pattern(camera: str) -> str:
-    """Where the rendered images of a camera live in the experiment folder (rig.yaml pattern)."""
-    return f"images/{camera}/{{frame:05d}}.png"
+def image_pattern(camera: str, bit_depth: int = 8) -> str:
+    """Where the rendered images of a camera live in the experiment folder (rig.yaml pattern):
+    8-bit PNG, 16-bit TIFF."""
+    return f"images/{camera}/{{frame:05d}}.{'png' if bit_depth == 8 else 'tif'}"
+
+
+def render_frame_images(exp: ParticleExperiment, frame: int, peaks: np.ndarray, rng: np.random.Generator
+                        ) -> dict[str, np.ndarray]:
+    """The images (camera -> 8- or 16-bit array) of one frame, in the experiment's look; ``peaks``: each
+    particle's peak above the background (8-bit grey levels; the plain look's), rows of its positions."""
+    o = exp.options
+    out = {}
+    if o.look == "tank":
+        look = TankLook(bit_depth=o.bit_depth)
+        lo, hi = look.peak  # the tank's particles: brightness log-uniform, sizes spread (per particle)
+        tank_rng = _rng(o.seed, 6 + frame)
+        n = len(exp.positions[frame])
+        tank_peak = np.exp(tank_rng.uniform(np.log(lo), np.log(hi), n))
+        diameter = o.diameter_px * tank_rng.uniform(1.0 - look.diameter_spread, 1.0 + look.diameter_spread, n)
+    for cam in exp.rig_b.cameras:
+        uv = exp.exact_pixels[frame][cam.name]
+        ids = exp.particle_ids[frame][cam.name]
+        if o.look == "tank":
+            out[cam.name] = render_tank_frame(uv, cam.image_size, o.diameter_px, look, rng, peak=tank_peak[ids],
+                                              diameter_px_each=diameter[ids]).image
+            continue
+        img = render_particle_image(uv, cam.image_size, o.diameter_px, peaks[ids], rng=rng)
+        out[cam.name] = img if o.bit_depth == 8 else img.astype(np.uint16) * np.uint16(257)
+    return out
 
 
 def write_particle_experiment(exp: ParticleExperiment, out_dir: str | Path, render_frames: int = 2) -> dict[str, Path]:
@@ -303,14 +303,12 @@ def write_particle_experiment(exp: ParticleExperiment, out_dir: str | Path, rend
     render_frames = max(0, min(int(render_frames), len(exp.positions)))
     img_rng = _rng(o.seed, 5)
     for f in range(render_frames):
-        for cam in exp.rig_b.cameras:
-            uv = exp.exact_pixels[f][cam.name]
-            img = render_particle_image(uv, cam.image_size, o.diameter_px, peaks[f][exp.particle_ids[f][cam.name]],
-                                        rng=img_rng)
-            ok, png = cv2.imencode(".png", img)
+        for name, img in render_frame_images(exp, f, peaks[f], img_rng).items():
+            path = image_pattern(name, o.bit_depth).format(frame=f)
+            ok, data = cv2.imencode(Path(path).suffix, img)
             if not ok:
-                raise OSError(f"could not encode the image of {cam.name} frame {f}")
-            write_bytes_atomic(exp_dir / image_pattern(cam.name).format(frame=f), png.tobytes())
+                raise OSError(f"could not encode the image of {name} frame {f}")
+            write_bytes_atomic(exp_dir / path, data.tobytes())
 
     rig = {
         "format": "ari-sfm/1",
@@ -318,7 +316,7 @@ def write_particle_experiment(exp: ParticleExperiment, out_dir: str | Path, rend
         "cameras": {name: camera_to_json(spec) for name, spec in ds.cameras.items()},
         "particles": {
             "detections": "particles.parquet",
-            **({"images": {c: image_pattern(c) for c in exp.cameras}, "frames": [0, render_frames - 1]}
+            **({"images": {c: image_pattern(c, o.bit_depth) for c in exp.cameras}, "frames": [0, render_frames - 1]}
                if render_frames else {}),
             "diameter_px": float(o.diameter_px),
             "volume_mm": {"frame": exp.cameras[0], "min": exp.volume_min_mm.tolist(),

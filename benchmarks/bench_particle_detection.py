@@ -1,0 +1,204 @@
+"""Particle image detection: ari-sfm's detector, a plain reference detector and OpenPTV's, on the same frames.
+
+    python benchmarks/bench_particle_detection.py [--size 1024 1024] [--frames 2] [--ppp 0.005 0.01 0.02]
+                                                  [--looks plain tank tank16 faint hot] [--diameter 3] [--seed 0]
+
+Renders frames of random particle images at each density (particles per pixel,
+uniform over the frame, 5 px from the border) in each look
+(ari_sfm.simulate.particle_images):
+
+- ``plain``: flat background 10, Gaussian noise 2, peaks 120-220, 8-bit
+  (``simulate particles``' images);
+- ``tank``: a real tank's look (``TankLook()``): uneven background 6-40, a
+  reflection streak, three big bright blobs (saturated cores), read noise 2 and
+  shot noise, peaks 12-220 (log-uniform), diameters +-25 %, 8-bit;
+- ``tank16``: the same scene, 16-bit;
+- ``faint``: faint particles on a dark noisy background with a few bright
+  blobs: background 2-6, read noise 1.5, peaks 6-30, four saturated blobs, no
+  streak, 16-bit;
+- ``hot``: ``tank`` with 2 % of the pixels saturated hot pixels.
+
+Detectors, on the same frames:
+
+- ari-sfm: ``detect_particles_in_image`` (default options, ``diameter_px`` the hint);
+- reference: a plain detector written here (global median background and MAD
+  noise, local maxima of the image smoothed at sigma / 2 above 5 noise sigmas,
+  a three-point Gaussian fit at each maximum, so overlapping images with their
+  own maxima are split);
+- OpenPTV: liboptv's ``target_recognition`` through ``optv`` after its
+  high-pass (``preprocess_image(img, 0, cpar, 25)``, what pyptv runs with
+  ``hp_flag`` set), with test_cavity's ``targ_rec.par`` (grey threshold 9,
+  4-500 pixels, 2-100 px wide and high, grey sum > 150, discontinuity 100);
+  16-bit frames are given to it as 8-bit (divided by 257, as a user converts
+  them); its centres moved by -0.5 px (OpenPTV's pixel origin is the top-left
+  pixel's corner).
+
+A second OpenPTV row (``OpenPTV-3σ``) sets its grey threshold at 3 noise
+sigmas of the frame (8-bit levels, >= 2), >= 3 pixels, no grey-sum floor: what
+a user would set for faint particles.
+
+Prints, per look and density: the true images not under a blob or a streak's
+core (the others count for no detector), the share of them with another true
+image within one diameter (overlap), and per detector the recall (true images
+with their own detection within 0.5 px, one to one), ghosts (detections with
+no true image within 0.5 px; within 1 px), the RMS centre error of the found
+ones, and images per second per core (CPU time, OpenCV on one thread; the
+detectors run one after the other on each frame, best of ``--repeat``).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from dataclasses import replace
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from ari_sfm.particles.detect import DetectOptions, detect_particles_in_image  # noqa: E402
+from ari_sfm.particles.truth import ImageScore, score_image  # noqa: E402
+from ari_sfm.simulate.particle_images import TankLook, render_particle_image, render_tank_frame  # noqa: E402
+
+MARGIN_PX = 5.0
+TOLERANCE_PX = 0.5
+# test_cavity's parameters/targ_rec.par (OpenPTV's test experiment): thresholds per camera, discontinuity,
+# pixel count min/max, x size min/max, y size min/max, minimum grey sum, cross size
+OPENPTV_TARG_REC = dict(discont=100, gvthresh=[9, 9, 9, 11], pixel_count_bounds=(4, 500), xsize_bounds=(2, 100),
+                        ysize_bounds=(2, 100), min_sum_grey=150, cross_size=2)
+OPENPTV_HIGHPASS = 25  # pyptv's highpass filter size
+
+LOOKS = {
+    "tank": TankLook(),
+    "tank16": TankLook(bit_depth=16),
+    "faint": TankLook(bit_depth=16, background=(2.0, 6.0), read_noise=1.5, shot_gain=0.02, peak=(6.0, 30.0),
+                      streaks=0, blobs=4, blob_radius_px=(6.0, 20.0), blob_peak=2000.0),
+    "hot": TankLook(hot_pixels=0.02),
+}
+
+
+def render(look: str, uv: np.ndarray, size: tuple[int, int], diameter: float, rng: np.random.Generator
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """The frame and which of its particle images are not under a blob or a streak's core."""
+    if look == "plain":
+        return render_particle_image(uv, size, diameter, rng.uniform(120.0, 220.0, len(uv)), rng=rng), \
+            np.ones(len(uv), bool)
+    frame = render_tank_frame(uv, size, diameter, LOOKS[look], rng)
+    return frame.image, ~frame.covered
+
+
+def reference_detector(image: np.ndarray, diameter_px: float, threshold_sigma: float = 5.0) -> np.ndarray:
+    """Local maxima above a global threshold and a three-point Gaussian fit at each (the plain detector)."""
+    import cv2
+
+    img = np.asarray(image, np.float32)
+    background = float(np.median(img))
+    noise = 1.4826 * float(np.median(np.abs(img - background))) or 1.0
+    sig = img - background
+    smooth = cv2.GaussianBlur(sig, (0, 0), max(diameter_px / 8.0, 0.3))
+    local = cv2.dilate(smooth, np.ones((3, 3), np.uint8))
+    peak = (smooth >= local) & (smooth >= threshold_sigma * noise)
+    peak[0, :] = peak[-1, :] = peak[:, 0] = peak[:, -1] = False
+    ys, xs = np.nonzero(peak)
+
+    def log_at(dy: int, dx: int) -> np.ndarray:
+        return np.log(np.maximum(sig[ys + dy, xs + dx].astype(float), 1e-3))
+
+    def offset(lm: np.ndarray, l0: np.ndarray, lp: np.ndarray) -> np.ndarray:
+        den = 2.0 * (lm - 2.0 * l0 + lp)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            off = (lm - lp) / den
+        return np.where(np.isfinite(off) & (den < 0), np.clip(off, -0.5, 0.5), 0.0)
+
+    c = log_at(0, 0)
+    return np.stack([xs + offset(log_at(0, -1), c, log_at(0, 1)), ys + offset(log_at(-1, 0), c, log_at(1, 0))], 1)
+
+
+def openptv_detector(image: np.ndarray, targ_rec: dict = OPENPTV_TARG_REC) -> np.ndarray:
+    """OpenPTV's high-pass and target_recognition (liboptv), centres in the OpenCV convention."""
+    from optv.image_processing import preprocess_image
+    from optv.parameters import ControlParams, TargetParams
+    from optv.segmentation import target_recognition
+
+    img = image if image.dtype == np.uint8 else np.rint(image / 257.0).astype(np.uint8)
+    h, w = img.shape
+    cpar = ControlParams(1, image_size=(w, h), pixel_size=(0.01, 0.01))
+    cpar.set_hp_flag(True)
+    tpar = TargetParams(**targ_rec)
+    targets = target_recognition(preprocess_image(np.ascontiguousarray(img), 0, cpar, OPENPTV_HIGHPASS), tpar, 0, cpar)
+    return np.array([t.pos() for t in targets], float).reshape(-1, 2) - 0.5
+
+
+def openptv_for_the_noise(image: np.ndarray, noise: float) -> np.ndarray:
+    """OpenPTV with its grey threshold at 3 noise sigmas (8-bit levels, >= 2), >= 3 pixels, >= 2 px wide and
+    high, no grey-sum floor: what a user would set for faint particles."""
+    params = dict(OPENPTV_TARG_REC, gvthresh=[max(2, int(round(3.0 * noise)))] * 4, pixel_count_bounds=(3, 500),
+                  min_sum_grey=0)
+    return openptv_detector(image, params)
+
+
+def overlap_fraction(uv: np.ndarray, within_px: float) -> float:
+    """The share of the true images with another true image within ``within_px``."""
+    from scipy.spatial import cKDTree
+
+    if len(uv) < 2:
+        return 0.0
+    d = cKDTree(uv).query(uv, k=2)[0][:, 1]
+    return float((d < within_px).mean())
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--size", type=int, nargs=2, default=(1024, 1024), metavar=("W", "H"))
+    ap.add_argument("--frames", type=int, default=2, help="frames per look and density")
+    ap.add_argument("--ppp", type=float, nargs="+", default=(0.005, 0.01, 0.02))
+    ap.add_argument("--looks", nargs="+", default=("plain", "tank", "tank16", "faint", "hot"),
+                    choices=("plain", *LOOKS))
+    ap.add_argument("--diameter", type=float, default=3.0, help="particle image e^-2 diameter (px)")
+    ap.add_argument("--repeat", type=int, default=2, help="timing runs per frame (the best is kept)")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    import cv2
+
+    cv2.setNumThreads(1)
+    w, h = args.size
+    options = DetectOptions(diameter_px=args.diameter)
+    detectors = {"ari-sfm": lambda img: detect_particles_in_image(img, options)[0],
+                 "reference": lambda img: reference_detector(img, args.diameter),
+                 "OpenPTV": openptv_detector,
+                 "OpenPTV-3σ": lambda img: openptv_for_the_noise(img, noise_8bit)}
+    print(f"{w} x {h} px frames, {args.frames} per row, particle images {args.diameter:g} px (e^-2 diameter), "
+          f"recall and ghosts within {TOLERANCE_PX} px\n")
+    print(f"{'look':7s} {'ppp':>6s} {'images':>7s} {'overlap':>7s}  {'detector':11s} {'recall':>7s} "
+          f"{'ghosts':>7s} {'(1 px)':>7s} {'RMS px':>7s} {'images/s':>9s}")
+    for look in args.looks:
+        for ppp in args.ppp:
+            rng = np.random.default_rng([args.seed, int(ppp * 1e6), len(look)])
+            n = int(round(ppp * w * h))
+            scores: dict[str, ImageScore | None] = dict.fromkeys(detectors)
+            best = {name: [] for name in detectors}
+            images = overlap = 0
+            for _ in range(args.frames):
+                uv = rng.uniform([MARGIN_PX, MARGIN_PX], [w - 1 - MARGIN_PX, h - 1 - MARGIN_PX], (n, 2))
+                frame, visible = render(look, uv, (w, h), args.diameter, rng)
+                noise_8bit = 2.0 if look == "plain" else LOOKS[look].read_noise
+                overlap += overlap_fraction(uv, args.diameter) * len(uv[visible])
+                uv = uv[visible]
+                images += len(uv)
+                for name, detect in detectors.items():
+                    t_best = np.inf
+                    for _ in range(args.repeat):
+                        t0 = time.process_time()
+                        found = detect(frame)
+                        t_best = min(t_best, time.process_time() - t0)
+                    best[name].append(t_best)
+                    s = score_image(found, uv, TOLERANCE_PX)
+                    scores[name] = s if scores[name] is None else scores[name] + s
+            for k, (name, s) in enumerate(scores.items()):
+                head = f"{look:7s} {ppp:6.3f} {images:7d} {overlap / images:7.1%}" if k == 0 else " " * 30
+                print(f"{head}  {name:11s} {s.recall:7.1%} {s.ghost_fraction:7.1%} {s.ghost_fraction_1px:7.1%} "
+                      f"{s.rms_error_px:7.3f} {len(best[name]) / sum(best[name]):9.1f}")
+
+
+if __name__ == "__main__":
+    main()
