@@ -120,7 +120,8 @@ def test_the_command_line_options_are_the_dataclass_fields(command, tmp_path, mo
     cmd = main.commands[command]
     params = {p.name: p for p in cmd.params}
     offered = [f for f in fields(CalibrationOptions) if "cli" in f.metadata]
-    assert {f.name for f in offered} == {"distortion", "huber_px", "exclude_outliers", "fix_intrinsics", "backend"}
+    assert {f.name for f in offered} == {"distortion", "huber_px", "exclude_outliers", "fix_intrinsics", "backend",
+                                         "principal_point"}
     for f in offered:
         assert params[f.name].default == f.default and f.metadata["cli"].split("/")[0] in params[f.name].opts
     seen = []
