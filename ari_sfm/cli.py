@@ -749,10 +749,14 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
 @click.option("--peak-radius-px", type=float, default=0.5, show_default=True,
               help="A match is on its cell's disparity peak within this distance in every camera.")
 @click.option("--max-rounds", type=int, default=6, show_default=True)
-@click.option("--refine-window", is_flag=True, help="Also estimate the window (normal; distance under water).")
-@click.option("--refine-intrinsics", is_flag=True, help="Also estimate fx fy cx cy (distortion held).")
+@click.option("--intrinsics", type=click.Choice(["prior", "held", "free"]), default="prior", show_default=True,
+              help="fx fy cx cy (and k1 when CAL has distortion): estimated with CAL's sigmas as priors, held, "
+                   "or estimated without priors.")
+@click.option("--refine-intrinsics", is_flag=True, hidden=True, help="Old name of --intrinsics free.")
+@click.option("--refine-window", is_flag=True, hidden=True,
+              help="Old option: the window's pose relative to the cameras is now always estimated.")
 @click.option("--backend", type=click.Choice(["numpy", "gtsam"]), default="numpy", show_default=True,
-              help="Bundle-adjustment solver (the same problem).")
+              help="Bundle-adjustment solver (the same problem; gtsam: at most 3000 particles per round).")
 @click.option("--depth-range", type=float, nargs=2, default=None, metavar="ZMIN ZMAX",
               help="World z range (mm) of the particles, instead of rig.yaml's particles.volume_mm.")
 @_workers_option
@@ -760,13 +764,14 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
 @user_errors
 def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: Path | None, frames: int,
                        coarse_frames: int, tolerance_px: float, max_tolerance_px: float, final_tolerance_px: float, min_cameras: int,
-                       cells: tuple[int, int, int], peak_radius_px: float, max_rounds: int, refine_window: bool, refine_intrinsics: bool,
-                       backend: str, depth_range: tuple[float, float] | None, workers: int,
-                       scheduler: str | None) -> None:
+                       cells: tuple[int, int, int], peak_radius_px: float, max_rounds: int, intrinsics: str,
+                       refine_intrinsics: bool, refine_window: bool, backend: str,
+                       depth_range: tuple[float, float] | None, workers: int, scheduler: str | None) -> None:
     """Volume self-calibration through the window: correct a drifted calibration from particle images."""
-    from .particles.selfcal import SelfCalOptions, self_calibrate_dataset
+    from .particles.selfcal import SelfCalOptions, check_not_input, self_calibrate_dataset
 
     check_output_folder(out)
+    check_not_input(out, [calibration, dataset, detections])
     check_number("--frames", frames, minimum=1)
     check_number("--coarse-frames", coarse_frames, minimum=1)
     check_number("--tolerance-px", tolerance_px, minimum=0.0, maximum=100.0, strict_minimum=True)
@@ -783,21 +788,38 @@ def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: 
     options = SelfCalOptions(tolerance_px=tolerance_px, max_tolerance_px=max_tolerance_px,
                              final_tolerance_px=final_tolerance_px, min_cameras=min_cameras,
                              cells=tuple(cells), peak_radius_px=peak_radius_px, max_rounds=max_rounds,
-                             coarse_frames=coarse_frames,
-                             refine_window=refine_window, refine_intrinsics=refine_intrinsics, backend=backend)
+                             coarse_frames=coarse_frames, intrinsics="free" if refine_intrinsics else intrinsics,
+                             backend=backend)
+    if refine_window:
+        click.echo("note: --refine-window is no longer needed: the window is held in the world and every camera "
+                   "moves, so the window's pose relative to the cameras is always estimated", err=True)
     r = self_calibrate_dataset(dataset, calibration, out, options, detections_path=detections, frames=frames,
                                depth_range_mm=None if depth_range is None else tuple(depth_range), workers=workers,
-                               scheduler=scheduler)
-    for name, d in r.report.disparity_rms_px.items():
+                               scheduler=scheduler, progress=True)
+    rep = r.report
+    for name, d in rep.disparity_rms_px.items():
+        s = rep.sigmas[name]
+        rel = "" if s.rotation_rel_deg is None else f" (relative to the first camera: sigma {s.rotation_rel_deg:.4f} deg)"
         click.echo(f"{name}: disparity RMS {d.before:.3f} px -> {d.after:.3f} px, rotated "
-                   f"{r.report.rotation_change_deg[name]:.4f} deg")
-    if not r.report.converged:
-        click.echo("warning: the disparities did not fall to a common noise level (see self_calibration.rounds in "
-                   "calibration.json): the first round's peak may have been ghosts; try more --frames or "
-                   "--coarse-frames")
-    click.echo(f"{len(r.rounds)} rounds, {r.report.particles_used} particles in {len(r.report.frames)} frames; "
-               f"scale held: {r.report.scale_how} ({r.report.scale_sum_mm:.3f} mm)")
+                   f"{rep.rotation_change_deg[name]:.4f} deg{rel}")
+    click.echo(f"{len(r.rounds)} rounds, {rep.particles_used} particles in {len(rep.frames)} frames, "
+               f"{100 * rep.matched_share:.1f} % of the particle images matched at the end, {rep.time_s:.1f} s")
+    click.echo("held: " + "; ".join(rep.held))
+    click.echo("estimated: " + "; ".join(rep.estimated))
+    for a in (rd.adjustment for rd in r.rounds if rd.adjustment is not None):
+        if a.stop == "max_iterations":
+            click.echo(f"warning: a bundle adjustment ({a.landmarks} particles) stopped at its {a.iterations}-"
+                       "iteration cap without converging", err=True)
+    for c in rep.checks:
+        if not c.passed:
+            click.echo(f"{'FAILED' if c.fatal else 'warning'}: {c.what}: {c.value:.4g} (limit {c.limit:.4g})",
+                       err=True)
+    if not rep.passed:
+        click.echo("self-calibration FAILED its checks: the start calibration cannot be trusted for these images "
+                   "or the result is wrong (written with self_calibration.passed false; see its checks)", err=True)
     click.echo(f"calibration: {out / 'calibration.json'}\ndisparity:   {out / 'disparity.json'}")
+    if not rep.passed:
+        sys.exit(QUALITY_FAILED_EXIT)
 
 
 MIN_IMAGE_SCALE = 0.05  # smaller: port_survey's 640 x 480 images become 32 x 24 px, paper_single's focal 174 px
