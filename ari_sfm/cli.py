@@ -578,10 +578,12 @@ def import_colmap_fork_cmd(model_dir: Path, out: Path, units_mm: float) -> None:
               help="particles: translation of each drifted camera after the target calibration.")
 @click.option("--drift-cameras", default="1,2,3", show_default=True,
               help="particles: indices of the drifted cameras (comma-separated; '' for none).")
+@click.option("--k1", type=float, default=0.0, show_default=True,
+              help="particles: radial lens distortion (OpenCV k1) of every camera, e.g. -0.05.")
 @user_errors
 def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_scale: float, images: bool | None,
              num_cameras: int, particles_per_frame: int, num_frames: int, render_frames: int, drift_deg: float,
-             drift_mm: float, drift_cameras: str) -> None:
+             drift_mm: float, drift_cameras: str, k1: float) -> None:
     """Write a simulated dataset (exact Snell physics) and its truth. SCENARIO: one of `ari-sfm scenarios`."""
     from .simulate import SCENARIOS, simulate as run_sim
 
@@ -590,8 +592,10 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_sca
     check_number("--seed", seed, minimum=0)
     if scenario == "particles":  # a particle experiment: rig A's target calibration, drifted rig B, particles
         _simulate_particles(out, seed, 0.1 if sigma is None else sigma, num_cameras, particles_per_frame, num_frames,
-                            render_frames, drift_deg, drift_mm, drift_cameras)
+                            render_frames, drift_deg, drift_mm, drift_cameras, k1)
         return
+    if k1:
+        raise AriSfmError("--k1", "is for the particles scenario")
     check_output_folder(out)
     check_number("--sigma", sigma, minimum=0.0, maximum=100.0)
     check_number("--image-scale", image_scale, minimum=MIN_IMAGE_SCALE, maximum=40.0)
@@ -614,7 +618,8 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_sca
 
 
 def _simulate_particles(out: Path, seed: int, sigma: float, num_cameras: int, particles_per_frame: int,
-                        num_frames: int, render_frames: int, drift_deg: float, drift_mm: float, drift_cameras: str) -> None:
+                        num_frames: int, render_frames: int, drift_deg: float, drift_mm: float, drift_cameras: str,
+                        k1: float = 0.0) -> None:
     """`simulate particles`: write OUT/calibration, OUT/experiment, OUT/truth (ari_sfm.simulate.particles)."""
     from .simulate.particles import ParticleSimOptions, simulate_particle_experiment, write_particle_experiment
 
@@ -626,6 +631,7 @@ def _simulate_particles(out: Path, seed: int, sigma: float, num_cameras: int, pa
     check_number("--render-frames", render_frames, minimum=0, maximum=num_frames)
     check_number("--drift-deg", drift_deg, minimum=0.0, maximum=10.0)
     check_number("--drift-mm", drift_mm, minimum=0.0, maximum=100.0)
+    check_number("--k1", k1, minimum=-0.5, maximum=0.5)
     try:
         drifted = tuple(int(c) for c in drift_cameras.split(",") if c.strip())
     except ValueError:
@@ -635,7 +641,7 @@ def _simulate_particles(out: Path, seed: int, sigma: float, num_cameras: int, pa
         raise AriSfmError("--drift-cameras", f"{bad} not among the cameras 0..{num_cameras - 1}")
     options = ParticleSimOptions(num_cameras=num_cameras, particles_per_frame=particles_per_frame,
                                  num_frames=num_frames, sigma_px=sigma, drift_cameras=drifted, drift_deg=drift_deg,
-                                 drift_mm=drift_mm, seed=seed)
+                                 drift_mm=drift_mm, k1=k1, seed=seed)
     paths = write_particle_experiment(simulate_particle_experiment(options), out, render_frames=render_frames)
     click.echo(f"calibration dataset (rig A): {paths['calibration']}\nexperiment (rig B):          "
                f"{paths['experiment']}\ntruth:                       {paths['truth']} (rig_a.json, rig_b.json, "

@@ -45,6 +45,9 @@ log = logging.getLogger(__name__)
 
 STIFF_SIGMA_MM = 0.01  # the gauge and scale rows' sigma (mm of mean camera motion / of the baseline sum): stiff against
 # the particles (they leave ~1 mm on the scale), not so stiff that their curvature (the log, the distances) stalls LM
+RIG_TILT_PRIOR_DEG = 0.1  # the rig's mean tilt to the window(s) (and its distance, as the same motion at the
+# particles) held at the start's by a prior this wide: refraction determines it weakly, and unheld the
+# adjustment's steps wander along it (measured: 0.5 deg steps, then 50 iterations crawling back)
 INTRINSICS_FREE = ("fx", "fy", "cx", "cy")  # estimated with the start's priors (k1 too when it has distortion)
 UNKNOWN_PRIOR_PX = 5.0  # a start without uncertainty: fx fy cx cy priors this wide (px)
 UNKNOWN_PRIOR_K1 = 0.01
@@ -119,7 +122,7 @@ def window_planes(calibration: Calibration) -> tuple[np.ndarray, np.ndarray]:
             np.array([w.plane_mm(calibration) for w in windows], dtype=float))
 
 
-def window_gauge(normals: np.ndarray, in_air: Sequence[bool]) -> np.ndarray:
+def window_gauge(normals: np.ndarray, in_air: Sequence[bool], complement: bool = False) -> np.ndarray:
     """(K, 6) orthonormal twists [omega, v] (rotation about the world origin, translation) of the rigid
     motions that keep every window's plane: omega along each normal n, v within its plane (in air also
     along n: the distance is not observed). One window under water: K = 3; two non-parallel: K = 1."""
@@ -132,7 +135,7 @@ def window_gauge(normals: np.ndarray, in_air: Sequence[bool]) -> np.ndarray:
     A = np.array(rows)
     _, s, Vt = np.linalg.svd(A)
     rank = int(np.sum(s > 1e-9 * s.max()))
-    return Vt[rank:]
+    return Vt[:rank] if complement else Vt[rank:]
 
 
 # --------------------------------------------------------------------------- camera motions
@@ -188,6 +191,8 @@ class Gauge:
     twists: np.ndarray  # (K, 6)
     length_mm: float
     scale_sum_mm: float
+    soft: np.ndarray | None = None  # (S, 6) the other rigid motions (the rig's tilt to the windows, its distance)
+    soft_sigma_mm: float = 1.0  # ... held softly: their prior's sigma
 
     @staticmethod
     def of(calibration: Calibration, in_air: Sequence[bool], length_mm: float) -> "Gauge":
@@ -195,11 +200,14 @@ class Gauge:
         R = np.array([c.cam_from_world.R for c in cams])
         centres = np.array([c.cam_from_world.inverse().t for c in cams])
         normals, _ = window_planes(calibration)
-        return Gauge(R, centres, window_gauge(normals, in_air), float(length_mm), pairwise_sum_mm(centres))
+        return Gauge(R, centres, window_gauge(normals, in_air), float(length_mm), pairwise_sum_mm(centres),
+                     window_gauge(normals, in_air, complement=True),
+                     float(length_mm) * math.radians(RIG_TILT_PRIOR_DEG))
 
-    def _motions(self) -> np.ndarray:
-        """(K, C, 6) each gauge twist's motion of every camera [rho, dC], normalised to unit norm."""
-        om, v = self.twists[:, :3], self.twists[:, 3:]
+    def _motions(self, twists: np.ndarray | None = None) -> np.ndarray:
+        """(K, C, 6) each twist's motion of every camera [rho, dC], normalised to unit norm."""
+        twists = self.twists if twists is None else twists
+        om, v = twists[:, :3], twists[:, 3:]
         m = np.concatenate([np.broadcast_to(om[:, None, :], (len(om), len(self.start_centres), 3)),
                             np.cross(om[:, None, :], self.start_centres[None]) + v[:, None, :]], axis=2)
         norm = np.sqrt(np.sum(self.length_mm ** 2 * m[..., :3] ** 2 + m[..., 3:] ** 2, axis=(1, 2)))
@@ -211,14 +219,23 @@ class Gauge:
         centres = -np.einsum("cji,cj->ci", R, t)
         rho = np.array([_log_rotation(Rc.T @ R0) for Rc, R0 in zip(R, self.start_R)])
         J_rho, J_C = motion_jacobians(state, layout)
-        m = self._motions()
         L2 = self.length_mm ** 2
-        g = np.einsum("kci,ci->k", L2 * m[..., :3], rho) + np.einsum("kci,ci->k", m[..., 3:], centres - self.start_centres)
-        J_g = np.einsum("kci,cig->kg", L2 * m[..., :3], J_rho) + np.einsum("kci,cig->kg", m[..., 3:], J_C)
+
+        def along(twists: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            m = self._motions(twists)
+            return (np.einsum("kci,ci->k", L2 * m[..., :3], rho) + np.einsum("kci,ci->k", m[..., 3:],
+                                                                              centres - self.start_centres),
+                    np.einsum("kci,cig->kg", L2 * m[..., :3], J_rho) + np.einsum("kci,cig->kg", m[..., 3:], J_C))
+
+        g, J_g = along(self.twists)
         s, ds = _pairwise_sum_gradient(centres)
         J_s = np.einsum("ci,cig->g", ds, J_C)
         e = np.append(g, s - self.scale_sum_mm) / STIFF_SIGMA_MM
-        return e, np.vstack([J_g, J_s[None]]) / STIFF_SIGMA_MM
+        J = np.vstack([J_g, J_s[None]]) / STIFF_SIGMA_MM
+        if self.soft is not None and len(self.soft):
+            g_s, J_gs = along(self.soft)
+            e, J = np.append(e, g_s / self.soft_sigma_mm), np.vstack([J, J_gs / self.soft_sigma_mm])
+        return e, J
 
 
 def pairwise_sum_mm(centres: np.ndarray) -> float:
