@@ -45,11 +45,11 @@ log = logging.getLogger(__name__)
 
 STIFF_SIGMA_MM = 0.01  # the gauge and scale rows' sigma (mm of mean camera motion / of the baseline sum): stiff against
 # the particles (they leave ~1 mm on the scale), not so stiff that their curvature (the log, the distances) stalls LM
-RIG_TILT_PRIOR_DEG = 0.1  # the rig's mean tilt to the window(s) (and its distance, as the same motion at the
+RIG_TILT_PRIOR_DEG = 0.5  # the rig's mean tilt to the window(s) (and its distance, as the same motion at the
 # particles) held at the start's by a prior this wide: refraction determines it weakly, and unheld the
 # adjustment's steps wander along it (measured: 0.5 deg steps, then 50 iterations crawling back)
 INTRINSICS_FREE = ("fx", "fy", "cx", "cy")  # estimated with the start's priors (k1 too when it has distortion)
-UNKNOWN_PRIOR_PX = 5.0  # a start without uncertainty: fx fy cx cy priors this wide (px)
+UNKNOWN_PRIOR_PX = 5.0  # a start whose uncertainty lacks a camera's parameter: its prior this wide (px)
 UNKNOWN_PRIOR_K1 = 0.01
 GTSAM_MAX_LANDMARKS = 3000  # --backend gtsam beyond this: refused (GTSAM's LM on 20k points runs for minutes)
 CHI2_STOP = 0.01  # Levenberg-Marquardt stops when a step lowers chi^2 by less than this
@@ -74,9 +74,13 @@ def _log_rotation(R: np.ndarray) -> np.ndarray:
 
 
 def free_intrinsics(calibration: Calibration, mode: str) -> tuple[int, ...]:
-    """Indices into [fx fy cx cy k1 k2 p1 p2 k3] estimated: none when held, else fx fy cx cy and k1 when
-    the start has lens distortion."""
-    if mode == "held":
+    """Indices into [fx fy cx cy k1 k2 p1 p2 k3] estimated: none when held (or "prior" without the start's
+    uncertainty to weigh them: a prior of unknown width would let a principal point trade against a
+    rotation freely), else fx fy cx cy and k1 when the start has lens distortion."""
+    if mode == "held" or (mode == "prior" and calibration.uncertainty is None):
+        if mode == "prior":
+            log.warning("self-calibration: the start calibration has no uncertainty to weigh its intrinsics "
+                        "against the particles: they are held (--intrinsics free estimates them without priors)")
         return ()
     has_distortion = any(np.any(np.asarray(c.dist, float) != 0.0) for c in calibration.cameras.values())
     names = INTRINSICS_FREE + (("k1",) if has_distortion else ())
@@ -492,7 +496,8 @@ def _gtsam_refinement(problem, huber_px: float | None, gauge: Gauge, prior: Intr
                         H[k] = np.hstack([J[:, cols[:3]] @ Rk, J[:, cols[3:]] @ Rk])
                 return e
 
-            g.add(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(len(gauge.twists) + 1), pose_keys, gauge_error))
+            rows = len(gauge.rows(template, lay)[0])
+            g.add(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows), pose_keys, gauge_error))
             for c, ix in enumerate(lay.intrinsics):
                 for j, col in enumerate(ix):
                     s = prior.sigmas[c, j]

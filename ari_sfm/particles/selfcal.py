@@ -408,7 +408,7 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
         dmap = disparity_map(names, box, particles, particle_disparities(cal, particles),
                              options.peak_radius_px, options.field_radius_px, options.seed)
         bar.note(f"{len(particles.xyz)} matches, {int(dmap.inlier.sum())} inliers, disparity "
-                 f"{float(np.nanmax(dmap.rms_px)):.3f} px")
+                 f"{_largest(dmap.rms_px):.3f} px")
         log.info("self-calibration: tolerance %.3g px, %d matches, %d inliers, disparity RMS %s px",
                  tol, len(particles.xyz), int(dmap.inlier.sum()), np.round(dmap.rms_px, 3).tolist())
         return particles, box, dmap
@@ -440,7 +440,7 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
             break
         cells = box
         last_particles = particles
-        rms = float(np.nanmax(dmap.rms_px))
+        rms = _largest(dmap.rms_px)
         stalled = prev_rms is not None and rms > (1.0 - options.min_improvement) * prev_rms
         if stalled and tol <= options.final_tolerance_px:  # the disparities stopped falling: done
             rounds.append(Round(tol, len(particles.xyz), dmap, None))
@@ -469,7 +469,7 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
         particles = matched(current, tol)
         dmap = disparity_map(names, cells, particles, particle_disparities(current, particles),
                              options.peak_radius_px, options.field_radius_px, options.seed)
-        bar.note(f"final: {len(particles.xyz)} matches, disparity {float(np.nanmax(dmap.rms_px)):.3f} px")
+        bar.note(f"final: {len(particles.xyz)} matches, disparity {_largest(dmap.rms_px):.3f} px")
         rounds.append(Round(tol, len(particles.xyz), dmap, None))
         last_particles = particles
     if refined is None:
@@ -485,6 +485,12 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
                         c.value, c.limit)
     corrected = result_calibration(current, refined, report)
     return SelfCalResult(corrected, rounds[0].disparity, after, tuple(rounds), report)
+
+
+def _largest(values: np.ndarray) -> float:
+    """The largest finite value (NaN when none)."""
+    finite = values[np.isfinite(values)]
+    return float(finite.max()) if len(finite) else float("nan")
 
 
 def converged(after: DisparityMap, options: SelfCalOptions) -> bool:
@@ -519,7 +525,7 @@ def trust_checks(start: Calibration, final: Calibration, detections: Mapping[int
     images = min(sum(len(detections[f][n]) for f in frames) for n in names)
     share = float(len(particles.xyz) / images) if images else 0.0
     checks = [
-        Check("noise_level", float(np.nanmax(after.rms_px)), 0.5 * options.peak_radius_px, converged(after, options),
+        Check("noise_level", _largest(after.rms_px), 0.5 * options.peak_radius_px, converged(after, options),
               "the final disparities are one noise level in every camera"),
         Check("matched_share", share, MIN_MATCHED_SHARE, share >= MIN_MATCHED_SHARE,
               "share of the particle images (camera with the fewest) the final calibration matches"),
@@ -529,8 +535,9 @@ def trust_checks(start: Calibration, final: Calibration, detections: Mapping[int
     if len(particles.xyz):
         xyz = triangulate_pixels(start, {n: particles.pixels[:, c] for c, n in enumerate(names)})[0]
         d = particle_disparities(start, ParticleSet(particles.pixels, xyz, particles.frame))
-        with np.errstate(invalid="ignore"):
-            worst = np.nanmax(np.linalg.norm(d, axis=2), axis=1)
+        dist = np.linalg.norm(d, axis=2)
+        worst = np.where(np.isfinite(dist).any(axis=1), np.max(np.where(np.isfinite(dist), dist, -1.0), axis=1),
+                         np.nan)
         reach = float(np.mean(np.nan_to_num(worst, nan=np.inf) <= REACH_MARGIN * first_tolerance_px))
     else:
         reach = 0.0
@@ -567,12 +574,13 @@ def _report(start: Calibration, final: Calibration, options: SelfCalOptions, fra
                if len(windows) == 1 else ""),
             "the scale: the sum of the distances between every pair of camera centres"]
     free = refined.covariance.cameras[names[0]].intrinsics
-    if options.intrinsics == "held":
-        held.append("the intrinsics")
+    if options.intrinsics == "held" or not free:
+        held.append("the intrinsics" + ("" if options.intrinsics == "held" else
+                                        " (the start has no uncertainty to weigh them with)"))
     else:
         held.append("the lens distortion but " + "/".join(free) if free else "the intrinsics")
     estimated = ["every camera's pose (camera 0 included)", "the particles"]
-    if options.intrinsics != "held":
+    if free:
         estimated.append(" ".join(free) + (" with the start calibration's sigmas as priors"
                                            if options.intrinsics == "prior" else " (no prior)"))
     adjustments = [r.adjustment for r in rounds if r.adjustment]
