@@ -583,10 +583,12 @@ def import_colmap_fork_cmd(model_dir: Path, out: Path, units_mm: float) -> None:
                    "a reflection streak, bright blobs, shot noise, particles of varying brightness and size).")
 @click.option("--bit-depth", type=click.Choice(["8", "16"]), default="8", show_default=True,
               help="particles: rendered images 8-bit (PNG) or 16-bit (TIFF).")
+@click.option("--k1", type=float, default=0.0, show_default=True,
+              help="particles: radial lens distortion (OpenCV k1) of every camera, e.g. -0.05.")
 @user_errors
 def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_scale: float, images: bool | None,
              num_cameras: int, particles_per_frame: int, num_frames: int, render_frames: int, drift_deg: float,
-             drift_mm: float, drift_cameras: str, look: str, bit_depth: str) -> None:
+             drift_mm: float, drift_cameras: str, look: str, bit_depth: str, k1: float) -> None:
     """Write a simulated dataset (exact Snell physics) and its truth. SCENARIO: one of `ari-sfm scenarios`."""
     from .simulate import SCENARIOS, simulate as run_sim
 
@@ -595,8 +597,10 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_sca
     check_number("--seed", seed, minimum=0)
     if scenario == "particles":  # a particle experiment: rig A's target calibration, drifted rig B, particles
         _simulate_particles(out, seed, 0.1 if sigma is None else sigma, num_cameras, particles_per_frame, num_frames,
-                            render_frames, drift_deg, drift_mm, drift_cameras, look, int(bit_depth))
+                            render_frames, drift_deg, drift_mm, drift_cameras, look, int(bit_depth), k1)
         return
+    if k1:
+        raise AriSfmError("--k1", "is for the particles scenario")
     check_output_folder(out)
     check_number("--sigma", sigma, minimum=0.0, maximum=100.0)
     check_number("--image-scale", image_scale, minimum=MIN_IMAGE_SCALE, maximum=40.0)
@@ -620,7 +624,7 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_sca
 
 def _simulate_particles(out: Path, seed: int, sigma: float, num_cameras: int, particles_per_frame: int,
                         num_frames: int, render_frames: int, drift_deg: float, drift_mm: float, drift_cameras: str,
-                        look: str = "plain", bit_depth: int = 8) -> None:
+                        look: str = "plain", bit_depth: int = 8, k1: float = 0.0) -> None:
     """`simulate particles`: write OUT/calibration, OUT/experiment, OUT/truth (ari_sfm.simulate.particles)."""
     from .simulate.particles import ParticleSimOptions, simulate_particle_experiment, write_particle_experiment
 
@@ -632,6 +636,7 @@ def _simulate_particles(out: Path, seed: int, sigma: float, num_cameras: int, pa
     check_number("--render-frames", render_frames, minimum=0, maximum=num_frames)
     check_number("--drift-deg", drift_deg, minimum=0.0, maximum=10.0)
     check_number("--drift-mm", drift_mm, minimum=0.0, maximum=100.0)
+    check_number("--k1", k1, minimum=-0.5, maximum=0.5)
     try:
         drifted = tuple(int(c) for c in drift_cameras.split(",") if c.strip())
     except ValueError:
@@ -641,7 +646,7 @@ def _simulate_particles(out: Path, seed: int, sigma: float, num_cameras: int, pa
         raise AriSfmError("--drift-cameras", f"{bad} not among the cameras 0..{num_cameras - 1}")
     options = ParticleSimOptions(num_cameras=num_cameras, particles_per_frame=particles_per_frame,
                                  num_frames=num_frames, sigma_px=sigma, drift_cameras=drifted, drift_deg=drift_deg,
-                                 drift_mm=drift_mm, look=look, bit_depth=bit_depth, seed=seed)
+                                 drift_mm=drift_mm, look=look, bit_depth=bit_depth, k1=k1, seed=seed)
     paths = write_particle_experiment(simulate_particle_experiment(options), out, render_frames=render_frames)
     click.echo(f"calibration dataset (rig A): {paths['calibration']}\nexperiment (rig B):          "
                f"{paths['experiment']}\ntruth:                       {paths['truth']} (rig_a.json, rig_b.json, "
@@ -761,10 +766,14 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
 @click.option("--peak-radius-px", type=float, default=0.5, show_default=True,
               help="A match is on its cell's disparity peak within this distance in every camera.")
 @click.option("--max-rounds", type=int, default=6, show_default=True)
-@click.option("--refine-window", is_flag=True, help="Also estimate the window (normal; distance under water).")
-@click.option("--refine-intrinsics", is_flag=True, help="Also estimate fx fy cx cy (distortion held).")
+@click.option("--intrinsics", type=click.Choice(["prior", "held", "free"]), default="prior", show_default=True,
+              help="fx fy cx cy (and k1 when CAL has distortion): estimated with CAL's sigmas as priors, held, "
+                   "or estimated without priors.")
+@click.option("--refine-intrinsics", is_flag=True, hidden=True, help="Old name of --intrinsics free.")
+@click.option("--refine-window", is_flag=True, hidden=True,
+              help="Old option: the window's pose relative to the cameras is now always estimated.")
 @click.option("--backend", type=click.Choice(["numpy", "gtsam"]), default="numpy", show_default=True,
-              help="Bundle-adjustment solver (the same problem).")
+              help="Bundle-adjustment solver (the same problem; gtsam: at most 3000 particles per round).")
 @click.option("--depth-range", type=float, nargs=2, default=None, metavar="ZMIN ZMAX",
               help="World z range (mm) of the particles, instead of rig.yaml's particles.volume_mm.")
 @_workers_option
@@ -772,13 +781,14 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
 @user_errors
 def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: Path | None, frames: int,
                        coarse_frames: int, tolerance_px: float, max_tolerance_px: float, final_tolerance_px: float, min_cameras: int,
-                       cells: tuple[int, int, int], peak_radius_px: float, max_rounds: int, refine_window: bool, refine_intrinsics: bool,
-                       backend: str, depth_range: tuple[float, float] | None, workers: int,
-                       scheduler: str | None) -> None:
+                       cells: tuple[int, int, int], peak_radius_px: float, max_rounds: int, intrinsics: str,
+                       refine_intrinsics: bool, refine_window: bool, backend: str,
+                       depth_range: tuple[float, float] | None, workers: int, scheduler: str | None) -> None:
     """Volume self-calibration through the window: correct a drifted calibration from particle images."""
-    from .particles.selfcal import SelfCalOptions, self_calibrate_dataset
+    from .particles.selfcal import SelfCalOptions, check_not_input, self_calibrate_dataset
 
     check_output_folder(out)
+    check_not_input(out, [calibration, dataset, detections])
     check_number("--frames", frames, minimum=1)
     check_number("--coarse-frames", coarse_frames, minimum=1)
     check_number("--tolerance-px", tolerance_px, minimum=0.0, maximum=100.0, strict_minimum=True)
@@ -795,21 +805,38 @@ def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: 
     options = SelfCalOptions(tolerance_px=tolerance_px, max_tolerance_px=max_tolerance_px,
                              final_tolerance_px=final_tolerance_px, min_cameras=min_cameras,
                              cells=tuple(cells), peak_radius_px=peak_radius_px, max_rounds=max_rounds,
-                             coarse_frames=coarse_frames,
-                             refine_window=refine_window, refine_intrinsics=refine_intrinsics, backend=backend)
+                             coarse_frames=coarse_frames, intrinsics="free" if refine_intrinsics else intrinsics,
+                             backend=backend)
+    if refine_window:
+        click.echo("note: --refine-window is no longer needed: the window is held in the world and every camera "
+                   "moves, so the window's pose relative to the cameras is always estimated", err=True)
     r = self_calibrate_dataset(dataset, calibration, out, options, detections_path=detections, frames=frames,
                                depth_range_mm=None if depth_range is None else tuple(depth_range), workers=workers,
-                               scheduler=scheduler)
-    for name, d in r.report.disparity_rms_px.items():
+                               scheduler=scheduler, progress=True)
+    rep = r.report
+    for name, d in rep.disparity_rms_px.items():
+        s = rep.sigmas[name]
+        rel = "" if s.rotation_rel_deg is None else f" (relative to the first camera: sigma {s.rotation_rel_deg:.4f} deg)"
         click.echo(f"{name}: disparity RMS {d.before:.3f} px -> {d.after:.3f} px, rotated "
-                   f"{r.report.rotation_change_deg[name]:.4f} deg")
-    if not r.report.converged:
-        click.echo("warning: the disparities did not fall to a common noise level (see self_calibration.rounds in "
-                   "calibration.json): the first round's peak may have been ghosts; try more --frames or "
-                   "--coarse-frames")
-    click.echo(f"{len(r.rounds)} rounds, {r.report.particles_used} particles in {len(r.report.frames)} frames; "
-               f"scale held: {r.report.scale_how} ({r.report.scale_sum_mm:.3f} mm)")
+                   f"{rep.rotation_change_deg[name]:.4f} deg{rel}")
+    click.echo(f"{len(r.rounds)} rounds, {rep.particles_used} particles in {len(rep.frames)} frames, "
+               f"{100 * rep.matched_share:.1f} % of the particle images matched at the end, {rep.time_s:.1f} s")
+    click.echo("held: " + "; ".join(rep.held))
+    click.echo("estimated: " + "; ".join(rep.estimated))
+    for a in (rd.adjustment for rd in r.rounds if rd.adjustment is not None):
+        if a.stop == "max_iterations":
+            click.echo(f"warning: a bundle adjustment ({a.landmarks} particles) stopped at its {a.iterations}-"
+                       "iteration cap without converging", err=True)
+    for c in rep.checks:
+        if not c.passed:
+            click.echo(f"{'FAILED' if c.fatal else 'warning'}: {c.what}: {c.value:.4g} (limit {c.limit:.4g})",
+                       err=True)
+    if not rep.passed:
+        click.echo("self-calibration FAILED its checks: the start calibration cannot be trusted for these images "
+                   "or the result is wrong (written with self_calibration.passed false; see its checks)", err=True)
     click.echo(f"calibration: {out / 'calibration.json'}\ndisparity:   {out / 'disparity.json'}")
+    if not rep.passed:
+        sys.exit(QUALITY_FAILED_EXIT)
 
 
 MIN_IMAGE_SCALE = 0.05  # smaller: port_survey's 640 x 480 images become 32 x 24 px, paper_single's focal 174 px

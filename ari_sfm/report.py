@@ -124,7 +124,8 @@ def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInp
         raise AriSfmError(cal_path, "missing: run `ari-sfm run` or `ari-sfm calibrate` with -o to this folder first")
     cal = load_calibration(cal_path)
     notes: list[str] = []
-    ds_path = find_dataset(out, dataset)
+    selfcal = "self_calibration" in cal.extra  # `self-calibrate`'s folder: particles, no target dataset
+    ds_path = find_dataset(out, dataset) if not selfcal or dataset is not None else None
     obs_path = out / "observations.json"
     ds = None
     if ds_path is not None:
@@ -133,7 +134,7 @@ def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInp
         ds = load_dataset(ds_path, obs_path if obs_path.exists() else None)
         check_rig(ds, cal, cal_path)  # another rig's dataset: refused, not mixed in
         check_same_capture(ds, cal)  # nor another capture of the same rig
-    else:
+    elif not selfcal:
         notes.append("dataset not found (pass --dataset): no dataset summary")
     if ds is not None and ds.observations is not None:
         observations = ds.observations
@@ -141,7 +142,8 @@ def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInp
         observations = load_observations(obs_path, cal.target, list(cal.cameras))
     else:
         observations = ()
-        notes.append("no observations found: no residual or expansion-centre figures")
+        if not selfcal:
+            notes.append("no observations found: no residual or expansion-centre figures")
     metrics = _read_json(out / "metrics.json") if (out / "metrics.json").exists() else None
     points = {}
     points_data = None
@@ -154,7 +156,9 @@ def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInp
     info: list[str] = []
     skipped = _read_json(out / RUN_FILE).get("reconstruction_skipped") if (out / RUN_FILE).exists() else None
     if metrics is None and not points:
-        if ds is not None and not ds.reconstruction:
+        if selfcal:
+            info.append("Not applicable: a self-calibration folder (its particles: the section below).")
+        elif ds is not None and not ds.reconstruction:
             info.append("Not applicable: the dataset has no reconstruction frames.")
         elif skipped:
             info.append(f"Not run: {skipped}.")
@@ -601,7 +605,7 @@ def _self_calibration_section(ctx: ReportContext) -> str:
     """Volume self-calibration's disparity maps before/after (OUT/disparity.json of `self-calibrate`), if any."""
     from .particles.figures import self_calibration_section
 
-    return self_calibration_section(ctx.inputs.out, _img)
+    return self_calibration_section(ctx.inputs.out, _img, ctx.inputs.calibration)
 
 
 # The report's sections in order: (name, function). A module adding a section appends or inserts one

@@ -25,10 +25,11 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..calibration import Calibration
+from .disparity_kernels import joint_counts, joint_counts_against
 
 MEAN_SHIFT_STEPS = 20
 GLOBAL_SAMPLE = 4000  # matches the whole-volume peak is searched among
-PAIR_CHUNK = 2_000_000  # pairwise disparity differences computed at once in the peak search
+PEAK_CANDIDATES = 1500  # matches whose neighbours are counted in the peak search (a random subset beyond)
 MIN_PEAK_COUNT = 3  # fewer supporting particles: the cell has no estimate (NaN, count 0)
 
 
@@ -130,19 +131,18 @@ def _joint_distance(d: np.ndarray, centre: np.ndarray) -> np.ndarray:
     return np.where(np.isnan(diff), 0.0, diff).max(axis=1)
 
 
-def _joint_peak(d: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+def _joint_peak(d: np.ndarray, radius: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Robust centre (C, 2) of the disparities d (n, C, 2) (NaN: camera unused) of one cell's matches,
     all cameras at once: the match with the most others within ``radius`` in every camera they share
     (ghosts, spread over the tolerance disc in each camera, almost never agree in all of them), then a
     flat-kernel mean shift. Returns the centre and the mask of the matches within the radius."""
-    n = len(d)
-    counts = np.zeros(n, int)
-    step = max(1, PAIR_CHUNK // max(1, n * d.shape[1]))
-    for s in range(0, n, step):  # pairwise joint distances, a chunk of rows at a time
-        diff = np.linalg.norm(d[s:s + step, None] - d[None], axis=3)  # (k, n, C)
-        joint = np.where(np.isnan(diff), 0.0, diff).max(axis=2)
-        shared = (~np.isnan(diff)).sum(axis=2) >= 2
-        counts[s:s + step] = ((joint <= radius) & shared).sum(axis=1)
+    d = np.ascontiguousarray(d, dtype=np.float64)
+    if len(d) > PEAK_CANDIDATES:  # the densest of a random subset, counted against all: O(k n), not O(n^2)
+        pick = np.sort(np.random.default_rng(seed).choice(len(d), PEAK_CANDIDATES, replace=False))
+        counts = np.full(len(d), -1, np.int64)
+        counts[pick] = joint_counts_against(d[pick], d, float(radius))
+    else:
+        counts = joint_counts(d, float(radius))
     best = int(np.argmax(counts + 0.5 * np.isfinite(d).all(axis=(1, 2))))  # ties: a match with every camera
     centre = d[best].copy()
     for _ in range(MEAN_SHIFT_STEPS):
@@ -173,7 +173,7 @@ def disparity_map(cameras: Sequence[str], cells: Cells, particles: ParticleSet, 
     if field_radius_px is not None and valid.any():
         pool = np.flatnonzero(valid.any(axis=1))
         sample = pool if len(pool) <= GLOBAL_SAMPLE else np.random.default_rng(seed).choice(pool, GLOBAL_SAMPLE, False)
-        field, _ = _joint_peak(d[sample], peak_radius_px)
+        field, _ = _joint_peak(d[sample], peak_radius_px, seed)
         near_field = _joint_distance(d, field) <= field_radius_px
         valid = valid & near_field[:, None]
     vector = np.full((C, K, 2), np.nan)
@@ -185,7 +185,7 @@ def disparity_map(cameras: Sequence[str], cells: Cells, particles: ParticleSet, 
         total[:, k] = used[cell == k].sum(axis=0)
         if len(sel) < MIN_PEAK_COUNT:
             continue
-        centre, inside = _joint_peak(d[sel], peak_radius_px)
+        centre, inside = _joint_peak(d[sel], peak_radius_px, seed + k)
         if inside.sum() < MIN_PEAK_COUNT:
             continue
         inlier[sel[inside]] = True

@@ -13,7 +13,9 @@ DISPARITY_FILE = "disparity.json"
 
 def disparity_figure(disparity: dict[str, Any]) -> bytes:
     """One row per camera, before and after: each cell's disparity vector (px) drawn at the cell's
-    centre (world x, y; z layers in colour, side by side); each column has its own arrow scale."""
+    centre (world x, y; z layers in colour, side by side), one arrow scale for every panel (the longest
+    arrow, before, about half a cell), so corrected arrows look as small as they are; a scale arrow
+    of 1 px in each panel."""
     from ..report_figures import plt, to_png
 
     centres = np.asarray(disparity["cell_centres_mm"], float)
@@ -27,10 +29,10 @@ def disparity_figure(disparity: dict[str, Any]) -> bytes:
                         float)
 
     cell = float(np.min((upper - lower)[:2] / np.asarray(shape[:2])))
-    scale = {}
-    for when in ("before", "after"):
-        longest = max(float(np.nanmax(np.linalg.norm(vectors(when, c), axis=1), initial=0.0)) for c in cameras)
-        scale[when] = 0.45 * cell / longest if longest > 0 else 1.0  # the longest arrow: about half a cell
+    longest = max(float(np.nanmax(np.linalg.norm(vectors(w, c), axis=1), initial=0.0))
+                  for w in ("before", "after") for c in cameras)
+    one = 0.45 * cell / longest if longest > 0 else 1.0  # mm per px: the longest arrow about half a cell
+    scale = {"before": one, "after": one}
     shift = (layer - 0.5 * (shape[2] - 1)) * 0.12 * cell  # z layers side by side
     fig, axes = plt.subplots(len(cameras), 2, figsize=(9.0, 3.2 * len(cameras)), squeeze=False)
     colours = plt.cm.viridis(np.linspace(0.0, 0.85, max(shape[2], 1)))
@@ -50,7 +52,12 @@ def disparity_figure(disparity: dict[str, Any]) -> bytes:
             ax.set_ylim(upper[1], lower[1])  # y down, as in the images
             ax.set_aspect("equal")
             rms = disparity[when]["cameras"][cam]["rms_px"]
-            ax.set_title(f"{cam} {when}: RMS {rms:.3f} px (1 px = {scale[when]:.2g} mm)", fontsize=9)
+            ax.annotate("", xy=(lower[0] + 0.04 * (upper[0] - lower[0]) + one, lower[1] + 0.06 * (upper[1] - lower[1])),
+                        xytext=(lower[0] + 0.04 * (upper[0] - lower[0]), lower[1] + 0.06 * (upper[1] - lower[1])),
+                        arrowprops={"arrowstyle": "->", "color": "k", "lw": 1.0})
+            ax.text(lower[0] + 0.04 * (upper[0] - lower[0]), lower[1] + 0.13 * (upper[1] - lower[1]), "1 px",
+                    fontsize=7)
+            ax.set_title(f"{cam} {when}: RMS {rms:.3f} px (1 px = {one:.2g} mm)", fontsize=9)
             ax.tick_params(labelsize=7)
             if row == len(cameras) - 1:
                 ax.set_xlabel("world x (mm)", fontsize=8)
@@ -62,19 +69,45 @@ def disparity_figure(disparity: dict[str, Any]) -> bytes:
     return to_png(fig)
 
 
-def self_calibration_section(out: Path, image: Any) -> str:
-    """The report's section for a self-calibration folder (OUT/disparity.json), or "" without one.
-    ``image(png, alt, caption)`` renders a figure as the report does."""
+def self_calibration_section(out: Path, image: Any, calibration: Any = None) -> str:
+    """The report's section for a self-calibration folder (OUT/disparity.json and calibration.json's
+    ``self_calibration``), or "" without one. ``image(png, alt, caption)`` renders a figure as the report does."""
     path = Path(out) / DISPARITY_FILE
     if not path.is_file():
         return ""
     disparity = json.loads(path.read_text())
+    sc = ({} if calibration is None else calibration.extra.get("self_calibration")) or {}
+    rotated, sigmas = sc.get("rotation_change_deg", {}), sc.get("sigmas", {})
+
+    def num(v: Any, fmt: str) -> str:
+        return "-" if v is None else format(v, fmt)
+
     rows = "".join(f"<tr><td>{html.escape(cam)}</td><td>{disparity['before']['cameras'][cam]['rms_px']:.3f}</td>"
-                   f"<td>{disparity['after']['cameras'][cam]['rms_px']:.3f}</td></tr>"
+                   f"<td>{disparity['after']['cameras'][cam]['rms_px']:.3f}</td>"
+                   f"<td>{num(rotated.get(cam), '.4f')}</td>"
+                   f"<td>{num(sigmas.get(cam, {}).get('rotation_rel_deg'), '.4f')}</td>"
+                   f"<td>{num(sigmas.get(cam, {}).get('translation_rel_mm'), '.3f')}</td></tr>"
                    for cam in disparity["before"]["cameras"])
-    table = ("<table><tr><th>camera</th><th>disparity RMS before (px)</th><th>after (px)</th></tr>"
-             f"{rows}</table>")
-    return ("<h2>Volume self-calibration</h2>" + table
-            + image(disparity_figure(disparity), "disparity maps",
-                    "Mean disparity (detected minus reprojected particle image) per cell of the volume and camera, "
-                    "with the starting calibration (loose matches) and the corrected one."))
+    table = ("<table><tr><th>camera</th><th>disparity RMS before (px)</th><th>after (px)</th>"
+             "<th>rotated (deg)</th><th>sigma of its rotation relative to the first camera (deg)</th>"
+             f"<th>sigma of its position relative to the first camera (mm)</th></tr>{rows}</table>")
+    parts = ["<h2>Volume self-calibration</h2>"]
+    if sc:
+        verdict = "passed its checks" if sc.get("passed", True) else "FAILED its checks: do not use it"
+        parts.append(f"<p>The self-calibration {html.escape(verdict)}; {sc.get('particles_used', 0)} particles in "
+                     f"{len(sc.get('frames', []))} frames, {100 * float(sc.get('matched_share', 0.0)):.1f} % of "
+                     f"the particle images matched at the end.</p>")
+        parts.append("<p>Held: " + html.escape("; ".join(sc.get("held", []))) + ". Estimated: "
+                     + html.escape("; ".join(sc.get("estimated", []))) + ".</p>")
+    parts.append(table)
+    checks = sc.get("checks", [])
+    if checks:
+        parts.append("<table><tr><th>check</th><th>value</th><th>limit</th><th>result</th><th>what</th></tr>"
+                     + "".join(f"<tr><td>{html.escape(c['name'])}</td><td>{c['value']:.4g}</td>"
+                               f"<td>{c['limit']:.4g}</td><td>{'passed' if c['passed'] else ('FAILED' if c['fatal'] else 'warning')}</td>"
+                               f"<td>{html.escape(c['what'])}</td></tr>" for c in checks) + "</table>")
+    parts.append(image(disparity_figure(disparity), "disparity maps",
+                       "Mean disparity (detected minus reprojected particle image) per cell of the volume and "
+                       "camera, with the starting calibration (loose matches) and the corrected one, on one "
+                       "arrow scale."))
+    return "\n".join(parts)

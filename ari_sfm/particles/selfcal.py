@@ -8,32 +8,30 @@ particle images themselves, in rounds:
    (``particles.match.match_frame``; loose at first, e.g. 5 px, all 4 cameras: then only
    ``coarse_frames`` of them (more with sparse seeding), the loose matching being slow and a few
    hundred inliers enough; while the first round finds no disparity peak its tolerance is widened
-   by ``WIDEN`` up to ``max_tolerance_px``), each match triangulated with the exact model;
+   by ``WIDEN`` up to ``max_tolerance_px``), each match triangulated with the exact model; the
+   frames run in parallel (threads, or Dask tasks);
 2. disparity maps per camera per cell of the volume (:mod:`.disparity`): the robust peak of
    ``detected - reprojected``; the matches on their cells' peaks in every camera are the inliers
    (ghosts spread over the tolerance disc and fall out);
-3. bundle adjustment with the inlier particles as landmarks: the refractive problem of
-   ``refine-colmap`` (:class:`ari_sfm.colmap_refine.problem.RefractiveProblem`, the exact model's
-   analytic Jacobians, the points eliminated by its Schur complement, the project's
-   Levenberg-Marquardt; GTSAM selectable) with one rig frame (all particle frames share the
-   rig's pose) whose reference sensor is camera 0, so that
+3. bundle adjustment with the inlier particles as landmarks (:mod:`.landmarks`): every camera's pose
+   estimated (camera 0 too: any camera may be bumped), the window's plane held in the world (the lab:
+   it does not move), the motions that keep it (rotation about its normal, translation within it)
+   and the scale (the sum of all pairwise camera distances) held at the start's values, the
+   intrinsics estimated with the start calibration's sigmas as priors;
+4. the next round matches again: straight at ``final_tolerance_px`` once the adjustment fits its
+   landmarks at the noise (else at half the tolerance); the rounds stop when the disparity no longer
+   falls there (or after ``max_rounds``). The disparity maps "after" are the last round's: the final
+   calibration at the final tolerance.
 
-   - camera 0's pose is held (the rig frame is the gauge frame, never a variable),
-   - the window is held (``refine_window``: its normal and, under water, its distance estimated),
-   - the intrinsics are held (``refine_intrinsics``: fx fy cx cy estimated, distortion held),
-   - the scale is held by a prior (sigma ``SCALE_SIGMA_MM``) on the sum of the distances from
-     camera 0's centre to every other camera's centre, at the starting calibration's value:
-     particles barely determine the scale (PHYSICS.md: ~1.3 mm on that sum for 35k particles), and
-     one sum spreads the drift of single cameras over all baselines;
-   - the other cameras' poses (sensor_from_rig) and the particles are estimated (Huber loss);
-4. the next round matches again with a tighter tolerance (halved, down to ``final_tolerance_px``;
-   straight to it once the inliers' disparity RMS falls by less than ``min_improvement``); the
-   rounds stop when it no longer falls at the final tolerance (or after ``max_rounds``). The
-   disparity maps "after" are the last round's: the final calibration at the final tolerance.
+Then the result is judged (:func:`trust_checks`): a low disparity is not enough (a start far off can
+be "corrected" onto ghosts that agree with each other), so the share of the particle images the
+final calibration matches, whether the correction stayed within the first round's tolerance of the
+start, and the disparities' noise level are checked; ``SelfCalReport.passed`` says whether all held.
 """
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, replace
 from typing import Any, Callable, Mapping, Sequence
@@ -41,24 +39,30 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from ..calibration import Calibration
-from ..io import save_calibration
 from ..errors import AriSfmError
-from ..geometry import Pose, rotation_angle_deg
-from ..models import PinholeModel
+from ..geometry import rotation_angle_deg
 from .disparity import Cells, DisparityMap, ParticleSet, disparity_map, particle_disparities
+from .landmarks import (BACKENDS, INTRINSICS_MODES, Adjustment, CameraSigma, Gauge, IntrinsicsPrior, Refined,
+                        free_intrinsics, refine_with_landmarks)
 
 log = logging.getLogger(__name__)
 
-SCALE_SIGMA_MM = 1e-4  # the scale prior's sigma on the sum of camera-0 baselines (effectively held)
-BACKENDS = ("numpy", "gtsam")
 COARSE_PX = 2.0  # rounds with a tolerance above this match only the coarse frames (_coarse_frames)
 FIRST_PEAK_MIN = 30  # inliers the first round needs (else its tolerance is widened by WIDEN)
 WIDEN = 1.6
 COARSE_IMAGES = 5000  # ... at least options.coarse_frames, more until the first camera has this many images
 MIN_MATCHES = 10  # fewer matches (or inliers) in a round: no correction from it
 PROJECTING_EXACT = ("exact", "rt", "truth")  # models whose projection is the exact Snell model
+JUMP_NOISE = 2.0  # an adjustment whose landmarks' RMS is below final_tolerance_px / JUMP_NOISE: the next
+# round matches at the final tolerance (the correction fits at the noise; halving would only cost rounds)
+MIN_MATCHED_SHARE = 0.5  # trust: the final matches use at least this share of the (fewest) camera's images
+# that a particle seen by every camera could give (a right calibration: ~0.9; onto ghosts: ~0)
+MIN_IN_REACH = 0.5  # trust: the final matches whose start disparities were within the first tolerance
+REACH_MARGIN = 1.5  # ... times this (the start's triangulation spreads a drift over the cameras)
+CHANGE_SIGMAS = 10.0  # trust (warning only): a relative rotation changed by more than this many start sigmas
 
 Detections = Mapping[str, np.ndarray]  # camera name -> (N_c, 2) pixels of one frame
+Progress = Callable[[str], None]  # told each step's description (round, tolerance, disparity)
 
 
 @dataclass(frozen=True)
@@ -67,7 +71,7 @@ class SelfCalOptions:
 
     tolerance_px: float = 5.0  # first round's matching tolerance (loose: the drift must fit in it)
     max_tolerance_px: float = 12.0  # the first round widens its tolerance up to this while it finds no peak
-    final_tolerance_px: float = 0.5  # the tolerance the rounds tighten to (halving)
+    final_tolerance_px: float = 0.5  # the tolerance the rounds tighten to
     min_cameras: int = 4  # cameras a match must use (4: ghosts are rare, the peak is clear)
     cells: tuple[int, int, int] = (3, 3, 3)  # sub-volumes (x, y, z) of the disparity maps
     peak_radius_px: float = 0.5  # a match is on its cell's peak within this many px in every camera
@@ -79,11 +83,11 @@ class SelfCalOptions:
     # a few hundred inliers suffice for the first correction)
     max_landmarks: int = 20000  # particles in one bundle adjustment (random subset beyond)
     huber_px: float = 1.0  # Huber threshold of the bundle adjustment
-    max_iterations: int = 30  # Levenberg-Marquardt iterations per round
-    refine_window: bool = False
-    refine_intrinsics: bool = False
+    max_iterations: int = 50  # Levenberg-Marquardt iterations per round
+    intrinsics: str = "prior"  # "prior": fx fy cx cy (k1) estimated, the start's sigmas as priors; "held"; "free"
     backend: str = "numpy"  # "numpy" (points Schur + the project's LM) or "gtsam"
     seed: int = 0  # the landmark subset
+    threads: int = 2  # frames matched in parallel in this process (no Dask)
 
 
 @dataclass(frozen=True)
@@ -94,28 +98,6 @@ class FrameParticles:
     rows: np.ndarray  # (M, C) int64 detection index per camera, -1 unused
     pixels: np.ndarray  # (M, C, 2) NaN where unused
     xyz: np.ndarray  # (M, 3)
-
-
-@dataclass(frozen=True)
-class Adjustment:
-    """One bundle adjustment with the particles as landmarks (:func:`refine_with_landmarks`)."""
-
-    landmarks: int
-    observations: int
-    iterations: int
-    cost_start: float
-    cost_final: float
-    rms_px: float
-    sum_baselines_held_mm: float  # the scale prior's value: camera 0 to the others, summed
-    sum_baselines_final_mm: float
-    rotation_change_deg: Mapping[str, float]
-    time_s: float
-
-    def to_json(self) -> dict[str, Any]:
-        return {"landmarks": self.landmarks, "observations": self.observations, "iterations": self.iterations,
-                "cost": {"start": self.cost_start, "final": self.cost_final}, "rms_px": self.rms_px,
-                "sum_baselines_mm": {"held": self.sum_baselines_held_mm, "final": self.sum_baselines_final_mm},
-                "rotation_change_deg": dict(self.rotation_change_deg), "time_s": self.time_s}
 
 
 @dataclass(frozen=True)
@@ -145,6 +127,22 @@ class BeforeAfter:
 
 
 @dataclass(frozen=True)
+class Check:
+    """One of the result's trust checks: its value against its limit, and what it means."""
+
+    name: str
+    value: float
+    limit: float
+    passed: bool
+    what: str
+    fatal: bool = True  # False: a warning only
+
+    def to_json(self) -> dict[str, Any]:
+        return {"name": self.name, "value": self.value, "limit": self.limit, "passed": self.passed,
+                "fatal": self.fatal, "what": self.what}
+
+
+@dataclass(frozen=True)
 class SelfCalInputs:
     """The files a dataset's self-calibration read (:func:`self_calibrate_dataset`), absolute."""
 
@@ -163,6 +161,7 @@ class SelfCalReport:
     particles_used: int  # landmarks of the largest round
     landmarks_all_rounds: int
     held: tuple[str, ...]  # what was not estimated, in words
+    estimated: tuple[str, ...]
     scale_how: str
     scale_sum_mm: float
     scale_sigma_mm: float
@@ -170,19 +169,26 @@ class SelfCalReport:
     options: Mapping[str, Any]  # the SelfCalOptions, as JSON
     disparity_rms_px: Mapping[str, BeforeAfter]
     converged: bool  # the final disparities are one noise level (:func:`converged`)
+    passed: bool  # every fatal trust check passed (:func:`trust_checks`)
+    checks: tuple[Check, ...]
     rounds: tuple[Round, ...]
     rotation_change_deg: Mapping[str, float]
+    sigmas: Mapping[str, CameraSigma]
+    matched_share: float  # of the final matching (trust)
     time_s: float
     inputs: SelfCalInputs | None = None  # from a dataset's files
 
     def to_json(self) -> dict[str, Any]:
         out = {"frames": list(self.frames), "particles_used": self.particles_used,
                "landmarks_all_rounds": self.landmarks_all_rounds, "held": list(self.held),
+               "estimated": list(self.estimated),
                "scale": {"how": self.scale_how, "sum_mm": self.scale_sum_mm, "sigma_mm": self.scale_sigma_mm},
                "backend": self.backend, "options": dict(self.options),
                "disparity_rms_px": {n: {"before": d.before, "after": d.after} for n, d in self.disparity_rms_px.items()},
-               "converged": self.converged, "rounds": [r.to_json() for r in self.rounds],
-               "rotation_change_deg": dict(self.rotation_change_deg), "time_s": self.time_s}
+               "converged": self.converged, "passed": self.passed, "checks": [c.to_json() for c in self.checks],
+               "matched_share": self.matched_share, "rounds": [r.to_json() for r in self.rounds],
+               "rotation_change_deg": dict(self.rotation_change_deg),
+               "sigmas": {n: s.to_json() for n, s in self.sigmas.items()}, "time_s": self.time_s}
         if self.inputs is not None:
             i = self.inputs
             out.update({"dataset": i.dataset, "calibration": i.calibration, "detections": i.detections,
@@ -252,228 +258,11 @@ def _stack(frames: Sequence[FrameParticles]) -> ParticleSet:
     return ParticleSet(pixels[ok], xyz[ok], frame[ok])
 
 
-# --------------------------------------------------------------------------- bundle adjustment
-
-
-def _landmark_model(calibration: Calibration, particles: ParticleSet, refine_intrinsics: bool):
-    """The particles as a one-frame COLMAP-like model: one image per camera, camera 0 the rig's reference."""
-    from ..colmap_export import ColmapModel
-
-    names = list(calibration.cameras)
-    C = len(names)
-    cam0 = calibration.cameras[names[0]].cam_from_world
-    params, maps, offsets = [], [], []
-    for n in names:
-        p9 = calibration.cameras[n].params
-        if refine_intrinsics:  # fx fy cx cy free, distortion held
-            M = np.zeros((9, 4))
-            M[:4, :4] = np.eye(4)
-            off = p9.copy()
-            off[:4] = 0.0
-            params.append(p9[:4].copy())
-        else:
-            M, off = np.zeros((9, 0)), p9.copy()
-            params.append(np.zeros(0))
-        maps.append(M)
-        offsets.append(off)
-    used = particles.used
-    obs_point, obs_image = np.nonzero(used)
-    return ColmapModel(
-        camera_ids=np.arange(C), camera_models=("OPENCV",) * C,
-        image_sizes=tuple(tuple(calibration.cameras[n].image_size) for n in names),
-        colmap_params=tuple(params), param_map=tuple(maps), param_offset=tuple(offsets),
-        frame_ids=np.zeros(1, int), rig_from_world=(cam0,), image_ids=np.arange(C), image_names=tuple(names),
-        image_camera=np.arange(C), image_frame=np.zeros(C, int),
-        sensor_from_rig=tuple(calibration.cameras[n].cam_from_world.compose(cam0.inverse()) for n in names),
-        point3D_ids=np.arange(len(particles.xyz)), xyz=particles.xyz.copy(),
-        obs_image=obs_image, obs_point=obs_point, obs_uv=particles.pixels[obs_point, obs_image],
-        image_is_ref=np.arange(C) == 0)
-
-
-def _window_planes(calibration: Calibration) -> tuple[np.ndarray, np.ndarray]:
-    """Every window's normal (W, 3) and near face offset (W,) in the world (``normal . X = plane`` on the face)."""
-    windows = calibration.window_list()
-    return (np.array([np.asarray(w.normal_world, float) for w in windows]),
-            np.array([w.plane_mm(calibration) for w in windows], dtype=float))
-
-
-def _with_windows(calibration: Calibration, normals: np.ndarray, planes: np.ndarray, estimated: bool) -> Calibration:
-    """``calibration`` (its cameras already moved) with each window at ``normals``, ``planes`` in the world; the
-    distances (from each window's first camera, as calibration.json gives them) follow the cameras; a window whose
-    distance was not observed (``estimated`` False in air) keeps it as the evaluation distance."""
-    windows = []
-    for w, n, h in zip(calibration.window_list(), normals, planes):
-        centre = calibration.cameras[w.cameras[0]].cam_from_world.inverse().t
-        d = float(h - n @ centre)
-        if w.interface.distance_mm is not None:
-            w = replace(w, interface=replace(w.interface, distance_mm=d), normal_world=n.copy())
-        else:
-            w = replace(w, normal_world=n.copy(), fixed_distance_mm=d if w.fixed_distance_mm is not None else None)
-        windows.append(w)
-    first = windows[0]
-    return replace(calibration, interface=first.interface, normal_world=first.normal_world,
-                   fixed_distance_mm=first.fixed_distance_mm, windows=tuple(windows) if calibration.windows else ())
-
-
-def sum_baselines_mm(calibration: Calibration) -> float:
-    """Sum of the distances from the first camera's centre to every other camera's centre (the held scale)."""
-    centres = np.array([c.cam_from_world.inverse().t for c in calibration.cameras.values()])
-    return float(np.linalg.norm(centres[1:] - centres[0], axis=1).sum())
-
-
-def _sum_baselines(state) -> tuple[float, np.ndarray]:
-    """Sum over cameras c >= 1 of |centre_c - centre_0| = |t of sensor_from_rig_c| and its gradient
-    w.r.t. each translation (C, 3) (the rotation does not change it)."""
-    t = np.array([s.t for s in state.sensor_from_rig])
-    norms = np.linalg.norm(t, axis=1)
-    grad = np.zeros_like(t)
-    grad[1:] = t[1:] / norms[1:, None]
-    return float(norms[1:].sum()), grad
-
-
-def _solvers():
-    """The numpy solver with the scale prior (a subclass of refine-colmap's Solver)."""
-    from ..colmap_refine.refine import Solver
-
-    class ScaleHeldSolver(Solver):
-        """refine-colmap's Solver plus one prior row: the sum of camera-0 baselines at ``baseline_mm``."""
-
-        def __init__(self, problem, huber_px, baseline_mm: float, sigma_mm: float = SCALE_SIGMA_MM) -> None:
-            super().__init__(problem, huber_px)
-            self.baseline_mm, self.sigma_mm = baseline_mm, sigma_mm
-
-        def _scale_error(self, state) -> float:
-            return (_sum_baselines(state)[0] - self.baseline_mm) / self.sigma_mm
-
-        def cost(self, state) -> float:
-            return super().cost(state) + 0.5 * self._scale_error(state) ** 2
-
-        error = cost
-
-        def linearize(self, state):
-            ne = super().linearize(state)
-            e = self._scale_error(state)
-            _, grad = _sum_baselines(state)
-            lay = self.problem.layout
-            cols = lay.sensors[:, 3:]  # translation columns per sensor (-1: reference)
-            free = cols[:, 0] >= 0
-            idx = cols[free].ravel()
-            J = (grad[free] / self.sigma_mm).ravel()
-            ne.U[np.ix_(idx, idx)] += np.outer(J, J)
-            ne.g_global[idx] += J * e
-            ne.error += 0.5 * e * e
-            return ne
-
-    return ScaleHeldSolver
-
-
-def _gtsam_refinement(problem, huber_px: float | None, baseline_mm: float, state):
-    """refine-colmap's GTSAM graph plus the scale prior as a CustomFactor on the sensors' Pose3."""
-    import gtsam
-
-    from ..colmap_refine import gtsam_graph as gg
-
-    lay = problem.layout
-    cams = [c for c in range(len(lay.sensors)) if lay.sensors[c, 0] >= 0]
-
-    class ScaleHeldRefinement(gg.GtsamRefinement):
-        def values(self, st):
-            v = super().values(st)
-            for c in range(len(problem.model.camera_ids)):  # held intrinsics: no variable
-                if not problem.model.param_map[c].any():
-                    v.erase(gg._intrinsics_key(c))
-            return v
-
-        def state(self, values, template):
-            v = gtsam.Values(values)
-            for c in range(len(problem.model.camera_ids)):
-                if not problem.model.param_map[c].any():
-                    v.insert(gg._intrinsics_key(c), np.zeros(0))
-            return super().state(v, template)
-
-        def optimize(self, st, max_iterations: int = 100):
-            """GTSAM's LM with Marquardt's diagonal damping, as the numpy solver (the stiff scale prior
-            beside the points makes lambda I crawl)."""
-            params = gtsam.LevenbergMarquardtParams()
-            params.setMaxIterations(max_iterations)
-            params.setRelativeErrorTol(1e-12)
-            params.setAbsoluteErrorTol(1e-12)
-            params.setDiagonalDamping(True)
-            opt = gtsam.LevenbergMarquardtOptimizer(self.graph(st), self.values(st), params)
-            values = opt.optimize()
-            return self.state(values, st), int(opt.iterations())
-
-        def graph(self, st):
-            g = super().graph(st)
-            keys = [gg._sensor_key(c) for c in cams]
-
-            def error(this, values, H):
-                poses = [values.atPose3(k) for k in keys]
-                t = [np.asarray(p.translation(), float) for p in poses]
-                if H is not None:
-                    for i, (p, ti) in enumerate(zip(poses, t)):  # t' = t + R v (right perturbation)
-                        H[i] = np.concatenate([np.zeros(3), ti / np.linalg.norm(ti) @ p.rotation().matrix()])[None, :]
-                return np.array([sum(np.linalg.norm(ti) for ti in t) - baseline_mm])
-
-            g.add(gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, SCALE_SIGMA_MM), keys, error))
-            return g
-
-    return ScaleHeldRefinement(problem, huber_px)
-
-
-def refine_with_landmarks(calibration: Calibration, particles: ParticleSet, options: SelfCalOptions,
-                          baseline_mm: float | None = None) -> tuple[Calibration, Adjustment]:
-    """The calibration corrected by a bundle adjustment with the particles as landmarks (module
-    docstring, step 3). ``baseline_mm``: the held sum of camera-0 baselines (default: this calibration's)."""
-    from ..colmap_refine.problem import RefractiveProblem, State
-
-    t0 = time.perf_counter()
-    names = list(calibration.cameras)
-    model = _landmark_model(calibration, particles, options.refine_intrinsics)
-    estimate_distance = options.refine_window and calibration.interface.medium_index != 1.0
-    windows = calibration.window_list()
-    window_of = [next(k for k, w in enumerate(windows) if n in w.cameras) for n in names]
-    normals0, planes0 = _window_planes(calibration)
-    problem = RefractiveProblem(model, calibration.interface, "world", estimate_distance,
-                                camera_windows=window_of, interfaces=[w.interface for w in windows],
-                                hold_window=not options.refine_window)
-    state = State(model.colmap_params, model.rig_from_world, model.sensor_from_rig,
-                  normals0, planes0,
-                  model.xyz.copy())
-    held = _sum_baselines(state)[0] if baseline_mm is None else baseline_mm
-    if options.backend == "numpy":
-        solver = _solvers()(problem, options.huber_px, held)
-        res = solver.run(state, options.max_iterations)
-        final, iterations, cost0, cost1 = res.state, res.iterations, res.initial_cost, res.cost
-    elif options.backend == "gtsam":
-        refinement = _gtsam_refinement(problem, options.huber_px, held, state)
-        final, iterations = refinement.optimize(state, options.max_iterations)
-        solver = _solvers()(problem, options.huber_px, held)
-        cost0, cost1 = solver.cost(state), solver.cost(final)
-    else:
-        raise AriSfmError(None, f"backend must be one of {', '.join(BACKENDS)} (got {options.backend!r})")
-    R, t = final.cam_from_world(model)
-    cameras = {}
-    for c, n in enumerate(names):
-        cam = calibration.cameras[n]
-        p9 = model.params9(c, final.colmap_params[c])
-        cameras[n] = replace(cam, K=PinholeModel.from_params(p9).K, dist=p9[4:].copy(), cam_from_world=Pose(R[c], t[c]),
-                             rmse_px=None)
-    normals, planes = (final.normals, final.distances) if options.refine_window else (normals0, planes0)
-    corrected = _with_windows(replace(calibration, cameras=cameras), np.asarray(normals, float),
-                              np.asarray(planes, float), estimate_distance)
-    corrected = replace(corrected, model="exact" if calibration.model == "truth" else calibration.model)
-    e = np.linalg.norm(problem.residuals(final), axis=1)
-    report = Adjustment(int(len(particles.xyz)), int(len(e)), int(iterations), float(cost0), float(cost1),
-                        float(np.sqrt(np.mean(e ** 2))), float(held), float(_sum_baselines(final)[0]),
-                        {n: rotation_angle_deg(calibration.cameras[n].cam_from_world.R, R[c])
-                         for c, n in enumerate(names)}, time.perf_counter() - t0)
-    log.info("self-calibration: bundle adjustment of %d particles: %.3f px RMS after %d iterations",
-             len(particles.xyz), report.rms_px, iterations)
-    return corrected, report
-
 
 # --------------------------------------------------------------------------- the rounds
+
+
+MapFrames = Callable[[Callable[..., FrameParticles], list[tuple]], list[FrameParticles]]
 
 
 def _subset(particles: ParticleSet, mask: np.ndarray, limit: int, seed: int) -> ParticleSet:
@@ -481,9 +270,6 @@ def _subset(particles: ParticleSet, mask: np.ndarray, limit: int, seed: int) -> 
     if len(idx) > limit:
         idx = np.sort(np.random.default_rng(seed).choice(idx, limit, replace=False))
     return ParticleSet(particles.pixels[idx], particles.xyz[idx], particles.frame[idx])
-
-
-MapFrames = Callable[[Callable[..., FrameParticles], list[tuple]], list[FrameParticles]]
 
 
 def _coarse_frames(frames: Sequence[int], detections: Mapping[int, Detections], first: str, minimum: int) -> list[int]:
@@ -497,8 +283,60 @@ def _coarse_frames(frames: Sequence[int], detections: Mapping[int, Detections], 
         count += 1
 
 
-def _serial(fn: Callable[..., FrameParticles], args: list[tuple]) -> list[FrameParticles]:
-    return [fn(*a) for a in args]
+class RoundProgress:
+    """A tqdm bar over each round's frames: its description the round and tolerance, its postfix the
+    disparity (disabled: does nothing)."""
+
+    def __init__(self, enabled: bool = True) -> None:
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=0, disable=not enabled, unit="frame", leave=True)
+
+    def stage(self, desc: str, total: int) -> None:
+        self.bar.reset(total=total)
+        self.bar.set_description(desc)
+
+    def advance(self, n: int = 1) -> None:
+        self.bar.update(n)
+
+    def note(self, text: str) -> None:
+        self.bar.set_postfix_str(text)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+class _Silent:
+    def stage(self, desc: str, total: int) -> None:
+        log.info("self-calibration: %s (%d frames)", desc, total)
+
+    def advance(self, n: int = 1) -> None:
+        pass
+
+    def note(self, text: str) -> None:
+        log.info("self-calibration: %s", text)
+
+
+def _threaded(threads: int, progress) -> MapFrames:
+    """Frames matched by ``threads`` threads of this process (numpy and the compiled kernels release the
+    GIL), in frame order."""
+    def run(fn: Callable[..., FrameParticles], args: list[tuple]) -> list[FrameParticles]:
+        if threads <= 1 or len(args) <= 1:
+            out = []
+            for a in args:
+                out.append(fn(*a))
+                progress.advance()
+            return out
+        from concurrent.futures import ThreadPoolExecutor, as_completed
+
+        with ThreadPoolExecutor(max_workers=threads) as pool:
+            futures = {pool.submit(fn, *a): k for k, a in enumerate(args)}
+            done: dict[int, FrameParticles] = {}
+            for fut in as_completed(futures):
+                done[futures[fut]] = fut.result()
+                progress.advance()
+        return [done[k] for k in range(len(args))]
+    return run
 
 
 def dask_map(client: Any) -> MapFrames:
@@ -508,16 +346,30 @@ def dask_map(client: Any) -> MapFrames:
     return run
 
 
+def _first_noise(dmap: DisparityMap) -> float:
+    """A first guess of the pixel noise per coordinate from the inliers' disparity RMS (a 2-D RMS)."""
+    rms = dmap.rms_px[np.isfinite(dmap.rms_px)]
+    return float(max(np.median(rms) / math.sqrt(2.0), 0.02)) if len(rms) else 0.1
+
+
+def _gauge_length_mm(calibration: Calibration, particles: ParticleSet) -> float:
+    """The rig's distance to the particles: the mean distance of the camera centres from their median."""
+    centre = np.median(particles.xyz, axis=0)
+    centres = np.array([c.cam_from_world.inverse().t for c in calibration.cameras.values()])
+    return float(np.mean(np.linalg.norm(centres - centre, axis=1)))
+
+
 def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections],
                    options: SelfCalOptions = SelfCalOptions(), volume: Any = None, depth_range_mm: Any = None,
                    match: Callable | None = None, map_frames: MapFrames | None = None,
-                   cells_box: Cells | None = None, path: Any = "calibration") -> SelfCalResult:
+                   cells_box: Cells | None = None, path: Any = "calibration", progress: Any = None) -> SelfCalResult:
     """Volume self-calibration (module docstring) from ``detections`` {frame: {camera: (N, 2) px}}.
 
     ``match``: match_frame's signature (default: :func:`ari_sfm.particles.match.match_frame`);
-    ``map_frames(fn, args)``: how the frames' matching tasks ``fn(*a)`` run (default in this process;
-    :func:`dask_map` on a Client);
-    ``cells_box``: the disparity maps' box (default: the first round's matched particles).
+    ``map_frames(fn, args)``: how the frames' matching tasks ``fn(*a)`` run (default: ``options.threads``
+    threads of this process; :func:`dask_map` on a Client);
+    ``cells_box``: the disparity maps' box (default: the first round's matched particles);
+    ``progress``: a :class:`RoundProgress` (default: the log).
     """
     t0 = time.perf_counter()
     names = list(calibration.cameras)
@@ -526,20 +378,27 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
     check_calibration(calibration, list(next(iter(detections.values()))), path)
     if options.backend not in BACKENDS:
         raise AriSfmError(None, f"--backend must be one of {', '.join(BACKENDS)} (got {options.backend!r})")
+    if options.intrinsics not in INTRINSICS_MODES:
+        raise AriSfmError(None, f"--intrinsics must be one of {', '.join(INTRINSICS_MODES)} "
+                                f"(got {options.intrinsics!r})")
     if options.min_cameras > len(names):
         raise AriSfmError(None, f"--min-cameras {options.min_cameras} exceeds the rig's {len(names)} cameras")
     frames = sorted(detections)
-    run = map_frames or _serial
+    bar = progress or _Silent()
+    run = map_frames or _threaded(options.threads, bar)
+    coarse = _coarse_frames(frames, detections, names[0], options.coarse_frames)
+    step = [0]
 
     def matched(cal: Calibration, tol: float) -> ParticleSet:
         use = coarse if tol > COARSE_PX else frames
-        return _stack(run(match_particles, [(cal, f, detections[f], tol, options.min_cameras, volume, depth_range_mm,
-                                             match) for f in use]))
+        step[0] += 1
+        bar.stage(f"self-calibration round {step[0]}: matching at {tol:.3g} px", len(use))
+        found = run(match_particles, [(cal, f, detections[f], tol, options.min_cameras, volume, depth_range_mm,
+                                       match) for f in use])
+        if map_frames is not None:
+            bar.advance(len(use))
+        return _stack(found)
 
-    coarse = _coarse_frames(frames, detections, names[0], options.coarse_frames)
-    baseline = sum_baselines_mm(calibration)
-    current, rounds, cells, prev_rms, tol = calibration, [], cells_box, None, float(options.tolerance_px)
-    exhausted = False
     def measure(cal: Calibration, tol: float, box: Cells | None):
         """One round's matches, its cells' box and disparity map (None with too few matches)."""
         particles = matched(cal, tol)
@@ -548,10 +407,18 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
         box = box or Cells.around(particles.xyz, options.cells)
         dmap = disparity_map(names, box, particles, particle_disparities(cal, particles),
                              options.peak_radius_px, options.field_radius_px, options.seed)
+        bar.note(f"{len(particles.xyz)} matches, {int(dmap.inlier.sum())} inliers, disparity "
+                 f"{_largest(dmap.rms_px):.3f} px")
         log.info("self-calibration: tolerance %.3g px, %d matches, %d inliers, disparity RMS %s px",
                  tol, len(particles.xyz), int(dmap.inlier.sum()), np.round(dmap.rms_px, 3).tolist())
         return particles, box, dmap
 
+    free = free_intrinsics(calibration, options.intrinsics)
+    prior = IntrinsicsPrior.of(calibration, free, options.intrinsics)
+    in_air = [w.interface.medium_index == 1.0 for w in calibration.window_list()]
+    current, rounds, cells, prev_rms, tol = calibration, [], cells_box, None, float(options.tolerance_px)
+    gauge, first_tol, last_particles, refined = None, tol, None, None
+    exhausted = False
     for r in range(options.max_rounds):
         particles, box, dmap = measure(current, tol, cells)
         # the first round: no clear peak yet -> the drift may exceed the tolerance: widen it (up to max_tolerance_px)
@@ -559,6 +426,8 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
             tol = min(WIDEN * tol, options.max_tolerance_px)
             log.info("self-calibration: no clear disparity peak: tolerance widened to %.3g px", tol)
             particles, box, dmap = measure(current, tol, cells)
+        if r == 0:
+            first_tol = tol
         if dmap is None or dmap.inlier.sum() < (FIRST_PEAK_MIN if r == 0 else MIN_MATCHES):
             if r == 0:
                 used = len(coarse) if tol > COARSE_PX else len(frames)
@@ -570,17 +439,26 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
                                         "check that the calibration is of this rig")
             break
         cells = box
-        rms = float(np.nanmax(dmap.rms_px))
+        last_particles = particles
+        rms = _largest(dmap.rms_px)
         stalled = prev_rms is not None and rms > (1.0 - options.min_improvement) * prev_rms
         if stalled and tol <= options.final_tolerance_px:  # the disparities stopped falling: done
             rounds.append(Round(tol, len(particles.xyz), dmap, None))
             break
         prev_rms = rms
         landmarks = _subset(particles, dmap.inlier, options.max_landmarks, options.seed + r)
-        current, adjustment = refine_with_landmarks(current, landmarks, options, baseline)
+        if gauge is None:
+            gauge = Gauge.of(calibration, in_air, _gauge_length_mm(calibration, landmarks))
+        bar.note(f"adjusting {len(landmarks.xyz)} particles")
+        refined = refine_with_landmarks(current, landmarks, gauge, prior, options.huber_px, options.max_iterations,
+                                        options.backend, refined.adjustment.noise_px if refined else _first_noise(dmap))
+        current = refined.calibration
+        adjustment = refined.adjustment
         rounds.append(Round(tol, len(particles.xyz), dmap, adjustment))
-        # tighter next round: halved, or straight to the final tolerance once the disparities stall
-        tol = options.final_tolerance_px if stalled else max(options.final_tolerance_px, tol / 2.0)
+        bar.note(f"adjusted: {adjustment.rms_px:.3f} px RMS on {adjustment.landmarks} particles")
+        # the next round: at the final tolerance once the correction fits at the noise, else halved
+        fits = adjustment.rms_px < options.final_tolerance_px / JUMP_NOISE
+        tol = options.final_tolerance_px if (stalled or fits) else max(options.final_tolerance_px, tol / 2.0)
     else:
         exhausted = True  # max_rounds reached: the final check at the next round's tolerance
     if not rounds:
@@ -591,14 +469,28 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
         particles = matched(current, tol)
         dmap = disparity_map(names, cells, particles, particle_disparities(current, particles),
                              options.peak_radius_px, options.field_radius_px, options.seed)
+        bar.note(f"final: {len(particles.xyz)} matches, disparity {_largest(dmap.rms_px):.3f} px")
         rounds.append(Round(tol, len(particles.xyz), dmap, None))
-    before, after = rounds[0].disparity, rounds[-1].disparity
-    report = _report(calibration, current, options, frames, rounds, baseline, time.perf_counter() - t0)
-    if not report.converged:
-        log.warning("self-calibration: the disparity RMS after (%s px) is not one noise level in every camera: "
-                    "the correction may be wrong", np.round(after.rms_px, 3).tolist())
-    corrected = replace(current, extra={**current.extra, "self_calibration": report.to_json()})
-    return SelfCalResult(corrected, before, after, tuple(rounds), report)
+        last_particles = particles
+    if refined is None:
+        raise AriSfmError(path, "no bundle adjustment ran (see the log)")
+    after = rounds[-1].disparity
+    checks = trust_checks(calibration, current, detections, frames if rounds[-1].tolerance_px <= COARSE_PX else coarse,
+                          last_particles, after, first_tol, options)
+    report = _report(calibration, current, options, frames, rounds, gauge, refined, checks,
+                     time.perf_counter() - t0)
+    for c in checks:
+        if not c.passed:
+            log.warning("self-calibration: %s: %s (%.4g, limit %.4g)", "failed" if c.fatal else "warning", c.what,
+                        c.value, c.limit)
+    corrected = result_calibration(current, refined, report)
+    return SelfCalResult(corrected, rounds[0].disparity, after, tuple(rounds), report)
+
+
+def _largest(values: np.ndarray) -> float:
+    """The largest finite value (NaN when none)."""
+    finite = values[np.isfinite(values)]
+    return float(finite.max()) if len(finite) else float("nan")
 
 
 def converged(after: DisparityMap, options: SelfCalOptions) -> bool:
@@ -608,28 +500,131 @@ def converged(after: DisparityMap, options: SelfCalOptions) -> bool:
     return bool(np.all(np.isfinite(rms)) and rms.max() <= 1.5 * rms.min() and rms.max() < 0.5 * options.peak_radius_px)
 
 
+def _relative_rotation_deg(a: Calibration, b: Calibration, name: str) -> float:
+    """The angle between camera ``name``'s rotation relative to the first camera in ``a`` and in ``b``."""
+    first = next(iter(a.cameras))
+    rel = lambda c: c.cameras[name].cam_from_world.R @ c.cameras[first].cam_from_world.R.T
+    return rotation_angle_deg(rel(a), rel(b))
+
+
+def trust_checks(start: Calibration, final: Calibration, detections: Mapping[int, Detections],
+                 frames: Sequence[int], particles: ParticleSet, after: DisparityMap, first_tolerance_px: float,
+                 options: SelfCalOptions) -> tuple[Check, ...]:
+    """Whether the result can be trusted, beyond its low disparity:
+
+    - ``noise_level``: the final disparities are one noise level in every camera (:func:`converged`);
+    - ``matched_share``: the final matches use at least MIN_MATCHED_SHARE of the images of the camera with
+      the fewest (a calibration fitted onto ghosts agreeing with each other matches almost nothing);
+    - ``in_reach``: at least MIN_IN_REACH of the final particles were within REACH_MARGIN x the first
+      round's tolerance of the start calibration (else the correction went where the start could not
+      have matched them: the start cannot be trusted, or the result is not of its rig);
+    - ``rig_change`` (a warning): each camera's rotation relative to the first changed by less than
+      CHANGE_SIGMAS of the start's sigma (or 0.2 deg): a larger change is a camera knocked hard, or a
+      start of another rig state."""
+    names = list(final.cameras)
+    images = min(sum(len(detections[f][n]) for f in frames) for n in names)
+    share = float(len(particles.xyz) / images) if images else 0.0
+    checks = [
+        Check("noise_level", _largest(after.rms_px), 0.5 * options.peak_radius_px, converged(after, options),
+              "the final disparities are one noise level in every camera"),
+        Check("matched_share", share, MIN_MATCHED_SHARE, share >= MIN_MATCHED_SHARE,
+              "share of the particle images (camera with the fewest) the final calibration matches"),
+    ]
+    from ..triangulate import triangulate_pixels
+
+    if len(particles.xyz):
+        xyz = triangulate_pixels(start, {n: particles.pixels[:, c] for c, n in enumerate(names)})[0]
+        d = particle_disparities(start, ParticleSet(particles.pixels, xyz, particles.frame))
+        dist = np.linalg.norm(d, axis=2)
+        worst = np.where(np.isfinite(dist).any(axis=1), np.max(np.where(np.isfinite(dist), dist, -1.0), axis=1),
+                         np.nan)
+        reach = float(np.mean(np.nan_to_num(worst, nan=np.inf) <= REACH_MARGIN * first_tolerance_px))
+    else:
+        reach = 0.0
+    checks.append(Check("in_reach", reach, MIN_IN_REACH, reach >= MIN_IN_REACH,
+                        f"share of the final particles within {REACH_MARGIN:g} x the first tolerance "
+                        f"({first_tolerance_px:g} px) of the start calibration"))
+    unc = start.uncertainty
+    worst_ratio, worst_change = 0.0, 0.0
+    for n in names[1:]:
+        change = _relative_rotation_deg(start, final, n)
+        sigma = None if unc is None or n not in unc.cameras else unc.cameras[n].rotation_deg
+        limit = max(0.2, CHANGE_SIGMAS * sigma) if sigma else 0.2
+        if change / limit > worst_ratio:
+            worst_ratio, worst_change = change / limit, change
+    checks.append(Check("rig_change", worst_change, worst_change / worst_ratio if worst_ratio else 0.2,
+                        worst_ratio <= 1.0, "largest change of a camera's rotation relative to the first (deg) "
+                        f"against {CHANGE_SIGMAS:g} start sigmas (or 0.2 deg)", fatal=False))
+    return tuple(checks)
+
+
 def _report(start: Calibration, final: Calibration, options: SelfCalOptions, frames: Sequence[int],
-            rounds: Sequence[Round], baseline: float, seconds: float) -> SelfCalReport:
+            rounds: Sequence[Round], gauge: Gauge, refined: Refined, checks: Sequence[Check],
+            seconds: float) -> SelfCalReport:
     names = list(start.cameras)
     before, after = rounds[0].disparity, rounds[-1].disparity
-    held = ["camera 0's pose (" + names[0] + ", the world frame)"]
-    held.append("the window (normal and distance)" if not options.refine_window else
-                "nothing of the window (normal and distance estimated)")
-    held.append("the intrinsics" if not options.refine_intrinsics else "the distortion (fx fy cx cy estimated)")
-    landmarks = sum(r.adjustment.landmarks for r in rounds if r.adjustment)
+    windows = start.window_list()
+    in_air = all(w.interface.medium_index == 1.0 for w in windows)
+    held = [("the window's plane (normal and position) in the world" if len(windows) == 1 else
+             "every window's plane (normal and position) in the world"),
+            f"the rig's mean motion along the {len(gauge.twists)} motions that keep "
+            + ("the window" if len(windows) == 1 else "the windows")
+            + (" (rotation about its normal, translation within its plane"
+               + (" and along its normal: in air the distance is not observed)" if in_air else ")")
+               if len(windows) == 1 else ""),
+            "the scale: the sum of the distances between every pair of camera centres"]
+    free = refined.covariance.cameras[names[0]].intrinsics
+    if options.intrinsics == "held" or not free:
+        held.append("the intrinsics" + ("" if options.intrinsics == "held" else
+                                        " (the start has no uncertainty to weigh them with)"))
+    else:
+        held.append("the lens distortion but " + "/".join(free) if free else "the intrinsics")
+    estimated = ["every camera's pose (camera 0 included)", "the particles"]
+    if free:
+        estimated.append(" ".join(free) + (" with the start calibration's sigmas as priors"
+                                           if options.intrinsics == "prior" else " (no prior)"))
+    adjustments = [r.adjustment for r in rounds if r.adjustment]
+    fatal = [c for c in checks if c.fatal]
     return SelfCalReport(
         frames=tuple(int(f) for f in frames),
-        particles_used=int(max((r.adjustment.landmarks for r in rounds if r.adjustment), default=0)),
-        landmarks_all_rounds=int(landmarks), held=tuple(held),
-        scale_how="prior on the sum of the distances from camera 0's centre to the other cameras' centres, "
-                  "at the starting calibration's value", scale_sum_mm=baseline, scale_sigma_mm=SCALE_SIGMA_MM,
-        backend=options.backend,
+        particles_used=int(max((a.landmarks for a in adjustments), default=0)),
+        landmarks_all_rounds=int(sum(a.landmarks for a in adjustments)), held=tuple(held),
+        estimated=tuple(estimated),
+        scale_how="prior on the sum of the distances between every pair of camera centres, at the starting "
+                  "calibration's value", scale_sum_mm=gauge.scale_sum_mm,
+        scale_sigma_mm=_stiff_sigma(), backend=options.backend,
         options={k: (list(v) if isinstance(v, tuple) else v) for k, v in options.__dict__.items()},
         disparity_rms_px={n: BeforeAfter(float(before.rms_px[c]), float(after.rms_px[c])) for c, n in enumerate(names)},
-        converged=converged(after, options), rounds=tuple(rounds),
+        converged=converged(after, options), passed=all(c.passed for c in fatal), checks=tuple(checks),
+        rounds=tuple(rounds),
         rotation_change_deg={n: rotation_angle_deg(start.cameras[n].cam_from_world.R, final.cameras[n].cam_from_world.R)
                              for n in names},
-        time_s=seconds)
+        sigmas=dict(refined.covariance.cameras),
+        matched_share=float(next(c.value for c in checks if c.name == "matched_share")), time_s=seconds)
+
+
+def _stiff_sigma() -> float:
+    from .landmarks import STIFF_SIGMA_MM
+
+    return STIFF_SIGMA_MM
+
+
+def result_calibration(current: Calibration, refined: Refined, report: SelfCalReport) -> Calibration:
+    """The corrected calibration as calibration.json holds it: the self-calibration's own residuals (its
+    particles' reprojection residuals) and uncertainty (relative poses, estimated intrinsics); the target
+    calibration's stages, optimizer report, quality verdict, outliers and body poses dropped (they are of
+    the start, whose cameras have moved since)."""
+    from ..results import CameraUncertainty, ResidualStats, Uncertainty
+
+    cov = refined.covariance
+    cams = {n: CameraUncertainty(dict(s.intrinsics), s.rotation_rel_deg is not None, s.rotation_rel_deg,
+                                 s.translation_rel_mm) for n, s in cov.cameras.items()}
+    uncertainty = Uncertainty(cov.sigma_px, cams, None)
+    extra = {k: v for k, v in current.extra.items() if k not in ("stages", "self_calibration")}
+    extra["self_calibration"] = report.to_json()
+    return replace(current, residuals=ResidualStats.of([refined.residuals_px]), uncertainty=uncertainty,
+                   frames={}, stacking_poses={},
+                   quality=None, outliers=None, optimizer=None, extra=extra)
 
 
 def disparity_json(result: SelfCalResult) -> dict[str, Any]:
@@ -641,15 +636,18 @@ def disparity_json(result: SelfCalResult) -> dict[str, Any]:
 
 
 def write_self_calibration(result: SelfCalResult, out_dir) -> None:
-    """OUT/calibration.json and OUT/disparity.json, atomically."""
+    """OUT/calibration.json and OUT/disparity.json, both or neither (written in a temporary folder inside
+    OUT, then renamed into place: a full disk or an interrupt leaves OUT's old files)."""
     from pathlib import Path
 
-    from ..io import write_json_atomic
+    from ..io import calibration_to_json, write_files_atomic
+    from ..io.atomic import format_json, to_jsonable
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(out / "disparity.json", disparity_json(result))
-    save_calibration(result.calibration, out / "calibration.json")
+    def writer(tmp: Path) -> None:
+        (tmp / "disparity.json").write_text(format_json(to_jsonable(disparity_json(result))))
+        (tmp / "calibration.json").write_text(format_json(to_jsonable(calibration_to_json(result.calibration))))
+
+    write_files_atomic(Path(out_dir), writer)
 
 
 # --------------------------------------------------------------------------- a dataset
@@ -663,14 +661,29 @@ def pick_frames(frames: Sequence[int], count: int | None) -> list[int]:
     return [frames[int(round(k))] for k in np.linspace(0, len(frames) - 1, count)]
 
 
+def check_not_input(out, inputs: Sequence[Any]) -> None:
+    """-o must neither be nor hold an input (its calibration.json would overwrite the start calibration)."""
+    import os
+    from pathlib import Path
+
+    target = Path(os.path.realpath(out))
+    for p in inputs:
+        if p is None:
+            continue
+        real = Path(os.path.realpath(p))
+        if real == target or target in real.parents:
+            raise AriSfmError(out, f"-o/--out would hold an input ({p}): write the self-calibration elsewhere")
+
+
 def self_calibrate_dataset(dataset_path, calibration_path, out, options: SelfCalOptions = SelfCalOptions(),
                            detections_path=None, frames: int | None = 10,
                            depth_range_mm: tuple[float, float] | None = None, workers: int = 0,
-                           scheduler: str | None = None) -> SelfCalResult:
+                           scheduler: str | None = None, progress: bool = False) -> SelfCalResult:
     """``ari-sfm self-calibrate``: a particle experiment (DATASET_FORMAT 1.2) and its rig's calibration ->
-    OUT/calibration.json (the corrected calibration, ``self_calibration`` key) and OUT/disparity.json.
-    ``frames``: how many of the detections' frames to use (spread evenly); ``workers``/``scheduler``: the
-    frames' matching on Dask (:func:`ari_sfm.particles.engine.dask_client`)."""
+    OUT/calibration.json (the corrected calibration, ``self_calibration`` key) and OUT/disparity.json,
+    written together or not at all. ``frames``: how many of the detections' frames to use (spread evenly);
+    ``workers``/``scheduler``: the frames' matching on Dask (:func:`ari_sfm.particles.engine.dask_client`;
+    0 workers: ``options.threads`` threads in this process); ``progress``: a progress bar on stderr."""
     import os
     from pathlib import Path
 
@@ -680,12 +693,14 @@ def self_calibrate_dataset(dataset_path, calibration_path, out, options: SelfCal
 
     out = Path(out)
     calibration_path = Path(calibration_path)
+    check_not_input(out, [calibration_path, dataset_path, detections_path])
     dataset, calibration = load_experiment(dataset_path, calibration_path, out)
     check_calibration(calibration, list(dataset.cameras), calibration_path)
     det_path = Path(detections_path) if detections_path is not None else dataset.detections
     if det_path is None:
         raise AriSfmError(dataset.rig_path, "particles: names no detections table: run `ari-sfm detect-particles` "
                                             "and pass its particles.parquet with --detections")
+    check_not_input(out, [det_path, dataset.rig_path])
     cameras = list(calibration.cameras)
     det = read_detections(det_path, dataset.cameras)
     by_frame = det.by_frame(cameras)
@@ -694,9 +709,15 @@ def self_calibrate_dataset(dataset_path, calibration_path, out, options: SelfCal
     chosen = pick_frames(by_frame, frames)
     detections = {f: {c: det.uv[by_frame[f][c]] for c in cameras} for f in chosen}
     volume = volume_for(dataset, calibration, depth_range_mm)
-    with dask_client(workers, scheduler) as client:
-        result = self_calibrate(calibration, detections, options, volume=volume,
-                                map_frames=None if client is None else dask_map(client), path=calibration_path)
+    bar = RoundProgress(progress) if progress else None
+    try:
+        with dask_client(workers, scheduler) as client:
+            result = self_calibrate(calibration, detections, options, volume=volume,
+                                    map_frames=None if client is None else dask_map(client), path=calibration_path,
+                                    progress=bar)
+    finally:
+        if bar is not None:
+            bar.close()
     report = replace(result.report, inputs=SelfCalInputs(
         str(Path(os.path.abspath(dataset.rig_path))), str(Path(os.path.abspath(calibration_path))),
         str(Path(os.path.abspath(det_path))), workers if scheduler is None else None, scheduler))

@@ -74,6 +74,7 @@ class ParticleSimOptions:
     diameter_px: float = 3.0  # particle image diameter (e^-2) for rendering
     look: str = "plain"  # rendered images: "plain" (flat background, 8-bit noise) or "tank" (TankLook: a real tank's)
     bit_depth: int = 8  # of the rendered images: 8 (PNG) or 16 (TIFF)
+    k1: float = 0.0  # radial lens distortion of every camera (OpenCV k1; e.g. -0.03..-0.06)
     seed: int = 0
 
 
@@ -132,6 +133,8 @@ def _rig_a(options: ParticleSimOptions, rng: np.random.Generator) -> tuple[Geome
         jitter = _rot(rng.normal(size=3), math.radians(rng.uniform(0.0, 0.5)))
         rig.append((_look_at(center, ahead) @ jitter, center))
     cameras, rig_from_world = _rig_cameras(rig, rng)
+    if o.k1:
+        cameras = tuple(replace(c, dist=np.array([o.k1, 0.0, 0.0, 0.0, 0.0])) for c in cameras)
     normal_rig = _tilted(np.array([0.0, 0.0, 1.0]), math.radians(rng.uniform(1.0, 3.0)), rng.uniform(0, 2 * math.pi))
     near = max(normal_rig @ c for _, c in rig) + rng.uniform(30.0, 50.0)
     window = _window_in_world(normal_rig, near, rig_from_world, o.glass_mm, NBK7_INDEX, WATER_INDEX)

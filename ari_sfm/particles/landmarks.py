@@ -1,0 +1,626 @@
+"""Self-calibration's bundle adjustment: the particles as landmarks, every camera free, the window held.
+
+What moves in a lab after a target calibration is the cameras (any of them may be bumped); the
+window (a tank wall, a port) does not. So the window's plane is held in the lab (the calibration's
+world frame) and every camera's pose is estimated, camera 0 included. The particles do not see the
+motions that keep the window's plane (:func:`window_gauge`: for one window under water a rotation
+about its normal and a translation within its plane; in air also the translation along the
+normal, whose distance refraction does not show): those are held as the *gauge*, by stiff rows
+saying that the rig's mean motion from the start along them is zero (:class:`Gauge`). The scale is
+held by one more stiff row: the sum of the distances between every pair of camera centres at the
+start's value (particles barely determine it, PHYSICS.md; a sum over all pairs lets no single
+camera's drift set it).
+
+The intrinsics (fx fy cx cy, and k1 when the start estimated distortion) are estimated with the
+start calibration's values and sigmas (its ``uncertainty``) as priors: a principal point shifts the
+particle images almost as a rotation does (over a small field they differ only by the rotation's
+second-order terms), so the particles alone split them poorly, while the target calibration's
+sigmas bound them. Prior rows are whitened against the particles' pixel noise (``noise_px``) so the
+two kinds of information are weighed right.
+
+The problem is refine-colmap's refractive problem (:class:`ari_sfm.colmap_refine.problem.RefractiveProblem`,
+world mount, ``camera_windows`` for several windows): one rig frame (camera 0's pose, a variable
+here) and each other camera's sensor_from_rig. The points are eliminated by the Schur complement
+(:mod:`ari_sfm.factors.schur`), the project's Levenberg-Marquardt solves it; GTSAM solves the
+same graph (``backend='gtsam'``). Perturbations are the problem's: ``(R, t) -> (exp(w) R, t + v)``.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, replace
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from ..calibration import Calibration
+from ..errors import AriSfmError
+from ..geometry import Pose, rotation_angle_deg
+from ..models import PinholeModel
+from ..models.pinhole import PARAM_NAMES
+from .disparity import ParticleSet
+
+log = logging.getLogger(__name__)
+
+STIFF_SIGMA_MM = 0.01  # the gauge and scale rows' sigma (mm of mean camera motion / of the baseline sum): stiff against
+# the particles (they leave ~1 mm on the scale), not so stiff that their curvature (the log, the distances) stalls LM
+RIG_TILT_PRIOR_DEG = 0.5  # the rig's mean tilt to the window(s) (and its distance, as the same motion at the
+# particles) held at the start's by a prior this wide: refraction determines it weakly, and unheld the
+# adjustment's steps wander along it (measured: 0.5 deg steps, then 50 iterations crawling back)
+INTRINSICS_FREE = ("fx", "fy", "cx", "cy")  # estimated with the start's priors (k1 too when it has distortion)
+UNKNOWN_PRIOR_PX = 5.0  # a start whose uncertainty lacks a camera's parameter: its prior this wide (px)
+UNKNOWN_PRIOR_K1 = 0.01
+GTSAM_MAX_LANDMARKS = 3000  # --backend gtsam beyond this: refused (GTSAM's LM on 20k points runs for minutes)
+CHI2_STOP = 0.01  # Levenberg-Marquardt stops when a step lowers chi^2 by less than this
+LAMBDA_INITIAL = 1e-8  # Levenberg-Marquardt's first lambda: the particles' problem is near Gauss-Newton's (from
+# 1e-4, measured: 20-50 iterations crawling down a valley, against 5)
+NOISE_REFIT = 0.2  # the prior rows are re-weighted (one more solve) when the fitted noise differs by more
+INTRINSICS_MODES = ("prior", "held", "free")
+BACKENDS = ("numpy", "gtsam")
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _log_rotation(R: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(R).as_rotvec()
+
+
+# --------------------------------------------------------------------------- the model
+
+
+def free_intrinsics(calibration: Calibration, mode: str) -> tuple[int, ...]:
+    """Indices into [fx fy cx cy k1 k2 p1 p2 k3] estimated: none when held (or "prior" without the start's
+    uncertainty to weigh them: a prior of unknown width would let a principal point trade against a
+    rotation freely), else fx fy cx cy and k1 when the start has lens distortion."""
+    if mode == "held" or (mode == "prior" and calibration.uncertainty is None):
+        if mode == "prior":
+            log.warning("self-calibration: the start calibration has no uncertainty to weigh its intrinsics "
+                        "against the particles: they are held (--intrinsics free estimates them without priors)")
+        return ()
+    has_distortion = any(np.any(np.asarray(c.dist, float) != 0.0) for c in calibration.cameras.values())
+    names = INTRINSICS_FREE + (("k1",) if has_distortion else ())
+    return tuple(PARAM_NAMES.index(n) for n in names)
+
+
+def landmark_model(calibration: Calibration, particles: ParticleSet, free: Sequence[int]):
+    """The particles as a one-frame COLMAP-like model: one image per camera, camera 0 the rig's
+    reference sensor; ``free`` intrinsic indices (of the 9) are variables."""
+    from ..colmap_export import ColmapModel
+
+    names = list(calibration.cameras)
+    C = len(names)
+    cam0 = calibration.cameras[names[0]].cam_from_world
+    params, maps, offsets = [], [], []
+    for n in names:
+        p9 = np.asarray(calibration.cameras[n].params, float)
+        M = np.zeros((9, len(free)))
+        for j, i in enumerate(free):
+            M[i, j] = 1.0
+        off = p9.copy()
+        off[list(free)] = 0.0
+        params.append(p9[list(free)].copy())
+        maps.append(M)
+        offsets.append(off)
+    obs_point, obs_image = np.nonzero(particles.used)
+    return ColmapModel(
+        camera_ids=np.arange(C), camera_models=("OPENCV",) * C,
+        image_sizes=tuple(tuple(calibration.cameras[n].image_size) for n in names),
+        colmap_params=tuple(params), param_map=tuple(maps), param_offset=tuple(offsets),
+        frame_ids=np.zeros(1, int), rig_from_world=(cam0,), image_ids=np.arange(C), image_names=tuple(names),
+        image_camera=np.arange(C), image_frame=np.zeros(C, int),
+        sensor_from_rig=tuple(calibration.cameras[n].cam_from_world.compose(cam0.inverse()) for n in names),
+        point3D_ids=np.arange(len(particles.xyz)), xyz=particles.xyz.copy(),
+        obs_image=obs_image, obs_point=obs_point, obs_uv=particles.pixels[obs_point, obs_image],
+        image_is_ref=np.arange(C) == 0)
+
+
+def window_planes(calibration: Calibration) -> tuple[np.ndarray, np.ndarray]:
+    """Every window's normal (W, 3) and near face offset (W,) in the world (``normal . X = plane`` on the face)."""
+    windows = calibration.window_list()
+    return (np.array([np.asarray(w.normal_world, float) for w in windows]),
+            np.array([w.plane_mm(calibration) for w in windows], dtype=float))
+
+
+def window_gauge(normals: np.ndarray, in_air: Sequence[bool], complement: bool = False) -> np.ndarray:
+    """(K, 6) orthonormal twists [omega, v] (rotation about the world origin, translation) of the rigid
+    motions that keep every window's plane: omega along each normal n, v within its plane (in air also
+    along n: the distance is not observed). One window under water: K = 3; two non-parallel: K = 1."""
+    rows = []
+    for n, air in zip(np.asarray(normals, float), in_air):
+        basis = np.linalg.svd(n[None, :])[2][1:]  # two unit vectors perpendicular to n
+        rows += [np.concatenate([b, np.zeros(3)]) for b in basis]  # omega has no part across n
+        if not air:
+            rows.append(np.concatenate([np.zeros(3), n]))  # v has no part along n
+    A = np.array(rows)
+    _, s, Vt = np.linalg.svd(A)
+    rank = int(np.sum(s > 1e-9 * s.max()))
+    return Vt[:rank] if complement else Vt[rank:]
+
+
+# --------------------------------------------------------------------------- camera motions
+
+
+def camera_poses(state) -> tuple[np.ndarray, np.ndarray]:
+    """(C, 3, 3) rotations and (C, 3) translations of every camera's cam_from_world (one image per camera)."""
+    f = state.rig_from_world[0]
+    R = np.array([s.R @ f.R for s in state.sensor_from_rig])
+    t = np.array([s.R @ f.t + s.t for s in state.sensor_from_rig])
+    return R, t
+
+
+def motion_jacobians(state, layout) -> tuple[np.ndarray, np.ndarray]:
+    """(C, 3, G) Jacobians of each camera's world rotation increment rho_c (world_from_cam moves as
+    exp(rho) R^T) and (C, 3, G) of its centre, with respect to the reduced variables (G = layout.size).
+
+    With R_c = S_c R_f, t_c = S_c t_f + t_s and the perturbations (exp(w) R, t + v) of the frame (f)
+    and the sensor (s): camera c turns by phi = w_s + S_c w_f (camera frame), so d rho = -R_c^T phi,
+    and its centre C = -R_c^T t_c moves by -R_c^T ([t_c]x phi + v_s + S_c v_f - [S_c t_f]x w_s)."""
+    G = layout.size
+    f = state.rig_from_world[0]
+    C = len(state.sensor_from_rig)
+    J_rho = np.zeros((C, 3, G + 1))  # column G: the held (-1) columns, dropped
+    J_C = np.zeros((C, 3, G + 1))
+    fc = layout.frames[0]
+    for c, s in enumerate(state.sensor_from_rig):
+        Rc, tc = s.R @ f.R, s.R @ f.t + s.t
+        sc = layout.sensors[c]
+        # frame columns: phi = S w_f; dt = S v_f
+        J_rho[c][:, fc[:3]] += -Rc.T @ s.R
+        J_C[c][:, fc[:3]] += -Rc.T @ _skew(tc) @ s.R
+        J_C[c][:, fc[3:]] += -Rc.T @ s.R
+        if sc[0] >= 0:  # sensor columns: phi = w_s; dt = v_s - [S t_f]x w_s
+            J_rho[c][:, sc[:3]] += -Rc.T
+            J_C[c][:, sc[:3]] += -Rc.T @ (_skew(tc) - _skew(s.R @ f.t))
+            J_C[c][:, sc[3:]] += -Rc.T
+    return J_rho[:, :, :G], J_C[:, :, :G]
+
+
+@dataclass(frozen=True)
+class Gauge:
+    """What self-calibration holds of the rig: its mean motion from the start along the motions that
+    keep the windows (``twists``, :func:`window_gauge`) and the sum of all pairwise camera distances.
+
+    ``g_k = sum_c (L^2 omega_k . rho_c + (omega_k x C0_c + v_k) . (C_c - C0_c)) / norm_k`` (mm) is the
+    component of the cameras' motions along gauge motion k (``L``: ``length_mm``, the rig's distance
+    to the particles, weighs rotations against displacements); the rows say g = 0 and
+    sum_{i<j} |C_i - C_j| = ``scale_sum_mm``, each with sigma ``STIFF_SIGMA_MM``."""
+
+    start_R: np.ndarray  # (C, 3, 3) the start's cam_from_world rotations
+    start_centres: np.ndarray  # (C, 3)
+    twists: np.ndarray  # (K, 6)
+    length_mm: float
+    scale_sum_mm: float
+    soft: np.ndarray | None = None  # (S, 6) the other rigid motions (the rig's tilt to the windows, its distance)
+    soft_sigma_mm: float = 1.0  # ... held softly: their prior's sigma
+
+    @staticmethod
+    def of(calibration: Calibration, in_air: Sequence[bool], length_mm: float) -> "Gauge":
+        cams = list(calibration.cameras.values())
+        R = np.array([c.cam_from_world.R for c in cams])
+        centres = np.array([c.cam_from_world.inverse().t for c in cams])
+        normals, _ = window_planes(calibration)
+        return Gauge(R, centres, window_gauge(normals, in_air), float(length_mm), pairwise_sum_mm(centres),
+                     window_gauge(normals, in_air, complement=True),
+                     float(length_mm) * math.radians(RIG_TILT_PRIOR_DEG))
+
+    def _motions(self, twists: np.ndarray | None = None) -> np.ndarray:
+        """(K, C, 6) each twist's motion of every camera [rho, dC], normalised to unit norm."""
+        twists = self.twists if twists is None else twists
+        om, v = twists[:, :3], twists[:, 3:]
+        m = np.concatenate([np.broadcast_to(om[:, None, :], (len(om), len(self.start_centres), 3)),
+                            np.cross(om[:, None, :], self.start_centres[None]) + v[:, None, :]], axis=2)
+        norm = np.sqrt(np.sum(self.length_mm ** 2 * m[..., :3] ** 2 + m[..., 3:] ** 2, axis=(1, 2)))
+        return m / norm[:, None, None]
+
+    def rows(self, state, layout) -> tuple[np.ndarray, np.ndarray]:
+        """Whitened errors (K + 1,) and their Jacobians (K + 1, G): the gauge rows, then the scale row."""
+        R, t = camera_poses(state)
+        centres = -np.einsum("cji,cj->ci", R, t)
+        rho = np.array([_log_rotation(Rc.T @ R0) for Rc, R0 in zip(R, self.start_R)])
+        J_rho, J_C = motion_jacobians(state, layout)
+        L2 = self.length_mm ** 2
+
+        def along(twists: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            m = self._motions(twists)
+            return (np.einsum("kci,ci->k", L2 * m[..., :3], rho) + np.einsum("kci,ci->k", m[..., 3:],
+                                                                              centres - self.start_centres),
+                    np.einsum("kci,cig->kg", L2 * m[..., :3], J_rho) + np.einsum("kci,cig->kg", m[..., 3:], J_C))
+
+        g, J_g = along(self.twists)
+        s, ds = _pairwise_sum_gradient(centres)
+        J_s = np.einsum("ci,cig->g", ds, J_C)
+        e = np.append(g, s - self.scale_sum_mm) / STIFF_SIGMA_MM
+        J = np.vstack([J_g, J_s[None]]) / STIFF_SIGMA_MM
+        if self.soft is not None and len(self.soft):
+            g_s, J_gs = along(self.soft)
+            e, J = np.append(e, g_s / self.soft_sigma_mm), np.vstack([J, J_gs / self.soft_sigma_mm])
+        return e, J
+
+
+def pairwise_sum_mm(centres: np.ndarray) -> float:
+    """Sum of the distances between every pair of camera centres (the held scale)."""
+    return _pairwise_sum_gradient(np.asarray(centres, float))[0]
+
+
+def _pairwise_sum_gradient(centres: np.ndarray) -> tuple[float, np.ndarray]:
+    d = centres[:, None, :] - centres[None, :, :]
+    n = np.linalg.norm(d, axis=2)
+    iu = np.triu_indices(len(centres), 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = np.where(n[..., None] > 0, d / n[..., None], 0.0)
+    return float(n[iu].sum()), u.sum(axis=1)
+
+
+# --------------------------------------------------------------------------- intrinsics priors
+
+
+@dataclass(frozen=True)
+class IntrinsicsPrior:
+    """Per camera the start's values and sigmas of the free intrinsics (``free`` indices of the 9)."""
+
+    free: tuple[int, ...]
+    values: np.ndarray  # (C, F)
+    sigmas: np.ndarray  # (C, F); inf: no prior (mode "free")
+
+    @staticmethod
+    def of(calibration: Calibration, free: Sequence[int], mode: str) -> "IntrinsicsPrior":
+        names = list(calibration.cameras)
+        values = np.array([[calibration.cameras[n].params[i] for i in free] for n in names]).reshape(len(names), -1)
+        sig = np.full(values.shape, np.inf)
+        if mode == "prior":
+            unc = calibration.uncertainty
+            for c, n in enumerate(names):
+                cu = None if unc is None else unc.cameras.get(n)
+                for j, i in enumerate(free):
+                    s = None if cu is None else cu.intrinsics.get(PARAM_NAMES[i])
+                    fallback = UNKNOWN_PRIOR_K1 if PARAM_NAMES[i] == "k1" else UNKNOWN_PRIOR_PX
+                    sig[c, j] = float(s) if s is not None and math.isfinite(s) and s > 0 else fallback
+        return IntrinsicsPrior(tuple(free), values, sig)
+
+    def rows(self, state, layout, noise_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Whitened errors (R,), Jacobian values (R,) and columns (R,) of the prior rows, weighed against
+        pixel residuals of ``noise_px`` (the rows are noise_px (p - p0) / sigma)."""
+        e, J, cols = [], [], []
+        for c, ix in enumerate(layout.intrinsics):
+            for j, col in enumerate(ix):
+                s = self.sigmas[c, j]
+                if col < 0 or not math.isfinite(s):
+                    continue
+                w = noise_px / s
+                e.append(w * (state.colmap_params[c][j] - self.values[c, j]))
+                J.append(w)
+                cols.append(col)
+        return np.array(e), np.array(J), np.array(cols, dtype=int)
+
+
+# --------------------------------------------------------------------------- the solver
+
+
+def _solver_class():
+    """refine-colmap's Solver plus the gauge, scale and intrinsics prior rows."""
+    from ..colmap_refine.refine import Solver
+
+    class SelfCalSolver(Solver):
+        def __init__(self, problem, huber_px, gauge: Gauge, prior: IntrinsicsPrior, noise_px: float) -> None:
+            super().__init__(problem, huber_px)
+            self.gauge, self.intrinsics_prior, self.noise_px = gauge, prior, noise_px
+
+        def _extra_cost(self, state) -> float:
+            e_g, _ = self.gauge.rows(state, self.problem.layout)
+            e_p, _, _ = self.intrinsics_prior.rows(state, self.problem.layout, self.noise_px)
+            return 0.5 * float(e_g @ e_g + e_p @ e_p)
+
+        def cost(self, state) -> float:
+            return super().cost(state) + self._extra_cost(state)
+
+        error = cost
+
+        def linearize(self, state):
+            ne = super().linearize(state)
+            ne.damping = np.diag(ne.U).copy()  # Marquardt's scales from the images (the stiff rows are constraints)
+            e_g, J_g = self.gauge.rows(state, self.problem.layout)
+            ne.U += J_g.T @ J_g
+            ne.g_global += J_g.T @ e_g
+            e_p, J_p, cols = self.intrinsics_prior.rows(state, self.problem.layout, self.noise_px)
+            ne.U[cols, cols] += J_p ** 2
+            ne.g_global[cols] += J_p * e_p
+            ne.error += 0.5 * float(e_g @ e_g + e_p @ e_p)
+            return ne
+
+    return SelfCalSolver
+
+
+@dataclass(frozen=True)
+class Adjustment:
+    """One bundle adjustment with the particles as landmarks (:func:`refine_with_landmarks`)."""
+
+    landmarks: int
+    observations: int
+    iterations: int
+    stop: str  # Levenberg-Marquardt's stop reason ("max_iterations": it did not converge)
+    cost_start: float
+    cost_final: float
+    rms_px: float
+    noise_px: float  # the fitted pixel noise per coordinate (a-posteriori sigma) the priors were weighed with
+    sum_baselines_held_mm: float  # the scale row's value: the sum of all pairwise camera distances
+    sum_baselines_final_mm: float
+    rotation_change_deg: Mapping[str, float]
+    time_s: float
+
+    def to_json(self) -> dict[str, Any]:
+        return {"landmarks": self.landmarks, "observations": self.observations, "iterations": self.iterations,
+                "stop": self.stop, "cost": {"start": self.cost_start, "final": self.cost_final},
+                "rms_px": self.rms_px, "noise_px": self.noise_px,
+                "sum_baselines_mm": {"held": self.sum_baselines_held_mm, "final": self.sum_baselines_final_mm},
+                "rotation_change_deg": dict(self.rotation_change_deg), "time_s": self.time_s}
+
+
+@dataclass(frozen=True)
+class CameraSigma:
+    """One camera's 1-sigma after self-calibration: its rotation and centre relative to camera 0
+    (sqrt of the covariance's trace), in the world (the window's frame) and its free intrinsics."""
+
+    rotation_rel_deg: float | None
+    translation_rel_mm: float | None
+    rotation_deg: float
+    centre_mm: float
+    intrinsics: Mapping[str, float]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"rotation_rel_deg": self.rotation_rel_deg, "translation_rel_mm": self.translation_rel_mm,
+                "rotation_world_deg": self.rotation_deg, "centre_world_mm": self.centre_mm,
+                "intrinsics": dict(self.intrinsics)}
+
+
+@dataclass(frozen=True)
+class Covariance:
+    """The adjustment's sigmas (points eliminated; the gauge and the scale held)."""
+
+    sigma_px: float
+    cameras: Mapping[str, CameraSigma]
+
+
+def _sigma(J: np.ndarray, cov: np.ndarray) -> float:
+    v = float(np.trace(J @ cov @ J.T))
+    return math.sqrt(v) if v >= 0 and math.isfinite(v) else float("nan")
+
+
+def covariance(solver, state, names: Sequence[str], system=None) -> Covariance:
+    """Per camera the sigmas of its pose relative to camera 0, in the world, and of its intrinsics:
+    ``s0^2 S^-1`` (the undamped Schur complement, :func:`ari_sfm.factors.schur.global_covariance`),
+    ``s0`` the fitted noise (Huber-weighted residuals over the degrees of freedom)."""
+    from ..factors.schur import global_covariance
+
+    lay = solver.problem.layout
+    ne = solver.linearize(state) if system is None else system
+    s0 = fitted_noise(solver, state)
+    cov = s0 ** 2 * global_covariance(ne)  # the priors are whitened at noise_px ~ s0 (refit_noise)
+    R, t = camera_poses(state)
+    J_rho, J_C = motion_jacobians(state, lay)
+    # camera-frame turn phi_c = -R_c rho_c; relative rotation R_c R_0^T turns by phi_c - R_rel phi_0 (camera c)
+    phi = -np.einsum("cij,cjg->cig", R, J_rho)
+    out = {}
+    for c, n in enumerate(names):
+        intr = {}
+        for j, col in enumerate(lay.intrinsics[c]):
+            if col >= 0:
+                intr[PARAM_NAMES[solver.intrinsics_prior.free[j]]] = math.sqrt(max(cov[col, col], 0.0))
+        rel_r = rel_t = None
+        if c > 0:
+            R_rel = R[c] @ R[0].T
+            rel_r = math.degrees(_sigma(phi[c] - R_rel @ phi[0], cov))
+            C0, Cc = -R[0].T @ t[0], -R[c].T @ t[c]
+            x = R[0] @ (Cc - C0)  # camera c's centre in camera 0's frame
+            rel_t = _sigma(-_skew(x) @ phi[0] + R[0] @ (J_C[c] - J_C[0]), cov)
+        out[n] = CameraSigma(rel_r, rel_t, math.degrees(_sigma(J_rho[c], cov)), _sigma(J_C[c], cov), intr)
+    return Covariance(s0, out)
+
+
+def fitted_noise(solver, state) -> float:
+    """The a-posteriori pixel noise per coordinate: sqrt(Huber-weighted chi^2 / degrees of freedom)."""
+    from ..colmap_refine.problem import huber_weights
+
+    r = solver.problem.residuals(state)
+    w = huber_weights(r, solver.huber_px)
+    dof = 2 * len(r) - 3 * len(state.xyz) - solver.problem.layout.size
+    return float(math.sqrt(np.sum(w * np.sum(r ** 2, axis=1)) / dof)) if dof > 0 else float("nan")
+
+
+# --------------------------------------------------------------------------- GTSAM
+
+
+def _gtsam_refinement(problem, huber_px: float | None, gauge: Gauge, prior: IntrinsicsPrior, noise_px: float):
+    """refine-colmap's GTSAM graph plus the gauge, scale and intrinsics prior rows as CustomFactors."""
+    import gtsam
+
+    from ..colmap_refine import gtsam_graph as gg
+
+    lay = problem.layout
+    C = len(problem.model.camera_ids)
+
+    class SelfCalRefinement(gg.GtsamRefinement):
+        def values(self, st):
+            v = super().values(st)
+            for c in range(C):  # held intrinsics: no variable
+                if not problem.model.param_map[c].any():
+                    v.erase(gg._intrinsics_key(c))
+            return v
+
+        def state(self, values, template):
+            v = gtsam.Values(values)
+            for c in range(C):
+                if not problem.model.param_map[c].any():
+                    v.insert(gg._intrinsics_key(c), np.zeros(0))
+            return super().state(v, template)
+
+        def optimize(self, st, max_iterations: int = 100):
+            params = gtsam.LevenbergMarquardtParams()
+            params.setMaxIterations(max_iterations)
+            params.setRelativeErrorTol(1e-12)
+            params.setAbsoluteErrorTol(1e-12)
+            params.setDiagonalDamping(True)
+            opt = gtsam.LevenbergMarquardtOptimizer(self.graph(st), self.values(st), params)
+            values = opt.optimize()
+            return self.state(values, st), int(opt.iterations())
+
+        def graph(self, st):
+            g = super().graph(st)
+            pose_keys = [gg._frame_key(0)] + [gg._sensor_key(c) for c in range(C) if lay.sensors[c, 0] >= 0]
+            pose_cols = [lay.frames[0]] + [lay.sensors[c] for c in range(C) if lay.sensors[c, 0] >= 0]
+            template = st
+
+            def from_values(values):
+                frame = values.atPose3(pose_keys[0])
+                sensors = list(template.sensor_from_rig)
+                k = 1
+                for c in range(C):
+                    if lay.sensors[c, 0] >= 0:
+                        p = values.atPose3(pose_keys[k])
+                        sensors[c] = Pose(p.rotation().matrix(), np.asarray(p.translation(), float))
+                        k += 1
+                return replace(template, rig_from_world=(Pose(frame.rotation().matrix(),
+                                                              np.asarray(frame.translation(), float)),),
+                               sensor_from_rig=tuple(sensors))
+
+            def gauge_error(this, values, H):
+                s = from_values(values)
+                e, J = gauge.rows(s, lay)
+                if H is not None:  # GTSAM's Pose3 moves as T Exp([w, v]): w_left = R w, v_left = R v
+                    for k, (key, cols) in enumerate(zip(pose_keys, pose_cols)):
+                        Rk = values.atPose3(key).rotation().matrix()
+                        H[k] = np.hstack([J[:, cols[:3]] @ Rk, J[:, cols[3:]] @ Rk])
+                return e
+
+            rows = len(gauge.rows(template, lay)[0])
+            g.add(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows), pose_keys, gauge_error))
+            for c, ix in enumerate(lay.intrinsics):
+                for j, col in enumerate(ix):
+                    s = prior.sigmas[c, j]
+                    if col < 0 or not math.isfinite(s):
+                        continue
+                    key, w, p0 = gg._intrinsics_key(c), noise_px / s, prior.values[c, j]
+                    dim = len(ix)
+
+                    def prior_error(this, values, H, j=j, key=key, w=w, p0=p0, dim=dim):
+                        if H is not None:
+                            row = np.zeros((1, dim))
+                            row[0, j] = w
+                            H[0] = row
+                        return np.array([w * (values.atVector(key)[j] - p0)])
+
+                    g.add(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(1), [key], prior_error))
+            return g
+
+    return SelfCalRefinement(problem, huber_px)
+
+
+# --------------------------------------------------------------------------- the adjustment
+
+
+@dataclass(frozen=True)
+class Refined:
+    """The corrected calibration, how the adjustment went, and its sigmas."""
+
+    calibration: Calibration
+    adjustment: Adjustment
+    covariance: Covariance
+    residuals_px: np.ndarray  # (M, 2) the landmarks' reprojection residuals at the solution
+
+
+def refine_with_landmarks(calibration: Calibration, particles: ParticleSet, gauge: Gauge,
+                          prior: IntrinsicsPrior, huber_px: float = 1.0, max_iterations: int = 50,
+                          backend: str = "numpy", noise_px: float = 0.1) -> Refined:
+    """``calibration`` corrected by a bundle adjustment with ``particles`` as landmarks (module docstring):
+    every camera's pose and the free intrinsics estimated, the window held in the world, the ``gauge``
+    and the scale held. ``noise_px``: the first guess of the pixel noise the priors are weighed against
+    (refitted when the residuals say otherwise)."""
+    from ..colmap_refine.problem import RefractiveProblem, State
+
+    t0 = time.perf_counter()
+    if backend not in BACKENDS:
+        raise AriSfmError(None, f"backend must be one of {', '.join(BACKENDS)} (got {backend!r})")
+    if backend == "gtsam" and len(particles.xyz) > GTSAM_MAX_LANDMARKS:
+        raise AriSfmError("--backend", f"gtsam solves at most {GTSAM_MAX_LANDMARKS} particles in reasonable time "
+                                       f"(this round has {len(particles.xyz)}): use the numpy backend")
+    names = list(calibration.cameras)
+    model = landmark_model(calibration, particles, prior.free)
+    windows = calibration.window_list()
+    window_of = [next(k for k, w in enumerate(windows) if n in w.cameras) for n in names]
+    normals, planes = window_planes(calibration)
+    problem = RefractiveProblem(model, calibration.interface, "world", False, camera_windows=window_of,
+                                interfaces=[w.interface for w in windows], hold_window=True,
+                                held_frames=np.zeros(0, int), hold_intrinsics=not prior.free)
+    state = State(model.colmap_params, model.rig_from_world, model.sensor_from_rig, normals, planes, model.xyz.copy())
+    solver = _solver_class()(problem, huber_px, gauge, prior, noise_px)
+    cost0 = solver.cost(state)
+    final, iterations, stop, system = state, 0, "converged", None
+    for _ in range(3):  # weigh the priors against the fitted noise (one refit at most, normally)
+        if backend == "numpy":
+            from ..factors.levenberg_marquardt import LMParams, levenberg_marquardt
+
+            # stop when a step lowers chi^2 (cost / noise^2) by less than CHI2_STOP: the rest is a crawl along
+            # the weakly determined directions (the rig's tilt to the window, a principal point against a
+            # rotation) by far less than their sigma
+            stop_cost = 0.5 * CHI2_STOP * solver.noise_px ** 2
+            res = levenberg_marquardt(solver, final, max_iterations, 0.0,
+                                      LMParams(lambda_initial=LAMBDA_INITIAL, absolute_tolerance=stop_cost))
+            final, system = res.x, res.system_at_x
+            iterations += res.report.iterations
+            stop = res.report.stop
+        else:
+            refinement = _gtsam_refinement(problem, huber_px, gauge, prior, solver.noise_px)
+            final, its = refinement.optimize(final, max_iterations)
+            iterations += its
+            stop = "max_iterations" if its >= max_iterations else "converged"
+            system = None
+        s0 = fitted_noise(solver, final)
+        if not (math.isfinite(s0) and abs(s0 / solver.noise_px - 1.0) > NOISE_REFIT and prior.free):
+            break
+        solver = _solver_class()(problem, huber_px, gauge, prior, s0)
+        system = None
+    cov = covariance(solver, final, names, system)
+    R, t = final.cam_from_world(model)
+    cameras = {}
+    for c, n in enumerate(names):
+        cam = calibration.cameras[n]
+        p9 = model.params9(c, final.colmap_params[c])
+        cameras[n] = replace(cam, K=PinholeModel.from_params(p9).K, dist=p9[4:].copy(), cam_from_world=Pose(R[c], t[c]),
+                             rmse_px=None)
+    corrected = with_windows(replace(calibration, cameras=cameras), normals, planes)
+    corrected = replace(corrected, model="exact" if calibration.model == "truth" else calibration.model)
+    r = problem.residuals(final)
+    e = np.linalg.norm(r, axis=1)
+    centres = np.array([Pose(R[c], t[c]).inverse().t for c in range(len(names))])
+    adjustment = Adjustment(int(len(particles.xyz)), int(len(e)), int(iterations), stop, float(cost0),
+                            float(solver.cost(final)), float(np.sqrt(np.mean(e ** 2))), float(solver.noise_px),
+                            gauge.scale_sum_mm, pairwise_sum_mm(centres),
+                            {n: rotation_angle_deg(calibration.cameras[n].cam_from_world.R, R[c])
+                             for c, n in enumerate(names)}, time.perf_counter() - t0)
+    if stop == "max_iterations":
+        log.warning("self-calibration: the bundle adjustment of %d particles stopped at its %d-iteration cap "
+                    "(not converged)", len(particles.xyz), max_iterations)
+    log.info("self-calibration: bundle adjustment of %d particles: %.3f px RMS after %d iterations (%s)",
+             len(particles.xyz), adjustment.rms_px, iterations, stop)
+    return Refined(corrected, adjustment, cov, r)
+
+
+def with_windows(calibration: Calibration, normals: np.ndarray, planes: np.ndarray) -> Calibration:
+    """``calibration`` (its cameras already moved) with each window at ``normals``, ``planes`` in the world;
+    the distances (from each window's first camera, as calibration.json gives them) follow the cameras."""
+    windows = []
+    for w, n, h in zip(calibration.window_list(), normals, planes):
+        centre = calibration.cameras[w.cameras[0]].cam_from_world.inverse().t
+        d = float(h - n @ centre)
+        if w.interface.distance_mm is not None:
+            w = replace(w, interface=replace(w.interface, distance_mm=d), normal_world=n.copy())
+        else:
+            w = replace(w, normal_world=n.copy(), fixed_distance_mm=d if w.fixed_distance_mm is not None else None)
+        windows.append(w)
+    first = windows[0]
+    return replace(calibration, interface=first.interface, normal_world=first.normal_world,
+                   fixed_distance_mm=first.fixed_distance_mm, windows=tuple(windows) if calibration.windows else ())
