@@ -585,10 +585,12 @@ def import_colmap_fork_cmd(model_dir: Path, out: Path, units_mm: float) -> None:
               help="particles: rendered images 8-bit (PNG) or 16-bit (TIFF).")
 @click.option("--k1", type=float, default=0.0, show_default=True,
               help="particles: radial lens distortion (OpenCV k1) of every camera, e.g. -0.05.")
+@click.option("--windows", type=click.Choice(["1", "2"]), default="1", show_default=True,
+              help="particles: 2 for a tank seen through two opposite walls, half the cameras behind each.")
 @user_errors
 def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_scale: float, images: bool | None,
              num_cameras: int, particles_per_frame: int, num_frames: int, render_frames: int, drift_deg: float,
-             drift_mm: float, drift_cameras: str, look: str, bit_depth: str, k1: float) -> None:
+             drift_mm: float, drift_cameras: str, look: str, bit_depth: str, k1: float, windows: str) -> None:
     """Write a simulated dataset (exact Snell physics) and its truth. SCENARIO: one of `ari-sfm scenarios`."""
     from .simulate import SCENARIOS, simulate as run_sim
 
@@ -597,10 +599,13 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_sca
     check_number("--seed", seed, minimum=0)
     if scenario == "particles":  # a particle experiment: rig A's target calibration, drifted rig B, particles
         _simulate_particles(out, seed, 0.1 if sigma is None else sigma, num_cameras, particles_per_frame, num_frames,
-                            render_frames, drift_deg, drift_mm, drift_cameras, look, int(bit_depth), k1)
+                            render_frames, drift_deg, drift_mm, drift_cameras, look, int(bit_depth), k1, int(windows))
         return
     if k1:
         raise AriSfmError("--k1", "is for the particles scenario")
+    if windows != "1":
+        raise AriSfmError("--windows", "is for the particles scenario (tank_opposite and tank_adjacent are the "
+                                       "two-window target scenarios)")
     check_output_folder(out)
     check_number("--sigma", sigma, minimum=0.0, maximum=100.0)
     check_number("--image-scale", image_scale, minimum=MIN_IMAGE_SCALE, maximum=40.0)
@@ -624,7 +629,7 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_sca
 
 def _simulate_particles(out: Path, seed: int, sigma: float, num_cameras: int, particles_per_frame: int,
                         num_frames: int, render_frames: int, drift_deg: float, drift_mm: float, drift_cameras: str,
-                        look: str = "plain", bit_depth: int = 8, k1: float = 0.0) -> None:
+                        look: str = "plain", bit_depth: int = 8, k1: float = 0.0, windows: int = 1) -> None:
     """`simulate particles`: write OUT/calibration, OUT/experiment, OUT/truth (ari_sfm.simulate.particles)."""
     from .simulate.particles import ParticleSimOptions, simulate_particle_experiment, write_particle_experiment
 
@@ -646,7 +651,7 @@ def _simulate_particles(out: Path, seed: int, sigma: float, num_cameras: int, pa
         raise AriSfmError("--drift-cameras", f"{bad} not among the cameras 0..{num_cameras - 1}")
     options = ParticleSimOptions(num_cameras=num_cameras, particles_per_frame=particles_per_frame,
                                  num_frames=num_frames, sigma_px=sigma, drift_cameras=drifted, drift_deg=drift_deg,
-                                 drift_mm=drift_mm, look=look, bit_depth=bit_depth, k1=k1, seed=seed)
+                                 drift_mm=drift_mm, look=look, bit_depth=bit_depth, k1=k1, windows=windows, seed=seed)
     paths = write_particle_experiment(simulate_particle_experiment(options), out, render_frames=render_frames)
     click.echo(f"calibration dataset (rig A): {paths['calibration']}\nexperiment (rig B):          "
                f"{paths['experiment']}\ntruth:                       {paths['truth']} (rig_a.json, rig_b.json, "

@@ -46,7 +46,7 @@ from ari_sfm.simulate.scenarios import (
     _window_in_world,
 )
 from ari_sfm.simulate.particle_images import TankLook, render_particle_image, render_tank_frame
-from ari_sfm.simulate.scene import Geometry, check_geometry, observe, project, to_dataset, truth_dict
+from ari_sfm.simulate.scene import Geometry, WindowGroup, check_geometry, observe, project, to_dataset, truth_dict
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +75,7 @@ class ParticleSimOptions:
     look: str = "plain"  # rendered images: "plain" (flat background, 8-bit noise) or "tank" (TankLook: a real tank's)
     bit_depth: int = 8  # of the rendered images: 8 (PNG) or 16 (TIFF)
     k1: float = 0.0  # radial lens distortion of every camera (OpenCV k1; e.g. -0.03..-0.06)
+    windows: int = 1  # 2: a tank seen through two opposite walls, half the cameras behind each (DATASET_FORMAT 1.3)
     seed: int = 0
 
 
@@ -117,32 +118,50 @@ def _check(options: ParticleSimOptions) -> None:
         raise ValueError(f"look must be one of {', '.join(LOOKS)} (got {o.look!r})")
     if o.bit_depth not in (8, 16):
         raise ValueError(f"bit_depth must be 8 or 16 (got {o.bit_depth})")
+    if o.windows not in (1, 2) or (o.windows == 2 and o.num_cameras < 4):
+        raise ValueError(f"windows must be 1, or 2 with at least 4 cameras (got {o.windows}, {o.num_cameras} cameras)")
     bad = [c for c in o.drift_cameras if not 0 <= c < o.num_cameras]
     if bad:
         raise ValueError(f"drift_cameras {bad} not among the {o.num_cameras} cameras")
 
 
 def _rig_a(options: ParticleSimOptions, rng: np.random.Generator) -> tuple[Geometry, np.ndarray]:
-    """Cameras on a ring aimed at the volume's centre, the window, the body views; and that centre (world)."""
+    """Cameras on a ring aimed at the volume's centre, the window, the body views; and that centre (world).
+    With two windows the second half of the ring faces the volume from the other side, through the
+    opposite wall (the volume's centre between the walls)."""
     o = options
     ahead = np.array([0.0, 0.0, o.distance_mm])
+    back = o.windows == 2
     rig = []
     for i in range(o.num_cameras):
         a = math.pi / 4 + 2 * math.pi * i / o.num_cameras
         center = np.array([o.ring_radius_mm * math.cos(a), o.ring_radius_mm * math.sin(a), 0.0])
+        if back and i >= o.num_cameras // 2:  # mirrored through the volume's centre along the axis
+            center = center * np.array([1.0, 1.0, 0.0]) + np.array([0.0, 0.0, 2 * o.distance_mm])
         jitter = _rot(rng.normal(size=3), math.radians(rng.uniform(0.0, 0.5)))
         rig.append((_look_at(center, ahead) @ jitter, center))
     cameras, rig_from_world = _rig_cameras(rig, rng)
     if o.k1:
         cameras = tuple(replace(c, dist=np.array([o.k1, 0.0, 0.0, 0.0, 0.0])) for c in cameras)
     normal_rig = _tilted(np.array([0.0, 0.0, 1.0]), math.radians(rng.uniform(1.0, 3.0)), rng.uniform(0, 2 * math.pi))
-    near = max(normal_rig @ c for _, c in rig) + rng.uniform(30.0, 50.0)
+    front = [c for k, (_, c) in enumerate(rig) if not back or k < o.num_cameras // 2]
+    near = max(normal_rig @ c for c in front) + rng.uniform(30.0, 50.0)
     window = _window_in_world(normal_rig, near, rig_from_world, o.glass_mm, NBK7_INDEX, WATER_INDEX)
+    groups: tuple[WindowGroup, ...] = ()
+    by_camera = None
+    if back:  # the opposite wall as far beyond the volume's centre as the front one is before it
+        half = o.num_cameras // 2
+        normal_back = _tilted(np.array([0.0, 0.0, -1.0]), math.radians(rng.uniform(1.0, 3.0)), rng.uniform(0, 2 * math.pi))
+        far = max(normal_back @ c for _, c in rig[half:]) + rng.uniform(30.0, 50.0)
+        second = _window_in_world(normal_back, far, rig_from_world, o.glass_mm, NBK7_INDEX, WATER_INDEX)
+        names = [c.name for c in cameras]
+        groups = (WindowGroup("front", window, tuple(names[:half])), WindowGroup("back", second, tuple(names[half:])))
+        by_camera = {c: g.window for g in groups for c in g.cameras}
     world_from_rig = rig_from_world.inverse()
     target = _step_body(depth_mm=40.0, cells=9, pitch_mm=12.0)
     _, pts = target.points_3d()
     centroid = pts.mean(axis=0)
-    chk = _Checker(target, window, cameras)
+    chk = _Checker(target, window, cameras, windows=by_camera)
 
     def sample() -> Pose | None:
         R = world_from_rig.R @ _rot(rng.normal(size=3), math.radians(rng.uniform(0.0, 8.0)))
@@ -151,7 +170,7 @@ def _rig_a(options: ParticleSimOptions, rng: np.random.Generator) -> tuple[Geome
         return pose if len(chk.seen_by(pose)) == len(cameras) else None
 
     frames = {name: _draw("the calibration body", sample) for name in _frame_names("f", o.calibration_frames)}
-    geometry = Geometry(target=target, window=window, cameras=cameras, calibration=frames)
+    geometry = Geometry(target=target, window=window, cameras=cameras, calibration=frames, windows=groups)
     check_geometry(geometry)
     return geometry, world_from_rig.apply(ahead)
 
@@ -201,7 +220,7 @@ def simulate_particle_experiment(options: ParticleSimOptions = ParticleSimOption
         X = rng_p.uniform(vmin, vmax, size=(o.particles_per_frame, 3))
         det, pid, ex = {}, {}, {}
         for cam in rig_b.cameras:
-            uv = project(rig_b.window, cam, X)
+            uv = project(rig_b.window_of(cam.name), cam, X)
             w, h = cam.image_size
             seen = np.flatnonzero(np.isfinite(uv).all(axis=1)
                                   & (uv[:, 0] >= IMAGE_MARGIN_PX) & (uv[:, 0] <= w - 1 - IMAGE_MARGIN_PX)
@@ -264,7 +283,7 @@ def write_particle_experiment(exp: ParticleExperiment, out_dir: str | Path, rend
     import cv2
 
     from ari_sfm.io import save_rig, write_bytes_atomic, write_json_atomic, write_text_atomic
-    from ari_sfm.io.dataset import camera_to_json, interface_to_json
+    from ari_sfm.io.dataset import camera_to_json, windows_to_json
     from ari_sfm.io.particles import parquet_bytes
     import yaml
 
@@ -315,7 +334,7 @@ def write_particle_experiment(exp: ParticleExperiment, out_dir: str | Path, rend
 
     rig = {
         "format": "ari-sfm/1",
-        "interface": interface_to_json(ds.interface),
+        **windows_to_json(ds),
         "cameras": {name: camera_to_json(spec) for name, spec in ds.cameras.items()},
         "particles": {
             "detections": "particles.parquet",
