@@ -95,6 +95,29 @@ def test_identified_ids_are_right_and_nearly_all_found(view, rendered, exact):
         assert match.rms_px < 0.1
 
 
+def test_matching_camera_jacobian_is_the_numerical_one(view):
+    """fit_camera's analytic Jacobian (pinhole with k1, and the exact model through the window) against central
+    differences, the rotation as a left increment."""
+    from ari_sfm.body.camera import MatchCamera, _project
+    from ari_sfm.geometry import rotation_from_rotvec
+
+    _, xyz = BODY.points_3d()
+    R = view.cam_from_body.R
+    params = np.array([0, 0, 0, *view.cam_from_body.t, np.log(5800.0), 650.0, 500.0, 0.3])
+    for window in (None, _window(view)):
+        camera = MatchCamera(params, aspect=1.02, window=window)
+        uv, J = _project(R, params, camera, xyz, jacobian=True)
+        assert np.isfinite(uv).all()
+        numeric = np.empty_like(J)
+        for k in range(10):
+            step = np.zeros(10)
+            step[k] = 1e-6
+            plus = _project(rotation_from_rotvec(step[:3]) @ R, params + step, camera, xyz, jacobian=False)[0]
+            minus = _project(rotation_from_rotvec(-step[:3]) @ R, params - step, camera, xyz, jacobian=False)[0]
+            numeric[:, :, k] = (plus - minus) / 2e-6
+        np.testing.assert_allclose(J, numeric, atol=1e-5 * np.abs(numeric).max())
+
+
 def test_a_stray_dot_beside_a_body_dot_leaves_that_point_out(view):
     image = render_body_image(view, BODY, distractors=Distractors(beside=(37, 12)), seed=3)
     match = find_body(image.image, BODY, _clicks(image, seed=3))
@@ -128,7 +151,8 @@ def test_bad_clicks_are_one_clear_error(rendered, change, message):
 # ----------------------------------------------------------------------------- datasets
 
 
-def _dataset(tmp_path: Path, clicks_for=("cam1", "cam2"), bad_click: bool = False) -> tuple[Path, dict]:
+def _dataset(tmp_path: Path, clicks_for=("cam1", "cam2"), bad_click: bool = False,
+             focal_px: float | None = None) -> tuple[Path, dict]:
     """Two cameras' rendered images, rig.yaml with the window's plane and the clicks; returns the truth."""
     views = {"cam1": cavity_view(), "cam2": cavity_view((-118.0, 27.0, -578.0), roll_deg=-1.5)}
     tmp_path.mkdir(parents=True)
@@ -142,7 +166,7 @@ def _dataset(tmp_path: Path, clicks_for=("cam1", "cam2"), bad_click: bool = Fals
     if bad_click:
         clicks["cam2"][68] = clicks["cam2"].pop(73)
     ds = Dataset(root=tmp_path, rig_path=tmp_path / "rig.yaml", target=BODY, interface=views["cam1"].interface,
-                 cameras={n: CameraSpec(n, (1280, 1024)) for n in views},
+                 cameras={n: CameraSpec(n, (1280, 1024), focal_px=focal_px) for n in views},
                  calibration=(Entry("calibration", FRAME, images, manual_points=clicks),))
     return save_rig(tmp_path / "rig.yaml", ds), truth
 
@@ -174,3 +198,19 @@ def test_a_body_without_good_clicks_is_one_error_naming_rig_and_camera(tmp_path,
     error = r.output.splitlines()[-1]  # after detect's progress bar
     assert r.exit_code == 1 and r.output.count("error:") == 1 and error.startswith(f"error: {rig}: {message}"), r.output
     assert not (tmp_path / "out").exists()
+
+
+def test_calibrate_from_images_and_clicks(tmp_path):
+    """calibrate on images and clicks alone (the window's plane declared, a nominal focal length as a shallow
+    body's single view needs): the true focal length and principal point."""
+    from ari_sfm.io import load_calibration
+
+    rig, _ = _dataset(tmp_path / "ds", focal_px=5800.0)
+    r = CliRunner().invoke(main, ["calibrate", str(rig.parent), "-o", str(tmp_path / "cal")])
+    assert r.exit_code == 0, r.output
+    cal = load_calibration(tmp_path / "cal" / "calibration.json")
+    truth = cavity_view().K
+    for camera in cal.cameras.values():
+        assert camera.K[0, 0] == pytest.approx(truth[0, 0], rel=3e-3)
+        np.testing.assert_allclose(camera.K[:2, 2], truth[:2, 2], atol=5.0)
+    assert cal.residuals.rmse_px < 0.1
