@@ -449,10 +449,10 @@ def _body_job(dataset: Dataset, entry: Entry, camera: str) -> BodyJob:
     key = "pose" if entry.set == "stacking" else "frame"
     clicks = entry.manual_points.get(camera)
     if not clicks:
+        where = (f"give them as manual_points.{camera} of this calibration entry (OpenPTV's man_ori.dat)"
+                 if entry.set == "calibration" else "only calibration entries give them (manual_points)")
         raise AriSfmError(dataset.rig_path, f"{entry.set} {key} {entry.key}: camera {camera}: a 3D body (target "
-                                            f"points3d) is identified in its image from >= 4 clicked points: give "
-                                            f"them as manual_points.{camera} of this calibration entry "
-                                            "(OpenPTV's man_ori.dat)")
+                                            f"points3d) is identified in its image from >= 4 clicked points: {where}")
     spec = dataset.cameras[camera]
     focal, aspect = spec.focal_px, 1.0
     if spec.K is not None:

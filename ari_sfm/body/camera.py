@@ -39,8 +39,8 @@ log = logging.getLogger(__name__)
 
 POSE, FOCAL, CENTRE, K1 = (0, 1, 2, 3, 4, 5), (6,), (7, 8), (9,)
 STAGES = ((0, POSE + FOCAL), (10, POSE + FOCAL + CENTRE), (20, POSE + FOCAL + CENTRE + K1))  # (>= matches, free)
-PRINCIPAL_POINT_SIGMA = 0.1  # prior: the principal point within ~10 % of the image width of its start
-PRINCIPAL_POINT_BOUND = 0.5  # and never farther than half the image's width (height) from the image centre
+PRINCIPAL_POINT_SIGMA = 0.1  # prior: the principal point within ~10 % of the longer side of the start's (the centre)
+PRINCIPAL_POINT_BOUND = 0.5  # and never farther than half the width (height) from the image centre
 K1_SIGMA = 0.5  # prior on k1
 K1_BOUND = 2.0  # |k1| at most this
 FOCAL_SIGMA_LOG = 0.7  # prior: the focal length within a factor ~2 of its start (few points leave it loose)

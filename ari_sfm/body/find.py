@@ -14,7 +14,7 @@ import numpy as np
 from ari_sfm.records import Target
 
 from .camera import BodyWindow
-from .dots import DotOptions, alike, dot_diameter_at, find_dots
+from .dots import DotOptions, Dots, alike, dot_diameter_at, find_dots
 from .identify import BodyMatch, ClickError, IdentifyOptions, clicked_points, identify_body, projected_spacing, \
     start_cameras, unexplained_dots
 
@@ -69,7 +69,7 @@ def find_body(image: np.ndarray, target: Target, clicks: Mapping[int, tuple[floa
     return match
 
 
-def _check_explained(match: BodyMatch, found, xyz: np.ndarray) -> None:
+def _check_explained(match: BodyMatch, found: Dots, xyz: np.ndarray) -> None:
     """ClickError when more than max(UNEXPLAINED_MIN, UNEXPLAINED_FRACTION x their number) of the dots of the
     body's size and brightness among the identified ones have no body point projected near them.
 
