@@ -984,10 +984,12 @@ def import_group() -> None:
 
 @import_group.command(name="openptv")
 @click.argument("experiment", type=click.Path(path_type=Path))
-@click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="New dataset folder (rig.yaml, observations.json).")
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
+              help="New dataset folder (rig.yaml, observations.json where .crd files exist, the calibration images).")
 @user_errors
 def import_openptv_cmd(experiment: Path, out: Path) -> None:
-    """Read an OpenPTV EXPERIMENT folder (ptv.par, cal_ori.par or multi_planes.par, .fix/.crd, .ori) as a dataset."""
+    """Read an OpenPTV EXPERIMENT folder (ptv.par, cal_ori.par or multi_planes.par, .fix/.crd, the calibration
+    images with man_ori.dat's clicked points, .ori when present) as a dataset."""
     from .io import load_dataset
     from .openptv import import_experiment
 
@@ -995,8 +997,11 @@ def import_openptv_cmd(experiment: Path, out: Path) -> None:
     rig = import_experiment(experiment, out)
     ds = load_dataset(rig)
     n_obs = sum(len(o.ids) for o in ds.observations or ())
+    images = sum(len(e.images) for e in ds.calibration)
+    clicked = sum(len(e.manual_points) for e in ds.calibration)
+    extra = f", {images} calibration images, clicked points for {clicked} cameras" if images else ""
     click.echo(f"dataset: {rig}\n{len(ds.cameras)} cameras ({', '.join(ds.cameras)}), "
-               f"{ds.target.num_ids()} body points, {n_obs} observations")
+               f"{ds.target.num_ids()} body points, {n_obs} observations{extra}")
 
 
 @main.command(name="export-openptv")

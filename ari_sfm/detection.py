@@ -18,6 +18,9 @@ corner in every image and camera:
 - ChArUco: OpenCV's ids (the markers identify every corner).
 - Dot boards (``circles``): OpenCV's circle-grid ids, made independent of the
   order findCirclesGrid returns: see :mod:`ari_sfm.circle_grid`.
+- 3D bodies (``points3d``, DATASET_FORMAT 1.3): the body's dots identified from
+  a calibration entry's ``manual_points`` (>= 4 clicked points per camera): see
+  :mod:`ari_sfm.body`. A general 3D body cannot be identified without them.
 
 Accuracy (see ``benchmarks/bench_detection.py``): coarse corners from
 ``cv2.findChessboardCorners`` refined by ``cv2.cornerSubPix`` on a lightly
@@ -30,14 +33,16 @@ from __future__ import annotations
 import logging
 import os
 from concurrent.futures import Future, ThreadPoolExecutor, as_completed, wait
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Mapping
 
 import cv2
 import numpy as np
 from tqdm import tqdm
 
+from ari_sfm.body import BodyHints, BodyWindow, ClickError, find_body
 from ari_sfm.circle_grid import circle_ids_unambiguous, detect_circles
 from ari_sfm.errors import AriSfmError
 from ari_sfm.records import Dataset, Entry, Observation, Target
@@ -45,6 +50,7 @@ from ari_sfm.records import Dataset, Entry, Observation, Target
 log = logging.getLogger(__name__)
 
 Detection = tuple[np.ndarray, np.ndarray]  # ids (N,) int, pixels (N, 2) float
+MIN_BODY_POINTS = 6  # a 3D body's view with fewer identified points is skipped (a camera's start needs 6)
 
 # cornerSubPix settings (tuned with benchmarks/bench_detection.py on rendered boards)
 SUBPIX_WINDOW_FRACTION = 0.45  # window half-size / local square size (px)
@@ -338,9 +344,16 @@ def _charuco_spacing(ids: np.ndarray, pixels: np.ndarray, cols: int) -> np.ndarr
 
 
 def detect_dataset(
-    dataset: Dataset, workers: int | None = None, progress: bool = True, min_calibration_views: int = 3
+    dataset: Dataset, workers: int | None = None, progress: bool = True, min_calibration_views: int = 3,
+    skip_observed: bool = False,
 ) -> tuple[Observation, ...]:
     """Detect the target in every image of the dataset (stacking, calibration, reconstruction).
+
+    A 3D body (``points3d``) is identified in each image from its entry's ``manual_points`` for that
+    camera (:func:`_body_job`; AriSfmError naming rig.yaml and the camera when they are missing or do not
+    fit the body); one view of a non-planar body is enough (``min_calibration_views`` applies to planar
+    targets). With ``skip_observed``, views that ``dataset.observations`` already hold are not detected
+    and those observations are returned first, followed by the new ones.
 
     Images are read and searched in parallel threads (at most os.cpu_count()).
     Images without the target are skipped with a warning. A stacking pose
@@ -367,11 +380,15 @@ def detect_dataset(
             dataset.rig_path, target.layout,
         )
     cam_rank = {name: k for k, name in enumerate(dataset.camera_names)}
+    observed = {(o.set, o.frame, o.added_mm, o.camera) for o in dataset.observations or ()} if skip_observed else set()
     jobs: list[tuple[Entry, str, Path]] = []
     for entry in dataset.entries():
         for cam in sorted(entry.images, key=lambda c: (cam_rank.get(c, len(cam_rank)), list(entry.images).index(c))):
+            if (entry.set, entry.key, entry.added_mm, cam) in observed:
+                continue
             path = Path(entry.images[cam])
             jobs.append((entry, cam, path if path.is_absolute() else Path(dataset.root) / path))
+    bodies = [_body_job(dataset, entry, cam) for entry, cam, _ in jobs] if target.type == "points3d" else None
 
     cpus = os.cpu_count() or 1
     n_workers = max(1, min(cpus, workers if workers is not None else cpus, len(jobs) or 1))
@@ -383,7 +400,7 @@ def detect_dataset(
         with tqdm(total=len(jobs), disable=not progress, desc="detecting corners", unit="image") as bar:
             for k, (_, cam, path) in enumerate(jobs):
                 futures[pool.submit(_detect_file, path, target, dataset.cameras[cam].image_size,
-                                    dataset.rig_path, cam)] = k
+                                    dataset.rig_path, cam, None if bodies is None else bodies[k])] = k
             for future in as_completed(futures):
                 try:
                     results[futures[future]] = future.result()
@@ -410,8 +427,50 @@ def detect_dataset(
             )
         )
     observations = _drop_thin_stacking(observations)
-    _check_calibration_views(dataset, jobs, observations, min_calibration_views)
+    minimum = min_calibration_views if target.is_planar() else 1
+    _check_calibration_views(dataset, jobs, observations, minimum)
+    if skip_observed:
+        return tuple(dataset.observations or ()) + tuple(observations)
     return tuple(observations)
+
+
+@dataclass(frozen=True)
+class BodyJob:
+    """What identifying a 3D body in one image needs besides the image: the clicked points
+    {id: (u, v)}, the hints, and how to name the view in an error."""
+
+    clicks: Mapping[int, tuple[float, float]]
+    hints: BodyHints
+    where: str  # e.g. "calibration frame f000, manual_points.cam1"
+
+
+def _body_job(dataset: Dataset, entry: Entry, camera: str) -> BodyJob:
+    """The clicks and hints of one view of a 3D body; AriSfmError naming rig.yaml and the camera without clicks."""
+    key = "pose" if entry.set == "stacking" else "frame"
+    clicks = entry.manual_points.get(camera)
+    if not clicks:
+        where = (f"give them as manual_points.{camera} of this calibration entry (OpenPTV's man_ori.dat)"
+                 if entry.set == "calibration" else "only calibration entries give them (manual_points)")
+        raise AriSfmError(dataset.rig_path, f"{entry.set} {key} {entry.key}: camera {camera}: a 3D body (target "
+                                            f"points3d) is identified in its image from >= 4 clicked points: {where}")
+    spec = dataset.cameras[camera]
+    focal, aspect = spec.focal_px, 1.0
+    if spec.K is not None:
+        focal, aspect = float(spec.K[0, 0]), float(spec.K[1, 1] / spec.K[0, 0])
+    hints = BodyHints(focal_px=focal, aspect=aspect, window=_body_window(dataset, entry, camera),
+                      diameter_mm=dataset.target.diameter_mm)
+    return BodyJob(clicks, hints, f"{entry.set} {key} {entry.key}, manual_points.{camera}")
+
+
+def _body_window(dataset: Dataset, entry: Entry, camera: str) -> BodyWindow | None:
+    """The window ``camera`` looks through, in the body's frame of ``entry``: from ``interface.plane`` when it is
+    given in that frame (then the exact model identifies the dots), else None (a pinhole with k1 does)."""
+    interface = dataset.interface
+    plane = interface.plane
+    if plane is None or plane.frame != entry.key:
+        return None
+    return BodyWindow(np.asarray(plane.normal, float), np.asarray(plane.point_mm, float), interface.thickness_mm,
+                      interface.index, interface.medium_index)
 
 
 def _stop_workers(pool: ThreadPoolExecutor, futures: Iterable[Future]) -> None:
@@ -444,9 +503,10 @@ def _stop_workers(pool: ThreadPoolExecutor, futures: Iterable[Future]) -> None:
 
 
 def _detect_file(path: Path, target: Target, image_size: tuple[int, int] | None = None,
-                 rig_path: Path | None = None, camera: str = "") -> Detection | None:
-    """Read one image and detect the target; AriSfmError if the file cannot be read or decoded,
-    or if its size is not the camera's ``image_size`` [width, height] (when given).
+                 rig_path: Path | None = None, camera: str = "", body: BodyJob | None = None) -> Detection | None:
+    """Read one image and detect the target (a 3D body: identify it from ``body``'s clicks); AriSfmError if
+    the file cannot be read or decoded, or if its size is not the camera's ``image_size`` [width, height]
+    (when given), or if a body's clicks do not fit it.
 
     An unreadable image is an error, not a skipped view: it means a broken
     copy or a wrong file, which a warning would hide. (A truncated JPEG still
@@ -465,7 +525,24 @@ def _detect_file(path: Path, target: Target, image_size: tuple[int, int] | None 
     if image_size is not None and (image.shape[1], image.shape[0]) != tuple(image_size):
         raise AriSfmError(path, f"image is {image.shape[1]} x {image.shape[0]} px but {rig_path or 'the rig'} "
                                 f"gives cameras.{camera}.image_size [{image_size[0]}, {image_size[1]}]")
+    if body is not None:
+        return _identify_body(image, target, body, path, rig_path)
     return detect_corners(image, target)
+
+
+def _identify_body(image: np.ndarray, target: Target, body: BodyJob, path: Path, rig_path: Path | None
+                   ) -> Detection | None:
+    """A 3D body's identified points in one image (None below MIN_BODY_POINTS)."""
+    try:
+        match = find_body(image, target, body.clicks, body.hints)
+    except ClickError as exc:
+        raise AriSfmError(rig_path or path, f"{body.where}: {exc} in {path.name}") from None
+    log.info("%s: %d of %d body points in view identified (%d ambiguous, %d off the model left out)", path.name,
+             len(match.ids), match.visible, len(match.ambiguous), len(match.off_model))
+    if len(match.ids) < MIN_BODY_POINTS:
+        return None
+    order = np.argsort(match.ids)
+    return match.ids[order], match.pixels[order]
 
 
 def _drop_thin_stacking(observations: list[Observation]) -> list[Observation]:
@@ -507,7 +584,21 @@ def _check_calibration_views(
 
 
 def ensure_observations(dataset, workers: int | None = None, progress: bool = False):
-    """The dataset with observations, detecting corners in its images (:func:`detect_dataset`) when it has none."""
-    if dataset.observations is not None:
-        return dataset
-    return dataset.with_observations(detect_dataset(dataset, workers=workers, progress=progress))
+    """The dataset with observations, detecting corners in its images (:func:`detect_dataset`) when it has none.
+
+    A 3D body's calibration views that have an image but no observations (e.g. an OpenPTV import where
+    some cameras have no ``.crd``) are identified from their clicked points and added to the observations
+    it has.
+    """
+    if dataset.observations is None:
+        return dataset.with_observations(detect_dataset(dataset, workers=workers, progress=progress))
+    if dataset.target.type == "points3d" and _unobserved_body_views(dataset):
+        return dataset.with_observations(detect_dataset(dataset, workers=workers, progress=progress,
+                                                        skip_observed=True), dataset.observations_path)
+    return dataset
+
+
+def _unobserved_body_views(dataset: Dataset) -> list[tuple[str, str]]:
+    """(frame, camera) of calibration entries with an image but no observation."""
+    observed = {(o.set, o.frame, o.camera) for o in dataset.observations or ()}
+    return [(e.key, cam) for e in dataset.calibration for cam in e.images if ("calibration", e.key, cam) not in observed]

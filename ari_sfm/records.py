@@ -22,7 +22,7 @@ class Target:
     ``charuco`` (squares [cols, rows], square_mm, marker_mm, dictionary),
     ``circles`` (a dot board, DATASET_FORMAT 1.1: circle_grid [cols, rows],
     spacing_mm, layout ``symmetric`` | ``asymmetric``, optional diameter_mm) or
-    ``points3d`` (points {id: xyz}).
+    ``points3d`` (points {id: xyz}; optional diameter_mm, its dots' size, DATASET_FORMAT 1.3).
     """
 
     type: str
@@ -35,7 +35,7 @@ class Target:
     circle_grid: tuple[int, int] | None = None  # circles: [cols, rows] in OpenCV's patternSize order
     spacing_mm: float = 0.0  # circles: s of OpenCV's calcBoardCornerPositions
     layout: str = "symmetric"  # circles: symmetric | asymmetric
-    diameter_mm: float | None = None  # circles: printed dot diameter, if declared
+    diameter_mm: float | None = None  # circles: printed dot diameter; points3d: dot diameter; if declared
 
     @property
     def grid(self) -> tuple[int, int] | None:
@@ -157,6 +157,9 @@ class Entry:
     """One stacking / calibration / reconstruction entry of rig.yaml.
 
     ``key`` is the ``pose`` of a stacking entry and the ``frame`` otherwise.
+    ``manual_points`` (calibration entries of a ``points3d`` body, DATASET_FORMAT 1.3):
+    per camera a few clicked body points, {point id: (u, v)} in OpenCV pixels, from
+    which :mod:`ari_sfm.body` identifies the body's dots in that camera's image.
     """
 
     set: str
@@ -165,6 +168,7 @@ class Entry:
     added_mm: float | None = None
     stage_mm: float | None = None
     window: str | None = None  # stacking with several windows: the window the plates were added to
+    manual_points: Mapping[str, Mapping[int, tuple[float, float]]] = field(default_factory=dict)  # (1.3) clicks
 
 
 @dataclass(frozen=True)

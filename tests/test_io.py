@@ -664,3 +664,79 @@ def test_unknown_keys_load_with_a_warning(tmp_path: Path, caplog: pytest.LogCapt
     assert ds.interface.medium_index == 1.0
     text = caplog.text
     assert "'interface.medium_indx'" in text and "'lab'" in text and "'observations[].detector'" in text
+
+
+# --------------------------------------------------------------------------- manual_points (1.3)
+
+MANUAL = {"cam0": {2: [1009.0, 608.0], 3: [979.0, 335.0], 71: [246.0, 620.0], 73: [235.0, 344.0]},
+          "cam1": {2: [1002.5, 609.25], 3: [1013.0, 335.0], 71: [261.0, 620.0], 73: [285.0, 355.0], 40: [600.0, 500.0]}}
+
+
+def _body_rig(tmp_path: Path, manual=MANUAL, target=None, extra_entry=None) -> Path:
+    """A points3d rig with one calibration entry (images of cam0, cam1) holding ``manual``."""
+    (tmp_path / "cal").mkdir(parents=True, exist_ok=True)
+    for cam in ("cam0", "cam1"):
+        (tmp_path / "cal" / f"{cam}.tif").write_bytes(b"not read when loading")
+    points = {i: [float(i), 0.5 * i, float(i % 3)] for i in range(1, 74)}
+    entry = {"frame": "f000", "images": {"cam0": "cal/cam0.tif", "cam1": "cal/cam1.tif"}, "manual_points": manual}
+    if extra_entry:
+        entry.update(extra_entry)
+    rig = {"format": "ari-sfm/1", "target": target or {"type": "points3d", "points": points},
+           "interface": {"thickness_mm": 6.0, "index": 1.49, "medium_index": 1.333},
+           "cameras": {"cam0": {"image_size": [1280, 1024]}, "cam1": {"image_size": [1280, 1024]}},
+           "calibration": [entry]}
+    (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
+    return tmp_path / "rig.yaml"
+
+
+@pytest.mark.parametrize("rig_name", ["rig.yaml", "rig.json"])
+def test_manual_points_round_trip(tmp_path: Path, rig_name: str) -> None:
+    """manual_points load as {camera: {id: (u, v)}} OpenCV pixels and save_rig writes them back unchanged."""
+    first = load_dataset(_body_rig(tmp_path / "src"))
+    clicks = first.calibration[0].manual_points
+    assert list(clicks) == ["cam0", "cam1"] and clicks["cam1"][2] == (1002.5, 609.25) and len(clicks["cam1"]) == 5
+    second = load_dataset(save_rig(tmp_path / "copy" / rig_name, first))
+    assert_records_equal(second.calibration, first.calibration)
+    assert dump_rig(second)["calibration"][0]["manual_points"]["cam0"][71] == [246.0, 620.0]
+
+
+def test_points3d_diameter_round_trip(tmp_path: Path) -> None:
+    points = {1: [0, 0, 0], 2: [10, 0, 0], 3: [0, 10, 5]}
+    first = load_dataset(_body_rig(tmp_path / "src", manual=None, target={"type": "points3d", "points": points,
+                                                                           "diameter_mm": 1.5}))
+    assert first.target.diameter_mm == 1.5
+    assert load_dataset(save_rig(tmp_path / "copy" / "rig.yaml", first)).target == first.target
+
+
+@pytest.mark.parametrize("manual, message", [
+    ({"cam7": MANUAL["cam0"]}, "calibration[0].manual_points.cam7: camera 'cam7' is not declared in cameras"),
+    ({"cam0": {**MANUAL["cam0"], 99: [1.0, 2.0]}}, "calibration[0].manual_points.cam0: id 99 is not a point of the target"),
+    ({"cam0": {**MANUAL["cam0"], 5: [float("nan"), 2.0]}}, "calibration[0].manual_points.cam0[5] contain NaN"),
+    ({"cam0": {**MANUAL["cam0"], 5: [float("inf"), 2.0]}}, "calibration[0].manual_points.cam0[5] contain infinity"),
+    ({"cam0": {**MANUAL["cam0"], 5: [1280.0, 2.0]}}, "calibration[0].manual_points.cam0[5]: pixel (1280, 2) is outside "
+                                                     "the 1280 x 1024 image"),
+    ({"cam0": {**MANUAL["cam0"], 5: [3.0, -0.6]}}, "pixel (3, -0.6) is outside the 1280 x 1024 image"),
+    ({"cam0": {2: [1.0, 2.0], 3: [3.0, 4.0], 71: [5.0, 6.0]}}, "calibration[0].manual_points.cam0: 3 clicked points, "
+                                                              "need >= 4"),
+    ({"cam0": {**MANUAL["cam0"], 5: [1.0]}}, "calibration[0].manual_points.cam0[5] must have shape 2 (got 1)"),
+    ({"cam0": [[1, 2], [3, 4]]}, "calibration[0].manual_points.cam0 must be a mapping"),
+    ([1, 2], "calibration[0].manual_points must be a mapping"),
+    ({"cam0": {"two": [1.0, 2.0]}}, "calibration[0].manual_points.cam0: ids must be integers (got 'two')"),
+])
+def test_bad_manual_points_are_one_line_naming_the_key(tmp_path: Path, manual, message: str) -> None:
+    with pytest.raises(AriSfmError) as info:
+        load_dataset(_body_rig(tmp_path, manual))
+    assert info.value.path.endswith("rig.yaml") and message in info.value.message, info.value.message
+    assert "\n" not in str(info.value)
+
+
+def test_manual_points_only_for_a_body_in_calibration_entries(tmp_path: Path) -> None:
+    board = {"type": "checkerboard", "inner_corners": [11, 8], "square_mm": 10.0}
+    with pytest.raises(AriSfmError, match=r"calibration\[0\].manual_points: clicked points identify a 3D body"):
+        load_dataset(_body_rig(tmp_path / "a", target=board))
+    rig = _body_rig(tmp_path / "b")
+    data = yaml.safe_load(rig.read_text())
+    data["reconstruction"] = [{**data["calibration"][0], "frame": "r000"}]
+    rig.write_text(yaml.safe_dump(data))
+    with pytest.raises(AriSfmError, match=r"reconstruction\[0\].manual_points: clicked points are for calibration"):
+        load_dataset(rig)

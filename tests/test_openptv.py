@@ -10,6 +10,7 @@ The test data come from liboptv/tests/testing_fodder/test_cavity (see tests/data
 """
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -276,14 +277,14 @@ def test_import_multi_planes_is_one_rigid_body(experiment, tmp_path):
     (lambda r: (r / "parameters" / "ptv.par").write_text("2\na\nb\nc\n1\n"), "ptv.par", "lines for 2 cameras"),
     (lambda r: (r / "parameters" / "ptv.par").write_text(
         (r / "parameters" / "ptv.par").read_text().replace("1.46", "water")), "ptv.par", "'water' is not a number"),
-    (lambda r: (r / "cal" / "cam2.tif.ori").unlink(), "cam2.tif.ori", "no orientation file for cam2"),
     (lambda r: (r / "cal" / "cam1.tif.ori").write_text("1 2 3\n"), "cam1.tif.ori", "expected 21 numbers"),
     (lambda r: (r / "cal" / "cam1.tif.crd").write_text(
         (r / "cal" / "cam1.tif.crd").read_text().replace(" 73  ", " 74  ")), "cam1.tif.crd", "ids do not match"),
     (lambda r: (r / "parameters" / "cal_ori.par").unlink(), "parameters", "neither multi_planes.par nor cal_ori.par"),
     (lambda r: (r / "parameters" / "multi_planes.par").write_text("3\nimg/a\nimg/b\n"), "multi_planes.par",
      "expected the number of planes"),
-    (lambda r: (r / "parameters" / "multi_planes.par").write_text("1\nimg/a\n"), "a1.tif.fix", "file not found"),
+    (lambda r: ((r / "parameters" / "multi_planes.par").write_text("1\nimg/a\n"),
+                (r / "parameters" / "cal_ori.par").unlink()), "a1.tif.fix", "file not found (named by multi_planes"),
     (lambda r: (r / "cal" / "cam2.tif.crd").unlink(), "cam2.tif.crd", "file not found"),
     (lambda r: (r / "cal" / "cam2.tif.crd").write_text("  1  -1.25  0.5\n" + "".join(
         (r / "cal" / "cam2.tif.crd").read_text().splitlines(True)[1:])), "cam2.tif.crd", "outside the 1280 x 1024"),
@@ -601,3 +602,128 @@ def test_import_refuses_to_write_into_the_experiment(experiment):
     r = CliRunner().invoke(main, ["import", "openptv", str(experiment), "-o", str(experiment)])
     assert r.exit_code == 1 and r.output == f"error: {experiment}: already exists and is not empty: give a new folder\n"
     assert sorted(p.relative_to(experiment) for p in experiment.rglob("*")) == before
+
+
+# ----------------------------------------------------------------------------- import from images and clicks
+
+CLICKED_IDS = ((2, 3, 71, 73), (2, 3, 71, 73), (1, 3, 69, 73), (1, 3, 69, 73))  # test_cavity's man_ori.par
+
+
+def _render_calibration_image(optv_px, seed):
+    """A 1280 x 1024 8-bit image of bright 10 px dots at OpenPTV pixels ``optv_px`` (OpenCV: - 0.5), with
+    specks in the water and noise."""
+    from ari_sfm.simulate.particles import render_particle_image
+    from ari_sfm.simulate.render import add_discs
+
+    rng = np.random.default_rng(seed)
+    image = add_discs(np.full((1024, 1280), 20.0), optv_px + OPENCV_FROM_OPENPTV_PX, 10.0, 200.0)
+    image += render_particle_image(rng.uniform([0, 0], [1280, 1024], (300, 2)), (1280, 1024), 2.0, peak=120.0,
+                                   background=0.0, noise_sigma=0.0)
+    image += rng.normal(0.0, 2.0, image.shape)
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+@pytest.fixture()
+def cavity_without_ori(tmp_path):
+    """test_cavity as a lab keeps it without OpenPTV's calibration: ptv.par, cal_ori.par, the body, a
+    multi_planes.par naming files never made, man_ori.par / man_ori.dat (clicks 1-3 px off, whole pixels)
+    and the four calibration images (rendered where liboptv puts the body with the .ori, then removed).
+    Returns the folder and the true OpenCV pixels per camera {id: (u, v)}."""
+    import cv2
+
+    root = tmp_path / "cavity"
+    shutil.copytree(FODDER, root)
+    (root / "parameters" / "multi_planes.par").write_text("3\nimg/calib_a_cam\nimg/calib_b_cam\nimg/calib_c_cam")
+    ids, xyz = _body()
+    rng = np.random.default_rng(4)
+    truth, par, dat = {}, [], []
+    for k in range(1, 5):
+        cam = read_liboptv_camera(root / "cal" / f"cam{k}.tif.ori", root / "parameters" / "ptv.par")
+        px = liboptv_pixels(xyz, cam)
+        assert cv2.imwrite(str(root / "cal" / f"cam{k}.tif"), _render_calibration_image(px, k))
+        truth[f"cam{k}"] = dict(zip(ids.tolist(), px + OPENCV_FROM_OPENPTV_PX))
+        for pid in CLICKED_IDS[k - 1]:
+            par.append(f"{pid}\n")
+            u, v = np.rint(px[ids == pid][0] + rng.uniform(-2.5, 2.5, 2))
+            dat.append(f"{u:f} {v:f}\n")
+        (root / "cal" / f"cam{k}.tif.ori").unlink()
+    (root / "cal" / "cam1.tif.addpar").unlink()
+    (root / "parameters" / "man_ori.par").write_text("".join(par))
+    (root / "man_ori.dat").write_text("".join(dat))
+    return root, truth
+
+
+def test_import_images_and_clicks_without_ori_then_detect(cavity_without_ori, tmp_path):
+    """No .ori, no .crd: the dataset holds the images (copied) and the clicks (OpenCV pixels), a window without
+    a plane; detect identifies every body point of every camera at its true pixel."""
+    root, truth = cavity_without_ori
+    r = CliRunner().invoke(main, ["import", "openptv", str(root), "-o", str(tmp_path / "ds")])
+    assert r.exit_code == 0, r.output
+    assert "4 cameras (cam1, cam2, cam3, cam4), 73 body points, 0 observations, 4 calibration images, clicked " \
+           "points for 4 cameras" in r.output
+    ds = load_dataset(tmp_path / "ds")
+    assert ds.observations is None and not (tmp_path / "ds" / "observations.json").exists()
+    assert ds.interface == Interface(6.0, 1.33, 1.46)  # ptv.par's d, n2, n3 (n1 = 1), no plane without the .ori
+    assert all(cam.focal_px is None and cam.K is None for cam in ds.cameras.values())
+    entry = ds.calibration[0]
+    for k in range(1, 5):
+        copied = entry.images[f"cam{k}"]
+        assert copied == tmp_path / "ds" / "cal" / f"cam{k}.tif"
+        assert copied.read_bytes() == (root / "cal" / f"cam{k}.tif").read_bytes()
+    clicks = [line.split() for line in (root / "man_ori.dat").read_text().splitlines()]
+    assert list(entry.manual_points["cam3"]) == [1, 3, 69, 73]
+    assert entry.manual_points["cam3"][69] == (float(clicks[10][0]) - 0.5, float(clicks[10][1]) - 0.5)
+    r = CliRunner().invoke(main, ["detect", str(tmp_path / "ds"), "-o", str(tmp_path / "det")])
+    assert r.exit_code == 0, r.output
+    records = json.loads((tmp_path / "det" / "observations.json").read_text())["observations"]
+    assert [o["camera"] for o in records] == ["cam1", "cam2", "cam3", "cam4"]
+    for o in records:
+        true = np.array([truth[o["camera"]][i] for i in o["ids"]])
+        assert len(o["ids"]) >= 70  # of 73 (a speck on a dot may leave it out)
+        assert np.abs(np.array(o["pixels"]) - true).max() < 0.3  # right ids, accurate centres
+
+
+def test_import_with_some_crd_identifies_the_other_cameras(cavity_without_ori, tmp_path):
+    """cam1 has OpenPTV's .crd: its observations are imported; calibrate's detection identifies cam2..cam4 only."""
+    from ari_sfm.detection import ensure_observations
+
+    root, truth = cavity_without_ori
+    ids = sorted(truth["cam1"])
+    (root / "cal" / "cam1.tif.crd").write_text("".join(
+        f"{i:3d}  {truth['cam1'][i][0] + 0.5:9.5f}  {truth['cam1'][i][1] + 0.5:9.5f}\n" for i in ids))
+    ds = load_dataset(import_experiment(root, tmp_path / "ds"))
+    assert [o.camera for o in ds.observations] == ["cam1"] and len(ds.observations[0].ids) == 73
+    full = ensure_observations(ds)
+    assert [o.camera for o in full.observations] == ["cam1", "cam2", "cam3", "cam4"]
+    assert full.observations[0] is ds.observations[0]
+    for o in full.observations[1:]:
+        np.testing.assert_allclose(o.pixels, [truth[o.camera][i] for i in o.ids], atol=0.3)
+
+
+@pytest.mark.parametrize("breakage, file, message", [
+    (lambda r: (r / "parameters" / "man_ori.par").write_text(
+        (r / "parameters" / "man_ori.par").read_text().replace("69\n", "99\n", 1)), "man_ori.par",
+     "cam3: clicked point 99 is not a point of the calibration body"),
+    (lambda r: (r / "man_ori.dat").write_text("1300.0 20.0\n" + "".join(
+        (r / "man_ori.dat").read_text().splitlines(True)[1:])), "man_ori.dat",
+     "cam1: clicked point 2 at (1300, 20) is outside the 1280 x 1024 image"),
+    (lambda r: (r / "man_ori.dat").write_text("".join((r / "man_ori.dat").read_text().splitlines(True)[:9])),
+     "man_ori.dat", "9 lines for 4 cameras"),
+    (lambda r: (r / "cal" / "cam2.tif").unlink(), "cam2.tif.crd",
+     "file not found, and no calibration image cam2.tif to find the body in"),
+])
+def test_import_bad_clicks_or_missing_image_is_one_line(cavity_without_ori, tmp_path, breakage, file, message):
+    root, _ = cavity_without_ori
+    breakage(root)
+    r = CliRunner().invoke(main, ["import", "openptv", str(root), "-o", str(tmp_path / "ds")])
+    assert r.exit_code == 1 and r.output.count("\n") == 1, r.output
+    assert r.output.startswith("error: ") and file in r.output and message in r.output, r.output
+    assert not (tmp_path / "ds").exists()
+
+
+def test_import_multi_planes_par_with_its_files_is_still_read(experiment, tmp_path):
+    """A multi_planes.par is read when its files exist (test_import_multi_planes_is_one_rigid_body); when they do
+    not, cal_ori.par's body is, with a warning naming the first missing file."""
+    (experiment / "parameters" / "multi_planes.par").write_text("2\nimg/calib_a_cam\nimg/calib_b_cam\n")
+    ds = load_dataset(import_experiment(experiment, tmp_path / "ds"))
+    assert ds.target.num_ids() == 73 and [len(o.ids) for o in ds.observations] == [73, 73]

@@ -58,13 +58,14 @@ TARGET_KEYS = {
     "checkerboard": ("type", "inner_corners", "square_mm"),
     "charuco": ("type", "squares", "square_mm", "marker_mm", "dictionary"),
     "circles": ("type", "grid", "spacing_mm", "layout", "diameter_mm"),
-    "points3d": ("type", "points"),
+    "points3d": ("type", "points", "diameter_mm"),
 }
 INTERFACE_KEYS = ("thickness_mm", "index", "medium_index", "distance_mm", "plane")
 WINDOW_KEYS = ("cameras", *INTERFACE_KEYS)  # an entry of ``interfaces`` (1.3)
 PLANE_KEYS = ("frame", "normal", "point_mm", "sigma_deg", "sigma_mm")
 CAMERA_KEYS = ("image_size", "focal_px", "K", "dist")
-ENTRY_KEYS = ("pose", "frame", "added_mm", "stage_mm", "images", "window")
+ENTRY_KEYS = ("pose", "frame", "added_mm", "stage_mm", "images", "window", "manual_points")
+MIN_MANUAL_POINTS = 4  # clicked body points per camera: a camera's pose and focal length need >= 4
 
 # Sane physical bounds: a value beyond one is a typo (1e300, 1e8), refused in one line naming the key.
 MAX_LENGTH_MM = 10_000.0  # thickness_mm, distance_mm, square_mm, added_mm, |stage_mm|: at most 10 m
@@ -171,7 +172,9 @@ def parse_target(data: Any, path: Path, where: str = "target") -> Target:
             raise AriSfmError(path, f"{where}.points: duplicate id {pid}")
         arr = as_float_array(xyz, path, f"{where}.points[{pid}]", (3,))
         out[pid] = (float(arr[0]), float(arr[1]), float(arr[2]))
-    return Target(type=kind, points=out)
+    diameter = data.get("diameter_mm")  # 1.3: the dots' size, a hint for finding them in images
+    diameter = None if diameter is None else _length(diameter, path, f"{where}.diameter_mm")
+    return Target(type=kind, points=out, diameter_mm=diameter)
 
 
 def _parse_circles(data: Mapping[str, Any], get: Any, path: Path, where: str) -> Target:
@@ -338,12 +341,13 @@ def parse_cameras(data: Any, path: Path, where: str = "cameras") -> dict[str, Ca
 
 def parse_entries(
     data: Any, set_name: str, path: Path, root: Path, cameras: Mapping[str, CameraSpec], check_files: bool = True,
-    windows: tuple[Window, ...] = (),
+    windows: tuple[Window, ...] = (), target: Target | None = None,
 ) -> tuple[Entry, ...]:
     """One of the ``stacking`` / ``calibration`` / ``reconstruction`` lists (null or absent: empty).
 
     Image paths are made absolute (relative to ``root``) and, if ``check_files``, must exist. With several
-    ``windows`` a stacking entry names the window its plates were added to (``window``, 1.3)."""
+    ``windows`` a stacking entry names the window its plates were added to (``window``, 1.3);
+    ``manual_points`` (1.3) are checked against ``target`` (their ids) and the cameras (their pixels)."""
     if data is None:
         return ()
     items = as_list(data, path, set_name)
@@ -374,7 +378,17 @@ def parse_entries(
         seen[ident] = i
         images = _parse_images(item.get("images"), path, root, cameras, f"{where}.images", ctx, check_files)
         window = _entry_window(item, set_name, images, windows, path, where, ctx)
-        out.append(Entry(set=set_name, key=name, images=images, added_mm=added, stage_mm=stage, window=window))
+        manual = {}
+        if item.get("manual_points") is not None:
+            if set_name != "calibration":
+                raise AriSfmError(path, f"{where}.manual_points: clicked points are for calibration entries only")
+            manual = parse_manual_points(item["manual_points"], path, f"{where}.manual_points", cameras, target)
+            for cam in manual:
+                if images and cam not in images:
+                    log.warning("%s: %s.manual_points.%s: the entry has no image of %s, its clicks are not used",
+                                path, where, cam, cam)
+        out.append(Entry(set=set_name, key=name, images=images, added_mm=added, stage_mm=stage, window=window,
+                         manual_points=manual))
     return tuple(out)
 
 
@@ -405,6 +419,45 @@ def _entry_window(item: Mapping[str, Any], set_name: str, images: Mapping[str, P
         raise AriSfmError(path, f"{ctx}: camera {outside[0]} is not behind window {name}: the plates added to a "
                                 "window are seen by its own cameras")
     return name
+
+
+def parse_manual_points(data: Any, path: Path, where: str, cameras: Mapping[str, CameraSpec],
+                        target: Target | None) -> dict[str, dict[int, tuple[float, float]]]:
+    """A calibration entry's ``manual_points`` (1.3): {camera: {point id: [u, v]}}, OpenCV pixels.
+
+    Each camera is declared, each id a point of the ``points3d`` target, each pixel finite and inside
+    the camera's image (its edges at -0.5 and size - 0.5), and each camera has at least
+    MIN_MANUAL_POINTS points; anything else is one error line naming the key.
+    """
+    data = as_mapping(data, path, where)
+    if target is not None and target.type != "points3d":
+        raise AriSfmError(path, f"{where}: clicked points identify a 3D body (target type points3d), "
+                                f"not a {target.type} target")
+    known = set(target.points or ()) if target is not None else None
+    out: dict[str, dict[int, tuple[float, float]]] = {}
+    for raw_cam, points in data.items():
+        cam = as_name(raw_cam, path, f"{where} camera name")
+        if cam not in cameras:
+            raise AriSfmError(path, f"{where}.{cam}: camera '{cam}' is not declared in cameras ({', '.join(cameras)})")
+        here = key_path(where, cam)
+        points = as_mapping(points, path, here)
+        width, height = cameras[cam].image_size
+        clicks: dict[int, tuple[float, float]] = {}
+        for raw_id, uv in points.items():
+            pid = _point_id(raw_id, path, here)
+            if pid in clicks:
+                raise AriSfmError(path, f"{here}: point {pid} given twice")
+            if known is not None and pid not in known:
+                raise AriSfmError(path, f"{here}: id {pid} is not a point of the target")
+            u, v = as_float_array(uv, path, f"{here}[{pid}]", (2,))
+            if not (-0.5 <= u <= width - 0.5 and -0.5 <= v <= height - 0.5):
+                raise AriSfmError(path, f"{here}[{pid}]: pixel ({u:g}, {v:g}) is outside the {width} x {height} image")
+            clicks[pid] = (float(u), float(v))
+        if len(clicks) < MIN_MANUAL_POINTS:
+            raise AriSfmError(path, f"{here}: {len(clicks)} clicked points, need >= {MIN_MANUAL_POINTS} (a camera's "
+                                    "pose and focal length)")
+        out[cam] = clicks
+    return out
 
 
 def _parse_images(
@@ -442,7 +495,8 @@ def parse_rig(data: Any, rig_path: Path, check_files: bool = True) -> dict[str, 
     fields: dict[str, Any] = dict(root=root, rig_path=rig_path, target=target, interface=interface, cameras=cameras,
                                   windows=windows)
     for set_name in SETS:
-        fields[set_name] = parse_entries(data.get(set_name), set_name, rig_path, root, cameras, check_files, windows)
+        fields[set_name] = parse_entries(data.get(set_name), set_name, rig_path, root, cameras, check_files, windows,
+                                         target)
     obs = data.get("observations")
     fields["observations_path"] = None if obs is None else Path(
         os.path.abspath(root / as_str(obs, rig_path, "observations"))
@@ -555,7 +609,10 @@ def target_to_json(target: Target) -> dict[str, Any]:
         if target.diameter_mm is not None:
             out["diameter_mm"] = target.diameter_mm
         return out
-    return {"type": target.type, "points": {int(k): list(v) for k, v in (target.points or {}).items()}}
+    out = {"type": target.type, "points": {int(k): list(v) for k, v in (target.points or {}).items()}}
+    if target.diameter_mm is not None:
+        out["diameter_mm"] = target.diameter_mm
+    return out
 
 
 def interface_to_json(interface: Interface) -> dict[str, Any]:
@@ -613,6 +670,9 @@ def entry_to_json(entry: Entry, root: Path) -> dict[str, Any]:
         out["images"] = {cam: _relative(Path(p), root) for cam, p in entry.images.items()}
     if entry.window is not None:
         out["window"] = entry.window
+    if entry.manual_points:
+        out["manual_points"] = {cam: {int(pid): [float(u), float(v)] for pid, (u, v) in points.items()}
+                                for cam, points in entry.manual_points.items()}
     return out
 
 

@@ -16,6 +16,10 @@ Formats (liboptv ``parameters.c``, ``calibration.c``; pyptv's multi-plane calibr
   dm, xh yh cc, the glass vector: 21 numbers.
 - ``<cal image>.addpar``: k1 k2 k3 p1 p2 scx she (absent: liboptv's defaults,
   no distortion, scx = 1).
+- ``parameters/man_ori.par``: the 4 body point ids clicked in each camera, one a
+  line, camera after camera; ``man_ori.dat`` (the experiment folder, where the GUI
+  writes it, or ``parameters/``): their pixels, ``x y`` a line in the same order
+  (OpenPTV pixels). The Tcl/Tk GUI pads both to four cameras.
 
 Every reader raises :class:`~ari_sfm.errors.AriSfmError` naming the file.
 """
@@ -246,6 +250,40 @@ def read_addpar(path: Path) -> AddPar:
 
 def format_addpar(par: AddPar) -> str:
     return " ".join(f"{getattr(par, k):.15g}" for k in ADDPAR_NAMES) + "\n"
+
+
+# --------------------------------------------------------------------------- man_ori.par, man_ori.dat
+
+MAN_ORI_POINTS = 4  # OpenPTV's manual orientation: four clicked points per camera
+
+
+def read_man_ori(par_path: Path, dat_path: Path, num_cams: int) -> list[dict[int, np.ndarray]]:
+    """Per camera, the clicked points {id: (x, y) OpenPTV pixels} of ``man_ori.par`` and ``man_ori.dat``
+    (the first ``4 num_cams`` lines of each; more are the GUI's padding). A point at (0, 0) was never clicked
+    and is left out."""
+    need = MAN_ORI_POINTS * num_cams
+    ids = [line.split()[0] for line in _lines(par_path)]
+    if len(ids) < need:
+        raise AriSfmError(par_path, f"{len(ids)} ids for {num_cams} cameras: expected {MAN_ORI_POINTS} a camera, "
+                                    "one a line")
+    pixels = [line.split() for line in _lines(dat_path)]
+    if len(pixels) < need:
+        raise AriSfmError(dat_path, f"{len(pixels)} lines for {num_cams} cameras: expected {MAN_ORI_POINTS} a camera "
+                                    "(x y, one point a line)")
+    out: list[dict[int, np.ndarray]] = []
+    for cam in range(num_cams):
+        points: dict[int, np.ndarray] = {}
+        for k in range(cam * MAN_ORI_POINTS, (cam + 1) * MAN_ORI_POINTS):
+            pid = _integer(ids[k], par_path, f"line {k + 1} (camera {cam + 1}'s point id)")
+            if len(pixels[k]) < 2:
+                raise AriSfmError(dat_path, f"line {k + 1}: expected x y, found {len(pixels[k])} number(s)")
+            xy = np.array([_number(t, dat_path, f"line {k + 1}") for t in pixels[k][:2]])
+            if pid in points:
+                raise AriSfmError(par_path, f"line {k + 1}: camera {cam + 1} lists point {pid} twice")
+            if np.any(xy != 0.0):
+                points[pid] = xy
+        out.append(points)
+    return out
 
 
 # --------------------------------------------------------------------------- .fix, .crd

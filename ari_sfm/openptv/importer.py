@@ -6,18 +6,30 @@ conversions):
 - ``parameters/ptv.par``: cameras (named ``cam1``..``camN`` in ptv.par's order,
   as OpenPTV numbers them), image size, pixel size, n1 n2 n3 and the glass
   thickness d;
-- ``parameters/multi_planes.par`` if present (each plane's ``<base>k.tif.fix``
-  and ``.crd`` for camera k), else ``parameters/cal_ori.par`` (its target file
-  and ``<calibration image>.crd`` per camera). All planes together are one rigid
-  ``points3d`` body seen once: calibration frame ``f000`` in OpenPTV's world;
-- ``<calibration image>.ori`` per camera: cc / pixel size becomes the
-  ``focal_px`` hint, the glass vector becomes ``interface.plane``.
+- ``parameters/multi_planes.par`` if present and every file it names is there
+  (each plane's ``<base>k.tif.fix`` and ``.crd`` for camera k), else
+  ``parameters/cal_ori.par`` (a multi_planes.par naming files the lab never made
+  is left aside with a warning): its target file, and per camera the
+  ``<calibration image>.crd`` where it exists and the calibration image itself.
+  All planes together are one rigid ``points3d`` body seen once: calibration
+  frame ``f000`` in OpenPTV's world;
+- ``man_ori.dat`` (the experiment folder, or ``parameters/``) with
+  ``parameters/man_ori.par``: OpenPTV's 4 clicked points per camera become the
+  entry's ``manual_points`` (DATASET_FORMAT 1.3; cal_ori.par's body only), from
+  which ``detect`` / ``calibrate`` identify the body in the images;
+- ``<calibration image>.ori`` per camera, when present (never required): cc /
+  pixel size becomes the ``focal_px`` hint; when every camera has one, the glass
+  vectors become ``interface.plane`` (:func:`_interface`); else the window is
+  ptv.par's thickness and indices without a plane (:func:`_interface_without_ori`).
 
-The ``.crd`` pixels are OpenPTV pixels (origin at the top-left pixel's corner):
-0.5 is subtracted. Undetected points (-999) are left out. With n1 != 1 the
-window is written with index n2 / n1 and medium_index n3 / n1 (Snell's law
-depends on the ratios only). Point ids of plane p (0-based) are
-``p * PLANE_ID_STEP + id`` when there are several planes.
+The dataset lists the calibration images, copied into it at their path in the
+experiment (``cal/cam1.tif``; an image outside the experiment folder goes to
+``images/``), so that it stands alone; observations come only from the
+``.crd`` files that exist. The ``.crd`` and ``man_ori.dat`` pixels are OpenPTV
+pixels (origin at the top-left pixel's corner): 0.5 is subtracted. Undetected
+points (-999) are left out. With n1 != 1 the window is written with index n2 /
+n1 and medium_index n3 / n1 (Snell's law depends on the ratios only). Point ids
+of plane p (0-based) are ``p * PLANE_ID_STEP + id`` when there are several planes.
 """
 from __future__ import annotations
 
@@ -25,7 +37,7 @@ import logging
 import os
 import shutil
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -36,8 +48,8 @@ from ari_sfm.io.observations import BORDER_TOLERANCE_PX
 from ari_sfm.records import CameraSpec, Dataset, Entry, Interface, Observation, Target, WindowPlane
 
 from .conventions import OPENPTV_PIXEL_OFFSET, window_plane
-from .files import ControlPar, read_addpar, read_cal_ori_par, read_control_par, read_multi_planes_par, read_ori, \
-    read_points
+from .files import MAN_ORI_POINTS, ControlPar, read_addpar, read_cal_ori_par, read_control_par, read_man_ori, \
+    read_multi_planes_par, read_ori, read_points
 
 log = logging.getLogger(__name__)
 
@@ -57,18 +69,45 @@ class PlaneFiles:
 
 
 def _plane_files(root: Path, control: ControlPar) -> tuple[list[list[PlaneFiles]], Path]:
-    """Per plane, per camera: the fix/crd files; and the parameter file that named them."""
+    """Per plane, per camera: the fix/crd files; and the parameter file that named them: multi_planes.par
+    when every file it names exists, else cal_ori.par (whose .crd files may be missing: the images then)."""
     params = root / "parameters"
     multi = params / "multi_planes.par"
+    cal_ori = params / "cal_ori.par"
     if multi.is_file():
         bases = read_multi_planes_par(multi)
-        return [[PlaneFiles(root / f"{b}{k + 1}.tif.fix", root / f"{b}{k + 1}.tif.crd")
-                 for k in range(control.num_cams)] for b in bases], multi
-    cal_ori = params / "cal_ori.par"
+        planes = [[PlaneFiles(root / f"{b}{k + 1}.tif.fix", root / f"{b}{k + 1}.tif.crd")
+                   for k in range(control.num_cams)] for b in bases]
+        missing = [f for plane in planes for files in plane for f in (files.fix, files.crd) if not f.is_file()]
+        if not missing:
+            return planes, multi
+        if not cal_ori.is_file():
+            raise AriSfmError(missing[0], "file not found (named by multi_planes.par; no cal_ori.par to read the "
+                                          "body from instead)")
+        more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
+        log.warning("%s names files that do not exist (%s%s): the body is read from cal_ori.par", multi,
+                    os.path.relpath(missing[0], root), more)
     if not cal_ori.is_file():
         raise AriSfmError(params, "neither multi_planes.par nor cal_ori.par: no calibration body to import")
     par = read_cal_ori_par(cal_ori, control.num_cams)
     return [[PlaneFiles(root / par.fixp_name, root / f"{img}.crd") for img in par.img_names]], cal_ori
+
+
+def _read_fix(fix_path: Path, offset: int, body: dict[int, np.ndarray], sources: dict[int, Path]
+              ) -> dict[int, np.ndarray]:
+    """Add a camera's .fix points to the body (ids + ``offset``); return the file's points."""
+    fix = read_points(fix_path, 3)
+    for pid, xyz in fix.items():
+        key = offset + pid
+        if not np.all(np.abs(xyz) <= MAX_LENGTH_MM):  # 1e300 imported, then failed inside OpenCV
+            raise AriSfmError(fix_path, f"point {pid} at {xyz.tolist()}: beyond {MAX_LENGTH_MM:g} mm, not a "
+                                        "body coordinate in mm")
+        if key in body and np.max(np.abs(body[key] - xyz)) > FIX_TOLERANCE_MM:
+            raise AriSfmError(fix_path, f"point {pid} is at {xyz.tolist()} but at {body[key].tolist()} in "
+                                        f"{sources[key]}")
+        body.setdefault(key, xyz)
+        sources.setdefault(key, fix_path)
+    return fix
 
 
 def _read_plane(files: PlaneFiles, offset: int, body: dict[int, np.ndarray], sources: dict[int, Path],
@@ -80,17 +119,10 @@ def _read_plane(files: PlaneFiles, offset: int, body: dict[int, np.ndarray], sou
         extra = sorted(set(crd) - set(fix)) or sorted(set(fix) - set(crd))
         where = "not in" if set(crd) - set(fix) else "missing from"
         raise AriSfmError(files.crd, f"ids do not match {files.fix.name}: id {extra[0]} {where} this file")
+    _read_fix(files.fix, offset, body, sources)
     ids, pixels = [], []
-    for pid, xyz in fix.items():
+    for pid in fix:
         key = offset + pid
-        if not np.all(np.abs(xyz) <= MAX_LENGTH_MM):  # 1e300 imported, then failed inside OpenCV
-            raise AriSfmError(files.fix, f"point {pid} at {xyz.tolist()}: beyond {MAX_LENGTH_MM:g} mm, not a "
-                                         "body coordinate in mm")
-        if key in body and np.max(np.abs(body[key] - xyz)) > FIX_TOLERANCE_MM:
-            raise AriSfmError(files.fix, f"point {pid} is at {xyz.tolist()} but at {body[key].tolist()} in "
-                                         f"{sources[key]}")
-        body.setdefault(key, xyz)
-        sources.setdefault(key, files.fix)
         if np.all(crd[pid] != UNDETECTED):
             margin = BORDER_TOLERANCE_PX  # as the dataset's own pixel check: a centre just beyond the edge is kept
             if not (-margin <= crd[pid][0] <= image_size[0] + margin and -margin <= crd[pid][1] <= image_size[1] + margin):
@@ -134,6 +166,85 @@ def _interface(control: ControlPar, glasses: list[np.ndarray], ori_paths: list[P
                      plane=WindowPlane(FRAME, normal, point, float(sigma_deg), float(sigma_mm)))
 
 
+def _interface_without_ori(control: ControlPar, ptv_par: Path) -> Interface:
+    """The window when not every camera has an .ori: ptv.par's d, n2 / n1, n3 / n1, no plane (calibrate
+    estimates it)."""
+    if control.d <= 0 or control.n2 == control.n1:
+        raise AriSfmError(ptv_par, f"no window to calibrate (glass thickness {control.d:g} mm, n1 {control.n1:g}, "
+                                   f"n2 {control.n2:g}): ari-sfm needs a glass plate")
+    if control.n1 != 1.0:
+        log.warning("%s: n1 = %g: the window is written with index n2/n1 = %g and medium_index n3/n1 = %g "
+                    "(Snell's law depends on the ratios only)", ptv_par, control.n1, control.n2 / control.n1,
+                    control.n3 / control.n1)
+    return Interface(thickness_mm=control.d, index=control.n2 / control.n1, medium_index=control.n3 / control.n1)
+
+
+def _cameras(root: Path, control: ControlPar, names: list[str]) -> tuple[dict[str, CameraSpec], list[np.ndarray]]:
+    """The cameras (image size; focal_px from its .ori when there is one) and the glass vectors of the .ori
+    files found (all cameras' or fewer)."""
+    cameras, glasses = {}, []
+    size = (control.imx, control.imy)
+    for name, cal in zip(names, control.cal_image_names):
+        ori_path = root / f"{cal}.ori"
+        if not ori_path.is_file():
+            log.info("%s: no orientation file %s.ori: no focal length hint", name, cal)
+            cameras[name] = CameraSpec(name, size)
+            continue
+        ori = read_ori(ori_path)
+        addpar = read_addpar(root / f"{cal}.addpar")
+        if not addpar.is_identity():
+            log.info("%s: distortion in %s.addpar is not imported (calibrate fits its own)", name, cal)
+        glasses.append(ori.glass)
+        if control.pix_x == control.pix_y:
+            cameras[name] = CameraSpec(name, size, focal_px=ori.cc / control.pix_x)
+        else:  # non-square pixels: a K hint (fx != fy) instead of focal_px
+            K = np.array([[ori.cc / control.pix_x, 0, control.imx / 2 - OPENPTV_PIXEL_OFFSET],
+                          [0, ori.cc / control.pix_y, control.imy / 2 - OPENPTV_PIXEL_OFFSET], [0, 0, 1.0]])
+            cameras[name] = CameraSpec(name, size, K=K)
+    return cameras, glasses
+
+
+def _calibration_images(root: Path, cal_ori: Path, control: ControlPar, names: list[str]) -> dict[str, Path]:
+    """The calibration images cal_ori.par names that exist, by camera."""
+    par = read_cal_ori_par(cal_ori, control.num_cams)
+    return {name: root / img for name, img in zip(names, par.img_names) if (root / img).is_file()}
+
+
+def _man_ori_dat(root: Path) -> Path:
+    """Where the clicked pixels are: the experiment folder's man_ori.dat (the GUI writes it there), else parameters/."""
+    here = root / "man_ori.dat"
+    return here if here.is_file() else root / "parameters" / "man_ori.dat"
+
+
+def _manual_points(root: Path, control: ControlPar, names: list[str], body: dict[int, np.ndarray],
+                   images: dict[str, Path]) -> dict[str, dict[int, tuple[float, float]]]:
+    """OpenPTV's clicked points (man_ori.par, man_ori.dat) in OpenCV pixels, for the cameras with an image and
+    4 clicked points; {} without the two files."""
+    par, dat = root / "parameters" / "man_ori.par", _man_ori_dat(root)
+    if not (par.is_file() and dat.is_file()):
+        if images:
+            log.warning("%s: no %s: the dataset has no clicked points, which identifying the body in the images "
+                        "needs", root, "man_ori.par" if not par.is_file() else "man_ori.dat")
+        return {}
+    out: dict[str, dict[int, tuple[float, float]]] = {}
+    for name, clicks in zip(names, read_man_ori(par, dat, control.num_cams)):
+        for pid, (x, y) in clicks.items():
+            if pid not in body:
+                raise AriSfmError(par, f"{name}: clicked point {pid} is not a point of the calibration body")
+            if not (0.0 <= x <= control.imx and 0.0 <= y <= control.imy):
+                raise AriSfmError(dat, f"{name}: clicked point {pid} at ({x:g}, {y:g}) is outside the "
+                                       f"{control.imx} x {control.imy} image")
+        if name not in images:
+            continue
+        if len(clicks) < MAN_ORI_POINTS:
+            log.warning("%s: %s has %d clicked points (need %d): none imported", name, dat, len(clicks),
+                        MAN_ORI_POINTS)
+            continue
+        out[name] = {pid: (float(x - OPENPTV_PIXEL_OFFSET), float(y - OPENPTV_PIXEL_OFFSET))
+                     for pid, (x, y) in clicks.items()}
+    return out
+
+
 def read_experiment(root: str | Path) -> Dataset:
     """The dataset of an OpenPTV experiment folder (records only; nothing is written)."""
     root = Path(os.path.abspath(root))
@@ -146,44 +257,44 @@ def read_experiment(root: str | Path) -> Dataset:
     if control.chfield != 0:
         raise AriSfmError(ptv_par, f"chfield {control.chfield}: interlaced fields are not supported")
     names = [f"cam{k + 1}" for k in range(control.num_cams)]
-    ori_paths = [root / f"{cal}.ori" for cal in control.cal_image_names]
-    cameras, glasses = {}, []
-    for name, ori_path, cal in zip(names, ori_paths, control.cal_image_names):
-        if not ori_path.is_file():
-            raise AriSfmError(ori_path, f"no orientation file for {name} (ptv.par names calibration image {cal})")
-        ori = read_ori(ori_path)
-        addpar = read_addpar(root / f"{cal}.addpar")
-        if not addpar.is_identity():
-            log.info("%s: distortion in %s.addpar is not imported (calibrate fits its own)", name, cal)
-        glasses.append(ori.glass)
-        size = (control.imx, control.imy)
-        if control.pix_x == control.pix_y:
-            cameras[name] = CameraSpec(name, size, focal_px=ori.cc / control.pix_x)
-        else:  # non-square pixels: a K hint (fx != fy) instead of focal_px
-            K = np.array([[ori.cc / control.pix_x, 0, control.imx / 2 - OPENPTV_PIXEL_OFFSET],
-                          [0, ori.cc / control.pix_y, control.imy / 2 - OPENPTV_PIXEL_OFFSET], [0, 0, 1.0]])
-            cameras[name] = CameraSpec(name, size, K=K)
-    interface = _interface(control, glasses, ori_paths, ptv_par)
+    cameras, glasses = _cameras(root, control, names)
+    if len(glasses) == len(names):
+        interface = _interface(control, glasses, [root / f"{cal}.ori" for cal in control.cal_image_names], ptv_par)
+    else:
+        interface = _interface_without_ori(control, ptv_par)
     planes, source = _plane_files(root, control)
+    images = _calibration_images(root, source, control, names) if source.name == "cal_ori.par" else {}
     step = 10 ** len(str(max(1, _max_id(planes)))) if len(planes) > 1 else 0
     body: dict[int, np.ndarray] = {}
     sources: dict[int, Path] = {}
     per_camera: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {n: [] for n in names}
     for p, plane in enumerate(planes):
         for name, files in zip(names, plane):
+            if not files.crd.is_file() and name in images:  # cal_ori.par: the body is found in the image
+                _read_fix(files.fix, p * step, body, sources)
+                continue
+            if not files.crd.is_file() and source.name == "cal_ori.par":
+                raise AriSfmError(files.crd, f"file not found, and no calibration image {files.crd.name[:-4]} to "
+                                             "find the body in")
             per_camera[name].append(_read_plane(files, p * step, body, sources, (control.imx, control.imy)))
     observations = []
     for name in names:
+        if not per_camera[name]:
+            continue
         ids = np.concatenate([i for i, _ in per_camera[name]])
         pixels = np.concatenate([px for _, px in per_camera[name]])
         if len(ids):
             observations.append(Observation(name, "calibration", FRAME, ids, pixels))
-    log.info("%s: %d cameras, %d body points on %d plane(s) (from %s)", root, len(names), len(body), len(planes),
-             source.name)
+    manual = _manual_points(root, control, names, body, images) if source.name == "cal_ori.par" else {}
+    log.info("%s: %d cameras, %d body points on %d plane(s) (from %s), %d calibration images, clicked points for "
+             "%d cameras, .crd detections for %d", root, len(names), len(body), len(planes), source.name,
+             len(images), len(manual), len(observations))
     target = Target(type="points3d", points={k: tuple(float(c) for c in v) for k, v in sorted(body.items())})
+    has_crd = any(per_camera.values())
     return Dataset(root=root, rig_path=root / "rig.yaml", target=target,
                    interface=interface, cameras=cameras,
-                   calibration=(Entry("calibration", FRAME),), observations=tuple(observations))
+                   calibration=(Entry("calibration", FRAME, images=images, manual_points=manual),),
+                   observations=tuple(observations) if has_crd else None)
 
 
 def _source_of(message: str, root: Path, dataset: Dataset) -> Path:
@@ -202,6 +313,8 @@ def _source_of(message: str, root: Path, dataset: Dataset) -> Path:
         return _plane_files(root, control)[1]
     if key.startswith("observation"):
         return root / "cal"
+    if ".manual_points" in key:
+        return _man_ori_dat(root)
     return root / "parameters" / "ptv.par"
 
 
@@ -210,9 +323,27 @@ def _max_id(planes: list[list[PlaneFiles]]) -> int:
     return max(max(read_points(f.fix, 3)) for plane in planes for f in plane)
 
 
+def _copied_images(dataset: Dataset, folder: Path) -> Dataset:
+    """``dataset`` with its calibration images copied into ``folder``: at their path in the experiment
+    (``cal/cam1.tif``), or under ``images/`` for an image outside the experiment folder."""
+    entries = []
+    for entry in dataset.calibration:
+        images = {}
+        for cam, path in entry.images.items():
+            rel = Path(os.path.relpath(path, dataset.root))
+            if rel.parts[0] == os.pardir:
+                rel = Path("images") / f"{cam}_{path.name}"
+            (folder / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(path, folder / rel)
+            images[cam] = folder / rel
+        entries.append(replace(entry, images=images))
+    return replace(dataset, calibration=tuple(entries))
+
+
 def import_experiment(root: str | Path, out: str | Path) -> Path:
-    """Write the dataset of an OpenPTV experiment to the new folder ``out`` (rig.yaml and
-    observations.json, written in a temporary folder beside it, then renamed). Returns the rig path."""
+    """Write the dataset of an OpenPTV experiment to the new folder ``out`` (rig.yaml, observations.json
+    where .crd files exist, and a copy of the calibration images; written in a temporary folder beside
+    it, then renamed). Returns the rig path."""
     from ari_sfm.io import save_rig
 
     out = Path(os.path.abspath(out))
@@ -225,6 +356,7 @@ def import_experiment(root: str | Path, out: str | Path) -> Path:
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; the dataset is an ordinary folder
+        dataset = _copied_images(dataset, tmp)
         try:
             save_rig(tmp / "rig.yaml", dataset)
         except AriSfmError as exc:  # named the temporary rig.yaml, deleted below: name the OpenPTV file instead

@@ -287,3 +287,29 @@ def _circles_shader(target: Target) -> Callable[[np.ndarray], np.ndarray]:
         return out
 
     return shade
+
+
+def add_discs(image: np.ndarray, centres: np.ndarray, diameters_px: np.ndarray | float, peak: np.ndarray | float,
+              supersample: int = 5) -> np.ndarray:
+    """``image`` (float, (height, width)) plus uniformly bright discs: disc k centred at ``centres[k]``
+    (OpenCV pixels), ``diameters_px[k]`` wide, adding ``peak[k]`` grey levels where it covers a pixel
+    wholly (pixels on its edge get the covered fraction, from ``supersample`` x ``supersample`` samples).
+    The dots of a 3D calibration body seen from afar; returns a new array."""
+    out = np.array(image, dtype=np.float64)
+    h, w = out.shape
+    centres = np.asarray(centres, float).reshape(-1, 2)
+    diameters = np.broadcast_to(np.asarray(diameters_px, float), (len(centres),))
+    peaks = np.broadcast_to(np.asarray(peak, float), (len(centres),))
+    sub = (np.arange(supersample) + 0.5) / supersample - 0.5
+    for (u, v), d, p in zip(centres, diameters, peaks):
+        r = 0.5 * d
+        x0, x1 = max(0, int(np.floor(u - r - 1))), min(w, int(np.ceil(u + r + 2)))
+        y0, y1 = max(0, int(np.floor(v - r - 1))), min(h, int(np.ceil(v + r + 2)))
+        if x0 >= x1 or y0 >= y1:
+            continue
+        ys = (np.arange(y0, y1)[:, None] + sub[None, :]).reshape(-1)  # sample rows
+        xs = (np.arange(x0, x1)[:, None] + sub[None, :]).reshape(-1)
+        inside = ((xs[None, :] - u) ** 2 + (ys[:, None] - v) ** 2 <= r * r).astype(float)
+        cover = inside.reshape(y1 - y0, supersample, x1 - x0, supersample).mean(axis=(1, 3))
+        out[y0:y1, x0:x1] += p * cover
+    return out
