@@ -986,15 +986,18 @@ def import_group() -> None:
 @click.argument("experiment", type=click.Path(path_type=Path))
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
               help="New dataset folder (rig.yaml, observations.json where .crd files exist, the calibration images).")
+@click.option("--windows", "window_groups", default=None,
+              help="Which cameras share a window, e.g. 'cam1,cam2;cam3,cam4' (default: told from the .ori glass "
+                   "vectors, else from the cameras' viewing directions resected from their clicked points).")
 @user_errors
-def import_openptv_cmd(experiment: Path, out: Path) -> None:
+def import_openptv_cmd(experiment: Path, out: Path, window_groups: str | None) -> None:
     """Read an OpenPTV EXPERIMENT folder (ptv.par, cal_ori.par or multi_planes.par, .fix/.crd, the calibration
     images with man_ori.dat's clicked points, .ori when present) as a dataset."""
     from .io import load_dataset
     from .openptv import import_experiment
 
     check_output_folder(out)
-    rig = import_experiment(experiment, out)
+    rig = import_experiment(experiment, out, window_groups)
     ds = load_dataset(rig)
     n_obs = sum(len(o.ids) for o in ds.observations or ())
     images = sum(len(e.images) for e in ds.calibration)
@@ -1002,6 +1005,8 @@ def import_openptv_cmd(experiment: Path, out: Path) -> None:
     extra = f", {images} calibration images, clicked points for {clicked} cameras" if images else ""
     click.echo(f"dataset: {rig}\n{len(ds.cameras)} cameras ({', '.join(ds.cameras)}), "
                f"{ds.target.num_ids()} body points, {n_obs} observations{extra}")
+    if ds.windows:
+        click.echo("windows: " + "; ".join(f"{w.name} ({', '.join(w.cameras)})" for w in ds.windows))
 
 
 @main.command(name="export-openptv")

@@ -300,14 +300,35 @@ def test_import_bad_input_is_one_line_naming_the_file(experiment, tmp_path, brea
     assert r.exit_code == 1 and r.output.count("\n") == 1 and r.output.startswith("error: ")
 
 
-def test_import_refuses_cameras_behind_different_windows(tmp_path):
+def test_import_gives_each_wall_its_window(cavity_without_ori, tmp_path):
     """test_cavity's cam1, cam2 look through the window at z = -131..-125, cam3, cam4 through the opposite wall:
-    ari-sfm's contract has one window."""
-    root = tmp_path / "cavity"
-    shutil.copytree(FODDER, root)
-    with pytest.raises(AriSfmError, match="different windows") as err:
-        import_experiment(root, tmp_path / "ds")
-    assert err.value.path.endswith("cam3.tif.ori")
+    two windows (DATASET_FORMAT 1.3), each plane declared from its cameras' glass vector in frame f000."""
+    root, _ = cavity_without_ori
+    for k in range(1, 5):  # the lab's .ori files back
+        shutil.copy(FODDER / "cal" / f"cam{k}.tif.ori", root / "cal" / f"cam{k}.tif.ori")
+    ds = load_dataset(import_experiment(root, tmp_path / "ds"))
+    assert [(w.name, w.cameras) for w in ds.windows] == [("minus_z", ("cam1", "cam2")), ("plus_z", ("cam3", "cam4"))]
+    for w, sign in zip(ds.windows, (1.0, -1.0)):
+        plane = w.interface.plane
+        assert plane.frame == "f000" and plane.sigma_deg == 0.0 and plane.sigma_mm == 0.0
+        np.testing.assert_allclose(plane.normal, [0, 0, sign], atol=1e-15)  # from the cameras into the water
+        assert plane.normal @ plane.point_mm == pytest.approx(-131.0)  # the camera-side face, 125 + 6 mm out
+        assert (w.interface.thickness_mm, w.interface.index, w.interface.medium_index) == (6.0, 1.33, 1.46)
+
+
+def test_import_windows_option_and_its_errors(cavity_without_ori, tmp_path):
+    root, _ = cavity_without_ori
+    r = CliRunner().invoke(main, ["import", "openptv", str(root), "-o", str(tmp_path / "ds"),
+                                  "--windows", "cam1,cam3;cam2,cam4"])
+    assert r.exit_code == 0, r.output
+    ds = load_dataset(tmp_path / "ds")
+    assert [w.cameras for w in ds.windows] == [("cam1", "cam3"), ("cam2", "cam4")]
+    assert all(w.interface.plane is None for w in ds.windows)  # the user's grouping: planes left to calibrate
+    for groups, message in (("cam1,cam2;cam3", "camera cam4 is in no group"), ("cam1,cam2;cam2,cam3,cam4",
+                            "camera cam2 is in two groups"), ("cam1,cam9;cam2,cam3,cam4", "cam9 is not a camera")):
+        r = CliRunner().invoke(main, ["import", "openptv", str(root), "-o", str(tmp_path / "ds2"), "--windows", groups])
+        assert r.exit_code == 1 and r.output.startswith("error: --windows: ") and message in r.output, r.output
+        assert not (tmp_path / "ds2").exists()
 
 
 def test_import_n1_not_air_and_nearly_equal_glass_vectors(experiment, tmp_path):
@@ -663,7 +684,10 @@ def test_import_images_and_clicks_without_ori_then_detect(cavity_without_ori, tm
            "points for 4 cameras" in r.output
     ds = load_dataset(tmp_path / "ds")
     assert ds.observations is None and not (tmp_path / "ds" / "observations.json").exists()
-    assert ds.interface == Interface(6.0, 1.33, 1.46)  # ptv.par's d, n2, n3 (n1 = 1), no plane without the .ori
+    # two windows told from the cameras' viewing directions (resected from the clicks), ptv.par's d, n2, n3
+    # (n1 = 1), no plane without the .ori
+    assert [(w.name, w.cameras) for w in ds.windows] == [("minus_z", ("cam1", "cam2")), ("plus_z", ("cam3", "cam4"))]
+    assert all(w.interface == Interface(6.0, 1.33, 1.46) for w in ds.windows)
     assert all(cam.focal_px is None and cam.K is None for cam in ds.cameras.values())
     entry = ds.calibration[0]
     for k in range(1, 5):
@@ -727,3 +751,52 @@ def test_import_multi_planes_par_with_its_files_is_still_read(experiment, tmp_pa
     (experiment / "parameters" / "multi_planes.par").write_text("2\nimg/calib_a_cam\nimg/calib_b_cam\n")
     ds = load_dataset(import_experiment(experiment, tmp_path / "ds"))
     assert ds.target.num_ids() == 73 and [len(o.ids) for o in ds.observations] == [73, 73]
+
+
+def test_raw_cavity_calibrates_behind_two_windows(cavity_without_ori, tmp_path):
+    """The lab's folder without OpenPTV's calibration (images rendered where OpenPTV's .ori put the body) imports
+    and calibrates from its images and clicks alone: two windows, each near the wall the .ori files declare
+    (within 3 sigma), the cameras' poses near theirs, at the detection noise."""
+    from ari_sfm.calibrate import calibrate
+    from ari_sfm.geometry import angle_between_deg
+
+    root, _ = cavity_without_ori
+    cal = calibrate(load_dataset(import_experiment(root, tmp_path / "ds")), model="exact")
+    assert cal.quality.ok and cal.residuals.rmse_px < 0.3
+    frame = cal.frames["f000"]  # world_from_body (OpenPTV's world)
+    for w, sign in zip(cal.windows, (1.0, -1.0)):
+        sigma = cal.uncertainty.windows[w.name]
+        n_body = frame.R.T @ w.normal_world
+        assert angle_between_deg(n_body, [0, 0, sign]) < max(3 * sigma.normal_deg, 0.5), (w.name, sigma)
+    for k in range(1, 5):
+        ori = read_ori(FODDER / "cal" / f"cam{k}.tif.ori")
+        centre = frame.inverse().apply(cal.cameras[f"cam{k}"].cam_from_world.inverse().t[None])[0]
+        assert np.linalg.norm(centre - ori.position) < 0.05 * np.linalg.norm(ori.position)
+
+
+@pytest.mark.parametrize("tilts,expected", [
+    ((20, -20, 160, 200), [[0, 1], [2, 3]]),  # opposite walls (test_cavity)
+    ((15, -25, 90 + 20, 90 - 20), [[0, 1], [2, 3]]),  # adjacent walls at 90 deg, cameras tilted apart
+    ((10, -10, 0, 5), [[0, 1, 2, 3]]),  # one wall
+])
+def test_windows_from_viewing_directions(tilts, expected, caplog):
+    """Optical axes in the body frame (turned about y from +z by the angles) grouped by side (average linkage)."""
+    from ari_sfm.openptv.windows import windows_from_axes
+
+    axes = [np.array([np.sin(np.radians(t)), 0.0, np.cos(np.radians(t))]) for t in tilts]
+    names = [f"cam{k + 1}" for k in range(4)]
+    windows = windows_from_axes(names, axes, 6.0, 1.5, 1.33)
+    assert [list(w.cameras) for w in windows] == [[names[k] for k in g] for g in expected]
+    assert len({w.name for w in windows}) == len(windows)
+
+
+def test_windows_from_viewing_directions_warns_when_unclear(caplog):
+    """Adjacent walls whose cameras tilt toward each other: the groups are not clear-cut, said so."""
+    import logging
+
+    from ari_sfm.openptv.windows import windows_from_axes
+
+    axes = [np.array([np.sin(np.radians(t)), 0.0, np.cos(np.radians(t))]) for t in (-26, 26, 90 - 26, 90 + 26)]
+    with caplog.at_level(logging.WARNING, logger="ari_sfm.openptv.windows"):
+        windows_from_axes(["a", "b", "c", "d"], axes, 6.0, 1.5, 1.33)
+    assert "a guess" in caplog.text and "--windows" in caplog.text

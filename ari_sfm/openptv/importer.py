@@ -18,9 +18,12 @@ conversions):
   entry's ``manual_points`` (DATASET_FORMAT 1.3; cal_ori.par's body only), from
   which ``detect`` / ``calibrate`` identify the body in the images;
 - ``<calibration image>.ori`` per camera, when present (never required): cc /
-  pixel size becomes the ``focal_px`` hint; when every camera has one, the glass
-  vectors become ``interface.plane`` (:func:`_interface`); else the window is
-  ptv.par's thickness and indices without a plane (:func:`_interface_without_ori`).
+  pixel size becomes the ``focal_px`` hint; when every camera has one, its glass
+  vector tells its window and the window's plane, declared as OpenPTV holds it
+  (:mod:`.windows`); else the windows are told from the cameras' viewing directions
+  resected from their clicked points, their planes left for calibrate to estimate.
+  Cameras behind different walls (test_cavity's two) give several windows
+  (``interfaces``, DATASET_FORMAT 1.3); ``window_groups`` gives them explicitly.
 
 The dataset lists the calibration images, copied into it at their path in the
 experiment (``cal/cam1.tif``; an image outside the experiment folder goes to
@@ -45,9 +48,10 @@ import numpy as np
 from ari_sfm.errors import AriSfmError
 from ari_sfm.io.dataset import MAX_LENGTH_MM
 from ari_sfm.io.observations import BORDER_TOLERANCE_PX
-from ari_sfm.records import CameraSpec, Dataset, Entry, Interface, Observation, Target, WindowPlane
+from ari_sfm.records import CameraSpec, Dataset, Entry, Interface, Observation, Target, Window
 
-from .conventions import OPENPTV_PIXEL_OFFSET, window_plane
+from .conventions import OPENPTV_PIXEL_OFFSET
+from .windows import parse_window_groups, windows_from_axes, windows_from_glass, windows_from_groups
 from .files import MAN_ORI_POINTS, ControlPar, read_addpar, read_cal_ori_par, read_control_par, read_man_ori, \
     read_multi_planes_par, read_ori, read_points
 
@@ -56,8 +60,6 @@ log = logging.getLogger(__name__)
 FRAME = "f000"
 UNDETECTED = -999.0  # OpenPTV's mark of a target not found in an image
 FIX_TOLERANCE_MM = 1e-6  # two cameras' .fix files must agree on a point to this
-GLASS_TOLERANCE = 1e-9  # relative: cameras whose glass vectors differ more get a plane prior, not a fixed plane
-SAME_WINDOW_DEG = 5.0  # glass normals further apart than this are different windows (the contract has one)
 
 
 @dataclass(frozen=True)
@@ -134,8 +136,9 @@ def _read_plane(files: PlaneFiles, offset: int, body: dict[int, np.ndarray], sou
     return np.array(ids, dtype=int), np.array(pixels, dtype=float).reshape(-1, 2)
 
 
-def _interface(control: ControlPar, glasses: list[np.ndarray], ori_paths: list[Path], ptv_par: Path) -> Interface:
-    """The window: n2 / n1, n3 / n1, d; the plane from cam1's glass vector (a prior if cameras differ)."""
+def _plate(control: ControlPar, ptv_par: Path) -> tuple[float, float, float]:
+    """(thickness, index, medium index) of ptv.par's glass: d, n2 / n1, n3 / n1 (Snell's law depends on the
+    ratios only); one error line when there is no plate."""
     if control.d <= 0 or control.n2 == control.n1:
         raise AriSfmError(ptv_par, f"no window to calibrate (glass thickness {control.d:g} mm, n1 {control.n1:g}, "
                                    f"n2 {control.n2:g}): ari-sfm needs a glass plate")
@@ -143,40 +146,48 @@ def _interface(control: ControlPar, glasses: list[np.ndarray], ori_paths: list[P
         log.warning("%s: n1 = %g: the window is written with index n2/n1 = %g and medium_index n3/n1 = %g "
                     "(Snell's law depends on the ratios only)", ptv_par, control.n1, control.n2 / control.n1,
                     control.n3 / control.n1)
-    planes = []
-    for glass, path in zip(glasses, ori_paths):
-        if not np.linalg.norm(glass) > 0:
-            raise AriSfmError(path, "glass vector is zero: OpenPTV needs it to place the window")
-        planes.append(window_plane(glass, control.d))
-    normal, point = planes[0]
-    angles = [np.degrees(np.arccos(np.clip(n @ normal, -1, 1))) for n, _ in planes]
-    for angle, path in zip(angles, ori_paths):
-        if angle > SAME_WINDOW_DEG:
-            raise AriSfmError(path, f"glass vector is {angle:.1f} deg from {ori_paths[0].name}'s: the cameras look "
-                                    "through different windows, and an ari-sfm dataset has one")
-    offsets = [abs(normal @ (p - point)) for _, p in planes]
-    sigma_deg, sigma_mm = max(angles), max(offsets)
-    scale = max(1.0, float(np.linalg.norm(glasses[0])))
-    if sigma_deg <= np.degrees(GLASS_TOLERANCE) and sigma_mm <= GLASS_TOLERANCE * scale:
-        sigma_deg = sigma_mm = 0.0
-    else:
-        log.warning("the cameras' glass vectors differ (up to %.3g deg, %.3g mm): interface.plane is cam1's, "
-                    "as a prior with those sigmas", sigma_deg, sigma_mm)
-    return Interface(thickness_mm=control.d, index=control.n2 / control.n1, medium_index=control.n3 / control.n1,
-                     plane=WindowPlane(FRAME, normal, point, float(sigma_deg), float(sigma_mm)))
+    return control.d, control.n2 / control.n1, control.n3 / control.n1
 
 
-def _interface_without_ori(control: ControlPar, ptv_par: Path) -> Interface:
-    """The window when not every camera has an .ori: ptv.par's d, n2 / n1, n3 / n1, no plane (calibrate
-    estimates it)."""
-    if control.d <= 0 or control.n2 == control.n1:
-        raise AriSfmError(ptv_par, f"no window to calibrate (glass thickness {control.d:g} mm, n1 {control.n1:g}, "
-                                   f"n2 {control.n2:g}): ari-sfm needs a glass plate")
-    if control.n1 != 1.0:
-        log.warning("%s: n1 = %g: the window is written with index n2/n1 = %g and medium_index n3/n1 = %g "
-                    "(Snell's law depends on the ratios only)", ptv_par, control.n1, control.n2 / control.n1,
-                    control.n3 / control.n1)
-    return Interface(thickness_mm=control.d, index=control.n2 / control.n1, medium_index=control.n3 / control.n1)
+def _windows(root: Path, control: ControlPar, names: list[str], glasses: list[np.ndarray], target: Target,
+             images: dict[str, Path], manual: dict[str, dict[int, tuple[float, float]]], cameras: dict[str, CameraSpec],
+             groups: str | None) -> tuple[Window, ...]:
+    """The experiment's windows (:mod:`.windows`): the user's ``groups``; else every camera's .ori glass
+    vector; else the cameras' viewing directions resected from their clicked points; else (a camera without
+    clicks) one window for all, said so."""
+    ptv_par = root / "parameters" / "ptv.par"
+    plate = _plate(control, ptv_par)
+    if groups is not None:
+        return windows_from_groups(parse_window_groups(groups, names), *plate)
+    if len(glasses) == len(names):
+        return windows_from_glass(names, glasses, [root / f"{cal}.ori" for cal in control.cal_image_names], *plate,
+                                  FRAME)
+    axes = _viewing_axes(target, manual, cameras)
+    if len(axes) == len(names):
+        return windows_from_axes(names, [axes[n] for n in names], *plate)
+    if len(names) > 1:
+        log.warning("%s: no .ori glass vectors and no clicked points for %s: one window for every camera is assumed "
+                    "(cameras behind different walls: give them with --windows)", root,
+                    ", ".join(n for n in names if n not in axes))
+    return (Window("window", Interface(*plate), tuple(names)),)
+
+
+def _viewing_axes(target: Target, manual: dict[str, dict[int, tuple[float, float]]],
+                  cameras: dict[str, CameraSpec]) -> dict[str, np.ndarray]:
+    """Each clicked camera's optical axis in the body's frame, from a resection of its clicks (cameras whose clicks
+    fit no camera are left out)."""
+    from ari_sfm.body.identify import ClickError, start_cameras
+
+    ids, xyz = target.points_3d()
+    axes = {}
+    for name, clicks in manual.items():
+        try:
+            camera, _ = start_cameras(ids, xyz, clicks, cameras[name].image_size, cameras[name].focal_px)[0]
+        except (ClickError, ValueError) as exc:
+            log.warning("%s: its clicked points give no camera (%s): its window cannot be told", name, exc)
+            continue
+        axes[name] = camera.rotation.T @ np.array([0.0, 0.0, 1.0])
+    return axes
 
 
 def _cameras(root: Path, control: ControlPar, names: list[str]) -> tuple[dict[str, CameraSpec], list[np.ndarray]]:
@@ -245,8 +256,10 @@ def _manual_points(root: Path, control: ControlPar, names: list[str], body: dict
     return out
 
 
-def read_experiment(root: str | Path) -> Dataset:
-    """The dataset of an OpenPTV experiment folder (records only; nothing is written)."""
+def read_experiment(root: str | Path, window_groups: str | None = None) -> Dataset:
+    """The dataset of an OpenPTV experiment folder (records only; nothing is written). ``window_groups``:
+    which cameras share a window, ``cam1,cam2;cam3,cam4`` (default: told from the .ori glass vectors or the
+    clicked points, :func:`_windows`)."""
     root = Path(os.path.abspath(root))
     if root.exists() and not root.is_dir():
         raise AriSfmError(root, "is a file, expected an OpenPTV experiment folder (with parameters/ptv.par)")
@@ -258,10 +271,7 @@ def read_experiment(root: str | Path) -> Dataset:
         raise AriSfmError(ptv_par, f"chfield {control.chfield}: interlaced fields are not supported")
     names = [f"cam{k + 1}" for k in range(control.num_cams)]
     cameras, glasses = _cameras(root, control, names)
-    if len(glasses) == len(names):
-        interface = _interface(control, glasses, [root / f"{cal}.ori" for cal in control.cal_image_names], ptv_par)
-    else:
-        interface = _interface_without_ori(control, ptv_par)
+    _plate(control, ptv_par)  # a window to calibrate, before anything else is read
     planes, source = _plane_files(root, control)
     images = _calibration_images(root, source, control, names) if source.name == "cal_ori.par" else {}
     step = 10 ** len(str(max(1, _max_id(planes)))) if len(planes) > 1 else 0
@@ -291,10 +301,12 @@ def read_experiment(root: str | Path) -> Dataset:
              len(images), len(manual), len(observations))
     target = Target(type="points3d", points={k: tuple(float(c) for c in v) for k, v in sorted(body.items())})
     has_crd = any(per_camera.values())
+    windows = _windows(root, control, names, glasses, target, images, manual, cameras, window_groups)
     return Dataset(root=root, rig_path=root / "rig.yaml", target=target,
-                   interface=interface, cameras=cameras,
+                   interface=windows[0].interface, cameras=cameras,
                    calibration=(Entry("calibration", FRAME, images=images, manual_points=manual),),
-                   observations=tuple(observations) if has_crd else None)
+                   observations=tuple(observations) if has_crd else None,
+                   windows=windows if len(windows) > 1 else ())
 
 
 def _source_of(message: str, root: Path, dataset: Dataset) -> Path:
@@ -340,7 +352,7 @@ def _copied_images(dataset: Dataset, folder: Path) -> Dataset:
     return replace(dataset, calibration=tuple(entries))
 
 
-def import_experiment(root: str | Path, out: str | Path) -> Path:
+def import_experiment(root: str | Path, out: str | Path, window_groups: str | None = None) -> Path:
     """Write the dataset of an OpenPTV experiment to the new folder ``out`` (rig.yaml, observations.json
     where .crd files exist, and a copy of the calibration images; written in a temporary folder beside
     it, then renamed). Returns the rig path."""
@@ -349,7 +361,7 @@ def import_experiment(root: str | Path, out: str | Path) -> Path:
     out = Path(os.path.abspath(out))
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise AriSfmError(out, "already exists and is not empty: give a new folder")
-    dataset = read_experiment(root)
+    dataset = read_experiment(root, window_groups)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
     try:
