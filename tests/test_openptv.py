@@ -800,3 +800,48 @@ def test_windows_from_viewing_directions_warns_when_unclear(caplog):
     with caplog.at_level(logging.WARNING, logger="ari_sfm.openptv.windows"):
         windows_from_axes(["a", "b", "c", "d"], axes, 6.0, 1.5, 1.33)
     assert "a guess" in caplog.text and "--windows" in caplog.text
+
+
+def test_an_imported_experiment_runs_its_particles_without_editing(cavity_without_ori, tmp_path):
+    """sequence.par's images (``img_1/cam1.%d``, frames 10000..10001) and criteria.par's observation volume become
+    the dataset's ``particles:``: after calibrating from the images and clicks, detect-particles and particles
+    run on the imported dataset as it is and find the particles (rendered where OpenPTV's .ori put them)."""
+    import cv2
+
+    from ari_sfm.simulate.particle_images import render_particle_image
+
+    root, _ = cavity_without_ori
+    params = root / "parameters"
+    (params / "sequence.par").write_text("img_1/cam1.%d\nimg_1/cam2.%d\nimg_1/cam3.%d\nimg_1/cam4.%d\n10000\n10001\n")
+    (params / "criteria.par").write_text("-40\n-20\n20\n40\n-20\n20\n0.02\n0.02\n0.02\n0.02\n33\n0.05\n")
+    rng = np.random.default_rng(7)
+    (root / "img_1").mkdir()
+    truth = {}
+    for frame in (10000, 10001):
+        X = rng.uniform([-30, -20, -15], [30, 20, 15], size=(60, 3))
+        truth[frame] = X
+        for k in range(1, 5):
+            cam = read_liboptv_camera(FODDER / "cal" / f"cam{k}.tif.ori", root / "parameters" / "ptv.par")
+            uv = liboptv_pixels(X, cam) + OPENCV_FROM_OPENPTV_PX
+            img = render_particle_image(uv, (1280, 1024), 4.0, peak=150.0, rng=rng)
+            assert cv2.imwrite(str(root / "img_1" / f"cam{k}.{frame}.png"), img)
+            (root / "img_1" / f"cam{k}.{frame}.png").rename(root / "img_1" / f"cam{k}.{frame}")
+    ds = tmp_path / "ds"
+    for args in (["import", "openptv", str(root), "-o", str(ds)], ["calibrate", str(ds), "-o", str(tmp_path / "cal")],
+                 ["detect-particles", str(ds), "-o", str(tmp_path / "det"), "--workers", "0"],
+                 ["particles", str(ds), "--calibration", str(tmp_path / "cal" / "calibration.json"),
+                  "--detections", str(tmp_path / "det" / "particles.parquet"), "-o", str(tmp_path / "p3d"),
+                  "--workers", "0"]):
+        r = CliRunner().invoke(main, args)
+        assert r.exit_code == 0, (args[0], r.output)
+    import pyarrow.parquet as pq
+
+    from ari_sfm.io import load_calibration
+
+    table = pq.read_table(tmp_path / "p3d" / "particles3d.parquet").to_pydict()
+    frames, xyz = np.array(table["frame"]), np.array([table["x"], table["y"], table["z"]]).T
+    body_from_world = load_calibration(tmp_path / "cal" / "calibration.json").frames["f000"].inverse()
+    for frame, X in truth.items():
+        found = body_from_world.apply(xyz[frames == frame])
+        d = np.linalg.norm(found[:, None] - X[None], axis=2).min(axis=1)
+        assert len(found) >= 0.8 * len(X) and np.median(d) < 0.5, (frame, len(found), np.median(d))

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -316,3 +317,65 @@ def update_control_par(path: Path, par: ControlPar) -> str:
               repr(par.n1), repr(par.n2), repr(par.n3), repr(par.d)]
     lines[tail:] = [str(v) for v in values]
     return "\n".join(lines) + "\n"
+
+
+# --------------------------------------------------------------------------- sequence.par, criteria.par
+
+
+@dataclass(frozen=True)
+class SequencePar:
+    """``sequence.par``: each camera's image base name (``img/cam1.%d``, or ``img/cam1.`` with the frame number
+    appended as OpenPTV's C code does) and the first and last frame."""
+
+    base_names: tuple[str, ...]
+    first: int
+    last: int
+
+    def pattern(self, camera: int) -> str:
+        """The image name of camera ``camera`` (0-based) with ``{frame}`` for the frame number (Python format)."""
+        base = self.base_names[camera].replace("{", "{{").replace("}", "}}")
+        spec = re.search(r"%(0?\d*)d", base)
+        if spec is None:
+            return base + "{frame}"
+        width = spec.group(1)
+        return base[:spec.start()] + ("{frame:" + width + "d}" if width else "{frame}") + base[spec.end():]
+
+
+def read_sequence_par(path: Path, num_cams: int) -> SequencePar:
+    """liboptv's ``read_sequence_par``: ``num_cams`` base names (the Tcl/Tk layout pads them to four), then the
+    first and last frame."""
+    lines = _lines(path)
+    if len(lines) not in {num_cams + 2, max(num_cams, TCL_CAMERAS) + 2}:
+        raise AriSfmError(path, f"{len(lines)} lines for {num_cams} cameras: expected {num_cams + 2} (a base name "
+                                "a camera, the first and the last frame)")
+    first = _integer(lines[-2], path, "first frame")
+    last = _integer(lines[-1], path, "last frame")
+    if last < first or first < 0:
+        raise AriSfmError(path, f"frames {first}..{last}: the last must not come before the first, both >= 0")
+    return SequencePar(tuple(lines[:num_cams]), first, last)
+
+
+@dataclass(frozen=True)
+class VolumePar:
+    """``criteria.par``'s observation volume (liboptv's ``read_volume_par``): at x = X_lay[0] and X_lay[1]
+    the depth range Zmin_lay..Zmax_lay (OpenPTV's world, mm); then the correspondence criteria."""
+
+    x_lay: tuple[float, float]
+    z_min_lay: tuple[float, float]
+    z_max_lay: tuple[float, float]
+    cnx: float
+    cny: float
+    cn: float
+    csumg: float
+    corrmin: float
+    eps0: float  # the epipolar band's half width, mm on the sensor
+
+
+def read_volume_par(path: Path) -> VolumePar:
+    """liboptv's order: X_lay[0], Zmin_lay[0], Zmax_lay[0], X_lay[1], Zmin_lay[1], Zmax_lay[1], cnx, cny, cn,
+    csumg, corrmin, eps0."""
+    v = _numbers(path, 12, "X, Zmin, Zmax of two layers and six correspondence criteria")
+    if not (v[0] < v[3] and v[1] < v[2] and v[4] < v[5]):
+        raise AriSfmError(path, f"the observation volume is empty (x {v[0]:g}..{v[3]:g}, z {v[1]:g}..{v[2]:g} and "
+                                f"{v[4]:g}..{v[5]:g})")
+    return VolumePar((v[0], v[3]), (v[1], v[4]), (v[2], v[5]), *v[6:])

@@ -53,6 +53,7 @@ from ari_sfm.records import CameraSpec, Dataset, Entry, Interface, Observation, 
 from .conventions import OPENPTV_PIXEL_OFFSET
 from .windows import parse_window_groups, windows_from_axes, windows_from_glass, windows_from_groups
 from .files import MAN_ORI_POINTS, ControlPar, read_addpar, read_cal_ori_par, read_control_par, read_man_ori, \
+    read_sequence_par, read_volume_par, \
     read_multi_planes_par, read_ori, read_points
 
 log = logging.getLogger(__name__)
@@ -376,6 +377,7 @@ def import_experiment(root: str | Path, out: str | Path, window_groups: str | No
                 raise
             raise AriSfmError(_source_of(exc.message, Path(os.path.abspath(root)), dataset),
                               f"not importable: {exc.message}") from None
+        _add_particles(Path(os.path.abspath(root)), tmp / "rig.yaml", out, dataset)
         if out.exists():
             out.rmdir()
         os.replace(tmp, out)
@@ -383,3 +385,42 @@ def import_experiment(root: str | Path, out: str | Path, window_groups: str | No
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out / "rig.yaml"
+
+
+def particles_entry(root: Path, dataset_dir: Path, control: ControlPar) -> dict | None:
+    """rig.yaml's ``particles:`` (DATASET_FORMAT 1.2) of an experiment's ``sequence.par`` (each camera's
+    images over first..last, as paths from ``dataset_dir``, the folder the dataset ends up in) and
+    ``criteria.par``'s observation volume as ``volume_mm`` in the body's frame (OpenPTV's world, frame
+    f000: x X_lay[0]..X_lay[1], z its depth range, y as wide as the widest of the two, which OpenPTV does
+    not bound); None without a sequence.par."""
+    params = root / "parameters"
+    if not (params / "sequence.par").is_file():
+        return None
+    seq = read_sequence_par(params / "sequence.par", control.num_cams)
+    images = {f"cam{k + 1}": os.path.relpath(root / seq.pattern(k), dataset_dir) for k in range(control.num_cams)}
+    entry: dict = {"images": images, "frames": [seq.first, seq.last]}
+    if (params / "criteria.par").is_file():
+        vol = read_volume_par(params / "criteria.par")
+        z = (min(vol.z_min_lay), max(vol.z_max_lay))
+        half = max(abs(v) for v in (*vol.x_lay, *z))
+        entry["volume_mm"] = {"frame": FRAME, "min": [vol.x_lay[0], -half, z[0]], "max": [vol.x_lay[1], half, z[1]]}
+    return entry
+
+
+def _add_particles(root: Path, rig_path: Path, out: Path, dataset: Dataset) -> None:
+    """The experiment's particle images (:func:`particles_entry`) added to the written rig.yaml, checked by the
+    particle experiment's own reader."""
+    import yaml
+
+    from ari_sfm.io import write_text_atomic
+    from ari_sfm.io.particles import load_particle_dataset
+
+    entry = particles_entry(root, out, read_control_par(root / "parameters" / "ptv.par"))
+    if entry is None:
+        return
+    data = yaml.safe_load(rig_path.read_text())
+    data["particles"] = entry
+    write_text_atomic(rig_path, yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=120))
+    particles = load_particle_dataset(rig_path)  # (paths relative to out: checked from there once renamed)
+    log.info("particle images of %d cameras, frames %d..%d%s", len(particles.cameras), *entry["frames"],
+             ", the observation volume from criteria.par" if "volume_mm" in entry else "")
