@@ -55,7 +55,9 @@ MAD_TO_SIGMA = 1.4826
 WARP_DEGREE = 4  # highest degree of a planar view's polynomial warp W (image coordinates), lowered for small planes
 BODY_WARP_DEGREE = 5  # the same of a body's view (noise-free, under water: 4 left 0.005-0.012 px, 5 0.003-0.004)
 MIN_VIEW_CORNERS = 12  # corners of one view needed to fit its free map
-CORNERS_PER_TERM = 3  # at least this many corners per polynomial term (else a lower degree)
+CORNERS_PER_TERM = 2  # at least this many corners per polynomial term (else a lower degree; 3 left a 25-corner
+# view of a 3D body under water 26 x its noise: the warp too low for the window's refraction)
+MIN_RESIDUAL_SHARE = 0.1  # of a view's 2n coordinates left after the map's parameters (else a lower degree)
 PLANAR_THICKNESS = 1e-6  # a view's points whose thinnest extent is below this share of the widest are a plane
 MAX_FLOOR_VIEWS = 8  # views in the floor's fit (evenly picked: a noise estimate needs no more, bounded cost)
 
@@ -119,11 +121,14 @@ def _warp_of(n: int, planar: bool) -> tuple[int, bool, int] | None:
     nothing to measure."""
     from .floor_fit import RADIAL_PARAMETERS
 
+    def parameters(degree: int) -> int:
+        return 2 * _warp_terms(degree) + (8 if planar else 11 + RADIAL_PARAMETERS)
+
     degree = WARP_DEGREE if planar else BODY_WARP_DEGREE
-    while degree > 0 and _warp_terms(degree) * CORNERS_PER_TERM > n:
+    while degree > 0 and (_warp_terms(degree) * CORNERS_PER_TERM > n
+                          or 2 * n - parameters(degree) < MIN_RESIDUAL_SHARE * 2 * n):
         degree -= 1
-    parameters = 2 * _warp_terms(degree) + (8 if planar else 11 + RADIAL_PARAMETERS)
-    return (degree, not planar, parameters) if 2 * n > parameters else None
+    return (degree, not planar, parameters(degree)) if 2 * n > parameters(degree) else None
 
 
 def _warp_residuals(src: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
