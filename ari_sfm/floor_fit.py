@@ -281,9 +281,9 @@ def _radial_cost(e, gram, g, rr, beta, alpha, gamma):
 def _radial_fit(D, ru, rv, out, e, start, beta):
     """The non-central term's fit (module docstring) of the W-projected residuals (ru, rv) over the projected
     vectors ``D`` (``_radial_vectors``): residuals into out (2, n), its centre e (2,) refined in place, its
-    (a, b) into beta. e starts
-    (``start``) from the linear fit ``zeta (a s + t)`` (e = -t / a), else from e; then damped Newton steps on
-    the sum of squares (a function of e alone: the rest is linear), its derivatives by central differences."""
+    (a, b) into beta; returns the sum of squares. e starts (``start``) from the linear fit ``zeta (a s + t)``
+    (e = -t / a), else from e; then damped Newton steps on the sum of squares (a function of e alone: the
+    rest is linear, through the basis' 12 x 12 Gram matrix), its derivatives by central differences."""
     n = ru.shape[0]
     gram, g = np.empty((RADIAL_BASIS, RADIAL_BASIS)), np.empty(RADIAL_BASIS)
     alpha, gamma = np.empty(RADIAL_BASIS), np.empty(RADIAL_BASIS)

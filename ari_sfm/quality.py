@@ -43,7 +43,7 @@ log = logging.getLogger(__name__)
 # A correct model's robust RMSE is the floor times ~1 (0.94-1.04 measured on exact-physics scenarios:
 # benchmarks/bench_quality_floor.py), spread by two MAD estimates; FLOOR_RATIO allows for what one rigid model
 # legitimately fits worse than a free map per view (ptv_multiplane's plate placed with errors of 0.1-0.3 mm and
-# 0.1-0.3 deg, 8 seeds: rigid fit up to 1.36 x the floor), FLOOR_SIGMAS standard deviations of the ratio's
+# 0.05-0.3 deg, 8 seeds x 6 kinds: rigid fit 0.92-1.36 x the floor), FLOOR_SIGMAS standard deviations of the ratio's
 # statistical spread on top, MARGIN_PX the free map's own residual on noise-free simulations (< 0.004 px).
 FLOOR_RATIO = 1.4
 FLOOR_SIGMAS = 4.0
