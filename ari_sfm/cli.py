@@ -964,7 +964,8 @@ def _summary(cal, elapsed: float, covers: str = "the whole command") -> None:
                    f"({'excluded' if cal.outliers.excluded else 'listed in calibration.json under outliers'})")
     click.echo(f"residuals: rmse {r.rmse_px:.4f} px, mae {r.mae_px:.4f} px, max {r.max_px:.4f} px over {r.count} corners")
     if q is not None and q.ok:
-        floor = "n/a" if q.floor_rmse_px is None else f"{q.floor_rmse_px:.4f} px"
+        floor = "n/a" if q.floor_rmse_px is None else f"{q.floor_rmse_px:.4f} px" + (
+            "" if q.allowance_px is None else f", at most {q.allowance_px:.4f} px")
         exact = "" if q.exact_robust_rmse_px is None else f"; exact model with the same window {q.exact_robust_rmse_px:.4f} px"
         click.echo(f"quality: ok (robust rmse {q.robust_rmse_px:.4f} px; the corners' floor {floor}{exact})")
     _stages_summary(cal)

@@ -4,12 +4,20 @@ A bundle adjustment that converged can still sit in a wrong minimum (a mirrored 
 window placed behind the cameras, a wrong declared window): its residuals are then far above
 what the same corners allow. After convergence a window-model calibration (ari, exact) is judged on:
 
-- the fit against the corners' floor (:func:`floor_rmse_px`): each plane of each view mapped to
-  its image by a homography plus a smooth polynomial warp, a free map that any camera behind any
-  flat window (and any lens distortion) is, so its residuals are the detection noise. Both sides
-  are robust RMSEs (``sqrt(2) * 1.4826 * MAD`` of the residual coordinates), so a few outlier
-  corners (reported apart, see :mod:`ari_sfm.outliers`) do not decide. A result fits when
-  ``robust_rmse_px <= ratio * floor_rmse_px + margin`` (:data:`FLOOR_TOLERANCE`);
+- the fit against the corners' floor (:func:`corner_floor`): what the data allow under the model's
+  own assumptions, measured the same way on every kind of target. Each view is mapped by the most
+  flexible free map of the calibration model's structure (:mod:`ari_sfm.floor_fit`): a planar view
+  (a board) by a homography and a smooth image warp, which any camera behind any flat window with
+  any lens is; a view of a 3D body (every plane of a multi-plane body at once: one frame is one rigid
+  body seen once; a dataset giving each plane its own frame says they were placed independently, and
+  each is then a planar view) by one free projective camera, a smooth image warp and an inverse-depth
+  term (a window under water is not a central camera). Its residuals are scaled for the parameters
+  fitted: the detection noise, plus what no single rigid body explains (a plane's placement error).
+  Both sides are robust RMSEs (``sqrt(2) * 1.4826 * MAD`` of the residual coordinates), so a few
+  outlier corners (reported apart, see :mod:`ari_sfm.outliers`) do not decide. A correct model's
+  robust RMSE is the floor times ~1 with the spread of two MAD estimates, which shrinks with the
+  corners: a result fits when ``robust_rmse_px <= FLOOR_RATIO (1 + FLOOR_SIGMAS s) floor + MARGIN_PX``,
+  s = 1.166 sqrt(1 / its residual coordinates + 1 / the floor's residual dof) (:func:`allowance_px`);
 - the paraxial model's own error: an ``ari`` result above that allowance is re-evaluated by the
   exact model with the same window and hints (``exact_robust_rmse_px``, computed by
   :func:`ari_sfm.calibrate.calibrate`): when the exact model fits within the allowance, the excess
@@ -32,16 +40,34 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-# The model may fit up to ratio x the floor plus the margin (exact at its optimum: 0.9-1.1 x the floor on the
-# bundled scenarios; the margin covers a sub-pixel systematic misfit, e.g. lens distortion not estimated).
-FLOOR_TOLERANCE = (2.0, 0.25)
+# A correct model's robust RMSE is the floor times ~1 (0.94-1.04 measured on exact-physics scenarios:
+# benchmarks/bench_quality_floor.py), spread by two MAD estimates; FLOOR_RATIO allows for what one rigid model
+# legitimately fits worse than a free map per view (ptv_multiplane's plate placed with errors of 0.1-0.3 mm and
+# 0.05-0.3 deg, 8 seeds x 6 kinds: rigid fit 0.92-1.36 x the floor), FLOOR_SIGMAS standard deviations of the ratio's
+# statistical spread on top, MARGIN_PX the free map's own residual on noise-free simulations (< 0.004 px).
+FLOOR_RATIO = 1.4
+FLOOR_SIGMAS = 4.0
+MARGIN_PX = 0.005
+MAD_SPREAD = 1.166  # sqrt(count) x the relative standard deviation of a MAD sigma (normal residuals)
 PARAXIAL_MODELS = ("ari",)  # models whose excess over the allowance is re-evaluated by the exact model
 MAX_POSE_SIGMA_DEG = 5.0  # a relative camera rotation less determined than this is not a calibration
 MAD_TO_SIGMA = 1.4826
-WARP_DEGREE = 4  # highest degree of the floor's polynomial warp (image coordinates), lowered for small planes
-MIN_PLANE_CORNERS = 12  # corners of one plane of one view needed to fit its warp
-CORNERS_PER_TERM = 3  # at least this many corners per polynomial term (else a lower degree)
+WARP_DEGREE = 4  # highest degree of a planar view's polynomial warp W (image coordinates), lowered for small planes
+BODY_WARP_DEGREE = 5  # the same of a body's view (noise-free, under water: 4 left 0.005-0.012 px, 5 0.003-0.004)
+MIN_VIEW_CORNERS = 12  # corners of one view needed to fit its free map
+CORNERS_PER_TERM = 2  # at least this many corners per polynomial term (else a lower degree; 3 left a 25-corner
+# view of a 3D body under water 26 x its noise: the warp too low for the window's refraction)
+MIN_RESIDUAL_SHARE = 0.1  # of a view's 2n coordinates left after the map's parameters (else a lower degree)
+PLANAR_THICKNESS = 1e-6  # a view's points whose thinnest extent is below this share of the widest are a plane
 MAX_FLOOR_VIEWS = 8  # views in the floor's fit (evenly picked: a noise estimate needs no more, bounded cost)
+
+
+@dataclass(frozen=True)
+class Floor:
+    """What the corners allow: the robust RMSE of the free per-view maps (:func:`corner_floor`)."""
+
+    rmse_px: float
+    dof: int  # residual coordinates less the parameters fitted: what the estimate's spread goes with
 
 
 @dataclass(frozen=True)
@@ -55,14 +81,15 @@ class Quality:
     pinhole_dist_rmse_px: float | None  # kept for older files (their yardstick); None since the floor replaced it
     max_pose_sigma_deg: float | None  # largest relative camera rotation sigma (None: no uncertainty)
     starts: tuple[str, ...] = field(default_factory=tuple)  # the starts tried, the kept one last
-    floor_rmse_px: float | None = None  # robust RMSE of the free per-plane warps (None: no plane could be fitted)
+    floor_rmse_px: float | None = None  # robust RMSE of the free per-view maps (None: no view could be fitted)
     exact_robust_rmse_px: float | None = None  # ari only: the exact model's robust RMSE with the same window
+    allowance_px: float | None = None  # the largest robust RMSE the result could have had (None: no floor)
 
     def to_json(self) -> dict[str, Any]:
         return {"ok": self.ok, "why": self.why, "rmse_px": self.rmse_px, "robust_rmse_px": self.robust_rmse_px,
                 "pinhole_dist_rmse_px": self.pinhole_dist_rmse_px, "max_pose_sigma_deg": self.max_pose_sigma_deg,
                 "starts": list(self.starts), "floor_rmse_px": self.floor_rmse_px,
-                "exact_robust_rmse_px": self.exact_robust_rmse_px}
+                "exact_robust_rmse_px": self.exact_robust_rmse_px, "allowance_px": self.allowance_px}
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> "Quality":
@@ -74,7 +101,7 @@ class Quality:
             raise ValueError("ok must be true or false")
         return cls(d["ok"], d.get("why"), float(d.get("rmse_px", math.nan)), float(d.get("robust_rmse_px", math.nan)),
                    num("pinhole_dist_rmse_px"), num("max_pose_sigma_deg"), tuple(str(s) for s in d.get("starts", ())),
-                   num("floor_rmse_px"), num("exact_robust_rmse_px"))
+                   num("floor_rmse_px"), num("exact_robust_rmse_px"), num("allowance_px"))
 
 
 def robust_rmse_px(residuals: Iterable[np.ndarray]) -> float:
@@ -84,77 +111,120 @@ def robust_rmse_px(residuals: Iterable[np.ndarray]) -> float:
 
 
 def _warp_terms(degree: int) -> int:
-    """The polynomial warp's terms s_x^i s_y^j, i + j <= degree."""
+    """The polynomial warp's terms s_x^i s_y^j, i + j <= degree (none for degree -1)."""
     return (degree + 1) * (degree + 2) // 2
 
 
-def _warp_residuals(xy: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Residuals (V, N, 2) of V planes' corners ``xy`` (target plane) against their pixels ``uv`` (each
-    (V, N, 2)) after a homography and a polynomial warp in image coordinates, scaled for the parameters
-    fitted (:func:`ari_sfm.floor_fit.warp_residuals`; the warp's degree lowered for small planes: at
-    least ``CORNERS_PER_TERM`` corners per term); and which planes were fitted (V,)."""
+def _warp_of(n: int, planar: bool) -> tuple[int, bool, int] | None:
+    """The free map of a view of n corners: (W's degree, the non-central term on, parameters fitted): W the most
+    flexible with at least ``CORNERS_PER_TERM`` corners per term; None when the map's parameters would leave
+    nothing to measure."""
+    from .floor_fit import RADIAL_PARAMETERS
+
+    def parameters(degree: int) -> int:
+        return 2 * _warp_terms(degree) + (8 if planar else 11 + RADIAL_PARAMETERS)
+
+    degree = WARP_DEGREE if planar else BODY_WARP_DEGREE
+    while degree > 0 and (_warp_terms(degree) * CORNERS_PER_TERM > n
+                          or 2 * n - parameters(degree) < MIN_RESIDUAL_SHARE * 2 * n):
+        degree -= 1
+    return (degree, not planar, parameters(degree)) if 2 * n > parameters(degree) else None
+
+
+def _warp_residuals(src: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Residuals (V, n, 2) of V views' points ``src`` (V, n, 2: a plane's coordinates; V, n, 3: a body's)
+    against their pixels ``uv`` (V, n, 2) after the free map (:func:`ari_sfm.floor_fit.warp_residuals`,
+    W's degree lowered for small views: :func:`_warp_of`), scaled for the parameters fitted; which views
+    were fitted (V,); and the parameters fitted per view."""
     from .floor_fit import warp_residuals
 
-    V, n = xy.shape[:2]
-    degree = WARP_DEGREE
-    while degree > 0 and _warp_terms(degree) * CORNERS_PER_TERM > n:
-        degree -= 1
-    if n <= _warp_terms(degree) + 4:  # the warp's and the homography's 4 per coordinate: nothing left
-        return np.full((V, n, 2), np.nan), np.zeros(V, dtype=bool)
-    return warp_residuals(np.ascontiguousarray(xy, dtype=np.float64), np.ascontiguousarray(uv, dtype=np.float64),
-                          degree)
+    V, n, k = src.shape
+    warp = _warp_of(n, k == 2)
+    if warp is None:
+        return np.full((V, n, 2), np.nan), np.zeros(V, dtype=bool), 0
+    degree, radial, parameters = warp
+    r, fitted = warp_residuals(np.ascontiguousarray(src, dtype=np.float64), np.ascontiguousarray(uv, dtype=np.float64),
+                               degree, radial)
+    return r, fitted, parameters
+
+
+def _view_points(X: np.ndarray) -> np.ndarray:
+    """A view's target points (n, 3) as the free map takes them: a plane's 2D coordinates (n, 2) (its
+    own axes when it is not z = 0), else the body's (n, 3)."""
+    if np.ptp(X[:, 2]) == 0.0:
+        return X[:, :2]
+    centred = X - X.mean(axis=0)
+    _, s, vt = np.linalg.svd(centred, full_matrices=False)
+    return centred @ vt[:2].T if s[2] <= PLANAR_THICKNESS * s[0] else X
+
+
+def corner_floor(dataset) -> Floor | None:
+    """What the corners allow (module docstring): each of up to ``MAX_FLOOR_VIEWS`` calibration and stacking
+    views (evenly picked) with >= ``MIN_VIEW_CORNERS`` corners fitted by its own free map: a planar view
+    by a homography and a warp, a body's view (every plane of it at once: one rigid body seen once) by a
+    projective camera and a warp with an inverse-depth term (views of the same kind and corner count
+    at once). None when no view was fitted."""
+    from .init.zhang import object_points
+
+    views = [o for o in dataset.observations if o.set in ("calibration", "stacking") and len(o.ids) >= MIN_VIEW_CORNERS]
+    if len(views) > MAX_FLOOR_VIEWS:
+        views = [views[i] for i in np.linspace(0, len(views) - 1, MAX_FLOOR_VIEWS).round().astype(int)]
+    by_shape: dict[tuple[int, int], list[tuple[np.ndarray, np.ndarray]]] = {}
+    for o in views:
+        src = _view_points(object_points(dataset.target, o.ids))
+        by_shape.setdefault(src.shape, []).append((src, np.asarray(o.pixels, float)))
+    residuals, dof = [], 0
+    for (n, _), group in by_shape.items():
+        r, fitted, parameters = _warp_residuals(np.array([src for src, _ in group]), np.array([uv for _, uv in group]))
+        residuals += list(r[fitted])
+        dof += int(fitted.sum()) * (2 * n - parameters)
+    return Floor(robust_rmse_px(residuals), dof) if residuals else None
 
 
 def floor_rmse_px(dataset) -> float | None:
-    """The robust RMSE the corners allow (module docstring): every plane of up to ``MAX_FLOOR_VIEWS``
-    calibration and stacking views (evenly picked) with >= ``MIN_PLANE_CORNERS`` corners fitted by its
-    own homography + polynomial warp (planes of the same corner count at once); a 3D body's planes are its
-    corners' distinct target z. None when no plane was fitted."""
-    from .init.zhang import object_points
-
-    planar = dataset.target.is_planar()
-    views = [o for o in dataset.observations if o.set in ("calibration", "stacking") and len(o.ids) >= MIN_PLANE_CORNERS]
-    if len(views) > MAX_FLOOR_VIEWS:
-        views = [views[i] for i in np.linspace(0, len(views) - 1, MAX_FLOOR_VIEWS).round().astype(int)]
-    by_size: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
-    for o in views:
-        X, uv = object_points(dataset.target, o.ids), np.asarray(o.pixels, float)
-        planes = [slice(None)] if planar else [X[:, 2] == z for z in np.unique(X[:, 2])]
-        for on in planes:
-            if len(X[on]) >= MIN_PLANE_CORNERS:
-                by_size.setdefault(len(X[on]), []).append((X[on, :2], uv[on]))
-    residuals = []
-    for planes in by_size.values():
-        r, fitted = _warp_residuals(np.array([xy for xy, _ in planes]), np.array([uv for _, uv in planes]))
-        residuals += list(r[fitted])
-    return robust_rmse_px(residuals) if residuals else None
+    """The robust RMSE the corners allow (:func:`corner_floor`), None when no view was fitted."""
+    floor = corner_floor(dataset)
+    return None if floor is None else floor.rmse_px
 
 
-def allowance_px(floor_rmse: float) -> float:
-    """The largest robust RMSE a result may have over corners of this floor (:data:`FLOOR_TOLERANCE`)."""
-    ratio, margin = FLOOR_TOLERANCE
-    return ratio * floor_rmse + margin
+def allowance_px(floor: Floor | float, coordinates: int) -> float:
+    """The largest robust RMSE a result over ``coordinates`` residual coordinates may have against ``floor``
+    (module docstring; a bare float: a floor measured on as many coordinates as the result)."""
+    if not isinstance(floor, Floor):
+        floor = Floor(float(floor), int(coordinates))
+    spread = MAD_SPREAD * math.sqrt(1.0 / max(coordinates, 1) + 1.0 / max(floor.dof, 1))
+    return FLOOR_RATIO * (1.0 + FLOOR_SIGMAS * spread) * floor.rmse_px + MARGIN_PX
 
 
-def fits(model: str, residuals: Iterable[np.ndarray], floor_rmse: float | None) -> bool:
+def _coordinates(residuals: list[np.ndarray]) -> int:
+    return int(sum(np.asarray(r).size for r in residuals))
+
+
+def fits(model: str, residuals: Iterable[np.ndarray], floor: Floor | float | None) -> bool:
     """Whether a result's residuals are within the allowance (before any exact re-evaluation)."""
-    return floor_rmse is None or robust_rmse_px(residuals) <= allowance_px(floor_rmse)
+    residuals = list(residuals)
+    return floor is None or robust_rmse_px(residuals) <= allowance_px(floor, _coordinates(residuals))
 
 
-def judge(model: str, rmse_px: float, residuals: Iterable[np.ndarray], floor_rmse: float | None, uncertainty,
+def judge(model: str, rmse_px: float, residuals: Iterable[np.ndarray], floor: Floor | float | None, uncertainty,
           starts: tuple[str, ...] = (), exact_robust: float | None = None) -> Quality:
-    """The verdict on one result of ``model`` (module docstring); ``exact_robust``: the exact model's
-    robust RMSE with the same window and hints (a paraxial model's re-evaluation), None if not run."""
+    """The verdict on one result of ``model`` (module docstring); ``floor``: :func:`corner_floor` (a bare
+    float: measured on as many coordinates as the result); ``exact_robust``: the exact model's robust RMSE
+    with the same window and hints (a paraxial model's re-evaluation), None if not run."""
+    residuals = list(residuals)
     robust = robust_rmse_px(residuals)
+    allowed = None if floor is None else allowance_px(floor, _coordinates(residuals))
+    floor_rmse = None if floor is None else float(floor.rmse_px if isinstance(floor, Floor) else floor)
     why = []
     if not math.isfinite(rmse_px):
         why.append(f"the residual RMSE is {rmse_px}")
-    if floor_rmse is not None and robust > allowance_px(floor_rmse):
-        paraxial = model in PARAXIAL_MODELS and exact_robust is not None and exact_robust <= allowance_px(floor_rmse)
+    if allowed is not None and not robust <= allowed:
+        paraxial = model in PARAXIAL_MODELS and exact_robust is not None and exact_robust <= allowed
         if not paraxial:
             also = "" if exact_robust is None else f", and the exact model with the same window does not ({exact_robust:.3f} px)"
             why.append(f"it fits the corners far worse than the data allow (robust RMSE {robust:.3f} px vs a floor of "
-                       f"{floor_rmse:.3f} px{also}): a wrong minimum, or a wrong declared window or hint")
+                       f"{floor_rmse:.3f} px, at most {allowed:.3f} px{also}): a wrong minimum, a wrong declared window "
+                       "or hint, or a lens distortion not estimated")
     sigma = None
     if uncertainty is not None:
         sigmas = {name: math.inf if c.rotation_deg is None or not math.isfinite(c.rotation_deg) else c.rotation_deg
@@ -168,4 +238,4 @@ def judge(model: str, rmse_px: float, residuals: Iterable[np.ndarray], floor_rms
             why.append(f"a camera's pose is undetermined (rotation sigma {sigma:.1f} deg)")
     return Quality(not why, "; ".join(why) or None, float(rmse_px), robust, None,
                    None if sigma is None or not math.isfinite(sigma) else float(sigma), tuple(starts), floor_rmse,
-                   exact_robust)
+                   exact_robust, allowed)

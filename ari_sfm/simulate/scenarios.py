@@ -649,6 +649,22 @@ def ptv_plane_of(ids: np.ndarray) -> np.ndarray:
     return np.asarray(ids, dtype=np.int64) // PTV_PLANE_ID_STEP
 
 
+def ptv_misplaced(target: Target, shift_mm: float, tilt_deg: float, rng: np.random.Generator) -> Target:
+    """:func:`ptv_plate_body`'s ``target`` where a real plate's placements put its dots: each plane moved
+    rigidly by a shift of RMS ``shift_mm`` and turned by RMS ``tilt_deg`` about its centre (random
+    directions). Observed in place of the declared body, one frame (one rigid body) then carries each
+    placement's error, as OpenPTV's multi-plane calibrations do."""
+    ids, pts = target.points_3d()
+    plane = ptv_plane_of(ids)
+    moved = pts.copy()
+    for p in np.unique(plane):
+        on = plane == p
+        centre = pts[on].mean(axis=0)
+        R = rotation_from_rotvec(math.radians(tilt_deg) * rng.normal(size=3) / math.sqrt(3.0))
+        moved[on] = (pts[on] - centre) @ R.T + centre + shift_mm * rng.normal(size=3) / math.sqrt(3.0)
+    return Target(type="points3d", points={int(i): tuple(float(c) for c in x) for i, x in zip(ids, moved)})
+
+
 def ptv_multiplane(rng: np.random.Generator, grid: tuple[int, int] = (14, 8), glass_mm: float = 6.0,
                    tilt_range_deg: tuple[float, float] = (12.0, 26.0),
                    range_mm: tuple[float, float] = (560.0, 620.0)) -> Geometry:
