@@ -117,6 +117,10 @@ def distortion_support(dataset: Dataset) -> str | None:
         if len(frames) < need:
             return (f"{name} has {len(frames)} calibration view{'s' * (len(frames) != 1)} "
                     f"(at least {need} needed)")
+        spec = dataset.cameras[name]
+        if body and len(frames) == 1 and spec.focal_px is None and spec.K is None:
+            return (f"{name} sees the body in one view and has no focal length hint: its focal length, principal "
+                    "point and lens are more than one view tells (give cameras.<name>.focal_px)")
         pixels = np.concatenate([o.pixels for o in views if len(o.ids)]).astype(np.float32)
         w, h = dataset.cameras[name].image_size
         coverage = float(cv2.contourArea(cv2.convexHull(pixels))) / float(w * h)
