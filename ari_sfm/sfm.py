@@ -14,7 +14,8 @@ renamed when it succeeds: a failed run leaves no half-made model behind.
 
 Scale (required: COLMAP's model has no unit, and refraction through a plate of so many mm depends on
 it): WINDOW.yaml's ``units_mm`` or ``scale_bar``, or a known distance between two images' camera
-centres (``baseline``, e.g. from navigation).
+centres (``baseline``, e.g. from navigation), held by the refinement as a term of its solver (the result
+keeps it).
 """
 from __future__ import annotations
 
@@ -25,8 +26,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
-
-import numpy as np
 
 from .colmap_refine import settings as REFINE
 from .errors import AriSfmError
@@ -90,26 +89,6 @@ def check_sfm_paths(images: Path, out: Path) -> None:
     img, o = Path(os.path.realpath(images)), Path(os.path.realpath(out))
     if o == img or img in o.parents:
         raise AriSfmError(out, "-o/--out: is (inside) the images folder: choose a folder outside it")
-
-
-def _units_from_baseline(rec: Any, baseline: tuple[str, str, float], images: Path) -> float:
-    """mm per COLMAP unit from the distance between two registered images' camera centres."""
-    from .colmap_export import model_from_reconstruction
-
-    a, b, mm = baseline
-    model = model_from_reconstruction(rec, images)
-    centres = {}
-    for i, name in enumerate(model.image_names):
-        if name in (a, b):
-            pose = model.sensor_from_rig[i].compose(model.rig_from_world[model.image_frame[i]])
-            centres[name] = pose.inverse().t
-    missing = [n for n in (a, b) if n not in centres]
-    if missing:
-        raise AriSfmError(images, f"--baseline: image {missing[0]} is not among the images COLMAP registered")
-    length = float(np.linalg.norm(centres[a] - centres[b]))
-    if not length > 0:
-        raise AriSfmError(images, f"--baseline: images {a} and {b} have the same camera centre")
-    return mm / length
 
 
 def run_sfm(images: str | Path, window: str | Path, out: str | Path, options: SfmOptions = SfmOptions()) -> SfmResult:
@@ -184,12 +163,10 @@ def run_sfm(images: str | Path, window: str | Path, out: str | Path, options: Sf
         if registered < MIN_IMAGES:
             raise AriSfmError(images, f"COLMAP registered {registered} of {len(files)} images (at least {MIN_IMAGES} "
                                       "needed): the images need more overlap or texture")
-        units = spec.units_mm
-        if options.baseline is not None:
-            units = _units_from_baseline(rec, options.baseline, images)
         t_refine = time.perf_counter()
         log.info("refine-colmap: %d images, %d points, the exact refractive model", registered, rec.num_points3D())
-        result = refine_colmap(rec, spec.interface, mount=spec.mount, units_mm=units, scale_bar=spec.scale_bar,
+        result = refine_colmap(rec, spec.interface, mount=spec.mount, units_mm=spec.units_mm, scale_bar=spec.scale_bar,
+                               baseline=options.baseline,
                                huber_px=options.huber_px, max_iterations=options.max_iterations,
                                progress=options.progress, path=images, plane_path=window)
         times["refine"] = time.perf_counter() - t_refine
@@ -209,8 +186,9 @@ def run_sfm(images: str | Path, window: str | Path, out: str | Path, options: Sf
         "format": SFM_FORMAT,
         "images": str(images.resolve()), "window": str(window.resolve()),
         "matcher": matcher, "num_images": len(files), "registered": registered, "points3D": rec.num_points3D(),
-        "units_mm": units, "scale": "units_mm" if spec.units_mm is not None else
+        "units_mm": result.report.units_mm, "scale": "units_mm" if spec.units_mm is not None else
         "scale_bar" if spec.scale_bar is not None else "baseline" if options.baseline is not None else None,
+        "baseline": None if result.report.baseline is None else result.report.baseline.to_json(),
         "colmap_model": str(colmap_model.relative_to(out)), "refined": "refined",
         "time_s": {k: round(v, 3) for k, v in times.items()} | {"total": round(time.perf_counter() - t0, 3)},
     })
