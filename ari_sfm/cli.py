@@ -516,21 +516,23 @@ _units_option = click.option("--units-mm", type=float, default=1000.0, show_defa
 @user_errors
 def export_colmap_fork_cmd(calibration: Path, out: Path, dataset: Path | None, units_mm: float) -> None:
     """Write an exact CALIBRATION as a model of the refractive COLMAP fork (colmap_underwater, FLATPORT cameras)."""
-    from .colmap_fork import export_colmap_fork
-    from .io import load_calibration, load_dataset, load_observations
+    from .colmap_fork import check_units_mm, export_colmap_fork
+    from .io import load_calibration, load_observations
+    from .report import find_dataset
 
     check_output_folder(out)
-    check_number("--units-mm", units_mm, minimum=0.0, strict_minimum=True)
+    check_units_mm(units_mm)
     cal = load_calibration(calibration)
     observations, refined = None, None
     folder = calibration.parent
     if dataset is None and "refine_colmap" in cal.extra and any((folder / f"cameras.{x}").is_file() for x in ("bin", "txt")):
         refined = folder  # a refine-colmap output: its images at their real poses and the refined points
-    elif dataset is not None:
-        observations = load_dataset(dataset).observations
-    elif (folder / "observations.json").is_file():
+    elif dataset is None and (folder / "observations.json").is_file():
         observations = load_observations(folder / "observations.json", cal.target, list(cal.cameras))
-    done = export_colmap_fork(cal, out, observations, units_mm, refined_model=refined)
+    elif dataset is None:
+        dataset = find_dataset(folder)  # an `ari-sfm run` folder: the dataset its run.json / metrics.json name
+    done = export_colmap_fork(cal, out, observations, units_mm, refined_model=refined, dataset=dataset,
+                              calibration_path=calibration)
     click.echo(f"{done.cameras} FLATPORT camera(s), {done.images} images, {done.points3D} points3D "
                f"(lengths in units of {units_mm:g} mm) -> {out}")
 
@@ -543,11 +545,11 @@ def export_colmap_fork_cmd(calibration: Path, out: Path, dataset: Path | None, u
 def import_colmap_fork_cmd(model_dir: Path, out: Path, units_mm: float) -> None:
     """Read the FLATPORT cameras of a refractive COLMAP fork text model (MODEL_DIR/cameras.txt, images.txt) as
     an exact-model calibration.json."""
-    from .colmap_fork import import_colmap_fork
+    from .colmap_fork import check_units_mm, import_colmap_fork
     from .io import save_calibration
 
     check_output_folder(out)
-    check_number("--units-mm", units_mm, minimum=0.0, strict_minimum=True)
+    check_units_mm(units_mm)
     if out.resolve() == model_dir.resolve():
         raise AriSfmError(out, "-o/--out: is the input model folder (choose another folder)")
     cal = import_colmap_fork(model_dir, units_mm)

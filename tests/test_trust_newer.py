@@ -156,3 +156,102 @@ def test_bad_baseline_one_error(small_survey, baseline, words):
     with pytest.raises(AriSfmError) as err:
         refine_colmap(start, truth.interface, "camera", baseline=(*names, baseline[2]))
     assert all(w in str(err.value) for w in words), str(err.value)
+
+
+# ----------------------------------------------------------------------------- export/import-colmap-fork
+
+def _one_error(r, *words) -> str:
+    """The result is one `error: ...` line holding ``words``, exit 1, no traceback."""
+    assert r.exit_code == 1, r.output
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), r.output
+    assert all(w in lines[0] for w in words), lines[0]
+    return lines[0]
+
+
+def _run_folder(tmp_path: Path) -> Path:
+    """An `ari-sfm run` folder of the bundled binocular rig: calibration.json and run.json naming the dataset."""
+    out = tmp_path / "bino"
+    out.mkdir()
+    shutil.copy(ROOT / "tests" / "data" / "calibration_e6e8196" / "exact.json", out / "calibration.json")
+    (out / "run.json").write_text(json.dumps({"format": "ari-sfm-run/1", "dataset": str(ROOT / "datasets" / "binocular"),
+                                              "calibration": "calibration.json"}))
+    return out
+
+
+def test_fork_export_of_a_run_folder_takes_the_runs_corners(tmp_path):
+    """README's `export-colmap-fork out/bino/calibration.json -o fork_model`: the dataset run.json names gives the
+    target corners (was: 2 images and 0 points3D, no warning); the fork model reads back."""
+    out = _run_folder(tmp_path)
+    r = _run(["export-colmap-fork", out / "calibration.json", "-o", tmp_path / "fork"])
+    assert r.exit_code == 0, r.output
+    data = json.loads((ROOT / "datasets" / "binocular" / "observations.json").read_text())
+    frames = {o["frame"] for o in data["observations"] if o.get("set", "calibration") == "calibration"}
+    images = [ln for ln in (tmp_path / "fork" / "images.txt").read_text().splitlines()[4::2]]
+    assert len(images) >= 2 * len(frames) - 2 and "points3D" in r.output
+    assert int(r.output.split(" points3D")[0].split()[-1]) == 88 * len(frames)  # every frame's 11 x 8 corners
+    assert _run(["import-colmap-fork", tmp_path / "fork", "-o", tmp_path / "back"]).exit_code == 0
+
+
+def test_fork_export_without_corners_says_so(tmp_path, caplog):
+    lone = tmp_path / "lone"
+    lone.mkdir()
+    shutil.copy(ROOT / "tests" / "data" / "calibration_e6e8196" / "exact.json", lone / "calibration.json")
+    with caplog.at_level("WARNING"):
+        r = _run(["export-colmap-fork", lone / "calibration.json", "-o", tmp_path / "fork"])
+    assert r.exit_code == 0 and "0 points3D" in r.output
+    assert any("cameras and poses only" in rec.getMessage() for rec in caplog.records)
+
+
+def test_fork_export_refuses_another_rigs_dataset(tmp_path):
+    other = tmp_path / "other"
+    shutil.copytree(ROOT / "datasets" / "binocular", other)
+    rig = other / "rig.yaml"
+    rig.write_text(rig.read_text().replace("thickness_mm: 50.0", "thickness_mm: 12.0"))
+    out = _run_folder(tmp_path)
+    r = _run(["export-colmap-fork", out / "calibration.json", "-o", tmp_path / "fork", "--dataset", other])
+    _one_error(r, "calibration.json", "another rig", "thickness_mm")
+    assert not (tmp_path / "fork").exists()
+
+
+@pytest.mark.parametrize("command", ["export", "import"])
+@pytest.mark.parametrize("units", ["1e-300", "1e300", "0", "-5", "nan"])
+def test_fork_units_bounded(tmp_path, command, units):
+    out = _run_folder(tmp_path)
+    if command == "export":
+        r = _run(["export-colmap-fork", out / "calibration.json", "-o", tmp_path / "fork", "--units-mm", units])
+    else:
+        assert _run(["export-colmap-fork", out / "calibration.json", "-o", tmp_path / "m"]).exit_code == 0
+        r = _run(["import-colmap-fork", tmp_path / "m", "-o", tmp_path / "fork", "--units-mm", units])
+    _one_error(r, "--units-mm", "between")
+    assert not (tmp_path / "fork").exists()
+
+
+def test_fork_import_refuses_lengths_calibration_json_would_refuse(tmp_path):
+    """A plate of 80 m (int_thick 80 in metres): the import writes nothing that calibration.json's reader refuses."""
+    (tmp_path / "m").mkdir()
+    (tmp_path / "m" / "cameras.txt").write_text(
+        "1 PINHOLE 640 480 500 500 320 240 FLATPORT 0 0 1 0.02 80 1 1.5 1.33\n")
+    r = _run(["import-colmap-fork", tmp_path / "m", "-o", tmp_path / "out"])
+    _one_error(r, "cameras.txt", "thickness_mm", "--units-mm 1000")
+    assert not (tmp_path / "out").exists()
+
+
+def test_flipped_normal_refused_when_read_so_the_fork_never_gets_nz_below_0(tmp_path):
+    """A calibration.json whose window normal points away from the cameras: every corner projected to NaN
+    (evaluate printed 'rmse nan px') and the fork's FLATPORT got Nz < 0 that import refuses. Now the reading
+    refuses it, naming the key; the export's writer refuses Nz <= 0 as the import does."""
+    from ari_sfm.colmap_fork import format_camera_line
+    from ari_sfm.errors import AriSfmError
+    from ari_sfm.records import Interface
+
+    data = json.loads((ROOT / "tests" / "data" / "calibration_e6e8196" / "exact.json").read_text())
+    data["interface"]["normal_world"] = [-x for x in data["interface"]["normal_world"]]
+    (tmp_path / "flip.json").write_text(json.dumps(data))
+    for args in (["export-colmap-fork", tmp_path / "flip.json", "-o", tmp_path / "fork"],
+                 ["evaluate", tmp_path / "flip.json", ROOT / "datasets" / "binocular" / "observations.json"]):
+        _one_error(_run(args), "flip.json", "interface.normal_world", "points away")
+    assert not (tmp_path / "fork").exists()
+    with pytest.raises(AriSfmError, match="Nz <= 0"):
+        format_camera_line(1, (640, 480), [500, 500, 320, 240], np.array([0.0, 0.1, -1.0]), 20.0,
+                           Interface(8.0, 1.5, 1.33), 1000.0)

@@ -201,6 +201,8 @@ def _parse(data: Any, path: Any) -> Calibration:
     reserved = {"format", "model", "interface", "interfaces", "cameras", "frames", "stacking_poses", "residuals",
                 "time_s", "target", "fixed_distance_mm", "uncertainty", "outliers", "pf_world", "quality", "optimizer"}
     windows = _windows(parsed, data, cams, path)
+    if spec.window:
+        _check_normals_face_the_cameras(windows, cams, path)
     for w in windows:
         if spec.needs_distance and w.interface.distance_mm is None and w.fixed_distance_mm is None:
             where = "interface" if len(windows) == 1 else f"interfaces.{w.name}"
@@ -219,6 +221,20 @@ def _parse(data: Any, path: Any) -> Calibration:
         _record(Quality, data, "quality", path), _record(OptimizerReport, data, "optimizer", path),
         windows=windows if len(windows) > 1 else (),
     )
+
+
+def _check_normals_face_the_cameras(windows: tuple[WindowCalibration, ...], cams: dict[str, CameraCalibration],
+                                    path: Any) -> None:
+    """Each window's normal points from its cameras into the scene (z > 0 in each camera's frame): a flipped
+    normal would project every corner to NaN, and the fork's FLATPORT (Nz > 0) could not hold it."""
+    for w in windows:
+        if w.normal_world is None:
+            continue
+        where = "interface" if len(windows) == 1 else f"interfaces.{w.name}"
+        for name in w.cameras:
+            if name in cams and float((cams[name].cam_from_world.R @ w.normal_world)[2]) <= 0.0:
+                raise AriSfmError(path, f"{where}.normal_world points away from camera {name}'s view (z <= 0 in its "
+                                        "frame): the normal goes from the cameras into the scene (flipped?)")
 
 
 def _parse_window(iface: Any, where: str, spec, path: Any) -> tuple[Interface, np.ndarray | None, list | None,
