@@ -255,3 +255,39 @@ def test_flipped_normal_refused_when_read_so_the_fork_never_gets_nz_below_0(tmp_
     with pytest.raises(AriSfmError, match="Nz <= 0"):
         format_camera_line(1, (640, 480), [500, 500, 320, 240], np.array([0.0, 0.1, -1.0]), 20.0,
                            Interface(8.0, 1.5, 1.33), 1000.0)
+
+
+# ----------------------------------------------------------------------------- compare --holdout
+
+def _split_binocular(tmp_path: Path) -> tuple[Path, Path]:
+    """The bundled rig with its last 4 calibration frames moved out into a held-out observations file."""
+    ds = tmp_path / "ds"
+    shutil.copytree(ROOT / "datasets" / "binocular", ds)
+    data = json.loads((ds / "observations.json").read_text())
+    frames = sorted({o["frame"] for o in data["observations"] if o.get("set") == "calibration"})[-4:]
+    held = [o for o in data["observations"] if o.get("set") == "calibration" and o["frame"] in frames]
+    data["observations"] = [o for o in data["observations"] if o not in held]
+    (ds / "observations.json").write_text(json.dumps(data))
+    rig = ds / "rig.yaml"
+    rig.write_text("".join(ln for ln in rig.read_text().splitlines(keepends=True)
+                           if not any(f"frame: {f}}}" in ln for f in frames)))
+    (tmp_path / "held.json").write_text(json.dumps({"format": "ari-sfm-observations/1", "observations": held}))
+    return ds, tmp_path / "held.json"
+
+
+def test_compare_holdout_of_this_rig_is_scored_and_another_rigs_refused(tmp_path):
+    ds, held = _split_binocular(tmp_path)
+    r = _run(["compare", ds, "-o", tmp_path / "cmp", "--models", "ari", "--holdout", held])
+    assert r.exit_code == 0, r.output
+    scored = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    row = scored["models"]["ari"]
+    assert 0.0 < row["holdout"]["rmse_px"] < 1.0  # ari on this rig: ~0.35 px
+    # another rig: the same cameras, target and image sizes, the second camera 30 mm further right
+    other = json.loads(held.read_text())
+    for o in other["observations"]:
+        if o["camera"] == "cam1":
+            o["pixels"] = [[u - 3478.3 * 30.0 / 500.0, v] for u, v in o["pixels"]]
+    (tmp_path / "other.json").write_text(json.dumps(other))
+    r = _run(["compare", ds, "-o", tmp_path / "cmp2", "--models", "ari", "--holdout", tmp_path / "other.json"])
+    _one_error(r, "other.json", "not views of this rig")
+    assert not (tmp_path / "cmp2").exists()
