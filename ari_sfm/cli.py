@@ -162,13 +162,14 @@ def main(verbose: bool) -> None:
 
 @main.command()
 @click.argument("dataset", type=click.Path(path_type=Path))
-@click.option("-o", "--out", type=click.Path(path_type=Path), default=None, help="Output folder for observations.json (default: <name>-detections beside DATASET; the dataset's own files are never written).")
+@click.option("-o", "--out", type=click.Path(path_type=Path), default=None, help="Output folder: observations.json and a rig.yaml naming it and DATASET's images, a dataset that calibrate and run take without detecting again (default: <name>-detections beside DATASET; the dataset's own files are never written).")
 @click.option("--workers", type=int, default=None, help="Parallel detection threads (default: all cores).")
 @user_errors
 def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
-    """Detect target corners in the dataset's images; write observations.json."""
+    """Detect target corners in the dataset's images; write OUT/observations.json and OUT/rig.yaml (the dataset
+    with its corners: `ari-sfm calibrate OUT` starts from them)."""
     from .detection import detect_dataset
-    from .io import load_dataset, save_observations
+    from .io import detections_rig, load_dataset, save_detections
 
     if out is not None:
         check_output_folder(out)
@@ -179,13 +180,14 @@ def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
     if not any(entry.images for entry in ds.entries()):
         raise AriSfmError(ds.rig_path, "no images to detect: the dataset lists no image files (its corners are "
                                        "already in observations.json; calibrate or run it directly)")
+    out = out or check_output_folder(ds.root.parent / f"{ds.root.name}-detections")
+    detections_rig(out, ds)  # another dataset's rig.yaml in -o: refused before the detection
     t0 = time.perf_counter()
     obs = detect_dataset(ds, workers=workers, progress=True)
-    out = out or check_output_folder(ds.root.parent / f"{ds.root.name}-detections")
-    out.mkdir(parents=True, exist_ok=True)
-    save_observations(out / "observations.json", obs)
+    rig = save_detections(out, ds, obs)
     n = sum(len(o.ids) for o in obs)
     click.echo(f"{len(obs)} images, {n} corners in {time.perf_counter() - t0:.1f} s -> {out / 'observations.json'}")
+    click.echo(f"dataset with its corners: {rig} (ari-sfm calibrate {out} -o OUT)")
 
 
 _model_option = click.option("--model", default=None, metavar="|".join(CALIBRATABLE),
@@ -333,14 +335,10 @@ def report_cmd(out: Path, dataset: Path | None) -> None:
 def evaluate_cmd(calibration: Path, observations: Path, solve_poses: bool) -> None:
     """Reprojection errors of CALIBRATION on an OBSERVATIONS file (e.g. held-out views)."""
     from .io import load_calibration
-    from .evaluate import evaluate, evaluate_held_out
+    from .evaluate import evaluate
 
     cal = load_calibration(calibration)
-    stats = evaluate_held_out(cal, observations) if solve_poses else evaluate(cal, observations)
-    if stats.count == 0:
-        raise AriSfmError(observations, "no corner to judge: no observation of a calibrated camera in a frame "
-                          + ("whose pose could be fitted" if solve_poses else
-                             "the calibration holds (held-out views: add --solve-poses)"))
+    stats = evaluate(cal, observations, solve_poses=solve_poses)  # nothing to judge or NaN: one error line
     click.echo(f"rmse {stats.rmse_px:.4f} px  mae {stats.mae_px:.4f} px  max {stats.max_px:.4f} px  ({stats.count} corners)")
 
 

@@ -291,3 +291,70 @@ def test_compare_holdout_of_this_rig_is_scored_and_another_rigs_refused(tmp_path
     r = _run(["compare", ds, "-o", tmp_path / "cmp2", "--models", "ari", "--holdout", tmp_path / "other.json"])
     _one_error(r, "other.json", "not views of this rig")
     assert not (tmp_path / "cmp2").exists()
+
+
+# ----------------------------------------------------------------------------- detect -> calibrate, evaluate
+
+def test_detect_output_is_a_dataset_that_calibrate_takes_without_detecting_again(tmp_path):
+    """README: `ari-sfm detect DATASET -o det` then `ari-sfm calibrate det -o cal` (was: no rig.yaml in det)."""
+    sample = ROOT / "datasets" / "sample"
+    r = _run(["detect", sample, "-o", tmp_path / "det", "--workers", "2"])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "det" / "rig.yaml").is_file() and (tmp_path / "det" / "observations.json").is_file()
+    r = _run(["calibrate", tmp_path / "det", "-o", tmp_path / "cal", "--model", "ari"])
+    assert r.exit_code == 0, r.output
+    assert "observations:" not in r.output  # the corners were read, not detected again
+    assert not (tmp_path / "cal" / "observations.json").exists()
+    cal = load_calibration(tmp_path / "cal" / "calibration.json")
+    assert cal.residuals.rmse_px < 0.5 and cal.residuals.count == sum(
+        len(o["ids"]) for o in json.loads((tmp_path / "det" / "observations.json").read_text())["observations"])
+    # again into the same folder: its own earlier output is replaced; another dataset's rig.yaml never is
+    assert _run(["detect", sample, "-o", tmp_path / "det", "--workers", "2"]).exit_code == 0
+    other = tmp_path / "other"
+    shutil.copytree(ROOT / "datasets" / "binocular", other)
+    before = (other / "rig.yaml").read_text()
+    _one_error(_run(["detect", sample, "-o", other, "--workers", "2"]), "rig.yaml", "another dataset")
+    assert (other / "rig.yaml").read_text() == before
+
+
+def test_evaluate_solve_poses_is_one_behaviour_in_the_cli_and_the_api(tmp_path):
+    from ari_sfm import evaluate
+
+    cal_path = ROOT / "tests" / "data" / "calibration_e6e8196" / "exact.json"
+    obs = ROOT / "datasets" / "binocular" / "observations.json"
+    r = _run(["evaluate", cal_path, obs, "--solve-poses"])
+    assert r.exit_code == 0, r.output
+    cli_count = int(r.output.split("(")[-1].split()[0])
+    api = evaluate(load_calibration(cal_path), obs, solve_poses=True)
+    assert api.count == cli_count and f"{api.rmse_px:.4f}" in r.output
+    data = json.loads(obs.read_text())["observations"]
+    assert cli_count == sum(len(o["ids"]) for o in data if o.get("set") != "stacking")  # held-out views: no stacking
+
+
+def test_evaluate_never_prints_nan(tmp_path):
+    """A frame 1e300 mm away printed 'rmse nan px' (exit 0): refused when read; a frame whose corners project to
+    no pixel, and a dataset without observations (the API returned NaN statistics): one error each."""
+    from dataclasses import replace
+
+    from ari_sfm import evaluate
+    from ari_sfm.errors import AriSfmError
+    from ari_sfm.geometry import Pose
+    from ari_sfm.io import load_dataset
+
+    src = ROOT / "tests" / "data" / "calibration_e6e8196" / "exact.json"
+    obs = ROOT / "datasets" / "binocular" / "observations.json"
+    data = json.loads(src.read_text())
+    frame = next(iter(data["frames"]))
+    data["frames"][frame]["world_from_target"]["t"] = [0.0, 0.0, 1e300]
+    (tmp_path / "far.json").write_text(json.dumps(data))
+    _one_error(_run(["evaluate", tmp_path / "far.json", obs]), "far.json", f"frames.{frame}.t", "beyond")
+    cal = load_calibration(src)
+    behind = replace(cal, frames={**cal.frames, frame: Pose(np.eye(3), np.array([0.0, 0.0, -500.0]))})
+    with pytest.raises(AriSfmError, match="project to no pixel"):
+        evaluate(behind, obs)
+    images_only = tmp_path / "sample"
+    shutil.copytree(ROOT / "datasets" / "sample", images_only)
+    with pytest.raises(AriSfmError, match="no observations"):
+        evaluate(cal, load_dataset(images_only))
+    with pytest.raises(AriSfmError, match="no corner to judge"):
+        evaluate(cal, [])

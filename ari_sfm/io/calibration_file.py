@@ -123,11 +123,18 @@ def _finite(a: Any, shape: tuple[int, ...], what: str, path: Any) -> np.ndarray:
     return arr
 
 
+MAX_POSE_TRANSLATION_MM = 1e9  # 1000 km: a pose farther away is a typo (1e300 projected every corner to NaN)
+
+
 def _pose(d: Any, what: str, path: Any) -> Pose:
     R = _finite(d["R"], (3, 3), f"{what}.R", path)
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise AriSfmError(path, f"{what}.R is not a rotation matrix")
-    return Pose(R, _finite(d["t"], (3,), f"{what}.t", path))
+    t = _finite(d["t"], (3,), f"{what}.t", path)
+    if float(np.max(np.abs(t))) > MAX_POSE_TRANSLATION_MM:
+        raise AriSfmError(path, f"{what}.t: {float(np.max(np.abs(t))):.3g} mm is beyond {MAX_POSE_TRANSLATION_MM:.0e} mm "
+                                "(1000 km): not a pose of this rig")
+    return Pose(R, t)
 
 
 def _check_bounds(cams: dict[str, CameraCalibration], thickness: float, path: Any) -> None:
