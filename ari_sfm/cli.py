@@ -493,7 +493,8 @@ def sfm_cmd(images: Path, window: Path, out: Path, matcher: str, overlap: int, f
     rms = (f"; reprojection RMS {report.before.rms_px:.3f} px (COLMAP pinhole) -> "
            f"{report.after.rms_px:.3f} px (exact)")
     click.echo(f"COLMAP: {result.registered} of {result.images} images registered, {result.points3D} points "
-               f"-> {result.colmap_model}")
+               f"-> {result.colmap_model}"
+               + (f" (not registered: {', '.join(result.unregistered)})" if result.unregistered else ""))
     click.echo(f"refine-colmap{rms} -> {result.refined}")
     click.echo(f"summary: {result.summary_path}")
 

@@ -163,7 +163,8 @@ def test_bad_baseline_one_error(small_survey, baseline, words):
 def _one_error(r, *words) -> str:
     """The result is one `error: ...` line holding ``words``, exit 1, no traceback."""
     assert r.exit_code == 1, r.output
-    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    lines = [ln.split("\r")[-1] for ln in r.output.split("\n")]  # a progress bar redraws its line after \r
+    lines = [ln for ln in lines if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: "), r.output
     assert all(w in lines[0] for w in words), lines[0]
     return lines[0]
@@ -358,3 +359,138 @@ def test_evaluate_never_prints_nan(tmp_path):
         evaluate(cal, load_dataset(images_only))
     with pytest.raises(AriSfmError, match="no corner to judge"):
         evaluate(cal, [])
+
+
+# ----------------------------------------------------------------------------- sfm: inputs, COLMAP's failures, -o
+
+WINDOW = "interface: {thickness_mm: 8, index: 1.49, medium_index: 1.333}\nmount: camera\n"
+
+
+def _noise_images(folder: Path, names: list[str], size=(64, 48)) -> Path:
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(0)
+    for n in names:
+        cv2.imwrite(str(folder / n), rng.integers(0, 255, (size[1], size[0]), dtype=np.uint8))
+    return folder
+
+
+def _sfm(tmp_path: Path, images: Path, *extra, out=None):
+    (tmp_path / "W.yaml").write_text(WINDOW + "units_mm: 1\n")
+    return _run(["sfm", images, "--window", tmp_path / "W.yaml", "-o", out or tmp_path / "o", "--threads", "1", *extra])
+
+
+@pytest.mark.parametrize("bad, words", [
+    ("text", ["text.png", "cannot be read as an image"]),
+    ("empty", ["empty.png", "cannot be read"]),
+    ("truncated", ["truncated.png", "cannot be read"]),
+    ("resized", ["resized.png", "32 x 24 px", "one camera"]),
+])
+def test_sfm_names_the_images_it_would_drop(tmp_path, bad, words):
+    """Ten text files named .png gave an AttributeError; resized, truncated and 0-byte images were dropped by
+    COLMAP silently ('9 of 10 registered'): one line naming the image, before any COLMAP work."""
+    images = _noise_images(tmp_path / "imgs", [f"i{k}.png" for k in range(4)])
+    if bad == "text":
+        (images / "text.png").write_text("not an image\n")
+    elif bad == "empty":
+        (images / "empty.png").write_bytes(b"")
+    elif bad == "truncated":
+        (images / "truncated.png").write_bytes((images / "i0.png").read_bytes()[:200])
+    else:
+        _noise_images(images, ["resized.png"], size=(32, 24))
+    _one_error(_sfm(tmp_path, images), *words)
+    assert not (tmp_path / "o").exists()
+
+
+def test_sfm_ten_text_files_one_line(tmp_path):
+    images = tmp_path / "imgs"
+    images.mkdir()
+    for k in range(10):
+        (images / f"t{k}.png").write_text("text\n")
+    _one_error(_sfm(tmp_path, images), "t0.png", "cannot be read", "and 9 more")
+
+
+@pytest.mark.parametrize("extra, words", [
+    (["--threads", "-5"], ["--threads", "-1 (all cores)"]),
+    (["--threads", "0"], ["--threads"]),
+    (["--focal-px", "1e9"], ["--focal-px", "not a focal length", "64 x 48"]),
+])
+def test_sfm_options_checked_before_colmap(tmp_path, extra, words):
+    images = _noise_images(tmp_path / "imgs", [f"i{k}.png" for k in range(4)])
+    (tmp_path / "W.yaml").write_text(WINDOW + "units_mm: 1\n")
+    r = _run(["sfm", images, "--window", tmp_path / "W.yaml", "-o", tmp_path / "o", *extra])
+    _one_error(r, *words)
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("name", ["colmap.partial", "colmap", "refined"])
+def test_sfm_a_file_where_it_writes_a_folder(tmp_path, name):
+    images = _noise_images(tmp_path / "imgs", [f"i{k}.png" for k in range(4)])
+    (tmp_path / "o").mkdir()
+    (tmp_path / "o" / name).write_text("mine\n")
+    _one_error(_sfm(tmp_path, images), name, "is a file")
+    assert (tmp_path / "o" / name).read_text() == "mine\n"
+
+
+@pytest.mark.parametrize("stderr, words", [
+    ("F20261127 10:00:00.000000 1 database.cc:12] Check failed: database or disk is full", ["no space left"]),
+    ("F20261127 10:00:00.000000 1 feature.cc:99] Check failed: num_threads >= -1", ["COLMAP stopped",
+                                                                                    "num_threads >= -1"]),
+])
+def test_sfm_colmap_native_abort_is_one_line_and_leaves_nothing(tmp_path, monkeypatch, stderr, words):
+    """COLMAP aborting natively (a glog CHECK on a full disk) printed a 25-line stack and left colmap.partial/
+    database.db, -wal, -shm: COLMAP runs in a child process now; its abort is one line, nothing is left."""
+    from ari_sfm import sfm
+
+    code = ("import json, os, sys; a = json.loads(sys.argv[1]); os.makedirs(a['work'], exist_ok=True); "
+            "[open(os.path.join(a['work'], 'database.db' + x), 'w').close() for x in ('', '-wal', '-shm')]; "
+            f"print('step features', flush=True); sys.stderr.write({stderr!r} + '\\n'); "
+            "sys.stderr.write('*** Check failure stack trace: ***\\n' * 20); sys.stderr.flush(); os.abort()")
+    monkeypatch.setattr(sfm, "CHILD_CODE", code)
+    images = _noise_images(tmp_path / "imgs", [f"i{k}.png" for k in range(4)])
+    line = _one_error(_sfm(tmp_path, images), *words)
+    assert "stack trace" not in line
+    assert not (tmp_path / "o").exists()  # created by this run, removed with colmap.partial and its database
+
+
+def test_sfm_second_run_into_the_same_out_is_refused(tmp_path):
+    """Two sfm runs into one -o both failed and -o was removed: the second is refused, the first's folder kept."""
+    from ari_sfm.io import exclusive_folder
+
+    images = _noise_images(tmp_path / "imgs", [f"i{k}.png" for k in range(4)])
+    with exclusive_folder(tmp_path / "o"):  # the first run, holding -o
+        (tmp_path / "o" / "sfm.json").write_text("{}")
+        _one_error(_sfm(tmp_path, images), "another ari-sfm command is writing into this folder")
+        assert (tmp_path / "o" / "sfm.json").exists()
+
+
+def test_sfm_baseline_held_and_unregistered_images_named(tmp_path, monkeypatch, small_survey):
+    """`sfm --baseline` end to end with COLMAP's model given (a child that writes the simulated survey's pinhole
+    optimum): sfm.json's baseline is refined to the given distance (was 18 % off); an image COLMAP did not
+    register is named in the summary and sfm.json."""
+    from ari_sfm import colmap_export as adapter
+    from ari_sfm import sfm
+
+    truth, start = small_survey
+    model = adapter.model_from_reconstruction(start)
+    (tmp_path / "model").mkdir()
+    start.write(str(tmp_path / "model"))
+    code = ("import json, shutil, sys; a = json.loads(sys.argv[1]); "
+            f"shutil.copytree({str(tmp_path / 'model')!r}, a['work'] + '/sparse/0')")
+    monkeypatch.setattr(sfm, "CHILD_CODE", code)
+    images = _noise_images(tmp_path / "imgs", [*model.image_names, "zzz_lost.png"], size=tuple(truth.image_size))
+    C = _true_centres(truth, model)
+    mm = float(np.linalg.norm(C[0] - C[-1]))
+    (tmp_path / "W.yaml").write_text(
+        f"interface: {{thickness_mm: {truth.interface.thickness_mm}, index: {truth.interface.index}, "
+        f"medium_index: {truth.interface.medium_index}}}\nmount: camera\n")
+    r = _run(["sfm", images, "--window", tmp_path / "W.yaml", "-o", tmp_path / "o", "--threads", "1",
+              "--baseline", model.image_names[0], model.image_names[-1], str(mm)])
+    assert r.exit_code == 0, r.output
+    summary = json.loads((tmp_path / "o" / "sfm.json").read_text())
+    assert summary["scale"] == "baseline" and summary["baseline"]["refined_mm"] == pytest.approx(mm, rel=1e-3)
+    assert summary["unregistered"] == ["zzz_lost.png"] and "not registered: zzz_lost.png" in r.output
+    refine = json.loads((tmp_path / "o" / "refined" / "refine.json").read_text())
+    assert refine["baseline"]["refined_mm"] == pytest.approx(mm, rel=1e-3)
+    assert not (tmp_path / "o" / "colmap.partial").exists() and (tmp_path / "o" / summary["colmap_model"]).is_dir()
