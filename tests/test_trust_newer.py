@@ -494,3 +494,40 @@ def test_sfm_baseline_held_and_unregistered_images_named(tmp_path, monkeypatch, 
     refine = json.loads((tmp_path / "o" / "refined" / "refine.json").read_text())
     assert refine["baseline"]["refined_mm"] == pytest.approx(mm, rel=1e-3)
     assert not (tmp_path / "o" / "colmap.partial").exists() and (tmp_path / "o" / summary["colmap_model"]).is_dir()
+
+
+# ----------------------------------------------------------------------------- run: one run per -o at a time
+
+def test_run_into_a_folder_another_command_is_writing_is_refused(tmp_path):
+    """Two runs into one -o at once left run.json of one and the results of the other: the second is refused."""
+    from ari_sfm.io import exclusive_folder
+
+    with exclusive_folder(tmp_path / "o"):
+        r = _run(["run", ROOT / "datasets" / "binocular", "-o", tmp_path / "o"])
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert r.exit_code == 1 and len(lines) == 2 and lines[0].startswith("ari-sfm run: "), r.output
+    assert lines[1].startswith("error: ") and "another ari-sfm command is writing into this folder" in lines[1]
+    assert list((tmp_path / "o").iterdir()) == []
+
+
+def test_a_run_that_fails_leaves_no_run_json_of_the_earlier_run(tmp_path, monkeypatch):
+    """An earlier run's run.json and report are removed before this run writes: a failure half-way leaves this
+    run's calibration without a run.json describing the earlier run's results."""
+    from ari_sfm.pipelines import run as run_pipeline
+
+    ds = tmp_path / "ds"
+    shutil.copytree(ROOT / "datasets" / "binocular", ds)
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "run.json").write_text(json.dumps({"format": "ari-sfm-run/1", "dataset": str(ds.resolve()),
+                                              "model": "ari", "calibration": "calibration.json"}))
+    (out / "report.html").write_text("<html>earlier</html>")
+
+    def fails(*args, **kwargs):
+        raise RuntimeError("disk gone")
+
+    monkeypatch.setattr(run_pipeline, "run_reconstruction", fails)
+    r = _run(["run", ds, "-o", out, "--model", "ari"])
+    assert r.exit_code == 1 and "disk gone" in r.output
+    assert (out / "calibration.json").is_file()
+    assert not (out / "run.json").exists() and not (out / "report.html").exists()
