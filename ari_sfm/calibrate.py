@@ -68,6 +68,7 @@ class CalibrationOptions:
             raise ValueError(f"huber_px must be a finite number > 0, or None (got {self.huber_px})")
         if not (math.isfinite(self.outlier_sigma) and self.outlier_sigma > 0):
             raise ValueError(f"outlier_sigma must be a finite number > 0 (got {self.outlier_sigma})")
+        if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, (int, np.integer)) or self.max_iterations < 1: raise ValueError(f"max_iterations must be an integer >= 1 (got {self.max_iterations!r})")  # noqa: E501,E701
 
 
 def _options(options: CalibrationOptions | None, overrides: dict) -> CalibrationOptions:

@@ -1,6 +1,7 @@
 """The ari-sfm command line. Errors print as one line: ``error: <file>: <what is wrong>``."""
 from __future__ import annotations
 
+import errno
 import functools
 import logging
 import os
@@ -128,6 +129,12 @@ def user_errors(fn):
                 _exit_interrupted(terminated=_signalled[-1] == signal.SIGTERM)
             if isinstance(exc, AriSfmError):
                 click.echo(f"error: {exc}", err=True)
+                sys.exit(1)
+            if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EPIPE, errno.EIO, errno.EDQUOT):
+                # the results are written (atomically); what failed is writing the summary to a full or closed
+                # stdout (`> /dev/full`), or a file a library wrote without naming it
+                where = exc.filename or "standard output"
+                click.echo(f"error: {where}: cannot write: {exc.strerror or exc}", err=True)
                 sys.exit(1)
             if os.environ.get("ARI_SFM_DEBUG"):
                 raise
@@ -338,6 +345,9 @@ def evaluate_cmd(calibration: Path, observations: Path, solve_poses: bool) -> No
     from .evaluate import evaluate
 
     cal = load_calibration(calibration)
+    if cal.target is None:
+        raise AriSfmError(calibration, "holds no target (the board's geometry: key target), which evaluate needs to "
+                                       "project the corners; calibration.json written by ari-sfm calibrate has one")
     stats = evaluate(cal, observations, solve_poses=solve_poses)  # nothing to judge or NaN: one error line
     click.echo(f"rmse {stats.rmse_px:.4f} px  mae {stats.mae_px:.4f} px  max {stats.max_px:.4f} px  ({stats.count} corners)")
 
@@ -709,11 +719,7 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
     check_number("--min-cameras", min_cameras, minimum=2, maximum=64)
     check_number("--frames-per-partition", frames_per_partition, minimum=1)
     check_number("--workers", workers, minimum=0, maximum=1024)
-    if depth_range is not None:
-        for v in depth_range:
-            check_number("--depth-range", v)
-        if not depth_range[1] > depth_range[0]:
-            raise AriSfmError("--depth-range", f"ZMAX must exceed ZMIN (got {depth_range[0]:g} {depth_range[1]:g})")
+    _check_depth_range(depth_range)
     options = MatchOptions(tolerance_px=tolerance_px, min_cameras=min_cameras,
                            depth_range_mm=None if depth_range is None else tuple(depth_range),
                            frames_per_partition=frames_per_partition)
@@ -779,8 +785,7 @@ def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: 
     check_number("--peak-radius-px", peak_radius_px, minimum=0.0, maximum=100.0, strict_minimum=True)
     check_number("--max-rounds", max_rounds, minimum=1, maximum=100)
     check_number("--workers", workers, minimum=0, maximum=1024)
-    if depth_range is not None and not depth_range[1] > depth_range[0]:
-        raise AriSfmError("--depth-range", f"ZMAX must exceed ZMIN (got {depth_range[0]:g} {depth_range[1]:g})")
+    _check_depth_range(depth_range)
     options = SelfCalOptions(tolerance_px=tolerance_px, max_tolerance_px=max_tolerance_px,
                              final_tolerance_px=final_tolerance_px, min_cameras=min_cameras,
                              cells=tuple(cells), peak_radius_px=peak_radius_px, max_rounds=max_rounds,
@@ -799,6 +804,19 @@ def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: 
     click.echo(f"{len(r.rounds)} rounds, {r.report.particles_used} particles in {len(r.report.frames)} frames; "
                f"scale held: {r.report.scale_how} ({r.report.scale_sum_mm:.3f} mm)")
     click.echo(f"calibration: {out / 'calibration.json'}\ndisparity:   {out / 'disparity.json'}")
+
+
+MAX_DEPTH_MM = 1e5  # --depth-range: world z within 100 m (-1e300 1e300 sampled the epipolar curves over nothing)
+
+
+def _check_depth_range(depth_range: tuple[float, float] | None) -> None:
+    """--depth-range ZMIN ZMAX: finite, within MAX_DEPTH_MM, ZMAX > ZMIN."""
+    if depth_range is None:
+        return
+    for v in depth_range:
+        check_number("--depth-range", v, minimum=-MAX_DEPTH_MM, maximum=MAX_DEPTH_MM)
+    if not depth_range[1] > depth_range[0]:
+        raise AriSfmError("--depth-range", f"ZMAX must exceed ZMIN (got {depth_range[0]:g} {depth_range[1]:g})")
 
 
 MIN_IMAGE_SCALE = 0.05  # smaller: port_survey's 640 x 480 images become 32 x 24 px, paper_single's focal 174 px

@@ -107,8 +107,21 @@ def evaluate(calibration: Calibration, observations: str | Path | Dataset | Sequ
     """
     if solve_poses:
         return evaluate_held_out(calibration, observations, target)
+    calibration = _as_calibration(calibration)
     return _checked(reprojection_stats(calibration, observations, target), observations,
                     "the calibration holds (held-out views: add --solve-poses)")
+
+
+def _as_calibration(calibration: Calibration | str | Path) -> Calibration:
+    """A Calibration, or the one a calibration.json path holds (anything else: TypeError saying what is wanted)."""
+    if isinstance(calibration, (str, Path)):
+        from .io import load_calibration
+
+        return load_calibration(calibration)
+    if not isinstance(calibration, Calibration):
+        raise TypeError(f"calibration must be an ari_sfm Calibration or a calibration.json path "
+                        f"(got {type(calibration).__name__})")
+    return calibration
 
 
 def _source(observations: str | Path | Dataset | Sequence[Observation]) -> str | Path | None:
@@ -150,6 +163,11 @@ def reprojection_stats(calibration: Calibration, observations: str | Path | Data
         check_pixels_in_images(records, {n: c.image_size for n, c in calibration.cameras.items()}, observations)
     else:
         records = observations
+    if not isinstance(observations, (str, Path)):  # a file was checked as it was read
+        from .io.observations import check_pixels_in_images
+
+        check_pixels_in_images(records, {n: c.image_size for n, c in calibration.cameras.items()},
+                               _source(observations))
     target = target or calibration.target
     if target is None:
         raise AriSfmError(_source(observations), "no target geometry to judge these corners: the calibration holds "
@@ -170,6 +188,6 @@ def evaluate_held_out(calibration: Calibration, observations: str | Path | Datas
     Unlike ``evaluate(..., solve_poses=True)`` the calibration's own frame poses are not used, so
     held-out frames may repeat its frame names; stacking records are left out.
     """
-    fresh = replace(calibration, frames={}, stacking_poses={})
+    fresh = replace(_as_calibration(calibration), frames={}, stacking_poses={})
     return _checked(reprojection_stats(fresh, observations, target, solve_poses=True), observations,
                     "whose pose could be fitted (4 or more corners)")

@@ -275,6 +275,7 @@ class _NothingReconstructed(Exception):
 
 
 NOTHING_EXIT = 3  # the COLMAP child: the mapper made no model
+ERROR_EXIT = 4  # the COLMAP child: an AriSfmError, said on its stdout
 CHILD_CODE = "from ari_sfm.sfm import _child_main; _child_main()"  # what the COLMAP child runs (argv[1]: its JSON)
 STDERR_KEPT = 40  # the COLMAP child's last stderr lines kept for the error message
 
@@ -304,6 +305,7 @@ def _colmap_in_child(images: Path, partial: Path, options: SfmOptions, matcher: 
             if args["verbose"]:
                 sys.stderr.write(line)
 
+    said = None  # an AriSfmError the child reported: [path, message]
     reader = threading.Thread(target=read_stderr, daemon=True)
     reader.start()
     try:
@@ -313,6 +315,8 @@ def _colmap_in_child(images: Path, partial: Path, options: SfmOptions, matcher: 
                 on_step(value)
             elif kind == "image" and on_image is not None:
                 on_image()
+            elif kind == "error":
+                said = json.loads(value)
         code = proc.wait()
     except BaseException:  # Ctrl-C, SIGTERM, an error in a callback: the child goes too
         proc.kill()
@@ -324,6 +328,8 @@ def _colmap_in_child(images: Path, partial: Path, options: SfmOptions, matcher: 
         return
     if code == NOTHING_EXIT:
         raise _NothingReconstructed
+    if code == ERROR_EXIT and said is not None:
+        raise AriSfmError(*said)
     raise AriSfmError(partial.parent, _child_failure(list(tail), partial, code))
 
 
@@ -362,5 +368,8 @@ def _child_main() -> None:
                               seed=a["seed"], matcher=a["matcher"], overlap=a["overlap"],
                               num_threads=a["num_threads"], on_step=lambda name: say("step", name),
                               on_image=lambda: say("image"))
-    except AriSfmError:  # the mapper reconstructed nothing
-        sys.exit(NOTHING_EXIT)
+    except AriSfmError as exc:
+        if "reconstructed nothing" in exc.message:
+            sys.exit(NOTHING_EXIT)
+        say("error", json.dumps([exc.path, exc.message]))  # raised again by the parent
+        sys.exit(ERROR_EXIT)

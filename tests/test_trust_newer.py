@@ -531,3 +531,107 @@ def test_a_run_that_fails_leaves_no_run_json_of_the_earlier_run(tmp_path, monkey
     assert r.exit_code == 1 and "disk gone" in r.output
     assert (out / "calibration.json").is_file()
     assert not (out / "run.json").exists() and not (out / "report.html").exists()
+
+
+# ----------------------------------------------------------------------------- clear errors (one line, a file named)
+
+CAL = ROOT / "tests" / "data" / "calibration_e6e8196" / "exact.json"
+OBS = ROOT / "datasets" / "binocular" / "observations.json"
+
+
+def _edited_calibration(tmp_path: Path, name: str, edit) -> Path:
+    data = json.loads(CAL.read_text())
+    edit(data)
+    (tmp_path / name).write_text(json.dumps(data))
+    return tmp_path / name
+
+
+def test_observations_at_dev_zero_one_line():
+    """/dev/zero was read until a MemoryError."""
+    _one_error(_run(["evaluate", CAL, "/dev/zero"]), "/dev/zero", "not a regular file")
+    _one_error(_run(["evaluate", "/dev/zero", OBS]), "/dev/zero", "not a regular file")
+    _one_error(_run(["calibrate", "/dev/zero", "-o", "/tmp/never-written"]), "/dev/zero", "not a dataset folder")
+
+
+def test_calibration_without_target_named_by_evaluate(tmp_path):
+    cal = _edited_calibration(tmp_path, "notarget.json", lambda d: d.pop("target"))
+    _one_error(_run(["evaluate", cal, OBS]), "notarget.json", "holds no target")
+
+
+def test_fixed_distance_behind_the_cameras_refused_when_read(tmp_path):
+    """fixed_distance_mm -50 ended in 'ValueError: distance_mm must be > 0' from deep inside."""
+    cal = _edited_calibration(tmp_path, "fixed.json", lambda d: d.update(fixed_distance_mm=-50.0))
+    _one_error(_run(["evaluate", cal, OBS]), "fixed.json", "fixed_distance_mm -50", "in front of it")
+
+
+def test_stdout_full_is_one_line_naming_it():
+    """`evaluate ... > /dev/full` printed 'error: OSError: [Errno 28] ...' naming nothing."""
+    import subprocess
+    import sys
+
+    exe = Path(sys.executable).parent / "ari-sfm"
+    with open("/dev/full", "w") as full:
+        p = subprocess.run([str(exe), "evaluate", str(CAL), str(OBS)], stdout=full, stderr=subprocess.PIPE,
+                           text=True, timeout=300)
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+    assert p.returncode == 1 and lines == ["error: standard output: cannot write: No space left on device"], p.stderr
+
+
+@pytest.mark.parametrize("command", ["particles", "self-calibrate"])
+def test_depth_range_bounded(tmp_path, command):
+    r = _run([command, tmp_path, "--calibration", CAL, "-o", tmp_path / "o", "--depth-range", "-1e300", "1e300"])
+    _one_error(r, "--depth-range", "-100000")
+
+
+def test_pixels_far_outside_the_image_refused_by_evaluate_and_refine_colmap(tmp_path, small_survey):
+    from dataclasses import replace
+
+    from ari_sfm import colmap_export as adapter
+    from ari_sfm import evaluate
+    from ari_sfm.colmap_refine.refine import _check_finite
+    from ari_sfm.errors import AriSfmError
+    from ari_sfm.io import load_observations
+
+    cal = load_calibration(CAL)
+    records = list(load_observations(OBS, cal.target, list(cal.cameras)))
+    records[3] = replace(records[3], pixels=records[3].pixels + [5000.0, 0.0])
+    with pytest.raises(AriSfmError, match="outside the 2448 x 2048 image"):
+        evaluate(cal, records)
+    _, start = small_survey
+    model = adapter.model_from_reconstruction(start)
+    uv = model.obs_uv.copy()
+    uv[7] += 5000.0
+    with pytest.raises(AriSfmError, match="outside its"):
+        _check_finite(replace(model, obs_uv=uv), "sparse")
+
+
+def test_api_misuse_says_what_is_wanted():
+    """RigGraph / evaluate given wrong types raised AttributeError, add_factor gtsam's TypeError listing every
+    overload; CalibrationOptions(max_iterations=-3) was accepted."""
+    from ari_sfm import CalibrationOptions, evaluate
+    from ari_sfm.factors.rig_graph import RigGraph
+
+    with pytest.raises(TypeError, match="Dataset or a dataset folder"):
+        RigGraph.from_dataset(42)
+    with pytest.raises(ValueError, match="sigma_px"):
+        RigGraph.from_dataset(ROOT / "datasets" / "binocular", sigma_px=-1.0)
+    with pytest.raises(TypeError, match="Calibration or a calibration.json path"):
+        evaluate(42, OBS)
+    assert evaluate(str(CAL), OBS).count > 0  # a path is read
+    for bad in (-3, 0, 2.5, True):
+        with pytest.raises(ValueError, match="max_iterations"):
+            CalibrationOptions(max_iterations=bad)
+    assert CalibrationOptions(max_iterations=np.int64(7)).max_iterations == 7
+
+
+def test_rig_graph_add_factor_and_optimize_checked():
+    import gtsam
+
+    from ari_sfm.factors.rig_graph import RigGraph
+
+    rg = RigGraph.from_dataset(ROOT / "datasets" / "binocular", sigma_px=1.0)
+    with pytest.raises(TypeError, match="gtsam.NonlinearFactor"):
+        rg.add_factor("not a factor")
+    with pytest.raises(ValueError, match="max_iterations"):
+        rg.optimize(max_iterations=-3)
+    rg.add_factor(gtsam.PriorFactorPoint3(gtsam.symbol("z", 0), gtsam.Point3(0, 0, 0), gtsam.noiseModel.Unit.Create(3)))

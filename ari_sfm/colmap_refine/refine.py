@@ -226,6 +226,18 @@ def _check_finite(model: adapter.ColmapModel, path: Any) -> None:
             raise AriSfmError(path, f"frame {int(model.frame_ids[f])}: non-finite pose")
     if not np.all(np.isfinite(model.obs_uv)):
         raise AriSfmError(path, "an image has a non-finite keypoint observed by a point3D")
+    size = np.array(model.image_sizes, float)[model.image_camera[model.obs_image]]  # (M, 2) width, height
+    outside = np.any((model.obs_uv < -0.5 - EDGE_TOLERANCE_PX) | (model.obs_uv > size - 0.5 + EDGE_TOLERANCE_PX), axis=1)
+    if outside.any():
+        k = int(np.argmax(outside))
+        i = int(model.obs_image[k])
+        raise AriSfmError(path, f"image {model.image_names[i]}: a keypoint observed by point3D "
+                                f"{int(model.point3D_ids[model.obs_point[k]])} at ({model.obs_uv[k, 0]:.6g}, "
+                                f"{model.obs_uv[k, 1]:.6g}) px is outside its {int(size[k, 0])} x {int(size[k, 1])} "
+                                f"image ({int(outside.sum())} such observations)")
+
+
+EDGE_TOLERANCE_PX = 1.0  # a keypoint this far beyond the image's edge is kept (sub-pixel centres)
 
 
 def _candidates_inside_scene(model: adapter.ColmapModel, state: State, interface: Interface,

@@ -100,6 +100,8 @@ def find_rig(path: str | Path) -> Path:
         return path
     if not path.exists():
         raise AriSfmError(path, "no such dataset folder or rig file")
+    if not path.is_dir():
+        raise AriSfmError(path, "not a dataset folder or rig file (a device, pipe or socket)")
     found = [path / name for name in RIG_NAMES if (path / name).is_file()]
     if not found:
         raise AriSfmError(path, f"no {', '.join(RIG_NAMES[:-1])} or {RIG_NAMES[-1]} in this folder")
