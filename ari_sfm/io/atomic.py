@@ -6,6 +6,7 @@ is removed and the target is left as it was.
 """
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
@@ -237,17 +238,23 @@ class exclusive_folder:
         self.created = False
 
     def __enter__(self) -> "exclusive_folder":
-        import fcntl
-
+        try:
+            import fcntl
+        except ImportError:  # not POSIX: no lock
+            fcntl = None
         try:
             self.created = not self.out.exists()
             self.out.mkdir(parents=True, exist_ok=True)
             self.fd = os.open(self.out, os.O_RDONLY)
         except OSError as exc:
             raise AriSfmError(self.out, f"{self.option}: cannot write in this folder: {exc.strerror or exc}") from None
+        if fcntl is None:
+            return self
         try:
             fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
+        except OSError as exc:
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):  # a file system without locks: go on unheld
+                return self
             os.close(self.fd)
             self.fd = None
             raise AriSfmError(self.out, f"{self.option}: another ari-sfm command is writing into this folder now: "
