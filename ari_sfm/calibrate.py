@@ -79,6 +79,9 @@ class CalibrationOptions:
         if self.principal_point not in PRINCIPAL_POINT_MODES:
             raise ValueError(f"principal_point must be one of {', '.join(PRINCIPAL_POINT_MODES)} "
                              f"(got {self.principal_point!r})")
+        iterations = self.max_iterations
+        if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 1:
+            raise ValueError(f"max_iterations must be an integer >= 1 (got {iterations!r})")
 
 
 def _options(options: CalibrationOptions | None, overrides: dict) -> CalibrationOptions:

@@ -1,6 +1,7 @@
 """The ari-sfm command line. Errors print as one line: ``error: <file>: <what is wrong>``."""
 from __future__ import annotations
 
+import errno
 import functools
 import logging
 import os
@@ -129,6 +130,12 @@ def user_errors(fn):
             if isinstance(exc, AriSfmError):
                 click.echo(f"error: {exc}", err=True)
                 sys.exit(1)
+            if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EPIPE, errno.EIO, errno.EDQUOT):
+                # the results are written (atomically); what failed is writing the summary to a full or closed
+                # stdout (`> /dev/full`), or a file a library wrote without naming it
+                where = exc.filename or "standard output"
+                click.echo(f"error: {where}: cannot write: {exc.strerror or exc}", err=True)
+                sys.exit(1)
             if os.environ.get("ARI_SFM_DEBUG"):
                 raise
             click.echo(f"error: {type(exc).__name__}: {exc} (set ARI_SFM_DEBUG=1 for the traceback)", err=True)
@@ -162,13 +169,14 @@ def main(verbose: bool) -> None:
 
 @main.command()
 @click.argument("dataset", type=click.Path(path_type=Path))
-@click.option("-o", "--out", type=click.Path(path_type=Path), default=None, help="Output folder for observations.json (default: <name>-detections beside DATASET; the dataset's own files are never written).")
+@click.option("-o", "--out", type=click.Path(path_type=Path), default=None, help="Output folder: observations.json and a rig.yaml naming it and DATASET's images, a dataset that calibrate and run take without detecting again (default: <name>-detections beside DATASET; the dataset's own files are never written).")
 @click.option("--workers", type=int, default=None, help="Parallel detection threads (default: all cores).")
 @user_errors
 def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
-    """Detect target corners in the dataset's images; write observations.json."""
+    """Detect target corners in the dataset's images; write OUT/observations.json and OUT/rig.yaml (the dataset
+    with its corners: `ari-sfm calibrate OUT` starts from them)."""
     from .detection import detect_dataset
-    from .io import load_dataset, save_observations
+    from .io import detections_rig, load_dataset, save_detections
 
     if out is not None:
         check_output_folder(out)
@@ -179,13 +187,14 @@ def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
     if not any(entry.images for entry in ds.entries()):
         raise AriSfmError(ds.rig_path, "no images to detect: the dataset lists no image files (its corners are "
                                        "already in observations.json; calibrate or run it directly)")
+    out = out or check_output_folder(ds.root.parent / f"{ds.root.name}-detections")
+    detections_rig(out, ds)  # another dataset's rig.yaml in -o: refused before the detection
     t0 = time.perf_counter()
     obs = detect_dataset(ds, workers=workers, progress=True)
-    out = out or check_output_folder(ds.root.parent / f"{ds.root.name}-detections")
-    out.mkdir(parents=True, exist_ok=True)
-    save_observations(out / "observations.json", obs)
+    rig = save_detections(out, ds, obs)
     n = sum(len(o.ids) for o in obs)
     click.echo(f"{len(obs)} images, {n} corners in {time.perf_counter() - t0:.1f} s -> {out / 'observations.json'}")
+    click.echo(f"dataset with its corners: {rig} (ari-sfm calibrate {out} -o OUT)")
 
 
 _model_option = click.option("--model", default=None, metavar="|".join(CALIBRATABLE),
@@ -333,14 +342,13 @@ def report_cmd(out: Path, dataset: Path | None) -> None:
 def evaluate_cmd(calibration: Path, observations: Path, solve_poses: bool) -> None:
     """Reprojection errors of CALIBRATION on an OBSERVATIONS file (e.g. held-out views)."""
     from .io import load_calibration
-    from .evaluate import evaluate, evaluate_held_out
+    from .evaluate import evaluate
 
     cal = load_calibration(calibration)
-    stats = evaluate_held_out(cal, observations) if solve_poses else evaluate(cal, observations)
-    if stats.count == 0:
-        raise AriSfmError(observations, "no corner to judge: no observation of a calibrated camera in a frame "
-                          + ("whose pose could be fitted" if solve_poses else
-                             "the calibration holds (held-out views: add --solve-poses)"))
+    if cal.target is None:
+        raise AriSfmError(calibration, "holds no target (the board's geometry: key target), which evaluate needs to "
+                                       "project the corners; calibration.json written by ari-sfm calibrate has one")
+    stats = evaluate(cal, observations, solve_poses=solve_poses)  # nothing to judge or NaN: one error line
     click.echo(f"rmse {stats.rmse_px:.4f} px  mae {stats.mae_px:.4f} px  max {stats.max_px:.4f} px  ({stats.count} corners)")
 
 
@@ -495,7 +503,8 @@ def sfm_cmd(images: Path, window: Path, out: Path, matcher: str, overlap: int, f
     rms = (f"; reprojection RMS {report.before.rms_px:.3f} px (COLMAP pinhole) -> "
            f"{report.after.rms_px:.3f} px (exact)")
     click.echo(f"COLMAP: {result.registered} of {result.images} images registered, {result.points3D} points "
-               f"-> {result.colmap_model}")
+               f"-> {result.colmap_model}"
+               + (f" (not registered: {', '.join(result.unregistered)})" if result.unregistered else ""))
     click.echo(f"refine-colmap{rms} -> {result.refined}")
     click.echo(f"summary: {result.summary_path}")
 
@@ -516,21 +525,23 @@ _units_option = click.option("--units-mm", type=float, default=1000.0, show_defa
 @user_errors
 def export_colmap_fork_cmd(calibration: Path, out: Path, dataset: Path | None, units_mm: float) -> None:
     """Write an exact CALIBRATION as a model of the refractive COLMAP fork (colmap_underwater, FLATPORT cameras)."""
-    from .colmap_fork import export_colmap_fork
-    from .io import load_calibration, load_dataset, load_observations
+    from .colmap_fork import check_units_mm, export_colmap_fork
+    from .io import load_calibration, load_observations
+    from .report import find_dataset
 
     check_output_folder(out)
-    check_number("--units-mm", units_mm, minimum=0.0, strict_minimum=True)
+    check_units_mm(units_mm)
     cal = load_calibration(calibration)
     observations, refined = None, None
     folder = calibration.parent
     if dataset is None and "refine_colmap" in cal.extra and any((folder / f"cameras.{x}").is_file() for x in ("bin", "txt")):
         refined = folder  # a refine-colmap output: its images at their real poses and the refined points
-    elif dataset is not None:
-        observations = load_dataset(dataset).observations
-    elif (folder / "observations.json").is_file():
+    elif dataset is None and (folder / "observations.json").is_file():
         observations = load_observations(folder / "observations.json", cal.target, list(cal.cameras))
-    done = export_colmap_fork(cal, out, observations, units_mm, refined_model=refined)
+    elif dataset is None:
+        dataset = find_dataset(folder)  # an `ari-sfm run` folder: the dataset its run.json / metrics.json name
+    done = export_colmap_fork(cal, out, observations, units_mm, refined_model=refined, dataset=dataset,
+                              calibration_path=calibration)
     click.echo(f"{done.cameras} FLATPORT camera(s), {done.images} images, {done.points3D} points3D "
                f"(lengths in units of {units_mm:g} mm) -> {out}")
 
@@ -543,11 +554,11 @@ def export_colmap_fork_cmd(calibration: Path, out: Path, dataset: Path | None, u
 def import_colmap_fork_cmd(model_dir: Path, out: Path, units_mm: float) -> None:
     """Read the FLATPORT cameras of a refractive COLMAP fork text model (MODEL_DIR/cameras.txt, images.txt) as
     an exact-model calibration.json."""
-    from .colmap_fork import import_colmap_fork
+    from .colmap_fork import check_units_mm, import_colmap_fork
     from .io import save_calibration
 
     check_output_folder(out)
-    check_number("--units-mm", units_mm, minimum=0.0, strict_minimum=True)
+    check_units_mm(units_mm)
     if out.resolve() == model_dir.resolve():
         raise AriSfmError(out, "-o/--out: is the input model folder (choose another folder)")
     cal = import_colmap_fork(model_dir, units_mm)
@@ -730,11 +741,7 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
     check_number("--min-cameras", min_cameras, minimum=2, maximum=64)
     check_number("--frames-per-partition", frames_per_partition, minimum=1)
     check_number("--workers", workers, minimum=0, maximum=1024)
-    if depth_range is not None:
-        for v in depth_range:
-            check_number("--depth-range", v)
-        if not depth_range[1] > depth_range[0]:
-            raise AriSfmError("--depth-range", f"ZMAX must exceed ZMIN (got {depth_range[0]:g} {depth_range[1]:g})")
+    _check_depth_range(depth_range)
     options = MatchOptions(tolerance_px=tolerance_px, min_cameras=min_cameras,
                            depth_range_mm=None if depth_range is None else tuple(depth_range),
                            frames_per_partition=frames_per_partition)
@@ -805,8 +812,7 @@ def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: 
     check_number("--peak-radius-px", peak_radius_px, minimum=0.0, maximum=100.0, strict_minimum=True)
     check_number("--max-rounds", max_rounds, minimum=1, maximum=100)
     check_number("--workers", workers, minimum=0, maximum=1024)
-    if depth_range is not None and not depth_range[1] > depth_range[0]:
-        raise AriSfmError("--depth-range", f"ZMAX must exceed ZMIN (got {depth_range[0]:g} {depth_range[1]:g})")
+    _check_depth_range(depth_range)
     options = SelfCalOptions(tolerance_px=tolerance_px, max_tolerance_px=max_tolerance_px,
                              final_tolerance_px=final_tolerance_px, min_cameras=min_cameras,
                              cells=tuple(cells), peak_radius_px=peak_radius_px, max_rounds=max_rounds,
@@ -842,6 +848,19 @@ def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: 
     click.echo(f"calibration: {out / 'calibration.json'}\ndisparity:   {out / 'disparity.json'}")
     if not rep.passed:
         sys.exit(QUALITY_FAILED_EXIT)
+
+
+MAX_DEPTH_MM = 1e5  # --depth-range: world z within 100 m (-1e300 1e300 sampled the epipolar curves over nothing)
+
+
+def _check_depth_range(depth_range: tuple[float, float] | None) -> None:
+    """--depth-range ZMIN ZMAX: finite, within MAX_DEPTH_MM, ZMAX > ZMIN."""
+    if depth_range is None:
+        return
+    for v in depth_range:
+        check_number("--depth-range", v, minimum=-MAX_DEPTH_MM, maximum=MAX_DEPTH_MM)
+    if not depth_range[1] > depth_range[0]:
+        raise AriSfmError("--depth-range", f"ZMAX must exceed ZMIN (got {depth_range[0]:g} {depth_range[1]:g})")
 
 
 MIN_IMAGE_SCALE = 0.05  # smaller: port_survey's 640 x 480 images become 32 x 24 px, paper_single's focal 174 px

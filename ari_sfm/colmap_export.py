@@ -794,7 +794,10 @@ def _structure_from_motion(image_dir, work_dir, focal_px, max_features, seed, ma
         import cv2
 
         first = sorted(p for p in image_dir.iterdir() if p.suffix.lower() in SFM_IMAGE_SUFFIXES)[0]
-        h, w = cv2.imread(str(first), cv2.IMREAD_GRAYSCALE).shape
+        pixels = cv2.imread(str(first), cv2.IMREAD_GRAYSCALE)
+        if pixels is None:
+            raise AriSfmError(first, "cannot read image (corrupt, truncated or not an image)")
+        h, w = pixels.shape
         reader.camera_params = f"{focal_px},{focal_px},{w / 2},{h / 2}"
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.max_num_features = max_features

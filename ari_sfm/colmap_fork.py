@@ -39,7 +39,7 @@ import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
@@ -48,6 +48,9 @@ from .io import load_calibration
 from .errors import AriSfmError
 from .geometry import Pose, angle_between_deg
 from .records import Interface, Observation
+
+if TYPE_CHECKING:
+    from .records import Dataset
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +63,16 @@ CAMERA_MODELS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL"
 POSE_TOLERANCE = 1e-6  # rad, and relative to the rig's size: images of one static camera agree to this
 WINDOW_TOLERANCE_DEG = 1e-4  # cameras' normals in the first camera's frame agree to this (one window)
 WINDOW_TOLERANCE_MM = 1e-4  # and their distances to its face
+UNITS_MM_RANGE = (1e-3, 1e6)  # --units-mm: from micrometres to kilometres per model unit
+
+
+def check_units_mm(units_mm: float) -> float:
+    """``units_mm`` if a physical length unit (UNITS_MM_RANGE), else AriSfmError naming --units-mm."""
+    lo, hi = UNITS_MM_RANGE
+    if not (isinstance(units_mm, (int, float)) and math.isfinite(units_mm) and lo <= units_mm <= hi):
+        raise AriSfmError("--units-mm", f"must be mm per length unit of the fork's model, between {lo:g} (um) and "
+                                        f"{hi:g} (km) (got {units_mm!r}; 1000 = metres)")
+    return float(units_mm)
 
 
 @dataclass(frozen=True)
@@ -146,6 +159,9 @@ def format_camera_line(camera_id: int, image_size: tuple[int, int], params: Sequ
     """One cameras.txt line of the fork (``colmap_underwater`` form)."""
     model, values = colmap_camera_params(params)
     n = np.asarray(normal_cam, float) / np.linalg.norm(normal_cam)
+    if not n[2] > 0.0:  # the fork's import (and ours) refuses Nz <= 0: never write one
+        raise AriSfmError(None, f"camera {camera_id}: its window normal {n.round(6).tolist()} points away from its "
+                                "view (Nz <= 0): the fork's FLATPORT normal goes from the camera into the scene")
     refrac = [n[0], n[1], n[2], distance_mm / units_mm, interface.thickness_mm / units_mm, 1.0,
               interface.index, interface.medium_index]
     return " ".join([str(int(camera_id)), model, str(int(image_size[0])), str(int(image_size[1]))]
@@ -283,25 +299,58 @@ def _refined_images(cal: Calibration, model_dir: Path) -> tuple[dict[str, int], 
     return {n: int(c) for n, c in camera_ids.items()}, images, points
 
 
+def _dataset_observations(cal: Calibration, dataset: "Dataset | str | Path", path: Path) -> Sequence[Observation]:
+    """The observations of a dataset of the calibration's rig (another rig's: AriSfmError, as calibrate's)."""
+    from .io import load_dataset
+    from .reconstruct import check_rig
+
+    ds = load_dataset(dataset) if isinstance(dataset, (str, Path)) else dataset
+    check_rig(ds, cal, path)
+    if ds.observations is None:
+        raise AriSfmError(ds.rig_path, "the dataset holds no observations (images only): run `ari-sfm detect` "
+                                       "and pass --dataset with its observations.json")
+    return ds.observations
+
+
 def export_colmap_fork(calibration: Calibration | str | Path, out_dir: str | Path,
                        observations: Sequence[Observation] | None = None,
-                       units_mm: float = DEFAULT_UNITS_MM, refined_model: str | Path | None = None) -> ForkExport:
+                       units_mm: float = DEFAULT_UNITS_MM, refined_model: str | Path | None = None,
+                       dataset: "Dataset | str | Path | None" = None,
+                       calibration_path: str | Path | None = None) -> ForkExport:
     """Write ``calibration`` (an exact-Snell model) as the fork's text model in ``out_dir``:
-    cameras.txt (FLATPORT), images.txt, points3D.txt (lengths in units of ``units_mm`` mm).
+    cameras.txt (FLATPORT), images.txt, points3D.txt (lengths in units of ``units_mm`` mm, within
+    UNITS_MM_RANGE).
 
     Images and points: ``refined_model`` (a refine-colmap output folder: its COLMAP model beside the
-    calibration) gives every image at its real pose and the refined points; else ``observations``
-    give one image per camera and calibration frame with the target corners; else one image per
-    camera (its pose)."""
+    calibration) gives every image at its real pose and the refined points; else ``observations`` (or
+    ``dataset``'s, a dataset of the calibration's rig) give one image per camera and calibration frame
+    with the target corners (observations that are not the calibration's: AriSfmError); else one image
+    per camera (its pose), with a warning. ``calibration_path``: the file named in errors when
+    ``calibration`` is a record."""
     from .io import write_text_atomic
+    from .provenance import observations_mismatch
 
-    path = Path(calibration) if isinstance(calibration, (str, Path)) else Path("calibration.json")
+    path = Path(calibration) if isinstance(calibration, (str, Path)) else Path(calibration_path or "calibration.json")
     cal = load_calibration(calibration) if isinstance(calibration, (str, Path)) else calibration
     if cal.spec.projection != "exact":
         raise AriSfmError(path, f"model {cal.model}: the fork's {REFRAC_MODEL} is Snell's law at both faces; export "
                                 "an exact calibration (ari-sfm calibrate --model exact)")
-    if not (math.isfinite(units_mm) and units_mm > 0):
-        raise AriSfmError(None, f"--units-mm must be a number > 0 (got {units_mm})")
+    units_mm = check_units_mm(units_mm)
+    where = path.parent / "observations.json"
+    if dataset is not None:
+        observations = _dataset_observations(cal, dataset, path)
+        where = Path(dataset) if isinstance(dataset, (str, Path)) else dataset.root
+    if refined_model is None and observations is not None:
+        why = observations_mismatch(cal, observations, cal.target)
+        if why:  # the calibration's frames with another capture's corners: tracks of nonsense
+            raise AriSfmError(where, why)
+        if len(observations) and not any(o.set == "calibration" and o.frame in cal.frames and o.camera in cal.cameras
+                                         for o in observations):
+            raise AriSfmError(where, f"none of its {len(observations)} observations is of the calibration's cameras "
+                                     f"({', '.join(cal.cameras)}) in its calibration frames: another rig or capture")
+    elif refined_model is None:
+        log.warning("no observations (no --dataset, no observations.json beside the calibration, no dataset "
+                    "recorded by run.json): exporting cameras and poses only, no points3D")
     out = Path(out_dir)
     names = list(cal.cameras)
     if refined_model is not None:
@@ -424,8 +473,7 @@ def _camera_name(camera: ForkCamera, images: list[ForkImage]) -> str:
 def import_colmap_fork(model_dir: str | Path, units_mm: float = DEFAULT_UNITS_MM) -> Calibration:
     """The calibration (model exact) of a fork's text model: its FLATPORT cameras and their poses."""
     model_dir = Path(model_dir)
-    if not (math.isfinite(units_mm) and units_mm > 0):
-        raise AriSfmError(None, f"--units-mm must be a number > 0 (got {units_mm})")
+    units_mm = check_units_mm(units_mm)
     if not model_dir.is_dir():
         raise AriSfmError(model_dir, "no such folder (a COLMAP text model: cameras.txt, images.txt, points3D.txt)")
     cams_path = model_dir / "cameras.txt"
@@ -472,7 +520,20 @@ def import_colmap_fork(model_dir: str | Path, units_mm: float = DEFAULT_UNITS_MM
         log.info("%s: %d windows (cameras behind different walls: %s)", cams_path, len(windows),
                  "; ".join(f"{w.name}: {', '.join(w.cameras)}" for w in windows))
     head = windows[0]
-    return Calibration(model="exact", interface=head.interface, normal_world=head.normal_world, cameras=cameras,
-                       frames={}, extra={"imported_from": {"format": f"COLMAP {REFRAC_MODEL} (colmap_underwater)",
-                                                          "path": str(model_dir), "units_mm": units_mm}},
-                       fixed_distance_mm=head.fixed_distance_mm, windows=tuple(windows) if len(windows) > 1 else ())
+    cal = Calibration(model="exact", interface=head.interface, normal_world=head.normal_world, cameras=cameras,
+                      frames={}, extra={"imported_from": {"format": f"COLMAP {REFRAC_MODEL} (colmap_underwater)",
+                                                         "path": str(model_dir), "units_mm": units_mm}},
+                      fixed_distance_mm=head.fixed_distance_mm, windows=tuple(windows) if len(windows) > 1 else ())
+    _check_as_calibration_json(cal, cams_path, units_mm)
+    return cal
+
+
+def _check_as_calibration_json(cal: Calibration, where: Path, units_mm: float) -> None:
+    """The imported calibration held to calibration.json's bounds (a plate of 1e298 mm: the wrong --units-mm),
+    so that what import writes, every command reads."""
+    from .io import calibration_to_json, parse_calibration
+
+    try:
+        parse_calibration(calibration_to_json(cal), where)
+    except AriSfmError as exc:
+        raise AriSfmError(where, f"read with --units-mm {units_mm:g}: {exc.message}") from None

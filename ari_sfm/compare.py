@@ -141,14 +141,36 @@ def _holdout(cal: Calibration, records: Sequence[Observation], dataset: Dataset)
     return replace(evaluate_held_out(cal, records, dataset.target), per_camera=None)
 
 
+def check_holdout_of_this_rig(cal: Calibration, holdout: Sequence[Observation], dataset: Dataset,
+                              where: str | Path = "--holdout") -> ResidualStats:
+    """The held-out errors of ``cal``, or AriSfmError naming ``where`` when the views are not of its rig: no
+    frame's pose can be fitted, or their errors with the poses fitted and the rig held are far above the
+    calibration's own (another rig's or another target's views: scoring them would be meaningless)."""
+    from .provenance import RESIDUAL_MISMATCH_FACTOR, RESIDUAL_MISMATCH_PX
+
+    stats = _holdout(cal, holdout, dataset)
+    own = _judge(cal, dataset, None)[1].rmse_px  # on all the dataset's calibration corners (a --subset fit's too)
+    if stats.count == 0:
+        raise AriSfmError(where, "no held-out view to judge: no frame of a calibrated camera with 4 or more corners "
+                                 "whose pose could be fitted")
+    if stats.rmse_px > RESIDUAL_MISMATCH_FACTOR * own + RESIDUAL_MISMATCH_PX:
+        raise AriSfmError(where, f"not views of this rig: rmse {stats.rmse_px:.4g} px with their frame poses fitted "
+                                 f"and the {cal.model} calibration's rig held, against {own:.4g} px on the dataset's "
+                                 "own corners (another rig's observations?)")
+    return stats
+
+
 def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Subset | None = None,
-            holdout: Sequence[Observation] | None = None, pf_world: str = "ari", **options) -> list[ModelResult]:
+            holdout: Sequence[Observation] | None = None, pf_world: str = "ari", holdout_path: str | Path | None = None,
+            **options) -> list[ModelResult]:
     """Calibrate ``dataset`` with every model and judge each (see module docstring).
 
     ``options`` go to :func:`ari_sfm.calibrate` (e.g. ``distortion``). pf fits
     in the world (board poses) of the ``pf_world`` calibration, "ari" (the
     issue's choice) or "exact" (made first when not among ``models``); its
-    errors include that world's pose errors.
+    errors include that world's pose errors. ``holdout``: views of the same rig
+    (:func:`check_holdout_of_this_rig`, judged on the first model calibrated, before
+    the others; ``holdout_path`` is named in its errors).
     """
     from .baselines.polynomial import calibrate_pf
     from .calibrate import calibrate, ensure_observations
@@ -174,6 +196,8 @@ def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Su
                 wall = time.perf_counter() - t0
             runs.append((cal, wall))
         cal, wall = min(runs, key=lambda r: r[0].time_s)
+        if holdout and not cals:  # another rig's views: refused before the other models are calibrated
+            check_holdout_of_this_rig(cal, holdout, dataset, holdout_path or "--holdout")
         cals[model] = (cal, min(w for _, w in runs))
         log.info("compare: %s in %.1f ms", model, cal.time_s * 1e3)
     out = []
@@ -302,8 +326,13 @@ def run_compare(dataset_path: str | Path, out: str | Path, models: str | Sequenc
     dataset = load_dataset(dataset_path)
     if sub:
         sub.ids(dataset)
-    held = load_observations(Path(holdout), dataset.target, dataset.camera_names) if holdout else None
-    results = compare(dataset, names, sub, held, pf_world, **options)
+    held = None
+    if holdout:
+        from .io.observations import check_pixels_in_images
+
+        held = load_observations(Path(holdout), dataset.target, dataset.camera_names)
+        check_pixels_in_images(held, {n: c.image_size for n, c in dataset.cameras.items()}, holdout)
+    results = compare(dataset, names, sub, held, pf_world, holdout_path=holdout, **options)
     out = Path(out)
     paths = {"json": out / "compare.json", "md": out / "compare.md"}
     pngs = figures(results)

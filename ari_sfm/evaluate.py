@@ -8,6 +8,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from .calibration import Calibration
+from .errors import AriSfmError
 from .geometry import Pose
 from .records import Dataset, Observation, Target
 from .results import ResidualStats
@@ -94,14 +95,65 @@ def evaluate(calibration: Calibration, observations: str | Path | Dataset | Sequ
     """Reprojection errors (rmse_px, mae_px, max_px, count, per_camera) on observations.
 
     ``observations`` is an observations.json path, a Dataset, or loaded records.
-    Only records of frames (or stacking poses) whose poses the calibration holds
-    count, unless ``solve_poses``: then the poses of the other frames are fitted
-    with the rig held fixed (:func:`solve_frame_poses`), which judges the rig on
-    held-out views.
+    Only records of frames whose poses the calibration holds (and its stacking
+    poses) count, unless ``solve_poses``: then every frame's pose is fitted with the
+    rig held fixed (:func:`evaluate_held_out`: held-out views; the calibration's own
+    frame poses and stacking records are not used), the same as ``ari-sfm evaluate
+    --solve-poses``.
+
+    Never NaN: nothing to judge (no record of a calibrated camera in a frame whose
+    pose is known or could be fitted), a corner that projects to no pixel through the
+    window, or no target geometry is an AriSfmError naming the observations.
     """
+    if solve_poses:
+        return evaluate_held_out(calibration, observations, target)
+    calibration = _as_calibration(calibration)
+    return _checked(reprojection_stats(calibration, observations, target), observations,
+                    "the calibration holds (held-out views: add --solve-poses)")
+
+
+def _as_calibration(calibration: Calibration | str | Path) -> Calibration:
+    """A Calibration, or the one a calibration.json path holds (anything else: TypeError saying what is wanted)."""
+    if isinstance(calibration, (str, Path)):
+        from .io import load_calibration
+
+        return load_calibration(calibration)
+    if not isinstance(calibration, Calibration):
+        raise TypeError(f"calibration must be an ari_sfm Calibration or a calibration.json path "
+                        f"(got {type(calibration).__name__})")
+    return calibration
+
+
+def _source(observations: str | Path | Dataset | Sequence[Observation]) -> str | Path | None:
+    """What to name in an error about ``observations``."""
+    if isinstance(observations, Dataset):
+        return observations.rig_path
+    return observations if isinstance(observations, (str, Path)) else "observations"
+
+
+def _checked(stats: ResidualStats, observations, which: str) -> ResidualStats:
+    """``stats`` unless nothing was judged or a residual is not finite (AriSfmError naming the observations)."""
+    if stats.count == 0:
+        raise AriSfmError(_source(observations), f"no corner to judge: no observation of a calibrated camera in a "
+                                                 f"frame {which}")
+    if not np.isfinite(stats.rmse_px):
+        bad = [c for c, st in (stats.per_camera or {}).items() if not np.isfinite(st.rmse_px)]
+        raise AriSfmError(_source(observations), f"corners of {', '.join(bad) or 'a camera'} project to no pixel "
+                                                 "through the window at their frame poses (the board behind the "
+                                                 "window or beyond reach): these views do not fit this calibration")
+    return stats
+
+
+def reprojection_stats(calibration: Calibration, observations: str | Path | Dataset | Sequence[Observation],
+              target: Target | None = None, solve_poses: bool = False) -> ResidualStats:
+    """:func:`evaluate`'s statistics as they come: count 0 and NaN when nothing is judged, NaN where a corner
+    does not project (``solve_poses``: the frames the calibration does not hold fitted, its own kept)."""
     if isinstance(observations, Dataset):
         target = target or observations.target
-        records = observations.observations or ()
+        if observations.observations is None:
+            raise AriSfmError(observations.rig_path, "the dataset holds no observations (images only): run "
+                                                     "`ari-sfm detect` first, or pass its observations.json")
+        records = observations.observations
     elif isinstance(observations, (str, Path)):
         from .io import load_observations
         from .io.observations import check_pixels_in_images
@@ -111,9 +163,15 @@ def evaluate(calibration: Calibration, observations: str | Path | Dataset | Sequ
         check_pixels_in_images(records, {n: c.image_size for n, c in calibration.cameras.items()}, observations)
     else:
         records = observations
+    if not isinstance(observations, (str, Path)):  # a file was checked as it was read
+        from .io.observations import check_pixels_in_images
+
+        check_pixels_in_images(records, {n: c.image_size for n, c in calibration.cameras.items()},
+                               _source(observations))
     target = target or calibration.target
     if target is None:
-        raise ValueError("evaluate needs the target geometry: the calibration holds none, pass target=")
+        raise AriSfmError(_source(observations), "no target geometry to judge these corners: the calibration holds "
+                                                 "none (pass target=, or a Dataset whose rig.yaml has it)")
     if solve_poses:
         extra = solve_frame_poses(calibration, records, target)
         calibration = replace(calibration, frames={**calibration.frames, **extra})
@@ -130,5 +188,6 @@ def evaluate_held_out(calibration: Calibration, observations: str | Path | Datas
     Unlike ``evaluate(..., solve_poses=True)`` the calibration's own frame poses are not used, so
     held-out frames may repeat its frame names; stacking records are left out.
     """
-    fresh = replace(calibration, frames={}, stacking_poses={})
-    return evaluate(fresh, observations, target, solve_poses=True)
+    fresh = replace(_as_calibration(calibration), frames={}, stacking_poses={})
+    return _checked(reprojection_stats(fresh, observations, target, solve_poses=True), observations,
+                    "whose pose could be fitted (4 or more corners)")

@@ -133,18 +133,19 @@ def observations_mismatch(calibration: Calibration, observations: Sequence[Obser
                           target: Target | None = None) -> str | None:
     """Why ``observations`` are not the corners ``calibration`` was made from (their rmse at its own frame
     poses far above the rmse it records), or None (also when no frame of it is observed)."""
-    from .evaluate import evaluate
+    from .evaluate import reprojection_stats  # the raw statistics (count 0, NaN), no error
 
     recorded = calibration.residuals.rmse_px if calibration.residuals is not None else None
     target = target or calibration.target
     if recorded is None or target is None:
         return None
     held = [o for o in observations if o.set in ("calibration", "stacking")]
-    stats = evaluate(calibration, held, target)
+    stats = reprojection_stats(calibration, held, target)
     if stats.count == 0 or stats.rmse_px <= RESIDUAL_MISMATCH_FACTOR * recorded + RESIDUAL_MISMATCH_PX:
-        return None
-    return (f"its corners are not the ones the calibration was made from: rmse {stats.rmse_px:.4g} px at the "
-            f"calibration's frame poses, {recorded:.4g} px recorded (the same rig, another capture?)")
+        return None  # (NaN compares False: a corner that projects to no pixel is a mismatch)
+    at = f"rmse {stats.rmse_px:.4g} px" if np.isfinite(stats.rmse_px) else "corners that project to no pixel"
+    return (f"its corners are not the ones the calibration was made from: {at} at the calibration's frame poses, "
+            f"{recorded:.4g} px recorded (the same rig, another capture?)")
 
 
 def recorded_dataset_path(result: Mapping[str, Any] | None) -> Path | None:

@@ -14,7 +14,8 @@ renamed when it succeeds: a failed run leaves no half-made model behind.
 
 Scale (required: COLMAP's model has no unit, and refraction through a plate of so many mm depends on
 it): WINDOW.yaml's ``units_mm`` or ``scale_bar``, or a known distance between two images' camera
-centres (``baseline``, e.g. from navigation).
+centres (``baseline``, e.g. from navigation), held by the refinement as a term of its solver (the result
+keeps it).
 """
 from __future__ import annotations
 
@@ -25,8 +26,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
-
-import numpy as np
 
 from .colmap_refine import settings as REFINE
 from .errors import AriSfmError
@@ -68,6 +67,7 @@ class SfmResult:
     refined: Path  # refine-colmap's outputs
     summary_path: Path  # sfm.json
     refine: RefineResult  # its report: refine.json's record (RefineResult.report)
+    unregistered: tuple[str, ...] = ()  # the images COLMAP did not register (names)
 
 
 def list_images(folder: Path) -> list[Path]:
@@ -92,34 +92,62 @@ def check_sfm_paths(images: Path, out: Path) -> None:
         raise AriSfmError(out, "-o/--out: is (inside) the images folder: choose a folder outside it")
 
 
-def _units_from_baseline(rec: Any, baseline: tuple[str, str, float], images: Path) -> float:
-    """mm per COLMAP unit from the distance between two registered images' camera centres."""
-    from .colmap_export import model_from_reconstruction
+def check_images(files: list[Path]) -> tuple[int, int]:
+    """Every image decodes and has the first one's size (one PINHOLE camera for all, as COLMAP is run here):
+    else AriSfmError naming the first bad image (and how many more). Returns (width, height)."""
+    from PIL import Image, UnidentifiedImageError
 
-    a, b, mm = baseline
-    model = model_from_reconstruction(rec, images)
-    centres = {}
-    for i, name in enumerate(model.image_names):
-        if name in (a, b):
-            pose = model.sensor_from_rig[i].compose(model.rig_from_world[model.image_frame[i]])
-            centres[name] = pose.inverse().t
-    missing = [n for n in (a, b) if n not in centres]
-    if missing:
-        raise AriSfmError(images, f"--baseline: image {missing[0]} is not among the images COLMAP registered")
-    length = float(np.linalg.norm(centres[a] - centres[b]))
-    if not length > 0:
-        raise AriSfmError(images, f"--baseline: images {a} and {b} have the same camera centre")
-    return mm / length
+    size, bad, why = None, [], None
+    for path in files:
+        try:
+            with Image.open(path) as im:
+                this = im.size
+                im.draft("L", (max(1, this[0] // 8), max(1, this[1] // 8)))  # JPEG: decode at 1/8
+                im.load()
+        except (OSError, UnidentifiedImageError, ValueError, Image.DecompressionBombError) as exc:
+            bad.append(path)
+            why = why or f"cannot be read as an image ({exc.__class__.__name__}: {str(exc).splitlines()[0][:80]})"
+            continue
+        if size is None:
+            size = this
+        elif this != size:
+            bad.append(path)
+            why = why or (f"is {this[0]} x {this[1]} px, the first image ({files[0].name}) {size[0]} x {size[1]}: "
+                          "one camera takes all the images (resized or cropped?)")
+    if bad:
+        more = f" (and {len(bad) - 1} more: {', '.join(p.name for p in bad[1:4])}{', ...' if len(bad) > 4 else ''})" \
+            if len(bad) > 1 else ""
+        raise AriSfmError(bad[0], f"{why}{more}: remove or replace it, structure from motion would drop it")
+    return size
+
+
+FOCAL_RANGE = (0.1, 100.0)  # --focal-px, in units of the images' larger side (fisheye ... 0.6 deg field of view)
+MAX_THREADS = 1024
+
+
+def check_sfm_options(options: SfmOptions, image_size: tuple[int, int] | None = None) -> None:
+    """The options' values, before any COLMAP work (COLMAP itself aborts on some, e.g. threads < -1)."""
+    if options.num_threads != -1 and not 1 <= options.num_threads <= MAX_THREADS:
+        raise AriSfmError("--threads", f"must be -1 (all cores) or 1..{MAX_THREADS} (got {options.num_threads})")
+    for option, value, low in (("--overlap", options.overlap, 1), ("--max-features", options.max_features, 1),
+                               ("--max-iterations", options.max_iterations, 1)):
+        if not value >= low:
+            raise AriSfmError(option, f"must be >= {low} (got {value})")
+    if options.focal_px is not None and image_size is not None:
+        side = max(image_size)
+        lo, hi = FOCAL_RANGE[0] * side, FOCAL_RANGE[1] * side
+        if not lo <= options.focal_px <= hi:
+            raise AriSfmError("--focal-px", f"{options.focal_px:g} px is not a focal length of {image_size[0]} x "
+                                            f"{image_size[1]} px images ({lo:g} to {hi:g} px)")
 
 
 def run_sfm(images: str | Path, window: str | Path, out: str | Path, options: SfmOptions = SfmOptions()) -> SfmResult:
     """Structure from motion behind a flat window: COLMAP's SfM, then refine-colmap; see the module docstring."""
-    from .colmap_export import structure_from_motion
-    from .colmap_refine import refine_colmap, write_refined
     from .colmap_refine.window import load_window
-    from .io import write_json_atomic
+    from .io import exclusive_folder
 
     images, window, out = Path(images), Path(window), Path(out)
+    check_sfm_options(options)
     check_sfm_paths(images, out)
     files = list_images(images)
     spec = load_window(window)  # before any COLMAP work
@@ -138,11 +166,23 @@ def run_sfm(images: str | Path, window: str | Path, out: str | Path, options: Sf
         matcher = "exhaustive" if len(files) <= EXHAUSTIVE_MAX_IMAGES else "sequential"
     if matcher not in ("exhaustive", "sequential"):
         raise AriSfmError(None, f"--matcher must be exhaustive, sequential or auto (got {options.matcher!r})")
+    for name in ("colmap.partial", "colmap", "refined"):
+        if (out / name).exists() and not (out / name).is_dir():
+            raise AriSfmError(out / name, "is a file where sfm writes a folder: move it away or choose another -o")
+    check_sfm_options(options, check_images(files))
+    with exclusive_folder(out) as held:  # a second sfm into the same -o meanwhile: refused, not interleaved
+        return _run_sfm(images, window, out, options, files, spec, matcher, held.created)
+
+
+def _run_sfm(images: Path, window: Path, out: Path, options: SfmOptions, files: list[Path], spec: Any, matcher: str,
+             created: bool) -> SfmResult:
+    """:func:`run_sfm` once its inputs are checked and ``out`` is held."""
+    from .colmap_export import read_colmap
+    from .colmap_refine import refine_colmap, write_refined
+    from .io import write_json_atomic
 
     partial, final = out / "colmap.partial", out / "colmap"
-    created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
-    if partial.exists():
+    if partial.exists():  # a killed run's (this folder is held: no other run is using it)
         shutil.rmtree(partial)
     t0 = time.perf_counter()
     times: dict[str, float] = {}
@@ -167,61 +207,169 @@ def run_sfm(images: str | Path, window: str | Path, out: str | Path, options: Sf
             bar = tqdm(total=len(files) if mapping else None, desc=f"COLMAP {what[name]}", leave=False,
                        unit="image" if mapping else "it", bar_format=None if mapping else "{desc} ({elapsed})")
 
+    focal_hint = "" if options.focal_px is None else f", or --focal-px {options.focal_px:g} is not their focal length"
     try:
         try:
-            rec = structure_from_motion(images, partial, focal_px=options.focal_px, max_features=options.max_features,
-                                        seed=options.seed, matcher=matcher, overlap=options.overlap,
-                                        num_threads=options.num_threads, on_step=on_step,
-                                        on_image=(lambda: bar.update(1)) if bar is not None else None)
-        except AriSfmError:  # the mapper reconstructed nothing
+            _colmap_in_child(images, partial, options, matcher, on_step,
+                             (lambda: bar.update(1)) if bar is not None else None)
+        except _NothingReconstructed:
             raise AriSfmError(images, f"COLMAP registered none of the {len(files)} images (at least {MIN_IMAGES} "
-                                      "needed): the images need more overlap or texture") from None
+                                      f"needed): the images need more overlap or texture{focal_hint}") from None
         finally:
             if bar is not None:
                 bar.close()
         times["mapping"] = time.perf_counter() - clock["t"]
+        model_dirs = sorted(p for p in (partial / "sparse").iterdir() if p.is_dir())
+        models = [(read_colmap(p), p) for p in model_dirs]
+        rec, model_dir = max(models, key=lambda m: (m[0].num_reg_images(), m[0].num_points3D()))
         registered = rec.num_reg_images()
+        names = {im.name for im in rec.images.values() if _registered(im)}
+        unregistered = [p.name for p in files if p.name not in names]
         if registered < MIN_IMAGES:
             raise AriSfmError(images, f"COLMAP registered {registered} of {len(files)} images (at least {MIN_IMAGES} "
-                                      "needed): the images need more overlap or texture")
-        units = spec.units_mm
-        if options.baseline is not None:
-            units = _units_from_baseline(rec, options.baseline, images)
+                                      f"needed): the images need more overlap or texture{focal_hint}")
+        if unregistered:
+            log.warning("COLMAP did not register %d of the %d images: %s", len(unregistered), len(files),
+                        ", ".join(unregistered))
         t_refine = time.perf_counter()
         log.info("refine-colmap: %d images, %d points, the exact refractive model", registered, rec.num_points3D())
-        result = refine_colmap(rec, spec.interface, mount=spec.mount, units_mm=units, scale_bar=spec.scale_bar,
+        result = refine_colmap(rec, spec.interface, mount=spec.mount, units_mm=spec.units_mm, scale_bar=spec.scale_bar,
+                               baseline=options.baseline,
                                huber_px=options.huber_px, max_iterations=options.max_iterations,
                                progress=options.progress, path=images, plane_path=window)
         times["refine"] = time.perf_counter() - t_refine
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
-        if created and out.exists() and not any(out.iterdir()):
-            out.rmdir()
         raise
     if final.exists():
         shutil.rmtree(final)
     partial.rename(final)
-    model_dirs = sorted(p for p in (final / "sparse").iterdir() if p.is_dir()) if (final / "sparse").is_dir() else []
-    colmap_model = next((p for p in model_dirs if _same_model(p, rec)), model_dirs[0] if model_dirs else final)
+    colmap_model = final / model_dir.relative_to(partial)
     refined = write_refined(result, out / "refined")
     summary = out / "sfm.json"
     write_json_atomic(summary, {
         "format": SFM_FORMAT,
         "images": str(images.resolve()), "window": str(window.resolve()),
         "matcher": matcher, "num_images": len(files), "registered": registered, "points3D": rec.num_points3D(),
-        "units_mm": units, "scale": "units_mm" if spec.units_mm is not None else
+        "unregistered": unregistered,
+        "units_mm": result.report.units_mm, "scale": "units_mm" if spec.units_mm is not None else
         "scale_bar" if spec.scale_bar is not None else "baseline" if options.baseline is not None else None,
+        "baseline": None if result.report.baseline is None else result.report.baseline.to_json(),
         "colmap_model": str(colmap_model.relative_to(out)), "refined": "refined",
         "time_s": {k: round(v, 3) for k, v in times.items()} | {"total": round(time.perf_counter() - t0, 3)},
     })
-    return SfmResult(len(files), registered, rec.num_points3D(), colmap_model, refined, summary, result)
+    return SfmResult(len(files), registered, rec.num_points3D(), colmap_model, refined, summary, result,
+                     tuple(unregistered))
 
 
-def _same_model(folder: Path, rec: Any) -> bool:
-    """Whether the model COLMAP wrote in ``folder`` is ``rec`` (the largest one): same image count."""
-    from .colmap_export import read_colmap
+def _registered(image: Any) -> bool:
+    """Whether COLMAP registered ``image`` (pycolmap 3.11: ``registered``; later: ``has_pose``)."""
+    flag = getattr(image, "has_pose", None)
+    if flag is None:
+        flag = getattr(image, "registered", True)
+    return bool(flag() if callable(flag) else flag)
+
+
+class _NothingReconstructed(Exception):
+    """COLMAP's mapper reconstructed nothing (the child's exit code NOTHING_EXIT)."""
+
+
+NOTHING_EXIT = 3  # the COLMAP child: the mapper made no model
+ERROR_EXIT = 4  # the COLMAP child: an AriSfmError, said on its stdout
+CHILD_CODE = "from ari_sfm.sfm import _child_main; _child_main()"  # what the COLMAP child runs (argv[1]: its JSON)
+STDERR_KEPT = 40  # the COLMAP child's last stderr lines kept for the error message
+
+
+def _colmap_in_child(images: Path, partial: Path, options: SfmOptions, matcher: str, on_step, on_image) -> None:
+    """COLMAP's steps (:func:`ari_sfm.colmap_export.structure_from_motion`) in a child process, its models in
+    ``partial/sparse``: a native abort (COLMAP's CHECK on a full disk, SQLite failing) ends the child, not this
+    command, and becomes one AriSfmError line. The child reports its steps and registered images on stdout."""
+    import collections
+    import json
+    import subprocess
+    import sys
+    import threading
+
+    args = {"images": str(images), "work": str(partial), "focal_px": options.focal_px,
+            "max_features": options.max_features, "seed": options.seed, "matcher": matcher,
+            "overlap": options.overlap, "num_threads": options.num_threads,
+            "verbose": logging.getLogger("ari_sfm").isEnabledFor(logging.INFO)}
+    cmd = [sys.executable, "-c", CHILD_CODE, json.dumps(args)]
+    tail: collections.deque[str] = collections.deque(maxlen=STDERR_KEPT)
+    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            errors="replace")
+
+    def read_stderr() -> None:
+        for line in proc.stderr:
+            tail.append(line.rstrip())
+            if args["verbose"]:
+                sys.stderr.write(line)
+
+    said = None  # an AriSfmError the child reported: [path, message]
+    reader = threading.Thread(target=read_stderr, daemon=True)
+    reader.start()
+    try:
+        for line in proc.stdout:
+            kind, _, value = line.strip().partition(" ")
+            if kind == "step" and on_step is not None:
+                on_step(value)
+            elif kind == "image" and on_image is not None:
+                on_image()
+            elif kind == "error":
+                said = json.loads(value)
+        code = proc.wait()
+    except BaseException:  # Ctrl-C, SIGTERM, an error in a callback: the child goes too
+        proc.kill()
+        proc.wait()
+        raise
+    finally:
+        reader.join(timeout=5)
+    if code == 0:
+        return
+    if code == NOTHING_EXIT:
+        raise _NothingReconstructed
+    if code == ERROR_EXIT and said is not None:
+        raise AriSfmError(*said)
+    raise AriSfmError(partial.parent, _child_failure(list(tail), partial, code))
+
+
+def _child_failure(lines: list[str], partial: Path, code: int) -> str:
+    """One line saying why the COLMAP child stopped (its glog ``Check failed``/``F...`` line, a full disk)."""
+    text = "\n".join(lines)
+    try:
+        free = shutil.disk_usage(partial.parent).free
+    except OSError:
+        free = None
+    if "No space left" in text or "disk is full" in text or "SQLITE_FULL" in text or (free is not None
+                                                                                         and free < 1 << 20):
+        return "no space left on the device: COLMAP's database could not be written (free some space)"
+    fatal = [ln for ln in lines if "Check failed" in ln or ln.startswith(("F2", "E2", "Error", "error"))
+             or "Exception" in ln or "Error:" in ln]
+    why = fatal[-1] if fatal else (lines[-1] if lines else f"exit code {code}")
+    why = why.split("] ", 1)[-1].strip()  # glog's "F20261127 12:00:00.0 123 file.cc:45] " prefix
+    return f"COLMAP stopped ({'signal ' + str(-code) if code < 0 else 'exit code ' + str(code)}): {why[:300]}"
+
+
+def _child_main() -> None:
+    """The COLMAP child of :func:`_colmap_in_child`: argv[1] its JSON arguments."""
+    import json
+    import sys
+
+    from .colmap_export import structure_from_motion
+
+    a = json.loads(sys.argv[1])
+    logging.basicConfig(level=logging.INFO if a["verbose"] else logging.WARNING, format="%(levelname)s: %(message)s")
+
+    def say(*words: str) -> None:
+        print(*words, flush=True)
 
     try:
-        return read_colmap(folder).num_reg_images() == rec.num_reg_images()
-    except Exception:  # noqa: BLE001 - a folder that is not a model is simply not it
-        return False
+        structure_from_motion(a["images"], a["work"], focal_px=a["focal_px"], max_features=a["max_features"],
+                              seed=a["seed"], matcher=a["matcher"], overlap=a["overlap"],
+                              num_threads=a["num_threads"], on_step=lambda name: say("step", name),
+                              on_image=lambda: say("image"))
+    except AriSfmError as exc:
+        if "reconstructed nothing" in exc.message:
+            sys.exit(NOTHING_EXIT)
+        say("error", json.dumps([exc.path, exc.message]))  # raised again by the parent
+        sys.exit(ERROR_EXIT)

@@ -221,6 +221,9 @@ class RigGraph:
 
     def add_factor(self, factor: gtsam.NonlinearFactor) -> None:
         """Add a factor (a prior, the user's) after those already there."""
+        if not isinstance(factor, gtsam.NonlinearFactor):  # gtsam's own TypeError lists every overload and the graph
+            raise TypeError(f"add_factor takes a gtsam.NonlinearFactor (e.g. gtsam.PriorFactorPose3, "
+                            f"gtsam.CustomFactor), got {type(factor).__name__}")
         if self.built_graph is None:
             self.other_factors.append(factor)
         else:
@@ -366,7 +369,16 @@ class RigGraph:
         """
         from ..detection import ensure_observations
         from ..init.rig import NO_NORMAL_MESSAGE, initialise_rig
+        from ..io import load_dataset
+        from ..records import Dataset
 
+        if isinstance(dataset, (str, os.PathLike)):
+            dataset = load_dataset(dataset)
+        if not isinstance(dataset, Dataset):
+            raise TypeError(f"dataset must be an ari_sfm Dataset or a dataset folder (got {type(dataset).__name__})")
+        for name, value in (("huber_px", huber_px), ("sigma_px", sigma_px)):
+            if value is not None and not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a finite number > 0, or None (got {value!r})")
         dataset = ensure_observations(dataset, workers)
         rig = initialise_rig(dataset, distortion)
         planes = declared_planes(dataset, rig)
@@ -425,6 +437,8 @@ class RigGraph:
 
     def optimize(self, max_iterations: int = 100, relative_tolerance: float = 1e-10) -> RigState:
         """Levenberg-Marquardt from the current values; updates them and returns the state."""
+        if isinstance(max_iterations, bool) or not isinstance(max_iterations, int) or max_iterations < 1:
+            raise ValueError(f"max_iterations must be an integer >= 1 (got {max_iterations!r})")
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
         params.setRelativeErrorTol(relative_tolerance)

@@ -97,20 +97,43 @@ def remove_stale_reconstruction(out_dir: Path) -> None:
     shutil.rmtree(out_dir / "clouds", ignore_errors=True)
 
 
+def remove_earlier_run(out_dir: Path) -> None:
+    """An earlier run's run.json, report.html and reconstruction, removed before this run writes: a run that
+    fails half-way never leaves run.json (or a report) of the earlier run beside its own calibration."""
+    from ..report import REPORT_FILE
+
+    for name in (RUN_FILE, REPORT_FILE):
+        if (out_dir / name).is_file():
+            (out_dir / name).unlink()
+    remove_stale_reconstruction(out_dir)
+
+
 def main(dataset_path: Path, out_dir: Path, model: str | None = None, truth: Path | None = None,
          progress: bool = False, options: CalibrationOptions | None = None, **overrides) -> RunResult:
     """Calibrate (None: the best model, ``DEFAULT_MODEL``; ``options`` and/or its fields as keywords),
     reconstruct when possible, write run.json and report.html."""
+    from ..io import exclusive_folder
+
     out_dir = Path(out_dir)
     check_run_folder(out_dir, dataset_path)  # another dataset's run there: refused before any work
+    dataset = load_dataset(dataset_path)  # read once; the records travel in memory
     if truth is not None:
         from ..reconstruct import check_truth_matches
 
-        check_truth_matches(load_dataset(dataset_path), truth)  # before the calibration, not after it
+        check_truth_matches(dataset, truth)  # before the calibration, not after it
+    with exclusive_folder(out_dir):  # a second command writing into OUT meanwhile: refused, not interleaved
+        check_run_folder(out_dir, dataset_path)  # again, now that OUT is held
+        remove_earlier_run(out_dir)
+        return _run(dataset_path, dataset, out_dir, model, truth, progress, options, **overrides)
+
+
+def _run(dataset_path: Path, dataset: Dataset, out_dir: Path, model: str | None, truth: Path | None, progress: bool,
+         options: CalibrationOptions | None, **overrides) -> RunResult:
+    """:func:`main` once OUT is held."""
     model = model or DEFAULT_MODEL
-    # the dataset is read once; the records travel in memory (the files written are what they hold)
+    # the files written are what the records in memory hold
     calibrated = calibrate_rig(dataset_path, out_dir, model=model, progress=progress,
-                               dataset=load_dataset(dataset_path), options=options, **overrides)
+                               dataset=dataset, options=options, **overrides)
     obs_path = calibrated.observations_path
     dataset = calibrated.dataset
     frames, why = reconstruction_frames(dataset)
@@ -126,7 +149,6 @@ def main(dataset_path: Path, out_dir: Path, model: str | None = None, truth: Pat
                                  observations=obs_path, dataset=dataset, calibration=as_saved)
     else:
         log.info("reconstruction skipped: %s", why)
-        remove_stale_reconstruction(out_dir)
     errors = None
     if truth is not None:
         errors = calibration_errors(calibrated.calibration, load_calibration(truth))

@@ -61,9 +61,9 @@ from ari_sfm.records import Interface, WindowPlane
 from .plane import WindowPrior, declared_window, window_prior
 from ..factors.schur import assemble_from_observations, model_decrease, solve_damped
 from .problem import MOUNTS, RefractiveProblem, State, huber_cost, huber_weights
-from .report import (DeclaredPlaneReport, Plate, RefineCounts, RefineReport, Reprojection, ScaleBarReport,
+from .report import (BaselineReport, DeclaredPlaneReport, Plate, RefineCounts, RefineReport, Reprojection, ScaleBarReport,
                      WindowEstimate)
-from .scale_bar import ScaleBar
+from .scale_bar import Baseline, ScaleBar
 from .settings import HUBER_PX, MAX_ITERATIONS
 from .uncertainty import uncertainty
 
@@ -97,9 +97,17 @@ class RefineResult:
 
 
 def _units_mm(model: adapter.ColmapModel, units_mm: float | None, scale_bar: tuple[int, int, float] | None,
-              path: Any) -> float:
-    """mm per unit of the COLMAP model (``path``: the WINDOW.yaml named in errors)."""
-    if scale_bar is not None:
+              path: Any, baseline: Baseline | None = None) -> float:
+    """mm per unit of the COLMAP model (``path``: the WINDOW.yaml named in errors; ``baseline``: the
+    scale from two images' camera centres in the model as COLMAP left it)."""
+    if baseline is not None:
+        start = _initial_state(model, "camera", 1.0)
+        length = baseline.length(start)
+        if not length > 0:
+            raise AriSfmError(path, f"baseline: images {model.image_names[baseline.a]} and "
+                                    f"{model.image_names[baseline.b]} have the same camera centre in the model")
+        units = baseline.length_mm / length
+    elif scale_bar is not None:
         a, b, mm = scale_bar
         where = {int(p): k for k, p in enumerate(model.point3D_ids)}
         missing = [int(i) for i in (a, b) if int(i) not in where]
@@ -120,10 +128,36 @@ def _units_mm(model: adapter.ColmapModel, units_mm: float | None, scale_bar: tup
         units = float(units_mm)
     extent = float(np.max(np.abs(model.xyz))) * units
     if not (np.isfinite(units) and np.isfinite(extent) and extent < MAX_COORDINATE_MM):
-        raise AriSfmError(path, f"{'scale_bar' if scale_bar is not None else 'units_mm'}: {units:.6g} mm per model "
-                                f"unit puts the model's points up to {extent:.3g} mm from its origin (more than "
-                                f"{MAX_COORDINATE_MM:.0e} mm)")
+        what = "baseline" if baseline is not None else "scale_bar" if scale_bar is not None else "units_mm"
+        raise AriSfmError(path, f"{what}: {units:.6g} mm per model unit puts the model's points up to {extent:.3g} mm "
+                                f"from its origin (more than {MAX_COORDINATE_MM:.0e} mm)")
     return units
+
+
+def _baseline(model: adapter.ColmapModel, baseline: tuple[str | int, str | int, float], path: Any) -> Baseline:
+    """The baseline term of two images named by their names (or COLMAP image ids) and their centres' distance."""
+    a, b, mm = baseline
+    index = {}
+    for name in (a, b):
+        hits = np.flatnonzero(model.image_ids == name) if isinstance(name, (int, np.integer)) else \
+            [k for k, n in enumerate(model.image_names) if n == str(name)]
+        if len(hits) == 0:
+            raise AriSfmError(path, f"baseline: image {name} is not among the model's (registered) images")
+        index[name] = int(hits[0])
+    if index[a] == index[b]:
+        raise AriSfmError(path, f"baseline: names image {a} twice (two images are needed)")
+    if not (np.isfinite(mm) and mm > 0):
+        raise AriSfmError(path, f"baseline: the distance must be a positive number of mm (got {mm})")
+    i, j = index[a], index[b]
+    return Baseline(i, j, (int(model.image_frame[i]), int(model.image_frame[j])),
+                    (int(model.image_camera[i]), int(model.image_camera[j])), float(mm))
+
+
+def _to_scale(state: State, bar: ScaleBar | None, baseline: Baseline | None, window: bool) -> tuple[State, float]:
+    """``state`` rescaled so that its scale bar or baseline has its declared length; the factor."""
+    s = (bar.length_mm / bar.length(state.xyz) if bar is not None else
+         baseline.length_mm / baseline.length(state) if baseline is not None else 1.0)
+    return _scaled(state, s, window), s
 
 
 MAX_COORDINATE_MM = 1e9  # 1000 km: a units_mm beyond this is a typo
@@ -192,6 +226,18 @@ def _check_finite(model: adapter.ColmapModel, path: Any) -> None:
             raise AriSfmError(path, f"frame {int(model.frame_ids[f])}: non-finite pose")
     if not np.all(np.isfinite(model.obs_uv)):
         raise AriSfmError(path, "an image has a non-finite keypoint observed by a point3D")
+    size = np.array(model.image_sizes, float)[model.image_camera[model.obs_image]]  # (M, 2) width, height
+    outside = np.any((model.obs_uv < -0.5 - EDGE_TOLERANCE_PX) | (model.obs_uv > size - 0.5 + EDGE_TOLERANCE_PX), axis=1)
+    if outside.any():
+        k = int(np.argmax(outside))
+        i = int(model.obs_image[k])
+        raise AriSfmError(path, f"image {model.image_names[i]}: a keypoint observed by point3D "
+                                f"{int(model.point3D_ids[model.obs_point[k]])} at ({model.obs_uv[k, 0]:.6g}, "
+                                f"{model.obs_uv[k, 1]:.6g}) px is outside its {int(size[k, 0])} x {int(size[k, 1])} "
+                                f"image ({int(outside.sum())} such observations)")
+
+
+EDGE_TOLERANCE_PX = 1.0  # a keypoint this far beyond the image's edge is kept (sub-pixel centres)
 
 
 def _candidates_inside_scene(model: adapter.ColmapModel, state: State, interface: Interface,
@@ -251,7 +297,7 @@ def _collapsed(state: State, problem: RefractiveProblem, candidates: tuple[float
 
 def _distance_search(model: adapter.ColmapModel, problem: RefractiveProblem, interface: Interface, mount: str,
                      estimate_distance: bool, huber_px: float | None, bar: ScaleBar | None, virtual: State,
-                     candidates: tuple[float, ...], declared: bool
+                     candidates: tuple[float, ...], declared: bool, baseline: Baseline | None = None
                      ) -> tuple[list[dict], tuple[float, State, int], list[tuple[float, State, int]]]:
     """The cost profile over the start distance, everything but the window refined (the window held):
     the middle candidate from COLMAP's model, the others warm-started from its result (moved to their
@@ -260,7 +306,8 @@ def _distance_search(model: adapter.ColmapModel, problem: RefractiveProblem, int
     full_xyz, full_model, full_virtual, full_bar = virtual.xyz, model, virtual, bar
     model, keep, bar = _subsample(model, bar, SEARCH_OBSERVATIONS)
     virtual = replace(virtual, xyz=virtual.xyz[keep])
-    held = Solver(RefractiveProblem(model, interface, mount, estimate_distance, hold_window=True), huber_px, bar=bar)
+    held = Solver(RefractiveProblem(model, interface, mount, estimate_distance, hold_window=True), huber_px, bar=bar,
+                  baseline=baseline)
     sub = RefractiveProblem(model, interface, mount, estimate_distance)
     search: list[dict] = []
     best = None
@@ -291,7 +338,7 @@ def _distance_search(model: adapter.ColmapModel, problem: RefractiveProblem, int
         # the subsample's poses put some of the other points (at their start) before the window: the
         # best distance again, on every point
         held_full = Solver(RefractiveProblem(full_model, interface, mount, estimate_distance, hold_window=True),
-                           huber_px, bar=full_bar)
+                           huber_px, bar=full_bar, baseline=baseline)
         h = search[[c["cost"] for c in search].index(best[0])]["distance_mm"]
         start = _convert(full_model, problem, full_virtual if declared else
                          _with_distance(full_model, full_virtual, mount, h), +1)
@@ -613,17 +660,19 @@ class Solver:
     linearized_error_is_error = True  # a linearization's error is the robust cost at its point
 
     def __init__(self, problem: RefractiveProblem, huber_px: float | None, prior: WindowPrior | None = None,
-                 bar: ScaleBar | None = None) -> None:
+                 bar: ScaleBar | None = None, baseline: Baseline | None = None) -> None:
         self.problem = problem
         self.huber_px = huber_px
         self.prior = prior
         self.bar = bar
+        self.baseline = baseline
         self.P = len(problem.model.point3D_ids)
         self.size = problem.layout.size + (6 if bar is not None else 0)  # the bar's two points are reduced
 
     def cost(self, state: State) -> float:
         return (huber_cost(self.problem.residuals(state), self.huber_px) + self._prior_cost(state)
-                + (0.0 if self.bar is None else self.bar.cost(state.xyz)))
+                + (0.0 if self.bar is None else self.bar.cost(state.xyz))
+                + (0.0 if self.baseline is None else self.baseline.cost(state)))
 
     def _prior_cost(self, state: State) -> float:
         return 0.0 if self.prior is None else self.prior.cost(state.normals, state.distances)
@@ -653,13 +702,19 @@ class Solver:
         ne = assemble_from_observations(lin.residuals, lin.J_g, lin.index, lin.J_p, self.problem.model.obs_point,
                                         self.P, self.size, w, marquardt=True)
         ne.error = huber_cost(lin.residuals, self.huber_px)
-        if self.bar is not None:
+        if self.bar is not None or self.baseline is not None:
             ne.damping = np.diag(ne.U).copy()  # damping from the images only (the bar is stiff)
         if self.prior is not None:
             self._add_prior(ne, state)
         if self.bar is not None:
             e, J = self.bar.error(state.xyz), self.bar.jacobian(state.xyz)
             cols = np.arange(self.size - 6, self.size)
+            ne.U[np.ix_(cols, cols)] += np.outer(J, J)
+            ne.g_global[cols] += J * e
+            ne.error += 0.5 * e * e
+        if self.baseline is not None:
+            e = self.baseline.error(state)
+            cols, J = self.baseline.jacobian(state, self.problem.layout)
             ne.U[np.ix_(cols, cols)] += np.outer(J, J)
             ne.g_global[cols] += J * e
             ne.error += 0.5 * e * e
@@ -769,7 +824,7 @@ def _state_reconstruction(rec: Any, model: adapter.ColmapModel, problem: Refract
 
 def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camera", model: str = "exact",
                   units_mm: float | None = None, scale_bar: tuple[int, int, float] | None = None,
-                  huber_px: float | None = HUBER_PX, max_iterations: int = MAX_ITERATIONS,
+                  baseline: tuple[str | int, str | int, float] | None = None, huber_px: float | None = HUBER_PX, max_iterations: int = MAX_ITERATIONS,
                   distances_mm: tuple[float, ...] | None = None, approximation: str = "opencv",
                   backend: str = "numpy", progress: bool = False,
                   path: Any = "reconstruction", plane_path: Any = "interface.plane",
@@ -786,8 +841,10 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     ``interface.plane`` (optional, :mod:`.plane`): the declared window, frame ``camera`` (mount camera:
     each camera's housing frame) or ``world`` (mount world: the COLMAP world in mm); it replaces the
     start search; a sigma of 0 holds that part, > 0 makes it a prior. ``plane_path``: the file named
-    in its errors; ``window_path``: the file named in errors about units and the scale bar. See the module docstring
-    for the start, the gauge and the scale.
+    in its errors; ``window_path``: the file named in errors about units and the scale bar. ``baseline``:
+    ``(image, image, mm)``, two images (names, or COLMAP image ids) whose camera centres are ``mm`` apart:
+    the scale, held by the solver as a scale bar is (numpy backend). See the module docstring for the
+    start, the gauge and the scale.
     """
     t0 = time.perf_counter()
     if model != "exact":
@@ -798,6 +855,10 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
         raise AriSfmError(path, f"approximation must be opencv or pinhole (got {approximation!r})")
     if mount not in MOUNTS:
         raise AriSfmError(path, f"mount must be one of {', '.join(MOUNTS)} (got {mount!r})")
+    if baseline is not None and (units_mm is not None or scale_bar is not None):
+        raise AriSfmError(window_path, "gives units_mm or scale_bar and a baseline gives the scale too: give it once")
+    if baseline is not None and backend != "numpy":
+        raise AriSfmError(path, "baseline: a term of the numpy backend only (backend numpy, or a scale_bar)")
     if not isinstance(reconstruction, (str, Path)) and hasattr(reconstruction, "num_points3D"):
         rec = reconstruction
     else:
@@ -806,7 +867,8 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     cmodel = adapter.model_from_reconstruction(rec, path)
     _check_finite(cmodel, path)
     _check_redundancy(cmodel, path)
-    units = _units_mm(cmodel, units_mm, scale_bar, window_path)
+    base = None if baseline is None else _baseline(cmodel, baseline, path)
+    units = _units_mm(cmodel, units_mm, scale_bar, window_path, base)
     bar = None
     if scale_bar is not None:
         where = {int(p): k for k, p in enumerate(cmodel.point3D_ids)}
@@ -816,7 +878,7 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     hold_normal = plane is not None and plane.sigma_deg == 0
     problem = RefractiveProblem(cmodel, interface, mount, estimate_distance,
                                 hold_window=hold_normal and not estimate_distance, hold_normal=hold_normal)
-    solver = Solver(problem, huber_px, window_prior(plane, estimate_distance), bar)
+    solver = Solver(problem, huber_px, window_prior(plane, estimate_distance), bar, base)
     before = adapter.image_residuals_px(rec, cmodel)
     virtual = _initial_state(cmodel, mount, units)
     if plane is not None:  # the declared window is the start (held, or the prior's centre)
@@ -829,7 +891,8 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
         candidates = (AIR_DISTANCE_MM,)
     else:
         candidates = tuple(distances_mm or DISTANCE_CANDIDATES_MM)
-    candidates = _candidates_inside_scene(cmodel, virtual, interface, candidates, units_mm is not None or bar is not None,
+    candidates = _candidates_inside_scene(cmodel, virtual, interface, candidates,
+                                          units_mm is not None or bar is not None or base is not None,
                                           plane is not None or interface.distance_mm is not None, window_path)
     blocks: list[dict] = []
     first = _first_block(cmodel, virtual, mount)
@@ -846,14 +909,13 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
                                             held_frames=held, hold_intrinsics=later), huber_px)
 
         start, blocks = _slid_start(cmodel, whole, first, block_solver)
-        if bar is not None:
-            start = _scaled(start, bar.length_mm / bar.length(start.xyz), plane is None)
+        start, _ = _to_scale(start, bar, base, plane is None)
         search = []
         others = [(0.0, _restart_at(cmodel, problem, start, mount, c), 0) for c in candidates
                   if c != h and plane is None]
     else:
         search, best, others = _distance_search(cmodel, problem, interface, mount, estimate_distance, huber_px, bar,
-                                                virtual, candidates, plane is not None)
+                                                virtual, candidates, plane is not None, base)
         start = best[1]
     if not np.all(np.isfinite(problem.residuals(start))):
         raise AriSfmError(window_path, "no start puts every point beyond the window (the window is between a camera "
@@ -873,12 +935,13 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     run = (lambda x: solver.run(x, max_iterations, tick)) if backend == "numpy" else (
         lambda x: solver.run_gtsam(x, max_iterations))
     pre = None
-    if bar is not None and FREE_SCALE_FIRST and not blocks:  # the scale's valley first, without the bar, then the bar held
+    if (bar is not None or base is not None) and FREE_SCALE_FIRST and not blocks:
+        # the scale's valley first, without the bar (baseline), then the bar held
         free = Solver(problem, huber_px, window_prior(plane, estimate_distance))
         pre = free.run(start, max_iterations, tick) if backend == "numpy" else free.run_gtsam(start, max_iterations)
-        start = _scaled(pre.state, bar.length_mm / bar.length(pre.state.xyz), plane is None)
-        log.info("refine-colmap: without the bar: cost %.6g in %d iterations; rescaled by %.6g to the bar",
-                 pre.cost, pre.iterations, bar.length_mm / bar.length(pre.state.xyz))
+        start, factor = _to_scale(pre.state, bar, base, plane is None)
+        log.info("refine-colmap: without the %s: cost %.6g in %d iterations; rescaled by %.6g to it",
+                 "bar" if bar is not None else "baseline", pre.cost, pre.iterations, factor)
     result = run(start)
     iterations = (result.iterations + sum(c["iterations"] for c in search) + (pre.iterations if pre else 0)
                   + sum(b["iterations"] for b in blocks))
@@ -935,7 +998,9 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
         estimated="intrinsics per camera, rig_from_world per frame (the first held: gauge), sensor_from_rig per "
                   "non-reference sensor, window " + _window_parts(hold_normal, estimate_distance, plane is not None)
                   + " per " + ("camera (housing)" if mount == "camera" else "world") + ", 3D points",
-        scale="the input's units times units_mm, refined by refraction (weakly observable through the plate)",
+        scale=("held by the scale bar (a term of the solver)" if bar is not None else
+               "held by the baseline between two images' camera centres (a term of the solver)" if base is not None
+               else "the input's units times units_mm, refined by refraction (weakly observable through the plate)"),
         distance_search=tuple(search), restarts=tuple(restarts),
         iterations=iterations, converged=result.converged,
         linearizations=linearizations, search_linearizations=sum(c["linearizations"] for c in search),
@@ -952,10 +1017,18 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
             "held" if hold_normal else f"prior {plane.sigma_deg:g} deg",
             f"prior {plane.sigma_mm:g} mm" if estimate_distance else "held"),
         scale_bar=None if bar is None else ScaleBarReport((int(scale_bar[0]), int(scale_bar[1])), bar.length_mm,
-                                                          bar.sigma_mm, bar.length(state.xyz)))
+                                                          bar.sigma_mm, bar.length(state.xyz)),
+        baseline=None if base is None else BaselineReport(
+            (cmodel.image_names[base.a], cmodel.image_names[base.b]), base.length_mm, base.sigma_mm,
+            base.length(state)))
     if bar is not None and abs(report.scale_bar.refined_mm / bar.length_mm - 1.0) > 1e-3:
         log.warning("refine-colmap: the scale bar is %.6g mm after the refinement (declared %.6g mm): the images "
                     "pull against it", report.scale_bar.refined_mm, bar.length_mm)
+    if base is not None and abs(report.baseline.refined_mm / base.length_mm - 1.0) > 1e-3:
+        raise AriSfmError(path, f"baseline: the refinement ends with images {report.baseline.images[0]} and "
+                                f"{report.baseline.images[1]} {report.baseline.refined_mm:.6g} mm apart, not the "
+                                f"{base.length_mm:.6g} mm given: the images pull against it (check the names and "
+                                "the distance)")
     log.warning("refine-colmap: the COLMAP cameras written are the best %s approximation of the refractive "
                 "cameras (poses are virtual; real poses in calibration.json): %.3f px RMS (the exact model: %.3f px)",
                 approximation, report.pinhole_approximation.rms_px, report.after.rms_px)

@@ -132,6 +132,20 @@ class ScaleBarReport:
 
 
 @dataclass(frozen=True)
+class BaselineReport:
+    """The declared baseline (two images' camera centres) and its length after the refinement."""
+
+    images: tuple[str, str]  # image names
+    declared_mm: float
+    sigma_mm: float  # its sigma in the solver
+    refined_mm: float
+
+    def to_json(self) -> dict[str, Any]:
+        return {"images": list(self.images), "declared_mm": self.declared_mm, "sigma_mm": self.sigma_mm,
+                "refined_mm": self.refined_mm}
+
+
+@dataclass(frozen=True)
 class RefineReport:
     """What refine-colmap did and found; ``to_json()`` is refine.json (docs/DATASET_FORMAT.md)."""
 
@@ -159,6 +173,7 @@ class RefineReport:
     window: WindowEstimate
     plane: DeclaredPlaneReport | None = None
     scale_bar: ScaleBarReport | None = None
+    baseline: BaselineReport | None = None
 
     def to_json(self) -> dict[str, Any]:
         out = {
@@ -180,4 +195,6 @@ class RefineReport:
             out["plane"] = self.plane.to_json()
         if self.scale_bar is not None:
             out["scale_bar"] = self.scale_bar.to_json()
+        if self.baseline is not None:
+            out["baseline"] = self.baseline.to_json()
         return out

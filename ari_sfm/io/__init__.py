@@ -6,9 +6,9 @@ validates first and writes atomically.
 """
 from __future__ import annotations
 
-from ari_sfm.io.atomic import write_bytes_atomic, write_files_atomic, write_json_atomic, write_text_atomic
+from ari_sfm.io.atomic import exclusive_folder, write_bytes_atomic, write_files_atomic, write_json_atomic, write_text_atomic
 from ari_sfm.io.calibration_file import calibration_to_json, load_calibration, parse_calibration, save_calibration
-from ari_sfm.io.dataset import dump_rig, find_rig, load_dataset, save_rig
+from ari_sfm.io.dataset import detections_rig, dump_rig, find_rig, load_dataset, save_detections, save_rig
 from ari_sfm.io.observations import load_observations, save_observations
 from ari_sfm.io.points import load_points, save_points
 from ari_sfm.io.structured import (
@@ -42,6 +42,7 @@ __all__ = [
     "as_positive_float",
     "as_str",
     "calibration_to_json",
+    "detections_rig",
     "dump_rig",
     "find_rig",
     "load_calibration",
@@ -54,9 +55,11 @@ __all__ = [
     "save_calibration",
     "save_observations",
     "save_points",
+    "save_detections",
     "save_rig",
     "write_bytes_atomic",
     "write_files_atomic",
+    "exclusive_folder",
     "write_json_atomic",
     "write_text_atomic",
 ]

@@ -6,6 +6,7 @@ is removed and the target is left as it was.
 """
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
@@ -222,3 +223,50 @@ class _signals_held:
 
         if self.mask is not None:
             signal.pthread_sigmask(signal.SIG_SETMASK, self.mask)
+
+
+class exclusive_folder:
+    """A command's hold on its output folder (``with exclusive_folder(out, "-o/--out"):``): a second command
+    writing into the same folder at the same time is refused in one line, instead of the two interleaving
+    their files (run.json of one, results of the other). An advisory lock on the folder itself (flock; no
+    lock file), released when the command ends, also when it is killed. The folder is created if needed;
+    ``created`` says whether it was (a failed command removes it again when it is still empty)."""
+
+    def __init__(self, out: str | Path, option: str = "-o/--out") -> None:
+        self.out, self.option = Path(out), option
+        self.fd: int | None = None
+        self.created = False
+
+    def __enter__(self) -> "exclusive_folder":
+        try:
+            import fcntl
+        except ImportError:  # not POSIX: no lock
+            fcntl = None
+        try:
+            self.created = not self.out.exists()
+            self.out.mkdir(parents=True, exist_ok=True)
+            self.fd = os.open(self.out, os.O_RDONLY)
+        except OSError as exc:
+            raise AriSfmError(self.out, f"{self.option}: cannot write in this folder: {exc.strerror or exc}") from None
+        if fcntl is None:
+            return self
+        try:
+            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):  # a file system without locks: go on unheld
+                return self
+            os.close(self.fd)
+            self.fd = None
+            raise AriSfmError(self.out, f"{self.option}: another ari-sfm command is writing into this folder now: "
+                                        "wait for it, or choose another folder") from None
+        return self
+
+    def __exit__(self, exc_type, *exc: object) -> None:
+        if self.fd is not None:
+            os.close(self.fd)  # releases the lock
+            self.fd = None
+        if exc_type is not None and self.created:
+            try:
+                self.out.rmdir()  # only when nothing was left in it
+            except OSError:
+                pass

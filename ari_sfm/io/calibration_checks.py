@@ -39,7 +39,9 @@ def check_calibration_values(data: Any, path: str | Path, window: bool = True) -
     for where, iface, cameras in windows:
         _check_window(iface, where, cameras, data, path, window)
     if data.get("fixed_distance_mm") is not None:
-        _offset(data["fixed_distance_mm"], path, "fixed_distance_mm")
+        fixed = _offset(data["fixed_distance_mm"], path, "fixed_distance_mm")
+        if isinstance(data.get("interface"), Mapping) and windows:
+            _check_camera_distances(data, data["interface"], fixed, windows[0][2], "fixed_distance_mm", path)
     cameras = data.get("cameras")
     if isinstance(cameras, Mapping):
         for name, camera in cameras.items():
@@ -70,9 +72,10 @@ def _check_window(iface: Mapping, where: str, cameras: list, data: Mapping, path
             check_at_most(index, MAX_INDEX, path, f"{where}.{key}")
     if iface.get("distance_mm") is not None:
         distance = _offset(iface["distance_mm"], path, f"{where}.distance_mm")
-        _check_camera_distances(data, iface, distance, cameras, where, path)
+        _check_camera_distances(data, iface, distance, cameras, f"{where}.distance_mm", path)
     if iface.get("fixed_distance_mm") is not None:
-        _offset(iface["fixed_distance_mm"], path, f"{where}.fixed_distance_mm")
+        fixed = _offset(iface["fixed_distance_mm"], path, f"{where}.fixed_distance_mm")
+        _check_camera_distances(data, iface, fixed, cameras, f"{where}.fixed_distance_mm", path)
 
 
 def _offset(value: Any, path: str | Path, where: str) -> float:
@@ -101,5 +104,5 @@ def _check_camera_distances(data: Mapping, iface: Mapping, distance: float, came
     for name, (R, t) in poses.items():
         h = distance - (float(normal @ (-R.T @ t)) - reference)  # camera centre to the near face along the normal
         if not 0.0 < h <= MAX_LENGTH_MM:
-            raise AriSfmError(path, f"{where}.distance_mm {distance:g} puts camera {name} {h:.4g} mm from the "
+            raise AriSfmError(path, f"{where} {distance:g} puts camera {name} {h:.4g} mm from the "
                                     f"window's near face (must be in front of it, 0 < distance <= {MAX_LENGTH_MM:g} mm)")

@@ -123,11 +123,18 @@ def _finite(a: Any, shape: tuple[int, ...], what: str, path: Any) -> np.ndarray:
     return arr
 
 
+MAX_POSE_TRANSLATION_MM = 1e9  # 1000 km: a pose farther away is a typo (1e300 projected every corner to NaN)
+
+
 def _pose(d: Any, what: str, path: Any) -> Pose:
     R = _finite(d["R"], (3, 3), f"{what}.R", path)
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise AriSfmError(path, f"{what}.R is not a rotation matrix")
-    return Pose(R, _finite(d["t"], (3,), f"{what}.t", path))
+    t = _finite(d["t"], (3,), f"{what}.t", path)
+    if float(np.max(np.abs(t))) > MAX_POSE_TRANSLATION_MM:
+        raise AriSfmError(path, f"{what}.t: {float(np.max(np.abs(t))):.3g} mm is beyond {MAX_POSE_TRANSLATION_MM:.0e} mm "
+                                "(1000 km): not a pose of this rig")
+    return Pose(R, t)
 
 
 def _check_bounds(cams: dict[str, CameraCalibration], thickness: float, path: Any) -> None:
@@ -201,6 +208,8 @@ def _parse(data: Any, path: Any) -> Calibration:
     reserved = {"format", "model", "interface", "interfaces", "cameras", "frames", "stacking_poses", "residuals",
                 "time_s", "target", "fixed_distance_mm", "uncertainty", "outliers", "pf_world", "quality", "optimizer"}
     windows = _windows(parsed, data, cams, path)
+    if spec.window:
+        _check_normals_face_the_cameras(windows, cams, path)
     for w in windows:
         if spec.needs_distance and w.interface.distance_mm is None and w.fixed_distance_mm is None:
             where = "interface" if len(windows) == 1 else f"interfaces.{w.name}"
@@ -219,6 +228,20 @@ def _parse(data: Any, path: Any) -> Calibration:
         _record(Quality, data, "quality", path), _record(OptimizerReport, data, "optimizer", path),
         windows=windows if len(windows) > 1 else (),
     )
+
+
+def _check_normals_face_the_cameras(windows: tuple[WindowCalibration, ...], cams: dict[str, CameraCalibration],
+                                    path: Any) -> None:
+    """Each window's normal points from its cameras into the scene (z > 0 in each camera's frame): a flipped
+    normal would project every corner to NaN, and the fork's FLATPORT (Nz > 0) could not hold it."""
+    for w in windows:
+        if w.normal_world is None:
+            continue
+        where = "interface" if len(windows) == 1 else f"interfaces.{w.name}"
+        for name in w.cameras:
+            if name in cams and float((cams[name].cam_from_world.R @ w.normal_world)[2]) <= 0.0:
+                raise AriSfmError(path, f"{where}.normal_world points away from camera {name}'s view (z <= 0 in its "
+                                        "frame): the normal goes from the cameras into the scene (flipped?)")
 
 
 def _parse_window(iface: Any, where: str, spec, path: Any) -> tuple[Interface, np.ndarray | None, list | None,

@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import os
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 import yaml
@@ -101,6 +101,8 @@ def find_rig(path: str | Path) -> Path:
         return path
     if not path.exists():
         raise AriSfmError(path, "no such dataset folder or rig file")
+    if not path.is_dir():
+        raise AriSfmError(path, "not a dataset folder or rig file (a device, pipe or socket)")
     found = [path / name for name in RIG_NAMES if (path / name).is_file()]
     if not found:
         raise AriSfmError(path, f"no {', '.join(RIG_NAMES[:-1])} or {RIG_NAMES[-1]} in this folder")
@@ -736,3 +738,37 @@ def save_rig(path: str | Path, dataset: Dataset) -> Path:
         text = yaml.safe_dump(data, sort_keys=False, default_flow_style=None, allow_unicode=True, width=120)
         write_text_atomic(path, text)
     return path
+
+
+def _image_files(entries) -> set[str]:
+    return {os.path.realpath(p) for e in entries for p in e.images.values()}
+
+
+def detections_rig(out: str | Path, dataset: Dataset) -> Path:
+    """The rig file :func:`save_detections` writes in ``out`` (checked first, before a slow detection): ``out``'s
+    own rig file only when it is an earlier detection of the same images, else AriSfmError (another dataset's
+    rig is never overwritten)."""
+    out = Path(out)
+    present = [out / name for name in RIG_NAMES if (out / name).is_file()]
+    if not present:
+        return out / "rig.yaml"
+    try:
+        fields = parse_rig(read_structured(present[0]), present[0], check_files=False)
+    except AriSfmError:
+        fields = None
+    same = (len(present) == 1 and fields is not None
+            and fields["observations_path"] == Path(os.path.abspath(out / "observations.json"))
+            and _image_files(e for s in SETS for e in fields[s]) == _image_files(dataset.entries()))
+    if not same:
+        raise AriSfmError(present[0], "-o/--out: holds another dataset's rig file (never overwritten): choose "
+                                      "another folder")
+    return present[0]
+
+
+def save_detections(out: str | Path, dataset: Dataset, observations: Sequence[Observation]) -> Path:
+    """``out`` made a dataset of ``dataset``'s rig with its detected corners: ``observations.json`` and a rig
+    file naming it and the images (paths relative to ``out``), so that ``calibrate OUT`` and ``run OUT`` start
+    from the corners instead of detecting again (:func:`detections_rig` says which rig file). Returns it."""
+    rig = detections_rig(out, dataset)
+    Path(out).mkdir(parents=True, exist_ok=True)
+    return save_rig(rig, dataset.with_observations(tuple(observations), Path(os.path.abspath(Path(out) / "observations.json"))))

@@ -13,7 +13,9 @@ import json
 import logging
 import math
 import numbers
+import os
 import re
+import stat
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, TypeVar
 
@@ -80,6 +82,9 @@ class _DuplicateJsonKey(Exception):
         self.key = key
 
 
+MAX_STRUCTURED_BYTES = 4 * 2**30  # a rig, calibration or observations file larger than this is not one
+
+
 def read_structured(path: str | Path) -> Any:
     """Parse a YAML (``.yaml``/``.yml``) or JSON (``.json``) file; other suffixes are read as YAML.
 
@@ -88,7 +93,15 @@ def read_structured(path: str | Path) -> Any:
     """
     path = Path(path)
     try:
+        mode = os.stat(path).st_mode
+        if not stat.S_ISREG(mode) and not stat.S_ISDIR(mode):  # /dev/zero was read until memory ran out
+            raise AriSfmError(path, "not a regular file (a device, pipe or socket): give a YAML or JSON file")
+        if os.stat(path).st_size > MAX_STRUCTURED_BYTES:
+            raise AriSfmError(path, f"{os.stat(path).st_size / 2**30:.1f} GiB: too large for a YAML or JSON file "
+                                    f"(at most {MAX_STRUCTURED_BYTES / 2**30:g} GiB)")
         text = path.read_text(encoding="utf-8")
+    except MemoryError:
+        raise AriSfmError(path, "too large to read into memory") from None
     except FileNotFoundError:
         raise AriSfmError(path, "file not found") from None
     except IsADirectoryError:
