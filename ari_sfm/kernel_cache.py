@@ -74,7 +74,7 @@ def target_record() -> dict[str, str]:
 def shipped_usable() -> tuple[bool, str]:
     """Whether this process can run the shipped code, and what it runs or why not (once per process)."""
     usable, why = _shipped_usable()
-    log.debug("compiled kernels: %s", why if usable else f"compiled on first use ({why})")
+    log.info("compiled kernels: %s", why if usable else f"compiled on first use ({why})")
     return usable, why
 
 
