@@ -3,9 +3,10 @@
 
 Every compiled kernel module decorates with :func:`njit` from here: numba's ``njit``, whose dispatcher
 (with ``cache=True``) gets a :class:`ShippedCache`. Loading a signature, it looks first in
-``ari_sfm/_compiled/`` (:data:`SHIPPED_DIR`, in the installed package; absent from a source tree), then
-in numba's own cache (``NUMBA_CACHE_DIR``, else ``__pycache__`` beside the module, else
-``~/.cache/numba``), and only then compiles; what it compiles goes to numba's own cache, as before.
+``ari_sfm/_compiled/`` (:data:`SHIPPED_DIR`: in a built wheel, or compiled into a source tree by
+``scripts/setup.sh``), then in numba's own cache (``NUMBA_CACHE_DIR``, else ``__pycache__`` beside the
+module, else ``~/.cache/numba``), and only then compiles; what it compiles goes to numba's own cache,
+as before.
 
 numba keys a cached function on its signature, the compiling CPU (name and feature string), the
 function's bytecode, and the content of its source file (a hash: the install path and time stamps do
@@ -14,9 +15,10 @@ code is compiled for :data:`TARGET_CPU` (the x86-64-v3 level: AVX2, FMA, BMI2, e
 2013-2015) with LLVM's own feature set for it, so it runs on any host that has those features; the
 shipped entries carry that CPU in their key, and :class:`ShippedCache` asks for it instead of the host's.
 Another architecture or OS (the process triple), a CPU without one of :data:`TARGET_FEATURES`, another
-numba or Python version, a changed source file, or a target the user chose (``NUMBA_CPU_NAME``,
-``NUMBA_CPU_FEATURES``, ``NUMBA_ENABLE_AVX=0``): the shipped entry does not match and numba compiles as
-before. Never an error: a shipped entry that fails to load is skipped (logged at debug level).
+numba, llvmlite or Python version (:func:`target_record`), a changed source file, or a target the user
+chose (``NUMBA_CPU_NAME``, ``NUMBA_CPU_FEATURES``, ``NUMBA_ENABLE_AVX=0``): the shipped code is not used
+and numba compiles as before (``ari-sfm -v`` logs which). Never an error: a shipped entry that fails to
+load is skipped (logged at debug level).
 
 The numbers do not depend on the target: numba never contracts ``a * b + c`` nor reassociates (no
 fastmath), the kernels' fused multiply-adds are LLVM's exactly rounded ``llvm.fma``, and the math
@@ -28,6 +30,7 @@ from __future__ import annotations
 import functools
 import json
 import logging
+import sys
 from pathlib import Path
 from typing import Any, Callable
 
@@ -63,11 +66,14 @@ def njit(func: Callable | None = None, **options: Any):
 
 
 def target_record() -> dict[str, str]:
-    """What the shipped code is valid for beyond its index keys (written by the build, checked at run time)."""
+    """What the shipped code is for (written by the build, checked at run time: the index keys name the
+    numba version and the OS, the file names the Python version, but a mismatch is best said at once)."""
     import llvmlite
+    import llvmlite.binding as ll
 
-    return {"numba": numba.__version__, "llvmlite": llvmlite.__version__, "cpu": TARGET_CPU,
-            "cpu_features": TARGET_CPU_FEATURES}
+    return {"numba": numba.__version__, "llvmlite": llvmlite.__version__,
+            "python": f"{sys.version_info[0]}.{sys.version_info[1]}{getattr(sys, 'abiflags', '')}",
+            "triple": ll.get_process_triple(), "cpu": TARGET_CPU, "cpu_features": TARGET_CPU_FEATURES}
 
 
 @functools.lru_cache(maxsize=None)

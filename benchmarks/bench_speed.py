@@ -10,9 +10,9 @@ ratio of the process CPU times (all threads), which a loaded machine disturbs le
 multi-threaded command it is the cost, not the wall time, on an idle machine). Then the cold
 start (``--only cold_start``, ~3 min: the wheel built with its compiled kernels and installed
 into a fresh venv; the first process after the install (imports, a calibration and a
-triangulation) against the next two, and the same first process from this source tree with
-an empty numba cache, which compiles every kernel it calls) and the peak memory (ru_maxrss)
-of this process.
+triangulation) against the next two, and the same process with numba's target set, which
+leaves the shipped code unused and compiles every kernel it calls) and the peak memory
+(ru_maxrss) of this process.
 
 Figures (ours / reference):
 
@@ -57,6 +57,8 @@ from typing import Callable
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import cv2  # noqa: E402
+import llvmlite.binding  # noqa: E402
+import numba.core.codegen  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -389,20 +391,21 @@ def cold_start_run(python: Path, cwd: Path, env: dict[str, str]) -> tuple[float,
 
 def cold_start() -> None:
     """The first run after a fresh install of the built wheel (its kernels shipped compiled) against the next
-    two runs; then, for the record, what numba's compilation costs a first run without them (this source tree
-    with an empty numba cache); wall and CPU seconds per step and of the whole process."""
+    two runs; then, for the record, what numba's compilation costs a first run without them; wall and CPU
+    seconds per step and of the whole process."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
     with tempfile.TemporaryDirectory() as tmp:
         t = time.perf_counter()
         python = fresh_wheel_install(Path(tmp))
         print(f"\ncold start: the wheel built and installed into a fresh venv in {time.perf_counter() - t:.0f} s")
         runs = [cold_start_run(python, Path(tmp), env) for _ in ("first", "second", "third")]
-        (Path(tmp) / "numba_cache").mkdir()
-        compiling = {**env, "NUMBA_CACHE_DIR": str(Path(tmp) / "numba_cache")}
-        runs.append(cold_start_run(Path(sys.executable), ROOT, compiling))
-    labels = ("installed, first", "second", "third", "tree, compiling")
+        # numba's target named as it is by default (this CPU): the shipped code is not used, numba compiles
+        compiling = {**env, "NUMBA_CPU_NAME": llvmlite.binding.get_host_cpu_name(),
+                     "NUMBA_CPU_FEATURES": numba.core.codegen.get_host_cpu_features()}
+        runs.append(cold_start_run(python, Path(tmp), compiling))
+    labels = ("installed, first", "second", "third", "compiling")
     print("wall / CPU s of fresh processes: the installed wheel's first run after the install, its second and third "
-          "runs, and this source tree with an empty numba cache (numba compiles)")
+          "runs, and a fourth with numba's target set to this CPU's (the shipped code unused: numba compiles)")
     print(f"{'step':36s}" + "".join(f" {label:>17s}" for label in labels))
     for i, (label, *_) in enumerate(runs[0][2]):
         cells = [f"{r[2][i][1]:>8s} {r[2][i][2] or '':>8s}" for r in runs]
