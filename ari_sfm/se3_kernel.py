@@ -12,8 +12,8 @@ product on 18 poses costs numpy ~10 us of calls; the whole retraction here ~5 us
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
+from .kernel_cache import njit  # numba's njit, the kernels compiled into the wheel read first
 from .models.kernels import fma as _fma  # an intrinsic: inlined LLVM, no cached code of that module's
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")

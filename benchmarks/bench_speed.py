@@ -1,6 +1,6 @@
 """Issue 15's speed figures from one run: each a ratio of two commands run alternately.
 
-    OPENBLAS_NUM_THREADS=1 python benchmarks/bench_speed.py            # all figures, ~4 min on 2 cores
+    OPENBLAS_NUM_THREADS=1 python benchmarks/bench_speed.py            # all figures, ~7 min on 2 cores
     python benchmarks/bench_speed.py --only triangulate,forward --repeats 9
 
 For every figure the two commands run in alternation, ``--repeats`` pairs (after one
@@ -8,9 +8,11 @@ warm-up of each); the ratio of each pair is taken and the median ratio printed w
 spread (min-max over the pairs), next to the median times and the goal, and the median
 ratio of the process CPU times (all threads), which a loaded machine disturbs less (for a
 multi-threaded command it is the cost, not the wall time, on an idle machine). Then the cold
-start (a fresh process with an empty numba cache: imports, compiling every kernel a
-calibration and a triangulation use, against the same process with the cache filled) and
-the peak memory (ru_maxrss) of this process.
+start (``--only cold_start``, ~3 min: the wheel built with its compiled kernels and installed
+into a fresh venv; the first process after the install (imports, a calibration and a
+triangulation) against the next two, and the same process with numba's target set, which
+leaves the shipped code unused and compiles every kernel it calls) and the peak memory
+(ru_maxrss) of this process.
 
 Figures (ours / reference):
 
@@ -42,6 +44,7 @@ from __future__ import annotations
 import argparse
 import os
 import resource
+import shutil
 import statistics
 import subprocess
 import sys
@@ -54,6 +57,8 @@ from typing import Callable
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import cv2  # noqa: E402
+import llvmlite.binding  # noqa: E402
+import numba.core.codegen  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -352,22 +357,66 @@ for line in open("/proc/self/status"):
 """
 
 
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def fresh_wheel_install(tmp: Path) -> Path:
+    """This tree built as a wheel (as .ci/run builds it: its kernels compiled into it) and installed into a
+    fresh venv (dependencies from the package index / pip's cache); the venv's python."""
+    src = tmp / "src"
+    src.mkdir()
+    for name in ("pyproject.toml", "setup.py", "README.md", "LICENSE"):
+        shutil.copy(ROOT / name, src / name)
+    for folder in ("ari_sfm", "factors", "pipelines"):
+        shutil.copytree(ROOT / folder, src / folder, ignore=shutil.ignore_patterns("__pycache__", "_compiled"))
+    quiet = dict(check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    subprocess.run([sys.executable, "-m", "pip", "wheel", str(src), "--no-deps", "--no-build-isolation", "-q",
+                    "-w", str(tmp / "wheel")], **quiet)
+    subprocess.run([str(Path(sys.base_prefix) / "bin" / "python3"), "-m", "venv", str(tmp / "venv")], **quiet)
+    python = tmp / "venv" / "bin" / "python"
+    subprocess.run([str(python), "-m", "pip", "install", "-q", *map(str, (tmp / "wheel").glob("ari_sfm-*.whl"))],
+                   **quiet)
+    return python
+
+
+def cold_start_run(python: Path, cwd: Path, env: dict[str, str]) -> tuple[float, float, list[list[str]]]:
+    """COLD_START in a fresh process: its wall and CPU seconds (children included) and its rows."""
+    t, c = time.perf_counter(), os.times()
+    out = subprocess.run([str(python), "-c", COLD_START], env=env, cwd=cwd, capture_output=True, text=True,
+                         check=True)
+    c2 = os.times()
+    cpu = c2.children_user + c2.children_system - c.children_user - c.children_system
+    return time.perf_counter() - t, cpu, [line.split("|") for line in out.stdout.strip().splitlines()]
+
+
 def cold_start() -> None:
-    """A fresh process with an empty numba cache (what the first run after an install pays: numba compiles
-    every kernel it calls), then the same with the cache filled; wall and CPU seconds per step."""
-    with tempfile.TemporaryDirectory() as cache:
-        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
-        runs = []
-        for _ in ("cold", "warm"):
-            t = time.perf_counter()
-            out = subprocess.run([sys.executable, "-c", COLD_START], env=env, capture_output=True, text=True, check=True)
-            rows = [line.split("|") for line in out.stdout.strip().splitlines()]
-            runs.append((time.perf_counter() - t, rows))
-    print("\ncold start: fresh processes with NUMBA_CACHE_DIR empty (cold), then filled (warm); wall / CPU s")
-    print(f"{'step':36s} {'cold wall':>9s} {'cold CPU':>9s} {'warm wall':>9s} {'warm CPU':>9s}")
-    for (label, *cold), (_, *warm) in zip(runs[0][1], runs[1][1]):
-        print(f"{label:36s} {cold[0]:>9s} {cold[1]:>9s} {warm[0]:>9s} {warm[1]:>9s}")
-    print(f"{'whole process (python start included)':36s} {runs[0][0]:9.2f} {'':9s} {runs[1][0]:9.2f}")
+    """The first run after a fresh install of the built wheel (its kernels shipped compiled) against the next
+    two runs; then, for the record, what numba's compilation costs a first run without them; wall and CPU
+    seconds per step and of the whole process."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
+    with tempfile.TemporaryDirectory() as tmp:
+        t = time.perf_counter()
+        python = fresh_wheel_install(Path(tmp))
+        print(f"\ncold start: the wheel built and installed into a fresh venv in {time.perf_counter() - t:.0f} s")
+        runs = [cold_start_run(python, Path(tmp), env) for _ in ("first", "second", "third")]
+        # numba's target named as it is by default (this CPU): the shipped code is not used, numba compiles
+        compiling = {**env, "NUMBA_CPU_NAME": llvmlite.binding.get_host_cpu_name(),
+                     "NUMBA_CPU_FEATURES": numba.core.codegen.get_host_cpu_features()}
+        runs.append(cold_start_run(python, Path(tmp), compiling))
+    labels = ("installed, first", "second", "third", "compiling")
+    print("wall / CPU s of fresh processes: the installed wheel's first run after the install, its second and third "
+          "runs, and a fourth with numba's target set to this CPU's (the shipped code unused: numba compiles)")
+    print(f"{'step':36s}" + "".join(f" {label:>17s}" for label in labels))
+    for i, (label, *_) in enumerate(runs[0][2]):
+        cells = [f"{r[2][i][1]:>8s} {r[2][i][2] or '':>8s}" for r in runs]
+        print(f"{label:36s} " + " ".join(f"{c:>17s}" for c in cells))
+    print(f"{'whole process (python start included)':36s} "
+          + " ".join(f"{f'{w:.2f} {c:.2f}':>17s}" for w, c, _ in runs))
+    warm_wall = statistics.median([runs[1][0], runs[2][0]])
+    warm_cpu = statistics.median([runs[1][1], runs[2][1]])
+    print(f"first run after the install / warm runs: {runs[0][0] / warm_wall:.2f} wall, "
+          f"{runs[0][1] / warm_cpu:.2f} CPU (goal <= 1.3); without the shipped kernels: "
+          f"{runs[3][0] / warm_wall:.1f} wall, {runs[3][1] / warm_cpu:.1f} CPU")
 
 
 FIGURES = ("calibrate_single", "calibrate_4x100", "triangulate", "forward", "openptv", "refine_colmap")

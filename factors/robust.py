@@ -22,7 +22,8 @@ no step gave and it stopped at lambda's bound after one step.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from ..kernel_cache import njit  # numba's njit, the kernels compiled into the wheel read first
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 

@@ -4,7 +4,8 @@ over the observations each, no temporaries of the observations' size (numba, ``c
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from ..kernel_cache import njit  # numba's njit, the kernels compiled into the wheel read first
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 

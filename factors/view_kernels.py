@@ -21,8 +21,8 @@ camera 0 (the world) has no pose variable: its C columns are zero.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
+from ..kernel_cache import njit  # numba's njit, the kernels compiled into the wheel read first
 from ..models.kernels import fma  # an intrinsic: inlined LLVM, no cached code of that module's
 
 _JIT = dict(cache=True, nogil=True)  # no division anywhere: numba's default error model compiles faster

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Set up ari-sfm in ./.venv on a fresh Linux machine (Python >= 3.10):
 # the system library open3d needs (libusb-1.0-0, via apt-get where possible),
-# then the package and its test extras, editable.
+# then the package and its test extras, editable, and its kernels compiled.
 #   --tests  also install what the tests need beyond Python: Chromium
 #            (Debian package chromium) to render report.html headless.
 set -euo pipefail
@@ -38,4 +38,9 @@ if [ ! -x .venv/bin/python ]; then
 fi
 .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip
 .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]"
+# The kernels compiled as a built wheel ships them (ari_sfm/_compiled, ~1 min): the first run
+# does not compile them (a kernel module edited later is compiled by numba on first use).
+rm -rf ari_sfm/_compiled
+.venv/bin/python -m ari_sfm.kernel_build ari_sfm/_compiled \
+  || echo "setup: warning: the kernels were not compiled ahead; numba compiles them on first use" >&2
 echo "setup: ready (.venv/bin/ari-sfm)" >&2

@@ -1,0 +1,115 @@
+"""The argument types with which ari-sfm calls each compiled kernel from Python: what
+:mod:`ari_sfm.kernel_build` compiles into the wheel (a kernel called only from other kernels is compiled
+with its caller). Written by ``scripts/record_kernel_signatures.py`` from the commands a user runs; a
+call with other types still works (numba compiles it on its first use).
+"""
+from __future__ import annotations
+
+from numba.types import Array, boolean, float64, int64
+
+
+def array(dtype, ndim: int, layout: str = "C", readonly: bool = False) -> Array:
+    """An array type (layout "C": contiguous, "A": any strides)."""
+    return Array(dtype, ndim, layout, readonly=readonly)
+
+
+SIGNATURES = {
+    'ari_sfm.colmap_refine.chain_kernels': {
+        'chain_observations': [
+            (array(float64, 3), array(float64, 3), array(float64, 2), array(float64, 2), array(float64, 3),
+             array(float64, 2), array(float64, 3), array(float64, 2), boolean, array(float64, 2),
+             array(float64, 3), array(float64, 2), array(float64, 3), int64, int64, int64, array(float64, 3)),
+        ],
+    },
+    'ari_sfm.factors.robust': {
+        '_irls_batch': [
+            (array(float64, 1), float64),
+        ],
+        'weighted_residuals': [
+            (array(float64, 2), array(float64, 2), float64, array(float64, 1), boolean, float64),
+        ],
+    },
+    'ari_sfm.factors.schur_kernels': {
+        'assemble_entries': [
+            (array(float64, 2), array(float64, 3), array(int64, 2), array(float64, 3), array(int64, 1),
+             array(float64, 1), int64, int64),
+            (array(float64, 2), array(float64, 3), array(int64, 2), array(float64, 3), array(int64, 1, 'A'),
+             array(float64, 1), int64, int64),
+        ],
+        'fill_y': [
+            (array(float64, 3), array(int64, 1), array(int64, 1), array(int64, 2), array(int64, 1),
+             array(float64, 3), array(int64, 1), int64, int64, int64, array(float64, 2)),
+            (array(float64, 3), array(int64, 1, 'A'), array(int64, 1), array(int64, 2), array(int64, 1),
+             array(float64, 3), array(int64, 1), int64, int64, int64, array(float64, 2)),
+        ],
+    },
+    'ari_sfm.factors.view_kernels': {
+        'accumulate_views': [
+            (array(float64, 3), array(float64, 3), array(float64, 2), array(float64, 3), array(float64, 2),
+             array(float64, 2), array(float64, 3), array(int64, 1), array(int64, 1), array(float64, 1),
+             array(float64, 1), array(float64, 2), array(float64, 1), boolean, boolean, array(float64, 1),
+             array(float64, 2), array(int64, 1), array(float64, 3), array(float64, 2), array(float64, 3),
+             array(float64, 2), array(float64, 1), array(boolean, 1)),
+        ],
+        'chain_rows': [
+            (array(float64, 3), array(float64, 3), array(float64, 2), array(float64, 2), array(float64, 2),
+             array(float64, 3), array(int64, 1), array(float64, 1), array(float64, 1), array(float64, 2),
+             array(float64, 1), boolean, boolean, int64, array(float64, 3)),
+        ],
+        'rig_transforms': [
+            (array(float64, 3), array(float64, 2), array(float64, 3), array(float64, 2), array(int64, 1),
+             array(int64, 1), array(float64, 1), float64, boolean),
+        ],
+        'transform_points': [
+            (array(float64, 2), array(float64, 3), array(float64, 2), array(int64, 1)),
+        ],
+    },
+    'ari_sfm.floor_fit': {
+        'warp_residuals': [
+            (array(float64, 3), array(float64, 3), int64),
+        ],
+    },
+    'ari_sfm.models.kernels': {
+        'ari_batch': [
+            (array(float64, 2), array(float64, 1), array(float64, 1), array(float64, 2), array(float64, 1),
+             float64, float64, float64, int64, boolean),
+            (array(float64, 2), array(float64, 1), array(float64, 1), array(float64, 2),
+             array(float64, 1, readonly=True), float64, float64, float64, int64, boolean),
+        ],
+        'distort_batch': [
+            (array(float64, 2), array(float64, 1)),
+        ],
+        'exact_batch': [
+            (array(float64, 2), array(float64, 1), array(float64, 1), array(float64, 2), float64,
+             array(float64, 1), float64, float64, int64, boolean),
+        ],
+        'exact_rays_batch': [
+            (array(float64, 2), array(float64, 1), array(float64, 1), float64, float64, float64, float64),
+        ],
+        'incidence_batch': [
+            (array(float64, 2), array(float64, 1), float64, array(float64, 1), float64, float64, int64),
+        ],
+        'pinhole_batch': [
+            (array(float64, 2), array(float64, 1), int64, boolean),
+        ],
+        'solve_w_batch': [
+            (array(float64, 1), array(float64, 1), float64, array(float64, 1), float64, float64, int64),
+        ],
+        'triangulate_exact': [
+            (array(float64, 3), array(float64, 3), array(float64, 2), array(float64, 2), array(float64, 2),
+             array(float64, 2), boolean, int64, float64, float64, float64, array(float64, 2),
+             array(float64, 1), array(float64, 1), array(boolean, 1), array(int64, 1)),
+        ],
+        'undistort_batch': [
+            (array(float64, 2), array(float64, 1), float64, float64),
+        ],
+    },
+    'ari_sfm.se3_kernel': {
+        'retract_poses_kernel': [
+            (array(float64, 3), array(float64, 2), array(float64, 2)),
+        ],
+        'se3_exp_kernel': [
+            (array(float64, 2),),
+        ],
+    },
+}
