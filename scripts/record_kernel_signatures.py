@@ -82,6 +82,8 @@ def workloads(tmp: Path) -> None:
         "--solve-poses")
     for model in ("ari", "pinhole_dist"):
         cli("calibrate", binocular, "-o", tmp / model, "--model", model)
+    cli("simulate", "tank_opposite", "-o", tmp / "tank")
+    cli("calibrate", tmp / "tank" / "dataset", "-o", tmp / "tank_cal")
     cli("simulate", "particles", "-o", tmp / "ptv", "--particles", "300", "--frames", "3", "--render-frames", "1")
     ptv = tmp / "ptv"
     cli("calibrate", ptv / "calibration", "-o", tmp / "ptv_a", "--model", "exact")
