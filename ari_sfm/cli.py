@@ -695,8 +695,8 @@ _workers_option = click.option("--workers", type=int, default=1, show_default=Tr
 def _set_worker_timeout(ctx: click.Context, param: click.Parameter, value: float) -> float:
     from .particles.engine import worker_timeout
 
-    check_number("--worker-timeout", value, minimum=0.0, strict_minimum=True)
-    worker_timeout.set(float(value))
+    token = worker_timeout.set(float(value))  # checked by dask_client, inside the command (one error line)
+    ctx.call_on_close(lambda: worker_timeout.reset(token))  # for this command only
     return value
 
 

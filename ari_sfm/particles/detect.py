@@ -635,7 +635,8 @@ def _single(fit: _Fit, sigma: float, max_width_ratio: float, max_elongation: flo
 
 def image_size(path: Path) -> tuple[int, int] | None:
     """An image's (width, height) from its header, without decoding it; None when the header is not one
-    Pillow reads (OpenCV may still decode the file). PartitionError beyond Pillow's decompression-bomb limit."""
+    Pillow reads (OpenCV may still decode the file). Beyond Pillow's decompression-bomb limit (179 MP),
+    which refuses to read the header: ``(limit, 0)``, a size no rig declares."""
     import warnings
 
     from PIL import Image, UnidentifiedImageError
@@ -646,8 +647,7 @@ def image_size(path: Path) -> tuple[int, int] | None:
             with Image.open(path) as im:
                 return int(im.size[0]), int(im.size[1])
     except Image.DecompressionBombError:
-        raise PartitionError(path, f"the image has more than {2 * (Image.MAX_IMAGE_PIXELS or 0) / 1e6:.0f} MP: far "
-                                   f"more than detect-particles handles ({MAX_IMAGE_PIXELS / 1e6:.0f} MP)") from None
+        return 2 * int(Image.MAX_IMAGE_PIXELS or 0), 0
     except (UnidentifiedImageError, OSError, ValueError):
         return None
 
@@ -660,7 +660,8 @@ def read_image(path: Path, size: tuple[int, int] | None = None, camera: str = ""
 
     def check(w: int, h: int) -> None:
         if size is not None and (w, h) != tuple(size):
-            raise PartitionError(path, f"the image is {w} x {h} px, but {camera or 'its camera'}'s images are "
+            found = f"{w} x {h} px" if h else f"more than {w / 1e6:.0f} MP"
+            raise PartitionError(path, f"the image is {found}, but {camera or 'its camera'}'s images are "
                                        f"{size[0]} x {size[1]} (rig.yaml cameras.{camera}.image_size)")
 
     if size is not None:

@@ -134,8 +134,9 @@ def check_calibration_fits(calibration: Calibration, dataset: ParticleDataset, p
             raise AriSfmError(path, f"a calibration of another rig: {name} has image size "
                                     f"{list(calibration.cameras[name].image_size)}, the dataset's {list(spec.image_size)}")
     if not (calibration.spec.rays and calibration.spec.window):
-        raise AriSfmError(path, f"model {calibration.model} has no rays through the window: particles need "
-                                "a model with one (exact, ari, rt)")
+        what = "ignores the window (a plain camera)" if calibration.spec.rays else "has no rays through the window"
+        raise AriSfmError(path, f"model {calibration.model} {what}: particles need a model with rays through the "
+                                "window (exact, ari, rt)")
 
 
 def volume_for(dataset: ParticleDataset, calibration: Calibration, depth_range_mm: tuple[float, float] | None
