@@ -790,8 +790,8 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
     s = reconstruct_particles(dataset, calibration, out, options, detections_path=detections, workers=workers,
                               scheduler=scheduler, progress=True)
     gap = "n/a" if s.mean_ray_gap_mm is None else f"{s.mean_ray_gap_mm:.4f} mm"
-    click.echo(f"{s.particles} particles in {len(s.frames)} frames, made of {s.detections_used} of the "
-               f"{s.detections_total} detections (2-D particle images: {100 * s.matched_fraction:.1f} % used), "
+    click.echo(f"{s.particles} particles in {len(s.frames)} frames, triangulated from {s.detections_used} of the "
+               f"{s.detections_total} detections (2-D particle images; {100 * s.matched_fraction:.1f} % used), "
                f"mean ray gap {gap}, {s.time_s:.1f} s ({s.particles_per_second:.0f} particles/s)"
                + (f", {len(s.partitions_skipped)} partitions resumed" if s.partitions_skipped else ""))
     click.echo(f"particles: {out / 'particles3d.parquet'}\nsummary:   {out / 'particles3d.json'}")

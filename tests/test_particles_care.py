@@ -253,7 +253,7 @@ def test_another_experiments_detections_are_said_not_to_fit(sim, tmp_path, caplo
     self-calibration); the summary line counts detections, not particles found."""
     good = _particles(sim, tmp_path / "good")
     assert good.exit_code == 0 and not [r for r in caplog.records if r.levelname == "WARNING"]
-    assert "particles in 4 frames, made of" in good.output and "of the 4800 detections" in good.output
+    assert "particles in 4 frames, triangulated from" in good.output and "of the 4800 detections" in good.output
     r = _particles(sim, tmp_path / "other", "--detections", sim / "b" / "experiment" / "particles.parquet")
     assert r.exit_code == 0, r.output
     s = json.loads((tmp_path / "other" / "particles3d.json").read_text())
