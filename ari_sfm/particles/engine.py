@@ -175,7 +175,6 @@ class WorkerWatch:
         self.client = client
         self.address = address
         self.timeout_s = timeout_s
-        self.threads = 0  # the worker threads last counted
         self.failure: str | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="ari-sfm-worker-watch", daemon=True)
@@ -201,9 +200,8 @@ class WorkerWatch:
                 return
             now = time.monotonic()
             if n:
-                self.threads = n
                 if warned:
-                    log.warning("a Dask worker is connected to %s again (%d threads): going on", self.address, n)
+                    log.warning("a Dask worker is connected to %s again: going on", self.address)
                 missing_since, warned = None, False
                 continue
             missing_since = now if missing_since is None else missing_since
