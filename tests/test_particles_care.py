@@ -179,9 +179,10 @@ def test_blank_images_are_an_error_not_an_empty_success(small_images, tmp_path):
     assert summary["warnings"] and summary["warnings"][0].startswith("cam1: no particle image found")
     for path in (folder / "images" / "cam0").glob("*.png"):
         cv2.imwrite(str(path), np.zeros((256, 320), np.uint8))
-    line = _error(["detect-particles", folder, "-o", tmp_path / "d2", "--workers", "0"])
+    line = _error(["detect-particles", folder, "-o", tmp_path / "d1", "--workers", "0"])  # the same -o
     assert "no particle image found in any of the 4 images (frames 0..1)" in line
-    assert not (tmp_path / "d2" / "particles.parquet").exists()
+    assert not (tmp_path / "d1" / "particles.parquet").exists()  # the earlier run's is not left as this one's
+    assert not (tmp_path / "d1" / "detect-particles.json").exists()
 
 
 # --------------------------------------------------------------------------- particles: the table, the model

@@ -792,7 +792,9 @@ def detect_experiment(dataset_path: str | Path, out: str | Path, options: Detect
     counts = dict.fromkeys(patterns, 0)
     rows = _count_detections(paths, counts)
     images = (last - first + 1) * len(patterns)
-    if rows == 0:
+    if rows == 0:  # an earlier run's table in OUT (other images at the same paths) would contradict this
+        for stale in (out / "particles.parquet", out / "detect-particles.json"):
+            stale.unlink(missing_ok=True)
         raise AriSfmError(dataset.rig_path, f"particles.images: no particle image found in any of the {images} "
                                             f"images (frames {first}..{last}): blank images, or --threshold-sigma / "
                                             f"--min-peak too high (the partitions are in {out / 'parts'})")
