@@ -24,7 +24,18 @@ log = logging.getLogger("ari_sfm")
 
 
 def _setup_logging(verbose: bool) -> None:
-    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s: %(message)s")
+    """Warnings and errors, or with -v progress messages too; so also for Dask (distributed logs its
+    cluster's start and stop at INFO, in this process and in a LocalCluster's workers) and glog (pycolmap):
+    through the environment they read when they load (workers inherit it), and their levels if loaded."""
+    level = logging.INFO if verbose else logging.WARNING
+    logging.basicConfig(level=level, format="%(levelname)s: %(message)s")
+    os.environ["DASK_LOGGING__DISTRIBUTED"] = "info" if verbose else "warning"
+    os.environ["GLOG_minloglevel"] = "0" if verbose else "1"
+    if "distributed" in sys.modules:
+        logging.getLogger("distributed").setLevel(level)
+    pycolmap = sys.modules.get("pycolmap")
+    if pycolmap is not None and hasattr(getattr(pycolmap, "logging", None), "minloglevel"):
+        pycolmap.logging.minloglevel = 0 if verbose else 1
 
 
 class Terminated(BaseException):
@@ -146,9 +157,38 @@ def user_errors(fn):
     return wrapper
 
 
+def _leave_process(code: object) -> None:
+    """End the command line's process with ``code`` (as ``sys.exit`` would) without the interpreter's own
+    shutdown: that resets the signal handlers to the defaults before it ends, and a SIGTERM arriving then
+    killed the process (-15) after a complete run. The exit handlers (atexit: logging, multiprocessing,
+    Dask) run first, under the command line's handlers ("terminated", 143)."""
+    import atexit
+
+    if code is None:
+        code = 0
+    elif not isinstance(code, int):
+        click.echo(code, err=True)
+        code = 1
+    atexit._run_exitfuncs()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 class _Group(click.Group):
     """The root group: Ctrl-C outside a command's body (parsing, `scenarios`) also prints "interrupted"
-    and exits 130, where click would print "Aborted!" and exit 1."""
+    and exits 130, where click would print "Aborted!" and exit 1. On the command line the process ends
+    explicitly once the command is done (:func:`_leave_process`)."""
+
+    def main(self, *args, **kwargs):
+        if not _startup.is_command_line() or kwargs.get("standalone_mode") is False:
+            return super().main(*args, **kwargs)
+        try:
+            super().main(*args, **kwargs)
+            code: object = 0
+        except SystemExit as exc:
+            code = exc.code
+        _leave_process(code)
 
     def invoke(self, ctx: click.Context):
         try:
@@ -671,9 +711,28 @@ def _simulate_particles(out: Path, seed: int, sigma: float, num_cameras: int, pa
 
 _workers_option = click.option("--workers", type=int, default=1, show_default=True,
                                help="Dask LocalCluster worker processes, one thread each (0: in this process).")
-_scheduler_option = click.option("--scheduler", default=None, metavar="tcp://HOST:PORT",
-                                 help="An existing Dask scheduler (e.g. a SLURM cluster via dask-jobqueue) "
-                                      "instead of a LocalCluster.")
+
+
+def _set_worker_timeout(ctx: click.Context, param: click.Parameter, value: float) -> float:
+    from .particles.engine import worker_timeout
+
+    token = worker_timeout.set(float(value))  # checked by dask_client, inside the command (one error line)
+    ctx.call_on_close(lambda: worker_timeout.reset(token))  # for this command only
+    return value
+
+
+def _scheduler_option(fn):
+    """--scheduler, and --worker-timeout (how long a run waits with no Dask worker; read by
+    ari_sfm.particles.engine.dask_client through its context variable, so the command passes nothing)."""
+    from .particles.engine import WORKER_TIMEOUT_S
+
+    fn = click.option("--worker-timeout", type=float, default=WORKER_TIMEOUT_S, show_default=True,
+                      expose_value=False, callback=_set_worker_timeout, metavar="SECONDS",
+                      help="Stop (one error line) when no Dask worker has been connected for this long; "
+                           "a worker joining before then: the run goes on.")(fn)
+    return click.option("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                        help="An existing Dask scheduler (e.g. a SLURM cluster via dask-jobqueue) "
+                             "instead of a LocalCluster.")(fn)
 
 
 @main.command(name="detect-particles")
@@ -748,9 +807,9 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
     s = reconstruct_particles(dataset, calibration, out, options, detections_path=detections, workers=workers,
                               scheduler=scheduler, progress=True)
     gap = "n/a" if s.mean_ray_gap_mm is None else f"{s.mean_ray_gap_mm:.4f} mm"
-    click.echo(f"{s.particles} particles in {len(s.frames)} frames, {100 * s.matched_fraction:.1f} % of "
-               f"the particle images matched, mean ray gap {gap}, {s.time_s:.1f} s "
-               f"({s.particles_per_second:.0f} particles/s)"
+    click.echo(f"{s.particles} particles in {len(s.frames)} frames, triangulated from {s.detections_used} of the "
+               f"{s.detections_total} detections (2-D particle images; {100 * s.matched_fraction:.1f} % used), "
+               f"mean ray gap {gap}, {s.time_s:.1f} s ({s.particles_per_second:.0f} particles/s)"
                + (f", {len(s.partitions_skipped)} partitions resumed" if s.partitions_skipped else ""))
     click.echo(f"particles: {out / 'particles3d.parquet'}\nsummary:   {out / 'particles3d.json'}")
 

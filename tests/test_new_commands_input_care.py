@@ -116,3 +116,27 @@ def test_sigterm_during_particles_leaves_cleanly(experiment, tmp_path):
         assert complete or "particles3d.parquet" not in files  # nothing, or (signal at the end) the whole result
     else:
         assert complete
+
+
+def test_sigterm_after_a_finished_command_is_not_a_kill(experiment, tmp_path):
+    """A SIGTERM landing after the command's work, while the interpreter shuts down (here: sent by an object
+    of the script's destroyed with its module, after CPython reset the signal handlers to the defaults),
+    killed the process (-15). The command line now ends its process explicitly once the command is done:
+    exit 0 with the complete result (or "terminated" and 143 had the signal come before)."""
+    dataset, cal, _ = experiment
+    out = tmp_path / "p3d"
+    script = (
+        "import os, signal, sys, time\n"
+        f"sys.argv = ['ari-sfm', 'particles', {str(dataset)!r}, '--calibration', {str(cal)!r}, '-o', {str(out)!r},"
+        " '--workers', '0']\n"
+        "class Late:\n"
+        "    def __del__(self):\n"
+        "        os.kill(os.getpid(), signal.SIGTERM)\n"
+        "        time.sleep(1)\n"
+        "late = Late()\n"
+        "from ari_sfm.cli import main\n"
+        "main()\n")
+    p = subprocess.run([sys.executable, "-c", script], capture_output=True, env=ENV, timeout=300)
+    err = p.stderr.decode(errors="replace")
+    assert p.returncode == 0, (p.returncode, err)
+    assert {"particles3d.parquet", "particles3d.json"} <= {q.name for q in out.iterdir()}

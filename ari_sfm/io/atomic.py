@@ -12,8 +12,9 @@ import math
 import os
 import shutil
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path, PurePath
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Iterator, Mapping
 
 import numpy as np
 
@@ -60,6 +61,34 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> None:
         tmp.unlink(missing_ok=True)
         if isinstance(exc, OSError):
             raise AriSfmError(path, f"cannot write file: {exc.strerror or exc}") from exc
+        raise
+    _fsync_dir(path.parent)
+
+
+@contextmanager
+def replaced_atomically(path: str | Path) -> Iterator[Path]:
+    """A temporary file's path beside ``path``, for a writer that streams into a path of its own (pyarrow's
+    ParquetWriter). When the block ends the file is fsynced and renamed over ``path``; on any exception
+    or interrupt it is removed and ``path`` is left as it was (an OSError: AriSfmError naming ``path``)."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        mode = path.stat().st_mode & 0o7777 if path.exists() else _FILE_MODE
+        fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        os.close(fd)
+    except OSError as exc:
+        raise AriSfmError(path, f"cannot write file: {exc.strerror or exc}") from None
+    tmp = Path(tmp_name)
+    try:
+        yield tmp
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.chmod(tmp, mode)
+        os.replace(tmp, path)
+    except BaseException as exc:
+        tmp.unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            raise AriSfmError(path, f"cannot write file: {exc.strerror or exc}") from None
         raise
     _fsync_dir(path.parent)
 

@@ -6,19 +6,21 @@ every writer writes atomically.
 """
 from __future__ import annotations
 
+import contextlib
 import io
+import logging
 import os
 import string
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Iterable, Mapping
 
 import numpy as np
 
 from ari_sfm.errors import AriSfmError
-from ari_sfm.io.atomic import write_bytes_atomic
+from ari_sfm.io.atomic import replaced_atomically, write_bytes_atomic
 from ari_sfm.io.dataset import find_rig, parse_cameras, parse_window_keys
-from ari_sfm.io.observations import check_format
+from ari_sfm.io.observations import BORDER_TOLERANCE_PX, check_format
 from ari_sfm.io.structured import (
     as_float_array,
     as_int_pair,
@@ -31,6 +33,8 @@ from ari_sfm.io.structured import (
     warn_unknown_keys,
 )
 from ari_sfm.records import CameraSpec, Interface, Window
+
+log = logging.getLogger(__name__)
 
 PARTICLES_KEYS = ("detections", "images", "frames", "diameter_px", "volume_mm")
 VOLUME_KEYS = ("frame", "min", "max")
@@ -73,22 +77,25 @@ class ParticleDataset:
 
 @dataclass(frozen=True)
 class Detections:
-    """A detections table, checked. Rows in file order; ``rows_of(frame, camera)`` indexes them."""
+    """A detections table, checked. Rows in file order; ``by_frame`` indexes them, leaving out the rows that
+    repeat an earlier row exactly (``repeated``: the same frame, camera, u and v; a table appended twice)."""
 
     path: Path
     frame: np.ndarray  # (N,) int64
     camera: np.ndarray  # (N,) str (object)
     uv: np.ndarray  # (N, 2)
     intensity: np.ndarray | None  # (N,)
+    repeated: np.ndarray | None = None  # (N,) bool: the row repeats an earlier one (None: no row does)
 
     @property
     def frames(self) -> np.ndarray:
         return np.unique(self.frame)
 
     def by_frame(self, cameras: list[str]) -> dict[int, dict[str, np.ndarray]]:
-        """frame -> camera -> the file rows (int64) of its detections, in file order."""
+        """frame -> camera -> the file rows (int64) of its detections, in file order (repeated rows left out)."""
         out: dict[int, dict[str, np.ndarray]] = {}
-        order = np.lexsort((np.arange(len(self.frame)), self.frame))
+        kept = np.arange(len(self.frame)) if self.repeated is None else np.flatnonzero(~self.repeated)
+        order = kept[np.argsort(self.frame[kept], kind="stable")]
         f_sorted = self.frame[order]
         bounds = np.flatnonzero(np.diff(f_sorted)) + 1
         for rows in np.split(order, bounds):
@@ -220,22 +227,64 @@ def read_detections(path: str | Path, cameras: Mapping[str, CameraSpec] | list[s
                                 f"{int(bad.sum())} such rows")
     if (frame < 0).any():
         raise AriSfmError(path, f"row {int(np.flatnonzero(frame < 0)[0])}: frame must be >= 0")
-    return Detections(path, frame, camera, np.stack([u, v], axis=1), intensity)
+    uv = np.stack([u, v], axis=1)
+    if isinstance(cameras, Mapping):
+        check_detections_in_images(path, camera, uv, {c: tuple(s.image_size) for c, s in cameras.items()})
+    return Detections(path, frame, camera, uv, intensity, _repeated_rows(path, frame, camera, uv))
 
 
-def parquet_bytes(columns: Mapping[str, Any]) -> bytes:
-    """A parquet file of the given columns (numpy arrays or lists), in memory."""
+def check_detections_in_images(path: Path, camera: np.ndarray, uv: np.ndarray,
+                               image_sizes: Mapping[str, tuple[int, int]]) -> None:
+    """Every centre lies in its camera's image (OpenCV centres: the edges at -0.5 and size - 0.5), or at
+    most BORDER_TOLERANCE_PX beyond an edge: one farther out is another camera's, or another image size's."""
+    lo = -0.5 - BORDER_TOLERANCE_PX
+    limits = np.zeros((len(uv), 2))
+    for name, (w, h) in image_sizes.items():
+        rows = camera == name
+        limits[rows] = (w - 0.5 + BORDER_TOLERANCE_PX, h - 0.5 + BORDER_TOLERANCE_PX)
+    outside = (uv[:, 0] < lo) | (uv[:, 1] < lo) | (uv[:, 0] > limits[:, 0]) | (uv[:, 1] > limits[:, 1])
+    if outside.any():
+        k = int(np.flatnonzero(outside)[0])
+        w, h = image_sizes[camera[k]]
+        raise AriSfmError(path, f"row {k}: camera {camera[k]}: pixel ({uv[k, 0]:g}, {uv[k, 1]:g}) is outside its "
+                                f"{w} x {h} image (more than {BORDER_TOLERANCE_PX:g} px beyond its edge; rig.yaml "
+                                f"cameras.{camera[k]}.image_size); {int(outside.sum())} such rows")
+
+
+def _repeated_rows(path: Path, frame: np.ndarray, camera: np.ndarray, uv: np.ndarray) -> np.ndarray | None:
+    """(N,) True for a row equal to an earlier one in frame, camera, u and v (None: none is); said once."""
+    if len(frame) < 2:
+        return None
+    names, code = np.unique(camera.astype(str), return_inverse=True)
+    order = np.lexsort((np.arange(len(frame)), uv[:, 1], uv[:, 0], code, frame))
+    keys = np.stack([frame[order].astype(float), code[order].astype(float), uv[order, 0], uv[order, 1]], axis=1)
+    same = np.zeros(len(frame), bool)
+    same[order[1:]] = (keys[1:] == keys[:-1]).all(axis=1)
+    if not same.any():
+        return None
+    k = int(np.flatnonzero(same)[0])
+    log.warning("%s: %d rows repeat an earlier row exactly (frame, camera, u, v; the first: row %d, camera %s, "
+                "frame %d): each particle image is used once", path, int(same.sum()), k, camera[k], int(frame[k]))
+    return same
+
+
+def parquet_bytes(columns: Mapping[str, Any], metadata: Mapping[bytes, bytes] | None = None) -> bytes:
+    """A parquet file of the given columns (numpy arrays or lists), in memory, with schema ``metadata``."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
     buf = io.BytesIO()
-    pq.write_table(pa.table(dict(columns)), buf)
+    table = pa.table(dict(columns))
+    if metadata:
+        table = table.replace_schema_metadata(dict(metadata))
+    pq.write_table(table, buf)
     return buf.getvalue()
 
 
-def write_parquet_atomic(path: str | Path, columns: Mapping[str, Any]) -> None:
+def write_parquet_atomic(path: str | Path, columns: Mapping[str, Any],
+                         metadata: Mapping[bytes, bytes] | None = None) -> None:
     """Write a parquet table atomically (a reader never sees half of it)."""
-    write_bytes_atomic(path, parquet_bytes(columns))
+    write_bytes_atomic(path, parquet_bytes(columns, metadata))
 
 
 def write_table_atomic(path: str | Path, table: Any) -> None:
@@ -245,6 +294,38 @@ def write_table_atomic(path: str | Path, table: Any) -> None:
     buf = io.BytesIO()
     pq.write_table(table, buf)
     write_bytes_atomic(path, buf.getvalue())
+
+
+def write_tables_atomic(path: str | Path, tables: Iterable[Any]) -> int:
+    """Write pyarrow tables of one schema, in order, as one parquet table, atomically, holding one table
+    at a time (a long experiment's partitions). Returns the number of rows."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    rows = 0
+    with replaced_atomically(path) as tmp:
+        writer = None
+        try:
+            for table in tables:
+                if writer is None:
+                    writer = pq.ParquetWriter(tmp, table.schema)
+                elif table.schema != writer.schema:
+                    table = table.cast(writer.schema)
+                writer.write_table(table)
+                rows += table.num_rows
+            if writer is None:
+                raise ValueError(f"{path}: no table to write")
+            writer, closing = None, writer
+            closing.close()
+        except pa.ArrowException as exc:
+            if isinstance(exc, OSError):
+                raise
+            raise AriSfmError(path, f"cannot write the table ({str(exc).splitlines()[0]})") from None
+        finally:
+            if writer is not None:  # an error or an interrupt while writing: the temporary file is dropped
+                with contextlib.suppress(Exception):
+                    writer.close()
+    return rows
 
 
 def write_detections(path: str | Path, frame: np.ndarray, camera: list[str] | np.ndarray, uv: np.ndarray,

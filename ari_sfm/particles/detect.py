@@ -83,11 +83,13 @@ class DetectSummary:
     workers: int | None  # None with a scheduler
     scheduler: str | None
     options: Mapping[str, Any] = field(default_factory=dict)  # the DetectOptions used
+    warnings: tuple[str, ...] = ()  # e.g. a camera with no particle image in any frame
 
     def to_json(self) -> dict[str, Any]:
         return {"format": "ari-sfm-detect-particles/1", "dataset": self.dataset, "frames": list(self.frames),
                 "detections": self.detections, "per_camera": dict(self.per_camera), "options": dict(self.options),
-                "time_s": self.time_s, "workers": self.workers, "scheduler": self.scheduler}
+                "time_s": self.time_s, "workers": self.workers, "scheduler": self.scheduler,
+                "warnings": list(self.warnings)}
 
 
 @dataclass(frozen=True)
@@ -631,22 +633,57 @@ def _single(fit: _Fit, sigma: float, max_width_ratio: float, max_elongation: flo
     return round_enough & small_enough & not_hot & ~fit.ridge
 
 
-def read_image(path: Path) -> np.ndarray:
-    """A grey image (8 or 16 bit); PartitionError naming the file if it cannot be read."""
+def image_size(path: Path) -> tuple[int, int] | None:
+    """An image's (width, height) from its header, without decoding it; None when the header is not one
+    Pillow reads (OpenCV may still decode the file). Beyond Pillow's decompression-bomb limit (179 MP),
+    which refuses to read the header: ``(limit, 0)``, a size no rig declares."""
+    import warnings
+
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                return int(im.size[0]), int(im.size[1])
+    except Image.DecompressionBombError:
+        return 2 * int(Image.MAX_IMAGE_PIXELS or 0), 0
+    except (UnidentifiedImageError, OSError, ValueError):
+        return None
+
+
+def read_image(path: Path, size: tuple[int, int] | None = None, camera: str = "") -> np.ndarray:
+    """A grey image (8 or 16 bit); PartitionError naming the file if it cannot be read or, with ``size``
+    (width, height: its camera's in rig.yaml), if it has another size (checked on its header before it
+    is decoded, so a huge image costs no memory)."""
     import cv2
 
+    def check(w: int, h: int) -> None:
+        if size is not None and (w, h) != tuple(size):
+            found = f"{w} x {h} px" if h else f"more than {w / 1e6:.0f} MP"
+            raise PartitionError(path, f"the image is {found}, but {camera or 'its camera'}'s images are "
+                                       f"{size[0]} x {size[1]} (rig.yaml cameras.{camera}.image_size)")
+
+    if size is not None:
+        header = image_size(path)
+        if header is not None:
+            check(*header)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise PartitionError(path, "not a readable image")
+    check(img.shape[1], img.shape[0])
     return img
 
 
-def detect_partition(patterns: dict[str, str], frames: list[int], options: DetectOptions) -> dict[str, np.ndarray]:
-    """Detections of every camera in a partition's frames (a Dask task): the contract's columns."""
+def detect_partition(patterns: dict[str, str], frames: list[int], options: DetectOptions,
+                     sizes: Mapping[str, tuple[int, int]] | None = None) -> dict[str, np.ndarray]:
+    """Detections of every camera in a partition's frames (a Dask task): the contract's columns. ``sizes``:
+    each camera's (width, height); an image of another size is refused."""
     frame, camera, u, v, inten = [], [], [], [], []
     for f in frames:
         for cam, pattern in patterns.items():
-            uv, peak = detect_particles_in_image(read_image(Path(pattern.format(frame=f))), options)
+            image = read_image(Path(pattern.format(frame=f)), None if sizes is None else sizes[cam], cam)
+            uv, peak = detect_particles_in_image(image, options)
             frame.append(np.full(len(uv), f, np.int64))
             camera += [cam] * len(uv)
             u.append(uv[:, 0])
@@ -659,11 +696,55 @@ def detect_partition(patterns: dict[str, str], frames: list[int], options: Detec
             "u": cat(u), "v": cat(v), "intensity": cat(inten)}
 
 
+MAX_IMAGE_PIXELS = 40_000_000  # detection holds ~40 bytes per pixel at its peak (measured): ~1.6 GB an image
+# of this size; larger images are refused (their own size, or their camera's in rig.yaml)
+
+
+def _check_image_sizes(dataset: Any) -> dict[str, tuple[int, int]]:
+    """Each imaged camera's (width, height) from rig.yaml, within MAX_IMAGE_PIXELS."""
+    from ari_sfm.errors import AriSfmError
+
+    sizes = {}
+    for cam in dataset.images:
+        w, h = (int(x) for x in dataset.cameras[cam].image_size)
+        if w * h > MAX_IMAGE_PIXELS:
+            raise AriSfmError(dataset.rig_path, f"cameras.{cam}.image_size: {w} x {h} px ({w * h / 1e6:.0f} MP) is "
+                                                f"more than detect-particles handles ({MAX_IMAGE_PIXELS / 1e6:.0f} MP: "
+                                                f"~40 bytes of memory per pixel): crop the images")
+        sizes[cam] = (w, h)
+    return sizes
+
+
+def _image_stats(dataset: Any, frames: list[int]) -> str:
+    """The key of a partition's images: a hash of each one's path, size and modification time, so a re-run
+    makes a partition again when one of its images changed. AriSfmError naming a missing image."""
+    import hashlib
+    import json
+
+    from ari_sfm.errors import AriSfmError
+
+    stats = []
+    for f in frames:
+        for cam in dataset.images:
+            path = dataset.image_path(cam, f)
+            try:
+                st = path.stat()
+            except OSError:
+                raise AriSfmError(dataset.rig_path, f"particles.images.{cam}: frame {f}: no such image {path}") \
+                    from None
+            if not path.is_file():
+                raise AriSfmError(dataset.rig_path, f"particles.images.{cam}: frame {f}: not a file: {path}")
+            stats.append([str(path), st.st_size, st.st_mtime_ns])
+    return hashlib.sha256(json.dumps(stats).encode()).hexdigest()
+
+
 def detect_experiment(dataset_path: str | Path, out: str | Path, options: DetectOptions | None = None,
                       frames_per_partition: int = 20, workers: int = 0, scheduler: str | None = None,
-                      progress: bool = False) -> DetectSummary:
+                      progress: bool = False, worker_timeout_s: float | None = None) -> DetectSummary:
     """Detect the particle images of every frame of ``particles.images``; write OUT/particles.parquet
-    (through OUT/parts/, resumable) and OUT/detect-particles.json. Returns that summary (its to_json())."""
+    (through OUT/parts/, resumable: a partition whose images changed is detected again) and
+    OUT/detect-particles.json. Returns that summary (its to_json()). AriSfmError when no image holds a
+    particle image (blank images, or a threshold too high): nothing is written then but the partitions."""
     import os
     import time
 
@@ -671,18 +752,22 @@ def detect_experiment(dataset_path: str | Path, out: str | Path, options: Detect
 
     from ari_sfm.errors import AriSfmError
     from ari_sfm.io import write_json_atomic
-    from ari_sfm.io.particles import load_particle_dataset, write_table_atomic
+    from ari_sfm.io.particles import load_particle_dataset
     from ari_sfm.particles.engine import (
         Partition,
         check_run_settings,
+        check_workers,
         dask_client,
+        frame_ranges,
         merge_partitions,
         run_partitions,
-        split_frames,
     )
 
     t0 = time.perf_counter()
     out = Path(out)
+    check_workers(workers)
+    if isinstance(frames_per_partition, bool) or not isinstance(frames_per_partition, int) or frames_per_partition < 1:
+        raise AriSfmError("--frames-per-partition", f"must be a whole number >= 1 (got {frames_per_partition!r})")
     dataset = load_particle_dataset(dataset_path)
     if Path(os.path.realpath(out)) == Path(os.path.realpath(dataset.root)):
         raise AriSfmError(out, "-o/--out is the dataset folder: write the results elsewhere")
@@ -691,27 +776,49 @@ def detect_experiment(dataset_path: str | Path, out: str | Path, options: Detect
     if options is None:
         options = DetectOptions(diameter_px=dataset.diameter_px or DetectOptions.diameter_px)
     first, last = dataset.frames
-    frames = list(range(first, last + 1))
-    for f in frames:  # every file before any work (a worker's missing file would cost a whole run)
-        for cam in dataset.images:
-            path = dataset.image_path(cam, f)
-            if not path.is_file():
-                raise AriSfmError(dataset.rig_path, f"particles.images.{cam}: frame {f}: no such image {path}")
+    sizes = _check_image_sizes(dataset)
+    _image_stats(dataset, sorted({first, last}))  # the first and last images exist (a typo in frames: at once)
     patterns = dict(dataset.images)
     settings = {"task": "detect-particles", "options": {k: getattr(options, k) for k in options.__dataclass_fields__},
                 "frames": [first, last], "frames_per_partition": frames_per_partition, "images": patterns}
     out.mkdir(parents=True, exist_ok=True)
     check_run_settings(out, settings)
-    partitions = [Partition(c[0], c[-1], (patterns, c, options)) for c in split_frames(frames, frames_per_partition)]
-    with dask_client(workers, scheduler) as client, \
-            tqdm(total=len(partitions), disable=not progress, desc="detecting", unit="partition") as bar:
+    partitions = (Partition(c[0], c[-1], (patterns, c, options, sizes), _image_stats(dataset, c))
+                  for c in frame_ranges(first, last, frames_per_partition))
+    total = -(-(last - first + 1) // frames_per_partition)
+    with dask_client(workers, scheduler, worker_timeout_s) as client, \
+            tqdm(total=total, disable=not progress, desc="detecting", unit="partition") as bar:
         paths = run_partitions(detect_partition, partitions, out, client, lambda p, s: bar.update(1))
-    table = merge_partitions(paths)
-    write_table_atomic(out / "particles.parquet", table)
-    cams, n = np.unique(table.column("camera").to_numpy(zero_copy_only=False).astype(str), return_counts=True)
-    counts = {cam: int(dict(zip(cams.tolist(), n.tolist())).get(cam, 0)) for cam in patterns}
-    summary = DetectSummary(str(dataset.rig_path), (first, last), int(table.num_rows), counts,
+    counts = dict.fromkeys(patterns, 0)
+    rows = _count_detections(paths, counts)
+    images = (last - first + 1) * len(patterns)
+    if rows == 0:  # an earlier run's table in OUT (other images at the same paths) would contradict this
+        for stale in (out / "particles.parquet", out / "detect-particles.json"):
+            stale.unlink(missing_ok=True)
+        raise AriSfmError(dataset.rig_path, f"particles.images: no particle image found in any of the {images} "
+                                            f"images (frames {first}..{last}): blank images, or --threshold-sigma / "
+                                            f"--min-peak too high (the partitions are in {out / 'parts'})")
+    warnings = [f"{cam}: no particle image found in any of its {last - first + 1} images (blank, covered, or "
+                f"another threshold needed)" for cam, n in counts.items() if n == 0]
+    for w in warnings:
+        log.warning(w)
+    merge_partitions(paths, out / "particles.parquet")
+    summary = DetectSummary(str(dataset.rig_path), (first, last), rows, counts,
                             time.perf_counter() - t0, workers if scheduler is None else None, scheduler,
-                            settings["options"])
+                            settings["options"], tuple(warnings))
     write_json_atomic(out / "detect-particles.json", summary.to_json())
     return summary
+
+
+def _count_detections(paths: list[Path], counts: dict[str, int]) -> int:
+    """The partitions' rows, adding each camera's to ``counts`` (one partition's camera column at a time)."""
+    import pyarrow.parquet as pq
+
+    rows = 0
+    for path in paths:
+        cams = pq.read_table(path, columns=["camera"]).column("camera").to_numpy(zero_copy_only=False)
+        names, n = np.unique(cams.astype(str), return_counts=True)
+        for name, k in zip(names.tolist(), n.tolist()):
+            counts[name] = counts.get(name, 0) + int(k)
+        rows += len(cams)
+    return rows

@@ -2,20 +2,33 @@
 
 Frames are independent: an experiment is cut into partitions (frame ranges),
 each partition is one task (``client.submit``), and each result is written as
-``OUT/parts/<name>.parquet`` (atomically) as soon as it arrives. A partition
-whose file exists is skipped, so a killed run resumes where it stopped;
-``OUT/parts/run.json`` records the settings, and partitions of a run with other
-settings are refused. The same code runs on a LocalCluster (``workers``),
-on an existing scheduler (``scheduler``: ``tcp://HOST:PORT``, e.g. a SLURM
-cluster started with dask-jobqueue) or, with ``workers=0``, in this process.
+``OUT/parts/<name>.parquet`` (atomically) as soon as it arrives. Partitions are
+made as they are submitted (a bounded number in flight), so memory does not grow
+with the number of frames. A partition whose file exists, made from the same
+inputs (its ``inputs`` key, kept in the file: e.g. the images' sizes and times),
+is skipped, so a killed run resumes where it stopped; ``OUT/parts/run.json``
+records the settings, and partitions of a run with other settings are refused.
+The same code runs on a LocalCluster (``workers``), on an existing scheduler
+(``scheduler``: ``tcp://HOST:PORT``, e.g. a SLURM cluster started with
+dask-jobqueue) or, with ``workers=0``, in this process.
+
+A cluster never makes a run hang: an address that does not answer as a Dask
+scheduler is refused within SCHEDULER_TIMEOUT_S, a run with no worker connected
+for ``worker_timeout_s`` stops with one error (a worker joining before that: it
+goes on, and says so), a task whose workers keep dying stops it too.
 """
 from __future__ import annotations
 
 import logging
+import math
+import socket
+import threading
+import time
 from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -25,7 +38,15 @@ from ari_sfm.io import read_structured, write_json_atomic
 log = logging.getLogger(__name__)
 
 PARTS = "parts"
-SCHEDULER_TIMEOUT_S = 20.0  # connecting to --scheduler
+SCHEDULER_TIMEOUT_S = 20.0  # connecting to --scheduler, and its first answer
+WORKER_TIMEOUT_S = 120.0  # a run with no Dask worker connected for this long stops
+worker_timeout: ContextVar[float] = ContextVar("worker_timeout", default=WORKER_TIMEOUT_S)  # what dask_client
+# waits when not told (the CLI's --worker-timeout sets it, for every command on Dask)
+WATCH_INTERVAL_S = 1.0  # how often the cluster's workers are counted
+WARN_AFTER_S = 5.0  # no worker for this long: said once (a LocalCluster's nanny restarts one within seconds)
+IN_FLIGHT_PER_THREAD = 2  # partitions submitted ahead, per worker thread (at least MIN_IN_FLIGHT)
+MIN_IN_FLIGHT = 4
+INPUTS_KEY = b"ari_sfm.inputs"  # a partition file's schema metadata: the key of the inputs it was made from
 
 
 class PartitionError(Exception):
@@ -42,11 +63,13 @@ class PartitionError(Exception):
 
 @dataclass(frozen=True)
 class Partition:
-    """A frame range [first, last] and the task arguments of those frames."""
+    """A frame range [first, last], the task arguments of those frames and the key of the inputs they are
+    read from ("" when run.json's settings say it all)."""
 
     first: int
     last: int
     args: tuple
+    inputs: str = ""
 
     @property
     def name(self) -> str:
@@ -57,6 +80,21 @@ def split_frames(frames: Sequence[int], per_partition: int) -> list[list[int]]:
     """Consecutive chunks of ``per_partition`` frames (sorted)."""
     frames = sorted(int(f) for f in frames)
     return [frames[k:k + per_partition] for k in range(0, len(frames), per_partition)]
+
+
+def frame_ranges(first: int, last: int, per_partition: int) -> Iterator[list[int]]:
+    """The frames first..last (inclusive) in consecutive chunks of ``per_partition``, made one at a time."""
+    for start in range(first, last + 1, per_partition):
+        yield list(range(start, min(start + per_partition, last + 1)))
+
+
+def check_workers(workers: Any) -> int:
+    """``workers`` as a count of LocalCluster processes: an integer >= 0 (0: this process)."""
+    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)):
+        raise AriSfmError("--workers", f"must be a whole number >= 0 (got {workers!r})")
+    if workers < 0:
+        raise AriSfmError("--workers", f"must be >= 0: Dask worker processes, 0 for this process (got {workers})")
+    return int(workers)
 
 
 def check_run_settings(out: Path, settings: dict[str, Any]) -> None:
@@ -87,10 +125,126 @@ def local_worker_environ() -> dict[str, Any]:
     return environ
 
 
+def check_scheduler_answers(address: str, timeout_s: float) -> None:
+    """Refuse an address that is no Dask scheduler before dask.distributed connects to it: its handshake
+    waits forever for a server that accepts the connection and says nothing (an HTTP server, the
+    dashboard's port). A scheduler speaks first: an 8-byte frame length, then its handshake."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        scheme, location = parse_address(address)
+        if scheme != "tcp":  # tls://, ucx://: dask's own connection timeout only
+            return
+        host, port = parse_host_port(location)
+    except (ValueError, TypeError) as exc:
+        raise AriSfmError("--scheduler", f"not a Dask scheduler address tcp://HOST:PORT ({address!r}: {exc})") from None
+    try:
+        sock = socket.create_connection((host, port), timeout=timeout_s)
+    except OSError as exc:
+        raise AriSfmError("--scheduler", f"cannot reach the Dask scheduler {address} "
+                                         f"({exc.strerror or exc or 'timed out'})") from None
+    with sock:
+        head = b""
+        deadline = time.monotonic() + timeout_s
+        try:
+            while len(head) < 8:
+                sock.settimeout(max(deadline - time.monotonic(), 1e-3))
+                chunk = sock.recv(8 - len(head))
+                if not chunk:
+                    break
+                head += chunk
+        except socket.timeout:
+            raise AriSfmError("--scheduler", f"{address} accepts connections but is not a Dask scheduler: it sent "
+                                             f"nothing in {timeout_s:g} s (an HTTP server, the dashboard's port?)"
+                              ) from None
+        except OSError as exc:
+            raise AriSfmError("--scheduler", f"cannot reach the Dask scheduler {address} ({exc.strerror or exc})"
+                              ) from None
+    if len(head) < 8:
+        raise AriSfmError("--scheduler", f"{address} closed the connection: not a Dask scheduler")
+    if not any(0 < int.from_bytes(head, order) <= 1 << 24 for order in ("little", "big")):
+        raise AriSfmError("--scheduler", f"{address} is not a Dask scheduler (it answered {head!r})")
+
+
+class WorkerWatch:
+    """Counts a client's workers every WATCH_INTERVAL_S (a daemon thread). With none connected for
+    ``timeout_s`` it cancels the client's tasks, so that whatever waits on them (``as_completed``,
+    ``gather``) returns, and keeps the reason in ``failure``. A worker back before then: it says so."""
+
+    def __init__(self, client: Any, address: str, timeout_s: float) -> None:
+        self.client = client
+        self.address = address
+        self.timeout_s = timeout_s
+        self.failure: str | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="ari-sfm-worker-watch", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10.0)
+
+    def _count(self) -> int | None:
+        """Worker threads connected to the scheduler; None when it does not answer."""
+        try:
+            return int(sum(self.client.nthreads(callback_timeout=max(5.0, WATCH_INTERVAL_S)).values()))
+        except Exception:  # noqa: BLE001 - a scheduler gone, a closed client: counted as no worker
+            return None
+
+    def _run(self) -> None:
+        missing_since = None
+        warned = False
+        while not self._stop.wait(WATCH_INTERVAL_S):
+            n = self._count()
+            if self._stop.is_set():
+                return
+            now = time.monotonic()
+            if n:
+                if warned:
+                    log.warning("a Dask worker is connected to %s again: going on", self.address)
+                missing_since, warned = None, False
+                continue
+            missing_since = now if missing_since is None else missing_since
+            waited = now - missing_since
+            if not warned and waited >= min(WARN_AFTER_S, self.timeout_s / 2):
+                log.warning("%s: waiting up to %g s (--worker-timeout)", self._what(n), self.timeout_s)
+                warned = True
+            if waited >= self.timeout_s:
+                self.failure = (f"{self._what(n)} for {self.timeout_s:g} s (killed, never started, or out of "
+                                "memory): start Dask workers and run the command again, or raise --worker-timeout")
+                self._cancel_all()
+                return
+
+    def _what(self, n: int | None) -> str:
+        return (f"no Dask worker connected to {self.address}" if n == 0 else
+                f"the Dask scheduler {self.address} does not answer")
+
+    def _cancel_all(self) -> None:
+        from distributed import Future
+
+        async def pending_keys() -> list:
+            return list(self.client.futures)
+
+        try:
+            keys = self.client.sync(pending_keys, callback_timeout=10.0)
+            self.client.cancel([Future(k, self.client) for k in keys], reason="no-workers", msg=self.failure)
+        except Exception:  # noqa: BLE001 - a client already closed has cancelled its tasks itself
+            pass
+
+
 @contextmanager
-def dask_client(workers: int, scheduler: str | None) -> Iterator[Any]:
+def dask_client(workers: int, scheduler: str | None, worker_timeout_s: float | None = None) -> Iterator[Any]:
     """A dask.distributed Client: on ``scheduler`` if given, else a LocalCluster of ``workers``
-    single-threaded processes; None (run in this process) when ``workers`` is 0 and no scheduler."""
+    single-threaded processes; None (run in this process) when ``workers`` is 0 and no scheduler.
+
+    While it is open a :class:`WorkerWatch` stops the run after ``worker_timeout_s`` (None: the
+    ``worker_timeout`` context variable, WORKER_TIMEOUT_S unless the CLI set it) without a worker. A
+    cluster's failures (no worker, a task that killed its workers, the scheduler gone) leave the block as
+    one AriSfmError naming ``--scheduler`` or ``--workers``."""
+    workers = check_workers(workers)
+    worker_timeout_s = worker_timeout.get() if worker_timeout_s is None else worker_timeout_s
+    if not (isinstance(worker_timeout_s, (int, float)) and math.isfinite(worker_timeout_s) and worker_timeout_s > 0):
+        raise AriSfmError("--worker-timeout", f"must be a number of seconds > 0 (got {worker_timeout_s!r})")
     if scheduler is None and workers == 0:
         yield None
         return
@@ -98,58 +252,167 @@ def dask_client(workers: int, scheduler: str | None) -> Iterator[Any]:
     from dask.distributed import Client, LocalCluster
 
     if scheduler is not None:
+        if not isinstance(scheduler, str) or not scheduler.strip():
+            raise AriSfmError("--scheduler", f"not a Dask scheduler address tcp://HOST:PORT ({scheduler!r})")
+        check_scheduler_answers(scheduler, SCHEDULER_TIMEOUT_S)
         try:
             client = Client(scheduler, timeout=f"{SCHEDULER_TIMEOUT_S}s")
-        except (OSError, TimeoutError) as exc:
+        except (OSError, TimeoutError, ValueError) as exc:
             raise AriSfmError("--scheduler", f"cannot reach the Dask scheduler {scheduler} ({exc})") from None
-        try:
-            yield client
-        finally:
-            client.close()
-        return
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": local_worker_environ()}):
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
-    client = Client(cluster)
+        cluster, where, address = None, "--scheduler", scheduler
+    else:
+        with dask.config.set({"distributed.nanny.pre-spawn-environ": local_worker_environ()}):
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
+        client = Client(cluster)
+        where, address = "--workers", cluster.scheduler_address
+    watch = WorkerWatch(client, address, worker_timeout_s)
+    failed = True
     try:
         yield client
+        failed = False
+    except BaseException as exc:
+        error = cluster_error(exc, watch, where, address)
+        if error is None:
+            raise
+        raise error from None
     finally:
-        client.close()
-        cluster.close()
+        watch.stop()
+        with _distributed_silenced(failed):  # its errors closing a client cut short: the run's one error says it
+            client.close()
+            if cluster is not None:
+                cluster.close()
 
 
-def run_partitions(task: Callable[..., dict[str, np.ndarray]], partitions: Sequence[Partition], out: Path,
+@contextmanager
+def _distributed_silenced(silenced: bool) -> Iterator[None]:
+    """dask.distributed's loggers quiet while a client cut short closes (it logs the cancellation of its
+    reconnection to a lost scheduler as an ERROR with a traceback)."""
+    if not silenced:
+        yield
+        return
+    names = [n for n in list(logging.root.manager.loggerDict) if n == "distributed" or n.startswith("distributed.")]
+    loggers = [logging.getLogger(n) for n in names]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        for lg, level in zip(loggers, levels):
+            lg.setLevel(level)
+
+
+def cluster_error(exc: BaseException, watch: WorkerWatch, where: str, address: str) -> AriSfmError | None:
+    """The one-line error of a cluster's failure, None for any other exception (an interrupt, a file's)."""
+    from distributed import KilledWorker
+    from distributed.comm.core import CommClosedError
+    from distributed.utils import CancelledError
+
+    if isinstance(exc, (KeyboardInterrupt, SystemExit, AriSfmError)):
+        return None
+    if not isinstance(exc, (Exception, CancelledError)):  # the CLI's SIGTERM, GeneratorExit
+        return None
+    if watch.failure is not None:
+        return AriSfmError(where, watch.failure)
+    if isinstance(exc, KilledWorker):
+        return AriSfmError(where, f"a task killed every Dask worker that ran it ({exc.allowed_failures + 1} times; "
+                                  f"out of memory?): run the command again with fewer frames per partition, or "
+                                  f"give the workers more memory")
+    if isinstance(exc, (CancelledError, CommClosedError)):
+        reason = getattr(exc, "reason", None) or (str(exc).splitlines()[0] if str(exc) else "its tasks were cancelled")
+        return AriSfmError(where, f"lost the Dask scheduler {address} ({reason}): run the command again")
+    return None
+
+
+def run_partitions(task: Callable[..., dict[str, np.ndarray]], partitions: Iterable[Partition], out: Path,
                    client: Any, on_done: Callable[[Partition, bool], None] | None = None) -> list[Path]:
-    """Run ``task(*partition.args)`` for every partition without a file yet; write each result
-    (a mapping of equal-length columns) to OUT/parts/<name>.parquet. Returns every partition's file,
-    in partition order. ``on_done(partition, skipped)`` after each one."""
-    from ari_sfm.io.particles import write_parquet_atomic
-
+    """Run ``task(*partition.args)`` for every partition without an up-to-date file yet; write each result
+    (a mapping of equal-length columns) to OUT/parts/<name>.parquet with the partition's ``inputs`` key.
+    ``partitions`` is consumed lazily: at most IN_FLIGHT_PER_THREAD per worker thread are submitted ahead.
+    Returns every partition's file, in partition order. ``on_done(partition, skipped)`` after each one."""
     parts = out / PARTS
     parts.mkdir(parents=True, exist_ok=True)
-    paths = [parts / f"{p.name}.parquet" for p in partitions]
-    todo = []
-    for p, path in zip(partitions, paths):
-        if path.is_file():
-            log.info("partition %s already written: skipped", p.name)
-            if on_done:
-                on_done(p, True)
-        else:
-            todo.append((p, path))
+    paths: list[Path] = []
+
+    def todo() -> Iterator[tuple[Partition, Path]]:
+        for p in partitions:
+            path = parts / f"{p.name}.parquet"
+            paths.append(path)
+            if _up_to_date(path, p.inputs):
+                log.info("partition %s already written: skipped", p.name)
+                if on_done:
+                    on_done(p, True)
+            else:
+                yield p, path
+
     if client is None:
-        for p, path in todo:
-            write_parquet_atomic(path, _result(lambda: task(*p.args)))
+        for p, path in todo():
+            _write_partition(path, _result(lambda: task(*p.args)), p.inputs)
             if on_done:
                 on_done(p, False)
         return paths
     from dask.distributed import as_completed
 
-    futures = {client.submit(task, *p.args, pure=False): (p, path) for p, path in todo}
-    for future in as_completed(futures):
-        p, path = futures[future]
-        write_parquet_atomic(path, _result(future.result))
+    pending = todo()
+    futures: dict[Any, tuple[Partition, Path]] = {}
+    threads = 0
+
+    def submit() -> list:
+        """Submit partitions up to the bound of tasks in flight; the new futures."""
+        nonlocal threads
+        threads = _threads(client, threads)
+        new = []
+        while len(futures) < max(MIN_IN_FLIGHT, IN_FLIGHT_PER_THREAD * threads):
+            item = next(pending, None)
+            if item is None:
+                break
+            future = client.submit(task, *item[0].args, pure=False)
+            futures[future] = item
+            new.append(future)
+        return new
+
+    queue = as_completed(submit())
+    while futures:
+        future = next(queue)
+        p, path = futures.pop(future)
+        _write_partition(path, _result(future.result), p.inputs)
+        future.release()
         if on_done:
             on_done(p, False)
+        queue.update(submit())
     return paths
+
+
+def _threads(client: Any, default: int) -> int:
+    """The cluster's worker threads now (``default`` when the scheduler does not answer at once)."""
+    try:
+        return int(sum(client.nthreads(callback_timeout=5.0).values()))
+    except Exception:  # noqa: BLE001 - the WorkerWatch deals with a scheduler gone
+        return default
+
+
+def _up_to_date(path: Path, inputs: str) -> bool:
+    """The partition's file exists and was made from the same inputs (else it is made again)."""
+    if not path.is_file():
+        return False
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        metadata = pq.read_schema(path).metadata or {}
+    except (pa.ArrowException, OSError):
+        log.warning("partition %s cannot be read: made again", path.name)
+        return False
+    if metadata.get(INPUTS_KEY, b"").decode() != inputs:
+        log.warning("partition %s was made from other inputs (changed images?): made again", path.name)
+        return False
+    return True
+
+
+def _write_partition(path: Path, columns: dict[str, Any], inputs: str) -> None:
+    from ari_sfm.io.particles import write_parquet_atomic
+
+    write_parquet_atomic(path, columns, metadata={INPUTS_KEY: inputs.encode()})
 
 
 def _result(get: Callable[[], Any]) -> Any:
@@ -159,10 +422,18 @@ def _result(get: Callable[[], Any]) -> Any:
         raise AriSfmError(exc.path, exc.message) from None
 
 
-def merge_partitions(paths: Sequence[Path]) -> Any:
-    """One pyarrow table of the partitions' files, in order."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
+def merge_partitions(paths: Sequence[Path], dest: Path, each: Callable[[Any], None] | None = None) -> int:
+    """Write the partitions' files, in order, as one parquet table ``dest`` (atomically), one partition in
+    memory at a time; ``each(table)`` sees each partition's table. Returns the number of rows."""
+    from ari_sfm.io.particles import write_tables_atomic
 
-    tables = [pq.read_table(p) for p in paths]
-    return pa.concat_tables(tables) if tables else None
+    def tables() -> Iterator[Any]:
+        import pyarrow.parquet as pq
+
+        for path in paths:
+            table = pq.read_table(path).replace_schema_metadata(None)
+            if each is not None:
+                each(table)
+            yield table
+
+    return write_tables_atomic(dest, tables())

@@ -12,22 +12,18 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 
 from ari_sfm.calibration import Calibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.io import calibration_to_json, load_calibration, parse_calibration, write_json_atomic
-from ari_sfm.io.particles import (
-    ParticleDataset,
-    load_particle_dataset,
-    read_detections,
-    write_parquet_atomic,
-)
+from ari_sfm.io.particles import ParticleDataset, load_particle_dataset, read_detections
 from ari_sfm.particles.engine import (
     Partition,
     check_run_settings,
+    check_workers,
     dask_client,
     merge_partitions,
     run_partitions,
@@ -75,6 +71,11 @@ class ParticlesSummary:
     partitions_total: int
     partitions_skipped: tuple[str, ...]  # resumed from an earlier run
     frames: Mapping[str, FrameSummary] = field(default_factory=dict)
+    detections_total: int = 0  # particle images in the table (rows repeating another exactly counted once)
+    detections_used: int = 0  # of them, those a reconstructed particle uses (matched_fraction = used / total)
+    matched_fraction_per_camera: Mapping[str, float] = field(default_factory=dict)
+    repeated_rows: int = 0  # table rows equal to an earlier row (frame, camera, u, v): left out
+    warnings: tuple[str, ...] = ()  # e.g. a matched fraction too low for the calibration to fit the images
 
     def to_json(self) -> dict[str, Any]:
         return {"format": SUMMARY_FORMAT, "dataset": self.dataset, "calibration": self.calibration,
@@ -85,6 +86,9 @@ class ParticlesSummary:
                 "particles_per_second": self.particles_per_second, "workers": self.workers,
                 "scheduler": self.scheduler,
                 "partitions": {"total": self.partitions_total, "skipped": list(self.partitions_skipped)},
+                "detections_total": self.detections_total, "detections_used": self.detections_used,
+                "matched_fraction_per_camera": dict(self.matched_fraction_per_camera),
+                "repeated_rows": self.repeated_rows, "warnings": list(self.warnings),
                 "frames": {f: m.to_json() for f, m in self.frames.items()}}
 
 
@@ -142,9 +146,10 @@ def check_calibration_fits(calibration: Calibration, dataset: ParticleDataset, p
         if tuple(calibration.cameras[name].image_size) != tuple(spec.image_size):
             raise AriSfmError(path, f"a calibration of another rig: {name} has image size "
                                     f"{list(calibration.cameras[name].image_size)}, the dataset's {list(spec.image_size)}")
-    if not calibration.spec.rays:
-        raise AriSfmError(path, f"model {calibration.model} has no rays through the window: particles need "
-                                "a model with one (exact, ari, rt)")
+    if not (calibration.spec.rays and calibration.spec.window):
+        what = "ignores the window (a plain camera)" if calibration.spec.rays else "has no rays through the window"
+        raise AriSfmError(path, f"model {calibration.model} {what}: particles need a model with rays through the "
+                                "window (exact, ari, rt)")
 
 
 def volume_for(dataset: ParticleDataset, calibration: Calibration, depth_range_mm: tuple[float, float] | None
@@ -195,16 +200,28 @@ def match_partition(calibration_json: dict, volume: Volume, tolerance_px: float,
     return out
 
 
+LOW_MATCHED_FRACTION = 0.2  # fewer of the particle images in a particle (all, or one camera's): the calibration
+# does not fit them (a drifted rig: 0 % at 0.5 px; another experiment's detections 0.1 %, random pixels 1.5 %;
+# a good calibration 84-100 % of simulated plain and tank-look images)
+
+
 def reconstruct_particles(dataset_path: str | Path, calibration_path: str | Path, out: str | Path,
                           options: MatchOptions = MatchOptions(), detections_path: str | Path | None = None,
-                          workers: int = 0, scheduler: str | None = None, progress: bool = False) -> ParticlesSummary:
+                          workers: int = 0, scheduler: str | None = None, progress: bool = False,
+                          worker_timeout_s: float | None = None) -> ParticlesSummary:
     """Match and triangulate every frame; write OUT/particles3d.parquet and OUT/particles3d.json.
 
     ``workers``: LocalCluster processes (0: this process); ``scheduler``: an existing Dask
-    scheduler's address instead. Returns the summary (its to_json() is particles3d.json).
+    scheduler's address instead; ``worker_timeout_s``: how long a run waits with no Dask worker
+    (:func:`ari_sfm.particles.engine.dask_client`). Returns the summary (its to_json() is particles3d.json);
+    its ``warnings`` (also logged) say when few particle images matched: a calibration that does not fit.
     """
     t0 = time.perf_counter()
     out = Path(out)
+    check_workers(workers)
+    fpp = options.frames_per_partition
+    if isinstance(fpp, bool) or not isinstance(fpp, int) or fpp < 1:
+        raise AriSfmError("--frames-per-partition", f"must be a whole number >= 1 (got {fpp!r})")
     calibration_path = Path(calibration_path)
     dataset, calibration = load_experiment(dataset_path, calibration_path, out)
     if not 2 <= options.min_cameras <= len(calibration.cameras):
@@ -215,43 +232,50 @@ def reconstruct_particles(dataset_path: str | Path, calibration_path: str | Path
         raise AriSfmError(dataset.rig_path, "particles: names no detections table: run `ari-sfm detect-particles` "
                                             "and pass its particles.parquet with --detections")
     detections = read_detections(det_path, dataset.cameras)
-    volume = volume_for(dataset, calibration, options.depth_range_mm)
     cameras = list(calibration.cameras)
     by_frame = detections.by_frame(cameras)
+    if not by_frame:
+        raise AriSfmError(det_path, "holds no particle image (0 rows): nothing to match (blank images? "
+                                    "see detect-particles' summary)")
+    volume = volume_for(dataset, calibration, options.depth_range_mm)
     cal_json = calibration_to_json(calibration)
     settings = {"task": "particles", "tolerance_px": options.tolerance_px, "min_cameras": options.min_cameras,
                 "depth_range_mm": None if options.depth_range_mm is None else list(options.depth_range_mm),
-                "frames_per_partition": options.frames_per_partition,
+                "frames_per_partition": fpp,
                 "calibration": str(Path(os.path.abspath(calibration_path))),
                 "calibration_sha256": _sha256(calibration_path),
                 "detections": str(Path(os.path.abspath(det_path))),
                 "detections_sha256": _sha256(det_path)}
     out.mkdir(parents=True, exist_ok=True)
     check_run_settings(out, settings)
-    partitions = []
-    for chunk in split_frames(by_frame, options.frames_per_partition):
-        pixels = [{c: detections.uv[by_frame[f][c]] for c in cameras} for f in chunk]
-        rows = [{c: by_frame[f][c] for c in cameras} for f in chunk]
-        partitions.append(Partition(chunk[0], chunk[-1], (cal_json, volume, options.tolerance_px,
-                                                          options.min_cameras, chunk, pixels, rows)))
+    chunks = split_frames(by_frame, fpp)
+
+    def partitions() -> Iterator[Partition]:  # made as submitted: the pixels of a few partitions at a time
+        for chunk in chunks:
+            pixels = [{c: detections.uv[by_frame[f][c]] for c in cameras} for f in chunk]
+            rows = [{c: by_frame[f][c] for c in cameras} for f in chunk]
+            yield Partition(chunk[0], chunk[-1], (cal_json, volume, options.tolerance_px, options.min_cameras,
+                                                  chunk, pixels, rows))
+
     skipped = []
     from tqdm import tqdm
 
-    with dask_client(workers, scheduler) as client, \
-            tqdm(total=len(partitions), disable=not progress, desc="matching", unit="partition") as bar:
+    with dask_client(workers, scheduler, worker_timeout_s) as client, \
+            tqdm(total=len(chunks), disable=not progress, desc="matching", unit="partition") as bar:
         def done(p: Partition, was_skipped: bool) -> None:
             bar.update(1)
             if was_skipped:
                 skipped.append(p.name)
 
-        paths = run_partitions(match_partition, partitions, out, client, done)
-    table = merge_partitions(paths)
-    cols = {name: table.column(name).to_numpy() for name in table.column_names} if table is not None else \
-        match_partition(cal_json, volume, options.tolerance_px, options.min_cameras, [], [], [])
-    write_parquet_atomic(out / "particles3d.parquet", cols)
+        paths = run_partitions(match_partition, partitions(), out, client, done)
+    tally = _Tally(cameras)
+    merge_partitions(paths, out / "particles3d.parquet", tally.add)
     elapsed = time.perf_counter() - t0
-    summary = _summary(cols, by_frame, cameras, options, volume, elapsed, workers, scheduler, skipped,
-                       len(partitions), calibration_path, det_path, dataset)
+    summary = _summary(tally, by_frame, cameras, options, volume, elapsed, workers, scheduler, skipped,
+                       len(chunks), calibration_path, det_path, dataset,
+                       0 if detections.repeated is None else int(detections.repeated.sum()))
+    for w in summary.warnings:
+        log.warning(w)
     write_json_atomic(out / "particles3d.json", summary.to_json())
     log.info("%d particles in %d frames -> %s", summary.particles, len(by_frame), out)
     warning = stale_calibration_warning(summary)
@@ -260,36 +284,76 @@ def reconstruct_particles(dataset_path: str | Path, calibration_path: str | Path
     return summary
 
 
-def _summary(cols: dict[str, np.ndarray], by_frame: dict[int, dict[str, np.ndarray]], cameras: list[str],
+class _Tally:
+    """What particles3d.json says of the particles, added up one partition's table at a time."""
+
+    def __init__(self, cameras: list[str]) -> None:
+        self.cameras = cameras
+        self.per_frame: dict[int, tuple[int, int]] = {}  # frame -> (particles, particle images used)
+        self.used_per_camera = dict.fromkeys(cameras, 0)
+        self.cameras_per_particle = np.zeros(len(cameras) + 1, np.int64)
+        self.gap_sum = 0.0
+        self.particles = 0
+
+    def add(self, table: Any) -> None:
+        frame = table.column("frame").to_numpy().astype(np.int64)
+        ncam = table.column("cameras").to_numpy().astype(np.int64)
+        uniq, inverse = np.unique(frame, return_inverse=True)
+        n = np.bincount(inverse, minlength=len(uniq))
+        used = np.bincount(inverse, weights=ncam, minlength=len(uniq)).astype(np.int64)
+        for f, k, u in zip(uniq.tolist(), n.tolist(), used.tolist()):
+            old = self.per_frame.get(f, (0, 0))
+            self.per_frame[f] = (old[0] + k, old[1] + u)
+        for cam in self.cameras:
+            self.used_per_camera[cam] += int((table.column(f"row_{cam}").to_numpy() >= 0).sum())
+        self.cameras_per_particle += np.bincount(ncam, minlength=len(self.cameras) + 1)[:len(self.cameras) + 1]
+        self.gap_sum += float(np.sum(table.column("ray_gap_mm").to_numpy()))
+        self.particles += len(frame)
+
+
+def _summary(tally: _Tally, by_frame: dict[int, dict[str, np.ndarray]], cameras: list[str],
              options: MatchOptions, volume: Volume, elapsed: float, workers: int, scheduler: str | None,
              skipped: list[str], n_partitions: int, calibration_path: Path, det_path: Path,
-             dataset: ParticleDataset) -> ParticlesSummary:
-    frame = np.asarray(cols["frame"], np.int64)
-    ncam = np.asarray(cols["cameras"], np.int64)
-    uniq, inverse = np.unique(frame, return_inverse=True)
-    n_of = dict(zip(uniq.tolist(), np.bincount(inverse, minlength=len(uniq)).tolist()))
-    used_of = dict(zip(uniq.tolist(), np.bincount(inverse, weights=ncam, minlength=len(uniq)).astype(int).tolist()))
+             dataset: ParticleDataset, repeated_rows: int) -> ParticlesSummary:
     frames = {}
     used_total = det_total = 0
+    det_per_camera = dict.fromkeys(cameras, 0)
     for f, per_cam in sorted(by_frame.items()):
         n_det = sum(len(r) for r in per_cam.values())
-        used = used_of.get(f, 0)
-        frames[str(f)] = FrameSummary(n_of.get(f, 0), {c: int(len(per_cam[c])) for c in cameras},
-                                      used / n_det if n_det else 0.0)
+        n, used = tally.per_frame.get(f, (0, 0))
+        frames[str(f)] = FrameSummary(n, {c: int(len(per_cam[c])) for c in cameras}, used / n_det if n_det else 0.0)
         used_total += used
         det_total += n_det
-    gap = np.asarray(cols["ray_gap_mm"], float)
-    n_particles = int(len(frame))
+        for c in cameras:
+            det_per_camera[c] += len(per_cam[c])
+    fraction = used_total / det_total if det_total else 0.0
+    per_camera = {c: tally.used_per_camera[c] / det_per_camera[c] for c in cameras if det_per_camera[c]}
     return ParticlesSummary(
         dataset=str(dataset.rig_path), calibration=str(calibration_path), detections=str(det_path),
         tolerance_px=options.tolerance_px, min_cameras=options.min_cameras,
         volume={"min_mm": volume.min_mm.tolist(), "max_mm": volume.max_mm.tolist()} if np.isfinite(
             volume.min_mm).all() and np.isfinite(volume.max_mm).all() else {"depth_range_mm": list(options.depth_range_mm)},
-        particles=n_particles,
-        cameras_per_particle={str(k): int(v) for k, v in enumerate(np.bincount(
-            np.asarray(cols["cameras"], np.int64), minlength=len(cameras) + 1)) if v},
-        matched_fraction=used_total / det_total if det_total else 0.0,
-        mean_ray_gap_mm=float(gap.mean()) if len(gap) else None,
-        time_s=elapsed, particles_per_second=n_particles / elapsed if elapsed > 0 else None,
+        particles=tally.particles,
+        cameras_per_particle={str(k): int(v) for k, v in enumerate(tally.cameras_per_particle) if v},
+        matched_fraction=fraction,
+        mean_ray_gap_mm=tally.gap_sum / tally.particles if tally.particles else None,
+        time_s=elapsed, particles_per_second=tally.particles / elapsed if elapsed > 0 else None,
         workers=workers if scheduler is None else None, scheduler=scheduler,
-        partitions_total=n_partitions, partitions_skipped=tuple(skipped), frames=frames)
+        partitions_total=n_partitions, partitions_skipped=tuple(skipped), frames=frames,
+        detections_total=det_total, detections_used=used_total, matched_fraction_per_camera=per_camera,
+        repeated_rows=repeated_rows,
+        warnings=tuple(_match_warnings(fraction, per_camera, det_per_camera, det_total, dataset, calibration_path)))
+
+
+def _match_warnings(fraction: float, per_camera: Mapping[str, float], det_per_camera: Mapping[str, int],
+                    det_total: int, dataset: ParticleDataset, calibration_path: Path) -> list[str]:
+    """What a low matched fraction means, and what to do."""
+    fix = (f"run ari-sfm self-calibrate {dataset.root} --calibration {calibration_path} -o OUT and match with "
+           "OUT/calibration.json (or check that the detections are this experiment's)")
+    if fraction < LOW_MATCHED_FRACTION:
+        return [f"only {100 * fraction:.1f} % of the {det_total} particle images (detections) were matched into "
+                f"particles: the calibration does not fit these images; {fix}"]
+    out = [f"{cam}: only {100 * f:.1f} % of its particle images were matched: the calibration does not fit this "
+           f"camera's images (drifted?); {fix}" for cam, f in per_camera.items() if f < LOW_MATCHED_FRACTION]
+    out += [f"{cam}: no particle image in the detections" for cam, n in det_per_camera.items() if n == 0]
+    return out
