@@ -92,19 +92,6 @@ class ParticlesSummary:
                 "frames": {f: m.to_json() for f, m in self.frames.items()}}
 
 
-STALE_MATCHED_FRACTION = 0.3  # fewer particle images matched: the calibration does not fit these images
-
-
-def stale_calibration_warning(summary: ParticlesSummary) -> str | None:
-    """A warning when so few particle images were matched that the calibration cannot be of the rig as it
-    recorded them (a camera moved since: 0.05 deg loses almost every particle at 0.5 px), else None."""
-    if summary.matched_fraction >= STALE_MATCHED_FRACTION:
-        return None
-    return (f"only {100 * summary.matched_fraction:.1f} % of the particle images were matched: the calibration "
-            "does not fit these images (a camera moved since it was made?); correct it from the particles with "
-            "`ari-sfm self-calibrate`")
-
-
 @dataclass(frozen=True)
 class MatchOptions:
     """How frames are matched."""
@@ -278,9 +265,6 @@ def reconstruct_particles(dataset_path: str | Path, calibration_path: str | Path
         log.warning(w)
     write_json_atomic(out / "particles3d.json", summary.to_json())
     log.info("%d particles in %d frames -> %s", summary.particles, len(by_frame), out)
-    warning = stale_calibration_warning(summary)
-    if warning:
-        log.warning("%s", warning)
     return summary
 
 
