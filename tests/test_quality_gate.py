@@ -286,15 +286,15 @@ def test_a_wrong_medium_index_fails(fine):
 @pytest.mark.parametrize("seed", [1, 2])
 def test_a_3d_bodys_lens_distortion_is_estimated_by_default(seed):
     """A 4-camera rig behind 6 mm of glass into water, one view of a 15 mm deep body, lens k1 -0.05, no
-    stacking: the views determine the lens (the body's depth separates it from the window), so the default
-    estimates it (was: not estimated, 0.26 px fit, 3.6 x the floor, rotations 0.3-0.5 deg off, gate ok).
-    The paraxial stage absorbs the water into free distortion on these seeds, so the exact stage ends far
-    off; the gate fails that and the next start (distortion held until the Snell stage) reaches the noise.
-    Held at zero (--no-distortion), the fit is the lens' misfit and the gate says so."""
+    stacking: the views determine the lens (the body's depth separates it from the window). The default start
+    leaves it out (a free lens opens wrong minima where there is none to find), fits 3.6 x the floor, which
+    the gate fails; the next start estimates it in the Snell stage (held until then: the paraxial stage would
+    absorb the water into free distortion) and reaches the noise. Held at zero (--no-distortion), the fit is
+    the lens' misfit and the gate says so."""
     scene = make_scene("body3d_shallow", seed=seed, sigma_px=0.05, dist=[-0.05, 0.0, 0.0, 0.0, 0.0])
     cal = calibrate(scene.dataset, model="exact", uncertainty=False)
     q = cal.quality
-    assert q.ok and q.starts == ("default", "lens from the Snell stage")
+    assert q.ok and q.starts == ("default", "lens distortion estimated")
     assert [s["distortion"] for s in cal.extra["stages"]] == [False, True]
     assert q.robust_rmse_px < 1.1 * q.floor_rmse_px
     errors = calibration_errors(cal, parse_calibration({k: v for k, v in scene.truth.items() if k != "target"}))
