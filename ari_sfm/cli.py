@@ -16,6 +16,7 @@ import numpy as np
 
 from . import _startup
 from .colmap_refine import settings as REFINE
+from .cli_config import blame_config, config_option
 from .cli_checks import check_not_an_output, check_not_input_folder, check_number, check_output_folder
 from .errors import AriSfmError
 from .models.registry import BUNDLE, CALIBRATABLE, COMPARED, MODELS, model_spec
@@ -139,7 +140,7 @@ def user_errors(fn):
             if _signalled:  # the signal surfaced as another error (e.g. inside a native import)
                 _exit_interrupted(terminated=_signalled[-1] == signal.SIGTERM)
             if isinstance(exc, AriSfmError):
-                click.echo(f"error: {exc}", err=True)
+                click.echo(f"error: {blame_config(exc)}", err=True)
                 sys.exit(1)
             if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EPIPE, errno.EIO, errno.EDQUOT):
                 # the results are written (atomically); what failed is writing the summary to a full or closed
@@ -297,6 +298,7 @@ def _calibration_record(values: dict, **more):
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder for calibration.json.")
 @_calibration_options
+@config_option
 @user_errors
 def calibrate_cmd(dataset: Path, out: Path, model: str | None, **options) -> None:
     """Calibrate DATASET; write OUT/calibration.json (and OUT/observations.json when detected here).
@@ -324,6 +326,7 @@ def calibrate_cmd(dataset: Path, out: Path, model: str | None, **options) -> Non
 @_calibration_options
 @click.option("--truth", type=click.Path(path_type=Path), default=None,
               help="A simulator's truth.json: also report the reconstruction's 3D error against it.")
+@config_option
 @user_errors
 def run(dataset: Path, out: Path, model: str | None, truth: Path | None, **options) -> None:
     """The pipeline: detect corners when needed, calibrate, reconstruct (frames seen by two cameras), report.
@@ -788,6 +791,7 @@ def detect_particles_cmd(dataset: Path, out: Path, diameter_px: float | None, th
 @click.option("--frames-per-partition", type=int, default=50, show_default=True)
 @_workers_option
 @_scheduler_option
+@config_option
 @user_errors
 def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path | None, tolerance_px: float,
                   min_cameras: int, depth_range: tuple[float, float] | None, frames_per_partition: int, workers: int,
@@ -849,6 +853,7 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
               help="World z range (mm) of the particles, instead of rig.yaml's particles.volume_mm.")
 @_workers_option
 @_scheduler_option
+@config_option
 @user_errors
 def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: Path | None, frames: int,
                        coarse_frames: int, tolerance_px: float, max_tolerance_px: float, final_tolerance_px: float, min_cameras: int,
@@ -944,17 +949,34 @@ PORT_SURVEY = ("rendered images of a lawn-mower survey by one camera in a flat-p
 @main.command()
 @user_errors
 def doctor() -> None:
-    """Check that every dependency imports (open3d needs the system library libusb-1.0-0)."""
-    from .deps import check_dependencies
+    """Check every dependency: its version, or why it does not load (open3d needs the system library
+    libusb-1.0-0); and whether the compiled kernels shipped with ari-sfm run on this machine.
 
-    versions = check_dependencies()
+    Exit code 1: a required dependency does not load (optional ones, such as optv, are only reported)."""
+    import platform
+
+    from .deps import check_dependencies
+    from .kernel_cache import shipped_usable
+
+    found = check_dependencies()
     if _signalled:  # an import turned Ctrl-C into its own error (pycolmap: "Cannot import the C++ backend")
         _exit_interrupted(terminated=_signalled[-1] == signal.SIGTERM)
-    bad = False
-    for name, version in versions.items():
-        click.echo(f"{name:12s} {version}")
-        bad |= version.startswith("error")
-    sys.exit(1 if bad else 0)
+    from importlib import metadata
+
+    click.echo(f"{'ari-sfm':12s} {metadata.version('ari-sfm')} (Python {platform.python_version()}, "
+               f"{platform.machine()})")
+    for d in found:
+        if d.ok:
+            state = d.version
+        elif d.optional:
+            state = f"not available ({d.error}; optional: {d.purpose})"
+        else:
+            state = f"error: {d.error}"
+        click.echo(f"{d.name:12s} {state}")
+    usable, why = shipped_usable()
+    click.echo(f"{'kernels':12s} " + (f"compiled, shipped: {why}" if usable else
+                                       f"compiled on first use by numba ({why})"))
+    sys.exit(1 if any(not d.ok and not d.optional for d in found) else 0)
 
 
 QUALITY_FAILED_EXIT = 3  # the calibration was written but failed its quality gate (ari_sfm.quality)

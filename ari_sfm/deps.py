@@ -1,6 +1,7 @@
 """Optional heavy dependencies, imported with one clear message when they cannot load."""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 from .errors import AriSfmError
@@ -73,20 +74,85 @@ def import_pycolmap(min_version: tuple[int, int] = (3, 11)) -> Any:
     return pycolmap
 
 
-def check_dependencies() -> dict[str, str]:
-    """Versions of the libraries ari-sfm rests on, or the one-line reason one fails."""
-    out = {}
-    for name in ("numpy", "scipy", "cv2", "gtsam", "pycolmap", "open3d", "yaml", "matplotlib"):
+@dataclass(frozen=True)
+class Dependency:
+    """One library ari-sfm rests on, as ``ari-sfm doctor`` found it.
+
+    Attributes:
+        name: the name a user installs it by (pip's, or the system library's for libusb).
+        version: its version when it loaded, else None.
+        error: why it did not load (one line), else None.
+        optional: not needed by ari-sfm itself (``optv``: OpenPTV's library, for the benchmarks).
+        purpose: what ari-sfm uses it for.
+    """
+
+    name: str
+    version: str | None
+    error: str | None
+    optional: bool
+    purpose: str
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+
+# (install name, import name, purpose, optional): every dependency of pyproject.toml, and the optional optv
+DEPENDENCIES: tuple[tuple[str, str, str, bool], ...] = (
+    ("numpy", "numpy", "arrays", False),
+    ("scipy", "scipy", "least squares, KD-trees", False),
+    ("numba", "numba", "the compiled physics", False),
+    ("opencv", "cv2", "detection, Zhang, PnP", False),
+    ("gtsam", "gtsam", "the factor graph", False),
+    ("pycolmap", "pycolmap", "COLMAP models, sfm", False),
+    ("open3d", "open3d", "reconstruction metrics, references (needs libusb-1.0-0)", False),
+    ("pyyaml", "yaml", "rig.yaml, --config", False),
+    ("click", "click", "the command line", False),
+    ("tqdm", "tqdm", "progress bars", False),
+    ("matplotlib", "matplotlib", "the report's figures", False),
+    ("pyarrow", "pyarrow", "particle tables (parquet)", False),
+    ("dask", "dask", "frames on a cluster", False),
+    ("distributed", "distributed", "dask's scheduler and workers", False),
+    ("plotly", "plotly", "the report's 3D view", False),
+    ("optv", "optv", "OpenPTV's library: benchmarks beside OpenPTV (pip install optv)", True),
+)
+
+
+def _version(install_name: str, module: Any) -> str:
+    """The installed distribution's version (gtsam has no ``__version__``; cv2's comes from
+    opencv-contrib-python-headless), else the module's ``__version__``."""
+    from importlib import metadata
+
+    import_name = getattr(module, "__name__", install_name)
+    for dist in (install_name, *metadata.packages_distributions().get(import_name, [])):
         try:
-            if name == "open3d":
-                mod = require_open3d()
-            elif name == "pycolmap":
-                mod = import_pycolmap()  # without glog's SIGTERM handler
-            else:
-                mod = __import__(name)
-            out[name] = getattr(mod, "__version__", "installed")
+            return metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            continue
+    version = getattr(module, "__version__", None)
+    return version if isinstance(version, str) and version else "installed (version unknown)"
+
+
+def _load(install_name: str, import_name: str) -> Any:
+    if import_name == "open3d":
+        return require_open3d()
+    if import_name == "pycolmap":
+        return import_pycolmap()  # without glog's SIGTERM handler
+    import importlib
+
+    return importlib.import_module(import_name)
+
+
+def check_dependencies() -> list[Dependency]:
+    """Import every library ari-sfm rests on (and the optional ones): each one's version, or why it fails."""
+    out = []
+    for name, import_name, purpose, optional in DEPENDENCIES:
+        try:
+            module = _load(name, import_name)
+            out.append(Dependency(name, _version(name, module), None, optional, purpose))
         except AriSfmError as exc:
-            out[name] = f"error: {exc}"
+            out.append(Dependency(name, None, exc.message, optional, purpose))
         except Exception as exc:  # noqa: BLE001 - report every failure in one line
-            out[name] = f"error: {type(exc).__name__}: {exc}"
+            what = "not installed" if isinstance(exc, ModuleNotFoundError) else f"{type(exc).__name__}: {exc}"
+            out.append(Dependency(name, None, " ".join(what.split()), optional, purpose))
     return out

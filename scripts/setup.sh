@@ -2,8 +2,8 @@
 # Set up ari-sfm in ./.venv on a fresh Linux machine (Python >= 3.10):
 # the system library open3d needs (libusb-1.0-0, via apt-get where possible),
 # then the package and its test extras, editable, and its kernels compiled.
-#   --tests  also install what the tests need beyond Python: Chromium
-#            (Debian package chromium) to render report.html headless.
+#   --tests  also install what the tests and the documentation need: the docs extra (MkDocs,
+#            Material, mkdocstrings) and Chromium (Debian package chromium) to render report.html headless.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -37,7 +37,9 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip
-.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]"
+extras="test"
+if [ "$tests" -eq 1 ]; then extras="test,docs"; fi
+.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[$extras]"
 # The kernels compiled as a built wheel ships them (ari_sfm/_compiled, ~1 min): the first run
 # does not compile them (a kernel module edited later is compiled by numba on first use).
 rm -rf ari_sfm/_compiled

@@ -166,3 +166,115 @@ def test_detect_without_images_is_one_line_and_writes_nothing(sim_dir, tmp_path)
     lines = [ln for ln in r.output.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: ") and "rig.yaml" in lines[0] and "no images" in lines[0]
     assert not (tmp_path / "ds-detections").exists()
+
+
+# --------------------------------------------------------------------------- --config FILE
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+def test_config_file_sets_options_and_the_command_line_overrides_it(sim_dir, tmp_path):
+    """`model: ari` and `distortion: true` from the file are applied (the calibration is the paper's model with
+    a lens); `--model exact --no-distortion` on the command line win over the same file; `out` may come
+    from it too."""
+    cfg = _write(tmp_path / "run.yaml", f"model: ari\ndistortion: true\nhuber-px: 0.5\nout: {tmp_path / 'a'}\n")
+    r = CliRunner().invoke(main, ["calibrate", str(sim_dir / "dataset"), "--config", str(cfg)])
+    assert r.exit_code == 0, r.output
+    cal = json.loads((tmp_path / "a" / "calibration.json").read_text())
+    assert cal["model"] == "ari" and any(abs(k) > 1e-6 for k in cal["cameras"]["cam0"]["dist"])
+    r = CliRunner().invoke(main, ["calibrate", str(sim_dir / "dataset"), "--config", str(cfg), "-o",
+                                  str(tmp_path / "b"), "--model", "exact", "--no-distortion"])
+    assert r.exit_code == 0, r.output
+    assert not (tmp_path / "a" / "b").exists()
+    cal = json.loads((tmp_path / "b" / "calibration.json").read_text())
+    assert cal["model"] == "exact" and cal["cameras"]["cam0"]["dist"] == [0.0] * 5
+
+
+def test_config_values_reach_the_particle_commands(tmp_path):
+    """particles and self-calibrate take --config: their values go through each option's own checks, and a
+    value the command refuses is told against the file and the key."""
+    for command, text, needle in (
+            ("particles", "tolerance_px: -2\n", "tolerance_px: must be > 0"),
+            ("self-calibrate", "cells: [3, 3, 0]\n", "cells: must be >= 1"),
+            ("particles", "depth_range: [5, -5]\n", "ZMAX must exceed ZMIN")):
+        cfg = _write(tmp_path / f"{command}.yaml", text)
+        r = CliRunner().invoke(main, [command, str(tmp_path), "--calibration", str(tmp_path / "c.json"),
+                                      "-o", str(tmp_path / "out"), "--config", str(cfg)])
+        lines = [ln for ln in r.output.splitlines() if ln.strip()]
+        assert r.exit_code == 1 and len(lines) == 1 and needle in lines[0], (command, r.output)
+        if "ZMAX" not in needle:  # --depth-range's pair check names the option, not one value
+            assert lines[0].startswith(f"error: {cfg}: "), r.output
+    assert not (tmp_path / "out").exists()
+
+
+CONFIG_ERRORS = {
+    "unknown key": ("huber: 1\n", "huber: not an option of `ari-sfm calibrate`"),
+    "argument": ("dataset: x\n", "dataset: is an argument"),
+    "bad float": ("huber_px: abc\n", "huber_px: 'abc' is not a valid float"),
+    "bool for a number": ("huber_px: true\n", "huber_px: must be a number"),
+    "bad choice": ("backend: fast\n", "backend: 'fast' is not one of"),
+    "bad flag": ("distortion: 3\n", "distortion: must be true or false"),
+    "out of range": ("huber_px: -1\n", "huber_px: must be >= 0"),
+    "not a mapping": ("[1, 2]\n", "must be a mapping"),
+    "malformed": ("model: [ari\n", "malformed YAML"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CONFIG_ERRORS))
+def test_config_errors_are_one_line_naming_the_file_and_the_key(case, sim_dir, tmp_path):
+    text, needle = CONFIG_ERRORS[case]
+    cfg = _write(tmp_path / "bad.yaml", text)
+    out = tmp_path / "out"
+    r = CliRunner().invoke(main, ["calibrate", str(sim_dir / "dataset"), "-o", str(out), "--config", str(cfg)])
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert r.exit_code == 1 and len(lines) == 1, r.output
+    assert lines[0].startswith(f"error: {cfg}: ") and needle in lines[0], lines[0]
+    assert not (out / "calibration.json").exists()
+
+
+def test_config_option_is_in_each_commands_help():
+    for command in ("calibrate", "run", "particles", "self-calibrate"):
+        r = CliRunner().invoke(main, [command, "--help"])
+        assert r.exit_code == 0 and "--config FILE" in r.output and "override" in r.output, command
+
+
+# --------------------------------------------------------------------------- doctor
+
+
+def test_doctor_prints_every_dependency_with_its_version_and_the_kernels():
+    from importlib import metadata
+
+    from ari_sfm.deps import DEPENDENCIES
+    from ari_sfm.kernel_cache import shipped_usable
+
+    r = CliRunner().invoke(main, ["doctor"])
+    assert r.exit_code == 0, r.output
+    lines = {ln.split()[0]: ln.split(None, 1)[1] for ln in r.output.splitlines() if ln.strip()}
+    assert [name for name, *_ in DEPENDENCIES] == [n for n in lines if n not in ("ari-sfm", "kernels")]
+    for name in ("numpy", "scipy", "numba", "gtsam", "pycolmap", "open3d", "pyarrow", "dask", "distributed",
+                 "plotly", "tqdm", "click", "matplotlib"):
+        assert lines[name] == metadata.version(name), (name, lines[name])  # gtsam too: it has no __version__
+    assert lines["pyyaml"] == metadata.version("pyyaml")
+    assert lines["opencv"].split(".")[:2] == metadata.version("opencv-contrib-python-headless").split(".")[:2]
+    try:
+        assert lines["optv"] == metadata.version("optv")
+    except metadata.PackageNotFoundError:  # optional: reported, not an error
+        assert lines["optv"].startswith("not available (not installed; optional")
+    usable, why = shipped_usable()
+    assert lines["kernels"].startswith("compiled, shipped" if usable else "compiled on first use") and why in lines["kernels"]
+
+
+def test_doctor_fails_when_a_required_dependency_does_not_import(monkeypatch):
+    """A missing required library: its line says so and doctor exits 1; a missing optional one does not fail."""
+    import sys as _sys
+
+    monkeypatch.setitem(_sys.modules, "tqdm", None)  # import tqdm -> ModuleNotFoundError
+    monkeypatch.setitem(_sys.modules, "optv", None)
+    r = CliRunner().invoke(main, ["doctor"])
+    assert r.exit_code == 1, r.output
+    lines = {ln.split()[0]: ln.split(None, 1)[1] for ln in r.output.splitlines() if ln.strip()}
+    assert lines["tqdm"] == "error: not installed" and lines["optv"].startswith("not available")
+    assert lines["numpy"] and not lines["numpy"].startswith("error")
