@@ -45,7 +45,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ari_sfm.particles.background import estimate_background, opening_size
+from ari_sfm.particles.background import Background, estimate_background, opening_size
 from ari_sfm.particles.engine import PartitionError
 
 log = logging.getLogger(__name__)
@@ -69,6 +69,11 @@ MIN_SPLIT_PX = 0.8  # a pair fitted closer than this stays one image
 MAX_LOG_OVERSHOOT = 1.0  # a fitted Gaussian's peak is at most e times its peak pixel (a flat fit's cap)
 MODEL_NOISE = 0.03  # the shape fit's relative noise floor per pixel (shot noise, a profile not quite Gaussian)
 MODEL_RADIUS_SIGMAS = 4.0  # a particle's fitted Gaussian is subtracted out to this many of the hint's sigmas
+GLARE_LEVEL = 0.5  # no image where the background is above this fraction of full scale (glare, near saturation)
+GLARE_NOISE = 4.0  # nor where the local noise exceeds this many times the frame's typical (glare, texture)
+BRIGHT_QUANTILE = 0.99  # the frame's bright particle images: this quantile of the candidates' peaks ...
+BRIGHT_COUNT = 10  # ... or the BRIGHT_COUNT-th brightest in a frame of fewer than BRIGHT_COUNT / (1 - quantile)
+SHEET_EDGE = math.exp(-2.0)  # a light sheet's edge (its e^-2 thickness): the default relative brightness floor
 
 
 @dataclass(frozen=True)
@@ -92,7 +97,10 @@ class DetectSummary:
 
 @dataclass(frozen=True)
 class DetectOptions:
-    """How particle images are found."""
+    """How particle images are found. The threshold: ``threshold_sigma`` local noise sigmas of the image
+    smoothed at half a particle's sigma, at least ``min_peak`` and ``threshold`` grey levels above the local
+    background. An image's pixels: those 4-connected to its brightest above the threshold (as OpenPTV's
+    target_recognition counts them); sizes left None follow the diameter hint."""
 
     diameter_px: float = 3.0  # e^-2 diameter hint (rig.yaml particles.diameter_px)
     threshold_sigma: float = 5.0  # smoothed peak above the local background, in units of its local noise
@@ -100,6 +108,34 @@ class DetectOptions:
     max_width_ratio: float = 2.5  # a blob wider than this times the hint's image (its sigma) is none: dropped
     max_elongation: float = 1.2  # longer than wide by this beyond the noise: fitted as one or two (step 6)
     background_px: int = 32  # blocks of the local background's offset and of the local noise
+    # grey levels above the local background for a peak and for a pixel of an image (OpenPTV's grey
+    # threshold); a mapping: per camera (cameras not in it: none); None: the noise alone decides
+    threshold: float | Mapping[str, float] | None = None
+    min_pixels: int | None = None  # at least this many pixels (None: half the hint's e^-2 disc, pi d^2 / 8)
+    max_pixels: int | None = None  # at most (None: twice the e^-2 disc of an image max_width_ratio x the hint)
+    min_span_px: int | None = None  # at least this wide along u and along v (None: d / sqrt 2, >= 1)
+    max_span_px: int | None = None  # at most (None: no limit but max_pixels)
+    min_sum: float = 0.0  # their grey sum above the local background at least this (OpenPTV's sumg_min)
+    relative_floor: float = SHEET_EDGE  # peak >= this x the frame's bright images' (0: none; see step 4)
+
+    def for_camera(self, camera: str) -> "DetectOptions":
+        """These options with ``threshold`` resolved for one camera."""
+        from dataclasses import replace
+
+        if isinstance(self.threshold, Mapping):
+            value = self.threshold.get(camera)
+            return replace(self, threshold=None if value is None else float(value))
+        return self
+
+    def pixel_limits(self) -> tuple[int, int, int, int]:
+        """min_pixels, max_pixels, min_span_px, max_span_px with the hint's defaults filled in."""
+        d = self.diameter_px
+        lo = self.min_pixels if self.min_pixels is not None else max(1, math.ceil(math.pi * d * d / 8.0 - 1e-9))
+        hi = (self.max_pixels if self.max_pixels is not None
+              else math.ceil(math.pi * (self.max_width_ratio * d) ** 2 / 2.0))
+        span_lo = self.min_span_px if self.min_span_px is not None else max(1, int(d / math.sqrt(2.0) + 1e-9))
+        span_hi = self.max_span_px if self.max_span_px is not None else 1 << 30
+        return int(lo), int(hi), int(span_lo), int(span_hi)
 
 
 def _grey(image: np.ndarray) -> tuple[np.ndarray, float, float, np.ndarray | None]:
@@ -119,7 +155,8 @@ def _grey(image: np.ndarray) -> tuple[np.ndarray, float, float, np.ndarray | Non
 def detect_particles_in_image(image: np.ndarray, options: DetectOptions = DetectOptions()
                               ) -> tuple[np.ndarray, np.ndarray]:
     """Centres (N, 2) (OpenCV pixel convention) and peak intensities above the local background (N,),
-    in the image's grey levels."""
+    in the image's grey levels. ``options.threshold`` must be a number or None here
+    (:meth:`DetectOptions.for_camera`)."""
     import cv2
 
     from ari_sfm.particles import detect_kernels as K
@@ -129,19 +166,25 @@ def detect_particles_in_image(image: np.ndarray, options: DetectOptions = Detect
     empty = (np.empty((0, 2)), np.empty(0))
     if h < 3 or w < 3:
         return empty
+    if isinstance(options.threshold, Mapping):
+        raise ValueError("DetectOptions.threshold is a mapping per camera: resolve it with for_camera()")
+    grey_threshold = float(options.threshold or 0.0)
     sigma = options.diameter_px / 4.0
-    block = int(options.background_px)
-    background = estimate_background(img, options.diameter_px, block, quantum, source)
+    background = estimate_background(img, options.diameter_px, int(options.background_px), quantum, source)
     res = img - background.level
     noise = background.noise
     clean = K.without_hot_pixels(res, noise, 1.0 / (HOT_SIGMA_PX * HOT_SIGMA_PX))
     s_smooth = max(SMOOTH_FRACTION * sigma, 0.3)
     smooth = cv2.GaussianBlur(clean, (0, 0), s_smooth, borderType=cv2.BORDER_REPLICATE)
-    ys, xs = K.local_maxima(smooth, noise, options.threshold_sigma * _smoothing_gain(s_smooth),
-                            float(options.min_peak))
+    factor = options.threshold_sigma * _smoothing_gain(s_smooth)  # the threshold in pixel noise sigmas
+    floor = max(float(options.min_peak), grey_threshold)
+    ys, xs = K.local_maxima(smooth, noise, factor, floor)
     if len(xs):
         blob = _near_saturated_blob(img, saturation, options.diameter_px)
-        ok = _supported(clean, ys, xs, noise[ys, xs]) & ~blob[ys, xs]
+        ok = _supported(clean, ys, xs, noise[ys, xs]) & ~blob[ys, xs] & ~_in_glare(background, ys, xs, saturation)
+        ys, xs = ys[ok], xs[ok]
+    if len(xs):
+        ok = _usable(clean, noise, ys, xs, options, factor, floor)
         ys, xs = ys[ok], xs[ok]
     if not len(xs):
         return empty
@@ -149,6 +192,38 @@ def detect_particles_in_image(image: np.ndarray, options: DetectOptions = Detect
     fit = _deblended_fit(clean, noise, ys, xs, sigma, saturated, options.max_elongation)
     single = _single(fit, sigma, options.max_width_ratio, options.max_elongation)
     return fit.uv[single], fit.peak[single]
+
+
+def _in_glare(background: Background, ys: np.ndarray, xs: np.ndarray, saturation: float) -> np.ndarray:
+    """(N,) True where the background is glare: above GLARE_LEVEL of full scale (a particle there clips
+    within half the range, and what stands out is noise on the glare), or its local noise GLARE_NOISE
+    times the frame's typical (texture, a wall's streaks: structure, not noise)."""
+    level = background.level[ys, xs]
+    noisy = background.noise[ys, xs] >= GLARE_NOISE * max(background.typical_noise, 1e-12)
+    return (level >= GLARE_LEVEL * saturation) | noisy
+
+
+def _usable(clean: np.ndarray, noise: np.ndarray, ys: np.ndarray, xs: np.ndarray, options: DetectOptions,
+            factor: float, floor: float) -> np.ndarray:
+    """(N,) True where a candidate is a particle image a PTV lab can use: its pixels (4-connected to its
+    brightest pixel, above ``factor`` local noise sigmas and ``floor`` grey levels: the threshold) within
+    :meth:`DetectOptions.pixel_limits` and summing to ``min_sum``, and its peak at least ``relative_floor``
+    times the frame's bright images' (the BRIGHT_QUANTILE of the peaks of the candidates that pass; the
+    BRIGHT_COUNT-th brightest in a sparse frame). Fainter specks are out of the light (beyond the sheet's
+    e^-2 edge), out of focus or dust; 1-2 px specks cannot be centred to a fraction of a pixel."""
+    from ari_sfm.particles.detect_kernels import connected_regions
+
+    lo, hi, span_lo, span_hi = options.pixel_limits()
+    count, width_u, width_v, total, peak = connected_regions(clean, noise, factor, floor, ys.astype(np.int64),
+                                                             xs.astype(np.int64), hi)
+    ok = ((count >= lo) & (count <= hi) & (np.minimum(width_u, width_v) >= span_lo)
+          & (np.maximum(width_u, width_v) <= span_hi) & (total >= options.min_sum))
+    if options.relative_floor > 0 and ok.any():
+        ranked = np.sort(peak[ok])[::-1]
+        k = max(BRIGHT_COUNT, math.ceil((1.0 - BRIGHT_QUANTILE) * len(ranked)))
+        bright = ranked[min(k, len(ranked)) - 1]
+        ok &= peak >= options.relative_floor * bright
+    return ok
 
 
 def _smoothing_gain(sigma: float) -> float:
@@ -418,8 +493,8 @@ def _own_pixels(res: np.ndarray, model: np.ndarray | None, s: _State, dy: np.nda
     minus the other particles' Gaussians (the whole model minus its own)."""
     from ari_sfm.particles.detect_kernels import own_pixels
 
-    return own_pixels(res, _no_model(model), s.y0.astype(np.int64), s.x0.astype(np.int64), s.u.astype(float),
-                      s.v.astype(float), s.A.astype(float), s.su.astype(float), s.sv.astype(float),
+    return own_pixels(res, _no_model(model), *(np.asarray(a, np.int64) for a in (s.y0, s.x0)),
+                      *(np.asarray(a, float) for a in (s.u, s.v, s.A, s.su, s.sv)),
                       np.asarray(dy, np.int64), np.asarray(dx, np.int64))
 
 
@@ -431,9 +506,8 @@ def _on_ridge(res: np.ndarray, noise: np.ndarray, s: _State, sigma: float, axis:
     from ari_sfm.particles.detect_kernels import on_ridge
 
     r = max(2, int(math.ceil(RIDGE_RADIUS_SIGMAS * sigma)))
-    return on_ridge(res, noise[s.y0, s.x0].astype(float), s.u.astype(float), s.v.astype(float),
-                    s.A.astype(float), np.ascontiguousarray(axis, float), r, RIDGE_LEVEL, SUPPORT_SIGMAS,
-                    MIN_SIGNAL)
+    return on_ridge(res, noise[s.y0, s.x0].astype(float), *(np.asarray(a, float) for a in (s.u, s.v, s.A)),
+                    np.ascontiguousarray(axis, float), r, RIDGE_LEVEL, SUPPORT_SIGMAS, MIN_SIGNAL)
 
 
 def image_shape(own: np.ndarray, noise: np.ndarray) -> ImageShape:
@@ -503,7 +577,7 @@ def detect_partition(patterns: dict[str, str], frames: list[int], options: Detec
     frame, camera, u, v, inten = [], [], [], [], []
     for f in frames:
         for cam, pattern in patterns.items():
-            uv, peak = detect_particles_in_image(read_image(Path(pattern.format(frame=f))), options)
+            uv, peak = detect_particles_in_image(read_image(Path(pattern.format(frame=f))), options.for_camera(cam))
             frame.append(np.full(len(uv), f, np.int64))
             camera += [cam] * len(uv)
             u.append(uv[:, 0])
@@ -514,6 +588,17 @@ def detect_partition(patterns: dict[str, str], frames: list[int], options: Detec
 
     return {"frame": cat(frame, np.int64), "camera": pa.array(camera, type=pa.string()),  # typed when empty
             "u": cat(u), "v": cat(v), "intensity": cat(inten)}
+
+
+def detect_options(dataset: Any, **overrides: Any) -> DetectOptions:
+    """The options of a dataset's detection: the defaults, rig.yaml's ``particles.diameter_px`` and
+    ``particles.detect`` (a :class:`~ari_sfm.io.particles.ParticleDataset`), then ``overrides`` (the
+    command line's; None: not given)."""
+    from dataclasses import replace
+
+    options = DetectOptions(diameter_px=dataset.diameter_px or DetectOptions.diameter_px)
+    options = replace(options, **dataset.detect.given())
+    return replace(options, **{k: v for k, v in overrides.items() if v is not None})
 
 
 def detect_experiment(dataset_path: str | Path, out: str | Path, options: DetectOptions | None = None,
@@ -546,7 +631,7 @@ def detect_experiment(dataset_path: str | Path, out: str | Path, options: Detect
     if dataset.images is None:
         raise AriSfmError(dataset.rig_path, "particles.images is not given: no particle images to detect")
     if options is None:
-        options = DetectOptions(diameter_px=dataset.diameter_px or DetectOptions.diameter_px)
+        options = detect_options(dataset)
     first, last = dataset.frames
     frames = list(range(first, last + 1))
     for f in frames:  # every file before any work (a worker's missing file would cost a whole run)

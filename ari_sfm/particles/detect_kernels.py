@@ -225,18 +225,28 @@ def local_maxima(smooth, noise, factor, floor):
     ys = np.empty(h * w // 4 + 16, np.int64)
     xs = np.empty(h * w // 4 + 16, np.int64)
     n = 0
-    for y in range(1, h - 1):
+    hmax = np.empty((3, w), np.float32)  # the maxima of three along each of the rows y - 1, y, y + 1
+
+    def row_max(r, out):
+        out[0] = max(r[0], r[1])
         for x in range(1, w - 1):
-            s0 = smooth[y, x]
-            if s0 < floor:
+            out[x] = max(max(r[x - 1], r[x]), r[x + 1])
+        out[w - 1] = max(r[w - 2], r[w - 1])
+
+    row_max(smooth[0], hmax[0])
+    row_max(smooth[1], hmax[1])
+    for y in range(1, h - 1):
+        a, b, c = (y - 1) % 3, y % 3, (y + 1) % 3
+        row_max(smooth[y + 1], hmax[c])
+        ha, hb, hc = hmax[a], hmax[b], hmax[c]
+        up, row, down = smooth[y - 1], smooth[y], smooth[y + 1]
+        for x in range(1, w - 1):
+            s0 = row[x]
+            if s0 < max(max(ha[x], hb[x]), hc[x]):  # not the maximum of its 3 x 3 (most pixels)
                 continue
-            if s0 < np.float32(factor * noise[y, x]):
-                continue
-            if not (s0 > smooth[y - 1, x - 1] and s0 > smooth[y - 1, x] and s0 > smooth[y - 1, x + 1]
-                    and s0 > smooth[y, x - 1]):
-                continue
-            if not (s0 >= smooth[y, x + 1] and s0 >= smooth[y + 1, x - 1] and s0 >= smooth[y + 1, x]
-                    and s0 >= smooth[y + 1, x + 1]):
+            if not (s0 > up[x - 1] and s0 > up[x] and s0 > up[x + 1] and s0 > row[x - 1]):
+                continue  # a plateau's pixel with another above or to the left
+            if s0 < floor or s0 < np.float32(factor * noise[y, x]):
                 continue
             if n == len(ys):
                 ys = np.concatenate((ys, np.empty(len(ys), np.int64)))
@@ -253,22 +263,22 @@ def connected_regions(clean, noise, factor, floor, ys, xs, max_count):
     and above max(``factor`` x noise, ``floor``). Candidates in one region share it. Returns per candidate
     (N,) the pixel count, the widths along u and v (bounding box) and the grey sum (``clean`` over the
     region); a region beyond ``max_count`` pixels is counted no further (its count is max_count + 1,
-    its widths and sum those of the pixels counted)."""
+    its widths and sum those of the pixels counted), and the brightest pixel of the 3 x 3."""
     h, w = clean.shape
     n = len(ys)
     count = np.zeros(n, np.int64)
     width_u = np.zeros(n, np.int64)
     width_v = np.zeros(n, np.int64)
     total = np.zeros(n, np.float64)
-    label = np.zeros((h, w), np.int32)
-    reg_count = [0]
-    reg_wu = [0]
-    reg_wv = [0]
-    reg_sum = [0.0]
-    stack_y = np.empty(1024, np.int64)
-    stack_x = np.empty(1024, np.int64)
+    peak = np.zeros(n, np.float64)
+    label = np.zeros(h * w, np.int32)  # 0: not reached; else the region's number + 1
+    reg_count = np.zeros(n + 1, np.int64)
+    reg_wu = np.zeros(n + 1, np.int64)
+    reg_wv = np.zeros(n + 1, np.int64)
+    reg_sum = np.zeros(n + 1)
+    stack = np.empty(4096, np.int64)
+    regions = 0
     for k in range(n):
-        # the seed: the brightest pixel of the 3 x 3 around the candidate
         sy, sx = ys[k], xs[k]
         best = -np.inf
         for dy in range(-1, 2):
@@ -276,45 +286,50 @@ def connected_regions(clean, noise, factor, floor, ys, xs, max_count):
                 y, x = ys[k] + dy, xs[k] + dx
                 if 0 <= y < h and 0 <= x < w and clean[y, x] > best:
                     best, sy, sx = clean[y, x], y, x
+        peak[k] = best
         if best < max(factor * noise[sy, sx], floor):
             continue
-        lab = label[sy, sx]
+        seed = sy * w + sx
+        lab = label[seed]
         if lab == 0:
-            lab = len(reg_count)
-            label[sy, sx] = lab
-            stack_y[0], stack_x[0] = sy, sx
+            regions += 1
+            lab = regions
+            label[seed] = lab
+            stack[0] = seed
             top = 1
-            c, s = 0, 0.0
+            c, tot = 0, 0.0
             u0 = u1 = sx
             v0 = v1 = sy
             while top:
                 top -= 1
-                y, x = stack_y[top], stack_x[top]
+                p = stack[top]
+                y, x = p // w, p % w
                 if c <= max_count:
                     c += 1
-                    s += clean[y, x]
+                    tot += clean[y, x]
                     u0, u1 = min(u0, x), max(u1, x)
                     v0, v1 = min(v0, y), max(v1, y)
-                for d in range(4):
-                    yy = y + (d == 2) - (d == 3)
-                    xx = x + (d == 0) - (d == 1)
-                    if 0 <= yy < h and 0 <= xx < w and label[yy, xx] == 0 \
-                            and clean[yy, xx] >= max(factor * noise[yy, xx], floor):
-                        label[yy, xx] = lab
-                        if top == len(stack_y):
-                            stack_y = np.concatenate((stack_y, np.empty(len(stack_y), np.int64)))
-                            stack_x = np.concatenate((stack_x, np.empty(len(stack_x), np.int64)))
-                        stack_y[top], stack_x[top] = yy, xx
-                        top += 1
-            reg_count.append(c)
-            reg_wu.append(u1 - u0 + 1)
-            reg_wv.append(v1 - v0 + 1)
-            reg_sum.append(s)
-        count[k] = reg_count[lab]
-        width_u[k] = reg_wu[lab]
-        width_v[k] = reg_wv[lab]
-        total[k] = reg_sum[lab]
-    return count, width_u, width_v, total
+                if top + 4 > len(stack):
+                    stack = np.concatenate((stack, np.empty(len(stack), np.int64)))
+                if x > 0 and label[p - 1] == 0 and clean[y, x - 1] >= max(factor * noise[y, x - 1], floor):
+                    label[p - 1] = lab
+                    stack[top] = p - 1
+                    top += 1
+                if x < w - 1 and label[p + 1] == 0 and clean[y, x + 1] >= max(factor * noise[y, x + 1], floor):
+                    label[p + 1] = lab
+                    stack[top] = p + 1
+                    top += 1
+                if y > 0 and label[p - w] == 0 and clean[y - 1, x] >= max(factor * noise[y - 1, x], floor):
+                    label[p - w] = lab
+                    stack[top] = p - w
+                    top += 1
+                if y < h - 1 and label[p + w] == 0 and clean[y + 1, x] >= max(factor * noise[y + 1, x], floor):
+                    label[p + w] = lab
+                    stack[top] = p + w
+                    top += 1
+            reg_count[lab], reg_wu[lab], reg_wv[lab], reg_sum[lab] = c, u1 - u0 + 1, v1 - v0 + 1, tot
+        count[k], width_u[k], width_v[k], total[k] = reg_count[lab], reg_wu[lab], reg_wv[lab], reg_sum[lab]
+    return count, width_u, width_v, total, peak
 
 
 # --------------------------------------------------------------------------- Gaussian images
@@ -597,22 +612,23 @@ def levenberg_marquardt(kind, params, X, Y, data, iterations):
         lam = 1e-2
         cost = _evaluate(kind, p, X[i], Y[i], data[i], m, J, r)
         for _ in range(iterations):
+            # J^T J (symmetric: the upper triangle, mirrored) and J^T r in one pass over the pixels
+            for a in range(k):
+                g[a, 0] = 0.0
+                for b in range(a, k):
+                    damped[a, b] = 0.0
+            for t in range(P):
+                for a in range(k):
+                    ja = J[t, a]
+                    g[a, 0] += ja * r[t]
+                    for b in range(a, k):
+                        damped[a, b] += ja * J[t, b]
             ok = True
             for a in range(k):
-                for b in range(k):
-                    s = 0.0
-                    for t in range(P):
-                        s += J[t, a] * J[t, b]
-                    damped[a, b] = s
+                for b in range(a + 1, k):
+                    damped[b, a] = damped[a, b]
+                damped[a, a] += lam * (damped[a, a] + 1e-9)
             for a in range(k):
-                d = damped[a, a]
-                for b in range(k):
-                    damped[a, b] += lam * ((d if a == b else 0.0) + (1e-9 if a == b else 0.0))
-            for a in range(k):
-                s = 0.0
-                for t in range(P):
-                    s += J[t, a] * r[t]
-                g[a, 0] = s
                 for b in range(k):
                     if not math.isfinite(damped[a, b]):
                         ok = False
