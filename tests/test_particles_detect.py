@@ -284,3 +284,127 @@ def test_simulated_tank_experiment_16_bit_through_detect_particles(tmp_path):
     for cam in exp.cameras:
         s = score_image(uv[camera == cam], exp.exact_pixels[0][cam])
         assert s.recall >= 0.85, (cam, s)
+
+
+# --------------------------------------------------------------------------- a lab's settings: rig.yaml, OpenPTV
+
+TARG_REC = "9\n9\n9\n11\n100\n4\n500\n2\n100\n2\n100\n150\n2\n"  # test_cavity's parameters/targ_rec.par
+
+
+@pytest.fixture(scope="module")
+def two_cameras(tmp_path_factory):
+    """A rendered 2-camera experiment (150 particles, one frame), written once."""
+    exp = simulate_particle_experiment(ParticleSimOptions(num_cameras=2, particles_per_frame=150, num_frames=1,
+                                                          drift_cameras=(1,), seed=2))
+    root = tmp_path_factory.mktemp("two_cameras")
+    write_particle_experiment(exp, root / "sim", render_frames=1)
+    return exp, root / "sim" / "experiment"
+
+
+def _copy_rig(two_cameras, tmp_path):
+    """A copy of the experiment's folder (its rig.yaml to edit) and its rig."""
+    import shutil
+
+    import yaml
+
+    folder = tmp_path / "experiment"
+    shutil.copytree(two_cameras[1], folder)
+    return folder / "rig.yaml", yaml.safe_load((folder / "rig.yaml").read_text())
+
+
+def test_read_target_par_in_liboptv_order(tmp_path):
+    """targ_rec.par's 13 integers in liboptv's read_target_par order, one a line or the pairs on one line
+    (fscanf reads both); bad files are one line naming the file."""
+    from ari_sfm.errors import AriSfmError
+    from ari_sfm.openptv.files import TargetPar, read_target_par
+
+    expected = TargetPar(gvthres=(9, 9, 9, 11), discont=100, nnmin=4, nnmax=500, nxmin=2, nxmax=100, nymin=2,
+                         nymax=100, sumg_min=150, cr_sz=2)
+    (tmp_path / "a.par").write_text(TARG_REC)
+    (tmp_path / "b.par").write_text("9 9 9 11\n100\n4  500\n2  100\n2  100\n150\n2\n7\n")  # a 14th number: ignored
+    assert read_target_par(tmp_path / "a.par") == expected == read_target_par(tmp_path / "b.par")
+    for text, message in (("9\n9\n9\n11\n100\n4\n500\n2\n100\n2\n100\n150\n", "expected 13 integers"),
+                          (TARG_REC.replace("150", "150.5"), "sumg_min"),
+                          (TARG_REC.replace("\n4\n", "\n600\n"), "nnmin"),
+                          (TARG_REC.replace("\n100\n4", "\n-1\n4"), "discont must be >= 0")):
+        (tmp_path / "bad.par").write_text(text)
+        with pytest.raises(AriSfmError, match=message) as err:
+            read_target_par(tmp_path / "bad.par")
+        assert err.value.path == str(tmp_path / "bad.par") or str(tmp_path / "bad.par") in str(err.value)
+
+
+def test_detect_settings_from_target_par_round_trip_through_rig_yaml(tmp_path, two_cameras):
+    """OpenPTV's targ_rec.par -> rig.yaml's particles.detect (per-camera grey thresholds, pixel counts, widths,
+    grey sum) -> load_particle_dataset -> the detector's options; the first N thresholds for N cameras."""
+    import yaml
+
+    from ari_sfm.io.particles import DetectSettings, load_particle_dataset
+    from ari_sfm.openptv.conventions import detect_settings_from_target_par
+    from ari_sfm.openptv.files import read_target_par
+    from ari_sfm.particles.detect import detect_options
+
+    (tmp_path / "targ_rec.par").write_text(TARG_REC)
+    par = read_target_par(tmp_path / "targ_rec.par")
+    mapping = detect_settings_from_target_par(par, ["cam1", "cam2", "cam3", "cam4"])
+    assert mapping == {"threshold": {"cam1": 9, "cam2": 9, "cam3": 9, "cam4": 11}, "min_pixels": 4,
+                       "max_pixels": 500, "min_span_px": 2, "max_span_px": 100, "min_sum": 150}
+    assert detect_settings_from_target_par(par, ["cam1", "cam2"])["threshold"] == {"cam1": 9, "cam2": 9}
+    rig_path, rig = _copy_rig(two_cameras, tmp_path)
+    cams = list(rig["cameras"])
+    rig["particles"]["detect"] = detect_settings_from_target_par(par, cams)
+    rig_path.write_text(yaml.safe_dump(rig))
+    ds = load_particle_dataset(rig_path)
+    assert ds.detect == DetectSettings(threshold={cams[0]: 9.0, cams[1]: 9.0}, min_pixels=4, max_pixels=500,
+                                       min_span_px=2, max_span_px=100, min_sum=150.0)
+    options = detect_options(ds, min_sum=200.0)  # the command line overrides rig.yaml
+    assert options.min_sum == 200.0 and options.min_pixels == 4 and options.pixel_limits() == (4, 500, 2, 100)
+    assert options.for_camera(cams[1]).threshold == 9.0 and options.for_camera("other").threshold is None
+
+
+@pytest.mark.parametrize("detect, message", [
+    ({"threshold": {"nocam": 9}}, "particles.detect.threshold: camera 'nocam' is not declared"),
+    ({"min_pixels": 10, "max_pixels": 5}, "min_pixels 10 above max_pixels 5"),
+    ({"min_pixels": 2.5}, "particles.detect.min_pixels must be an integer"),
+    ({"min_sum": -1}, "particles.detect.min_sum"),
+    ({"threshold_sigma": 0}, "particles.detect.threshold_sigma"),
+])
+def test_bad_detect_settings_are_one_line(tmp_path, two_cameras, detect, message):
+    import yaml
+
+    rig_path, rig = _copy_rig(two_cameras, tmp_path)
+    rig["particles"]["detect"] = detect
+    rig_path.write_text(yaml.safe_dump(rig))
+    r = CliRunner().invoke(main, ["detect-particles", str(rig_path.parent), "-o", str(tmp_path / "d"),
+                                  "--workers", "0"])
+    assert r.exit_code == 1 and r.output.count("\n") == 1 and message in r.output, r.output
+    assert not (tmp_path / "d" / "particles.parquet").exists()
+
+
+def test_detect_settings_are_honoured_and_the_command_line_overrides_them(tmp_path, two_cameras):
+    """rig.yaml's particles.detect reaches every camera's detection: a grey threshold above every particle for
+    one camera leaves it none (the other keeps its own), min_pixels above any image leaves none at all and
+    --min-pixels overrides it; detect-particles.json records the options used."""
+    import json
+
+    import yaml
+
+    exp = two_cameras[0]
+    rig_path, rig = _copy_rig(two_cameras, tmp_path)
+    cams = list(rig["cameras"])
+    run = CliRunner().invoke
+
+    def detect(settings: dict, out: str, *args: str) -> dict[str, int]:
+        rig["particles"]["detect"] = settings
+        rig_path.write_text(yaml.safe_dump(rig))
+        r = run(main, ["detect-particles", str(rig_path.parent), "-o", str(tmp_path / out), "--workers", "0", *args])
+        assert r.exit_code == 0, r.output
+        summary = json.loads((tmp_path / out / "detect-particles.json").read_text())
+        assert summary["options"]["threshold"] == settings.get("threshold")
+        return summary["per_camera"]
+
+    plain = detect({}, "plain")
+    assert all(n >= 0.8 * len(exp.exact_pixels[0][c]) for c, n in plain.items())
+    one_dark = detect({"threshold": {cams[0]: 250}}, "one")
+    assert one_dark[cams[0]] == 0 and one_dark[cams[1]] == plain[cams[1]]
+    assert sum(detect({"min_pixels": 400, "max_pixels": 500}, "none").values()) == 0
+    assert detect({"min_pixels": 400, "max_pixels": 500}, "cli", "--min-pixels", "4") == plain

@@ -74,8 +74,9 @@ def block_statistics(img, opened, y0, x0, by, bx, step, quantum, clip_sigmas, cl
                      high_pass_gain):
     """Per block (rows ``y0``, columns ``x0``, ``by`` x ``bx`` px, every ``step`` pixel): the median of
     ``img - opened``, and the noise: the standard deviation of each pixel minus the mean of its four
-    neighbours (the border pixel standing for the one beyond), within ``clip_sigmas`` robust sigmas or ``clip_floor`` quanta of the
-    median, per unit pixel noise (divided by ``high_pass_gain``) and floored at the quantisation's.
+    neighbours (the border pixel standing for the one beyond), within ``clip_sigmas`` robust sigmas or
+    ``clip_floor`` quanta of the median, per unit pixel noise (divided by ``high_pass_gain``) and floored at the
+    quantisation's.
     Returns (ny, nx) float32 medians and noises."""
     h, w = img.shape
     ny, nx = len(y0), len(x0)
