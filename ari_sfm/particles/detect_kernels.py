@@ -25,48 +25,48 @@ MAD_SCALE = 1.4826  # a Gaussian's standard deviation per median absolute deviat
 
 
 @njit(**_JIT)
-def _select(a, lo, hi, k):
-    """Partially order a[lo:hi] in place so that a[k] holds the value a sorted array would (quickselect,
-    median-of-three pivot); a[lo:k] <= a[k] <= a[k + 1:hi]."""
-    hi -= 1
-    while hi > lo:
-        mid = (lo + hi) // 2
-        if a[mid] < a[lo]:
-            a[mid], a[lo] = a[lo], a[mid]
-        if a[hi] < a[lo]:
-            a[hi], a[lo] = a[lo], a[hi]
-        if a[hi] < a[mid]:
-            a[hi], a[mid] = a[mid], a[hi]
-        pivot = a[mid]
-        i, j = lo, hi
-        while i <= j:
-            while a[i] < pivot:
-                i += 1
-            while a[j] > pivot:
-                j -= 1
-            if i <= j:
-                a[i], a[j] = a[j], a[i]
-                i += 1
-                j -= 1
-        if k <= j:
-            hi = j
-        elif k >= i:
-            lo = i
-        else:
-            return
+def _kth_key(keys, n, k, count):
+    """The k-th smallest (0-based) of keys[:n] (uint32) by radix selection, 8 bits a pass from the top:
+    each pass counts the candidates left by their next byte and keeps the byte holding the k-th."""
+    prefix = np.uint32(0)
+    mask = np.uint32(0)
+    for shift in (24, 16, 8, 0):
+        sh = np.uint32(shift)
+        count[:] = 0
+        for i in range(n):
+            if keys[i] & mask == prefix:
+                count[(keys[i] >> sh) & np.uint32(255)] += 1
+        c = 0
+        d = 0
+        while c + count[d] <= k:
+            c += count[d]
+            d += 1
+        k -= c
+        prefix |= np.uint32(d) << sh
+        mask |= np.uint32(255) << sh
+        if count[d] == 1:  # one candidate left: it is the k-th
+            for i in range(n):
+                if keys[i] & mask == prefix:
+                    return keys[i]
+    return prefix
 
 
 @njit(**_JIT)
-def _median(a, n):
-    """The median of a[:n] (the mean of the middle two for an even n); reorders a[:n]."""
-    k = n // 2
-    _select(a, 0, n, k)
-    if n % 2:
-        return a[k]
-    low = a[0]
-    for q in range(1, k):
-        low = max(low, a[q])
-    return 0.5 * (low + a[k])
+def _median(a, n, keys, count):
+    """The median of a[:n] (float32; the mean of the middle two for an even n), exact, by radix selection
+    on the floats' bits made unsigned-ordered; ``keys`` (>= n, uint32) and ``count`` (256) are scratch."""
+    bits = a[:n].view(np.uint32)
+    for i in range(n):
+        b = bits[i]
+        keys[i] = ~b if b & np.uint32(0x80000000) else b | np.uint32(0x80000000)
+    middle = np.empty(2, np.uint32)
+    middle[0] = _kth_key(keys, n, n // 2, count)
+    middle[1] = _kth_key(keys, n, n // 2 - 1, count) if n % 2 == 0 else middle[0]
+    for j in range(2):
+        key = middle[j]
+        middle[j] = key & np.uint32(0x7FFFFFFF) if key & np.uint32(0x80000000) else ~key
+    value = middle.view(np.float32)
+    return 0.5 * (float(value[0]) + float(value[1]))
 
 
 @njit(**_JIT)
@@ -89,6 +89,8 @@ def block_statistics(img, opened, y0, x0, by, bx, step, quantum, clip_sigmas, cl
     diff = np.empty(m, np.float32)
     dev = np.empty(m, np.float32)
     floor = max(quantum / math.sqrt(12.0), 1e-6)
+    keys = np.empty(m, np.uint32)
+    counts = np.zeros(256, np.int64)
     for i in range(ny):
         for j in range(nx):
             k = 0
@@ -104,13 +106,11 @@ def block_statistics(img, opened, y0, x0, by, bx, step, quantum, clip_sigmas, cl
                     diff[k] = np.float32(img[y, x] - np.float32(0.25) * (img[yu, x] + img[yd, x] + img[y, xl]
                                                                          + img[y, xr]))
                     k += 1
-            med_out[i, j] = _median(res, m)
-            for q in range(m):
-                dev[q] = diff[q]
-            med = _median(dev, m)
+            med_out[i, j] = _median(res, m, keys, counts)
+            med = _median(diff, m, keys, counts)
             for q in range(m):
                 dev[q] = abs(diff[q] - med)
-            mad = MAD_SCALE * _median(dev, m)
+            mad = MAD_SCALE * _median(dev, m, keys, counts)
             robust = clip_sigmas * mad >= clip_floor * quantum
             half = clip_sigmas * mad if robust else clip_floor * quantum
             count = 0
@@ -612,6 +612,9 @@ def levenberg_marquardt(kind, params, X, Y, data, iterations):
         p = out[i]
         lam = 1e-2
         cost = _evaluate(kind, p, X[i], Y[i], data[i], m, J, r)
+        if not math.isfinite(cost):  # no model at the start (no ellipse): no step can be taken or judged
+            costs[i] = cost
+            continue
         for _ in range(iterations):
             # J^T J (symmetric: the upper triangle, mirrored) and J^T r in one pass over the pixels
             for a in range(k):
