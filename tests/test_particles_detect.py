@@ -354,6 +354,7 @@ def test_detect_settings_from_target_par_round_trip_through_rig_yaml(tmp_path, t
     rig["particles"]["detect"] = detect_settings_from_target_par(par, cams)
     rig_path.write_text(yaml.safe_dump(rig))
     ds = load_particle_dataset(rig_path)
+    assert set(DetectSettings.__dataclass_fields__) <= set(DetectOptions.__dataclass_fields__)
     assert ds.detect == DetectSettings(threshold={cams[0]: 9.0, cams[1]: 9.0}, min_pixels=4, max_pixels=500,
                                        min_span_px=2, max_span_px=100, min_sum=150.0)
     options = detect_options(ds, min_sum=200.0)  # the command line overrides rig.yaml

@@ -63,7 +63,8 @@ RIDGE_RADIUS_SIGMAS = 3.5  # a ridge (a streak, a blob's rim): both sides this f
 RIDGE_LEVEL = 0.35  # ... above this fraction of the peak (two noise sigmas allowed); a particle image falls to ~0
 SPLIT_RANGE_PX = (0.4, 1.5)  # half the distance of a split pair's first centres
 PAIR_WINDOW_SIGMAS = 2.0  # a merged pair's two-Gaussian fit uses the pixels within this many sigmas (+ 0.5 px)
-FIT_ITERATIONS = 10  # Levenberg-Marquardt iterations of the fits of elongated images
+FIT_ITERATIONS = 10  # Levenberg-Marquardt iterations of the fits of elongated images, at most
+FIT_TOLERANCE = 1e-4  # a fit stops once a step lowers its cost by less than this fraction (centres settle < 0.01 px)
 SPLIT_EVIDENCE = 9.0  # two Gaussians must fit an elongated image better than one by this (squared noise sigmas)
 MIN_SPLIT_PX = 0.8  # a pair fitted closer than this stays one image
 MAX_LOG_OVERSHOOT = 1.0  # a fitted Gaussian's peak is at most e times its peak pixel (a flat fit's cap)
@@ -429,13 +430,13 @@ def _fit_elongated(res: np.ndarray, noise: np.ndarray, model: np.ndarray, state:
     # one elliptical Gaussian: u, v, A and the inverse covariance (a, b, c), started from the shape's Hessian
     a0, b0 = _inverse_covariance(shape, rows)
     one = np.stack([s.u, s.v, s.A, a0[:, 0], a0[:, 1], b0], axis=1)
-    one, ssr_one = levenberg_marquardt(0, one, X, Y, data, FIT_ITERATIONS)
+    one, ssr_one = levenberg_marquardt(0, one, X, Y, data, FIT_ITERATIONS, FIT_TOLERANCE)
     # two round Gaussians: u1, v1, u2, v2, A1, A2, sigma
     half = np.clip(shape.half_split[rows], SPLIT_RANGE_PX[0], SPLIT_RANGE_PX[1])
     du, dv = half * shape.axis[rows, 0], half * shape.axis[rows, 1]
     two = np.stack([s.u - du, s.v - dv, s.u + du, s.v + dv, 0.6 * s.A, 0.6 * s.A,
                     np.sqrt(0.5 * (s.su ** 2 + s.sv ** 2))], axis=1)
-    two, ssr_two = levenberg_marquardt(1, two, X, Y, data, FIT_ITERATIONS)
+    two, ssr_two = levenberg_marquardt(1, two, X, Y, data, FIT_ITERATIONS, FIT_TOLERANCE)
     sep = np.hypot(two[:, 2] - two[:, 0], two[:, 3] - two[:, 1])
     n2 = noise[s.y0, s.x0] ** 2
     split = ((ssr_one - ssr_two > SPLIT_EVIDENCE * n2) & (sep >= MIN_SPLIT_PX)

@@ -591,11 +591,12 @@ def _evaluate(kind, q, X, Y, data, m, J, r):
 
 
 @njit(**_JIT)
-def levenberg_marquardt(kind, params, X, Y, data, iterations):
+def levenberg_marquardt(kind, params, X, Y, data, iterations, tolerance):
     """Fit the model ``kind`` (0: one ellipse, 1: two round images) to ``data`` (N, P) at pixels X, Y
-    (N, P), each from its row of ``params`` (N, K), by Levenberg-Marquardt (damping 1e-2, x 0.3 on a
-    better step, x 10 on a worse; a fit stops once its cost falls by less than 1e-6 of itself or the
-    damping reaches 1e8). Returns the parameters and each fit's sum of squared residuals."""
+    (N, P), each from its row of ``params`` (N, K), by Levenberg-Marquardt
+    (damping 1e-2, x 0.3 on a better step, x 10 on a worse; a fit stops once its cost falls by less than
+    ``tolerance`` of itself or the damping reaches 1e8). Returns the parameters and each fit's sum of
+    squared residuals."""
     n, k = params.shape
     P = X.shape[1]
     out = params.copy()
@@ -647,7 +648,7 @@ def levenberg_marquardt(kind, params, X, Y, data, iterations):
             better = cost_t < cost
             settled = False
             if better:
-                settled = cost - cost_t <= 1e-6 * cost
+                settled = cost - cost_t <= tolerance * cost
                 p[:] = trial
                 r[:] = r_t
                 J[:] = Jt_
