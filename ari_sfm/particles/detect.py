@@ -10,12 +10,21 @@ they are; colour: the mean of the channels):
    HOT_SIGMA_PX) are replaced by their neighbours' median, also on a
    particle's skirt;
 3. candidates: local maxima (3 x 3) of the residual smoothed at half a
-   particle's sigma, above ``threshold_sigma`` times that smoothed image's
-   local noise (and ``min_peak`` grey levels, 0 by default); not within an
-   opening disc of a saturated region wider than it (a blob's rim);
+   particle's sigma, above the threshold: ``threshold_sigma`` times that
+   smoothed image's local noise, and ``min_peak`` and ``threshold`` grey
+   levels (none by default); not within an opening disc of a saturated region
+   wider than it (a blob's rim), not on glare (a background above GLARE_LEVEL
+   of full scale, or a local noise GLARE_NOISE times the frame's typical);
 4. a candidate must look like an image, not a cluster of hot pixels (a pair,
    a line, an L): support along u and along v, and on the diagonal between
-   (:func:`_supported`);
+   (:func:`_supported`); and be one a PTV lab can use (:func:`_usable`): its
+   pixels above the threshold, 4-connected to its brightest (as OpenPTV's
+   target_recognition counts them), between ``min_pixels`` and ``max_pixels``
+   and at least ``min_span_px`` wide along u and v (by default from the
+   diameter hint), their grey sum at least ``min_sum``, and its peak at least
+   ``relative_floor`` (e^-2) times the frame's bright images' (the
+   BRIGHT_QUANTILE of the candidates' peaks): fainter specks are seeding out
+   of the light sheet (beyond its e^-2 edge), out of focus, or dust;
 5. centres: three-point Gaussian fits along u and along v (exact for a
    Gaussian sampled at pixel centres; ``diameter_px`` is the e^-2 diameter,
    sigma = diameter / 4), refined by DEBLEND_ITERATIONS rounds in which every
@@ -32,8 +41,11 @@ they are; colour: the mean of the channels):
    wider than ``max_width_ratio`` times the hint, or sharper than any optical
    image along every axis (hot pixels beside a particle).
 
-Two images closer than ~0.8 px (MIN_SPLIT_PX) stay one. Measured figures:
-README, particles section (``benchmarks/bench_particle_detection.py``).
+Two images closer than ~0.8 px (MIN_SPLIT_PX) stay one. The per-pixel and
+per-candidate arithmetic is compiled (:mod:`ari_sfm.particles.detect_kernels`).
+A lab's settings: rig.yaml's ``particles.detect`` (:func:`detect_options`;
+from OpenPTV's targ_rec.par: :func:`ari_sfm.openptv.conventions.detect_settings_from_target_par`).
+Measured figures: README, particles section (``benchmarks/bench_particle_detection.py``).
 """
 from __future__ import annotations
 
