@@ -746,28 +746,49 @@ def _scheduler_option(fn):
 @click.option("--threshold-sigma", type=float, default=None,
               help="Peaks above the local background by this many local noise sigmas (default 5).")
 @click.option("--min-peak", type=float, default=None,
-              help="And at least this many grey levels above it (default 0: the noise alone decides; e.g. to keep "
-                   "only bright particles, as OpenPTV's grey-sum threshold does).")
+              help="And at least this many grey levels above it (default 0: the noise alone decides).")
+@click.option("--threshold", type=float, default=None,
+              help="Grey levels above the local background for a peak and for a pixel of an image, every camera "
+                   "(OpenPTV's grey threshold; default: rig.yaml's particles.detect, else none).")
+@click.option("--min-pixels", type=int, default=None,
+              help="Pixels above the threshold an image needs (default: rig.yaml's, else half the hint's e^-2 disc).")
+@click.option("--max-pixels", type=int, default=None,
+              help="Pixels above the threshold an image may have (default: rig.yaml's, else from the hint).")
+@click.option("--min-sum", type=float, default=None,
+              help="Grey sum of an image's pixels above the local background (OpenPTV's sumg_min; default 0).")
+@click.option("--relative-floor", type=float, default=None,
+              help="Peak at least this fraction of the frame's bright particle images' (default e^-2 = 0.135; 0: none).")
 @click.option("--frames-per-partition", type=int, default=20, show_default=True)
 @_workers_option
 @_scheduler_option
 @user_errors
 def detect_particles_cmd(dataset: Path, out: Path, diameter_px: float | None, threshold_sigma: float | None,
-                         min_peak: float | None, frames_per_partition: int, workers: int, scheduler: str | None) -> None:
-    """Find the particle images of DATASET's particles.images; write OUT/particles.parquet."""
+                         min_peak: float | None, threshold: float | None, min_pixels: int | None,
+                         max_pixels: int | None, min_sum: float | None, relative_floor: float | None,
+                         frames_per_partition: int, workers: int, scheduler: str | None) -> None:
+    """Find the particle images of DATASET's particles.images; write OUT/particles.parquet. The options
+    override rig.yaml's particles.detect."""
     from .io.particles import load_particle_dataset
-    from .particles.detect import DetectOptions, detect_experiment
+    from .particles.detect import detect_experiment, detect_options
 
     check_output_folder(out)
     check_number("--diameter-px", diameter_px, minimum=0.0, maximum=1000.0, strict_minimum=True)
     check_number("--threshold-sigma", threshold_sigma, minimum=0.0, strict_minimum=True)
     check_number("--min-peak", min_peak, minimum=0.0)
+    check_number("--threshold", threshold, minimum=0.0)
+    check_number("--min-pixels", min_pixels, minimum=1)
+    check_number("--max-pixels", max_pixels, minimum=1)
+    check_number("--min-sum", min_sum, minimum=0.0)
+    check_number("--relative-floor", relative_floor, minimum=0.0)
     check_number("--frames-per-partition", frames_per_partition, minimum=1)
     check_number("--workers", workers, minimum=0, maximum=1024)
-    if diameter_px is None:
-        diameter_px = load_particle_dataset(dataset).diameter_px or DetectOptions.diameter_px
-    given = {"threshold_sigma": threshold_sigma, "min_peak": min_peak}
-    options = DetectOptions(diameter_px=diameter_px, **{k: v for k, v in given.items() if v is not None})
+    options = detect_options(load_particle_dataset(dataset), diameter_px=diameter_px, threshold_sigma=threshold_sigma,
+                             min_peak=min_peak, threshold=threshold, min_pixels=min_pixels, max_pixels=max_pixels,
+                             min_sum=min_sum, relative_floor=relative_floor)
+    lo, hi, _, _ = options.pixel_limits()
+    if lo > hi:
+        raise AriSfmError("--min-pixels", f"{lo} pixels above the most an image may have ({hi}: --max-pixels or "
+                                          "rig.yaml's particles.detect.max_pixels)")
     s = detect_experiment(dataset, out, options,
                           frames_per_partition=frames_per_partition, workers=workers, scheduler=scheduler,
                           progress=True)

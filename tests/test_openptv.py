@@ -803,8 +803,8 @@ def test_windows_from_viewing_directions_warns_when_unclear(caplog):
 
 
 def test_an_imported_experiment_runs_its_particles_without_editing(cavity_without_ori, tmp_path):
-    """sequence.par's images (``img_1/cam1.%d``, frames 10000..10001) and criteria.par's observation volume become
-    the dataset's ``particles:``: after calibrating from the images and clicks, detect-particles and particles
+    """sequence.par's images (``img_1/cam1.%d``, frames 10000..10001), criteria.par's observation volume and
+    targ_rec.par's detector settings become the dataset's ``particles:``: after calibrating from the images and clicks, detect-particles and particles
     run on the imported dataset as it is and find the particles (rendered where OpenPTV's .ori put them)."""
     import cv2
 
@@ -834,6 +834,13 @@ def test_an_imported_experiment_runs_its_particles_without_editing(cavity_withou
                   "--workers", "0"]):
         r = CliRunner().invoke(main, args)
         assert r.exit_code == 0, (args[0], r.output)
+        if args[0] == "import":  # targ_rec.par's thresholds and sizes are the detector's settings
+            import yaml
+
+            detect = yaml.safe_load((ds / "rig.yaml").read_text())["particles"]["detect"]
+            tokens = [int(t) for t in (params / "targ_rec.par").read_text().split()[:13]]
+            assert detect["threshold"] == {f"cam{k}": tokens[k - 1] for k in range(1, 5)}
+            assert (detect["min_pixels"], detect["max_pixels"], detect["min_sum"]) == (tokens[5], tokens[6], tokens[11])
     import pyarrow.parquet as pq
 
     from ari_sfm.io import load_calibration

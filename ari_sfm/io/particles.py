@@ -23,9 +23,11 @@ from ari_sfm.io.dataset import find_rig, parse_cameras, parse_window_keys
 from ari_sfm.io.observations import BORDER_TOLERANCE_PX, check_format
 from ari_sfm.io.structured import (
     as_float_array,
+    as_int,
     as_int_pair,
     as_mapping,
     as_name,
+    as_nonnegative_float,
     as_positive_float,
     as_str,
     read_structured,
@@ -36,7 +38,7 @@ from ari_sfm.records import CameraSpec, Interface, Window
 
 log = logging.getLogger(__name__)
 
-PARTICLES_KEYS = ("detections", "images", "frames", "diameter_px", "volume_mm")
+PARTICLES_KEYS = ("detections", "images", "frames", "diameter_px", "volume_mm", "detect")
 VOLUME_KEYS = ("frame", "min", "max")
 DETECTION_COLUMNS = ("frame", "camera", "u", "v")  # + optional intensity
 RECONSTRUCTION_COLUMNS = ("frame", "x", "y", "z", "ray_gap_mm", "cameras")  # + row_<camera>
@@ -53,6 +55,28 @@ class VolumeSpec:
 
 
 @dataclass(frozen=True)
+class DetectSettings:
+    """rig.yaml ``particles.detect``: a lab's detection settings (e.g. from OpenPTV's targ_rec.par), each
+    None where not given (the detector's default). detect-particles' options override them."""
+
+    threshold: float | Mapping[str, float] | None = None  # grey levels above the local background; per camera
+    threshold_sigma: float | None = None  # local noise sigmas
+    min_pixels: int | None = None  # pixels above the threshold, 4-connected to the peak
+    max_pixels: int | None = None
+    min_span_px: int | None = None  # width along u and along v, px
+    max_span_px: int | None = None
+    min_sum: float | None = None  # grey sum of those pixels above the local background
+    relative_floor: float | None = None  # peak at least this x the frame's bright particle images' (0: none)
+
+    def given(self) -> dict[str, Any]:
+        """The settings given, by name (DetectOptions' field names)."""
+        return {k: getattr(self, k) for k in self.__dataclass_fields__ if getattr(self, k) is not None}
+
+
+DETECT_KEYS = tuple(DetectSettings.__dataclass_fields__)
+
+
+@dataclass(frozen=True)
 class ParticleDataset:
     """A dataset folder's rig with its ``particles`` entry (target and frame entries are not needed)."""
 
@@ -66,6 +90,7 @@ class ParticleDataset:
     diameter_px: float | None
     volume: VolumeSpec | None
     windows: tuple[Window, ...] = ()  # several windows (1.3); (): interface for every camera
+    detect: DetectSettings = DetectSettings()  # particles.detect (1.2 addition)
 
     @property
     def camera_names(self) -> list[str]:
@@ -166,9 +191,46 @@ def load_particle_dataset(path: str | Path) -> ParticleDataset:
         if not np.all(hi > lo):
             raise AriSfmError(rig_path, "particles.volume_mm: max must exceed min on every axis")
         volume = VolumeSpec(frame, lo, hi)
+    detect = DetectSettings()
+    if p.get("detect") is not None:
+        detect = parse_detect_settings(p["detect"], rig_path, list(cameras))
     return ParticleDataset(root=root, rig_path=rig_path, interface=interface, cameras=cameras,
                            detections=detections, images=images, frames=frames, diameter_px=diameter, volume=volume,
-                           windows=windows)
+                           windows=windows, detect=detect)
+
+
+def parse_detect_settings(value: Any, path: Path, cameras: list[str]) -> DetectSettings:
+    """rig.yaml ``particles.detect``, checked: numbers >= 0 (pixel counts and widths integers >= 1, the noise
+    threshold > 0), minima not above maxima; ``threshold`` a number or a mapping of declared cameras."""
+    where = "particles.detect"
+    d = as_mapping(value, path, where)
+    warn_unknown_keys(d, DETECT_KEYS, path, where)
+    out: dict[str, Any] = {}
+    if d.get("threshold") is not None:
+        t = d["threshold"]
+        if isinstance(t, Mapping):
+            per: dict[str, float] = {}
+            for cam, v in t.items():
+                name = as_name(cam, path, f"{where}.threshold camera")
+                if name not in cameras:
+                    raise AriSfmError(path, f"{where}.threshold: camera '{name}' is not declared under cameras "
+                                            f"({', '.join(cameras)})")
+                per[name] = as_nonnegative_float(v, path, f"{where}.threshold.{name}")
+            out["threshold"] = per
+        else:
+            out["threshold"] = as_nonnegative_float(t, path, f"{where}.threshold")
+    for key in ("min_pixels", "max_pixels", "min_span_px", "max_span_px"):
+        if d.get(key) is not None:
+            out[key] = as_int(d[key], path, f"{where}.{key}", minimum=1)
+    for key in ("min_sum", "relative_floor"):
+        if d.get(key) is not None:
+            out[key] = as_nonnegative_float(d[key], path, f"{where}.{key}")
+    if d.get("threshold_sigma") is not None:
+        out["threshold_sigma"] = as_positive_float(d["threshold_sigma"], path, f"{where}.threshold_sigma")
+    for lo, hi in (("min_pixels", "max_pixels"), ("min_span_px", "max_span_px")):
+        if lo in out and hi in out and out[lo] > out[hi]:
+            raise AriSfmError(path, f"{where}: {lo} {out[lo]} above {hi} {out[hi]}")
+    return DetectSettings(**out)
 
 
 # --------------------------------------------------------------------------- parquet

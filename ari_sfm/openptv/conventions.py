@@ -29,6 +29,15 @@ Taken from liboptv's sources (OpenPTV/openptv):
 
 ari-sfm's window normal points from the cameras into the scene: ``normal = -G^``,
 and ``point_mm`` on the camera-side face is ``(|G| + d) G^``.
+
+- Particle detection (``segmentation.c: targ_rec``, ``parameters/targ_rec.par``): a
+  target is a local maximum above the camera's grey threshold on the high-passed
+  image (``preprocess_image``: the image minus its local background), grown over
+  4-connected pixels above that threshold; kept with nnmin..nnmax pixels, a width
+  nxmin..nxmax and a height nymin..nymax (px), and a grey sum of its pixels above
+  sumg_min. ari-sfm's detector counts an image's pixels the same way, above its
+  own threshold (the local noise's) and the lab's grey threshold, on the image
+  minus its local background (``detect_settings_from_target_par``).
 """
 from __future__ import annotations
 
@@ -36,7 +45,7 @@ import numpy as np
 
 from ari_sfm.geometry import Pose
 
-from .files import AddPar, Orientation
+from .files import AddPar, Orientation, TargetPar
 
 OPENPTV_PIXEL_OFFSET = 0.5  # u_opencv = x_openptv - OPENPTV_PIXEL_OFFSET (segmentation.c adds 0.5)
 FLIP_YZ = np.diag([1.0, -1.0, -1.0])  # OpenPTV camera axes (x right, y up, looking along -z) -> OpenCV
@@ -165,3 +174,18 @@ def fit_interior(K: np.ndarray, dist: np.ndarray, image_size: tuple[int, int], p
     xh, yh, cc, addpar = unpack(sol.x)
     err = np.linalg.norm(residual(sol.x).reshape(-1, 2), axis=1)
     return float(xh), float(yh), float(cc), addpar, float(err.max())
+
+
+def detect_settings_from_target_par(par: TargetPar, cameras: list[str]) -> dict:
+    """rig.yaml's ``particles.detect`` mapping (DATASET_FORMAT.md 1.2) from OpenPTV's targ_rec.par, for the
+    rig's cameras in OpenPTV's order (cam1..camN: the first N grey thresholds): ``threshold`` per camera
+    (grey levels above the local background), ``min_pixels`` / ``max_pixels`` (nnmin, nnmax),
+    ``min_span_px`` / ``max_span_px`` (the looser of nxmin, nymin and of nxmax, nymax: ari-sfm holds one
+    width for both axes), ``min_sum`` (sumg_min). discont (targ_rec's split of touching targets; ari-sfm
+    splits overlapping images by fits) and cr_sz (drawing) have no counterpart."""
+    if len(cameras) > len(par.gvthres):
+        raise ValueError(f"targ_rec.par holds {len(par.gvthres)} grey thresholds, the rig {len(cameras)} cameras")
+    return {"threshold": {cam: int(t) for cam, t in zip(cameras, par.gvthres)},
+            "min_pixels": max(1, int(par.nnmin)), "max_pixels": max(1, int(par.nnmax)),
+            "min_span_px": max(1, min(int(par.nxmin), int(par.nymin))),
+            "max_span_px": max(1, max(int(par.nxmax), int(par.nymax))), "min_sum": int(par.sumg_min)}

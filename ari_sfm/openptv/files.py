@@ -20,6 +20,10 @@ Formats (liboptv ``parameters.c``, ``calibration.c``; pyptv's multi-plane calibr
   line, camera after camera; ``man_ori.dat`` (the experiment folder, where the GUI
   writes it, or ``parameters/``): their pixels, ``x y`` a line in the same order
   (OpenPTV pixels). The Tcl/Tk GUI pads both to four cameras.
+- ``parameters/targ_rec.par`` (``read_target_par``): the particle detector's
+  integers: four grey thresholds (one a camera, the file always holds four),
+  discont, nnmin nnmax (pixels a target), nxmin nxmax, nymin nymax (its width
+  and height, px), sumg_min (grey sum), cr_sz (cross size, drawing only).
 
 Every reader raises :class:`~ari_sfm.errors.AriSfmError` naming the file.
 """
@@ -214,6 +218,52 @@ def read_multi_planes_par(path: Path) -> tuple[str, ...]:
         log.warning("%s: %d names after the count %d: the first %d are read (as liboptv does)", path,
                     len(lines) - 1, n, n)
     return tuple(lines[1:n + 1])
+
+
+# --------------------------------------------------------------------------- targ_rec.par
+
+
+TARGET_PAR_NAMES = ("gvthres1", "gvthres2", "gvthres3", "gvthres4", "discont", "nnmin", "nnmax", "nxmin", "nxmax",
+                    "nymin", "nymax", "sumg_min", "cr_sz")
+
+
+@dataclass(frozen=True)
+class TargetPar:
+    """``targ_rec.par`` (liboptv's target_par): what ``target_recognition`` keeps (grey levels of the
+    high-passed image; pixels above the camera's threshold, 4-connected to a peak)."""
+
+    gvthres: tuple[int, int, int, int]  # grey threshold per camera (the file holds four)
+    discont: int  # a neighbour joins a target while at most this many levels above the pixel it grows from
+    nnmin: int  # pixels a target, at least
+    nnmax: int  # and at most
+    nxmin: int  # its width (px), at least
+    nxmax: int
+    nymin: int  # its height (px), at least
+    nymax: int
+    sumg_min: int  # the grey sum of its pixels must exceed this
+    cr_sz: int  # the GUI's cross size (drawing only)
+
+
+def read_target_par(path: Path) -> TargetPar:
+    """``parameters/targ_rec.par`` (or detect_plate.par, the same layout): 13 integers, whitespace-separated
+    in liboptv's order (``read_target_par``); numbers after them are ignored, as liboptv does."""
+    path = Path(path)
+    tokens = " ".join(_lines(path)).split()
+    if len(tokens) < len(TARGET_PAR_NAMES):
+        raise AriSfmError(path, f"expected {len(TARGET_PAR_NAMES)} integers (4 grey thresholds, discont, nnmin nnmax, "
+                                f"nxmin nxmax, nymin nymax, sumg_min, cr_sz), found {len(tokens)}")
+    if len(tokens) > len(TARGET_PAR_NAMES):
+        log.warning("%s: %d numbers: the first %d are read (as liboptv does)", path, len(tokens),
+                    len(TARGET_PAR_NAMES))
+    v = [_integer(t, path, name) for t, name in zip(tokens, TARGET_PAR_NAMES)]
+    par = TargetPar(tuple(v[0:4]), *v[4:])  # type: ignore[arg-type]
+    for name, value in zip(TARGET_PAR_NAMES, v):
+        if value < 0:
+            raise AriSfmError(path, f"{name} must be >= 0 (got {value})")
+    for lo, hi in (("nnmin", "nnmax"), ("nxmin", "nxmax"), ("nymin", "nymax")):
+        if getattr(par, lo) > getattr(par, hi):
+            raise AriSfmError(path, f"{lo} {getattr(par, lo)} above {hi} {getattr(par, hi)}: no target can pass")
+    return par
 
 
 # --------------------------------------------------------------------------- .ori, .addpar

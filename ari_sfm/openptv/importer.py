@@ -50,10 +50,10 @@ from ari_sfm.io.dataset import MAX_LENGTH_MM
 from ari_sfm.io.observations import BORDER_TOLERANCE_PX
 from ari_sfm.records import CameraSpec, Dataset, Entry, Interface, Observation, Target, Window
 
-from .conventions import OPENPTV_PIXEL_OFFSET
+from .conventions import OPENPTV_PIXEL_OFFSET, detect_settings_from_target_par
 from .windows import parse_window_groups, windows_from_axes, windows_from_glass, windows_from_groups
 from .files import MAN_ORI_POINTS, ControlPar, read_addpar, read_cal_ori_par, read_control_par, read_man_ori, \
-    read_sequence_par, read_volume_par, \
+    read_sequence_par, read_target_par, read_volume_par, \
     read_multi_planes_par, read_ori, read_points
 
 log = logging.getLogger(__name__)
@@ -392,7 +392,7 @@ def particles_entry(root: Path, dataset_dir: Path, control: ControlPar) -> dict 
     images over first..last, as paths from ``dataset_dir``, the folder the dataset ends up in) and
     ``criteria.par``'s observation volume as ``volume_mm`` in the body's frame (OpenPTV's world, frame
     f000: x X_lay[0]..X_lay[1], z its depth range, y as wide as the widest of the two, which OpenPTV does
-    not bound); None without a sequence.par."""
+    not bound) and ``targ_rec.par``'s detector settings as ``detect``; None without a sequence.par."""
     params = root / "parameters"
     if not (params / "sequence.par").is_file():
         return None
@@ -404,6 +404,8 @@ def particles_entry(root: Path, dataset_dir: Path, control: ControlPar) -> dict 
         z = (min(vol.z_min_lay), max(vol.z_max_lay))
         half = max(abs(v) for v in (*vol.x_lay, *z))
         entry["volume_mm"] = {"frame": FRAME, "min": [vol.x_lay[0], -half, z[0]], "max": [vol.x_lay[1], half, z[1]]}
+    if (params / "targ_rec.par").is_file():
+        entry["detect"] = detect_settings_from_target_par(read_target_par(params / "targ_rec.par"), list(images))
     return entry
 
 
@@ -422,5 +424,6 @@ def _add_particles(root: Path, rig_path: Path, out: Path, dataset: Dataset) -> N
     data["particles"] = entry
     write_text_atomic(rig_path, yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=120))
     particles = load_particle_dataset(rig_path)  # (paths relative to out: checked from there once renamed)
-    log.info("particle images of %d cameras, frames %d..%d%s", len(particles.cameras), *entry["frames"],
-             ", the observation volume from criteria.par" if "volume_mm" in entry else "")
+    log.info("particle images of %d cameras, frames %d..%d%s%s", len(particles.cameras), *entry["frames"],
+             ", the observation volume from criteria.par" if "volume_mm" in entry else "",
+             ", the detector's settings from targ_rec.par" if "detect" in entry else "")

@@ -39,32 +39,50 @@ class Background:
 
     level: np.ndarray  # (h, w) float32
     noise: np.ndarray  # (h, w) float32: the standard deviation of a pixel about the level
+    typical_noise: float = 0.0  # the median of the blocks' noise: the frame's noise where nothing is lit
 
 
-def estimate_background(img: np.ndarray, diameter_px: float, block_px: int, quantum: float) -> Background:
+def estimate_background(img: np.ndarray, diameter_px: float, block_px: int, quantum: float,
+                        source: np.ndarray | None = None) -> Background:
     """The background and noise of a grey float32 image (see the module docstring); ``quantum``: the grey
-    level step (1 for integer images, 0 for float ones)."""
+    level step (1 for integer images, 0 for float ones); ``source``: the same image in its integer type
+    (the opening is exact and faster there), or None."""
     import cv2
+
+    from ari_sfm.particles.detect_kernels import block_statistics, level_and_noise
 
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (opening_size(diameter_px),) * 2)
-    opened = cv2.morphologyEx(img, cv2.MORPH_OPEN, disc, borderType=cv2.BORDER_REPLICATE)
+    if source is not None and source.dtype in (np.uint8, np.uint16) and source.shape == img.shape:
+        opened = cv2.morphologyEx(source, cv2.MORPH_OPEN, disc, borderType=cv2.BORDER_REPLICATE)
+        opened = opened.astype(np.float32)
+    else:
+        opened = cv2.morphologyEx(img, cv2.MORPH_OPEN, disc, borderType=cv2.BORDER_REPLICATE)
     grid = BlockGrid(img.shape, block_px)
-    level = opened + grid.interpolate(grid.values(img - opened, "median", quantum))
-    block_noise = grid.values(_pixel_differences(img), "noise", quantum) / HIGH_PASS_GAIN
-    block_level = grid.at_centres(level)
-    a, b = _noise_model(block_level.ravel(), block_noise.ravel() ** 2, quantum)
-    noise = np.sqrt(np.maximum(a + b * level, max(quantum * quantum / 12.0, 1e-12)))
-    noise = np.maximum(noise, grid.interpolate(block_noise))
-    return Background(level=level, noise=noise.astype(np.float32))
+    block_median, block_noise = block_statistics(img, opened, grid.y0, grid.x0, grid.by, grid.bx, grid.step,
+                                                 float(quantum), CLIP_SIGMAS, CLIP_FLOOR, CLIPPED_STD_FACTOR,
+                                                 HIGH_PASS_GAIN)
+    cy, cx = grid.centres()
+    py, px = np.rint(cy).astype(int), np.rint(cx).astype(int)  # the pixel nearest each block's centre
+    level_at_centres = opened[py[:, None], px[None, :]] + _bilinear(block_median, cy, cx, py, px)
+    a, b = _noise_model(level_at_centres.ravel(), block_noise.ravel().astype(float) ** 2, quantum)
+    level, noise = level_and_noise(opened, block_median, block_noise, cy, cx, a, b,
+                                   max(quantum * quantum / 12.0, 1e-12))
+    return Background(level=level, noise=noise, typical_noise=float(np.median(block_noise)))
 
 
-def _pixel_differences(img: np.ndarray) -> np.ndarray:
-    """Each pixel minus the mean of its four neighbours: white noise of sigma s gives sigma s * HIGH_PASS_GAIN,
-    a smooth background nothing."""
-    import cv2
+def _bilinear(values: np.ndarray, cy: np.ndarray, cx: np.ndarray, py: np.ndarray, px: np.ndarray) -> np.ndarray:
+    """(len(py), len(px)) ``values`` at the block centres, bilinear between them (constant beyond), at rows
+    ``py`` and columns ``px``."""
+    def axis(p: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        f = np.interp(p, c, np.arange(len(c), dtype=float))
+        lo = np.clip(np.floor(f).astype(int), 0, max(len(c) - 2, 0))
+        return lo, np.minimum(lo + 1, len(c) - 1), f - lo
 
-    kernel = np.array([[0, -0.25, 0], [-0.25, 1.0, -0.25], [0, -0.25, 0]], np.float32)
-    return cv2.filter2D(img, -1, kernel, borderType=cv2.BORDER_REFLECT)
+    i0, i1, fy = axis(py, cy)
+    j0, j1, fx = axis(px, cx)
+    fy, fx = fy[:, None], fx[None, :]
+    return ((1 - fy) * ((1 - fx) * values[i0][:, j0] + fx * values[i0][:, j1])
+            + fy * ((1 - fx) * values[i1][:, j0] + fx * values[i1][:, j1]))
 
 
 def _noise_model(level: np.ndarray, variance: np.ndarray, quantum: float) -> tuple[float, float]:
@@ -91,48 +109,11 @@ class BlockGrid:
         self.shape = (h, w)
         self.by, self.bx = int(max(2, min(block_px, h))), int(max(2, min(block_px, w)))
         ny, nx = max(1, math.ceil(h / self.by)), max(1, math.ceil(w / self.bx))
-        self.y0 = np.rint(np.linspace(0, h - self.by, ny)).astype(int)  # first row of each block
-        self.x0 = np.rint(np.linspace(0, w - self.bx, nx)).astype(int)
+        self.y0 = np.rint(np.linspace(0, h - self.by, ny)).astype(np.int64)  # first row of each block
+        self.x0 = np.rint(np.linspace(0, w - self.bx, nx)).astype(np.int64)
+        # a block's statistics from every second pixel along rows and columns (every pixel in small blocks)
+        self.step = BLOCK_SAMPLE_STEP if min(self.by, self.bx) >= 8 * BLOCK_SAMPLE_STEP else 1
 
-    def values(self, img: np.ndarray, what: str, quantum: float = 1.0) -> np.ndarray:
-        """(ny, nx) the statistic of each block of ``img``: ``median``, or ``noise`` (the standard deviation
-        of the values within CLIP_SIGMAS robust sigmas, or CLIP_FLOOR grey level steps, of the median)."""
-        step = BLOCK_SAMPLE_STEP if min(self.by, self.bx) >= 8 * BLOCK_SAMPLE_STEP else 1
-        rows = self.y0[:, None] + np.arange(0, self.by, step)
-        cols = self.x0[:, None] + np.arange(0, self.bx, step)
-        blocks = img[rows[:, :, None, None], cols[None, None, :, :]]  # (ny, by, nx, bx)
-        values = blocks.transpose(0, 2, 1, 3).reshape(len(self.y0), len(self.x0), -1).astype(np.float32)
-        med = np.median(values, axis=-1)
-        if what == "median":
-            return med
-        dev = np.abs(values - med[..., None])
-        mad = 1.4826 * np.median(dev, axis=-1)
-        robust = CLIP_SIGMAS * mad >= CLIP_FLOOR * quantum
-        half = np.where(robust, CLIP_SIGMAS * mad, CLIP_FLOOR * quantum)
-        kept = dev <= half[..., None]
-        count = np.maximum(kept.sum(axis=-1), 1)
-        mean = np.where(kept, values, 0.0).sum(axis=-1) / count
-        var = np.where(kept, (values - mean[..., None]) ** 2, 0.0).sum(axis=-1) / np.maximum(count - 1, 1)
-        std = np.sqrt(var) / np.where(robust, CLIPPED_STD_FACTOR, 1.0)
-        return np.maximum(std, max(quantum / math.sqrt(12.0), 1e-6)).astype(np.float32)  # flat: quantisation
-
-    def at_centres(self, img: np.ndarray) -> np.ndarray:
-        """(ny, nx) ``img`` at the pixel nearest each block's centre."""
-        cy = np.rint(self.y0 + 0.5 * (self.by - 1)).astype(int)
-        cx = np.rint(self.x0 + 0.5 * (self.bx - 1)).astype(int)
-        return img[cy[:, None], cx[None, :]]
-
-    def interpolate(self, values: np.ndarray) -> np.ndarray:
-        """(h, w) float32: ``values`` at the block centres, bilinear between them, constant beyond."""
-        import cv2
-
-        h, w = self.shape
-        if values.size == 1:
-            return np.full((h, w), float(values.ravel()[0]), np.float32)
-        cy = self.y0 + 0.5 * (self.by - 1)
-        cx = self.x0 + 0.5 * (self.bx - 1)
-        fy = np.interp(np.arange(h), cy, np.arange(len(cy))).astype(np.float32)
-        fx = np.interp(np.arange(w), cx, np.arange(len(cx))).astype(np.float32)
-        map_x, map_y = np.meshgrid(fx, fy)
-        return cv2.remap(np.asarray(values, np.float32), map_x, map_y, cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_REPLICATE)
+    def centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """The block centres' rows and columns (float)."""
+        return self.y0 + 0.5 * (self.by - 1), self.x0 + 0.5 * (self.bx - 1)

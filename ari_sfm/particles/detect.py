@@ -10,12 +10,21 @@ they are; colour: the mean of the channels):
    HOT_SIGMA_PX) are replaced by their neighbours' median, also on a
    particle's skirt;
 3. candidates: local maxima (3 x 3) of the residual smoothed at half a
-   particle's sigma, above ``threshold_sigma`` times that smoothed image's
-   local noise (and ``min_peak`` grey levels, 0 by default); not within an
-   opening disc of a saturated region wider than it (a blob's rim);
+   particle's sigma, above the threshold: ``threshold_sigma`` times that
+   smoothed image's local noise, and ``min_peak`` and ``threshold`` grey
+   levels (none by default); not within an opening disc of a saturated region
+   wider than it (a blob's rim), not on glare (a background above GLARE_LEVEL
+   of full scale, or a local noise GLARE_NOISE times the frame's typical);
 4. a candidate must look like an image, not a cluster of hot pixels (a pair,
    a line, an L): support along u and along v, and on the diagonal between
-   (:func:`_supported`);
+   (:func:`_supported`); and be one a PTV lab can use (:func:`_usable`): its
+   pixels above the threshold, 4-connected to its brightest (as OpenPTV's
+   target_recognition counts them), between ``min_pixels`` and ``max_pixels``
+   and at least ``min_span_px`` wide along u and v (by default from the
+   diameter hint), their grey sum at least ``min_sum``, and its peak at least
+   ``relative_floor`` (e^-2) times the frame's bright images' (the
+   BRIGHT_QUANTILE of the candidates' peaks): fainter specks are seeding out
+   of the light sheet (beyond its e^-2 edge), out of focus, or dust;
 5. centres: three-point Gaussian fits along u and along v (exact for a
    Gaussian sampled at pixel centres; ``diameter_px`` is the e^-2 diameter,
    sigma = diameter / 4), refined by DEBLEND_ITERATIONS rounds in which every
@@ -32,8 +41,11 @@ they are; colour: the mean of the channels):
    wider than ``max_width_ratio`` times the hint, or sharper than any optical
    image along every axis (hot pixels beside a particle).
 
-Two images closer than ~0.8 px (MIN_SPLIT_PX) stay one. Measured figures:
-README, particles section (``benchmarks/bench_particle_detection.py``).
+Two images closer than ~0.8 px (MIN_SPLIT_PX) stay one. The per-pixel and
+per-candidate arithmetic is compiled (:mod:`ari_sfm.particles.detect_kernels`).
+A lab's settings: rig.yaml's ``particles.detect`` (:func:`detect_options`;
+from OpenPTV's targ_rec.par: :func:`ari_sfm.openptv.conventions.detect_settings_from_target_par`).
+Measured figures: README, particles section (``benchmarks/bench_particle_detection.py``).
 """
 from __future__ import annotations
 
@@ -45,7 +57,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ari_sfm.particles.background import estimate_background, opening_size
+from ari_sfm.particles.background import Background, estimate_background, opening_size
 from ari_sfm.particles.engine import PartitionError
 
 log = logging.getLogger(__name__)
@@ -63,12 +75,18 @@ RIDGE_RADIUS_SIGMAS = 3.5  # a ridge (a streak, a blob's rim): both sides this f
 RIDGE_LEVEL = 0.35  # ... above this fraction of the peak (two noise sigmas allowed); a particle image falls to ~0
 SPLIT_RANGE_PX = (0.4, 1.5)  # half the distance of a split pair's first centres
 PAIR_WINDOW_SIGMAS = 2.0  # a merged pair's two-Gaussian fit uses the pixels within this many sigmas (+ 0.5 px)
-FIT_ITERATIONS = 10  # Levenberg-Marquardt iterations of the fits of elongated images
+FIT_ITERATIONS = 10  # Levenberg-Marquardt iterations of the fits of elongated images, at most
+FIT_TOLERANCE = 1e-4  # a fit stops once a step lowers its cost by less than this fraction (centres settle < 0.01 px)
 SPLIT_EVIDENCE = 9.0  # two Gaussians must fit an elongated image better than one by this (squared noise sigmas)
 MIN_SPLIT_PX = 0.8  # a pair fitted closer than this stays one image
 MAX_LOG_OVERSHOOT = 1.0  # a fitted Gaussian's peak is at most e times its peak pixel (a flat fit's cap)
 MODEL_NOISE = 0.03  # the shape fit's relative noise floor per pixel (shot noise, a profile not quite Gaussian)
 MODEL_RADIUS_SIGMAS = 4.0  # a particle's fitted Gaussian is subtracted out to this many of the hint's sigmas
+GLARE_LEVEL = 0.5  # no image where the background is above this fraction of full scale (glare, near saturation)
+GLARE_NOISE = 4.0  # nor where the local noise exceeds this many times the frame's typical (glare, texture)
+BRIGHT_QUANTILE = 0.99  # the frame's bright particle images: this quantile of the candidates' peaks ...
+BRIGHT_COUNT = 10  # ... or the BRIGHT_COUNT-th brightest in a frame of fewer than BRIGHT_COUNT / (1 - quantile)
+SHEET_EDGE = math.exp(-2.0)  # a light sheet's edge (its e^-2 thickness): the default relative brightness floor
 
 
 @dataclass(frozen=True)
@@ -94,7 +112,10 @@ class DetectSummary:
 
 @dataclass(frozen=True)
 class DetectOptions:
-    """How particle images are found."""
+    """How particle images are found. The threshold: ``threshold_sigma`` local noise sigmas of the image
+    smoothed at half a particle's sigma, at least ``min_peak`` and ``threshold`` grey levels above the local
+    background. An image's pixels: those 4-connected to its brightest above the threshold (as OpenPTV's
+    target_recognition counts them); sizes left None follow the diameter hint."""
 
     diameter_px: float = 3.0  # e^-2 diameter hint (rig.yaml particles.diameter_px)
     threshold_sigma: float = 5.0  # smoothed peak above the local background, in units of its local noise
@@ -102,45 +123,83 @@ class DetectOptions:
     max_width_ratio: float = 2.5  # a blob wider than this times the hint's image (its sigma) is none: dropped
     max_elongation: float = 1.2  # longer than wide by this beyond the noise: fitted as one or two (step 6)
     background_px: int = 32  # blocks of the local background's offset and of the local noise
+    # grey levels above the local background for a peak and for a pixel of an image (OpenPTV's grey
+    # threshold); a mapping: per camera (cameras not in it: none); None: the noise alone decides
+    threshold: float | Mapping[str, float] | None = None
+    min_pixels: int | None = None  # at least this many pixels (None: half the hint's e^-2 disc, pi d^2 / 8)
+    max_pixels: int | None = None  # at most (None: twice the e^-2 disc of an image max_width_ratio x the hint)
+    min_span_px: int | None = None  # at least this wide along u and along v (None: d / sqrt 2, >= 1)
+    max_span_px: int | None = None  # at most (None: no limit but max_pixels)
+    min_sum: float = 0.0  # their grey sum above the local background at least this (OpenPTV's sumg_min)
+    relative_floor: float = SHEET_EDGE  # peak >= this x the frame's bright images' (0: none; see step 4)
+
+    def for_camera(self, camera: str) -> "DetectOptions":
+        """These options with ``threshold`` resolved for one camera."""
+        from dataclasses import replace
+
+        if isinstance(self.threshold, Mapping):
+            value = self.threshold.get(camera)
+            return replace(self, threshold=None if value is None else float(value))
+        return self
+
+    def pixel_limits(self) -> tuple[int, int, int, int]:
+        """min_pixels, max_pixels, min_span_px, max_span_px with the hint's defaults filled in."""
+        d = self.diameter_px
+        lo = self.min_pixels if self.min_pixels is not None else max(1, math.ceil(math.pi * d * d / 8.0 - 1e-9))
+        hi = (self.max_pixels if self.max_pixels is not None
+              else math.ceil(math.pi * (self.max_width_ratio * d) ** 2 / 2.0))
+        span_lo = self.min_span_px if self.min_span_px is not None else max(1, int(d / math.sqrt(2.0) + 1e-9))
+        span_hi = self.max_span_px if self.max_span_px is not None else 1 << 30
+        return int(lo), int(hi), int(span_lo), int(span_hi)
 
 
-def _grey(image: np.ndarray) -> tuple[np.ndarray, float, float]:
+def _grey(image: np.ndarray) -> tuple[np.ndarray, float, float, np.ndarray | None]:
     """A float32 grey image (colour: the mean of the colour channels, an alpha channel left out), its grey
-    level step (1 integer, 0 float) and its saturation level."""
+    level step (1 integer, 0 float), its saturation level and the grey image in its integer type (None for
+    colour or float images)."""
     img = np.asarray(image)
     dtype = img.dtype
+    source = img if img.ndim == 2 and dtype in (np.uint8, np.uint16) else None
     if img.ndim == 3:
         img = img[:, :, :3 if img.shape[2] >= 3 else 1].mean(axis=2)
     if np.issubdtype(dtype, np.integer):
-        return img.astype(np.float32), 1.0, float(np.iinfo(dtype).max)
-    return np.nan_to_num(img.astype(np.float32)), 0.0, math.inf
+        return img.astype(np.float32), 1.0, float(np.iinfo(dtype).max), source
+    return np.nan_to_num(img.astype(np.float32)), 0.0, math.inf, None
 
 
 def detect_particles_in_image(image: np.ndarray, options: DetectOptions = DetectOptions()
                               ) -> tuple[np.ndarray, np.ndarray]:
     """Centres (N, 2) (OpenCV pixel convention) and peak intensities above the local background (N,),
-    in the image's grey levels."""
+    in the image's grey levels. ``options.threshold`` must be a number or None here
+    (:meth:`DetectOptions.for_camera`)."""
     import cv2
 
-    img, quantum, saturation = _grey(image)
+    from ari_sfm.particles import detect_kernels as K
+
+    img, quantum, saturation, source = _grey(image)
     h, w = img.shape
     empty = (np.empty((0, 2)), np.empty(0))
     if h < 3 or w < 3:
         return empty
+    if isinstance(options.threshold, Mapping):
+        raise ValueError("DetectOptions.threshold is a mapping per camera: resolve it with for_camera()")
+    grey_threshold = float(options.threshold or 0.0)
     sigma = options.diameter_px / 4.0
-    block = int(options.background_px)
-    background = estimate_background(img, options.diameter_px, block, quantum)
+    background = estimate_background(img, options.diameter_px, int(options.background_px), quantum, source)
     res = img - background.level
     noise = background.noise
-    clean = _without_hot_pixels(res, noise)
+    clean = K.without_hot_pixels(res, noise, 1.0 / (HOT_SIGMA_PX * HOT_SIGMA_PX))
     s_smooth = max(SMOOTH_FRACTION * sigma, 0.3)
     smooth = cv2.GaussianBlur(clean, (0, 0), s_smooth, borderType=cv2.BORDER_REPLICATE)
-    noise_smooth = noise * _smoothing_gain(s_smooth)
-    threshold = np.maximum(options.threshold_sigma * noise_smooth, options.min_peak)
-    ys, xs = _local_maxima(smooth, threshold)
+    factor = options.threshold_sigma * _smoothing_gain(s_smooth)  # the threshold in pixel noise sigmas
+    floor = max(float(options.min_peak), grey_threshold)
+    ys, xs = K.local_maxima(smooth, noise, factor, floor)
     if len(xs):
         blob = _near_saturated_blob(img, saturation, options.diameter_px)
-        ok = _supported(clean, ys, xs, noise[ys, xs]) & ~blob[ys, xs]
+        ok = _supported(clean, ys, xs, noise[ys, xs]) & ~blob[ys, xs] & ~_in_glare(background, ys, xs, saturation)
+        ys, xs = ys[ok], xs[ok]
+    if len(xs):
+        ok = _usable(clean, noise, ys, xs, options, factor, floor)
         ys, xs = ys[ok], xs[ok]
     if not len(xs):
         return empty
@@ -148,6 +207,38 @@ def detect_particles_in_image(image: np.ndarray, options: DetectOptions = Detect
     fit = _deblended_fit(clean, noise, ys, xs, sigma, saturated, options.max_elongation)
     single = _single(fit, sigma, options.max_width_ratio, options.max_elongation)
     return fit.uv[single], fit.peak[single]
+
+
+def _in_glare(background: Background, ys: np.ndarray, xs: np.ndarray, saturation: float) -> np.ndarray:
+    """(N,) True where the background is glare: above GLARE_LEVEL of full scale (a particle there clips
+    within half the range, and what stands out is noise on the glare), or its local noise GLARE_NOISE
+    times the frame's typical (texture, a wall's streaks: structure, not noise)."""
+    level = background.level[ys, xs]
+    noisy = background.noise[ys, xs] >= GLARE_NOISE * max(background.typical_noise, 1e-12)
+    return (level >= GLARE_LEVEL * saturation) | noisy
+
+
+def _usable(clean: np.ndarray, noise: np.ndarray, ys: np.ndarray, xs: np.ndarray, options: DetectOptions,
+            factor: float, floor: float) -> np.ndarray:
+    """(N,) True where a candidate is a particle image a PTV lab can use: its pixels (4-connected to its
+    brightest pixel, above ``factor`` local noise sigmas and ``floor`` grey levels: the threshold) within
+    :meth:`DetectOptions.pixel_limits` and summing to ``min_sum``, and its peak at least ``relative_floor``
+    times the frame's bright images' (the BRIGHT_QUANTILE of the peaks of the candidates that pass; the
+    BRIGHT_COUNT-th brightest in a sparse frame). Fainter specks are out of the light (beyond the sheet's
+    e^-2 edge), out of focus or dust; 1-2 px specks cannot be centred to a fraction of a pixel."""
+    from ari_sfm.particles.detect_kernels import connected_regions
+
+    lo, hi, span_lo, span_hi = options.pixel_limits()
+    count, width_u, width_v, total, peak = connected_regions(clean, noise, factor, floor, ys.astype(np.int64),
+                                                             xs.astype(np.int64), hi)
+    ok = ((count >= lo) & (count <= hi) & (np.minimum(width_u, width_v) >= span_lo)
+          & (np.maximum(width_u, width_v) <= span_hi) & (total >= options.min_sum))
+    if options.relative_floor > 0 and ok.any():
+        ranked = np.sort(peak[ok])[::-1]
+        k = max(BRIGHT_COUNT, math.ceil((1.0 - BRIGHT_QUANTILE) * len(ranked)))
+        bright = ranked[min(k, len(ranked)) - 1]
+        ok &= peak >= options.relative_floor * bright
+    return ok
 
 
 def _smoothing_gain(sigma: float) -> float:
@@ -169,42 +260,6 @@ def _near_saturated_blob(img: np.ndarray, saturation: float, diameter_px: float)
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (opening_size(diameter_px),) * 2)
     big = cv2.morphologyEx(saturated, cv2.MORPH_OPEN, disc)
     return cv2.dilate(big, disc).astype(bool) if big.any() else np.zeros(img.shape, bool)
-
-
-def _without_hot_pixels(res: np.ndarray, noise: np.ndarray) -> np.ndarray:
-    """``res`` with hot pixels replaced by the median of their 8 neighbours: a pixel sharper along u and
-    along v than any image through a lens can be (log curvature 2 ln I0 - ln I-1 - ln I+1 > 1 / s^2,
-    s = HOT_SIGMA_PX, intensities floored at the noise), also on a particle's skirt."""
-    limit = 1.0 / (HOT_SIGMA_PX * HOT_SIGMA_PX)
-    floor = np.maximum(noise, 1e-6)
-    lg = np.log(np.maximum(res, floor))
-    inner = lg[1:-1, 1:-1]
-    sharp_u = 2.0 * inner - lg[1:-1, :-2] - lg[1:-1, 2:] > limit
-    sharp_v = 2.0 * inner - lg[:-2, 1:-1] - lg[2:, 1:-1] > limit
-    ys, xs = np.nonzero(sharp_u & sharp_v)
-    if not len(ys):
-        return res
-    ys, xs = ys + 1, xs + 1
-    out = res.copy()
-    dy = np.array([-1, -1, -1, 0, 0, 1, 1, 1])
-    dx = np.array([-1, 0, 1, -1, 1, -1, 0, 1])
-    out[ys, xs] = np.median(res[ys[:, None] + dy, xs[:, None] + dx], axis=1)
-    return out
-
-
-def _local_maxima(smooth: np.ndarray, threshold: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels (rows, cols) at the maximum of their 3 x 3 neighbourhood and above ``threshold``, off the
-    border; of a plateau of equal values, the pixels above and left of which no plateau pixel lies."""
-    import cv2
-
-    local = cv2.dilate(smooth, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
-    peak = (smooth >= local) & (smooth >= threshold)
-    peak[0, :] = peak[-1, :] = peak[:, 0] = peak[:, -1] = False
-    ys, xs = np.nonzero(peak)
-    s0 = smooth[ys, xs]
-    first = ((s0 > smooth[ys - 1, xs - 1]) & (s0 > smooth[ys - 1, xs]) & (s0 > smooth[ys - 1, xs + 1])
-             & (s0 > smooth[ys, xs - 1]))
-    return ys[first], xs[first]
 
 
 def _supported(res: np.ndarray, ys: np.ndarray, xs: np.ndarray, noise: np.ndarray) -> np.ndarray:
@@ -282,24 +337,6 @@ class ImageShape:
         return ImageShape(*(np.concatenate([getattr(self, f), getattr(other, f)]) for f in self.__dataclass_fields__))
 
 
-def _log_parabola(lm: np.ndarray, l0: np.ndarray, lp: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Vertex offset, curvature (< 0 for a peak) and vertex height of the parabola through the log
-    intensities at -1, 0, +1."""
-    b = 0.5 * (lp - lm)
-    c = 0.5 * (lp - 2.0 * l0 + lm)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        off = -b / (2.0 * c)
-        top = l0 - b * b / (4.0 * c)
-    return off, c, top
-
-
-def _gaussian(A: np.ndarray, u: np.ndarray, v: np.ndarray, su: np.ndarray, sv: np.ndarray,
-              X: np.ndarray, Y: np.ndarray) -> np.ndarray:
-    """Each particle's Gaussian (sampled at pixel centres) at its pixels X, Y (N, ...)."""
-    ex = (X - u[:, None]) ** 2 / (2.0 * su[:, None] ** 2) + (Y - v[:, None]) ** 2 / (2.0 * sv[:, None] ** 2)
-    return A[:, None] * np.exp(-ex)
-
-
 def _offsets(r: int) -> tuple[np.ndarray, np.ndarray]:
     """Row and column offsets of a (2 r + 1)^2 window, row-major."""
     off = np.arange(-r, r + 1)
@@ -315,63 +352,69 @@ def _deblended_fit(res: np.ndarray, noise: np.ndarray, ys: np.ndarray, xs: np.nd
     A = np.maximum(res[ys, xs].astype(float), MIN_SIGNAL)
     state = _State(ys, xs, ys, xs, xs.astype(float), ys.astype(float), A, np.full(n, sigma), np.full(n, sigma),
                    saturated, np.zeros(n, bool))
-    state, model = _fit_rounds(res, state, sigma, DEBLEND_ITERATIONS)
-    shape = image_shape(_own_pixels(res, model, state, *_offsets(1)), noise[state.y0, state.x0])
+    model = _Model(res.shape, _model_radius(sigma))
+    state = _fit_rounds(res, state, sigma, DEBLEND_ITERATIONS, model)
+    shape = image_shape(_own_pixels(res, model.image, state, *_offsets(1)), noise[state.y0, state.x0])
     ridge = _on_ridge(res, noise, state, sigma, shape.axis)
     elongated = (shape.elongation_sure > max_elongation) & np.isfinite(shape.elongation) & ~ridge & ~state.saturated
     if elongated.any():
-        state, kept = _fit_elongated(res, noise, model, state, shape, elongated)
+        state, kept = _fit_elongated(res, noise, model.image, state, shape, elongated)
         ridge = np.concatenate([ridge[kept], np.zeros(len(state.u) - len(kept), bool)])
-        model = _render(*res.shape, state, _model_radius(sigma))
+        model.draw(state)
         twins = state.take(np.arange(len(kept), len(state.u)))
-        shape = shape.take(kept).join(image_shape(_own_pixels(res, model, twins, *_offsets(1)),
+        shape = shape.take(kept).join(image_shape(_own_pixels(res, model.image, twins, *_offsets(1)),
                                                   noise[twins.y0, twins.x0]))
-        state, _ = _fit_rounds(res, state, sigma, 1, model, render_last=False)  # the neighbours of split pairs
+        state = _fit_rounds(res, state, sigma, 1, model, render_last=False)  # the neighbours of split pairs
     return _Fit(uv=np.stack([state.u, state.v], axis=1), peak=state.A, shape=shape, ridge=ridge,
                 saturated=state.saturated, fixed=state.fixed)
 
 
-def _fit_rounds(res: np.ndarray, state: _State, sigma: float, rounds: int, model: np.ndarray | None = None,
-                render_last: bool = True) -> tuple[_State, np.ndarray | None]:
+class _Model:
+    """The sum of the particles' fitted Gaussians over a frame, redrawn in place (one array per frame)."""
+
+    def __init__(self, shape: tuple[int, int], radius: int) -> None:
+        self.image = np.zeros((0, 0))  # none drawn yet (the kernels' stand-in)
+        self.shape = shape
+        self.radius = radius
+        self.cx = self.cy = np.empty(0, np.int64)
+
+    def draw(self, s: _State) -> None:
+        """The Gaussians of ``s``, each over a (2 radius + 1)^2 window."""
+        from ari_sfm.particles.detect_kernels import render
+
+        if not self.image.size:
+            self.image = np.zeros(self.shape)
+        self.cx, self.cy = render(self.image, self.cx, self.cy, *(np.asarray(getattr(s, f), float)
+                                                                  for f in ("u", "v", "A", "su", "sv")), self.radius)
+
+
+def _fit_rounds(res: np.ndarray, state: _State, sigma: float, rounds: int, model: _Model,
+                render_last: bool = True) -> _State:
     """``rounds`` rounds of three-point Gaussian fits along u and v, each particle's own pixels being the
-    residual minus the other particles' Gaussians of the round before (``model``: those of the start).
-    Returns the state and its model (None if not ``render_last``)."""
-    h, w = res.shape
+    residual minus the other particles' Gaussians of the round before (``model``: those of the start, none
+    drawn: no others), redrawn after each round (not after the last unless ``render_last``)."""
+    from ari_sfm.particles.detect_kernels import fit_round
+
     s_lo, s_hi = SIGMA_RANGE[0] * sigma, max(SIGMA_RANGE[1] * sigma, 0.5)
-    model_r = _model_radius(sigma)
-    centroid_dy, centroid_dx = _offsets(int(math.ceil(2.0 * sigma + 1.0)))
-    stencil_dy = np.array([0, 0, 0, -1, 1])  # centre, left, right, up, down
-    stencil_dx = np.array([0, -1, 1, 0, 0])
-    s = state
+    centroid_r = int(math.ceil(2.0 * sigma + 1.0))
+    f = {name: getattr(state, name).copy() for name in ("y0", "x0", "u", "v", "A", "su", "sv")}
+    f["u"], f["v"], f["A"], f["su"], f["sv"] = (f[k].astype(float) for k in ("u", "v", "A", "su", "sv"))
+    f["y0"], f["x0"] = f["y0"].astype(np.int64), f["x0"].astype(np.int64)
+    anchor_y, anchor_x = state.anchor_y.astype(np.int64), state.anchor_x.astype(np.int64)
     for k in range(rounds):
-        own = _own_pixels(res, model, s, stencil_dy, stencil_dx)
-        lg = np.log(np.maximum(own, MIN_SIGNAL))
-        ou, cu, tu = _log_parabola(lg[:, 1], lg[:, 0], lg[:, 2])
-        ov, cv, tv = _log_parabola(lg[:, 3], lg[:, 0], lg[:, 4])
-        good = (cu < 0) & (cv < 0) & np.isfinite(ou) & np.isfinite(ov) & ~s.saturated
-        ou, ov = np.clip(np.where(good, ou, 0.0), -1.0, 1.0), np.clip(np.where(good, ov, 0.0), -1.0, 1.0)
-        u, v = s.x0 + ou, s.y0 + ov
-        with np.errstate(divide="ignore", invalid="ignore"):
-            su = np.where(good, np.clip(np.sqrt(-0.5 / cu), s_lo, s_hi), sigma)
-            sv = np.where(good, np.clip(np.sqrt(-0.5 / cv), s_lo, s_hi), sigma)
-        top = np.minimum(np.where(good, 0.5 * (tu + tv), lg[:, 0]), lg[:, 0] + MAX_LOG_OVERSHOOT)
-        A = np.where(good, np.exp(top), np.maximum(own[:, 0], MIN_SIGNAL))
-        bad = ~good  # flat tops (saturated) and failed fits: the centroid of the own pixels above half the peak
-        if bad.any():
-            pb = _own_pixels(res, model, s.take(bad), centroid_dy, centroid_dx)
-            wts = np.where(pb >= 0.5 * pb.max(axis=1, keepdims=True), pb, 0.0)
-            total = np.maximum(wts.sum(axis=1), MIN_SIGNAL)
-            u[bad] = s.x0[bad] + (wts * centroid_dx).sum(axis=1) / total
-            v[bad] = s.y0[bad] + (wts * centroid_dy).sum(axis=1) / total
-        # the peak pixel follows the centre (at most one pixel from where it started)
-        y0 = np.clip(np.rint(v).astype(int), np.maximum(s.anchor_y - 1, 1), np.minimum(s.anchor_y + 1, h - 2))
-        x0 = np.clip(np.rint(u).astype(int), np.maximum(s.anchor_x - 1, 1), np.minimum(s.anchor_x + 1, w - 2))
-        held = s.fixed
-        s = _State(s.anchor_y, s.anchor_x, np.where(held, s.y0, y0), np.where(held, s.x0, x0),
-                   np.where(held, s.u, u), np.where(held, s.v, v), np.where(held, s.A, A), np.where(held, s.su, su),
-                   np.where(held, s.sv, sv), s.saturated, s.fixed)
-        model = _render(h, w, s, model_r) if render_last or k < rounds - 1 else None
-    return s, model
+        fit_round(res, model.image, anchor_y, anchor_x, f["y0"], f["x0"], f["u"], f["v"], f["A"], f["su"], f["sv"],
+                  state.saturated, state.fixed, float(sigma), s_lo, s_hi, centroid_r, MIN_SIGNAL, MAX_LOG_OVERSHOOT)
+        state = _State(state.anchor_y, state.anchor_x, f["y0"], f["x0"], f["u"], f["v"], f["A"], f["su"], f["sv"],
+                       state.saturated, state.fixed)
+        if render_last or k < rounds - 1:
+            model.draw(state)
+        f = {name: getattr(state, name).copy() for name in ("y0", "x0", "u", "v", "A", "su", "sv")}
+    return state
+
+
+def _no_model(model: np.ndarray | None) -> np.ndarray:
+    """The kernels' stand-in for no model: an empty array."""
+    return np.zeros((0, 0)) if model is None else model
 
 
 def _model_radius(sigma: float) -> int:
@@ -389,6 +432,8 @@ def _fit_elongated(res: np.ndarray, noise: np.ndarray, model: np.ndarray, state:
     centred by the elliptical fit. Either way it is held (``fixed``) from then on. Returns the state (the
     images not split, in their order, then the first and the second of each split pair) and the rows of
     ``state`` it keeps."""
+    from ari_sfm.particles.detect_kernels import levenberg_marquardt
+
     rows = np.flatnonzero(elongated)
     s = state.take(rows)
     dy, dx = _offsets(max(2, int(math.ceil(PAIR_WINDOW_SIGMAS * float(np.median(s.su)) + 0.5))))
@@ -399,13 +444,13 @@ def _fit_elongated(res: np.ndarray, noise: np.ndarray, model: np.ndarray, state:
     # one elliptical Gaussian: u, v, A and the inverse covariance (a, b, c), started from the shape's Hessian
     a0, b0 = _inverse_covariance(shape, rows)
     one = np.stack([s.u, s.v, s.A, a0[:, 0], a0[:, 1], b0], axis=1)
-    one, ssr_one = _levenberg_marquardt(one, X, Y, data, _ellipse)
+    one, ssr_one = levenberg_marquardt(0, one, X, Y, data, FIT_ITERATIONS, FIT_TOLERANCE)
     # two round Gaussians: u1, v1, u2, v2, A1, A2, sigma
     half = np.clip(shape.half_split[rows], SPLIT_RANGE_PX[0], SPLIT_RANGE_PX[1])
     du, dv = half * shape.axis[rows, 0], half * shape.axis[rows, 1]
     two = np.stack([s.u - du, s.v - dv, s.u + du, s.v + dv, 0.6 * s.A, 0.6 * s.A,
                     np.sqrt(0.5 * (s.su ** 2 + s.sv ** 2))], axis=1)
-    two, ssr_two = _levenberg_marquardt(two, X, Y, data, _pair)
+    two, ssr_two = levenberg_marquardt(1, two, X, Y, data, FIT_ITERATIONS, FIT_TOLERANCE)
     sep = np.hypot(two[:, 2] - two[:, 0], two[:, 3] - two[:, 1])
     n2 = noise[s.y0, s.x0] ** 2
     split = ((ssr_one - ssr_two > SPLIT_EVIDENCE * n2) & (sep >= MIN_SPLIT_PX)
@@ -458,95 +503,14 @@ def _inverse_covariance(shape: ImageShape, rows: np.ndarray) -> tuple[np.ndarray
     return np.stack([a, c], axis=1), b
 
 
-def _ellipse(q: np.ndarray, X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """An elliptical Gaussian (u, v, A, a, c, b: exp(-(a dx^2 + 2 b dx dy + c dy^2) / 2)) at X, Y and its
-    Jacobian (N, P, 6)."""
-    ex, ey = X - q[:, 0:1], Y - q[:, 1:2]
-    a, c, b = q[:, 3:4], q[:, 4:5], q[:, 5:6]
-    proper = (a > 0) & (c > 0) & (a * c > b * b)  # else NaN: a trial step outside the ellipses, refused
-    g = np.where(proper, np.exp(-0.5 * np.maximum(a * ex * ex + 2.0 * b * ex * ey + c * ey * ey, 0.0)), np.nan)
-    m = q[:, 2:3] * g
-    J = np.stack([m * (a * ex + b * ey), m * (b * ex + c * ey), g, -0.5 * m * ex * ex, -0.5 * m * ey * ey,
-                  -m * ex * ey], axis=2)
-    return m, J
-
-
-def _pair(q: np.ndarray, X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two round Gaussians (u1, v1, u2, v2, A1, A2, sigma) at X, Y and their Jacobian (N, P, 7)."""
-    s2 = q[:, 6:7] ** 2
-    ex1, ey1 = X - q[:, 0:1], Y - q[:, 1:2]
-    ex2, ey2 = X - q[:, 2:3], Y - q[:, 3:4]
-    g1 = np.exp(-(ex1 ** 2 + ey1 ** 2) / (2 * s2))
-    g2 = np.exp(-(ex2 ** 2 + ey2 ** 2) / (2 * s2))
-    m1, m2 = q[:, 4:5] * g1, q[:, 5:6] * g2
-    J = np.stack([m1 * ex1 / s2, m1 * ey1 / s2, m2 * ex2 / s2, m2 * ey2 / s2, g1, g2,
-                  (m1 * (ex1 ** 2 + ey1 ** 2) + m2 * (ex2 ** 2 + ey2 ** 2)) / (s2 * q[:, 6:7])], axis=2)
-    return m1 + m2, J
-
-
-def _levenberg_marquardt(p: np.ndarray, X: np.ndarray, Y: np.ndarray, data: np.ndarray, model
-                         ) -> tuple[np.ndarray, np.ndarray]:
-    """Fit ``model(params, X, Y) -> (values, Jacobian)`` to ``data`` (N, P) by Levenberg-Marquardt, batched
-    over N (a fit leaves the batch once its cost stops falling). Returns the parameters and each fit's sum
-    of squared residuals."""
-    k = p.shape[1]
-    p = p.copy()
-    lam = np.full(len(p), 1e-2)
-    eye = np.eye(k)
-
-    def evaluate(q: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        with np.errstate(over="ignore", invalid="ignore"):
-            m, J = model(q, X[rows], Y[rows])
-        r = data[rows] - m
-        return r, J, np.where(np.isfinite(r).all(axis=1), (r * r).sum(axis=1), np.inf)
-
-    active = np.arange(len(p))
-    r, J, cost = evaluate(p, active)
-    for _ in range(FIT_ITERATIONS):
-        if not len(active):
-            break
-        Ja, ra = J[active], r[active]
-        Jt = Ja.transpose(0, 2, 1)
-        JtJ = Jt @ Ja
-        damped = JtJ + lam[active, None, None] * (eye * np.diagonal(JtJ, axis1=1, axis2=2)[:, None, :] + 1e-9 * eye)
-        ok = np.isfinite(damped).all(axis=(1, 2))
-        step = np.zeros((len(active), k))
-        step[ok] = np.linalg.solve(damped[ok], (Jt[ok] @ ra[ok][:, :, None]))[:, :, 0]
-        trial = p[active] + step
-        r_t, J_t, cost_t = evaluate(trial, active)
-        better = cost_t < cost[active]
-        rows = active[better]
-        settled = np.zeros(len(active), bool)
-        settled[better] = cost[rows] - cost_t[better] <= 1e-6 * cost[rows]
-        p[rows], r[rows], J[rows], cost[rows] = trial[better], r_t[better], J_t[better], cost_t[better]
-        lam[active] = np.clip(np.where(better, lam[active] * 0.3, lam[active] * 10.0), 1e-9, 1e9)
-        active = active[~settled & (lam[active] < 1e8)]
-    return p, cost
-
-
 def _own_pixels(res: np.ndarray, model: np.ndarray | None, s: _State, dy: np.ndarray, dx: np.ndarray) -> np.ndarray:
     """(N, len(dy)) the residual at each particle's pixels (y0 + dy, x0 + dx), clamped to the frame,
     minus the other particles' Gaussians (the whole model minus its own)."""
-    h, w = res.shape
-    Y = np.clip(s.y0[:, None] + dy, 0, h - 1)
-    X = np.clip(s.x0[:, None] + dx, 0, w - 1)
-    out = res[Y, X].astype(float)
-    if model is not None:
-        out -= model[Y, X] - _gaussian(s.A, s.u, s.v, s.su, s.sv, X, Y)
-    return out
+    from ari_sfm.particles.detect_kernels import own_pixels
 
-
-def _render(h: int, w: int, s: _State, r: int) -> np.ndarray:
-    """The sum of the particles' Gaussians (h, w) over a (2 r + 1)^2 window each (separable)."""
-    off = np.arange(-r, r + 1)
-    xs = np.rint(s.u).astype(int)[:, None] + off  # (N, 2r+1)
-    ys = np.rint(s.v).astype(int)[:, None] + off
-    gx = np.exp(-((xs - s.u[:, None]) ** 2) / (2.0 * s.su[:, None] ** 2))
-    gy = s.A[:, None] * np.exp(-((ys - s.v[:, None]) ** 2) / (2.0 * s.sv[:, None] ** 2))
-    vals = gy[:, :, None] * gx[:, None, :]
-    flat = ys[:, :, None] * w + xs[:, None, :]
-    inside = ((xs >= 0) & (xs < w))[:, None, :] & ((ys >= 0) & (ys < h))[:, :, None]
-    return np.bincount(flat[inside], weights=vals[inside], minlength=h * w).reshape(h, w)
+    return own_pixels(res, _no_model(model), *(np.asarray(a, np.int64) for a in (s.y0, s.x0)),
+                      *(np.asarray(a, float) for a in (s.u, s.v, s.A, s.su, s.sv)),
+                      np.asarray(dy, np.int64), np.asarray(dx, np.int64))
 
 
 def _on_ridge(res: np.ndarray, noise: np.ndarray, s: _State, sigma: float, axis: np.ndarray) -> np.ndarray:
@@ -554,21 +518,11 @@ def _on_ridge(res: np.ndarray, noise: np.ndarray, s: _State, sigma: float, axis:
     (N, 2)) or one of u, v and the two diagonals, the residual (other candidates kept: a streak is a chain
     of them) stays above RIDGE_LEVEL of its peak on both sides at r and half that at 2 r
     (r = RIDGE_RADIUS_SIGMAS sigmas, nearest pixels), two noise sigmas allowed."""
+    from ari_sfm.particles.detect_kernels import on_ridge
+
     r = max(2, int(math.ceil(RIDGE_RADIUS_SIGMAS * sigma)))
-    c = 1.0 / math.sqrt(2.0)
-    units = np.array([[1.0, 0.0], [0.0, 1.0], [c, c], [c, -c]])  # (u, v) directions
-    directions = np.concatenate([np.broadcast_to(units, (len(s.u), 4, 2)), axis[:, None, :]], axis=1)  # (N, 5, 2)
-    h, w = res.shape
-    levels = []
-    for distance, level in ((r, RIDGE_LEVEL), (2 * r, 0.5 * RIDGE_LEVEL)):
-        sides = []
-        for sign in (-1.0, 1.0):
-            X = np.clip(np.rint(s.u[:, None] + sign * distance * directions[:, :, 0]).astype(int), 0, w - 1)
-            Y = np.clip(np.rint(s.v[:, None] + sign * distance * directions[:, :, 1]).astype(int), 0, h - 1)
-            sides.append(res[Y, X])
-        sure = np.minimum(*sides) - SUPPORT_SIGMAS * noise[s.y0, s.x0][:, None]
-        levels.append(sure >= level * np.maximum(s.A, MIN_SIGNAL)[:, None])
-    return (levels[0] & levels[1]).any(axis=1)
+    return on_ridge(res, noise[s.y0, s.x0].astype(float), *(np.asarray(a, float) for a in (s.u, s.v, s.A)),
+                    np.ascontiguousarray(axis, float), r, RIDGE_LEVEL, SUPPORT_SIGMAS, MIN_SIGNAL)
 
 
 def image_shape(own: np.ndarray, noise: np.ndarray) -> ImageShape:
@@ -579,21 +533,11 @@ def image_shape(own: np.ndarray, noise: np.ndarray) -> ImageShape:
     Gaussian of any orientation, wherever its centre lies in the peak pixel. Two equal round images of
     sigma s, 2 a apart, look like one with log curvatures 1 / s^2 across and 1 / s^2 - a^2 / s^4 along:
     ``half_split`` is that a."""
+    from ari_sfm.particles.detect_kernels import shape_hessians
+
     n = len(own)
-    noise = np.maximum(np.asarray(noise, float), 1e-9)[:, None]
-    I = np.maximum(own, 0.5 * noise)
-    weight = 1.0 / ((noise / I) ** 2 + MODEL_NOISE ** 2)
-    dy, dx = (a.astype(float) for a in _offsets(1))
-    design = np.stack([np.ones(9), dx, dy, 0.5 * dx * dx, dx * dy, 0.5 * dy * dy], axis=1)  # (9, 6)
-    normal = (weight @ (design[:, :, None] * design[:, None, :]).reshape(9, 36)).reshape(n, 6, 6)
-    rhs = (weight * np.log(I)) @ design
-    # positive definite (nine pixels, positive weights, six parameters): the parameters and the
-    # covariance of the Hessian's three in one solve
-    unit = np.zeros((n, 6, 3))
-    unit[:, 3, 0] = unit[:, 4, 1] = unit[:, 5, 2] = 1.0
-    solved = np.linalg.solve(normal, np.concatenate([rhs[:, :, None], unit], axis=2))
-    h_uu, h_uv, h_vv = solved[:, 3, 0], solved[:, 4, 0], solved[:, 5, 0]
-    c3 = solved[:, 3:, 1:]
+    hess, c3 = shape_hessians(np.ascontiguousarray(own, float), np.asarray(noise, float), MODEL_NOISE)
+    h_uu, h_uv, h_vv = hess[:, 0], hess[:, 1], hess[:, 2]
     m = -0.5 * (h_uu + h_vv)  # the eigenvalues of -H: m -/+ d
     q = 0.5 * (h_uu - h_vv)
     d = np.hypot(q, h_uv)
@@ -683,7 +627,7 @@ def detect_partition(patterns: dict[str, str], frames: list[int], options: Detec
     for f in frames:
         for cam, pattern in patterns.items():
             image = read_image(Path(pattern.format(frame=f)), None if sizes is None else sizes[cam], cam)
-            uv, peak = detect_particles_in_image(image, options)
+            uv, peak = detect_particles_in_image(image, options.for_camera(cam))
             frame.append(np.full(len(uv), f, np.int64))
             camera += [cam] * len(uv)
             u.append(uv[:, 0])
@@ -738,6 +682,17 @@ def _image_stats(dataset: Any, frames: list[int]) -> str:
     return hashlib.sha256(json.dumps(stats).encode()).hexdigest()
 
 
+def detect_options(dataset: Any, **overrides: Any) -> DetectOptions:
+    """The options of a dataset's detection: the defaults, rig.yaml's ``particles.diameter_px`` and
+    ``particles.detect`` (a :class:`~ari_sfm.io.particles.ParticleDataset`), then ``overrides`` (the
+    command line's; None: not given)."""
+    from dataclasses import replace
+
+    options = DetectOptions(diameter_px=dataset.diameter_px or DetectOptions.diameter_px)
+    options = replace(options, **dataset.detect.given())
+    return replace(options, **{k: v for k, v in overrides.items() if v is not None})
+
+
 def detect_experiment(dataset_path: str | Path, out: str | Path, options: DetectOptions | None = None,
                       frames_per_partition: int = 20, workers: int = 0, scheduler: str | None = None,
                       progress: bool = False, worker_timeout_s: float | None = None) -> DetectSummary:
@@ -774,7 +729,7 @@ def detect_experiment(dataset_path: str | Path, out: str | Path, options: Detect
     if dataset.images is None:
         raise AriSfmError(dataset.rig_path, "particles.images is not given: no particle images to detect")
     if options is None:
-        options = DetectOptions(diameter_px=dataset.diameter_px or DetectOptions.diameter_px)
+        options = detect_options(dataset)
     first, last = dataset.frames
     sizes = _check_image_sizes(dataset)
     _image_stats(dataset, sorted({first, last}))  # the first and last images exist (a typo in frames: at once)

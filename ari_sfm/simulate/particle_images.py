@@ -6,15 +6,24 @@ the plain frames of ``simulate particles``. :func:`render_tank_frame` draws
 the same particle images as a camera behind a real tank records them
 (:class:`TankLook`): an uneven background (a gradient and broad lobes of
 light), bright reflection streaks (a glass edge, a wall), a few big bright
-blobs (bubbles, reflections off the model), particles of varying brightness
-and size, shot and read noise, optional hot pixels, 8- or 16-bit. Grey levels
-of :class:`TankLook` are on the 8-bit scale (255 full scale); a 16-bit frame
-holds the same scene times 257 (65535 full scale), quantised in 16 bits.
+blobs (bubbles, reflections off the model), glare (a wall lit near
+saturation, with streaky texture), particles of varying brightness and size,
+faint sharp specks (seeding out of the light sheet, out of focus: 1-2 px,
+fainter than the particles) and dust (faint blurred discs), shot and read
+noise, optional hot pixels, 8- or 16-bit. Grey levels of :class:`TankLook`
+are on the 8-bit scale (255 full scale); a 16-bit frame holds the same scene
+times 257 (65535 full scale), quantised in 16 bits.
+
+The defaults follow OpenPTV's test_cavity images (1280 x 1024, 8-bit): a
+noise of 1-1.5 grey levels where the background is dark; particle images a
+PTV lab uses with peaks from ~30 to saturation; about as many faint specks per
+pixel as there are particles in a dense frame (0.01), 1-2 px across, peaks
+10-20 levels, fewer up to ~30; glass walls lit near saturation.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -72,9 +81,9 @@ class TankLook:
 
     bit_depth: int = 8  # 8 or 16 (16: the same scene x 257, quantised in 16 bits)
     background: tuple[float, float] = (6.0, 40.0)  # the uneven background spans this range
-    read_noise: float = 2.0  # Gaussian noise, grey levels
-    shot_gain: float = 0.05  # shot noise: variance += shot_gain x signal (grey levels)
-    peak: tuple[float, float] = (12.0, 220.0)  # particle peaks above the background, log-uniform in this range
+    read_noise: float = 1.0  # Gaussian noise, grey levels
+    shot_gain: float = 0.02  # shot noise: variance += shot_gain x signal (grey levels)
+    peak: tuple[float, float] = (30.0, 220.0)  # particle peaks above the background, log-uniform in this range
     diameter_spread: float = 0.25  # particle diameters uniform in d (1 -/+ spread)
     streaks: int = 1  # bright reflection streaks across the frame
     streak_peak: float = 90.0  # their brightness above the background
@@ -83,6 +92,15 @@ class TankLook:
     blob_radius_px: tuple[float, float] = (8.0, 30.0)
     blob_peak: float = 400.0  # above full scale: saturated cores
     hot_pixels: float = 0.0  # fraction of the pixels stuck at full scale
+    specks: float = 0.01  # faint sharp specks per pixel (seeding out of the light, out of focus)
+    speck_peak: tuple[float, float] = (6.0, 25.0)  # their peaks, log-uniform
+    speck_sigma_px: tuple[float, float] = (0.3, 0.45)  # their sigmas: 1-2 px images
+    dust: float = 2e-5  # dust per pixel: faint blurred discs
+    dust_radius_px: tuple[float, float] = (3.0, 8.0)
+    dust_peak: tuple[float, float] = (8.0, 30.0)
+    glare: int = 1  # glare bands (a glass wall lit near saturation), near vertical
+    glare_width_px: tuple[float, float] = (20.0, 60.0)
+    glare_level: tuple[float, float] = (170.0, 245.0)  # their brightness above the background, with texture
 
 
 @dataclass(frozen=True)
@@ -92,7 +110,9 @@ class TankFrame:
     image: np.ndarray  # (h, w) uint8 or uint16
     peak: np.ndarray  # (N,) each particle image's peak above the background, in the image's units
     diameter_px: np.ndarray  # (N,) e^-2 diameters
-    covered: np.ndarray  # (N,) bool: under a blob or a streak's core (brighter than the particle's peak there)
+    covered: np.ndarray  # (N,) bool: under a blob, a streak's core or glare (brighter than the particle's peak there)
+    specks: np.ndarray = field(default_factory=lambda: np.empty((0, 2)))  # (S, 2) the specks' centres
+    dust: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))  # (D, 3) the dust discs' u, v, radius
 
 
 def render_tank_frame(uv: np.ndarray, image_size: tuple[int, int], diameter_px: float, look: TankLook = TankLook(),
@@ -119,11 +139,15 @@ def render_tank_frame(uv: np.ndarray, image_size: tuple[int, int], diameter_px: 
         _add_streak(clutter, look.streak_peak, look.streak_width_px, rng)
     for _ in range(look.blobs):
         _add_blob(clutter, look.blob_radius_px, look.blob_peak, rng)
+    for _ in range(look.glare):
+        _add_glare(clutter, look.glare_width_px, look.glare_level, rng)
     iu = np.clip(np.rint(uv[:, 0]).astype(int), 0, w - 1)
     iv = np.clip(np.rint(uv[:, 1]).astype(int), 0, h - 1)
     covered = clutter[iv, iu] > peak if n else np.zeros(0, bool)
     scene += clutter
     add_gaussian_images(scene, uv, peak, diameter / 4.0)
+    specks = _add_specks(scene, look, rng)
+    dust = _add_dust(scene, look, rng)
     variance = look.read_noise ** 2 + look.shot_gain * np.maximum(scene, 0.0)
     scene += rng.normal(0.0, 1.0, scene.shape) * np.sqrt(variance)
     if look.hot_pixels > 0:
@@ -132,7 +156,57 @@ def render_tank_frame(uv: np.ndarray, image_size: tuple[int, int], diameter_px: 
     unit = FULL_SCALE[look.bit_depth] / 255.0
     image = np.clip(np.rint(scene * unit), 0, FULL_SCALE[look.bit_depth])
     image = image.astype(np.uint8 if look.bit_depth == 8 else np.uint16)
-    return TankFrame(image=image, peak=peak * unit, diameter_px=diameter, covered=covered)
+    return TankFrame(image=image, peak=peak * unit, diameter_px=diameter, covered=covered, specks=specks, dust=dust)
+
+
+def _add_specks(img: np.ndarray, look: TankLook, rng: np.random.Generator) -> np.ndarray:
+    """Faint sharp specks (seeding out of the light sheet, out of focus): 1-2 px images, peaks and sigmas
+    log-uniform and uniform in the look's ranges, uniform over the frame. Returns their centres."""
+    h, w = img.shape
+    n = int(rng.poisson(look.specks * h * w)) if look.specks > 0 else 0
+    uv = rng.uniform([-0.5, -0.5], [w - 0.5, h - 0.5], (n, 2))
+    lo, hi = look.speck_peak
+    peak = np.exp(rng.uniform(math.log(lo), math.log(hi), n))
+    add_gaussian_images(img, uv, peak, rng.uniform(*look.speck_sigma_px, n))
+    return uv
+
+
+def _add_dust(img: np.ndarray, look: TankLook, rng: np.random.Generator) -> np.ndarray:
+    """Dust on the window, out of focus: faint discs with soft edges (super-Gaussian), a few per frame.
+    Returns (D, 3) their centres and radii."""
+    h, w = img.shape
+    n = int(rng.poisson(look.dust * h * w)) if look.dust > 0 else 0
+    out = np.empty((n, 3))
+    for k in range(n):
+        r = rng.uniform(*look.dust_radius_px)
+        cx, cy = rng.uniform(0, w), rng.uniform(0, h)
+        out[k] = cx, cy, r
+        y0, y1 = max(0, int(cy - 2 * r)), min(h, int(cy + 2 * r) + 1)
+        x0, x1 = max(0, int(cx - 2 * r)), min(w, int(cx + 2 * r) + 1)
+        if y0 >= y1 or x0 >= x1:
+            continue
+        y, x = np.mgrid[y0:y1, x0:x1].astype(float)
+        rho = np.hypot(x - cx, y - cy) / r
+        img[y0:y1, x0:x1] += rng.uniform(*look.dust_peak) * np.exp(-rho ** 4)
+    return out
+
+
+def _add_glare(img: np.ndarray, width_px: tuple[float, float], level: tuple[float, float],
+               rng: np.random.Generator) -> None:
+    """A glass wall lit near saturation: a near-vertical band (soft edges) at a level in ``level``, with
+    streaky texture along it (thin lines, +-15 % of the level) and a brighter core line."""
+    h, w = img.shape
+    y, x = np.mgrid[0:h, 0:w].astype(float)
+    angle = math.radians(rng.uniform(-5.0, 5.0))
+    x0 = rng.uniform(0.1 * w, 0.9 * w)
+    across = (x - x0 - (y - h / 2) * math.tan(angle)) * math.cos(angle)
+    half = 0.5 * rng.uniform(*width_px)
+    band = 1.0 / (1.0 + np.exp(np.minimum((np.abs(across) - half) / 2.0, 50.0)))  # soft-edged band
+    texture = np.zeros_like(across)
+    for _ in range(6):  # thin streaks along the wall
+        c = rng.uniform(-half, half)
+        texture += rng.uniform(-0.15, 0.15) * np.exp(-0.5 * ((across - c) / rng.uniform(0.7, 2.0)) ** 2)
+    img += rng.uniform(*level) * band * (1.0 + texture)
 
 
 def _uneven_background(shape: tuple[int, int], span: tuple[float, float], rng: np.random.Generator) -> np.ndarray:
