@@ -814,6 +814,7 @@ def test_an_imported_experiment_runs_its_particles_without_editing(cavity_withou
     params = root / "parameters"
     (params / "sequence.par").write_text("img_1/cam1.%d\nimg_1/cam2.%d\nimg_1/cam3.%d\nimg_1/cam4.%d\n10000\n10001\n")
     (params / "criteria.par").write_text("-40\n-20\n20\n40\n-20\n20\n0.02\n0.02\n0.02\n0.02\n33\n0.05\n")
+    (params / "targ_rec.par").write_text("9\n9\n9\n11\n100\n4\n500\n2\n100\n2\n100\n150\n2\n")  # test_cavity's
     rng = np.random.default_rng(7)
     (root / "img_1").mkdir()
     truth = {}
