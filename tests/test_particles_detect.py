@@ -383,8 +383,8 @@ def test_bad_detect_settings_are_one_line(tmp_path, two_cameras, detect, message
 
 def test_detect_settings_are_honoured_and_the_command_line_overrides_them(tmp_path, two_cameras):
     """rig.yaml's particles.detect reaches every camera's detection: a grey threshold above every particle for
-    one camera leaves it none (the other keeps its own), min_pixels above any image leaves none at all and
-    --min-pixels overrides it; detect-particles.json records the options used."""
+    one camera leaves it none (the other keeps its own), min_pixels above any image leaves none at all (an
+    error: blank images or settings too strict) and --min-pixels overrides it; detect-particles.json records the options used."""
     import json
 
     import yaml
@@ -407,5 +407,8 @@ def test_detect_settings_are_honoured_and_the_command_line_overrides_them(tmp_pa
     assert all(n >= 0.8 * len(exp.exact_pixels[0][c]) for c, n in plain.items())
     one_dark = detect({"threshold": {cams[0]: 250}}, "one")
     assert one_dark[cams[0]] == 0 and one_dark[cams[1]] == plain[cams[1]]
-    assert sum(detect({"min_pixels": 400, "max_pixels": 500}, "none").values()) == 0
+    rig["particles"]["detect"] = {"min_pixels": 400, "max_pixels": 500}  # no image that large: nothing found,
+    rig_path.write_text(yaml.safe_dump(rig))  # which detect-particles refuses to call a result
+    r = run(main, ["detect-particles", str(rig_path.parent), "-o", str(tmp_path / "none"), "--workers", "0"])
+    assert r.exit_code == 1 and "no particle image found" in r.output, r.output
     assert detect({"min_pixels": 400, "max_pixels": 500}, "cli", "--min-pixels", "4") == plain
