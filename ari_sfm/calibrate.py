@@ -16,7 +16,7 @@ from .evaluate import residual_stats
 from .geometry import angle_between_deg
 from .models.registry import model_spec
 from .records import Dataset, Interface, Observation, WindowPlane
-from .results import OptimizerReport, OptimizerRun, OutlierReport
+from .results import OptimizerReport, OptimizerRun, OutlierReport, StageCamera, StageRecord, StageWindow
 
 log = logging.getLogger(__name__)
 
@@ -288,25 +288,24 @@ class StageResult:
     graph: "RigGraph"  # noqa: F821 (its last graph: uncertainty, the outlier re-run)
     solved: object | None  # the numpy backend's solved problem (None with gtsam)
 
-    def record(self, observable_distance: bool = True) -> dict:
+    def record(self, observable_distance: bool = True) -> StageRecord:
         """Its figures for calibration.json ``stages``: model, residuals and parameters; the window distance only
         where the data observe it (``observable_distance``: under water; in air it is null, as calibration.json's)."""
         stats = residual_stats(r for _, r in self.residuals)
         state = self.state
-        out = {
-            "stage": self.stage.label, "model": self.stage.model, "distortion": bool(self.stage.distortion),
-            "rmse_px": stats.rmse_px, "max_px": stats.max_px, "count": stats.count,
-            "normal_world": np.asarray(state.normal_world, float).tolist(),
-            "distance_mm": None if state.distance_mm is None or not observable_distance else float(state.distance_mm),
-            "cameras": {n: {"fx": float(p[0]), "fy": float(p[1]), "cx": float(p[2]), "cy": float(p[3]),
-                            "dist": [float(v) for v in np.resize(p[4:9], 5)]} for n, p in state.params.items()},
-        }
+        windows = ()
         if state.window_count > 1:  # every window: its normal and plane offset (from camera 0, the world's origin)
-            out["windows"] = [{"normal_world": np.asarray(state.normal(w), float).tolist(),
-                               "plane_mm": None if state.offset(w) is None or not observable_distance
-                               else float(state.offset(w))}
-                              for w in range(state.window_count)]
-        return out
+            windows = tuple(StageWindow(tuple(float(v) for v in state.normal(w)),
+                                        None if state.offset(w) is None or not observable_distance
+                                        else float(state.offset(w)))
+                            for w in range(state.window_count))
+        return StageRecord(
+            self.stage.label, self.stage.model, bool(self.stage.distortion), stats.rmse_px, stats.max_px, stats.count,
+            tuple(float(v) for v in state.normal_world),
+            None if state.distance_mm is None or not observable_distance else float(state.distance_mm),
+            {n: StageCamera(float(p[0]), float(p[1]), float(p[2]), float(p[3]),
+                            tuple(float(v) for v in np.resize(p[4:9], 5))) for n, p in state.params.items()},
+            windows)
 
     def report(self) -> OptimizerRun:
         """Its entry in the optimizer report (numpy's error_evaluations: it stops at convergence without
@@ -320,7 +319,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
 
     model "exact" (default, the best model): Snell's law at both faces, refined from the ari
     result, with lens distortion estimated when the views support it (``distortion`` None; the
-    ari stage's figures are kept in ``extra["stages"]``); "ari": the paper's paraxial model alone
+    ari stage's figures are kept in ``stages``); "ari": the paper's paraxial model alone
     (analytic initialisation + bundle adjustment);
     the paper's baselines "rt" (ray tracing) and "pf" (polynomial), and "pinhole",
     "pinhole_dist" (window ignored): see :mod:`ari_sfm.baselines`.
@@ -718,7 +717,7 @@ def _assemble(solver: _Solver, model: str, rig, results: list[StageResult], unce
         residuals=residual_stats(r for _, r in residuals),
         time_s=elapsed,
         optimizer=OptimizerReport({r.stage.label: r.report() for r in results}),
-        extra={"stages": [r.record(solver.underwater) for r in results]},
+        stages=tuple(r.record(solver.underwater) for r in results),
         target=dataset.target,
         fixed_distance_mm=windows[0].fixed_distance_mm,
         uncertainty=uncertainty,

@@ -12,7 +12,7 @@ import numpy as np
 from .geometry import Pose
 from .models.registry import ModelSpec, model_spec
 from .records import SINGLE_WINDOW, Interface, Target
-from .results import OptimizerReport, OutlierReport, PfWorld, ResidualStats, Uncertainty
+from .results import OptimizerReport, OutlierReport, PfWorld, ResidualStats, StageRecord, Uncertainty
 from .quality import Quality
 
 
@@ -72,7 +72,7 @@ class Calibration:
     stacking_poses: dict[str, Pose] = field(default_factory=dict)
     residuals: ResidualStats | None = None  # on the corners it was fitted on (None: not computed, e.g. truth)
     time_s: float = 0.0
-    extra: dict[str, Any] = field(default_factory=dict)  # other top-level keys (stages, ...), kept as read
+    extra: dict[str, Any] = field(default_factory=dict)  # other top-level keys, kept as read
     target: Target | None = None  # the target it was calibrated with (for evaluate)
     fixed_distance_mm: float | None = None  # camera 0 centre to near surface at which an exact-Snell model
     # (ModelSpec.needs_distance) is evaluated in air, where no pixel depends on it and interface.distance_mm is
@@ -83,6 +83,7 @@ class Calibration:
     quality: Quality | None = None  # the quality gate's verdict (ari, exact; ari_sfm.quality)
     optimizer: OptimizerReport | None = None  # how each stage's solve went (not a result: times)
     windows: tuple[WindowCalibration, ...] = ()  # several windows (1.3); (): one, the fields above, for all
+    stages: tuple[StageRecord, ...] = ()  # the stages it went through, in order (bundle-adjusted models)
 
     def __post_init__(self) -> None:
         spec = self.spec  # an unknown model name fails here

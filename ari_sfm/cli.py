@@ -1027,14 +1027,13 @@ def _truth_summary(errors) -> None:
 
 def _stages_summary(cal) -> None:
     """Each stage's residuals and focal lengths beside the final model's (calibration.json ``stages``)."""
-    stages = cal.extra.get("stages") or []
-    if len(stages) < 2:
+    if len(cal.stages) < 2:
         return
     click.echo("stages:")
-    for st in stages:
-        fx = " ".join(f"{n} fx {c['fx']:.2f}" for n, c in list(st["cameras"].items())[:4])
-        click.echo(f"  {st['stage']:16s} {st['model']:6s} rmse {st['rmse_px']:.4f} px, max {st['max_px']:.4f} px"
-                   f"{', distortion' if st.get('distortion') else ''}; {fx}")
+    for st in cal.stages:
+        fx = " ".join(f"{n} fx {c.fx:.2f}" for n, c in list(st.cameras.items())[:4])
+        click.echo(f"  {st.stage:16s} {st.model or '?':6s} rmse {st.rmse_px or float('nan'):.4f} px, "
+                   f"max {st.max_px or float('nan'):.4f} px{', distortion' if st.distortion else ''}; {fx}")
 
 
 def _summary(cal, elapsed: float, covers: str = "the whole command") -> None:

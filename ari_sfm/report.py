@@ -41,7 +41,7 @@ import logging
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -50,6 +50,7 @@ from .errors import AriSfmError
 from .io import load_calibration
 from .records import Dataset, Observation, Target
 from .reference import ReferenceErrors
+from .results import StageRecord
 
 log = logging.getLogger(__name__)
 
@@ -402,39 +403,27 @@ def _calibration_section(ctx: ReportContext) -> str:
             + _table(["camera", "parameter", "value", "std dev"], calibration_rows(ctx.calibration)))
 
 
-def stage_table(stages: Any) -> tuple[list[str], list[list[Any]]]:
-    """(header, rows) of calibration.json's ``stages`` list: per stage its name (``stage``), ``model``,
-    ``distortion``, reprojection RMSE / max / corner count (top-level ``rmse_px`` ... or a ``residuals``
-    object in the top-level ``residuals`` form), window ``distance_mm`` and each camera's fx
-    (``cameras.<name>.fx``); ([], []) when there is no list."""
-    if not isinstance(stages, list):
-        return [], []
-    entries = [st for st in stages if isinstance(st, dict)]
-    cameras = list(dict.fromkeys(n for st in entries if isinstance(st.get("cameras"), dict) for n in st["cameras"]))
-    with_distance = any(isinstance(st.get("distance_mm"), (int, float)) for st in entries)
+def stage_table(stages: Sequence[StageRecord]) -> tuple[list[str], list[list[Any]]]:
+    """(header, rows) of a calibration's stages: per stage its name, model, distortion, reprojection RMSE /
+    max / corner count, window distance (when any stage has one) and each camera's fx."""
+    cameras = list(dict.fromkeys(n for st in stages for n in st.cameras))
+    with_distance = any(st.distance_mm is not None for st in stages)
     header = ["stage", "model", "distortion", "RMSE (px)", "max (px)", "corners"]
     header += ["window distance (mm)"] if with_distance else []
     header += [f"{c} fx (px)" for c in cameras]
     rows = []
-    for k, st in enumerate(entries):
-        res = st.get("residuals") if isinstance(st.get("residuals"), dict) else st
-
-        def num(d: Any, key: str) -> float | None:
-            return float(d[key]) if isinstance(d, dict) and isinstance(d.get(key), (int, float)) else None
-
-        dist = st.get("distortion")
-        row: list[Any] = [str(st.get("stage", st.get("name", k + 1))), str(st.get("model", "?")),
-                          "" if dist is None else ("yes" if dist else "no"), num(res, "rmse_px"), num(res, "max_px"),
-                          int(res["count"]) if isinstance(res.get("count"), int) else None]
-        row += [num(st, "distance_mm")] if with_distance else []
-        row += [num((st.get("cameras") or {}).get(c), "fx") for c in cameras]
+    for st in stages:
+        row: list[Any] = [st.stage, st.model or "?", "" if st.distortion is None else ("yes" if st.distortion else "no"),
+                          st.rmse_px, st.max_px, st.count]
+        row += [st.distance_mm] if with_distance else []
+        row += [st.cameras[c].fx if c in st.cameras else None for c in cameras]
         rows.append(row)
     return header, rows
 
 
 def _stages_section(ctx: ReportContext) -> str:
     """The stages the calibration went through (e.g. ari, then exact), side by side; nothing without them."""
-    header, rows = stage_table(ctx.calibration.extra.get("stages"))
+    header, rows = stage_table(ctx.calibration.stages)
     if len(rows) < 2:
         return ""
     return ("<h3>Calibration stages</h3><p>Each stage starts from the one before; the last is the calibration "

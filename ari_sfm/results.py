@@ -209,3 +209,112 @@ class OptimizerReport:
         if not isinstance(d, Mapping):
             raise TypeError(f"optimizer must be a mapping of stages (got {type(d).__name__})")
         return cls({str(stage): OptimizerRun.from_json(run) for stage, run in d.items()})
+
+
+@dataclass(frozen=True)
+class StageCamera:
+    """One camera's intrinsics after a stage: calibration.json ``stages[].cameras.<name>`` (a file written by
+    another tool may give fx alone)."""
+
+    fx: float
+    fy: float | None = None
+    cx: float | None = None
+    cy: float | None = None
+    dist: tuple[float, ...] = ()
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"fx": self.fx}
+        out.update({k: getattr(self, k) for k in ("fy", "cx", "cy") if getattr(self, k) is not None})
+        if self.dist:
+            out["dist"] = list(self.dist)
+        return out
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "StageCamera":
+        return cls(float(d["fx"]), _float_or_none(d.get("fy")), _float_or_none(d.get("cx")),
+                   _float_or_none(d.get("cy")), tuple(float(v) for v in d.get("dist") or ()))
+
+
+@dataclass(frozen=True)
+class StageWindow:
+    """One window after a stage (several windows): its normal and near-face offset from the world origin
+    (None where the data do not observe it)."""
+
+    normal_world: tuple[float, float, float] | None
+    plane_mm: float | None
+
+    def to_json(self) -> dict[str, Any]:
+        return {"normal_world": None if self.normal_world is None else list(self.normal_world),
+                "plane_mm": self.plane_mm}
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "StageWindow":
+        n = d.get("normal_world")
+        return cls(None if n is None else tuple(float(v) for v in n), _float_or_none(d.get("plane_mm")))
+
+
+@dataclass(frozen=True)
+class StageRecord:
+    """One stage a calibration went through (e.g. the paraxial ``ari`` start, then ``exact``): calibration.json
+    ``stages[]``, its residuals on the corners it was fitted on and its parameters. Read leniently, as the
+    report shows stages written by other tools: ``name`` for ``stage``, a ``residuals`` object for the
+    top-level figures; figures absent are None, other keys kept in ``extra``."""
+
+    stage: str
+    model: str | None = None
+    distortion: bool | None = None
+    rmse_px: float | None = None
+    max_px: float | None = None
+    count: int | None = None
+    normal_world: tuple[float, float, float] | None = None
+    distance_mm: float | None = None
+    cameras: Mapping[str, StageCamera] = field(default_factory=dict)
+    windows: tuple[StageWindow, ...] = ()  # several windows only
+    extra: Mapping[str, Any] = field(default_factory=dict)  # other keys, kept as read
+
+    _KEYS = ("stage", "name", "model", "distortion", "rmse_px", "max_px", "count", "residuals", "normal_world",
+             "distance_mm", "cameras", "windows")
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "stage": self.stage, "model": self.model, "distortion": self.distortion, "rmse_px": self.rmse_px,
+            "max_px": self.max_px, "count": self.count,
+            "normal_world": None if self.normal_world is None else list(self.normal_world),
+            "distance_mm": self.distance_mm, "cameras": {n: c.to_json() for n, c in self.cameras.items()}}
+        if self.windows:
+            out["windows"] = [w.to_json() for w in self.windows]
+        out.update(self.extra)
+        return out
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any], position: int = 0) -> "StageRecord":
+        """The record of one ``stages`` entry (``position``: its place in the list, its name when it has none)."""
+        if not isinstance(d, Mapping):
+            raise TypeError(f"stages[{position}] must be an object")
+        res = d["residuals"] if isinstance(d.get("residuals"), Mapping) else d
+
+        def num(m: Mapping[str, Any], key: str) -> float | None:
+            v = m.get(key)
+            return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+
+        count = res.get("count")
+        normal = d.get("normal_world")
+        cameras = d.get("cameras") if isinstance(d.get("cameras"), Mapping) else {}
+        windows = d.get("windows") if isinstance(d.get("windows"), list) else []
+        return cls(str(d.get("stage", d.get("name", position + 1))),
+                   None if d.get("model") is None else str(d["model"]),
+                   None if d.get("distortion") is None else bool(d["distortion"]),
+                   num(res, "rmse_px"), num(res, "max_px"),
+                   int(count) if isinstance(count, int) and not isinstance(count, bool) else None,
+                   None if normal is None else tuple(float(v) for v in normal), num(d, "distance_mm"),
+                   {str(n): StageCamera.from_json(c) for n, c in cameras.items()
+                    if isinstance(c, Mapping) and isinstance(c.get("fx"), (int, float))},
+                   tuple(StageWindow.from_json(w) for w in windows if isinstance(w, Mapping)),
+                   {k: v for k, v in d.items() if k not in cls._KEYS})
+
+
+def stages_from_json(value: Any) -> tuple[StageRecord, ...]:
+    """calibration.json's ``stages`` list as records (TypeError when it is not a list)."""
+    if not isinstance(value, list):
+        raise TypeError("stages must be a list")
+    return tuple(StageRecord.from_json(d, k) for k, d in enumerate(value))

@@ -49,7 +49,7 @@ def test_distortion_by_default_reaches_the_floor(scenario):
     scene = make_scene(scenario, seed=0, sigma_px=SIGMA, dist=[K1, 0, 0, 0, 0])
     truth = parse_calibration(scene.truth)
     cal = calibrate(scene.dataset, uncertainty=False)
-    assert cal.model == "exact" and all(s["distortion"] for s in cal.extra["stages"])
+    assert cal.model == "exact" and all(s.distortion for s in cal.stages)
     assert cal.residuals.rmse_px <= 1.05 * FLOOR, cal.residuals
     e = calibration_errors(cal, truth)
     assert max(c.rotation_deg for c in e.cameras if c.rotation_deg is not None) < 0.03, e
@@ -63,7 +63,7 @@ def _fallback(dataset, caplog, needle):
         cal = calibrate(dataset, uncertainty=False)
     lines = [r.getMessage() for r in caplog.records if "lens distortion not estimated" in r.getMessage()]
     assert len(lines) == 1 and needle in lines[0] and "\n" not in lines[0], lines
-    assert not any(s["distortion"] for s in cal.extra["stages"])
+    assert not any(s.distortion for s in cal.stages)
     assert all(not np.any(c.dist) for c in cal.cameras.values())
     return cal
 
@@ -99,7 +99,7 @@ def test_no_stacking_falls_back_and_distortion_can_be_forced(caplog):
     with caplog.at_level(logging.WARNING, logger="ari_sfm.calibrate"):
         forced = calibrate(scene.dataset, distortion=True, uncertainty=False)
     assert not [r for r in caplog.records if "lens distortion" in r.getMessage()]
-    assert all(s["distortion"] for s in forced.extra["stages"])
+    assert all(s.distortion for s in forced.stages)
 
 
 def test_paper_model_alone_without_distortion():
@@ -107,4 +107,4 @@ def test_paper_model_alone_without_distortion():
     scene = make_scene("paper_single", seed=0, sigma_px=SIGMA)
     assert distortion_support(scene.dataset) is None
     cal = calibrate(scene.dataset, model="ari", uncertainty=False)
-    assert [s["model"] for s in cal.extra["stages"]] == ["ari"] and not cal.extra["stages"][0]["distortion"]
+    assert [s.model for s in cal.stages] == ["ari"] and not cal.stages[0].distortion

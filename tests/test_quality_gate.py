@@ -295,7 +295,7 @@ def test_a_3d_bodys_lens_distortion_is_estimated_by_default(seed):
     cal = calibrate(scene.dataset, model="exact", uncertainty=False)
     q = cal.quality
     assert q.ok and q.starts == ("default", "lens distortion estimated")
-    assert [s["distortion"] for s in cal.extra["stages"]] == [False, True]
+    assert [s.distortion for s in cal.stages] == [False, True]
     assert q.robust_rmse_px < 1.1 * q.floor_rmse_px
     errors = calibration_errors(cal, parse_calibration({k: v for k, v in scene.truth.items() if k != "target"}))
     assert max(c.rotation_deg for c in errors.cameras if c.rotation_deg is not None) < 0.1

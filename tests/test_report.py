@@ -295,6 +295,8 @@ def test_recommendation_depth(scene_residuals):
 
 
 def test_report_reconstruction_table_and_stages(binocular):
+    from ari_sfm.results import stages_from_json
+
     _, _, out, _ = binocular
     text = (out / "report.html").read_text()
     stages_written = json.loads((out / "calibration.json").read_text()).get("stages") or []
@@ -316,15 +318,13 @@ def test_report_reconstruction_table_and_stages(binocular):
               {"stage": "exact", "model": "exact", "distortion": True,
                "residuals": {"rmse_px": 0.0702, "mae_px": 0.06, "max_px": 0.21, "count": 3696},
                "cameras": {"cam0": {"fx": 3453.12}, "cam1": {"fx": 3461.08}}}]
-    with_stages = replace(ctx, inputs=replace(ctx.inputs, calibration=replace(cal, extra={**cal.extra,
-                                                                                          "stages": stages})))
+    with_stages = replace(ctx, inputs=replace(ctx.inputs, calibration=replace(cal, stages=stages_from_json(stages))))
     html_part = report._stages_section(with_stages)
     assert "<h3>Calibration stages</h3>" in html_part and "<th>cam1 fx (px)</th>" in html_part
     assert ('<td>ari</td><td>ari</td><td>no</td><td class="n">0.1234</td><td class="n">0.5000</td>'
             '<td class="n">3696</td><td class="n">3400.5000</td><td class="n">3401.2500</td>') in html_part
     assert '<td>exact</td><td>exact</td><td>yes</td><td class="n">0.0702</td>' in html_part
-    no_stages = replace(ctx, inputs=replace(ctx.inputs, calibration=replace(
-        cal, extra={k: v for k, v in cal.extra.items() if k != "stages"})))
+    no_stages = replace(ctx, inputs=replace(ctx.inputs, calibration=replace(cal, stages=())))
     assert report._stages_section(no_stages) == ""
 
 

@@ -83,6 +83,25 @@ def test_writer_gives_the_previous_writers_calibration_json(binocular_calibratio
     assert _differences(old, new) == []
 
 
+def test_stages_are_records_written_back_as_read(binocular_calibrations, tmp_path):
+    """calibration.json's stages load as StageRecords and write back the same JSON; a list written by another
+    tool (``name``, a ``residuals`` object, fx alone, an unknown key) reads leniently, its figures kept."""
+    from ari_sfm.results import StageCamera, stages_from_json
+
+    cal = binocular_calibrations["exact"]
+    assert [s.model for s in cal.stages] == ["ari", "exact"] and cal.stages[1].rmse_px == cal.residuals.rmse_px
+    path = tmp_path / "calibration.json"
+    path.write_text(json.dumps(calibration_to_json(cal)))
+    again = load_calibration(path)
+    assert again.stages == cal.stages and "stages" not in again.extra
+    assert json.dumps(calibration_to_json(again)) == path.read_text()
+    other = stages_from_json([{"name": "coarse", "residuals": {"rmse_px": 0.4, "max_px": 1.5, "count": 12},
+                               "cameras": {"a": {"fx": 800}}, "note": "x"}, {"model": "exact"}])
+    assert (other[0].stage, other[0].rmse_px, other[0].count, other[0].cameras["a"]) == (
+        "coarse", 0.4, 12, StageCamera(800.0))
+    assert other[0].extra == {"note": "x"} and other[1].stage == "2" and other[1].rmse_px is None
+
+
 def test_residual_stats_numbers_and_round_trip():
     s = ResidualStats.of([np.array([[3.0, 4.0]]), np.array([[0.0, 0.0], [0.0, -1.0]])])
     assert (s.rmse_px, s.mae_px, s.max_px, s.count) == pytest.approx((np.sqrt(26 / 3), 2.0, 5.0, 3))
@@ -122,6 +141,8 @@ def test_uncertainty_outliers_and_pf_world_round_trip():
      "outliers: outliers.excluded must be true or false"),
     ("outliers", [1, 2], "outliers must be an object"),
     ("residuals", {"rmse_px": 0.1}, "residuals: missing key 'mae_px'"),
+    ("stages", {"stage": "ari"}, "stages: stages must be a list"),
+    ("stages", [1], "stages: stages[0] must be an object"),
 ])
 def test_malformed_records_are_one_line_errors(tmp_path, key, value, what):
     data = json.loads((OLD / "exact.json").read_text())

@@ -229,7 +229,7 @@ def test_the_output_holds_its_own_residuals_and_uncertainty(from_target):
     assert c.residuals.count == result.report.rounds[-2].adjustment.observations  # the particles' images
     assert 0.08 < c.residuals.rmse_px < 0.2  # the particles' reprojection, not the body's 0.07 px
     assert abs(c.uncertainty.sigma_px - SIGMA_PX) < 0.02
-    assert "stages" not in c.extra and c.quality is None and c.optimizer is None and not c.frames
+    assert not c.stages and "stages" not in c.extra and c.quality is None and c.optimizer is None and not c.frames
     assert c.uncertainty.cameras["cam0"].intrinsics["fx"] < start.uncertainty.cameras["cam0"].intrinsics["fx"]
     assert c.uncertainty.cameras["cam1"].relative_pose and not c.uncertainty.cameras["cam0"].relative_pose
     for r in result.report.rounds:

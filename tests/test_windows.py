@@ -367,7 +367,7 @@ def test_a_lens_without_distortion_is_not_given_one(seed):
     scene = make_scene("tank_opposite", seed=seed, sigma_px=SIGMA)
     cal = calibrate(scene.dataset, model="exact")
     assert cal.residuals.rmse_px == pytest.approx(FLOOR, rel=0.05) and cal.quality.starts == ("default",)
-    assert all(not s["distortion"] for s in cal.extra["stages"])
+    assert all(not s.distortion for s in cal.stages)
     g = scene.geometry
     for w in cal.windows:
         first = g.camera(w.cameras[0])

@@ -22,7 +22,8 @@ from ari_sfm.models.polynomial import PolynomialMap
 from ari_sfm.models.registry import model_spec
 from ari_sfm.quality import Quality
 from ari_sfm.records import Interface
-from ari_sfm.results import OptimizerReport, OutlierReport, PfWorld, ResidualStats, Uncertainty
+from ari_sfm.results import (OptimizerReport, OutlierReport, PfWorld, ResidualStats, StageRecord, Uncertainty,
+                             stages_from_json)
 
 FORMAT = "ari-sfm-calibration/1"
 
@@ -83,6 +84,8 @@ def calibration_to_json(cal: Calibration) -> dict[str, Any]:
     out["time_s"] = cal.time_s
     if cal.optimizer is not None:
         out["optimizer"] = cal.optimizer.to_json()
+    if cal.stages:
+        out["stages"] = [st.to_json() for st in cal.stages]
     out.update(cal.extra)
     for key, record in (("pf_world", cal.pf_world), ("uncertainty", cal.uncertainty),
                         ("outliers", cal.outliers), ("quality", cal.quality)):
@@ -206,7 +209,8 @@ def _parse(data: Any, path: Any) -> Calibration:
     frames = {f: _pose(v["world_from_target"], f"frames.{f}", path) for f, v in data.get("frames", {}).items()}
     stacking = {f: _pose(v["world_from_target"], f"stacking_poses.{f}", path) for f, v in data.get("stacking_poses", {}).items()}
     reserved = {"format", "model", "interface", "interfaces", "cameras", "frames", "stacking_poses", "residuals",
-                "time_s", "target", "fixed_distance_mm", "uncertainty", "outliers", "pf_world", "quality", "optimizer"}
+                "time_s", "target", "fixed_distance_mm", "uncertainty", "outliers", "pf_world", "quality", "optimizer",
+                "stages"}
     windows = _windows(parsed, data, cams, path)
     if spec.window:
         _check_normals_face_the_cameras(windows, cams, path)
@@ -226,8 +230,19 @@ def _parse(data: Any, path: Any) -> Calibration:
         {k: v for k, v in data.items() if k not in reserved}, target, first.fixed_distance_mm,
         _record(Uncertainty, data, "uncertainty", path), _record(OutlierReport, data, "outliers", path), pf_world,
         _record(Quality, data, "quality", path), _record(OptimizerReport, data, "optimizer", path),
-        windows=windows if len(windows) > 1 else (),
+        windows=windows if len(windows) > 1 else (), stages=_stages(data, path),
     )
+
+
+def _stages(data: dict, path: Any) -> tuple[StageRecord, ...]:
+    """calibration.json's ``stages`` as records (() when absent or null), errors naming the key."""
+    if data.get("stages") is None:
+        return ()
+    try:
+        return stages_from_json(data["stages"])
+    except (KeyError, TypeError, ValueError) as exc:
+        what = f"missing key {exc}" if isinstance(exc, KeyError) else str(exc)
+        raise AriSfmError(path, f"stages: {what}") from None
 
 
 def _check_normals_face_the_cameras(windows: tuple[WindowCalibration, ...], cams: dict[str, CameraCalibration],

@@ -620,11 +620,11 @@ def result_calibration(current: Calibration, refined: Refined, report: SelfCalRe
     cams = {n: CameraUncertainty(dict(s.intrinsics), s.rotation_rel_deg is not None, s.rotation_rel_deg,
                                  s.translation_rel_mm) for n, s in cov.cameras.items()}
     uncertainty = Uncertainty(cov.sigma_px, cams, None)
-    extra = {k: v for k, v in current.extra.items() if k not in ("stages", "self_calibration")}
+    extra = {k: v for k, v in current.extra.items() if k != "self_calibration"}
     extra["self_calibration"] = report.to_json()
     return replace(current, residuals=ResidualStats.of([refined.residuals_px]), uncertainty=uncertainty,
                    frames={}, stacking_poses={},
-                   quality=None, outliers=None, optimizer=None, extra=extra)
+                   quality=None, outliers=None, optimizer=None, stages=(), extra=extra)
 
 
 def disparity_json(result: SelfCalResult) -> dict[str, Any]:
