@@ -66,7 +66,7 @@ SIGNATURES = {
     },
     'ari_sfm.floor_fit': {
         'warp_residuals': [
-            (array(float64, 3), array(float64, 3), int64),
+            (array(float64, 3), array(float64, 3), int64, boolean),
         ],
     },
     'ari_sfm.models.kernels': {
@@ -102,6 +102,24 @@ SIGNATURES = {
         ],
         'undistort_batch': [
             (array(float64, 2), array(float64, 1), float64, float64),
+        ],
+    },
+    'ari_sfm.particles.disparity_kernels': {
+        'joint_counts': [
+            (array(float64, 3), float64),
+        ],
+    },
+    'ari_sfm.particles.match_kernels': {
+        'band_pairs': [
+            (array(float64, 3), array(float64, 2), float64, float64),
+        ],
+        'greedy_rows': [
+            (array(int64, 2), array(int64, 1), array(boolean, 1), array(int64, 1)),
+        ],
+        'score_combos': [
+            (array(int64, 2), array(float64, 2), array(float64, 2), array(int64, 1), array(float64, 1),
+             array(float64, 2), array(float64, 1), array(float64, 1), array(float64, 1), float64, float64,
+             float64),
         ],
     },
     'ari_sfm.se3_kernel': {
