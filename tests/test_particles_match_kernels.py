@@ -131,3 +131,17 @@ def test_scoring_and_greedy_are_the_numpy_ones():
         np.testing.assert_array_equal(chosen, reference_greedy(combos[ok], rscore[ok], ref_used))
         for a, b in zip(used, ref_used):
             np.testing.assert_array_equal(a, b)
+
+
+def test_band_pairs_far_off_curves_and_spread_detections():
+    """Segments far off the image (1e30 px) and detections spread over 1e7 px (the grid's cell grows) give
+    the k-d trees' pairs, without an index overflow."""
+    rng = np.random.default_rng(11)
+    uv = np.concatenate([rng.uniform(0, 1000, (500, 2)), [[1e7, 1e7], [-5e6, 3e6]]])
+    p = np.concatenate([rng.uniform(0, 1000, (60, 1, 2)) + np.cumsum(rng.normal(0, 10, (60, 8, 2)), axis=1),
+                        np.full((2, 8, 2), 1e30), np.linspace([9.99e6, 9.99e6], [1.001e7, 1.001e7], 8)[None]])
+    i, j = match_kernels.band_pairs(p, uv, 3.0, 16.0)
+    ri, rj = reference_band_pairs(p, uv, 3.0)
+    assert 0 < len(ri) and (61 + 1) in set(ri.tolist())  # the last curve passes through the far detection
+    np.testing.assert_array_equal(i, ri)
+    np.testing.assert_array_equal(j, rj)

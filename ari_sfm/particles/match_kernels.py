@@ -20,6 +20,17 @@ import numpy as np
 from ..kernel_cache import njit  # numba's njit, the kernels compiled into the wheel read first
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
+MAX_GRID_SIDE = 4096  # cells along a side of the detections' grid at most (the cell grows beyond)
+
+
+@njit(inline="always", **_JIT)
+def _cell_index(x, n):
+    """floor(x) as a cell index, held to [-1, n] (a coordinate far off the grid, however large)."""
+    if x < 0.0:
+        return -1
+    if x >= n:
+        return n
+    return int(math.floor(x))
 
 
 @njit(**_JIT)
@@ -38,6 +49,7 @@ def band_pairs(p, uv, tolerance, cell):
     for j in range(N):
         x0, x1 = min(x0, uv[j, 0]), max(x1, uv[j, 0])
         y0, y1 = min(y0, uv[j, 1]), max(y1, uv[j, 1])
+    cell = max(cell, (x1 - x0) / MAX_GRID_SIDE, (y1 - y0) / MAX_GRID_SIDE)  # a bounded grid for any spread
     nx = int((x1 - x0) / cell) + 1
     ny = int((y1 - y0) / cell) + 1
     start = np.zeros(nx * ny + 1, np.int64)
@@ -65,12 +77,13 @@ def band_pairs(p, uv, tolerance, cell):
             ax, ay, bx, by = p[i, s, 0], p[i, s, 1], p[i, s + 1, 0], p[i, s + 1, 1]
             if not (math.isfinite(ax) and math.isfinite(ay) and math.isfinite(bx) and math.isfinite(by)):
                 continue
-            c0 = max(int(math.floor((min(ax, bx) - tolerance - x0) / cell)), 0)
-            c1 = min(int(math.floor((max(ax, bx) + tolerance - x0) / cell)), nx - 1)
-            r0 = max(int(math.floor((min(ay, by) - tolerance - y0) / cell)), 0)
-            r1 = min(int(math.floor((max(ay, by) + tolerance - y0) / cell)), ny - 1)
-            if c0 > c1 or r0 > r1:
+            c0 = _cell_index((min(ax, bx) - tolerance - x0) / cell, nx)
+            c1 = _cell_index((max(ax, bx) + tolerance - x0) / cell, nx)
+            r0 = _cell_index((min(ay, by) - tolerance - y0) / cell, ny)
+            r1 = _cell_index((max(ay, by) + tolerance - y0) / cell, ny)
+            if c1 < 0 or c0 >= nx or r1 < 0 or r0 >= ny:  # the segment's box misses the detections' grid
                 continue
+            c0, c1, r0, r1 = max(c0, 0), min(c1, nx - 1), max(r0, 0), min(r1, ny - 1)
             abx, aby = bx - ax, by - ay
             den = abx * abx + aby * aby
             for r in range(r0, r1 + 1):
