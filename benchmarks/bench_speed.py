@@ -58,8 +58,9 @@ Rigs shaped unlike those (each beside the figure it checks):
   flat-port survey with 0.25 px noise (port_survey, ~2200 points seen >= 3 times).
 - ``particles``: ``match_frame`` (>= 3 of 4 cameras, 0.5 px) / liboptv's ``correspondences`` +
   ``point_positions`` on the same detections and calibration (bench_particles.openptv), 2000
-  particles a frame, per core: the ratio of the CPU times (both single-threaded but for our
-  final triangulation) is the headline, inverted to a throughput (>= 1.5: faster than OpenPTV's C).
+  particles a frame (``--particle-frames``, 5), per core: the ratio of the CPU times is the headline
+  (both run on one thread here: the final triangulation of 2000 points takes one), inverted to a
+  throughput (>= 1.5: half again OpenPTV's C per core); the wall-time ratio beside it.
 """
 from __future__ import annotations
 
