@@ -98,7 +98,7 @@ def _truth_started(truth, model, interface, bar: tuple[int, int, float]) -> None
 
 
 def survey_start(num_images: int, num_points: int, focal: float, layout: str = "grid", spacing: float = 400.0,
-                 declared_port: bool = False):
+                 declared_port: bool = False, sigma_px: float = 0.5):
     """The simulated survey (truth), COLMAP's pinhole optimum of it (start, model), the scale bar between the
     two farthest-apart points and the interface refine-colmap gets."""
     if layout == "strip":
@@ -106,7 +106,7 @@ def survey_start(num_images: int, num_points: int, focal: float, layout: str = "
     else:
         side = 1800.0 * np.sqrt(num_images / 10.0)
         area = (side, side * 2.0 / 3.0)
-    truth = port_survey(num_images=num_images, num_points=num_points, focal_px=focal, area_mm=area, sigma_px=0.5,
+    truth = port_survey(num_images=num_images, num_points=num_points, focal_px=focal, area_mm=area, sigma_px=sigma_px,
                         layout=layout)
     params = [np.r_[p[:2] * truth.interface.medium_index, p[2:4]] for p in truth.params]
     rec = adapter.reconstruction_from_arrays(params, truth.image_size, truth.sensor_from_rig, truth.rig_from_world,

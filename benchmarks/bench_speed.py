@@ -38,6 +38,29 @@ Figures (ours / reference):
   ``full_calibration`` (the optv wheel; exterior orientation + xh, yh, as the real experiment)
   of the same four cameras on the same points, started from the ari-sfm result exported by
   ``export_openptv``.
+
+Rigs shaped unlike those (each beside the figure it checks):
+
+- ``calibrate_arc_sparse``: ``calibrate(model="exact")`` on a sparse arc rig (arc4 with
+  ``run_lengths=(2, 3, 4)``: 20 frames, each seen by a run of 2, 3 or 4 of the 4 cameras, 50 mm
+  window tilted ~20 deg) / four cv2.calibrateCamera calls on each camera's views.
+- ``triangulate_dist``, ``triangulate_dist_noisy``: ``triangulate_pixels`` through the exact model of 2
+  cameras of a distorted PTV rig (``simulate particles --k1 -0.05``: OpenCV k1 -0.05 on every camera,
+  10 mm glass into water), 188k points of its volume, their exact pixels, then with 0.1 px of noise
+  (the particle detections'), points/s / ``cv2.triangulatePoints`` on the same pixels (pinhole: window
+  and lens ignored); for the record also ``cv2.undistortPoints`` + ``cv2.triangulatePoints``.
+- ``openptv_multiplane``: ``calibrate(model="exact")`` of an OpenPTV multi-plane body as ``import
+  openptv`` gives it (ptv_multiplane with a 27 x 15 dot plate at 4 depths: 1620 points, 6480
+  observations; declared plane, focal hints) / liboptv's ``full_calibration`` x 4 started from
+  the ari-sfm result (as ``openptv``); ``openptv_multiplane_placed``: the same body with each plane
+  placed 0.1 mm / 0.05 deg off (the declared body nominal) and 0.1 px of noise, as a real plate.
+- ``refine_colmap_port``, ``refine_colmap_port_it``: refine-colmap / pycolmap BA on a 28-image
+  flat-port survey with 0.25 px noise (port_survey, ~2200 points seen >= 3 times).
+- ``particles``: ``match_frame`` (>= 3 of 4 cameras, 0.5 px) / liboptv's ``correspondences`` +
+  ``point_positions`` on the same detections and calibration (bench_particles.openptv), 2000
+  particles a frame (``--particle-frames``, 5), per core: the ratio of the CPU times is the headline
+  (both run on one thread here: the final triangulation of 2000 points takes one), inverted to a
+  throughput (>= 1.5: half again OpenPTV's C per core); the wall-time ratio beside it.
 """
 from __future__ import annotations
 
@@ -81,6 +104,14 @@ GOALS = {  # figure: (what the ratio is, goal text, ratio meets the goal)
     "openptv": ("time ratio", "<= 10", lambda r: r <= 10.0),
     "refine_colmap": ("time ratio", "<= 2", lambda r: r <= 2.0),
     "refine_colmap_it": ("time ratio", "<= 3", lambda r: r <= 3.0),
+    "calibrate_arc_sparse": ("time ratio", "<= 1.0", lambda r: r <= 1.0),
+    "triangulate_dist": ("points/s ratio", ">= 1.0", lambda r: r >= 1.0),
+    "triangulate_dist_noisy": ("points/s ratio", ">= 1.0", lambda r: r >= 1.0),
+    "openptv_multiplane_placed": ("time ratio", "<= 10", lambda r: r <= 10.0),
+    "openptv_multiplane": ("time ratio", "<= 10", lambda r: r <= 10.0),
+    "refine_colmap_port": ("time ratio", "<= 2", lambda r: r <= 2.0),
+    "refine_colmap_port_it": ("time ratio", "<= 3", lambda r: r <= 3.0),
+    "particles": ("per-core ratio", ">= 1.5", lambda r: r >= 1.5),
 }
 
 
@@ -102,15 +133,20 @@ def alternate(ours: Callable[[], object], reference: Callable[[], object], repea
             "cpu_ratios": [a / b for a, b in zip(c_ours, c_ref)], "extra": extra}
 
 
-def report(name: str, what: str, run: dict, invert: bool = False, note: str = "") -> dict:
-    """Print one figure's line; ``invert``: the ratio is a throughput (reference time / ours)."""
+def report(name: str, what: str, run: dict, invert: bool = False, note: str = "", by_cpu: bool = False) -> dict:
+    """Print one figure's line; ``invert``: the ratio is a throughput (reference time / ours); ``by_cpu``:
+    the headline (median, spread) is the CPU-time ratio (a per-core figure), the wall ratio given aside."""
     ratios = [1.0 / r for r in run["ratios"]] if invert else run["ratios"]
     cpu = statistics.median(1.0 / r if invert else r for r in run["cpu_ratios"])
+    other = "CPU-time ratio"
+    if by_cpu:  # the headline is the CPU-time ratio; the wall-time one aside
+        other, cpu = "wall-time ratio", statistics.median(ratios)
+        ratios = [1.0 / r for r in run["cpu_ratios"]] if invert else run["cpu_ratios"]
     med = statistics.median(ratios)
     kind, goal, ok = GOALS[name]
     print(f"{name:17s} {what:58s} {1e3 * statistics.median(run['ours']):9.1f} {1e3 * statistics.median(run['ref']):9.1f} "
           f"{med:7.3f} [{min(ratios):.3f}-{max(ratios):.3f}] {kind} goal {goal}: {'met' if ok(med) else 'NOT met'}"
-          f"; CPU-time ratio {cpu:.3f}" + (f"  ({note})" if note else ""))
+          f"; {other} {cpu:.3f}" + (f"  ({note})" if note else ""))
     return {"median": med, "min": min(ratios), "max": max(ratios)}
 
 
@@ -155,6 +191,74 @@ def fig_triangulate(repeats: int, points: int) -> None:
         pps = len(X) / statistics.median(run["ours"])
         report(name, f"exact, {len(cal.cameras)} cameras, {len(X)} points / cv2 (2 of them) points/s", run,
                invert=True, note=f"{pps:,.0f} points/s, RMS error {err:.1e} mm")
+
+
+def fig_calibrate_arc_sparse(repeats: int) -> None:
+    dataset = make_scene("arc4", seed=0, run_lengths=(2, 3, 4)).dataset
+    run = alternate(lambda: calibrate(dataset, model="exact"), cv2_baseline(dataset), repeats)
+    n_obs = sum(len(o.ids) for o in dataset.observations)
+    report("calibrate_arc_sparse", f"calibrate(exact) sparse arc, 20 frames 2-4 cameras / 4 x cv2", run,
+           note=f"{n_obs} corners")
+    ba = [sum(s["time_s"] for s in cal.optimizer.to_json().values()) for cal in run["extra"]]
+    print(f"{'':17s} {'  of which the bundle adjustment / cv2':58s} {1e3 * statistics.median(ba):9.1f} {'':9s} "
+          f"{statistics.median(a / b for a, b in zip(ba, run['ref'])):7.3f}")
+
+
+def distorted_ptv_rig(points: int, seed: int = 0):
+    """The calibration (rig B's truth) of ``simulate particles --k1 -0.05`` and ``points`` random points of its
+    volume seen by its first two cameras: (calibration of those two cameras, X, tracks)."""
+    from ari_sfm.simulate.particles import ParticleSimOptions, simulate_particle_experiment
+
+    exp = simulate_particle_experiment(ParticleSimOptions(k1=-0.05, num_frames=1, particles_per_frame=10, seed=seed))
+    cal = exp.truth_b
+    two = list(cal.cameras)[:2]
+    rng = np.random.default_rng(seed)
+    X_all, tracks_all, count = [], {c: [] for c in two}, 0
+    while count < points:
+        X = rng.uniform(exp.volume_min_mm, exp.volume_max_mm, size=(points, 3))
+        tracks = {c: cal.project_world(c, X) for c in two}
+        keep = np.ones(len(X), bool)
+        for c in two:
+            w, h = cal.cameras[c].image_size
+            uv = tracks[c]
+            keep &= np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+        X_all.append(X[keep])
+        for c in two:
+            tracks_all[c].append(tracks[c][keep])
+        count += int(keep.sum())
+    return cal, np.concatenate(X_all)[:points], {c: np.concatenate(v)[:points] for c, v in tracks_all.items()}
+
+
+def fig_triangulate_dist(repeats: int, points: int) -> None:
+    """Exact pixels (as triangulate_2, _4), then with 0.1 px of noise (the particle detections'): Levenberg-Marquardt
+    then takes a second evaluation per point."""
+    from ari_sfm.triangulate import triangulate_pixels
+
+    cal, X, exact = distorted_ptv_rig(points)
+    rng = np.random.default_rng(1)
+    noisy = {c: t + rng.normal(0.0, 0.1, t.shape) for c, t in exact.items()}
+    for name, tracks, label in (("triangulate_dist", exact, "exact pixels"),
+                                ("triangulate_dist_noisy", noisy, "0.1 px noise")):
+        run_cv2, _ = cv2_pairs(cal, tracks)
+        run = alternate(lambda: triangulate_pixels(cal, tracks), run_cv2, repeats)
+        err = np.sqrt(np.nanmean(np.sum((run["extra"][0][0] - X) ** 2, axis=1)))
+        pps = len(X) / statistics.median(run["ours"])
+        report(name, f"exact, 2 cameras k1 -0.05, {len(X)} points, {label} / cv2 points/s", run, invert=True,
+               note=f"{pps:,.0f} points/s, RMS error {err:.1e} mm")
+    names = list(noisy)
+    K = [cal.cameras[c].K for c in names]
+    dist = [np.asarray(cal.cameras[c].dist, float) for c in names]
+    P = [np.hstack([cal.cameras[c].cam_from_world.R, cal.cameras[c].cam_from_world.t[:, None]]) for c in names]
+    uv = [noisy[c].reshape(-1, 1, 2) for c in names]
+
+    def cv2_undistorted() -> None:
+        a, b = (cv2.undistortPoints(uv[k], K[k], dist[k]).reshape(-1, 2).T for k in (0, 1))
+        cv2.triangulatePoints(P[0], P[1], a, b)
+
+    und = alternate(lambda: triangulate_pixels(cal, noisy), cv2_undistorted, max(3, repeats // 2))
+    r = [1.0 / x for x in und["ratios"]]
+    print(f"{'':17s} {'  the same / cv2.undistortPoints + triangulatePoints':58s} {1e3 * statistics.median(und['ours']):9.1f} "
+          f"{1e3 * statistics.median(und['ref']):9.1f} {statistics.median(r):7.3f} [{min(r):.3f}-{max(r):.3f}] (for the record)")
 
 
 def _numpy_pinhole(D: np.ndarray, params: np.ndarray, jacobians: bool) -> tuple:
@@ -246,6 +350,38 @@ def _ptv_body():
 
 
 def fig_openptv(repeats: int) -> None:
+    optv_alternate("openptv", "calibrate(exact) PTV body {n} obs / optv full_calibration x 4", _ptv_body().dataset,
+                   repeats)
+
+
+def fig_openptv_multiplane(repeats: int) -> None:
+    dataset = make_scene("ptv_multiplane", seed=0, grid=(27, 15)).dataset  # what `import openptv` reads of it
+    optv_alternate("openptv_multiplane", "calibrate(exact) multiplane, 4 planes, {n} obs / optv x 4", dataset, repeats)
+
+
+def placed_multiplane():
+    """ptv_multiplane (27 x 15 dots, 4 planes) as a real plate is placed: each plane moved by 0.1 mm and turned by
+    0.05 deg RMS (scenarios.ptv_misplaced) while the declared body stays the nominal one, and 0.1 px of pixel
+    noise on the 0.5 px quantisation (a calibration that does not fit to the quantisation: its Huber tail)."""
+    from ari_sfm.simulate import PLACEHOLDER_ROOT
+    from ari_sfm.simulate.scenarios import build_geometry, ptv_misplaced
+    from ari_sfm.simulate.scene import observe, to_dataset
+
+    geometry = build_geometry("ptv_multiplane", np.random.default_rng(0), grid=(27, 15))
+    moved = observe(replace(geometry, target=ptv_misplaced(geometry.target, 0.1, 0.05, np.random.default_rng(1))))
+    rng = np.random.default_rng(2)
+    noisy = tuple(replace(o, pixels=o.pixels + rng.normal(0.0, 0.1, o.pixels.shape)) for o in moved)
+    return to_dataset(geometry, noisy, PLACEHOLDER_ROOT, seen=moved)
+
+
+def fig_openptv_multiplane_placed(repeats: int) -> None:
+    optv_alternate("openptv_multiplane_placed", "  the same, planes placed 0.1 mm off, 0.1 px noise, {n} obs / optv",
+                   placed_multiplane(), repeats)
+
+
+def optv_alternate(name: str, what: str, dataset, repeats: int) -> None:
+    """calibrate(model="exact") of ``dataset`` (one view of a 3D body, 4 cameras) / liboptv's full_calibration of
+    each camera on the same points, started from our result exported by export_openptv."""
     from optv.calibration import Calibration as OptvCalibration
     from optv.orientation import full_calibration
     from optv.parameters import ControlParams
@@ -254,8 +390,6 @@ def fig_openptv(repeats: int) -> None:
     from ari_sfm.init.zhang import object_points
     from ari_sfm.openptv import export_openptv
 
-    scene = _ptv_body()
-    dataset = scene.dataset
     n_obs = sum(len(o.ids) for o in dataset.observations)
     cal = calibrate(dataset, model="exact")
     folder = Path(tempfile.mkdtemp(prefix="bench_speed_optv_"))
@@ -264,9 +398,9 @@ def fig_openptv(repeats: int) -> None:
     cpar = ControlParams(len(dataset.camera_names))
     cpar.read_control_par(str(folder / "optv" / "parameters" / "ptv.par"))
     per_camera = []
-    for name in dataset.camera_names:
-        obs = next(o for o in dataset.observations if o.camera == name)
-        number = summary.numbers[name]
+    for camera in dataset.camera_names:
+        obs = next(o for o in dataset.observations if o.camera == camera)
+        number = summary.numbers[camera]
         ori = folder / "optv" / "cal" / f"cam{number}.tif.ori"
         addpar = folder / "optv" / "cal" / f"cam{number}.tif.addpar"
         ref = np.ascontiguousarray(object_points(dataset.target, obs.ids), dtype=np.float64)
@@ -284,7 +418,7 @@ def fig_openptv(repeats: int) -> None:
             full_calibration(c, ref, targets, cpar, ["xh", "yh"])
 
     run = alternate(lambda: calibrate(dataset, model="exact"), run_optv, repeats)
-    report("openptv", f"calibrate(exact) PTV body {n_obs} obs / optv full_calibration x 4", run)
+    report(name, what.format(n=n_obs), run, note=f"RMSE {run['extra'][0].residuals.rmse_px:.3f} px")
 
 
 def fig_refine_colmap(repeats: int) -> None:
@@ -302,6 +436,55 @@ def fig_refine_colmap(repeats: int) -> None:
               "ratios": [a / b for a, b in zip(times["it_ref"], times["it_ba"])], "cpu_ratios": whole["cpu_ratios"]}
     report("refine_colmap_it", "  the same, per iteration (Jacobian evaluation)", per_it,
            note="CPU-time ratio: of the whole solves")
+
+
+PORT_POINTS = 2500  # relief points drawn; ~2200 seen by >= 3 images
+
+
+def fig_refine_colmap_port(repeats: int) -> None:
+    """The 28-image flat-port survey at 0.25 px noise (2500 relief points drawn, those seen >= 3 times kept)."""
+    from bench_refine_colmap import alternate_timings, survey_start
+
+    _, start, model, bar, interface = survey_start(28, PORT_POINTS, 900.0, sigma_px=0.25)
+    alternate_timings(start, model, interface, bar, 1)  # warm-up of both
+    times, result = alternate_timings(start, model, interface, bar, repeats)
+    n_obs = len(model.obs_image)
+    whole = {"ours": times["ref"], "ref": times["ba"], "ratios": [a / b for a, b in zip(times["ref"], times["ba"])],
+             "cpu_ratios": [a / b for a, b in zip(times["cpu_ref"], times["cpu_ba"])]}
+    report("refine_colmap_port", f"refine-colmap port survey, {len(model.point3D_ids)} points ({n_obs} obs) / "
+           "pycolmap BA", whole, note=f"{result.report.iterations} iterations, converged {result.report.converged}")
+    per_it = {"ours": times["it_ref"], "ref": times["it_ba"],
+              "ratios": [a / b for a, b in zip(times["it_ref"], times["it_ba"])], "cpu_ratios": whole["cpu_ratios"]}
+    report("refine_colmap_port_it", "  the same, per iteration (Jacobian evaluation)", per_it,
+           note="CPU-time ratio: of the whole solves")
+
+
+def fig_particles(repeats: int, frames: int) -> None:
+    """match_frame / OpenPTV's correspondences + point_positions, per core (CPU time), ``frames`` frames of 2000
+    particles of bench_particles' experiment (true calibration)."""
+    from bench_particles import TOLERANCE_PX, ours, openptv
+
+    from ari_sfm.particles.volume import Volume
+    from ari_sfm.simulate.particles import ParticleSimOptions, simulate_particle_experiment, write_particle_experiment
+
+    exp = simulate_particle_experiment(ParticleSimOptions(particles_per_frame=2000, num_frames=frames, seed=0))
+    folder = Path(tempfile.mkdtemp(prefix="bench_speed_particles_"))
+    write_particle_experiment(exp, folder, render_frames=0)
+    volume = Volume(exp.volume_min_mm, exp.volume_max_mm)
+    path = folder / "truth" / "rig_b.json"
+    scores = {}
+
+    def run_ours() -> None:
+        scores["ours"] = ours(exp, exp.truth_b, volume)[0]
+
+    def run_optv() -> None:
+        scores["optv"] = openptv(exp, path, Path(tempfile.mkdtemp(prefix="bench_speed_optv_")), volume)[0]
+
+    run = alternate(run_ours, run_optv, repeats)
+    a, b = scores["ours"], scores["optv"]
+    report("particles", f"match_frame / optv correspondences + point_positions, {frames} x 2000, CPU", run, invert=True,
+           by_cpu=True, note=f"found {a.found_fraction:.4f} / {b.found_fraction:.4f}, ghosts {a.ghost_fraction:.4f} / "
+                             f"{b.ghost_fraction:.4f}; {frames * 2000 / statistics.median(run['ours']):,.0f} particles/s")
 
 
 def reset_peak_memory() -> None:
@@ -419,7 +602,8 @@ def cold_start() -> None:
           f"{runs[3][0] / warm_wall:.1f} wall, {runs[3][1] / warm_cpu:.1f} CPU")
 
 
-FIGURES = ("calibrate_single", "calibrate_4x100", "triangulate", "forward", "openptv", "refine_colmap")
+FIGURES = ("calibrate_single", "calibrate_4x100", "calibrate_arc_sparse", "triangulate", "triangulate_dist", "forward",
+           "openptv", "openptv_multiplane", "openptv_multiplane_placed", "refine_colmap", "refine_colmap_port", "particles")
 
 
 def main() -> None:
@@ -428,6 +612,8 @@ def main() -> None:
                     help=f"comma-separated subset of {', '.join(FIGURES)}, cold_start")
     ap.add_argument("--repeats", type=int, default=7, help="alternating pairs per figure (default 7)")
     ap.add_argument("--points", type=int, default=20000, help="points for triangulate and forward")
+    ap.add_argument("--dist-points", type=int, default=188000, help="points for triangulate_dist")
+    ap.add_argument("--particle-frames", type=int, default=5, help="frames of 2000 particles for particles")
     args = ap.parse_args()
     only = set(args.only.split(","))
     print(f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}, {os.cpu_count()} CPUs, "
@@ -438,7 +624,13 @@ def main() -> None:
             "triangulate": lambda: fig_triangulate(args.repeats, args.points),
             "forward": lambda: fig_forward(args.repeats, args.points),
             "openptv": lambda: fig_openptv(max(3, args.repeats // 2)),
-            "refine_colmap": lambda: fig_refine_colmap(max(3, args.repeats // 2))}
+            "refine_colmap": lambda: fig_refine_colmap(max(3, args.repeats // 2)),
+            "calibrate_arc_sparse": lambda: fig_calibrate_arc_sparse(args.repeats),
+            "triangulate_dist": lambda: fig_triangulate_dist(args.repeats, args.dist_points),
+            "openptv_multiplane": lambda: fig_openptv_multiplane(max(3, args.repeats // 2)),
+            "openptv_multiplane_placed": lambda: fig_openptv_multiplane_placed(max(3, args.repeats // 2)),
+            "refine_colmap_port": lambda: fig_refine_colmap_port(max(3, args.repeats // 2)),
+            "particles": lambda: fig_particles(args.repeats, args.particle_frames)}
     peaks = {}
     for name in FIGURES:
         if name in only:

@@ -66,7 +66,8 @@ def resolve_backend(backend: str) -> str:
 
 def optimize_graph(rig_graph: GraphLike, backend: str = "auto", max_iterations: int = 100,
                    huber_px: float | None = None, return_problem: bool = False, check: bool = True,
-                   stop: str = "converged") -> RigState | tuple[RigState, VectorizedProblem | None]:
+                   stop: str = "converged", relative_tolerance: float = 1e-10
+                   ) -> RigState | tuple[RigState, VectorizedProblem | None]:
     """Optimise a RigGraph with GTSAM (``rig_graph.optimize``) or the numpy backend; same result either way.
 
     ``huber_px``: the threshold the graph was built with (the numpy backend
@@ -75,7 +76,8 @@ def optimize_graph(rig_graph: GraphLike, backend: str = "auto", max_iterations: 
     GTSAM), so that residuals and marginals at the optimum need no callbacks.
     ``check``: compare a few views with the graph's own factors (see
     from_rig_graph); a caller that has just built the graph with ``huber_px``
-    may skip it. ``stop``: the numpy backend's stop rule (:meth:`VectorizedProblem.optimize`).
+    may skip it. ``stop``: the numpy backend's stop rule (:meth:`VectorizedProblem.optimize`);
+    ``relative_tolerance``: LM stops when the error's relative decrease is below it (both backends).
     "auto" falls back to GTSAM for a graph the numpy backend cannot hold (a
     user factor linking several target frames).
     """
@@ -88,9 +90,9 @@ def optimize_graph(rig_graph: GraphLike, backend: str = "auto", max_iterations: 
                 raise
             log.info("numpy backend: %s; optimising with GTSAM", exc)
     if problem is None:
-        state = rig_graph.optimize(max_iterations)
+        state = rig_graph.optimize(max_iterations, relative_tolerance)
         return (state, None) if return_problem else state
-    state = problem.optimize(max_iterations, stop=stop)
+    state = problem.optimize(max_iterations, relative_tolerance, stop=stop)
     _write_solution(rig_graph, problem)
     rig_graph.iterations = problem.iterations
     return (state, problem) if return_problem else state

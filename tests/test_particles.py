@@ -113,9 +113,7 @@ def test_refracted_epipolar_curve_passes_through_the_true_image(experiment):
     ref, other = cams[0], cams[2]
     o, d = cal.rays_world(ref, exact[ref])
     s0, s1 = vol.clip_rays(o, d)
-    from scipy.spatial import cKDTree
-
-    i, j = _candidates(cal, other, exact[other], cKDTree(exact[other]), o, d, s0, s1, 0.01)
+    i, j = _candidates(cal, other, exact[other], o, d, s0, s1, 0.01)
     pid_ref, pid_other = experiment.particle_ids[f][ref], experiment.particle_ids[f][other]
     pairs = set(zip(pid_ref[i].tolist(), pid_other[j].tolist()))
     common = set(pid_ref.tolist()) & set(pid_other.tolist())

@@ -110,13 +110,14 @@ def _forget_helper() -> None:
 os.register_at_fork(after_in_child=_forget_helper)
 
 
-def opencv_map(fn: Callable[[_T], _R], items: Sequence[_T], threads: int = 1) -> list[_R]:
-    """``[fn(x) for x in items]``, with ``threads`` >= 2 shared with another thread: for independent
-    OpenCV calls (which release the GIL) inside :func:`one_cv2_thread`, so each call runs as it would
-    alone and the results are those of the loop. Each thread takes the next item not yet taken (the
-    second starts ~0.05 ms late; a fixed half each left the first waiting ~0.25 ms a call). The first
-    failing item in order raises, after every item has run."""
-    if threads < 2 or len(items) < 4:
+def opencv_map(fn: Callable[[_T], _R], items: Sequence[_T], threads: int = 1, min_items: int = 4) -> list[_R]:
+    """``[fn(x) for x in items]``, with ``threads`` >= 2 and at least ``min_items`` items shared with
+    another thread: for independent OpenCV calls (which release the GIL) inside :func:`one_cv2_thread`,
+    so each call runs as it would alone and the results are those of the loop. Each thread takes the
+    next item not yet taken (the second starts ~0.05 ms late; a fixed half each left the first waiting
+    ~0.25 ms a call; a helper the machine does not schedule in time leaves its share to the caller).
+    The first failing item in order raises, after every item has run."""
+    if threads < 2 or len(items) < min_items:
         return [fn(x) for x in items]
     taken = itertools.count()  # next() is atomic under the GIL
     results: list = [None] * len(items)

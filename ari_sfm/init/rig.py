@@ -18,7 +18,7 @@ from ..geometry import Pose, mean_pose, mean_poses, unit
 from ..records import Dataset
 from .expansion_center import ExpansionCenter, expansion_center, normal_from_expansion_center
 from .interface_pose import real_cam_from_target
-from .opencv_threads import one_cv2_thread
+from .opencv_threads import one_cv2_thread, opencv_map
 from .zhang import calibrate_views, held_intrinsics
 
 log = logging.getLogger(__name__)
@@ -148,6 +148,10 @@ def _initialise_cameras(dataset: Dataset, names: list[str], distortion: bool, wo
     threads = max(1, available // max(n_workers, 1))
     if n_workers <= 1:
         return {n: initialise_camera(dataset, n, distortion, fix_intrinsics, threads, n in centred) for n in names}
+    if n_workers == 2:  # the caller and the kept helper thread, each taking the next camera (no thread started)
+        inits = opencv_map(lambda n: initialise_camera(dataset, n, distortion, fix_intrinsics, threads, n in centred),
+                           names, threads=2, min_items=2)
+        return dict(zip(names, inits))
     with ThreadPoolExecutor(max_workers=n_workers, thread_name_prefix="ari-init") as pool:
         futures = {n: pool.submit(initialise_camera, dataset, n, distortion, fix_intrinsics, threads, n in centred)
                    for n in names}

@@ -449,6 +449,12 @@ def exact_ray(u, v, params, nc, h, d, n, n_m, J_xy, J_dist, origin, direction):
     Returns whether undistortion failed and tan t of the camera-side ray (t its incidence)."""
     xd, yd = (u - params[2]) / params[0], (v - params[3]) / params[1]
     x, y, failed = undistort_point(xd, yd, params[4:], params[0], params[1], J_xy, J_dist)
+    return failed, snell_ray(x, y, nc, h, d, n, n_m, origin, direction)
+
+
+@njit(inline="always", **_JIT)
+def snell_ray(x, y, nc, h, d, n, n_m, origin, direction):
+    """:func:`exact_ray` from the undistorted normalised (x, y): fills origin, direction; returns tan t."""
     s = 1.0 / math.sqrt(x * x + y * y + 1.0)
     v0, v1, v2 = x * s, y * s, s
     c = v0 * nc[0] + v1 * nc[1] + v2 * nc[2]
@@ -468,7 +474,7 @@ def exact_ray(u, v, params, nc, h, d, n, n_m, J_xy, J_dist, origin, direction):
     m0, m1, m2 = eta * g0 + a * nc[0], eta * g1 + a * nc[1], eta * g2 + a * nc[2]
     norm = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
     direction[0], direction[1], direction[2] = m0 / norm, m1 / norm, m2 / norm
-    return failed, math.sqrt(max(1.0 - c * c, 0.0)) / c
+    return math.sqrt(max(1.0 - c * c, 0.0)) / c
 
 
 @njit(**_JIT)
@@ -507,26 +513,133 @@ def _solve_sym3(A, b, x):
 
 
 @njit(inline="always", **_JIT)
-def _cost_and_normal(Xw, uv, p, ok, R, t, params, nc, window, jacobians, A, g, scratch, u_start):
+def _undistort_lanes(xy, it, active, params, J_xy, J_dist):
+    """:func:`undistort_point` of every active camera at once (the same steps, stop and result to the last bit,
+    the cameras' independent Newton steps interleaved). ``xy`` (C, 4): per camera [xd, yd, x, y], x and y
+    filled (NaN when undistortion fails or the pixel is not finite); ``it`` (C,) int64 scratch; ``active`` (C,)
+    the cameras to undistort (cleared); J_xy (C, 2, 2), J_dist (C, 2, 5) scratch. Returns the failures."""
+    C = xy.shape[0]
+    failures = 0
+    for c in range(C):
+        it[c] = 0
+        xy[c, 2], xy[c, 3] = xy[c, 0], xy[c, 1]
+        if active[c] and not (math.isfinite(xy[c, 0]) and math.isfinite(xy[c, 1])):
+            active[c] = False
+            xy[c, 2], xy[c, 3] = np.nan, np.nan
+            it[c] = -1  # not finite: NaN, not a failure
+    pending = True
+    while pending:
+        pending = False
+        for c in range(C):
+            if not active[c]:
+                continue
+            dist, fx, fy = params[c, 4:], params[c, 0], params[c, 1]
+            Jc = J_xy[c]
+            x, y = xy[c, 2], xy[c, 3]
+            cx, cy = distort_point(x, y, dist, Jc, J_dist[c])
+            rx, ry = cx - xy[c, 0], cy - xy[c, 1]
+            det = Jc[0, 0] * Jc[1, 1] - Jc[0, 1] * Jc[1, 0]
+            sx = (Jc[1, 1] * rx - Jc[0, 1] * ry) / det
+            sy = (Jc[0, 0] * ry - Jc[1, 0] * rx) / det
+            x -= sx
+            y -= sy
+            xy[c, 2], xy[c, 3] = x, y
+            it[c] += 1
+            if (max(abs(sx) * fx, abs(sy) * fy) <= UNDISTORT_TOL_PX
+                    or not (math.isfinite(sx) and math.isfinite(sy)) or max(abs(x), abs(y)) > 1e3
+                    or it[c] == UNDISTORT_MAX_ITER):
+                active[c] = False
+            else:
+                pending = True
+    for c in range(C):
+        if it[c] <= 0:
+            continue
+        dist, fx, fy = params[c, 4:], params[c, 0], params[c, 1]
+        cx, cy = distort_point(xy[c, 2], xy[c, 3], dist, J_xy[c], J_dist[c])
+        if not (max(abs(cx - xy[c, 0]) * fx, abs(cy - xy[c, 1]) * fy) <= UNDISTORT_FAIL_PX):
+            xy[c, 2], xy[c, 3] = np.nan, np.nan
+            failures += 1
+            it[c] = -2  # failed
+    return failures
+
+
+@njit(inline="always", **_JIT)
+def _solve_w_lanes_of(lanes, state, active, C, max_iter, window):
+    """:func:`solve_w` of every active camera at once: each camera's Newton steps, restart and stop exactly as
+    solve_w takes them (the same w to the last bit), the cameras' independent steps interleaved (each step is
+    a chain of square roots and divisions: one camera's latency hides another's). ``lanes`` (C, 10): per camera
+    [X0, X1, X2, z, r0, r1, r2, L, rho, w] with w the start (w0); ``state`` (C, 2) int64 scratch; ``active``
+    (C,) the cameras to solve (cleared)."""
+    for c in range(C):
+        state[c, 0] = 0  # steps taken in this attempt
+        state[c, 1] = 1 if lanes[c, 9] != 0.0 else 0  # a restart from w = 0 left (solve_w's second attempt)
+    pending = True
+    while pending:
+        pending = False
+        for c in range(C):
+            if not active[c]:
+                continue
+            n, n_m = window[c, 2], window[c, 3]
+            step = newton_step(lanes[c, 9], lanes[c, 8], lanes[c, 7], window[c, 0], window[c, 1], n * n, n_m * n_m)
+            w = lanes[c, 9] - step
+            lanes[c, 9] = w
+            state[c, 0] += 1
+            if math.isfinite(step) and abs(step) <= NEWTON_REL_TOL * abs(w):
+                active[c] = False  # converged
+            elif not math.isfinite(step) or state[c, 0] == max_iter:  # this attempt failed
+                if state[c, 1] == 1:
+                    state[c, 1] = 0
+                    state[c, 0] = 0
+                    lanes[c, 9] = 0.0
+                    pending = True
+                else:
+                    active[c] = False  # failed: w as solve_w leaves it
+            else:
+                pending = True
+
+
+@njit(inline="always", **_JIT)
+def _cost_and_normal(Xw, uv, p, ok, R, t, params, nc, window, jacobians, A, g, scratch, u_start, lanes, state,
+                     active):
     """Reprojection cost of world point Xw over the cameras ok[c] (pixels uv[p]) and, with ``jacobians``,
     the Gauss-Newton matrix A = J^T J and gradient g = J^T r (world coordinates). Cost inf if a pixel
-    is NaN. Each camera's Newton solve starts from u_start[c] (tan t), which gets the solved one."""
+    is NaN. Each camera's Newton solve starts from u_start[c] (tan t), which gets the solved one; the
+    cameras' solves run interleaved (:func:`_solve_w_lanes_of`), then each camera's pixel and Jacobian
+    (:func:`exact_pixel`) in camera order: what :func:`exact_point` gives, camera after camera."""
     C = uv.shape[1]
     J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist, dn_dv, pix = scratch
     for i in range(3):
         g[i] = 0.0
         for j in range(3):
             A[i, j] = 0.0
+    for c in range(C):  # exact_point's set-up of each camera's solve
+        active[c] = False
+        if not ok[c]:
+            continue
+        X0 = R[c, 0, 0] * Xw[0] + R[c, 0, 1] * Xw[1] + R[c, 0, 2] * Xw[2] + t[c, 0]
+        X1 = R[c, 1, 0] * Xw[0] + R[c, 1, 1] * Xw[1] + R[c, 1, 2] * Xw[2] + t[c, 1]
+        X2 = R[c, 2, 0] * Xw[0] + R[c, 2, 1] * Xw[1] + R[c, 2, 2] * Xw[2] + t[c, 2]
+        z = X0 * nc[c, 0] + X1 * nc[c, 1] + X2 * nc[c, 2]
+        r0, r1, r2 = X0 - z * nc[c, 0], X1 - z * nc[c, 1], X2 - z * nc[c, 2]
+        L = z - window[c, 0] - window[c, 1]
+        rho = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+        lanes[c, 0], lanes[c, 1], lanes[c, 2], lanes[c, 3] = X0, X1, X2, z
+        lanes[c, 4], lanes[c, 5], lanes[c, 6], lanes[c, 7], lanes[c, 8] = r0, r1, r2, L, rho
+        if L > 0.0 and math.isfinite(X0 + X1 + X2):
+            lanes[c, 9] = u_start[c] / rho if rho > 0.0 else 0.0
+            active[c] = True
+        else:
+            lanes[c, 9] = np.nan
+    _solve_w_lanes_of(lanes, state, active, C, NEWTON_MAX_ITER, window)
     cost = 0.0
     for c in range(C):
         if not ok[c]:
             continue
-        Xc0 = R[c, 0, 0] * Xw[0] + R[c, 0, 1] * Xw[1] + R[c, 0, 2] * Xw[2] + t[c, 0]
-        Xc1 = R[c, 1, 0] * Xw[0] + R[c, 1, 1] * Xw[1] + R[c, 1, 2] * Xw[2] + t[c, 1]
-        Xc2 = R[c, 2, 0] * Xw[0] + R[c, 2, 1] * Xw[1] + R[c, 2, 2] * Xw[2] + t[c, 2]
-        _, u_solved = exact_point(Xc0, Xc1, Xc2, params[c], nc[c], dn_dv, window[c, 0], window[c, 1], window[c, 2],
-                                  window[c, 3], 4, jacobians, pix, J_point, J_normal, J_params, J_td, J_pin, J_xy,
-                                  J_dist, u_start[c], False)
+        w = lanes[c, 9]
+        exact_pixel(lanes[c, 0], lanes[c, 1], lanes[c, 2], lanes[c, 3], lanes[c, 4], lanes[c, 5], lanes[c, 6],
+                    lanes[c, 7], w, params[c], nc[c], dn_dv, window[c, 0], window[c, 1], window[c, 2], window[c, 3], 4,
+                    jacobians, pix, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist, False)
+        u_solved = w * lanes[c, 8]
         if math.isfinite(u_solved):
             u_start[c] = u_solved
         r0, r1 = pix[0] - uv[p, c, 0], pix[1] - uv[p, c, 1]
@@ -585,6 +698,13 @@ def triangulate_exact(uv, R, t, params, nc, window, refine, max_iterations, damp
     A_new = np.empty((3, 3))
     g_new = np.empty(3)
     Ad = np.empty((3, 3))
+    lanes = np.empty((C, 10))
+    state = np.zeros((C, 2), dtype=np.int64)
+    active = np.zeros(C, dtype=np.bool_)
+    und = np.empty((C, 4))
+    und_it = np.zeros(C, dtype=np.int64)
+    J_xy_l = np.empty((C, 2, 2))
+    J_dist_l = np.empty((C, 2, 5))
     for p in range(uv.shape[0]):
         n_seen = 0
         for c in range(C):
@@ -599,12 +719,16 @@ def triangulate_exact(uv, R, t, params, nc, window, refine, max_iterations, damp
             for j in range(3):
                 A[i, j] = 0.0
         n_ok = 0
+        for c in range(C):  # exact_ray of each seen pixel: the undistortions interleaved, then Snell
+            active[c] = seen[c]
+            if seen[c]:
+                und[c, 0], und[c, 1] = (uv[p, c, 0] - params[c, 2]) / params[c, 0], (uv[p, c, 1] - params[c, 3]) / params[c, 1]
+        undistort_failed[p] += _undistort_lanes(und, und_it, active, params, J_xy_l, J_dist_l)
         for c in range(C):
             if not seen[c]:
                 continue
-            failed, u_ray = exact_ray(uv[p, c, 0], uv[p, c, 1], params[c], nc[c], window[c, 0], window[c, 1],
-                                      window[c, 2], window[c, 3], J_xy, J_dist, oc, dc)
-            undistort_failed[p] += failed
+            u_ray = snell_ray(und[c, 2], und[c, 3], nc[c], window[c, 0], window[c, 1], window[c, 2], window[c, 3],
+                              oc, dc)
             u_start[c] = u_ray if math.isfinite(u_ray) else 0.0  # the observed pixel's incidence: a close start
             for i in range(3):
                 o[c, i] = (R[c, 0, i] * (oc[0] - t[c, 0]) + R[c, 1, i] * (oc[1] - t[c, 1])
@@ -648,7 +772,7 @@ def triangulate_exact(uv, R, t, params, nc, window, refine, max_iterations, damp
         iterations = 0
         while True:
             cost_new = _cost_and_normal(X_new, uv, p, seen, R, t, params, nc, window, refine, A_new, g_new,
-                                        scratch, u_start)
+                                        scratch, u_start, lanes, state, active)
             if iterations == 0 or cost_new <= cost:
                 if iterations > 0:
                     lam = max(lam / 10.0, 1e-12)

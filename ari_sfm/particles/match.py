@@ -9,20 +9,22 @@ faces), so it is built from the exact model itself:
    volume; K points along the clipped ray are projected into each other camera
    (``Calibration.project_world``): the refracted epipolar curve as a polyline
    of segments at most ``SEGMENT_PX`` long;
-2. candidates: detections within ``tolerance_px`` of that polyline (a
-   ``scipy.spatial.cKDTree`` per camera, queried at segment midpoints, then the
-   exact point-to-segment distance);
+2. candidates: detections within ``tolerance_px`` of that polyline (the
+   detections bucketed in a grid of ``GRID_CELL_PX`` cells; each segment looks
+   only at the cells near it and measures the exact point-to-segment distance);
 3. combinations of one candidate (or none) per other camera with at least
-   ``min_cameras`` images in all are scored by their rays
-   (:func:`ari_sfm.triangulate.triangulate_rays`): each ray's distance from
-   the point, in pixels of its camera (mm / the camera's footprint at the
-   volume), must be within the tolerance, and the point inside the volume;
+   ``min_cameras`` images in all are scored by their rays (their least-squares
+   point, as :func:`ari_sfm.triangulate.triangulate_rays` forms it): each ray's
+   distance from the point, in pixels of its camera (mm / the camera's
+   footprint at the volume), must be within the tolerance, and the point inside
+   the volume;
 4. accepted combinations are taken best first (more cameras first, then the
    smaller RMS distance), each particle image used once;
 5. the chosen ones are triangulated with the exact model
    (:func:`ari_sfm.triangulate.triangulate_pixels`).
 
-Each combination is enumerated once: its reference is its lowest camera.
+Each combination is enumerated once: its reference is its lowest camera. Steps 2-4
+are compiled (:mod:`ari_sfm.particles.match_kernels`).
 """
 from __future__ import annotations
 
@@ -33,14 +35,16 @@ from typing import Mapping
 import numpy as np
 
 from ari_sfm.calibration import Calibration
+from ari_sfm.particles import match_kernels
 from ari_sfm.particles.volume import Volume
-from ari_sfm.triangulate import triangulate_pixels, triangulate_rays
+from ari_sfm.triangulate import MIN_DET, triangulate_pixels
 
 log = logging.getLogger(__name__)
 
 SEGMENT_PX = 20.0  # longest segment of a sampled epipolar curve (it bows < 0.01 px over this)
 MAX_SAMPLES = 256  # samples along one ray at most
 COMBO_CHUNK = 200_000  # combinations scored at once (bounds memory with loose tolerances)
+GRID_CELL_PX = 16.0  # cell of the detections' grid the curves' segments look up (at least the tolerance)
 
 
 @dataclass(frozen=True)
@@ -77,7 +81,7 @@ def footprint_mm_per_px(calibration: Calibration, cameras: list[str], point_worl
     return out
 
 
-def _candidates(calibration: Calibration, camera: str, uv: np.ndarray, tree, origins: np.ndarray,
+def _candidates(calibration: Calibration, camera: str, uv: np.ndarray, origins: np.ndarray,
                 directions: np.ndarray, s0: np.ndarray, s1: np.ndarray, tolerance_px: float
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Pairs (i, j): detection j of ``camera`` within the tolerance of reference ray i's epipolar curve."""
@@ -93,33 +97,12 @@ def _candidates(calibration: Calibration, camera: str, uv: np.ndarray, tree, ori
     s = s0[:, None] + (s1 - s0)[:, None] * t[None, :]  # (n, K)
     X = origins[:, None, :] + s[..., None] * directions[:, None, :]
     p = calibration.project_world(camera, X.reshape(-1, 3)).reshape(n, K, 2)
-    a, b = p[:, :-1].reshape(-1, 2), p[:, 1:].reshape(-1, 2)
-    ok = np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
-    seg = np.flatnonzero(ok)
-    if not len(seg):
-        return np.empty(0, np.int64), np.empty(0, np.int64)
-    mid = 0.5 * (a[seg] + b[seg])
-    reach = float(0.5 * np.linalg.norm(b[seg] - a[seg], axis=1).max()) + tolerance_px
-    from scipy.spatial import cKDTree
-
-    near = cKDTree(mid).sparse_distance_matrix(tree, reach, output_type="ndarray")  # (segment, detection) pairs
-    if not len(near):
-        return np.empty(0, np.int64), np.empty(0, np.int64)
-    seg_of = seg[near["i"]]
-    j = near["j"].astype(np.int64)
-    A, B, P = a[seg_of], b[seg_of], uv[j]
-    AB = B - A
-    with np.errstate(invalid="ignore", divide="ignore"):
-        lam = np.clip(np.einsum("ij,ij->i", P - A, AB) / np.einsum("ij,ij->i", AB, AB), 0.0, 1.0)
-    lam = np.nan_to_num(lam)
-    dist = np.linalg.norm(A + lam[:, None] * AB - P, axis=1)
-    keep = dist <= tolerance_px
-    i = seg_of[keep] // (K - 1)
-    key = np.unique(i * len(uv) + j[keep])
-    return key // len(uv), key % len(uv)
+    i, j = match_kernels.band_pairs(np.ascontiguousarray(p), np.ascontiguousarray(uv), float(tolerance_px),
+                                    max(GRID_CELL_PX, float(tolerance_px)))
+    return i, j
 
 
-def _reference_pairs(calibration: Calibration, cameras: list[str], uv: list[np.ndarray], rays, trees,
+def _reference_pairs(calibration: Calibration, cameras: list[str], uv: list[np.ndarray], rays,
                      volume: Volume, r: int, wanted: np.ndarray, tolerance_px: float
                      ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """Candidate pairs (reference detection, detection) of the ``wanted`` detections of camera r
@@ -131,11 +114,10 @@ def _reference_pairs(calibration: Calibration, cameras: list[str], uv: list[np.n
         s0, s1 = volume.clip_rays(o, d)
         live = np.flatnonzero(wanted & np.isfinite(s0) & np.isfinite(d).all(axis=1))
     for c in range(r + 1, len(cameras)):
-        if trees[c] is None or not len(live):
+        if not len(uv[c]) or not len(live):
             out[c] = (np.empty(0, np.int64), np.empty(0, np.int64))
             continue
-        i_loc, pj = _candidates(calibration, cameras[c], uv[c], trees[c], o[live], d[live], s0[live], s1[live],
-                                tolerance_px)
+        i_loc, pj = _candidates(calibration, cameras[c], uv[c], o[live], d[live], s0[live], s1[live], tolerance_px)
         out[c] = (live[i_loc], pj)
     return out
 
@@ -169,8 +151,6 @@ def match_frame(calibration: Calibration, detections: Mapping[str, np.ndarray], 
     ``volume``: where particles can be (world); else ``depth_range_mm``: the slab of world z
     (camera 0's depth). ``min_cameras`` >= 2 images per particle.
     """
-    from scipy.spatial import cKDTree
-
     cameras = list(calibration.cameras)
     C = len(cameras)
     unknown = [c for c in detections if c not in calibration.cameras]
@@ -196,7 +176,7 @@ def match_frame(calibration: Calibration, detections: Mapping[str, np.ndarray], 
         else:
             o, d = np.empty((0, 3)), np.empty((0, 3))
         rays.append((o, d))
-    trees = [cKDTree(a) if len(a) else None for a in uv]
+    packed = _PackedRays.of(rays)
 
     used = [np.zeros(len(a), bool) for a in uv]
     pairs: dict[int, dict[int, tuple[np.ndarray, np.ndarray]]] = {}  # ref camera -> camera -> candidate pairs
@@ -205,7 +185,7 @@ def match_frame(calibration: Calibration, detections: Mapping[str, np.ndarray], 
         stage = []
         for r in range(C - n + 1):  # a combination's reference is its lowest camera
             if r not in pairs:  # once, for the reference images still free when first needed
-                pairs[r] = _reference_pairs(calibration, cameras, uv, rays, trees, volume, r, ~used[r], tolerance_px)
+                pairs[r] = _reference_pairs(calibration, cameras, uv, rays, volume, r, ~used[r], tolerance_px)
             free_ref = np.flatnonzero(~used[r])
             combos = np.full((len(free_ref), C + 1), -1, np.int64)
             combos[:, r] = free_ref
@@ -223,10 +203,10 @@ def match_frame(calibration: Calibration, detections: Mapping[str, np.ndarray], 
         acc_c, acc_s = [], []
         for k0 in range(0, len(combos), COMBO_CHUNK):
             part = combos[k0:k0 + COMBO_CHUNK]
-            ok, score = _score(part, rays, footprint, volume, tolerance_px)
+            ok, score = _score(part, packed, footprint, volume, tolerance_px)
             acc_c.append(part[ok])
             acc_s.append(score[ok])
-        chosen.append(_greedy(np.concatenate(acc_c), np.concatenate(acc_s), used))
+        chosen.append(_greedy(np.concatenate(acc_c), np.concatenate(acc_s), used, packed.offsets))
     rows = np.concatenate(chosen) if chosen else np.empty((0, C), np.int64)
     if not len(rows):
         return _empty(C)
@@ -265,33 +245,46 @@ def _ray_distances(X: np.ndarray, O: np.ndarray, D: np.ndarray) -> np.ndarray:
     return np.linalg.norm(perp, axis=2)
 
 
-def _score(combos: np.ndarray, rays, footprint: np.ndarray, volume: Volume, tolerance_px: float
+@dataclass(frozen=True)
+class _PackedRays:
+    """Every camera's rays in one array (what the compiled scoring reads): camera c's ray k at
+    ``offsets[c] + k``."""
+
+    origins: np.ndarray  # (sum N_c, 3)
+    directions: np.ndarray  # (sum N_c, 3)
+    offsets: np.ndarray  # (C + 1,) int64
+
+    @staticmethod
+    def of(rays: list[tuple[np.ndarray, np.ndarray]]) -> "_PackedRays":
+        counts = [len(o) for o, _ in rays]
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        return _PackedRays(np.ascontiguousarray(np.concatenate([o for o, _ in rays]).reshape(-1, 3), dtype=float),
+                           np.ascontiguousarray(np.concatenate([d for _, d in rays]).reshape(-1, 3), dtype=float),
+                           offsets)
+
+
+def _score(combos: np.ndarray, packed: _PackedRays, footprint: np.ndarray, volume: Volume, tolerance_px: float
            ) -> tuple[np.ndarray, np.ndarray]:
-    """Accepted (Q,) and score (Q,): RMS over the rays of their distance from the point, in pixels."""
-    O, D, valid = _ray_arrays(combos, rays)
-    X, _ = triangulate_rays(O, D, valid)
-    with np.errstate(invalid="ignore"):
-        dist_px = np.where(valid, _ray_distances(X, O, D) / footprint[None, :], 0.0)
-        n = valid.sum(axis=1)
-        score = np.sqrt((dist_px ** 2).sum(axis=1) / n)
-        ok = np.isfinite(X).all(axis=1) & (dist_px.max(axis=1) <= tolerance_px)
-    ok[ok] &= volume.contains(X[ok], margin_mm=tolerance_px * float(footprint.max()))
-    return ok, score
+    """Accepted (Q,) and score (Q,): RMS over the rays of their distance from their least-squares point,
+    in pixels; accepted when every ray is within the tolerance and the point inside the volume grown by the
+    tolerance's footprint (compiled: :func:`ari_sfm.particles.match_kernels.score_combos`)."""
+    box = volume.box_from_world
+    return match_kernels.score_combos(
+        np.ascontiguousarray(combos, dtype=np.int64), packed.origins, packed.directions, packed.offsets,
+        np.ascontiguousarray(footprint, dtype=float), np.ascontiguousarray(box.R, dtype=float),
+        np.ascontiguousarray(box.t, dtype=float), np.asarray(volume.min_mm, dtype=float),
+        np.asarray(volume.max_mm, dtype=float), float(tolerance_px * float(footprint.max())), float(tolerance_px),
+        MIN_DET)
 
 
-def _greedy(combos: np.ndarray, score: np.ndarray, used: list[np.ndarray]) -> np.ndarray:
+def _greedy(combos: np.ndarray, score: np.ndarray, used: list[np.ndarray], offsets: np.ndarray) -> np.ndarray:
     """Best first (smaller score), each detection used once (``used`` per camera, updated): the chosen rows."""
-    keep = []
-    C = combos.shape[1]
-    for q in np.argsort(score, kind="stable"):
-        row = combos[q]
-        cams = [c for c in range(C) if row[c] >= 0]
-        if any(used[c][row[c]] for c in cams):
-            continue
-        for c in cams:
-            used[c][row[c]] = True
-        keep.append(q)
-    return combos[np.asarray(keep, np.int64)]
+    flat = np.concatenate(used) if used else np.zeros(0, bool)
+    keep = match_kernels.greedy_rows(np.ascontiguousarray(combos, dtype=np.int64),
+                                     np.argsort(score, kind="stable").astype(np.int64), flat, offsets)
+    for c, u in enumerate(used):
+        u[:] = flat[offsets[c]:offsets[c + 1]]
+    return combos[keep]
 
 
 def _rms_ray_distance(X: np.ndarray, rows: np.ndarray, rays) -> np.ndarray:

@@ -431,14 +431,17 @@ def _overlap_start(chk: _Checker, world_from_rig: Pose, added: Sequence[float]) 
 
 
 def arc(rng: np.random.Generator, num_frames: int = 20, num_cameras: int = 4,
-        stack_added_mm: Sequence[float] = STACK_ADDED_MM) -> Geometry:
+        stack_added_mm: Sequence[float] = STACK_ADDED_MM, run_lengths: Sequence[int] = (2, 3)) -> Geometry:
     """Cameras on an 800 mm arc (-18..18 deg) behind one window tilted ~20 deg.
 
     The window tilts toward camera 0's side away from camera 0's view, so the
     expansion centre of camera 0 (an outer camera) falls outside its image.
-    Each calibration frame is drawn for a run of 2 or 3 neighbouring cameras
-    and kept only if exactly those cameras see it (partial visibility).
+    Each calibration frame is drawn for a run of ``run_lengths`` (default 2 or 3)
+    neighbouring cameras, in turn, and kept only if exactly those cameras see it
+    (partial visibility); ``run_lengths=(2, 3, 4)`` adds frames seen by all four.
     """
+    if not run_lengths or any(not 1 <= k <= num_cameras for k in run_lengths):
+        raise ValueError(f"run_lengths must be 1..{num_cameras} cameras (got {tuple(run_lengths)})")
     if num_cameras < 2:
         raise ValueError("arc needs at least 2 cameras")
     radius = 800.0
@@ -463,7 +466,7 @@ def arc(rng: np.random.Generator, num_frames: int = 20, num_cameras: int = 4,
         d, c = axes_rig[i]
         return float(c[0] + (depth - c[2]) / d[2] * d[0])
 
-    runs = [tuple(range(s, s + k)) for k in (2, 3) for s in range(num_cameras - k + 1)] or [tuple(range(num_cameras))]
+    runs = [tuple(range(s, s + k)) for k in run_lengths for s in range(num_cameras - k + 1)] or [tuple(range(num_cameras))]
     calibration: dict[str, Pose] = {}
     for k, name in enumerate(_frame_names("f", num_frames)):
         run = runs[k % len(runs)]

@@ -1,0 +1,238 @@
+"""The particle matching's inner loops, compiled (numba, ``cache=True``): :mod:`ari_sfm.particles.match`
+calls them, the algorithm is described there.
+
+- :func:`band_pairs`: which detections lie within the tolerance of each reference ray's sampled epipolar
+  curve. The detections are bucketed in a grid of square cells (a counting sort, no tree); each segment
+  of a curve visits only the cells its box grown by the tolerance overlaps and measures the exact
+  point-to-segment distance there, the formula numpy's version used.
+- :func:`score_combos`: the least-squares point of each combination's rays (as
+  :func:`ari_sfm.triangulate.triangulate_rays` forms it), each ray's distance from it in pixels of its
+  camera, the acceptance (every ray within the tolerance, the point inside the volume grown by the
+  margin) and the RMS score; one pass, no (Q, C, 3) temporaries.
+- :func:`greedy_rows`: the combinations taken best first, each detection used once.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..kernel_cache import njit  # numba's njit, the kernels compiled into the wheel read first
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+MAX_GRID_SIDE = 4096  # cells along a side of the detections' grid at most (the cell grows beyond)
+
+
+@njit(inline="always", **_JIT)
+def _cell_index(x, n):
+    """floor(x) as a cell index, held to [-1, n] (a coordinate far off the grid, however large)."""
+    if x < 0.0:
+        return -1
+    if x >= n:
+        return n
+    return int(math.floor(x))
+
+
+@njit(**_JIT)
+def band_pairs(p, uv, tolerance, cell):
+    """Pairs (i, j), sorted by i then j, each once: detection ``uv[j]`` (N, 2) within ``tolerance`` px of a
+    segment of curve i, the polyline ``p[i]`` (n, K, 2) (a segment with a non-finite end is skipped).
+    ``cell``: the grid's cell size in px (>= the tolerance keeps the visited cells few)."""
+    n, K = p.shape[0], p.shape[1]
+    N = uv.shape[0]
+    out_i = np.empty(0, np.int64)
+    out_j = np.empty(0, np.int64)
+    if n == 0 or N == 0 or K < 2:
+        return out_i, out_j
+    x0, y0 = uv[0, 0], uv[0, 1]
+    x1, y1 = x0, y0
+    for j in range(N):
+        x0, x1 = min(x0, uv[j, 0]), max(x1, uv[j, 0])
+        y0, y1 = min(y0, uv[j, 1]), max(y1, uv[j, 1])
+    cell = max(cell, (x1 - x0) / MAX_GRID_SIDE, (y1 - y0) / MAX_GRID_SIDE)  # a bounded grid for any spread
+    nx = int((x1 - x0) / cell) + 1
+    ny = int((y1 - y0) / cell) + 1
+    start = np.zeros(nx * ny + 1, np.int64)
+    cell_of = np.empty(N, np.int64)
+    for j in range(N):
+        k = int((uv[j, 1] - y0) / cell) * nx + int((uv[j, 0] - x0) / cell)
+        cell_of[j] = k
+        start[k + 1] += 1
+    for k in range(nx * ny):
+        start[k + 1] += start[k]
+    fill = start[:-1].copy()
+    members = np.empty(N, np.int64)
+    for j in range(N):  # ascending j within each cell
+        members[fill[cell_of[j]]] = j
+        fill[cell_of[j]] += 1
+    stamp = np.full(N, -1, np.int64)  # the last curve that took detection j
+    found = np.empty(N, np.int64)
+    cap = 4 * n + 16
+    out_i = np.empty(cap, np.int64)
+    out_j = np.empty(cap, np.int64)
+    m = 0
+    for i in range(n):
+        nf = 0
+        for s in range(K - 1):
+            ax, ay, bx, by = p[i, s, 0], p[i, s, 1], p[i, s + 1, 0], p[i, s + 1, 1]
+            if not (math.isfinite(ax) and math.isfinite(ay) and math.isfinite(bx) and math.isfinite(by)):
+                continue
+            c0 = _cell_index((min(ax, bx) - tolerance - x0) / cell, nx)
+            c1 = _cell_index((max(ax, bx) + tolerance - x0) / cell, nx)
+            r0 = _cell_index((min(ay, by) - tolerance - y0) / cell, ny)
+            r1 = _cell_index((max(ay, by) + tolerance - y0) / cell, ny)
+            if c1 < 0 or c0 >= nx or r1 < 0 or r0 >= ny:  # the segment's box misses the detections' grid
+                continue
+            c0, c1, r0, r1 = max(c0, 0), min(c1, nx - 1), max(r0, 0), min(r1, ny - 1)
+            abx, aby = bx - ax, by - ay
+            den = abx * abx + aby * aby
+            for r in range(r0, r1 + 1):
+                for c in range(c0, c1 + 1):
+                    k = r * nx + c
+                    for q in range(start[k], start[k + 1]):
+                        j = members[q]
+                        if stamp[j] == i:
+                            continue
+                        px, py = uv[j, 0], uv[j, 1]
+                        lam = ((px - ax) * abx + (py - ay) * aby) / den
+                        if lam != lam:
+                            lam = 0.0
+                        elif lam < 0.0:
+                            lam = 0.0
+                        elif lam > 1.0:
+                            lam = 1.0
+                        dx = ax + lam * abx - px
+                        dy = ay + lam * aby - py
+                        if math.sqrt(dx * dx + dy * dy) <= tolerance:
+                            stamp[j] = i
+                            found[nf] = j
+                            nf += 1
+        if nf == 0:
+            continue
+        js = np.sort(found[:nf])
+        if m + nf > cap:
+            cap = max(2 * cap, m + nf)
+            grown_i = np.empty(cap, np.int64)
+            grown_j = np.empty(cap, np.int64)
+            grown_i[:m] = out_i[:m]
+            grown_j[:m] = out_j[:m]
+            out_i, out_j = grown_i, grown_j
+        for q in range(nf):
+            out_i[m + q] = i
+            out_j[m + q] = js[q]
+        m += nf
+    return out_i[:m].copy(), out_j[:m].copy()
+
+
+@njit(**_JIT)
+def score_combos(combos, origins, directions, offsets, footprint, box_R, box_t, box_min, box_max, margin,
+                 tolerance, min_det):
+    """Accepted (Q,) and score (Q,) of the combinations ``combos`` (Q, C) (a row per camera's detection,
+    -1: unused): camera c's ray of row k is ``origins[offsets[c] + k]``, ``directions[...]`` (unit).
+    The least-squares point X of the used rays (NaN with < 2 finite rays or det <= ``min_det``), each
+    used ray's distance from X over ``footprint[c]`` (mm per px), accepted when every one is within
+    ``tolerance`` and ``box_R X + box_t`` is within [box_min - margin, box_max + margin]; score: the RMS
+    of those distances."""
+    Q, C = combos.shape
+    ok = np.zeros(Q, np.bool_)
+    score = np.empty(Q)
+    o = np.empty((C, 3))
+    d = np.empty((C, 3))
+    used = np.zeros(C, np.bool_)
+    fin = np.zeros(C, np.bool_)
+    for q in range(Q):
+        a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+        b0 = b1 = b2 = 0.0
+        n_used = 0
+        n_fin = 0
+        for c in range(C):
+            row = combos[q, c]
+            used[c] = row >= 0
+            fin[c] = False
+            if not used[c]:
+                continue
+            n_used += 1
+            k = offsets[c] + row
+            for i in range(3):
+                o[c, i] = origins[k, i]
+            norm = math.sqrt(directions[k, 0] * directions[k, 0] + directions[k, 1] * directions[k, 1]
+                             + directions[k, 2] * directions[k, 2])
+            for i in range(3):
+                d[c, i] = directions[k, i] / norm
+            fin[c] = (math.isfinite(o[c, 0]) and math.isfinite(o[c, 1]) and math.isfinite(o[c, 2])
+                      and math.isfinite(d[c, 0]) and math.isfinite(d[c, 1]) and math.isfinite(d[c, 2]))
+            if not fin[c]:
+                continue
+            n_fin += 1
+            d0, d1, d2 = d[c, 0], d[c, 1], d[c, 2]
+            do = d0 * o[c, 0] + d1 * o[c, 1] + d2 * o[c, 2]
+            a00 += 1.0 - d0 * d0
+            a01 -= d0 * d1
+            a02 -= d0 * d2
+            a11 += 1.0 - d1 * d1
+            a12 -= d1 * d2
+            a22 += 1.0 - d2 * d2
+            b0 += o[c, 0] - d0 * do
+            b1 += o[c, 1] - d1 * do
+            b2 += o[c, 2] - d2 * do
+        score[q] = np.nan
+        if n_fin < 2 or n_fin < n_used:  # a used ray that is not finite: no acceptable point
+            continue
+        c00, c01, c02 = a11 * a22 - a12 * a12, a02 * a12 - a01 * a22, a01 * a12 - a02 * a11
+        c11, c12, c22 = a00 * a22 - a02 * a02, a01 * a02 - a00 * a12, a00 * a11 - a01 * a01
+        det = a00 * c00 + a01 * c01 + a02 * c02
+        if not det > min_det:
+            continue
+        inv = 1.0 / det
+        X0 = (c00 * b0 + c01 * b1 + c02 * b2) * inv
+        X1 = (c01 * b0 + c11 * b1 + c12 * b2) * inv
+        X2 = (c02 * b0 + c12 * b1 + c22 * b2) * inv
+        if not (math.isfinite(X0) and math.isfinite(X1) and math.isfinite(X2)):
+            continue
+        worst = 0.0
+        sq = 0.0
+        for c in range(C):
+            if not used[c]:
+                continue
+            r0, r1, r2 = X0 - o[c, 0], X1 - o[c, 1], X2 - o[c, 2]
+            s = r0 * d[c, 0] + r1 * d[c, 1] + r2 * d[c, 2]
+            q0, q1, q2 = r0 - s * d[c, 0], r1 - s * d[c, 1], r2 - s * d[c, 2]
+            px = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2) / footprint[c]
+            worst = max(worst, px)
+            sq += px * px
+        score[q] = math.sqrt(sq / n_used)
+        if not worst <= tolerance:
+            continue
+        inside = True
+        for i in range(3):
+            x = box_R[i, 0] * X0 + box_R[i, 1] * X1 + box_R[i, 2] * X2 + box_t[i]
+            if not (x >= box_min[i] - margin and x <= box_max[i] + margin):
+                inside = False
+        ok[q] = inside
+    return ok, score
+
+
+@njit(**_JIT)
+def greedy_rows(combos, order, used, offsets):
+    """Indices into ``combos`` (Q, C) taken in ``order`` (best first), skipping a combination any of whose
+    detections is already used; ``used`` (the cameras' flags, camera c's detection k at ``offsets[c] + k``)
+    is updated."""
+    Q, C = combos.shape
+    keep = np.empty(Q, np.int64)
+    m = 0
+    for q in order:
+        free = True
+        for c in range(C):
+            row = combos[q, c]
+            if row >= 0 and used[offsets[c] + row]:
+                free = False
+                break
+        if not free:
+            continue
+        for c in range(C):
+            row = combos[q, c]
+            if row >= 0:
+                used[offsets[c] + row] = True
+        keep[m] = q
+        m += 1
+    return keep[:m].copy()
