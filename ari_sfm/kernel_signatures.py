@@ -5,7 +5,7 @@ call with other types still works (numba compiles it on its first use).
 """
 from __future__ import annotations
 
-from numba.types import Array, boolean, float64, int64
+from numba.types import Array, boolean, float32, float64, int64
 
 
 def array(dtype, ndim: int, layout: str = "C", readonly: bool = False) -> Array:
@@ -104,9 +104,67 @@ SIGNATURES = {
             (array(float64, 2), array(float64, 1), float64, float64),
         ],
     },
+    'ari_sfm.particles.detect_kernels': {
+        'block_statistics': [
+            (array(float32, 2), array(float32, 2), array(int64, 1), array(int64, 1), int64, int64, int64,
+             float64, float64, float64, float64, float64),
+        ],
+        'connected_regions': [
+            (array(float32, 2), array(float32, 2), float64, float64, array(int64, 1), array(int64, 1), int64),
+        ],
+        'fit_round': [
+            (array(float32, 2), array(float64, 2), array(int64, 1), array(int64, 1), array(int64, 1),
+             array(int64, 1), array(float64, 1), array(float64, 1), array(float64, 1), array(float64, 1),
+             array(float64, 1), array(boolean, 1), array(boolean, 1), float64, float64, float64, int64,
+             float64, float64),
+        ],
+        'level_and_noise': [
+            (array(float32, 2), array(float32, 2), array(float32, 2), array(float64, 1), array(float64, 1),
+             float64, float64, float64),
+        ],
+        'levenberg_marquardt': [
+            (int64, array(float64, 2), array(float64, 2), array(float64, 2), array(float64, 2), int64,
+             float64),
+        ],
+        'local_maxima': [
+            (array(float32, 2), array(float32, 2), float64, float64),
+        ],
+        'on_ridge': [
+            (array(float32, 2), array(float64, 1), array(float64, 1), array(float64, 1), array(float64, 1),
+             array(float64, 2), int64, float64, float64, float64),
+        ],
+        'own_pixels': [
+            (array(float32, 2), array(float64, 2), array(int64, 1), array(int64, 1), array(float64, 1),
+             array(float64, 1), array(float64, 1), array(float64, 1), array(float64, 1), array(int64, 1),
+             array(int64, 1)),
+        ],
+        'render': [
+            (array(float64, 2), array(int64, 1), array(int64, 1), array(float64, 1), array(float64, 1),
+             array(float64, 1), array(float64, 1), array(float64, 1), int64),
+        ],
+        'shape_hessians': [
+            (array(float64, 2), array(float64, 1), float64),
+        ],
+        'without_hot_pixels': [
+            (array(float32, 2), array(float32, 2), float64),
+        ],
+    },
     'ari_sfm.particles.disparity_kernels': {
         'joint_counts': [
             (array(float64, 3), float64),
+        ],
+    },
+    'ari_sfm.particles.match_kernels': {
+        'band_pairs': [
+            (array(float64, 3), array(float64, 2), float64, float64),
+        ],
+        'greedy_rows': [
+            (array(int64, 2), array(int64, 1), array(boolean, 1), array(int64, 1)),
+        ],
+        'score_combos': [
+            (array(int64, 2), array(float64, 2), array(float64, 2), array(int64, 1), array(float64, 1),
+             array(float64, 2), array(float64, 1), array(float64, 1), array(float64, 1), float64, float64,
+             float64),
         ],
     },
     'ari_sfm.se3_kernel': {

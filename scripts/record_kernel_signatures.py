@@ -12,6 +12,7 @@ triangulation and refine-colmap need nothing else).
 from __future__ import annotations
 
 import os
+import re
 import sys
 import tempfile
 from pathlib import Path
@@ -27,7 +28,7 @@ call with other types still works (numba compiles it on its first use).
 """
 from __future__ import annotations
 
-from numba.types import Array, boolean, float64, int64
+from numba.types import Array, {types}
 
 
 def array(dtype, ndim: int, layout: str = "C", readonly: bool = False) -> Array:
@@ -38,7 +39,8 @@ def array(dtype, ndim: int, layout: str = "C", readonly: bool = False) -> Array:
 SIGNATURES = {
 '''
 
-SCALARS = {"float64": "float64", "int64": "int64", "bool": "boolean"}
+SCALARS = {"float64": "float64", "float32": "float32", "int64": "int64", "int32": "int32", "uint8": "uint8",
+           "uint16": "uint16", "bool": "boolean"}
 
 
 def type_code(t) -> str:
@@ -91,7 +93,7 @@ def workloads(tmp: Path) -> None:
         "-o", tmp / "ptv_p", "--workers", "0")
     cli("self-calibrate", ptv / "experiment", "--calibration", tmp / "ptv_a" / "calibration.json",
         "-o", tmp / "ptv_s", "--frames", "3", "--coarse-frames", "1")
-    cli("detect-particles", ptv / "experiment", "-o", tmp / "ptv_d")
+    cli("detect-particles", ptv / "experiment", "-o", tmp / "ptv_d", "--workers", "0")  # in this process
     for truth, mount in ((port_survey(seed=0, num_images=8, num_points=300), "camera"),
                          (tank_rig(seed=0, num_frames=4, num_points=200), "world")):
         rec = adapter.reconstruction_from_arrays(
@@ -159,8 +161,12 @@ def main() -> None:
     seen = record_calls()
     with tempfile.TemporaryDirectory() as tmp:
         workloads(Path(tmp))
-    lines = [HEADER]
-    for module, kernels in source_form(seen).items():
+    forms = source_form(seen)
+    text = repr(forms)
+    used = sorted({t for t in SCALARS.values() if re.search(rf"\b{t}\b", text)},  # isort's natural order
+                  key=lambda t: (re.sub(r"\d", "", t), int(re.sub(r"\D", "", t) or 0)))
+    lines = [HEADER.replace("{types}", ", ".join(used))]
+    for module, kernels in forms.items():
         lines.append(f"    {module!r}: {{\n")
         for kernel, sigs in kernels.items():
             lines.append(f"        {kernel!r}: [\n")
