@@ -635,3 +635,33 @@ def test_rig_graph_add_factor_and_optimize_checked():
     with pytest.raises(ValueError, match="max_iterations"):
         rg.optimize(max_iterations=-3)
     rg.add_factor(gtsam.PriorFactorPoint3(gtsam.symbol("z", 0), gtsam.Point3(0, 0, 0), gtsam.noiseModel.Unit.Create(3)))
+
+
+# ----------------------------------------------------------------------------- a calibration that failed its gate
+
+
+def test_a_calibration_that_failed_its_gate_is_said_so_by_particles_and_self_calibrate(tmp_path, caplog):
+    """Lenses with k1 -0.05 calibrated with --no-distortion: the gate fails it (exit 3, cameras ~0.5 deg off).
+    particles and self-calibrate from it (self-calibration then fits the particles at the noise, its own checks
+    pass) say that this calibration failed its gate, and particles3d.json records it."""
+    sim, cal = tmp_path / "sim", tmp_path / "cal"
+    assert _run(["simulate", "particles", "-o", sim, "--particles", "300", "--frames", "2", "--k1", "-0.05",
+                 "--render-frames", "0"]).exit_code == 0
+    assert _run(["calibrate", sim / "calibration", "-o", cal, "--no-distortion"]).exit_code == 3
+    failed = str(cal / "calibration.json")
+    with caplog.at_level("WARNING"):
+        r = _run(["particles", sim / "experiment", "--calibration", failed, "-o", tmp_path / "p", "--workers", "0"])
+    assert r.exit_code == 0, r.output
+    said = [m for m in caplog.messages if m.startswith(f"{failed}: this calibration failed its quality gate")]
+    assert len(said) == 1 and "cannot be trusted" in said[0] and "lens distortion" in said[0]
+    assert json.loads((tmp_path / "p" / "particles3d.json").read_text())["warnings"][0] == said[0]
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        _run(["self-calibrate", sim / "experiment", "--calibration", failed, "-o", tmp_path / "sc", "--workers", "0",
+              "--cells", 2, 2, 1])
+    assert said[0] in caplog.messages
+    caplog.clear()
+    with caplog.at_level("WARNING"):  # a calibration that passed: not said
+        r = _run(["particles", sim / "experiment", "--calibration", sim / "truth" / "rig_b.json", "-o",
+                  tmp_path / "p2", "--workers", "0"])
+    assert r.exit_code == 0 and not [m for m in caplog.messages if "quality gate" in m]
