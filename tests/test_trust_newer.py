@@ -618,6 +618,11 @@ def test_api_misuse_says_what_is_wanted():
     with pytest.raises(TypeError, match="Calibration or a calibration.json path"):
         evaluate(42, OBS)
     assert evaluate(str(CAL), OBS).count > 0  # a path is read
+    for bad in (42, {"observations": []}, [1, 2]):  # was: 'int' object is not iterable, ...
+        with pytest.raises(TypeError, match="observations.json path, a Dataset or a list of Observation"):
+            evaluate(CAL, bad)
+        with pytest.raises(TypeError, match="observations.json path, a Dataset or a list of Observation"):
+            evaluate(CAL, bad, solve_poses=True)
     for bad in (-3, 0, 2.5, True):
         with pytest.raises(ValueError, match="max_iterations"):
             CalibrationOptions(max_iterations=bad)
