@@ -319,7 +319,7 @@ def export_colmap_fork(calibration: Calibration | str | Path, out_dir: str | Pat
                        calibration_path: str | Path | None = None) -> ForkExport:
     """Write ``calibration`` (an exact-Snell model) as the fork's text model in ``out_dir``:
     cameras.txt (FLATPORT), images.txt, points3D.txt (lengths in units of ``units_mm`` mm, within
-    UNITS_MM_RANGE).
+    UNITS_MM_RANGE), written together: all three or none.
 
     Images and points: ``refined_model`` (a refine-colmap output folder: its COLMAP model beside the
     calibration) gives every image at its real pose and the refined points; else ``observations`` (or
@@ -327,7 +327,7 @@ def export_colmap_fork(calibration: Calibration | str | Path, out_dir: str | Pat
     with the target corners (observations that are not the calibration's: AriSfmError); else one image
     per camera (its pose), with a warning. ``calibration_path``: the file named in errors when
     ``calibration`` is a record."""
-    from .io import write_text_atomic
+    from .io import write_files_atomic
     from .provenance import observations_mismatch
 
     path = Path(calibration) if isinstance(calibration, (str, Path)) else Path(calibration_path or "calibration.json")
@@ -387,10 +387,14 @@ def export_colmap_fork(calibration: Calibration | str | Path, out_dir: str | Pat
         X = (np.asarray(points[pid], float) / units_mm).tolist()
         track = " ".join(f"{i} {k}" for i, k in tracks[pid])
         pts_lines.append(f"{pid} {X[0]!r} {X[1]!r} {X[2]!r} 150 150 150 0 {track}")
-    files = []
-    for fname, lines in (("cameras.txt", cam_lines), ("images.txt", img_lines), ("points3D.txt", pts_lines)):
-        write_text_atomic(out / fname, "\n".join(lines) + "\n")
-        files.append(out / fname)
+    texts = {"cameras.txt": cam_lines, "images.txt": img_lines, "points3D.txt": pts_lines}
+
+    def writer(tmp: Path) -> None:
+        for fname, lines in texts.items():
+            (tmp / fname).write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+    write_files_atomic(out, writer)  # the three files together or none (a full disk at images.txt: no cameras.txt)
+    files = [out / fname for fname in texts]
     return ForkExport(tuple(files), len(names), len(images), len(tracks), units_mm)
 
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -124,6 +124,18 @@ def _as_calibration(calibration: Calibration | str | Path) -> Calibration:
     return calibration
 
 
+def _as_records(observations) -> list[Observation]:
+    """Observation records given as such (anything else: TypeError saying what is wanted)."""
+    wanted = "observations must be an observations.json path, a Dataset or a list of Observation records"
+    if isinstance(observations, (bytes, Mapping)) or not isinstance(observations, Iterable):
+        raise TypeError(f"{wanted} (got {type(observations).__name__})")
+    records = list(observations)
+    other = next((o for o in records if not isinstance(o, Observation)), None)
+    if other is not None:
+        raise TypeError(f"{wanted} (got a {type(observations).__name__} holding a {type(other).__name__})")
+    return records
+
+
 def _source(observations: str | Path | Dataset | Sequence[Observation]) -> str | Path | None:
     """What to name in an error about ``observations``."""
     if isinstance(observations, Dataset):
@@ -162,7 +174,7 @@ def reprojection_stats(calibration: Calibration, observations: str | Path | Data
         records = load_observations(Path(observations), target, list(calibration.cameras))
         check_pixels_in_images(records, {n: c.image_size for n, c in calibration.cameras.items()}, observations)
     else:
-        records = observations
+        records = _as_records(observations)
     if not isinstance(observations, (str, Path)):  # a file was checked as it was read
         from .io.observations import check_pixels_in_images
 

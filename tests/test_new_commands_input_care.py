@@ -77,13 +77,39 @@ def test_particles_on_a_full_disk_leaves_no_table(experiment, tmp_path, monkeypa
     assert not any(n.endswith(".parquet") or n.endswith(".tmp") for n in left), left
 
 
-def test_export_colmap_fork_on_a_full_disk_leaves_no_model_file(experiment, tmp_path, monkeypatch):
+def _full_disk_at(monkeypatch, name: str) -> None:
+    """The disk fills up while ``name`` is written (its fsync fails), after the files before it were written."""
+    real_fsync = os.fsync
+
+    def fsync(fd):
+        if name in os.readlink(f"/proc/self/fd/{fd}"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+
+
+@pytest.mark.parametrize("existing", [False, True])
+def test_export_colmap_fork_on_a_full_disk_leaves_no_model_file(experiment, tmp_path, monkeypatch, existing):
+    """The disk full at images.txt, the second of the three files (cameras.txt was left alone before): no file
+    of the model, or an earlier export's three files as they were."""
     _, cal, _ = experiment
-    _full_disk(monkeypatch)
     out = tmp_path / "fork"
+    if existing:
+        assert CliRunner().invoke(main, ["export-colmap-fork", str(cal), "-o", str(out)]).exit_code == 0
+        for f in out.iterdir():
+            f.write_text(f"earlier {f.name}\n")
+    _full_disk_at(monkeypatch, "images.txt")
     r = CliRunner().invoke(main, ["export-colmap-fork", str(cal), "-o", str(out)])
-    assert r.exit_code == 1 and r.output.strip().splitlines()[-1].endswith("No space left on device"), r.output
-    assert not out.exists() or not [p for p in out.iterdir()], list(out.iterdir())
+    lines = r.output.strip().splitlines()
+    assert r.exit_code == 1 and len(lines) == 1 and lines[0] == f"error: {out}: cannot write the files: No space " \
+                                                                "left on device", r.output
+    left = sorted(p.name for p in out.iterdir()) if out.exists() else []
+    if existing:
+        assert left == ["cameras.txt", "images.txt", "points3D.txt"]
+        assert all((out / n).read_text() == f"earlier {n}\n" for n in left)
+    else:
+        assert left == []
 
 
 def test_sigterm_during_particles_leaves_cleanly(experiment, tmp_path):

@@ -219,6 +219,32 @@ def test_killing_the_only_worker_mid_run_ends_with_one_line(sim, tmp_path, clust
     assert json.loads((out / "particles3d.json").read_text())["partitions"]["total"] == 4
 
 
+@pytest.mark.parametrize("command", ["self-calibrate", "detect-particles"])
+def test_killing_the_only_worker_of_the_other_commands_ends_with_one_line(command, images, tmp_path, cluster):
+    """The same SIGKILL of the only `dask worker` while it runs a task of self-calibrate (a frame's matching,
+    gathered) or detect-particles (a partition's images): one error line naming the scheduler after
+    --worker-timeout, and no result file."""
+    from dask.distributed import Client
+
+    address = _start_scheduler(cluster)
+    worker = _start_worker(cluster, address)
+    _wait_for_workers(address, 1)
+    out = tmp_path / "out"
+    extra = ["--calibration", images / "truth" / "rig_a.json"] if command == "self-calibrate" else []
+    p = _ari_sfm(command, images / "experiment", *extra, "-o", out, "--scheduler", address, "--worker-timeout", "3")
+    with Client(address, timeout="10s") as c:
+        deadline = time.monotonic() + 120
+        while not any(c.processing().values()):  # a task on the worker
+            assert p.poll() is None and time.monotonic() < deadline, "no task reached the worker"
+            time.sleep(0.02)
+        os.killpg(worker.pid, signal.SIGKILL)
+    line = _one_error_line(p)
+    assert line.startswith(f"error: --scheduler: no Dask worker connected to {address} for 3 s"), line
+    left = sorted(q.name for q in out.rglob("*") if q.is_file()) if out.exists() else []
+    assert not [n for n in left if n.endswith((".tmp", ".json")) and n != "run.json"], left
+    assert "particles.parquet" not in left and "calibration.json" not in left, left
+
+
 def test_a_worker_joining_in_time_lets_the_run_go_on(sim, serial, tmp_path, cluster):
     """A scheduler with no worker: the command says it waits; a worker joining before --worker-timeout:
     it says so and the run ends with the serial particles."""
@@ -289,6 +315,67 @@ def test_an_http_server_is_not_a_scheduler(sim, tmp_path, monkeypatch):
         server.server_close()
     assert r.exit_code == 1 and r.output.count("\n") == 1, r.output
     assert r.output.startswith(f"error: --scheduler: {address} accepts connections but is not a Dask scheduler")
+
+
+@pytest.mark.parametrize("address, words", [
+    ("not-an-address", ["not a Dask scheduler address tcp://HOST:PORT"]),
+    ("tcp://", ["not a Dask scheduler address"]),
+    ("http://127.0.0.1:8787", ["unknown address scheme 'http'"]),
+    ("udp://127.0.0.1:1", ["unknown address scheme 'udp'"]),
+    ("tls://127.0.0.1:1", ["cannot connect to the Dask scheduler tls://127.0.0.1:1", "TLS settings"]),
+    ("ucx://127.0.0.1:1", ["cannot connect to the Dask scheduler ucx://127.0.0.1:1"]),
+])
+def test_an_address_that_is_no_scheduler_is_one_line(sim, tmp_path, address, words):
+    """Bad addresses and schemes (tls:// without Dask's TLS settings and ucx:// without UCX raised a
+    TypeError from inside Dask): one line naming --scheduler, and no particles written."""
+    r = CliRunner().invoke(main, ["particles", str(sim / "experiment"), "--calibration",
+                                  str(sim / "truth" / "rig_b.json"), "-o", str(tmp_path / "o"), "--scheduler", address])
+    assert r.exit_code == 1 and r.output.count("\n") == 1, r.output
+    assert r.output.startswith("error: --scheduler: ") and all(w in r.output for w in words), r.output
+    assert not (tmp_path / "o" / "particles3d.parquet").exists()
+
+
+def test_a_run_that_made_no_partition_does_not_hold_its_folder(sim, serial, tmp_path, monkeypatch):
+    """A run that failed before making a partition (an unreachable scheduler) left parts/run.json, and the
+    next run with other settings into the same -o was refused as 'another run': its record is replaced."""
+    monkeypatch.setattr("ari_sfm.particles.engine.SCHEDULER_TIMEOUT_S", 1.0)
+    out = tmp_path / "p3d"
+    args = ["particles", str(sim / "experiment"), "--calibration", str(sim / "truth" / "rig_b.json"), "-o", str(out),
+            "--frames-per-partition", "1"]
+    r = CliRunner().invoke(main, [*args, "--scheduler", f"tcp://127.0.0.1:{_free_port()}", "--tolerance-px", "0.7"])
+    assert r.exit_code == 1 and r.output.startswith("error: --scheduler"), r.output
+    r = CliRunner().invoke(main, [*args, "--workers", "0"])
+    assert r.exit_code == 0, r.output
+    _same(_table(out / "particles3d.parquet"), serial)
+    r = CliRunner().invoke(main, [*args, "--workers", "0", "--tolerance-px", "0.7"])  # partitions now: refused
+    assert r.exit_code == 1 and "another run" in r.output, r.output
+
+
+def test_a_damaged_partition_is_made_again(sim, serial, tmp_path):
+    """A partition file damaged after its header (its schema still reads; pyarrow's error blamed the final
+    table in several lines): a resumed run makes it again and gives the serial particles; merging it names it."""
+    import pyarrow.parquet as pq
+
+    from ari_sfm.errors import AriSfmError
+    from ari_sfm.particles.engine import merge_partitions
+
+    out = tmp_path / "p3d"
+    args = ["particles", str(sim / "experiment"), "--calibration", str(sim / "truth" / "rig_b.json"), "-o", str(out),
+            "--frames-per-partition", "1", "--workers", "0"]
+    assert CliRunner().invoke(main, args).exit_code == 0
+    part = out / "parts" / "frames_00001-00001.parquet"
+    data = bytearray(part.read_bytes())
+    data[8:400] = b"\xab" * 392  # the first column's pages; the footer intact
+    part.write_bytes(bytes(data))
+    assert pq.read_schema(part).names  # the schema still reads
+    with pytest.raises(AriSfmError, match="a damaged partition") as err:
+        merge_partitions([part], tmp_path / "merged.parquet")
+    assert err.value.path == str(part) and "\n" not in err.value.message
+    assert not (tmp_path / "merged.parquet").exists()
+    (out / "particles3d.parquet").unlink()
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0 and "3 partitions resumed" in r.output, r.output
+    _same(_table(out / "particles3d.parquet"), serial)
 
 
 def test_negative_workers_are_refused(sim, images, tmp_path):

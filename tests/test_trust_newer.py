@@ -618,6 +618,11 @@ def test_api_misuse_says_what_is_wanted():
     with pytest.raises(TypeError, match="Calibration or a calibration.json path"):
         evaluate(42, OBS)
     assert evaluate(str(CAL), OBS).count > 0  # a path is read
+    for bad in (42, {"observations": []}, [1, 2]):  # was: 'int' object is not iterable, ...
+        with pytest.raises(TypeError, match="observations.json path, a Dataset or a list of Observation"):
+            evaluate(CAL, bad)
+        with pytest.raises(TypeError, match="observations.json path, a Dataset or a list of Observation"):
+            evaluate(CAL, bad, solve_poses=True)
     for bad in (-3, 0, 2.5, True):
         with pytest.raises(ValueError, match="max_iterations"):
             CalibrationOptions(max_iterations=bad)
@@ -635,3 +640,103 @@ def test_rig_graph_add_factor_and_optimize_checked():
     with pytest.raises(ValueError, match="max_iterations"):
         rg.optimize(max_iterations=-3)
     rg.add_factor(gtsam.PriorFactorPoint3(gtsam.symbol("z", 0), gtsam.Point3(0, 0, 0), gtsam.noiseModel.Unit.Create(3)))
+
+
+# ----------------------------------------------------------------------------- a calibration that failed its gate
+
+
+def test_a_calibration_that_failed_its_gate_is_said_so_by_particles_and_self_calibrate(tmp_path, caplog):
+    """The simulated 4-camera PTV rig (10 mm glass into water, three views of its 3D body) with lenses of k1
+    -0.05: the default calibration estimates the lens (the first start fails the gate) and ends within 0.1 deg
+    (was: 'quality: ok' at 1.8 x the floor, 0.24-0.82 deg off). With --no-distortion the gate fails it (exit 3,
+    ~0.5 deg off); particles and self-calibrate from it (self-calibration then fits the particles at the noise,
+    its own checks pass) say that this calibration failed its gate, and particles3d.json records it."""
+    from ari_sfm.calibration_errors import calibration_errors
+
+    sim, cal = tmp_path / "sim", tmp_path / "cal"
+    assert _run(["simulate", "particles", "-o", sim, "--particles", "300", "--frames", "2", "--k1", "-0.05",
+                 "--render-frames", "0"]).exit_code == 0
+    r = _run(["calibrate", sim / "calibration", "-o", tmp_path / "default"])
+    assert r.exit_code == 0 and "quality: ok" in r.output, r.output
+    good = load_calibration(tmp_path / "default" / "calibration.json")
+    assert good.quality.starts[-1] == "lens distortion estimated" and abs(good.cameras["cam0"].dist[0] + 0.05) < 0.01
+    errors = calibration_errors(good, load_calibration(sim / "truth" / "rig_a.json"))
+    assert max(c.rotation_deg for c in errors.cameras if c.rotation_deg is not None) < 0.1
+    assert _run(["calibrate", sim / "calibration", "-o", cal, "--no-distortion"]).exit_code == 3
+    failed = str(cal / "calibration.json")
+    with caplog.at_level("WARNING"):
+        r = _run(["particles", sim / "experiment", "--calibration", failed, "-o", tmp_path / "p", "--workers", "0"])
+    assert r.exit_code == 0, r.output
+    said = [m for m in caplog.messages if m.startswith(f"{failed}: this calibration failed its quality gate")]
+    assert len(said) == 1 and "cannot be trusted" in said[0] and "lens distortion" in said[0]
+    assert json.loads((tmp_path / "p" / "particles3d.json").read_text())["warnings"][0] == said[0]
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        _run(["self-calibrate", sim / "experiment", "--calibration", failed, "-o", tmp_path / "sc", "--workers", "0",
+              "--cells", 2, 2, 1])
+    assert said[0] in caplog.messages
+    caplog.clear()
+    with caplog.at_level("WARNING"):  # a calibration that passed: not said
+        r = _run(["particles", sim / "experiment", "--calibration", sim / "truth" / "rig_b.json", "-o",
+                  tmp_path / "p2", "--workers", "0"])
+    assert r.exit_code == 0 and not [m for m in caplog.messages if "quality gate" in m]
+
+
+# ----------------------------------------------------------------------------- self-calibration's report
+
+
+def test_disparity_maps_before_and_after_share_one_arrow_scale(monkeypatch):
+    """The report's disparity maps drew the corrected arrows at another scale than the drifted ones ('1 px =
+    1.2 mm' against '1 px = 8.5e+02 mm'), so they looked as large: one scale (mm per px) for every panel, the
+    longest arrow (before) about half a cell, and each panel's title says the same scale."""
+    import re
+
+    from matplotlib.quiver import Quiver
+
+    import ari_sfm.report_figures as rf
+    from ari_sfm.particles.figures import disparity_figure
+
+    cells = {"lower_mm": [-30.0, -20.0, 400.0], "upper_mm": [30.0, 20.0, 420.0], "shape": [2, 2, 1]}
+    centres = [[-15.0, -10.0, 410.0], [15.0, -10.0, 410.0], [-15.0, 10.0, 410.0], [15.0, 10.0, 410.0]]
+    rng = np.random.default_rng(0)
+    vectors = {"before": rng.normal(0.0, 3.0, (2, 4, 2)), "after": rng.normal(0.0, 0.05, (2, 4, 2))}
+    disparity = {"cells": cells, "cell_centres_mm": centres}
+    for when, v in vectors.items():
+        disparity[when] = {"cameras": {f"cam{c}": {"rms_px": float(np.sqrt(np.mean(np.sum(v[c] ** 2, axis=1)))),
+                                                   "vector_px": v[c].tolist()} for c in range(2)}}
+    figures = []
+    monkeypatch.setattr(rf, "to_png", lambda fig: figures.append(fig) or b"")
+    disparity_figure(disparity)
+    axes = [ax for ax in figures[0].axes if ax.get_title()]
+    assert len(axes) == 4
+    scales, titles = [], set()
+    for ax in axes:
+        cam, when = ax.get_title().split(":")[0].split()
+        drawn = np.concatenate([np.c_[q.U, q.V] for q in ax.collections if isinstance(q, Quiver)])
+        scales.append(np.linalg.norm(drawn, axis=1) / np.linalg.norm(vectors[when][int(cam[3:])], axis=1))
+        titles.add(re.search(r"1 px = ([^ ]+) mm", ax.get_title()).group(1))
+    scales = np.concatenate(scales)
+    assert np.allclose(scales, scales[0], rtol=1e-9) and len(titles) == 1
+    longest = max(np.linalg.norm(v, axis=2).max() for v in vectors.values())
+    assert scales[0] * longest == pytest.approx(0.45 * 20.0)  # about half the smaller cell side (40 mm / 2)
+    assert float(titles.pop()) == pytest.approx(scales[0], rel=0.05)  # printed with 2 digits
+
+
+def test_a_self_calibration_round_stopped_at_its_iteration_cap_says_so(caplog):
+    """A round's bundle adjustment ended at its iteration cap without a word: a warning naming the cap, the
+    round's stop recorded as max_iterations (in calibration.json's self_calibration.rounds)."""
+    from ari_sfm.particles.selfcal import SelfCalOptions, self_calibrate
+    from ari_sfm.particles.volume import Volume
+    from ari_sfm.simulate.particles import ParticleSimOptions, simulate_particle_experiment
+
+    exp = simulate_particle_experiment(ParticleSimOptions(particles_per_frame=300, num_frames=2, seed=11))
+    with caplog.at_level("WARNING"):
+        result = self_calibrate(exp.truth_a, dict(enumerate(exp.detections)),
+                                SelfCalOptions(max_iterations=1, max_rounds=2, cells=(2, 2, 1)),
+                                volume=Volume(exp.volume_min_mm, exp.volume_max_mm))
+    capped = [r.adjustment for r in result.rounds if r.adjustment is not None and r.adjustment.stop == "max_iterations"]
+    assert capped and all(a.iterations >= 1 for a in capped)
+    said = [m for m in caplog.messages if "stopped at its 1-iteration cap (not converged)" in m]
+    assert len(said) >= len(capped)
+    rounds = result.report.to_json()["rounds"]
+    assert any(r["adjustment"] and r["adjustment"]["stop"] == "max_iterations" for r in rounds)

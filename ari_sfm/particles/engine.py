@@ -6,8 +6,9 @@ each partition is one task (``client.submit``), and each result is written as
 made as they are submitted (a bounded number in flight), so memory does not grow
 with the number of frames. A partition whose file exists, made from the same
 inputs (its ``inputs`` key, kept in the file: e.g. the images' sizes and times),
-is skipped, so a killed run resumes where it stopped; ``OUT/parts/run.json``
-records the settings, and partitions of a run with other settings are refused.
+is skipped (one that cannot be read is made again), so a killed run resumes where
+it stopped; ``OUT/parts/run.json`` records the settings, and partitions of a run
+with other settings are refused.
 The same code runs on a LocalCluster (``workers``), on an existing scheduler
 (``scheduler``: ``tcp://HOST:PORT``, e.g. a SLURM cluster started with
 dask-jobqueue) or, with ``workers=0``, in this process.
@@ -98,12 +99,15 @@ def check_workers(workers: Any) -> int:
 
 
 def check_run_settings(out: Path, settings: dict[str, Any]) -> None:
-    """Record the settings of this run in OUT/parts/run.json, or refuse partitions of another run."""
+    """Record the settings of this run in OUT/parts/run.json, or refuse partitions of another run (a record
+    without partitions, left by a run that failed before making one, is replaced)."""
     parts = out / PARTS
     record = parts / "run.json"
     if record.is_file():
         old = read_structured(record)
-        if old != settings:
+        if old != settings and not any(parts.glob("*.parquet")):  # an earlier run that made no partition (it
+            write_json_atomic(record, settings)  # failed before): nothing of it to mix with this run's
+        elif old != settings:
             diff = sorted(k for k in set(old) | set(settings) if old.get(k) != settings.get(k))
             raise AriSfmError(out, f"holds partitions of another run ({', '.join(diff)} differ): "
                                    f"choose another -o or delete {parts}")
@@ -259,6 +263,11 @@ def dask_client(workers: int, scheduler: str | None, worker_timeout_s: float | N
             client = Client(scheduler, timeout=f"{SCHEDULER_TIMEOUT_S}s")
         except (OSError, TimeoutError, ValueError) as exc:
             raise AriSfmError("--scheduler", f"cannot reach the Dask scheduler {scheduler} ({exc})") from None
+        except Exception as exc:  # noqa: BLE001 - e.g. tls:// without Dask's TLS settings, ucx:// without UCX
+            hint = ("; tls:// needs Dask's TLS settings (distributed.comm.tls in its configuration)"
+                    if scheduler.strip().lower().startswith("tls://") else "")
+            raise AriSfmError("--scheduler", f"cannot connect to the Dask scheduler {scheduler} "
+                                             f"({type(exc).__name__}: {_first_line(exc)}){hint}") from None
         cluster, where, address = None, "--scheduler", scheduler
     else:
         with dask.config.set({"distributed.nanny.pre-spawn-environ": local_worker_environ()}):
@@ -300,6 +309,10 @@ def _distributed_silenced(silenced: bool) -> Iterator[None]:
     finally:
         for lg, level in zip(loggers, levels):
             lg.setLevel(level)
+
+
+def _first_line(exc: BaseException) -> str:
+    return str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
 
 
 def cluster_error(exc: BaseException, watch: WorkerWatch, where: str, address: str) -> AriSfmError | None:
@@ -406,6 +419,11 @@ def _up_to_date(path: Path, inputs: str) -> bool:
     if metadata.get(INPUTS_KEY, b"").decode() != inputs:
         log.warning("partition %s was made from other inputs (changed images?): made again", path.name)
         return False
+    try:  # every page (a file damaged past its footer reads its schema): made again, not merged
+        pq.read_table(path)
+    except (pa.ArrowException, OSError) as exc:
+        log.warning("partition %s is damaged (%s): made again", path.name, _first_line(exc))
+        return False
     return True
 
 
@@ -428,10 +446,15 @@ def merge_partitions(paths: Sequence[Path], dest: Path, each: Callable[[Any], No
     from ari_sfm.io.particles import write_tables_atomic
 
     def tables() -> Iterator[Any]:
+        import pyarrow as pa
         import pyarrow.parquet as pq
 
         for path in paths:
-            table = pq.read_table(path).replace_schema_metadata(None)
+            try:
+                table = pq.read_table(path).replace_schema_metadata(None)
+            except (pa.ArrowException, OSError) as exc:
+                raise AriSfmError(path, f"cannot be read ({_first_line(exc)}): a damaged partition; run the command "
+                                        "again: it is made again, the others are kept") from None
             if each is not None:
                 each(table)
             yield table

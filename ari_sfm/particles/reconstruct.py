@@ -121,7 +121,22 @@ def load_experiment(dataset_path: str | Path, calibration_path: Path, out: Path)
         raise AriSfmError(out, "-o/--out is the dataset folder: write the results elsewhere")
     calibration = load_calibration(calibration_path)
     check_calibration_fits(calibration, dataset, calibration_path)
+    failed = failed_gate_warning(calibration, calibration_path)
+    if failed:
+        log.warning(failed)
     return dataset, calibration
+
+
+def failed_gate_warning(calibration: Calibration, path: Path) -> str | None:
+    """What to say of a calibration written with ``quality.ok`` false (it failed its quality gate: a wrong
+    minimum, window or lens model), None for any other: particles matched or a rig self-calibrated from it
+    look as right as from a good one (a lens left out: cameras 0.5-0.7 deg off, and self-calibration from it
+    fits the particles at the noise)."""
+    q = calibration.quality
+    if q is None or q.ok:
+        return None
+    return (f"{path}: this calibration failed its quality gate when it was made ({q.why or 'see its report'}): "
+            "what is computed from it cannot be trusted: calibrate again")
 
 
 def check_calibration_fits(calibration: Calibration, dataset: ParticleDataset, path: Path) -> None:
@@ -225,6 +240,7 @@ def reconstruct_particles(dataset_path: str | Path, calibration_path: str | Path
         raise AriSfmError(det_path, "holds no particle image (0 rows): nothing to match (blank images? "
                                     "see detect-particles' summary)")
     volume = volume_for(dataset, calibration, options.depth_range_mm)
+    gate = failed_gate_warning(calibration, calibration_path)
     cal_json = calibration_to_json(calibration)
     settings = {"task": "particles", "tolerance_px": options.tolerance_px, "min_cameras": options.min_cameras,
                 "depth_range_mm": None if options.depth_range_mm is None else list(options.depth_range_mm),
@@ -260,9 +276,10 @@ def reconstruct_particles(dataset_path: str | Path, calibration_path: str | Path
     elapsed = time.perf_counter() - t0
     summary = _summary(tally, by_frame, cameras, options, volume, elapsed, workers, scheduler, skipped,
                        len(chunks), calibration_path, det_path, dataset,
-                       0 if detections.repeated is None else int(detections.repeated.sum()))
+                       0 if detections.repeated is None else int(detections.repeated.sum()), gate)
     for w in summary.warnings:
-        log.warning(w)
+        if w != gate:  # said when the calibration was read, before the run
+            log.warning(w)
     write_json_atomic(out / "particles3d.json", summary.to_json())
     log.info("%d particles in %d frames -> %s", summary.particles, len(by_frame), out)
     return summary
@@ -298,7 +315,7 @@ class _Tally:
 def _summary(tally: _Tally, by_frame: dict[int, dict[str, np.ndarray]], cameras: list[str],
              options: MatchOptions, volume: Volume, elapsed: float, workers: int, scheduler: str | None,
              skipped: list[str], n_partitions: int, calibration_path: Path, det_path: Path,
-             dataset: ParticleDataset, repeated_rows: int) -> ParticlesSummary:
+             dataset: ParticleDataset, repeated_rows: int, gate: str | None = None) -> ParticlesSummary:
     frames = {}
     used_total = det_total = 0
     det_per_camera = dict.fromkeys(cameras, 0)
@@ -326,7 +343,8 @@ def _summary(tally: _Tally, by_frame: dict[int, dict[str, np.ndarray]], cameras:
         partitions_total=n_partitions, partitions_skipped=tuple(skipped), frames=frames,
         detections_total=det_total, detections_used=used_total, matched_fraction_per_camera=per_camera,
         repeated_rows=repeated_rows,
-        warnings=tuple(_match_warnings(fraction, per_camera, det_per_camera, det_total, dataset, calibration_path)))
+        warnings=tuple(([gate] if gate else [])
+                       + _match_warnings(fraction, per_camera, det_per_camera, det_total, dataset, calibration_path)))
 
 
 def _match_warnings(fraction: float, per_camera: Mapping[str, float], det_per_camera: Mapping[str, int],
