@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -355,6 +356,8 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
     backend = resolve_backend(opts.backend)
     spec = model_spec(model, "model", calibratable=True)  # the models: ari_sfm.models.registry
     if not isinstance(dataset, Dataset):
+        if not isinstance(dataset, (str, os.PathLike)):
+            raise TypeError(f"calibrate needs a Dataset or a dataset folder's path (got {type(dataset).__name__})")
         from .io import load_dataset
 
         dataset = load_dataset(dataset)

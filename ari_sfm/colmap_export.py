@@ -44,10 +44,15 @@ its corner; :data:`COLMAP_PIXEL_OFFSET` (+0.5) converts, in
 """
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
+import re
+import sys
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -661,6 +666,45 @@ def refined_reconstruction(rec: Any, model: ColmapModel, colmap_params: Sequence
     return out
 
 
+_GLOG_INFO = re.compile(rb"^I\d{8} ")  # a glog INFO line: I<yyyymmdd> <time> <thread> <file:line>] ...
+
+
+@contextlib.contextmanager
+def colmap_quiet(hold_stderr: bool = True) -> Iterator[None]:
+    """COLMAP's own INFO lines (glog) only when this module logs at INFO (the CLI's -v). Some of its calls
+    (the bundle adjustment's) print them whatever pycolmap.logging.minloglevel says: with ``hold_stderr``
+    the standard error written meanwhile is held and given back without them (warnings and errors kept;
+    not for a call that shows progress there)."""
+    if log.isEnabledFor(logging.INFO):
+        yield
+        return
+    level = getattr(pycolmap.logging, "minloglevel", None)
+    if level is not None:
+        pycolmap.logging.minloglevel = max(level, 1)
+    if not hold_stderr:
+        try:
+            yield
+        finally:
+            if level is not None:
+                pycolmap.logging.minloglevel = level
+        return
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as held:
+        os.dup2(held.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            if level is not None:
+                pycolmap.logging.minloglevel = level
+            held.seek(0)
+            kept = [line for line in held.read().splitlines(keepends=True) if not _GLOG_INFO.match(line)]
+            if kept:
+                os.write(2, b"".join(kept))
+
+
 def pinhole_approximation(rec: Any, opencv_params: Mapping[int, np.ndarray] | None = None) -> Any:
     """COLMAP's own bundle adjustment of cameras (principal point included) and poses with the points
     held: the best approximation, in COLMAP's camera models, of cameras whose 3D points are right.
@@ -675,7 +719,8 @@ def pinhole_approximation(rec: Any, opencv_params: Mapping[int, np.ndarray] | No
     options.refine_points3D = False
     options.refine_principal_point = True
     options.print_summary = False
-    pycolmap.bundle_adjustment(out, options)
+    with colmap_quiet():
+        pycolmap.bundle_adjustment(out, options)
     out.update_point_3d_errors()
     return out
 
@@ -685,7 +730,8 @@ def bundle_adjust(rec: Any) -> Any:
     out = pycolmap.Reconstruction(rec)
     options = pycolmap.BundleAdjustmentOptions()
     options.print_summary = False
-    pycolmap.bundle_adjustment(out, options)
+    with colmap_quiet():
+        pycolmap.bundle_adjustment(out, options)
     return out
 
 
@@ -769,15 +815,9 @@ def structure_from_motion(image_dir: str | Path, work_dir: str | Path, focal_px:
     each step, ``on_image()`` when the mapper registers an image (progress)."""
     if matcher not in SFM_MATCHERS:
         raise ValueError(f"matcher must be one of {', '.join(SFM_MATCHERS)} (got {matcher!r})")
-    level = getattr(pycolmap.logging, "minloglevel", None)
-    if level is not None and not log.isEnabledFor(logging.INFO):  # COLMAP's own INFO lines only with -v
-        pycolmap.logging.minloglevel = 1
-    try:
+    with colmap_quiet(hold_stderr=False):  # its progress bar is on the standard error
         return _structure_from_motion(image_dir, work_dir, focal_px, max_features, seed, matcher, overlap,
                                       num_threads, on_step, on_image)
-    finally:
-        if level is not None:
-            pycolmap.logging.minloglevel = level
 
 
 def _structure_from_motion(image_dir, work_dir, focal_px, max_features, seed, matcher, overlap, num_threads,

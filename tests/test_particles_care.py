@@ -238,6 +238,12 @@ def test_a_pinhole_calibration_is_refused(sim, tmp_path):
                    "--workers", "0"])
     assert line == (f"error: {path}: model pinhole ignores the window (a plain camera): particles need a model "
                     "with rays through the window (exact, ari, rt)")
+    from ari_sfm.io import load_calibration
+    from ari_sfm.particles.match import match_frame
+
+    with pytest.raises(ValueError, match="model pinhole has no rays through the window"):  # the API too
+        match_frame(load_calibration(path), {"cam0": np.zeros((1, 2)), "cam1": np.zeros((1, 2))}, 0.5,
+                    depth_range_mm=(300.0, 500.0), min_cameras=2)
 
 
 def test_an_empty_table_is_an_error(sim, tmp_path):

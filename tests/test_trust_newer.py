@@ -608,11 +608,14 @@ def test_pixels_far_outside_the_image_refused_by_evaluate_and_refine_colmap(tmp_
 def test_api_misuse_says_what_is_wanted():
     """RigGraph / evaluate given wrong types raised AttributeError, add_factor gtsam's TypeError listing every
     overload; CalibrationOptions(max_iterations=-3) was accepted."""
+    import ari_sfm
     from ari_sfm import CalibrationOptions, evaluate
     from ari_sfm.factors.rig_graph import RigGraph
 
     with pytest.raises(TypeError, match="Dataset or a dataset folder"):
         RigGraph.from_dataset(42)
+    with pytest.raises(TypeError, match="calibrate needs a Dataset or a dataset folder's path"):
+        ari_sfm.calibrate(42)
     with pytest.raises(ValueError, match="sigma_px"):
         RigGraph.from_dataset(ROOT / "datasets" / "binocular", sigma_px=-1.0)
     with pytest.raises(TypeError, match="Calibration or a calibration.json path"):
@@ -650,7 +653,8 @@ def test_a_calibration_that_failed_its_gate_is_said_so_by_particles_and_self_cal
     -0.05: the default calibration estimates the lens (the first start fails the gate) and ends within 0.1 deg
     (was: 'quality: ok' at 1.8 x the floor, 0.24-0.82 deg off). With --no-distortion the gate fails it (exit 3,
     ~0.5 deg off); particles and self-calibrate from it (self-calibration then fits the particles at the noise,
-    its own checks pass) say that this calibration failed its gate, and particles3d.json records it."""
+    particles says that this calibration failed its gate (particles3d.json records it); self-calibrate's own
+    check on its start fails it (exit 3)."""
     from ari_sfm.calibration_errors import calibration_errors
 
     sim, cal = tmp_path / "sim", tmp_path / "cal"
@@ -672,9 +676,12 @@ def test_a_calibration_that_failed_its_gate_is_said_so_by_particles_and_self_cal
     assert json.loads((tmp_path / "p" / "particles3d.json").read_text())["warnings"][0] == said[0]
     caplog.clear()
     with caplog.at_level("WARNING"):
-        _run(["self-calibrate", sim / "experiment", "--calibration", failed, "-o", tmp_path / "sc", "--workers", "0",
-              "--cells", 2, 2, 1])
+        r = _run(["self-calibrate", sim / "experiment", "--calibration", failed, "-o", tmp_path / "sc", "--workers",
+                  "0", "--cells", 2, 2, 1])
     assert said[0] in caplog.messages
+    assert r.exit_code == 3 and "FAILED" in r.output, r.output  # its own check on the start: written, not trusted
+    checks = json.loads((tmp_path / "sc" / "calibration.json").read_text())["self_calibration"]["checks"]
+    assert [c["passed"] for c in checks if c["name"] == "start_quality"] == [False]
     caplog.clear()
     with caplog.at_level("WARNING"):  # a calibration that passed: not said
         r = _run(["particles", sim / "experiment", "--calibration", sim / "truth" / "rig_b.json", "-o",
@@ -740,3 +747,35 @@ def test_a_self_calibration_round_stopped_at_its_iteration_cap_says_so(caplog):
     assert len(said) >= len(capped)
     rounds = result.report.to_json()["rounds"]
     assert any(r["adjustment"] and r["adjustment"]["stop"] == "max_iterations" for r in rounds)
+
+
+def test_colmaps_bundle_adjustment_prints_no_info_lines_without_verbose(capfd):
+    """pycolmap's bundle adjustment prints glog INFO lines whatever its minloglevel: without -v (ari_sfm
+    logging at WARNING) they are dropped and a warning it writes is kept; with -v they show."""
+    import logging
+
+    from ari_sfm import colmap_export as adapter
+    from ari_sfm.simulate.port_survey import port_survey
+
+    truth = port_survey(seed=0, num_images=4, num_points=50)
+    rec = adapter.reconstruction_from_arrays(
+        [np.r_[p[:2] * 1.02, p[2:4]] for p in truth.params], truth.image_size, truth.sensor_from_rig,
+        truth.rig_from_world, truth.image_camera, truth.image_frame, truth.xyz, truth.obs_image, truth.obs_point,
+        truth.obs_uv)
+    logger = logging.getLogger("ari_sfm.colmap_export")
+    before = logger.level
+    try:
+        logger.setLevel(logging.WARNING)
+        capfd.readouterr()
+        with adapter.colmap_quiet():
+            adapter.bundle_adjust(rec)
+            import pycolmap
+            pycolmap.logging.warning("a warning of COLMAP's")
+        quiet = capfd.readouterr().err
+        logger.setLevel(logging.INFO)
+        adapter.bundle_adjust(rec)
+        verbose = capfd.readouterr().err
+    finally:
+        logger.setLevel(before)
+    assert "Global bundle adjustment" not in quiet and "a warning of COLMAP's" in quiet
+    assert "Global bundle adjustment" in verbose

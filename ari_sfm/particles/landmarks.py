@@ -51,7 +51,7 @@ RIG_TILT_PRIOR_DEG = 0.5  # the rig's mean tilt to the window(s) (and its distan
 INTRINSICS_FREE = ("fx", "fy", "cx", "cy")  # estimated with the start's priors (k1 too when it has distortion)
 UNKNOWN_PRIOR_PX = 5.0  # a start whose uncertainty lacks a camera's parameter: its prior this wide (px)
 UNKNOWN_PRIOR_K1 = 0.01
-GTSAM_MAX_LANDMARKS = 3000  # --backend gtsam beyond this: refused (GTSAM's LM on 20k points runs for minutes)
+GTSAM_MAX_LANDMARKS = 400  # --backend gtsam beyond this: refused (its time grows as the cube: 300 5.6 s, 400 14 s)
 CHI2_STOP = 0.01  # Levenberg-Marquardt stops when a step lowers chi^2 by less than this
 LAMBDA_INITIAL = 1e-8  # Levenberg-Marquardt's first lambda: the particles' problem is near Gauss-Newton's (from
 # 1e-4, measured: 20-50 iterations crawling down a valley, against 5)

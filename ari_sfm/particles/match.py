@@ -160,6 +160,8 @@ def match_frame(calibration: Calibration, detections: Mapping[str, np.ndarray], 
         raise ValueError(f"min_cameras must be 2..{C} (got {min_cameras})")
     if not tolerance_px > 0:
         raise ValueError(f"tolerance_px must be > 0 (got {tolerance_px})")
+    if not (calibration.spec.rays and calibration.spec.window):
+        raise ValueError(f"model {calibration.model} has no rays through the window: particles need exact, ari or rt")
     if volume is None:
         if depth_range_mm is None:
             raise ValueError("match_frame needs a volume or a depth range")

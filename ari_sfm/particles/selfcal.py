@@ -520,7 +520,10 @@ def trust_checks(start: Calibration, final: Calibration, detections: Mapping[int
       have matched them: the start cannot be trusted, or the result is not of its rig);
     - ``rig_change`` (a warning): each camera's rotation relative to the first changed by less than
       CHANGE_SIGMAS of the start's sigma (or 0.2 deg): a larger change is a camera knocked hard, or a
-      start of another rig state."""
+      start of another rig state;
+    - ``start_quality``: the start calibration passed its quality gate (a start the gate failed, e.g. a
+      lens left out, is refitted by the particles into cameras as wrong as it, at a low disparity): its
+      robust RMSE against the gate's allowance; a start without a verdict passes."""
     names = list(final.cameras)
     images = min(sum(len(detections[f][n]) for f in frames) for n in names)
     share = float(len(particles.xyz) / images) if images else 0.0
@@ -555,6 +558,11 @@ def trust_checks(start: Calibration, final: Calibration, detections: Mapping[int
     checks.append(Check("rig_change", worst_change, worst_change / worst_ratio if worst_ratio else 0.2,
                         worst_ratio <= 1.0, "largest change of a camera's rotation relative to the first (deg) "
                         f"against {CHANGE_SIGMAS:g} start sigmas (or 0.2 deg)", fatal=False))
+    q = start.quality
+    if q is not None:
+        checks.append(Check("start_quality", q.robust_rmse_px, q.allowance_px or 0.0, q.ok,
+                            "the start calibration's robust RMSE (px) against its quality gate's allowance: "
+                            + ("passed" if q.ok else f"failed ({q.why}): calibrate it again")))
     return tuple(checks)
 
 
