@@ -3,6 +3,7 @@
     python benchmarks/bench_particle_detection.py [--size 1024 1024] [--frames 2] [--ppp 0.005 0.01 0.02]
                                                   [--looks plain tank tank16 faint hot] [--diameter 3] [--seed 0]
                                                   [--real /work/shared/real/test_cavity]
+                                                  [--experiment plain tank tank16]
 
 Renders frames of random particle images at each density (particles per pixel,
 uniform over the frame, 5 px from the border) in each look
@@ -51,13 +52,30 @@ particle and within 1 px of a speck, per 1000 specks) and images per second
 per core (CPU time, OpenCV on one thread; the detectors run one after the
 other on each frame, best of ``--repeat``).
 
-With ``--experiment LOOK`` it runs the default ``simulate particles`` experiment
-(4 cameras, 2448 x 2048 px, 2000 particles a frame) with ``--frames`` rendered
-frames in that look through ``detect-particles`` and ``particles
---detections`` (rig B's true calibration): the true images found within
-0.5 px and ghosts per camera, the particles found (a reconstructed point
-within 0.1 mm of a true one) and ghosts (none within 0.1 mm), the 3D RMS error,
-and the detector's CPU time per image.
+With ``--experiment LOOK [LOOK ...]`` it runs the default ``simulate particles``
+experiment (4 cameras, 2448 x 2048 px, 2000 particles a frame, rig B's true
+calibration) with ``--frames`` rendered frames in each look (``plain``;
+``tank``, 8-bit PNG; ``tank16``, the tank's scene in 16-bit TIFF) through three
+pipelines, the tools alternating on each image and each frame in one process:
+
+- ari-sfm: the calls ``detect-particles`` and ``particles --detections`` make
+  (``detect_particles_in_image`` with the dataset's options, ``match_frame`` at
+  0.5 px in rig.yaml's volume, >= 3 cameras);
+- OpenPTV: liboptv's detector as above (sorted by y, as pyptv leaves it), then
+  its ``correspondences`` and ``point_positions`` on the same calibration
+  written by ``export-openptv --frame f000``, the same 0.5 px epipolar band
+  and volume, >= 3 cameras (``openptv_matching``);
+- OpenPTV-3σ: the same with the 3-sigma detector.
+
+It prints the share of the images with another within one diameter (the
+particles fill ~700 x 450 px of each image: ~0.006 particles per px there),
+per camera the true images found within 0.5 px (of all of them,
+those under glare and blobs included), the ghost detections and the RMS
+centre error; per pipeline the particles found (a reconstructed point within
+0.1 mm of a true one; of those seen by >= 3 cameras), the ghosts (points with
+no true particle within 0.1 mm), the 3D RMS error of the others, and particles
+(of the frames) per second per core (CPU time) of detection (all cameras),
+of matching and triangulation, and of both.
 
 With ``--real DIR`` (OpenPTV's test_cavity: ``DIR/cal/cam*.tif``, their
 ``cam*.tif_targets`` and ``DIR/parameters/targ_rec.par``) it also prints, per
@@ -74,7 +92,8 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from typing import Any, Callable
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -196,8 +215,9 @@ def reference_detector(image: np.ndarray, diameter_px: float, threshold_sigma: f
     return np.stack([xs + offset(log_at(0, -1), c, log_at(0, 1)), ys + offset(log_at(-1, 0), c, log_at(1, 0))], 1)
 
 
-def openptv_detector(image: np.ndarray, targ_rec: dict = OPENPTV_TARG_REC) -> np.ndarray:
-    """OpenPTV's high-pass and target_recognition (liboptv), centres in the OpenCV convention."""
+def openptv_targets(image: np.ndarray, targ_rec: dict = OPENPTV_TARG_REC) -> Any:
+    """OpenPTV's high-pass and target_recognition (liboptv), sorted by y as pyptv's detection leaves them
+    (what correspondences wants); OpenPTV's pixel convention."""
     from optv.image_processing import preprocess_image
     from optv.parameters import ControlParams, TargetParams
     from optv.segmentation import target_recognition
@@ -208,15 +228,27 @@ def openptv_detector(image: np.ndarray, targ_rec: dict = OPENPTV_TARG_REC) -> np
     cpar.set_hp_flag(True)
     tpar = TargetParams(**targ_rec)
     targets = target_recognition(preprocess_image(np.ascontiguousarray(img), 0, cpar, OPENPTV_HIGHPASS), tpar, 0, cpar)
-    return np.array([t.pos() for t in targets], float).reshape(-1, 2) - 0.5
+    targets.sort_y()
+    return targets
+
+
+def openptv_detector(image: np.ndarray, targ_rec: dict = OPENPTV_TARG_REC) -> np.ndarray:
+    """OpenPTV's detections (:func:`openptv_targets`), centres in the OpenCV convention."""
+    from openptv_matching import target_pixels
+
+    return target_pixels(openptv_targets(image, targ_rec))
+
+
+def the_noise_targ_rec(noise: float) -> dict:
+    """targ_rec with the grey threshold at 3 noise sigmas (8-bit levels, >= 2), >= 3 pixels, >= 2 px wide and
+    high, no grey-sum floor: what a user would set for faint particles."""
+    return dict(OPENPTV_TARG_REC, gvthresh=[max(2, int(round(3.0 * noise)))] * 4, pixel_count_bounds=(3, 500),
+                min_sum_grey=0)
 
 
 def openptv_for_the_noise(image: np.ndarray, noise: float) -> np.ndarray:
-    """OpenPTV with its grey threshold at 3 noise sigmas (8-bit levels, >= 2), >= 3 pixels, >= 2 px wide and
-    high, no grey-sum floor: what a user would set for faint particles."""
-    params = dict(OPENPTV_TARG_REC, gvthresh=[max(2, int(round(3.0 * noise)))] * 4, pixel_count_bounds=(3, 500),
-                  min_sum_grey=0)
-    return openptv_detector(image, params)
+    """OpenPTV with :func:`the_noise_targ_rec`."""
+    return openptv_detector(image, the_noise_targ_rec(noise))
 
 
 def overlap_fraction(uv: np.ndarray, within_px: float) -> float:
@@ -229,58 +261,143 @@ def overlap_fraction(uv: np.ndarray, within_px: float) -> float:
     return float((d < within_px).mean())
 
 
-def experiment(look: str, frames: int, seed: int) -> None:
-    """The default simulated experiment through detect-particles and particles (see the module docstring)."""
+EXPERIMENTS = {"plain": dict(look="plain"), "tank": dict(look="tank"), "tank16": dict(look="tank", bit_depth=16)}
+PARTICLE_TOLERANCE_MM = 0.1  # a reconstructed point this close to a true particle found it
+
+
+@dataclass(frozen=True)
+class Pipeline:
+    """A detector and a matcher: ``detect(image, camera)`` gives what ``match`` takes (a camera each, in the
+    calibration's order; it returns (M, 3) world points) and ``pixels`` reads as (N, 2) OpenCV pixels."""
+
+    name: str
+    detect: Callable[[np.ndarray, str], Any]
+    pixels: Callable[[Any], np.ndarray]
+    match: Callable[[list[Any]], np.ndarray]
+
+
+@dataclass
+class Tally:
+    """A pipeline's figures over the frames."""
+
+    images: dict[str, ImageScore]  # camera -> its detections against the true images
+    detect_s: float = 0.0  # CPU
+    match_s: float = 0.0
+    found: int = 0  # true particles with a reconstructed point within PARTICLE_TOLERANCE_MM
+    reconstructed: int = 0
+    ghosts: int = 0  # reconstructed points with no true particle within PARTICLE_TOLERANCE_MM
+    squared_error: float = 0.0  # of the others
+
+
+def timed(fn: Callable[[], Any]) -> tuple[Any, float]:
+    """``fn()`` and its CPU time."""
+    t0 = time.process_time()
+    out = fn()
+    return out, time.process_time() - t0
+
+
+def pipelines(calibration, volume, options: DetectOptions, rig, noise_8bit: float) -> list[Pipeline]:
+    """ari-sfm (detect-particles' and particles' calls), OpenPTV and OpenPTV-3σ (liboptv's detector, then its
+    correspondences and point positions)."""
+    from openptv_matching import openptv_match, target_pixels
+
+    from ari_sfm.particles.match import match_frame
+
+    cameras = list(calibration.cameras)
+    faint = the_noise_targ_rec(noise_8bit)
+    return [
+        Pipeline("ari-sfm", lambda img, cam: detect_particles_in_image(img, options.for_camera(cam))[0],
+                 lambda uv: uv, lambda dets: match_frame(calibration, dict(zip(cameras, dets)), TOLERANCE_PX,
+                                                         volume=volume).xyz),
+        Pipeline("OpenPTV", lambda img, cam: openptv_targets(img), target_pixels,
+                 lambda dets: openptv_match(rig, dets)[0]),
+        Pipeline("OpenPTV-3σ", lambda img, cam: openptv_targets(img, faint), target_pixels,
+                 lambda dets: openptv_match(rig, dets)[0]),
+    ]
+
+
+def experiment(name: str, frames: int, seed: int) -> None:
+    """The default simulated experiment's rendered frames through each pipeline (see the module docstring)."""
     import tempfile
     from pathlib import Path
 
-    import pyarrow.parquet as pq
+    from openptv_matching import openptv_match, openptv_rig, targets_from_pixels
     from scipy.spatial import cKDTree
 
+    from ari_sfm.io import load_calibration
     from ari_sfm.io.particles import load_particle_dataset
-    from ari_sfm.particles.detect import detect_experiment, detect_options, read_image
-    from ari_sfm.particles.reconstruct import MatchOptions, reconstruct_particles
+    from ari_sfm.particles.detect import detect_options, read_image
+    from ari_sfm.particles.match import match_frame
+    from ari_sfm.particles.reconstruct import volume_for
     from ari_sfm.simulate.particles import ParticleSimOptions, simulate_particle_experiment, write_particle_experiment
 
-    exp = simulate_particle_experiment(ParticleSimOptions(num_frames=frames, look=look, seed=seed))
+    exp = simulate_particle_experiment(ParticleSimOptions(num_frames=frames, seed=seed, **EXPERIMENTS[name]))
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         write_particle_experiment(exp, root / "sim", render_frames=frames)
-        dataset = root / "sim" / "experiment"
-        detect_experiment(dataset, root / "det", workers=0)
-        ds = load_particle_dataset(dataset)
-        options = detect_options(ds)
-        times = []
-        for cam in ds.images:
-            image = read_image(ds.image_path(cam, 0))
-            t0 = time.process_time()
-            detect_particles_in_image(image, options.for_camera(cam))
-            times.append(time.process_time() - t0)
-        det = pq.read_table(root / "det" / "particles.parquet")
-        frame_col = det.column("frame").to_numpy()
-        camera_col = np.asarray(det.column("camera").to_pylist())
-        uv_det = np.stack([det.column("u").to_numpy(), det.column("v").to_numpy()], 1)
-        print(f"simulate particles --look {look}: {len(exp.cameras)} cameras, {frames} frames, "
-              f"{len(exp.positions[0])} particles a frame")
-        for cam in exp.cameras:
-            total = None
-            for f in range(frames):
-                one = score_image(uv_det[(frame_col == f) & (camera_col == cam)], exp.exact_pixels[f][cam])
-                total = one if total is None else total + one
-            print(f"  {cam}: {total.found} of {total.true_images} images ({total.recall:.1%}), ghosts "
-                  f"{total.ghost_fraction:.1%}, RMS {total.rms_error_px:.3f} px")
-        reconstruct_particles(dataset, root / "sim" / "truth" / "rig_b.json", root / "p3d", MatchOptions(),
-                              detections_path=root / "det" / "particles.parquet", workers=0)
-        t = pq.read_table(root / "p3d" / "particles3d.parquet")
-        xyz = np.stack([t.column(c).to_numpy() for c in "xyz"], 1)
-        f3 = t.column("frame").to_numpy()
+        ds = load_particle_dataset(root / "sim" / "experiment")
+        truth_b = root / "sim" / "truth" / "rig_b.json"
+        calibration = load_calibration(truth_b)
+        volume = volume_for(ds, calibration, None)
+        rig = openptv_rig(truth_b, root / "openptv", volume, TOLERANCE_PX)
+        cameras = list(calibration.cameras)
+        runs = pipelines(calibration, volume, detect_options(ds), rig,
+                         2.0 if EXPERIMENTS[name]["look"] == "plain" else LOOKS["tank"].read_noise)
+        match_frame(calibration, exp.detections[0], TOLERANCE_PX, volume=volume)  # warm-up: out of the timing
+        openptv_match(rig, [targets_from_pixels(exp.detections[0][cam])[0] for cam in cameras])
+        tally = {p.name: Tally({}) for p in runs}
+        seen, overlap = 0, []
         for f in range(frames):
-            d, idx = cKDTree(exp.positions[f]).query(xyz[f3 == f])
-            correct = d < 0.1
-            print(f"  frame {f}: {len(np.unique(idx[correct])) / len(exp.positions[f]):.1%} of the particles, "
-                  f"ghosts {1 - correct.mean():.2%}, RMS {np.sqrt(np.mean(d[correct] ** 2)):.4f} mm")
-        print(f"  detection {min(times):.2f}-{max(times):.2f} s CPU per {exp.rig_b.cameras[0].image_size[0]} x "
-              f"{exp.rig_b.cameras[0].image_size[1]} image")
+            dets: dict[str, list[Any]] = {p.name: [] for p in runs}
+            for cam in cameras:
+                image = read_image(ds.image_path(cam, f))
+                for p in runs:  # the tools alternate on each image
+                    found, t = timed(lambda: p.detect(image, cam))
+                    dets[p.name].append(found)
+                    t_ = tally[p.name]
+                    t_.detect_s += t
+                    score = score_image(p.pixels(found), exp.exact_pixels[f][cam], TOLERANCE_PX)
+                    t_.images[cam] = t_.images[cam] + score if cam in t_.images else score
+            n_views = np.zeros(len(exp.positions[f]), int)
+            for cam in cameras:
+                n_views[exp.particle_ids[f][cam]] += 1
+                overlap.append(overlap_fraction(exp.exact_pixels[f][cam], exp.options.diameter_px))
+            seen += int((n_views >= 3).sum())
+            for p in runs:
+                xyz, t = timed(lambda: p.match(dets[p.name]))
+                t_ = tally[p.name]
+                t_.match_s += t
+                d, idx = cKDTree(exp.positions[f]).query(xyz) if len(xyz) else (np.empty(0), np.empty(0, int))
+                correct = d < PARTICLE_TOLERANCE_MM
+                t_.found += len(np.unique(idx[correct]))
+                t_.reconstructed += len(xyz)
+                t_.ghosts += int((~correct).sum())
+                t_.squared_error += float(np.sum(d[correct] ** 2))
+    o = exp.options
+    w, h = exp.rig_b.cameras[0].image_size
+    n = frames * o.particles_per_frame
+    print(f"\nsimulate particles --look {o.look}{' --bit-depth 16' if o.bit_depth == 16 else ''}: {len(cameras)} "
+          f"cameras, {w} x {h} px, {frames} frames, {o.particles_per_frame} particles a frame ({seen} of the {n} "
+          f"seen by >= 3 cameras; {np.mean(overlap):.0%} of the images with another within one diameter); rig B's true "
+          f"calibration, {TOLERANCE_PX} px epipolar band")
+    print(f"  true images found within {TOLERANCE_PX} px / ghosts (detections with none within {TOLERANCE_PX} px) / "
+          "RMS px of the found, per camera")
+    print(f"  {'detector':11s} " + " ".join(f"{cam:>23s}" for cam in cameras))
+    for p in runs:
+        cells = [f"{s.recall:6.1%} / {s.ghost_fraction:5.1%} / {s.rms_error_px:5.3f}"
+                 for s in tally[p.name].images.values()]
+        print(f"  {p.name:11s} " + " ".join(f"{c:>23s}" for c in cells))
+    print(f"  particles found (a point within {PARTICLE_TOLERANCE_MM} mm) of those seen by >= 3 cameras, ghosts (none "
+          "within it) of the reconstructed points, 3D RMS error; particles per second per core (CPU time)")
+    print(f"  {'pipeline':11s} {'found':>7s} {'points':>7s} {'ghosts':>7s} {'RMS mm':>7s} {'detection':>10s} "
+          f"{'s/image':>8s} {'matching':>9s} {'both':>7s}")
+    for p in runs:
+        t_ = tally[p.name]
+        rms = np.sqrt(t_.squared_error / (t_.reconstructed - t_.ghosts)) if t_.reconstructed > t_.ghosts else np.nan
+        ghosts = t_.ghosts / t_.reconstructed if t_.reconstructed else 0.0
+        print(f"  {p.name:11s} {t_.found / seen:7.1%} {t_.reconstructed:7d} {ghosts:7.2%} {rms:7.4f} "
+              f"{n / t_.detect_s:10.0f} {t_.detect_s / (frames * len(cameras)):8.3f} {n / t_.match_s:9.0f} "
+              f"{n / (t_.detect_s + t_.match_s):7.0f}")
 
 
 def main() -> None:
@@ -295,8 +412,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--real", default=None, metavar="DIR", help="OpenPTV's test_cavity folder: its calibration "
                                                                 "images as a look")
-    ap.add_argument("--experiment", default=None, choices=("plain", "tank"),
-                    help="the default simulated experiment in this look through detect-particles and particles")
+    ap.add_argument("--experiment", nargs="+", default=(), choices=tuple(EXPERIMENTS),
+                    help="the default simulated experiment in these looks through each pipeline")
     args = ap.parse_args()
     import cv2
 
@@ -351,8 +468,8 @@ def main() -> None:
               f"{ours / rate['reference']:.2f} x the reference's)")
     if args.real:
         real_look(args.real, args.repeat)
-    if args.experiment:
-        experiment(args.experiment, args.frames, args.seed)
+    for name in args.experiment:
+        experiment(name, args.frames, args.seed)
 
 
 if __name__ == "__main__":

@@ -55,68 +55,21 @@ def ours(exp, calibration, volume) -> tuple[ParticleScore, float]:
 
 
 def openptv(exp, calibration_path: Path, folder: Path, volume: Volume) -> tuple[ParticleScore, float]:
-    """liboptv's correspondences + point positions on the same detections and calibration."""
-    from optv.calibration import Calibration as OptvCalibration
-    from optv.correspondences import MatchedCoords, correspondences
-    from optv.orientation import point_positions
-    from optv.parameters import ControlParams, VolumeParams
-    from optv.tracking_framebuf import TargetArray
+    """liboptv's correspondences + point positions on the same detections and calibration
+    (``openptv_matching``; the targets' making timed with them)."""
+    from openptv_matching import openptv_match, openptv_rig, targets_from_pixels
 
-    from ari_sfm.io import load_calibration
-    from ari_sfm.openptv import export_openptv
-
-    export_openptv(calibration_path, folder, frame="f000")
-    cal = load_calibration(calibration_path)
-    target_from_world = cal.frames["f000"].inverse()
-    C = len(exp.cameras)
-    cpar = ControlParams(C)
-    cpar.read_control_par(str(folder / "parameters" / "ptv.par"))
-    cals = []
-    for k in range(1, C + 1):
-        c = OptvCalibration()
-        c.from_file(str(folder / "cal" / f"cam{k}.tif.ori").encode(), str(folder / "cal" / f"cam{k}.tif.addpar").encode())
-        cals.append(c)
-    corners = np.array([[x, y, z] for x in (volume.min_mm[0], volume.max_mm[0]) for y in (volume.min_mm[1], volume.max_mm[1])
-                        for z in (volume.min_mm[2], volume.max_mm[2])])
-    box = target_from_world.apply(corners)  # OpenPTV's world: the body frame f000
-    vpar = VolumeParams()
-    vpar.set_X_lay([box[:, 0].min(), box[:, 0].max()])
-    vpar.set_Zmin_lay([box[:, 2].min(), box[:, 2].min()])
-    vpar.set_Zmax_lay([box[:, 2].max(), box[:, 2].max()])
-    vpar.set_eps0(TOLERANCE_PX * cpar.get_pixel_size()[0])  # the band half-width on the sensor, mm
-    for criterion in (vpar.set_cn, vpar.set_cnx, vpar.set_cny, vpar.set_csumg):
-        criterion(0.0)  # similarity ratios (0..1) off: the detections carry no pixel counts or grey sums
-    vpar.set_corrmin(0.0)
+    rig = openptv_rig(calibration_path, folder, volume, TOLERANCE_PX)
     total, cpu = None, 0.0
     for f in range(len(exp.positions)):
         t = time.process_time()
-        img_pts, orders = [], []
-        for cam in exp.cameras:
-            uv = exp.detections[f][cam]
-            order = np.argsort(uv[:, 1], kind="stable")  # liboptv wants targets sorted by y
-            targs = TargetArray(len(uv))
-            for i, j in enumerate(order):
-                targs[i].set_pos((uv[j, 0] + 0.5, uv[j, 1] + 0.5))  # OpenPTV pixel convention
-                targs[i].set_pnr(i)
-                targs[i].set_pixel_counts(9, 3, 3)
-                targs[i].set_sum_grey_value(1000)
-                targs[i].set_tnr(-1)
-            img_pts.append(targs)
-            orders.append(order)
-        flat = [MatchedCoords(img_pts[k], cpar, cals[k]) for k in range(C)]
-        _, sorted_corresp, _ = correspondences(img_pts, flat, cals, vpar, cpar)
-        corresp = np.concatenate([np.asarray(sc) for sc in sorted_corresp], axis=1) if sorted_corresp else np.empty((C, 0), int)
-        n_cams = (corresp >= 0).sum(axis=0)
-        corresp = corresp[:, n_cams >= 3]  # the same rule as ours: >= 3 cameras
-        pos_flat = np.array([flat[k].get_by_pnrs(np.ascontiguousarray(corresp[k], dtype=np.int64)) for k in range(C)])
-        X_target, _ = point_positions(pos_flat.transpose(1, 0, 2), cpar, cals, vpar)
+        made = [targets_from_pixels(exp.detections[f][cam]) for cam in rig.cameras]
+        X, rows = openptv_match(rig, [targs for targs, _ in made])
         cpu += time.process_time() - t
-        X = cal.frames["f000"].apply(X_target)
-        rows = np.full((corresp.shape[1], C), -1, np.int64)
-        for k in range(C):
-            used = corresp[k] >= 0
-            rows[used, k] = orders[k][corresp[k][used]]
-        s = score_frame(X, rows, exp.cameras, exp.particle_ids[f], exp.positions[f])
+        for k, (_, order) in enumerate(made):  # back to the rows of the detections
+            used = rows[:, k] >= 0
+            rows[used, k] = order[rows[used, k]]
+        s = score_frame(X, rows, list(rig.cameras), exp.particle_ids[f], exp.positions[f])
         total = s if total is None else total + s
     return total, cpu
 
