@@ -10,7 +10,8 @@ ROOTS = {"ari_sfm": ROOT / "ari_sfm", "ari_sfm.factors": ROOT / "factors", "ari_
 
 
 def modules() -> dict[str, Path]:
-    """Dotted name -> file of every module (factors/ and pipelines/ mapped into ari_sfm, as pyproject.toml does)."""
+    """Dotted name -> file of every module (factors/ and pipelines/ as ari_sfm.factors and ari_sfm.pipelines: the
+    links ari_sfm/factors and ari_sfm/pipelines point there, and rglob does not follow them)."""
     out = {}
     for package, folder in ROOTS.items():
         for path in folder.rglob("*.py"):
