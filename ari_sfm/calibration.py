@@ -11,9 +11,9 @@ import numpy as np
 
 from .geometry import Pose
 from .models.registry import ModelSpec, model_spec
+from .quality import Quality
 from .records import SINGLE_WINDOW, Interface, Target
 from .results import OptimizerReport, OutlierReport, PfWorld, ResidualStats, StageRecord, Uncertainty
-from .quality import Quality
 
 
 @dataclass(frozen=True)
@@ -167,7 +167,7 @@ class Calibration:
             if added_mm:
                 raise ValueError(f"model {spec.name} cannot project through added glass (added_mm={added_mm})")
             if spec.projection == "polynomial":
-                from .models.polynomial import PolynomialMap, PolynomialModel
+                from .models.polynomial import PolynomialModel
 
                 return PolynomialModel(cam.pf, cam.cam_from_world.inverse())
             return PinholeModel(cam.K, cam.dist)

@@ -14,7 +14,8 @@ README gives the figures. :func:`ari_sfm.detection.detect_corners` dispatches he
 from __future__ import annotations
 
 import logging
-from typing import Callable, NamedTuple
+from collections.abc import Callable
+from typing import NamedTuple
 
 import cv2
 import numpy as np

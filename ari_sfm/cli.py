@@ -15,9 +15,9 @@ import click
 import numpy as np
 
 from . import _startup
-from .colmap_refine import settings as REFINE
-from .cli_config import blame_config, config_option
 from .cli_checks import check_not_an_output, check_not_input_folder, check_number, check_output_folder
+from .cli_config import blame_config, config_option
+from .colmap_refine import settings as REFINE
 from .errors import AriSfmError
 from .models.registry import BUNDLE, CALIBRATABLE, COMPARED, MODELS, model_spec
 
@@ -384,8 +384,8 @@ def report_cmd(out: Path, dataset: Path | None) -> None:
 @user_errors
 def evaluate_cmd(calibration: Path, observations: Path, solve_poses: bool) -> None:
     """Reprojection errors of CALIBRATION on an OBSERVATIONS file (e.g. held-out views)."""
-    from .io import load_calibration
     from .evaluate import evaluate
+    from .io import load_calibration
 
     cal = load_calibration(calibration)
     if cal.target is None:

@@ -45,17 +45,18 @@ its corner; :data:`COLMAP_PIXEL_OFFSET` (+0.5) converts, in
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
 from .calibration import Calibration
-from .io import load_calibration
 from .deps import import_pycolmap
 from .errors import AriSfmError
 from .geometry import Pose
+from .io import load_calibration
 from .provenance import observations_mismatch
 from .records import Dataset, Observation
 

@@ -37,16 +37,17 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .calibration import Calibration, CameraCalibration, WindowCalibration
-from .io import load_calibration
 from .errors import AriSfmError
 from .geometry import Pose, angle_between_deg
+from .io import load_calibration
 from .records import Interface, Observation
 
 if TYPE_CHECKING:

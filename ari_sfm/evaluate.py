@@ -1,9 +1,9 @@
 """Reprojection errors of a calibration on observations (its own or held-out ones)."""
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Iterable, Sequence
 
 import numpy as np
 

@@ -1,8 +1,8 @@
 """Corners whose residual stays beyond k sigma after convergence."""
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Iterable, Sequence
 
 import numpy as np
 

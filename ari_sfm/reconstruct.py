@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 
@@ -209,8 +209,7 @@ def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, o
     them on), not read again.
     """
     from .detection import ensure_observations
-    from .io import load_calibration
-    from .io import load_dataset, save_observations, write_json_atomic
+    from .io import load_calibration, load_dataset, save_observations, write_json_atomic
     from .metrics import reconstruction_metrics, save_point_clouds
     from .provenance import provenance
 

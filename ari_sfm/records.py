@@ -4,10 +4,10 @@ Loading and validation live in :mod:`ari_sfm.io`; these classes only hold data.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 

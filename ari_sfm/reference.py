@@ -33,9 +33,10 @@ the faces. The registration absorbs any rigid error of the reconstruction
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 

@@ -39,9 +39,10 @@ import html
 import json
 import logging
 import re
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -431,9 +432,15 @@ def _stages_section(ctx: ReportContext) -> str:
 
 
 def _residuals_section(ctx: ReportContext) -> str:
-    from .report_figures import (map_magnification, residual_by_depth, residual_by_frame, residual_map,
-                                 residual_regions, residual_scatter)
     from .report_diagnostics import GRID_COLS, GRID_ROWS
+    from .report_figures import (
+        map_magnification,
+        residual_by_depth,
+        residual_by_frame,
+        residual_map,
+        residual_regions,
+        residual_scatter,
+    )
 
     cal, res = ctx.calibration, list(ctx.residuals)
     if not res:

@@ -18,8 +18,9 @@ evaluated at (or halfway to the points) and the legend says it is schematic.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import replace
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 

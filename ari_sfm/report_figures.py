@@ -20,7 +20,8 @@ from __future__ import annotations
 
 import functools
 import io
-from typing import Any, Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import matplotlib
 

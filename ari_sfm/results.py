@@ -8,8 +8,9 @@ caller names the file). The layout is DATASET_FORMAT.md's; nothing here changes 
 """
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Iterable, Mapping
+from typing import Any
 
 import numpy as np
 

@@ -24,10 +24,10 @@ import numpy as np
 
 from ari_sfm.calibrate import calibrate
 from ari_sfm.calibration import Calibration
-from ari_sfm.io import parse_calibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import rotation_from_rotvec
 from ari_sfm.init.zhang import object_points
+from ari_sfm.io import parse_calibration
 from ari_sfm.simulate import make_scene
 from ari_sfm.simulate.scenarios import ptv_plane_of
 from ari_sfm.triangulate import triangulate_pixels

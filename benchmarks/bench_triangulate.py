@@ -25,9 +25,9 @@ import os
 import statistics
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -35,8 +35,7 @@ import cv2
 import numpy as np
 
 from ari_sfm.calibration import Calibration
-from ari_sfm.io import load_calibration, parse_calibration
-from ari_sfm.io import write_json_atomic
+from ari_sfm.io import load_calibration, parse_calibration, write_json_atomic
 from ari_sfm.simulate import make_scene
 from ari_sfm.triangulate import triangulate_pixels
 

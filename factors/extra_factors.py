@@ -11,7 +11,7 @@ frames would break the frames' block-diagonal structure: NotImplementedError
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import gtsam
 import numpy as np

@@ -24,16 +24,16 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Callable, Mapping, Sequence
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import gtsam
 import numpy as np
 
-from ..geometry import Pose, cam_from_world_from_pose3, pose3_from_cam_from_world, pose3_from_pose, pose_from_pose3
 from ..errors import AriSfmError
+from ..geometry import Pose, cam_from_world_from_pose3, pose3_from_cam_from_world, pose3_from_pose, pose_from_pose3
 from ..models.registry import model_spec
 from ..records import Interface, Observation, Target, Window, WindowPlane
 from . import keys as K_

@@ -10,8 +10,9 @@ the module above it: rig_graph -> backend -> packed_problem -> extra_factors, ma
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol, Sequence
+from typing import Any, Protocol
 
 import gtsam
 import numpy as np

@@ -22,8 +22,8 @@ row that makes the error the Huber loss
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import gtsam
 import numpy as np

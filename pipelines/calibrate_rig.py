@@ -11,9 +11,8 @@ from pathlib import Path
 
 from ..calibrate import DEFAULT_MODEL, CalibrationOptions, calibrate
 from ..calibration import Calibration
-from ..io import save_calibration
 from ..detection import ensure_observations
-from ..io import load_dataset, save_observations
+from ..io import load_dataset, save_calibration, save_observations
 from ..models.registry import CALIBRATABLE
 from ..records import Dataset
 

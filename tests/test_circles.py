@@ -18,8 +18,8 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from ari_sfm.cli import main
 from ari_sfm.circle_grid import _canonical_circles, _lattice_order, circle_ids_unambiguous, circle_symmetries
+from ari_sfm.cli import main
 from ari_sfm.detection import detect_corners, detect_dataset
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import rotation_from_rotvec

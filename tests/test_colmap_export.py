@@ -16,10 +16,9 @@ import pytest
 from click.testing import CliRunner
 
 from ari_sfm.calibrate import calibrate
-from ari_sfm.io import load_calibration, save_calibration
 from ari_sfm.cli import main
 from ari_sfm.colmap_export import COLMAP_PIXEL_OFFSET, colmap_from_opencv_px, export_colmap, opencv_from_colmap_px
-from ari_sfm.io import load_dataset, save_points
+from ari_sfm.io import load_calibration, load_dataset, save_calibration, save_points
 from ari_sfm.simulate import simulate
 
 

@@ -15,10 +15,10 @@ import pytest
 from click.testing import CliRunner
 
 from ari_sfm.calibration import Calibration
-from ari_sfm.io import load_calibration, parse_calibration, save_calibration
 from ari_sfm.cli import main
 from ari_sfm.colmap_fork import export_colmap_fork, import_colmap_fork
 from ari_sfm.errors import AriSfmError
+from ari_sfm.io import load_calibration, parse_calibration, save_calibration
 from ari_sfm.simulate import make_scene
 
 # ----------------------------------------------------------------------------- the fork, transcribed

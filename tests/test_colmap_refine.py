@@ -13,7 +13,6 @@ import pytest
 from click.testing import CliRunner
 
 from ari_sfm import colmap_export as adapter
-from ari_sfm.io import load_calibration
 from ari_sfm.cli import main
 from ari_sfm.colmap_refine import refine_colmap, write_refined
 from ari_sfm.colmap_refine.problem import RefractiveProblem, State
@@ -21,6 +20,7 @@ from ari_sfm.colmap_refine.refine import Solver
 from ari_sfm.colmap_refine.truth import colmap_truth_errors, truth_errors, window_errors
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose
+from ari_sfm.io import load_calibration
 from ari_sfm.simulate.port_survey import port_survey, tank_rig
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")

@@ -14,9 +14,9 @@ import pytest
 
 from ari_sfm.calibrate import CalibrationOptions, calibrate
 from ari_sfm.calibration import Calibration
-from ari_sfm.io import parse_calibration, save_calibration
 from ari_sfm.geometry import angle_between_deg
 from ari_sfm.init.zhang import object_points
+from ari_sfm.io import parse_calibration, save_calibration
 from ari_sfm.openptv.conventions import glass_vector, window_plane
 from ari_sfm.simulate import make_scene
 from ari_sfm.simulate.scenarios import PTV_PIXEL_STEP_PX, ptv_plane_of

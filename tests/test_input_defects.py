@@ -14,13 +14,12 @@ import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from test_detection import H, W, checker_views, write_dataset  # noqa: F401 - the module fixture
 
 from ari_sfm.cli import main
 from ari_sfm.detection import detect_dataset
 from ari_sfm.errors import AriSfmError
 from ari_sfm.io import load_dataset
-
-from test_detection import W, H, write_dataset, checker_views  # noqa: F401 - the module fixture
 
 
 @pytest.mark.parametrize("scale", [0.5, 2.0])

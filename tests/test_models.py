@@ -11,10 +11,9 @@ import numpy as np
 import pytest
 
 from ari_sfm.geometry import rotation_from_rotvec
+from ari_sfm.models import AriModel, ConvergenceError, ExactModel, PinholeModel, ari_shift_mm, solve_incidence
 from ari_sfm.models.ari import ari_project
 from ari_sfm.models.exact import exact_project
-from ari_sfm.models import (AriModel, ConvergenceError, ExactModel, PinholeModel, ari_shift_mm,
-                            solve_incidence)
 
 WIDTH, HEIGHT = 2448, 2048
 FX = 12.0 / 3.45e-3  # 3478.26 px

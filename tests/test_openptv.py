@@ -19,11 +19,10 @@ import pytest
 from click.testing import CliRunner
 
 from ari_sfm.calibration import Calibration, CameraCalibration
-from ari_sfm.io import load_calibration, save_calibration
 from ari_sfm.cli import main
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose
-from ari_sfm.io import load_dataset
+from ari_sfm.io import load_calibration, load_dataset, save_calibration
 from ari_sfm.openptv import export_openptv, import_experiment
 from ari_sfm.openptv.conventions import cam_from_world
 from ari_sfm.openptv.files import read_addpar, read_control_par, read_ori

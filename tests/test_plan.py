@@ -9,9 +9,8 @@ import pytest
 
 from ari_sfm.calibrate import CalibrationOptions, Stage, plan_stages
 from ari_sfm.errors import AriSfmError
-from ari_sfm.records import WindowPlane
-from ari_sfm.simulate import make_scene
 from ari_sfm.io import calibration_to_json, load_calibration, save_calibration
+from ari_sfm.records import WindowPlane
 
 OPTS = CalibrationOptions(distortion=False)
 
@@ -107,11 +106,10 @@ def test_one_initial_state(single_scene, model, declared):
 def test_the_command_line_options_are_the_dataclass_fields(command, tmp_path, monkeypatch):
     """calibrate and run offer every CalibrationOptions field with a ``cli`` flag, default and help from the
     field; the flags given arrive at calibrate() as one CalibrationOptions record (--huber-px 0: None)."""
+    import importlib
     from dataclasses import fields
 
     from click.testing import CliRunner
-
-    import importlib
 
     C = importlib.import_module("ari_sfm.calibrate")  # the module (ari_sfm.calibrate is also the function)
     from ari_sfm.calibrate import CalibrationOptions

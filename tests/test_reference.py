@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.io import parse_calibration
 from ari_sfm.cli import main
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import rotation_from_rotvec
+from ari_sfm.io import parse_calibration
 from ari_sfm.reconstruct import reconstruct
 from ari_sfm.reference import ReferenceErrors, reference_errors
 from ari_sfm.simulate import make_scene, simulate

@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.cli import main
 from ari_sfm import report
+from ari_sfm.cli import main
 from ari_sfm.evaluate import observation_residuals
 from ari_sfm.io import load_calibration, parse_calibration
 from ari_sfm.outliers import Outlier
@@ -200,7 +200,6 @@ def test_run_on_the_single_camera_sample_skips_reconstruction(tmp_path):
 @pytest.fixture(scope="module")
 def scene_residuals():
     """The simulated binocular rig's true calibration and its (noise-only) residuals."""
-    from ari_sfm.calibration import Calibration
     from ari_sfm.simulate import make_scene
 
     scene = make_scene("binocular", seed=0)

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ari_sfm.io import calibration_to_json, load_calibration
 from ari_sfm.errors import AriSfmError
+from ari_sfm.io import calibration_to_json, load_calibration
 from ari_sfm.models.registry import CALIBRATABLE
 from ari_sfm.outliers import Outlier
 from ari_sfm.results import CameraUncertainty, OutlierReport, PfWorld, ResidualStats, Uncertainty

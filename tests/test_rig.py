@@ -16,8 +16,8 @@ import pytest
 from ari_sfm.calibrate import calibrate
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose, angle_between_deg, rotation_angle_deg
-from ari_sfm.simulate import make_scene
 from ari_sfm.io import calibration_to_json
+from ari_sfm.simulate import make_scene
 
 FLOOR = 0.05 * np.sqrt(2)
 

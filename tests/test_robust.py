@@ -13,12 +13,12 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
+from test_vectorized import _initial_state
 
 from ari_sfm.factors.rig_graph import MODELS, RigGraph
 from ari_sfm.factors.robust import huber_irls, huber_loss, huber_residual_scale, huber_view_residual, huber_weight
 from ari_sfm.factors.vectorized import VectorizedProblem
 from ari_sfm.factors.view_factor import view_residuals
-from test_vectorized import _initial_state
 
 HUBER_PX = 0.15  # about half of the corners beyond it at the initial state
 
@@ -112,12 +112,13 @@ def test_refine_colmap_gtsam_factor_error_is_the_huber_cost():
     """refine-colmap's GTSAM graph (one CustomFactor per image) has the numpy solver's error, the sum of
     rho over the observations, and its linearisation's gradient is that error's, at a perturbed start
     with observations on both sides of the threshold."""
+    from test_colmap_refine import truth_state
+
     from ari_sfm import colmap_export as adapter
     from ari_sfm.colmap_refine.gtsam_graph import GtsamRefinement
     from ari_sfm.colmap_refine.problem import RefractiveProblem
     from ari_sfm.colmap_refine.refine import Solver
     from ari_sfm.simulate.port_survey import port_survey
-    from test_colmap_refine import truth_state
 
     truth = port_survey(num_images=4, num_points=60, focal_px=1300, area_mm=(1200, 800), sigma_px=0.2)
     rec = adapter.reconstruction_from_arrays(list(truth.params), truth.image_size, truth.sensor_from_rig,

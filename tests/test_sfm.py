@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.io import load_calibration
 from ari_sfm.cli import main
 from ari_sfm.geometry import Pose, angle_between_deg
+from ari_sfm.io import load_calibration
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 

@@ -7,7 +7,6 @@ lines), so a wrong simulator cannot pass by agreeing with itself.
 from __future__ import annotations
 
 import json
-import math
 from collections import Counter, defaultdict
 
 import numpy as np

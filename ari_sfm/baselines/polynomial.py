@@ -22,16 +22,15 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Sequence
 from dataclasses import replace
-from typing import Sequence
 
 import numpy as np
 
 from ..errors import AriSfmError
 from ..geometry import Pose
 from ..init.zhang import object_points
-from ..models.polynomial import (  # noqa: F401 (re-exported: the pf projection lives in models/)
-    DEGREE, EXPONENTS, NUM_TERMS, PolynomialMap, PolynomialModel, design_matrix)
+from ..models.polynomial import DEGREE, EXPONENTS, NUM_TERMS, PolynomialMap, PolynomialModel, design_matrix  # noqa: F401 (re-exported: the pf projection lives in models/)
 from ..records import Dataset, Observation
 from ..results import PfWorld
 

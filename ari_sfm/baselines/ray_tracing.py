@@ -28,7 +28,6 @@ import time
 
 import numpy as np
 
-from ..errors import AriSfmError
 from ..evaluate import residual_stats
 from ..geometry import unit
 from ..records import Dataset, Interface

@@ -23,8 +23,8 @@ everything else additively. Image i's ``cam_from_world = sensor_from_rig * rig_f
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Sequence
 
 import numpy as np
 

@@ -52,17 +52,25 @@ import numpy as np
 
 from ari_sfm import colmap_export as adapter
 from ari_sfm.calibration import Calibration, CameraCalibration
-from ari_sfm.io import save_calibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose, rotation_from_rotvec, unit3_basis
+from ari_sfm.io import save_calibration
 from ari_sfm.models import AriModel, PinholeModel
 from ari_sfm.records import Interface, WindowPlane
 
-from .plane import WindowPrior, declared_window, window_prior
 from ..factors.schur import assemble_from_observations, model_decrease, solve_damped
+from .plane import WindowPrior, declared_window, window_prior
 from .problem import MOUNTS, RefractiveProblem, State, huber_cost, huber_weights
-from .report import (BaselineReport, DeclaredPlaneReport, Plate, RefineCounts, RefineReport, Reprojection, ScaleBarReport,
-                     WindowEstimate)
+from .report import (
+    BaselineReport,
+    DeclaredPlaneReport,
+    Plate,
+    RefineCounts,
+    RefineReport,
+    Reprojection,
+    ScaleBarReport,
+    WindowEstimate,
+)
 from .scale_bar import Baseline, ScaleBar
 from .settings import HUBER_PX, MAX_ITERATIONS
 from .uncertainty import uncertainty

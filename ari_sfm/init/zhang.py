@@ -8,9 +8,8 @@ whose translation still contains the shift (removed in :mod:`interface_pose`).
 from __future__ import annotations
 
 import logging
-
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import cv2
 import numpy as np

@@ -12,9 +12,10 @@ import math
 import os
 import shutil
 import tempfile
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path, PurePath
-from typing import Any, Callable, Iterator, Mapping
+from typing import Any
 
 import numpy as np
 

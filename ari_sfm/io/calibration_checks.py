@@ -6,15 +6,22 @@ numbers; :func:`check_calibration_values` refuses it in one line naming the key.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
 from ari_sfm.errors import AriSfmError
 from ari_sfm.io.dataset import MAX_INDEX, MAX_LENGTH_MM, MIN_FOCAL_PX, check_at_least
-from ari_sfm.io.structured import (as_finite_float, as_float_array, as_float_at_least, as_int_pair,
-                                   as_positive_float, check_at_most)
+from ari_sfm.io.structured import (
+    as_finite_float,
+    as_float_array,
+    as_float_at_least,
+    as_int_pair,
+    as_positive_float,
+    check_at_most,
+)
 
 CALIBRATION_DIST_LENGTHS = (4, 5)  # k1 k2 p1 p2 [k3]: what the models use (calibration.json writes 5)
 

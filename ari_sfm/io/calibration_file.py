@@ -22,8 +22,15 @@ from ari_sfm.models.polynomial import PolynomialMap
 from ari_sfm.models.registry import model_spec
 from ari_sfm.quality import Quality
 from ari_sfm.records import Interface
-from ari_sfm.results import (OptimizerReport, OutlierReport, PfWorld, ResidualStats, StageRecord, Uncertainty,
-                             stages_from_json)
+from ari_sfm.results import (
+    OptimizerReport,
+    OutlierReport,
+    PfWorld,
+    ResidualStats,
+    StageRecord,
+    Uncertainty,
+    stages_from_json,
+)
 
 FORMAT = "ari-sfm-calibration/1"
 

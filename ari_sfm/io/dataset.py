@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import yaml
@@ -43,8 +44,18 @@ from ari_sfm.io.structured import (
     show,
     warn_unknown_keys,
 )
-from ari_sfm.records import SETS, CameraSpec, Dataset, Entry, Interface, Observation, Target, Window, WindowPlane, \
-    check_windows
+from ari_sfm.records import (
+    SETS,
+    CameraSpec,
+    Dataset,
+    Entry,
+    Interface,
+    Observation,
+    Target,
+    Window,
+    WindowPlane,
+    check_windows,
+)
 
 log = logging.getLogger(__name__)
 

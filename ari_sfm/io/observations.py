@@ -1,8 +1,9 @@
 """``observations.json`` (format ``ari-sfm-observations/1``): detected corners, one record per image."""
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 

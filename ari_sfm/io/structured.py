@@ -16,8 +16,9 @@ import numbers
 import os
 import re
 import stat
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 import yaml

@@ -9,8 +9,9 @@ imported only when called (the baselines pull in scipy's least squares).
 from __future__ import annotations
 
 import importlib
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from ..errors import AriSfmError
 

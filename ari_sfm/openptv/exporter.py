@@ -27,14 +27,20 @@ from pathlib import Path
 import numpy as np
 
 from ari_sfm.calibration import Calibration, WindowCalibration
-from ari_sfm.io import load_calibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose
-from ari_sfm.io import write_text_atomic
+from ari_sfm.io import load_calibration, write_text_atomic
 
 from .conventions import exterior, fit_interior, glass_vector, interior_from_opencv
-from .files import ControlPar, Orientation, format_addpar, format_control_par, format_ori, read_control_par, \
-    update_control_par
+from .files import (
+    ControlPar,
+    Orientation,
+    format_addpar,
+    format_control_par,
+    format_ori,
+    read_control_par,
+    update_control_par,
+)
 
 log = logging.getLogger(__name__)
 

@@ -51,10 +51,21 @@ from ari_sfm.io.observations import BORDER_TOLERANCE_PX
 from ari_sfm.records import CameraSpec, Dataset, Entry, Interface, Observation, Target, Window
 
 from .conventions import OPENPTV_PIXEL_OFFSET, detect_settings_from_target_par
+from .files import (
+    MAN_ORI_POINTS,
+    ControlPar,
+    read_addpar,
+    read_cal_ori_par,
+    read_control_par,
+    read_man_ori,
+    read_multi_planes_par,
+    read_ori,
+    read_points,
+    read_sequence_par,
+    read_target_par,
+    read_volume_par,
+)
 from .windows import parse_window_groups, windows_from_axes, windows_from_glass, windows_from_groups
-from .files import MAN_ORI_POINTS, ControlPar, read_addpar, read_cal_ori_par, read_control_par, read_man_ori, \
-    read_sequence_par, read_target_par, read_volume_par, \
-    read_multi_planes_par, read_ori, read_points
 
 log = logging.getLogger(__name__)
 

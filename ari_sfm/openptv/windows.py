@@ -16,8 +16,8 @@ parallel glass vectors; cameras behind another wall (test_cavity's opposite one)
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 

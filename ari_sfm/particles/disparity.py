@@ -19,8 +19,9 @@ right calibration and noise sigma per coordinate it is about ``1.1 sigma`` for 4
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 

@@ -1,8 +1,8 @@
 """Reconstructed particles judged against a simulation's truth (tests, benchmarks, self-calibration)."""
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 import numpy as np
 

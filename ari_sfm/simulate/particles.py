@@ -29,9 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from ari_sfm.calibration import Calibration
-from ari_sfm.io import calibration_to_json, parse_calibration
 from ari_sfm.geometry import Pose, rotation_from_rotvec, unit
+from ari_sfm.io import calibration_to_json, parse_calibration
 from ari_sfm.records import Dataset
+from ari_sfm.simulate.particle_images import TankLook, render_particle_image, render_tank_frame
 from ari_sfm.simulate.scenarios import (
     NBK7_INDEX,
     WATER_INDEX,
@@ -45,7 +46,6 @@ from ari_sfm.simulate.scenarios import (
     _tilted,
     _window_in_world,
 )
-from ari_sfm.simulate.particle_images import TankLook, render_particle_image, render_tank_frame
 from ari_sfm.simulate.scene import Geometry, WindowGroup, check_geometry, observe, project, to_dataset, truth_dict
 
 log = logging.getLogger(__name__)
@@ -281,11 +281,11 @@ def write_particle_experiment(exp: ParticleExperiment, out_dir: str | Path, rend
     """Write ``exp`` under ``out_dir`` (layout in the module docstring); images for the first
     ``render_frames`` frames. Returns the main paths."""
     import cv2
+    import yaml
 
     from ari_sfm.io import save_rig, write_bytes_atomic, write_json_atomic, write_text_atomic
     from ari_sfm.io.dataset import camera_to_json, windows_to_json
     from ari_sfm.io.particles import parquet_bytes
-    import yaml
 
     out = Path(out_dir)
     o = exp.options

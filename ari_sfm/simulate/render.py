@@ -21,8 +21,8 @@ Board appearance (the detector relies on it, see :mod:`ari_sfm.detection`):
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import lru_cache
-from typing import Callable
 
 import cv2
 import numpy as np
