@@ -47,7 +47,7 @@ class WindowCalibration:
     cameras: tuple[str, ...]
     fixed_distance_mm: float | None = None  # exact model in air: the distance (same reference) it is evaluated at
 
-    def plane_mm(self, calibration: "Calibration") -> float | None:
+    def plane_mm(self, calibration: Calibration) -> float | None:
         """The near face as the world plane ``normal_world . X = plane_mm``: from distance_mm, else from
         fixed_distance_mm (in air), else None."""
         d = self.interface.distance_mm if self.interface.distance_mm is not None else self.fixed_distance_mm

@@ -300,7 +300,7 @@ def _refined_images(cal: Calibration, model_dir: Path) -> tuple[dict[str, int], 
     return {n: int(c) for n, c in camera_ids.items()}, images, points
 
 
-def _dataset_observations(cal: Calibration, dataset: "Dataset | str | Path", path: Path) -> Sequence[Observation]:
+def _dataset_observations(cal: Calibration, dataset: Dataset | str | Path, path: Path) -> Sequence[Observation]:
     """The observations of a dataset of the calibration's rig (another rig's: AriSfmError, as calibrate's)."""
     from .io import load_dataset
     from .reconstruct import check_rig
@@ -316,7 +316,7 @@ def _dataset_observations(cal: Calibration, dataset: "Dataset | str | Path", pat
 def export_colmap_fork(calibration: Calibration | str | Path, out_dir: str | Path,
                        observations: Sequence[Observation] | None = None,
                        units_mm: float = DEFAULT_UNITS_MM, refined_model: str | Path | None = None,
-                       dataset: "Dataset | str | Path | None" = None,
+                       dataset: Dataset | str | Path | None = None,
                        calibration_path: str | Path | None = None) -> ForkExport:
     """Write ``calibration`` (an exact-Snell model) as the fork's text model in ``out_dir``:
     cameras.txt (FLATPORT), images.txt, points3D.txt (lengths in units of ``units_mm`` mm, within

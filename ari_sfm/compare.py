@@ -55,7 +55,7 @@ class Subset:
     rows: int
 
     @staticmethod
-    def parse(text: str) -> "Subset":
+    def parse(text: str) -> Subset:
         """``center:COLSxROWS``, e.g. ``center:3x4``."""
         m = re.fullmatch(r"center:(\d+)x(\d+)", text.strip())
         if not m or int(m.group(1)) < 1 or int(m.group(2)) < 1:

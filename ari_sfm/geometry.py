@@ -58,17 +58,17 @@ class Pose:
     t: np.ndarray
 
     @staticmethod
-    def identity() -> "Pose":
+    def identity() -> Pose:
         return Pose(np.eye(3), np.zeros(3))
 
     def apply(self, X: np.ndarray) -> np.ndarray:
         """Map points (N, 3) or (3,)."""
         return np.asarray(X, float) @ self.R.T + self.t
 
-    def inverse(self) -> "Pose":
+    def inverse(self) -> Pose:
         return Pose(self.R.T, -self.R.T @ self.t)
 
-    def compose(self, other: "Pose") -> "Pose":
+    def compose(self, other: Pose) -> Pose:
         """self * other: a_from_b * b_from_c = a_from_c."""
         return Pose(self.R @ other.R, self.R @ other.t + self.t)
 
@@ -81,7 +81,7 @@ class Pose:
         return {"R": self.R.tolist(), "t": self.t.tolist()}
 
     @staticmethod
-    def from_json(d: dict) -> "Pose":
+    def from_json(d: dict) -> Pose:
         return Pose(np.asarray(d["R"], float).reshape(3, 3), np.asarray(d["t"], float).reshape(3))
 
 

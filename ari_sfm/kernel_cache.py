@@ -77,7 +77,7 @@ def target_record() -> dict[str, str]:
             "triple": ll.get_process_triple(), "cpu": TARGET_CPU, "cpu_features": TARGET_CPU_FEATURES}
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def shipped_usable() -> tuple[bool, str]:
     """Whether this process can run the shipped code, and what it runs or why not (once per process)."""
     usable, why = _shipped_usable()

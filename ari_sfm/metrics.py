@@ -91,7 +91,7 @@ class ErrorStats:
     count: int
 
     @classmethod
-    def of(cls, errors: np.ndarray) -> "ErrorStats":
+    def of(cls, errors: np.ndarray) -> ErrorStats:
         e = np.abs(np.asarray(errors, dtype=float))
         if not len(e):
             return cls(None, None, None, 0)
@@ -101,7 +101,7 @@ class ErrorStats:
         return {"mae": self.mae, "rmse": self.rmse, "max": self.max, "count": self.count}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "ErrorStats":
+    def from_json(cls, d: Mapping[str, Any]) -> ErrorStats:
         return cls(_opt(d["mae"]), _opt(d["rmse"]), _opt(d["max"]), int(d["count"]))
 
 
@@ -119,7 +119,7 @@ class Flatness(ErrorStats):
         return dict(super().to_json(), distances=list(self.distances))
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "Flatness":
+    def from_json(cls, d: Mapping[str, Any]) -> Flatness:
         return cls(**vars(ErrorStats.from_json(d)), distances=_floats(d["distances"]))
 
 
@@ -136,7 +136,7 @@ class InterCorner(ErrorStats):
                     errors=list(self.errors))
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "InterCorner":
+    def from_json(cls, d: Mapping[str, Any]) -> InterCorner:
         return cls(**vars(ErrorStats.from_json(d)), square_mm=float(d["square_mm"]),
                    distances=_floats(d["distances"]), errors=_floats(d["errors"]))
 
@@ -153,7 +153,7 @@ class RayGap:
         return {"mean": self.mean, "rms": self.rms, "max": self.max}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "RayGap":
+    def from_json(cls, d: Mapping[str, Any]) -> RayGap:
         return cls(float(d["mean"]), float(d["rms"]), float(d["max"]))
 
 
@@ -177,7 +177,7 @@ class StageMetrics:
                 "displacement_error_mm": self.displacement_error_mm.to_json()}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "StageMetrics":
+    def from_json(cls, d: Mapping[str, Any]) -> StageMetrics:
         return cls(str(d["reference_frame"]), _floats(d["direction_world"]), float(d["travel_scale"]),
                    float(d["angle_to_normal_deg"]), ErrorStats.from_json(d["plane_distance_error_mm"]),
                    ErrorStats.from_json(d["plane_distance_error_paper_mm"]),
@@ -203,7 +203,7 @@ class FrameStage:
         return out
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "FrameStage":
+    def from_json(cls, d: Mapping[str, Any]) -> FrameStage:
         return cls(float(d["plane_distance_mm"]), float(d["plane_distance_error_mm"]),
                    float(d["plane_distance_error_paper_mm"]), float(d["plane_angle_deg"]),
                    _opt(d.get("displacement_error_mm")))
@@ -221,7 +221,7 @@ class FramePlane:
         return {"normal": list(self.normal), "point": list(self.point), "inliers": self.inliers}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "FramePlane":
+    def from_json(cls, d: Mapping[str, Any]) -> FramePlane:
         return cls(_floats(d["normal"]), _floats(d["point"]), int(d["inliers"]))
 
 
@@ -248,7 +248,7 @@ class FrameMetrics:
         return out
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "FrameMetrics":
+    def from_json(cls, d: Mapping[str, Any]) -> FrameMetrics:
         plane = FramePlane.from_json(d["plane"]) if "plane" in d else None
         return cls(_opt(d["stage_mm"]), int(d["num_points"]), plane,
                    ErrorStats.from_json(d["flatness_mm"]) if plane is not None else None,
@@ -275,7 +275,7 @@ class TruthErrors:
                             "rotation_deg": self.rotation_deg, "translation_mm": self.translation_mm}}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "TruthErrors":
+    def from_json(cls, d: Mapping[str, Any]) -> TruthErrors:
         u, a = d["unaligned"], d["aligned"]
         return cls(int(d["count"]), float(u["rms_mm"]), float(u["max_mm"]), float(a["rms_mm"]), float(a["max_mm"]),
                    float(a["rotation_deg"]), float(a["translation_mm"]))
@@ -308,7 +308,7 @@ class ReconstructionMetrics:
         return out
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "ReconstructionMetrics":
+    def from_json(cls, d: Mapping[str, Any]) -> ReconstructionMetrics:
         """Read metrics.json's body (header keys format, dataset, calibration, model are ignored)."""
         return cls(int(d["num_points"]), int(d["num_frames"]), RayGap.from_json(d["ray_gap_mm"]),
                    _opt(d["reprojection_rmse_px"]), Flatness.from_json(d["flatness_mm"]),

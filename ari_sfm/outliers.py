@@ -25,7 +25,7 @@ class Outlier:
         return out
 
     @staticmethod
-    def from_json(d: dict) -> "Outlier":
+    def from_json(d: dict) -> Outlier:
         added = d.get("added_mm")
         return Outlier(str(d["camera"]), str(d["set"]), str(d["frame"]), int(d["id"]), float(d["residual_px"]),
                        None if added is None else float(added))

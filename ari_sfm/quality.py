@@ -93,7 +93,7 @@ class Quality:
                 "exact_robust_rmse_px": self.exact_robust_rmse_px, "allowance_px": self.allowance_px}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "Quality":
+    def from_json(cls, d: Mapping[str, Any]) -> Quality:
         def num(key: str) -> float | None:
             v = d.get(key)
             return None if v is None else float(v)

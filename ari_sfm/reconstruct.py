@@ -147,7 +147,7 @@ class ReconstructionRun:
     """What :func:`run_reconstruction` wrote."""
 
     points: Points
-    metrics: "ReconstructionMetrics"  # noqa: F821 - ari_sfm.metrics (imports open3d lazily)
+    metrics: ReconstructionMetrics  # noqa: F821 - ari_sfm.metrics (imports open3d lazily)
     points_path: Path
     metrics_path: Path
     clouds: dict[str, Path]

@@ -238,7 +238,7 @@ class Dataset:
     def entries(self) -> tuple[Entry, ...]:
         return self.stacking + self.calibration + self.reconstruction
 
-    def with_observations(self, observations: tuple[Observation, ...], path: Path | None = None) -> "Dataset":
+    def with_observations(self, observations: tuple[Observation, ...], path: Path | None = None) -> Dataset:
         from dataclasses import replace
 
         return replace(self, observations=tuple(observations), observations_path=path)

@@ -69,7 +69,7 @@ class Registration:
                 "fitness": self.fitness, "inlier_rmse_mm": self.inlier_rmse_mm}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "Registration":
+    def from_json(cls, d: Mapping[str, Any]) -> Registration:
         return cls(np.asarray(d["reference_from_world"], float), float(d["rotation_deg"]),
                    float(d["translation_mm"]), float(d["fitness"]), float(d["inlier_rmse_mm"]))
 
@@ -87,7 +87,7 @@ class SurfaceDistances:
         return {"mean": self.mean, "rms": self.rms, "max": self.max, "p95": self.p95}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "SurfaceDistances":
+    def from_json(cls, d: Mapping[str, Any]) -> SurfaceDistances:
         return cls(float(d["mean"]), float(d["rms"]), float(d["max"]), float(d["p95"]))
 
 
@@ -119,7 +119,7 @@ class ReferenceErrors:
                 "frames": {n: f.to_json() for n, f in self.frames.items()}}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "ReferenceErrors":
+    def from_json(cls, d: Mapping[str, Any]) -> ReferenceErrors:
         return cls(str(d["path"]), str(d["kind"]), int(d["count"]), Registration.from_json(d["registration"]),
                    SurfaceDistances.from_json(d["distance_mm"]),
                    {n: FrameDistances(float(f["rms"]), float(f["max"])) for n, f in d["frames"].items()})

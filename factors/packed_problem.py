@@ -182,7 +182,7 @@ class VectorizedProblem:
 
     # ------------------------------------------------------------------ from a graph
     @staticmethod
-    def from_rig_graph(rg: GraphLike, huber_px: float | None = None, check: bool = True) -> "VectorizedProblem":
+    def from_rig_graph(rg: GraphLike, huber_px: float | None = None, check: bool = True) -> VectorizedProblem:
         """The problem of a built RigGraph at its current values (its view factors and any factors added to it).
 
         Pass the Huber threshold the view factors were built with (``rg.huber_px``
@@ -577,7 +577,7 @@ class VectorizedProblem:
         sys = cached[1] if cached is not None and cached[0] is self.x else self.linearize(self.x)
         return covariances_by_key(self, sys)
 
-    def marginals(self) -> "CovarianceTable":
+    def marginals(self) -> CovarianceTable:
         """The marginal covariances as a ``gtsam.Marginals`` stand-in (``marginalCovariance(key)``
         for the intrinsics, camera poses, normal and distance), e.g. for
         :func:`ari_sfm.factors.uncertainty.rig_uncertainty`."""

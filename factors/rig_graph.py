@@ -94,7 +94,7 @@ def held_intrinsics(dataset, fix: bool) -> tuple[list[str], dict[str, float]]:
     return fixed, focal
 
 
-def initial_state(dataset, rig, model: str = "ari", fix_intrinsics: bool = False) -> "RigState":
+def initial_state(dataset, rig, model: str = "ari", fix_intrinsics: bool = False) -> RigState:
     """The one starting state of a bundle adjustment from an analytic initialisation ``rig``
     (:func:`ari_sfm.init.rig.initialise_rig`); ``model``: the first graph's model.
 
@@ -271,7 +271,7 @@ class RigGraph:
         windows: Sequence[Window] | None = None,
         window_planes: Sequence[WindowPlane | None] | None = None,
         centred_principal_points: Mapping[str, tuple[float, float]] | None = None,
-    ) -> "RigGraph":
+    ) -> RigGraph:
         """One factor per (camera, calibration or stacking image), whitened by ``sigma_px``; variables from
         state. Camera 0 is the world frame (no pose variable): ``state.cam_from_world`` of the first
         camera must be the identity.
@@ -356,7 +356,7 @@ class RigGraph:
 
     @staticmethod
     def from_dataset(dataset, model: str = "ari", distortion: bool = False, huber_px: float | None = 1.0,
-                     sigma_px: float | None = None, workers: int | None = None) -> "RigGraph":
+                     sigma_px: float | None = None, workers: int | None = None) -> RigGraph:
         """The graph of a dataset, initialised by the analytic pipeline (expansion centre, Zhang, Eq. 5,
         Eqs. 11-12, spanning tree over shared frames). A dataset with images only has its corners
         detected first (:func:`ari_sfm.detection.ensure_observations`).
@@ -388,7 +388,7 @@ class RigGraph:
         underwater = dataset.medium_index != 1.0
         state = initial_state(dataset, rig, model)
 
-        def build(sigma: float) -> "RigGraph":
+        def build(sigma: float) -> RigGraph:
             return RigGraph.build(dataset.observations, dataset.target, dataset.interface, dataset.camera_names,
                                   state, model=model, distortion=distortion, estimate_distance=underwater,
                                   huber_px=huber_px, sigma_px=sigma, windows=dataset.window_list(),
@@ -397,7 +397,7 @@ class RigGraph:
         rg = build(1.0 if sigma_px is None else sigma_px)
         return rg if sigma_px is not None else build(estimate_sigma_px(rg))
 
-    def with_sigma(self, sigma_px: float) -> "RigGraph":
+    def with_sigma(self, sigma_px: float) -> RigGraph:
         """The same graph (values, added factors) with its view factors whitened by ``sigma_px`` instead."""
         if not (np.isfinite(sigma_px) and sigma_px > 0.0):
             raise ValueError(f"sigma_px must be a positive pixel sigma, got {sigma_px}")

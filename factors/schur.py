@@ -79,7 +79,7 @@ class NormalEquations:
     reduced: Any = field(default=None, repr=False)  # the ReducedSystem last built
 
     @staticmethod
-    def zeros(n_frames: int, n_global: int, k: int = 6) -> "NormalEquations":
+    def zeros(n_frames: int, n_global: int, k: int = 6) -> NormalEquations:
         """A dense-layout system of zeros."""
         N, G = n_frames, n_global
         return NormalEquations(np.zeros((N, k, k)), np.zeros((N, k)), np.zeros((N, k, G)), np.zeros((G, G)),

@@ -53,7 +53,7 @@ class RigState:
         return self.distance_mm if window == 0 else self.more_windows[window - 1][1]
 
     def with_window(self, window: int, normal: np.ndarray | None = None, offset: float | None | str = "keep"
-                    ) -> "RigState":
+                    ) -> RigState:
         """The state with window ``window``'s normal and/or offset replaced (``offset="keep"``: unchanged)."""
         from dataclasses import replace
 
@@ -74,7 +74,7 @@ class RigState:
 
     @classmethod
     def from_initialisation(cls, rig, distance_mm: float | None = None,
-                            more_offsets: Sequence[float | None] = ()) -> "RigState":
+                            more_offsets: Sequence[float | None] = ()) -> RigState:
         """The state of an analytic initialisation (:class:`ari_sfm.init.rig.RigInit`):
         params [fx fy cx cy] + the distortion padded to 5 per camera, its poses and
         normals, window 0's offset ``distance_mm`` and the other windows' ``more_offsets``
@@ -109,7 +109,7 @@ class Variables:
         """Window 0's plane offset."""
         return self.distances[0]
 
-    def with_distance(self, window: int, offset: float, world_t_target: np.ndarray | None = None) -> "Variables":
+    def with_distance(self, window: int, offset: float, world_t_target: np.ndarray | None = None) -> Variables:
         """A copy with one window's offset replaced (and, if given, every frame's translation)."""
         from dataclasses import replace
 

@@ -69,7 +69,7 @@ class Points:
     slices: tuple[slice, ...]  # rows of each record
 
     @staticmethod
-    def build(dataset: Dataset, records: Sequence[Observation], names: Sequence[str], frames: Sequence[str]) -> "Points":
+    def build(dataset: Dataset, records: Sequence[Observation], names: Sequence[str], frames: Sequence[str]) -> Points:
         cam_index = {n: i for i, n in enumerate(names)}
         frame_index = {f: i for i, f in enumerate(frames)}
         records = tuple(o for o in records if o.camera in cam_index and o.frame in frame_index)
@@ -253,7 +253,7 @@ def project_directions(intr: np.ndarray, camera: np.ndarray, D: np.ndarray) -> n
 
 
 def camera_calibrations(dataset: Dataset, bundle: RigBundle, intr: np.ndarray, cams: Sequence[Pose],
-                        per_camera_residuals: dict[str, np.ndarray]) -> dict[str, "CameraCalibration"]:  # noqa: F821
+                        per_camera_residuals: dict[str, np.ndarray]) -> dict[str, CameraCalibration]:  # noqa: F821
     """The CameraCalibration of every camera from a solved bundle."""
     from ..calibration import CameraCalibration
     from ..evaluate import residual_stats

@@ -22,7 +22,7 @@ from .bundle import camera_calibrations, intrinsics_vector, project_directions, 
 log = logging.getLogger(__name__)
 
 
-def calibrate_pinhole(dataset: Dataset, distortion: bool = False, max_iterations: int = 100) -> "Calibration":  # noqa: F821
+def calibrate_pinhole(dataset: Dataset, distortion: bool = False, max_iterations: int = 100) -> Calibration:  # noqa: F821
     """A pinhole rig (model ``pinhole``, or ``pinhole_dist`` with distortion) that ignores the window."""
     from ..calibration import Calibration
 

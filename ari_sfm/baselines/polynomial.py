@@ -66,7 +66,7 @@ def world_points(observations: Sequence[Observation], frames: dict[str, Pose], d
     return np.concatenate(X), np.concatenate(uv)
 
 
-def calibrate_pf(dataset: Dataset, world=None, **ari_options) -> "Calibration":  # noqa: F821
+def calibrate_pf(dataset: Dataset, world=None, **ari_options) -> Calibration:  # noqa: F821
     """PF per camera on the calibration records, in the world of an ari calibration.
 
     ``world``: a :class:`~ari_sfm.calibration.Calibration` whose frames give the

@@ -92,7 +92,7 @@ class MatchCamera:
         """Pixels (N, 2) of body points xyz (N, 3); NaN where the model has no image of a point."""
         return _project(self.rotation, self.params, self, np.asarray(xyz, float), jacobian=False)[0]
 
-    def with_window(self, window: BodyWindow | None) -> "MatchCamera":
+    def with_window(self, window: BodyWindow | None) -> MatchCamera:
         return replace(self, window=window)
 
 

@@ -267,7 +267,7 @@ class exclusive_folder:
         self.fd: int | None = None
         self.created = False
 
-    def __enter__(self) -> "exclusive_folder":
+    def __enter__(self) -> exclusive_folder:
         try:
             import fcntl
         except ImportError:  # not POSIX: no lock

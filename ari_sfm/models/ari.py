@@ -147,7 +147,7 @@ class AriModel:
         self._da_dh = 1.0 - 1.0 / nm
 
     @classmethod
-    def from_interface(cls, pinhole: PinholeModel, normal_cam: np.ndarray, interface: "Interface") -> "AriModel":
+    def from_interface(cls, pinhole: PinholeModel, normal_cam: np.ndarray, interface: Interface) -> AriModel:
         """Model from a :class:`ari_sfm.records.Interface`."""
         return cls(pinhole, normal_cam, interface.thickness_mm, interface.index,
                    interface.medium_index, interface.distance_mm)

@@ -175,8 +175,8 @@ class ExactModel:
         self.distance_mm = float(distance_mm)
 
     @classmethod
-    def from_interface(cls, pinhole: PinholeModel, normal_cam: np.ndarray, interface: "Interface",
-                       distance_mm: float | None = None) -> "ExactModel":
+    def from_interface(cls, pinhole: PinholeModel, normal_cam: np.ndarray, interface: Interface,
+                       distance_mm: float | None = None) -> ExactModel:
         """Model from a :class:`ari_sfm.records.Interface` (``distance_mm`` overrides its hint)."""
         h = interface.distance_mm if distance_mm is None else distance_mm
         return cls(pinhole, normal_cam, interface.thickness_mm, interface.index,

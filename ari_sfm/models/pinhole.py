@@ -101,7 +101,7 @@ class PinholeModel:
 
     # ----------------------------------------------------------------- params
     @classmethod
-    def from_params(cls, params: np.ndarray) -> "PinholeModel":
+    def from_params(cls, params: np.ndarray) -> PinholeModel:
         """Model from ``[fx, fy, cx, cy, k1, k2, p1, p2, k3]``."""
         p = np.array(params, dtype=float).ravel()  # a copy
         if p.size != NUM_PARAMS:

@@ -134,7 +134,7 @@ class DetectOptions:
     min_sum: float = 0.0  # their grey sum above the local background at least this (OpenPTV's sumg_min)
     relative_floor: float = SHEET_EDGE  # peak >= this x the frame's bright images' (0: none; see step 4)
 
-    def for_camera(self, camera: str) -> "DetectOptions":
+    def for_camera(self, camera: str) -> DetectOptions:
         """These options with ``threshold`` resolved for one camera."""
         from dataclasses import replace
 
@@ -301,10 +301,10 @@ class _State:
     saturated: np.ndarray  # bool: its peak pixel is saturated (a flat top: centred by its centroid)
     fixed: np.ndarray  # bool: one of a split pair, fitted as such: held in the rounds of fits
 
-    def take(self, rows: np.ndarray) -> "_State":
+    def take(self, rows: np.ndarray) -> _State:
         return _State(*(getattr(self, f)[rows] for f in self.__dataclass_fields__))
 
-    def join(self, other: "_State") -> "_State":
+    def join(self, other: _State) -> _State:
         return _State(*(np.concatenate([getattr(self, f), getattr(other, f)]) for f in self.__dataclass_fields__))
 
 
@@ -314,7 +314,7 @@ class _Fit:
 
     uv: np.ndarray  # (N, 2) centres
     peak: np.ndarray  # (N,) Gaussian peaks above the background (a saturated one: its brightest pixel)
-    shape: "ImageShape"  # from its own 3 x 3 pixels, the others' Gaussians subtracted
+    shape: ImageShape  # from its own 3 x 3 pixels, the others' Gaussians subtracted
     ridge: np.ndarray  # (N,) bool: on a ridge (a streak, a blob's rim), not a particle image
     saturated: np.ndarray  # (N,) bool
     fixed: np.ndarray  # (N,) bool: an elongated image fitted as one elliptical Gaussian or as two round ones
@@ -331,10 +331,10 @@ class ImageShape:
     axis: np.ndarray  # (N, 2) the widest axis (unit vector, u v)
     half_split: np.ndarray  # half the distance of two equal round images that would look like this one
 
-    def take(self, rows: np.ndarray) -> "ImageShape":
+    def take(self, rows: np.ndarray) -> ImageShape:
         return ImageShape(*(getattr(self, f)[rows] for f in self.__dataclass_fields__))
 
-    def join(self, other: "ImageShape") -> "ImageShape":
+    def join(self, other: ImageShape) -> ImageShape:
         return ImageShape(*(np.concatenate([getattr(self, f), getattr(other, f)]) for f in self.__dataclass_fields__))
 
 

@@ -43,7 +43,7 @@ class Cells:
     shape: tuple[int, int, int]
 
     @staticmethod
-    def around(xyz: np.ndarray, shape: Sequence[int], quantile: float = 0.005) -> "Cells":
+    def around(xyz: np.ndarray, shape: Sequence[int], quantile: float = 0.005) -> Cells:
         """The box of the points (their ``quantile`` and ``1 - quantile``: stray ghosts ignored)."""
         finite = xyz[np.isfinite(xyz).all(axis=1)]
         lower, upper = np.quantile(finite, quantile, axis=0), np.quantile(finite, 1.0 - quantile, axis=0)

@@ -154,7 +154,7 @@ def check_scheduler_answers(address: str, timeout_s: float) -> None:
                 if not chunk:
                     break
                 head += chunk
-        except socket.timeout:
+        except TimeoutError:
             raise AriSfmError("--scheduler", f"{address} accepts connections but is not a Dask scheduler: it sent "
                                              f"nothing in {timeout_s:g} s (an HTTP server, the dashboard's port?)"
                               ) from None

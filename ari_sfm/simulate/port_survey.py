@@ -285,7 +285,7 @@ def render_survey_image(truth: SfmTruth, i: int, texture: np.ndarray, origin_mm:
 def write_port_survey(out_dir, seed: int = 0, num_images: int = 12, image_size: tuple[int, int] = (640, 480),
                       focal_px: float = 600.0, area_mm: tuple[float, float] = (1600.0, 1200.0),
                       altitude_mm: float = 2000.0, relief_mm: float = 150.0, supersample: int = 2,
-                      progress: bool = False) -> tuple[SfmTruth, "Path"]:
+                      progress: bool = False) -> tuple[SfmTruth, Path]:
     """Render a port survey to ``out_dir/images/imageNNNN.png`` with ``out_dir/truth.json`` (the housing,
     the lens intrinsics, every image's cam_from_world, the relief); returns the truth and the images folder."""
     from pathlib import Path

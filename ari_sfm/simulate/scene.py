@@ -53,7 +53,7 @@ class CameraTruth:
     def pinhole(self) -> PinholeModel:
         return PinholeModel(self.K, self.dist)
 
-    def scaled(self, scale: float) -> "CameraTruth":
+    def scaled(self, scale: float) -> CameraTruth:
         """The same camera with an image scaled by ``scale`` (pixel centres stay OpenCV).
 
         A pixel u maps to ``scale (u + 0.5) - 0.5``, so fx, fy scale and
@@ -163,7 +163,7 @@ class Geometry:
                 return cam
         raise KeyError(name)
 
-    def scaled(self, scale: float) -> "Geometry":
+    def scaled(self, scale: float) -> Geometry:
         """All cameras scaled by ``scale``; the margin scales too, so visibility is unchanged."""
         if scale == 1.0:
             return self
