@@ -9,7 +9,7 @@ import numpy as np
 
 from .calibration import Calibration
 from .errors import AriSfmError
-from .geometry import Pose
+from .geometry import Pose, rotation_from_rotvec
 from .records import Dataset, Observation, Target
 from .results import ResidualStats
 
@@ -55,7 +55,6 @@ def solve_frame_poses(calibration: Calibration, observations: Sequence[Observati
     import cv2
     from scipy.optimize import least_squares
 
-    from .geometry import rotation_from_rotvec
     from .init.interface_pose import real_cam_from_target
 
     ids_all, xyz_all = target.points_3d()
@@ -77,17 +76,25 @@ def solve_frame_poses(calibration: Calibration, observations: Sequence[Observati
                                                calibration.interface_of(first.camera).shift_mm)
         start = cam.cam_from_world.inverse().compose(cam_from_target)
         models = [calibration.projection_model(o.camera) for o in obs]
-
-        def residuals(x: np.ndarray) -> np.ndarray:
-            pose = Pose(start.R @ rotation_from_rotvec(x[:3]), start.t + x[3:])
-            out = [m.project(calibration.cameras[o.camera].cam_from_world.apply(pose.apply(p))) - o.pixels
-                   for m, o, p in zip(models, obs, pts)]
-            r = np.concatenate(out).ravel()
-            return np.where(np.isfinite(r), r, 1e3)
-
-        x = least_squares(residuals, np.zeros(6), x_scale=np.r_[1e-3, 1e-3, 1e-3, 1.0, 1.0, 1.0]).x
-        poses[frame] = Pose(start.R @ rotation_from_rotvec(x[:3]), start.t + x[3:])
+        x = least_squares(_held_pose_residuals, np.zeros(6), x_scale=np.r_[1e-3, 1e-3, 1e-3, 1.0, 1.0, 1.0],
+                          args=(start, calibration, models, obs, pts)).x
+        poses[frame] = _moved(start, x)
     return poses
+
+
+def _moved(start: Pose, x: np.ndarray) -> Pose:
+    """``start`` (world_from_target) moved by ``x`` = [rotation vector, translation mm]."""
+    return Pose(start.R @ rotation_from_rotvec(x[:3]), start.t + x[3:])
+
+
+def _held_pose_residuals(x: np.ndarray, start: Pose, calibration: Calibration, models: list,
+                         obs: list[Observation], pts: list[np.ndarray]) -> np.ndarray:
+    """The pixel residuals of one frame's observations at the pose ``_moved(start, x)`` (1e3 px for no ray)."""
+    pose = _moved(start, x)
+    out = [m.project(calibration.cameras[o.camera].cam_from_world.apply(pose.apply(p))) - o.pixels
+           for m, o, p in zip(models, obs, pts)]
+    r = np.concatenate(out).ravel()
+    return np.where(np.isfinite(r), r, 1e3)
 
 
 def evaluate(calibration: Calibration, observations: str | Path | Dataset | Sequence[Observation], target: Target | None = None,

@@ -21,6 +21,7 @@ to cv2 on the same points and the RMS 3D error against the true points.
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import statistics
 import tempfile
@@ -122,7 +123,7 @@ def main() -> None:
         arc4 = load_calibration(path)
 
     rows = []
-    for label, cal, (X, tracks) in (("2 cameras", binocular, _points_and_pixels(binocular, args.points)),
+    for _label, cal, (X, tracks) in (("2 cameras", binocular, _points_and_pixels(binocular, args.points)),
                                     ("4 cameras", arc4, _points_and_pixels(arc4, args.points))):
         if args.noise_px:
             rng = np.random.default_rng(1)
@@ -135,7 +136,7 @@ def main() -> None:
             c = replace(cal, model=model)
             triangulate_pixels(c, {k: v[:10] for k, v in tracks.items()})  # warm-up
             for refine in (False, True):
-                t, out = _median_time(lambda: triangulate_pixels(c, tracks, refine=refine), args.repeats)
+                t, out = _median_time(functools.partial(triangulate_pixels, c, tracks, refine=refine), args.repeats)
                 what = f"{model} {'rays + LM' if refine else 'rays only'}"
                 rows.append((what, len(cal.cameras), len(X), t, t_cv2, _rms(out[0], X)))
 

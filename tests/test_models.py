@@ -350,7 +350,7 @@ def test_jacobian_normal_chains_with_tangent_basis(pinhole, normal):
         J = model.project_with_jacobians(X).J_normal @ B
         cls, args = type(model), (THICKNESS, INDEX, WATER, DISTANCE)
 
-        def along(xi):
+        def along(xi, cls=cls, args=args):
             n = normal + B @ xi
             return cls(pinhole, n / np.linalg.norm(n), *args).project(X)
 

@@ -83,7 +83,7 @@ def test_numpy_gradient_is_the_errors_gradient(graph):
     for _ in range(3):
         dg = rng.normal(0, 1e-3, len(sys.g_global)) * scale
         df = rng.normal(0, 1e-3, sys.g_frame.shape)
-        numeric = _central(lambda t: problem.error(problem.retract(x, (t * dg, t * df))))
+        numeric = _central(lambda t, dg=dg, df=df: problem.error(problem.retract(x, (t * dg, t * df))))
         analytic = float(sys.g_global @ dg + np.sum(sys.g_frame * df))
         assert analytic == pytest.approx(numeric, rel=1e-6)
 
@@ -99,7 +99,7 @@ def test_gtsam_gradient_is_the_errors_gradient(graph):
             sigma = 0.1 if chr(gtsam.Symbol(key).chr()) == "k" else 1e-3
             delta.insert(key, rng.normal(0, sigma, dim))
 
-        def error(t: float) -> float:
+        def error(t: float, delta: gtsam.VectorValues = delta) -> float:
             step = gtsam.VectorValues()
             for key in values.keys():
                 step.insert(key, t * delta.at(key))

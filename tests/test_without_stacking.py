@@ -442,7 +442,8 @@ def test_coarse_to_fine_normal_search_is_the_grids_best():
         t, a = np.radians(rng.uniform(0.0, 20.0)), rng.uniform(0.0, 2 * np.pi)
         hidden = np.cos(t) * axis + np.sin(t) * (np.cos(a) * e1 + np.sin(a) * e2)
         calls = []
-        found = search_normal(lambda n: calls.append(1) or angle_between_deg(n, hidden), axis)
+        found = search_normal(lambda n, calls=calls, hidden=hidden: calls.append(1) or angle_between_deg(n, hidden),
+                              axis)
         best = grid[int(np.argmin([angle_between_deg(n, hidden) for n in grid]))]
         np.testing.assert_allclose(found, best)
         assert len(calls) <= 24

@@ -19,6 +19,7 @@ goes on, and says so), a task whose workers keep dying stops it too.
 """
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import socket
@@ -348,7 +349,7 @@ def run_partitions(task: Callable[..., dict[str, np.ndarray]], partitions: Itera
 
     if client is None:
         for p, path in todo():
-            _write_partition(path, _result(lambda: task(*p.args)), p.inputs)
+            _write_partition(path, _result(functools.partial(task, *p.args)), p.inputs)
             if on_done:
                 on_done(p, False)
         return paths
