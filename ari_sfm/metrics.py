@@ -378,7 +378,7 @@ def _stage_metrics(points: Points, planes: dict[str, dict[str, Any] | None]
     c_ref = rf.xyz.mean(axis=0)
     # travel per stage-mm from the mean displacement of corresponding corners
     disp: dict[str, np.ndarray] = {}
-    for f, s in staged.items():
+    for f in staged:
         if f == ref:
             continue
         common, ia, ib = np.intersect1d(points.frames[f].ids, rf.ids, return_indices=True)

@@ -493,7 +493,7 @@ def draw_rig(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> Any:
     handles = [axes[0].plot([], [], CAMERA_MARKERS[j % len(CAMERA_MARKERS)], color="k", ms=7,
                             mfc="w" if j % 2 else "k", label=f"{name} (arrow: optical axis)" if j == 0 else name)[0]
                for j, name in enumerate(centres)]
-    for w, d, schematic, t in windows:
+    for w, _d, schematic, t in windows:
         name = "window" if not calibration.windows else f"window {w.name}"
         label = f"{name} ({t:g} mm)" + (", depth schematic: its distance is not observable in air" if schematic
                                         else f" at {w.interface.distance_mm:.1f} mm from {w.cameras[0]}")

@@ -467,7 +467,7 @@ class RigGraph:
         """Unweighted pixel residuals (M, 2) of every factor's image at the current values."""
         factory = MODELS[self.model]
         out = []
-        for (camera, obs), (data, vkeys) in zip(self.factor_views, self.factor_data):
+        for (_camera, obs), (data, vkeys) in zip(self.factor_views, self.factor_data):
             r, _ = view_residuals(factory, data, vkeys, self.values, False, None)
             out.append((obs, r.reshape(-1, 2)))
         return out

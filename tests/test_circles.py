@@ -108,7 +108,7 @@ def test_layout_symmetries_decide_which_ids_are_unique():
     square = Target(type="circles", circle_grid=(6, 6), spacing_mm=10.0, layout="symmetric")
     assert sorted(d for _, d in circle_symmetries(square)) == [-1] * 4 + [1] * 4  # the full square group
     _, xyz = SYMMETRIC.points_3d()
-    for p, det in circle_symmetries(SYMMETRIC):  # each permutation really is an isometry of the layout
+    for p, _det in circle_symmetries(SYMMETRIC):  # each permutation really is an isometry of the layout
         assert np.allclose(np.linalg.norm(xyz[p] - xyz[p[0]], axis=1), np.linalg.norm(xyz - xyz[0], axis=1))
 
 

@@ -219,7 +219,7 @@ def test_detect_dataset_warns_about_and_skips_an_image_without_target(checker_vi
     assert any("s1.png" in m for m in warnings) and any("stacking pose s0" in m for m in warnings), warnings
     assert not any("c0.png" in m or "c2.png" in m or "c3.png" in m for m in warnings)
     assert [(o.set, o.frame) for o in obs] == [("calibration", "f000"), ("calibration", "f002"), ("calibration", "f003")]
-    for o, (image, exact) in zip(obs, [checker_views[0], checker_views[1], checker_views[2]]):
+    for o, (_image, exact) in zip(obs, [checker_views[0], checker_views[1], checker_views[2]]):
         assert o.camera == "cam0" and np.array_equal(o.ids, np.arange(88))
         assert rms(o.pixels - exact[o.ids]) < 0.05  # PNG round trip changes nothing
 

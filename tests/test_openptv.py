@@ -401,7 +401,7 @@ def test_export_round_trip_every_parameter(tmp_path, dist0):
     assert (control.n1, control.n2, control.n3, control.d) == (1.0, 1.49, 1.333, 6.0)
     assert (control.imx, control.imy, control.pix_x, control.pix_y) == (1280, 1024, 0.0055, 0.0055)
     frame = cal.frames["f000"]
-    for number, (name, c) in enumerate(cal.cameras.items(), start=1):
+    for number, c in enumerate(cal.cameras.values(), start=1):
         K, dist, pose, raw = _exported_opencv(tmp_path / "optv", number)
         np.testing.assert_allclose(K, c.K, rtol=0, atol=1e-8)
         np.testing.assert_allclose(dist, c.dist, rtol=1e-9, atol=1e-15)

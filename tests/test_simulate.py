@@ -139,7 +139,7 @@ def test_stacking_corners_move_on_lines_through_expansion_center(scenes, name):
 
 def test_expansion_center_is_projection_of_the_normal(scenes):
     scene = scenes("binocular")
-    for name, cam in scene.truth["cameras"].items():
+    for cam in scene.truth["cameras"].values():
         R = np.array(cam["cam_from_world"]["R"])
         n_c = R @ np.array(scene.truth["interface"]["normal_world"])
         assert np.allclose(n_c, cam["normal_cam"], atol=1e-12)
@@ -218,7 +218,7 @@ def test_arc4_partial_visibility_and_outside_expansion_center(scenes):
     for cam in scene.truth["cameras"]:  # every camera shares a frame with another
         assert any(cam in s and len(s) > 1 for s in cams_of.values())
     outside = []
-    for name, cam in scene.truth["cameras"].items():
+    for cam in scene.truth["cameras"].values():
         w, h = cam["image_size"]
         u, v = cam["expansion_center_px"]
         outside.append(not (0 <= u < w and 0 <= v < h))
@@ -250,7 +250,7 @@ def test_every_scenario_builds_valid(scenes, name):
             cam = truth["cameras"][name_]
             assert plane - n @ centre[name_] == pytest.approx(cam["distance_mm"])
             assert cam["distance_mm"] > 5.0 and cam["normal_cam"][2] > 0
-        for frame, f in truth["frames"].items():  # every target beyond the far face of the thickest stack
+        for f in truth["frames"].values():  # every target beyond the far face of the thickest stack
             X = Pose.from_json(f["world_from_target"]).apply(pts)
             assert (X @ n - plane - itf["thickness_mm"] - max_added).min() > 5.0
     for o in ds.observations:  # ids follow the contract, pixels inside the image

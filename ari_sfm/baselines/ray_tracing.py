@@ -76,7 +76,7 @@ def trace_to_points(start: np.ndarray, X: np.ndarray, normal: np.ndarray, h: np.
     active = L > 0.0
     v[~active] = np.nan
     it = 0
-    for it in range(1, TRACE_MAX_ITER + 1):
+    for it in range(1, TRACE_MAX_ITER + 1):  # noqa: B007 (the count is returned)
         idx = np.flatnonzero(active)
         if len(idx) == 0:
             break

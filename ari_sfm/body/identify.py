@@ -225,7 +225,7 @@ def _grow(camera: MatchCamera, dots: np.ndarray, tree: cKDTree | None, ids: np.n
     visible, radius, iterations = 0, 0.0, 0
     step = float(np.median(cKDTree(xyz).query(xyz, k=2)[0][:, 1])) if len(xyz) > 1 else 1.0
     reach = GROW_SPACINGS * step
-    for iterations in range(1, options.max_iterations + 1):
+    for iterations in range(1, options.max_iterations + 1):  # noqa: B007 (the count is reported)
         support = xyz[sorted(set(clicked) | set(matched))]
         allowed = cKDTree(support).query(xyz)[0] <= reach
         radius = options.tolerance_px or options.tolerance_fraction * projected_spacing(camera, xyz, image_size)

@@ -97,7 +97,7 @@ def _weak(u: dict, state: Any, model: Any, mount: str, names: list[str]) -> list
     """Warnings (logged) for parameters the data barely determine, with the remedy; their names."""
     weak = []
     face = "interface.plane" + (" (in the camera frame)" if mount == "camera" else " (in the COLMAP world, mm)")
-    for k, (name, sig) in enumerate(u["normal_deg"].items()):
+    for name, sig in u["normal_deg"].items():
         if not sig <= WEAK_NORMAL_DEG:  # NaN / inf too: not determined at all
             weak.append(f"normal_deg.{name}")
             log.warning("refine-colmap: the port normal of %s is barely determined by these images (+-%.2g deg, "

@@ -211,7 +211,7 @@ def _parse(data: Any, path: Any) -> Calibration:
             {k: v for k, v in c.items() if k not in known},
             poly,
         )
-    for _, interface, _, listed, _ in parsed:
+    for _, interface, _, _listed, _ in parsed:
         _check_bounds(cams, interface.thickness_mm, path)
     frames = {f: _pose(v["world_from_target"], f"frames.{f}", path) for f, v in data.get("frames", {}).items()}
     stacking = {f: _pose(v["world_from_target"], f"stacking_poses.{f}", path) for f, v in data.get("stacking_poses", {}).items()}
