@@ -91,7 +91,7 @@ def _tuned_blob_detector(image: np.ndarray, count: int, colour: int) -> tuple[cv
     CIRCLE_AREA_RANGE (perspective changes dot areas across the board), which
     drops text, smudges and background clutter of other sizes.
     """
-    small, scale = image, 1.0
+    small = image
     while max(small.shape) >= 2 * CIRCLE_SIZE_PASS_SIDE_PX:  # the wide pass runs on a smaller copy (speed)
         small = cv2.resize(small, (small.shape[1] // 2, small.shape[0] // 2), interpolation=cv2.INTER_AREA)
     sizes = _blob_sizes(small, count, colour) * (image.shape[1] / small.shape[1])

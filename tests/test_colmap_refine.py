@@ -324,9 +324,9 @@ def test_end_to_end_rendered_survey_through_colmap_sift(tmp_path):
     for k in (int(np.argmin(along)), int(np.argmax(along))):
         o = int(np.flatnonzero(model.obs_point == k)[0])
         i = int(names[model.obs_image[o]][5:9]) - 1
-        O, D = sim.model(i).backproject(model.obs_uv[o][None])
+        origin, direction = sim.model(i).backproject(model.obs_uv[o][None])
         world = sim.cam_from_world(i).inverse()
-        ends.append(_hit_relief(world.apply(O), D @ world.R.T, 2000.0, 150.0)[0])
+        ends.append(_hit_relief(world.apply(origin), direction @ world.R.T, 2000.0, 150.0)[0])
     bar = (int(model.point3D_ids[np.argmin(along)]), int(model.point3D_ids[np.argmax(along)]),
            float(np.linalg.norm(ends[0] - ends[1])))
     result = refine_colmap(rec, interface, "camera", scale_bar=bar, max_iterations=30)

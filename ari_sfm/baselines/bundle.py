@@ -83,7 +83,9 @@ class Points:
             uv.append(np.asarray(o.pixels, float))
             slices.append(slice(start, start + m))
             start += m
-        cat = (lambda a, shape: np.concatenate(a) if a else np.zeros(shape))
+        def cat(a: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
+            return np.concatenate(a) if a else np.zeros(shape)
+
         return Points(records, cat(cams, (0,)).astype(int), cat(fr, (0,)).astype(int), cat(xyz, (0, 3)),
                       cat(uv, (0, 2)), tuple(frames), tuple(slices))
 

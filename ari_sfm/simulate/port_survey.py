@@ -16,6 +16,7 @@ Lengths in mm, pixels OpenCV.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -273,8 +274,7 @@ def render_survey_image(truth: SfmTruth, i: int, texture: np.ndarray, origin_mm:
     uv = np.column_stack([u.ravel(), v.ravel()])
     origins, directions = truth.model(i).backproject(uv)
     world_from_cam = truth.cam_from_world(i).inverse()
-    O, D = world_from_cam.apply(origins), directions @ world_from_cam.R.T
-    P = _hit_relief(O, D, depth_mm, amplitude_mm)
+    P = _hit_relief(world_from_cam.apply(origins), directions @ world_from_cam.R.T, depth_mm, amplitude_mm)
     tx = ((P[:, 0] - origin_mm[0]) / TEXTURE_MM_PER_TEXEL).astype(np.float32).reshape(h * k, w * k)
     ty = ((P[:, 1] - origin_mm[1]) / TEXTURE_MM_PER_TEXEL).astype(np.float32).reshape(h * k, w * k)
     sub = cv2.remap(texture, tx, ty, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
@@ -288,8 +288,6 @@ def write_port_survey(out_dir, seed: int = 0, num_images: int = 12, image_size: 
                       progress: bool = False) -> tuple[SfmTruth, Path]:
     """Render a port survey to ``out_dir/images/imageNNNN.png`` with ``out_dir/truth.json`` (the housing,
     the lens intrinsics, every image's cam_from_world, the relief); returns the truth and the images folder."""
-    from pathlib import Path
-
     import cv2
 
     from ari_sfm.io import write_bytes_atomic, write_json_atomic
