@@ -1,7 +1,8 @@
 """The calibration result: the record calibration.json holds, and the models it implies.
 
 Read, validated and written by :mod:`ari_sfm.io.calibration_file` (``load_calibration``,
-``save_calibration``, ``parse_calibration``, ``calibration_to_json``), as the dataset is by :mod:`ari_sfm.io.dataset`."""
+``save_calibration``, ``parse_calibration``, ``calibration_to_json``), as the dataset is by
+:mod:`ari_sfm.io.dataset`."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -101,8 +102,10 @@ class Calibration:
         for w in self.window_list():
             if spec.needs_distance and w.interface.distance_mm is None and w.fixed_distance_mm is None:
                 raise ValueError(f"model {self.model} with interface.distance_mm null needs fixed_distance_mm "
-                                 f"(the distance it was evaluated at){'' if not self.windows else ' for window ' + w.name}")
-        if spec.projection == "polynomial" and (self.pf_world is None or any(c.pf is None for c in self.cameras.values())):
+                                 "(the distance it was evaluated "
+                                 f"at){'' if not self.windows else ' for window ' + w.name}")
+        if spec.projection == "polynomial" and (self.pf_world is None
+                                                or any(c.pf is None for c in self.cameras.values())):
             raise ValueError(f"model {self.model} needs pf_world and every camera's pf polynomial")
 
     @property

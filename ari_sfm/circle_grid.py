@@ -104,13 +104,15 @@ def _tuned_blob_detector(image: np.ndarray, count: int, colour: int) -> tuple[cv
     lo = max(CIRCLE_MIN_AREA_PX, np.pi / 4 * sizes[k] ** 2 / CIRCLE_AREA_RANGE)
     hi = np.pi / 4 * sizes[k + count - 1] ** 2 * CIRCLE_AREA_RANGE
     areas = np.pi / 4 * sizes**2
-    return cv2.SimpleBlobDetector_create(_blob_params(colour, lo, hi)), int(np.count_nonzero((areas >= lo) & (areas <= hi)))
+    kept = int(np.count_nonzero((areas >= lo) & (areas <= hi)))
+    return cv2.SimpleBlobDetector_create(_blob_params(colour, lo, hi)), kept
 
 
 def _blob_sizes(image: np.ndarray, count: int, colour: int) -> np.ndarray:
     """Sorted diameters (px) of the blobs of ``colour`` from CIRCLE_MIN_AREA_PX to area / ``count``."""
     h, w = image.shape
-    wide = cv2.SimpleBlobDetector_create(_blob_params(colour, CIRCLE_MIN_AREA_PX, max(CIRCLE_MIN_AREA_PX + 1, w * h / count)))
+    wide = cv2.SimpleBlobDetector_create(_blob_params(colour, CIRCLE_MIN_AREA_PX,
+                                                      max(CIRCLE_MIN_AREA_PX + 1, w * h / count)))
     return np.sort([k.size for k in wide.detect(image)])
 
 
@@ -220,7 +222,8 @@ def _lattice_order(pixels: np.ndarray, target: Target) -> np.ndarray | None:
     near = np.argsort(d[seed])
     g1 = pixels[near[0]] - pixels[seed]
     g2 = next((pixels[j] - pixels[seed] for j in near[1:8]
-               if abs(np.dot(pixels[j] - pixels[seed], g1)) < 0.7 * np.linalg.norm(g1) * np.linalg.norm(pixels[j] - pixels[seed])), None)
+               if abs(np.dot(pixels[j] - pixels[seed], g1))
+               < 0.7 * np.linalg.norm(g1) * np.linalg.norm(pixels[j] - pixels[seed])), None)
     if g2 is None:
         return None
     coords = {seed: (0, 0)}
@@ -392,6 +395,7 @@ def _perspective_bias(H: np.ndarray, centres_mm: np.ndarray, radius_mm: float) -
 CIRCLE_METHODS: dict[str, Callable[[np.ndarray, Target, np.ndarray, int], np.ndarray]] = {
     "blob": lambda image, target, pixels, colour: pixels,  # OpenCV's blob centres (relabelled)
     "centroid": lambda image, target, pixels, colour: _refine_centroid(image, target, pixels, colour),
-    "centroid_debiased": lambda image, target, pixels, colour: _refine_centroid(image, target, pixels, colour, debias=True),
+    "centroid_debiased": lambda image, target, pixels, colour: _refine_centroid(image, target, pixels, colour,
+                                                                                debias=True),
 }
 CIRCLE_DEFAULT_METHOD = "centroid_debiased"

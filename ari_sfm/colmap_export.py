@@ -427,7 +427,8 @@ def export_colmap(calibration: Calibration | str | Path, out_dir: str | Path,
     rec.update_point_3d_errors()
     write_model(rec, out_dir)
     ply = out_dir / "points3D.ply"
-    log.info("COLMAP model: %d cameras, %d images, %d points -> %s", len(names), len(image_ids), len(point3D_ids), out_dir)
+    log.info("COLMAP model: %d cameras, %d images, %d points -> %s", len(names), len(image_ids), len(point3D_ids),
+             out_dir)
     return ColmapExport(rec, out_dir, virtual, camera_ids, image_ids, point3D_ids, warnings, ply)
 
 
@@ -520,7 +521,8 @@ def summary(export: ColmapExport) -> str:
         how = (f"centre shifted {vc.shift_mm:.4f} mm along the normal, exact" if vc.exact
                else "best pinhole approximation")
         lines.append(f"  {name}: camera {export.camera_ids[name]} {cam.model_name}, {how} "
-                     f"(vs the calibration: rms {vc.rms_px:.2e} px, max {vc.max_px:.2e} px over {vc.num_points} points)")
+                     f"(vs the calibration: rms {vc.rms_px:.2e} px, max {vc.max_px:.2e} px over "
+                     f"{vc.num_points} points)")
     if export.ply_path is not None:
         lines.append(f"  point cloud: {export.ply_path}")
     return "\n".join(lines)

@@ -28,10 +28,10 @@ one image per camera and calibration frame (``<camera>/<frame>``: every image of
 ``cam_from_world``, the rig being static in the calibration's world), with the target corners as
 3D points when observations are at hand; without them one image per camera (``<camera>``) keeps
 the rig's poses. A refine-colmap output (mount camera) is written with COLMAP's camera and image
-ids, every image at its refined real pose with its 2D points, and the refined points. Reading back: the cameras' poses from their images (equal for a static rig; one
-camera that moves, as in a survey, is read at its first image), re-expressed in the first camera's
-frame; cameras whose FLATPORT planes coincide share a window, others get windows of their own (a rig
-behind several walls, DATASET_FORMAT 1.3: each camera's FLATPORT is written from its own window).
+ids, every image at its refined real pose with its 2D points, and the refined points. Reading back: the cameras' poses
+from their images (equal for a static rig; one camera that moves, as in a survey, is read at its first image),
+re-expressed in the first camera's frame; cameras whose FLATPORT planes coincide share a window, others get windows of
+their own (a rig behind several walls, DATASET_FORMAT 1.3: each camera's FLATPORT is written from its own window).
 """
 from __future__ import annotations
 
@@ -178,7 +178,8 @@ def parse_camera_line(line: str, where: Path, line_no: int, units_mm: float) -> 
     except (IndexError, ValueError):
         raise AriSfmError(where, f"{what}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[] {REFRAC_MODEL} ...") from None
     if model not in CAMERA_MODELS:
-        raise AriSfmError(where, f"{what}: camera model {model} is not supported (supported: {', '.join(CAMERA_MODELS)})")
+        raise AriSfmError(where,
+                          f"{what}: camera model {model} is not supported (supported: {', '.join(CAMERA_MODELS)})")
     n_params = CAMERA_MODELS[model]
     rest = items[4:]
     if len(rest) > n_params and rest[n_params] == REFRAC_TOKEN:
@@ -293,7 +294,8 @@ def _refined_images(cal: Calibration, model_dir: Path) -> tuple[dict[str, int], 
         sel = np.flatnonzero(model.obs_image == i)
         pose = poses.get(str(image_id))
         if pose is None:
-            raise AriSfmError(model_dir / "calibration.json", f"refine_colmap.images_cam_from_world has no image {image_id}")
+            raise AriSfmError(model_dir / "calibration.json",
+                              f"refine_colmap.images_cam_from_world has no image {image_id}")
         images.append(_Image(name_of[int(model.camera_ids[model.image_camera[i]])], model.image_names[i],
                              Pose.from_json(pose), model.obs_uv[sel], model.point3D_ids[model.obs_point[sel]]))
     points = {int(pid): model.xyz[k] for k, pid in enumerate(model.point3D_ids.tolist())}

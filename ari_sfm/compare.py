@@ -66,7 +66,8 @@ class Subset:
         """The corner ids in the board's central block."""
         grid = dataset.target.grid
         if grid is None:
-            raise AriSfmError(dataset.rig_path, "--subset center:... needs a planar grid target (checkerboard or charuco)")
+            raise AriSfmError(dataset.rig_path,
+                              "--subset center:... needs a planar grid target (checkerboard or charuco)")
         cols, rows = grid
         if self.cols > cols or self.rows > rows:
             raise AriSfmError(dataset.rig_path, f"--subset {self.cols}x{self.rows} is larger than the board's "
@@ -205,7 +206,8 @@ def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Su
         cal, wall = cals[model]
         fit, all_, res, in_fit = _judge(cal, dataset, fit_ids)
         out.append(ModelResult(model, cal, params_per_camera(cal, bool(options.get("distortion"))), cal.time_s * 1e3,
-                               wall * 1e3, fit, all_, _holdout(cal, holdout, dataset) if holdout else None, res, in_fit))
+                               wall * 1e3, fit, all_, _holdout(cal, holdout, dataset) if holdout else None, res,
+                               in_fit))
     return out
 
 

@@ -19,13 +19,15 @@ def residual_stats(residuals: Iterable[np.ndarray]) -> ResidualStats:
     return ResidualStats.of(residuals)
 
 
-def project_target(calibration: Calibration, camera: str, pose_world_from_target, points_target: np.ndarray, added_mm: float = 0.0) -> np.ndarray:
+def project_target(calibration: Calibration, camera: str, pose_world_from_target, points_target: np.ndarray,
+                   added_mm: float = 0.0) -> np.ndarray:
     """Pixels (M, 2) of target points seen by a camera through the window."""
     X_c = calibration.cameras[camera].cam_from_world.apply(pose_world_from_target.apply(points_target))
     return calibration.projection_model(camera, added_mm).project(X_c)
 
 
-def observation_residuals(calibration: Calibration, observations: Sequence[Observation], target: Target) -> list[tuple[Observation, np.ndarray]]:
+def observation_residuals(calibration: Calibration, observations: Sequence[Observation],
+                          target: Target) -> list[tuple[Observation, np.ndarray]]:
     """(observation, residual (M, 2)) for every observation whose pose the calibration holds."""
     ids_all, xyz_all = target.points_3d()
     lookup = {int(i): k for k, i in enumerate(ids_all)}
@@ -97,8 +99,8 @@ def _held_pose_residuals(x: np.ndarray, start: Pose, calibration: Calibration, m
     return np.where(np.isfinite(r), r, 1e3)
 
 
-def evaluate(calibration: Calibration, observations: str | Path | Dataset | Sequence[Observation], target: Target | None = None,
-             solve_poses: bool = False) -> ResidualStats:
+def evaluate(calibration: Calibration, observations: str | Path | Dataset | Sequence[Observation],
+             target: Target | None = None, solve_poses: bool = False) -> ResidualStats:
     """Reprojection errors (rmse_px, mae_px, max_px, count, per_camera) on observations.
 
     ``observations`` is an observations.json path, a Dataset, or loaded records.

@@ -19,7 +19,8 @@ class Outlier:
     added_mm: float | None = None
 
     def to_json(self) -> dict:
-        out = {"camera": self.camera, "set": self.set, "frame": self.frame, "id": self.id, "residual_px": self.residual_px}
+        out = {"camera": self.camera, "set": self.set, "frame": self.frame, "id": self.id,
+               "residual_px": self.residual_px}
         if self.added_mm is not None:
             out["added_mm"] = self.added_mm
         return out

@@ -435,7 +435,8 @@ def window_depth(calibration: Calibration, points: np.ndarray, window=None) -> t
     if plane is not None:
         return plane, w.interface.distance_mm is None
     first = calibration.cameras[w.cameras[0]].cam_from_world.inverse().t
-    return (float(n @ first + 0.5 * (np.median(points @ n) - n @ first)) if len(points) else float(n @ first) + 50.0), True
+    return (float(n @ first + 0.5 * (np.median(points @ n) - n @ first)) if len(points)
+            else float(n @ first) + 50.0), True
 
 
 @styled

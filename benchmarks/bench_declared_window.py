@@ -103,8 +103,9 @@ def main() -> None:
                 continue
             q = cal.quality
             exact = "" if q.exact_robust_rmse_px is None else f", exact re-evaluation {q.exact_robust_rmse_px:.2f} px"
-            print(f"{seed} plane turned 10 deg, held, fixed focal, {model}: rmse {cal.residuals.rmse_px:.2f} px, quality "
-                  f"ok {q.ok}, robust rmse {q.robust_rmse_px:.2f} px vs the floor {q.floor_rmse_px:.3f} px{exact}, "
+            print(f"{seed} plane turned 10 deg, held, fixed focal, {model}: rmse {cal.residuals.rmse_px:.2f} px, "
+                  f"quality ok {q.ok}, robust rmse {q.robust_rmse_px:.2f} px "
+                  f"vs the floor {q.floor_rmse_px:.3f} px{exact}, "
                   f"starts {', '.join(q.starts)} ({s:.1f} s)", flush=True)
 
 

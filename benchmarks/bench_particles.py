@@ -74,9 +74,11 @@ def openptv(exp, calibration_path: Path, folder: Path, volume: Volume) -> tuple[
     cals = []
     for k in range(1, C + 1):
         c = OptvCalibration()
-        c.from_file(str(folder / "cal" / f"cam{k}.tif.ori").encode(), str(folder / "cal" / f"cam{k}.tif.addpar").encode())
+        c.from_file(str(folder / "cal" / f"cam{k}.tif.ori").encode(),
+                    str(folder / "cal" / f"cam{k}.tif.addpar").encode())
         cals.append(c)
-    corners = np.array([[x, y, z] for x in (volume.min_mm[0], volume.max_mm[0]) for y in (volume.min_mm[1], volume.max_mm[1])
+    corners = np.array([[x, y, z] for x in (volume.min_mm[0], volume.max_mm[0])
+                        for y in (volume.min_mm[1], volume.max_mm[1])
                         for z in (volume.min_mm[2], volume.max_mm[2])])
     box = target_from_world.apply(corners)  # OpenPTV's world: the body frame f000
     vpar = VolumeParams()
@@ -105,7 +107,8 @@ def openptv(exp, calibration_path: Path, folder: Path, volume: Volume) -> tuple[
             orders.append(order)
         flat = [MatchedCoords(img_pts[k], cpar, cals[k]) for k in range(C)]
         _, sorted_corresp, _ = correspondences(img_pts, flat, cals, vpar, cpar)
-        corresp = np.concatenate([np.asarray(sc) for sc in sorted_corresp], axis=1) if sorted_corresp else np.empty((C, 0), int)
+        corresp = (np.concatenate([np.asarray(sc) for sc in sorted_corresp], axis=1) if sorted_corresp
+                   else np.empty((C, 0), int))
         n_cams = (corresp >= 0).sum(axis=0)
         corresp = corresp[:, n_cams >= 3]  # the same rule as ours: >= 3 cameras
         pos_flat = np.array([flat[k].get_by_pnrs(np.ascontiguousarray(corresp[k], dtype=np.int64)) for k in range(C)])
@@ -147,7 +150,8 @@ def dask_speedup(folder: Path, frames: int) -> None:
     for workers in (1, 2):
         t0 = time.perf_counter()
         with dask.config.set({"distributed.nanny.pre-spawn-environ": local_worker_environ()}), \
-                LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+                LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                             dashboard_address=None) as cluster, \
                 Client(cluster) as client:  # as engine.dask_client starts it
             client.run(_warm_up)
             started = time.perf_counter() - t0

@@ -64,7 +64,8 @@ def _points_and_pixels(cal: Calibration, n: int, seed: int = 0) -> tuple[np.ndar
             with np.errstate(invalid="ignore"):
                 uv = cal.project_world(c, X)
             w, h = cam.image_size
-            inside = np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+            inside = (np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0)
+                      & (uv[:, 1] <= h - 1))
             uv[~inside] = np.nan
             tracks[c] = uv
         keep = sum(np.isfinite(t[:, 0]) for t in tracks.values()) >= 2
@@ -142,7 +143,8 @@ def main() -> None:
 
     print(f"triangulation of the same exact-physics pixels (noise {args.noise_px} px), median of {args.repeats} runs, "
           f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}")
-    print(f"{'method':32s} {'cams':>4s} {'points':>7s} {'time ms':>9s} {'points/s':>11s} {'time / cv2':>10s} {'RMS err mm':>11s}")
+    print(f"{'method':32s} {'cams':>4s} {'points':>7s} {'time ms':>9s} {'points/s':>11s} {'time / cv2':>10s} "
+          f"{'RMS err mm':>11s}")
     for what, cams, n, t, t_cv2, err in rows:
         print(f"{what:32s} {cams:4d} {n:7d} {t * 1e3:9.2f} {n / t:11.0f} {t / t_cv2:10.2f} {err:11.2e}")
     print("time / cv2: relative to cv2.triangulatePoints on the same points' pixels (4 cameras: each point from "

@@ -23,8 +23,8 @@ holds *the same problem*:
 
 The normal equations are formed per camera in one compiled pass
 (:func:`~ari_sfm.factors.view_kernels.accumulate_views`: the chain rule and each view's
-``A^T A`` of its rows ``[J_frame J_global r]``) and solved by :mod:`~ari_sfm.factors.schur`; :mod:`~ari_sfm.factors.levenberg_marquardt`
-drives the iterations (this class is its :class:`LMProblem`); factors a user
+``A^T A`` of its rows ``[J_frame J_global r]``) and solved by :mod:`~ari_sfm.factors.schur`;
+:mod:`~ari_sfm.factors.levenberg_marquardt` drives the iterations (this class is its :class:`LMProblem`); factors a user
 added to the graph join through :mod:`~ari_sfm.factors.extra_factors`.
 
 It is built from what RigGraph.build selected (:meth:`RigGraph.packed_factors`: each view's
@@ -166,7 +166,8 @@ class VectorizedProblem:
         self.frame_names = list(frame_names)
         self.n_params = int(n_params)
         self.base_state = base_state
-        self.camera_windows = [0] * len(self.camera_names) if camera_windows is None else [int(w) for w in camera_windows]
+        self.camera_windows = ([0] * len(self.camera_names) if camera_windows is None
+                               else [int(w) for w in camera_windows])
         self.n_windows = max(self.camera_windows) + 1
         self.estimate_distance = bool(estimate_distance)
         self.huber_px = huber_px
@@ -175,7 +176,8 @@ class VectorizedProblem:
         self.iterations = 0
         self.report: LMReport | None = None
         self._error_cache: tuple[Variables, float] | None = None
-        self._system_cache: tuple[Variables, NormalEquations] | None = None  # optimize's last linearisation, if at self.x
+        # optimize's last linearisation, if at self.x
+        self._system_cache: tuple[Variables, NormalEquations] | None = None
         self._transforms_cache: tuple[Variables, _Transforms] | None = None
         self._pack(views)
         self._extra = ExtraFactors(self, extra_factors)

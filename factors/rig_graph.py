@@ -87,7 +87,8 @@ def held_intrinsics(dataset, fix: bool) -> tuple[list[str], dict[str, float]]:
         return [], {}
     cams = dataset.cameras
     fixed = [n for n in dataset.camera_names if cams[n].K is not None]
-    focal = {n: float(cams[n].focal_px) for n in dataset.camera_names if cams[n].K is None and cams[n].focal_px is not None}
+    focal = {n: float(cams[n].focal_px)
+             for n in dataset.camera_names if cams[n].K is None and cams[n].focal_px is not None}
     if not fixed and not focal:
         raise AriSfmError(dataset.rig_path, "fix_intrinsics needs a K or focal_px hint for at least one camera "
                                             "(cameras.<name>.K or cameras.<name>.focal_px)")

@@ -258,7 +258,8 @@ def test_no_board_or_wrong_grid_returns_none(views):
     cut = image.copy()
     cut[:, int(exact[:, 0].mean()):] = 128
     assert detect_corners(cut, ASYMMETRIC) is None
-    assert detect_corners(image, Target(type="circles", circle_grid=(5, 11), spacing_mm=10.0, layout="asymmetric")) is None
+    assert detect_corners(image,
+                          Target(type="circles", circle_grid=(5, 11), spacing_mm=10.0, layout="asymmetric")) is None
     with pytest.raises(ValueError, match="unknown circles method"):
         detect_corners(image, ASYMMETRIC, method="nope")
 

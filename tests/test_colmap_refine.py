@@ -541,7 +541,8 @@ def test_sigmas_match_the_spread_over_noise_draws():
     for seed in range(6):
         truth = port_survey(seed=0, num_images=8, num_points=500, focal_px=1300, area_mm=(1600, 1100), sigma_px=0.5)
         rng = np.random.default_rng(100 + seed)
-        truth = __import__("dataclasses").replace(truth, obs_uv=truth.obs_uv_exact + rng.normal(0, 0.5, truth.obs_uv.shape))
+        truth = __import__("dataclasses").replace(truth,
+                                                  obs_uv=truth.obs_uv_exact + rng.normal(0, 0.5, truth.obs_uv.shape))
         rec = adapter.reconstruction_from_arrays(list(truth.params), truth.image_size, truth.sensor_from_rig,
                                                  truth.rig_from_world, truth.image_camera, truth.image_frame, truth.xyz,
                                                  truth.obs_image, truth.obs_point, truth.obs_uv)
@@ -594,7 +595,8 @@ def run_cli(folder, tmp_path, *extra, window=None, out=None):
 def one_line_error(res, *words):
     assert res.exit_code == 1, res.output
     last = res.output.strip().splitlines()[-1]
-    assert last.startswith("error: ") and "Traceback" not in res.output and "ARI_SFM_DEBUG" not in res.output, res.output
+    assert last.startswith("error: ") and "Traceback" not in res.output, res.output
+    assert "ARI_SFM_DEBUG" not in res.output, res.output
     for w in words:
         assert w in last, last
     return last

@@ -381,7 +381,8 @@ def test_batched_kernel_with_per_point_thickness_is_the_model(kernel, cls, disto
         J = kernel(X, params, 2.0 * normal, d, 1.5168, medium, 30.0, True, n_params)
         for t in (50.0, 70.0):
             rows = d == t
-            ref = cls(PinholeModel.from_params(params), 2.0 * normal, t, 1.5168, medium, 30.0).project_with_jacobians(X[rows])
+            ref = cls(PinholeModel.from_params(params), 2.0 * normal, t, 1.5168,
+                      medium, 30.0).project_with_jacobians(X[rows])
             for name in ref._fields:
                 want = getattr(ref, name)[..., :n_params] if name == "J_params" else getattr(ref, name)
                 np.testing.assert_allclose(getattr(J, name)[rows], want, rtol=1e-12, atol=1e-12 * np.abs(want).max(),

@@ -4,8 +4,8 @@
   the excess is rho, and a view factor's residual (rows and excess row) has 0.5 |.|^2 = sum of rho;
 - the gradient of the linearisation equals a central difference of the error, for the numpy
   backend (VectorizedProblem.linearize / error) and for the GTSAM CustomFactors (graph.linearize
-  gradientAtZero / graph.error; both errors equal), at paper_single's initial state with corners on both sides of the threshold
-  (square-root IRLS weights gave twice the gradient of their error for the outliers);
+  gradientAtZero / graph.error; both errors equal), at paper_single's initial state with corners on both sides of the
+  threshold (square-root IRLS weights gave twice the gradient of their error for the outliers);
 - refine-colmap's GTSAM factor's error is its numpy cost (huber_cost).
 """
 from __future__ import annotations

@@ -97,16 +97,20 @@ def test_sfm_bad_inputs_one_line(tmp_path):
     r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "noscale.yaml"),
                              "-o", str(tmp_path / "o")])
     _one_error_line(r, "noscale.yaml", "no scale", "--baseline")
-    r = runner.invoke(main, ["sfm", str(tmp_path / "empty"), "--window", str(tmp_path / "W.yaml"), "-o", str(tmp_path / "o")])
+    r = runner.invoke(main,
+                      ["sfm", str(tmp_path / "empty"), "--window", str(tmp_path / "W.yaml"), "-o", str(tmp_path / "o")])
     _one_error_line(r, "empty", "no images")
-    r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "none.yaml"), "-o", str(tmp_path / "o")])
+    r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "none.yaml"), "-o",
+                             str(tmp_path / "o")])
     _one_error_line(r, "none.yaml", "not found")
-    r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "W.yaml"), "-o", str(tmp_path / "imgs")])
+    r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "W.yaml"), "-o",
+                             str(tmp_path / "imgs")])
     _one_error_line(r, "imgs", "images folder")
     r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "W.yaml"),
                              "-o", str(tmp_path / "imgs" / "out")])
     _one_error_line(r, "images folder")
-    r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "W.yaml"), "-o", str(tmp_path / "o"),
+    r = runner.invoke(main,
+                      ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "W.yaml"), "-o", str(tmp_path / "o"),
                              "--baseline", "i0.png", "i1.png", "100"])
     _one_error_line(r, "W.yaml", "give it once")
     r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "noscale.yaml"),

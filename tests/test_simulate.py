@@ -110,7 +110,8 @@ def test_noise_is_gaussian_with_sigma(scenes):
     assert np.std(np.concatenate(stacking)) > 0.04  # stacking is noisy too
 
 
-@pytest.mark.parametrize("name", ["paper_single", "paper_single_perpendicular", "binocular", "binocular_underwater", "arc4"])
+@pytest.mark.parametrize("name",
+                         ["paper_single", "paper_single_perpendicular", "binocular", "binocular_underwater", "arc4"])
 def test_stacking_corners_move_on_lines_through_expansion_center(scenes, name):
     """The physics of the stacking method: per corner, the 6 images lie on one line through K n_c / n_c[2]."""
     scene = scenes(name)
@@ -167,7 +168,8 @@ def test_paper_single_geometry(scenes):
     for o in calib:  # 300-500 mm away, tilted 8-35 deg from the line of sight
         pose = Pose.from_json(scene.truth["frames"][o.frame]["world_from_target"])
         t = scene.dataset.target
-        centre = pose.apply(np.array([[(t.inner_corners[0] - 1) * t.square_mm / 2, (t.inner_corners[1] - 1) * t.square_mm / 2, 0.0]]))[0]
+        centre = pose.apply(np.array([[(t.inner_corners[0] - 1) * t.square_mm / 2,
+                                       (t.inner_corners[1] - 1) * t.square_mm / 2, 0.0]]))[0]
         assert 295 < centre[2] < 505
         assert 7.9 < angle_between_deg(pose.R[:, 2], centre) < 35.1
     corners = np.concatenate([o.pixels for o in calib])  # coverage of the field
@@ -224,7 +226,8 @@ def test_arc4_partial_visibility_and_outside_expansion_center(scenes):
         outside.append(not (0 <= u < w and 0 <= v < h))
     assert outside[0] or outside[-1]  # an outer camera
     assert 18.0 < angle_between_deg(scene.truth["interface"]["normal_world"],
-                                    np.mean([Pose.from_json(c["cam_from_world"]).R[2] for c in scene.truth["cameras"].values()], axis=0)) < 22.0
+                                    np.mean([Pose.from_json(c["cam_from_world"]).R[2]
+                                             for c in scene.truth["cameras"].values()], axis=0)) < 22.0
     assert len({o.camera for o in scene.dataset.select("stacking")}) >= 2
 
 

@@ -91,7 +91,8 @@ def small_survey():
 
 
 def _true_centres(truth, model) -> np.ndarray:
-    return np.array([-(truth.rig_from_world[truth.image_frame[i - 1]].R.T @ truth.rig_from_world[truth.image_frame[i - 1]].t)
+    return np.array([-(truth.rig_from_world[truth.image_frame[i - 1]].R.T
+                       @ truth.rig_from_world[truth.image_frame[i - 1]].t)
                      for i in model.image_ids])
 
 
@@ -175,8 +176,9 @@ def _run_folder(tmp_path: Path) -> Path:
     out = tmp_path / "bino"
     out.mkdir()
     shutil.copy(ROOT / "tests" / "data" / "calibration_e6e8196" / "exact.json", out / "calibration.json")
-    (out / "run.json").write_text(json.dumps({"format": "ari-sfm-run/1", "dataset": str(ROOT / "datasets" / "binocular"),
-                                              "calibration": "calibration.json"}))
+    run = {"format": "ari-sfm-run/1", "dataset": str(ROOT / "datasets" / "binocular"),
+           "calibration": "calibration.json"}
+    (out / "run.json").write_text(json.dumps(run))
     return out
 
 

@@ -208,7 +208,8 @@ def test_window_plane_factor_jacobians():
     from ari_sfm.factors.window_plane import plane_errors
 
     rng = np.random.default_rng(3)
-    plane = WindowPlane("f", np.array([0.1, -0.2, 0.97]) / np.linalg.norm([0.1, -0.2, 0.97]), np.array([5.0, -3.0, 40.0]))
+    plane = WindowPlane("f", np.array([0.1, -0.2, 0.97]) / np.linalg.norm([0.1, -0.2, 0.97]),
+                        np.array([5.0, -3.0, 40.0]))
     values = gtsam.Values()
     values.insert(K_.N, gtsam.Unit3(np.array([0.05, 0.1, 1.0])))
     values.insert(K_.X(0), gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.3), rng.normal(size=3) * 100))

@@ -124,7 +124,8 @@ def column_groups(pattern: np.ndarray) -> list[np.ndarray]:
     return [np.array(g) for g in groups]
 
 
-def numeric_jacobian(fun: Callable[[np.ndarray], np.ndarray], pattern: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+def numeric_jacobian(fun: Callable[[np.ndarray], np.ndarray],
+                     pattern: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """A dense forward-difference Jacobian of ``fun`` using the column grouping of ``pattern``.
 
     Step per column: sqrt(machine eps) * max(1, |x_j|) (scipy's '2-point' rule).
@@ -227,7 +228,8 @@ def start_bundle(dataset: Dataset, distortion: bool, n_glob: int) -> tuple[RigBu
     """Zhang per camera, the rig joined in camera 0's world, the calibration corners packed."""
     names = tuple(dataset.camera_names)
     zhang = zhang_cameras(dataset, distortion)
-    cam_from_world, world_from_target = join_rig(names, {n: z.cam_from_target for n, z in zhang.items()}, dataset.rig_path)
+    cam_from_world, world_from_target = join_rig(names, {n: z.cam_from_target for n, z in zhang.items()},
+                                                 dataset.rig_path)
     frames = tuple(sorted(world_from_target))
     points = Points.build(dataset, dataset.select("calibration"), names, frames)
     bundle = RigBundle(points, names, 9 if distortion else 4, n_glob, tuple(cam_from_world[n] for n in names),

@@ -48,7 +48,8 @@ FOCAL_BOUNDS = (0.1, 100.0)  # x the image's longer side
 FOCAL_SWEEP = np.geomspace(0.25, 25.0, 41)  # x the image's longer side: the focal lengths tried without a hint
 DISTINCT_DEG = 5.0  # starts whose rotations differ less and whose focal lengths differ less than
 DISTINCT_LOG_FOCAL = 0.2  # 20 % are one start
-CLICK_NOISE_PX = 3.0  # clicks are good to a few pixels: sweep focal lengths fitting them this close to the best are tried
+# clicks are good to a few pixels: sweep focal lengths fitting them this close to the best are tried
+CLICK_NOISE_PX = 3.0
 MAX_SPREAD = 5  # at most this many of them
 UNPROJECTABLE_PX = 1e4  # residual of a point the model cannot project (behind the camera or the window)
 

@@ -108,7 +108,8 @@ class GtsamRefinement:
             p = values.atPose3(key)
             return Pose(p.rotation().matrix(), np.asarray(p.translation(), float))
 
-        frames = tuple(pose(_frame_key(f)) if lay.frames[f, 0] >= 0 else p for f, p in enumerate(template.rig_from_world))
+        frames = tuple(pose(_frame_key(f)) if lay.frames[f, 0] >= 0 else p
+                       for f, p in enumerate(template.rig_from_world))
         sensors = tuple(pose(_sensor_key(int(c))) if lay.sensors[c, 0] >= 0 else s
                         for c, s in zip(m.image_camera, template.sensor_from_rig))
         params = []
@@ -256,7 +257,8 @@ class GtsamRefinement:
         bar = self.bar
 
         def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-            xyz = {bar.a: np.asarray(values.atPoint3(_point_key(bar.a))), bar.b: np.asarray(values.atPoint3(_point_key(bar.b)))}
+            xyz = {bar.a: np.asarray(values.atPoint3(_point_key(bar.a))),
+                   bar.b: np.asarray(values.atPoint3(_point_key(bar.b)))}
             e = np.array([bar.error(xyz)])
             if H is not None:
                 J = bar.jacobian(xyz)

@@ -120,7 +120,8 @@ def _units_mm(model: adapter.ColmapModel, units_mm: float | None, scale_bar: tup
         where = {int(p): k for k, p in enumerate(model.point3D_ids)}
         missing = [int(i) for i in (a, b) if int(i) not in where]
         if missing:
-            raise AriSfmError(path, f"scale_bar.point3D_ids: {', '.join(map(str, missing))} not in the model's points3D")
+            raise AriSfmError(path,
+                              f"scale_bar.point3D_ids: {', '.join(map(str, missing))} not in the model's points3D")
         if int(a) == int(b):
             raise AriSfmError(path, "scale_bar.point3D_ids: the two ids are the same point")
         length = float(np.linalg.norm(model.xyz[where[int(a)]] - model.xyz[where[int(b)]]))
@@ -183,7 +184,8 @@ def read_model(path: Path) -> Any:
 
     if not path.is_dir():
         raise AriSfmError(path, "not a COLMAP model folder" + (" (it is a file)" if path.exists() else " (missing)"))
-    text = sum((path / f"{n}.txt").exists() for n in MODEL_FILES) > sum((path / f"{n}.bin").exists() for n in MODEL_FILES)
+    text = (sum((path / f"{n}.txt").exists() for n in MODEL_FILES)
+            > sum((path / f"{n}.bin").exists() for n in MODEL_FILES))
     kind = "txt" if text else "bin"
     for n in MODEL_FILES:
         f = path / f"{n}.{kind}"
@@ -212,7 +214,8 @@ def read_model(path: Path) -> Any:
 
 def _check_redundancy(model: adapter.ColmapModel, path: Any) -> None:
     """Refuse a model with too few observations for its unknowns (it would "converge" to 0 px)."""
-    unknowns = sum(len(p) for p in model.colmap_params) + 6 * (len(model.frame_ids) - 1) + 3 + 3 * len(model.point3D_ids)
+    unknowns = (sum(len(p) for p in model.colmap_params) + 6 * (len(model.frame_ids) - 1) + 3
+                + 3 * len(model.point3D_ids))
     coordinates = 2 * len(model.obs_point)
     if coordinates < MIN_REDUNDANCY * unknowns:
         raise AriSfmError(path, f"too few observations to refine: {len(model.point3D_ids)} points3D seen "
@@ -235,7 +238,8 @@ def _check_finite(model: adapter.ColmapModel, path: Any) -> None:
     if not np.all(np.isfinite(model.obs_uv)):
         raise AriSfmError(path, "an image has a non-finite keypoint observed by a point3D")
     size = np.array(model.image_sizes, float)[model.image_camera[model.obs_image]]  # (M, 2) width, height
-    outside = np.any((model.obs_uv < -0.5 - EDGE_TOLERANCE_PX) | (model.obs_uv > size - 0.5 + EDGE_TOLERANCE_PX), axis=1)
+    outside = np.any((model.obs_uv < -0.5 - EDGE_TOLERANCE_PX) | (model.obs_uv > size - 0.5 + EDGE_TOLERANCE_PX),
+                     axis=1)
     if outside.any():
         k = int(np.argmax(outside))
         i = int(model.obs_image[k])
@@ -832,8 +836,9 @@ def _state_reconstruction(rec: Any, model: adapter.ColmapModel, problem: Refract
 
 def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camera", model: str = "exact",
                   units_mm: float | None = None, scale_bar: tuple[int, int, float] | None = None,
-                  baseline: tuple[str | int, str | int, float] | None = None, huber_px: float | None = HUBER_PX, max_iterations: int = MAX_ITERATIONS,
-                  distances_mm: tuple[float, ...] | None = None, approximation: str = "opencv",
+                  baseline: tuple[str | int, str | int, float] | None = None, huber_px: float | None = HUBER_PX,
+                  max_iterations: int = MAX_ITERATIONS, distances_mm: tuple[float, ...] | None = None,
+                  approximation: str = "opencv",
                   backend: str = "numpy", progress: bool = False,
                   path: Any = "reconstruction", plane_path: Any = "interface.plane",
                   window_path: Any = "WINDOW.yaml") -> RefineResult:
@@ -906,7 +911,8 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     first = _first_block(cmodel, virtual, mount)
     if first is not None:  # a long chain: the start slides outward from a middle block (the middle start distance)
         h = candidates[(len(candidates) - 1) // 2] if len(candidates) > 1 else candidates[0]
-        whole = _convert(cmodel, problem, virtual if plane is not None else _with_distance(cmodel, virtual, mount, h), +1)
+        whole = _convert(cmodel, problem, virtual if plane is not None else _with_distance(cmodel, virtual, mount, h),
+                         +1)
 
         def block_solver(m: adapter.ColmapModel, held: np.ndarray | None) -> Solver:
             """The first block (``held`` None): the distance held, the normal free unless declared; a later
@@ -953,7 +959,8 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     result = run(start)
     iterations = (result.iterations + sum(c["iterations"] for c in search) + (pre.iterations if pre else 0)
                   + sum(b["iterations"] for b in blocks))
-    linearizations = result.linearizations + (pre.linearizations if pre else 0) + sum(b["linearizations"] for b in blocks)
+    linearizations = result.linearizations + (pre.linearizations
+                                              if pre else 0) + sum(b["linearizations"] for b in blocks)
     restarts = []
     collapsed = estimate_distance and plane is None and _collapsed(result.state, problem, candidates)
     for _, other, _ in (others if collapsed else []):  # the distance ran toward 0: the other starts, lowest cost wins
@@ -977,7 +984,8 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     sigmas = uncertainty(solver, state, names, result.system)
     if collapsed and _collapsed(state, problem, candidates):  # still at ~0 after the restarts: say so, name it
         ran = (["distance_mm.world"] if mount == "world" else
-               [f"distance_mm.{names[c]}" for c, d in enumerate(state.distances) if d < DISTANCE_COLLAPSE * min(candidates)])
+               [f"distance_mm.{names[c]}"
+                for c, d in enumerate(state.distances) if d < DISTANCE_COLLAPSE * min(candidates)])
         sigmas = replace(sigmas, weak=sigmas.weak + tuple(w for w in ran if w not in sigmas.weak))
         log.warning("refine-colmap: the port distance ran to %.3g mm from every start (%s mm): these images do not "
                     "determine it, and it follows the scale; declare a scale_bar or check units_mm, or declare the "

@@ -76,7 +76,8 @@ def initialise_camera(dataset: Dataset, name: str, distortion: bool = False,
     views = [o for o in dataset.select("calibration", name) if len(o.ids) >= 6]
     need = MIN_VIEWS if dataset.target.is_planar() else MIN_VIEWS_3D
     if len(views) < need:
-        raise AriSfmError(dataset.rig_path, f"camera {name} has {len(views)} calibration views with >= 6 corners (need >= {need})")
+        raise AriSfmError(dataset.rig_path,
+                          f"camera {name} has {len(views)} calibration views with >= 6 corners (need >= {need})")
     stacking = dataset.select("stacking", name)
     firsts = [min((o for o in stacking if o.frame == pose), key=lambda o: o.added_mm or 0.0)
               for pose in sorted({o.frame for o in stacking})]  # each stacking pose's thinnest view: its PnP
@@ -98,10 +99,12 @@ def initialise_camera(dataset: Dataset, name: str, distortion: bool = False,
         normal = normal_from_expansion_center(expansion.center_px, zhang.K)
     poses: dict[str, Pose] = {}
     for frame, gen in zhang.cam_from_target.items():
-        poses[frame] = real_cam_from_target(gen, normal if normal is not None else np.zeros(3), _shift(iface.thickness_mm, iface.index))
+        poses[frame] = real_cam_from_target(gen, normal if normal is not None else np.zeros(3),
+                                            _shift(iface.thickness_mm, iface.index))
     for first in firsts:
         shift = _shift(iface.thickness_mm + (first.added_mm or 0.0), iface.index)
-        poses[first.frame] = real_cam_from_target(zhang.also[first.frame], normal if normal is not None else np.zeros(3),
+        poses[first.frame] = real_cam_from_target(zhang.also[first.frame],
+                                                  normal if normal is not None else np.zeros(3),
                                                   shift)
     return CameraInit(name, zhang.K, zhang.dist, expansion, normal, poses, zhang.rms_px)
 
@@ -168,7 +171,8 @@ def initialise_rig(dataset: Dataset, distortion: bool = False, workers: int | No
     names = dataset.camera_names
     cams = _initialise_cameras(dataset, names, distortion, workers, fix_intrinsics, centred)
     # Camera graph: edges weighted by the number of shared frames (calibration and stacking).
-    cam_from_world, world_from_target = join_rig(names, {n: c.cam_from_target for n, c in cams.items()}, dataset.rig_path)
+    cam_from_world, world_from_target = join_rig(names, {n: c.cam_from_target for n, c in cams.items()},
+                                                 dataset.rig_path)
     window_normals, observed = [], []
     for window in dataset.window_list():
         normals = [cam_from_world[n].R.T @ cams[n].normal_cam for n in window.cameras if cams[n].normal_cam is not None]

@@ -43,7 +43,8 @@ def object_points(target: Target, ids: np.ndarray) -> np.ndarray:
             raise KeyError(int(ids[np.flatnonzero((ids < 0) | (ids >= n))[0]]))
         return xyz[ids]
     pos = np.searchsorted(all_ids, ids)
-    unknown = (pos >= len(all_ids)) | (all_ids[np.minimum(pos, len(all_ids) - 1)] != ids) if len(all_ids) else ids == ids
+    unknown = ((pos >= len(all_ids)) | (all_ids[np.minimum(pos, len(all_ids) - 1)] != ids) if len(all_ids)
+               else ids == ids)
     if unknown.any():
         raise KeyError(int(ids[np.flatnonzero(unknown)[0]]))
     return xyz[pos]

@@ -112,4 +112,5 @@ def _check_camera_distances(data: Mapping, iface: Mapping, distance: float, came
         h = distance - (float(normal @ (-R.T @ t)) - reference)  # camera centre to the near face along the normal
         if not 0.0 < h <= MAX_LENGTH_MM:
             raise AriSfmError(path, f"{where} {distance:g} puts camera {name} {h:.4g} mm from the "
-                                    f"window's near face (must be in front of it, 0 < distance <= {MAX_LENGTH_MM:g} mm)")
+                                    "window's near face (must be in front of it, "
+                                    f"0 < distance <= {MAX_LENGTH_MM:g} mm)")

@@ -142,7 +142,8 @@ def _pose(d: Any, what: str, path: Any) -> Pose:
         raise AriSfmError(path, f"{what}.R is not a rotation matrix")
     t = _finite(d["t"], (3,), f"{what}.t", path)
     if float(np.max(np.abs(t))) > MAX_POSE_TRANSLATION_MM:
-        raise AriSfmError(path, f"{what}.t: {float(np.max(np.abs(t))):.3g} mm is beyond {MAX_POSE_TRANSLATION_MM:.0e} mm "
+        raise AriSfmError(path,
+                          f"{what}.t: {float(np.max(np.abs(t))):.3g} mm is beyond {MAX_POSE_TRANSLATION_MM:.0e} mm "
                                 "(1000 km): not a pose of this rig")
     return Pose(R, t)
 
@@ -173,7 +174,8 @@ def _parse(data: Any, path: Any) -> Calibration:
     if "interfaces" in data:
         if not isinstance(data["interfaces"], dict) or not data["interfaces"]:
             raise AriSfmError(path, "interfaces must be a non-empty object (window name -> window)")
-        parsed = [(str(name), *_parse_window(w, f"interfaces.{name}", spec, path)) for name, w in data["interfaces"].items()]
+        parsed = [(str(name), *_parse_window(w, f"interfaces.{name}", spec, path))
+                  for name, w in data["interfaces"].items()]
     else:
         parsed = [("window", *_parse_window(data["interface"], "interface", spec, path))]
     cams = {}
@@ -191,7 +193,8 @@ def _parse(data: Any, path: Any) -> Calibration:
             if key not in c:
                 raise AriSfmError(path, f"cameras.{name}.{key} is missing (model {model} stores its parameters there)")
         poly = None
-        if spec.projection == "polynomial":  # the polynomial is the model: validate it here, not at the first projection
+        # the polynomial is the model: validate it here, not at the first projection
+        if spec.projection == "polynomial":
             try:
                 poly = PolynomialMap.from_json(c["pf"])
             except (KeyError, TypeError, ValueError) as exc:
@@ -214,7 +217,8 @@ def _parse(data: Any, path: Any) -> Calibration:
     for _, interface, _, _listed, _ in parsed:
         _check_bounds(cams, interface.thickness_mm, path)
     frames = {f: _pose(v["world_from_target"], f"frames.{f}", path) for f, v in data.get("frames", {}).items()}
-    stacking = {f: _pose(v["world_from_target"], f"stacking_poses.{f}", path) for f, v in data.get("stacking_poses", {}).items()}
+    stacking = {f: _pose(v["world_from_target"], f"stacking_poses.{f}", path)
+                for f, v in data.get("stacking_poses", {}).items()}
     reserved = {"format", "model", "interface", "interfaces", "cameras", "frames", "stacking_poses", "residuals",
                 "time_s", "target", "fixed_distance_mm", "uncertainty", "outliers", "pf_world", "quality", "optimizer",
                 "stages"}
@@ -291,7 +295,8 @@ def _parse_window(iface: Any, where: str, spec, path: Any) -> tuple[Interface, n
     if fixed is not None:
         fixed = float(fixed)
         if not math.isfinite(fixed):
-            raise AriSfmError(path, f"{where}.fixed_distance_mm must be a finite number (got {iface['fixed_distance_mm']!r})")
+            raise AriSfmError(path,
+                              f"{where}.fixed_distance_mm must be a finite number (got {iface['fixed_distance_mm']!r})")
     return Interface(thickness, index, medium, None if distance is None else float(distance)), normal, listed, fixed
 
 
@@ -304,7 +309,8 @@ def _windows(parsed: list, data: dict, cams: dict[str, CameraCalibration], path:
         if fixed is not None:
             fixed = float(fixed)
             if not math.isfinite(fixed):
-                raise AriSfmError(path, f"fixed_distance_mm must be a finite number (got {data['fixed_distance_mm']!r})")
+                raise AriSfmError(path,
+                                  f"fixed_distance_mm must be a finite number (got {data['fixed_distance_mm']!r})")
         return (WindowCalibration(name, interface, normal, tuple(cams), fixed),)
     out = []
     for name, interface, normal, listed, fixed in parsed:

@@ -187,8 +187,10 @@ def load_particle_dataset(path: str | Path) -> ParticleDataset:
         warn_unknown_keys(v, VOLUME_KEYS, rig_path, "particles.volume_mm")
         frame = as_name(v.get("frame", next(iter(cameras))), rig_path, "particles.volume_mm.frame")
         # a camera's frame, or (1.3) a calibration frame's target coordinates: resolved with the calibration
-        lo = as_float_array(require(v, "min", rig_path, "particles.volume_mm"), rig_path, "particles.volume_mm.min", (3,))
-        hi = as_float_array(require(v, "max", rig_path, "particles.volume_mm"), rig_path, "particles.volume_mm.max", (3,))
+        lo = as_float_array(require(v, "min", rig_path, "particles.volume_mm"), rig_path, "particles.volume_mm.min",
+                            (3,))
+        hi = as_float_array(require(v, "max", rig_path, "particles.volume_mm"), rig_path, "particles.volume_mm.max",
+                            (3,))
         if not np.all(hi > lo):
             raise AriSfmError(rig_path, "particles.volume_mm: max must exceed min on every axis")
         volume = VolumeSpec(frame, lo, hi)

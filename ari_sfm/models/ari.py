@@ -64,7 +64,8 @@ def unit_normal_and_projector(normal_cam: np.ndarray) -> tuple[np.ndarray, np.nd
     if not math.isfinite(norm) or norm == 0.0:
         raise ValueError(f"normal_cam must be a non-zero finite 3-vector, got {[v0, v1, v2]}")
     n = (v0 / norm, v1 / norm, v2 / norm)
-    return np.array(n), np.array([[((1.0 if i == j else 0.0) - n[i] * n[j]) / norm for j in range(3)] for i in range(3)])
+    return np.array(n), np.array([[((1.0 if i == j else 0.0) - n[i] * n[j]) / norm for j in range(3)]
+                                  for i in range(3)])
 
 
 def check_window(thickness_mm: float, index: float, medium_index: float,

@@ -59,7 +59,8 @@ class PolynomialMap:
             arrays[key] = a
         if np.any(arrays["scale"] <= 0):
             raise ValueError("pf.scale must be > 0")
-        return PolynomialMap(arrays["mean"], arrays["scale"], arrays["coef_u"], arrays["coef_v"], int(d.get("rank", NUM_TERMS)))
+        return PolynomialMap(arrays["mean"], arrays["scale"], arrays["coef_u"], arrays["coef_v"],
+                             int(d.get("rank", NUM_TERMS)))
 
 
 class PolynomialModel:

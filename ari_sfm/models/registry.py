@@ -109,9 +109,11 @@ def model_spec(name: Any, where: str | None = "model", calibratable: bool = Fals
     """The spec of a model name; anything else is one AriSfmError naming ``where`` (a file or an option)."""
     spec = MODELS.get(name) if isinstance(name, str) else None
     if spec is None:
-        raise AriSfmError(where, f"unknown model {name!r} (known: {', '.join(CALIBRATABLE if calibratable else MODELS)})")
+        raise AriSfmError(where,
+                          f"unknown model {name!r} (known: {', '.join(CALIBRATABLE if calibratable else MODELS)})")
     if calibratable and not spec.calibratable:
-        raise AriSfmError(where, f"model {name!r} is loaded, never calibrated (calibrate with: {', '.join(CALIBRATABLE)})")
+        raise AriSfmError(where,
+                          f"model {name!r} is loaded, never calibrated (calibrate with: {', '.join(CALIBRATABLE)})")
     return spec
 
 

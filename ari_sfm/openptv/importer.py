@@ -139,7 +139,8 @@ def _read_plane(files: PlaneFiles, offset: int, body: dict[int, np.ndarray], sou
         key = offset + pid
         if np.all(crd[pid] != UNDETECTED):
             margin = BORDER_TOLERANCE_PX  # as the dataset's own pixel check: a centre just beyond the edge is kept
-            if not (-margin <= crd[pid][0] <= image_size[0] + margin and -margin <= crd[pid][1] <= image_size[1] + margin):
+            if not (-margin <= crd[pid][0] <= image_size[0] + margin
+                    and -margin <= crd[pid][1] <= image_size[1] + margin):
                 raise AriSfmError(files.crd, f"id {pid} at ({crd[pid][0]:g}, {crd[pid][1]:g}) is outside the "
                                              f"{image_size[0]} x {image_size[1]} image (.crd files hold OpenPTV "
                                              "pixels; metric ones are not read)")

@@ -29,7 +29,8 @@ from .conventions import window_plane
 log = logging.getLogger(__name__)
 
 SAME_WINDOW_DEG = 5.0  # glass vectors this close in direction: one window
-GLASS_TOLERANCE = 1e-9  # relative: a window's cameras whose glass vectors differ more get a plane prior, not a fixed plane
+# relative: a window's cameras whose glass vectors differ more get a plane prior, not a fixed plane
+GLASS_TOLERANCE = 1e-9
 SAME_SIDE_DEG = 70.0  # optical axes (average linkage) closer than this look in through one wall
 AMBIGUOUS_RATIO = 1.5  # a grouping whose closest other-wall axes are not this much farther apart than the
 # farthest same-wall ones is said to be a guess

@@ -151,7 +151,8 @@ def _rig_a(options: ParticleSimOptions, rng: np.random.Generator) -> tuple[Geome
     by_camera = None
     if back:  # the opposite wall as far beyond the volume's centre as the front one is before it
         half = o.num_cameras // 2
-        normal_back = _tilted(np.array([0.0, 0.0, -1.0]), math.radians(rng.uniform(1.0, 3.0)), rng.uniform(0, 2 * math.pi))
+        normal_back = _tilted(np.array([0.0, 0.0, -1.0]), math.radians(rng.uniform(1.0, 3.0)),
+                              rng.uniform(0, 2 * math.pi))
         far = max(normal_back @ c for _, c in rig[half:]) + rng.uniform(30.0, 50.0)
         second = _window_in_world(normal_back, far, rig_from_world, o.glass_mm, NBK7_INDEX, WATER_INDEX)
         names = [c.name for c in cameras]

@@ -91,7 +91,8 @@ def _observe(truth_args: dict, rng: np.random.Generator, min_views: int) -> SfmT
     for i in range(len(t.image_camera)):
         near = _maybe_visible(t, i)  # a superset of the visible points (the exact projection is the costly part)
         uv = t.model(i).project(t.cam_from_world(i).apply(t.xyz[near]))
-        ok = np.all(np.isfinite(uv), axis=1) & (uv[:, 0] > 2) & (uv[:, 0] < w - 3) & (uv[:, 1] > 2) & (uv[:, 1] < hgt - 3)
+        ok = (np.all(np.isfinite(uv), axis=1) & (uv[:, 0] > 2) & (uv[:, 0] < w - 3) & (uv[:, 1] > 2)
+              & (uv[:, 1] < hgt - 3))
         idx = near[np.flatnonzero(ok)]
         uv = uv[np.flatnonzero(ok)]
         imgs.append(np.full(len(idx), i))
@@ -227,7 +228,8 @@ def tank_rig(seed: int = 0, num_frames: int = 8, num_points: int = 800, sigma_px
 TEXTURE_MM_PER_TEXEL = 2.0
 
 
-def relief_texture(area_mm: tuple[float, float], seed: int = 0, margin_mm: float = 600.0) -> tuple[np.ndarray, np.ndarray]:
+def relief_texture(area_mm: tuple[float, float], seed: int = 0,
+                   margin_mm: float = 600.0) -> tuple[np.ndarray, np.ndarray]:
     """A grey texture (H, W) float32 in [0, 1] over the relief with blobs at several scales (SIFT
     finds them), and its origin (x0, y0) in mm; one texel is TEXTURE_MM_PER_TEXEL."""
     import cv2

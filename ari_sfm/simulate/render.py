@@ -180,7 +180,8 @@ def _shade_grid(shade: Callable[[np.ndarray], np.ndarray], pixel_to_target: Pixe
     for v0 in range(0, height, step):
         v = np.arange(v0, min(height, v0 + step), dtype=float) + origin
         vv, uu = np.meshgrid(v, u, indexing="ij")
-        out[v0 : v0 + len(v)] = shade(pixel_to_target(np.stack([uu.ravel(), vv.ravel()], axis=1))).reshape(len(v), width)
+        shaded = shade(pixel_to_target(np.stack([uu.ravel(), vv.ravel()], axis=1)))
+        out[v0 : v0 + len(v)] = shaded.reshape(len(v), width)
     return out
 
 
@@ -253,7 +254,9 @@ def _charuco_shader(target: Target) -> Callable[[np.ndarray], np.ndarray]:
 
 def dot_diameter_mm(target: Target) -> float:
     """The printed dot diameter of a dot board: ``diameter_mm``, else DEFAULT_DOT_FRACTION x spacing."""
-    return float(target.diameter_mm) if target.diameter_mm is not None else DEFAULT_DOT_FRACTION * float(target.spacing_mm)
+    if target.diameter_mm is not None:
+        return float(target.diameter_mm)
+    return DEFAULT_DOT_FRACTION * float(target.spacing_mm)
 
 
 def _circles_shader(target: Target) -> Callable[[np.ndarray], np.ndarray]:
