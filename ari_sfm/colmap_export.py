@@ -365,10 +365,7 @@ def export_colmap(calibration: Calibration | str | Path, out_dir: str | Path,
     frame_points = _frame_points(calibration, points_data)
 
     # virtual cameras, fitted on the points each camera sees
-    seen: dict[str, list[np.ndarray]] = {n: [] for n in names}
-    for o in observations:
-        pts = frame_points.get(o.frame, {})
-        seen[o.camera].extend(pts[int(i)] for i in o.ids if int(i) in pts)
+    seen = _seen_points(names, observations, frame_points)
     virtual = {n: virtual_camera(calibration, n, np.array(seen[n]) if seen[n] else None, approximation)
                for n in names}
     warnings = _approximation_warnings(calibration, virtual, approximation)
@@ -379,16 +376,51 @@ def export_colmap(calibration: Calibration | str | Path, out_dir: str | Path,
     camera_ids = {n: k + 1 for k, n in enumerate(names)}
     for n in names:
         rec.add_camera(_colmap_camera(virtual[n], camera_ids[n], calibration.cameras[n].image_size))
-    ref = names[0]
     if HAS_RIGS:
-        rig = pycolmap.Rig(rig_id=1)
-        rig.add_ref_sensor(rec.camera(camera_ids[ref]).sensor_id)
-        ref_from_world_inv = virtual[ref].cam_from_world.inverse()
-        for n in names[1:]:
-            sensor_from_rig = virtual[n].cam_from_world.compose(ref_from_world_inv)
-            rig.add_sensor(rec.camera(camera_ids[n]).sensor_id, _rigid3d(sensor_from_rig))
-        rec.add_rig(rig)
+        _add_rig(rec, names, camera_ids, virtual)
+    image_ids, tracks = _add_images(rec, observations, dataset, names, camera_ids, virtual, frame_points)
+    recon_frames = set(points_data["frames"]) if points_data is not None else set()
+    point3D_ids = _add_points(rec, tracks, frame_points, recon_frames)
+    rec.update_point_3d_errors()
+    write_model(rec, out_dir)
+    ply = out_dir / "points3D.ply"
+    log.info("COLMAP model: %d cameras, %d images, %d points -> %s", len(names), len(image_ids), len(point3D_ids),
+             out_dir)
+    return ColmapExport(rec, out_dir, virtual, camera_ids, image_ids, point3D_ids, warnings, ply)
 
+
+def _seen_points(names: list[str], observations: Sequence[Observation],
+                 frame_points: dict[str, dict[int, np.ndarray]]) -> dict[str, list[np.ndarray]]:
+    """Each camera's 3D points (those of ``frame_points`` its observations see), in observation order."""
+    seen: dict[str, list[np.ndarray]] = {n: [] for n in names}
+    for o in observations:
+        pts = frame_points.get(o.frame, {})
+        seen[o.camera].extend(pts[int(i)] for i in o.ids if int(i) in pts)
+    return seen
+
+
+def _add_rig(rec: Any, names: list[str], camera_ids: dict[str, int], virtual: dict[str, VirtualCamera]) -> None:
+    """The COLMAP rig (id 1): the first camera the reference sensor, the others at their virtual poses."""
+    ref = names[0]
+    rig = pycolmap.Rig(rig_id=1)
+    rig.add_ref_sensor(rec.camera(camera_ids[ref]).sensor_id)
+    ref_from_world_inv = virtual[ref].cam_from_world.inverse()
+    for n in names[1:]:
+        sensor_from_rig = virtual[n].cam_from_world.compose(ref_from_world_inv)
+        rig.add_sensor(rec.camera(camera_ids[n]).sensor_id, _rigid3d(sensor_from_rig))
+    rec.add_rig(rig)
+
+
+def _add_images(rec: Any, observations: Sequence[Observation], dataset: Dataset | None, names: list[str],
+                camera_ids: dict[str, int], virtual: dict[str, VirtualCamera],
+                frame_points: dict[str, dict[int, np.ndarray]]
+                ) -> tuple[dict[tuple[str, str], int], dict[tuple[str, int], list[tuple[int, int]]]]:
+    """One COLMAP frame per calibration frame (sorted by name) with an image per camera that sees it.
+
+    Returns:
+        The image id of each (camera, frame), and the track of each (frame, corner) with a 3D point:
+        its (image id, 2D point index) elements.
+    """
     by_frame: dict[str, list[Observation]] = {}
     for o in observations:
         by_frame.setdefault(o.frame, []).append(o)
@@ -406,7 +438,7 @@ def export_colmap(calibration: Calibration | str | Path, out_dir: str | Path,
                     tracks.setdefault((frame, corner), []).append((image_id, idx))
         if HAS_RIGS:
             colmap_frame = pycolmap.Frame(frame_id=frame_id, rig_id=1)
-            colmap_frame.rig_from_world = _rigid3d(virtual[ref].cam_from_world)
+            colmap_frame.rig_from_world = _rigid3d(virtual[names[0]].cam_from_world)
             for image in images:
                 colmap_frame.add_data_id(image.data_id)
             rec.add_frame(colmap_frame)
@@ -414,8 +446,12 @@ def export_colmap(calibration: Calibration | str | Path, out_dir: str | Path,
             rec.add_image(image)
             if not HAS_RIGS:  # pragma: no cover - pycolmap 3.11
                 rec.register_image(image.image_id)
+    return image_ids, tracks
 
-    recon_frames = set(points_data["frames"]) if points_data is not None else set()
+
+def _add_points(rec: Any, tracks: dict[tuple[str, int], list[tuple[int, int]]],
+                frame_points: dict[str, dict[int, np.ndarray]], recon_frames: set[str]) -> dict[tuple[str, int], int]:
+    """A COLMAP 3D point per track (reconstruction frames' points coloured apart); their ids."""
     point3D_ids: dict[tuple[str, int], int] = {}
     for (frame, corner), elements in sorted(tracks.items()):
         track = pycolmap.Track()
@@ -424,12 +460,7 @@ def export_colmap(calibration: Calibration | str | Path, out_dir: str | Path,
         color = RECONSTRUCTION_COLOR if frame in recon_frames else CALIBRATION_COLOR
         point3D_ids[(frame, corner)] = rec.add_point3D(np.asarray(frame_points[frame][corner], float), track,
                                                        np.array(color, dtype=np.uint8))
-    rec.update_point_3d_errors()
-    write_model(rec, out_dir)
-    ply = out_dir / "points3D.ply"
-    log.info("COLMAP model: %d cameras, %d images, %d points -> %s", len(names), len(image_ids), len(point3D_ids),
-             out_dir)
-    return ColmapExport(rec, out_dir, virtual, camera_ids, image_ids, point3D_ids, warnings, ply)
+    return point3D_ids
 
 
 def write_model(rec: Any, out_dir: str | Path, ply: bool = True) -> None:

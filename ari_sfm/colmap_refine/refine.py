@@ -860,18 +860,8 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     start, the gauge and the scale.
     """
     t0 = time.perf_counter()
-    if model != "exact":
-        raise AriSfmError(path, f"refine-colmap: model {model!r} is not supported (exact)")
-    if backend not in ("numpy", "gtsam"):
-        raise AriSfmError(path, f"backend must be numpy or gtsam (got {backend!r})")
-    if approximation not in ("opencv", "pinhole"):
-        raise AriSfmError(path, f"approximation must be opencv or pinhole (got {approximation!r})")
-    if mount not in MOUNTS:
-        raise AriSfmError(path, f"mount must be one of {', '.join(MOUNTS)} (got {mount!r})")
-    if baseline is not None and (units_mm is not None or scale_bar is not None):
-        raise AriSfmError(window_path, "gives units_mm or scale_bar and a baseline gives the scale too: give it once")
-    if baseline is not None and backend != "numpy":
-        raise AriSfmError(path, "baseline: a term of the numpy backend only (backend numpy, or a scale_bar)")
+    _check_options(model, backend, approximation, mount, baseline is not None,
+                   units_mm is not None or scale_bar is not None, path, window_path)
     if not isinstance(reconstruction, (str, Path)) and hasattr(reconstruction, "num_points3D"):
         rec = reconstruction
     else:
@@ -896,15 +886,8 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     virtual = _initial_state(cmodel, mount, units)
     if plane is not None:  # the declared window is the start (held, or the prior's centre)
         virtual = _declared_start(cmodel, virtual, mount, plane, plane_path)
-    if plane is not None:
-        candidates: tuple[float, ...] = (float(virtual.distances[0]),)
-    elif interface.distance_mm is not None:
-        candidates = (float(interface.distance_mm),)
-    elif not estimate_distance:
-        candidates = (AIR_DISTANCE_MM,)
-    else:
-        candidates = tuple(distances_mm or DISTANCE_CANDIDATES_MM)
-    candidates = _candidates_inside_scene(cmodel, virtual, interface, candidates,
+    candidates = _candidates_inside_scene(cmodel, virtual, interface,
+                                          _distance_candidates(interface, virtual, estimate_distance, distances_mm),
                                           units_mm is not None or bar is not None or base is not None,
                                           plane is not None or interface.distance_mm is not None, window_path)
     blocks: list[dict] = []
@@ -1049,6 +1032,38 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
                 "cameras (poses are virtual; real poses in calibration.json): %.3f px RMS (the exact model: %.3f px)",
                 approximation, report.pinhole_approximation.rms_px, report.after.rms_px)
     return RefineResult(approx, refractive, calibration, state, report)
+
+
+def _check_options(model: str, backend: str, approximation: str, mount: str, baseline: bool, other_scale: bool,
+                   path: Any, window_path: Any) -> None:
+    """refine_colmap's choices, each checked (``baseline``: one is given; ``other_scale``: units_mm or a
+    scale bar is)."""
+    if model != "exact":
+        raise AriSfmError(path, f"refine-colmap: model {model!r} is not supported (exact)")
+    if backend not in ("numpy", "gtsam"):
+        raise AriSfmError(path, f"backend must be numpy or gtsam (got {backend!r})")
+    if approximation not in ("opencv", "pinhole"):
+        raise AriSfmError(path, f"approximation must be opencv or pinhole (got {approximation!r})")
+    if mount not in MOUNTS:
+        raise AriSfmError(path, f"mount must be one of {', '.join(MOUNTS)} (got {mount!r})")
+    if baseline and other_scale:
+        raise AriSfmError(window_path, "gives units_mm or scale_bar and a baseline gives the scale too: give it once")
+    if baseline and backend != "numpy":
+        raise AriSfmError(path, "baseline: a term of the numpy backend only (backend numpy, or a scale_bar)")
+
+
+def _distance_candidates(interface: Interface, virtual: Any, estimate_distance: bool,
+                         distances_mm: tuple[float, ...] | None) -> tuple[float, ...]:
+    """The start distances to try: the declared window's (``virtual``, its start), the interface's
+    distance_mm, the air's placeholder when the distance is not estimated, else ``distances_mm`` or the
+    default candidates."""
+    if interface.plane is not None:
+        return (float(virtual.distances[0]),)
+    if interface.distance_mm is not None:
+        return (float(interface.distance_mm),)
+    if not estimate_distance:
+        return (AIR_DISTANCE_MM,)
+    return tuple(distances_mm or DISTANCE_CANDIDATES_MM)
 
 
 def _window_parts(hold_normal: bool, estimate_distance: bool, declared: bool) -> str:
