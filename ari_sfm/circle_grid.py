@@ -47,7 +47,7 @@ def detect_circles(image: np.ndarray, target: Target, method: str | None = None)
     method = CIRCLE_DEFAULT_METHOD if method is None else method
     if method not in CIRCLE_METHODS:
         raise ValueError(f"unknown circles method {method!r} (one of {', '.join(CIRCLE_METHODS)})")
-    cols, rows = (int(v) for v in target.circle_grid)
+    cols, rows = (int(v) for v in target.required(target.circle_grid, "circle_grid"))
     flags = cv2.CALIB_CB_ASYMMETRIC_GRID if target.layout == "asymmetric" else cv2.CALIB_CB_SYMMETRIC_GRID
     for colour in (0, 255):  # dark dots, then light dots
         detector, blobs = _tuned_blob_detector(image, cols * rows, colour)
@@ -72,8 +72,8 @@ def detect_circles(image: np.ndarray, target: Target, method: str | None = None)
     return None
 
 
-def _blob_params(colour: int, min_area: float, max_area: float) -> cv2.SimpleBlobDetector_Params:
-    params = cv2.SimpleBlobDetector_Params()
+def _blob_params(colour: int, min_area: float, max_area: float) -> cv2.SimpleBlobDetector.Params:
+    params = cv2.SimpleBlobDetector.Params()
     params.filterByColor, params.blobColor = True, colour
     params.filterByArea, params.minArea, params.maxArea = True, float(min_area), float(max_area)
     params.minDistBetweenBlobs = 2.0
@@ -105,13 +105,13 @@ def _tuned_blob_detector(image: np.ndarray, count: int, colour: int) -> tuple[cv
     hi = np.pi / 4 * sizes[k + count - 1] ** 2 * CIRCLE_AREA_RANGE
     areas = np.pi / 4 * sizes**2
     kept = int(np.count_nonzero((areas >= lo) & (areas <= hi)))
-    return cv2.SimpleBlobDetector_create(_blob_params(colour, lo, hi)), kept
+    return cv2.SimpleBlobDetector.create(_blob_params(colour, lo, hi)), kept
 
 
 def _blob_sizes(image: np.ndarray, count: int, colour: int) -> np.ndarray:
     """Sorted diameters (px) of the blobs of ``colour`` from CIRCLE_MIN_AREA_PX to area / ``count``."""
     h, w = image.shape
-    wide = cv2.SimpleBlobDetector_create(_blob_params(colour, CIRCLE_MIN_AREA_PX,
+    wide = cv2.SimpleBlobDetector.create(_blob_params(colour, CIRCLE_MIN_AREA_PX,
                                                       max(CIRCLE_MIN_AREA_PX + 1, w * h / count)))
     return np.sort([k.size for k in wide.detect(image)])
 

@@ -92,7 +92,7 @@ def mean_pose(poses: Sequence[Pose]) -> Pose:
 
 def mean_poses(groups: Sequence[Sequence[Pose]]) -> list[Pose]:
     """:func:`mean_pose` of each group (the groups of one size at once)."""
-    out: list[Pose | None] = [None] * len(groups)
+    means: dict[int, Pose] = {}
     by_size: dict[int, list[int]] = {}
     for g, poses in enumerate(groups):
         by_size.setdefault(len(poses), []).append(g)
@@ -108,8 +108,8 @@ def mean_poses(groups: Sequence[Sequence[Pose]]) -> list[Pose]:
         R_mean = (u * d[:, None, :]) @ vt
         t_mean = np.mean(t, axis=1)
         for j, g in enumerate(index):
-            out[g] = Pose(R_mean[j], t_mean[j])
-    return out
+            means[g] = Pose(R_mean[j], t_mean[j])
+    return [means[g] for g in range(len(groups))]
 
 
 def pose3_from_cam_from_world(cam_from_world: Pose):

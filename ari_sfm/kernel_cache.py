@@ -56,9 +56,9 @@ TARGET_FEATURES = ("64bit", "cmov", "cx8", "fxsr", "mmx", "sse", "sse2", "cx16",
 _building: Path | None = None  # set by ari_sfm.kernel_build: compile everything, save into this folder
 
 
-def njit(func: Callable | None = None, **options: Any):
+def njit(func: Callable | None = None, /, **options: Any) -> Any:
     """numba's ``njit`` (same options); with ``cache=True`` the dispatcher's cache is a :class:`ShippedCache`."""
-    def decorate(f: Callable):
+    def decorate(f: Callable) -> Any:
         dispatcher = numba.njit(**options)(f)
         if options.get("cache") and isinstance(dispatcher, Dispatcher):  # NUMBA_DISABLE_JIT: the Python function
             dispatcher._cache = ShippedCache(f)

@@ -241,7 +241,7 @@ class StageWindow:
     """One window after a stage (several windows): its normal and near-face offset from the world origin
     (None where the data do not observe it)."""
 
-    normal_world: tuple[float, float, float] | None
+    normal_world: tuple[float, ...] | None  # 3 components (read leniently)
     plane_mm: float | None
 
     def to_json(self) -> dict[str, Any]:
@@ -267,7 +267,7 @@ class StageRecord:
     rmse_px: float | None = None
     max_px: float | None = None
     count: int | None = None
-    normal_world: tuple[float, float, float] | None = None
+    normal_world: tuple[float, ...] | None = None  # 3 components (read leniently)
     distance_mm: float | None = None
     cameras: Mapping[str, StageCamera] = field(default_factory=dict)
     windows: tuple[StageWindow, ...] = ()  # several windows only
@@ -300,8 +300,8 @@ class StageRecord:
 
         count = res.get("count")
         normal = d.get("normal_world")
-        cameras = d.get("cameras") if isinstance(d.get("cameras"), Mapping) else {}
-        windows = d.get("windows") if isinstance(d.get("windows"), list) else []
+        cameras = d["cameras"] if isinstance(d.get("cameras"), Mapping) else {}
+        windows = d["windows"] if isinstance(d.get("windows"), list) else []
         return cls(str(d.get("stage", d.get("name", position + 1))),
                    None if d.get("model") is None else str(d["model"]),
                    None if d.get("distortion") is None else bool(d["distortion"]),

@@ -28,11 +28,11 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from ..models import PinholeModel
+from ..models import AriModel, ExactModel, PinholeModel
 from .robust import huber_view_residual
 from .view_kernels import chain_rows
 
-ModelFactory = Callable[..., object]
+ModelFactory = Callable[..., AriModel | ExactModel]  # (pinhole, normal, thickness, index, medium index, distance)
 
 
 @dataclass(frozen=True)

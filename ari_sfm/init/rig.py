@@ -9,6 +9,7 @@ from collections import deque
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -110,7 +111,7 @@ def initialise_camera(dataset: Dataset, name: str, distortion: bool = False,
 
 
 def join_rig(names: Sequence[str], cam_from_target: dict[str, dict[str, Pose]],
-             path: object = None) -> tuple[dict[str, Pose], dict[str, Pose]]:
+             path: str | Path | None = None) -> tuple[dict[str, Pose], dict[str, Pose]]:
     """cam_from_world of every camera (world = camera 0) and world_from_target of every frame.
 
     Relative poses are chordal means over shared frames along a breadth-first

@@ -141,7 +141,7 @@ def calibrate_zhang(
 
     def pnp(view: tuple[Observation, np.ndarray | None, np.ndarray | None]) -> Pose:
         v, o, i = view
-        if o is None:  # an ``also`` view
+        if o is None or i is None:  # an ``also`` view
             return solve_pnp(target, K, dist, v)
         planar = bool(np.all(o[:, 2] == 0))
         return _pnp_pose(o, i, K, dist, cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_ITERATIVE, v.frame)

@@ -15,6 +15,7 @@ import tempfile
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path, PurePath
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -255,6 +256,15 @@ class _signals_held:
             signal.pthread_sigmask(signal.SIG_SETMASK, self.mask)
 
 
+def _fcntl() -> ModuleType | None:
+    """POSIX's fcntl (file locks); None where the platform has none."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock
+        return None
+    return fcntl
+
+
 class exclusive_folder:
     """A command's hold on its output folder (``with exclusive_folder(out, "-o/--out"):``): a second command
     writing into the same folder at the same time is refused in one line, instead of the two interleaving
@@ -268,10 +278,7 @@ class exclusive_folder:
         self.created = False
 
     def __enter__(self) -> exclusive_folder:
-        try:
-            import fcntl
-        except ImportError:  # not POSIX: no lock
-            fcntl = None
+        fcntl = _fcntl()
         try:
             self.created = not self.out.exists()
             self.out.mkdir(parents=True, exist_ok=True)

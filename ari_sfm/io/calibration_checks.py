@@ -49,9 +49,9 @@ def check_calibration_values(data: Any, path: str | Path, window: bool = True) -
         fixed = _offset(data["fixed_distance_mm"], path, "fixed_distance_mm")
         if isinstance(data.get("interface"), Mapping) and windows:
             _check_camera_distances(data, data["interface"], fixed, windows[0][2], "fixed_distance_mm", path)
-    cameras = data.get("cameras")
-    if isinstance(cameras, Mapping):
-        for name, camera in cameras.items():
+    camera_data = data.get("cameras")
+    if isinstance(camera_data, Mapping):
+        for name, camera in camera_data.items():
             if isinstance(camera, Mapping) and camera.get("image_size") is not None:  # 2448.5 was cut to 2448
                 as_int_pair(camera["image_size"], path, f"cameras.{name}.image_size", minimum=1)
             if isinstance(camera, Mapping) and camera.get("K") is not None:

@@ -745,7 +745,7 @@ def save_rig(path: str | Path, dataset: Dataset) -> Path:
     except AriSfmError as exc:
         raise AriSfmError(path, exc.message) from None
     parse_rig(data, path, check_files=False)
-    if obs_file is not None:
+    if obs_file is not None and dataset.observations is not None:
         obs_data = observations_to_json(dataset.observations)
         parse_observations(obs_data, root / obs_file, dataset.target, dataset.cameras)
         write_json_atomic(root / obs_file, obs_data)

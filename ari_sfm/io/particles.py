@@ -98,6 +98,8 @@ class ParticleDataset:
         return list(self.cameras)
 
     def image_path(self, camera: str, frame: int) -> Path:
+        if self.images is None:
+            raise AriSfmError(self.rig_path, "particles.images: none declared")
         return Path(self.images[camera].format(frame=frame))
 
 
@@ -294,7 +296,7 @@ def read_detections(path: str | Path, cameras: Mapping[str, CameraSpec] | list[s
         raise AriSfmError(path, f"row {int(np.flatnonzero(frame < 0)[0])}: frame must be >= 0")
     uv = np.stack([u, v], axis=1)
     if isinstance(cameras, Mapping):
-        check_detections_in_images(path, camera, uv, {c: tuple(s.image_size) for c, s in cameras.items()})
+        check_detections_in_images(path, camera, uv, {c: s.image_size for c, s in cameras.items()})
     return Detections(path, frame, camera, uv, intensity, _repeated_rows(path, frame, camera, uv))
 
 
@@ -369,7 +371,7 @@ def write_tables_atomic(path: str | Path, tables: Iterable[Any]) -> int:
 
     rows = 0
     with replaced_atomically(path) as tmp:
-        writer = None
+        writer: Any = None
         try:
             for table in tables:
                 if writer is None:
@@ -380,7 +382,8 @@ def write_tables_atomic(path: str | Path, tables: Iterable[Any]) -> int:
                 rows += table.num_rows
             if writer is None:
                 raise ValueError(f"{path}: no table to write")
-            writer, closing = None, writer
+            closing = writer
+            writer = None
             closing.close()
         except pa.ArrowException as exc:
             if isinstance(exc, OSError):

@@ -264,7 +264,7 @@ def as_int_pair(value: Any, path: str | Path, where: str, minimum: int = 1) -> t
     ok = isinstance(value, (list, tuple)) and len(value) == 2
     if ok:
         ok = all(
-            isinstance(v, (numbers.Integral, np.integer)) and not isinstance(v, (bool, np.bool_)) and v >= minimum
+            isinstance(v, (numbers.Integral, np.integer)) and not isinstance(v, (bool, np.bool_)) and int(v) >= minimum
             for v in value
         )
     if not ok:

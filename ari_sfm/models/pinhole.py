@@ -20,6 +20,7 @@ be a silently wrong answer.
 from __future__ import annotations
 
 import logging
+from typing import Literal, NamedTuple, overload
 
 import numpy as np
 
@@ -65,6 +66,24 @@ def _f64(a: np.ndarray, dim: int) -> np.ndarray:
     return a.reshape(-1, dim)
 
 
+class Projection(NamedTuple):
+    """Pixels without derivatives (a window model's projection asked for no Jacobians)."""
+
+    uv: np.ndarray  # (N, 2) pixels
+
+
+@overload
+def project_points(D: np.ndarray, params: np.ndarray, n_params: int = NUM_PARAMS, jacobians: Literal[True] = True
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+@overload
+def project_points(D: np.ndarray, params: np.ndarray, n_params: int, jacobians: Literal[False]
+                   ) -> tuple[np.ndarray, None, None]: ...
+@overload
+def project_points(D: np.ndarray, params: np.ndarray, n_params: int = NUM_PARAMS, *, jacobians: Literal[False]
+                   ) -> tuple[np.ndarray, None, None]: ...
+@overload
+def project_points(D: np.ndarray, params: np.ndarray, n_params: int = NUM_PARAMS, jacobians: bool = True
+                   ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]: ...
 def project_points(D: np.ndarray, params: np.ndarray, n_params: int = NUM_PARAMS, jacobians: bool = True
                    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """The pinhole projection of camera-frame points D (m, 3): the one implementation (the compiled

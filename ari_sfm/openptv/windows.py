@@ -100,13 +100,13 @@ def windows_from_axes(names: Sequence[str], axes: Sequence[np.ndarray], thicknes
     angle = np.degrees(np.arccos(np.clip(np.array([[a @ b for b in units] for a in units]), -1.0, 1.0)))
     clusters = [[k] for k in range(len(units))]
     while len(clusters) > 1:
-        best = None
+        best: tuple[float, int, int] | None = None
         for i in range(len(clusters)):
             for j in range(i + 1, len(clusters)):
                 d = float(np.mean(angle[np.ix_(clusters[i], clusters[j])]))
                 if best is None or d < best[0]:
                     best = (d, i, j)
-        if best[0] >= SAME_SIDE_DEG:
+        if best is None or best[0] >= SAME_SIDE_DEG:
             break
         _, i, j = best
         clusters[i] += clusters.pop(j)

@@ -266,7 +266,7 @@ def to_dataset(geometry: Geometry, observations: tuple[Observation, ...] | None,
     step = geometry.pixel_step_px
     if observations is not None and step:
         observations = tuple(replace(o, pixels=np.round(o.pixels / step) * step) for o in observations)
-    cameras = {c.name: CameraSpec(name=c.name, image_size=tuple(c.image_size), focal_px=c.focal_hint_px)
+    cameras = {c.name: CameraSpec(name=c.name, image_size=c.image_size, focal_px=c.focal_hint_px)
                for c in geometry.cameras}
     by_key: dict[tuple, list[str]] = {}
     for o in seen:
