@@ -42,7 +42,8 @@ class NonFiniteJacobian(RuntimeError):
 class LMProblem(Protocol):
     """What :func:`levenberg_marquardt` needs of a problem (see the module docstring)."""
 
-    linearized_error_is_error: bool
+    @property
+    def linearized_error_is_error(self) -> bool: ...
 
     def linearize(self, x: Any) -> Any: ...
     def solve(self, system: Any, lam: float) -> Any | None: ...

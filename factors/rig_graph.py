@@ -26,6 +26,8 @@ import logging
 import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, cast
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -38,7 +40,7 @@ from ..models.registry import model_spec
 from ..records import Interface, Observation, Target, Window, WindowPlane
 from . import keys as K_
 from .backend import optimize_graph
-from .variables import MODELS, RigState
+from .variables import MODELS, RigState, estimated_offset
 from .view_factor import ViewData, ViewKeys, factor_keys, view_factor, view_residuals
 
 log = logging.getLogger(__name__)
@@ -203,7 +205,7 @@ class RigGraph:
             values.insert(K_.X(i), pose3_from_pose(state.world_from_target[f]))
         if self.estimate_distance:
             for w in range(self.n_windows):
-                values.insert(K_.window_plane(w), np.array([float(state.offset(w))]))
+                values.insert(K_.window_plane(w), np.array([estimated_offset(state.offset(w))]))
         return values
 
     @property
@@ -233,7 +235,7 @@ class RigGraph:
     def view_factor_at(self, k: int) -> gtsam.CustomFactor:
         """The k-th view's factor (factor_data order): the graph's once made, else a new one."""
         if self.built_graph is not None:
-            return self.built_graph.at(self.view_factor_indices()[k])
+            return cast(gtsam.CustomFactor, self.built_graph.at(self.view_factor_indices()[k]))  # the graph's own
         data, vkeys = self.factor_data[k]
         return view_factor(MODELS[self.model], data, vkeys, self.sigma_px, self.huber_px)
 
@@ -245,7 +247,7 @@ class RigGraph:
         index = self.view_factor_indices()  # priors and user factors may sit among them
         views = []
         for i, (data, vkeys) in zip(index, self.factor_data):
-            sigmas = np.asarray(self.built_graph.at(i).noiseModel().sigmas())
+            sigmas = np.asarray(cast(gtsam.CustomFactor, self.built_graph.at(i)).noiseModel().sigmas())
             if np.ptp(sigmas) != 0.0:
                 raise ValueError(f"view factor {i} has a non-isotropic noise model")
             views.append((data, vkeys, float(sigmas[0])))
@@ -374,7 +376,7 @@ class RigGraph:
         from ..records import Dataset
 
         if isinstance(dataset, (str, os.PathLike)):
-            dataset = load_dataset(dataset)
+            dataset = load_dataset(Path(dataset))
         if not isinstance(dataset, Dataset):
             raise TypeError(f"dataset must be an ari_sfm Dataset or a dataset folder (got {type(dataset).__name__})")
         for name, value in (("huber_px", huber_px), ("sigma_px", sigma_px)):
@@ -483,6 +485,7 @@ def estimate_sigma_px(rg: RigGraph) -> float:
 
     copy = replace(rg, made_values=rg.values_copy(), unwritten=None, factor_views=list(rg.factor_views),
                    factor_data=list(rg.factor_data), other_factors=list(rg.other_factors))
-    _, solved = optimize_graph(copy, "auto", huber_px=rg.huber_px, return_problem=True, check=False)
+    _, solved = cast(tuple[RigState, Any], optimize_graph(copy, "auto", huber_px=rg.huber_px, return_problem=True,
+                                                          check=False))  # return_problem: the pair
     residuals = solved.residuals() if solved is not None else copy.residuals()
     return robust_sigma_px(r for _, r in residuals)

@@ -24,6 +24,13 @@ from ..records import Observation
 MODELS = bundle_factories()  # the models the graph adjusts: name -> projection class (ari_sfm.models.registry)
 
 
+def estimated_offset(offset: float | None) -> float:
+    """A window's plane offset where it is estimated (and so set)."""
+    if offset is None:
+        raise ValueError("an estimated window's plane offset is not set")
+    return float(offset)
+
+
 @dataclass(frozen=True)
 class RigState:
     """Every estimated quantity in plain numpy (world = camera 0).
@@ -109,6 +116,13 @@ class Variables:
         """Window 0's plane offset."""
         return self.distances[0]
 
+    def offsets(self) -> tuple[float, ...]:
+        """Every window's plane offset, when they are set (variables: estimate_distance)."""
+        out = tuple(d for d in self.distances if d is not None)
+        if len(out) != len(self.distances):
+            raise ValueError("a window's plane offset is not set")
+        return out
+
     def with_distance(self, window: int, offset: float, world_t_target: np.ndarray | None = None) -> Variables:
         """A copy with one window's offset replaced (and, if given, every frame's translation)."""
         from dataclasses import replace
@@ -136,7 +150,7 @@ class GraphLike(Protocol):
 
     def packed_factors(self) -> tuple[list[tuple[Any, Any, float]], list[gtsam.NonlinearFactor]]: ...
 
-    def view_factor_at(self, k: int) -> gtsam.NonlinearFactor: ...
+    def view_factor_at(self, k: int) -> gtsam.CustomFactor: ...
 
     def optimize(self, max_iterations: int = 100, relative_tolerance: float = 1e-10) -> RigState: ...
 
@@ -144,11 +158,22 @@ class GraphLike(Protocol):
 class PackedColumns(Protocol):
     """The column layout of a packed problem's global variables (what extra factors and marginals index)."""
 
-    camera_names: Sequence[str]
-    frame_names: Sequence[str]
-    n_params: int
-    camera_block: int  # columns per camera: n_params, then its pose (6; camera 0's unused)
-    normal_cols: Sequence[int]  # per window: its normal's first column (2 columns)
-    distance_cols: Sequence[int] | None  # per window: its offset's column; None unless estimate_distance
-    estimate_distance: bool
-    fixed_cols: np.ndarray
+    @property
+    def camera_names(self) -> Sequence[str]: ...
+    @property
+    def frame_names(self) -> Sequence[str]: ...
+    @property
+    def n_params(self) -> int: ...
+    @property
+    def camera_block(self) -> int:  # columns per camera: n_params, then its pose (6; camera 0's unused)
+        ...
+    @property
+    def normal_cols(self) -> Sequence[int]:  # per window: its normal's first column (2 columns)
+        ...
+    @property
+    def distance_cols(self) -> Sequence[int] | None:  # per window: its offset's column; None unless estimate_distance
+        ...
+    @property
+    def estimate_distance(self) -> bool: ...
+    @property
+    def fixed_cols(self) -> np.ndarray: ...
