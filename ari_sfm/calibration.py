@@ -97,7 +97,8 @@ class Calibration:
                     first.interface.distance_mm, first.fixed_distance_mm) == (
                 mine.thickness_mm, mine.index, mine.medium_index, mine.distance_mm, self.fixed_distance_mm)
             if not same or (first.normal_world is None) != (self.normal_world is None) or (
-                    first.normal_world is not None and not np.array_equal(first.normal_world, self.normal_world)):
+                    first.normal_world is not None and self.normal_world is not None
+                    and not np.array_equal(first.normal_world, self.normal_world)):
                 raise ValueError("interface, normal_world and fixed_distance_mm must be the first window's")
         for w in self.window_list():
             if spec.needs_distance and w.interface.distance_mm is None and w.fixed_distance_mm is None:

@@ -351,7 +351,8 @@ def export_colmap(calibration: Calibration | str | Path, out_dir: str | Path,
     dataset, observations = _observations(calibration, dataset, cal_path)
     why = observations_mismatch(calibration, observations, dataset.target if dataset is not None else None)
     if why:  # the calibration's frames with another capture's corners: tracks of nonsense
-        raise AriSfmError(dataset.root if dataset is not None else cal_path.parent / "observations.json", why)
+        raise AriSfmError(dataset.root if dataset is not None
+                          else cal_path.parent / "observations.json" if cal_path is not None else None, why)
     points_data = _as_points(points)
     out_dir = Path(out_dir)
     names = list(calibration.cameras)
@@ -640,7 +641,8 @@ def model_from_reconstruction(rec: Any, path: str | Path = "reconstruction") -> 
         offsets.append(np.r_[0.0, 0.0, -COLMAP_PIXEL_OFFSET, -COLMAP_PIXEL_OFFSET, np.zeros(5)])
     frames = sorted((fid, f) for fid, f in rec.frames.items() if f.has_pose)
     frame_index = {fid: k for k, (fid, _) in enumerate(frames)}
-    image_ids, image_names, image_camera, image_frame, sensor_from_rig, is_ref = [], [], [], [], [], []
+    image_ids: list[int] = []
+    image_names, image_camera, image_frame, sensor_from_rig, is_ref = [], [], [], [], []
     obs_image, obs_point, obs_uv = [], [], []
     point_ids = np.array(sorted(rec.point3D_ids()), dtype=np.int64)
     point_index = {int(p): k for k, p in enumerate(point_ids)}
@@ -772,8 +774,8 @@ def reconstruction_from_arrays(params: Sequence[np.ndarray], image_size: tuple[i
     for f, pose in enumerate(rig_from_world):
         frame = pycolmap.Frame(frame_id=f + 1, rig_id=1)
         frame.rig_from_world = _rigid3d(pose)
-        for i in np.flatnonzero(np.asarray(image_frame) == f):
-            frame.add_data_id(images[i].data_id)
+        for idx in np.flatnonzero(np.asarray(image_frame) == f):
+            frame.add_data_id(images[idx].data_id)
         rec.add_frame(frame)
     for image in images:
         rec.add_image(image)

@@ -40,7 +40,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -114,7 +114,7 @@ class ForkExport:
 # --------------------------------------------------------------------------- cameras.txt lines
 
 
-def colmap_camera_params(params: Sequence[float]) -> tuple[str, list[float]]:
+def colmap_camera_params(params: np.ndarray | Sequence[float]) -> tuple[str, list[float]]:
     """The smallest COLMAP model holding ``[fx fy cx cy k1 k2 p1 p2 k3]`` (OpenCV pixels) and its parameters."""
     p = np.resize(np.asarray(params, float), 9)
     fx, fy, cx, cy = p[0], p[1], p[2] + COLMAP_PIXEL_OFFSET, p[3] + COLMAP_PIXEL_OFFSET
@@ -150,12 +150,12 @@ def params_from_colmap(model: str, values: Sequence[float], where: Path, what: s
     else:
         raise AriSfmError(where, f"{what}: camera model {model} is not supported "
                                  f"(supported: {', '.join(CAMERA_MODELS)})")
-    out = np.asarray(out, float)
-    out[2:4] -= COLMAP_PIXEL_OFFSET
-    return out
+    params = np.asarray(out, float)
+    params[2:4] -= COLMAP_PIXEL_OFFSET
+    return params
 
 
-def format_camera_line(camera_id: int, image_size: tuple[int, int], params: Sequence[float],
+def format_camera_line(camera_id: int, image_size: tuple[int, int], params: np.ndarray | Sequence[float],
                        normal_cam: np.ndarray, distance_mm: float, interface: Interface, units_mm: float) -> str:
     """One cameras.txt line of the fork (``colmap_underwater`` form)."""
     model, values = colmap_camera_params(params)
@@ -236,7 +236,10 @@ def _rotation_from_wxyz(q: Sequence[float]) -> np.ndarray:
 
 def _camera_window(cal: Calibration, name: str) -> float:
     """A camera's distance to its window's near face (mm), also for an exact calibration in air."""
-    return float(cal.evaluation_distance_mm(name))
+    d = cal.evaluation_distance_mm(name)
+    if d is None:
+        raise ValueError(f"camera {name}: no distance to its window (neither distance_mm nor fixed_distance_mm)")
+    return float(d)
 
 
 @dataclass(frozen=True)
@@ -496,7 +499,8 @@ def import_colmap_fork(model_dir: str | Path, units_mm: float = DEFAULT_UNITS_MM
     media = {c.indices[2] for c in fork_cams}
     if len(media) > 1:
         raise AriSfmError(cams_path, f"the cameras' water indices (nw) differ ({sorted(media)}): one tank, one medium")
-    cameras, groups = {}, []  # groups: [normal_world, plane offset, thickness, indices, camera names]
+    cameras = {}
+    groups: list[list[Any]] = []  # [normal_world, plane offset, thickness, indices, camera names]
     for name, c in zip(names, fork_cams):
         cam_from_world = (poses[c.camera_id] or Pose.identity()).compose(world_from_first)
         n_w = cam_from_world.R.T @ c.normal_cam

@@ -85,7 +85,8 @@ def detect_corners(image: np.ndarray, target: Target, method: str = "subpix") ->
         except KeyError:
             raise ValueError(f"unknown checkerboard method {method!r} "
                              f"(one of {', '.join(CHECKERBOARD_METHODS)})") from None
-        grid = tuple(int(v) for v in target.inner_corners)
+        cols, rows = (int(v) for v in target.required(target.inner_corners, "inner_corners"))
+        grid = (cols, rows)
         corners = find(image, grid)
         if corners is None or not _grid_is_regular(corners, grid):
             return None
@@ -185,7 +186,7 @@ def refine_corners(
     """
     fraction = SUBPIX_WINDOW_FRACTION if fraction is None else fraction
     smoothing_px = SUBPIX_SMOOTHING_PX if smoothing_px is None else smoothing_px
-    smooth = image.astype(np.float32)
+    smooth: np.ndarray = image.astype(np.float32)
     if smoothing_px > 0:
         smooth = cv2.GaussianBlur(smooth, (0, 0), smoothing_px)
     half = np.rint(fraction * np.asarray(spacing, dtype=float))
@@ -242,7 +243,7 @@ def _grid_is_regular(corners: np.ndarray, grid: tuple[int, int], tolerance: floa
 
 def checkerboard_ids_unambiguous(target: Target) -> bool:
     """True if the square colours fix the corner order: cols + rows odd (see the module docstring)."""
-    cols, rows = target.inner_corners
+    cols, rows = target.required(target.inner_corners, "inner_corners")
     return (cols + rows) % 2 == 1
 
 
@@ -304,8 +305,8 @@ def charuco_board(squares: tuple[int, int], square_mm: float, marker_mm: float,
 
 
 def _charuco_detector(target: Target) -> cv2.aruco.CharucoDetector:
-    board = charuco_board(tuple(target.squares), float(target.square_mm), float(target.marker_mm),
-                          str(target.dictionary))
+    board = charuco_board(target.required(target.squares, "squares"), float(target.square_mm),
+                          float(target.required(target.marker_mm, "marker_mm")), str(target.dictionary))
     return cv2.aruco.CharucoDetector(board)
 
 
@@ -319,8 +320,9 @@ def _detect_charuco(image: np.ndarray, target: Target, refine: bool = True) -> D
     order = np.argsort(ids)
     ids, pixels = ids[order], pixels[order]
     if refine:
-        border = 0.5 * (float(target.square_mm) - float(target.marker_mm)) / float(target.square_mm)
-        refined = refine_corners(image, pixels, _charuco_spacing(ids, pixels, target.grid[0]),
+        border = (0.5 * (float(target.square_mm) - float(target.required(target.marker_mm, "marker_mm")))
+                  / float(target.square_mm))
+        refined = refine_corners(image, pixels, _charuco_spacing(ids, pixels, target.required(target.grid, "grid")[0]),
                                  fraction=CHARUCO_WINDOW_MARGIN * border, smoothing_px=CHARUCO_SMOOTHING_PX,
                                  skip_small=True)
         moved = np.linalg.norm(refined - pixels, axis=1) <= CHARUCO_MAX_SHIFT_PX  # else caught by a marker edge
@@ -371,7 +373,7 @@ def detect_dataset(
     """
     target = dataset.target
     if target.type == "checkerboard" and not checkerboard_ids_unambiguous(target):
-        cols, rows = target.inner_corners
+        cols, rows = target.required(target.inner_corners, "inner_corners")
         log.warning(
             "%s: a %d x %d corner checkerboard looks the same turned by 180 degrees (cols + rows is even): "
             "its corner ids may differ between images; use a board with cols + rows odd",

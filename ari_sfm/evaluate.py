@@ -133,7 +133,7 @@ def _as_calibration(calibration: Calibration | str | Path) -> Calibration:
     return calibration
 
 
-def _source(observations: str | Path | Dataset | Sequence[Observation]) -> str | Path | None:
+def _source(observations: str | Path | Dataset | Sequence[Observation]) -> str | Path:
     """What to name in an error about ``observations``."""
     if isinstance(observations, Dataset):
         return observations.rig_path
@@ -162,7 +162,7 @@ def reprojection_stats(calibration: Calibration, observations: str | Path | Data
         if observations.observations is None:
             raise AriSfmError(observations.rig_path, "the dataset holds no observations (images only): run "
                                                      "`ari-sfm detect` first, or pass its observations.json")
-        records = observations.observations
+        records: Sequence[Observation] = observations.observations
     elif isinstance(observations, (str, Path)):
         from .io import load_observations
         from .io.observations import check_pixels_in_images

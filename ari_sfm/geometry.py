@@ -27,7 +27,7 @@ def skew(v: np.ndarray) -> np.ndarray:
     return out
 
 
-def rotation_from_rotvec(w: np.ndarray) -> np.ndarray:
+def rotation_from_rotvec(w: np.ndarray | Sequence[float]) -> np.ndarray:
     """Rodrigues: rotation matrix of the rotation vector w (radians)."""
     w = np.asarray(w, dtype=float)
     theta = float(np.linalg.norm(w))

@@ -61,7 +61,7 @@ def njit(func: Callable | None = None, /, **options: Any) -> Any:
     def decorate(f: Callable) -> Any:
         dispatcher = numba.njit(**options)(f)
         if options.get("cache") and isinstance(dispatcher, Dispatcher):  # NUMBA_DISABLE_JIT: the Python function
-            dispatcher._cache = ShippedCache(f)
+            dispatcher._cache = ShippedCache(f)  # type: ignore[attr-defined]  # numba's own attribute, unlisted
         return dispatcher
     return decorate if func is None else decorate(func)
 
@@ -88,7 +88,8 @@ def shipped_usable() -> tuple[bool, str]:
 def _shipped_usable() -> tuple[bool, str]:
     if _building is not None:
         return False, "building it"
-    if config.CPU_NAME is not None or config.CPU_FEATURES is not None or not config.ENABLE_AVX:
+    # numba.core.config sets its options at run time (from the environment): its stub does not list them
+    if config.CPU_NAME is not None or config.CPU_FEATURES is not None or not config.ENABLE_AVX:  # type: ignore[attr-defined]
         return False, "the compilation target is set (NUMBA_CPU_NAME, NUMBA_CPU_FEATURES or NUMBA_ENABLE_AVX)"
     try:
         built = json.loads((SHIPPED_DIR / TARGET_FILE).read_text())

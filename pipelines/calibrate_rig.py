@@ -37,7 +37,7 @@ def main(dataset_path: Path, out_dir: Path, model: str = DEFAULT_MODEL, progress
     dataset = ensure_observations(dataset, workers, progress)
     out_dir.mkdir(parents=True, exist_ok=True)
     obs_path = None
-    if detected:
+    if detected and dataset.observations is not None:  # detect wrote them into the dataset
         obs_path = out_dir / "observations.json"
         save_observations(obs_path, dataset.observations)
     cal = calibrate(dataset, model=model, options=options, progress=progress, **overrides)

@@ -134,7 +134,8 @@ def _run(dataset_path: Path, dataset: Dataset, out_dir: Path, model: str | None,
     calibrated = calibrate_rig(dataset_path, out_dir, model=model, progress=progress,
                                dataset=dataset, options=options, **overrides)
     obs_path = calibrated.observations_path
-    dataset = calibrated.dataset
+    if calibrated.dataset is not None:  # with the observations detected
+        dataset = calibrated.dataset
     frames, why = reconstruction_frames(dataset)
     quality = calibrated.calibration.quality
     if quality is not None and not quality.ok:  # stop before reconstructing with a failed calibration

@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -24,6 +25,9 @@ from ..geometry import Pose
 from ..init.rig import join_rig
 from ..init.zhang import ZhangResult, calibrate_views, object_points
 from ..records import Dataset, Observation
+
+if TYPE_CHECKING:
+    from ..calibration import CameraCalibration
 
 log = logging.getLogger(__name__)
 
@@ -257,7 +261,7 @@ def project_directions(intr: np.ndarray, camera: np.ndarray, D: np.ndarray) -> n
 
 
 def camera_calibrations(dataset: Dataset, bundle: RigBundle, intr: np.ndarray, cams: Sequence[Pose],
-                        per_camera_residuals: dict[str, np.ndarray]) -> dict[str, CameraCalibration]:  # noqa: F821
+                        per_camera_residuals: dict[str, np.ndarray]) -> dict[str, CameraCalibration]:
     """The CameraCalibration of every camera from a solved bundle."""
     from ..calibration import CameraCalibration
     from ..evaluate import residual_stats
@@ -267,6 +271,6 @@ def camera_calibrations(dataset: Dataset, bundle: RigBundle, intr: np.ndarray, c
         p = intr[c]
         K = np.array([[p[0], 0.0, p[2]], [0.0, p[1], p[3]], [0.0, 0.0, 1.0]])
         dist = np.resize(p[4:], 5) if len(p) == 9 else np.zeros(5)
-        out[name] = CameraCalibration(name, tuple(dataset.cameras[name].image_size), K, dist, cams[c],
+        out[name] = CameraCalibration(name, dataset.cameras[name].image_size, K, dist, cams[c],
                                       rmse_px=residual_stats([per_camera_residuals[name]]).rmse_px)
     return out

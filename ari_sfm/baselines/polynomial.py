@@ -24,6 +24,7 @@ import logging
 import time
 from collections.abc import Sequence
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,6 +34,9 @@ from ..init.zhang import object_points
 from ..models.polynomial import DEGREE, EXPONENTS, NUM_TERMS, PolynomialMap, PolynomialModel, design_matrix  # noqa: F401 (re-exported: the pf projection lives in models/)
 from ..records import Dataset, Observation
 from ..results import PfWorld
+
+if TYPE_CHECKING:
+    from ..calibration import Calibration
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +71,7 @@ def world_points(observations: Sequence[Observation], frames: dict[str, Pose],
     return np.concatenate(X), np.concatenate(uv)
 
 
-def calibrate_pf(dataset: Dataset, world=None, **ari_options) -> Calibration:  # noqa: F821
+def calibrate_pf(dataset: Dataset, world=None, **ari_options) -> Calibration:
     """PF per camera on the calibration records, in the world of an ari calibration.
 
     ``world``: a :class:`~ari_sfm.calibration.Calibration` whose frames give the

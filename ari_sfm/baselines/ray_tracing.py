@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,6 +34,9 @@ from ..geometry import unit
 from ..records import Dataset, Interface
 from ..results import OptimizerReport, OptimizerRun
 from .bundle import camera_calibrations, intrinsics_vector, project_directions, start_bundle
+
+if TYPE_CHECKING:
+    from ..calibration import Calibration
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +103,7 @@ def _normal(base: np.ndarray, ab: np.ndarray) -> np.ndarray:
     return unit(base + ab[0] * e1 + ab[1] * np.cross(base, e1))
 
 
-def calibrate_rt(dataset: Dataset, distortion: bool = False, max_iterations: int = 100) -> Calibration:  # noqa: F821
+def calibrate_rt(dataset: Dataset, distortion: bool = False, max_iterations: int = 100) -> Calibration:
     """The ray-tracing bundle adjustment (see module docstring) on the calibration records."""
     from ..calibration import Calibration
 
@@ -167,7 +171,7 @@ def calibrate_rt(dataset: Dataset, distortion: bool = False, max_iterations: int
     )
 
 
-def project_rt(calibration: Calibration, camera: str, X_world: np.ndarray) -> np.ndarray:  # noqa: F821
+def project_rt(calibration: Calibration, camera: str, X_world: np.ndarray) -> np.ndarray:
     """Pixels (N, 2) of world points by this module's trace (for comparing with the saved ExactModel)."""
     cam = calibration.cameras[camera]
     X = cam.cam_from_world.apply(np.asarray(X_world, float).reshape(-1, 3))

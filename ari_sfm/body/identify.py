@@ -153,6 +153,8 @@ def identify_body(dots: np.ndarray, ids: np.ndarray, xyz: np.ndarray, clicks: Ma
                   match.rms_px)
         if best is None or (len(match.ids), -match.rms_px) > (len(best.ids), -best.rms_px):
             best = match
+    if best is None:
+        raise ValueError("no start to grow from (options.starts < 1 or no resection of the clicks)")
     _check_clicks(best, click_ids, click_xyz, click_uv)
     _check_rigid(best, ids, xyz, image_size, options)
     return best
@@ -186,11 +188,11 @@ def _propose(camera: MatchCamera, dots: np.ndarray, tree: cKDTree | None, xyz: n
     ambiguous: set[int] = set()
     if tree is None or not len(inside):
         return proposals, ambiguous, int(in_image.sum())
-    for k, hits in zip(inside, tree.query_ball_point(uv[inside], radius)):
+    for row, hits in zip(inside, tree.query_ball_point(uv[inside], radius)):
         if len(hits) == 1:
-            proposals[int(k)] = int(hits[0])
+            proposals[int(row)] = int(hits[0])
         elif len(hits) > 1:
-            ambiguous.add(int(k))
+            ambiguous.add(int(row))
     claimed: dict[int, list[int]] = {}
     for k, dot in proposals.items():
         claimed.setdefault(dot, []).append(k)

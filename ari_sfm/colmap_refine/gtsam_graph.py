@@ -237,6 +237,8 @@ class GtsamRefinement:
     def _prior_factor(self, w: int, template: State) -> gtsam.CustomFactor:
         """The declared plane's prior on window w (:mod:`.plane`): keys n(w), d(w) where estimated."""
         prior, lay = self.prior, self.problem.layout
+        if prior is None:
+            raise ValueError("no declared plane: no prior factor")
         has_n, has_d = lay.window[w, 0] >= 0, lay.window[w, 2] >= 0
         keys = ([_normal_key(w)] if has_n else []) + ([_distance_key(w)] if has_d else [])
         J_n, J_d = prior.jacobians()
@@ -255,6 +257,8 @@ class GtsamRefinement:
     def _bar_factor(self) -> gtsam.CustomFactor:
         """The scale bar (:mod:`.scale_bar`, already whitened) on its two points."""
         bar = self.bar
+        if bar is None:
+            raise ValueError("no scale bar: no factor")
 
         def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
             xyz = {bar.a: np.asarray(values.atPoint3(_point_key(bar.a))),

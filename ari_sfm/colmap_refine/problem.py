@@ -269,7 +269,7 @@ class RefractiveProblem:
                                 _pad([lay.intrinsics[c] for c in range(len(lay.intrinsics))], kmax)[cam_of_obs],
                                 lay.window[cam_of_obs] if self.mount == "camera" else
                                 lay.window[self.camera_windows[cam_of_obs]]], axis=1)
-        used = (index >= 0).any(axis=0)  # drop columns no observation uses (e.g. no rig sensors)
+        used = np.asarray((index >= 0).any(axis=0))  # drop columns no observation uses (e.g. no rig sensors)
         out = (np.ascontiguousarray(index[:, used]), used)
         out[0].flags.writeable = False  # shared by every linearization
         if obs is None:

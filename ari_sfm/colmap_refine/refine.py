@@ -322,8 +322,8 @@ def _distance_search(model: adapter.ColmapModel, problem: RefractiveProblem, int
                   baseline=baseline)
     sub = RefractiveProblem(model, interface, mount, estimate_distance)
     search: list[dict] = []
-    best = None
-    others = []
+    best: tuple[float, State, int] | None = None
+    others: list[tuple[float, State, int]] = []
     order = sorted(candidates, key=lambda h: abs(candidates.index(h) - (len(candidates) - 1) / 2))
     warm = None
     for h in order:
@@ -346,6 +346,8 @@ def _distance_search(model: adapter.ColmapModel, problem: RefractiveProblem, int
             best = end
         else:
             others.append(end)
+    if best is None:
+        raise ValueError("no start distance to search")
     if len(keep) < len(full_xyz) and not np.all(np.isfinite(problem.residuals(best[1]))):
         # the subsample's poses put some of the other points (at their start) before the window: the
         # best distance again, on every point
@@ -457,7 +459,7 @@ def _aligned(model: adapter.ColmapModel, ref: State, state: State, refined: np.n
     needed[frame_of_obs[placed[model.obs_point]]] = True
     by_frame = np.argsort(frame_of_obs, kind="stable")
     starts = np.searchsorted(frame_of_obs[by_frame], np.arange(F + 1))
-    points_of = {f: model.obs_point[by_frame[starts[f]:starts[f + 1]]] for f in np.flatnonzero(needed)}
+    points_of = {int(f): model.obs_point[by_frame[starts[f]:starts[f + 1]]] for f in np.flatnonzero(needed)}
     sims: dict[int, tuple[float, np.ndarray, np.ndarray]] = {}
     for f, seen in points_of.items():
         pts = np.unique(seen[refined[seen]])
@@ -540,7 +542,7 @@ def _slid_start(model: adapter.ColmapModel, state: State, first: Block, make_sol
             return _aligned(model, ref, state, refined, np.zeros(0, int)), blocks  # points no block held
         sees = np.where(done, -1, seen[:, refined].sum(axis=1))
         new = np.argsort(-sees, kind="stable")[:min(step, int((~done).sum()))]
-        theirs = seen[new].any(axis=0)  # the new frames' points, with every refined frame's view of them
+        theirs = np.asarray(seen[new].any(axis=0))  # the new frames' points, with every refined frame's view of them
         state = _aligned(model, ref, state, refined, new, theirs)
         anchors = np.flatnonzero(done & (seen[:, theirs].sum(axis=1) >= ALIGN_MIN_POINTS))
         block = _block(model, np.union1d(new, anchors), theirs)
@@ -559,7 +561,7 @@ def _paraxial_offset_mm(interface: Interface, normal_cam: np.ndarray, h: float) 
 
 def _focal_rows(model: adapter.ColmapModel, c: int) -> np.ndarray:
     """Mask of camera c's COLMAP parameters that are focal lengths."""
-    return model.param_map[c][:2].any(axis=0)
+    return np.asarray(model.param_map[c][:2].any(axis=0))
 
 
 def _convert(model: adapter.ColmapModel, problem: RefractiveProblem, state: State, direction: int) -> State:
@@ -692,6 +694,8 @@ class Solver:
     def _add_prior(self, ne, state: State) -> None:
         """The declared plane's prior rows (whitened) added to the normal equations and the error."""
         lay, prior = self.problem.layout, self.prior
+        if prior is None:
+            return
         J_n, J_d = prior.jacobians()
         s = prior.sigmas
         for w, (n, d) in enumerate(zip(state.normals, state.distances)):
@@ -907,7 +911,7 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
 
         start, blocks = _slid_start(cmodel, whole, first, block_solver)
         start, _ = _to_scale(start, bar, base, plane is None)
-        search = []
+        search: list[dict] = []
         others = [(0.0, _restart_at(cmodel, problem, start, mount, c), 0) for c in candidates
                   if c != h and plane is None]
     else:
@@ -1015,17 +1019,18 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
             plane.frame, declared_window(plane)[0], np.asarray(plane.point_mm, float),
             "held" if hold_normal else f"prior {plane.sigma_deg:g} deg",
             f"prior {plane.sigma_mm:g} mm" if estimate_distance else "held"),
-        scale_bar=None if bar is None else ScaleBarReport((int(scale_bar[0]), int(scale_bar[1])), bar.length_mm,
-                                                          bar.sigma_mm, bar.length(state.xyz)),
+        scale_bar=None if bar is None or scale_bar is None else ScaleBarReport(
+            (int(scale_bar[0]), int(scale_bar[1])), bar.length_mm, bar.sigma_mm, bar.length(state.xyz)),
         baseline=None if base is None else BaselineReport(
             (cmodel.image_names[base.a], cmodel.image_names[base.b]), base.length_mm, base.sigma_mm,
             base.length(state)))
-    if bar is not None and abs(report.scale_bar.refined_mm / bar.length_mm - 1.0) > 1e-3:
+    bar_report, base_report = report.scale_bar, report.baseline
+    if bar is not None and bar_report is not None and abs(bar_report.refined_mm / bar.length_mm - 1.0) > 1e-3:
         log.warning("refine-colmap: the scale bar is %.6g mm after the refinement (declared %.6g mm): the images "
-                    "pull against it", report.scale_bar.refined_mm, bar.length_mm)
-    if base is not None and abs(report.baseline.refined_mm / base.length_mm - 1.0) > 1e-3:
-        raise AriSfmError(path, f"baseline: the refinement ends with images {report.baseline.images[0]} and "
-                                f"{report.baseline.images[1]} {report.baseline.refined_mm:.6g} mm apart, not the "
+                    "pull against it", bar_report.refined_mm, bar.length_mm)
+    if base is not None and base_report is not None and abs(base_report.refined_mm / base.length_mm - 1.0) > 1e-3:
+        raise AriSfmError(path, f"baseline: the refinement ends with images {base_report.images[0]} and "
+                                f"{base_report.images[1]} {base_report.refined_mm:.6g} mm apart, not the "
                                 f"{base.length_mm:.6g} mm given: the images pull against it (check the names and "
                                 "the distance)")
     log.warning("refine-colmap: the COLMAP cameras written are the best %s approximation of the refractive "

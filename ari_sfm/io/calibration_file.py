@@ -67,6 +67,8 @@ def calibration_to_json(cal: Calibration) -> dict[str, Any]:
         if c.rmse_px is not None:
             entry["rmse_px"] = c.rmse_px
         if c.pf is not None:
+            if cal.pf_world is None:
+                raise ValueError(f"camera {name} has a pf polynomial, the calibration no pf_world")
             entry["pf"] = c.pf.to_json(cal.pf_world.model)
         entry.update(c.extra)
         cams[name] = entry
@@ -194,7 +196,7 @@ def _parse(data: Any, path: Any) -> Calibration:
                 raise AriSfmError(path, f"cameras.{name}.{key} is missing (model {model} stores its parameters there)")
         poly = None
         # the polynomial is the model: validate it here, not at the first projection
-        if spec.projection == "polynomial":
+        if spec.projection == "polynomial" and pf_world is not None:  # (pf_world is required above)
             try:
                 poly = PolynomialMap.from_json(c["pf"])
             except (KeyError, TypeError, ValueError) as exc:
@@ -204,7 +206,7 @@ def _parse(data: Any, path: Any) -> Calibration:
                                         f"{pf_world.model!r}: one world for all cameras")
         cams[name] = CameraCalibration(
             name,
-            tuple(int(s) for s in c["image_size"]),
+            (int(c["image_size"][0]), int(c["image_size"][1])),  # two integers (check_calibration_values)
             _finite(c["K"], (3, 3), f"cameras.{name}.K", path),
             np.resize(_finite(c.get("dist", [0] * 5), (len(c.get("dist", [0] * 5)),), f"cameras.{name}.dist", path), 5),
             _pose(c["cam_from_world"], f"cameras.{name}.cam_from_world", path),

@@ -312,7 +312,8 @@ def read_experiment(root: str | Path, window_groups: str | None = None) -> Datas
     log.info("%s: %d cameras, %d body points on %d plane(s) (from %s), %d calibration images, clicked points for "
              "%d cameras, .crd detections for %d", root, len(names), len(body), len(planes), source.name,
              len(images), len(manual), len(observations))
-    target = Target(type="points3d", points={k: tuple(float(c) for c in v) for k, v in sorted(body.items())})
+    target = Target(type="points3d",
+                    points={k: (float(v[0]), float(v[1]), float(v[2])) for k, v in sorted(body.items())})
     has_crd = any(per_camera.values())
     windows = _windows(root, control, names, glasses, target, images, manual, cameras, window_groups)
     return Dataset(root=root, rig_path=root / "rig.yaml", target=target,

@@ -729,14 +729,17 @@ def detect_experiment(dataset_path: str | Path, out: str | Path, options: Detect
         raise AriSfmError(out, "-o/--out is the dataset folder: write the results elsewhere")
     if dataset.images is None:
         raise AriSfmError(dataset.rig_path, "particles.images is not given: no particle images to detect")
+    if dataset.frames is None:
+        raise AriSfmError(dataset.rig_path, "particles.frames is not given: no particle images to detect")
     if options is None:
         options = detect_options(dataset)
     first, last = dataset.frames
     sizes = _check_image_sizes(dataset)
     _image_stats(dataset, sorted({first, last}))  # the first and last images exist (a typo in frames: at once)
     patterns = dict(dataset.images)
-    settings = {"task": "detect-particles", "options": {k: getattr(options, k) for k in options.__dataclass_fields__},
-                "frames": [first, last], "frames_per_partition": frames_per_partition, "images": patterns}
+    settings: dict[str, Any] = {
+        "task": "detect-particles", "options": {k: getattr(options, k) for k in options.__dataclass_fields__},
+        "frames": [first, last], "frames_per_partition": frames_per_partition, "images": patterns}
     out.mkdir(parents=True, exist_ok=True)
     check_run_settings(out, settings)
     partitions = (Partition(c[0], c[-1], (patterns, c, options, sizes), _image_stats(dataset, c))

@@ -47,7 +47,8 @@ class Cells:
         """The box of the points (their ``quantile`` and ``1 - quantile``: stray ghosts ignored)."""
         finite = xyz[np.isfinite(xyz).all(axis=1)]
         lower, upper = np.quantile(finite, quantile, axis=0), np.quantile(finite, 1.0 - quantile, axis=0)
-        return Cells(lower, np.maximum(upper, lower + 1e-6), tuple(int(s) for s in shape))
+        nx, ny, nz = (int(s) for s in shape)
+        return Cells(lower, np.maximum(upper, lower + 1e-6), (nx, ny, nz))
 
     @property
     def count(self) -> int:

@@ -78,7 +78,7 @@ class Partition:
         return f"frames_{self.first:05d}-{self.last:05d}"
 
 
-def split_frames(frames: Sequence[int], per_partition: int) -> list[list[int]]:
+def split_frames(frames: Iterable[int], per_partition: int) -> list[list[int]]:
     """Consecutive chunks of ``per_partition`` frames (sorted)."""
     frames = sorted(int(f) for f in frames)
     return [frames[k:k + per_partition] for k in range(0, len(frames), per_partition)]

@@ -319,7 +319,7 @@ def _summary(tally: _Tally, by_frame: dict[int, dict[str, np.ndarray]], cameras:
         tolerance_px=options.tolerance_px, min_cameras=options.min_cameras,
         volume={"min_mm": volume.min_mm.tolist(), "max_mm": volume.max_mm.tolist()}
         if np.isfinite(volume.min_mm).all() and np.isfinite(volume.max_mm).all()
-        else {"depth_range_mm": list(options.depth_range_mm)},
+        else {"depth_range_mm": None if options.depth_range_mm is None else list(options.depth_range_mm)},
         particles=tally.particles,
         cameras_per_particle={str(k): int(v) for k, v in enumerate(tally.cameras_per_particle) if v},
         matched_fraction=fraction,

@@ -138,7 +138,7 @@ def _rig_a(options: ParticleSimOptions, rng: np.random.Generator) -> tuple[Geome
         center = np.array([o.ring_radius_mm * math.cos(a), o.ring_radius_mm * math.sin(a), 0.0])
         if back and i >= o.num_cameras // 2:  # mirrored through the volume's centre along the axis
             center = center * np.array([1.0, 1.0, 0.0]) + np.array([0.0, 0.0, 2 * o.distance_mm])
-        jitter = _rot(rng.normal(size=3), math.radians(rng.uniform(0.0, 0.5)))
+        jitter = _rot(rng.normal(size=3).tolist(), math.radians(rng.uniform(0.0, 0.5)))
         rig.append((_look_at(center, ahead) @ jitter, center))
     cameras, rig_from_world = _rig_cameras(rig, rng)
     if o.k1:
@@ -165,7 +165,7 @@ def _rig_a(options: ParticleSimOptions, rng: np.random.Generator) -> tuple[Geome
     chk = _Checker(target, window, cameras, windows=by_camera)
 
     def sample() -> Pose | None:
-        R = world_from_rig.R @ _rot(rng.normal(size=3), math.radians(rng.uniform(0.0, 8.0)))
+        R = world_from_rig.R @ _rot(rng.normal(size=3).tolist(), math.radians(rng.uniform(0.0, 8.0)))
         c = world_from_rig.apply(ahead + np.array([rng.uniform(-15, 15), rng.uniform(-15, 15), rng.uniform(-15, 15)]))
         pose = Pose(R, c - R @ centroid)
         return pose if len(chk.seen_by(pose)) == len(cameras) else None

@@ -157,7 +157,7 @@ def port_survey(seed: int = 0, num_images: int = 28, num_points: int = 1500, sig
     rng = np.random.default_rng(seed)
     if layout not in ("grid", "strip"):
         raise ValueError(f"layout must be grid or strip, got {layout!r}")
-    poses = []
+    poses: list[Pose] = []
     if layout == "strip":
         per_line = int(np.ceil(num_images / strip_lines))
         xs = np.linspace(-0.5, 0.5, per_line) * (area_mm[0] - 1.2 * altitude_mm)

@@ -197,7 +197,7 @@ def _shader(target: Target) -> Callable[[np.ndarray], np.ndarray]:
 
 
 def _checkerboard_shader(target: Target) -> Callable[[np.ndarray], np.ndarray]:
-    cols, rows = target.inner_corners
+    cols, rows = target.required(target.inner_corners, "inner_corners")
     s = float(target.square_mm)
 
     def shade(xy: np.ndarray) -> np.ndarray:
@@ -225,9 +225,10 @@ def _charuco_image(squares: tuple[int, int], square_mm: float, marker_mm: float,
 
 
 def _charuco_shader(target: Target) -> Callable[[np.ndarray], np.ndarray]:
-    squares = tuple(target.squares)
+    squares = target.required(target.squares, "squares")
     s = float(target.square_mm)
-    board_img = _charuco_image(squares, s, float(target.marker_mm), str(target.dictionary))
+    board_img = _charuco_image(squares, s, float(target.required(target.marker_mm, "marker_mm")),
+                               str(target.dictionary))
     h, w = board_img.shape
     scale = _CHARUCO_PX_PER_SQUARE / s  # board-image pixels per mm
 
@@ -266,7 +267,7 @@ def _circles_shader(target: Target) -> Callable[[np.ndarray], np.ndarray]:
     and, in that row, at column round((x / s - offset) / step) (asymmetric
     layout: step 2, offset r % 2; symmetric: step 1, offset 0).
     """
-    cols, rows = target.circle_grid
+    cols, rows = target.required(target.circle_grid, "circle_grid")
     s = float(target.spacing_mm)
     radius = 0.5 * dot_diameter_mm(target)
     asymmetric = target.layout == "asymmetric"
