@@ -10,6 +10,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 import numpy as np
@@ -20,6 +21,13 @@ from .cli_config import blame_config, config_option
 from .colmap_refine import settings as REFINE
 from .errors import AriSfmError
 from .models.registry import BUNDLE, CALIBRATABLE, COMPARED, MODELS, model_spec
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+    from types import FrameType
+    from typing import Any
+
+    Handler = Callable[[int, FrameType | None], Any] | int | None  # what signal.getsignal returns
 
 log = logging.getLogger("ari_sfm")
 
@@ -55,7 +63,7 @@ def _on_signal(signum: int, frame) -> None:
     raise KeyboardInterrupt if signum == signal.SIGINT else Terminated
 
 
-def _install_signal_handlers() -> dict[int, object] | None:
+def _install_signal_handlers() -> dict[signal.Signals, Handler] | None:
     """Install :func:`_on_signal` for SIGINT and SIGTERM (main thread only); the previous handlers, or None.
     A SIGINT ignored by the parent (``cmd &`` in a non-interactive shell) stays ignored."""
     if threading.current_thread() is not threading.main_thread():
@@ -78,7 +86,7 @@ def _unraisable(args) -> None:
     sys.__unraisablehook__(args)
 
 
-def _restore_signal_handlers(previous: dict[int, object] | None) -> None:
+def _restore_signal_handlers(previous: dict[signal.Signals, Handler] | None) -> None:
     """The handlers from before the command; on the command line, where those are the defaults, a signal
     after the command (the interpreter's shutdown) leaves at once with "terminated"/143 or
     "interrupted"/130 (:func:`ari_sfm._startup.leave`): its results are written, and the default SIGTERM
@@ -181,7 +189,7 @@ class _Group(click.Group):
     and exits 130, where click would print "Aborted!" and exit 1. On the command line the process ends
     explicitly once the command is done (:func:`_leave_process`)."""
 
-    def main(self, *args, **kwargs):
+    def main(self, *args: Any, **kwargs: Any) -> Any:
         if not _startup.is_command_line() or kwargs.get("standalone_mode") is False:
             return super().main(*args, **kwargs)
         try:
@@ -838,7 +846,7 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
     check_number("--workers", workers, minimum=0, maximum=1024)
     _check_depth_range(depth_range)
     options = MatchOptions(tolerance_px=tolerance_px, min_cameras=min_cameras,
-                           depth_range_mm=None if depth_range is None else tuple(depth_range),
+                           depth_range_mm=None if depth_range is None else (depth_range[0], depth_range[1]),
                            frames_per_partition=frames_per_partition)
     s = reconstruct_particles(dataset, calibration, out, options, detections_path=detections, workers=workers,
                               scheduler=scheduler, progress=True)
@@ -911,14 +919,15 @@ def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: 
     _check_depth_range(depth_range)
     options = SelfCalOptions(tolerance_px=tolerance_px, max_tolerance_px=max_tolerance_px,
                              final_tolerance_px=final_tolerance_px, min_cameras=min_cameras,
-                             cells=tuple(cells), peak_radius_px=peak_radius_px, max_rounds=max_rounds,
+                             cells=(cells[0], cells[1], cells[2]), peak_radius_px=peak_radius_px, max_rounds=max_rounds,
                              coarse_frames=coarse_frames, intrinsics="free" if refine_intrinsics else intrinsics,
                              backend=backend)
     if refine_window:
         click.echo("note: --refine-window is no longer needed: the window is held in the world and every camera "
                    "moves, so the window's pose relative to the cameras is always estimated", err=True)
     r = self_calibrate_dataset(dataset, calibration, out, options, detections_path=detections, frames=frames,
-                               depth_range_mm=None if depth_range is None else tuple(depth_range), workers=workers,
+                               depth_range_mm=None if depth_range is None else (depth_range[0], depth_range[1]),
+                               workers=workers,
                                scheduler=scheduler, progress=True)
     rep = r.report
     for name, d in rep.disparity_rms_px.items():
@@ -1203,7 +1212,7 @@ def refine_colmap_cmd(model_dir: Path, window: Path, out: Path, huber_px: float,
                f"{r.iterations} iterations ({'converged' if r.converged else 'NOT converged'}), "
                f"{r.time_s:.1f} s; reprojection RMS {r.before.rms_px:.3f} px "
                f"(COLMAP pinhole) -> {r.after.rms_px:.3f} px (exact)")
-    for name in u.distance_mm | u.normal_deg:
+    for name in {**u.distance_mm, **u.normal_deg}:
         d = r.window.distance_of(name)
         parts = [f"distance {d:.2f} +- {u.distance_mm[name]:.2g} mm" if name in u.distance_mm else "",
                  f"normal +- {u.normal_deg[name]:.2g} deg" if name in u.normal_deg else ""]
