@@ -117,7 +117,8 @@ def ari_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thick
 
     ``params`` (9,) intrinsics; ``thickness_mm`` one plate for all points or (m,) one per point
     (stacked plates); ``distance_mm`` h (needed with a medium behind, unused in air).
-    Returns an :class:`AriJacobians`; without ``jacobians`` a :class:`~ari_sfm.models.pinhole.Projection` (``uv``);
+    Returns an :class:`AriJacobians`; without ``jacobians`` a :class:`~ari_sfm.models.pinhole.Projection` (only
+    ``uv`` set, the rest None);
     ``J_params`` holds the first ``n_params`` columns. ``normal_cam`` may be any non-zero vector
     (``J_normal`` is the derivative w.r.t. its 3 components); the window's numbers are checked by
     the model (:func:`check_window`), not here.

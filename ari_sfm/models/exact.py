@@ -154,7 +154,7 @@ def exact_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thi
     ``params`` (9,) intrinsics; ``thickness_mm`` one plate for all points or (m,) one per point
     (stacked plates); ``distance_mm`` h > 0. Returns an :class:`ExactJacobians` (NaN pixels for
     points not beyond the far face); without ``jacobians`` a :class:`~ari_sfm.models.pinhole.Projection`
-    (``uv``); ``J_params``
+    (only ``uv`` set); ``J_params``
     holds the first ``n_params`` columns; ``J_normal`` is w.r.t. the 3 components of ``normal_cam``.
     """
     if distance_mm is None:
