@@ -1,13 +1,9 @@
-"""Package discovery (all metadata is in pyproject.toml) and the compiled kernels of a built wheel.
+"""The compiled kernels of a built wheel (all metadata and package discovery are in pyproject.toml).
 
-Every folder with an ``__init__.py`` under ``ari_sfm/``, ``factors/`` and
-``pipelines/`` is a package; the last two install as ``ari_sfm.factors`` and
-``ari_sfm.pipelines`` (``[tool.setuptools.package-dir]``), a renaming that
-``[tool.setuptools.packages.find]`` cannot express.
-
-``build_py`` then compiles the numba kernels of the built package into
-``ari_sfm/_compiled/`` (``python -m ari_sfm.kernel_build``, ~1 min on 2 cores), so that an
-installed wheel does not compile on its first run. It needs the package's dependencies in
+``build_py`` copies the packages (``ari_sfm/factors`` and ``ari_sfm/pipelines``, symbolic links to
+the top-level ``factors/`` and ``pipelines/``, become real folders in the build), then compiles the
+numba kernels of the built package into ``ari_sfm/_compiled/`` (``python -m ari_sfm.kernel_build``,
+~1 min on 2 cores), so that an installed wheel does not compile on its first run. It needs the package's dependencies in
 the building Python (``pip wheel --no-build-isolation``, as .ci/run builds); without them,
 or with ``ARI_SFM_NO_KERNEL_BUILD=1``, or for an editable install, the wheel has no compiled
 kernels and numba compiles them on first use, as it does for a source tree.
@@ -18,10 +14,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from setuptools import find_packages, setup
+from setuptools import setup
 from setuptools.command.build_py import build_py
-
-PREFIXED = ("factors", "pipelines")  # folders installed under ari_sfm.
 
 
 class build_py_with_kernels(build_py):
@@ -47,6 +41,4 @@ class build_py_with_kernels(build_py):
                   file=sys.stderr)
 
 
-setup(packages=find_packages(include=["ari_sfm", "ari_sfm.*"])
-      + [f"ari_sfm.{p}" for p in find_packages(include=[f"{d}{s}" for d in PREFIXED for s in ("", ".*")])],
-      cmdclass={"build_py": build_py_with_kernels})
+setup(cmdclass={"build_py": build_py_with_kernels})

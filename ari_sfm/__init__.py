@@ -58,6 +58,7 @@ def __getattr__(name: str):
 __all__ = [
     "AriSfmError", "Calibration", "CalibrationOptions", "CameraCalibration", "Dataset", "Interface",
     "Observation", "Points", "Target", "calibrate", "compare", "evaluate", "load_calibration", "load_dataset",
-    "load_observations", "reconstruct", "refine_colmap", "save_calibration", "triangulate_pixels", "RigGraph", "RigState", "keys",
+    "load_observations", "reconstruct", "refine_colmap", "save_calibration", "triangulate_pixels", "RigGraph",
+    "RigState", "keys",
     "marginal_covariances",
 ]

@@ -15,8 +15,14 @@ import os
 import signal
 import sys
 import threading
+from typing import TYPE_CHECKING
 
-_previous: dict[int, object] = {}
+if TYPE_CHECKING:
+    from collections.abc import Callable
+    from types import FrameType
+    from typing import Any
+
+_previous: dict[int, Callable[[int, FrameType | None], Any] | int | None] = {}
 
 
 def is_command_line() -> bool:

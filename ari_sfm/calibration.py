@@ -1,7 +1,8 @@
 """The calibration result: the record calibration.json holds, and the models it implies.
 
 Read, validated and written by :mod:`ari_sfm.io.calibration_file` (``load_calibration``,
-``save_calibration``, ``parse_calibration``, ``calibration_to_json``), as the dataset is by :mod:`ari_sfm.io.dataset`."""
+``save_calibration``, ``parse_calibration``, ``calibration_to_json``), as the dataset is by
+:mod:`ari_sfm.io.dataset`."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -11,9 +12,9 @@ import numpy as np
 
 from .geometry import Pose
 from .models.registry import ModelSpec, model_spec
+from .quality import Quality
 from .records import SINGLE_WINDOW, Interface, Target
 from .results import OptimizerReport, OutlierReport, PfWorld, ResidualStats, StageRecord, Uncertainty
-from .quality import Quality
 
 
 @dataclass(frozen=True)
@@ -47,7 +48,7 @@ class WindowCalibration:
     cameras: tuple[str, ...]
     fixed_distance_mm: float | None = None  # exact model in air: the distance (same reference) it is evaluated at
 
-    def plane_mm(self, calibration: "Calibration") -> float | None:
+    def plane_mm(self, calibration: Calibration) -> float | None:
         """The near face as the world plane ``normal_world . X = plane_mm``: from distance_mm, else from
         fixed_distance_mm (in air), else None."""
         d = self.interface.distance_mm if self.interface.distance_mm is not None else self.fixed_distance_mm
@@ -96,13 +97,16 @@ class Calibration:
                     first.interface.distance_mm, first.fixed_distance_mm) == (
                 mine.thickness_mm, mine.index, mine.medium_index, mine.distance_mm, self.fixed_distance_mm)
             if not same or (first.normal_world is None) != (self.normal_world is None) or (
-                    first.normal_world is not None and not np.array_equal(first.normal_world, self.normal_world)):
+                    first.normal_world is not None and self.normal_world is not None
+                    and not np.array_equal(first.normal_world, self.normal_world)):
                 raise ValueError("interface, normal_world and fixed_distance_mm must be the first window's")
         for w in self.window_list():
             if spec.needs_distance and w.interface.distance_mm is None and w.fixed_distance_mm is None:
                 raise ValueError(f"model {self.model} with interface.distance_mm null needs fixed_distance_mm "
-                                 f"(the distance it was evaluated at){'' if not self.windows else ' for window ' + w.name}")
-        if spec.projection == "polynomial" and (self.pf_world is None or any(c.pf is None for c in self.cameras.values())):
+                                 "(the distance it was evaluated "
+                                 f"at){'' if not self.windows else ' for window ' + w.name}")
+        if spec.projection == "polynomial" and (self.pf_world is None
+                                                or any(c.pf is None for c in self.cameras.values())):
             raise ValueError(f"model {self.model} needs pf_world and every camera's pf polynomial")
 
     @property
@@ -167,7 +171,7 @@ class Calibration:
             if added_mm:
                 raise ValueError(f"model {spec.name} cannot project through added glass (added_mm={added_mm})")
             if spec.projection == "polynomial":
-                from .models.polynomial import PolynomialMap, PolynomialModel
+                from .models.polynomial import PolynomialModel
 
                 return PolynomialModel(cam.pf, cam.cam_from_world.inverse())
             return PinholeModel(cam.K, cam.dist)

@@ -14,7 +14,8 @@ README gives the figures. :func:`ari_sfm.detection.detect_corners` dispatches he
 from __future__ import annotations
 
 import logging
-from typing import Callable, NamedTuple
+from collections.abc import Callable
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -46,7 +47,7 @@ def detect_circles(image: np.ndarray, target: Target, method: str | None = None)
     method = CIRCLE_DEFAULT_METHOD if method is None else method
     if method not in CIRCLE_METHODS:
         raise ValueError(f"unknown circles method {method!r} (one of {', '.join(CIRCLE_METHODS)})")
-    cols, rows = (int(v) for v in target.circle_grid)
+    cols, rows = (int(v) for v in target.required(target.circle_grid, "circle_grid"))
     flags = cv2.CALIB_CB_ASYMMETRIC_GRID if target.layout == "asymmetric" else cv2.CALIB_CB_SYMMETRIC_GRID
     for colour in (0, 255):  # dark dots, then light dots
         detector, blobs = _tuned_blob_detector(image, cols * rows, colour)
@@ -71,8 +72,8 @@ def detect_circles(image: np.ndarray, target: Target, method: str | None = None)
     return None
 
 
-def _blob_params(colour: int, min_area: float, max_area: float) -> cv2.SimpleBlobDetector_Params:
-    params = cv2.SimpleBlobDetector_Params()
+def _blob_params(colour: int, min_area: float, max_area: float) -> cv2.SimpleBlobDetector.Params:
+    params = cv2.SimpleBlobDetector.Params()
     params.filterByColor, params.blobColor = True, colour
     params.filterByArea, params.minArea, params.maxArea = True, float(min_area), float(max_area)
     params.minDistBetweenBlobs = 2.0
@@ -90,7 +91,7 @@ def _tuned_blob_detector(image: np.ndarray, count: int, colour: int) -> tuple[cv
     CIRCLE_AREA_RANGE (perspective changes dot areas across the board), which
     drops text, smudges and background clutter of other sizes.
     """
-    small, scale = image, 1.0
+    small = image
     while max(small.shape) >= 2 * CIRCLE_SIZE_PASS_SIDE_PX:  # the wide pass runs on a smaller copy (speed)
         small = cv2.resize(small, (small.shape[1] // 2, small.shape[0] // 2), interpolation=cv2.INTER_AREA)
     sizes = _blob_sizes(small, count, colour) * (image.shape[1] / small.shape[1])
@@ -103,13 +104,15 @@ def _tuned_blob_detector(image: np.ndarray, count: int, colour: int) -> tuple[cv
     lo = max(CIRCLE_MIN_AREA_PX, np.pi / 4 * sizes[k] ** 2 / CIRCLE_AREA_RANGE)
     hi = np.pi / 4 * sizes[k + count - 1] ** 2 * CIRCLE_AREA_RANGE
     areas = np.pi / 4 * sizes**2
-    return cv2.SimpleBlobDetector_create(_blob_params(colour, lo, hi)), int(np.count_nonzero((areas >= lo) & (areas <= hi)))
+    kept = int(np.count_nonzero((areas >= lo) & (areas <= hi)))
+    return cv2.SimpleBlobDetector.create(_blob_params(colour, lo, hi)), kept
 
 
 def _blob_sizes(image: np.ndarray, count: int, colour: int) -> np.ndarray:
     """Sorted diameters (px) of the blobs of ``colour`` from CIRCLE_MIN_AREA_PX to area / ``count``."""
     h, w = image.shape
-    wide = cv2.SimpleBlobDetector_create(_blob_params(colour, CIRCLE_MIN_AREA_PX, max(CIRCLE_MIN_AREA_PX + 1, w * h / count)))
+    wide = cv2.SimpleBlobDetector.create(_blob_params(colour, CIRCLE_MIN_AREA_PX,
+                                                      max(CIRCLE_MIN_AREA_PX + 1, w * h / count)))
     return np.sort([k.size for k in wide.detect(image)])
 
 
@@ -219,7 +222,8 @@ def _lattice_order(pixels: np.ndarray, target: Target) -> np.ndarray | None:
     near = np.argsort(d[seed])
     g1 = pixels[near[0]] - pixels[seed]
     g2 = next((pixels[j] - pixels[seed] for j in near[1:8]
-               if abs(np.dot(pixels[j] - pixels[seed], g1)) < 0.7 * np.linalg.norm(g1) * np.linalg.norm(pixels[j] - pixels[seed])), None)
+               if abs(np.dot(pixels[j] - pixels[seed], g1))
+               < 0.7 * np.linalg.norm(g1) * np.linalg.norm(pixels[j] - pixels[seed])), None)
     if g2 is None:
         return None
     coords = {seed: (0, 0)}
@@ -391,6 +395,7 @@ def _perspective_bias(H: np.ndarray, centres_mm: np.ndarray, radius_mm: float) -
 CIRCLE_METHODS: dict[str, Callable[[np.ndarray, Target, np.ndarray, int], np.ndarray]] = {
     "blob": lambda image, target, pixels, colour: pixels,  # OpenCV's blob centres (relabelled)
     "centroid": lambda image, target, pixels, colour: _refine_centroid(image, target, pixels, colour),
-    "centroid_debiased": lambda image, target, pixels, colour: _refine_centroid(image, target, pixels, colour, debias=True),
+    "centroid_debiased": lambda image, target, pixels, colour: _refine_centroid(image, target, pixels, colour,
+                                                                                debias=True),
 }
 CIRCLE_DEFAULT_METHOD = "centroid_debiased"

@@ -10,16 +10,24 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 import numpy as np
 
 from . import _startup
-from .colmap_refine import settings as REFINE
-from .cli_config import blame_config, config_option
 from .cli_checks import check_not_an_output, check_not_input_folder, check_number, check_output_folder
+from .cli_config import blame_config, config_option
+from .colmap_refine import settings as REFINE
 from .errors import AriSfmError
 from .models.registry import BUNDLE, CALIBRATABLE, COMPARED, MODELS, model_spec
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+    from types import FrameType
+    from typing import Any
+
+    Handler = Callable[[int, FrameType | None], Any] | int | None  # what signal.getsignal returns
 
 log = logging.getLogger("ari_sfm")
 
@@ -55,7 +63,7 @@ def _on_signal(signum: int, frame) -> None:
     raise KeyboardInterrupt if signum == signal.SIGINT else Terminated
 
 
-def _install_signal_handlers() -> dict[int, object] | None:
+def _install_signal_handlers() -> dict[signal.Signals, Handler] | None:
     """Install :func:`_on_signal` for SIGINT and SIGTERM (main thread only); the previous handlers, or None.
     A SIGINT ignored by the parent (``cmd &`` in a non-interactive shell) stays ignored."""
     if threading.current_thread() is not threading.main_thread():
@@ -78,7 +86,7 @@ def _unraisable(args) -> None:
     sys.__unraisablehook__(args)
 
 
-def _restore_signal_handlers(previous: dict[int, object] | None) -> None:
+def _restore_signal_handlers(previous: dict[signal.Signals, Handler] | None) -> None:
     """The handlers from before the command; on the command line, where those are the defaults, a signal
     after the command (the interpreter's shutdown) leaves at once with "terminated"/143 or
     "interrupted"/130 (:func:`ari_sfm._startup.leave`): its results are written, and the default SIGTERM
@@ -181,7 +189,7 @@ class _Group(click.Group):
     and exits 130, where click would print "Aborted!" and exit 1. On the command line the process ends
     explicitly once the command is done (:func:`_leave_process`)."""
 
-    def main(self, *args, **kwargs):
+    def main(self, *args: Any, **kwargs: Any) -> Any:
         if not _startup.is_command_line() or kwargs.get("standalone_mode") is False:
             return super().main(*args, **kwargs)
         try:
@@ -210,7 +218,10 @@ def main(verbose: bool) -> None:
 
 @main.command()
 @click.argument("dataset", type=click.Path(path_type=Path))
-@click.option("-o", "--out", type=click.Path(path_type=Path), default=None, help="Output folder: observations.json and a rig.yaml naming it and DATASET's images, a dataset that calibrate and run take without detecting again (default: <name>-detections beside DATASET; the dataset's own files are never written).")
+@click.option("-o", "--out", type=click.Path(path_type=Path), default=None,
+              help="Output folder: observations.json and a rig.yaml naming it and DATASET's images, a dataset that "
+                   "calibrate and run take without detecting again (default: <name>-detections beside DATASET; the "
+                   "dataset's own files are never written).")
 @click.option("--workers", type=int, default=None, help="Parallel detection threads (default: all cores).")
 @user_errors
 def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
@@ -242,7 +253,8 @@ _model_option = click.option("--model", default=None, metavar="|".join(CALIBRATA
                              help="; ".join(f"{m}: {MODELS[m].summary}" for m in CALIBRATABLE)
                              + ". Default: exact, the best model (its ari stage's figures shown beside it); "
                                "ari: the paper's model alone.")
-_distortion_option = click.option("--distortion/--no-distortion", default=False, show_default=True, help="Estimate k1 k2 p1 p2 k3.")
+_distortion_option = click.option("--distortion/--no-distortion", default=False, show_default=True,
+                                  help="Estimate k1 k2 p1 p2 k3.")
 
 
 def _field_option(name: str):
@@ -384,15 +396,16 @@ def report_cmd(out: Path, dataset: Path | None) -> None:
 @user_errors
 def evaluate_cmd(calibration: Path, observations: Path, solve_poses: bool) -> None:
     """Reprojection errors of CALIBRATION on an OBSERVATIONS file (e.g. held-out views)."""
-    from .io import load_calibration
     from .evaluate import evaluate
+    from .io import load_calibration
 
     cal = load_calibration(calibration)
     if cal.target is None:
         raise AriSfmError(calibration, "holds no target (the board's geometry: key target), which evaluate needs to "
                                        "project the corners; calibration.json written by ari-sfm calibrate has one")
     stats = evaluate(cal, observations, solve_poses=solve_poses)  # nothing to judge or NaN: one error line
-    click.echo(f"rmse {stats.rmse_px:.4f} px  mae {stats.mae_px:.4f} px  max {stats.max_px:.4f} px  ({stats.count} corners)")
+    click.echo(f"rmse {stats.rmse_px:.4f} px  mae {stats.mae_px:.4f} px  max {stats.max_px:.4f} px  ({stats.count} "
+               "corners)")
 
 
 @main.command(name="reconstruct")
@@ -485,7 +498,8 @@ def compare_cmd(dataset: Path, out: Path, models: str, subset: str | None, holdo
 @click.option("--approximation", type=click.Choice(["pinhole", "shift"]), default="pinhole", show_default=True,
               help="exact model / medium behind the window: refit K and pose, or only the shift along the normal.")
 @user_errors
-def export_colmap_cmd(calibration: Path, out: Path, dataset: Path | None, points: Path | None, approximation: str) -> None:
+def export_colmap_cmd(calibration: Path, out: Path, dataset: Path | None, points: Path | None,
+                      approximation: str) -> None:
     """Write CALIBRATION as a COLMAP model (cameras, rig, frames, images, 3D points with tracks) to OUT."""
     from .colmap_export import export_colmap, summary
 
@@ -577,7 +591,8 @@ def export_colmap_fork_cmd(calibration: Path, out: Path, dataset: Path | None, u
     cal = load_calibration(calibration)
     observations, refined = None, None
     folder = calibration.parent
-    if dataset is None and "refine_colmap" in cal.extra and any((folder / f"cameras.{x}").is_file() for x in ("bin", "txt")):
+    if dataset is None and "refine_colmap" in cal.extra and any((folder / f"cameras.{x}").is_file()
+                                                                for x in ("bin", "txt")):
         refined = folder  # a refine-colmap output: its images at their real poses and the refined points
     elif dataset is None and (folder / "observations.json").is_file():
         observations = load_observations(folder / "observations.json", cal.target, list(cal.cameras))
@@ -613,7 +628,8 @@ def import_colmap_fork_cmd(model_dir: Path, out: Path, units_mm: float) -> None:
 
 @main.command()
 @click.argument("scenario")
-@click.option("-o", "--out", type=click.Path(path_type=Path), required=True, help="Output folder: OUT/dataset and OUT/truth.json.")
+@click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
+              help="Output folder: OUT/dataset and OUT/truth.json.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed (>= 0).")
 @click.option("--sigma", type=float, default=None, help="Pixel noise per coordinate (default 0.05; particles: 0.1; "
                                                         "not for port_survey, whose images are rendered).")
@@ -649,7 +665,8 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_sca
     from .simulate import SCENARIOS, simulate as run_sim
 
     if scenario not in SCENARIOS and scenario not in ("port_survey", "particles"):
-        raise AriSfmError(None, f"unknown scenario {scenario!r}; known: {', '.join([*SCENARIOS, 'port_survey', 'particles'])}")
+        raise AriSfmError(None, f"unknown scenario {scenario!r}; known: "
+                                f"{', '.join([*SCENARIOS, 'port_survey', 'particles'])}")
     check_number("--seed", seed, minimum=0)
     if scenario == "particles":  # a particle experiment: rig A's target calibration, drifted rig B, particles
         _simulate_particles(out, seed, 0.1 if sigma is None else sigma, num_cameras, particles_per_frame, num_frames,
@@ -699,7 +716,8 @@ def _simulate_particles(out: Path, seed: int, sigma: float, num_cameras: int, pa
     try:
         drifted = tuple(int(c) for c in drift_cameras.split(",") if c.strip())
     except ValueError:
-        raise AriSfmError("--drift-cameras", f"must be camera indices separated by commas (got {drift_cameras!r})") from None
+        raise AriSfmError("--drift-cameras",
+                          f"must be camera indices separated by commas (got {drift_cameras!r})") from None
     bad = [c for c in drifted if not 0 <= c < num_cameras]
     if bad:
         raise AriSfmError("--drift-cameras", f"{bad} not among the cameras 0..{num_cameras - 1}")
@@ -757,7 +775,8 @@ def _scheduler_option(fn):
 @click.option("--min-sum", type=float, default=None,
               help="Grey sum of an image's pixels above the local background (OpenPTV's sumg_min; default 0).")
 @click.option("--relative-floor", type=float, default=None,
-              help="Peak at least this fraction of the frame's bright particle images' (default e^-2 = 0.135; 0: none).")
+              help="Peak at least this fraction of the frame's bright particle images' "
+                   "(default e^-2 = 0.135; 0: none).")
 @click.option("--frames-per-partition", type=int, default=20, show_default=True)
 @_workers_option
 @_scheduler_option
@@ -827,7 +846,7 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
     check_number("--workers", workers, minimum=0, maximum=1024)
     _check_depth_range(depth_range)
     options = MatchOptions(tolerance_px=tolerance_px, min_cameras=min_cameras,
-                           depth_range_mm=None if depth_range is None else tuple(depth_range),
+                           depth_range_mm=None if depth_range is None else (depth_range[0], depth_range[1]),
                            frames_per_partition=frames_per_partition)
     s = reconstruct_particles(dataset, calibration, out, options, detections_path=detections, workers=workers,
                               scheduler=scheduler, progress=True)
@@ -877,9 +896,9 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
 @config_option
 @user_errors
 def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: Path | None, frames: int,
-                       coarse_frames: int, tolerance_px: float, max_tolerance_px: float, final_tolerance_px: float, min_cameras: int,
-                       cells: tuple[int, int, int], peak_radius_px: float, max_rounds: int, intrinsics: str,
-                       refine_intrinsics: bool, refine_window: bool, backend: str,
+                       coarse_frames: int, tolerance_px: float, max_tolerance_px: float, final_tolerance_px: float,
+                       min_cameras: int, cells: tuple[int, int, int], peak_radius_px: float, max_rounds: int,
+                       intrinsics: str, refine_intrinsics: bool, refine_window: bool, backend: str,
                        depth_range: tuple[float, float] | None, workers: int, scheduler: str | None) -> None:
     """Volume self-calibration through the window: correct a drifted calibration from particle images."""
     from .particles.selfcal import SelfCalOptions, check_not_input, self_calibrate_dataset
@@ -900,19 +919,21 @@ def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: 
     _check_depth_range(depth_range)
     options = SelfCalOptions(tolerance_px=tolerance_px, max_tolerance_px=max_tolerance_px,
                              final_tolerance_px=final_tolerance_px, min_cameras=min_cameras,
-                             cells=tuple(cells), peak_radius_px=peak_radius_px, max_rounds=max_rounds,
+                             cells=(cells[0], cells[1], cells[2]), peak_radius_px=peak_radius_px, max_rounds=max_rounds,
                              coarse_frames=coarse_frames, intrinsics="free" if refine_intrinsics else intrinsics,
                              backend=backend)
     if refine_window:
         click.echo("note: --refine-window is no longer needed: the window is held in the world and every camera "
                    "moves, so the window's pose relative to the cameras is always estimated", err=True)
     r = self_calibrate_dataset(dataset, calibration, out, options, detections_path=detections, frames=frames,
-                               depth_range_mm=None if depth_range is None else tuple(depth_range), workers=workers,
+                               depth_range_mm=None if depth_range is None else (depth_range[0], depth_range[1]),
+                               workers=workers,
                                scheduler=scheduler, progress=True)
     rep = r.report
     for name, d in rep.disparity_rms_px.items():
         s = rep.sigmas[name]
-        rel = "" if s.rotation_rel_deg is None else f" (relative to the first camera: sigma {s.rotation_rel_deg:.4f} deg)"
+        rel = ("" if s.rotation_rel_deg is None
+               else f" (relative to the first camera: sigma {s.rotation_rel_deg:.4f} deg)")
         click.echo(f"{name}: disparity RMS {d.before:.3f} px -> {d.after:.3f} px, rotated "
                    f"{rep.rotation_change_deg[name]:.4f} deg{rel}")
     click.echo(f"{len(r.rounds)} rounds, {rep.particles_used} particles in {len(rep.frames)} frames, "
@@ -1054,15 +1075,18 @@ def _summary(cal, elapsed: float, covers: str = "the whole command") -> None:
             click.echo("normal: none (the window is ignored)")
         else:
             click.echo(f"{label}normal (world) [{nw[0]:+.5f} {nw[1]:+.5f} {nw[2]:+.5f}]"
-                       + (f"  distance {w.interface.distance_mm:.3f} mm" + (f" from {w.cameras[0]}" if cal.windows else "")
+                       + (f"  distance {w.interface.distance_mm:.3f} mm"
+                          + (f" from {w.cameras[0]}" if cal.windows else "")
                           if w.interface.distance_mm is not None else ""))
-    click.echo(f"{'camera':10s} {'fx':>9s} {'fy':>9s} {'cx':>8s} {'cy':>8s} {'tilt':>6s} {'expansion centre (px)':>26s} {'rmse':>7s}")
+    click.echo(f"{'camera':10s} {'fx':>9s} {'fy':>9s} {'cx':>8s} {'cy':>8s} {'tilt':>6s} "
+               f"{'expansion centre (px)':>26s} {'rmse':>7s}")
     for name, c in cal.cameras.items():
         tilt = (float("nan") if cal.window_of(name).normal_world is None
                 else angle_between_deg(cal.normal_cam(name), np.array([0, 0, 1.0])))
         ec = "-" if c.expansion_center_px is None else (
             f"{c.expansion_center_px[0]:.1f},{c.expansion_center_px[1]:.1f} ±{max(c.expansion_center_std_px):.2f}")
-        click.echo(f"{name:10s} {c.K[0,0]:9.2f} {c.K[1,1]:9.2f} {c.K[0,2]:8.2f} {c.K[1,2]:8.2f} {tilt:5.2f}° {ec:>26s} {c.rmse_px:7.4f}")
+        click.echo(f"{name:10s} {c.K[0,0]:9.2f} {c.K[1,1]:9.2f} {c.K[0,2]:8.2f} {c.K[1,2]:8.2f} {tilt:5.2f}° {ec:>26s} "
+                   f"{c.rmse_px:7.4f}")
     u = cal.uncertainty
     if u:
         if u.windows:
@@ -1082,11 +1106,13 @@ def _summary(cal, elapsed: float, covers: str = "the whole command") -> None:
     if cal.outliers is not None and cal.outliers.corners:
         click.echo(f"{len(cal.outliers.corners)} corners beyond {cal.outliers.threshold_sigma:g} sigma "
                    f"({'excluded' if cal.outliers.excluded else 'listed in calibration.json under outliers'})")
-    click.echo(f"residuals: rmse {r.rmse_px:.4f} px, mae {r.mae_px:.4f} px, max {r.max_px:.4f} px over {r.count} corners")
+    click.echo(f"residuals: rmse {r.rmse_px:.4f} px, mae {r.mae_px:.4f} px, max {r.max_px:.4f} px over {r.count} "
+               "corners")
     if q is not None and q.ok:
         floor = "n/a" if q.floor_rmse_px is None else f"{q.floor_rmse_px:.4f} px" + (
             "" if q.allowance_px is None else f", at most {q.allowance_px:.4f} px")
-        exact = "" if q.exact_robust_rmse_px is None else f"; exact model with the same window {q.exact_robust_rmse_px:.4f} px"
+        exact = ("" if q.exact_robust_rmse_px is None
+                 else f"; exact model with the same window {q.exact_robust_rmse_px:.4f} px")
         click.echo(f"quality: ok (robust rmse {q.robust_rmse_px:.4f} px; the corners' floor {floor}{exact})")
     _stages_summary(cal)
     click.echo(f"time: calibration {cal.time_s:.3f} s (analytic start and bundle-adjustment stages), "
@@ -1186,7 +1212,7 @@ def refine_colmap_cmd(model_dir: Path, window: Path, out: Path, huber_px: float,
                f"{r.iterations} iterations ({'converged' if r.converged else 'NOT converged'}), "
                f"{r.time_s:.1f} s; reprojection RMS {r.before.rms_px:.3f} px "
                f"(COLMAP pinhole) -> {r.after.rms_px:.3f} px (exact)")
-    for name in u.distance_mm | u.normal_deg:
+    for name in {**u.distance_mm, **u.normal_deg}:
         d = r.window.distance_of(name)
         parts = [f"distance {d:.2f} +- {u.distance_mm[name]:.2g} mm" if name in u.distance_mm else "",
                  f"normal +- {u.normal_deg[name]:.2g} deg" if name in u.normal_deg else ""]

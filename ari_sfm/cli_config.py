@@ -10,8 +10,9 @@ came from the file (:func:`blame_config`).
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import click
 from click.core import ParameterSource
@@ -68,7 +69,8 @@ def read_config(path: Path, ctx: click.Context) -> dict[str, Any]:
                                     "give it on the command line")
         if name not in options:
             known = ", ".join(sorted(options))
-            raise AriSfmError(path, f"{key if isinstance(key, str) else show(key)}: not an option of `ari-sfm {ctx.command.name}` (known: {known})")
+            raise AriSfmError(path, f"{key if isinstance(key, str) else show(key)}: not an option of `ari-sfm "
+                                    f"{ctx.command.name}` (known: {known})")
         if name in out:
             raise AriSfmError(path, f"{key}: given twice (as {name} and with dashes)")
         if value is None:  # `key:` with nothing: the option's default

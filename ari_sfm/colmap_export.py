@@ -50,17 +50,18 @@ import os
 import re
 import sys
 import tempfile
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
 from .calibration import Calibration
-from .io import load_calibration
 from .deps import import_pycolmap
 from .errors import AriSfmError
 from .geometry import Pose
+from .io import load_calibration
 from .provenance import observations_mismatch
 from .records import Dataset, Observation
 
@@ -355,7 +356,8 @@ def export_colmap(calibration: Calibration | str | Path, out_dir: str | Path,
     dataset, observations = _observations(calibration, dataset, cal_path)
     why = observations_mismatch(calibration, observations, dataset.target if dataset is not None else None)
     if why:  # the calibration's frames with another capture's corners: tracks of nonsense
-        raise AriSfmError(dataset.root if dataset is not None else cal_path.parent / "observations.json", why)
+        raise AriSfmError(dataset.root if dataset is not None
+                          else cal_path.parent / "observations.json" if cal_path is not None else None, why)
     points_data = _as_points(points)
     out_dir = Path(out_dir)
     names = list(calibration.cameras)
@@ -369,10 +371,7 @@ def export_colmap(calibration: Calibration | str | Path, out_dir: str | Path,
     frame_points = _frame_points(calibration, points_data)
 
     # virtual cameras, fitted on the points each camera sees
-    seen: dict[str, list[np.ndarray]] = {n: [] for n in names}
-    for o in observations:
-        pts = frame_points.get(o.frame, {})
-        seen[o.camera].extend(pts[int(i)] for i in o.ids if int(i) in pts)
+    seen = _seen_points(names, observations, frame_points)
     virtual = {n: virtual_camera(calibration, n, np.array(seen[n]) if seen[n] else None, approximation)
                for n in names}
     warnings = _approximation_warnings(calibration, virtual, approximation)
@@ -383,16 +382,51 @@ def export_colmap(calibration: Calibration | str | Path, out_dir: str | Path,
     camera_ids = {n: k + 1 for k, n in enumerate(names)}
     for n in names:
         rec.add_camera(_colmap_camera(virtual[n], camera_ids[n], calibration.cameras[n].image_size))
-    ref = names[0]
     if HAS_RIGS:
-        rig = pycolmap.Rig(rig_id=1)
-        rig.add_ref_sensor(rec.camera(camera_ids[ref]).sensor_id)
-        ref_from_world_inv = virtual[ref].cam_from_world.inverse()
-        for n in names[1:]:
-            sensor_from_rig = virtual[n].cam_from_world.compose(ref_from_world_inv)
-            rig.add_sensor(rec.camera(camera_ids[n]).sensor_id, _rigid3d(sensor_from_rig))
-        rec.add_rig(rig)
+        _add_rig(rec, names, camera_ids, virtual)
+    image_ids, tracks = _add_images(rec, observations, dataset, names, camera_ids, virtual, frame_points)
+    recon_frames = set(points_data["frames"]) if points_data is not None else set()
+    point3D_ids = _add_points(rec, tracks, frame_points, recon_frames)
+    rec.update_point_3d_errors()
+    write_model(rec, out_dir)
+    ply = out_dir / "points3D.ply"
+    log.info("COLMAP model: %d cameras, %d images, %d points -> %s", len(names), len(image_ids), len(point3D_ids),
+             out_dir)
+    return ColmapExport(rec, out_dir, virtual, camera_ids, image_ids, point3D_ids, warnings, ply)
 
+
+def _seen_points(names: list[str], observations: Sequence[Observation],
+                 frame_points: dict[str, dict[int, np.ndarray]]) -> dict[str, list[np.ndarray]]:
+    """Each camera's 3D points (those of ``frame_points`` its observations see), in observation order."""
+    seen: dict[str, list[np.ndarray]] = {n: [] for n in names}
+    for o in observations:
+        pts = frame_points.get(o.frame, {})
+        seen[o.camera].extend(pts[int(i)] for i in o.ids if int(i) in pts)
+    return seen
+
+
+def _add_rig(rec: Any, names: list[str], camera_ids: dict[str, int], virtual: dict[str, VirtualCamera]) -> None:
+    """The COLMAP rig (id 1): the first camera the reference sensor, the others at their virtual poses."""
+    ref = names[0]
+    rig = pycolmap.Rig(rig_id=1)
+    rig.add_ref_sensor(rec.camera(camera_ids[ref]).sensor_id)
+    ref_from_world_inv = virtual[ref].cam_from_world.inverse()
+    for n in names[1:]:
+        sensor_from_rig = virtual[n].cam_from_world.compose(ref_from_world_inv)
+        rig.add_sensor(rec.camera(camera_ids[n]).sensor_id, _rigid3d(sensor_from_rig))
+    rec.add_rig(rig)
+
+
+def _add_images(rec: Any, observations: Sequence[Observation], dataset: Dataset | None, names: list[str],
+                camera_ids: dict[str, int], virtual: dict[str, VirtualCamera],
+                frame_points: dict[str, dict[int, np.ndarray]]
+                ) -> tuple[dict[tuple[str, str], int], dict[tuple[str, int], list[tuple[int, int]]]]:
+    """One COLMAP frame per calibration frame (sorted by name) with an image per camera that sees it.
+
+    Returns:
+        The image id of each (camera, frame), and the track of each (frame, corner) with a 3D point:
+        its (image id, 2D point index) elements.
+    """
     by_frame: dict[str, list[Observation]] = {}
     for o in observations:
         by_frame.setdefault(o.frame, []).append(o)
@@ -410,7 +444,7 @@ def export_colmap(calibration: Calibration | str | Path, out_dir: str | Path,
                     tracks.setdefault((frame, corner), []).append((image_id, idx))
         if HAS_RIGS:
             colmap_frame = pycolmap.Frame(frame_id=frame_id, rig_id=1)
-            colmap_frame.rig_from_world = _rigid3d(virtual[ref].cam_from_world)
+            colmap_frame.rig_from_world = _rigid3d(virtual[names[0]].cam_from_world)
             for image in images:
                 colmap_frame.add_data_id(image.data_id)
             rec.add_frame(colmap_frame)
@@ -418,8 +452,12 @@ def export_colmap(calibration: Calibration | str | Path, out_dir: str | Path,
             rec.add_image(image)
             if not HAS_RIGS:  # pragma: no cover - pycolmap 3.11
                 rec.register_image(image.image_id)
+    return image_ids, tracks
 
-    recon_frames = set(points_data["frames"]) if points_data is not None else set()
+
+def _add_points(rec: Any, tracks: dict[tuple[str, int], list[tuple[int, int]]],
+                frame_points: dict[str, dict[int, np.ndarray]], recon_frames: set[str]) -> dict[tuple[str, int], int]:
+    """A COLMAP 3D point per track (reconstruction frames' points coloured apart); their ids."""
     point3D_ids: dict[tuple[str, int], int] = {}
     for (frame, corner), elements in sorted(tracks.items()):
         track = pycolmap.Track()
@@ -428,11 +466,7 @@ def export_colmap(calibration: Calibration | str | Path, out_dir: str | Path,
         color = RECONSTRUCTION_COLOR if frame in recon_frames else CALIBRATION_COLOR
         point3D_ids[(frame, corner)] = rec.add_point3D(np.asarray(frame_points[frame][corner], float), track,
                                                        np.array(color, dtype=np.uint8))
-    rec.update_point_3d_errors()
-    write_model(rec, out_dir)
-    ply = out_dir / "points3D.ply"
-    log.info("COLMAP model: %d cameras, %d images, %d points -> %s", len(names), len(image_ids), len(point3D_ids), out_dir)
-    return ColmapExport(rec, out_dir, virtual, camera_ids, image_ids, point3D_ids, warnings, ply)
+    return point3D_ids
 
 
 def write_model(rec: Any, out_dir: str | Path, ply: bool = True) -> None:
@@ -524,7 +558,8 @@ def summary(export: ColmapExport) -> str:
         how = (f"centre shifted {vc.shift_mm:.4f} mm along the normal, exact" if vc.exact
                else "best pinhole approximation")
         lines.append(f"  {name}: camera {export.camera_ids[name]} {cam.model_name}, {how} "
-                     f"(vs the calibration: rms {vc.rms_px:.2e} px, max {vc.max_px:.2e} px over {vc.num_points} points)")
+                     f"(vs the calibration: rms {vc.rms_px:.2e} px, max {vc.max_px:.2e} px over "
+                     f"{vc.num_points} points)")
     if export.ply_path is not None:
         lines.append(f"  point cloud: {export.ply_path}")
     return "\n".join(lines)
@@ -611,7 +646,8 @@ def model_from_reconstruction(rec: Any, path: str | Path = "reconstruction") -> 
         offsets.append(np.r_[0.0, 0.0, -COLMAP_PIXEL_OFFSET, -COLMAP_PIXEL_OFFSET, np.zeros(5)])
     frames = sorted((fid, f) for fid, f in rec.frames.items() if f.has_pose)
     frame_index = {fid: k for k, (fid, _) in enumerate(frames)}
-    image_ids, image_names, image_camera, image_frame, sensor_from_rig, is_ref = [], [], [], [], [], []
+    image_ids: list[int] = []
+    image_names, image_camera, image_frame, sensor_from_rig, is_ref = [], [], [], [], []
     obs_image, obs_point, obs_uv = [], [], []
     point_ids = np.array(sorted(rec.point3D_ids()), dtype=np.int64)
     point_index = {int(p): k for k, p in enumerate(point_ids)}
@@ -784,8 +820,8 @@ def reconstruction_from_arrays(params: Sequence[np.ndarray], image_size: tuple[i
     for f, pose in enumerate(rig_from_world):
         frame = pycolmap.Frame(frame_id=f + 1, rig_id=1)
         frame.rig_from_world = _rigid3d(pose)
-        for i in np.flatnonzero(np.asarray(image_frame) == f):
-            frame.add_data_id(images[i].data_id)
+        for idx in np.flatnonzero(np.asarray(image_frame) == f):
+            frame.add_data_id(images[idx].data_id)
         rec.add_frame(frame)
     for image in images:
         rec.add_image(image)

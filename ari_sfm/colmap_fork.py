@@ -28,25 +28,26 @@ one image per camera and calibration frame (``<camera>/<frame>``: every image of
 ``cam_from_world``, the rig being static in the calibration's world), with the target corners as
 3D points when observations are at hand; without them one image per camera (``<camera>``) keeps
 the rig's poses. A refine-colmap output (mount camera) is written with COLMAP's camera and image
-ids, every image at its refined real pose with its 2D points, and the refined points. Reading back: the cameras' poses from their images (equal for a static rig; one
-camera that moves, as in a survey, is read at its first image), re-expressed in the first camera's
-frame; cameras whose FLATPORT planes coincide share a window, others get windows of their own (a rig
-behind several walls, DATASET_FORMAT 1.3: each camera's FLATPORT is written from its own window).
+ids, every image at its refined real pose with its 2D points, and the refined points. Reading back: the cameras' poses
+from their images (equal for a static rig; one camera that moves, as in a survey, is read at its first image),
+re-expressed in the first camera's frame; cameras whose FLATPORT planes coincide share a window, others get windows of
+their own (a rig behind several walls, DATASET_FORMAT 1.3: each camera's FLATPORT is written from its own window).
 """
 from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .calibration import Calibration, CameraCalibration, WindowCalibration
-from .io import load_calibration
 from .errors import AriSfmError
 from .geometry import Pose, angle_between_deg
+from .io import load_calibration
 from .records import Interface, Observation
 
 if TYPE_CHECKING:
@@ -113,7 +114,7 @@ class ForkExport:
 # --------------------------------------------------------------------------- cameras.txt lines
 
 
-def colmap_camera_params(params: Sequence[float]) -> tuple[str, list[float]]:
+def colmap_camera_params(params: np.ndarray | Sequence[float]) -> tuple[str, list[float]]:
     """The smallest COLMAP model holding ``[fx fy cx cy k1 k2 p1 p2 k3]`` (OpenCV pixels) and its parameters."""
     p = np.resize(np.asarray(params, float), 9)
     fx, fy, cx, cy = p[0], p[1], p[2] + COLMAP_PIXEL_OFFSET, p[3] + COLMAP_PIXEL_OFFSET
@@ -149,12 +150,12 @@ def params_from_colmap(model: str, values: Sequence[float], where: Path, what: s
     else:
         raise AriSfmError(where, f"{what}: camera model {model} is not supported "
                                  f"(supported: {', '.join(CAMERA_MODELS)})")
-    out = np.asarray(out, float)
-    out[2:4] -= COLMAP_PIXEL_OFFSET
-    return out
+    params = np.asarray(out, float)
+    params[2:4] -= COLMAP_PIXEL_OFFSET
+    return params
 
 
-def format_camera_line(camera_id: int, image_size: tuple[int, int], params: Sequence[float],
+def format_camera_line(camera_id: int, image_size: tuple[int, int], params: np.ndarray | Sequence[float],
                        normal_cam: np.ndarray, distance_mm: float, interface: Interface, units_mm: float) -> str:
     """One cameras.txt line of the fork (``colmap_underwater`` form)."""
     model, values = colmap_camera_params(params)
@@ -177,7 +178,8 @@ def parse_camera_line(line: str, where: Path, line_no: int, units_mm: float) -> 
     except (IndexError, ValueError):
         raise AriSfmError(where, f"{what}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[] {REFRAC_MODEL} ...") from None
     if model not in CAMERA_MODELS:
-        raise AriSfmError(where, f"{what}: camera model {model} is not supported (supported: {', '.join(CAMERA_MODELS)})")
+        raise AriSfmError(where,
+                          f"{what}: camera model {model} is not supported (supported: {', '.join(CAMERA_MODELS)})")
     n_params = CAMERA_MODELS[model]
     rest = items[4:]
     if len(rest) > n_params and rest[n_params] == REFRAC_TOKEN:
@@ -234,7 +236,10 @@ def _rotation_from_wxyz(q: Sequence[float]) -> np.ndarray:
 
 def _camera_window(cal: Calibration, name: str) -> float:
     """A camera's distance to its window's near face (mm), also for an exact calibration in air."""
-    return float(cal.evaluation_distance_mm(name))
+    d = cal.evaluation_distance_mm(name)
+    if d is None:
+        raise ValueError(f"camera {name}: no distance to its window (neither distance_mm nor fixed_distance_mm)")
+    return float(d)
 
 
 @dataclass(frozen=True)
@@ -292,14 +297,15 @@ def _refined_images(cal: Calibration, model_dir: Path) -> tuple[dict[str, int], 
         sel = np.flatnonzero(model.obs_image == i)
         pose = poses.get(str(image_id))
         if pose is None:
-            raise AriSfmError(model_dir / "calibration.json", f"refine_colmap.images_cam_from_world has no image {image_id}")
+            raise AriSfmError(model_dir / "calibration.json",
+                              f"refine_colmap.images_cam_from_world has no image {image_id}")
         images.append(_Image(name_of[int(model.camera_ids[model.image_camera[i]])], model.image_names[i],
                              Pose.from_json(pose), model.obs_uv[sel], model.point3D_ids[model.obs_point[sel]]))
     points = {int(pid): model.xyz[k] for k, pid in enumerate(model.point3D_ids.tolist())}
     return {n: int(c) for n, c in camera_ids.items()}, images, points
 
 
-def _dataset_observations(cal: Calibration, dataset: "Dataset | str | Path", path: Path) -> Sequence[Observation]:
+def _dataset_observations(cal: Calibration, dataset: Dataset | str | Path, path: Path) -> Sequence[Observation]:
     """The observations of a dataset of the calibration's rig (another rig's: AriSfmError, as calibrate's)."""
     from .io import load_dataset
     from .reconstruct import check_rig
@@ -315,7 +321,7 @@ def _dataset_observations(cal: Calibration, dataset: "Dataset | str | Path", pat
 def export_colmap_fork(calibration: Calibration | str | Path, out_dir: str | Path,
                        observations: Sequence[Observation] | None = None,
                        units_mm: float = DEFAULT_UNITS_MM, refined_model: str | Path | None = None,
-                       dataset: "Dataset | str | Path | None" = None,
+                       dataset: Dataset | str | Path | None = None,
                        calibration_path: str | Path | None = None) -> ForkExport:
     """Write ``calibration`` (an exact-Snell model) as the fork's text model in ``out_dir``:
     cameras.txt (FLATPORT), images.txt, points3D.txt (lengths in units of ``units_mm`` mm, within
@@ -497,7 +503,8 @@ def import_colmap_fork(model_dir: str | Path, units_mm: float = DEFAULT_UNITS_MM
     media = {c.indices[2] for c in fork_cams}
     if len(media) > 1:
         raise AriSfmError(cams_path, f"the cameras' water indices (nw) differ ({sorted(media)}): one tank, one medium")
-    cameras, groups = {}, []  # groups: [normal_world, plane offset, thickness, indices, camera names]
+    cameras = {}
+    groups: list[list[Any]] = []  # [normal_world, plane offset, thickness, indices, camera names]
     for name, c in zip(names, fork_cams):
         cam_from_world = (poses[c.camera_id] or Pose.identity()).compose(world_from_first)
         n_w = cam_from_world.R.T @ c.normal_cam

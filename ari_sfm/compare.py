@@ -20,9 +20,9 @@ from __future__ import annotations
 import logging
 import re
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -55,7 +55,7 @@ class Subset:
     rows: int
 
     @staticmethod
-    def parse(text: str) -> "Subset":
+    def parse(text: str) -> Subset:
         """``center:COLSxROWS``, e.g. ``center:3x4``."""
         m = re.fullmatch(r"center:(\d+)x(\d+)", text.strip())
         if not m or int(m.group(1)) < 1 or int(m.group(2)) < 1:
@@ -66,7 +66,8 @@ class Subset:
         """The corner ids in the board's central block."""
         grid = dataset.target.grid
         if grid is None:
-            raise AriSfmError(dataset.rig_path, "--subset center:... needs a planar grid target (checkerboard or charuco)")
+            raise AriSfmError(dataset.rig_path,
+                              "--subset center:... needs a planar grid target (checkerboard or charuco)")
         cols, rows = grid
         if self.cols > cols or self.rows > rows:
             raise AriSfmError(dataset.rig_path, f"--subset {self.cols}x{self.rows} is larger than the board's "
@@ -205,7 +206,8 @@ def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Su
         cal, wall = cals[model]
         fit, all_, res, in_fit = _judge(cal, dataset, fit_ids)
         out.append(ModelResult(model, cal, params_per_camera(cal, bool(options.get("distortion"))), cal.time_s * 1e3,
-                               wall * 1e3, fit, all_, _holdout(cal, holdout, dataset) if holdout else None, res, in_fit))
+                               wall * 1e3, fit, all_, _holdout(cal, holdout, dataset) if holdout else None, res,
+                               in_fit))
     return out
 
 

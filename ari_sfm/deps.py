@@ -10,11 +10,12 @@ from .errors import AriSfmError
 def _interrupted(exc: BaseException) -> bool:
     """True if a KeyboardInterrupt is in the cause / context chain of ``exc``."""
     seen: set[int] = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, KeyboardInterrupt):
+    link: BaseException | None = exc
+    while link is not None and id(link) not in seen:
+        if isinstance(link, KeyboardInterrupt):
             return True
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
+        seen.add(id(link))
+        link = link.__cause__ or link.__context__
     return False
 
 

@@ -32,11 +32,11 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor, as_completed, wait
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
-from typing import Callable, Iterable, Mapping
 
 import cv2
 import numpy as np
@@ -83,8 +83,10 @@ def detect_corners(image: np.ndarray, target: Target, method: str = "subpix") ->
         try:
             find = CHECKERBOARD_METHODS[method]
         except KeyError:
-            raise ValueError(f"unknown checkerboard method {method!r} (one of {', '.join(CHECKERBOARD_METHODS)})") from None
-        grid = tuple(int(v) for v in target.inner_corners)
+            raise ValueError(f"unknown checkerboard method {method!r} "
+                             f"(one of {', '.join(CHECKERBOARD_METHODS)})") from None
+        cols, rows = (int(v) for v in target.required(target.inner_corners, "inner_corners"))
+        grid = (cols, rows)
         corners = find(image, grid)
         if corners is None or not _grid_is_regular(corners, grid):
             return None
@@ -131,7 +133,8 @@ def _find_coarse(image: np.ndarray, grid: tuple[int, int]) -> np.ndarray | None:
         levels += 1
     pyramid = [image]
     for _ in range(levels):
-        pyramid.append(cv2.resize(pyramid[-1], (pyramid[-1].shape[1] // 2, pyramid[-1].shape[0] // 2), interpolation=cv2.INTER_AREA))
+        pyramid.append(cv2.resize(pyramid[-1], (pyramid[-1].shape[1] // 2, pyramid[-1].shape[0] // 2),
+                                  interpolation=cv2.INTER_AREA))
     for k in range(levels, -1, -1):
         flags = _CLASSIC_FLAGS if k == levels else _CLASSIC_FLAGS | cv2.CALIB_CB_FAST_CHECK
         found, corners = cv2.findChessboardCorners(pyramid[k], grid, flags=flags)
@@ -183,7 +186,7 @@ def refine_corners(
     """
     fraction = SUBPIX_WINDOW_FRACTION if fraction is None else fraction
     smoothing_px = SUBPIX_SMOOTHING_PX if smoothing_px is None else smoothing_px
-    smooth = image.astype(np.float32)
+    smooth: np.ndarray = image.astype(np.float32)
     if smoothing_px > 0:
         smooth = cv2.GaussianBlur(smooth, (0, 0), smoothing_px)
     half = np.rint(fraction * np.asarray(spacing, dtype=float))
@@ -240,7 +243,7 @@ def _grid_is_regular(corners: np.ndarray, grid: tuple[int, int], tolerance: floa
 
 def checkerboard_ids_unambiguous(target: Target) -> bool:
     """True if the square colours fix the corner order: cols + rows odd (see the module docstring)."""
-    cols, rows = target.inner_corners
+    cols, rows = target.required(target.inner_corners, "inner_corners")
     return (cols + rows) % 2 == 1
 
 
@@ -292,7 +295,8 @@ def _canonical_grid(image: np.ndarray, corners: np.ndarray, grid: tuple[int, int
 
 
 @lru_cache(maxsize=8)
-def charuco_board(squares: tuple[int, int], square_mm: float, marker_mm: float, dictionary: str) -> cv2.aruco.CharucoBoard:
+def charuco_board(squares: tuple[int, int], square_mm: float, marker_mm: float,
+                  dictionary: str) -> cv2.aruco.CharucoBoard:
     """OpenCV's ChArUco board for a target's parameters (the renderer draws the same board)."""
     if not dictionary.startswith("DICT_") or not hasattr(cv2.aruco, dictionary):
         raise ValueError(f"unknown ArUco dictionary {dictionary!r}")
@@ -301,7 +305,8 @@ def charuco_board(squares: tuple[int, int], square_mm: float, marker_mm: float, 
 
 
 def _charuco_detector(target: Target) -> cv2.aruco.CharucoDetector:
-    board = charuco_board(tuple(target.squares), float(target.square_mm), float(target.marker_mm), str(target.dictionary))
+    board = charuco_board(target.required(target.squares, "squares"), float(target.square_mm),
+                          float(target.required(target.marker_mm, "marker_mm")), str(target.dictionary))
     return cv2.aruco.CharucoDetector(board)
 
 
@@ -315,9 +320,11 @@ def _detect_charuco(image: np.ndarray, target: Target, refine: bool = True) -> D
     order = np.argsort(ids)
     ids, pixels = ids[order], pixels[order]
     if refine:
-        border = 0.5 * (float(target.square_mm) - float(target.marker_mm)) / float(target.square_mm)
-        refined = refine_corners(image, pixels, _charuco_spacing(ids, pixels, target.grid[0]),
-                                 fraction=CHARUCO_WINDOW_MARGIN * border, smoothing_px=CHARUCO_SMOOTHING_PX, skip_small=True)
+        border = (0.5 * (float(target.square_mm) - float(target.required(target.marker_mm, "marker_mm")))
+                  / float(target.square_mm))
+        refined = refine_corners(image, pixels, _charuco_spacing(ids, pixels, target.required(target.grid, "grid")[0]),
+                                 fraction=CHARUCO_WINDOW_MARGIN * border, smoothing_px=CHARUCO_SMOOTHING_PX,
+                                 skip_small=True)
         moved = np.linalg.norm(refined - pixels, axis=1) <= CHARUCO_MAX_SHIFT_PX  # else caught by a marker edge
         pixels[moved] = refined[moved]
     return ids, pixels
@@ -366,7 +373,7 @@ def detect_dataset(
     """
     target = dataset.target
     if target.type == "checkerboard" and not checkerboard_ids_unambiguous(target):
-        cols, rows = target.inner_corners
+        cols, rows = target.required(target.inner_corners, "inner_corners")
         log.warning(
             "%s: a %d x %d corner checkerboard looks the same turned by 180 degrees (cols + rows is even): "
             "its corner ids may differ between images; use a board with cols + rows odd",
@@ -554,7 +561,8 @@ def _drop_thin_stacking(observations: list[Observation]) -> list[Observation]:
     thin = {key for key, values in thicknesses.items() if len(values) < 2}
     for cam, pose in sorted(thin):
         log.warning(
-            "stacking pose %s: camera %s shows the target at fewer than 2 plate thicknesses; its stacking images are not used",
+            "stacking pose %s: camera %s shows the target at fewer than 2 plate thicknesses; its stacking images are "
+            "not used",
             pose, cam,
         )
     return [o for o in observations if not (o.set == "stacking" and (o.camera, o.frame) in thin)]
@@ -601,4 +609,5 @@ def ensure_observations(dataset, workers: int | None = None, progress: bool = Fa
 def _unobserved_body_views(dataset: Dataset) -> list[tuple[str, str]]:
     """(frame, camera) of calibration entries with an image but no observation."""
     observed = {(o.set, o.frame, o.camera) for o in dataset.observations or ()}
-    return [(e.key, cam) for e in dataset.calibration for cam in e.images if ("calibration", e.key, cam) not in observed]
+    return [(e.key, cam) for e in dataset.calibration
+            for cam in e.images if ("calibration", e.key, cam) not in observed]

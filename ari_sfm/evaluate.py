@@ -1,15 +1,15 @@
 """Reprojection errors of a calibration on observations (its own or held-out ones)."""
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
 from .calibration import Calibration
 from .errors import AriSfmError
-from .geometry import Pose
+from .geometry import Pose, rotation_from_rotvec
 from .records import Dataset, Observation, Target
 from .results import ResidualStats
 
@@ -19,13 +19,15 @@ def residual_stats(residuals: Iterable[np.ndarray]) -> ResidualStats:
     return ResidualStats.of(residuals)
 
 
-def project_target(calibration: Calibration, camera: str, pose_world_from_target, points_target: np.ndarray, added_mm: float = 0.0) -> np.ndarray:
+def project_target(calibration: Calibration, camera: str, pose_world_from_target, points_target: np.ndarray,
+                   added_mm: float = 0.0) -> np.ndarray:
     """Pixels (M, 2) of target points seen by a camera through the window."""
     X_c = calibration.cameras[camera].cam_from_world.apply(pose_world_from_target.apply(points_target))
     return calibration.projection_model(camera, added_mm).project(X_c)
 
 
-def observation_residuals(calibration: Calibration, observations: Sequence[Observation], target: Target) -> list[tuple[Observation, np.ndarray]]:
+def observation_residuals(calibration: Calibration, observations: Sequence[Observation],
+                          target: Target) -> list[tuple[Observation, np.ndarray]]:
     """(observation, residual (M, 2)) for every observation whose pose the calibration holds."""
     ids_all, xyz_all = target.points_3d()
     lookup = {int(i): k for k, i in enumerate(ids_all)}
@@ -55,7 +57,6 @@ def solve_frame_poses(calibration: Calibration, observations: Sequence[Observati
     import cv2
     from scipy.optimize import least_squares
 
-    from .geometry import rotation_from_rotvec
     from .init.interface_pose import real_cam_from_target
 
     ids_all, xyz_all = target.points_3d()
@@ -77,21 +78,29 @@ def solve_frame_poses(calibration: Calibration, observations: Sequence[Observati
                                                calibration.interface_of(first.camera).shift_mm)
         start = cam.cam_from_world.inverse().compose(cam_from_target)
         models = [calibration.projection_model(o.camera) for o in obs]
-
-        def residuals(x: np.ndarray) -> np.ndarray:
-            pose = Pose(start.R @ rotation_from_rotvec(x[:3]), start.t + x[3:])
-            out = [m.project(calibration.cameras[o.camera].cam_from_world.apply(pose.apply(p))) - o.pixels
-                   for m, o, p in zip(models, obs, pts)]
-            r = np.concatenate(out).ravel()
-            return np.where(np.isfinite(r), r, 1e3)
-
-        x = least_squares(residuals, np.zeros(6), x_scale=np.r_[1e-3, 1e-3, 1e-3, 1.0, 1.0, 1.0]).x
-        poses[frame] = Pose(start.R @ rotation_from_rotvec(x[:3]), start.t + x[3:])
+        x = least_squares(_held_pose_residuals, np.zeros(6), x_scale=np.r_[1e-3, 1e-3, 1e-3, 1.0, 1.0, 1.0],
+                          args=(start, calibration, models, obs, pts)).x
+        poses[frame] = _moved(start, x)
     return poses
 
 
-def evaluate(calibration: Calibration, observations: str | Path | Dataset | Sequence[Observation], target: Target | None = None,
-             solve_poses: bool = False) -> ResidualStats:
+def _moved(start: Pose, x: np.ndarray) -> Pose:
+    """``start`` (world_from_target) moved by ``x`` = [rotation vector, translation mm]."""
+    return Pose(start.R @ rotation_from_rotvec(x[:3]), start.t + x[3:])
+
+
+def _held_pose_residuals(x: np.ndarray, start: Pose, calibration: Calibration, models: list,
+                         obs: list[Observation], pts: list[np.ndarray]) -> np.ndarray:
+    """The pixel residuals of one frame's observations at the pose ``_moved(start, x)`` (1e3 px for no ray)."""
+    pose = _moved(start, x)
+    out = [m.project(calibration.cameras[o.camera].cam_from_world.apply(pose.apply(p))) - o.pixels
+           for m, o, p in zip(models, obs, pts)]
+    r = np.concatenate(out).ravel()
+    return np.where(np.isfinite(r), r, 1e3)
+
+
+def evaluate(calibration: Calibration, observations: str | Path | Dataset | Sequence[Observation],
+             target: Target | None = None, solve_poses: bool = False) -> ResidualStats:
     """Reprojection errors (rmse_px, mae_px, max_px, count, per_camera) on observations.
 
     ``observations`` is an observations.json path, a Dataset, or loaded records.
@@ -165,7 +174,7 @@ def reprojection_stats(calibration: Calibration, observations: str | Path | Data
         if observations.observations is None:
             raise AriSfmError(observations.rig_path, "the dataset holds no observations (images only): run "
                                                      "`ari-sfm detect` first, or pass its observations.json")
-        records = observations.observations
+        records: Sequence[Observation] = observations.observations
     elif isinstance(observations, (str, Path)):
         from .io import load_observations
         from .io.observations import check_pixels_in_images

@@ -279,16 +279,10 @@ def _radial_cost(e, gram, g, rr, beta, alpha, gamma):
 
 
 @njit(**_JIT)
-def _radial_fit(D, ru, rv, out, e, start, beta):
-    """The non-central term's fit (module docstring) of the W-projected residuals (ru, rv) over the projected
-    vectors ``D`` (``_radial_vectors``): residuals into out (2, n), its centre e (2,) refined in place, its
-    (a, b) into beta; returns the sum of squares. e starts (``start``) from the linear fit ``zeta (a s + t)``
-    (e = -t / a), else from e; then damped Newton steps on the sum of squares (a function of e alone: the
-    rest is linear, through the basis' 12 x 12 Gram matrix), its derivatives by central differences."""
-    n = ru.shape[0]
-    gram, g = np.empty((RADIAL_BASIS, RADIAL_BASIS)), np.empty(RADIAL_BASIS)
-    alpha, gamma = np.empty(RADIAL_BASIS), np.empty(RADIAL_BASIS)
-    nd = D.shape[0]
+def _radial_gram(D, ru, rv, gram, g):
+    """The non-central basis' Gram matrix into ``gram`` and its inner products with the residuals (ru, rv)
+    into ``g``, from those of D's vectors; returns the residuals' sum of squares."""
+    n, nd = ru.shape[0], D.shape[0]
     GD, gu, gv = np.empty((nd, nd)), np.zeros(nd), np.zeros(nd)
     rr = 0.0
     for i in range(n):
@@ -309,17 +303,39 @@ def _radial_fit(D, ru, rv, out, e, start, beta):
         for d in range(RADIAL_BASIS):
             ud, vd = BASIS_U[d], BASIS_V[d]
             gram[c, d] = (GD[uc, ud] if uc >= 0 and ud >= 0 else 0.0) + (GD[vc, vd] if vc >= 0 and vd >= 0 else 0.0)
-    if start:  # the linear start: zeta s (shared), zeta (u only), zeta (v only) are basis vectors 0, 1, 2
-        M, x = np.empty((3, 3)), np.zeros(3)
-        for c in range(3):
-            for d in range(3):
-                M[c, d] = gram[c, d]
-        _solve_small(M, g[:3].copy(), x)
-        e[0], e[1] = 0.0, 0.0
-        if abs(x[0]) > 1e-12 and math.isfinite(x[0]):
-            e[0], e[1] = -x[1] / x[0], -x[2] / x[0]
-            if not (math.isfinite(e[0]) and math.isfinite(e[1])) or abs(e[0]) + abs(e[1]) > MAX_CENTRE:
-                e[0], e[1] = 0.0, 0.0
+    return rr
+
+
+@njit(**_JIT)
+def _radial_start(gram, g, e):
+    """The centre e (2,) from the linear fit ``zeta (a s + t)`` (e = -t / a; zeta s (shared), zeta (u only),
+    zeta (v only) are basis vectors 0, 1, 2), else (0, 0)."""
+    M, x = np.empty((3, 3)), np.zeros(3)
+    for c in range(3):
+        for d in range(3):
+            M[c, d] = gram[c, d]
+    _solve_small(M, g[:3].copy(), x)
+    e[0], e[1] = 0.0, 0.0
+    if abs(x[0]) > 1e-12 and math.isfinite(x[0]):
+        e[0], e[1] = -x[1] / x[0], -x[2] / x[0]
+        if not (math.isfinite(e[0]) and math.isfinite(e[1])) or abs(e[0]) + abs(e[1]) > MAX_CENTRE:
+            e[0], e[1] = 0.0, 0.0
+
+
+@njit(**_JIT)
+def _radial_fit(D, ru, rv, out, e, start, beta):
+    """The non-central term's fit (module docstring) of the W-projected residuals (ru, rv) over the projected
+    vectors ``D`` (``_radial_vectors``): residuals into out (2, n), its centre e (2,) refined in place, its
+    (a, b) into beta; returns the sum of squares. e starts (``start``) from the linear fit ``zeta (a s + t)``
+    (e = -t / a), else from e; then damped Newton steps on the sum of squares (a function of e alone: the
+    rest is linear, through the basis' 12 x 12 Gram matrix), its derivatives by central differences."""
+    n = ru.shape[0]
+    gram, g = np.empty((RADIAL_BASIS, RADIAL_BASIS)), np.empty(RADIAL_BASIS)
+    alpha, gamma = np.empty(RADIAL_BASIS), np.empty(RADIAL_BASIS)
+    nd = D.shape[0]
+    rr = _radial_gram(D, ru, rv, gram, g)
+    if start:
+        _radial_start(gram, g, e)
     cost = _radial_cost(e, gram, g, rr, beta, alpha, gamma)
     trial, probe = np.empty(2), np.empty(2)
     f, H, Hd, grad = np.empty((3, 3)), np.empty((2, 2)), np.empty((2, 2)), np.empty(2)
@@ -389,27 +405,17 @@ def _fit_view(a, b, h, degree, radial, e, start, out, cols):
     """One view's free map at its current map ``h`` (normalised DLT coordinates: points ``a`` (n, k + 1),
     homogeneous; pixels ``b`` (n, 2)): the residuals (2, n) after W at the predicted pixels and (``radial``)
     the non-central term (centre ``e`` refined, from the linear start if ``start``) into ``out``; with
-    ``cols`` (3 (k + 1) + 2, 2, n; else (0, 2, n)) also one Gauss-Newton step of h in place, jointly with
-    W's and the non-central term's coefficients at that e (e is refined by the next call: alternating).
+    ``cols`` (3 (k + 1) + 2, 2, n; else (0, 2, n)) also one Gauss-Newton step of h in place
+    (``_gauss_newton_step``), jointly with W's and the non-central term's coefficients at that e (e is refined
+    by the next call: alternating).
     Returns False when a point is not in front of the map (its prediction not finite)."""
-    n, q = a.shape[0], a.shape[1]
-    m = 3 * q
+    n = a.shape[0]
     terms = (degree + 1) * (degree + 2) // 2
     pu, pv, w = np.empty(n), np.empty(n), np.empty(n)
     sx, sy, zeta, ru, rv = np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n)
-    mean_inverse = 0.0
-    for i in range(n):
-        t0, t1, t2 = 0.0, 0.0, 0.0
-        for j in range(q):
-            t0 += h[j] * a[i, j]
-            t1 += h[q + j] * a[i, j]
-            t2 += h[2 * q + j] * a[i, j]
-        if not (abs(t2) > 1e-12 and math.isfinite(t0) and math.isfinite(t1) and math.isfinite(t2)):
-            return False
-        w[i], pu[i], pv[i] = t2, t0 / t2, t1 / t2
-        ru[i], rv[i] = b[i, 0] - pu[i], b[i, 1] - pv[i]
-        zeta[i] = 1.0 / t2
-        mean_inverse += zeta[i] / n
+    in_front, mean_inverse = _predict(a, b, h, w, pu, pv, ru, rv, zeta)
+    if not in_front:
+        return False
     spread = 0.0  # zeta: the inverse depth centred, scaled to RMS 1 (0 when it does not vary)
     for i in range(n):
         zeta[i] = zeta[i] / mean_inverse - 1.0
@@ -417,20 +423,7 @@ def _fit_view(a, b, h, degree, radial, e, start, out, cols):
     spread = math.sqrt(spread)
     radial = radial and spread > 1e-12
     A = np.empty((terms, n))  # W's design, a row per term
-    px, py = np.empty(degree + 1), np.empty(degree + 1)
-    for i in range(n):
-        zeta[i] = zeta[i] / spread if spread > 1e-12 else 0.0
-        sx[i], sy[i] = pu[i] / math.sqrt(2.0), pv[i] / math.sqrt(2.0)  # W at the predicted pixels
-        px[0] = 1.0
-        py[0] = 1.0
-        for d in range(degree):
-            px[d + 1] = px[d] * sx[i]
-            py[d + 1] = py[d] * sy[i]
-        t = 0
-        for c in range(degree + 1):
-            for d in range(degree + 1 - c):
-                A[t, i] = px[c] * py[d]
-                t += 1
+    _warp_design(pu, pv, zeta, spread, degree, sx, sy, A)
     G, L, keep = np.empty((terms, terms)), np.empty((terms, terms)), np.empty(terms, dtype=np.bool_)
     coef, rhs = np.empty(terms), np.empty(terms)
     for c in range(terms):
@@ -451,10 +444,61 @@ def _fit_view(a, b, h, degree, radial, e, start, out, cols):
     else:
         for i in range(n):
             out[0, i], out[1, i] = ru[i], rv[i]
-    if cols.shape[0] == 0:
-        return True
-    # the Gauss-Newton step of h: the prediction's derivatives (u, v parts) projected out of W, and the
-    # non-central term's columns at e (already projected), then their least squares on the W-projected residuals
+    if cols.shape[0] > 0:
+        _gauss_newton_step(a, h, w, pu, pv, ru, rv, A, L, keep, coef, rhs, D, e, radial, cols)
+    return True
+
+
+@njit(**_JIT)
+def _predict(a, b, h, w, pu, pv, ru, rv, zeta):
+    """The map ``h``'s prediction of the points ``a`` (n, q) against their pixels ``b``: into w the third
+    coordinate, (pu, pv) the pixels, (ru, rv) the residuals, zeta the inverse depth 1 / w. Returns whether
+    every point is in front of the map (its prediction finite) and zeta's mean (so far)."""
+    n, q = a.shape[0], a.shape[1]
+    mean_inverse = 0.0
+    for i in range(n):
+        t0, t1, t2 = 0.0, 0.0, 0.0
+        for j in range(q):
+            t0 += h[j] * a[i, j]
+            t1 += h[q + j] * a[i, j]
+            t2 += h[2 * q + j] * a[i, j]
+        if not (abs(t2) > 1e-12 and math.isfinite(t0) and math.isfinite(t1) and math.isfinite(t2)):
+            return False, mean_inverse
+        w[i], pu[i], pv[i] = t2, t0 / t2, t1 / t2
+        ru[i], rv[i] = b[i, 0] - pu[i], b[i, 1] - pv[i]
+        zeta[i] = 1.0 / t2
+        mean_inverse += zeta[i] / n
+    return True, mean_inverse
+
+
+@njit(**_JIT)
+def _warp_design(pu, pv, zeta, spread, degree, sx, sy, A):
+    """W's design A (terms, n) at the predicted pixels (pu, pv) (scaled into sx, sy), and zeta (centred)
+    scaled by its RMS ``spread`` in place (0 when it does not vary)."""
+    px, py = np.empty(degree + 1), np.empty(degree + 1)
+    for i in range(pu.shape[0]):
+        zeta[i] = zeta[i] / spread if spread > 1e-12 else 0.0
+        sx[i], sy[i] = pu[i] / math.sqrt(2.0), pv[i] / math.sqrt(2.0)  # W at the predicted pixels
+        px[0] = 1.0
+        py[0] = 1.0
+        for d in range(degree):
+            px[d + 1] = px[d] * sx[i]
+            py[d + 1] = py[d] * sy[i]
+        t = 0
+        for c in range(degree + 1):
+            for d in range(degree + 1 - c):
+                A[t, i] = px[c] * py[d]
+                t += 1
+
+
+@njit(**_JIT)
+def _gauss_newton_step(a, h, w, pu, pv, ru, rv, A, L, keep, coef, rhs, D, e, radial, cols):
+    """One Gauss-Newton step of the map ``h`` in place (``_fit_view``): the prediction's derivatives (u, v
+    parts) projected out of W (its design A, factor L, kept columns), and (``radial``) the non-central
+    term's columns at e over its vectors D (already projected), then their least squares on the W-projected
+    residuals (ru, rv)."""
+    n, q = a.shape[0], a.shape[1]
+    m = 3 * q
     E = np.empty((3 * q, n))  # the derivatives' distinct parts: a_j / w, -pu a_j / w, -pv a_j / w
     for j in range(q):
         for i in range(n):
@@ -494,7 +538,6 @@ def _fit_view(a, b, h, degree, radial, e, start, out, cols):
     _solve_small(M, g, x)
     for j in range(m):
         h[j] += x[j]
-    return True
 
 
 @njit(**_JIT)

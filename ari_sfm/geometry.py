@@ -11,8 +11,8 @@ Conventions (see CONTRIBUTING.md):
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -27,7 +27,7 @@ def skew(v: np.ndarray) -> np.ndarray:
     return out
 
 
-def rotation_from_rotvec(w: np.ndarray) -> np.ndarray:
+def rotation_from_rotvec(w: np.ndarray | Sequence[float]) -> np.ndarray:
     """Rodrigues: rotation matrix of the rotation vector w (radians)."""
     w = np.asarray(w, dtype=float)
     theta = float(np.linalg.norm(w))
@@ -58,17 +58,17 @@ class Pose:
     t: np.ndarray
 
     @staticmethod
-    def identity() -> "Pose":
+    def identity() -> Pose:
         return Pose(np.eye(3), np.zeros(3))
 
     def apply(self, X: np.ndarray) -> np.ndarray:
         """Map points (N, 3) or (3,)."""
         return np.asarray(X, float) @ self.R.T + self.t
 
-    def inverse(self) -> "Pose":
+    def inverse(self) -> Pose:
         return Pose(self.R.T, -self.R.T @ self.t)
 
-    def compose(self, other: "Pose") -> "Pose":
+    def compose(self, other: Pose) -> Pose:
         """self * other: a_from_b * b_from_c = a_from_c."""
         return Pose(self.R @ other.R, self.R @ other.t + self.t)
 
@@ -81,7 +81,7 @@ class Pose:
         return {"R": self.R.tolist(), "t": self.t.tolist()}
 
     @staticmethod
-    def from_json(d: dict) -> "Pose":
+    def from_json(d: dict) -> Pose:
         return Pose(np.asarray(d["R"], float).reshape(3, 3), np.asarray(d["t"], float).reshape(3))
 
 
@@ -92,7 +92,7 @@ def mean_pose(poses: Sequence[Pose]) -> Pose:
 
 def mean_poses(groups: Sequence[Sequence[Pose]]) -> list[Pose]:
     """:func:`mean_pose` of each group (the groups of one size at once)."""
-    out: list[Pose | None] = [None] * len(groups)
+    means: dict[int, Pose] = {}
     by_size: dict[int, list[int]] = {}
     for g, poses in enumerate(groups):
         by_size.setdefault(len(poses), []).append(g)
@@ -108,8 +108,8 @@ def mean_poses(groups: Sequence[Sequence[Pose]]) -> list[Pose]:
         R_mean = (u * d[:, None, :]) @ vt
         t_mean = np.mean(t, axis=1)
         for j, g in enumerate(index):
-            out[g] = Pose(R_mean[j], t_mean[j])
-    return out
+            means[g] = Pose(R_mean[j], t_mean[j])
+    return [means[g] for g in range(len(groups))]
 
 
 def pose3_from_cam_from_world(cam_from_world: Pose):

@@ -14,8 +14,10 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, cast
 
 import numba
 from numba.core import config
@@ -45,15 +47,17 @@ def build(folder: Path) -> BuildSummary:
     Raises:
         RuntimeError: numba's target is not :data:`~ari_sfm.kernel_cache.TARGET_CPU`, or JIT is disabled.
     """
-    if (config.CPU_NAME, config.CPU_FEATURES) != (kernel_cache.TARGET_CPU, kernel_cache.TARGET_CPU_FEATURES):
-        raise RuntimeError(f"numba's target is {config.CPU_NAME!r} {config.CPU_FEATURES!r}: set "
+    # numba.core.config sets its options at run time (from the environment): its stub does not list them
+    target = (config.CPU_NAME, config.CPU_FEATURES)  # type: ignore[attr-defined]
+    if target != (kernel_cache.TARGET_CPU, kernel_cache.TARGET_CPU_FEATURES):
+        raise RuntimeError(f"numba's target is {target[0]!r} {target[1]!r}: set "
                            + " ".join(f"{k}={v!r}" for k, v in target_environment().items()))
     t0 = time.perf_counter()
     folder.mkdir(parents=True, exist_ok=True)
     kernels = signatures = 0
     kernel_cache._building = folder
     try:
-        for module_name, functions in SIGNATURES.items():
+        for module_name, functions in cast(Mapping[str, Mapping[str, Sequence[Any]]], SIGNATURES).items():
             module = importlib.import_module(module_name)
             for name, sigs in functions.items():
                 dispatcher = getattr(module, name)

@@ -31,8 +31,9 @@ import functools
 import json
 import logging
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numba
 from numba.core import config
@@ -55,12 +56,12 @@ TARGET_FEATURES = ("64bit", "cmov", "cx8", "fxsr", "mmx", "sse", "sse2", "cx16",
 _building: Path | None = None  # set by ari_sfm.kernel_build: compile everything, save into this folder
 
 
-def njit(func: Callable | None = None, **options: Any):
+def njit(func: Callable | None = None, /, **options: Any) -> Any:
     """numba's ``njit`` (same options); with ``cache=True`` the dispatcher's cache is a :class:`ShippedCache`."""
-    def decorate(f: Callable):
+    def decorate(f: Callable) -> Any:
         dispatcher = numba.njit(**options)(f)
         if options.get("cache") and isinstance(dispatcher, Dispatcher):  # NUMBA_DISABLE_JIT: the Python function
-            dispatcher._cache = ShippedCache(f)
+            dispatcher._cache = ShippedCache(f)  # type: ignore[attr-defined]  # numba's own attribute, unlisted
         return dispatcher
     return decorate if func is None else decorate(func)
 
@@ -76,7 +77,7 @@ def target_record() -> dict[str, str]:
             "triple": ll.get_process_triple(), "cpu": TARGET_CPU, "cpu_features": TARGET_CPU_FEATURES}
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def shipped_usable() -> tuple[bool, str]:
     """Whether this process can run the shipped code, and what it runs or why not (once per process)."""
     usable, why = _shipped_usable()
@@ -87,7 +88,8 @@ def shipped_usable() -> tuple[bool, str]:
 def _shipped_usable() -> tuple[bool, str]:
     if _building is not None:
         return False, "building it"
-    if config.CPU_NAME is not None or config.CPU_FEATURES is not None or not config.ENABLE_AVX:
+    # numba.core.config sets its options at run time (from the environment): its stub does not list them
+    if config.CPU_NAME is not None or config.CPU_FEATURES is not None or not config.ENABLE_AVX:  # type: ignore[attr-defined]
         return False, "the compilation target is set (NUMBA_CPU_NAME, NUMBA_CPU_FEATURES or NUMBA_ENABLE_AVX)"
     try:
         built = json.loads((SHIPPED_DIR / TARGET_FILE).read_text())

@@ -50,9 +50,10 @@ from __future__ import annotations
 import logging
 import os
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -80,6 +81,11 @@ def _floats(values: Any) -> tuple[float, ...]:
     return tuple(float(v) for v in values)
 
 
+def _vec3(values: Any) -> tuple[float, float, float]:
+    x, y, z = (float(v) for v in values)
+    return x, y, z
+
+
 @dataclass(frozen=True)
 class ErrorStats:
     """"stats": of the absolute values of an error list (None and count 0 for an empty list)."""
@@ -90,7 +96,7 @@ class ErrorStats:
     count: int
 
     @classmethod
-    def of(cls, errors: np.ndarray) -> "ErrorStats":
+    def of(cls, errors: np.ndarray) -> ErrorStats:
         e = np.abs(np.asarray(errors, dtype=float))
         if not len(e):
             return cls(None, None, None, 0)
@@ -100,7 +106,7 @@ class ErrorStats:
         return {"mae": self.mae, "rmse": self.rmse, "max": self.max, "count": self.count}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "ErrorStats":
+    def from_json(cls, d: Mapping[str, Any]) -> ErrorStats:
         return cls(_opt(d["mae"]), _opt(d["rmse"]), _opt(d["max"]), int(d["count"]))
 
 
@@ -118,7 +124,7 @@ class Flatness(ErrorStats):
         return dict(super().to_json(), distances=list(self.distances))
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "Flatness":
+    def from_json(cls, d: Mapping[str, Any]) -> Flatness:
         return cls(**vars(ErrorStats.from_json(d)), distances=_floats(d["distances"]))
 
 
@@ -135,7 +141,7 @@ class InterCorner(ErrorStats):
                     errors=list(self.errors))
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "InterCorner":
+    def from_json(cls, d: Mapping[str, Any]) -> InterCorner:
         return cls(**vars(ErrorStats.from_json(d)), square_mm=float(d["square_mm"]),
                    distances=_floats(d["distances"]), errors=_floats(d["errors"]))
 
@@ -152,7 +158,7 @@ class RayGap:
         return {"mean": self.mean, "rms": self.rms, "max": self.max}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "RayGap":
+    def from_json(cls, d: Mapping[str, Any]) -> RayGap:
         return cls(float(d["mean"]), float(d["rms"]), float(d["max"]))
 
 
@@ -176,8 +182,8 @@ class StageMetrics:
                 "displacement_error_mm": self.displacement_error_mm.to_json()}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "StageMetrics":
-        return cls(str(d["reference_frame"]), _floats(d["direction_world"]), float(d["travel_scale"]),
+    def from_json(cls, d: Mapping[str, Any]) -> StageMetrics:
+        return cls(str(d["reference_frame"]), _vec3(d["direction_world"]), float(d["travel_scale"]),
                    float(d["angle_to_normal_deg"]), ErrorStats.from_json(d["plane_distance_error_mm"]),
                    ErrorStats.from_json(d["plane_distance_error_paper_mm"]),
                    ErrorStats.from_json(d["displacement_error_mm"]))
@@ -202,7 +208,7 @@ class FrameStage:
         return out
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "FrameStage":
+    def from_json(cls, d: Mapping[str, Any]) -> FrameStage:
         return cls(float(d["plane_distance_mm"]), float(d["plane_distance_error_mm"]),
                    float(d["plane_distance_error_paper_mm"]), float(d["plane_angle_deg"]),
                    _opt(d.get("displacement_error_mm")))
@@ -220,8 +226,8 @@ class FramePlane:
         return {"normal": list(self.normal), "point": list(self.point), "inliers": self.inliers}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "FramePlane":
-        return cls(_floats(d["normal"]), _floats(d["point"]), int(d["inliers"]))
+    def from_json(cls, d: Mapping[str, Any]) -> FramePlane:
+        return cls(_vec3(d["normal"]), _vec3(d["point"]), int(d["inliers"]))
 
 
 @dataclass(frozen=True)
@@ -239,7 +245,7 @@ class FrameMetrics:
         out: dict[str, Any] = {"stage_mm": self.stage_mm, "num_points": self.num_points}
         if self.plane is not None:
             out["plane"] = self.plane.to_json()
-            out["flatness_mm"] = self.flatness_mm.to_json()
+            out["flatness_mm"] = None if self.flatness_mm is None else self.flatness_mm.to_json()
         if self.inter_corner_mm is not None:
             out["inter_corner_mm"] = self.inter_corner_mm.to_json()
         if self.stage is not None:
@@ -247,7 +253,7 @@ class FrameMetrics:
         return out
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "FrameMetrics":
+    def from_json(cls, d: Mapping[str, Any]) -> FrameMetrics:
         plane = FramePlane.from_json(d["plane"]) if "plane" in d else None
         return cls(_opt(d["stage_mm"]), int(d["num_points"]), plane,
                    ErrorStats.from_json(d["flatness_mm"]) if plane is not None else None,
@@ -274,7 +280,7 @@ class TruthErrors:
                             "rotation_deg": self.rotation_deg, "translation_mm": self.translation_mm}}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "TruthErrors":
+    def from_json(cls, d: Mapping[str, Any]) -> TruthErrors:
         u, a = d["unaligned"], d["aligned"]
         return cls(int(d["count"]), float(u["rms_mm"]), float(u["max_mm"]), float(a["rms_mm"]), float(a["max_mm"]),
                    float(a["rotation_deg"]), float(a["translation_mm"]))
@@ -307,7 +313,7 @@ class ReconstructionMetrics:
         return out
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "ReconstructionMetrics":
+    def from_json(cls, d: Mapping[str, Any]) -> ReconstructionMetrics:
         """Read metrics.json's body (header keys format, dataset, calibration, model are ignored)."""
         return cls(int(d["num_points"]), int(d["num_frames"]), RayGap.from_json(d["ray_gap_mm"]),
                    _opt(d["reprojection_rmse_px"]), Flatness.from_json(d["flatness_mm"]),
@@ -369,15 +375,16 @@ def _reference_frame(staged: dict[str, float]) -> str:
 
 def _stage_metrics(points: Points, planes: dict[str, dict[str, Any] | None]
                    ) -> tuple[StageMetrics | None, dict[str, FrameStage]]:
-    staged = {f: fp.stage_mm for f, fp in points.frames.items() if fp.stage_mm is not None and planes.get(f)}
+    fitted = {f: p for f, p in planes.items() if p}
+    staged = {f: fp.stage_mm for f, fp in points.frames.items() if fp.stage_mm is not None and f in fitted}
     if len(staged) < 2:
         return None, {}
     ref = _reference_frame(staged)
-    rp, rf = planes[ref], points.frames[ref]
+    rp, rf = fitted[ref], points.frames[ref]
     c_ref = rf.xyz.mean(axis=0)
     # travel per stage-mm from the mean displacement of corresponding corners
     disp: dict[str, np.ndarray] = {}
-    for f, s in staged.items():
+    for f in staged:
         if f == ref:
             continue
         common, ia, ib = np.intersect1d(points.frames[f].ids, rf.ids, return_indices=True)
@@ -398,7 +405,7 @@ def _stage_metrics(points: Points, planes: dict[str, dict[str, Any] | None]
     for f in staged:
         if f == ref:
             continue
-        p = planes[f]
+        p = fitted[f]
         n_f = p["normal"]
         # from c_ref along n_ref to the plane of f: n_f . (c_ref + t n_ref - p_f) = 0
         t = float(n_f @ (p["point"] - c_ref) / (n_f @ n_ref))
@@ -412,7 +419,7 @@ def _stage_metrics(points: Points, planes: dict[str, dict[str, Any] | None]
         per_frame[f] = FrameStage(t, e, e_paper, float(np.degrees(np.arccos(min(1.0, abs(float(n_f @ n_ref)))))),
                                   displacement)
     per_frame[ref] = FrameStage(0.0, 0.0, 0.0, 0.0, 0.0)
-    stage = StageMetrics(ref, _floats(direction), scale, float(np.degrees(np.arccos(min(1.0, cos_theta)))),
+    stage = StageMetrics(ref, _vec3(direction), scale, float(np.degrees(np.arccos(min(1.0, cos_theta)))),
                          _stats(np.array(err)), _stats(np.array(err_paper)), _stats(np.array(err_disp)))
     return stage, per_frame
 
@@ -515,7 +522,7 @@ def reconstruction_metrics(points: Points, target: Target, truth: Mapping[str, A
         p = planes[f]
         plane = flatness = spacing = None
         if p is not None:
-            plane = FramePlane(_floats(p["normal"]), _floats(p["point"]), int(p["inliers"].sum()))
+            plane = FramePlane(_vec3(p["normal"]), _vec3(p["point"]), int(p["inliers"].sum()))
             flatness = _stats(p["distances"])
             all_d.append(p["distances"])
         if grid is not None:
@@ -531,12 +538,11 @@ def reconstruction_metrics(points: Points, target: Target, truth: Mapping[str, A
         inter = InterCorner(**vars(_stats(dist - target.pitch_mm)), square_mm=float(target.pitch_mm),
                             distances=_floats(dist), errors=_floats(dist - target.pitch_mm))
     gaps = np.concatenate([fp.ray_gap_mm for fp in points.frames.values()])
-    rmse = [fp.reprojection_rmse_px for fp in points.frames.values()]
-    if all(r is not None for r in rmse):
+    rmse = [fp.reprojection_rmse_px for fp in points.frames.values() if fp.reprojection_rmse_px is not None]
+    reproj = None
+    if len(rmse) == len(points.frames):
         w = np.array([len(fp) for fp in points.frames.values()], dtype=float)
         reproj = float(np.sqrt(np.sum(w * np.square(rmse)) / w.sum()))
-    else:
-        reproj = None
     return ReconstructionMetrics(
         int(points.num_points), len(points.frames),
         RayGap(float(gaps.mean()), float(np.sqrt(np.mean(gaps**2))), float(gaps.max())),

@@ -1,8 +1,8 @@
 """Corners whose residual stays beyond k sigma after convergence."""
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Iterable, Sequence
 
 import numpy as np
 
@@ -19,13 +19,14 @@ class Outlier:
     added_mm: float | None = None
 
     def to_json(self) -> dict:
-        out = {"camera": self.camera, "set": self.set, "frame": self.frame, "id": self.id, "residual_px": self.residual_px}
+        out = {"camera": self.camera, "set": self.set, "frame": self.frame, "id": self.id,
+               "residual_px": self.residual_px}
         if self.added_mm is not None:
             out["added_mm"] = self.added_mm
         return out
 
     @staticmethod
-    def from_json(d: dict) -> "Outlier":
+    def from_json(d: dict) -> Outlier:
         added = d.get("added_mm")
         return Outlier(str(d["camera"]), str(d["set"]), str(d["frame"]), int(d["id"]), float(d["residual_px"]),
                        None if added is None else float(added))

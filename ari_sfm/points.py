@@ -44,7 +44,7 @@ class Points:
                            for name, f in self.frames.items()}, calibration_name, provenance)
 
     @staticmethod
-    def load(path: str | Path) -> "Points":
+    def load(path: str | Path) -> Points:
         """Read and validate ``points.json``."""
         from .io import load_points
 

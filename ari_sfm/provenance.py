@@ -18,8 +18,9 @@ from __future__ import annotations
 
 import hashlib
 import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -44,7 +45,8 @@ def calibration_record(path: str | Path, model: str) -> dict[str, Any]:
 
 
 def observations_sha256(observations: Sequence[Observation]) -> str:
-    """Hex SHA-256 of the corners themselves (camera, set, frame, added_mm, ids, pixels), whatever file they came from."""
+    """Hex SHA-256 of the corners themselves (camera, set, frame, added_mm, ids, pixels), whatever file they
+    came from."""
     digest = hashlib.sha256()
     for o in sorted(observations, key=lambda o: (o.set, o.frame, o.camera, o.added_mm or 0.0)):
         digest.update(f"{o.camera}\0{o.set}\0{o.frame}\0{o.added_mm!r}\0".encode())

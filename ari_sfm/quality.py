@@ -33,8 +33,9 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Iterable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -92,7 +93,7 @@ class Quality:
                 "exact_robust_rmse_px": self.exact_robust_rmse_px, "allowance_px": self.allowance_px}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "Quality":
+    def from_json(cls, d: Mapping[str, Any]) -> Quality:
         def num(key: str) -> float | None:
             v = d.get(key)
             return None if v is None else float(v)
@@ -221,10 +222,11 @@ def judge(model: str, rmse_px: float, residuals: Iterable[np.ndarray], floor: Fl
     if allowed is not None and not robust <= allowed:
         paraxial = model in PARAXIAL_MODELS and exact_robust is not None and exact_robust <= allowed
         if not paraxial:
-            also = "" if exact_robust is None else f", and the exact model with the same window does not ({exact_robust:.3f} px)"
+            also = ("" if exact_robust is None
+                    else f", and the exact model with the same window does not ({exact_robust:.3f} px)")
             why.append(f"it fits the corners far worse than the data allow (robust RMSE {robust:.3f} px vs a floor of "
-                       f"{floor_rmse:.3f} px, at most {allowed:.3f} px{also}): a wrong minimum, a wrong declared window "
-                       "or hint, or a lens distortion not estimated")
+                       f"{floor_rmse:.3f} px, at most {allowed:.3f} px{also}): a wrong minimum, a wrong declared "
+                       "window or hint, or a lens distortion not estimated")
     sigma = None
     if uncertainty is not None:
         sigmas = {name: math.inf if c.rotation_deg is None or not math.isfinite(c.rotation_deg) else c.rotation_deg

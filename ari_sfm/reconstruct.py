@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -21,6 +22,9 @@ from .calibration import Calibration
 from .errors import AriSfmError
 from .points import FramePoints, Points  # noqa: F401 (the records: points.py; re-exported)
 from .records import Dataset
+
+if TYPE_CHECKING:
+    from .metrics import ReconstructionMetrics
 
 log = logging.getLogger(__name__)
 
@@ -147,7 +151,7 @@ class ReconstructionRun:
     """What :func:`run_reconstruction` wrote."""
 
     points: Points
-    metrics: "ReconstructionMetrics"  # noqa: F821 - ari_sfm.metrics (imports open3d lazily)
+    metrics: ReconstructionMetrics  # ari_sfm.metrics, imported when needed (it imports open3d lazily)
     points_path: Path
     metrics_path: Path
     clouds: dict[str, Path]
@@ -209,8 +213,7 @@ def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, o
     them on), not read again.
     """
     from .detection import ensure_observations
-    from .io import load_calibration
-    from .io import load_dataset, save_observations, write_json_atomic
+    from .io import load_calibration, load_dataset, save_observations, write_json_atomic
     from .metrics import reconstruction_metrics, save_point_clouds
     from .provenance import provenance
 
@@ -237,7 +240,7 @@ def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, o
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     obs_path = None
-    if detected:
+    if detected and dataset.observations is not None:  # detect wrote them into the dataset
         obs_path = out / "observations.json"
         save_observations(obs_path, dataset.observations)
     points_path = out / "points.json"

@@ -4,12 +4,15 @@ Loading and validation live in :mod:`ari_sfm.io`; these classes only hold data.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Mapping
+from typing import TypeVar
 
 import numpy as np
+
+T = TypeVar("T")
 
 SETS = ("stacking", "calibration", "reconstruction")
 
@@ -36,6 +39,12 @@ class Target:
     spacing_mm: float = 0.0  # circles: s of OpenCV's calcBoardCornerPositions
     layout: str = "symmetric"  # circles: symmetric | asymmetric
     diameter_mm: float | None = None  # circles: printed dot diameter; points3d: dot diameter; if declared
+
+    def required(self, value: T | None, name: str) -> T:
+        """``value``, a field that this target's type has (:func:`ari_sfm.io.dataset.parse_target` checks it)."""
+        if value is None:
+            raise ValueError(f"a {self.type} target without {name}")
+        return value
 
     @property
     def grid(self) -> tuple[int, int] | None:
@@ -64,17 +73,20 @@ class Target:
         """:meth:`points_3d` computed once per target, as read-only arrays (for
         look-ups done per view, e.g. :func:`ari_sfm.init.zhang.object_points`).
         The record is frozen; its ``points`` mapping must not be changed either."""
+        ids: np.ndarray
+        xyz: np.ndarray
         if self.type == "points3d":
-            ids = np.array(sorted(self.points), dtype=int)
-            xyz = np.array([self.points[i] for i in ids], dtype=float).reshape(-1, 3)
+            points = self.required(self.points, "points")
+            ids = np.array(sorted(points), dtype=int)
+            xyz = np.array([points[i] for i in ids], dtype=float).reshape(-1, 3)
         elif self.type == "circles":  # OpenCV's calcBoardCornerPositions for circle grids
-            cols, rows = self.circle_grid
+            cols, rows = self.required(self.circle_grid, "circle_grid")
             r, c = np.divmod(np.arange(cols * rows), cols)
             x = (2 * c + r % 2) if self.layout == "asymmetric" else c
             xyz = np.stack([x * self.spacing_mm, r * self.spacing_mm, np.zeros(cols * rows)], axis=1).astype(float)
             ids = np.arange(cols * rows)
         else:
-            cols, rows = self.grid
+            cols, rows = self.required(self.grid, "grid")
             r, c = np.divmod(np.arange(cols * rows), cols)
             xyz = np.stack([c * self.square_mm, r * self.square_mm, np.zeros(cols * rows)], axis=1)
             if self.type == "charuco":  # OpenCV puts ChArUco corner (c, r) at ((c+1) s, (r+1) s)
@@ -238,7 +250,7 @@ class Dataset:
     def entries(self) -> tuple[Entry, ...]:
         return self.stacking + self.calibration + self.reconstruction
 
-    def with_observations(self, observations: tuple[Observation, ...], path: Path | None = None) -> "Dataset":
+    def with_observations(self, observations: tuple[Observation, ...], path: Path | None = None) -> Dataset:
         from dataclasses import replace
 
         return replace(self, observations=tuple(observations), observations_path=path)

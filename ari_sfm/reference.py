@@ -33,9 +33,10 @@ the faces. The registration absorbs any rigid error of the reconstruction
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -68,7 +69,7 @@ class Registration:
                 "fitness": self.fitness, "inlier_rmse_mm": self.inlier_rmse_mm}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "Registration":
+    def from_json(cls, d: Mapping[str, Any]) -> Registration:
         return cls(np.asarray(d["reference_from_world"], float), float(d["rotation_deg"]),
                    float(d["translation_mm"]), float(d["fitness"]), float(d["inlier_rmse_mm"]))
 
@@ -86,7 +87,7 @@ class SurfaceDistances:
         return {"mean": self.mean, "rms": self.rms, "max": self.max, "p95": self.p95}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "SurfaceDistances":
+    def from_json(cls, d: Mapping[str, Any]) -> SurfaceDistances:
         return cls(float(d["mean"]), float(d["rms"]), float(d["max"]), float(d["p95"]))
 
 
@@ -118,7 +119,7 @@ class ReferenceErrors:
                 "frames": {n: f.to_json() for n, f in self.frames.items()}}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "ReferenceErrors":
+    def from_json(cls, d: Mapping[str, Any]) -> ReferenceErrors:
         return cls(str(d["path"]), str(d["kind"]), int(d["count"]), Registration.from_json(d["registration"]),
                    SurfaceDistances.from_json(d["distance_mm"]),
                    {n: FrameDistances(float(f["rms"]), float(f["max"])) for n, f in d["frames"].items()})
@@ -141,33 +142,36 @@ def check_ply(path: Path) -> None:
         raise AriSfmError(path, "not a PLY file (no 'ply' ... 'end_header' header)")
     body_start = head.index(b"\n", end) + 1 if b"\n" in head[end:] else len(head)
     lines = head[:end].decode("ascii", errors="replace").splitlines()
-    fmt, elements = None, []  # (name, count, fixed bytes, minimum list bytes)
+    fmt: str | None = None
+    elements: list[tuple[str, int]] = []  # (name, count)
+    nbytes: list[int] = []  # each element's fixed bytes and minimum list bytes
     for line in lines:
         words = line.split()
         if words[:1] == ["format"] and len(words) > 1:
             fmt = words[1]
         elif words[:1] == ["element"] and len(words) == 3 and words[2].isdigit():
-            elements.append([words[1], int(words[2]), 0])
+            elements.append((words[1], int(words[2])))
+            nbytes.append(0)
         elif words[:1] == ["property"] and elements and len(words) >= 3:
             if words[1] == "list" and len(words) >= 5:
                 items = 3 if words[4] in ("vertex_indices", "vertex_index") else 0  # a face has >= 3 corners
-                elements[-1][2] += PLY_TYPES.get(words[2], 1) + items * PLY_TYPES.get(words[3], 4)
+                nbytes[-1] += PLY_TYPES.get(words[2], 1) + items * PLY_TYPES.get(words[3], 4)
             else:
-                elements[-1][2] += PLY_TYPES.get(words[1], 4)
+                nbytes[-1] += PLY_TYPES.get(words[1], 4)
     size = path.stat().st_size
     if fmt in ("binary_little_endian", "binary_big_endian"):
-        needed = body_start + sum(count * nbytes for _, count, nbytes in elements)
+        needed = body_start + sum(count * size_of for (_, count), size_of in zip(elements, nbytes))
         if size < needed:
-            raise AriSfmError(path, f"truncated: its header declares {', '.join(f'{c} {n}' for n, c, _ in elements)} "
+            raise AriSfmError(path, f"truncated: its header declares {', '.join(f'{c} {n}' for n, c in elements)} "
                                     f"({needed} bytes at least), the file has {size} bytes")
     elif fmt == "ascii":
         with open(path, "rb") as f:
             f.seek(body_start)
             rows = sum(1 for line in f if line.strip())
-        declared = sum(count for _, count, _ in elements)
+        declared = sum(count for _, count in elements)
         if rows < declared:
             raise AriSfmError(path, f"truncated: its header declares {declared} rows "
-                                    f"({', '.join(f'{c} {n}' for n, c, _ in elements)}), the file has {rows}")
+                                    f"({', '.join(f'{c} {n}' for n, c in elements)}), the file has {rows}")
 
 
 def load_reference(path: str | Path) -> tuple[Any, str]:

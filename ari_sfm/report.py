@@ -39,9 +39,10 @@ import html
 import json
 import logging
 import re
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -212,7 +213,8 @@ h2{border-bottom:1px solid #ccc;padding-bottom:0.15em;margin-top:1.6em;break-aft
 thead{display:table-header-group}
 tr,figure,img{break-inside:avoid}
 h2,h3{break-after:avoid}
-@media print{body{max-width:none;margin:0;padding:0}#rig-3d-section{break-inside:avoid}img,figure,table,.js-plotly-plot{max-width:100%}}
+@media print{body{max-width:none;margin:0;padding:0}#rig-3d-section{break-inside:avoid}
+img,figure,table,.js-plotly-plot{max-width:100%}}
 """
 
 
@@ -278,7 +280,8 @@ def markdown_tables(text: str) -> str:
 
 def calibration_rows(cal: Calibration) -> list[list[Any]]:
     """[camera, parameter, value, std dev] for every calibrated parameter (std from ``uncertainty``)."""
-    unc = cal.uncertainty.to_json() if cal.uncertainty is not None else {}  # the table reads the records' fields by name
+    # the table reads the records' fields by name
+    unc = cal.uncertainty.to_json() if cal.uncertainty is not None else {}
     cam_unc = unc.get("cameras", {})
     rows: list[list[Any]] = []
     dist_names = ("k1", "k2", "p1", "p2", "k3")
@@ -413,7 +416,8 @@ def stage_table(stages: Sequence[StageRecord]) -> tuple[list[str], list[list[Any
     header += [f"{c} fx (px)" for c in cameras]
     rows = []
     for st in stages:
-        row: list[Any] = [st.stage, st.model or "?", "" if st.distortion is None else ("yes" if st.distortion else "no"),
+        row: list[Any] = [st.stage, st.model or "?",
+                          "" if st.distortion is None else ("yes" if st.distortion else "no"),
                           st.rmse_px, st.max_px, st.count]
         row += [st.distance_mm] if with_distance else []
         row += [st.cameras[c].fx if c in st.cameras else None for c in cameras]
@@ -431,9 +435,15 @@ def _stages_section(ctx: ReportContext) -> str:
 
 
 def _residuals_section(ctx: ReportContext) -> str:
-    from .report_figures import (map_magnification, residual_by_depth, residual_by_frame, residual_map,
-                                 residual_regions, residual_scatter)
     from .report_diagnostics import GRID_COLS, GRID_ROWS
+    from .report_figures import (
+        map_magnification,
+        residual_by_depth,
+        residual_by_frame,
+        residual_map,
+        residual_regions,
+        residual_scatter,
+    )
 
     cal, res = ctx.calibration, list(ctx.residuals)
     if not res:

@@ -18,8 +18,9 @@ evaluated at (or halfway to the points) and the legend says it is schematic.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import replace
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -36,9 +37,8 @@ PRINT_WIDTH_PX = 680  # the view's width while printing: fits A4 and Letter at t
 # runs before the print layout; Plotly.relayout draws synchronously), back to the window's width after it.
 PRINT_FIT_SCRIPT = (
     "<script>(function(){var d=document.getElementById('rig-3d');if(!d||!window.Plotly)return;"
-    "window.addEventListener('beforeprint',function(){Plotly.relayout(d,{width:%d});});"
-    "window.addEventListener('afterprint',function(){Plotly.relayout(d,{width:null,autosize:true});});})();</script>"
-    % PRINT_WIDTH_PX)
+    f"window.addEventListener('beforeprint',function(){{Plotly.relayout(d,{{width:{PRINT_WIDTH_PX:d}}});}});"
+    "window.addEventListener('afterprint',function(){Plotly.relayout(d,{width:null,autosize:true});});})();</script>")
 RAY_COLOURS = ("#d62728", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#bcbd22")  # per camera
 MAX_POINTS = 20000  # reconstructed points drawn (an even subsample beyond)
 

@@ -17,8 +17,8 @@ and one that does not (tests/test_report.py).
 """
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -134,7 +134,7 @@ def recommendations(calibration: Calibration, residuals: Residuals, target: Targ
         cam_rms = rms(np.concatenate([r for o, r in residuals if o.camera == name]))
         judged = np.where(grid.count >= REGION_MIN_CORNERS, grid.rms_px, np.nan)
         if np.isfinite(judged).any() and np.nanmax(judged) > REGION_RATIO * cam_rms:
-            row, col = np.unravel_index(int(np.nanargmax(judged)), judged.shape)
+            row, col = (int(i) for i in np.unravel_index(int(np.nanargmax(judged)), judged.shape))
             spec = cal.spec
             fix = ("try --model exact (Snell's law at the window)"
                    if cal.model == "ari" or not spec.window or spec.projection == "polynomial"

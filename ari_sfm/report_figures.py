@@ -20,7 +20,8 @@ from __future__ import annotations
 
 import functools
 import io
-from typing import Any, Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 import matplotlib
 
@@ -33,12 +34,15 @@ from .calibration import Calibration  # noqa: E402
 from .records import Observation, Target  # noqa: E402
 from .report_diagnostics import corner_depths, frame_rmse, point_depths, region_grid, rms  # noqa: E402
 
+if TYPE_CHECKING:
+    from matplotlib.typing import RcKeyType
+
 DPI = 150
 FIG_WIDTH_IN = 8.0  # every figure; shown at the page's width
 PRINT_WIDTH_IN = 7.0  # the text width of an A4 / letter page: what FIG_WIDTH_IN prints at
-STYLE = {"font.size": 11, "axes.titlesize": 11.5, "axes.labelsize": 11, "xtick.labelsize": 10.5,
-         "ytick.labelsize": 10.5, "legend.fontsize": 10.5, "figure.titlesize": 12, "figure.dpi": DPI,
-         "axes.titlelocation": "left"}  # smallest 10.5 pt -> 9.2 pt printed
+STYLE: dict[RcKeyType, Any] = {  # smallest 10.5 pt -> 9.2 pt printed
+    "font.size": 11, "axes.titlesize": 11.5, "axes.labelsize": 11, "xtick.labelsize": 10.5, "ytick.labelsize": 10.5,
+    "legend.fontsize": 10.5, "figure.titlesize": 12, "figure.dpi": DPI, "axes.titlelocation": "left"}
 SET_COLORS = {"calibration": "tab:blue", "stacking": "tab:orange", "reconstruction": "tab:green"}
 CAMERA_MARKERS = "os^Dv<>p"
 
@@ -103,9 +107,9 @@ def draw_residual_scatter(calibration: Calibration, residuals: Residuals) -> Any
     for ax, name in zip(axes, names):
         mine = [(o, r) for o, r in residuals if o.camera == name]
         for set_name, color in SET_COLORS.items():
-            r = [r for o, r in mine if o.set == set_name]
-            if r:
-                r = np.concatenate(r)
+            parts = [r for o, r in mine if o.set == set_name]
+            if parts:
+                r = np.concatenate(parts)
                 ax.scatter(r[:, 0], r[:, 1], s=3, alpha=0.5, color=color, label=f"{set_name} ({len(r)})",
                            rasterized=True)
         value = rms(_camera_residuals(residuals, name)[1])
@@ -434,7 +438,8 @@ def window_depth(calibration: Calibration, points: np.ndarray, window=None) -> t
     if plane is not None:
         return plane, w.interface.distance_mm is None
     first = calibration.cameras[w.cameras[0]].cam_from_world.inverse().t
-    return (float(n @ first + 0.5 * (np.median(points @ n) - n @ first)) if len(points) else float(n @ first) + 50.0), True
+    return (float(n @ first + 0.5 * (np.median(points @ n) - n @ first)) if len(points)
+            else float(n @ first) + 50.0), True
 
 
 @styled
@@ -447,14 +452,14 @@ def draw_rig(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> Any:
     centres = {n: c.cam_from_world.inverse().t for n, c in calibration.cameras.items()}
     optical = {n: c.cam_from_world.R[2] for n, c in calibration.cameras.items()}  # optical axes in the world
     span = np.vstack([np.array(list(centres.values())), allxyz]) if len(allxyz) else np.array(list(centres.values()))
-    windows = [(w, *window_depth(calibration, allxyz, w), w.interface.thickness_mm) for w in calibration.window_list()
-               if w.normal_world is not None]  # (window, plane offset, schematic, thickness)
+    # (window, its normal, plane offset, schematic, thickness)
+    windows = [(w, w.normal_world, *window_depth(calibration, allxyz, w), w.interface.thickness_mm)
+               for w in calibration.window_list() if w.normal_world is not None]
     z_lo, z_hi = span[:, 2].min(), span[:, 2].max()
-    for w, d, _, t in windows:  # the faces' depths along z at the rig's middle
-        if abs(w.normal_world[2]) > 1e-6:
-            z_mid = (d - w.normal_world[:2] @ span[:, :2].mean(axis=0)) / w.normal_world[2]
-            z_lo, z_hi = min(z_lo, z_mid - 5, z_mid + t / w.normal_world[2] - 5), \
-                max(z_hi, z_mid + 5, z_mid + t / w.normal_world[2] + 5)
+    for _, n, d, _, t in windows:  # the faces' depths along z at the rig's middle
+        if abs(n[2]) > 1e-6:
+            z_mid = (d - n[:2] @ span[:, :2].mean(axis=0)) / n[2]
+            z_lo, z_hi = min(z_lo, z_mid - 5, z_mid + t / n[2] - 5), max(z_hi, z_mid + 5, z_mid + t / n[2] + 5)
     pad = 0.04 * (z_hi - z_lo)
     zlim = (z_lo - pad, z_hi + pad)
     margin = [0.15 * max(float(np.ptp(span[:, k])), 20.0) for k in (0, 1)]
@@ -472,8 +477,7 @@ def draw_rig(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> Any:
             tip = c + optical[name] * 0.12 * (zlim[1] - zlim[0])
             ax.annotate("", xy=(tip[2], tip[k]), xytext=(c[2], c[k]), arrowprops=dict(arrowstyle="->", lw=1.2))
             ax.plot(c[2], c[k], CAMERA_MARKERS[j % len(CAMERA_MARKERS)], color="k", ms=7, mfc="w" if j % 2 else "k")
-        for w, d, schematic, t in windows:
-            n = w.normal_world
+        for _, n, d, schematic, t in windows:
             if abs(n[2]) <= 1e-6:  # a wall seen edge-on in this section
                 continue
             other = 1 - k  # the coordinate held at the rig's middle for this section
@@ -492,7 +496,7 @@ def draw_rig(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> Any:
     handles = [axes[0].plot([], [], CAMERA_MARKERS[j % len(CAMERA_MARKERS)], color="k", ms=7,
                             mfc="w" if j % 2 else "k", label=f"{name} (arrow: optical axis)" if j == 0 else name)[0]
                for j, name in enumerate(centres)]
-    for w, d, schematic, t in windows:
+    for w, _, _, schematic, t in windows:
         name = "window" if not calibration.windows else f"window {w.name}"
         label = f"{name} ({t:g} mm)" + (", depth schematic: its distance is not observable in air" if schematic
                                         else f" at {w.interface.distance_mm:.1f} mm from {w.cameras[0]}")
@@ -522,7 +526,9 @@ def draw_error_histograms(metrics: Mapping[str, Any]) -> Any:
         ax.text(0.5, 0.5, "no errors to show", ha="center", va="center")
         ax.set_axis_off()
         return fig
-    fig, axd = plt.subplot_mosaic(layout, figsize=(FIG_WIDTH_IN, 3.3 * len(layout)), layout="constrained")
+    # matplotlib's stub: HashableList is invariant, so a list[list[str]] mosaic (valid) does not match it
+    fig, axd = plt.subplot_mosaic(layout, figsize=(FIG_WIDTH_IN, 3.3 * len(layout)),  # type: ignore[arg-type]
+                                  layout="constrained")
     if stage_frames:
         ax = axd["stage"]
         names = sorted(stage_frames, key=lambda n: stage_frames[n]["stage_mm"])

@@ -8,8 +8,9 @@ caller names the file). The layout is DATASET_FORMAT.md's; nothing here changes 
 """
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Iterable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -30,10 +31,10 @@ class ResidualStats:
     mae_px: float
     max_px: float
     count: int
-    per_camera: Mapping[str, "ResidualStats"] | None = None
+    per_camera: Mapping[str, ResidualStats] | None = None
 
     @classmethod
-    def of(cls, residuals: Iterable[np.ndarray]) -> "ResidualStats":
+    def of(cls, residuals: Iterable[np.ndarray]) -> ResidualStats:
         """The statistics of residual arrays (each (M, 2)); NaN and count 0 for none."""
         arrays = [np.asarray(r, float).reshape(-1, 2) for r in residuals]
         d = np.linalg.norm(np.concatenate(arrays), axis=1) if arrays else np.zeros(0)
@@ -49,7 +50,7 @@ class ResidualStats:
         return out
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "ResidualStats":
+    def from_json(cls, d: Mapping[str, Any]) -> ResidualStats:
         per = d.get("per_camera")
         return cls(float(d["rmse_px"]), float(d["mae_px"]), float(d["max_px"]), int(d["count"]),
                    None if per is None else {c: cls.from_json(s) for c, s in per.items()})
@@ -72,7 +73,7 @@ class CameraUncertainty:
         return out
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "CameraUncertainty":
+    def from_json(cls, d: Mapping[str, Any]) -> CameraUncertainty:
         unknown = set(d) - set(PARAM_NAMES) - {"rotation_deg", "translation_mm"}
         if unknown:
             raise ValueError(f"unknown uncertainty key(s) {', '.join(sorted(unknown))}")
@@ -92,7 +93,7 @@ class WindowUncertainty:
         return {"normal_deg": self.normal_deg, "distance_mm": self.distance_mm}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "WindowUncertainty":
+    def from_json(cls, d: Mapping[str, Any]) -> WindowUncertainty:
         return cls(_float_or_none(d.get("normal_deg")), _float_or_none(d.get("distance_mm")))
 
 
@@ -117,7 +118,7 @@ class Uncertainty:
         return out
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "Uncertainty":
+    def from_json(cls, d: Mapping[str, Any]) -> Uncertainty:
         windows = {str(n): WindowUncertainty.from_json(w) for n, w in (d.get("windows") or {}).items()}
         return cls(float(d["sigma_px"]), {n: CameraUncertainty.from_json(c) for n, c in d["cameras"].items()},
                    _float_or_none(d["normal_deg"]), "distance_mm" in d, _float_or_none(d.get("distance_mm")), windows)
@@ -137,7 +138,7 @@ class OutlierReport:
                 "corners": [o.to_json() for o in self.corners]}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "OutlierReport":
+    def from_json(cls, d: Mapping[str, Any]) -> OutlierReport:
         if not isinstance(d["excluded"], bool):
             raise ValueError("outliers.excluded must be true or false")
         return cls(float(d["sigma_px"]), float(d["threshold_sigma"]), d["excluded"],
@@ -157,7 +158,7 @@ class PfWorld:
         return {"model": self.model, "time_s": self.time_s, "note": self.note}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "PfWorld":
+    def from_json(cls, d: Mapping[str, Any]) -> PfWorld:
         if not isinstance(d["model"], str):
             raise ValueError("pf_world.model must be a model name")
         return cls(d["model"], float(d["time_s"]), str(d.get("note", cls.note)))
@@ -186,7 +187,7 @@ class OptimizerRun:
         return out
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "OptimizerRun":
+    def from_json(cls, d: Mapping[str, Any]) -> OptimizerRun:
         def opt(key: str, kind: type):
             return None if d.get(key) is None else kind(d[key])
 
@@ -205,7 +206,7 @@ class OptimizerReport:
         return {stage: run.to_json() for stage, run in self.runs.items()}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "OptimizerReport":
+    def from_json(cls, d: Mapping[str, Any]) -> OptimizerReport:
         if not isinstance(d, Mapping):
             raise TypeError(f"optimizer must be a mapping of stages (got {type(d).__name__})")
         return cls({str(stage): OptimizerRun.from_json(run) for stage, run in d.items()})
@@ -230,7 +231,7 @@ class StageCamera:
         return out
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "StageCamera":
+    def from_json(cls, d: Mapping[str, Any]) -> StageCamera:
         return cls(float(d["fx"]), _float_or_none(d.get("fy")), _float_or_none(d.get("cx")),
                    _float_or_none(d.get("cy")), tuple(float(v) for v in d.get("dist") or ()))
 
@@ -240,7 +241,7 @@ class StageWindow:
     """One window after a stage (several windows): its normal and near-face offset from the world origin
     (None where the data do not observe it)."""
 
-    normal_world: tuple[float, float, float] | None
+    normal_world: tuple[float, ...] | None  # 3 components (read leniently)
     plane_mm: float | None
 
     def to_json(self) -> dict[str, Any]:
@@ -248,7 +249,7 @@ class StageWindow:
                 "plane_mm": self.plane_mm}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "StageWindow":
+    def from_json(cls, d: Mapping[str, Any]) -> StageWindow:
         n = d.get("normal_world")
         return cls(None if n is None else tuple(float(v) for v in n), _float_or_none(d.get("plane_mm")))
 
@@ -266,7 +267,7 @@ class StageRecord:
     rmse_px: float | None = None
     max_px: float | None = None
     count: int | None = None
-    normal_world: tuple[float, float, float] | None = None
+    normal_world: tuple[float, ...] | None = None  # 3 components (read leniently)
     distance_mm: float | None = None
     cameras: Mapping[str, StageCamera] = field(default_factory=dict)
     windows: tuple[StageWindow, ...] = ()  # several windows only
@@ -287,7 +288,7 @@ class StageRecord:
         return out
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any], position: int = 0) -> "StageRecord":
+    def from_json(cls, d: Mapping[str, Any], position: int = 0) -> StageRecord:
         """The record of one ``stages`` entry (``position``: its place in the list, its name when it has none)."""
         if not isinstance(d, Mapping):
             raise TypeError(f"stages[{position}] must be an object")
@@ -299,8 +300,8 @@ class StageRecord:
 
         count = res.get("count")
         normal = d.get("normal_world")
-        cameras = d.get("cameras") if isinstance(d.get("cameras"), Mapping) else {}
-        windows = d.get("windows") if isinstance(d.get("windows"), list) else []
+        cameras = d["cameras"] if isinstance(d.get("cameras"), Mapping) else {}
+        windows = d["windows"] if isinstance(d.get("windows"), list) else []
         return cls(str(d.get("stage", d.get("name", position + 1))),
                    None if d.get("model") is None else str(d["model"]),
                    None if d.get("distortion") is None else bool(d["distortion"]),

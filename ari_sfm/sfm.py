@@ -97,7 +97,9 @@ def check_images(files: list[Path]) -> tuple[int, int]:
     else AriSfmError naming the first bad image (and how many more). Returns (width, height)."""
     from PIL import Image, UnidentifiedImageError
 
-    size, bad, why = None, [], None
+    size: tuple[int, int] | None = None
+    bad: list[Path] = []
+    why: str | None = None
     for path in files:
         try:
             with Image.open(path) as im:
@@ -118,6 +120,8 @@ def check_images(files: list[Path]) -> tuple[int, int]:
         more = f" (and {len(bad) - 1} more: {', '.join(p.name for p in bad[1:4])}{', ...' if len(bad) > 4 else ''})" \
             if len(bad) > 1 else ""
         raise AriSfmError(bad[0], f"{why}{more}: remove or replace it, structure from motion would drop it")
+    if size is None:
+        raise ValueError("no image to check")
     return size
 
 
@@ -189,14 +193,15 @@ def _run_sfm(images: Path, window: Path, out: Path, options: SfmOptions, files: 
     bar = None  # progress: one bar for the steps, then the images the mapper registers
     what = {"features": f"SIFT features of {len(files)} images (CPU)", "matching": f"{matcher} matching",
             "mapping": "incremental mapping"}
-    clock = {"step": None, "t": t0}
+    step: str | None = None  # the step running, since step_t0
+    step_t0 = t0
 
     def on_step(name: str) -> None:
-        nonlocal bar
+        nonlocal bar, step, step_t0
         now = time.perf_counter()
-        if clock["step"] is not None:
-            times[clock["step"]] = now - clock["t"]
-        clock.update(step=name, t=now)
+        if step is not None:
+            times[step] = now - step_t0
+        step, step_t0 = name, now
         log.info("COLMAP %s (%s)", what[name], images)
         if options.progress:
             from tqdm import tqdm
@@ -218,7 +223,7 @@ def _run_sfm(images: Path, window: Path, out: Path, options: SfmOptions, files: 
         finally:
             if bar is not None:
                 bar.close()
-        times["mapping"] = time.perf_counter() - clock["t"]
+        times["mapping"] = time.perf_counter() - step_t0
         model_dirs = sorted(p for p in (partial / "sparse").iterdir() if p.is_dir())
         models = [(read_colmap(p), p) for p in model_dirs]
         rec, model_dir = max(models, key=lambda m: (m[0].num_reg_images(), m[0].num_points3D()))
@@ -299,7 +304,10 @@ def _colmap_in_child(images: Path, partial: Path, options: SfmOptions, matcher: 
     proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             errors="replace")
 
+    assert proc.stdout is not None and proc.stderr is not None  # both piped
+
     def read_stderr() -> None:
+        assert proc.stderr is not None
         for line in proc.stderr:
             tail.append(line.rstrip())
             if args["verbose"]:

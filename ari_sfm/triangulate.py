@@ -37,8 +37,8 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable, Mapping
 
 import numpy as np
 

@@ -184,8 +184,8 @@ def _print_row(row: dict) -> None:
         return
     speed = f"{g['opt_s'] / n['opt_s']:8.1f}" if g and n else f"{'-':>8s}"
     speed += f" {abs(g['error'] - n['error']) / g['error']:9.1e}" if g and n else f" {'-':>9s}"
-    print(f"{row['label']:22s} {any_r['cameras']:4d} {any_r['views']:6d} {any_r['corners']:8d} {any_r['build_s']:7.2f} | "
-          f"{_cols(g)} | {_cols(n)} | {speed}", flush=True)
+    print(f"{row['label']:22s} {any_r['cameras']:4d} {any_r['views']:6d} {any_r['corners']:8d} {any_r['build_s']:7.2f} "
+          f"| {_cols(g)} | {_cols(n)} | {speed}", flush=True)
 
 
 def growth_exponent(rows: list[dict], backend: str) -> float | None:
@@ -204,7 +204,8 @@ def cv2_table(repeats: int) -> None:
     from ari_sfm.simulate import make_scene
 
     ds = make_scene("paper_single", seed=0).dataset
-    print_case("paper_single, calibrate() per backend", ds, time_case(ds, ("ari", "exact"), repeats, ("gtsam", "numpy")),
+    print_case("paper_single, calibrate() per backend", ds,
+               time_case(ds, ("ari", "exact"), repeats, ("gtsam", "numpy")),
                repeats)
 
 

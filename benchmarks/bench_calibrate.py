@@ -89,7 +89,8 @@ def time_case(dataset, models=("ari", "exact"), repeats: int = 5, backends=("aut
             bas[k].append(sum(s["time_s"] for s in cal.optimizer.to_json().values()))
             its[k] = "+".join(str(s["iterations"]) for s in cal.optimizer.to_json().values())
             if all("error_evaluations" in s for s in cal.optimizer.to_json().values()):  # numpy backend
-                its[k] += " it, " + "+".join(str(s["error_evaluations"]) for s in cal.optimizer.to_json().values()) + " ev"
+                its[k] += " it, " + "+".join(str(s["error_evaluations"])
+                                             for s in cal.optimizer.to_json().values()) + " ev"
             else:
                 its[k] += " it"
     med = statistics.median

@@ -24,10 +24,10 @@ import numpy as np
 
 from ari_sfm.calibrate import calibrate
 from ari_sfm.calibration import Calibration
-from ari_sfm.io import parse_calibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import rotation_from_rotvec
 from ari_sfm.init.zhang import object_points
+from ari_sfm.io import parse_calibration
 from ari_sfm.simulate import make_scene
 from ari_sfm.simulate.scenarios import ptv_plane_of
 from ari_sfm.triangulate import triangulate_pixels
@@ -103,8 +103,9 @@ def main() -> None:
                 continue
             q = cal.quality
             exact = "" if q.exact_robust_rmse_px is None else f", exact re-evaluation {q.exact_robust_rmse_px:.2f} px"
-            print(f"{seed} plane turned 10 deg, held, fixed focal, {model}: rmse {cal.residuals.rmse_px:.2f} px, quality "
-                  f"ok {q.ok}, robust rmse {q.robust_rmse_px:.2f} px vs the floor {q.floor_rmse_px:.3f} px{exact}, "
+            print(f"{seed} plane turned 10 deg, held, fixed focal, {model}: rmse {cal.residuals.rmse_px:.2f} px, "
+                  f"quality ok {q.ok}, robust rmse {q.robust_rmse_px:.2f} px "
+                  f"vs the floor {q.floor_rmse_px:.3f} px{exact}, "
                   f"starts {', '.join(q.starts)} ({s:.1f} s)", flush=True)
 
 

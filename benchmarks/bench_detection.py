@@ -45,7 +45,8 @@ class View:
     bias: np.ndarray | None = None  # dot boards: imaged dot centre - projected dot centre (N, 2), exact
 
 
-def render_views(target: Target, count: int, size: tuple[int, int], supersample: int, noise: float, seed: int) -> list[View]:
+def render_views(target: Target, count: int, size: tuple[int, int], supersample: int,
+                 noise: float, seed: int) -> list[View]:
     """Random views: roll 0..360 deg, tilt up to 50 deg, square size ~15-50 px, half with optical blur."""
     rng = np.random.default_rng(seed)
     width, height = size
@@ -123,7 +124,8 @@ def score(views: list[View], target: Target, method: str) -> Score:
 def print_table(title: str, scores: dict[str, Score], chosen: str, count: int) -> None:
     ref = scores[chosen]
     print(f"\n{title}")
-    print(f"{'variant':26s} {'found':>7s} {'wrong':>5s} {'rms px':>8s} {'max px':>8s} {'ms/img':>8s} {'rms/ref':>8s} {'max/ref':>8s} {'time/ref':>8s}")
+    print(f"{'variant':26s} {'found':>7s} {'wrong':>5s} {'rms px':>8s} {'max px':>8s} {'ms/img':>8s} {'rms/ref':>8s} "
+          f"{'max/ref':>8s} {'time/ref':>8s}")
     for name, s in scores.items():
         mark = " <- chosen" if name == chosen else ""
         print(f"{name:26s} {s.found:>3d}/{count:<3d} {s.wrong:>5d} {s.rms:8.4f} {s.max:8.4f} {s.ms:8.1f} "
@@ -134,7 +136,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--views", type=int, default=16)
     parser.add_argument("--size", type=int, nargs=2, default=(1224, 1024))
-    parser.add_argument("--supersample", type=int, default=4, help="renderer samples per pixel side (8+ isolates the detector)")
+    parser.add_argument("--supersample", type=int, default=4,
+                        help="renderer samples per pixel side (8+ isolates the detector)")
     parser.add_argument("--noise", type=float, default=1.0, help="sensor noise sigma, grey levels")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--tune", action="store_true", help="also sweep the cornerSubPix window and smoothing")
@@ -148,7 +151,8 @@ def main() -> None:
     views = render_views(CHECKERBOARD, args.views, size, args.supersample, args.noise, args.seed)
     print(f"square size {min(v.square_px for v in views):.0f}-{max(v.square_px for v in views):.0f} px")
     scores = {name: score(views, CHECKERBOARD, name) for name in CHECKERBOARD_METHODS}
-    print_table(f"checkerboard {CHECKERBOARD.inner_corners[0]} x {CHECKERBOARD.inner_corners[1]} corners", scores, "subpix", len(views))
+    print_table(f"checkerboard {CHECKERBOARD.inner_corners[0]} x {CHECKERBOARD.inner_corners[1]} corners", scores,
+                "subpix", len(views))
 
     if args.tune:
         tuned = {}
@@ -162,8 +166,10 @@ def main() -> None:
         print_table("cornerSubPix window fraction (w) and pre-smoothing sigma (s)", tuned, "subpix", len(views))
 
     views = render_views(CHARUCO, max(4, args.views // 2), size, args.supersample, args.noise, args.seed + 1)
-    charuco = {"charuco": score(views, CHARUCO, "charuco"), "charuco_raw (OpenCV only)": score(views, CHARUCO, "charuco_raw")}
-    print_table(f"ChArUco {CHARUCO.squares[0]} x {CHARUCO.squares[1]} squares {CHARUCO.dictionary}", charuco, "charuco", len(views))
+    charuco = {"charuco": score(views, CHARUCO, "charuco"),
+               "charuco_raw (OpenCV only)": score(views, CHARUCO, "charuco_raw")}
+    print_table(f"ChArUco {CHARUCO.squares[0]} x {CHARUCO.squares[1]} squares {CHARUCO.dictionary}", charuco, "charuco",
+                len(views))
 
     for k, dots in enumerate(DOTS):
         views = render_views(dots, args.views, size, args.supersample, args.noise, args.seed + 2 + k)
@@ -173,11 +179,11 @@ def main() -> None:
                     f"(spacing {min(v.square_px for v in views):.0f}-{max(v.square_px for v in views):.0f} px)",
                     scores, circle_grid.CIRCLE_DEFAULT_METHOD, len(views))
         bias = np.linalg.norm(np.concatenate([v.bias for v in views]), axis=1)
-        print(f"perspective bias of these views (imaged dot centre - projected centre): rms {np.sqrt(np.mean(bias**2)):.4f} px, "
-              f"max {bias.max():.4f} px")
+        print("perspective bias of these views (imaged dot centre - projected centre): "
+              f"rms {np.sqrt(np.mean(bias**2)):.4f} px, max {bias.max():.4f} px")
     bias = scenario_bias()
-    print(f"\nperspective bias in paper_single_dots seed 0 (2448 x 2048, f 3478 px, 6 mm dots 300-500 mm away, exact Snell): "
-          f"rms {np.sqrt(np.mean(bias**2)):.4f} px, max {bias.max():.4f} px over {len(bias)} dots")
+    print("\nperspective bias in paper_single_dots seed 0 (2448 x 2048, f 3478 px, 6 mm dots 300-500 mm away, "
+          f"exact Snell): rms {np.sqrt(np.mean(bias**2)):.4f} px, max {bias.max():.4f} px over {len(bias)} dots")
     if args.dots_scenario > 0:
         score_scenario(args.dots_scenario)
 
@@ -200,7 +206,8 @@ def scenario_bias(name: str = "paper_single_dots", seed: int = 0) -> np.ndarray:
         x, y = uv[..., 0], uv[..., 1]
         xn, yn = np.roll(x, -1, axis=1), np.roll(y, -1, axis=1)
         cross = x * yn - xn * y
-        centre = np.stack([((x + xn) * cross).sum(1), ((y + yn) * cross).sum(1)], axis=1) / (3.0 * cross.sum(1))[:, None]
+        centre = (np.stack([((x + xn) * cross).sum(1), ((y + yn) * cross).sum(1)], axis=1)
+                  / (3.0 * cross.sum(1))[:, None])
         out.append(np.linalg.norm(centre - o.pixels[o.ids], axis=1))
     return np.concatenate(out)
 
@@ -218,7 +225,8 @@ def score_scenario(scale: float, name: str = "paper_single_dots", seed: int = 0)
     with tempfile.TemporaryDirectory() as tmp:
         dataset_dir, _ = simulate(name, Path(tmp), seed=seed, image_scale=scale)
         dataset = load_dataset(dataset_dir)
-        exact = {(o.set, o.frame, o.added_mm, o.camera): o for o in load_observations(Path(tmp) / "truth_observations.json")}
+        exact = {(o.set, o.frame, o.added_mm, o.camera): o
+                 for o in load_observations(Path(tmp) / "truth_observations.json")}
         views = [View(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE), exact[(e.set, e.key, e.added_mm, cam)].pixels, 0.0)
                  for e in dataset.entries() for cam, path in e.images.items()]
         scores = {m: score(views, dataset.target, m) for m in circle_grid.CIRCLE_METHODS}

@@ -23,10 +23,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import numpy as np  # noqa: E402
-
 import test_openptv as T  # noqa: E402
-from ari_sfm.openptv import export_openptv  # noqa: E402
+
 from ari_sfm.io import save_calibration
+from ari_sfm.openptv import export_openptv  # noqa: E402
 
 CASES = (
     ("water, no distortion, pp off-centre", (0,) * 5, False, 1.333),

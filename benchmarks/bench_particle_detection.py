@@ -155,7 +155,6 @@ def cpu_time(detect, image: np.ndarray, repeat: int) -> tuple[np.ndarray, float]
 def real_look(root: str, repeat: int) -> None:
     """OpenPTV's test_cavity calibration images: counts per camera, OpenPTV's detections among each
     detector's, images per second per core (see the module docstring)."""
-    from dataclasses import replace
     from pathlib import Path
 
     import cv2

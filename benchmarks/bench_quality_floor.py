@@ -20,8 +20,8 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Callable
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -48,7 +48,8 @@ class Case:
     options: dict
 
 
-def _with_noise(geometry: Geometry, sigma: float, seed: int, step: float | None = None, true_target: Target | None = None):
+def _with_noise(geometry: Geometry, sigma: float, seed: int, step: float | None = None,
+                true_target: Target | None = None):
     """(dataset, exact observations) of ``geometry`` observed with Gaussian noise ``sigma`` and pixels rounded to
     ``step``; ``true_target``: where the body's points really are (the dataset declares ``geometry.target``)."""
     exact = observe(geometry if true_target is None else replace(geometry, target=true_target))
@@ -127,9 +128,12 @@ def cases(seed: int = 0) -> list[tuple[str, Callable[[], Case]]]:
         ptv_placed("ptv planes misplaced 0.05 mm 0.02 deg", 0.05, 0.02),
         ptv_placed("ptv planes misplaced 0.1 mm 0.05 deg", 0.1, 0.05),
         ptv_placed("ptv planes misplaced 0.2 mm 0.1 deg", 0.2, 0.1),
-        scene("WRONG ptv declared window turned 10 deg", "ptv_multiplane", fixed, lambda d: _turned(d, 10.0), sigma=0.0),
-        scene("WRONG ptv declared window turned 15 deg", "ptv_multiplane", fixed, lambda d: _turned(d, 15.0), sigma=0.0),
-        scene("WRONG ptv medium index 1.46 (true 1.333)", "ptv_multiplane", fixed, lambda d: _medium(d, 1.46), sigma=0.0),
+        scene("WRONG ptv declared window turned 10 deg", "ptv_multiplane", fixed, lambda d: _turned(d, 10.0),
+              sigma=0.0),
+        scene("WRONG ptv declared window turned 15 deg", "ptv_multiplane", fixed, lambda d: _turned(d, 15.0),
+              sigma=0.0),
+        scene("WRONG ptv medium index 1.46 (true 1.333)", "ptv_multiplane", fixed, lambda d: _medium(d, 1.46),
+              sigma=0.0),
         scene("WRONG body3d_water medium 1.46", "body3d_water", None, lambda d: _medium(d, 1.46)),
         scene("WRONG body3d_water medium 1.2", "body3d_water", None, lambda d: _medium(d, 1.2)),
         particles("WRONG particles medium 1.46", transform=lambda d: _medium(d, 1.46)),
@@ -167,7 +171,8 @@ def main() -> None:
         try:
             q = calibrate(case.dataset, model="exact", uncertainty=False, **case.options).quality
         except AriSfmError as exc:
-            print(f"{name:44s} {'' if truth is None else f'{truth:7.4f}':>7s} {floor.rmse_px:7.4f}  error: {exc.message[:60]}")
+            print(f"{name:44s} {'' if truth is None else f'{truth:7.4f}':>7s} {floor.rmse_px:7.4f}  error: "
+                  f"{exc.message[:60]}")
             continue
         verdict = "ok" if q.ok else "FAILED"
         starts = "" if q.starts == ("default",) else f" (starts: {', '.join(q.starts)})"

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from ari_sfm.io import parse_calibration
 from ari_sfm.geometry import rotation_from_rotvec
+from ari_sfm.io import parse_calibration
 from ari_sfm.reconstruct import reconstruct
 from ari_sfm.reference import reference_errors
 from ari_sfm.simulate import make_scene

@@ -74,7 +74,8 @@ def main(experiment: Path) -> None:
     print(f"{'all':8}{len(ours_sq):>8}{np.sqrt(np.mean(ours_sq)):>16.3f}{np.sqrt(np.mean(their_sq)):>16.3f}")
     q = cal.quality
     print(f"\nquality: {'ok' if q.ok else 'FAILED'} (robust RMSE {q.robust_rmse_px:.3f} px, floor "
-          f"{q.floor_rmse_px if q.floor_rmse_px is None else round(q.floor_rmse_px, 3)} px){'' if q.ok else ': ' + q.why}")
+          f"{q.floor_rmse_px if q.floor_rmse_px is None else round(q.floor_rmse_px, 3)} "
+          f"px){'' if q.ok else ': ' + q.why}")
     control = read_control_par(experiment / "parameters" / "ptv.par")
     print(f"\n{'window':10}{'cameras':>12}{'normal vs OpenPTV deg':>23}{'sigma deg':>11}"
           f"{'glass-water face mm':>21}{'OpenPTV mm':>12}{'sigma mm':>10}")

@@ -21,13 +21,14 @@ to cv2 on the same points and the RMS 3D error against the true points.
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import statistics
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -35,8 +36,7 @@ import cv2
 import numpy as np
 
 from ari_sfm.calibration import Calibration
-from ari_sfm.io import load_calibration, parse_calibration
-from ari_sfm.io import write_json_atomic
+from ari_sfm.io import load_calibration, parse_calibration, write_json_atomic
 from ari_sfm.simulate import make_scene
 from ari_sfm.triangulate import triangulate_pixels
 
@@ -64,7 +64,8 @@ def _points_and_pixels(cal: Calibration, n: int, seed: int = 0) -> tuple[np.ndar
             with np.errstate(invalid="ignore"):
                 uv = cal.project_world(c, X)
             w, h = cam.image_size
-            inside = np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+            inside = (np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0)
+                      & (uv[:, 1] <= h - 1))
             uv[~inside] = np.nan
             tracks[c] = uv
         keep = sum(np.isfinite(t[:, 0]) for t in tracks.values()) >= 2
@@ -123,7 +124,7 @@ def main() -> None:
         arc4 = load_calibration(path)
 
     rows = []
-    for label, cal, (X, tracks) in (("2 cameras", binocular, _points_and_pixels(binocular, args.points)),
+    for _label, cal, (X, tracks) in (("2 cameras", binocular, _points_and_pixels(binocular, args.points)),
                                     ("4 cameras", arc4, _points_and_pixels(arc4, args.points))):
         if args.noise_px:
             rng = np.random.default_rng(1)
@@ -136,13 +137,14 @@ def main() -> None:
             c = replace(cal, model=model)
             triangulate_pixels(c, {k: v[:10] for k, v in tracks.items()})  # warm-up
             for refine in (False, True):
-                t, out = _median_time(lambda: triangulate_pixels(c, tracks, refine=refine), args.repeats)
+                t, out = _median_time(functools.partial(triangulate_pixels, c, tracks, refine=refine), args.repeats)
                 what = f"{model} {'rays + LM' if refine else 'rays only'}"
                 rows.append((what, len(cal.cameras), len(X), t, t_cv2, _rms(out[0], X)))
 
     print(f"triangulation of the same exact-physics pixels (noise {args.noise_px} px), median of {args.repeats} runs, "
           f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}")
-    print(f"{'method':32s} {'cams':>4s} {'points':>7s} {'time ms':>9s} {'points/s':>11s} {'time / cv2':>10s} {'RMS err mm':>11s}")
+    print(f"{'method':32s} {'cams':>4s} {'points':>7s} {'time ms':>9s} {'points/s':>11s} {'time / cv2':>10s} "
+          f"{'RMS err mm':>11s}")
     for what, cams, n, t, t_cv2, err in rows:
         print(f"{what:32s} {cams:4d} {n:7d} {t * 1e3:9.2f} {n / t:11.0f} {t / t_cv2:10.2f} {err:11.2e}")
     print("time / cv2: relative to cv2.triangulatePoints on the same points' pixels (4 cameras: each point from "

@@ -1,4 +1,5 @@
-"""The 3D body of OpenPTV's test_cavity identified from its images and clicks, checked against OpenPTV's own calibration.
+"""The 3D body of OpenPTV's test_cavity identified from its images and clicks, checked against OpenPTV's own
+calibration.
 
     python benchmarks/validate_body_test_cavity.py [EXPERIMENT]   (default /work/shared/real/test_cavity)
 

@@ -59,7 +59,8 @@ def _default(param: click.Parameter, ctx: click.Context) -> str:
 
 
 def _params_table(cmd: click.Command, ctx: click.Context) -> list[str]:
-    rows = ["`-h`, `--help` prints this page's text.", "", "| argument or option | takes | default | what it is |", "|---|---|---|---|"]
+    rows = ["`-h`, `--help` prints this page's text.", "", "| argument or option | takes | default | what it is |",
+            "|---|---|---|---|"]
     for p in cmd.get_params(ctx):
         if getattr(p, "hidden", False) or p.name == "help":
             continue

@@ -11,7 +11,7 @@ frames would break the frames' block-diagonal structure: NotImplementedError
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import gtsam
 import numpy as np
@@ -48,7 +48,7 @@ class ExtraFactors:
             return "global", i * p.camera_block + p.n_params + np.arange(6)
         if ch == "n" and i < len(p.normal_cols):
             return "global", p.normal_cols[i] + np.arange(2)
-        if ch == "h" and p.estimate_distance and i < len(p.distance_cols):
+        if ch == "h" and p.estimate_distance and p.distance_cols is not None and i < len(p.distance_cols):
             return "global", np.array([p.distance_cols[i]])
         if ch == "x" and i < len(p.frame_names):
             return "frame", int(i)
@@ -67,7 +67,10 @@ class ExtraFactors:
             elif ch == "n":
                 v.insert(key, x.normals[i])
             else:
-                v.insert(key, np.array([float(x.distances[i])]))
+                offset = x.distances[i]
+                if offset is None:  # _columns admits a distance key only when it is estimated
+                    raise ValueError(f"window {i}'s offset is not a variable")
+                v.insert(key, np.array([float(offset)]))
         return v
 
     def error(self, x: Variables) -> float:
@@ -83,15 +86,18 @@ class ExtraFactors:
         for f in self.factors:
             lin = f.linearize(v)
             A, b = lin.jacobian()
-            g_cols, f_cols, frame, col = [], [], None, 0
+            g_cols: list[tuple[np.ndarray, list[int]]] = []
+            f_cols: list[int] = []
+            frame: int | None = None
+            col = 0
             for key in lin.keys():
-                kind, where = self._columns(key)
-                d = 6 if kind == "frame" else len(where)
-                if kind == "frame":
+                _, where = self._columns(key)
+                if isinstance(where, int):  # a frame
                     frame, f_cols = where, list(range(col, col + 6))
+                    col += 6
                 else:
-                    g_cols.append((where, list(range(col, col + d))))
-                col += d
+                    g_cols.append((where, list(range(col, col + len(where)))))
+                    col += len(where)
             r = -np.asarray(b, float)
             gi = np.concatenate([w for w, _ in g_cols]) if g_cols else np.zeros(0, dtype=np.int64)
             Ag = A[:, [c for _, cs in g_cols for c in cs]] if g_cols else np.zeros((len(r), 0))

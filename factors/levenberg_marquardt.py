@@ -22,8 +22,9 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -41,7 +42,8 @@ class NonFiniteJacobian(RuntimeError):
 class LMProblem(Protocol):
     """What :func:`levenberg_marquardt` needs of a problem (see the module docstring)."""
 
-    linearized_error_is_error: bool
+    @property
+    def linearized_error_is_error(self) -> bool: ...
 
     def linearize(self, x: Any) -> Any: ...
     def solve(self, system: Any, lam: float) -> Any | None: ...
@@ -88,6 +90,49 @@ class LMResult:
     x: Any
     report: LMReport
     system_at_x: Any | None
+
+
+@dataclass(frozen=True)
+class _Trial:
+    """One lambda trial at a linearisation (gtsam's tryLambda)."""
+
+    step_ok: bool = False  # the step is accepted
+    stop_searching: bool = False  # the error barely changed: LM gives up at this linearisation
+    no_model_decrease: bool = False  # (stop="converged") the step predicts no decrease: no later trial could pass
+    x: Any = None  # the tried values, their error and (linearize_trials) their linearisation
+    error: float = math.nan
+    system: Any = None
+    linearizations: int = 0
+    evaluations: int = 0
+
+
+def _try_lambda(problem: LMProblem, sys: Any, x: Any, err: float, lam: float, rule: str, linearize_trials: bool,
+                relative_tolerance: float, p: LMParams) -> _Trial:
+    """The step damped by ``lam`` from the linearisation ``sys`` at ``x`` (error ``err``), tried."""
+    step = problem.solve(sys, lam)
+    if step is None:
+        return _Trial()
+    predicted = problem.model_decrease(sys, step)
+    if rule == "converged" and predicted <= np.finfo(float).eps * sys.error:
+        return _Trial(no_model_decrease=True)
+    if predicted < 0.0:
+        return _Trial()
+    x_new = problem.retract(x, step)
+    sys_new, linearizations = None, 0
+    if linearize_trials:  # the trial's linearisation: its error, and the next system if accepted
+        try:
+            sys_new = problem.linearize(x_new)
+            e_new = sys_new.error
+            linearizations = 1
+        except NonFiniteJacobian:  # e.g. a corner behind the window: its error says how bad
+            sys_new, e_new = None, problem.error(x_new)
+    else:
+        e_new = problem.error(x_new)
+    change = err - e_new
+    step_ok = False
+    if predicted > np.finfo(float).eps * sys.error:
+        step_ok = change / predicted > p.min_model_fidelity
+    return _Trial(step_ok, abs(change) < relative_tolerance * err, False, x_new, e_new, sys_new, linearizations, 1)
 
 
 def levenberg_marquardt(problem: LMProblem, x: Any, max_iterations: int = 100, relative_tolerance: float = 1e-10,
@@ -147,38 +192,21 @@ def levenberg_marquardt(problem: LMProblem, x: Any, max_iterations: int = 100, r
             linearizations += 1
         gave_up = None
         while True:  # gtsam's tryLambda, until a step is accepted or LM gives up
-            step_ok, stop_searching = False, False
-            step = problem.solve(sys, lam)
-            if step is not None:
-                predicted = problem.model_decrease(sys, step)
-                if rule == "converged" and predicted <= np.finfo(float).eps * sys.error:
-                    gave_up = "no_model_decrease"  # GTSAM would reject this and every later trial
-                    break
-                if predicted >= 0.0:
-                    x_new = problem.retract(x, step)
-                    if linearize_trials:  # the trial's linearisation: its error, and the next system if accepted
-                        try:
-                            sys_new = problem.linearize(x_new)
-                            e_new = sys_new.error
-                            linearizations += 1
-                        except NonFiniteJacobian:  # e.g. a corner behind the window: its error says how bad
-                            sys_new, e_new = None, problem.error(x_new)
-                    else:
-                        e_new = problem.error(x_new)
-                    evaluations += 1
-                    change = err - e_new
-                    if predicted > np.finfo(float).eps * sys.error:
-                        step_ok = change / predicted > p.min_model_fidelity
-                    stop_searching = abs(change) < relative_tolerance * err
-            if step_ok:
-                x, err = x_new, e_new
+            trial = _try_lambda(problem, sys, x, err, lam, rule, linearize_trials, relative_tolerance, p)
+            linearizations += trial.linearizations
+            evaluations += trial.evaluations
+            if trial.no_model_decrease:
+                gave_up = "no_model_decrease"  # GTSAM would reject this and every later trial
+                break
+            if trial.step_ok:
+                x, err = trial.x, trial.error
                 if linearize_trials:
-                    first = sys_new  # the next linearisation, taken already (None: made at the loop's top)
+                    first = trial.system  # the next linearisation, taken already (None: made at the loop's top)
                 lam = max(p.lambda_lower_bound, lam / p.lambda_factor)
                 iterations += 1
                 inner += 1
                 break
-            if stop_searching:
+            if trial.stop_searching:
                 gave_up = "small_cost_change"
                 break
             lam *= p.lambda_factor

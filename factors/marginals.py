@@ -43,7 +43,7 @@ def covariances_by_key(problem: PackedColumns, sys: NormalEquations) -> dict[int
             out[K_.C(c)] = cov[b:b + 6, b:b + 6].copy()
     for w, n in enumerate(problem.normal_cols):
         out[K_.window_normal(w)] = cov[n:n + 2, n:n + 2].copy()
-        if problem.estimate_distance:
+        if problem.estimate_distance and problem.distance_cols is not None:
             d = problem.distance_cols[w]
             out[K_.window_plane(w)] = cov[d:d + 1, d:d + 1].copy()
     return out

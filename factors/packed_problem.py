@@ -23,8 +23,8 @@ holds *the same problem*:
 
 The normal equations are formed per camera in one compiled pass
 (:func:`~ari_sfm.factors.view_kernels.accumulate_views`: the chain rule and each view's
-``A^T A`` of its rows ``[J_frame J_global r]``) and solved by :mod:`~ari_sfm.factors.schur`; :mod:`~ari_sfm.factors.levenberg_marquardt`
-drives the iterations (this class is its :class:`LMProblem`); factors a user
+``A^T A`` of its rows ``[J_frame J_global r]``) and solved by :mod:`~ari_sfm.factors.schur`;
+:mod:`~ari_sfm.factors.levenberg_marquardt` drives the iterations (this class is its :class:`LMProblem`); factors a user
 added to the graph join through :mod:`~ari_sfm.factors.extra_factors`.
 
 It is built from what RigGraph.build selected (:meth:`RigGraph.packed_factors`: each view's
@@ -36,15 +36,16 @@ from __future__ import annotations
 
 import functools
 import logging
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
-from typing import Sequence
 
 import gtsam
 import numpy as np
 
 from ..geometry import Pose, retract_poses
-from ..models.ari import ari_project, check_window
-from ..models.exact import exact_project
+from ..models.ari import AriJacobians, ari_project, check_window
+from ..models.exact import ExactJacobians, exact_project
+from ..models.pinhole import Projection
 from ..records import Observation
 from . import keys as K_
 from .extra_factors import ExtraFactors
@@ -52,14 +53,17 @@ from .levenberg_marquardt import LMParams, LMReport, NonFiniteJacobian, levenber
 from .marginals import CovarianceTable, covariances_by_key
 from .robust import huber_residual_scale, huber_view_residual, weighted_residuals
 from .schur import NormalEquations, model_decrease, solve_damped
-from .variables import MODELS, GraphLike, RigState, Variables
+from .variables import MODELS, GraphLike, RigState, Variables, estimated_offset
 from .view_factor import ViewData, ViewKeys, camera_terms
 from .view_kernels import accumulate_views, chain_rows, rig_transforms, transform_points
 
 log = logging.getLogger(__name__)
 
 INVALID_RESIDUAL = 1e6  # what view_residuals puts for a non-finite residual or a camera beyond the window
-_KERNELS = {"ari": ari_project, "exact": exact_project}  # the models' batched projections
+# the models' batched projections
+_KERNELS: dict[str, Callable[..., AriJacobians | ExactJacobians | Projection]] = {"ari": ari_project,
+                                                                                   "exact": exact_project}
+
 
 
 @dataclass(frozen=True)
@@ -117,7 +121,7 @@ def _variables_of(rg: GraphLike) -> Variables:
             R_wt[f], t_wt[f] = st.world_from_target[name].R, np.asarray(st.world_from_target[name].t, float)
         intrinsics = np.array([np.asarray(st.params[n][:n_p], float) for n in rg.camera_names]).reshape(C, n_p)
         normals = tuple(gtsam.Unit3(np.asarray(st.normal(w), float)) for w in range(W))
-        distances = tuple(float(st.offset(w)) if rg.estimate_distance else st.offset(w) for w in range(W))
+        distances = tuple(estimated_offset(st.offset(w)) if rg.estimate_distance else st.offset(w) for w in range(W))
         return Variables(intrinsics, R_wc, t_wc, normals, R_wt, t_wt, distances)
     v = rg.values
     for c in range(1, C):
@@ -144,7 +148,7 @@ class VectorizedProblem:
     def __init__(
         self,
         views: Sequence[tuple[ViewData, ViewKeys, float]],
-        observations: Sequence[tuple[str, Observation] | None],
+        observations: Sequence[tuple[str, Observation]],
         variables: Variables,
         camera_names: Sequence[str],
         frame_names: Sequence[str],
@@ -166,7 +170,8 @@ class VectorizedProblem:
         self.frame_names = list(frame_names)
         self.n_params = int(n_params)
         self.base_state = base_state
-        self.camera_windows = [0] * len(self.camera_names) if camera_windows is None else [int(w) for w in camera_windows]
+        self.camera_windows = ([0] * len(self.camera_names) if camera_windows is None
+                               else [int(w) for w in camera_windows])
         self.n_windows = max(self.camera_windows) + 1
         self.estimate_distance = bool(estimate_distance)
         self.huber_px = huber_px
@@ -175,14 +180,15 @@ class VectorizedProblem:
         self.iterations = 0
         self.report: LMReport | None = None
         self._error_cache: tuple[Variables, float] | None = None
-        self._system_cache: tuple[Variables, NormalEquations] | None = None  # optimize's last linearisation, if at self.x
+        # optimize's last linearisation, if at self.x
+        self._system_cache: tuple[Variables, NormalEquations] | None = None
         self._transforms_cache: tuple[Variables, _Transforms] | None = None
         self._pack(views)
         self._extra = ExtraFactors(self, extra_factors)
 
     # ------------------------------------------------------------------ from a graph
     @staticmethod
-    def from_rig_graph(rg: GraphLike, huber_px: float | None = None, check: bool = True) -> "VectorizedProblem":
+    def from_rig_graph(rg: GraphLike, huber_px: float | None = None, check: bool = True) -> VectorizedProblem:
         """The problem of a built RigGraph at its current values (its view factors and any factors added to it).
 
         Pass the Huber threshold the view factors were built with (``rg.huber_px``
@@ -285,13 +291,14 @@ class VectorizedProblem:
     def _compute_transforms(self, x: Variables) -> _Transforms:
         normals = np.array([np.asarray(n.point3(), float) for n in x.normals])
         with_distance = x.distances[0] is not None
+        offsets = x.offsets() if with_distance else (0.0,) * self.n_windows
         R_ct, t_ct, n_c, h_c = rig_transforms(
             x.world_R_cam, x.world_t_cam, x.world_R_target, x.world_t_target, self.view_camera, self.view_frame,
-            normals[0], float(x.distances[0]) if with_distance else 0.0, with_distance)
+            normals[0], offsets[0], with_distance)
         for w in range(1, self.n_windows):  # the other windows' cameras: their own normal and plane
             _, _, n_w, h_w = rig_transforms(x.world_R_cam, x.world_t_cam, x.world_R_target[:0], x.world_t_target[:0],
-                                            self.view_camera[:0], self.view_frame[:0], normals[w],
-                                            float(x.distances[w]) if with_distance else 0.0, with_distance)
+                                            self.view_camera[:0], self.view_frame[:0], normals[w], offsets[w],
+                                            with_distance)
             mine = np.array(self.camera_windows) == w
             n_c[mine] = n_w[mine]
             if with_distance:
@@ -318,7 +325,7 @@ class VectorizedProblem:
             params[:n_p] = x.intrinsics[c]
             J = kernel(X, params, tr.normal_cam[c], self.corner_thickness[s:e], runs[0].index,
                        runs[0].medium_index, h, jacobians, n_p)
-            if not jacobians:
+            if isinstance(J, Projection):  # no Jacobians asked for
                 return _CameraModel(X, J.uv)
             return _CameraModel(X, J.uv, J.J_point, J.J_normal, J.J_params, np.ascontiguousarray(J.J_distance))
         uv = np.empty((m, 2))
@@ -331,7 +338,7 @@ class VectorizedProblem:
             J = kernel(X[a:b], params, tr.normal_cam[c], self.corner_thickness[g.start:g.stop],
                        g.index, g.medium_index, h, jacobians, n_p)
             uv[a:b] = J.uv
-            if jacobians:
+            if not isinstance(J, Projection):  # Jacobians asked for
                 Jp[a:b], Jn[a:b], Jpar[a:b], Jd[a:b] = J.J_point, J.J_normal, J.J_params, J.J_distance
         return _CameraModel(X, uv) if not jacobians else _CameraModel(X, uv, Jp, Jn, Jpar, Jd)
 
@@ -468,10 +475,9 @@ class VectorizedProblem:
             R_wc[1:], t_wc[1:] = retract_poses(x.world_R_cam[1:], x.world_t_cam[1:], blocks[1:, n_p:])
         R_wt, t_wt = retract_poses(x.world_R_target, x.world_t_target, d_frame)
         normals = tuple(n.retract(d_global[col:col + 2]) for n, col in zip(x.normals, self.normal_cols))
-        if self.estimate_distance:
-            distances = tuple(h + float(d_global[col]) for h, col in zip(x.distances, self.distance_cols))
-        else:
-            distances = x.distances
+        distances: tuple[float | None, ...] = x.distances
+        if self.distance_cols is not None:  # estimate_distance
+            distances = tuple(h + float(d_global[col]) for h, col in zip(x.offsets(), self.distance_cols))
         return Variables(x.intrinsics + blocks[:, :n_p], R_wc, t_wc, normals, R_wt, t_wt, distances)
 
     # ------------------------------------------------------------------ LM
@@ -509,10 +515,9 @@ class VectorizedProblem:
     def residuals(self) -> list[tuple[Observation, np.ndarray]]:
         """Unweighted pixel residuals (M, 2) of every view at the current values, in factor order (as RigGraph)."""
         res = self._all_residuals(self.x, None)
-        out = [None] * self.n_views
-        for k in range(self.n_views):
-            out[self.view_order[k]] = res[self.view_start[k]:self.view_start[k + 1]]
-        return [(obs, r) for (_, obs), r in zip(self.factor_views, out)]
+        by_factor = {int(self.view_order[k]): res[self.view_start[k]:self.view_start[k + 1]]
+                     for k in range(self.n_views)}
+        return [(obs, by_factor[i]) for i, (_, obs) in enumerate(self.factor_views)]
 
     def _all_residuals(self, x: Variables, huber_px: float | None) -> np.ndarray:
         tr = self._transforms(x)
@@ -531,7 +536,7 @@ class VectorizedProblem:
         x = self.x if x is None else x
         tr = self._transforms(x)
         n_p = self.n_params
-        out = [None] * self.n_views
+        by_factor: dict[int, tuple[np.ndarray, list[np.ndarray]]] = {}
         for c in range(len(self.camera_names)):
             s = int(self.camera_corners[c])
             if self.camera_corners[c + 1] == s:
@@ -552,8 +557,8 @@ class VectorizedProblem:
                 if self.huber_px is not None:  # the excess row, its Jacobian zero
                     r = np.append(r, huber_view_residual(raw[a:b], self.huber_px)[0][-1])
                     blocks = [np.vstack([B, np.zeros((1, B.shape[1]))]) for B in blocks]
-                out[self.view_order[k]] = (r, blocks)
-        return out
+                by_factor[int(self.view_order[k])] = (r, blocks)
+        return [by_factor[i] for i in range(self.n_views)]
 
     def write_values(self, values: gtsam.Values, x: Variables | None = None) -> None:
         """Update a gtsam.Values (holding this problem's keys) to x (default: the current values)."""
@@ -565,7 +570,7 @@ class VectorizedProblem:
         for w in range(self.n_windows):
             values.update(K_.window_normal(w), x.normals[w])
             if self.estimate_distance:
-                values.update(K_.window_plane(w), np.array([float(x.distances[w])]))
+                values.update(K_.window_plane(w), np.array([x.offsets()[w]]))
         for f in range(len(self.frame_names)):
             values.update(K_.X(f), gtsam.Pose3(gtsam.Rot3(x.world_R_target[f]), x.world_t_target[f]))
 
@@ -577,7 +582,7 @@ class VectorizedProblem:
         sys = cached[1] if cached is not None and cached[0] is self.x else self.linearize(self.x)
         return covariances_by_key(self, sys)
 
-    def marginals(self) -> "CovarianceTable":
+    def marginals(self) -> CovarianceTable:
         """The marginal covariances as a ``gtsam.Marginals`` stand-in (``marginalCovariance(key)``
         for the intrinsics, camera poses, normal and distance), e.g. for
         :func:`ari_sfm.factors.uncertainty.rig_uncertainty`."""

@@ -24,21 +24,23 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any, cast
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import gtsam
 import numpy as np
 
-from ..geometry import Pose, cam_from_world_from_pose3, pose3_from_cam_from_world, pose3_from_pose, pose_from_pose3
 from ..errors import AriSfmError
+from ..geometry import Pose, cam_from_world_from_pose3, pose3_from_cam_from_world, pose3_from_pose, pose_from_pose3
 from ..models.registry import model_spec
 from ..records import Interface, Observation, Target, Window, WindowPlane
 from . import keys as K_
 from .backend import optimize_graph
-from .variables import MODELS, RigState
+from .variables import MODELS, RigState, estimated_offset
 from .view_factor import ViewData, ViewKeys, factor_keys, view_factor, view_residuals
 
 log = logging.getLogger(__name__)
@@ -87,14 +89,15 @@ def held_intrinsics(dataset, fix: bool) -> tuple[list[str], dict[str, float]]:
         return [], {}
     cams = dataset.cameras
     fixed = [n for n in dataset.camera_names if cams[n].K is not None]
-    focal = {n: float(cams[n].focal_px) for n in dataset.camera_names if cams[n].K is None and cams[n].focal_px is not None}
+    focal = {n: float(cams[n].focal_px)
+             for n in dataset.camera_names if cams[n].K is None and cams[n].focal_px is not None}
     if not fixed and not focal:
         raise AriSfmError(dataset.rig_path, "fix_intrinsics needs a K or focal_px hint for at least one camera "
                                             "(cameras.<name>.K or cameras.<name>.focal_px)")
     return fixed, focal
 
 
-def initial_state(dataset, rig, model: str = "ari", fix_intrinsics: bool = False) -> "RigState":
+def initial_state(dataset, rig, model: str = "ari", fix_intrinsics: bool = False) -> RigState:
     """The one starting state of a bundle adjustment from an analytic initialisation ``rig``
     (:func:`ari_sfm.init.rig.initialise_rig`); ``model``: the first graph's model.
 
@@ -202,7 +205,7 @@ class RigGraph:
             values.insert(K_.X(i), pose3_from_pose(state.world_from_target[f]))
         if self.estimate_distance:
             for w in range(self.n_windows):
-                values.insert(K_.window_plane(w), np.array([float(state.offset(w))]))
+                values.insert(K_.window_plane(w), np.array([estimated_offset(state.offset(w))]))
         return values
 
     @property
@@ -232,7 +235,7 @@ class RigGraph:
     def view_factor_at(self, k: int) -> gtsam.CustomFactor:
         """The k-th view's factor (factor_data order): the graph's once made, else a new one."""
         if self.built_graph is not None:
-            return self.built_graph.at(self.view_factor_indices()[k])
+            return cast(gtsam.CustomFactor, self.built_graph.at(self.view_factor_indices()[k]))  # the graph's own
         data, vkeys = self.factor_data[k]
         return view_factor(MODELS[self.model], data, vkeys, self.sigma_px, self.huber_px)
 
@@ -244,7 +247,7 @@ class RigGraph:
         index = self.view_factor_indices()  # priors and user factors may sit among them
         views = []
         for i, (data, vkeys) in zip(index, self.factor_data):
-            sigmas = np.asarray(self.built_graph.at(i).noiseModel().sigmas())
+            sigmas = np.asarray(cast(gtsam.CustomFactor, self.built_graph.at(i)).noiseModel().sigmas())
             if np.ptp(sigmas) != 0.0:
                 raise ValueError(f"view factor {i} has a non-isotropic noise model")
             views.append((data, vkeys, float(sigmas[0])))
@@ -271,7 +274,7 @@ class RigGraph:
         windows: Sequence[Window] | None = None,
         window_planes: Sequence[WindowPlane | None] | None = None,
         centred_principal_points: Mapping[str, tuple[float, float]] | None = None,
-    ) -> "RigGraph":
+    ) -> RigGraph:
         """One factor per (camera, calibration or stacking image), whitened by ``sigma_px``; variables from
         state. Camera 0 is the world frame (no pose variable): ``state.cam_from_world`` of the first
         camera must be the identity.
@@ -356,7 +359,7 @@ class RigGraph:
 
     @staticmethod
     def from_dataset(dataset, model: str = "ari", distortion: bool = False, huber_px: float | None = 1.0,
-                     sigma_px: float | None = None, workers: int | None = None) -> "RigGraph":
+                     sigma_px: float | None = None, workers: int | None = None) -> RigGraph:
         """The graph of a dataset, initialised by the analytic pipeline (expansion centre, Zhang, Eq. 5,
         Eqs. 11-12, spanning tree over shared frames). A dataset with images only has its corners
         detected first (:func:`ari_sfm.detection.ensure_observations`).
@@ -373,7 +376,7 @@ class RigGraph:
         from ..records import Dataset
 
         if isinstance(dataset, (str, os.PathLike)):
-            dataset = load_dataset(dataset)
+            dataset = load_dataset(Path(dataset))
         if not isinstance(dataset, Dataset):
             raise TypeError(f"dataset must be an ari_sfm Dataset or a dataset folder (got {type(dataset).__name__})")
         for name, value in (("huber_px", huber_px), ("sigma_px", sigma_px)):
@@ -388,7 +391,7 @@ class RigGraph:
         underwater = dataset.medium_index != 1.0
         state = initial_state(dataset, rig, model)
 
-        def build(sigma: float) -> "RigGraph":
+        def build(sigma: float) -> RigGraph:
             return RigGraph.build(dataset.observations, dataset.target, dataset.interface, dataset.camera_names,
                                   state, model=model, distortion=distortion, estimate_distance=underwater,
                                   huber_px=huber_px, sigma_px=sigma, windows=dataset.window_list(),
@@ -397,7 +400,7 @@ class RigGraph:
         rg = build(1.0 if sigma_px is None else sigma_px)
         return rg if sigma_px is not None else build(estimate_sigma_px(rg))
 
-    def with_sigma(self, sigma_px: float) -> "RigGraph":
+    def with_sigma(self, sigma_px: float) -> RigGraph:
         """The same graph (values, added factors) with its view factors whitened by ``sigma_px`` instead."""
         if not (np.isfinite(sigma_px) and sigma_px > 0.0):
             raise ValueError(f"sigma_px must be a positive pixel sigma, got {sigma_px}")
@@ -467,7 +470,7 @@ class RigGraph:
         """Unweighted pixel residuals (M, 2) of every factor's image at the current values."""
         factory = MODELS[self.model]
         out = []
-        for (camera, obs), (data, vkeys) in zip(self.factor_views, self.factor_data):
+        for (_camera, obs), (data, vkeys) in zip(self.factor_views, self.factor_data):
             r, _ = view_residuals(factory, data, vkeys, self.values, False, None)
             out.append((obs, r.reshape(-1, 2)))
         return out
@@ -482,6 +485,7 @@ def estimate_sigma_px(rg: RigGraph) -> float:
 
     copy = replace(rg, made_values=rg.values_copy(), unwritten=None, factor_views=list(rg.factor_views),
                    factor_data=list(rg.factor_data), other_factors=list(rg.other_factors))
-    _, solved = optimize_graph(copy, "auto", huber_px=rg.huber_px, return_problem=True, check=False)
+    _, solved = cast(tuple[RigState, Any], optimize_graph(copy, "auto", huber_px=rg.huber_px, return_problem=True,
+                                                          check=False))  # return_problem: the pair
     residuals = solved.residuals() if solved is not None else copy.residuals()
     return robust_sigma_px(r for _, r in residuals)

@@ -79,7 +79,7 @@ class NormalEquations:
     reduced: Any = field(default=None, repr=False)  # the ReducedSystem last built
 
     @staticmethod
-    def zeros(n_frames: int, n_global: int, k: int = 6) -> "NormalEquations":
+    def zeros(n_frames: int, n_global: int, k: int = 6) -> NormalEquations:
         """A dense-layout system of zeros."""
         N, G = n_frames, n_global
         return NormalEquations(np.zeros((N, k, k)), np.zeros((N, k)), np.zeros((N, k, G)), np.zeros((G, G)),
@@ -98,6 +98,7 @@ class NormalEquations:
         G = len(self.g_global)
         if self.W_rows is None:
             return np.einsum("nkg,nk->g", self.W, d_block)
+        assert self.W_cols is not None  # the entries layout has both
         v = np.einsum("nki,nk->ni", self.W, d_block[self.W_rows])
         return np.bincount(self.W_cols.ravel(), v.ravel(), G + 1)[:G]
 
@@ -140,6 +141,7 @@ def reduce(sys: NormalEquations, lam_blocks: float) -> ReducedSystem | None:
     V_inv = 0.5 * (V_inv + np.swapaxes(V_inv, 1, 2))
     L = np.linalg.cholesky(V_inv)
     rows, cols = sys.W_rows, sys.W_cols
+    assert cols is not None  # the entries layout has both
     # blocks ordered by their entries' smallest median column (the median skips the columns every entry
     # shares, e.g. the intrinsics, and lands on a frame's)
     first = np.full(N, G)
@@ -299,6 +301,8 @@ def global_covariance(sys: NormalEquations, fixed: np.ndarray | None = None) -> 
     if n_held or empty.any():
         sys = replace(sys, V=V, reduced=None)
     red = reduce(sys, 0.0)
+    if red is None:  # cannot be: _determined_blocks left every block positive definite
+        raise RuntimeError("the undamped blocks are not positive definite")
     free = np.arange(G) if fixed is None else np.setdiff1d(np.arange(G), fixed)
     S = red.S[np.ix_(free, free)]
     cov = np.zeros((G, G))

@@ -13,6 +13,7 @@ turns them into the standard deviations written to calibration.json.
 from __future__ import annotations
 
 import logging
+
 import gtsam
 import numpy as np
 

@@ -10,8 +10,9 @@ the module above it: rig_graph -> backend -> packed_problem -> extra_factors, ma
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol, Sequence
+from typing import Any, Protocol
 
 import gtsam
 import numpy as np
@@ -21,6 +22,13 @@ from ..models.registry import bundle_factories
 from ..records import Observation
 
 MODELS = bundle_factories()  # the models the graph adjusts: name -> projection class (ari_sfm.models.registry)
+
+
+def estimated_offset(offset: float | None) -> float:
+    """A window's plane offset where it is estimated (and so set)."""
+    if offset is None:
+        raise ValueError("an estimated window's plane offset is not set")
+    return float(offset)
 
 
 @dataclass(frozen=True)
@@ -52,7 +60,7 @@ class RigState:
         return self.distance_mm if window == 0 else self.more_windows[window - 1][1]
 
     def with_window(self, window: int, normal: np.ndarray | None = None, offset: float | None | str = "keep"
-                    ) -> "RigState":
+                    ) -> RigState:
         """The state with window ``window``'s normal and/or offset replaced (``offset="keep"``: unchanged)."""
         from dataclasses import replace
 
@@ -73,7 +81,7 @@ class RigState:
 
     @classmethod
     def from_initialisation(cls, rig, distance_mm: float | None = None,
-                            more_offsets: Sequence[float | None] = ()) -> "RigState":
+                            more_offsets: Sequence[float | None] = ()) -> RigState:
         """The state of an analytic initialisation (:class:`ari_sfm.init.rig.RigInit`):
         params [fx fy cx cy] + the distortion padded to 5 per camera, its poses and
         normals, window 0's offset ``distance_mm`` and the other windows' ``more_offsets``
@@ -108,7 +116,14 @@ class Variables:
         """Window 0's plane offset."""
         return self.distances[0]
 
-    def with_distance(self, window: int, offset: float, world_t_target: np.ndarray | None = None) -> "Variables":
+    def offsets(self) -> tuple[float, ...]:
+        """Every window's plane offset, when they are set (variables: estimate_distance)."""
+        out = tuple(d for d in self.distances if d is not None)
+        if len(out) != len(self.distances):
+            raise ValueError("a window's plane offset is not set")
+        return out
+
+    def with_distance(self, window: int, offset: float, world_t_target: np.ndarray | None = None) -> Variables:
         """A copy with one window's offset replaced (and, if given, every frame's translation)."""
         from dataclasses import replace
 
@@ -135,7 +150,7 @@ class GraphLike(Protocol):
 
     def packed_factors(self) -> tuple[list[tuple[Any, Any, float]], list[gtsam.NonlinearFactor]]: ...
 
-    def view_factor_at(self, k: int) -> gtsam.NonlinearFactor: ...
+    def view_factor_at(self, k: int) -> gtsam.CustomFactor: ...
 
     def optimize(self, max_iterations: int = 100, relative_tolerance: float = 1e-10) -> RigState: ...
 
@@ -143,11 +158,22 @@ class GraphLike(Protocol):
 class PackedColumns(Protocol):
     """The column layout of a packed problem's global variables (what extra factors and marginals index)."""
 
-    camera_names: Sequence[str]
-    frame_names: Sequence[str]
-    n_params: int
-    camera_block: int  # columns per camera: n_params, then its pose (6; camera 0's unused)
-    normal_cols: Sequence[int]  # per window: its normal's first column (2 columns)
-    distance_cols: Sequence[int] | None  # per window: its offset's column; None unless estimate_distance
-    estimate_distance: bool
-    fixed_cols: np.ndarray
+    @property
+    def camera_names(self) -> Sequence[str]: ...
+    @property
+    def frame_names(self) -> Sequence[str]: ...
+    @property
+    def n_params(self) -> int: ...
+    @property
+    def camera_block(self) -> int:  # columns per camera: n_params, then its pose (6; camera 0's unused)
+        ...
+    @property
+    def normal_cols(self) -> Sequence[int]:  # per window: its normal's first column (2 columns)
+        ...
+    @property
+    def distance_cols(self) -> Sequence[int] | None:  # per window: its offset's column; None unless estimate_distance
+        ...
+    @property
+    def estimate_distance(self) -> bool: ...
+    @property
+    def fixed_cols(self) -> np.ndarray: ...

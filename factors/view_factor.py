@@ -22,17 +22,17 @@ row that makes the error the Huber loss
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import gtsam
 import numpy as np
 
-from ..models import PinholeModel
+from ..models import AriModel, ExactModel, PinholeModel
 from .robust import huber_view_residual
 from .view_kernels import chain_rows
 
-ModelFactory = Callable[..., object]
+ModelFactory = Callable[..., AriModel | ExactModel]  # (pinhole, normal, thickness, index, medium index, distance)
 
 
 @dataclass(frozen=True)
@@ -89,7 +89,8 @@ def chain_to_tangents(out: np.ndarray, n_params: int, J_point: np.ndarray, J_nor
 
 
 def view_residuals(
-    model_factory: ModelFactory, data: ViewData, keys: ViewKeys, values: gtsam.Values, want_jacobians: bool, huber_px: float | None = None
+    model_factory: ModelFactory, data: ViewData, keys: ViewKeys, values: gtsam.Values, want_jacobians: bool,
+    huber_px: float | None = None
 ) -> tuple[np.ndarray, list[np.ndarray]]:
     """Residuals (2M,) of one view and, if asked, the Jacobians in key order."""
     params = data.base_params.copy()
@@ -112,7 +113,8 @@ def view_residuals(
     if h_c is not None and h_c <= 0:
         # An LM trial step put the camera beyond the window: a huge error rejects the step.
         rows = 2 * len(P) + (huber_px is not None)
-        dims = [data.n_params] + ([6] if keys.camera is not None else []) + [2, 6] + ([1] if keys.distance is not None else [])
+        dims = ([data.n_params] + ([6] if keys.camera is not None else []) + [2, 6]
+                + ([1] if keys.distance is not None else []))
         return np.full(rows, 1e6), [np.zeros((rows, d)) for d in dims] if want_jacobians else []
     model = model_factory(PinholeModel.from_params(params), n_c, data.thickness_mm, data.index, data.medium_index, h_c)
     J = model.project_with_jacobians(X_c)
@@ -157,7 +159,8 @@ def view_factor(
 ) -> gtsam.CustomFactor:
     """A CustomFactor for all corners of one image (model: AriModel or ExactModel)."""
     key_list = factor_keys(keys)
-    dims = [data.n_params] + ([6] if keys.camera is not None else []) + [2, 6] + ([1] if keys.distance is not None else [])
+    dims = ([data.n_params] + ([6] if keys.camera is not None else []) + [2, 6]
+            + ([1] if keys.distance is not None else []))
     rows = 2 * len(data.points_target) + (huber_px is not None)  # (Huber: the excess row)
     noise = gtsam.noiseModel.Isotropic.Sigma(rows, sigma_px)
 
@@ -166,7 +169,8 @@ def view_factor(
         if H is not None:
             for i, (Hi, dim) in enumerate(zip(Hs, dims)):
                 if Hi.shape != (rows, dim) or not np.all(np.isfinite(Hi)):
-                    raise RuntimeError(f"Jacobian {i} has shape {Hi.shape} or non-finite entries, expected ({rows}, {dim})")
+                    raise RuntimeError(f"Jacobian {i} has shape {Hi.shape} or non-finite entries, expected ({rows}, "
+                                       f"{dim})")
                 H[i] = Hi
         return residual
 

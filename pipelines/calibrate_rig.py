@@ -11,9 +11,8 @@ from pathlib import Path
 
 from ..calibrate import DEFAULT_MODEL, CalibrationOptions, calibrate
 from ..calibration import Calibration
-from ..io import save_calibration
 from ..detection import ensure_observations
-from ..io import load_dataset, save_observations
+from ..io import load_dataset, save_calibration, save_observations
 from ..models.registry import CALIBRATABLE
 from ..records import Dataset
 
@@ -38,7 +37,7 @@ def main(dataset_path: Path, out_dir: Path, model: str = DEFAULT_MODEL, progress
     dataset = ensure_observations(dataset, workers, progress)
     out_dir.mkdir(parents=True, exist_ok=True)
     obs_path = None
-    if detected:
+    if detected and dataset.observations is not None:  # detect wrote them into the dataset
         obs_path = out_dir / "observations.json"
         save_observations(obs_path, dataset.observations)
     cal = calibrate(dataset, model=model, options=options, progress=progress, **overrides)

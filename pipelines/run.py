@@ -23,11 +23,10 @@ from ..calibrate import DEFAULT_MODEL, CalibrationOptions
 from ..calibration_errors import CalibrationErrors, calibration_errors
 from ..io import calibration_to_json, load_calibration, load_dataset, parse_calibration, write_json_atomic
 from ..models.registry import CALIBRATABLE
-from ..records import Dataset
 from ..reconstruct import ReconstructionRun, run_reconstruction
+from ..records import Dataset
 from ..report import RUN_FILE, RUN_FORMAT, write_report
-from .calibrate_rig import PipelineResult
-from .calibrate_rig import main as calibrate_rig
+from .calibrate_rig import PipelineResult, main as calibrate_rig
 
 log = logging.getLogger(__name__)
 
@@ -135,7 +134,8 @@ def _run(dataset_path: Path, dataset: Dataset, out_dir: Path, model: str | None,
     calibrated = calibrate_rig(dataset_path, out_dir, model=model, progress=progress,
                                dataset=dataset, options=options, **overrides)
     obs_path = calibrated.observations_path
-    dataset = calibrated.dataset
+    if calibrated.dataset is not None:  # with the observations detected
+        dataset = calibrated.dataset
     frames, why = reconstruction_frames(dataset)
     quality = calibrated.calibration.quality
     if quality is not None and not quality.ok:  # stop before reconstructing with a failed calibration

@@ -80,6 +80,41 @@ def read_pdf(data: bytes) -> list[PdfPage]:
     return pages
 
 
+def _font(ref: int, objs: dict[int, bytes], cmaps: dict[int, dict[int, str]]) -> dict[int, str]:
+    """The font object ``ref``'s ToUnicode map (code -> text), read once into ``cmaps``."""
+    if ref not in cmaps:
+        tu = _ref(objs[ref], b"ToUnicode")
+        cmaps[ref] = _cmap(_stream(objs[tu])) if tu else {}
+    return cmaps[ref]
+
+
+def _decoded(operands: list[bytes], font: dict[int, str]) -> list[str]:
+    """The text of a text-showing operator's hex strings (2-byte codes) through the font's map."""
+    out = []
+    for s in operands:
+        if s.startswith(b"<"):
+            h = re.sub(rb"\s", b"", s[1:-1]).decode()
+            out.append("".join(font.get(int(h[i:i + 4], 16), "?") for i in range(0, len(h), 4)))
+    return out
+
+
+def _draw(x: bytes, objs: dict[int, bytes], ctm: np.ndarray, page: PdfPage, text: list[str],
+          cmaps: dict[int, dict[int, str]]) -> None:
+    """An XObject drawn at ``ctm``: an image's box and scale, or a form's content run through its matrix."""
+    if b"/Image" in x:
+        corners = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], float)
+        page.images.append(_bbox(corners, ctm))
+        page.scales.append(float(np.sqrt(abs(np.linalg.det(ctm[:2, :2])))))
+    elif b"/Form" in x:
+        m = re.search(rb"/Matrix\s*\[([^\]]*)\]", x)
+        sub = ctm
+        if m:
+            a, b, c, d, e, f = (float(v) for v in m.group(1).split())
+            sub = np.array([[a, b, 0], [c, d, 0], [e, f, 1]]) @ ctm
+        inner = objs[_ref(x, b"Resources")] if _ref(x, b"Resources") else x
+        _run(_stream(x), inner, objs, sub, page, text, cmaps)
+
+
 def _run(content: bytes, res: bytes, objs: dict[int, bytes], ctm: np.ndarray, page: PdfPage, text: list[str],
          cmaps: dict[int, dict[int, str]]) -> None:
     fonts, xobjects = _names(res, b"Font", objs), _names(res, b"XObject", objs)
@@ -107,34 +142,16 @@ def _run(content: bytes, res: bytes, objs: dict[int, bytes], ctm: np.ndarray, pa
             elif op == b"Tf":
                 ref = fonts.get(operands[-2][1:])
                 if ref is not None:
-                    if ref not in cmaps:
-                        tu = _ref(objs[ref], b"ToUnicode")
-                        cmaps[ref] = _cmap(_stream(objs[tu])) if tu else {}
-                    font = cmaps[ref]
+                    font = _font(ref, objs, cmaps)
             elif op in (b"Tj", b"TJ", b"'", b'"'):
                 page.text_scales.append(float(np.sqrt(abs(np.linalg.det(ctm[:2, :2])))))
-                for s in operands:
-                    if s.startswith(b"<"):
-                        h = re.sub(rb"\s", b"", s[1:-1]).decode()
-                        text.append("".join(font.get(int(h[i:i + 4], 16), "?") for i in range(0, len(h), 4)))
+                text.extend(_decoded(operands, font))
             elif op in (b"ET", b"Td", b"TD", b"T*", b"Tm") and text and not text[-1].endswith(" "):
                 text.append(" ")
             elif op == b"Do":
                 ref = xobjects.get(operands[-1][1:])
                 if ref is not None:
-                    x = objs[ref]
-                    if b"/Image" in x:
-                        corners = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], float)
-                        page.images.append(_bbox(corners, ctm))
-                        page.scales.append(float(np.sqrt(abs(np.linalg.det(ctm[:2, :2])))))
-                    elif b"/Form" in x:
-                        m = re.search(rb"/Matrix\s*\[([^\]]*)\]", x)
-                        sub = ctm
-                        if m:
-                            a, b, c, d, e, f = (float(v) for v in m.group(1).split())
-                            sub = np.array([[a, b, 0], [c, d, 0], [e, f, 1]]) @ ctm
-                        inner = objs[_ref(x, b"Resources")] if _ref(x, b"Resources") else x
-                        _run(_stream(x), inner, objs, sub, page, text, cmaps)
+                    _draw(objs[ref], objs, ctm, page, text, cmaps)
             operands = []
         elif tok not in (b"[", b"]"):
             operands.append(tok)

@@ -12,9 +12,9 @@ import pytest
 from click.testing import CliRunner
 
 from ari_sfm.calibrate import calibrate, distortion_support
-from ari_sfm.io import parse_calibration
 from ari_sfm.calibration_errors import calibration_errors
 from ari_sfm.cli import main
+from ari_sfm.io import parse_calibration
 from ari_sfm.simulate import make_scene
 
 ROOT = Path(__file__).resolve().parents[1]

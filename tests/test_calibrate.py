@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from ari_sfm.calibrate import CalibrationOptions, calibrate
-from ari_sfm.io import calibration_to_json, load_calibration, save_calibration
 from ari_sfm.evaluate import evaluate
 from ari_sfm.geometry import angle_between_deg
+from ari_sfm.io import load_calibration, save_calibration
 from ari_sfm.records import Observation
 from ari_sfm.simulate import make_scene
 

@@ -18,8 +18,8 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from ari_sfm.cli import main
 from ari_sfm.circle_grid import _canonical_circles, _lattice_order, circle_ids_unambiguous, circle_symmetries
+from ari_sfm.cli import main
 from ari_sfm.detection import detect_corners, detect_dataset
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import rotation_from_rotvec
@@ -108,7 +108,7 @@ def test_layout_symmetries_decide_which_ids_are_unique():
     square = Target(type="circles", circle_grid=(6, 6), spacing_mm=10.0, layout="symmetric")
     assert sorted(d for _, d in circle_symmetries(square)) == [-1] * 4 + [1] * 4  # the full square group
     _, xyz = SYMMETRIC.points_3d()
-    for p, det in circle_symmetries(SYMMETRIC):  # each permutation really is an isometry of the layout
+    for p, _det in circle_symmetries(SYMMETRIC):  # each permutation really is an isometry of the layout
         assert np.allclose(np.linalg.norm(xyz[p] - xyz[p[0]], axis=1), np.linalg.norm(xyz - xyz[0], axis=1))
 
 
@@ -258,7 +258,8 @@ def test_no_board_or_wrong_grid_returns_none(views):
     cut = image.copy()
     cut[:, int(exact[:, 0].mean()):] = 128
     assert detect_corners(cut, ASYMMETRIC) is None
-    assert detect_corners(image, Target(type="circles", circle_grid=(5, 11), spacing_mm=10.0, layout="asymmetric")) is None
+    assert detect_corners(image,
+                          Target(type="circles", circle_grid=(5, 11), spacing_mm=10.0, layout="asymmetric")) is None
     with pytest.raises(ValueError, match="unknown circles method"):
         detect_corners(image, ASYMMETRIC, method="nope")
 

@@ -22,7 +22,8 @@ def sim_dir(tmp_path_factory) -> Path:
     return out
 
 
-@pytest.mark.parametrize("cmd", [[], ["detect"], ["calibrate"], ["run"], ["evaluate"], ["simulate"], ["scenarios"], ["doctor"]])
+@pytest.mark.parametrize("cmd", [[], ["detect"], ["calibrate"], ["run"], ["evaluate"], ["simulate"], ["scenarios"],
+                                 ["doctor"]])
 def test_help(cmd):
     r = CliRunner().invoke(main, cmd + ["--help"])
     assert r.exit_code == 0 and "Usage" in r.output
@@ -39,7 +40,8 @@ def test_calibrate_then_evaluate(sim_dir, tmp_path):
     assert len(cal["cameras"]["cam0"]["expansion_center_px"]) == 2
     assert len(cal["cameras"]["cam0"]["expansion_center_std_px"]) == 2
     assert not (tmp_path / "out" / "observations.json").exists()  # nothing was detected here
-    r = runner.invoke(main, ["evaluate", str(tmp_path / "out" / "calibration.json"), str(sim_dir / "dataset" / "observations.json")])
+    r = runner.invoke(main, ["evaluate", str(tmp_path / "out" / "calibration.json"),
+                             str(sim_dir / "dataset" / "observations.json")])
     assert r.exit_code == 0, r.output
     rmse = float(r.output.split()[1])
     assert abs(rmse - cal["residuals"]["rmse_px"]) < 1e-4  # printed to 4 decimals
@@ -55,7 +57,8 @@ def test_evaluate_solve_poses_judges_held_out_views(sim_dir, tmp_path):
     from ari_sfm.io import save_observations
     from ari_sfm.simulate import make_scene
 
-    r = CliRunner().invoke(main, ["calibrate", str(sim_dir / "dataset"), "-o", str(tmp_path / "out"), "--model", "exact"])
+    r = CliRunner().invoke(main,
+                           ["calibrate", str(sim_dir / "dataset"), "-o", str(tmp_path / "out"), "--model", "exact"])
     assert r.exit_code == 0, r.output
     cal_path = str(tmp_path / "out" / "calibration.json")
     held = make_scene("paper_single", seed=0, num_frames=16)  # the same rig, 4 more poses
@@ -90,7 +93,8 @@ def test_backend_option_picks_the_solver(sim_dir, tmp_path):
         assert {s["backend"] for s in cals[backend]["optimizer"].values()} == {backend}
     K_g, K_n = cals["gtsam"]["cameras"]["cam0"]["K"], cals["numpy"]["cameras"]["cam0"]["K"]
     assert sum(K_n, []) == pytest.approx(sum(K_g, []), rel=1e-9)
-    r = CliRunner().invoke(main, ["calibrate", str(sim_dir / "dataset"), "-o", str(tmp_path / "x"), "--backend", "cuda"])
+    r = CliRunner().invoke(main,
+                           ["calibrate", str(sim_dir / "dataset"), "-o", str(tmp_path / "x"), "--backend", "cuda"])
     assert r.exit_code != 0 and "cuda" in r.output
 
 
@@ -124,17 +128,22 @@ def _edit_obs(ds: Path, fn) -> None:
 
 BAD = {
     "missing dataset": (lambda ds: None, "nonexistent", "no such"),
-    "malformed yaml": (lambda ds: (ds / "rig.yaml").write_text("format: ari-sfm/1\ntarget: [unclosed\n"), None, "rig.yaml"),
+    "malformed yaml": (lambda ds: (ds / "rig.yaml").write_text("format: ari-sfm/1\ntarget: [unclosed\n"), None,
+                       "rig.yaml"),
     "unknown format": (lambda ds: _edit_rig(ds, lambda r: r.update(format="ari-sfm/99")), None, "format"),
     "thickness <= 0": (lambda ds: _edit_rig(ds, lambda r: r["interface"].update(thickness_mm=0)), None, "thickness"),
     "index < 1": (lambda ds: _edit_rig(ds, lambda r: r["interface"].update(index=0.9)), None, "index"),
     "missing key": (lambda ds: _edit_rig(ds, lambda r: r.pop("target")), None, "target"),
-    "nan pixel": (lambda ds: _edit_obs(ds, lambda o: o["observations"][0]["pixels"][0].__setitem__(0, float("nan"))), None, "observations.json"),
-    "id out of range": (lambda ds: _edit_obs(ds, lambda o: o["observations"][0]["ids"].__setitem__(0, 500)), None, "observations.json"),
+    "nan pixel": (lambda ds: _edit_obs(ds, lambda o: o["observations"][0]["pixels"][0].__setitem__(0, float("nan"))),
+                  None, "observations.json"),
+    "id out of range": (lambda ds: _edit_obs(ds, lambda o: o["observations"][0]["ids"].__setitem__(0, 500)), None,
+                        "observations.json"),
     "unknown camera": (lambda ds: _edit_obs(ds, lambda o: o["observations"][0].update(camera="cam9")), None, "cam9"),
-    "malformed json": (lambda ds: (ds / "observations.json").write_text('{"format": "ari-sfm-observations/1", "observations": [}'), None, "observations.json"),
+    "malformed json": (lambda ds: (ds / "observations.json").write_text(
+        '{"format": "ari-sfm-observations/1", "observations": [}'), None, "observations.json"),
     "no stacking": (lambda ds: (_edit_rig(ds, lambda r: r.pop("stacking", None)),
-                                _edit_obs(ds, lambda o: o.update(observations=[r for r in o["observations"] if r["set"] != "stacking"]))),
+                                _edit_obs(ds, lambda o: o.update(observations=[r for r in o["observations"]
+                                                                               if r["set"] != "stacking"]))),
                     None, "normal"),
 }
 
@@ -264,7 +273,8 @@ def test_doctor_prints_every_dependency_with_its_version_and_the_kernels():
     except metadata.PackageNotFoundError:  # optional: reported, not an error
         assert lines["optv"].startswith("not available (not installed; optional")
     usable, why = shipped_usable()
-    assert lines["kernels"].startswith("compiled, shipped" if usable else "compiled on first use") and why in lines["kernels"]
+    assert lines["kernels"].startswith("compiled, shipped" if usable else "compiled on first use")
+    assert why in lines["kernels"]
 
 
 def test_doctor_fails_when_a_required_dependency_does_not_import(monkeypatch):

@@ -16,10 +16,9 @@ import pytest
 from click.testing import CliRunner
 
 from ari_sfm.calibrate import calibrate
-from ari_sfm.io import load_calibration, save_calibration
 from ari_sfm.cli import main
 from ari_sfm.colmap_export import COLMAP_PIXEL_OFFSET, colmap_from_opencv_px, export_colmap, opencv_from_colmap_px
-from ari_sfm.io import load_dataset, save_points
+from ari_sfm.io import load_calibration, load_dataset, save_calibration, save_points
 from ari_sfm.simulate import simulate
 
 
@@ -103,7 +102,8 @@ def test_ari_export_matches_our_projection(binocular, binocular_ari, tmp_path):
 def test_distortion_models(binocular, binocular_ari, tmp_path):
     """OPENCV (k1 k2 p1 p2) and FULL_OPENCV (with k3) agree with our distortion to 1e-6 px."""
     dataset, _ = binocular
-    for dist, model_name in (([-0.08, 0.05, 3e-4, -2e-4, 0.0], "OPENCV"), ([-0.08, 0.05, 3e-4, -2e-4, 0.02], "FULL_OPENCV")):
+    for dist, model_name in (([-0.08, 0.05, 3e-4, -2e-4, 0.0], "OPENCV"),
+                             ([-0.08, 0.05, 3e-4, -2e-4, 0.02], "FULL_OPENCV")):
         cams = {n: replace(c, dist=np.array(dist)) for n, c in binocular_ari.cameras.items()}
         cal = replace(binocular_ari, cameras=cams)
         export = export_colmap(cal, tmp_path / model_name, dataset)
@@ -141,7 +141,8 @@ def test_underwater_is_a_pure_shift_approximation(tmp_path, caplog):
     for name, v in export.cameras.items():
         assert not v.exact and np.isfinite(v.rms_px)
         # shift only: K and R are the calibration's
-        assert np.allclose(v.K, cal.cameras[name].K) and np.allclose(v.cam_from_world.R, cal.cameras[name].cam_from_world.R)
+        assert np.allclose(v.K, cal.cameras[name].K)
+        assert np.allclose(v.cam_from_world.R, cal.cameras[name].cam_from_world.R)
 
 
 def test_point_cloud_opens_in_open3d(binocular, binocular_ari, tmp_path):

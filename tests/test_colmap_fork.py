@@ -15,10 +15,10 @@ import pytest
 from click.testing import CliRunner
 
 from ari_sfm.calibration import Calibration
-from ari_sfm.io import load_calibration, parse_calibration, save_calibration
 from ari_sfm.cli import main
 from ari_sfm.colmap_fork import export_colmap_fork, import_colmap_fork
 from ari_sfm.errors import AriSfmError
+from ari_sfm.io import load_calibration, parse_calibration, save_calibration
 from ari_sfm.simulate import make_scene
 
 # ----------------------------------------------------------------------------- the fork, transcribed
@@ -199,9 +199,11 @@ def test_fork_projection_equals_ours_and_reads_back(scene, tmp_path):
         np.testing.assert_allclose(rel.R, rel_true.R, atol=1e-12)
         np.testing.assert_allclose(rel.t, rel_true.t, atol=1e-9)
         np.testing.assert_allclose(back.normal_cam(name), cal.normal_cam(name), atol=1e-12)
-        assert back.projection_model(name).distance_mm == pytest.approx(cal.projection_model(name).distance_mm, abs=1e-9)
+        assert back.projection_model(name).distance_mm == pytest.approx(cal.projection_model(name).distance_mm,
+                                                                        abs=1e-9)
         X_cam = c.cam_from_world.apply(cal.frames[next(iter(cal.frames))].apply(xyz))
-        np.testing.assert_allclose(back.projection_model(name).project(X_cam), cal.projection_model(name).project(X_cam),
+        np.testing.assert_allclose(back.projection_model(name).project(X_cam),
+                                   cal.projection_model(name).project(X_cam),
                                    atol=1e-8)
 
 
@@ -262,7 +264,8 @@ def test_bad_fork_cameras_one_line(case, tmp_path):
     r = CliRunner().invoke(main, ["import-colmap-fork", str(tmp_path / "m"), "-o", str(tmp_path / "out")])
     assert r.exit_code == 1
     lines = [ln for ln in r.output.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: ") and "cameras.txt" in lines[0] and needle in lines[0], r.output
+    assert len(lines) == 1 and lines[0].startswith("error: "), r.output
+    assert "cameras.txt" in lines[0] and needle in lines[0], r.output
     assert not (tmp_path / "out" / "calibration.json").exists()
 
 

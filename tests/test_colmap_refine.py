@@ -13,7 +13,6 @@ import pytest
 from click.testing import CliRunner
 
 from ari_sfm import colmap_export as adapter
-from ari_sfm.io import load_calibration
 from ari_sfm.cli import main
 from ari_sfm.colmap_refine import refine_colmap, write_refined
 from ari_sfm.colmap_refine.problem import RefractiveProblem, State
@@ -21,6 +20,7 @@ from ari_sfm.colmap_refine.refine import Solver
 from ari_sfm.colmap_refine.truth import colmap_truth_errors, truth_errors, window_errors
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose
+from ari_sfm.io import load_calibration
 from ari_sfm.simulate.port_survey import port_survey, tank_rig
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -324,9 +324,9 @@ def test_end_to_end_rendered_survey_through_colmap_sift(tmp_path):
     for k in (int(np.argmin(along)), int(np.argmax(along))):
         o = int(np.flatnonzero(model.obs_point == k)[0])
         i = int(names[model.obs_image[o]][5:9]) - 1
-        O, D = sim.model(i).backproject(model.obs_uv[o][None])
+        origin, direction = sim.model(i).backproject(model.obs_uv[o][None])
         world = sim.cam_from_world(i).inverse()
-        ends.append(_hit_relief(world.apply(O), D @ world.R.T, 2000.0, 150.0)[0])
+        ends.append(_hit_relief(world.apply(origin), direction @ world.R.T, 2000.0, 150.0)[0])
     bar = (int(model.point3D_ids[np.argmin(along)]), int(model.point3D_ids[np.argmax(along)]),
            float(np.linalg.norm(ends[0] - ends[1])))
     result = refine_colmap(rec, interface, "camera", scale_bar=bar, max_iterations=30)
@@ -541,7 +541,8 @@ def test_sigmas_match_the_spread_over_noise_draws():
     for seed in range(6):
         truth = port_survey(seed=0, num_images=8, num_points=500, focal_px=1300, area_mm=(1600, 1100), sigma_px=0.5)
         rng = np.random.default_rng(100 + seed)
-        truth = __import__("dataclasses").replace(truth, obs_uv=truth.obs_uv_exact + rng.normal(0, 0.5, truth.obs_uv.shape))
+        truth = __import__("dataclasses").replace(truth,
+                                                  obs_uv=truth.obs_uv_exact + rng.normal(0, 0.5, truth.obs_uv.shape))
         rec = adapter.reconstruction_from_arrays(list(truth.params), truth.image_size, truth.sensor_from_rig,
                                                  truth.rig_from_world, truth.image_camera, truth.image_frame, truth.xyz,
                                                  truth.obs_image, truth.obs_point, truth.obs_uv)
@@ -594,7 +595,8 @@ def run_cli(folder, tmp_path, *extra, window=None, out=None):
 def one_line_error(res, *words):
     assert res.exit_code == 1, res.output
     last = res.output.strip().splitlines()[-1]
-    assert last.startswith("error: ") and "Traceback" not in res.output and "ARI_SFM_DEBUG" not in res.output, res.output
+    assert last.startswith("error: ") and "Traceback" not in res.output, res.output
+    assert "ARI_SFM_DEBUG" not in res.output, res.output
     for w in words:
         assert w in last, last
     return last

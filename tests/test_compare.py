@@ -22,10 +22,10 @@ from ari_sfm.compare import Subset, compare, parse_models
 from ari_sfm.errors import AriSfmError
 from ari_sfm.evaluate import evaluate
 from ari_sfm.geometry import angle_between_deg, rotation_angle_deg
+from ari_sfm.io import calibration_to_json, load_calibration, parse_calibration, save_calibration
 from ari_sfm.models import ExactModel, PinholeModel
 from ari_sfm.records import Target
 from ari_sfm.simulate import make_scene
-from ari_sfm.io import calibration_to_json, load_calibration, parse_calibration, save_calibration
 
 SIGMA = 0.05
 NOISE_RMSE = SIGMA * np.sqrt(2.0)  # of a 2D residual

@@ -14,9 +14,9 @@ import pytest
 
 from ari_sfm.calibrate import CalibrationOptions, calibrate
 from ari_sfm.calibration import Calibration
-from ari_sfm.io import parse_calibration, save_calibration
 from ari_sfm.geometry import angle_between_deg
 from ari_sfm.init.zhang import object_points
+from ari_sfm.io import parse_calibration, save_calibration
 from ari_sfm.openptv.conventions import glass_vector, window_plane
 from ari_sfm.simulate import make_scene
 from ari_sfm.simulate.scenarios import PTV_PIXEL_STEP_PX, ptv_plane_of
@@ -115,7 +115,8 @@ def test_calibrate_takes_an_options_record(ptv):
     opts = CalibrationOptions(fix_intrinsics=True, uncertainty=False)
     a = calibrate(ds, model="exact", options=opts)
     assert a.uncertainty is None and a.residuals.rmse_px < 1.1 * FLOOR_PX
-    assert all(c.K[0, 0] == pytest.approx(ds.cameras[n].focal_px, rel=1e-8) for n, c in a.cameras.items())  # held: the option took
+    # held: the option took
+    assert all(c.K[0, 0] == pytest.approx(ds.cameras[n].focal_px, rel=1e-8) for n, c in a.cameras.items())
     b = calibrate(ds, model="exact", options=opts, fix_intrinsics=False)  # the keyword wins
     assert any(c.K[0, 0] != pytest.approx(ds.cameras[n].focal_px, rel=1e-6) for n, c in b.cameras.items())
     with pytest.raises(TypeError, match="CalibrationOptions"):
@@ -133,7 +134,8 @@ def test_ptv_multiplane_is_what_import_openptv_reads(tmp_path):
 
     scene = make_scene("ptv_multiplane", seed=2, sigma_px=0.0, grid=(6, 4))
     ds = scene.dataset
-    save_calibration(parse_calibration({k: v for k, v in scene.truth.items() if k != "target"}), tmp_path / "truth.json")
+    save_calibration(parse_calibration({k: v for k, v in scene.truth.items() if k != "target"}),
+                     tmp_path / "truth.json")
     root = tmp_path / "exp"
     export_openptv(tmp_path / "truth.json", root, frame="f000", pixel_size_mm=0.01)
     all_ids, xyz = ds.target.points_3d()

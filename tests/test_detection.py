@@ -218,8 +218,9 @@ def test_detect_dataset_warns_about_and_skips_an_image_without_target(checker_vi
     assert any("c1.png" in m and "target not found" in m for m in warnings), warnings
     assert any("s1.png" in m for m in warnings) and any("stacking pose s0" in m for m in warnings), warnings
     assert not any("c0.png" in m or "c2.png" in m or "c3.png" in m for m in warnings)
-    assert [(o.set, o.frame) for o in obs] == [("calibration", "f000"), ("calibration", "f002"), ("calibration", "f003")]
-    for o, (image, exact) in zip(obs, [checker_views[0], checker_views[1], checker_views[2]]):
+    assert [(o.set, o.frame) for o in obs] == [("calibration", "f000"), ("calibration", "f002"),
+                                               ("calibration", "f003")]
+    for o, (_image, exact) in zip(obs, [checker_views[0], checker_views[1], checker_views[2]]):
         assert o.camera == "cam0" and np.array_equal(o.ids, np.arange(88))
         assert rms(o.pixels - exact[o.ids]) < 0.05  # PNG round trip changes nothing
 
@@ -229,7 +230,8 @@ def test_too_few_views_is_an_error_naming_the_rig_and_camera(checker_views, tmp_
     with pytest.raises(AriSfmError) as info:
         detect_dataset(ds, progress=False)
     assert info.value.path == str(ds.rig_path)
-    assert "only 2 of the 4 calibration images of camera cam0" in info.value.message and "need >= 3" in info.value.message
+    assert "only 2 of the 4 calibration images of camera cam0" in info.value.message
+    assert "need >= 3" in info.value.message
     assert len(detect_dataset(ds, progress=False, min_calibration_views=2)) == 2
 
 

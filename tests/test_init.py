@@ -5,10 +5,15 @@ import numpy as np
 import pytest
 
 from ari_sfm.geometry import Pose, rotation_from_rotvec
-from ari_sfm.init.expansion_center import (expansion_center, fit_line_tls, fit_lines, normal_from_expansion_center,
-                                           trajectories)
+from ari_sfm.init.expansion_center import (
+    expansion_center,
+    fit_line_tls,
+    fit_lines,
+    normal_from_expansion_center,
+    trajectories,
+)
 from ari_sfm.init.interface_pose import real_cam_from_target, solve_eq12
-from ari_sfm.models import AriModel, ExactModel, PinholeModel
+from ari_sfm.models import ExactModel, PinholeModel
 from ari_sfm.records import Observation, Target
 
 K = np.array([[3478.0, 0, 1230.0], [0, 3478.0, 1015.0], [0, 0, 1]])

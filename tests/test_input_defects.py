@@ -14,13 +14,12 @@ import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from test_detection import H, W, checker_views, write_dataset  # noqa: F401 - the module fixture
 
 from ari_sfm.cli import main
 from ari_sfm.detection import detect_dataset
 from ari_sfm.errors import AriSfmError
 from ari_sfm.io import load_dataset
-
-from test_detection import W, H, write_dataset, checker_views  # noqa: F401 - the module fixture
 
 
 @pytest.mark.parametrize("scale", [0.5, 2.0])
@@ -80,7 +79,8 @@ def test_bad_output_folder_is_one_line_before_any_work(sim_dir, tmp_path, where,
                                             ("inf", "--huber-px: must be a finite number (got inf)")])
 def test_bad_huber_is_named(sim_dir, tmp_path, value, message):
     """-1 was reported as 'non-finite Jacobian entries'; nan was accepted."""
-    r = CliRunner().invoke(main, ["calibrate", str(sim_dir / "dataset"), "-o", str(tmp_path / "o"), "--huber-px", value])
+    r = CliRunner().invoke(main,
+                           ["calibrate", str(sim_dir / "dataset"), "-o", str(tmp_path / "o"), "--huber-px", value])
     _one_error_line(r, f"error: {message}")
     assert not (tmp_path / "o").exists()
 
@@ -134,16 +134,18 @@ def test_evaluate_checks_pixels_like_calibrate(sim_dir, calibrated, tmp_path):
 @pytest.mark.parametrize("edit, message", [
     (lambda c: c["cameras"]["cam0"]["K"][0].__setitem__(0, 1e308), "cameras.cam0.K focal length must be <= 1e+07 px"),
     (lambda c: c["cameras"]["cam0"]["K"][1].__setitem__(1, -5.0), "cameras.cam0.K must have positive focal lengths"),
-    (lambda c: c["cameras"]["cam0"].__setitem__("image_size", [100_000_000, 10]), "cameras.cam0.image_size must be <= 100000 px"),
+    (lambda c: c["cameras"]["cam0"].__setitem__("image_size", [100_000_000, 10]),
+     "cameras.cam0.image_size must be <= 100000 px"),
     (lambda c: c["interface"].__setitem__("thickness_mm", 1e300), "interface.thickness_mm must be <= 10000 mm"),
     # issue 14: these printed numbers (distance 1e6: rmse nan)
     (lambda c: c["interface"].__setitem__("index", 6), "interface.index must be <= 5 (got 6.0): not a physical value"),
     (lambda c: c["interface"].__setitem__("medium_index", 0.5), "interface.medium_index must be >= 1 (got 0.5)"),
     (lambda c: c["cameras"]["cam0"].__setitem__("dist", [0.1, 0.0, 0.0]),
      "cameras.cam0.dist must have 4 or 5 numbers, k1 k2 p1 p2 [k3] (got 3)"),
-    (lambda c: c["interface"].__setitem__("distance_mm", 1e6), "|interface.distance_mm| must be <= 10000 mm (got 1000000.0)"),
-    (lambda c: c["interface"].__setitem__("distance_mm", -5.0), "interface.distance_mm -5 puts camera cam0 -5 mm from the "
-                                                                 "window's near face (must be in front of it"),
+    (lambda c: c["interface"].__setitem__("distance_mm", 1e6),
+     "|interface.distance_mm| must be <= 10000 mm (got 1000000.0)"),
+    (lambda c: c["interface"].__setitem__("distance_mm", -5.0),
+     "interface.distance_mm -5 puts camera cam0 -5 mm from the window's near face (must be in front of it"),
     (lambda c: c["interface"].__setitem__("thickness_mm", 0), "interface.thickness_mm must be > 0 (got 0)"),
     (lambda c: c["cameras"]["cam0"].__setitem__("image_size", [2448.5, 2048]),
      "cameras.cam0.image_size must be two integers >= 1 (got [2448.5, 2048])"),
@@ -263,7 +265,7 @@ def test_calibration_options_refuse_a_bad_huber(value):
     assert CalibrationOptions(huber_px=None).huber_px is None and CalibrationOptions(huber_px=0.5).huber_px == 0.5
 
 
-# --------------------------------------------------------------------------- issue 14: the newer commands as strict as the old
+# ---------------------------------------------------------------- issue 14: the newer commands as strict as the old
 
 ARI_SFM = Path(sys.executable).parent / "ari-sfm"
 ENV = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
@@ -297,7 +299,8 @@ def test_output_folder_symlink_loop_and_dangling_link_are_named(sim_dir, tmp_pat
     (tmp_path / "dangling").symlink_to(tmp_path / "nowhere")
     for out, message in [(tmp_path / "loop", "-o/--out: a loop of symbolic links"),
                          (tmp_path / "loop" / "sub", "-o/--out: a loop of symbolic links"),
-                         (tmp_path / "dangling", f"-o/--out: a symbolic link to {tmp_path / 'nowhere'}, which does not exist")]:
+                         (tmp_path / "dangling",
+                          f"-o/--out: a symbolic link to {tmp_path / 'nowhere'}, which does not exist")]:
         r = CliRunner().invoke(main, ["calibrate", str(sim_dir / "dataset"), "-o", str(out)])
         _one_error_line(r, f"error: {out}: {message}")
     assert not (tmp_path / "nowhere").exists()
@@ -323,7 +326,8 @@ def test_an_image_given_as_dataset_is_named_not_a_dataset(tmp_path):
     (["--seed", "-1"], "--seed: must be >= 0 (got -1)"),
 ])
 def test_simulate_port_survey_options_are_checked(tmp_path, args, message):
-    """port_survey ignored --sigma nan and --no-images, rendered at --image-scale 1e-6, failed inside numpy at --seed -1."""
+    """port_survey ignored --sigma nan and --no-images, rendered at --image-scale 1e-6, failed inside numpy
+    at --seed -1."""
     r = CliRunner().invoke(main, ["simulate", "port_survey", "-o", str(tmp_path / "s"), *args])
     _one_error_line(r, f"error: {message}")
     assert not (tmp_path / "s").exists()
@@ -341,7 +345,8 @@ def test_simulate_port_survey_output_folder_is_checked(tmp_path, monkeypatch, wh
     out = {"file": tmp_path / "a_file", "read-only": tmp_path / "ro" / "s"}.get(where, where)
     real_access = os.access
     # root may write anywhere: the folder then answers as a read-only one would
-    monkeypatch.setattr(checks.os, "access", lambda p, mode: False if Path(p) == tmp_path / "ro" else real_access(p, mode))
+    monkeypatch.setattr(checks.os, "access",
+                        lambda p, mode: False if Path(p) == tmp_path / "ro" else real_access(p, mode))
     try:
         r = CliRunner().invoke(main, ["simulate", "port_survey", "-o", str(out)])
         _one_error_line(r, f"error: {out}: {message}")
@@ -390,7 +395,8 @@ def test_export_colmap_on_a_full_disk_leaves_no_truncated_model(sim_dir, calibra
     import pycolmap
 
     out = tmp_path / "colmap"
-    r = CliRunner().invoke(main, ["export-colmap", str(calibrated), "--dataset", str(sim_dir / "dataset"), "-o", str(out)])
+    r = CliRunner().invoke(main,
+                           ["export-colmap", str(calibrated), "--dataset", str(sim_dir / "dataset"), "-o", str(out)])
     assert r.exit_code == 0, r.output
     good = {p.name: p.read_bytes() for p in out.iterdir()}
     assert {"cameras.bin", "images.bin", "points3D.bin", "points3D.ply"} <= set(good)
@@ -408,7 +414,8 @@ def test_export_colmap_on_a_full_disk_leaves_no_truncated_model(sim_dir, calibra
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(pycolmap.Reconstruction, "write", full_disk_write if failure != "ply raises ENOSPC" else write)
-    monkeypatch.setattr(pycolmap.Reconstruction, "export_PLY", full_disk_ply if failure == "ply raises ENOSPC" else export_ply)
+    monkeypatch.setattr(pycolmap.Reconstruction, "export_PLY",
+                        full_disk_ply if failure == "ply raises ENOSPC" else export_ply)
     for target in (out, tmp_path / "fresh"):
         r = CliRunner().invoke(main, ["export-colmap", str(calibrated), "--dataset", str(sim_dir / "dataset"),
                                       "-o", str(target)])
@@ -501,7 +508,8 @@ def test_simulate_port_survey_on_a_full_disk_leaves_no_truncated_png(tmp_path, m
     out = tmp_path / "s"
     r = CliRunner().invoke(main, ["simulate", "port_survey", "-o", str(out), "--image-scale", "0.1"])
     last = r.output.strip().splitlines()[-1]  # after the progress bar
-    assert r.exit_code == 1 and last == f"error: {out / 'images' / 'image0002.png'}: cannot write file: No space left on device"
+    assert r.exit_code == 1
+    assert last == f"error: {out / 'images' / 'image0002.png'}: cannot write file: No space left on device"
     assert sorted(p.name for p in (out / "images").iterdir()) == ["image0001.png"]  # complete; no partial second
     assert cv2.imread(str(out / "images" / "image0001.png")) is not None and not (out / "truth.json").exists()
 
@@ -671,7 +679,8 @@ def test_reconstruct_refuses_to_write_into_the_dataset(sim_dir, calibrated):
 def test_import_openptv_and_export_openptv_check_the_output_folder(calibrated, tmp_path, where, message):
     (tmp_path / "a_file").write_text("x")
     out = tmp_path / "a_file" if where == "file" else where
-    for args in (["import", "openptv", str(tmp_path), "-o", str(out)], ["export-openptv", str(calibrated), "-o", str(out)]):
+    for args in (["import", "openptv", str(tmp_path), "-o", str(out)],
+                 ["export-openptv", str(calibrated), "-o", str(out)]):
         r = CliRunner().invoke(main, args)
         _one_error_line(r, f"error: {out}: {message}")
 

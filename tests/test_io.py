@@ -82,7 +82,8 @@ def write_example(folder: Path, rig: str = EXAMPLE_RIG, observations: str | None
     """The example dataset with empty dummy images; returns the folder."""
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "rig.yaml").write_text(rig)
-    for entry in yaml.safe_load(EXAMPLE_RIG)["stacking"] + yaml.safe_load(EXAMPLE_RIG)["calibration"] + yaml.safe_load(EXAMPLE_RIG)["reconstruction"]:
+    example = yaml.safe_load(EXAMPLE_RIG)
+    for entry in example["stacking"] + example["calibration"] + example["reconstruction"]:
         for rel in entry["images"].values():
             (folder / rel).parent.mkdir(parents=True, exist_ok=True)
             (folder / rel).write_bytes(b"")
@@ -146,7 +147,8 @@ def test_example_dataset_loads_from_rig_file_and_json(tmp_path: Path) -> None:
     assert ds.rig_path.name == "rig.json" and len(ds.calibration) == 1
 
 
-def _observations_only_folder(tmp_path: Path, extra_record: dict | None = None, drop_sets: tuple[str, ...] = ()) -> Path:
+def _observations_only_folder(tmp_path: Path, extra_record: dict | None = None,
+                              drop_sets: tuple[str, ...] = ()) -> Path:
     """The example rig without images (minus ``drop_sets``), its observations plus ``extra_record``."""
     rig = yaml.safe_load(EXAMPLE_RIG)
     for set_name in ("stacking", "calibration", "reconstruction"):
@@ -361,8 +363,10 @@ BAD_RIGS = {
     "missing key": (_rig(target__square_mm=None), "rig.yaml", "missing key 'target.square_mm'"),
     "missing interface": (_rig(interface=None), "rig.yaml", "missing key 'interface'"),
     "unknown target type": (_rig(target__type="hexagons"), "rig.yaml", "unknown target.type 'hexagons'"),
-    "inner corners too few": (_rig(target__inner_corners=[11, 1]), "rig.yaml", "target.inner_corners must be two integers >= 2"),
-    "inner corners not ints": (_rig(target__inner_corners=[11.5, 8]), "rig.yaml", "target.inner_corners must be two integers"),
+    "inner corners too few": (_rig(target__inner_corners=[11, 1]), "rig.yaml",
+                              "target.inner_corners must be two integers >= 2"),
+    "inner corners not ints": (_rig(target__inner_corners=[11.5, 8]), "rig.yaml",
+                               "target.inner_corners must be two integers"),
     "square negative": (_rig(target__square_mm=-1), "rig.yaml", "target.square_mm must be > 0 (got -1)"),
     "square string": (_rig(target__square_mm="ten"), "rig.yaml", "target.square_mm must be a number (got 'ten')"),
     "thickness <= 0": (_rig(interface__thickness_mm=-5.0), "rig.yaml", "interface.thickness_mm must be > 0 (got -5.0)"),
@@ -370,10 +374,14 @@ BAD_RIGS = {
     "index < 1": (_rig(interface__index=0.9), "rig.yaml", "interface.index must be >= 1 (got 0.9)"),
     "medium index < 1": (_rig(interface__medium_index=0.5), "rig.yaml", "interface.medium_index must be >= 1"),
     "no cameras": (_rig(cameras={}), "rig.yaml", "cameras must declare at least one camera"),
-    "bad image size": (_rig(cameras__cam0={"image_size": [0, 10]}), "rig.yaml", "cameras.cam0.image_size must be two integers >= 1"),
-    "bad dist": (_rig(cameras__cam0={"image_size": [10, 10], "dist": [0, 0, 0]}), "rig.yaml", "cameras.cam0.dist must have 4, 5, 8, 12 or 14"),
-    "bad K": (_rig(cameras__cam0={"image_size": [10, 10], "K": [[1, 0], [0, 1]]}), "rig.yaml", "cameras.cam0.K must have shape 3 x 3"),
-    "bad focal": (_rig(cameras__cam0={"image_size": [10, 10], "focal_px": -3}), "rig.yaml", "cameras.cam0.focal_px must be > 0"),
+    "bad image size": (_rig(cameras__cam0={"image_size": [0, 10]}), "rig.yaml",
+                       "cameras.cam0.image_size must be two integers >= 1"),
+    "bad dist": (_rig(cameras__cam0={"image_size": [10, 10], "dist": [0, 0, 0]}), "rig.yaml",
+                 "cameras.cam0.dist must have 4, 5, 8, 12 or 14"),
+    "bad K": (_rig(cameras__cam0={"image_size": [10, 10], "K": [[1, 0], [0, 1]]}), "rig.yaml",
+              "cameras.cam0.K must have shape 3 x 3"),
+    "bad focal": (_rig(cameras__cam0={"image_size": [10, 10], "focal_px": -3}), "rig.yaml",
+                  "cameras.cam0.focal_px must be > 0"),
     "thickness 1e300": (_rig(interface__thickness_mm=1e300), "rig.yaml", "interface.thickness_mm must be <= 10000 mm"),
     "distance 1e9": (_rig(interface__distance_mm=1e9), "rig.yaml", "interface.distance_mm must be <= 10000 mm"),
     "index 50": (_rig(interface__index=50), "rig.yaml", "interface.index must be <= 5"),
@@ -385,7 +393,8 @@ BAD_RIGS = {
     "K fx 1e308": (_rig(cameras__cam0={"image_size": [10, 10], "K": [[1e308, 0, 5], [0, 1e3, 5], [0, 0, 1]]}),
                    "rig.yaml", "cameras.cam0.K focal length must be <= 1e+07 px"),
     "added_mm 1e300": (_rig(stacking__1__added_mm=1e300), "rig.yaml", "stacking[1].added_mm must be <= 10000 mm"),
-    "stage_mm -1e300": (_rig(reconstruction__0__stage_mm=-1e300), "rig.yaml", "|reconstruction[0].stage_mm| must be <= 10000 mm"),
+    "stage_mm -1e300": (_rig(reconstruction__0__stage_mm=-1e300), "rig.yaml",
+                        "|reconstruction[0].stage_mm| must be <= 10000 mm"),
     "camera not declared (images)": (
         _rig(calibration__0__images={"cam0": "calib/cam0_000.png", "cam7": "calib/cam1_000.png"}),
         "rig.yaml",
@@ -405,25 +414,30 @@ BAD_RIGS = {
     ),
     "stacking without added_mm": (_rig(stacking__0__added_mm=None), "rig.yaml", "missing key 'stacking[0].added_mm'"),
     "negative added_mm": (_rig(stacking__0__added_mm=-1), "rig.yaml", "stacking[0].added_mm must be >= 0"),
-    "stage NaN": (_rig(reconstruction__0__stage_mm=float("nan")), "rig.yaml", "reconstruction[0].stage_mm must be finite"),
+    "stage NaN": (_rig(reconstruction__0__stage_mm=float("nan")), "rig.yaml",
+                  "reconstruction[0].stage_mm must be finite"),
     "entry without images and no observations": (
         _rig(calibration__0__images=None, observations=None), "rig.yaml", "calibration frame f000 has no images"
     ),
     "calibration not a list": (_rig(calibration={"frame": "f000"}), "rig.yaml", "calibration must be a list"),
     "charuco marker too big": (
-        _rig(target={"type": "charuco", "squares": [5, 7], "square_mm": 10, "marker_mm": 10, "dictionary": "DICT_4X4_50"}),
+        _rig(target={"type": "charuco", "squares": [5, 7], "square_mm": 10, "marker_mm": 10,
+                     "dictionary": "DICT_4X4_50"}),
         "rig.yaml", "target.marker_mm must be < square_mm",
     ),
     "charuco unknown dictionary": (
-        _rig(target={"type": "charuco", "squares": [5, 7], "square_mm": 10, "marker_mm": 7, "dictionary": "DICT_9X9_1"}),
+        _rig(target={"type": "charuco", "squares": [5, 7], "square_mm": 10, "marker_mm": 7,
+                     "dictionary": "DICT_9X9_1"}),
         "rig.yaml", "unknown target.dictionary 'DICT_9X9_1'",
     ),
     "charuco dictionary too small": (
-        _rig(target={"type": "charuco", "squares": [20, 20], "square_mm": 10, "marker_mm": 7, "dictionary": "DICT_4X4_50"}),
+        _rig(target={"type": "charuco", "squares": [20, 20], "square_mm": 10, "marker_mm": 7,
+                     "dictionary": "DICT_4X4_50"}),
         "rig.yaml", "needs 200",
     ),
     "points3d bad xyz": (
-        _rig(target={"type": "points3d", "points": {0: [0, 0], 1: [1, 2, 3]}}), "rig.yaml", "target.points[0] must have shape 3"
+        _rig(target={"type": "points3d", "points": {0: [0, 0], 1: [1, 2, 3]}}), "rig.yaml",
+        "target.points[0] must have shape 3"
     ),
     "points3d bad id": (
         _rig(target={"type": "points3d", "points": {"a": [0, 0, 0]}}), "rig.yaml", "target.points: ids must be integers"
@@ -460,13 +474,15 @@ BAD_OBSERVATIONS = {
     "null pixel": (_obs(1, pixels=[[1.0, None], [2.0, 3.0]]), "pixels contain null"),
     "string pixel": (_obs(1, pixels=[[1.0, "2"], [2.0, 3.0]]), "pixels must be numbers (got '2')"),
     "ragged pixels": (_obs(1, pixels=[[1.0, 2.0], [2.0]]), "pixels must be a regular list of numbers"),
-    "pixels/ids length mismatch": (_obs(1, ids=[0, 1, 2]), "observation 1 (camera cam0, frame f000): 3 ids but 2 pixels"),
+    "pixels/ids length mismatch": (_obs(1, ids=[0, 1, 2]),
+                                   "observation 1 (camera cam0, frame f000): 3 ids but 2 pixels"),
     "pixels wrong shape": (_obs(1, pixels=[[1.0, 2.0, 3.0], [1.0, 2.0, 3.0]]), "pixels must have shape N x 2"),
     "camera not declared": (_obs(2, camera="cam9"), "camera 'cam9' is not declared in the rig"),
     "unknown set": (_obs(2, set="test"), "set must be one of stacking, calibration, reconstruction"),
     "stacking without added_mm": (_obs(0, added_mm=None), "missing key 'added_mm'"),
     "added_mm outside stacking": (_obs(1, added_mm=3), "added_mm is only for stacking records"),
-    "pixel outside image": (_obs(1, pixels=[[1.0, 2.0], [2449.0, 3.0]]), "pixel (2449, 3) of id 1 is outside the 2448 x 2048 image"),
+    "pixel outside image": (_obs(1, pixels=[[1.0, 2.0], [2449.0, 3.0]]),
+                            "pixel (2449, 3) of id 1 is outside the 2448 x 2048 image"),
     "duplicate record": (
         json.dumps({"format": "ari-sfm-observations/1",
                     "observations": [json.loads(EXAMPLE_OBSERVATIONS)["observations"][1]] * 2}),
@@ -495,7 +511,8 @@ def test_bad_observations(tmp_path: Path, case: str) -> None:
     [
         ("rig.yaml", "format: ari-sfm/1\ntarget: [1, 2\n", "malformed YAML at line 3"),
         ("rig.yaml", "format: ari-sfm/1\n  bad: indent\n", "malformed YAML at line 2"),
-        ("rig.yaml", "format: ari-sfm/1\nformat: ari-sfm/1\n", "malformed YAML at line 2, column 1: duplicate key 'format'"),
+        ("rig.yaml", "format: ari-sfm/1\nformat: ari-sfm/1\n",
+         "malformed YAML at line 2, column 1: duplicate key 'format'"),
         ("rig.json", '{"format": "ari-sfm/1",\n "target": }', "malformed JSON at line 2, column 12"),
         ("rig.yaml", "", "file is empty"),
     ],
@@ -710,7 +727,8 @@ def test_points3d_diameter_round_trip(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("manual, message", [
     ({"cam7": MANUAL["cam0"]}, "calibration[0].manual_points.cam7: camera 'cam7' is not declared in cameras"),
-    ({"cam0": {**MANUAL["cam0"], 99: [1.0, 2.0]}}, "calibration[0].manual_points.cam0: id 99 is not a point of the target"),
+    ({"cam0": {**MANUAL["cam0"], 99: [1.0, 2.0]}},
+     "calibration[0].manual_points.cam0: id 99 is not a point of the target"),
     ({"cam0": {**MANUAL["cam0"], 5: [float("nan"), 2.0]}}, "calibration[0].manual_points.cam0[5] contain NaN"),
     ({"cam0": {**MANUAL["cam0"], 5: [float("inf"), 2.0]}}, "calibration[0].manual_points.cam0[5] contain infinity"),
     ({"cam0": {**MANUAL["cam0"], 5: [1280.0, 2.0]}}, "calibration[0].manual_points.cam0[5]: pixel (1280, 2) is outside "

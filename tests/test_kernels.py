@@ -11,9 +11,9 @@ import cv2
 import numpy as np
 import pytest
 
+from ari_sfm.io import parse_calibration
 from ari_sfm.models import ExactModel, PinholeModel
 from ari_sfm.models.exact import exact_project, incidence
-from ari_sfm.io import parse_calibration
 
 INDEX = 1.5168
 

@@ -11,10 +11,9 @@ import numpy as np
 import pytest
 
 from ari_sfm.geometry import rotation_from_rotvec
+from ari_sfm.models import AriModel, ConvergenceError, ExactModel, PinholeModel, ari_shift_mm, solve_incidence
 from ari_sfm.models.ari import ari_project
 from ari_sfm.models.exact import exact_project
-from ari_sfm.models import (AriModel, ConvergenceError, ExactModel, PinholeModel, ari_shift_mm,
-                            solve_incidence)
 
 WIDTH, HEIGHT = 2448, 2048
 FX = 12.0 / 3.45e-3  # 3478.26 px
@@ -351,7 +350,7 @@ def test_jacobian_normal_chains_with_tangent_basis(pinhole, normal):
         J = model.project_with_jacobians(X).J_normal @ B
         cls, args = type(model), (THICKNESS, INDEX, WATER, DISTANCE)
 
-        def along(xi):
+        def along(xi, cls=cls, args=args):
             n = normal + B @ xi
             return cls(pinhole, n / np.linalg.norm(n), *args).project(X)
 
@@ -382,7 +381,8 @@ def test_batched_kernel_with_per_point_thickness_is_the_model(kernel, cls, disto
         J = kernel(X, params, 2.0 * normal, d, 1.5168, medium, 30.0, True, n_params)
         for t in (50.0, 70.0):
             rows = d == t
-            ref = cls(PinholeModel.from_params(params), 2.0 * normal, t, 1.5168, medium, 30.0).project_with_jacobians(X[rows])
+            ref = cls(PinholeModel.from_params(params), 2.0 * normal, t, 1.5168,
+                      medium, 30.0).project_with_jacobians(X[rows])
             for name in ref._fields:
                 want = getattr(ref, name)[..., :n_params] if name == "J_params" else getattr(ref, name)
                 np.testing.assert_allclose(getattr(J, name)[rows], want, rtol=1e-12, atol=1e-12 * np.abs(want).max(),

@@ -19,11 +19,10 @@ import pytest
 from click.testing import CliRunner
 
 from ari_sfm.calibration import Calibration, CameraCalibration
-from ari_sfm.io import load_calibration, save_calibration
 from ari_sfm.cli import main
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose
-from ari_sfm.io import load_dataset
+from ari_sfm.io import load_calibration, load_dataset, save_calibration
 from ari_sfm.openptv import export_openptv, import_experiment
 from ari_sfm.openptv.conventions import cam_from_world
 from ari_sfm.openptv.files import read_addpar, read_control_par, read_ori
@@ -238,7 +237,8 @@ def test_testing_fodder_cameras_project_like_liboptv(experiment, tmp_path):
         K = np.array([[f, 0, 640 - 0.5 + ori.xh / 0.012], [0, f, 512 - 0.5 - ori.yh / 0.012], [0, 0, 1]])
         plane = ds.interface.plane
         centre = pose.inverse().t  # the contract's distance_mm: from the (first) camera's centre
-        cal = Calibration("exact", Interface(6.0, 1.33, 1.46, distance_mm=float(plane.normal @ (plane.point_mm - centre))),
+        cal = Calibration("exact",
+                          Interface(6.0, 1.33, 1.46, distance_mm=float(plane.normal @ (plane.point_mm - centre))),
                           plane.normal, {obs.camera: CameraCalibration(obs.camera, (1280, 1024), K, np.zeros(5), pose)},
                           {"f000": Pose.identity()})
         uv = cal.project_world(obs.camera, xyz[np.searchsorted(ids, obs.ids)])
@@ -402,7 +402,7 @@ def test_export_round_trip_every_parameter(tmp_path, dist0):
     assert (control.n1, control.n2, control.n3, control.d) == (1.0, 1.49, 1.333, 6.0)
     assert (control.imx, control.imy, control.pix_x, control.pix_y) == (1280, 1024, 0.0055, 0.0055)
     frame = cal.frames["f000"]
-    for number, (name, c) in enumerate(cal.cameras.items(), start=1):
+    for number, c in enumerate(cal.cameras.values(), start=1):
         K, dist, pose, raw = _exported_opencv(tmp_path / "optv", number)
         np.testing.assert_allclose(K, c.K, rtol=0, atol=1e-8)
         np.testing.assert_allclose(dist, c.dist, rtol=1e-9, atol=1e-15)
@@ -492,7 +492,8 @@ def test_export_of_testing_fodder_cameras_gives_back_their_ori(experiment, tmp_p
         np.testing.assert_allclose(back.glass, oris[k].glass, atol=1e-12)
         assert (back.xh, back.yh) == pytest.approx((0, 0), abs=1e-12) and back.cc == pytest.approx(70, abs=1e-12)
     before = read_control_par(experiment / "parameters" / "ptv.par")
-    assert read_control_par(out / "parameters" / "ptv.par") == before  # same names, flags, sizes, pixel size and multimedia values
+    # same names, flags, sizes, pixel size and multimedia values
+    assert read_control_par(out / "parameters" / "ptv.par") == before
 
 
 def test_export_keeps_a_padded_ptv_par_layout(tmp_path):
@@ -571,7 +572,8 @@ def test_export_with_cal_a_file_writes_nothing(tmp_path):
     (tmp_path / "o").mkdir()
     (tmp_path / "o" / "cal").write_text("not a folder")
     r = CliRunner().invoke(main, ["export-openptv", str(tmp_path / "calibration.json"), "-o", str(tmp_path / "o")])
-    assert r.exit_code == 1 and r.output == f"error: {tmp_path / 'o' / 'cal'}: is a file, so cam1.tif.ori cannot be written there\n"
+    assert r.exit_code == 1
+    assert r.output == f"error: {tmp_path / 'o' / 'cal'}: is a file, so cam1.tif.ori cannot be written there\n"
     assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["cal"]
 
 
@@ -804,8 +806,9 @@ def test_windows_from_viewing_directions_warns_when_unclear(caplog):
 
 def test_an_imported_experiment_runs_its_particles_without_editing(cavity_without_ori, tmp_path):
     """sequence.par's images (``img_1/cam1.%d``, frames 10000..10001), criteria.par's observation volume and
-    targ_rec.par's detector settings become the dataset's ``particles:``: after calibrating from the images and clicks, detect-particles and particles
-    run on the imported dataset as it is and find the particles (rendered where OpenPTV's .ori put them)."""
+    targ_rec.par's detector settings become the dataset's ``particles:``: after calibrating from the images and clicks,
+    detect-particles and particles run on the imported dataset as it is and find the particles (rendered where OpenPTV's
+    .ori put them)."""
     import cv2
 
     from ari_sfm.simulate.particle_images import render_particle_image

@@ -3,7 +3,7 @@ kernels (ari_sfm/_compiled, written by ari_sfm.kernel_build when the wheel is bu
 runs without compiling, with the same numbers as numba's own compilation, which takes over whenever the
 shipped code does not match.
 
-The editable install (scripts/setup.sh) maps folders and hides a package the
+The editable install (scripts/setup.sh) imports from the source tree and hides a package the
 wheel forgets; this builds the real wheel offline once (no build isolation: the
 test extras pin setuptools; ~1 min, most of it compiling the kernels) from a copy of the tree.
 """
@@ -16,6 +16,7 @@ import json
 import os
 import pickle
 import shutil
+import stat
 import subprocess
 import sys
 import zipfile
@@ -30,6 +31,15 @@ ROOT = Path(__file__).resolve().parents[1]
 SOURCES = {"ari_sfm": "ari_sfm", "factors": "ari_sfm/factors", "pipelines": "ari_sfm/pipelines"}  # folder -> in wheel
 
 
+def test_factors_and_pipelines_are_relative_links_under_ari_sfm() -> None:
+    """ari_sfm/factors and ari_sfm/pipelines are relative symbolic links (as git checks them out) to the top-level
+    folders: the one import root that every tool reads as it is, without a package-dir remap."""
+    for name in ("factors", "pipelines"):
+        link = ROOT / "ari_sfm" / name
+        assert link.is_symlink() and os.readlink(link) == f"../{name}", f"ari_sfm/{name} is not the link ../{name}"
+        assert link.resolve() == (ROOT / name).resolve()
+
+
 def expected_modules() -> set[str]:
     """Every .py file under the three source folders, as its path inside the wheel."""
     out = set()
@@ -42,14 +52,15 @@ def expected_modules() -> set[str]:
 
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory) -> Path:
-    """The wheel built from a copy of the tree, as .ci/run builds it."""
+    """The wheel built from a copy of the tree (its links kept, as `cp -r` keeps them), as .ci/run builds it."""
     tmp = tmp_path_factory.mktemp("wheel")
     src = tmp / "src"
     src.mkdir()
     for name in ("pyproject.toml", "setup.py", "README.md", "LICENSE"):
         shutil.copy(ROOT / name, src / name)
     for folder in SOURCES:
-        shutil.copytree(ROOT / folder, src / folder, ignore=shutil.ignore_patterns("__pycache__", "_compiled"))
+        shutil.copytree(ROOT / folder, src / folder, symlinks=True,
+                        ignore=shutil.ignore_patterns("__pycache__", "_compiled"))
     run = subprocess.run([sys.executable, "-m", "pip", "wheel", str(src), "-w", str(tmp / "wheel"), "--no-deps",
                           "--no-build-isolation", "-q"], capture_output=True, text=True, timeout=1200)
     assert run.returncode == 0, run.stderr
@@ -64,6 +75,8 @@ def test_wheel_contains_every_package(wheel: Path) -> None:
     assert {"ari_sfm/baselines/__init__.py", "ari_sfm/factors/rig_graph.py", "ari_sfm/pipelines/run.py"} <= expected
     assert expected - py == set(), "modules missing from the wheel"
     assert py - expected == set(), "modules in the wheel that are not in the source tree (e.g. a bare factors/)"
+    links = [i.filename for i in zipfile.ZipFile(wheel).infolist() if stat.S_ISLNK(i.external_attr >> 16)]
+    assert links == [], "the wheel holds symbolic links, not the files"
     (meta,) = [n for n in names if n.endswith(".dist-info/entry_points.txt")]
     entry = configparser.ConfigParser()
     entry.read_string(zipfile.ZipFile(wheel).read(meta).decode())

@@ -77,7 +77,8 @@ def test_images_to_particles_against_the_truth(tmp_path):
     det = pq.read_table(tmp_path / "det" / "particles.parquet")
     assert set(det.column("camera").to_pylist()) == set(exp.cameras)
     r = run(main, ["particles", str(tmp_path / "sim" / "experiment"), "--calibration",
-                   str(tmp_path / "sim" / "truth" / "rig_b.json"), "--detections", str(tmp_path / "det" / "particles.parquet"),
+                   str(tmp_path / "sim" / "truth" / "rig_b.json"), "--detections",
+                   str(tmp_path / "det" / "particles.parquet"),
                    "-o", str(tmp_path / "p3d"), "--workers", "0"])
     assert r.exit_code == 0, r.output
     t = pq.read_table(tmp_path / "p3d" / "particles3d.parquet")
@@ -384,7 +385,8 @@ def test_bad_detect_settings_are_one_line(tmp_path, two_cameras, detect, message
 def test_detect_settings_are_honoured_and_the_command_line_overrides_them(tmp_path, two_cameras):
     """rig.yaml's particles.detect reaches every camera's detection: a grey threshold above every particle for
     one camera leaves it none (the other keeps its own), min_pixels above any image leaves none at all (an
-    error: blank images or settings too strict) and --min-pixels overrides it; detect-particles.json records the options used."""
+    error: blank images or settings too strict) and --min-pixels overrides it; detect-particles.json records
+    the options used."""
     import json
 
     import yaml

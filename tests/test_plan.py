@@ -9,9 +9,8 @@ import pytest
 
 from ari_sfm.calibrate import CalibrationOptions, Stage, plan_stages
 from ari_sfm.errors import AriSfmError
-from ari_sfm.records import WindowPlane
-from ari_sfm.simulate import make_scene
 from ari_sfm.io import calibration_to_json, load_calibration, save_calibration
+from ari_sfm.records import WindowPlane
 
 OPTS = CalibrationOptions(distortion=False)
 
@@ -26,7 +25,8 @@ def _with_true_plane(scene, frame: str = None):
     frame = frame or sorted(g.calibration)[0]
     target_from_world = g.calibration[frame].inverse()
     n_w = np.asarray(g.window.normal_world, float)
-    plane = WindowPlane(frame, target_from_world.R @ n_w, target_from_world.apply((n_w * g.window.distance_mm)[None])[0])
+    plane = WindowPlane(frame, target_from_world.R @ n_w,
+                        target_from_world.apply((n_w * g.window.distance_mm)[None])[0])
     ds = scene.dataset
     return replace(ds, interface=replace(ds.interface, plane=plane))
 
@@ -64,7 +64,8 @@ def test_the_stage_records_are_the_plans(single_exact, single_scene):
     assert [s["stage"] for s in d["stages"]] == [s.label for s in plan]
     assert [s["model"] for s in d["stages"]] == [s.model for s in plan]
     assert list(single_exact.optimizer.runs) == list(d["optimizer"]) == [s.label for s in plan]
-    assert all(r.iterations > 0 and r.sigma_px > 0 and r.backend == "numpy" for r in single_exact.optimizer.runs.values())
+    assert all(r.iterations > 0 and r.sigma_px > 0 and r.backend == "numpy"
+               for r in single_exact.optimizer.runs.values())
     last = d["stages"][-1]
     assert last["rmse_px"] == pytest.approx(single_exact.residuals.rmse_px, rel=1e-12)
     assert last["cameras"]["cam0"]["fx"] == pytest.approx(single_exact.cameras["cam0"].K[0, 0], rel=1e-12)
@@ -107,11 +108,10 @@ def test_one_initial_state(single_scene, model, declared):
 def test_the_command_line_options_are_the_dataclass_fields(command, tmp_path, monkeypatch):
     """calibrate and run offer every CalibrationOptions field with a ``cli`` flag, default and help from the
     field; the flags given arrive at calibrate() as one CalibrationOptions record (--huber-px 0: None)."""
+    import importlib
     from dataclasses import fields
 
     from click.testing import CliRunner
-
-    import importlib
 
     C = importlib.import_module("ari_sfm.calibrate")  # the module (ari_sfm.calibrate is also the function)
     from ari_sfm.calibrate import CalibrationOptions
@@ -131,7 +131,8 @@ def test_the_command_line_options_are_the_dataclass_fields(command, tmp_path, mo
         raise C.AriSfmError("spy", "stopped")
 
     monkeypatch.setattr("ari_sfm.pipelines.calibrate_rig.calibrate", spy)
-    dataset = str(__import__("pathlib").Path(__file__).resolve().parents[1] / "datasets" / "binocular")  # observations: no detection
+    # observations: no detection
+    dataset = str(__import__("pathlib").Path(__file__).resolve().parents[1] / "datasets" / "binocular")
     r = CliRunner().invoke(main, [command, dataset, "-o", str(tmp_path / "a")])
     assert r.exit_code == 1 and "error: spy: stopped" in r.output, r.output
     assert seen[-1] == CalibrationOptions(progress=True)

@@ -16,8 +16,15 @@ import numpy as np
 import pytest
 
 from ari_sfm.calibrate import calibrate
-from ari_sfm.floor_fit import (BASIS_U, BASIS_V, RADIAL_BASIS, RADIAL_VECTORS, _radial_coefficients, _radial_vectors,
-                               warp_residuals)
+from ari_sfm.floor_fit import (
+    BASIS_U,
+    BASIS_V,
+    RADIAL_BASIS,
+    RADIAL_VECTORS,
+    _radial_coefficients,
+    _radial_vectors,
+    warp_residuals,
+)
 from ari_sfm.init.zhang import object_points
 from ari_sfm.quality import _view_points, corner_floor, robust_rmse_px
 from ari_sfm.simulate import PLACEHOLDER_ROOT, make_scene

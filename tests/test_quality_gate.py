@@ -16,11 +16,10 @@ import pytest
 from click.testing import CliRunner
 
 from ari_sfm.calibrate import calibrate
-from ari_sfm.io import calibration_to_json, parse_calibration
+from ari_sfm.calibration_errors import calibration_errors
 from ari_sfm.cli import main
 from ari_sfm.geometry import rotation_from_rotvec
-from ari_sfm.io import load_dataset, save_rig
-from ari_sfm.calibration_errors import calibration_errors
+from ari_sfm.io import calibration_to_json, load_dataset, parse_calibration, save_rig
 from ari_sfm.quality import FLOOR_RATIO, MAX_POSE_SIGMA_DEG, Floor, allowance_px, floor_rmse_px, judge, robust_rmse_px
 from ari_sfm.simulate import make_scene, simulate
 

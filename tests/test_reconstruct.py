@@ -17,14 +17,13 @@ from click.testing import CliRunner
 
 from ari_sfm.calibrate import calibrate
 from ari_sfm.calibration import Calibration
-from ari_sfm.io import parse_calibration, save_calibration
 from ari_sfm.cli import main
 from ari_sfm.errors import AriSfmError
+from ari_sfm.io import parse_calibration, save_calibration
 from ari_sfm.metrics import ReconstructionMetrics, reconstruction_metrics, rigid_alignment, save_point_clouds
 from ari_sfm.reconstruct import Points, reconstruct
 from ari_sfm.simulate import make_scene, simulate
 from ari_sfm.triangulate import triangulate_pixels, triangulate_rays
-
 
 # --------------------------------------------------------------------------- fixtures
 

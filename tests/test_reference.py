@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.io import parse_calibration
 from ari_sfm.cli import main
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import rotation_from_rotvec
+from ari_sfm.io import parse_calibration
 from ari_sfm.reconstruct import reconstruct
 from ari_sfm.reference import ReferenceErrors, reference_errors
 from ari_sfm.simulate import make_scene, simulate
@@ -106,7 +106,8 @@ def test_a_point_cloud_reference_registers_too(tilted_boards, tmp_path):
     dR = M[:3, :3] @ R_KNOWN.T
     assert r.kind == "cloud"
     angle = np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))
-    print(f"cloud reference: rotation error {angle:.4f} deg, translation error {np.linalg.norm(M[:3, 3] - T_KNOWN):.4f} mm, "
+    print(f"cloud reference: rotation error {angle:.4f} deg, translation error "
+          f"{np.linalg.norm(M[:3, 3] - T_KNOWN):.4f} mm, "
           f"distance rms {r.distance_mm.rms:.4f} mm")
     assert angle < 0.1 and np.linalg.norm(M[:3, 3] - T_KNOWN) < 0.25  # measured 0.037 deg, 0.061 mm
     assert r.distance_mm.rms < spacing  # ~ the nearest sample's distance, not the reconstruction's error

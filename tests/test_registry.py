@@ -5,20 +5,18 @@ import importlib
 import json
 import subprocess
 import sys
-from pathlib import Path
-
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from ari_sfm.calibrate import calibrate
 from ari_sfm.calibration import Calibration
-from ari_sfm.io import calibration_to_json, load_calibration, save_calibration
 from ari_sfm.compare import parse_models
 from ari_sfm.errors import AriSfmError
 from ari_sfm.evaluate import evaluate
-from ari_sfm.io import load_dataset
+from ari_sfm.io import calibration_to_json, load_calibration, load_dataset, save_calibration
 from ari_sfm.models import AriModel, ExactModel, PinholeModel
 from ari_sfm.models.registry import CALIBRATABLE, MODELS, ModelSpec, model_spec
 

@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.cli import main
 from ari_sfm import report
+from ari_sfm.cli import main
 from ari_sfm.evaluate import observation_residuals
 from ari_sfm.io import load_calibration, parse_calibration
 from ari_sfm.outliers import Outlier
@@ -144,7 +144,8 @@ def test_report_includes_the_model_comparison(binocular, tmp_path):
     _, _, out, _ = binocular
     for name in ("calibration.json", "run.json"):
         shutil.copy(out / name, tmp_path / name)
-    md = "## Binocular\n\n| model | rmse (px) | time (ms) |\n|---|--:|--:|\n| ari | 0.0712 | 10 |\n| exact | 0.0702 | 40 |\n"
+    md = ("## Binocular\n\n| model | rmse (px) | time (ms) |\n|---|--:|--:|\n"
+          "| ari | 0.0712 | 10 |\n| exact | 0.0702 | 40 |\n")
     (tmp_path / "compare.md").write_text(md)
     png = io.BytesIO()
     mpimg.imsave(png, np.tile(np.linspace(0, 1, 64), (32, 1)), format="png")
@@ -176,7 +177,8 @@ def test_report_cli_and_bad_inputs(binocular, tmp_path):
         assert r.exit_code == 1 and len(lines) == 1 and lines[0].startswith("error: ") and needle in lines[0], r.output
     (tmp_path / "calibration.json").write_text("{")
     r = CliRunner().invoke(main, ["report", str(tmp_path)])
-    assert r.exit_code == 1 and r.output.startswith(f"error: {tmp_path / 'calibration.json'}") and not (tmp_path / "report.html").exists()
+    assert r.exit_code == 1 and r.output.startswith(f"error: {tmp_path / 'calibration.json'}")
+    assert not (tmp_path / "report.html").exists()
 
 
 def test_run_on_the_single_camera_sample_skips_reconstruction(tmp_path):
@@ -200,7 +202,6 @@ def test_run_on_the_single_camera_sample_skips_reconstruction(tmp_path):
 @pytest.fixture(scope="module")
 def scene_residuals():
     """The simulated binocular rig's true calibration and its (noise-only) residuals."""
-    from ari_sfm.calibration import Calibration
     from ari_sfm.simulate import make_scene
 
     scene = make_scene("binocular", seed=0)
@@ -464,7 +465,8 @@ def test_report_prints_on_paper(binocular, tmp_path):
     exe = _chromium()
     _, _, out, _ = binocular
     text = (out / "report.html").read_text()
-    assert "img,figure,table,.js-plotly-plot{max-width:100%}" in text and "figure{margin:1em 0;break-inside:avoid}" in text
+    assert "img,figure,table,.js-plotly-plot{max-width:100%}" in text
+    assert "figure{margin:1em 0;break-inside:avoid}" in text
     assert "thead{display:table-header-group}" in text and text.count("<thead>") >= 3  # headers repeat per page
     page = tmp_path / "report.html"
     page.write_text(text)

@@ -13,9 +13,19 @@ from matplotlib.text import Text
 from ari_sfm.compare import draw_figures
 from ari_sfm.evaluate import observation_residuals
 from ari_sfm.io import parse_calibration
-from ari_sfm.report_figures import (FIG_WIDTH_IN, PRINT_WIDTH_IN, draw_error_histograms, draw_expansion_centre,
-                                    draw_point_cloud, draw_residual_by_depth, draw_residual_by_frame,
-                                    draw_residual_map, draw_residual_regions, draw_residual_scatter, draw_rig)
+from ari_sfm.report_figures import (
+    FIG_WIDTH_IN,
+    PRINT_WIDTH_IN,
+    draw_error_histograms,
+    draw_expansion_centre,
+    draw_point_cloud,
+    draw_residual_by_depth,
+    draw_residual_by_frame,
+    draw_residual_map,
+    draw_residual_regions,
+    draw_residual_scatter,
+    draw_rig,
+)
 
 
 @pytest.fixture(scope="module")

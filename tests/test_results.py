@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ari_sfm.io import calibration_to_json, load_calibration
 from ari_sfm.errors import AriSfmError
+from ari_sfm.io import calibration_to_json, load_calibration
 from ari_sfm.models.registry import CALIBRATABLE
 from ari_sfm.outliers import Outlier
 from ari_sfm.results import CameraUncertainty, OutlierReport, PfWorld, ResidualStats, Uncertainty
@@ -20,7 +20,8 @@ TIMES = {"time_s"}  # keys whose values are wall-clock times: differ between run
 # the uncertainty's key structure is compared; the optimizer's report is not a result.
 STRUCTURE_ONLY = {"uncertainty", "fixed_distance_mm", "pf"}
 SKIPPED = {"optimizer"}
-ADDED = {"quality", "stages"}  # keys added since e6e8196 (the quality gate's verdict; each stage's figures), absent from the old files
+# keys added since e6e8196 (the quality gate's verdict; each stage's figures), absent from the old files
+ADDED = {"quality", "stages"}
 # Since issue 15 the start is closed-form (no cv2.calibrateCamera before the bundle adjustment): the
 # solves end at the same optima from another start, equal to the LM's stopping point (exact ~1e-6
 # relative; the ari stage's Huber solve ~1e-4: fx 0.15 px, well inside its sigma), not bitwise. Values

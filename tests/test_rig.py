@@ -16,8 +16,8 @@ import pytest
 from ari_sfm.calibrate import calibrate
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose, angle_between_deg, rotation_angle_deg
-from ari_sfm.simulate import make_scene
 from ari_sfm.io import calibration_to_json
+from ari_sfm.simulate import make_scene
 
 FLOOR = 0.05 * np.sqrt(2)
 
@@ -98,7 +98,8 @@ def test_initialisation_threads_do_not_change_the_result():
     assert list(pooled.cameras) == list(serial.cameras) == list(ds.camera_names)
     for n, c in serial.cameras.items():
         p = pooled.cameras[n]
-        assert np.array_equal(c.K, p.K) and np.array_equal(c.normal_cam, p.normal_cam) and c.zhang_rms_px == p.zhang_rms_px
+        assert np.array_equal(c.K, p.K) and np.array_equal(c.normal_cam, p.normal_cam)
+        assert c.zhang_rms_px == p.zhang_rms_px
         assert list(c.cam_from_target) == list(p.cam_from_target)
         for f, pose in c.cam_from_target.items():
             assert np.array_equal(pose.R, p.cam_from_target[f].R) and np.array_equal(pose.t, p.cam_from_target[f].t)
@@ -122,7 +123,8 @@ def test_uncertainty_matches_the_spread_over_noise_seeds(binocular):
     t_pose = Pose.from_json(truth["cameras"]["cam1"]["cam_from_world"])
     for seed in range(20):
         rng = np.random.default_rng(1000 + seed)
-        obs = tuple(replace(o, pixels=o.pixels + rng.normal(0, 0.05, o.pixels.shape)) for o in binocular.exact_observations)
+        obs = tuple(replace(o, pixels=o.pixels + rng.normal(0, 0.05, o.pixels.shape))
+                    for o in binocular.exact_observations)
         cal = calibrate(replace(binocular.dataset, observations=obs), model="exact")
         u = cal.uncertainty
         c1 = cal.cameras["cam1"]

@@ -4,8 +4,8 @@
   the excess is rho, and a view factor's residual (rows and excess row) has 0.5 |.|^2 = sum of rho;
 - the gradient of the linearisation equals a central difference of the error, for the numpy
   backend (VectorizedProblem.linearize / error) and for the GTSAM CustomFactors (graph.linearize
-  gradientAtZero / graph.error; both errors equal), at paper_single's initial state with corners on both sides of the threshold
-  (square-root IRLS weights gave twice the gradient of their error for the outliers);
+  gradientAtZero / graph.error; both errors equal), at paper_single's initial state with corners on both sides of the
+  threshold (square-root IRLS weights gave twice the gradient of their error for the outliers);
 - refine-colmap's GTSAM factor's error is its numpy cost (huber_cost).
 """
 from __future__ import annotations
@@ -13,12 +13,12 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
+from test_vectorized import _initial_state
 
 from ari_sfm.factors.rig_graph import MODELS, RigGraph
 from ari_sfm.factors.robust import huber_irls, huber_loss, huber_residual_scale, huber_view_residual, huber_weight
 from ari_sfm.factors.vectorized import VectorizedProblem
 from ari_sfm.factors.view_factor import view_residuals
-from test_vectorized import _initial_state
 
 HUBER_PX = 0.15  # about half of the corners beyond it at the initial state
 
@@ -83,7 +83,7 @@ def test_numpy_gradient_is_the_errors_gradient(graph):
     for _ in range(3):
         dg = rng.normal(0, 1e-3, len(sys.g_global)) * scale
         df = rng.normal(0, 1e-3, sys.g_frame.shape)
-        numeric = _central(lambda t: problem.error(problem.retract(x, (t * dg, t * df))))
+        numeric = _central(lambda t, dg=dg, df=df: problem.error(problem.retract(x, (t * dg, t * df))))
         analytic = float(sys.g_global @ dg + np.sum(sys.g_frame * df))
         assert analytic == pytest.approx(numeric, rel=1e-6)
 
@@ -99,7 +99,7 @@ def test_gtsam_gradient_is_the_errors_gradient(graph):
             sigma = 0.1 if chr(gtsam.Symbol(key).chr()) == "k" else 1e-3
             delta.insert(key, rng.normal(0, sigma, dim))
 
-        def error(t: float) -> float:
+        def error(t: float, delta: gtsam.VectorValues = delta) -> float:
             step = gtsam.VectorValues()
             for key in values.keys():
                 step.insert(key, t * delta.at(key))
@@ -112,12 +112,13 @@ def test_refine_colmap_gtsam_factor_error_is_the_huber_cost():
     """refine-colmap's GTSAM graph (one CustomFactor per image) has the numpy solver's error, the sum of
     rho over the observations, and its linearisation's gradient is that error's, at a perturbed start
     with observations on both sides of the threshold."""
+    from test_colmap_refine import truth_state
+
     from ari_sfm import colmap_export as adapter
     from ari_sfm.colmap_refine.gtsam_graph import GtsamRefinement
     from ari_sfm.colmap_refine.problem import RefractiveProblem
     from ari_sfm.colmap_refine.refine import Solver
     from ari_sfm.simulate.port_survey import port_survey
-    from test_colmap_refine import truth_state
 
     truth = port_survey(num_images=4, num_points=60, focal_px=1300, area_mm=(1200, 800), sigma_px=0.2)
     rec = adapter.reconstruction_from_arrays(list(truth.params), truth.image_size, truth.sensor_from_rig,

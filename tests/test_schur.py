@@ -10,8 +10,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ari_sfm.factors.schur import (NormalEquations, assemble_from_observations, global_covariance, model_decrease,
-                                   solve_damped)
+from ari_sfm.factors.schur import (
+    NormalEquations,
+    assemble_from_observations,
+    global_covariance,
+    model_decrease,
+    solve_damped,
+)
 
 
 def _random_observations(rng: np.random.Generator, n_blocks: int, n_global: int, per_block: int, q: int):

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.io import load_calibration
 from ari_sfm.cli import main
 from ari_sfm.geometry import Pose, angle_between_deg
+from ari_sfm.io import load_calibration
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -97,16 +97,20 @@ def test_sfm_bad_inputs_one_line(tmp_path):
     r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "noscale.yaml"),
                              "-o", str(tmp_path / "o")])
     _one_error_line(r, "noscale.yaml", "no scale", "--baseline")
-    r = runner.invoke(main, ["sfm", str(tmp_path / "empty"), "--window", str(tmp_path / "W.yaml"), "-o", str(tmp_path / "o")])
+    r = runner.invoke(main,
+                      ["sfm", str(tmp_path / "empty"), "--window", str(tmp_path / "W.yaml"), "-o", str(tmp_path / "o")])
     _one_error_line(r, "empty", "no images")
-    r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "none.yaml"), "-o", str(tmp_path / "o")])
+    r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "none.yaml"), "-o",
+                             str(tmp_path / "o")])
     _one_error_line(r, "none.yaml", "not found")
-    r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "W.yaml"), "-o", str(tmp_path / "imgs")])
+    r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "W.yaml"), "-o",
+                             str(tmp_path / "imgs")])
     _one_error_line(r, "imgs", "images folder")
     r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "W.yaml"),
                              "-o", str(tmp_path / "imgs" / "out")])
     _one_error_line(r, "images folder")
-    r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "W.yaml"), "-o", str(tmp_path / "o"),
+    r = runner.invoke(main,
+                      ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "W.yaml"), "-o", str(tmp_path / "o"),
                              "--baseline", "i0.png", "i1.png", "100"])
     _one_error_line(r, "W.yaml", "give it once")
     r = runner.invoke(main, ["sfm", str(tmp_path / "imgs"), "--window", str(tmp_path / "noscale.yaml"),

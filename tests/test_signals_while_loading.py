@@ -81,7 +81,8 @@ def test_a_signal_during_pycolmaps_import_reaches_pythons_handler(tmp_path):
     assert p.returncode == 0 and p.stdout.strip() == "['python']", (p.returncode, p.stdout, p.stderr)
 
 
-@pytest.mark.parametrize("signum, code, line", [(signal.SIGTERM, 143, "terminated"), (signal.SIGINT, 130, "interrupted")])
+@pytest.mark.parametrize("signum, code, line",
+                         [(signal.SIGTERM, 143, "terminated"), (signal.SIGINT, 130, "interrupted")])
 def test_a_signal_after_the_command_returned_leaves_with_its_code(signum, code, line):
     """A signal after a command's body (its results written; the interpreter shutting down, which can take
     seconds with dask or numba loaded): one line and the signal's code, not a process killed by it (-15)."""

@@ -7,7 +7,6 @@ lines), so a wrong simulator cannot pass by agreeing with itself.
 from __future__ import annotations
 
 import json
-import math
 from collections import Counter, defaultdict
 
 import numpy as np
@@ -111,7 +110,8 @@ def test_noise_is_gaussian_with_sigma(scenes):
     assert np.std(np.concatenate(stacking)) > 0.04  # stacking is noisy too
 
 
-@pytest.mark.parametrize("name", ["paper_single", "paper_single_perpendicular", "binocular", "binocular_underwater", "arc4"])
+@pytest.mark.parametrize("name",
+                         ["paper_single", "paper_single_perpendicular", "binocular", "binocular_underwater", "arc4"])
 def test_stacking_corners_move_on_lines_through_expansion_center(scenes, name):
     """The physics of the stacking method: per corner, the 6 images lie on one line through K n_c / n_c[2]."""
     scene = scenes(name)
@@ -140,7 +140,7 @@ def test_stacking_corners_move_on_lines_through_expansion_center(scenes, name):
 
 def test_expansion_center_is_projection_of_the_normal(scenes):
     scene = scenes("binocular")
-    for name, cam in scene.truth["cameras"].items():
+    for cam in scene.truth["cameras"].values():
         R = np.array(cam["cam_from_world"]["R"])
         n_c = R @ np.array(scene.truth["interface"]["normal_world"])
         assert np.allclose(n_c, cam["normal_cam"], atol=1e-12)
@@ -168,7 +168,8 @@ def test_paper_single_geometry(scenes):
     for o in calib:  # 300-500 mm away, tilted 8-35 deg from the line of sight
         pose = Pose.from_json(scene.truth["frames"][o.frame]["world_from_target"])
         t = scene.dataset.target
-        centre = pose.apply(np.array([[(t.inner_corners[0] - 1) * t.square_mm / 2, (t.inner_corners[1] - 1) * t.square_mm / 2, 0.0]]))[0]
+        centre = pose.apply(np.array([[(t.inner_corners[0] - 1) * t.square_mm / 2,
+                                       (t.inner_corners[1] - 1) * t.square_mm / 2, 0.0]]))[0]
         assert 295 < centre[2] < 505
         assert 7.9 < angle_between_deg(pose.R[:, 2], centre) < 35.1
     corners = np.concatenate([o.pixels for o in calib])  # coverage of the field
@@ -219,13 +220,14 @@ def test_arc4_partial_visibility_and_outside_expansion_center(scenes):
     for cam in scene.truth["cameras"]:  # every camera shares a frame with another
         assert any(cam in s and len(s) > 1 for s in cams_of.values())
     outside = []
-    for name, cam in scene.truth["cameras"].items():
+    for cam in scene.truth["cameras"].values():
         w, h = cam["image_size"]
         u, v = cam["expansion_center_px"]
         outside.append(not (0 <= u < w and 0 <= v < h))
     assert outside[0] or outside[-1]  # an outer camera
     assert 18.0 < angle_between_deg(scene.truth["interface"]["normal_world"],
-                                    np.mean([Pose.from_json(c["cam_from_world"]).R[2] for c in scene.truth["cameras"].values()], axis=0)) < 22.0
+                                    np.mean([Pose.from_json(c["cam_from_world"]).R[2]
+                                             for c in scene.truth["cameras"].values()], axis=0)) < 22.0
     assert len({o.camera for o in scene.dataset.select("stacking")}) >= 2
 
 
@@ -251,7 +253,7 @@ def test_every_scenario_builds_valid(scenes, name):
             cam = truth["cameras"][name_]
             assert plane - n @ centre[name_] == pytest.approx(cam["distance_mm"])
             assert cam["distance_mm"] > 5.0 and cam["normal_cam"][2] > 0
-        for frame, f in truth["frames"].items():  # every target beyond the far face of the thickest stack
+        for f in truth["frames"].values():  # every target beyond the far face of the thickest stack
             X = Pose.from_json(f["world_from_target"]).apply(pts)
             assert (X @ n - plane - itf["thickness_mm"] - max_added).min() > 5.0
     for o in ds.observations:  # ids follow the contract, pixels inside the image

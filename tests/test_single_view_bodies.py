@@ -12,7 +12,6 @@ import logging
 import math
 from dataclasses import replace
 
-import numpy as np
 import pytest
 
 from ari_sfm.calibrate import PRINCIPAL_POINT_MAX_SIGMA, CalibrationOptions, calibrate

@@ -91,7 +91,8 @@ def small_survey():
 
 
 def _true_centres(truth, model) -> np.ndarray:
-    return np.array([-(truth.rig_from_world[truth.image_frame[i - 1]].R.T @ truth.rig_from_world[truth.image_frame[i - 1]].t)
+    return np.array([-(truth.rig_from_world[truth.image_frame[i - 1]].R.T
+                       @ truth.rig_from_world[truth.image_frame[i - 1]].t)
                      for i in model.image_ids])
 
 
@@ -175,8 +176,9 @@ def _run_folder(tmp_path: Path) -> Path:
     out = tmp_path / "bino"
     out.mkdir()
     shutil.copy(ROOT / "tests" / "data" / "calibration_e6e8196" / "exact.json", out / "calibration.json")
-    (out / "run.json").write_text(json.dumps({"format": "ari-sfm-run/1", "dataset": str(ROOT / "datasets" / "binocular"),
-                                              "calibration": "calibration.json"}))
+    run = {"format": "ari-sfm-run/1", "dataset": str(ROOT / "datasets" / "binocular"),
+           "calibration": "calibration.json"}
+    (out / "run.json").write_text(json.dumps(run))
     return out
 
 
@@ -469,8 +471,7 @@ def test_sfm_baseline_held_and_unregistered_images_named(tmp_path, monkeypatch, 
     """`sfm --baseline` end to end with COLMAP's model given (a child that writes the simulated survey's pinhole
     optimum): sfm.json's baseline is refined to the given distance (was 18 % off); an image COLMAP did not
     register is named in the summary and sfm.json."""
-    from ari_sfm import colmap_export as adapter
-    from ari_sfm import sfm
+    from ari_sfm import colmap_export as adapter, sfm
 
     truth, start = small_survey
     model = adapter.model_from_reconstruction(start)
@@ -586,8 +587,7 @@ def test_depth_range_bounded(tmp_path, command):
 def test_pixels_far_outside_the_image_refused_by_evaluate_and_refine_colmap(tmp_path, small_survey):
     from dataclasses import replace
 
-    from ari_sfm import colmap_export as adapter
-    from ari_sfm import evaluate
+    from ari_sfm import colmap_export as adapter, evaluate
     from ari_sfm.colmap_refine.refine import _check_finite
     from ari_sfm.errors import AriSfmError
     from ari_sfm.io import load_observations

@@ -76,7 +76,8 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 def _rotation_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
     """Angle of Ra^T Rb from its skew part, resolved below 1e-6 deg."""
     D = Ra.T @ Rb
-    return float(np.degrees(np.arcsin(min(1.0, 0.5 * np.linalg.norm([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]])))))
+    return float(np.degrees(np.arcsin(min(1.0, 0.5 * np.linalg.norm([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0],
+                                                                     D[1, 0] - D[0, 1]])))))
 
 
 def _assert_same_state(a: RigState, b: RigState, rel: float = 1e-6) -> None:
@@ -276,13 +277,15 @@ def test_factors_added_to_the_graph_are_honoured(problems):
     assert abs(state.params["cam1"][0] - free.params["cam1"][0]) > 5.0  # the prior pulled fx
 
     bad = _graph(problems, "binocular", "ari", 1.0)
-    bad.graph.push_back(gtsam.BetweenFactorPose3(K_.X(0), K_.X(1), gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1.0)))
+    bad.graph.push_back(gtsam.BetweenFactorPose3(K_.X(0), K_.X(1), gtsam.Pose3(),
+                                                 gtsam.noiseModel.Isotropic.Sigma(6, 1.0)))
     with pytest.raises(NotImplementedError):
         optimize_vectorized(bad, huber_px=1.0)
     with pytest.raises(NotImplementedError):
         optimize_graph(bad, "numpy", huber_px=1.0)
     bad_ref = _graph(problems, "binocular", "ari", 1.0)
-    bad_ref.graph.push_back(gtsam.BetweenFactorPose3(K_.X(0), K_.X(1), gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1.0)))
+    bad_ref.graph.push_back(gtsam.BetweenFactorPose3(K_.X(0), K_.X(1), gtsam.Pose3(),
+                                                     gtsam.noiseModel.Isotropic.Sigma(6, 1.0)))
     state_auto, solved = optimize_graph(bad, "auto", huber_px=1.0, return_problem=True)  # falls back to GTSAM
     assert solved is None
     _assert_same_state(bad_ref.optimize(), state_auto)

@@ -57,7 +57,8 @@ def test_rig_interfaces_round_trip(tanks, tmp_path):
     assert "interface" not in text and set(text["interfaces"]) == {"front", "back"}
     assert text["interfaces"]["back"]["cameras"] == ["cam3", "cam4"]
     back = load_dataset(path)
-    assert [(w.name, w.cameras) for w in back.window_list()] == [("front", ("cam1", "cam2")), ("back", ("cam3", "cam4"))]
+    assert [(w.name, w.cameras) for w in back.window_list()] == [("front", ("cam1", "cam2")),
+                                                                 ("back", ("cam3", "cam4"))]
     assert back.interface_of("cam4") == ds.interface_of("cam4") and back.medium_index == pytest.approx(1.333)
 
 

@@ -208,7 +208,8 @@ def test_window_plane_factor_jacobians():
     from ari_sfm.factors.window_plane import plane_errors
 
     rng = np.random.default_rng(3)
-    plane = WindowPlane("f", np.array([0.1, -0.2, 0.97]) / np.linalg.norm([0.1, -0.2, 0.97]), np.array([5.0, -3.0, 40.0]))
+    plane = WindowPlane("f", np.array([0.1, -0.2, 0.97]) / np.linalg.norm([0.1, -0.2, 0.97]),
+                        np.array([5.0, -3.0, 40.0]))
     values = gtsam.Values()
     values.insert(K_.N, gtsam.Unit3(np.array([0.05, 0.1, 1.0])))
     values.insert(K_.X(0), gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.3), rng.normal(size=3) * 100))
@@ -442,7 +443,8 @@ def test_coarse_to_fine_normal_search_is_the_grids_best():
         t, a = np.radians(rng.uniform(0.0, 20.0)), rng.uniform(0.0, 2 * np.pi)
         hidden = np.cos(t) * axis + np.sin(t) * (np.cos(a) * e1 + np.sin(a) * e2)
         calls = []
-        found = search_normal(lambda n: calls.append(1) or angle_between_deg(n, hidden), axis)
+        found = search_normal(lambda n, calls=calls, hidden=hidden: calls.append(1) or angle_between_deg(n, hidden),
+                              axis)
         best = grid[int(np.argmin([angle_between_deg(n, hidden) for n in grid]))]
         np.testing.assert_allclose(found, best)
         assert len(calls) <= 24

@@ -7,30 +7,35 @@
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from ..calibration import Calibration
+
 # The calibrators ari_sfm.models.registry names, one per model: (dataset with observations,
 # CalibrationOptions) -> Calibration. rt and pinhole use ``distortion`` and ``max_iterations``;
 # pf fits in the world of an ari calibration made with all the options.
 
 
-def calibrate_rt_model(dataset, options) -> "Calibration":  # noqa: F821
+def calibrate_rt_model(dataset, options) -> Calibration:
     from .ray_tracing import calibrate_rt
 
     return calibrate_rt(dataset, options.distortion, options.max_iterations)
 
 
-def calibrate_pinhole_model(dataset, options) -> "Calibration":  # noqa: F821
+def calibrate_pinhole_model(dataset, options) -> Calibration:
     from .pinhole import calibrate_pinhole
 
     return calibrate_pinhole(dataset, options.distortion, options.max_iterations)
 
 
-def calibrate_pinhole_dist_model(dataset, options) -> "Calibration":  # noqa: F821
+def calibrate_pinhole_dist_model(dataset, options) -> Calibration:
     from .pinhole import calibrate_pinhole
 
     return calibrate_pinhole(dataset, True, options.max_iterations)
 
 
-def calibrate_pf_model(dataset, options) -> "Calibration":  # noqa: F821
+def calibrate_pf_model(dataset, options) -> Calibration:
     from dataclasses import asdict
 
     from .polynomial import calibrate_pf

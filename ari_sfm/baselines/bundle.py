@@ -13,8 +13,9 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -24,6 +25,9 @@ from ..geometry import Pose
 from ..init.rig import join_rig
 from ..init.zhang import ZhangResult, calibrate_views, object_points
 from ..records import Dataset, Observation
+
+if TYPE_CHECKING:
+    from ..calibration import CameraCalibration
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +73,7 @@ class Points:
     slices: tuple[slice, ...]  # rows of each record
 
     @staticmethod
-    def build(dataset: Dataset, records: Sequence[Observation], names: Sequence[str], frames: Sequence[str]) -> "Points":
+    def build(dataset: Dataset, records: Sequence[Observation], names: Sequence[str], frames: Sequence[str]) -> Points:
         cam_index = {n: i for i, n in enumerate(names)}
         frame_index = {f: i for i, f in enumerate(frames)}
         records = tuple(o for o in records if o.camera in cam_index and o.frame in frame_index)
@@ -83,7 +87,9 @@ class Points:
             uv.append(np.asarray(o.pixels, float))
             slices.append(slice(start, start + m))
             start += m
-        cat = (lambda a, shape: np.concatenate(a) if a else np.zeros(shape))
+        def cat(a: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
+            return np.concatenate(a) if a else np.zeros(shape)
+
         return Points(records, cat(cams, (0,)).astype(int), cat(fr, (0,)).astype(int), cat(xyz, (0, 3)),
                       cat(uv, (0, 2)), tuple(frames), tuple(slices))
 
@@ -122,7 +128,8 @@ def column_groups(pattern: np.ndarray) -> list[np.ndarray]:
     return [np.array(g) for g in groups]
 
 
-def numeric_jacobian(fun: Callable[[np.ndarray], np.ndarray], pattern: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+def numeric_jacobian(fun: Callable[[np.ndarray], np.ndarray],
+                     pattern: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """A dense forward-difference Jacobian of ``fun`` using the column grouping of ``pattern``.
 
     Step per column: sqrt(machine eps) * max(1, |x_j|) (scipy's '2-point' rule).
@@ -225,7 +232,8 @@ def start_bundle(dataset: Dataset, distortion: bool, n_glob: int) -> tuple[RigBu
     """Zhang per camera, the rig joined in camera 0's world, the calibration corners packed."""
     names = tuple(dataset.camera_names)
     zhang = zhang_cameras(dataset, distortion)
-    cam_from_world, world_from_target = join_rig(names, {n: z.cam_from_target for n, z in zhang.items()}, dataset.rig_path)
+    cam_from_world, world_from_target = join_rig(names, {n: z.cam_from_target for n, z in zhang.items()},
+                                                 dataset.rig_path)
     frames = tuple(sorted(world_from_target))
     points = Points.build(dataset, dataset.select("calibration"), names, frames)
     bundle = RigBundle(points, names, 9 if distortion else 4, n_glob, tuple(cam_from_world[n] for n in names),
@@ -253,7 +261,7 @@ def project_directions(intr: np.ndarray, camera: np.ndarray, D: np.ndarray) -> n
 
 
 def camera_calibrations(dataset: Dataset, bundle: RigBundle, intr: np.ndarray, cams: Sequence[Pose],
-                        per_camera_residuals: dict[str, np.ndarray]) -> dict[str, "CameraCalibration"]:  # noqa: F821
+                        per_camera_residuals: dict[str, np.ndarray]) -> dict[str, CameraCalibration]:
     """The CameraCalibration of every camera from a solved bundle."""
     from ..calibration import CameraCalibration
     from ..evaluate import residual_stats
@@ -263,6 +271,6 @@ def camera_calibrations(dataset: Dataset, bundle: RigBundle, intr: np.ndarray, c
         p = intr[c]
         K = np.array([[p[0], 0.0, p[2]], [0.0, p[1], p[3]], [0.0, 0.0, 1.0]])
         dist = np.resize(p[4:], 5) if len(p) == 9 else np.zeros(5)
-        out[name] = CameraCalibration(name, tuple(dataset.cameras[name].image_size), K, dist, cams[c],
+        out[name] = CameraCalibration(name, dataset.cameras[name].image_size, K, dist, cams[c],
                                       rmse_px=residual_stats([per_camera_residuals[name]]).rmse_px)
     return out

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -19,10 +20,13 @@ from ..records import Dataset
 from ..results import OptimizerReport, OptimizerRun
 from .bundle import camera_calibrations, intrinsics_vector, project_directions, start_bundle
 
+if TYPE_CHECKING:
+    from ..calibration import Calibration
+
 log = logging.getLogger(__name__)
 
 
-def calibrate_pinhole(dataset: Dataset, distortion: bool = False, max_iterations: int = 100) -> "Calibration":  # noqa: F821
+def calibrate_pinhole(dataset: Dataset, distortion: bool = False, max_iterations: int = 100) -> Calibration:
     """A pinhole rig (model ``pinhole``, or ``pinhole_dist`` with distortion) that ignores the window."""
     from ..calibration import Calibration
 

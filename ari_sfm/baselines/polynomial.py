@@ -22,18 +22,21 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Sequence
 from dataclasses import replace
-from typing import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import AriSfmError
 from ..geometry import Pose
 from ..init.zhang import object_points
-from ..models.polynomial import (  # noqa: F401 (re-exported: the pf projection lives in models/)
-    DEGREE, EXPONENTS, NUM_TERMS, PolynomialMap, PolynomialModel, design_matrix)
+from ..models.polynomial import DEGREE, EXPONENTS, NUM_TERMS, PolynomialMap, PolynomialModel, design_matrix  # noqa: F401 (re-exported: the pf projection lives in models/)
 from ..records import Dataset, Observation
 from ..results import PfWorld
+
+if TYPE_CHECKING:
+    from ..calibration import Calibration
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +58,8 @@ def fit_polynomial(X_world: np.ndarray, uv: np.ndarray) -> PolynomialMap:
     return PolynomialMap(mean, scale, coef[:, 0].copy(), coef[:, 1].copy(), int(rank))
 
 
-def world_points(observations: Sequence[Observation], frames: dict[str, Pose], dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
+def world_points(observations: Sequence[Observation], frames: dict[str, Pose],
+                 dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
     """World points (N, 3) and pixels (N, 2) of the calibration records whose frame has a pose."""
     X, uv = [], []
     for o in observations:
@@ -67,7 +71,7 @@ def world_points(observations: Sequence[Observation], frames: dict[str, Pose], d
     return np.concatenate(X), np.concatenate(uv)
 
 
-def calibrate_pf(dataset: Dataset, world=None, **ari_options) -> "Calibration":  # noqa: F821
+def calibrate_pf(dataset: Dataset, world=None, **ari_options) -> Calibration:
     """PF per camera on the calibration records, in the world of an ari calibration.
 
     ``world``: a :class:`~ari_sfm.calibration.Calibration` whose frames give the
@@ -100,11 +104,13 @@ def calibrate_pf(dataset: Dataset, world=None, **ari_options) -> "Calibration": 
         cameras[name] = replace(cam, expansion_center_px=None, expansion_center_std_px=None, rmse_px=rmse, extra={},
                                 pf=polys[name])
     calib_obs = dataset.select("calibration")
-    residuals = [polys[o.camera].project_world(world.frames[o.frame].apply(object_points(dataset.target, o.ids))) - o.pixels
+    residuals = [polys[o.camera].project_world(world.frames[o.frame].apply(object_points(dataset.target, o.ids)))
+                 - o.pixels
                  for o in calib_obs if o.frame in world.frames]
     log.info("pf: %d cameras fitted in %.1f ms", len(polys), elapsed * 1e3)
     return replace(
         world, model="pf", cameras=cameras, stacking_poses={}, residuals=residual_stats(residuals), time_s=elapsed,
-        fixed_distance_mm=None, extra={}, optimizer=None, uncertainty=None, outliers=None, quality=None,  # pf is not judged
+        # pf is not judged
+        fixed_distance_mm=None, extra={}, optimizer=None, uncertainty=None, outliers=None, quality=None,
         pf_world=PfWorld(world.model, t_world or world.time_s),
     )

@@ -25,15 +25,18 @@ from __future__ import annotations
 
 import logging
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..errors import AriSfmError
 from ..evaluate import residual_stats
 from ..geometry import unit
 from ..records import Dataset, Interface
 from ..results import OptimizerReport, OptimizerRun
 from .bundle import camera_calibrations, intrinsics_vector, project_directions, start_bundle
+
+if TYPE_CHECKING:
+    from ..calibration import Calibration
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +80,7 @@ def trace_to_points(start: np.ndarray, X: np.ndarray, normal: np.ndarray, h: np.
     active = L > 0.0
     v[~active] = np.nan
     it = 0
-    for it in range(1, TRACE_MAX_ITER + 1):
+    for it in range(1, TRACE_MAX_ITER + 1):  # noqa: B007 (the count is returned)
         idx = np.flatnonzero(active)
         if len(idx) == 0:
             break
@@ -100,7 +103,7 @@ def _normal(base: np.ndarray, ab: np.ndarray) -> np.ndarray:
     return unit(base + ab[0] * e1 + ab[1] * np.cross(base, e1))
 
 
-def calibrate_rt(dataset: Dataset, distortion: bool = False, max_iterations: int = 100) -> "Calibration":  # noqa: F821
+def calibrate_rt(dataset: Dataset, distortion: bool = False, max_iterations: int = 100) -> Calibration:
     """The ray-tracing bundle adjustment (see module docstring) on the calibration records."""
     from ..calibration import Calibration
 
@@ -168,7 +171,7 @@ def calibrate_rt(dataset: Dataset, distortion: bool = False, max_iterations: int
     )
 
 
-def project_rt(calibration: "Calibration", camera: str, X_world: np.ndarray) -> np.ndarray:  # noqa: F821
+def project_rt(calibration: Calibration, camera: str, X_world: np.ndarray) -> np.ndarray:
     """Pixels (N, 2) of world points by this module's trace (for comparing with the saved ExactModel)."""
     cam = calibration.cameras[camera]
     X = cam.cam_from_world.apply(np.asarray(X_world, float).reshape(-1, 3))

@@ -48,7 +48,8 @@ FOCAL_BOUNDS = (0.1, 100.0)  # x the image's longer side
 FOCAL_SWEEP = np.geomspace(0.25, 25.0, 41)  # x the image's longer side: the focal lengths tried without a hint
 DISTINCT_DEG = 5.0  # starts whose rotations differ less and whose focal lengths differ less than
 DISTINCT_LOG_FOCAL = 0.2  # 20 % are one start
-CLICK_NOISE_PX = 3.0  # clicks are good to a few pixels: sweep focal lengths fitting them this close to the best are tried
+# clicks are good to a few pixels: sweep focal lengths fitting them this close to the best are tried
+CLICK_NOISE_PX = 3.0
 MAX_SPREAD = 5  # at most this many of them
 UNPROJECTABLE_PX = 1e4  # residual of a point the model cannot project (behind the camera or the window)
 
@@ -92,7 +93,7 @@ class MatchCamera:
         """Pixels (N, 2) of body points xyz (N, 3); NaN where the model has no image of a point."""
         return _project(self.rotation, self.params, self, np.asarray(xyz, float), jacobian=False)[0]
 
-    def with_window(self, window: BodyWindow | None) -> "MatchCamera":
+    def with_window(self, window: BodyWindow | None) -> MatchCamera:
         return replace(self, window=window)
 
 
@@ -111,7 +112,7 @@ def fit_camera(camera: MatchCamera, xyz: np.ndarray, uv: np.ndarray, free: tuple
     by the weak priors of the module docstring. The rotation is fitted as a left increment of the start's
     (``Exp(d) R``); the Jacobian is analytic (:func:`_project`).
     """
-    free = np.array(sorted(free))
+    columns = np.array(sorted(free))
     R0 = camera.rotation
     start = camera.params.copy()
     start[:3] = 0.0  # the increment d
@@ -122,7 +123,7 @@ def fit_camera(camera: MatchCamera, xyz: np.ndarray, uv: np.ndarray, free: tuple
 
     def unpack(x: np.ndarray) -> np.ndarray:
         p = start.copy()
-        p[free] = x
+        p[columns] = x
         return p
 
     def residuals(x: np.ndarray) -> np.ndarray:
@@ -134,16 +135,17 @@ def fit_camera(camera: MatchCamera, xyz: np.ndarray, uv: np.ndarray, free: tuple
     def jacobian(x: np.ndarray) -> np.ndarray:
         p = unpack(x)
         _, J = _project(rotation_from_rotvec(p[:3]) @ R0, p, camera, xyz, jacobian=True)
+        assert J is not None  # asked for
         J = np.nan_to_num(J.reshape(-1, 10), nan=0.0, posinf=0.0, neginf=0.0)
         weak = np.zeros((4, 10))
         weak[np.arange(4), np.arange(6, 10)] = 1.0 / sigmas
-        return np.concatenate([J, weak])[:, free]
+        return np.concatenate([J, weak])[:, columns]
 
     lower, upper = _bounds(image_size)
-    x0 = np.clip(start[free], lower[free] + 1e-9, upper[free] - 1e-9)
-    result = least_squares(residuals, x0, jac=jacobian, bounds=(lower[free], upper[free]), method="trf",
+    x0 = np.clip(start[columns], lower[columns] + 1e-9, upper[columns] - 1e-9)
+    result = least_squares(residuals, x0, jac=jacobian, bounds=(lower[columns], upper[columns]), method="trf",
                            x_scale="jac", loss="linear" if robust_px is None else "soft_l1",
-                           f_scale=robust_px or 1.0, max_nfev=50 * len(free))
+                           f_scale=robust_px or 1.0, max_nfev=50 * len(columns))
     params = unpack(result.x)
     params[:3] = cv2.Rodrigues(rotation_from_rotvec(params[:3]) @ R0)[0].ravel()
     return replace(camera, params=params)
@@ -169,20 +171,24 @@ def _project(R: np.ndarray, params: np.ndarray, camera: MatchCamera, xyz: np.nda
         if not h > 0:
             return np.full((len(X), 2), np.nan), (np.zeros((len(X), 2, 10)) if jacobian else None)
         try:
-            out = exact_project(X, intrinsics, normal, w.thickness_mm, w.index, w.medium_index, h,
-                                jacobians=jacobian, n_params=5)
+            if not jacobian:
+                return exact_project(X, intrinsics, normal, w.thickness_mm, w.index, w.medium_index, h,
+                                     jacobians=False, n_params=5).uv.reshape(-1, 2), None
+            out = exact_project(X, intrinsics, normal, w.thickness_mm, w.index, w.medium_index, h, n_params=5)
         except ConvergenceError:
             return np.full((len(X), 2), np.nan), (np.zeros((len(X), 2, 10)) if jacobian else None)
         uv, J_point, J_params, J_normal, J_distance = out.uv, out.J_point, out.J_params, out.J_normal, out.J_distance
     uv = uv.reshape(-1, 2)
     if not jacobian:
         return uv, None
+    assert J_point is not None and J_params is not None  # asked for (jacobian)
     J = np.empty((len(X), 2, 10))
     J[:, :, 0:3] = -np.einsum("nij,njk->nik", J_point, skew(X - t))  # d(Exp(d) R xyz)/dd = -[R xyz]x
     J[:, :, 3:6] = J_point
     J[:, :, 6] = f * (J_params[:, :, 0] + camera.aspect * J_params[:, :, 1])
     J[:, :, 7:10] = J_params[:, :, 2:5]
     if normal is not None:
+        assert J_normal is not None and J_distance is not None  # through a window
         J[:, :, 0:3] -= J_normal @ skew(normal)  # d n_c / dd = -[n_c]x
         J[:, :, 0:3] += J_distance[:, :, None] * np.cross(normal, t)  # dh/dd = (n_c x t)^T
         J[:, :, 3:6] += J_distance[:, :, None] * normal  # dh/dt = n_c^T

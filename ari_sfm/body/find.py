@@ -6,8 +6,8 @@ size from a hint or from the blobs at the clicked points) and :mod:`.identify` a
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 import numpy as np
 
@@ -15,8 +15,16 @@ from ari_sfm.records import Target
 
 from .camera import BodyWindow
 from .dots import DotOptions, Dots, alike, dot_diameter_at, find_dots
-from .identify import BodyMatch, ClickError, IdentifyOptions, clicked_points, identify_body, projected_spacing, \
-    start_cameras, unexplained_dots
+from .identify import (
+    BodyMatch,
+    ClickError,
+    IdentifyOptions,
+    clicked_points,
+    identify_body,
+    projected_spacing,
+    start_cameras,
+    unexplained_dots,
+)
 
 log = logging.getLogger(__name__)
 

@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
-from typing import Mapping
 
 import cv2
 import numpy as np
@@ -153,6 +153,8 @@ def identify_body(dots: np.ndarray, ids: np.ndarray, xyz: np.ndarray, clicks: Ma
                   match.rms_px)
         if best is None or (len(match.ids), -match.rms_px) > (len(best.ids), -best.rms_px):
             best = match
+    if best is None:
+        raise ValueError("no start to grow from (options.starts < 1 or no resection of the clicks)")
     _check_clicks(best, click_ids, click_xyz, click_uv)
     _check_rigid(best, ids, xyz, image_size, options)
     return best
@@ -186,11 +188,11 @@ def _propose(camera: MatchCamera, dots: np.ndarray, tree: cKDTree | None, xyz: n
     ambiguous: set[int] = set()
     if tree is None or not len(inside):
         return proposals, ambiguous, int(in_image.sum())
-    for k, hits in zip(inside, tree.query_ball_point(uv[inside], radius)):
+    for row, hits in zip(inside, tree.query_ball_point(uv[inside], radius)):
         if len(hits) == 1:
-            proposals[int(k)] = int(hits[0])
+            proposals[int(row)] = int(hits[0])
         elif len(hits) > 1:
-            ambiguous.add(int(k))
+            ambiguous.add(int(row))
     claimed: dict[int, list[int]] = {}
     for k, dot in proposals.items():
         claimed.setdefault(dot, []).append(k)
@@ -225,7 +227,7 @@ def _grow(camera: MatchCamera, dots: np.ndarray, tree: cKDTree | None, ids: np.n
     visible, radius, iterations = 0, 0.0, 0
     step = float(np.median(cKDTree(xyz).query(xyz, k=2)[0][:, 1])) if len(xyz) > 1 else 1.0
     reach = GROW_SPACINGS * step
-    for iterations in range(1, options.max_iterations + 1):
+    for iterations in range(1, options.max_iterations + 1):  # noqa: B007 (the count is reported)
         support = xyz[sorted(set(clicked) | set(matched))]
         allowed = cKDTree(support).query(xyz)[0] <= reach
         radius = options.tolerance_px or options.tolerance_fraction * projected_spacing(camera, xyz, image_size)

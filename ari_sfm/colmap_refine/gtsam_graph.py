@@ -108,7 +108,8 @@ class GtsamRefinement:
             p = values.atPose3(key)
             return Pose(p.rotation().matrix(), np.asarray(p.translation(), float))
 
-        frames = tuple(pose(_frame_key(f)) if lay.frames[f, 0] >= 0 else p for f, p in enumerate(template.rig_from_world))
+        frames = tuple(pose(_frame_key(f)) if lay.frames[f, 0] >= 0 else p
+                       for f, p in enumerate(template.rig_from_world))
         sensors = tuple(pose(_sensor_key(int(c))) if lay.sensors[c, 0] >= 0 else s
                         for c, s in zip(m.image_camera, template.sensor_from_rig))
         params = []
@@ -236,6 +237,8 @@ class GtsamRefinement:
     def _prior_factor(self, w: int, template: State) -> gtsam.CustomFactor:
         """The declared plane's prior on window w (:mod:`.plane`): keys n(w), d(w) where estimated."""
         prior, lay = self.prior, self.problem.layout
+        if prior is None:
+            raise ValueError("no declared plane: no prior factor")
         has_n, has_d = lay.window[w, 0] >= 0, lay.window[w, 2] >= 0
         keys = ([_normal_key(w)] if has_n else []) + ([_distance_key(w)] if has_d else [])
         J_n, J_d = prior.jacobians()
@@ -254,9 +257,12 @@ class GtsamRefinement:
     def _bar_factor(self) -> gtsam.CustomFactor:
         """The scale bar (:mod:`.scale_bar`, already whitened) on its two points."""
         bar = self.bar
+        if bar is None:
+            raise ValueError("no scale bar: no factor")
 
         def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-            xyz = {bar.a: np.asarray(values.atPoint3(_point_key(bar.a))), bar.b: np.asarray(values.atPoint3(_point_key(bar.b)))}
+            xyz = {bar.a: np.asarray(values.atPoint3(_point_key(bar.a))),
+                   bar.b: np.asarray(values.atPoint3(_point_key(bar.b)))}
             e = np.array([bar.error(xyz)])
             if H is not None:
                 J = bar.jacobian(xyz)

@@ -49,14 +49,14 @@ class WindowPrior:
     def jacobians(self) -> tuple[np.ndarray, np.ndarray]:
         """d(errors)/d(normal) (rows, 3) in the ambient 3-vector (chain with a tangent basis) and
         d(errors)/d(distance) (rows,)."""
-        rows = []
-        dd = []
+        rows: list[np.ndarray] = []
+        dd: list[np.ndarray] = []
         if self.with_normal:
             rows.append(np.eye(3))
             dd.append(np.zeros(3))
         if self.with_distance:
             rows.append(-self.plane.point_mm[None, :])
-            dd.append([1.0])
+            dd.append(np.ones(1))
         return np.vstack(rows), np.concatenate(dd)
 
     def cost(self, normals: np.ndarray, distances: np.ndarray) -> float:

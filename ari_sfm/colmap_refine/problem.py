@@ -23,8 +23,8 @@ everything else additively. Image i's ``cam_from_world = sensor_from_rig * rig_f
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Sequence
 
 import numpy as np
 
@@ -91,7 +91,7 @@ def make_layout(model: ColmapModel, mount: str, estimate_distance: bool, image_i
     only)."""
     k = 0
     intr = []
-    for c, p in enumerate(model.colmap_params):
+    for c, _p in enumerate(model.colmap_params):
         free = np.flatnonzero(model.param_map[c].any(axis=0))
         intr.append(-np.ones(len(free), int) if hold_intrinsics else np.arange(k, k + len(free)))
         k += 0 if hold_intrinsics else len(free)
@@ -265,12 +265,11 @@ class RefractiveProblem:
         sub = slice(None) if obs is None else obs
         cam_of_obs = self._cam_of_obs[sub]
         kmax = max(len(ix) for ix in lay.intrinsics)
-        M = len(cam_of_obs)
         index = np.concatenate([lay.frames[m.image_frame[m.obs_image[sub]]], lay.sensors[cam_of_obs],
                                 _pad([lay.intrinsics[c] for c in range(len(lay.intrinsics))], kmax)[cam_of_obs],
                                 lay.window[cam_of_obs] if self.mount == "camera" else
                                 lay.window[self.camera_windows[cam_of_obs]]], axis=1)
-        used = (index >= 0).any(axis=0)  # drop columns no observation uses (e.g. no rig sensors)
+        used = np.asarray((index >= 0).any(axis=0))  # drop columns no observation uses (e.g. no rig sensors)
         out = (np.ascontiguousarray(index[:, used]), used)
         out[0].flags.writeable = False  # shared by every linearization
         if obs is None:

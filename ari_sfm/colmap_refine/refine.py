@@ -52,17 +52,25 @@ import numpy as np
 
 from ari_sfm import colmap_export as adapter
 from ari_sfm.calibration import Calibration, CameraCalibration
-from ari_sfm.io import save_calibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose, rotation_from_rotvec, unit3_basis
+from ari_sfm.io import save_calibration
 from ari_sfm.models import AriModel, PinholeModel
 from ari_sfm.records import Interface, WindowPlane
 
-from .plane import WindowPrior, declared_window, window_prior
 from ..factors.schur import assemble_from_observations, model_decrease, solve_damped
+from .plane import WindowPrior, declared_window, window_prior
 from .problem import MOUNTS, RefractiveProblem, State, huber_cost, huber_weights
-from .report import (BaselineReport, DeclaredPlaneReport, Plate, RefineCounts, RefineReport, Reprojection, ScaleBarReport,
-                     WindowEstimate)
+from .report import (
+    BaselineReport,
+    DeclaredPlaneReport,
+    Plate,
+    RefineCounts,
+    RefineReport,
+    Reprojection,
+    ScaleBarReport,
+    WindowEstimate,
+)
 from .scale_bar import Baseline, ScaleBar
 from .settings import HUBER_PX, MAX_ITERATIONS
 from .uncertainty import uncertainty
@@ -112,7 +120,8 @@ def _units_mm(model: adapter.ColmapModel, units_mm: float | None, scale_bar: tup
         where = {int(p): k for k, p in enumerate(model.point3D_ids)}
         missing = [int(i) for i in (a, b) if int(i) not in where]
         if missing:
-            raise AriSfmError(path, f"scale_bar.point3D_ids: {', '.join(map(str, missing))} not in the model's points3D")
+            raise AriSfmError(path,
+                              f"scale_bar.point3D_ids: {', '.join(map(str, missing))} not in the model's points3D")
         if int(a) == int(b):
             raise AriSfmError(path, "scale_bar.point3D_ids: the two ids are the same point")
         length = float(np.linalg.norm(model.xyz[where[int(a)]] - model.xyz[where[int(b)]]))
@@ -175,7 +184,8 @@ def read_model(path: Path) -> Any:
 
     if not path.is_dir():
         raise AriSfmError(path, "not a COLMAP model folder" + (" (it is a file)" if path.exists() else " (missing)"))
-    text = sum((path / f"{n}.txt").exists() for n in MODEL_FILES) > sum((path / f"{n}.bin").exists() for n in MODEL_FILES)
+    text = (sum((path / f"{n}.txt").exists() for n in MODEL_FILES)
+            > sum((path / f"{n}.bin").exists() for n in MODEL_FILES))
     kind = "txt" if text else "bin"
     for n in MODEL_FILES:
         f = path / f"{n}.{kind}"
@@ -204,7 +214,8 @@ def read_model(path: Path) -> Any:
 
 def _check_redundancy(model: adapter.ColmapModel, path: Any) -> None:
     """Refuse a model with too few observations for its unknowns (it would "converge" to 0 px)."""
-    unknowns = sum(len(p) for p in model.colmap_params) + 6 * (len(model.frame_ids) - 1) + 3 + 3 * len(model.point3D_ids)
+    unknowns = (sum(len(p) for p in model.colmap_params) + 6 * (len(model.frame_ids) - 1) + 3
+                + 3 * len(model.point3D_ids))
     coordinates = 2 * len(model.obs_point)
     if coordinates < MIN_REDUNDANCY * unknowns:
         raise AriSfmError(path, f"too few observations to refine: {len(model.point3D_ids)} points3D seen "
@@ -227,7 +238,8 @@ def _check_finite(model: adapter.ColmapModel, path: Any) -> None:
     if not np.all(np.isfinite(model.obs_uv)):
         raise AriSfmError(path, "an image has a non-finite keypoint observed by a point3D")
     size = np.array(model.image_sizes, float)[model.image_camera[model.obs_image]]  # (M, 2) width, height
-    outside = np.any((model.obs_uv < -0.5 - EDGE_TOLERANCE_PX) | (model.obs_uv > size - 0.5 + EDGE_TOLERANCE_PX), axis=1)
+    outside = np.any((model.obs_uv < -0.5 - EDGE_TOLERANCE_PX) | (model.obs_uv > size - 0.5 + EDGE_TOLERANCE_PX),
+                     axis=1)
     if outside.any():
         k = int(np.argmax(outside))
         i = int(model.obs_image[k])
@@ -310,8 +322,8 @@ def _distance_search(model: adapter.ColmapModel, problem: RefractiveProblem, int
                   baseline=baseline)
     sub = RefractiveProblem(model, interface, mount, estimate_distance)
     search: list[dict] = []
-    best = None
-    others = []
+    best: tuple[float, State, int] | None = None
+    others: list[tuple[float, State, int]] = []
     order = sorted(candidates, key=lambda h: abs(candidates.index(h) - (len(candidates) - 1) / 2))
     warm = None
     for h in order:
@@ -334,6 +346,8 @@ def _distance_search(model: adapter.ColmapModel, problem: RefractiveProblem, int
             best = end
         else:
             others.append(end)
+    if best is None:
+        raise ValueError("no start distance to search")
     if len(keep) < len(full_xyz) and not np.all(np.isfinite(problem.residuals(best[1]))):
         # the subsample's poses put some of the other points (at their start) before the window: the
         # best distance again, on every point
@@ -445,7 +459,7 @@ def _aligned(model: adapter.ColmapModel, ref: State, state: State, refined: np.n
     needed[frame_of_obs[placed[model.obs_point]]] = True
     by_frame = np.argsort(frame_of_obs, kind="stable")
     starts = np.searchsorted(frame_of_obs[by_frame], np.arange(F + 1))
-    points_of = {f: model.obs_point[by_frame[starts[f]:starts[f + 1]]] for f in np.flatnonzero(needed)}
+    points_of = {int(f): model.obs_point[by_frame[starts[f]:starts[f + 1]]] for f in np.flatnonzero(needed)}
     sims: dict[int, tuple[float, np.ndarray, np.ndarray]] = {}
     for f, seen in points_of.items():
         pts = np.unique(seen[refined[seen]])
@@ -528,7 +542,7 @@ def _slid_start(model: adapter.ColmapModel, state: State, first: Block, make_sol
             return _aligned(model, ref, state, refined, np.zeros(0, int)), blocks  # points no block held
         sees = np.where(done, -1, seen[:, refined].sum(axis=1))
         new = np.argsort(-sees, kind="stable")[:min(step, int((~done).sum()))]
-        theirs = seen[new].any(axis=0)  # the new frames' points, with every refined frame's view of them
+        theirs = np.asarray(seen[new].any(axis=0))  # the new frames' points, with every refined frame's view of them
         state = _aligned(model, ref, state, refined, new, theirs)
         anchors = np.flatnonzero(done & (seen[:, theirs].sum(axis=1) >= ALIGN_MIN_POINTS))
         block = _block(model, np.union1d(new, anchors), theirs)
@@ -547,7 +561,7 @@ def _paraxial_offset_mm(interface: Interface, normal_cam: np.ndarray, h: float) 
 
 def _focal_rows(model: adapter.ColmapModel, c: int) -> np.ndarray:
     """Mask of camera c's COLMAP parameters that are focal lengths."""
-    return model.param_map[c][:2].any(axis=0)
+    return np.asarray(model.param_map[c][:2].any(axis=0))
 
 
 def _convert(model: adapter.ColmapModel, problem: RefractiveProblem, state: State, direction: int) -> State:
@@ -680,6 +694,8 @@ class Solver:
     def _add_prior(self, ne, state: State) -> None:
         """The declared plane's prior rows (whitened) added to the normal equations and the error."""
         lay, prior = self.problem.layout, self.prior
+        if prior is None:
+            return
         J_n, J_d = prior.jacobians()
         s = prior.sigmas
         for w, (n, d) in enumerate(zip(state.normals, state.distances)):
@@ -824,8 +840,9 @@ def _state_reconstruction(rec: Any, model: adapter.ColmapModel, problem: Refract
 
 def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camera", model: str = "exact",
                   units_mm: float | None = None, scale_bar: tuple[int, int, float] | None = None,
-                  baseline: tuple[str | int, str | int, float] | None = None, huber_px: float | None = HUBER_PX, max_iterations: int = MAX_ITERATIONS,
-                  distances_mm: tuple[float, ...] | None = None, approximation: str = "opencv",
+                  baseline: tuple[str | int, str | int, float] | None = None, huber_px: float | None = HUBER_PX,
+                  max_iterations: int = MAX_ITERATIONS, distances_mm: tuple[float, ...] | None = None,
+                  approximation: str = "opencv",
                   backend: str = "numpy", progress: bool = False,
                   path: Any = "reconstruction", plane_path: Any = "interface.plane",
                   window_path: Any = "WINDOW.yaml") -> RefineResult:
@@ -847,18 +864,8 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     start, the gauge and the scale.
     """
     t0 = time.perf_counter()
-    if model != "exact":
-        raise AriSfmError(path, f"refine-colmap: model {model!r} is not supported (exact)")
-    if backend not in ("numpy", "gtsam"):
-        raise AriSfmError(path, f"backend must be numpy or gtsam (got {backend!r})")
-    if approximation not in ("opencv", "pinhole"):
-        raise AriSfmError(path, f"approximation must be opencv or pinhole (got {approximation!r})")
-    if mount not in MOUNTS:
-        raise AriSfmError(path, f"mount must be one of {', '.join(MOUNTS)} (got {mount!r})")
-    if baseline is not None and (units_mm is not None or scale_bar is not None):
-        raise AriSfmError(window_path, "gives units_mm or scale_bar and a baseline gives the scale too: give it once")
-    if baseline is not None and backend != "numpy":
-        raise AriSfmError(path, "baseline: a term of the numpy backend only (backend numpy, or a scale_bar)")
+    _check_options(model, backend, approximation, mount, baseline is not None,
+                   units_mm is not None or scale_bar is not None, path, window_path)
     if not isinstance(reconstruction, (str, Path)) and hasattr(reconstruction, "num_points3D"):
         rec = reconstruction
     else:
@@ -883,22 +890,16 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     virtual = _initial_state(cmodel, mount, units)
     if plane is not None:  # the declared window is the start (held, or the prior's centre)
         virtual = _declared_start(cmodel, virtual, mount, plane, plane_path)
-    if plane is not None:
-        candidates: tuple[float, ...] = (float(virtual.distances[0]),)
-    elif interface.distance_mm is not None:
-        candidates = (float(interface.distance_mm),)
-    elif not estimate_distance:
-        candidates = (AIR_DISTANCE_MM,)
-    else:
-        candidates = tuple(distances_mm or DISTANCE_CANDIDATES_MM)
-    candidates = _candidates_inside_scene(cmodel, virtual, interface, candidates,
+    candidates = _candidates_inside_scene(cmodel, virtual, interface,
+                                          _distance_candidates(interface, virtual, estimate_distance, distances_mm),
                                           units_mm is not None or bar is not None or base is not None,
                                           plane is not None or interface.distance_mm is not None, window_path)
     blocks: list[dict] = []
     first = _first_block(cmodel, virtual, mount)
     if first is not None:  # a long chain: the start slides outward from a middle block (the middle start distance)
         h = candidates[(len(candidates) - 1) // 2] if len(candidates) > 1 else candidates[0]
-        whole = _convert(cmodel, problem, virtual if plane is not None else _with_distance(cmodel, virtual, mount, h), +1)
+        whole = _convert(cmodel, problem, virtual if plane is not None else _with_distance(cmodel, virtual, mount, h),
+                         +1)
 
         def block_solver(m: adapter.ColmapModel, held: np.ndarray | None) -> Solver:
             """The first block (``held`` None): the distance held, the normal free unless declared; a later
@@ -910,7 +911,7 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
 
         start, blocks = _slid_start(cmodel, whole, first, block_solver)
         start, _ = _to_scale(start, bar, base, plane is None)
-        search = []
+        search: list[dict] = []
         others = [(0.0, _restart_at(cmodel, problem, start, mount, c), 0) for c in candidates
                   if c != h and plane is None]
     else:
@@ -945,7 +946,8 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     result = run(start)
     iterations = (result.iterations + sum(c["iterations"] for c in search) + (pre.iterations if pre else 0)
                   + sum(b["iterations"] for b in blocks))
-    linearizations = result.linearizations + (pre.linearizations if pre else 0) + sum(b["linearizations"] for b in blocks)
+    linearizations = result.linearizations + (pre.linearizations
+                                              if pre else 0) + sum(b["linearizations"] for b in blocks)
     restarts = []
     collapsed = estimate_distance and plane is None and _collapsed(result.state, problem, candidates)
     for _, other, _ in (others if collapsed else []):  # the distance ran toward 0: the other starts, lowest cost wins
@@ -969,7 +971,8 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
     sigmas = uncertainty(solver, state, names, result.system)
     if collapsed and _collapsed(state, problem, candidates):  # still at ~0 after the restarts: say so, name it
         ran = (["distance_mm.world"] if mount == "world" else
-               [f"distance_mm.{names[c]}" for c, d in enumerate(state.distances) if d < DISTANCE_COLLAPSE * min(candidates)])
+               [f"distance_mm.{names[c]}"
+                for c, d in enumerate(state.distances) if d < DISTANCE_COLLAPSE * min(candidates)])
         sigmas = replace(sigmas, weak=sigmas.weak + tuple(w for w in ran if w not in sigmas.weak))
         log.warning("refine-colmap: the port distance ran to %.3g mm from every start (%s mm): these images do not "
                     "determine it, and it follows the scale; declare a scale_bar or check units_mm, or declare the "
@@ -1016,23 +1019,56 @@ def refine_colmap(reconstruction: Any, interface: Interface, mount: str = "camer
             plane.frame, declared_window(plane)[0], np.asarray(plane.point_mm, float),
             "held" if hold_normal else f"prior {plane.sigma_deg:g} deg",
             f"prior {plane.sigma_mm:g} mm" if estimate_distance else "held"),
-        scale_bar=None if bar is None else ScaleBarReport((int(scale_bar[0]), int(scale_bar[1])), bar.length_mm,
-                                                          bar.sigma_mm, bar.length(state.xyz)),
+        scale_bar=None if bar is None or scale_bar is None else ScaleBarReport(
+            (int(scale_bar[0]), int(scale_bar[1])), bar.length_mm, bar.sigma_mm, bar.length(state.xyz)),
         baseline=None if base is None else BaselineReport(
             (cmodel.image_names[base.a], cmodel.image_names[base.b]), base.length_mm, base.sigma_mm,
             base.length(state)))
-    if bar is not None and abs(report.scale_bar.refined_mm / bar.length_mm - 1.0) > 1e-3:
+    bar_report, base_report = report.scale_bar, report.baseline
+    if bar is not None and bar_report is not None and abs(bar_report.refined_mm / bar.length_mm - 1.0) > 1e-3:
         log.warning("refine-colmap: the scale bar is %.6g mm after the refinement (declared %.6g mm): the images "
-                    "pull against it", report.scale_bar.refined_mm, bar.length_mm)
-    if base is not None and abs(report.baseline.refined_mm / base.length_mm - 1.0) > 1e-3:
-        raise AriSfmError(path, f"baseline: the refinement ends with images {report.baseline.images[0]} and "
-                                f"{report.baseline.images[1]} {report.baseline.refined_mm:.6g} mm apart, not the "
+                    "pull against it", bar_report.refined_mm, bar.length_mm)
+    if base is not None and base_report is not None and abs(base_report.refined_mm / base.length_mm - 1.0) > 1e-3:
+        raise AriSfmError(path, f"baseline: the refinement ends with images {base_report.images[0]} and "
+                                f"{base_report.images[1]} {base_report.refined_mm:.6g} mm apart, not the "
                                 f"{base.length_mm:.6g} mm given: the images pull against it (check the names and "
                                 "the distance)")
     log.warning("refine-colmap: the COLMAP cameras written are the best %s approximation of the refractive "
                 "cameras (poses are virtual; real poses in calibration.json): %.3f px RMS (the exact model: %.3f px)",
                 approximation, report.pinhole_approximation.rms_px, report.after.rms_px)
     return RefineResult(approx, refractive, calibration, state, report)
+
+
+def _check_options(model: str, backend: str, approximation: str, mount: str, baseline: bool, other_scale: bool,
+                   path: Any, window_path: Any) -> None:
+    """refine_colmap's choices, each checked (``baseline``: one is given; ``other_scale``: units_mm or a
+    scale bar is)."""
+    if model != "exact":
+        raise AriSfmError(path, f"refine-colmap: model {model!r} is not supported (exact)")
+    if backend not in ("numpy", "gtsam"):
+        raise AriSfmError(path, f"backend must be numpy or gtsam (got {backend!r})")
+    if approximation not in ("opencv", "pinhole"):
+        raise AriSfmError(path, f"approximation must be opencv or pinhole (got {approximation!r})")
+    if mount not in MOUNTS:
+        raise AriSfmError(path, f"mount must be one of {', '.join(MOUNTS)} (got {mount!r})")
+    if baseline and other_scale:
+        raise AriSfmError(window_path, "gives units_mm or scale_bar and a baseline gives the scale too: give it once")
+    if baseline and backend != "numpy":
+        raise AriSfmError(path, "baseline: a term of the numpy backend only (backend numpy, or a scale_bar)")
+
+
+def _distance_candidates(interface: Interface, virtual: Any, estimate_distance: bool,
+                         distances_mm: tuple[float, ...] | None) -> tuple[float, ...]:
+    """The start distances to try: the declared window's (``virtual``, its start), the interface's
+    distance_mm, the air's placeholder when the distance is not estimated, else ``distances_mm`` or the
+    default candidates."""
+    if interface.plane is not None:
+        return (float(virtual.distances[0]),)
+    if interface.distance_mm is not None:
+        return (float(interface.distance_mm),)
+    if not estimate_distance:
+        return (AIR_DISTANCE_MM,)
+    return tuple(distances_mm or DISTANCE_CANDIDATES_MM)
 
 
 def _window_parts(hold_normal: bool, estimate_distance: bool, declared: bool) -> str:

@@ -4,8 +4,9 @@ contract of docs/DATASET_FORMAT.md) and its parts. Built at the end of
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 

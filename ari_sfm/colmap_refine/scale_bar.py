@@ -11,10 +11,13 @@ its variables (frame and sensor poses) are reduced variables already.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+Points = np.ndarray | Mapping[int, np.ndarray]  # the points (N, 3), or the bar's two by index
 
 BAR_SIGMA_REL = 1e-4  # the bar's (and the baseline's) sigma as a fraction of its length
 
@@ -31,16 +34,16 @@ class ScaleBar:
     def sigma_mm(self) -> float:
         return BAR_SIGMA_REL * self.length_mm
 
-    def length(self, xyz: np.ndarray) -> float:
+    def length(self, xyz: Points) -> float:
         return float(np.linalg.norm(xyz[self.a] - xyz[self.b]))
 
-    def error(self, xyz: np.ndarray) -> float:
+    def error(self, xyz: Points) -> float:
         return (self.length(xyz) - self.length_mm) / self.sigma_mm
 
-    def cost(self, xyz: np.ndarray) -> float:
+    def cost(self, xyz: Points) -> float:
         return 0.5 * self.error(xyz) ** 2
 
-    def jacobian(self, xyz: np.ndarray) -> np.ndarray:
+    def jacobian(self, xyz: Points) -> np.ndarray:
         """(6,) d error / d [X_a, X_b]."""
         u = xyz[self.a] - xyz[self.b]
         u = u / np.linalg.norm(u)

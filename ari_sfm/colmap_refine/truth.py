@@ -59,6 +59,8 @@ def window_errors(truth: SfmTruth, normals: np.ndarray, distances: np.ndarray,
         dist = max(abs(d - h) for d, h in zip(distances, truth.distance_mm))
     else:
         est, tru = first_rig_from_world, truth.rig_from_world[0]
+        if est is None or truth.normal_world is None or truth.plane_mm is None:
+            raise ValueError("mount world: the estimate's first frame and the truth's world window are needed")
         ang = angle_between_deg(est.R @ normals[0], tru.R @ truth.normal_world)
         dist = abs((float(distances[0]) - normals[0] @ est.inverse().t)
                    - (truth.plane_mm - truth.normal_world @ tru.inverse().t))
@@ -74,5 +76,7 @@ def truth_state(truth: SfmTruth, model: ColmapModel) -> State:
     if truth.mount == "camera":
         normals, distances = np.array(truth.normal_cam), np.array(truth.distance_mm)
     else:
+        if truth.normal_world is None:
+            raise ValueError("mount world: the truth has no world window")
         normals, distances = truth.normal_world[None, :], np.array([truth.plane_mm])
     return State(params, frames, sensors, normals, distances, truth.xyz[model.point3D_ids - 1].copy())

@@ -2,8 +2,8 @@
 
 Covariance of the reduced variables (cameras, poses, window; the points eliminated):
 ``s0^2 S^-1`` with ``S = H_gg - W V^-1 W^T`` the undamped Schur complement at the solution
-(:func:`ari_sfm.factors.schur.global_covariance`, the bundle-adjustment core's) and ``s0^2`` the a-posteriori variance factor
-(Huber-weighted residuals over the degrees of freedom), so the sigmas follow the residuals actually
+(:func:`ari_sfm.factors.schur.global_covariance`, the bundle-adjustment core's) and ``s0^2`` the a-posteriori variance
+factor (Huber-weighted residuals over the degrees of freedom), so the sigmas follow the residuals actually
 reached. The gauge (the first frame) is held; the scale is a direction of the problem, determined
 by refraction only (or by a scale bar), so a scale the images barely determine shows as a large
 ``scale_rel`` and, through it, a large distance sigma. A parameter the data do not determine at all
@@ -97,7 +97,7 @@ def _weak(u: dict, state: Any, model: Any, mount: str, names: list[str]) -> list
     """Warnings (logged) for parameters the data barely determine, with the remedy; their names."""
     weak = []
     face = "interface.plane" + (" (in the camera frame)" if mount == "camera" else " (in the COLMAP world, mm)")
-    for k, (name, sig) in enumerate(u["normal_deg"].items()):
+    for name, sig in u["normal_deg"].items():
         if not sig <= WEAK_NORMAL_DEG:  # NaN / inf too: not determined at all
             weak.append(f"normal_deg.{name}")
             log.warning("refine-colmap: the port normal of %s is barely determined by these images (+-%.2g deg, "

@@ -8,8 +8,8 @@ least-squares intersection of the lines, with iterative outlier rejection.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 

@@ -7,8 +7,9 @@ import itertools
 import os
 import queue
 import threading
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from typing import Callable, Iterator, Sequence, TypeVar
+from typing import TypeVar
 
 import cv2
 

@@ -6,9 +6,10 @@ from __future__ import annotations
 import logging
 import os
 from collections import deque
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Sequence
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -76,7 +77,8 @@ def initialise_camera(dataset: Dataset, name: str, distortion: bool = False,
     views = [o for o in dataset.select("calibration", name) if len(o.ids) >= 6]
     need = MIN_VIEWS if dataset.target.is_planar() else MIN_VIEWS_3D
     if len(views) < need:
-        raise AriSfmError(dataset.rig_path, f"camera {name} has {len(views)} calibration views with >= 6 corners (need >= {need})")
+        raise AriSfmError(dataset.rig_path,
+                          f"camera {name} has {len(views)} calibration views with >= 6 corners (need >= {need})")
     stacking = dataset.select("stacking", name)
     firsts = [min((o for o in stacking if o.frame == pose), key=lambda o: o.added_mm or 0.0)
               for pose in sorted({o.frame for o in stacking})]  # each stacking pose's thinnest view: its PnP
@@ -98,16 +100,18 @@ def initialise_camera(dataset: Dataset, name: str, distortion: bool = False,
         normal = normal_from_expansion_center(expansion.center_px, zhang.K)
     poses: dict[str, Pose] = {}
     for frame, gen in zhang.cam_from_target.items():
-        poses[frame] = real_cam_from_target(gen, normal if normal is not None else np.zeros(3), _shift(iface.thickness_mm, iface.index))
+        poses[frame] = real_cam_from_target(gen, normal if normal is not None else np.zeros(3),
+                                            _shift(iface.thickness_mm, iface.index))
     for first in firsts:
         shift = _shift(iface.thickness_mm + (first.added_mm or 0.0), iface.index)
-        poses[first.frame] = real_cam_from_target(zhang.also[first.frame], normal if normal is not None else np.zeros(3),
+        poses[first.frame] = real_cam_from_target(zhang.also[first.frame],
+                                                  normal if normal is not None else np.zeros(3),
                                                   shift)
     return CameraInit(name, zhang.K, zhang.dist, expansion, normal, poses, zhang.rms_px)
 
 
 def join_rig(names: Sequence[str], cam_from_target: dict[str, dict[str, Pose]],
-             path: object = None) -> tuple[dict[str, Pose], dict[str, Pose]]:
+             path: str | Path | None = None) -> tuple[dict[str, Pose], dict[str, Pose]]:
     """cam_from_world of every camera (world = camera 0) and world_from_target of every frame.
 
     Relative poses are chordal means over shared frames along a breadth-first
@@ -172,7 +176,8 @@ def initialise_rig(dataset: Dataset, distortion: bool = False, workers: int | No
     names = dataset.camera_names
     cams = _initialise_cameras(dataset, names, distortion, workers, fix_intrinsics, centred)
     # Camera graph: edges weighted by the number of shared frames (calibration and stacking).
-    cam_from_world, world_from_target = join_rig(names, {n: c.cam_from_target for n, c in cams.items()}, dataset.rig_path)
+    cam_from_world, world_from_target = join_rig(names, {n: c.cam_from_target for n, c in cams.items()},
+                                                 dataset.rig_path)
     window_normals, observed = [], []
     for window in dataset.window_list():
         normals = [cam_from_world[n].R.T @ cams[n].normal_cam for n in window.cameras if cams[n].normal_cam is not None]

@@ -23,7 +23,7 @@
 from __future__ import annotations
 
 import logging
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -51,7 +51,7 @@ def not_beyond(state, observations: Sequence[Observation], target: Target, thick
             return name, None
     views = [o for o in observations if o.set in ("calibration", "stacking") and o.frame in state.world_from_target
              and o.camera in state.cam_from_world and o.camera in mine]
-    added = {}
+    added: dict[str, float] = {}
     for o in views:
         added[o.frame] = max(added.get(o.frame, 0.0), (o.added_mm or 0.0) if o.set == "stacking" else 0.0)
     _, all_points = target.points_3d_readonly
@@ -104,8 +104,10 @@ def distance_interval(state, observations: Sequence[Observation], target: Target
     mine = set(state.cam_from_world if cameras is None else cameras)
     lo = max(float(n @ p.inverse().t) for name, p in state.cam_from_world.items() if name in mine)
     h_now = state.offset(window)
-    moving = medium_index is not None and h_now is not None and np.isfinite(h_now)
-    n_m, h0 = (float(medium_index), float(h_now)) if moving else (1.0, 0.0)
+    if medium_index is not None and h_now is not None and np.isfinite(h_now):
+        n_m, h0 = float(medium_index), float(h_now)
+    else:
+        n_m, h0 = 1.0, 0.0
     hi = np.inf
     for o in observations:
         pose = state.world_from_target.get(o.frame)

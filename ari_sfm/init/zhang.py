@@ -8,9 +8,8 @@ whose translation still contains the shift (removed in :mod:`interface_pose`).
 from __future__ import annotations
 
 import logging
-
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import cv2
 import numpy as np
@@ -44,7 +43,8 @@ def object_points(target: Target, ids: np.ndarray) -> np.ndarray:
             raise KeyError(int(ids[np.flatnonzero((ids < 0) | (ids >= n))[0]]))
         return xyz[ids]
     pos = np.searchsorted(all_ids, ids)
-    unknown = (pos >= len(all_ids)) | (all_ids[np.minimum(pos, len(all_ids) - 1)] != ids) if len(all_ids) else ids == ids
+    unknown = ((pos >= len(all_ids)) | (all_ids[np.minimum(pos, len(all_ids) - 1)] != ids) if len(all_ids)
+               else ids == ids)
     if unknown.any():
         raise KeyError(int(ids[np.flatnonzero(unknown)[0]]))
     return xyz[pos]
@@ -141,7 +141,7 @@ def calibrate_zhang(
 
     def pnp(view: tuple[Observation, np.ndarray | None, np.ndarray | None]) -> Pose:
         v, o, i = view
-        if o is None:  # an ``also`` view
+        if o is None or i is None:  # an ``also`` view
             return solve_pnp(target, K, dist, v)
         planar = bool(np.all(o[:, 2] == 0))
         return _pnp_pose(o, i, K, dist, cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_ITERATIVE, v.frame)

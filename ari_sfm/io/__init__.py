@@ -6,7 +6,13 @@ validates first and writes atomically.
 """
 from __future__ import annotations
 
-from ari_sfm.io.atomic import exclusive_folder, write_bytes_atomic, write_files_atomic, write_json_atomic, write_text_atomic
+from ari_sfm.io.atomic import (
+    exclusive_folder,
+    write_bytes_atomic,
+    write_files_atomic,
+    write_json_atomic,
+    write_text_atomic,
+)
 from ari_sfm.io.calibration_file import calibration_to_json, load_calibration, parse_calibration, save_calibration
 from ari_sfm.io.dataset import detections_rig, dump_rig, find_rig, load_dataset, save_detections, save_rig
 from ari_sfm.io.observations import load_observations, save_observations

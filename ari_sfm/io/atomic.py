@@ -12,9 +12,11 @@ import math
 import os
 import shutil
 import tempfile
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path, PurePath
-from typing import Any, Callable, Iterator, Mapping
+from types import ModuleType
+from typing import Any
 
 import numpy as np
 
@@ -254,6 +256,15 @@ class _signals_held:
             signal.pthread_sigmask(signal.SIG_SETMASK, self.mask)
 
 
+def _fcntl() -> ModuleType | None:
+    """POSIX's fcntl (file locks); None where the platform has none."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock
+        return None
+    return fcntl
+
+
 class exclusive_folder:
     """A command's hold on its output folder (``with exclusive_folder(out, "-o/--out"):``): a second command
     writing into the same folder at the same time is refused in one line, instead of the two interleaving
@@ -266,11 +277,8 @@ class exclusive_folder:
         self.fd: int | None = None
         self.created = False
 
-    def __enter__(self) -> "exclusive_folder":
-        try:
-            import fcntl
-        except ImportError:  # not POSIX: no lock
-            fcntl = None
+    def __enter__(self) -> exclusive_folder:
+        fcntl = _fcntl()
         try:
             self.created = not self.out.exists()
             self.out.mkdir(parents=True, exist_ok=True)

@@ -6,15 +6,22 @@ numbers; :func:`check_calibration_values` refuses it in one line naming the key.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
 from ari_sfm.errors import AriSfmError
 from ari_sfm.io.dataset import MAX_INDEX, MAX_LENGTH_MM, MIN_FOCAL_PX, check_at_least
-from ari_sfm.io.structured import (as_finite_float, as_float_array, as_float_at_least, as_int_pair,
-                                   as_positive_float, check_at_most)
+from ari_sfm.io.structured import (
+    as_finite_float,
+    as_float_array,
+    as_float_at_least,
+    as_int_pair,
+    as_positive_float,
+    check_at_most,
+)
 
 CALIBRATION_DIST_LENGTHS = (4, 5)  # k1 k2 p1 p2 [k3]: what the models use (calibration.json writes 5)
 
@@ -42,9 +49,9 @@ def check_calibration_values(data: Any, path: str | Path, window: bool = True) -
         fixed = _offset(data["fixed_distance_mm"], path, "fixed_distance_mm")
         if isinstance(data.get("interface"), Mapping) and windows:
             _check_camera_distances(data, data["interface"], fixed, windows[0][2], "fixed_distance_mm", path)
-    cameras = data.get("cameras")
-    if isinstance(cameras, Mapping):
-        for name, camera in cameras.items():
+    camera_data = data.get("cameras")
+    if isinstance(camera_data, Mapping):
+        for name, camera in camera_data.items():
             if isinstance(camera, Mapping) and camera.get("image_size") is not None:  # 2448.5 was cut to 2448
                 as_int_pair(camera["image_size"], path, f"cameras.{name}.image_size", minimum=1)
             if isinstance(camera, Mapping) and camera.get("K") is not None:
@@ -105,4 +112,5 @@ def _check_camera_distances(data: Mapping, iface: Mapping, distance: float, came
         h = distance - (float(normal @ (-R.T @ t)) - reference)  # camera centre to the near face along the normal
         if not 0.0 < h <= MAX_LENGTH_MM:
             raise AriSfmError(path, f"{where} {distance:g} puts camera {name} {h:.4g} mm from the "
-                                    f"window's near face (must be in front of it, 0 < distance <= {MAX_LENGTH_MM:g} mm)")
+                                    "window's near face (must be in front of it, "
+                                    f"0 < distance <= {MAX_LENGTH_MM:g} mm)")

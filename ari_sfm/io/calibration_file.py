@@ -22,8 +22,15 @@ from ari_sfm.models.polynomial import PolynomialMap
 from ari_sfm.models.registry import model_spec
 from ari_sfm.quality import Quality
 from ari_sfm.records import Interface
-from ari_sfm.results import (OptimizerReport, OutlierReport, PfWorld, ResidualStats, StageRecord, Uncertainty,
-                             stages_from_json)
+from ari_sfm.results import (
+    OptimizerReport,
+    OutlierReport,
+    PfWorld,
+    ResidualStats,
+    StageRecord,
+    Uncertainty,
+    stages_from_json,
+)
 
 FORMAT = "ari-sfm-calibration/1"
 
@@ -60,6 +67,8 @@ def calibration_to_json(cal: Calibration) -> dict[str, Any]:
         if c.rmse_px is not None:
             entry["rmse_px"] = c.rmse_px
         if c.pf is not None:
+            if cal.pf_world is None:
+                raise ValueError(f"camera {name} has a pf polynomial, the calibration no pf_world")
             entry["pf"] = c.pf.to_json(cal.pf_world.model)
         entry.update(c.extra)
         cams[name] = entry
@@ -135,7 +144,8 @@ def _pose(d: Any, what: str, path: Any) -> Pose:
         raise AriSfmError(path, f"{what}.R is not a rotation matrix")
     t = _finite(d["t"], (3,), f"{what}.t", path)
     if float(np.max(np.abs(t))) > MAX_POSE_TRANSLATION_MM:
-        raise AriSfmError(path, f"{what}.t: {float(np.max(np.abs(t))):.3g} mm is beyond {MAX_POSE_TRANSLATION_MM:.0e} mm "
+        raise AriSfmError(path,
+                          f"{what}.t: {float(np.max(np.abs(t))):.3g} mm is beyond {MAX_POSE_TRANSLATION_MM:.0e} mm "
                                 "(1000 km): not a pose of this rig")
     return Pose(R, t)
 
@@ -166,7 +176,8 @@ def _parse(data: Any, path: Any) -> Calibration:
     if "interfaces" in data:
         if not isinstance(data["interfaces"], dict) or not data["interfaces"]:
             raise AriSfmError(path, "interfaces must be a non-empty object (window name -> window)")
-        parsed = [(str(name), *_parse_window(w, f"interfaces.{name}", spec, path)) for name, w in data["interfaces"].items()]
+        parsed = [(str(name), *_parse_window(w, f"interfaces.{name}", spec, path))
+                  for name, w in data["interfaces"].items()]
     else:
         parsed = [("window", *_parse_window(data["interface"], "interface", spec, path))]
     cams = {}
@@ -184,7 +195,8 @@ def _parse(data: Any, path: Any) -> Calibration:
             if key not in c:
                 raise AriSfmError(path, f"cameras.{name}.{key} is missing (model {model} stores its parameters there)")
         poly = None
-        if spec.projection == "polynomial":  # the polynomial is the model: validate it here, not at the first projection
+        # the polynomial is the model: validate it here, not at the first projection
+        if spec.projection == "polynomial" and pf_world is not None:  # (pf_world is required above)
             try:
                 poly = PolynomialMap.from_json(c["pf"])
             except (KeyError, TypeError, ValueError) as exc:
@@ -194,7 +206,7 @@ def _parse(data: Any, path: Any) -> Calibration:
                                         f"{pf_world.model!r}: one world for all cameras")
         cams[name] = CameraCalibration(
             name,
-            tuple(int(s) for s in c["image_size"]),
+            (int(c["image_size"][0]), int(c["image_size"][1])),  # two integers (check_calibration_values)
             _finite(c["K"], (3, 3), f"cameras.{name}.K", path),
             np.resize(_finite(c.get("dist", [0] * 5), (len(c.get("dist", [0] * 5)),), f"cameras.{name}.dist", path), 5),
             _pose(c["cam_from_world"], f"cameras.{name}.cam_from_world", path),
@@ -204,10 +216,11 @@ def _parse(data: Any, path: Any) -> Calibration:
             {k: v for k, v in c.items() if k not in known},
             poly,
         )
-    for _, interface, _, listed, _ in parsed:
+    for _, interface, _, _listed, _ in parsed:
         _check_bounds(cams, interface.thickness_mm, path)
     frames = {f: _pose(v["world_from_target"], f"frames.{f}", path) for f, v in data.get("frames", {}).items()}
-    stacking = {f: _pose(v["world_from_target"], f"stacking_poses.{f}", path) for f, v in data.get("stacking_poses", {}).items()}
+    stacking = {f: _pose(v["world_from_target"], f"stacking_poses.{f}", path)
+                for f, v in data.get("stacking_poses", {}).items()}
     reserved = {"format", "model", "interface", "interfaces", "cameras", "frames", "stacking_poses", "residuals",
                 "time_s", "target", "fixed_distance_mm", "uncertainty", "outliers", "pf_world", "quality", "optimizer",
                 "stages"}
@@ -284,7 +297,8 @@ def _parse_window(iface: Any, where: str, spec, path: Any) -> tuple[Interface, n
     if fixed is not None:
         fixed = float(fixed)
         if not math.isfinite(fixed):
-            raise AriSfmError(path, f"{where}.fixed_distance_mm must be a finite number (got {iface['fixed_distance_mm']!r})")
+            raise AriSfmError(path,
+                              f"{where}.fixed_distance_mm must be a finite number (got {iface['fixed_distance_mm']!r})")
     return Interface(thickness, index, medium, None if distance is None else float(distance)), normal, listed, fixed
 
 
@@ -297,7 +311,8 @@ def _windows(parsed: list, data: dict, cams: dict[str, CameraCalibration], path:
         if fixed is not None:
             fixed = float(fixed)
             if not math.isfinite(fixed):
-                raise AriSfmError(path, f"fixed_distance_mm must be a finite number (got {data['fixed_distance_mm']!r})")
+                raise AriSfmError(path,
+                                  f"fixed_distance_mm must be a finite number (got {data['fixed_distance_mm']!r})")
         return (WindowCalibration(name, interface, normal, tuple(cams), fixed),)
     out = []
     for name, interface, normal, listed, fixed in parsed:

@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import yaml
@@ -43,8 +44,18 @@ from ari_sfm.io.structured import (
     show,
     warn_unknown_keys,
 )
-from ari_sfm.records import SETS, CameraSpec, Dataset, Entry, Interface, Observation, Target, Window, WindowPlane, \
-    check_windows
+from ari_sfm.records import (
+    SETS,
+    CameraSpec,
+    Dataset,
+    Entry,
+    Interface,
+    Observation,
+    Target,
+    Window,
+    WindowPlane,
+    check_windows,
+)
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +64,8 @@ RIG_NAMES = ("rig.yaml", "rig.yml", "rig.json")
 TARGET_TYPES = ("checkerboard", "charuco", "circles", "points3d")
 CIRCLE_LAYOUTS = ("symmetric", "asymmetric")
 DIST_LENGTHS = (4, 5, 8, 12, 14)
-TOP_KEYS = ("format", "target", "interface", "interfaces", "cameras", *SETS, "observations", "particles")  # particles: io/particles.py
+# particles: io/particles.py
+TOP_KEYS = ("format", "target", "interface", "interfaces", "cameras", *SETS, "observations", "particles")
 TARGET_KEYS = {
     "checkerboard": ("type", "inner_corners", "square_mm"),
     "charuco": ("type", "squares", "square_mm", "marker_mm", "dictionary"),
@@ -153,7 +165,8 @@ def parse_target(data: Any, path: Path, where: str = "target") -> Target:
             raise AriSfmError(path, f"{where}.marker_mm must be < square_mm ({marker:g} >= {square:g})")
         dictionary = as_str(get("dictionary"), path, f"{where}.dictionary")
         if dictionary not in ARUCO_DICTIONARIES:
-            raise AriSfmError(path, f"unknown {where}.dictionary {dictionary!r} (expected a cv2.aruco DICT_* name such as DICT_4X4_50)")
+            raise AriSfmError(path, f"unknown {where}.dictionary {dictionary!r} (expected a cv2.aruco DICT_* name such "
+                                    "as DICT_4X4_50)")
         markers = squares[0] * squares[1] // 2
         if ARUCO_DICTIONARIES[dictionary] < markers:
             raise AriSfmError(
@@ -194,7 +207,8 @@ def _parse_circles(data: Mapping[str, Any], get: Any, path: Path, where: str) ->
     if diameter is not None:
         diameter = as_positive_float(diameter, path, f"{where}.diameter_mm")
         if diameter >= spacing:
-            raise AriSfmError(path, f"{where}.diameter_mm must be < spacing_mm ({diameter:g} >= {spacing:g}): the dots would touch")
+            raise AriSfmError(path, f"{where}.diameter_mm must be < spacing_mm ({diameter:g} >= {spacing:g}): the dots "
+                                    "would touch")
     return Target(type="circles", circle_grid=grid, spacing_mm=spacing, layout=layout, diameter_mm=diameter)
 
 
@@ -308,7 +322,8 @@ def parse_camera(name: str, data: Any, path: Path, where: str) -> CameraSpec:
     check_at_most(max(size), MAX_IMAGE_SIDE_PX, path, f"{where}.image_size", " px")
     focal = data.get("focal_px")
     focal = None if focal is None else check_at_most(
-        check_at_least(as_positive_float(focal, path, f"{where}.focal_px"), MIN_FOCAL_PX, path, f"{where}.focal_px", " px"),
+        check_at_least(as_positive_float(focal, path, f"{where}.focal_px"), MIN_FOCAL_PX, path, f"{where}.focal_px",
+                       " px"),
         MAX_FOCAL_PX, path, f"{where}.focal_px", " px")
     K = None
     if data.get("K") is not None:
@@ -363,7 +378,8 @@ def parse_entries(
         name = as_name(require(item, key, path, where), path, f"{where}.{key}")
         ctx = f"{where} ({key} {name})"
         if set_name == "stacking":
-            added = check_at_most(as_nonnegative_float(require(item, "added_mm", path, where), path, f"{where}.added_mm"),
+            added = check_at_most(as_nonnegative_float(require(item, "added_mm", path, where), path,
+                                                       f"{where}.added_mm"),
                                   MAX_LENGTH_MM, path, f"{where}.added_mm", " mm")
         elif item.get("added_mm") is not None:
             raise AriSfmError(path, f"{ctx}: added_mm is only for stacking entries")
@@ -472,7 +488,8 @@ def _parse_images(
     for raw_cam, rel in data.items():
         cam = as_name(raw_cam, path, f"{where} camera name")
         if cam not in cameras:
-            raise AriSfmError(path, f"{ctx}: images name camera '{cam}', which is not declared in cameras ({', '.join(cameras)})")
+            raise AriSfmError(path, f"{ctx}: images name camera '{cam}', which is not declared in cameras "
+                                    f"({', '.join(cameras)})")
         rel = as_str(rel, path, f"{where}.{cam}")
         image = Path(os.path.abspath(root / rel))
         if check_files and not image.is_file():
@@ -728,7 +745,7 @@ def save_rig(path: str | Path, dataset: Dataset) -> Path:
     except AriSfmError as exc:
         raise AriSfmError(path, exc.message) from None
     parse_rig(data, path, check_files=False)
-    if obs_file is not None:
+    if obs_file is not None and dataset.observations is not None:
         obs_data = observations_to_json(dataset.observations)
         parse_observations(obs_data, root / obs_file, dataset.target, dataset.cameras)
         write_json_atomic(root / obs_file, obs_data)
@@ -771,4 +788,5 @@ def save_detections(out: str | Path, dataset: Dataset, observations: Sequence[Ob
     from the corners instead of detecting again (:func:`detections_rig` says which rig file). Returns it."""
     rig = detections_rig(out, dataset)
     Path(out).mkdir(parents=True, exist_ok=True)
-    return save_rig(rig, dataset.with_observations(tuple(observations), Path(os.path.abspath(Path(out) / "observations.json"))))
+    return save_rig(rig, dataset.with_observations(tuple(observations),
+                                                   Path(os.path.abspath(Path(out) / "observations.json"))))

@@ -1,8 +1,9 @@
 """``observations.json`` (format ``ari-sfm-observations/1``): detected corners, one record per image."""
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -119,7 +120,8 @@ def _parse_record(rec: Any, i: int, path: Path, target: Target | None, cameras: 
         added = None
     stage = None if rec.get("stage_mm") is None else as_finite_float(rec["stage_mm"], path, f"{ctx}: stage_mm")
     if cameras is not None and camera not in cameras:
-        raise AriSfmError(path, f"{ctx}: camera '{camera}' is not declared in the rig (cameras: {', '.join(sorted(cameras))})")
+        raise AriSfmError(path, f"{ctx}: camera '{camera}' is not declared in the rig (cameras: "
+                                f"{', '.join(sorted(cameras))})")
     ids = as_int_array(_need(rec, "ids", path, ctx), path, f"{ctx}: ids")
     pixels = as_float_array(_need(rec, "pixels", path, ctx), path, f"{ctx}: pixels", (-1, 2))
     if len(ids) != len(pixels):

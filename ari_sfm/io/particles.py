@@ -11,9 +11,10 @@ import io
 import logging
 import os
 import string
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -97,6 +98,8 @@ class ParticleDataset:
         return list(self.cameras)
 
     def image_path(self, camera: str, frame: int) -> Path:
+        if self.images is None:
+            raise AriSfmError(self.rig_path, "particles.images: none declared")
         return Path(self.images[camera].format(frame=frame))
 
 
@@ -186,8 +189,10 @@ def load_particle_dataset(path: str | Path) -> ParticleDataset:
         warn_unknown_keys(v, VOLUME_KEYS, rig_path, "particles.volume_mm")
         frame = as_name(v.get("frame", next(iter(cameras))), rig_path, "particles.volume_mm.frame")
         # a camera's frame, or (1.3) a calibration frame's target coordinates: resolved with the calibration
-        lo = as_float_array(require(v, "min", rig_path, "particles.volume_mm"), rig_path, "particles.volume_mm.min", (3,))
-        hi = as_float_array(require(v, "max", rig_path, "particles.volume_mm"), rig_path, "particles.volume_mm.max", (3,))
+        lo = as_float_array(require(v, "min", rig_path, "particles.volume_mm"), rig_path, "particles.volume_mm.min",
+                            (3,))
+        hi = as_float_array(require(v, "max", rig_path, "particles.volume_mm"), rig_path, "particles.volume_mm.max",
+                            (3,))
         if not np.all(hi > lo):
             raise AriSfmError(rig_path, "particles.volume_mm: max must exceed min on every axis")
         volume = VolumeSpec(frame, lo, hi)
@@ -291,7 +296,7 @@ def read_detections(path: str | Path, cameras: Mapping[str, CameraSpec] | list[s
         raise AriSfmError(path, f"row {int(np.flatnonzero(frame < 0)[0])}: frame must be >= 0")
     uv = np.stack([u, v], axis=1)
     if isinstance(cameras, Mapping):
-        check_detections_in_images(path, camera, uv, {c: tuple(s.image_size) for c, s in cameras.items()})
+        check_detections_in_images(path, camera, uv, {c: s.image_size for c, s in cameras.items()})
     return Detections(path, frame, camera, uv, intensity, _repeated_rows(path, frame, camera, uv))
 
 
@@ -366,7 +371,7 @@ def write_tables_atomic(path: str | Path, tables: Iterable[Any]) -> int:
 
     rows = 0
     with replaced_atomically(path) as tmp:
-        writer = None
+        writer: Any = None
         try:
             for table in tables:
                 if writer is None:
@@ -377,7 +382,8 @@ def write_tables_atomic(path: str | Path, tables: Iterable[Any]) -> int:
                 rows += table.num_rows
             if writer is None:
                 raise ValueError(f"{path}: no table to write")
-            writer, closing = None, writer
+            closing = writer
+            writer = None
             closing.close()
         except pa.ArrowException as exc:
             if isinstance(exc, OSError):

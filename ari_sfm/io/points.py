@@ -1,8 +1,9 @@
 """``points.json`` (format ``ari-sfm-points/1``): triangulated target points per reconstruction frame."""
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 

@@ -16,8 +16,9 @@ import numbers
 import os
 import re
 import stat
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 import yaml
@@ -263,7 +264,7 @@ def as_int_pair(value: Any, path: str | Path, where: str, minimum: int = 1) -> t
     ok = isinstance(value, (list, tuple)) and len(value) == 2
     if ok:
         ok = all(
-            isinstance(v, (numbers.Integral, np.integer)) and not isinstance(v, (bool, np.bool_)) and v >= minimum
+            isinstance(v, (numbers.Integral, np.integer)) and not isinstance(v, (bool, np.bool_)) and int(v) >= minimum
             for v in value
         )
     if not ok:

@@ -40,12 +40,12 @@ at u = 0, is exactly this paraxial model.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, Literal, NamedTuple, overload
 
 import numpy as np
 
 from . import kernels
-from .pinhole import NUM_PARAMS, PinholeModel, as_points
+from .pinhole import NUM_PARAMS, PinholeModel, Projection, as_points
 
 if TYPE_CHECKING:
     from ari_sfm.records import Interface
@@ -64,7 +64,8 @@ def unit_normal_and_projector(normal_cam: np.ndarray) -> tuple[np.ndarray, np.nd
     if not math.isfinite(norm) or norm == 0.0:
         raise ValueError(f"normal_cam must be a non-zero finite 3-vector, got {[v0, v1, v2]}")
     n = (v0 / norm, v1 / norm, v2 / norm)
-    return np.array(n), np.array([[((1.0 if i == j else 0.0) - n[i] * n[j]) / norm for j in range(3)] for i in range(3)])
+    return np.array(n), np.array([[((1.0 if i == j else 0.0) - n[i] * n[j]) / norm for j in range(3)]
+                                  for i in range(3)])
 
 
 def check_window(thickness_mm: float, index: float, medium_index: float,
@@ -96,15 +97,28 @@ class AriJacobians(NamedTuple):
     J_distance: np.ndarray  # (N, 2) d uv / d distance_mm (zeros in air)
 
 
+@overload
 def ari_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
                 index: float, medium_index: float = 1.0, distance_mm: float | None = None,
-                jacobians: bool = True, n_params: int = NUM_PARAMS) -> AriJacobians:
+                jacobians: Literal[True] = True, n_params: int = NUM_PARAMS) -> AriJacobians: ...
+@overload
+def ari_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
+                index: float, medium_index: float = 1.0, distance_mm: float | None = None,
+                *, jacobians: Literal[False], n_params: int = NUM_PARAMS) -> Projection: ...
+@overload
+def ari_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
+                index: float, medium_index: float = 1.0, distance_mm: float | None = None,
+                jacobians: bool = True, n_params: int = NUM_PARAMS) -> AriJacobians | Projection: ...
+def ari_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
+                index: float, medium_index: float = 1.0, distance_mm: float | None = None,
+                jacobians: bool = True, n_params: int = NUM_PARAMS) -> AriJacobians | Projection:
     """The ARI projection of camera-frame points X (m, 3): the one implementation, used by
     :class:`AriModel` and by the numpy bundle adjustment (all corners of a camera in one call).
 
     ``params`` (9,) intrinsics; ``thickness_mm`` one plate for all points or (m,) one per point
     (stacked plates); ``distance_mm`` h (needed with a medium behind, unused in air).
-    Returns an :class:`AriJacobians`; without ``jacobians`` only ``uv`` is set (the rest None);
+    Returns an :class:`AriJacobians`; without ``jacobians`` a :class:`~ari_sfm.models.pinhole.Projection` (only
+    ``uv`` set, the rest None);
     ``J_params`` holds the first ``n_params`` columns. ``normal_cam`` may be any non-zero vector
     (``J_normal`` is the derivative w.r.t. its 3 components); the window's numbers are checked by
     the model (:func:`check_window`), not here.
@@ -119,7 +133,7 @@ def ari_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thick
         X, np.array(params, dtype=np.float64), nc, np.ascontiguousarray(dn_dv), d, float(index), float(medium_index), h,
         int(n_params), bool(jacobians))
     if not jacobians:
-        return AriJacobians(uv, None, None, None, None, None)
+        return Projection(uv)
     return AriJacobians(uv, J_point, J_normal, J_params, J_thickness, J_distance)
 
 
@@ -147,7 +161,7 @@ class AriModel:
         self._da_dh = 1.0 - 1.0 / nm
 
     @classmethod
-    def from_interface(cls, pinhole: PinholeModel, normal_cam: np.ndarray, interface: "Interface") -> "AriModel":
+    def from_interface(cls, pinhole: PinholeModel, normal_cam: np.ndarray, interface: Interface) -> AriModel:
         """Model from a :class:`ari_sfm.records.Interface`."""
         return cls(pinhole, normal_cam, interface.thickness_mm, interface.index,
                    interface.medium_index, interface.distance_mm)

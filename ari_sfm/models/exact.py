@@ -45,13 +45,13 @@ time, no temporaries); the functions here are their checked Python entry points.
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, Literal, NamedTuple, overload
 
 import numpy as np
 
 from . import kernels
 from .ari import check_window, unit_normal_and_projector
-from .pinhole import NUM_PARAMS, PinholeModel, as_points
+from .pinhole import NUM_PARAMS, PinholeModel, Projection, as_points
 
 if TYPE_CHECKING:
     from ari_sfm.records import Interface
@@ -132,16 +132,29 @@ def _points(X: np.ndarray) -> np.ndarray:
     return X
 
 
+@overload
+def exact_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
+                  index: float, medium_index: float, distance_mm: float, jacobians: Literal[True] = True,
+                  n_params: int = NUM_PARAMS) -> ExactJacobians: ...
+@overload
+def exact_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
+                  index: float, medium_index: float, distance_mm: float, *, jacobians: Literal[False],
+                  n_params: int = NUM_PARAMS) -> Projection: ...
+@overload
 def exact_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
                   index: float, medium_index: float, distance_mm: float, jacobians: bool = True,
-                  n_params: int = NUM_PARAMS) -> ExactJacobians:
+                  n_params: int = NUM_PARAMS) -> ExactJacobians | Projection: ...
+def exact_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
+                  index: float, medium_index: float, distance_mm: float, jacobians: bool = True,
+                  n_params: int = NUM_PARAMS) -> ExactJacobians | Projection:
     """The exact projection of camera-frame points X (m, 3): the one implementation (the compiled
     :func:`ari_sfm.models.kernels.exact_point`), used by :class:`ExactModel` and by the numpy
     bundle adjustment (all corners of a camera in one call).
 
     ``params`` (9,) intrinsics; ``thickness_mm`` one plate for all points or (m,) one per point
     (stacked plates); ``distance_mm`` h > 0. Returns an :class:`ExactJacobians` (NaN pixels for
-    points not beyond the far face); without ``jacobians`` only ``uv`` is set; ``J_params``
+    points not beyond the far face); without ``jacobians`` a :class:`~ari_sfm.models.pinhole.Projection`
+    (only ``uv`` set); ``J_params``
     holds the first ``n_params`` columns; ``J_normal`` is w.r.t. the 3 components of ``normal_cam``.
     """
     if distance_mm is None:
@@ -154,7 +167,7 @@ def exact_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thi
         float(index), float(medium_index), int(n_params), bool(jacobians))
     _check_newton(status, failures, NEWTON_MAX_ITER, h, thickness_mm, index, medium_index)
     if not jacobians:
-        return ExactJacobians(uv, None, None, None, None, None)
+        return Projection(uv)
     return ExactJacobians(uv, J_point, J_normal, J_params, J_thickness, J_distance)
 
 
@@ -175,8 +188,8 @@ class ExactModel:
         self.distance_mm = float(distance_mm)
 
     @classmethod
-    def from_interface(cls, pinhole: PinholeModel, normal_cam: np.ndarray, interface: "Interface",
-                       distance_mm: float | None = None) -> "ExactModel":
+    def from_interface(cls, pinhole: PinholeModel, normal_cam: np.ndarray, interface: Interface,
+                       distance_mm: float | None = None) -> ExactModel:
         """Model from a :class:`ari_sfm.records.Interface` (``distance_mm`` overrides its hint)."""
         h = interface.distance_mm if distance_mm is None else distance_mm
         return cls(pinhole, normal_cam, interface.thickness_mm, interface.index,

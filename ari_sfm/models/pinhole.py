@@ -20,6 +20,7 @@ be a silently wrong answer.
 from __future__ import annotations
 
 import logging
+from typing import Literal, NamedTuple, overload
 
 import numpy as np
 
@@ -65,6 +66,31 @@ def _f64(a: np.ndarray, dim: int) -> np.ndarray:
     return a.reshape(-1, dim)
 
 
+class Projection(NamedTuple):
+    """Pixels without derivatives: a window model's projection asked for no Jacobians (the fields of
+    :class:`~ari_sfm.models.ari.AriJacobians` and :class:`~ari_sfm.models.exact.ExactJacobians`, the
+    Jacobians None)."""
+
+    uv: np.ndarray  # (N, 2) pixels
+    J_point: None = None
+    J_normal: None = None
+    J_params: None = None
+    J_thickness: None = None
+    J_distance: None = None
+
+
+@overload
+def project_points(D: np.ndarray, params: np.ndarray, n_params: int = NUM_PARAMS, jacobians: Literal[True] = True
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+@overload
+def project_points(D: np.ndarray, params: np.ndarray, n_params: int, jacobians: Literal[False]
+                   ) -> tuple[np.ndarray, None, None]: ...
+@overload
+def project_points(D: np.ndarray, params: np.ndarray, n_params: int = NUM_PARAMS, *, jacobians: Literal[False]
+                   ) -> tuple[np.ndarray, None, None]: ...
+@overload
+def project_points(D: np.ndarray, params: np.ndarray, n_params: int = NUM_PARAMS, jacobians: bool = True
+                   ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]: ...
 def project_points(D: np.ndarray, params: np.ndarray, n_params: int = NUM_PARAMS, jacobians: bool = True
                    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """The pinhole projection of camera-frame points D (m, 3): the one implementation (the compiled
@@ -101,7 +127,7 @@ class PinholeModel:
 
     # ----------------------------------------------------------------- params
     @classmethod
-    def from_params(cls, params: np.ndarray) -> "PinholeModel":
+    def from_params(cls, params: np.ndarray) -> PinholeModel:
         """Model from ``[fx, fy, cx, cy, k1, k2, p1, p2, k3]``."""
         p = np.array(params, dtype=float).ravel()  # a copy
         if p.size != NUM_PARAMS:

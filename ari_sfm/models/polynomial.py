@@ -47,7 +47,7 @@ class PolynomialMap:
                 "rank": int(self.rank)}
 
     @staticmethod
-    def from_json(d: dict[str, Any]) -> "PolynomialMap":
+    def from_json(d: dict[str, Any]) -> PolynomialMap:
         """Parse the camera's ``pf`` entry (ValueError on a malformed one)."""
         if [tuple(e) for e in d.get("exponents", EXPONENTS)] != list(EXPONENTS):
             raise ValueError("pf.exponents must be the 20 monomials of Eq. 14 in their order")
@@ -59,7 +59,8 @@ class PolynomialMap:
             arrays[key] = a
         if np.any(arrays["scale"] <= 0):
             raise ValueError("pf.scale must be > 0")
-        return PolynomialMap(arrays["mean"], arrays["scale"], arrays["coef_u"], arrays["coef_v"], int(d.get("rank", NUM_TERMS)))
+        return PolynomialMap(arrays["mean"], arrays["scale"], arrays["coef_u"], arrays["coef_v"],
+                             int(d.get("rank", NUM_TERMS)))
 
 
 class PolynomialModel:

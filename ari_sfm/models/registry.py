@@ -9,8 +9,9 @@ imported only when called (the baselines pull in scipy's least squares).
 from __future__ import annotations
 
 import importlib
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from ..errors import AriSfmError
 
@@ -108,9 +109,11 @@ def model_spec(name: Any, where: str | None = "model", calibratable: bool = Fals
     """The spec of a model name; anything else is one AriSfmError naming ``where`` (a file or an option)."""
     spec = MODELS.get(name) if isinstance(name, str) else None
     if spec is None:
-        raise AriSfmError(where, f"unknown model {name!r} (known: {', '.join(CALIBRATABLE if calibratable else MODELS)})")
+        raise AriSfmError(where,
+                          f"unknown model {name!r} (known: {', '.join(CALIBRATABLE if calibratable else MODELS)})")
     if calibratable and not spec.calibratable:
-        raise AriSfmError(where, f"model {name!r} is loaded, never calibrated (calibrate with: {', '.join(CALIBRATABLE)})")
+        raise AriSfmError(where,
+                          f"model {name!r} is loaded, never calibrated (calibrate with: {', '.join(CALIBRATABLE)})")
     return spec
 
 

@@ -27,14 +27,20 @@ from pathlib import Path
 import numpy as np
 
 from ari_sfm.calibration import Calibration, WindowCalibration
-from ari_sfm.io import load_calibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose
-from ari_sfm.io import write_text_atomic
+from ari_sfm.io import load_calibration, write_text_atomic
 
 from .conventions import exterior, fit_interior, glass_vector, interior_from_opencv
-from .files import ControlPar, Orientation, format_addpar, format_control_par, format_ori, read_control_par, \
-    update_control_par
+from .files import (
+    ControlPar,
+    Orientation,
+    format_addpar,
+    format_control_par,
+    format_ori,
+    read_control_par,
+    update_control_par,
+)
 
 log = logging.getLogger(__name__)
 
@@ -58,9 +64,10 @@ class ExportSummary:
 
 def _camera_numbers(names: list[str]) -> dict[str, int]:
     """cam1..camN keep their numbers; any other naming is numbered in order from 1."""
-    found = [re.fullmatch(r"cam(\d+)", n) for n in names]
-    if all(found) and sorted(int(m.group(1)) for m in found) == list(range(1, len(names) + 1)):
-        return {n: int(m.group(1)) for n, m in zip(names, found)}
+    found = [m for m in (re.fullmatch(r"cam(\d+)", n) for n in names) if m is not None]
+    numbers = [int(m.group(1)) for m in found]
+    if len(numbers) == len(names) and sorted(numbers) == list(range(1, len(names) + 1)):
+        return dict(zip(names, numbers))
     return {n: k + 1 for k, n in enumerate(names)}
 
 
@@ -84,6 +91,8 @@ def _near_face_offset(cal: Calibration, window: WindowCalibration) -> float:
     plane = window.plane_mm(cal)
     if plane is not None:
         return plane
+    if window.normal_world is None:
+        raise ValueError(f"window {window.name} has no normal")
     from ari_sfm.factors.rig_graph import default_distance_mm
 
     return default_distance_mm(window.normal_world, {n: c.cam_from_world for n, c in cal.cameras.items()},
@@ -130,7 +139,7 @@ def export_openptv(calibration: str | Path, out: str | Path, frame: str | None =
     frame, world_from_target = _target_pose(cal, frame, path)
     names = list(cal.cameras)
     numbers = _camera_numbers(names)
-    sizes = {tuple(c.image_size) for c in cal.cameras.values()}
+    sizes = {(int(c.image_size[0]), int(c.image_size[1])) for c in cal.cameras.values()}
     if len(sizes) != 1:
         raise AriSfmError(path, f"cameras have different image sizes {sorted(sizes)}: ptv.par holds one")
     size = sizes.pop()
@@ -155,6 +164,8 @@ def export_openptv(calibration: str | Path, out: str | Path, frame: str | None =
     target_from_world = world_from_target.inverse()
     glasses = {}
     for window in cal.window_list():  # OpenPTV gives every camera its own glass vector: its window's
+        if window.normal_world is None:  # cal.normal_world is checked above: every window has one
+            raise AriSfmError(path, f"window {window.name} has no normal (OpenPTV needs one)")
         normal_t = world_from_target.R.T @ window.normal_world
         face_point_t = target_from_world.apply(_near_face_offset(cal, window) * window.normal_world)
         try:

@@ -153,14 +153,18 @@ def read_control_par(path: Path) -> ControlPar:
                                 f"(number of cameras, two names a camera, {len(CONTROL_NUMBERS)} values)")
     name_lines = lines[1:1 + 2 * n]
     tail = lines[1 + names:]
-    values = {}
+    values: dict[str, float] = {}
+    integers: dict[str, int] = {}
     for i, (key, line) in enumerate(zip(CONTROL_NUMBERS, tail)):
         where = f"line {2 + names + i} ({key})"
         token = line.split()[0]
-        values[key] = _number(token, path, where) if key.startswith(("pix", "n", "d")) else _integer(token, path, where)
+        if key.startswith(("pix", "n", "d")):
+            values[key] = _number(token, path, where)
+        else:
+            integers[key] = _integer(token, path, where)
     par = ControlPar(tuple(name_lines[0::2]), tuple(name_lines[1::2]),
-                     (values["hp_flag"], values["allCam_flag"], values["tiff_flag"]),
-                     values["imx"], values["imy"], values["pix_x"], values["pix_y"], values["chfield"],
+                     (integers["hp_flag"], integers["allCam_flag"], integers["tiff_flag"]),
+                     integers["imx"], integers["imy"], values["pix_x"], values["pix_y"], integers["chfield"],
                      values["n1"], values["n2"], values["n3"], values["d"])
     if par.imx < 1 or par.imy < 1:
         raise AriSfmError(path, f"image size must be positive (got {par.imx} x {par.imy})")

@@ -51,10 +51,21 @@ from ari_sfm.io.observations import BORDER_TOLERANCE_PX
 from ari_sfm.records import CameraSpec, Dataset, Entry, Interface, Observation, Target, Window
 
 from .conventions import OPENPTV_PIXEL_OFFSET, detect_settings_from_target_par
+from .files import (
+    MAN_ORI_POINTS,
+    ControlPar,
+    read_addpar,
+    read_cal_ori_par,
+    read_control_par,
+    read_man_ori,
+    read_multi_planes_par,
+    read_ori,
+    read_points,
+    read_sequence_par,
+    read_target_par,
+    read_volume_par,
+)
 from .windows import parse_window_groups, windows_from_axes, windows_from_glass, windows_from_groups
-from .files import MAN_ORI_POINTS, ControlPar, read_addpar, read_cal_ori_par, read_control_par, read_man_ori, \
-    read_sequence_par, read_target_par, read_volume_par, \
-    read_multi_planes_par, read_ori, read_points
 
 log = logging.getLogger(__name__)
 
@@ -128,7 +139,8 @@ def _read_plane(files: PlaneFiles, offset: int, body: dict[int, np.ndarray], sou
         key = offset + pid
         if np.all(crd[pid] != UNDETECTED):
             margin = BORDER_TOLERANCE_PX  # as the dataset's own pixel check: a centre just beyond the edge is kept
-            if not (-margin <= crd[pid][0] <= image_size[0] + margin and -margin <= crd[pid][1] <= image_size[1] + margin):
+            if not (-margin <= crd[pid][0] <= image_size[0] + margin
+                    and -margin <= crd[pid][1] <= image_size[1] + margin):
                 raise AriSfmError(files.crd, f"id {pid} at ({crd[pid][0]:g}, {crd[pid][1]:g}) is outside the "
                                              f"{image_size[0]} x {image_size[1]} image (.crd files hold OpenPTV "
                                              "pixels; metric ones are not read)")
@@ -300,7 +312,8 @@ def read_experiment(root: str | Path, window_groups: str | None = None) -> Datas
     log.info("%s: %d cameras, %d body points on %d plane(s) (from %s), %d calibration images, clicked points for "
              "%d cameras, .crd detections for %d", root, len(names), len(body), len(planes), source.name,
              len(images), len(manual), len(observations))
-    target = Target(type="points3d", points={k: tuple(float(c) for c in v) for k, v in sorted(body.items())})
+    target = Target(type="points3d",
+                    points={k: (float(v[0]), float(v[1]), float(v[2])) for k, v in sorted(body.items())})
     has_crd = any(per_camera.values())
     windows = _windows(root, control, names, glasses, target, images, manual, cameras, window_groups)
     return Dataset(root=root, rig_path=root / "rig.yaml", target=target,

@@ -16,8 +16,8 @@ parallel glass vectors; cameras behind another wall (test_cavity's opposite one)
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -29,7 +29,8 @@ from .conventions import window_plane
 log = logging.getLogger(__name__)
 
 SAME_WINDOW_DEG = 5.0  # glass vectors this close in direction: one window
-GLASS_TOLERANCE = 1e-9  # relative: a window's cameras whose glass vectors differ more get a plane prior, not a fixed plane
+# relative: a window's cameras whose glass vectors differ more get a plane prior, not a fixed plane
+GLASS_TOLERANCE = 1e-9
 SAME_SIDE_DEG = 70.0  # optical axes (average linkage) closer than this look in through one wall
 AMBIGUOUS_RATIO = 1.5  # a grouping whose closest other-wall axes are not this much farther apart than the
 # farthest same-wall ones is said to be a guess
@@ -99,13 +100,13 @@ def windows_from_axes(names: Sequence[str], axes: Sequence[np.ndarray], thicknes
     angle = np.degrees(np.arccos(np.clip(np.array([[a @ b for b in units] for a in units]), -1.0, 1.0)))
     clusters = [[k] for k in range(len(units))]
     while len(clusters) > 1:
-        best = None
+        best: tuple[float, int, int] | None = None
         for i in range(len(clusters)):
             for j in range(i + 1, len(clusters)):
                 d = float(np.mean(angle[np.ix_(clusters[i], clusters[j])]))
                 if best is None or d < best[0]:
                     best = (d, i, j)
-        if best[0] >= SAME_SIDE_DEG:
+        if best is None or best[0] >= SAME_SIDE_DEG:
             break
         _, i, j = best
         clusters[i] += clusters.pop(j)

@@ -51,9 +51,10 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -133,7 +134,7 @@ class DetectOptions:
     min_sum: float = 0.0  # their grey sum above the local background at least this (OpenPTV's sumg_min)
     relative_floor: float = SHEET_EDGE  # peak >= this x the frame's bright images' (0: none; see step 4)
 
-    def for_camera(self, camera: str) -> "DetectOptions":
+    def for_camera(self, camera: str) -> DetectOptions:
         """These options with ``threshold`` resolved for one camera."""
         from dataclasses import replace
 
@@ -300,10 +301,10 @@ class _State:
     saturated: np.ndarray  # bool: its peak pixel is saturated (a flat top: centred by its centroid)
     fixed: np.ndarray  # bool: one of a split pair, fitted as such: held in the rounds of fits
 
-    def take(self, rows: np.ndarray) -> "_State":
+    def take(self, rows: np.ndarray) -> _State:
         return _State(*(getattr(self, f)[rows] for f in self.__dataclass_fields__))
 
-    def join(self, other: "_State") -> "_State":
+    def join(self, other: _State) -> _State:
         return _State(*(np.concatenate([getattr(self, f), getattr(other, f)]) for f in self.__dataclass_fields__))
 
 
@@ -313,7 +314,7 @@ class _Fit:
 
     uv: np.ndarray  # (N, 2) centres
     peak: np.ndarray  # (N,) Gaussian peaks above the background (a saturated one: its brightest pixel)
-    shape: "ImageShape"  # from its own 3 x 3 pixels, the others' Gaussians subtracted
+    shape: ImageShape  # from its own 3 x 3 pixels, the others' Gaussians subtracted
     ridge: np.ndarray  # (N,) bool: on a ridge (a streak, a blob's rim), not a particle image
     saturated: np.ndarray  # (N,) bool
     fixed: np.ndarray  # (N,) bool: an elongated image fitted as one elliptical Gaussian or as two round ones
@@ -330,10 +331,10 @@ class ImageShape:
     axis: np.ndarray  # (N, 2) the widest axis (unit vector, u v)
     half_split: np.ndarray  # half the distance of two equal round images that would look like this one
 
-    def take(self, rows: np.ndarray) -> "ImageShape":
+    def take(self, rows: np.ndarray) -> ImageShape:
         return ImageShape(*(getattr(self, f)[rows] for f in self.__dataclass_fields__))
 
-    def join(self, other: "ImageShape") -> "ImageShape":
+    def join(self, other: ImageShape) -> ImageShape:
         return ImageShape(*(np.concatenate([getattr(self, f), getattr(other, f)]) for f in self.__dataclass_fields__))
 
 
@@ -728,14 +729,17 @@ def detect_experiment(dataset_path: str | Path, out: str | Path, options: Detect
         raise AriSfmError(out, "-o/--out is the dataset folder: write the results elsewhere")
     if dataset.images is None:
         raise AriSfmError(dataset.rig_path, "particles.images is not given: no particle images to detect")
+    if dataset.frames is None:
+        raise AriSfmError(dataset.rig_path, "particles.frames is not given: no particle images to detect")
     if options is None:
         options = detect_options(dataset)
     first, last = dataset.frames
     sizes = _check_image_sizes(dataset)
     _image_stats(dataset, sorted({first, last}))  # the first and last images exist (a typo in frames: at once)
     patterns = dict(dataset.images)
-    settings = {"task": "detect-particles", "options": {k: getattr(options, k) for k in options.__dataclass_fields__},
-                "frames": [first, last], "frames_per_partition": frames_per_partition, "images": patterns}
+    settings: dict[str, Any] = {
+        "task": "detect-particles", "options": {k: getattr(options, k) for k in options.__dataclass_fields__},
+        "frames": [first, last], "frames_per_partition": frames_per_partition, "images": patterns}
     out.mkdir(parents=True, exist_ok=True)
     check_run_settings(out, settings)
     partitions = (Partition(c[0], c[-1], (patterns, c, options, sizes), _image_stats(dataset, c))

@@ -241,7 +241,7 @@ def local_maxima(smooth, noise, factor, floor):
         a, b, c = (y - 1) % 3, y % 3, (y + 1) % 3
         row_max(smooth[y + 1], hmax[c])
         ha, hb, hc = hmax[a], hmax[b], hmax[c]
-        up, row, down = smooth[y - 1], smooth[y], smooth[y + 1]
+        up, row = smooth[y - 1], smooth[y]
         for x in range(1, w - 1):
             s0 = row[x]
             if s0 < max(max(ha[x], hb[x]), hc[x]):  # not the maximum of its 3 x 3 (most pixels)
@@ -517,9 +517,9 @@ def shape_hessians(own, noise, model_noise):
         normal[:] = 0.0
         rhs[:] = 0.0
         for q in range(9):
-            I = max(own[k, q], 0.5 * nz)
-            wt = 1.0 / ((nz / I) ** 2 + model_noise ** 2)
-            lg = math.log(I)
+            intensity = max(own[k, q], 0.5 * nz)
+            wt = 1.0 / ((nz / intensity) ** 2 + model_noise ** 2)
+            lg = math.log(intensity)
             for i in range(6):
                 rhs[i, 0] += wt * lg * design[q, i]
                 for j in range(6):

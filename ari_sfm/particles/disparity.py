@@ -19,8 +19,9 @@ right calibration and noise sigma per coordinate it is about ``1.1 sigma`` for 4
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -42,11 +43,12 @@ class Cells:
     shape: tuple[int, int, int]
 
     @staticmethod
-    def around(xyz: np.ndarray, shape: Sequence[int], quantile: float = 0.005) -> "Cells":
+    def around(xyz: np.ndarray, shape: Sequence[int], quantile: float = 0.005) -> Cells:
         """The box of the points (their ``quantile`` and ``1 - quantile``: stray ghosts ignored)."""
         finite = xyz[np.isfinite(xyz).all(axis=1)]
         lower, upper = np.quantile(finite, quantile, axis=0), np.quantile(finite, 1.0 - quantile, axis=0)
-        return Cells(lower, np.maximum(upper, lower + 1e-6), tuple(int(s) for s in shape))
+        nx, ny, nz = (int(s) for s in shape)
+        return Cells(lower, np.maximum(upper, lower + 1e-6), (nx, ny, nz))
 
     @property
     def count(self) -> int:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
 from ..kernel_cache import njit  # numba's njit, the kernels compiled into the wheel read first
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")

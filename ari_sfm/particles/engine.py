@@ -20,16 +20,18 @@ goes on, and says so), a task whose workers keep dying stops it too.
 """
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import socket
 import threading
 import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -77,7 +79,7 @@ class Partition:
         return f"frames_{self.first:05d}-{self.last:05d}"
 
 
-def split_frames(frames: Sequence[int], per_partition: int) -> list[list[int]]:
+def split_frames(frames: Iterable[int], per_partition: int) -> list[list[int]]:
     """Consecutive chunks of ``per_partition`` frames (sorted)."""
     frames = sorted(int(f) for f in frames)
     return [frames[k:k + per_partition] for k in range(0, len(frames), per_partition)]
@@ -157,7 +159,7 @@ def check_scheduler_answers(address: str, timeout_s: float) -> None:
                 if not chunk:
                     break
                 head += chunk
-        except socket.timeout:
+        except TimeoutError:
             raise AriSfmError("--scheduler", f"{address} accepts connections but is not a Dask scheduler: it sent "
                                              f"nothing in {timeout_s:g} s (an HTTP server, the dashboard's port?)"
                               ) from None
@@ -360,7 +362,7 @@ def run_partitions(task: Callable[..., dict[str, np.ndarray]], partitions: Itera
 
     if client is None:
         for p, path in todo():
-            _write_partition(path, _result(lambda: task(*p.args)), p.inputs)
+            _write_partition(path, _result(functools.partial(task, *p.args)), p.inputs)
             if on_done:
                 on_done(p, False)
         return paths

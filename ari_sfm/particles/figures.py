@@ -104,7 +104,8 @@ def self_calibration_section(out: Path, image: Any, calibration: Any = None) -> 
     if checks:
         parts.append("<table><tr><th>check</th><th>value</th><th>limit</th><th>result</th><th>what</th></tr>"
                      + "".join(f"<tr><td>{html.escape(c['name'])}</td><td>{c['value']:.4g}</td>"
-                               f"<td>{c['limit']:.4g}</td><td>{'passed' if c['passed'] else ('FAILED' if c['fatal'] else 'warning')}</td>"
+                               f"<td>{c['limit']:.4g}</td>"
+                               f"<td>{'passed' if c['passed'] else ('FAILED' if c['fatal'] else 'warning')}</td>"
                                f"<td>{html.escape(c['what'])}</td></tr>" for c in checks) + "</table>")
     parts.append(image(disparity_figure(disparity), "disparity maps",
                        "Mean disparity (detected minus reprojected particle image) per cell of the volume and "

@@ -10,9 +10,10 @@ from __future__ import annotations
 import logging
 import os
 import time
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -147,7 +148,8 @@ def check_calibration_fits(calibration: Calibration, dataset: ParticleDataset, p
     for name, spec in dataset.cameras.items():
         if tuple(calibration.cameras[name].image_size) != tuple(spec.image_size):
             raise AriSfmError(path, f"a calibration of another rig: {name} has image size "
-                                    f"{list(calibration.cameras[name].image_size)}, the dataset's {list(spec.image_size)}")
+                                    f"{list(calibration.cameras[name].image_size)}, the dataset's "
+                                    f"{list(spec.image_size)}")
     if not (calibration.spec.rays and calibration.spec.window):
         what = "ignores the window (a plain camera)" if calibration.spec.rays else "has no rays through the window"
         raise AriSfmError(path, f"model {calibration.model} {what}: particles need a model with rays through the "
@@ -332,8 +334,9 @@ def _summary(tally: _Tally, by_frame: dict[int, dict[str, np.ndarray]], cameras:
     return ParticlesSummary(
         dataset=str(dataset.rig_path), calibration=str(calibration_path), detections=str(det_path),
         tolerance_px=options.tolerance_px, min_cameras=options.min_cameras,
-        volume={"min_mm": volume.min_mm.tolist(), "max_mm": volume.max_mm.tolist()} if np.isfinite(
-            volume.min_mm).all() and np.isfinite(volume.max_mm).all() else {"depth_range_mm": list(options.depth_range_mm)},
+        volume={"min_mm": volume.min_mm.tolist(), "max_mm": volume.max_mm.tolist()}
+        if np.isfinite(volume.min_mm).all() and np.isfinite(volume.max_mm).all()
+        else {"depth_range_mm": None if options.depth_range_mm is None else list(options.depth_range_mm)},
         particles=tally.particles,
         cameras_per_particle={str(k): int(v) for k, v in enumerate(tally.cameras_per_particle) if v},
         matched_fraction=fraction,

@@ -1,8 +1,8 @@
 """Reconstructed particles judged against a simulation's truth (tests, benchmarks, self-calibration)."""
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 import numpy as np
 
@@ -25,7 +25,7 @@ class ParticleScore:
     def ghost_fraction(self) -> float:
         return self.ghosts / self.reconstructed if self.reconstructed else 0.0
 
-    def __add__(self, other: "ParticleScore") -> "ParticleScore":
+    def __add__(self, other: ParticleScore) -> ParticleScore:
         n1, n2 = self.found, other.found
         sq = (self.rms_error_mm ** 2 * n1 if n1 else 0.0) + (other.rms_error_mm ** 2 * n2 if n2 else 0.0)
         return ParticleScore(n1 + n2, self.seen + other.seen, self.reconstructed + other.reconstructed,
@@ -84,7 +84,7 @@ class ImageScore:
     def ghost_fraction_1px(self) -> float:
         return self.ghosts_1px / self.detections if self.detections else 0.0
 
-    def __add__(self, other: "ImageScore") -> "ImageScore":
+    def __add__(self, other: ImageScore) -> ImageScore:
         n1, n2 = self.found, other.found
         sq = (self.rms_error_px ** 2 * n1 if n1 else 0.0) + (other.rms_error_px ** 2 * n2 if n2 else 0.0)
         return ImageScore(self.true_images + other.true_images, self.detections + other.detections, n1 + n2,

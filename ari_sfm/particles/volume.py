@@ -18,7 +18,7 @@ class Volume:
     box_from_world: Pose = field(default_factory=Pose.identity)
 
     @staticmethod
-    def depth_range(z_min_mm: float, z_max_mm: float, box_from_world: Pose | None = None) -> "Volume":
+    def depth_range(z_min_mm: float, z_max_mm: float, box_from_world: Pose | None = None) -> Volume:
         """The slab ``z_min <= z <= z_max`` of a frame (default: the world, i.e. camera 0's frame)."""
         if not z_max_mm > z_min_mm:
             raise ValueError(f"depth range must have max > min (got {z_min_mm}, {z_max_mm})")

@@ -103,7 +103,8 @@ def make_scene(name: str, seed: int = 0, sigma_px: float = 0.05, **overrides) ->
                                                    for c in geometry.cameras))
     exact = observe(geometry)
     noise_rng = _rng(name, seed, 1)
-    noisy = tuple(o if sigma_px == 0.0 else replace(o, pixels=o.pixels + noise_rng.normal(0.0, sigma_px, o.pixels.shape))
+    noisy = tuple(o if sigma_px == 0.0
+                  else replace(o, pixels=o.pixels + noise_rng.normal(0.0, sigma_px, o.pixels.shape))
                   for o in exact)
     dataset = to_dataset(geometry, noisy, PLACEHOLDER_ROOT, seen=exact)
     truth = truth_dict(geometry, name, seed, sigma_px)

@@ -29,7 +29,7 @@ def cavity_body() -> Target:
     z = 8, 0, -8, 0, 8 mm; x from -40 (rows at z = 0: -35) to 30 mm in steps of 5 mm."""
     rows = ((-25.0, 8.0, -40.0), (-15.0, 0.0, -35.0), (0.0, -8.0, -40.0), (15.0, 0.0, -35.0), (25.0, 8.0, -40.0))
     points = [(x, y, z) for x in np.arange(-40.0, 30.1, 5.0) for y, z, first in rows if x >= first]
-    return Target(type="points3d", points={k + 1: tuple(float(c) for c in p) for k, p in enumerate(points)})
+    return Target(type="points3d", points={k + 1: (float(x), float(y), float(z)) for k, (x, y, z) in enumerate(points)})
 
 
 @dataclass(frozen=True)
@@ -44,6 +44,8 @@ class BodyView:
 
     def model(self) -> ExactModel:
         plane = self.interface.plane
+        if plane is None:
+            raise ValueError("the body's window has no plane")
         normal = self.cam_from_body.R @ plane.normal
         h = float(normal @ self.cam_from_body.apply(plane.point_mm))
         return ExactModel(PinholeModel(self.K), normal, self.interface.thickness_mm, self.interface.index,
@@ -71,7 +73,7 @@ def cavity_view(centre_mm: tuple[float, float, float] = (78.0, 16.0, -571.0), fo
                   [0, 0, 1.0]])
     plane = WindowPlane(FRAME, np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -131.0]))
     interface = Interface(thickness_mm=6.0, index=1.49, medium_index=1.333, plane=plane)
-    return BodyView(K, Pose(R, -R @ centre), tuple(image_size), interface)
+    return BodyView(K, Pose(R, -R @ centre), (int(image_size[0]), int(image_size[1])), interface)
 
 
 @dataclass(frozen=True)

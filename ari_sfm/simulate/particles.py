@@ -29,9 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from ari_sfm.calibration import Calibration
-from ari_sfm.io import calibration_to_json, parse_calibration
 from ari_sfm.geometry import Pose, rotation_from_rotvec, unit
+from ari_sfm.io import calibration_to_json, parse_calibration
 from ari_sfm.records import Dataset
+from ari_sfm.simulate.particle_images import TankLook, render_particle_image, render_tank_frame
 from ari_sfm.simulate.scenarios import (
     NBK7_INDEX,
     WATER_INDEX,
@@ -45,7 +46,6 @@ from ari_sfm.simulate.scenarios import (
     _tilted,
     _window_in_world,
 )
-from ari_sfm.simulate.particle_images import TankLook, render_particle_image, render_tank_frame
 from ari_sfm.simulate.scene import Geometry, WindowGroup, check_geometry, observe, project, to_dataset, truth_dict
 
 log = logging.getLogger(__name__)
@@ -138,7 +138,7 @@ def _rig_a(options: ParticleSimOptions, rng: np.random.Generator) -> tuple[Geome
         center = np.array([o.ring_radius_mm * math.cos(a), o.ring_radius_mm * math.sin(a), 0.0])
         if back and i >= o.num_cameras // 2:  # mirrored through the volume's centre along the axis
             center = center * np.array([1.0, 1.0, 0.0]) + np.array([0.0, 0.0, 2 * o.distance_mm])
-        jitter = _rot(rng.normal(size=3), math.radians(rng.uniform(0.0, 0.5)))
+        jitter = _rot(rng.normal(size=3).tolist(), math.radians(rng.uniform(0.0, 0.5)))
         rig.append((_look_at(center, ahead) @ jitter, center))
     cameras, rig_from_world = _rig_cameras(rig, rng)
     if o.k1:
@@ -151,7 +151,8 @@ def _rig_a(options: ParticleSimOptions, rng: np.random.Generator) -> tuple[Geome
     by_camera = None
     if back:  # the opposite wall as far beyond the volume's centre as the front one is before it
         half = o.num_cameras // 2
-        normal_back = _tilted(np.array([0.0, 0.0, -1.0]), math.radians(rng.uniform(1.0, 3.0)), rng.uniform(0, 2 * math.pi))
+        normal_back = _tilted(np.array([0.0, 0.0, -1.0]), math.radians(rng.uniform(1.0, 3.0)),
+                              rng.uniform(0, 2 * math.pi))
         far = max(normal_back @ c for _, c in rig[half:]) + rng.uniform(30.0, 50.0)
         second = _window_in_world(normal_back, far, rig_from_world, o.glass_mm, NBK7_INDEX, WATER_INDEX)
         names = [c.name for c in cameras]
@@ -164,7 +165,7 @@ def _rig_a(options: ParticleSimOptions, rng: np.random.Generator) -> tuple[Geome
     chk = _Checker(target, window, cameras, windows=by_camera)
 
     def sample() -> Pose | None:
-        R = world_from_rig.R @ _rot(rng.normal(size=3), math.radians(rng.uniform(0.0, 8.0)))
+        R = world_from_rig.R @ _rot(rng.normal(size=3).tolist(), math.radians(rng.uniform(0.0, 8.0)))
         c = world_from_rig.apply(ahead + np.array([rng.uniform(-15, 15), rng.uniform(-15, 15), rng.uniform(-15, 15)]))
         pose = Pose(R, c - R @ centroid)
         return pose if len(chk.seen_by(pose)) == len(cameras) else None
@@ -281,11 +282,11 @@ def write_particle_experiment(exp: ParticleExperiment, out_dir: str | Path, rend
     """Write ``exp`` under ``out_dir`` (layout in the module docstring); images for the first
     ``render_frames`` frames. Returns the main paths."""
     import cv2
+    import yaml
 
     from ari_sfm.io import save_rig, write_bytes_atomic, write_json_atomic, write_text_atomic
     from ari_sfm.io.dataset import camera_to_json, windows_to_json
     from ari_sfm.io.particles import parquet_bytes
-    import yaml
 
     out = Path(out_dir)
     o = exp.options

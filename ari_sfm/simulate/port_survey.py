@@ -16,6 +16,7 @@ Lengths in mm, pixels OpenCV.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -90,7 +91,8 @@ def _observe(truth_args: dict, rng: np.random.Generator, min_views: int) -> SfmT
     for i in range(len(t.image_camera)):
         near = _maybe_visible(t, i)  # a superset of the visible points (the exact projection is the costly part)
         uv = t.model(i).project(t.cam_from_world(i).apply(t.xyz[near]))
-        ok = np.all(np.isfinite(uv), axis=1) & (uv[:, 0] > 2) & (uv[:, 0] < w - 3) & (uv[:, 1] > 2) & (uv[:, 1] < hgt - 3)
+        ok = (np.all(np.isfinite(uv), axis=1) & (uv[:, 0] > 2) & (uv[:, 0] < w - 3) & (uv[:, 1] > 2)
+              & (uv[:, 1] < hgt - 3))
         idx = near[np.flatnonzero(ok)]
         uv = uv[np.flatnonzero(ok)]
         imgs.append(np.full(len(idx), i))
@@ -155,7 +157,7 @@ def port_survey(seed: int = 0, num_images: int = 28, num_points: int = 1500, sig
     rng = np.random.default_rng(seed)
     if layout not in ("grid", "strip"):
         raise ValueError(f"layout must be grid or strip, got {layout!r}")
-    poses = []
+    poses: list[Pose] = []
     if layout == "strip":
         per_line = int(np.ceil(num_images / strip_lines))
         xs = np.linspace(-0.5, 0.5, per_line) * (area_mm[0] - 1.2 * altitude_mm)
@@ -226,7 +228,8 @@ def tank_rig(seed: int = 0, num_frames: int = 8, num_points: int = 800, sigma_px
 TEXTURE_MM_PER_TEXEL = 2.0
 
 
-def relief_texture(area_mm: tuple[float, float], seed: int = 0, margin_mm: float = 600.0) -> tuple[np.ndarray, np.ndarray]:
+def relief_texture(area_mm: tuple[float, float], seed: int = 0,
+                   margin_mm: float = 600.0) -> tuple[np.ndarray, np.ndarray]:
     """A grey texture (H, W) float32 in [0, 1] over the relief with blobs at several scales (SIFT
     finds them), and its origin (x0, y0) in mm; one texel is TEXTURE_MM_PER_TEXEL."""
     import cv2
@@ -273,8 +276,7 @@ def render_survey_image(truth: SfmTruth, i: int, texture: np.ndarray, origin_mm:
     uv = np.column_stack([u.ravel(), v.ravel()])
     origins, directions = truth.model(i).backproject(uv)
     world_from_cam = truth.cam_from_world(i).inverse()
-    O, D = world_from_cam.apply(origins), directions @ world_from_cam.R.T
-    P = _hit_relief(O, D, depth_mm, amplitude_mm)
+    P = _hit_relief(world_from_cam.apply(origins), directions @ world_from_cam.R.T, depth_mm, amplitude_mm)
     tx = ((P[:, 0] - origin_mm[0]) / TEXTURE_MM_PER_TEXEL).astype(np.float32).reshape(h * k, w * k)
     ty = ((P[:, 1] - origin_mm[1]) / TEXTURE_MM_PER_TEXEL).astype(np.float32).reshape(h * k, w * k)
     sub = cv2.remap(texture, tx, ty, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
@@ -285,11 +287,9 @@ def render_survey_image(truth: SfmTruth, i: int, texture: np.ndarray, origin_mm:
 def write_port_survey(out_dir, seed: int = 0, num_images: int = 12, image_size: tuple[int, int] = (640, 480),
                       focal_px: float = 600.0, area_mm: tuple[float, float] = (1600.0, 1200.0),
                       altitude_mm: float = 2000.0, relief_mm: float = 150.0, supersample: int = 2,
-                      progress: bool = False) -> tuple[SfmTruth, "Path"]:
+                      progress: bool = False) -> tuple[SfmTruth, Path]:
     """Render a port survey to ``out_dir/images/imageNNNN.png`` with ``out_dir/truth.json`` (the housing,
     the lens intrinsics, every image's cam_from_world, the relief); returns the truth and the images folder."""
-    from pathlib import Path
-
     import cv2
 
     from ari_sfm.io import write_bytes_atomic, write_json_atomic

@@ -21,8 +21,8 @@ Board appearance (the detector relies on it, see :mod:`ari_sfm.detection`):
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import lru_cache
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -180,7 +180,8 @@ def _shade_grid(shade: Callable[[np.ndarray], np.ndarray], pixel_to_target: Pixe
     for v0 in range(0, height, step):
         v = np.arange(v0, min(height, v0 + step), dtype=float) + origin
         vv, uu = np.meshgrid(v, u, indexing="ij")
-        out[v0 : v0 + len(v)] = shade(pixel_to_target(np.stack([uu.ravel(), vv.ravel()], axis=1))).reshape(len(v), width)
+        shaded = shade(pixel_to_target(np.stack([uu.ravel(), vv.ravel()], axis=1)))
+        out[v0 : v0 + len(v)] = shaded.reshape(len(v), width)
     return out
 
 
@@ -196,7 +197,7 @@ def _shader(target: Target) -> Callable[[np.ndarray], np.ndarray]:
 
 
 def _checkerboard_shader(target: Target) -> Callable[[np.ndarray], np.ndarray]:
-    cols, rows = target.inner_corners
+    cols, rows = target.required(target.inner_corners, "inner_corners")
     s = float(target.square_mm)
 
     def shade(xy: np.ndarray) -> np.ndarray:
@@ -224,9 +225,10 @@ def _charuco_image(squares: tuple[int, int], square_mm: float, marker_mm: float,
 
 
 def _charuco_shader(target: Target) -> Callable[[np.ndarray], np.ndarray]:
-    squares = tuple(target.squares)
+    squares = target.required(target.squares, "squares")
     s = float(target.square_mm)
-    board_img = _charuco_image(squares, s, float(target.marker_mm), str(target.dictionary))
+    board_img = _charuco_image(squares, s, float(target.required(target.marker_mm, "marker_mm")),
+                               str(target.dictionary))
     h, w = board_img.shape
     scale = _CHARUCO_PX_PER_SQUARE / s  # board-image pixels per mm
 
@@ -253,7 +255,9 @@ def _charuco_shader(target: Target) -> Callable[[np.ndarray], np.ndarray]:
 
 def dot_diameter_mm(target: Target) -> float:
     """The printed dot diameter of a dot board: ``diameter_mm``, else DEFAULT_DOT_FRACTION x spacing."""
-    return float(target.diameter_mm) if target.diameter_mm is not None else DEFAULT_DOT_FRACTION * float(target.spacing_mm)
+    if target.diameter_mm is not None:
+        return float(target.diameter_mm)
+    return DEFAULT_DOT_FRACTION * float(target.spacing_mm)
 
 
 def _circles_shader(target: Target) -> Callable[[np.ndarray], np.ndarray]:
@@ -263,7 +267,7 @@ def _circles_shader(target: Target) -> Callable[[np.ndarray], np.ndarray]:
     and, in that row, at column round((x / s - offset) / step) (asymmetric
     layout: step 2, offset r % 2; symmetric: step 1, offset 0).
     """
-    cols, rows = target.circle_grid
+    cols, rows = target.required(target.circle_grid, "circle_grid")
     s = float(target.spacing_mm)
     radius = 0.5 * dot_diameter_mm(target)
     asymmetric = target.layout == "asymmetric"

@@ -15,9 +15,9 @@ far side (the near surface stays, the target does not move).
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 
@@ -53,7 +53,7 @@ class CameraTruth:
     def pinhole(self) -> PinholeModel:
         return PinholeModel(self.K, self.dist)
 
-    def scaled(self, scale: float) -> "CameraTruth":
+    def scaled(self, scale: float) -> CameraTruth:
         """The same camera with an image scaled by ``scale`` (pixel centres stay OpenCV).
 
         A pixel u maps to ``scale (u + 0.5) - 0.5``, so fx, fy scale and
@@ -163,7 +163,7 @@ class Geometry:
                 return cam
         raise KeyError(name)
 
-    def scaled(self, scale: float) -> "Geometry":
+    def scaled(self, scale: float) -> Geometry:
         """All cameras scaled by ``scale``; the margin scales too, so visibility is unchanged."""
         if scale == 1.0:
             return self
@@ -266,7 +266,7 @@ def to_dataset(geometry: Geometry, observations: tuple[Observation, ...] | None,
     step = geometry.pixel_step_px
     if observations is not None and step:
         observations = tuple(replace(o, pixels=np.round(o.pixels / step) * step) for o in observations)
-    cameras = {c.name: CameraSpec(name=c.name, image_size=tuple(c.image_size), focal_px=c.focal_hint_px)
+    cameras = {c.name: CameraSpec(name=c.name, image_size=c.image_size, focal_px=c.focal_hint_px)
                for c in geometry.cameras}
     by_key: dict[tuple, list[str]] = {}
     for o in seen:
