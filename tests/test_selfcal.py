@@ -382,6 +382,49 @@ def test_intrinsics_held_or_moved_within_their_priors(experiment):
     assert spread["prior"] < 2.0 < spread["free"], spread
 
 
+def test_intrinsics_prior_with_a_joint_covariance(experiment):
+    """A joint covariance of every camera's intrinsics as the prior (IntrinsicsPrior.with_covariance): its
+    rows are the Mahalanobis distance (noise^2 d^T Cov^-1 d); a diagonal covariance is the sigmas alone; with
+    correlations the numpy and GTSAM backends solve the same problem."""
+    from types import SimpleNamespace
+
+    from ari_sfm.results import CameraUncertainty, Uncertainty
+
+    a = experiment.truth_a
+    unc = Uncertainty(0.05, {n: CameraUncertainty({"fx": 0.5, "fy": 0.5, "cx": 0.5, "cy": 0.5}) for n in a.cameras},
+                      None)
+    a = replace(a, uncertainty=unc)
+    sigmas_only = IntrinsicsPrior.of(a, free_intrinsics(a, "prior"), "prior")
+    C, F = sigmas_only.values.shape
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(C * F, C * F))
+    S = A @ A.T + 0.5 * np.eye(C * F)  # positive definite, strongly correlated
+    corr = S / np.sqrt(np.outer(np.diag(S), np.diag(S)))
+    cov = 0.25 * corr  # sigma 0.5 px everywhere
+    joint = sigmas_only.with_covariance(cov)
+    assert np.allclose(joint.sigmas, 0.5)
+    delta = rng.normal(0.0, 0.5, (C, F))
+    layout = SimpleNamespace(intrinsics=[np.arange(F) + 10 * c for c in range(C)])
+    state = SimpleNamespace(colmap_params=list(sigmas_only.values + delta))
+    e, J, cols = joint.rows(state, layout, 0.1)
+    d = delta.ravel()
+    assert float(e @ e) == pytest.approx(0.01 * float(d @ np.linalg.solve(cov, d)), rel=1e-9)
+    assert np.allclose(J @ d, e) and cols.tolist() == [10 * c + j for c in range(C) for j in range(F)]
+
+    landmarks = _true_landmarks(experiment, a, 40)
+    gauge = Gauge.of(a, [False], 400.0)
+    alone = refine_with_landmarks(a, landmarks, gauge, sigmas_only).calibration
+    diagonal = refine_with_landmarks(a, landmarks, gauge, sigmas_only.with_covariance(np.diag(np.full(C * F, 0.25))))
+    numpy_r = refine_with_landmarks(a, landmarks, gauge, joint).calibration
+    gtsam_r = refine_with_landmarks(a, landmarks, gauge, joint, backend="gtsam").calibration
+    assert max(np.abs(numpy_r.cameras[n].K - alone.cameras[n].K).max() for n in a.cameras) > 1e-3  # it weighs
+    for name in a.cameras:
+        assert np.allclose(diagonal.calibration.cameras[name].K, alone.cameras[name].K, atol=1e-6)
+        assert np.allclose(numpy_r.cameras[name].K, gtsam_r.cameras[name].K, atol=1e-3)
+        assert rotation_angle_deg(numpy_r.cameras[name].cam_from_world.R,
+                                  gtsam_r.cameras[name].cam_from_world.R) < 1e-4
+
+
 # --------------------------------------------------------------------------- the command line
 
 
