@@ -3,8 +3,9 @@
     python benchmarks/bench_selfcal.py [--particles 2000] [--frames 10] [--seed 0] [--start truth|body]
                                        [--start-frames 3] [--workers 0] [--backend numpy]
                                        [--drift-cameras 1,2,3] [--drift-deg 0.05] [--k1 0]
-    python benchmarks/bench_selfcal.py --cases [NAME ...] [--start-frames 3 6 10] [--particles 2000] [--frames 10]
-    python benchmarks/bench_selfcal.py --priors [NAME ...] [--start-frames 3 6 10]
+    python benchmarks/bench_selfcal.py --cases [NAME ...] [--start-frames 3 6 10] [--start-target body|board] [--seed S]
+                                       [--particles 2000] [--frames 10]
+    python benchmarks/bench_selfcal.py --priors [NAME ...] [--start-frames 3 6 10] [--seed S]
     python benchmarks/bench_selfcal.py --list
     python benchmarks/bench_selfcal.py --reference [--particles 2000] [--frames 10]
 
@@ -39,7 +40,7 @@ import argparse
 import os
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -207,8 +208,6 @@ def compare_priors(names, particles: int, frames: int, start_frames, start_targe
     (every frame matched at 0.5 px with its result, the disparity peaks' inliers) with the start's intrinsics
     weighed otherwise: its sigmas alone (as shipped), its joint covariance over the same parameters, every
     intrinsic parameter free under the joint covariance, and the exact intrinsics held (the floor)."""
-    from dataclasses import replace
-
     from ari_sfm.particles.disparity import Cells, ParticleSet, disparity_map, particle_disparities
     from ari_sfm.particles.landmarks import Gauge, IntrinsicsPrior, free_intrinsics, refine_with_landmarks
     from ari_sfm.particles.selfcal import match_particles
@@ -352,7 +351,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--particles", type=int, default=2000)
     ap.add_argument("--frames", type=int, default=10)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=None, help="the simulation's seed (default 0; with --cases or "
+                                                             "--priors: instead of each case's own)")
     ap.add_argument("--start", choices=("truth", "body"), default="truth")
     ap.add_argument("--workers", type=int, default=0, help="Dask LocalCluster workers for the matching (0: in process)")
     ap.add_argument("--backend", choices=("numpy", "gtsam"), default="numpy")
@@ -374,11 +374,14 @@ def main() -> None:
     ap.add_argument("--reference", action="store_true", help="beside a minimal plain self-calibration")
     args = ap.parse_args()
     start_frames = args.start_frames or [3]
+    if args.seed is not None:  # the cases with another seed
+        CASES.update({n: replace(c, seed=args.seed) for n, c in CASES.items()})
     if args.list:
         for name, c in CASES.items():
             print(f"{name}: seed {c.seed}, cameras {','.join(map(str, c.drift_cameras))} moved by {c.drift_deg:g} deg "
                   f"and {c.drift_mm:g} mm, k1 {c.k1:g}")
         return
+    seed = 0 if args.seed is None else args.seed
     for chosen in (args.cases, args.priors):
         unknown = [n for n in chosen or () if n not in CASES]
         if unknown:
@@ -390,17 +393,17 @@ def main() -> None:
         compare_priors(args.priors or list(CASES), args.particles, args.frames, start_frames, args.start_target)
         return
     if args.reference:
-        reference_comparison(args.particles, args.frames, args.seed)
+        reference_comparison(args.particles, args.frames, seed)
         return
     exp = simulate_particle_experiment(ParticleSimOptions(
-        particles_per_frame=args.particles, num_frames=args.frames, seed=args.seed, drift_deg=args.drift_deg,
+        particles_per_frame=args.particles, num_frames=args.frames, seed=seed, drift_deg=args.drift_deg,
         drift_cameras=tuple(int(c) for c in args.drift_cameras.split(",") if c.strip()), k1=args.k1,
         calibration_frames=start_frames[0], calibration_target=args.start_target))
     volume = Volume(exp.volume_min_mm, exp.volume_max_mm)
     start = exp.truth_a if args.start == "truth" else body_calibration(exp)
     what = ("true calibration" if args.start == "truth" else
             f"{args.start_target} calibration (exact model, {start_frames[0]} views)")
-    print(f"{args.frames} frames x {args.particles} particles, seed {args.seed}, start: rig A's {what}, "
+    print(f"{args.frames} frames x {args.particles} particles, seed {seed}, start: rig A's {what}, "
           f"backend {args.backend}")
     t0 = time.perf_counter()
     if args.workers:
