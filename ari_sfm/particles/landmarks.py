@@ -49,7 +49,8 @@ RIG_TILT_PRIOR_DEG = 0.5  # the rig's mean tilt to the window(s) (and its distan
 # particles) held at the start's by a prior this wide: refraction determines it weakly, and unheld the
 # adjustment's steps wander along it (measured: 0.5 deg steps, then 50 iterations crawling back)
 INTRINSICS_FREE = ("fx", "fy", "cx", "cy")  # estimated with the start's priors (k1 too when it has distortion)
-UNKNOWN_PRIOR_PX = 5.0  # a start whose uncertainty lacks a camera's parameter: its prior this wide (px)
+UNKNOWN_PRIOR_PX = 5.0  # a start whose uncertainty lacks a camera's parameter (or guessed it): its prior this wide (px)
+HELD_SIGMA_PX = 1e-3  # a start's sigma below this was held, not measured (calibrate holds by a 1e-4 px prior)
 UNKNOWN_PRIOR_K1 = 0.01
 GTSAM_MAX_LANDMARKS = 3000  # --backend gtsam beyond this: refused (GTSAM's LM on 20k points runs for minutes)
 CHI2_STOP = 0.01  # Levenberg-Marquardt stops when a step lowers chi^2 by less than this
@@ -277,10 +278,13 @@ class IntrinsicsPrior:
         sig = np.full(values.shape, np.inf)
         if mode == "prior":
             unc = calibration.uncertainty
+            guessed = guessed_principal_points(calibration)
             for c, n in enumerate(names):
                 cu = None if unc is None else unc.cameras.get(n)
                 for j, i in enumerate(free):
                     s = None if cu is None else cu.intrinsics.get(PARAM_NAMES[i])
+                    if n in guessed and PARAM_NAMES[i] in ("cx", "cy"):
+                        s = None  # held at a guess: its error is unknown, not 1e-4 px
                     fallback = UNKNOWN_PRIOR_K1 if PARAM_NAMES[i] == "k1" else UNKNOWN_PRIOR_PX
                     sig[c, j] = float(s) if s is not None and math.isfinite(s) and s > 0 else fallback
         return IntrinsicsPrior(tuple(free), values, sig)
@@ -313,6 +317,24 @@ class IntrinsicsPrior:
                              f"estimates {len(cols)}")
         J = noise_px * W
         return J @ np.array(delta), J, cols_a
+
+
+def guessed_principal_points(calibration: Calibration) -> list[str]:
+    """The cameras whose principal point the start held at a guess rather than estimated (``calibrate`` holds
+    it at the image centre when its views leave it undetermined): cx or cy with a sigma below HELD_SIGMA_PX
+    while the focal length's is not (every intrinsic held: a K declared known, ``--fix-intrinsics``). A
+    principal point trades against a rotation for the particles: the self-calibrated rotations inherit
+    its error, so it gets the prior of an unknown (UNKNOWN_PRIOR_PX) and the result says so."""
+    unc = calibration.uncertainty
+    if unc is None:
+        return []
+    out = []
+    for n, cu in unc.cameras.items():
+        s = cu.intrinsics
+        held = [s.get(k) is not None and s.get(k) < HELD_SIGMA_PX for k in ("cx", "cy")]
+        if any(held) and not (s.get("fx") is not None and s.get("fx") < HELD_SIGMA_PX):
+            out.append(n)
+    return out
 
 
 def whitening_of(covariance: np.ndarray) -> np.ndarray:

@@ -42,8 +42,8 @@ from ..calibration import Calibration
 from ..errors import AriSfmError
 from ..geometry import rotation_angle_deg
 from .disparity import Cells, DisparityMap, ParticleSet, disparity_map, particle_disparities
-from .landmarks import (BACKENDS, INTRINSICS_MODES, Adjustment, CameraSigma, Gauge, IntrinsicsPrior, Refined,
-                        free_intrinsics, refine_with_landmarks)
+from .landmarks import (BACKENDS, INTRINSICS_MODES, UNKNOWN_PRIOR_PX, Adjustment, CameraSigma, Gauge,
+                        IntrinsicsPrior, Refined, free_intrinsics, guessed_principal_points, refine_with_landmarks)
 
 log = logging.getLogger(__name__)
 
@@ -520,7 +520,9 @@ def trust_checks(start: Calibration, final: Calibration, detections: Mapping[int
       have matched them: the start cannot be trusted, or the result is not of its rig);
     - ``rig_change`` (a warning): each camera's rotation relative to the first changed by less than
       CHANGE_SIGMAS of the start's sigma (or 0.2 deg): a larger change is a camera knocked hard, or a
-      start of another rig state."""
+      start of another rig state;
+    - ``start_principal_points`` (a warning): the start estimated every principal point
+      (:func:`~ari_sfm.particles.landmarks.guessed_principal_points`)."""
     names = list(final.cameras)
     images = min(sum(len(detections[f][n]) for f in frames) for n in names)
     share = float(len(particles.xyz) / images) if images else 0.0
@@ -555,6 +557,12 @@ def trust_checks(start: Calibration, final: Calibration, detections: Mapping[int
     checks.append(Check("rig_change", worst_change, worst_change / worst_ratio if worst_ratio else 0.2,
                         worst_ratio <= 1.0, "largest change of a camera's rotation relative to the first (deg) "
                         f"against {CHANGE_SIGMAS:g} start sigmas (or 0.2 deg)", fatal=False))
+    guessed = guessed_principal_points(start)
+    checks.append(Check("start_principal_points", float(len(guessed)), 0.0, not guessed,
+                        "cameras whose principal point the start held at a guess (e.g. the image centre) rather "
+                        "than estimated: the relative rotations are only as good as that guess, weighed as a "
+                        f"{UNKNOWN_PRIOR_PX:g} px prior" + (f" ({', '.join(guessed)})" if guessed else ""),
+                        fatal=False))
     return tuple(checks)
 
 
