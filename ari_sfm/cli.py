@@ -657,10 +657,17 @@ def import_colmap_fork_cmd(model_dir: Path, out: Path, units_mm: float) -> None:
               help="particles: radial lens distortion (OpenCV k1) of every camera, e.g. -0.05.")
 @click.option("--windows", type=click.Choice(["1", "2"]), default="1", show_default=True,
               help="particles: 2 for a tank seen through two opposite walls, half the cameras behind each.")
+@click.option("--calibration-views", type=int, default=3, show_default=True,
+              help="particles: views of rig A's calibration target (more views: better principal points, and a "
+                   "better self-calibration from them).")
+@click.option("--calibration-target", type=click.Choice(["body", "board"]), default="body", show_default=True,
+              help="particles: rig A's target: a 3D body (three levels), or a planar checkerboard tilted 10-40 deg "
+                   "(one window).")
 @user_errors
 def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_scale: float, images: bool | None,
              num_cameras: int, particles_per_frame: int, num_frames: int, render_frames: int, drift_deg: float,
-             drift_mm: float, drift_cameras: str, look: str, bit_depth: str, k1: float, windows: str) -> None:
+             drift_mm: float, drift_cameras: str, look: str, bit_depth: str, k1: float, windows: str,
+             calibration_views: int, calibration_target: str) -> None:
     """Write a simulated dataset (exact Snell physics) and its truth. SCENARIO: one of `ari-sfm scenarios`."""
     from .simulate import SCENARIOS, simulate as run_sim
 
@@ -670,10 +677,14 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_sca
     check_number("--seed", seed, minimum=0)
     if scenario == "particles":  # a particle experiment: rig A's target calibration, drifted rig B, particles
         _simulate_particles(out, seed, 0.1 if sigma is None else sigma, num_cameras, particles_per_frame, num_frames,
-                            render_frames, drift_deg, drift_mm, drift_cameras, look, int(bit_depth), k1, int(windows))
+                            render_frames, drift_deg, drift_mm, drift_cameras, look, int(bit_depth), k1, int(windows),
+                            calibration_views, calibration_target)
         return
     if k1:
         raise AriSfmError("--k1", "is for the particles scenario")
+    if calibration_views != 3 or calibration_target != "body":
+        raise AriSfmError("--calibration-views" if calibration_views != 3 else "--calibration-target",
+                          "is for the particles scenario")
     if windows != "1":
         raise AriSfmError("--windows", "is for the particles scenario (tank_opposite and tank_adjacent are the "
                                        "two-window target scenarios)")
@@ -700,7 +711,8 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_sca
 
 def _simulate_particles(out: Path, seed: int, sigma: float, num_cameras: int, particles_per_frame: int,
                         num_frames: int, render_frames: int, drift_deg: float, drift_mm: float, drift_cameras: str,
-                        look: str = "plain", bit_depth: int = 8, k1: float = 0.0, windows: int = 1) -> None:
+                        look: str = "plain", bit_depth: int = 8, k1: float = 0.0, windows: int = 1,
+                        calibration_views: int = 3, calibration_target: str = "body") -> None:
     """`simulate particles`: write OUT/calibration, OUT/experiment, OUT/truth (ari_sfm.simulate.particles)."""
     from .simulate.particles import ParticleSimOptions, simulate_particle_experiment, write_particle_experiment
 
@@ -713,6 +725,9 @@ def _simulate_particles(out: Path, seed: int, sigma: float, num_cameras: int, pa
     check_number("--drift-deg", drift_deg, minimum=0.0, maximum=10.0)
     check_number("--drift-mm", drift_mm, minimum=0.0, maximum=100.0)
     check_number("--k1", k1, minimum=-0.5, maximum=0.5)
+    check_number("--calibration-views", calibration_views, minimum=1, maximum=100)
+    if calibration_target == "board" and windows != 1:
+        raise AriSfmError("--calibration-target", "board is seen from one side: it needs --windows 1")
     try:
         drifted = tuple(int(c) for c in drift_cameras.split(",") if c.strip())
     except ValueError:
@@ -723,7 +738,8 @@ def _simulate_particles(out: Path, seed: int, sigma: float, num_cameras: int, pa
         raise AriSfmError("--drift-cameras", f"{bad} not among the cameras 0..{num_cameras - 1}")
     options = ParticleSimOptions(num_cameras=num_cameras, particles_per_frame=particles_per_frame,
                                  num_frames=num_frames, sigma_px=sigma, drift_cameras=drifted, drift_deg=drift_deg,
-                                 drift_mm=drift_mm, look=look, bit_depth=bit_depth, k1=k1, windows=windows, seed=seed)
+                                 drift_mm=drift_mm, look=look, bit_depth=bit_depth, k1=k1, windows=windows, seed=seed,
+                                 calibration_frames=calibration_views, calibration_target=calibration_target)
     paths = write_particle_experiment(simulate_particle_experiment(options), out, render_frames=render_frames)
     click.echo(f"calibration dataset (rig A): {paths['calibration']}\nexperiment (rig B):          "
                f"{paths['experiment']}\ntruth:                       {paths['truth']} (rig_a.json, rig_b.json, "

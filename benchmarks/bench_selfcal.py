@@ -1,15 +1,24 @@
 """Volume self-calibration through the window on a simulated drifted experiment.
 
     python benchmarks/bench_selfcal.py [--particles 2000] [--frames 10] [--seed 0] [--start truth|body]
-                                       [--workers 0] [--backend numpy] [--drift-cameras 1,2,3] [--drift-deg 0.05]
-                                       [--k1 0]
-    python benchmarks/bench_selfcal.py --cases [--particles 2000] [--frames 10]
+                                       [--start-frames 3] [--workers 0] [--backend numpy]
+                                       [--drift-cameras 1,2,3] [--drift-deg 0.05] [--k1 0]
+    python benchmarks/bench_selfcal.py --cases [NAME ...] [--start-frames 3 6 10] [--start-target body|board] [--seed S]
+                                       [--particles 2000] [--frames 10]
+    python benchmarks/bench_selfcal.py --priors [NAME ...] [--start-frames 3 6 10] [--seed S]
+    python benchmarks/bench_selfcal.py --list
     python benchmarks/bench_selfcal.py --reference [--particles 2000] [--frames 10]
 
 ``--cases``: a table over seeds, drift sizes, which cameras drift (camera 0 alone, all) and lens
-distortion, each started from rig A's body calibration with ``calibrate --distortion`` as a user would:
-the largest error of a camera's rotation relative to camera 0 against rig B's, at the start and after,
-the largest error / sigma (calibration.json's uncertainty), the checks, CPU and wall seconds.
+distortion (``--list`` names them; ``--cases NAME ...`` runs those alone, one at a time), each started
+from rig A's body calibration with ``calibrate --model exact --distortion`` as a user would, from
+``--start-frames`` views of the body (several numbers: each case from each): the largest error of a
+camera's rotation relative to camera 0 against rig B's, at the start and after, the sigma of that
+camera (calibration.json's uncertainty) and the largest error / sigma over the cameras, the checks,
+CPU and wall seconds of the self-calibration alone.
+``--priors``: per case the last bundle adjustment again on the same particles with the start's
+intrinsics weighed by their sigmas (as shipped), by the target calibration's joint covariance (the
+same parameters; every intrinsic parameter free), and with the exact intrinsics held (the floor).
 ``--reference``: ari-sfm's self-calibration beside a minimal plain one (this file: loose matching at
 5 px on every frame, disparity peaks by a 2-D histogram per camera, a plain bundle adjustment with
 camera 0 and the intrinsics held), both in this process, alternately.
@@ -18,11 +27,12 @@ The experiment of ari_sfm.simulate.particles (4 cameras ~400 mm from a 60 x 40 x
 water behind 10 mm of glass, 0.1 px detection noise, cameras 1-3 turned by 0.05 deg and moved by
 0.3 mm after the target calibration). Self-calibration starts from rig A: its true calibration
 (``--start truth``) or the exact-model calibration of the simulated body views (``--start body``,
-what a lab has). Prints the disparity RMS per camera before/after, each camera's rotation relative to
-camera 0 against rig B's (and the drifted start's), the centres' errors, and matching at 0.5 px
-(>= 3 cameras) with the true (rig B), the drifted and the self-calibrated calibrations: found and
-ghost fractions, the fraction of reconstructed particles whose images are all one particle's
-(``rows``), the 3D RMS error of the correct ones after a rigid alignment onto the truth; and times.
+what a lab has; ``--start-frames`` views). Prints the disparity RMS per camera before/after, each
+camera's rotation relative to camera 0 against rig B's (and the drifted start's), the centres' errors,
+and matching at 0.5 px (>= 3 cameras) with the true (rig B), the drifted and the self-calibrated
+calibrations: found and ghost fractions, the fraction of reconstructed particles whose images are all
+one particle's (``rows``), the 3D RMS error of the correct ones after a rigid alignment onto the truth;
+and times.
 """
 from __future__ import annotations
 
@@ -30,6 +40,7 @@ import argparse
 import os
 import tempfile
 import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -38,6 +49,7 @@ import numpy as np  # noqa: E402
 
 from ari_sfm.geometry import rotation_angle_deg  # noqa: E402
 from ari_sfm.metrics import rigid_alignment  # noqa: E402
+from ari_sfm.models.pinhole import PARAM_NAMES  # noqa: E402
 from ari_sfm.particles.match import match_frame  # noqa: E402
 from ari_sfm.particles.selfcal import SelfCalOptions, dask_map, self_calibrate  # noqa: E402
 from ari_sfm.particles.truth import score_frame, true_ids  # noqa: E402
@@ -77,8 +89,8 @@ def relative_rotation_deg(cal, truth, name: str) -> float:
 
 
 def body_calibration(exp, distortion: bool = True):
-    """Rig A calibrated from the simulated body views with the exact model (as `ari-sfm calibrate
-    --distortion`)."""
+    """Rig A calibrated from the simulated target's views (the body's, or a board's) with the exact model (as
+    `ari-sfm calibrate --model exact --distortion`)."""
     from ari_sfm.calibrate import calibrate
     from ari_sfm.io import load_calibration, save_calibration
     from ari_sfm.io import load_dataset
@@ -90,25 +102,43 @@ def body_calibration(exp, distortion: bool = True):
     return load_calibration(folder / "cal.json")
 
 
-CASES = (  # (label, seed, drift_cameras, drift_deg, drift_mm, k1)
-    ("cams 1-3, 0.05 deg, seed 0", 0, (1, 2, 3), 0.05, 0.3, 0.0),
-    ("cams 1-3, 0.05 deg, seed 1", 1, (1, 2, 3), 0.05, 0.3, 0.0),
-    ("cams 1-3, 0.05 deg, seed 2", 2, (1, 2, 3), 0.05, 0.3, 0.0),
-    ("cams 1-3, 0.08 deg, seed 3", 3, (1, 2, 3), 0.08, 0.3, 0.0),
-    ("cam 0 alone, 0.05 deg, seed 4", 4, (0,), 0.05, 0.3, 0.0),
-    ("all cams, 0.05 deg, seed 5", 5, (0, 1, 2, 3), 0.05, 0.3, 0.0),
-    ("all cams, 0.03 deg, seed 6", 6, (0, 1, 2, 3), 0.03, 0.2, 0.0),
-    ("all cams, 0.05 deg, k1 -0.03, seed 7", 7, (0, 1, 2, 3), 0.05, 0.3, -0.03),
-    ("all cams, 0.05 deg, k1 -0.06, seed 8", 8, (0, 1, 2, 3), 0.05, 0.3, -0.06),
-)
+@dataclass(frozen=True)
+class Case:
+    """One simulated drift: the seed, which cameras moved, by how much, the lenses' k1."""
+
+    seed: int
+    drift_cameras: tuple[int, ...]
+    drift_deg: float
+    drift_mm: float
+    k1: float = 0.0
 
 
-def run_case(particles: int, frames: int, seed: int, drift_cameras, drift_deg: float, drift_mm: float, k1: float,
+CASES = {
+    "cams123-s0": Case(0, (1, 2, 3), 0.05, 0.3),
+    "cams123-s1": Case(1, (1, 2, 3), 0.05, 0.3),
+    "cams123-s2": Case(2, (1, 2, 3), 0.05, 0.3),
+    "cams123-0.08deg-s3": Case(3, (1, 2, 3), 0.08, 0.3),
+    "cam0-s4": Case(4, (0,), 0.05, 0.3),
+    "all-s5": Case(5, (0, 1, 2, 3), 0.05, 0.3),
+    "all-0.03deg-s6": Case(6, (0, 1, 2, 3), 0.03, 0.2),
+    "all-k1-0.03-s7": Case(7, (0, 1, 2, 3), 0.05, 0.3, -0.03),
+    "all-k1-0.06-s8": Case(8, (0, 1, 2, 3), 0.05, 0.3, -0.06),
+}
+
+
+def simulate_case(case: Case, particles: int, frames: int, start_frames: int = 3, start_target: str = "body"):
+    """The experiment of ``case``, rig A's target seen in ``start_frames`` views."""
+    return simulate_particle_experiment(ParticleSimOptions(
+        particles_per_frame=particles, num_frames=frames, seed=case.seed, drift_cameras=case.drift_cameras,
+        drift_deg=case.drift_deg, drift_mm=case.drift_mm, k1=case.k1, calibration_frames=start_frames,
+        calibration_target=start_target))
+
+
+def run_case(case: Case, particles: int, frames: int, start_frames: int = 3, start_target: str = "body",
              options: SelfCalOptions = SelfCalOptions()) -> dict:
-    """One simulated drift self-calibrated from the body calibration: errors, sigmas, checks, times."""
-    exp = simulate_particle_experiment(ParticleSimOptions(particles_per_frame=particles, num_frames=frames, seed=seed,
-                                                          drift_cameras=tuple(drift_cameras), drift_deg=drift_deg,
-                                                          drift_mm=drift_mm, k1=k1))
+    """One simulated drift self-calibrated from the target calibration of ``start_frames`` views of
+    ``start_target`` (the body, or a board): errors, sigmas, checks, times."""
+    exp = simulate_case(case, particles, frames, start_frames, start_target)
     volume = Volume(exp.volume_min_mm, exp.volume_max_mm)
     start = body_calibration(exp)
     w0, c0 = time.perf_counter(), time.process_time()
@@ -117,24 +147,112 @@ def run_case(particles: int, frames: int, seed: int, drift_cameras, drift_deg: f
     b, c = exp.truth_b, res.calibration
     names = list(b.cameras)[1:]
     unc = c.uncertainty.cameras
-    ratio = max(relative_rotation_deg(c, b, n) / unc[n].rotation_deg for n in names)
-    return {"start": max(relative_rotation_deg(start, b, n) for n in names),
-            "after": max(relative_rotation_deg(c, b, n) for n in names),
-            "sigma": max(unc[n].rotation_deg for n in names), "ratio": ratio, "passed": res.report.passed,
-            "disparity": float(max(d.after for d in res.report.disparity_rms_px.values())), "wall": wall, "cpu": cpu}
+    errors = {n: relative_rotation_deg(c, b, n) for n in names}
+    worst = max(names, key=errors.get)
+    return {"start": max(relative_rotation_deg(start, b, n) for n in names), "after": errors[worst],
+            "sigma": unc[worst].rotation_deg, "ratio": max(errors[n] / unc[n].rotation_deg for n in names),
+            "passed": res.report.passed, "warnings": [k.name for k in res.report.checks if not k.passed and not k.fatal],
+            "disparity": float(max(d.after for d in res.report.disparity_rms_px.values())),
+            "wall": wall, "cpu": cpu}
 
 
-def cases(particles: int, frames: int) -> None:
-    print(f"{frames} frames x {particles} particles, 0.1 px noise; started from rig A's body calibration "
-          "(calibrate --model exact --distortion); errors of each camera's rotation relative to camera 0 "
-          "against rig B, the largest over the cameras")
-    print(f"| case | start error (deg) | after (deg) | sigma after (deg) | largest error / sigma | disparity after (px) "
-          f"| checks | CPU s | wall s |\n|---|---|---|---|---|---|---|---|---|")
-    for label, seed, cams, deg, mm, k1 in CASES:
-        r = run_case(particles, frames, seed, cams, deg, mm, k1)
-        print(f"| {label} | {r['start']:.4f} | {r['after']:.4f} | {r['sigma']:.4f} | {r['ratio']:.2f} | "
-              f"{r['disparity']:.3f} | {'passed' if r['passed'] else 'FAILED'} | {r['cpu']:.1f} | {r['wall']:.1f} |",
-              flush=True)
+def cases(names, particles: int, frames: int, start_frames, start_target: str = "body") -> None:
+    print(f"{frames} frames x {particles} particles, 0.1 px noise; started from rig A's calibration "
+          f"(calibrate --model exact --distortion) of N views of the {start_target}; errors of each camera's "
+          "rotation relative to camera 0 against rig B: the largest over the cameras, that camera's sigma, the largest "
+          "error / sigma")
+    print(f"| case | {start_target} views | start error (deg) | after (deg) | sigma (deg) | largest error / sigma "
+          "| disparity after (px) | checks | CPU s | wall s |\n|---|---|---|---|---|---|---|---|---|---|")
+    for name in names:
+        for n in start_frames:
+            r = run_case(CASES[name], particles, frames, n, start_target)
+            print(f"| {name} | {n} | {r['start']:.4f} | {r['after']:.4f} | {r['sigma']:.4f} | {r['ratio']:.2f} | "
+                  f"{r['disparity']:.3f} | {'passed' if r['passed'] else 'FAILED'}"
+                  + "".join(f", warned {w}" for w in r["warnings"]) + f" | {r['cpu']:.1f} | {r['wall']:.1f} |",
+                  flush=True)
+
+
+# --------------------------------------------------------------------------- the intrinsics priors compared
+
+
+def body_calibration_and_covariance(exp) -> tuple:
+    """body_calibration(exp) and the joint covariance (C 9, C 9) of every camera's intrinsics [fx fy cx cy k1 k2
+    p1 p2 k3] (camera-major) from its normal equations, the poses, the window and the body's views marginalised,
+    in the units of calibration.json's uncertainty (whose sigmas are its diagonal's roots)."""
+    import ari_sfm.factors.uncertainty as uncertainty
+    from ari_sfm.factors.schur import global_covariance
+
+    kept = {}
+    original = uncertainty.marginal_covariances
+
+    def capture(rg, solved=None, sigma_px=None):
+        scale = 1.0 if sigma_px is None else (sigma_px / rg.sigma_px) ** 2
+        cov = global_covariance(solved.linearize(solved.x), solved.fixed_cols) * scale
+        idx = np.concatenate([c * solved.camera_block + np.arange(solved.n_params)
+                              for c in range(len(solved.camera_names))])
+        kept["cov"] = cov[np.ix_(idx, idx)]
+        return original(rg, solved, sigma_px)
+
+    uncertainty.marginal_covariances = capture
+    try:
+        start = body_calibration(exp)
+    finally:
+        uncertainty.marginal_covariances = original
+    cov = kept["cov"]
+    sigmas = np.concatenate([[start.uncertainty.cameras[n].intrinsics[k] for k in PARAM_NAMES] for n in start.cameras])
+    if not np.allclose(np.sqrt(np.diag(cov)), sigmas, rtol=1e-6):
+        raise RuntimeError("the captured covariance is not the one calibration.json's sigmas come from")
+    return start, cov
+
+
+def compare_priors(names, particles: int, frames: int, start_frames, start_target: str = "body") -> None:
+    """Per case: the self-calibration as shipped, then its last bundle adjustment again on the same particles
+    (every frame matched at 0.5 px with its result, the disparity peaks' inliers) with the start's intrinsics
+    weighed otherwise: its sigmas alone (as shipped), its joint covariance over the same parameters, every
+    intrinsic parameter free under the joint covariance, and the exact intrinsics held (the floor)."""
+    from ari_sfm.particles.disparity import Cells, ParticleSet, disparity_map, particle_disparities
+    from ari_sfm.particles.landmarks import Gauge, IntrinsicsPrior, free_intrinsics, refine_with_landmarks
+    from ari_sfm.particles.selfcal import match_particles
+
+    print(f"{frames} frames x {particles} particles; the relative rotations' errors (deg) against rig B: the largest "
+          "over the cameras / their RMS, and the largest sigma")
+    print(f"| case | {start_target} views | as shipped (sigmas) | joint covariance, same parameters "
+          "| every intrinsic free, joint covariance | exact intrinsics held |\n|---|---|---|---|---|---|")
+    for name in names:
+        case = CASES[name]
+        for n_views in start_frames:
+            exp = simulate_case(case, particles, frames, n_views, start_target)
+            volume = Volume(exp.volume_min_mm, exp.volume_max_mm)
+            start, cov = body_calibration_and_covariance(exp)
+            result = self_calibrate(start, dict(enumerate(exp.detections)), SelfCalOptions(), volume=volume).calibration
+            found = [match_particles(result, f, det, 0.5, 4, volume) for f, det in enumerate(exp.detections)]
+            pixels = np.concatenate([f.pixels for f in found])
+            xyz = np.concatenate([f.xyz for f in found])
+            particles_all = ParticleSet(pixels, xyz, np.concatenate([np.full(len(f.xyz), f.frame) for f in found]))
+            dmap = disparity_map(exp.cameras, Cells.around(xyz, (3, 3, 3)), particles_all,
+                                 particle_disparities(result, particles_all), 0.5, 1.5, 0)
+            keep = np.flatnonzero(dmap.inlier)
+            landmarks = ParticleSet(pixels[keep], xyz[keep], particles_all.frame[keep])
+            centre = np.median(landmarks.xyz, axis=0)
+            length = float(np.mean([np.linalg.norm(c.cam_from_world.inverse().t - centre)
+                                    for c in start.cameras.values()]))
+            gauge = Gauge.of(start, [False], length)
+            free = free_intrinsics(start, "prior")
+            sel = np.concatenate([c * 9 + np.array(free) for c in range(len(exp.cameras))])
+            exact = replace(result, cameras={n: replace(cam, K=exp.truth_a.cameras[n].K,
+                                                        dist=np.asarray(exp.truth_a.cameras[n].dist, float))
+                                             for n, cam in result.cameras.items()})
+            runs = [(result, IntrinsicsPrior.of(start, free, "prior")),
+                    (result, IntrinsicsPrior.of(start, free, "prior").with_covariance(cov[np.ix_(sel, sel)])),
+                    (result, IntrinsicsPrior.of(start, tuple(range(9)), "prior").with_covariance(cov)),
+                    (exact, IntrinsicsPrior.of(exact, (), "held"))]
+            cells = []
+            for cal, prior in runs:
+                r = refine_with_landmarks(cal, landmarks, gauge, prior)
+                errors = np.array([relative_rotation_deg(r.calibration, exp.truth_b, n) for n in exp.cameras[1:]])
+                sigma = max(r.covariance.cameras[n].rotation_rel_deg for n in exp.cameras[1:])
+                cells.append(f"{errors.max():.4f} / {np.sqrt(np.mean(errors ** 2)):.4f}, sigma {sigma:.4f}")
+            print(f"| {name} | {n_views} | " + " | ".join(cells) + " |", flush=True)
 
 
 # --------------------------------------------------------------------------- a minimal plain reference
@@ -235,29 +353,60 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--particles", type=int, default=2000)
     ap.add_argument("--frames", type=int, default=10)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=None, help="the simulation's seed (default 0; with --cases or "
+                                                             "--priors: instead of each case's own)")
     ap.add_argument("--start", choices=("truth", "body"), default="truth")
     ap.add_argument("--workers", type=int, default=0, help="Dask LocalCluster workers for the matching (0: in process)")
     ap.add_argument("--backend", choices=("numpy", "gtsam"), default="numpy")
     ap.add_argument("--drift-cameras", default="1,2,3")
     ap.add_argument("--drift-deg", type=float, default=0.05)
     ap.add_argument("--k1", type=float, default=0.0)
-    ap.add_argument("--cases", action="store_true", help="the table over drifts, seeds and distortion")
+    ap.add_argument("--start-frames", type=int, nargs="+", default=None,
+                    help="views of the calibration body rig A is calibrated from (--start body, --cases; default 3; "
+                         "--cases: several numbers run each case from each)")
+    ap.add_argument("--start-target", choices=("body", "board"), default="body",
+                    help="rig A's target (--start body, --cases, --priors): the simulated 3D body, or a planar "
+                         "checkerboard tilted 10-40 deg")
+    ap.add_argument("--cases", nargs="*", default=None, metavar="NAME",
+                    help="the table over drifts, seeds and distortion (no name: every case; --list names them)")
+    ap.add_argument("--priors", nargs="*", default=None, metavar="NAME",
+                    help="per case, the last bundle adjustment again with the start's intrinsics weighed otherwise "
+                         "(its joint covariance; exact intrinsics)")
+    ap.add_argument("--list", action="store_true", help="the cases' names")
     ap.add_argument("--reference", action="store_true", help="beside a minimal plain self-calibration")
     args = ap.parse_args()
-    if args.cases:
-        cases(args.particles, args.frames)
+    start_frames = args.start_frames or [3]
+    if args.seed is not None:  # the cases with another seed
+        CASES.update({n: replace(c, seed=args.seed) for n, c in CASES.items()})
+    if args.list:
+        for name, c in CASES.items():
+            print(f"{name}: seed {c.seed}, cameras {','.join(map(str, c.drift_cameras))} moved by {c.drift_deg:g} deg "
+                  f"and {c.drift_mm:g} mm, k1 {c.k1:g}")
+        return
+    seed = 0 if args.seed is None else args.seed
+    for chosen in (args.cases, args.priors):
+        unknown = [n for n in chosen or () if n not in CASES]
+        if unknown:
+            ap.error(f"unknown case(s) {', '.join(unknown)} (known: {', '.join(CASES)})")
+    if args.cases is not None:
+        cases(args.cases or list(CASES), args.particles, args.frames, start_frames, args.start_target)
+        return
+    if args.priors is not None:
+        compare_priors(args.priors or list(CASES), args.particles, args.frames, start_frames, args.start_target)
         return
     if args.reference:
-        reference_comparison(args.particles, args.frames, args.seed)
+        reference_comparison(args.particles, args.frames, seed)
         return
     exp = simulate_particle_experiment(ParticleSimOptions(
-        particles_per_frame=args.particles, num_frames=args.frames, seed=args.seed, drift_deg=args.drift_deg,
-        drift_cameras=tuple(int(c) for c in args.drift_cameras.split(",") if c.strip()), k1=args.k1))
+        particles_per_frame=args.particles, num_frames=args.frames, seed=seed, drift_deg=args.drift_deg,
+        drift_cameras=tuple(int(c) for c in args.drift_cameras.split(",") if c.strip()), k1=args.k1,
+        calibration_frames=start_frames[0], calibration_target=args.start_target))
     volume = Volume(exp.volume_min_mm, exp.volume_max_mm)
     start = exp.truth_a if args.start == "truth" else body_calibration(exp)
-    print(f"{args.frames} frames x {args.particles} particles, seed {args.seed}, start: rig A's "
-          f"{'true calibration' if args.start == 'truth' else 'body calibration (exact model)'}, backend {args.backend}")
+    what = ("true calibration" if args.start == "truth" else
+            f"{args.start_target} calibration (exact model, {start_frames[0]} views)")
+    print(f"{args.frames} frames x {args.particles} particles, seed {seed}, start: rig A's {what}, "
+          f"backend {args.backend}")
     t0 = time.perf_counter()
     if args.workers:
         from ari_sfm.particles.engine import dask_client

@@ -11,6 +11,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+import yaml
 from click.testing import CliRunner
 
 from ari_sfm.cli import main
@@ -87,6 +88,43 @@ def test_written_layout_loads(written):
     truth = pq.read_table(written / "truth" / "detections.parquet")
     assert truth.num_rows == len(det.frame)
     assert load_calibration(written / "truth" / "rig_b.json").model == "truth"
+
+
+def test_board_start_changes_only_rig_a_target(experiment, tmp_path):
+    """calibration_target 'board': rig A calibrated on a planar checkerboard, every view tilted 10-40 deg and
+    seen whole by every camera; the rig, its drift and the particles are those of the body's experiment (same
+    seed); calibrated as a user would (exact model, distortion), rig A's fx fy cx cy come out within 4 of
+    their sigmas; one window only."""
+    from dataclasses import replace
+
+    from ari_sfm.calibrate import calibrate
+    from ari_sfm.io import load_dataset
+    from ari_sfm.simulate.particles import BOARD
+
+    exp = simulate_particle_experiment(replace(SMALL, calibration_target="board", calibration_frames=10))
+    for name in exp.cameras:
+        assert np.array_equal(exp.truth_b.cameras[name].cam_from_world.R,
+                              experiment.truth_b.cameras[name].cam_from_world.R)
+    assert all(np.array_equal(a, b) for a, b in zip(exp.positions, experiment.positions))
+    write_particle_experiment(exp, tmp_path, render_frames=0)
+    ds = load_dataset(tmp_path / "calibration")
+    assert ds.target.type == "checkerboard" and ds.target.inner_corners == BOARD.inner_corners
+    assert len(ds.observations) == 4 * 10 and all(len(o.ids) == 88 for o in ds.observations)
+    normals = [exp.rig_a.calibration[f].R[:, 2] for f in exp.rig_a.calibration]
+    axis = np.mean(normals, axis=0) / np.linalg.norm(np.mean(normals, axis=0))
+    tilts = [math.degrees(math.acos(min(1.0, abs(n @ axis)))) for n in normals]
+    assert max(tilts) > 15.0  # tilted views (a board facing the rig in every view leaves the focal length free)
+    cal = calibrate(ds, model="exact", distortion=True)
+    assert cal.quality.ok, cal.quality.why
+    for name in exp.cameras:
+        sig = cal.uncertainty.cameras[name].intrinsics
+        err = np.asarray(cal.cameras[name].params[:4]) - np.asarray(exp.truth_a.cameras[name].params[:4])
+        for k, key in enumerate(("fx", "fy", "cx", "cy")):
+            assert abs(err[k]) < 4.0 * sig[key], (name, key, err[k], sig[key])
+    with pytest.raises(ValueError, match="one side"):
+        simulate_particle_experiment(replace(SMALL, calibration_target="board", windows=2))
+    with pytest.raises(ValueError, match="calibration_target"):
+        simulate_particle_experiment(replace(SMALL, calibration_target="plate"))
 
 
 # --------------------------------------------------------------------------- geometry of the matching
@@ -324,3 +362,12 @@ def test_simulate_particles_cli(tmp_path):
     assert angle == pytest.approx(0.1, abs=1e-9)
     assert a["cameras"]["cam1"] == b["cameras"]["cam1"]
     assert "--drift-cameras" in _cli_error(["simulate", "particles", "-o", tmp_path / "x", "--drift-cameras", "7"])
+    r = _run(["simulate", "particles", "-o", tmp_path / "board", "--particles", "50", "--frames", "1",
+              "--render-frames", "0", "--calibration-target", "board", "--calibration-views", "4"])
+    assert r.exit_code == 0, r.output
+    rig = yaml.safe_load((tmp_path / "board" / "calibration" / "rig.yaml").read_text())
+    assert rig["target"]["type"] == "checkerboard" and len(rig["calibration"]) == 4
+    assert "--calibration-target" in _cli_error(["simulate", "particles", "-o", tmp_path / "y", "--calibration-target",
+                                                 "board", "--windows", "2"])
+    assert "--calibration-views" in _cli_error(["simulate", "particles", "-o", tmp_path / "z",
+                                                "--calibration-views", "0"])

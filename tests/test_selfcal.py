@@ -382,6 +382,90 @@ def test_intrinsics_held_or_moved_within_their_priors(experiment):
     assert spread["prior"] < 2.0 < spread["free"], spread
 
 
+def test_intrinsics_prior_with_a_joint_covariance(experiment):
+    """A joint covariance of every camera's intrinsics as the prior (IntrinsicsPrior.with_covariance): its
+    rows are the Mahalanobis distance (noise^2 d^T Cov^-1 d); a diagonal covariance is the sigmas alone; with
+    correlations the numpy and GTSAM backends solve the same problem."""
+    from types import SimpleNamespace
+
+    from ari_sfm.results import CameraUncertainty, Uncertainty
+
+    a = experiment.truth_a
+    unc = Uncertainty(0.05, {n: CameraUncertainty({"fx": 0.5, "fy": 0.5, "cx": 0.5, "cy": 0.5}) for n in a.cameras},
+                      None)
+    a = replace(a, uncertainty=unc)
+    sigmas_only = IntrinsicsPrior.of(a, free_intrinsics(a, "prior"), "prior")
+    C, F = sigmas_only.values.shape
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(C * F, C * F))
+    S = A @ A.T + 0.5 * np.eye(C * F)  # positive definite, strongly correlated
+    corr = S / np.sqrt(np.outer(np.diag(S), np.diag(S)))
+    cov = 0.25 * corr  # sigma 0.5 px everywhere
+    joint = sigmas_only.with_covariance(cov)
+    assert np.allclose(joint.sigmas, 0.5)
+    delta = rng.normal(0.0, 0.5, (C, F))
+    layout = SimpleNamespace(intrinsics=[np.arange(F) + 10 * c for c in range(C)])
+    state = SimpleNamespace(colmap_params=list(sigmas_only.values + delta))
+    e, J, cols = joint.rows(state, layout, 0.1)
+    d = delta.ravel()
+    assert float(e @ e) == pytest.approx(0.01 * float(d @ np.linalg.solve(cov, d)), rel=1e-9)
+    assert np.allclose(J @ d, e) and cols.tolist() == [10 * c + j for c in range(C) for j in range(F)]
+
+    landmarks = _true_landmarks(experiment, a, 40)
+    gauge = Gauge.of(a, [False], 400.0)
+    alone = refine_with_landmarks(a, landmarks, gauge, sigmas_only).calibration
+    diagonal = refine_with_landmarks(a, landmarks, gauge, sigmas_only.with_covariance(np.diag(np.full(C * F, 0.25))))
+    numpy_r = refine_with_landmarks(a, landmarks, gauge, joint).calibration
+    gtsam_r = refine_with_landmarks(a, landmarks, gauge, joint, backend="gtsam").calibration
+    assert max(np.abs(numpy_r.cameras[n].K - alone.cameras[n].K).max() for n in a.cameras) > 1e-3  # it weighs
+    for name in a.cameras:
+        assert np.allclose(diagonal.calibration.cameras[name].K, alone.cameras[name].K, atol=1e-6)
+        assert np.allclose(numpy_r.cameras[name].K, gtsam_r.cameras[name].K, atol=1e-3)
+        assert rotation_angle_deg(numpy_r.cameras[name].cam_from_world.R,
+                                  gtsam_r.cameras[name].cam_from_world.R) < 1e-4
+
+
+def test_a_guessed_principal_point_is_weighed_as_unknown_and_said(experiment, corrected):
+    """A start that held cam1's principal point at a guess (calibrate's image centre when its views leave it
+    undetermined: a sigma of 1e-4 px) 20 px off: weighed as that sigma, the self-calibrated rotation of cam1
+    inherits the 20 px (0.18 deg, > 3 sigma); weighed as an unknown (UNKNOWN_PRIOR_PX), as self-calibration
+    does, the particles pull it to ~4 px and its sigma contains the error (0.06 deg); the checks warn. A K declared known (every
+    intrinsic held) is not a guess."""
+    from ari_sfm.particles.landmarks import UNKNOWN_PRIOR_PX, guessed_principal_points
+    from ari_sfm.particles.selfcal import trust_checks
+    from ari_sfm.results import CameraUncertainty, Uncertainty
+
+    a = experiment.truth_a
+    sig = {n: {"fx": 0.5, "fy": 0.5, "cx": 0.5, "cy": 0.5} for n in a.cameras}
+    sig["cam1"] = {"fx": 0.5, "fy": 0.5, "cx": 1e-4, "cy": 1e-4}
+    K = a.cameras["cam1"].K.copy()
+    K[0, 2] += 20.0
+    start = replace(a, cameras={**a.cameras, "cam1": replace(a.cameras["cam1"], K=K)},
+                    uncertainty=Uncertainty(0.05, {n: CameraUncertainty(v) for n, v in sig.items()}, None))
+    assert guessed_principal_points(start) == ["cam1"] and guessed_principal_points(a) == []
+    known = Uncertainty(0.05, {n: CameraUncertainty({k: 1e-4 for k in v}) for n, v in sig.items()}, None)
+    assert guessed_principal_points(replace(a, uncertainty=known)) == []
+    prior = IntrinsicsPrior.of(start, free_intrinsics(start, "prior"), "prior")
+    assert prior.sigmas[1, 2] == prior.sigmas[1, 3] == UNKNOWN_PRIOR_PX and prior.sigmas[0, 2] == 0.5
+
+    landmarks = _true_landmarks(experiment, start, 400)
+    gauge = Gauge.of(start, [False], 400.0)
+    trusted = replace(prior, sigmas=np.where(prior.sigmas == UNKNOWN_PRIOR_PX, 1e-4, prior.sigmas))
+    for weighed, contains in ((trusted, False), (prior, True)):
+        r = refine_with_landmarks(start, landmarks, gauge, weighed)
+        error = _relative_rotation_error_deg(r.calibration, experiment.truth_b, "cam1")
+        sigma = r.covariance.cameras["cam1"].rotation_rel_deg
+        assert (error < 2.0 * sigma if contains else error > 3.0 * sigma), (error, sigma)
+
+    det = dict(enumerate(experiment.detections))
+    frames = sorted(det)
+    particles = ParticleSet(landmarks.pixels, landmarks.xyz, landmarks.frame)
+    for cal, passed in ((start, False), (experiment.truth_a, True)):
+        check = {c.name: c for c in trust_checks(cal, corrected.calibration, det, frames, particles,
+                                                 corrected.after, 5.0, SelfCalOptions())}["start_principal_points"]
+        assert check.passed == passed and not check.fatal
+
+
 # --------------------------------------------------------------------------- the command line
 
 

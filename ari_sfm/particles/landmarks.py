@@ -49,7 +49,8 @@ RIG_TILT_PRIOR_DEG = 0.5  # the rig's mean tilt to the window(s) (and its distan
 # particles) held at the start's by a prior this wide: refraction determines it weakly, and unheld the
 # adjustment's steps wander along it (measured: 0.5 deg steps, then 50 iterations crawling back)
 INTRINSICS_FREE = ("fx", "fy", "cx", "cy")  # estimated with the start's priors (k1 too when it has distortion)
-UNKNOWN_PRIOR_PX = 5.0  # a start whose uncertainty lacks a camera's parameter: its prior this wide (px)
+UNKNOWN_PRIOR_PX = 5.0  # a start whose uncertainty lacks a camera's parameter (or guessed it): its prior this wide (px)
+HELD_SIGMA_PX = 1e-3  # a start's sigma below this was held, not measured (calibrate holds by a 1e-4 px prior)
 UNKNOWN_PRIOR_K1 = 0.01
 GTSAM_MAX_LANDMARKS = 400  # --backend gtsam beyond this: refused (its time grows as the cube: 300 5.6 s, 400 14 s)
 CHI2_STOP = 0.01  # Levenberg-Marquardt stops when a step lowers chi^2 by less than this
@@ -261,11 +262,14 @@ def _pairwise_sum_gradient(centres: np.ndarray) -> tuple[float, np.ndarray]:
 
 @dataclass(frozen=True)
 class IntrinsicsPrior:
-    """Per camera the start's values and sigmas of the free intrinsics (``free`` indices of the 9)."""
+    """The start's values of the free intrinsics (``free`` indices of the 9) and how sure it is of them: per
+    camera the sigmas, or (``whitening``) the joint covariance of every camera's free intrinsics."""
 
     free: tuple[int, ...]
     values: np.ndarray  # (C, F)
     sigmas: np.ndarray  # (C, F); inf: no prior (mode "free")
+    whitening: np.ndarray | None = None  # (C F, C F) W with W^T W the inverse of the joint covariance (camera-major:
+    # camera 0's F, then camera 1's, ...); None: the sigmas alone (each parameter its own prior)
 
     @staticmethod
     def of(calibration: Calibration, free: Sequence[int], mode: str) -> "IntrinsicsPrior":
@@ -274,28 +278,76 @@ class IntrinsicsPrior:
         sig = np.full(values.shape, np.inf)
         if mode == "prior":
             unc = calibration.uncertainty
+            guessed = guessed_principal_points(calibration)
             for c, n in enumerate(names):
                 cu = None if unc is None else unc.cameras.get(n)
                 for j, i in enumerate(free):
                     s = None if cu is None else cu.intrinsics.get(PARAM_NAMES[i])
+                    if n in guessed and PARAM_NAMES[i] in ("cx", "cy"):
+                        s = None  # held at a guess: its error is unknown, not 1e-4 px
                     fallback = UNKNOWN_PRIOR_K1 if PARAM_NAMES[i] == "k1" else UNKNOWN_PRIOR_PX
                     sig[c, j] = float(s) if s is not None and math.isfinite(s) and s > 0 else fallback
         return IntrinsicsPrior(tuple(free), values, sig)
 
+    def with_covariance(self, covariance: np.ndarray) -> "IntrinsicsPrior":
+        """This prior with the joint (C F, C F) covariance of the free intrinsics (camera-major) instead of the
+        sigmas alone: the correlations a target calibration leaves between parameters (a principal point and
+        a tangential distortion term, the radial terms, two cameras) weigh the particles' evidence too."""
+        return replace(self, sigmas=np.sqrt(np.diag(covariance)).reshape(self.values.shape),
+                       whitening=whitening_of(covariance))
+
     def rows(self, state, layout, noise_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Whitened errors (R,), Jacobian values (R,) and columns (R,) of the prior rows, weighed against
-        pixel residuals of ``noise_px`` (the rows are noise_px (p - p0) / sigma)."""
-        e, J, cols = [], [], []
+        """Whitened errors (R,), their Jacobian (R, K) and the K columns it is on, weighed against pixel
+        residuals of ``noise_px`` (the rows are noise_px W (p - p0); with sigmas alone W = diag(1 / sigma))."""
+        cols, delta, w = [], [], []
         for c, ix in enumerate(layout.intrinsics):
             for j, col in enumerate(ix):
                 s = self.sigmas[c, j]
                 if col < 0 or not math.isfinite(s):
                     continue
-                w = noise_px / s
-                e.append(w * (state.colmap_params[c][j] - self.values[c, j]))
-                J.append(w)
                 cols.append(col)
-        return np.array(e), np.array(J), np.array(cols, dtype=int)
+                delta.append(state.colmap_params[c][j] - self.values[c, j])
+                w.append(1.0 / s)
+        cols_a = np.array(cols, dtype=int)
+        if not cols:
+            return np.zeros(0), np.zeros((0, 0)), cols_a
+        W = np.diag(w) if self.whitening is None else self.whitening
+        if W.shape[1] != len(cols):
+            raise ValueError(f"the intrinsics prior's covariance is over {W.shape[1]} parameters, the problem "
+                             f"estimates {len(cols)}")
+        J = noise_px * W
+        return J @ np.array(delta), J, cols_a
+
+
+def guessed_principal_points(calibration: Calibration) -> list[str]:
+    """The cameras whose principal point the start held at a guess rather than estimated (``calibrate`` holds
+    it at the image centre when its views leave it undetermined): cx or cy with a sigma below HELD_SIGMA_PX
+    while the focal length's is not (every intrinsic held: a K declared known, ``--fix-intrinsics``). A
+    principal point trades against a rotation for the particles: the self-calibrated rotations inherit
+    its error, so it gets the prior of an unknown (UNKNOWN_PRIOR_PX) and the result says so."""
+    unc = calibration.uncertainty
+    if unc is None:
+        return []
+    out = []
+    for n, cu in unc.cameras.items():
+        s = cu.intrinsics
+        held = [s.get(k) is not None and s.get(k) < HELD_SIGMA_PX for k in ("cx", "cy")]
+        if any(held) and not (s.get("fx") is not None and s.get("fx") < HELD_SIGMA_PX):
+            out.append(n)
+    return out
+
+
+def whitening_of(covariance: np.ndarray) -> np.ndarray:
+    """W with W^T W = covariance^-1 (on its correlations, so that px and k1's units do not matter; directions
+    the covariance holds no variance along are given none of the information either)."""
+    cov = np.asarray(covariance, float)
+    s = np.sqrt(np.diag(cov))
+    if not (np.all(np.isfinite(cov)) and np.all(s > 0)):
+        raise ValueError("the intrinsics covariance must be finite with a positive diagonal")
+    corr = cov / np.outer(s, s)
+    lam, V = np.linalg.eigh(0.5 * (corr + corr.T))
+    keep = lam > 1e-12 * lam.max()
+    return (V[:, keep] / np.sqrt(lam[keep])).T / s[None, :]
 
 
 # --------------------------------------------------------------------------- the solver
@@ -327,8 +379,8 @@ def _solver_class():
             ne.U += J_g.T @ J_g
             ne.g_global += J_g.T @ e_g
             e_p, J_p, cols = self.intrinsics_prior.rows(state, self.problem.layout, self.noise_px)
-            ne.U[cols, cols] += J_p ** 2
-            ne.g_global[cols] += J_p * e_p
+            ne.U[np.ix_(cols, cols)] += J_p.T @ J_p
+            ne.g_global[cols] += J_p.T @ e_p
             ne.error += 0.5 * float(e_g @ e_g + e_p @ e_p)
             return ne
 
@@ -498,22 +550,27 @@ def _gtsam_refinement(problem, huber_px: float | None, gauge: Gauge, prior: Intr
 
             rows = len(gauge.rows(template, lay)[0])
             g.add(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows), pose_keys, gauge_error))
-            for c, ix in enumerate(lay.intrinsics):
-                for j, col in enumerate(ix):
-                    s = prior.sigmas[c, j]
-                    if col < 0 or not math.isfinite(s):
-                        continue
-                    key, w, p0 = gg._intrinsics_key(c), noise_px / s, prior.values[c, j]
-                    dim = len(ix)
+            # the intrinsics prior: one factor on every camera's intrinsics with a prior (its rows dense with
+            # a joint covariance), the same whitened rows as the numpy backend's
+            _, Jp, _ = prior.rows(template, lay, noise_px)
+            with_prior = [(c, [j for j, col in enumerate(ix) if col >= 0 and math.isfinite(prior.sigmas[c, j])])
+                          for c, ix in enumerate(lay.intrinsics)]
+            with_prior = [(c, js) for c, js in with_prior if js]
+            if with_prior:
+                keys = [gg._intrinsics_key(c) for c, _ in with_prior]
+                p0 = np.concatenate([prior.values[c, js] for c, js in with_prior])
+                starts = np.cumsum([0] + [len(js) for _, js in with_prior])
 
-                    def prior_error(this, values, H, j=j, key=key, w=w, p0=p0, dim=dim):
-                        if H is not None:
-                            row = np.zeros((1, dim))
-                            row[0, j] = w
-                            H[0] = row
-                        return np.array([w * (values.atVector(key)[j] - p0)])
+                def prior_error(this, values, H):
+                    p = np.concatenate([values.atVector(k)[js] for k, (_, js) in zip(keys, with_prior)])
+                    if H is not None:
+                        for m, (c, js) in enumerate(with_prior):
+                            block = np.zeros((Jp.shape[0], len(lay.intrinsics[c])))
+                            block[:, js] = Jp[:, starts[m]:starts[m + 1]]
+                            H[m] = block
+                    return Jp @ (p - p0)
 
-                    g.add(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(1), [key], prior_error))
+                g.add(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(Jp.shape[0]), keys, prior_error))
             return g
 
     return SelfCalRefinement(problem, huber_px)

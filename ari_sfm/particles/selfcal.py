@@ -42,8 +42,8 @@ from ..calibration import Calibration
 from ..errors import AriSfmError
 from ..geometry import rotation_angle_deg
 from .disparity import Cells, DisparityMap, ParticleSet, disparity_map, particle_disparities
-from .landmarks import (BACKENDS, INTRINSICS_MODES, Adjustment, CameraSigma, Gauge, IntrinsicsPrior, Refined,
-                        free_intrinsics, refine_with_landmarks)
+from .landmarks import (BACKENDS, INTRINSICS_MODES, UNKNOWN_PRIOR_PX, Adjustment, CameraSigma, Gauge,
+                        IntrinsicsPrior, Refined, free_intrinsics, guessed_principal_points, refine_with_landmarks)
 
 log = logging.getLogger(__name__)
 
@@ -523,7 +523,9 @@ def trust_checks(start: Calibration, final: Calibration, detections: Mapping[int
       start of another rig state;
     - ``start_quality``: the start calibration passed its quality gate (a start the gate failed, e.g. a
       lens left out, is refitted by the particles into cameras as wrong as it, at a low disparity): its
-      robust RMSE against the gate's allowance; a start without a verdict passes."""
+      robust RMSE against the gate's allowance; a start without a verdict passes.
+    - ``start_principal_points`` (a warning): the start estimated every principal point
+      (:func:`~ari_sfm.particles.landmarks.guessed_principal_points`)."""
     names = list(final.cameras)
     images = min(sum(len(detections[f][n]) for f in frames) for n in names)
     share = float(len(particles.xyz) / images) if images else 0.0
@@ -563,6 +565,12 @@ def trust_checks(start: Calibration, final: Calibration, detections: Mapping[int
         checks.append(Check("start_quality", q.robust_rmse_px, q.allowance_px or 0.0, q.ok,
                             "the start calibration's robust RMSE (px) against its quality gate's allowance: "
                             + ("passed" if q.ok else f"failed ({q.why}): calibrate it again")))
+    guessed = guessed_principal_points(start)
+    checks.append(Check("start_principal_points", float(len(guessed)), 0.0, not guessed,
+                        "cameras whose principal point the start held at a guess (e.g. the image centre) rather "
+                        "than estimated: the relative rotations are only as good as that guess, weighed as a "
+                        f"{UNKNOWN_PRIOR_PX:g} px prior" + (f" ({', '.join(guessed)})" if guessed else ""),
+                        fatal=False))
     return tuple(checks)
 
 

@@ -1,7 +1,7 @@
 """A simulated particle experiment behind a window, with exact Snell physics.
 
-A lab calibrates its rig (rig A) on a 3D calibration body, then records tracer
-particles in the water behind the window. Between the two, some cameras may
+A lab calibrates its rig (rig A) on a 3D calibration body (or a planar board,
+``calibration_target="board"``), then records tracer particles in the water behind the window. Between the two, some cameras may
 drift (rig B = rig A with those cameras moved by a small rigid motion; the
 window and camera 0, the world, stay). :func:`simulate_particle_experiment`
 builds the whole experiment in memory; :func:`write_particle_experiment`
@@ -31,12 +31,13 @@ import numpy as np
 from ari_sfm.calibration import Calibration
 from ari_sfm.geometry import Pose, rotation_from_rotvec, unit
 from ari_sfm.io import calibration_to_json, parse_calibration
-from ari_sfm.records import Dataset
+from ari_sfm.records import Dataset, Target
 from ari_sfm.simulate.particle_images import TankLook, render_particle_image, render_tank_frame
 from ari_sfm.simulate.scenarios import (
     NBK7_INDEX,
     WATER_INDEX,
     _Checker,
+    _board_pose,
     _draw,
     _frame_names,
     _look_at,
@@ -52,6 +53,9 @@ log = logging.getLogger(__name__)
 
 IMAGE_MARGIN_PX = 5.0  # a particle image closer than this to the border is not detected
 LOOKS = ("plain", "tank")  # how the particle images are rendered (ParticleSimOptions.look)
+CALIBRATION_TARGETS = ("body", "board")  # what rig A is calibrated on (ParticleSimOptions.calibration_target)
+BOARD = Target(type="checkerboard", inner_corners=(11, 8), square_mm=8.0)  # "board": 80 x 56 mm of corners
+BOARD_TILT_DEG = (10.0, 40.0)  # "board": each view tilted this much from facing the rig, about a random in-plane axis
 
 
 @dataclass(frozen=True)
@@ -69,7 +73,8 @@ class ParticleSimOptions:
     drift_cameras: tuple[int, ...] = (1, 2, 3)  # camera indices moved after the target calibration
     drift_deg: float = 0.05  # rotation of each drifted camera (random axis)
     drift_mm: float = 0.3  # translation of each drifted camera (random direction)
-    calibration_frames: int = 3  # views of the 3D calibration body
+    calibration_frames: int = 3  # views of the calibration target
+    calibration_target: str = "body"  # "body": a 3D body (three levels); "board": a planar checkerboard, tilted
     calibration_sigma_px: float = 0.05  # corner noise of the calibration body
     diameter_px: float = 3.0  # particle image diameter (e^-2) for rendering
     look: str = "plain"  # rendered images: "plain" (flat background, 8-bit noise) or "tank" (TankLook: a real tank's)
@@ -114,6 +119,13 @@ def _check(options: ParticleSimOptions) -> None:
         raise ValueError("particles_per_frame and num_frames must be >= 1")
     if not (o.sigma_px >= 0 and o.drift_deg >= 0 and o.drift_mm >= 0 and o.diameter_px > 0):
         raise ValueError("sigma_px, drift_deg, drift_mm must be >= 0 and diameter_px > 0")
+    if o.calibration_frames < 1:
+        raise ValueError(f"calibration_frames must be >= 1 (got {o.calibration_frames})")
+    if o.calibration_target not in CALIBRATION_TARGETS:
+        raise ValueError(f"calibration_target must be one of {', '.join(CALIBRATION_TARGETS)} "
+                         f"(got {o.calibration_target!r})")
+    if o.calibration_target == "board" and o.windows != 1:
+        raise ValueError("a board is seen from one side: calibration_target 'board' needs windows 1")
     if o.look not in LOOKS:
         raise ValueError(f"look must be one of {', '.join(LOOKS)} (got {o.look!r})")
     if o.bit_depth not in (8, 16):
@@ -159,18 +171,26 @@ def _rig_a(options: ParticleSimOptions, rng: np.random.Generator) -> tuple[Geome
         groups = (WindowGroup("front", window, tuple(names[:half])), WindowGroup("back", second, tuple(names[half:])))
         by_camera = {c: g.window for g in groups for c in g.cameras}
     world_from_rig = rig_from_world.inverse()
-    target = _step_body(depth_mm=40.0, cells=9, pitch_mm=12.0)
+    board = o.calibration_target == "board"
+    target = BOARD if board else _step_body(depth_mm=40.0, cells=9, pitch_mm=12.0)
     _, pts = target.points_3d()
     centroid = pts.mean(axis=0)
     chk = _Checker(target, window, cameras, windows=by_camera)
 
     def sample() -> Pose | None:
-        R = world_from_rig.R @ _rot(rng.normal(size=3).tolist(), math.radians(rng.uniform(0.0, 8.0)))
-        c = world_from_rig.apply(ahead + np.array([rng.uniform(-15, 15), rng.uniform(-15, 15), rng.uniform(-15, 15)]))
-        pose = Pose(R, c - R @ centroid)
+        if board:  # facing the rig (its z along the rig's axis, away from the cameras), tilted, rolled a little
+            c = world_from_rig.apply(ahead + rng.uniform(-15, 15, size=3))
+            pose = _board_pose(target, c, world_from_rig.R[:, 2], world_from_rig.R[:, 1],
+                               tilt_rad=math.radians(rng.uniform(*BOARD_TILT_DEG)),
+                               tilt_azimuth_rad=rng.uniform(0.0, 2 * math.pi),
+                               roll_rad=math.radians(rng.uniform(-15, 15)))
+        else:
+            R = world_from_rig.R @ _rot(rng.normal(size=3).tolist(), math.radians(rng.uniform(0.0, 8.0)))
+            pose = Pose(R, world_from_rig.apply(ahead + rng.uniform(-15, 15, size=3)) - R @ centroid)
         return pose if len(chk.seen_by(pose)) == len(cameras) else None
 
-    frames = {name: _draw("the calibration body", sample) for name in _frame_names("f", o.calibration_frames)}
+    frames = {name: _draw(f"the calibration {o.calibration_target}", sample)
+              for name in _frame_names("f", o.calibration_frames)}
     geometry = Geometry(target=target, window=window, cameras=cameras, calibration=frames, windows=groups)
     check_geometry(geometry)
     return geometry, world_from_rig.apply(ahead)
