@@ -5,10 +5,12 @@ call with other types still works (numba compiles it on its first use).
 """
 from __future__ import annotations
 
-from numba.types import Array, boolean, float32, float64, int64
+from typing import Literal
+
+from numba.core.types import Array, boolean, float32, float64, int64
 
 
-def array(dtype, ndim: int, layout: str = "C", readonly: bool = False) -> Array:
+def array(dtype, ndim: int, layout: Literal["C", "F", "A"] = "C", readonly: bool = False) -> Array:
     """An array type (layout "C": contiguous, "A": any strides)."""
     return Array(dtype, ndim, layout, readonly=readonly)
 

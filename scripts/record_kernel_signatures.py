@@ -28,10 +28,12 @@ call with other types still works (numba compiles it on its first use).
 """
 from __future__ import annotations
 
-from numba.types import Array, {types}
+from typing import Literal
+
+from numba.core.types import Array, {types}
 
 
-def array(dtype, ndim: int, layout: str = "C", readonly: bool = False) -> Array:
+def array(dtype, ndim: int, layout: Literal["C", "F", "A"] = "C", readonly: bool = False) -> Array:
     """An array type (layout "C": contiguous, "A": any strides)."""
     return Array(dtype, ndim, layout, readonly=readonly)
 
