@@ -5,9 +5,10 @@ import logging
 import math
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -18,6 +19,9 @@ from .geometry import angle_between_deg
 from .models.registry import model_spec
 from .records import Dataset, Interface, Observation, WindowPlane
 from .results import OptimizerReport, OptimizerRun, OutlierReport, StageCamera, StageRecord, StageWindow
+
+if TYPE_CHECKING:
+    from .factors.rig_graph import RigGraph, RigState  # imported lazily at run time (gtsam)
 
 log = logging.getLogger(__name__)
 
@@ -290,7 +294,7 @@ class StageResult:
     """What one stage left: the state after it, its residuals and how the solve went."""
 
     stage: Stage
-    state: "RigState"  # noqa: F821 (ari_sfm.factors.rig_graph, imported lazily: gtsam)
+    state: RigState  # (ari_sfm.factors.rig_graph, imported lazily: gtsam)
     residuals: list  # (observation, (n, 2) residuals in px)
     iterations: int
     time_s: float
@@ -298,7 +302,7 @@ class StageResult:
     sigma_px: float  # the pixel sigma its last graph was whitened by
     estimated_sigma_px: float  # the images' sigma after it: given, or the robust estimate from its residuals
     error_evaluations: int | None  # numpy backend only
-    graph: "RigGraph"  # noqa: F821 (its last graph: uncertainty, the outlier re-run)
+    graph: RigGraph  # (its last graph: uncertainty, the outlier re-run)
     solved: object | None  # the numpy backend's solved problem (None with gtsam)
 
     def record(self, observable_distance: bool = True) -> StageRecord:
@@ -412,7 +416,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
     return replace(best, time_s=time.perf_counter() - t0)
 
 
-def _exact_robust_rmse(solver: "_Solver", start: "Start") -> float | None:
+def _exact_robust_rmse(solver: _Solver, start: Start) -> float | None:
     """The quality gate's re-evaluation of a paraxial result: the exact model's robust RMSE from the same
     start with the same window, hints and options; None when the exact model cannot be started there."""
     from .quality import robust_rmse_px

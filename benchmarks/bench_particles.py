@@ -29,8 +29,6 @@ from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
-
 from ari_sfm.particles.match import match_frame  # noqa: E402
 from ari_sfm.particles.truth import ParticleScore, score_frame  # noqa: E402
 from ari_sfm.particles.volume import Volume  # noqa: E402

@@ -52,8 +52,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np
 
 from ari_sfm import colmap_export as adapter
-from ari_sfm.colmap_refine import refine_colmap
-from ari_sfm.colmap_refine import refine as refine_module
+from ari_sfm.colmap_refine import refine as refine_module, refine_colmap
 from ari_sfm.colmap_refine.problem import RefractiveProblem
 from ari_sfm.colmap_refine.scale_bar import ScaleBar
 from ari_sfm.colmap_refine.truth import colmap_truth_errors, truth_errors, truth_state, window_errors

@@ -92,8 +92,7 @@ def body_calibration(exp, distortion: bool = True):
     """Rig A calibrated from the simulated target's views (the body's, or a board's) with the exact model (as
     `ari-sfm calibrate --model exact --distortion`)."""
     from ari_sfm.calibrate import calibrate
-    from ari_sfm.io import load_calibration, save_calibration
-    from ari_sfm.io import load_dataset
+    from ari_sfm.io import load_calibration, load_dataset, save_calibration
 
     folder = Path(tempfile.mkdtemp())
     write_particle_experiment(exp, folder, render_frames=0)

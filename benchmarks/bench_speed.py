@@ -73,9 +73,9 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -197,7 +197,7 @@ def fig_calibrate_arc_sparse(repeats: int) -> None:
     dataset = make_scene("arc4", seed=0, run_lengths=(2, 3, 4)).dataset
     run = alternate(lambda: calibrate(dataset, model="exact"), cv2_baseline(dataset), repeats)
     n_obs = sum(len(o.ids) for o in dataset.observations)
-    report("calibrate_arc_sparse", f"calibrate(exact) sparse arc, 20 frames 2-4 cameras / 4 x cv2", run,
+    report("calibrate_arc_sparse", "calibrate(exact) sparse arc, 20 frames 2-4 cameras / 4 x cv2", run,
            note=f"{n_obs} corners")
     ba = [sum(s["time_s"] for s in cal.optimizer.to_json().values()) for cal in run["extra"]]
     print(f"{'':17s} {'  of which the bundle adjustment / cv2':58s} {1e3 * statistics.median(ba):9.1f} {'':9s} "
@@ -462,7 +462,7 @@ def fig_refine_colmap_port(repeats: int) -> None:
 def fig_particles(repeats: int, frames: int) -> None:
     """match_frame / OpenPTV's correspondences + point_positions, per core (CPU time), ``frames`` frames of 2000
     particles of bench_particles' experiment (true calibration)."""
-    from bench_particles import TOLERANCE_PX, ours, openptv
+    from bench_particles import openptv, ours
 
     from ari_sfm.particles.volume import Volume
     from ari_sfm.simulate.particles import ParticleSimOptions, simulate_particle_experiment, write_particle_experiment

@@ -16,11 +16,11 @@ from click.testing import CliRunner
 
 from ari_sfm.cli import main
 from ari_sfm.geometry import rotation_angle_deg
+from ari_sfm.io import load_calibration
 from ari_sfm.particles.match import _candidates, footprint_mm_per_px, match_frame
 from ari_sfm.particles.truth import score_frame
 from ari_sfm.particles.volume import Volume
 from ari_sfm.simulate.particles import ParticleSimOptions, simulate_particle_experiment, write_particle_experiment
-from ari_sfm.io import load_calibration
 
 SMALL = ParticleSimOptions(particles_per_frame=300, num_frames=2, seed=3)
 

@@ -11,16 +11,24 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.io import load_calibration
 from ari_sfm.cli import main
 from ari_sfm.geometry import rotation_angle_deg
+from ari_sfm.io import load_calibration
 from ari_sfm.metrics import rigid_alignment
 from ari_sfm.particles.disparity import Cells, ParticleSet, _joint_peak, disparity_map
+from ari_sfm.particles.landmarks import (
+    Gauge,
+    IntrinsicsPrior,
+    free_intrinsics,
+    landmark_model,
+    motion_jacobians,
+    pairwise_sum_mm,
+    refine_with_landmarks,
+    window_gauge,
+    window_planes,
+)
 from ari_sfm.particles.match import match_frame
-from ari_sfm.particles.landmarks import (Gauge, IntrinsicsPrior, free_intrinsics, landmark_model, motion_jacobians,
-                                         pairwise_sum_mm, refine_with_landmarks, window_gauge, window_planes)
-from ari_sfm.particles.selfcal import (SelfCalOptions, converged, disparity_json, self_calibrate,
-                                       write_self_calibration)
+from ari_sfm.particles.selfcal import SelfCalOptions, converged, disparity_json, self_calibrate, write_self_calibration
 from ari_sfm.particles.truth import score_frame, true_ids
 from ari_sfm.particles.volume import Volume
 from ari_sfm.simulate.particles import ParticleSimOptions, simulate_particle_experiment, write_particle_experiment

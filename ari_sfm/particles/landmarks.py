@@ -29,8 +29,9 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -200,7 +201,7 @@ class Gauge:
     soft_sigma_mm: float = 1.0  # ... held softly: their prior's sigma
 
     @staticmethod
-    def of(calibration: Calibration, in_air: Sequence[bool], length_mm: float) -> "Gauge":
+    def of(calibration: Calibration, in_air: Sequence[bool], length_mm: float) -> Gauge:
         cams = list(calibration.cameras.values())
         R = np.array([c.cam_from_world.R for c in cams])
         centres = np.array([c.cam_from_world.inverse().t for c in cams])
@@ -272,7 +273,7 @@ class IntrinsicsPrior:
     # camera 0's F, then camera 1's, ...); None: the sigmas alone (each parameter its own prior)
 
     @staticmethod
-    def of(calibration: Calibration, free: Sequence[int], mode: str) -> "IntrinsicsPrior":
+    def of(calibration: Calibration, free: Sequence[int], mode: str) -> IntrinsicsPrior:
         names = list(calibration.cameras)
         values = np.array([[calibration.cameras[n].params[i] for i in free] for n in names]).reshape(len(names), -1)
         sig = np.full(values.shape, np.inf)
@@ -289,7 +290,7 @@ class IntrinsicsPrior:
                     sig[c, j] = float(s) if s is not None and math.isfinite(s) and s > 0 else fallback
         return IntrinsicsPrior(tuple(free), values, sig)
 
-    def with_covariance(self, covariance: np.ndarray) -> "IntrinsicsPrior":
+    def with_covariance(self, covariance: np.ndarray) -> IntrinsicsPrior:
         """This prior with the joint (C F, C F) covariance of the free intrinsics (camera-major) instead of the
         sigmas alone: the correlations a target calibration leaves between parameters (a principal point and
         a tangential distortion term, the radial terms, two cameras) weigh the particles' evidence too."""

@@ -29,8 +29,8 @@ are compiled (:mod:`ari_sfm.particles.match_kernels`).
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 import numpy as np
 
@@ -257,7 +257,7 @@ class _PackedRays:
     offsets: np.ndarray  # (C + 1,) int64
 
     @staticmethod
-    def of(rays: list[tuple[np.ndarray, np.ndarray]]) -> "_PackedRays":
+    def of(rays: list[tuple[np.ndarray, np.ndarray]]) -> _PackedRays:
         counts = [len(o) for o, _ in rays]
         offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         return _PackedRays(np.ascontiguousarray(np.concatenate([o for o, _ in rays]).reshape(-1, 3), dtype=float),

@@ -33,8 +33,9 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -42,8 +43,19 @@ from ..calibration import Calibration
 from ..errors import AriSfmError
 from ..geometry import rotation_angle_deg
 from .disparity import Cells, DisparityMap, ParticleSet, disparity_map, particle_disparities
-from .landmarks import (BACKENDS, INTRINSICS_MODES, UNKNOWN_PRIOR_PX, Adjustment, CameraSigma, Gauge,
-                        IntrinsicsPrior, Refined, free_intrinsics, guessed_principal_points, refine_with_landmarks)
+from .landmarks import (
+    BACKENDS,
+    INTRINSICS_MODES,
+    UNKNOWN_PRIOR_PX,
+    Adjustment,
+    CameraSigma,
+    Gauge,
+    IntrinsicsPrior,
+    Refined,
+    free_intrinsics,
+    guessed_principal_points,
+    refine_with_landmarks,
+)
 
 log = logging.getLogger(__name__)
 

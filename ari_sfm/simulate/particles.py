@@ -36,8 +36,8 @@ from ari_sfm.simulate.particle_images import TankLook, render_particle_image, re
 from ari_sfm.simulate.scenarios import (
     NBK7_INDEX,
     WATER_INDEX,
-    _Checker,
     _board_pose,
+    _Checker,
     _draw,
     _frame_names,
     _look_at,
