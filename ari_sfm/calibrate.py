@@ -8,7 +8,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
@@ -56,10 +56,12 @@ class CalibrationOptions:
         "cli": "--huber-px", "help": "Per-corner Huber threshold in px (0: plain least squares)."})  # None: plain
     outlier_sigma: float = 5.0  # corners beyond this many sigma after convergence are reported
     exclude_outliers: bool = field(default=False, metadata={
-        "cli": "--exclude-outliers", "help": "Drop corners beyond {outlier_sigma:g} sigma after convergence and re-run."})
+        "cli": "--exclude-outliers",
+        "help": "Drop corners beyond {outlier_sigma:g} sigma after convergence and re-run."})
     fix_intrinsics: bool = field(default=False, metadata={
-        "cli": "--fix-intrinsics", "help": "Hold the rig.yaml hints: a K hint holds K (and dist); a focal_px hint holds "
-                                           "fx = fy = focal_px (principal point free)."})
+        "cli": "--fix-intrinsics",
+        "help": "Hold the rig.yaml hints: a K hint holds K (and dist); a focal_px hint holds "
+                "fx = fy = focal_px (principal point free)."})
     principal_point: str = field(default="auto", metadata={
         "cli": "--principal-point", "choices": ("auto", "free", "centre"),
         "help": "Estimate each camera's principal point (free), or hold it at the image centre (centre). Default "
@@ -100,7 +102,8 @@ def _options(options: CalibrationOptions | None, overrides: dict) -> Calibration
     names = {f.name for f in fields(CalibrationOptions)}
     unknown = set(overrides) - names
     if unknown:
-        raise TypeError(f"unknown calibrate option(s): {', '.join(sorted(unknown))} (known: {', '.join(sorted(names))})")
+        raise TypeError(f"unknown calibrate option(s): {', '.join(sorted(unknown))} "
+                        f"(known: {', '.join(sorted(names))})")
     if options is None:
         return CalibrationOptions(**overrides)
     if not isinstance(options, CalibrationOptions):
@@ -310,12 +313,12 @@ class StageResult:
         where the data observe it (``observable_distance``: under water; in air it is null, as calibration.json's)."""
         stats = residual_stats(r for _, r in self.residuals)
         state = self.state
-        windows = ()
+        windows: tuple[StageWindow, ...] = ()
         if state.window_count > 1:  # every window: its normal and plane offset (from camera 0, the world's origin)
+            offsets = [state.offset(w) for w in range(state.window_count)]
             windows = tuple(StageWindow(tuple(float(v) for v in state.normal(w)),
-                                        None if state.offset(w) is None or not observable_distance
-                                        else float(state.offset(w)))
-                            for w in range(state.window_count))
+                                        None if offset is None or not observable_distance else float(offset))
+                            for w, offset in enumerate(offsets))
         return StageRecord(
             self.stage.label, self.stage.model, bool(self.stage.distortion), stats.rmse_px, stats.max_px, stats.count,
             tuple(float(v) for v in state.normal_world),
@@ -376,7 +379,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
     t0 = time.perf_counter()
     tried: list[str] = []
     judged: list = []  # (Calibration with its quality)
-    first_error = None
+    first_error: AriSfmError | None = None
     floor = corner_floor(dataset) if opts.quality else None  # the gate's yardstick: what the corners allow
     for start in _starts(dataset, model, opts, lens_retry):
         tried.append(start.name)
@@ -402,12 +405,14 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
         exact_robust = None
         if model in PARAXIAL_MODELS and not fits(model, res, floor):  # its paraxial error, or a wrong window?
             exact_robust = _exact_robust_rmse(_Solver(dataset, opts, backend, extra_factors), start)
+        assert cal.residuals is not None  # a bundle model's calibration has its residuals
         quality = judge(model, cal.residuals.rmse_px, res, floor, cal.uncertainty, tuple(tried), exact_robust)
         judged.append(replace(cal, quality=quality))
         if quality.ok:
             break
         log.warning("quality gate: the %s start gives a failed calibration (%s)", start.name, quality.why)
     if not judged:
+        assert first_error is not None  # there is always a start (the default), and each failed
         raise first_error
     best = next((c for c in judged if c.quality.ok), None)
     if best is None:  # every start failed: the one of least robust RMSE, said to have failed
@@ -445,6 +450,12 @@ class Start:
     # one view of a 3D body), from which the exact stage of a 15 mm deep body ended 4-10 deg off (5 of 8 simulated
     # seeds); from this start all 8 reach the noise, but it lost one one-view particle rig the default calibrates:
     # a second start, not the default
+
+
+def _corners(dataset: Dataset) -> tuple[Observation, ...]:
+    """The dataset's observations, which calibrate gives it (:func:`ensure_observations`) before any start."""
+    assert dataset.observations is not None
+    return dataset.observations
 
 
 def _starts(dataset: Dataset, model: str, opts: CalibrationOptions, lens_retry: bool = False) -> list[Start]:
@@ -513,7 +524,7 @@ class _Solver:
 
         ds = self.dataset
         rg = RigGraph.build(
-            ds.observations if observations is None else observations, ds.target, ds.interface, ds.camera_names,
+            _corners(ds) if observations is None else observations, ds.target, ds.interface, ds.camera_names,
             state, model=model, distortion=distortion, estimate_distance=self.underwater,
             huber_px=self.opts.huber_px, sigma_px=sigma, fixed_intrinsics=self.fixed,
             fixed_focal_px=self.fixed_focal, windows=ds.window_list(),
@@ -530,11 +541,13 @@ class _Solver:
         if model_spec(model).needs_distance:
             _check_in_front(self.dataset, rg.base_state)
         try:
-            return optimize_graph(rg, self.backend, self.opts.max_iterations if max_iterations is None else max_iterations,
+            return optimize_graph(rg, self.backend,
+                                  self.opts.max_iterations if max_iterations is None else max_iterations,
                                   self.opts.huber_px, return_problem=True, check=False,  # built with opts.huber_px
                                   relative_tolerance=relative_tolerance)
         except RuntimeError as exc:  # e.g. non-finite Jacobian entries
-            raise AriSfmError(self.dataset.observations_path or self.dataset.rig_path, f"{model} stage: {exc}") from None
+            raise AriSfmError(self.dataset.observations_path or self.dataset.rig_path,
+                              f"{model} stage: {exc}") from None
 
 
 def _residuals_of(rg, solved) -> list:
@@ -580,7 +593,9 @@ def run_stage(solver: _Solver, stage: Stage, state, normal_observed: bool = True
         # hold the declared normals as placed by their frames' refitted poses, until they stop moving
         moved = state
         for w in placed:
-            moved = moved.with_window(w, plane_in_world(planes[w], state.world_from_target[planes[w].frame])[0])
+            plane = planes[w]
+            assert plane is not None  # placed: declared
+            moved = moved.with_window(w, plane_in_world(plane, state.world_from_target[plane.frame])[0])
         if max(angle_between_deg(moved.normal(w), state.normal(w)) for w in placed) < 1e-3:
             break
         graph = build(stage.model, moved, with_plane=False)
@@ -635,7 +650,7 @@ def _plane_separates(solver: _Solver, state) -> bool:
         if plane is None:
             continue
         n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
-        if not_beyond(state.with_window(w, n_w, h_w), ds.observations, ds.target, window.interface.thickness_mm, w,
+        if not_beyond(state.with_window(w, n_w, h_w), _corners(ds), ds.target, window.interface.thickness_mm, w,
                       _cameras_of(ds, w)) is not None:
             return False
     return True
@@ -669,7 +684,7 @@ def _calibrate_from(solver: _Solver, model: str, plan: tuple[Stage, ...], start:
     outliers, robust_sigma = find_outliers(last.residuals, opts.outlier_sigma)
     if outliers and opts.exclude_outliers:
         log.info("excluding %d outlier corners and re-running the %s stage", len(outliers), last.stage.model)
-        kept = without(dataset.observations, outliers)
+        kept = without(_corners(dataset), outliers)
         seen = {o.frame for o in kept if o.set in ("calibration", "stacking") and len(o.ids) >= 4}
         lost = sorted(set(state.world_from_target) - seen)
         if lost:  # every corner of these frames was an outlier: nothing places them any more
@@ -695,8 +710,8 @@ def _calibrate_from(solver: _Solver, model: str, plan: tuple[Stage, ...], start:
         # when only view factors share the graph)
         rescale = None if solver.reweight or opts.sigma_px is not None else last.estimated_sigma_px
         uncertainty = rig_uncertainty(last.graph, marginal_covariances(last.graph, last.solved, rescale), rescale)
-    return _assemble(solver, model, rig, results, uncertainty, elapsed,
-                     OutlierReport(robust_sigma, opts.outlier_sigma, opts.exclude_outliers, tuple(outliers))), last.residuals
+    outlier_report = OutlierReport(robust_sigma, opts.outlier_sigma, opts.exclude_outliers, tuple(outliers))
+    return _assemble(solver, model, rig, results, uncertainty, elapsed, outlier_report), last.residuals
 
 
 def _assemble(solver: _Solver, model: str, rig, results: list[StageResult], uncertainty, elapsed: float,
@@ -712,7 +727,7 @@ def _assemble(solver: _Solver, model: str, rig, results: list[StageResult], unce
         K = np.array([[p[0], 0, p[2]], [0, p[1], p[3]], [0, 0, 1.0]])
         ec = rig.cameras[n].expansion
         cameras[n] = CameraCalibration(
-            n, tuple(dataset.cameras[n].image_size), K, p[4:9].copy(), state.cam_from_world[n],
+            n, cast("tuple[int, int]", tuple(dataset.cameras[n].image_size)), K, p[4:9].copy(), state.cam_from_world[n],
             None if ec is None else ec.center_px, None if ec is None else ec.std_px,
             residual_stats(r for o, r in residuals if o.camera == n).rmse_px,
         )
@@ -725,7 +740,11 @@ def _assemble(solver: _Solver, model: str, rig, results: list[StageResult], unce
         reference = float(state.normal(w) @ state.cam_from_world[window.cameras[0]].inverse().t)
         distance = None if offset is None else offset - reference
         # exact in air: any distance gives the same rays; the one it was fitted at (a declared plane gives it)
-        fixed = state.offset(w) - reference if model_spec(model).needs_distance and distance is None else None
+        fixed = None
+        if model_spec(model).needs_distance and distance is None:
+            fitted = state.offset(w)
+            assert fitted is not None  # a Snell model's state has every window's offset
+            fixed = fitted - reference
         iface = window.interface
         windows.append(WindowCalibration(window.name, Interface(iface.thickness_mm, iface.index, iface.medium_index,
                                                                 distance), state.normal(w), window.cameras, fixed))
@@ -796,7 +815,7 @@ def _searched_normal(dataset: Dataset, state, w: int, underwater: bool, plane, b
 
     frames = _search_frames(dataset, state, NORMAL_SEARCH_FRAMES)
     subset = replace(state, world_from_target={f: state.world_from_target[f] for f in frames})
-    scoring = _search_corners(dataset.observations, frames, NORMAL_SEARCH_CORNERS)
+    scoring = _search_corners(_corners(dataset), frames, NORMAL_SEARCH_CORNERS)
     cameras = _cameras_of(dataset, w)
 
     def build_scoring(stage: str, st):
@@ -830,7 +849,8 @@ def _searched_normal(dataset: Dataset, state, w: int, underwater: bool, plane, b
 
 
 NORMAL_SEARCH_DISTANCES = 8  # distances sampled for each candidate (under water; its LM refines the best)
-NORMAL_SEARCH_ITERATIONS = 10  # LM iterations refitting K and poses for each candidate normal (5 misranks a far-off ari start)
+# LM iterations refitting K and poses for each candidate normal (5 misranks a far-off ari start)
+NORMAL_SEARCH_ITERATIONS = 10
 NORMAL_SEARCH_FRAMES = 12  # frames (those seen by most cameras, every camera covered) scoring the candidates
 NORMAL_SEARCH_CORNERS = 160  # corners per view scoring the candidates (a larger view: an even random subset)
 
@@ -855,10 +875,11 @@ def _search_corners(observations: Sequence[Observation], frames: Sequence[str], 
 def _search_frames(dataset: Dataset, state, count: int) -> list[str]:
     """Up to ``count`` frames of the state seen by the most cameras, more if needed to cover every camera."""
     cams: dict[str, set[str]] = {}
-    for o in dataset.observations:
+    for o in _corners(dataset):
         if o.frame in state.world_from_target and o.set in ("calibration", "stacking"):
             cams.setdefault(o.frame, set()).add(o.camera)
-    chosen, covered = [], set()
+    chosen: list[str] = []
+    covered: set[str] = set()
     for f in sorted(cams, key=lambda f: (-len(cams[f]), f)):
         if len(chosen) < count or not cams[f] <= covered:
             chosen.append(f)
@@ -881,7 +902,7 @@ def _searched_distance(dataset: Dataset, state, build, opts: CalibrationOptions,
     from .factors.vectorized import VectorizedProblem
     from .init.window_start import distance_interval, moved_window, search_distance, target_shift_mm
 
-    observations = dataset.observations if observations is None else observations
+    observations = _corners(dataset) if observations is None else observations
     iface, cameras = dataset.window_list()[window].interface, _cameras_of(dataset, window)
     n_m, t = iface.medium_index, iface.thickness_mm
     moving = None
@@ -919,7 +940,7 @@ def _check_in_front(dataset: Dataset, state) -> None:
     from .init.window_start import not_beyond
 
     for w, window in enumerate(dataset.window_list()):
-        bad = not_beyond(state, dataset.observations, dataset.target, window.interface.thickness_mm, w,
+        bad = not_beyond(state, _corners(dataset), dataset.target, window.interface.thickness_mm, w,
                          _cameras_of(dataset, w))
         if bad is not None:
             camera, frame = bad
