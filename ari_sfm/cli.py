@@ -904,7 +904,8 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
 @click.option("--refine-window", is_flag=True, hidden=True,
               help="Old option: the window's pose relative to the cameras is now always estimated.")
 @click.option("--backend", type=click.Choice(["numpy", "gtsam"]), default="numpy", show_default=True,
-              help="Bundle-adjustment solver (the same problem; gtsam: at most 400 particles per round, its time growing as their cube).")
+              help="Bundle-adjustment solver (the same problem; gtsam: at most 400 particles per round, its time "
+                   "growing as their cube).")
 @click.option("--depth-range", type=float, nargs=2, default=None, metavar="ZMIN ZMAX",
               help="World z range (mm) of the particles, instead of rig.yaml's particles.volume_mm.")
 @_workers_option

@@ -666,8 +666,11 @@ def _cost_and_normal(Xw, uv, p, ok, R, t, params, nc, window, jacobians, A, g, s
     return cost
 
 
+# C901: a compiled kernel kept in one piece: each piece of physics inlined at one site (the note above
+# _solve_sym3) and its scratch arrays allocated once for all points; split, each piece would be a call with a
+# dozen array arguments
 @njit(**_JIT)
-def triangulate_exact(uv, R, t, params, nc, window, refine, max_iterations, damping, step_tol, min_det,
+def triangulate_exact(uv, R, t, params, nc, window, refine, max_iterations, damping, step_tol, min_det,  # noqa: C901
                       X_out, gap_out, rmse_out, unconverged, undistort_failed):
     """World points of pixel tracks uv (P, C, 2) (NaN: not seen) through the exact model of C
     cameras: cam_from_world R (C, 3, 3), t (C, 3); params (C, 9); unit normals nc (C, 3) in each
@@ -722,7 +725,8 @@ def triangulate_exact(uv, R, t, params, nc, window, refine, max_iterations, damp
         for c in range(C):  # exact_ray of each seen pixel: the undistortions interleaved, then Snell
             active[c] = seen[c]
             if seen[c]:
-                und[c, 0], und[c, 1] = (uv[p, c, 0] - params[c, 2]) / params[c, 0], (uv[p, c, 1] - params[c, 3]) / params[c, 1]
+                und[c, 0], und[c, 1] = ((uv[p, c, 0] - params[c, 2]) / params[c, 0],
+                                        (uv[p, c, 1] - params[c, 3]) / params[c, 1])
         undistort_failed[p] += _undistort_lanes(und, und_it, active, params, J_xy_l, J_dist_l)
         for c in range(C):
             if not seen[c]:

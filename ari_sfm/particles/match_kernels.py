@@ -33,8 +33,10 @@ def _cell_index(x, n):
     return int(math.floor(x))
 
 
+# C901: a compiled kernel kept in one piece: the detections' grid and the curves' search over it share its local
+# arrays in one compiled loop nest (no calls passing them)
 @njit(**_JIT)
-def band_pairs(p, uv, tolerance, cell):
+def band_pairs(p, uv, tolerance, cell):  # noqa: C901
     """Pairs (i, j), sorted by i then j, each once: detection ``uv[j]`` (N, 2) within ``tolerance`` px of a
     segment of curve i, the polyline ``p[i]`` (n, K, 2) (a segment with a non-finite end is skipped).
     ``cell``: the grid's cell size in px (>= the tolerance keeps the visited cells few)."""
