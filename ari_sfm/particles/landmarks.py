@@ -31,7 +31,7 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -111,7 +111,7 @@ def landmark_model(calibration: Calibration, particles: ParticleSet, free: Seque
     obs_point, obs_image = np.nonzero(particles.used)
     return ColmapModel(
         camera_ids=np.arange(C), camera_models=("OPENCV",) * C,
-        image_sizes=tuple(tuple(calibration.cameras[n].image_size) for n in names),
+        image_sizes=tuple(cast("tuple[int, int]", tuple(calibration.cameras[n].image_size)) for n in names),
         colmap_params=tuple(params), param_map=tuple(maps), param_offset=tuple(offsets),
         frame_ids=np.zeros(1, int), rig_from_world=(cam0,), image_ids=np.arange(C), image_names=tuple(names),
         image_camera=np.arange(C), image_frame=np.zeros(C, int),
@@ -332,10 +332,16 @@ def guessed_principal_points(calibration: Calibration) -> list[str]:
     out = []
     for n, cu in unc.cameras.items():
         s = cu.intrinsics
-        held = [s.get(k) is not None and s.get(k) < HELD_SIGMA_PX for k in ("cx", "cy")]
-        if any(held) and not (s.get("fx") is not None and s.get("fx") < HELD_SIGMA_PX):
+        held = [_held(s, k) for k in ("cx", "cy")]
+        if any(held) and not _held(s, "fx"):
             out.append(n)
     return out
+
+
+def _held(sigmas: Mapping[str, float | None], name: str) -> bool:
+    """Whether parameter ``name`` has a sigma below HELD_SIGMA_PX (the start held it)."""
+    sigma = sigmas.get(name)
+    return sigma is not None and sigma < HELD_SIGMA_PX
 
 
 def whitening_of(covariance: np.ndarray) -> np.ndarray:

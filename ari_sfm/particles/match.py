@@ -192,12 +192,12 @@ def match_frame(calibration: Calibration, detections: Mapping[str, np.ndarray], 
             combos = np.full((len(free_ref), C + 1), -1, np.int64)
             combos[:, r] = free_ref
             combos[:, -1] = free_ref
-            for c in range(r + 1, C):
-                pi, pj = pairs[r][c]
-                free = ~used[c][pj]
-                combos = _join(combos, pi[free], pj[free], c, allow_none=n < C - r)
+            for col in range(r + 1, C):
+                pi, pj = pairs[r][col]
+                free = ~used[col][pj]
+                combos = _join(combos, pi[free], pj[free], col, allow_none=n < C - r)
                 have = (combos[:, :C] >= 0).sum(axis=1)
-                combos = combos[(have <= n) & (have + (C - 1 - c) >= n)]
+                combos = combos[(have <= n) & (have + (C - 1 - col) >= n)]
             stage.append(combos[:, :C])
         combos = np.concatenate(stage)
         if not len(combos):
@@ -226,24 +226,25 @@ def match_frame(calibration: Calibration, detections: Mapping[str, np.ndarray], 
     return FrameMatches(X, gap, rows)
 
 
-def _ray_arrays(combos: np.ndarray, rays: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _ray_arrays(combos: np.ndarray, rays: list[tuple[np.ndarray, np.ndarray]]
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Origins, directions (Q, C, 3) and valid (Q, C) of the rays a combination uses."""
     Q, C = combos.shape
-    O = np.zeros((Q, C, 3))
-    D = np.zeros((Q, C, 3))
+    origins = np.zeros((Q, C, 3))
+    directions = np.zeros((Q, C, 3))
     valid = combos >= 0
     for c in range(C):
         m = valid[:, c]
         if m.any():
-            O[m, c] = rays[c][0][combos[m, c]]
-            D[m, c] = rays[c][1][combos[m, c]]
-    return O, D, valid
+            origins[m, c] = rays[c][0][combos[m, c]]
+            directions[m, c] = rays[c][1][combos[m, c]]
+    return origins, directions, valid
 
 
-def _ray_distances(X: np.ndarray, O: np.ndarray, D: np.ndarray) -> np.ndarray:
+def _ray_distances(X: np.ndarray, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """(Q, C) distance of X (Q, 3) from each unit ray."""
-    r = X[:, None, :] - O
-    perp = r - np.einsum("qci,qci->qc", r, D)[..., None] * D
+    r = X[:, None, :] - origins
+    perp = r - np.einsum("qci,qci->qc", r, directions)[..., None] * directions
     return np.linalg.norm(perp, axis=2)
 
 
@@ -291,6 +292,6 @@ def _greedy(combos: np.ndarray, score: np.ndarray, used: list[np.ndarray], offse
 
 def _rms_ray_distance(X: np.ndarray, rows: np.ndarray, rays) -> np.ndarray:
     """(M,) RMS distance of each particle's rays from its (refined) point (mm)."""
-    O, D, valid = _ray_arrays(rows, rays)
-    d = np.where(valid, _ray_distances(X, O, D), 0.0)
+    origins, directions, valid = _ray_arrays(rows, rays)
+    d = np.where(valid, _ray_distances(X, origins, directions), 0.0)
     return np.sqrt((d ** 2).sum(axis=1) / valid.sum(axis=1))

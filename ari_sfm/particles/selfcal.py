@@ -33,7 +33,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -196,7 +196,8 @@ class SelfCalReport:
                "estimated": list(self.estimated),
                "scale": {"how": self.scale_how, "sum_mm": self.scale_sum_mm, "sigma_mm": self.scale_sigma_mm},
                "backend": self.backend, "options": dict(self.options),
-               "disparity_rms_px": {n: {"before": d.before, "after": d.after} for n, d in self.disparity_rms_px.items()},
+               "disparity_rms_px": {n: {"before": d.before, "after": d.after}
+                                    for n, d in self.disparity_rms_px.items()},
                "converged": self.converged, "passed": self.passed, "checks": [c.to_json() for c in self.checks],
                "matched_share": self.matched_share, "rounds": [r.to_json() for r in self.rounds],
                "rotation_change_deg": dict(self.rotation_change_deg),
@@ -245,7 +246,9 @@ def match_particles(calibration: Calibration, frame: int, detections: Detections
     from ..triangulate import triangulate_pixels
 
     if match is None:
-        from .match import match_frame as match
+        from .match import match_frame
+
+        match = match_frame
     names = list(calibration.cameras)
     found = match(calibration, {n: np.asarray(detections[n], float).reshape(-1, 2) for n in names},
                   tolerance_px, depth_range_mm=depth_range_mm, volume=volume, min_cameras=min_cameras)
@@ -388,13 +391,7 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
     if not detections:
         raise AriSfmError(path, "no particle detections to self-calibrate from")
     check_calibration(calibration, list(next(iter(detections.values()))), path)
-    if options.backend not in BACKENDS:
-        raise AriSfmError(None, f"--backend must be one of {', '.join(BACKENDS)} (got {options.backend!r})")
-    if options.intrinsics not in INTRINSICS_MODES:
-        raise AriSfmError(None, f"--intrinsics must be one of {', '.join(INTRINSICS_MODES)} "
-                                f"(got {options.intrinsics!r})")
-    if options.min_cameras > len(names):
-        raise AriSfmError(None, f"--min-cameras {options.min_cameras} exceeds the rig's {len(names)} cameras")
+    _check_options(options, len(names))
     frames = sorted(detections)
     bar = progress or _Silent()
     run = map_frames or _threaded(options.threads, bar)
@@ -479,6 +476,7 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
     if last.adjustment is not None:  # the final check: match with the final calibration
         tol = tol if exhausted else last.tolerance_px  # (after a round that found too little: the last good one's)
         particles = matched(current, tol)
+        assert cells is not None  # set by the round that adjusted
         dmap = disparity_map(names, cells, particles, particle_disparities(current, particles),
                              options.peak_radius_px, options.field_radius_px, options.seed)
         bar.note(f"final: {len(particles.xyz)} matches, disparity {_largest(dmap.rms_px):.3f} px")
@@ -486,6 +484,7 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
         last_particles = particles
     if refined is None:
         raise AriSfmError(path, "no bundle adjustment ran (see the log)")
+    assert gauge is not None and last_particles is not None  # set by the round that adjusted
     after = rounds[-1].disparity
     checks = trust_checks(calibration, current, detections, frames if rounds[-1].tolerance_px <= COARSE_PX else coarse,
                           last_particles, after, first_tol, options)
@@ -497,6 +496,17 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
                         c.value, c.limit)
     corrected = result_calibration(current, refined, report)
     return SelfCalResult(corrected, rounds[0].disparity, after, tuple(rounds), report)
+
+
+def _check_options(options: SelfCalOptions, cameras: int) -> None:
+    """The options' choices and the cameras they ask for, checked before self-calibration starts."""
+    if options.backend not in BACKENDS:
+        raise AriSfmError(None, f"--backend must be one of {', '.join(BACKENDS)} (got {options.backend!r})")
+    if options.intrinsics not in INTRINSICS_MODES:
+        raise AriSfmError(None, f"--intrinsics must be one of {', '.join(INTRINSICS_MODES)} "
+                                f"(got {options.intrinsics!r})")
+    if options.min_cameras > cameras:
+        raise AriSfmError(None, f"--min-cameras {options.min_cameras} exceeds the rig's {cameras} cameras")
 
 
 def _largest(values: np.ndarray) -> float:
@@ -515,7 +525,10 @@ def converged(after: DisparityMap, options: SelfCalOptions) -> bool:
 def _relative_rotation_deg(a: Calibration, b: Calibration, name: str) -> float:
     """The angle between camera ``name``'s rotation relative to the first camera in ``a`` and in ``b``."""
     first = next(iter(a.cameras))
-    rel = lambda c: c.cameras[name].cam_from_world.R @ c.cameras[first].cam_from_world.R.T
+
+    def rel(c: Calibration) -> np.ndarray:
+        return c.cameras[name].cam_from_world.R @ c.cameras[first].cam_from_world.R.T
+
     return rotation_angle_deg(rel(a), rel(b))
 
 
@@ -681,7 +694,7 @@ def write_self_calibration(result: SelfCalResult, out_dir) -> None:
 # --------------------------------------------------------------------------- a dataset
 
 
-def pick_frames(frames: Sequence[int], count: int | None) -> list[int]:
+def pick_frames(frames: Iterable[int], count: int | None) -> list[int]:
     """``count`` frames spread evenly over ``frames`` (all of them when None or more than there are)."""
     frames = sorted(int(f) for f in frames)
     if count is None or count >= len(frames):
