@@ -145,7 +145,7 @@ def _as_records(observations) -> list[Observation]:
     return records
 
 
-def _source(observations: str | Path | Dataset | Sequence[Observation]) -> str | Path | None:
+def _source(observations: str | Path | Dataset | Sequence[Observation]) -> str | Path:
     """What to name in an error about ``observations``."""
     if isinstance(observations, Dataset):
         return observations.rig_path

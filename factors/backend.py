@@ -43,7 +43,10 @@ def optimize_vectorized(
     state = problem.optimize(max_iterations, relative_tolerance, params, stop)
     _write_solution(rig_graph, problem)
     rig_graph.iterations = problem.iterations
-    return (state, problem.report) if return_report else state
+    if return_report:
+        assert problem.report is not None  # set by optimize
+        return state, problem.report
+    return state
 
 
 def _write_solution(rig_graph: GraphLike, problem: VectorizedProblem) -> None:

@@ -1,8 +1,8 @@
 """A simulated particle experiment behind a window, with exact Snell physics.
 
 A lab calibrates its rig (rig A) on a 3D calibration body (or a planar board,
-``calibration_target="board"``), then records tracer particles in the water behind the window. Between the two, some cameras may
-drift (rig B = rig A with those cameras moved by a small rigid motion; the
+``calibration_target="board"``), then records tracer particles in the water behind the window. Between the
+two, some cameras may drift (rig B = rig A with those cameras moved by a small rigid motion; the
 window and camera 0, the world, stay). :func:`simulate_particle_experiment`
 builds the whole experiment in memory; :func:`write_particle_experiment`
 writes it in the data contract's form (DATASET_FORMAT.md, 1.2)::

@@ -40,7 +40,8 @@ PAPER_IMAGE_SIZE = (2448, 2048)  # Daheng MER2-503-36U3M
 PAPER_FOCAL_PX = 12.0 / 3.45e-3  # 12 mm lens, 3.45 um pixels: 3478.3 px
 NBK7_INDEX = 1.5168
 WATER_INDEX = 1.333
-PAPER_TARGET = Target(type="checkerboard", inner_corners=(11, 8), square_mm=10.0)  # the paper: 10 mm corner spacing (Fig. 14)
+# the paper: 10 mm corner spacing (Fig. 14)
+PAPER_TARGET = Target(type="checkerboard", inner_corners=(11, 8), square_mm=10.0)
 # a dot board of about the checkerboard's size: 5 x 11 asymmetric dots (rows odd: ids unambiguous), 10 mm spacing
 DOT_TARGET = Target(type="circles", circle_grid=(5, 11), spacing_mm=10.0, layout="asymmetric", diameter_mm=6.0)
 STACK_ADDED_MM = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0)
@@ -81,7 +82,7 @@ SCENARIOS: dict[str, str] = {
 # --------------------------------------------------------------------------- helpers
 
 
-def _rot(axis: Sequence[float], angle_rad: float) -> np.ndarray:
+def _rot(axis: Sequence[float] | np.ndarray, angle_rad: float) -> np.ndarray:
     return rotation_from_rotvec(unit(np.asarray(axis, float)) * angle_rad)
 
 
@@ -124,7 +125,7 @@ def _board_outline(target: Target, per_edge: int = 6) -> np.ndarray:
                              np.stack([x1 - (x1 - x0) * t, np.full_like(t, y1)], 1),
                              np.stack([np.full_like(t, x0), y1 - (y1 - y0) * t], 1)])
         return np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
-    cols, rows = target.grid
+    cols, rows = target.required(target.grid, "grid")
     s = target.square_mm
     x0, y0, x1, y1 = -s, -s, cols * s, rows * s
     t = np.linspace(0.0, 1.0, per_edge, endpoint=False)
@@ -156,7 +157,7 @@ def _board_pose(target: Target, center_world: np.ndarray, facing_world: np.ndarr
         _, xyz = target.points_3d()
         c_local = 0.5 * (xyz.min(axis=0) + xyz.max(axis=0))
     else:
-        cols, rows = target.grid
+        cols, rows = target.required(target.grid, "grid")
         c_local = np.array([(cols - 1) * target.square_mm / 2.0, (rows - 1) * target.square_mm / 2.0, 0.0])
     return Pose(R, np.asarray(center_world, float) - R @ c_local)
 
@@ -466,7 +467,8 @@ def arc(rng: np.random.Generator, num_frames: int = 20, num_cameras: int = 4,
         d, c = axes_rig[i]
         return float(c[0] + (depth - c[2]) / d[2] * d[0])
 
-    runs = [tuple(range(s, s + k)) for k in run_lengths for s in range(num_cameras - k + 1)] or [tuple(range(num_cameras))]
+    runs = ([tuple(range(s, s + k)) for k in run_lengths for s in range(num_cameras - k + 1)]
+            or [tuple(range(num_cameras))])
     calibration: dict[str, Pose] = {}
     for k, name in enumerate(_frame_names("f", num_frames)):
         run = runs[k % len(runs)]
@@ -497,6 +499,7 @@ def arc(rng: np.random.Generator, num_frames: int = 20, num_cameras: int = 4,
             break
     if best[0] < 2:
         raise RuntimeError("simulator could not place a stacking pose seen by two cameras")
+    assert best[1] is not None  # seen by two cameras or more: placed
     s0 = StackingPose("s0", best[1], tuple(float(a) for a in stack_added_mm))
     return Geometry(target=PAPER_TARGET, window=window, cameras=cameras, calibration=calibration, stacking=(s0,))
 
@@ -555,6 +558,7 @@ def grid(rng: np.random.Generator, num_frames: int = 500, num_cameras: int = 16,
             best = (n_seen, pose)
     if best[0] < 2:
         raise RuntimeError("simulator could not place a stacking pose seen by two cameras")
+    assert best[1] is not None  # seen by two cameras or more: placed
     s0 = StackingPose("s0", best[1], tuple(float(a) for a in stack_added_mm))
     return Geometry(target=PAPER_TARGET, window=window, cameras=cameras, calibration=calibration, stacking=(s0,))
 
@@ -665,7 +669,7 @@ def ptv_misplaced(target: Target, shift_mm: float, tilt_deg: float, rng: np.rand
         centre = pts[on].mean(axis=0)
         R = rotation_from_rotvec(math.radians(tilt_deg) * rng.normal(size=3) / math.sqrt(3.0))
         moved[on] = (pts[on] - centre) @ R.T + centre + shift_mm * rng.normal(size=3) / math.sqrt(3.0)
-    return Target(type="points3d", points={int(i): tuple(float(c) for c in x) for i, x in zip(ids, moved)})
+    return Target(type="points3d", points={int(i): (float(x[0]), float(x[1]), float(x[2])) for i, x in zip(ids, moved)})
 
 
 def ptv_multiplane(rng: np.random.Generator, grid: tuple[int, int] = (14, 8), glass_mm: float = 6.0,
