@@ -352,7 +352,7 @@ def experiment(name: str, frames: int, seed: int) -> None:
             for cam in cameras:
                 image = read_image(ds.image_path(cam, f))
                 for p in runs:  # the tools alternate on each image
-                    found, t = timed(lambda: p.detect(image, cam))
+                    found, t = timed(lambda p=p, image=image, cam=cam: p.detect(image, cam))
                     dets[p.name].append(found)
                     t_ = tally[p.name]
                     t_.detect_s += t
@@ -364,7 +364,7 @@ def experiment(name: str, frames: int, seed: int) -> None:
                 overlap.append(overlap_fraction(exp.exact_pixels[f][cam], exp.options.diameter_px))
             seen += int((n_views >= 3).sum())
             for p in runs:
-                xyz, t = timed(lambda: p.match(dets[p.name]))
+                xyz, t = timed(lambda p=p, dets=dets: p.match(dets[p.name]))
                 t_ = tally[p.name]
                 t_.match_s += t
                 d, idx = cKDTree(exp.positions[f]).query(xyz) if len(xyz) else (np.empty(0), np.empty(0, int))

@@ -98,7 +98,8 @@ def dask_speedup(folder: Path, frames: int) -> None:
     for workers in (1, 2):
         t0 = time.perf_counter()
         with dask.config.set({"distributed.nanny.pre-spawn-environ": local_worker_environ()}), \
-                LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+                LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                             dashboard_address=None) as cluster, \
                 Client(cluster) as client:  # as engine.dask_client starts it
             client.run(_warm_up)
             started = time.perf_counter() - t0
@@ -139,8 +140,8 @@ def main() -> None:
           f"{'particles/s/core':>17s}")
     for label, cal, path in () if args.skip_compare else (("true", exp.truth_b, folder / "truth" / "rig_b.json"),
                              ("drifted", exp.truth_a, folder / "truth" / "rig_a.json")):
-        for method, run in (("ari-sfm", lambda: ours(exp, cal, volume)),
-                            ("OpenPTV", lambda: openptv(exp, path, Path(tempfile.mkdtemp()), volume))):
+        for method, run in (("ari-sfm", lambda cal=cal: ours(exp, cal, volume)),
+                            ("OpenPTV", lambda path=path: openptv(exp, path, Path(tempfile.mkdtemp()), volume))):
             s, cpu = run()
             print(f"{label:10s} {method:8s} {s.reconstructed:9d} {s.found_fraction:7.4f} {s.ghost_fraction:7.4f} "
                   f"{s.rms_error_mm:10.4f} {n / cpu:17.0f}")

@@ -14,8 +14,8 @@ refine / bundle_adjustment.
 
 ``--layout strip``: a long survey with short tracks instead (two lines of images ``--spacing`` mm
 apart along a strip 2 m wide; each point seen by ~3-14 images, mean ~4.5 at 400 mm, ~6.3 at
-250 mm; about 60 % of the drawn points are seen 3 times or more and kept): the way to 200 images / 50 k points on a small machine
-(``--sizes 200:75000 --layout strip --spacing 250``). COLMAP's pinhole optimum of such a strip is
+250 mm; about 60 % of the drawn points are seen 3 times or more and kept): the way to 200 images / 50 k points
+on a small machine (``--sizes 200:75000 --layout strip --spacing 250``). COLMAP's pinhole optimum of such a strip is
 bent (the 100-image one turns ~120 deg end to end); refine-colmap then slides its start outward from a
 middle block (more than 41 frames: ``refine._slid_start``), so the 100- and 200-image strips converge.
 ``--declared-port``: the true port declared (``interface.plane``, held). ``--truth-start``: also the
@@ -139,7 +139,8 @@ def alternate_timings(start, model, interface, bar: tuple[int, int, float], repe
         times["ref"].append(time.perf_counter() - t0)
         times["cpu_ref"].append(time.process_time() - c0)
         search_obs = sum(c["linearizations"] * c["observations"] for c in result.report.distance_search)
-        equivalent = result.report.linearizations + search_obs / len(model.obs_image)  # search evaluations at their size
+        # search evaluations at their size
+        equivalent = result.report.linearizations + search_obs / len(model.obs_image)
         times["it_ref"].append(times["ref"][-1] / max(equivalent, 1.0))
     return times, result
 
@@ -151,7 +152,8 @@ def run(num_images: int, num_points: int, focal: float, layout: str = "grid", sp
     t_ba, t_ref, it_ba, it_ref, cpu_ba, cpu_ref = (times[k] for k in ("ba", "ref", "it_ba", "it_ref", "cpu_ba",
                                                                        "cpu_ref"))
     R, t = result.state.cam_from_world(model)
-    got = truth_errors(truth, model, result.state.xyz, {int(i): Pose(R[k], t[k]) for k, i in enumerate(model.image_ids)})
+    got = truth_errors(truth, model, result.state.xyz,
+                       {int(i): Pose(R[k], t[k]) for k, i in enumerate(model.image_ids)})
     got.update(window_errors(truth, result.state.normals, result.state.distances))
     before = colmap_truth_errors(truth, start)
     r = result.report
@@ -159,7 +161,8 @@ def run(num_images: int, num_points: int, focal: float, layout: str = "grid", sp
     print(f"{num_images} images ({layout}), {len(model.point3D_ids)} points, {len(model.obs_image)} observations, "
           f"track length mean {track.mean():.1f} max {track.max()} (focal {focal:g} px, "
           f"{truth.image_size[0]}x{truth.image_size[1]})")
-    print(f"  COLMAP pinhole BA : points {before['points_rms_mm']:.2f} mm RMS, centres {before['centres_rms_mm']:.1f} mm, "
+    print(f"  COLMAP pinhole BA : points {before['points_rms_mm']:.2f} mm RMS, "
+          f"centres {before['centres_rms_mm']:.1f} mm, "
           f"scale {before['scale_error_pct']:+.2f} %, reprojection {r.before.rms_px:.3f} px RMS "
           f"({start.compute_mean_reprojection_error():.3f} px mean)")
     u = r.uncertainty

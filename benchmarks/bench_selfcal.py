@@ -84,7 +84,10 @@ def judge(exp, volume, calibration) -> tuple:
 
 def relative_rotation_deg(cal, truth, name: str) -> float:
     first = next(iter(cal.cameras))
-    rel = lambda c: c.cameras[name].cam_from_world.R @ c.cameras[first].cam_from_world.R.T
+
+    def rel(c):
+        return c.cameras[name].cam_from_world.R @ c.cameras[first].cam_from_world.R.T
+
     return rotation_angle_deg(rel(cal), rel(truth))
 
 
@@ -150,7 +153,8 @@ def run_case(case: Case, particles: int, frames: int, start_frames: int = 3, sta
     worst = max(names, key=errors.get)
     return {"start": max(relative_rotation_deg(start, b, n) for n in names), "after": errors[worst],
             "sigma": unc[worst].rotation_deg, "ratio": max(errors[n] / unc[n].rotation_deg for n in names),
-            "passed": res.report.passed, "warnings": [k.name for k in res.report.checks if not k.passed and not k.fatal],
+            "passed": res.report.passed,
+            "warnings": [k.name for k in res.report.checks if not k.passed and not k.fatal],
             "disparity": float(max(d.after for d in res.report.disparity_rms_px.values())),
             "wall": wall, "cpu": cpu}
 
@@ -305,7 +309,8 @@ def _plain_adjust(cal, pixels: np.ndarray, xyz: np.ndarray):
             for col in range(6 * (k - 1), 6 * k):
                 pattern[rows, col] = 1
         for a in range(3):
-            pattern[(np.arange(P)[:, None] * C * 2 + k * 2 + np.arange(2)), (6 * (C - 1) + 3 * np.arange(P) + a)[:, None]] = 1
+            pattern[(np.arange(P)[:, None] * C * 2 + k * 2 + np.arange(2)),
+                    (6 * (C - 1) + 3 * np.arange(P) + a)[:, None]] = 1
     x0 = np.concatenate([np.zeros(6 * (C - 1)), xyz.ravel()])
     sol = least_squares(residuals, x0, jac_sparsity=pattern, loss="huber", f_scale=1.0, x_scale="jac",
                         max_nfev=30)
@@ -424,7 +429,7 @@ def main() -> None:
     c, a, b = res.calibration, start, exp.truth_b
     print(f"{'camera':7s} {'disp before':>11s} {'disp after':>10s} {'rot err start':>13s} {'rot err after':>13s} "
           f"{'centre err mm':>13s}")
-    for k, name in enumerate(b.cameras):
+    for name in b.cameras:
         d = res.report.disparity_rms_px[name]
         centre = np.linalg.norm(c.cameras[name].cam_from_world.inverse().t - b.cameras[name].cam_from_world.inverse().t)
         print(f"{name:7s} {d.before:11.3f} {d.after:10.3f} {relative_rotation_deg(a, b, name):13.4f} "

@@ -144,7 +144,8 @@ def report(name: str, what: str, run: dict, invert: bool = False, note: str = ""
         ratios = [1.0 / r for r in run["cpu_ratios"]] if invert else run["cpu_ratios"]
     med = statistics.median(ratios)
     kind, goal, ok = GOALS[name]
-    print(f"{name:17s} {what:58s} {1e3 * statistics.median(run['ours']):9.1f} {1e3 * statistics.median(run['ref']):9.1f} "
+    print(f"{name:17s} {what:58s} {1e3 * statistics.median(run['ours']):9.1f} "
+          f"{1e3 * statistics.median(run['ref']):9.1f} "
           f"{med:7.3f} [{min(ratios):.3f}-{max(ratios):.3f}] {kind} goal {goal}: {'met' if ok(med) else 'NOT met'}"
           f"; {other} {cpu:.3f}" + (f"  ({note})" if note else ""))
     return {"median": med, "min": min(ratios), "max": max(ratios)}
@@ -186,7 +187,7 @@ def fig_triangulate(repeats: int, points: int) -> None:
     for name, cal in (("triangulate_2", binocular), ("triangulate_4", arc4)):
         X, tracks = _points_and_pixels(cal, points)
         run_cv2, _ = cv2_pairs(cal, tracks)  # the same points' pixels; 4 cameras: the first two that see each
-        run = alternate(lambda: triangulate_pixels(cal, tracks), run_cv2, repeats)
+        run = alternate(lambda cal=cal, tracks=tracks: triangulate_pixels(cal, tracks), run_cv2, repeats)
         err = np.sqrt(np.nanmean(np.sum((run["extra"][0][0] - X) ** 2, axis=1)))
         pps = len(X) / statistics.median(run["ours"])
         report(name, f"exact, {len(cal.cameras)} cameras, {len(X)} points / cv2 (2 of them) points/s", run,
@@ -221,7 +222,8 @@ def distorted_ptv_rig(points: int, seed: int = 0):
         for c in two:
             w, h = cal.cameras[c].image_size
             uv = tracks[c]
-            keep &= np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+            keep &= (np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0)
+                     & (uv[:, 1] <= h - 1))
         X_all.append(X[keep])
         for c in two:
             tracks_all[c].append(tracks[c][keep])
@@ -240,7 +242,7 @@ def fig_triangulate_dist(repeats: int, points: int) -> None:
     for name, tracks, label in (("triangulate_dist", exact, "exact pixels"),
                                 ("triangulate_dist_noisy", noisy, "0.1 px noise")):
         run_cv2, _ = cv2_pairs(cal, tracks)
-        run = alternate(lambda: triangulate_pixels(cal, tracks), run_cv2, repeats)
+        run = alternate(lambda tracks=tracks: triangulate_pixels(cal, tracks), run_cv2, repeats)
         err = np.sqrt(np.nanmean(np.sum((run["extra"][0][0] - X) ** 2, axis=1)))
         pps = len(X) / statistics.median(run["ours"])
         report(name, f"exact, 2 cameras k1 -0.05, {len(X)} points, {label} / cv2 points/s", run, invert=True,
@@ -257,8 +259,10 @@ def fig_triangulate_dist(repeats: int, points: int) -> None:
 
     und = alternate(lambda: triangulate_pixels(cal, noisy), cv2_undistorted, max(3, repeats // 2))
     r = [1.0 / x for x in und["ratios"]]
-    print(f"{'':17s} {'  the same / cv2.undistortPoints + triangulatePoints':58s} {1e3 * statistics.median(und['ours']):9.1f} "
-          f"{1e3 * statistics.median(und['ref']):9.1f} {statistics.median(r):7.3f} [{min(r):.3f}-{max(r):.3f}] (for the record)")
+    print(f"{'':17s} {'  the same / cv2.undistortPoints + triangulatePoints':58s} "
+          f"{1e3 * statistics.median(und['ours']):9.1f} "
+          f"{1e3 * statistics.median(und['ref']):9.1f} {statistics.median(r):7.3f} [{min(r):.3f}-{max(r):.3f}] "
+          "(for the record)")
 
 
 def _numpy_pinhole(D: np.ndarray, params: np.ndarray, jacobians: bool) -> tuple:
@@ -336,9 +340,9 @@ def fig_forward(repeats: int, points: int) -> None:
         params = np.r_[3478.0, 3480.0, 1230.0, 1020.0, dist * lens]
         uv_np = _numpy_pinhole(X, params, False)[0]
         assert np.abs(project_points(X, params)[0] - uv_np).max() < 1e-9  # the baseline is the same pinhole
-        run = alternate(lambda: [exact_project(X, params, normal, 6.0, 1.5168, 1.333, 40.0, jacobians=jac)
-                                 for _ in range(5)],
-                        lambda: [_numpy_pinhole(X, params, jac) for _ in range(5)], repeats)
+        run = alternate(lambda params=params, jac=jac: [exact_project(X, params, normal, 6.0, 1.5168, 1.333, 40.0,
+                                                                      jacobians=jac) for _ in range(5)],
+                        lambda params=params, jac=jac: [_numpy_pinhole(X, params, jac) for _ in range(5)], repeats)
         report(name, f"exact_project {points} points{' + Jacobians' if jac else ''}"
                      f"{', distortion' if dist else ''} / numpy pinhole (x5)", run)
 
@@ -482,9 +486,10 @@ def fig_particles(repeats: int, frames: int) -> None:
 
     run = alternate(run_ours, run_optv, repeats)
     a, b = scores["ours"], scores["optv"]
-    report("particles", f"match_frame / optv correspondences + point_positions, {frames} x 2000, CPU", run, invert=True,
-           by_cpu=True, note=f"found {a.found_fraction:.4f} / {b.found_fraction:.4f}, ghosts {a.ghost_fraction:.4f} / "
-                             f"{b.ghost_fraction:.4f}; {frames * 2000 / statistics.median(run['ours']):,.0f} particles/s")
+    report("particles", f"match_frame / optv correspondences + point_positions, {frames} x 2000, CPU", run,
+           invert=True, by_cpu=True,
+           note=f"found {a.found_fraction:.4f} / {b.found_fraction:.4f}, ghosts {a.ghost_fraction:.4f} / "
+                f"{b.ghost_fraction:.4f}; {frames * 2000 / statistics.median(run['ours']):,.0f} particles/s")
 
 
 def reset_peak_memory() -> None:
@@ -603,7 +608,8 @@ def cold_start() -> None:
 
 
 FIGURES = ("calibrate_single", "calibrate_4x100", "calibrate_arc_sparse", "triangulate", "triangulate_dist", "forward",
-           "openptv", "openptv_multiplane", "openptv_multiplane_placed", "refine_colmap", "refine_colmap_port", "particles")
+           "openptv", "openptv_multiplane", "openptv_multiplane_placed", "refine_colmap", "refine_colmap_port",
+           "particles")
 
 
 def main() -> None:
