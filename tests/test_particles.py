@@ -316,7 +316,8 @@ def test_bad_inputs_are_one_line(written, tmp_path):
     exp = _copy_experiment(written, tmp_path)
     # missing parquet
     (exp / "particles.parquet").rename(exp / "moved.parquet")
-    assert "no such file" in _cli_error(["particles", exp, "--calibration", cal, "-o", tmp_path / "o1", "--workers", "0"])
+    assert "no such file" in _cli_error(["particles", exp, "--calibration", cal, "-o", tmp_path / "o1",
+                                         "--workers", "0"])
     # a camera not in rig.yaml
     t = pq.read_table(exp / "moved.parquet")
     cams = t.column("camera").to_pylist()

@@ -40,14 +40,14 @@ def reference_band_pairs(p: np.ndarray, uv: np.ndarray, tolerance: float) -> tup
 def reference_score(combos, rays, footprint, volume, tolerance_px):
     """The numpy version of the scoring (triangulate_rays, then each ray's distance in pixels)."""
     Q, C = combos.shape
-    O, D = np.zeros((Q, C, 3)), np.zeros((Q, C, 3))
+    origins, directions = np.zeros((Q, C, 3)), np.zeros((Q, C, 3))
     valid = combos >= 0
     for c in range(C):
         m = valid[:, c]
-        O[m, c], D[m, c] = rays[c][0][combos[m, c]], rays[c][1][combos[m, c]]
-    X, _ = triangulate_rays(O, D, valid)
-    r = X[:, None, :] - O
-    perp = r - np.einsum("qci,qci->qc", r, D)[..., None] * D
+        origins[m, c], directions[m, c] = rays[c][0][combos[m, c]], rays[c][1][combos[m, c]]
+    X, _ = triangulate_rays(origins, directions, valid)
+    r = X[:, None, :] - origins
+    perp = r - np.einsum("qci,qci->qc", r, directions)[..., None] * directions
     with np.errstate(invalid="ignore"):
         dist_px = np.where(valid, np.linalg.norm(perp, axis=2) / footprint[None, :], 0.0)
         score = np.sqrt((dist_px ** 2).sum(axis=1) / valid.sum(axis=1))

@@ -55,7 +55,10 @@ def corrected(experiment, volume):
 
 def _relative_rotation_error_deg(cal, truth, name: str) -> float:
     first = next(iter(cal.cameras))
-    rel = lambda c: c.cameras[name].cam_from_world.R @ c.cameras[first].cam_from_world.R.T
+
+    def rel(c):
+        return c.cameras[name].cam_from_world.R @ c.cameras[first].cam_from_world.R.T
+
     return rotation_angle_deg(rel(cal), rel(truth))
 
 
@@ -161,7 +164,10 @@ def test_the_window_and_the_gauge_are_held(experiment, corrected):
     n_c, h_c = window_planes(c)
     assert np.array_equal(n_c, n_a) and np.allclose(h_c, h_a, atol=1e-9)  # the window's plane: the lab's
     assert c.interface.thickness_mm == a.interface.thickness_mm
-    centres = lambda cal: np.array([k.cam_from_world.inverse().t for k in cal.cameras.values()])
+
+    def centres(cal):
+        return np.array([k.cam_from_world.inverse().t for k in cal.cameras.values()])
+
     assert abs(pairwise_sum_mm(centres(c)) - pairwise_sum_mm(centres(a))) < 0.05  # the scale (sigma 0.01 mm)
     # the rig's mean motion along the motions keeping the window (rotation about n, in-plane shift) is nil
     gauge = Gauge.of(a, [False], 400.0)
@@ -299,8 +305,11 @@ def test_matching_with_the_corrected_calibration_is_as_good_as_with_the_truth(ex
     # positions: the held scale is rig A's (the sum of all pairwise camera distances); rig B's moved cameras
     # changed it (PHYSICS.md: particles barely determine it), which scales positions about the volume
     # (RMS radius ~22 mm) after a rigid alignment
-    centres = lambda cal: np.array([k.cam_from_world.inverse().t for k in cal.cameras.values()])
-    scale_error = abs(pairwise_sum_mm(centres(experiment.truth_b)) / pairwise_sum_mm(centres(corrected.calibration)) - 1)
+    def centres(cal):
+        return np.array([k.cam_from_world.inverse().t for k in cal.cameras.values()])
+
+    scale_error = abs(pairwise_sum_mm(centres(experiment.truth_b)) / pairwise_sum_mm(centres(corrected.calibration))
+                      - 1)
     assert after_rms <= 1.5 * truth_rms + 25.0 * scale_error, (after_rms, truth_rms, scale_error)
 
 
@@ -314,7 +323,7 @@ def test_outputs_load_and_hold_the_maps(corrected, tmp_path):
     d = json.loads((tmp_path / "disparity.json").read_text())
     assert d == json.loads(json.dumps(disparity_json(corrected)))
     for when in ("before", "after"):
-        for name, cam in d[when]["cameras"].items():
+        for cam in d[when]["cameras"].values():
             assert len(cam["vector_px"]) == len(cam["count"]) == 27
             assert sum(cam["count"]) <= sum(cam["total"])
 
@@ -437,8 +446,8 @@ def test_a_guessed_principal_point_is_weighed_as_unknown_and_said(experiment, co
     """A start that held cam1's principal point at a guess (calibrate's image centre when its views leave it
     undetermined: a sigma of 1e-4 px) 20 px off: weighed as that sigma, the self-calibrated rotation of cam1
     inherits the 20 px (0.18 deg, > 3 sigma); weighed as an unknown (UNKNOWN_PRIOR_PX), as self-calibration
-    does, the particles pull it to ~4 px and its sigma contains the error (0.06 deg); the checks warn. A K declared known (every
-    intrinsic held) is not a guess."""
+    does, the particles pull it to ~4 px and its sigma contains the error (0.06 deg); the checks warn. A K declared
+    known (every intrinsic held) is not a guess."""
     from ari_sfm.particles.landmarks import UNKNOWN_PRIOR_PX, guessed_principal_points
     from ari_sfm.particles.selfcal import trust_checks
     from ari_sfm.results import CameraUncertainty, Uncertainty
