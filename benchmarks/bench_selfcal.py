@@ -312,8 +312,13 @@ def _plain_adjust(cal, pixels: np.ndarray, xyz: np.ndarray):
             pattern[(np.arange(P)[:, None] * C * 2 + k * 2 + np.arange(2)),
                     (6 * (C - 1) + 3 * np.arange(P) + a)[:, None]] = 1
     x0 = np.concatenate([np.zeros(6 * (C - 1)), xyz.ravel()])
+    # a drift is small: each pose's change bounded (0.05 rad, 20 mm), so that no trial step moves a camera
+    # through its window (where the exact model has no projection)
+    step = np.tile(np.r_[np.full(3, 0.05), np.full(3, 20.0)], C - 1)
+    lower = np.r_[-step, np.full(3 * P, -np.inf)]
+    upper = np.r_[step, np.full(3 * P, np.inf)]
     sol = least_squares(residuals, x0, jac_sparsity=pattern, loss="huber", f_scale=1.0, x_scale="jac",
-                        max_nfev=30)
+                        bounds=(lower, upper), max_nfev=30)
     return with_poses(sol.x)
 
 

@@ -492,19 +492,21 @@ def test_simulate_port_survey_on_a_full_disk_leaves_no_truncated_png(tmp_path, m
 
     import ari_sfm.io.atomic as atomic
 
-    real_fdopen = os.fdopen
+    real_open = open
     calls = []
 
-    def full_disk_fdopen(fd, *args, **kwargs):
-        f = real_fdopen(fd, *args, **kwargs)
-        calls.append(1)
-        if len(calls) == 2:  # the second image
-            f.write(b"\x89PNG\r\n")
-            f.flush()
-            raise OSError(errno.ENOSPC, "No space left on device")
+    def full_disk_open(file, mode="r", *args, **kwargs):
+        f = real_open(file, mode, *args, **kwargs)
+        if mode == "wb":
+            calls.append(1)
+            if len(calls) == 2:  # the second image
+                f.write(b"\x89PNG\r\n")
+                f.flush()
+                f.close()
+                raise OSError(errno.ENOSPC, "No space left on device")
         return f
 
-    monkeypatch.setattr(atomic.os, "fdopen", full_disk_fdopen)
+    monkeypatch.setattr(atomic, "open", full_disk_open, raising=False)  # the writer's open(tmp, "wb")
     out = tmp_path / "s"
     r = CliRunner().invoke(main, ["simulate", "port_survey", "-o", str(out), "--image-scale", "0.1"])
     last = r.output.strip().splitlines()[-1]  # after the progress bar

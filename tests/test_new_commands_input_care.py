@@ -56,14 +56,16 @@ def test_output_on_its_own_input_is_refused_and_nothing_written(experiment, comm
 def _full_disk(monkeypatch):
     import ari_sfm.io.atomic as atomic
 
-    real_fdopen = os.fdopen
+    real_open = open
 
-    def fdopen(fd, *args, **kwargs):
-        f = real_fdopen(fd, *args, **kwargs)
-        f.close()
-        raise OSError(errno.ENOSPC, "No space left on device")
+    def full_disk_open(file, mode="r", *args, **kwargs):
+        f = real_open(file, mode, *args, **kwargs)
+        if mode == "wb":  # the atomic writer's temporary file
+            f.close()
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return f
 
-    monkeypatch.setattr(atomic.os, "fdopen", fdopen)
+    monkeypatch.setattr(atomic, "open", full_disk_open, raising=False)
 
 
 def test_particles_on_a_full_disk_leaves_no_table(experiment, tmp_path, monkeypatch):
