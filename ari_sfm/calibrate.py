@@ -16,6 +16,7 @@ from .calibration import Calibration, CameraCalibration, WindowCalibration
 from .errors import AriSfmError
 from .evaluate import residual_stats
 from .geometry import angle_between_deg
+from .init.exact_start import check_in_front, exact_start, hold_normals, window_cameras
 from .models.registry import model_spec
 from .records import Dataset, Interface, Observation, WindowPlane
 from .results import OptimizerReport, OptimizerRun, OutlierReport, StageCamera, StageRecord, StageWindow
@@ -240,7 +241,8 @@ class Stage:
 
     @property
     def snell(self) -> bool:
-        """Projects with Snell's law: needs a window distance in front of every camera (:func:`_exact_start`)."""
+        """Projects with Snell's law: needs a window distance in front of every camera
+        (:mod:`~ari_sfm.init.exact_start`)."""
         return model_spec(self.model).needs_distance
 
 
@@ -539,7 +541,7 @@ class _Solver:
         from .factors.vectorized import optimize_graph
 
         if model_spec(model).needs_distance:
-            _check_in_front(self.dataset, rg.base_state)
+            check_in_front(self.dataset, rg.base_state)
         try:
             return optimize_graph(rg, self.backend,
                                   self.opts.max_iterations if max_iterations is None else max_iterations,
@@ -580,12 +582,12 @@ def run_stage(solver: _Solver, stage: Stage, state, normal_observed: bool = True
     if stage.snell:
         stage_planes = planes if stage.with_plane else [None] * len(planes)
         unobserved = [w for w in range(len(planes)) if not observed[w] and stage_planes[w] is None]
-        state = _exact_start(solver.dataset, state, solver.underwater, stage_planes, unobserved, build, solver.solve,
-                             solver.opts)
+        state = exact_start(solver.dataset, state, solver.underwater, stage_planes, unobserved, build, solver.solve,
+                            solver.opts.huber_px)
     held = [w for w in range(len(planes)) if not observed[w]]  # the ari model cannot observe them here
     graph = build(stage.model, state, with_plane=stage.with_plane)
     if stage.hold_normal:
-        _hold_normals(graph, state, held)
+        hold_normals(graph, state, held)
     t_stage = time.perf_counter()
     state, solved = solver.solve(graph, stage.model, relative_tolerance=relative_tolerance)
     placed = [w for w in held if planes[w] is not None]
@@ -599,7 +601,7 @@ def run_stage(solver: _Solver, stage: Stage, state, normal_observed: bool = True
         if max(angle_between_deg(moved.normal(w), state.normal(w)) for w in placed) < 1e-3:
             break
         graph = build(stage.model, moved, with_plane=False)
-        _hold_normals(graph, moved, held)
+        hold_normals(graph, moved, held)
         state, solved = solver.solve(graph, stage.model, relative_tolerance=relative_tolerance)
     n_iterations = graph.iterations
     residuals = _residuals_of(graph, solved)
@@ -609,7 +611,7 @@ def run_stage(solver: _Solver, stage: Stage, state, normal_observed: bool = True
             sigma = estimated
             graph = build(stage.model, state, with_plane=stage.with_plane)
             if stage.hold_normal:
-                _hold_normals(graph, state, held)
+                hold_normals(graph, state, held)
             state, solved = solver.solve(graph, stage.model, relative_tolerance=relative_tolerance)
             n_iterations += graph.iterations
             residuals = _residuals_of(graph, solved)
@@ -651,14 +653,9 @@ def _plane_separates(solver: _Solver, state) -> bool:
             continue
         n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
         if not_beyond(state.with_window(w, n_w, h_w), _corners(ds), ds.target, window.interface.thickness_mm, w,
-                      _cameras_of(ds, w)) is not None:
+                      window_cameras(ds, w)) is not None:
             return False
     return True
-
-
-def _cameras_of(dataset: Dataset, window: int) -> tuple[str, ...] | None:
-    """The cameras behind window ``window`` (None: every camera, when the rig has one window)."""
-    return dataset.window_list()[window].cameras if dataset.windows else None
 
 
 def _calibrate_from(solver: _Solver, model: str, plan: tuple[Stage, ...], start: Start) -> tuple[Calibration, list]:
@@ -766,188 +763,3 @@ def _assemble(solver: _Solver, model: str, rig, results: list[StageResult], unce
         outliers=outliers,
         windows=tuple(windows) if dataset.windows else (),
     )
-
-
-def _hold_normal(rg, normal: np.ndarray, window: int = 0) -> None:
-    """Hold a window's normal (default the only one) at ``normal`` (a prior of 1e-7 rad)."""
-    import gtsam
-
-    from .factors import keys as K_
-
-    rg.add_factor(gtsam.PriorFactorUnit3(K_.window_normal(window), gtsam.Unit3(np.asarray(normal, float)),
-                                         gtsam.noiseModel.Isotropic.Sigma(2, 1e-7)))
-
-
-def _hold_normals(rg, state, windows: Sequence[int]) -> None:
-    """Hold the normals of ``windows`` where ``state`` has them."""
-    for w in windows:
-        _hold_normal(rg, state.normal(w), w)
-
-
-def _exact_start(dataset: Dataset, state, underwater: bool, planes: Sequence, unobserved: Sequence[int], build, solve,
-                 opts: CalibrationOptions):
-    """The exact stage's start from the ari result, window by window: a distance in front of its cameras (in
-    air any will do); under water a distance searched inside the valid interval (the ari stage's can be far
-    off); a window without stacking or declared plane (``unobserved``) its normal from a coarse search scored
-    by the exact cost (the other windows held where they are)."""
-    from .factors.rig_graph import default_distance_mm
-    from .init.window_start import search_normal
-
-    def build_free(stage: str, st, observations=None):  # the searches below run only without a declared plane
-        return build(stage, st, with_plane=False, observations=observations)
-
-    for w in range(state.window_count):
-        if not underwater:
-            if state.offset(w) is None:
-                state = state.with_window(w, offset=default_distance_mm(state.normal(w), state.cam_from_world,
-                                                                        _cameras_of(dataset, w)))
-        elif planes[w] is None:  # the ari stage's distance (or the hint) is one candidate
-            state = _searched_distance(dataset, state, build_free, opts, window=w)
-    for w in unobserved:
-        state = _searched_normal(dataset, state, w, underwater, planes[w], build_free, solve, opts, search_normal)
-    return state
-
-
-def _searched_normal(dataset: Dataset, state, w: int, underwater: bool, plane, build_free, solve,
-                     opts: CalibrationOptions, search_normal):
-    """``state`` with window ``w``'s normal from the coarse search (:func:`_exact_start`), then its distance."""
-    from .factors.rig_graph import default_distance_mm
-
-    frames = _search_frames(dataset, state, NORMAL_SEARCH_FRAMES)
-    subset = replace(state, world_from_target={f: state.world_from_target[f] for f in frames})
-    scoring = _search_corners(_corners(dataset), frames, NORMAL_SEARCH_CORNERS)
-    cameras = _cameras_of(dataset, w)
-
-    def build_scoring(stage: str, st):
-        return build_free(stage, st, scoring)
-
-    def score(normal: np.ndarray) -> float:
-        st = subset.with_window(w, normal)
-        if underwater:
-            try:
-                st = _searched_distance(dataset, st, build_scoring, opts, NORMAL_SEARCH_DISTANCES, scoring,
-                                        refine=False, window=w)
-            except AriSfmError:  # no window separates cameras and corners along this candidate: not a start
-                return np.inf
-        elif plane is None:
-            st = st.with_window(w, offset=default_distance_mm(normal, st.cam_from_world, cameras))
-        rg = build_scoring("exact", st)
-        _hold_normal(rg, normal, w)
-        try:
-            _, solved = solve(rg, "exact", NORMAL_SEARCH_ITERATIONS)
-        except AriSfmError:
-            return np.inf
-        return solved.error() if solved is not None else rg.graph.error(rg.values)
-
-    normal = search_normal(score, state.normal(w))
-    state = state.with_window(w, normal)
-    if underwater:
-        state = _searched_distance(dataset, state, build_free, opts, window=w)
-    elif plane is None:
-        state = state.with_window(w, offset=default_distance_mm(normal, state.cam_from_world, cameras))
-    return state
-
-
-NORMAL_SEARCH_DISTANCES = 8  # distances sampled for each candidate (under water; its LM refines the best)
-# LM iterations refitting K and poses for each candidate normal (5 misranks a far-off ari start)
-NORMAL_SEARCH_ITERATIONS = 10
-NORMAL_SEARCH_FRAMES = 12  # frames (those seen by most cameras, every camera covered) scoring the candidates
-NORMAL_SEARCH_CORNERS = 160  # corners per view scoring the candidates (a larger view: an even random subset)
-
-
-def _search_corners(observations: Sequence[Observation], frames: Sequence[str], per_view: int
-                    ) -> tuple[Observation, ...]:
-    """The calibration/stacking views of ``frames``, each cut to at most ``per_view`` corners (a fixed
-    random subset, the same on every run): the candidates' scores need the refraction's pattern over
-    the view, not every corner of a 1600-point body."""
-    keep = set(frames)
-    out = []
-    for o in observations:
-        if o.frame not in keep or o.set not in ("calibration", "stacking"):
-            continue
-        if len(o.ids) > per_view:
-            idx = np.sort(np.random.default_rng(len(o.ids)).choice(len(o.ids), per_view, replace=False))
-            o = replace(o, ids=o.ids[idx], pixels=o.pixels[idx])
-        out.append(o)
-    return tuple(out)
-
-
-def _search_frames(dataset: Dataset, state, count: int) -> list[str]:
-    """Up to ``count`` frames of the state seen by the most cameras, more if needed to cover every camera."""
-    cams: dict[str, set[str]] = {}
-    for o in _corners(dataset):
-        if o.frame in state.world_from_target and o.set in ("calibration", "stacking"):
-            cams.setdefault(o.frame, set()).add(o.camera)
-    chosen: list[str] = []
-    covered: set[str] = set()
-    for f in sorted(cams, key=lambda f: (-len(cams[f]), f)):
-        if len(chosen) < count or not cams[f] <= covered:
-            chosen.append(f)
-            covered |= cams[f]
-        if len(chosen) >= count and covered >= set(dataset.camera_names):
-            break
-    return chosen
-
-
-def _searched_distance(dataset: Dataset, state, build, opts: CalibrationOptions, samples: int = 48,
-                       observations: Sequence[Observation] | None = None, refine: bool = True, window: int = 0):
-    """state with window ``window``'s distance searched by the exact cost inside the valid interval (under
-    water); ``observations``: those ``build`` puts in its graph (default the dataset's); ``refine``: a 1-D
-    minimisation after the grid (:func:`~ari_sfm.init.window_start.search_distance`).
-
-    The targets are held where the state has them; when that leaves no valid distance (the ari
-    stage's targets sit at the apparent depths of its own, far window), they move with the
-    window, keeping those apparent depths (:func:`~ari_sfm.init.window_start.moved_window`; one window only:
-    with several, moving the targets would move them for the other windows' cameras too)."""
-    from .factors.vectorized import VectorizedProblem
-    from .init.window_start import distance_interval, moved_window, search_distance, target_shift_mm
-
-    observations = _corners(dataset) if observations is None else observations
-    iface, cameras = dataset.window_list()[window].interface, _cameras_of(dataset, window)
-    n_m, t = iface.medium_index, iface.thickness_mm
-    moving = None
-    lo, hi = distance_interval(state, observations, dataset.target, t, window=window, cameras=cameras)
-    if not hi > lo and state.offset(window) is not None and not dataset.windows:
-        held = (lo, hi)
-        moving = n_m
-        lo, hi = distance_interval(state, observations, dataset.target, t, n_m)
-        log.info("no window distance separates the cameras from the targets where they are (cameras up to %.1f mm, "
-                 "corners from %.1f mm): the targets move with the window at their apparent depths (%.1f-%.1f mm)",
-                 *held, lo, hi)
-    if not hi > lo:
-        name = "the window" if not dataset.windows else f"window {dataset.window_list()[window].name}"
-        raise AriSfmError(dataset.rig_path, f"no window distance puts every camera in front of {name} and every "
-                                            f"corner beyond it (cameras up to {lo:.1f} mm, corners from {hi:.1f} mm "
-                                            "along the normal): check the thickness_mm and the target")
-    mid = moved_window(state, 0.5 * (lo + hi), n_m if moving else 1.0, window)
-    rg = build("exact", mid)
-    problem = VectorizedProblem.from_rig_graph(rg, huber_px=opts.huber_px, check=False)
-    x0, normal = problem.x, np.asarray(mid.normal(window), float)
-
-    def cost(h: float) -> float:
-        if not moving:
-            return problem.error(x0.with_distance(window, h))
-        step = target_shift_mm(n_m, mid.offset(window), h) * normal
-        return problem.error(x0.with_distance(window, h, x0.world_t_target + step))
-
-    best = search_distance(cost, lo, hi, samples, current=state.offset(window), refine=refine)
-    return moved_window(state, best, n_m if moving else 1.0, window)
-
-
-def _check_in_front(dataset: Dataset, state) -> None:
-    """One-line error naming camera and frame when a window at the exact stage's start does not
-    lie between its cameras and every corner they see."""
-    from .init.window_start import not_beyond
-
-    for w, window in enumerate(dataset.window_list()):
-        bad = not_beyond(state, _corners(dataset), dataset.target, window.interface.thickness_mm, w,
-                         _cameras_of(dataset, w))
-        if bad is not None:
-            camera, frame = bad
-            where = f"camera {camera}" + ("" if frame is None else f" frame {frame}")
-            name = "the window" if not dataset.windows else f"window {window.name}"
-            what = f"is not in front of {name}" if frame is None else f"a corner is not beyond {name}"
-            key = "interface" if not dataset.windows else f"interfaces.{window.name}"
-            raise AriSfmError(dataset.observations_path or dataset.rig_path,
-                              f"{where}: {what} at the start of the exact stage (distance {state.offset(w):.1f} mm; "
-                              f"check {key}.thickness_mm, distance_mm and plane)")

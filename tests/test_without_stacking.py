@@ -337,9 +337,9 @@ def test_lm_from_either_end_of_the_valid_interval(oblique, backend):
 def test_a_start_behind_the_window_names_camera_and_frame(oblique):
     """The geometric check agrees with the exact model (no ray where it names a view) and names
     camera and frame in one line; a camera beyond the window is named alone."""
-    from ari_sfm.calibrate import _check_in_front
     from ari_sfm.factors.rig_graph import RigGraph
     from ari_sfm.factors.vectorized import INVALID_RESIDUAL
+    from ari_sfm.init.exact_start import check_in_front
     from ari_sfm.init.window_start import not_beyond
 
     ds, names = oblique.dataset, oblique.dataset.camera_names
@@ -351,7 +351,7 @@ def test_a_start_behind_the_window_names_camera_and_frame(oblique):
     r = next(r for o, r in rg.residuals() if (o.camera, o.frame) == (camera, frame))
     assert np.all(np.abs(r) >= INVALID_RESIDUAL)
     with pytest.raises(AriSfmError, match=rf"camera {camera} frame {frame}: a corner is not beyond the window") as e:
-        _check_in_front(ds, state)
+        check_in_front(ds, state)
     assert "\n" not in str(e.value)
     assert not_beyond(replace(state, distance_mm=-5.0), *args) == ("cam0", None)
 
@@ -455,7 +455,7 @@ def test_search_corners_cut_large_views_the_same_way_every_time():
 
     from ari_sfm.records import Observation
 
-    C = importlib.import_module("ari_sfm.calibrate")
+    C = importlib.import_module("ari_sfm.init.exact_start")
     big = Observation("cam0", "calibration", "f000", np.arange(1600), np.zeros((1600, 2)))
     small = Observation("cam1", "calibration", "f000", np.arange(50), np.zeros((50, 2)))
     other = Observation("cam1", "calibration", "f001", np.arange(1600), np.zeros((1600, 2)))
