@@ -113,7 +113,7 @@ def test_opencv_map_leaves_no_thread_that_would_hold_the_exit_and_never_waits_fo
 
     assert opencv_map(lambda x: -x, [1, 2, 3, 4], threads=2) == [-1, -2, -3, -4]
     me = threading.current_thread()
-    # the CLI leaves by os._exit on Ctrl-C while a non-daemon thread lives (cli._exit_interrupted)
+    # the CLI leaves by os._exit on Ctrl-C while a non-daemon thread lives (cli_process._exit_interrupted)
     assert all(t.daemon for t in threading.enumerate() if t is not me and t.name == "ari-opencv")
     release, busy_done = threading.Event(), threading.Event()
 
