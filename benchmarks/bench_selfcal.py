@@ -48,11 +48,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 from ari_sfm.geometry import rotation_angle_deg  # noqa: E402
-from ari_sfm.metrics import rigid_alignment  # noqa: E402
 from ari_sfm.models.pinhole import PARAM_NAMES  # noqa: E402
 from ari_sfm.particles.match import match_frame  # noqa: E402
 from ari_sfm.particles.selfcal import SelfCalOptions, dask_map, self_calibrate  # noqa: E402
-from ari_sfm.particles.truth import score_frame, true_ids  # noqa: E402
+from ari_sfm.particles.truth import score_experiment  # noqa: E402
 from ari_sfm.particles.volume import Volume  # noqa: E402
 from ari_sfm.simulate.particles import (  # noqa: E402
     ParticleSimOptions,
@@ -61,25 +60,6 @@ from ari_sfm.simulate.particles import (  # noqa: E402
 )
 
 TOLERANCE_PX = 0.5
-
-
-def judge(exp, volume, calibration) -> tuple:
-    """Score of matching every frame at 0.5 px, and the aligned 3D RMS (mm) of the correct particles."""
-    total, P, Q = None, [], []
-    for f, det in enumerate(exp.detections):
-        m = match_frame(calibration, det, TOLERANCE_PX, volume=volume, min_cameras=3)
-        s = score_frame(m.xyz, m.rows, exp.cameras, exp.particle_ids[f], exp.positions[f])
-        total = s if total is None else total + s
-        ids = true_ids(m.rows, exp.cameras, exp.particle_ids[f])
-        first = ids.max(axis=1)
-        ok = np.all((ids < 0) | (ids == first[:, None]), axis=1)
-        P.append(m.xyz[ok])
-        Q.append(exp.positions[f][first[ok]])
-    P, Q = np.concatenate(P), np.concatenate(Q)
-    if len(P) < 3:
-        return total, float("nan")
-    R, t = rigid_alignment(P, Q)
-    return total, float(np.sqrt(np.mean(np.sum((P @ R.T + t - Q) ** 2, axis=1))))
 
 
 def relative_rotation_deg(cal, truth, name: str) -> float:
@@ -442,7 +422,7 @@ def main() -> None:
     print(f"{'calibration':15s} {'particles':>9s} {'found':>7s} {'ghosts':>7s} {'right rows':>10s} {'3D rms mm':>10s}"
           " (after a rigid alignment)")
     for label, cal in (("true (rig B)", b), ("drifted start", a), ("self-calibrated", c)):
-        s, rms = judge(exp, volume, cal)
+        s, rms = score_experiment(exp, volume, cal)
         print(f"{label:15s} {s.reconstructed:9d} {s.found_fraction:7.4f} {s.ghost_fraction:7.4f} "
               f"{1 - s.ghost_fraction:10.4f} {rms:10.4f}")
 

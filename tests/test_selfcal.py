@@ -14,7 +14,6 @@ from click.testing import CliRunner
 from ari_sfm.cli import main
 from ari_sfm.geometry import rotation_angle_deg
 from ari_sfm.io import load_calibration
-from ari_sfm.metrics import rigid_alignment
 from ari_sfm.particles.disparity import Cells, ParticleSet, _joint_peak, disparity_map
 from ari_sfm.particles.landmarks import (
     Gauge,
@@ -27,9 +26,8 @@ from ari_sfm.particles.landmarks import (
     window_gauge,
     window_planes,
 )
-from ari_sfm.particles.match import match_frame
 from ari_sfm.particles.selfcal import SelfCalOptions, converged, disparity_json, self_calibrate, write_self_calibration
-from ari_sfm.particles.truth import score_frame, true_ids
+from ari_sfm.particles.truth import score_experiment
 from ari_sfm.particles.volume import Volume
 from ari_sfm.simulate.particles import ParticleSimOptions, simulate_particle_experiment, write_particle_experiment
 
@@ -60,26 +58,6 @@ def _relative_rotation_error_deg(cal, truth, name: str) -> float:
         return c.cameras[name].cam_from_world.R @ c.cameras[first].cam_from_world.R.T
 
     return rotation_angle_deg(rel(cal), rel(truth))
-
-
-def _score_and_aligned_rms(exp, volume, calibration, tolerance_px: float = 0.5):
-    """Found / ghost score of matching every frame, and the 3D RMS of the correct particles after a rigid
-    alignment onto the truth."""
-    total, P, Q = None, [], []
-    for f, det in enumerate(exp.detections):
-        m = match_frame(calibration, det, tolerance_px, volume=volume, min_cameras=3)
-        s = score_frame(m.xyz, m.rows, exp.cameras, exp.particle_ids[f], exp.positions[f])
-        total = s if total is None else total + s
-        ids = true_ids(m.rows, exp.cameras, exp.particle_ids[f])
-        first = ids.max(axis=1)
-        ok = np.all((ids < 0) | (ids == first[:, None]), axis=1)
-        P.append(m.xyz[ok])
-        Q.append(exp.positions[f][first[ok]])
-    P, Q = np.concatenate(P), np.concatenate(Q)
-    if not len(P):
-        return total, float("nan")
-    R, t = rigid_alignment(P, Q)
-    return total, float(np.sqrt(np.mean(np.sum((P @ R.T + t - Q) ** 2, axis=1))))
 
 
 ALL_MOVED = ParticleSimOptions(particles_per_frame=400, num_frames=2, sigma_px=SIGMA_PX, seed=11,
@@ -295,9 +273,9 @@ def test_trust_checks_catch_a_fit_onto_ghosts(corrected, experiment):
 
 
 def test_matching_with_the_corrected_calibration_is_as_good_as_with_the_truth(experiment, volume, corrected):
-    truth, truth_rms = _score_and_aligned_rms(experiment, volume, experiment.truth_b)
-    drifted, _ = _score_and_aligned_rms(experiment, volume, experiment.truth_a)
-    after, after_rms = _score_and_aligned_rms(experiment, volume, corrected.calibration)
+    truth, truth_rms = score_experiment(experiment, volume, experiment.truth_b)
+    drifted, _ = score_experiment(experiment, volume, experiment.truth_a)
+    after, after_rms = score_experiment(experiment, volume, corrected.calibration)
     assert drifted.found_fraction < 0.1  # PHYSICS.md: the drifted calibration finds almost nothing
     assert truth.found_fraction >= 0.95 and truth.ghost_fraction <= 0.05
     assert after.found_fraction >= 0.95, after

@@ -117,3 +117,29 @@ def score_image(found_uv: np.ndarray, true_uv: np.ndarray, tolerance_px: float =
     rms = float(np.sqrt(np.mean(np.square(err)))) if err else float("nan")
     return ImageScore(m, n, len(err), int((nearest > tolerance_px).sum()), int((nearest > 1.0).sum()), rms,
                       tolerance_px)
+
+
+def score_experiment(experiment, volume, calibration, tolerance_px: float = 0.5,
+                     min_cameras: int = 3) -> tuple[ParticleScore | None, float]:
+    """Every frame of a simulated ``experiment`` (:class:`~ari_sfm.simulate.particles.ParticleExperiment`)
+    matched through ``calibration``: the summed found / ghost score, and the 3D RMS (mm) of the correctly
+    matched particles after a rigid alignment onto the true positions (NaN with fewer than 3): a calibration
+    right up to a rigid motion of the rig scores as right."""
+    from ..metrics import rigid_alignment
+    from .match import match_frame
+
+    total, P, Q = None, [], []
+    for f, det in enumerate(experiment.detections):
+        m = match_frame(calibration, det, tolerance_px, volume=volume, min_cameras=min_cameras)
+        s = score_frame(m.xyz, m.rows, experiment.cameras, experiment.particle_ids[f], experiment.positions[f])
+        total = s if total is None else total + s
+        ids = true_ids(m.rows, experiment.cameras, experiment.particle_ids[f])
+        first = ids.max(axis=1)
+        ok = np.all((ids < 0) | (ids == first[:, None]), axis=1)
+        P.append(m.xyz[ok])
+        Q.append(experiment.positions[f][first[ok]])
+    p, q = np.concatenate(P), np.concatenate(Q)
+    if len(p) < 3:
+        return total, float("nan")
+    R, t = rigid_alignment(p, q)
+    return total, float(np.sqrt(np.mean(np.sum((p @ R.T + t - q) ** 2, axis=1))))
