@@ -19,7 +19,6 @@ calibrations use them as written.
 from __future__ import annotations
 
 import json
-import shutil
 import sys
 import tempfile
 import time
@@ -28,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from validate_body_test_cavity import openptv_pixels  # noqa: E402
+from validate_body_test_cavity import openptv_pixels, raw_copy  # noqa: E402
 
 
 def main(experiment: Path) -> None:
@@ -41,11 +40,7 @@ def main(experiment: Path) -> None:
     from ari_sfm.openptv.files import read_control_par, read_ori
 
     with tempfile.TemporaryDirectory() as tmp:
-        copy = Path(tmp) / "experiment"
-        shutil.copytree(experiment, copy)
-        for pattern in ("*.ori", "*.addpar", "*.tif_targets", "*.crd"):
-            for path in (copy / "cal").glob(pattern):
-                path.unlink()
+        copy = raw_copy(experiment, Path(tmp))
         for command in (["import", "openptv", str(copy), "-o", str(Path(tmp) / "ds")],
                         ["calibrate", str(Path(tmp) / "ds"), "-o", str(Path(tmp) / "cal")]):
             t0 = time.perf_counter()

@@ -48,17 +48,24 @@ def openptv_pixels(root: Path, num_cams: int, xyz: np.ndarray) -> list[np.ndarra
     return out
 
 
+def raw_copy(experiment: Path, folder: Path) -> Path:
+    """``experiment`` copied into ``folder`` as a lab has it before calibrating: without OpenPTV's results
+    (.ori, .addpar, the targets and .crd files of its own detection)."""
+    copy = folder / "experiment"
+    shutil.copytree(experiment, copy)
+    for pattern in ("*.ori", "*.addpar", "*.tif_targets", "*.crd"):
+        for path in (copy / "cal").glob(pattern):
+            path.unlink()
+    return copy
+
+
 def main(experiment: Path) -> None:
     from click.testing import CliRunner
 
     from ari_sfm.cli import main as cli
 
     with tempfile.TemporaryDirectory() as tmp:
-        copy = Path(tmp) / "experiment"
-        shutil.copytree(experiment, copy)
-        for pattern in ("*.ori", "*.addpar", "*.tif_targets", "*.crd"):
-            for path in (copy / "cal").glob(pattern):
-                path.unlink()
+        copy = raw_copy(experiment, Path(tmp))
         for command in (["import", "openptv", str(copy), "-o", str(Path(tmp) / "ds")],
                         ["detect", str(Path(tmp) / "ds"), "-o", str(Path(tmp) / "det"), "--workers", "1"]):
             t0 = time.perf_counter()
