@@ -17,7 +17,7 @@ apart along a strip 2 m wide; each point seen by ~3-14 images, mean ~4.5 at 400 
 250 mm; about 60 % of the drawn points are seen 3 times or more and kept): the way to 200 images / 50 k points
 on a small machine (``--sizes 200:75000 --layout strip --spacing 250``). COLMAP's pinhole optimum of such a strip is
 bent (the 100-image one turns ~120 deg end to end); refine-colmap then slides its start outward from a
-middle block (more than 41 frames: ``refine._slid_start``), so the 100- and 200-image strips converge.
+middle block (more than 41 frames: ``chain_start.slid_start``), so the 100- and 200-image strips converge.
 ``--declared-port``: the true port declared (``interface.plane``, held). ``--truth-start``: also the
 refinement started at the truth (the same solver, scale bar and loss; the yardstick of what the data
 allow), its errors and cost printed.

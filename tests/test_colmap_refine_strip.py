@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from ari_sfm import colmap_export as adapter
-from ari_sfm.colmap_refine import refine as refine_module
+from ari_sfm.colmap_refine import chain_start, refine as refine_module
 from ari_sfm.colmap_refine.problem import RefractiveProblem, State
 from ari_sfm.colmap_refine.scale_bar import ScaleBar
 from ari_sfm.colmap_refine.truth import truth_errors, truth_state
@@ -61,13 +61,13 @@ def test_block_residuals_are_the_whole_models(strip):
     """A block's sub-model and state reproduce the whole model's residuals of its observations."""
     truth, model, state = strip
     problem = RefractiveProblem(model, truth.interface, "camera", True)
-    block = refine_module._block(model, np.arange(5, 17))
+    block = chain_start.make_block(model, np.arange(5, 17))
     sub = RefractiveProblem(block.model, truth.interface, "camera", True)
-    r_sub = sub.residuals(refine_module._block_state(state, block))
+    r_sub = sub.residuals(chain_start.block_state(state, block))
     r_all = problem.residuals(state)
     in_frames = np.isin(model.image_frame[model.obs_image], block.frames)
     views = np.bincount(model.obs_point[in_frames], minlength=len(model.point3D_ids))
-    kept = in_frames & (views[model.obs_point] >= refine_module.BLOCK_MIN_VIEWS)
+    kept = in_frames & (views[model.obs_point] >= chain_start.BLOCK_MIN_VIEWS)
     assert len(r_sub) == kept.sum() > 0
     assert np.allclose(np.sort(r_sub.ravel()), np.sort(r_all[kept].ravel()), atol=1e-9)
 
@@ -93,7 +93,7 @@ def test_held_frames_and_intrinsics_are_not_variables(strip):
 def test_aligned_carries_the_refined_points_similarity_to_the_rest(strip):
     """Refined points moved by a rigid similarity carry the other frames and points along exactly."""
     truth, model, state = strip
-    block = refine_module._block(model, np.arange(12, 24))
+    block = chain_start.make_block(model, np.arange(12, 24))
     R = rotation_from_rotvec(np.array([0.1, -0.3, 0.2]))
     t = np.array([150.0, -40.0, 30.0])
     refined = np.zeros(len(model.point3D_ids), bool)
@@ -101,7 +101,7 @@ def test_aligned_carries_the_refined_points_similarity_to_the_rest(strip):
     xyz = state.xyz.copy()
     xyz[refined] = xyz[refined] @ R.T + t
     others = np.setdiff1d(np.arange(len(model.frame_ids)), block.frames)
-    out = refine_module._aligned(model, state, replace(state, xyz=xyz), refined, others)
+    out = chain_start.aligned(model, state, replace(state, xyz=xyz), refined, others)
     assert np.allclose(out.xyz, state.xyz @ R.T + t, atol=1e-6)
     for f in others:
         p, q = out.rig_from_world[f], state.rig_from_world[f]
@@ -127,13 +127,13 @@ def test_slid_start_straightens_a_bent_strip(strip):
         return refine_module.Solver(RefractiveProblem(m, truth.interface, "camera", False, hold_window=held is not None,
                                                       held_frames=held, hold_intrinsics=held is not None), 2.0)
 
-    centres = refine_module._centres(bent)
-    first = refine_module._block(model, np.argsort(np.abs(centres[:, 0] - np.median(centres[:, 0])))[:12])
-    slid, blocks = refine_module._slid_start(model, tilted, first, make_solver, new_frames=6)
+    centres = chain_start.frame_centres(bent)
+    first = chain_start.make_block(model, np.argsort(np.abs(centres[:, 0] - np.median(centres[:, 0])))[:12])
+    slid, blocks = chain_start.slid_start(model, tilted, first, make_solver, new_frames=6)
     F = len(model.frame_ids)
     assert blocks[0]["held"] == 0 and all(b["held"] > 0 for b in blocks[1:])
     assert sum(b["frames"] - b["held"] for b in blocks) == F  # every frame refined once as a new one
-    assert all(b["iterations"] < refine_module.BLOCK_ITERATIONS for b in blocks)  # each converged
+    assert all(b["iterations"] < chain_start.BLOCK_ITERATIONS for b in blocks)  # each converged
 
     def points_mm(s):
         R, t = s.cam_from_world(model)
@@ -171,9 +171,9 @@ def test_a_block_left_above_the_noise_is_taken_again_with_fewer_frames(strip):
         return Spoiled(RefractiveProblem(m, truth.interface, "camera", False, hold_window=held is not None,
                                          held_frames=held, hold_intrinsics=held is not None), 2.0)
 
-    centres = refine_module._centres(state)
-    first = refine_module._block(model, np.argsort(np.abs(centres[:, 0] - np.median(centres[:, 0])))[:12])
-    _, blocks = refine_module._slid_start(model, state, first, make_solver, new_frames=8)
+    centres = chain_start.frame_centres(state)
+    first = chain_start.make_block(model, np.argsort(np.abs(centres[:, 0] - np.median(centres[:, 0])))[:12])
+    _, blocks = chain_start.slid_start(model, state, first, make_solver, new_frames=8)
     assert blocks[1].get("dropped") and blocks[1]["frames"] - blocks[1]["held"] == 8
     assert blocks[2]["frames"] - blocks[2]["held"] == 4 and not blocks[2].get("dropped")
     assert sum(b["frames"] - b["held"] for b in blocks if not b.get("dropped")) == len(model.frame_ids)
