@@ -52,9 +52,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np
 
 from ari_sfm import colmap_export as adapter
-from ari_sfm.colmap_refine import refine as refine_module, refine_colmap
+from ari_sfm.colmap_refine import refine_colmap
 from ari_sfm.colmap_refine.problem import RefractiveProblem
 from ari_sfm.colmap_refine.scale_bar import ScaleBar
+from ari_sfm.colmap_refine.solver import Solver
 from ari_sfm.colmap_refine.truth import colmap_truth_errors, truth_errors, truth_state, window_errors
 from ari_sfm.geometry import Pose
 from ari_sfm.records import WindowPlane
@@ -83,7 +84,7 @@ def _truth_started(truth, model, interface, bar: tuple[int, int, float]) -> None
     """The refinement started at the truth (everything free, the bar held, refine-colmap's loss), printed."""
     where = {int(p): k for k, p in enumerate(model.point3D_ids)}
     problem = RefractiveProblem(model, interface, "camera", interface.plane is None)
-    solver = refine_module.Solver(problem, 2.0, None, ScaleBar(where[bar[0]], where[bar[1]], bar[2]))
+    solver = Solver(problem, 2.0, None, ScaleBar(where[bar[0]], where[bar[1]], bar[2]))
     t0 = time.perf_counter()
     res = solver.run(truth_state(truth, model), 100)
     R, t = res.state.cam_from_world(model)

@@ -16,7 +16,7 @@ from ari_sfm import colmap_export as adapter
 from ari_sfm.cli import main
 from ari_sfm.colmap_refine import refine_colmap, write_refined
 from ari_sfm.colmap_refine.problem import RefractiveProblem, State
-from ari_sfm.colmap_refine.refine import Solver
+from ari_sfm.colmap_refine.solver import Solver
 from ari_sfm.colmap_refine.truth import colmap_truth_errors, truth_errors, window_errors
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose

@@ -17,6 +17,7 @@ from ari_sfm import colmap_export as adapter
 from ari_sfm.colmap_refine import chain_start, refine as refine_module
 from ari_sfm.colmap_refine.problem import RefractiveProblem, State
 from ari_sfm.colmap_refine.scale_bar import ScaleBar
+from ari_sfm.colmap_refine.solver import Solver
 from ari_sfm.colmap_refine.truth import truth_errors, truth_state
 from ari_sfm.geometry import Pose, rotation_from_rotvec
 from ari_sfm.simulate.port_survey import port_survey
@@ -124,7 +125,7 @@ def test_slid_start_straightens_a_bent_strip(strip):
     tilted = replace(bent, normals=np.array([[0.0, 0.0, 1.0]]))  # the start's normal: the optical axis
 
     def make_solver(m, held):  # as refine_colmap's: the distance held; the normal and intrinsics free in the first
-        return refine_module.Solver(RefractiveProblem(m, truth.interface, "camera", False, hold_window=held is not None,
+        return Solver(RefractiveProblem(m, truth.interface, "camera", False, hold_window=held is not None,
                                                       held_frames=held, hold_intrinsics=held is not None), 2.0)
 
     centres = chain_start.frame_centres(bent)
@@ -143,7 +144,7 @@ def test_slid_start_straightens_a_bent_strip(strip):
     X = state.xyz  # then as refine_colmap: rescaled to a bar (its two farthest points), everything free
     a, b = int(np.argmin(X[:, 0])), int(np.argmax(X[:, 0]))
     bar = ScaleBar(a, b, float(np.linalg.norm(X[a] - X[b])))
-    whole = refine_module.Solver(RefractiveProblem(model, truth.interface, "camera", True), 2.0, None, bar)
+    whole = Solver(RefractiveProblem(model, truth.interface, "camera", True), 2.0, None, bar)
     from_slid = whole.run(refine_module._scaled(slid, bar.length_mm / bar.length(slid.xyz)), 50)
     from_truth = whole.run(state, 50)
     rms = float(np.sqrt(np.mean(np.sum(whole.problem.residuals(from_slid.state) ** 2, axis=1))))
@@ -161,7 +162,7 @@ def test_a_block_left_above_the_noise_is_taken_again_with_fewer_frames(strip):
     truth, model, state = strip
     calls = []
 
-    class Spoiled(refine_module.Solver):
+    class Spoiled(Solver):
         def run(self, *args, **kwargs):
             res = super().run(*args, **kwargs)
             calls.append(res.cost)

@@ -362,7 +362,7 @@ def whitening_of(covariance: np.ndarray) -> np.ndarray:
 
 def _solver_class():
     """refine-colmap's Solver plus the gauge, scale and intrinsics prior rows."""
-    from ..colmap_refine.refine import Solver
+    from ..colmap_refine.solver import Solver
 
     class SelfCalSolver(Solver):
         def __init__(self, problem, huber_px, gauge: Gauge, prior: IntrinsicsPrior, noise_px: float) -> None:
