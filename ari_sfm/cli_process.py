@@ -26,6 +26,9 @@ if TYPE_CHECKING:
     Handler = Callable[[int, FrameType | None], Any] | int | None  # what signal.getsignal returns
 
 
+QUALITY_FAILED_EXIT = 3  # the calibration was written but failed its quality gate (ari_sfm.quality)
+
+
 def setup_logging(verbose: bool) -> None:
     """Warnings and errors, or with -v progress messages too; so also for Dask (distributed logs its
     cluster's start and stop at INFO, in this process and in a LocalCluster's workers) and glog (pycolmap):
