@@ -36,6 +36,8 @@ START_TOLERANCE = 1e-3  # ... or this, for an ari stage whose result only starts
 # come at the linear rate of the Huber reweighting (half to four fifths of its iterations); the Snell stage then
 # converges to the same calibration (17 calibrations of 15 scenarios: 1e-5 relative or less, but one rig's lens terms,
 # 1e-4 relative, 1e-10 absolute, and the window distance held in air, which only the ari stage sets: 0.7 um)
+EASED_PLANE_DEG = 0.05  # the eased-planes start: a held declared normal first as a prior of this sigma ...
+EASED_PLANE_MM = 0.5  # ... and a held face position as one of this
 PRINCIPAL_POINT_MODES = ("auto", "free", "centre")
 PRINCIPAL_POINT_MAX_SIGMA = 0.02  # auto: a principal point less determined than this share of the image is held
 
@@ -447,6 +449,10 @@ class Start:
     # distance searched), then the plane is placed by its poses
     centred: tuple[str, ...] = ()  # principal_point auto: cameras whose principal point is held at the image centre
     lens: bool = False  # lens distortion estimated (in the Snell stages) though the plan holds it
+    eased_planes: bool = False  # each Snell stage solved first with the held declared planes as priors of
+    # EASED_PLANE_DEG / EASED_PLANE_MM, then again held: a hold far stiffer than the images (1e-6 rad) keeps LM
+    # in the basin of an ari stage gone wrong (test_cavity with OpenPTV's glass planes: 0.57 px, one camera's
+    # focal length 45 % off; eased in, 0.49 px)
     lens_from_snell: bool = False  # lens distortion held at zero in the analytic start and the ari stages, left
     # to the Snell stage: a paraxial fit under water absorbs the window into free distortion (k1 +0.2..+0.36 from
     # one view of a 3D body), from which the exact stage of a 15 mm deep body ended 4-10 deg off (5 of 8 simulated
@@ -462,14 +468,17 @@ def _corners(dataset: Dataset) -> tuple[Observation, ...]:
 
 def _starts(dataset: Dataset, model: str, opts: CalibrationOptions, lens_retry: bool = False) -> list[Start]:
     """The starts, in order: the default; a free window first (a declared plane under water, a Snell
-    model); the hints free in the analytic start (with --fix-intrinsics); the lens left to the Snell stage
-    (lens distortion estimated by a Snell model, or with ``lens_retry`` estimated there when the others fail:
-    :func:`lens_on_misfit`)."""
+    model); a held declared plane eased in (a Snell model); the hints free in the analytic start (with
+    --fix-intrinsics); the lens left to the Snell stage (lens distortion estimated by a Snell model, or with
+    ``lens_retry`` estimated there when the others fail: :func:`lens_on_misfit`)."""
     starts = [Start("default", opts.fix_intrinsics)]
     planes = any(w.interface.plane is not None for w in dataset.window_list())
     snell = model_spec(model).needs_distance
     if planes and dataset.medium_index != 1.0 and snell:
         starts.append(Start("free window", opts.fix_intrinsics, free_window_first=True))
+    if snell and any(p is not None and (p.sigma_deg == 0 or p.sigma_mm == 0)
+                     for p in (w.interface.plane for w in dataset.window_list())):
+        starts.append(Start("declared plane eased in", opts.fix_intrinsics, eased_planes=True))
     if opts.fix_intrinsics:
         starts.append(Start("hints free in the start", False))
     if opts.distortion and snell:
@@ -658,6 +667,23 @@ def _plane_separates(solver: _Solver, state) -> bool:
     return True
 
 
+def _eased(solver: _Solver) -> _Solver:
+    """``solver`` with every held part of a declared plane a prior of EASED_PLANE_DEG / EASED_PLANE_MM instead."""
+    def ease(interface: Interface) -> Interface:
+        p = interface.plane
+        if p is None:
+            return interface
+        return replace(interface, plane=replace(p, sigma_deg=p.sigma_deg or EASED_PLANE_DEG,
+                                                sigma_mm=p.sigma_mm or EASED_PLANE_MM))
+
+    ds = solver.dataset
+    if ds.windows:
+        eased = replace(ds, windows=tuple(replace(w, interface=ease(w.interface)) for w in ds.windows))
+    else:
+        eased = replace(ds, interface=ease(ds.interface))
+    return replace(solver, dataset=eased)
+
+
 def _calibrate_from(solver: _Solver, model: str, plan: tuple[Stage, ...], start: Start) -> tuple[Calibration, list]:
     """The plan's bundle adjustments from ``start``: the calibration and its (observation, residuals)."""
     from .outliers import find_outliers, without
@@ -675,6 +701,8 @@ def _calibrate_from(solver: _Solver, model: str, plan: tuple[Stage, ...], start:
         if stage.skippable and not start.free_window_first and _plane_separates(solver, state):
             log.info("%s stage skipped: the declared plane at the ari poses separates cameras and corners", stage.label)
             continue
+        if start.eased_planes and stage.snell and stage.with_plane:
+            state = run_stage(_eased(solver), stage, state, rig.normal_observed, stage_tolerance(stage, plan)).state
         results.append(run_stage(solver, stage, state, rig.normal_observed, stage_tolerance(stage, plan)))
         state = results[-1].state
     last = results[-1]

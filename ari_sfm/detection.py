@@ -470,9 +470,9 @@ def _body_job(dataset: Dataset, entry: Entry, camera: str) -> BodyJob:
 
 
 def _body_window(dataset: Dataset, entry: Entry, camera: str) -> BodyWindow | None:
-    """The window ``camera`` looks through, in the body's frame of ``entry``: from ``interface.plane`` when it is
-    given in that frame (then the exact model identifies the dots), else None (a pinhole with k1 does)."""
-    interface = dataset.interface
+    """The window ``camera`` looks through, in the body's frame of ``entry``: from its window's ``plane`` when it
+    is given in that frame (then the exact model identifies the dots), else None (a pinhole with k1 does)."""
+    interface = dataset.interface_of(camera)
     plane = interface.plane
     if plane is None or plane.frame != entry.key:
         return None

@@ -173,3 +173,37 @@ def test_ptv_multiplane_is_what_import_openptv_reads(tmp_path):
     # and the imported experiment calibrates as OpenPTV users run it: declared plane, focal held
     cal = calibrate(imported, model="exact", fix_intrinsics=True, uncertainty=False)
     assert cal.quality.ok and cal.residuals.rmse_px < 1.1 * FLOOR_PX
+
+
+def test_a_held_plane_eased_in_ends_where_the_hold_does(ptv, monkeypatch):
+    """The start tried when a held declared plane's calibration fails the gate: each Snell stage solved first with
+    the plane as a prior (EASED_PLANE_DEG / EASED_PLANE_MM), then held from there. With the default and the
+    free-window starts refused, it ends at the default's optimum: the plane as declared, the same cameras."""
+    import importlib
+
+    from ari_sfm.errors import AriSfmError
+
+    C = importlib.import_module("ari_sfm.calibrate")
+    ds = ptv.dataset
+    default = calibrate(ds, model="exact", fix_intrinsics=True, uncertainty=False)
+    starts = C._starts(ds, "exact", C.CalibrationOptions(fix_intrinsics=True))
+    assert "declared plane eased in" in [s.name for s in starts]
+    solve = C._calibrate_from
+
+    def refuse_the_others(solver, model, plan, start):
+        if start.name != "declared plane eased in":
+            raise AriSfmError(solver.dataset.rig_path, f"refused from {start.name}")
+        return solve(solver, model, plan, start)
+
+    monkeypatch.setattr(C, "_calibrate_from", refuse_the_others)
+    eased = calibrate(ds, model="exact", fix_intrinsics=True, uncertainty=False)
+    assert eased.quality.ok and eased.quality.starts[-1] == "declared plane eased in"
+    assert eased.residuals.rmse_px == pytest.approx(default.residuals.rmse_px, rel=1e-4)
+    plane = ds.interface.plane
+    n_body = eased.frames[plane.frame].R.T @ eased.normal_world
+    assert angle_between_deg(n_body, plane.normal) < 1e-3  # held again at the end
+    for name, cam in eased.cameras.items():
+        other = default.cameras[name]
+        np.testing.assert_allclose(cam.K, other.K, rtol=1e-7)
+        np.testing.assert_allclose(cam.cam_from_world.t, other.cam_from_world.t, atol=1e-6)  # mm
+        assert angle_between_deg(cam.cam_from_world.R[2], other.cam_from_world.R[2]) < 1e-6

@@ -652,6 +652,16 @@ def cavity_without_ori(tmp_path):
     multi_planes.par naming files never made, man_ori.par / man_ori.dat (clicks 1-3 px off, whole pixels)
     and the four calibration images (rendered where liboptv puts the body with the .ori, then removed).
     Returns the folder and the true OpenCV pixels per camera {id: (u, v)}."""
+    return _rendered_cavity(tmp_path, keep_ori=False)
+
+
+@pytest.fixture()
+def cavity_with_ori(tmp_path):
+    """The same with OpenPTV's .ori and .addpar files kept (a lab that calibrated in OpenPTV before)."""
+    return _rendered_cavity(tmp_path, keep_ori=True)
+
+
+def _rendered_cavity(tmp_path, keep_ori: bool):
     import cv2
 
     root = tmp_path / "cavity"
@@ -669,8 +679,10 @@ def cavity_without_ori(tmp_path):
             par.append(f"{pid}\n")
             u, v = np.rint(px[ids == pid][0] + rng.uniform(-2.5, 2.5, 2))
             dat.append(f"{u:f} {v:f}\n")
-        (root / "cal" / f"cam{k}.tif.ori").unlink()
-    (root / "cal" / "cam1.tif.addpar").unlink()
+        if not keep_ori:
+            (root / "cal" / f"cam{k}.tif.ori").unlink()
+    if not keep_ori:
+        (root / "cal" / "cam1.tif.addpar").unlink()
     (root / "parameters" / "man_ori.par").write_text("".join(par))
     (root / "man_ori.dat").write_text("".join(dat))
     return root, truth
@@ -774,6 +786,24 @@ def test_raw_cavity_calibrates_behind_two_windows(cavity_without_ori, tmp_path):
         ori = read_ori(FODDER / "cal" / f"cam{k}.tif.ori")
         centre = frame.inverse().apply(cal.cameras[f"cam{k}"].cam_from_world.inverse().t[None])[0]
         assert np.linalg.norm(centre - ori.position) < 0.05 * np.linalg.norm(ori.position)
+
+
+def test_cavity_with_ori_calibrates_through_each_cameras_own_declared_window(cavity_with_ori, tmp_path):
+    """With OpenPTV's .ori files the two walls are declared (held as OpenPTV holds them): each camera's body
+    dots are identified through its own window (cam3 and cam4 through the +z wall, not the -z one), and the
+    calibration reaches the detection noise with the cameras where the .ori put them."""
+    from ari_sfm.calibrate import calibrate
+
+    root, _ = cavity_with_ori
+    ds = load_dataset(import_experiment(root, tmp_path / "ds"))
+    assert [w.interface.plane is not None for w in ds.windows] == [True, True]
+    cal = calibrate(ds, model="exact")
+    assert cal.quality.ok and cal.residuals.rmse_px < 0.3
+    frame = cal.frames["f000"]
+    for k in range(1, 5):
+        ori = read_ori(FODDER / "cal" / f"cam{k}.tif.ori")
+        centre = frame.inverse().apply(cal.cameras[f"cam{k}"].cam_from_world.inverse().t[None])[0]
+        assert np.linalg.norm(centre - ori.position) < 0.02 * np.linalg.norm(ori.position)
 
 
 @pytest.mark.parametrize("tilts,expected", [

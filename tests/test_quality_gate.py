@@ -45,7 +45,7 @@ def test_right_plane_passes_and_wrong_plane_fails(coarse):
     bad = calibrate(_turned(coarse.dataset), model="exact", fix_intrinsics=True)
     q = bad.quality
     assert not q.ok
-    assert q.starts == ("default", "free window", "hints free in the start")  # every start was tried
+    assert q.starts == ("default", "free window", "declared plane eased in", "hints free in the start")  # every one
     # the best of the failed starts (lowest robust RMSE) is written; it fails on the fit or on a pose the
     # data cannot determine, and says which
     fits_badly = q.robust_rmse_px > q.allowance_px
