@@ -168,7 +168,7 @@ def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Su
 
     ``options`` go to :func:`ari_sfm.calibrate` (e.g. ``distortion``). pf fits
     in the world (board poses) of the ``pf_world`` calibration, "ari" (the
-    issue's choice) or "exact" (made first when not among ``models``); its
+    default) or "exact" (made first when not among ``models``); its
     errors include that world's pose errors. ``holdout``: views of the same rig
     (:func:`check_holdout_of_this_rig`, judged on the first model calibrated, before
     the others; ``holdout_path`` is named in its errors).

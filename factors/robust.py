@@ -12,7 +12,7 @@ rho - w d^2 / 2 = k (d - k) / 2 per corner beyond k (:func:`huber_irls`):
   row, sqrt(2 sum of the excess), whose Jacobian is zero (:func:`huber_view_residual`): its error
   is the sum of rho and its linearisation the same IRLS system.
 
-Square-root weights alone (before issue 15) made the error 0.5 w d^2 = k d / 2 beyond k, half
+Square-root weights alone made the error 0.5 w d^2 = k d / 2 beyond k, half
 the system's gradient: LM rejected every step near the optimum and stopped short of the Huber
 M-estimate. Scaling the residual to s r with 0.5 |s r|^2 = rho and the Jacobian by w / s is
 consistent too, but its curvature k / (2 d - k) is half the IRLS weight for far outliers: from

@@ -1,4 +1,4 @@
-"""The numpy bundle-adjustment backend under its historical name (a facade; the pieces live in their modules).
+"""The numpy bundle-adjustment backend (a facade; the pieces live in their modules).
 
 - :mod:`~ari_sfm.factors.packed_problem`: RigGraph's problem packed into arrays (residuals and
   Jacobians from the models' batched kernels, the chain rule to the tangent spaces);
