@@ -608,7 +608,8 @@ def _report(start: Calibration, final: Calibration, options: SelfCalOptions, fra
     in_air = all(w.interface.medium_index == 1.0 for w in windows)
     held = [("the window's plane (normal and position) in the world" if len(windows) == 1 else
              "every window's plane (normal and position) in the world"),
-            f"the rig's mean motion along the {len(gauge.twists)} motions that keep "
+            f"the rig's mean motion along the {len(gauge.twists)} "
+            + ("motion that keeps " if len(gauge.twists) == 1 else "motions that keep ")
             + ("the window" if len(windows) == 1 else "the windows")
             + (" (rotation about its normal, translation within its plane"
                + (" and along its normal: in air the distance is not observed)" if in_air else ")")
