@@ -177,6 +177,15 @@ def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Su
     from .calibrate import calibrate, ensure_observations
 
     models = parse_models(models)
+    if dataset.windows:  # several windows: the one-window baselines cannot be fitted to this rig
+        left_out = [m for m in models if model_spec(m).one_window]
+        models = tuple(m for m in models if m not in left_out)
+        if not models:
+            raise AriSfmError("--models", f"{', '.join(left_out)} model(s) one window for every camera; this rig "
+                                          "has several (interfaces): compare exact, ari, pf or pinhole")
+        if left_out:
+            log.warning("compare: %s left out: it models one window for every camera, and this rig has %d",
+                        ", ".join(left_out), len(dataset.windows))
     if pf_world not in BUNDLE:
         raise AriSfmError("--pf-world", f"expected one of {', '.join(BUNDLE)}, got {pf_world!r}")
     dataset = ensure_observations(dataset)
@@ -187,22 +196,31 @@ def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Su
     needed = list(models) + ([pf_world] if "pf" in models and pf_world not in models else [])
     for model in sorted(needed, key=lambda m: m == "pf"):  # pf last: it needs its world
         runs = []
-        for _ in range(TIMED_RUNS):  # the first run of a model in a process also pays its one-time costs
-            t0 = time.perf_counter()
-            if model_spec(model).projection == "polynomial":
-                cal = calibrate_pf(fit_data, world=cals[pf_world][0])
-                wall = time.perf_counter() - t0 + cals[pf_world][1]
-            else:
-                cal = calibrate(fit_data, model=model, **options)
-                wall = time.perf_counter() - t0
-            runs.append((cal, wall))
+        try:
+            for _ in range(TIMED_RUNS):  # the first run of a model in a process also pays its one-time costs
+                t0 = time.perf_counter()
+                if model_spec(model).projection == "polynomial":
+                    cal = calibrate_pf(fit_data, world=cals[pf_world][0])
+                    wall = time.perf_counter() - t0 + cals[pf_world][1]
+                else:
+                    cal = calibrate(fit_data, model=model, **options)
+                    wall = time.perf_counter() - t0
+                runs.append((cal, wall))
+        except AriSfmError as exc:
+            if model_spec(model).bundle or model == pf_world:
+                raise
+            # a baseline these data cannot support (e.g. OpenCV's camera from one view of a 3D body)
+            log.warning("compare: %s left out: %s", model, exc.message)
+            continue
         cal, wall = min(runs, key=lambda r: r[0].time_s)
         if holdout and not cals:  # another rig's views: refused before the other models are calibrated
             check_holdout_of_this_rig(cal, holdout, dataset, holdout_path or "--holdout")
         cals[model] = (cal, min(w for _, w in runs))
         log.info("compare: %s in %.1f ms", model, cal.time_s * 1e3)
+    if not any(m in cals for m in models):
+        raise AriSfmError(dataset.rig_path, f"no model of {', '.join(models)} could be calibrated on these data")
     out = []
-    for model in models:
+    for model in (m for m in models if m in cals):
         cal, wall = cals[model]
         fit, all_, res, in_fit = _judge(cal, dataset, fit_ids)
         out.append(ModelResult(model, cal, params_per_camera(cal, bool(options.get("distortion"))), cal.time_s * 1e3,

@@ -230,3 +230,33 @@ def test_cli_compare_writes_tables_and_figures(tmp_path):
         lines = bad.output.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith(f"error: {what}: ")
         assert not (tmp_path / "bad").exists()
+
+
+def test_compare_on_several_windows_leaves_out_the_one_window_baseline(caplog):
+    """A rig behind two walls: rt (one window for every camera) is left out with a warning, the others are
+    compared and exact fits at the noise; rt alone is one error naming --models."""
+    ds = make_scene("tank_opposite", seed=0).dataset
+    with caplog.at_level("WARNING", logger="ari_sfm"):
+        results = compare(ds, models=("exact", "rt", "pinhole"))
+    assert [r.model for r in results] == ["exact", "pinhole"]
+    assert any("rt left out" in r.getMessage() for r in caplog.records)
+    exact, pinhole = results
+    assert exact.fit.rmse_px < 0.08 < pinhole.fit.rmse_px  # sigma 0.05 px: exact at the floor, a pinhole not
+    with pytest.raises(AriSfmError, match="--models"):
+        compare(ds, models=("rt",))
+
+
+def test_compare_leaves_out_a_baseline_these_data_cannot_support(caplog, monkeypatch):
+    """A baseline whose calibrator refuses the data (OpenCV's camera from one view of a 3D body) is left out
+    with its reason; the window models are still compared."""
+    import ari_sfm.baselines as baselines
+
+    def refuse(dataset, *args, **kwargs):
+        raise AriSfmError(dataset.rig_path, "camera cam0 has 1 calibration views with >= 6 corners (need >= 3)")
+
+    monkeypatch.setattr(baselines, "calibrate_pinhole_model", refuse)
+    with caplog.at_level("WARNING", logger="ari_sfm"):
+        results = compare(make_scene("binocular", seed=0, sigma_px=SIGMA, num_frames=6).dataset,
+                          models=("exact", "pinhole"))
+    assert [r.model for r in results] == ["exact"]
+    assert any("pinhole left out: camera cam0 has 1 calibration views" in r.getMessage() for r in caplog.records)

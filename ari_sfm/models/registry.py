@@ -33,6 +33,7 @@ class ModelSpec:
     distortion: bool = False  # always estimates k1 k2 p1 p2 k3 (pinhole_dist)
     params_per_camera: int | None = None  # fixed parameter count (pf's 40); None: intrinsics + window
     compared: bool = True  # among `ari-sfm compare`'s default models
+    one_window: bool = False  # its calibrator models one window for every camera (not a rig's several)
 
     def __post_init__(self) -> None:
         if self.projection not in PROJECTIONS:
@@ -89,7 +90,7 @@ _SPECS = (
     ModelSpec("exact", "Snell's law at both faces, refined from the ari result", "exact", bundle=True,
               calibrator=None),
     ModelSpec("rt", "Feng et al.'s ray-tracing bundle adjustment (saved as exact Snell)", "exact", bundle=False,
-              calibrator="ari_sfm.baselines:calibrate_rt_model"),
+              calibrator="ari_sfm.baselines:calibrate_rt_model", one_window=True),
     ModelSpec("pf", "Paolillo et al.'s 3x3x3 world-to-pixel polynomial per camera", "polynomial", bundle=False,
               calibrator="ari_sfm.baselines:calibrate_pf_model", camera_keys=("pf",), params_per_camera=40),
     ModelSpec("pinhole", "plain OpenCV camera, window ignored", "pinhole", bundle=False,
