@@ -147,8 +147,12 @@ def import_colmap_fork_cmd(model_dir: Path, out: Path, units_mm: float) -> None:
         raise AriSfmError(out, "-o/--out: is the input model folder (choose another folder)")
     cal = import_colmap_fork(model_dir, units_mm)
     save_calibration(cal, out / "calibration.json")
-    click.echo(f"{len(cal.cameras)} camera(s) ({', '.join(cal.cameras)}), window {cal.interface.thickness_mm:g} mm "
-               f"n={cal.interface.index:g} medium n={cal.interface.medium_index:g} -> {out / 'calibration.json'}")
+    def plate(w) -> str:
+        name = f"window {w.name} ({', '.join(w.cameras)})" if cal.windows else "window"
+        return f"{name} {w.interface.thickness_mm:g} mm n={w.interface.index:g} medium n={w.interface.medium_index:g}"
+
+    windows = "; ".join(plate(w) for w in cal.window_list())
+    click.echo(f"{len(cal.cameras)} camera(s) ({', '.join(cal.cameras)}), {windows} -> {out / 'calibration.json'}")
 
 
 @click.command(name="refine-colmap")
