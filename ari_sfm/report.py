@@ -23,7 +23,8 @@ The dataset is found from, in order: the ``dataset`` argument, OUT/run.json
 (written by ``ari-sfm run``: ``{"format": "ari-sfm-run/1", "dataset":
 <absolute path>, ...}``), metrics.json's ``provenance.dataset.path``, then its
 ``dataset`` if absolute (a relative one, written by older versions, was
-relative to a working folder nobody recorded: it is not guessed). Without it
+relative to a working folder nobody recorded: it is not guessed), then the rig file
+OUT/observations.json names (``calibrate`` records it when it detected the corners). Without it
 the report still has the calibration and, from OUT/observations.json, the residuals.
 
 What does not belong together is refused or labelled: a dataset of another
@@ -111,6 +112,12 @@ def find_dataset(out: Path, dataset: str | Path | None = None) -> Path | None:
         elif isinstance(given, str):
             log.warning("%s: dataset %r is a relative path of an unknown working folder: pass --dataset",
                         out / "metrics.json", given)
+    if (out / "observations.json").exists():  # calibrate's detections name the rig they were detected from
+        from .io.observations import recorded_dataset
+
+        rig = recorded_dataset(out / "observations.json")
+        if rig is not None:
+            candidates.append(rig)
     return next((c for c in candidates if c.exists()), None)
 
 

@@ -39,7 +39,7 @@ def main(dataset_path: Path, out_dir: Path, model: str = DEFAULT_MODEL, progress
     obs_path = None
     if detected and dataset.observations is not None:  # detect wrote them into the dataset
         obs_path = out_dir / "observations.json"
-        save_observations(obs_path, dataset.observations)
+        save_observations(obs_path, dataset.observations, dataset.rig_path if dataset.rig_path.is_file() else None)
     cal = calibrate(dataset, model=model, options=options, progress=progress, **overrides)
     cal_path = out_dir / "calibration.json"
     save_calibration(cal, cal_path)

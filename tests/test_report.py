@@ -488,3 +488,20 @@ def test_report_prints_on_paper(binocular, tmp_path):
     from ari_sfm.report_3d import PRINT_FIT_SCRIPT
 
     assert PRINT_FIT_SCRIPT in text  # without it the view keeps its screen width (checked by hand: 627.8 pt > 612)
+
+
+def test_report_of_a_calibrate_folder_finds_the_dataset_its_corners_came_from(tmp_path):
+    """`calibrate DATASET -o OUT` of an images-only dataset records DATASET's rig file in OUT/observations.json,
+    and `report OUT` shows the dataset from it (no "pass --dataset"); moved away, the note is back."""
+    root = Path(__file__).resolve().parents[1]
+    ds = tmp_path / "sample"
+    shutil.copytree(root / "datasets" / "sample", ds)
+    out = tmp_path / "cal"
+    r = CliRunner().invoke(main, ["calibrate", str(ds), "-o", str(out), "--model", "ari"])
+    assert r.exit_code == 0, r.output
+    assert json.loads((out / "observations.json").read_text())["dataset"] == str(ds / "rig.yaml")
+    inputs = report.load_inputs(out)
+    assert inputs.dataset is not None and inputs.dataset_path == ds / "rig.yaml"
+    assert not any("dataset not found" in n for n in inputs.notes)
+    shutil.move(str(ds), str(tmp_path / "elsewhere"))
+    assert any("dataset not found" in n for n in report.load_inputs(out).notes)

@@ -1,6 +1,8 @@
 """``observations.json`` (format ``ari-sfm-observations/1``): detected corners, one record per image."""
 from __future__ import annotations
 
+import json
+import os
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -193,9 +195,23 @@ def _pixels_array(pixels: Any) -> Any:
     return arr.reshape(-1, 2) if arr.size == 0 else arr
 
 
-def save_observations(path: str | Path, observations: Sequence[Observation]) -> None:
-    """Validate and write ``observations.json`` atomically (raises AriSfmError on a bad record)."""
+def save_observations(path: str | Path, observations: Sequence[Observation], dataset: str | Path | None = None
+                      ) -> None:
+    """Validate and write ``observations.json`` atomically (raises AriSfmError on a bad record). ``dataset``:
+    the rig file the corners were detected from, recorded (absolute) as the file's ``dataset``."""
     path = Path(path)
     data = observations_to_json(observations)
     parse_observations(data, path)  # refuse to write a file we would not read back
+    if dataset is not None:
+        data["dataset"] = os.path.abspath(dataset)
     write_json_atomic(path, data)
+
+
+def recorded_dataset(path: str | Path) -> Path | None:
+    """The rig file an ``observations.json`` says its corners were detected from (None: not recorded, or the
+    file unreadable)."""
+    try:
+        given = json.loads(Path(path).read_text()).get("dataset")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return Path(given) if isinstance(given, str) and Path(given).is_absolute() else None
