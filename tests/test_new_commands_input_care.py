@@ -168,3 +168,53 @@ def test_sigterm_after_a_finished_command_is_not_a_kill(experiment, tmp_path):
     err = p.stderr.decode(errors="replace")
     assert p.returncode == 0, (p.returncode, err)
     assert {"particles3d.parquet", "particles3d.json"} <= {q.name for q in out.iterdir()}
+
+
+@pytest.mark.parametrize("command,results", [
+    ("self-calibrate", {"calibration.json", "disparity.json"}),
+    ("detect-particles", {"particles.parquet", "detect-particles.json"}),
+])
+def test_sigterm_during_the_other_long_commands_leaves_cleanly(experiment, tmp_path, command, results):
+    """As for particles: SIGTERM once the command has started gives 'terminated' and 143 with none of its
+    results or all of them (never one without the other, never a temporary file), or a complete run and 0."""
+    dataset, cal, _ = experiment
+    out = tmp_path / "out"
+    args = [str(ARI_SFM), "-v", command, str(dataset), "-o", str(out), "--workers", "0"]
+    if command == "self-calibrate":
+        args += ["--calibration", str(cal)]
+    p = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV)
+    seen = b""
+    while b"INFO" not in seen:
+        chunk = p.stderr.read1(256)
+        if not chunk:
+            break
+        seen += chunk
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=120)
+    err = (seen + err).decode(errors="replace")
+    assert "Traceback" not in err and "stack trace" not in err, err
+    assert p.returncode in (143, 0, 3), (p.returncode, err)  # 3: a self-calibration that fails its checks
+    files = {q.name for q in out.iterdir() if q.is_file()} if out.exists() else set()
+    assert not any(n.endswith(".tmp") for n in files), files
+    assert files & results in (set(), results), files  # written together
+    if p.returncode == 143:
+        assert err.strip().splitlines()[-1] == "terminated", err
+    else:
+        assert results <= files
+
+
+def test_refine_colmap_into_its_own_model_is_refused_and_nothing_written(tmp_path):
+    """-o MODEL_DIR: one line naming the folder, exit 1, the model's files as they were."""
+    model = tmp_path / "model"
+    model.mkdir()
+    for name in ("cameras.txt", "images.txt", "points3D.txt"):
+        (model / name).write_text("# a COLMAP model\n")
+    (tmp_path / "WINDOW.yaml").write_text("interface: {thickness_mm: 8, index: 1.49, medium_index: 1.333}\n"
+                                          "mount: camera\nunits_mm: 1000\n")
+    before = {p.name: p.read_text() for p in model.iterdir()}
+    r = CliRunner().invoke(main, ["refine-colmap", str(model), "--window", str(tmp_path / "WINDOW.yaml"),
+                                  "-o", str(model)])
+    lines = r.output.strip().splitlines()
+    assert r.exit_code == 1 and len(lines) == 1 and lines[0].startswith(f"error: {model}"), r.output
+    assert "is MODEL_DIR" in lines[0]
+    assert {p.name: p.read_text() for p in model.iterdir()} == before
