@@ -114,13 +114,10 @@ def test_export_colmap_fork_on_a_full_disk_leaves_no_model_file(experiment, tmp_
         assert left == []
 
 
-def test_sigterm_during_particles_leaves_cleanly(experiment, tmp_path):
-    """SIGTERM once the command has started (its first log line): 'terminated' and 143 with no partial table
-    (nothing, or when the signal lands at the end the whole result), or a complete run and 0."""
-    dataset, cal, _ = experiment
-    out = tmp_path / "p3d"
-    p = subprocess.Popen([str(ARI_SFM), "-v", "particles", str(dataset), "--calibration", str(cal), "-o", str(out),
-                          "--workers", "0"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV)
+def _sigterm_once_started(args: list[str]) -> tuple[int, str]:
+    """Run ``ari-sfm -v ARGS``, send SIGTERM once it has logged its first line, and return its exit code and
+    stderr (checked to hold no traceback)."""
+    p = subprocess.Popen([str(ARI_SFM), "-v", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV)
     seen = b""
     while b"INFO" not in seen:
         chunk = p.stderr.read1(256)
@@ -129,9 +126,19 @@ def test_sigterm_during_particles_leaves_cleanly(experiment, tmp_path):
         seen += chunk
     p.send_signal(signal.SIGTERM)
     _, err = p.communicate(timeout=120)
-    err = (seen + err).decode(errors="replace")
-    assert "Traceback" not in err and "stack trace" not in err, err
-    assert p.returncode in (143, 0), (p.returncode, err)
+    text = (seen + err).decode(errors="replace")
+    assert "Traceback" not in text and "stack trace" not in text, text
+    return p.returncode, text
+
+
+def test_sigterm_during_particles_leaves_cleanly(experiment, tmp_path):
+    """SIGTERM once the command has started (its first log line): 'terminated' and 143 with no partial table
+    (nothing, or when the signal lands at the end the whole result), or a complete run and 0."""
+    dataset, cal, _ = experiment
+    out = tmp_path / "p3d"
+    returncode, err = _sigterm_once_started(["particles", str(dataset), "--calibration", str(cal), "-o", str(out),
+                                             "--workers", "0"])
+    assert returncode in (143, 0), (returncode, err)
     files = [q.name for q in out.rglob("*") if q.is_file()] if out.exists() else []
     assert not any(n.endswith(".tmp") for n in files), files
     complete = {"particles3d.parquet", "particles3d.json"} <= set(files)
@@ -139,7 +146,7 @@ def test_sigterm_during_particles_leaves_cleanly(experiment, tmp_path):
         import pyarrow.parquet as pq
 
         assert pq.read_table(out / "particles3d.parquet").num_rows > 0
-    if p.returncode == 143:
+    if returncode == 143:
         assert err.strip().splitlines()[-1] == "terminated", err
         assert complete or "particles3d.parquet" not in files  # nothing, or (signal at the end) the whole result
     else:
@@ -179,25 +186,15 @@ def test_sigterm_during_the_other_long_commands_leaves_cleanly(experiment, tmp_p
     results or all of them (never one without the other, never a temporary file), or a complete run and 0."""
     dataset, cal, _ = experiment
     out = tmp_path / "out"
-    args = [str(ARI_SFM), "-v", command, str(dataset), "-o", str(out), "--workers", "0"]
+    args = [command, str(dataset), "-o", str(out), "--workers", "0"]
     if command == "self-calibrate":
         args += ["--calibration", str(cal)]
-    p = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV)
-    seen = b""
-    while b"INFO" not in seen:
-        chunk = p.stderr.read1(256)
-        if not chunk:
-            break
-        seen += chunk
-    p.send_signal(signal.SIGTERM)
-    _, err = p.communicate(timeout=120)
-    err = (seen + err).decode(errors="replace")
-    assert "Traceback" not in err and "stack trace" not in err, err
-    assert p.returncode in (143, 0, 3), (p.returncode, err)  # 3: a self-calibration that fails its checks
+    returncode, err = _sigterm_once_started(args)
+    assert returncode in (143, 0, 3), (returncode, err)  # 3: a self-calibration that fails its checks
     files = {q.name for q in out.iterdir() if q.is_file()} if out.exists() else set()
     assert not any(n.endswith(".tmp") for n in files), files
     assert files & results in (set(), results), files  # written together
-    if p.returncode == 143:
+    if returncode == 143:
         assert err.strip().splitlines()[-1] == "terminated", err
     else:
         assert results <= files
@@ -218,3 +215,26 @@ def test_refine_colmap_into_its_own_model_is_refused_and_nothing_written(tmp_pat
     assert r.exit_code == 1 and len(lines) == 1 and lines[0].startswith(f"error: {model}"), r.output
     assert "is MODEL_DIR" in lines[0]
     assert {p.name: p.read_text() for p in model.iterdir()} == before
+
+
+@pytest.mark.parametrize("command", ["export-colmap", "export-colmap-fork"])
+def test_an_export_onto_its_own_calibration_file_is_refused_and_it_is_kept(experiment, tmp_path, command):
+    """-o naming the calibration.json being exported: one line naming it, exit 1, the file as it was."""
+    _, cal, _ = experiment
+    target = tmp_path / "calibration.json"
+    target.write_bytes(cal.read_bytes())
+    r = CliRunner().invoke(main, [command, str(target), "-o", str(target)])
+    lines = r.output.strip().splitlines()
+    assert r.exit_code == 1 and len(lines) == 1 and lines[0].startswith(f"error: {target}"), r.output
+    assert target.read_bytes() == cal.read_bytes()
+
+
+def test_import_colmap_fork_on_a_full_disk_leaves_no_calibration(experiment, tmp_path, monkeypatch):
+    """The disk full while calibration.json is written: one line, exit 1, no calibration.json, no temporary."""
+    _, _, fork = experiment
+    _full_disk(monkeypatch)
+    out = tmp_path / "imported"
+    r = CliRunner().invoke(main, ["import-colmap-fork", str(fork), "-o", str(out)])
+    assert r.exit_code == 1 and r.output.strip().splitlines()[-1].endswith("No space left on device"), r.output
+    left = [p.name for p in out.rglob("*") if p.is_file()] if out.exists() else []
+    assert not any(n == "calibration.json" or n.endswith(".tmp") for n in left), left
