@@ -112,13 +112,13 @@ def find_dataset(out: Path, dataset: str | Path | None = None) -> Path | None:
         elif isinstance(given, str):
             log.warning("%s: dataset %r is a relative path of an unknown working folder: pass --dataset",
                         out / "metrics.json", given)
-    if (out / "observations.json").exists():  # calibrate's detections name the rig they were detected from
+    found = next((c for c in candidates if c.exists()), None)
+    if found is None and (out / "observations.json").exists():  # calibrate's corners name the rig they came from
         from .io.observations import recorded_dataset
 
         rig = recorded_dataset(out / "observations.json")
-        if rig is not None:
-            candidates.append(rig)
-    return next((c for c in candidates if c.exists()), None)
+        found = rig if rig is not None and rig.exists() else None
+    return found
 
 
 def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInputs:
