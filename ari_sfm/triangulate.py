@@ -50,7 +50,7 @@ from .models.exact import ExactModel
 log = logging.getLogger(__name__)
 
 MAX_ITERATIONS = 50  # Levenberg-Marquardt iterations (from the ray initialisation 2-3 are needed)
-STEP_TOL_MM = 1e-9  # a point has converged when its step is below this (relative to 1 + |X|)
+STEP_TOL_MM = 1e-6  # a point has converged when its step is below this (relative to 1 + |X|); the step is taken
 NUMERIC_STEP_MM = 1e-4  # central-difference step for models without analytic Jacobians
 MIN_DET = 1e-14  # det of the 3x3 ray normal matrix below this: rays (nearly) parallel -> NaN
 PARALLEL_MIN_POINTS = 2000  # points per thread of the exact model's triangulation kernel (fewer: one thread)

@@ -808,8 +808,16 @@ def triangulate_exact(uv, R, t, params, nc, window, refine, max_iterations, damp
             step_norm = math.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2)
             new_norm = math.sqrt(X_new[0] ** 2 + X_new[1] ** 2 + X_new[2] ** 2)
             if step_norm <= step_tol * (1.0 + new_norm):
-                # converged: refine_points would also stop after this step; X moves by less than
-                # the tolerance, so keep X and its cost instead of paying one more evaluation
+                # converged: refine_points would also stop after this step. The step is taken without
+                # evaluating its point (what is left of the error is second order in the step), its cost
+                # the linear model's, |r - J step|^2 (what is left: third order)
+                predicted = cost
+                for i in range(3):
+                    X[i] = X_new[i]
+                    predicted -= 2.0 * g[i] * step[i]
+                    for j in range(3):
+                        predicted += step[i] * An[i, j] * step[j]
+                cost = max(predicted, 0.0)
                 converged = True
                 break
         if lm:
