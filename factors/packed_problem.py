@@ -43,6 +43,7 @@ import gtsam
 import numpy as np
 
 from ..geometry import Pose, retract_poses
+from ..helper_thread import shared_map
 from ..models.ari import AriJacobians, ari_project, check_window
 from ..models.exact import ExactJacobians, exact_project
 from ..models.pinhole import Projection
@@ -55,11 +56,12 @@ from .robust import huber_residual_scale, huber_view_residual, weighted_residual
 from .schur import NormalEquations, model_decrease, solve_damped
 from .variables import MODELS, GraphLike, RigState, Variables, estimated_offset
 from .view_factor import ViewData, ViewKeys, camera_terms
-from .view_kernels import accumulate_views, chain_rows, rig_transforms, transform_points
+from .view_kernels import accumulate_views, add_camera, chain_rows, rig_transforms, transform_points
 
 log = logging.getLogger(__name__)
 
 INVALID_RESIDUAL = 1e6  # what view_residuals puts for a non-finite residual or a camera beyond the window
+PARALLEL_MIN_CORNERS = 2000  # corners from which linearize forms its cameras' equations on two threads
 # the models' batched projections
 _KERNELS: dict[str, Callable[..., AriJacobians | ExactJacobians | Projection]] = {"ari": ari_project,
                                                                                    "exact": exact_project}
@@ -89,6 +91,18 @@ class _CameraModel:
     J_normal: np.ndarray | None = None  # (m, 2, 3)
     J_params: np.ndarray | None = None  # (m, 2, n_params)
     J_distance: np.ndarray | None = None  # (m, 2)
+
+
+@dataclass(frozen=True)
+class _CameraSystem:
+    """One camera's share of the normal equations (:func:`~ari_sfm.factors.view_kernels.accumulate_views`'
+    arrays: V, g_frame, W, U, g_camera; None for a camera beyond the window), its squared whitened
+    residuals, the Huber excess over them and where a Jacobian entry was not finite."""
+
+    err2: float
+    excess: float
+    arrays: tuple[np.ndarray, ...] | None
+    bad: np.ndarray | None
 
 
 @dataclass
@@ -415,35 +429,49 @@ class VectorizedProblem:
             total += 0.5 * float(np.einsum("ij,ij->", rw, rw))
         return total + self._extra.error(x)
 
+    def _camera_system(self, x: Variables, tr: _Transforms, c: int) -> _CameraSystem:
+        """Camera c's share of the whitened normal equations at x (in its own arrays: threads may form
+        several cameras' at once)."""
+        s, e = int(self.camera_corners[c]), int(self.camera_corners[c + 1])
+        model = self._camera_model(x, tr, c, True)
+        if model is None:  # the camera beyond the window: residuals 1e6, Jacobians zero
+            return _CameraSystem(2 * (e - s) * INVALID_RESIDUAL ** 2, 0.0, None, None)
+        scale, res, excess = self._camera_weights(model, c, self.huber_px, whiten=True)
+        vs, ve = int(self.camera_views[c]), int(self.camera_views[c + 1])
+        nv, L = ve - vs, len(self.camera_row_cols[c])
+        arrays = (np.zeros((nv, 6, 6)), np.zeros((nv, 6)), np.zeros((nv, 6, L)), np.zeros((L, L)), np.zeros(L))
+        bad = np.zeros(e - s, dtype=np.bool_)
+        err2 = accumulate_views(model.J_point, model.J_normal, model.J_distance, model.J_params, model.X,
+                                self.points[s:e], tr.R_cam_target[vs:ve], self.view_start[vs:ve + 1] - s,
+                                *self._camera_terms(x, tr, c), scale, res, *arrays, bad)
+        return _CameraSystem(err2, excess, arrays, bad)
+
     def linearize(self, x: Variables) -> NormalEquations:
         """The whitened normal equations at x (views and user factors): per camera, the model's derivatives
-        chained to the tangent spaces and each view's A^T A added in one compiled pass
-        (:func:`~ari_sfm.factors.view_kernels.accumulate_views`)."""
+        chained to the tangent spaces and each view's A^T A summed in one compiled pass
+        (:func:`~ari_sfm.factors.view_kernels.accumulate_views`; two cameras at once on two threads from
+        :data:`PARALLEL_MIN_CORNERS` corners), then the cameras added to the system in their order
+        (:func:`~ari_sfm.factors.view_kernels.add_camera`): the same numbers on one thread or two."""
         C, F, G = len(self.camera_names), len(self.frame_names), self.n_global
         tr = self._transforms(x)
         V, g_f = np.zeros((F, 6, 6)), np.zeros((F, 6))
         W, U, g_g = np.zeros((F, 6, G)), np.zeros((G, G)), np.zeros(G)
         err2, err_excess = 0.0, 0.0
-        for c in range(C):
-            s, e = int(self.camera_corners[c]), int(self.camera_corners[c + 1])
-            if e == s:
+        cameras = [c for c in range(C) if self.camera_corners[c + 1] > self.camera_corners[c]]
+        threads = 2 if self.camera_corners[-1] >= PARALLEL_MIN_CORNERS else 1
+        systems = shared_map(lambda c: self._camera_system(x, tr, c), cameras, threads=threads, min_items=2)
+        for c, cs in zip(cameras, systems):
+            err2 += cs.err2
+            if cs.arrays is None or cs.bad is None:  # the camera beyond the window
                 continue
-            model = self._camera_model(x, tr, c, True)
-            if model is None:  # the camera beyond the window: residuals 1e6, Jacobians zero
-                err2 += 2 * (e - s) * INVALID_RESIDUAL ** 2
-                continue
-            scale, res, excess = self._camera_weights(model, c, self.huber_px, whiten=True)
-            err_excess += excess
-            vs, ve = int(self.camera_views[c]), int(self.camera_views[c + 1])
-            bad = np.zeros(e - s, dtype=np.bool_)
-            err2 += accumulate_views(model.J_point, model.J_normal, model.J_distance, model.J_params, model.X,
-                                     self.points[s:e], tr.R_cam_target[vs:ve], self.view_start[vs:ve + 1] - s,
-                                     self.view_frame[vs:ve], *self._camera_terms(x, tr, c), scale, res,
-                                     self.camera_row_cols[c], V, g_f, W, U, g_g, bad)
-            if bad.any():
-                factors = np.unique(self.view_order[self.corner_view[s:e][bad]])[:10].tolist()
+            err_excess += cs.excess
+            if cs.bad.any():
+                s, e = int(self.camera_corners[c]), int(self.camera_corners[c + 1])
+                factors = np.unique(self.view_order[self.corner_view[s:e][cs.bad]])[:10].tolist()
                 raise NonFiniteJacobian(f"non-finite Jacobian entries in factor(s) {factors} "
                                         "(a corner behind the window at the linearisation point)")
+            vs, ve = int(self.camera_views[c]), int(self.camera_views[c + 1])
+            add_camera(*cs.arrays, self.view_frame[vs:ve], self.camera_row_cols[c], V, g_f, W, U, g_g)
         system = NormalEquations(V, g_f, W, U, g_g, 0.5 * err2 + err_excess)
         self._extra.add_to(system, x)
         return system

@@ -1,7 +1,8 @@
 """The view factor's chain rule to the tangent spaces, compiled: the one copy, called by the GTSAM factor
 (:func:`~ari_sfm.factors.view_factor.view_residuals`, through :func:`chain_rows`) and by the numpy
 backend (:meth:`~ari_sfm.factors.packed_problem.VectorizedProblem.linearize`, through
-:func:`accumulate_views`, which also forms each view's normal equations in the same pass).
+:func:`accumulate_views`, which also forms each view's normal equations in the same pass, and
+:func:`add_camera`, which adds a camera's to the whole system).
 numba, ``cache=True``; the model's derivatives come in as arrays (the physics stays in
 :mod:`ari_sfm.models.kernels`), the Huber weights from :mod:`~ari_sfm.factors.robust`.
 
@@ -127,21 +128,21 @@ def chain_rows(J_point, J_normal, J_distance, X_cam, P, R_view, view_start, n_ca
 
 
 @njit(**_JIT)
-def accumulate_views(J_point, J_normal, J_distance, J_params, X_cam, P, R_view, view_start, view_frame, n_cam,
-                     cam_shift, normal_map, normal_shift, pose, distance, row_scale, residual, cols,
-                     V, g_frame, W, U, g_global, bad):
-    """One camera's views added to the normal equations (V, g_frame, W, U, g_global, in place), each
-    view's ``A^T A`` of its whitened rows ``A = [J_frame | J_camera | r]`` (filled in a scratch of the
-    largest view's size, multiplied by BLAS).
+def accumulate_views(J_point, J_normal, J_distance, J_params, X_cam, P, R_view, view_start, n_cam, cam_shift,
+                     normal_map, normal_shift, pose, distance, row_scale, residual, V, g_frame, W, U, g_camera, bad):
+    """One camera's normal equations, in its own arrays (zeros in, filled in place): each view's
+    ``A^T A`` of its whitened rows ``A = [J_frame | J_camera | r]`` (filled in a scratch of the largest
+    view's size, multiplied by BLAS), summed over the camera's views. :func:`add_camera` adds them to the
+    whole system.
 
     Rows: :func:`chain_rows` with the intrinsics from ``J_params`` (m, 2, n_params), without the pose
     columns when the camera has none (camera 0), each corner's Jacobian times ``row_scale`` (m,) (sqrt of
-    the IRLS weight over sigma); ``residual`` (m, 2) already whitened. ``cols`` (L,): the global columns
-    of the row's camera block (intrinsics, pose if any, normal, distance); ``view_frame`` (nv,) each
-    view's frame. ``bad`` (m,) is set True where a Jacobian entry is not finite.
-    Returns the sum of the squared residuals."""
+    the IRLS weight over sigma); ``residual`` (m, 2) already whitened. Out, by view v and camera-local
+    column (L of them: intrinsics, pose if any, normal, distance): ``V`` (nv, 6, 6), ``g_frame`` (nv, 6),
+    ``W`` (nv, 6, L), ``U`` (L, L), ``g_camera`` (L,). ``bad`` (m,) is set True where a Jacobian entry is
+    not finite. Returns the sum of the squared residuals."""
     n_params = J_params.shape[2]
-    L = cols.shape[0]
+    L = U.shape[0]
     K = 6 + L
     k = 6 + n_params
     kn = k + 6 if pose else k
@@ -149,7 +150,6 @@ def accumulate_views(J_point, J_normal, J_distance, J_params, X_cam, P, R_view, 
     for v in range(len(view_start) - 1):
         most = max(most, view_start[v + 1] - view_start[v])
     A = np.empty((2 * most, K + 1))  # one view's rows
-    U_camera = np.zeros((L, L))
     err2 = 0.0
     for v in range(len(view_start) - 1):
         R_ct = R_view[v]
@@ -171,19 +171,35 @@ def accumulate_views(J_point, J_normal, J_distance, J_params, X_cam, P, R_view, 
                 row[K] = residual[o, j]
         Av = A[:2 * n]
         H = np.dot(Av.T, Av)
+        for a in range(6):
+            for b in range(6):
+                V[v, a, b] = H[a, b]
+            g_frame[v, a] = H[a, K]
+            for b in range(L):
+                W[v, a, b] = H[a, 6 + b]
+        for a in range(L):
+            for b in range(L):
+                U[a, b] += H[6 + a, 6 + b]
+            g_camera[a] += H[6 + a, K]
+        err2 += H[K, K]
+    return err2
+
+
+@njit(**_JIT)
+def add_camera(V_c, g_frame_c, W_c, U_c, g_camera, view_frame, cols, V, g_frame, W, U, g_global):
+    """One camera's normal equations (:func:`accumulate_views`' arrays) added to the whole system's (in
+    place): ``view_frame`` (nv,) each view's frame, ``cols`` (L,) the global column of each camera-local one.
+    The cameras are added one after the other, in their order, whichever thread formed each."""
+    L = cols.shape[0]
+    for v in range(view_frame.shape[0]):
         f = view_frame[v]
         for a in range(6):
             for b in range(6):
-                V[f, a, b] += H[a, b]
-            g_frame[f, a] += H[a, K]
+                V[f, a, b] += V_c[v, a, b]
+            g_frame[f, a] += g_frame_c[v, a]
             for b in range(L):
-                W[f, a, cols[b]] += H[a, 6 + b]
-        for a in range(L):
-            for b in range(L):
-                U_camera[a, b] += H[6 + a, 6 + b]
-            g_global[cols[a]] += H[6 + a, K]
-        err2 += H[K, K]
+                W[f, a, cols[b]] += W_c[v, a, b]
     for a in range(L):
         for b in range(L):
-            U[cols[a], cols[b]] += U_camera[a, b]
-    return err2
+            U[cols[a], cols[b]] += U_c[a, b]
+        g_global[cols[a]] += g_camera[a]

@@ -62,11 +62,11 @@ def test_the_start_on_two_threads_is_the_start_on_one():
         assert np.array_equal(pose.R, other.R) and np.array_equal(pose.t, other.t)
 
 
-def test_opencv_map_keeps_the_order_shares_the_work_and_raises_the_first_failure():
+def test_shared_map_keeps_the_order_shares_the_work_and_raises_the_first_failure():
     import threading
     import time
 
-    from ari_sfm.init.opencv_threads import opencv_map
+    from ari_sfm.helper_thread import shared_map
 
     ran_on = {}
 
@@ -77,53 +77,53 @@ def test_opencv_map_keeps_the_order_shares_the_work_and_raises_the_first_failure
             raise ValueError(f"item {x}")
         return x * x
 
-    assert opencv_map(square, [0, 1, 2, 3, 4, 6, 8, 9], threads=2) == [0, 1, 4, 9, 16, 36, 64, 81]
+    assert shared_map(square, [0, 1, 2, 3, 4, 6, 8, 9], threads=2) == [0, 1, 4, 9, 16, 36, 64, 81]
     assert len(set(ran_on.values())) == 2 and ran_on[0] == threading.current_thread().name
     ran_on.clear()
-    assert opencv_map(square, [1, 2, 3], threads=2) == [1, 4, 9]  # too few to share
+    assert shared_map(square, [1, 2, 3], threads=2) == [1, 4, 9]  # too few to share
     assert set(ran_on.values()) == {threading.current_thread().name}
     # failures: the first in the items' order raises, whichever thread met it and whenever
     for items, first in (([0, 1, 2, 3, 4, 5, 6, 7], 5), ([5, 0, 1, 2, 7, 3], 5), ([0, 1, 2, 3, 7, 4, 5], 7)):
         ran_on.clear()
         with pytest.raises(ValueError, match=f"item {first}"):
-            opencv_map(square, items, threads=2)
+            shared_map(square, items, threads=2)
         assert set(ran_on) == set(items)  # every item ran
 
 
 def _split_squares(_: int) -> list[int]:
-    from ari_sfm.init.opencv_threads import opencv_map
+    from ari_sfm.helper_thread import shared_map
 
-    return opencv_map(lambda x: x * x, list(range(6)), threads=2)
+    return shared_map(lambda x: x * x, list(range(6)), threads=2)
 
 
-def test_opencv_map_works_in_a_forked_child_of_a_process_that_used_its_pool():
+def test_shared_map_works_in_a_forked_child_of_a_process_that_used_its_pool():
     import multiprocessing
 
-    from ari_sfm.init.opencv_threads import opencv_map
+    from ari_sfm.helper_thread import shared_map
 
-    assert opencv_map(lambda x: x + 1, [0, 1, 2, 3], threads=2) == [1, 2, 3, 4]  # the parent's pool exists
+    assert shared_map(lambda x: x + 1, [0, 1, 2, 3], threads=2) == [1, 2, 3, 4]  # the parent's pool exists
     with multiprocessing.get_context("fork").Pool(1) as pool:  # the child has none of its threads
         assert pool.apply_async(_split_squares, (0,)).get(timeout=20) == [0, 1, 4, 9, 16, 25]
 
 
-def test_opencv_map_leaves_no_thread_that_would_hold_the_exit_and_never_waits_for_a_busy_helper():
+def test_shared_map_leaves_no_thread_that_would_hold_the_exit_and_never_waits_for_a_busy_helper():
     import threading
 
-    from ari_sfm.init.opencv_threads import _helper_thread, opencv_map
+    from ari_sfm.helper_thread import helper_thread, shared_map
 
-    assert opencv_map(lambda x: -x, [1, 2, 3, 4], threads=2) == [-1, -2, -3, -4]
+    assert shared_map(lambda x: -x, [1, 2, 3, 4], threads=2) == [-1, -2, -3, -4]
     me = threading.current_thread()
     # the CLI leaves by os._exit on Ctrl-C while a non-daemon thread lives (cli_process._exit_interrupted)
-    assert all(t.daemon for t in threading.enumerate() if t is not me and t.name == "ari-opencv")
+    assert all(t.daemon for t in threading.enumerate() if t is not me and t.name == "ari-helper")
     release, busy_done = threading.Event(), threading.Event()
 
     def busy() -> None:  # the helper busy elsewhere, until released (or 30 s)
         release.wait(30)
         busy_done.set()
 
-    _helper_thread().run(busy)
+    helper_thread().run(busy)
     ran_on = []
-    assert opencv_map(lambda x: ran_on.append(threading.current_thread()) or x, [1, 2, 3, 4], threads=2) == [1, 2, 3, 4]
+    assert shared_map(lambda x: ran_on.append(threading.current_thread()) or x, [1, 2, 3, 4], threads=2) == [1, 2, 3, 4]
     assert not busy_done.is_set() and set(ran_on) == {me}  # done alone, not waiting: its helper task dropped
     release.set()
 

@@ -384,3 +384,25 @@ def test_a_graphs_values_are_made_lazily_and_read_back_as_the_state_gave_them():
     assert np.allclose(back.normal_world, state.normal_world, atol=1e-15) and back.distance_mm == state.distance_mm
     for name in ds.camera_names:
         assert np.array_equal(back.params[name], state.params[name])
+
+
+def test_linearize_gives_the_same_numbers_on_one_thread_or_two(monkeypatch):
+    """The cameras' equations formed on two threads (in whichever order the threads take them) and added
+    in camera order equal the one-thread pass to the last bit."""
+    from ari_sfm.factors import packed_problem
+
+    ds = make_scene("arc4", seed=0, run_lengths=(2, 3, 4)).dataset
+    rg = RigGraph.build(ds.observations, ds.target, ds.interface, ds.camera_names, _initial_state(ds),
+                        model="exact", estimate_distance=False, huber_px=1.0)
+    rg.values = _perturbed(rg, np.random.default_rng(3))
+    problem = VectorizedProblem.from_rig_graph(rg, huber_px=1.0)
+    monkeypatch.setattr(packed_problem, "PARALLEL_MIN_CORNERS", 10 ** 9)
+    one = problem.linearize(problem.x)
+    monkeypatch.setattr(packed_problem, "PARALLEL_MIN_CORNERS", 0)
+    for _ in range(5):
+        two = problem.linearize(problem.x)
+        for field in ("V", "g_frame", "W", "U", "g_global"):
+            assert np.array_equal(getattr(one, field), getattr(two, field)), field
+        assert one.error == two.error
+    assert len(ds.camera_names) == 4 and np.count_nonzero(one.W) > 0
+    assert one.error == pytest.approx(problem.error(problem.x), rel=1e-12)

@@ -16,10 +16,11 @@ import numpy as np
 
 from ..errors import AriSfmError
 from ..geometry import Pose, mean_pose, mean_poses, unit
+from ..helper_thread import shared_map
 from ..records import Dataset
 from .expansion_center import ExpansionCenter, expansion_center, normal_from_expansion_center
 from .interface_pose import real_cam_from_target
-from .opencv_threads import one_cv2_thread, opencv_map
+from .opencv_threads import one_cv2_thread
 from .zhang import calibrate_views, held_intrinsics
 
 log = logging.getLogger(__name__)
@@ -153,7 +154,7 @@ def _initialise_cameras(dataset: Dataset, names: list[str], distortion: bool, wo
     if n_workers <= 1:
         return {n: initialise_camera(dataset, n, distortion, fix_intrinsics, threads, n in centred) for n in names}
     if n_workers == 2:  # the caller and the kept helper thread, each taking the next camera (no thread started)
-        inits = opencv_map(lambda n: initialise_camera(dataset, n, distortion, fix_intrinsics, threads, n in centred),
+        inits = shared_map(lambda n: initialise_camera(dataset, n, distortion, fix_intrinsics, threads, n in centred),
                            names, threads=2, min_items=2)
         return dict(zip(names, inits))
     with ThreadPoolExecutor(max_workers=n_workers, thread_name_prefix="ari-init") as pool:

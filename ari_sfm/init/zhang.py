@@ -15,9 +15,10 @@ import cv2
 import numpy as np
 
 from ..geometry import Pose
+from ..helper_thread import shared_map
 from ..models.pinhole import project_points
 from ..records import CameraSpec, Observation, Target
-from .opencv_threads import one_cv2_thread, opencv_map
+from .opencv_threads import one_cv2_thread
 
 
 @dataclass(frozen=True)
@@ -69,10 +70,10 @@ def held_intrinsics(spec: CameraSpec) -> str | None:
 
 def _zhang_K(obj: list[np.ndarray], img: list[np.ndarray], threads: int = 1) -> np.ndarray | None:
     """Zhang's closed-form K (no skew) from the views' homographies (OpenCV's, on up to ``threads``
-    threads: :func:`opencv_map`): each view gives two linear constraints h1^T B h2 = 0,
+    threads: :func:`~ari_sfm.helper_thread.shared_map`): each view gives two linear constraints h1^T B h2 = 0,
     h1^T B h1 = h2^T B h2 on B = K^-T K^-1 (B11, B22, B13, B23, B33); None when they do not determine
     a camera (fewer than 3 views, degenerate poses)."""
-    homographies = opencv_map(lambda oi: cv2.findHomography(oi[0][:, :2], oi[1], 0)[0], list(zip(obj, img)), threads)
+    homographies = shared_map(lambda oi: cv2.findHomography(oi[0][:, :2], oi[1], 0)[0], list(zip(obj, img)), threads)
     if any(H is None for H in homographies):
         return None
     H = np.array([h / np.linalg.norm(h[:, :2]) for h in homographies]).reshape(-1, 3, 3)
@@ -128,9 +129,10 @@ def calibrate_zhang(
     No iterative calibration (cv2.calibrateCamera) runs here: the bundle adjustment that follows
     refines K, distortion and poses anyway, so a second Levenberg-Marquardt on the same views
     would only repeat its work (``distortion`` is kept for the signature: the start has none).
-    ``threads``: the per-view OpenCV calls on up to this many threads (:func:`opencv_map`; the same
-    result). ``also``: more views posed with that K by :func:`solve_pnp` among the others' calls
-    (a camera's stacking poses), in ``ZhangResult.also``; not part of K or the RMS.
+    ``threads``: the per-view OpenCV calls on up to this many threads
+    (:func:`~ari_sfm.helper_thread.shared_map`; the same result). ``also``: more views posed with that
+    K by :func:`solve_pnp` among the others' calls (a camera's stacking poses), in ``ZhangResult.also``;
+    not part of K or the RMS.
     """
     obj = [object_points(target, v.ids).astype(np.float64) for v in views]
     img = [v.pixels.astype(np.float64).reshape(-1, 2) for v in views]
@@ -146,7 +148,7 @@ def calibrate_zhang(
         planar = bool(np.all(o[:, 2] == 0))
         return _pnp_pose(o, i, K, dist, cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_ITERATIVE, v.frame)
 
-    found = opencv_map(pnp, list(zip(views, obj, img)) + [(v, None, None) for v in also], threads)
+    found = shared_map(pnp, list(zip(views, obj, img)) + [(v, None, None) for v in also], threads)
     found, also_found = found[:len(views)], found[len(views):]
     poses = {v.frame: pose for v, pose in zip(views, found)}
     extra = {v.frame: pose for v, pose in zip(also, also_found)}
