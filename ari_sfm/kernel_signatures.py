@@ -48,10 +48,15 @@ SIGNATURES = {
     'ari_sfm.factors.view_kernels': {
         'accumulate_views': [
             (array(float64, 3), array(float64, 3), array(float64, 2), array(float64, 3), array(float64, 2),
-             array(float64, 2), array(float64, 3), array(int64, 1), array(int64, 1), array(float64, 1),
-             array(float64, 1), array(float64, 2), array(float64, 1), boolean, boolean, array(float64, 1),
-             array(float64, 2), array(int64, 1), array(float64, 3), array(float64, 2), array(float64, 3),
-             array(float64, 2), array(float64, 1), array(boolean, 1)),
+             array(float64, 2), array(float64, 3), array(int64, 1), array(float64, 1), array(float64, 1),
+             array(float64, 2), array(float64, 1), boolean, boolean, array(float64, 1), array(float64, 2),
+             array(float64, 3), array(float64, 2), array(float64, 3), array(float64, 2), array(float64, 1),
+             array(boolean, 1)),
+        ],
+        'add_camera': [
+            (array(float64, 3), array(float64, 2), array(float64, 3), array(float64, 2), array(float64, 1),
+             array(int64, 1), array(int64, 1), array(float64, 3), array(float64, 2), array(float64, 3),
+             array(float64, 2), array(float64, 1)),
         ],
         'chain_rows': [
             (array(float64, 3), array(float64, 3), array(float64, 2), array(float64, 2), array(float64, 2),
