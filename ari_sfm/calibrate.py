@@ -23,6 +23,7 @@ from .results import OptimizerReport, OptimizerRun, OutlierReport, StageCamera, 
 
 if TYPE_CHECKING:
     from .factors.rig_graph import RigGraph, RigState  # imported lazily at run time (gtsam)
+    from .init.rig import RigInit
 
 log = logging.getLogger(__name__)
 
@@ -388,7 +389,8 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
     for start in _starts(dataset, model, opts, lens_retry):
         tried.append(start.name)
         try:
-            cal, residuals = _calibrate_from(_Solver(dataset, opts, backend, extra_factors), model, plan, start)
+            cal, residuals, reached = _calibrate_from(_Solver(dataset, opts, backend, extra_factors), model, plan,
+                                                      start)
             for _ in range(len(dataset.camera_names) if opts.principal_point == "auto" else 0):
                 loose = [n for n in undetermined_principal_points(cal) if n not in start.centred]
                 if not loose:
@@ -398,7 +400,8 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
                             "standard deviation above %g %% of the image; --principal-point free estimates it anyway)",
                             ", ".join(loose), 100 * PRINCIPAL_POINT_MAX_SIGMA)
                 start = replace(start, centred=start.centred + tuple(loose))
-                cal, residuals = _calibrate_from(_Solver(dataset, opts, backend, extra_factors), model, plan, start)
+                cal, residuals, reached = _calibrate_from(_Solver(dataset, opts, backend, extra_factors), model,
+                                                          plan, start)
         except AriSfmError as exc:  # e.g. no window distance fits these poses: the next start may do better
             log.info("calibration from the %s start failed: %s", start.name, exc.message)
             first_error = first_error or exc
@@ -408,7 +411,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
         res = [r for _, r in residuals]
         exact_robust = None
         if model in PARAXIAL_MODELS and not fits(model, res, floor):  # its paraxial error, or a wrong window?
-            exact_robust = _exact_robust_rmse(_Solver(dataset, opts, backend, extra_factors), start)
+            exact_robust = _exact_robust_rmse(reached)
         assert cal.residuals is not None  # a bundle model's calibration has its residuals
         quality = judge(model, cal.residuals.rmse_px, res, floor, cal.uncertainty, tuple(tried), exact_robust)
         judged.append(replace(cal, quality=quality))
@@ -425,18 +428,20 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
     return replace(best, time_s=time.perf_counter() - t0)
 
 
-def _exact_robust_rmse(solver: _Solver, start: Start) -> float | None:
-    """The quality gate's re-evaluation of a paraxial result: the exact model's robust RMSE from the same
-    start with the same window, hints and options; None when the exact model cannot be started there."""
+def _exact_robust_rmse(reached: _Reached) -> float | None:
+    """The quality gate's re-evaluation of a paraxial result: the robust RMSE of the exact model's Snell
+    stages run on from it, with the same window, hints and options; None when they cannot start there."""
     from .quality import robust_rmse_px
 
-    solver = replace(solver, opts=replace(solver.opts, uncertainty=False))
+    solver = replace(reached.solver, opts=replace(reached.solver.opts, uncertainty=False))
+    snell = tuple(stage for stage in _start_plan(reached.start, plan_stages(solver.dataset, "exact", solver.opts))
+                  if stage.snell)
     try:
-        _, residuals = _calibrate_from(solver, "exact", plan_stages(solver.dataset, "exact", solver.opts), start)
+        results = _run_stages(solver, reached.rig, reached.state, snell, reached.start)
     except AriSfmError as exc:
-        log.info("quality gate: no exact re-evaluation from the %s start (%s)", start.name, exc.message)
+        log.info("quality gate: no exact re-evaluation from the %s start (%s)", reached.start.name, exc.message)
         return None
-    return robust_rmse_px(r for _, r in residuals)
+    return robust_rmse_px(r for _, r in results[-1].residuals)
 
 
 @dataclass(frozen=True)
@@ -684,18 +689,28 @@ def _eased(solver: _Solver) -> _Solver:
     return replace(solver, dataset=eased)
 
 
-def _calibrate_from(solver: _Solver, model: str, plan: tuple[Stage, ...], start: Start) -> tuple[Calibration, list]:
-    """The plan's bundle adjustments from ``start``: the calibration and its (observation, residuals)."""
-    from .outliers import find_outliers, without
+@dataclass(frozen=True)
+class _Reached:
+    """Where a plan's run from one start ended: the quality gate's exact re-evaluation goes on from there."""
 
-    t0 = time.perf_counter()
-    if start.lens_from_snell:
-        plan = tuple(replace(stage, distortion=stage.distortion or start.lens) if stage.snell
-                     else replace(stage, distortion=False) for stage in plan)
-    if start.lens:
-        log.warning("lens distortion estimated: without it the model fits the corners worse than they allow")
-    rig, solver, state = _start_state(solver, plan, start)
-    dataset, opts = solver.dataset, solver.opts
+    solver: _Solver  # with the start's held intrinsics
+    rig: RigInit  # the analytic initialisation
+    state: RigState  # after the last stage
+    start: Start
+
+
+def _start_plan(start: Start, plan: tuple[Stage, ...]) -> tuple[Stage, ...]:
+    """The plan as ``start`` runs it (lens_from_snell: distortion only in the Snell stages)."""
+    if not start.lens_from_snell:
+        return plan
+    return tuple(replace(stage, distortion=stage.distortion or start.lens) if stage.snell
+                 else replace(stage, distortion=False) for stage in plan)
+
+
+def _run_stages(solver: _Solver, rig: RigInit, state: RigState, plan: tuple[Stage, ...], start: Start
+                ) -> list[StageResult]:
+    """The plan's stages from ``state``, in order (a skippable one left out where the declared plane
+    already separates cameras and corners; with eased planes, each Snell stage first eased in)."""
     results: list[StageResult] = []
     for stage in plan:
         if stage.skippable and not start.free_window_first and _plane_separates(solver, state):
@@ -705,6 +720,23 @@ def _calibrate_from(solver: _Solver, model: str, plan: tuple[Stage, ...], start:
             state = run_stage(_eased(solver), stage, state, rig.normal_observed, stage_tolerance(stage, plan)).state
         results.append(run_stage(solver, stage, state, rig.normal_observed, stage_tolerance(stage, plan)))
         state = results[-1].state
+    return results
+
+
+def _calibrate_from(solver: _Solver, model: str, plan: tuple[Stage, ...], start: Start
+                    ) -> tuple[Calibration, list, _Reached]:
+    """The plan's bundle adjustments from ``start``: the calibration, its (observation, residuals) and
+    where it ended."""
+    from .outliers import find_outliers, without
+
+    t0 = time.perf_counter()
+    plan = _start_plan(start, plan)
+    if start.lens:
+        log.warning("lens distortion estimated: without it the model fits the corners worse than they allow")
+    rig, solver, state = _start_state(solver, plan, start)
+    dataset, opts = solver.dataset, solver.opts
+    results = _run_stages(solver, rig, state, plan, start)
+    state = results[-1].state
     last = results[-1]
     outliers, robust_sigma = find_outliers(last.residuals, opts.outlier_sigma)
     if outliers and opts.exclude_outliers:
@@ -736,7 +768,8 @@ def _calibrate_from(solver: _Solver, model: str, plan: tuple[Stage, ...], start:
         rescale = None if solver.reweight or opts.sigma_px is not None else last.estimated_sigma_px
         uncertainty = rig_uncertainty(last.graph, marginal_covariances(last.graph, last.solved, rescale), rescale)
     outlier_report = OutlierReport(robust_sigma, opts.outlier_sigma, opts.exclude_outliers, tuple(outliers))
-    return _assemble(solver, model, rig, results, uncertainty, elapsed, outlier_report), last.residuals
+    return (_assemble(solver, model, rig, results, uncertainty, elapsed, outlier_report), last.residuals,
+            _Reached(solver, rig, state, start))
 
 
 def _assemble(solver: _Solver, model: str, rig, results: list[StageResult], uncertainty, elapsed: float,
