@@ -145,3 +145,65 @@ def test_band_pairs_far_off_curves_and_spread_detections():
     assert 0 < len(ri) and (61 + 1) in set(ri.tolist())  # the last curve passes through the far detection
     np.testing.assert_array_equal(i, ri)
     np.testing.assert_array_equal(j, rj)
+
+
+def reference_join(combos, pair_i, pair_j, col, allow_none, n):
+    """The numpy cross join (every candidate, then the rows that can still make an n-camera combination)."""
+    C = combos.shape[1] - 1
+    ref = combos[:, -1]
+    order = np.argsort(pair_i, kind="stable")
+    pi, pj = pair_i[order], pair_j[order]
+    start, stop = np.searchsorted(pi, ref, side="left"), np.searchsorted(pi, ref, side="right")
+    count = stop - start + (1 if allow_none else 0)
+    rows = np.repeat(np.arange(len(combos)), count)
+    out = combos[rows].copy()
+    k = np.arange(len(rows)) - np.repeat(np.cumsum(count) - count, count)
+    real = k < (stop - start)[rows]
+    out[:, col] = -1
+    out[real, col] = pj[(start[rows] + k)[real]]
+    have = (out[:, :C] >= 0).sum(axis=1)
+    return out[(have <= n) & (have + (C - 1 - col) >= n)]
+
+
+@pytest.mark.parametrize("tolerance,n", [(0.5, 4), (12.0, 4), (12.0, 3)])
+def test_the_pruned_join_keeps_what_the_scoring_accepts_in_its_order(tolerance, n):
+    """Combinations built camera by camera from candidate pairs (each reference's own particle and random
+    others): leaving out the partial ones whose newest ray misses another by more than any accepted one's
+    could changes neither the accepted combinations nor their order (so the greedy choice is the same),
+    and leaves out most of the rest."""
+    from ari_sfm.particles.match import _join
+
+    rng = np.random.default_rng(7)
+    C, N = 4, 300
+    points = rng.uniform([-30, -20, 385], [30, 20, 415], (N, 3))
+    rays, of_point = [], []
+    for c in range(C):
+        perm = rng.permutation(N)  # detection k of camera c is the image of point perm[k]
+        centre = np.array([100 * np.cos(c), 100 * np.sin(c), 0.0])
+        d = points[perm] + rng.normal(0, 0.01, (N, 3)) - centre
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        rays.append((centre + 30.0 * d, d))
+        of_point.append(np.argsort(perm))  # point -> its detection in camera c
+    packed = _PackedRays.of(rays)
+    footprint = np.array([0.06, 0.065, 0.07, 0.058])
+    volume = Volume(np.array([-30.0, -20.0, 385.0]), np.array([30.0, 20.0, 415.0]))
+    start = np.full((N, C + 1), -1, np.int64)
+    start[:, 0] = start[:, -1] = np.arange(N)
+    pruned, plain = start, start
+    ref_point = np.empty(N, np.int64)
+    ref_point[of_point[0]] = np.arange(N)  # reference detection -> its point
+    for col in range(1, C):
+        i = np.repeat(np.arange(N), 8)
+        j = rng.integers(0, N, len(i))
+        j[::8] = of_point[col][ref_point]  # the reference's own particle among its candidates
+        pruned = _join(pruned, i, j, col, n < C, n, col > 1, packed, footprint, tolerance)
+        plain_next = reference_join(plain, i, j, col, n < C, n)
+        if col == 1:  # the reference's candidates: nothing to check yet
+            np.testing.assert_array_equal(pruned, plain_next)
+        plain = plain_next
+    assert len(pruned) < 0.5 * len(plain)
+    ok_p, score_p = _score(pruned[:, :C], packed, footprint, volume, tolerance)
+    ok, score = _score(plain[:, :C], packed, footprint, volume, tolerance)
+    assert ok.sum() > 0.5 * N
+    np.testing.assert_array_equal(pruned[ok_p, :C], plain[ok, :C])
+    np.testing.assert_array_equal(score_p[ok_p], score[ok])

@@ -13,7 +13,9 @@ faces), so it is built from the exact model itself:
    detections bucketed in a grid of ``GRID_CELL_PX`` cells; each segment looks
    only at the cells near it and measures the exact point-to-segment distance);
 3. combinations of one candidate (or none) per other camera with at least
-   ``min_cameras`` images in all are scored by their rays (their least-squares
+   ``min_cameras`` images in all (built camera by camera; a partial one whose
+   newest ray passes farther from another than any accepted combination's could
+   is dropped before the next camera is joined) are scored by their rays (their least-squares
    point, as :func:`ari_sfm.triangulate.triangulate_rays` forms it): each ray's
    distance from the point, in pixels of its camera (mm / the camera's
    footprint at the volume), must be within the tolerance, and the point inside
@@ -122,24 +124,21 @@ def _reference_pairs(calibration: Calibration, cameras: list[str], uv: list[np.n
     return out
 
 
-def _join(combos: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray, col: int, allow_none: bool = True) -> np.ndarray:
+def _join(combos: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray, col: int, allow_none: bool, n: int,
+          check: bool, packed: _PackedRays, footprint: np.ndarray, tolerance_px: float) -> np.ndarray:
     """Cross join of ``combos`` (Q, C + 1) (the reference detection in the last column) with pairs (i, j)
-    on i into column ``col``, plus (``allow_none``) the option "none" (-1) there."""
+    on i into column ``col``, plus (``allow_none``) the option "none" (-1) there, keeping the rows that can
+    still make an ``n``-camera combination; with ``check``, the new ray against the row's others
+    (:func:`ari_sfm.particles.match_kernels.join_within_reach`)."""
     ref = combos[:, -1]
     order = np.argsort(pair_i, kind="stable")
     pi, pj = pair_i[order], pair_j[order]
-    start = np.searchsorted(pi, ref, side="left")
-    stop = np.searchsorted(pi, ref, side="right")
-    extra = 1 if allow_none else 0
-    count = stop - start + extra  # + the "none" option
-    rows = np.repeat(np.arange(len(combos)), count)
-    out = combos[rows].copy()
-    first = np.repeat(np.cumsum(count) - count, count)
-    k = np.arange(len(rows)) - first  # 0 .. count-1 within each group; the last is "none" (allow_none)
-    real = k < (stop - start)[rows]
-    out[:, col] = -1
-    out[real, col] = pj[(start[rows] + k)[real]]
-    return out
+    start = np.searchsorted(pi, ref, side="left").astype(np.int64)
+    stop = np.searchsorted(pi, ref, side="right").astype(np.int64)
+    return match_kernels.join_within_reach(np.ascontiguousarray(combos, dtype=np.int64),
+                                           np.ascontiguousarray(pj, dtype=np.int64), start, stop, col, allow_none,
+                                           n, check, packed.origins, packed.directions, packed.offsets,
+                                           np.ascontiguousarray(footprint, dtype=float), float(tolerance_px))
 
 
 def match_frame(calibration: Calibration, detections: Mapping[str, np.ndarray], tolerance_px: float,
@@ -195,9 +194,9 @@ def match_frame(calibration: Calibration, detections: Mapping[str, np.ndarray], 
             for col in range(r + 1, C):
                 pi, pj = pairs[r][col]
                 free = ~used[col][pj]
-                combos = _join(combos, pi[free], pj[free], col, allow_none=n < C - r)
-                have = (combos[:, :C] >= 0).sum(axis=1)
-                combos = combos[(have <= n) & (have + (C - 1 - col) >= n)]
+                # (from the third camera on, the new ray against the others chosen, not only the reference's)
+                combos = _join(combos, pi[free], pj[free], col, n < C - r, n, col > r + 1, packed, footprint,
+                               tolerance_px)
             stage.append(combos[:, :C])
         combos = np.concatenate(stage)
         if not len(combos):

@@ -9,6 +9,8 @@ calls them, the algorithm is described there.
   :func:`ari_sfm.triangulate.triangulate_rays` forms it), each ray's distance from it in pixels of its
   camera, the acceptance (every ray within the tolerance, the point inside the volume grown by the
   margin) and the RMS score; one pass, no (Q, C, 3) temporaries.
+- :func:`join_within_reach`: the combinations built camera by camera, a partial one whose newest ray misses
+  another by more than any accepted combination's could left out before the next camera is joined.
 - :func:`greedy_rows`: the combinations taken best first, each detection used once.
 """
 from __future__ import annotations
@@ -213,6 +215,68 @@ def score_combos(combos, origins, directions, offsets, footprint, box_R, box_t, 
         ok[q] = inside
     return ok, score
 
+
+@njit(inline="always", **_JIT)
+def _within_reach(combos, q, col, kb, origins, directions, offsets, footprint, tolerance):
+    """Whether ray ``kb`` (column ``col``'s) passes within tolerance (footprint[a] + footprint[col]) mm of
+    the ray of every other used column a of row q (:func:`join_within_reach`); nearly parallel rays pass."""
+    C = offsets.shape[0] - 1
+    ob0, ob1, ob2 = origins[kb, 0], origins[kb, 1], origins[kb, 2]
+    db0, db1, db2 = directions[kb, 0], directions[kb, 1], directions[kb, 2]
+    for a in range(C):
+        if a == col or combos[q, a] < 0:
+            continue
+        ka = offsets[a] + combos[q, a]
+        da0, da1, da2 = directions[ka, 0], directions[ka, 1], directions[ka, 2]
+        n0, n1, n2 = da1 * db2 - da2 * db1, da2 * db0 - da0 * db2, da0 * db1 - da1 * db0
+        nn = n0 * n0 + n1 * n1 + n2 * n2
+        scale = (da0 * da0 + da1 * da1 + da2 * da2) * (db0 * db0 + db1 * db1 + db2 * db2)
+        if not nn > 1e-12 * scale:  # (nearly) parallel, or not finite: the scoring decides
+            continue
+        gap = abs((ob0 - origins[ka, 0]) * n0 + (ob1 - origins[ka, 1]) * n1 + (ob2 - origins[ka, 2]) * n2)
+        if gap * gap > nn * (tolerance * (footprint[a] + footprint[col]) * (1.0 + 1e-9)) ** 2:
+            return False
+    return True
+
+
+@njit(**_JIT)
+def join_within_reach(combos, pj_sorted, start, stop, col, allow_none, n, check, origins, directions, offsets,
+                      footprint, tolerance):
+    """The cross join of ``combos`` (Q, C + 1) with each row's candidates ``pj_sorted[start[q]:stop[q]]`` in
+    column ``col``, then (``allow_none``) the option -1 there, in that order, keeping the rows that can still
+    make an ``n``-camera combination; with ``check``, a candidate whose ray misses another of the row's by more
+    than any accepted combination's could is left out: every ray within tolerance footprint[c] of one point
+    (what :func:`score_combos` accepts) puts any two within the sum of theirs, so the accepted combinations,
+    and their order, are those of the whole join."""
+    Q, W = combos.shape
+    C = offsets.shape[0] - 1
+    cap = max(16, 2 * Q)
+    out = np.empty((cap, W), np.int64)
+    m = 0
+    for q in range(Q):
+        h0 = 0
+        for a in range(C):
+            if combos[q, a] >= 0:
+                h0 += 1
+        for option in range(stop[q] - start[q] + (1 if allow_none else 0)):
+            real = option < stop[q] - start[q]
+            have = h0 + 1 if real else h0
+            if not (have <= n and have + (C - 1 - col) >= n):
+                continue
+            j = pj_sorted[start[q] + option] if real else -1
+            if real and check and not _within_reach(combos, q, col, offsets[col] + j, origins, directions, offsets,
+                                                    footprint, tolerance):
+                continue
+            if m == cap:
+                cap *= 2
+                grown = np.empty((cap, W), np.int64)
+                grown[:m] = out[:m]
+                out = grown
+            for a in range(W):
+                out[m, a] = combos[q, a]
+            out[m, col] = j
+            m += 1
+    return out[:m].copy()
 
 @njit(**_JIT)
 def greedy_rows(combos, order, used, offsets):
