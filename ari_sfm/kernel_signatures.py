@@ -168,6 +168,10 @@ SIGNATURES = {
         'greedy_rows': [
             (array(int64, 2), array(int64, 1), array(boolean, 1), array(int64, 1)),
         ],
+        'join_within_reach': [
+            (array(int64, 2), array(int64, 1), array(int64, 1), array(int64, 1), int64, boolean, int64,
+             boolean, array(float64, 2), array(float64, 2), array(int64, 1), array(float64, 1), float64),
+        ],
         'score_combos': [
             (array(int64, 2), array(float64, 2), array(float64, 2), array(int64, 1), array(float64, 1),
              array(float64, 2), array(float64, 1), array(float64, 1), array(float64, 1), float64, float64,
