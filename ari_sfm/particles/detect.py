@@ -21,10 +21,12 @@ they are; colour: the mean of the channels):
    pixels above the threshold, 4-connected to its brightest (as OpenPTV's
    target_recognition counts them), between ``min_pixels`` and ``max_pixels``
    and at least ``min_span_px`` wide along u and v (by default from the
-   diameter hint), their grey sum at least ``min_sum``, and its peak at least
-   ``relative_floor`` (e^-2) times the frame's bright images' (the
-   BRIGHT_QUANTILE of the candidates' peaks): fainter specks are seeding out
-   of the light sheet (beyond its e^-2 edge), out of focus, or dust;
+   diameter hint), their grey sum at least ``min_sum``, and (step 7) its
+   fitted peak at least ``relative_floor`` (e^-2) times the frame's bright
+   images' (the BRIGHT_QUANTILE of the fitted peaks): fainter specks are
+   seeding out of the light sheet (beyond its e^-2 edge), out of focus, or
+   dust (a candidate's brightest pixel is held to half that floor before
+   the fits);
 5. centres: three-point Gaussian fits along u and along v (exact for a
    Gaussian sampled at pixel centres; ``diameter_px`` is the e^-2 diameter,
    sigma = diameter / 4), refined by DEBLEND_ITERATIONS rounds in which every
@@ -38,8 +40,9 @@ they are; colour: the mean of the channels):
    round ones: two images merged into one maximum are split where the data
    show two (SPLIT_EVIDENCE), else it stays one, centred by the elliptical fit;
 7. dropped: images on a ridge (a streak, a blob's rim: :func:`_on_ridge`),
-   wider than ``max_width_ratio`` times the hint, or sharper than any optical
-   image along every axis (hot pixels beside a particle).
+   wider than ``max_width_ratio`` times the hint, sharper than any optical
+   image along every axis (hot pixels beside a particle), or fainter than the
+   relative floor of step 4.
 
 Two images closer than ~0.8 px (MIN_SPLIT_PX) stay one. The per-pixel and
 per-candidate arithmetic is compiled (:mod:`ari_sfm.particles.detect_kernels`).
@@ -88,6 +91,8 @@ GLARE_NOISE = 4.0  # nor where the local noise exceeds this many times the frame
 BRIGHT_QUANTILE = 0.99  # the frame's bright particle images: this quantile of the candidates' peaks ...
 BRIGHT_COUNT = 10  # ... or the BRIGHT_COUNT-th brightest in a frame of fewer than BRIGHT_COUNT / (1 - quantile)
 SHEET_EDGE = math.exp(-2.0)  # a light sheet's edge (its e^-2 thickness): the default relative brightness floor
+PRE_FLOOR = 0.5  # before the fits, a candidate's brightest pixel against that floor times this: an image's sampled
+# maximum is at least half its fitted peak (sigma >= 0.6 px, centred anywhere in its pixel), a speck's is its peak
 
 
 @dataclass(frozen=True)
@@ -207,7 +212,19 @@ def detect_particles_in_image(image: np.ndarray, options: DetectOptions = Detect
     saturated = img[ys, xs] >= saturation
     fit = _deblended_fit(clean, noise, ys, xs, sigma, saturated, options.max_elongation)
     single = _single(fit, sigma, options.max_width_ratio, options.max_elongation)
-    return fit.uv[single], fit.peak[single]
+    uv, peak = fit.uv[single], fit.peak[single]
+    if options.relative_floor > 0 and len(peak):  # the fitted peaks: the images' brightness, wherever centred
+        keep = peak >= options.relative_floor * _bright(peak)
+        uv, peak = uv[keep], peak[keep]
+    return uv, peak
+
+
+def _bright(peaks: np.ndarray) -> float:
+    """The frame's bright particle images' peak: the BRIGHT_QUANTILE of ``peaks``, the BRIGHT_COUNT-th
+    brightest in a sparse frame."""
+    ranked = np.sort(peaks)[::-1]
+    k = max(BRIGHT_COUNT, math.ceil((1.0 - BRIGHT_QUANTILE) * len(ranked)))
+    return float(ranked[min(k, len(ranked)) - 1])
 
 
 def _in_glare(background: Background, ys: np.ndarray, xs: np.ndarray, saturation: float) -> np.ndarray:
@@ -223,10 +240,11 @@ def _usable(clean: np.ndarray, noise: np.ndarray, ys: np.ndarray, xs: np.ndarray
             factor: float, floor: float) -> np.ndarray:
     """(N,) True where a candidate is a particle image a PTV lab can use: its pixels (4-connected to its
     brightest pixel, above ``factor`` local noise sigmas and ``floor`` grey levels: the threshold) within
-    :meth:`DetectOptions.pixel_limits` and summing to ``min_sum``, and its peak at least ``relative_floor``
-    times the frame's bright images' (the BRIGHT_QUANTILE of the peaks of the candidates that pass; the
-    BRIGHT_COUNT-th brightest in a sparse frame). Fainter specks are out of the light (beyond the sheet's
-    e^-2 edge), out of focus or dust; 1-2 px specks cannot be centred to a fraction of a pixel."""
+    :meth:`DetectOptions.pixel_limits` and summing to ``min_sum``, and its brightest pixel at least PRE_FLOOR
+    x ``relative_floor`` times the frame's bright images' (:func:`_bright` of the candidates that pass; the
+    fitted peaks are held to ``relative_floor`` itself after the fits). Fainter specks are out of the light
+    (beyond the sheet's e^-2 edge), out of focus or dust; 1-2 px specks cannot be centred to a fraction of
+    a pixel."""
     from ari_sfm.particles.detect_kernels import connected_regions
 
     lo, hi, span_lo, span_hi = options.pixel_limits()
@@ -235,10 +253,7 @@ def _usable(clean: np.ndarray, noise: np.ndarray, ys: np.ndarray, xs: np.ndarray
     ok = ((count >= lo) & (count <= hi) & (np.minimum(width_u, width_v) >= span_lo)
           & (np.maximum(width_u, width_v) <= span_hi) & (total >= options.min_sum))
     if options.relative_floor > 0 and ok.any():
-        ranked = np.sort(peak[ok])[::-1]
-        k = max(BRIGHT_COUNT, math.ceil((1.0 - BRIGHT_QUANTILE) * len(ranked)))
-        bright = ranked[min(k, len(ranked)) - 1]
-        ok &= peak >= options.relative_floor * bright
+        ok &= peak >= PRE_FLOOR * options.relative_floor * _bright(peak[ok])
     return ok
 
 
