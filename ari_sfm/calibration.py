@@ -6,15 +6,19 @@ Read, validated and written by :mod:`ari_sfm.io.calibration_file` (``load_calibr
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from .calibration_origin import ImportedFrom, RefineColmapFrames
 from .geometry import Pose
 from .models.registry import ModelSpec, model_spec
 from .quality import Quality
 from .records import SINGLE_WINDOW, Interface, Target
 from .results import OptimizerReport, OutlierReport, PfWorld, ResidualStats, StageRecord, Uncertainty
+
+if TYPE_CHECKING:
+    from .particles.selfcal_report import SelfCalReport  # (the particles package imports this module)
 
 
 @dataclass(frozen=True)
@@ -73,7 +77,7 @@ class Calibration:
     stacking_poses: dict[str, Pose] = field(default_factory=dict)
     residuals: ResidualStats | None = None  # on the corners it was fitted on (None: not computed, e.g. truth)
     time_s: float = 0.0
-    extra: dict[str, Any] = field(default_factory=dict)  # other top-level keys, kept as read
+    extra: dict[str, Any] = field(default_factory=dict)  # top-level keys this version does not know, kept as read
     target: Target | None = None  # the target it was calibrated with (for evaluate)
     fixed_distance_mm: float | None = None  # camera 0 centre to near surface at which an exact-Snell model
     # (ModelSpec.needs_distance) is evaluated in air, where no pixel depends on it and interface.distance_mm is
@@ -85,6 +89,10 @@ class Calibration:
     optimizer: OptimizerReport | None = None  # how each stage's solve went (not a result: times)
     windows: tuple[WindowCalibration, ...] = ()  # several windows (1.3); (): one, the fields above, for all
     stages: tuple[StageRecord, ...] = ()  # the stages it went through, in order (bundle-adjusted models)
+    self_calibration: SelfCalReport | None = None  # what `self-calibrate` did (its calibrations only)
+    refine_colmap: RefineColmapFrames | None = None  # how refine-colmap's calibration sits in its COLMAP model
+    imported_from: ImportedFrom | None = None  # the other tool's model it was imported from
+    window_ignored: bool = False  # a pinhole baseline's: the window left out of the model on purpose
 
     def __post_init__(self) -> None:
         spec = self.spec  # an unknown model name fails here

@@ -117,7 +117,7 @@ def export_colmap_fork_cmd(calibration: Path, out: Path, dataset: Path | None, u
     cal = load_calibration(calibration)
     observations, refined = None, None
     folder = calibration.parent
-    if dataset is None and "refine_colmap" in cal.extra and any((folder / f"cameras.{x}").is_file()
+    if dataset is None and cal.refine_colmap is not None and any((folder / f"cameras.{x}").is_file()
                                                                 for x in ("bin", "txt")):
         refined = folder  # a refine-colmap output: its images at their real poses and the refined points
     elif dataset is None and (folder / "observations.json").is_file():

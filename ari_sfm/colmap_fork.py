@@ -45,6 +45,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .calibration import Calibration, CameraCalibration, WindowCalibration
+from .calibration_origin import ImportedFrom
 from .errors import AriSfmError
 from .geometry import Pose, angle_between_deg
 from .io import load_calibration
@@ -285,22 +286,22 @@ def _refined_images(cal: Calibration, model_dir: Path) -> tuple[dict[str, int], 
     ids, every image at its real pose with its 2D points, the refined points (mm)."""
     from . import colmap_export as adapter
 
-    info = cal.extra.get("refine_colmap") or {}
-    camera_ids, poses = info.get("camera_ids"), info.get("images_cam_from_world")
-    if not isinstance(camera_ids, dict) or not isinstance(poses, dict) or info.get("mount") != "camera":
+    info = cal.refine_colmap
+    if info is None or info.mount != "camera":
         raise AriSfmError(model_dir / "calibration.json", "not a refine-colmap output of mount camera (refine_colmap."
                                                           "camera_ids and images_cam_from_world are needed)")
+    camera_ids, poses = info.camera_ids, info.images_cam_from_world
     model = adapter.model_from_reconstruction(adapter.read_colmap(model_dir), model_dir)
     name_of = {int(cid): name for name, cid in camera_ids.items()}
     images = []
     for i, image_id in enumerate(model.image_ids.tolist()):
         sel = np.flatnonzero(model.obs_image == i)
-        pose = poses.get(str(image_id))
+        pose = poses.get(int(image_id))
         if pose is None:
             raise AriSfmError(model_dir / "calibration.json",
                               f"refine_colmap.images_cam_from_world has no image {image_id}")
         images.append(_Image(name_of[int(model.camera_ids[model.image_camera[i]])], model.image_names[i],
-                             Pose.from_json(pose), model.obs_uv[sel], model.point3D_ids[model.obs_point[sel]]))
+                             pose, model.obs_uv[sel], model.point3D_ids[model.obs_point[sel]]))
     points = {int(pid): model.xyz[k] for k, pid in enumerate(model.point3D_ids.tolist())}
     return {n: int(c) for n, c in camera_ids.items()}, images, points
 
@@ -532,8 +533,8 @@ def import_colmap_fork(model_dir: str | Path, units_mm: float = DEFAULT_UNITS_MM
                  "; ".join(f"{w.name}: {', '.join(w.cameras)}" for w in windows))
     head = windows[0]
     cal = Calibration(model="exact", interface=head.interface, normal_world=head.normal_world, cameras=cameras,
-                      frames={}, extra={"imported_from": {"format": f"COLMAP {REFRAC_MODEL} (colmap_underwater)",
-                                                         "path": str(model_dir), "units_mm": units_mm}},
+                      frames={}, imported_from=ImportedFrom(f"COLMAP {REFRAC_MODEL} (colmap_underwater)",
+                                                            str(model_dir), float(units_mm)),
                       fixed_distance_mm=head.fixed_distance_mm, windows=tuple(windows) if len(windows) > 1 else ())
     _check_as_calibration_json(cal, cams_path, units_mm)
     return cal

@@ -133,7 +133,7 @@ def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInp
         raise AriSfmError(cal_path, "missing: run `ari-sfm run` or `ari-sfm calibrate` with -o to this folder first")
     cal = load_calibration(cal_path)
     notes: list[str] = []
-    selfcal = "self_calibration" in cal.extra  # `self-calibrate`'s folder: particles, no target dataset
+    selfcal = cal.self_calibration is not None  # `self-calibrate`'s folder: particles, no target dataset
     ds_path = find_dataset(out, dataset) if not selfcal or dataset is not None else None
     obs_path = out / "observations.json"
     ds = None

@@ -202,10 +202,10 @@ def test_cli_writes_model_calibration_and_report(small_model, tmp_path):
     assert exact.distance_mm == pytest.approx(h)
     assert np.allclose(exact.normal_cam, report["window"]["normal_cam"]["camera1"])
     # the calibration's exact camera, at the image poses it records, reproduces the observations
-    poses = cal.extra["refine_colmap"]["images_cam_from_world"]
+    poses = cal.refine_colmap.images_cam_from_world
     model = adapter.model_from_reconstruction(rec)
     k = 0
-    pose = Pose.from_json(poses[str(int(model.image_ids[k]))])
+    pose = poses[int(model.image_ids[k])]
     sel = model.obs_image == k
     uv = exact.project(pose.apply(model.xyz[model.obs_point[sel]]))
     assert np.sqrt(np.mean(np.sum((uv - model.obs_uv[sel]) ** 2, axis=1))) < 3 * truth.sigma_px

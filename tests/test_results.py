@@ -134,6 +134,27 @@ def test_uncertainty_outliers_and_pf_world_round_trip():
     assert PfWorld.from_json(world.to_json()) == world
 
 
+def test_where_a_calibration_came_from_round_trips_as_records(tmp_path):
+    """calibration.json's refine_colmap, imported_from and window_ignored load as records (not as unknown keys)
+    and write back the same JSON; a key this version does not know is kept as read."""
+    from ari_sfm.calibration_origin import ImportedFrom, RefineColmapFrames
+    from ari_sfm.geometry import Pose
+
+    data = json.loads((OLD / "exact.json").read_text())
+    frames = RefineColmapFrames("camera", "each camera's housing frame", {"cam0": 1, "cam1": 2},
+                                {7: Pose(np.eye(3), np.array([1.0, 2.0, 3.0]))})
+    data.update({"refine_colmap": frames.to_json(), "imported_from": ImportedFrom("COLMAP", "m", 10.0).to_json(),
+                 "window_ignored": True, "from_a_newer_version": {"a": 1}})
+    path = tmp_path / "calibration.json"
+    path.write_text(json.dumps(data))
+    cal = load_calibration(path)
+    assert cal.refine_colmap.to_json() == frames.to_json() and cal.imported_from == ImportedFrom("COLMAP", "m", 10.0)
+    assert cal.window_ignored and cal.extra == {"from_a_newer_version": {"a": 1}}
+    back = calibration_to_json(cal)
+    for key in ("refine_colmap", "imported_from", "window_ignored", "from_a_newer_version"):
+        assert back[key] == data[key], key
+
+
 @pytest.mark.parametrize("key, value, what", [
     ("uncertainty", {"cameras": {}, "normal_deg": 0.1}, "uncertainty: missing key 'sigma_px'"),
     ("uncertainty", {"sigma_px": 0.1, "normal_deg": 0.1, "cameras": {"cam0": {"fz": 1.0}}},
@@ -144,6 +165,11 @@ def test_uncertainty_outliers_and_pf_world_round_trip():
     ("residuals", {"rmse_px": 0.1}, "residuals: missing key 'mae_px'"),
     ("stages", {"stage": "ari"}, "stages: stages must be a list"),
     ("stages", [1], "stages: stages[0] must be an object"),
+    ("self_calibration", {"frames": [0], "passed": "yes"}, "self_calibration: scale must be a mapping"),
+    ("refine_colmap", {"mount": "tripod", "world": "", "camera_ids": {}},
+     "refine_colmap: mount must be one of camera, world (got 'tripod')"),
+    ("imported_from", {"format": "COLMAP", "path": "m", "units_mm": -1},
+     "imported_from: units_mm must be a positive number (got -1)"),
 ])
 def test_malformed_records_are_one_line_errors(tmp_path, key, value, what):
     data = json.loads((OLD / "exact.json").read_text())

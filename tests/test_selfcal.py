@@ -154,8 +154,8 @@ def test_the_window_and_the_gauge_are_held(experiment, corrected):
     in_plane = moved - np.outer(moved @ n, n)
     assert np.linalg.norm(in_plane.mean(axis=0)) < 0.02, in_plane
     assert not np.array_equal(c.cameras["cam0"].cam_from_world.R, a.cameras["cam0"].cam_from_world.R)  # it may move
-    sc = c.extra["self_calibration"]
-    assert "window's plane" in sc["held"][0] and "pair of camera centres" in sc["scale"]["how"]
+    sc = c.self_calibration
+    assert "window's plane" in sc.held[0] and "pair of camera centres" in sc.scale_how
     assert len(gauge.twists) == 3
 
 
@@ -250,7 +250,7 @@ def test_a_wrong_start_is_refused_or_fails_its_checks(experiment, volume):
         assert "no confident matches" in exc.message
         return
     assert not result.report.passed
-    assert not result.calibration.extra["self_calibration"]["passed"]
+    assert not result.calibration.self_calibration.passed
 
 
 def test_trust_checks_catch_a_fit_onto_ghosts(corrected, experiment):
@@ -295,9 +295,10 @@ def test_outputs_load_and_hold_the_maps(corrected, tmp_path):
     write_self_calibration(corrected, tmp_path)
     cal = load_calibration(tmp_path / "calibration.json")  # an ordinary calibration
     assert cal.model == "exact"
-    sc = cal.extra["self_calibration"]
-    assert sc["frames"] == [0, 1] and sc["particles_used"] > 0
-    assert set(sc["disparity_rms_px"]) == set(cal.cameras)
+    sc = cal.self_calibration
+    assert sc.frames == (0, 1) and sc.particles_used > 0
+    assert set(sc.disparity_rms_px) == set(cal.cameras)
+    assert sc == corrected.report  # the record read back is the one written
     d = json.loads((tmp_path / "disparity.json").read_text())
     assert d == json.loads(json.dumps(disparity_json(corrected)))
     for when in ("before", "after"):
@@ -493,9 +494,10 @@ def test_cli_self_calibrate_writes_a_calibration_every_command_loads(written, tm
     assert "cam3: disparity RMS" in r.output and "held: the window's plane" in r.output
     assert "round 1: matching at 5 px" in r.output  # the progress bar (stderr) names the round and tolerance
     cal = load_calibration(out / "calibration.json")
-    sc = cal.extra["self_calibration"]
-    assert max(v["after"] for v in sc["disparity_rms_px"].values()) <= 1.5 * SIGMA_PX
-    assert sc["passed"] is True and {c["name"] for c in sc["checks"]} >= {"matched_share", "in_reach"}
+    sc = cal.self_calibration
+    assert max(v.after for v in sc.disparity_rms_px.values()) <= 1.5 * SIGMA_PX
+    assert sc.passed is True and {c.name for c in sc.checks} >= {"matched_share", "in_reach"}
+    assert sc.inputs is not None and sc.inputs.workers == 0
     r = _run(["particles", written / "experiment", "--calibration", out / "calibration.json", "-o", tmp_path / "p",
               "--workers", "0"])
     assert r.exit_code == 0, r.output
@@ -530,7 +532,7 @@ def test_cli_wrong_start_exits_3_with_the_flag(written, tmp_path, monkeypatch):
               "--workers", "0", "--cells", 2, 2, 1])
     assert r.exit_code == 3, r.output
     assert "FAILED" in r.output
-    assert load_calibration(out / "calibration.json").extra["self_calibration"]["passed"] is False
+    assert load_calibration(out / "calibration.json").self_calibration.passed is False
 
 
 def test_cli_refuses_to_overwrite_its_input(written, tmp_path):

@@ -58,6 +58,6 @@ def calibrate_pinhole(dataset: Dataset, distortion: bool = False, max_iterations
         time_s=elapsed,
         optimizer=OptimizerReport({model: OptimizerRun(elapsed, "scipy.least_squares(lm), numeric Jacobian",
                                                        nfev=int(result.nfev), status=int(result.status))}),
-        extra={"window_ignored": True},
+        window_ignored=True,
         target=dataset.target,
     )

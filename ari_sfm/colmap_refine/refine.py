@@ -40,6 +40,7 @@ import numpy as np
 
 from ari_sfm import colmap_export as adapter
 from ari_sfm.calibration import Calibration, CameraCalibration
+from ari_sfm.calibration_origin import RefineColmapFrames
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose, rotation_from_rotvec
 from ari_sfm.io import save_calibration
@@ -487,11 +488,10 @@ def _calibration(model: adapter.ColmapModel, problem: RefractiveProblem, state: 
         cams[name] = CameraCalibration(name, model.image_sizes[c], K, p9[4:].copy(), pose)
     frame_note = ("each camera's housing frame: the port's near face is the plane z = distance_mm; "
                   "image poses: extra images_cam_from_world" if mount == "camera" else "the COLMAP model's world (mm)")
-    extra = {"refine_colmap": {"mount": mount, "world": frame_note,
-                               "camera_ids": {n: int(cid) for n, cid in zip(names, model.camera_ids)},
-                               "images_cam_from_world": {str(i): p.to_json() for i, p in cam_from_world.items()}}}
+    frames = RefineColmapFrames(mount, frame_note, {n: int(cid) for n, cid in zip(names, model.camera_ids)},
+                                {int(i): p for i, p in cam_from_world.items()})
     interface = replace(problem.interface, distance_mm=plane)
-    return Calibration("exact", interface, normal_world, cams, {}, extra=extra)
+    return Calibration("exact", interface, normal_world, cams, {}, refine_colmap=frames)
 
 
 def _state_reconstruction(rec: Any, model: adapter.ColmapModel, problem: RefractiveProblem, state: State) -> Any:

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from ari_sfm.calibration import Calibration, CameraCalibration, WindowCalibration
+from ari_sfm.calibration_origin import ImportedFrom, RefineColmapFrames
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose
 from ari_sfm.io.atomic import write_json_atomic
@@ -20,6 +21,7 @@ from ari_sfm.io.dataset import MAX_FOCAL_PX, MAX_IMAGE_SIDE_PX, MAX_LENGTH_MM, p
 from ari_sfm.io.structured import check_at_most, read_structured
 from ari_sfm.models.polynomial import PolynomialMap
 from ari_sfm.models.registry import model_spec
+from ari_sfm.particles.selfcal_report import SelfCalReport
 from ari_sfm.quality import Quality
 from ari_sfm.records import Interface
 from ari_sfm.results import (
@@ -97,9 +99,13 @@ def calibration_to_json(cal: Calibration) -> dict[str, Any]:
         out["stages"] = [st.to_json() for st in cal.stages]
     out.update(cal.extra)
     for key, record in (("pf_world", cal.pf_world), ("uncertainty", cal.uncertainty),
-                        ("outliers", cal.outliers), ("quality", cal.quality)):
+                        ("outliers", cal.outliers), ("quality", cal.quality),
+                        ("self_calibration", cal.self_calibration), ("refine_colmap", cal.refine_colmap),
+                        ("imported_from", cal.imported_from)):
         if record is not None:
             out[key] = record.to_json()
+    if cal.window_ignored:
+        out["window_ignored"] = True
     if cal.fixed_distance_mm is not None and not cal.windows:
         out["fixed_distance_mm"] = cal.fixed_distance_mm
     return out
@@ -223,7 +229,7 @@ def _parse(data: Any, path: Any) -> Calibration:
                 for f, v in data.get("stacking_poses", {}).items()}
     reserved = {"format", "model", "interface", "interfaces", "cameras", "frames", "stacking_poses", "residuals",
                 "time_s", "target", "fixed_distance_mm", "uncertainty", "outliers", "pf_world", "quality", "optimizer",
-                "stages"}
+                "stages", "self_calibration", "refine_colmap", "imported_from", "window_ignored"}
     windows = _windows(parsed, data, cams, path)
     if spec.window:
         _check_normals_face_the_cameras(windows, cams, path)
@@ -244,7 +250,19 @@ def _parse(data: Any, path: Any) -> Calibration:
         _record(Uncertainty, data, "uncertainty", path), _record(OutlierReport, data, "outliers", path), pf_world,
         _record(Quality, data, "quality", path), _record(OptimizerReport, data, "optimizer", path),
         windows=windows if len(windows) > 1 else (), stages=_stages(data, path),
+        self_calibration=_record(SelfCalReport, data, "self_calibration", path),
+        refine_colmap=_record(RefineColmapFrames, data, "refine_colmap", path),
+        imported_from=_record(ImportedFrom, data, "imported_from", path),
+        window_ignored=_window_ignored(data, path),
     )
+
+
+def _window_ignored(data: dict, path: Any) -> bool:
+    """calibration.json's ``window_ignored`` (a pinhole baseline's), false when absent."""
+    value = data.get("window_ignored", False)
+    if not isinstance(value, bool):
+        raise AriSfmError(path, f"window_ignored must be true or false (got {value!r})")
+    return value
 
 
 def _stages(data: dict, path: Any) -> tuple[StageRecord, ...]:

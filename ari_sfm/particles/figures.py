@@ -4,9 +4,12 @@ from __future__ import annotations
 import html
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from ari_sfm.calibration import Calibration
 
 DISPARITY_FILE = "disparity.json"
 
@@ -69,44 +72,44 @@ def disparity_figure(disparity: dict[str, Any]) -> bytes:
     return to_png(fig)
 
 
-def self_calibration_section(out: Path, image: Any, calibration: Any = None) -> str:
+def self_calibration_section(out: Path, image: Any, calibration: Calibration | None = None) -> str:
     """The report's section for a self-calibration folder (OUT/disparity.json and calibration.json's
     ``self_calibration``), or "" without one. ``image(png, alt, caption)`` renders a figure as the report does."""
     path = Path(out) / DISPARITY_FILE
     if not path.is_file():
         return ""
     disparity = json.loads(path.read_text())
-    sc = ({} if calibration is None else calibration.extra.get("self_calibration")) or {}
-    rotated, sigmas = sc.get("rotation_change_deg", {}), sc.get("sigmas", {})
+    sc = None if calibration is None else calibration.self_calibration
 
-    def num(v: Any, fmt: str) -> str:
+    def num(v: float | None, fmt: str) -> str:
         return "-" if v is None else format(v, fmt)
+
+    def sigma(cam: str, rotation: bool) -> float | None:
+        s = None if sc is None else sc.sigmas.get(cam)
+        return None if s is None else (s.rotation_rel_deg if rotation else s.translation_rel_mm)
 
     rows = "".join(f"<tr><td>{html.escape(cam)}</td><td>{disparity['before']['cameras'][cam]['rms_px']:.3f}</td>"
                    f"<td>{disparity['after']['cameras'][cam]['rms_px']:.3f}</td>"
-                   f"<td>{num(rotated.get(cam), '.4f')}</td>"
-                   f"<td>{num(sigmas.get(cam, {}).get('rotation_rel_deg'), '.4f')}</td>"
-                   f"<td>{num(sigmas.get(cam, {}).get('translation_rel_mm'), '.3f')}</td></tr>"
+                   f"<td>{num(None if sc is None else sc.rotation_change_deg.get(cam), '.4f')}</td>"
+                   f"<td>{num(sigma(cam, True), '.4f')}</td><td>{num(sigma(cam, False), '.3f')}</td></tr>"
                    for cam in disparity["before"]["cameras"])
     table = ("<table><tr><th>camera</th><th>disparity RMS before (px)</th><th>after (px)</th>"
              "<th>rotated (deg)</th><th>sigma of its rotation relative to the first camera (deg)</th>"
              f"<th>sigma of its position relative to the first camera (mm)</th></tr>{rows}</table>")
     parts = ["<h2>Volume self-calibration</h2>"]
-    if sc:
-        verdict = "passed its checks" if sc.get("passed", True) else "FAILED its checks: do not use it"
-        parts.append(f"<p>The self-calibration {html.escape(verdict)}; {sc.get('particles_used', 0)} particles in "
-                     f"{len(sc.get('frames', []))} frames, {100 * float(sc.get('matched_share', 0.0)):.1f} % of "
-                     f"the particle images matched at the end.</p>")
-        parts.append("<p>Held: " + html.escape("; ".join(sc.get("held", []))) + ". Estimated: "
-                     + html.escape("; ".join(sc.get("estimated", []))) + ".</p>")
+    if sc is not None:
+        verdict = "passed its checks" if sc.passed else "FAILED its checks: do not use it"
+        parts.append(f"<p>The self-calibration {html.escape(verdict)}; {sc.particles_used} particles in "
+                     f"{len(sc.frames)} frames, {100 * sc.matched_share:.1f} % of the particle images matched at "
+                     "the end.</p>")
+        parts.append("<p>Held: " + html.escape("; ".join(sc.held)) + ". Estimated: "
+                     + html.escape("; ".join(sc.estimated)) + ".</p>")
     parts.append(table)
-    checks = sc.get("checks", [])
-    if checks:
+    if sc is not None and sc.checks:
         parts.append("<table><tr><th>check</th><th>value</th><th>limit</th><th>result</th><th>what</th></tr>"
-                     + "".join(f"<tr><td>{html.escape(c['name'])}</td><td>{c['value']:.4g}</td>"
-                               f"<td>{c['limit']:.4g}</td>"
-                               f"<td>{'passed' if c['passed'] else ('FAILED' if c['fatal'] else 'warning')}</td>"
-                               f"<td>{html.escape(c['what'])}</td></tr>" for c in checks) + "</table>")
+                     + "".join(f"<tr><td>{html.escape(c.name)}</td><td>{c.value:.4g}</td><td>{c.limit:.4g}</td>"
+                               f"<td>{'passed' if c.passed else ('FAILED' if c.fatal else 'warning')}</td>"
+                               f"<td>{html.escape(c.what)}</td></tr>" for c in sc.checks) + "</table>")
     parts.append(image(disparity_figure(disparity), "disparity maps",
                        "Mean disparity (detected minus reprojected particle image) per cell of the volume and "
                        "camera, with the starting calibration (loose matches) and the corrected one, on one "

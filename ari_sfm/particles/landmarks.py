@@ -31,7 +31,7 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Any, cast
+from typing import cast
 
 import numpy as np
 
@@ -41,6 +41,7 @@ from ..geometry import Pose, rotation_angle_deg
 from ..models import PinholeModel
 from ..models.pinhole import PARAM_NAMES
 from .disparity import ParticleSet
+from .selfcal_report import Adjustment, CameraSigma
 
 log = logging.getLogger(__name__)
 
@@ -392,48 +393,6 @@ def _solver_class():
             return ne
 
     return SelfCalSolver
-
-
-@dataclass(frozen=True)
-class Adjustment:
-    """One bundle adjustment with the particles as landmarks (:func:`refine_with_landmarks`)."""
-
-    landmarks: int
-    observations: int
-    iterations: int
-    stop: str  # Levenberg-Marquardt's stop reason ("max_iterations": it did not converge)
-    cost_start: float
-    cost_final: float
-    rms_px: float
-    noise_px: float  # the fitted pixel noise per coordinate (a-posteriori sigma) the priors were weighed with
-    sum_baselines_held_mm: float  # the scale row's value: the sum of all pairwise camera distances
-    sum_baselines_final_mm: float
-    rotation_change_deg: Mapping[str, float]
-    time_s: float
-
-    def to_json(self) -> dict[str, Any]:
-        return {"landmarks": self.landmarks, "observations": self.observations, "iterations": self.iterations,
-                "stop": self.stop, "cost": {"start": self.cost_start, "final": self.cost_final},
-                "rms_px": self.rms_px, "noise_px": self.noise_px,
-                "sum_baselines_mm": {"held": self.sum_baselines_held_mm, "final": self.sum_baselines_final_mm},
-                "rotation_change_deg": dict(self.rotation_change_deg), "time_s": self.time_s}
-
-
-@dataclass(frozen=True)
-class CameraSigma:
-    """One camera's 1-sigma after self-calibration: its rotation and centre relative to camera 0
-    (sqrt of the covariance's trace), in the world (the window's frame) and its free intrinsics."""
-
-    rotation_rel_deg: float | None
-    translation_rel_mm: float | None
-    rotation_deg: float
-    centre_mm: float
-    intrinsics: Mapping[str, float]
-
-    def to_json(self) -> dict[str, Any]:
-        return {"rotation_rel_deg": self.rotation_rel_deg, "translation_rel_mm": self.translation_rel_mm,
-                "rotation_world_deg": self.rotation_deg, "centre_world_mm": self.centre_mm,
-                "intrinsics": dict(self.intrinsics)}
 
 
 @dataclass(frozen=True)

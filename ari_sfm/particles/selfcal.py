@@ -47,14 +47,21 @@ from .landmarks import (
     BACKENDS,
     INTRINSICS_MODES,
     UNKNOWN_PRIOR_PX,
-    Adjustment,
-    CameraSigma,
     Gauge,
     IntrinsicsPrior,
     Refined,
     free_intrinsics,
     guessed_principal_points,
     refine_with_landmarks,
+)
+from .selfcal_report import (
+    Adjustment,
+    BeforeAfter,
+    Check,
+    RoundSummary,
+    SelfCalInputs,
+    SelfCalOptions,
+    SelfCalReport,
 )
 
 log = logging.getLogger(__name__)
@@ -78,31 +85,6 @@ Progress = Callable[[str], None]  # told each step's description (round, toleran
 
 
 @dataclass(frozen=True)
-class SelfCalOptions:
-    """What self-calibration does (defaults for the 4-camera PTV set-up of PHYSICS.md)."""
-
-    tolerance_px: float = 5.0  # first round's matching tolerance (loose: the drift must fit in it)
-    max_tolerance_px: float = 12.0  # the first round widens its tolerance up to this while it finds no peak
-    final_tolerance_px: float = 0.5  # the tolerance the rounds tighten to
-    min_cameras: int = 4  # cameras a match must use (4: ghosts are rare, the peak is clear)
-    cells: tuple[int, int, int] = (3, 3, 3)  # sub-volumes (x, y, z) of the disparity maps
-    peak_radius_px: float = 0.5  # a match is on its cell's peak within this many px in every camera
-    field_radius_px: float = 1.5  # cells' peaks searched within this many px of the whole volume's peak
-    max_rounds: int = 6
-    min_improvement: float = 0.05  # stop when the inlier RMS falls by less than this fraction
-    coarse_frames: int = 3  # at least this many frames (more while the first camera has < COARSE_IMAGES images)
-    # are matched in rounds looser than COARSE_PX (the slow, ghost-ridden matching:
-    # a few hundred inliers suffice for the first correction)
-    max_landmarks: int = 20000  # particles in one bundle adjustment (random subset beyond)
-    huber_px: float = 1.0  # Huber threshold of the bundle adjustment
-    max_iterations: int = 50  # Levenberg-Marquardt iterations per round
-    intrinsics: str = "prior"  # "prior": fx fy cx cy (k1) estimated, the start's sigmas as priors; "held"; "free"
-    backend: str = "numpy"  # "numpy" (points Schur + the project's LM) or "gtsam"
-    seed: int = 0  # the landmark subset
-    threads: int = 2  # frames matched in parallel in this process (no Dask)
-
-
-@dataclass(frozen=True)
 class FrameParticles:
     """One frame's matches: detection rows per camera and the triangulated points."""
 
@@ -122,96 +104,15 @@ class Round:
     disparity: DisparityMap
     adjustment: Adjustment | None
 
-    def to_json(self) -> dict[str, Any]:
-        """The round as the report lists it."""
-        return {"tolerance_px": self.tolerance_px, "matches": self.matches,
-                "inliers": int(self.disparity.inlier.sum()),
-                "disparity_rms_px": [float(v) for v in self.disparity.rms_px],
-                "adjustment": None if self.adjustment is None else self.adjustment.to_json()}
-
-
-@dataclass(frozen=True)
-class BeforeAfter:
-    """A camera's disparity RMS (px) with the starting and the corrected calibration."""
-
-    before: float
-    after: float
-
-
-@dataclass(frozen=True)
-class Check:
-    """One of the result's trust checks: its value against its limit, and what it means."""
-
-    name: str
-    value: float
-    limit: float
-    passed: bool
-    what: str
-    fatal: bool = True  # False: a warning only
-
-    def to_json(self) -> dict[str, Any]:
-        return {"name": self.name, "value": self.value, "limit": self.limit, "passed": self.passed,
-                "fatal": self.fatal, "what": self.what}
-
-
-@dataclass(frozen=True)
-class SelfCalInputs:
-    """The files a dataset's self-calibration read (:func:`self_calibrate_dataset`), absolute."""
-
-    dataset: str
-    calibration: str
-    detections: str
-    workers: int | None  # None with a scheduler
-    scheduler: str | None
-
-
-@dataclass(frozen=True)
-class SelfCalReport:
-    """What self-calibration did: ``to_json()`` is calibration.json's ``self_calibration``."""
-
-    frames: tuple[int, ...]
-    particles_used: int  # landmarks of the largest round
-    landmarks_all_rounds: int
-    held: tuple[str, ...]  # what was not estimated, in words
-    estimated: tuple[str, ...]
-    scale_how: str
-    scale_sum_mm: float
-    scale_sigma_mm: float
-    backend: str
-    options: Mapping[str, Any]  # the SelfCalOptions, as JSON
-    disparity_rms_px: Mapping[str, BeforeAfter]
-    converged: bool  # the final disparities are one noise level (:func:`converged`)
-    passed: bool  # every fatal trust check passed (:func:`trust_checks`)
-    checks: tuple[Check, ...]
-    rounds: tuple[Round, ...]
-    rotation_change_deg: Mapping[str, float]
-    sigmas: Mapping[str, CameraSigma]
-    matched_share: float  # of the final matching (trust)
-    time_s: float
-    inputs: SelfCalInputs | None = None  # from a dataset's files
-
-    def to_json(self) -> dict[str, Any]:
-        out = {"frames": list(self.frames), "particles_used": self.particles_used,
-               "landmarks_all_rounds": self.landmarks_all_rounds, "held": list(self.held),
-               "estimated": list(self.estimated),
-               "scale": {"how": self.scale_how, "sum_mm": self.scale_sum_mm, "sigma_mm": self.scale_sigma_mm},
-               "backend": self.backend, "options": dict(self.options),
-               "disparity_rms_px": {n: {"before": d.before, "after": d.after}
-                                    for n, d in self.disparity_rms_px.items()},
-               "converged": self.converged, "passed": self.passed, "checks": [c.to_json() for c in self.checks],
-               "matched_share": self.matched_share, "rounds": [r.to_json() for r in self.rounds],
-               "rotation_change_deg": dict(self.rotation_change_deg),
-               "sigmas": {n: s.to_json() for n, s in self.sigmas.items()}, "time_s": self.time_s}
-        if self.inputs is not None:
-            i = self.inputs
-            out.update({"dataset": i.dataset, "calibration": i.calibration, "detections": i.detections,
-                        "workers": i.workers, "scheduler": i.scheduler})
-        return out
+    def summary(self) -> RoundSummary:
+        """The round as the report keeps it."""
+        return RoundSummary(self.tolerance_px, self.matches, int(self.disparity.inlier.sum()),
+                            tuple(float(v) for v in self.disparity.rms_px), self.adjustment)
 
 
 @dataclass(frozen=True)
 class SelfCalResult:
-    """The corrected calibration (its ``self_calibration`` key = ``report.to_json()``) and the disparity maps:
+    """The corrected calibration (its ``self_calibration`` the report) and the disparity maps:
     with the starting calibration (first round), with the corrected one (last round), and every round's."""
 
     calibration: Calibration
@@ -635,10 +536,10 @@ def _report(start: Calibration, final: Calibration, options: SelfCalOptions, fra
         scale_how="prior on the sum of the distances between every pair of camera centres, at the starting "
                   "calibration's value", scale_sum_mm=gauge.scale_sum_mm,
         scale_sigma_mm=_stiff_sigma(), backend=options.backend,
-        options={k: (list(v) if isinstance(v, tuple) else v) for k, v in options.__dict__.items()},
+        options=options,
         disparity_rms_px={n: BeforeAfter(float(before.rms_px[c]), float(after.rms_px[c])) for c, n in enumerate(names)},
         converged=converged(after, options), passed=all(c.passed for c in fatal), checks=tuple(checks),
-        rounds=tuple(rounds),
+        rounds=tuple(r.summary() for r in rounds),
         rotation_change_deg={n: rotation_angle_deg(start.cameras[n].cam_from_world.R, final.cameras[n].cam_from_world.R)
                              for n in names},
         sigmas=dict(refined.covariance.cameras),
@@ -662,11 +563,9 @@ def result_calibration(current: Calibration, refined: Refined, report: SelfCalRe
     cams = {n: CameraUncertainty(dict(s.intrinsics), s.rotation_rel_deg is not None, s.rotation_rel_deg,
                                  s.translation_rel_mm) for n, s in cov.cameras.items()}
     uncertainty = Uncertainty(cov.sigma_px, cams, None)
-    extra = {k: v for k, v in current.extra.items() if k != "self_calibration"}
-    extra["self_calibration"] = report.to_json()
     return replace(current, residuals=ResidualStats.of([refined.residuals_px]), uncertainty=uncertainty,
                    frames={}, stacking_poses={},
-                   quality=None, outliers=None, optimizer=None, stages=(), extra=extra)
+                   quality=None, outliers=None, optimizer=None, stages=(), self_calibration=report)
 
 
 def disparity_json(result: SelfCalResult) -> dict[str, Any]:
@@ -763,8 +662,6 @@ def self_calibrate_dataset(dataset_path, calibration_path, out, options: SelfCal
     report = replace(result.report, inputs=SelfCalInputs(
         str(Path(os.path.abspath(dataset.rig_path))), str(Path(os.path.abspath(calibration_path))),
         str(Path(os.path.abspath(det_path))), workers if scheduler is None else None, scheduler))
-    result = replace(result, report=report,
-                     calibration=replace(result.calibration, extra={**result.calibration.extra,
-                                                                    "self_calibration": report.to_json()}))
+    result = replace(result, report=report, calibration=replace(result.calibration, self_calibration=report))
     write_self_calibration(result, out)
     return result
