@@ -31,7 +31,7 @@ SIGNATURES = {
             (array(float64, 2), array(float64, 2), float64, array(float64, 1), boolean, float64),
         ],
     },
-    'ari_sfm.factors.schur_kernels': {
+    'ari_sfm.solver.schur_kernels': {
         'assemble_entries': [
             (array(float64, 2), array(float64, 3), array(int64, 2), array(float64, 3), array(int64, 1),
              array(float64, 1), int64, int64),

@@ -26,7 +26,7 @@ what the same corners allow. After convergence a window-model calibration (ari, 
 - physically absurd standard deviations: a camera's pose relative to camera 0 known to worse
   than ``MAX_POSE_SIGMA_DEG`` (a flat, wrong minimum: +-40 deg was seen), or not determined at all
   (no finite sigma: a singular or indefinite information matrix, see
-  :func:`ari_sfm.factors.schur.global_covariance`);
+  :func:`ari_sfm.solver.schur.global_covariance`);
 - a non-finite RMSE.
 """
 from __future__ import annotations

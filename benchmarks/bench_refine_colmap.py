@@ -34,7 +34,7 @@ process's peak RSS.
 Where refine-colmap's time goes (profile it with ``python -m cProfile -s cumtime``): per
 linearization the exact projection and the chain rule (``colmap_refine/problem.py``, compiled in
 ``chain_kernels.py``), the normal equations and the reduced camera system of the shared
-bundle-adjustment core (``factors/schur.py``, ``schur_kernels.py``), one Cholesky per lambda trial;
+bundle-adjustment core (``ari_sfm/solver/schur.py``, ``schur_kernels.py``), one Cholesky per lambda trial;
 then the start search (its LM on ~6k observations, stopped at a 1e-2 relative decrease), the
 sigmas and the written OPENCV approximation (pycolmap's own bundle adjustment, points held).
 """

@@ -163,7 +163,7 @@ def body_calibration_and_covariance(exp) -> tuple:
     p1 p2 k3] (camera-major) from its normal equations, the poses, the window and the body's views marginalised,
     in the units of calibration.json's uncertainty (whose sigmas are its diagonal's roots)."""
     import ari_sfm.factors.uncertainty as uncertainty
-    from ari_sfm.factors.schur import global_covariance
+    from ari_sfm.solver.schur import global_covariance
 
     kept = {}
     original = uncertainty.marginal_covariances

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 
-from .levenberg_marquardt import LMParams, LMReport
+from ..solver.levenberg_marquardt import LMParams, LMReport
 from .packed_problem import VectorizedProblem
 from .variables import GraphLike, RigState
 

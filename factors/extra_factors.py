@@ -5,7 +5,7 @@ a between factor on two cameras, a factor on one target frame) are not
 re-implemented: GTSAM linearises each one at every iteration
 (``factor.linearize(values)``, whitened by its own noise model) and its
 Jacobian blocks are added to the frame and global blocks of
-:class:`~ari_sfm.factors.schur.NormalEquations`. Factors linking two target
+:class:`~ari_sfm.solver.schur.NormalEquations`. Factors linking two target
 frames would break the frames' block-diagonal structure: NotImplementedError
 (``optimize_graph(backend="auto")`` then uses GTSAM).
 """
@@ -16,7 +16,7 @@ from collections.abc import Sequence
 import gtsam
 import numpy as np
 
-from .schur import NormalEquations
+from ..solver.schur import NormalEquations
 from .variables import PackedColumns, Variables
 
 

@@ -3,7 +3,7 @@
 What ``gtsam.Marginals(graph, values).marginalCovariance(key)`` gives for the
 intrinsics K(c), the camera poses C(c) (c > 0), the normal N and the distance
 H: the same tangent spaces, from the inverse Schur complement of the frames
-(:func:`~ari_sfm.factors.schur.global_covariance`). The units are those of the
+(:func:`~ari_sfm.solver.schur.global_covariance`). The units are those of the
 graph's factors: physical when they carry the pixel sigma (see
 :func:`ari_sfm.factors.uncertainty.marginal_covariances`, the documented entry).
 """
@@ -12,8 +12,8 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
+from ..solver.schur import NormalEquations, global_covariance
 from . import keys as K_
-from .schur import NormalEquations, global_covariance
 from .variables import PackedColumns
 
 

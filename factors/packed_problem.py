@@ -23,8 +23,8 @@ holds *the same problem*:
 
 The normal equations are formed per camera in one compiled pass
 (:func:`~ari_sfm.factors.view_kernels.accumulate_views`: the chain rule and each view's
-``A^T A`` of its rows ``[J_frame J_global r]``) and solved by :mod:`~ari_sfm.factors.schur`;
-:mod:`~ari_sfm.factors.levenberg_marquardt` drives the iterations (this class is its :class:`LMProblem`); factors a user
+``A^T A`` of its rows ``[J_frame J_global r]``) and solved by :mod:`~ari_sfm.solver.schur`;
+:mod:`~ari_sfm.solver.levenberg_marquardt` drives the iterations (this class is its :class:`LMProblem`); factors a user
 added to the graph join through :mod:`~ari_sfm.factors.extra_factors`.
 
 It is built from what RigGraph.build selected (:meth:`RigGraph.packed_factors`: each view's
@@ -48,12 +48,12 @@ from ..models.ari import AriJacobians, ari_project, check_window
 from ..models.exact import ExactJacobians, exact_project
 from ..models.pinhole import Projection
 from ..records import Observation
+from ..solver.levenberg_marquardt import LMParams, LMReport, NonFiniteJacobian, levenberg_marquardt
+from ..solver.schur import NormalEquations, model_decrease, solve_damped
 from . import keys as K_
 from .extra_factors import ExtraFactors
-from .levenberg_marquardt import LMParams, LMReport, NonFiniteJacobian, levenberg_marquardt
 from .marginals import CovarianceTable, covariances_by_key
 from .robust import huber_residual_scale, huber_view_residual, weighted_residuals
-from .schur import NormalEquations, model_decrease, solve_damped
 from .variables import MODELS, GraphLike, RigState, Variables, estimated_offset
 from .view_factor import ViewData, ViewKeys, camera_terms
 from .view_kernels import accumulate_views, add_camera, chain_rows, rig_transforms, transform_points
@@ -151,7 +151,7 @@ def _variables_of(rg: GraphLike) -> Variables:
 
 
 class VectorizedProblem:
-    """RigGraph's problem packed into flat arrays; the :class:`~ari_sfm.factors.levenberg_marquardt.LMProblem`
+    """RigGraph's problem packed into flat arrays; the :class:`~ari_sfm.solver.levenberg_marquardt.LMProblem`
     of the numpy backend (linearize, solve, model_decrease, retract, error).
 
     Mirrors RigGraph: :meth:`optimize` (updates :attr:`x`, sets
@@ -486,7 +486,7 @@ class VectorizedProblem:
 
     @staticmethod
     def solve(sys: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray] | None:
-        """(global step, frame steps) of the damped system (:func:`~ari_sfm.factors.schur.solve_damped`)."""
+        """(global step, frame steps) of the damped system (:func:`~ari_sfm.solver.schur.solve_damped`)."""
         return solve_damped(sys, lam)
 
     @staticmethod
@@ -512,7 +512,7 @@ class VectorizedProblem:
     def optimize(self, max_iterations: int = 100, relative_tolerance: float = 1e-10,
                  params: LMParams | None = None, stop: str = "converged") -> RigState:
         """Levenberg-Marquardt from the current values (GTSAM's algorithm, see
-        :func:`~ari_sfm.factors.levenberg_marquardt.levenberg_marquardt` for ``stop``);
+        :func:`~ari_sfm.solver.levenberg_marquardt.levenberg_marquardt` for ``stop``);
         updates them, :attr:`iterations` and :attr:`report`, and returns the state."""
         cached = self._error_cache
         initial = cached[1] if cached is not None and cached[0] is self.x else None

@@ -734,7 +734,7 @@ def test_schur_step_is_the_damped_full_system_step():
     system: at the first trial lambda damps every block (Marquardt, lambda diag); a later trial damps
     the camera block with its own lambda and the points with the first trial's."""
     from ari_sfm.colmap_refine.problem import huber_weights
-    from ari_sfm.factors.schur import assemble_from_observations, solve_damped
+    from ari_sfm.solver.schur import assemble_from_observations, solve_damped
 
     truth = port_survey(num_images=5, num_points=150, focal_px=1300, area_mm=(1500, 1000))
     rec = adapter.reconstruction_from_arrays(list(truth.params), truth.image_size, truth.sensor_from_rig,

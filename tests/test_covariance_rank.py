@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 
-from ari_sfm.factors.schur import NormalEquations, assemble_from_observations, global_covariance
+from ari_sfm.solver.schur import NormalEquations, assemble_from_observations, global_covariance
 
 N, K, G, M = 5, 3, 4, 12  # blocks, block size, globals, residuals per block
 
@@ -108,7 +108,7 @@ def test_refine_report_writes_an_undetermined_sigma_as_null():
 def test_the_quick_determined_test_never_passes_a_block_the_eigenvalues_call_undetermined():
     """_clearly_determined (no eigen-decomposition) against the eigenvalue rule it stands in for, on
     blocks of condition 1 to 1e20, indefinite ones and badly scaled ones: it may defer (False), never err."""
-    from ari_sfm.factors.schur import RANK_TOLERANCE, _clearly_determined, _scaled_eigh
+    from ari_sfm.solver.schur import RANK_TOLERANCE, _clearly_determined, _scaled_eigh
 
     rng = np.random.default_rng(7)
     said_yes = 0

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from ari_sfm.factors.levenberg_marquardt import NonFiniteJacobian, levenberg_marquardt
+from ari_sfm.solver.levenberg_marquardt import NonFiniteJacobian, levenberg_marquardt
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""The bundle-adjustment core (ari_sfm.factors.schur) against dense solves of the full normal equations;
+"""The bundle-adjustment core (ari_sfm.solver.schur) against dense solves of the full normal equations;
 the unit-normal chart (ari_sfm.geometry.unit3_*) against gtsam.Unit3.
 
 Both layouts and both damping policies: dense coupling with blocks of 6 (the rig's frames, lambda I)
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ari_sfm.factors.schur import (
+from ari_sfm.solver.schur import (
     NormalEquations,
     assemble_from_observations,
     global_covariance,

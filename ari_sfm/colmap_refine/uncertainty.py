@@ -2,7 +2,7 @@
 
 Covariance of the reduced variables (cameras, poses, window; the points eliminated):
 ``s0^2 S^-1`` with ``S = H_gg - W V^-1 W^T`` the undamped Schur complement at the solution
-(:func:`ari_sfm.factors.schur.global_covariance`, the bundle-adjustment core's) and ``s0^2`` the a-posteriori variance
+(:func:`ari_sfm.solver.schur.global_covariance`, the bundle-adjustment core's) and ``s0^2`` the a-posteriori variance
 factor (Huber-weighted residuals over the degrees of freedom), so the sigmas follow the residuals actually
 reached. The gauge (the first frame) is held; the scale is a direction of the problem, determined
 by refraction only (or by a scale bar), so a scale the images barely determine shows as a large
@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from ..factors.schur import global_covariance
+from ..solver.schur import global_covariance
 from .problem import huber_weights
 from .report import RefineUncertainty
 

@@ -21,7 +21,7 @@ two kinds of information are weighed right.
 The problem is refine-colmap's refractive problem (:class:`ari_sfm.colmap_refine.problem.RefractiveProblem`,
 world mount, ``camera_windows`` for several windows): one rig frame (camera 0's pose, a variable
 here) and each other camera's sensor_from_rig. The points are eliminated by the Schur complement
-(:mod:`ari_sfm.factors.schur`), the project's Levenberg-Marquardt solves it; GTSAM solves the
+(:mod:`ari_sfm.solver.schur`), the project's Levenberg-Marquardt solves it; GTSAM solves the
 same graph (``backend='gtsam'``). Perturbations are the problem's: ``(R, t) -> (exp(w) R, t + v)``.
 """
 from __future__ import annotations
@@ -410,9 +410,9 @@ def _sigma(J: np.ndarray, cov: np.ndarray) -> float:
 
 def covariance(solver, state, names: Sequence[str], system=None) -> Covariance:
     """Per camera the sigmas of its pose relative to camera 0, in the world, and of its intrinsics:
-    ``s0^2 S^-1`` (the undamped Schur complement, :func:`ari_sfm.factors.schur.global_covariance`),
+    ``s0^2 S^-1`` (the undamped Schur complement, :func:`ari_sfm.solver.schur.global_covariance`),
     ``s0`` the fitted noise (Huber-weighted residuals over the degrees of freedom)."""
-    from ..factors.schur import global_covariance
+    from ..solver.schur import global_covariance
 
     lay = solver.problem.layout
     ne = solver.linearize(state) if system is None else system
@@ -584,7 +584,7 @@ def refine_with_landmarks(calibration: Calibration, particles: ParticleSet, gaug
     final, iterations, stop, system = state, 0, "converged", None
     for _ in range(3):  # weigh the priors against the fitted noise (one refit at most, normally)
         if backend == "numpy":
-            from ..factors.levenberg_marquardt import LMParams, levenberg_marquardt
+            from ..solver.levenberg_marquardt import LMParams, levenberg_marquardt
 
             # stop when a step lowers chi^2 (cost / noise^2) by less than CHI2_STOP: the rest is a crawl along
             # the weakly determined directions (the rig's tilt to the window, a principal point against a

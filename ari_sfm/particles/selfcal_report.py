@@ -37,10 +37,10 @@ class SelfCalOptions:
         return {f.name: (list(v) if isinstance(v := getattr(self, f.name), tuple) else v) for f in fields(self)}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> SelfCalOptions:
+    def from_json(cls, d: object) -> SelfCalOptions:
         """The options as ``to_json`` wrote them (keys this version does not know are ignored)."""
         known = {f.name: f for f in fields(cls)}
-        kw: dict[str, Any] = {}
+        kw: dict[str, Any] = {}  # (each value checked against its field's default type below)
         for key, value in _mapping(d, "options").items():
             if key not in known:
                 continue
@@ -82,7 +82,7 @@ class Check:
                 "fatal": self.fatal, "what": self.what}
 
     @classmethod
-    def from_json(cls, d: Any) -> Check:
+    def from_json(cls, d: object) -> Check:
         d = _mapping(d, "checks[]")
         return cls(_str(d.get("name"), "checks[].name"), _num(d.get("value"), "checks[].value"),
                    _num(d.get("limit"), "checks[].limit"), _bool(d.get("passed"), "checks[].passed"),
@@ -115,7 +115,7 @@ class Adjustment:
                 "rotation_change_deg": dict(self.rotation_change_deg), "time_s": self.time_s}
 
     @classmethod
-    def from_json(cls, d: Any) -> Adjustment:
+    def from_json(cls, d: object) -> Adjustment:
         d = _mapping(d, "rounds[].adjustment")
         cost = _mapping(d.get("cost"), "adjustment.cost")
         sums = _mapping(d.get("sum_baselines_mm"), "adjustment.sum_baselines_mm")
@@ -147,7 +147,7 @@ class CameraSigma:
                 "intrinsics": dict(self.intrinsics)}
 
     @classmethod
-    def from_json(cls, d: Any) -> CameraSigma:
+    def from_json(cls, d: object) -> CameraSigma:
         d = _mapping(d, "sigmas[camera]")
         return cls(_optional_num(d.get("rotation_rel_deg"), "sigmas.rotation_rel_deg"),
                    _optional_num(d.get("translation_rel_mm"), "sigmas.translation_rel_mm"),
@@ -174,7 +174,7 @@ class RoundSummary:
                 "adjustment": None if self.adjustment is None else self.adjustment.to_json()}
 
     @classmethod
-    def from_json(cls, d: Any) -> RoundSummary:
+    def from_json(cls, d: object) -> RoundSummary:
         d = _mapping(d, "rounds[]")
         adjustment = d.get("adjustment")
         return cls(_num(d.get("tolerance_px"), "rounds[].tolerance_px"), _int(d.get("matches"), "rounds[].matches"),
@@ -240,7 +240,7 @@ class SelfCalReport:
         return out
 
     @classmethod
-    def from_json(cls, d: Any) -> SelfCalReport:
+    def from_json(cls, d: object) -> SelfCalReport:
         """The record ``to_json`` wrote; ValueError naming the key when it is not one."""
         d = _mapping(d, "self_calibration")
         scale = _mapping(d.get("scale"), "scale")
@@ -278,45 +278,45 @@ class SelfCalReport:
 # --------------------------------------------------------------------------- reading JSON values
 
 
-def _mapping(v: Any, key: str) -> Mapping[str, Any]:
+def _mapping(v: object, key: str) -> Mapping[str, object]:
     if not isinstance(v, Mapping):
         raise ValueError(f"{key} must be a mapping")
     return v
 
 
-def _list(v: Any, key: str) -> list[Any]:
+def _list(v: object, key: str) -> list[object]:
     if not isinstance(v, list):
         raise ValueError(f"{key} must be a list")
     return v
 
 
-def _num(v: Any, key: str) -> float:
+def _num(v: object, key: str) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise ValueError(f"{key} must be a number")
     return float(v)
 
 
-def _optional_num(v: Any, key: str) -> float | None:
+def _optional_num(v: object, key: str) -> float | None:
     return None if v is None else _num(v, key)
 
 
-def _int(v: Any, key: str) -> int:
+def _int(v: object, key: str) -> int:
     if isinstance(v, bool) or not isinstance(v, int):
         raise ValueError(f"{key} must be an integer")
     return int(v)
 
 
-def _str(v: Any, key: str) -> str:
+def _str(v: object, key: str) -> str:
     if not isinstance(v, str):
         raise ValueError(f"{key} must be a string")
     return v
 
 
-def _bool(v: Any, key: str) -> bool:
+def _bool(v: object, key: str) -> bool:
     if not isinstance(v, bool):
         raise ValueError(f"{key} must be true or false")
     return v
 
 
-def _numbers(v: Any, key: str) -> dict[str, float]:
+def _numbers(v: object, key: str) -> dict[str, float]:
     return {str(k): _num(x, f"{key}.{k}") for k, x in _mapping(v, key).items()}

@@ -1,4 +1,4 @@
-"""Compiled accumulations of the bundle-adjustment core (:mod:`ari_sfm.factors.schur`), entries layout:
+"""Compiled accumulations of the bundle-adjustment core (:mod:`ari_sfm.solver.schur`), entries layout:
 the normal equations from per-observation Jacobians, and the Schur complement's Y matrix. One pass
 over the observations each, no temporaries of the observations' size (numba, ``cache=True``)."""
 from __future__ import annotations

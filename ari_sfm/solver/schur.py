@@ -38,7 +38,7 @@ Damping, by the system's ``marquardt`` flag:
   Marquardt step of the blocks-eliminated problem). A block with V = 0 (a point moved into the global
   variables) is left out. A singular S is solved by least squares.
 
-LM (:mod:`ari_sfm.factors.levenberg_marquardt`) judges every trial by the decrease the whole
+LM (:mod:`ari_sfm.solver.levenberg_marquardt`) judges every trial by the decrease the whole
 undamped model predicts for the joint step (:func:`model_decrease`). The inverse of the undamped
 complement is the covariance of the global variables (:func:`global_covariance`).
 """
