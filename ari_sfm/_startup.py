@@ -35,7 +35,7 @@ def is_command_line() -> bool:
 
 def leave(signum: int, frame) -> None:
     """Leave at once with the signal's exit code: while the libraries load nothing has been written, and
-    after a command (:func:`ari_sfm.cli_process.user_errors`) everything has."""
+    after a command (:func:`ari_sfm.cli.process.user_errors`) everything has."""
     os.write(2, b"interrupted\n" if signum == signal.SIGINT else b"terminated\n")
     os._exit(130 if signum == signal.SIGINT else 143)
 

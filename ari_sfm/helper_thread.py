@@ -17,7 +17,7 @@ _R = TypeVar("_R")
 class _HelperThread:
     """One kept daemon thread running :func:`shared_map`'s second share (a thread's start costs
     ~0.15 ms; a ThreadPoolExecutor's threads are not daemons, and the command line leaves at once
-    on Ctrl-C while a non-daemon thread lives: :func:`ari_sfm.cli_process._exit_interrupted`). A task the
+    on Ctrl-C while a non-daemon thread lives: :func:`ari_sfm.cli.process._exit_interrupted`). A task the
     thread has not started when its caller is done is dropped, not waited for."""
 
     def __init__(self) -> None:

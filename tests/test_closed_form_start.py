@@ -113,7 +113,7 @@ def test_shared_map_leaves_no_thread_that_would_hold_the_exit_and_never_waits_fo
 
     assert shared_map(lambda x: -x, [1, 2, 3, 4], threads=2) == [-1, -2, -3, -4]
     me = threading.current_thread()
-    # the CLI leaves by os._exit on Ctrl-C while a non-daemon thread lives (cli_process._exit_interrupted)
+    # the CLI leaves by os._exit on Ctrl-C while a non-daemon thread lives (cli.process._exit_interrupted)
     assert all(t.daemon for t in threading.enumerate() if t is not me and t.name == "ari-helper")
     release, busy_done = threading.Event(), threading.Event()
 

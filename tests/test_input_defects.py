@@ -337,7 +337,7 @@ def test_simulate_port_survey_options_are_checked(tmp_path, args, message):
                                             ("/proc/ari", "-o/--out: /proc is a kernel file system"),
                                             ("read-only", "-o/--out: no permission to write in")])
 def test_simulate_port_survey_output_folder_is_checked(tmp_path, monkeypatch, where, message):
-    import ari_sfm.cli_checks as checks
+    import ari_sfm.cli.checks as checks
 
     (tmp_path / "a_file").write_text("x")
     (tmp_path / "ro").mkdir()

@@ -7,17 +7,17 @@ from pathlib import Path
 
 import click
 
-from .cli_checks import check_number, check_output_folder
-from .cli_config import config_option
-from .cli_process import QUALITY_FAILED_EXIT, user_errors
-from .errors import AriSfmError
+from ..errors import AriSfmError
+from .checks import check_number, check_output_folder
+from .config import config_option
+from .process import QUALITY_FAILED_EXIT, user_errors
 
 _workers_option = click.option("--workers", type=int, default=1, show_default=True,
                                help="Dask LocalCluster worker processes, one thread each (0: in this process).")
 
 
 def _set_worker_timeout(ctx: click.Context, param: click.Parameter, value: float) -> float:
-    from .particles.engine import worker_timeout
+    from ..particles.engine import worker_timeout
 
     token = worker_timeout.set(float(value))  # checked by dask_client, inside the command (one error line)
     ctx.call_on_close(lambda: worker_timeout.reset(token))  # for this command only
@@ -27,7 +27,7 @@ def _set_worker_timeout(ctx: click.Context, param: click.Parameter, value: float
 def _scheduler_option(fn):
     """--scheduler, and --worker-timeout (how long a run waits with no Dask worker; read by
     ari_sfm.particles.engine.dask_client through its context variable, so the command passes nothing)."""
-    from .particles.engine import WORKER_TIMEOUT_S
+    from ..particles.engine import WORKER_TIMEOUT_S
 
     fn = click.option("--worker-timeout", type=float, default=WORKER_TIMEOUT_S, show_default=True,
                       expose_value=False, callback=_set_worker_timeout, metavar="SECONDS",
@@ -69,8 +69,8 @@ def detect_particles_cmd(dataset: Path, out: Path, diameter_px: float | None, th
                          frames_per_partition: int, workers: int, scheduler: str | None) -> None:
     """Find the particle images of DATASET's particles.images; write OUT/particles.parquet. The options
     override rig.yaml's particles.detect."""
-    from .io.particles import load_particle_dataset
-    from .particles.detect import detect_experiment, detect_options
+    from ..io.particles import load_particle_dataset
+    from ..particles.detect import detect_experiment, detect_options
 
     check_output_folder(out)
     check_number("--diameter-px", diameter_px, minimum=0.0, maximum=1000.0, strict_minimum=True)
@@ -119,7 +119,7 @@ def particles_cmd(dataset: Path, calibration: Path, out: Path, detections: Path 
                   min_cameras: int, depth_range: tuple[float, float] | None, frames_per_partition: int, workers: int,
                   scheduler: str | None) -> None:
     """Match particle images through the window and triangulate them: OUT/particles3d.parquet."""
-    from .particles.reconstruct import MatchOptions, reconstruct_particles
+    from ..particles.reconstruct import MatchOptions, reconstruct_particles
 
     check_output_folder(out)
     check_number("--tolerance-px", tolerance_px, minimum=0.0, maximum=100.0, strict_minimum=True)
@@ -184,7 +184,7 @@ def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: 
                        intrinsics: str, refine_intrinsics: bool, refine_window: bool, backend: str,
                        depth_range: tuple[float, float] | None, workers: int, scheduler: str | None) -> None:
     """Volume self-calibration through the window: correct a drifted calibration from particle images."""
-    from .particles.selfcal import SelfCalOptions, check_not_input, self_calibrate_dataset
+    from ..particles.selfcal import SelfCalOptions, check_not_input, self_calibrate_dataset
 
     check_output_folder(out)
     check_not_input(out, [calibration, dataset, detections])

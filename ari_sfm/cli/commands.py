@@ -9,12 +9,13 @@ from pathlib import Path
 import click
 import numpy as np
 
-from . import _startup, cli_colmap, cli_particles
-from .cli_checks import check_not_an_output, check_not_input_folder, check_number, check_output_folder
-from .cli_config import config_option
-from .cli_process import QUALITY_FAILED_EXIT, CommandGroup, exit_if_signalled, setup_logging, user_errors
-from .errors import AriSfmError
-from .models.registry import BUNDLE, CALIBRATABLE, COMPARED, MODELS, model_spec
+from .. import _startup
+from ..errors import AriSfmError
+from ..models.registry import BUNDLE, CALIBRATABLE, COMPARED, MODELS, model_spec
+from . import colmap as colmap_commands, particles as particle_commands
+from .checks import check_not_an_output, check_not_input_folder, check_number, check_output_folder
+from .config import config_option
+from .process import QUALITY_FAILED_EXIT, CommandGroup, exit_if_signalled, setup_logging, user_errors
 
 log = logging.getLogger("ari_sfm")
 
@@ -38,8 +39,8 @@ def main(verbose: bool) -> None:
 def detect(dataset: Path, out: Path | None, workers: int | None) -> None:
     """Detect target corners in the dataset's images; write OUT/observations.json and OUT/rig.yaml (the dataset
     with its corners: `ari-sfm calibrate OUT` starts from them)."""
-    from .detection import detect_dataset
-    from .io import detections_rig, load_dataset, save_detections
+    from ..detection import detect_dataset
+    from ..io import detections_rig, load_dataset, save_detections
 
     if out is not None:
         check_output_folder(out)
@@ -73,7 +74,7 @@ def _field_option(name: str):
     (the one place each default is declared); ``{field}`` in a help text is that field's default."""
     from dataclasses import fields
 
-    from .calibrate import CalibrationOptions
+    from ..calibrate import CalibrationOptions
 
     every = {f.name: f for f in fields(CalibrationOptions)}
     f = every[name]
@@ -93,7 +94,7 @@ def _cli_fields() -> tuple[str, ...]:
     """The CalibrationOptions fields calibrate and run offer (those with a ``cli`` flag), in field order."""
     from dataclasses import fields
 
-    from .calibrate import CalibrationOptions
+    from ..calibrate import CalibrationOptions
 
     return tuple(f.name for f in fields(CalibrationOptions) if "cli" in f.metadata)
 
@@ -111,7 +112,7 @@ def _calibration_options(fn):
 
 def _calibration_record(values: dict, **more):
     """The CalibrationOptions of the command line's values (--huber-px 0: plain least squares), checked."""
-    from .calibrate import CalibrationOptions
+    from ..calibrate import CalibrationOptions
 
     check_number("--huber-px", values["huber_px"], minimum=0.0)
     return CalibrationOptions(**{**values, "huber_px": values["huber_px"] or None}, **more)
@@ -127,8 +128,8 @@ def calibrate_cmd(dataset: Path, out: Path, model: str | None, **options) -> Non
     """Calibrate DATASET; write OUT/calibration.json (and OUT/observations.json when detected here).
 
     Exit code 3: the calibration converged but failed its quality gate (written with quality.ok false)."""
-    from .calibrate import DEFAULT_MODEL
-    from .pipelines.calibrate_rig import main as pipeline
+    from ..calibrate import DEFAULT_MODEL
+    from ..pipelines.calibrate_rig import main as pipeline
 
     model = model or DEFAULT_MODEL
     model_spec(model, "--model", calibratable=True)  # before any loading or detection
@@ -155,7 +156,7 @@ def run(dataset: Path, out: Path, model: str | None, truth: Path | None, **optio
     """The pipeline: detect corners when needed, calibrate, reconstruct (frames seen by two cameras), report.
 
     Exit code 3: the calibration failed its quality gate (no reconstruction)."""
-    from .pipelines.run import main as pipeline
+    from ..pipelines.run import main as pipeline
 
     if model is not None:  # None: the best model (calibrate.DEFAULT_MODEL)
         model_spec(model, "--model", calibratable=True)  # before any loading or detection
@@ -190,7 +191,7 @@ def run(dataset: Path, out: Path, model: str | None, truth: Path | None, **optio
 @user_errors
 def report_cmd(out: Path, dataset: Path | None) -> None:
     """Write OUT/report.html: one self-contained page of the calibration, residuals and reconstruction in OUT."""
-    from .report import write_report
+    from ..report import write_report
 
     if out.exists() and not out.is_dir():
         raise AriSfmError(out, "is a file, expected the output folder of `ari-sfm run` or `calibrate`")
@@ -207,8 +208,8 @@ def report_cmd(out: Path, dataset: Path | None) -> None:
 @user_errors
 def evaluate_cmd(calibration: Path, observations: Path, solve_poses: bool) -> None:
     """Reprojection errors of CALIBRATION on an OBSERVATIONS file (e.g. held-out views)."""
-    from .evaluate import evaluate
-    from .io import load_calibration
+    from ..evaluate import evaluate
+    from ..io import load_calibration
 
     cal = load_calibration(calibration)
     if cal.target is None:
@@ -235,8 +236,8 @@ def evaluate_cmd(calibration: Path, observations: Path, solve_poses: bool) -> No
 def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | None, workers: int | None,
                     reference: Path | None) -> None:
     """Triangulate the reconstruction frames of DATASET and measure them (flatness, stage, corner spacing)."""
-    from .io import find_rig
-    from .reconstruct import run_reconstruction
+    from ..io import find_rig
+    from ..reconstruct import run_reconstruction
 
     check_output_folder(out)
     check_number("--workers", workers, minimum=1)
@@ -290,7 +291,7 @@ def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | N
 def compare_cmd(dataset: Path, out: Path, models: str, subset: str | None, holdout: Path | None, pf_world: str,
                 distortion: bool, backend: str) -> None:
     """Calibrate DATASET with several models and compare them (the paper's Tables 2-4)."""
-    from .compare import run_compare
+    from ..compare import run_compare
 
     check_output_folder(out)
     paths = run_compare(dataset, out, models, subset, holdout, pf_world, distortion=distortion, backend=backend)
@@ -341,7 +342,7 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_sca
              drift_mm: float, drift_cameras: str, look: str, bit_depth: str, k1: float, windows: str,
              calibration_views: int, calibration_target: str) -> None:
     """Write a simulated dataset (exact Snell physics) and its truth. SCENARIO: one of `ari-sfm scenarios`."""
-    from .simulate import SCENARIOS, simulate as run_sim
+    from ..simulate import SCENARIOS, simulate as run_sim
 
     if scenario not in SCENARIOS and scenario not in ("port_survey", "particles"):
         raise AriSfmError(None, f"unknown scenario {scenario!r}; known: "
@@ -364,7 +365,7 @@ def simulate(scenario: str, out: Path, seed: int, sigma: float | None, image_sca
     check_number("--sigma", sigma, minimum=0.0, maximum=100.0)
     check_number("--image-scale", image_scale, minimum=MIN_IMAGE_SCALE, maximum=40.0)
     if scenario == "port_survey":  # structure from motion behind a flat port (refine-colmap's truth)
-        from .simulate.port_survey import write_port_survey
+        from ..simulate.port_survey import write_port_survey
 
         if sigma is not None:
             raise AriSfmError("--sigma", "does not apply to port_survey: its images are rendered (structure from "
@@ -386,7 +387,7 @@ def _simulate_particles(out: Path, seed: int, sigma: float, num_cameras: int, pa
                         look: str = "plain", bit_depth: int = 8, k1: float = 0.0, windows: int = 1,
                         calibration_views: int = 3, calibration_target: str = "body") -> None:
     """`simulate particles`: write OUT/calibration, OUT/experiment, OUT/truth (ari_sfm.simulate.particles)."""
-    from .simulate.particles import ParticleSimOptions, simulate_particle_experiment, write_particle_experiment
+    from ..simulate.particles import ParticleSimOptions, simulate_particle_experiment, write_particle_experiment
 
     check_output_folder(out)
     check_number("--sigma", sigma, minimum=0.0, maximum=100.0)
@@ -425,7 +426,7 @@ MAX_PORT_SURVEY_SCALE = 8.0  # 5120 x 3840 px images (rendered at twice that): l
 @main.command()
 def scenarios() -> None:
     """List the simulator's scenarios."""
-    from .simulate import SCENARIOS
+    from ..simulate import SCENARIOS
 
     for name, text in [*SCENARIOS.items(), ("port_survey", PORT_SURVEY)]:
         click.echo(f"{name:28s} {text}")
@@ -446,8 +447,8 @@ def doctor() -> None:
     Exit code 1: a required dependency does not load (optional ones, such as optv, are only reported)."""
     import platform
 
-    from .deps import check_dependencies
-    from .kernel_cache import shipped_usable
+    from ..deps import check_dependencies
+    from ..kernel_cache import shipped_usable
 
     found = check_dependencies()
     exit_if_signalled()  # an import turned Ctrl-C into its own error (pycolmap: "Cannot import the C++ backend")
@@ -506,7 +507,7 @@ def _stages_summary(cal) -> None:
 
 def _summary(cal, elapsed: float, covers: str = "the whole command") -> None:
     """A one-screen summary of a calibration."""
-    from .geometry import angle_between_deg
+    from ..geometry import angle_between_deg
 
     r = cal.residuals
     q = cal.quality
@@ -587,8 +588,8 @@ def import_group() -> None:
 def import_openptv_cmd(experiment: Path, out: Path, window_groups: str | None) -> None:
     """Read an OpenPTV EXPERIMENT folder (ptv.par, cal_ori.par or multi_planes.par, .fix/.crd, the calibration
     images with man_ori.dat's clicked points, .ori when present) as a dataset."""
-    from .io import load_dataset
-    from .openptv import import_experiment
+    from ..io import load_dataset
+    from ..openptv import import_experiment
 
     check_output_folder(out)
     rig = import_experiment(experiment, out, window_groups)
@@ -614,7 +615,7 @@ def import_openptv_cmd(experiment: Path, out: Path, window_groups: str | None) -
 @user_errors
 def export_openptv_cmd(calibration: Path, out: Path, frame: str | None, pixel_size_mm: float | None) -> None:
     """Write CALIBRATION as OpenPTV orientation files in OUT."""
-    from .openptv import export_openptv
+    from ..openptv import export_openptv
 
     check_output_folder(out)
     summary = export_openptv(calibration, out, frame=frame, pixel_size_mm=pixel_size_mm)
@@ -625,16 +626,12 @@ def export_openptv_cmd(calibration: Path, out: Path, frame: str | None, pixel_si
     click.echo("\n".join(str(f) for f in summary.files))
 
 
-main.add_command(cli_colmap.export_colmap_cmd)
-main.add_command(cli_colmap.sfm_cmd)
-main.add_command(cli_colmap.export_colmap_fork_cmd)
-main.add_command(cli_colmap.import_colmap_fork_cmd)
-main.add_command(cli_colmap.refine_colmap_cmd)
-main.add_command(cli_particles.detect_particles_cmd)
-main.add_command(cli_particles.particles_cmd)
-main.add_command(cli_particles.self_calibrate_cmd)
+main.add_command(colmap_commands.export_colmap_cmd)
+main.add_command(colmap_commands.sfm_cmd)
+main.add_command(colmap_commands.export_colmap_fork_cmd)
+main.add_command(colmap_commands.import_colmap_fork_cmd)
+main.add_command(colmap_commands.refine_colmap_cmd)
+main.add_command(particle_commands.detect_particles_cmd)
+main.add_command(particle_commands.particles_cmd)
+main.add_command(particle_commands.self_calibrate_cmd)
 _startup.loaded()  # every command is defined: the commands' own handlers (user_errors) from here on
-
-
-if __name__ == "__main__":  # last, after every command is defined (python -m ari_sfm.cli refine-colmap)
-    main()

@@ -17,8 +17,8 @@ from typing import Any
 import click
 from click.core import ParameterSource
 
-from .errors import AriSfmError
-from .io.structured import as_mapping, read_structured, show
+from ..errors import AriSfmError
+from ..io.structured import as_mapping, read_structured, show
 
 CONFIG_META = "ari_sfm.config"  # ctx.meta key: the config file the command's defaults came from
 

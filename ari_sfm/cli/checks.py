@@ -11,7 +11,7 @@ import math
 import os
 from pathlib import Path
 
-from .errors import AriSfmError
+from ..errors import AriSfmError
 
 PSEUDO_FILE_SYSTEMS = ("/proc", "/sys", "/dev")  # kernel interfaces, not places for results
 

@@ -14,9 +14,9 @@ from typing import TYPE_CHECKING
 
 import click
 
-from . import _startup
-from .cli_config import blame_config
-from .errors import AriSfmError
+from .. import _startup
+from ..errors import AriSfmError
+from .config import blame_config
 
 if TYPE_CHECKING:
     from collections.abc import Callable
