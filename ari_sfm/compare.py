@@ -283,17 +283,17 @@ def to_markdown(results: Sequence[ModelResult], subset: Subset | None, dataset: 
 
 def figures(results: Sequence[ModelResult]) -> dict[str, bytes]:
     """PNG bytes of :func:`draw_figures`: residual scatter per model, error distributions."""
-    from .report_figures import to_png
+    from .report.figures import to_png
 
     return dict(zip(FIGURES, (to_png(f) for f in draw_figures(results))))
 
 
 def draw_figures(results: Sequence[ModelResult]) -> tuple:
-    """The two Figures (report_figures' print style): every model's residuals on one shared range (fitted
+    """The two Figures (the report's figures' print style): every model's residuals on one shared range (fitted
     corners red, others blue; dv down as in the image; dashed circle: RMSE), and the error distributions."""
     import matplotlib.pyplot as plt
 
-    from .report_figures import FIG_WIDTH_IN, STYLE, panels
+    from .report.figures import FIG_WIDTH_IN, STYLE, panels
 
     with plt.rc_context(STYLE):
         k = len(results)

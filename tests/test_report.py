@@ -29,8 +29,8 @@ from ari_sfm.io import load_calibration, parse_calibration
 from ari_sfm.outliers import Outlier
 from ari_sfm.records import Observation
 from ari_sfm.report import _reconstruction_rows, calibration_rows, markdown_tables, write_report
-from ari_sfm.report_3d import RAY_GRID, RAY_INSET, rig_view_figure, sample_rays
-from ari_sfm.report_diagnostics import recommendations
+from ari_sfm.report.diagnostics import recommendations
+from ari_sfm.report.view_3d import RAY_GRID, RAY_INSET, rig_view_figure, sample_rays
 from ari_sfm.results import OutlierReport, Uncertainty
 from ari_sfm.simulate import simulate
 
@@ -485,7 +485,7 @@ def test_report_prints_on_paper(binocular, tmp_path):
     for phrase in ("ari-sfm report", "Recommendations", "Reprojection residuals", "Rig in 3D (interactive)",
                    "Reconstruction", "Paper Fig. 14, true to scale", "window tilt to the optical axis (deg)"):
         assert re.sub(r"\s", "", phrase) in words, phrase
-    from ari_sfm.report_3d import PRINT_FIT_SCRIPT
+    from ari_sfm.report.view_3d import PRINT_FIT_SCRIPT
 
     assert PRINT_FIT_SCRIPT in text  # without it the view keeps its screen width (checked by hand: 627.8 pt > 612)
 

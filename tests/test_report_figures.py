@@ -13,7 +13,7 @@ from matplotlib.text import Text
 from ari_sfm.compare import draw_figures
 from ari_sfm.evaluate import observation_residuals
 from ari_sfm.io import parse_calibration
-from ari_sfm.report_figures import (
+from ari_sfm.report.figures import (
     FIG_WIDTH_IN,
     PRINT_WIDTH_IN,
     draw_error_histograms,

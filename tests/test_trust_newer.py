@@ -700,7 +700,7 @@ def test_disparity_maps_before_and_after_share_one_arrow_scale(monkeypatch):
 
     from matplotlib.quiver import Quiver
 
-    import ari_sfm.report_figures as rf
+    import ari_sfm.report.figures as rf
     from ari_sfm.particles.figures import disparity_figure
 
     cells = {"lower_mm": [-30.0, -20.0, 400.0], "upper_mm": [30.0, 20.0, 420.0], "shape": [2, 2, 1]}

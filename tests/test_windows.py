@@ -319,7 +319,7 @@ def test_fork_flatport_round_trip_keeps_the_windows(calibrated, tmp_path):
 
 
 def test_the_3d_view_draws_every_window(calibrated, tanks):
-    from ari_sfm.report_3d import rig_view_figure
+    from ari_sfm.report.view_3d import rig_view_figure
 
     cal = calibrated["tank_adjacent"]
     ids, pts = tanks["tank_adjacent"].dataset.target.points_3d()

@@ -19,7 +19,7 @@ def disparity_figure(disparity: dict[str, Any]) -> bytes:
     centre (world x, y; z layers in colour, side by side), one arrow scale for every panel (the longest
     arrow, before, about half a cell), so corrected arrows look as small as they are; a scale arrow
     of 1 px in each panel."""
-    from ..report_figures import plt, to_png
+    from ..report.figures import plt, to_png
 
     centres = np.asarray(disparity["cell_centres_mm"], float)
     lower, upper = (np.asarray(disparity["cells"][k], float) for k in ("lower_mm", "upper_mm"))

@@ -47,12 +47,12 @@ from typing import Any
 
 import numpy as np
 
-from .calibration import Calibration
-from .errors import AriSfmError
-from .io import load_calibration
-from .records import Dataset, Observation, Target
-from .reference import ReferenceErrors
-from .results import StageRecord
+from ..calibration import Calibration
+from ..errors import AriSfmError
+from ..io import load_calibration
+from ..records import Dataset, Observation, Target
+from ..reference import ReferenceErrors
+from ..results import StageRecord
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +92,7 @@ def _read_json(path: Path) -> dict:
 
 def find_dataset(out: Path, dataset: str | Path | None = None) -> Path | None:
     """The dataset folder of an output folder (see the module docstring), or None."""
-    from .provenance import recorded_dataset_path
+    from ..provenance import recorded_dataset_path
 
     if dataset is not None:
         return Path(dataset)
@@ -114,7 +114,7 @@ def find_dataset(out: Path, dataset: str | Path | None = None) -> Path | None:
                         out / "metrics.json", given)
     found = next((c for c in candidates if c.exists()), None)
     if found is None and (out / "observations.json").exists():  # calibrate's corners name the rig they came from
-        from .io.observations import recorded_dataset
+        from ..io.observations import recorded_dataset
 
         rig = recorded_dataset(out / "observations.json")
         found = rig if rig is not None and rig.exists() else None
@@ -123,7 +123,7 @@ def find_dataset(out: Path, dataset: str | Path | None = None) -> Path | None:
 
 def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInputs:
     """Load OUT's files for the report; a missing calibration.json or a bad file raise AriSfmError."""
-    from .io import load_dataset, load_observations, load_points
+    from ..io import load_dataset, load_observations, load_points
 
     out = Path(out)
     if not out.is_dir():
@@ -138,7 +138,7 @@ def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInp
     obs_path = out / "observations.json"
     ds = None
     if ds_path is not None:
-        from .reconstruct import check_rig, check_same_capture
+        from ..reconstruct import check_rig, check_same_capture
 
         ds = load_dataset(ds_path, obs_path if obs_path.exists() else None)
         check_rig(ds, cal, cal_path)  # another rig's dataset: refused, not mixed in
@@ -179,7 +179,7 @@ def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInp
                      "are older than its calibration")
     md = (out / "compare.md").read_text() if (out / "compare.md").exists() else None
     cj = _read_json(out / "compare.json") if (out / "compare.json").exists() else None
-    from .compare import FIGURES
+    from ..compare import FIGURES
 
     figs = {name: (out / name).read_bytes() for name in FIGURES if (out / name).exists()}
     return ReportInputs(out, cal, ds, ds_path, tuple(observations), metrics, points, md, cj, figs, tuple(notes), label,
@@ -189,7 +189,7 @@ def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInp
 def _reconstruction_label(out: Path, cal_path: Path, cal: Calibration, ds: Dataset | None,
                           metrics: dict | None, points: dict | None) -> str | None:
     """Why OUT's points.json / metrics.json do not belong to its calibration.json or the dataset, or None."""
-    from .provenance import calibration_mismatch, dataset_mismatch
+    from ..provenance import calibration_mismatch, dataset_mismatch
 
     why: list[str] = []
     for name, result in (("points.json", points), ("metrics.json", metrics)):
@@ -393,7 +393,7 @@ def _summary_section(ctx: ReportContext) -> str:
 
 
 def _advice_section(ctx: ReportContext) -> str:
-    from .report_diagnostics import recommendations
+    from .diagnostics import recommendations
 
     if not ctx.residuals:
         return ""
@@ -404,7 +404,7 @@ def _advice_section(ctx: ReportContext) -> str:
     else:
         parts.append('<p class="info">None: the corners cover the images, no image region, frame or depth stands '
                      "out in the residuals, and every estimated quantity is determined (thresholds in "
-                     "ari_sfm/report_diagnostics.py).</p>")
+                     "ari_sfm/report/diagnostics.py).</p>")
     return "\n".join(parts)
 
 
@@ -442,8 +442,8 @@ def _stages_section(ctx: ReportContext) -> str:
 
 
 def _residuals_section(ctx: ReportContext) -> str:
-    from .report_diagnostics import GRID_COLS, GRID_ROWS
-    from .report_figures import (
+    from .diagnostics import GRID_COLS, GRID_ROWS
+    from .figures import (
         map_magnification,
         residual_by_depth,
         residual_by_frame,
@@ -483,7 +483,7 @@ def _residuals_section(ctx: ReportContext) -> str:
 
 
 def _expansion_section(ctx: ReportContext) -> str:
-    from .report_figures import expansion_centre_figure
+    from .figures import expansion_centre_figure
 
     inp, cal = ctx.inputs, ctx.calibration
     stacking = {c: [o for o in inp.observations if o.set == "stacking" and o.camera == c] for c in cal.cameras}
@@ -505,7 +505,7 @@ def board_corners(calibration: Calibration, target: Target | None) -> np.ndarray
 
 
 def _view_3d_section(ctx: ReportContext) -> str:
-    from .report_3d import rig_view_html
+    from .view_3d import rig_view_html
 
     cal = ctx.calibration
     boards = board_corners(cal, ctx.target)
@@ -556,7 +556,7 @@ def _reconstruction_rows(m: Mapping[str, Any]) -> list[list[Any]]:
 
 
 def _reconstruction_section(ctx: ReportContext) -> str:
-    from .report_figures import error_histograms, point_cloud_figure, rig_figure
+    from .figures import error_histograms, point_cloud_figure, rig_figure
 
     inp = ctx.inputs
     m = inp.metrics
@@ -609,7 +609,7 @@ def _comparison_section(ctx: ReportContext) -> str:
 
 def _self_calibration_section(ctx: ReportContext) -> str:
     """Volume self-calibration's disparity maps before/after (OUT/disparity.json of `self-calibrate`), if any."""
-    from .particles.figures import self_calibration_section
+    from ..particles.figures import self_calibration_section
 
     return self_calibration_section(ctx.inputs.out, _img, ctx.inputs.calibration)
 
@@ -641,7 +641,7 @@ def add_section(name: str, render: Section, after: str | None = None) -> None:
 
 def report_context(inp: ReportInputs) -> ReportContext:
     """The inputs with their residuals computed (once, for every section)."""
-    from .evaluate import observation_residuals
+    from ..evaluate import observation_residuals
 
     target = inp.dataset.target if inp.dataset else inp.calibration.target
     residuals = observation_residuals(inp.calibration, inp.observations, target) if inp.observations and target else []
@@ -661,7 +661,7 @@ def render_html(inp: ReportInputs) -> str:
 
 def write_report(out: str | Path, dataset: str | Path | None = None) -> Path:
     """Render OUT/report.html atomically; return its path."""
-    from .io import write_text_atomic
+    from ..io import write_text_atomic
 
     inputs = load_inputs(out, dataset)
     text = render_html(inputs)

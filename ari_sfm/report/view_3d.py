@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from .calibration import Calibration
-from .report_figures import window_depth
+from ..calibration import Calibration
+from .figures import window_depth
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +68,7 @@ def sample_rays(calibration: Calibration, camera: str, end_depth_mm: float,
                        np.linspace(RAY_INSET * h, (1 - RAY_INSET) * h, grid[1]))
     uv = np.stack([u.ravel(), v.ravel()], axis=1)
     if calibration.window_of(camera).normal_world is None:
-        from .models import PinholeModel
+        from ..models import PinholeModel
 
         _, ray = PinholeModel(cam.K, cam.dist).backproject(uv)
         near = far = np.zeros_like(ray)

@@ -30,9 +30,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
-from .calibration import Calibration  # noqa: E402
-from .records import Observation, Target  # noqa: E402
-from .report_diagnostics import corner_depths, frame_rmse, point_depths, region_grid, rms  # noqa: E402
+from ..calibration import Calibration  # noqa: E402
+from ..records import Observation, Target  # noqa: E402
+from .diagnostics import corner_depths, frame_rmse, point_depths, region_grid, rms  # noqa: E402
 
 if TYPE_CHECKING:
     from matplotlib.typing import RcKeyType
@@ -321,7 +321,7 @@ def expansion_centre_figure(calibration: Calibration, stacking: Mapping[str, Seq
 @styled
 def draw_expansion_centre(calibration: Calibration, stacking: Mapping[str, Sequence[Observation]]) -> Any:
     """Fig. 4: corner tracks under stacking (points), TLS lines, measured and calibrated expansion centres."""
-    from .init.expansion_center import fit_lines, intersect_lines, trajectories
+    from ..init.expansion_center import fit_lines, intersect_lines, trajectories
 
     names = [n for n in calibration.cameras if stacking.get(n)]
     fig, axes = panels(max(len(names), 1), 3.4 if len(names) >= 3 else 4.0, cols=2)

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .calibration import Calibration
-from .records import Observation, Target
+from ..calibration import Calibration
+from ..records import Observation, Target
 
 GRID_COLS, GRID_ROWS = 8, 6  # image cells for coverage and residuals by region
 COVERAGE_MIN = 0.6  # below this share of cells with a calibration corner: add views near the image edges
