@@ -41,7 +41,7 @@ _LAZY_EXPORTS = {  # name -> module: imported on first use, so that `import ari_
     "RigState": "ari_sfm.factors.rig_graph",
     "keys": "ari_sfm.factors.keys",
     "marginal_covariances": "ari_sfm.factors.uncertainty",
-    "refine_colmap": "ari_sfm.colmap_refine",
+    "refine_colmap": "ari_sfm.colmap.refine",
 }
 
 

@@ -16,7 +16,7 @@ def array(dtype, ndim: int, layout: Literal["C", "F", "A"] = "C", readonly: bool
 
 
 SIGNATURES = {
-    'ari_sfm.colmap_refine.chain_kernels': {
+    'ari_sfm.colmap.refine.chain_kernels': {
         'chain_observations': [
             (array(float64, 3), array(float64, 3), array(float64, 2), array(float64, 2), array(float64, 3),
              array(float64, 2), array(float64, 3), array(float64, 2), boolean, array(float64, 2),

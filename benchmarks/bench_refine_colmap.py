@@ -32,7 +32,7 @@ of CPU times (Ceres runs on every core; on a loaded machine this one is the stea
 process's peak RSS.
 
 Where refine-colmap's time goes (profile it with ``python -m cProfile -s cumtime``): per
-linearization the exact projection and the chain rule (``colmap_refine/problem.py``, compiled in
+linearization the exact projection and the chain rule (``ari_sfm/colmap/refine/problem.py``, compiled in
 ``chain_kernels.py``), the normal equations and the reduced camera system of the shared
 bundle-adjustment core (``ari_sfm/solver/schur.py``, ``schur_kernels.py``), one Cholesky per lambda trial;
 then the start search (its LM on ~6k observations, stopped at a 1e-2 relative decrease), the
@@ -51,12 +51,12 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np
 
-from ari_sfm import colmap_export as adapter
-from ari_sfm.colmap_refine import refine_colmap
-from ari_sfm.colmap_refine.problem import RefractiveProblem
-from ari_sfm.colmap_refine.scale_bar import ScaleBar
-from ari_sfm.colmap_refine.solver import Solver
-from ari_sfm.colmap_refine.truth import colmap_truth_errors, truth_errors, truth_state, window_errors
+from ari_sfm.colmap import adapter
+from ari_sfm.colmap.refine import refine_colmap
+from ari_sfm.colmap.refine.problem import RefractiveProblem
+from ari_sfm.colmap.refine.scale_bar import ScaleBar
+from ari_sfm.colmap.refine.solver import Solver
+from ari_sfm.colmap.refine.truth import colmap_truth_errors, truth_errors, truth_state, window_errors
 from ari_sfm.geometry import Pose
 from ari_sfm.records import WindowPlane
 from ari_sfm.simulate.port_survey import port_survey

@@ -64,9 +64,9 @@ def workloads(tmp: Path) -> None:
     import numpy as np
     from click.testing import CliRunner
 
-    from ari_sfm import colmap_export as adapter
     from ari_sfm.cli import main
-    from ari_sfm.colmap_refine import refine_colmap
+    from ari_sfm.colmap import adapter
+    from ari_sfm.colmap.refine import refine_colmap
     from ari_sfm.geometry import se3_exp
     from ari_sfm.models.exact import exact_project, incidence, solve_incidence
     from ari_sfm.models.pinhole import PinholeModel

@@ -17,7 +17,7 @@ from click.testing import CliRunner
 
 from ari_sfm.calibrate import calibrate
 from ari_sfm.cli import main
-from ari_sfm.colmap_export import COLMAP_PIXEL_OFFSET, colmap_from_opencv_px, export_colmap, opencv_from_colmap_px
+from ari_sfm.colmap.adapter import COLMAP_PIXEL_OFFSET, colmap_from_opencv_px, export_colmap, opencv_from_colmap_px
 from ari_sfm.io import load_calibration, load_dataset, save_calibration, save_points
 from ari_sfm.simulate import simulate
 
@@ -116,7 +116,7 @@ def test_distortion_models(binocular, binocular_ari, tmp_path):
 def test_exact_model_is_approximated_and_warned(binocular, tmp_path, caplog):
     dataset, points = binocular
     cal = calibrate(dataset, model="exact", uncertainty=False)
-    with caplog.at_level(logging.WARNING, logger="ari_sfm.colmap_export"):
+    with caplog.at_level(logging.WARNING, logger="ari_sfm.colmap.adapter"):
         export = export_colmap(cal, tmp_path / "model", dataset, points)
     assert any("best ari approximation" in r.getMessage() for r in caplog.records)
     assert export.warnings and not any(v.exact for v in export.cameras.values())
@@ -135,7 +135,7 @@ def test_underwater_is_a_pure_shift_approximation(tmp_path, caplog):
     ds_dir, _ = simulate("binocular_underwater", tmp_path / "sim", images=False)
     dataset = load_dataset(ds_dir)
     cal = calibrate(dataset, model="ari", uncertainty=False)
-    with caplog.at_level(logging.WARNING, logger="ari_sfm.colmap_export"):
+    with caplog.at_level(logging.WARNING, logger="ari_sfm.colmap.adapter"):
         export = export_colmap(cal, tmp_path / "model", dataset, approximation="shift")
     assert any("pure-shift" in r.getMessage() for r in caplog.records)
     for name, v in export.cameras.items():

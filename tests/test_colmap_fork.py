@@ -16,7 +16,7 @@ from click.testing import CliRunner
 
 from ari_sfm.calibration import Calibration
 from ari_sfm.cli import main
-from ari_sfm.colmap_fork import export_colmap_fork, import_colmap_fork
+from ari_sfm.colmap.fork import export_colmap_fork, import_colmap_fork
 from ari_sfm.errors import AriSfmError
 from ari_sfm.io import load_calibration, parse_calibration, save_calibration
 from ari_sfm.simulate import make_scene
@@ -284,8 +284,8 @@ def test_refined_model_moves_to_the_fork(tmp_path):
     iterations) exported with its COLMAP model: every image at its real pose with its 2D points, the refined
     points; the fork's projection of each point through its image gives our exact model's pixels to 1e-6 px,
     and its cameras read back as the refined housings."""
-    from ari_sfm import colmap_export as adapter
-    from ari_sfm.colmap_refine import refine_colmap, write_refined
+    from ari_sfm.colmap import adapter
+    from ari_sfm.colmap.refine import refine_colmap, write_refined
     from ari_sfm.simulate.port_survey import port_survey
 
     truth = port_survey(num_images=5, num_points=200, focal_px=1300, area_mm=(1200, 800), sigma_px=0.3)

@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm import colmap_export as adapter
 from ari_sfm.cli import main
-from ari_sfm.colmap_refine import refine_colmap, write_refined
-from ari_sfm.colmap_refine.problem import RefractiveProblem, State
-from ari_sfm.colmap_refine.solver import Solver
-from ari_sfm.colmap_refine.truth import colmap_truth_errors, truth_errors, window_errors
+from ari_sfm.colmap import adapter
+from ari_sfm.colmap.refine import refine_colmap, write_refined
+from ari_sfm.colmap.refine.problem import RefractiveProblem, State
+from ari_sfm.colmap.refine.solver import Solver
+from ari_sfm.colmap.refine.truth import colmap_truth_errors, truth_errors, window_errors
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose
 from ari_sfm.io import load_calibration
@@ -257,8 +257,8 @@ def test_gtsam_backend_same_answer(mount):
     """numpy (points Schur) and GTSAM (one CustomFactor per image) from the same perturbed start reach
     the same optimum: residuals, window and the point cloud's shape. The scale is compared after
     similarity alignment: it is a near-flat direction of the cost that the two LMs walk differently."""
-    from ari_sfm.colmap_refine.gtsam_graph import GtsamRefinement
-    from ari_sfm.colmap_refine.truth import similarity
+    from ari_sfm.colmap.refine.gtsam_graph import GtsamRefinement
+    from ari_sfm.colmap.refine.truth import similarity
 
     truth = (port_survey(num_images=6, num_points=120, focal_px=1300, area_mm=(1200, 800), sigma_px=0.2)
              if mount == "camera" else tank_rig(num_frames=3, num_points=100))
@@ -288,7 +288,7 @@ def test_end_to_end_rendered_survey_through_colmap_sift(tmp_path):
     camera centres; the points are judged by their height above/below the true relief."""
     import json
 
-    from ari_sfm.colmap_refine.truth import similarity
+    from ari_sfm.colmap.refine.truth import similarity
     from ari_sfm.records import Interface
     from ari_sfm.simulate.port_survey import relief_height, write_port_survey
 
@@ -345,7 +345,7 @@ def test_end_to_end_rendered_survey_through_colmap_sift(tmp_path):
 
 
 def test_window_yaml_scale_bar_and_units(tmp_path):
-    from ari_sfm.colmap_refine.window import load_window
+    from ari_sfm.colmap.refine.window import load_window
 
     path = tmp_path / "WINDOW.yaml"
     path.write_text(WINDOW_YAML + "scale_bar:\n  point3D_ids: [12, 873]\n  distance_mm: 500\n")
@@ -411,8 +411,8 @@ def test_declared_plane_prior_pulls_as_its_sigma_shrinks(small_model):
 @pytest.mark.parametrize("held_normal", [False, True])
 def test_declared_plane_prior_same_on_gtsam(held_normal):
     """The plane's prior (and a held normal) in the numpy LM and in the GTSAM graph: the same optimum."""
-    from ari_sfm.colmap_refine.gtsam_graph import GtsamRefinement
-    from ari_sfm.colmap_refine.plane import window_prior
+    from ari_sfm.colmap.refine.gtsam_graph import GtsamRefinement
+    from ari_sfm.colmap.refine.plane import window_prior
 
     truth = port_survey(num_images=6, num_points=120, focal_px=1300, area_mm=(1200, 800), sigma_px=0.2)
     rec = adapter.reconstruction_from_arrays(list(truth.params), truth.image_size, truth.sensor_from_rig,
@@ -548,8 +548,8 @@ def test_sigmas_match_the_spread_over_noise_draws():
                                                  truth.obs_image, truth.obs_point, truth.obs_uv)
         model = adapter.model_from_reconstruction(rec)
         problem = RefractiveProblem(model, truth.interface, "camera", estimate_distance=True)
-        from ari_sfm.colmap_refine.scale_bar import ScaleBar
-        from ari_sfm.colmap_refine.uncertainty import uncertainty
+        from ari_sfm.colmap.refine.scale_bar import ScaleBar
+        from ari_sfm.colmap.refine.uncertainty import uncertainty
 
         a, b, mm = scale_bar_of(truth, model)
         where = {int(p): k for k, p in enumerate(model.point3D_ids)}
@@ -637,7 +637,7 @@ def test_max_iterations_has_help():
 @pytest.mark.parametrize("bad", ["file", "proc", "readonly"])
 def test_bad_out_folder_checked_before_the_refinement(small_model, tmp_path, bad, monkeypatch):
     _, _, folder = small_model
-    import ari_sfm.colmap_refine as cr
+    import ari_sfm.colmap.refine as cr
 
     monkeypatch.setattr(cr, "refine_colmap", lambda *a, **k: pytest.fail("refined before checking -o"))
     if bad == "file":
@@ -712,7 +712,7 @@ def test_full_disk_leaves_no_partial_file(small_model, tmp_path, monkeypatch):
     were and no partial or temporary file."""
     import errno
 
-    from ari_sfm.colmap_refine import refine as refine_module
+    from ari_sfm.colmap.refine import refine as refine_module
 
     _, _, folder = small_model
     out = tmp_path / "out"
@@ -733,7 +733,7 @@ def test_schur_step_is_the_damped_full_system_step():
     """The reduced camera system (built once per linearization) gives the step of the whole damped
     system: at the first trial lambda damps every block (Marquardt, lambda diag); a later trial damps
     the camera block with its own lambda and the points with the first trial's."""
-    from ari_sfm.colmap_refine.problem import huber_weights
+    from ari_sfm.colmap.refine.problem import huber_weights
     from ari_sfm.solver.schur import assemble_from_observations, solve_damped
 
     truth = port_survey(num_images=5, num_points=150, focal_px=1300, area_mm=(1500, 1000))
@@ -767,7 +767,7 @@ def test_restarts_when_the_distance_runs_toward_zero(small_model, monkeypatch):
     starts are refined too and the lowest cost is kept."""
     from dataclasses import replace as dc_replace
 
-    from ari_sfm.colmap_refine import refine as refine_module
+    from ari_sfm.colmap.refine import refine as refine_module
 
     truth, start, _ = small_model
     model = adapter.model_from_reconstruction(start)
@@ -806,11 +806,11 @@ def test_the_report_record_is_refine_json(survey, tmp_path):
 def test_distance_still_at_zero_after_the_restarts_is_named(small_model, monkeypatch, caplog):
     """A distance that ran toward 0 from every start is not reported silently: one warning naming it
     and the remedy, and the port distance in uncertainty.weak."""
-    from ari_sfm.colmap_refine import refine as refine_module
+    from ari_sfm.colmap.refine import refine as refine_module
 
     truth, start, _ = small_model
     monkeypatch.setattr(refine_module, "_collapsed", lambda *args: True)
-    with caplog.at_level("WARNING", logger="ari_sfm.colmap_refine.refine"):
+    with caplog.at_level("WARNING", logger="ari_sfm.colmap.refine.refine"):
         result = refine_colmap(start, truth.interface, "camera", max_iterations=10)
     assert "distance_mm.camera1" in result.report.uncertainty.weak
     assert any("ran to" in r.message and "scale_bar" in r.message and "interface.plane" in r.message

@@ -13,12 +13,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from ari_sfm import colmap_export as adapter
-from ari_sfm.colmap_refine import chain_start, refine as refine_module
-from ari_sfm.colmap_refine.problem import RefractiveProblem, State
-from ari_sfm.colmap_refine.scale_bar import ScaleBar
-from ari_sfm.colmap_refine.solver import Solver
-from ari_sfm.colmap_refine.truth import truth_errors, truth_state
+from ari_sfm.colmap import adapter
+from ari_sfm.colmap.refine import chain_start, refine as refine_module
+from ari_sfm.colmap.refine.problem import RefractiveProblem, State
+from ari_sfm.colmap.refine.scale_bar import ScaleBar
+from ari_sfm.colmap.refine.solver import Solver
+from ari_sfm.colmap.refine.truth import truth_errors, truth_state
 from ari_sfm.geometry import Pose, rotation_from_rotvec
 from ari_sfm.simulate.port_survey import port_survey
 

@@ -96,7 +96,7 @@ def test_entries_layout_singular_block_and_unseen_global():
 
 def test_refine_report_writes_an_undetermined_sigma_as_null():
     """refine.json is strict JSON: a sigma global_covariance left inf/NaN is written null."""
-    from ari_sfm.colmap_refine.report import RefineUncertainty
+    from ari_sfm.colmap.refine.report import RefineUncertainty
 
     u = RefineUncertainty(0.3, {"world": float("inf")}, {"world": 2.0}, {"camera1": float("nan")}, float("nan"),
                           ("normal_deg.world",))

@@ -114,10 +114,10 @@ def test_refine_colmap_gtsam_factor_error_is_the_huber_cost():
     with observations on both sides of the threshold."""
     from test_colmap_refine import truth_state
 
-    from ari_sfm import colmap_export as adapter
-    from ari_sfm.colmap_refine.gtsam_graph import GtsamRefinement
-    from ari_sfm.colmap_refine.problem import RefractiveProblem
-    from ari_sfm.colmap_refine.solver import Solver
+    from ari_sfm.colmap import adapter
+    from ari_sfm.colmap.refine.gtsam_graph import GtsamRefinement
+    from ari_sfm.colmap.refine.problem import RefractiveProblem
+    from ari_sfm.colmap.refine.solver import Solver
     from ari_sfm.simulate.port_survey import port_survey
 
     truth = port_survey(num_images=4, num_points=60, focal_px=1300, area_mm=(1200, 800), sigma_px=0.2)

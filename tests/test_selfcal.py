@@ -172,7 +172,7 @@ def test_window_gauge_motions():
 
 
 def test_motion_jacobians_against_numerical_derivatives(experiment):
-    from ari_sfm.colmap_refine.problem import RefractiveProblem, State
+    from ari_sfm.colmap.refine.problem import RefractiveProblem, State
 
     cal = experiment.truth_b
     landmarks = _true_landmarks(experiment, cal, 20)

@@ -79,7 +79,7 @@ def _similarity(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 @pytest.fixture(scope="module")
 def small_survey():
     """A camera in a flat-port housing over a relief (6 images), COLMAP's pinhole optimum of it."""
-    from ari_sfm import colmap_export as adapter
+    from ari_sfm.colmap import adapter
     from ari_sfm.simulate.port_survey import port_survey
 
     truth = port_survey(num_images=6, num_points=300, focal_px=1300, area_mm=(1200, 800), sigma_px=0.3)
@@ -99,8 +99,8 @@ def _true_centres(truth, model) -> np.ndarray:
 def test_baseline_is_held_by_the_refinement_and_the_centres_need_no_rescaling(small_survey):
     """--baseline (two images' camera centres, e.g. from navigation) is a term of the solver: the refined
     centres keep the given distance (1e-3) and match the true ones after a rigid motion, without a scale."""
-    from ari_sfm import colmap_export as adapter
-    from ari_sfm.colmap_refine import refine_colmap
+    from ari_sfm.colmap import adapter
+    from ari_sfm.colmap.refine import refine_colmap
 
     truth, start = small_survey
     model = adapter.model_from_reconstruction(start)
@@ -123,9 +123,9 @@ def test_baseline_is_held_by_the_refinement_and_the_centres_need_no_rescaling(sm
 
 
 def test_baseline_jacobian_matches_central_differences(small_survey):
-    from ari_sfm import colmap_export as adapter
-    from ari_sfm.colmap_refine.problem import RefractiveProblem
-    from ari_sfm.colmap_refine.refine import _baseline, _initial_state, _with_distance
+    from ari_sfm.colmap import adapter
+    from ari_sfm.colmap.refine.problem import RefractiveProblem
+    from ari_sfm.colmap.refine.refine import _baseline, _initial_state, _with_distance
 
     truth, start = small_survey
     model = adapter.model_from_reconstruction(start)
@@ -147,8 +147,8 @@ def test_baseline_jacobian_matches_central_differences(small_survey):
     ((0, 1, -5.0), ["positive"]),
 ])
 def test_bad_baseline_one_error(small_survey, baseline, words):
-    from ari_sfm import colmap_export as adapter
-    from ari_sfm.colmap_refine import refine_colmap
+    from ari_sfm.colmap import adapter
+    from ari_sfm.colmap.refine import refine_colmap
     from ari_sfm.errors import AriSfmError
 
     truth, start = small_survey
@@ -244,7 +244,7 @@ def test_flipped_normal_refused_when_read_so_the_fork_never_gets_nz_below_0(tmp_
     """A calibration.json whose window normal points away from the cameras: every corner projected to NaN
     (evaluate printed 'rmse nan px') and the fork's FLATPORT got Nz < 0 that import refuses. Now the reading
     refuses it, naming the key; the export's writer refuses Nz <= 0 as the import does."""
-    from ari_sfm.colmap_fork import format_camera_line
+    from ari_sfm.colmap.fork import format_camera_line
     from ari_sfm.errors import AriSfmError
     from ari_sfm.records import Interface
 
@@ -443,7 +443,7 @@ def test_sfm_a_file_where_it_writes_a_folder(tmp_path, name):
 def test_sfm_colmap_native_abort_is_one_line_and_leaves_nothing(tmp_path, monkeypatch, stderr, words):
     """COLMAP aborting natively (a glog CHECK on a full disk) printed a 25-line stack and left colmap.partial/
     database.db, -wal, -shm: COLMAP runs in a child process now; its abort is one line, nothing is left."""
-    from ari_sfm import sfm
+    from ari_sfm.colmap import sfm
 
     code = ("import json, os, sys; a = json.loads(sys.argv[1]); os.makedirs(a['work'], exist_ok=True); "
             "[open(os.path.join(a['work'], 'database.db' + x), 'w').close() for x in ('', '-wal', '-shm')]; "
@@ -471,7 +471,7 @@ def test_sfm_baseline_held_and_unregistered_images_named(tmp_path, monkeypatch, 
     """`sfm --baseline` end to end with COLMAP's model given (a child that writes the simulated survey's pinhole
     optimum): sfm.json's baseline is refined to the given distance (was 18 % off); an image COLMAP did not
     register is named in the summary and sfm.json."""
-    from ari_sfm import colmap_export as adapter, sfm
+    from ari_sfm.colmap import adapter, sfm
 
     truth, start = small_survey
     model = adapter.model_from_reconstruction(start)
@@ -587,8 +587,8 @@ def test_depth_range_bounded(tmp_path, command):
 def test_pixels_far_outside_the_image_refused_by_evaluate_and_refine_colmap(tmp_path, small_survey):
     from dataclasses import replace
 
-    from ari_sfm import colmap_export as adapter, evaluate
-    from ari_sfm.colmap_refine.refine import _check_finite
+    from ari_sfm.colmap import adapter, evaluate
+    from ari_sfm.colmap.refine.refine import _check_finite
     from ari_sfm.errors import AriSfmError
     from ari_sfm.io import load_observations
 
@@ -754,7 +754,7 @@ def test_colmaps_bundle_adjustment_prints_no_info_lines_without_verbose(capfd):
     logging at WARNING) they are dropped and a warning it writes is kept; with -v they show."""
     import logging
 
-    from ari_sfm import colmap_export as adapter
+    from ari_sfm.colmap import adapter
     from ari_sfm.simulate.port_survey import port_survey
 
     truth = port_survey(seed=0, num_images=4, num_points=50)
@@ -762,7 +762,7 @@ def test_colmaps_bundle_adjustment_prints_no_info_lines_without_verbose(capfd):
         [np.r_[p[:2] * 1.02, p[2:4]] for p in truth.params], truth.image_size, truth.sensor_from_rig,
         truth.rig_from_world, truth.image_camera, truth.image_frame, truth.xyz, truth.obs_image, truth.obs_point,
         truth.obs_uv)
-    logger = logging.getLogger("ari_sfm.colmap_export")
+    logger = logging.getLogger("ari_sfm.colmap.adapter")
     before = logger.level
     try:
         logger.setLevel(logging.WARNING)

@@ -307,7 +307,7 @@ def test_export_openptv_gives_each_camera_its_windows_glass(calibrated, tmp_path
 
 
 def test_fork_flatport_round_trip_keeps_the_windows(calibrated, tmp_path):
-    from ari_sfm.colmap_fork import export_colmap_fork, import_colmap_fork
+    from ari_sfm.colmap.fork import export_colmap_fork, import_colmap_fork
 
     cal = calibrated["tank_opposite"]
     export_colmap_fork(cal, tmp_path / "fork")

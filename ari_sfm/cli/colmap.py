@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from ..colmap_refine import settings as REFINE
+from ..colmap.refine import settings as REFINE
 from ..errors import AriSfmError
 from .checks import check_number, check_output_folder
 from .process import user_errors
@@ -27,7 +27,7 @@ from .process import user_errors
 def export_colmap_cmd(calibration: Path, out: Path, dataset: Path | None, points: Path | None,
                       approximation: str) -> None:
     """Write CALIBRATION as a COLMAP model (cameras, rig, frames, images, 3D points with tracks) to OUT."""
-    from ..colmap_export import export_colmap, summary
+    from ..colmap.adapter import export_colmap, summary
 
     check_output_folder(out)
     folder = calibration.parent  # an `ari-sfm run` folder: its observations, dataset and points by default
@@ -69,7 +69,7 @@ def sfm_cmd(images: Path, window: Path, out: Path, matcher: str, overlap: int, f
             threads: int) -> None:
     """Structure from motion behind a flat window: COLMAP's SIFT, matching and incremental mapping (CPU),
     then refine-colmap with the exact refractive model, in one command."""
-    from ..sfm import SfmOptions, run_sfm
+    from ..colmap.sfm import SfmOptions, run_sfm
 
     check_output_folder(out)
     check_number("--overlap", overlap, minimum=1)
@@ -108,7 +108,7 @@ _units_option = click.option("--units-mm", type=float, default=1000.0, show_defa
 @user_errors
 def export_colmap_fork_cmd(calibration: Path, out: Path, dataset: Path | None, units_mm: float) -> None:
     """Write an exact CALIBRATION as a model of the refractive COLMAP fork (colmap_underwater, FLATPORT cameras)."""
-    from ..colmap_fork import check_units_mm, export_colmap_fork
+    from ..colmap.fork import check_units_mm, export_colmap_fork
     from ..io import load_calibration, load_observations
     from ..report import find_dataset
 
@@ -138,7 +138,7 @@ def export_colmap_fork_cmd(calibration: Path, out: Path, dataset: Path | None, u
 def import_colmap_fork_cmd(model_dir: Path, out: Path, units_mm: float) -> None:
     """Read the FLATPORT cameras of a refractive COLMAP fork text model (MODEL_DIR/cameras.txt, images.txt) as
     an exact-model calibration.json."""
-    from ..colmap_fork import check_units_mm, import_colmap_fork
+    from ..colmap.fork import check_units_mm, import_colmap_fork
     from ..io import save_calibration
 
     check_output_folder(out)
@@ -169,8 +169,8 @@ def import_colmap_fork_cmd(model_dir: Path, out: Path, units_mm: float) -> None:
 @user_errors
 def refine_colmap_cmd(model_dir: Path, window: Path, out: Path, huber_px: float, max_iterations: int) -> None:
     """Refine the COLMAP model in MODEL_DIR (made behind a flat window) with the exact refractive model."""
-    from ..colmap_refine import refine_colmap, write_refined
-    from ..colmap_refine.window import load_window
+    from ..colmap.refine import refine_colmap, write_refined
+    from ..colmap.refine.window import load_window
 
     check_number("--huber-px", huber_px, 0.0, strict_minimum=True)
     check_number("--max-iterations", max_iterations, 1)

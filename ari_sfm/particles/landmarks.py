@@ -18,7 +18,7 @@ second-order terms), so the particles alone split them poorly, while the target 
 sigmas bound them. Prior rows are whitened against the particles' pixel noise (``noise_px``) so the
 two kinds of information are weighed right.
 
-The problem is refine-colmap's refractive problem (:class:`ari_sfm.colmap_refine.problem.RefractiveProblem`,
+The problem is refine-colmap's refractive problem (:class:`ari_sfm.colmap.refine.problem.RefractiveProblem`,
 world mount, ``camera_windows`` for several windows): one rig frame (camera 0's pose, a variable
 here) and each other camera's sensor_from_rig. The points are eliminated by the Schur complement
 (:mod:`ari_sfm.solver.schur`), the project's Levenberg-Marquardt solves it; GTSAM solves the
@@ -93,7 +93,7 @@ def free_intrinsics(calibration: Calibration, mode: str) -> tuple[int, ...]:
 def landmark_model(calibration: Calibration, particles: ParticleSet, free: Sequence[int]):
     """The particles as a one-frame COLMAP-like model: one image per camera, camera 0 the rig's
     reference sensor; ``free`` intrinsic indices (of the 9) are variables."""
-    from ..colmap_export import ColmapModel
+    from ..colmap.adapter import ColmapModel
 
     names = list(calibration.cameras)
     C = len(names)
@@ -363,7 +363,7 @@ def whitening_of(covariance: np.ndarray) -> np.ndarray:
 
 def _solver_class():
     """refine-colmap's Solver plus the gauge, scale and intrinsics prior rows."""
-    from ..colmap_refine.solver import Solver
+    from ..colmap.refine.solver import Solver
 
     class SelfCalSolver(Solver):
         def __init__(self, problem, huber_px, gauge: Gauge, prior: IntrinsicsPrior, noise_px: float) -> None:
@@ -441,7 +441,7 @@ def covariance(solver, state, names: Sequence[str], system=None) -> Covariance:
 
 def fitted_noise(solver, state) -> float:
     """The a-posteriori pixel noise per coordinate: sqrt(Huber-weighted chi^2 / degrees of freedom)."""
-    from ..colmap_refine.problem import huber_weights
+    from ..colmap.refine.problem import huber_weights
 
     r = solver.problem.residuals(state)
     w = huber_weights(r, solver.huber_px)
@@ -456,7 +456,7 @@ def _gtsam_refinement(problem, huber_px: float | None, gauge: Gauge, prior: Intr
     """refine-colmap's GTSAM graph plus the gauge, scale and intrinsics prior rows as CustomFactors."""
     import gtsam
 
-    from ..colmap_refine import gtsam_graph as gg
+    from ..colmap.refine import gtsam_graph as gg
 
     lay = problem.layout
     C = len(problem.model.camera_ids)
@@ -562,7 +562,7 @@ def refine_with_landmarks(calibration: Calibration, particles: ParticleSet, gaug
     every camera's pose and the free intrinsics estimated, the window held in the world, the ``gauge``
     and the scale held. ``noise_px``: the first guess of the pixel noise the priors are weighed against
     (refitted when the residuals say otherwise)."""
-    from ..colmap_refine.problem import RefractiveProblem, State
+    from ..colmap.refine.problem import RefractiveProblem, State
 
     t0 = time.perf_counter()
     if backend not in BACKENDS:

@@ -1,6 +1,6 @@
 """The bundle-adjustment core: normal equations with many small independent blocks, solved by the
 Schur complement. Shared by the rig calibration (:mod:`ari_sfm.factors.packed_problem`: the blocks
-are the target frames, k = 6) and refine-colmap (:class:`ari_sfm.colmap_refine.refine.Solver`: the
+are the target frames, k = 6) and refine-colmap (:class:`ari_sfm.colmap.refine.refine.Solver`: the
 blocks are the 3D points, k = 3).
 
 The variables split into N blocks of k (independent of each other given the rest) and G global

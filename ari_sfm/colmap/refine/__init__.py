@@ -19,4 +19,4 @@ def __getattr__(name: str):
         from . import refine
 
         return getattr(refine, name)
-    raise AttributeError(f"module 'ari_sfm.colmap_refine' has no attribute {name!r}")
+    raise AttributeError(f"module 'ari_sfm.colmap.refine' has no attribute {name!r}")

@@ -4,8 +4,8 @@
 
 Steps: COLMAP's CPU SIFT features, matching (exhaustive, or sequential for long image sequences),
 incremental mapping (one PINHOLE camera shared by all images: a camera in its housing), all through
-the pycolmap adapter (:func:`ari_sfm.colmap_export.structure_from_motion`); then refine-colmap
-(:func:`ari_sfm.colmap_refine.refine_colmap`) with the WINDOW.yaml plate and mount.
+the pycolmap adapter (:func:`ari_sfm.colmap.adapter.structure_from_motion`); then refine-colmap
+(:func:`ari_sfm.colmap.refine.refine_colmap`) with the WINDOW.yaml plate and mount.
 
 OUT gets ``colmap/`` (COLMAP's database and its pinhole model, ``colmap/sparse/<n>``), ``refined/``
 (refine-colmap's outputs: the COLMAP model of the refined cameras, calibration.json, refine.json)
@@ -27,11 +27,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .colmap_refine import settings as REFINE
-from .errors import AriSfmError
+from ..errors import AriSfmError
+from .refine import settings as REFINE
 
 if TYPE_CHECKING:
-    from .colmap_refine.refine import RefineResult
+    from .refine.refine import RefineResult
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +72,7 @@ class SfmResult:
 
 def list_images(folder: Path) -> list[Path]:
     """The image files COLMAP will read in ``folder`` (checked: a folder with at least MIN_IMAGES)."""
-    from .colmap_export import SFM_IMAGE_SUFFIXES
+    from .adapter import SFM_IMAGE_SUFFIXES
 
     if not folder.is_dir():
         raise AriSfmError(folder, "no such folder of images" if not folder.exists() else "is a file, expected a "
@@ -147,8 +147,8 @@ def check_sfm_options(options: SfmOptions, image_size: tuple[int, int] | None = 
 
 def run_sfm(images: str | Path, window: str | Path, out: str | Path, options: SfmOptions = SfmOptions()) -> SfmResult:
     """Structure from motion behind a flat window: COLMAP's SfM, then refine-colmap; see the module docstring."""
-    from .colmap_refine.window import load_window
-    from .io import exclusive_folder
+    from ..io import exclusive_folder
+    from .refine.window import load_window
 
     images, window, out = Path(images), Path(window), Path(out)
     check_sfm_options(options)
@@ -181,9 +181,9 @@ def run_sfm(images: str | Path, window: str | Path, out: str | Path, options: Sf
 def _run_sfm(images: Path, window: Path, out: Path, options: SfmOptions, files: list[Path], spec: Any, matcher: str,
              created: bool) -> SfmResult:
     """:func:`run_sfm` once its inputs are checked and ``out`` is held."""
-    from .colmap_export import read_colmap
-    from .colmap_refine import refine_colmap, write_refined
-    from .io import write_json_atomic
+    from ..io import write_json_atomic
+    from .adapter import read_colmap
+    from .refine import refine_colmap, write_refined
 
     partial, final = out / "colmap.partial", out / "colmap"
     if partial.exists():  # a killed run's (this folder is held: no other run is using it)
@@ -281,12 +281,13 @@ class _NothingReconstructed(Exception):
 
 NOTHING_EXIT = 3  # the COLMAP child: the mapper made no model
 ERROR_EXIT = 4  # the COLMAP child: an AriSfmError, said on its stdout
-CHILD_CODE = "from ari_sfm.sfm import _child_main; _child_main()"  # what the COLMAP child runs (argv[1]: its JSON)
+# what the COLMAP child runs (argv[1]: its JSON)
+CHILD_CODE = "from ari_sfm.colmap.sfm import _child_main; _child_main()"
 STDERR_KEPT = 40  # the COLMAP child's last stderr lines kept for the error message
 
 
 def _colmap_in_child(images: Path, partial: Path, options: SfmOptions, matcher: str, on_step, on_image) -> None:
-    """COLMAP's steps (:func:`ari_sfm.colmap_export.structure_from_motion`) in a child process, its models in
+    """COLMAP's steps (:func:`ari_sfm.colmap.adapter.structure_from_motion`) in a child process, its models in
     ``partial/sparse``: a native abort (COLMAP's CHECK on a full disk, SQLite failing) ends the child, not this
     command, and becomes one AriSfmError line. The child reports its steps and registered images on stdout."""
     import collections
@@ -363,7 +364,7 @@ def _child_main() -> None:
     import json
     import sys
 
-    from .colmap_export import structure_from_motion
+    from .adapter import structure_from_motion
 
     a = json.loads(sys.argv[1])
     logging.basicConfig(level=logging.INFO if a["verbose"] else logging.WARNING, format="%(levelname)s: %(message)s")

@@ -4,7 +4,7 @@
       thickness_mm: 8
       index: 1.49
       medium_index: 1.333 # optional, 1 (air) by default
-      plane:              # optional: the window as built (see colmap_refine/plane.py)
+      plane:              # optional: the window as built (see colmap/refine/plane.py)
         normal: [0, 0, 1] # mount camera: in the camera (housing) frame; world: the COLMAP world
         point_mm: [0, 0, 22]  # a point of the camera-side face (world: COLMAP coordinates in mm)
         sigma_deg: 0.5    # optional; absent or 0: held, > 0: a prior

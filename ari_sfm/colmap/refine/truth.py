@@ -5,7 +5,7 @@ from typing import Any
 
 import numpy as np
 
-from ari_sfm.colmap_export import COLMAP_PIXEL_OFFSET, ColmapModel, model_from_reconstruction
+from ari_sfm.colmap.adapter import COLMAP_PIXEL_OFFSET, ColmapModel, model_from_reconstruction
 from ari_sfm.geometry import Pose, angle_between_deg
 from ari_sfm.simulate.port_survey import SfmTruth
 

@@ -5,7 +5,7 @@ Residual ``(|X_a - X_b| - L) / sigma`` (dimensionless, added to the cost as ``0.
 pixel residuals), with ``sigma = BAR_SIGMA_REL * L``: stiff enough that the result keeps the bar's
 length (the cost is nearly flat along the scale), soft enough to stay a least-squares term. The two
 points are moved out of the Schur elimination into the reduced variables (the bar couples them),
-:class:`ari_sfm.colmap_refine.solver.Solver` does that. A baseline is the same residual on two
+:class:`ari_sfm.colmap.refine.solver.Solver` does that. A baseline is the same residual on two
 images' camera centres ``C = -R^T t`` of their ``cam_from_world = sensor_from_rig * rig_from_world``;
 its variables (frame and sensor poses) are reduced variables already.
 """

@@ -15,7 +15,7 @@ Per observation o and pixel row j (row vectors; ``x`` the cross product, ``j^T [
 """
 from __future__ import annotations
 
-from ..kernel_cache import njit  # numba's njit, the kernels compiled into the wheel read first
+from ...kernel_cache import njit  # numba's njit, the kernels compiled into the wheel read first
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 

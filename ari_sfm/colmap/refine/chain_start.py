@@ -21,7 +21,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ari_sfm import colmap_export as adapter
+from ari_sfm.colmap import adapter
 from ari_sfm.geometry import Pose
 
 from .problem import State

@@ -1,5 +1,5 @@
 """The points problem's solver: Levenberg-Marquardt on the robust (Huber) cost of a
-:class:`~ari_sfm.colmap_refine.problem.RefractiveProblem`, the points eliminated by the Schur complement
+:class:`~ari_sfm.colmap.refine.problem.RefractiveProblem`, the points eliminated by the Schur complement
 (:mod:`ari_sfm.solver.schur`); a window prior and a scale bar or baseline as terms of the cost. Used by
 refine-colmap and, with the gauge added, by volume self-calibration."""
 from __future__ import annotations
@@ -11,7 +11,7 @@ import numpy as np
 
 from ari_sfm.geometry import unit3_basis
 
-from ..solver.schur import assemble_from_observations, model_decrease, solve_damped
+from ...solver.schur import assemble_from_observations, model_decrease, solve_damped
 from .plane import WindowPrior
 from .problem import RefractiveProblem, State, huber_cost, huber_weights
 from .scale_bar import Baseline, ScaleBar
@@ -135,7 +135,7 @@ class Solver:
             relative_tolerance: float | None = None) -> SolveResult:
         """The numpy backend: points Schur + the project's Levenberg-Marquardt (GTSAM's algorithm);
         ``relative_tolerance``: LM's (default RELATIVE_TOLERANCE)."""
-        from ..solver.levenberg_marquardt import LMParams, levenberg_marquardt
+        from ...solver.levenberg_marquardt import LMParams, levenberg_marquardt
 
         tol = RELATIVE_TOLERANCE if relative_tolerance is None else relative_tolerance
         res = levenberg_marquardt(self, state, max_iterations, tol, LMParams(lambda_initial=1e-4), progress=progress)

@@ -28,7 +28,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ari_sfm.colmap_export import ColmapModel
+from ari_sfm.colmap.adapter import ColmapModel
 from ari_sfm.factors.robust import huber_loss, huber_weight
 from ari_sfm.geometry import Pose, rotation_from_rotvec, unit3_basis, unit3_retract
 from ari_sfm.models import ExactModel, PinholeModel

@@ -57,13 +57,13 @@ from typing import Any
 
 import numpy as np
 
-from .calibration import Calibration
-from .deps import import_pycolmap
-from .errors import AriSfmError
-from .geometry import Pose
-from .io import load_calibration
-from .provenance import observations_mismatch
-from .records import Dataset, Observation
+from ..calibration import Calibration
+from ..deps import import_pycolmap
+from ..errors import AriSfmError
+from ..geometry import Pose
+from ..io import load_calibration
+from ..provenance import observations_mismatch
+from ..records import Dataset, Observation
 
 log = logging.getLogger(__name__)
 
@@ -83,7 +83,7 @@ pycolmap = import_pycolmap(MIN_PYCOLMAP)
 
 PYCOLMAP_VERSION = _version(getattr(pycolmap, "__version__", "0.0"))
 if PYCOLMAP_VERSION < MIN_PYCOLMAP:  # pragma: no cover - depends on the installed version
-    raise ImportError(f"ari_sfm.colmap_export needs pycolmap >= {MIN_PYCOLMAP[0]}.{MIN_PYCOLMAP[1]}, "
+    raise ImportError(f"ari_sfm.colmap.adapter needs pycolmap >= {MIN_PYCOLMAP[0]}.{MIN_PYCOLMAP[1]}, "
                       f"found {pycolmap.__version__}")
 HAS_RIGS = PYCOLMAP_VERSION >= RIG_PYCOLMAP and hasattr(pycolmap, "Rig") and hasattr(pycolmap, "Frame")
 
@@ -158,8 +158,8 @@ def virtual_camera(calibration: Calibration, camera: str, points_world: np.ndarr
     """
     from scipy.optimize import least_squares
 
-    from .geometry import rotation_from_rotvec
-    from .models import AriModel, PinholeModel
+    from ..geometry import rotation_from_rotvec
+    from ..models import AriModel, PinholeModel
 
     if approximation not in APPROXIMATIONS:
         raise ValueError(f"approximation must be one of {APPROXIMATIONS}, got {approximation!r}")
@@ -281,13 +281,13 @@ def _as_points(points: Any) -> Mapping[str, Any] | None:
     if points is None:
         return None
     if isinstance(points, (str, Path)):
-        from .io import load_points
+        from ..io import load_points
 
         return load_points(points)
     if isinstance(points, Mapping):
         return points
     if hasattr(points, "to_json"):
-        from .io.points import parse_points
+        from ..io.points import parse_points
 
         return parse_points(points.to_json(), Path("points.json"))
     raise TypeError(f"points must be a points.json path or mapping, got {type(points).__name__}")
@@ -300,7 +300,7 @@ def _check_points_belong(points_data: Mapping[str, Any], points: Any, calibratio
     Its recorded calibration hash (:mod:`ari_sfm.provenance`) must be the
     calibration file's; every frame must have observations to give its tracks.
     """
-    from .provenance import calibration_mismatch
+    from ..provenance import calibration_mismatch
 
     where = points if isinstance(points, (str, Path)) else "points.json"
     if cal_path is not None:
@@ -319,7 +319,7 @@ def _check_points_belong(points_data: Mapping[str, Any], points: Any, calibratio
 def _observations(calibration: Calibration, dataset: Dataset | str | Path | None,
                   calibration_path: Path | None) -> tuple[Dataset | None, Sequence[Observation]]:
     """The dataset (if any) and the observations to export (dataset's, else observations.json beside CAL)."""
-    from .io import load_dataset, load_observations
+    from ..io import load_dataset, load_observations
 
     if isinstance(dataset, (str, Path)):
         dataset = load_dataset(dataset)
@@ -474,7 +474,7 @@ def write_model(rec: Any, out_dir: str | Path, ply: bool = True) -> None:
     none replaced. pycolmap does not report a failed write (a full disk left truncated .bin files with exit 0),
     so each file's size is checked against the bytes its content needs before anything is replaced (reading
     a truncated model back is no check: pycolmap then allocates by garbage counts)."""
-    from .io import write_files_atomic
+    from ..io import write_files_atomic
 
     def writer(tmp: Path) -> None:
         rec.write(str(tmp))

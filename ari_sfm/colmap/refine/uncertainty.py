@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from ..solver.schur import global_covariance
+from ...solver.schur import global_covariance
 from .problem import huber_weights
 from .report import RefineUncertainty
 

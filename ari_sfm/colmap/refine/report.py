@@ -1,6 +1,6 @@
 """refine-colmap's report as frozen records: :class:`RefineReport` (``to_json()`` is refine.json, the
 contract of docs/DATASET_FORMAT.md) and its parts. Built at the end of
-:func:`~ari_sfm.colmap_refine.refine.refine_colmap`; read by the CLI, ``ari-sfm sfm`` and the benchmarks."""
+:func:`~ari_sfm.colmap.refine.refine.refine_colmap`; read by the CLI, ``ari-sfm sfm`` and the benchmarks."""
 from __future__ import annotations
 
 import math
@@ -60,7 +60,7 @@ class Reprojection:
 
 @dataclass(frozen=True)
 class RefineUncertainty:
-    """1-sigma standard deviations at the solution (:func:`ari_sfm.colmap_refine.uncertainty.uncertainty`):
+    """1-sigma standard deviations at the solution (:func:`ari_sfm.colmap.refine.uncertainty.uncertainty`):
     by housing name (``camera<id>``, or ``world`` for mount world)."""
 
     sigma0: float  # the a-posteriori pixel sigma

@@ -19,7 +19,7 @@ Conventions, from the fork's ``src/colmap/sensor/models_refrac.h`` and ``ray3d.h
   ``distance_mm = int_dist units_mm``, ``thickness_mm = int_thick units_mm``, ``index = ng``,
   ``medium_index = nw``; ari-sfm has air in the housing, so ``na`` must be 1.
 - Pixels: COLMAP's (origin at the pixel corner): ``cx_colmap = cx_opencv + 0.5``
-  (:func:`ari_sfm.colmap_export.colmap_from_opencv_px`, the one place of that offset).
+  (:func:`ari_sfm.colmap.adapter.colmap_from_opencv_px`, the one place of that offset).
 - In-air models: ``PINHOLE`` (no distortion), ``OPENCV`` (k1 k2 p1 p2), ``FULL_OPENCV`` (k3, with
   its k4..k6 zero) written; those and ``SIMPLE_PINHOLE``, ``SIMPLE_RADIAL``, ``RADIAL`` read.
 
@@ -44,22 +44,22 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .calibration import Calibration, CameraCalibration, WindowCalibration
-from .calibration_origin import ImportedFrom
-from .errors import AriSfmError
-from .geometry import Pose, angle_between_deg
-from .io import load_calibration
-from .records import Interface, Observation
+from ..calibration import Calibration, CameraCalibration, WindowCalibration
+from ..calibration_origin import ImportedFrom
+from ..errors import AriSfmError
+from ..geometry import Pose, angle_between_deg
+from ..io import load_calibration
+from ..records import Interface, Observation
 
 if TYPE_CHECKING:
-    from .records import Dataset
+    from ..records import Dataset
 
 log = logging.getLogger(__name__)
 
 REFRAC_MODEL = "FLATPORT"
 REFRAC_TOKEN = "REFRAC"  # written before the refractive model's name by later versions of the fork
 DEFAULT_UNITS_MM = 1000.0  # mm per length unit of the fork's model: metres, as in the fork's examples
-COLMAP_PIXEL_OFFSET = 0.5  # as ari_sfm.colmap_export (kept here so that reading needs no pycolmap)
+COLMAP_PIXEL_OFFSET = 0.5  # as ari_sfm.colmap.adapter (kept here so that reading needs no pycolmap)
 # in-air camera models: name -> number of parameters
 CAMERA_MODELS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8, "FULL_OPENCV": 12}
 POSE_TOLERANCE = 1e-6  # rad, and relative to the rig's size: images of one static camera agree to this
@@ -284,7 +284,7 @@ def _target_images(cal: Calibration, observations: Sequence[Observation] | None
 def _refined_images(cal: Calibration, model_dir: Path) -> tuple[dict[str, int], list[_Image], dict[int, np.ndarray]]:
     """A refine-colmap output (its calibration.json and the COLMAP model beside it): COLMAP's camera
     ids, every image at its real pose with its 2D points, the refined points (mm)."""
-    from . import colmap_export as adapter
+    from . import adapter
 
     info = cal.refine_colmap
     if info is None or info.mount != "camera":
@@ -308,8 +308,8 @@ def _refined_images(cal: Calibration, model_dir: Path) -> tuple[dict[str, int], 
 
 def _dataset_observations(cal: Calibration, dataset: Dataset | str | Path, path: Path) -> Sequence[Observation]:
     """The observations of a dataset of the calibration's rig (another rig's: AriSfmError, as calibrate's)."""
-    from .io import load_dataset
-    from .reconstruct import check_rig
+    from ..io import load_dataset
+    from ..reconstruct import check_rig
 
     ds = load_dataset(dataset) if isinstance(dataset, (str, Path)) else dataset
     check_rig(ds, cal, path)
@@ -334,8 +334,8 @@ def export_colmap_fork(calibration: Calibration | str | Path, out_dir: str | Pat
     with the target corners (observations that are not the calibration's: AriSfmError); else one image
     per camera (its pose), with a warning. ``calibration_path``: the file named in errors when
     ``calibration`` is a record."""
-    from .io import write_files_atomic
-    from .provenance import observations_mismatch
+    from ..io import write_files_atomic
+    from ..provenance import observations_mismatch
 
     path = Path(calibration) if isinstance(calibration, (str, Path)) else Path(calibration_path or "calibration.json")
     cal = load_calibration(calibration) if isinstance(calibration, (str, Path)) else calibration
@@ -543,7 +543,7 @@ def import_colmap_fork(model_dir: str | Path, units_mm: float = DEFAULT_UNITS_MM
 def _check_as_calibration_json(cal: Calibration, where: Path, units_mm: float) -> None:
     """The imported calibration held to calibration.json's bounds (a plate of 1e298 mm: the wrong --units-mm),
     so that what import writes, every command reads."""
-    from .io import calibration_to_json, parse_calibration
+    from ..io import calibration_to_json, parse_calibration
 
     try:
         parse_calibration(calibration_to_json(cal), where)

@@ -19,7 +19,7 @@ refused with one line). A scale bar is a term of the solver (:mod:`.scale_bar`):
 first runs without it (the scale free, along its near-flat valley), the result is rescaled to
 the bar, and the refinement runs again with the bar held; going straight to the held bar left a
 short-track strip in a wrong-scale valley (40-image strip: 1.80 px, points 47 mm; this way 0.62 px,
-1.2 mm). :mod:`ari_sfm.colmap_refine.problem` lists what is estimated.
+1.2 mm). :mod:`ari_sfm.colmap.refine.problem` lists what is estimated.
 
 A long chain (a strip survey) starts otherwise: :mod:`.chain_start`.
 
@@ -38,9 +38,9 @@ from typing import Any
 
 import numpy as np
 
-from ari_sfm import colmap_export as adapter
 from ari_sfm.calibration import Calibration, CameraCalibration
 from ari_sfm.calibration_origin import RefineColmapFrames
+from ari_sfm.colmap import adapter
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose, rotation_from_rotvec
 from ari_sfm.io import save_calibration
