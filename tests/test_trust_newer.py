@@ -587,7 +587,8 @@ def test_depth_range_bounded(tmp_path, command):
 def test_pixels_far_outside_the_image_refused_by_evaluate_and_refine_colmap(tmp_path, small_survey):
     from dataclasses import replace
 
-    from ari_sfm.colmap import adapter, evaluate
+    from ari_sfm import evaluate
+    from ari_sfm.colmap import adapter
     from ari_sfm.colmap.refine.refine import _check_finite
     from ari_sfm.errors import AriSfmError
     from ari_sfm.io import load_observations
