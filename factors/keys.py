@@ -7,6 +7,14 @@
 - X(f): world_T_target of target frame f (calibration frames and stacking poses)
 - H(w): window w's near face as the world plane ``N(w) . X = H(w)`` (mm), a Vector1; for the window
   of camera 0 (the world's origin) the distance from camera 0's centre (``H`` = H(0))
+
+The points problem of refine-colmap and self-calibration (:mod:`ari_sfm.colmap.refine.gtsam_graph`) uses
+K(c) and N(w) as above and:
+
+- F(k): rig_from_world of frame k (a Pose3; frame 0 is the gauge, no variable)
+- S(c): sensor_from_rig of camera c (a Pose3; the reference sensors have none)
+- D(w): window w's distance (a Vector1)
+- P(j): a 3D point (a Point3)
 """
 from __future__ import annotations
 
@@ -37,3 +45,23 @@ def window_plane(window_index: int) -> int:
 
 N = window_normal(0)
 H = window_plane(0)
+
+
+def rig_frame(frame_index: int) -> int:
+    """F(k): the points problem's rig_from_world of frame k."""
+    return gtsam.symbol("f", frame_index)
+
+
+def sensor(camera_index: int) -> int:
+    """S(c): the points problem's sensor_from_rig of camera c."""
+    return gtsam.symbol("s", camera_index)
+
+
+def window_distance(window_index: int) -> int:
+    """D(w): the points problem's window distance."""
+    return gtsam.symbol("d", window_index)
+
+
+def point(point_index: int) -> int:
+    """P(j): the points problem's 3D point j."""
+    return gtsam.symbol("p", point_index)

@@ -457,6 +457,7 @@ def _gtsam_refinement(problem, huber_px: float | None, gauge: Gauge, prior: Intr
     import gtsam
 
     from ..colmap.refine import gtsam_graph as gg
+    from ..factors import keys as K_
 
     lay = problem.layout
     C = len(problem.model.camera_ids)
@@ -466,14 +467,14 @@ def _gtsam_refinement(problem, huber_px: float | None, gauge: Gauge, prior: Intr
             v = super().values(st)
             for c in range(C):  # held intrinsics: no variable
                 if not problem.model.param_map[c].any():
-                    v.erase(gg._intrinsics_key(c))
+                    v.erase(K_.K(c))
             return v
 
         def state(self, values, template):
             v = gtsam.Values(values)
             for c in range(C):
                 if not problem.model.param_map[c].any():
-                    v.insert(gg._intrinsics_key(c), np.zeros(0))
+                    v.insert(K_.K(c), np.zeros(0))
             return super().state(v, template)
 
         def optimize(self, st, max_iterations: int = 100):
@@ -488,7 +489,7 @@ def _gtsam_refinement(problem, huber_px: float | None, gauge: Gauge, prior: Intr
 
         def graph(self, st):
             g = super().graph(st)
-            pose_keys = [gg._frame_key(0)] + [gg._sensor_key(c) for c in range(C) if lay.sensors[c, 0] >= 0]
+            pose_keys = [K_.rig_frame(0)] + [K_.sensor(c) for c in range(C) if lay.sensors[c, 0] >= 0]
             pose_cols = [lay.frames[0]] + [lay.sensors[c] for c in range(C) if lay.sensors[c, 0] >= 0]
             template = st
 
@@ -523,7 +524,7 @@ def _gtsam_refinement(problem, huber_px: float | None, gauge: Gauge, prior: Intr
                           for c, ix in enumerate(lay.intrinsics)]
             with_prior = [(c, js) for c, js in with_prior if js]
             if with_prior:
-                keys = [gg._intrinsics_key(c) for c, _ in with_prior]
+                keys = [K_.K(c) for c, _ in with_prior]
                 p0 = np.concatenate([prior.values[c, js] for c, js in with_prior])
                 starts = np.cumsum([0] + [len(js) for _, js in with_prior])
 

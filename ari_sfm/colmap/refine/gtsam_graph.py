@@ -1,9 +1,10 @@
 """The same refinement as a GTSAM factor graph: one CustomFactor per image holding all its observations.
 
-Variables (keys): ``f(k)`` Pose3 rig_from_world of frame k >= 1 (frame 0 held: the gauge, not a
-variable), ``s(c)`` Pose3 sensor_from_rig of camera c (non-reference sensors), ``k(c)`` Vector of
-camera c's free COLMAP intrinsics, ``n(w)`` Unit3 window normal and ``d(w)`` Vector1 distance
-(mount camera: w = camera; mount world: w = 0), ``p(j)`` Point3 per COLMAP point3D.
+Variables (keys, from the one key table :mod:`ari_sfm.factors.keys`): ``f(k)`` Pose3 rig_from_world of
+frame k >= 1 (frame 0 held: the gauge, not a variable), ``s(c)`` Pose3 sensor_from_rig of camera c
+(non-reference sensors), ``k(c)`` Vector of camera c's free COLMAP intrinsics, ``n(w)`` Unit3 window
+normal and ``d(w)`` Vector1 distance (mount camera: w = camera; mount world: w = 0), ``p(j)`` Point3 per
+COLMAP point3D.
 
 The residuals and Jacobians are :meth:`RefractiveProblem.linearize`'s, restricted to the image's
 observations and chained to GTSAM's tangent spaces: a Pose3 ``a_from_b`` moves as
@@ -20,6 +21,7 @@ from dataclasses import replace
 import gtsam
 import numpy as np
 
+from ari_sfm.factors import keys as K_
 from ari_sfm.factors.robust import huber_view_residual
 from ari_sfm.geometry import Pose
 
@@ -27,30 +29,6 @@ from .plane import WindowPrior
 from .problem import RefractiveProblem, State
 from .scale_bar import ScaleBar
 from .settings import HUBER_PX
-
-
-def _frame_key(f: int) -> int:
-    return gtsam.symbol("f", f)
-
-
-def _sensor_key(c: int) -> int:
-    return gtsam.symbol("s", c)
-
-
-def _intrinsics_key(c: int) -> int:
-    return gtsam.symbol("k", c)
-
-
-def _normal_key(w: int) -> int:
-    return gtsam.symbol("n", w)
-
-
-def _distance_key(w: int) -> int:
-    return gtsam.symbol("d", w)
-
-
-def _point_key(j: int) -> int:
-    return gtsam.symbol("p", j)
 
 
 def _column_owners(problem: RefractiveProblem) -> dict[int, tuple[str, int, int]]:
@@ -84,20 +62,20 @@ class GtsamRefinement:
         v = gtsam.Values()
         for f, p in enumerate(state.rig_from_world):
             if lay.frames[f, 0] >= 0:
-                v.insert(_frame_key(f), gtsam.Pose3(gtsam.Rot3(p.R), p.t))
+                v.insert(K_.rig_frame(f), gtsam.Pose3(gtsam.Rot3(p.R), p.t))
         for c in range(len(m.camera_ids)):
             if lay.sensors[c, 0] >= 0:
                 p = state.sensor_from_rig[int(np.flatnonzero(m.image_camera == c)[0])]
-                v.insert(_sensor_key(c), gtsam.Pose3(gtsam.Rot3(p.R), p.t))
+                v.insert(K_.sensor(c), gtsam.Pose3(gtsam.Rot3(p.R), p.t))
             free = np.flatnonzero(m.param_map[c].any(axis=0))
-            v.insert(_intrinsics_key(c), np.asarray(state.colmap_params[c][free], float))
+            v.insert(K_.K(c), np.asarray(state.colmap_params[c][free], float))
         for w in range(len(state.normals)):
             if lay.window[w, 0] >= 0:
-                v.insert(_normal_key(w), gtsam.Unit3(state.normals[w]))
+                v.insert(K_.window_normal(w), gtsam.Unit3(state.normals[w]))
             if lay.window[w, 2] >= 0:
-                v.insert(_distance_key(w), np.array([state.distances[w]]))
+                v.insert(K_.window_distance(w), np.array([state.distances[w]]))
         for j, X in enumerate(state.xyz):
-            v.insert(_point_key(j), gtsam.Point3(*X))
+            v.insert(K_.point(j), gtsam.Point3(*X))
         return v
 
     def state(self, values: gtsam.Values, template: State) -> State:
@@ -108,20 +86,20 @@ class GtsamRefinement:
             p = values.atPose3(key)
             return Pose(p.rotation().matrix(), np.asarray(p.translation(), float))
 
-        frames = tuple(pose(_frame_key(f)) if lay.frames[f, 0] >= 0 else p
+        frames = tuple(pose(K_.rig_frame(f)) if lay.frames[f, 0] >= 0 else p
                        for f, p in enumerate(template.rig_from_world))
-        sensors = tuple(pose(_sensor_key(int(c))) if lay.sensors[c, 0] >= 0 else s
+        sensors = tuple(pose(K_.sensor(int(c))) if lay.sensors[c, 0] >= 0 else s
                         for c, s in zip(m.image_camera, template.sensor_from_rig))
         params = []
         for c, p in enumerate(template.colmap_params):
             p = p.copy()
-            p[np.flatnonzero(m.param_map[c].any(axis=0))] = values.atVector(_intrinsics_key(c))
+            p[np.flatnonzero(m.param_map[c].any(axis=0))] = values.atVector(K_.K(c))
             params.append(p)
-        normals = np.array([values.atUnit3(_normal_key(w)).point3() if lay.window[w, 0] >= 0 else template.normals[w]
-                            for w in range(len(template.normals))])
-        dists = np.array([values.atVector(_distance_key(w))[0] if lay.window[w, 2] >= 0 else template.distances[w]
+        normals = np.array([values.atUnit3(K_.window_normal(w)).point3() if lay.window[w, 0] >= 0
+                            else template.normals[w] for w in range(len(template.normals))])
+        dists = np.array([values.atVector(K_.window_distance(w))[0] if lay.window[w, 2] >= 0 else template.distances[w]
                           for w in range(len(template.distances))])
-        xyz = np.array([values.atPoint3(_point_key(j)) for j in range(len(template.xyz))])
+        xyz = np.array([values.atPoint3(K_.point(j)) for j in range(len(template.xyz))])
         return replace(template, colmap_params=tuple(params), rig_from_world=frames, sensor_from_rig=sensors,
                        normals=normals, distances=dists, xyz=xyz)
 
@@ -138,8 +116,8 @@ class GtsamRefinement:
             kind, v, _ = self.owners[g]
             if (kind, v) not in var_keys:
                 var_keys.append((kind, v))
-        key_of = {"f": _frame_key, "s": _sensor_key, "k": _intrinsics_key, "n": _normal_key, "d": _distance_key}
-        keys = [key_of[kind](v) for kind, v in var_keys] + [_point_key(int(j)) for j in unique_points]
+        key_of = {"f": K_.rig_frame, "s": K_.sensor, "k": K_.K, "n": K_.window_normal, "d": K_.window_distance}
+        keys = [key_of[kind](v) for kind, v in var_keys] + [K_.point(int(j)) for j in unique_points]
         rows = 2 * len(obs)
         huber = self.huber_px
         total = rows + (huber is not None)  # Huber: the excess row (factors.robust.huber_view_residual)
@@ -213,24 +191,24 @@ class GtsamRefinement:
         normals, dists = template.normals.copy(), template.distances.copy()
         for kind, v in var_keys:
             if kind == "f":
-                p = values.atPose3(_frame_key(v))
+                p = values.atPose3(K_.rig_frame(v))
                 frames[v] = Pose(p.rotation().matrix(), np.asarray(p.translation(), float))
             elif kind == "s":
-                p = values.atPose3(_sensor_key(v))
+                p = values.atPose3(K_.sensor(v))
                 pose = Pose(p.rotation().matrix(), np.asarray(p.translation(), float))
                 for i in np.flatnonzero(m.image_camera == v):
                     sensors[i] = pose
             elif kind == "k":
                 p = params[v].copy()
-                p[np.flatnonzero(m.param_map[v].any(axis=0))] = values.atVector(_intrinsics_key(v))
+                p[np.flatnonzero(m.param_map[v].any(axis=0))] = values.atVector(K_.K(v))
                 params[v] = p
             elif kind == "n":
-                normals[v] = values.atUnit3(_normal_key(v)).point3()
+                normals[v] = values.atUnit3(K_.window_normal(v)).point3()
             else:
-                dists[v] = values.atVector(_distance_key(v))[0]
+                dists[v] = values.atVector(K_.window_distance(v))[0]
         xyz = template.xyz.copy()
         for j in points:
-            xyz[j] = values.atPoint3(_point_key(int(j)))
+            xyz[j] = values.atPoint3(K_.point(int(j)))
         return replace(template, colmap_params=tuple(params), rig_from_world=tuple(frames),
                        sensor_from_rig=tuple(sensors), normals=normals, distances=dists, xyz=xyz)
 
@@ -240,12 +218,12 @@ class GtsamRefinement:
         if prior is None:
             raise ValueError("no declared plane: no prior factor")
         has_n, has_d = lay.window[w, 0] >= 0, lay.window[w, 2] >= 0
-        keys = ([_normal_key(w)] if has_n else []) + ([_distance_key(w)] if has_d else [])
+        keys = ([K_.window_normal(w)] if has_n else []) + ([K_.window_distance(w)] if has_d else [])
         J_n, J_d = prior.jacobians()
 
         def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-            n = values.atUnit3(_normal_key(w)) if has_n else gtsam.Unit3(template.normals[w])
-            d = float(values.atVector(_distance_key(w))[0]) if has_d else float(template.distances[w])
+            n = values.atUnit3(K_.window_normal(w)) if has_n else gtsam.Unit3(template.normals[w])
+            d = float(values.atVector(K_.window_distance(w))[0]) if has_d else float(template.distances[w])
             if H is not None:
                 blocks = ([J_n @ np.asarray(n.basis(), float)] if has_n else []) + ([J_d[:, None]] if has_d else [])
                 for i, B in enumerate(blocks):
@@ -261,8 +239,8 @@ class GtsamRefinement:
             raise ValueError("no scale bar: no factor")
 
         def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-            xyz = {bar.a: np.asarray(values.atPoint3(_point_key(bar.a))),
-                   bar.b: np.asarray(values.atPoint3(_point_key(bar.b)))}
+            xyz = {bar.a: np.asarray(values.atPoint3(K_.point(bar.a))),
+                   bar.b: np.asarray(values.atPoint3(K_.point(bar.b)))}
             e = np.array([bar.error(xyz)])
             if H is not None:
                 J = bar.jacobian(xyz)
@@ -270,7 +248,7 @@ class GtsamRefinement:
                 H[1] = J[None, 3:]
             return e
 
-        return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(1), [_point_key(bar.a), _point_key(bar.b)], error)
+        return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(1), [K_.point(bar.a), K_.point(bar.b)], error)
 
     def graph(self, state: State) -> gtsam.NonlinearFactorGraph:
         g = gtsam.NonlinearFactorGraph()
