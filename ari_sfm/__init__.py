@@ -24,15 +24,15 @@ from . import _startup  # noqa: E402
 
 _startup.guard_loading()  # Ctrl-C while `ari-sfm` loads: "interrupted", exit 130 (no traceback)
 
-from .calibrate import CalibrationOptions, calibrate  # noqa: E402
-from .calibration import Calibration, CameraCalibration  # noqa: E402
-from .compare import compare  # noqa: E402
+from .calibration.calibrate import CalibrationOptions, calibrate  # noqa: E402
+from .calibration.compare import compare  # noqa: E402
+from .calibration.evaluate import evaluate  # noqa: E402
+from .calibration.record import Calibration, CameraCalibration  # noqa: E402
 from .errors import AriSfmError  # noqa: E402
-from .evaluate import evaluate  # noqa: E402
 from .io import load_calibration, load_dataset, load_observations, save_calibration  # noqa: E402
-from .reconstruct import Points, reconstruct  # noqa: E402
+from .reconstruction.reconstruct import Points, reconstruct  # noqa: E402
+from .reconstruction.triangulate import triangulate_pixels  # noqa: E402
 from .records import Dataset, Interface, Observation, Target  # noqa: E402
-from .triangulate import triangulate_pixels  # noqa: E402
 
 __version__ = "0.1.0"
 

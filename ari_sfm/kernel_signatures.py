@@ -71,7 +71,7 @@ SIGNATURES = {
             (array(float64, 2), array(float64, 3), array(float64, 2), array(int64, 1)),
         ],
     },
-    'ari_sfm.floor_fit': {
+    'ari_sfm.calibration.floor_fit': {
         'warp_residuals': [
             (array(float64, 3), array(float64, 3), int64, boolean),
         ],

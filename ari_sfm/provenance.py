@@ -27,7 +27,7 @@ import numpy as np
 from .records import Dataset, Observation, Target
 
 if TYPE_CHECKING:
-    from .calibration import Calibration
+    from .calibration.record import Calibration
 
 
 def file_sha256(path: str | Path) -> str:
@@ -135,7 +135,7 @@ def observations_mismatch(calibration: Calibration, observations: Sequence[Obser
                           target: Target | None = None) -> str | None:
     """Why ``observations`` are not the corners ``calibration`` was made from (their rmse at its own frame
     poses far above the rmse it records), or None (also when no frame of it is observed)."""
-    from .evaluate import reprojection_stats  # the raw statistics (count 0, NaN), no error
+    from .calibration.evaluate import reprojection_stats  # the raw statistics (count 0, NaN), no error
 
     recorded = calibration.residuals.rmse_px if calibration.residuals is not None else None
     target = target or calibration.target

@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from .calibration.outliers import Outlier
 from .models.pinhole import PARAM_NAMES
-from .outliers import Outlier
 
 
 def _float_or_none(value: Any) -> float | None:

@@ -22,15 +22,15 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np
 
-from ari_sfm.calibrate import calibrate
-from ari_sfm.calibration import Calibration
+from ari_sfm.calibration.calibrate import calibrate
+from ari_sfm.calibration.record import Calibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import rotation_from_rotvec
 from ari_sfm.init.zhang import object_points
 from ari_sfm.io import parse_calibration
+from ari_sfm.reconstruction.triangulate import triangulate_pixels
 from ari_sfm.simulate import make_scene
 from ari_sfm.simulate.scenarios import ptv_plane_of
-from ari_sfm.triangulate import triangulate_pixels
 
 
 def without_plane(dataset, plane: int):

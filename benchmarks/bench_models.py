@@ -18,7 +18,7 @@ import statistics
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from ari_sfm.compare import PAPER, Subset, compare, parse_models  # noqa: E402
+from ari_sfm.calibration.compare import PAPER, Subset, compare, parse_models  # noqa: E402
 from ari_sfm.simulate import make_scene  # noqa: E402
 
 CASES = (

@@ -11,7 +11,7 @@ a lens not modelled), ``calibrate(model="exact")`` with the default options (a d
 focal lengths where the case says), then prints:
 
 - ``truth``: the robust RMSE of the data against the true model (the noise as it is: the target);
-- ``floor``: :func:`ari_sfm.quality.corner_floor` (what the data allow: a free map per view);
+- ``floor``: :func:`ari_sfm.calibration.quality.corner_floor` (what the data allow: a free map per view);
 - ``fit``: the calibration's robust RMSE, ``fit/floor``, the allowance and the gate's verdict;
 - the floor's time (ms, compiled, the least of 5: the machine is shared).
 """
@@ -27,10 +27,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np
 
-from ari_sfm.calibrate import calibrate
+from ari_sfm.calibration.calibrate import calibrate
+from ari_sfm.calibration.quality import corner_floor, robust_rmse_px
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import rotation_from_rotvec
-from ari_sfm.quality import corner_floor, robust_rmse_px
 from ari_sfm.records import Dataset, Target
 from ari_sfm.simulate import PLACEHOLDER_ROOT, make_scene
 from ari_sfm.simulate.particles import ParticleSimOptions, _rig_a, _rng as particles_rng

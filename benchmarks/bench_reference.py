@@ -1,4 +1,4 @@
-"""The 3D error against a reference geometry (ari_sfm.reference): accuracy of the registration and time.
+"""The 3D error against a reference geometry (ari_sfm.reconstruction.reference): accuracy of the registration and time.
 
     python benchmarks/bench_reference.py
 
@@ -22,8 +22,8 @@ import open3d as o3d
 
 from ari_sfm.geometry import rotation_from_rotvec
 from ari_sfm.io import parse_calibration
-from ari_sfm.reconstruct import reconstruct
-from ari_sfm.reference import reference_errors
+from ari_sfm.reconstruction.reconstruct import reconstruct
+from ari_sfm.reconstruction.reference import reference_errors
 from ari_sfm.simulate import make_scene
 
 R_KNOWN = rotation_from_rotvec(np.deg2rad([8.0, -5.0, 20.0]))

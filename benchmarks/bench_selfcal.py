@@ -74,7 +74,7 @@ def relative_rotation_deg(cal, truth, name: str) -> float:
 def body_calibration(exp, distortion: bool = True):
     """Rig A calibrated from the simulated target's views (the body's, or a board's) with the exact model (as
     `ari-sfm calibrate --model exact --distortion`)."""
-    from ari_sfm.calibrate import calibrate
+    from ari_sfm.calibration.calibrate import calibrate
     from ari_sfm.io import load_calibration, load_dataset, save_calibration
 
     folder = Path(tempfile.mkdtemp())

@@ -91,7 +91,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_calibrate import cv2_baseline  # noqa: E402
 from bench_triangulate import _points_and_pixels, cv2_pairs  # noqa: E402
 
-from ari_sfm.calibrate import calibrate  # noqa: E402
+from ari_sfm.calibration.calibrate import calibrate  # noqa: E402
 from ari_sfm.io import parse_calibration, save_calibration  # noqa: E402
 from ari_sfm.simulate import make_scene  # noqa: E402
 
@@ -186,7 +186,7 @@ def fig_calibrate_4x100(repeats: int) -> None:
 
 
 def fig_triangulate(repeats: int, points: int) -> None:
-    from ari_sfm.triangulate import triangulate_pixels
+    from ari_sfm.reconstruction.triangulate import triangulate_pixels
 
     binocular = parse_calibration(make_scene("binocular", seed=0, sigma_px=0.0).truth)
     arc4 = parse_calibration(make_scene("arc4", seed=0, sigma_px=0.0).truth)
@@ -240,7 +240,7 @@ def distorted_ptv_rig(points: int, seed: int = 0):
 def fig_triangulate_dist(repeats: int, points: int) -> None:
     """Exact pixels (as triangulate_2, _4), then with 0.1 px of noise (the particle detections'): Levenberg-Marquardt
     then takes a second evaluation per point."""
-    from ari_sfm.triangulate import triangulate_pixels
+    from ari_sfm.reconstruction.triangulate import triangulate_pixels
 
     cal, X, exact = distorted_ptv_rig(points)
     rng = np.random.default_rng(1)
@@ -560,11 +560,11 @@ def lap(label):
     print(f"{label}|{w - w0:.2f}|{c - c0:.2f}")
     w0, c0 = w, c
 import numpy as np
-from ari_sfm.calibrate import calibrate
+from ari_sfm.calibration.calibrate import calibrate
 from ari_sfm.io import parse_calibration
 from ari_sfm.models.exact import exact_project
 from ari_sfm.simulate import make_scene
-from ari_sfm.triangulate import triangulate_pixels
+from ari_sfm.reconstruction.triangulate import triangulate_pixels
 lap("import ari_sfm (numba included)")
 exact_project(np.array([[1.0, 2.0, 400.0]]), np.r_[3000., 3000, 1000, 800, np.zeros(5)], np.array([0, 0, 1.0]),
               6.0, 1.5168, 1.333, 40.0)

@@ -35,10 +35,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import cv2
 import numpy as np
 
-from ari_sfm.calibration import Calibration
+from ari_sfm.calibration.record import Calibration
 from ari_sfm.io import load_calibration, parse_calibration, write_json_atomic
+from ari_sfm.reconstruction.triangulate import triangulate_pixels
 from ari_sfm.simulate import make_scene
-from ari_sfm.triangulate import triangulate_pixels
 
 
 def _median_time(fn, repeats: int) -> tuple[float, object]:

@@ -27,7 +27,7 @@ def main() -> None:
     parser.add_argument("--sigma", type=float, default=0.05)
     args = parser.parse_args()
 
-    from ari_sfm.calibrate import calibrate
+    from ari_sfm.calibration.calibrate import calibrate
     from ari_sfm.geometry import angle_between_deg
     from ari_sfm.simulate import make_scene
 

@@ -25,7 +25,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np
 
 import ari_sfm.init.window_start as window_start
-from ari_sfm.calibrate import calibrate
+from ari_sfm.calibration.calibrate import calibrate
 from ari_sfm.geometry import Pose, angle_between_deg
 from ari_sfm.records import CameraSpec, WindowPlane
 from ari_sfm.simulate import make_scene

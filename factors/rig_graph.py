@@ -478,10 +478,10 @@ class RigGraph:
 
 def estimate_sigma_px(rg: RigGraph) -> float:
     """The pixel sigma of a graph's images: the robust sigma (1.4826 MAD per coordinate,
-    :func:`ari_sfm.outliers.robust_sigma_px`) of the residuals after solving a copy of the graph
+    :func:`ari_sfm.calibration.outliers.robust_sigma_px`) of the residuals after solving a copy of the graph
     with the numpy backend (GTSAM when the graph has factors the numpy backend cannot hold).
     ``rg`` itself is not changed."""
-    from ..outliers import robust_sigma_px
+    from ..calibration.outliers import robust_sigma_px
 
     copy = replace(rg, made_values=rg.values_copy(), unwritten=None, factor_views=list(rg.factor_views),
                    factor_data=list(rg.factor_data), other_factors=list(rg.other_factors))

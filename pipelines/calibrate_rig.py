@@ -9,8 +9,8 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..calibrate import DEFAULT_MODEL, CalibrationOptions, calibrate
-from ..calibration import Calibration
+from ..calibration.calibrate import DEFAULT_MODEL, CalibrationOptions, calibrate
+from ..calibration.record import Calibration
 from ..detection import ensure_observations
 from ..io import load_dataset, save_calibration, save_observations
 from ..models.registry import CALIBRATABLE

@@ -3,8 +3,8 @@
     python -m ari_sfm.pipelines.run DATASET OUT [--model ari|exact] [--truth TRUTH]
 
 Without --model: the best model (exact refined from ari, lens distortion estimated when the views
-support it: :func:`ari_sfm.calibrate.resolve_distortion`); ``--model ari``: the paper's model alone.
-With a truth: the calibrated parameters' errors against it (:mod:`ari_sfm.calibration_errors`, also
+support it: :func:`ari_sfm.calibration.calibrate.resolve_distortion`); ``--model ari``: the paper's model alone.
+With a truth: the calibrated parameters' errors against it (:mod:`ari_sfm.calibration.truth_errors`, also
 in run.json ``calibration_vs_truth``) and the reconstruction's 3D error (metrics.json).
 
 OUT gets calibration.json (+ observations.json when detected here), then,
@@ -19,11 +19,11 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..calibrate import DEFAULT_MODEL, CalibrationOptions
-from ..calibration_errors import CalibrationErrors, calibration_errors
+from ..calibration.calibrate import DEFAULT_MODEL, CalibrationOptions
+from ..calibration.truth_errors import CalibrationErrors, calibration_errors
 from ..io import calibration_to_json, load_calibration, load_dataset, parse_calibration, write_json_atomic
 from ..models.registry import CALIBRATABLE
-from ..reconstruct import ReconstructionRun, run_reconstruction
+from ..reconstruction.reconstruct import ReconstructionRun, run_reconstruction
 from ..records import Dataset
 from ..report import RUN_FILE, RUN_FORMAT, write_report
 from .calibrate_rig import PipelineResult, main as calibrate_rig
@@ -117,7 +117,7 @@ def main(dataset_path: Path, out_dir: Path, model: str | None = None, truth: Pat
     check_run_folder(out_dir, dataset_path)  # another dataset's run there: refused before any work
     dataset = load_dataset(dataset_path)  # read once; the records travel in memory
     if truth is not None:
-        from ..reconstruct import check_truth_matches
+        from ..reconstruction.reconstruct import check_truth_matches
 
         check_truth_matches(dataset, truth)  # before the calibration, not after it
     with exclusive_folder(out_dir):  # a second command writing into OUT meanwhile: refused, not interleaved

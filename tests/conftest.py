@@ -7,7 +7,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import pytest
 
-from ari_sfm.calibrate import calibrate
+from ari_sfm.calibration.calibrate import calibrate
 from ari_sfm.simulate import make_scene
 
 

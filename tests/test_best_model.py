@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.calibrate import calibrate, distortion_support
-from ari_sfm.calibration_errors import calibration_errors
+from ari_sfm.calibration.calibrate import calibrate, distortion_support
+from ari_sfm.calibration.truth_errors import calibration_errors
 from ari_sfm.cli import main
 from ari_sfm.io import parse_calibration
 from ari_sfm.simulate import make_scene
@@ -59,7 +59,7 @@ def test_distortion_by_default_reaches_the_floor(scenario):
 
 
 def _fallback(dataset, caplog, needle):
-    with caplog.at_level(logging.WARNING, logger="ari_sfm.calibrate"):
+    with caplog.at_level(logging.WARNING, logger="ari_sfm.calibration.calibrate"):
         cal = calibrate(dataset, uncertainty=False)
     lines = [r.getMessage() for r in caplog.records if "lens distortion not estimated" in r.getMessage()]
     assert len(lines) == 1 and needle in lines[0] and "\n" not in lines[0], lines
@@ -96,7 +96,7 @@ def test_corners_in_the_image_centre_fall_back_with_one_line(caplog):
 def test_no_stacking_falls_back_and_distortion_can_be_forced(caplog):
     scene = make_scene("paper_single_nostack", seed=0, sigma_px=SIGMA)
     assert "no stacking poses" in distortion_support(scene.dataset)
-    with caplog.at_level(logging.WARNING, logger="ari_sfm.calibrate"):
+    with caplog.at_level(logging.WARNING, logger="ari_sfm.calibration.calibrate"):
         forced = calibrate(scene.dataset, distortion=True, uncertainty=False)
     assert not [r for r in caplog.records if "lens distortion" in r.getMessage()]
     assert all(s.distortion for s in forced.stages)

@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ari_sfm.calibrate import CalibrationOptions, calibrate
-from ari_sfm.evaluate import evaluate
+from ari_sfm.calibration.calibrate import CalibrationOptions, calibrate
+from ari_sfm.calibration.evaluate import evaluate
 from ari_sfm.geometry import angle_between_deg
 from ari_sfm.io import load_calibration, save_calibration
 from ari_sfm.records import Observation
@@ -155,7 +155,7 @@ _REPEATABLE_CHILD = """
 import json, sys
 import cv2
 cv2.setNumThreads(4)  # threaded OpenCV even on a small machine: the init must not depend on it
-from ari_sfm.calibrate import calibrate
+from ari_sfm.calibration.calibrate import calibrate
 from ari_sfm.io import calibration_to_json
 from ari_sfm.simulate import make_scene
 out = []

@@ -15,7 +15,7 @@ import pycolmap
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.calibrate import calibrate
+from ari_sfm.calibration.calibrate import calibrate
 from ari_sfm.cli import main
 from ari_sfm.colmap.adapter import COLMAP_PIXEL_OFFSET, colmap_from_opencv_px, export_colmap, opencv_from_colmap_px
 from ari_sfm.io import load_calibration, load_dataset, save_calibration, save_points

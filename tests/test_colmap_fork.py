@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.calibration import Calibration
+from ari_sfm.calibration.record import Calibration
 from ari_sfm.cli import main
 from ari_sfm.colmap.fork import export_colmap_fork, import_colmap_fork
 from ari_sfm.errors import AriSfmError

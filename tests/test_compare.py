@@ -16,11 +16,11 @@ from click.testing import CliRunner
 
 from ari_sfm.baselines.polynomial import EXPONENTS, PolynomialMap, design_matrix, fit_polynomial
 from ari_sfm.baselines.ray_tracing import project_rt, trace_to_points
-from ari_sfm.calibrate import calibrate
+from ari_sfm.calibration.calibrate import calibrate
+from ari_sfm.calibration.compare import Subset, compare, parse_models
+from ari_sfm.calibration.evaluate import evaluate
 from ari_sfm.cli import main
-from ari_sfm.compare import Subset, compare, parse_models
 from ari_sfm.errors import AriSfmError
-from ari_sfm.evaluate import evaluate
 from ari_sfm.geometry import angle_between_deg, rotation_angle_deg
 from ari_sfm.io import calibration_to_json, load_calibration, parse_calibration, save_calibration
 from ari_sfm.models import ExactModel, PinholeModel
@@ -91,7 +91,7 @@ def test_ari_after_the_subset_stays_within_its_paraxial_limit():
 
 def test_pf_reconstructs_without_rays(rotary, rotary_full):
     """pf has no rays: triangulation runs Gauss-Newton on its pixels; the board's 10 mm spacing comes back."""
-    from ari_sfm.triangulate import has_rays, triangulate_pixels
+    from ari_sfm.reconstruction.triangulate import has_rays, triangulate_pixels
 
     pf = rotary_full["pf"].calibration
     assert not has_rays(pf)

@@ -12,15 +12,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from ari_sfm.calibrate import CalibrationOptions, calibrate
-from ari_sfm.calibration import Calibration
+from ari_sfm.calibration.calibrate import CalibrationOptions, calibrate
+from ari_sfm.calibration.record import Calibration
 from ari_sfm.geometry import angle_between_deg
 from ari_sfm.init.zhang import object_points
 from ari_sfm.io import parse_calibration, save_calibration
 from ari_sfm.openptv.conventions import glass_vector, window_plane
+from ari_sfm.reconstruction.triangulate import triangulate_pixels
 from ari_sfm.simulate import make_scene
 from ari_sfm.simulate.scenarios import PTV_PIXEL_STEP_PX, ptv_plane_of
-from ari_sfm.triangulate import triangulate_pixels
 
 # pixels rounded to a 0.5 px grid: uniform error, sigma 0.5/sqrt(12) per coordinate; RMSE floor x sqrt(2)
 FLOOR_PX = PTV_PIXEL_STEP_PX / np.sqrt(12.0) * np.sqrt(2.0)  # 0.204 px
@@ -183,7 +183,7 @@ def test_a_held_plane_eased_in_ends_where_the_hold_does(ptv, monkeypatch):
 
     from ari_sfm.errors import AriSfmError
 
-    C = importlib.import_module("ari_sfm.calibrate")
+    C = importlib.import_module("ari_sfm.calibration.calibrate")
     ds = ptv.dataset
     default = calibrate(ds, model="exact", fix_intrinsics=True, uncertainty=False)
     starts = C._starts(ds, "exact", C.CalibrationOptions(fix_intrinsics=True))

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from ari_sfm.calibrate import calibrate
-from ari_sfm.evaluate import observation_residuals, residual_stats
+from ari_sfm.calibration.calibrate import calibrate
+from ari_sfm.calibration.evaluate import observation_residuals, residual_stats
 from ari_sfm.geometry import angle_between_deg
 from ari_sfm.init.zhang import object_points
 from ari_sfm.simulate import make_scene

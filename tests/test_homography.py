@@ -1,11 +1,11 @@
-"""The floor's compiled normalised DLT (ari_sfm.floor_fit.projective_maps) against known homographies and
+"""The floor's compiled normalised DLT (ari_sfm.calibration.floor_fit.projective_maps) against known homographies and
 cameras, OpenCV's and LAPACK's least eigenvector."""
 from __future__ import annotations
 
 import cv2
 import numpy as np
 
-from ari_sfm.floor_fit import projective_maps
+from ari_sfm.calibration.floor_fit import projective_maps
 
 
 def homographies(xy, uv):

@@ -258,7 +258,7 @@ def test_keyboard_interrupt_outside_a_command_body_exits_130(monkeypatch):
 @pytest.mark.parametrize("value", [-1.0, float("nan"), float("inf"), 0.0])
 def test_calibration_options_refuse_a_bad_huber(value):
     """The library refuses what the CLI refuses (-1 failed as 'non-finite Jacobian entries'); the CLI maps 0 to None."""
-    from ari_sfm.calibrate import CalibrationOptions
+    from ari_sfm.calibration.calibrate import CalibrationOptions
 
     with pytest.raises(ValueError, match="huber_px must be a finite number > 0"):
         CalibrationOptions(huber_px=value)

@@ -123,7 +123,7 @@ def arc4_truth():
 def test_triangulation_kernel_is_the_numpy_algorithm(arc4_truth):
     """The compiled per-point triangulation gives the points of the numpy route (rays -> linear point ->
     Levenberg-Marquardt through ExactModel.project_with_jacobians) and recovers noise-free truth."""
-    from ari_sfm import triangulate as T
+    from ari_sfm.reconstruction import triangulate as T
 
     cal = arc4_truth
     rng = np.random.default_rng(0)

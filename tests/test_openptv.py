@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.calibration import Calibration, CameraCalibration
+from ari_sfm.calibration.record import Calibration, CameraCalibration
 from ari_sfm.cli import main
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose
@@ -771,7 +771,7 @@ def test_raw_cavity_calibrates_behind_two_windows(cavity_without_ori, tmp_path):
     """The lab's folder without OpenPTV's calibration (images rendered where OpenPTV's .ori put the body) imports
     and calibrates from its images and clicks alone: two windows, each near the wall the .ori files declare
     (within 3 sigma), the cameras' poses near theirs, at the detection noise."""
-    from ari_sfm.calibrate import calibrate
+    from ari_sfm.calibration.calibrate import calibrate
     from ari_sfm.geometry import angle_between_deg
 
     root, _ = cavity_without_ori
@@ -792,7 +792,7 @@ def test_cavity_with_ori_calibrates_through_each_cameras_own_declared_window(cav
     """With OpenPTV's .ori files the two walls are declared (held as OpenPTV holds them): each camera's body
     dots are identified through its own window (cam3 and cam4 through the +z wall, not the -z one), and the
     calibration reaches the detection noise with the cameras where the .ori put them."""
-    from ari_sfm.calibrate import calibrate
+    from ari_sfm.calibration.calibrate import calibrate
 
     root, _ = cavity_with_ori
     ds = load_dataset(import_experiment(root, tmp_path / "ds"))

@@ -121,11 +121,11 @@ from ari_sfm import kernel_cache
 kernel_cache.SHIPPED_DIR = Path(sys.argv[1])
 from numba.core.dispatcher import Dispatcher
 from ari_sfm.colmap import adapter
-from ari_sfm.calibrate import calibrate
+from ari_sfm.calibration.calibrate import calibrate
 from ari_sfm.colmap.refine import refine_colmap
 from ari_sfm.io import calibration_to_json, load_dataset
 from ari_sfm.simulate.port_survey import port_survey
-from ari_sfm.triangulate import triangulate_pixels
+from ari_sfm.reconstruction.triangulate import triangulate_pixels
 
 def untimed(d):
     if isinstance(d, dict):

@@ -97,7 +97,7 @@ def test_board_start_changes_only_rig_a_target(experiment, tmp_path):
     their sigmas; one window only."""
     from dataclasses import replace
 
-    from ari_sfm.calibrate import calibrate
+    from ari_sfm.calibration.calibrate import calibrate
     from ari_sfm.io import load_dataset
     from ari_sfm.simulate.particles import BOARD
 

@@ -10,7 +10,7 @@ from ari_sfm.geometry import Pose, rotation_from_rotvec
 from ari_sfm.particles import match_kernels
 from ari_sfm.particles.match import _greedy, _PackedRays, _score
 from ari_sfm.particles.volume import Volume
-from ari_sfm.triangulate import triangulate_rays
+from ari_sfm.reconstruction.triangulate import triangulate_rays
 
 
 def reference_band_pairs(p: np.ndarray, uv: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:

@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from ari_sfm.calibrate import CalibrationOptions, Stage, plan_stages
+from ari_sfm.calibration.calibrate import CalibrationOptions, Stage, plan_stages
 from ari_sfm.errors import AriSfmError
 from ari_sfm.io import calibration_to_json, load_calibration, save_calibration
 from ari_sfm.records import WindowPlane
@@ -79,7 +79,7 @@ def test_one_initial_state(single_scene, model, declared):
     """RigGraph.from_dataset starts where calibrate() starts (the one initial_state); a declared plane in air
     gives the start its true normal and distance (the plane says where the window is, even where the rays do
     not depend on it)."""
-    from ari_sfm.calibrate import Start, _Solver, _start_state
+    from ari_sfm.calibration.calibrate import Start, _Solver, _start_state
     from ari_sfm.factors.rig_graph import RigGraph
     from ari_sfm.factors.window_plane import plane_in_world
 
@@ -113,8 +113,8 @@ def test_the_command_line_options_are_the_dataclass_fields(command, tmp_path, mo
 
     from click.testing import CliRunner
 
-    C = importlib.import_module("ari_sfm.calibrate")  # the module (ari_sfm.calibrate is also the function)
-    from ari_sfm.calibrate import CalibrationOptions
+    C = importlib.import_module("ari_sfm.calibration.calibrate")
+    from ari_sfm.calibration.calibrate import CalibrationOptions
     from ari_sfm.cli import main
 
     cmd = main.commands[command]

@@ -6,7 +6,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from ari_sfm.calibrate import calibrate
+from ari_sfm.calibration.calibrate import calibrate
 from ari_sfm.geometry import Pose, angle_between_deg
 from ari_sfm.models import ExactModel, PinholeModel
 from ari_sfm.records import CameraSpec, Observation, Target

@@ -1,5 +1,5 @@
-"""The quality gate's floor (ari_sfm.quality.corner_floor, ari_sfm.floor_fit) against simulated truth: what
-the data allow, measured the way the model sees them, on every kind of target.
+"""The quality gate's floor (ari_sfm.calibration.quality.corner_floor, ari_sfm.calibration.floor_fit) against
+simulated truth: what the data allow, measured the way the model sees them, on every kind of target.
 
 - It is a floor: on exact-physics simulations (boards, 3D bodies under water behind a window close to the
   cameras, a multi-plane body, lens distortion, pixels quantised to 0.5 px) the true model's residuals and
@@ -15,8 +15,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from ari_sfm.calibrate import calibrate
-from ari_sfm.floor_fit import (
+from ari_sfm.calibration.calibrate import calibrate
+from ari_sfm.calibration.floor_fit import (
     BASIS_U,
     BASIS_V,
     RADIAL_BASIS,
@@ -25,8 +25,8 @@ from ari_sfm.floor_fit import (
     _radial_vectors,
     warp_residuals,
 )
+from ari_sfm.calibration.quality import _view_points, corner_floor, robust_rmse_px
 from ari_sfm.init.zhang import object_points
-from ari_sfm.quality import _view_points, corner_floor, robust_rmse_px
 from ari_sfm.simulate import PLACEHOLDER_ROOT, make_scene
 from ari_sfm.simulate.particles import ParticleSimOptions, simulate_particle_experiment
 from ari_sfm.simulate.scenarios import build_geometry, ptv_misplaced

@@ -15,12 +15,20 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.calibrate import calibrate
-from ari_sfm.calibration_errors import calibration_errors
+from ari_sfm.calibration.calibrate import calibrate
+from ari_sfm.calibration.quality import (
+    FLOOR_RATIO,
+    MAX_POSE_SIGMA_DEG,
+    Floor,
+    allowance_px,
+    floor_rmse_px,
+    judge,
+    robust_rmse_px,
+)
+from ari_sfm.calibration.truth_errors import calibration_errors
 from ari_sfm.cli import main
 from ari_sfm.geometry import rotation_from_rotvec
 from ari_sfm.io import calibration_to_json, load_dataset, parse_calibration, save_rig
-from ari_sfm.quality import FLOOR_RATIO, MAX_POSE_SIGMA_DEG, Floor, allowance_px, floor_rmse_px, judge, robust_rmse_px
 from ari_sfm.simulate import make_scene, simulate
 
 GRID = (6, 4)  # a coarse dot grid: the gate's retries stay a few seconds
@@ -132,7 +140,7 @@ def test_a_failed_start_is_retried_from_the_next(coarse, monkeypatch):
 
     from ari_sfm.errors import AriSfmError
 
-    C = importlib.import_module("ari_sfm.calibrate")  # the module (ari_sfm.calibrate is also the function)
+    C = importlib.import_module("ari_sfm.calibration.calibrate")
 
     solve = C._calibrate_from
 
@@ -219,7 +227,7 @@ def test_cli_undetermined_covariance_exits_3_not_a_traceback(tmp_path):
 def _one_plane_residuals(xy: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """The oracle: one plane's floor residuals in numpy (SVD for the DLT, lstsq for the warp): the homography
     of the normalised points, the warp's polynomial at its predicted (normalised) pixels, back to pixels."""
-    from ari_sfm.quality import CORNERS_PER_TERM, WARP_DEGREE
+    from ari_sfm.calibration.quality import CORNERS_PER_TERM, WARP_DEGREE
 
     def normalised(p):
         c = p.mean(axis=0)
@@ -249,7 +257,7 @@ def _one_plane_residuals(xy: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize("rows,cols", [(8, 11), (2, 20)])  # 2 rows: the warp's design is rank-deficient
 def test_batched_floor_fits_equal_one_plane_fits(rows, cols):
-    from ari_sfm.quality import _warp_residuals
+    from ari_sfm.calibration.quality import _warp_residuals
 
     rng = np.random.default_rng(4)
     c, r = np.meshgrid(np.arange(cols) * 20.0, np.arange(rows) * 20.0)

@@ -15,15 +15,20 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ari_sfm.calibrate import calibrate
-from ari_sfm.calibration import Calibration
+from ari_sfm.calibration.calibrate import calibrate
+from ari_sfm.calibration.record import Calibration
 from ari_sfm.cli import main
 from ari_sfm.errors import AriSfmError
 from ari_sfm.io import parse_calibration, save_calibration
-from ari_sfm.metrics import ReconstructionMetrics, reconstruction_metrics, rigid_alignment, save_point_clouds
-from ari_sfm.reconstruct import Points, reconstruct
+from ari_sfm.reconstruction.metrics import (
+    ReconstructionMetrics,
+    reconstruction_metrics,
+    rigid_alignment,
+    save_point_clouds,
+)
+from ari_sfm.reconstruction.reconstruct import Points, reconstruct
+from ari_sfm.reconstruction.triangulate import triangulate_pixels, triangulate_rays
 from ari_sfm.simulate import make_scene, simulate
-from ari_sfm.triangulate import triangulate_pixels, triangulate_rays
 
 # --------------------------------------------------------------------------- fixtures
 
@@ -282,7 +287,7 @@ def _one_camera(dataset, frames):
 
 
 def test_frame_seen_by_one_camera_is_skipped_with_a_warning(scene, cal_exact, caplog):
-    with caplog.at_level(logging.WARNING, logger="ari_sfm.reconstruct"):
+    with caplog.at_level(logging.WARNING, logger="ari_sfm.reconstruction.reconstruct"):
         points = reconstruct(_one_camera(scene.dataset, {"r003"}), cal_exact)
     assert "r003" not in points.frames and len(points.frames) == 10
     assert any("r003" in rec.message and "cam0 only" in rec.message for rec in caplog.records)

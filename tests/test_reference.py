@@ -14,8 +14,8 @@ from ari_sfm.cli import main
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import rotation_from_rotvec
 from ari_sfm.io import parse_calibration
-from ari_sfm.reconstruct import reconstruct
-from ari_sfm.reference import ReferenceErrors, reference_errors
+from ari_sfm.reconstruction.reconstruct import reconstruct
+from ari_sfm.reconstruction.reference import ReferenceErrors, reference_errors
 from ari_sfm.simulate import make_scene, simulate
 
 o3d = pytest.importorskip("open3d")
@@ -146,7 +146,7 @@ def test_cli_reconstruct_with_reference_writes_metrics_and_report(tmp_path):
                                   "--reference", str(ref)])
     assert r.exit_code == 0, r.output
     m = json.loads((out / "metrics.json").read_text())
-    from ari_sfm.reconstruct import Points
+    from ari_sfm.reconstruction.reconstruct import Points
 
     known = np.abs(plane_distances(Points.load(out / "points.json"), poses))
     known_rms = float(np.sqrt(np.mean(known**2)))

@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ari_sfm.calibrate import calibrate
-from ari_sfm.calibration import Calibration
-from ari_sfm.compare import parse_models
+from ari_sfm.calibration.calibrate import calibrate
+from ari_sfm.calibration.compare import parse_models
+from ari_sfm.calibration.evaluate import evaluate
+from ari_sfm.calibration.record import Calibration
 from ari_sfm.errors import AriSfmError
-from ari_sfm.evaluate import evaluate
 from ari_sfm.io import calibration_to_json, load_calibration, load_dataset, save_calibration
 from ari_sfm.models import AriModel, ExactModel, PinholeModel
 from ari_sfm.models.registry import CALIBRATABLE, MODELS, ModelSpec, model_spec

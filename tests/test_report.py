@@ -23,10 +23,10 @@ import pytest
 from click.testing import CliRunner
 
 from ari_sfm import report
+from ari_sfm.calibration.evaluate import observation_residuals
+from ari_sfm.calibration.outliers import Outlier
 from ari_sfm.cli import main
-from ari_sfm.evaluate import observation_residuals
 from ari_sfm.io import load_calibration, parse_calibration
-from ari_sfm.outliers import Outlier
 from ari_sfm.records import Observation
 from ari_sfm.report import _reconstruction_rows, calibration_rows, markdown_tables, write_report
 from ari_sfm.report.diagnostics import recommendations

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from matplotlib.text import Text
 
-from ari_sfm.compare import draw_figures
-from ari_sfm.evaluate import observation_residuals
+from ari_sfm.calibration.compare import draw_figures
+from ari_sfm.calibration.evaluate import observation_residuals
 from ari_sfm.io import parse_calibration
 from ari_sfm.report.figures import (
     FIG_WIDTH_IN,

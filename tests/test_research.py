@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import ari_sfm
-from ari_sfm.calibrate import calibrate
+from ari_sfm.calibration.calibrate import calibrate
 from ari_sfm.factors import keys
 from ari_sfm.factors.rig_graph import RigGraph, RigState
 from ari_sfm.geometry import Pose, angle_between_deg

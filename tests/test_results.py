@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ari_sfm.calibration.outliers import Outlier
 from ari_sfm.errors import AriSfmError
 from ari_sfm.io import calibration_to_json, load_calibration
 from ari_sfm.models.registry import CALIBRATABLE
-from ari_sfm.outliers import Outlier
 from ari_sfm.results import CameraUncertainty, OutlierReport, PfWorld, ResidualStats, Uncertainty
 
 OLD = Path(__file__).resolve().parent / "data" / "calibration_e6e8196"  # the previous writer's files (README there)
@@ -77,7 +77,7 @@ def test_previous_writers_file_loads_and_writes_back_the_same_json(model):
 def test_writer_gives_the_previous_writers_calibration_json(binocular_calibrations, model):
     old = json.loads((OLD / f"{model}.json").read_text())
     new = json.loads(json.dumps(calibration_to_json(binocular_calibrations[model])))
-    if model in ("ari", "exact"):  # the window models are judged (ari_sfm.quality); the rest is as before
+    if model in ("ari", "exact"):  # the window models are judged (ari_sfm.calibration.quality); the rest is as before
         assert new.pop("quality")["ok"] is True
     new.pop("stages", None)
     assert set(ADDED).isdisjoint(new)
@@ -137,7 +137,7 @@ def test_uncertainty_outliers_and_pf_world_round_trip():
 def test_where_a_calibration_came_from_round_trips_as_records(tmp_path):
     """calibration.json's refine_colmap, imported_from and window_ignored load as records (not as unknown keys)
     and write back the same JSON; a key this version does not know is kept as read."""
-    from ari_sfm.calibration_origin import ImportedFrom, RefineColmapFrames
+    from ari_sfm.calibration.origin import ImportedFrom, RefineColmapFrames
     from ari_sfm.geometry import Pose
 
     data = json.loads((OLD / "exact.json").read_text())

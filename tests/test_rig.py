@@ -13,7 +13,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from ari_sfm.calibrate import calibrate
+from ari_sfm.calibration.calibrate import calibrate
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose, angle_between_deg, rotation_angle_deg
 from ari_sfm.io import calibration_to_json

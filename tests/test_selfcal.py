@@ -68,7 +68,7 @@ ALL_MOVED = ParticleSimOptions(particles_per_frame=400, num_frames=2, sigma_px=S
 def from_target(tmp_path_factory):
     """Every camera moved after the target calibration; self-calibrated from ari-sfm's own exact-model
     calibration (with distortion) of the simulated body, as a lab would (~10 s)."""
-    from ari_sfm.calibrate import calibrate
+    from ari_sfm.calibration.calibrate import calibrate
     from ari_sfm.io import load_dataset
 
     exp = simulate_particle_experiment(ALL_MOVED)
@@ -221,7 +221,7 @@ def test_every_camera_moved_within_0_02_deg_from_a_20_view_body_calibration(tmp_
     ari-sfm's own exact-model calibration of 20 views of the body, the rotations relative to camera 0 end
     within 0.02 deg of rig B's (measured 0.0064-0.0132), each within 3 of its sigma (~11 s; the 9 drifts of
     benchmarks/bench_selfcal.py --cases: docs/guide/particles.md)."""
-    from ari_sfm.calibrate import calibrate
+    from ari_sfm.calibration.calibrate import calibrate
     from ari_sfm.io import load_dataset
 
     exp = simulate_particle_experiment(ParticleSimOptions(seed=5, drift_cameras=(0, 1, 2, 3), calibration_frames=20))
@@ -334,7 +334,7 @@ def test_outputs_load_and_hold_the_maps(corrected, tmp_path):
 
 def _true_landmarks(exp, calibration, count: int = 120) -> ParticleSet:
     """The first particles of frame 0 seen by every camera, their true images, triangulated with ``calibration``."""
-    from ari_sfm.triangulate import triangulate_pixels
+    from ari_sfm.reconstruction.triangulate import triangulate_pixels
 
     det, ids = exp.detections[0], exp.particle_ids[0]
     common = set(range(len(exp.positions[0])))

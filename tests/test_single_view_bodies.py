@@ -14,7 +14,7 @@ from dataclasses import replace
 
 import pytest
 
-from ari_sfm.calibrate import PRINCIPAL_POINT_MAX_SIGMA, CalibrationOptions, calibrate
+from ari_sfm.calibration.calibrate import PRINCIPAL_POINT_MAX_SIGMA, CalibrationOptions, calibrate
 from ari_sfm.init.zhang import focal_by_resection
 from ari_sfm.simulate import make_scene
 
@@ -57,7 +57,7 @@ def test_an_undetermined_principal_point_is_held_and_said(sparse_body, caplog):
     limit = PRINCIPAL_POINT_MAX_SIGMA * max(ds.cameras["cam0"].image_size)
     loose = [n for n, s in free.uncertainty.cameras.items() if max(s.intrinsics["cx"], s.intrinsics["cy"]) > limit]
     assert loose  # the free solution leaves them undetermined
-    with caplog.at_level(logging.WARNING, logger="ari_sfm.calibrate"):
+    with caplog.at_level(logging.WARNING, logger="ari_sfm.calibration.calibrate"):
         auto = calibrate(ds, model="exact")
     assert "held at the image centre" in caplog.text
     for name in loose:

@@ -1,10 +1,10 @@
-"""The exact model's triangulation kernel run in slices of points on threads (ari_sfm/triangulate.py)."""
+"""The exact model's triangulation kernel run in slices of points on threads (ari_sfm/reconstruction/triangulate.py)."""
 from __future__ import annotations
 
 import numpy as np
 
-from ari_sfm import triangulate as T
 from ari_sfm.io import parse_calibration
+from ari_sfm.reconstruction import triangulate as T
 from ari_sfm.simulate import make_scene
 
 

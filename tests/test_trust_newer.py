@@ -656,7 +656,7 @@ def test_a_calibration_that_failed_its_gate_is_said_so_by_particles_and_self_cal
     ~0.5 deg off); particles and self-calibrate from it (self-calibration then fits the particles at the noise,
     particles says that this calibration failed its gate (particles3d.json records it); self-calibrate's own
     check on its start fails it (exit 3)."""
-    from ari_sfm.calibration_errors import calibration_errors
+    from ari_sfm.calibration.truth_errors import calibration_errors
 
     sim, cal = tmp_path / "sim", tmp_path / "cal"
     assert _run(["simulate", "particles", "-o", sim, "--particles", "300", "--frames", "2", "--k1", "-0.05",

@@ -20,7 +20,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from ari_sfm.calibrate import calibrate
+from ari_sfm.calibration.calibrate import calibrate
 from ari_sfm.factors import keys as K_
 from ari_sfm.factors.rig_graph import MODELS, RigGraph, RigState, default_distance_mm
 from ari_sfm.factors.vectorized import VectorizedProblem, optimize_graph, optimize_vectorized, resolve_backend, se3_exp

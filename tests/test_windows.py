@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import yaml
 
-from ari_sfm.calibrate import calibrate
+from ari_sfm.calibration.calibrate import calibrate
 from ari_sfm.errors import AriSfmError
 from ari_sfm.factors import keys as K_
 from ari_sfm.factors.rig_graph import MODELS, RigGraph, initial_state

@@ -18,7 +18,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from ari_sfm.calibrate import calibrate
+from ari_sfm.calibration.calibrate import calibrate
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose, angle_between_deg, rotation_from_rotvec
 from ari_sfm.records import CameraSpec, WindowPlane
@@ -255,7 +255,7 @@ def test_under_water_exact_recovers_when_the_ari_stage_is_far_off(oblique, caplo
     """A distance hint of 2.4 m (true ~48 mm): the ari stage ends far off, the exact start is searched
     inside the valid interval and the exact stage reaches the noise floor."""
     ds = replace(oblique.dataset, interface=replace(oblique.dataset.interface, distance_mm=2400.0))
-    with caplog.at_level(logging.INFO, logger="ari_sfm.calibrate"):
+    with caplog.at_level(logging.INFO, logger="ari_sfm.calibration.calibrate"):
         cal = calibrate(ds, model="exact")
     ari_distance = float(re.search(r"ari bundle adjustment.*window distance ([\d.]+) mm", caplog.text).group(1))
     truth = oblique.truth["interface"]["distance_mm"]

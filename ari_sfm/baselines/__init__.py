@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from ..calibration import Calibration
+    from ..calibration.record import Calibration
 
 # The calibrators ari_sfm.models.registry names, one per model: (dataset with observations,
 # CalibrationOptions) -> Calibration. rt and pinhole use ``distortion`` and ``max_iterations``;

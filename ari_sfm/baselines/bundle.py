@@ -27,7 +27,7 @@ from ..init.zhang import ZhangResult, calibrate_views, object_points
 from ..records import Dataset, Observation
 
 if TYPE_CHECKING:
-    from ..calibration import CameraCalibration
+    from ..calibration.record import CameraCalibration
 
 log = logging.getLogger(__name__)
 
@@ -263,8 +263,8 @@ def project_directions(intr: np.ndarray, camera: np.ndarray, D: np.ndarray) -> n
 def camera_calibrations(dataset: Dataset, bundle: RigBundle, intr: np.ndarray, cams: Sequence[Pose],
                         per_camera_residuals: dict[str, np.ndarray]) -> dict[str, CameraCalibration]:
     """The CameraCalibration of every camera from a solved bundle."""
-    from ..calibration import CameraCalibration
-    from ..evaluate import residual_stats
+    from ..calibration.evaluate import residual_stats
+    from ..calibration.record import CameraCalibration
 
     out = {}
     for c, name in enumerate(bundle.names):

@@ -15,20 +15,20 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..evaluate import residual_stats
+from ..calibration.evaluate import residual_stats
 from ..records import Dataset
 from ..results import OptimizerReport, OptimizerRun
 from .bundle import camera_calibrations, intrinsics_vector, project_directions, start_bundle
 
 if TYPE_CHECKING:
-    from ..calibration import Calibration
+    from ..calibration.record import Calibration
 
 log = logging.getLogger(__name__)
 
 
 def calibrate_pinhole(dataset: Dataset, distortion: bool = False, max_iterations: int = 100) -> Calibration:
     """A pinhole rig (model ``pinhole``, or ``pinhole_dist`` with distortion) that ignores the window."""
-    from ..calibration import Calibration
+    from ..calibration.record import Calibration
 
     t0 = time.perf_counter()
     bundle, zhang = start_bundle(dataset, distortion, 0)

@@ -36,7 +36,7 @@ from ..records import Dataset, Observation
 from ..results import PfWorld
 
 if TYPE_CHECKING:
-    from ..calibration import Calibration
+    from ..calibration.record import Calibration
 
 log = logging.getLogger(__name__)
 
@@ -74,13 +74,13 @@ def world_points(observations: Sequence[Observation], frames: dict[str, Pose],
 def calibrate_pf(dataset: Dataset, world=None, **ari_options) -> Calibration:
     """PF per camera on the calibration records, in the world of an ari calibration.
 
-    ``world``: a :class:`~ari_sfm.calibration.Calibration` whose frames give the
+    ``world``: a :class:`~ari_sfm.calibration.record.Calibration` whose frames give the
     world coordinates (default: ``calibrate(dataset, model="ari")`` first; its
     time is not PF's and is reported under ``pf_world``). ``time_s`` is the
     polynomial fit alone, as in the paper's Table 2.
     """
-    from ..calibrate import calibrate
-    from ..evaluate import residual_stats
+    from ..calibration.calibrate import calibrate
+    from ..calibration.evaluate import residual_stats
 
     t_world = 0.0
     if world is None:

@@ -29,14 +29,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..evaluate import residual_stats
+from ..calibration.evaluate import residual_stats
 from ..geometry import unit
 from ..records import Dataset, Interface
 from ..results import OptimizerReport, OptimizerRun
 from .bundle import camera_calibrations, intrinsics_vector, project_directions, start_bundle
 
 if TYPE_CHECKING:
-    from ..calibration import Calibration
+    from ..calibration.record import Calibration
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +105,7 @@ def _normal(base: np.ndarray, ab: np.ndarray) -> np.ndarray:
 
 def calibrate_rt(dataset: Dataset, distortion: bool = False, max_iterations: int = 100) -> Calibration:
     """The ray-tracing bundle adjustment (see module docstring) on the calibration records."""
-    from ..calibration import Calibration
+    from ..calibration.record import Calibration
 
     t0 = time.perf_counter()
     if dataset.windows:

@@ -74,7 +74,7 @@ def _field_option(name: str):
     (the one place each default is declared); ``{field}`` in a help text is that field's default."""
     from dataclasses import fields
 
-    from ..calibrate import CalibrationOptions
+    from ..calibration.calibrate import CalibrationOptions
 
     every = {f.name: f for f in fields(CalibrationOptions)}
     f = every[name]
@@ -94,7 +94,7 @@ def _cli_fields() -> tuple[str, ...]:
     """The CalibrationOptions fields calibrate and run offer (those with a ``cli`` flag), in field order."""
     from dataclasses import fields
 
-    from ..calibrate import CalibrationOptions
+    from ..calibration.calibrate import CalibrationOptions
 
     return tuple(f.name for f in fields(CalibrationOptions) if "cli" in f.metadata)
 
@@ -112,7 +112,7 @@ def _calibration_options(fn):
 
 def _calibration_record(values: dict, **more):
     """The CalibrationOptions of the command line's values (--huber-px 0: plain least squares), checked."""
-    from ..calibrate import CalibrationOptions
+    from ..calibration.calibrate import CalibrationOptions
 
     check_number("--huber-px", values["huber_px"], minimum=0.0)
     return CalibrationOptions(**{**values, "huber_px": values["huber_px"] or None}, **more)
@@ -128,7 +128,7 @@ def calibrate_cmd(dataset: Path, out: Path, model: str | None, **options) -> Non
     """Calibrate DATASET; write OUT/calibration.json (and OUT/observations.json when detected here).
 
     Exit code 3: the calibration converged but failed its quality gate (written with quality.ok false)."""
-    from ..calibrate import DEFAULT_MODEL
+    from ..calibration.calibrate import DEFAULT_MODEL
     from ..pipelines.calibrate_rig import main as pipeline
 
     model = model or DEFAULT_MODEL
@@ -208,7 +208,7 @@ def report_cmd(out: Path, dataset: Path | None) -> None:
 @user_errors
 def evaluate_cmd(calibration: Path, observations: Path, solve_poses: bool) -> None:
     """Reprojection errors of CALIBRATION on an OBSERVATIONS file (e.g. held-out views)."""
-    from ..evaluate import evaluate
+    from ..calibration.evaluate import evaluate
     from ..io import load_calibration
 
     cal = load_calibration(calibration)
@@ -237,7 +237,7 @@ def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | N
                     reference: Path | None) -> None:
     """Triangulate the reconstruction frames of DATASET and measure them (flatness, stage, corner spacing)."""
     from ..io import find_rig
-    from ..reconstruct import run_reconstruction
+    from ..reconstruction.reconstruct import run_reconstruction
 
     check_output_folder(out)
     check_number("--workers", workers, minimum=1)
@@ -291,7 +291,7 @@ def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | N
 def compare_cmd(dataset: Path, out: Path, models: str, subset: str | None, holdout: Path | None, pf_world: str,
                 distortion: bool, backend: str) -> None:
     """Calibrate DATASET with several models and compare them (the paper's Tables 2-4)."""
-    from ..compare import run_compare
+    from ..calibration.compare import run_compare
 
     check_output_folder(out)
     paths = run_compare(dataset, out, models, subset, holdout, pf_world, distortion=distortion, backend=backend)

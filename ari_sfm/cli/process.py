@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     Handler = Callable[[int, FrameType | None], Any] | int | None  # what signal.getsignal returns
 
 
-QUALITY_FAILED_EXIT = 3  # the calibration was written but failed its quality gate (ari_sfm.quality)
+QUALITY_FAILED_EXIT = 3  # the calibration was written but failed its quality gate (ari_sfm.calibration.quality)
 
 
 def setup_logging(verbose: bool) -> None:

@@ -57,7 +57,7 @@ from typing import Any
 
 import numpy as np
 
-from ..calibration import Calibration
+from ..calibration.record import Calibration
 from ..deps import import_pycolmap
 from ..errors import AriSfmError
 from ..geometry import Pose

@@ -44,8 +44,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..calibration import Calibration, CameraCalibration, WindowCalibration
-from ..calibration_origin import ImportedFrom
+from ..calibration.origin import ImportedFrom
+from ..calibration.record import Calibration, CameraCalibration, WindowCalibration
 from ..errors import AriSfmError
 from ..geometry import Pose, angle_between_deg
 from ..io import load_calibration
@@ -309,7 +309,7 @@ def _refined_images(cal: Calibration, model_dir: Path) -> tuple[dict[str, int], 
 def _dataset_observations(cal: Calibration, dataset: Dataset | str | Path, path: Path) -> Sequence[Observation]:
     """The observations of a dataset of the calibration's rig (another rig's: AriSfmError, as calibrate's)."""
     from ..io import load_dataset
-    from ..reconstruct import check_rig
+    from ..reconstruction.reconstruct import check_rig
 
     ds = load_dataset(dataset) if isinstance(dataset, (str, Path)) else dataset
     check_rig(ds, cal, path)

@@ -2,7 +2,7 @@
 :mod:`ari_sfm.io.dataset`: :func:`load_calibration`, :func:`save_calibration` (atomic),
 :func:`parse_calibration` (a parsed mapping, e.g. a simulator's truth) and :func:`calibration_to_json`.
 A defect is one line, ``AriSfmError(path, message)``, naming the key; values are held to rig.yaml's
-bounds (:mod:`ari_sfm.io.calibration_checks`). The record itself is :class:`ari_sfm.calibration.Calibration`."""
+bounds (:mod:`ari_sfm.io.calibration_checks`). The record itself is :class:`ari_sfm.calibration.record.Calibration`."""
 from __future__ import annotations
 
 import math
@@ -11,8 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from ari_sfm.calibration import Calibration, CameraCalibration, WindowCalibration
-from ari_sfm.calibration_origin import ImportedFrom, RefineColmapFrames
+from ari_sfm.calibration.origin import ImportedFrom, RefineColmapFrames
+from ari_sfm.calibration.quality import Quality
+from ari_sfm.calibration.record import Calibration, CameraCalibration, WindowCalibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose
 from ari_sfm.io.atomic import write_json_atomic
@@ -22,7 +23,6 @@ from ari_sfm.io.structured import check_at_most, read_structured
 from ari_sfm.models.polynomial import PolynomialMap
 from ari_sfm.models.registry import model_spec
 from ari_sfm.particles.selfcal_report import SelfCalReport
-from ari_sfm.quality import Quality
 from ari_sfm.records import Interface
 from ari_sfm.results import (
     OptimizerReport,

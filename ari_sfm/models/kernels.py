@@ -2,7 +2,7 @@
 Jacobians, Snell back-projection and triangulation through the window (numba, ``cache=True``).
 
 These kernels are THE implementation: :mod:`.pinhole`, :mod:`.ari`, :mod:`.exact`, the numpy
-bundle adjustment, the GTSAM factors, refine-colmap and :mod:`ari_sfm.triangulate` all call them
+bundle adjustment, the GTSAM factors, refine-colmap and :mod:`ari_sfm.reconstruction.triangulate` all call them
 through the public functions of those modules. The maths is derived in the docstrings of
 :mod:`.pinhole` (distortion) and :mod:`.exact` (incidence equation, implicit-function Jacobians).
 The per-point parts work on scalars; a batch solves the incidence equation of all its points in
@@ -676,7 +676,7 @@ def triangulate_exact(uv, R, t, params, nc, window, refine, max_iterations, damp
     cameras: cam_from_world R (C, 3, 3), t (C, 3); params (C, 9); unit normals nc (C, 3) in each
     camera; window (C, 4) = [h, d, n, n_m]. Per point: back-projection, the least-squares point of
     the rays (``ray_gap_mm``), then, with ``refine``, Levenberg-Marquardt on the reprojection error
-    with the analytic Jacobians (the algorithm of :func:`ari_sfm.triangulate.refine_points`, per
+    with the analytic Jacobians (the algorithm of :func:`ari_sfm.reconstruction.triangulate.refine_points`, per
     point). Fills X_out (P, 3), gap_out (P,), rmse_out (P,) (NaN where no point), unconverged (P,)
     and undistort_failed (P,). Releases the GIL: threads may run it on separate slices of points."""
     C = uv.shape[1]

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ari_sfm.calibration import Calibration, WindowCalibration
+from ari_sfm.calibration.record import Calibration, WindowCalibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose
 from ari_sfm.io import load_calibration, write_text_atomic

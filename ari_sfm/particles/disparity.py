@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from ..calibration import Calibration
+from ..calibration.record import Calibration
 from .disparity_kernels import joint_counts, joint_counts_against
 
 MEAN_SHIFT_STEPS = 20

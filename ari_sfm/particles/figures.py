@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from ari_sfm.calibration import Calibration
+    from ari_sfm.calibration.record import Calibration
 
 DISPARITY_FILE = "disparity.json"
 

@@ -35,7 +35,7 @@ from typing import cast
 
 import numpy as np
 
-from ..calibration import Calibration
+from ..calibration.record import Calibration
 from ..errors import AriSfmError
 from ..geometry import Pose, rotation_angle_deg
 from ..models import PinholeModel

@@ -16,14 +16,14 @@ faces), so it is built from the exact model itself:
    ``min_cameras`` images in all (built camera by camera; a partial one whose
    newest ray passes farther from another than any accepted combination's could
    is dropped before the next camera is joined) are scored by their rays (their least-squares
-   point, as :func:`ari_sfm.triangulate.triangulate_rays` forms it): each ray's
+   point, as :func:`ari_sfm.reconstruction.triangulate.triangulate_rays` forms it): each ray's
    distance from the point, in pixels of its camera (mm / the camera's
    footprint at the volume), must be within the tolerance, and the point inside
    the volume;
 4. accepted combinations are taken best first (more cameras first, then the
    smaller RMS distance), each particle image used once;
 5. the chosen ones are triangulated with the exact model
-   (:func:`ari_sfm.triangulate.triangulate_pixels`).
+   (:func:`ari_sfm.reconstruction.triangulate.triangulate_pixels`).
 
 Each combination is enumerated once: its reference is its lowest camera. Steps 2-4
 are compiled (:mod:`ari_sfm.particles.match_kernels`).
@@ -36,10 +36,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ari_sfm.calibration import Calibration
+from ari_sfm.calibration.record import Calibration
 from ari_sfm.particles import match_kernels
 from ari_sfm.particles.volume import Volume
-from ari_sfm.triangulate import MIN_DET, triangulate_pixels
+from ari_sfm.reconstruction.triangulate import MIN_DET, triangulate_pixels
 
 log = logging.getLogger(__name__)
 

@@ -6,7 +6,7 @@ calls them, the algorithm is described there.
   of a curve visits only the cells its box grown by the tolerance overlaps and measures the exact
   point-to-segment distance there, the formula numpy's version used.
 - :func:`score_combos`: the least-squares point of each combination's rays (as
-  :func:`ari_sfm.triangulate.triangulate_rays` forms it), each ray's distance from it in pixels of its
+  :func:`ari_sfm.reconstruction.triangulate.triangulate_rays` forms it), each ray's distance from it in pixels of its
   camera, the acceptance (every ray within the tolerance, the point inside the volume grown by the
   margin) and the RMS score; one pass, no (Q, C, 3) temporaries.
 - :func:`join_within_reach`: the combinations built camera by camera, a partial one whose newest ray misses

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from ari_sfm.calibration import Calibration
+from ari_sfm.calibration.record import Calibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.io import calibration_to_json, load_calibration, parse_calibration, write_json_atomic
 from ari_sfm.io.particles import ParticleDataset, load_particle_dataset, read_detections

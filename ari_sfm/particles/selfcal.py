@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from ..calibration import Calibration
+from ..calibration.record import Calibration
 from ..errors import AriSfmError
 from ..geometry import rotation_angle_deg
 from .disparity import Cells, DisparityMap, ParticleSet, disparity_map, particle_disparities
@@ -144,7 +144,7 @@ def match_particles(calibration: Calibration, frame: int, detections: Detections
                     match: Callable | None = None) -> FrameParticles:
     """Match one frame (``match``: ``match_frame``'s signature, default the particles package's) and
     triangulate the matches with the exact model."""
-    from ..triangulate import triangulate_pixels
+    from ..reconstruction.triangulate import triangulate_pixels
 
     if match is None:
         from .match import match_frame
@@ -461,7 +461,7 @@ def trust_checks(start: Calibration, final: Calibration, detections: Mapping[int
         Check("matched_share", share, MIN_MATCHED_SHARE, share >= MIN_MATCHED_SHARE,
               "share of the particle images (camera with the fewest) the final calibration matches"),
     ]
-    from ..triangulate import triangulate_pixels
+    from ..reconstruction.triangulate import triangulate_pixels
 
     if len(particles.xyz):
         xyz = triangulate_pixels(start, {n: particles.pixels[:, c] for c, n in enumerate(names)})[0]

@@ -125,7 +125,7 @@ def score_experiment(experiment, volume, calibration, tolerance_px: float = 0.5,
     matched through ``calibration``: the summed found / ghost score, and the 3D RMS (mm) of the correctly
     matched particles after a rigid alignment onto the true positions (NaN with fewer than 3): a calibration
     right up to a rigid motion of the rig scores as right."""
-    from ..metrics import rigid_alignment
+    from ..reconstruction.metrics import rigid_alignment
     from .match import match_frame
 
     total, P, Q = None, [], []

@@ -47,11 +47,11 @@ from typing import Any
 
 import numpy as np
 
-from ..calibration import Calibration
+from ..calibration.record import Calibration
 from ..errors import AriSfmError
 from ..io import load_calibration
+from ..reconstruction.reference import ReferenceErrors
 from ..records import Dataset, Observation, Target
-from ..reference import ReferenceErrors
 from ..results import StageRecord
 
 log = logging.getLogger(__name__)
@@ -138,7 +138,7 @@ def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInp
     obs_path = out / "observations.json"
     ds = None
     if ds_path is not None:
-        from ..reconstruct import check_rig, check_same_capture
+        from ..reconstruction.reconstruct import check_rig, check_same_capture
 
         ds = load_dataset(ds_path, obs_path if obs_path.exists() else None)
         check_rig(ds, cal, cal_path)  # another rig's dataset: refused, not mixed in
@@ -179,7 +179,7 @@ def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInp
                      "are older than its calibration")
     md = (out / "compare.md").read_text() if (out / "compare.md").exists() else None
     cj = _read_json(out / "compare.json") if (out / "compare.json").exists() else None
-    from ..compare import FIGURES
+    from ..calibration.compare import FIGURES
 
     figs = {name: (out / name).read_bytes() for name in FIGURES if (out / name).exists()}
     return ReportInputs(out, cal, ds, ds_path, tuple(observations), metrics, points, md, cj, figs, tuple(notes), label,
@@ -641,7 +641,7 @@ def add_section(name: str, render: Section, after: str | None = None) -> None:
 
 def report_context(inp: ReportInputs) -> ReportContext:
     """The inputs with their residuals computed (once, for every section)."""
-    from ..evaluate import observation_residuals
+    from ..calibration.evaluate import observation_residuals
 
     target = inp.dataset.target if inp.dataset else inp.calibration.target
     residuals = observation_residuals(inp.calibration, inp.observations, target) if inp.observations and target else []

@@ -1,7 +1,7 @@
 """What the report's diagnostic figures show, as numbers, and the recommendations drawn from them.
 
 Three breakdowns of a calibration's reprojection residuals (``(observation,
-residual)`` pairs from :func:`ari_sfm.evaluate.observation_residuals`):
+residual)`` pairs from :func:`ari_sfm.calibration.evaluate.observation_residuals`):
 
 - :func:`region_grid`: RMS residual and corner count per cell of a
   ``GRID_COLS x GRID_ROWS`` grid over each camera's image (coverage = the
@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..calibration import Calibration
+from ..calibration.record import Calibration
 from ..records import Observation, Target
 
 GRID_COLS, GRID_ROWS = 8, 6  # image cells for coverage and residuals by region

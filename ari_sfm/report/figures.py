@@ -30,7 +30,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
-from ..calibration import Calibration  # noqa: E402
+from ..calibration.record import Calibration  # noqa: E402
 from ..records import Observation, Target  # noqa: E402
 from .diagnostics import corner_depths, frame_rmse, point_depths, region_grid, rms  # noqa: E402
 

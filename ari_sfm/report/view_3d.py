@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from ..calibration import Calibration
+from ..calibration.record import Calibration
 from .figures import window_depth
 
 log = logging.getLogger(__name__)

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ari_sfm.calibration import Calibration
+from ari_sfm.calibration.record import Calibration
 from ari_sfm.geometry import Pose, rotation_from_rotvec, unit
 from ari_sfm.io import calibration_to_json, parse_calibration
 from ari_sfm.records import Dataset, Target

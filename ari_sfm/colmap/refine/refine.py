@@ -38,8 +38,8 @@ from typing import Any
 
 import numpy as np
 
-from ari_sfm.calibration import Calibration, CameraCalibration
-from ari_sfm.calibration_origin import RefineColmapFrames
+from ari_sfm.calibration.origin import RefineColmapFrames
+from ari_sfm.calibration.record import Calibration, CameraCalibration
 from ari_sfm.colmap import adapter
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose, rotation_from_rotvec

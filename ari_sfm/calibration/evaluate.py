@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .calibration import Calibration
-from .errors import AriSfmError
-from .geometry import Pose, rotation_from_rotvec
-from .records import Dataset, Observation, Target
-from .results import ResidualStats
+from ..errors import AriSfmError
+from ..geometry import Pose, rotation_from_rotvec
+from ..records import Dataset, Observation, Target
+from ..results import ResidualStats
+from .record import Calibration
 
 
 def residual_stats(residuals: Iterable[np.ndarray]) -> ResidualStats:
@@ -57,7 +57,7 @@ def solve_frame_poses(calibration: Calibration, observations: Sequence[Observati
     import cv2
     from scipy.optimize import least_squares
 
-    from .init.interface_pose import real_cam_from_target
+    from ..init.interface_pose import real_cam_from_target
 
     ids_all, xyz_all = target.points_3d()
     lookup = {int(i): k for k, i in enumerate(ids_all)}
@@ -124,7 +124,7 @@ def evaluate(calibration: Calibration, observations: str | Path | Dataset | Sequ
 def _as_calibration(calibration: Calibration | str | Path) -> Calibration:
     """A Calibration, or the one a calibration.json path holds (anything else: TypeError saying what is wanted)."""
     if isinstance(calibration, (str, Path)):
-        from .io import load_calibration
+        from ..io import load_calibration
 
         return load_calibration(calibration)
     if not isinstance(calibration, Calibration):
@@ -176,8 +176,8 @@ def reprojection_stats(calibration: Calibration, observations: str | Path | Data
                                                      "`ari-sfm detect` first, or pass its observations.json")
         records: Sequence[Observation] = observations.observations
     elif isinstance(observations, (str, Path)):
-        from .io import load_observations
-        from .io.observations import check_pixels_in_images
+        from ..io import load_observations
+        from ..io.observations import check_pixels_in_images
 
         target = target or calibration.target
         records = load_observations(Path(observations), target, list(calibration.cameras))
@@ -185,7 +185,7 @@ def reprojection_stats(calibration: Calibration, observations: str | Path | Data
     else:
         records = _as_records(observations)
     if not isinstance(observations, (str, Path)):  # a file was checked as it was read
-        from .io.observations import check_pixels_in_images
+        from ..io.observations import check_pixels_in_images
 
         check_pixels_in_images(records, {n: c.image_size for n, c in calibration.cameras.items()},
                                _source(observations))

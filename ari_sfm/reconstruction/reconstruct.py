@@ -2,7 +2,7 @@
 
 ``reconstruct(dataset, calibration)`` matches each reconstruction frame's
 corner ids across the cameras that saw it and triangulates every corner seen
-by at least two cameras (:func:`ari_sfm.triangulate.triangulate_pixels`:
+by at least two cameras (:func:`ari_sfm.reconstruction.triangulate.triangulate_pixels`:
 rays through the window, then the reprojection error through the
 calibration's own model). The result, :class:`Points`, reads and writes
 ``points.json`` (DATASET_FORMAT.md).
@@ -18,10 +18,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .calibration import Calibration
-from .errors import AriSfmError
+from ..calibration.record import Calibration
+from ..errors import AriSfmError
+from ..records import Dataset
 from .points import FramePoints, Points  # noqa: F401 (the records: points.py; re-exported)
-from .records import Dataset
 
 if TYPE_CHECKING:
     from .metrics import ReconstructionMetrics
@@ -151,7 +151,7 @@ class ReconstructionRun:
     """What :func:`run_reconstruction` wrote."""
 
     points: Points
-    metrics: ReconstructionMetrics  # ari_sfm.metrics, imported when needed (it imports open3d lazily)
+    metrics: ReconstructionMetrics  # ari_sfm.reconstruction.metrics, imported when needed (it imports open3d lazily)
     points_path: Path
     metrics_path: Path
     clouds: dict[str, Path]
@@ -163,7 +163,7 @@ def check_same_capture(dataset: Dataset, calibration: Calibration, where: str | 
     rig.yaml of another capture; :func:`ari_sfm.provenance.observations_mismatch`). For ``report`` and
     ``export-colmap``, which show or export the calibration's frames with these corners; ``reconstruct``
     may triangulate another capture of a calibrated rig."""
-    from .provenance import observations_mismatch
+    from ..provenance import observations_mismatch
 
     if dataset.observations is None:
         return
@@ -208,14 +208,14 @@ def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, o
     replaces the dataset's observations file (e.g. corners detected earlier).
     ``reference_path``: a mesh or point cloud of the true geometry; metrics.json
     then holds ``reference``, the 3D error after registration onto it
-    (:func:`ari_sfm.reference.reference_errors`). ``dataset``, ``calibration``: the records already
+    (:func:`ari_sfm.reconstruction.reference.reference_errors`). ``dataset``, ``calibration``: the records already
     loaded from ``dataset_path`` (with ``observations``) and ``calibration_path`` (``run`` passes
     them on), not read again.
     """
-    from .detection import ensure_observations
-    from .io import load_calibration, load_dataset, save_observations, write_json_atomic
+    from ..detection import ensure_observations
+    from ..io import load_calibration, load_dataset, save_observations, write_json_atomic
+    from ..provenance import provenance
     from .metrics import reconstruction_metrics, save_point_clouds
-    from .provenance import provenance
 
     dataset = load_dataset(dataset_path, observations) if dataset is None else dataset
     calibration = load_calibration(calibration_path) if calibration is None else calibration

@@ -11,9 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from .calibration import Calibration
-from .errors import AriSfmError
-from .geometry import angle_between_deg
+from ..errors import AriSfmError
+from ..geometry import angle_between_deg
+from .record import Calibration
 
 
 @dataclass(frozen=True)

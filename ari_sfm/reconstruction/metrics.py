@@ -57,10 +57,10 @@ from typing import Any
 
 import numpy as np
 
-from .deps import require_open3d
-from .errors import AriSfmError
+from ..deps import require_open3d
+from ..errors import AriSfmError
+from ..records import Target
 from .points import FramePoints, Points
-from .records import Target
 from .reference import ReferenceErrors
 
 log = logging.getLogger(__name__)
@@ -299,7 +299,7 @@ class ReconstructionMetrics:
     inter_corner_mm: InterCorner | None  # None for targets without a corner grid
     truth: TruthErrors | None  # only given a truth
     frames: Mapping[str, FrameMetrics] = field(default_factory=dict)
-    reference: ReferenceErrors | None = None  # only given a reference geometry: ari_sfm.reference.reference_errors
+    reference: ReferenceErrors | None = None  # only given a reference geometry: reference.reference_errors
 
     def to_json(self) -> dict[str, Any]:
         out = {"num_points": self.num_points, "num_frames": self.num_frames, "ray_gap_mm": self.ray_gap_mm.to_json(),
@@ -449,7 +449,7 @@ def inter_corner_distances(ids: np.ndarray, xyz: np.ndarray, cols: int) -> np.nd
 
 def _truth_points(truth: Mapping[str, Any] | str | Path) -> tuple[dict[str, Any], str]:
     if isinstance(truth, (str, Path)):
-        from .io import read_structured
+        from ..io import read_structured
 
         return read_structured(Path(truth)), str(truth)
     return dict(truth), "truth"

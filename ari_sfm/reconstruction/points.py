@@ -1,6 +1,7 @@
 """The reconstructed points as records: :class:`FramePoints` per frame and :class:`Points`, which
-reads and writes ``points.json`` (DATASET_FORMAT.md). Made by :mod:`ari_sfm.reconstruct`, measured by
-:mod:`ari_sfm.metrics` and :mod:`ari_sfm.reference` (which therefore need not import the reconstruction)."""
+reads and writes ``points.json`` (DATASET_FORMAT.md). Made by :mod:`ari_sfm.reconstruction.reconstruct`,
+measured by :mod:`ari_sfm.reconstruction.metrics` and :mod:`ari_sfm.reconstruction.reference` (which
+therefore need not import the reconstruction)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -38,7 +39,7 @@ class Points:
     def save(self, path: str | Path, calibration_name: str, provenance: dict | None = None) -> None:
         """Write ``points.json`` atomically (validated first; a bad frame writes nothing); ``provenance``:
         which calibration and dataset made the points (:mod:`ari_sfm.provenance`)."""
-        from .io import save_points
+        from ..io import save_points
 
         save_points(path, {name: {"stage_mm": f.stage_mm, "ids": f.ids, "xyz": f.xyz, "ray_gap_mm": f.ray_gap_mm}
                            for name, f in self.frames.items()}, calibration_name, provenance)
@@ -46,7 +47,7 @@ class Points:
     @staticmethod
     def load(path: str | Path) -> Points:
         """Read and validate ``points.json``."""
-        from .io import load_points
+        from ..io import load_points
 
         data = load_points(path)
         frames = {name: FramePoints(f["stage_mm"], f["ids"], f["xyz"], f["ray_gap_mm"])

@@ -40,8 +40,8 @@ from typing import Any
 
 import numpy as np
 
-from .deps import require_open3d
-from .errors import AriSfmError
+from ..deps import require_open3d
+from ..errors import AriSfmError
 from .points import Points
 
 log = logging.getLogger(__name__)
@@ -244,7 +244,7 @@ def _refine_point_to_plane(closest: Any, xyz: np.ndarray, T: np.ndarray, max_dis
     closest surface point and normal (a mesh: RaycastingScene's closest point and face normal, exact; a
     cloud: its nearest point and estimated normal). Minimum-norm steps leave alone the motions the
     surface does not fix (slides along parallel faces)."""
-    from .geometry import rotation_from_rotvec
+    from ..geometry import rotation_from_rotvec
 
     R, t = T[:3, :3].copy(), T[:3, 3].copy()
     for _ in range(iterations):

@@ -26,12 +26,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .calibration import Calibration
-from .errors import AriSfmError
+from ..errors import AriSfmError
+from ..models.registry import BUNDLE, CALIBRATABLE, COMPARED, model_spec
+from ..records import Dataset, Observation
+from ..results import ResidualStats
 from .evaluate import evaluate_held_out, observation_residuals, residual_stats
-from .models.registry import BUNDLE, CALIBRATABLE, COMPARED, model_spec
-from .records import Dataset, Observation
-from .results import ResidualStats
+from .record import Calibration
 
 log = logging.getLogger(__name__)
 FIGURES = ("residuals_scatter.png", "residuals_distribution.png")  # written beside compare.json
@@ -147,7 +147,7 @@ def check_holdout_of_this_rig(cal: Calibration, holdout: Sequence[Observation], 
     """The held-out errors of ``cal``, or AriSfmError naming ``where`` when the views are not of its rig: no
     frame's pose can be fitted, or their errors with the poses fitted and the rig held are far above the
     calibration's own (another rig's or another target's views: scoring them would be meaningless)."""
-    from .provenance import RESIDUAL_MISMATCH_FACTOR, RESIDUAL_MISMATCH_PX
+    from ..provenance import RESIDUAL_MISMATCH_FACTOR, RESIDUAL_MISMATCH_PX
 
     stats = _holdout(cal, holdout, dataset)
     own = _judge(cal, dataset, None)[1].rmse_px  # on all the dataset's calibration corners (a --subset fit's too)
@@ -173,7 +173,7 @@ def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Su
     (:func:`check_holdout_of_this_rig`, judged on the first model calibrated, before
     the others; ``holdout_path`` is named in its errors).
     """
-    from .baselines.polynomial import calibrate_pf
+    from ..baselines.polynomial import calibrate_pf
     from .calibrate import calibrate, ensure_observations
 
     models = parse_models(models)
@@ -283,7 +283,7 @@ def to_markdown(results: Sequence[ModelResult], subset: Subset | None, dataset: 
 
 def figures(results: Sequence[ModelResult]) -> dict[str, bytes]:
     """PNG bytes of :func:`draw_figures`: residual scatter per model, error distributions."""
-    from .report.figures import to_png
+    from ..report.figures import to_png
 
     return dict(zip(FIGURES, (to_png(f) for f in draw_figures(results))))
 
@@ -293,7 +293,7 @@ def draw_figures(results: Sequence[ModelResult]) -> tuple:
     corners red, others blue; dv down as in the image; dashed circle: RMSE), and the error distributions."""
     import matplotlib.pyplot as plt
 
-    from .report.figures import FIG_WIDTH_IN, STYLE, panels
+    from ..report.figures import FIG_WIDTH_IN, STYLE, panels
 
     with plt.rc_context(STYLE):
         k = len(results)
@@ -337,7 +337,7 @@ def run_compare(dataset_path: str | Path, out: str | Path, models: str | Sequenc
 
     Arguments are checked before any calibration runs and nothing is written on error.
     """
-    from .io import load_dataset, load_observations, write_bytes_atomic, write_json_atomic, write_text_atomic
+    from ..io import load_dataset, load_observations, write_bytes_atomic, write_json_atomic, write_text_atomic
 
     names = parse_models(models)
     if pf_world not in BUNDLE:
@@ -348,7 +348,7 @@ def run_compare(dataset_path: str | Path, out: str | Path, models: str | Sequenc
         sub.ids(dataset)
     held = None
     if holdout:
-        from .io.observations import check_pixels_in_images
+        from ..io.observations import check_pixels_in_images
 
         held = load_observations(Path(holdout), dataset.target, dataset.camera_names)
         check_pixels_in_images(held, {n: c.image_size for n, c in dataset.cameras.items()}, holdout)

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .records import Observation
+from ..records import Observation
 
 
 @dataclass(frozen=True)

@@ -10,15 +10,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .calibration_origin import ImportedFrom, RefineColmapFrames
-from .geometry import Pose
-from .models.registry import ModelSpec, model_spec
+from ..geometry import Pose
+from ..models.registry import ModelSpec, model_spec
+from ..records import SINGLE_WINDOW, Interface, Target
+from ..results import OptimizerReport, OutlierReport, PfWorld, ResidualStats, StageRecord, Uncertainty
+from .origin import ImportedFrom, RefineColmapFrames
 from .quality import Quality
-from .records import SINGLE_WINDOW, Interface, Target
-from .results import OptimizerReport, OutlierReport, PfWorld, ResidualStats, StageRecord, Uncertainty
 
 if TYPE_CHECKING:
-    from .particles.selfcal_report import SelfCalReport  # (the particles package imports this module)
+    from ..particles.selfcal_report import SelfCalReport  # (the particles package imports this module)
 
 
 @dataclass(frozen=True)
@@ -85,7 +85,7 @@ class Calibration:
     uncertainty: Uncertainty | None = None  # standard deviations (bundle-adjusted models, when asked for)
     outliers: OutlierReport | None = None  # corners beyond k sigma after convergence (bundle-adjusted models)
     pf_world: PfWorld | None = None  # model pf: the calibration whose frames are its world (required then)
-    quality: Quality | None = None  # the quality gate's verdict (ari, exact; ari_sfm.quality)
+    quality: Quality | None = None  # the quality gate's verdict (ari, exact; ari_sfm.calibration.quality)
     optimizer: OptimizerReport | None = None  # how each stage's solve went (not a result: times)
     windows: tuple[WindowCalibration, ...] = ()  # several windows (1.3); (): one, the fields above, for all
     stages: tuple[StageRecord, ...] = ()  # the stages it went through, in order (bundle-adjusted models)
@@ -97,7 +97,7 @@ class Calibration:
     def __post_init__(self) -> None:
         spec = self.spec  # an unknown model name fails here
         if self.windows:
-            from .records import Window, check_windows
+            from ..records import Window, check_windows
 
             check_windows(tuple(Window(w.name, w.interface, w.cameras) for w in self.windows), list(self.cameras))
             first, mine = self.windows[0], self.interface
@@ -171,7 +171,7 @@ class Calibration:
         """The camera's projection model in its own frame, the class the registry names for the model
         (or for ``model``): AriModel, ExactModel (exact, rt, truth), PinholeModel (the window ignored)
         or the pf polynomial (world points only)."""
-        from .models import PinholeModel
+        from ..models import PinholeModel
 
         cam = self.cameras[camera]
         spec = self.spec if model is None else model_spec(model, None)
@@ -179,7 +179,7 @@ class Calibration:
             if added_mm:
                 raise ValueError(f"model {spec.name} cannot project through added glass (added_mm={added_mm})")
             if spec.projection == "polynomial":
-                from .models.polynomial import PolynomialModel
+                from ..models.polynomial import PolynomialModel
 
                 return PolynomialModel(cam.pf, cam.cam_from_world.inverse())
             return PinholeModel(cam.K, cam.dist)

@@ -1,6 +1,6 @@
 """The quality gate's floor fit, compiled: each view's corners mapped to their pixels by the most
 flexible free map of the calibration model's own structure, so that its residuals estimate what the
-data allow (:mod:`ari_sfm.quality`):
+data allow (:mod:`ari_sfm.calibration.quality`):
 
 - a planar view (a board; one plane of a body): a homography (the normalised DLT of the plane's 2D
   coordinates) and a smooth polynomial warp W of the predicted pixels: any camera behind any flat
@@ -43,7 +43,7 @@ import math
 
 import numpy as np
 
-from .kernel_cache import njit  # numba's njit, the kernels compiled into the wheel read first
+from ..kernel_cache import njit  # numba's njit, the kernels compiled into the wheel read first
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 SHIFT = 1e-13  # of A^T A's trace, added to its diagonal

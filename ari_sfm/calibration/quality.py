@@ -6,7 +6,7 @@ what the same corners allow. After convergence a window-model calibration (ari, 
 
 - the fit against the corners' floor (:func:`corner_floor`): what the data allow under the model's
   own assumptions, measured the same way on every kind of target. Each view is mapped by the most
-  flexible free map of the calibration model's structure (:mod:`ari_sfm.floor_fit`): a planar view
+  flexible free map of the calibration model's structure (:mod:`ari_sfm.calibration.floor_fit`): a planar view
   (a board) by a homography and a smooth image warp, which any camera behind any flat window with
   any lens is; a view of a 3D body (every plane of a multi-plane body at once: one frame is one rigid
   body seen once; a dataset giving each plane its own frame says they were placed independently, and
@@ -14,7 +14,7 @@ what the same corners allow. After convergence a window-model calibration (ari, 
   term (a window under water is not a central camera). Its residuals are scaled for the parameters
   fitted: the detection noise, plus what no single rigid body explains (a plane's placement error).
   Both sides are robust RMSEs (``sqrt(2) * 1.4826 * MAD`` of the residual coordinates), so a few
-  outlier corners (reported apart, see :mod:`ari_sfm.outliers`) do not decide. A correct model's
+  outlier corners (reported apart, see :mod:`ari_sfm.calibration.outliers`) do not decide. A correct model's
   robust RMSE is the floor times ~1 with the spread of two MAD estimates, which shrinks with the
   corners: a result fits when ``robust_rmse_px <= FLOOR_RATIO (1 + FLOOR_SIGMAS s) floor + MARGIN_PX``,
   s = 1.166 sqrt(1 / its residual coordinates + 1 / the floor's residual dof) (:func:`allowance_px`);
@@ -134,7 +134,7 @@ def _warp_of(n: int, planar: bool) -> tuple[int, bool, int] | None:
 
 def _warp_residuals(src: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     """Residuals (V, n, 2) of V views' points ``src`` (V, n, 2: a plane's coordinates; V, n, 3: a body's)
-    against their pixels ``uv`` (V, n, 2) after the free map (:func:`ari_sfm.floor_fit.warp_residuals`,
+    against their pixels ``uv`` (V, n, 2) after the free map (:func:`ari_sfm.calibration.floor_fit.warp_residuals`,
     W's degree lowered for small views: :func:`_warp_of`), scaled for the parameters fitted; which views
     were fitted (V,); and the parameters fitted per view."""
     from .floor_fit import warp_residuals
@@ -165,7 +165,7 @@ def corner_floor(dataset) -> Floor | None:
     by a homography and a warp, a body's view (every plane of it at once: one rigid body seen once) by a
     projective camera and a warp with an inverse-depth term (views of the same kind and corner count
     at once). None when no view was fitted."""
-    from .init.zhang import object_points
+    from ..init.zhang import object_points
 
     views = [o for o in dataset.observations if o.set in ("calibration", "stacking") and len(o.ids) >= MIN_VIEW_CORNERS]
     if len(views) > MAX_FLOOR_VIEWS:

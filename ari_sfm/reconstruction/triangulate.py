@@ -6,7 +6,7 @@ needs: thousands of particles per frame, 2-8 cameras):
 - :func:`triangulate_rays`: the linear least-squares point of C rays per
   point (the "midpoint" of the rays) and how far the rays miss each other.
 - :func:`triangulate_pixels`: pixels of the same points in several cameras
-  -> world points, through a :class:`~ari_sfm.calibration.Calibration`'s own
+  -> world points, through a :class:`~ari_sfm.calibration.record.Calibration`'s own
   model: linear initialisation from the scene-side rays
   (``Calibration.rays_world``: after the window, so refraction is in them),
   then Levenberg-Marquardt on the reprojection error through
@@ -42,10 +42,10 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from .calibration import Calibration
-from .errors import AriSfmError
-from .models import kernels
-from .models.exact import ExactModel
+from ..calibration.record import Calibration
+from ..errors import AriSfmError
+from ..models import kernels
+from ..models.exact import ExactModel
 
 log = logging.getLogger(__name__)
 

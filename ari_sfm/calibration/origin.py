@@ -8,7 +8,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from .geometry import Pose
+from ..geometry import Pose
 
 
 @dataclass(frozen=True)

@@ -12,18 +12,18 @@ from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
-from .calibration import Calibration, CameraCalibration, WindowCalibration
-from .errors import AriSfmError
+from ..errors import AriSfmError
+from ..geometry import angle_between_deg
+from ..init.exact_start import check_in_front, exact_start, hold_normals, window_cameras
+from ..models.registry import model_spec
+from ..records import Dataset, Interface, Observation, WindowPlane
+from ..results import OptimizerReport, OptimizerRun, OutlierReport, StageCamera, StageRecord, StageWindow
 from .evaluate import residual_stats
-from .geometry import angle_between_deg
-from .init.exact_start import check_in_front, exact_start, hold_normals, window_cameras
-from .models.registry import model_spec
-from .records import Dataset, Interface, Observation, WindowPlane
-from .results import OptimizerReport, OptimizerRun, OutlierReport, StageCamera, StageRecord, StageWindow
+from .record import Calibration, CameraCalibration, WindowCalibration
 
 if TYPE_CHECKING:
-    from .factors.rig_graph import RigGraph, RigState  # imported lazily at run time (gtsam)
-    from .init.rig import RigInit
+    from ..factors.rig_graph import RigGraph, RigState  # imported lazily at run time (gtsam)
+    from ..init.rig import RigInit
 
 log = logging.getLogger(__name__)
 
@@ -83,7 +83,8 @@ class CalibrationOptions:
     uncertainty: bool = True  # standard deviations of every parameter (marginal covariances, physical units)
     sigma_px: float | None = None  # the corners' pixel sigma weighting the images; None: estimated (robust,
     # from each stage's residuals; the stage is re-solved with it when priors or extra factors share the graph)
-    quality: bool = True  # judge the result (ari_sfm.quality) and, when it fails, re-try from the other starts
+    quality: bool = True  # judge the result (ari_sfm.calibration.quality) and, when it fails, re-try from the
+    # other starts
 
     def __post_init__(self) -> None:
         """Refuse values that would fail deep inside the solver (huber_px -1 gave 'non-finite Jacobian')."""
@@ -216,7 +217,7 @@ def undetermined_principal_points(cal: Calibration) -> list[str]:
 def ensure_observations(dataset: Dataset, workers: int | None = None, progress: bool = False) -> Dataset:
     """The dataset with observations, detecting corners in its images when it has none
     (:func:`ari_sfm.detection.ensure_observations`, re-exported here)."""
-    from .detection import ensure_observations as ensure
+    from ..detection import ensure_observations as ensure
 
     return ensure(dataset, workers, progress)
 
@@ -267,7 +268,7 @@ def plan_stages(dataset: Dataset, model: str, options: CalibrationOptions = Cali
     stacked = stacked_windows(dataset)  # as initialise_rig finds it: expansion centres
     normal_observed = all(stacked)
     if any(not (s or p) for s, p in zip(stacked, planes)) and not spec.needs_distance:
-        from .init.rig import NO_NORMAL_MESSAGE
+        from ..init.rig import NO_NORMAL_MESSAGE
 
         raise AriSfmError(dataset.rig_path, NO_NORMAL_MESSAGE)
     distortion = bool(options.distortion)
@@ -359,9 +360,9 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
 
     Steps: options, load, plan (:func:`plan_stages`), then for each start of the quality gate
     (:func:`_starts`): initial state, the stages (:func:`run_stage`), the result; judged
-    (:mod:`ari_sfm.quality`) until one passes.
+    (:mod:`ari_sfm.calibration.quality`) until one passes.
     """
-    from .factors.vectorized import resolve_backend
+    from ..factors.vectorized import resolve_backend
     from .quality import PARAXIAL_MODELS, corner_floor, fits, judge
 
     opts = _options(options, overrides)
@@ -370,7 +371,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
     if not isinstance(dataset, Dataset):
         if not isinstance(dataset, (str, os.PathLike)):
             raise TypeError(f"calibrate needs a Dataset or a dataset folder's path (got {type(dataset).__name__})")
-        from .io import load_dataset
+        from ..io import load_dataset
 
         dataset = load_dataset(dataset)
     dataset = ensure_observations(dataset, opts.workers, opts.progress)
@@ -536,7 +537,7 @@ class _Solver:
     def build(self, model: str, state, sigma: float, distortion: bool, observations=None, with_plane: bool = True):
         """The stage's RigGraph (:meth:`~ari_sfm.factors.rig_graph.RigGraph.build`) with the user's factors;
         ``distortion``: the stage's (k1 k2 p1 p2 k3 estimated, else held at the state's)."""
-        from .factors.rig_graph import RigGraph
+        from ..factors.rig_graph import RigGraph
 
         ds = self.dataset
         rg = RigGraph.build(
@@ -552,7 +553,7 @@ class _Solver:
     def solve(self, rg, model: str, max_iterations: int | None = None,
               relative_tolerance: float = FINAL_TOLERANCE):
         """(state, solved problem or None) of the graph; a failure inside the optimiser is one line."""
-        from .factors.vectorized import optimize_graph
+        from ..factors.vectorized import optimize_graph
 
         if model_spec(model).needs_distance:
             check_in_front(self.dataset, rg.base_state)
@@ -576,7 +577,7 @@ def run_stage(solver: _Solver, stage: Stage, state, normal_observed: bool = True
     """One stage from ``state``: its start (a Snell stage's distance, and normal without stacking), the
     solve, the declared normal's rounds (held normal), the re-solve at the estimated pixel sigma; each
     solve until the error's relative decrease is below ``relative_tolerance``."""
-    from .factors.window_plane import plane_in_world
+    from ..factors.window_plane import plane_in_world
     from .outliers import robust_sigma_px
 
     planes = solver.planes
@@ -641,8 +642,8 @@ def run_stage(solver: _Solver, stage: Stage, state, normal_observed: bool = True
 
 def _start_state(solver: _Solver, plan: tuple[Stage, ...], start: Start):
     """(analytic initialisation, the solver with the held intrinsics, the initial state) of one start."""
-    from .factors.rig_graph import held_intrinsics, initial_state
-    from .init.rig import initialise_rig
+    from ..factors.rig_graph import held_intrinsics, initial_state
+    from ..init.rig import initialise_rig
 
     dataset, opts = solver.dataset, solver.opts
     centred = centred_principal_points(dataset, opts, start.centred)
@@ -658,8 +659,8 @@ def _start_state(solver: _Solver, plan: tuple[Stage, ...], start: Start):
 
 def _plane_separates(solver: _Solver, state) -> bool:
     """Each declared plane placed by its frame's pose in ``state`` lies between its cameras and their corners."""
-    from .factors.window_plane import plane_in_world
-    from .init.window_start import not_beyond
+    from ..factors.window_plane import plane_in_world
+    from ..init.window_start import not_beyond
 
     ds = solver.dataset
     for w, (window, plane) in enumerate(zip(ds.window_list(), solver.planes)):
@@ -761,7 +762,7 @@ def _calibrate_from(solver: _Solver, model: str, plan: tuple[Stage, ...], start:
     elapsed = time.perf_counter() - t0
     uncertainty = None
     if opts.uncertainty:
-        from .factors.uncertainty import marginal_covariances, rig_uncertainty
+        from ..factors.uncertainty import marginal_covariances, rig_uncertainty
 
         # physical units: the graph's view factors carry the pixel sigma (rescaled to the last estimate
         # when only view factors share the graph)
@@ -775,7 +776,7 @@ def _calibrate_from(solver: _Solver, model: str, plan: tuple[Stage, ...], start:
 def _assemble(solver: _Solver, model: str, rig, results: list[StageResult], uncertainty, elapsed: float,
               outliers: OutlierReport) -> Calibration:
     """The Calibration of the last stage's state, with every stage's figures and the optimizer report."""
-    from .factors.window_plane import plane_in_world
+    from ..factors.window_plane import plane_in_world
 
     dataset, last = solver.dataset, results[-1]
     state, residuals = last.state, last.residuals
