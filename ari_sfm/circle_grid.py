@@ -8,8 +8,7 @@ so that ids follow the contract whatever order OpenCV returns
 :func:`_canonical_circles` gives the rule for the others, :func:`_lattice_order`
 orders the dots itself where OpenCV's order is no board order); each centre is
 then the grey-level centroid of its dot, corrected for perspective
-(:func:`_refine_centroid`). Measured with benchmarks/bench_detection.py; the
-README gives the figures. :func:`ari_sfm.detection.detect_corners` dispatches here.
+(:func:`_refine_centroid`). :func:`ari_sfm.detection.detect_corners` dispatches here.
 """
 from __future__ import annotations
 
@@ -36,13 +35,22 @@ _RING_POINTS = 64  # polygon vertices for the image of a dot's outline (perspect
 
 
 def detect_circles(image: np.ndarray, target: Target, method: str | None = None) -> Detection | None:
-    """The dot centres of a ``circles`` target in a grayscale uint8 image: (ids, pixels), or None if not found.
+    """Find the dot centres of a ``circles`` target.
 
-    ``method`` (default CIRCLE_DEFAULT_METHOD) picks the centre estimate, see
-    :data:`CIRCLE_METHODS`. Dark dots on a light board are tried first, then
-    light dots on a dark board. OpenCV's plain grid search is tried before its
-    CALIB_CB_CLUSTERING one: on boards tilted 45-65 degrees (640 x 480, spacing
-    16-24 px) the plain search found 9 of 20 views, clustering all 20.
+    Dark dots on a light board are tried first, then light dots on a dark board. OpenCV's plain grid
+    search is tried before its CALIB_CB_CLUSTERING one.
+
+    Args:
+        image: Grayscale uint8 image.
+        target: The ``circles`` target (its grid, layout, spacing).
+        method: The centre estimate, a key of :data:`CIRCLE_METHODS`; None for CIRCLE_DEFAULT_METHOD.
+
+    Returns:
+        (ids (N,) int, pixels (N, 2) float, OpenCV pixels) with the contract's ids, or None if the grid
+        is not found.
+
+    Raises:
+        ValueError: ``method`` is not one of :data:`CIRCLE_METHODS`.
     """
     method = CIRCLE_DEFAULT_METHOD if method is None else method
     if method not in CIRCLE_METHODS:
@@ -117,14 +125,19 @@ def _blob_sizes(image: np.ndarray, count: int, colour: int) -> np.ndarray:
 
 
 def circle_symmetries(target: Target) -> list[tuple[np.ndarray, int]]:
-    """The symmetries of the dot layout: (permutation p, det) for each rotation by a multiple of
-    90 degrees (det +1) or reflection (det -1) about the board centre that maps the dots onto
-    themselves; dot i goes to the place of dot p[i]. The identity is first.
+    """The symmetries of the dot layout.
 
-    A board seen from its printed side can only be confused with its proper
-    rotations (det +1): the ids are unique iff the identity is the only one.
-    Symmetric grids always have the 180 degree turn (square ones also 90);
-    asymmetric grids have it iff rows is even (e.g. 4 x 11 is unambiguous).
+    A board seen from its printed side can only be confused with its proper rotations (det +1): the ids
+    are unique iff the identity is the only one. Symmetric grids always have the 180 degree turn (square
+    ones also 90); asymmetric grids have it iff rows is even (e.g. 4 x 11 is unambiguous).
+
+    Args:
+        target: The ``circles`` target.
+
+    Returns:
+        (permutation p, det) for each rotation by a multiple of 90 degrees (det +1) or reflection
+        (det -1) about the board centre that maps the dots onto themselves; dot i goes to the place of
+        dot p[i]. The identity is first.
     """
     _, xyz = target.points_3d_readonly
     xy = xyz[:, :2] - xyz[:, :2].mean(axis=0)
@@ -293,8 +306,16 @@ def _dot_radius_mm(image: np.ndarray, target: Target, colour: int, H: np.ndarray
 
 
 class DotWindow(NamedTuple):
-    """The pixels around one imaged dot: centres uv (P, 2), grey values (P,), distance of each pixel's
-    board point from the dot centre r_mm (P,), the window radius (mm), background grey level, mm per px."""
+    """The pixels around one imaged dot.
+
+    Attributes:
+        uv: Pixel centres (P, 2).
+        values: Grey values (P,).
+        r_mm: Distance of each pixel's board point from the dot centre (P,), mm.
+        outer_mm: The window radius (mm).
+        background: Background grey level.
+        mm_per_px: Board mm per image pixel at the dot.
+    """
 
     uv: np.ndarray
     values: np.ndarray
@@ -350,8 +371,7 @@ def _refine_centroid(image: np.ndarray, target: Target, pixels: np.ndarray, colo
     """Each dot's centre as the grey-level centroid of its image (the imaged ellipse's centre).
 
     The window around each dot is shaped by the board-to-image homography
-    (refitted after each pass; a second pass changed nothing measurable on
-    rendered boards, so one is the default). With ``debias`` the perspective bias is
+    (refitted after each pass). With ``debias`` the perspective bias is
     removed: under a homography the centre of the imaged disc is not the image
     of the disc's centre; the difference, computed from the imaged outline of
     each dot (a polygon's area centroid minus H(centre)), is subtracted.

@@ -22,11 +22,9 @@ corner in every image and camera:
   a calibration entry's ``manual_points`` (>= 4 clicked points per camera): see
   :mod:`ari_sfm.body`. A general 3D body cannot be identified without them.
 
-Accuracy (see ``benchmarks/bench_detection.py``): coarse corners from
-``cv2.findChessboardCorners`` refined by ``cv2.cornerSubPix`` on a lightly
-smoothed image with a window scaled to the local square size; this beat
-``cv2.findChessboardCornersSB`` (with or without its accuracy flag) on every
-rendered view set we measured.
+Checkerboard corners: coarse corners from ``cv2.findChessboardCorners``
+refined by ``cv2.cornerSubPix`` on a lightly smoothed image with a window
+scaled to the local square size.
 """
 from __future__ import annotations
 
@@ -70,13 +68,25 @@ COARSE_MIN_SIDE_PX = 600  # coarsest pyramid level for findChessboardCorners: lo
 
 
 def detect_corners(image: np.ndarray, target: Target, method: str = "subpix") -> Detection | None:
-    """The target's corners in a grayscale image: (ids, pixels), or None if the target is not found.
+    """Find the target's corners in one image.
 
-    ``method`` selects the checkerboard detector (``subpix``, the default and
-    the most accurate; the others are kept for the benchmark): see
-    :data:`CHECKERBOARD_METHODS`. ChArUco boards always use OpenCV's
-    CharucoDetector followed by cornerSubPix with a window kept inside the
-    white border around the markers.
+    ChArUco boards always use OpenCV's CharucoDetector followed by cornerSubPix with a window kept
+    inside the white border around the markers. Dot boards go to
+    :func:`ari_sfm.circle_grid.detect_circles`.
+
+    Args:
+        image: Grayscale (or colour, converted) image of any depth.
+        target: The target (checkerboard, ChArUco or circles).
+        method: The checkerboard detector, a key of :data:`CHECKERBOARD_METHODS` (``subpix``, the default,
+            is the most accurate; the others are kept for the benchmark). For a ChArUco board
+            ``charuco_raw`` skips the refinement; for a dot board a key of
+            :data:`ari_sfm.circle_grid.CIRCLE_METHODS` (``subpix`` means its default).
+
+    Returns:
+        (ids (N,) int, pixels (N, 2) float, OpenCV pixels), or None if the target is not found.
+
+    Raises:
+        ValueError: Unknown ``method`` or a target type that is not detected in images.
     """
     image = as_gray_u8(image)
     if target.type == "checkerboard":
@@ -178,11 +188,20 @@ def refine_corners(
 ) -> np.ndarray:
     """cornerSubPix on a Gaussian-smoothed copy, each corner with a window scaled to its square size.
 
-    ``spacing`` (N,) is each corner's distance to its nearest grid neighbour
-    in pixels. Corners are refined in groups of equal window size: half-size
-    ``fraction`` (default SUBPIX_WINDOW_FRACTION) x spacing, at least
-    SUBPIX_MIN_HALF_WINDOW; with ``skip_small`` corners whose window would be
-    smaller than that are returned unchanged instead.
+    Corners are refined in groups of equal window size.
+
+    Args:
+        image: Grayscale uint8 image.
+        corners: Coarse corners (N, 2), OpenCV pixels.
+        spacing: Each corner's distance to its nearest grid neighbour (N,), px.
+        fraction: Window half-size / spacing; None for SUBPIX_WINDOW_FRACTION. The half-size is at least
+            SUBPIX_MIN_HALF_WINDOW.
+        smoothing_px: Gaussian sigma of the smoothing (px; 0: none); None for SUBPIX_SMOOTHING_PX.
+        skip_small: Return corners whose window would be smaller than SUBPIX_MIN_HALF_WINDOW unchanged
+            (instead of refining them with that window).
+
+    Returns:
+        The refined corners (N, 2), float64.
     """
     fraction = SUBPIX_WINDOW_FRACTION if fraction is None else fraction
     smoothing_px = SUBPIX_SMOOTHING_PX if smoothing_px is None else smoothing_px
@@ -297,7 +316,20 @@ def _canonical_grid(image: np.ndarray, corners: np.ndarray, grid: tuple[int, int
 @lru_cache(maxsize=8)
 def charuco_board(squares: tuple[int, int], square_mm: float, marker_mm: float,
                   dictionary: str) -> cv2.aruco.CharucoBoard:
-    """OpenCV's ChArUco board for a target's parameters (the renderer draws the same board)."""
+    """OpenCV's ChArUco board for a target's parameters (the renderer draws the same board).
+
+    Args:
+        squares: (columns, rows) of squares.
+        square_mm: Square side (mm).
+        marker_mm: Marker side (mm).
+        dictionary: An OpenCV ArUco dictionary name (``DICT_...``).
+
+    Returns:
+        The board (cached).
+
+    Raises:
+        ValueError: Unknown dictionary.
+    """
     if not dictionary.startswith("DICT_") or not hasattr(cv2.aruco, dictionary):
         raise ValueError(f"unknown ArUco dictionary {dictionary!r}")
     aruco_dict = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
@@ -357,19 +389,28 @@ def detect_dataset(
     """Detect the target in every image of the dataset (stacking, calibration, reconstruction).
 
     A 3D body (``points3d``) is identified in each image from its entry's ``manual_points`` for that
-    camera (:func:`_body_job`; AriSfmError naming rig.yaml and the camera when they are missing or do not
-    fit the body); one view of a non-planar body is enough (``min_calibration_views`` applies to planar
-    targets). With ``skip_observed``, views that ``dataset.observations`` already hold are not detected
-    and those observations are returned first, followed by the new ones.
+    camera. Images are read and searched in parallel threads (at most os.cpu_count()). Images without
+    the target are skipped with a warning. A stacking pose whose target a camera finds at fewer than two
+    plate thicknesses is dropped for that camera (warning).
 
-    Images are read and searched in parallel threads (at most os.cpu_count()).
-    Images without the target are skipped with a warning. A stacking pose
-    whose target a camera finds at fewer than two plate thicknesses is dropped
-    for that camera (warning). Raises AriSfmError for an unreadable image (the
-    first in dataset order, with the count of the others) and when a camera
-    keeps fewer than ``min_calibration_views`` calibration views (counting
-    detections from ``dataset.observations`` for entries without images).
-    Output order: entry order, then the dataset's camera order.
+    Args:
+        dataset: The dataset.
+        workers: Threads; None for os.cpu_count().
+        progress: Show a progress bar.
+        min_calibration_views: Calibration views each camera with calibration images must keep (planar
+            targets; one view of a non-planar body is enough). Detections from ``dataset.observations``
+            for entries without images count.
+        skip_observed: Do not detect the views ``dataset.observations`` already hold; return those
+            observations first, followed by the new ones.
+
+    Returns:
+        The observations, in entry order, then the dataset's camera order.
+
+    Raises:
+        AriSfmError: An unreadable image (the first in dataset order, with the count of the others), an
+            image whose size is not its camera's, a 3D body's view whose clicked points are missing or do
+            not fit the body (naming rig.yaml and the camera), or a camera keeping fewer than
+            ``min_calibration_views`` calibration views.
     """
     target = dataset.target
     if target.type == "checkerboard" and not checkerboard_ids_unambiguous(target):
@@ -443,8 +484,13 @@ def detect_dataset(
 
 @dataclass(frozen=True)
 class BodyJob:
-    """What identifying a 3D body in one image needs besides the image: the clicked points
-    {id: (u, v)}, the hints, and how to name the view in an error."""
+    """What identifying a 3D body in one image needs besides the image.
+
+    Attributes:
+        clicks: The clicked points ``{id: (u, v)}``.
+        hints: Focal length, window and dot size (:class:`~ari_sfm.body.BodyHints`).
+        where: How to name the view in an error.
+    """
 
     clicks: Mapping[int, tuple[float, float]]
     hints: BodyHints
@@ -597,6 +643,14 @@ def ensure_observations(dataset, workers: int | None = None, progress: bool = Fa
     A 3D body's calibration views that have an image but no observations (e.g. an OpenPTV import where
     some cameras have no ``.crd``) are identified from their clicked points and added to the observations
     it has.
+
+    Args:
+        dataset: The dataset (:class:`~ari_sfm.records.Dataset`).
+        workers: Threads for the detection; None for os.cpu_count().
+        progress: Show a progress bar.
+
+    Returns:
+        ``dataset`` itself if nothing is to detect, else a copy with the observations.
     """
     if dataset.observations is None:
         return dataset.with_observations(detect_dataset(dataset, workers=workers, progress=progress))

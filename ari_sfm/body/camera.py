@@ -3,23 +3,17 @@ exact refractive model through a declared window; fitted to matched points, star
 
 Parameters ``[r (3), t (3), log f, cx, cy, k1]``: ``r`` the rotation vector of ``cam_from_body``, ``t``
 its translation (mm), ``f`` the focal length (px; fy = aspect x f), (cx, cy) the principal point (OpenCV
-pixels), ``k1`` the first radial coefficient (OpenCV's). A flat window is close to a pinhole for matching
-purposes (its refraction is nearly a change of focal length plus a radial term); when the window's plane
-is known in the body's frame (:class:`BodyWindow`) the exact Snell model
-(:func:`ari_sfm.models.exact.exact_project`) projects instead, the window placed by the camera's pose.
+pixels), ``k1`` the first radial coefficient (OpenCV's). When the window's plane is known in the body's
+frame (:class:`BodyWindow`) the exact Snell model (:func:`ari_sfm.models.exact.exact_project`) projects
+instead of the pinhole, the window placed by the camera's pose.
 
-Which parameters are free grows with the matched points (:data:`STAGES`), as OpenPTV's orientation adds
-parameters once enough points are known; the focal length, the principal point and k1 carry weak priors
-toward their start (one pixel of residual for FOCAL_SIGMA_LOG in log f, PRINCIPAL_POINT_SIGMA x the image
-width, K1_SIGMA) and bounds (the focal length within FOCAL_BOUNDS x the image's longer side, the principal
-point inside the image's central half-size box, |k1| <= K1_BOUND), so that a fit of few, nearly coplanar points stays
-well posed and a wrong identification cannot hide in a camera no lens makes (a focal length of 30 000 px
-with the principal point 6 000 px outside the image fits a row-shifted body well).
+Which parameters are free grows with the matched points (:data:`STAGES`). The focal length, the principal
+point and k1 carry weak priors toward their start (one pixel of residual for FOCAL_SIGMA_LOG in log f,
+PRINCIPAL_POINT_SIGMA x the image width, K1_SIGMA) and bounds (the focal length within FOCAL_BOUNDS x the
+image's longer side, the principal point inside the image's central half-size box, |k1| <= K1_BOUND).
 
-The start (:func:`resection_starts`), from >= 4 clicked points: OpenCV's SQPnP pose for each focal length
-of a sweep; from the hint (if any), each local minimum of the sweep's RMS and a few values spread where
-the clicks leave the focal length loose, pose and focal length refined on the clicks; the distinct
-results, best first (a few coplanar clicks leave a mirror-image pose nearly as good).
+The start (:func:`resection_starts`) is fitted to >= 4 clicked points: the distinct cameras found over a
+sweep of focal lengths, best first.
 """
 from __future__ import annotations
 
@@ -56,8 +50,15 @@ UNPROJECTABLE_PX = 1e4  # residual of a point the model cannot project (behind t
 
 @dataclass(frozen=True)
 class BodyWindow:
-    """A flat window in the body's frame: unit ``normal`` (cameras -> body), a point ``point_mm`` of its
-    camera-side face, plate thickness, glass and medium indices."""
+    """A flat window in the body's frame.
+
+    Attributes:
+        normal: Unit normal (3,), pointing from the cameras toward the body.
+        point_mm: A point (3,) of the window's camera-side face (mm, body frame).
+        thickness_mm: Plate thickness (mm).
+        index: Refractive index of the glass.
+        medium_index: Refractive index of the medium behind the window.
+    """
 
     normal: np.ndarray
     point_mm: np.ndarray
@@ -68,8 +69,13 @@ class BodyWindow:
 
 @dataclass(frozen=True)
 class MatchCamera:
-    """A camera for matching (see the module docstring): ``params`` (10,), ``aspect`` = fy / fx,
-    ``window`` (None: pinhole with k1)."""
+    """A camera for matching (parameters as in the module docstring).
+
+    Attributes:
+        params: ``[r (3), t (3), log f, cx, cy, k1]`` (10,).
+        aspect: fy / fx.
+        window: The window in the body's frame; None for a pinhole with k1.
+    """
 
     params: np.ndarray
     aspect: float = 1.0
@@ -77,6 +83,7 @@ class MatchCamera:
 
     @property
     def focal_px(self) -> float:
+        """Focal length fx (px)."""
         return float(math.exp(self.params[6]))
 
     @property
@@ -90,10 +97,18 @@ class MatchCamera:
         return np.array([f, self.aspect * f, self.params[7], self.params[8], self.params[9], 0, 0, 0, 0.0])
 
     def project(self, xyz: np.ndarray) -> np.ndarray:
-        """Pixels (N, 2) of body points xyz (N, 3); NaN where the model has no image of a point."""
+        """Project body points to pixels.
+
+        Args:
+            xyz: Body points (N, 3), mm, body frame.
+
+        Returns:
+            Pixels (N, 2) (OpenCV convention); NaN where the model has no image of a point.
+        """
         return _project(self.rotation, self.params, self, np.asarray(xyz, float), jacobian=False)[0]
 
     def with_window(self, window: BodyWindow | None) -> MatchCamera:
+        """This camera projecting through ``window`` (None: a pinhole with k1)."""
         return replace(self, window=window)
 
 
@@ -105,12 +120,23 @@ def free_parameters(matches: int) -> tuple[int, ...]:
 def fit_camera(camera: MatchCamera, xyz: np.ndarray, uv: np.ndarray, free: tuple[int, ...],
                image_size: tuple[int, int], robust_px: float | None = None,
                prior: MatchCamera | None = None) -> MatchCamera:
-    """``camera`` with its ``free`` parameters fitted to the points xyz (N, 3) seen at uv (N, 2).
+    """Fit some of a camera's parameters to matched points.
 
-    ``robust_px``: a soft-L1 loss of that scale (a few wrong matches do not pull the fit), else least
-    squares. The focal length, the principal point and k1 are held to ``prior``'s (default: ``camera``'s)
-    by the weak priors of the module docstring. The rotation is fitted as a left increment of the start's
-    (``Exp(d) R``); the Jacobian is analytic (:func:`_project`).
+    The focal length, the principal point and k1 are held to ``prior``'s by the weak priors and bounds of
+    the module docstring. The rotation is fitted as a left increment of the start's (``Exp(d) R``), with
+    an analytic Jacobian.
+
+    Args:
+        camera: The start.
+        xyz: Body points (N, 3), mm.
+        uv: Their measured pixels (N, 2).
+        free: Indices of the parameters fitted (e.g. an entry of :data:`STAGES`).
+        image_size: (width, height) px, for the priors and bounds.
+        robust_px: Scale of a soft-L1 loss (a few wrong matches do not pull the fit); None for least squares.
+        prior: The camera whose focal length, principal point and k1 the priors hold to; None for ``camera``.
+
+    Returns:
+        ``camera`` with its ``free`` parameters fitted.
     """
     columns = np.array(sorted(free))
     R0 = camera.rotation
@@ -209,7 +235,16 @@ def _bounds(image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def camera_residuals(camera: MatchCamera, xyz: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Projection minus measurement, flattened (2N,) px; UNPROJECTABLE_PX where a point has no image."""
+    """Projection minus measurement for each point.
+
+    Args:
+        camera: The camera.
+        xyz: Body points (N, 3), mm.
+        uv: Their measured pixels (N, 2).
+
+    Returns:
+        Residuals flattened (2N,), px; UNPROJECTABLE_PX where a point has no image.
+    """
     r = (camera.project(xyz) - uv).ravel()
     return np.where(np.isfinite(r), r, UNPROJECTABLE_PX)
 
@@ -221,14 +256,26 @@ def rms_px(camera: MatchCamera, xyz: np.ndarray, uv: np.ndarray) -> float:
 
 def resection_starts(xyz: np.ndarray, uv: np.ndarray, image_size: tuple[int, int], focal_px: float | None = None,
                      aspect: float = 1.0, window: BodyWindow | None = None) -> list[tuple[MatchCamera, float]]:
-    """Cameras fitted to >= 4 clicked points (xyz (N, 3) body, uv (N, 2) px), distinct ones best first,
-    each with its RMS (px) on the clicks. Pose and focal length are fitted; the principal point is the
-    image centre and k1 zero.
+    """Start cameras fitted to >= 4 clicked points.
 
-    The focal lengths tried: the hint, the local minima over :data:`FOCAL_SWEEP` of the SQPnP pose's RMS,
-    and, where the clicks leave the focal length loose (every sweep value whose RMS is within
-    CLICK_NOISE_PX of the best: three clicks in a row, a small cluster), up to MAX_SPREAD values spread over
-    that range; each is refined. With a ``window`` each is refitted with the exact model."""
+    Pose and focal length are fitted; the principal point is the image centre and k1 zero. The focal
+    lengths tried: the hint, the local minima over :data:`FOCAL_SWEEP` of the SQPnP pose's RMS, and,
+    where the clicks leave the focal length loose (every sweep value whose RMS is within CLICK_NOISE_PX
+    of the best: three clicks in a row, a small cluster), up to MAX_SPREAD values spread over that range;
+    each is refined on the clicks. With a ``window`` each is refitted with the exact model.
+
+    Args:
+        xyz: Clicked body points (N, 3), mm.
+        uv: Their clicked pixels (N, 2).
+        image_size: (width, height) px.
+        focal_px: A focal length to try first (px), or None.
+        aspect: fy / fx.
+        window: The window in the body's frame, or None (pinhole).
+
+    Returns:
+        The distinct cameras (rotations more than DISTINCT_DEG or focal lengths more than
+        DISTINCT_LOG_FOCAL apart), each with its RMS on the clicks (px), best first.
+    """
     xyz, uv = np.asarray(xyz, float), np.asarray(uv, float)
     width, height = image_size
     centre = np.array([(width - 1) / 2.0, (height - 1) / 2.0])

@@ -51,8 +51,14 @@ class DotOptions:
 
 @dataclass(frozen=True)
 class Dots:
-    """Dots found in one image: centres (N, 2) OpenCV pixels, equivalent diameters (N,) px,
-    elongations (N,), and signal sums (N,) (the grey levels above the background)."""
+    """Dots found in one image.
+
+    Attributes:
+        centres: (N, 2) OpenCV pixels.
+        diameters_px: Equivalent diameters (N,), px.
+        elongations: Ratios of the principal axes (N,).
+        signal: Signal sums (N,): the grey levels above the background.
+    """
 
     centres: np.ndarray
     diameters_px: np.ndarray
@@ -83,7 +89,18 @@ def background_size_px(diameter_px: float | None) -> int:
 
 def signal_and_threshold(image: np.ndarray, diameter_px: float | None, options: DotOptions
                          ) -> tuple[np.ndarray, np.ndarray]:
-    """The background-subtracted signal and the per-pixel threshold a dot pixel must exceed."""
+    """The background-subtracted signal and the per-pixel threshold a dot pixel must exceed.
+
+    Steps 1 and 2 of the module docstring.
+
+    Args:
+        image: Grey image (8- or 16-bit, or float; colour is averaged).
+        diameter_px: The dots' diameter (px), which sizes the background's disc; None for the default disc.
+        options: ``threshold_sigma`` and ``min_contrast`` are read.
+
+    Returns:
+        The signal and the threshold, each float32 of the image's shape.
+    """
     img = as_float_image(image)
     size = background_size_px(diameter_px)
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
@@ -97,8 +114,18 @@ def signal_and_threshold(image: np.ndarray, diameter_px: float | None, options: 
 
 
 def local_noise(signal: np.ndarray, tile: int = TILE_PX) -> tuple[np.ndarray, np.ndarray]:
-    """Per pixel the median and robust sigma (1.4826 MAD) of the signal in the surrounding tiles
-    (tile values bilinearly interpolated); the sigma at least the grey-level quantisation's 1/sqrt(12)."""
+    """Per pixel the median and robust sigma of the signal in the surrounding tiles.
+
+    Tile values are bilinearly interpolated; the sigma is 1.4826 MAD, at least the grey-level
+    quantisation's 1/sqrt(12).
+
+    Args:
+        signal: The background-subtracted signal (H, W).
+        tile: Side of the tiles (px).
+
+    Returns:
+        The median and the sigma, each float32 (H, W).
+    """
     h, w = signal.shape
     ny, nx = max(1, h // tile), max(1, w // tile)
     ty, tx = h // ny, w // nx
@@ -112,8 +139,16 @@ def local_noise(signal: np.ndarray, tile: int = TILE_PX) -> tuple[np.ndarray, np
 
 def components(signal: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                                                np.ndarray]:
-    """Per 8-connected component of ``mask``: weighted centres (N, 2), areas (N,), elongations (N,),
-    signal sums (N,) and whether it touches the image border (N,)."""
+    """Measure the 8-connected components of a mask.
+
+    Args:
+        signal: The background-subtracted signal (H, W), the centroids' weights.
+        mask: Boolean (H, W), the pixels above the threshold.
+
+    Returns:
+        Per component: signal-weighted centres (N, 2) (OpenCV pixels), areas (N,) px, elongations (N,)
+        (ratio of the principal axes), signal sums (N,), and whether it touches the image border (N,).
+    """
     count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     if count <= 1:
         empty = np.empty(0)
@@ -139,7 +174,15 @@ def components(signal: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def find_dots(image: np.ndarray, options: DotOptions = DotOptions()) -> Dots:
-    """The bright dots of ``image`` (see the module docstring)."""
+    """Find the bright dots of an image (the steps of the module docstring).
+
+    Args:
+        image: Grey image (8- or 16-bit, or float; colour is averaged).
+        options: How dots are found.
+
+    Returns:
+        The dots found.
+    """
     signal, threshold = signal_and_threshold(image, options.diameter_px, options)
     centres, area, elongation, total, border = components(signal, signal > threshold)
     diameter = np.sqrt(4.0 * area / math.pi)
@@ -155,9 +198,20 @@ def find_dots(image: np.ndarray, options: DotOptions = DotOptions()) -> Dots:
 
 def dot_diameter_at(image: np.ndarray, pixels: np.ndarray, search_px: float,
                     options: DotOptions = DotOptions()) -> float | None:
-    """The median diameter (px) of the blobs nearest to ``pixels`` (N, 2) (clicked dots), each within
-    ``search_px`` of its pixel; None if none is found. Used when the target declares no dot size. The
-    background's disc starts at DEFAULT_BACKGROUND_PX and grows while the dots found fill half of it."""
+    """The dots' diameter measured at clicked dots.
+
+    Used when the target declares no dot size. The background's disc starts at DEFAULT_BACKGROUND_PX and
+    grows while the dots found fill half of it.
+
+    Args:
+        image: Grey image.
+        pixels: Clicked dots (N, 2), OpenCV pixels.
+        search_px: The blob nearest to each pixel counts if within this distance (px).
+        options: ``threshold_sigma``, ``min_contrast`` and ``max_elongation`` are read.
+
+    Returns:
+        The median diameter (px) of the blobs found, or None if none is found.
+    """
     img = as_float_image(image)
     size, diameter = DEFAULT_BACKGROUND_PX, None
     for _ in range(3):
@@ -193,8 +247,16 @@ def _median_blob_at(img: np.ndarray, pixels: np.ndarray, search_px: float, size:
 
 
 def alike(dots: Dots, reference: np.ndarray) -> np.ndarray:
-    """(N,) True for the dots of the size and brightness of the dots ``reference`` (indices): diameter within
-    ALIKE_SIZE and signal within ALIKE_SIGNAL of their medians (a body's own dots, not particles or glints)."""
+    """Which dots have the size and brightness of reference dots (a body's own, not particles or glints).
+
+    Args:
+        dots: The dots.
+        reference: Indices into ``dots`` of the reference dots.
+
+    Returns:
+        (N,) bool: diameter within ALIKE_SIZE and signal within ALIKE_SIGNAL of the reference's medians
+        (all False if ``reference`` is empty).
+    """
     if not len(reference):
         return np.zeros(len(dots), bool)
     d = float(np.median(dots.diameters_px[reference]))

@@ -34,8 +34,14 @@ UNEXPLAINED_MIN = 3  # (and always this many: a stray bubble or two)
 
 @dataclass(frozen=True)
 class BodyHints:
-    """What the dataset says about a view beyond its clicks: a focal length to start from (px; fy =
-    ``aspect`` x fx), the window in the body's frame (the exact model), the dots' diameter (mm)."""
+    """What the dataset says about a view beyond its clicks.
+
+    Attributes:
+        focal_px: A focal length to start from (px), or None.
+        aspect: fy / fx.
+        window: The window in the body's frame (the exact model), or None (pinhole).
+        diameter_mm: The dots' diameter (mm), or None.
+    """
 
     focal_px: float | None = None
     aspect: float = 1.0
@@ -46,12 +52,28 @@ class BodyHints:
 def find_body(image: np.ndarray, target: Target, clicks: Mapping[int, tuple[float, float]],
               hints: BodyHints = BodyHints(), dots: DotOptions = DotOptions(),
               options: IdentifyOptions = IdentifyOptions()) -> BodyMatch:
-    """The body points identified in ``image`` (8- or 16-bit grey) from >= 4 ``clicks`` {id: (u, v)}
-    (OpenCV pixels). The dot diameter in pixels: ``dots.diameter_px`` if set, else ``hints.diameter_mm``
-    scaled by the start camera (focal length over the body's depth), else the median size of the blobs
-    at the clicked points (within the search radius), else no size limit. Raises
-    :class:`~ari_sfm.body.identify.ClickError` when the clicks do not fit the body, or when the identification
-    they lead to leaves many dots like the body's unexplained among the identified ones (:func:`_check_explained`)."""
+    """Identify the body points in one image from a few clicked points.
+
+    The dot diameter in pixels: ``dots.diameter_px`` if set, else ``hints.diameter_mm`` scaled by the
+    start camera (focal length over the body's depth), else the median size of the blobs at the clicked
+    points (within the search radius), else no size limit.
+
+    Args:
+        image: Grey image, 8- or 16-bit.
+        target: The body (its 3D points).
+        clicks: ``{id: (u, v)}``, >= 4 clicked points (OpenCV pixels).
+        hints: What the dataset says about the view beyond its clicks.
+        dots: How dots are found.
+        options: How dots are matched to body points.
+
+    Returns:
+        The identified body points.
+
+    Raises:
+        ClickError: The clicks do not fit the body, or the identification they lead to leaves more than
+            max(UNEXPLAINED_MIN, UNEXPLAINED_FRACTION x their number) of the dots like the body's among
+            the identified ones unexplained.
+    """
     height, width = np.asarray(image).shape[:2]
     size = (int(width), int(height))
     ids, xyz = target.points_3d_readonly
@@ -79,13 +101,7 @@ def find_body(image: np.ndarray, target: Target, clicks: Mapping[int, tuple[floa
 
 def _check_explained(match: BodyMatch, found: Dots, xyz: np.ndarray) -> None:
     """ClickError when more than max(UNEXPLAINED_MIN, UNEXPLAINED_FRACTION x their number) of the dots of the
-    body's size and brightness among the identified ones have no body point projected near them.
-
-    With the right ids the fitted camera puts a body point on every dot of the body, so only stray dots
-    are unexplained (none in test_cavity's four images). A wrong id among 4 coplanar clicks can still be
-    fitted by some camera, which then explains only part of the body's dots (about half, in rendered
-    images): the ids it gives are wrong, and are refused rather than returned.
-    """
+    body's size and brightness among the identified ones have no body point projected near them."""
     inside, unexplained = unexplained_dots(match, found.centres, xyz)
     like = alike(found, match.dot_indices)
     among, stray = int((inside & like).sum()), int((unexplained & like).sum())

@@ -62,9 +62,21 @@ class IdentifyOptions:
 
 @dataclass(frozen=True)
 class BodyMatch:
-    """Identified body points in one image: ``ids`` (N,), ``pixels`` (N, 2) (the dots' centres, OpenCV
-    pixels), the fitted ``camera`` and its ``rms_px`` on them; ``visible``: body points the camera projects
-    into the image; ``ambiguous`` and ``off_model``: ids left out and why; ``tolerance_px`` the search radius."""
+    """Identified body points in one image.
+
+    Attributes:
+        ids: Body point ids (N,).
+        pixels: The matched dots' centres (N, 2), OpenCV pixels.
+        dot_indices: The matched dots' rows (N,) in the dots given.
+        camera: The fitted camera.
+        rms_px: The camera's RMS on the matches (px).
+        visible: Number of body points the camera projects into the image.
+        ambiguous: Ids left out because more than one dot (or point) competed.
+        off_model: Ids left out because their dot is too far from the refined camera's projection.
+        tolerance_px: The search radius (px).
+        iterations: Rounds of the iteration.
+        start_rms_px: The start's RMS on the clicks (px).
+    """
 
     ids: np.ndarray
     pixels: np.ndarray
@@ -83,10 +95,25 @@ def start_cameras(ids: np.ndarray, xyz: np.ndarray, clicks: Mapping[int, tuple[f
                   image_size: tuple[int, int], focal_px: float | None = None, aspect: float = 1.0,
                   window: BodyWindow | None = None, options: IdentifyOptions = IdentifyOptions()
                   ) -> list[tuple[MatchCamera, float]]:
-    """The cameras fitted to the ``clicks`` {id: (u, v)} (>= 4) of the body points ``ids`` (N,) at ``xyz``
-    (N, 3), best first, each with its RMS on the clicks (:func:`~ari_sfm.body.camera.resection_starts`).
-    ``focal_px``: a start for the focal length; ``window``: the exact model. Raises :class:`ClickError`
-    when no camera fits them to within ``max_click_rms_fraction`` of the body's projected spacing."""
+    """The start cameras fitted to the clicked points (:func:`~ari_sfm.body.camera.resection_starts`).
+
+    Args:
+        ids: Body point ids (N,).
+        xyz: Body points (N, 3), mm.
+        clicks: ``{id: (u, v)}``, >= 4 clicked points (OpenCV pixels).
+        image_size: (width, height) px.
+        focal_px: A start for the focal length (px), or None.
+        aspect: fy / fx.
+        window: The window in the body's frame (the exact model), or None (pinhole).
+        options: ``min_click_spread`` and ``max_click_rms_fraction`` are read.
+
+    Returns:
+        The cameras, best first, each with its RMS on the clicks (px).
+
+    Raises:
+        ClickError: The clicks spread too little over the body, or no camera fits them to within
+            ``max_click_rms_fraction`` of the body's projected spacing.
+    """
     click_ids, click_xyz, click_uv = clicked_points(ids, xyz, clicks)
     spread = click_spread(click_xyz, np.asarray(xyz, float))
     if spread < options.min_click_spread:
@@ -104,8 +131,16 @@ def start_cameras(ids: np.ndarray, xyz: np.ndarray, clicks: Mapping[int, tuple[f
 
 
 def click_spread(click_xyz: np.ndarray, xyz: np.ndarray) -> float:
-    """How far the clicked points spread over the body: the smaller of the ratios of their RMS extent to the
-    body's along the body's two main directions (principal components; 1: as spread as the whole body)."""
+    """How far the clicked points spread over the body.
+
+    Args:
+        click_xyz: The clicked body points (K, 3).
+        xyz: All body points (N, 3).
+
+    Returns:
+        The smaller of the ratios of the clicks' RMS extent to the body's along the body's two main
+        directions (principal components); 1: as spread as the whole body.
+    """
     def extent(points: np.ndarray) -> np.ndarray:
         centred = points - points.mean(axis=0)
         return np.linalg.svd(centred, compute_uv=False)[:2] / math.sqrt(len(points))
@@ -121,7 +156,16 @@ def click_spread(click_xyz: np.ndarray, xyz: np.ndarray) -> float:
 
 def clicked_points(ids: np.ndarray, xyz: np.ndarray, clicks: Mapping[int, tuple[float, float]]
                    ) -> tuple[list[int], np.ndarray, np.ndarray]:
-    """The clicked ids, their body points (N, 3) and pixels (N, 2)."""
+    """The clicked points' ids, body points and pixels.
+
+    Args:
+        ids: Body point ids (N,).
+        xyz: Body points (N, 3).
+        clicks: ``{id: (u, v)}``.
+
+    Returns:
+        The clicked ids (K), their body points (K, 3) and pixels (K, 2).
+    """
     row = {int(i): k for k, i in enumerate(np.asarray(ids, int))}
     click_ids = [int(i) for i in clicks]
     pixels = np.array([clicks[i] for i in click_ids], float).reshape(-1, 2)
@@ -132,10 +176,26 @@ def identify_body(dots: np.ndarray, ids: np.ndarray, xyz: np.ndarray, clicks: Ma
                   image_size: tuple[int, int], focal_px: float | None = None, aspect: float = 1.0,
                   window: BodyWindow | None = None, options: IdentifyOptions = IdentifyOptions(),
                   starts: list[tuple[MatchCamera, float]] | None = None) -> BodyMatch:
-    """Match the dots (M, 2) of one image to the body points ``ids`` (N,) at ``xyz`` (N, 3), started from
-    ``clicks`` {id: (u, v)} (>= 4) (or from ``starts``, :func:`start_cameras` of them). ``focal_px``: a
-    start for the focal length; ``window``: the exact model. Raises :class:`ClickError` when the clicks
-    do not fit the body."""
+    """Match the dots of one image to the body points (the iteration of the module docstring).
+
+    Args:
+        dots: Dot centres (M, 2), OpenCV pixels.
+        ids: Body point ids (N,).
+        xyz: Body points (N, 3), mm.
+        clicks: ``{id: (u, v)}``, >= 4 clicked points.
+        image_size: (width, height) px.
+        focal_px: A start for the focal length (px), or None.
+        aspect: fy / fx.
+        window: The window in the body's frame (the exact model), or None (pinhole).
+        options: How dots are matched.
+        starts: The start cameras (:func:`start_cameras` of the clicks); None to compute them.
+
+    Returns:
+        The identification of the start that matches the most points.
+
+    Raises:
+        ClickError: The clicks do not fit the body.
+    """
     ids = np.asarray(ids, int)
     xyz = np.asarray(xyz, float)
     if starts is None:
@@ -161,7 +221,17 @@ def identify_body(dots: np.ndarray, ids: np.ndarray, xyz: np.ndarray, clicks: Ma
 
 
 def projected_spacing(camera: MatchCamera, xyz: np.ndarray, image_size: tuple[int, int]) -> float:
-    """The median distance (px) from each projected body point in the image to its nearest projected neighbour."""
+    """The body's spacing in the image.
+
+    Args:
+        camera: The camera.
+        xyz: Body points (N, 3).
+        image_size: (width, height) px.
+
+    Returns:
+        The median distance (px) from each projected body point in the image to its nearest projected
+        neighbour (the image's longer side if fewer than two project into it).
+    """
     uv = camera.project(xyz)
     uv = uv[_in_image(uv, image_size)]
     if len(uv) < 2:
@@ -265,8 +335,20 @@ def _grow(camera: MatchCamera, dots: np.ndarray, tree: cKDTree | None, ids: np.n
 
 def unexplained_dots(match: BodyMatch, dots: np.ndarray, xyz: np.ndarray, margin_px: float = 2.0
                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Which dots (M, 2) lie among the identified ones (within ``margin_px`` of their convex hull), and which
-    of those no body point projects near (within the search radius): with the right ids, only stray dots."""
+    """Which dots lie among the identified ones, and which of those no body point explains.
+
+    With the right ids, only stray dots are unexplained.
+
+    Args:
+        match: The identification.
+        dots: Dot centres (M, 2).
+        xyz: All body points (N, 3).
+        margin_px: A dot within this distance of the identified points' convex hull is among them.
+
+    Returns:
+        Two (M,) bool arrays: the dots among the identified ones, and those of them with no body point
+        projected within the search radius.
+    """
     dots = np.asarray(dots, float).reshape(-1, 2)
     inside = np.zeros(len(dots), bool)
     if len(match.ids) >= 3 and len(dots):
@@ -281,10 +363,21 @@ def unexplained_dots(match: BodyMatch, dots: np.ndarray, xyz: np.ndarray, margin
 
 
 def split_prediction(match: BodyMatch, ids: np.ndarray, xyz: np.ndarray, image_size: tuple[int, int]) -> float:
-    """How well each half of the identified points predicts the other: the body's identified points are split at
-    the median along each of the body's two main directions; a plain camera (the identified one's pose and
-    focal length refitted, its principal point at the image centre, no k1) fitted to one half projects the
-    other; returns the worst half's median distance (px)."""
+    """How well each half of the identified points predicts the other.
+
+    The identified points are split at the median along each of the body's two main directions; a plain
+    camera (the identified one's pose and focal length refitted, its principal point at the image centre,
+    no k1) fitted to one half projects the other. Halves of fewer than SPLIT_MIN_POINTS are skipped.
+
+    Args:
+        match: The identification.
+        ids: All body point ids (N,).
+        xyz: All body points (N, 3).
+        image_size: (width, height) px.
+
+    Returns:
+        The worst half's median distance (px) from its projected points to their dots.
+    """
     row = {int(i): k for k, i in enumerate(ids)}
     X, uv = xyz[[row[int(i)] for i in match.ids]].reshape(-1, 3), match.pixels
     params = match.camera.params.copy()
@@ -307,14 +400,7 @@ def split_prediction(match: BodyMatch, ids: np.ndarray, xyz: np.ndarray, image_s
 def _check_rigid(match: BodyMatch, ids: np.ndarray, xyz: np.ndarray, image_size: tuple[int, int],
                  options: IdentifyOptions) -> None:
     """ClickError when one half of the identified points does not predict the other (:func:`split_prediction`
-    beyond ``max_split_fraction`` x the search radius).
-
-    A wrong id among the clicks can lead to an identification shifted by one point on one side of the body
-    and right on the other, which a camera bent to its bounds (a principal point at the image's edge, a
-    large k1) still fits; a plain camera fitted to either side then misses the other by about a spacing.
-    With the right ids each half predicts the other to a fraction of the radius (rendered test_cavity
-    views: at most 0.39; the real test_cavity images: 0.32; the wrong identifications that passed the
-    other checks in rendered views: 1.36 and more)."""
+    beyond ``max_split_fraction`` x the search radius)."""
     miss = split_prediction(match, ids, xyz, image_size)
     if miss > options.max_split_fraction * match.tolerance_px:
         raise ClickError(f"the {len(match.ids)} points identified from the clicked points are not one rigid body: "

@@ -2,5 +2,5 @@
 
 ``match.py``: one frame's correspondences through the window (refracted epipolar curves, exact model);
 ``volume.py``: the measured volume; ``detect.py``: particle images -> sub-pixel centres;
-``run.py``: whole experiments, frames in partitions on Dask.
+``reconstruct.py``: whole experiments, frames in partitions on Dask (``engine.py``).
 """

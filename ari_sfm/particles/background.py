@@ -12,7 +12,7 @@ or two levels still has a noise), and a sensor's noise model fitted over the
 blocks (variance = read + gain x level: the shot noise on a bright blob's
 skirt), the larger of the two at each pixel. A few bright blobs or a dense
 cloud of particles thus move neither the background nor the noise of the rest
-of the frame, as a global median and MAD would.
+of the frame.
 """
 from __future__ import annotations
 
@@ -44,9 +44,19 @@ class Background:
 
 def estimate_background(img: np.ndarray, diameter_px: float, block_px: int, quantum: float,
                         source: np.ndarray | None = None) -> Background:
-    """The background and noise of a grey float32 image (see the module docstring); ``quantum``: the grey
-    level step (1 for integer images, 0 for float ones); ``source``: the same image in its integer type
-    (the opening is exact and faster there), or None."""
+    """The background and noise of a grey image (the method is in the module docstring).
+
+    Args:
+        img: Grey image (h, w), float32.
+        diameter_px: A particle image's diameter (px); sizes the opening's disc (:func:`opening_size`).
+        block_px: Side of the blocks the statistics are taken in (px).
+        quantum: The grey level step (1 for integer images, 0 for float ones).
+        source: The same image in its integer type (uint8 or uint16: the opening is exact and faster
+            there), or None.
+
+    Returns:
+        The level and noise per pixel, and the frame's typical noise.
+    """
     import cv2
 
     from ari_sfm.particles.detect_kernels import block_statistics, level_and_noise
@@ -101,8 +111,10 @@ def _noise_model(level: np.ndarray, variance: np.ndarray, quantum: float) -> tup
 
 
 class BlockGrid:
-    """Blocks of ``block_px`` (fewer, overlapping a little, where the frame is not a whole number of them)
-    covering a frame; a statistic per block, bilinear between block centres."""
+    """Blocks of ``block_px`` covering a frame; a statistic per block, bilinear between block centres.
+
+    Where the frame is not a whole number of blocks, the blocks overlap a little.
+    """
 
     def __init__(self, shape: tuple[int, int], block_px: int) -> None:
         h, w = shape

@@ -5,7 +5,7 @@ they are; colour: the mean of the channels):
 
 1. the local background and noise (:mod:`ari_sfm.particles.background`): an
    uneven background, glare, big bright blobs and dense particles move
-   neither, as a global median and MAD of the frame would;
+   neither;
 2. hot pixels (sharper along u and along v than any image through a lens:
    HOT_SIGMA_PX) are replaced by their neighbours' median, also on a
    particle's skirt;
@@ -48,7 +48,6 @@ Two images closer than ~0.8 px (MIN_SPLIT_PX) stay one. The per-pixel and
 per-candidate arithmetic is compiled (:mod:`ari_sfm.particles.detect_kernels`).
 A lab's settings: rig.yaml's ``particles.detect`` (:func:`detect_options`;
 from OpenPTV's targ_rec.par: :func:`ari_sfm.openptv.conventions.detect_settings_from_target_par`).
-Measured figures: README, particles section (``benchmarks/bench_particle_detection.py``).
 """
 from __future__ import annotations
 
@@ -118,10 +117,13 @@ class DetectSummary:
 
 @dataclass(frozen=True)
 class DetectOptions:
-    """How particle images are found. The threshold: ``threshold_sigma`` local noise sigmas of the image
-    smoothed at half a particle's sigma, at least ``min_peak`` and ``threshold`` grey levels above the local
-    background. An image's pixels: those 4-connected to its brightest above the threshold (as OpenPTV's
-    target_recognition counts them); sizes left None follow the diameter hint."""
+    """How particle images are found.
+
+    The threshold: ``threshold_sigma`` local noise sigmas of the image smoothed at half a particle's sigma,
+    at least ``min_peak`` and ``threshold`` grey levels above the local background. An image's pixels:
+    those 4-connected to its brightest above the threshold (as OpenPTV's target_recognition counts them);
+    sizes left None follow the diameter hint.
+    """
 
     diameter_px: float = 3.0  # e^-2 diameter hint (rig.yaml particles.diameter_px)
     threshold_sigma: float = 5.0  # smoothed peak above the local background, in units of its local noise
@@ -175,9 +177,20 @@ def _grey(image: np.ndarray) -> tuple[np.ndarray, float, float, np.ndarray | Non
 
 def detect_particles_in_image(image: np.ndarray, options: DetectOptions = DetectOptions()
                               ) -> tuple[np.ndarray, np.ndarray]:
-    """Centres (N, 2) (OpenCV pixel convention) and peak intensities above the local background (N,),
-    in the image's grey levels. ``options.threshold`` must be a number or None here
-    (:meth:`DetectOptions.for_camera`)."""
+    """Find the particle images of one image (the steps of the module docstring).
+
+    Args:
+        image: The image: 8 or 16 bit, float, or colour (the mean of the channels).
+        options: How particle images are found; ``options.threshold`` must be a number or None here
+            (:meth:`DetectOptions.for_camera`).
+
+    Returns:
+        (centres (N, 2), OpenCV pixel convention; peak intensities (N,) above the local background, in the
+        image's grey levels).
+
+    Raises:
+        ValueError: ``options.threshold`` is a mapping per camera.
+    """
     import cv2
 
     from ari_sfm.particles import detect_kernels as K
@@ -542,13 +555,21 @@ def _on_ridge(res: np.ndarray, noise: np.ndarray, s: _State, sigma: float, axis:
 
 
 def image_shape(own: np.ndarray, noise: np.ndarray) -> ImageShape:
-    """The Gaussian shape of particle images from their own 3 x 3 pixels ``own`` (N, 9), row-major around
-    the peak pixel, and the noise there (N,): the Hessian of the log intensities by weighted least squares
-    (a quadratic in the pixel offsets; weights: each log's inverse variance, (I / noise)^2 with a
-    MODEL_NOISE relative floor for shot noise and the profile's departure from a Gaussian). Exact for a
-    Gaussian of any orientation, wherever its centre lies in the peak pixel. Two equal round images of
-    sigma s, 2 a apart, look like one with log curvatures 1 / s^2 across and 1 / s^2 - a^2 / s^4 along:
-    ``half_split`` is that a."""
+    """The Gaussian shape of particle images from their own 3 x 3 pixels.
+
+    The Hessian of the log intensities by weighted least squares (a quadratic in the pixel offsets;
+    weights: each log's inverse variance, (I / noise)^2 with a MODEL_NOISE relative floor for shot noise
+    and the profile's departure from a Gaussian). Exact for a Gaussian of any orientation, wherever its
+    centre lies in the peak pixel. Two equal round images of sigma s, 2 a apart, look like one with log
+    curvatures 1 / s^2 across and 1 / s^2 - a^2 / s^4 along: ``half_split`` is that a.
+
+    Args:
+        own: (N, 9) each image's 3 x 3 pixels, row-major around the peak pixel, above the background.
+        noise: (N,) the noise at each peak pixel.
+
+    Returns:
+        The images' shapes.
+    """
     from ari_sfm.particles.detect_kernels import shape_hessians
 
     n = len(own)
@@ -594,9 +615,16 @@ def _single(fit: _Fit, sigma: float, max_width_ratio: float, max_elongation: flo
 
 
 def image_size(path: Path) -> tuple[int, int] | None:
-    """An image's (width, height) from its header, without decoding it; None when the header is not one
-    Pillow reads (OpenCV may still decode the file). Beyond Pillow's decompression-bomb limit (179 MP),
-    which refuses to read the header: ``(limit, 0)``, a size no rig declares."""
+    """An image's size from its header, without decoding it.
+
+    Args:
+        path: The image file.
+
+    Returns:
+        (width, height); None when the header is not one Pillow reads (OpenCV may still decode the file).
+        Beyond Pillow's decompression-bomb limit (179 MP), which refuses to read the header:
+        ``(limit, 0)``, a size no rig declares.
+    """
     import warnings
 
     from PIL import Image, UnidentifiedImageError
@@ -613,9 +641,20 @@ def image_size(path: Path) -> tuple[int, int] | None:
 
 
 def read_image(path: Path, size: tuple[int, int] | None = None, camera: str = "") -> np.ndarray:
-    """A grey image (8 or 16 bit); PartitionError naming the file if it cannot be read or, with ``size``
-    (width, height: its camera's in rig.yaml), if it has another size (checked on its header before it
-    is decoded, so a huge image costs no memory)."""
+    """Read a particle image as it is stored (8 or 16 bit).
+
+    Args:
+        path: The image file.
+        size: The expected (width, height), its camera's in rig.yaml; checked on the header before the
+            image is decoded, so a huge image costs no memory. None: not checked.
+        camera: The camera's name, for the error.
+
+    Returns:
+        The image.
+
+    Raises:
+        PartitionError: The file cannot be read, or has another size than ``size``.
+    """
     import cv2
 
     def check(w: int, h: int) -> None:
@@ -637,8 +676,20 @@ def read_image(path: Path, size: tuple[int, int] | None = None, camera: str = ""
 
 def detect_partition(patterns: dict[str, str], frames: list[int], options: DetectOptions,
                      sizes: Mapping[str, tuple[int, int]] | None = None) -> dict[str, np.ndarray]:
-    """Detections of every camera in a partition's frames (a Dask task): the contract's columns. ``sizes``:
-    each camera's (width, height); an image of another size is refused."""
+    """Detections of every camera in a partition's frames (a Dask task).
+
+    Args:
+        patterns: Camera -> image path pattern with ``{frame}``.
+        frames: The partition's frames.
+        options: How particle images are found (resolved per camera).
+        sizes: Each camera's (width, height); an image of another size is refused. None: not checked.
+
+    Returns:
+        The contract's columns: frame, camera, u, v, intensity.
+
+    Raises:
+        PartitionError: An image cannot be read or has another size.
+    """
     frame, camera, u, v, inten = [], [], [], [], []
     for f in frames:
         for cam, pattern in patterns.items():
@@ -699,9 +750,16 @@ def _image_stats(dataset: Any, frames: list[int]) -> str:
 
 
 def detect_options(dataset: Any, **overrides: Any) -> DetectOptions:
-    """The options of a dataset's detection: the defaults, rig.yaml's ``particles.diameter_px`` and
-    ``particles.detect`` (a :class:`~ari_sfm.io.particles.ParticleDataset`), then ``overrides`` (the
-    command line's; None: not given)."""
+    """The options of a dataset's detection.
+
+    Args:
+        dataset: The particle dataset (:class:`~ari_sfm.io.particles.ParticleDataset`): rig.yaml's
+            ``particles.diameter_px`` and ``particles.detect`` override the defaults.
+        **overrides: The command line's options, overriding those (None: not given).
+
+    Returns:
+        The options.
+    """
     from dataclasses import replace
 
     options = DetectOptions(diameter_px=dataset.diameter_px or DetectOptions.diameter_px)
@@ -712,10 +770,30 @@ def detect_options(dataset: Any, **overrides: Any) -> DetectOptions:
 def detect_experiment(dataset_path: str | Path, out: str | Path, options: DetectOptions | None = None,
                       frames_per_partition: int = 20, workers: int = 0, scheduler: str | None = None,
                       progress: bool = False, worker_timeout_s: float | None = None) -> DetectSummary:
-    """Detect the particle images of every frame of ``particles.images``; write OUT/particles.parquet
-    (through OUT/parts/, resumable: a partition whose images changed is detected again) and
-    OUT/detect-particles.json. Returns that summary (its to_json()). AriSfmError when no image holds a
-    particle image (blank images, or a threshold too high): nothing is written then but the partitions."""
+    """Detect the particle images of every frame of ``particles.images``.
+
+    Writes OUT/particles.parquet (through OUT/parts/, resumable: a partition whose images changed is
+    detected again) and OUT/detect-particles.json.
+
+    Args:
+        dataset_path: The particle dataset.
+        out: The output folder (OUT); not the dataset's own folder.
+        options: How particle images are found; None for :func:`detect_options` of the dataset.
+        frames_per_partition: Frames per task and per partition file.
+        workers: LocalCluster processes (0: this process).
+        scheduler: An existing Dask scheduler's address, instead of ``workers``.
+        progress: Show a progress bar.
+        worker_timeout_s: How long a run waits with no Dask worker
+            (:func:`ari_sfm.particles.engine.dask_client`).
+
+    Returns:
+        The summary (its to_json() is detect-particles.json).
+
+    Raises:
+        AriSfmError: Bad options, no images or frames in rig.yaml, a missing or oversized image, or no
+            particle image in any image (blank images, or a threshold too high: nothing is written then
+            but the partitions).
+    """
     import os
     import time
 

@@ -4,10 +4,9 @@ Gaussian fits of overlapping images (rendering the others, the three-point fits,
 Levenberg-Marquardt of an elongated image as one ellipse or two round images) and the ridge test.
 
 These kernels are THE implementation: :mod:`ari_sfm.particles.background` and
-:mod:`ari_sfm.particles.detect` call them (their docstrings say what each step means); they follow the
-numpy formulation they replaced operation for operation, in float64 (float32 where the image is), so a
-detection moves by rounding only. They live in one module so that numba's cache, invalidated by the
-source file of the function it compiled, never runs a stale kernel called from another module.
+:mod:`ari_sfm.particles.detect` call them (their docstrings say what each step means). They compute in
+float64 (float32 where the image is), and live in one module (numba's cache is invalidated by the source
+file of the function it compiled).
 """
 from __future__ import annotations
 
@@ -73,12 +72,29 @@ def _median(a, n, keys, count):
 @njit(**_JIT)
 def block_statistics(img, opened, y0, x0, by, bx, step, quantum, clip_sigmas, clip_floor, clipped_factor,
                      high_pass_gain):
-    """Per block (rows ``y0``, columns ``x0``, ``by`` x ``bx`` px, every ``step`` pixel): the median of
-    ``img - opened``, and the noise: the standard deviation of each pixel minus the mean of its four
-    neighbours (the border pixel standing for the one beyond), within ``clip_sigmas`` robust sigmas or
-    ``clip_floor`` quanta of the median, per unit pixel noise (divided by ``high_pass_gain``) and floored at the
-    quantisation's.
-    Returns (ny, nx) float32 medians and noises."""
+    """Per block: the median of the residual over the opening, and the noise.
+
+    The noise: the standard deviation of each pixel minus the mean of its four neighbours (the border
+    pixel standing for the one beyond), within ``clip_sigmas`` robust sigmas or ``clip_floor`` quanta of
+    the median, per unit pixel noise and floored at the quantisation's.
+
+    Args:
+        img: The image (h, w), float32.
+        opened: Its grey opening (h, w).
+        y0: (ny,) first row of each block.
+        x0: (nx,) first column of each block.
+        by: Block height (px).
+        bx: Block width (px).
+        step: Every ``step``-th pixel along rows and columns is sampled.
+        quantum: The grey level step (0 for float images).
+        clip_sigmas: Clip at this many robust sigmas ...
+        clip_floor: ... or at least this many quanta.
+        clipped_factor: The std of a unit Gaussian clipped at ``clip_sigmas`` (the clipped std is divided by it).
+        high_pass_gain: The noise of the high-pass per unit pixel noise (divided out).
+
+    Returns:
+        (ny, nx) float32 medians and (ny, nx) float32 noises.
+    """
     h, w = img.shape
     ny, nx = len(y0), len(x0)
     med_out = np.empty((ny, nx), np.float32)
@@ -154,9 +170,22 @@ def _axis_weights(n, centres):
 
 @njit(**_JIT)
 def level_and_noise(opened, block_median, block_noise, cy, cx, read_var, gain, floor_var):
-    """The background (``opened`` + the block medians, bilinear between block centres ``cy``, ``cx``) and
-    the noise: the larger of the sensor model sqrt(read_var + gain x level) (at least sqrt(floor_var))
-    and the blocks' noise, bilinear. Returns (h, w) float32 level and noise."""
+    """The background level and noise per pixel.
+
+    Args:
+        opened: The image's grey opening (h, w).
+        block_median: (ny, nx) the blocks' medians of the residual, added to ``opened`` (bilinear).
+        block_noise: (ny, nx) the blocks' noise (bilinear).
+        cy: (ny,) the block centres' rows.
+        cx: (nx,) the block centres' columns.
+        read_var: The sensor model's read noise variance.
+        gain: Its variance per grey level.
+        floor_var: The least variance of the sensor model.
+
+    Returns:
+        (h, w) float32 level, and (h, w) float32 noise: the larger of the sensor model
+        sqrt(read_var + gain x level) (at least sqrt(floor_var)) and the blocks' noise.
+    """
     h, w = opened.shape
     ylo, ywt = _axis_weights(h, cy)
     xlo, xwt = _axis_weights(w, cx)
@@ -188,9 +217,20 @@ def level_and_noise(opened, block_median, block_noise, cy, cx, read_var, gain, f
 
 @njit(**_JIT)
 def without_hot_pixels(res, noise, limit):
-    """``res`` with each pixel sharper along u and along v than an optical image can be (the log
-    curvature 2 ln I0 - ln I-1 - ln I+1 above ``limit`` on both axes, i.e. I0^2 > e^limit I-1 I+1,
-    intensities floored at the noise) replaced by the median of its 8 neighbours."""
+    """Replace hot pixels by the median of their 8 neighbours.
+
+    A hot pixel is sharper along u and along v than an optical image can be: the log curvature
+    2 ln I0 - ln I-1 - ln I+1 above ``limit`` on both axes, i.e. I0^2 > e^limit I-1 I+1 (intensities
+    floored at the noise).
+
+    Args:
+        res: The residual over the background (h, w), float32.
+        noise: The noise (h, w).
+        limit: The log curvature limit.
+
+    Returns:
+        A copy of ``res`` with the hot pixels replaced.
+    """
     h, w = res.shape
     out = res.copy()
     vals = np.empty(8, np.float32)
@@ -220,9 +260,20 @@ def without_hot_pixels(res, noise, limit):
 
 @njit(**_JIT)
 def local_maxima(smooth, noise, factor, floor):
-    """Pixels (rows, cols) off the border at the maximum of their 3 x 3 neighbourhood and at least
-    max(``factor`` x noise, ``floor``); of a plateau of equal values, those with no plateau pixel above
-    or to the left."""
+    """Local maxima above the threshold.
+
+    Of a plateau of equal values, the pixels with no plateau pixel above or to the left are taken.
+
+    Args:
+        smooth: The smoothed residual (h, w), float32.
+        noise: The noise (h, w).
+        factor: The threshold in noise sigmas.
+        floor: The threshold in grey levels.
+
+    Returns:
+        (rows, cols) int64 of the pixels off the border at the maximum of their 3 x 3 neighbourhood and at
+        least max(``factor`` x noise, ``floor``).
+    """
     h, w = smooth.shape
     ys = np.empty(h * w // 4 + 16, np.int64)
     xs = np.empty(h * w // 4 + 16, np.int64)
@@ -261,11 +312,25 @@ def local_maxima(smooth, noise, factor, floor):
 
 @njit(**_JIT)
 def connected_regions(clean, noise, factor, floor, ys, xs, max_count):
-    """Each candidate's region: the pixels 4-connected to its brightest pixel of the 3 x 3 around (ys, xs)
-    and above max(``factor`` x noise, ``floor``). Candidates in one region share it. Returns per candidate
-    (N,) the pixel count, the widths along u and v (bounding box) and the grey sum (``clean`` over the
-    region); a region beyond ``max_count`` pixels is counted no further (its count is max_count + 1,
-    its widths and sum those of the pixels counted), and the brightest pixel of the 3 x 3."""
+    """Measure each candidate's region of pixels above the threshold.
+
+    A region: the pixels 4-connected to the candidate's brightest pixel of the 3 x 3 around (ys, xs) and
+    above max(``factor`` x noise, ``floor``). Candidates in one region share it.
+
+    Args:
+        clean: The residual without hot pixels (h, w).
+        noise: The noise (h, w).
+        factor: The threshold in noise sigmas.
+        floor: The threshold in grey levels.
+        ys: (N,) int64 the candidates' rows.
+        xs: (N,) int64 their columns.
+        max_count: A region beyond this many pixels is counted no further (its count is max_count + 1, its
+            widths and sum those of the pixels counted).
+
+    Returns:
+        Per candidate (N,): the pixel count, the widths along u and v (bounding box), the grey sum
+        (``clean`` over the region), and the brightest pixel of the 3 x 3.
+    """
     h, w = clean.shape
     n = len(ys)
     count = np.zeros(n, np.int64)
@@ -339,10 +404,26 @@ def connected_regions(clean, noise, factor, floor, ys, xs, max_count):
 
 @njit(**_JIT)
 def render(model, prev_cx, prev_cy, u, v, A, su, sv, r):
-    """Draw the Gaussians A exp(-(x-u)^2 / 2 su^2 - (y-v)^2 / 2 sv^2) into ``model`` (h, w, float64),
-    each over the (2 r + 1)^2 pixels around its nearest pixel, in the order of the images, after setting
-    to zero the windows drawn before (around ``prev_cx``, ``prev_cy``): the same sums as a fresh array.
-    Returns the windows' centres (cx, cy)."""
+    """Draw the images' Gaussians into the model, in place.
+
+    Each Gaussian A exp(-(x-u)^2 / 2 su^2 - (y-v)^2 / 2 sv^2) is drawn over the (2 r + 1)^2 pixels
+    around its nearest pixel, in the order of the images, after the windows drawn before are set to zero:
+    the same sums as a fresh array.
+
+    Args:
+        model: (h, w) float64, updated.
+        prev_cx: The previous windows' centre columns.
+        prev_cy: Their centre rows.
+        u: (N,) centres along u.
+        v: (N,) centres along v.
+        A: (N,) peaks.
+        su: (N,) sigmas along u.
+        sv: (N,) sigmas along v.
+        r: The windows' half-width (px).
+
+    Returns:
+        The windows' centres (cx, cy), each (N,) int64.
+    """
     h, w = model.shape
     for k in range(len(prev_cx)):
         for y in range(max(prev_cy[k] - r, 0), min(prev_cy[k] + r + 1, h)):
@@ -382,8 +463,24 @@ def _own(res, model, y, x, u, v, A, su, sv):
 
 @njit(**_JIT)
 def own_pixels(res, model, y0, x0, u, v, A, su, sv, dy, dx):
-    """(N, len(dy)) each image's pixels (y0 + dy, x0 + dx), clamped to the frame, minus the other images'
-    Gaussians (``model`` of shape (0, 0): none)."""
+    """Each image's own pixels: the residual minus the other images' Gaussians.
+
+    Args:
+        res: The residual (h, w).
+        model: The sum of all images' Gaussians (h, w); shape (0, 0): none.
+        y0: (N,) each image's peak row.
+        x0: (N,) its peak column.
+        u: (N,) its Gaussian's centre along u.
+        v: (N,) along v.
+        A: (N,) its peak.
+        su: (N,) its sigma along u.
+        sv: (N,) along v.
+        dy: (M,) row offsets of the pixels taken.
+        dx: (M,) column offsets.
+
+    Returns:
+        (N, M) the pixels (y0 + dy, x0 + dx), clamped to the frame, minus the other images' Gaussians.
+    """
     h, w = res.shape
     n, m = len(y0), len(dy)
     out = np.empty((n, m))
@@ -406,10 +503,32 @@ def _log_parabola(lm, l0, lp):
 @njit(**_JIT)
 def fit_round(res, model, anchor_y, anchor_x, y0, x0, u, v, A, su, sv, saturated, fixed, sigma, s_lo, s_hi,
               centroid_r, min_signal, max_log_overshoot):
-    """One round of three-point Gaussian fits along u and v of each image's own pixels (the residual minus
-    the other images' Gaussians of ``model``); a flat top (saturated) or a failed fit: the centroid of its
-    own pixels above half their peak within ``centroid_r``. The peak pixel follows the centre, at most one
-    pixel from its anchor. Images ``fixed`` keep their values. Updates y0, x0, u, v, A, su, sv in place."""
+    """One round of three-point Gaussian fits along u and v of each image's own pixels, in place.
+
+    A flat top (saturated) or a failed fit: the centroid of its own pixels above half their peak within
+    ``centroid_r``. The peak pixel follows the centre, at most one pixel from its anchor.
+
+    Args:
+        res: The residual (h, w).
+        model: The sum of all images' Gaussians (h, w); shape (0, 0): none.
+        anchor_y: (N,) the row each image started from.
+        anchor_x: (N,) its column.
+        y0: (N,) peak rows, updated.
+        x0: (N,) peak columns, updated.
+        u: (N,) centres along u, updated.
+        v: (N,) centres along v, updated.
+        A: (N,) peaks, updated.
+        su: (N,) sigmas along u, updated.
+        sv: (N,) sigmas along v, updated.
+        saturated: (N,) bool: a flat top, centred by its centroid.
+        fixed: (N,) bool: keeps its values.
+        sigma: The hint's sigma (px), for failed fits.
+        s_lo: Smallest fitted sigma (px).
+        s_hi: Largest fitted sigma (px).
+        centroid_r: The centroid's window half-width (px).
+        min_signal: Floor of the intensities before their log.
+        max_log_overshoot: A fitted peak is at most e^this times its peak pixel.
+    """
     h, w = res.shape
     sdy = (0, 0, 0, -1, 1)
     sdx = (0, -1, 1, 0, 0)
@@ -496,10 +615,18 @@ def _solve(M, b):
 
 @njit(**_JIT)
 def shape_hessians(own, noise, model_noise):
-    """Per image: the log-intensity quadratic's Hessian (h_uu, h_uv, h_vv) fitted by weighted least
-    squares to its 3 x 3 pixels ``own`` (N, 9, row-major around the peak pixel) and the covariance (3, 3)
-    of those three. Weights: (I / noise)^2 with a ``model_noise`` relative floor; intensities floored at
-    half the noise. Returns (N, 3) and (N, 3, 3)."""
+    """Fit a quadratic to each image's log intensities by weighted least squares.
+
+    Weights: (I / noise)^2 with a ``model_noise`` relative floor; intensities floored at half the noise.
+
+    Args:
+        own: (N, 9) each image's 3 x 3 pixels, row-major around the peak pixel.
+        noise: (N,) the noise at each peak pixel.
+        model_noise: The relative noise floor per pixel.
+
+    Returns:
+        (N, 3) the Hessians (h_uu, h_uv, h_vv) and (N, 3, 3) their covariances.
+    """
     n = own.shape[0]
     hess = np.empty((n, 3))
     cov = np.empty((n, 3, 3))
@@ -593,11 +720,25 @@ def _evaluate(kind, q, X, Y, data, m, J, r):
 
 @njit(**_JIT)
 def levenberg_marquardt(kind, params, X, Y, data, iterations, tolerance):
-    """Fit the model ``kind`` (0: one ellipse, 1: two round images) to ``data`` (N, P) at pixels X, Y
-    (N, P), each from its row of ``params`` (N, K), by Levenberg-Marquardt
-    (damping 1e-2, x 0.3 on a better step, x 10 on a worse; a fit stops once its cost falls by less than
-    ``tolerance`` of itself or the damping reaches 1e8). Returns the parameters and each fit's sum of
-    squared residuals."""
+    """Fit a model to each image's pixels by Levenberg-Marquardt.
+
+    Damping 1e-2, x 0.3 on a better step, x 10 on a worse; a fit stops once its cost falls by less than
+    ``tolerance`` of itself or the damping reaches 1e8.
+
+    Args:
+        kind: 0: one elliptical Gaussian (u, v, A, a, c, b); 1: two round ones (u1, v1, u2, v2, A1, A2,
+            sigma).
+        params: (N, K) each fit's start.
+        X: (N, P) the pixels' columns.
+        Y: (N, P) their rows.
+        data: (N, P) the pixels' values.
+        iterations: Steps per fit at most.
+        tolerance: Relative cost decrease below which a fit stops.
+
+    Returns:
+        (N, K) the fitted parameters and (N,) each fit's sum of squared residuals (inf where the start is
+        no model).
+    """
     n, k = params.shape
     P = X.shape[1]
     out = params.copy()
@@ -668,9 +809,26 @@ def levenberg_marquardt(kind, params, X, Y, data, iterations, tolerance):
 
 @njit(**_JIT)
 def on_ridge(res, noise_at, u, v, A, axis, r, level, support_sigmas, min_signal):
-    """(N,) True where an image lies on a ridge: along its widest axis (``axis`` (N, 2)) or one of u, v
-    and the two diagonals, the residual at the nearest pixels both sides stays above ``level`` of its
-    peak at r px and half that at 2 r px (``support_sigmas`` noise sigmas allowed)."""
+    """Which images lie on a ridge (a streak, a blob's rim).
+
+    An image is on a ridge when, along its widest axis or one of u, v and the two diagonals, the residual
+    at the nearest pixels on both sides stays above ``level`` of its peak at r px and half that at 2 r px.
+
+    Args:
+        res: The residual (h, w).
+        noise_at: (N,) the noise at each image.
+        u: (N,) centres along u.
+        v: (N,) centres along v.
+        A: (N,) peaks.
+        axis: (N, 2) each image's widest axis (unit vector, u v).
+        r: The distance (px).
+        level: The fraction of the peak.
+        support_sigmas: Noise sigmas allowed.
+        min_signal: Floor of the peak.
+
+    Returns:
+        (N,) bool.
+    """
     h, w = res.shape
     c = 1.0 / math.sqrt(2.0)
     du = np.array([1.0, 0.0, c, c, 0.0])

@@ -7,11 +7,11 @@ volume when a camera has moved since the target calibration.
 
 The volume is cut into cells (e.g. 3 x 3 x 3); per camera and cell the map holds the robust
 centre of the disparities of the particles in that cell and how many supported it. Loose matches
-(a few px of tolerance) are mostly ghosts (measured: ~5 % true at 5 px with three cameras drifted),
-whose disparities spread over the tolerance disc, while the true matches pile up at each camera's
-systematic offset. The peak is searched in all cameras at once: the match with the most others
-within ``peak_radius_px`` in every camera they share, refined by a flat-kernel mean shift (a ghost
-may land near the peak in one camera, almost never in all). A match is an *inlier* when, in every
+(a few px of tolerance) are mostly ghosts, whose disparities spread over the tolerance disc, while
+the true matches pile up at each camera's systematic offset. The peak is searched in all cameras
+at once: the match with the most others within ``peak_radius_px`` in every camera they share,
+refined by a flat-kernel mean shift (a ghost may land near the peak in one camera, almost never in
+all). A match is an *inlier* when, in every
 camera it uses, its disparity lies within the peak radius of its cell's centre.
 
 RMS per camera: ``sqrt(mean |d|^2)`` over the inliers (pixel distances, PHYSICS.md); with the
@@ -44,7 +44,16 @@ class Cells:
 
     @staticmethod
     def around(xyz: np.ndarray, shape: Sequence[int], quantile: float = 0.005) -> Cells:
-        """The box of the points (their ``quantile`` and ``1 - quantile``: stray ghosts ignored)."""
+        """The box of the points, stray ghosts ignored.
+
+        Args:
+            xyz: Points (N, 3), world, mm (non-finite rows ignored).
+            shape: Cells along x, y, z.
+            quantile: The box runs from the points' ``quantile`` to their ``1 - quantile`` on each axis.
+
+        Returns:
+            The cells.
+        """
         finite = xyz[np.isfinite(xyz).all(axis=1)]
         lower, upper = np.quantile(finite, quantile, axis=0), np.quantile(finite, 1.0 - quantile, axis=0)
         nx, ny, nz = (int(s) for s in shape)
@@ -52,6 +61,7 @@ class Cells:
 
     @property
     def count(self) -> int:
+        """The number of cells."""
         return int(np.prod(self.shape))
 
     def index(self, xyz: np.ndarray) -> np.ndarray:
@@ -115,7 +125,15 @@ class DisparityMap:
 
 
 def particle_disparities(calibration: Calibration, particles: ParticleSet) -> np.ndarray:
-    """(P, C, 2) detected minus reprojected pixels (NaN where a camera is not used or X is invalid)."""
+    """Each match's disparities: detected minus reprojected pixels.
+
+    Args:
+        calibration: The calibration the points were triangulated with (its camera order is the columns').
+        particles: The matched particles.
+
+    Returns:
+        (P, C, 2) px; NaN where a camera is not used or the point is not finite.
+    """
     names = list(calibration.cameras)
     out = np.full(particles.pixels.shape, np.nan)
     used = particles.used & np.isfinite(particles.xyz).all(axis=1)[:, None]
@@ -161,12 +179,22 @@ def _joint_peak(d: np.ndarray, radius: float, seed: int = 0) -> tuple[np.ndarray
 
 def disparity_map(cameras: Sequence[str], cells: Cells, particles: ParticleSet, disparities: np.ndarray,
                   peak_radius_px: float, field_radius_px: float | None = None, seed: int = 0) -> DisparityMap:
-    """Robust per-cell disparity of every camera (module docstring) and the inlier matches.
+    """Robust per-cell disparity of every camera (the method is in the module docstring) and the inlier matches.
 
-    ``field_radius_px``: first the peak of the whole volume (at most ``GLOBAL_SAMPLE`` matches), and
-    each cell's peak searched only among the matches within this radius of it: a cell
-    with few true matches then cannot elect a chance cluster of ghosts (the drift field varies by a
-    few tenths of a px over the volume)."""
+    Args:
+        cameras: The C cameras' names, in the columns' order.
+        cells: The volume's cells.
+        particles: The matched particles.
+        disparities: (P, C, 2) px (:func:`particle_disparities`).
+        peak_radius_px: Radius of the peak search and of an inlier (px).
+        field_radius_px: When given, the peak of the whole volume is found first (among at most
+            ``GLOBAL_SAMPLE`` matches) and each cell's peak is searched only among the matches within this
+            radius of it (px), so that a cell with few true matches cannot elect a chance cluster of ghosts.
+        seed: Seed of the random subsets.
+
+    Returns:
+        The map.
+    """
     C, K = len(cameras), cells.count
     cell = cells.index(particles.xyz)
     used = np.isfinite(disparities).all(axis=2)

@@ -3,8 +3,7 @@ matches lie within a radius of it in every camera both use (:func:`ari_sfm.parti
 
 The joint distance of matches i and j is the largest over the cameras both use of the pixel distance
 between their disparities, ``sqrt(dx^2 + dy^2)`` as ``numpy.linalg.norm`` forms it; a pair counts when it
-is within the radius and shares at least two cameras. O(n^2) pairs, no temporaries (numpy's version
-held chunks of (k, n, C) differences: 40 s of a self-calibration on 2 cores).
+is within the radius and shares at least two cameras. O(n^2) pairs, no temporaries.
 """
 from __future__ import annotations
 
@@ -19,15 +18,31 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 @njit(**_JIT)
 def joint_counts(d, radius):
-    """(n,) int64: per match i (disparities ``d`` (n, C, 2), NaN where a camera is unused) the matches j
-    (i itself included) whose joint distance is <= ``radius`` over at least two shared cameras."""
+    """Count each match's neighbours in every camera.
+
+    Args:
+        d: Disparities (n, C, 2) px, NaN where a camera is unused.
+        radius: Largest joint distance (px).
+
+    Returns:
+        (n,) int64: per match i the matches j (i itself included) whose joint distance is <= ``radius``
+        over at least two shared cameras.
+    """
     return joint_counts_against(d, d, radius)
 
 
 @njit(**_JIT)
 def joint_counts_against(q, d, radius):
-    """(k,) int64: per query match ``q[i]`` (k, C, 2) the matches of ``d`` (n, C, 2) within ``radius``
-    (as :func:`joint_counts`)."""
+    """Count the neighbours of query matches among other matches (as :func:`joint_counts`).
+
+    Args:
+        q: Query disparities (k, C, 2) px, NaN where a camera is unused.
+        d: Disparities (n, C, 2) px.
+        radius: Largest joint distance (px).
+
+    Returns:
+        (k,) int64: per query match the matches of ``d`` within ``radius`` over at least two shared cameras.
+    """
     k, n, C = q.shape[0], d.shape[0], d.shape[1]
     out = np.zeros(k, np.int64)
     for i in range(k):

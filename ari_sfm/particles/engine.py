@@ -66,8 +66,14 @@ class PartitionError(Exception):
 
 @dataclass(frozen=True)
 class Partition:
-    """A frame range [first, last], the task arguments of those frames and the key of the inputs they are
-    read from ("" when run.json's settings say it all)."""
+    """A frame range and its task.
+
+    Attributes:
+        first: First frame of the range.
+        last: Last frame of the range (inclusive).
+        args: The task's arguments for those frames.
+        inputs: The key of the inputs they are read from ("" when run.json's settings say it all).
+    """
 
     first: int
     last: int
@@ -76,23 +82,51 @@ class Partition:
 
     @property
     def name(self) -> str:
+        """The partition's file name without suffix, ``frames_<first>-<last>``."""
         return f"frames_{self.first:05d}-{self.last:05d}"
 
 
 def split_frames(frames: Iterable[int], per_partition: int) -> list[list[int]]:
-    """Consecutive chunks of ``per_partition`` frames (sorted)."""
+    """Cut frames into consecutive chunks.
+
+    Args:
+        frames: Frame numbers.
+        per_partition: Frames per chunk.
+
+    Returns:
+        Chunks of ``per_partition`` frames (the last may be shorter), sorted.
+    """
     frames = sorted(int(f) for f in frames)
     return [frames[k:k + per_partition] for k in range(0, len(frames), per_partition)]
 
 
 def frame_ranges(first: int, last: int, per_partition: int) -> Iterator[list[int]]:
-    """The frames first..last (inclusive) in consecutive chunks of ``per_partition``, made one at a time."""
+    """The frames first..last in consecutive chunks, made one at a time.
+
+    Args:
+        first: First frame.
+        last: Last frame (inclusive).
+        per_partition: Frames per chunk.
+
+    Yields:
+        Chunks of ``per_partition`` frames (the last may be shorter).
+    """
     for start in range(first, last + 1, per_partition):
         yield list(range(start, min(start + per_partition, last + 1)))
 
 
 def check_workers(workers: Any) -> int:
-    """``workers`` as a count of LocalCluster processes: an integer >= 0 (0: this process)."""
+    """Check a count of LocalCluster processes.
+
+    Args:
+        workers: The ``--workers`` value: an integer >= 0 (0: this process).
+
+    Returns:
+        ``workers`` as an int.
+
+    Raises:
+        AriSfmError: Not a whole number >= 0.
+    """
     if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)):
         raise AriSfmError("--workers", f"must be a whole number >= 0 (got {workers!r})")
     if workers < 0:
@@ -101,8 +135,17 @@ def check_workers(workers: Any) -> int:
 
 
 def check_run_settings(out: Path, settings: dict[str, Any]) -> None:
-    """Record the settings of this run in OUT/parts/run.json, or refuse partitions of another run (a record
-    without partitions, left by a run that failed before making one, is replaced)."""
+    """Record the settings of this run in OUT/parts/run.json, or refuse partitions of another run.
+
+    A record without partitions, left by a run that failed before making one, is replaced.
+
+    Args:
+        out: The output folder (OUT).
+        settings: The run's settings (JSON-serialisable).
+
+    Raises:
+        AriSfmError: OUT holds partitions of a run with other settings, or partitions without run.json.
+    """
     parts = out / PARTS
     record = parts / "run.json"
     if record.is_file():
@@ -121,9 +164,11 @@ def check_run_settings(out: Path, settings: dict[str, Any]) -> None:
 
 
 def local_worker_environ() -> dict[str, Any]:
-    """Dask's worker environment without ``MALLOC_TRIM_THRESHOLD_``: distributed sets it (65536) to hand
-    memory back to the OS, which also fixes glibc's mmap threshold, so every large numpy temporary is
-    mmapped and faulted in again: the matching took ~1.5x the CPU of the same code in-process."""
+    """Dask's worker environment without ``MALLOC_TRIM_THRESHOLD_`` (which distributed sets).
+
+    Returns:
+        The environment for LocalCluster's workers (``distributed.nanny.pre-spawn-environ``).
+    """
     import dask
 
     environ = dict(dask.config.get("distributed.nanny.pre-spawn-environ", default={}) or {})
@@ -132,9 +177,19 @@ def local_worker_environ() -> dict[str, Any]:
 
 
 def check_scheduler_answers(address: str, timeout_s: float) -> None:
-    """Refuse an address that is no Dask scheduler before dask.distributed connects to it: its handshake
-    waits forever for a server that accepts the connection and says nothing (an HTTP server, the
-    dashboard's port). A scheduler speaks first: an 8-byte frame length, then its handshake."""
+    """Refuse an address that is no Dask scheduler before dask.distributed connects to it.
+
+    A scheduler speaks first: an 8-byte frame length, then its handshake. A server that accepts the
+    connection and says nothing (an HTTP server, the dashboard's port) is refused after ``timeout_s``.
+    Only ``tcp://`` addresses are checked.
+
+    Args:
+        address: The scheduler's address, ``tcp://HOST:PORT``.
+        timeout_s: How long to wait for the connection and for the first 8 bytes (s).
+
+    Raises:
+        AriSfmError: A malformed address, or one that cannot be reached or does not answer as a scheduler.
+    """
     from distributed.comm.addressing import parse_address, parse_host_port
 
     try:
@@ -173,9 +228,12 @@ def check_scheduler_answers(address: str, timeout_s: float) -> None:
 
 
 class WorkerWatch:
-    """Counts a client's workers every WATCH_INTERVAL_S (a daemon thread). With none connected for
-    ``timeout_s`` it cancels the client's tasks, so that whatever waits on them (``as_completed``,
-    ``gather``) returns, and keeps the reason in ``failure``. A worker back before then: it says so."""
+    """Counts a client's workers every WATCH_INTERVAL_S (a daemon thread).
+
+    With none connected for ``timeout_s`` it cancels the client's tasks, so that whatever waits on them
+    (``as_completed``, ``gather``) returns, and keeps the reason in ``failure``. A worker back before then:
+    it says so.
+    """
 
     def __init__(self, client: Any, address: str, timeout_s: float) -> None:
         self.client = client
@@ -187,6 +245,7 @@ class WorkerWatch:
         self._thread.start()
 
     def stop(self) -> None:
+        """Stop watching (waits up to 10 s for the thread)."""
         self._stop.set()
         self._thread.join(timeout=10.0)
 
@@ -240,13 +299,26 @@ class WorkerWatch:
 
 @contextmanager
 def dask_client(workers: int, scheduler: str | None, worker_timeout_s: float | None = None) -> Iterator[Any]:
-    """A dask.distributed Client: on ``scheduler`` if given, else a LocalCluster of ``workers``
-    single-threaded processes; None (run in this process) when ``workers`` is 0 and no scheduler.
+    """A dask.distributed Client for the block (a context manager).
 
-    While it is open a :class:`WorkerWatch` stops the run after ``worker_timeout_s`` (None: the
-    ``worker_timeout`` context variable, WORKER_TIMEOUT_S unless the CLI set it) without a worker. A
+    While it is open a :class:`WorkerWatch` stops the run after ``worker_timeout_s`` without a worker. A
     cluster's failures (no worker, a task that killed its workers, the scheduler gone) leave the block as
-    one AriSfmError naming ``--scheduler`` or ``--workers``."""
+    one AriSfmError naming ``--scheduler`` or ``--workers``.
+
+    Args:
+        workers: LocalCluster single-threaded processes (0: this process).
+        scheduler: An existing scheduler's address (``tcp://HOST:PORT``), used instead of ``workers``.
+        worker_timeout_s: How long to wait with no worker (s); None for the ``worker_timeout`` context
+            variable (WORKER_TIMEOUT_S unless the CLI set it).
+
+    Yields:
+        The client on ``scheduler`` if given, else on a LocalCluster; None (run in this process) when
+        ``workers`` is 0 and there is no scheduler.
+
+    Raises:
+        AriSfmError: Bad ``workers`` or ``worker_timeout_s``, a scheduler that cannot be reached, or a
+            cluster's failure inside the block.
+    """
     workers = check_workers(workers)
     worker_timeout_s = worker_timeout.get() if worker_timeout_s is None else worker_timeout_s
     if not (isinstance(worker_timeout_s, (int, float)) and math.isfinite(worker_timeout_s) and worker_timeout_s > 0):
@@ -318,7 +390,17 @@ def _first_line(exc: BaseException) -> str:
 
 
 def cluster_error(exc: BaseException, watch: WorkerWatch, where: str, address: str) -> AriSfmError | None:
-    """The one-line error of a cluster's failure, None for any other exception (an interrupt, a file's)."""
+    """The one-line error of a cluster's failure.
+
+    Args:
+        exc: The exception that left the client's block.
+        watch: The block's worker watch (its ``failure``, if any, is the reason).
+        where: The option to name in the error, ``--scheduler`` or ``--workers``.
+        address: The scheduler's address.
+
+    Returns:
+        The error, or None for any other exception (an interrupt, a file's).
+    """
     from distributed import KilledWorker
     from distributed.comm.core import CommClosedError
     from distributed.utils import CancelledError
@@ -341,10 +423,25 @@ def cluster_error(exc: BaseException, watch: WorkerWatch, where: str, address: s
 
 def run_partitions(task: Callable[..., dict[str, np.ndarray]], partitions: Iterable[Partition], out: Path,
                    client: Any, on_done: Callable[[Partition, bool], None] | None = None) -> list[Path]:
-    """Run ``task(*partition.args)`` for every partition without an up-to-date file yet; write each result
-    (a mapping of equal-length columns) to OUT/parts/<name>.parquet with the partition's ``inputs`` key.
-    ``partitions`` is consumed lazily: at most IN_FLIGHT_PER_THREAD per worker thread are submitted ahead.
-    Returns every partition's file, in partition order. ``on_done(partition, skipped)`` after each one."""
+    """Run a task for every partition without an up-to-date file yet, writing each result as it arrives.
+
+    Each result (a mapping of equal-length columns) is written to OUT/parts/<name>.parquet with the
+    partition's ``inputs`` key. ``partitions`` is consumed lazily: at most IN_FLIGHT_PER_THREAD per worker
+    thread are submitted ahead.
+
+    Args:
+        task: Called as ``task(*partition.args)``; returns the partition's columns.
+        partitions: The partitions, in order.
+        out: The output folder (OUT).
+        client: A dask.distributed Client, or None to run in this process.
+        on_done: Called as ``on_done(partition, skipped)`` after each partition; None for nothing.
+
+    Returns:
+        Every partition's file, in partition order.
+
+    Raises:
+        AriSfmError: A task's problem with one of its files (:class:`PartitionError`).
+    """
     parts = out / PARTS
     parts.mkdir(parents=True, exist_ok=True)
     paths: list[Path] = []
@@ -443,8 +540,19 @@ def _result(get: Callable[[], Any]) -> Any:
 
 
 def merge_partitions(paths: Sequence[Path], dest: Path, each: Callable[[Any], None] | None = None) -> int:
-    """Write the partitions' files, in order, as one parquet table ``dest`` (atomically), one partition in
-    memory at a time; ``each(table)`` sees each partition's table. Returns the number of rows."""
+    """Write the partitions' files, in order, as one parquet table (atomically), one partition in memory at a time.
+
+    Args:
+        paths: The partitions' files, in order.
+        dest: The table to write.
+        each: Called with each partition's table (pyarrow); None for nothing.
+
+    Returns:
+        The number of rows written.
+
+    Raises:
+        AriSfmError: A partition's file cannot be read.
+    """
     from ari_sfm.io.particles import write_tables_atomic
 
     def tables() -> Iterator[Any]:

@@ -15,10 +15,18 @@ DISPARITY_FILE = "disparity.json"
 
 
 def disparity_figure(disparity: dict[str, Any]) -> bytes:
-    """One row per camera, before and after: each cell's disparity vector (px) drawn at the cell's
-    centre (world x, y; z layers in colour, side by side), one arrow scale for every panel (the longest
-    arrow, before, about half a cell), so corrected arrows look as small as they are; a scale arrow
-    of 1 px in each panel."""
+    """Disparity maps before and after self-calibration, one row per camera.
+
+    Each cell's disparity vector (px) is drawn at the cell's centre (world x, y; z layers in colour, side
+    by side), on one arrow scale for every panel (the longest arrow about half a cell), so corrected arrows
+    look as small as they are; a scale arrow of 1 px in each panel.
+
+    Args:
+        disparity: The content of OUT/disparity.json (``cells``, ``cell_centres_mm``, ``before``, ``after``).
+
+    Returns:
+        The figure's PNG bytes.
+    """
     from ..report.figures import plt, to_png
 
     centres = np.asarray(disparity["cell_centres_mm"], float)
@@ -73,8 +81,16 @@ def disparity_figure(disparity: dict[str, Any]) -> bytes:
 
 
 def self_calibration_section(out: Path, image: Any, calibration: Calibration | None = None) -> str:
-    """The report's section for a self-calibration folder (OUT/disparity.json and calibration.json's
-    ``self_calibration``), or "" without one. ``image(png, alt, caption)`` renders a figure as the report does."""
+    """The report's section for a self-calibration folder.
+
+    Args:
+        out: The output folder (OUT), holding disparity.json.
+        image: Renders a figure as the report does: ``image(png, alt, caption)`` -> HTML.
+        calibration: The folder's calibration (its ``self_calibration`` record), or None.
+
+    Returns:
+        The section's HTML, or "" without OUT/disparity.json.
+    """
     path = Path(out) / DISPARITY_FILE
     if not path.is_file():
         return ""

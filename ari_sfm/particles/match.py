@@ -68,7 +68,19 @@ def _empty(C: int) -> FrameMatches:
 
 
 def footprint_mm_per_px(calibration: Calibration, cameras: list[str], point_world: np.ndarray) -> np.ndarray:
-    """(C,) lateral mm per pixel of each camera at a world point (through the window, from the model)."""
+    """Lateral mm per pixel of each camera at a world point (through the window, from the model).
+
+    Args:
+        calibration: The calibration.
+        cameras: The C cameras' names.
+        point_world: The point (3,), world frame, mm.
+
+    Returns:
+        (C,) mm per pixel.
+
+    Raises:
+        ValueError: A camera does not see the point.
+    """
     out = np.empty(len(cameras))
     for k, cam in enumerate(cameras):
         centre = calibration.cameras[cam].cam_from_world.inverse().t
@@ -144,11 +156,25 @@ def _join(combos: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray, col: int, 
 def match_frame(calibration: Calibration, detections: Mapping[str, np.ndarray], tolerance_px: float,
                 depth_range_mm: tuple[float, float] | None = None, volume: Volume | None = None,
                 min_cameras: int = 3) -> FrameMatches:
-    """Particles of one frame from their images in every camera (see the module docstring).
+    """Particles of one frame from their images in every camera (the steps are in the module docstring).
 
-    ``detections``: camera name -> (N_c, 2) pixels (a camera absent: no images).
-    ``volume``: where particles can be (world); else ``depth_range_mm``: the slab of world z
-    (camera 0's depth). ``min_cameras`` >= 2 images per particle.
+    Args:
+        calibration: The calibration; its model must have rays through the window (exact, ari or rt).
+        detections: Camera name -> (N_c, 2) pixels (a camera absent: no images).
+        tolerance_px: How far (px) a ray may pass from a combination's point, and a detection from an
+            epipolar curve.
+        depth_range_mm: (z_min, z_max), the slab of world z (camera 0's depth) where particles can be;
+            used when ``volume`` is None.
+        volume: Where particles can be (world frame); None for ``depth_range_mm``.
+        min_cameras: Images a particle needs, 2 to the number of cameras.
+
+    Returns:
+        The particles found, with their detection rows per camera (the calibration's camera order).
+
+    Raises:
+        ValueError: Detections of a camera not in the calibration, non-finite pixels, ``min_cameras`` or
+            ``tolerance_px`` out of range, a model without rays through the window, or neither a volume
+            nor a depth range.
     """
     cameras = list(calibration.cameras)
     C = len(cameras)

@@ -4,7 +4,7 @@ calls them, the algorithm is described there.
 - :func:`band_pairs`: which detections lie within the tolerance of each reference ray's sampled epipolar
   curve. The detections are bucketed in a grid of square cells (a counting sort, no tree); each segment
   of a curve visits only the cells its box grown by the tolerance overlaps and measures the exact
-  point-to-segment distance there, the formula numpy's version used.
+  point-to-segment distance there.
 - :func:`score_combos`: the least-squares point of each combination's rays (as
   :func:`ari_sfm.reconstruction.triangulate.triangulate_rays` forms it), each ray's distance from it in pixels of its
   camera, the acceptance (every ray within the tolerance, the point inside the volume grown by the
@@ -39,9 +39,19 @@ def _cell_index(x, n):
 # arrays in one compiled loop nest (no calls passing them)
 @njit(**_JIT)
 def band_pairs(p, uv, tolerance, cell):  # noqa: C901
-    """Pairs (i, j), sorted by i then j, each once: detection ``uv[j]`` (N, 2) within ``tolerance`` px of a
-    segment of curve i, the polyline ``p[i]`` (n, K, 2) (a segment with a non-finite end is skipped).
-    ``cell``: the grid's cell size in px (>= the tolerance keeps the visited cells few)."""
+    """The detections within the tolerance of each sampled epipolar curve.
+
+    Args:
+        p: The curves, polylines (n, K, 2) px; a segment with a non-finite end is skipped.
+        uv: The detections (N, 2) px.
+        tolerance: Largest distance (px) from a segment of the curve.
+        cell: The grid's cell size (px); at least the tolerance keeps the visited cells few. It grows so
+            that the grid has at most MAX_GRID_SIDE cells a side.
+
+    Returns:
+        (i, j), each (P,) int64, sorted by i then j, each pair once: detection ``uv[j]`` lies within
+        ``tolerance`` of curve ``p[i]``.
+    """
     n, K = p.shape[0], p.shape[1]
     N = uv.shape[0]
     out_i = np.empty(0, np.int64)
@@ -131,12 +141,30 @@ def band_pairs(p, uv, tolerance, cell):  # noqa: C901
 @njit(**_JIT)
 def score_combos(combos, origins, directions, offsets, footprint, box_R, box_t, box_min, box_max, margin,
                  tolerance, min_det):
-    """Accepted (Q,) and score (Q,) of the combinations ``combos`` (Q, C) (a row per camera's detection,
-    -1: unused): camera c's ray of row k is ``origins[offsets[c] + k]``, ``directions[...]`` (unit).
-    The least-squares point X of the used rays (NaN with < 2 finite rays or det <= ``min_det``), each
-    used ray's distance from X over ``footprint[c]`` (mm per px), accepted when every one is within
-    ``tolerance`` and ``box_R X + box_t`` is within [box_min - margin, box_max + margin]; score: the RMS
-    of those distances."""
+    """Score combinations by their rays' least-squares point.
+
+    For each combination: the least-squares point X of its used rays (none with < 2 finite rays, a used
+    ray that is not finite, or det <= ``min_det``), each used ray's distance from X over ``footprint[c]``
+    (mm per px); accepted when every one is within ``tolerance`` and ``box_R X + box_t`` is within
+    [box_min - margin, box_max + margin].
+
+    Args:
+        combos: (Q, C) a detection row per camera, -1: unused.
+        origins: All cameras' ray origins (sum N_c, 3); camera c's ray of row k is at ``offsets[c] + k``.
+        directions: The rays' directions (sum N_c, 3) (normalised here).
+        offsets: (C + 1,) int64 start of each camera's rays.
+        footprint: (C,) mm per px of each camera at the volume.
+        box_R: (3, 3) rotation of the volume's box_from_world.
+        box_t: (3,) its translation.
+        box_min: (3,) the box's lower bounds (mm).
+        box_max: (3,) its upper bounds (mm).
+        margin: The box is grown by this (mm).
+        tolerance: Largest distance of a ray from X (px).
+        min_det: Smallest determinant of the normal equations.
+
+    Returns:
+        (accepted (Q,) bool, score (Q,): the RMS of the rays' distances in px, NaN where there is no point).
+    """
     Q, C = combos.shape
     ok = np.zeros(Q, np.bool_)
     score = np.empty(Q)
@@ -242,12 +270,33 @@ def _within_reach(combos, q, col, kb, origins, directions, offsets, footprint, t
 @njit(**_JIT)
 def join_within_reach(combos, pj_sorted, start, stop, col, allow_none, n, check, origins, directions, offsets,
                       footprint, tolerance):
-    """The cross join of ``combos`` (Q, C + 1) with each row's candidates ``pj_sorted[start[q]:stop[q]]`` in
-    column ``col``, then (``allow_none``) the option -1 there, in that order, keeping the rows that can still
-    make an ``n``-camera combination; with ``check``, a candidate whose ray misses another of the row's by more
-    than any accepted combination's could is left out: every ray within tolerance footprint[c] of one point
-    (what :func:`score_combos` accepts) puts any two within the sum of theirs, so the accepted combinations,
-    and their order, are those of the whole join."""
+    """Join a camera's candidates to partial combinations, leaving out those no accepted one can hold.
+
+    Each row of ``combos`` is joined with each of its candidates in column ``col``, then (``allow_none``)
+    with the option -1 there, in that order; only the rows that can still make an ``n``-camera combination
+    are kept. With ``check``, a candidate whose ray misses another of the row's by more than any accepted
+    combination's could is left out: every ray within tolerance x footprint[c] of one point (what
+    :func:`score_combos` accepts) puts any two within the sum of theirs, so the accepted combinations,
+    and their order, are those of the whole join.
+
+    Args:
+        combos: (Q, C + 1) partial combinations, the reference detection in the last column.
+        pj_sorted: Candidate detections of camera ``col``, grouped by reference detection.
+        start: (Q,) first candidate of each row in ``pj_sorted``.
+        stop: (Q,) end of each row's candidates in ``pj_sorted``.
+        col: The column (camera) joined.
+        allow_none: Also join the option "no detection" (-1).
+        n: The number of cameras the combinations must reach.
+        check: Leave out candidates whose ray is out of reach of the row's others.
+        origins: All cameras' ray origins (sum N_c, 3).
+        directions: Their directions (sum N_c, 3).
+        offsets: (C + 1,) int64 start of each camera's rays.
+        footprint: (C,) mm per px of each camera at the volume.
+        tolerance: The matching tolerance (px).
+
+    Returns:
+        The joined rows (Q', C + 1) int64.
+    """
     Q, W = combos.shape
     C = offsets.shape[0] - 1
     cap = max(16, 2 * Q)
@@ -280,9 +329,17 @@ def join_within_reach(combos, pj_sorted, start, stop, col, allow_none, n, check,
 
 @njit(**_JIT)
 def greedy_rows(combos, order, used, offsets):
-    """Indices into ``combos`` (Q, C) taken in ``order`` (best first), skipping a combination any of whose
-    detections is already used; ``used`` (the cameras' flags, camera c's detection k at ``offsets[c] + k``)
-    is updated."""
+    """Take combinations best first, each detection used once.
+
+    Args:
+        combos: (Q, C) a detection row per camera, -1: unused.
+        order: Indices into ``combos``, best first.
+        used: The cameras' flags, camera c's detection k at ``offsets[c] + k``; updated in place.
+        offsets: (C + 1,) int64 start of each camera's flags.
+
+    Returns:
+        The indices into ``combos`` taken, in the order taken.
+    """
     Q, C = combos.shape
     keep = np.empty(Q, np.int64)
     m = 0

@@ -115,8 +115,22 @@ def _sha256(path: Path) -> str:
 
 
 def load_experiment(dataset_path: str | Path, calibration_path: Path, out: Path) -> tuple[ParticleDataset, Calibration]:
-    """The particle dataset and the calibration of its rig, for a command writing to ``out`` (not the
-    dataset's own folder)."""
+    """Load a particle dataset and the calibration of its rig, for a command writing to ``out``.
+
+    A calibration that failed its quality gate is loaded with a warning (:func:`failed_gate_warning`).
+
+    Args:
+        dataset_path: The particle dataset (its folder or rig.yaml).
+        calibration_path: The calibration.json.
+        out: The output folder; it must not be the dataset's own folder.
+
+    Returns:
+        (the dataset, the calibration).
+
+    Raises:
+        AriSfmError: ``out`` is the dataset folder, or the calibration is not of the dataset's rig or has no
+            rays through the window (:func:`check_calibration_fits`).
+    """
     dataset = load_particle_dataset(dataset_path)
     if Path(os.path.realpath(out)) == Path(os.path.realpath(dataset.root)):
         raise AriSfmError(out, "-o/--out is the dataset folder: write the results elsewhere")
@@ -129,10 +143,18 @@ def load_experiment(dataset_path: str | Path, calibration_path: Path, out: Path)
 
 
 def failed_gate_warning(calibration: Calibration, path: Path) -> str | None:
-    """What to say of a calibration written with ``quality.ok`` false (it failed its quality gate: a wrong
-    minimum, window or lens model), None for any other: particles matched or a rig self-calibrated from it
-    look as right as from a good one (a lens left out: cameras 0.5-0.7 deg off, and self-calibration from it
-    fits the particles at the noise)."""
+    """The warning for a calibration that failed its quality gate when it was made.
+
+    Such a calibration (``quality.ok`` false: a wrong minimum, window or lens model) gives particles, and
+    self-calibrations, that look as right as a good one's.
+
+    Args:
+        calibration: The calibration.
+        path: Its file, named in the warning.
+
+    Returns:
+        The warning, or None if the calibration has no quality record or passed its gate.
+    """
     q = calibration.quality
     if q is None or q.ok:
         return None
@@ -141,7 +163,17 @@ def failed_gate_warning(calibration: Calibration, path: Path) -> str | None:
 
 
 def check_calibration_fits(calibration: Calibration, dataset: ParticleDataset, path: Path) -> None:
-    """The calibration is of the dataset's rig: the same camera names and image sizes."""
+    """Check that the calibration is of the dataset's rig and can match particles.
+
+    Args:
+        calibration: The calibration.
+        dataset: The particle dataset.
+        path: The calibration's file, named in errors.
+
+    Raises:
+        AriSfmError: Other camera names or image sizes than the dataset's, or a model without rays through
+            the window.
+    """
     if set(calibration.cameras) != set(dataset.cameras):
         raise AriSfmError(path, f"a calibration of another rig: cameras {', '.join(calibration.cameras)}, "
                                 f"the dataset's are {', '.join(dataset.cameras)}")
@@ -158,7 +190,20 @@ def check_calibration_fits(calibration: Calibration, dataset: ParticleDataset, p
 
 def volume_for(dataset: ParticleDataset, calibration: Calibration, depth_range_mm: tuple[float, float] | None
                ) -> Volume:
-    """The measured volume in the calibration's world: ``--depth-range`` (world z) if given, else rig.yaml's."""
+    """The measured volume in the calibration's world.
+
+    Args:
+        dataset: The particle dataset (rig.yaml's ``particles.volume_mm``, in a camera's frame or a
+            calibration frame's target coordinates).
+        calibration: The calibration.
+        depth_range_mm: ``--depth-range`` (world z, mm); when given it is used instead of rig.yaml's volume.
+
+    Returns:
+        The volume.
+
+    Raises:
+        AriSfmError: No volume is given, or its frame is neither a camera nor a calibration frame.
+    """
     if depth_range_mm is not None:
         return Volume.depth_range(*depth_range_mm)
     if dataset.volume is None:
@@ -177,7 +222,20 @@ def volume_for(dataset: ParticleDataset, calibration: Calibration, depth_range_m
 def match_partition(calibration_json: dict, volume: Volume, tolerance_px: float, min_cameras: int,
                     frames: list[int], pixels: list[dict[str, np.ndarray]], rows: list[dict[str, np.ndarray]]
                     ) -> dict[str, np.ndarray]:
-    """One partition's particles3d columns (a Dask task: plain arguments, no files)."""
+    """One partition's particles3d columns (a Dask task: plain arguments, no files).
+
+    Args:
+        calibration_json: The calibration as JSON (:func:`ari_sfm.io.calibration_to_json`).
+        volume: The measured volume.
+        tolerance_px: Matching tolerance (px), as :func:`~ari_sfm.particles.match.match_frame`.
+        min_cameras: Images a particle needs.
+        frames: The partition's frame numbers.
+        pixels: Per frame, camera -> detections (N_c, 2) px.
+        rows: Per frame, camera -> the detections' rows in the detections table.
+
+    Returns:
+        Column name -> array: frame, x, y, z, ray_gap_mm, cameras, and row_<camera> (-1: unused).
+    """
     calibration = parse_calibration(calibration_json)
     cameras = list(calibration.cameras)
     cols: dict[str, list] = {k: [] for k in ("frame", "x", "y", "z", "ray_gap_mm", "cameras")}
@@ -215,10 +273,27 @@ def reconstruct_particles(dataset_path: str | Path, calibration_path: str | Path
                           worker_timeout_s: float | None = None) -> ParticlesSummary:
     """Match and triangulate every frame; write OUT/particles3d.parquet and OUT/particles3d.json.
 
-    ``workers``: LocalCluster processes (0: this process); ``scheduler``: an existing Dask
-    scheduler's address instead; ``worker_timeout_s``: how long a run waits with no Dask worker
-    (:func:`ari_sfm.particles.engine.dask_client`). Returns the summary (its to_json() is particles3d.json);
-    its ``warnings`` (also logged) say when few particle images matched: a calibration that does not fit.
+    Frames run in partitions (:mod:`ari_sfm.particles.engine`), so a run with the same settings resumes.
+
+    Args:
+        dataset_path: The particle dataset.
+        calibration_path: The calibration.json of its rig.
+        out: The output folder (OUT).
+        options: How frames are matched.
+        detections_path: The detections table (particles.parquet); None for the dataset's.
+        workers: LocalCluster processes (0: this process).
+        scheduler: An existing Dask scheduler's address, instead of ``workers``.
+        progress: Show a progress bar.
+        worker_timeout_s: How long a run waits with no Dask worker
+            (:func:`ari_sfm.particles.engine.dask_client`).
+
+    Returns:
+        The summary (its to_json() is particles3d.json); its ``warnings`` (also logged) say when few
+        particle images matched: a calibration that does not fit.
+
+    Raises:
+        AriSfmError: Bad options, a calibration that does not fit the dataset, no detections table or an
+            empty one, no volume, or an output folder of a run with other settings.
     """
     t0 = time.perf_counter()
     out = Path(out)

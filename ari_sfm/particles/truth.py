@@ -33,7 +33,16 @@ class ParticleScore:
 
 
 def true_ids(rows: np.ndarray, cameras: list[str], particle_ids: Mapping[str, np.ndarray]) -> np.ndarray:
-    """(M, C) the true particle of each image a reconstruction uses (-1 where it uses none)."""
+    """The true particle of each image the reconstructions use.
+
+    Args:
+        rows: (M, C) each reconstruction's detection row per camera (-1: none).
+        cameras: The C cameras' names, in the columns' order.
+        particle_ids: The true particle of each detection, per camera.
+
+    Returns:
+        (M, C) true particle ids (-1 where a reconstruction uses no image).
+    """
     out = np.full(rows.shape, -1, np.int64)
     for k, cam in enumerate(cameras):
         used = rows[:, k] >= 0
@@ -43,8 +52,21 @@ def true_ids(rows: np.ndarray, cameras: list[str], particle_ids: Mapping[str, np
 
 def score_frame(xyz: np.ndarray, rows: np.ndarray, cameras: list[str], particle_ids: Mapping[str, np.ndarray],
                 positions: np.ndarray, min_cameras: int = 3) -> ParticleScore:
-    """Score one frame: ``rows`` (M, C) index each camera's detections, whose true particles are
-    ``particle_ids[camera]`` (rows of ``positions``)."""
+    """Score one frame's reconstruction against the truth.
+
+    A reconstruction is correct when all its images are of one true particle; the others are ghosts.
+
+    Args:
+        xyz: Reconstructed points (M, 3), mm.
+        rows: (M, C) each point's detection row per camera (-1: none).
+        cameras: The C cameras' names, in the columns' order.
+        particle_ids: The true particle of each detection, per camera (rows of ``positions``).
+        positions: True particle positions (P, 3), mm.
+        min_cameras: A true particle with images in at least this many cameras counts as seen.
+
+    Returns:
+        The frame's score.
+    """
     ids = true_ids(rows, cameras, particle_ids)
     used = ids >= 0
     first = np.where(used, ids, -1).max(axis=1)
@@ -93,8 +115,19 @@ class ImageScore:
 
 
 def score_image(found_uv: np.ndarray, true_uv: np.ndarray, tolerance_px: float = 0.5) -> ImageScore:
-    """Detections (N, 2) against true image centres (M, 2), one to one: the closest pairs within
-    ``tolerance_px`` first (a detection between two true images counts for one of them at most)."""
+    """Score detections against true image centres, one to one.
+
+    The closest pairs within ``tolerance_px`` are taken first (a detection between two true images counts
+    for one of them at most).
+
+    Args:
+        found_uv: Detections (N, 2), px.
+        true_uv: True image centres (M, 2), px.
+        tolerance_px: A detection within this distance of a true image finds it (px).
+
+    Returns:
+        The score.
+    """
     from scipy.spatial import cKDTree
 
     found_uv = np.asarray(found_uv, float).reshape(-1, 2)
@@ -121,10 +154,22 @@ def score_image(found_uv: np.ndarray, true_uv: np.ndarray, tolerance_px: float =
 
 def score_experiment(experiment, volume, calibration, tolerance_px: float = 0.5,
                      min_cameras: int = 3) -> tuple[ParticleScore | None, float]:
-    """Every frame of a simulated ``experiment`` (:class:`~ari_sfm.simulate.particles.ParticleExperiment`)
-    matched through ``calibration``: the summed found / ghost score, and the 3D RMS (mm) of the correctly
-    matched particles after a rigid alignment onto the true positions (NaN with fewer than 3): a calibration
-    right up to a rigid motion of the rig scores as right."""
+    """Match every frame of a simulated experiment through a calibration and score it.
+
+    The 3D error is taken after a rigid alignment onto the true positions, so that a calibration right up to
+    a rigid motion of the rig scores as right.
+
+    Args:
+        experiment: The simulated experiment (:class:`~ari_sfm.simulate.particles.ParticleExperiment`).
+        volume: The measured volume (:class:`~ari_sfm.particles.volume.Volume`).
+        calibration: The calibration to match through.
+        tolerance_px: Matching tolerance (px), as :func:`~ari_sfm.particles.match.match_frame`.
+        min_cameras: Cameras a particle needs, as :func:`~ari_sfm.particles.match.match_frame`.
+
+    Returns:
+        (the summed found / ghost score, or None without frames; the 3D RMS (mm) of the correctly matched
+        particles after the alignment, NaN with fewer than 3).
+    """
     from ..reconstruction.metrics import rigid_alignment
     from .match import match_frame
 

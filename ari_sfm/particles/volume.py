@@ -10,8 +10,10 @@ from ari_sfm.geometry import Pose
 
 @dataclass(frozen=True)
 class Volume:
-    """Box ``min_mm <= box_from_world(X) <= max_mm`` (mm). Infinite bounds are allowed
-    (a depth range alone: only z bounded)."""
+    """Box ``min_mm <= box_from_world(X) <= max_mm`` (mm).
+
+    Infinite bounds are allowed (a depth range alone: only z bounded).
+    """
 
     min_mm: np.ndarray  # (3,)
     max_mm: np.ndarray  # (3,)
@@ -19,7 +21,19 @@ class Volume:
 
     @staticmethod
     def depth_range(z_min_mm: float, z_max_mm: float, box_from_world: Pose | None = None) -> Volume:
-        """The slab ``z_min <= z <= z_max`` of a frame (default: the world, i.e. camera 0's frame)."""
+        """The slab ``z_min <= z <= z_max`` of a frame.
+
+        Args:
+            z_min_mm: Near bound (mm).
+            z_max_mm: Far bound (mm).
+            box_from_world: The slab's frame; None for the world (camera 0's frame).
+
+        Returns:
+            The volume, unbounded in x and y.
+
+        Raises:
+            ValueError: ``z_max_mm`` is not greater than ``z_min_mm``.
+        """
         if not z_max_mm > z_min_mm:
             raise ValueError(f"depth range must have max > min (got {z_min_mm}, {z_max_mm})")
         return Volume(np.array([-np.inf, -np.inf, z_min_mm]), np.array([np.inf, np.inf, z_max_mm]),
@@ -34,13 +48,29 @@ class Volume:
         return self.box_from_world.inverse().apply(c)
 
     def contains(self, X_world: np.ndarray, margin_mm: float = 0.0) -> np.ndarray:
-        """(N,) bool: points inside the box grown by ``margin_mm``."""
+        """Which points lie inside the box.
+
+        Args:
+            X_world: Points (N, 3), world frame, mm.
+            margin_mm: The box is grown by this on every side (mm).
+
+        Returns:
+            (N,) bool.
+        """
         Xb = self.box_from_world.apply(np.asarray(X_world, float).reshape(-1, 3))
         return np.all((Xb >= self.min_mm - margin_mm) & (Xb <= self.max_mm + margin_mm), axis=1)
 
     def clip_rays(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Ray parameters [s0, s1] (N,) where ``origin + s direction`` (world) is inside the box, s >= 0
-        (slab method); NaN for rays that miss it."""
+        """Where rays run inside the box (slab method).
+
+        Args:
+            origins: Ray origins (N, 3), world frame, mm.
+            directions: Ray directions (N, 3), world frame.
+
+        Returns:
+            (s0, s1), each (N,): ``origin + s direction`` is inside the box for s0 <= s <= s1, s >= 0;
+            NaN for rays that miss it.
+        """
         o = self.box_from_world.apply(origins)
         d = np.asarray(directions, float) @ self.box_from_world.R.T
         with np.errstate(divide="ignore", invalid="ignore"):

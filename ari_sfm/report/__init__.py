@@ -22,10 +22,10 @@ A module adds one with a single call, ``add_section(name, render, after=...)``.
 The dataset is found from, in order: the ``dataset`` argument, OUT/run.json
 (written by ``ari-sfm run``: ``{"format": "ari-sfm-run/1", "dataset":
 <absolute path>, ...}``), metrics.json's ``provenance.dataset.path``, then its
-``dataset`` if absolute (a relative one, written by older versions, was
-relative to a working folder nobody recorded: it is not guessed), then the rig file
-OUT/observations.json names (``calibrate`` records it when it detected the corners). Without it
-the report still has the calibration and, from OUT/observations.json, the residuals.
+``dataset`` if absolute (a relative one is not guessed: a warning asks for
+``--dataset``), then the rig file OUT/observations.json names (``calibrate``
+records it when it detected the corners). Without it the report still has
+the calibration and, from OUT/observations.json, the residuals.
 
 What does not belong together is refused or labelled: a dataset of another
 rig than calibration.json (other cameras, image sizes or window) is an error;
@@ -91,7 +91,15 @@ def _read_json(path: Path) -> dict:
 
 
 def find_dataset(out: Path, dataset: str | Path | None = None) -> Path | None:
-    """The dataset folder of an output folder (see the module docstring), or None."""
+    """The dataset folder of an output folder (the search order is in the module docstring).
+
+    Args:
+        out: The output folder.
+        dataset: The dataset given by the caller; when not None it is returned as is.
+
+    Returns:
+        The dataset folder, or None if none is found.
+    """
     from ..provenance import recorded_dataset_path
 
     if dataset is not None:
@@ -122,7 +130,19 @@ def find_dataset(out: Path, dataset: str | Path | None = None) -> Path | None:
 
 
 def load_inputs(out: str | Path, dataset: str | Path | None = None) -> ReportInputs:
-    """Load OUT's files for the report; a missing calibration.json or a bad file raise AriSfmError."""
+    """Load an output folder's files for the report.
+
+    Args:
+        out: The output folder (OUT).
+        dataset: The dataset folder; None to find it (:func:`find_dataset`).
+
+    Returns:
+        The inputs, with notes on what is missing or does not belong.
+
+    Raises:
+        AriSfmError: OUT is not a folder, calibration.json is missing, a file cannot be read, or the
+            dataset is of another rig or capture than calibration.json.
+    """
     from ..io import load_dataset, load_observations, load_points
 
     out = Path(out)
@@ -414,8 +434,15 @@ def _calibration_section(ctx: ReportContext) -> str:
 
 
 def stage_table(stages: Sequence[StageRecord]) -> tuple[list[str], list[list[Any]]]:
-    """(header, rows) of a calibration's stages: per stage its name, model, distortion, reprojection RMSE /
-    max / corner count, window distance (when any stage has one) and each camera's fx."""
+    """The table of a calibration's stages.
+
+    Args:
+        stages: The calibration's stage records.
+
+    Returns:
+        (header, rows): per stage its name, model, distortion, reprojection RMSE / max / corner count,
+        window distance (a column only when any stage has one) and each camera's fx.
+    """
     cameras = list(dict.fromkeys(n for st in stages for n in st.cameras))
     with_distance = any(st.distance_mm is not None for st in stages)
     header = ["stage", "model", "distortion", "RMSE (px)", "max (px)", "corners"]
@@ -497,7 +524,15 @@ def _expansion_section(ctx: ReportContext) -> str:
 
 
 def board_corners(calibration: Calibration, target: Target | None) -> np.ndarray:
-    """World coordinates (N, 3) of the target's points on every calibration board pose."""
+    """The target's points on every calibration board pose.
+
+    Args:
+        calibration: The calibration (its board poses, ``frames``).
+        target: The target, or None.
+
+    Returns:
+        World coordinates (N, 3), mm; empty (0, 3) without a target or board poses.
+    """
     if target is None or not calibration.frames:
         return np.zeros((0, 3))
     _, xyz = target.points_3d()
@@ -631,7 +666,13 @@ SECTIONS: list[tuple[str, Section]] = [
 
 
 def add_section(name: str, render: Section, after: str | None = None) -> None:
-    """Add a section to every report (at the end, or after the named one); a name already there is replaced."""
+    """Add a section to every report; a name already there is replaced in place.
+
+    Args:
+        name: The section's name in :data:`SECTIONS`.
+        render: The function of a :class:`ReportContext` returning the section's HTML ("" for nothing).
+        after: The name of the section to insert after; None to append at the end.
+    """
     names = [n for n, _ in SECTIONS]
     if name in names:
         SECTIONS[names.index(name)] = (name, render)
@@ -660,7 +701,18 @@ def render_html(inp: ReportInputs) -> str:
 
 
 def write_report(out: str | Path, dataset: str | Path | None = None) -> Path:
-    """Render OUT/report.html atomically; return its path."""
+    """Render OUT/report.html atomically.
+
+    Args:
+        out: The output folder (OUT).
+        dataset: The dataset folder; None to find it (:func:`find_dataset`).
+
+    Returns:
+        The path of report.html.
+
+    Raises:
+        AriSfmError: As :func:`load_inputs`.
+    """
     from ..io import write_text_atomic
 
     inputs = load_inputs(out, dataset)

@@ -59,7 +59,16 @@ def rms(r: np.ndarray) -> float:
 
 
 def region_grid(calibration: Calibration, residuals: Residuals, camera: str) -> RegionGrid:
-    """RMS and counts of a camera's residuals over a GRID_COLS x GRID_ROWS grid of its image."""
+    """RMS and counts of a camera's residuals over a GRID_COLS x GRID_ROWS grid of its image.
+
+    Args:
+        calibration: The calibration (the camera's image size).
+        residuals: (observation, residual (N, 2) px) pairs.
+        camera: The camera's name.
+
+    Returns:
+        The camera's grid of RMS residuals and counts.
+    """
     w, h = calibration.cameras[camera].image_size
     sums = np.zeros((GRID_ROWS, GRID_COLS))
     count = np.zeros((GRID_ROWS, GRID_COLS), int)
@@ -87,7 +96,16 @@ def frame_rmse(residuals: Residuals) -> dict[tuple[str, str, str], float]:
 
 
 def corner_depths(calibration: Calibration, residuals: Residuals, target: Target) -> list[np.ndarray]:
-    """Depth (mm, along the camera's optical axis) of every corner of each pair, NaN where its pose is unknown."""
+    """Depth of every corner of each (observation, residual) pair along its camera's optical axis.
+
+    Args:
+        calibration: The calibration (its board poses and cameras).
+        residuals: (observation, residual) pairs.
+        target: The target (its points on the board).
+
+    Returns:
+        One array (N,) of depths (mm) per pair; NaN where the board pose is unknown.
+    """
     ids_all, xyz_all = target.points_3d()
     lookup = {int(i): k for k, i in enumerate(ids_all)}
     out = []
@@ -102,7 +120,16 @@ def corner_depths(calibration: Calibration, residuals: Residuals, target: Target
 
 
 def point_depths(calibration: Calibration, points: Mapping[str, np.ndarray], camera: str) -> np.ndarray:
-    """Depths (mm) of world points along a camera's optical axis."""
+    """Depths of world points along a camera's optical axis.
+
+    Args:
+        calibration: The calibration.
+        points: World points by frame, each (N, 3), mm.
+        camera: The camera's name.
+
+    Returns:
+        Depths (M,), mm, of all the points.
+    """
     if not points:
         return np.zeros(0)
     xyz = np.concatenate([np.asarray(p, float).reshape(-1, 3) for p in points.values()])
@@ -110,7 +137,15 @@ def point_depths(calibration: Calibration, points: Mapping[str, np.ndarray], cam
 
 
 def region_name(row: int, col: int) -> str:
-    """'top left corner', 'right edge', 'centre', ... of a grid cell (the image cut in thirds each way)."""
+    """Name a grid cell's part of the image (the image cut in thirds each way).
+
+    Args:
+        row: The cell's row (0: top) of GRID_ROWS.
+        col: The cell's column (0: left) of GRID_COLS.
+
+    Returns:
+        'top left corner', 'right edge', 'centre', ...
+    """
     v = ("top", "", "bottom")[min(3 * row // GRID_ROWS, 2)]
     u = ("left", "", "right")[min(3 * col // GRID_COLS, 2)]
     if v and u:
@@ -120,7 +155,17 @@ def region_name(row: int, col: int) -> str:
 
 def recommendations(calibration: Calibration, residuals: Residuals, target: Target | None = None,
                     points: Mapping[str, np.ndarray] | None = None) -> list[str]:
-    """Plain-language advice drawn from the figures (see the module docstring for the thresholds)."""
+    """Plain-language advice drawn from the figures (thresholds: the module's constants).
+
+    Args:
+        calibration: The calibration.
+        residuals: (observation, residual) pairs.
+        target: The target, for the depth advice; None to skip it.
+        points: Reconstructed world points by frame, for the depth advice; None to skip it.
+
+    Returns:
+        The advice, one sentence each (empty when nothing stands out).
+    """
     out: list[str] = []
     cal = calibration
     for name in cal.cameras:

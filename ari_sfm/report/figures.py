@@ -68,8 +68,17 @@ def to_png(fig: Any) -> bytes:
 
 
 def panels(n: int, height_per_row: float, cols: int | None = None, **kw: Any) -> tuple[Any, list]:
-    """A full-width figure with n panels, 2 or 3 (or ``cols``) a row (one camera takes half the width),
-    constrained layout."""
+    """A full-width figure with panels, constrained layout.
+
+    Args:
+        n: Number of panels.
+        height_per_row: Height of a row of panels (inches).
+        cols: Panels a row; None for 2 or 3 (one camera takes half the width).
+        **kw: Passed to ``plt.subplots``.
+
+    Returns:
+        (figure, the n visible axes).
+    """
     cols = cols or min(max(n, 2), 3)
     rows = (n + cols - 1) // cols
     fig, axes = plt.subplots(rows, cols, figsize=(FIG_WIDTH_IN, height_per_row * rows), squeeze=False,
@@ -92,13 +101,29 @@ def _camera_residuals(residuals: Residuals, camera: str) -> tuple[np.ndarray, np
 
 
 def residual_scatter(calibration: Calibration, residuals: Residuals) -> bytes:
-    """PNG of :func:`draw_residual_scatter`."""
+    """PNG of :func:`draw_residual_scatter`.
+
+    Args:
+        calibration: The calibration.
+        residuals: (observation, residual (N, 2) px) pairs.
+
+    Returns:
+        The figure's PNG bytes.
+    """
     return to_png(draw_residual_scatter(calibration, residuals))
 
 
 @styled
 def draw_residual_scatter(calibration: Calibration, residuals: Residuals) -> Any:
-    """(du, dv) of every corner, one panel per camera on one shared range, coloured by set, RMSE circle."""
+    """(du, dv) of every corner, one panel per camera on one shared range, coloured by set, RMSE circle.
+
+    Args:
+        calibration: The calibration.
+        residuals: (observation, residual (N, 2) px) pairs.
+
+    Returns:
+        The matplotlib Figure.
+    """
     names = list(calibration.cameras)
     allr = np.concatenate([r for _, r in residuals]) if residuals else np.zeros((0, 2))
     lim = max(float(np.abs(allr).max()) * 1.08, 1e-3) if len(allr) else 1.0
@@ -129,13 +154,29 @@ def draw_residual_scatter(calibration: Calibration, residuals: Residuals) -> Any
 
 
 def residual_map(calibration: Calibration, residuals: Residuals) -> bytes:
-    """PNG of :func:`draw_residual_map`."""
+    """PNG of :func:`draw_residual_map`.
+
+    Args:
+        calibration: The calibration.
+        residuals: (observation, residual (N, 2) px) pairs.
+
+    Returns:
+        The figure's PNG bytes.
+    """
     return to_png(draw_residual_map(calibration, residuals))
 
 
 def map_magnification(calibration: Calibration, residuals: Residuals) -> float:
-    """How much :func:`draw_residual_map` lengthens the residual arrows (the same for every camera):
-    the 95th-percentile residual drawn as 8 % of the largest image side, rounded to 1, 2 or 5 x 10^k."""
+    """How much :func:`draw_residual_map` lengthens the residual arrows (the same for every camera).
+
+    Args:
+        calibration: The calibration.
+        residuals: (observation, residual (N, 2) px) pairs.
+
+    Returns:
+        The magnification: the 95th-percentile residual drawn as 8 % of the largest image side, rounded
+        down to 1, 2 or 5 x 10^k (1 without residuals).
+    """
     allr = np.concatenate([r for _, r in residuals]) if residuals else np.zeros((0, 2))
     if not len(allr):
         return 1.0
@@ -153,8 +194,18 @@ def _nice(x: float) -> float:
 
 @styled
 def draw_residual_map(calibration: Calibration, residuals: Residuals) -> Any:
-    """Each corner's residual as an arrow at its pixel, magnified the same for every camera, coloured by
-    its length on one shared colour scale (one colour bar)."""
+    """Each corner's residual as an arrow at its pixel, magnified the same for every camera.
+
+    The arrows are coloured by their length on one shared colour scale (one colour bar); the
+    magnification is :func:`map_magnification`.
+
+    Args:
+        calibration: The calibration.
+        residuals: (observation, residual (N, 2) px) pairs.
+
+    Returns:
+        The matplotlib Figure.
+    """
     names = list(calibration.cameras)
     scale = map_magnification(calibration, residuals)
     mags = [np.linalg.norm(r, axis=1) for _, r in residuals]
@@ -191,15 +242,33 @@ def draw_residual_map(calibration: Calibration, residuals: Residuals) -> Any:
 
 
 def residual_regions(calibration: Calibration, residuals: Residuals) -> bytes:
-    """PNG of :func:`draw_residual_regions`."""
+    """PNG of :func:`draw_residual_regions`.
+
+    Args:
+        calibration: The calibration.
+        residuals: (observation, residual (N, 2) px) pairs.
+
+    Returns:
+        The figure's PNG bytes.
+    """
     return to_png(draw_residual_regions(calibration, residuals))
 
 
 @styled
 def draw_residual_regions(calibration: Calibration, residuals: Residuals) -> Any:
-    """RMS residual per cell of a GRID_COLS x GRID_ROWS grid over each image, one colour scale for all
-    cameras (its top: twice the overall RMS, or the worst cell of >= 5 corners if higher); cells without a
-    corner hatched grey (coverage: the share of cells with a calibration corner, in each title)."""
+    """RMS residual per cell of a GRID_COLS x GRID_ROWS grid over each image.
+
+    One colour scale for all cameras (its top: twice the overall RMS, or the worst cell of >= 5 corners
+    if higher); cells without a corner hatched grey (coverage: the share of cells with a calibration
+    corner, in each title).
+
+    Args:
+        calibration: The calibration.
+        residuals: (observation, residual (N, 2) px) pairs.
+
+    Returns:
+        The matplotlib Figure.
+    """
     names = list(calibration.cameras)
     grids = [region_grid(calibration, residuals, n) for n in names]
     judged = np.concatenate([g.rms_px[g.count >= 5] for g in grids])  # a cell of 1-4 corners is noise
@@ -224,14 +293,32 @@ def draw_residual_regions(calibration: Calibration, residuals: Residuals) -> Any
 
 
 def residual_by_frame(calibration: Calibration, residuals: Residuals) -> bytes:
-    """PNG of :func:`draw_residual_by_frame`."""
+    """PNG of :func:`draw_residual_by_frame`.
+
+    Args:
+        calibration: The calibration.
+        residuals: (observation, residual (N, 2) px) pairs.
+
+    Returns:
+        The figure's PNG bytes.
+    """
     return to_png(draw_residual_by_frame(calibration, residuals))
 
 
 @styled
 def draw_residual_by_frame(calibration: Calibration, residuals: Residuals) -> Any:
-    """RMS residual of every image (camera x frame), frames in the order observed, one marker per camera,
-    coloured by set; dashed: the median image."""
+    """RMS residual of every image (camera x frame).
+
+    Frames in the order observed (calibration, then stacking), one marker per camera, coloured by set;
+    dashed: the median image.
+
+    Args:
+        calibration: The calibration.
+        residuals: (observation, residual (N, 2) px) pairs.
+
+    Returns:
+        The matplotlib Figure.
+    """
     per = frame_rmse(residuals)
     order = list(SET_COLORS)
     frames = sorted(dict.fromkeys((s, f) for s, f, _ in per), key=lambda sf: order.index(sf[0]) if sf[0] in order
@@ -265,15 +352,37 @@ def _headroom(values) -> float | None:
 
 def residual_by_depth(calibration: Calibration, residuals: Residuals, target: Target,
                       points: Mapping[str, np.ndarray] | None = None) -> bytes:
-    """PNG of :func:`draw_residual_by_depth`."""
+    """PNG of :func:`draw_residual_by_depth`.
+
+    Args:
+        calibration: The calibration.
+        residuals: (observation, residual (N, 2) px) pairs.
+        target: The target (its points on the board).
+        points: Reconstructed world points by frame, each (N, 3), mm; None for none.
+
+    Returns:
+        The figure's PNG bytes.
+    """
     return to_png(draw_residual_by_depth(calibration, residuals, target, points))
 
 
 @styled
 def draw_residual_by_depth(calibration: Calibration, residuals: Residuals, target: Target,
                            points: Mapping[str, np.ndarray] | None = None, bins: int = 10) -> Any:
-    """Corners per depth bin (top) and their RMS residual (bottom), per camera; shaded: the depths of
-    the reconstructed points, where the calibration is used."""
+    """Corners per depth bin (top) and their RMS residual (bottom), per camera.
+
+    Shaded: the depths of the reconstructed points, where the calibration is used.
+
+    Args:
+        calibration: The calibration.
+        residuals: (observation, residual (N, 2) px) pairs.
+        target: The target (its points on the board).
+        points: Reconstructed world points by frame, each (N, 3), mm; None for none.
+        bins: Number of depth bins.
+
+    Returns:
+        The matplotlib Figure.
+    """
     depths = corner_depths(calibration, residuals, target)
     allz = np.concatenate(depths) if depths else np.zeros(0)
     allz = allz[np.isfinite(allz)]
@@ -314,13 +423,29 @@ def draw_residual_by_depth(calibration: Calibration, residuals: Residuals, targe
 
 
 def expansion_centre_figure(calibration: Calibration, stacking: Mapping[str, Sequence[Observation]]) -> bytes:
-    """PNG of :func:`draw_expansion_centre`."""
+    """PNG of :func:`draw_expansion_centre`.
+
+    Args:
+        calibration: The calibration.
+        stacking: The stacking observations by camera.
+
+    Returns:
+        The figure's PNG bytes.
+    """
     return to_png(draw_expansion_centre(calibration, stacking))
 
 
 @styled
 def draw_expansion_centre(calibration: Calibration, stacking: Mapping[str, Sequence[Observation]]) -> Any:
-    """Fig. 4: corner tracks under stacking (points), TLS lines, measured and calibrated expansion centres."""
+    """Fig. 4: corner tracks under stacking (points), TLS lines, measured and calibrated expansion centres.
+
+    Args:
+        calibration: The calibration.
+        stacking: The stacking observations by camera.
+
+    Returns:
+        The matplotlib Figure.
+    """
     from ..init.expansion_center import fit_lines, intersect_lines, trajectories
 
     names = [n for n in calibration.cameras if stacking.get(n)]
@@ -391,13 +516,29 @@ def _plane_outline(xyz: np.ndarray, normal: np.ndarray, point: np.ndarray) -> np
 
 
 def point_cloud_figure(frames: Mapping[str, np.ndarray], planes: Mapping[str, Mapping[str, Any]]) -> bytes:
-    """PNG of :func:`draw_point_cloud`."""
+    """PNG of :func:`draw_point_cloud`.
+
+    Args:
+        frames: Reconstructed world points by frame, each (N, 3), mm.
+        planes: Fitted planes by frame (``normal`` and ``point``; metrics.json's ``plane``).
+
+    Returns:
+        The figure's PNG bytes.
+    """
     return to_png(draw_point_cloud(frames, planes))
 
 
 @styled
 def draw_point_cloud(frames: Mapping[str, np.ndarray], planes: Mapping[str, Mapping[str, Any]]) -> Any:
-    """Fig. 13a: representative reconstructed frames (points and fitted planes), world frame, mm."""
+    """Fig. 13a: representative reconstructed frames (points and fitted planes), world frame, mm.
+
+    Args:
+        frames: Reconstructed world points by frame, each (N, 3), mm.
+        planes: Fitted planes by frame (``normal`` and ``point``; metrics.json's ``plane``).
+
+    Returns:
+        The matplotlib Figure.
+    """
     fig = plt.figure(figsize=(FIG_WIDTH_IN, 4.4), layout="constrained")
     ax = fig.add_subplot(111, projection="3d")
     ax.set_zlabel("z (mm)", labelpad=10)
@@ -424,14 +565,32 @@ def draw_point_cloud(frames: Mapping[str, np.ndarray], planes: Mapping[str, Mapp
 
 
 def rig_figure(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> bytes:
-    """PNG of :func:`draw_rig`."""
+    """PNG of :func:`draw_rig`.
+
+    Args:
+        calibration: The calibration.
+        frames: Reconstructed world points by frame, each (N, 3), mm.
+
+    Returns:
+        The figure's PNG bytes.
+    """
     return to_png(draw_rig(calibration, frames))
 
 
 def window_depth(calibration: Calibration, points: np.ndarray, window=None) -> tuple[float, bool]:
-    """(a window's near face as the plane offset ``normal . X`` in the world, schematic?) of ``window``
-    (default the first). Where the calibration does not observe the distance (in air it changes no pixel)
-    it is where an exact model was evaluated (fixed_distance_mm), else halfway from its cameras to the points."""
+    """Where a window's near face is drawn.
+
+    Where the calibration does not observe the distance (in air it changes no pixel) it is where an exact
+    model was evaluated (fixed_distance_mm), else halfway from its first camera to the points.
+
+    Args:
+        calibration: The calibration.
+        points: World points (N, 3), mm.
+        window: The window; None for the first.
+
+    Returns:
+        (the near face as the plane offset ``normal . X`` in the world (mm), whether it is schematic).
+    """
     w = calibration.window_list()[0] if window is None else window
     n = w.normal_world
     plane = w.plane_mm(calibration)
@@ -445,8 +604,17 @@ def window_depth(calibration: Calibration, points: np.ndarray, window=None) -> t
 @styled
 def draw_rig(calibration: Calibration, frames: Mapping[str, np.ndarray]) -> Any:
     """Fig. 14 as two true-scale views on one depth axis: from above (z, x) and from the side (z, y, down).
+
     Cameras (centre and optical axis), the window's section through the rig's middle (near and far faces;
-    dashed where its depth is schematic, see :func:`window_depth`) and the points coloured by frame."""
+    dashed where its depth is schematic, see :func:`window_depth`) and the points coloured by frame.
+
+    Args:
+        calibration: The calibration.
+        frames: Reconstructed world points by frame, each (N, 3), mm.
+
+    Returns:
+        The matplotlib Figure.
+    """
     names = list(frames)
     allxyz = np.concatenate([np.asarray(frames[f], float) for f in names]) if names else np.zeros((0, 3))
     centres = {n: c.cam_from_world.inverse().t for n, c in calibration.cameras.items()}

@@ -1,7 +1,7 @@
 """The report's interactive 3D view: the rig, its window, sample rays through it and the points (plotly).
 
 :func:`rig_view_html` returns an HTML fragment holding plotly.js itself
-(``include_plotlyjs=True``: about 4.6 MB, once per page) so the report opens
+(``include_plotlyjs=True``, once per page) so the report opens
 offline; the figure is WebGL (``Scatter3d``) and can be turned, zoomed and
 hovered. World frame = camera 0's (x right, y down, z along its optical axis),
 mm.
@@ -60,8 +60,18 @@ def _tracing_calibration(calibration: Calibration, points: np.ndarray) -> tuple[
 
 def sample_rays(calibration: Calibration, camera: str, end_depth_mm: float,
                 grid: tuple[int, int] = RAY_GRID) -> np.ndarray:
-    """Polylines (P, 4, 3), world frame: camera centre, near face, far face, medium-side point at
-    ``end_depth_mm`` along the camera's optical axis (exact model; straight rays without a window)."""
+    """Sample rays of one camera through its window (exact model; straight rays without a window).
+
+    Args:
+        calibration: The calibration (with a window distance, as :func:`_tracing_calibration` makes it).
+        camera: The camera's name.
+        end_depth_mm: Depth along the camera's optical axis (mm) where the rays end.
+        grid: Pixels per camera, (columns, rows), inset from the image border by RAY_INSET.
+
+    Returns:
+        Polylines (P, 4, 3), world frame, mm: camera centre, near face, far face, medium-side point at
+        ``end_depth_mm``; rays that are not finite are left out.
+    """
     cam = calibration.cameras[camera]
     w, h = cam.image_size
     u, v = np.meshgrid(np.linspace(RAY_INSET * w, (1 - RAY_INSET) * w, grid[0]),
@@ -107,8 +117,17 @@ def _window_box(window, d: float, extent: np.ndarray) -> tuple[np.ndarray, np.nd
 
 def rig_view_figure(calibration: Calibration, points: Mapping[str, np.ndarray],
                     boards: np.ndarray | None = None) -> Any:
-    """The plotly Figure: cameras (centre, optical axis, name), window, sample rays, points by frame and
-    (when given) the calibration boards' corners."""
+    """The 3D view as a plotly Figure.
+
+    Args:
+        calibration: The calibration.
+        points: Reconstructed world points by frame, each (N, 3), mm.
+        boards: The calibration boards' corners (M, 3), world frame, mm; None for none.
+
+    Returns:
+        A ``plotly.graph_objects.Figure``: cameras (centre, optical axis, name), windows, sample rays,
+        points by frame and the boards' corners.
+    """
     import plotly.graph_objects as go
 
     names = list(points)
@@ -177,7 +196,17 @@ def rig_view_figure(calibration: Calibration, points: Mapping[str, np.ndarray],
 
 def rig_view_html(calibration: Calibration, points: Mapping[str, np.ndarray],
                   boards: np.ndarray | None = None, include_plotlyjs: bool = True) -> str:
-    """The view as an HTML fragment (a div and its scripts; plotly.js inlined unless told otherwise)."""
+    """The 3D view as an HTML fragment.
+
+    Args:
+        calibration: The calibration.
+        points: Reconstructed world points by frame, each (N, 3), mm.
+        boards: The calibration boards' corners (M, 3), world frame, mm; None for none.
+        include_plotlyjs: Passed to plotly's ``to_html`` (True: plotly.js inlined).
+
+    Returns:
+        A div and its scripts (including the script that fits the view to the printed page).
+    """
     fig = rig_view_figure(calibration, points, boards)
     return fig.to_html(full_html=False, include_plotlyjs=include_plotlyjs, div_id="rig-3d",
                        config={"displaylogo": False, "responsive": True}) + PRINT_FIT_SCRIPT
