@@ -73,6 +73,11 @@ class ExtraFactors:
                 v.insert(key, np.array([float(offset)]))
         return v
 
+    @property
+    def linearized_error_is_error(self) -> bool:
+        """A user factor's robust noise model makes the linearised error differ from the error."""
+        return not self.factors
+
     def error(self, x: Variables) -> float:
         if not self.factors:
             return 0.0

@@ -48,6 +48,7 @@ from ..models.ari import AriJacobians, ari_project, check_window
 from ..models.exact import ExactJacobians, exact_project
 from ..models.pinhole import Projection
 from ..records import Observation
+from ..solver.bundle import BundleAdjustment
 from ..solver.levenberg_marquardt import LMParams, LMReport, NonFiniteJacobian, levenberg_marquardt
 from ..solver.schur import NormalEquations, model_decrease, solve_damped
 from . import keys as K_
@@ -150,6 +151,25 @@ def _variables_of(rg: GraphLike) -> Variables:
                      R_wc, t_wc, tuple(v.atUnit3(K_.window_normal(w)) for w in range(W)), R_wt, t_wt, distances)
 
 
+class _RigViews:
+    """A VectorizedProblem's views as the observation block of its :class:`~ari_sfm.solver.bundle.BundleAdjustment`."""
+
+    linearized_error_is_error = True
+    linearize_trials = True
+
+    def __init__(self, problem: VectorizedProblem) -> None:
+        self.problem = problem
+
+    def error(self, x: Variables) -> float:
+        return self.problem.views_error(x)
+
+    def linearize(self, x: Variables) -> NormalEquations:
+        return self.problem.linearize_views(x)
+
+    def retract(self, x: Variables, step: tuple[np.ndarray, np.ndarray]) -> Variables:
+        return self.problem.retract(x, step)
+
+
 class VectorizedProblem:
     """RigGraph's problem packed into flat arrays; the :class:`~ari_sfm.solver.levenberg_marquardt.LMProblem`
     of the numpy backend (linearize, solve, model_decrease, retract, error).
@@ -199,6 +219,8 @@ class VectorizedProblem:
         self._transforms_cache: tuple[Variables, _Transforms] | None = None
         self._pack(views)
         self._extra = ExtraFactors(self, extra_factors)
+        # the one bundle-adjustment problem: the views (target frames eliminated), the user factors a term
+        self.adjustment = BundleAdjustment(_RigViews(self), [self._extra])
 
     # ------------------------------------------------------------------ from a graph
     @staticmethod
@@ -418,8 +440,25 @@ class VectorizedProblem:
         return out
 
     def error(self, x: Variables | None = None) -> float:
-        """GTSAM's graph error at x (default: the current values): 0.5 * sum of whitened squared residuals."""
-        x = self.x if x is None else x
+        """GTSAM's graph error at x (default: the current values): 0.5 * sum of whitened squared residuals.
+
+        Args:
+            x: The values (default: the current ones).
+
+        Returns:
+            The views' error plus the user factors' (:attr:`adjustment`).
+        """
+        return self.adjustment.error(self.x if x is None else x)
+
+    def views_error(self, x: Variables) -> float:
+        """The views' share of the error at ``x`` (the observation block's).
+
+        Args:
+            x: The values.
+
+        Returns:
+            0.5 * the sum of the views' whitened squared residuals (Huber: the loss).
+        """
         tr = self._transforms(x)
         total = 0.0
         for c in range(len(self.camera_names)):
@@ -427,7 +466,7 @@ class VectorizedProblem:
                 continue
             rw = self._camera_residuals(x, tr, c, self.huber_px, whiten=True)
             total += 0.5 * float(np.einsum("ij,ij->", rw, rw))
-        return total + self._extra.error(x)
+        return total
 
     def _camera_system(self, x: Variables, tr: _Transforms, c: int) -> _CameraSystem:
         """Camera c's share of the whitened normal equations at x (in its own arrays: threads may form
@@ -447,7 +486,18 @@ class VectorizedProblem:
         return _CameraSystem(err2, excess, arrays, bad)
 
     def linearize(self, x: Variables) -> NormalEquations:
-        """The whitened normal equations at x (views and user factors): per camera, the model's derivatives
+        """The whitened normal equations at x: the views' and the user factors' (:attr:`adjustment`).
+
+        Args:
+            x: The linearisation point.
+
+        Returns:
+            The system.
+        """
+        return self.adjustment.linearize(x)
+
+    def linearize_views(self, x: Variables) -> NormalEquations:
+        """The views' whitened normal equations at x (the observation block's): per camera, the model's derivatives
         chained to the tangent spaces and each view's A^T A summed in one compiled pass
         (:func:`~ari_sfm.factors.view_kernels.accumulate_views`; two cameras at once on two threads from
         :data:`PARALLEL_MIN_CORNERS` corners), then the cameras added to the system in their order
@@ -472,9 +522,7 @@ class VectorizedProblem:
                                         "(a corner behind the window at the linearisation point)")
             vs, ve = int(self.camera_views[c]), int(self.camera_views[c + 1])
             add_camera(*cs.arrays, self.view_frame[vs:ve], self.camera_row_cols[c], V, g_f, W, U, g_g)
-        system = NormalEquations(V, g_f, W, U, g_g, 0.5 * err2 + err_excess)
-        self._extra.add_to(system, x)
-        return system
+        return NormalEquations(V, g_f, W, U, g_g, 0.5 * err2 + err_excess)
 
     # ------------------------------------------------------------------ the LMProblem interface
     linearize_trials = True  # a linearisation costs ~2 error evaluations: LM linearises its trials
@@ -482,7 +530,7 @@ class VectorizedProblem:
     @property
     def linearized_error_is_error(self) -> bool:
         """The linearisation's 0.5 r^T r is the error unless user factors (robust noise models) join."""
-        return not self._extra.factors
+        return self.adjustment.linearized_error_is_error
 
     @staticmethod
     def solve(sys: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray] | None:

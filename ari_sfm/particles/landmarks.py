@@ -31,7 +31,7 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 
@@ -40,6 +40,7 @@ from ..errors import AriSfmError
 from ..geometry import Pose, rotation_angle_deg
 from ..models import PinholeModel
 from ..models.pinhole import PARAM_NAMES
+from ..solver.bundle import Rows, RowTerm
 from .disparity import ParticleSet
 from .selfcal_report import Adjustment, CameraSigma
 
@@ -361,38 +362,80 @@ def whitening_of(covariance: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- the solver
 
 
-def _solver_class():
-    """refine-colmap's Solver plus the gauge, scale and intrinsics prior rows."""
+class GaugeTerm(RowTerm):
+    """The gauge and scale rows (:meth:`Gauge.rows`) as a term of the bundle adjustment.
+
+    Args:
+        gauge: The gauge.
+        layout: The points problem's reduced layout.
+    """
+
+    def __init__(self, gauge: Gauge, layout: Any) -> None:
+        self.gauge = gauge
+        self.layout = layout
+
+    def rows(self, x: Any) -> Rows:
+        """The gauge's whitened rows, dense over the reduced columns.
+
+        Args:
+            x: The points problem's state.
+
+        Returns:
+            The rows.
+        """
+        e, J = self.gauge.rows(x, self.layout)
+        return Rows(e, J, np.arange(J.shape[1]))
+
+    def columns(self) -> np.ndarray:
+        """The frames' and sensors' columns (the rows depend on the camera poses alone)."""
+        cols = np.concatenate([self.layout.frames.ravel(), self.layout.sensors.ravel()])
+        return cols[cols >= 0]
+
+
+class IntrinsicsPriorTerm(RowTerm):
+    """The start's intrinsics as a prior (:meth:`IntrinsicsPrior.rows`), weighed against ``noise_px``.
+
+    Args:
+        prior: The prior.
+        layout: The points problem's reduced layout.
+        noise_px: The pixel noise the rows are whitened against.
+    """
+
+    def __init__(self, prior: IntrinsicsPrior, layout: Any, noise_px: float) -> None:
+        self.prior = prior
+        self.layout = layout
+        self.noise_px = noise_px
+
+    def rows(self, x: Any) -> Rows:
+        """The prior's whitened rows on the free intrinsics that have a prior.
+
+        Args:
+            x: The points problem's state.
+
+        Returns:
+            The rows.
+        """
+        e, J, cols = self.prior.rows(x, self.layout, self.noise_px)
+        return Rows(e, J, cols)
+
+    def columns(self) -> np.ndarray:
+        """The columns of the free intrinsics with a finite sigma."""
+        return np.array([col for c, ix in enumerate(self.layout.intrinsics) for j, col in enumerate(ix)
+                         if col >= 0 and math.isfinite(self.prior.sigmas[c, j])], dtype=int)
+
+
+def _solver(problem: Any, huber_px: float | None, gauge: Gauge, prior: IntrinsicsPrior, noise_px: float) -> Any:
+    """Self-calibration's bundle adjustment: refine-colmap's points problem, the window held, with the gauge
+    and the intrinsics prior as terms (Marquardt's damping from the particles alone)."""
     from ..colmap.refine.solver import Solver
 
-    class SelfCalSolver(Solver):
-        def __init__(self, problem, huber_px, gauge: Gauge, prior: IntrinsicsPrior, noise_px: float) -> None:
-            super().__init__(problem, huber_px)
-            self.gauge, self.intrinsics_prior, self.noise_px = gauge, prior, noise_px
+    terms = [GaugeTerm(gauge, problem.layout), IntrinsicsPriorTerm(prior, problem.layout, noise_px)]
+    return Solver(problem, huber_px, terms=terms, damp_observations_only=True)
 
-        def _extra_cost(self, state) -> float:
-            e_g, _ = self.gauge.rows(state, self.problem.layout)
-            e_p, _, _ = self.intrinsics_prior.rows(state, self.problem.layout, self.noise_px)
-            return 0.5 * float(e_g @ e_g + e_p @ e_p)
 
-        def cost(self, state) -> float:
-            return super().cost(state) + self._extra_cost(state)
-
-        error = cost
-
-        def linearize(self, state):
-            ne = super().linearize(state)
-            ne.damping = np.diag(ne.U).copy()  # Marquardt's scales from the images (the stiff rows are constraints)
-            e_g, J_g = self.gauge.rows(state, self.problem.layout)
-            ne.U += J_g.T @ J_g
-            ne.g_global += J_g.T @ e_g
-            e_p, J_p, cols = self.intrinsics_prior.rows(state, self.problem.layout, self.noise_px)
-            ne.U[np.ix_(cols, cols)] += J_p.T @ J_p
-            ne.g_global[cols] += J_p.T @ e_p
-            ne.error += 0.5 * float(e_g @ e_g + e_p @ e_p)
-            return ne
-
-    return SelfCalSolver
+def _prior_term(solver: Any) -> IntrinsicsPriorTerm:
+    """The solver's intrinsics prior term."""
+    return next(t for t in solver.row_terms if isinstance(t, IntrinsicsPriorTerm))
 
 
 @dataclass(frozen=True)
@@ -427,7 +470,7 @@ def covariance(solver, state, names: Sequence[str], system=None) -> Covariance:
         intr = {}
         for j, col in enumerate(lay.intrinsics[c]):
             if col >= 0:
-                intr[PARAM_NAMES[solver.intrinsics_prior.free[j]]] = math.sqrt(max(cov[col, col], 0.0))
+                intr[PARAM_NAMES[_prior_term(solver).prior.free[j]]] = math.sqrt(max(cov[col, col], 0.0))
         rel_r = rel_t = None
         if c > 0:
             R_rel = R[c] @ R[0].T
@@ -452,95 +495,11 @@ def fitted_noise(solver, state) -> float:
 # --------------------------------------------------------------------------- GTSAM
 
 
-def _gtsam_refinement(problem, huber_px: float | None, gauge: Gauge, prior: IntrinsicsPrior, noise_px: float):
-    """refine-colmap's GTSAM graph plus the gauge, scale and intrinsics prior rows as CustomFactors."""
-    import gtsam
-
+def _gtsam_refinement(solver: Any) -> Any:
+    """The same adjustment as a GTSAM graph: refine-colmap's, the solver's terms as factors."""
     from ..colmap.refine import gtsam_graph as gg
-    from ..factors import keys as K_
 
-    lay = problem.layout
-    C = len(problem.model.camera_ids)
-
-    class SelfCalRefinement(gg.GtsamRefinement):
-        def values(self, st):
-            v = super().values(st)
-            for c in range(C):  # held intrinsics: no variable
-                if not problem.model.param_map[c].any():
-                    v.erase(K_.K(c))
-            return v
-
-        def state(self, values, template):
-            v = gtsam.Values(values)
-            for c in range(C):
-                if not problem.model.param_map[c].any():
-                    v.insert(K_.K(c), np.zeros(0))
-            return super().state(v, template)
-
-        def optimize(self, st, max_iterations: int = 100):
-            params = gtsam.LevenbergMarquardtParams()
-            params.setMaxIterations(max_iterations)
-            params.setRelativeErrorTol(1e-12)
-            params.setAbsoluteErrorTol(1e-12)
-            params.setDiagonalDamping(True)
-            opt = gtsam.LevenbergMarquardtOptimizer(self.graph(st), self.values(st), params)
-            values = opt.optimize()
-            return self.state(values, st), int(opt.iterations())
-
-        def graph(self, st):
-            g = super().graph(st)
-            pose_keys = [K_.rig_frame(0)] + [K_.sensor(c) for c in range(C) if lay.sensors[c, 0] >= 0]
-            pose_cols = [lay.frames[0]] + [lay.sensors[c] for c in range(C) if lay.sensors[c, 0] >= 0]
-            template = st
-
-            def from_values(values):
-                frame = values.atPose3(pose_keys[0])
-                sensors = list(template.sensor_from_rig)
-                k = 1
-                for c in range(C):
-                    if lay.sensors[c, 0] >= 0:
-                        p = values.atPose3(pose_keys[k])
-                        sensors[c] = Pose(p.rotation().matrix(), np.asarray(p.translation(), float))
-                        k += 1
-                return replace(template, rig_from_world=(Pose(frame.rotation().matrix(),
-                                                              np.asarray(frame.translation(), float)),),
-                               sensor_from_rig=tuple(sensors))
-
-            def gauge_error(this, values, H):
-                s = from_values(values)
-                e, J = gauge.rows(s, lay)
-                if H is not None:  # GTSAM's Pose3 moves as T Exp([w, v]): w_left = R w, v_left = R v
-                    for k, (key, cols) in enumerate(zip(pose_keys, pose_cols)):
-                        Rk = values.atPose3(key).rotation().matrix()
-                        H[k] = np.hstack([J[:, cols[:3]] @ Rk, J[:, cols[3:]] @ Rk])
-                return e
-
-            rows = len(gauge.rows(template, lay)[0])
-            g.add(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows), pose_keys, gauge_error))
-            # the intrinsics prior: one factor on every camera's intrinsics with a prior (its rows dense with
-            # a joint covariance), the same whitened rows as the numpy backend's
-            _, Jp, _ = prior.rows(template, lay, noise_px)
-            with_prior = [(c, [j for j, col in enumerate(ix) if col >= 0 and math.isfinite(prior.sigmas[c, j])])
-                          for c, ix in enumerate(lay.intrinsics)]
-            with_prior = [(c, js) for c, js in with_prior if js]
-            if with_prior:
-                keys = [K_.K(c) for c, _ in with_prior]
-                p0 = np.concatenate([prior.values[c, js] for c, js in with_prior])
-                starts = np.cumsum([0] + [len(js) for _, js in with_prior])
-
-                def prior_error(this, values, H):
-                    p = np.concatenate([values.atVector(k)[js] for k, (_, js) in zip(keys, with_prior)])
-                    if H is not None:
-                        for m, (c, js) in enumerate(with_prior):
-                            block = np.zeros((Jp.shape[0], len(lay.intrinsics[c])))
-                            block[:, js] = Jp[:, starts[m]:starts[m + 1]]
-                            H[m] = block
-                    return Jp @ (p - p0)
-
-                g.add(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(Jp.shape[0]), keys, prior_error))
-            return g
-
-    return SelfCalRefinement(problem, huber_px)
+    return gg.GtsamRefinement(solver.problem, solver.huber_px, terms=solver.row_terms, diagonal_damping=True)
 
 
 # --------------------------------------------------------------------------- the adjustment
@@ -580,7 +539,7 @@ def refine_with_landmarks(calibration: Calibration, particles: ParticleSet, gaug
                                 interfaces=[w.interface for w in windows], hold_window=True,
                                 held_frames=np.zeros(0, int), hold_intrinsics=not prior.free)
     state = State(model.colmap_params, model.rig_from_world, model.sensor_from_rig, normals, planes, model.xyz.copy())
-    solver = _solver_class()(problem, huber_px, gauge, prior, noise_px)
+    solver = _solver(problem, huber_px, gauge, prior, noise_px)
     cost0 = solver.cost(state)
     final, iterations, stop, system = state, 0, "converged", None
     for _ in range(3):  # weigh the priors against the fitted noise (one refit at most, normally)
@@ -590,22 +549,22 @@ def refine_with_landmarks(calibration: Calibration, particles: ParticleSet, gaug
             # stop when a step lowers chi^2 (cost / noise^2) by less than CHI2_STOP: the rest is a crawl along
             # the weakly determined directions (the rig's tilt to the window, a principal point against a
             # rotation) by far less than their sigma
-            stop_cost = 0.5 * CHI2_STOP * solver.noise_px ** 2
+            stop_cost = 0.5 * CHI2_STOP * _prior_term(solver).noise_px ** 2
             res = levenberg_marquardt(solver, final, max_iterations, 0.0,
                                       LMParams(lambda_initial=LAMBDA_INITIAL, absolute_tolerance=stop_cost))
             final, system = res.x, res.system_at_x
             iterations += res.report.iterations
             stop = res.report.stop
         else:
-            refinement = _gtsam_refinement(problem, huber_px, gauge, prior, solver.noise_px)
+            refinement = _gtsam_refinement(solver)
             final, its = refinement.optimize(final, max_iterations)
             iterations += its
             stop = "max_iterations" if its >= max_iterations else "converged"
             system = None
         s0 = fitted_noise(solver, final)
-        if not (math.isfinite(s0) and abs(s0 / solver.noise_px - 1.0) > NOISE_REFIT and prior.free):
+        if not (math.isfinite(s0) and abs(s0 / _prior_term(solver).noise_px - 1.0) > NOISE_REFIT and prior.free):
             break
-        solver = _solver_class()(problem, huber_px, gauge, prior, s0)
+        solver = _solver(problem, huber_px, gauge, prior, s0)
         system = None
     cov = covariance(solver, final, names, system)
     R, t = final.cam_from_world(model)
@@ -620,8 +579,9 @@ def refine_with_landmarks(calibration: Calibration, particles: ParticleSet, gaug
     r = problem.residuals(final)
     e = np.linalg.norm(r, axis=1)
     centres = np.array([Pose(R[c], t[c]).inverse().t for c in range(len(names))])
+    noise_px = _prior_term(solver).noise_px
     adjustment = Adjustment(int(len(particles.xyz)), int(len(e)), int(iterations), stop, float(cost0),
-                            float(solver.cost(final)), float(np.sqrt(np.mean(e ** 2))), float(solver.noise_px),
+                            float(solver.cost(final)), float(np.sqrt(np.mean(e ** 2))), float(noise_px),
                             gauge.scale_sum_mm, pairwise_sum_mm(centres),
                             {n: rotation_angle_deg(calibration.cameras[n].cam_from_world.R, R[c])
                              for c, n in enumerate(names)}, time.perf_counter() - t0)

@@ -24,15 +24,21 @@ import numpy as np
 from ari_sfm.factors import keys as K_
 from ari_sfm.factors.robust import huber_view_residual
 from ari_sfm.geometry import Pose
+from ari_sfm.solver.bundle import RowTerm
 
 from .plane import WindowPrior
 from .problem import RefractiveProblem, State
 from .scale_bar import ScaleBar
 from .settings import HUBER_PX
+from .terms import ScaleBarTerm, WindowPriorTerm
+
+KEY_OF = {"f": K_.rig_frame, "s": K_.sensor, "k": K_.K, "n": K_.window_normal, "d": K_.window_distance,
+          "p": K_.point}  # a variable kind's key
 
 
-def _column_owners(problem: RefractiveProblem) -> dict[int, tuple[str, int, int]]:
-    """Reduced column -> (kind, variable index, column within the variable)."""
+def _column_owners(problem: RefractiveProblem, bar: ScaleBar | None = None) -> dict[int, tuple[str, int, int]]:
+    """Reduced column -> (kind, variable index, column within the variable); a scale bar's two points
+    at the columns after the layout's (:class:`~ari_sfm.colmap.refine.solver.PointObservations`)."""
     lay = problem.layout
     out: dict[int, tuple[str, int, int]] = {}
     for c, ix in enumerate(lay.intrinsics):
@@ -42,19 +48,39 @@ def _column_owners(problem: RefractiveProblem) -> dict[int, tuple[str, int, int]
             out.update({int(g): (kind, v, j) for j, g in enumerate(row) if g >= 0})
     for w, row in enumerate(lay.window):
         out.update({int(g): ("n" if j < 2 else "d", w, j if j < 2 else 0) for j, g in enumerate(row) if g >= 0})
+    if bar is not None:
+        for k, p in enumerate((bar.a, bar.b)):
+            out.update({lay.size + 3 * k + j: ("p", int(p), j) for j in range(3)})
     return out
 
 
 class GtsamRefinement:
-    """Build the graph from a state, optimise with GTSAM's LM, read the state back."""
+    """Build the graph from a state, optimise with GTSAM's LM, read the state back.
+
+    The terms are the numpy backend's (:class:`~ari_sfm.solver.bundle.RowTerm`), each one factor
+    (:meth:`term_factor`).
+
+    Args:
+        problem: The refractive problem.
+        huber_px: The Huber threshold (px); None: plain least squares.
+        prior: A declared window plane's prior (a term; alternatively among ``terms``).
+        bar: A scale bar (a term; its two points' columns follow the layout's).
+        terms: The terms, as the numpy backend's solver holds them (``prior`` and ``bar`` are then in them).
+        diagonal_damping: GTSAM's LM with Marquardt's diagonal damping (self-calibration's stiff rows).
+    """
 
     def __init__(self, problem: RefractiveProblem, huber_px: float | None = HUBER_PX, prior: WindowPrior | None = None,
-                 bar: ScaleBar | None = None) -> None:
+                 bar: ScaleBar | None = None, terms: list[RowTerm] | tuple[RowTerm, ...] | None = None,
+                 diagonal_damping: bool = False) -> None:
         self.problem = problem
         self.huber_px = huber_px
-        self.prior = prior
         self.bar = bar
-        self.owners = _column_owners(problem)
+        if terms is None:
+            terms = ([WindowPriorTerm(prior, problem.layout)] if prior is not None else []) + (
+                [ScaleBarTerm(bar, problem.layout.size)] if bar is not None else [])
+        self.terms = list(terms)
+        self.diagonal_damping = diagonal_damping
+        self.owners = _column_owners(problem, bar)
 
     # -------------------------------------------------------------- values
     def values(self, state: State) -> gtsam.Values:
@@ -68,7 +94,8 @@ class GtsamRefinement:
                 p = state.sensor_from_rig[int(np.flatnonzero(m.image_camera == c)[0])]
                 v.insert(K_.sensor(c), gtsam.Pose3(gtsam.Rot3(p.R), p.t))
             free = np.flatnonzero(m.param_map[c].any(axis=0))
-            v.insert(K_.K(c), np.asarray(state.colmap_params[c][free], float))
+            if len(free):  # a camera with every intrinsic held has no variable
+                v.insert(K_.K(c), np.asarray(state.colmap_params[c][free], float))
         for w in range(len(state.normals)):
             if lay.window[w, 0] >= 0:
                 v.insert(K_.window_normal(w), gtsam.Unit3(state.normals[w]))
@@ -93,7 +120,9 @@ class GtsamRefinement:
         params = []
         for c, p in enumerate(template.colmap_params):
             p = p.copy()
-            p[np.flatnonzero(m.param_map[c].any(axis=0))] = values.atVector(K_.K(c))
+            free = np.flatnonzero(m.param_map[c].any(axis=0))
+            if len(free):
+                p[free] = values.atVector(K_.K(c))
             params.append(p)
         normals = np.array([values.atUnit3(K_.window_normal(w)).point3() if lay.window[w, 0] >= 0
                             else template.normals[w] for w in range(len(template.normals))])
@@ -116,8 +145,7 @@ class GtsamRefinement:
             kind, v, _ = self.owners[g]
             if (kind, v) not in var_keys:
                 var_keys.append((kind, v))
-        key_of = {"f": K_.rig_frame, "s": K_.sensor, "k": K_.K, "n": K_.window_normal, "d": K_.window_distance}
-        keys = [key_of[kind](v) for kind, v in var_keys] + [K_.point(int(j)) for j in unique_points]
+        keys = [KEY_OF[kind](v) for kind, v in var_keys] + [K_.point(int(j)) for j in unique_points]
         rows = 2 * len(obs)
         huber = self.huber_px
         total = rows + (huber is not None)  # Huber: the excess row (factors.robust.huber_view_residual)
@@ -175,6 +203,8 @@ class GtsamRefinement:
         kind, v = vk
         if kind in ("f", "s"):
             return 6
+        if kind == "p":
+            return 3
         if kind == "n":
             return 2
         if kind == "d":
@@ -212,54 +242,56 @@ class GtsamRefinement:
         return replace(template, colmap_params=tuple(params), rig_from_world=tuple(frames),
                        sensor_from_rig=tuple(sensors), normals=normals, distances=dists, xyz=xyz)
 
-    def _prior_factor(self, w: int, template: State) -> gtsam.CustomFactor:
-        """The declared plane's prior on window w (:mod:`.plane`): keys n(w), d(w) where estimated."""
-        prior, lay = self.prior, self.problem.layout
-        if prior is None:
-            raise ValueError("no declared plane: no prior factor")
-        has_n, has_d = lay.window[w, 0] >= 0, lay.window[w, 2] >= 0
-        keys = ([K_.window_normal(w)] if has_n else []) + ([K_.window_distance(w)] if has_d else [])
-        J_n, J_d = prior.jacobians()
+    def term_factor(self, term: RowTerm, template: State) -> gtsam.CustomFactor:
+        """One term (the numpy backend's rows) as a factor on the variables of its columns.
+
+        Args:
+            term: The term; its :meth:`~ari_sfm.solver.bundle.RowTerm.columns` name the factor's keys.
+            template: The state the held variables are read from.
+
+        Returns:
+            The factor (unit noise: the rows are whitened).
+        """
+        owners, m = self.owners, self.problem.model
+        allowed = [int(g) for g in term.columns()]
+        var_keys: list[tuple[str, int]] = []
+        for g in allowed:
+            kind, v, _ = owners[g]
+            if (kind, v) not in var_keys:
+                var_keys.append((kind, v))
+        keys = [KEY_OF[kind](v) for kind, v in var_keys]
+        others = [vk for vk in var_keys if vk[0] != "p"]
+        points = np.array([v for kind, v in var_keys if kind == "p"], int)
+        allowed_set = set(allowed)
+        n_rows = len(term.rows(template).e)
 
         def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-            n = values.atUnit3(K_.window_normal(w)) if has_n else gtsam.Unit3(template.normals[w])
-            d = float(values.atVector(K_.window_distance(w))[0]) if has_d else float(template.distances[w])
+            state = self.state_subset(values, template, others, points)
+            r = term.rows(state)
             if H is not None:
-                blocks = ([J_n @ np.asarray(n.basis(), float)] if has_n else []) + ([J_d[:, None]] if has_d else [])
-                for i, B in enumerate(blocks):
-                    H[i] = B
-            return prior.errors(n.point3(), d)
+                blocks = {vk: np.zeros((n_rows, self._dim(vk, state))) for vk in var_keys}
+                for k, g in enumerate(r.cols):
+                    if int(g) in allowed_set:
+                        kind, v, j = owners[int(g)]
+                        blocks[(kind, v)][:, j] += r.J[:, k]
+                for (kind, v), B in blocks.items():
+                    if kind in ("f", "s"):  # GTSAM right perturbation: [R w, R v] in this module's terms
+                        Rv = (state.rig_from_world[v].R if kind == "f"
+                              else state.sensor_from_rig[int(np.flatnonzero(m.image_camera == v)[0])].R)
+                        B[:, :3], B[:, 3:] = B[:, :3] @ Rv, B[:, 3:] @ Rv
+                for i, vk in enumerate(var_keys):
+                    H[i] = blocks[vk]
+            return r.e
 
-        return gtsam.CustomFactor(gtsam.noiseModel.Diagonal.Sigmas(prior.sigmas), keys, error)
-
-    def _bar_factor(self) -> gtsam.CustomFactor:
-        """The scale bar (:mod:`.scale_bar`, already whitened) on its two points."""
-        bar = self.bar
-        if bar is None:
-            raise ValueError("no scale bar: no factor")
-
-        def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-            xyz = {bar.a: np.asarray(values.atPoint3(K_.point(bar.a))),
-                   bar.b: np.asarray(values.atPoint3(K_.point(bar.b)))}
-            e = np.array([bar.error(xyz)])
-            if H is not None:
-                J = bar.jacobian(xyz)
-                H[0] = J[None, :3]
-                H[1] = J[None, 3:]
-            return e
-
-        return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(1), [K_.point(bar.a), K_.point(bar.b)], error)
+        return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(n_rows), keys, error)
 
     def graph(self, state: State) -> gtsam.NonlinearFactorGraph:
         g = gtsam.NonlinearFactorGraph()
         for i in range(len(self.problem.model.image_ids)):
             g.add(self._factor(i, state))
-        if self.prior is not None:
-            for w in range(len(state.normals)):
-                if (self.problem.layout.window[w] >= 0).any():
-                    g.add(self._prior_factor(w, state))
-        if self.bar is not None:
-            g.add(self._bar_factor())
+        for term in self.terms:
+            if len(term.columns()):
+                g.add(self.term_factor(term, state))
         return g
 
     def optimize(self, state: State, max_iterations: int = 100) -> tuple[State, int]:
@@ -268,6 +300,8 @@ class GtsamRefinement:
         params.setMaxIterations(max_iterations)
         params.setRelativeErrorTol(1e-12)
         params.setAbsoluteErrorTol(1e-12)
+        if self.diagonal_damping:
+            params.setDiagonalDamping(True)
         opt = gtsam.LevenbergMarquardtOptimizer(self.graph(state), self.values(state), params)
         values = opt.optimize()
         return self.state(values, state), int(opt.iterations())

@@ -34,6 +34,7 @@ from ari_sfm.geometry import Pose, rotation_from_rotvec, unit3_basis, unit3_retr
 from ari_sfm.models import ExactModel, PinholeModel
 from ari_sfm.models.exact import ConvergenceError
 from ari_sfm.records import Interface
+from ari_sfm.solver.bundle import Selection
 
 from .chain_kernels import chain_observations
 
@@ -83,23 +84,29 @@ class Layout:
     size: int
 
 
-def make_layout(model: ColmapModel, mount: str, estimate_distance: bool, image_is_ref: np.ndarray,
-                hold_window: bool = False, hold_normal: bool = False, held_frames: np.ndarray | None = None,
-                hold_intrinsics: bool = False, windows: int = 1) -> Layout:
-    """Index the reduced variables: intrinsics (unless ``hold_intrinsics``), frames (the first held, or the
-    ``held_frames`` indices when given), non-ref sensors, window (unless held; ``hold_normal``: its normal
-    only)."""
+def make_layout(model: ColmapModel, mount: str, image_is_ref: np.ndarray, selection: Selection,
+                windows: int = 1) -> Layout:
+    """Index the reduced variables: intrinsics, frames, non-reference sensors, windows, as ``selection`` says.
+
+    Args:
+        model: The COLMAP model.
+        mount: "camera" (a window per camera) or "world" (``windows`` windows in the world).
+        image_is_ref: (I,) whether each image's sensor is its rig's reference (no pose variable).
+        selection: What is estimated (the rest held).
+        windows: The number of windows (mount world).
+
+    Returns:
+        The layout.
+    """
     k = 0
     intr = []
     for c, _p in enumerate(model.colmap_params):
         free = np.flatnonzero(model.param_map[c].any(axis=0))
-        intr.append(-np.ones(len(free), int) if hold_intrinsics else np.arange(k, k + len(free)))
-        k += 0 if hold_intrinsics else len(free)
+        intr.append(np.arange(k, k + len(free)) if selection.intrinsics else -np.ones(len(free), int))
+        k += len(free) if selection.intrinsics else 0
     F = len(model.frame_ids)
     frames = -np.ones((F, 6), int)
-    held = np.zeros(F, bool)
-    held[[0] if held_frames is None else held_frames] = True
-    for f in np.flatnonzero(~held):
+    for f in np.flatnonzero(~selection.frames_held(F)):
         frames[f] = np.arange(k, k + 6)
         k += 6
     C = len(model.camera_ids)
@@ -110,14 +117,33 @@ def make_layout(model: ColmapModel, mount: str, estimate_distance: bool, image_i
             k += 6
     W = C if mount == "camera" else windows
     window = -np.ones((W, 3), int)
-    for w in range(0 if hold_window else W):
-        if not hold_normal:
+    for w in range(W if selection.window else 0):
+        if selection.window_normal:
             window[w, :2] = (k, k + 1)
             k += 2
-        if estimate_distance:
+        if selection.window_distance:
             window[w, 2] = k
             k += 1
     return Layout(tuple(intr), frames, sensors, window, k)
+
+
+def selection_of(estimate_distance: bool, hold_window: bool = False, hold_normal: bool = False,
+                 held_frames: np.ndarray | None = None, hold_intrinsics: bool = False) -> Selection:
+    """The selection the problem's keyword flags describe.
+
+    Args:
+        estimate_distance: Estimate the windows' distances.
+        hold_window: Hold the windows.
+        hold_normal: Hold the windows' normals.
+        held_frames: The held frames' indices (default: the first).
+        hold_intrinsics: Hold the intrinsics.
+
+    Returns:
+        The selection.
+    """
+    return Selection(intrinsics=not hold_intrinsics, window=not hold_window, window_normal=not hold_normal,
+                     window_distance=bool(estimate_distance),
+                     held_frames=None if held_frames is None else tuple(int(f) for f in held_frames))
 
 
 @dataclass(frozen=True)
@@ -137,10 +163,23 @@ class RefractiveProblem:
     def __init__(self, model: ColmapModel, interface: Interface, mount: str, estimate_distance: bool,
                  hold_window: bool = False, hold_normal: bool = False, held_frames: np.ndarray | None = None,
                  hold_intrinsics: bool = False, camera_windows: Sequence[int] | None = None,
-                 interfaces: Sequence[Interface] | None = None) -> None:
-        """``camera_windows`` (mount world): each camera's window index into ``State.normals`` and
-        ``distances`` (default: one window, 0, for every camera); ``interfaces``: each window's plate
-        (default ``interface`` for all)."""
+                 interfaces: Sequence[Interface] | None = None, selection: Selection | None = None) -> None:
+        """Index the variables and check the mount.
+
+        Args:
+            model: The COLMAP model (cameras, images, points, observations).
+            interface: The plate (thickness, indices).
+            mount: "camera" (a window per camera, in its frame) or "world" (windows in the world).
+            estimate_distance: Estimate the windows' distances (a flag of ``selection``).
+            hold_window: Hold the windows (a flag of ``selection``).
+            hold_normal: Hold the windows' normals (a flag of ``selection``).
+            held_frames: The held frames (a field of ``selection``; default the first).
+            hold_intrinsics: Hold the intrinsics (a flag of ``selection``).
+            camera_windows: Mount world: each camera's window index into ``State.normals`` and
+                ``distances`` (default: one window, 0, for every camera).
+            interfaces: Each window's plate (default ``interface`` for all).
+            selection: What is estimated; when given, the five flags above are ignored.
+        """
         if mount not in MOUNTS:
             raise ValueError(f"mount must be one of {MOUNTS}, got {mount!r}")
         self.model = model
@@ -154,8 +193,10 @@ class RefractiveProblem:
         self.interfaces = tuple(interfaces) if interfaces is not None else (interface,) * W
         self.image_is_ref = (model.image_is_ref if model.image_is_ref is not None else
                              np.array([np.allclose(s.R, np.eye(3)) and not np.any(s.t) for s in model.sensor_from_rig]))
-        self.layout = make_layout(model, mount, estimate_distance, self.image_is_ref, hold_window, hold_normal,
-                                  held_frames, hold_intrinsics, W)
+        if selection is None:
+            selection = selection_of(estimate_distance, hold_window, hold_normal, held_frames, hold_intrinsics)
+        self.selection = selection
+        self.layout = make_layout(model, mount, self.image_is_ref, selection, W)
         self._cam_of_obs = model.image_camera[model.obs_image]
         self._all_columns: tuple[np.ndarray, np.ndarray] | None = None  # linearize's columns of every observation
 

@@ -4,17 +4,18 @@
 refine-colmap and, with the gauge added, by volume self-calibration."""
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
-from ari_sfm.geometry import unit3_basis
-
-from ...solver.schur import assemble_from_observations, model_decrease, solve_damped
+from ...solver.bundle import BundleAdjustment, RowTerm
+from ...solver.schur import NormalEquations, assemble_from_observations
 from .plane import WindowPrior
-from .problem import RefractiveProblem, State, huber_cost, huber_weights
+from .problem import Linearization, RefractiveProblem, State, huber_cost, huber_weights
 from .scale_bar import Baseline, ScaleBar
+from .terms import BaselineTerm, ScaleBarTerm, WindowPriorTerm
 
 
 @dataclass(frozen=True)
@@ -30,79 +31,59 @@ class SolveResult:
     system: Any = None  # the normal equations at ``state`` when LM's last linearization was there (numpy backend)
 
 
-class Solver:
-    """A problem with its robust loss as an :class:`ari_sfm.solver.levenberg_marquardt.LMProblem`
-    (points eliminated by the bundle-adjustment core :mod:`ari_sfm.solver.schur`, blocks of 3;
-    Marquardt damping ``lambda * diag``)."""
+class PointObservations:
+    """The points problem's observations as a bundle-adjustment block: the robust (Huber) cost of a
+    :class:`~ari_sfm.colmap.refine.problem.RefractiveProblem`, the points eliminated (blocks of 3), a scale
+    bar's two points moved into the reduced variables (the bar couples them).
+
+    Args:
+        problem: The refractive problem.
+        huber_px: The Huber threshold (px); None: plain least squares.
+        bar: A scale bar, whose points become reduced columns ``size - 6 .. size``.
+    """
 
     linearized_error_is_error = True  # a linearization's error is the robust cost at its point
 
-    def __init__(self, problem: RefractiveProblem, huber_px: float | None, prior: WindowPrior | None = None,
-                 bar: ScaleBar | None = None, baseline: Baseline | None = None) -> None:
+    def __init__(self, problem: RefractiveProblem, huber_px: float | None, bar: ScaleBar | None = None) -> None:
         self.problem = problem
         self.huber_px = huber_px
-        self.prior = prior
         self.bar = bar
-        self.baseline = baseline
         self.P = len(problem.model.point3D_ids)
-        self.size = problem.layout.size + (6 if bar is not None else 0)  # the bar's two points are reduced
+        self.size = problem.layout.size + (6 if bar is not None else 0)
 
-    def cost(self, state: State) -> float:
-        return (huber_cost(self.problem.residuals(state), self.huber_px) + self._prior_cost(state)
-                + (0.0 if self.bar is None else self.bar.cost(state.xyz))
-                + (0.0 if self.baseline is None else self.baseline.cost(state)))
+    def error(self, x: State) -> float:
+        """The robust cost of every observation.
 
-    def _prior_cost(self, state: State) -> float:
-        return 0.0 if self.prior is None else self.prior.cost(state.normals, state.distances)
+        Args:
+            x: The state.
 
-    def _add_prior(self, ne, state: State) -> None:
-        """The declared plane's prior rows (whitened) added to the normal equations and the error."""
-        lay, prior = self.problem.layout, self.prior
-        if prior is None:
-            return
-        J_n, J_d = prior.jacobians()
-        s = prior.sigmas
-        for w, (n, d) in enumerate(zip(state.normals, state.distances)):
-            e = prior.errors(n, float(d)) / s
-            J = np.column_stack([J_n @ unit3_basis(n), J_d]) / s[:, None]  # columns [e1, e2, d]
-            cols = lay.window[w]
-            used = cols >= 0
-            J, cols = J[:, used], cols[used]
-            ne.U[np.ix_(cols, cols)] += J.T @ J
-            ne.g_global[cols] += J.T @ e
-        ne.error += self._prior_cost(state)
+        Returns:
+            The sum of the Huber losses (inf where a point is not beyond its window).
+        """
+        return huber_cost(self.problem.residuals(x), self.huber_px)
 
-    error = cost  # LMProblem's name
+    def linearize(self, x: State) -> NormalEquations:
+        """The observations' normal equations, points eliminated, Marquardt damping.
 
-    def linearize(self, state: State):
-        lin = self.problem.linearize(state)
+        Args:
+            x: The linearisation point.
+
+        Returns:
+            The system (its error the robust cost).
+        """
+        lin = self.problem.linearize(x)
         if self.bar is not None:
             lin = self._bar_points_reduced(lin)
         w = huber_weights(lin.residuals, self.huber_px)
         ne = assemble_from_observations(lin.residuals, lin.J_g, lin.index, lin.J_p, self.problem.model.obs_point,
                                         self.P, self.size, w, marquardt=True)
         ne.error = huber_cost(lin.residuals, self.huber_px)
-        if self.bar is not None or self.baseline is not None:
-            ne.damping = np.diag(ne.U).copy()  # damping from the images only (the bar is stiff)
-        if self.prior is not None:
-            self._add_prior(ne, state)
-        if self.bar is not None:
-            e, J = self.bar.error(state.xyz), self.bar.jacobian(state.xyz)
-            cols = np.arange(self.size - 6, self.size)
-            ne.U[np.ix_(cols, cols)] += np.outer(J, J)
-            ne.g_global[cols] += J * e
-            ne.error += 0.5 * e * e
-        if self.baseline is not None:
-            e = self.baseline.error(state)
-            cols, J = self.baseline.jacobian(state, self.problem.layout)
-            ne.U[np.ix_(cols, cols)] += np.outer(J, J)
-            ne.g_global[cols] += J * e
-            ne.error += 0.5 * e * e
         return ne
 
-    def _bar_points_reduced(self, lin):
+    def _bar_points_reduced(self, lin: Linearization) -> Linearization:
         """The scale bar's two points as reduced variables (columns size-6.. size-1): their
         observations' point Jacobians moved into J_g, their Schur blocks left empty."""
+        assert self.bar is not None
         base = self.problem.layout.size
         op = self.problem.model.obs_point
         M = len(op)
@@ -116,20 +97,74 @@ class Solver:
             J_p[obs] = 0.0
         return replace(lin, J_g=J_g, index=index, J_p=J_p)
 
-    def solve(self, ne, lam: float):
-        return solve_damped(ne, lam)
+    def retract(self, x: State, step: tuple[np.ndarray, np.ndarray]) -> State:
+        """The state moved by (reduced step, point steps); the bar's points by their reduced columns.
 
-    def model_decrease(self, ne, step) -> float:
-        return model_decrease(ne, *step)
+        Args:
+            x: The state.
+            step: (reduced step (size,), point steps (P, 3)).
 
-    def retract(self, state: State, step) -> State:
+        Returns:
+            The moved state.
+        """
         dg, dp = step
         if self.bar is not None:
             base = self.problem.layout.size
             dp = dp.copy()
             dp[self.bar.a], dp[self.bar.b] = dg[base:base + 3], dg[base + 3:base + 6]
             dg = dg[:base]
-        return self.problem.retract(state, dg, dp)
+        return self.problem.retract(x, dg, dp)
+
+
+class Solver(BundleAdjustment):
+    """refine-colmap's and self-calibration's bundle adjustment: the observations of a
+    :class:`~ari_sfm.colmap.refine.problem.RefractiveProblem` plus its terms, solved by the project's
+    Levenberg-Marquardt (:meth:`run`) or GTSAM's (:meth:`run_gtsam`) on the same terms.
+
+    Args:
+        problem: The refractive problem.
+        huber_px: The Huber threshold (px); None: plain least squares.
+        prior: A declared window plane's prior.
+        bar: A scale bar between two points.
+        baseline: A baseline between two camera centres.
+        terms: Further terms (self-calibration's gauge and intrinsics prior), after those above.
+        damp_observations_only: Marquardt's damping from the observations alone; default: with a bar, a
+            baseline or further terms (stiff rows are constraints).
+    """
+
+    def __init__(self, problem: RefractiveProblem, huber_px: float | None, prior: WindowPrior | None = None,
+                 bar: ScaleBar | None = None, baseline: Baseline | None = None, terms: Sequence[RowTerm] = (),
+                 damp_observations_only: bool | None = None) -> None:
+        self.problem = problem
+        self.huber_px = huber_px
+        self.prior = prior
+        self.bar = bar
+        self.baseline = baseline
+        block = PointObservations(problem, huber_px, bar)
+        self.P = block.P
+        self.size = block.size
+        own: list[RowTerm] = []
+        if prior is not None:
+            own.append(WindowPriorTerm(prior, problem.layout))
+        if bar is not None:
+            own.append(ScaleBarTerm(bar, problem.layout.size))
+        if baseline is not None:
+            own.append(BaselineTerm(baseline, problem.layout))
+        if damp_observations_only is None:
+            damp_observations_only = bar is not None or baseline is not None or bool(terms)
+        self.row_terms: list[RowTerm] = [*own, *terms]
+        super().__init__(block, self.row_terms, damp_observations_only)
+
+    def cost(self, state: State) -> float:
+        """The whole cost (observations and terms).
+
+        Args:
+            state: The state.
+
+        Returns:
+            The cost.
+        """
+        return self.error(state)
 
     def run(self, state: State, max_iterations: int, progress=None,
             relative_tolerance: float | None = None) -> SolveResult:
@@ -148,7 +183,7 @@ class Solver:
         """The GTSAM backend (one CustomFactor per image, GTSAM's LM)."""
         from .gtsam_graph import GtsamRefinement
 
-        refined, iterations = GtsamRefinement(self.problem, self.huber_px, self.prior, self.bar).optimize(
+        refined, iterations = GtsamRefinement(self.problem, self.huber_px, terms=self.row_terms, bar=self.bar).optimize(
             state, max_iterations)
         return SolveResult(refined, self.cost(refined), self.cost(state), iterations, iterations < max_iterations)
 
