@@ -38,13 +38,29 @@ def rotation_from_rotvec(w: np.ndarray | Sequence[float]) -> np.ndarray:
 
 
 def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    """Angle in degrees of the rotation Ra^T Rb."""
+    """Angle in degrees of the rotation ``Ra^T Rb``.
+
+    Args:
+        Ra: the first rotation matrix (3, 3).
+        Rb: the second rotation matrix (3, 3).
+
+    Returns:
+        The angle between the two rotations, in degrees.
+    """
     c = (np.trace(np.asarray(Ra).T @ np.asarray(Rb)) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
 def angle_between_deg(a: np.ndarray, b: np.ndarray) -> float:
-    """Angle in degrees between two vectors."""
+    """Angle in degrees between two vectors.
+
+    Args:
+        a: the first vector (3,), any non-zero length.
+        b: the second vector (3,), any non-zero length.
+
+    Returns:
+        The angle in degrees, in [0, 180].
+    """
     a = np.asarray(a, float) / np.linalg.norm(a)
     b = np.asarray(b, float) / np.linalg.norm(b)
     return float(np.degrees(np.arccos(np.clip(a @ b, -1.0, 1.0))))
@@ -145,8 +161,17 @@ def unit(v: np.ndarray) -> np.ndarray:
 
 
 def unit3_basis(n: np.ndarray) -> np.ndarray:
-    """(3, 2) tangent basis of the unit vector n, as gtsam.Unit3.basis(): b1 = n x a / |n x a| with a
-    the axis of n's smallest component, b2 = n x b1. Every window normal's 2-dof tangent space."""
+    """The (3, 2) tangent basis of a unit vector, as ``gtsam.Unit3.basis()``.
+
+    ``b1 = n x a / |n x a|`` with a the axis of n's smallest component, ``b2 = n x b1``: every window
+    normal's 2-dof tangent space.
+
+    Args:
+        n: the unit vector (3,).
+
+    Returns:
+        The basis ``[b1, b2]`` as columns (3, 2).
+    """
     n = np.asarray(n, float)
     m = np.abs(n)
     axis = np.zeros(3)
@@ -157,8 +182,18 @@ def unit3_basis(n: np.ndarray) -> np.ndarray:
 
 
 def unit3_retract(n: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """The unit vector n moved by the tangent step v (2,), as gtsam.Unit3.retract (the exponential map:
-    cos|xi| n + sin|xi| xi / |xi| with xi = B v)."""
+    """The unit vector n moved by a tangent step, as ``gtsam.Unit3.retract``.
+
+    The exponential map: ``cos|xi| n + sin|xi| xi / |xi|`` with ``xi = B v``, B the basis of
+    :func:`unit3_basis`.
+
+    Args:
+        n: the unit vector (3,).
+        v: the tangent step (2,) in n's basis.
+
+    Returns:
+        The moved unit vector (3,).
+    """
     n = np.asarray(n, float)
     xi = unit3_basis(n) @ np.asarray(v, float)
     theta = float(np.linalg.norm(xi))
@@ -170,11 +205,17 @@ def unit3_retract(n: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def se3_exp(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """GTSAM's Pose3.Expmap of twists xi (N, 6) = [w, v]: rotations (N, 3, 3) and translations (N, 3).
+    """GTSAM's Pose3.Expmap of many twists.
 
     R = I + A W + B W^2, t = v + B w x v + C w x (w x v) with A = sin t / t,
     B = (1 - cos t) / t^2, C = (t - sin t) / t^3 (Taylor series for small t); compiled
     (:mod:`ari_sfm.se3_kernel`).
+
+    Args:
+        xi: twists (N, 6) = [w, v], rotation first.
+
+    Returns:
+        Rotations (N, 3, 3) and translations (N, 3).
     """
     from .se3_kernel import se3_exp_kernel
 
@@ -182,8 +223,16 @@ def se3_exp(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def retract_poses(R: np.ndarray, t: np.ndarray, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Right perturbation T Exp(xi) of poses (R (N,3,3), t (N,3)), as Pose3.retract (compiled:
-    :mod:`ari_sfm.se3_kernel`)."""
+    """Right perturbation ``T Exp(xi)`` of many poses, as Pose3.retract (compiled: :mod:`ari_sfm.se3_kernel`).
+
+    Args:
+        R: rotations (N, 3, 3).
+        t: translations (N, 3).
+        xi: twists (N, 6) = [w, v].
+
+    Returns:
+        The retracted rotations (N, 3, 3) and translations (N, 3).
+    """
     from .se3_kernel import retract_poses_kernel
 
     return retract_poses_kernel(np.ascontiguousarray(R, float), np.ascontiguousarray(t, float),

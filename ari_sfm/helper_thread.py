@@ -15,10 +15,12 @@ _R = TypeVar("_R")
 
 
 class _HelperThread:
-    """One kept daemon thread running :func:`shared_map`'s second share (a thread's start costs
-    ~0.15 ms; a ThreadPoolExecutor's threads are not daemons, and the command line leaves at once
-    on Ctrl-C while a non-daemon thread lives: :func:`ari_sfm.cli.process._exit_interrupted`). A task the
-    thread has not started when its caller is done is dropped, not waited for."""
+    """One kept daemon thread running :func:`shared_map`'s second share.
+
+    A daemon, so that the command line leaves at once on Ctrl-C
+    (:func:`ari_sfm.cli.process._exit_interrupted`). A task the thread has not started when its caller is done
+    is dropped, not waited for.
+    """
 
     def __init__(self) -> None:
         self.tasks: queue.SimpleQueue = queue.SimpleQueue()
@@ -76,13 +78,25 @@ os.register_at_fork(after_in_child=_forget_helper)
 
 
 def shared_map(fn: Callable[[_T], _R], items: Sequence[_T], threads: int = 1, min_items: int = 4) -> list[_R]:
-    """``[fn(x) for x in items]``, with ``threads`` >= 2 and at least ``min_items`` items shared with
-    another thread: for independent calls that release the GIL (OpenCV's inside
-    :func:`~ari_sfm.init.opencv_threads.one_cv2_thread`, compiled kernels), so each call runs as it would
-    alone and the results are those of the loop. Each thread takes the
-    next item not yet taken (the second starts ~0.05 ms late; a fixed half each left the first waiting
-    ~0.25 ms a call; a helper the machine does not schedule in time leaves its share to the caller).
-    The first failing item in order raises, after every item has run."""
+    """``[fn(x) for x in items]``, shared with a second thread.
+
+    For independent calls that release the GIL (OpenCV's inside
+    :func:`~ari_sfm.init.opencv_threads.one_cv2_thread`, compiled kernels): each call runs as it would alone
+    and the results are those of the loop, in its order. Each thread takes the next item not yet taken; a
+    helper the machine does not schedule in time leaves its share to the caller.
+
+    Args:
+        fn: the call for one item.
+        items: the items.
+        threads: shared only with 2 or more (1: the plain loop).
+        min_items: shared only with at least this many items.
+
+    Returns:
+        ``fn`` of each item, in the items' order.
+
+    Raises:
+        BaseException: the first failing item's exception in the items' order, after every item has run.
+    """
     if threads < 2 or len(items) < min_items:
         return [fn(x) for x in items]
     taken = itertools.count()  # next() is atomic under the GIL

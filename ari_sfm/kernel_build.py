@@ -42,7 +42,13 @@ def target_environment() -> dict[str, str]:
 
 
 def build(folder: Path) -> BuildSummary:
-    """Compile every signature of SIGNATURES into ``folder`` (made; existing entries are replaced).
+    """Compile every signature of SIGNATURES into ``folder``.
+
+    Args:
+        folder: where to write the compiled kernels (made if missing; existing entries are replaced).
+
+    Returns:
+        A :class:`BuildSummary` of what was written.
 
     Raises:
         RuntimeError: numba's target is not :data:`~ari_sfm.kernel_cache.TARGET_CPU`, or JIT is disabled.

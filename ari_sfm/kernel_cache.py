@@ -5,25 +5,19 @@ Every compiled kernel module decorates with :func:`njit` from here: numba's ``nj
 (with ``cache=True``) gets a :class:`ShippedCache`. Loading a signature, it looks first in
 ``ari_sfm/_compiled/`` (:data:`SHIPPED_DIR`: in a built wheel, or compiled into a source tree by
 ``scripts/setup.sh``), then in numba's own cache (``NUMBA_CACHE_DIR``, else ``__pycache__`` beside the
-module, else ``~/.cache/numba``), and only then compiles; what it compiles goes to numba's own cache,
-as before.
+module, else ``~/.cache/numba``), and only then compiles; what it compiles goes to numba's own cache.
 
-numba keys a cached function on its signature, the compiling CPU (name and feature string), the
-function's bytecode, and the content of its source file (a hash: the install path and time stamps do
-not enter); the index also names the numba version and the file name the Python version. The wheel's
-code is compiled for :data:`TARGET_CPU` (the x86-64-v3 level: AVX2, FMA, BMI2, every x86-64 CPU since
-2013-2015) with LLVM's own feature set for it, so it runs on any host that has those features; the
+The wheel's code is compiled for :data:`TARGET_CPU` (the x86-64-v3 level: AVX2, FMA, BMI2, every x86-64 CPU
+since 2013-2015) with LLVM's own feature set for it, so it runs on any host that has those features; the
 shipped entries carry that CPU in their key, and :class:`ShippedCache` asks for it instead of the host's.
 Another architecture or OS (the process triple), a CPU without one of :data:`TARGET_FEATURES`, another
 numba, llvmlite or Python version (:func:`target_record`), a changed source file, or a target the user
 chose (``NUMBA_CPU_NAME``, ``NUMBA_CPU_FEATURES``, ``NUMBA_ENABLE_AVX=0``): the shipped code is not used
-and numba compiles as before (``ari-sfm -v`` logs which). Never an error: a shipped entry that fails to
-load is skipped (logged at debug level).
+and numba compiles (``ari-sfm -v`` logs which). Never an error: a shipped entry that fails to load is
+skipped (logged at debug level).
 
-The numbers do not depend on the target: numba never contracts ``a * b + c`` nor reassociates (no
-fastmath), the kernels' fused multiply-adds are LLVM's exactly rounded ``llvm.fma``, and the math
-library calls are the same; calibrations from the shipped code and from a host-compiled run are the
-same to the last bit (README "Performance").
+The numbers do not depend on the target: calibrations from the shipped code and from a host-compiled run
+are the same to the last bit.
 """
 from __future__ import annotations
 
@@ -57,7 +51,17 @@ _building: Path | None = None  # set by ari_sfm.kernel_build: compile everything
 
 
 def njit(func: Callable | None = None, /, **options: Any) -> Any:
-    """numba's ``njit`` (same options); with ``cache=True`` the dispatcher's cache is a :class:`ShippedCache`."""
+    """numba's ``njit`` (same options); with ``cache=True`` the dispatcher's cache is a :class:`ShippedCache`.
+
+    Usable bare (``@njit``) or with options (``@njit(cache=True, ...)``).
+
+    Args:
+        func: the function to compile; None when called with options only.
+        options: numba's ``njit`` options.
+
+    Returns:
+        The dispatcher, or (without ``func``) the decorator that makes it.
+    """
     def decorate(f: Callable) -> Any:
         dispatcher = numba.njit(**options)(f)
         if options.get("cache") and isinstance(dispatcher, Dispatcher):  # NUMBA_DISABLE_JIT: the Python function
@@ -67,8 +71,14 @@ def njit(func: Callable | None = None, /, **options: Any) -> Any:
 
 
 def target_record() -> dict[str, str]:
-    """What the shipped code is for (written by the build, checked at run time: the index keys name the
-    numba version and the OS, the file names the Python version, but a mismatch is best said at once)."""
+    """What the shipped code is compiled for: the versions and the target.
+
+    The build writes it to :data:`TARGET_FILE`; at run time a record that differs from this process's means
+    the shipped code is not used.
+
+    Returns:
+        The numba, llvmlite and Python versions, the process triple, the CPU and its features, by name.
+    """
     import llvmlite
     import llvmlite.binding as ll
 

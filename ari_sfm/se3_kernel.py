@@ -2,12 +2,9 @@
 ``cache=True``): the one copy behind :func:`ari_sfm.geometry.se3_exp` and
 :func:`~ari_sfm.geometry.retract_poses`, which the numpy bundle adjustment calls on every trial.
 
-Its arithmetic is, operation for operation, that of the numpy expressions it replaced (the
-formulas of :func:`~ari_sfm.geometry.se3_exp`'s docstring with numpy's ``@`` and ``einsum``), so the
-poses are the same to the last bit: numpy's 3x3 ``@`` (OpenBLAS) is a fused multiply-add chain
-``fma(a2, b2, fma(a1, b1, a0 b0))``, its ``einsum`` of three terms ``(x0 + x2) + x1``, written out
-below; without fused operations elsewhere (numba never contracts ``a * b + c`` unasked). A 3x3
-product on 18 poses costs numpy ~10 us of calls; the whole retraction here ~5 us instead of 180.
+The arithmetic is that of the formulas of :func:`~ari_sfm.geometry.se3_exp`'s docstring evaluated by
+numpy's ``@`` (OpenBLAS: a fused multiply-add chain ``fma(a2, b2, fma(a1, b1, a0 b0))``) and ``einsum``
+(three terms as ``(x0 + x2) + x1``), written out below, so the poses are numpy's to the last bit.
 """
 from __future__ import annotations
 
@@ -63,7 +60,16 @@ def se3_exp_kernel(xi):
 
 @njit(**_JIT)
 def retract_poses_kernel(R, t, xi):
-    """``T Exp(xi)`` of poses (R (N, 3, 3), t (N, 3)): (R dR, t + R dt)."""
+    """``T Exp(xi)`` of poses T = (R, t): ``(R dR, t + R dt)`` with ``(dR, dt) = Exp(xi)``.
+
+    Args:
+        R: rotations (N, 3, 3).
+        t: translations (N, 3).
+        xi: twists (N, 6) = [w, v].
+
+    Returns:
+        The retracted rotations (N, 3, 3) and translations (N, 3).
+    """
     R_out, t_out = np.empty((len(xi), 3, 3)), np.empty((len(xi), 3))
     dR, dt = np.empty((3, 3)), np.empty(3)
     for n in range(len(xi)):

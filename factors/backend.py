@@ -4,9 +4,9 @@ Both solve the same RigGraph on the same Levenberg-Marquardt path (same
 answer to ~1e-13): ``"gtsam"`` runs ``gtsam.LevenbergMarquardtOptimizer``,
 which calls each view's Python CustomFactor at every linearisation;
 ``"numpy"`` packs the graph (:class:`~ari_sfm.factors.packed_problem.VectorizedProblem`)
-and is 5-13x faster per iteration (benchmarks/bench_backends.py); ``"auto"``
-(the default of calibrate) is numpy, and GTSAM for a graph the numpy backend
-cannot hold (a user factor linking several target frames).
+and solves it without callbacks; ``"auto"`` (the default of calibrate) is numpy,
+and GTSAM for a graph the numpy backend cannot hold (a user factor linking
+several target frames).
 """
 from __future__ import annotations
 
@@ -33,11 +33,22 @@ def optimize_vectorized(
 ) -> RigState | tuple[RigState, LMReport]:
     """Optimise a built RigGraph's problem with the numpy backend (GTSAM's LM path, no callbacks).
 
-    ``huber_px`` must be the one the graph was built with (checked when
-    ``check``). The graph's values and ``iterations`` are updated as
-    RigGraph.optimize does; returns the state, and the :class:`LMReport`
-    (final error, lambda trials, time) with ``return_report``. ``stop``:
-    see :meth:`VectorizedProblem.optimize` ("gtsam": GTSAM's trials one for one).
+    The graph's values and ``iterations`` are updated as RigGraph.optimize does.
+
+    Args:
+        rig_graph: the built graph.
+        max_iterations: cap on the accepted LM steps.
+        relative_tolerance: LM stops when the error's relative decrease is below it.
+        huber_px: the Huber threshold the graph was built with (px; None: no Huber loss).
+        check: compare the residuals of a few views with the graph's own factors (a mismatch, e.g. another
+            ``huber_px``, raises ValueError).
+        params: the LM constants (default :class:`LMParams`).
+        return_report: also return the report.
+        stop: the stop rule (:meth:`VectorizedProblem.optimize`; "gtsam": GTSAM's trials one for one).
+
+    Returns:
+        The solved state; with ``return_report`` the pair (state, :class:`LMReport`: final error, lambda
+            trials, time).
     """
     problem = VectorizedProblem.from_rig_graph(rig_graph, huber_px=huber_px, check=check)
     state = problem.optimize(max_iterations, relative_tolerance, params, stop)
@@ -50,8 +61,11 @@ def optimize_vectorized(
 
 
 def _write_solution(rig_graph: GraphLike, problem: VectorizedProblem) -> None:
-    """The solved variables into the graph's values: when first read if the graph makes them lazily
-    (:meth:`~ari_sfm.factors.rig_graph.RigGraph.set_solution`; 15 gtsam updates cost ~0.3 ms), else now."""
+    """The solved variables into the graph's values.
+
+    Written when first read if the graph makes them lazily
+    (:meth:`~ari_sfm.factors.rig_graph.RigGraph.set_solution`), else now.
+    """
     x = problem.x
     if hasattr(rig_graph, "set_solution"):
         rig_graph.set_solution(lambda values: problem.write_values(values, x))
@@ -60,8 +74,17 @@ def _write_solution(rig_graph: GraphLike, problem: VectorizedProblem) -> None:
 
 
 def resolve_backend(backend: str) -> str:
-    """The solver a backend name stands for: "auto" is "numpy", faster at every size measured
-    (benchmarks/bench_backends.py: 4-6x on one or two cameras, 8-12x on larger rigs, same LM path)."""
+    """The solver a backend name stands for: "auto" is "numpy".
+
+    Args:
+        backend: "gtsam", "numpy" or "auto".
+
+    Returns:
+        "gtsam" or "numpy".
+
+    Raises:
+        ValueError: an unknown backend name.
+    """
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r} (known: {', '.join(BACKENDS)})")
     return "numpy" if backend == "auto" else backend
@@ -73,16 +96,25 @@ def optimize_graph(rig_graph: GraphLike, backend: str = "auto", max_iterations: 
                    ) -> RigState | tuple[RigState, VectorizedProblem | None]:
     """Optimise a RigGraph with GTSAM (``rig_graph.optimize``) or the numpy backend; same result either way.
 
-    ``huber_px``: the threshold the graph was built with (the numpy backend
-    needs it, see :meth:`VectorizedProblem.from_rig_graph`). With
-    ``return_problem``: (state, the solved VectorizedProblem, or None with
-    GTSAM), so that residuals and marginals at the optimum need no callbacks.
-    ``check``: compare a few views with the graph's own factors (see
-    from_rig_graph); a caller that has just built the graph with ``huber_px``
-    may skip it. ``stop``: the numpy backend's stop rule (:meth:`VectorizedProblem.optimize`);
-    ``relative_tolerance``: LM stops when the error's relative decrease is below it (both backends).
-    "auto" falls back to GTSAM for a graph the numpy backend cannot hold (a
-    user factor linking several target frames).
+    "auto" falls back to GTSAM for a graph the numpy backend cannot hold (a user factor linking several
+    target frames).
+
+    Args:
+        rig_graph: the built graph; its values and ``iterations`` are updated.
+        backend: "gtsam", "numpy" or "auto".
+        max_iterations: cap on the accepted LM steps.
+        huber_px: the Huber threshold the graph was built with (the numpy backend needs it, see
+            :meth:`VectorizedProblem.from_rig_graph`).
+        return_problem: also return the solved problem, so that residuals and marginals at the optimum need
+            no callbacks.
+        check: compare a few views with the graph's own factors (see ``from_rig_graph``); a caller that has
+            just built the graph with ``huber_px`` may skip it.
+        stop: the numpy backend's stop rule (:meth:`VectorizedProblem.optimize`).
+        relative_tolerance: LM stops when the error's relative decrease is below it (both backends).
+
+    Returns:
+        The solved state; with ``return_problem`` the pair (state, the solved VectorizedProblem, or None
+            with GTSAM).
     """
     problem = None
     if resolve_backend(backend) == "numpy":

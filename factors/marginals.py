@@ -32,7 +32,15 @@ class CovarianceTable:
 
 
 def covariances_by_key(problem: PackedColumns, sys: NormalEquations) -> dict[int, np.ndarray]:
-    """The marginal covariance of each global variable of a packed problem linearised as ``sys``."""
+    """The marginal covariance of each global variable of a packed problem.
+
+    Args:
+        problem: the packed problem's column layout.
+        sys: its normal equations at the linearisation point.
+
+    Returns:
+        The covariances by gtsam key: K(c), C(c) (c > 0), N(w) and, when estimated, H(w).
+    """
     cov = global_covariance(sys, problem.fixed_cols)
     out = {}
     for c in range(len(problem.camera_names)):

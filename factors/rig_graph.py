@@ -49,23 +49,50 @@ def default_distance_mm(normal_world: np.ndarray, cam_from_world: dict[str, Pose
                         cameras: Sequence[str] | None = None) -> float:
     """A starting plane offset of a window when the dataset gives none (from camera 0, the world's origin).
 
-    In air the exact model does not depend on it (the plate shifts each ray
-    sideways by an amount set by the angle and the thickness only), so any value
-    that keeps every camera (of ``cameras``, default all) in front of the window will do: 10 mm in front of
-    the camera nearest to it. Under water it is estimated from this start.
+    In air the exact model does not depend on it (the plate shifts each ray sideways by an amount set by the
+    angle and the thickness only), so any value that keeps every camera in front of the window will do: 10 mm
+    in front of the camera nearest to it. Under water it is estimated from this start.
+
+    Args:
+        normal_world: the window's unit normal in the world.
+        cam_from_world: each camera's pose.
+        cameras: the cameras behind the window (default all).
+
+    Returns:
+        The plane offset ``normal . X`` (mm) of the window's near face in the world.
     """
     centres = [p.inverse().t for n, p in cam_from_world.items() if cameras is None or n in cameras]
     return float(max(normal_world @ c for c in centres)) + 10.0
 
 
 def window_key(dataset, w: int) -> str:
-    """How rig.yaml names window ``w``: ``interface``, or ``interfaces.<name>`` with several."""
+    """How rig.yaml names window ``w``: ``interface``, or ``interfaces.<name>`` with several.
+
+    Args:
+        dataset (Dataset): the dataset.
+        w: the window's index.
+
+    Returns:
+        The rig.yaml key, for error messages.
+    """
     return "interface" if not dataset.windows else f"interfaces.{dataset.window_list()[w].name}"
 
 
 def declared_plane(dataset, rig, window: int = 0) -> WindowPlane | None:
     """A window's declared plane (interface.plane), checked: its frame must be a calibration frame the
-    initialisation placed."""
+    initialisation placed.
+
+    Args:
+        dataset (Dataset): the dataset.
+        rig (RigInit): the analytic initialisation (:func:`ari_sfm.init.rig.initialise_rig`).
+        window: the window's index.
+
+    Returns:
+        The plane, or None when the window declares none.
+
+    Raises:
+        AriSfmError: the plane's frame is not a calibration frame seen by the cameras.
+    """
     plane = dataset.window_list()[window].interface.plane
     if plane is None:
         return None
@@ -79,12 +106,31 @@ def declared_plane(dataset, rig, window: int = 0) -> WindowPlane | None:
 
 
 def declared_planes(dataset, rig) -> list[WindowPlane | None]:
-    """Every window's declared plane (None where it has none)."""
+    """Every window's declared plane (see :func:`declared_plane`).
+
+    Args:
+        dataset (Dataset): the dataset.
+        rig (RigInit): the analytic initialisation.
+
+    Returns:
+        One plane per window, None where it has none.
+    """
     return [declared_plane(dataset, rig, w) for w in range(len(dataset.window_list()))]
 
 
 def held_intrinsics(dataset, fix: bool) -> tuple[list[str], dict[str, float]]:
-    """Cameras whose K is held (a K hint) and camera -> focal held as fx = fy (a focal_px hint only)."""
+    """The intrinsics held by ``fix_intrinsics``.
+
+    Args:
+        dataset (Dataset): the dataset, with its cameras' hints.
+        fix: whether intrinsics are held at all (False: nothing held).
+
+    Returns:
+        The cameras whose K is held (a K hint), and camera -> focal held as fx = fy (a focal_px hint only).
+
+    Raises:
+        AriSfmError: ``fix`` without a K or focal_px hint for any camera.
+    """
     if not fix:
         return [], {}
     cams = dataset.cameras
@@ -98,14 +144,23 @@ def held_intrinsics(dataset, fix: bool) -> tuple[list[str], dict[str, float]]:
 
 
 def initial_state(dataset, rig, model: str = "ari", fix_intrinsics: bool = False) -> RigState:
-    """The one starting state of a bundle adjustment from an analytic initialisation ``rig``
-    (:func:`ari_sfm.init.rig.initialise_rig`); ``model``: the first graph's model.
+    """The one starting state of a bundle adjustment from an analytic initialisation.
 
     A declared plane (interface.plane) gives the normal and the distance, placed by its frame's initial
     pose, in air too (there the rays do not depend on the distance, but the plane says where the window
     is); else the rig.yaml distance, or (None) :func:`default_distance_mm` where the first graph needs
-    one: under water (estimated) or for a Snell model. ``fix_intrinsics``: the held hints
-    (:func:`held_intrinsics`) replace the initialisation's K (and distortion)."""
+    one: under water (estimated) or for a Snell model.
+
+    Args:
+        dataset (Dataset): the dataset.
+        rig (RigInit): the analytic initialisation (:func:`ari_sfm.init.rig.initialise_rig`).
+        model: the first graph's model.
+        fix_intrinsics: the held hints (:func:`held_intrinsics`) replace the initialisation's K (and
+            distortion).
+
+    Returns:
+        The :class:`RigState`.
+    """
     from .window_plane import plane_in_world
 
     state = RigState.from_initialisation(rig)
@@ -176,8 +231,11 @@ class RigGraph:
         self.made_values, self.unwritten = values, None
 
     def set_solution(self, write: Callable[[gtsam.Values], None]) -> None:
-        """A solver's result, ``write(values)`` updating every variable: done now if the values exist,
-        else when they are first read."""
+        """Take a solver's result: done now if the values exist, else when they are first read.
+
+        Args:
+            write: updates every variable of the values it is given.
+        """
         if self.made_values is None:
             self.unwritten = write
         else:
@@ -240,8 +298,14 @@ class RigGraph:
         return view_factor(MODELS[self.model], data, vkeys, self.sigma_px, self.huber_px)
 
     def packed_factors(self) -> tuple[list[tuple[ViewData, ViewKeys, float]], list[gtsam.NonlinearFactor]]:
-        """What the numpy backend packs: (data, keys, isotropic pixel sigma) per view and the other factors;
-        read from the graph once made (ValueError for a view factor with a non-isotropic noise model)."""
+        """What the numpy backend packs, read from the graph once made.
+
+        Returns:
+            (data, keys, isotropic pixel sigma) per view, and the other factors.
+
+        Raises:
+            ValueError: a view factor has a non-isotropic noise model.
+        """
         if self.built_graph is None:
             return [(data, vkeys, self.sigma_px) for data, vkeys in self.factor_data], list(self.other_factors)
         index = self.view_factor_indices()  # priors and user factors may sit among them
@@ -275,17 +339,40 @@ class RigGraph:
         window_planes: Sequence[WindowPlane | None] | None = None,
         centred_principal_points: Mapping[str, tuple[float, float]] | None = None,
     ) -> RigGraph:
-        """One factor per (camera, calibration or stacking image), whitened by ``sigma_px``; variables from
-        state. Camera 0 is the world frame (no pose variable): ``state.cam_from_world`` of the first
-        camera must be the identity.
+        """The graph of one factor per (camera, calibration or stacking image), whitened by ``sigma_px``.
 
-        ``fixed_intrinsics``: cameras whose intrinsics are held at the state's; ``fixed_focal_px``:
-        camera -> focal held as fx = fy (principal point and distortion free); ``window_plane``:
-        the declared window (:mod:`ari_sfm.factors.window_plane`), its frame one of the state's.
-        ``windows``: several windows (each camera's factors on its own window's N(w), H(w) and plate;
-        default one window, ``interface``, for every camera) and ``window_planes`` their declared planes
-        (None where not declared; replaces ``window_plane``). ``centred_principal_points``: camera -> (cx, cy)
-        held there (the image centre of a camera whose views cannot separate it from its rotation)."""
+        The variables start at ``state``. Camera 0 is the world frame (no pose variable): ``state.cam_from_world``
+        of the first camera must be the identity.
+
+        Args:
+            observations: the corner observations; calibration and stacking records of the state's frames and
+                cameras are used.
+            target: the calibration target.
+            interface: the window of every camera when ``windows`` is not given.
+            camera_names: the cameras, camera 0 first.
+            state: the starting values.
+            model: the projection model ("ari" or "exact").
+            distortion: estimate k1 k2 p1 p2 k3 (9 intrinsics per camera, else 4).
+            estimate_distance: the windows' planes H(w) are variables (under water).
+            huber_px: the per-corner Huber threshold (px); None: no Huber loss.
+            sigma_px: the isotropic pixel sigma of the view factors (per coordinate).
+            min_corners: images with fewer corners get no factor.
+            fixed_intrinsics: cameras whose intrinsics are held at the state's.
+            fixed_focal_px: camera -> focal held as fx = fy (principal point and distortion free).
+            window_plane: the declared window (:mod:`ari_sfm.factors.window_plane`), its frame one of the state's.
+            windows: several windows (each camera's factors on its own window's N(w), H(w) and plate); default
+                one window, ``interface``, for every camera.
+            window_planes: the windows' declared planes (None where not declared); replaces ``window_plane``.
+            centred_principal_points: camera -> (cx, cy) held there (the image centre of a camera whose views
+                cannot separate it from its rotation).
+
+        Returns:
+            The :class:`RigGraph`.
+
+        Raises:
+            ValueError: ``sigma_px`` not positive, a camera behind no window, a state with another number of
+                windows, or camera 0's pose not the identity.
+        """
         if not (np.isfinite(sigma_px) and sigma_px > 0.0):
             raise ValueError(f"sigma_px must be a positive pixel sigma, got {sigma_px}")
         names = list(camera_names)
@@ -360,15 +447,31 @@ class RigGraph:
     @staticmethod
     def from_dataset(dataset, model: str = "ari", distortion: bool = False, huber_px: float | None = 1.0,
                      sigma_px: float | None = None, workers: int | None = None) -> RigGraph:
-        """The graph of a dataset, initialised by the analytic pipeline (expansion centre, Zhang, Eq. 5,
-        Eqs. 11-12, spanning tree over shared frames). A dataset with images only has its corners
-        detected first (:func:`ari_sfm.detection.ensure_observations`).
+        """The graph of a dataset, initialised by the analytic pipeline.
 
-        ``sigma_px``: the pixel sigma of the view factors; None estimates it (the robust sigma of
-        the residuals after a first numpy solve of this graph, :func:`estimate_sigma_px`) so that
-        factors you add in physical units weigh what they say. The values stay at the initialisation.
-        With interface.plane, its factor (start: the plane at its frame's initial pose). Without
-        stacking or plane the normal starts at camera 0's axis (exact only; ari refuses).
+        The initialisation: expansion centre, Zhang, Eq. 5, Eqs. 11-12, spanning tree over shared frames. A dataset
+        with images only has its corners detected first (:func:`ari_sfm.detection.ensure_observations`). The
+        values stay at the initialisation. With interface.plane, its factor is added (start: the plane at its
+        frame's initial pose). Without stacking or plane the normal starts at camera 0's axis (exact only; ari
+        refuses).
+
+        Args:
+            dataset (Dataset | str | os.PathLike): the dataset, or its folder.
+            model: the projection model ("ari" or "exact").
+            distortion: estimate k1 k2 p1 p2 k3.
+            huber_px: the per-corner Huber threshold (px); None: no Huber loss.
+            sigma_px: the pixel sigma of the view factors; None estimates it (the robust sigma of the residuals
+                after a first numpy solve of this graph, :func:`estimate_sigma_px`) so that factors you add in
+                physical units weigh what they say.
+            workers: threads for the corner detection (None: one per CPU).
+
+        Returns:
+            The :class:`RigGraph`.
+
+        Raises:
+            TypeError: ``dataset`` is neither a Dataset nor a folder.
+            ValueError: ``huber_px`` or ``sigma_px`` not a finite number > 0.
+            AriSfmError: the data do not observe a window's normal and the model needs it.
         """
         from ..detection import ensure_observations
         from ..init.rig import NO_NORMAL_MESSAGE, initialise_rig
@@ -439,7 +542,18 @@ class RigGraph:
         return out
 
     def optimize(self, max_iterations: int = 100, relative_tolerance: float = 1e-10) -> RigState:
-        """Levenberg-Marquardt from the current values; updates them and returns the state."""
+        """Levenberg-Marquardt (GTSAM) from the current values; updates them.
+
+        Args:
+            max_iterations: cap on the iterations, >= 1.
+            relative_tolerance: LM stops when the error's relative decrease is below it.
+
+        Returns:
+            The solved :class:`RigState`.
+
+        Raises:
+            ValueError: ``max_iterations`` is not an integer >= 1.
+        """
         if isinstance(max_iterations, bool) or not isinstance(max_iterations, int) or max_iterations < 1:
             raise ValueError(f"max_iterations must be an integer >= 1 (got {max_iterations!r})")
         params = gtsam.LevenbergMarquardtParams()
@@ -477,10 +591,18 @@ class RigGraph:
 
 
 def estimate_sigma_px(rg: RigGraph) -> float:
-    """The pixel sigma of a graph's images: the robust sigma (1.4826 MAD per coordinate,
-    :func:`ari_sfm.calibration.outliers.robust_sigma_px`) of the residuals after solving a copy of the graph
-    with the numpy backend (GTSAM when the graph has factors the numpy backend cannot hold).
-    ``rg`` itself is not changed."""
+    """The pixel sigma of a graph's images.
+
+    The robust sigma (1.4826 MAD per coordinate, :func:`ari_sfm.calibration.outliers.robust_sigma_px`) of the residuals
+    after solving a copy of the graph with the numpy backend (GTSAM when the graph has factors the numpy
+    backend cannot hold). ``rg`` itself is not changed.
+
+    Args:
+        rg: the graph.
+
+    Returns:
+        The pixel sigma (px, per coordinate).
+    """
     from ..calibration.outliers import robust_sigma_px
 
     copy = replace(rg, made_values=rg.values_copy(), unwritten=None, factor_views=list(rg.factor_views),

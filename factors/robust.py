@@ -11,13 +11,6 @@ rho - w d^2 / 2 = k (d - k) / 2 per corner beyond k (:func:`huber_irls`):
 - a GTSAM CustomFactor's error is 0.5 ||residual||^2, so a view's factor carries it as one more
   row, sqrt(2 sum of the excess), whose Jacobian is zero (:func:`huber_view_residual`): its error
   is the sum of rho and its linearisation the same IRLS system.
-
-Square-root weights alone made the error 0.5 w d^2 = k d / 2 beyond k, half
-the system's gradient: LM rejected every step near the optimum and stopped short of the Huber
-M-estimate. Scaling the residual to s r with 0.5 |s r|^2 = rho and the Jacobian by w / s is
-consistent too, but its curvature k / (2 d - k) is half the IRLS weight for far outliers: from
-starts 100-500 px off (binocular_underwater's ari stage) LM's model then promised decreases
-no step gave and it stopped at lambda's bound after one step.
 """
 from __future__ import annotations
 
@@ -29,7 +22,15 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 
 def huber_loss(dist: np.ndarray, huber_px: float | None) -> np.ndarray:
-    """rho(d) per corner (d^2 / 2 without a threshold)."""
+    """The Huber loss rho(d) per corner.
+
+    Args:
+        dist: the corners' pixel distances.
+        huber_px: the threshold k (px); None: no threshold (d^2 / 2).
+
+    Returns:
+        rho(d), the shape of ``dist``.
+    """
     dist = np.asarray(dist, float)
     if huber_px is None:
         return 0.5 * dist * dist
@@ -38,7 +39,15 @@ def huber_loss(dist: np.ndarray, huber_px: float | None) -> np.ndarray:
 
 
 def huber_weight(dist: np.ndarray, huber_px: float | None) -> np.ndarray:
-    """The IRLS weight rho'(d) / d = min(1, k / d) per corner (1 without a threshold)."""
+    """The IRLS weight ``rho'(d) / d = min(1, k / d)`` per corner.
+
+    Args:
+        dist: the corners' pixel distances.
+        huber_px: the threshold k (px); None: no threshold (weight 1).
+
+    Returns:
+        The weights, the shape of ``dist``.
+    """
     dist = np.asarray(dist, float)
     if huber_px is None:
         return np.ones(dist.shape)
@@ -46,8 +55,17 @@ def huber_weight(dist: np.ndarray, huber_px: float | None) -> np.ndarray:
 
 
 def huber_residual_scale(dist: np.ndarray, huber_px: float) -> np.ndarray:
-    """s = sqrt(2 rho(d)) / d per corner (1 inside the threshold): 0.5 |s r|^2 = rho(d), the error of one
-    corner. A non-finite distance gives a non-finite scale: callers replace non-finite residuals."""
+    """The residual scale ``s = sqrt(2 rho(d)) / d`` per corner, so that ``0.5 |s r|^2 = rho(d)``.
+
+    A non-finite distance gives a non-finite scale: callers replace non-finite residuals.
+
+    Args:
+        dist: the corners' pixel distances.
+        huber_px: the threshold k (px).
+
+    Returns:
+        The scales (1 inside the threshold), the shape of ``dist``.
+    """
     dist = np.asarray(dist, float)
     scale = np.ones(dist.shape)
     k = float(huber_px)
@@ -76,8 +94,16 @@ def _irls_batch(dist, k):
 
 
 def huber_irls(dist: np.ndarray, huber_px: float | None) -> tuple[np.ndarray, np.ndarray]:
-    """(sqrt(w), rho(d) - w d^2 / 2) per corner: the IRLS scale of residual and Jacobian, and what the
-    error adds to the scaled residual's 0.5 w d^2 (0 inside the threshold; k (d - k) / 2 beyond)."""
+    """The IRLS scale per corner and what the error adds to the scaled residual.
+
+    Args:
+        dist: the corners' pixel distances.
+        huber_px: the threshold k (px); None: no threshold.
+
+    Returns:
+        sqrt(w) per corner, the scale of residual and Jacobian rows, and the excess ``rho(d) - w d^2 / 2``
+            (0 inside the threshold; k (d - k) / 2 beyond), both flat (M,).
+    """
     dist = np.ascontiguousarray(dist, dtype=np.float64).reshape(-1)
     if huber_px is None:
         return np.ones(dist.shape), np.zeros(dist.shape)
@@ -86,11 +112,24 @@ def huber_irls(dist: np.ndarray, huber_px: float | None) -> tuple[np.ndarray, np
 
 @njit(**_JIT)
 def weighted_residuals(uv, measured, huber_px, inv_sigma, whitened, invalid):
-    """One camera's IRLS rows in one pass (the numpy backend's linearisation): per corner r = uv -
-    measured, its distance, the Jacobian scale sqrt(w) (times ``inv_sigma`` with ``whitened``; Huber off
-    when ``huber_px`` < 0), the scaled residual (m, 2) with non-finite entries set to ``invalid`` (times
-    the corner's ``inv_sigma`` when whitened), and the error's excess per corner. Returns (scale, res,
-    dist, excess, any beyond the threshold)."""
+    """One camera's IRLS rows in one pass (the numpy backend's linearisation).
+
+    Per corner: r = uv - measured, its distance, the Jacobian scale sqrt(w) (times ``inv_sigma`` when
+    ``whitened``), the scaled residual and the error's excess.
+
+    Args:
+        uv (ndarray): projected pixels (m, 2).
+        measured (ndarray): measured pixels (m, 2).
+        huber_px (float): the threshold k (px); < 0: Huber off.
+        inv_sigma (ndarray): each corner's 1 / sigma (m,), used when ``whitened``.
+        whitened (bool): scale by ``inv_sigma`` too.
+        invalid (float): the value of non-finite residual entries (times the corner's ``inv_sigma`` when
+            whitened).
+
+    Returns:
+        The scale (m,), the scaled residual (m, 2), the distance (m,), the excess (m,) and whether any
+            corner is beyond the threshold.
+    """
     m = uv.shape[0]
     scale, res, dist, excess = np.empty(m), np.empty((m, 2)), np.empty(m), np.zeros(m)
     beyond = False
@@ -111,9 +150,19 @@ def weighted_residuals(uv, measured, huber_px, inv_sigma, whitened, invalid):
 
 
 def huber_view_residual(r: np.ndarray, huber_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """One view's factor residual (2M + 1,): its corners' rows sqrt(w) r, then sqrt(2 sum of the
-    excess) (module docstring; a corner whose distance is not finite adds no excess); and the rows'
-    scale sqrt(w) (M,), also the Jacobian rows' (the last row's Jacobian is zero)."""
+    """One view's factor residual with the Huber loss (module docstring).
+
+    The corners' rows are sqrt(w) r, then one row sqrt(2 sum of the excess); a corner whose distance is not
+    finite adds no excess.
+
+    Args:
+        r: the corners' pixel residuals (M, 2).
+        huber_px: the threshold k (px).
+
+    Returns:
+        The residual (2M + 1,), and the rows' scale sqrt(w) (M,), also the Jacobian rows' (the last row's
+            Jacobian is zero).
+    """
     dist = np.linalg.norm(r, axis=1)
     sqrt_w, excess = huber_irls(dist, huber_px)
     with np.errstate(invalid="ignore"):  # inf * 0 where a corner fell behind the window: the caller's 1e6

@@ -35,15 +35,21 @@ def _std(variance: float, what: str) -> float | None:
 
 
 def marginal_covariances(rg: RigGraph, solved=None, sigma_px: float | None = None) -> dict[int, np.ndarray]:
-    """Marginal covariances of the rig's global variables at the graph's current values, by key:
-    K(c) (px), C(c) for c > 0 (Pose3 tangent [rad, mm]; camera 0 is the world, no variable),
-    N(w) (each window's normal, its 2-D Unit3 tangent, rad) and H(w) (mm, when estimated).
+    """Marginal covariances of the rig's global variables at the graph's current values, by key.
 
-    ``solved``: the numpy backend's VectorizedProblem at these values (``optimize_graph(...,
-    return_problem=True)``), else ``gtsam.Marginals(rg.graph, rg.values)`` is used. The units are
-    physical because the view factors carry ``rg.sigma_px``; ``sigma_px`` rescales to another pixel
-    sigma (exact only when every factor is a view factor: with user factors rebuild the graph with
-    :meth:`RigGraph.with_sigma` instead).
+    The keys: K(c) (px), C(c) for c > 0 (Pose3 tangent [rad, mm]; camera 0 is the world, no variable),
+    N(w) (each window's normal, its 2-D Unit3 tangent, rad) and H(w) (mm, when estimated). The units are
+    physical because the view factors carry ``rg.sigma_px``.
+
+    Args:
+        rg: the solved graph.
+        solved (VectorizedProblem | None): the numpy backend's problem at these values
+            (``optimize_graph(..., return_problem=True)``); None: ``gtsam.Marginals(rg.graph, rg.values)``.
+        sigma_px: rescale to this pixel sigma (exact only when every factor is a view factor: with user
+            factors rebuild the graph with :meth:`RigGraph.with_sigma` instead); None: the graph's.
+
+    Returns:
+        The covariance of each variable by its gtsam key.
     """
     marginals = solved.marginals() if solved is not None else gtsam.Marginals(rg.graph, rg.values)
     keys = [K_.K(c) for c in range(len(rg.camera_names))] + [K_.C(c) for c in range(1, len(rg.camera_names))]
@@ -55,14 +61,21 @@ def marginal_covariances(rg: RigGraph, solved=None, sigma_px: float | None = Non
 
 def rig_uncertainty(rg: RigGraph, covariances: dict[int, np.ndarray] | None = None,
                     sigma_px: float | None = None) -> Uncertainty:
-    """Standard deviations: per camera fx fy cx cy (and distortion) in px, the
-    relative pose of each camera to camera 0 (rotation in degrees, translation in
-    mm, as RMS error magnitudes), the normal's angle in degrees (RMS), and the
-    window distance in mm when it is estimated (with several windows, each window's: the
-    distance's as its near face's position along its normal); ``sigma_px`` the pixel sigma they
-    rest on (default the graph's).
+    """Standard deviations of the calibration, as written to calibration.json.
 
-    ``covariances``: :func:`marginal_covariances` of the graph (computed when not given)."""
+    Per camera fx fy cx cy (and distortion) in px; the relative pose of each camera to camera 0 (rotation in
+    degrees, translation in mm, as RMS error magnitudes); the normal's angle in degrees (RMS); and the window
+    distance in mm when it is estimated (with several windows, each window's: the distance's as its near
+    face's position along its normal).
+
+    Args:
+        rg: the solved graph.
+        covariances: :func:`marginal_covariances` of the graph (computed when not given).
+        sigma_px: the pixel sigma the deviations rest on (default the graph's).
+
+    Returns:
+        The :class:`~ari_sfm.results.Uncertainty`.
+    """
     cov = marginal_covariances(rg) if covariances is None else covariances
     cameras = {}
     for c, name in enumerate(rg.camera_names):

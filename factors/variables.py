@@ -61,7 +61,16 @@ class RigState:
 
     def with_window(self, window: int, normal: np.ndarray | None = None, offset: float | None | str = "keep"
                     ) -> RigState:
-        """The state with window ``window``'s normal and/or offset replaced (``offset="keep"``: unchanged)."""
+        """The state with window ``window``'s normal and/or offset replaced.
+
+        Args:
+            window: the window's index.
+            normal: the new unit normal in the world; None: unchanged.
+            offset: the new plane offset ``normal . X`` (mm; None: not modelled); ``"keep"``: unchanged.
+
+        Returns:
+            A new :class:`RigState`.
+        """
         from dataclasses import replace
 
         n = self.normal(window) if normal is None else np.asarray(normal, float)
@@ -73,7 +82,15 @@ class RigState:
         return replace(self, more_windows=tuple(more))
 
     def camera_distance_mm(self, window: int, camera: str) -> float | None:
-        """A camera's distance to window ``window``'s near face (offset minus normal . centre)."""
+        """A camera's distance to window ``window``'s near face (offset minus normal . centre).
+
+        Args:
+            window: the window's index.
+            camera: the camera's name.
+
+        Returns:
+            The distance (mm), or None when the window's offset is not modelled.
+        """
         h = self.offset(window)
         if h is None:
             return None
@@ -82,10 +99,20 @@ class RigState:
     @classmethod
     def from_initialisation(cls, rig, distance_mm: float | None = None,
                             more_offsets: Sequence[float | None] = ()) -> RigState:
-        """The state of an analytic initialisation (:class:`ari_sfm.init.rig.RigInit`):
-        params [fx fy cx cy] + the distortion padded to 5 per camera, its poses and
-        normals, window 0's offset ``distance_mm`` and the other windows' ``more_offsets``
-        (see :func:`ari_sfm.factors.rig_graph.default_distance_mm`)."""
+        """The state of an analytic initialisation.
+
+        Params are [fx fy cx cy] plus the distortion padded to 5 per camera; poses and normals are the
+        initialisation's.
+
+        Args:
+            rig (RigInit): the initialisation (:class:`ari_sfm.init.rig.RigInit`).
+            distance_mm: window 0's plane offset (see :func:`ari_sfm.factors.rig_graph.default_distance_mm`);
+                None: not modelled.
+            more_offsets: the other windows' plane offsets, in order (missing ones None).
+
+        Returns:
+            The :class:`RigState`.
+        """
         params = {n: np.concatenate([[c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]], np.resize(c.dist, 5)])
                   for n, c in rig.cameras.items()}
         normals = rig.window_normals
@@ -124,7 +151,16 @@ class Variables:
         return out
 
     def with_distance(self, window: int, offset: float, world_t_target: np.ndarray | None = None) -> Variables:
-        """A copy with one window's offset replaced (and, if given, every frame's translation)."""
+        """A copy with one window's offset replaced (and, if given, every frame's translation).
+
+        Args:
+            window: the window's index.
+            offset: its new plane offset (mm).
+            world_t_target: every frame's new translation (F, 3); None: unchanged.
+
+        Returns:
+            The new :class:`Variables`.
+        """
         from dataclasses import replace
 
         distances = list(self.distances)

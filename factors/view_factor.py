@@ -15,8 +15,7 @@ chains them to the GTSAM tangent spaces:
   C_c the camera centre in the world.
 
 Optional Huber loss per corner (on the pixel distance), applied inside the
-factor because a robust noise model on a 2M-vector would down-weight whole
-images instead of single corners: the corners' rows IRLS-weighted and one more
+factor so that it down-weights single corners: the corners' rows IRLS-weighted and one more
 row that makes the error the Huber loss
 (:func:`~ari_sfm.factors.robust.huber_view_residual`).
 """
@@ -60,9 +59,18 @@ class ViewKeys:
 
 def camera_terms(normal_world: np.ndarray, basis: np.ndarray, R_wc: np.ndarray | None, t_wc: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """What the chain rule needs of one camera (:mod:`~ari_sfm.factors.view_kernels`): ``n_cam`` =
-    R_cw n_world, ``a`` = -(n_world R_wc), ``M`` = R_cw B, ``b`` = -(t_wc B); ``R_wc`` None for camera 0
-    (the world: R_cw = I)."""
+    """What the chain rule needs of one camera (:mod:`~ari_sfm.factors.view_kernels`).
+
+    Args:
+        normal_world: the window's unit normal in the world (3,).
+        basis: its Unit3 tangent basis B (3, 2).
+        R_wc: the camera's world_T_cam rotation (3, 3); None for camera 0 (the world: R_cw = I).
+        t_wc: the camera's world_T_cam translation (3,).
+
+    Returns:
+        ``n_cam`` = R_cw n_world (3,), ``a`` = -(n_world R_wc) (3,), ``M`` = R_cw B (3, 2) and
+            ``b`` = -(t_wc B) (2,).
+    """
     R_cw = np.eye(3) if R_wc is None else R_wc.T
     n_cam = R_cw @ normal_world
     cam_shift = np.zeros(3) if R_wc is None else -(normal_world @ R_wc)
@@ -73,15 +81,28 @@ def chain_to_tangents(out: np.ndarray, n_params: int, J_point: np.ndarray, J_nor
                       J_distance: np.ndarray, X_cam: np.ndarray, P: np.ndarray, R_view: np.ndarray,
                       view_start: np.ndarray, normal_world: np.ndarray, basis: np.ndarray, R_wc: np.ndarray | None,
                       t_wc: np.ndarray, distance: bool) -> None:
-    """The chain rule from the model's derivatives to the variables' tangent spaces (module docstring;
-    compiled: :func:`~ari_sfm.factors.view_kernels.chain_rows`), for M corners of one camera grouped by
-    view, written into ``out`` (M, 2, >= 6 + n_params + 8 (+1)) laid out as
-    ``[X(f) (6) | K(c) (n_params, left to the caller) | C(c) (6, zero for camera 0) | N (2) | H (1, with distance)]``.
+    """The chain rule from the model's derivatives to the variables' tangent spaces (module docstring).
 
-    ``J_point``, ``J_normal`` (M, 2, 3) and ``J_distance`` (M, 2) from the model; ``X_cam`` (M, 3) the
-    camera-frame points, ``P`` (M, 3) the target-frame points; ``R_view`` (V, 3, 3) each view's
-    R_cam_target, its corners ``view_start[v]:view_start[v + 1]``; ``basis`` the Unit3 tangent basis
-    (3, 2) of ``normal_world``; ``R_wc``, ``t_wc`` the camera's world_T_cam (``R_wc`` None for camera 0).
+    Compiled: :func:`~ari_sfm.factors.view_kernels.chain_rows`. For M corners of one camera grouped by view,
+    written into ``out`` (M, 2, >= 6 + n_params + 8 (+1)) laid out as
+    ``[X(f) (6) | K(c) (n_params, left to the caller) | C(c) (6, zero for camera 0) | N (2) | H (1, with
+    distance)]``.
+
+    Args:
+        out: the output Jacobian rows (M, 2, >= 6 + n_params + 8 (+1)).
+        n_params: the number of intrinsics columns.
+        J_point: d uv / d X_cam (M, 2, 3) from the model.
+        J_normal: d uv / d n_cam (M, 2, 3) from the model.
+        J_distance: d uv / d h_c (M, 2) from the model.
+        X_cam: the camera-frame points (M, 3).
+        P: the target-frame points (M, 3).
+        R_view: each view's R_cam_target (V, 3, 3).
+        view_start: view v's corners are ``view_start[v]:view_start[v + 1]`` (V + 1,).
+        normal_world: the window's unit normal in the world (3,).
+        basis: its Unit3 tangent basis (3, 2).
+        R_wc: the camera's world_T_cam rotation; None for camera 0.
+        t_wc: the camera's world_T_cam translation (3,).
+        distance: fill the H column (the distance is a variable).
     """
     n_cam, cam_shift, normal_map, normal_shift = camera_terms(normal_world, basis, R_wc, t_wc)
     chain_rows(J_point, J_normal, J_distance, X_cam, P, R_view, view_start, n_cam, cam_shift, normal_map,
@@ -92,7 +113,23 @@ def view_residuals(
     model_factory: ModelFactory, data: ViewData, keys: ViewKeys, values: gtsam.Values, want_jacobians: bool,
     huber_px: float | None = None
 ) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Residuals (2M,) of one view and, if asked, the Jacobians in key order."""
+    """Residuals of one view and, if asked, the Jacobians in key order (:func:`factor_keys`).
+
+    A camera put beyond the window by an LM trial step gets residuals of 1e6 (a huge error rejects the
+    step); a corner that falls behind the window gets 1e6 entries.
+
+    Args:
+        model_factory: the projection class (AriModel or ExactModel).
+        data: the view's points, pixels and plate.
+        keys: the view's variable keys.
+        values: the variables' values.
+        want_jacobians: compute the Jacobians.
+        huber_px: the per-corner Huber threshold (px); None: no Huber loss.
+
+    Returns:
+        The residual (2M,), or (2M + 1,) with the Huber row, and the Jacobians (empty without
+            ``want_jacobians``).
+    """
     params = data.base_params.copy()
     params[: data.n_params] = values.atVector(keys.intrinsics)
     if keys.camera is not None:
@@ -157,7 +194,19 @@ def factor_keys(keys: ViewKeys) -> list[int]:
 def view_factor(
     model_factory: ModelFactory, data: ViewData, keys: ViewKeys, sigma_px: float = 1.0, huber_px: float | None = None
 ) -> gtsam.CustomFactor:
-    """A CustomFactor for all corners of one image (model: AriModel or ExactModel)."""
+    """A CustomFactor for all corners of one image.
+
+    Args:
+        model_factory: the projection class (AriModel or ExactModel).
+        data: the view's points, pixels and plate.
+        keys: the view's variable keys.
+        sigma_px: the isotropic pixel sigma (per coordinate).
+        huber_px: the per-corner Huber threshold (px); None: no Huber loss.
+
+    Returns:
+        The factor; its error function raises RuntimeError on a Jacobian of the wrong shape or with
+            non-finite entries.
+    """
     key_list = factor_keys(keys)
     dims = ([data.n_params] + ([6] if keys.camera is not None else []) + [2, 6]
             + ([1] if keys.distance is not None else []))

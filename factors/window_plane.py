@@ -28,15 +28,36 @@ FIXED_SIGMA_MM = 1e-4
 
 
 def plane_in_world(plane: WindowPlane, world_from_target: Pose) -> tuple[np.ndarray, float]:
-    """(normal_world, the camera-side face's offset normal . X in the world: for camera 0's window, the
-    distance from camera 0, the world's origin)."""
+    """The declared plane in the world, given its frame's pose.
+
+    Args:
+        plane: the declared plane, in its target frame's coordinates.
+        world_from_target: the pose of that frame.
+
+    Returns:
+        The unit normal in the world (3,), and the camera-side face's offset ``normal . X`` in the world (mm;
+            for camera 0's window, the distance from camera 0, the world's origin).
+    """
     n_w = unit(world_from_target.R @ np.asarray(plane.normal, float))
     return n_w, float(n_w @ world_from_target.apply(np.asarray(plane.point_mm, float)[None, :])[0])
 
 
 def plane_errors(plane: WindowPlane, values: gtsam.Values, frame_key: int, with_distance: bool,
                  want_jacobians: bool, window: int = 0) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Unwhitened errors [e_n (3), e_h (1, with_distance)] and Jacobians in key order [N(w), X(f), H(w)]."""
+    """Unwhitened errors of the plane factor and its Jacobians.
+
+    Args:
+        plane: the declared plane.
+        values: the variables' values.
+        frame_key: the key of the plane's frame X(f).
+        with_distance: include the distance error e_h (H(w) is a variable).
+        want_jacobians: compute the Jacobians.
+        window: the window's index w.
+
+    Returns:
+        The errors [e_n (3), e_h (1, with ``with_distance``)] and the Jacobians in key order
+            [N(w), X(f), H(w)] (empty without ``want_jacobians``).
+    """
     n_t, p_t = np.asarray(plane.normal, float), np.asarray(plane.point_mm, float)
     N = values.atUnit3(K_.window_normal(window))
     X = values.atPose3(frame_key)
@@ -64,8 +85,20 @@ def plane_errors(plane: WindowPlane, values: gtsam.Values, frame_key: int, with_
 
 def window_plane_factor(plane: WindowPlane, frame_index: int, with_distance: bool, window: int = 0
                         ) -> gtsam.CustomFactor:
-    """One factor tying window ``window``'s normal N(w), the frame pose X(frame_index) and (with_distance) its
-    plane H(w) to the declared plane."""
+    """One factor tying a window's normal and plane to the declared plane.
+
+    Ties N(w), the frame pose X(frame_index) and (with ``with_distance``) the plane H(w). A sigma of 0 in the
+    declared plane holds that part fixed.
+
+    Args:
+        plane: the declared plane, with its sigmas (deg, mm).
+        frame_index: the index f of the plane's frame X(f).
+        with_distance: tie H(w) too (the distance is a variable).
+        window: the window's index w.
+
+    Returns:
+        The CustomFactor.
+    """
     sigma_n = np.radians(plane.sigma_deg) if plane.sigma_deg > 0 else FIXED_SIGMA_RAD
     sigma_h = plane.sigma_mm if plane.sigma_mm > 0 else FIXED_SIGMA_MM
     sigmas = np.array([sigma_n] * 3 + ([sigma_h] if with_distance else []))

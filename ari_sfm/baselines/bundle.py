@@ -36,12 +36,31 @@ MIN_CORNERS = 6
 
 
 def calibration_views(dataset: Dataset, camera: str) -> list[Observation]:
-    """The camera's calibration records with enough corners for Zhang."""
+    """The camera's calibration records with enough corners for Zhang.
+
+    Args:
+        dataset: the dataset, with observations.
+        camera: the camera's name.
+
+    Returns:
+        The records with at least MIN_CORNERS corners.
+    """
     return [o for o in dataset.select("calibration", camera) if len(o.ids) >= MIN_CORNERS]
 
 
 def zhang_cameras(dataset: Dataset, distortion: bool = False) -> dict[str, ZhangResult]:
-    """cv2.calibrateCamera per camera on its calibration views (the window ignored)."""
+    """``cv2.calibrateCamera`` per camera on its calibration views (the window ignored).
+
+    Args:
+        dataset: the dataset, with observations.
+        distortion: estimate k1 k2 p1 p2 k3.
+
+    Returns:
+        Each camera's Zhang result, by name.
+
+    Raises:
+        AriSfmError: a camera has fewer than MIN_VIEWS calibration views with MIN_CORNERS corners.
+    """
     out = {}
     for name in dataset.camera_names:
         views = calibration_views(dataset, name)
@@ -98,7 +117,16 @@ class Points:
 
 
 def sparsity(num_params: int, columns: Sequence[np.ndarray]) -> np.ndarray:
-    """Boolean (2N, P) pattern: corner k's two rows depend on the columns ``columns[j][k]`` (-1: none)."""
+    """The Jacobian's sparsity pattern: which columns each corner's two rows depend on.
+
+    Args:
+        num_params: the number of parameters P.
+        columns: groups of column indices, each (N,) or (N, n): corner k's rows depend on ``columns[j][k]``
+            (-1: none).
+
+    Returns:
+        The boolean pattern (2N, P).
+    """
     n = len(columns[0])
     pattern = np.zeros((2 * n, num_params), dtype=bool)
     rows = np.arange(n)
@@ -133,6 +161,13 @@ def numeric_jacobian(fun: Callable[[np.ndarray], np.ndarray],
     """A dense forward-difference Jacobian of ``fun`` using the column grouping of ``pattern``.
 
     Step per column: sqrt(machine eps) * max(1, |x_j|) (scipy's '2-point' rule).
+
+    Args:
+        fun: the residual function.
+        pattern: its sparsity pattern (rows, parameters) (see :func:`sparsity`).
+
+    Returns:
+        The Jacobian function ``jac(x)``; its ``groups`` attribute is the number of column groups.
     """
     groups = column_groups(pattern)
     step_rel = np.sqrt(np.finfo(float).eps)
@@ -196,7 +231,15 @@ class RigBundle:
         return intr, cams, glob, moved(self.frame_start, frame_inc)
 
     def cam_points(self, cams: Sequence[Pose], frames: Sequence[Pose]) -> np.ndarray:
-        """Camera-frame coordinates (N, 3) of every corner."""
+        """Camera-frame coordinates of every corner.
+
+        Args:
+            cams: cam_from_world per camera.
+            frames: world_from_target per frame.
+
+        Returns:
+            The points (N, 3), one per corner.
+        """
         p = self.points
         Rf = np.stack([f.R for f in frames])[p.frame]
         tf = np.stack([f.t for f in frames])[p.frame]
@@ -217,7 +260,18 @@ class RigBundle:
         return sparsity(self.size, [intr, cam, glob, frame])
 
     def solve(self, x0: np.ndarray, residuals: Callable[[np.ndarray], np.ndarray], max_nfev: int | None = None):
-        """Levenberg-Marquardt (MINPACK, scipy.optimize.least_squares) with the grouped numeric Jacobian."""
+        """Levenberg-Marquardt (MINPACK, scipy.optimize.least_squares) with the grouped numeric Jacobian.
+
+        Non-finite residuals (a corner without a ray) are replaced by a large, flat 1e3.
+
+        Args:
+            x0: the start (:attr:`size`,).
+            residuals: the residual function of x.
+            max_nfev: cap on the function evaluations (None: scipy's default).
+
+        Returns:
+            scipy's ``OptimizeResult``.
+        """
         from scipy.optimize import least_squares
 
         def finite(x: np.ndarray) -> np.ndarray:
@@ -229,7 +283,19 @@ class RigBundle:
 
 
 def start_bundle(dataset: Dataset, distortion: bool, n_glob: int) -> tuple[RigBundle, dict[str, ZhangResult]]:
-    """Zhang per camera, the rig joined in camera 0's world, the calibration corners packed."""
+    """Zhang per camera, the rig joined in camera 0's world, the calibration corners packed.
+
+    Args:
+        dataset: the dataset, with observations.
+        distortion: estimate k1 k2 p1 p2 k3 (9 intrinsics per camera, else 4).
+        n_glob: the number of global parameters of the model.
+
+    Returns:
+        The :class:`RigBundle` and each camera's Zhang result.
+
+    Raises:
+        AriSfmError: a camera has too few calibration views, or the cameras share no frames.
+    """
     names = tuple(dataset.camera_names)
     zhang = zhang_cameras(dataset, distortion)
     cam_from_world, world_from_target = join_rig(names, {n: z.cam_from_target for n, z in zhang.items()},
@@ -242,14 +308,31 @@ def start_bundle(dataset: Dataset, distortion: bool, n_glob: int) -> tuple[RigBu
 
 
 def intrinsics_vector(z: ZhangResult, distortion: bool) -> np.ndarray:
-    """[fx fy cx cy] (+ k1 k2 p1 p2 k3 with distortion) of a Zhang result."""
+    """The intrinsics of a Zhang result as a parameter vector.
+
+    Args:
+        z: the Zhang result.
+        distortion: append the distortion.
+
+    Returns:
+        [fx fy cx cy], with ``distortion`` followed by k1 k2 p1 p2 k3.
+    """
     K = z.K
     base = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
     return np.array(base + (list(np.resize(z.dist, 5)) if distortion else []), float)
 
 
 def project_directions(intr: np.ndarray, camera: np.ndarray, D: np.ndarray) -> np.ndarray:
-    """Pixels (N, 2) of camera-frame directions/points D (N, 3), each through its camera's intrinsics."""
+    """Pixels of camera-frame directions or points, each through its camera's intrinsics.
+
+    Args:
+        intr: the intrinsics (C, 4) or (C, 9).
+        camera: each row's camera index (N,).
+        D: the directions or points (N, 3).
+
+    Returns:
+        The pixels (N, 2).
+    """
     from ..models import PinholeModel
 
     uv = np.full((len(D), 2), np.nan)
@@ -262,9 +345,20 @@ def project_directions(intr: np.ndarray, camera: np.ndarray, D: np.ndarray) -> n
 
 def camera_calibrations(dataset: Dataset, bundle: RigBundle, intr: np.ndarray, cams: Sequence[Pose],
                         per_camera_residuals: dict[str, np.ndarray]) -> dict[str, CameraCalibration]:
-    """The CameraCalibration of every camera from a solved bundle."""
+    """The CameraCalibration of every camera from a solved bundle.
+
+    Args:
+        dataset: the dataset.
+        bundle: the bundle.
+        intr: the solved intrinsics (C, n_intr).
+        cams: the solved cam_from_world per camera.
+        per_camera_residuals: each camera's pixel residuals (M, 2), for its RMSE.
+
+    Returns:
+        The calibrations by camera name.
+    """
+    from ..calibration import CameraCalibration
     from ..calibration.evaluate import residual_stats
-    from ..calibration.record import CameraCalibration
 
     out = {}
     for c, name in enumerate(bundle.names):

@@ -27,8 +27,17 @@ log = logging.getLogger(__name__)
 
 
 def calibrate_pinhole(dataset: Dataset, distortion: bool = False, max_iterations: int = 100) -> Calibration:
-    """A pinhole rig (model ``pinhole``, or ``pinhole_dist`` with distortion) that ignores the window."""
-    from ..calibration.record import Calibration
+    """A pinhole rig that ignores the window: model ``pinhole``, or ``pinhole_dist`` with distortion.
+
+    Args:
+        dataset: the dataset, with observations.
+        distortion: estimate k1 k2 p1 p2 k3 (model ``pinhole_dist``).
+        max_iterations: scipy's evaluations are capped at twice this.
+
+    Returns:
+        The :class:`~ari_sfm.calibration.record.Calibration` (no window normal).
+    """
+    from ..calibration import Calibration
 
     t0 = time.perf_counter()
     bundle, zhang = start_bundle(dataset, distortion, 0)

@@ -42,7 +42,21 @@ log = logging.getLogger(__name__)
 
 
 def fit_polynomial(X_world: np.ndarray, uv: np.ndarray) -> PolynomialMap:
-    """Linear least squares of the 40 coefficients on points (N, 3) and their pixels (N, 2)."""
+    """Linear least squares of the 40 coefficients on world points and their pixels.
+
+    A design matrix of rank below 20 (points that do not span the volume) logs a warning: the minimum-norm
+    fit is not unique.
+
+    Args:
+        X_world: world points (N, 3), N >= 20.
+        uv: their pixels (N, 2).
+
+    Returns:
+        The :class:`PolynomialMap`.
+
+    Raises:
+        ValueError: fewer than 20 points.
+    """
     X = np.asarray(X_world, float).reshape(-1, 3)
     uv = np.asarray(uv, float).reshape(-1, 2)
     if len(X) < NUM_TERMS:
@@ -60,7 +74,16 @@ def fit_polynomial(X_world: np.ndarray, uv: np.ndarray) -> PolynomialMap:
 
 def world_points(observations: Sequence[Observation], frames: dict[str, Pose],
                  dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
-    """World points (N, 3) and pixels (N, 2) of the calibration records whose frame has a pose."""
+    """World points and pixels of the calibration records whose frame has a pose.
+
+    Args:
+        observations: the records.
+        frames: world_from_target by frame name.
+        dataset: the dataset (its target).
+
+    Returns:
+        The world points (N, 3) and their pixels (N, 2).
+    """
     X, uv = [], []
     for o in observations:
         if o.set == "calibration" and o.frame in frames:
@@ -74,10 +97,20 @@ def world_points(observations: Sequence[Observation], frames: dict[str, Pose],
 def calibrate_pf(dataset: Dataset, world=None, **ari_options) -> Calibration:
     """PF per camera on the calibration records, in the world of an ari calibration.
 
-    ``world``: a :class:`~ari_sfm.calibration.record.Calibration` whose frames give the
-    world coordinates (default: ``calibrate(dataset, model="ari")`` first; its
-    time is not PF's and is reported under ``pf_world``). ``time_s`` is the
-    polynomial fit alone, as in the paper's Table 2.
+    ``time_s`` is the polynomial fit alone, as in the paper's Table 2.
+
+    Args:
+        dataset: the dataset, with observations.
+        world: a :class:`~ari_sfm.calibration.record.Calibration` whose frames give the world coordinates (default:
+            ``calibrate(dataset, model="ari")`` first; its time is not PF's and is reported under
+            ``pf_world``).
+        ari_options: options of that ari calibration.
+
+    Returns:
+        The pf :class:`~ari_sfm.calibration.record.Calibration`.
+
+    Raises:
+        AriSfmError: a camera has fewer than 20 calibration corners with a world position.
     """
     from ..calibration.calibrate import calibrate
     from ..calibration.evaluate import residual_stats

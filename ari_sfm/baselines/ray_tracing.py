@@ -53,7 +53,20 @@ def _refract(v: np.ndarray, normal: np.ndarray, eta: float) -> np.ndarray:
 
 def trace(v: np.ndarray, normal: np.ndarray, h: np.ndarray, d: float, n: float, n_m: float,
           depth: np.ndarray) -> np.ndarray:
-    """Where unit camera rays v (N, 3) cross the plane ``normal . X = depth`` after the window."""
+    """Where unit camera rays cross the plane ``normal . X = depth`` after the window.
+
+    Args:
+        v: unit camera rays (N, 3).
+        normal: the window's unit normal per ray (N, 3), camera frame.
+        h: the near-face distance per ray (N,) (mm).
+        d: the plate thickness (mm).
+        n: the glass index.
+        n_m: the medium index.
+        depth: the plane's offset per ray (N,) (mm).
+
+    Returns:
+        The crossing points (N, 3).
+    """
     c = np.einsum("ij,ij->i", v, normal)
     p = v * (h / c)[:, None]  # near face
     vg = _refract(v, normal, 1.0 / n)
@@ -65,12 +78,22 @@ def trace(v: np.ndarray, normal: np.ndarray, h: np.ndarray, d: float, n: float, 
 
 def trace_to_points(start: np.ndarray, X: np.ndarray, normal: np.ndarray, h: np.ndarray, d: float, n: float,
                     n_m: float) -> tuple[np.ndarray, int]:
-    """Unit camera-side rays (N, 3) that reach the camera-frame points X (N, 3) through the window.
+    """Unit camera-side rays that reach camera-frame points through the window.
 
-    ``start``: first directions (N, 3) (the observed pixels' rays). Each step
-    traces the ray to the point's depth and moves its incidence tangent by the
-    miss over the paraxial depth ``h + d/n + L/n_m``. NaN for points not
-    beyond the far face. Returns the rays and the iterations used.
+    Each step traces the ray to the point's depth and moves its incidence tangent by the miss over the
+    paraxial depth ``h + d/n + L/n_m``. Rays that do not converge are NaN (logged).
+
+    Args:
+        start: the first directions (N, 3) (the observed pixels' rays).
+        X: the camera-frame points (N, 3).
+        normal: the window's unit normal per point (N, 3), camera frame.
+        h: the near-face distance per point (N,) (mm).
+        d: the plate thickness (mm).
+        n: the glass index.
+        n_m: the medium index.
+
+    Returns:
+        The rays (N, 3) (NaN for points not beyond the far face) and the iterations used.
     """
     depth = np.einsum("ij,ij->i", X, normal)
     L = depth - h - d
@@ -104,8 +127,20 @@ def _normal(base: np.ndarray, ab: np.ndarray) -> np.ndarray:
 
 
 def calibrate_rt(dataset: Dataset, distortion: bool = False, max_iterations: int = 100) -> Calibration:
-    """The ray-tracing bundle adjustment (see module docstring) on the calibration records."""
-    from ..calibration.record import Calibration
+    """The ray-tracing bundle adjustment (see the module docstring) on the calibration records.
+
+    Args:
+        dataset: the dataset, with observations; one window for every camera.
+        distortion: estimate k1 k2 p1 p2 k3.
+        max_iterations: scipy's evaluations are capped at twice this.
+
+    Returns:
+        The rt :class:`~ari_sfm.calibration.record.Calibration`.
+
+    Raises:
+        AriSfmError: the rig has several windows, or the fitted window passes behind a camera.
+    """
+    from ..calibration import Calibration
 
     t0 = time.perf_counter()
     if dataset.windows:
@@ -172,7 +207,16 @@ def calibrate_rt(dataset: Dataset, distortion: bool = False, max_iterations: int
 
 
 def project_rt(calibration: Calibration, camera: str, X_world: np.ndarray) -> np.ndarray:
-    """Pixels (N, 2) of world points by this module's trace (for comparing with the saved ExactModel)."""
+    """Pixels of world points by this module's trace (for comparing with the saved ExactModel).
+
+    Args:
+        calibration: an rt calibration.
+        camera: the camera's name.
+        X_world: world points (N, 3).
+
+    Returns:
+        The pixels (N, 2).
+    """
     cam = calibration.cameras[camera]
     X = cam.cam_from_world.apply(np.asarray(X_world, float).reshape(-1, 3))
     normal = calibration.normal_cam(camera)

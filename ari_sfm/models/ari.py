@@ -31,11 +31,10 @@ i.e. ``X_app = X + (z_app - z) n_c``. This is affine in X:
   the map is not a pure shift and h is needed (``distance_mm``).
 
 The exact model (:mod:`ari_sfm.models.exact`) differs by O(t^3) in the
-incidence angle t: at fx ~ 3478 px, d = 50 mm, n = 1.5168, z ~ 450 mm about
-75 t^3 px in air and 700 t^3 px in water (tests/test_models.py). In air the
-third-order term is ``fx d (n^2 - 1) t^3 / (2 n^3 (z - delta))`` px for a
-normal on the optical axis. The first Newton step of the exact solve, started
-at u = 0, is exactly this paraxial model.
+incidence angle t. In air the third-order term is
+``fx d (n^2 - 1) t^3 / (2 n^3 (z - delta))`` px for a normal on the optical
+axis. The first Newton step of the exact solve, started at u = 0, is exactly
+this paraxial model.
 """
 from __future__ import annotations
 
@@ -52,13 +51,32 @@ if TYPE_CHECKING:
 
 
 def ari_shift_mm(thickness_mm: float, index: float) -> float:
-    """The paraxial shift ``delta = d (1 - 1/n)`` of the scene toward the camera (air behind)."""
+    """The paraxial shift ``delta = d (1 - 1/n)`` of the scene toward the camera (air behind).
+
+    Args:
+        thickness_mm: plate thickness d (mm).
+        index: glass refractive index n.
+
+    Returns:
+        The shift delta in mm.
+    """
     return float(thickness_mm) * (1.0 - 1.0 / float(index))
 
 
 def unit_normal_and_projector(normal_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normal n = v/|v| and d n / d v = (I - n n^T)/|v| of a free 3-vector v (in scalar arithmetic,
-    that of ``np.linalg.norm`` and ``np.outer``: a called-per-linearisation helper, 4x faster so)."""
+    """Unit normal ``n = v / |v|`` and its derivative ``d n / d v = (I - n n^T) / |v|`` of a free 3-vector v.
+
+    Computed in scalar arithmetic with the rounding of ``np.linalg.norm`` and ``np.outer``.
+
+    Args:
+        normal_cam: the free 3-vector v (any non-zero length).
+
+    Returns:
+        The unit normal (3,) and the projector ``d n / d v`` (3, 3).
+
+    Raises:
+        ValueError: ``normal_cam`` is zero or not finite.
+    """
     v0, v1, v2 = np.asarray(normal_cam, dtype=float).reshape(3).tolist()
     norm = math.sqrt((v0 * v0 + v1 * v1) + v2 * v2)  # norm's v.dot(v), in its order
     if not math.isfinite(norm) or norm == 0.0:
@@ -70,7 +88,17 @@ def unit_normal_and_projector(normal_cam: np.ndarray) -> tuple[np.ndarray, np.nd
 
 def check_window(thickness_mm: float, index: float, medium_index: float,
                  distance_mm: float | None) -> None:
-    """Raise ValueError on unphysical window parameters."""
+    """Check that the window parameters are physical.
+
+    Args:
+        thickness_mm: plate thickness (mm), must be >= 0.
+        index: glass index, must be >= 1.
+        medium_index: index of the medium behind the window, must be >= 1.
+        distance_mm: camera centre to near face (mm), > 0 when given; None: not modelled.
+
+    Raises:
+        ValueError: a parameter is out of its range.
+    """
     if not thickness_mm >= 0.0:
         raise ValueError(f"thickness_mm must be >= 0, got {thickness_mm}")
     if not index >= 1.0:
@@ -112,16 +140,29 @@ def ari_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thick
 def ari_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
                 index: float, medium_index: float = 1.0, distance_mm: float | None = None,
                 jacobians: bool = True, n_params: int = NUM_PARAMS) -> AriJacobians | Projection:
-    """The ARI projection of camera-frame points X (m, 3): the one implementation, used by
-    :class:`AriModel` and by the numpy bundle adjustment (all corners of a camera in one call).
+    """The ARI projection of camera-frame points: the one implementation.
 
-    ``params`` (9,) intrinsics; ``thickness_mm`` one plate for all points or (m,) one per point
-    (stacked plates); ``distance_mm`` h (needed with a medium behind, unused in air).
-    Returns an :class:`AriJacobians`; without ``jacobians`` a :class:`~ari_sfm.models.pinhole.Projection` (only
-    ``uv`` set, the rest None);
-    ``J_params`` holds the first ``n_params`` columns. ``normal_cam`` may be any non-zero vector
-    (``J_normal`` is the derivative w.r.t. its 3 components); the window's numbers are checked by
-    the model (:func:`check_window`), not here.
+    Used by :class:`AriModel` and by the numpy bundle adjustment (all corners of a camera in one call). The
+    window's numbers are checked by the model (:func:`check_window`), not here.
+
+    Args:
+        X: camera-frame points (m, 3), mm.
+        params: intrinsics (9,) ``[fx, fy, cx, cy, k1, k2, p1, p2, k3]``.
+        normal_cam: window normal in the camera frame, any non-zero vector (``J_normal`` is the
+            derivative w.r.t. its 3 components).
+        thickness_mm: one plate thickness for all points, or (m,) one per point (stacked plates).
+        index: glass index n.
+        medium_index: index n_m of the medium behind the window.
+        distance_mm: near-face distance h (mm); needed with a medium behind, unused in air.
+        jacobians: compute the Jacobians.
+        n_params: number of leading ``params`` columns kept in ``J_params``.
+
+    Returns:
+        An :class:`AriJacobians`; without ``jacobians`` a :class:`~ari_sfm.models.pinhole.Projection`
+            (only ``uv`` set, the rest None).
+
+    Raises:
+        ValueError: ``medium_index != 1`` without ``distance_mm``, or ``normal_cam`` zero or not finite.
     """
     if medium_index != 1.0 and distance_mm is None:
         raise ValueError("distance_mm is required when a medium (medium_index != 1) is behind the window")
@@ -162,7 +203,16 @@ class AriModel:
 
     @classmethod
     def from_interface(cls, pinhole: PinholeModel, normal_cam: np.ndarray, interface: Interface) -> AriModel:
-        """Model from a :class:`ari_sfm.records.Interface`."""
+        """Model from a :class:`ari_sfm.records.Interface`.
+
+        Args:
+            pinhole: the camera's pinhole model (intrinsics and distortion).
+            normal_cam: window normal in the camera frame.
+            interface: thickness, indices and distance hint of the window.
+
+        Returns:
+            The :class:`AriModel`.
+        """
         return cls(pinhole, normal_cam, interface.thickness_mm, interface.index,
                    interface.medium_index, interface.distance_mm)
 
@@ -192,7 +242,7 @@ class AriModel:
                            self.index, self.medium_index, self.distance_mm)
 
     def backproject(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Scene-side rays of pixels: origins (N, 3), unit directions (N, 3).
+        """Scene-side rays of pixels.
 
         The pinhole ray ``X_app = t v`` maps through the inverse affine map
         ``X = A^-1 (X_app - a n_c)``, ``A^-1 = I + (n_m - 1) n_c n_c^T``, to the
@@ -200,6 +250,12 @@ class AriModel:
         origin is the virtual centre ``delta n_c`` and the direction is v.
         With a medium the origin ``-a n_m n_c`` is a virtual point on the line
         (not where light physically leaves the window).
+
+        Args:
+            uv: pixels (N, 2).
+
+        Returns:
+            Ray origins (N, 3) and unit directions (N, 3), camera frame.
         """
         _, v = self.pinhole.backproject(uv)
         nc, nm = self.normal_cam, self.medium_index

@@ -100,11 +100,21 @@ def solve_incidence(rho: np.ndarray, L: np.ndarray, h: float, d: float | np.ndar
                     max_iter: int = NEWTON_MAX_ITER) -> tuple[np.ndarray, int]:
     """Solve rho(u) = rho for w = u / rho (see the module docstring).
 
-    ``rho`` (N,) >= 0 radial offsets, ``L`` (N,) > 0 medium column lengths,
-    ``d`` the plate thickness, one for all points or (N,) one per point.
-    Returns w (N,) and the number of Newton steps the slowest point took
-    (including the final step whose size met the tolerance). Raises
-    :class:`ConvergenceError` if a point is not converged after ``max_iter``.
+    Args:
+        rho: radial offsets (N,), >= 0.
+        L: medium column lengths (N,), > 0.
+        h: near-face distance (mm).
+        d: plate thickness, one for all points or (N,) one per point.
+        n: glass index.
+        n_m: medium index.
+        max_iter: the cap on Newton steps.
+
+    Returns:
+        w (N,) and the number of Newton steps the slowest point took (including the final step whose
+            size met the tolerance).
+
+    Raises:
+        ConvergenceError: a point is not converged after ``max_iter`` steps, or a step is not finite.
     """
     rho = np.array(rho, dtype=np.float64).reshape(-1)
     L = np.array(L, dtype=np.float64).reshape(-1)
@@ -115,8 +125,23 @@ def solve_incidence(rho: np.ndarray, L: np.ndarray, h: float, d: float | np.ndar
 
 def incidence(X: np.ndarray, nc: np.ndarray, h: float, d: float | np.ndarray, n: float, n_m: float
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
-    """Depth z = n_c . X, radial vector r, medium column L and the solved w of points X (m, 3)
-    (NaN where L <= 0 or X is not finite), and the Newton steps of the slowest point."""
+    """Depth, radial vector, medium column and solved w of camera-frame points.
+
+    Args:
+        X: camera-frame points (m, 3).
+        nc: unit window normal (3,) in the camera frame.
+        h: near-face distance (mm).
+        d: plate thickness, one for all points or (m,) one per point.
+        n: glass index.
+        n_m: medium index.
+
+    Returns:
+        Depth ``z = n_c . X`` (m,), radial vector r (m, 3), medium column L (m,), the solved w (m,) (NaN
+            where L <= 0 or X is not finite), and the Newton steps of the slowest point.
+
+    Raises:
+        ConvergenceError: a point's Newton iteration did not converge.
+    """
     X = _points(X)
     z, r, L, w, status, failures = kernels.incidence_batch(X, np.array(nc, dtype=np.float64), float(h),
                                                            _thickness_array(d, len(X)), float(n), float(n_m),
@@ -147,15 +172,30 @@ def exact_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thi
 def exact_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
                   index: float, medium_index: float, distance_mm: float, jacobians: bool = True,
                   n_params: int = NUM_PARAMS) -> ExactJacobians | Projection:
-    """The exact projection of camera-frame points X (m, 3): the one implementation (the compiled
-    :func:`ari_sfm.models.kernels.exact_point`), used by :class:`ExactModel` and by the numpy
-    bundle adjustment (all corners of a camera in one call).
+    """The exact projection of camera-frame points: the one implementation.
 
-    ``params`` (9,) intrinsics; ``thickness_mm`` one plate for all points or (m,) one per point
-    (stacked plates); ``distance_mm`` h > 0. Returns an :class:`ExactJacobians` (NaN pixels for
-    points not beyond the far face); without ``jacobians`` a :class:`~ari_sfm.models.pinhole.Projection`
-    (only ``uv`` set); ``J_params``
-    holds the first ``n_params`` columns; ``J_normal`` is w.r.t. the 3 components of ``normal_cam``.
+    It runs the compiled :func:`ari_sfm.models.kernels.exact_point` and is used by :class:`ExactModel` and by the
+    numpy bundle adjustment (all corners of a camera in one call).
+
+    Args:
+        X: camera-frame points (m, 3), mm.
+        params: intrinsics (9,) ``[fx, fy, cx, cy, k1, k2, p1, p2, k3]``.
+        normal_cam: window normal in the camera frame, any non-zero vector (``J_normal`` is w.r.t. its
+            3 components).
+        thickness_mm: one plate thickness for all points, or (m,) one per point (stacked plates).
+        index: glass index n.
+        medium_index: index n_m of the medium behind the window.
+        distance_mm: near-face distance h > 0 (mm).
+        jacobians: compute the Jacobians.
+        n_params: number of leading ``params`` columns kept in ``J_params``.
+
+    Returns:
+        An :class:`ExactJacobians` (NaN pixels for points not beyond the far face); without ``jacobians``
+            a :class:`~ari_sfm.models.pinhole.Projection` (only ``uv`` set).
+
+    Raises:
+        ValueError: ``distance_mm`` is None.
+        ConvergenceError: a point's Newton iteration did not converge.
     """
     if distance_mm is None:
         raise ValueError("ExactModel needs distance_mm (camera centre to near face, > 0)")
@@ -190,7 +230,17 @@ class ExactModel:
     @classmethod
     def from_interface(cls, pinhole: PinholeModel, normal_cam: np.ndarray, interface: Interface,
                        distance_mm: float | None = None) -> ExactModel:
-        """Model from a :class:`ari_sfm.records.Interface` (``distance_mm`` overrides its hint)."""
+        """Model from a :class:`ari_sfm.records.Interface`.
+
+        Args:
+            pinhole: the camera's pinhole model (intrinsics and distortion).
+            normal_cam: window normal in the camera frame.
+            interface: thickness, indices and distance hint of the window.
+            distance_mm: near-face distance (mm) overriding the interface's hint; None: the hint.
+
+        Returns:
+            The :class:`ExactModel`.
+        """
         h = interface.distance_mm if distance_mm is None else distance_mm
         return cls(pinhole, normal_cam, interface.thickness_mm, interface.index,
                    interface.medium_index, h)
@@ -225,19 +275,31 @@ class ExactModel:
                              self.index, self.medium_index, self.distance_mm, jacobians=False).uv
 
     def project_with_jacobians(self, X_cam: np.ndarray) -> ExactJacobians:
-        """Pixels and analytic Jacobians (implicit function theorem; see module docstring and
-        :func:`exact_project`)."""
+        """Pixels and analytic Jacobians (implicit function theorem; see the module docstring).
+
+        Args:
+            X_cam: camera-frame points (N, 3).
+
+        Returns:
+            An :class:`ExactJacobians` (see :func:`exact_project`).
+        """
         return exact_project(as_points(X_cam, 3), self.pinhole.params, self._normal_arg, self.thickness_mm,
                              self.index, self.medium_index, self.distance_mm)
 
     # --------------------------------------------------------------- backward
     def backproject(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Medium-side rays of pixels: origins (N, 3) on the far face, unit directions (N, 3).
+        """Medium-side rays of pixels.
 
         Vector Snell at each face (normal n_c along the light, ratio eta = n1/n2,
         cos_i = n_c . v):  ``v' = eta v + (cos_t - eta cos_i) n_c`` with
         ``cos_t = sqrt(1 - eta^2 (1 - cos_i^2))``. Pixels whose ray does not
         head into the window (n_c . v <= 0) give NaN.
+
+        Args:
+            uv: pixels (N, 2).
+
+        Returns:
+            Ray origins (N, 3) on the far face and unit directions (N, 3), camera frame.
         """
         origins, directions, failed = kernels.exact_rays_batch(
             np.array(as_points(uv, 2), dtype=np.float64), np.array(self.pinhole.params), self.normal_cam,

@@ -6,14 +6,10 @@ bundle adjustment, the GTSAM factors, refine-colmap and :mod:`ari_sfm.reconstruc
 through the public functions of those modules. The maths is derived in the docstrings of
 :mod:`.pinhole` (distortion) and :mod:`.exact` (incidence equation, implicit-function Jacobians).
 The per-point parts work on scalars; a batch solves the incidence equation of all its points in
-lock-step (a loop the compiler vectorises) and allocates its outputs and a few (m,) arrays.
+lock-step and allocates its outputs and a few (m,) arrays. A kernel calls only kernels of this
+module (the reason: docs/design/models.md).
 
-They live in one module on purpose: numba's cache is invalidated by the source file of the
-function it compiled, not by the files of the functions it calls, so a kernel calling a kernel
-of another module could run a stale copy after an upgrade.
-
-Compilation: the first call of each kernel in a fresh install compiles it (measured: ~6 s CPU for
-the exact projection, ~13 s more for triangulation; README "Performance") and numba caches the
+Compilation: the first call of each kernel in a fresh install compiles it and numba caches the
 machine code: in ``NUMBA_CACHE_DIR`` when set, else next to this file (``__pycache__``), else,
 when that folder is read-only (a system site-packages), in its user-wide cache
 (``~/.cache/numba``); later processes load it in milliseconds.
@@ -43,9 +39,19 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 @intrinsic
 def fma(typingctx, a, b, c):
-    """a * b + c rounded once (LLVM's llvm.fma.f64: the CPU's fused multiply-add, else libm's). Numba
-    never fuses ``a * b + c`` unasked; the kernels that reproduce numpy's BLAS-backed products bit for
-    bit (OpenBLAS fuses) call this."""
+    """``a * b + c`` rounded once: LLVM's ``llvm.fma.f64`` (the CPU's fused multiply-add, else libm's).
+
+    A numba intrinsic: compiled code calls it as ``fma(a, b, c)`` on float64 values.
+
+    Args:
+        typingctx: numba's typing context (passed by numba, not by the caller).
+        a: the first factor.
+        b: the second factor.
+        c: the addend.
+
+    Returns:
+        The intrinsic's signature and code generator (in compiled code: the float64 ``a * b + c``).
+    """
     sig = types.float64(types.float64, types.float64, types.float64)
 
     def codegen(context, builder, signature, args):
@@ -60,8 +66,18 @@ def fma(typingctx, a, b, c):
 
 @njit(inline="always", **_JIT)
 def distort_point(x, y, dist, J_xy, J_dist):
-    """OpenCV distortion of one normalised point; fills J_xy (2, 2) = d xyd / d xy and
-    J_dist (2, 5) = d xyd / d [k1, k2, p1, p2, k3]; returns (xd, yd)."""
+    """OpenCV distortion of one normalised point, with its Jacobians.
+
+    Args:
+        x: undistorted normalised x.
+        y: undistorted normalised y.
+        dist: distortion ``[k1, k2, p1, p2, k3]`` (5,).
+        J_xy: output (2, 2), filled with d xyd / d xy.
+        J_dist: output (2, 5), filled with d xyd / d [k1, k2, p1, p2, k3].
+
+    Returns:
+        The distorted point ``(xd, yd)``.
+    """
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     r2 = x * x + y * y
     radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
@@ -84,8 +100,21 @@ def distort_point(x, y, dist, J_xy, J_dist):
 
 @njit(inline="always", **_JIT)
 def pinhole_point(D0, D1, D2, params, n_params, jacobians, uv, J_point, J_params, J_xy, J_dist):
-    """Pixel of one camera-frame direction D (NaN if D2 <= 0) into uv (2,); with ``jacobians``
-    J_point (2, 3) = d uv / d D and J_params (2, n_params); J_xy (2, 2), J_dist (2, 5) are scratch."""
+    """Pixel of one camera-frame direction D, written into ``uv`` (NaN if D2 <= 0).
+
+    Args:
+        D0: x of D.
+        D1: y of D.
+        D2: z of D.
+        params: intrinsics (9,) ``[fx, fy, cx, cy, k1, k2, p1, p2, k3]``.
+        n_params: number of leading ``params`` columns in ``J_params``.
+        jacobians: fill ``J_point`` and ``J_params``.
+        uv: output pixel (2,).
+        J_point: output (2, 3), d uv / d D (with ``jacobians``).
+        J_params: output (2, n_params), d uv / d params[:n_params] (with ``jacobians``).
+        J_xy: scratch (2, 2).
+        J_dist: scratch (2, 5).
+    """
     if D2 > 0.0:
         x, y = D0 / D2, D1 / D2
     else:
@@ -118,7 +147,18 @@ def pinhole_point(D0, D1, D2, params, n_params, jacobians, uv, J_point, J_params
 
 @njit(**_JIT)
 def pinhole_batch(D, params, n_params, jacobians):
-    """Pixels (m, 2), J_point (m, 2, 3), J_params (m, 2, n_params) of directions D (m, 3)."""
+    """Pinhole projection of camera-frame directions.
+
+    Args:
+        D: directions (m, 3).
+        params: intrinsics (9,).
+        n_params: number of leading ``params`` columns in ``J_params``.
+        jacobians: compute the Jacobians.
+
+    Returns:
+        Pixels (m, 2), J_point (m, 2, 3) and J_params (m, 2, n_params); the Jacobians are empty (0, ...)
+            arrays without ``jacobians``.
+    """
     m = D.shape[0]
     uv = np.empty((m, 2))
     mj = m if jacobians else 1
@@ -137,13 +177,27 @@ def pinhole_batch(D, params, n_params, jacobians):
 
 @njit(**_JIT)
 def ari_batch(X, params, nc, dn_dv, thickness, index, medium_index, h, n_params, jacobians):
-    """The ARI projection (:func:`ari_sfm.models.ari.ari_project`, whose docstring and module derive it)
-    of camera-frame points X (m, 3) with one plate thickness per point (m,): uv (m, 2) and, with
-    ``jacobians``, J_point, J_normal (m, 2, 3), J_params (m, 2, n_params), J_thickness, J_distance (m, 2).
+    """The ARI projection of camera-frame points, one plate thickness per point.
 
-    Written as the numpy expressions it replaced, operation for operation (``X @ n_c`` as OpenBLAS's
-    gemv: ``fma(x2 n2, fma(x0 n0, x1 n1))``; ``(2m, 3) @ (3, 3)`` as its gemm: ``fma(a2 b2, fma(a1 b1,
-    a0 b0))``), so its results are those bits."""
+    The model is :func:`ari_sfm.models.ari.ari_project`'s (its docstring and module derive it).
+
+    Args:
+        X: camera-frame points (m, 3).
+        params: intrinsics (9,).
+        nc: unit window normal (3,), camera frame.
+        dn_dv: d n / d v (3, 3) of the free normal vector
+            (:func:`~ari_sfm.models.ari.unit_normal_and_projector`).
+        thickness: plate thickness per point (m,).
+        index: glass index.
+        medium_index: medium index.
+        h: near-face distance (mm; unused in air).
+        n_params: number of leading ``params`` columns in ``J_params``.
+        jacobians: compute the Jacobians.
+
+    Returns:
+        uv (m, 2), J_point and J_normal (m, 2, 3), J_params (m, 2, n_params), J_thickness and J_distance
+            (m, 2); the Jacobians are empty (0, ...) arrays without ``jacobians``.
+    """
     m = X.shape[0]
     b = 1.0 / medium_index - 1.0
     da_dd, da_dh = 1.0 / index - 1.0 / medium_index, 1.0 - 1.0 / medium_index
@@ -182,7 +236,15 @@ def ari_batch(X, params, nc, dn_dv, thickness, index, medium_index, h, n_params,
 
 @njit(**_JIT)
 def distort_batch(xy, dist):
-    """xyd (N, 2), J_xy (N, 2, 2), J_dist (N, 2, 5) of normalised points xy (N, 2)."""
+    """OpenCV distortion of normalised points, with its Jacobians.
+
+    Args:
+        xy: undistorted normalised points (N, 2).
+        dist: distortion ``[k1, k2, p1, p2, k3]`` (5,).
+
+    Returns:
+        xyd (N, 2), J_xy (N, 2, 2) and J_dist (N, 2, 5) (see :func:`distort_point`).
+    """
     m = xy.shape[0]
     xyd = np.empty((m, 2))
     J_xy = np.empty((m, 2, 2))
@@ -194,9 +256,23 @@ def distort_batch(xy, dist):
 
 @njit(inline="always", **_JIT)
 def undistort_point(xd, yd, dist, fx, fy, J_xy, J_dist):
-    """Undistorted normalised (x, y) of distorted (xd, yd) by Newton from (xd, yd) (steps below
-    UNDISTORT_TOL_PX px); NaN when the final residual exceeds UNDISTORT_FAIL_PX px. Returns
-    (x, y, failed)."""
+    """Undistorted normalised coordinates of one distorted point, by Newton from (xd, yd).
+
+    Newton stops when the step is below UNDISTORT_TOL_PX px; a final residual above UNDISTORT_FAIL_PX px
+    fails the point (NaN). A non-finite input gives NaN without failing.
+
+    Args:
+        xd: distorted normalised x.
+        yd: distorted normalised y.
+        dist: distortion ``[k1, k2, p1, p2, k3]`` (5,).
+        fx: focal length in x (px), to measure steps in pixels.
+        fy: focal length in y (px).
+        J_xy: scratch (2, 2).
+        J_dist: scratch (2, 5).
+
+    Returns:
+        ``(x, y, failed)``.
+    """
     if not (math.isfinite(xd) and math.isfinite(yd)):
         return np.nan, np.nan, False
     x, y = xd, yd
@@ -220,7 +296,17 @@ def undistort_point(xd, yd, dist, fx, fy, J_xy, J_dist):
 
 @njit(**_JIT)
 def undistort_batch(xyd, dist, fx, fy):
-    """Undistorted xy (N, 2) and the failed mask (N,) (see undistort_point)."""
+    """Undistorted normalised coordinates of distorted ones (see :func:`undistort_point`).
+
+    Args:
+        xyd: distorted normalised points (N, 2).
+        dist: distortion ``[k1, k2, p1, p2, k3]`` (5,).
+        fx: focal length in x (px).
+        fy: focal length in y (px).
+
+    Returns:
+        Undistorted xy (N, 2), NaN where failed, and the failed mask (N,).
+    """
     m = xyd.shape[0]
     xy = np.empty((m, 2))
     failed = np.zeros(m, dtype=np.bool_)
@@ -236,8 +322,20 @@ def undistort_batch(xyd, dist, fx, fy):
 
 @njit(inline="always", **_JIT)
 def newton_step(w, rho, L, h, d, n2, m2):
-    """One Newton step on Psi(w) = w H(w rho) - 1 (module docstring of .exact); n2, m2 the squared
-    glass and medium indices."""
+    """One Newton step on ``Psi(w) = w H(w rho) - 1`` (module docstring of :mod:`.exact`).
+
+    Args:
+        w: the current w = u / rho.
+        rho: radial offset.
+        L: medium column length.
+        h: near-face distance (mm).
+        d: plate thickness (mm).
+        n2: squared glass index.
+        m2: squared medium index.
+
+    Returns:
+        The step ``Psi(w) / Psi'(w)``, to subtract from w.
+    """
     u = w * rho
     Gn = 1.0 / math.sqrt(n2 + (n2 - 1.0) * u * u)
     Gm = 1.0 / math.sqrt(m2 + (m2 - 1.0) * u * u)
@@ -248,10 +346,24 @@ def newton_step(w, rho, L, h, d, n2, m2):
 
 @njit(inline="always", **_JIT)
 def solve_w(rho, L, h, d, n, n_m, max_iter, w0=0.0):
-    """Newton for one point until |step| <= NEWTON_REL_TOL |w|, from w = 0 (converges monotonically)
-    or from a guess ``w0`` (e.g. the previous solve of a nearby point; falls back to w = 0 if the
-    guess does not converge). Returns (w, steps); steps is NEWTON_NOT_CONVERGED or
-    NEWTON_NOT_FINITE on failure."""
+    """Newton for one point until ``|step| <= NEWTON_REL_TOL |w|``.
+
+    From w = 0 it converges monotonically; from a guess ``w0`` (e.g. the previous solve of a nearby point) it
+    falls back to w = 0 if the guess does not converge.
+
+    Args:
+        rho: radial offset.
+        L: medium column length.
+        h: near-face distance (mm).
+        d: plate thickness (mm).
+        n: glass index.
+        n_m: medium index.
+        max_iter: cap on the Newton steps of each attempt.
+        w0: the start (0: from w = 0 only).
+
+    Returns:
+        ``(w, steps)``; steps is NEWTON_NOT_CONVERGED or NEWTON_NOT_FINITE on failure.
+    """
     n2, m2 = n * n, n_m * n_m
     w = w0
     for attempt in range(2 if w0 != 0.0 else 1):
@@ -268,11 +380,24 @@ def solve_w(rho, L, h, d, n, n_m, max_iter, w0=0.0):
 
 @njit(**_JIT)
 def solve_w_lanes(rho, L, h, d, n, n_m, max_iter, w):
-    """Newton from w = 0 for many points in lock-step (a branch-free inner loop the compiler
-    vectorises): every point takes the steps of the slowest, which stops when all steps are
-    <= NEWTON_REL_TOL |w| (the extra steps of converged points change w by rounding only).
-    ``rho``, ``L``, ``d`` (m,) (rho = 0, L = 1 stand in for points without a ray). Fills w (m,);
-    returns the steps taken, or NEWTON_NOT_CONVERGED / NEWTON_NOT_FINITE, and the failed points."""
+    """Newton from w = 0 for many points in lock-step.
+
+    Every point takes the steps of the slowest, which stops when all steps are <= NEWTON_REL_TOL |w| (the
+    extra steps of converged points change w by rounding only).
+
+    Args:
+        rho: radial offsets (m,) (0 stands in for a point without a ray).
+        L: medium column lengths (m,) (1 stands in for a point without a ray).
+        h: near-face distance (mm).
+        d: plate thickness per point (m,).
+        n: glass index.
+        n_m: medium index.
+        max_iter: cap on the Newton steps.
+        w: output (m,), filled with the solved w.
+
+    Returns:
+        The steps taken (or NEWTON_NOT_CONVERGED / NEWTON_NOT_FINITE) and the number of failed points.
+    """
     m = rho.shape[0]
     n2, m2 = n * n, n_m * n_m
     for i in range(m):
@@ -302,8 +427,20 @@ def solve_w_lanes(rho, L, h, d, n, n_m, max_iter, w):
 
 @njit(**_JIT)
 def solve_w_batch(rho, L, h, d, n, n_m, max_iter):
-    """w (N,) of radial offsets rho and medium columns L with one thickness d (1,) or one per
-    point (N,); the steps taken (or a failure status) and the number of failed points."""
+    """w of many points (radial offsets and medium columns), solved in lock-step.
+
+    Args:
+        rho: radial offsets (N,).
+        L: medium column lengths (N,).
+        h: near-face distance (mm).
+        d: plate thickness, (1,) for all points or (N,) one per point.
+        n: glass index.
+        n_m: medium index.
+        max_iter: cap on the Newton steps.
+
+    Returns:
+        w (N,), the steps taken (or a failure status) and the number of failed points.
+    """
     m = rho.shape[0]
     dd = np.empty(m)
     for i in range(m):
@@ -341,8 +478,21 @@ def _incidence_lanes(X, nc, h, d, n, n_m, max_iter, z, r, L, w):
 
 @njit(**_JIT)
 def incidence_batch(X, nc, h, d, n, n_m, max_iter):
-    """z, r, L, w of X (m, 3) (see _incidence_lanes), the steps taken or a failure status, and the
-    number of failed points."""
+    """Depth, radial vector, medium column and solved w of camera-frame points.
+
+    Args:
+        X: camera-frame points (m, 3).
+        nc: unit window normal (3,), camera frame.
+        h: near-face distance (mm).
+        d: plate thickness, (1,) for all points or (m,) one per point.
+        n: glass index.
+        n_m: medium index.
+        max_iter: cap on the Newton steps.
+
+    Returns:
+        z (m,), r (m, 3), L (m,) and w (m,) (NaN where L <= 0 or X is not finite), the steps taken (or a
+            failure status) and the number of failed points.
+    """
     m = X.shape[0]
     z, r, L, w = np.empty(m), np.empty((m, 3)), np.empty(m), np.empty(m)
     steps, failures = _incidence_lanes(X, nc, h, d, n, n_m, max_iter, z, r, L, w)
@@ -352,11 +502,37 @@ def incidence_batch(X, nc, h, d, n, n_m, max_iter):
 @njit(inline="always", **_JIT)
 def exact_pixel(X0, X1, X2, z, r0, r1, r2, L, w, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians,
                 uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist, window_jacobians=True):
-    """Pixel uv (2,) of one camera-frame point X with its solved incidence w (depth z, radial r,
-    medium column L) and, with ``jacobians``, J_point (2, 3), J_normal (2, 3) (w.r.t. the free
-    normal vector, via dn_dv), J_params (2, n_params), J_td (2, 2) = [d uv/d thickness,
-    d uv/d distance] (J_normal and J_td left unset without ``window_jacobians``: triangulation
-    needs J_point only); J_pin (2, 3), J_xy, J_dist are scratch."""
+    """Pixel of one camera-frame point with its solved incidence w, and its Jacobians.
+
+    Args:
+        X0: x of the camera-frame point X.
+        X1: y of X.
+        X2: z of X.
+        z: depth n_c . X.
+        r0: x of the radial vector r = X - z n_c.
+        r1: y of r.
+        r2: z of r.
+        L: medium column length.
+        w: the solved w = u / rho (NaN: no ray).
+        params: intrinsics (9,).
+        nc: unit window normal (3,), camera frame.
+        dn_dv: d n / d v (3, 3) of the free normal vector.
+        h: near-face distance (mm).
+        d: plate thickness (mm).
+        n: glass index.
+        n_m: medium index.
+        n_params: number of leading ``params`` columns in ``J_params``.
+        jacobians: fill the Jacobians.
+        uv: output pixel (2,).
+        J_point: output (2, 3), d uv / d X.
+        J_normal: output (2, 3), d uv / d the free normal vector (via ``dn_dv``).
+        J_params: output (2, n_params).
+        J_td: output (2, 2), ``[d uv / d thickness, d uv / d distance]``.
+        J_pin: scratch (2, 3).
+        J_xy: scratch (2, 2).
+        J_dist: scratch (2, 5).
+        window_jacobians: fill ``J_normal`` and ``J_td`` too (triangulation needs ``J_point`` only).
+    """
     pinhole_point(nc[0] + w * r0, nc[1] + w * r1, nc[2] + w * r2, params, n_params, jacobians,
                   uv, J_pin, J_params, J_xy, J_dist)
     if not jacobians:
@@ -394,9 +570,35 @@ def exact_pixel(X0, X1, X2, z, r0, r1, r2, L, w, params, nc, dn_dv, h, d, n, n_m
 @njit(inline="always", **_JIT)
 def exact_point(X0, X1, X2, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians,
                 uv, J_point, J_normal, J_params, J_td, J_pin, J_xy, J_dist, u0=0.0, window_jacobians=True):
-    """:func:`exact_pixel` of one point with its own Newton solve, started from the incidence
-    ``u0`` = tan t when given (a nearby point's; see :func:`solve_w`). Returns the Newton steps
-    (negative: failure; 0: no ray, L <= 0) and the solved tan t."""
+    """:func:`exact_pixel` of one point with its own Newton solve.
+
+    Args:
+        X0: x of the camera-frame point.
+        X1: y of the point.
+        X2: z of the point.
+        params: as in :func:`exact_pixel`.
+        nc: as in :func:`exact_pixel`.
+        dn_dv: as in :func:`exact_pixel`.
+        h: as in :func:`exact_pixel`.
+        d: as in :func:`exact_pixel`.
+        n: as in :func:`exact_pixel`.
+        n_m: as in :func:`exact_pixel`.
+        n_params: as in :func:`exact_pixel`.
+        jacobians: as in :func:`exact_pixel`.
+        uv: as in :func:`exact_pixel`.
+        J_point: as in :func:`exact_pixel`.
+        J_normal: as in :func:`exact_pixel`.
+        J_params: as in :func:`exact_pixel`.
+        J_td: as in :func:`exact_pixel`.
+        J_pin: as in :func:`exact_pixel`.
+        J_xy: as in :func:`exact_pixel`.
+        J_dist: as in :func:`exact_pixel`.
+        u0: the incidence tan t to start Newton from (a nearby point's; see :func:`solve_w`); 0: from w = 0.
+        window_jacobians: as in :func:`exact_pixel`.
+
+    Returns:
+        The Newton steps (negative: failure; 0: no ray, L <= 0) and the solved tan t.
+    """
     z = X0 * nc[0] + X1 * nc[1] + X2 * nc[2]
     r0, r1, r2 = X0 - z * nc[0], X1 - z * nc[1], X2 - z * nc[2]
     L = z - h - d
@@ -413,9 +615,25 @@ def exact_point(X0, X1, X2, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians
 
 @njit(**_JIT)
 def exact_batch(X, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians):
-    """The exact projection of X (m, 3) with one plate thickness d (1,) or one per point (m,).
-    Returns uv, J_point, J_normal, J_params, J_thickness, J_distance (empty (0, ...) arrays
-    without ``jacobians``), the Newton steps taken (or a failure status) and the failed points."""
+    """The exact projection of camera-frame points.
+
+    Args:
+        X: camera-frame points (m, 3).
+        params: intrinsics (9,).
+        nc: unit window normal (3,), camera frame.
+        dn_dv: d n / d v (3, 3) of the free normal vector.
+        h: near-face distance (mm).
+        d: plate thickness, (1,) for all points or (m,) one per point.
+        n: glass index.
+        n_m: medium index.
+        n_params: number of leading ``params`` columns in ``J_params``.
+        jacobians: compute the Jacobians.
+
+    Returns:
+        uv (m, 2), J_point and J_normal (m, 2, 3), J_params (m, 2, n_params), J_thickness and J_distance
+            (m, 2) (empty (0, ...) arrays without ``jacobians``), the Newton steps taken (or a failure
+            status) and the number of failed points.
+    """
     m = X.shape[0]
     z, r, L, w = np.empty(m), np.empty((m, 3)), np.empty(m), np.empty(m)
     steps, failures = _incidence_lanes(X, nc, h, d, n, n_m, NEWTON_MAX_ITER, z, r, L, w)
@@ -444,9 +662,25 @@ def exact_batch(X, params, nc, dn_dv, h, d, n, n_m, n_params, jacobians):
 
 @njit(inline="always", **_JIT)
 def exact_ray(u, v, params, nc, h, d, n, n_m, J_xy, J_dist, origin, direction):
-    """Medium-side ray of one pixel by vector Snell at both faces: origin on the far face and unit
-    direction into origin (3,), direction (3,) (NaN if the pixel's ray misses the window).
-    Returns whether undistortion failed and tan t of the camera-side ray (t its incidence)."""
+    """Medium-side ray of one pixel by vector Snell at both faces.
+
+    Args:
+        u: pixel column.
+        v: pixel row.
+        params: intrinsics (9,).
+        nc: unit window normal (3,), camera frame.
+        h: near-face distance (mm).
+        d: plate thickness (mm).
+        n: glass index.
+        n_m: medium index.
+        J_xy: scratch (2, 2).
+        J_dist: scratch (2, 5).
+        origin: output (3,), the ray's point on the far face.
+        direction: output (3,), its unit direction (NaN if the pixel's ray misses the window).
+
+    Returns:
+        Whether undistortion failed, and tan t of the camera-side ray (t its incidence).
+    """
     xd, yd = (u - params[2]) / params[0], (v - params[3]) / params[1]
     x, y, failed = undistort_point(xd, yd, params[4:], params[0], params[1], J_xy, J_dist)
     return failed, snell_ray(x, y, nc, h, d, n, n_m, origin, direction)
@@ -454,7 +688,22 @@ def exact_ray(u, v, params, nc, h, d, n, n_m, J_xy, J_dist, origin, direction):
 
 @njit(inline="always", **_JIT)
 def snell_ray(x, y, nc, h, d, n, n_m, origin, direction):
-    """:func:`exact_ray` from the undistorted normalised (x, y): fills origin, direction; returns tan t."""
+    """:func:`exact_ray` from the undistorted normalised coordinates.
+
+    Args:
+        x: undistorted normalised x.
+        y: undistorted normalised y.
+        nc: unit window normal (3,), camera frame.
+        h: near-face distance (mm).
+        d: plate thickness (mm).
+        n: glass index.
+        n_m: medium index.
+        origin: output (3,), the ray's point on the far face.
+        direction: output (3,), its unit direction.
+
+    Returns:
+        tan t of the camera-side ray.
+    """
     s = 1.0 / math.sqrt(x * x + y * y + 1.0)
     v0, v1, v2 = x * s, y * s, s
     c = v0 * nc[0] + v1 * nc[1] + v2 * nc[2]
@@ -479,7 +728,20 @@ def snell_ray(x, y, nc, h, d, n, n_m, origin, direction):
 
 @njit(**_JIT)
 def exact_rays_batch(uv, params, nc, h, d, n, n_m):
-    """Origins (N, 3), unit directions (N, 3) and the undistortion failures (N,) of pixels (N, 2)."""
+    """Medium-side rays of pixels (see :func:`exact_ray`).
+
+    Args:
+        uv: pixels (N, 2).
+        params: intrinsics (9,).
+        nc: unit window normal (3,), camera frame.
+        h: near-face distance (mm).
+        d: plate thickness (mm).
+        n: glass index.
+        n_m: medium index.
+
+    Returns:
+        Origins (N, 3), unit directions (N, 3) and the undistortion failures (N,).
+    """
     m = uv.shape[0]
     origins = np.empty((m, 3))
     directions = np.empty((m, 3))
@@ -672,13 +934,33 @@ def _cost_and_normal(Xw, uv, p, ok, R, t, params, nc, window, jacobians, A, g, s
 @njit(**_JIT)
 def triangulate_exact(uv, R, t, params, nc, window, refine, max_iterations, damping, step_tol, min_det,  # noqa: C901
                       X_out, gap_out, rmse_out, unconverged, undistort_failed):
-    """World points of pixel tracks uv (P, C, 2) (NaN: not seen) through the exact model of C
-    cameras: cam_from_world R (C, 3, 3), t (C, 3); params (C, 9); unit normals nc (C, 3) in each
-    camera; window (C, 4) = [h, d, n, n_m]. Per point: back-projection, the least-squares point of
-    the rays (``ray_gap_mm``), then, with ``refine``, Levenberg-Marquardt on the reprojection error
-    with the analytic Jacobians (the algorithm of :func:`ari_sfm.reconstruction.triangulate.refine_points`, per
-    point). Fills X_out (P, 3), gap_out (P,), rmse_out (P,) (NaN where no point), unconverged (P,)
-    and undistort_failed (P,). Releases the GIL: threads may run it on separate slices of points."""
+    """World points of pixel tracks through the exact model of C cameras.
+
+    Per point: back-projection, the least-squares point of the rays (``ray_gap_mm``), then, with ``refine``,
+    Levenberg-Marquardt on the reprojection error with the analytic Jacobians (the algorithm of
+    :func:`ari_sfm.reconstruction.triangulate.refine_points`, per point). Points seen by fewer than two
+    cameras, or whose rays give no point, are left unwritten in the outputs. Releases the GIL: threads may run it on separate
+    slices of points.
+
+    Args:
+        uv: pixel tracks (P, C, 2), NaN where a camera does not see the point.
+        R: cam_from_world rotations (C, 3, 3).
+        t: cam_from_world translations (C, 3).
+        params: intrinsics (C, 9).
+        nc: unit window normals (C, 3), each in its camera's frame.
+        window: ``[h, d, n, n_m]`` per camera (C, 4).
+        refine: run Levenberg-Marquardt from the linear point.
+        max_iterations: cap on the Levenberg-Marquardt iterations.
+        damping: the initial lambda of Marquardt's damping ``lambda diag(J^T J)``.
+        step_tol: converged when ``|step| <= step_tol (1 + |X|)``.
+        min_det: the smallest determinant of the rays' normal matrix accepted for the linear point.
+        X_out: output (P, 3), the world points.
+        gap_out: output (P,), the ray gap (mm).
+        rmse_out: output (P,), the reprojection RMSE (px) over the cameras that saw the point.
+        unconverged: output (P,), set where Levenberg-Marquardt did not converge.
+        undistort_failed: output (P,), incremented by the number of the point's pixels whose undistortion
+            failed.
+    """
     C = uv.shape[1]
     J_xy = np.empty((2, 2))
     J_dist = np.empty((2, 5))

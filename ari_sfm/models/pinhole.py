@@ -34,7 +34,18 @@ PARAM_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 
 
 def as_points(X: np.ndarray, dim: int) -> np.ndarray:
-    """Points as a float (N, dim) array; a single (dim,) point becomes (1, dim)."""
+    """Points as a float (N, dim) array; a single (dim,) point becomes (1, dim).
+
+    Args:
+        X: points (N, dim) or one point (dim,).
+        dim: the number of coordinates per point.
+
+    Returns:
+        A float array (N, dim).
+
+    Raises:
+        ValueError: ``X`` has another shape.
+    """
     X = np.asarray(X, dtype=float)
     if X.ndim == 1:
         X = X[None, :]
@@ -93,12 +104,20 @@ def project_points(D: np.ndarray, params: np.ndarray, n_params: int = NUM_PARAMS
                    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]: ...
 def project_points(D: np.ndarray, params: np.ndarray, n_params: int = NUM_PARAMS, jacobians: bool = True
                    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """The pinhole projection of camera-frame points D (m, 3): the one implementation (the compiled
-    :func:`ari_sfm.models.kernels.pinhole_point`), used by :class:`PinholeModel`, the window models
-    and the numpy bundle adjustment.
+    """The pinhole projection of camera-frame points: the one implementation.
 
-    Returns pixels (m, 2) and, with ``jacobians``, ``J_point`` = d uv / d D (m, 2, 3) and
-    ``J_params`` = d uv / d params[:n_params] (m, 2, n_params); NaN where Z <= 0.
+    It runs the compiled :func:`ari_sfm.models.kernels.pinhole_point` and is used by :class:`PinholeModel`, the
+    window models and the numpy bundle adjustment. Points with Z <= 0 project to NaN.
+
+    Args:
+        D: camera-frame points or directions (m, 3).
+        params: intrinsics (9,) ``[fx, fy, cx, cy, k1, k2, p1, p2, k3]``.
+        n_params: number of leading ``params`` columns in ``J_params``.
+        jacobians: compute the Jacobians.
+
+    Returns:
+        Pixels (m, 2), ``J_point`` = d uv / d D (m, 2, 3) and ``J_params`` = d uv / d params[:n_params]
+            (m, 2, n_params); the two Jacobians are None without ``jacobians``.
     """
     uv, J_point, J_params = kernels.pinhole_batch(_f64(D, 3), np.array(params, dtype=np.float64), int(n_params),
                                                   bool(jacobians))
@@ -167,8 +186,12 @@ class PinholeModel:
     def distort_with_jacobians(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Distort normalised coordinates.
 
-        Returns ``xyd`` (N, 2), ``J_xy`` (N, 2, 2) = d xyd / d xy and
-        ``J_dist`` (N, 2, 5) = d xyd / d [k1, k2, p1, p2, k3].
+        Args:
+            xy: undistorted normalised coordinates (N, 2).
+
+        Returns:
+            ``xyd`` (N, 2), ``J_xy`` (N, 2, 2) = d xyd / d xy and ``J_dist`` (N, 2, 5) = d xyd / d [k1, k2, p1,
+                p2, k3].
         """
         return _distort(as_points(xy, 2), self._params[4:])
 
@@ -180,6 +203,12 @@ class PinholeModel:
         Points whose final residual exceeds 1e-9 px (distortion not invertible
         there, e.g. far outside the calibrated field) come back as NaN and a
         warning is logged: never a silently wrong ray.
+
+        Args:
+            xyd: distorted normalised coordinates (N, 2).
+
+        Returns:
+            The undistorted normalised coordinates (N, 2), NaN where Newton failed.
         """
         xyd = as_points(xyd, 2)
         if not self.has_distortion:
@@ -215,14 +244,26 @@ class PinholeModel:
         return project_points(as_points(X_cam, 3), self._params, jacobians=False)[0]
 
     def project_with_jacobians(self, X_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Pixels (N, 2), ``J_point`` (N, 2, 3) = d uv / d X_cam, ``J_params`` (N, 2, 9) (see
-        :func:`project_points`)."""
+        """Pixels and analytic Jacobians of camera-frame points (see :func:`project_points`).
+
+        Args:
+            X_cam: camera-frame points (N, 3).
+
+        Returns:
+            Pixels (N, 2), ``J_point`` (N, 2, 3) = d uv / d X_cam and ``J_params`` (N, 2, 9).
+        """
         return project_points(as_points(X_cam, 3), self._params)
 
     def backproject(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Rays of pixels (N, 2): origins (N, 3) = camera centre (zeros), unit directions (N, 3).
+        """Rays of pixels through the camera centre.
 
         The pixel is undistorted (see :meth:`undistort`) and lifted by K^-1.
+
+        Args:
+            uv: pixels (N, 2).
+
+        Returns:
+            Ray origins (N, 3) (the camera centre: zeros) and unit directions (N, 3), camera frame.
         """
         uv = as_points(uv, 2)
         xyd = (uv - self._params[2:4]) / self._params[:2]

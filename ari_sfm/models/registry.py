@@ -67,7 +67,19 @@ class ModelSpec:
         return self.projection == "exact"
 
     def calibrate(self, dataset, options) -> Any:
-        """Run this model's calibrator (not for bundle models: :func:`ari_sfm.calibrate` runs those)."""
+        """Run this model's calibrator (not for bundle models: :func:`ari_sfm.calibrate` runs those).
+
+        Args:
+            dataset (Dataset): the dataset, with observations.
+            options (CalibrationOptions): the calibration options
+                (:class:`~ari_sfm.calibration.calibrate.CalibrationOptions`).
+
+        Returns:
+            The :class:`~ari_sfm.calibration.record.Calibration` the calibrator made.
+
+        Raises:
+            ValueError: the model has no separate calibrator.
+        """
         if self.calibrator is None:
             raise ValueError(f"model {self.name} has no separate calibrator")
         module, function = self.calibrator.split(":")
@@ -107,7 +119,19 @@ BUNDLE: tuple[str, ...] = tuple(s.name for s in _SPECS if s.bundle)  # also the 
 
 
 def model_spec(name: Any, where: str | None = "model", calibratable: bool = False) -> ModelSpec:
-    """The spec of a model name; anything else is one AriSfmError naming ``where`` (a file or an option)."""
+    """The spec of a model name.
+
+    Args:
+        name: the model's name (anything else is an error).
+        where: what the error names: a file or an option.
+        calibratable: require a model that can be calibrated (not only loaded).
+
+    Returns:
+        The :class:`ModelSpec`.
+
+    Raises:
+        AriSfmError: an unknown name, or (with ``calibratable``) a model that is only loaded.
+    """
     spec = MODELS.get(name) if isinstance(name, str) else None
     if spec is None:
         raise AriSfmError(where,

@@ -12,10 +12,8 @@ The loop knows nothing of cameras: a problem supplies five operations
 plus ``linearized_error_is_error`` (True when system.error equals error(x), i.e.
 no robust noise model outside the problem's own residuals). It implements GTSAM
 4.3's defaults (lambda 1e-5 times/divided by 10, damping ``H + lambda I`` on
-every variable, model fidelity > 1e-3, upper bound 1e5): the same path as
-GTSAM, not only the same optimum, which matters with Huber weights (their
-Gauss-Newton fixed point is not the cost's minimum, so where LM stops depends
-on the path).
+every variable, model fidelity > 1e-3, upper bound 1e5) and takes the same path
+as GTSAM, not only the same optimum.
 """
 from __future__ import annotations
 
@@ -141,25 +139,29 @@ def levenberg_marquardt(problem: LMProblem, x: Any, max_iterations: int = 100, r
                         progress: Callable[[int, float], None] | None = None) -> LMResult:
     """Levenberg-Marquardt from x (GTSAM's algorithm).
 
-    ``max_iterations`` caps the accepted steps (gtsam's iterations()); LM
-    stops when the relative error decrease is below ``relative_tolerance``.
-    ``initial_error``: error(x) when already known (saves an evaluation).
-    ``progress``: called with (accepted steps, error) after each linearisation's trials.
+    ``stop="gtsam"`` is GTSAM's loop trial for trial: at convergence it typically rejects a step whose
+    predicted decrease is below ``eps * error`` and raises lambda tenfold, evaluating the error each time,
+    until the upper bound, with the values unchanged. ``stop="converged"`` (the default) ends at the first
+    such trial without evaluating it, and takes the initial error from the first linearisation instead of a
+    separate evaluation when ``problem.linearized_error_is_error``. Both give the same steps, values and
+    error; only the report (lambda, trials, evaluations, stop reason) differs.
 
-    ``stop="gtsam"`` is GTSAM's loop trial for trial: at convergence it
-    typically rejects a step whose predicted decrease is below
-    ``eps * error`` (GTSAM then never accepts it) and raises lambda
-    tenfold, evaluating the error each time, until the upper bound, with
-    the values unchanged. ``stop="converged"`` (the default) ends at the
-    first such trial without evaluating it: the predicted decrease of the
-    damped step never grows with lambda (its derivative is
-    ``-lambda * sum g_i^2 / (h_i + lambda)^3`` in H's eigenbasis), so no
-    later trial at this linearisation could be accepted and GTSAM would
-    end on the same values. It also takes the initial error from the
-    first linearisation (the same sum in another order, ~1e-15 relative)
-    instead of a separate evaluation when ``problem.linearized_error_is_error``.
-    Same steps, same values, same error; only the report (lambda, trials,
-    evaluations, stop reason) differs.
+    Args:
+        problem: the problem's operations (:class:`LMProblem`).
+        x: the starting values.
+        max_iterations: cap on the accepted steps (gtsam's iterations()).
+        relative_tolerance: LM stops when the relative error decrease is below it.
+        params: the constants (default :class:`LMParams`).
+        stop: the stop rule, one of :data:`STOP_RULES` (see above).
+        initial_error: error(x) when already known (saves an evaluation).
+        progress: called with (accepted steps, error) after each linearisation's trials.
+
+    Returns:
+        An :class:`LMResult`: the final values, the :class:`LMReport` and the last linearisation when it was
+            taken at the final values.
+
+    Raises:
+        ValueError: an unknown ``stop`` rule.
     """
     if stop not in STOP_RULES:
         raise ValueError(f"unknown stop rule {stop!r} (known: {', '.join(STOP_RULES)})")

@@ -20,11 +20,9 @@ The blocks are eliminated: ``S = U - W^T V^-1 W`` (dense G x G) and ``b = -g_glo
 g_block`` are built once per block damping (:func:`reduce`; dense: one product ``W^T (V^-1 W)``;
 entries: with ``V_n^-1 = L_n L_n^T``, ``W^T V^-1 W = Y^T Y`` where Y's rows for block n are the sum
 of its entries' ``L_n^T W_e`` scattered to their columns; Y is filled densely for a chunk of blocks
-at a time, over the columns that chunk touches only, one BLAS product per chunk; the blocks are
-taken in the order of their entries' smallest median column, so that on a chain (short tracks: each point seen
-by a few neighbouring frames) a chunk touches a few dozen frames' columns, not all G), S is solved by
-Cholesky and the block steps back-substituted
-(``d_block = -V^-1 (g_block + W d_global)``).
+at a time, over the columns that chunk touches only, one BLAS product per chunk, the blocks taken in
+the order of their entries' smallest median column), S is solved by Cholesky and the block steps
+back-substituted (``d_block = -V^-1 (g_block + W d_global)``).
 
 Damping, by the system's ``marquardt`` flag:
 
@@ -80,7 +78,16 @@ class NormalEquations:
 
     @staticmethod
     def zeros(n_frames: int, n_global: int, k: int = 6) -> NormalEquations:
-        """A dense-layout system of zeros."""
+        """A dense-layout system of zeros.
+
+        Args:
+            n_frames: the number of blocks N.
+            n_global: the number of global variables G.
+            k: the block size.
+
+        Returns:
+            The :class:`NormalEquations` with V (N, k, k), W (N, k, G), U (G, G) and the gradients zero.
+        """
         N, G = n_frames, n_global
         return NormalEquations(np.zeros((N, k, k)), np.zeros((N, k)), np.zeros((N, k, G)), np.zeros((G, G)),
                                np.zeros(G), 0.0)
@@ -115,8 +122,15 @@ class ReducedSystem:
 
 
 def reduce(sys: NormalEquations, lam_blocks: float) -> ReducedSystem | None:
-    """The reduced system with the blocks damped by ``lam_blocks`` (I or diag, by the system's
-    policy); None when a damped block is not positive definite (GTSAM's damping)."""
+    """The reduced system with the blocks damped by ``lam_blocks``.
+
+    Args:
+        sys: the normal equations.
+        lam_blocks: the blocks' damping lambda (``lambda I``, or ``lambda diag`` with ``sys.marquardt``).
+
+    Returns:
+        The :class:`ReducedSystem`, or None when a damped block is not positive definite (GTSAM's damping).
+    """
     N, k = sys.g_frame.shape
     G = len(sys.g_global)
     if sys.marquardt:
@@ -183,8 +197,15 @@ def _cholesky_solve(S: np.ndarray, b: np.ndarray, overwrite: bool) -> np.ndarray
 
 
 def solve_damped(sys: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray] | None:
-    """(global step, block steps) of the system damped by ``lam`` (module docstring); None if the
-    damped system cannot be solved."""
+    """The steps of the system damped by ``lam`` (module docstring).
+
+    Args:
+        sys: the normal equations; its ``reduced`` system is built or reused.
+        lam: the damping lambda.
+
+    Returns:
+        The global step (G,) and the block steps (N, k), or None if the damped system cannot be solved.
+    """
     if sys.marquardt:
         lam_blocks = lam if sys.reduced is None else sys.reduced.lam_blocks  # the first trial's
     else:
@@ -216,7 +237,16 @@ def solve_damped(sys: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarr
 
 
 def model_decrease(sys: NormalEquations, d_global: np.ndarray, d_block: np.ndarray) -> float:
-    """Decrease of the linearised cost from d = 0 for the joint step, undamped: -(g.d + 0.5 d^T H d)."""
+    """Decrease of the linearised cost from d = 0 for the joint step, undamped: ``-(g.d + 0.5 d^T H d)``.
+
+    Args:
+        sys: the normal equations.
+        d_global: the global step (G,).
+        d_block: the block steps (N, k).
+
+    Returns:
+        The predicted decrease.
+    """
     Wd = sys.coupling_to_blocks(d_global)  # (N, k)
     quad = d_global @ sys.U @ d_global + 2.0 * np.einsum("fi,fi->", d_block, Wd)
     quad += np.einsum("fi,fij,fj->", d_block, sys.V, d_block)
@@ -259,13 +289,15 @@ def _clearly_determined(V: np.ndarray) -> bool:
 
 
 def _determined_blocks(V: np.ndarray) -> tuple[np.ndarray, int]:
-    """The blocks ``V`` (N, k, k) with every direction the data do not determine (a Jacobi-scaled
-    eigenvalue below ``RANK_TOLERANCE`` x the largest, or negative) given the block's largest
-    eigenvalue instead: a prior that holds that direction of the block, so that the blocks can be
-    eliminated (exact when H is positive semi-definite: an undetermined block direction then
-    couples to no global variable); and how many blocks were changed. A zero block (a block moved
-    into the global variables) is kept. Blocks shown far from singular by their inverse (below) skip
-    the eigen-decompositions (LAPACK's, ~20 us a 6x6 block here)."""
+    """The blocks with every direction the data do not determine held.
+
+    ``V`` (N, k, k): a direction with a Jacobi-scaled eigenvalue below ``RANK_TOLERANCE`` x the largest, or
+    negative, is given the block's largest eigenvalue instead: a prior that holds that direction of the block,
+    so that the blocks can be eliminated (exact when H is positive semi-definite: an undetermined block
+    direction then couples to no global variable). Returns the blocks and how many were changed. A zero block
+    (a block moved into the global variables) is kept. Blocks shown far from singular by their inverse
+    (:func:`_clearly_determined`) skip the eigen-decompositions.
+    """
     if _clearly_determined(V):
         return V, 0
     w, Q, D = _scaled_eigh(V)
@@ -281,14 +313,21 @@ def _determined_blocks(V: np.ndarray) -> tuple[np.ndarray, int]:
 
 
 def global_covariance(sys: NormalEquations, fixed: np.ndarray | None = None) -> np.ndarray:
-    """(G, G) covariance of the global variables, H^-1 restricted to them: the inverse of the undamped
-    Schur complement of the blocks. The ``fixed`` columns (not variables) get zero rows and columns.
+    """Covariance of the global variables: H^-1 restricted to them, the inverse of the undamped Schur complement.
 
     A singular or indefinite information matrix is a fact about the data, not an error: a block
     direction the data do not determine is held (:func:`_determined_blocks`); a global variable
     with a component along an undetermined direction of the complement (Jacobi-scaled eigenvalue
     below ``RANK_TOLERANCE`` x the largest, or negative) gets variance inf and NaN covariances;
-    the determined ones get the pseudo-inverse restricted to the determined subspace."""
+    the determined ones get the pseudo-inverse restricted to the determined subspace.
+
+    Args:
+        sys: the normal equations (undamped).
+        fixed: the columns that are not variables; they get zero rows and columns.
+
+    Returns:
+        The covariance (G, G).
+    """
     G = len(sys.g_global)
     V, n_held = _determined_blocks(sys.V)
     if n_held:  # blocks the data do not place (e.g. a frame seen in a lost optimum)
@@ -329,9 +368,22 @@ def global_covariance(sys: NormalEquations, fixed: np.ndarray | None = None) -> 
 def assemble_from_observations(residuals: np.ndarray, J_global: np.ndarray, cols: np.ndarray,
                                J_block: np.ndarray, rows: np.ndarray, n_blocks: int, n_global: int,
                                weights: np.ndarray | None = None, marquardt: bool = True) -> NormalEquations:
-    """Normal equations (entries layout) of per-observation residuals (M, d) with Jacobians ``J_global``
-    (M, d, q) at global columns ``cols`` (M, q; -1 none) and ``J_block`` (M, d, k) on block ``rows``
-    (M,), each observation weighted by ``weights`` (M,) (IRLS; 1 without). ``error`` is left 0."""
+    """Normal equations (entries layout) of per-observation residuals and Jacobians.
+
+    Args:
+        residuals: whitened residuals (M, d).
+        J_global: each observation's Jacobian on its global columns (M, d, q).
+        cols: the global columns (M, q), -1 where none.
+        J_block: each observation's Jacobian on its block (M, d, k).
+        rows: each observation's block (M,).
+        n_blocks: the number of blocks N.
+        n_global: the number of global variables G.
+        weights: each observation's weight (M,) (IRLS); None: 1.
+        marquardt: the system's damping (Marquardt's ``lambda * diag``, else ``lambda I``).
+
+    Returns:
+        The :class:`NormalEquations`, its ``error`` left 0.
+    """
     from .schur_kernels import assemble_entries
 
     G = n_global

@@ -12,9 +12,22 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 @njit(**_JIT)
 def assemble_entries(residuals, J_global, cols, J_block, rows, weights, n_blocks, n_global):
-    """Weighted normal equations of observations (residual rows r (M, d), ``J_global`` (M, d, q) at
-    ``cols`` (M, q; ``n_global`` = none), ``J_block`` (M, d, k) on block ``rows``): U (G+1, G+1) and
-    g (G+1,) (the last row and column the dummy's), V (N, k, k), g_block (N, k), W (M, k, q)."""
+    """Weighted normal equations of observations (entries layout).
+
+    Args:
+        residuals: residual rows r (M, d).
+        J_global: Jacobians on the global columns (M, d, q).
+        cols: the global columns (M, q), ``n_global`` where none.
+        J_block: Jacobians on the blocks (M, d, k).
+        rows: each observation's block (M,).
+        weights: each observation's weight (M,).
+        n_blocks: the number of blocks N.
+        n_global: the number of global variables G.
+
+    Returns:
+        U (G+1, G+1) (each pair of columns added once, in one of its two triangles) and g (G+1,), the last
+            row and column the dummy column's; V (N, k, k), g_block (N, k) and W (M, k, q).
+    """
     M, d, q = J_global.shape
     k = J_block.shape[2]
     G1 = n_global + 1
@@ -58,9 +71,24 @@ def assemble_entries(residuals, J_global, cols, J_block, rows, weights, n_blocks
 
 @njit(**_JIT)
 def fill_y(W, rows, rank, cols, local, L, order, start, stop, r0, Y):
-    """Y (k (r1 - r0), columns) of the blocks ranked r0.. whose entries are ``order[start:stop]``: block
-    n's k rows (at ``rank[n] - r0``) are the sum of its entries' ``L_n^T W_e``, entry column c at Y's
-    column ``local[c]`` (``W^T V^-1 W = sum over chunks of Y^T Y``)."""
+    """Fill Y with the rows of the blocks ranked r0.. (one chunk), ``W^T V^-1 W = sum over chunks of Y^T Y``.
+
+    Block n's k rows (at ``k (rank[n] - r0)``) are the sum of its entries' ``L_n^T W_e``, entry column c at
+    Y's column ``local[c]``.
+
+    Args:
+        W: the entries' coupling (E, k, q).
+        rows: each entry's block (E,).
+        rank: each block's rank (N,).
+        cols: each entry's global columns (E, q).
+        local: Y's column of each global column (G + 1,).
+        L: ``V_n^-1 = L_n L_n^T`` per block (N, k, k).
+        order: the entries in the order of their blocks' ranks (E,).
+        start: first of the chunk's entries in ``order``.
+        stop: end of the chunk's entries in ``order``.
+        r0: the rank of the chunk's first block.
+        Y: output (k (r1 - r0), columns), zeroed and filled.
+    """
     k, q = W.shape[1], W.shape[2]
     Y[:] = 0.0
     for t in range(start, stop):
