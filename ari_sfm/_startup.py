@@ -1,10 +1,8 @@
 """Ctrl-C and SIGTERM while the command line is still loading its libraries.
 
-``ari-sfm`` imports numpy, scipy, OpenCV and the package itself (about a
-second) before any command installs its signal handlers (``cli.user_errors``);
-an interrupt in that window printed Python's KeyboardInterrupt traceback.
-Only when this process is the command line (the ``ari-sfm`` script or
-``python -m ari_sfm``), :func:`guard_loading` makes such a signal print
+``ari-sfm`` imports its libraries before any command installs its signal handlers
+(``cli.user_errors``). Only when this process is the command line (the ``ari-sfm`` script or
+``python -m ari_sfm``), :func:`guard_loading` makes a signal in that window print
 "interrupted" / "terminated" and exit 130 / 143 at once (nothing is written
 yet); :func:`loaded` puts the previous handlers back when the CLI is loaded.
 A library import (``import ari_sfm`` in a script) is never touched.
@@ -34,8 +32,15 @@ def is_command_line() -> bool:
 
 
 def leave(signum: int, frame) -> None:
-    """Leave at once with the signal's exit code: while the libraries load nothing has been written, and
-    after a command (:func:`ari_sfm.cli.process.user_errors`) everything has."""
+    """Leave at once with the signal's exit code (130 for SIGINT, 143 for SIGTERM).
+
+    Safe while the libraries load (nothing has been written yet) and after a command
+    (:func:`ari_sfm.cli.process.user_errors`: everything has been written).
+
+    Args:
+        signum: the signal received.
+        frame: the interrupted frame (unused; a signal handler's signature).
+    """
     os.write(2, b"interrupted\n" if signum == signal.SIGINT else b"terminated\n")
     os._exit(130 if signum == signal.SIGINT else 143)
 

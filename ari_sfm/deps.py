@@ -22,10 +22,16 @@ def _interrupted(exc: BaseException) -> bool:
 def require_open3d():
     """Import open3d, or fail in one line naming the missing system library.
 
-    Ctrl-C while open3d's extension initialises surfaces as ImportError
-    ('initialization failed') with the KeyboardInterrupt as its context: that is
-    re-raised as KeyboardInterrupt (the CLI prints "interrupted", exit 130), not
-    reported as a missing package; "not installed" only when no open3d package is found.
+    A Ctrl-C while open3d's extension initialises is re-raised as KeyboardInterrupt (the CLI prints
+    "interrupted", exit 130), not reported as a missing package; "not installed" only when no open3d
+    package is found.
+
+    Returns:
+        The open3d module.
+
+    Raises:
+        AriSfmError: open3d is not installed, or is installed but cannot load (e.g. libusb-1.0 missing).
+        KeyboardInterrupt: interrupted while open3d loaded.
     """
     import importlib.util
 
@@ -51,10 +57,20 @@ def require_open3d():
 
 
 def import_pycolmap(min_version: tuple[int, int] = (3, 11)) -> Any:
-    """Import pycolmap, keeping Python's SIGTERM handler: pycolmap installs glog's failure-signal handler,
-    which answers a plain SIGTERM with a native stack dump (and so does not let the CLI leave cleanly).
-    SIGINT and SIGTERM are blocked while the import runs and Python's handlers are back, so that one
-    arriving in between is delivered to Python's handler afterwards, not to glog's."""
+    """Import pycolmap, keeping Python's SIGTERM handler.
+
+    SIGINT and SIGTERM are blocked while the import runs and until Python's handlers are back; a signal
+    arriving in between is delivered to Python's handler afterwards, not to glog's.
+
+    Args:
+        min_version: the (major, minor) pycolmap version named in the error message.
+
+    Returns:
+        The pycolmap module.
+
+    Raises:
+        ImportError: pycolmap cannot be imported.
+    """
     import signal
     import threading
 

@@ -40,13 +40,30 @@ def file_sha256(path: str | Path) -> str:
 
 
 def calibration_record(path: str | Path, model: str) -> dict[str, Any]:
-    """The ``provenance.calibration`` mapping of a calibration file."""
+    """Build the ``provenance.calibration`` mapping of a calibration file.
+
+    Args:
+        path: the calibration.json file.
+        model: the model of the calibration used (``ari``, ``exact``, ...).
+
+    Returns:
+        ``{"path": <absolute>, "sha256": <of the file's bytes>, "model": model}``.
+    """
     return {"path": os.path.abspath(path), "sha256": file_sha256(path), "model": model}
 
 
 def observations_sha256(observations: Sequence[Observation]) -> str:
-    """Hex SHA-256 of the corners themselves (camera, set, frame, added_mm, ids, pixels), whatever file they
-    came from."""
+    """Hash the corners themselves, whatever file they came from.
+
+    The hash covers each observation's camera, set, frame, added_mm, ids and pixels, independent of the
+    observations' order.
+
+    Args:
+        observations: the corners.
+
+    Returns:
+        The hex SHA-256.
+    """
     digest = hashlib.sha256()
     for o in sorted(observations, key=lambda o: (o.set, o.frame, o.camera, o.added_mm or 0.0)):
         digest.update(f"{o.camera}\0{o.set}\0{o.frame}\0{o.added_mm!r}\0".encode())
@@ -80,7 +97,16 @@ def dataset_record(dataset: Dataset) -> dict[str, Any]:
 
 
 def provenance(calibration_path: str | Path, model: str, dataset: Dataset) -> dict[str, Any]:
-    """The ``provenance`` mapping written into points.json and metrics.json."""
+    """Build the ``provenance`` mapping written into points.json and metrics.json.
+
+    Args:
+        calibration_path: the calibration.json the result was made with.
+        model: the model of that calibration used.
+        dataset: the dataset the result was made from.
+
+    Returns:
+        ``{"calibration": ..., "dataset": ...}`` (see the module's docstring).
+    """
     return {"calibration": calibration_record(calibration_path, model), "dataset": dataset_record(dataset)}
 
 
@@ -92,10 +118,18 @@ def _recorded(result: Mapping[str, Any] | None, part: str) -> Mapping[str, Any] 
 
 def calibration_mismatch(result: Mapping[str, Any] | None, calibration_path: str | Path,
                          model: str | None = None) -> str | None:
-    """Why ``result`` (points.json / metrics.json content) was not made with ``calibration_path``, or None.
+    """Say why a result was not made with a calibration file.
 
-    Decided by the recorded content hash; for a result written before provenance
-    was recorded, by the model name it holds (``model`` key), if any.
+    Decided by the recorded content hash; for a result that records no provenance, by the model name it
+    holds (``model`` key), if any.
+
+    Args:
+        result: the content of points.json or metrics.json (None: nothing recorded).
+        calibration_path: the calibration.json at hand.
+        model: the model of that calibration, None if unknown.
+
+    Returns:
+        One line saying what differs, or None when the result matches or nothing tells.
     """
     rec = _recorded(result, "calibration")
     if rec is not None and isinstance(rec.get("sha256"), str):
@@ -111,8 +145,17 @@ def calibration_mismatch(result: Mapping[str, Any] | None, calibration_path: str
 
 
 def dataset_mismatch(result: Mapping[str, Any] | None, dataset: Dataset) -> str | None:
-    """Why ``result`` was not made from ``dataset`` (another rig file content, other corners or another image
-    list), or None (also when unrecorded)."""
+    """Say why a result was not made from a dataset.
+
+    A result differs when it records another rig file content, other corners or another image list.
+
+    Args:
+        result: the content of points.json or metrics.json (None: nothing recorded).
+        dataset: the dataset at hand.
+
+    Returns:
+        One line saying what differs, or None when the result matches or records no dataset.
+    """
     rec = _recorded(result, "dataset")
     if rec is None or not isinstance(rec.get("rig_sha256"), str):
         return None
@@ -133,8 +176,20 @@ RESIDUAL_MISMATCH_PX = 2.0  # factor x recorded + px: not the corners it was cal
 
 def observations_mismatch(calibration: Calibration, observations: Sequence[Observation],
                           target: Target | None = None) -> str | None:
-    """Why ``observations`` are not the corners ``calibration`` was made from (their rmse at its own frame
-    poses far above the rmse it records), or None (also when no frame of it is observed)."""
+    """Say why observations are not the corners a calibration was made from.
+
+    They are not when their rmse at the calibration's own frame poses is far above the rmse it records
+    (above :data:`RESIDUAL_MISMATCH_FACTOR` x recorded + :data:`RESIDUAL_MISMATCH_PX`).
+
+    Args:
+        calibration: the calibration.
+        observations: the dataset's corners; only the calibration and stacking sets are judged.
+        target: the target the corners belong to; None for the calibration's own.
+
+    Returns:
+        One line saying what differs, or None when the corners fit, the calibration records no rmse, or
+        no frame of it is observed.
+    """
     from .calibration.evaluate import reprojection_stats  # the raw statistics (count 0, NaN), no error
 
     recorded = calibration.residuals.rmse_px if calibration.residuals is not None else None

@@ -41,7 +41,20 @@ class Target:
     diameter_mm: float | None = None  # circles: printed dot diameter; points3d: dot diameter; if declared
 
     def required(self, value: T | None, name: str) -> T:
-        """``value``, a field that this target's type has (:func:`ari_sfm.io.dataset.parse_target` checks it)."""
+        """Return a field that this target's type must have.
+
+        :func:`ari_sfm.io.dataset.parse_target` checks the fields when the target is loaded.
+
+        Args:
+            value: the field's value.
+            name: the field's name, for the error message.
+
+        Returns:
+            ``value`` when it is not None.
+
+        Raises:
+            ValueError: ``value`` is None.
+        """
         if value is None:
             raise ValueError(f"a {self.type} target without {name}")
         return value
@@ -256,14 +269,32 @@ class Dataset:
         return replace(self, observations=tuple(observations), observations_path=path)
 
     def select(self, set_name: str, camera: str | None = None) -> list[Observation]:
-        """The observations of one set (and camera)."""
+        """The observations of one set (and camera).
+
+        Args:
+            set_name: ``stacking``, ``calibration`` or ``reconstruction``.
+            camera: only this camera's observations; None for every camera.
+
+        Returns:
+            The matching observations, in the dataset's order (empty without observations).
+        """
         obs = self.observations or ()
         return [o for o in obs if o.set == set_name and (camera is None or o.camera == camera)]
 
 
 def check_windows(windows: tuple[Window, ...], cameras: list[str]) -> None:
-    """ValueError unless every camera is behind exactly one window, every window has a camera, names
-    are distinct and the windows share one medium."""
+    """Check that a rig's windows and cameras fit together.
+
+    Every camera is behind exactly one window, every window has a camera, the window names are distinct
+    and the windows share one medium.
+
+    Args:
+        windows: the rig's windows.
+        cameras: the names of the rig's cameras.
+
+    Raises:
+        ValueError: one of the conditions does not hold.
+    """
     names = [w.name for w in windows]
     if len(set(names)) != len(names):
         raise ValueError(f"window names repeat: {names}")

@@ -289,7 +289,19 @@ class StageRecord:
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any], position: int = 0) -> StageRecord:
-        """The record of one ``stages`` entry (``position``: its place in the list, its name when it has none)."""
+        """Read one ``stages`` entry leniently.
+
+        Args:
+            d: the entry, as read from calibration.json.
+            position: its place in the ``stages`` list (0-based); ``position + 1`` names an entry
+                without ``stage`` or ``name``.
+
+        Returns:
+            The stage's record.
+
+        Raises:
+            TypeError: ``d`` is not a mapping.
+        """
         if not isinstance(d, Mapping):
             raise TypeError(f"stages[{position}] must be an object")
         res = d["residuals"] if isinstance(d.get("residuals"), Mapping) else d

@@ -33,9 +33,16 @@ _FILE_MODE = 0o666 & ~_current_umask()  # what open() would give a new file
 
 
 def write_text_atomic(path: str | Path, text: str) -> None:
-    """Write ``text`` (UTF-8) to ``path`` atomically, creating missing parent folders.
+    """Write text (UTF-8) to a file atomically, creating missing parent folders.
 
-    Keeps the mode of an existing file. Raises AriSfmError if the file cannot be written.
+    Keeps the mode of an existing file.
+
+    Args:
+        path: the file to write.
+        text: its new content.
+
+    Raises:
+        AriSfmError: the file cannot be written (``path`` is left as it was).
     """
     if not isinstance(text, str):
         raise TypeError(f"write_text_atomic needs str, got {type(text).__name__}")
@@ -43,16 +50,35 @@ def write_text_atomic(path: str | Path, text: str) -> None:
 
 
 def write_bytes_atomic(path: str | Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically (as :func:`write_text_atomic`; e.g. a PNG)."""
+    """Write bytes (e.g. a PNG) to a file atomically, as :func:`write_text_atomic` does.
+
+    Args:
+        path: the file to write.
+        data: its new content.
+
+    Raises:
+        AriSfmError: the file cannot be written (``path`` is left as it was).
+    """
     with replaced_atomically(path) as tmp, open(tmp, "wb") as f:
         f.write(data)
 
 
 @contextmanager
 def replaced_atomically(path: str | Path) -> Iterator[Path]:
-    """A temporary file's path beside ``path``, for a writer that streams into a path of its own (pyarrow's
-    ParquetWriter). When the block ends the file is fsynced and renamed over ``path``; on any exception
-    or interrupt it is removed and ``path`` is left as it was (an OSError: AriSfmError naming ``path``)."""
+    """Give a writer that streams into a path of its own (pyarrow's ParquetWriter) a temporary file.
+
+    When the block ends the temporary file is fsynced and renamed over ``path``; on any exception or
+    interrupt it is removed and ``path`` is left as it was.
+
+    Args:
+        path: the file to write.
+
+    Yields:
+        The temporary file's path, beside ``path``.
+
+    Raises:
+        AriSfmError: an OSError while preparing, writing or renaming, naming ``path``.
+    """
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -91,11 +117,19 @@ def _fsync_dir(folder: Path) -> None:
 
 
 def to_jsonable(obj: Any, where: str = "", string_keys: bool = True) -> Any:
-    """``obj`` with numpy arrays/scalars, tuples and paths turned into JSON types.
+    """Turn numpy arrays and scalars, tuples and paths into JSON types.
 
-    Integer mapping keys become strings unless ``string_keys`` is False (YAML
-    keeps them). Raises AriSfmError(None, ...) naming the key path of a NaN or
-    infinity and TypeError for an object JSON cannot hold.
+    Args:
+        obj: the value to convert (mappings and lists are converted recursively).
+        where: the key path of ``obj``, for error messages ("" at the top level).
+        string_keys: turn integer mapping keys into strings; False keeps them (YAML).
+
+    Returns:
+        ``obj`` made of JSON types only.
+
+    Raises:
+        AriSfmError: a NaN or an infinity (path None; the message names its key path).
+        TypeError: an object JSON cannot hold, or a non-string, non-integer key.
     """
     if obj is None or isinstance(obj, (bool, str)):
         return obj
@@ -136,10 +170,17 @@ class _NumberBlock(list):
 
 
 def format_json(obj: Any, indent: int = 2) -> str:
-    """Indented JSON of JSON-native ``obj``; lists of numbers stay on one line.
+    """Format JSON-native data as indented JSON; lists of numbers stay on one line.
 
-    So a K matrix or a pixel list prints one row per line. Floats keep full
-    precision (shortest repr that reads back exactly).
+    A K matrix or a pixel list prints one row per line. Floats keep full precision (the shortest repr
+    that reads back exactly).
+
+    Args:
+        obj: the data, of JSON types (see :func:`to_jsonable`).
+        indent: spaces per level.
+
+    Returns:
+        The JSON text, ending with a newline.
     """
     return _format(obj, 0, indent) + "\n"
 
@@ -169,11 +210,17 @@ def _format(obj: Any, level: int, indent: int) -> str:
 
 
 def write_json_atomic(path: str | Path, obj: Any) -> None:
-    """Write ``obj`` as indented JSON, atomically (see :func:`write_text_atomic`).
+    """Write data as indented JSON, atomically (see :func:`write_text_atomic`).
 
-    numpy arrays and scalars are converted. A NaN or infinity raises AriSfmError
-    naming the file and the key; an unencodable object raises TypeError. Either
-    way nothing is written.
+    numpy arrays and scalars are converted. On an error nothing is written.
+
+    Args:
+        path: the file to write.
+        obj: the data.
+
+    Raises:
+        AriSfmError: a NaN or infinity (naming the file and the key), or the file cannot be written.
+        TypeError: an object JSON cannot hold.
     """
     try:
         text = format_json(to_jsonable(obj))
@@ -184,12 +231,23 @@ def write_json_atomic(path: str | Path, obj: Any) -> None:
 
 def write_files_atomic(out_dir: str | Path, writer: Callable[[Path], None],
                        check: Callable[[Path], None] | None = None) -> list[Path]:
-    """Files a native writer puts in a folder (a COLMAP model, a .ply), each complete or not there at all.
+    """Let a native writer put files in a folder (a COLMAP model, a .ply), each complete or not there at all.
 
-    ``writer(tmp)`` writes into a fresh temporary folder inside ``out_dir``; ``check(tmp)`` (e.g. reading
-    the model back) may raise to reject what was written (a full disk that the writer did not report);
-    then each file is fsynced and renamed into ``out_dir``, replacing an older one. On any failure or
-    interrupt the temporary folder is removed and ``out_dir`` keeps its old files. Returns the paths written.
+    The writer writes into a fresh temporary folder inside ``out_dir``; then each file is fsynced and
+    renamed into ``out_dir``, replacing an older one. On any failure or interrupt the temporary folder is
+    removed and ``out_dir`` keeps its old files.
+
+    Args:
+        out_dir: the folder to write into (created if needed).
+        writer: called with the temporary folder; writes the files there.
+        check: called with the temporary folder after the writer (e.g. reading the model back); may raise
+            to reject what was written (a full disk that the writer did not report). None: no check.
+
+    Returns:
+        The paths written in ``out_dir``.
+
+    Raises:
+        AriSfmError: an OSError while writing, naming ``out_dir``.
     """
     out_dir = Path(out_dir)
     try:
@@ -247,11 +305,13 @@ def _fcntl() -> ModuleType | None:
 
 
 class exclusive_folder:
-    """A command's hold on its output folder (``with exclusive_folder(out, "-o/--out"):``): a second command
-    writing into the same folder at the same time is refused in one line, instead of the two interleaving
-    their files (run.json of one, results of the other). An advisory lock on the folder itself (flock; no
-    lock file), released when the command ends, also when it is killed. The folder is created if needed;
-    ``created`` says whether it was (a failed command removes it again when it is still empty)."""
+    """A command's hold on its output folder (``with exclusive_folder(out, "-o/--out"):``).
+
+    A second command writing into the same folder at the same time is refused with an
+    :class:`~ari_sfm.errors.AriSfmError`. The hold is an advisory lock on the folder itself (flock; no lock
+    file), released when the command ends, also when it is killed. The folder is created if needed;
+    ``created`` says whether it was (a failed command removes it again when it is still empty).
+    """
 
     def __init__(self, out: str | Path, option: str = "-o/--out") -> None:
         self.out, self.option = Path(out), option

@@ -1,8 +1,7 @@
 """The values of a calibration.json (or a simulator's truth.json) held to the bounds of rig.yaml.
 
-A hand-edited or foreign calibration with an index of 6, a 3-number ``dist``,
-a window 1e6 mm away or 0 mm thick used to be evaluated into NaN or nonsense
-numbers; :func:`check_calibration_values` refuses it in one line naming the key.
+:func:`check_calibration_values` refuses a value out of bounds (an index of 6, a 3-number ``dist``, a
+window 1e6 mm away or 0 mm thick) in one line naming the key.
 """
 from __future__ import annotations
 
@@ -27,11 +26,22 @@ CALIBRATION_DIST_LENGTHS = (4, 5)  # k1 k2 p1 p2 [k3]: what the models use (cali
 
 
 def check_calibration_values(data: Any, path: str | Path, window: bool = True) -> None:
-    """AriSfmError naming the key of the first value outside rig.yaml's bounds: ``interface.thickness_mm``
-    (> 0 for a model with a window, >= 0 otherwise), ``index`` and ``medium_index`` (1..MAX_INDEX),
-    ``distance_mm`` and ``fixed_distance_mm`` (|offset| <= MAX_LENGTH_MM, or null; every camera in front of
-    the window, at most MAX_LENGTH_MM from it), each camera's ``dist``
-    (4 or 5 finite numbers). Structure errors are left to the parser."""
+    """Check a calibration's values against rig.yaml's bounds.
+
+    Checked: ``interface.thickness_mm`` (> 0 for a model with a window, >= 0 otherwise), ``index`` and
+    ``medium_index`` (1..MAX_INDEX), ``distance_mm`` and ``fixed_distance_mm`` (|offset| <= MAX_LENGTH_MM,
+    or null; every camera in front of the window, at most MAX_LENGTH_MM from it), each camera's
+    ``image_size``, K focal length (>= MIN_FOCAL_PX) and ``dist`` (4 or 5 finite numbers). Structure errors
+    are left to the parser.
+
+    Args:
+        data: the parsed calibration.json (or truth.json) content; anything but a mapping is not checked.
+        path: the file, for error messages.
+        window: the model has a window (its thickness must then be > 0).
+
+    Raises:
+        AriSfmError: naming the key of the first value outside the bounds.
+    """
     if not isinstance(data, Mapping):
         return
     windows = []

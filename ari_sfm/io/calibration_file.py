@@ -1,8 +1,11 @@
-"""calibration.json read, validated and written (docs/DATASET_FORMAT.md), as the rig files are by
-:mod:`ari_sfm.io.dataset`: :func:`load_calibration`, :func:`save_calibration` (atomic),
-:func:`parse_calibration` (a parsed mapping, e.g. a simulator's truth) and :func:`calibration_to_json`.
-A defect is one line, ``AriSfmError(path, message)``, naming the key; values are held to rig.yaml's
-bounds (:mod:`ari_sfm.io.calibration_checks`). The record itself is :class:`ari_sfm.calibration.record.Calibration`."""
+"""calibration.json read, validated and written (docs/DATASET_FORMAT.md).
+
+As the rig files are by :mod:`ari_sfm.io.dataset`: :func:`load_calibration`, :func:`save_calibration`
+(atomic), :func:`parse_calibration` (a parsed mapping, e.g. a simulator's truth) and
+:func:`calibration_to_json`. A defect is one line, ``AriSfmError(path, message)``, naming the key; values
+are held to rig.yaml's bounds (:mod:`ari_sfm.io.calibration_checks`). The record itself is
+:class:`ari_sfm.calibration.record.Calibration`.
+"""
 from __future__ import annotations
 
 import math
@@ -38,12 +41,30 @@ FORMAT = "ari-sfm-calibration/1"
 
 
 def load_calibration(path: str | Path) -> Calibration:
-    """Read and validate calibration.json (or a simulator's truth.json)."""
+    """Read and validate calibration.json (or a simulator's truth.json).
+
+    Args:
+        path: the file (JSON or YAML).
+
+    Returns:
+        The calibration.
+
+    Raises:
+        AriSfmError: the file cannot be read or is not a valid calibration (one line naming the key).
+    """
     return parse_calibration(read_structured(Path(path)), path)
 
 
 def save_calibration(calibration: Calibration, path: str | Path) -> None:
-    """Write calibration.json atomically."""
+    """Write calibration.json atomically.
+
+    Args:
+        calibration: the calibration to write.
+        path: the file to write.
+
+    Raises:
+        AriSfmError: the file cannot be written, or a value is NaN or infinite.
+    """
     write_json_atomic(Path(path), calibration_to_json(calibration))
 
 
@@ -122,7 +143,18 @@ def _window_json(w: WindowCalibration) -> dict[str, Any]:
 
 
 def parse_calibration(data: Any, path: str | Path = "calibration.json") -> Calibration:
-    """Parse and validate a calibration.json mapping; AriSfmError(path, one line) when it is not one."""
+    """Parse and validate a calibration.json mapping.
+
+    Args:
+        data: the mapping, as read from the file (or built in memory, e.g. a simulator's truth).
+        path: the file it came from, for error messages.
+
+    Returns:
+        The calibration.
+
+    Raises:
+        AriSfmError: ``data`` is not a valid calibration (one line naming the key).
+    """
     try:
         return _parse(data, path)
     except AriSfmError:

@@ -141,7 +141,19 @@ def _is_text(path: Path) -> bool:
 
 
 def parse_target(data: Any, path: Path, where: str = "target") -> Target:
-    """The ``target`` mapping as a :class:`Target` (geometry checked)."""
+    """Parse and check a ``target`` mapping.
+
+    Args:
+        data: the mapping, as read from the file.
+        path: the rig file, for error messages.
+        where: the key path of ``data`` in the file, for error messages.
+
+    Returns:
+        The target, its geometry checked.
+
+    Raises:
+        AriSfmError: a key is missing or a value is invalid (one line naming the key).
+    """
     data = as_mapping(data, path, where)
     kind = require(data, "type", path, where)
     if kind not in TARGET_TYPES:
@@ -237,7 +249,20 @@ def _point_id(raw: Any, path: Path, where: str) -> int:
 
 def parse_interface(data: Any, path: Path, where: str = "interface", keys: tuple[str, ...] = INTERFACE_KEYS
                     ) -> Interface:
-    """The ``interface`` mapping (or one entry of ``interfaces``) as an :class:`Interface`."""
+    """Parse and check an ``interface`` mapping (or one entry of ``interfaces``).
+
+    Args:
+        data: the mapping, as read from the file.
+        path: the rig file, for error messages.
+        where: the key path of ``data`` in the file, for error messages.
+        keys: the keys the mapping may have (others are warned about).
+
+    Returns:
+        The window's plate.
+
+    Raises:
+        AriSfmError: a key is missing or a value is invalid (one line naming the key).
+    """
     data = as_mapping(data, path, where)
     warn_unknown_keys(data, keys, path, where)
     thickness = _length(require(data, "thickness_mm", path, where), path, f"{where}.thickness_mm")
@@ -252,8 +277,21 @@ def parse_interface(data: Any, path: Path, where: str = "interface", keys: tuple
 
 
 def parse_windows(data: Any, path: Path, cameras: Mapping[str, CameraSpec]) -> tuple[Window, ...]:
-    """The ``interfaces`` mapping (1.3): name -> a window's plate and its ``cameras``; every camera of
-    ``cameras`` behind exactly one window, one medium behind all of them."""
+    """Parse and check an ``interfaces`` mapping (1.3): name -> a window's plate and its ``cameras``.
+
+    Every camera of ``cameras`` must be behind exactly one window, with one medium behind all of them.
+
+    Args:
+        data: the mapping, as read from the file.
+        path: the rig file, for error messages.
+        cameras: the rig's cameras.
+
+    Returns:
+        The windows, in file order.
+
+    Raises:
+        AriSfmError: a key is missing or a value is invalid (one line naming the key).
+    """
     data = as_mapping(data, path, "interfaces")
     if not data:
         raise AriSfmError(path, "interfaces must declare at least one window")
@@ -285,7 +323,21 @@ def _length(value: Any, path: Path, where: str) -> float:
 
 
 def check_at_least(value: float, limit: float, path: str | Path, where: str, unit: str = "") -> float:
-    """``value`` itself if >= ``limit`` (a sane physical bound), else AriSfmError naming ``where``."""
+    """Hold a value to a sane physical lower bound.
+
+    Args:
+        value: the value.
+        limit: the least value allowed.
+        path: the file, for error messages.
+        where: the value's key, for error messages.
+        unit: the unit appended to the numbers in the message (e.g. ``" mm"``).
+
+    Returns:
+        ``value`` itself.
+
+    Raises:
+        AriSfmError: ``value`` < ``limit``, naming ``where``.
+    """
     if value < limit:
         raise AriSfmError(path, f"{where} must be >= {limit:g}{unit} (got {value:g}): not a physical value")
     return value
@@ -297,8 +349,22 @@ def _index(value: Any, path: Path, where: str) -> float:
 
 
 def parse_window_plane(data: Any, path: Path, where: str = "interface.plane") -> WindowPlane:
-    """The ``interface.plane`` mapping (1.1): frame, unit normal, a point of the camera-side face,
-    optional sigmas (absent or 0: held fixed)."""
+    """Parse and check an ``interface.plane`` mapping (1.1).
+
+    The mapping holds a frame, a unit normal, a point of the camera-side face and optional sigmas (absent
+    or 0: held fixed).
+
+    Args:
+        data: the mapping, as read from the file.
+        path: the rig file, for error messages.
+        where: the key path of ``data`` in the file, for error messages.
+
+    Returns:
+        The declared window pose (its normal normalised).
+
+    Raises:
+        AriSfmError: a key is missing or a value is invalid (one line naming the key).
+    """
     data = as_mapping(data, path, where)
     warn_unknown_keys(data, PLANE_KEYS, path, where)
     frame = as_name(require(data, "frame", path, where), path, f"{where}.frame")
@@ -315,7 +381,22 @@ def parse_window_plane(data: Any, path: Path, where: str = "interface.plane") ->
 
 
 def parse_camera(name: str, data: Any, path: Path, where: str) -> CameraSpec:
-    """One ``cameras`` entry: image_size [width, height] and optional hints focal_px, K, dist."""
+    """Parse and check one ``cameras`` entry.
+
+    The entry holds image_size [width, height] and optional hints focal_px, K, dist.
+
+    Args:
+        name: the camera's name.
+        data: the entry, as read from the file.
+        path: the rig file, for error messages.
+        where: the key path of ``data`` in the file, for error messages.
+
+    Returns:
+        The camera as declared.
+
+    Raises:
+        AriSfmError: a key is missing or a value is invalid (one line naming the key).
+    """
     data = as_mapping(data, path, where)
     warn_unknown_keys(data, CAMERA_KEYS, path, where)
     size = as_int_pair(require(data, "image_size", path, where), path, f"{where}.image_size", minimum=1)
@@ -343,7 +424,19 @@ def parse_camera(name: str, data: Any, path: Path, where: str) -> CameraSpec:
 
 
 def parse_cameras(data: Any, path: Path, where: str = "cameras") -> dict[str, CameraSpec]:
-    """The ``cameras`` mapping (non-empty), name -> :class:`CameraSpec`, in file order."""
+    """Parse and check the ``cameras`` mapping (non-empty).
+
+    Args:
+        data: the mapping, as read from the file.
+        path: the rig file, for error messages.
+        where: the key path of ``data`` in the file, for error messages.
+
+    Returns:
+        Name -> :class:`CameraSpec`, in file order.
+
+    Raises:
+        AriSfmError: no camera, a camera declared twice, or an invalid entry (one line naming the key).
+    """
     data = as_mapping(data, path, where)
     if not data:
         raise AriSfmError(path, f"{where} must declare at least one camera")
@@ -360,11 +453,26 @@ def parse_entries(
     data: Any, set_name: str, path: Path, root: Path, cameras: Mapping[str, CameraSpec], check_files: bool = True,
     windows: tuple[Window, ...] = (), target: Target | None = None,
 ) -> tuple[Entry, ...]:
-    """One of the ``stacking`` / ``calibration`` / ``reconstruction`` lists (null or absent: empty).
+    """Parse and check one of the ``stacking`` / ``calibration`` / ``reconstruction`` lists.
 
-    Image paths are made absolute (relative to ``root``) and, if ``check_files``, must exist. With several
-    ``windows`` a stacking entry names the window its plates were added to (``window``, 1.3);
-    ``manual_points`` (1.3) are checked against ``target`` (their ids) and the cameras (their pixels)."""
+    With several windows a stacking entry names the window its plates were added to (``window``, 1.3).
+
+    Args:
+        data: the list, as read from the file (null or absent: empty).
+        set_name: ``stacking``, ``calibration`` or ``reconstruction``.
+        path: the rig file, for error messages.
+        root: the folder image paths are relative to; they are made absolute.
+        cameras: the rig's cameras.
+        check_files: the images must exist.
+        windows: the rig's windows when it has several (1.3); () for one window.
+        target: the rig's target, to check ``manual_points`` ids against (1.3); None: not checked.
+
+    Returns:
+        The entries, in file order.
+
+    Raises:
+        AriSfmError: an invalid or repeated entry, a missing image (one line naming the key).
+    """
     if data is None:
         return ()
     items = as_list(data, path, set_name)
@@ -441,11 +549,24 @@ def _entry_window(item: Mapping[str, Any], set_name: str, images: Mapping[str, P
 
 def parse_manual_points(data: Any, path: Path, where: str, cameras: Mapping[str, CameraSpec],
                         target: Target | None) -> dict[str, dict[int, tuple[float, float]]]:
-    """A calibration entry's ``manual_points`` (1.3): {camera: {point id: [u, v]}}, OpenCV pixels.
+    """Parse and check a calibration entry's ``manual_points`` (1.3): {camera: {point id: [u, v]}}.
 
-    Each camera is declared, each id a point of the ``points3d`` target, each pixel finite and inside
-    the camera's image (its edges at -0.5 and size - 0.5), and each camera has at least
-    MIN_MANUAL_POINTS points; anything else is one error line naming the key.
+    Each camera must be declared, each id a point of the ``points3d`` target, each pixel (OpenCV
+    convention) finite and inside the camera's image (its edges at -0.5 and size - 0.5), and each camera
+    must have at least MIN_MANUAL_POINTS points.
+
+    Args:
+        data: the mapping, as read from the file.
+        path: the rig file, for error messages.
+        where: the key path of ``data`` in the file, for error messages.
+        cameras: the rig's cameras.
+        target: the rig's target (must be ``points3d``); None: ids not checked.
+
+    Returns:
+        {camera: {point id: (u, v)}} in OpenCV pixels.
+
+    Raises:
+        AriSfmError: any of the conditions fails (one line naming the key).
     """
     data = as_mapping(data, path, where)
     if target is not None and target.type != "points3d":
@@ -499,9 +620,19 @@ def _parse_images(
 
 
 def parse_rig(data: Any, rig_path: Path, check_files: bool = True) -> dict[str, Any]:
-    """Validate a parsed rig mapping; returns the Dataset fields except observations.
+    """Validate a parsed rig mapping.
 
-    ``observations_path`` in the result is the absolute path the rig names (or None).
+    Args:
+        data: the rig mapping, as read from the file.
+        rig_path: the rig file; its folder is the dataset's root.
+        check_files: the images named must exist.
+
+    Returns:
+        The :class:`~ari_sfm.records.Dataset` fields except ``observations``; ``observations_path`` is the
+        absolute path the rig names (or None).
+
+    Raises:
+        AriSfmError: the rig is invalid (one line naming the key).
     """
     rig_path = Path(os.path.abspath(rig_path))
     root = rig_path.parent
@@ -525,8 +656,20 @@ def parse_rig(data: Any, rig_path: Path, check_files: bool = True) -> dict[str, 
 
 def parse_window_keys(data: Mapping[str, Any], rig_path: Path, cameras: Mapping[str, CameraSpec]
                       ) -> tuple[Interface, tuple[Window, ...]]:
-    """(interface, windows) of a rig mapping: ``interface`` (one window for every camera, windows ()) or
-    ``interfaces`` (1.3: several; the interface returned is the first window's), never both."""
+    """Parse a rig mapping's window keys: ``interface`` or ``interfaces`` (1.3), never both.
+
+    Args:
+        data: the rig mapping.
+        rig_path: the rig file, for error messages.
+        cameras: the rig's cameras.
+
+    Returns:
+        (interface, windows): with ``interface`` (or ``interfaces`` of one window) the one window for every
+        camera and windows (); with several windows the first window's interface and every window.
+
+    Raises:
+        AriSfmError: both keys, neither, or an invalid window (one line naming the key).
+    """
     if "interface" in data and "interfaces" in data:
         raise AriSfmError(rig_path, "give interface (one window for every camera) or interfaces (several "
                                     "windows), not both")
@@ -541,12 +684,17 @@ def parse_window_keys(data: Mapping[str, Any], rig_path: Path, cameras: Mapping[
 def check_observations(dataset: Dataset) -> None:
     """Cross-check a dataset's observations with its rig.
 
-    Pixels lie inside their camera's image; every entry without images has
-    observations. (Cameras and ids are checked by :func:`load_observations`.)
-    A record of a frame (stacking: pose and added_mm) that the rig does not
-    list is an error when the rig lists entries of that set (a typo would
-    split one pose in two); a set the rig does not list at all is taken from
-    the observations alone (a dataset may hold only observations.json).
+    Pixels lie inside their camera's image; every entry without images has observations. (Cameras and
+    ids are checked by :func:`load_observations`.) A record of a frame (stacking: pose and added_mm) that
+    the rig does not list is an error when the rig lists entries of that set (a typo would split one pose
+    in two); a set the rig does not list at all is taken from the observations alone (a dataset may hold
+    only observations.json).
+
+    Args:
+        dataset: the loaded dataset.
+
+    Raises:
+        AriSfmError: a check fails, naming the file.
     """
     obs = dataset.observations or ()
     obs_path = dataset.observations_path or dataset.rig_path
@@ -592,8 +740,16 @@ def check_frames_declared(dataset: Dataset) -> None:
 def load_dataset(path: str | Path, observations: str | Path | None = None) -> Dataset:
     """Load and validate a dataset folder (with rig.yaml, rig.yml or rig.json) or rig file.
 
-    ``observations``, if given, replaces the observations file the rig names.
-    Raises AriSfmError naming the file and the problem.
+    Args:
+        path: the dataset folder or the rig file.
+        observations: an observations file that replaces the one the rig names; None: the rig's.
+
+    Returns:
+        The dataset, with its observations when a file is named (else ``observations`` None: detect from
+        the images).
+
+    Raises:
+        AriSfmError: naming the file and the problem.
     """
     rig_path = find_rig(path)
     fields = parse_rig(read_structured(rig_path), rig_path)
@@ -679,7 +835,15 @@ def _relative(path: Path, root: Path) -> str:
 
 
 def entry_to_json(entry: Entry, root: Path) -> dict[str, Any]:
-    """One stacking / calibration / reconstruction item, image paths relative to ``root``."""
+    """Write one stacking / calibration / reconstruction item of a rig file.
+
+    Args:
+        entry: the entry.
+        root: the folder image paths are written relative to.
+
+    Returns:
+        The item's mapping.
+    """
     out: dict[str, Any] = {"pose" if entry.set == "stacking" else "frame": entry.key}
     if entry.added_mm is not None:
         out["added_mm"] = entry.added_mm
@@ -696,11 +860,19 @@ def entry_to_json(entry: Entry, root: Path) -> dict[str, Any]:
 
 
 def dump_rig(dataset: Dataset, root: str | Path | None = None, observations_file: str | None = None) -> dict[str, Any]:
-    """The rig mapping of ``dataset`` (paths relative to ``root``, default ``dataset.root``).
+    """Build the rig mapping of a dataset.
 
-    ``observations`` is ``observations_file`` if given, else the dataset's
-    observations_path made relative, else ``observations.json`` when the
-    dataset holds observations; absent otherwise. Empty sets are left out.
+    The ``observations`` key is ``observations_file`` if given, else the dataset's observations_path made
+    relative, else ``observations.json`` when the dataset holds observations; absent otherwise. Empty sets
+    are left out.
+
+    Args:
+        dataset: the dataset.
+        root: the folder paths are written relative to; None: ``dataset.root``.
+        observations_file: the observations file the rig names; None: as above.
+
+    Returns:
+        The rig mapping (not yet JSON types: see :func:`~ari_sfm.io.atomic.to_jsonable`).
     """
     root = Path(root if root is not None else dataset.root)
     data: dict[str, Any] = {
@@ -723,12 +895,21 @@ def dump_rig(dataset: Dataset, root: str | Path | None = None, observations_file
 
 
 def save_rig(path: str | Path, dataset: Dataset) -> Path:
-    """Write ``dataset`` as a rig file (``.yaml``/``.yml``/``.json``; a folder gets ``rig.yaml``).
+    """Write a dataset as a rig file.
 
-    If the dataset holds observations they are written next to it (as the file
-    name of ``observations_path``, default ``observations.json``) and the rig
-    names them. Image paths are written relative to the rig's folder. The rig
-    is validated before writing (images need not exist yet). Returns the rig path.
+    If the dataset holds observations they are written next to it (as the file name of
+    ``observations_path``, default ``observations.json``) and the rig names them. Image paths are written
+    relative to the rig's folder. The rig is validated before writing (images need not exist yet).
+
+    Args:
+        path: the rig file (``.yaml``/``.yml``/``.json``), or a folder (gets ``rig.yaml``).
+        dataset: the dataset to write.
+
+    Returns:
+        The rig file's path.
+
+    Raises:
+        AriSfmError: another suffix, an invalid rig or observations, or a file cannot be written.
     """
     path = Path(path)
     if path.is_dir() or not path.suffix:
@@ -762,9 +943,21 @@ def _image_files(entries) -> set[str]:
 
 
 def detections_rig(out: str | Path, dataset: Dataset) -> Path:
-    """The rig file :func:`save_detections` writes in ``out`` (checked first, before a slow detection): ``out``'s
-    own rig file only when it is an earlier detection of the same images, else AriSfmError (another dataset's
-    rig is never overwritten)."""
+    """Choose the rig file :func:`save_detections` writes in a folder (checked before a slow detection).
+
+    ``out``'s own rig file is reused only when it is an earlier detection of the same images; another
+    dataset's rig is never overwritten.
+
+    Args:
+        out: the output folder.
+        dataset: the dataset whose corners will be detected.
+
+    Returns:
+        ``out``'s rig file, or ``out/rig.yaml`` when it has none.
+
+    Raises:
+        AriSfmError: ``out`` holds another dataset's rig file.
+    """
     out = Path(out)
     present = [out / name for name in RIG_NAMES if (out / name).is_file()]
     if not present:
@@ -783,9 +976,23 @@ def detections_rig(out: str | Path, dataset: Dataset) -> Path:
 
 
 def save_detections(out: str | Path, dataset: Dataset, observations: Sequence[Observation]) -> Path:
-    """``out`` made a dataset of ``dataset``'s rig with its detected corners: ``observations.json`` and a rig
-    file naming it and the images (paths relative to ``out``), so that ``calibrate OUT`` and ``run OUT`` start
-    from the corners instead of detecting again (:func:`detections_rig` says which rig file). Returns it."""
+    """Make a folder a dataset of a rig with its detected corners.
+
+    Writes ``observations.json`` and a rig file naming it and the images (paths relative to ``out``), so
+    that ``calibrate OUT`` and ``run OUT`` start from the corners instead of detecting again
+    (:func:`detections_rig` says which rig file).
+
+    Args:
+        out: the output folder (created if needed).
+        dataset: the dataset the corners were detected in.
+        observations: the detected corners.
+
+    Returns:
+        The rig file written.
+
+    Raises:
+        AriSfmError: ``out`` holds another dataset's rig file, or a file cannot be written.
+    """
     rig = detections_rig(out, dataset)
     Path(out).mkdir(parents=True, exist_ok=True)
     return save_rig(rig, dataset.with_observations(tuple(observations),

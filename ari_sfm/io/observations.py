@@ -31,14 +31,33 @@ RECORD_KEYS = ("camera", "set", "pose", "frame", "added_mm", "stage_mm", "ids", 
 
 
 def check_format(data: Any, path: Path, expected: str) -> None:
-    """The top level is a mapping whose ``format`` is ``expected``."""
+    """Check that a file's top level is a mapping whose ``format`` is ``expected``.
+
+    Args:
+        data: the file's parsed content.
+        path: the file, for error messages.
+        expected: the format string, e.g. ``ari-sfm-observations/1``.
+
+    Raises:
+        AriSfmError: not a mapping, no ``format``, or another format.
+    """
     fmt = require(data, "format", path)
     if fmt != expected:
         raise AriSfmError(path, f"unsupported format {show(fmt)} (expected '{expected}')")
 
 
 def check_ids_in_target(ids: np.ndarray, target: Target, path: Path, where: str) -> None:
-    """Every id names a point of ``target``."""
+    """Check that every id names a point of a target.
+
+    Args:
+        ids: the ids, (N,) int.
+        target: the target.
+        path: the file, for error messages.
+        where: the record, for error messages.
+
+    Raises:
+        AriSfmError: naming the first id that is not a point of ``target``.
+    """
     if target.type == "points3d":
         known = np.array(sorted(target.points or {}), dtype=np.int64)
         bad = ids[~np.isin(ids, known)]
@@ -52,7 +71,16 @@ def check_ids_in_target(ids: np.ndarray, target: Target, path: Path, where: str)
 
 
 def check_unique_ids(ids: np.ndarray, path: Path, where: str) -> None:
-    """No id appears twice."""
+    """Check that no id appears twice.
+
+    Args:
+        ids: the ids, (N,) int.
+        path: the file, for error messages.
+        where: the record, for error messages.
+
+    Raises:
+        AriSfmError: naming the first repeated id.
+    """
     values, counts = np.unique(ids, return_counts=True)
     if (counts > 1).any():
         raise AriSfmError(path, f"{where}: duplicate id {int(values[counts > 1][0])} in ids")
@@ -64,8 +92,19 @@ BORDER_TOLERANCE_PX = 1.0  # a corner's sub-pixel centre may lie this far beyond
 
 def check_pixels_in_images(observations: Iterable[Observation], image_sizes: Mapping[str, Sequence[int]],
                            path: str | Path) -> None:
-    """Every pixel lies inside its camera's image (OpenCV centres: the edges at -0.5 and size - 0.5), or at
-    most BORDER_TOLERANCE_PX beyond an edge (kept as it is); cameras missing from ``image_sizes`` are not checked."""
+    """Check that every pixel lies inside its camera's image.
+
+    OpenCV pixel centres: the image's edges are at -0.5 and size - 0.5. A pixel at most
+    BORDER_TOLERANCE_PX beyond an edge is accepted (and kept as it is).
+
+    Args:
+        observations: the observations.
+        image_sizes: camera name -> (width, height) px; cameras missing here are not checked.
+        path: the observations file, for error messages.
+
+    Raises:
+        AriSfmError: naming the first observation with a pixel outside.
+    """
     lo = -0.5 - BORDER_TOLERANCE_PX
     for i, o in enumerate(observations):
         if o.camera not in image_sizes:
@@ -137,7 +176,20 @@ def _parse_record(rec: Any, i: int, path: Path, target: Target | None, cameras: 
 def parse_observations(
     data: Any, path: Path, target: Target | None = None, camera_names: Iterable[str] | None = None
 ) -> tuple[Observation, ...]:
-    """Validate the parsed content of an observations file (see :func:`load_observations`)."""
+    """Validate the parsed content of an observations file (see :func:`load_observations`).
+
+    Args:
+        data: the file's parsed content.
+        path: the file, for error messages.
+        target: the target the ids must belong to; None: not checked.
+        camera_names: the cameras the records may name; None: not checked.
+
+    Returns:
+        The observations, in file order.
+
+    Raises:
+        AriSfmError: a record is invalid or repeated (one line naming it).
+    """
     check_format(data, path, FORMAT)
     records = as_list(require(data, "observations", path), path, "observations")
     cameras = None if camera_names is None else set(camera_names)
@@ -162,10 +214,20 @@ def load_observations(
 ) -> tuple[Observation, ...]:
     """Read and validate ``observations.json``.
 
-    Checks each record (camera, set, pose/frame, added_mm for stacking, finite
-    stage_mm, integer ids unique in the record, finite (N, 2) pixels, one pixel
-    per id), that no (camera, set, frame, added_mm) appears twice and, when
-    given, that ids belong to ``target`` and cameras to ``camera_names``.
+    Checks each record (camera, set, pose/frame, added_mm for stacking, finite stage_mm, integer ids
+    unique in the record, finite (N, 2) pixels, one pixel per id), that no (camera, set, frame, added_mm)
+    appears twice and, when given, that ids belong to ``target`` and cameras to ``camera_names``.
+
+    Args:
+        path: the file.
+        target: the target the ids must belong to; None: not checked.
+        camera_names: the cameras the records may name; None: not checked.
+
+    Returns:
+        The observations, in file order.
+
+    Raises:
+        AriSfmError: the file cannot be read or a record is invalid (one line naming it).
     """
     path = Path(path)
     return parse_observations(read_structured(path), path, target, camera_names)
@@ -197,8 +259,17 @@ def _pixels_array(pixels: Any) -> Any:
 
 def save_observations(path: str | Path, observations: Sequence[Observation], dataset: str | Path | None = None
                       ) -> None:
-    """Validate and write ``observations.json`` atomically (raises AriSfmError on a bad record). ``dataset``:
-    the rig file the corners were detected from, recorded (absolute) as the file's ``dataset``."""
+    """Validate and write ``observations.json`` atomically.
+
+    Args:
+        path: the file to write.
+        observations: the corners.
+        dataset: the rig file the corners were detected from, recorded (absolute) as the file's
+            ``dataset``; None: not recorded.
+
+    Raises:
+        AriSfmError: a bad record (nothing is written), or the file cannot be written.
+    """
     path = Path(path)
     data = observations_to_json(observations)
     parse_observations(data, path)  # refuse to write a file we would not read back
@@ -208,8 +279,14 @@ def save_observations(path: str | Path, observations: Sequence[Observation], dat
 
 
 def recorded_dataset(path: str | Path) -> Path | None:
-    """The rig file an ``observations.json`` says its corners were detected from (None: not recorded, or the
-    file unreadable)."""
+    """Read which rig file an ``observations.json`` says its corners were detected from.
+
+    Args:
+        path: the observations file.
+
+    Returns:
+        The absolute rig file path it records, or None (not recorded, or the file unreadable).
+    """
     try:
         given = json.loads(Path(path).read_text()).get("dataset")
     except (OSError, ValueError, AttributeError):

@@ -205,8 +205,22 @@ def load_particle_dataset(path: str | Path) -> ParticleDataset:
 
 
 def parse_detect_settings(value: Any, path: Path, cameras: list[str]) -> DetectSettings:
-    """rig.yaml ``particles.detect``, checked: numbers >= 0 (pixel counts and widths integers >= 1, the noise
-    threshold > 0), minima not above maxima; ``threshold`` a number or a mapping of declared cameras."""
+    """Parse and check rig.yaml's ``particles.detect``.
+
+    Values are numbers >= 0 (pixel counts and widths integers >= 1, the noise threshold > 0), minima not
+    above maxima; ``threshold`` is a number or a mapping of declared cameras to numbers.
+
+    Args:
+        value: the ``particles.detect`` mapping, as read from the file.
+        path: the rig file, for error messages.
+        cameras: the names of the rig's cameras.
+
+    Returns:
+        The settings (None where not given).
+
+    Raises:
+        AriSfmError: a value is invalid (one line naming the key).
+    """
     where = "particles.detect"
     d = as_mapping(value, path, where)
     warn_unknown_keys(d, DETECT_KEYS, path, where)
@@ -274,7 +288,22 @@ def _column(table, name: str, path: Path, kind: str) -> np.ndarray:
 
 
 def read_detections(path: str | Path, cameras: Mapping[str, CameraSpec] | list[str]) -> Detections:
-    """Read and check ``particles.parquet`` against the rig's cameras (names; pixels finite)."""
+    """Read and check a detections table (``particles.parquet``) against the rig's cameras.
+
+    Checks the contract columns, camera names, finite pixels, frames >= 0 and, when ``cameras`` is a
+    mapping, pixels inside the images. Rows that repeat an earlier row exactly are marked (and a warning
+    logged).
+
+    Args:
+        path: the parquet file.
+        cameras: the rig's cameras (name -> spec: image sizes checked too) or their names.
+
+    Returns:
+        The detections, rows in file order.
+
+    Raises:
+        AriSfmError: the file is unreadable or a row fails a check (one line naming it).
+    """
     path = Path(path)
     table = _read_table(path)
     frame = _column(table, "frame", path, "int")
@@ -302,8 +331,21 @@ def read_detections(path: str | Path, cameras: Mapping[str, CameraSpec] | list[s
 
 def check_detections_in_images(path: Path, camera: np.ndarray, uv: np.ndarray,
                                image_sizes: Mapping[str, tuple[int, int]]) -> None:
-    """Every centre lies in its camera's image (OpenCV centres: the edges at -0.5 and size - 0.5), or at
-    most BORDER_TOLERANCE_PX beyond an edge: one farther out is another camera's, or another image size's."""
+    """Check that every detection centre lies in its camera's image.
+
+    OpenCV pixel centres: the image's edges are at -0.5 and size - 0.5. A centre at most
+    BORDER_TOLERANCE_PX beyond an edge is accepted; one farther out is another camera's, or another
+    image size's.
+
+    Args:
+        path: the detections table, for error messages.
+        camera: (N,) camera name of each row.
+        uv: (N, 2) pixel centres.
+        image_sizes: camera name -> (width, height) px; every camera of ``camera`` is in it.
+
+    Raises:
+        AriSfmError: naming the first row outside and how many are.
+    """
     lo = -0.5 - BORDER_TOLERANCE_PX
     limits = np.zeros((len(uv), 2))
     for name, (w, h) in image_sizes.items():
@@ -336,7 +378,15 @@ def _repeated_rows(path: Path, frame: np.ndarray, camera: np.ndarray, uv: np.nda
 
 
 def parquet_bytes(columns: Mapping[str, Any], metadata: Mapping[bytes, bytes] | None = None) -> bytes:
-    """A parquet file of the given columns (numpy arrays or lists), in memory, with schema ``metadata``."""
+    """Write a parquet file in memory.
+
+    Args:
+        columns: column name -> values (a numpy array or a list).
+        metadata: the schema's metadata; None: none.
+
+    Returns:
+        The parquet file's bytes.
+    """
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -350,12 +400,29 @@ def parquet_bytes(columns: Mapping[str, Any], metadata: Mapping[bytes, bytes] | 
 
 def write_parquet_atomic(path: str | Path, columns: Mapping[str, Any],
                          metadata: Mapping[bytes, bytes] | None = None) -> None:
-    """Write a parquet table atomically (a reader never sees half of it)."""
+    """Write a parquet table atomically (a reader never sees half of it).
+
+    Args:
+        path: the file to write.
+        columns: column name -> values (a numpy array or a list).
+        metadata: the schema's metadata; None: none.
+
+    Raises:
+        AriSfmError: the file cannot be written.
+    """
     write_bytes_atomic(path, parquet_bytes(columns, metadata))
 
 
 def write_table_atomic(path: str | Path, table: Any) -> None:
-    """Write a pyarrow table as parquet, atomically."""
+    """Write a pyarrow table as parquet, atomically.
+
+    Args:
+        path: the file to write.
+        table: the pyarrow table.
+
+    Raises:
+        AriSfmError: the file cannot be written.
+    """
     import pyarrow.parquet as pq
 
     buf = io.BytesIO()
@@ -364,8 +431,22 @@ def write_table_atomic(path: str | Path, table: Any) -> None:
 
 
 def write_tables_atomic(path: str | Path, tables: Iterable[Any]) -> int:
-    """Write pyarrow tables of one schema, in order, as one parquet table, atomically, holding one table
-    at a time (a long experiment's partitions). Returns the number of rows."""
+    """Write pyarrow tables of one schema, in order, as one parquet table, atomically.
+
+    Holds one table in memory at a time (a long experiment's partitions); a table of another schema is
+    cast to the first one's.
+
+    Args:
+        path: the file to write.
+        tables: the tables, at least one.
+
+    Returns:
+        The number of rows written.
+
+    Raises:
+        ValueError: no table.
+        AriSfmError: a table cannot be written, or the file cannot be.
+    """
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -398,7 +479,18 @@ def write_tables_atomic(path: str | Path, tables: Iterable[Any]) -> int:
 
 def write_detections(path: str | Path, frame: np.ndarray, camera: list[str] | np.ndarray, uv: np.ndarray,
                      intensity: np.ndarray | None = None) -> None:
-    """Write a detections table (contract columns, file order as given)."""
+    """Write a detections table (contract columns, rows in the order given), atomically.
+
+    Args:
+        path: the parquet file to write.
+        frame: (N,) frame numbers.
+        camera: (N,) camera names.
+        uv: (N, 2) pixel centres.
+        intensity: (N,) intensities; None: no ``intensity`` column.
+
+    Raises:
+        AriSfmError: the file cannot be written.
+    """
     cols: dict[str, Any] = {"frame": np.asarray(frame, np.int64), "camera": [str(c) for c in camera],
                             "u": np.asarray(uv, float).reshape(-1, 2)[:, 0],
                             "v": np.asarray(uv, float).reshape(-1, 2)[:, 1]}
@@ -408,7 +500,19 @@ def write_detections(path: str | Path, frame: np.ndarray, camera: list[str] | np
 
 
 def read_reconstruction(path: str | Path, cameras: list[str]) -> dict[str, np.ndarray]:
-    """Read ``particles3d.parquet``: its columns as arrays (contract columns checked)."""
+    """Read a reconstruction table (``particles3d.parquet``).
+
+    Args:
+        path: the parquet file.
+        cameras: the rig's camera names (a ``row_<camera>`` column each).
+
+    Returns:
+        Column name -> array: ``frame``, ``x``, ``y``, ``z``, ``ray_gap_mm``, ``cameras`` and
+        ``row_<camera>`` per camera.
+
+    Raises:
+        AriSfmError: the file is unreadable or a contract column is missing, null or of another type.
+    """
     path = Path(path)
     table = _read_table(path)
     out = {name: _column(table, name, path, "int" if name in ("frame", "cameras") else "float")

@@ -41,7 +41,18 @@ def _parse_frame(data: Any, path: Path, name: str) -> dict[str, Any]:
 
 
 def parse_points(data: Any, path: Path) -> dict[str, Any]:
-    """Validate the parsed content of a points file (see :func:`load_points`)."""
+    """Validate the parsed content of a points file (see :func:`load_points`).
+
+    Args:
+        data: the file's parsed content.
+        path: the file, for error messages.
+
+    Returns:
+        The points, as :func:`load_points` returns them (with ``provenance``: a mapping or None).
+
+    Raises:
+        AriSfmError: a frame is invalid (one line naming it).
+    """
     check_format(data, path, FORMAT)
     calibration = data.get("calibration")
     calibration = None if calibration is None else as_str(calibration, path, "calibration")
@@ -58,9 +69,17 @@ def parse_points(data: Any, path: Path) -> dict[str, Any]:
 def load_points(path: str | Path) -> dict[str, Any]:
     """Read and validate ``points.json``.
 
-    Returns ``{"format", "calibration": str | None, "frames": {name: {"stage_mm":
-    float | None, "ids": (N,) int64, "xyz": (N, 3) float, "ray_gap_mm": (N,) float}}}``.
     Checks: ids unique integers, xyz finite (N, 3), ray_gap_mm finite >= 0, equal lengths.
+
+    Args:
+        path: the file.
+
+    Returns:
+        ``{"format", "calibration": str | None, "frames": {name: {"stage_mm": float | None, "ids": (N,)
+        int64, "xyz": (N, 3) float, "ray_gap_mm": (N,) float}}, "provenance": mapping | None}``.
+
+    Raises:
+        AriSfmError: the file cannot be read or is invalid (one line naming the key).
     """
     path = Path(path)
     return parse_points(read_structured(path), path)
@@ -68,8 +87,17 @@ def load_points(path: str | Path) -> dict[str, Any]:
 
 def points_to_json(frames: Mapping[str, Mapping[str, Any]], calibration_name: str,
                    provenance: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """The ``points.json`` mapping (stage_mm written only where set; ``provenance``: see
-    :mod:`ari_sfm.provenance`, written when given)."""
+    """Build the ``points.json`` mapping.
+
+    Args:
+        frames: reconstruction frame name -> ``{"stage_mm" (optional), "ids", "xyz", "ray_gap_mm"}``;
+            stage_mm is written only where set.
+        calibration_name: the calibration file that produced the points.
+        provenance: see :mod:`ari_sfm.provenance`; written when given.
+
+    Returns:
+        The mapping (not yet validated: see :func:`parse_points`).
+    """
     out: dict[str, Any] = {}
     for name, frame in frames.items():
         rec: dict[str, Any] = {}
@@ -89,10 +117,15 @@ def save_points(path: str | Path, frames: Mapping[str, Mapping[str, Any]], calib
                 provenance: Mapping[str, Any] | None = None) -> None:
     """Validate and write ``points.json`` atomically.
 
-    ``frames`` maps a reconstruction frame name to ``{"stage_mm" (optional),
-    "ids", "xyz", "ray_gap_mm"}`` (arrays or lists); ``calibration_name`` names
-    the calibration file that produced them. A bad frame raises AriSfmError and
-    writes nothing.
+    Args:
+        path: the file to write.
+        frames: reconstruction frame name -> ``{"stage_mm" (optional), "ids", "xyz", "ray_gap_mm"}``
+            (arrays or lists).
+        calibration_name: the calibration file that produced the points.
+        provenance: see :mod:`ari_sfm.provenance`; written when given.
+
+    Raises:
+        AriSfmError: a bad frame (nothing is written), or the file cannot be written.
     """
     path = Path(path)
     data = points_to_json(frames, calibration_name, provenance)

@@ -89,8 +89,17 @@ MAX_STRUCTURED_BYTES = 4 * 2**30  # a rig, calibration or observations file larg
 def read_structured(path: str | Path) -> Any:
     """Parse a YAML (``.yaml``/``.yml``) or JSON (``.json``) file; other suffixes are read as YAML.
 
-    Duplicate keys are errors in both. Raises AriSfmError for a missing,
-    unreadable, empty or malformed file (with line and column).
+    Duplicate keys are errors in both. YAML reads ``1e-3`` as a float (as YAML 1.2 and JSON do).
+
+    Args:
+        path: the file.
+
+    Returns:
+        The parsed content (never None).
+
+    Raises:
+        AriSfmError: a missing, unreadable, binary, too large, empty or malformed file (with line and
+            column).
     """
     path = Path(path)
     try:
@@ -150,7 +159,15 @@ def _parse_yaml(text: str, path: Path) -> Any:
 
 
 def show(value: Any, limit: int = 60) -> str:
-    """A short one-line repr of a file value for error messages."""
+    """Format a file value for an error message: a short, one-line repr.
+
+    Args:
+        value: the value (a numpy array is shown as a list).
+        limit: the most characters; a longer repr is cut and ends with ``...``.
+
+    Returns:
+        The repr.
+    """
     if isinstance(value, np.ndarray):
         value = value.tolist()
     text = " ".join(repr(value).split())
@@ -158,26 +175,71 @@ def show(value: Any, limit: int = 60) -> str:
 
 
 def key_path(where: str, key: Any) -> str:
-    """``where.key`` (or ``key`` at the top level)."""
+    """Join a key path and a key.
+
+    Args:
+        where: the key path ("" at the top level).
+        key: the key.
+
+    Returns:
+        ``where.key``, or ``key`` at the top level.
+    """
     return f"{where}.{key}" if where else str(key)
 
 
 def as_mapping(value: Any, path: str | Path, where: str) -> Mapping:
-    """Check that ``value`` is a mapping."""
+    """Check that a value is a mapping.
+
+    Args:
+        value: the value read from the file.
+        path: the file, for error messages.
+        where: the value's key path, for error messages.
+
+    Returns:
+        ``value`` itself.
+
+    Raises:
+        AriSfmError: ``value`` is not a mapping.
+    """
     if not isinstance(value, Mapping):
         raise AriSfmError(path, f"{where or 'the file'} must be a mapping (got {show(value)})")
     return value
 
 
 def as_list(value: Any, path: str | Path, where: str) -> list:
-    """Check that ``value`` is a list (a YAML sequence / JSON array)."""
+    """Check that a value is a list (a YAML sequence / JSON array).
+
+    Args:
+        value: the value read from the file.
+        path: the file, for error messages.
+        where: the value's key path, for error messages.
+
+    Returns:
+        ``value`` as a list.
+
+    Raises:
+        AriSfmError: ``value`` is not a list or tuple.
+    """
     if not isinstance(value, (list, tuple)):
         raise AriSfmError(path, f"{where} must be a list (got {show(value)})")
     return list(value)
 
 
 def require(mapping: Any, key: str, path: str | Path, where: str = "") -> Any:
-    """``mapping[key]``; AriSfmError ``missing key 'where.key'`` if absent (or if not a mapping)."""
+    """Get a key that must be present.
+
+    Args:
+        mapping: the mapping read from the file.
+        key: the key.
+        path: the file, for error messages.
+        where: the mapping's key path, for error messages ("" at the top level).
+
+    Returns:
+        ``mapping[key]``.
+
+    Raises:
+        AriSfmError: ``missing key 'where.key'``, or ``mapping`` is not a mapping.
+    """
     mapping = as_mapping(mapping, path, where)
     if key not in mapping:
         raise AriSfmError(path, f"missing key '{key_path(where, key)}'")
@@ -192,7 +254,19 @@ def optional(
     where: str = "",
     default: Any = None,
 ) -> T | Any:
-    """``convert(mapping[key])`` if the key is present and not null, else ``default``."""
+    """Get and convert a key that may be absent.
+
+    Args:
+        mapping: the mapping read from the file.
+        key: the key.
+        convert: a getter of this module, called as ``convert(value, path, key path)``.
+        path: the file, for error messages.
+        where: the mapping's key path, for error messages ("" at the top level).
+        default: the value when the key is absent or null.
+
+    Returns:
+        ``convert(mapping[key])`` if the key is present and not null, else ``default``.
+    """
     value = mapping.get(key)
     if value is None:
         return default
@@ -200,7 +274,14 @@ def optional(
 
 
 def warn_unknown_keys(mapping: Mapping, known: Iterable[str], path: str | Path, where: str = "") -> None:
-    """Log a warning for keys the format does not define (allowed, but often a typo)."""
+    """Log a warning for keys the format does not define (allowed, but often a typo).
+
+    Args:
+        mapping: the mapping read from the file.
+        known: the keys the format defines.
+        path: the file, named in the warning.
+        where: the mapping's key path ("" at the top level).
+    """
     unknown = [str(k) for k in mapping if k not in set(known)]
     if unknown:
         log.warning("%s: unknown key%s %s ignored", path, "s" if len(unknown) > 1 else "",
@@ -212,7 +293,19 @@ def _is_number(value: Any) -> bool:
 
 
 def as_finite_float(value: Any, path: str | Path, where: str) -> float:
-    """A finite real number (ints accepted, bools and strings not)."""
+    """Check that a value is a finite real number (ints accepted, bools and strings not).
+
+    Args:
+        value: the value read from the file.
+        path: the file, for error messages.
+        where: the value's key path, for error messages.
+
+    Returns:
+        The number as a float.
+
+    Raises:
+        AriSfmError: not a number, or not finite.
+    """
     if not _is_number(value):
         raise AriSfmError(path, f"{where} must be a number (got {show(value)})")
     out = float(value)
@@ -222,7 +315,20 @@ def as_finite_float(value: Any, path: str | Path, where: str) -> float:
 
 
 def as_float_at_least(value: Any, path: str | Path, where: str, minimum: float) -> float:
-    """A finite number >= ``minimum``."""
+    """Check that a value is a finite number >= ``minimum``.
+
+    Args:
+        value: the value read from the file.
+        path: the file, for error messages.
+        where: the value's key path, for error messages.
+        minimum: the least value allowed.
+
+    Returns:
+        The number as a float.
+
+    Raises:
+        AriSfmError: not a finite number, or below ``minimum``.
+    """
     out = as_finite_float(value, path, where)
     if out < minimum:
         raise AriSfmError(path, f"{where} must be >= {minimum:g} (got {show(value)})")
@@ -230,7 +336,19 @@ def as_float_at_least(value: Any, path: str | Path, where: str, minimum: float) 
 
 
 def as_positive_float(value: Any, path: str | Path, where: str) -> float:
-    """A finite number > 0."""
+    """Check that a value is a finite number > 0.
+
+    Args:
+        value: the value read from the file.
+        path: the file, for error messages.
+        where: the value's key path, for error messages.
+
+    Returns:
+        The number as a float.
+
+    Raises:
+        AriSfmError: not a finite number, or <= 0.
+    """
     out = as_finite_float(value, path, where)
     if out <= 0:
         raise AriSfmError(path, f"{where} must be > 0 (got {show(value)})")
@@ -238,19 +356,58 @@ def as_positive_float(value: Any, path: str | Path, where: str) -> float:
 
 
 def as_nonnegative_float(value: Any, path: str | Path, where: str) -> float:
-    """A finite number >= 0."""
+    """Check that a value is a finite number >= 0.
+
+    Args:
+        value: the value read from the file.
+        path: the file, for error messages.
+        where: the value's key path, for error messages.
+
+    Returns:
+        The number as a float.
+
+    Raises:
+        AriSfmError: not a finite number, or < 0.
+    """
     return as_float_at_least(value, path, where, 0.0)
 
 
 def check_at_most(value: float, limit: float, path: str | Path, where: str, unit: str = "") -> float:
-    """``value`` itself if <= ``limit`` (a sane physical bound), else AriSfmError naming ``where``."""
+    """Hold a value to a sane physical upper bound.
+
+    Args:
+        value: the value.
+        limit: the largest value allowed.
+        path: the file, for error messages.
+        where: the value's key path, for error messages.
+        unit: the unit appended to the numbers in the message (e.g. ``" mm"``).
+
+    Returns:
+        ``value`` itself.
+
+    Raises:
+        AriSfmError: ``value`` > ``limit``, naming ``where``.
+    """
     if value > limit:
         raise AriSfmError(path, f"{where} must be <= {limit:g}{unit} (got {show(value)}): not a physical value")
     return value
 
 
 def as_int(value: Any, path: str | Path, where: str, minimum: int | None = None) -> int:
-    """An integer (not a bool, not 3.0), optionally >= ``minimum``."""
+    """Check that a value is an integer (not a bool, not 3.0), optionally >= ``minimum``.
+
+    Args:
+        value: the value read from the file.
+        path: the file, for error messages.
+        where: the value's key path, for error messages.
+        minimum: the least value allowed; None: any.
+
+    Returns:
+        The integer.
+
+    Raises:
+        AriSfmError: not an integer, or below ``minimum``.
+    """
     if not isinstance(value, (numbers.Integral, np.integer)) or isinstance(value, (bool, np.bool_)):
         raise AriSfmError(path, f"{where} must be an integer (got {show(value)})")
     out = int(value)
@@ -260,7 +417,20 @@ def as_int(value: Any, path: str | Path, where: str, minimum: int | None = None)
 
 
 def as_int_pair(value: Any, path: str | Path, where: str, minimum: int = 1) -> tuple[int, int]:
-    """Two integers, each >= ``minimum`` (``[cols, rows]``, ``[width, height]``)."""
+    """Check that a value is two integers (``[cols, rows]``, ``[width, height]``).
+
+    Args:
+        value: the value read from the file.
+        path: the file, for error messages.
+        where: the value's key path, for error messages.
+        minimum: the least value allowed for each.
+
+    Returns:
+        The two integers.
+
+    Raises:
+        AriSfmError: not a list of two integers each >= ``minimum``.
+    """
     ok = isinstance(value, (list, tuple)) and len(value) == 2
     if ok:
         ok = all(
@@ -273,23 +443,60 @@ def as_int_pair(value: Any, path: str | Path, where: str, minimum: int = 1) -> t
 
 
 def as_str(value: Any, path: str | Path, where: str) -> str:
-    """A non-empty string."""
+    """Check that a value is a non-empty string.
+
+    Args:
+        value: the value read from the file.
+        path: the file, for error messages.
+        where: the value's key path, for error messages.
+
+    Returns:
+        ``value`` itself.
+
+    Raises:
+        AriSfmError: not a string, or empty or blank.
+    """
     if not isinstance(value, str) or not value.strip():
         raise AriSfmError(path, f"{where} must be a non-empty string (got {show(value)})")
     return value
 
 
 def as_name(value: Any, path: str | Path, where: str) -> str:
-    """A frame / pose / camera name: a non-empty string (a YAML integer like ``7`` becomes ``'7'``)."""
+    """Check that a value is a frame / pose / camera name: a non-empty string.
+
+    Args:
+        value: the value read from the file.
+        path: the file, for error messages.
+        where: the value's key path, for error messages.
+
+    Returns:
+        The name; a YAML integer like ``7`` becomes ``'7'``.
+
+    Raises:
+        AriSfmError: neither a non-empty string nor an integer.
+    """
     if isinstance(value, (numbers.Integral, np.integer)) and not isinstance(value, (bool, np.bool_)):
         return str(int(value))
     return as_str(value, path, where)
 
 
 def as_float_array(value: Any, path: str | Path, where: str, shape: tuple[int, ...]) -> np.ndarray:
-    """A finite float array of ``shape`` (-1 matches any length), from nested lists of numbers.
+    """Check that a value is a finite float array of a shape, from nested lists of numbers.
 
-    Messages say which rule failed: not numbers, wrong shape, null, NaN or infinity.
+    Messages say which rule failed: not numbers, wrong shape, null, NaN or infinity. An empty list is an
+    empty (0, ...) array when ``shape`` starts with -1.
+
+    Args:
+        value: the value read from the file.
+        path: the file, for error messages.
+        where: the value's key path, for error messages.
+        shape: the shape; -1 matches any length.
+
+    Returns:
+        The float array.
+
+    Raises:
+        AriSfmError: naming the rule that failed.
     """
     arr = _numeric_array(value, path, where, integers=False)
     if arr.size == 0 and arr.ndim == 1 and len(shape) > 1 and shape[0] == -1 and -1 not in shape[1:]:
@@ -307,7 +514,19 @@ def as_float_array(value: Any, path: str | Path, where: str, shape: tuple[int, .
 
 
 def as_int_array(value: Any, path: str | Path, where: str) -> np.ndarray:
-    """A 1-D int64 array from a list of integers."""
+    """Check that a value is a flat list of integers.
+
+    Args:
+        value: the value read from the file.
+        path: the file, for error messages.
+        where: the value's key path, for error messages.
+
+    Returns:
+        The (N,) int64 array.
+
+    Raises:
+        AriSfmError: not a flat list of integers, or an integer out of range.
+    """
     arr = _numeric_array(value, path, where, integers=True)
     if arr.ndim != 1:
         raise AriSfmError(path, f"{where} must be a flat list of integers")

@@ -52,7 +52,16 @@ FLIP_YZ = np.diag([1.0, -1.0, -1.0])  # OpenPTV camera axes (x right, y up, look
 
 
 def rotation_matrix(omega: float, phi: float, kappa: float) -> np.ndarray:
-    """liboptv's ``rotation_matrix`` (calibration.c): dm, camera axes -> world axes."""
+    """Compute liboptv's ``rotation_matrix`` (calibration.c).
+
+    Args:
+        omega: the first angle (rad).
+        phi: the second angle (rad).
+        kappa: the third angle (rad).
+
+    Returns:
+        dm, (3, 3): OpenPTV camera axes -> world axes.
+    """
     co, so = np.cos(omega), np.sin(omega)
     cp, sp = np.cos(phi), np.sin(phi)
     ck, sk = np.cos(kappa), np.sin(kappa)
@@ -84,17 +93,37 @@ def exterior(pose: Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def window_plane(glass: np.ndarray, thickness_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """(normal into the scene, a point of the camera-side face) of a glass vector."""
+    """Convert an OpenPTV glass vector to ari-sfm's window plane.
+
+    Args:
+        glass: the glass vector G, (3,) mm (from the water toward the cameras, |G| the distance of the
+            glass-water face from the world origin).
+        thickness_mm: the glass thickness d.
+
+    Returns:
+        (normal, point_mm): the unit normal into the scene (``-G^``) and a point of the camera-side face
+        (``(|G| + d) G^``), both (3,).
+    """
     length = float(np.linalg.norm(glass))
     unit = np.asarray(glass, float) / length
     return 0.0 - unit, unit * (length + thickness_mm)  # 0.0 - x: no -0.0 in files
 
 
 def glass_vector(normal: np.ndarray, point_mm: np.ndarray, thickness_mm: float) -> np.ndarray:
-    """The glass vector of a window given by its normal (into the scene) and a camera-side face point.
+    """Convert a window plane to OpenPTV's glass vector (the inverse of :func:`window_plane`).
 
-    Raises ValueError when the world origin is not behind the glass-water face (|G| would be <= 0:
-    OpenPTV cannot express that window)."""
+    Args:
+        normal: the window's normal into the scene, (3,).
+        point_mm: a point of the camera-side face, (3,) mm.
+        thickness_mm: the glass thickness.
+
+    Returns:
+        The glass vector G, (3,) mm.
+
+    Raises:
+        ValueError: the world origin is not behind the glass-water face (|G| would be <= 0: OpenPTV cannot
+            express that window).
+    """
     unit = -np.asarray(normal, float) / np.linalg.norm(normal)
     length = float(unit @ np.asarray(point_mm, float)) - thickness_mm
     if length <= 0:
@@ -107,8 +136,24 @@ def glass_vector(normal: np.ndarray, point_mm: np.ndarray, thickness_mm: float) 
 
 def flat_to_pixel(x_flat: np.ndarray, y_flat: np.ndarray, xh: float, yh: float, addpar: AddPar,
                   imx: int, imy: int, pix_x: float, pix_y: float) -> np.ndarray:
-    """OpenCV pixels (N, 2) of flat sensor points (mm): liboptv's ``flat_to_dist`` then
-    ``metric_to_pixel``, minus the half-pixel offset."""
+    """Image flat sensor points to OpenCV pixels, as liboptv does.
+
+    liboptv's ``flat_to_dist`` then ``metric_to_pixel``, minus the half-pixel offset.
+
+    Args:
+        x_flat: (N,) flat sensor x, mm.
+        y_flat: (N,) flat sensor y, mm (y up).
+        xh: the principal point's metric x, mm.
+        yh: the principal point's metric y, mm.
+        addpar: the distortion and affine parameters.
+        imx: the image width, px.
+        imy: the image height, px.
+        pix_x: the pixel width, mm.
+        pix_y: the pixel height, mm.
+
+    Returns:
+        (N, 2) OpenCV pixels.
+    """
     x = np.asarray(x_flat, float) + xh
     y = np.asarray(y_flat, float) + yh
     r2 = x * x + y * y
@@ -124,11 +169,22 @@ def flat_to_pixel(x_flat: np.ndarray, y_flat: np.ndarray, xh: float, yh: float, 
 
 def interior_from_opencv(K: np.ndarray, dist: np.ndarray, image_size: tuple[int, int], pix_x: float,
                          pix_y: float) -> tuple[float, float, float, AddPar]:
-    """(xh, yh, cc, addpar) that image like OpenCV's K and dist [k1 k2 p1 p2 k3], exactly when the
-    distortion is zero or the principal point is at the sensor centre (OpenPTV distorts about the
-    sensor centre, OpenCV about the principal point; else see :func:`fit_interior`).
+    """Convert OpenCV's K and dist to an OpenPTV interior orientation in closed form.
 
-    cc = fy pix_y; scx = fx pix_x / cc; xh, yh put the principal point at (cx, cy)."""
+    Exact when the distortion is zero or the principal point is at the sensor centre (OpenPTV distorts
+    about the sensor centre, OpenCV about the principal point; else see :func:`fit_interior`).
+    cc = fy pix_y; scx = fx pix_x / cc; xh, yh put the principal point at (cx, cy).
+
+    Args:
+        K: the (3, 3) camera matrix, px.
+        dist: OpenCV's [k1 k2 p1 p2 k3] (shorter: zero-padded); None: no distortion.
+        image_size: (width, height) px.
+        pix_x: the pixel width, mm.
+        pix_y: the pixel height, mm.
+
+    Returns:
+        (xh, yh, cc, addpar): principal point and focal length in mm, distortion and affine parameters.
+    """
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     imx, imy = image_size
     cc = fy * pix_y
@@ -143,9 +199,22 @@ def interior_from_opencv(K: np.ndarray, dist: np.ndarray, image_size: tuple[int,
 
 def fit_interior(K: np.ndarray, dist: np.ndarray, image_size: tuple[int, int], pix_x: float, pix_y: float,
                  grid: int = 25) -> tuple[float, float, float, AddPar, float]:
-    """Least-squares OpenPTV interior (xh, yh, cc, k1 k2 k3 p1 p2, scx; she = 0) that images the
-    normalised rays of a ``grid`` x ``grid`` pixel grid like OpenCV's K and dist.
-    Returns (xh, yh, cc, addpar, max error px)."""
+    """Fit an OpenPTV interior orientation to OpenCV's K and dist by least squares.
+
+    Fits xh, yh, cc, k1 k2 k3 p1 p2 and scx (she = 0) so that the normalised rays of a pixel grid image
+    where OpenCV's K and dist image them; starts from :func:`interior_from_opencv`.
+
+    Args:
+        K: the (3, 3) camera matrix, px.
+        dist: OpenCV's distortion coefficients.
+        image_size: (width, height) px.
+        pix_x: the pixel width, mm.
+        pix_y: the pixel height, mm.
+        grid: the grid's points per side (``grid`` x ``grid`` over the image).
+
+    Returns:
+        (xh, yh, cc, addpar, max error px): the interior and its largest pixel error on the grid.
+    """
     from scipy.optimize import least_squares
 
     from ari_sfm.models import PinholeModel
@@ -177,12 +246,23 @@ def fit_interior(K: np.ndarray, dist: np.ndarray, image_size: tuple[int, int], p
 
 
 def detect_settings_from_target_par(par: TargetPar, cameras: list[str]) -> dict:
-    """rig.yaml's ``particles.detect`` mapping (DATASET_FORMAT.md 1.2) from OpenPTV's targ_rec.par, for the
-    rig's cameras in OpenPTV's order (cam1..camN: the first N grey thresholds): ``threshold`` per camera
-    (grey levels above the local background), ``min_pixels`` / ``max_pixels`` (nnmin, nnmax),
-    ``min_span_px`` / ``max_span_px`` (the looser of nxmin, nymin and of nxmax, nymax: ari-sfm holds one
-    width for both axes), ``min_sum`` (sumg_min). discont (targ_rec's split of touching targets; ari-sfm
-    splits overlapping images by fits) and cr_sz (drawing) have no counterpart."""
+    """Translate OpenPTV's targ_rec.par to rig.yaml's ``particles.detect`` mapping (DATASET_FORMAT.md 1.2).
+
+    ``threshold`` per camera (grey levels above the local background), ``min_pixels`` / ``max_pixels``
+    (nnmin, nnmax), ``min_span_px`` / ``max_span_px`` (the looser of nxmin, nymin and of nxmax, nymax:
+    ari-sfm holds one width for both axes), ``min_sum`` (sumg_min). discont (targ_rec's split of touching
+    targets; ari-sfm splits overlapping images by fits) and cr_sz (drawing) have no counterpart.
+
+    Args:
+        par: the parsed targ_rec.par.
+        cameras: the rig's cameras in OpenPTV's order (cam1..camN: the first N grey thresholds).
+
+    Returns:
+        The ``particles.detect`` mapping.
+
+    Raises:
+        ValueError: more cameras than grey thresholds.
+    """
     if len(cameras) > len(par.gvthres):
         raise ValueError(f"targ_rec.par holds {len(par.gvthres)} grey thresholds, the rig {len(cameras)} cameras")
     return {"threshold": {cam: int(t) for cam, t in zip(cameras, par.gvthres)},

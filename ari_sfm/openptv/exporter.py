@@ -120,10 +120,25 @@ def _control_par(existing: ControlPar | None, numbers: dict[str, int], size: tup
 
 def export_openptv(calibration: str | Path, out: str | Path, frame: str | None = None,
                    pixel_size_mm: float | None = None) -> ExportSummary:
-    """Write the OpenPTV files of ``calibration`` into the folder ``out`` (see the module docstring).
+    """Write the OpenPTV files of a calibration into a folder (see the module docstring).
 
     Everything is computed and checked before the first file is written; each file is written
-    atomically."""
+    atomically.
+
+    Args:
+        calibration: the calibration.json file.
+        out: the folder to write into (an existing ``parameters/ptv.par`` there is updated).
+        frame: the calibration frame whose target coordinates become OpenPTV's world, or ``world`` for the
+            calibration's own world frame; None: the first calibration frame.
+        pixel_size_mm: the sensor's pixel size; None: the existing ptv.par's, else DEFAULT_PIXEL_SIZE_MM.
+
+    Returns:
+        What was written: the folder, frame, pixel size, files, camera numbers and interior fit errors.
+
+    Raises:
+        AriSfmError: a model without a window, an unknown frame, a window OpenPTV cannot express, an existing
+            ptv.par that does not match, or a file that cannot be written.
+    """
     path = Path(calibration)
     cal = load_calibration(path)
     out = Path(out)
@@ -202,8 +217,19 @@ MIN_PIXEL_SIZE_MM, MAX_PIXEL_SIZE_MM = 1e-4, 1.0  # 0.1 um .. 1 mm: sensor pixel
 
 
 def check_pixel_size(value: float, where: str | Path, what: str | None = None) -> float:
-    """``value`` if a physical pixel size in mm (finite, MIN_PIXEL_SIZE_MM..MAX_PIXEL_SIZE_MM), else AriSfmError:
-    inf, 1e300 or 1e-12 wrote .ori files with nan or inf."""
+    """Check that a value is a physical pixel size in mm (finite, MIN_PIXEL_SIZE_MM..MAX_PIXEL_SIZE_MM).
+
+    Args:
+        value: the pixel size, mm.
+        where: the option or file named in the error.
+        what: the value's name, prefixed to the message; None: none.
+
+    Returns:
+        ``value`` as a float.
+
+    Raises:
+        AriSfmError: ``value`` is not finite or out of range.
+    """
     prefix = f"{what} " if what else ""
     if not (np.isfinite(value) and MIN_PIXEL_SIZE_MM <= value <= MAX_PIXEL_SIZE_MM):
         raise AriSfmError(where, f"{prefix}must be a pixel size in mm between {MIN_PIXEL_SIZE_MM:g} and "

@@ -249,8 +249,20 @@ class TargetPar:
 
 
 def read_target_par(path: Path) -> TargetPar:
-    """``parameters/targ_rec.par`` (or detect_plate.par, the same layout): 13 integers, whitespace-separated
-    in liboptv's order (``read_target_par``); numbers after them are ignored, as liboptv does."""
+    """Read ``parameters/targ_rec.par`` (or detect_plate.par, the same layout).
+
+    The file holds 13 integers, whitespace-separated, in liboptv's order (``read_target_par``); numbers
+    after them are ignored (with a warning), as liboptv does.
+
+    Args:
+        path: the file.
+
+    Returns:
+        The detector's parameters.
+
+    Raises:
+        AriSfmError: too few integers, a negative one, or a minimum above its maximum.
+    """
     path = Path(path)
     tokens = " ".join(_lines(path)).split()
     if len(tokens) < len(TARGET_PAR_NAMES):
@@ -313,9 +325,22 @@ MAN_ORI_POINTS = 4  # OpenPTV's manual orientation: four clicked points per came
 
 
 def read_man_ori(par_path: Path, dat_path: Path, num_cams: int) -> list[dict[int, np.ndarray]]:
-    """Per camera, the clicked points {id: (x, y) OpenPTV pixels} of ``man_ori.par`` and ``man_ori.dat``
-    (the first ``4 num_cams`` lines of each; more are the GUI's padding). A point at (0, 0) was never clicked
-    and is left out."""
+    """Read the clicked points of OpenPTV's manual orientation.
+
+    The first ``4 num_cams`` lines of each file are read; more are the GUI's padding. A point at (0, 0)
+    was never clicked and is left out.
+
+    Args:
+        par_path: ``man_ori.par``, the clicked point ids.
+        dat_path: ``man_ori.dat``, their pixels.
+        num_cams: the number of cameras.
+
+    Returns:
+        Per camera, in order, {id: (x, y) in OpenPTV pixels}.
+
+    Raises:
+        AriSfmError: too few lines, a malformed line, or a point listed twice for a camera.
+    """
     need = MAN_ORI_POINTS * num_cams
     ids = [line.split()[0] for line in _lines(par_path)]
     if len(ids) < need:
@@ -345,7 +370,18 @@ def read_man_ori(par_path: Path, dat_path: Path, num_cams: int) -> list[dict[int
 
 
 def read_points(path: Path, columns: int) -> dict[int, np.ndarray]:
-    """A ``.fix`` (columns 3: id x y z) or ``.crd`` (columns 2: id x y) file as {id: values}."""
+    """Read a ``.fix`` (id x y z, mm) or ``.crd`` (id x y, OpenPTV pixels) file.
+
+    Args:
+        path: the file.
+        columns: the coordinates per line: 3 for ``.fix``, 2 for ``.crd``.
+
+    Returns:
+        {id: (columns,) coordinates}, in file order.
+
+    Raises:
+        AriSfmError: a malformed line, a repeated id, or no point.
+    """
     out: dict[int, np.ndarray] = {}
     for i, line in enumerate(_lines(path)):
         tokens = line.split()
@@ -362,8 +398,20 @@ def read_points(path: Path, columns: int) -> dict[int, np.ndarray]:
 
 
 def update_control_par(path: Path, par: ControlPar) -> str:
-    """The text of an existing ``ptv.par`` with the values of ``par`` written into its numeric
-    lines; the name lines (and any Tcl/Tk padding of them) are kept as they are."""
+    """Write new values into the numeric lines of an existing ``ptv.par``.
+
+    The name lines (and any Tcl/Tk padding of them) are kept as they are.
+
+    Args:
+        path: the existing ptv.par.
+        par: the values to write.
+
+    Returns:
+        The file's new text (not written).
+
+    Raises:
+        AriSfmError: the existing file cannot be read or is malformed.
+    """
     lines = _lines(path)
     read_control_par(path)  # the layout is valid
     tail = len(lines) - len(CONTROL_NUMBERS)
@@ -396,8 +444,21 @@ class SequencePar:
 
 
 def read_sequence_par(path: Path, num_cams: int) -> SequencePar:
-    """liboptv's ``read_sequence_par``: ``num_cams`` base names (the Tcl/Tk layout pads them to four), then the
-    first and last frame."""
+    """Read ``sequence.par`` as liboptv's ``read_sequence_par`` does.
+
+    The file holds ``num_cams`` base names (the Tcl/Tk layout pads them to four), then the first and last
+    frame.
+
+    Args:
+        path: the file.
+        num_cams: the number of cameras.
+
+    Returns:
+        The base names and the frame range.
+
+    Raises:
+        AriSfmError: another number of lines, or frames not in order or negative.
+    """
     lines = _lines(path)
     if len(lines) not in {num_cams + 2, max(num_cams, TCL_CAMERAS) + 2}:
         raise AriSfmError(path, f"{len(lines)} lines for {num_cams} cameras: expected {num_cams + 2} (a base name "
@@ -426,8 +487,20 @@ class VolumePar:
 
 
 def read_volume_par(path: Path) -> VolumePar:
-    """liboptv's order: X_lay[0], Zmin_lay[0], Zmax_lay[0], X_lay[1], Zmin_lay[1], Zmax_lay[1], cnx, cny, cn,
-    csumg, corrmin, eps0."""
+    """Read ``criteria.par``, in liboptv's order.
+
+    The order: X_lay[0], Zmin_lay[0], Zmax_lay[0], X_lay[1], Zmin_lay[1], Zmax_lay[1], cnx, cny, cn,
+    csumg, corrmin, eps0.
+
+    Args:
+        path: the file.
+
+    Returns:
+        The observation volume and the correspondence criteria.
+
+    Raises:
+        AriSfmError: not 12 numbers, or an empty observation volume.
+    """
     v = _numbers(path, 12, "X, Zmin, Zmax of two layers and six correspondence criteria")
     if not (v[0] < v[3] and v[1] < v[2] and v[4] < v[5]):
         raise AriSfmError(path, f"the observation volume is empty (x {v[0]:g}..{v[3]:g}, z {v[1]:g}..{v[2]:g} and "

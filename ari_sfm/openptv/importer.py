@@ -270,9 +270,19 @@ def _manual_points(root: Path, control: ControlPar, names: list[str], body: dict
 
 
 def read_experiment(root: str | Path, window_groups: str | None = None) -> Dataset:
-    """The dataset of an OpenPTV experiment folder (records only; nothing is written). ``window_groups``:
-    which cameras share a window, ``cam1,cam2;cam3,cam4`` (default: told from the .ori glass vectors or the
-    clicked points, :func:`_windows`)."""
+    """Read an OpenPTV experiment folder as a dataset (records only; nothing is written).
+
+    Args:
+        root: the experiment folder (with ``parameters/ptv.par``).
+        window_groups: which cameras share a window, ``cam1,cam2;cam3,cam4``; None: told from the .ori
+            glass vectors or the clicked points (see :mod:`.windows`).
+
+    Returns:
+        The dataset; its ``rig_path`` is ``root/rig.yaml`` (not written).
+
+    Raises:
+        AriSfmError: a missing or malformed OpenPTV file, an unsupported setting, or no glass plate.
+    """
     root = Path(os.path.abspath(root))
     if root.exists() and not root.is_dir():
         raise AriSfmError(root, "is a file, expected an OpenPTV experiment folder (with parameters/ptv.par)")
@@ -367,9 +377,25 @@ def _copied_images(dataset: Dataset, folder: Path) -> Dataset:
 
 
 def import_experiment(root: str | Path, out: str | Path, window_groups: str | None = None) -> Path:
-    """Write the dataset of an OpenPTV experiment to the new folder ``out`` (rig.yaml, observations.json
-    where .crd files exist, and a copy of the calibration images; written in a temporary folder beside
-    it, then renamed). Returns the rig path."""
+    """Write the dataset of an OpenPTV experiment to a new folder.
+
+    Writes rig.yaml (with ``particles:`` when the experiment has a sequence.par), observations.json where
+    .crd files exist, and a copy of the calibration images, in a temporary folder beside ``out`` that is
+    then renamed.
+
+    Args:
+        root: the experiment folder (with ``parameters/ptv.par``).
+        out: the dataset folder to create (absent or empty).
+        window_groups: which cameras share a window, ``cam1,cam2;cam3,cam4``; None: told from the
+            experiment (see :func:`read_experiment`).
+
+    Returns:
+        The rig file written, ``out/rig.yaml``.
+
+    Raises:
+        AriSfmError: ``out`` is not empty, or the experiment cannot be read or imported (naming the
+            OpenPTV file at fault).
+    """
     from ari_sfm.io import save_rig
 
     out = Path(os.path.abspath(out))
@@ -401,11 +427,21 @@ def import_experiment(root: str | Path, out: str | Path, window_groups: str | No
 
 
 def particles_entry(root: Path, dataset_dir: Path, control: ControlPar) -> dict | None:
-    """rig.yaml's ``particles:`` (DATASET_FORMAT 1.2) of an experiment's ``sequence.par`` (each camera's
-    images over first..last, as paths from ``dataset_dir``, the folder the dataset ends up in) and
-    ``criteria.par``'s observation volume as ``volume_mm`` in the body's frame (OpenPTV's world, frame
+    """Build rig.yaml's ``particles:`` entry (DATASET_FORMAT 1.2) of an experiment.
+
+    From ``sequence.par``: each camera's image pattern and the frames first..last. From ``criteria.par``
+    when present: the observation volume as ``volume_mm`` in the body's frame (OpenPTV's world, frame
     f000: x X_lay[0]..X_lay[1], z its depth range, y as wide as the widest of the two, which OpenPTV does
-    not bound) and ``targ_rec.par``'s detector settings as ``detect``; None without a sequence.par."""
+    not bound). From ``targ_rec.par`` when present: the detector settings as ``detect``.
+
+    Args:
+        root: the experiment folder.
+        dataset_dir: the folder the dataset ends up in; image paths are written relative to it.
+        control: the experiment's parsed ptv.par.
+
+    Returns:
+        The ``particles`` mapping, or None without a sequence.par.
+    """
     params = root / "parameters"
     if not (params / "sequence.par").is_file():
         return None

@@ -6,8 +6,7 @@ parallel glass vectors; cameras behind another wall (test_cavity's opposite one)
 
 - With every ``.ori``: :func:`windows_from_glass` groups the cameras whose glass vectors are parallel
   (within :data:`SAME_WINDOW_DEG`) and declares each window's plane from its first camera's vector, held,
-  or as a prior with the spread of its cameras' vectors when they differ (OpenPTV's own practice: the
-  window as the lab declared it).
+  or as a prior with the spread of its cameras' vectors when they differ.
 - Without them: :func:`windows_from_axes` groups the cameras by their optical axes in the body's frame
   (resected from the clicked points): cameras looking into the tank from one side are behind one wall.
   Average-linkage clusters of axes closer than :data:`SAME_SIDE_DEG`; the planes are left for calibrate
@@ -55,7 +54,24 @@ def _named(groups: list[tuple[list[str], np.ndarray]]) -> list[str]:
 
 def windows_from_glass(names: Sequence[str], glasses: Sequence[np.ndarray], ori_paths: Sequence[Path],
                        thickness_mm: float, index: float, medium_index: float, frame: str) -> tuple[Window, ...]:
-    """The windows of cameras with ``.ori`` glass vectors (module docstring), planes declared in ``frame``."""
+    """Group cameras with ``.ori`` glass vectors into windows (see the module docstring).
+
+    Args:
+        names: the camera names.
+        glasses: each camera's glass vector, (3,) mm, in OpenPTV's world.
+        ori_paths: each camera's ``.ori`` file, for error messages.
+        thickness_mm: the glass thickness.
+        index: the glass's refractive index.
+        medium_index: the medium's refractive index.
+        frame: the target frame the planes are declared in (the calibration frame whose target coordinates
+            are OpenPTV's world).
+
+    Returns:
+        The windows, each with its declared plane (fixed, or a prior when its cameras' vectors differ).
+
+    Raises:
+        AriSfmError: a glass vector is zero.
+    """
     groups: list[tuple[list[int], np.ndarray]] = []
     for k, (glass, path) in enumerate(zip(glasses, ori_paths)):
         if not np.linalg.norm(glass) > 0:
@@ -93,9 +109,21 @@ def windows_from_glass(names: Sequence[str], glasses: Sequence[np.ndarray], ori_
 
 def windows_from_axes(names: Sequence[str], axes: Sequence[np.ndarray], thickness_mm: float, index: float,
                       medium_index: float) -> tuple[Window, ...]:
-    """The windows of cameras known by their optical axes in the body's frame (module docstring): average
-    linkage over the angles between axes, merged while closer than SAME_SIDE_DEG; a warning when the
-    grouping is not clear-cut."""
+    """Group cameras into windows by their optical axes in the body's frame (see the module docstring).
+
+    Average linkage over the angles between axes, merged while closer than :data:`SAME_SIDE_DEG`; a
+    warning is logged when the grouping is not clear-cut.
+
+    Args:
+        names: the camera names.
+        axes: each camera's optical axis, (3,), in the body's frame.
+        thickness_mm: the glass thickness.
+        index: the glass's refractive index.
+        medium_index: the medium's refractive index.
+
+    Returns:
+        The windows, their planes left for calibrate to estimate.
+    """
     units = [np.asarray(a, float) / np.linalg.norm(a) for a in axes]
     angle = np.degrees(np.arccos(np.clip(np.array([[a @ b for b in units] for a in units]), -1.0, 1.0)))
     clusters = [[k] for k in range(len(units))]
@@ -127,7 +155,19 @@ def windows_from_axes(names: Sequence[str], axes: Sequence[np.ndarray], thicknes
 
 
 def parse_window_groups(text: str, names: Sequence[str], where: str = "--windows") -> list[list[str]]:
-    """``cam1,cam2;cam3,cam4`` as groups of camera names: every camera once (one line naming the option)."""
+    """Parse ``cam1,cam2;cam3,cam4`` as groups of camera names.
+
+    Args:
+        text: the groups, separated by ``;``, cameras by ``,``.
+        names: the experiment's cameras; each must appear exactly once.
+        where: the option named in error messages.
+
+    Returns:
+        The groups of camera names.
+
+    Raises:
+        AriSfmError: an unknown camera, a camera in no group or in two, or no group.
+    """
     groups = [[c.strip() for c in part.split(",") if c.strip()] for part in text.split(";") if part.strip()]
     listed = [c for g in groups for c in g]
     unknown = [c for c in listed if c not in names]
@@ -144,6 +184,16 @@ def parse_window_groups(text: str, names: Sequence[str], where: str = "--windows
 
 def windows_from_groups(groups: Sequence[Sequence[str]], thickness_mm: float, index: float, medium_index: float
                         ) -> tuple[Window, ...]:
-    """The windows a user gave (``--windows``), named window1, window2, ..., their planes left to calibrate."""
+    """Make the windows a user gave (``--windows``), named window1, window2, ...
+
+    Args:
+        groups: the cameras behind each window.
+        thickness_mm: the glass thickness.
+        index: the glass's refractive index.
+        medium_index: the medium's refractive index.
+
+    Returns:
+        The windows, their planes left for calibrate to estimate.
+    """
     return tuple(Window(f"window{k + 1}", _plate(thickness_mm, index, medium_index), tuple(g))
                  for k, g in enumerate(groups))
