@@ -939,8 +939,8 @@ def triangulate_exact(uv, R, t, params, nc, window, refine, max_iterations, damp
     Per point: back-projection, the least-squares point of the rays (``ray_gap_mm``), then, with ``refine``,
     Levenberg-Marquardt on the reprojection error with the analytic Jacobians (the algorithm of
     :func:`ari_sfm.reconstruction.triangulate.refine_points`, per point). Points seen by fewer than two
-    cameras, or whose rays give no point, are left unwritten in the outputs. Releases the GIL: threads may run it on separate
-    slices of points.
+    cameras, or whose rays give no point, are left unwritten in the outputs. Releases the GIL: threads may run
+    it on separate slices of points.
 
     Args:
         uv: pixel tracks (P, C, 2), NaN where a camera does not see the point.
