@@ -21,14 +21,34 @@ def residual_stats(residuals: Iterable[np.ndarray]) -> ResidualStats:
 
 def project_target(calibration: Calibration, camera: str, pose_world_from_target, points_target: np.ndarray,
                    added_mm: float = 0.0) -> np.ndarray:
-    """Pixels (M, 2) of target points seen by a camera through the window."""
+    """Project target points into a camera through the window.
+
+    Args:
+        calibration: the calibration.
+        camera: the camera's name.
+        pose_world_from_target: the target's world_from_target pose.
+        points_target: the target points (M, 3), target frame, mm.
+        added_mm: the glass stacked on the window (mm).
+
+    Returns:
+        The pixels (M, 2), NaN where a point projects to no pixel.
+    """
     X_c = calibration.cameras[camera].cam_from_world.apply(pose_world_from_target.apply(points_target))
     return calibration.projection_model(camera, added_mm).project(X_c)
 
 
 def observation_residuals(calibration: Calibration, observations: Sequence[Observation],
                           target: Target) -> list[tuple[Observation, np.ndarray]]:
-    """(observation, residual (M, 2)) for every observation whose pose the calibration holds."""
+    """Give the reprojection residuals of every observation whose pose the calibration holds.
+
+    Args:
+        calibration: the calibration.
+        observations: the records.
+        target: the target (its points).
+
+    Returns:
+        (observation, residual (M, 2) = projected - observed pixels) pairs.
+    """
     ids_all, xyz_all = target.points_3d()
     lookup = {int(i): k for k, i in enumerate(ids_all)}
     out = []
@@ -48,11 +68,20 @@ def observation_residuals(calibration: Calibration, observations: Sequence[Obser
 
 def solve_frame_poses(calibration: Calibration, observations: Sequence[Observation], target: Target,
                       sets: tuple[str, ...] = ("calibration", "reconstruction")) -> dict[str, Pose]:
-    """world_from_target of every frame the calibration does not hold, with the rig fixed.
+    """Fit world_from_target of every frame the calibration does not hold, with the rig fixed.
 
     PnP in the first camera that sees the frame (window removed as in Eqs. 11-12),
     then a least-squares refinement through the calibration's own model over all
     cameras that see it. Used to judge a calibration on held-out poses.
+
+    Args:
+        calibration: the calibration (the rig held fixed).
+        observations: the records; those with 4 or more corners of a calibrated camera count.
+        target: the target (its points).
+        sets: the observation sets whose frames are fitted.
+
+    Returns:
+        Frame -> its world_from_target (frames whose PnP fails are left out).
     """
     import cv2
     from scipy.optimize import least_squares
@@ -101,18 +130,27 @@ def _held_pose_residuals(x: np.ndarray, start: Pose, calibration: Calibration, m
 
 def evaluate(calibration: Calibration, observations: str | Path | Dataset | Sequence[Observation],
              target: Target | None = None, solve_poses: bool = False) -> ResidualStats:
-    """Reprojection errors (rmse_px, mae_px, max_px, count, per_camera) on observations.
+    """Give a calibration's reprojection errors on observations.
 
-    ``observations`` is an observations.json path, a Dataset, or loaded records.
-    Only records of frames whose poses the calibration holds (and its stacking
-    poses) count, unless ``solve_poses``: then every frame's pose is fitted with the
-    rig held fixed (:func:`evaluate_held_out`: held-out views; the calibration's own
-    frame poses and stacking records are not used), the same as ``ari-sfm evaluate
-    --solve-poses``.
+    Only records of frames whose poses the calibration holds (and its stacking poses) count, unless
+    ``solve_poses``. Never NaN: nothing to judge, a corner that projects to no pixel through the window,
+    or no target geometry is an error.
 
-    Never NaN: nothing to judge (no record of a calibrated camera in a frame whose
-    pose is known or could be fitted), a corner that projects to no pixel through the
-    window, or no target geometry is an AriSfmError naming the observations.
+    Args:
+        calibration: the calibration (or a calibration.json path).
+        observations: an observations.json path, a Dataset, or loaded records.
+        target: the target geometry (default: the Dataset's or the calibration's).
+        solve_poses: fit every frame's pose with the rig held fixed (:func:`evaluate_held_out`: held-out
+            views; the calibration's own frame poses and stacking records are not used), the same as
+            ``ari-sfm evaluate --solve-poses``.
+
+    Returns:
+        The statistics: rmse_px, mae_px, max_px, count and per_camera.
+
+    Raises:
+        AriSfmError: naming the observations, when nothing is judged (no record of a calibrated camera in a
+            frame whose pose is known or could be fitted), a corner projects to no pixel, or there is no target.
+        TypeError: if ``calibration`` or ``observations`` is of another kind.
     """
     if solve_poses:
         return evaluate_held_out(calibration, observations, target)
@@ -167,8 +205,21 @@ def _checked(stats: ResidualStats, observations, which: str) -> ResidualStats:
 
 def reprojection_stats(calibration: Calibration, observations: str | Path | Dataset | Sequence[Observation],
               target: Target | None = None, solve_poses: bool = False) -> ResidualStats:
-    """:func:`evaluate`'s statistics as they come: count 0 and NaN when nothing is judged, NaN where a corner
-    does not project (``solve_poses``: the frames the calibration does not hold fitted, its own kept)."""
+    """Give :func:`evaluate`'s statistics as they come: count 0 and NaN when nothing is judged, NaN where a
+    corner does not project.
+
+    Args:
+        calibration: the calibration.
+        observations: an observations.json path, a Dataset, or loaded records.
+        target: the target geometry (default: the Dataset's or the calibration's).
+        solve_poses: fit the frames the calibration does not hold (its own kept).
+
+    Returns:
+        The statistics: rmse_px, mae_px, max_px, count and per_camera.
+
+    Raises:
+        AriSfmError: if the dataset holds no observations, a pixel lies outside its image, or there is no target.
+    """
     if isinstance(observations, Dataset):
         target = target or observations.target
         if observations.observations is None:
@@ -204,10 +255,21 @@ def reprojection_stats(calibration: Calibration, observations: str | Path | Data
 
 def evaluate_held_out(calibration: Calibration, observations: str | Path | Dataset | Sequence[Observation],
                       target: Target | None = None) -> ResidualStats:
-    """Errors on held-out views: every frame's pose fitted with the rig fixed (:func:`solve_frame_poses`).
+    """Give the reprojection errors on held-out views, every frame's pose fitted with the rig fixed.
 
-    Unlike ``evaluate(..., solve_poses=True)`` the calibration's own frame poses are not used, so
-    held-out frames may repeat its frame names; stacking records are left out.
+    The calibration's own frame poses are not used (see :func:`solve_frame_poses`), so held-out frames
+    may repeat its frame names; stacking records are left out.
+
+    Args:
+        calibration: the calibration (or a calibration.json path).
+        observations: an observations.json path, a Dataset, or loaded records.
+        target: the target geometry (default: the Dataset's or the calibration's).
+
+    Returns:
+        The statistics: rmse_px, mae_px, max_px, count and per_camera.
+
+    Raises:
+        AriSfmError: naming the observations, when nothing is judged or a corner projects to no pixel.
     """
     fresh = replace(_as_calibration(calibration), frames={}, stacking_poses={})
     return _checked(reprojection_stats(fresh, observations, target, solve_poses=True), observations,

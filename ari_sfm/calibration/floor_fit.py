@@ -1,6 +1,7 @@
-"""The quality gate's floor fit, compiled: each view's corners mapped to their pixels by the most
-flexible free map of the calibration model's own structure, so that its residuals estimate what the
-data allow (:mod:`ari_sfm.calibration.quality`):
+"""The quality gate's floor fit, compiled (:mod:`ari_sfm.calibration.quality`).
+
+Each view's corners are mapped to their pixels by the most flexible free map of the calibration
+model's own structure, so that its residuals estimate what the data allow:
 
 - a planar view (a board; one plane of a body): a homography (the normalised DLT of the plane's 2D
   coordinates) and a smooth polynomial warp W of the predicted pixels: any camera behind any flat
@@ -11,21 +12,15 @@ data allow (:mod:`ari_sfm.calibration.quality`):
   window into water is not central: its rays cross the axis along the window's normal at points that
   move with the incidence angle, so a point's pixel moves, beyond what one centre explains, along the
   line to the normal's vanishing point e, by the inverse depth (zeta, centred, under the camera)
-  times a function of the angle. Measured noise-free on body3d_water (6 mm glass 30-50 mm from the
-  cameras, water, a 40 mm deep body): the DLT's camera and W left 0.3 px, refined with W 0.04 px,
-  with the term 0.004 px. A body's planes are not each given their own map, and the term is one
-  radial field scaled by depth, so a placement error between planes stays in the residuals (with a
-  general ``zeta V(s)`` of degree 3 a rigid fit of plates tilted 0.3 deg was up to 1.76 x the floor,
-  with this term 0.94-1.09 x).
+  times a function of the angle. A body's planes are not each given their own map, and the term is
+  one radial field scaled by depth, so a placement error between planes stays in the residuals.
 
 Per view (numba, ``cache=True``, no LAPACK: its small factorisations written out), in normalised
 coordinates (Hartley: centred, RMS radius sqrt(k) in k dimensions):
 
 - the DLT's map is the least eigenvector of ``A^T A`` (9 x 9 for a plane, 12 x 12 for a body,
   accumulated point by point), found by inverse iteration from the last unit vector through its
-  Cholesky factor (``A^T A`` shifted by 1e-13 of its trace, so exact points stay invertible); each
-  step shrinks the error by the eigenvalue ratio, ~1e-3 even at 10 px of noise: that of
-  ``cv2.findHomography(..., 0)`` before its refinement;
+  Cholesky factor (``A^T A`` shifted by 1e-13 of its trace, so exact points stay invertible);
 - W: the least-squares polynomial (terms ``s_x^i s_y^j``, i + j <= degree, of the predicted pixels /
   sqrt(2)) of the map's residuals, by Cholesky of its normal matrix; a column whose pivot is below
   ``PIVOT`` of its own norm lies in the span of the others (a board of two rows) and is left out,
@@ -167,9 +162,16 @@ def _dlt(src, uv, v, ca, cb, h):
 
 @njit(**_JIT)
 def projective_maps(src, uv):
-    """The DLT maps (V, 3, k + 1) of V views' points ``src`` (V, n, k: k = 2, a plane's coordinates,
-    gives homographies; k = 3, a body's, projective cameras) to their pixels ``uv`` (V, n, 2),
-    n >= 4 (k = 2) or 6 (k = 3), up to scale; not finite when the points are not."""
+    """Fit the normalised DLT map of each view's points to their pixels.
+
+    Args:
+        src: V views' points (V, n, k): k = 2, a plane's coordinates, gives homographies; k = 3, a body's,
+            projective cameras; n >= 4 (k = 2) or 6 (k = 3).
+        uv: their pixels (V, n, 2).
+
+    Returns:
+        The maps (V, 3, k + 1), up to scale; not finite when the points are not.
+    """
     V, k = src.shape[0], src.shape[2]
     q = k + 1
     P = np.empty((V, 3, q))
@@ -542,12 +544,23 @@ def _gauss_newton_step(a, h, w, pu, pv, ru, rv, A, L, keep, coef, rhs, D, e, rad
 
 @njit(**_JIT)
 def warp_residuals(src, uv, degree, radial):
-    """Residuals (V, n, 2) of V views' points ``src`` (V, n, k: k = 2 a plane, k = 3 a body) against
-    their pixels ``uv`` (V, n, 2) after the free map (module docstring): the DLT's map refined by
-    ``CAMERA_STEPS`` Gauss-Newton steps jointly with the warp W of ``degree`` at the predicted pixels and
-    (a body, ``radial``) the non-central term; scaled by sqrt(2n / (2n - 2p - d)) for the p terms of W per
-    coordinate, the d dof of the map (8 a homography, 11 a camera) and the non-central term's 4; and which
-    views were fitted (V,) (finite points, every point in front of the map)."""
+    """Fit each view's free map (module docstring) and give the residuals.
+
+    The DLT's map is refined by ``CAMERA_STEPS`` Gauss-Newton steps (a body) jointly with the warp W at
+    the predicted pixels and (a body, ``radial``) the non-central term. The residuals are scaled by
+    sqrt(2n / (2n - 2p - d)) for the p terms of W per coordinate, the d dof of the map (8 a homography,
+    11 a camera) and the non-central term's 4.
+
+    Args:
+        src: V views' points (V, n, k): k = 2 a plane, k = 3 a body.
+        uv: their pixels (V, n, 2).
+        degree: the degree of the polynomial warp W.
+        radial: fit the non-central term (bodies only).
+
+    Returns:
+        The residuals (V, n, 2) in px, and which views were fitted (V,) bool (finite points, every point in
+        front of the map); an unfitted view's residuals are 0.
+    """
     V, n, k = src.shape[0], src.shape[1], src.shape[2]
     q = k + 1
     radial = radial and k == 3

@@ -39,7 +39,15 @@ def robust_sigma_px(residuals: Iterable[np.ndarray]) -> float:
 
 
 def find_outliers(pairs: Sequence[tuple[Observation, np.ndarray]], k_sigma: float = 5.0) -> tuple[list[Outlier], float]:
-    """Corners with pixel distance > k_sigma * sigma (sigma: robust, per coordinate)."""
+    """Find the corners whose residual's pixel distance exceeds k_sigma * sigma.
+
+    Args:
+        pairs: (observation, residual (M, 2)) pairs.
+        k_sigma: the threshold, in sigmas.
+
+    Returns:
+        The outlier corners, and sigma (px, robust, per coordinate; NaN without pairs).
+    """
     if not pairs:
         return [], float("nan")
     r = np.concatenate([np.asarray(x, float).reshape(-1, 2) for _, x in pairs])
@@ -56,7 +64,15 @@ def find_outliers(pairs: Sequence[tuple[Observation, np.ndarray]], k_sigma: floa
 
 
 def without(observations: Sequence[Observation], outliers: Sequence[Outlier]) -> tuple[Observation, ...]:
-    """The observations with the outlier corners removed."""
+    """Remove the outlier corners from observations.
+
+    Args:
+        observations: the records.
+        outliers: the corners to remove.
+
+    Returns:
+        The observations, in their order, without those corners.
+    """
     from dataclasses import replace
 
     drop: dict[tuple, set[int]] = {}

@@ -21,10 +21,10 @@ what the same corners allow. After convergence a window-model calibration (ari, 
 - the paraxial model's own error: an ``ari`` result above that allowance is re-evaluated by the
   exact model with the same window and hints (``exact_robust_rmse_px``, computed by
   :func:`ari_sfm.calibrate.calibrate`): when the exact model fits within the allowance, the excess
-  is ari's paraxial error at this geometry (PHYSICS.md: ~t^3, 1.4-2 px on binocular_underwater)
-  and the result passes; when it does not, the window or a hint is wrong and ari fails too;
+  is ari's paraxial error at this geometry and the result passes; when it does not, the window or
+  a hint is wrong and ari fails too;
 - physically absurd standard deviations: a camera's pose relative to camera 0 known to worse
-  than ``MAX_POSE_SIGMA_DEG`` (a flat, wrong minimum: +-40 deg was seen), or not determined at all
+  than ``MAX_POSE_SIGMA_DEG`` (a flat, wrong minimum), or not determined at all
   (no finite sigma: a singular or indefinite information matrix, see
   :func:`ari_sfm.solver.schur.global_covariance`);
 - a non-finite RMSE.
@@ -160,11 +160,19 @@ def _view_points(X: np.ndarray) -> np.ndarray:
 
 
 def corner_floor(dataset) -> Floor | None:
-    """What the corners allow (module docstring): each of up to ``MAX_FLOOR_VIEWS`` calibration and stacking
-    views (evenly picked) with >= ``MIN_VIEW_CORNERS`` corners fitted by its own free map: a planar view
-    by a homography and a warp, a body's view (every plane of it at once: one rigid body seen once) by a
-    projective camera and a warp with an inverse-depth term (views of the same kind and corner count
-    at once). None when no view was fitted."""
+    """Measure what the corners allow (module docstring).
+
+    Each of up to ``MAX_FLOOR_VIEWS`` calibration and stacking views (evenly picked) with >=
+    ``MIN_VIEW_CORNERS`` corners is fitted by its own free map: a planar view by a homography and a warp,
+    a body's view (every plane of it at once: one rigid body seen once) by a projective camera and a warp
+    with an inverse-depth term.
+
+    Args:
+        dataset: the dataset (its observations loaded).
+
+    Returns:
+        The floor (robust RMSE of the free maps' residuals, and their dof), or None when no view was fitted.
+    """
     from ..init.zhang import object_points
 
     views = [o for o in dataset.observations if o.set in ("calibration", "stacking") and len(o.ids) >= MIN_VIEW_CORNERS]
@@ -189,8 +197,16 @@ def floor_rmse_px(dataset) -> float | None:
 
 
 def allowance_px(floor: Floor | float, coordinates: int) -> float:
-    """The largest robust RMSE a result over ``coordinates`` residual coordinates may have against ``floor``
-    (module docstring; a bare float: a floor measured on as many coordinates as the result)."""
+    """Give the largest robust RMSE a result may have against the floor (module docstring).
+
+    Args:
+        floor: the corners' floor (:func:`corner_floor`); a bare float: a floor RMSE (px) measured on as many
+            coordinates as the result.
+        coordinates: the result's residual coordinates.
+
+    Returns:
+        The allowance (px).
+    """
     if not isinstance(floor, Floor):
         floor = Floor(float(floor), int(coordinates))
     spread = MAD_SPREAD * math.sqrt(1.0 / max(coordinates, 1) + 1.0 / max(floor.dof, 1))
@@ -202,16 +218,38 @@ def _coordinates(residuals: list[np.ndarray]) -> int:
 
 
 def fits(model: str, residuals: Iterable[np.ndarray], floor: Floor | float | None) -> bool:
-    """Whether a result's residuals are within the allowance (before any exact re-evaluation)."""
+    """Tell whether a result's residuals are within the allowance (before any exact re-evaluation).
+
+    Args:
+        model: the calibration model's name.
+        residuals: the result's residuals (px), any shapes.
+        floor: the corners' floor (:func:`corner_floor`), a bare floor RMSE (px), or None (no floor: fits).
+
+    Returns:
+        True if the robust RMSE is within :func:`allowance_px`.
+    """
     residuals = list(residuals)
     return floor is None or robust_rmse_px(residuals) <= allowance_px(floor, _coordinates(residuals))
 
 
 def judge(model: str, rmse_px: float, residuals: Iterable[np.ndarray], floor: Floor | float | None, uncertainty,
           starts: tuple[str, ...] = (), exact_robust: float | None = None) -> Quality:
-    """The verdict on one result of ``model`` (module docstring); ``floor``: :func:`corner_floor` (a bare
-    float: measured on as many coordinates as the result); ``exact_robust``: the exact model's robust RMSE
-    with the same window and hints (a paraxial model's re-evaluation), None if not run."""
+    """Give the gate's verdict on one result (module docstring).
+
+    Args:
+        model: the calibration model's name (``ari`` results may pass on ``exact_robust``).
+        rmse_px: the result's residual RMSE (px).
+        residuals: the result's residuals (px), any shapes.
+        floor: the corners' floor (:func:`corner_floor`); a bare float: a floor RMSE (px) measured on as many
+            coordinates as the result; None: no floor test.
+        uncertainty: the result's :class:`~ari_sfm.results.Uncertainty`, or None (no sigma test).
+        starts: the starts tried, the kept one last.
+        exact_robust: the exact model's robust RMSE (px) with the same window and hints (a paraxial model's
+            re-evaluation), None if not run.
+
+    Returns:
+        The verdict and the figures it was judged on.
+    """
     residuals = list(residuals)
     robust = robust_rmse_px(residuals)
     allowed = None if floor is None else allowance_px(floor, _coordinates(residuals))

@@ -58,7 +58,18 @@ class CalibrationErrors:
 
 
 def calibration_errors(cal: Calibration, truth: Calibration) -> CalibrationErrors:
-    """Parameter errors of ``cal`` against ``truth`` (same camera names)."""
+    """Give a calibration's parameter errors against the truth (module docstring: the frames compared).
+
+    Args:
+        cal: the calibration.
+        truth: the simulator's truth, with the same camera names.
+
+    Returns:
+        The errors (calibrated minus true).
+
+    Raises:
+        AriSfmError: if a camera of ``cal`` is not in the truth.
+    """
     missing = [n for n in cal.cameras if n not in truth.cameras]
     if missing:
         raise AriSfmError("truth", f"camera {missing[0]} is not in the truth (its cameras: {', '.join(truth.cameras)})")

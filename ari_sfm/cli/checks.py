@@ -17,10 +17,20 @@ PSEUDO_FILE_SYSTEMS = ("/proc", "/sys", "/dev")  # kernel interfaces, not places
 
 
 def check_output_folder(out: str | Path, option: str = "-o/--out") -> Path:
-    """``out`` if it is, or can be created as, a writable folder; else AriSfmError naming it.
+    """Check that an output folder is, or can be created as, a writable folder.
 
     Refused: an existing file; a path under a file; a path inside /proc, /sys
     or /dev; a folder whose nearest existing ancestor is not writable.
+
+    Args:
+        out: the output folder.
+        option: the option named in the error.
+
+    Returns:
+        ``out`` as a Path.
+
+    Raises:
+        AriSfmError: naming the folder and the option, when it is refused.
     """
     out = Path(out)
     try:
@@ -48,7 +58,21 @@ def check_output_folder(out: str | Path, option: str = "-o/--out") -> Path:
 
 def check_number(option: str, value: float | None, minimum: float | None = None, maximum: float | None = None,
                  strict_minimum: bool = False) -> float | None:
-    """``value`` if finite and within [minimum, maximum] (``strict_minimum``: > minimum); None passes."""
+    """Check that an option's number is finite and within [minimum, maximum]; None passes.
+
+    Args:
+        option: the option named in the error.
+        value: the value, or None.
+        minimum: the least value allowed, or None.
+        maximum: the largest value allowed, or None.
+        strict_minimum: require value > minimum.
+
+    Returns:
+        ``value``.
+
+    Raises:
+        AriSfmError: naming the option, when the value is not finite or out of range.
+    """
     if value is None:
         return None
     if not math.isfinite(value):
@@ -61,7 +85,18 @@ def check_number(option: str, value: float | None, minimum: float | None = None,
 
 
 def check_not_input_folder(out: str | Path, input_folder: str | Path, what: str, option: str = "-o/--out") -> None:
-    """AriSfmError if ``out`` is ``input_folder`` (after symbolic links): a command never writes into its input."""
+    """Check that an output folder is not the input folder (after symbolic links): a command never writes into
+    its input.
+
+    Args:
+        out: the output folder.
+        input_folder: the command's input folder.
+        what: what the input folder is, in the error ("the dataset folder").
+        option: the option named in the error.
+
+    Raises:
+        AriSfmError: if ``out`` is ``input_folder``.
+    """
     if Path(os.path.realpath(out)) == Path(os.path.realpath(input_folder)):
         raise AriSfmError(out, f"{option}: is {what}: choose another folder")
 
@@ -70,8 +105,16 @@ RECONSTRUCTION_OUTPUTS = ("points.json", "metrics.json", "observations.json")  #
 
 
 def check_not_an_output(given: str | Path | None, out: str | Path, option: str) -> None:
-    """AriSfmError if an input file is one ``reconstruct -o OUT`` would overwrite (OUT/points.json,
-    metrics.json, observations.json, clouds/*)."""
+    """Check that an input file is not one ``reconstruct -o OUT`` would overwrite.
+
+    Args:
+        given: the input file, or None (passes).
+        out: the output folder OUT.
+        option: the option named in the error.
+
+    Raises:
+        AriSfmError: if the file is OUT/points.json, metrics.json, observations.json or under clouds/.
+    """
     if given is None:
         return
     resolved = Path(os.path.realpath(given))

@@ -30,9 +30,15 @@ QUALITY_FAILED_EXIT = 3  # the calibration was written but failed its quality ga
 
 
 def setup_logging(verbose: bool) -> None:
-    """Warnings and errors, or with -v progress messages too; so also for Dask (distributed logs its
-    cluster's start and stop at INFO, in this process and in a LocalCluster's workers) and glog (pycolmap):
-    through the environment they read when they load (workers inherit it), and their levels if loaded."""
+    """Set the log level: warnings and errors, or with -v progress messages too.
+
+    The same level is set for Dask (distributed logs its cluster's start and stop at INFO, in this process
+    and in a LocalCluster's workers) and glog (pycolmap): through the environment they read when they load
+    (workers inherit it), and their levels if loaded.
+
+    Args:
+        verbose: log progress messages (INFO) too.
+    """
     level = logging.INFO if verbose else logging.WARNING
     logging.basicConfig(level=level, format="%(levelname)s: %(message)s")
     os.environ["DASK_LOGGING__DISTRIBUTED"] = "info" if verbose else "warning"
@@ -128,9 +134,18 @@ def exit_if_signalled() -> None:
 
 
 def user_errors(fn):
-    """Turn AriSfmError (and any unexpected exception) into one line on stderr and exit 1; Ctrl-C into
-    "interrupted" (exit 130) and SIGTERM into "terminated" (exit 143), also when a library turned the
-    signal into an error of its own."""
+    """Wrap a command so that errors and signals end it in one line.
+
+    AriSfmError (and any unexpected exception) becomes one line on stderr and exit 1; Ctrl-C
+    "interrupted" (exit 130) and SIGTERM "terminated" (exit 143), also when a library turned the
+    signal into an error of its own. Set ARI_SFM_DEBUG=1 for an unexpected exception's traceback.
+
+    Args:
+        fn: the command's function.
+
+    Returns:
+        The wrapped function.
+    """
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):

@@ -1,7 +1,7 @@
 """Export a calibration as a COLMAP model: the one pycolmap adapter of ari-sfm.
 
-Every pycolmap call of the library lives in this module (its API changed
-between 3.11, 3.12 and 4.x); the version is checked at import. The way back
+Every pycolmap call of the library lives in this module; the version is
+checked at import. The way back
 (refine-colmap) uses it too: :func:`model_from_reconstruction` reads a model as
 arrays, :func:`refined_reconstruction` writes refined values into a copy (ids
 kept), :func:`pinhole_approximation`, :func:`bundle_adjust` and
@@ -22,7 +22,7 @@ receives, and COLMAP's projection of the exported points then equals
   pose (``approximation="pinhole"``, default; ``"shift"`` keeps the
   calibration's K and R). The remaining error (the paraxial error, growing
   like t^3 with the incidence angle t) is measured, logged as a warning and
-  returned (binocular simulation, 10-15 deg oblique: 0.4 px RMS, 2.2 px max).
+  returned.
 - A medium behind the window (``medium_index != 1``): the paraxial picture is
   an affine map (the medium column's depth scales by 1/n_m), not a pure
   shift, so the export is again the best pure-shift approximation, fitted and
@@ -146,15 +146,26 @@ APPROXIMATIONS = ("pinhole", "shift")  # how a non-pinhole model is approximated
 
 def virtual_camera(calibration: Calibration, camera: str, points_world: np.ndarray | None = None,
                    approximation: str = "pinhole") -> VirtualCamera:
-    """The pinhole camera COLMAP receives for ``camera``.
+    """Give the pinhole camera COLMAP receives for a calibrated camera.
 
     ari in air: exact, (K, R, t - delta n_cam). Otherwise (exact model, or a
-    medium behind the window) the best approximation on ``points_world`` (the
-    points the camera sees; the calibration frames' corners when None):
-    ``approximation="shift"`` fits only the shift along the normal (K and R
-    held); ``"pinhole"`` (default) then also re-fits fx fy cx cy and the pose
-    (distortion held), the best pure-shift pinhole camera in the least-squares
-    sense, which absorbs about two thirds of the paraxial error.
+    medium behind the window) the best approximation on the camera's points.
+
+    Args:
+        calibration: the calibration.
+        camera: the camera's name.
+        points_world: the points the camera sees (N, 3), world frame, mm; None (or fewer than 3): the
+            calibration frames' corners.
+        approximation: ``"shift"`` fits only the shift along the normal (K and R held); ``"pinhole"``
+            then also re-fits fx fy cx cy and the pose (distortion held), the best pure-shift pinhole
+            camera in the least-squares sense.
+
+    Returns:
+        The virtual camera, with its difference to the calibration's model.
+
+    Raises:
+        ValueError: for an unknown ``approximation``.
+        AriSfmError: if there are no points to fit the camera on.
     """
     from scipy.optimize import least_squares
 
@@ -339,15 +350,24 @@ def _observations(calibration: Calibration, dataset: Dataset | str | Path | None
 def export_colmap(calibration: Calibration | str | Path, out_dir: str | Path,
                   dataset: Dataset | str | Path | None = None, points: Any = None,
                   approximation: str = "pinhole") -> ColmapExport:
-    """Write a COLMAP model (binary) of a calibration to ``out_dir``, plus ``points3D.ply``.
+    """Write a COLMAP model (binary) of a calibration to a folder, plus ``points3D.ply``.
 
-    ``calibration``: a Calibration or calibration.json path; ``dataset``: a
-    Dataset or folder whose observations give the images' 2D points (else
-    ``observations.json`` beside the calibration file); ``points``:
-    points.json (path or mapping) of reconstruction frames. See the module
-    docstring for what is exported and how exact it is: with the exact model
-    or a medium behind the window, a warning gives the approximation error
-    (``approximation``: see :func:`virtual_camera`).
+    See the module docstring for what is exported and how exact it is: with the exact model
+    or a medium behind the window, a warning gives the approximation error.
+
+    Args:
+        calibration: a Calibration or calibration.json path.
+        out_dir: the output folder.
+        dataset: a Dataset or folder whose observations give the images' 2D points (else
+            ``observations.json`` beside the calibration file).
+        points: points.json (path or mapping) of reconstruction frames, or None.
+        approximation: see :func:`virtual_camera`.
+
+    Returns:
+        What was written: the model, its folder and how our names map to COLMAP ids.
+
+    Raises:
+        AriSfmError: if the observations or points are not the calibration's.
     """
     cal_path = None
     if isinstance(calibration, (str, Path)):
@@ -470,10 +490,15 @@ def _add_points(rec: Any, tracks: dict[tuple[str, int], list[tuple[int, int]]],
 
 
 def write_model(rec: Any, out_dir: str | Path, ply: bool = True) -> None:
-    """Write ``rec`` (binary model, and ``points3D.ply`` when ``ply``) to ``out_dir``: every file complete or
-    none replaced. pycolmap does not report a failed write (a full disk left truncated .bin files with exit 0),
-    so each file's size is checked against the bytes its content needs before anything is replaced (reading
-    a truncated model back is no check: pycolmap then allocates by garbage counts)."""
+    """Write a reconstruction as a binary COLMAP model: every file complete or none replaced.
+
+    Each file's size is checked against the bytes its content needs before anything is replaced.
+
+    Args:
+        rec: the pycolmap.Reconstruction.
+        out_dir: the output folder.
+        ply: also write ``points3D.ply``.
+    """
     from ..io import write_files_atomic
 
     def writer(tmp: Path) -> None:
@@ -610,7 +635,15 @@ class ColmapModel:
     image_is_ref: np.ndarray | None = None  # (I,) the image's camera is its rig's reference sensor
 
     def params9(self, c: int, colmap_params: np.ndarray | None = None) -> np.ndarray:
-        """Camera c's [fx fy cx cy k1 k2 p1 p2 k3] (OpenCV pixels) from COLMAP parameters."""
+        """Give camera c's [fx fy cx cy k1 k2 p1 p2 k3] (OpenCV pixels) from COLMAP parameters.
+
+        Args:
+            c: the camera's index.
+            colmap_params: its COLMAP parameters (default: the model's).
+
+        Returns:
+            The 9 parameters.
+        """
         p = self.colmap_params[c] if colmap_params is None else colmap_params
         return self.param_map[c] @ p + self.param_offset[c]
 
@@ -620,7 +653,19 @@ def _pose(rigid: Any) -> Pose:
 
 
 def model_from_reconstruction(rec: Any, path: str | Path = "reconstruction") -> ColmapModel:
-    """Arrays of a pycolmap.Reconstruction; a model that cannot be refined raises AriSfmError (one line)."""
+    """Read a pycolmap.Reconstruction as arrays.
+
+    Args:
+        rec: the pycolmap.Reconstruction.
+        path: the model named in an error.
+
+    Returns:
+        The model's arrays, ids kept.
+
+    Raises:
+        AriSfmError: one line, for a model that cannot be refined (no points3D, no observations, a camera
+            model a refractive camera cannot hold).
+    """
     if rec.num_points3D() == 0:
         raise AriSfmError(path, "the COLMAP model has no points3D (run the mapper first)")
     cams = sorted(rec.cameras.items())
@@ -684,7 +729,19 @@ def model_from_reconstruction(rec: Any, path: str | Path = "reconstruction") -> 
 def refined_reconstruction(rec: Any, model: ColmapModel, colmap_params: Sequence[np.ndarray],
                            rig_from_world: Sequence[Pose], sensor_from_rig: Mapping[int, Pose],
                            xyz: np.ndarray) -> Any:
-    """A copy of ``rec`` (ids kept) with new camera parameters, frame poses, rig sensors and points."""
+    """Copy a reconstruction (ids kept) with new camera parameters, frame poses, rig sensors and points.
+
+    Args:
+        rec: the pycolmap.Reconstruction.
+        model: its arrays (:func:`model_from_reconstruction`).
+        colmap_params: each camera's new COLMAP parameters, in ``model.camera_ids`` order.
+        rig_from_world: each frame's new pose, in ``model.frame_ids`` order.
+        sensor_from_rig: camera id -> the new sensor_from_rig of a non-reference sensor.
+        xyz: the points' new positions (P, 3), in ``model.point3D_ids`` order.
+
+    Returns:
+        The new pycolmap.Reconstruction.
+    """
     out = pycolmap.Reconstruction(rec)
     for c, cid in enumerate(model.camera_ids):
         cam = out.camera(int(cid))
@@ -707,10 +764,17 @@ _GLOG_INFO = re.compile(rb"^I\d{8} ")  # a glog INFO line: I<yyyymmdd> <time> <t
 
 @contextlib.contextmanager
 def colmap_quiet(hold_stderr: bool = True) -> Iterator[None]:
-    """COLMAP's own INFO lines (glog) only when this module logs at INFO (the CLI's -v). Some of its calls
-    (the bundle adjustment's) print them whatever pycolmap.logging.minloglevel says: with ``hold_stderr``
-    the standard error written meanwhile is held and given back without them (warnings and errors kept;
-    not for a call that shows progress there)."""
+    """Show COLMAP's own INFO lines (glog) inside only when this module logs at INFO (the CLI's -v).
+
+    Some of its calls (the bundle adjustment's) print them whatever pycolmap.logging.minloglevel says.
+
+    Args:
+        hold_stderr: hold the standard error written meanwhile and give it back without them (warnings
+            and errors kept); not for a call that shows progress there.
+
+    Yields:
+        Nothing; COLMAP is quiet until the context closes.
+    """
     if log.isEnabledFor(logging.INFO):
         yield
         return
@@ -742,10 +806,18 @@ def colmap_quiet(hold_stderr: bool = True) -> Iterator[None]:
 
 
 def pinhole_approximation(rec: Any, opencv_params: Mapping[int, np.ndarray] | None = None) -> Any:
-    """COLMAP's own bundle adjustment of cameras (principal point included) and poses with the points
-    held: the best approximation, in COLMAP's camera models, of cameras whose 3D points are right.
-    ``opencv_params``: camera_id -> OPENCV parameters [fx fy cx cy k1 k2 p1 p2] (COLMAP pixels) to
-    turn those cameras into OPENCV cameras first (their distortion absorbs much of a flat port)."""
+    """Run COLMAP's own bundle adjustment of cameras (principal point included) and poses, the points held.
+
+    The result is the best approximation, in COLMAP's camera models, of cameras whose 3D points are right.
+
+    Args:
+        rec: the pycolmap.Reconstruction (not modified).
+        opencv_params: camera_id -> OPENCV parameters [fx fy cx cy k1 k2 p1 p2] (COLMAP pixels) to turn
+            those cameras into OPENCV cameras first; None for none.
+
+    Returns:
+        The adjusted copy.
+    """
     out = pycolmap.Reconstruction(rec)
     for cid, params in (opencv_params or {}).items():
         cam = out.camera(int(cid))
@@ -772,7 +844,15 @@ def bundle_adjust(rec: Any) -> Any:
 
 
 def image_residuals_px(rec: Any, model: ColmapModel | None = None) -> dict[int, float]:
-    """RMS reprojection error (px) per image under COLMAP's own cameras (``model``: its arrays, if read)."""
+    """Measure the RMS reprojection error per image under COLMAP's own cameras.
+
+    Args:
+        rec: the pycolmap.Reconstruction.
+        model: its arrays, if already read (:func:`model_from_reconstruction`).
+
+    Returns:
+        Image id -> RMS reprojection error (px), for images with observations.
+    """
     model = model_from_reconstruction(rec) if model is None else model
     X_cam = np.empty((len(model.obs_image), 3))
     for i, iid in enumerate(model.image_ids):
@@ -793,9 +873,26 @@ def reconstruction_from_arrays(params: Sequence[np.ndarray], image_size: tuple[i
                                sensor_from_rig: Sequence[Pose], rig_from_world: Sequence[Pose],
                                image_camera: np.ndarray, image_frame: np.ndarray, xyz: np.ndarray,
                                obs_image: np.ndarray, obs_point: np.ndarray, obs_uv: np.ndarray) -> Any:
-    """A pycolmap.Reconstruction of PINHOLE cameras ``params`` ([fx fy cx cy ...], OpenCV pixels), one rig
-    (camera 0 its reference sensor), one frame per ``rig_from_world``, image i = (image_camera[i],
-    image_frame[i]) with ids i + 1, points with ids k + 1 observed at ``obs_uv`` (OpenCV pixels)."""
+    """Build a pycolmap.Reconstruction of PINHOLE cameras from arrays.
+
+    One rig (camera 0 its reference sensor), one frame per ``rig_from_world``, image i = (image_camera[i],
+    image_frame[i]) with id i + 1, point k with id k + 1.
+
+    Args:
+        params: each camera's [fx fy cx cy ...], OpenCV pixels.
+        image_size: the image size (w, h) of every camera.
+        sensor_from_rig: each camera's pose in the rig (camera 0's unused).
+        rig_from_world: each frame's pose.
+        image_camera: each image's camera index (I,).
+        image_frame: each image's frame index (I,).
+        xyz: the points (P, 3).
+        obs_image: each observation's image index (M,).
+        obs_point: each observation's point index (M,).
+        obs_uv: each observation's pixel (M, 2), OpenCV pixels.
+
+    Returns:
+        The pycolmap.Reconstruction.
+    """
     rec = pycolmap.Reconstruction()
     for c, p in enumerate(params):
         cx, cy = colmap_from_opencv_px(np.asarray(p[2:4], float))
@@ -844,11 +941,30 @@ def structure_from_motion(image_dir: str | Path, work_dir: str | Path, focal_px:
                           max_features: int = 4000, seed: int = 0, matcher: str = "exhaustive",
                           overlap: int = 10, num_threads: int = -1, on_step: Any = None,
                           on_image: Any = None) -> Any:
-    """COLMAP's own SfM on a folder of images (CPU SIFT, exhaustive or sequential matching, incremental
-    mapping), one PINHOLE camera for all images (``focal_px``: its prior); the largest reconstruction.
-    ``matcher`` "sequential" pairs each image with its ``overlap`` successors in name order (no
-    vocabulary tree: for long surveys); ``num_threads`` -1: all cores; ``on_step(name)`` is called before
-    each step, ``on_image()`` when the mapper registers an image (progress)."""
+    """Run COLMAP's own SfM on a folder of images: CPU SIFT, matching, incremental mapping.
+
+    One PINHOLE camera for all images.
+
+    Args:
+        image_dir: the folder of images.
+        work_dir: the working folder (its database.db is replaced; the models go under sparse/).
+        focal_px: the camera's focal length prior (px), or None.
+        max_features: the most SIFT features per image.
+        seed: the mapper's random seed.
+        matcher: ``"exhaustive"``, or ``"sequential"``: each image paired with its ``overlap`` successors
+            in name order (no vocabulary tree: for long surveys).
+        overlap: the successors of the sequential matcher.
+        num_threads: the threads; -1: all cores.
+        on_step: ``on_step(name)`` is called before each step (progress), or None.
+        on_image: ``on_image()`` is called when the mapper registers an image (progress), or None.
+
+    Returns:
+        The largest reconstruction (a pycolmap.Reconstruction).
+
+    Raises:
+        ValueError: for an unknown ``matcher``.
+        AriSfmError: if an image cannot be read or the mapping reconstructs nothing.
+    """
     if matcher not in SFM_MATCHERS:
         raise ValueError(f"matcher must be one of {', '.join(SFM_MATCHERS)} (got {matcher!r})")
     with colmap_quiet(hold_stderr=False):  # its progress bar is on the standard error

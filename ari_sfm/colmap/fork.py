@@ -128,7 +128,20 @@ def colmap_camera_params(params: np.ndarray | Sequence[float]) -> tuple[str, lis
 
 
 def params_from_colmap(model: str, values: Sequence[float], where: Path, what: str) -> np.ndarray:
-    """``[fx fy cx cy k1 k2 p1 p2 k3]`` (OpenCV pixels) of a COLMAP in-air model's parameters."""
+    """Convert a COLMAP in-air model's parameters to ``[fx fy cx cy k1 k2 p1 p2 k3]`` (OpenCV pixels).
+
+    Args:
+        model: the COLMAP model's name (one of CAMERA_MODELS).
+        values: its parameters (COLMAP pixels).
+        where: the file named in an error.
+        what: what is named in an error ("line 3").
+
+    Returns:
+        The 9 parameters, OpenCV pixels.
+
+    Raises:
+        AriSfmError: for an unsupported model, or FULL_OPENCV with k4 k5 k6.
+    """
     v = list(values)
     if model == "SIMPLE_PINHOLE":
         f, cx, cy = v
@@ -158,7 +171,23 @@ def params_from_colmap(model: str, values: Sequence[float], where: Path, what: s
 
 def format_camera_line(camera_id: int, image_size: tuple[int, int], params: np.ndarray | Sequence[float],
                        normal_cam: np.ndarray, distance_mm: float, interface: Interface, units_mm: float) -> str:
-    """One cameras.txt line of the fork (``colmap_underwater`` form)."""
+    """Format one cameras.txt line of the fork (``colmap_underwater`` form).
+
+    Args:
+        camera_id: the COLMAP camera id.
+        image_size: the image size (w, h).
+        params: ``[fx fy cx cy k1 k2 p1 p2 k3]``, OpenCV pixels.
+        normal_cam: the window normal in the camera frame, from the camera into the scene.
+        distance_mm: the camera centre's distance to the window's near face (mm).
+        interface: the window's thickness and indices.
+        units_mm: the mm per length unit of the written model.
+
+    Returns:
+        The line, without a newline.
+
+    Raises:
+        AriSfmError: if the normal points away from the camera's view (Nz <= 0).
+    """
     model, values = colmap_camera_params(params)
     n = np.asarray(normal_cam, float) / np.linalg.norm(normal_cam)
     if not n[2] > 0.0:  # the fork's import (and ours) refuses Nz <= 0: never write one
@@ -171,7 +200,20 @@ def format_camera_line(camera_id: int, image_size: tuple[int, int], params: np.n
 
 
 def parse_camera_line(line: str, where: Path, line_no: int, units_mm: float) -> ForkCamera:
-    """A cameras.txt line of the fork (AriSfmError naming the file and line otherwise)."""
+    """Parse a cameras.txt line of the fork.
+
+    Args:
+        line: the line.
+        where: the file named in an error.
+        line_no: the line's number, named in an error.
+        units_mm: the mm per length unit of the model.
+
+    Returns:
+        The camera, in ari-sfm's terms (mm, OpenCV pixels).
+
+    Raises:
+        AriSfmError: naming the file and line, when the line is not a supported FLATPORT camera.
+    """
     what = f"line {line_no}"
     items = line.split()
     try:
@@ -324,16 +366,30 @@ def export_colmap_fork(calibration: Calibration | str | Path, out_dir: str | Pat
                        units_mm: float = DEFAULT_UNITS_MM, refined_model: str | Path | None = None,
                        dataset: Dataset | str | Path | None = None,
                        calibration_path: str | Path | None = None) -> ForkExport:
-    """Write ``calibration`` (an exact-Snell model) as the fork's text model in ``out_dir``:
-    cameras.txt (FLATPORT), images.txt, points3D.txt (lengths in units of ``units_mm`` mm, within
-    UNITS_MM_RANGE), written together: all three or none.
+    """Write an exact-Snell calibration as the fork's text model.
 
-    Images and points: ``refined_model`` (a refine-colmap output folder: its COLMAP model beside the
-    calibration) gives every image at its real pose and the refined points; else ``observations`` (or
-    ``dataset``'s, a dataset of the calibration's rig) give one image per camera and calibration frame
-    with the target corners (observations that are not the calibration's: AriSfmError); else one image
-    per camera (its pose), with a warning. ``calibration_path``: the file named in errors when
-    ``calibration`` is a record."""
+    cameras.txt (FLATPORT), images.txt and points3D.txt are written together: all three or none.
+    Images and points come from ``refined_model`` if given, else from ``observations`` (or ``dataset``'s),
+    else one image per camera (its pose) is written, with a warning.
+
+    Args:
+        calibration: the calibration (model exact), or its calibration.json path.
+        out_dir: the output folder.
+        observations: the calibration's observations: one image per camera and calibration frame with the
+            target corners.
+        units_mm: the mm per length unit of the written model (within UNITS_MM_RANGE).
+        refined_model: a refine-colmap output folder (its COLMAP model beside the calibration): every image
+            at its real pose and the refined points.
+        dataset: a dataset of the calibration's rig (or its path), whose observations are used.
+        calibration_path: the file named in errors when ``calibration`` is a record.
+
+    Returns:
+        What was written: the files and the numbers of cameras, images and points.
+
+    Raises:
+        AriSfmError: for a calibration that is not exact, a bad ``units_mm``, or observations that are not
+            the calibration's.
+    """
     from ..io import write_files_atomic
     from ..provenance import observations_mismatch
 
@@ -409,7 +465,18 @@ def export_colmap_fork(calibration: Calibration | str | Path, out_dir: str | Pat
 
 
 def read_fork_cameras(path: Path, units_mm: float) -> list[ForkCamera]:
-    """Every camera of the fork's cameras.txt."""
+    """Read every camera of the fork's cameras.txt.
+
+    Args:
+        path: the cameras.txt.
+        units_mm: the mm per length unit of the model.
+
+    Returns:
+        The cameras, in the file's order.
+
+    Raises:
+        AriSfmError: if the file is missing, holds no camera, a bad line or a CAMERA_ID twice.
+    """
     if not path.is_file():
         raise AriSfmError(path, "no such file (a COLMAP text model folder holds cameras.txt, images.txt, points3D.txt)")
     cameras = []
@@ -425,7 +492,18 @@ def read_fork_cameras(path: Path, units_mm: float) -> list[ForkCamera]:
 
 
 def read_fork_images(path: Path, units_mm: float) -> list[ForkImage]:
-    """The images of images.txt (pose and camera; first line of each pair); [] without the file."""
+    """Read the images of images.txt (pose and camera: the first line of each pair).
+
+    Args:
+        path: the images.txt.
+        units_mm: the mm per length unit of the model.
+
+    Returns:
+        The images; [] without the file.
+
+    Raises:
+        AriSfmError: for a malformed line or a non-finite pose.
+    """
     if not path.is_file():
         return []
     rows = [ln.strip() for ln in path.read_text(errors="replace").splitlines()]
@@ -482,7 +560,19 @@ def _camera_name(camera: ForkCamera, images: list[ForkImage]) -> str:
 
 
 def import_colmap_fork(model_dir: str | Path, units_mm: float = DEFAULT_UNITS_MM) -> Calibration:
-    """The calibration (model exact) of a fork's text model: its FLATPORT cameras and their poses."""
+    """Import a fork's text model as a calibration (model exact): its FLATPORT cameras and their poses.
+
+    Args:
+        model_dir: the COLMAP text model folder (cameras.txt, images.txt).
+        units_mm: the mm per length unit of the model (1000: metres).
+
+    Returns:
+        The calibration, in the first camera's frame.
+
+    Raises:
+        AriSfmError: for a missing folder or file, a bad line, a rig whose cameras move or lack images,
+            differing water indices, or values beyond calibration.json's bounds (a wrong ``units_mm``).
+    """
     model_dir = Path(model_dir)
     units_mm = check_units_mm(units_mm)
     if not model_dir.is_dir():

@@ -1,7 +1,10 @@
-"""The exact stage's start: each window's distance in front of its cameras (searched by the exact cost
-under water) and, for a window nothing observes, its normal from a coarse search (the search grids and
-intervals: :mod:`ari_sfm.init.window_start`); the check that every window lies between its cameras and
-their corners."""
+"""The exact stage's start: each window's distance and, where nothing observes it, its normal.
+
+Each window's distance in front of its cameras is searched by the exact cost under water; a window
+nothing observes gets its normal from a coarse search (the search grids and intervals:
+:mod:`ari_sfm.init.window_start`). Also the check that every window lies between its cameras and
+their corners.
+"""
 from __future__ import annotations
 
 import logging
@@ -30,12 +33,26 @@ def _observations(dataset: Dataset) -> tuple[Observation, ...]:
 
 
 def window_cameras(dataset: Dataset, window: int) -> tuple[str, ...] | None:
-    """The cameras behind window ``window`` (None: every camera, when the rig has one window)."""
+    """Give the cameras behind a window.
+
+    Args:
+        dataset: the dataset.
+        window: the window's index in the dataset's window order.
+
+    Returns:
+        The camera names, or None (every camera) when the rig has one window.
+    """
     return dataset.window_list()[window].cameras if dataset.windows else None
 
 
 def hold_normal(rg, normal: np.ndarray, window: int = 0) -> None:
-    """Hold a window's normal (default the only one) at ``normal`` (a prior of 1e-7 rad)."""
+    """Hold a window's normal with a prior of 1e-7 rad.
+
+    Args:
+        rg: the rig's graph (:class:`~ari_sfm.factors.rig_graph.RigGraph`); the prior is added to it.
+        normal: the normal to hold (3,), world frame.
+        window: the window's index (default the only one).
+    """
     import gtsam
 
     from ..factors import keys as K_
@@ -45,17 +62,42 @@ def hold_normal(rg, normal: np.ndarray, window: int = 0) -> None:
 
 
 def hold_normals(rg, state, windows: Sequence[int]) -> None:
-    """Hold the normals of ``windows`` where ``state`` has them."""
+    """Hold the normals of some windows where the state has them (see :func:`hold_normal`).
+
+    Args:
+        rg: the rig's graph (:class:`~ari_sfm.factors.rig_graph.RigGraph`); the priors are added to it.
+        state: the rig's state, giving each window's normal.
+        windows: the windows' indices.
+    """
     for w in windows:
         hold_normal(rg, state.normal(w), w)
 
 
 def exact_start(dataset: Dataset, state, underwater: bool, planes: Sequence, unobserved: Sequence[int], build, solve,
                 huber_px: float | None):
-    """The exact stage's start from the ari result, window by window: a distance in front of its cameras (in
-    air any will do); under water a distance searched inside the valid interval (the ari stage's can be far
-    off); a window without stacking or declared plane (``unobserved``) its normal from a coarse search scored
-    by the exact cost (the other windows held where they are)."""
+    """Give the exact stage's start from the ari result, window by window.
+
+    In air each window gets a distance in front of its cameras (any will do); under water a distance
+    searched inside the valid interval (the ari stage's can be far off). A window without stacking or
+    declared plane (``unobserved``) gets its normal from a coarse search scored by the exact cost (the
+    other windows held where they are).
+
+    Args:
+        dataset: the dataset (its observations loaded).
+        state: the rig's state after the ari stage.
+        underwater: whether the window distance is estimated (a medium other than air).
+        planes: per window, its declared plane for this stage, or None.
+        unobserved: the indices of the windows whose normal nothing observes.
+        build: ``build(model, state, with_plane=..., observations=...)`` -> the stage's rig graph.
+        solve: ``solve(rig_graph, model, max_iterations)`` -> (state, solved problem or None).
+        huber_px: the Huber threshold (px), or None.
+
+    Returns:
+        The state to start the exact stage from.
+
+    Raises:
+        AriSfmError: if no window distance puts every camera in front of a window and every corner beyond it.
+    """
     from ..factors.rig_graph import default_distance_mm
 
     def build_free(stage: str, st, observations=None):  # the searches below run only without a declared plane
@@ -192,8 +234,15 @@ def _searched_distance(dataset: Dataset, state, build, huber_px: float | None, s
 
 
 def check_in_front(dataset: Dataset, state) -> None:
-    """One-line error naming camera and frame when a window at the exact stage's start does not
-    lie between its cameras and every corner they see."""
+    """Check that every window at the exact stage's start lies between its cameras and every corner they see.
+
+    Args:
+        dataset: the dataset (its observations loaded).
+        state: the rig's state at the exact stage's start.
+
+    Raises:
+        AriSfmError: a one-line error naming the camera and frame, when a window is not in between.
+    """
     for w, window in enumerate(dataset.window_list()):
         bad = not_beyond(state, _observations(dataset), dataset.target, window.interface.thickness_mm, w,
                          window_cameras(dataset, w))

@@ -107,7 +107,15 @@ def trajectories(observations: Sequence[Observation]) -> dict[tuple[str, int], n
 
 
 def fit_lines(observations: Sequence[Observation], min_length_px: float = 1e-3) -> TrajectoryLines:
-    """One TLS line per corner trajectory with at least two thicknesses and a visible motion."""
+    """Fit one TLS line per corner trajectory with at least two thicknesses and a visible motion.
+
+    Args:
+        observations: one camera's stacking records.
+        min_length_px: the least spread of a trajectory along its line (px) for it to be kept.
+
+    Returns:
+        The lines, one row per kept trajectory.
+    """
     names, pixels, start = _tracks(observations)
     centroid, direction, spread, rms, count = _track_lines(pixels, start)
     normal = np.stack([-direction[:, 1], direction[:, 0]], axis=1).reshape(-1, 2)
@@ -118,12 +126,23 @@ def fit_lines(observations: Sequence[Observation], min_length_px: float = 1e-3) 
 
 
 def intersect_lines(lines: TrajectoryLines, reject_sigma: float = 3.0, max_rounds: int = 10) -> ExpansionCenter:
-    """Weighted least-squares common point of the lines with outlier rejection.
+    """Find the weighted least-squares common point of the lines, with outlier rejection.
 
     A line's perpendicular error at the centre grows with the centre's distance D
     from the trajectory's centroid: var ~ s^2 (1/k + D^2 / spread). The weights
-    use it (iterated, since D depends on the centre); lines beyond reject_sigma
+    use it (iterated, since D depends on the centre); lines beyond ``reject_sigma``
     robust standard deviations are dropped and the fit repeated.
+
+    Args:
+        lines: the trajectories' lines.
+        reject_sigma: the rejection threshold, in robust standard deviations.
+        max_rounds: the most rejection rounds.
+
+    Returns:
+        The expansion centre (px), its standard error and the inlier lines.
+
+    Raises:
+        ValueError: with fewer than 2 lines, or when the lines are (nearly) parallel.
     """
     if len(lines) < 2:
         raise ValueError(f"need at least 2 corner trajectories for the expansion centre, got {len(lines)}")
@@ -171,10 +190,16 @@ def expansion_center(observations: Sequence[Observation]) -> ExpansionCenter:
 
 
 def normal_from_expansion_center(center_px: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """The window normal in the camera frame from the expansion centre (paper Eq. 5).
+    """Give the window normal in the camera frame from the expansion centre (paper Eq. 5).
 
     Eq. 5 is n ~ K^-1 [u_s, v_s, 1]^T normalised, written out for a skew-free K.
-    The normal points from the camera into the scene (n_z > 0).
+
+    Args:
+        center_px: the expansion centre (2,), px.
+        K: the 3x3 intrinsic matrix (no skew).
+
+    Returns:
+        The unit normal (3,), camera frame, pointing from the camera into the scene (n_z > 0).
     """
     fu, fv, u0, v0 = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     du, dv = center_px[0] - u0, center_px[1] - v0

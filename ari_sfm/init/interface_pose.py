@@ -16,15 +16,31 @@ from ..geometry import Pose
 
 
 def real_cam_from_target(generalised: Pose, normal_cam: np.ndarray, shift_mm: float) -> Pose:
-    """The physical cam_from_target given the generalised (virtual-pinhole) one."""
+    """Give the physical cam_from_target from the generalised (virtual-pinhole) one (paper Eq. 12).
+
+    Args:
+        generalised: the virtual pinhole's cam_from_target.
+        normal_cam: the window normal in the camera frame (3,).
+        shift_mm: delta = d (1 - 1/n), how much farther along the normal the real target sits (mm).
+
+    Returns:
+        The physical cam_from_target (rotation unchanged).
+    """
     return Pose(generalised.R, generalised.t + shift_mm * np.asarray(normal_cam, float))
 
 
 def solve_eq12(A: np.ndarray, B: np.ndarray) -> Pose:
     """Solve B = A [R t; 0 1] for (R, t) by linear least squares (the paper's Eq. 12 system).
 
-    A and B are 3x4. Kept as the literal form of the paper's step; it equals
-    :func:`real_cam_from_target` when A = [R_IC | R_IC t_R].
+    The literal form of the paper's step; it equals :func:`real_cam_from_target` when
+    A = [R_IC | R_IC t_R].
+
+    Args:
+        A: the 3x4 matrix R_IC X_R.
+        B: the 3x4 generalised extrinsics.
+
+    Returns:
+        The pose (R, t).
     """
     M = np.zeros((12, 12))
     rhs = np.zeros(12)

@@ -18,13 +18,13 @@ _cv2_saved = 1  # the caller's cv2.getNumThreads() when the first one opened
 def one_cv2_thread() -> Iterator[None]:
     """Run OpenCV on one thread inside, restoring the caller's thread count after.
 
-    cv2.calibrateCamera and cv2.solvePnP split work over threads, and their
-    results then differ at 1e-15..1e-9 from process to process, enough to
-    change how many steps the exact stage of calibrate() takes. On one thread
-    the initialisation, hence calibrate(), is bit-identical across runs. The
+    On one thread the initialisation, hence calibrate(), is bit-identical across runs. The
     setting is process-wide: nested and concurrent contexts share it, and the
     last to close restores it (detection, outside any context, keeps its threads).
     Usable as a decorator: ``@one_cv2_thread()``.
+
+    Yields:
+        Nothing; OpenCV runs on one thread until the context closes.
     """
     global _cv2_depth, _cv2_saved
     with _cv2_lock:

@@ -70,11 +70,23 @@ def _shift(thickness_mm: float, index: float) -> float:
 
 def initialise_camera(dataset: Dataset, name: str, distortion: bool = False,
                       fix_intrinsics: bool = False, threads: int = 1, centred: bool = False) -> CameraInit:
-    """Expansion centre, K, normal and real target poses of one camera; ``fix_intrinsics``: the
-    hints the calibration will hold (:func:`~.zhang.held_intrinsics`) are held here too, so the
-    poses are those of the held K (a shallow body's single view lets K run far from it);
-    ``threads``: its per-view OpenCV calls on up to this many threads (the same result); ``centred``: its
-    principal point held at the image centre (the poses solved with it there)."""
+    """Initialise one camera: its expansion centre, K, window normal and real target poses.
+
+    Args:
+        dataset: the dataset (its observations loaded).
+        name: the camera's name.
+        distortion: estimate the lens distortion (k1 k2 p1 p2 k3).
+        fix_intrinsics: hold here too the hints the calibration will hold (:func:`~.zhang.held_intrinsics`),
+            so the poses are those of the held K.
+        threads: run the per-view OpenCV calls on up to this many threads (the same result).
+        centred: hold the principal point at the image centre (the poses solved with it there).
+
+    Returns:
+        The camera's analytic estimate (the normal None without stacking).
+
+    Raises:
+        AriSfmError: with too few calibration views, or when the start or the expansion centre fails.
+    """
     views = [o for o in dataset.select("calibration", name) if len(o.ids) >= 6]
     need = MIN_VIEWS if dataset.target.is_planar() else MIN_VIEWS_3D
     if len(views) < need:
@@ -113,10 +125,21 @@ def initialise_camera(dataset: Dataset, name: str, distortion: bool = False,
 
 def join_rig(names: Sequence[str], cam_from_target: dict[str, dict[str, Pose]],
              path: str | Path | None = None) -> tuple[dict[str, Pose], dict[str, Pose]]:
-    """cam_from_world of every camera (world = camera 0) and world_from_target of every frame.
+    """Join the cameras into a rig: every camera's cam_from_world and every frame's world_from_target.
 
     Relative poses are chordal means over shared frames along a breadth-first
     tree from camera 0; a frame's pose is the mean over the cameras that see it.
+
+    Args:
+        names: the camera names, camera 0 (the world) first.
+        cam_from_target: camera -> frame -> its cam_from_target.
+        path: the file named in the error.
+
+    Returns:
+        cam_from_world of every camera (world = camera 0) and world_from_target of every frame.
+
+    Raises:
+        AriSfmError: if a camera shares no frame with camera 0 or its neighbours.
     """
     cam_from_world = {names[0]: Pose.identity()}
     queue = deque([names[0]])
@@ -168,11 +191,23 @@ def _initialise_cameras(dataset: Dataset, names: list[str], distortion: bool, wo
 @one_cv2_thread()  # bit-identical across processes
 def initialise_rig(dataset: Dataset, distortion: bool = False, workers: int | None = None,
                    fix_intrinsics: bool = False, centred: frozenset[str] = frozenset()) -> RigInit:
-    """Initialise every camera (concurrently, on up to ``workers`` threads, default one per
-    camera up to os.cpu_count()), then chain relative poses from camera 0 over shared frames.
+    """Initialise every camera concurrently, then chain relative poses from camera 0 over shared frames.
 
     OpenCV runs on one thread per worker meanwhile (see :func:`ari_sfm.init.opencv_threads.one_cv2_thread`);
     the result does not depend on ``workers``.
+
+    Args:
+        dataset: the dataset (its observations loaded).
+        distortion: estimate the lens distortion (k1 k2 p1 p2 k3).
+        workers: the most threads (default one per camera, up to os.cpu_count()).
+        fix_intrinsics: hold the intrinsics hints the calibration will hold.
+        centred: the cameras whose principal point is held at the image centre.
+
+    Returns:
+        The whole rig in the world frame (camera 0's frame).
+
+    Raises:
+        AriSfmError: if a camera cannot be initialised or the rig cannot be joined.
     """
     names = dataset.camera_names
     cams = _initialise_cameras(dataset, names, distortion, workers, fix_intrinsics, centred)

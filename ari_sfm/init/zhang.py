@@ -35,7 +35,18 @@ log = logging.getLogger(__name__)
 
 
 def object_points(target: Target, ids: np.ndarray) -> np.ndarray:
-    """Target-frame coordinates (N, 3) of corner ids."""
+    """Give the target-frame coordinates of corner ids.
+
+    Args:
+        target: the calibration target.
+        ids: the corner ids (N,).
+
+    Returns:
+        The coordinates (N, 3), target frame, mm.
+
+    Raises:
+        KeyError: naming the first id the target does not have.
+    """
     all_ids, xyz = target.points_3d_readonly  # ids ascending; built once per target
     ids = np.asarray(ids, dtype=np.int64).reshape(-1)
     n = len(all_ids)
@@ -61,8 +72,14 @@ def initial_K(spec: CameraSpec) -> np.ndarray:
 
 
 def held_intrinsics(spec: CameraSpec) -> str | None:
-    """What ``--fix-intrinsics`` holds of a camera: "K" (a K hint, with its dist), "focal" (a
-    focal_px hint: fx = fy), None (no hint)."""
+    """Tell what ``--fix-intrinsics`` holds of a camera.
+
+    Args:
+        spec: the camera's declaration (its hints).
+
+    Returns:
+        "K" (a K hint, with its dist), "focal" (a focal_px hint: fx = fy), or None (no hint).
+    """
     if spec.K is not None:
         return "K"
     return "focal" if spec.focal_px is not None else None
@@ -119,20 +136,29 @@ def calibrate_zhang(
     target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False,
     hold: str | None = None, threads: int = 1, also: Sequence[Observation] = (),
 ) -> ZhangResult:
-    """The closed-form start of a camera from planar (or, with a K hint, any) views: K from the
-    homographies (:func:`_closed_form_K`, Zhang's closed form), no distortion, each view's generalised
-    pose by PnP (IPPE for a planar target, iterative otherwise). ``hold`` ("K", "focal": see
-    :func:`held_intrinsics`) starts from the hint exactly as calibrate will hold it: a K hint with its
-    distortion, a focal hint with the principal point at the image centre (a K fitted to refracted
-    views and then replaced by the held hint would leave poses solved with the wrong K).
+    """Give the closed-form start of a camera from planar (or, with a K hint, any) views.
 
-    No iterative calibration (cv2.calibrateCamera) runs here: the bundle adjustment that follows
-    refines K, distortion and poses anyway, so a second Levenberg-Marquardt on the same views
-    would only repeat its work (``distortion`` is kept for the signature: the start has none).
-    ``threads``: the per-view OpenCV calls on up to this many threads
-    (:func:`~ari_sfm.helper_thread.shared_map`; the same result). ``also``: more views posed with that
-    K by :func:`solve_pnp` among the others' calls (a camera's stacking poses), in ``ZhangResult.also``;
-    not part of K or the RMS.
+    K comes from the homographies (Zhang's closed form), with no distortion; each view's generalised
+    pose by PnP (IPPE for a planar target, iterative otherwise). No iterative calibration
+    (cv2.calibrateCamera) runs here: the bundle adjustment that follows refines K, distortion and poses.
+
+    Args:
+        target: the calibration target.
+        spec: the camera's declaration (image size, hints).
+        views: the camera's calibration views.
+        distortion: unused (the start has no distortion); kept for the signature.
+        hold: "K" or "focal" (see :func:`held_intrinsics`): start from the hint exactly as calibrate will
+            hold it (a K hint with its distortion, a focal hint with the principal point at the image centre).
+        threads: run the per-view OpenCV calls on up to this many threads
+            (:func:`~ari_sfm.helper_thread.shared_map`; the same result).
+        also: more views posed with that K by :func:`solve_pnp` (a camera's stacking poses), returned in
+            ``ZhangResult.also``; not part of K or the RMS.
+
+    Returns:
+        K, the distortion, every view's generalised cam_from_target and the reprojection RMS (px).
+
+    Raises:
+        ValueError: if PnP fails for a view.
     """
     obj = [object_points(target, v.ids).astype(np.float64) for v in views]
     img = [v.pixels.astype(np.float64).reshape(-1, 2) for v in views]
@@ -161,7 +187,15 @@ def calibrate_zhang(
 
 
 def dlt_projection(X: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """The 3x4 projection matrix of one view by the normalised DLT (needs >= 6 non-coplanar points)."""
+    """Estimate the 3x4 projection matrix of one view by the normalised DLT.
+
+    Args:
+        X: the 3D points (N, 3), N >= 6, not coplanar.
+        uv: their pixels (N, 2).
+
+    Returns:
+        The 3x4 projection matrix (up to scale).
+    """
     def normaliser(p: np.ndarray) -> np.ndarray:
         c, s = p.mean(axis=0), np.sqrt(p.shape[1]) / np.mean(np.linalg.norm(p - p.mean(axis=0), axis=1))
         T = np.eye(p.shape[1] + 1)
@@ -224,12 +258,30 @@ def calibrate_dlt(
     target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False,
     hold: str | None = None, threads: int = 1, also: Sequence[Observation] = (), centred: bool = False,
 ) -> ZhangResult:
-    """K and generalised extrinsics from a 3D target (several planes; one view is enough):
-    K from the hint when the dataset gives one (``K`` as given, ``focal_px`` with the
-    principal point at the image centre), else DLT per view (median over views); then each
-    view's pose by PnP with that K (the bundle adjustment refines both). A body too shallow for DLT
-    starts with the principal point at the image centre and the focal length from a resection over it
-    (:func:`focal_by_resection`); ``centred``: the principal point held there in any case."""
+    """Give K and the generalised extrinsics from a 3D target (several planes; one view is enough).
+
+    K comes from the hint when the dataset gives one (``K`` as given, ``focal_px`` with the principal
+    point at the image centre), else from DLT per view (median over views); then each view's pose by
+    PnP with that K (the bundle adjustment refines both). A body too shallow for DLT starts with the
+    principal point at the image centre and the focal length from a resection over it
+    (:func:`focal_by_resection`).
+
+    Args:
+        target: the 3D calibration target.
+        spec: the camera's declaration (image size, hints).
+        views: the camera's calibration views.
+        distortion: unused (the start has no distortion); kept for the signature.
+        hold: see :func:`calibrate_zhang`.
+        threads: see :func:`calibrate_zhang`.
+        also: see :func:`calibrate_zhang`.
+        centred: hold the principal point at the image centre in any case.
+
+    Returns:
+        K, the distortion, every view's generalised cam_from_target and the reprojection RMS (px).
+
+    Raises:
+        ValueError: if the views do not determine the focal length (a focal_px hint is needed) or PnP fails.
+    """
     K0 = _hinted_K(spec)
     if K0 is None:
         try:
@@ -254,8 +306,24 @@ def calibrate_dlt(
 def calibrate_views(target: Target, spec: CameraSpec, views: Sequence[Observation], distortion: bool = False,
                     hold: str | None = None, threads: int = 1, also: Sequence[Observation] = (),
                     centred: bool = False) -> ZhangResult:
-    """Zhang's method for planar targets, DLT/PnP for 3D ones; ``hold``, ``threads``, ``also``: see
-    :func:`calibrate_zhang`; ``centred`` (3D bodies): see :func:`calibrate_dlt`."""
+    """Start a camera: Zhang's method for planar targets, DLT/PnP for 3D ones.
+
+    Args:
+        target: the calibration target.
+        spec: the camera's declaration (image size, hints).
+        views: the camera's calibration views.
+        distortion: unused (the start has no distortion); kept for the signature.
+        hold: see :func:`calibrate_zhang`.
+        threads: see :func:`calibrate_zhang`.
+        also: see :func:`calibrate_zhang`.
+        centred: (3D bodies) see :func:`calibrate_dlt`.
+
+    Returns:
+        K, the distortion, every view's generalised cam_from_target and the reprojection RMS (px).
+
+    Raises:
+        ValueError: if the start fails (see :func:`calibrate_zhang`, :func:`calibrate_dlt`).
+    """
     if target.is_planar():
         return calibrate_zhang(target, spec, views, distortion, hold, threads, also)
     return calibrate_dlt(target, spec, views, distortion, hold, threads, also, centred)
@@ -268,11 +336,24 @@ FOCAL_DETERMINED = 0.2  # a focal length that fits as well 20 % off (within the 
 
 @one_cv2_thread()
 def focal_by_resection(target: Target, spec: CameraSpec, views: Sequence[Observation]) -> float:
-    """The focal length (px) of a camera whose principal point is at the image centre, from its views of a
-    3D body: each candidate's PnP pose (square pixels, no distortion), the sum of the views' squared
-    reprojection errors minimised over log-spaced candidates, then by a bounded 1-D search around the best.
-    ValueError (asking for focal_px) when the minimum lies at the end of the range: the views do not
-    determine it."""
+    """Find the focal length of a camera whose principal point is at the image centre, from views of a 3D body.
+
+    Each candidate focal length gets each view's PnP pose (square pixels, no distortion); the sum of the
+    views' squared reprojection errors is minimised over log-spaced candidates, then by a bounded 1-D
+    search around the best.
+
+    Args:
+        target: the 3D calibration target.
+        spec: the camera's declaration (its image size).
+        views: the camera's calibration views.
+
+    Returns:
+        The focal length (px).
+
+    Raises:
+        ValueError: asking for focal_px when the views do not determine it (the minimum at the end of the
+            range, or a focal length 20 % off fits as well).
+    """
     from scipy.optimize import minimize_scalar
 
     w, h = spec.image_size
@@ -322,7 +403,20 @@ def focal_by_resection(target: Target, spec: CameraSpec, views: Sequence[Observa
 
 @one_cv2_thread()
 def solve_pnp(target: Target, K: np.ndarray, dist: np.ndarray, view: Observation) -> Pose:
-    """The generalised cam_from_target of one view with known K (iterative PnP)."""
+    """Give the generalised cam_from_target of one view with known K (iterative PnP).
+
+    Args:
+        target: the calibration target.
+        K: the 3x3 intrinsic matrix.
+        dist: the distortion coefficients (OpenCV order).
+        view: the view.
+
+    Returns:
+        The generalised (virtual-pinhole) cam_from_target.
+
+    Raises:
+        ValueError: if PnP fails.
+    """
     return _pnp_pose(object_points(target, view.ids), view.pixels.astype(np.float64), K, dist,
                      cv2.SOLVEPNP_ITERATIVE, view.frame)
 

@@ -328,12 +328,20 @@ class ReconstructionMetrics:
 
 
 def fit_plane(xyz: np.ndarray, threshold_mm: float = PLANE_THRESHOLD_MM) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Plane of points (N >= 3, 3): Open3D RANSAC, then least squares (SVD) on its inliers.
+    """Fit a plane to points: Open3D RANSAC, then least squares (SVD) on its inliers.
 
-    Returns the unit normal (3,), a point on the plane (the inliers' centroid)
-    and the inlier mask (N,). If RANSAC keeps fewer than half the points (a
-    plane much less flat than the threshold), all points are used and a
-    warning is logged.
+    If RANSAC keeps fewer than half the points (a plane much less flat than the threshold), all points
+    are used and a warning is logged.
+
+    Args:
+        xyz: the points (N, 3), N >= 3, mm.
+        threshold_mm: RANSAC's inlier distance (mm).
+
+    Returns:
+        The unit normal (3,), a point on the plane (the inliers' centroid) and the inlier mask (N,).
+
+    Raises:
+        ValueError: with fewer than 3 points.
     """
     o3d = require_open3d()
     xyz = np.asarray(xyz, dtype=float)
@@ -428,7 +436,16 @@ def _stage_metrics(points: Points, planes: dict[str, dict[str, Any] | None]
 
 
 def inter_corner_distances(ids: np.ndarray, xyz: np.ndarray, cols: int) -> np.ndarray:
-    """Distances (M,) of horizontally (c, c+1) and vertically (r, r+1) adjacent corners present in ``ids``."""
+    """Measure the distances of adjacent grid corners.
+
+    Args:
+        ids: the corner ids (N,), ``r cols + c`` on the grid.
+        xyz: their points (N, 3), mm.
+        cols: the grid's columns.
+
+    Returns:
+        The distances (M,) of horizontally (c, c+1) and vertically (r, r+1) adjacent corners present in ``ids``.
+    """
     ids = np.asarray(ids, dtype=int)
     index = {int(i): k for k, i in enumerate(ids)}
     pairs = []
@@ -456,8 +473,17 @@ def _truth_points(truth: Mapping[str, Any] | str | Path) -> tuple[dict[str, Any]
 
 
 def check_truth(truth: Mapping[str, Any] | str | Path) -> tuple[Mapping[str, Any], str]:
-    """A truth's ``reconstruction_points_world`` mapping and its name; AriSfmError if the file is
-    missing, malformed or not a simulator truth.json (``run`` calls this before calibrating)."""
+    """Read and check a simulator's truth (``run`` calls this before calibrating).
+
+    Args:
+        truth: a truth.json path, or its loaded mapping.
+
+    Returns:
+        The truth's ``reconstruction_points_world`` mapping, and its name for messages.
+
+    Raises:
+        AriSfmError: if the file is missing, malformed or not a simulator truth.json.
+    """
     data, where = _truth_points(truth)
     recon = data.get("reconstruction_points_world") if isinstance(data, Mapping) else None
     if not isinstance(recon, Mapping):
@@ -466,7 +492,18 @@ def check_truth(truth: Mapping[str, Any] | str | Path) -> tuple[Mapping[str, Any
 
 
 def truth_errors(points: Points, truth: Mapping[str, Any] | str | Path) -> TruthErrors:
-    """3D errors against a truth's ``reconstruction_points_world``, unaligned and after rigid alignment."""
+    """Measure the 3D errors against a truth's ``reconstruction_points_world``, unaligned and after rigid alignment.
+
+    Args:
+        points: the reconstructed points.
+        truth: a truth.json path, or its loaded mapping.
+
+    Returns:
+        The errors, as is and after the best rigid alignment (no scale).
+
+    Raises:
+        AriSfmError: if the truth is not a valid truth or lacks a frame or corner of the points.
+    """
     recon, where = check_truth(truth)
     est, ref = [], []
     for name, fp in points.frames.items():
@@ -496,7 +533,15 @@ def truth_errors(points: Points, truth: Mapping[str, Any] | str | Path) -> Truth
 
 
 def rigid_alignment(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """R, t minimising sum |R a + t - b|^2 (Kabsch, no scale; proper rotation)."""
+    """Find R, t minimising sum |R a + t - b|^2 (Kabsch, no scale; a proper rotation).
+
+    Args:
+        A: the points to move (N, 3).
+        B: their targets (N, 3).
+
+    Returns:
+        R (3, 3) and t (3,).
+    """
     ca, cb = A.mean(axis=0), B.mean(axis=0)
     U, _, Vt = np.linalg.svd((A - ca).T @ (B - cb))
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
@@ -509,7 +554,20 @@ def rigid_alignment(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 def reconstruction_metrics(points: Points, target: Target, truth: Mapping[str, Any] | str | Path | None = None,
                            plane_threshold_mm: float = PLANE_THRESHOLD_MM) -> ReconstructionMetrics:
-    """All the metrics of the module docstring (``to_json()``: metrics.json's body)."""
+    """Measure all the metrics of the module docstring.
+
+    Args:
+        points: the reconstructed points.
+        target: the target (its grid and pitch for the corner spacing).
+        truth: a simulator's truth (a truth.json path or its mapping) for the truth errors; None for none.
+        plane_threshold_mm: RANSAC's inlier distance of each frame's plane (mm).
+
+    Returns:
+        The metrics (``to_json()``: metrics.json's body).
+
+    Raises:
+        AriSfmError: with no reconstructed frame, or a truth that does not match.
+    """
     if not points.frames:
         raise AriSfmError(None, "no reconstructed frames to measure")
     truth_part = truth_errors(points, truth) if truth is not None else None  # checks the truth first
@@ -551,9 +609,19 @@ def reconstruction_metrics(points: Points, target: Target, truth: Mapping[str, A
 
 
 def save_point_clouds(points: Points, out_dir: str | Path) -> dict[str, Path]:
-    """Write ``<frame>.ply`` per frame and ``all.ply`` (coloured by frame) into ``out_dir``; returns the paths.
+    """Write ``<frame>.ply`` per frame and ``all.ply`` (coloured by frame) into a folder.
 
     Each file is written under a temporary name and renamed (atomic).
+
+    Args:
+        points: the reconstructed points.
+        out_dir: the folder (created if missing).
+
+    Returns:
+        Frame name (and ``all``) -> the file written.
+
+    Raises:
+        AriSfmError: if Open3D could not write a cloud.
     """
     o3d = require_open3d()
     out = Path(out_dir)

@@ -37,8 +37,13 @@ class Points:
         return sum(len(f) for f in self.frames.values())
 
     def save(self, path: str | Path, calibration_name: str, provenance: dict | None = None) -> None:
-        """Write ``points.json`` atomically (validated first; a bad frame writes nothing); ``provenance``:
-        which calibration and dataset made the points (:mod:`ari_sfm.provenance`)."""
+        """Write ``points.json`` atomically (validated first; a bad frame writes nothing).
+
+        Args:
+            path: the file to write.
+            calibration_name: the calibration file named in points.json.
+            provenance: which calibration and dataset made the points (:mod:`ari_sfm.provenance`), or None.
+        """
         from ..io import save_points
 
         save_points(path, {name: {"stage_mm": f.stage_mm, "ids": f.ids, "xyz": f.xyz, "ray_gap_mm": f.ray_gap_mm}

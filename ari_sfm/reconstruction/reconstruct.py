@@ -36,6 +36,14 @@ def check_rig(dataset: Dataset, calibration: Calibration, calibration_path: str 
 
     The same camera names, each with the same image size, and behind each camera the same window
     (thickness, glass index, medium index).
+
+    Args:
+        dataset: the dataset.
+        calibration: the calibration.
+        calibration_path: the calibration's file, named in the error (default: the dataset's rig.yaml).
+
+    Raises:
+        AriSfmError: if the calibration is from another rig.
     """
     where = calibration_path if calibration_path is not None else dataset.rig_path
     cal_names = list(calibration.cameras)
@@ -69,12 +77,21 @@ def reconstruct(dataset: Dataset, calibration: Calibration, refine: bool = True,
                 calibration_path: str | Path | None = None) -> Points:
     """Triangulate every corner of every reconstruction frame seen by >= 2 cameras.
 
-    The dataset must hold observations (``calibrate.ensure_observations``
-    detects them). A frame seen by one camera only is skipped with a warning
-    (an error if no frame can be triangulated); a calibration whose cameras
-    or image sizes differ from the dataset's, or a dataset without
-    reconstruction frames, raise a one-line :class:`AriSfmError`.
-    ``calibration_path`` only names the calibration in error messages.
+    A frame seen by one camera only is skipped with a warning.
+
+    Args:
+        dataset: the dataset; it must hold observations (``calibrate.ensure_observations`` detects them).
+        calibration: the calibration of the dataset's rig.
+        refine: refine each point on its reprojection error (see
+            :func:`~ari_sfm.reconstruction.triangulate.triangulate_pixels`).
+        calibration_path: only names the calibration in error messages.
+
+    Returns:
+        The reconstructed points, per frame.
+
+    Raises:
+        AriSfmError: one line, when the dataset holds no observations or no reconstruction frame, the
+            calibration is of another rig, or no frame can be triangulated.
     """
     from .triangulate import triangulate_pixels
 
@@ -159,10 +176,21 @@ class ReconstructionRun:
 
 
 def check_same_capture(dataset: Dataset, calibration: Calibration, where: str | Path | None = None) -> None:
-    """AriSfmError if the dataset's corners are not the ones ``calibration`` was made from (a byte-identical
-    rig.yaml of another capture; :func:`ari_sfm.provenance.observations_mismatch`). For ``report`` and
-    ``export-colmap``, which show or export the calibration's frames with these corners; ``reconstruct``
-    may triangulate another capture of a calibrated rig."""
+    """Check that the dataset's corners are the ones the calibration was made from.
+
+    Catches a byte-identical rig.yaml of another capture (:func:`ari_sfm.provenance.observations_mismatch`).
+    For ``report`` and ``export-colmap``, which show or export the calibration's frames with these corners;
+    ``reconstruct`` may triangulate another capture of a calibrated rig. A dataset without observations
+    passes.
+
+    Args:
+        dataset: the dataset.
+        calibration: the calibration.
+        where: the file named in the error (default: the dataset's folder).
+
+    Raises:
+        AriSfmError: if the corners are not the calibration's.
+    """
     from ..provenance import observations_mismatch
 
     if dataset.observations is None:
@@ -173,9 +201,18 @@ def check_same_capture(dataset: Dataset, calibration: Calibration, where: str | 
 
 
 def check_truth_matches(dataset: Dataset, truth_path: str | Path) -> None:
-    """AriSfmError if a simulator's truth.json is not this dataset's: a reconstruction frame (from rig.yaml,
-    or observed) or an observed corner id it does not hold. ``run`` calls this before calibrating, so the
-    truth of another dataset leaves no calibration.json behind."""
+    """Check that a simulator's truth.json is this dataset's.
+
+    ``run`` calls this before calibrating, so the truth of another dataset leaves no calibration.json behind.
+
+    Args:
+        dataset: the dataset.
+        truth_path: the truth.json.
+
+    Raises:
+        AriSfmError: if the truth does not hold a reconstruction frame (from rig.yaml, or observed) or an
+            observed corner id, or is not a valid truth file.
+    """
     from .metrics import check_truth
 
     recon, where = check_truth(truth_path)
@@ -204,13 +241,27 @@ def run_reconstruction(dataset_path: str | Path, calibration_path: str | Path, o
 
     Everything is checked and computed before the first file is written, so a
     bad input (another rig's calibration, a truth without a frame, no frame
-    seen by two cameras) leaves OUT without points.json. ``observations``
-    replaces the dataset's observations file (e.g. corners detected earlier).
-    ``reference_path``: a mesh or point cloud of the true geometry; metrics.json
-    then holds ``reference``, the 3D error after registration onto it
-    (:func:`ari_sfm.reconstruction.reference.reference_errors`). ``dataset``, ``calibration``: the records already
-    loaded from ``dataset_path`` (with ``observations``) and ``calibration_path`` (``run`` passes
-    them on), not read again.
+    seen by two cameras) leaves OUT without points.json.
+
+    Args:
+        dataset_path: the dataset's rig.yaml (or its folder).
+        calibration_path: the calibration.json.
+        out_dir: the output folder OUT (created if missing).
+        truth_path: a simulator's truth.json, for the errors against the truth; None for none.
+        workers: the parallel workers of the corner detection (None: its default).
+        progress: show the detection's progress.
+        observations: replaces the dataset's observations file (e.g. corners detected earlier).
+        reference_path: a mesh or point cloud of the true geometry; metrics.json then holds ``reference``,
+            the 3D error after registration onto it (:func:`ari_sfm.reconstruction.reference.reference_errors`).
+        dataset: the records already loaded from ``dataset_path`` (with ``observations``), not read again.
+        calibration: the records already loaded from ``calibration_path``, not read again.
+
+    Returns:
+        What was written: the points, the metrics, their paths, the clouds and the observations file (when
+        corners were detected here).
+
+    Raises:
+        AriSfmError: one line, on a bad input (see above).
     """
     from ..detection import ensure_observations
     from ..io import load_calibration, load_dataset, save_observations, write_json_atomic

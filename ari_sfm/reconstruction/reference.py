@@ -133,8 +133,16 @@ PLY_TYPES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort":
 
 
 def check_ply(path: Path) -> None:
-    """AriSfmError if a .ply file is shorter than its header declares (a truncated copy or download), found
-    here rather than by RPly, which prints its own error line and returns part of the geometry."""
+    """Check that a .ply file is as long as its header declares (not a truncated copy or download).
+
+    Found here rather than by RPly, which prints its own error line and returns part of the geometry.
+
+    Args:
+        path: the .ply file.
+
+    Raises:
+        AriSfmError: if the file is not a PLY file or is truncated.
+    """
     with open(path, "rb") as f:
         head = f.read(65536)
     end = head.find(b"end_header")
@@ -175,10 +183,18 @@ def check_ply(path: Path) -> None:
 
 
 def load_reference(path: str | Path) -> tuple[Any, str]:
-    """The reference geometry as an Open3D legacy TriangleMesh or PointCloud, and its kind ('mesh' / 'cloud').
+    """Read the reference geometry: a mesh, or a point cloud when the file has no triangles.
 
-    Refused in one line: a missing, empty or truncated file; non-finite coordinates or coordinates beyond
-    MAX_COORDINATE_MM; points that are all one point or on one line (nothing to register onto)."""
+    Args:
+        path: the mesh or point-cloud file (.ply, .obj, .stl, .off, .gltf; .ply, .pcd, .xyz), in mm.
+
+    Returns:
+        The geometry as an Open3D legacy TriangleMesh or PointCloud, and its kind ('mesh' / 'cloud').
+
+    Raises:
+        AriSfmError: one line, for a missing, empty or truncated file; non-finite coordinates or coordinates
+            beyond MAX_COORDINATE_MM; points that are all one point or on one line (nothing to register onto).
+    """
     o3d = require_open3d()
     path = Path(path)
     if not path.is_file():
@@ -266,7 +282,18 @@ def _refine_point_to_plane(closest: Any, xyz: np.ndarray, T: np.ndarray, max_dis
 
 
 def reference_errors(points: Points, path: str | Path) -> ReferenceErrors:
-    """Register the reconstruction onto the reference at ``path`` and measure point-to-surface distances."""
+    """Register the reconstruction onto a reference geometry and measure point-to-surface distances.
+
+    Args:
+        points: the reconstructed points.
+        path: the reference's mesh or point-cloud file (see :func:`load_reference`).
+
+    Returns:
+        The registration and the distances (module docstring).
+
+    Raises:
+        AriSfmError: for a bad reference, fewer than 3 points, or a failed registration.
+    """
     o3d = require_open3d()
     geometry, kind = load_reference(path)
     names = [n for n, f in points.frames.items() if len(f)]

@@ -65,13 +65,21 @@ Projector = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 def triangulate_rays(origins: np.ndarray, directions: np.ndarray,
                      valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares points of C rays per point.
+    """Find the least-squares point of C rays per point.
 
-    ``origins``, ``directions`` (P, C, 3) (directions need not be unit),
-    ``valid`` (P, C) bool (default: all). Returns ``X`` (P, 3) and
-    ``ray_gap_mm`` (P,) (see the module docstring: for two rays the distance
-    between them). Points with fewer than two valid rays, or with (nearly)
-    parallel rays, get NaN.
+    Points with fewer than two valid rays, or with (nearly) parallel rays, get NaN.
+
+    Args:
+        origins: the rays' origins (P, C, 3).
+        directions: the rays' directions (P, C, 3), not necessarily unit.
+        valid: which rays count (P, C) bool (default: all).
+
+    Returns:
+        ``X`` (P, 3) and ``ray_gap_mm`` (P,) (see the module docstring: for two rays the distance
+        between them).
+
+    Raises:
+        ValueError: if the arrays' shapes do not match.
     """
     o = np.asarray(origins, dtype=float)
     d = np.asarray(directions, dtype=float)
@@ -100,9 +108,14 @@ def triangulate_rays(origins: np.ndarray, directions: np.ndarray,
 
 
 def solve_sym3(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Solve symmetric 3x3 systems A (Q, 3, 3) x = b (Q, 3) by the adjugate; returns x and det(A).
+    """Solve many symmetric 3x3 systems A x = b by the adjugate.
 
-    ~10x faster than ``np.linalg.solve`` on many tiny systems; singular rows give non-finite x.
+    Args:
+        A: the symmetric matrices (Q, 3, 3).
+        b: the right-hand sides (Q, 3).
+
+    Returns:
+        x (Q, 3) (non-finite where A is singular) and det(A) (Q,).
     """
     a, bb, c = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
     d, e, f = A[:, 1, 1], A[:, 1, 2], A[:, 2, 2]
@@ -128,10 +141,17 @@ def _mean_sq_ray_distance(X: np.ndarray, o: np.ndarray, d: np.ndarray, w: np.nda
 
 
 def has_rays(calibration: Calibration) -> bool:
-    """Whether the calibration's model back-projects pixels (``rays_world``); a polynomial model does not.
+    """Tell whether the calibration's model back-projects pixels (``rays_world``); a polynomial model does not.
 
     The registry says so (``ModelSpec.rays``); a calibration whose ``rays_world`` still fails (a subclass
-    standing in for a model without rays) counts as without."""
+    standing in for a model without rays) counts as without.
+
+    Args:
+        calibration: the calibration.
+
+    Returns:
+        True if its model has rays.
+    """
     if not calibration.spec.rays:
         return False
     name = next(iter(calibration.cameras))
@@ -189,13 +209,20 @@ def _evaluate(projectors: list[Projector], X: np.ndarray, uv: np.ndarray, valid:
 def refine_points(projectors: list[Projector], X0: np.ndarray, uv: np.ndarray, valid: np.ndarray,
                   max_iterations: int = MAX_ITERATIONS, damping: float = 1e-6
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Levenberg-Marquardt on the reprojection error of every point at once.
+    """Refine every point at once by Levenberg-Marquardt on its reprojection error.
 
-    ``projectors``: one per camera (see :func:`_projector`); ``X0`` (P, 3) the
-    start, ``uv`` (P, C, 2), ``valid`` (P, C). Each point has its own damping
-    (Marquardt: ``lambda diag(J^T J)``), starting at ``damping`` (near
-    Gauss-Newton) and adapted per step. Returns X (P, 3), the final
-    residuals (P, C, 2) and Jacobians (P, C, 2, 3).
+    Each point has its own damping (Marquardt: ``lambda diag(J^T J)``), adapted per step.
+
+    Args:
+        projectors: one per camera: X_world (Q, 3) -> pixels (Q, 2) and their Jacobians (Q, 2, 3).
+        X0: the start (P, 3), world frame.
+        uv: the observed pixels (P, C, 2).
+        valid: which observations count (P, C) bool.
+        max_iterations: the most iterations.
+        damping: the starting damping (small: near Gauss-Newton).
+
+    Returns:
+        X (P, 3), the final residuals (P, C, 2) and Jacobians (P, C, 2, 3).
     """
     X = X0.copy()
     r, J, cost = _evaluate(projectors, X, uv, valid)
@@ -247,19 +274,26 @@ def _tracks_array(calibration: Calibration, tracks: Mapping[str, np.ndarray]) ->
 
 def triangulate_pixels(calibration: Calibration, tracks: Mapping[str, np.ndarray], refine: bool = True
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """World points of pixel tracks seen through the window.
-
-    ``tracks``: {camera: (P, 2) pixels}, NaN where a camera did not see the
-    point. Returns ``X`` (P, 3) in the calibration's world frame,
-    ``ray_gap_mm`` (P,) (module docstring) and ``reprojection_rmse_px`` (P,)
-    (``sqrt(mean_c |uv_c - project_c(X)|^2)`` over the cameras that saw the
-    point). Points seen by fewer than two cameras are NaN.
+    """Triangulate pixel tracks seen through the window into world points.
 
     Initialisation: the linear point of the calibration's scene-side rays;
     for a model without ``rays_world``, every point starts at the centroid of
-    the calibration frames' target origins. ``refine``: Levenberg-Marquardt
-    on the reprojection error through ``project_world`` (always on when the
-    model has no rays).
+    the calibration frames' target origins. Points seen by fewer than two cameras are NaN.
+
+    Args:
+        calibration: the calibration.
+        tracks: {camera: (P, 2) pixels}, NaN where a camera did not see the point; at least 2 cameras.
+        refine: Levenberg-Marquardt on the reprojection error through ``project_world`` (always on
+            when the model has no rays).
+
+    Returns:
+        ``X`` (P, 3) in the calibration's world frame, ``ray_gap_mm`` (P,) (module docstring) and
+        ``reprojection_rmse_px`` (P,) (``sqrt(mean_c |uv_c - project_c(X)|^2)`` over the cameras that saw
+        the point).
+
+    Raises:
+        AriSfmError: with fewer than 2 cameras, a camera not in the calibration, or pixel arrays of
+            different shapes.
     """
     cameras, uv = _tracks_array(calibration, tracks)
     exact = _exact_cameras(calibration, cameras)

@@ -25,8 +25,14 @@ FRAME = "f000"
 
 
 def cavity_body() -> Target:
-    """test_cavity's body (``target_on_a_side.txt``): id 1.. in x-major order; rows y = -25, -15, 0, 15, 25 mm at
-    z = 8, 0, -8, 0, 8 mm; x from -40 (rows at z = 0: -35) to 30 mm in steps of 5 mm."""
+    """Build test_cavity's body (``target_on_a_side.txt``).
+
+    Ids 1.. in x-major order; rows y = -25, -15, 0, 15, 25 mm at z = 8, 0, -8, 0, 8 mm; x from -40
+    (rows at z = 0: -35) to 30 mm in steps of 5 mm.
+
+    Returns:
+        A ``points3d`` target of the 73 body points (mm).
+    """
     rows = ((-25.0, 8.0, -40.0), (-15.0, 0.0, -35.0), (0.0, -8.0, -40.0), (15.0, 0.0, -35.0), (25.0, 8.0, -40.0))
     points = [(x, y, z) for x in np.arange(-40.0, 30.1, 5.0) for y, z, first in rows if x >= first]
     return Target(type="points3d", points={k + 1: (float(x), float(y), float(z)) for k, (x, y, z) in enumerate(points)})
@@ -58,8 +64,20 @@ class BodyView:
 
 def cavity_view(centre_mm: tuple[float, float, float] = (78.0, 16.0, -571.0), focal_px: float = 70.0 / 0.012,
                 image_size: tuple[int, int] = (1280, 1024), roll_deg: float = 1.0) -> BodyView:
-    """A camera at ``centre_mm`` (body frame) aimed at the body's origin, image y along the body's -y (rolled by
-    ``roll_deg``), behind a 6 mm acrylic wall whose water-side face is z = -125 mm (water behind)."""
+    """Place a camera looking at the body as test_cavity's first camera does.
+
+    The camera is aimed at the body's origin, image y along the body's -y, behind a 6 mm acrylic wall
+    whose water-side face is z = -125 mm (water behind).
+
+    Args:
+        centre_mm: the camera centre in the body frame (mm).
+        focal_px: the focal length (px).
+        image_size: the image size (w, h) in px.
+        roll_deg: the roll of the image about the optical axis (degrees).
+
+    Returns:
+        The camera's view of the body.
+    """
     centre = np.asarray(centre_mm, float)
     z = -centre / np.linalg.norm(centre)
     up = np.array([0.0, 1.0, 0.0])
@@ -104,9 +122,26 @@ class BodyImage:
 def render_body_image(view: BodyView, target: Target, diameter_mm: float = 1.0,
                       distractors: Distractors = Distractors(), seed: int = 0, bit_depth: int = 8,
                       peak: float = 200.0, noise_sigma: float = 2.0) -> BodyImage:
-    """The body's dots (``diameter_mm``, each ``peak`` grey levels bright, 8-bit scale) seen by ``view`` with
-    ``distractors``, Gaussian noise, on a background rising from 15 to 55 grey levels left to right;
-    ``bit_depth`` 8 (uint8) or 16 (uint16 holding 12 bits: every level x 16)."""
+    """Render the body's dots seen by a view, with distractors and noise.
+
+    The background rises from 15 to 55 grey levels left to right (8-bit scale).
+
+    Args:
+        view: the camera's view of the body.
+        target: the body (its 3D points, mm).
+        diameter_mm: each dot's diameter (mm).
+        distractors: what else the image shows.
+        seed: the random seed.
+        bit_depth: 8 (uint8) or 16 (uint16 holding 12 bits: every level x 16).
+        peak: each dot's brightness (grey levels, 8-bit scale).
+        noise_sigma: the standard deviation of the Gaussian noise (grey levels, 8-bit scale).
+
+    Returns:
+        The image and its truth.
+
+    Raises:
+        ValueError: if ``bit_depth`` is not 8 or 16.
+    """
     rng = np.random.default_rng(seed)
     ids, xyz = target.points_3d()
     uv = view.project(xyz)

@@ -12,13 +12,8 @@ faint sharp specks (seeding out of the light sheet, out of focus: 1-2 px,
 fainter than the particles) and dust (faint blurred discs), shot and read
 noise, optional hot pixels, 8- or 16-bit. Grey levels of :class:`TankLook`
 are on the 8-bit scale (255 full scale); a 16-bit frame holds the same scene
-times 257 (65535 full scale), quantised in 16 bits.
-
-The defaults follow OpenPTV's test_cavity images (1280 x 1024, 8-bit): a
-noise of 1-1.5 grey levels where the background is dark; particle images a
-PTV lab uses with peaks from ~30 to saturation; about as many faint specks per
-pixel as there are particles in a dense frame (0.01), 1-2 px across, peaks
-10-20 levels, fewer up to ~30; glass walls lit near saturation.
+times 257 (65535 full scale), quantised in 16 bits. The defaults follow
+OpenPTV's test_cavity images (1280 x 1024, 8-bit).
 """
 from __future__ import annotations
 
@@ -32,8 +27,14 @@ FULL_SCALE = {8: 255.0, 16: 65535.0}
 
 def add_gaussian_images(img: np.ndarray, uv: np.ndarray, peak: np.ndarray | float,
                         sigma: np.ndarray | float) -> None:
-    """Add pixel-integrated Gaussian images (in place) centred at ``uv`` (N, 2), OpenCV pixel
-    convention; ``peak``: the peak of the continuous profile (grey levels), ``sigma`` px (scalar or (N,))."""
+    """Add pixel-integrated Gaussian images to an image, in place.
+
+    Args:
+        img: the (h, w) float image, modified in place.
+        uv: the centres (N, 2), OpenCV pixel convention.
+        peak: the peak of the continuous profile (grey levels), scalar or (N,).
+        sigma: the Gaussian's sigma (px), scalar or (N,).
+    """
     from scipy.special import erf
 
     h, w = img.shape
@@ -65,8 +66,20 @@ def add_gaussian_images(img: np.ndarray, uv: np.ndarray, peak: np.ndarray | floa
 def render_particle_image(uv: np.ndarray, image_size: tuple[int, int], diameter_px: float,
                           peak: np.ndarray | float = 180.0, background: float = 10.0, noise_sigma: float = 2.0,
                           rng: np.random.Generator | None = None) -> np.ndarray:
-    """An 8-bit image of Gaussian particle images (e^-2 diameter ``diameter_px``, pixel-integrated)
-    centred at ``uv`` (N, 2), OpenCV pixel convention, plus Gaussian camera noise."""
+    """Render an 8-bit image of pixel-integrated Gaussian particle images plus Gaussian camera noise.
+
+    Args:
+        uv: the particle centres (N, 2), OpenCV pixel convention.
+        image_size: the image size (w, h) in px.
+        diameter_px: the particle images' e^-2 diameter (px); sigma = diameter / 4.
+        peak: the peak of each profile (grey levels), scalar or (N,).
+        background: the flat background (grey levels).
+        noise_sigma: the standard deviation of the noise (grey levels); 0 for none.
+        rng: the random generator (default: seeded with 0).
+
+    Returns:
+        The (h, w) uint8 image.
+    """
     w, h = image_size
     img = np.full((h, w), float(background))
     add_gaussian_images(img, uv, peak, diameter_px / 4.0)
@@ -118,9 +131,26 @@ class TankFrame:
 def render_tank_frame(uv: np.ndarray, image_size: tuple[int, int], diameter_px: float, look: TankLook = TankLook(),
                       rng: np.random.Generator | None = None, peak: np.ndarray | None = None,
                       diameter_px_each: np.ndarray | None = None) -> TankFrame:
-    """Particle images at ``uv`` (N, 2) (OpenCV pixel convention) as a camera behind a tank records them.
-    Each particle's peak (8-bit grey levels) and diameter are drawn from ``look`` unless given (the same
-    particle seen by several cameras)."""
+    """Render particle images as a camera behind a real tank records them.
+
+    Each particle's peak and diameter are drawn from ``look`` unless given (give them to render the
+    same particle seen by several cameras).
+
+    Args:
+        uv: the particle centres (N, 2), OpenCV pixel convention.
+        image_size: the image size (w, h) in px.
+        diameter_px: the mean e^-2 diameter (px) the diameters are drawn around.
+        look: how the frame looks (clutter, noise, bit depth).
+        rng: the random generator (default: seeded with 0).
+        peak: each particle's peak above the background (8-bit grey levels), scalar or (N,); None to draw it.
+        diameter_px_each: each particle's e^-2 diameter (px), scalar or (N,); None to draw it.
+
+    Returns:
+        The frame and what its particle images are.
+
+    Raises:
+        ValueError: if ``look.bit_depth`` is not 8 or 16.
+    """
     if look.bit_depth not in FULL_SCALE:
         raise ValueError(f"bit_depth must be 8 or 16 (got {look.bit_depth})")
     rng = rng or np.random.default_rng(0)

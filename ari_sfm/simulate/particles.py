@@ -268,15 +268,32 @@ def simulate_particle_experiment(options: ParticleSimOptions = ParticleSimOption
 
 
 def image_pattern(camera: str, bit_depth: int = 8) -> str:
-    """Where the rendered images of a camera live in the experiment folder (rig.yaml pattern):
-    8-bit PNG, 16-bit TIFF."""
+    """Give the path pattern of a camera's rendered images in the experiment folder (as in rig.yaml).
+
+    Args:
+        camera: the camera's name.
+        bit_depth: 8 (PNG) or 16 (TIFF).
+
+    Returns:
+        The pattern, relative to the experiment folder, with a ``{frame:05d}`` field.
+    """
     return f"images/{camera}/{{frame:05d}}.{'png' if bit_depth == 8 else 'tif'}"
 
 
 def render_frame_images(exp: ParticleExperiment, frame: int, peaks: np.ndarray, rng: np.random.Generator
                         ) -> dict[str, np.ndarray]:
-    """The images (camera -> 8- or 16-bit array) of one frame, in the experiment's look; ``peaks``: each
-    particle's peak above the background (8-bit grey levels; the plain look's), rows of its positions."""
+    """Render the images of one frame, in the experiment's look.
+
+    Args:
+        exp: the experiment.
+        frame: the frame's index.
+        peaks: each particle's peak above the background (8-bit grey levels; used by the plain look),
+            by the rows of the frame's positions.
+        rng: the random generator of the image noise.
+
+    Returns:
+        Camera name -> the 8- or 16-bit image.
+    """
     o = exp.options
     out = {}
     if o.look == "tank":
@@ -299,8 +316,19 @@ def render_frame_images(exp: ParticleExperiment, frame: int, peaks: np.ndarray, 
 
 
 def write_particle_experiment(exp: ParticleExperiment, out_dir: str | Path, render_frames: int = 2) -> dict[str, Path]:
-    """Write ``exp`` under ``out_dir`` (layout in the module docstring); images for the first
-    ``render_frames`` frames. Returns the main paths."""
+    """Write an experiment to a folder, in the layout given in the module docstring.
+
+    Args:
+        exp: the experiment.
+        out_dir: the output folder (created if missing).
+        render_frames: how many of the first frames get rendered images.
+
+    Returns:
+        The main folders: ``calibration``, ``experiment`` and ``truth`` -> their paths.
+
+    Raises:
+        OSError: if an image could not be encoded.
+    """
     import cv2
     import yaml
 

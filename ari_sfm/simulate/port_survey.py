@@ -75,7 +75,16 @@ class SfmTruth:
 
 
 def relief_height(xy: np.ndarray, depth_mm: float, amplitude_mm: float) -> np.ndarray:
-    """Depth z (mm) of the relief at horizontal positions (N, 2): a few smooth bumps and a slope."""
+    """Give the relief's depth at horizontal positions: a few smooth bumps and a slope.
+
+    Args:
+        xy: the horizontal positions (N, 2), mm, world frame.
+        depth_mm: the relief's mean depth (mm).
+        amplitude_mm: the bumps' amplitude (mm).
+
+    Returns:
+        The depths z (N,), mm (z down).
+    """
     x, y = xy[:, 0] / 1000.0, xy[:, 1] / 1000.0
     bumps = (np.sin(2.1 * x + 0.3) * np.cos(1.7 * y - 0.2) + 0.5 * np.exp(-((x - 0.4) ** 2 + (y + 0.3) ** 2) / 0.3)
              - 0.4 * np.exp(-((x + 0.8) ** 2 + (y - 0.4) ** 2) / 0.2) + 0.15 * x)
@@ -141,18 +150,41 @@ def port_survey(seed: int = 0, num_images: int = 28, num_points: int = 1500, sig
                 index: float = ACRYLIC_INDEX, medium_index: float = WATER_INDEX, port_tilt_deg: float = 1.5,
                 min_views: int = 3, convergence: float = 0.4, layout: str = "grid",
                 strip_lines: int = 2) -> SfmTruth:
-    """A camera in a flat-port housing surveying a relief (mount ``camera``; see module docstring).
+    """Simulate a camera in a flat-port housing surveying a relief (mount ``camera``; see module docstring).
 
-    Images on a lawn-mower grid (rows along x) covering ``area_mm`` at ``altitude_mm`` above the
-    relief's mean depth, each looking at ``convergence`` times its own horizontal position (oblique
-    views toward the middle make the focal length observable); the port normal is tilted
-    ``port_tilt_deg`` from the optical axis.
+    Layout ``grid``: images on a lawn-mower grid (rows along x) covering ``area_mm`` at ``altitude_mm``
+    above the relief's mean depth, each looking at ``convergence`` times its own horizontal position.
+    Layout ``strip``: a long survey with short tracks: ``strip_lines`` parallel lines along x over
+    ``area_mm`` (lines at y spread over the middle half of the width), images evenly spaced along each
+    line, pitched alternately +-``STRIP_PITCH_DEG`` along the line and looking toward the strip's centre
+    line (``convergence`` of the line's offset), so each point is seen by a few neighbouring images of
+    one or two lines.
 
-    ``layout="strip"``: a long survey with short tracks instead: ``strip_lines`` parallel lines along
-    x over ``area_mm`` (lines at y spread over the middle half of the width), images evenly spaced
-    along each line, pitched alternately +-``STRIP_PITCH_DEG`` along the line and looking toward the
-    strip's centre line (``convergence`` of the line's offset), so each point is seen by a few
-    neighbouring images of one or two lines.
+    Args:
+        seed: the random seed.
+        num_images: the number of images.
+        num_points: the number of relief points drawn (before keeping those seen ``min_views`` times).
+        sigma_px: the observation noise per coordinate (px).
+        image_size: the image size (w, h) in px.
+        focal_px: the focal length (px).
+        altitude_mm: the cameras' height above the relief's mean depth (mm).
+        area_mm: the surveyed area (x, y) in mm.
+        relief_mm: the relief's amplitude (mm).
+        distance_mm: the port's distance from the camera centre (mm).
+        thickness_mm: the port's thickness (mm).
+        index: the port's refractive index.
+        medium_index: the water's refractive index.
+        port_tilt_deg: the tilt of the port normal from the optical axis (degrees).
+        min_views: the least number of images a kept point is seen in.
+        convergence: how far the views turn toward the middle (0: straight down).
+        layout: ``"grid"`` or ``"strip"``.
+        strip_lines: the number of lines of the ``strip`` layout.
+
+    Returns:
+        The simulated experiment.
+
+    Raises:
+        ValueError: if ``layout`` is neither ``grid`` nor ``strip``.
     """
     rng = np.random.default_rng(seed)
     if layout not in ("grid", "strip"):
@@ -201,8 +233,28 @@ def tank_rig(seed: int = 0, num_frames: int = 8, num_points: int = 800, sigma_px
              image_size: tuple[int, int] = (1024, 768), focal_px: float = 1000.0, baseline_mm: float = 150.0,
              wall_mm: float = 60.0, thickness_mm: float = 10.0, index: float = 1.5168,
              medium_index: float = WATER_INDEX, depth_mm: float = 900.0, min_views: int = 3) -> SfmTruth:
-    """A 2-camera rig moved along a tank wall (mount ``world``): the wall's near face is ``wall_mm``
-    in front of the first frame's rig origin, its normal ~5 deg off the rig's z axis."""
+    """Simulate a 2-camera rig moved along a tank wall (mount ``world``).
+
+    The wall's normal is ~5 deg off the rig's z axis; the second camera is yawed 6 deg.
+
+    Args:
+        seed: the random seed.
+        num_frames: the number of rig positions.
+        num_points: the number of relief points drawn (before keeping those seen ``min_views`` times).
+        sigma_px: the observation noise per coordinate (px).
+        image_size: the image size (w, h) in px.
+        focal_px: the focal length (px).
+        baseline_mm: the distance between the two cameras (mm).
+        wall_mm: the distance of the wall's near face in front of the first frame's rig origin (mm).
+        thickness_mm: the wall's thickness (mm).
+        index: the wall's refractive index.
+        medium_index: the water's refractive index.
+        depth_mm: the relief's mean depth (mm).
+        min_views: the least number of images a kept point is seen in.
+
+    Returns:
+        The simulated experiment.
+    """
     rng = np.random.default_rng(seed)
     yaw = np.radians(6.0)
     sensor = (Pose.identity(), Pose(rotation_from_rotvec([0.0, -yaw, 0.0]),
@@ -230,8 +282,16 @@ TEXTURE_MM_PER_TEXEL = 2.0
 
 def relief_texture(area_mm: tuple[float, float], seed: int = 0,
                    margin_mm: float = 600.0) -> tuple[np.ndarray, np.ndarray]:
-    """A grey texture (H, W) float32 in [0, 1] over the relief with blobs at several scales (SIFT
-    finds them), and its origin (x0, y0) in mm; one texel is TEXTURE_MM_PER_TEXEL."""
+    """Make a grey texture over the relief, with blobs at several scales.
+
+    Args:
+        area_mm: the surveyed area (x, y) in mm.
+        seed: the random seed.
+        margin_mm: the texture's margin beyond the area on each side (mm).
+
+    Returns:
+        The texture (H, W) float32 in [0, 1], one texel TEXTURE_MM_PER_TEXEL mm, and its origin (x0, y0) in mm.
+    """
     import cv2
 
     rng = np.random.default_rng(seed + 7)
@@ -265,8 +325,23 @@ def _hit_relief(origins: np.ndarray, directions: np.ndarray, depth_mm: float, am
 
 def render_survey_image(truth: SfmTruth, i: int, texture: np.ndarray, origin_mm: np.ndarray,
                         depth_mm: float, amplitude_mm: float, supersample: int = 2) -> np.ndarray:
-    """8-bit image i of a port survey: every (sub)pixel back-projected through the port with the exact
-    model, intersected with the relief, the texture sampled (bilinear), averaged per pixel."""
+    """Render image i of a port survey.
+
+    Every (sub)pixel is back-projected through the port with the exact model, intersected with the
+    relief, the texture sampled (bilinear), and the samples averaged per pixel.
+
+    Args:
+        truth: the survey (mount ``camera``).
+        i: the image's index.
+        texture: the relief's texture (see :func:`relief_texture`).
+        origin_mm: the texture's origin (x0, y0) in mm.
+        depth_mm: the relief's mean depth (mm).
+        amplitude_mm: the relief's amplitude (mm).
+        supersample: the subpixels per pixel along each axis.
+
+    Returns:
+        The (h, w) uint8 image.
+    """
     import cv2
 
     w, h = truth.image_size
@@ -288,8 +363,25 @@ def write_port_survey(out_dir, seed: int = 0, num_images: int = 12, image_size: 
                       focal_px: float = 600.0, area_mm: tuple[float, float] = (1600.0, 1200.0),
                       altitude_mm: float = 2000.0, relief_mm: float = 150.0, supersample: int = 2,
                       progress: bool = False) -> tuple[SfmTruth, Path]:
-    """Render a port survey to ``out_dir/images/imageNNNN.png`` with ``out_dir/truth.json`` (the housing,
-    the lens intrinsics, every image's cam_from_world, the relief); returns the truth and the images folder."""
+    """Render a port survey to ``out_dir/images/imageNNNN.png`` with its truth in ``out_dir/truth.json``.
+
+    The truth holds the housing, the lens intrinsics, every image's cam_from_world and the relief.
+
+    Args:
+        out_dir: the output folder (created if missing).
+        seed: the random seed.
+        num_images: the number of images.
+        image_size: the image size (w, h) in px.
+        focal_px: the focal length (px).
+        area_mm: the surveyed area (x, y) in mm.
+        altitude_mm: the cameras' height above the relief's mean depth (mm).
+        relief_mm: the relief's amplitude (mm).
+        supersample: the subpixels per pixel along each axis.
+        progress: show a progress bar.
+
+    Returns:
+        The truth and the images folder.
+    """
     import cv2
 
     from ari_sfm.io import write_bytes_atomic, write_json_atomic

@@ -43,10 +43,18 @@ PixelToTarget = Callable[[np.ndarray], np.ndarray]
 def plane_pixel_to_target(
     K: np.ndarray, world_from_target_R: np.ndarray, world_from_target_t: np.ndarray
 ) -> PixelToTarget:
-    """A ``pixel_to_target`` for a plain pinhole camera at the world origin (cam = world).
+    """Make a ``pixel_to_target`` for a plain pinhole camera at the world origin (cam = world).
 
     The ray K^-1 [u, v, 1] is intersected with the target plane z_target = 0;
     NaN where the ray is parallel to the plane or meets it behind the camera.
+
+    Args:
+        K: the 3x3 intrinsic matrix.
+        world_from_target_R: the target's rotation (3, 3), target to world.
+        world_from_target_t: the target's origin in the world (3,), mm.
+
+    Returns:
+        The function from pixels (N, 2) to target-plane coordinates (N, 2), mm.
     """
     K_inv = np.linalg.inv(np.asarray(K, dtype=float))
     R = np.asarray(world_from_target_R, dtype=float)
@@ -74,7 +82,17 @@ def plane_pixel_to_target(
 
 def project_pinhole(K: np.ndarray, world_from_target_R: np.ndarray, world_from_target_t: np.ndarray,
                     xyz: np.ndarray) -> np.ndarray:
-    """Exact pixels (N, 2) of target points xyz (N, 3) seen by a pinhole camera at the origin."""
+    """Project target points with a pinhole camera at the world origin (cam = world).
+
+    Args:
+        K: the 3x3 intrinsic matrix.
+        world_from_target_R: the target's rotation (3, 3), target to world.
+        world_from_target_t: the target's origin in the world (3,), mm.
+        xyz: the target points (N, 3), target frame, mm.
+
+    Returns:
+        The exact pixels (N, 2).
+    """
     X = np.asarray(xyz, dtype=float) @ np.asarray(world_from_target_R, dtype=float).T
     X = X + np.asarray(world_from_target_t, dtype=float).reshape(3)
     x = X @ np.asarray(K, dtype=float).T
@@ -91,19 +109,28 @@ def render_target(
     blur_sigma_px: float = 0.0,
     adaptive: bool = True,
 ) -> np.ndarray:
-    """Render the target: a uint8 grayscale image of shape (height, width).
+    """Render the target as a uint8 grayscale image of shape (height, width).
 
-    ``image_size`` is (width, height). Each pixel averages ``supersample`` x
-    ``supersample`` samples spread over its area (box anti-aliasing; n-rooks
-    pattern shifted per pixel, see :func:`_shifted`);
-    then an optional Gaussian blur (optics) and Gaussian sensor noise of
-    ``noise_sigma`` grey levels are applied. Samples are evaluated in chunks
-    of rows so memory stays bounded (a 2448 x 2048 image with 16 samples per
-    pixel peaks at a few hundred MB).
+    Each pixel averages ``supersample`` x ``supersample`` samples spread over its area (box
+    anti-aliasing; an n-rooks pattern shifted per pixel); then an optional Gaussian blur (optics) and
+    Gaussian sensor noise are applied. Samples are evaluated in chunks of rows so memory stays bounded.
 
-    ``adaptive`` (default) first shades the pixel corners and supersamples
-    only pixels within one pixel of a corner-value change: the same image for
-    any board whose features span more than about two pixels, ~10x faster.
+    Args:
+        target: the calibration target (checkerboard, ChArUco or dot board).
+        pixel_to_target: maps pixels (N, 2) to target-plane coordinates (N, 2) in mm, NaN where the ray misses.
+        image_size: the image size (width, height).
+        supersample: the samples per pixel along each axis (>= 1).
+        noise_sigma: the sensor noise's standard deviation (grey levels); 0 for none.
+        seed: the noise's random seed.
+        blur_sigma_px: the Gaussian blur's sigma (px); 0 for none.
+        adaptive: shade the pixel corners first and supersample only pixels within one pixel of a
+            corner-value change (the same image for any board whose features span more than about two pixels).
+
+    Returns:
+        The (height, width) uint8 image.
+
+    Raises:
+        ValueError: if ``supersample`` < 1 or the target's type cannot be rendered.
     """
     width, height = int(image_size[0]), int(image_size[1])
     n = int(supersample)
@@ -295,10 +322,21 @@ def _circles_shader(target: Target) -> Callable[[np.ndarray], np.ndarray]:
 
 def add_discs(image: np.ndarray, centres: np.ndarray, diameters_px: np.ndarray | float, peak: np.ndarray | float,
               supersample: int = 5) -> np.ndarray:
-    """``image`` (float, (height, width)) plus uniformly bright discs: disc k centred at ``centres[k]``
-    (OpenCV pixels), ``diameters_px[k]`` wide, adding ``peak[k]`` grey levels where it covers a pixel
-    wholly (pixels on its edge get the covered fraction, from ``supersample`` x ``supersample`` samples).
-    The dots of a 3D calibration body seen from afar; returns a new array."""
+    """Add uniformly bright discs to an image (the dots of a 3D calibration body seen from afar).
+
+    Disc k adds ``peak[k]`` grey levels where it covers a pixel wholly; pixels on its edge get the
+    covered fraction.
+
+    Args:
+        image: the (height, width) image; not modified.
+        centres: the disc centres (N, 2), OpenCV pixels.
+        diameters_px: the disc diameters (px), scalar or (N,).
+        peak: the grey levels each disc adds, scalar or (N,).
+        supersample: the samples per pixel along each axis for the covered fraction.
+
+    Returns:
+        A new float64 (height, width) array.
+    """
     out = np.array(image, dtype=np.float64)
     h, w = out.shape
     centres = np.asarray(centres, float).reshape(-1, 2)

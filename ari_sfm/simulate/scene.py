@@ -54,10 +54,16 @@ class CameraTruth:
         return PinholeModel(self.K, self.dist)
 
     def scaled(self, scale: float) -> CameraTruth:
-        """The same camera with an image scaled by ``scale`` (pixel centres stay OpenCV).
+        """Give the same camera with its image scaled (pixel centres stay OpenCV).
 
         A pixel u maps to ``scale (u + 0.5) - 0.5``, so fx, fy scale and
         cx, cy follow the pixel map; projections scale exactly.
+
+        Args:
+            scale: the image scale factor.
+
+        Returns:
+            The scaled camera (its focal hint scaled too).
         """
         K = self.K.copy()
         K[0, 0] *= scale
@@ -89,12 +95,28 @@ class WindowTruth:
         return float(self.distance_mm - self.normal_world @ camera.center_world)
 
     def depth_beyond_far_face(self, X_world: np.ndarray, added_mm: float = 0.0) -> np.ndarray:
-        """Signed distance (mm) of points beyond the far face of the (stacked) plate."""
+        """Give the signed distance of points beyond the far face of the (stacked) plate.
+
+        Args:
+            X_world: the points (N, 3), world frame, mm.
+            added_mm: the glass stacked on the plate (mm).
+
+        Returns:
+            The signed distances (N,), mm; positive beyond the far face.
+        """
         return np.asarray(X_world, float) @ self.normal_world - (
             self.distance_mm + self.thickness_mm + added_mm)
 
     def model(self, camera: CameraTruth, added_mm: float = 0.0) -> ExactModel:
-        """The exact Snell model of ``camera`` with ``added_mm`` of glass stacked on the plate."""
+        """Build the exact Snell model of a camera looking through the plate.
+
+        Args:
+            camera: the camera.
+            added_mm: the glass stacked on the plate (mm).
+
+        Returns:
+            The exact model, in the camera's frame.
+        """
         return ExactModel(camera.pinhole, self.normal_cam(camera), self.thickness_mm + added_mm,
                           self.index, medium_index=self.medium_index,
                           distance_mm=self.camera_distance_mm(camera))
@@ -184,13 +206,32 @@ class Geometry:
 
 def project(window: WindowTruth, camera: CameraTruth, X_world: np.ndarray,
             added_mm: float = 0.0) -> np.ndarray:
-    """Exact pixels (N, 2) of world points seen through the window (NaN where impossible)."""
+    """Project world points through the window with the exact Snell model.
+
+    Args:
+        window: the window the camera looks through.
+        camera: the camera.
+        X_world: the points (N, 3), world frame, mm.
+        added_mm: the glass stacked on the plate (mm).
+
+    Returns:
+        The exact pixels (N, 2), NaN where no ray exists.
+    """
     X_cam = camera.cam_from_world.apply(np.asarray(X_world, float))
     return window.model(camera, added_mm).project(X_cam)
 
 
 def inside(uv: np.ndarray, image_size: tuple[int, int], margin_px: float) -> bool:
-    """True if every pixel is finite and at least ``margin_px`` inside the image."""
+    """Tell whether every pixel is finite and at least ``margin_px`` inside the image.
+
+    Args:
+        uv: the pixels (N, 2).
+        image_size: the image size (w, h).
+        margin_px: the least distance from the border (px).
+
+    Returns:
+        True if every pixel is inside.
+    """
     w, h = image_size
     uv = np.asarray(uv, float)
     if not np.all(np.isfinite(uv)):
@@ -200,7 +241,15 @@ def inside(uv: np.ndarray, image_size: tuple[int, int], margin_px: float) -> boo
 
 
 def expansion_center_px(camera: CameraTruth, normal_cam: np.ndarray) -> np.ndarray:
-    """The true expansion centre K n_c / n_c[2] (may lie outside the image)."""
+    """Give the true expansion centre K n_c / n_c[2] (may lie outside the image).
+
+    Args:
+        camera: the camera.
+        normal_cam: the window normal in the camera frame (3,).
+
+    Returns:
+        The expansion centre (2,), px.
+    """
     p = camera.K @ np.asarray(normal_cam, float)
     return p[:2] / p[2]
 
@@ -209,10 +258,16 @@ def expansion_center_px(camera: CameraTruth, normal_cam: np.ndarray) -> np.ndarr
 
 
 def observe(geometry: Geometry) -> tuple[Observation, ...]:
-    """Every record the cameras make, noise-free (exact Snell projection of every corner).
+    """Make every record the cameras make, noise-free (exact Snell projection of every corner).
 
     A camera records a frame only if all corners lie ``margin_px`` inside its
     image.  Order: stacking (pose, added, camera), calibration, reconstruction.
+
+    Args:
+        geometry: the experiment's truth.
+
+    Returns:
+        The observations.
     """
     ids, pts = geometry.target.points_3d()
     out: list[Observation] = []
@@ -239,7 +294,17 @@ def observe(geometry: Geometry) -> tuple[Observation, ...]:
 
 
 def image_path(set_name: str, camera: str, frame: str, added_mm: float | None = None) -> Path:
-    """Where the image of one record lives inside a dataset folder (relative)."""
+    """Give where the image of one record lives inside a dataset folder.
+
+    Args:
+        set_name: ``stacking``, ``calibration`` or ``reconstruction``.
+        camera: the camera's name.
+        frame: the frame's name.
+        added_mm: the glass stacked on the plate (mm), for a stacking record.
+
+    Returns:
+        The image's path, relative to the dataset folder.
+    """
     if set_name == "stacking":
         return Path("stack") / f"{camera}_{frame}_{int(round(added_mm or 0.0)):02d}.png"
     folder = "calib" if set_name == "calibration" else "recon"
@@ -248,13 +313,22 @@ def image_path(set_name: str, camera: str, frame: str, added_mm: float | None = 
 
 def to_dataset(geometry: Geometry, observations: tuple[Observation, ...] | None, root: Path,
                seen: tuple[Observation, ...], with_images: bool = False) -> Dataset:
-    """The :class:`Dataset` a user would hold: target, window as declared, cameras with the
-    nominal focal hint, one entry per (pose, stack) / frame listing the cameras that saw it.
+    """Build the :class:`Dataset` a user would hold.
 
-    ``seen`` are the records that decide which cameras list an image (the
-    noise-free ones); ``observations`` fill the dataset (None: detect from images), their pixels
-    rounded to ``geometry.pixel_step_px`` when it is set; ``geometry.declared_plane`` becomes
-    ``interface.plane``.
+    It holds the target, the window as declared (``geometry.declared_plane`` becomes
+    ``interface.plane``), the cameras with the nominal focal hint, and one entry per (pose, stack) /
+    frame listing the cameras that saw it.
+
+    Args:
+        geometry: the experiment's truth.
+        observations: the records filling the dataset, their pixels rounded to ``geometry.pixel_step_px``
+            when it is set; None: detect from images.
+        root: the dataset folder.
+        seen: the records that decide which cameras list an image (the noise-free ones).
+        with_images: list the image paths in the entries.
+
+    Returns:
+        The dataset.
     """
     w = geometry.window
     interface = Interface(thickness_mm=w.thickness_mm, index=w.index, medium_index=w.medium_index,
@@ -293,7 +367,17 @@ def to_dataset(geometry: Geometry, observations: tuple[Observation, ...] | None,
 
 
 def truth_dict(geometry: Geometry, scenario: str, seed: int, sigma_px: float) -> dict:
-    """The truth in the ``calibration.json`` form (model ``truth``) plus the scenario keys."""
+    """Give the truth in the ``calibration.json`` form (model ``truth``) plus the scenario keys.
+
+    Args:
+        geometry: the experiment's truth.
+        scenario: the scenario's name.
+        seed: the random seed.
+        sigma_px: the observation noise (px).
+
+    Returns:
+        The JSON-ready dict.
+    """
     cameras = {}
     for cam in geometry.cameras:
         w = geometry.window_of(cam.name)
@@ -350,6 +434,13 @@ def check_geometry(geometry: Geometry, clearance_mm: float = 5.0) -> None:
     Every camera is on the near side of the window, and every target corner
     lies at least ``clearance_mm`` beyond the far face of the thickest stack
     used with it (the plate is between the cameras and the targets).
+
+    Args:
+        geometry: the experiment's truth.
+        clearance_mm: the least clearance (mm) of cameras and targets from the plate.
+
+    Raises:
+        ValueError: if the experiment is not physically valid.
     """
     for g in geometry.window_groups():
         if abs(np.linalg.norm(g.window.normal_world) - 1.0) > 1e-9:
