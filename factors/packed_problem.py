@@ -1,9 +1,7 @@
 """RigGraph's problem packed into flat numpy arrays: residuals and Jacobians without Python callbacks.
 
-:class:`~ari_sfm.factors.rig_graph.RigGraph` holds one ``gtsam.CustomFactor``
-per (camera, image); GTSAM calls back into Python for every factor at every
-linearisation, and that overhead dominates its time. :class:`VectorizedProblem`
-holds *the same problem*:
+:class:`~ari_sfm.factors.rig_graph.RigGraph` holds one ``gtsam.CustomFactor`` per (camera, image);
+:class:`VectorizedProblem` holds *the same problem*:
 
 - the same variables and tangent spaces: intrinsics K(c) (additive),
   world_T_cam C(c) for c > 0 and world_T_target X(f) (Pose3, right-perturbed
@@ -28,9 +26,8 @@ The normal equations are formed per camera in one compiled pass
 added to the graph join through :mod:`~ari_sfm.factors.extra_factors`.
 
 It is built from what RigGraph.build selected (:meth:`RigGraph.packed_factors`: each view's
-data, keys and sigma, and the other factors), without making the GTSAM view factors the numpy
-backend never calls (RigGraph makes its graph on first access, e.g. a researcher's
-``rg.graph.push_back``; then the graph is read).
+data, keys and sigma, and the other factors); the GTSAM view factors are not made for it (RigGraph
+makes its graph on first access, e.g. a researcher's ``rg.graph.push_back``; then the graph is read).
 """
 from __future__ import annotations
 
@@ -171,10 +168,10 @@ class _RigViews:
 
 
 class VectorizedProblem:
-    """RigGraph's problem packed into flat arrays; the :class:`~ari_sfm.solver.levenberg_marquardt.LMProblem`
-    of the numpy backend (linearize, solve, model_decrease, retract, error).
+    """RigGraph's problem packed into flat arrays: the numpy backend's LM problem.
 
-    Mirrors RigGraph: :meth:`optimize` (updates :attr:`x`, sets
+    The :class:`~ari_sfm.solver.levenberg_marquardt.LMProblem` of the numpy backend (linearize, solve,
+    model_decrease, retract, error). Mirrors RigGraph: :meth:`optimize` (updates :attr:`x`, sets
     :attr:`iterations` and :attr:`report`), :meth:`state`, :meth:`residuals`;
     :meth:`write_values` copies the values into a gtsam.Values.
     """
@@ -194,8 +191,25 @@ class VectorizedProblem:
         extra_factors: Sequence[gtsam.NonlinearFactor] = (),
         camera_windows: Sequence[int] | None = None,
     ) -> None:
-        """``views``: (ViewData, ViewKeys, sigma_px) per view factor; ``observations``: (camera, obs) per
-        view factor; ``camera_windows``: each camera's window index (default: one window for all)."""
+        """Pack the views.
+
+        Args:
+            views: (ViewData, ViewKeys, sigma_px) per view factor.
+            observations: (camera, obs) per view factor.
+            variables: The start values.
+            camera_names: The cameras, camera 0 (the world) first.
+            frame_names: The target frames.
+            n_params: How many of the 9 intrinsic parameters are variables (the first ones).
+            base_state: The state the held values come from (the other parameters, a held distance).
+            estimate_distance: Whether the windows' distances are variables.
+            model: The model's name (a key of ``MODELS``).
+            huber_px: The Huber threshold the view factors were built with (px); None: no loss.
+            extra_factors: The graph's other factors (a researcher's), added as a term.
+            camera_windows: Each camera's window index (default: one window for all).
+
+        Raises:
+            ValueError: an unknown model, or a view whose keys or data do not match the problem.
+        """
         if model not in MODELS:
             raise ValueError(f"unknown model {model!r} (known: {', '.join(MODELS)})")
         self.model = model
@@ -227,10 +241,18 @@ class VectorizedProblem:
     def from_rig_graph(rg: GraphLike, huber_px: float | None = None, check: bool = True) -> VectorizedProblem:
         """The problem of a built RigGraph at its current values (its view factors and any factors added to it).
 
-        Pass the Huber threshold the view factors were built with (``rg.huber_px``
-        after RigGraph.build; the factors themselves do not tell). With ``check`` the residuals of a few
-        views (one per camera and plate, and the worst ones) are compared with
-        the graph's own factors and a mismatch raises ValueError.
+        Args:
+            rg: The built graph.
+            huber_px: The Huber threshold the view factors were built with (``rg.huber_px`` after
+                RigGraph.build; the factors themselves do not tell).
+            check: Compare the residuals of a few views (one per camera and plate, and the worst ones) with
+                the graph's own factors.
+
+        Returns:
+            The packed problem.
+
+        Raises:
+            ValueError: with ``check``, the residuals differ from the graph's (e.g. a wrong ``huber_px``).
         """
         views, extra = rg.packed_factors()
         variables = _variables_of(rg)
@@ -497,11 +519,22 @@ class VectorizedProblem:
         return self.adjustment.linearize(x)
 
     def linearize_views(self, x: Variables) -> NormalEquations:
-        """The views' whitened normal equations at x (the observation block's): per camera, the model's derivatives
-        chained to the tangent spaces and each view's A^T A summed in one compiled pass
-        (:func:`~ari_sfm.factors.view_kernels.accumulate_views`; two cameras at once on two threads from
-        :data:`PARALLEL_MIN_CORNERS` corners), then the cameras added to the system in their order
-        (:func:`~ari_sfm.factors.view_kernels.add_camera`): the same numbers on one thread or two."""
+        """The views' whitened normal equations at x (the observation block's).
+
+        Per camera, the model's derivatives chained to the tangent spaces and each view's A^T A summed in one
+        compiled pass (:func:`~ari_sfm.factors.view_kernels.accumulate_views`; two cameras at once on two
+        threads from :data:`PARALLEL_MIN_CORNERS` corners), then the cameras added to the system in their order
+        (:func:`~ari_sfm.factors.view_kernels.add_camera`): the same numbers on one thread or two.
+
+        Args:
+            x: The linearisation point.
+
+        Returns:
+            The system: the target frames as the blocks (6 columns each), ``n_global`` global columns.
+
+        Raises:
+            NonFiniteJacobian: a Jacobian entry is not finite (a corner behind the window).
+        """
         C, F, G = len(self.camera_names), len(self.frame_names), self.n_global
         tr = self._transforms(x)
         V, g_f = np.zeros((F, 6, 6)), np.zeros((F, 6))
@@ -534,7 +567,15 @@ class VectorizedProblem:
 
     @staticmethod
     def solve(sys: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray] | None:
-        """(global step, frame steps) of the damped system (:func:`~ari_sfm.solver.schur.solve_damped`)."""
+        """The step of the damped system (:func:`~ari_sfm.solver.schur.solve_damped`).
+
+        Args:
+            sys: The normal equations.
+            lam: The damping.
+
+        Returns:
+            (global step, frame steps), or None when the damped system cannot be solved.
+        """
         return solve_damped(sys, lam)
 
     @staticmethod
@@ -542,7 +583,15 @@ class VectorizedProblem:
         return model_decrease(sys, *step)
 
     def retract(self, x: Variables, step: tuple[np.ndarray, np.ndarray]) -> Variables:
-        """x moved by (global step, frame steps): Pose3 right perturbations, Unit3.retract, additive rest."""
+        """x moved by a step: Pose3 right perturbations, Unit3.retract, the rest additive.
+
+        Args:
+            x: The values.
+            step: (global step (n_global,), frame steps (F, 6)).
+
+        Returns:
+            The moved values.
+        """
         d_global, d_frame = step
         C, n_p, B = len(self.camera_names), self.n_params, self.camera_block
         blocks = d_global[: C * B].reshape(C, B)
@@ -559,9 +608,19 @@ class VectorizedProblem:
     # ------------------------------------------------------------------ LM
     def optimize(self, max_iterations: int = 100, relative_tolerance: float = 1e-10,
                  params: LMParams | None = None, stop: str = "converged") -> RigState:
-        """Levenberg-Marquardt from the current values (GTSAM's algorithm, see
-        :func:`~ari_sfm.solver.levenberg_marquardt.levenberg_marquardt` for ``stop``);
-        updates them, :attr:`iterations` and :attr:`report`, and returns the state."""
+        """Levenberg-Marquardt from the current values (GTSAM's algorithm).
+
+        Updates the values, :attr:`iterations` and :attr:`report`.
+
+        Args:
+            max_iterations: Cap on the accepted steps.
+            relative_tolerance: LM stops when the relative error decrease is below it.
+            params: LM's constants (default :class:`~ari_sfm.solver.levenberg_marquardt.LMParams`).
+            stop: The stop rule (see :func:`~ari_sfm.solver.levenberg_marquardt.levenberg_marquardt`).
+
+        Returns:
+            The state at the solution.
+        """
         cached = self._error_cache
         initial = cached[1] if cached is not None and cached[0] is self.x else None
         result = levenberg_marquardt(self, self.x, max_iterations, relative_tolerance, params, stop, initial)
@@ -608,6 +667,12 @@ class VectorizedProblem:
         """Per factor (factor order): residual (2M,) and Jacobians in the factor's key order, as view_residuals.
 
         Not whitened by sigma (view_residuals is not either). For tests.
+
+        Args:
+            x: The values (default: the current ones).
+
+        Returns:
+            Per view factor, its residual and its Jacobian blocks (with Huber, the excess row appended).
         """
         x = self.x if x is None else x
         tr = self._transforms(x)
@@ -637,7 +702,12 @@ class VectorizedProblem:
         return [by_factor[i] for i in range(self.n_views)]
 
     def write_values(self, values: gtsam.Values, x: Variables | None = None) -> None:
-        """Update a gtsam.Values (holding this problem's keys) to x (default: the current values)."""
+        """Update a gtsam.Values (holding this problem's keys) to x.
+
+        Args:
+            values: The values, changed in place.
+            x: The values to write (default: the current ones).
+        """
         x = self.x if x is None else x
         for c in range(len(self.camera_names)):
             values.update(K_.K(c), np.asarray(x.intrinsics[c], float))
@@ -651,17 +721,27 @@ class VectorizedProblem:
             values.update(K_.X(f), gtsam.Pose3(gtsam.Rot3(x.world_R_target[f]), x.world_t_target[f]))
 
     def marginal_covariances(self) -> dict[int, np.ndarray]:
-        """Marginal covariances of the global variables at the current values, by key (K(c), C(c) for
-        c > 0, N(w), H(w)): what ``gtsam.Marginals(graph, values).marginalCovariance(key)`` gives, in the units
-        of the factors' sigmas (see :mod:`~ari_sfm.factors.marginals`)."""
+        """Marginal covariances of the global variables at the current values, by key.
+
+        What ``gtsam.Marginals(graph, values).marginalCovariance(key)`` gives, in the units of the factors'
+        sigmas (see :mod:`~ari_sfm.factors.marginals`).
+
+        Returns:
+            The covariances by gtsam key: K(c), C(c) for c > 0, N(w) and, when estimated, H(w) (GTSAM's
+            tangent spaces).
+        """
         cached = self._system_cache  # optimize's last linearisation when it was at the final values
         sys = cached[1] if cached is not None and cached[0] is self.x else self.linearize(self.x)
         return covariances_by_key(self, sys)
 
     def marginals(self) -> CovarianceTable:
-        """The marginal covariances as a ``gtsam.Marginals`` stand-in (``marginalCovariance(key)``
-        for the intrinsics, camera poses, normal and distance), e.g. for
-        :func:`ari_sfm.factors.uncertainty.rig_uncertainty`."""
+        """The marginal covariances as a ``gtsam.Marginals`` stand-in.
+
+        E.g. for :func:`ari_sfm.factors.uncertainty.rig_uncertainty`.
+
+        Returns:
+            A table answering ``marginalCovariance(key)`` for the intrinsics, camera poses, normal and distance.
+        """
         return CovarianceTable(self.marginal_covariances())
 
     # ------------------------------------------------------------------ consistency with a graph

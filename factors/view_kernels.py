@@ -1,10 +1,10 @@
-"""The view factor's chain rule to the tangent spaces, compiled: the one copy, called by the GTSAM factor
-(:func:`~ari_sfm.factors.view_factor.view_residuals`, through :func:`chain_rows`) and by the numpy
-backend (:meth:`~ari_sfm.factors.packed_problem.VectorizedProblem.linearize`, through
-:func:`accumulate_views`, which also forms each view's normal equations in the same pass, and
-:func:`add_camera`, which adds a camera's to the whole system).
-numba, ``cache=True``; the model's derivatives come in as arrays (the physics stays in
-:mod:`ari_sfm.models.kernels`), the Huber weights from :mod:`~ari_sfm.factors.robust`.
+"""The view factor's chain rule to the tangent spaces, compiled (numba, ``cache=True``).
+
+The one copy, called by the GTSAM factor (:func:`~ari_sfm.factors.view_factor.view_residuals`, through
+:func:`chain_rows`) and by the numpy backend (:meth:`~ari_sfm.factors.packed_problem.VectorizedProblem.linearize`,
+through :func:`accumulate_views`, which also forms each view's normal equations in the same pass, and
+:func:`add_camera`, which adds a camera's to the whole system). The model's derivatives come in as arrays
+(the physics stays in :mod:`ari_sfm.models.kernels`), the Huber weights from :mod:`~ari_sfm.factors.robust`.
 
 One corner of one camera and one view, pixel row j (row vectors; ``j x v`` is ``j^T [v]x``), from
 the model's ``J_X``, ``J_n`` (3,) and ``J_h`` (scalar) at ``X = R_ct P + t_ct``
@@ -66,14 +66,25 @@ def _tangent_row(J_point, J_normal, J_distance, o, j, X_cam, P, R_ct, n_cam, cam
 @njit(**_JIT)
 def rig_transforms(world_R_cam, world_t_cam, world_R_target, world_t_target, view_camera, view_frame, normal_world,
                    distance, with_distance):
-    """The packed problem's per-view and per-camera quantities (:class:`~ari_sfm.factors.packed_problem.
-    _Transforms`): R_ct = R_cw R_wt and t_ct = R_cw (t_wt - t_wc) per view, n_c = R_cw n_w and (with
-    ``with_distance``) h_c = h - t_wc . n_w per camera, R_cw = R_wc^T.
+    """The packed problem's per-view and per-camera quantities (its ``_Transforms``).
 
-    Written as the numpy expressions they replaced, operation for operation (found by testing: the
-    stacked 3x3 ``@``: ``fma(a2 b2, fma(a1 b1, a0 b0))``; einsum over the transposed matrices and the
-    transposed matrices times n_w: ``(x0 + x1) + x2``; ``t_wc @ n_w``: the same for one camera, else
-    ``fma(x2, fma(x0, x1))``), so the results are those bits."""
+    R_ct = R_cw R_wt and t_ct = R_cw (t_wt - t_wc) per view, n_c = R_cw n_w and (with ``with_distance``)
+    h_c = h - t_wc . n_w per camera, R_cw = R_wc^T.
+
+    Args:
+        world_R_cam: each camera's world_T_cam rotation (C, 3, 3).
+        world_t_cam: each camera's world_T_cam translation (C, 3).
+        world_R_target: each frame's world_T_target rotation (F, 3, 3).
+        world_t_target: each frame's world_T_target translation (F, 3).
+        view_camera: each view's camera (V,).
+        view_frame: each view's frame (V,).
+        normal_world: the window's unit normal n_w in the world (3,).
+        distance: the window's plane offset h (mm).
+        with_distance: compute h_c.
+
+    Returns:
+        R_ct (V, 3, 3), t_ct (V, 3), n_c (C, 3) and h_c (C,) (empty without ``with_distance``).
+    """
     V, C = view_camera.shape[0], world_R_cam.shape[0]
     R_ct, t_ct = np.empty((V, 3, 3)), np.empty((V, 3))
     for v in range(V):
@@ -101,7 +112,17 @@ def rig_transforms(world_R_cam, world_t_cam, world_R_target, world_t_target, vie
 
 @njit(**_JIT)
 def transform_points(P, R_view, t_view, view_start):
-    """``R P + t`` (m, 3) of corners P (m, 3) grouped by view (view v: corners view_start[v]..[v + 1])."""
+    """``R P + t`` of corners grouped by view.
+
+    Args:
+        P: the corners (m, 3).
+        R_view: each view's rotation R (nv, 3, 3).
+        t_view: each view's translation t (nv, 3).
+        view_start: view v's corners are ``view_start[v]:view_start[v + 1]`` (nv + 1,).
+
+    Returns:
+        The transformed corners (m, 3).
+    """
     X = np.empty_like(P)
     for v in range(len(view_start) - 1):
         R, t = R_view[v], t_view[v]
@@ -115,9 +136,29 @@ def transform_points(P, R_view, t_view, view_start):
 @njit(**_JIT)
 def chain_rows(J_point, J_normal, J_distance, X_cam, P, R_view, view_start, n_cam, cam_shift, normal_map,
                normal_shift, pose, distance, n_params, out):
-    """Every corner's tangent-space rows into ``out`` (m, 2, >= 6 + n_params + 8 (+1)), the intrinsics'
-    columns 6..6 + n_params and, for a camera without a pose (camera 0), its pose columns left as the
-    caller's (zeros); corners grouped by view (``R_view`` (nv, 3, 3) = R_ct)."""
+    """Every corner's tangent-space rows into ``out`` (module docstring's row layout).
+
+    The intrinsics' columns 6..6 + n_params and, for a camera without a pose (camera 0), its pose columns
+    are left as the caller's (zeros).
+
+    Args:
+        J_point: d uv / d X_cam (m, 2, 3) from the model.
+        J_normal: d uv / d n_cam (m, 2, 3) from the model.
+        J_distance: d uv / d h_c (m, 2) from the model.
+        X_cam: the camera-frame points (m, 3).
+        P: the target-frame points (m, 3).
+        R_view: each view's R_ct (nv, 3, 3).
+        view_start: view v's corners are ``view_start[v]:view_start[v + 1]`` (nv + 1,).
+        n_cam: the window's normal in the camera frame, R_cw n_world (3,)
+            (:func:`~ari_sfm.factors.view_factor.camera_terms`).
+        cam_shift: ``a`` = -(n_world R_wc) (3,).
+        normal_map: ``M`` = R_cw B (3, 2), B the normal's Unit3 tangent basis.
+        normal_shift: ``b`` = -(t_wc B) (2,).
+        pose: the camera has a pose variable (not camera 0).
+        distance: fill the H column (the distance is a variable).
+        n_params: the number of intrinsics columns.
+        out: the rows (m, 2, >= 6 + n_params + 8 (+1)), filled in place.
+    """
     k = 6 + n_params
     for v in range(len(view_start) - 1):
         R_ct = R_view[v]
@@ -130,17 +171,42 @@ def chain_rows(J_point, J_normal, J_distance, X_cam, P, R_view, view_start, n_ca
 @njit(**_JIT)
 def accumulate_views(J_point, J_normal, J_distance, J_params, X_cam, P, R_view, view_start, n_cam, cam_shift,
                      normal_map, normal_shift, pose, distance, row_scale, residual, V, g_frame, W, U, g_camera, bad):
-    """One camera's normal equations, in its own arrays (zeros in, filled in place): each view's
-    ``A^T A`` of its whitened rows ``A = [J_frame | J_camera | r]`` (filled in a scratch of the largest
-    view's size, multiplied by BLAS), summed over the camera's views. :func:`add_camera` adds them to the
-    whole system.
+    """One camera's normal equations, in its own arrays (zeros in, filled in place).
 
-    Rows: :func:`chain_rows` with the intrinsics from ``J_params`` (m, 2, n_params), without the pose
-    columns when the camera has none (camera 0), each corner's Jacobian times ``row_scale`` (m,) (sqrt of
-    the IRLS weight over sigma); ``residual`` (m, 2) already whitened. Out, by view v and camera-local
-    column (L of them: intrinsics, pose if any, normal, distance): ``V`` (nv, 6, 6), ``g_frame`` (nv, 6),
-    ``W`` (nv, 6, L), ``U`` (L, L), ``g_camera`` (L,). ``bad`` (m,) is set True where a Jacobian entry is
-    not finite. Returns the sum of the squared residuals."""
+    Each view's ``A^T A`` of its whitened rows ``A = [J_frame | J_camera | r]`` (filled in a scratch of the
+    largest view's size, multiplied by BLAS), summed over the camera's views; :func:`add_camera` adds them
+    to the whole system. The rows are :func:`chain_rows`' with the intrinsics from ``J_params``, without the
+    pose columns when the camera has none (camera 0). The outputs are by view v and camera-local column
+    (L of them: intrinsics, pose if any, normal, distance).
+
+    Args:
+        J_point: d uv / d X_cam (m, 2, 3) from the model.
+        J_normal: d uv / d n_cam (m, 2, 3) from the model.
+        J_distance: d uv / d h_c (m, 2) from the model.
+        X_cam: the camera-frame points (m, 3).
+        P: the target-frame points (m, 3).
+        R_view: each view's R_ct (nv, 3, 3).
+        view_start: view v's corners are ``view_start[v]:view_start[v + 1]`` (nv + 1,).
+        n_cam: the window's normal in the camera frame, R_cw n_world (3,)
+            (:func:`~ari_sfm.factors.view_factor.camera_terms`).
+        cam_shift: ``a`` = -(n_world R_wc) (3,).
+        normal_map: ``M`` = R_cw B (3, 2), B the normal's Unit3 tangent basis.
+        normal_shift: ``b`` = -(t_wc B) (2,).
+        pose: the camera has a pose variable (not camera 0).
+        distance: fill the H column (the distance is a variable).
+        J_params: d uv / d intrinsics (m, 2, n_params) from the model.
+        row_scale: each corner's Jacobian scale (m,): sqrt of the IRLS weight over sigma.
+        residual: the residuals (m, 2), already whitened.
+        V: out, J_frame^T J_frame per view (nv, 6, 6).
+        g_frame: out, J_frame^T r per view (nv, 6).
+        W: out, J_frame^T J_camera per view (nv, 6, L).
+        U: out, J_camera^T J_camera summed over the views (L, L).
+        g_camera: out, J_camera^T r summed over the views (L,).
+        bad: out (m,): set True where a Jacobian entry is not finite.
+
+    Returns:
+        The sum of the squared (whitened) residuals.
+    """
     n_params = J_params.shape[2]
     L = U.shape[0]
     K = 6 + L
@@ -187,9 +253,24 @@ def accumulate_views(J_point, J_normal, J_distance, J_params, X_cam, P, R_view, 
 
 @njit(**_JIT)
 def add_camera(V_c, g_frame_c, W_c, U_c, g_camera, view_frame, cols, V, g_frame, W, U, g_global):
-    """One camera's normal equations (:func:`accumulate_views`' arrays) added to the whole system's (in
-    place): ``view_frame`` (nv,) each view's frame, ``cols`` (L,) the global column of each camera-local one.
-    The cameras are added one after the other, in their order, whichever thread formed each."""
+    """One camera's normal equations (:func:`accumulate_views`' arrays) added to the whole system's, in place.
+
+    The cameras are added one after the other, in their order, whichever thread formed each.
+
+    Args:
+        V_c: the camera's per-view frame blocks (nv, 6, 6).
+        g_frame_c: its per-view frame gradients (nv, 6).
+        W_c: its per-view couplings (nv, 6, L).
+        U_c: its camera-local block (L, L).
+        g_camera: its camera-local gradient (L,).
+        view_frame: each view's frame (nv,).
+        cols: the global column of each camera-local one (L,).
+        V: the system's frame blocks (F, 6, 6), added to.
+        g_frame: the system's frame gradients (F, 6), added to.
+        W: the system's couplings (F, 6, G), added to.
+        U: the system's global block (G, G), added to.
+        g_global: the system's global gradient (G,), added to.
+    """
     L = cols.shape[0]
     for v in range(view_frame.shape[0]):
         f = view_frame[v]

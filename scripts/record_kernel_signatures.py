@@ -34,7 +34,17 @@ from numba.core.types import Array, {types}
 
 
 def array(dtype, ndim: int, layout: Literal["C", "F", "A"] = "C", readonly: bool = False) -> Array:
-    """An array type (layout "C": contiguous, "A": any strides)."""
+    """An array type of numba.
+
+    Args:
+        dtype: the element type (e.g. ``float64``).
+        ndim: the number of dimensions.
+        layout: "C" contiguous, "F" Fortran-contiguous, "A" any strides.
+        readonly: a read-only array.
+
+    Returns:
+        numba's ``Array`` type.
+    """
     return Array(dtype, ndim, layout, readonly=readonly)
 
 

@@ -1,22 +1,16 @@
 """Self-calibration's bundle adjustment: the particles as landmarks, every camera free, the window held.
 
-What moves in a lab after a target calibration is the cameras (any of them may be bumped); the
-window (a tank wall, a port) does not. So the window's plane is held in the lab (the calibration's
-world frame) and every camera's pose is estimated, camera 0 included. The particles do not see the
-motions that keep the window's plane (:func:`window_gauge`: for one window under water a rotation
-about its normal and a translation within its plane; in air also the translation along the
-normal, whose distance refraction does not show): those are held as the *gauge*, by stiff rows
-saying that the rig's mean motion from the start along them is zero (:class:`Gauge`). The scale is
-held by one more stiff row: the sum of the distances between every pair of camera centres at the
-start's value (particles barely determine it, PHYSICS.md; a sum over all pairs lets no single
-camera's drift set it).
+The window's plane is held in the lab (the calibration's world frame) and every camera's pose is
+estimated, camera 0 included. The particles do not see the motions that keep the window's plane
+(:func:`window_gauge`: for one window under water a rotation about its normal and a translation within
+its plane; in air also the translation along the normal, whose distance refraction does not show): those
+are held as the *gauge*, by stiff rows saying that the rig's mean motion from the start along them is
+zero (:class:`Gauge`). The scale, which the particles barely determine (PHYSICS.md), is held by one more
+stiff row: the sum of the distances between every pair of camera centres at the start's value.
 
 The intrinsics (fx fy cx cy, and k1 when the start estimated distortion) are estimated with the
-start calibration's values and sigmas (its ``uncertainty``) as priors: a principal point shifts the
-particle images almost as a rotation does (over a small field they differ only by the rotation's
-second-order terms), so the particles alone split them poorly, while the target calibration's
-sigmas bound them. Prior rows are whitened against the particles' pixel noise (``noise_px``) so the
-two kinds of information are weighed right.
+start calibration's values and sigmas (its ``uncertainty``) as priors. Prior rows are whitened against
+the particles' pixel noise (``noise_px``), so that the two kinds of information are weighed right.
 
 The problem is refine-colmap's refractive problem (:class:`ari_sfm.colmap.refine.problem.RefractiveProblem`,
 world mount, ``camera_windows`` for several windows): one rig frame (camera 0's pose, a variable
@@ -78,9 +72,18 @@ def _log_rotation(R: np.ndarray) -> np.ndarray:
 
 
 def free_intrinsics(calibration: Calibration, mode: str) -> tuple[int, ...]:
-    """Indices into [fx fy cx cy k1 k2 p1 p2 k3] estimated: none when held (or "prior" without the start's
-    uncertainty to weigh them: a prior of unknown width would let a principal point trade against a
-    rotation freely), else fx fy cx cy and k1 when the start has lens distortion."""
+    """The intrinsic parameters self-calibration estimates.
+
+    No parameter when held, or in mode "prior" without the start's uncertainty to weigh them (a warning is
+    logged); else fx fy cx cy, and k1 when the start has lens distortion.
+
+    Args:
+        calibration: The start calibration.
+        mode: One of :data:`INTRINSICS_MODES` ("prior", "held", "free").
+
+    Returns:
+        Indices into [fx fy cx cy k1 k2 p1 p2 k3].
+    """
     if mode == "held" or (mode == "prior" and calibration.uncertainty is None):
         if mode == "prior":
             log.warning("self-calibration: the start calibration has no uncertainty to weigh its intrinsics "
@@ -92,8 +95,16 @@ def free_intrinsics(calibration: Calibration, mode: str) -> tuple[int, ...]:
 
 
 def landmark_model(calibration: Calibration, particles: ParticleSet, free: Sequence[int]):
-    """The particles as a one-frame COLMAP-like model: one image per camera, camera 0 the rig's
-    reference sensor; ``free`` intrinsic indices (of the 9) are variables."""
+    """The particles as a one-frame COLMAP-like model: one image per camera, camera 0 the rig's reference sensor.
+
+    Args:
+        calibration: The start calibration (the cameras' parameters and poses).
+        particles: The matched particles: each one a point, each of its used images an observation.
+        free: The indices (of the 9 intrinsics) that are variables.
+
+    Returns:
+        The :class:`~ari_sfm.colmap.adapter.ColmapModel`.
+    """
     from ..colmap.adapter import ColmapModel
 
     names = list(calibration.cameras)
@@ -131,9 +142,20 @@ def window_planes(calibration: Calibration) -> tuple[np.ndarray, np.ndarray]:
 
 
 def window_gauge(normals: np.ndarray, in_air: Sequence[bool], complement: bool = False) -> np.ndarray:
-    """(K, 6) orthonormal twists [omega, v] (rotation about the world origin, translation) of the rigid
-    motions that keep every window's plane: omega along each normal n, v within its plane (in air also
-    along n: the distance is not observed). One window under water: K = 3; two non-parallel: K = 1."""
+    """The rigid motions that keep every window's plane, as orthonormal twists.
+
+    A twist is [omega, v] (rotation about the world origin, translation): omega along each normal n, v within
+    its plane (in air also along n: the distance is not observed). One window under water: K = 3; two
+    non-parallel: K = 1.
+
+    Args:
+        normals: Each window's unit normal in the world (W, 3).
+        in_air: Whether air is behind each window (W,).
+        complement: Return the orthonormal complement instead: the rigid motions that move a window's plane.
+
+    Returns:
+        The twists (K, 6) (with ``complement``: (6 - K, 6)).
+    """
     rows = []
     for n, air in zip(np.asarray(normals, float), in_air):
         basis = np.linalg.svd(n[None, :])[2][1:]  # two unit vectors perpendicular to n
@@ -158,12 +180,20 @@ def camera_poses(state) -> tuple[np.ndarray, np.ndarray]:
 
 
 def motion_jacobians(state, layout) -> tuple[np.ndarray, np.ndarray]:
-    """(C, 3, G) Jacobians of each camera's world rotation increment rho_c (world_from_cam moves as
-    exp(rho) R^T) and (C, 3, G) of its centre, with respect to the reduced variables (G = layout.size).
+    """Jacobians of each camera's world rotation increment and centre with respect to the reduced variables.
 
-    With R_c = S_c R_f, t_c = S_c t_f + t_s and the perturbations (exp(w) R, t + v) of the frame (f)
-    and the sensor (s): camera c turns by phi = w_s + S_c w_f (camera frame), so d rho = -R_c^T phi,
-    and its centre C = -R_c^T t_c moves by -R_c^T ([t_c]x phi + v_s + S_c v_f - [S_c t_f]x w_s)."""
+    The rotation increment rho_c: world_from_cam moves as exp(rho) R^T. With R_c = S_c R_f,
+    t_c = S_c t_f + t_s and the perturbations (exp(w) R, t + v) of the frame (f) and the sensor (s):
+    camera c turns by phi = w_s + S_c w_f (camera frame), so d rho = -R_c^T phi, and its centre
+    C = -R_c^T t_c moves by -R_c^T ([t_c]x phi + v_s + S_c v_f - [S_c t_f]x w_s).
+
+    Args:
+        state: The points problem's state (one frame, one image per camera).
+        layout: Its reduced layout (G = layout.size).
+
+    Returns:
+        d rho / d x (C, 3, G) and d C / d x (C, 3, G).
+    """
     G = layout.size
     f = state.rig_from_world[0]
     C = len(state.sensor_from_rig)
@@ -186,13 +216,17 @@ def motion_jacobians(state, layout) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass(frozen=True)
 class Gauge:
-    """What self-calibration holds of the rig: its mean motion from the start along the motions that
-    keep the windows (``twists``, :func:`window_gauge`) and the sum of all pairwise camera distances.
+    """What self-calibration holds of the rig: its mean motion along the window-keeping motions, and its scale.
+
+    The mean motion is from the start, along the motions that keep the windows (``twists``,
+    :func:`window_gauge`); the scale is the sum of all pairwise camera distances.
 
     ``g_k = sum_c (L^2 omega_k . rho_c + (omega_k x C0_c + v_k) . (C_c - C0_c)) / norm_k`` (mm) is the
     component of the cameras' motions along gauge motion k (``L``: ``length_mm``, the rig's distance
     to the particles, weighs rotations against displacements); the rows say g = 0 and
-    sum_{i<j} |C_i - C_j| = ``scale_sum_mm``, each with sigma ``STIFF_SIGMA_MM``."""
+    sum_{i<j} |C_i - C_j| = ``scale_sum_mm``, each with sigma ``STIFF_SIGMA_MM``. The ``soft`` motions'
+    components are held softly, with sigma ``soft_sigma_mm``.
+    """
 
     start_R: np.ndarray  # (C, 3, 3) the start's cam_from_world rotations
     start_centres: np.ndarray  # (C, 3)
@@ -222,7 +256,15 @@ class Gauge:
         return m / norm[:, None, None]
 
     def rows(self, state, layout) -> tuple[np.ndarray, np.ndarray]:
-        """Whitened errors (K + 1,) and their Jacobians (K + 1, G): the gauge rows, then the scale row."""
+        """The gauge rows, the scale row, then (with ``soft``) the soft rows, whitened.
+
+        Args:
+            state: The points problem's state.
+            layout: Its reduced layout (G = layout.size).
+
+        Returns:
+            The whitened errors (K + 1 (+ S),) and their Jacobians (K + 1 (+ S), G).
+        """
         R, t = camera_poses(state)
         centres = -np.einsum("cji,cj->ci", R, t)
         rho = np.array([_log_rotation(Rc.T @ R0) for Rc, R0 in zip(R, self.start_R)])
@@ -265,8 +307,11 @@ def _pairwise_sum_gradient(centres: np.ndarray) -> tuple[float, np.ndarray]:
 
 @dataclass(frozen=True)
 class IntrinsicsPrior:
-    """The start's values of the free intrinsics (``free`` indices of the 9) and how sure it is of them: per
-    camera the sigmas, or (``whitening``) the joint covariance of every camera's free intrinsics."""
+    """The start's values of the free intrinsics and how sure it is of them.
+
+    ``free``: the indices (of the 9) of the free intrinsics; per camera the sigmas, or (``whitening``) the
+    joint covariance of every camera's free intrinsics.
+    """
 
     free: tuple[int, ...]
     values: np.ndarray  # (C, F)
@@ -293,15 +338,34 @@ class IntrinsicsPrior:
         return IntrinsicsPrior(tuple(free), values, sig)
 
     def with_covariance(self, covariance: np.ndarray) -> IntrinsicsPrior:
-        """This prior with the joint (C F, C F) covariance of the free intrinsics (camera-major) instead of the
-        sigmas alone: the correlations a target calibration leaves between parameters (a principal point and
-        a tangential distortion term, the radial terms, two cameras) weigh the particles' evidence too."""
+        """This prior with the joint covariance of the free intrinsics instead of the sigmas alone.
+
+        Args:
+            covariance: The joint covariance (C F, C F), camera-major.
+
+        Returns:
+            The prior, its sigmas from the covariance's diagonal and its whitening from all of it
+            (:func:`whitening_of`).
+        """
         return replace(self, sigmas=np.sqrt(np.diag(covariance)).reshape(self.values.shape),
                        whitening=whitening_of(covariance))
 
     def rows(self, state, layout, noise_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Whitened errors (R,), their Jacobian (R, K) and the K columns it is on, weighed against pixel
-        residuals of ``noise_px`` (the rows are noise_px W (p - p0); with sigmas alone W = diag(1 / sigma))."""
+        """The prior's whitened rows, weighed against pixel residuals of ``noise_px``.
+
+        The rows are noise_px W (p - p0); with sigmas alone W = diag(1 / sigma).
+
+        Args:
+            state: The points problem's state.
+            layout: Its reduced layout.
+            noise_px: The pixel noise the rows are weighed against.
+
+        Returns:
+            The whitened errors (R,), their Jacobian (R, K) and the K columns it is on.
+
+        Raises:
+            ValueError: the prior's covariance is over another number of parameters than the problem estimates.
+        """
         cols, delta, w = [], [], []
         for c, ix in enumerate(layout.intrinsics):
             for j, col in enumerate(ix):
@@ -323,11 +387,19 @@ class IntrinsicsPrior:
 
 
 def guessed_principal_points(calibration: Calibration) -> list[str]:
-    """The cameras whose principal point the start held at a guess rather than estimated (``calibrate`` holds
-    it at the image centre when its views leave it undetermined): cx or cy with a sigma below HELD_SIGMA_PX
-    while the focal length's is not (every intrinsic held: a K declared known, ``--fix-intrinsics``). A
-    principal point trades against a rotation for the particles: the self-calibrated rotations inherit
-    its error, so it gets the prior of an unknown (UNKNOWN_PRIOR_PX) and the result says so."""
+    """The cameras whose principal point the start held at a guess rather than estimated.
+
+    ``calibrate`` holds it at the image centre when its views leave it undetermined: cx or cy with a sigma
+    below HELD_SIGMA_PX while the focal length's is not (every intrinsic held: a K declared known,
+    ``--fix-intrinsics``). Such a principal point gets the prior of an unknown (UNKNOWN_PRIOR_PX) and the
+    result says so.
+
+    Args:
+        calibration: The start calibration.
+
+    Returns:
+        The cameras' names (none without the start's uncertainty).
+    """
     unc = calibration.uncertainty
     if unc is None:
         return []
@@ -347,8 +419,19 @@ def _held(sigmas: Mapping[str, float | None], name: str) -> bool:
 
 
 def whitening_of(covariance: np.ndarray) -> np.ndarray:
-    """W with W^T W = covariance^-1 (on its correlations, so that px and k1's units do not matter; directions
-    the covariance holds no variance along are given none of the information either)."""
+    """W with W^T W = covariance^-1, computed on its correlations.
+
+    Directions the covariance holds no variance along are given none of the information either.
+
+    Args:
+        covariance: The covariance (n, n).
+
+    Returns:
+        W (r, n), r the covariance's rank.
+
+    Raises:
+        ValueError: the covariance is not finite or its diagonal not positive.
+    """
     cov = np.asarray(covariance, float)
     s = np.sqrt(np.diag(cov))
     if not (np.all(np.isfinite(cov)) and np.all(s > 0)):
@@ -452,9 +535,20 @@ def _sigma(J: np.ndarray, cov: np.ndarray) -> float:
 
 
 def covariance(solver, state, names: Sequence[str], system=None) -> Covariance:
-    """Per camera the sigmas of its pose relative to camera 0, in the world, and of its intrinsics:
-    ``s0^2 S^-1`` (the undamped Schur complement, :func:`ari_sfm.solver.schur.global_covariance`),
-    ``s0`` the fitted noise (Huber-weighted residuals over the degrees of freedom)."""
+    """Per camera the sigmas of its pose relative to camera 0, in the world, and of its intrinsics.
+
+    The covariance is ``s0^2 S^-1`` (S the undamped Schur complement,
+    :func:`ari_sfm.solver.schur.global_covariance`), ``s0`` the fitted noise (:func:`fitted_noise`).
+
+    Args:
+        solver: The adjustment's solver.
+        state: The solution.
+        names: The cameras' names, in the calibration's order.
+        system: The solver's normal equations at ``state``, if LM left them (else linearized here).
+
+    Returns:
+        The fitted noise and each camera's sigmas.
+    """
     from ..solver.schur import global_covariance
 
     lay = solver.problem.layout
@@ -483,7 +577,15 @@ def covariance(solver, state, names: Sequence[str], system=None) -> Covariance:
 
 
 def fitted_noise(solver, state) -> float:
-    """The a-posteriori pixel noise per coordinate: sqrt(Huber-weighted chi^2 / degrees of freedom)."""
+    """The a-posteriori pixel noise per coordinate: sqrt(Huber-weighted chi^2 / degrees of freedom).
+
+    Args:
+        solver: The adjustment's solver.
+        state: The solution.
+
+    Returns:
+        The noise (px); NaN without degrees of freedom.
+    """
     from ..colmap.refine.problem import huber_weights
 
     r = solver.problem.residuals(state)
@@ -518,10 +620,28 @@ class Refined:
 def refine_with_landmarks(calibration: Calibration, particles: ParticleSet, gauge: Gauge,
                           prior: IntrinsicsPrior, huber_px: float = 1.0, max_iterations: int = 50,
                           backend: str = "numpy", noise_px: float = 0.1) -> Refined:
-    """``calibration`` corrected by a bundle adjustment with ``particles`` as landmarks (module docstring):
-    every camera's pose and the free intrinsics estimated, the window held in the world, the ``gauge``
-    and the scale held. ``noise_px``: the first guess of the pixel noise the priors are weighed against
-    (refitted when the residuals say otherwise)."""
+    """``calibration`` corrected by a bundle adjustment with ``particles`` as landmarks (module docstring).
+
+    Every camera's pose and the free intrinsics are estimated, the window held in the world, the ``gauge``
+    and the scale held.
+
+    Args:
+        calibration: The start calibration.
+        particles: The matched particles.
+        gauge: What is held of the rig (:meth:`Gauge.of`).
+        prior: The intrinsics' prior (its ``free`` the estimated intrinsics).
+        huber_px: The Huber threshold (px).
+        max_iterations: Cap on Levenberg-Marquardt's iterations (per solve).
+        backend: "numpy" or "gtsam" (:data:`BACKENDS`).
+        noise_px: The first guess of the pixel noise the priors are weighed against (refitted when the
+            residuals say otherwise).
+
+    Returns:
+        The corrected calibration, the adjustment's summary, its sigmas and the residuals.
+
+    Raises:
+        AriSfmError: an unknown backend, or the gtsam backend with more than :data:`GTSAM_MAX_LANDMARKS` particles.
+    """
     from ..colmap.refine.problem import RefractiveProblem, State
 
     t0 = time.perf_counter()
@@ -594,8 +714,18 @@ def refine_with_landmarks(calibration: Calibration, particles: ParticleSet, gaug
 
 
 def with_windows(calibration: Calibration, normals: np.ndarray, planes: np.ndarray) -> Calibration:
-    """``calibration`` (its cameras already moved) with each window at ``normals``, ``planes`` in the world;
-    the distances (from each window's first camera, as calibration.json gives them) follow the cameras."""
+    """``calibration`` (its cameras already moved) with each window at ``normals``, ``planes`` in the world.
+
+    The distances (from each window's first camera, as calibration.json gives them) follow the cameras.
+
+    Args:
+        calibration: The calibration, its cameras at their new poses.
+        normals: Each window's unit normal in the world (W, 3).
+        planes: Each window's near face offset (W,) (``normal . X = plane`` on the face).
+
+    Returns:
+        The calibration with its windows.
+    """
     windows = []
     for w, n, h in zip(calibration.window_list(), normals, planes):
         centre = calibration.cameras[w.cameras[0]].cam_from_world.inverse().t

@@ -15,7 +15,7 @@ held is chosen by one :class:`Selection`. The three configurations:
 
 A term written as whitened rows (:class:`RowTerm`) is written once: the numpy backend adds its rows to
 the normal equations here, the GTSAM backend wraps the same rows as one ``gtsam.CustomFactor``
-(:func:`ari_sfm.colmap.refine.gtsam_graph.term_factor`).
+(:meth:`ari_sfm.colmap.refine.gtsam_graph.GtsamRefinement.term_factor`).
 """
 from __future__ import annotations
 
@@ -103,7 +103,12 @@ class Term(Protocol):
         ...
 
     def add_to(self, system: NormalEquations, x: Any) -> None:
-        """Add the term's linearisation at ``x`` to ``system`` (its U, g_global and error)."""
+        """Add the term's linearisation at ``x`` to ``system``.
+
+        Args:
+            system: The normal equations; their U, g_global and error are changed in place.
+            x: The linearisation point.
+        """
         ...
 
 
@@ -124,8 +129,15 @@ class RowTerm(ABC):
         """
 
     def columns(self) -> np.ndarray:
-        """The reduced columns the term may depend on (the GTSAM factor's keys); default: every column of
-        its rows at the start, which a subclass narrows when its rows are dense over the variables."""
+        """The reduced columns the term may depend on (the GTSAM factor's keys).
+
+        Returns:
+            The columns (q,): those of its rows at the start or, when its rows are dense over the variables,
+            the ones they depend on.
+
+        Raises:
+            NotImplementedError: in this base class; each subclass names its columns.
+        """
         raise NotImplementedError
 
     def error(self, x: Any) -> float:
@@ -167,7 +179,15 @@ class ObservationBlock(Protocol):
         ...
 
     def retract(self, x: Any, step: Any) -> Any:
-        """``x`` moved by ``step`` (global step, block steps)."""
+        """``x`` moved by ``step``.
+
+        Args:
+            x: The state.
+            step: (global step, block steps).
+
+        Returns:
+            The moved state.
+        """
         ...
 
 

@@ -1,6 +1,8 @@
-"""refine-colmap's chain rule, compiled: the exact model's Jacobians in the camera frame (point,
-normal, distance; :func:`ari_sfm.models.exact.exact_project`) carried to the problem's tangent
-spaces (:mod:`.problem`'s module docstring) in one pass over the observations (numba, ``cache=True``).
+"""refine-colmap's chain rule, compiled (numba, ``cache=True``).
+
+The exact model's Jacobians in the camera frame (point, normal, distance;
+:func:`ari_sfm.models.exact.exact_project`) carried to the problem's tangent spaces (:mod:`.problem`'s
+module docstring) in one pass over the observations.
 
 Per observation o and pixel row j (row vectors; ``x`` the cross product, ``j^T [v]x = j x v``):
 ``a = R X`` and an image pose perturbation (w, v) of cam_from_world gives ``dX_cam = -[a]x w + v``::
@@ -23,10 +25,27 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy")
 @njit(**_JIT)
 def chain_observations(J_X, J_n, J_h, a, R, t, S, StP, world, n_cam, B, centres, out, frame0, sensor0, window0,
                        J_p):
-    """Fills ``out`` (M, 2, .) at columns frame0.. (6), sensor0.. (6), window0.. (3) and ``J_p``
-    (M, 2, 3) (module docstring). Per observation: R, t (M, 3, 3), (M, 3) its image's
-    cam_from_world; S, StP its sensor's rotation and ``S (rig_from_world t)``; n_cam (M, 3); B
-    (M, 3, 2) the normal's tangent basis (world: the world normal's); centres (M, 3) (world only)."""
+    """Fill the observations' frame, sensor and window columns of ``out`` and their point Jacobians (module docstring).
+
+    Args:
+        J_X: d uv / d X_cam (M, 2, 3) from the exact model.
+        J_n: d uv / d n_cam (M, 2, 3) from the exact model.
+        J_h: d uv / d h (M, 2) from the exact model.
+        a: ``R X`` (M, 3), the rotated point.
+        R: each observation's image's cam_from_world rotation (M, 3, 3).
+        t: its cam_from_world translation (M, 3).
+        S: its sensor's rotation (sensor_from_rig) (M, 3, 3).
+        StP: ``S (rig_from_world t)`` (M, 3).
+        world: mount world (else mount camera).
+        n_cam: the window's normal in the camera frame (M, 3) (mount world only).
+        B: the normal's tangent basis (M, 3, 2) (world: the world normal's).
+        centres: the camera centres C in the world (M, 3) (mount world only).
+        out: the rows (M, 2, .), filled at columns frame0.. (6), sensor0.. (6), window0.. (3).
+        frame0: the frame's (rig_from_world) first column in ``out``.
+        sensor0: the sensor's (sensor_from_rig) first column in ``out``.
+        window0: the window's first column in ``out`` ([e1, e2, distance]).
+        J_p: out, the point Jacobians (M, 2, 3).
+    """
     M = J_X.shape[0]
     jw = [0.0, 0.0, 0.0]
     jv = [0.0, 0.0, 0.0]

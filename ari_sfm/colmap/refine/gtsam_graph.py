@@ -3,7 +3,7 @@
 Variables (keys, from the one key table :mod:`ari_sfm.factors.keys`): ``f(k)`` Pose3 rig_from_world of
 frame k >= 1 (frame 0 held: the gauge, not a variable), ``s(c)`` Pose3 sensor_from_rig of camera c
 (non-reference sensors), ``k(c)`` Vector of camera c's free COLMAP intrinsics, ``n(w)`` Unit3 window
-normal and ``d(w)`` Vector1 distance (mount camera: w = camera; mount world: w = 0), ``p(j)`` Point3 per
+normal and ``d(w)`` Vector1 distance (mount camera: w = camera; mount world: w = the window), ``p(j)`` Point3 per
 COLMAP point3D.
 
 The residuals and Jacobians are :meth:`RefractiveProblem.linearize`'s, restricted to the image's
@@ -11,8 +11,7 @@ observations and chained to GTSAM's tangent spaces: a Pose3 ``a_from_b`` moves a
 ``T Exp([w, v])`` (R' = R exp(w), t' = t + R v), i.e. this module's left perturbation
 (exp(R w) R, t + R v); a Unit3 by its own basis. Huber as the rig graph does (per observation inside
 the factor, :func:`ari_sfm.factors.robust.huber_view_residual`: IRLS rows and an excess row, the
-error the Huber loss). GTSAM's
-LM eliminates the points itself (its ordering).
+error the Huber loss). GTSAM's LM eliminates the points itself (its ordering).
 """
 from __future__ import annotations
 
@@ -106,7 +105,15 @@ class GtsamRefinement:
         return v
 
     def state(self, values: gtsam.Values, template: State) -> State:
-        """The state held by ``values`` (held variables from ``template``)."""
+        """The state held by ``values``.
+
+        Args:
+            values: The graph's values.
+            template: The state the held variables (those with no key) are read from.
+
+        Returns:
+            The state.
+        """
         m, lay = self.problem.model, self.problem.layout
 
         def pose(key: int) -> Pose:
@@ -213,7 +220,17 @@ class GtsamRefinement:
 
     def state_subset(self, values: gtsam.Values, template: State, var_keys: list[tuple[str, int]],
                      points: np.ndarray) -> State:
-        """``template`` with the variables one factor touches read from ``values``."""
+        """``template`` with the variables one factor touches read from ``values``.
+
+        Args:
+            values: The values GTSAM passes the factor.
+            template: The state the other variables are read from.
+            var_keys: The factor's non-point variables, as (kind, index) pairs (kinds of :data:`KEY_OF`).
+            points: The indices of the factor's points.
+
+        Returns:
+            The state.
+        """
         m = self.problem.model
         frames = list(template.rig_from_world)
         sensors = list(template.sensor_from_rig)
@@ -295,7 +312,15 @@ class GtsamRefinement:
         return g
 
     def optimize(self, state: State, max_iterations: int = 100) -> tuple[State, int]:
-        """GTSAM Levenberg-Marquardt from ``state``; the refined state and the iterations."""
+        """GTSAM Levenberg-Marquardt from ``state`` (relative and absolute error tolerances 1e-12).
+
+        Args:
+            state: The start.
+            max_iterations: Cap on GTSAM's iterations.
+
+        Returns:
+            The refined state and the number of iterations.
+        """
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
         params.setRelativeErrorTol(1e-12)

@@ -42,13 +42,30 @@ MOUNTS = ("camera", "world")
 
 
 def huber_weights(residuals: np.ndarray, huber_px: float | None) -> np.ndarray:
-    """IRLS weights (M,) of the Huber loss on each observation's pixel distance (1 without a loss):
-    :func:`ari_sfm.factors.robust.huber_weight`."""
+    """IRLS weights of the Huber loss on each observation's pixel distance.
+
+    :func:`ari_sfm.factors.robust.huber_weight` of the residuals' norms.
+
+    Args:
+        residuals: The residuals (M, 2), px.
+        huber_px: The Huber threshold (px); None: no loss.
+
+    Returns:
+        The weights (M,); 1 without a loss.
+    """
     return huber_weight(np.linalg.norm(residuals, axis=1), huber_px)
 
 
 def huber_cost(residuals: np.ndarray, huber_px: float | None) -> float:
-    """Sum over observations of rho(|r|) (:func:`ari_sfm.factors.robust.huber_loss`; inf if one is not finite)."""
+    """Sum over observations of rho(|r|) (:func:`ari_sfm.factors.robust.huber_loss`).
+
+    Args:
+        residuals: The residuals (M, 2), px.
+        huber_px: The Huber threshold (px); None: plain least squares.
+
+    Returns:
+        The cost; inf if a residual is not finite.
+    """
     s = np.linalg.norm(residuals, axis=1)
     if not np.all(np.isfinite(s)):
         return float("inf")
@@ -148,8 +165,14 @@ def selection_of(estimate_distance: bool, hold_window: bool = False, hold_normal
 
 @dataclass(frozen=True)
 class Linearization:
-    """Residuals (M, 2) px and Jacobians: reduced ``J_g`` (M, 2, q) at columns ``index`` (M, q),
-    -1 = none; points ``J_p`` (M, 2, 3)."""
+    """Residuals and Jacobians of M observations.
+
+    Attributes:
+        residuals: (M, 2) px.
+        J_g: (M, 2, q) the reduced variables' Jacobians, at columns ``index``.
+        index: (M, q) the reduced column of each of ``J_g``'s; -1 = none.
+        J_p: (M, 2, 3) the points' Jacobians.
+    """
 
     residuals: np.ndarray
     J_g: np.ndarray
@@ -179,6 +202,9 @@ class RefractiveProblem:
                 ``distances`` (default: one window, 0, for every camera).
             interfaces: Each window's plate (default ``interface`` for all).
             selection: What is estimated; when given, the five flags above are ignored.
+
+        Raises:
+            ValueError: an unknown mount, or ``camera_windows`` with mount camera.
         """
         if mount not in MOUNTS:
             raise ValueError(f"mount must be one of {MOUNTS}, got {mount!r}")
@@ -252,8 +278,16 @@ class RefractiveProblem:
         return uv - m.obs_uv
 
     def linearize(self, state: State, obs: np.ndarray | None = None) -> Linearization:
-        """Residuals and analytic Jacobians of every observation, or of the observations ``obs``
-        (see module docstring)."""
+        """Residuals and analytic Jacobians of the observations (see module docstring).
+
+        Args:
+            state: The linearisation point.
+            obs: The indices of the observations (default: every one).
+
+        Returns:
+            The linearization: the reduced columns in the order [frame, sensor, intrinsics, window], those no
+            observation uses dropped; the poses' columns of the left perturbation (exp(w) R, t + v).
+        """
         m, lay = self.model, self.layout
         sub = slice(None) if obs is None else obs
         oi, op, cam_of_obs = m.obs_image[sub], m.obs_point[sub], self._cam_of_obs[sub]
@@ -319,7 +353,16 @@ class RefractiveProblem:
 
     # ---------------------------------------------------------------- retract
     def retract(self, state: State, dg: np.ndarray, dp: np.ndarray) -> State:
-        """The state moved by the reduced step ``dg`` (layout.size,) and point steps ``dp`` (P, 3)."""
+        """The state moved by a step: poses as ``(exp(w) R, t + v)``, normals by ``unit3_retract``, the rest additively.
+
+        Args:
+            state: The state.
+            dg: The reduced step (layout.size,).
+            dp: The point steps (P, 3).
+
+        Returns:
+            The moved state.
+        """
         m, lay = self.model, self.layout
         g = np.append(dg, 0.0)  # index -1 reads 0
 

@@ -1,7 +1,9 @@
-"""The points problem's solver: Levenberg-Marquardt on the robust (Huber) cost of a
-:class:`~ari_sfm.colmap.refine.problem.RefractiveProblem`, the points eliminated by the Schur complement
-(:mod:`ari_sfm.solver.schur`); a window prior and a scale bar or baseline as terms of the cost. Used by
-refine-colmap and, with the gauge added, by volume self-calibration."""
+"""The points problem's solver: Levenberg-Marquardt on the robust (Huber) cost of a refractive problem.
+
+The cost is a :class:`~ari_sfm.colmap.refine.problem.RefractiveProblem`'s, the points eliminated by the
+Schur complement (:mod:`ari_sfm.solver.schur`); a window prior and a scale bar or baseline are terms of the
+cost. Used by refine-colmap and, with the gauge added, by volume self-calibration.
+"""
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -32,9 +34,10 @@ class SolveResult:
 
 
 class PointObservations:
-    """The points problem's observations as a bundle-adjustment block: the robust (Huber) cost of a
-    :class:`~ari_sfm.colmap.refine.problem.RefractiveProblem`, the points eliminated (blocks of 3), a scale
-    bar's two points moved into the reduced variables (the bar couples them).
+    """The points problem's observations as a bundle-adjustment block.
+
+    The robust (Huber) cost of a :class:`~ari_sfm.colmap.refine.problem.RefractiveProblem`, the points
+    eliminated (blocks of 3), a scale bar's two points moved into the reduced variables (the bar couples them).
 
     Args:
         problem: The refractive problem.
@@ -117,9 +120,10 @@ class PointObservations:
 
 
 class Solver(BundleAdjustment):
-    """refine-colmap's and self-calibration's bundle adjustment: the observations of a
-    :class:`~ari_sfm.colmap.refine.problem.RefractiveProblem` plus its terms, solved by the project's
-    Levenberg-Marquardt (:meth:`run`) or GTSAM's (:meth:`run_gtsam`) on the same terms.
+    """refine-colmap's and self-calibration's bundle adjustment.
+
+    The observations of a :class:`~ari_sfm.colmap.refine.problem.RefractiveProblem` plus its terms, solved by
+    the project's Levenberg-Marquardt (:meth:`run`) or GTSAM's (:meth:`run_gtsam`) on the same terms.
 
     Args:
         problem: The refractive problem.
@@ -168,8 +172,19 @@ class Solver(BundleAdjustment):
 
     def run(self, state: State, max_iterations: int, progress=None,
             relative_tolerance: float | None = None) -> SolveResult:
-        """The numpy backend: points Schur + the project's Levenberg-Marquardt (GTSAM's algorithm);
-        ``relative_tolerance``: LM's (default RELATIVE_TOLERANCE)."""
+        """Solve with the numpy backend: points Schur + the project's Levenberg-Marquardt (GTSAM's algorithm).
+
+        Args:
+            state: The start.
+            max_iterations: Cap on LM's accepted steps.
+            progress: Called with (accepted steps, error) after each linearisation's trials; None: not called.
+            relative_tolerance: LM stops when the relative cost decrease is below it (default
+                :data:`RELATIVE_TOLERANCE`).
+
+        Returns:
+            The result, with the number of linearizations and the normal equations at the solution when LM's
+            last linearization was there.
+        """
         from ...solver.levenberg_marquardt import LMParams, levenberg_marquardt
 
         tol = RELATIVE_TOLERANCE if relative_tolerance is None else relative_tolerance
@@ -180,7 +195,15 @@ class Solver(BundleAdjustment):
                            r.linearizations, res.system_at_x)
 
     def run_gtsam(self, state: State, max_iterations: int) -> SolveResult:
-        """The GTSAM backend (one CustomFactor per image, GTSAM's LM)."""
+        """Solve with the GTSAM backend (one CustomFactor per image, GTSAM's LM).
+
+        Args:
+            state: The start.
+            max_iterations: Cap on GTSAM's iterations.
+
+        Returns:
+            The result; converged when GTSAM stopped before ``max_iterations``.
+        """
         from .gtsam_graph import GtsamRefinement
 
         refined, iterations = GtsamRefinement(self.problem, self.huber_px, terms=self.row_terms, bar=self.bar).optimize(

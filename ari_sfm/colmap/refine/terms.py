@@ -3,7 +3,7 @@
 A declared window plane's prior (:class:`WindowPriorTerm`), a scale bar between two points
 (:class:`ScaleBarTerm`) and a baseline between two camera centres (:class:`BaselineTerm`). The numpy
 backend adds their rows to the normal equations (:class:`ari_sfm.solver.bundle.BundleAdjustment`); the
-GTSAM backend wraps the same rows as factors (:func:`ari_sfm.colmap.refine.gtsam_graph.term_factor`).
+GTSAM backend wraps the same rows as factors (:meth:`~ari_sfm.colmap.refine.gtsam_graph.GtsamRefinement.term_factor`).
 Self-calibration's gauge and intrinsics prior are terms of the same kind (:mod:`ari_sfm.particles.landmarks`).
 """
 from __future__ import annotations

@@ -56,10 +56,20 @@ def _frame_spread_gradient(state: Any, frame_cols: np.ndarray, size: int) -> tup
 
 
 def uncertainty(solver: Any, state: Any, names: list[str], system: Any = None) -> RefineUncertainty:
-    """The sigmas (1 sigma) of ``solver``'s refined ``state`` (see the module docstring):
-    ``normal_deg``, ``distance_mm`` per housing (mount camera) or of the world window, ``fx_px`` per
-    camera (the lens behind the window), ``scale_rel``, ``sigma0`` and the list ``weak``. ``system``:
-    ``solver``'s normal equations at ``state``, if LM left them (else linearized here)."""
+    """The sigmas (1 sigma) of ``solver``'s refined ``state`` (see the module docstring).
+
+    A parameter the data barely determine is logged as a warning with its remedy and listed in ``weak``.
+
+    Args:
+        solver: The points problem's solver (:class:`~ari_sfm.colmap.refine.solver.Solver`).
+        state: The refined state.
+        names: Each camera's name (``camera<id>``), in the model's camera order.
+        system: ``solver``'s normal equations at ``state``, if LM left them (else linearized here).
+
+    Returns:
+        ``normal_deg``, ``distance_mm`` per housing (mount camera) or of the world window, ``fx_px`` per
+        camera (the lens behind the window), ``scale_rel``, ``sigma0`` and the list ``weak``.
+    """
     problem = solver.problem
     model, lay = problem.model, problem.layout
     ne = solver.linearize(state) if system is None else system
