@@ -53,6 +53,25 @@ def _column_owners(problem: RefractiveProblem, bar: ScaleBar | None = None) -> d
     return out
 
 
+def _to_gtsam_tangents(blocks: dict[tuple[str, int], np.ndarray], state: State, image_camera: np.ndarray) -> None:
+    """Turn Jacobian blocks on this problem's tangents into GTSAM's, in place.
+
+    A pose's columns ``[w, v]`` (left perturbation ``(exp(w) R, t + v)``) become GTSAM's right
+    perturbation ``T Exp([w', v'])``, i.e. ``[R w', R v']``: the block times R on both halves. A normal's
+    basis is GTSAM's Unit3 basis already (:func:`ari_sfm.geometry.unit3_basis`); the rest is additive.
+
+    Args:
+        blocks: (kind, variable) -> its Jacobian block (rows, dim); kinds "f" (frame) and "s" (sensor) change.
+        state: The state the Jacobians were taken at.
+        image_camera: (I,) each image's camera (a sensor's pose is read from its first image).
+    """
+    for (kind, v), B in blocks.items():
+        if kind in ("f", "s"):
+            Rv = (state.rig_from_world[v].R if kind == "f"
+                  else state.sensor_from_rig[int(np.flatnonzero(image_camera == v)[0])].R)
+            B[:, :3], B[:, 3:] = B[:, :3] @ Rv, B[:, 3:] @ Rv
+
+
 class GtsamRefinement:
     """Build the graph from a state, optimise with GTSAM's LM, read the state back.
 
@@ -185,12 +204,7 @@ class GtsamRefinement:
                         sel = lin.index[:, col] == g
                         rsel = np.repeat(sel, 2)
                         blocks[(kind, v)][rsel, j] += Jg[sel, :, col].reshape(-1)
-                for (kind, v), B in blocks.items():
-                    if kind in ("f", "s"):  # GTSAM right perturbation: [R w, R v] in this module's terms
-                        Rv = (state.rig_from_world[v].R if kind == "f"
-                              else state.sensor_from_rig[int(np.flatnonzero(m.image_camera == v)[0])].R)
-                        B[:, :3], B[:, 3:] = B[:, :3] @ Rv, B[:, 3:] @ Rv
-                    # the normal: the problem's tangent basis is GTSAM's Unit3 basis (geometry.unit3_basis)
+                _to_gtsam_tangents(blocks, state, m.image_camera)
                 for i, vk in enumerate(var_keys):
                     H[i] = blocks[vk]
                 Jp = lin.J_p * wgt[:, None, None]
@@ -291,11 +305,7 @@ class GtsamRefinement:
                     if int(g) in allowed_set:
                         kind, v, j = owners[int(g)]
                         blocks[(kind, v)][:, j] += r.J[:, k]
-                for (kind, v), B in blocks.items():
-                    if kind in ("f", "s"):  # GTSAM right perturbation: [R w, R v] in this module's terms
-                        Rv = (state.rig_from_world[v].R if kind == "f"
-                              else state.sensor_from_rig[int(np.flatnonzero(m.image_camera == v)[0])].R)
-                        B[:, :3], B[:, 3:] = B[:, :3] @ Rv, B[:, 3:] @ Rv
+                _to_gtsam_tangents(blocks, state, m.image_camera)
                 for i, vk in enumerate(var_keys):
                     H[i] = blocks[vk]
             return r.e
