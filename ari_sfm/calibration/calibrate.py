@@ -7,6 +7,7 @@ import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, replace
+from enum import Enum
 from pathlib import Path
 from typing import TYPE_CHECKING, cast
 
@@ -39,8 +40,30 @@ START_TOLERANCE = 1e-3  # ... or this, for an ari stage whose result only starts
 # 1e-4 relative, 1e-10 absolute, and the window distance held in air, which only the ari stage sets: 0.7 um)
 EASED_PLANE_DEG = 0.05  # the eased-planes start: a held declared normal first as a prior of this sigma ...
 EASED_PLANE_MM = 0.5  # ... and a held face position as one of this
-PRINCIPAL_POINT_MODES = ("auto", "free", "centre")
 PRINCIPAL_POINT_MAX_SIGMA = 0.02  # auto: a principal point less determined than this share of the image is held
+
+
+class PrincipalPoint(str, Enum):
+    """How each camera's principal point is treated (``CalibrationOptions.principal_point``)."""
+
+    AUTO = "auto"  # estimated; held at the image centre for the cameras whose views leave it undetermined
+    FREE = "free"  # estimated for every camera
+    CENTRE = "centre"  # held at the image centre (cameras without a K hint)
+
+    def __str__(self) -> str:
+        return self.value
+
+
+class Backend(str, Enum):
+    """The bundle-adjustment solver (``CalibrationOptions.backend``)."""
+
+    AUTO = "auto"  # numpy
+    NUMPY = "numpy"  # the vectorised problem, GTSAM's Levenberg-Marquardt path
+    GTSAM = "gtsam"  # gtsam.LevenbergMarquardtOptimizer on the factor graph
+
+    def __str__(self) -> str:
+        return self.value
+
 
 
 @dataclass(frozen=True)
@@ -66,15 +89,15 @@ class CalibrationOptions:
         "cli": "--fix-intrinsics",
         "help": "Hold the rig.yaml hints: a K hint holds K (and dist); a focal_px hint holds "
                 "fx = fy = focal_px (principal point free)."})
-    principal_point: str = field(default="auto", metadata={
-        "cli": "--principal-point", "choices": ("auto", "free", "centre"),
+    principal_point: PrincipalPoint = field(default=PrincipalPoint.AUTO, metadata={
+        "cli": "--principal-point",
         "help": "Estimate each camera's principal point (free), or hold it at the image centre (centre). Default "
                 "(auto): estimated, and held for the cameras whose views leave it undetermined (standard deviation "
                 f"above {100 * PRINCIPAL_POINT_MAX_SIGMA:g} % of the image: one view of a shallow body cannot tell it "
                 "from the camera's rotation), the calibration then solved again; one line says which."})
     max_iterations: int = 100  # Levenberg-Marquardt iterations per stage
-    backend: str = field(default="auto", metadata={
-        "cli": "--backend", "choices": ("auto", "numpy", "gtsam"),
+    backend: Backend = field(default=Backend.AUTO, metadata={
+        "cli": "--backend",
         "help": "Bundle-adjustment solver: numpy (vectorised, GTSAM's LM path, 5-13x faster), gtsam "
                 "(gtsam.LevenbergMarquardtOptimizer on the factor graph); auto = numpy."})
     workers: int | None = None  # threads for corner detection (dataset with only images) and for the per-camera
@@ -94,12 +117,20 @@ class CalibrationOptions:
             raise ValueError(f"huber_px must be a finite number > 0, or None (got {self.huber_px})")
         if not (math.isfinite(self.outlier_sigma) and self.outlier_sigma > 0):
             raise ValueError(f"outlier_sigma must be a finite number > 0 (got {self.outlier_sigma})")
-        if self.principal_point not in PRINCIPAL_POINT_MODES:
-            raise ValueError(f"principal_point must be one of {', '.join(PRINCIPAL_POINT_MODES)} "
-                             f"(got {self.principal_point!r})")
+        for name, mode in (("principal_point", PrincipalPoint), ("backend", Backend)):
+            object.__setattr__(self, name, _mode(name, mode, getattr(self, name)))
         iterations = self.max_iterations
         if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 1:
             raise ValueError(f"max_iterations must be an integer >= 1 (got {iterations!r})")
+
+
+def _mode(name: str, mode: type[Enum], value: object) -> Enum:
+    """``value`` as a member of the enum ``mode`` (its string value accepted; ValueError naming the allowed values
+    otherwise)."""
+    try:
+        return mode(value)
+    except ValueError:
+        raise ValueError(f"{name} must be one of {', '.join(m.value for m in mode)} (got {value!r})") from None
 
 
 def _options(options: CalibrationOptions | None, overrides: dict) -> CalibrationOptions:
@@ -192,9 +223,9 @@ def centred_principal_points(dataset: Dataset, opts: CalibrationOptions, undeter
         w, h = dataset.cameras[name].image_size
         return (w - 1) / 2.0, (h - 1) / 2.0
 
-    if opts.principal_point == "free":
+    if opts.principal_point is PrincipalPoint.FREE:
         return {}
-    names = dataset.camera_names if opts.principal_point == "centre" else list(undetermined)
+    names = dataset.camera_names if opts.principal_point is PrincipalPoint.CENTRE else list(undetermined)
     return {n: centre(n) for n in names if dataset.cameras[n].K is None}
 
 
@@ -366,7 +397,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
     from .quality import PARAXIAL_MODELS, corner_floor, fits, judge
 
     opts = _options(options, overrides)
-    backend = resolve_backend(opts.backend)
+    backend = resolve_backend(opts.backend.value)
     spec = model_spec(model, "model", calibratable=True)  # the models: ari_sfm.models.registry
     if not isinstance(dataset, Dataset):
         if not isinstance(dataset, (str, os.PathLike)):
@@ -392,7 +423,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
         try:
             cal, residuals, reached = _calibrate_from(_Solver(dataset, opts, backend, extra_factors), model, plan,
                                                       start)
-            for _ in range(len(dataset.camera_names) if opts.principal_point == "auto" else 0):
+            for _ in range(len(dataset.camera_names) if opts.principal_point is PrincipalPoint.AUTO else 0):
                 loose = [n for n in undetermined_principal_points(cal) if n not in start.centred]
                 if not loose:
                     break

@@ -4,6 +4,7 @@ from __future__ import annotations
 import logging
 import sys
 import time
+from enum import Enum
 from pathlib import Path
 
 import click
@@ -83,8 +84,9 @@ def _field_option(name: str):
     if "/" not in meta["cli"]:  # "--x/--no-x": True, False or the default (None: decided from the data)
         if isinstance(f.default, bool):
             kwargs["is_flag"] = True
-        elif "choices" in meta:
-            kwargs.update(type=click.Choice(list(meta["choices"])), show_default=True)
+        elif isinstance(f.default, Enum):  # a mode: its values are the choices, CalibrationOptions takes them
+            kwargs.update(default=f.default.value, type=click.Choice([m.value for m in type(f.default)]),
+                          show_default=True)
         else:
             kwargs.update(type=type(f.default), show_default=True)
     return click.option(meta["cli"], name, **kwargs)
