@@ -108,9 +108,24 @@ def remove_earlier_run(out_dir: Path) -> None:
 
 
 def main(dataset_path: Path, out_dir: Path, model: str | None = None, truth: Path | None = None,
-         progress: bool = False, options: CalibrationOptions | None = None, **overrides) -> RunResult:
-    """Calibrate (None: the best model, ``DEFAULT_MODEL``; ``options`` and/or its fields as keywords),
-    reconstruct when possible, write run.json and report.html."""
+         progress: bool = False, options: CalibrationOptions | None = None) -> RunResult:
+    """Calibrate, reconstruct when possible, write run.json and report.html (the module docstring).
+
+    Args:
+        dataset_path: The dataset folder or rig file.
+        out_dir: The output folder (held for the run: a second command writing into it is refused).
+        model: The model to calibrate; None: the best model (``DEFAULT_MODEL``).
+        truth: A simulator's truth.json: the calibration's errors against it and the reconstruction's 3D error.
+        progress: Progress bars.
+        options: The calibration's options (None: the defaults).
+
+    Returns:
+        What ran: the calibration, the reconstruction or why it was skipped, the paths written.
+
+    Raises:
+        AriSfmError: ``out_dir`` holds another dataset's results; the truth does not match the dataset; any
+            error of the calibration or the reconstruction.
+    """
     from ..io import exclusive_folder
 
     out_dir = Path(out_dir)
@@ -123,16 +138,16 @@ def main(dataset_path: Path, out_dir: Path, model: str | None = None, truth: Pat
     with exclusive_folder(out_dir):  # a second command writing into OUT meanwhile: refused, not interleaved
         check_run_folder(out_dir, dataset_path)  # again, now that OUT is held
         remove_earlier_run(out_dir)
-        return _run(dataset_path, dataset, out_dir, model, truth, progress, options, **overrides)
+        return _run(dataset_path, dataset, out_dir, model, truth, progress, options)
 
 
 def _run(dataset_path: Path, dataset: Dataset, out_dir: Path, model: str | None, truth: Path | None, progress: bool,
-         options: CalibrationOptions | None, **overrides) -> RunResult:
+         options: CalibrationOptions | None) -> RunResult:
     """:func:`main` once OUT is held."""
     model = model or DEFAULT_MODEL
     # the files written are what the records in memory hold
-    calibrated = calibrate_rig(dataset_path, out_dir, model=model, progress=progress,
-                               dataset=dataset, options=options, **overrides)
+    calibrated = calibrate_rig(dataset_path, out_dir, model=model, progress=progress, dataset=dataset,
+                               options=options)
     obs_path = calibrated.observations_path
     if calibrated.dataset is not None:  # with the observations detected
         dataset = calibrated.dataset

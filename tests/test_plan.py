@@ -187,7 +187,7 @@ def test_run_reads_the_dataset_once(tmp_path, monkeypatch):
         monkeypatch.setattr(module, "load_calibration", counting_cal)
     monkeypatch.setattr(run, "write_report", lambda out: Path(out) / "report.html")  # the report reads its files
     dataset = Path(__file__).resolve().parents[1] / "datasets" / "binocular"
-    result = run.main(dataset, tmp_path, model="ari", uncertainty=False)
+    result = run.main(dataset, tmp_path, model="ari", options=CalibrationOptions(uncertainty=False))
     assert len(loads) == 1 and not [p for p in cal_reads if p.name == "calibration.json"]
     points = json.loads((tmp_path / "points.json").read_text())
     assert points["provenance"]["calibration"]["sha256"] == file_sha256(tmp_path / "calibration.json")

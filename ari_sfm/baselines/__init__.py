@@ -36,8 +36,6 @@ def calibrate_pinhole_dist_model(dataset, options) -> Calibration:
 
 
 def calibrate_pf_model(dataset, options) -> Calibration:
-    from dataclasses import asdict
-
     from .polynomial import calibrate_pf
 
-    return calibrate_pf(dataset, **asdict(options))
+    return calibrate_pf(dataset, options=options)

@@ -30,6 +30,7 @@ from ..errors import AriSfmError
 from ..models.registry import BUNDLE, CALIBRATABLE, COMPARED, model_spec
 from ..records import Dataset, Observation
 from ..results import ResidualStats
+from .calibrate import CalibrationOptions
 from .evaluate import evaluate_held_out, observation_residuals, residual_stats
 from .record import Calibration
 
@@ -39,6 +40,7 @@ FIGURES = ("residuals_scatter.png", "residuals_distribution.png")  # written bes
 FORMAT = "ari-sfm-compare/1"
 TIMED_RUNS = 2  # each model calibrated this many times; its time the fastest (not the process's start-up)
 DEFAULT_MODELS = COMPARED  # the models: ari_sfm.models.registry
+COMPARE_OPTIONS = CalibrationOptions(uncertainty=False)  # compare's default: marginals are not part of a method's time
 # The paper's figures (px, ms) where it gives them: Table 2 (single camera), 3 (binocular), 4 (3x4 subset).
 PAPER = {
     "single": {"rt": (0.31, 1.42, 0.37, 298), "pf": (0.01, 0.08, 0.02, 7), "ari": (0.03, 0.12, 0.04, 10)},
@@ -163,19 +165,33 @@ def check_holdout_of_this_rig(cal: Calibration, holdout: Sequence[Observation], 
 
 def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Subset | None = None,
             holdout: Sequence[Observation] | None = None, pf_world: str = "ari", holdout_path: str | Path | None = None,
-            **options) -> list[ModelResult]:
+            options: CalibrationOptions | None = None) -> list[ModelResult]:
     """Calibrate ``dataset`` with every model and judge each (see module docstring).
 
-    ``options`` go to :func:`ari_sfm.calibrate` (e.g. ``distortion``). pf fits
-    in the world (board poses) of the ``pf_world`` calibration, "ari" (the
-    default) or "exact" (made first when not among ``models``); its
-    errors include that world's pose errors. ``holdout``: views of the same rig
-    (:func:`check_holdout_of_this_rig`, judged on the first model calibrated, before
-    the others; ``holdout_path`` is named in its errors).
+    Args:
+        dataset: The dataset (corners detected first when it has only images).
+        models: The models to compare (names of :mod:`ari_sfm.models.registry`); with several windows the
+            one-window baselines are left out, said so.
+        subset: Fit on the central corners of each board only (judged on all of them), or None: every corner.
+        holdout: Views of the same rig to judge each model on too (frame poses solved, the rig held); checked
+            to be of this rig on the first model calibrated, before the others (:func:`check_holdout_of_this_rig`).
+        pf_world: Whose frame poses give pf its world coordinates: "ari" or "exact" (made first when not among
+            ``models``); pf's errors include that world's pose errors.
+        holdout_path: The file ``holdout`` came from, named in its errors.
+        options: The calibrations' options (None: ``COMPARE_OPTIONS``, the defaults without the standard
+            deviations: marginals are not part of a method's time).
+
+    Returns:
+        One result per model calibrated, in the order of ``models``.
+
+    Raises:
+        AriSfmError: unknown models or ``pf_world``; no model could be calibrated; a bundle model's (or pf's
+            world's) calibration failed; ``holdout`` is not of this rig.
     """
     from ..baselines.polynomial import calibrate_pf
     from .calibrate import calibrate, ensure_observations
 
+    opts = COMPARE_OPTIONS if options is None else options
     models = parse_models(models)
     if dataset.windows:  # several windows: the one-window baselines cannot be fitted to this rig
         left_out = [m for m in models if model_spec(m).one_window]
@@ -192,7 +208,6 @@ def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Su
     fit_data = subset.apply(dataset) if subset else dataset
     fit_ids = subset.ids(dataset) if subset else None
     cals: dict[str, tuple[Calibration, float]] = {}
-    options.setdefault("uncertainty", False)  # marginals are not part of a method's time
     needed = list(models) + ([pf_world] if "pf" in models and pf_world not in models else [])
     for model in sorted(needed, key=lambda m: m == "pf"):  # pf last: it needs its world
         runs = []
@@ -203,7 +218,7 @@ def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Su
                     cal = calibrate_pf(fit_data, world=cals[pf_world][0])
                     wall = time.perf_counter() - t0 + cals[pf_world][1]
                 else:
-                    cal = calibrate(fit_data, model=model, **options)
+                    cal = calibrate(fit_data, model=model, options=opts)
                     wall = time.perf_counter() - t0
                 runs.append((cal, wall))
         except AriSfmError as exc:
@@ -223,7 +238,7 @@ def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Su
     for model in (m for m in models if m in cals):
         cal, wall = cals[model]
         fit, all_, res, in_fit = _judge(cal, dataset, fit_ids)
-        out.append(ModelResult(model, cal, params_per_camera(cal, bool(options.get("distortion"))), cal.time_s * 1e3,
+        out.append(ModelResult(model, cal, params_per_camera(cal, bool(opts.distortion)), cal.time_s * 1e3,
                                wall * 1e3, fit, all_, _holdout(cal, holdout, dataset) if holdout else None, res,
                                in_fit))
     return out
@@ -332,7 +347,7 @@ def draw_figures(results: Sequence[ModelResult]) -> tuple:
 
 def run_compare(dataset_path: str | Path, out: str | Path, models: str | Sequence[str] = DEFAULT_MODELS,
                 subset: str | None = None, holdout: str | Path | None = None, pf_world: str = "ari",
-                **options) -> dict[str, Path]:
+                options: CalibrationOptions | None = None) -> dict[str, Path]:
     """Load, compare, write compare.json, compare.md and the figures to ``out``; return their paths.
 
     Arguments are checked before any calibration runs and nothing is written on error.
@@ -352,7 +367,7 @@ def run_compare(dataset_path: str | Path, out: str | Path, models: str | Sequenc
 
         held = load_observations(Path(holdout), dataset.target, dataset.camera_names)
         check_pixels_in_images(held, {n: c.image_size for n, c in dataset.cameras.items()}, holdout)
-    results = compare(dataset, names, sub, held, pf_world, holdout_path=holdout, **options)
+    results = compare(dataset, names, sub, held, pf_world, holdout_path=holdout, options=options)
     out = Path(out)
     paths = {"json": out / "compare.json", "md": out / "compare.md"}
     pngs = figures(results)

@@ -6,6 +6,7 @@ import sys
 import time
 from enum import Enum
 from pathlib import Path
+from typing import Any
 
 import click
 import numpy as np
@@ -112,12 +113,12 @@ def _calibration_options(fn):
     return fn
 
 
-def _calibration_record(values: dict, **more):
+def _calibration_record(values: dict[str, Any], progress: bool):
     """The CalibrationOptions of the command line's values (--huber-px 0: plain least squares), checked."""
     from ..calibration.calibrate import CalibrationOptions
 
     check_number("--huber-px", values["huber_px"], minimum=0.0)
-    return CalibrationOptions(**{**values, "huber_px": values["huber_px"] or None}, **more)
+    return CalibrationOptions(**{**values, "huber_px": values["huber_px"] or None}, progress=progress)
 
 
 @main.command(name="calibrate")
@@ -293,10 +294,14 @@ def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | N
 def compare_cmd(dataset: Path, out: Path, models: str, subset: str | None, holdout: Path | None, pf_world: str,
                 distortion: bool, backend: str) -> None:
     """Calibrate DATASET with several models and compare them (the paper's Tables 2-4)."""
-    from ..calibration.compare import run_compare
+    from dataclasses import replace
+
+    from ..calibration.calibrate import Backend
+    from ..calibration.compare import COMPARE_OPTIONS, run_compare
 
     check_output_folder(out)
-    paths = run_compare(dataset, out, models, subset, holdout, pf_world, distortion=distortion, backend=backend)
+    options = replace(COMPARE_OPTIONS, distortion=distortion, backend=Backend(backend))
+    paths = run_compare(dataset, out, models, subset, holdout, pf_world, options)
     click.echo(paths["md"].read_text())
     click.echo("\n".join(f"{k}: {v}" for k, v in paths.items()))
 

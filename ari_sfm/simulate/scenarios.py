@@ -11,10 +11,11 @@ the world frame of the result is camera 0's frame.
 """
 from __future__ import annotations
 
+import inspect
 import logging
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
@@ -811,41 +812,131 @@ def tank(rng: np.random.Generator, adjacent: bool = False, frames: int = 5, glas
 
 
 @dataclass(frozen=True)
+class ScenarioOverrides:
+    """Options of a scenario's geometry, each None where the scenario keeps its own value.
+
+    The fields are the builders' keyword options (``paper_single``, ``binocular``, ``arc``, ``grid``,
+    ``body3d``, ``ptv_multiplane``, ``tank``); a scenario accepts those its builder takes and its
+    registry entry does not fix (:func:`check_overrides`)."""
+
+    num_frames: int | None = None  # calibration frames (paper_single, binocular, arc, grid)
+    num_cameras: int | None = None  # cameras (arc, grid)
+    frames: int | None = None  # the body's poses (tank)
+    perpendicular: bool | None = None  # the window normal within 0.05 deg of the optical axis (paper_single)
+    underwater: bool | None = None  # a 10 mm glass port with water behind it (binocular)
+    adjacent: bool | None = None  # the two walls at 90 deg instead of opposite (tank)
+    target: Target | None = None  # the calibration target (paper_single)
+    stack_added_mm: tuple[float, ...] | None = None  # glass added in the stacking pose (paper_single, binocular, ...)
+    stage_mm: tuple[float, ...] | None = None  # the stage frames' positions (binocular)
+    depth_band_mm: float | None = None  # depth range of the calibration frames (binocular)
+    lateral_scale: float | None = None  # lateral spread of the calibration frames (binocular)
+    tilt_deg: float | None = None  # the window's tilt (binocular; None there: drawn)
+    run_lengths: tuple[int, ...] | None = None  # consecutive cameras a frame is seen by (arc)
+    spacing_mm: float | None = None  # camera spacing (grid, body3d)
+    min_views: int | None = None  # cameras each frame is seen by, at least (grid)
+    depth_mm: float | None = None  # the body's depth (body3d)
+    distance_mm: float | None = None  # the body's distance (body3d)
+    glass_mm: float | None = None  # window thickness (body3d, ptv_multiplane, tank)
+    cells: int | None = None  # body points per side (body3d)
+    pitch_mm: float | None = None  # body point spacing (body3d)
+    grid: tuple[int, int] | None = None  # dots of the plate (ptv_multiplane)
+    tilt_range_deg: tuple[float, float] | None = None  # cameras' obliquity to the window (ptv_multiplane, tank)
+    range_mm: tuple[float, float] | None = None  # cameras' distance (ptv_multiplane, tank)
+    wall_mm: float | None = None  # the walls' distance from the tank's centre (tank)
+
+    def given(self) -> tuple[str, ...]:
+        """The names of the fields set (not None), in field order."""
+        return tuple(f.name for f in fields(self) if getattr(self, f.name) is not None)
+
+    def merged(self, other: ScenarioOverrides) -> ScenarioOverrides:
+        """These overrides with ``other``'s set fields on top."""
+        return replace(self, **{name: getattr(other, name) for name in other.given()})
+
+
+@dataclass(frozen=True)
 class ScenarioSpec:
     """How a scenario name is built: builder, its fixed options, images by default."""
 
     build: Callable[..., Geometry]
-    options: dict
+    options: ScenarioOverrides = ScenarioOverrides()  # fixed by the scenario (not offered to its users)
     images: bool = False
     rng_name: str = ""  # scenarios sharing a stream (paper_single*) get the same geometry for a seed
 
 
 REGISTRY: dict[str, ScenarioSpec] = {
-    "paper_single": ScenarioSpec(paper_single, {}, rng_name="paper_single"),
-    "paper_single_images": ScenarioSpec(paper_single, {}, images=True, rng_name="paper_single"),
-    "paper_single_dots": ScenarioSpec(paper_single, {"target": DOT_TARGET}, images=True, rng_name="paper_single_dots"),
-    "paper_single_perpendicular": ScenarioSpec(paper_single, {"perpendicular": True},
+    "paper_single": ScenarioSpec(paper_single, rng_name="paper_single"),
+    "paper_single_images": ScenarioSpec(paper_single, images=True, rng_name="paper_single"),
+    "paper_single_dots": ScenarioSpec(paper_single, ScenarioOverrides(target=DOT_TARGET), images=True,
+                                      rng_name="paper_single_dots"),
+    "paper_single_perpendicular": ScenarioSpec(paper_single, ScenarioOverrides(perpendicular=True),
                                                rng_name="paper_single_perpendicular"),
-    "binocular": ScenarioSpec(binocular, {}, rng_name="binocular"),
-    "binocular_underwater": ScenarioSpec(binocular, {"underwater": True}, rng_name="binocular_underwater"),
-    "arc4": ScenarioSpec(arc, {}, rng_name="arc4"),
-    "scale16": ScenarioSpec(grid, {}, rng_name="scale16"),
-    "paper_single_nostack": ScenarioSpec(paper_single_nostack, {}, rng_name="paper_single"),
-    "binocular_nostack": ScenarioSpec(binocular_nostack, {}, rng_name="binocular"),
-    "binocular_underwater_oblique": ScenarioSpec(binocular_nostack, {"underwater": True, "tilt_deg": 10.0},
+    "binocular": ScenarioSpec(binocular, rng_name="binocular"),
+    "binocular_underwater": ScenarioSpec(binocular, ScenarioOverrides(underwater=True),
+                                         rng_name="binocular_underwater"),
+    "arc4": ScenarioSpec(arc, rng_name="arc4"),
+    "scale16": ScenarioSpec(grid, rng_name="scale16"),
+    "paper_single_nostack": ScenarioSpec(paper_single_nostack, rng_name="paper_single"),
+    "binocular_nostack": ScenarioSpec(binocular_nostack, rng_name="binocular"),
+    "binocular_underwater_oblique": ScenarioSpec(binocular_nostack, ScenarioOverrides(underwater=True, tilt_deg=10.0),
                                                  rng_name="binocular_underwater_oblique"),
-    "body3d_water": ScenarioSpec(body3d, {}, rng_name="body3d"),
-    "body3d_shallow": ScenarioSpec(body3d, {"depth_mm": 15.0, "distance_mm": 600.0}, rng_name="body3d"),
-    "ptv_multiplane": ScenarioSpec(ptv_multiplane, {}, rng_name="ptv_multiplane"),
-    "tank_opposite": ScenarioSpec(tank, {}, rng_name="tank_opposite"),
-    "tank_adjacent": ScenarioSpec(tank, {"adjacent": True}, rng_name="tank_adjacent"),
+    "body3d_water": ScenarioSpec(body3d, rng_name="body3d"),
+    "body3d_shallow": ScenarioSpec(body3d, ScenarioOverrides(depth_mm=15.0, distance_mm=600.0), rng_name="body3d"),
+    "ptv_multiplane": ScenarioSpec(ptv_multiplane, rng_name="ptv_multiplane"),
+    "tank_opposite": ScenarioSpec(tank, rng_name="tank_opposite"),
+    "tank_adjacent": ScenarioSpec(tank, ScenarioOverrides(adjacent=True), rng_name="tank_adjacent"),
 }
 assert set(REGISTRY) == set(SCENARIOS)
 
 
-def build_geometry(name: str, rng: np.random.Generator, **overrides) -> Geometry:
-    """The truth geometry of scenario ``name`` (overrides go to its builder)."""
+def scenario_options(name: str) -> tuple[str, ...]:
+    """The overrides scenario ``name`` accepts: its builder's options less those its registry entry fixes.
+
+    Args:
+        name: A scenario of :data:`REGISTRY`.
+
+    Returns:
+        The :class:`ScenarioOverrides` field names, in the builder's order.
+    """
     spec = REGISTRY[name]
-    geometry = spec.build(rng, **{**spec.options, **overrides})
+    fixed = spec.options.given()
+    return tuple(p for p in inspect.signature(spec.build).parameters if p != "rng" and p not in fixed)
+
+
+def check_overrides(name: str, overrides: ScenarioOverrides) -> None:
+    """Refuse the overrides scenario ``name`` does not accept (:func:`scenario_options`).
+
+    Args:
+        name: A scenario of :data:`REGISTRY`.
+        overrides: The overrides asked for.
+
+    Raises:
+        ValueError: one line naming the options given that the scenario does not have, and those it has.
+    """
+    allowed = scenario_options(name)
+    bad = [k for k in overrides.given() if k not in allowed]
+    if bad:
+        raise ValueError(f"scenario {name!r} has no option {', '.join(bad)}; options: {', '.join(allowed)}")
+
+
+def build_geometry(name: str, rng: np.random.Generator, overrides: ScenarioOverrides | None = None) -> Geometry:
+    """The truth geometry of scenario ``name``, checked (:func:`~ari_sfm.simulate.scene.check_geometry`).
+
+    Args:
+        name: A scenario of :data:`REGISTRY`.
+        rng: The geometry's random stream.
+        overrides: Options of its builder (None: the scenario as registered); checked by :func:`check_overrides`.
+
+    Returns:
+        The geometry.
+
+    Raises:
+        ValueError: an option the scenario does not have.
+        RuntimeError: the simulator could not place a pose the scenario needs.
+    """
+    spec = REGISTRY[name]
+    overrides = overrides or ScenarioOverrides()
+    check_overrides(name, overrides)
+    options = spec.options.merged(overrides)
+    geometry = spec.build(rng, **{k: getattr(options, k) for k in options.given()})
     check_geometry(geometry)
     return geometry
