@@ -334,7 +334,7 @@ def _numpy_pinhole(D: np.ndarray, params: np.ndarray, jacobians: bool) -> tuple:
 
 def fig_forward(repeats: int, points: int) -> None:
     from ari_sfm.models.exact import exact_project
-    from ari_sfm.models.pinhole import project_points
+    from ari_sfm.models.pinhole import pinhole_pixels
 
     rng = np.random.default_rng(0)
     z = rng.uniform(150.0, 900.0, points)
@@ -345,7 +345,7 @@ def fig_forward(repeats: int, points: int) -> None:
                             ("forward_dist_jac", True, 1.0)):
         params = np.r_[3478.0, 3480.0, 1230.0, 1020.0, dist * lens]
         uv_np = _numpy_pinhole(X, params, False)[0]
-        assert np.abs(project_points(X, params)[0] - uv_np).max() < 1e-9  # the baseline is the same pinhole
+        assert np.abs(pinhole_pixels(X, params) - uv_np).max() < 1e-9  # the baseline is the same pinhole
         run = alternate(lambda params=params, jac=jac: [exact_project(X, params, normal, 6.0, 1.5168, 1.333, 40.0,
                                                                       jacobians=jac) for _ in range(5)],
                         lambda params=params, jac=jac: [_numpy_pinhole(X, params, jac) for _ in range(5)], repeats)
