@@ -21,6 +21,8 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class PipelineResult:
+    """What :func:`main` calibrated and wrote."""
+
     calibration: Calibration
     calibration_path: Path
     observations_path: Path | None  # written when corners were detected here

@@ -296,11 +296,44 @@ def to_markdown(results: Sequence[ModelResult], subset: Subset | None, dataset: 
     return "\n".join(lines)
 
 
-def figures(results: Sequence[ModelResult]) -> dict[str, bytes]:
-    """PNG bytes of :func:`draw_figures`: residual scatter per model, error distributions."""
+@dataclass(frozen=True)
+class CompareFigures:
+    """compare's two figures as PNG bytes (:func:`figures`)."""
+
+    residuals_scatter: bytes  # every model's residual vectors, one panel each
+    residuals_distribution: bytes  # the error distributions side by side
+
+    def files(self) -> tuple[tuple[str, bytes], ...]:
+        """(file name, PNG bytes) of each figure, in the order of ``FIGURES``."""
+        return tuple(zip(FIGURES, (self.residuals_scatter, self.residuals_distribution)))
+
+
+@dataclass(frozen=True)
+class CompareFiles:
+    """What :func:`run_compare` wrote."""
+
+    json: Path  # compare.json
+    md: Path  # compare.md
+    figures: tuple[Path, ...]  # the PNG figures (``FIGURES``), beside them
+
+    def named(self) -> tuple[tuple[str, Path], ...]:
+        """(label, path) of each file: ``json``, ``md``, then each figure by its file name."""
+        return (("json", self.json), ("md", self.md), *((p.name, p) for p in self.figures))
+
+
+def figures(results: Sequence[ModelResult]) -> CompareFigures:
+    """The figures of :func:`draw_figures` as PNG bytes.
+
+    Args:
+        results: The models' results (:func:`compare`).
+
+    Returns:
+        The residual scatter per model and the error distributions.
+    """
     from ..report.figures import to_png
 
-    return dict(zip(FIGURES, (to_png(f) for f in draw_figures(results))))
+    scatter, distribution = draw_figures(results)
+    return CompareFigures(to_png(scatter), to_png(distribution))
 
 
 def draw_figures(results: Sequence[ModelResult]) -> tuple:
@@ -347,10 +380,26 @@ def draw_figures(results: Sequence[ModelResult]) -> tuple:
 
 def run_compare(dataset_path: str | Path, out: str | Path, models: str | Sequence[str] = DEFAULT_MODELS,
                 subset: str | None = None, holdout: str | Path | None = None, pf_world: str = "ari",
-                options: CalibrationOptions | None = None) -> dict[str, Path]:
-    """Load, compare, write compare.json, compare.md and the figures to ``out``; return their paths.
+                options: CalibrationOptions | None = None) -> CompareFiles:
+    """Load, compare, write compare.json, compare.md and the figures to ``out``.
 
     Arguments are checked before any calibration runs and nothing is written on error.
+
+    Args:
+        dataset_path: The dataset folder or rig file.
+        out: The output folder.
+        models: The models, as ``ari,exact,...`` or a sequence of names.
+        subset: ``center:COLSxROWS``: fit on the central corners of each board, judge on all; None: every corner.
+        holdout: An observations file of the same rig to judge each model on too.
+        pf_world: Whose frame poses give pf its world coordinates ("ari" or "exact").
+        options: The calibrations' options (None: :data:`COMPARE_OPTIONS`).
+
+    Returns:
+        The files written.
+
+    Raises:
+        AriSfmError: a bad argument (named by its option), a dataset or observations file that cannot be read,
+            or an error of :func:`compare`.
     """
     from ..io import load_dataset, load_observations, write_bytes_atomic, write_json_atomic, write_text_atomic
 
@@ -369,11 +418,10 @@ def run_compare(dataset_path: str | Path, out: str | Path, models: str | Sequenc
         check_pixels_in_images(held, {n: c.image_size for n, c in dataset.cameras.items()}, holdout)
     results = compare(dataset, names, sub, held, pf_world, holdout_path=holdout, options=options)
     out = Path(out)
-    paths = {"json": out / "compare.json", "md": out / "compare.md"}
+    files = CompareFiles(out / "compare.json", out / "compare.md", tuple(out / name for name in FIGURES))
     pngs = figures(results)
-    write_json_atomic(paths["json"], to_json(results, sub, dataset))
-    write_text_atomic(paths["md"], to_markdown(results, sub, dataset))
-    for name, data in pngs.items():
-        paths[name] = out / name
-        write_bytes_atomic(paths[name], data)
-    return paths
+    write_json_atomic(files.json, to_json(results, sub, dataset))
+    write_text_atomic(files.md, to_markdown(results, sub, dataset))
+    for name, data in pngs.files():
+        write_bytes_atomic(out / name, data)
+    return files

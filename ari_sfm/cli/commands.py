@@ -301,9 +301,9 @@ def compare_cmd(dataset: Path, out: Path, models: str, subset: str | None, holdo
 
     check_output_folder(out)
     options = replace(COMPARE_OPTIONS, distortion=distortion, backend=Backend(backend))
-    paths = run_compare(dataset, out, models, subset, holdout, pf_world, options)
-    click.echo(paths["md"].read_text())
-    click.echo("\n".join(f"{k}: {v}" for k, v in paths.items()))
+    files = run_compare(dataset, out, models, subset, holdout, pf_world, options)
+    click.echo(files.md.read_text())
+    click.echo("\n".join(f"{label}: {path}" for label, path in files.named()))
 
 
 @main.command()
@@ -420,9 +420,9 @@ def _simulate_particles(out: Path, seed: int, sigma: float, num_cameras: int, pa
                                  num_frames=num_frames, sigma_px=sigma, drift_cameras=drifted, drift_deg=drift_deg,
                                  drift_mm=drift_mm, look=look, bit_depth=bit_depth, k1=k1, windows=windows, seed=seed,
                                  calibration_frames=calibration_views, calibration_target=calibration_target)
-    paths = write_particle_experiment(simulate_particle_experiment(options), out, render_frames=render_frames)
-    click.echo(f"calibration dataset (rig A): {paths['calibration']}\nexperiment (rig B):          "
-               f"{paths['experiment']}\ntruth:                       {paths['truth']} (rig_a.json, rig_b.json, "
+    folders = write_particle_experiment(simulate_particle_experiment(options), out, render_frames=render_frames)
+    click.echo(f"calibration dataset (rig A): {folders.calibration}\nexperiment (rig B):          "
+               f"{folders.experiment}\ntruth:                       {folders.truth} (rig_a.json, rig_b.json, "
                "particles.parquet, detections.parquet)")
 
 
