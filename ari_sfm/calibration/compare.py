@@ -23,6 +23,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -33,6 +34,9 @@ from ..results import ResidualStats
 from .calibrate import CalibrationOptions
 from .evaluate import evaluate_held_out, observation_residuals, residual_stats
 from .record import Calibration
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 log = logging.getLogger(__name__)
 FIGURES = ("residuals_scatter.png", "residuals_distribution.png")  # written beside compare.json
@@ -58,7 +62,17 @@ class Subset:
 
     @staticmethod
     def parse(text: str) -> Subset:
-        """``center:COLSxROWS``, e.g. ``center:3x4``."""
+        """The subset a ``--subset`` text names.
+
+        Args:
+            text: ``center:COLSxROWS``, e.g. ``center:3x4``.
+
+        Returns:
+            The subset.
+
+        Raises:
+            AriSfmError: (``--subset``) the text is not of that form.
+        """
         m = re.fullmatch(r"center:(\d+)x(\d+)", text.strip())
         if not m or int(m.group(1)) < 1 or int(m.group(2)) < 1:
             raise AriSfmError("--subset", f"expected center:COLSxROWS (e.g. center:3x4), got {text!r}")
@@ -109,7 +123,16 @@ class ModelResult:
 
 
 def params_per_camera(cal: Calibration, distortion: bool) -> int:
-    """Intrinsics + window parameters of one camera (see module docstring)."""
+    """The parameters describing one camera and its window (module docstring): what the paper's tables count.
+
+    Args:
+        cal: The model's calibration.
+        distortion: Whether lens distortion was estimated.
+
+    Returns:
+        Intrinsics (4, or 9 with distortion) plus the window normal (2) and, under water, its distance (1);
+        the registry's count for a model that has its own (pf: 40).
+    """
     spec = cal.spec
     if spec.params_per_camera is not None:
         return spec.params_per_camera
@@ -146,9 +169,21 @@ def _holdout(cal: Calibration, records: Sequence[Observation], dataset: Dataset)
 
 def check_holdout_of_this_rig(cal: Calibration, holdout: Sequence[Observation], dataset: Dataset,
                               where: str | Path = "--holdout") -> ResidualStats:
-    """The held-out errors of ``cal``, or AriSfmError naming ``where`` when the views are not of its rig: no
-    frame's pose can be fitted, or their errors with the poses fitted and the rig held are far above the
-    calibration's own (another rig's or another target's views: scoring them would be meaningless)."""
+    """The held-out errors of ``cal``, checked to be views of its rig.
+
+    Args:
+        cal: The calibration judged.
+        holdout: The held-out views.
+        dataset: The dataset it was calibrated on (its target; the calibration's own errors on its corners).
+        where: What to name in the error (the option or the file the views came from).
+
+    Returns:
+        The errors on the held-out views, every frame's pose fitted with the rig held.
+
+    Raises:
+        AriSfmError: (``where``) no frame's pose can be fitted, or the errors are far above the calibration's
+            own (another rig's or another target's views: scoring them would be meaningless).
+    """
     from ..provenance import RESIDUAL_MISMATCH_FACTOR, RESIDUAL_MISMATCH_PX
 
     stats = _holdout(cal, holdout, dataset)
@@ -247,8 +282,17 @@ def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Su
 # ---------------------------------------------------------------- outputs
 
 
-def to_json(results: Sequence[ModelResult], subset: Subset | None, dataset: Dataset) -> dict:
-    """compare.json: per model, parameters, times and errors (px)."""
+def to_json(results: Sequence[ModelResult], subset: Subset | None, dataset: Dataset) -> dict[str, Any]:
+    """compare.json: per model, parameters, times and errors (px).
+
+    Args:
+        results: The models' results (:func:`compare`).
+        subset: The subset fitted on, or None.
+        dataset: The dataset compared on.
+
+    Returns:
+        The file's content.
+    """
     pf = [r.calibration.pf_world.model for r in results if r.calibration.pf_world is not None]
     return {
         "format": FORMAT,
@@ -271,7 +315,16 @@ def _row(name: str, p: int | str, s: ResidualStats, t: float | str) -> str:
 
 
 def to_markdown(results: Sequence[ModelResult], subset: Subset | None, dataset: Dataset) -> str:
-    """compare.md: the paper's Table 2-4 layout, one table per set of corners judged."""
+    """compare.md: the paper's Table 2-4 layout, one table per set of corners judged.
+
+    Args:
+        results: The models' results (:func:`compare`).
+        subset: The subset fitted on, or None.
+        dataset: The dataset compared on.
+
+    Returns:
+        The file's text.
+    """
     head = "| Method | # of para | MAE (px) | Max (px) | RMSE (px) | T (ms) |\n|---|---|---|---|---|---|"
     n = len(dataset.camera_names)
     pf = [r.calibration.pf_world.model for r in results if r.calibration.pf_world is not None]
@@ -336,9 +389,16 @@ def figures(results: Sequence[ModelResult]) -> CompareFigures:
     return CompareFigures(to_png(scatter), to_png(distribution))
 
 
-def draw_figures(results: Sequence[ModelResult]) -> tuple:
-    """The two Figures (the report's figures' print style): every model's residuals on one shared range (fitted
-    corners red, others blue; dv down as in the image; dashed circle: RMSE), and the error distributions."""
+def draw_figures(results: Sequence[ModelResult]) -> tuple[Figure, Figure]:
+    """The two figures, in the report's figures' print style.
+
+    Args:
+        results: The models' results (:func:`compare`).
+
+    Returns:
+        Every model's residuals on one shared range (fitted corners red, others blue; dv down as in the
+        image; dashed circle: RMSE), and the error distributions side by side.
+    """
     import matplotlib.pyplot as plt
 
     from ..report.figures import FIG_WIDTH_IN, STYLE, panels

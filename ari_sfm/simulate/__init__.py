@@ -4,7 +4,9 @@
 dataset a user would hold, with observations, and the truth);
 ``simulate(name, out_dir)`` writes ``out_dir/dataset/`` (rig.yaml and either
 observations.json or rendered PNG images) and ``out_dir/truth.json`` beside
-it.  Scenario names and one-line descriptions are in :data:`SCENARIOS`.
+it.  Scenario names and one-line descriptions are in :data:`SCENARIOS`; a
+scenario's geometry options are a :class:`ScenarioOverrides`
+(``make_scene("binocular", overrides=ScenarioOverrides(num_frames=8))``).
 
 Every pixel comes from :class:`~ari_sfm.models.exact.ExactModel` (Snell's
 law at both faces of the plate), never from the paraxial ARI equation the
@@ -23,6 +25,7 @@ import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -49,7 +52,7 @@ class Scene:
 
     name: str
     dataset: Dataset
-    truth: dict
+    truth: dict[str, Any]  # calibration.json's form (read by ari_sfm.io.parse_calibration), plus the scenario's keys
     geometry: Geometry
     exact_observations: tuple[Observation, ...]
 
@@ -66,7 +69,17 @@ def _check_name(name: str) -> None:
 
 
 def images_by_default(name: str) -> bool:
-    """Whether ``simulate(name, ...)`` renders images when ``images`` is None."""
+    """Whether ``simulate(name, ...)`` renders images when ``images`` is None.
+
+    Args:
+        name: A scenario of :data:`SCENARIOS`.
+
+    Returns:
+        True for the scenarios of rendered images (``*_images``, ``*_dots``).
+
+    Raises:
+        ValueError: an unknown scenario.
+    """
     _check_name(name)
     return REGISTRY[name].images
 
@@ -135,7 +148,21 @@ def _pixel_to_target(geometry: Geometry, camera: str, frame_pose, added_mm: floa
 
 def render_images(scene: Scene, dataset_dir: Path, seed: int = 0, supersample: int = 4,
                   noise_sigma: float = 1.0) -> list[Path]:
-    """Render one PNG per record of ``scene`` into ``dataset_dir`` (paths of :func:`image_path`)."""
+    """Render one PNG per record of ``scene`` into ``dataset_dir``.
+
+    Args:
+        scene: The scene (its noise-free records are rendered).
+        dataset_dir: The dataset folder; each image at :func:`~ari_sfm.simulate.scene.image_path` in it.
+        seed: The images' noise seed (each image its own stream from it).
+        supersample: Samples per pixel side (anti-aliasing).
+        noise_sigma: The images' Gaussian noise, grey levels.
+
+    Returns:
+        The paths written, in the records' order.
+
+    Raises:
+        OSError: an image could not be written.
+    """
     import cv2
 
     from ari_sfm.simulate.render import render_target
