@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
 from enum import Enum
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, cast
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
@@ -146,7 +146,7 @@ def _mode(name: str, mode: type[Enum], value: object) -> Enum:
         raise ValueError(f"{name} must be one of {', '.join(m.value for m in mode)} (got {value!r})") from None
 
 
-def _options(options: CalibrationOptions | None, overrides: dict[str, Any]) -> CalibrationOptions:
+def _options(options: CalibrationOptions | None, overrides: dict) -> CalibrationOptions:
     """``options`` (default: the defaults) with the keyword ``overrides`` applied."""
     names = {f.name for f in fields(CalibrationOptions)}
     unknown = set(overrides) - names
@@ -460,7 +460,7 @@ class StageResult:
 
 
 def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_factors: ExtraFactors = None,
-              options: CalibrationOptions | None = None, **overrides: Any) -> Calibration:
+              options: CalibrationOptions | None = None, **overrides) -> Calibration:
     """Calibrate the cameras and the window of a dataset.
 
     Steps: options, load, plan (:func:`plan_stages`), then for each start of the quality gate

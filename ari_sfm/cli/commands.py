@@ -6,7 +6,6 @@ import sys
 import time
 from enum import Enum
 from pathlib import Path
-from typing import Any
 
 import click
 import numpy as np
@@ -113,7 +112,7 @@ def _calibration_options(fn):
     return fn
 
 
-def _calibration_record(values: dict[str, Any], progress: bool):
+def _calibration_record(values: dict, progress: bool):
     """The CalibrationOptions of the command line's values (--huber-px 0: plain least squares), checked."""
     from ..calibration.calibrate import CalibrationOptions
 

@@ -25,7 +25,6 @@ import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -52,7 +51,7 @@ class Scene:
 
     name: str
     dataset: Dataset
-    truth: dict[str, Any]  # calibration.json's form (read by ari_sfm.io.parse_calibration), plus the scenario's keys
+    truth: dict  # calibration.json's form (read by ari_sfm.io.parse_calibration), plus the scenario's keys
     geometry: Geometry
     exact_observations: tuple[Observation, ...]
 

@@ -12,7 +12,14 @@ from ari_sfm.simulate import SCENARIOS, ScenarioOverrides, simulate
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Parse the arguments, simulate, print the two paths; 2 on a usage error."""
+    """Parse the arguments, simulate, print the two paths.
+
+    Args:
+        argv: The arguments (None: the process's).
+
+    Returns:
+        The exit code: 0 (a usage error exits 2 through argparse).
+    """
     parser = argparse.ArgumentParser(prog="python -m ari_sfm.simulate", description=__doc__.splitlines()[0],
                                      epilog="scenarios: " + "; ".join(f"{k}: {v}" for k, v in SCENARIOS.items()))
     parser.add_argument("scenario", choices=list(SCENARIOS))
