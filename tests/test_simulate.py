@@ -384,3 +384,19 @@ def test_project_detector_finds_the_true_corners_in_the_sample():
         errors.append(pixels - ref.pixels)
     e = np.concatenate(errors)
     assert len(errors) == 18 and np.sqrt(np.mean(np.sum(e**2, axis=1))) < 0.05 and np.abs(e.mean(axis=0)).max() < 0.01
+
+
+def test_scenario_overrides_are_a_record():
+    """The registry's fixed options and a caller's overrides are one record; what a scenario's builder does not
+    take, or its entry fixes, is refused naming what it accepts."""
+    from ari_sfm.simulate.scenarios import REGISTRY, build_geometry, scenario_options
+
+    assert scenario_options("binocular_underwater_oblique") == ("num_frames",)
+    assert REGISTRY["binocular_underwater_oblique"].options.given() == ("underwater", "tilt_deg")
+    with pytest.raises(ValueError, match=r"^scenario 'binocular_underwater' has no option underwater; options: "
+                                         r"num_frames, stack_added_mm, stage_mm"):
+        make_scene("binocular_underwater", overrides=ScenarioOverrides(underwater=False))
+    rng = np.random.default_rng([0, 1])
+    assert len(build_geometry("arc4", rng, ScenarioOverrides(num_frames=3)).calibration) == 3
+    with pytest.raises(TypeError):
+        ScenarioOverrides(frame_count=3)  # a misspelt option fails at the record

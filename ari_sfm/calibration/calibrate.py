@@ -460,7 +460,7 @@ class StageResult:
 
 
 def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_factors: ExtraFactors = None,
-              options: CalibrationOptions | None = None, **overrides) -> Calibration:
+              options: CalibrationOptions | None = None, **overrides: object) -> Calibration:
     """Calibrate the cameras and the window of a dataset.
 
     Steps: options, load, plan (:func:`plan_stages`), then for each start of the quality gate

@@ -192,8 +192,8 @@ class Calibration:
                 calibration), or None: the calibration's own.
 
         Returns:
-            AriModel, ExactModel (exact, rt, truth), PinholeModel (the window ignored) or the pf polynomial
-            (PolynomialModel: world points only).
+            model (AriModel | ExactModel | PinholeModel | PolynomialModel): ExactModel for exact, rt and truth;
+                PinholeModel when the window is ignored; PolynomialModel (pf) projects world points only.
 
         Raises:
             ValueError: added glass for a model without a window or for pf; a Snell model without a distance.
