@@ -66,10 +66,10 @@ def _initial_state(dataset):
 
 def prepare(case: dict, path: str) -> dict:
     """Make the scene and its initial state, pickle them; return the timings."""
-    from ari_sfm.simulate import make_scene
+    from ari_sfm.simulate import ScenarioOverrides, make_scene
 
     t0 = time.perf_counter()
-    dataset = make_scene(case["scenario"], seed=0, **case["overrides"]).dataset
+    dataset = make_scene(case["scenario"], seed=0, overrides=ScenarioOverrides(**case["overrides"])).dataset
     t1 = time.perf_counter()
     state = _initial_state(dataset)
     t2 = time.perf_counter()

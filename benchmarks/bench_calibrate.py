@@ -41,7 +41,7 @@ import numpy as np
 
 from ari_sfm.calibration.calibrate import calibrate
 from ari_sfm.init.zhang import object_points
-from ari_sfm.simulate import make_scene
+from ari_sfm.simulate import ScenarioOverrides, make_scene
 
 CASES = {  # name: (scenario, overrides, what the issues ask)
     "paper_single": ("paper_single", {}, "issue 3: ari BA and ari total <= 1.0x cv2"),
@@ -134,7 +134,7 @@ def main() -> None:
           f"load average {os.getloadavg()[0]:.2f}")
     for name in args.case or list(CASES):
         scenario, overrides, note = CASES[name]
-        dataset = make_scene(scenario, seed=0, **overrides).dataset
+        dataset = make_scene(scenario, seed=0, overrides=ScenarioOverrides(**overrides)).dataset
         result = time_case(dataset, tuple(args.models.split(",")), args.repeats, tuple(args.backend or ["auto"]))
         print_case(name, dataset, result, args.repeats, note)
     print(f"\nload average {os.getloadavg()[0]:.2f}")

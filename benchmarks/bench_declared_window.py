@@ -22,7 +22,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np
 
-from ari_sfm.calibration.calibrate import calibrate
+from ari_sfm.calibration.calibrate import CalibrationOptions, calibrate
 from ari_sfm.calibration.record import Calibration
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import rotation_from_rotvec
@@ -49,10 +49,11 @@ def held_out_mm(cal: Calibration, dataset, plane: int) -> float:
     return float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
 
 
-def run(dataset, model: str = "exact", **options):
+def run(dataset, model: str = "exact", options: CalibrationOptions | None = None):
+    options = options or CalibrationOptions()
     t = time.perf_counter()
     try:
-        return calibrate(dataset, model=model, uncertainty=True, **options), time.perf_counter() - t
+        return calibrate(dataset, model=model, options=replace(options, uncertainty=True)), time.perf_counter() - t
     except AriSfmError as exc:
         return exc, time.perf_counter() - t
 
@@ -74,14 +75,15 @@ def main() -> None:
             train = without_plane(ds, plane)
             cells = []
             free = None if a.no_free else replace(train, interface=replace(train.interface, plane=None))
-            runs = [(train, {"fix_intrinsics": True}), (free, {"fix_intrinsics": True})]
+            fixed = CalibrationOptions(fix_intrinsics=True)
+            runs = [(train, fixed), (free, fixed)]
             if a.k_free:
-                runs.append((free, {}))
+                runs.append((free, CalibrationOptions()))
             for d, opts in runs:
                 if d is None:
                     cells.append("-")
                     continue
-                cal, s = run(d, **opts)
+                cal, s = run(d, options=opts)
                 if isinstance(cal, AriSfmError):
                     cells.append(f"refused ({cal.message[:40]}...) {s:.1f} s")
                 else:
@@ -93,7 +95,7 @@ def main() -> None:
         turned = replace(ds, interface=replace(ds.interface, plane=replace(p, normal=R @ p.normal)))
         for model in ("exact", "ari"):
             try:
-                cal, s = run(turned, fix_intrinsics=True, model=model)
+                cal, s = run(turned, model, CalibrationOptions(fix_intrinsics=True))
             except np.linalg.LinAlgError as exc:  # main 96a3581 too: ari's marginals at a lost optimum (seed 0)
                 print(f"{seed} plane turned 10 deg, held, fixed focal, {model}: uncertainty failed ({exc})", flush=True)
                 continue

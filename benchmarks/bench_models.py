@@ -19,7 +19,7 @@ import statistics
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from ari_sfm.calibration.compare import PAPER, Subset, compare, parse_models  # noqa: E402
-from ari_sfm.simulate import make_scene  # noqa: E402
+from ari_sfm.simulate import ScenarioOverrides, make_scene  # noqa: E402
 
 CASES = (
     ("single", "paper_single", {}, None),
@@ -30,7 +30,7 @@ CASES = (
 
 def run_case(label: str, scenario: str, overrides: dict, subset: Subset | None, models: tuple[str, ...],
              repeats: int) -> None:
-    scene = make_scene(scenario, seed=0, **overrides)
+    scene = make_scene(scenario, seed=0, overrides=ScenarioOverrides(**overrides))
     runs = [compare(scene.dataset, models, subset) for _ in range(repeats)]
     times = {m: statistics.median(r.time_ms for run in runs for r in run if r.model == m) for m in models}
     first = {r.model: r for r in runs[0]}

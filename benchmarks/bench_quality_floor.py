@@ -27,7 +27,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np
 
-from ari_sfm.calibration.calibrate import calibrate
+from ari_sfm.calibration.calibrate import CalibrationOptions, calibrate
 from ari_sfm.calibration.quality import corner_floor, robust_rmse_px
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import rotation_from_rotvec
@@ -45,7 +45,7 @@ class Case:
     name: str
     dataset: Dataset
     exact: tuple | None  # the noise-free observations (None: not known)
-    options: dict
+    options: CalibrationOptions
 
 
 def _with_noise(geometry: Geometry, sigma: float, seed: int, step: float | None = None,
@@ -69,8 +69,8 @@ def particles_geometry(seed: int = 0, views: int = 3, k1: tuple[float, float] | 
     return geometry
 
 
-def _scene(name: str, sigma: float = 0.05, seed: int = 0, **overrides) -> tuple[Dataset, tuple]:
-    scene = make_scene(name, seed=seed, sigma_px=sigma, **overrides)
+def _scene(name: str, sigma: float = 0.05, seed: int = 0, dist: list[float] | None = None) -> tuple[Dataset, tuple]:
+    scene = make_scene(name, seed=seed, sigma_px=sigma, dist=dist)
     return scene.dataset, scene.exact_observations
 
 
@@ -86,12 +86,13 @@ def _medium(dataset: Dataset, index: float) -> Dataset:
 
 def cases(seed: int = 0) -> list[tuple[str, Callable[[], Case]]]:
     """(name, builder) of every case (built lazily)."""
-    fixed = {"fix_intrinsics": True}
+    fixed = CalibrationOptions(fix_intrinsics=True, uncertainty=False)
 
-    def scene(label, name, options=None, transform=None, **kw):
+    def scene(label, name, options=None, transform=None, sigma=0.05, dist=None):
         def build():
-            ds, exact = _scene(name, seed=seed, **kw)
-            return Case(label, transform(ds) if transform else ds, None if transform else exact, options or {})
+            ds, exact = _scene(name, sigma, seed, dist)
+            return Case(label, transform(ds) if transform else ds, None if transform else exact,
+                        options or CalibrationOptions(uncertainty=False))
         return label, build
 
     def ptv_placed(label, shift, tilt, transform=None):
@@ -105,7 +106,8 @@ def cases(seed: int = 0) -> list[tuple[str, Callable[[], Case]]]:
     def particles(label, views=3, k1=None, step=None, options=None, transform=None):
         def build():
             ds, exact = _with_noise(particles_geometry(seed, views, k1), 0.05, seed, step)
-            return Case(label, transform(ds) if transform else ds, None if transform else exact, options or {})
+            return Case(label, transform(ds) if transform else ds, None if transform else exact,
+                        options or CalibrationOptions(uncertainty=False))
         return label, build
 
     return [
@@ -138,7 +140,8 @@ def cases(seed: int = 0) -> list[tuple[str, Callable[[], Case]]]:
         scene("WRONG body3d_water medium 1.2", "body3d_water", None, lambda d: _medium(d, 1.2)),
         particles("WRONG particles medium 1.46", transform=lambda d: _medium(d, 1.46)),
         ptv_placed("WRONG ptv misplaced 0.1 mm, medium 1.46", 0.1, 0.05, lambda d: _medium(d, 1.46)),
-        particles("WRONG particles k1, --no-distortion", k1=(-0.06, -0.03), options={"distortion": False}),
+        particles("WRONG particles k1, --no-distortion", k1=(-0.06, -0.03),
+                  options=CalibrationOptions(distortion=False, uncertainty=False)),
     ]
 
 
@@ -169,7 +172,7 @@ def main() -> None:
             times.append(time.perf_counter() - t)
         truth = truth_rmse(case)
         try:
-            q = calibrate(case.dataset, model="exact", uncertainty=False, **case.options).quality
+            q = calibrate(case.dataset, model="exact", options=case.options).quality
         except AriSfmError as exc:
             print(f"{name:44s} {'' if truth is None else f'{truth:7.4f}':>7s} {floor.rmse_px:7.4f}  error: "
                   f"{exc.message[:60]}")

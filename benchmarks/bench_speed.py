@@ -93,7 +93,7 @@ from bench_triangulate import _points_and_pixels, cv2_pairs  # noqa: E402
 
 from ari_sfm.calibration.calibrate import calibrate  # noqa: E402
 from ari_sfm.io import parse_calibration, save_calibration  # noqa: E402
-from ari_sfm.simulate import make_scene  # noqa: E402
+from ari_sfm.simulate import ScenarioOverrides, make_scene  # noqa: E402
 
 GOALS: dict[str, tuple[str, str | None, Callable[[float], bool] | None]] = {
     # figure: (what the ratio is, goal text, ratio meets the goal; None: no goal on the ratio)
@@ -177,7 +177,7 @@ def fig_calibrate_single(repeats: int) -> None:
 
 
 def fig_calibrate_4x100(repeats: int) -> None:
-    dataset = make_scene("scale16", seed=0, num_cameras=4, num_frames=100).dataset
+    dataset = make_scene("scale16", seed=0, overrides=ScenarioOverrides(num_cameras=4, num_frames=100)).dataset
     run = alternate(lambda: calibrate(dataset, model="exact"), cv2_baseline(dataset), repeats)
     report("calibrate_4x100", "calibrate(exact) 4 cameras x 100 frames / 4 x cv2.calibrateCamera", run)
     ba = [sum(s["time_s"] for s in cal.optimizer.to_json().values()) for cal in run["extra"]]
@@ -201,7 +201,7 @@ def fig_triangulate(repeats: int, points: int) -> None:
 
 
 def fig_calibrate_arc_sparse(repeats: int) -> None:
-    dataset = make_scene("arc4", seed=0, run_lengths=(2, 3, 4)).dataset
+    dataset = make_scene("arc4", seed=0, overrides=ScenarioOverrides(run_lengths=(2, 3, 4))).dataset
     run = alternate(lambda: calibrate(dataset, model="exact"), cv2_baseline(dataset), repeats)
     n_obs = sum(len(o.ids) for o in dataset.observations)
     report("calibrate_arc_sparse", "calibrate(exact) sparse arc, 20 frames 2-4 cameras / 4 x cv2", run,
@@ -334,7 +334,7 @@ def _numpy_pinhole(D: np.ndarray, params: np.ndarray, jacobians: bool) -> tuple:
 
 def fig_forward(repeats: int, points: int) -> None:
     from ari_sfm.models.exact import exact_project
-    from ari_sfm.models.pinhole import project_points
+    from ari_sfm.models.pinhole import pinhole_pixels
 
     rng = np.random.default_rng(0)
     z = rng.uniform(150.0, 900.0, points)
@@ -345,7 +345,7 @@ def fig_forward(repeats: int, points: int) -> None:
                             ("forward_dist_jac", True, 1.0)):
         params = np.r_[3478.0, 3480.0, 1230.0, 1020.0, dist * lens]
         uv_np = _numpy_pinhole(X, params, False)[0]
-        assert np.abs(project_points(X, params)[0] - uv_np).max() < 1e-9  # the baseline is the same pinhole
+        assert np.abs(pinhole_pixels(X, params) - uv_np).max() < 1e-9  # the baseline is the same pinhole
         run = alternate(lambda params=params, jac=jac: [exact_project(X, params, normal, 6.0, 1.5168, 1.333, 40.0,
                                                                       jacobians=jac) for _ in range(5)],
                         lambda params=params, jac=jac: [_numpy_pinhole(X, params, jac) for _ in range(5)], repeats)
@@ -356,7 +356,7 @@ def fig_forward(repeats: int, points: int) -> None:
 def _ptv_body():
     """The simulated PTV body: body3d_water (4 cameras, 6 mm glass into water, one view) with 40 x 40
     points 4 mm apart on three levels (1600 points, 6400 observations)."""
-    return make_scene("body3d_water", seed=0, cells=40, pitch_mm=4.0)
+    return make_scene("body3d_water", seed=0, overrides=ScenarioOverrides(cells=40, pitch_mm=4.0))
 
 
 def fig_openptv(repeats: int) -> None:
@@ -365,7 +365,8 @@ def fig_openptv(repeats: int) -> None:
 
 
 def fig_openptv_multiplane(repeats: int) -> None:
-    dataset = make_scene("ptv_multiplane", seed=0, grid=(27, 15)).dataset  # what `import openptv` reads of it
+    dataset = make_scene("ptv_multiplane", seed=0,
+                         overrides=ScenarioOverrides(grid=(27, 15))).dataset  # what `import openptv` reads of it
     optv_alternate("openptv_multiplane", "calibrate(exact) multiplane, 4 planes, {n} obs / optv x 4", dataset, repeats)
 
 
@@ -377,7 +378,7 @@ def placed_multiplane():
     from ari_sfm.simulate.scenarios import build_geometry, ptv_misplaced
     from ari_sfm.simulate.scene import observe, to_dataset
 
-    geometry = build_geometry("ptv_multiplane", np.random.default_rng(0), grid=(27, 15))
+    geometry = build_geometry("ptv_multiplane", np.random.default_rng(0), overrides=ScenarioOverrides(grid=(27, 15)))
     moved = observe(replace(geometry, target=ptv_misplaced(geometry.target, 0.1, 0.05, np.random.default_rng(1))))
     rng = np.random.default_rng(2)
     noisy = tuple(replace(o, pixels=o.pixels + rng.normal(0.0, 0.1, o.pixels.shape)) for o in moved)

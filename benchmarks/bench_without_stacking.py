@@ -31,9 +31,9 @@ from ari_sfm.records import CameraSpec, WindowPlane
 from ari_sfm.simulate import make_scene
 
 
-def _row(label: str, seed: int, scene, dataset, **options) -> None:
+def _row(label: str, seed: int, scene, dataset) -> None:
     t0 = time.perf_counter()
-    cal = calibrate(dataset, model="exact", uncertainty=False, **options)
+    cal = calibrate(dataset, model="exact", uncertainty=False)
     dt = time.perf_counter() - t0
     tr = scene.truth
     fx = max(abs(c.K[0, 0] / tr["cameras"][n]["K"][0][0] - 1) for n, c in cal.cameras.items())

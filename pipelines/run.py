@@ -18,6 +18,7 @@ import argparse
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from ..calibration.calibrate import DEFAULT_MODEL, CalibrationOptions
 from ..calibration.truth_errors import CalibrationErrors, calibration_errors
@@ -32,17 +33,67 @@ log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
+class RunReconstruction:
+    """What the run reconstructed (run.json ``reconstruction``)."""
+
+    frames: int
+    points: int
+
+    def to_json(self) -> dict[str, Any]:
+        """run.json's ``reconstruction``."""
+        return {"frames": self.frames, "points": self.points}
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """What a run did: run.json, which ``ari-sfm report OUT`` reads (its dataset)."""
+
+    dataset: Path  # the dataset's absolute path
+    observations: Path | None  # the observations calibrated, absolute (None: the dataset's own)
+    model: str
+    calibration: str  # calibration.json's file name, in OUT
+    reconstruction: RunReconstruction | None  # None when skipped
+    reconstruction_skipped: str | None  # why it was skipped
+    truth: Path | None  # the truth.json given, absolute
+    calibration_vs_truth: CalibrationErrors | None  # the calibration's errors against it
+
+    def to_json(self) -> dict[str, Any]:
+        """run.json."""
+        return {
+            "format": RUN_FORMAT,
+            "dataset": str(self.dataset),
+            "observations": None if self.observations is None else str(self.observations),
+            "model": self.model,
+            "calibration": self.calibration,
+            "reconstruction": None if self.reconstruction is None else self.reconstruction.to_json(),
+            "reconstruction_skipped": self.reconstruction_skipped,
+            "truth": None if self.truth is None else str(self.truth),
+            "calibration_vs_truth": None if self.calibration_vs_truth is None else self.calibration_vs_truth.to_json(),
+        }
+
+
+@dataclass(frozen=True)
 class RunResult:
+    """What :func:`main` ran and wrote."""
+
     calibrated: PipelineResult
     reconstruction: ReconstructionRun | None  # None when skipped
     skipped_reconstruction: str | None  # why it was skipped
     run_path: Path
     report_path: Path
     truth_errors: CalibrationErrors | None = None  # the calibration against --truth
+    record: RunRecord | None = None  # what run_path holds
 
 
 def reconstruction_frames(dataset: Dataset) -> tuple[list[str], str | None]:
-    """The reconstruction frames seen by >= 2 cameras, and why there are none (else None)."""
+    """The reconstruction frames seen by two or more cameras.
+
+    Args:
+        dataset: The dataset with its observations.
+
+    Returns:
+        (the frames, None), or ([], why there are none).
+    """
     if not dataset.reconstruction:
         return [], "the dataset has no reconstruction frames"
     cams: dict[str, set[str]] = {}
@@ -64,8 +115,17 @@ def _dataset_folder(path: str | Path) -> Path:
 
 
 def check_run_folder(out_dir: Path, dataset_path: str | Path) -> None:
-    """AriSfmError if ``out_dir`` holds the run (run.json) or reconstruction (metrics.json, points.json) of
-    another dataset: a second run would leave run.json of one and results of the other."""
+    """Refuse an output folder holding another dataset's run: a second run would leave run.json of one and
+    results of the other.
+
+    Args:
+        out_dir: The output folder.
+        dataset_path: The dataset folder or rig file of this run.
+
+    Raises:
+        AriSfmError: ``out_dir`` holds the run (run.json) or reconstruction (metrics.json, points.json) of
+            another dataset.
+    """
     from ..errors import AriSfmError
     from ..io import read_structured
     from ..provenance import recorded_dataset_path
@@ -86,7 +146,11 @@ def check_run_folder(out_dir: Path, dataset_path: str | Path) -> None:
 
 
 def remove_stale_reconstruction(out_dir: Path) -> None:
-    """Remove points.json, metrics.json and clouds/ of an earlier run of this dataset (this run has none)."""
+    """Remove points.json, metrics.json and clouds/ of an earlier run of this dataset (this run has none).
+
+    Args:
+        out_dir: The output folder.
+    """
     import shutil
 
     for name in RECONSTRUCTION_FILES:
@@ -97,8 +161,14 @@ def remove_stale_reconstruction(out_dir: Path) -> None:
 
 
 def remove_earlier_run(out_dir: Path) -> None:
-    """An earlier run's run.json, report.html and reconstruction, removed before this run writes: a run that
-    fails half-way never leaves run.json (or a report) of the earlier run beside its own calibration."""
+    """Remove an earlier run's run.json, report.html and reconstruction before this run writes.
+
+    A run that fails half-way then never leaves run.json (or a report) of the earlier run beside its own
+    calibration.
+
+    Args:
+        out_dir: The output folder.
+    """
     from ..report import REPORT_FILE
 
     for name in (RUN_FILE, REPORT_FILE):
@@ -108,9 +178,24 @@ def remove_earlier_run(out_dir: Path) -> None:
 
 
 def main(dataset_path: Path, out_dir: Path, model: str | None = None, truth: Path | None = None,
-         progress: bool = False, options: CalibrationOptions | None = None, **overrides) -> RunResult:
-    """Calibrate (None: the best model, ``DEFAULT_MODEL``; ``options`` and/or its fields as keywords),
-    reconstruct when possible, write run.json and report.html."""
+         progress: bool = False, options: CalibrationOptions | None = None) -> RunResult:
+    """Calibrate, reconstruct when possible, write run.json and report.html (the module docstring).
+
+    Args:
+        dataset_path: The dataset folder or rig file.
+        out_dir: The output folder (held for the run: a second command writing into it is refused).
+        model: The model to calibrate; None: the best model (``DEFAULT_MODEL``).
+        truth: A simulator's truth.json: the calibration's errors against it and the reconstruction's 3D error.
+        progress: Progress bars.
+        options: The calibration's options (None: the defaults).
+
+    Returns:
+        What ran: the calibration, the reconstruction or why it was skipped, the paths written.
+
+    Raises:
+        AriSfmError: ``out_dir`` holds another dataset's results; the truth does not match the dataset; any
+            error of the calibration or the reconstruction.
+    """
     from ..io import exclusive_folder
 
     out_dir = Path(out_dir)
@@ -123,16 +208,16 @@ def main(dataset_path: Path, out_dir: Path, model: str | None = None, truth: Pat
     with exclusive_folder(out_dir):  # a second command writing into OUT meanwhile: refused, not interleaved
         check_run_folder(out_dir, dataset_path)  # again, now that OUT is held
         remove_earlier_run(out_dir)
-        return _run(dataset_path, dataset, out_dir, model, truth, progress, options, **overrides)
+        return _run(dataset_path, dataset, out_dir, model, truth, progress, options)
 
 
 def _run(dataset_path: Path, dataset: Dataset, out_dir: Path, model: str | None, truth: Path | None, progress: bool,
-         options: CalibrationOptions | None, **overrides) -> RunResult:
+         options: CalibrationOptions | None) -> RunResult:
     """:func:`main` once OUT is held."""
     model = model or DEFAULT_MODEL
     # the files written are what the records in memory hold
-    calibrated = calibrate_rig(dataset_path, out_dir, model=model, progress=progress,
-                               dataset=dataset, options=options, **overrides)
+    calibrated = calibrate_rig(dataset_path, out_dir, model=model, progress=progress, dataset=dataset,
+                               options=options)
     obs_path = calibrated.observations_path
     if calibrated.dataset is not None:  # with the observations detected
         dataset = calibrated.dataset
@@ -153,19 +238,13 @@ def _run(dataset_path: Path, dataset: Dataset, out_dir: Path, model: str | None,
     if truth is not None:
         errors = calibration_errors(calibrated.calibration, load_calibration(truth))
     run_path = out_dir / RUN_FILE
-    write_json_atomic(run_path, {
-        "format": RUN_FORMAT,
-        "dataset": str(Path(dataset_path).resolve()),
-        "observations": str(obs_path.resolve()) if obs_path else None,
-        "model": model,
-        "calibration": calibrated.calibration_path.name,
-        "reconstruction": None if rec is None else {"frames": len(rec.points.frames), "points": rec.points.num_points},
-        "reconstruction_skipped": why,
-        "truth": str(Path(truth).resolve()) if truth else None,
-        "calibration_vs_truth": None if errors is None else errors.to_json(),
-    })
+    record = RunRecord(Path(dataset_path).resolve(), obs_path.resolve() if obs_path else None, model,
+                       calibrated.calibration_path.name,
+                       None if rec is None else RunReconstruction(len(rec.points.frames), rec.points.num_points), why,
+                       Path(truth).resolve() if truth else None, errors)
+    write_json_atomic(run_path, record.to_json())
     report = write_report(out_dir)
-    return RunResult(calibrated, rec, why, run_path, report, errors)
+    return RunResult(calibrated, rec, why, run_path, report, errors, record)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ from ari_sfm.calibration.evaluate import evaluate
 from ari_sfm.geometry import angle_between_deg
 from ari_sfm.io import load_calibration, save_calibration
 from ari_sfm.records import Observation
-from ari_sfm.simulate import make_scene
+from ari_sfm.simulate import ScenarioOverrides, make_scene
 
 SIGMA = 0.05
 FLOOR = SIGMA * np.sqrt(2)
@@ -96,7 +96,8 @@ def test_save_load_round_trip_and_evaluate(tmp_path, single_scene, single_ari):
 
 def test_held_out_views_judge_the_model(single_scene, single_ari, single_exact):
     """On poses not used for calibration (fitted with the rig fixed) exact stays at the noise floor."""
-    held = make_scene("paper_single", seed=0, sigma_px=SIGMA, num_frames=16)  # same rig, 4 more poses
+    held = make_scene("paper_single", seed=0, sigma_px=SIGMA,
+                      overrides=ScenarioOverrides(num_frames=16))  # same rig, 4 more poses
     new = {o.frame for o in held.dataset.observations if o.set == "calibration"} - set(single_exact.frames)
     assert len(new) == 4
     records = [o for o in held.dataset.observations if o.frame in new]

@@ -26,7 +26,7 @@ from ari_sfm.geometry import rotation_from_rotvec
 from ari_sfm.io import load_dataset
 from ari_sfm.io.dataset import parse_target, target_to_json
 from ari_sfm.records import Target
-from ari_sfm.simulate import simulate
+from ari_sfm.simulate import ScenarioOverrides, simulate
 from ari_sfm.simulate.render import plane_pixel_to_target, project_pinhole, render_target
 
 W, H = 640, 480
@@ -293,7 +293,7 @@ def dot_run(tmp_path_factory):
     """The paper_single_dots scenario (half-size images, 6 calibration frames: `ari-sfm simulate
     paper_single_dots -o sim --image-scale 0.5` with fewer frames) then `ari-sfm run`."""
     tmp = tmp_path_factory.mktemp("dots")
-    simulate("paper_single_dots", tmp / "sim", seed=0, image_scale=0.5, num_frames=6)
+    simulate("paper_single_dots", tmp / "sim", seed=0, image_scale=0.5, overrides=ScenarioOverrides(num_frames=6))
     r = CliRunner().invoke(main, ["run", str(tmp / "sim" / "dataset"), "-o", str(tmp / "out"), "--model", "exact"])
     assert r.exit_code == 0, r.output
     return tmp

@@ -55,13 +55,13 @@ def test_evaluate_solve_poses_judges_held_out_views(sim_dir, tmp_path):
     from dataclasses import replace
 
     from ari_sfm.io import save_observations
-    from ari_sfm.simulate import make_scene
+    from ari_sfm.simulate import ScenarioOverrides, make_scene
 
     r = CliRunner().invoke(main,
                            ["calibrate", str(sim_dir / "dataset"), "-o", str(tmp_path / "out"), "--model", "exact"])
     assert r.exit_code == 0, r.output
     cal_path = str(tmp_path / "out" / "calibration.json")
-    held = make_scene("paper_single", seed=0, num_frames=16)  # the same rig, 4 more poses
+    held = make_scene("paper_single", seed=0, overrides=ScenarioOverrides(num_frames=16))  # the same rig, 4 more poses
     cal = json.loads((tmp_path / "out" / "calibration.json").read_text())
     new = [o for o in held.dataset.observations if o.set == "calibration" and o.frame not in cal["frames"]]
     assert len(new) == 4

@@ -25,7 +25,7 @@ from ari_sfm.geometry import angle_between_deg, rotation_angle_deg
 from ari_sfm.io import calibration_to_json, load_calibration, parse_calibration, save_calibration
 from ari_sfm.models import ExactModel, PinholeModel
 from ari_sfm.records import Target
-from ari_sfm.simulate import make_scene
+from ari_sfm.simulate import ScenarioOverrides, make_scene
 
 SIGMA = 0.05
 NOISE_RMSE = SIGMA * np.sqrt(2.0)  # of a 2D residual
@@ -33,7 +33,8 @@ NOISE_RMSE = SIGMA * np.sqrt(2.0)  # of a 2D residual
 
 @pytest.fixture(scope="module")
 def rotary():
-    return make_scene("binocular", seed=0, sigma_px=SIGMA, num_frames=8, depth_band_mm=20.0, lateral_scale=0.2)
+    return make_scene("binocular", seed=0, sigma_px=SIGMA,
+                      overrides=ScenarioOverrides(num_frames=8, depth_band_mm=20.0, lateral_scale=0.2))
 
 
 @pytest.fixture(scope="module")
@@ -83,7 +84,7 @@ def test_exact_after_the_subset_extrapolates_to_the_noise(rotary_subset):
 
 def test_ari_after_the_subset_stays_within_its_paraxial_limit():
     """On the default binocular rig (boards spread over the volume; the issue's bound: 1.5 px)."""
-    scene = make_scene("binocular", seed=0, sigma_px=SIGMA, num_frames=8)
+    scene = make_scene("binocular", seed=0, sigma_px=SIGMA, overrides=ScenarioOverrides(num_frames=8))
     (ari,) = compare(scene.dataset, ("ari",), Subset(3, 4))
     assert ari.all.rmse_px <= 1.5
     assert ari.all.rmse_px > ari.fit.rmse_px  # the central corners fit better than the rest
@@ -145,7 +146,7 @@ def test_rt_recovers_the_simulated_rig(rotary, rotary_full):
 
 def test_rt_under_water_also_finds_the_window_distance():
     """Water behind a 10 mm port makes the distance observable; rt fits it (measured: 0.002 mm, 0.017 deg)."""
-    scene = make_scene("binocular_underwater", seed=0, sigma_px=SIGMA, num_frames=8)
+    scene = make_scene("binocular_underwater", seed=0, sigma_px=SIGMA, overrides=ScenarioOverrides(num_frames=8))
     rt = calibrate(scene.dataset, model="rt")
     truth = parse_calibration(scene.truth, "truth.json")
     assert rt.interface.distance_mm is not None and rt.fixed_distance_mm is None
@@ -256,7 +257,8 @@ def test_compare_leaves_out_a_baseline_these_data_cannot_support(caplog, monkeyp
 
     monkeypatch.setattr(baselines, "calibrate_pinhole_model", refuse)
     with caplog.at_level("WARNING", logger="ari_sfm"):
-        results = compare(make_scene("binocular", seed=0, sigma_px=SIGMA, num_frames=6).dataset,
+        results = compare(make_scene("binocular", seed=0, sigma_px=SIGMA,
+                                     overrides=ScenarioOverrides(num_frames=6)).dataset,
                           models=("exact", "pinhole"))
     assert [r.model for r in results] == ["exact"]
     assert any("pinhole left out: camera cam0 has 1 calibration views" in r.getMessage() for r in caplog.records)

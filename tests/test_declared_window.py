@@ -19,7 +19,7 @@ from ari_sfm.init.zhang import object_points
 from ari_sfm.io import parse_calibration, save_calibration
 from ari_sfm.openptv.conventions import glass_vector, window_plane
 from ari_sfm.reconstruction.triangulate import triangulate_pixels
-from ari_sfm.simulate import make_scene
+from ari_sfm.simulate import ScenarioOverrides, make_scene
 from ari_sfm.simulate.scenarios import PTV_PIXEL_STEP_PX, ptv_plane_of
 
 # pixels rounded to a 0.5 px grid: uniform error, sigma 0.5/sqrt(12) per coordinate; RMSE floor x sqrt(2)
@@ -132,7 +132,7 @@ def test_ptv_multiplane_is_what_import_openptv_reads(tmp_path):
     from ari_sfm.openptv.importer import read_experiment
     from ari_sfm.simulate.scenarios import PTV_PLANE_ID_STEP
 
-    scene = make_scene("ptv_multiplane", seed=2, sigma_px=0.0, grid=(6, 4))
+    scene = make_scene("ptv_multiplane", seed=2, sigma_px=0.0, overrides=ScenarioOverrides(grid=(6, 4)))
     ds = scene.dataset
     save_calibration(parse_calibration({k: v for k, v in scene.truth.items() if k != "target"}),
                      tmp_path / "truth.json")

@@ -187,8 +187,50 @@ def test_run_reads_the_dataset_once(tmp_path, monkeypatch):
         monkeypatch.setattr(module, "load_calibration", counting_cal)
     monkeypatch.setattr(run, "write_report", lambda out: Path(out) / "report.html")  # the report reads its files
     dataset = Path(__file__).resolve().parents[1] / "datasets" / "binocular"
-    result = run.main(dataset, tmp_path, model="ari", uncertainty=False)
+    result = run.main(dataset, tmp_path, model="ari", options=CalibrationOptions(uncertainty=False))
     assert len(loads) == 1 and not [p for p in cal_reads if p.name == "calibration.json"]
     points = json.loads((tmp_path / "points.json").read_text())
     assert points["provenance"]["calibration"]["sha256"] == file_sha256(tmp_path / "calibration.json")
     assert result.reconstruction.metrics.num_points > 900  # 11 frames of 88 corners seen by both cameras
+
+
+def test_the_modes_are_enums_read_as_their_strings():
+    """principal_point and backend: a Python caller's string becomes the enum, which compares, prints and is
+    written as that string; anything else is one line naming the allowed values."""
+    import json
+
+    from ari_sfm.calibration.calibrate import Backend, PrincipalPoint
+
+    opts = CalibrationOptions(principal_point="centre", backend="gtsam")
+    assert opts.principal_point is PrincipalPoint.CENTRE and opts.backend is Backend.GTSAM
+    assert opts == CalibrationOptions(principal_point=PrincipalPoint.CENTRE, backend=Backend.GTSAM)
+    assert opts.backend == "gtsam" and f"{opts.backend}" == str(opts.backend) == "gtsam"
+    assert json.dumps({"backend": opts.backend}) == '{"backend": "gtsam"}'
+    assert CalibrationOptions().principal_point is PrincipalPoint.AUTO and CalibrationOptions().backend is Backend.AUTO
+    for name, allowed in (("principal_point", "auto, free, centre"), ("backend", "auto, numpy, gtsam")):
+        with pytest.raises(ValueError) as exc:
+            CalibrationOptions(**{name: "middle"})
+        assert str(exc.value) == f"{name} must be one of {allowed} (got 'middle')"
+
+
+def test_the_pipelines_take_the_options_record(tmp_path, monkeypatch):
+    """calibrate_rig passes its CalibrationOptions to calibrate as one record (progress replaced by its own
+    argument), and takes no option keywords."""
+    from pathlib import Path
+
+    import ari_sfm.calibration.calibrate as C
+    from ari_sfm.pipelines import calibrate_rig
+
+    seen = []
+
+    def spy(dataset, model=C.DEFAULT_MODEL, extra_factors=None, options=None, **overrides):
+        seen.append((options, overrides))
+        raise C.AriSfmError("spy", "stopped")
+
+    monkeypatch.setattr(calibrate_rig, "calibrate", spy)
+    dataset = Path(__file__).resolve().parents[1] / "datasets" / "binocular"
+    with pytest.raises(C.AriSfmError):
+        calibrate_rig.main(dataset, tmp_path, "ari", options=CalibrationOptions(huber_px=0.5, backend="gtsam"))
+    assert seen == [(CalibrationOptions(huber_px=0.5, backend="gtsam"), {})]
+    with pytest.raises(TypeError):
+        calibrate_rig.main(dataset, tmp_path, "ari", uncertainty=False)

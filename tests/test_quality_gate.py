@@ -29,7 +29,7 @@ from ari_sfm.calibration.truth_errors import calibration_errors
 from ari_sfm.cli import main
 from ari_sfm.geometry import rotation_from_rotvec
 from ari_sfm.io import calibration_to_json, load_dataset, parse_calibration, save_rig
-from ari_sfm.simulate import make_scene, simulate
+from ari_sfm.simulate import ScenarioOverrides, make_scene, simulate
 
 GRID = (6, 4)  # a coarse dot grid: the gate's retries stay a few seconds
 
@@ -42,7 +42,7 @@ def _turned(dataset, deg: float = 10.0):
 
 @pytest.fixture(scope="module")
 def coarse():
-    return make_scene("ptv_multiplane", seed=2, sigma_px=0.0, grid=GRID)
+    return make_scene("ptv_multiplane", seed=2, sigma_px=0.0, overrides=ScenarioOverrides(grid=GRID))
 
 
 def test_right_plane_passes_and_wrong_plane_fails(coarse):
@@ -109,7 +109,8 @@ def test_the_allowance_tightens_with_the_corners():
 def test_cli_exits_3_on_a_failed_calibration(tmp_path):
     """calibrate writes calibration.json with quality.ok false, says so in one line and exits 3;
     run exits 3 too, without reconstructing."""
-    ds_dir, _ = simulate("ptv_multiplane", tmp_path / "sim", seed=2, sigma_px=0.0, grid=GRID)
+    ds_dir, _ = simulate("ptv_multiplane", tmp_path / "sim", seed=2, sigma_px=0.0,
+                         overrides=ScenarioOverrides(grid=GRID))
     save_rig(ds_dir / "rig.yaml", _turned(load_dataset(ds_dir)))
     r = CliRunner().invoke(main, ["calibrate", str(ds_dir), "-o", str(tmp_path / "out"), "--model", "ari"])
     assert r.exit_code == 3, r.output
@@ -125,7 +126,8 @@ def test_cli_exits_3_on_a_failed_calibration(tmp_path):
 
 
 def test_cli_good_calibration_exits_0(tmp_path):
-    ds_dir, _ = simulate("ptv_multiplane", tmp_path / "sim", seed=2, sigma_px=0.0, grid=GRID)
+    ds_dir, _ = simulate("ptv_multiplane", tmp_path / "sim", seed=2, sigma_px=0.0,
+                         overrides=ScenarioOverrides(grid=GRID))
     r = CliRunner().invoke(main, ["calibrate", str(ds_dir), "-o", str(tmp_path / "out"), "--model", "exact",
                                   "--fix-intrinsics"])
     assert r.exit_code == 0, r.output
@@ -213,7 +215,8 @@ def test_cli_undetermined_covariance_exits_3_not_a_traceback(tmp_path):
     of 1-6; seed 1 before it, since the true Huber loss; seed 4 before that, as
     benchmarks/bench_declared_window.py's seed 0). The undetermined parameters now get no sigma, the gate
     fails the result naming the cameras, calibration.json is written, exit 3."""
-    ds_dir, _ = simulate("ptv_multiplane", tmp_path / "sim", seed=2, sigma_px=0.0, grid=GRID)
+    ds_dir, _ = simulate("ptv_multiplane", tmp_path / "sim", seed=2, sigma_px=0.0,
+                         overrides=ScenarioOverrides(grid=GRID))
     save_rig(ds_dir / "rig.yaml", _turned(load_dataset(ds_dir)))
     r = CliRunner().invoke(main, ["calibrate", str(ds_dir), "-o", str(tmp_path / "bad"), "--model", "ari",
                                   "--fix-intrinsics"])

@@ -15,10 +15,10 @@ import pytest
 from ari_sfm.geometry import Pose, angle_between_deg
 from ari_sfm.models.exact import ExactModel
 from ari_sfm.models.pinhole import PinholeModel
-from ari_sfm.simulate import SCENARIOS, make_scene, simulate
+from ari_sfm.simulate import SCENARIOS, ScenarioOverrides, make_scene, simulate
 
-SMALL = {"binocular": {"num_frames": 4}, "binocular_underwater": {"num_frames": 4},
-         "arc4": {"num_frames": 5}, "scale16": {"num_frames": 12}}
+SMALL = {"binocular": ScenarioOverrides(num_frames=4), "binocular_underwater": ScenarioOverrides(num_frames=4),
+         "arc4": ScenarioOverrides(num_frames=5), "scale16": ScenarioOverrides(num_frames=12)}
 
 
 @pytest.fixture(scope="session")
@@ -26,10 +26,10 @@ def scenes() -> dict:
     """Noise-free scenes (sigma 0), small where the scenario allows."""
     cache: dict = {}
 
-    def get(name: str, sigma_px: float = 0.0, **kw):
-        key = (name, sigma_px, tuple(sorted(kw.items())))
+    def get(name: str, sigma_px: float = 0.0, image_scale: float = 1.0):
+        key = (name, sigma_px, image_scale)
         if key not in cache:
-            cache[key] = make_scene(name, seed=0, sigma_px=sigma_px, **{**SMALL.get(name, {}), **kw})
+            cache[key] = make_scene(name, seed=0, sigma_px=sigma_px, overrides=SMALL.get(name), image_scale=image_scale)
         return cache[key]
 
     return get
@@ -264,10 +264,10 @@ def test_every_scenario_builds_valid(scenes, name):
 
 
 def test_deterministic_and_noise_does_not_move_geometry():
-    a = make_scene("binocular", seed=3, sigma_px=0.05, num_frames=3)
-    b = make_scene("binocular", seed=3, sigma_px=0.05, num_frames=3)
-    c = make_scene("binocular", seed=3, sigma_px=0.0, num_frames=3)
-    d = make_scene("binocular", seed=4, sigma_px=0.05, num_frames=3)
+    a = make_scene("binocular", seed=3, sigma_px=0.05, overrides=ScenarioOverrides(num_frames=3))
+    b = make_scene("binocular", seed=3, sigma_px=0.05, overrides=ScenarioOverrides(num_frames=3))
+    c = make_scene("binocular", seed=3, sigma_px=0.0, overrides=ScenarioOverrides(num_frames=3))
+    d = make_scene("binocular", seed=4, sigma_px=0.05, overrides=ScenarioOverrides(num_frames=3))
     assert a.truth["frames"] == b.truth["frames"] == c.truth["frames"]
     assert all(np.array_equal(x.pixels, y.pixels) for x, y in zip(a.dataset.observations, b.dataset.observations))
     assert a.truth["cameras"] != d.truth["cameras"]
@@ -286,13 +286,14 @@ def test_unknown_scenario_and_option_raise():
     with pytest.raises(ValueError, match="unknown scenario"):
         make_scene("nope")
     with pytest.raises(ValueError, match="no option"):
-        make_scene("paper_single", num_cameras=3)
+        make_scene("paper_single", overrides=ScenarioOverrides(num_cameras=3))
 
 
 def test_written_dataset_loads(tmp_path):
     from ari_sfm.io import load_dataset
 
-    dataset_dir, truth_path = simulate("binocular_underwater", tmp_path / "bu", seed=1, sigma_px=0.05, num_frames=3)
+    dataset_dir, truth_path = simulate("binocular_underwater", tmp_path / "bu", seed=1, sigma_px=0.05,
+                                       overrides=ScenarioOverrides(num_frames=3))
     assert truth_path.parent == dataset_dir.parent and not (dataset_dir / "truth.json").exists()
     ds = load_dataset(dataset_dir)
     truth = json.loads(truth_path.read_text())
@@ -306,7 +307,8 @@ def test_written_dataset_loads(tmp_path):
 def test_written_images_dataset_has_no_observations(tmp_path):
     from ari_sfm.io import load_dataset
 
-    dataset_dir, truth_path = simulate("paper_single_images", tmp_path / "img", seed=0, image_scale=0.25, num_frames=2)
+    dataset_dir, truth_path = simulate("paper_single_images", tmp_path / "img", seed=0, image_scale=0.25,
+                                       overrides=ScenarioOverrides(num_frames=2))
     ds = load_dataset(dataset_dir)
     assert ds.observations is None and not (dataset_dir / "observations.json").exists()
     entries = ds.entries()
@@ -382,3 +384,19 @@ def test_project_detector_finds_the_true_corners_in_the_sample():
         errors.append(pixels - ref.pixels)
     e = np.concatenate(errors)
     assert len(errors) == 18 and np.sqrt(np.mean(np.sum(e**2, axis=1))) < 0.05 and np.abs(e.mean(axis=0)).max() < 0.01
+
+
+def test_scenario_overrides_are_a_record():
+    """The registry's fixed options and a caller's overrides are one record; what a scenario's builder does not
+    take, or its entry fixes, is refused naming what it accepts."""
+    from ari_sfm.simulate.scenarios import REGISTRY, build_geometry, scenario_options
+
+    assert scenario_options("binocular_underwater_oblique") == ("num_frames",)
+    assert REGISTRY["binocular_underwater_oblique"].options.given() == ("underwater", "tilt_deg")
+    with pytest.raises(ValueError, match=r"^scenario 'binocular_underwater' has no option underwater; options: "
+                                         r"num_frames, stack_added_mm, stage_mm"):
+        make_scene("binocular_underwater", overrides=ScenarioOverrides(underwater=False))
+    rng = np.random.default_rng([0, 1])
+    assert len(build_geometry("arc4", rng, ScenarioOverrides(num_frames=3)).calibration) == 3
+    with pytest.raises(TypeError):
+        ScenarioOverrides(frame_count=3)  # a misspelt option fails at the record

@@ -16,7 +16,7 @@ import pytest
 
 from ari_sfm.calibration.calibrate import PRINCIPAL_POINT_MAX_SIGMA, CalibrationOptions, calibrate
 from ari_sfm.init.zhang import focal_by_resection
-from ari_sfm.simulate import make_scene
+from ari_sfm.simulate import ScenarioOverrides, make_scene
 
 
 def _without_hints(dataset):
@@ -48,7 +48,8 @@ def test_a_shallow_body_without_hints_calibrates_to_the_floor():
 @pytest.fixture(scope="module")
 def sparse_body():
     """One view of a 16-point body 3 mm deep at 600 mm, 1 px noise: the principal point is not determined."""
-    return make_scene("body3d_water", seed=2, sigma_px=1.0, depth_mm=3.0, distance_mm=600.0, cells=4, pitch_mm=40.0)
+    return make_scene("body3d_water", seed=2, sigma_px=1.0,
+                      overrides=ScenarioOverrides(depth_mm=3.0, distance_mm=600.0, cells=4, pitch_mm=40.0))
 
 
 def test_an_undetermined_principal_point_is_held_and_said(sparse_body, caplog):

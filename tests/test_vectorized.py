@@ -27,7 +27,7 @@ from ari_sfm.factors.vectorized import VectorizedProblem, optimize_graph, optimi
 from ari_sfm.factors.view_factor import view_residuals
 from ari_sfm.geometry import angle_between_deg
 from ari_sfm.init.rig import initialise_rig
-from ari_sfm.simulate import make_scene
+from ari_sfm.simulate import ScenarioOverrides, make_scene
 
 FLOOR = 0.05 * np.sqrt(2)
 
@@ -348,7 +348,7 @@ def test_optimize_graph_dispatches(problems):
 
 def test_scale16_reduced_meets_the_exact_tolerances():
     """16 cameras x 60 frames (the full 16 x 500 x 88 runs in benchmarks/bench_backends.py)."""
-    scene = make_scene("scale16", seed=0, num_frames=60)
+    scene = make_scene("scale16", seed=0, overrides=ScenarioOverrides(num_frames=60))
     cal = calibrate(scene.dataset, model="exact", backend="numpy", uncertainty=False)
     truth = scene.truth
     assert len(cal.cameras) == 16
@@ -391,7 +391,7 @@ def test_linearize_gives_the_same_numbers_on_one_thread_or_two(monkeypatch):
     in camera order equal the one-thread pass to the last bit."""
     from ari_sfm.factors import packed_problem
 
-    ds = make_scene("arc4", seed=0, run_lengths=(2, 3, 4)).dataset
+    ds = make_scene("arc4", seed=0, overrides=ScenarioOverrides(run_lengths=(2, 3, 4))).dataset
     rg = RigGraph.build(ds.observations, ds.target, ds.interface, ds.camera_names, _initial_state(ds),
                         model="exact", estimate_distance=False, huber_px=1.0)
     rg.values = _perturbed(rg, np.random.default_rng(3))

@@ -341,11 +341,11 @@ def test_particles_and_self_calibration_through_two_windows(tmp_path):
 
     exp = simulate_particle_experiment(ParticleSimOptions(particles_per_frame=400, num_frames=2, windows=2,
                                                           drift_cameras=(1, 2), seed=3))
-    paths = write_particle_experiment(exp, tmp_path / "sim", render_frames=0)
-    start = calibrate(load_dataset(paths["calibration"]), model="exact")
+    folders = write_particle_experiment(exp, tmp_path / "sim", render_frames=0)
+    start = calibrate(load_dataset(folders.calibration), model="exact")
     assert len(start.windows) == 2 and start.quality.ok
     save_calibration(start, tmp_path / "start.json")
-    self_calibrate_dataset(paths["experiment"], tmp_path / "start.json", tmp_path / "selfcal")
+    self_calibrate_dataset(folders.experiment, tmp_path / "start.json", tmp_path / "selfcal")
     corrected = load_calibration(tmp_path / "selfcal" / "calibration.json")
     assert [w.name for w in corrected.windows] == ["front", "back"]
     truth = exp.truth_b
@@ -356,7 +356,7 @@ def test_particles_and_self_calibration_through_two_windows(tmp_path):
         assert error < max(3 * corrected.uncertainty.cameras[name].rotation_deg, 0.02), (name, error)
     found = {}
     for label, cal in (("start", tmp_path / "start.json"), ("corrected", tmp_path / "selfcal" / "calibration.json")):
-        found[label] = reconstruct_particles(paths["experiment"], cal, tmp_path / label).matched_fraction
+        found[label] = reconstruct_particles(folders.experiment, cal, tmp_path / label).matched_fraction
     assert found["start"] < 0.3 and found["corrected"] > 0.95
 
 

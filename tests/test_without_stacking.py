@@ -22,7 +22,7 @@ from ari_sfm.calibration.calibrate import calibrate
 from ari_sfm.errors import AriSfmError
 from ari_sfm.geometry import Pose, angle_between_deg, rotation_from_rotvec
 from ari_sfm.records import CameraSpec, WindowPlane
-from ari_sfm.simulate import make_scene
+from ari_sfm.simulate import ScenarioOverrides, make_scene
 
 SIGMA = 0.05
 FLOOR = 1.2 * np.sqrt(2) * SIGMA
@@ -109,7 +109,7 @@ def test_fix_intrinsics_without_any_hint_is_refused(body):
 def test_nearly_planar_body_without_hints_starts_from_a_resection():
     """DLT cannot start a 2 mm deep body; a resection over the focal length (principal point at the image
     centre) can, the tilted view telling the focal length: the calibration recovers it."""
-    scene = make_scene("body3d_water", sigma_px=SIGMA, depth_mm=2.0)
+    scene = make_scene("body3d_water", sigma_px=SIGMA, overrides=ScenarioOverrides(depth_mm=2.0))
     cal = calibrate(_without_hints(scene.dataset), model="exact")
     assert cal.quality.ok
     for name, cam in cal.cameras.items():

@@ -36,6 +36,7 @@ from ..records import Dataset, Observation
 from ..results import PfWorld
 
 if TYPE_CHECKING:
+    from ..calibration.calibrate import CalibrationOptions
     from ..calibration.record import Calibration
 
 log = logging.getLogger(__name__)
@@ -94,23 +95,23 @@ def world_points(observations: Sequence[Observation], frames: dict[str, Pose],
     return np.concatenate(X), np.concatenate(uv)
 
 
-def calibrate_pf(dataset: Dataset, world=None, **ari_options) -> Calibration:
+def calibrate_pf(dataset: Dataset, world: Calibration | None = None,
+                 options: CalibrationOptions | None = None) -> Calibration:
     """PF per camera on the calibration records, in the world of an ari calibration.
 
     ``time_s`` is the polynomial fit alone, as in the paper's Table 2.
 
     Args:
-        dataset: the dataset, with observations.
-        world: a :class:`~ari_sfm.calibration.record.Calibration` whose frames give the world coordinates (default:
-            ``calibrate(dataset, model="ari")`` first; its time is not PF's and is reported under
-            ``pf_world``).
-        ari_options: options of that ari calibration.
+        dataset: The dataset with its observations.
+        world: The calibration whose frame poses give the world coordinates; None: ``calibrate(dataset,
+            model="ari", options=options)`` first (its time is not pf's: reported under ``pf_world``).
+        options: The options of that ari calibration (None: the defaults); unused when ``world`` is given.
 
     Returns:
-        The pf :class:`~ari_sfm.calibration.record.Calibration`.
+        The pf calibration: each camera's polynomial (``CameraCalibration.pf``), the world's poses.
 
     Raises:
-        AriSfmError: a camera has fewer than 20 calibration corners with a world position.
+        AriSfmError: a camera has fewer calibration corners with a world position than the polynomial's terms.
     """
     from ..calibration.calibrate import calibrate
     from ..calibration.evaluate import residual_stats
@@ -118,7 +119,7 @@ def calibrate_pf(dataset: Dataset, world=None, **ari_options) -> Calibration:
     t_world = 0.0
     if world is None:
         t0 = time.perf_counter()
-        world = calibrate(dataset, model="ari", **ari_options)
+        world = calibrate(dataset, model="ari", options=options)
         t_world = time.perf_counter() - t0
     data = {name: world_points(dataset.select("calibration", name), world.frames, dataset)
             for name in dataset.camera_names}

@@ -27,7 +27,7 @@ from scipy.optimize import least_squares
 
 from ari_sfm.geometry import rotation_angle_deg, rotation_from_rotvec, skew
 from ari_sfm.models.exact import ConvergenceError, exact_project
-from ari_sfm.models.pinhole import project_points
+from ari_sfm.models.pinhole import pinhole_pixels, project_points
 
 log = logging.getLogger(__name__)
 
@@ -189,7 +189,9 @@ def _project(R: np.ndarray, params: np.ndarray, camera: MatchCamera, xyz: np.nda
     X = xyz @ R.T + t
     J_distance = J_normal = normal = None
     if camera.window is None:
-        uv, J_point, J_params = project_points(X, intrinsics, n_params=5, jacobians=jacobian)
+        if not jacobian:
+            return pinhole_pixels(X, intrinsics), None
+        uv, J_point, J_params = project_points(X, intrinsics, n_params=5)
     else:
         w = camera.window
         normal = R @ w.normal

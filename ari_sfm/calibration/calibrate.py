@@ -1,12 +1,19 @@
-"""calibrate(): analytical initialisation, then the GTSAM bundle adjustment."""
+"""calibrate(): the options, the plan of bundle adjustments, the starts the quality gate tries, the result.
+
+Steps of :func:`calibrate`: options (:class:`CalibrationOptions`), load, plan (:func:`plan_stages`: frozen
+:class:`Stage` records, no side effect), then for each start (:class:`Start`) the analytic initialisation,
+the stages (:func:`run_stage` -> :class:`StageResult`) and the :class:`~ari_sfm.calibration.record.Calibration`,
+judged by :mod:`ari_sfm.calibration.quality` until one passes. Design notes: docs/design/calibration.md.
+"""
 from __future__ import annotations
 
 import logging
 import math
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
+from enum import Enum
 from pathlib import Path
 from typing import TYPE_CHECKING, cast
 
@@ -22,8 +29,13 @@ from .evaluate import residual_stats
 from .record import Calibration, CameraCalibration, WindowCalibration
 
 if TYPE_CHECKING:
+    from gtsam import NonlinearFactor
+
     from ..factors.rig_graph import RigGraph, RigState  # imported lazily at run time (gtsam)
     from ..init.rig import RigInit
+
+    # a user's factors: a sequence, or a callable of each stage's graph returning them
+    ExtraFactors = Sequence[NonlinearFactor] | Callable[[RigGraph], Sequence[NonlinearFactor]] | None
 
 log = logging.getLogger(__name__)
 
@@ -39,8 +51,30 @@ START_TOLERANCE = 1e-3  # ... or this, for an ari stage whose result only starts
 # 1e-4 relative, 1e-10 absolute, and the window distance held in air, which only the ari stage sets: 0.7 um)
 EASED_PLANE_DEG = 0.05  # the eased-planes start: a held declared normal first as a prior of this sigma ...
 EASED_PLANE_MM = 0.5  # ... and a held face position as one of this
-PRINCIPAL_POINT_MODES = ("auto", "free", "centre")
 PRINCIPAL_POINT_MAX_SIGMA = 0.02  # auto: a principal point less determined than this share of the image is held
+
+
+class PrincipalPoint(str, Enum):
+    """How each camera's principal point is treated (``CalibrationOptions.principal_point``)."""
+
+    AUTO = "auto"  # estimated; held at the image centre for the cameras whose views leave it undetermined
+    FREE = "free"  # estimated for every camera
+    CENTRE = "centre"  # held at the image centre (cameras without a K hint)
+
+    def __str__(self) -> str:
+        return self.value
+
+
+class Backend(str, Enum):
+    """The bundle-adjustment solver (``CalibrationOptions.backend``)."""
+
+    AUTO = "auto"  # numpy
+    NUMPY = "numpy"  # the vectorised problem, GTSAM's Levenberg-Marquardt path
+    GTSAM = "gtsam"  # gtsam.LevenbergMarquardtOptimizer on the factor graph
+
+    def __str__(self) -> str:
+        return self.value
+
 
 
 @dataclass(frozen=True)
@@ -66,15 +100,15 @@ class CalibrationOptions:
         "cli": "--fix-intrinsics",
         "help": "Hold the rig.yaml hints: a K hint holds K (and dist); a focal_px hint holds "
                 "fx = fy = focal_px (principal point free)."})
-    principal_point: str = field(default="auto", metadata={
-        "cli": "--principal-point", "choices": ("auto", "free", "centre"),
+    principal_point: PrincipalPoint = field(default=PrincipalPoint.AUTO, metadata={
+        "cli": "--principal-point",
         "help": "Estimate each camera's principal point (free), or hold it at the image centre (centre). Default "
                 "(auto): estimated, and held for the cameras whose views leave it undetermined (standard deviation "
                 f"above {100 * PRINCIPAL_POINT_MAX_SIGMA:g} % of the image: one view of a shallow body cannot tell it "
                 "from the camera's rotation), the calibration then solved again; one line says which."})
     max_iterations: int = 100  # Levenberg-Marquardt iterations per stage
-    backend: str = field(default="auto", metadata={
-        "cli": "--backend", "choices": ("auto", "numpy", "gtsam"),
+    backend: Backend = field(default=Backend.AUTO, metadata={
+        "cli": "--backend",
         "help": "Bundle-adjustment solver: numpy (vectorised, GTSAM's LM path, 5-13x faster), gtsam "
                 "(gtsam.LevenbergMarquardtOptimizer on the factor graph); auto = numpy."})
     workers: int | None = None  # threads for corner detection (dataset with only images) and for the per-camera
@@ -87,19 +121,29 @@ class CalibrationOptions:
     # other starts
 
     def __post_init__(self) -> None:
-        """Refuse values that would fail deep inside the solver (huber_px -1 gave 'non-finite Jacobian')."""
-        import math
+        """Refuse values that would fail deep inside the solver; a mode given as its string becomes the enum.
 
+        Raises:
+            ValueError: one line naming the field, what it must be and the value given.
+        """
         if self.huber_px is not None and not (math.isfinite(self.huber_px) and self.huber_px > 0):
             raise ValueError(f"huber_px must be a finite number > 0, or None (got {self.huber_px})")
         if not (math.isfinite(self.outlier_sigma) and self.outlier_sigma > 0):
             raise ValueError(f"outlier_sigma must be a finite number > 0 (got {self.outlier_sigma})")
-        if self.principal_point not in PRINCIPAL_POINT_MODES:
-            raise ValueError(f"principal_point must be one of {', '.join(PRINCIPAL_POINT_MODES)} "
-                             f"(got {self.principal_point!r})")
+        for name, mode in (("principal_point", PrincipalPoint), ("backend", Backend)):
+            object.__setattr__(self, name, _mode(name, mode, getattr(self, name)))
         iterations = self.max_iterations
         if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 1:
             raise ValueError(f"max_iterations must be an integer >= 1 (got {iterations!r})")
+
+
+def _mode(name: str, mode: type[Enum], value: object) -> Enum:
+    """``value`` as a member of the enum ``mode`` (its string value accepted; ValueError naming the allowed values
+    otherwise)."""
+    try:
+        return mode(value)
+    except ValueError:
+        raise ValueError(f"{name} must be one of {', '.join(m.value for m in mode)} (got {value!r})") from None
 
 
 def _options(options: CalibrationOptions | None, overrides: dict) -> CalibrationOptions:
@@ -117,15 +161,18 @@ def _options(options: CalibrationOptions | None, overrides: dict) -> Calibration
 
 
 def distortion_support(dataset: Dataset) -> str | None:
-    """Why the dataset's views cannot support estimating lens distortion (k1 k2 p1 p2 k3), or None
-    when they can: every camera needs corners whose convex hull covers DISTORTION_MIN_COVERAGE of its
-    image (distortion grows toward the edges) and, with a planar target, DISTORTION_MIN_VIEWS
-    calibration views and stacking poses (without them the exact model finds the window normal through
-    refraction alone, and free distortion absorbs part of it: simulated single camera 0.38 deg instead
-    of 0.08; under water, oblique, the fit diverged). A 3D body determines each camera, lens included,
-    from one view (its depth separates the window's refraction from the lens: simulated 4-camera rigs
-    with k1 -0.03..-0.06 keep their relative rotations to <= 0.09 deg with distortion estimated, 0.27-0.79
-    deg off without), so it needs neither."""
+    """Whether the dataset's views can support estimating lens distortion (k1 k2 p1 p2 k3).
+
+    Every camera needs corners whose convex hull covers ``DISTORTION_MIN_COVERAGE`` of its image and, with a
+    planar target, ``DISTORTION_MIN_VIEWS`` calibration views and stacking poses; a 3D body needs neither (one
+    view with a focal length hint). Why: docs/design/calibration.md.
+
+    Args:
+        dataset: The dataset with its observations.
+
+    Returns:
+        None when they can; else why not, one sentence naming the camera or what is missing.
+    """
     import cv2
 
     body = not dataset.target.is_planar()
@@ -153,8 +200,18 @@ def distortion_support(dataset: Dataset) -> str | None:
 
 
 def resolve_distortion(dataset: Dataset, model: str, opts: CalibrationOptions) -> bool:
-    """``opts.distortion`` as given, or (None) estimated for the exact model when the views support
-    it and no intrinsics are held; when they do not, one log line says why."""
+    """Whether lens distortion is estimated: ``opts.distortion`` as given, or (None) for the exact model when
+    the views support it (:func:`distortion_support`), no intrinsics are held and the target is a board; when
+    it is not, one log line says why.
+
+    Args:
+        dataset: The dataset with its observations.
+        model: The model calibrated.
+        opts: The options.
+
+    Returns:
+        True to estimate k1 k2 p1 p2 k3, False to hold them.
+    """
     if opts.distortion is not None:
         return bool(opts.distortion)
     if model != "exact":  # the paper's ari model and the baselines keep their published form
@@ -175,33 +232,56 @@ def resolve_distortion(dataset: Dataset, model: str, opts: CalibrationOptions) -
 
 def lens_on_misfit(dataset: Dataset, model: str, opts: CalibrationOptions) -> bool:
     """Whether a calibration whose default start fails the quality gate is tried again with lens distortion
-    estimated (``distortion`` left to the default, the exact model, a 3D body whose views support it): a
-    body's free lens opens wrong minima when the lens has none to give (two simulated tanks, 2 of 6 seeds
-    ended 1-3 deg off at 1.1-1.2 x the floor), and is what a lens that has distortion needs (k1 -0.03..-0.06:
-    0.27-0.79 deg off without it, at 1.8 x the floor, which the gate fails)."""
+    estimated: ``distortion`` left to the default, the exact model, a 3D body whose views support it (why:
+    docs/design/calibration.md).
+
+    Args:
+        dataset: The dataset with its observations.
+        model: The model calibrated.
+        opts: The options.
+
+    Returns:
+        True when a start with the lens estimated follows the others.
+    """
     return (opts.distortion is None and model == "exact" and not opts.fix_intrinsics
             and not dataset.target.is_planar() and distortion_support(dataset) is None)
 
 
 def centred_principal_points(dataset: Dataset, opts: CalibrationOptions, undetermined: Sequence[str] = ()
                              ) -> dict[str, tuple[float, float]]:
-    """camera -> its image centre, for the cameras whose principal point is held there (``principal_point``:
-    every camera without a K hint with "centre", none with "free"; "auto": the ``undetermined`` ones, those
-    whose principal point a first solve left undetermined, :func:`undetermined_principal_points`)."""
+    """The cameras whose principal point is held at the image centre, and that centre.
+
+    Args:
+        dataset: The dataset.
+        opts: The options: ``principal_point`` "centre" holds every camera without a K hint, "free" none,
+            "auto" the ``undetermined`` ones.
+        undetermined: The cameras whose principal point a first solve left undetermined
+            (:func:`undetermined_principal_points`).
+
+    Returns:
+        Camera name -> (cx, cy) of its image centre, px.
+    """
     def centre(name: str) -> tuple[float, float]:
         w, h = dataset.cameras[name].image_size
         return (w - 1) / 2.0, (h - 1) / 2.0
 
-    if opts.principal_point == "free":
+    if opts.principal_point is PrincipalPoint.FREE:
         return {}
-    names = dataset.camera_names if opts.principal_point == "centre" else list(undetermined)
+    names = dataset.camera_names if opts.principal_point is PrincipalPoint.CENTRE else list(undetermined)
     return {n: centre(n) for n in names if dataset.cameras[n].K is None}
 
 
 def undetermined_principal_points(cal: Calibration) -> list[str]:
-    """The cameras whose principal point the data leave undetermined: a standard deviation of cx or cy above
-    PRINCIPAL_POINT_MAX_SIGMA of the image's larger side, or none at all (one view of a shallow body cannot
-    tell the principal point from the camera's rotation)."""
+    """The cameras whose principal point the data leave undetermined.
+
+    Args:
+        cal: A calibration with its standard deviations (none: no camera is named).
+
+    Returns:
+        The cameras whose cx or cy has a standard deviation above ``PRINCIPAL_POINT_MAX_SIGMA`` of the image's
+        larger side, or none at all (one view of a shallow body cannot tell the principal point from the
+        camera's rotation).
+    """
     if cal.uncertainty is None:
         return []
     out = []
@@ -216,13 +296,22 @@ def undetermined_principal_points(cal: Calibration) -> list[str]:
 
 def ensure_observations(dataset: Dataset, workers: int | None = None, progress: bool = False) -> Dataset:
     """The dataset with observations, detecting corners in its images when it has none
-    (:func:`ari_sfm.detection.ensure_observations`, re-exported here)."""
+    (:func:`ari_sfm.detection.ensure_observations`, re-exported here).
+
+    Args:
+        dataset: The dataset.
+        workers: Detection threads (None: every core).
+        progress: A progress bar.
+
+    Returns:
+        The dataset with its observations.
+    """
     from ..detection import ensure_observations as ensure
 
     return ensure(dataset, workers, progress)
 
 
-def _add_factors(graph, extra_factors) -> None:
+def _add_factors(graph: RigGraph, extra_factors: ExtraFactors) -> None:
     """Push a user's factors (a sequence, or a callable of the RigGraph returning them) onto a stage's graph."""
     if extra_factors is None:
         return
@@ -251,14 +340,26 @@ class Stage:
 
 
 def plan_stages(dataset: Dataset, model: str, options: CalibrationOptions = CalibrationOptions()) -> tuple[Stage, ...]:
-    """The bundle adjustments calibrating ``model`` on ``dataset``, in order (none for the baselines,
-    which have their own calibrators). No side effect: reads the dataset's sets and window only.
+    """The bundle adjustments calibrating ``model`` on ``dataset``, in order. No side effect: reads the
+    dataset's sets and windows only.
 
     ari first (the analytic start's model); without stacking the normal is held in it (then, with a
     declared plane and model ari, a second ari stage with the plane). A Snell model follows, refined
     from the ari result; with a declared plane under water, a free-window Snell stage first
     ("exact_free": the ari poses can put a plane placed by them behind the cameras).
-    ``options.distortion`` must be resolved (:func:`resolve_distortion`)."""
+
+    Args:
+        dataset: The dataset.
+        model: The model calibrated.
+        options: The options, ``distortion`` resolved (:func:`resolve_distortion`).
+
+    Returns:
+        The stages; none for the baselines, which have their own calibrators.
+
+    Raises:
+        AriSfmError: a window's normal observable neither by stacking nor by a declared plane, with a model
+            that cannot observe it through refraction (ari).
+    """
     spec = model_spec(model, "model", calibratable=True)
     if not spec.bundle:
         return ()
@@ -287,8 +388,16 @@ def plan_stages(dataset: Dataset, model: str, options: CalibrationOptions = Cali
 
 
 def stage_tolerance(stage: Stage, plan: tuple[Stage, ...]) -> float:
-    """The relative error decrease at which ``stage``'s solve stops: START_TOLERANCE for a paraxial stage whose
-    result only starts a Snell stage (which refines every parameter of it again), else FINAL_TOLERANCE."""
+    """The relative error decrease at which ``stage``'s solve stops.
+
+    Args:
+        stage: A stage of ``plan``.
+        plan: The plan it belongs to.
+
+    Returns:
+        ``START_TOLERANCE`` for a paraxial stage whose result only starts a Snell stage (which refines every
+        parameter of it again), else ``FINAL_TOLERANCE``.
+    """
     return START_TOLERANCE if not stage.snell and plan[-1].snell else FINAL_TOLERANCE
 
 
@@ -304,7 +413,7 @@ class StageResult:
 
     stage: Stage
     state: RigState  # (ari_sfm.factors.rig_graph, imported lazily: gtsam)
-    residuals: list  # (observation, (n, 2) residuals in px)
+    residuals: list[tuple[Observation, np.ndarray]]  # (observation, (n, 2) residuals in px)
     iterations: int
     time_s: float
     backend: str
@@ -315,8 +424,15 @@ class StageResult:
     solved: object | None  # the numpy backend's solved problem (None with gtsam)
 
     def record(self, observable_distance: bool = True) -> StageRecord:
-        """Its figures for calibration.json ``stages``: model, residuals and parameters; the window distance only
-        where the data observe it (``observable_distance``: under water; in air it is null, as calibration.json's)."""
+        """Its figures for calibration.json ``stages``.
+
+        Args:
+            observable_distance: Whether the data observe the window distance (under water); in air it is
+                null, as calibration.json's.
+
+        Returns:
+            The stage's model, residuals and parameters.
+        """
         stats = residual_stats(r for _, r in self.residuals)
         state = self.state
         windows: tuple[StageWindow, ...] = ()
@@ -334,39 +450,52 @@ class StageResult:
             windows)
 
     def report(self) -> OptimizerRun:
-        """Its entry in the optimizer report (numpy's error_evaluations: it stops at convergence without
-        GTSAM's futile lambda trials)."""
+        """Its entry in the optimizer report.
+
+        Returns:
+            Time, backend, iterations, pixel sigma and (numpy backend) error evaluations: it stops at
+            convergence without GTSAM's futile lambda trials.
+        """
         return OptimizerRun(self.time_s, self.backend, self.iterations, self.sigma_px, self.error_evaluations)
 
 
-def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_factors=None,
-              options: CalibrationOptions | None = None, **overrides) -> Calibration:
+def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_factors: ExtraFactors = None,
+              options: CalibrationOptions | None = None, **overrides: object) -> Calibration:
     """Calibrate the cameras and the window of a dataset.
-
-    model "exact" (default, the best model): Snell's law at both faces, refined from the ari
-    result, with lens distortion estimated when the views support it (``distortion`` None; the
-    ari stage's figures are kept in ``stages``); "ari": the paper's paraxial model alone
-    (analytic initialisation + bundle adjustment);
-    the paper's baselines "rt" (ray tracing) and "pf" (polynomial), and "pinhole",
-    "pinhole_dist" (window ignored): see :mod:`ari_sfm.baselines`.
-    Options: a :class:`CalibrationOptions` as ``options=``, and/or its fields as keywords
-    (``calibrate(ds, fix_intrinsics=True)``), which override ``options``.
-
-    ``extra_factors``: gtsam factors on the graph's keys (:mod:`ari_sfm.factors.keys`; e.g.
-    ``gtsam.PriorFactorUnit3(keys.N, ...)`` with a sigma in radians), or a callable taking each
-    stage's :class:`~ari_sfm.factors.rig_graph.RigGraph` and returning them: they join every
-    stage (ari, exact, the outlier re-run), the view factors being whitened by the pixel sigma,
-    so a prior weighs what its sigma says (docs/RESEARCH.md).
 
     Steps: options, load, plan (:func:`plan_stages`), then for each start of the quality gate
     (:func:`_starts`): initial state, the stages (:func:`run_stage`), the result; judged
     (:mod:`ari_sfm.calibration.quality`) until one passes.
+
+    Args:
+        dataset: The dataset, or its folder or rig file (corners detected when it has only images).
+        model: "exact" (default, the best model): Snell's law at both faces, refined from the ari result, lens
+            distortion estimated when the views support it (the ari stage's figures kept in ``stages``); "ari":
+            the paper's paraxial model alone; the paper's baselines "rt" (ray tracing) and "pf" (polynomial),
+            and "pinhole", "pinhole_dist" (window ignored): :mod:`ari_sfm.baselines`.
+        extra_factors: gtsam factors on the graph's keys (:mod:`ari_sfm.factors.keys`; e.g.
+            ``gtsam.PriorFactorUnit3(keys.N, ...)`` with a sigma in radians), or a callable taking each stage's
+            :class:`~ari_sfm.factors.rig_graph.RigGraph` and returning them: they join every stage (ari, exact,
+            the outlier re-run), the view factors whitened by the pixel sigma, so a prior weighs what its sigma
+            says (docs/RESEARCH.md). Bundle-adjusted models only.
+        options: The options (None: the defaults).
+        overrides: Fields of :class:`CalibrationOptions` as keywords (``calibrate(ds, fix_intrinsics=True)``),
+            replacing those of ``options``: the one place options are taken as keywords.
+
+    Returns:
+        The calibration, with its quality gate's verdict (bundle-adjusted models).
+
+    Raises:
+        TypeError: ``dataset`` is neither a Dataset nor a path; an unknown option keyword; ``options`` is not
+            a CalibrationOptions.
+        ValueError: an option's value (one line naming it); ``extra_factors`` with a baseline.
+        AriSfmError: the data cannot be calibrated with this model (one line naming the file).
     """
     from ..factors.vectorized import resolve_backend
     from .quality import PARAXIAL_MODELS, corner_floor, fits, judge
 
     opts = _options(options, overrides)
-    backend = resolve_backend(opts.backend)
+    backend = resolve_backend(opts.backend.value)
     spec = model_spec(model, "model", calibratable=True)  # the models: ari_sfm.models.registry
     if not isinstance(dataset, Dataset):
         if not isinstance(dataset, (str, os.PathLike)):
@@ -392,7 +521,7 @@ def calibrate(dataset: Dataset | str | Path, model: str = DEFAULT_MODEL, extra_f
         try:
             cal, residuals, reached = _calibrate_from(_Solver(dataset, opts, backend, extra_factors), model, plan,
                                                       start)
-            for _ in range(len(dataset.camera_names) if opts.principal_point == "auto" else 0):
+            for _ in range(len(dataset.camera_names) if opts.principal_point is PrincipalPoint.AUTO else 0):
                 loose = [n for n in undetermined_principal_points(cal) if n not in start.centred]
                 if not loose:
                     break
@@ -501,10 +630,10 @@ class _Solver:
     dataset: Dataset
     opts: CalibrationOptions
     backend: str
-    extra_factors: object = None
+    extra_factors: ExtraFactors = None
     fixed: tuple[str, ...] = ()  # cameras whose K is held
-    fixed_focal: dict | None = None  # camera -> focal held as fx = fy
-    centred: dict | None = None  # camera -> principal point held (its image centre)
+    fixed_focal: dict[str, float] | None = None  # camera -> focal held as fx = fy
+    centred: dict[str, tuple[float, float]] | None = None  # camera -> principal point held (its image centre)
     observed: tuple[bool, ...] | None = None  # per window: its normal observed by stacking (the start's)
 
     @property
@@ -572,11 +701,25 @@ def _residuals_of(rg, solved) -> list:
     return solved.residuals() if solved is not None else rg.residuals()
 
 
-def run_stage(solver: _Solver, stage: Stage, state, normal_observed: bool = True,
+def run_stage(solver: _Solver, stage: Stage, state: RigState, normal_observed: bool = True,
               relative_tolerance: float = FINAL_TOLERANCE) -> StageResult:
     """One stage from ``state``: its start (a Snell stage's distance, and normal without stacking), the
-    solve, the declared normal's rounds (held normal), the re-solve at the estimated pixel sigma; each
-    solve until the error's relative decrease is below ``relative_tolerance``."""
+    solve, the declared normal's rounds (held normal), the re-solve at the estimated pixel sigma.
+
+    Args:
+        solver: What the calibration's graphs are built and solved with (dataset, options, backend, the held
+            intrinsics).
+        stage: The stage.
+        state: The state it starts from.
+        normal_observed: Whether stacking observes the window normal (when the solver does not say per window).
+        relative_tolerance: Each solve stops when the error's relative decrease is below this.
+
+    Returns:
+        The state after the stage, its residuals and how its solves went.
+
+    Raises:
+        AriSfmError: the optimiser failed (e.g. non-finite Jacobian entries) or no window distance fits.
+    """
     from ..factors.window_plane import plane_in_world
     from .outliers import robust_sigma_px
 

@@ -23,6 +23,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -30,8 +31,12 @@ from ..errors import AriSfmError
 from ..models.registry import BUNDLE, CALIBRATABLE, COMPARED, model_spec
 from ..records import Dataset, Observation
 from ..results import ResidualStats
+from .calibrate import CalibrationOptions
 from .evaluate import evaluate_held_out, observation_residuals, residual_stats
 from .record import Calibration
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 log = logging.getLogger(__name__)
 FIGURES = ("residuals_scatter.png", "residuals_distribution.png")  # written beside compare.json
@@ -39,6 +44,7 @@ FIGURES = ("residuals_scatter.png", "residuals_distribution.png")  # written bes
 FORMAT = "ari-sfm-compare/1"
 TIMED_RUNS = 2  # each model calibrated this many times; its time the fastest (not the process's start-up)
 DEFAULT_MODELS = COMPARED  # the models: ari_sfm.models.registry
+COMPARE_OPTIONS = CalibrationOptions(uncertainty=False)  # compare's default: marginals are not part of a method's time
 # The paper's figures (px, ms) where it gives them: Table 2 (single camera), 3 (binocular), 4 (3x4 subset).
 PAPER = {
     "single": {"rt": (0.31, 1.42, 0.37, 298), "pf": (0.01, 0.08, 0.02, 7), "ari": (0.03, 0.12, 0.04, 10)},
@@ -56,7 +62,17 @@ class Subset:
 
     @staticmethod
     def parse(text: str) -> Subset:
-        """``center:COLSxROWS``, e.g. ``center:3x4``."""
+        """The subset a ``--subset`` text names.
+
+        Args:
+            text: ``center:COLSxROWS``, e.g. ``center:3x4``.
+
+        Returns:
+            The subset.
+
+        Raises:
+            AriSfmError: (``--subset``) the text is not of that form.
+        """
         m = re.fullmatch(r"center:(\d+)x(\d+)", text.strip())
         if not m or int(m.group(1)) < 1 or int(m.group(2)) < 1:
             raise AriSfmError("--subset", f"expected center:COLSxROWS (e.g. center:3x4), got {text!r}")
@@ -107,7 +123,16 @@ class ModelResult:
 
 
 def params_per_camera(cal: Calibration, distortion: bool) -> int:
-    """Intrinsics + window parameters of one camera (see module docstring)."""
+    """The parameters describing one camera and its window (module docstring): what the paper's tables count.
+
+    Args:
+        cal: The model's calibration.
+        distortion: Whether lens distortion was estimated.
+
+    Returns:
+        Intrinsics (4, or 9 with distortion) plus the window normal (2) and, under water, its distance (1);
+        the registry's count for a model that has its own (pf: 40).
+    """
     spec = cal.spec
     if spec.params_per_camera is not None:
         return spec.params_per_camera
@@ -144,9 +169,21 @@ def _holdout(cal: Calibration, records: Sequence[Observation], dataset: Dataset)
 
 def check_holdout_of_this_rig(cal: Calibration, holdout: Sequence[Observation], dataset: Dataset,
                               where: str | Path = "--holdout") -> ResidualStats:
-    """The held-out errors of ``cal``, or AriSfmError naming ``where`` when the views are not of its rig: no
-    frame's pose can be fitted, or their errors with the poses fitted and the rig held are far above the
-    calibration's own (another rig's or another target's views: scoring them would be meaningless)."""
+    """The held-out errors of ``cal``, checked to be views of its rig.
+
+    Args:
+        cal: The calibration judged.
+        holdout: The held-out views.
+        dataset: The dataset it was calibrated on (its target; the calibration's own errors on its corners).
+        where: What to name in the error (the option or the file the views came from).
+
+    Returns:
+        The errors on the held-out views, every frame's pose fitted with the rig held.
+
+    Raises:
+        AriSfmError: (``where``) no frame's pose can be fitted, or the errors are far above the calibration's
+            own (another rig's or another target's views: scoring them would be meaningless).
+    """
     from ..provenance import RESIDUAL_MISMATCH_FACTOR, RESIDUAL_MISMATCH_PX
 
     stats = _holdout(cal, holdout, dataset)
@@ -163,19 +200,33 @@ def check_holdout_of_this_rig(cal: Calibration, holdout: Sequence[Observation], 
 
 def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Subset | None = None,
             holdout: Sequence[Observation] | None = None, pf_world: str = "ari", holdout_path: str | Path | None = None,
-            **options) -> list[ModelResult]:
+            options: CalibrationOptions | None = None) -> list[ModelResult]:
     """Calibrate ``dataset`` with every model and judge each (see module docstring).
 
-    ``options`` go to :func:`ari_sfm.calibrate` (e.g. ``distortion``). pf fits
-    in the world (board poses) of the ``pf_world`` calibration, "ari" (the
-    default) or "exact" (made first when not among ``models``); its
-    errors include that world's pose errors. ``holdout``: views of the same rig
-    (:func:`check_holdout_of_this_rig`, judged on the first model calibrated, before
-    the others; ``holdout_path`` is named in its errors).
+    Args:
+        dataset: The dataset (corners detected first when it has only images).
+        models: The models to compare (names of :mod:`ari_sfm.models.registry`); with several windows the
+            one-window baselines are left out, said so.
+        subset: Fit on the central corners of each board only (judged on all of them), or None: every corner.
+        holdout: Views of the same rig to judge each model on too (frame poses solved, the rig held); checked
+            to be of this rig on the first model calibrated, before the others (:func:`check_holdout_of_this_rig`).
+        pf_world: Whose frame poses give pf its world coordinates: "ari" or "exact" (made first when not among
+            ``models``); pf's errors include that world's pose errors.
+        holdout_path: The file ``holdout`` came from, named in its errors.
+        options: The calibrations' options (None: ``COMPARE_OPTIONS``, the defaults without the standard
+            deviations: marginals are not part of a method's time).
+
+    Returns:
+        One result per model calibrated, in the order of ``models``.
+
+    Raises:
+        AriSfmError: unknown models or ``pf_world``; no model could be calibrated; a bundle model's (or pf's
+            world's) calibration failed; ``holdout`` is not of this rig.
     """
     from ..baselines.polynomial import calibrate_pf
     from .calibrate import calibrate, ensure_observations
 
+    opts = COMPARE_OPTIONS if options is None else options
     models = parse_models(models)
     if dataset.windows:  # several windows: the one-window baselines cannot be fitted to this rig
         left_out = [m for m in models if model_spec(m).one_window]
@@ -192,7 +243,6 @@ def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Su
     fit_data = subset.apply(dataset) if subset else dataset
     fit_ids = subset.ids(dataset) if subset else None
     cals: dict[str, tuple[Calibration, float]] = {}
-    options.setdefault("uncertainty", False)  # marginals are not part of a method's time
     needed = list(models) + ([pf_world] if "pf" in models and pf_world not in models else [])
     for model in sorted(needed, key=lambda m: m == "pf"):  # pf last: it needs its world
         runs = []
@@ -203,7 +253,7 @@ def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Su
                     cal = calibrate_pf(fit_data, world=cals[pf_world][0])
                     wall = time.perf_counter() - t0 + cals[pf_world][1]
                 else:
-                    cal = calibrate(fit_data, model=model, **options)
+                    cal = calibrate(fit_data, model=model, options=opts)
                     wall = time.perf_counter() - t0
                 runs.append((cal, wall))
         except AriSfmError as exc:
@@ -223,7 +273,7 @@ def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Su
     for model in (m for m in models if m in cals):
         cal, wall = cals[model]
         fit, all_, res, in_fit = _judge(cal, dataset, fit_ids)
-        out.append(ModelResult(model, cal, params_per_camera(cal, bool(options.get("distortion"))), cal.time_s * 1e3,
+        out.append(ModelResult(model, cal, params_per_camera(cal, bool(opts.distortion)), cal.time_s * 1e3,
                                wall * 1e3, fit, all_, _holdout(cal, holdout, dataset) if holdout else None, res,
                                in_fit))
     return out
@@ -232,8 +282,17 @@ def compare(dataset: Dataset, models: Sequence[str] = DEFAULT_MODELS, subset: Su
 # ---------------------------------------------------------------- outputs
 
 
-def to_json(results: Sequence[ModelResult], subset: Subset | None, dataset: Dataset) -> dict:
-    """compare.json: per model, parameters, times and errors (px)."""
+def to_json(results: Sequence[ModelResult], subset: Subset | None, dataset: Dataset) -> dict[str, Any]:
+    """compare.json: per model, parameters, times and errors (px).
+
+    Args:
+        results: The models' results (:func:`compare`).
+        subset: The subset fitted on, or None.
+        dataset: The dataset compared on.
+
+    Returns:
+        The file's content.
+    """
     pf = [r.calibration.pf_world.model for r in results if r.calibration.pf_world is not None]
     return {
         "format": FORMAT,
@@ -256,7 +315,16 @@ def _row(name: str, p: int | str, s: ResidualStats, t: float | str) -> str:
 
 
 def to_markdown(results: Sequence[ModelResult], subset: Subset | None, dataset: Dataset) -> str:
-    """compare.md: the paper's Table 2-4 layout, one table per set of corners judged."""
+    """compare.md: the paper's Table 2-4 layout, one table per set of corners judged.
+
+    Args:
+        results: The models' results (:func:`compare`).
+        subset: The subset fitted on, or None.
+        dataset: The dataset compared on.
+
+    Returns:
+        The file's text.
+    """
     head = "| Method | # of para | MAE (px) | Max (px) | RMSE (px) | T (ms) |\n|---|---|---|---|---|---|"
     n = len(dataset.camera_names)
     pf = [r.calibration.pf_world.model for r in results if r.calibration.pf_world is not None]
@@ -281,16 +349,56 @@ def to_markdown(results: Sequence[ModelResult], subset: Subset | None, dataset: 
     return "\n".join(lines)
 
 
-def figures(results: Sequence[ModelResult]) -> dict[str, bytes]:
-    """PNG bytes of :func:`draw_figures`: residual scatter per model, error distributions."""
+@dataclass(frozen=True)
+class CompareFigures:
+    """compare's two figures as PNG bytes (:func:`figures`)."""
+
+    residuals_scatter: bytes  # every model's residual vectors, one panel each
+    residuals_distribution: bytes  # the error distributions side by side
+
+    def files(self) -> tuple[tuple[str, bytes], ...]:
+        """(file name, PNG bytes) of each figure, in the order of ``FIGURES``."""
+        return tuple(zip(FIGURES, (self.residuals_scatter, self.residuals_distribution)))
+
+
+@dataclass(frozen=True)
+class CompareFiles:
+    """What :func:`run_compare` wrote."""
+
+    json: Path  # compare.json
+    md: Path  # compare.md
+    figures: tuple[Path, ...]  # the PNG figures (``FIGURES``), beside them
+
+    def named(self) -> tuple[tuple[str, Path], ...]:
+        """(label, path) of each file: ``json``, ``md``, then each figure by its file name."""
+        return (("json", self.json), ("md", self.md), *((p.name, p) for p in self.figures))
+
+
+def figures(results: Sequence[ModelResult]) -> CompareFigures:
+    """The figures of :func:`draw_figures` as PNG bytes.
+
+    Args:
+        results: The models' results (:func:`compare`).
+
+    Returns:
+        The residual scatter per model and the error distributions.
+    """
     from ..report.figures import to_png
 
-    return dict(zip(FIGURES, (to_png(f) for f in draw_figures(results))))
+    scatter, distribution = draw_figures(results)
+    return CompareFigures(to_png(scatter), to_png(distribution))
 
 
-def draw_figures(results: Sequence[ModelResult]) -> tuple:
-    """The two Figures (the report's figures' print style): every model's residuals on one shared range (fitted
-    corners red, others blue; dv down as in the image; dashed circle: RMSE), and the error distributions."""
+def draw_figures(results: Sequence[ModelResult]) -> tuple[Figure, Figure]:
+    """The two figures, in the report's figures' print style.
+
+    Args:
+        results: The models' results (:func:`compare`).
+
+    Returns:
+        Every model's residuals on one shared range (fitted corners red, others blue; dv down as in the
+        image; dashed circle: RMSE), and the error distributions side by side.
+    """
     import matplotlib.pyplot as plt
 
     from ..report.figures import FIG_WIDTH_IN, STYLE, panels
@@ -332,10 +440,26 @@ def draw_figures(results: Sequence[ModelResult]) -> tuple:
 
 def run_compare(dataset_path: str | Path, out: str | Path, models: str | Sequence[str] = DEFAULT_MODELS,
                 subset: str | None = None, holdout: str | Path | None = None, pf_world: str = "ari",
-                **options) -> dict[str, Path]:
-    """Load, compare, write compare.json, compare.md and the figures to ``out``; return their paths.
+                options: CalibrationOptions | None = None) -> CompareFiles:
+    """Load, compare, write compare.json, compare.md and the figures to ``out``.
 
     Arguments are checked before any calibration runs and nothing is written on error.
+
+    Args:
+        dataset_path: The dataset folder or rig file.
+        out: The output folder.
+        models: The models, as ``ari,exact,...`` or a sequence of names.
+        subset: ``center:COLSxROWS``: fit on the central corners of each board, judge on all; None: every corner.
+        holdout: An observations file of the same rig to judge each model on too.
+        pf_world: Whose frame poses give pf its world coordinates ("ari" or "exact").
+        options: The calibrations' options (None: :data:`COMPARE_OPTIONS`).
+
+    Returns:
+        The files written.
+
+    Raises:
+        AriSfmError: a bad argument (named by its option), a dataset or observations file that cannot be read,
+            or an error of :func:`compare`.
     """
     from ..io import load_dataset, load_observations, write_bytes_atomic, write_json_atomic, write_text_atomic
 
@@ -352,13 +476,12 @@ def run_compare(dataset_path: str | Path, out: str | Path, models: str | Sequenc
 
         held = load_observations(Path(holdout), dataset.target, dataset.camera_names)
         check_pixels_in_images(held, {n: c.image_size for n, c in dataset.cameras.items()}, holdout)
-    results = compare(dataset, names, sub, held, pf_world, holdout_path=holdout, **options)
+    results = compare(dataset, names, sub, held, pf_world, holdout_path=holdout, options=options)
     out = Path(out)
-    paths = {"json": out / "compare.json", "md": out / "compare.md"}
+    files = CompareFiles(out / "compare.json", out / "compare.md", tuple(out / name for name in FIGURES))
     pngs = figures(results)
-    write_json_atomic(paths["json"], to_json(results, sub, dataset))
-    write_text_atomic(paths["md"], to_markdown(results, sub, dataset))
-    for name, data in pngs.items():
-        paths[name] = out / name
-        write_bytes_atomic(paths[name], data)
-    return paths
+    write_json_atomic(files.json, to_json(results, sub, dataset))
+    write_text_atomic(files.md, to_markdown(results, sub, dataset))
+    for name, data in pngs.files():
+        write_bytes_atomic(out / name, data)
+    return files

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..geometry import Pose
+from ..models.polynomial import PolynomialMap
 from ..models.registry import ModelSpec, model_spec
 from ..records import SINGLE_WINDOW, Interface, Target
 from ..results import OptimizerReport, OutlierReport, PfWorld, ResidualStats, StageRecord, Uncertainty
@@ -34,7 +35,7 @@ class CameraCalibration:
     expansion_center_std_px: np.ndarray | None = None
     rmse_px: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)  # keys of cameras.<name> this version does not know
-    pf: Any = None  # model pf: its world-to-pixel PolynomialMap (ari_sfm.baselines.polynomial), cameras.<name>.pf
+    pf: PolynomialMap | None = None  # model pf: its world-to-pixel polynomial (cameras.<name>.pf), else None
 
     @property
     def params(self) -> np.ndarray:
@@ -53,8 +54,15 @@ class WindowCalibration:
     fixed_distance_mm: float | None = None  # exact model in air: the distance (same reference) it is evaluated at
 
     def plane_mm(self, calibration: Calibration) -> float | None:
-        """The near face as the world plane ``normal_world . X = plane_mm``: from distance_mm, else from
-        fixed_distance_mm (in air), else None."""
+        """The near face as the world plane ``normal_world . X = plane_mm``.
+
+        Args:
+            calibration: The calibration this window belongs to (its first camera's centre is the reference).
+
+        Returns:
+            The plane's offset in mm: from ``distance_mm``, else from ``fixed_distance_mm`` (in air); None
+            without either or without a normal.
+        """
         d = self.interface.distance_mm if self.interface.distance_mm is not None else self.fixed_distance_mm
         if d is None or self.normal_world is None:
             return None
@@ -153,8 +161,15 @@ class Calibration:
         return self._from_reference(w, camera, float(w.interface.distance_mm))
 
     def evaluation_distance_mm(self, camera: str) -> float | None:
-        """The distance a Snell model of the camera is evaluated at: :meth:`distance_mm`, or in air the one it
-        was calibrated with (fixed_distance_mm); None when the calibration has neither."""
+        """The distance a Snell model of the camera is evaluated at.
+
+        Args:
+            camera: A camera of the calibration.
+
+        Returns:
+            :meth:`distance_mm`, or in air the one it was calibrated with (``fixed_distance_mm``, moved to this
+            camera's centre); None when the calibration has neither.
+        """
         d = self.distance_mm(camera)
         w = self.window_of(camera)
         if d is not None or w.fixed_distance_mm is None or w.normal_world is None:
@@ -168,9 +183,21 @@ class Calibration:
         return float(distance - w.normal_world @ (centre - reference))
 
     def projection_model(self, camera: str, added_mm: float = 0.0, model: str | None = None):
-        """The camera's projection model in its own frame, the class the registry names for the model
-        (or for ``model``): AriModel, ExactModel (exact, rt, truth), PinholeModel (the window ignored)
-        or the pf polynomial (world points only)."""
+        """The camera's projection model in its own frame, the class the registry names for the model.
+
+        Args:
+            camera: A camera of the calibration.
+            added_mm: Glass added to the window's plate (a stacking view's), in mm.
+            model: Another model to build from this calibration's parameters (e.g. "exact" of an ari
+                calibration), or None: the calibration's own.
+
+        Returns:
+            model (AriModel | ExactModel | PinholeModel | PolynomialModel): ExactModel for exact, rt and truth;
+                PinholeModel when the window is ignored; PolynomialModel (pf) projects world points only.
+
+        Raises:
+            ValueError: added glass for a model without a window or for pf; a Snell model without a distance.
+        """
         from ..models import PinholeModel
 
         cam = self.cameras[camera]
@@ -181,6 +208,7 @@ class Calibration:
             if spec.projection == "polynomial":
                 from ..models.polynomial import PolynomialModel
 
+                assert cam.pf is not None  # a pf calibration has every camera's polynomial (__post_init__)
                 return PolynomialModel(cam.pf, cam.cam_from_world.inverse())
             return PinholeModel(cam.K, cam.dist)
         distance = self.distance_mm(camera)
@@ -194,12 +222,29 @@ class Calibration:
                                        iface.thickness_mm + added_mm, iface.index, iface.medium_index, distance)
 
     def project_world(self, camera: str, X_world: np.ndarray, added_mm: float = 0.0) -> np.ndarray:
-        """Pixels (N, 2) of world points (N, 3) seen by a camera through the window."""
+        """Pixels of world points seen by a camera through the window.
+
+        Args:
+            camera: A camera of the calibration.
+            X_world: World points (N, 3), mm.
+            added_mm: Glass added to the window's plate, in mm.
+
+        Returns:
+            Pixels (N, 2); NaN where a point has no image.
+        """
         X_cam = self.cameras[camera].cam_from_world.apply(np.asarray(X_world, float).reshape(-1, 3))
         return self.projection_model(camera, added_mm).project(X_cam)
 
     def rays_world(self, camera: str, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Scene-side rays (origins (N, 3), unit directions (N, 3)) in the world frame of pixels (N, 2)."""
+        """The scene-side rays of pixels, in the world frame.
+
+        Args:
+            camera: A camera of the calibration.
+            uv: Pixels (N, 2).
+
+        Returns:
+            (origins (N, 3), unit directions (N, 3)).
+        """
         origins, directions = self.projection_model(camera).backproject(np.asarray(uv, float).reshape(-1, 2))
         world_from_cam = self.cameras[camera].cam_from_world.inverse()
         return world_from_cam.apply(origins), directions @ world_from_cam.R.T

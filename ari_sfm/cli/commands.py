@@ -4,6 +4,7 @@ from __future__ import annotations
 import logging
 import sys
 import time
+from enum import Enum
 from pathlib import Path
 
 import click
@@ -83,8 +84,9 @@ def _field_option(name: str):
     if "/" not in meta["cli"]:  # "--x/--no-x": True, False or the default (None: decided from the data)
         if isinstance(f.default, bool):
             kwargs["is_flag"] = True
-        elif "choices" in meta:
-            kwargs.update(type=click.Choice(list(meta["choices"])), show_default=True)
+        elif isinstance(f.default, Enum):  # a mode: its values are the choices, CalibrationOptions takes them
+            kwargs.update(default=f.default.value, type=click.Choice([m.value for m in type(f.default)]),
+                          show_default=True)
         else:
             kwargs.update(type=type(f.default), show_default=True)
     return click.option(meta["cli"], name, **kwargs)
@@ -110,12 +112,12 @@ def _calibration_options(fn):
     return fn
 
 
-def _calibration_record(values: dict, **more):
+def _calibration_record(values: dict, progress: bool):
     """The CalibrationOptions of the command line's values (--huber-px 0: plain least squares), checked."""
     from ..calibration.calibrate import CalibrationOptions
 
     check_number("--huber-px", values["huber_px"], minimum=0.0)
-    return CalibrationOptions(**{**values, "huber_px": values["huber_px"] or None}, **more)
+    return CalibrationOptions(**{**values, "huber_px": values["huber_px"] or None}, progress=progress)
 
 
 @main.command(name="calibrate")
@@ -291,12 +293,16 @@ def reconstruct_cmd(dataset: Path, calibration: Path, out: Path, truth: Path | N
 def compare_cmd(dataset: Path, out: Path, models: str, subset: str | None, holdout: Path | None, pf_world: str,
                 distortion: bool, backend: str) -> None:
     """Calibrate DATASET with several models and compare them (the paper's Tables 2-4)."""
-    from ..calibration.compare import run_compare
+    from dataclasses import replace
+
+    from ..calibration.calibrate import Backend
+    from ..calibration.compare import COMPARE_OPTIONS, run_compare
 
     check_output_folder(out)
-    paths = run_compare(dataset, out, models, subset, holdout, pf_world, distortion=distortion, backend=backend)
-    click.echo(paths["md"].read_text())
-    click.echo("\n".join(f"{k}: {v}" for k, v in paths.items()))
+    options = replace(COMPARE_OPTIONS, distortion=distortion, backend=Backend(backend))
+    files = run_compare(dataset, out, models, subset, holdout, pf_world, options)
+    click.echo(files.md.read_text())
+    click.echo("\n".join(f"{label}: {path}" for label, path in files.named()))
 
 
 @main.command()
@@ -413,9 +419,9 @@ def _simulate_particles(out: Path, seed: int, sigma: float, num_cameras: int, pa
                                  num_frames=num_frames, sigma_px=sigma, drift_cameras=drifted, drift_deg=drift_deg,
                                  drift_mm=drift_mm, look=look, bit_depth=bit_depth, k1=k1, windows=windows, seed=seed,
                                  calibration_frames=calibration_views, calibration_target=calibration_target)
-    paths = write_particle_experiment(simulate_particle_experiment(options), out, render_frames=render_frames)
-    click.echo(f"calibration dataset (rig A): {paths['calibration']}\nexperiment (rig B):          "
-               f"{paths['experiment']}\ntruth:                       {paths['truth']} (rig_a.json, rig_b.json, "
+    folders = write_particle_experiment(simulate_particle_experiment(options), out, render_frames=render_frames)
+    click.echo(f"calibration dataset (rig A): {folders.calibration}\nexperiment (rig B):          "
+               f"{folders.experiment}\ntruth:                       {folders.truth} (rig_a.json, rig_b.json, "
                "particles.parquet, detections.parquet)")
 
 

@@ -27,7 +27,14 @@ CONFIG_HELP = ("YAML file of this command's options: option names as keys (huber
 
 
 def config_option(fn: Callable) -> Callable:
-    """The ``--config FILE`` option (eager: read before the command's other options take their values)."""
+    """The ``--config FILE`` option (eager: read before the command's other options take their values).
+
+    Args:
+        fn: The command's function.
+
+    Returns:
+        The function with the option.
+    """
     return click.option("--config", type=click.Path(path_type=Path), default=None, is_eager=True,
                         expose_value=False, callback=_apply_config, metavar="FILE", help=CONFIG_HELP)(fn)
 
@@ -46,13 +53,27 @@ def _apply_config(ctx: click.Context, param: click.Parameter, value: Path | None
 
 
 def configurable_options(command: click.Command) -> dict[str, click.Option]:
-    """The options a config file may set: every visible option but --config and --help, by parameter name."""
+    """The options a config file may set: every visible option but --config and --help, by parameter name.
+
+    Args:
+        command: The click command.
+
+    Returns:
+        Parameter name -> its option.
+    """
     return {p.name: p for p in command.params
             if isinstance(p, click.Option) and not p.hidden and p.name not in ("config", "help")}
 
 
 def read_config(path: Path, ctx: click.Context) -> dict[str, Any]:
     """The file's values by parameter name, each converted by its option's type.
+
+    Args:
+        path: The YAML file.
+        ctx: The command's click context (its options, its arguments, its name for the messages).
+
+    Returns:
+        Parameter name -> value, as the command line would give it (``key:`` with no value left out).
 
     Raises:
         AriSfmError: (path, "<key>: <what is wrong>") for an unknown key or a bad value; (path, ...) for a
@@ -109,7 +130,15 @@ def _wanted(option: click.Option) -> str:
 
 def blame_config(exc: AriSfmError) -> AriSfmError:
     """The error of a command's own check on an option's value, told against the config file when the value
-    came from it (``error: run.yaml: huber_px: must be >= 0``); else ``exc`` unchanged."""
+    came from it.
+
+    Args:
+        exc: The error, its path the option's flag (``--huber-px``).
+
+    Returns:
+        ``error: run.yaml: huber_px: must be >= 0`` when the value came from the config file; else ``exc``
+        unchanged.
+    """
     ctx = click.get_current_context(silent=True)
     if ctx is None or CONFIG_META not in ctx.meta or exc.path is None:
         return exc

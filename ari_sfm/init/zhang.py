@@ -16,7 +16,7 @@ import numpy as np
 
 from ..geometry import Pose
 from ..helper_thread import shared_map
-from ..models.pinhole import project_points
+from ..models.pinhole import pinhole_pixels
 from ..records import CameraSpec, Observation, Target
 from .opencv_threads import one_cv2_thread
 
@@ -181,7 +181,7 @@ def calibrate_zhang(
     cam_points = [pose.apply(o) for pose, o in zip(found, obj)]
     if not views:
         return ZhangResult(K, dist, poses, 0.0, extra)
-    uv = project_points(np.concatenate(cam_points), np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist], 4, False)[0]
+    uv = pinhole_pixels(np.concatenate(cam_points), np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist])
     res = uv - np.concatenate(img)  # every view's reprojection at once (the pinhole kernel)
     return ZhangResult(K, dist, poses, float(np.sqrt(np.sum(res * res) / len(res))), extra)
 

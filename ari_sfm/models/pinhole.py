@@ -20,7 +20,7 @@ be a silently wrong answer.
 from __future__ import annotations
 
 import logging
-from typing import Literal, NamedTuple, overload
+from typing import NamedTuple
 
 import numpy as np
 
@@ -90,40 +90,43 @@ class Projection(NamedTuple):
     J_distance: None = None
 
 
-@overload
-def project_points(D: np.ndarray, params: np.ndarray, n_params: int = NUM_PARAMS, jacobians: Literal[True] = True
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
-@overload
-def project_points(D: np.ndarray, params: np.ndarray, n_params: int, jacobians: Literal[False]
-                   ) -> tuple[np.ndarray, None, None]: ...
-@overload
-def project_points(D: np.ndarray, params: np.ndarray, n_params: int = NUM_PARAMS, *, jacobians: Literal[False]
-                   ) -> tuple[np.ndarray, None, None]: ...
-@overload
-def project_points(D: np.ndarray, params: np.ndarray, n_params: int = NUM_PARAMS, jacobians: bool = True
-                   ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]: ...
-def project_points(D: np.ndarray, params: np.ndarray, n_params: int = NUM_PARAMS, jacobians: bool = True
-                   ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """The pinhole projection of camera-frame points: the one implementation.
+class PinholeJacobians(NamedTuple):
+    """Pixels and their derivatives for N points (:func:`project_points`)."""
 
-    It runs the compiled :func:`ari_sfm.models.kernels.pinhole_point` and is used by :class:`PinholeModel`, the
-    window models and the numpy bundle adjustment. Points with Z <= 0 project to NaN.
+    uv: np.ndarray  # (N, 2) pixels; NaN where Z <= 0
+    J_point: np.ndarray  # (N, 2, 3) d uv / d D
+    J_params: np.ndarray  # (N, 2, n_params) d uv / d params[:n_params]
+
+
+def project_points(D: np.ndarray, params: np.ndarray, n_params: int = NUM_PARAMS) -> PinholeJacobians:
+    """The pinhole projection of camera-frame points with its derivatives: the one implementation (the
+    compiled :func:`ari_sfm.models.kernels.pinhole_point`), used by :class:`PinholeModel`, the window models
+    and the numpy bundle adjustment; :func:`pinhole_pixels` gives the pixels alone.
 
     Args:
-        D: camera-frame points or directions (m, 3).
-        params: intrinsics (9,) ``[fx, fy, cx, cy, k1, k2, p1, p2, k3]``.
-        n_params: number of leading ``params`` columns in ``J_params``.
-        jacobians: compute the Jacobians.
+        D: Camera-frame points or directions (m, 3).
+        params: The intrinsics ``[fx, fy, cx, cy, k1, k2, p1, p2, k3]``.
+        n_params: The leading parameters the derivatives are taken with respect to.
 
     Returns:
-        Pixels (m, 2), ``J_point`` = d uv / d D (m, 2, 3) and ``J_params`` = d uv / d params[:n_params]
-            (m, 2, n_params); the two Jacobians are None without ``jacobians``.
+        Pixels (m, 2) (NaN where Z <= 0), ``J_point`` = d uv / d D (m, 2, 3) and ``J_params`` = d uv /
+        d params[:n_params] (m, 2, n_params).
     """
-    uv, J_point, J_params = kernels.pinhole_batch(_f64(D, 3), np.array(params, dtype=np.float64), int(n_params),
-                                                  bool(jacobians))
-    if not jacobians:
-        return uv, None, None
-    return uv, J_point, J_params
+    uv, J_point, J_params = kernels.pinhole_batch(_f64(D, 3), np.array(params, dtype=np.float64), int(n_params), True)
+    return PinholeJacobians(uv, J_point, J_params)
+
+
+def pinhole_pixels(D: np.ndarray, params: np.ndarray) -> np.ndarray:
+    """The pixels of camera-frame points, without derivatives (the same arithmetic as :func:`project_points`).
+
+    Args:
+        D: Camera-frame points or directions (m, 3).
+        params: The intrinsics ``[fx, fy, cx, cy, k1, k2, p1, p2, k3]``.
+
+    Returns:
+        Pixels (m, 2); NaN where Z <= 0.
+    """
+    return kernels.pinhole_batch(_f64(D, 3), np.array(params, dtype=np.float64), NUM_PARAMS, False)[0]
 
 
 def _distort(xy: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -241,9 +244,9 @@ class PinholeModel:
 
     def project(self, X_cam: np.ndarray) -> np.ndarray:
         """Pixels (N, 2) of camera-frame points (N, 3); NaN for Z <= 0."""
-        return project_points(as_points(X_cam, 3), self._params, jacobians=False)[0]
+        return pinhole_pixels(as_points(X_cam, 3), self._params)
 
-    def project_with_jacobians(self, X_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def project_with_jacobians(self, X_cam: np.ndarray) -> PinholeJacobians:
         """Pixels and analytic Jacobians of camera-frame points (see :func:`project_points`).
 
         Args:

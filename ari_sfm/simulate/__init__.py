@@ -4,7 +4,9 @@
 dataset a user would hold, with observations, and the truth);
 ``simulate(name, out_dir)`` writes ``out_dir/dataset/`` (rig.yaml and either
 observations.json or rendered PNG images) and ``out_dir/truth.json`` beside
-it.  Scenario names and one-line descriptions are in :data:`SCENARIOS`.
+it.  Scenario names and one-line descriptions are in :data:`SCENARIOS`; a
+scenario's geometry options are a :class:`ScenarioOverrides`
+(``make_scene("binocular", overrides=ScenarioOverrides(num_frames=8))``).
 
 Every pixel comes from :class:`~ari_sfm.models.exact.ExactModel` (Snell's
 law at both faces of the plate), never from the paraxial ARI equation the
@@ -18,21 +20,21 @@ geometry for a seed.
 """
 from __future__ import annotations
 
-import inspect
 import logging
 import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from ari_sfm.records import Dataset, Observation
-from ari_sfm.simulate.scenarios import REGISTRY, SCENARIOS, build_geometry
+from ari_sfm.simulate.scenarios import REGISTRY, SCENARIOS, ScenarioOverrides, build_geometry
 from ari_sfm.simulate.scene import Geometry, image_path, observe, to_dataset, truth_dict
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["SCENARIOS", "Scene", "make_scene", "simulate", "images_by_default"]
+__all__ = ["SCENARIOS", "ScenarioOverrides", "Scene", "make_scene", "simulate", "images_by_default"]
 
 PLACEHOLDER_ROOT = Path("<simulated>")
 
@@ -49,7 +51,7 @@ class Scene:
 
     name: str
     dataset: Dataset
-    truth: dict
+    truth: dict  # calibration.json's form (read by ari_sfm.io.parse_calibration), plus the scenario's keys
     geometry: Geometry
     exact_observations: tuple[Observation, ...]
 
@@ -65,41 +67,50 @@ def _check_name(name: str) -> None:
         raise ValueError(f"unknown scenario {name!r}; choose one of {', '.join(SCENARIOS)}")
 
 
-def _check_overrides(name: str, overrides: dict) -> None:
-    spec = REGISTRY[name]
-    params = inspect.signature(spec.build).parameters
-    allowed = [p for p in params if p != "rng" and p not in spec.options]
-    bad = [k for k in overrides if k not in allowed]
-    if bad:
-        raise ValueError(f"scenario {name!r} has no option {', '.join(bad)}; options: {', '.join(allowed)}")
-
-
 def images_by_default(name: str) -> bool:
-    """Whether ``simulate(name, ...)`` renders images when ``images`` is None."""
+    """Whether ``simulate(name, ...)`` renders images when ``images`` is None.
+
+    Args:
+        name: A scenario of :data:`SCENARIOS`.
+
+    Returns:
+        True for the scenarios of rendered images (``*_images``, ``*_dots``).
+
+    Raises:
+        ValueError: an unknown scenario.
+    """
     _check_name(name)
     return REGISTRY[name].images
 
 
-def make_scene(name: str, seed: int = 0, sigma_px: float = 0.05, **overrides) -> Scene:
+def make_scene(name: str, seed: int = 0, sigma_px: float = 0.05, overrides: ScenarioOverrides | None = None, *,
+               image_scale: float = 1.0, dist: Sequence[float] | None = None) -> Scene:
     """Build scenario ``name`` in memory.
 
-    ``sigma_px``: i.i.d. Gaussian noise per pixel coordinate on every record.
-    ``overrides``: ``dist`` (k1 k2 p1 p2 k3 lens distortion of every camera),
-    ``image_scale`` (scales image size and K; the geometry and
-    which camera sees what do not change) and the scenario's options, e.g.
-    ``num_frames``, ``num_cameras`` (arc4, scale16).
+    Args:
+        name: A scenario of :data:`SCENARIOS`.
+        seed: The random seed: the geometry comes from ``(seed, scenario)`` alone, the noise from a second stream.
+        sigma_px: i.i.d. Gaussian noise per pixel coordinate on every record (>= 0).
+        overrides: Options of the scenario's geometry, e.g. ``ScenarioOverrides(num_frames=8)`` (None: as
+            registered; :func:`~ari_sfm.simulate.scenarios.scenario_options` lists what a scenario accepts).
+        image_scale: Scales image size and K (> 0); the geometry and which camera sees what do not change.
+        dist: Lens distortion k1 k2 p1 p2 k3 given to every camera (None: none).
+
+    Returns:
+        The scene: the dataset a user would hold (noisy observations), its truth, the noise-free records.
+
+    Raises:
+        ValueError: an unknown scenario or option, ``image_scale`` <= 0 or ``sigma_px`` < 0.
     """
     _check_name(name)
-    image_scale = float(overrides.pop("image_scale", 1.0))
-    lens_dist = overrides.pop("dist", None)  # k1 k2 p1 p2 k3 given to every camera
+    image_scale = float(image_scale)
     if not image_scale > 0.0:
         raise ValueError(f"image_scale must be > 0 (got {image_scale})")
     if sigma_px < 0.0:
         raise ValueError(f"sigma_px must be >= 0 (got {sigma_px})")
-    _check_overrides(name, overrides)
-    geometry = build_geometry(name, _rng(name, seed, 0), **overrides).scaled(image_scale)
-    if lens_dist is not None:
-        geometry = replace(geometry, cameras=tuple(replace(c, dist=np.resize(np.asarray(lens_dist, float), 5))
+    geometry = build_geometry(name, _rng(name, seed, 0), overrides).scaled(image_scale)
+    if dist is not None:
+        geometry = replace(geometry, cameras=tuple(replace(c, dist=np.resize(np.asarray(dist, float), 5))
                                                    for c in geometry.cameras))
     exact = observe(geometry)
     noise_rng = _rng(name, seed, 1)
@@ -136,7 +147,21 @@ def _pixel_to_target(geometry: Geometry, camera: str, frame_pose, added_mm: floa
 
 def render_images(scene: Scene, dataset_dir: Path, seed: int = 0, supersample: int = 4,
                   noise_sigma: float = 1.0) -> list[Path]:
-    """Render one PNG per record of ``scene`` into ``dataset_dir`` (paths of :func:`image_path`)."""
+    """Render one PNG per record of ``scene`` into ``dataset_dir``.
+
+    Args:
+        scene: The scene (its noise-free records are rendered).
+        dataset_dir: The dataset folder; each image at :func:`~ari_sfm.simulate.scene.image_path` in it.
+        seed: The images' noise seed (each image its own stream from it).
+        supersample: Samples per pixel side (anti-aliasing).
+        noise_sigma: The images' Gaussian noise, grey levels.
+
+    Returns:
+        The paths written, in the records' order.
+
+    Raises:
+        OSError: an image could not be written.
+    """
     import cv2
 
     from ari_sfm.simulate.render import render_target
@@ -159,16 +184,28 @@ def render_images(scene: Scene, dataset_dir: Path, seed: int = 0, supersample: i
     return written
 
 
-def simulate(name: str, out_dir: str | Path, seed: int = 0, sigma_px: float = 0.05,
-             images: bool | None = None, image_scale: float = 1.0, **overrides) -> tuple[Path, Path]:
+def simulate(name: str, out_dir: str | Path, seed: int = 0, sigma_px: float = 0.05, images: bool | None = None,
+             image_scale: float = 1.0, overrides: ScenarioOverrides | None = None) -> tuple[Path, Path]:
     """Write scenario ``name`` to ``out_dir/dataset/`` and its truth to ``out_dir/truth.json``.
 
-    Without images the dataset holds ``observations.json`` (noisy exact
-    corners).  With images (default for ``*_images`` scenarios) it holds PNGs
-    under stack/, calib/, recon/ listed in rig.yaml and no observations: the
-    corners must be detected.  The noise-free corners are written beside the
-    truth as ``truth_observations.json`` (for judging a detector).
-    Returns (dataset_dir, truth_path).
+    Without images the dataset holds ``observations.json`` (noisy exact corners). With images it holds PNGs
+    under stack/, calib/, recon/ listed in rig.yaml and no observations: the corners must be detected. The
+    noise-free corners are written beside the truth as ``truth_observations.json`` (for judging a detector).
+
+    Args:
+        name: A scenario of :data:`SCENARIOS`.
+        out_dir: The output folder.
+        seed: The random seed (:func:`make_scene`).
+        sigma_px: Pixel noise per coordinate of the observations.
+        images: Render PNG images; None: the scenario's default (the ``*_images`` and ``*_dots`` scenarios).
+        image_scale: Scales image size and K.
+        overrides: Options of the scenario's geometry (:func:`make_scene`).
+
+    Returns:
+        (the dataset folder, truth.json's path).
+
+    Raises:
+        ValueError: an unknown scenario or option, a bad number, or images asked of scale16.
     """
     from ari_sfm.io import save_observations, save_rig, write_json_atomic
 
@@ -176,7 +213,7 @@ def simulate(name: str, out_dir: str | Path, seed: int = 0, sigma_px: float = 0.
     images = REGISTRY[name].images if images is None else bool(images)
     if images and name == "scale16":
         raise ValueError("scale16 is observations only (16 cameras x 500 frames of images is not a test set)")
-    scene = make_scene(name, seed=seed, sigma_px=sigma_px, image_scale=image_scale, **overrides)
+    scene = make_scene(name, seed=seed, sigma_px=sigma_px, overrides=overrides, image_scale=image_scale)
     out_dir = Path(out_dir)
     dataset_dir = out_dir / "dataset"
     dataset_dir.mkdir(parents=True, exist_ok=True)

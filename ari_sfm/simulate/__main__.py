@@ -8,11 +8,18 @@ import argparse
 import logging
 import sys
 
-from ari_sfm.simulate import SCENARIOS, simulate
+from ari_sfm.simulate import SCENARIOS, ScenarioOverrides, simulate
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Parse the arguments, simulate, print the two paths; 2 on a usage error."""
+    """Parse the arguments, simulate, print the two paths.
+
+    Args:
+        argv: The arguments (None: the process's).
+
+    Returns:
+        The exit code: 0 (a usage error exits 2 through argparse).
+    """
     parser = argparse.ArgumentParser(prog="python -m ari_sfm.simulate", description=__doc__.splitlines()[0],
                                      epilog="scenarios: " + "; ".join(f"{k}: {v}" for k, v in SCENARIOS.items()))
     parser.add_argument("scenario", choices=list(SCENARIOS))
@@ -27,10 +34,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("-v", "--verbose", action="store_true")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
-    overrides = {k: v for k, v in (("num_frames", args.num_frames), ("num_cameras", args.num_cameras)) if v is not None}
+    overrides = ScenarioOverrides(num_frames=args.num_frames, num_cameras=args.num_cameras)
     try:
         dataset_dir, truth_path = simulate(args.scenario, args.out, seed=args.seed, sigma_px=args.sigma,
-                                           images=args.images, image_scale=args.image_scale, **overrides)
+                                           images=args.images, image_scale=args.image_scale, overrides=overrides)
     except ValueError as exc:
         parser.error(str(exc))
     sys.stdout.write(f"dataset: {dataset_dir}\ntruth:   {truth_path}\n")

@@ -315,19 +315,26 @@ def render_frame_images(exp: ParticleExperiment, frame: int, peaks: np.ndarray, 
     return out
 
 
-def write_particle_experiment(exp: ParticleExperiment, out_dir: str | Path, render_frames: int = 2) -> dict[str, Path]:
-    """Write an experiment to a folder, in the layout given in the module docstring.
+@dataclass(frozen=True)
+class ParticleExperimentFolders:
+    """Where :func:`write_particle_experiment` wrote a particle experiment."""
+
+    calibration: Path  # rig A's calibration dataset
+    experiment: Path  # rig B's particle experiment (rig.yaml, particles.parquet, the images)
+    truth: Path  # the truth: rig_a.json, rig_b.json, particles.parquet, detections.parquet, simulation.json
+
+
+def write_particle_experiment(exp: ParticleExperiment, out_dir: str | Path,
+                              render_frames: int = 2) -> ParticleExperimentFolders:
+    """Write ``exp`` under ``out_dir`` (layout in the module docstring).
 
     Args:
-        exp: the experiment.
-        out_dir: the output folder (created if missing).
-        render_frames: how many of the first frames get rendered images.
+        exp: The simulated experiment.
+        out_dir: The output folder.
+        render_frames: Frames rendered as images (the first ones).
 
     Returns:
-        The main folders: ``calibration``, ``experiment`` and ``truth`` -> their paths.
-
-    Raises:
-        OSError: if an image could not be encoded.
+        The three folders written.
     """
     import cv2
     import yaml
@@ -403,4 +410,4 @@ def write_particle_experiment(exp: ParticleExperiment, out_dir: str | Path, rend
                          "truth_particles": "truth/particles.parquet", "truth_detections": "truth/detections.parquet"}}
     write_json_atomic(truth_dir / "simulation.json", summary)
     log.info("particle experiment written to %s", out)
-    return {"calibration": calib_dir, "experiment": exp_dir, "truth": truth_dir}
+    return ParticleExperimentFolders(calib_dir, exp_dir, truth_dir)

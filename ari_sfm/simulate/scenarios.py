@@ -1,7 +1,9 @@
 """The simulated experiments: random but valid geometries, deterministic for a seed.
 
 Each builder takes a numpy Generator and keyword options and returns a
-:class:`~ari_sfm.simulate.scene.Geometry`.  Random target poses that a
+:class:`~ari_sfm.simulate.scene.Geometry`; :data:`REGISTRY` names the builder
+of each scenario and the options it fixes, and :func:`build_geometry` builds
+one with the :class:`ScenarioOverrides` a caller gives.  Random target poses that a
 camera that must see them does not see (a corner within 10 px of the border,
 or a point not beyond the window) are drawn again.  Geometry comes from its
 own random stream, so the noise level never changes the poses.
@@ -11,10 +13,11 @@ the world frame of the result is camera 0's frame.
 """
 from __future__ import annotations
 
+import inspect
 import logging
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
@@ -262,9 +265,18 @@ def paper_single(rng: np.random.Generator, num_frames: int = 12, perpendicular: 
                  stack_added_mm: Sequence[float] = STACK_ADDED_MM, target: Target = PAPER_TARGET) -> Geometry:
     """One paper-like camera behind a 50 mm N-BK7 plate in air (section 3 of the paper).
 
-    Poses are drawn so the whole printed board (not only the corners) is in
-    the image: the rendered images then detect.  Board centres are spread
-    over a 4 x 3 grid of image cells for coverage.
+    Poses are drawn so the whole printed board (not only the corners) is in the image: the rendered images
+    then detect. Board centres are spread over a 4 x 3 grid of image cells for coverage.
+
+    Args:
+        rng: The geometry's random stream (the intrinsics and every pose are drawn from it, in order).
+        num_frames: Calibration frames.
+        perpendicular: The window normal within 0.05 deg of the optical axis (else tilted 4-8 deg).
+        stack_added_mm: The glass added in each record of the stacking pose.
+        target: The calibration board.
+
+    Returns:
+        The geometry: the camera, the window, the stacking pose and the calibration frames.
     """
     K = _intrinsics(rng)
     cam = CameraTruth(name="cam0", K=K, image_size=PAPER_IMAGE_SIZE, cam_from_world=Pose.identity(),
@@ -331,17 +343,24 @@ def binocular(rng: np.random.Generator, num_frames: int = 15, underwater: bool =
               lateral_scale: float = 1.0, tilt_deg: float | None = None) -> Geometry:
     """Two paper-like cameras toed in 10-15 deg, one window (sections 4-5 of the paper).
 
-    ``tilt_deg``: the window's tilt from the rig's z axis (default: drawn in 2-5 deg).
-    ``depth_band_mm``: the depth band of the calibration boards' centres and
-    ``lateral_scale`` the scale of their sideways spread (+-50 x +-40 mm): a few
-    mm and ~0 mimic the paper's rotary stage (boards turned about one point).
+    The baseline is drawn so that the optical axes cross at least 350 mm ahead (a toe-in aimed at the working
+    distance). Calibration frames, the stacking pose and the stage frames are each seen whole (board outline
+    included) by both cameras; they are placed in the depth band where a board facing the rig first fits both
+    views (:func:`_overlap_start`).
 
-    Air: 50 mm N-BK7.  Underwater: a 10 mm N-BK7 port with water behind.
-    The baseline is drawn so that the optical axes cross at least 350 mm
-    ahead (a toe-in aimed at the working distance).  Calibration frames, the
-    stacking pose and the 11 stage frames are each seen whole (board outline
-    included) by both cameras; they are placed in the depth band where a
-    board facing the rig first fits both views (:func:`_overlap_start`).
+    Args:
+        rng: The geometry's random stream (the intrinsics and every pose are drawn from it, in order).
+        num_frames: Calibration frames.
+        underwater: A 10 mm N-BK7 port with water behind (else 50 mm N-BK7 in air).
+        stack_added_mm: The glass added in each record of the stacking pose.
+        stage_mm: The stage frames' positions along the rig's axis (reconstruction frames).
+        depth_band_mm: The depth band of the calibration boards' centres.
+        lateral_scale: The scale of their sideways spread (+-50 x +-40 mm); a few mm of depth band and ~0 here
+            mimic the paper's rotary stage (boards turned about one point).
+        tilt_deg: The window's tilt from the rig's z axis (None: drawn in 2-5 deg).
+
+    Returns:
+        The geometry: the two cameras, the window, the stacking pose, the calibration and stage frames.
     """
     tan_yaws = np.tan(np.radians(rng.uniform(10.0, 15.0, size=2)))
     baseline = rng.uniform(max(120.0, 350.0 * float(tan_yaws.sum())), 200.0)
@@ -435,11 +454,20 @@ def arc(rng: np.random.Generator, num_frames: int = 20, num_cameras: int = 4,
         stack_added_mm: Sequence[float] = STACK_ADDED_MM, run_lengths: Sequence[int] = (2, 3)) -> Geometry:
     """Cameras on an 800 mm arc (-18..18 deg) behind one window tilted ~20 deg.
 
-    The window tilts toward camera 0's side away from camera 0's view, so the
-    expansion centre of camera 0 (an outer camera) falls outside its image.
-    Each calibration frame is drawn for a run of ``run_lengths`` (default 2 or 3)
-    neighbouring cameras, in turn, and kept only if exactly those cameras see it
-    (partial visibility); ``run_lengths=(2, 3, 4)`` adds frames seen by all four.
+    The window tilts toward camera 0's side away from camera 0's view, so the expansion centre of camera 0
+    (an outer camera) falls outside its image.
+
+    Args:
+        rng: The geometry's random stream (the intrinsics and every pose are drawn from it, in order).
+        num_frames: Calibration frames.
+        num_cameras: Cameras on the arc.
+        stack_added_mm: The glass added in each record of the stacking pose.
+        run_lengths: Each calibration frame is drawn for a run of this many neighbouring cameras (the lengths
+            taken in turn) and kept only if exactly those cameras see it (partial visibility); ``(2, 3, 4)``
+            adds frames seen by all four.
+
+    Returns:
+        The geometry.
     """
     if not run_lengths or any(not 1 <= k <= num_cameras for k in run_lengths):
         raise ValueError(f"run_lengths must be 1..{num_cameras} cameras (got {tuple(run_lengths)})")
@@ -512,8 +540,16 @@ def grid(rng: np.random.Generator, num_frames: int = 500, num_cameras: int = 16,
          stack_added_mm: Sequence[float] = STACK_ADDED_MM) -> Geometry:
     """A near-square grid of paper-like cameras behind one large window (scale tests).
 
-    Cameras ``spacing_mm`` apart toe in toward a point 1.5 m ahead; each
-    frame is kept if at least ``min_views`` cameras see it.
+    Args:
+        rng: The geometry's random stream (the intrinsics and every pose are drawn from it, in order).
+        num_frames: Calibration frames.
+        num_cameras: Cameras in the grid.
+        spacing_mm: The cameras' spacing; they toe in toward a point 1.5 m ahead.
+        min_views: A frame is kept if at least this many cameras see it.
+        stack_added_mm: The glass added in each record of the stacking pose.
+
+    Returns:
+        The geometry.
     """
     cols = math.ceil(math.sqrt(num_cameras))
     rows = math.ceil(num_cameras / cols)
@@ -567,13 +603,31 @@ def grid(rng: np.random.Generator, num_frames: int = 500, num_cameras: int = 16,
 
 
 def paper_single_nostack(rng: np.random.Generator, num_frames: int = 12) -> Geometry:
-    """paper_single's geometry for the seed, without its stacking pose (most real data)."""
+    """paper_single's geometry for the seed, without its stacking pose (most real data).
+
+    Args:
+        rng: The geometry's random stream (the intrinsics and every pose are drawn from it, in order).
+        num_frames: Calibration frames.
+
+    Returns:
+        The geometry.
+    """
     return replace(paper_single(rng, num_frames), stacking=())
 
 
 def binocular_nostack(rng: np.random.Generator, num_frames: int = 15, underwater: bool = False,
                       tilt_deg: float | None = None) -> Geometry:
-    """binocular's geometry for the seed (and options), without its stacking pose."""
+    """binocular's geometry for the seed (and options), without its stacking pose.
+
+    Args:
+        rng: The geometry's random stream (the intrinsics and every pose are drawn from it, in order).
+        num_frames: Calibration frames.
+        underwater: A 10 mm N-BK7 port with water behind (else 50 mm N-BK7 in air).
+        tilt_deg: The window's tilt from the rig's z axis (None: drawn in 2-5 deg).
+
+    Returns:
+        The geometry.
+    """
     return replace(binocular(rng, num_frames, underwater=underwater, tilt_deg=tilt_deg), stacking=())
 
 
@@ -596,10 +650,22 @@ def _look_at(center: np.ndarray, point: np.ndarray) -> np.ndarray:
 
 def body3d(rng: np.random.Generator, depth_mm: float = 40.0, distance_mm: float = 500.0,
            spacing_mm: float = 160.0, glass_mm: float = 6.0, cells: int = 11, pitch_mm: float = 15.0) -> Geometry:
-    """Four paper-like cameras in a 2 x 2 grid ``spacing_mm`` apart, aimed at a 3D body
-    (``cells`` x ``cells`` points ``pitch_mm`` apart on three levels) ``distance_mm`` ahead,
-    behind one ``glass_mm`` N-BK7 window (tilted 1-3 deg, 30-50 mm ahead) with water behind;
-    one calibration frame (the body, tilted up to 5 deg), seen whole by every camera."""
+    """Four paper-like cameras in a 2 x 2 grid aimed at a 3D body behind one N-BK7 window (tilted 1-3 deg,
+    30-50 mm ahead) with water behind; one calibration frame (the body, tilted up to 5 deg), seen whole by
+    every camera.
+
+    Args:
+        rng: The geometry's random stream (the intrinsics and every pose are drawn from it, in order).
+        depth_mm: The body's depth (its three levels span it).
+        distance_mm: The body's distance ahead of the rig.
+        spacing_mm: The cameras' spacing.
+        glass_mm: The window's thickness.
+        cells: Body points per side of each level.
+        pitch_mm: The body points' spacing.
+
+    Returns:
+        The geometry.
+    """
     target = _step_body(depth_mm, cells, pitch_mm)
     ahead = np.array([0.0, 0.0, distance_mm])
     rig = []
@@ -636,9 +702,20 @@ PTV_PIXEL_STEP_PX = 0.5  # OpenPTV's .crd centres as found on real data: quantis
 
 def ptv_plate_body(grid: tuple[int, int] = (14, 8), size_mm: tuple[float, float] = (130.0, 70.0),
                    plane_z_mm: Sequence[float] = (0.0, -5.0, -10.0, -15.0)) -> Target:
-    """OpenPTV's multi-plane body in its own world frame: one ``grid`` dot plate (``size_mm``, centred
-    on the z axis) imaged at each z of ``plane_z_mm`` (z toward the cameras), all one rigid body;
-    dot i of plane p has id ``p * PTV_PLANE_ID_STEP + i``."""
+    """OpenPTV's multi-plane body in its own world frame: one dot plate imaged at several depths, all one rigid
+    body.
+
+    Args:
+        grid: The plate's dots (columns, rows).
+        size_mm: The plate's size, centred on the z axis.
+        plane_z_mm: The z of each plane (z toward the cameras).
+
+    Returns:
+        A ``points3d`` target; dot i of plane p has id ``p * PTV_PLANE_ID_STEP + i``.
+
+    Raises:
+        ValueError: more dots per plane than ``PTV_PLANE_ID_STEP``.
+    """
     cols, rows = grid
     xs = np.linspace(-size_mm[0] / 2, size_mm[0] / 2, cols)
     ys = np.linspace(-size_mm[1] / 2, size_mm[1] / 2, rows)
@@ -657,10 +734,19 @@ def ptv_plane_of(ids: np.ndarray) -> np.ndarray:
 
 
 def ptv_misplaced(target: Target, shift_mm: float, tilt_deg: float, rng: np.random.Generator) -> Target:
-    """:func:`ptv_plate_body`'s ``target`` where a real plate's placements put its dots: each plane moved
-    rigidly by a shift of RMS ``shift_mm`` and turned by RMS ``tilt_deg`` about its centre (random
-    directions). Observed in place of the declared body, one frame (one rigid body) then carries each
-    placement's error, as OpenPTV's multi-plane calibrations do."""
+    """:func:`ptv_plate_body`'s target where a real plate's placements put its dots. Observed in place of the
+    declared body, one frame (one rigid body) then carries each placement's error, as OpenPTV's multi-plane
+    calibrations do.
+
+    Args:
+        target: The declared body (:func:`ptv_plate_body`).
+        shift_mm: Each plane is moved rigidly by a shift of this RMS (random direction).
+        tilt_deg: ... and turned by this RMS about its centre (random axis).
+        rng: The random stream.
+
+    Returns:
+        The misplaced body, the same ids.
+    """
     ids, pts = target.points_3d()
     plane = ptv_plane_of(ids)
     moved = pts.copy()
@@ -680,10 +766,24 @@ def ptv_multiplane(rng: np.random.Generator, grid: tuple[int, int] = (14, 8), gl
     Built in OpenPTV's world frame, which is the body's frame ``f000``: the dot plate at 4 depths
     (:func:`ptv_plate_body`), the glass vector G (OpenPTV's: from the water toward the cameras, |G|
     the distance of the glass-water face from the origin, 7-10 mm, tilted 0-1 deg from z), 4 cameras
-    12-26 deg oblique to the window at 560-620 mm, each aimed near the body's centre. The window is
-    declared as the importer declares it (:func:`ari_sfm.openptv.conventions.window_plane` of G and
-    the thickness, in frame ``f000``); the focal hints are the true focal lengths (OpenPTV's own cc,
-    rounded to 0.1 px); pixels are quantised to 0.5 px (see ``pixel_step_px``)."""
+    oblique to the window, each aimed near the body's centre. The window is declared as the importer
+    declares it (:func:`ari_sfm.openptv.conventions.window_plane` of G and the thickness, in frame
+    ``f000``); the focal hints are the true focal lengths (OpenPTV's own cc, rounded to 0.1 px); pixels
+    are quantised to 0.5 px (``pixel_step_px``).
+
+    Args:
+        rng: The geometry's random stream (the intrinsics and every pose are drawn from it, in order).
+        grid: The plate's dots (columns, rows).
+        glass_mm: The window's thickness.
+        tilt_range_deg: The cameras' obliquity to the window, drawn in this range.
+        range_mm: The cameras' distance from the body, drawn in this range.
+
+    Returns:
+        The geometry, with its declared window plane.
+
+    Raises:
+        RuntimeError: the body is not whole in some camera.
+    """
     from ari_sfm.openptv.conventions import window_plane
     from ari_sfm.records import WindowPlane
 
@@ -730,7 +830,15 @@ TANK_FOCAL_PX = 4800.0  # an 80 mm body about 700 px wide at 550 mm
 
 def cavity_body(columns: int = 15, pitch_mm: float = 5.0) -> Target:
     """A test_cavity-like 3D body: 5 rows of dots (y = -25, -15, 0, 15, 25 mm) on three levels (z = 8, 0, -8,
-    0, 8 mm), ``columns`` dots ``pitch_mm`` apart along x, centred on the origin; dots visible from both sides."""
+    0, 8 mm), centred on the origin; dots visible from both sides.
+
+    Args:
+        columns: Dots per row, along x.
+        pitch_mm: Their spacing.
+
+    Returns:
+        A ``points3d`` target, ids from 1.
+    """
     rows = ((-25.0, 8.0), (-15.0, 0.0), (0.0, -8.0), (15.0, 0.0), (25.0, 8.0))
     xs = (np.arange(columns) - (columns - 1) / 2.0) * pitch_mm
     pts, k = {}, 1
@@ -760,10 +868,22 @@ def tank(rng: np.random.Generator, adjacent: bool = False, frames: int = 5, glas
 
     Walls: the ``front`` wall's inner (glass-water) face at z = -wall_mm, normal +z (cameras at z < 0); the
     ``back`` wall at z = +wall_mm, normal -z (``adjacent``: the ``side`` wall at x = -wall_mm, normal +x);
-    each wall tilted 0-1 deg; ``glass_mm`` of N-BK7, water inside. Two cameras per wall, 12-26 deg oblique
-    to it (one to each side), 480-600 mm from the centre. The :func:`cavity_body` in ``frames`` poses near
-    the centre (shifted up to 12 mm, turned up to 8 deg; facing 45 deg between the walls when adjacent),
-    each seen whole by every camera. World = the first camera."""
+    each wall tilted 0-1 deg; N-BK7, water inside. Two cameras per wall, oblique to it (one to each side).
+    The :func:`cavity_body` in several poses near the centre (shifted up to 12 mm, turned up to 8 deg;
+    facing 45 deg between the walls when adjacent), each seen whole by every camera. World = the first camera.
+
+    Args:
+        rng: The geometry's random stream (the intrinsics and every pose are drawn from it, in order).
+        adjacent: The second wall at 90 deg to the first (else opposite it).
+        frames: The body's poses.
+        glass_mm: The walls' thickness.
+        wall_mm: The walls' inner faces' distance from the tank's centre.
+        tilt_range_deg: The cameras' obliquity to their wall, drawn in this range.
+        range_mm: The cameras' distance from the centre, drawn in this range.
+
+    Returns:
+        The geometry, with its two windows.
+    """
     target = cavity_body()
     inward = [np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]) if adjacent else np.array([0.0, 0.0, -1.0])]
     names = ["front", "side" if adjacent else "back"]
@@ -811,41 +931,131 @@ def tank(rng: np.random.Generator, adjacent: bool = False, frames: int = 5, glas
 
 
 @dataclass(frozen=True)
+class ScenarioOverrides:
+    """Options of a scenario's geometry, each None where the scenario keeps its own value.
+
+    The fields are the builders' keyword options (``paper_single``, ``binocular``, ``arc``, ``grid``,
+    ``body3d``, ``ptv_multiplane``, ``tank``); a scenario accepts those its builder takes and its
+    registry entry does not fix (:func:`check_overrides`)."""
+
+    num_frames: int | None = None  # calibration frames (paper_single, binocular, arc, grid)
+    num_cameras: int | None = None  # cameras (arc, grid)
+    frames: int | None = None  # the body's poses (tank)
+    perpendicular: bool | None = None  # the window normal within 0.05 deg of the optical axis (paper_single)
+    underwater: bool | None = None  # a 10 mm glass port with water behind it (binocular)
+    adjacent: bool | None = None  # the two walls at 90 deg instead of opposite (tank)
+    target: Target | None = None  # the calibration target (paper_single)
+    stack_added_mm: tuple[float, ...] | None = None  # glass added in the stacking pose (paper_single, binocular, ...)
+    stage_mm: tuple[float, ...] | None = None  # the stage frames' positions (binocular)
+    depth_band_mm: float | None = None  # depth range of the calibration frames (binocular)
+    lateral_scale: float | None = None  # lateral spread of the calibration frames (binocular)
+    tilt_deg: float | None = None  # the window's tilt (binocular; None there: drawn)
+    run_lengths: tuple[int, ...] | None = None  # consecutive cameras a frame is seen by (arc)
+    spacing_mm: float | None = None  # camera spacing (grid, body3d)
+    min_views: int | None = None  # cameras each frame is seen by, at least (grid)
+    depth_mm: float | None = None  # the body's depth (body3d)
+    distance_mm: float | None = None  # the body's distance (body3d)
+    glass_mm: float | None = None  # window thickness (body3d, ptv_multiplane, tank)
+    cells: int | None = None  # body points per side (body3d)
+    pitch_mm: float | None = None  # body point spacing (body3d)
+    grid: tuple[int, int] | None = None  # dots of the plate (ptv_multiplane)
+    tilt_range_deg: tuple[float, float] | None = None  # cameras' obliquity to the window (ptv_multiplane, tank)
+    range_mm: tuple[float, float] | None = None  # cameras' distance (ptv_multiplane, tank)
+    wall_mm: float | None = None  # the walls' distance from the tank's centre (tank)
+
+    def given(self) -> tuple[str, ...]:
+        """The names of the fields set (not None), in field order."""
+        return tuple(f.name for f in fields(self) if getattr(self, f.name) is not None)
+
+    def merged(self, other: ScenarioOverrides) -> ScenarioOverrides:
+        """These overrides with ``other``'s set fields on top."""
+        return replace(self, **{name: getattr(other, name) for name in other.given()})
+
+
+@dataclass(frozen=True)
 class ScenarioSpec:
     """How a scenario name is built: builder, its fixed options, images by default."""
 
     build: Callable[..., Geometry]
-    options: dict
+    options: ScenarioOverrides = ScenarioOverrides()  # fixed by the scenario (not offered to its users)
     images: bool = False
     rng_name: str = ""  # scenarios sharing a stream (paper_single*) get the same geometry for a seed
 
 
 REGISTRY: dict[str, ScenarioSpec] = {
-    "paper_single": ScenarioSpec(paper_single, {}, rng_name="paper_single"),
-    "paper_single_images": ScenarioSpec(paper_single, {}, images=True, rng_name="paper_single"),
-    "paper_single_dots": ScenarioSpec(paper_single, {"target": DOT_TARGET}, images=True, rng_name="paper_single_dots"),
-    "paper_single_perpendicular": ScenarioSpec(paper_single, {"perpendicular": True},
+    "paper_single": ScenarioSpec(paper_single, rng_name="paper_single"),
+    "paper_single_images": ScenarioSpec(paper_single, images=True, rng_name="paper_single"),
+    "paper_single_dots": ScenarioSpec(paper_single, ScenarioOverrides(target=DOT_TARGET), images=True,
+                                      rng_name="paper_single_dots"),
+    "paper_single_perpendicular": ScenarioSpec(paper_single, ScenarioOverrides(perpendicular=True),
                                                rng_name="paper_single_perpendicular"),
-    "binocular": ScenarioSpec(binocular, {}, rng_name="binocular"),
-    "binocular_underwater": ScenarioSpec(binocular, {"underwater": True}, rng_name="binocular_underwater"),
-    "arc4": ScenarioSpec(arc, {}, rng_name="arc4"),
-    "scale16": ScenarioSpec(grid, {}, rng_name="scale16"),
-    "paper_single_nostack": ScenarioSpec(paper_single_nostack, {}, rng_name="paper_single"),
-    "binocular_nostack": ScenarioSpec(binocular_nostack, {}, rng_name="binocular"),
-    "binocular_underwater_oblique": ScenarioSpec(binocular_nostack, {"underwater": True, "tilt_deg": 10.0},
+    "binocular": ScenarioSpec(binocular, rng_name="binocular"),
+    "binocular_underwater": ScenarioSpec(binocular, ScenarioOverrides(underwater=True),
+                                         rng_name="binocular_underwater"),
+    "arc4": ScenarioSpec(arc, rng_name="arc4"),
+    "scale16": ScenarioSpec(grid, rng_name="scale16"),
+    "paper_single_nostack": ScenarioSpec(paper_single_nostack, rng_name="paper_single"),
+    "binocular_nostack": ScenarioSpec(binocular_nostack, rng_name="binocular"),
+    "binocular_underwater_oblique": ScenarioSpec(binocular_nostack, ScenarioOverrides(underwater=True, tilt_deg=10.0),
                                                  rng_name="binocular_underwater_oblique"),
-    "body3d_water": ScenarioSpec(body3d, {}, rng_name="body3d"),
-    "body3d_shallow": ScenarioSpec(body3d, {"depth_mm": 15.0, "distance_mm": 600.0}, rng_name="body3d"),
-    "ptv_multiplane": ScenarioSpec(ptv_multiplane, {}, rng_name="ptv_multiplane"),
-    "tank_opposite": ScenarioSpec(tank, {}, rng_name="tank_opposite"),
-    "tank_adjacent": ScenarioSpec(tank, {"adjacent": True}, rng_name="tank_adjacent"),
+    "body3d_water": ScenarioSpec(body3d, rng_name="body3d"),
+    "body3d_shallow": ScenarioSpec(body3d, ScenarioOverrides(depth_mm=15.0, distance_mm=600.0), rng_name="body3d"),
+    "ptv_multiplane": ScenarioSpec(ptv_multiplane, rng_name="ptv_multiplane"),
+    "tank_opposite": ScenarioSpec(tank, rng_name="tank_opposite"),
+    "tank_adjacent": ScenarioSpec(tank, ScenarioOverrides(adjacent=True), rng_name="tank_adjacent"),
 }
 assert set(REGISTRY) == set(SCENARIOS)
 
 
-def build_geometry(name: str, rng: np.random.Generator, **overrides) -> Geometry:
-    """The truth geometry of scenario ``name`` (overrides go to its builder)."""
+def scenario_options(name: str) -> tuple[str, ...]:
+    """The overrides scenario ``name`` accepts: its builder's options less those its registry entry fixes.
+
+    Args:
+        name: A scenario of :data:`REGISTRY`.
+
+    Returns:
+        The :class:`ScenarioOverrides` field names, in the builder's order.
+    """
     spec = REGISTRY[name]
-    geometry = spec.build(rng, **{**spec.options, **overrides})
+    fixed = spec.options.given()
+    return tuple(p for p in inspect.signature(spec.build).parameters if p != "rng" and p not in fixed)
+
+
+def check_overrides(name: str, overrides: ScenarioOverrides) -> None:
+    """Refuse the overrides scenario ``name`` does not accept (:func:`scenario_options`).
+
+    Args:
+        name: A scenario of :data:`REGISTRY`.
+        overrides: The overrides asked for.
+
+    Raises:
+        ValueError: one line naming the options given that the scenario does not have, and those it has.
+    """
+    allowed = scenario_options(name)
+    bad = [k for k in overrides.given() if k not in allowed]
+    if bad:
+        raise ValueError(f"scenario {name!r} has no option {', '.join(bad)}; options: {', '.join(allowed)}")
+
+
+def build_geometry(name: str, rng: np.random.Generator, overrides: ScenarioOverrides | None = None) -> Geometry:
+    """The truth geometry of scenario ``name``, checked (:func:`~ari_sfm.simulate.scene.check_geometry`).
+
+    Args:
+        name: A scenario of :data:`REGISTRY`.
+        rng: The geometry's random stream.
+        overrides: Options of its builder (None: the scenario as registered); checked by :func:`check_overrides`.
+
+    Returns:
+        The geometry.
+
+    Raises:
+        ValueError: an option the scenario does not have.
+        RuntimeError: the simulator could not place a pose the scenario needs.
+    """
+    spec = REGISTRY[name]
+    overrides = overrides or ScenarioOverrides()
+    check_overrides(name, overrides)
+    options = spec.options.merged(overrides)
+    geometry = spec.build(rng, **{k: getattr(options, k) for k in options.given()})
     check_geometry(geometry)
     return geometry
