@@ -97,7 +97,7 @@ def measure(path: str, backend: str, model: str, huber_px: float | None, max_ite
     import gc
 
     from ari_sfm.factors.rig_graph import RigGraph
-    from ari_sfm.factors.vectorized import optimize_vectorized
+    from ari_sfm.factors.vectorized import solve_vectorized
 
     with open(path, "rb") as f:
         dataset, state = pickle.load(f)
@@ -111,8 +111,8 @@ def measure(path: str, backend: str, model: str, huber_px: float | None, max_ite
     if backend == "gtsam":
         rg.optimize(max_iterations)
     else:
-        _, report = optimize_vectorized(rg, max_iterations, huber_px=huber_px, return_report=True,
-                                        stop="gtsam")  # GTSAM's trials too: like for like per iteration
+        report = solve_vectorized(rg, max_iterations, huber_px=huber_px,
+                                  stop="gtsam").report  # GTSAM's trials too: like for like per iteration
     t2 = time.perf_counter()
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     error = rg.graph.error(rg.values) if backend == "gtsam" else report.error  # equal: tests/test_vectorized.py

@@ -333,7 +333,7 @@ def _numpy_pinhole(D: np.ndarray, params: np.ndarray, jacobians: bool) -> tuple:
 
 
 def fig_forward(repeats: int, points: int) -> None:
-    from ari_sfm.models.exact import exact_project
+    from ari_sfm.models.exact import exact_pixels, exact_project
     from ari_sfm.models.pinhole import pinhole_pixels
 
     rng = np.random.default_rng(0)
@@ -346,8 +346,9 @@ def fig_forward(repeats: int, points: int) -> None:
         params = np.r_[3478.0, 3480.0, 1230.0, 1020.0, dist * lens]
         uv_np = _numpy_pinhole(X, params, False)[0]
         assert np.abs(pinhole_pixels(X, params) - uv_np).max() < 1e-9  # the baseline is the same pinhole
-        run = alternate(lambda params=params, jac=jac: [exact_project(X, params, normal, 6.0, 1.5168, 1.333, 40.0,
-                                                                      jacobians=jac) for _ in range(5)],
+        exact = exact_project if jac else exact_pixels
+        run = alternate(lambda params=params, exact=exact: [exact(X, params, normal, 6.0, 1.5168, 1.333, 40.0)
+                                                            for _ in range(5)],
                         lambda params=params, jac=jac: [_numpy_pinhole(X, params, jac) for _ in range(5)], repeats)
         report(name, f"exact_project {points} points{' + Jacobians' if jac else ''}"
                      f"{', distortion' if dist else ''} / numpy pinhole (x5)", run)

@@ -11,6 +11,7 @@ several target frames).
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 from ..solver.levenberg_marquardt import LMParams, LMReport
 from .packed_problem import VectorizedProblem
@@ -21,16 +22,41 @@ log = logging.getLogger(__name__)
 BACKENDS = ("gtsam", "numpy", "auto")
 
 
-def optimize_vectorized(
+@dataclass(frozen=True)
+class VectorizedSolution:
+    """What :func:`solve_vectorized` returns.
+
+    Attributes:
+        state: The solved state.
+        report: How Levenberg-Marquardt went.
+    """
+
+    state: RigState
+    report: LMReport
+
+
+@dataclass(frozen=True)
+class GraphSolution:
+    """What :func:`solve_graph` returns.
+
+    Attributes:
+        state: The solved state.
+        problem: The solved numpy problem (its residuals and marginals at the optimum), None with GTSAM.
+    """
+
+    state: RigState
+    problem: VectorizedProblem | None
+
+
+def solve_vectorized(
     rig_graph: GraphLike,
     max_iterations: int = 100,
     relative_tolerance: float = 1e-10,
     huber_px: float | None = None,
     check: bool = True,
     params: LMParams | None = None,
-    return_report: bool = False,
     stop: str = "converged",
-) -> RigState | tuple[RigState, LMReport]:
+) -> VectorizedSolution:
     """Optimise a built RigGraph's problem with the numpy backend (GTSAM's LM path, no callbacks).
 
     The graph's values and ``iterations`` are updated as RigGraph.optimize does.
@@ -43,21 +69,17 @@ def optimize_vectorized(
         check: compare the residuals of a few views with the graph's own factors (a mismatch, e.g. another
             ``huber_px``, raises ValueError).
         params: the LM constants (default :class:`LMParams`).
-        return_report: also return the report.
         stop: the stop rule (:meth:`VectorizedProblem.optimize`; "gtsam": GTSAM's trials one for one).
 
     Returns:
-        The solved state; with ``return_report`` the pair (state, :class:`LMReport`: final error, lambda
-            trials, time).
+        The solved state and the :class:`LMReport` (final error, lambda trials, time).
     """
     problem = VectorizedProblem.from_rig_graph(rig_graph, huber_px=huber_px, check=check)
     state = problem.optimize(max_iterations, relative_tolerance, params, stop)
     _write_solution(rig_graph, problem)
     rig_graph.iterations = problem.iterations
-    if return_report:
-        assert problem.report is not None  # set by optimize
-        return state, problem.report
-    return state
+    assert problem.report is not None  # set by optimize
+    return VectorizedSolution(state, problem.report)
 
 
 def _write_solution(rig_graph: GraphLike, problem: VectorizedProblem) -> None:
@@ -90,10 +112,9 @@ def resolve_backend(backend: str) -> str:
     return "numpy" if backend == "auto" else backend
 
 
-def optimize_graph(rig_graph: GraphLike, backend: str = "auto", max_iterations: int = 100,
-                   huber_px: float | None = None, return_problem: bool = False, check: bool = True,
-                   stop: str = "converged", relative_tolerance: float = 1e-10
-                   ) -> RigState | tuple[RigState, VectorizedProblem | None]:
+def solve_graph(rig_graph: GraphLike, backend: str = "auto", max_iterations: int = 100,
+                huber_px: float | None = None, check: bool = True, stop: str = "converged",
+                relative_tolerance: float = 1e-10) -> GraphSolution:
     """Optimise a RigGraph with GTSAM (``rig_graph.optimize``) or the numpy backend; same result either way.
 
     "auto" falls back to GTSAM for a graph the numpy backend cannot hold (a user factor linking several
@@ -105,16 +126,14 @@ def optimize_graph(rig_graph: GraphLike, backend: str = "auto", max_iterations: 
         max_iterations: cap on the accepted LM steps.
         huber_px: the Huber threshold the graph was built with (the numpy backend needs it, see
             :meth:`VectorizedProblem.from_rig_graph`).
-        return_problem: also return the solved problem, so that residuals and marginals at the optimum need
-            no callbacks.
         check: compare a few views with the graph's own factors (see ``from_rig_graph``); a caller that has
             just built the graph with ``huber_px`` may skip it.
         stop: the numpy backend's stop rule (:meth:`VectorizedProblem.optimize`).
         relative_tolerance: LM stops when the error's relative decrease is below it (both backends).
 
     Returns:
-        The solved state; with ``return_problem`` the pair (state, the solved VectorizedProblem, or None
-            with GTSAM).
+        The solved state and the solved VectorizedProblem (None with GTSAM), whose residuals and marginals at
+            the optimum need no callbacks.
     """
     problem = None
     if resolve_backend(backend) == "numpy":
@@ -125,9 +144,48 @@ def optimize_graph(rig_graph: GraphLike, backend: str = "auto", max_iterations: 
                 raise
             log.info("numpy backend: %s; optimising with GTSAM", exc)
     if problem is None:
-        state = rig_graph.optimize(max_iterations, relative_tolerance)
-        return (state, None) if return_problem else state
+        return GraphSolution(rig_graph.optimize(max_iterations, relative_tolerance), None)
     state = problem.optimize(max_iterations, relative_tolerance, stop=stop)
     _write_solution(rig_graph, problem)
     rig_graph.iterations = problem.iterations
-    return (state, problem) if return_problem else state
+    return GraphSolution(state, problem)
+
+
+def optimize_graph(rig_graph: GraphLike, backend: str = "auto", max_iterations: int = 100,
+                   huber_px: float | None = None, check: bool = True, stop: str = "converged",
+                   relative_tolerance: float = 1e-10) -> RigState:
+    """The solved state of :func:`solve_graph` (the same arguments).
+
+    Args:
+        rig_graph: the built graph; its values and ``iterations`` are updated.
+        backend: "gtsam", "numpy" or "auto".
+        max_iterations: cap on the accepted LM steps.
+        huber_px: the Huber threshold the graph was built with.
+        check: compare a few views with the graph's own factors.
+        stop: the numpy backend's stop rule.
+        relative_tolerance: LM's relative tolerance.
+
+    Returns:
+        The solved state.
+    """
+    return solve_graph(rig_graph, backend, max_iterations, huber_px, check, stop, relative_tolerance).state
+
+
+def optimize_vectorized(rig_graph: GraphLike, max_iterations: int = 100, relative_tolerance: float = 1e-10,
+                        huber_px: float | None = None, check: bool = True, params: LMParams | None = None,
+                        stop: str = "converged") -> RigState:
+    """The solved state of :func:`solve_vectorized` (the same arguments).
+
+    Args:
+        rig_graph: the built graph.
+        max_iterations: cap on the accepted LM steps.
+        relative_tolerance: LM's relative tolerance.
+        huber_px: the Huber threshold the graph was built with.
+        check: compare a few views with the graph's own factors.
+        params: the LM constants.
+        stop: the stop rule.
+
+    Returns:
+        The solved state.
+    """
+    return solve_vectorized(rig_graph, max_iterations, relative_tolerance, huber_px, check, params, stop).state

@@ -41,9 +41,8 @@ import numpy as np
 
 from ..geometry import Pose, retract_poses
 from ..helper_thread import shared_map
-from ..models.ari import AriJacobians, ari_project, check_window
-from ..models.exact import ExactJacobians, exact_project
-from ..models.pinhole import Projection
+from ..models.ari import AriJacobians, ari_pixels, ari_project, check_window
+from ..models.exact import ExactJacobians, exact_pixels, exact_project
 from ..records import Observation
 from ..solver.bundle import BundleAdjustment
 from ..solver.levenberg_marquardt import LMParams, LMReport, NonFiniteJacobian, levenberg_marquardt
@@ -61,8 +60,8 @@ log = logging.getLogger(__name__)
 INVALID_RESIDUAL = 1e6  # what view_residuals puts for a non-finite residual or a camera beyond the window
 PARALLEL_MIN_CORNERS = 2000  # corners from which linearize forms its cameras' equations on two threads
 # the models' batched projections
-_KERNELS: dict[str, Callable[..., AriJacobians | ExactJacobians | Projection]] = {"ari": ari_project,
-                                                                                   "exact": exact_project}
+_KERNELS: dict[str, tuple[Callable[..., AriJacobians | ExactJacobians], Callable[..., np.ndarray]]] = {
+    "ari": (ari_project, ari_pixels), "exact": (exact_project, exact_pixels)}  # (with Jacobians, pixels alone)
 
 
 
@@ -376,15 +375,15 @@ class VectorizedProblem:
         vs, ve = int(self.camera_views[c]), int(self.camera_views[c + 1])
         X = transform_points(self.points[s:e], tr.R_cam_target[vs:ve], tr.t_cam_target[vs:ve],
                              self.view_start[vs:ve + 1] - s)
-        kernel = _KERNELS[self.model]
+        with_jacobians, pixels = _KERNELS[self.model]
         runs = self._camera_runs[c]
         if len(runs) == 1:  # the usual case: every plate of the camera in one call
             params = runs[0].base_params.copy()
             params[:n_p] = x.intrinsics[c]
-            J = kernel(X, params, tr.normal_cam[c], self.corner_thickness[s:e], runs[0].index,
-                       runs[0].medium_index, h, jacobians, n_p)
-            if isinstance(J, Projection):  # no Jacobians asked for
-                return _CameraModel(X, J.uv)
+            args = (X, params, tr.normal_cam[c], self.corner_thickness[s:e], runs[0].index, runs[0].medium_index, h)
+            if not jacobians:
+                return _CameraModel(X, pixels(*args))
+            J = with_jacobians(*args, n_p)
             return _CameraModel(X, J.uv, J.J_point, J.J_normal, J.J_params, np.ascontiguousarray(J.J_distance))
         uv = np.empty((m, 2))
         if jacobians:
@@ -393,11 +392,14 @@ class VectorizedProblem:
             a, b = g.start - s, g.stop - s
             params = g.base_params.copy()
             params[:n_p] = x.intrinsics[c]
-            J = kernel(X[a:b], params, tr.normal_cam[c], self.corner_thickness[g.start:g.stop],
-                       g.index, g.medium_index, h, jacobians, n_p)
+            args = (X[a:b], params, tr.normal_cam[c], self.corner_thickness[g.start:g.stop], g.index,
+                    g.medium_index, h)
+            if not jacobians:
+                uv[a:b] = pixels(*args)
+                continue
+            J = with_jacobians(*args, n_p)
             uv[a:b] = J.uv
-            if not isinstance(J, Projection):  # Jacobians asked for
-                Jp[a:b], Jn[a:b], Jpar[a:b], Jd[a:b] = J.J_point, J.J_normal, J.J_params, J.J_distance
+            Jp[a:b], Jn[a:b], Jpar[a:b], Jd[a:b] = J.J_point, J.J_normal, J.J_params, J.J_distance
         return _CameraModel(X, uv) if not jacobians else _CameraModel(X, uv, Jp, Jn, Jpar, Jd)
 
     def _camera_residuals(self, x: Variables, tr: _Transforms, c: int, huber_px: float | None,

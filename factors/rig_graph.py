@@ -27,7 +27,7 @@ import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, cast
+from typing import cast
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -39,7 +39,7 @@ from ..geometry import Pose, cam_from_world_from_pose3, pose3_from_cam_from_worl
 from ..models.registry import model_spec
 from ..records import Interface, Observation, Target, Window, WindowPlane
 from . import keys as K_
-from .backend import optimize_graph
+from .backend import solve_graph
 from .variables import MODELS, RigState, estimated_offset
 from .view_factor import ViewData, ViewKeys, factor_keys, view_factor, view_residuals
 
@@ -607,7 +607,6 @@ def estimate_sigma_px(rg: RigGraph) -> float:
 
     copy = replace(rg, made_values=rg.values_copy(), unwritten=None, factor_views=list(rg.factor_views),
                    factor_data=list(rg.factor_data), other_factors=list(rg.other_factors))
-    _, solved = cast(tuple[RigState, Any], optimize_graph(copy, "auto", huber_px=rg.huber_px, return_problem=True,
-                                                          check=False))  # return_problem: the pair
+    solved = solve_graph(copy, "auto", huber_px=rg.huber_px, check=False).problem
     residuals = solved.residuals() if solved is not None else copy.residuals()
     return robust_sigma_px(r for _, r in residuals)

@@ -111,7 +111,7 @@ def huber_irls(dist: np.ndarray, huber_px: float | None) -> tuple[np.ndarray, np
 
 
 @njit(**_JIT)
-def weighted_residuals(uv, measured, huber_px, inv_sigma, whitened, invalid):
+def weighted_residuals(uv, measured, huber_px, inv_sigma, whitened, invalid) -> tuple:
     """One camera's IRLS rows in one pass (the numpy backend's linearisation).
 
     Per corner: r = uv - measured, its distance, the Jacobian scale sqrt(w) (times ``inv_sigma`` when

@@ -44,7 +44,7 @@ def marginal_covariances(rg: RigGraph, solved=None, sigma_px: float | None = Non
     Args:
         rg: the solved graph.
         solved (VectorizedProblem | None): the numpy backend's problem at these values
-            (``optimize_graph(..., return_problem=True)``); None: ``gtsam.Marginals(rg.graph, rg.values)``.
+            (``solve_graph(...).problem``); None: ``gtsam.Marginals(rg.graph, rg.values)``.
         sigma_px: rescale to this pixel sigma (exact only when every factor is a view factor: with user
             factors rebuild the graph with :meth:`RigGraph.with_sigma` instead); None: the graph's.
 

@@ -12,10 +12,20 @@ from __future__ import annotations
 
 from ..geometry import se3_exp
 from ..solver.levenberg_marquardt import STOP_RULES, LMParams, LMReport
-from .backend import BACKENDS, optimize_graph, optimize_vectorized, resolve_backend
+from .backend import (
+                      BACKENDS,
+                      GraphSolution,
+                      VectorizedSolution,
+                      optimize_graph,
+                      optimize_vectorized,
+                      resolve_backend,
+                      solve_graph,
+                      solve_vectorized,
+)
 from .marginals import CovarianceTable
 from .packed_problem import INVALID_RESIDUAL, VectorizedProblem
 from .variables import Variables
 
 __all__ = ["BACKENDS", "STOP_RULES", "INVALID_RESIDUAL", "CovarianceTable", "LMParams", "LMReport", "Variables",
-           "VectorizedProblem", "optimize_graph", "optimize_vectorized", "resolve_backend", "se3_exp"]
+           "VectorizedProblem", "GraphSolution", "VectorizedSolution", "optimize_graph", "optimize_vectorized",
+           "resolve_backend", "se3_exp", "solve_graph", "solve_vectorized"]

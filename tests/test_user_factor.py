@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from ari_sfm.factors import keys
-from ari_sfm.factors.backend import optimize_graph
+from ari_sfm.factors.backend import solve_graph
 from ari_sfm.factors.rig_graph import RigGraph
 from ari_sfm.factors.uncertainty import marginal_covariances
 from ari_sfm.geometry import angle_between_deg
@@ -22,7 +22,7 @@ from ari_sfm.geometry import angle_between_deg
 def _with_prior(dataset, model: str, sigma_px: float, prior: gtsam.Unit3, sigma_rad: float):
     rg = RigGraph.from_dataset(dataset, model=model, sigma_px=sigma_px)
     rg.graph.push_back(gtsam.PriorFactorUnit3(keys.N, prior, gtsam.noiseModel.Isotropic.Sigma(2, sigma_rad)))
-    _, solved = optimize_graph(rg, "numpy", huber_px=rg.huber_px, return_problem=True)
+    solved = solve_graph(rg, "numpy", huber_px=rg.huber_px).problem
     return rg, solved
 
 
@@ -34,7 +34,7 @@ def test_a_prior_on_the_normal_weighs_what_it_says(single_scene, model):
     if model == "exact":  # the simulated corners have 0.05 px noise; the exact model leaves only that
         assert estimated.sigma_px == pytest.approx(0.05, rel=0.1)
     free = RigGraph.from_dataset(single_scene.dataset, model=model, sigma_px=estimated.sigma_px)
-    _, solved = optimize_graph(free, "numpy", huber_px=free.huber_px, return_problem=True)
+    solved = solve_graph(free, "numpy", huber_px=free.huber_px).problem
     n_free = free.values.atUnit3(keys.N)
     cov_free = marginal_covariances(free, solved)[keys.N]
     s = np.radians(0.05)

@@ -23,7 +23,15 @@ import pytest
 from ari_sfm.calibration.calibrate import calibrate
 from ari_sfm.factors import keys as K_
 from ari_sfm.factors.rig_graph import MODELS, RigGraph, RigState, default_distance_mm
-from ari_sfm.factors.vectorized import VectorizedProblem, optimize_graph, optimize_vectorized, resolve_backend, se3_exp
+from ari_sfm.factors.vectorized import (
+    VectorizedProblem,
+    optimize_graph,
+    optimize_vectorized,
+    resolve_backend,
+    se3_exp,
+    solve_graph,
+    solve_vectorized,
+)
 from ari_sfm.factors.view_factor import view_residuals
 from ari_sfm.geometry import angle_between_deg
 from ari_sfm.init.rig import initialise_rig
@@ -174,7 +182,8 @@ def test_residuals_and_jacobians_equal_view_residuals(problems, name, model, hub
 def test_same_optimum_as_gtsam(problems, name, model, huber_px):
     ref, ours = _graph(problems, name, model, huber_px), _graph(problems, name, model, huber_px)
     state_ref = ref.optimize()
-    state, report = optimize_vectorized(ours, huber_px=huber_px, return_report=True, stop="gtsam")
+    solution = solve_vectorized(ours, huber_px=huber_px, stop="gtsam")
+    state, report = solution.state, solution.report
     # the same path; only the last step, whose cost change is at the rounding level, may go either way
     assert ours.iterations == report.iterations > 0
     assert abs(report.iterations - ref.iterations) <= 1
@@ -199,7 +208,8 @@ def stop_rules(problems):
             runs = []
             for stop in ("gtsam", "converged"):
                 rg = _graph(problems, name, model, 1.0)
-                state, report = optimize_vectorized(rg, huber_px=1.0, check=False, return_report=True, stop=stop)
+                solution = solve_vectorized(rg, huber_px=1.0, check=False, stop=stop)
+                state, report = solution.state, solution.report
                 runs.append((state, report, rg))
             out[name, model] = runs
     return out
@@ -286,7 +296,8 @@ def test_factors_added_to_the_graph_are_honoured(problems):
     bad_ref = _graph(problems, "binocular", "ari", 1.0)
     bad_ref.graph.push_back(gtsam.BetweenFactorPose3(K_.X(0), K_.X(1), gtsam.Pose3(),
                                                      gtsam.noiseModel.Isotropic.Sigma(6, 1.0)))
-    state_auto, solved = optimize_graph(bad, "auto", huber_px=1.0, return_problem=True)  # falls back to GTSAM
+    solution = solve_graph(bad, "auto", huber_px=1.0)  # falls back to GTSAM
+    state_auto, solved = solution.state, solution.problem
     assert solved is None
     _assert_same_state(bad_ref.optimize(), state_auto)
 

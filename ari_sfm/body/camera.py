@@ -26,7 +26,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ari_sfm.geometry import rotation_angle_deg, rotation_from_rotvec, skew
-from ari_sfm.models.exact import ConvergenceError, exact_project
+from ari_sfm.models.exact import ConvergenceError, exact_pixels, exact_project
 from ari_sfm.models.pinhole import pinhole_pixels, project_points
 
 log = logging.getLogger(__name__)
@@ -200,8 +200,8 @@ def _project(R: np.ndarray, params: np.ndarray, camera: MatchCamera, xyz: np.nda
             return np.full((len(X), 2), np.nan), (np.zeros((len(X), 2, 10)) if jacobian else None)
         try:
             if not jacobian:
-                return exact_project(X, intrinsics, normal, w.thickness_mm, w.index, w.medium_index, h,
-                                     jacobians=False, n_params=5).uv.reshape(-1, 2), None
+                return exact_pixels(X, intrinsics, normal, w.thickness_mm, w.index, w.medium_index,
+                                    h).reshape(-1, 2), None
             out = exact_project(X, intrinsics, normal, w.thickness_mm, w.index, w.medium_index, h, n_params=5)
         except ConvergenceError:
             return np.full((len(X), 2), np.nan), (np.zeros((len(X), 2, 10)) if jacobian else None)

@@ -682,15 +682,16 @@ class _Solver:
     def solve(self, rg, model: str, max_iterations: int | None = None,
               relative_tolerance: float = FINAL_TOLERANCE):
         """(state, solved problem or None) of the graph; a failure inside the optimiser is one line."""
-        from ..factors.vectorized import optimize_graph
+        from ..factors.vectorized import solve_graph
 
         if model_spec(model).needs_distance:
             check_in_front(self.dataset, rg.base_state)
         try:
-            return optimize_graph(rg, self.backend,
-                                  self.opts.max_iterations if max_iterations is None else max_iterations,
-                                  self.opts.huber_px, return_problem=True, check=False,  # built with opts.huber_px
-                                  relative_tolerance=relative_tolerance)
+            solution = solve_graph(rg, self.backend,
+                                   self.opts.max_iterations if max_iterations is None else max_iterations,
+                                   self.opts.huber_px, check=False,  # built with opts.huber_px
+                                   relative_tolerance=relative_tolerance)
+            return solution.state, solution.problem
         except RuntimeError as exc:  # e.g. non-finite Jacobian entries
             raise AriSfmError(self.dataset.observations_path or self.dataset.rig_path,
                               f"{model} stage: {exc}") from None

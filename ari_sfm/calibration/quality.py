@@ -35,9 +35,13 @@ import logging
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from ..records import Dataset
+    from ..results import Uncertainty
 
 log = logging.getLogger(__name__)
 
@@ -159,7 +163,7 @@ def _view_points(X: np.ndarray) -> np.ndarray:
     return centred @ vt[:2].T if s[2] <= PLANAR_THICKNESS * s[0] else X
 
 
-def corner_floor(dataset) -> Floor | None:
+def corner_floor(dataset: Dataset) -> Floor | None:
     """Measure what the corners allow (module docstring).
 
     Each of up to ``MAX_FLOOR_VIEWS`` calibration and stacking views (evenly picked) with >=
@@ -175,7 +179,8 @@ def corner_floor(dataset) -> Floor | None:
     """
     from ..init.zhang import object_points
 
-    views = [o for o in dataset.observations if o.set in ("calibration", "stacking") and len(o.ids) >= MIN_VIEW_CORNERS]
+    views = [o for o in dataset.observations or ()
+             if o.set in ("calibration", "stacking") and len(o.ids) >= MIN_VIEW_CORNERS]
     if len(views) > MAX_FLOOR_VIEWS:
         views = [views[i] for i in np.linspace(0, len(views) - 1, MAX_FLOOR_VIEWS).round().astype(int)]
     by_shape: dict[tuple[int, int], list[tuple[np.ndarray, np.ndarray]]] = {}
@@ -232,7 +237,8 @@ def fits(model: str, residuals: Iterable[np.ndarray], floor: Floor | float | Non
     return floor is None or robust_rmse_px(residuals) <= allowance_px(floor, _coordinates(residuals))
 
 
-def judge(model: str, rmse_px: float, residuals: Iterable[np.ndarray], floor: Floor | float | None, uncertainty,
+def judge(model: str, rmse_px: float, residuals: Iterable[np.ndarray], floor: Floor | float | None,
+          uncertainty: Uncertainty | None,
           starts: tuple[str, ...] = (), exact_robust: float | None = None) -> Quality:
     """Give the gate's verdict on one result (module docstring).
 

@@ -39,12 +39,12 @@ this paraxial model.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Literal, NamedTuple, overload
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from . import kernels
-from .pinhole import NUM_PARAMS, PinholeModel, Projection, as_points
+from .pinhole import NUM_PARAMS, PinholeModel, as_points
 
 if TYPE_CHECKING:
     from ari_sfm.records import Interface
@@ -125,25 +125,14 @@ class AriJacobians(NamedTuple):
     J_distance: np.ndarray  # (N, 2) d uv / d distance_mm (zeros in air)
 
 
-@overload
 def ari_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
                 index: float, medium_index: float = 1.0, distance_mm: float | None = None,
-                jacobians: Literal[True] = True, n_params: int = NUM_PARAMS) -> AriJacobians: ...
-@overload
-def ari_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
-                index: float, medium_index: float = 1.0, distance_mm: float | None = None,
-                *, jacobians: Literal[False], n_params: int = NUM_PARAMS) -> Projection: ...
-@overload
-def ari_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
-                index: float, medium_index: float = 1.0, distance_mm: float | None = None,
-                jacobians: bool = True, n_params: int = NUM_PARAMS) -> AriJacobians | Projection: ...
-def ari_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
-                index: float, medium_index: float = 1.0, distance_mm: float | None = None,
-                jacobians: bool = True, n_params: int = NUM_PARAMS) -> AriJacobians | Projection:
-    """The ARI projection of camera-frame points: the one implementation.
+                n_params: int = NUM_PARAMS) -> AriJacobians:
+    """The ARI projection of camera-frame points with its Jacobians: the one implementation.
 
-    Used by :class:`AriModel` and by the numpy bundle adjustment (all corners of a camera in one call). The
-    window's numbers are checked by the model (:func:`check_window`), not here.
+    Used by :class:`AriModel` and by the numpy bundle adjustment (all corners of a camera in one call);
+    :func:`ari_pixels` gives the pixels alone. The window's numbers are checked by the model
+    (:func:`check_window`), not here.
 
     Args:
         X: camera-frame points (m, 3), mm.
@@ -154,28 +143,51 @@ def ari_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thick
         index: glass index n.
         medium_index: index n_m of the medium behind the window.
         distance_mm: near-face distance h (mm); needed with a medium behind, unused in air.
-        jacobians: compute the Jacobians.
         n_params: number of leading ``params`` columns kept in ``J_params``.
 
     Returns:
-        An :class:`AriJacobians`; without ``jacobians`` a :class:`~ari_sfm.models.pinhole.Projection`
-            (only ``uv`` set, the rest None).
+        An :class:`AriJacobians`.
 
     Raises:
         ValueError: ``medium_index != 1`` without ``distance_mm``, or ``normal_cam`` zero or not finite.
     """
+    return AriJacobians(*_ari_batch(X, params, normal_cam, thickness_mm, index, medium_index, distance_mm, True,
+                                    n_params))
+
+
+def ari_pixels(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
+               index: float, medium_index: float = 1.0, distance_mm: float | None = None) -> np.ndarray:
+    """The ARI projection of camera-frame points, the pixels alone (:func:`ari_project`'s arithmetic).
+
+    Args:
+        X: camera-frame points (m, 3), mm.
+        params: intrinsics (9,).
+        normal_cam: window normal in the camera frame, any non-zero vector.
+        thickness_mm: one plate thickness for all points, or (m,) one per point.
+        index: glass index n.
+        medium_index: index n_m of the medium behind the window.
+        distance_mm: near-face distance h (mm); needed with a medium behind, unused in air.
+
+    Returns:
+        Pixels (m, 2).
+    """
+    return _ari_batch(X, params, normal_cam, thickness_mm, index, medium_index, distance_mm, False, NUM_PARAMS)[0]
+
+
+def _ari_batch(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
+               index: float, medium_index: float, distance_mm: float | None, jacobians: bool,
+               n_params: int) -> tuple[np.ndarray, ...]:
+    """The compiled batch (:func:`ari_sfm.models.kernels.ari_batch`): pixels and, with ``jacobians``, the
+    Jacobians (zeros without)."""
     if medium_index != 1.0 and distance_mm is None:
         raise ValueError("distance_mm is required when a medium (medium_index != 1) is behind the window")
     nc, dn_dv = unit_normal_and_projector(normal_cam)
     h = 0.0 if distance_mm is None else float(distance_mm)  # unused in air (b = 0, a = -delta)
     X = np.ascontiguousarray(X, dtype=np.float64).reshape(-1, 3)
     d = np.ascontiguousarray(np.broadcast_to(np.asarray(thickness_mm, dtype=np.float64), (len(X),)))
-    uv, J_point, J_normal, J_params, J_thickness, J_distance = kernels.ari_batch(
+    return tuple(kernels.ari_batch(
         X, np.array(params, dtype=np.float64), nc, np.ascontiguousarray(dn_dv), d, float(index), float(medium_index), h,
-        int(n_params), bool(jacobians))
-    if not jacobians:
-        return Projection(uv)
-    return AriJacobians(uv, J_point, J_normal, J_params, J_thickness, J_distance)
+        int(n_params), bool(jacobians)))
 
 
 class AriModel:

@@ -45,13 +45,13 @@ time, no temporaries); the functions here are their checked Python entry points.
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Literal, NamedTuple, overload
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from . import kernels
 from .ari import check_window, unit_normal_and_projector
-from .pinhole import NUM_PARAMS, PinholeModel, Projection, as_points
+from .pinhole import NUM_PARAMS, PinholeModel, as_points
 
 if TYPE_CHECKING:
     from ari_sfm.records import Interface
@@ -157,25 +157,13 @@ def _points(X: np.ndarray) -> np.ndarray:
     return X
 
 
-@overload
 def exact_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
-                  index: float, medium_index: float, distance_mm: float, jacobians: Literal[True] = True,
-                  n_params: int = NUM_PARAMS) -> ExactJacobians: ...
-@overload
-def exact_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
-                  index: float, medium_index: float, distance_mm: float, *, jacobians: Literal[False],
-                  n_params: int = NUM_PARAMS) -> Projection: ...
-@overload
-def exact_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
-                  index: float, medium_index: float, distance_mm: float, jacobians: bool = True,
-                  n_params: int = NUM_PARAMS) -> ExactJacobians | Projection: ...
-def exact_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
-                  index: float, medium_index: float, distance_mm: float, jacobians: bool = True,
-                  n_params: int = NUM_PARAMS) -> ExactJacobians | Projection:
-    """The exact projection of camera-frame points: the one implementation.
+                  index: float, medium_index: float, distance_mm: float,
+                  n_params: int = NUM_PARAMS) -> ExactJacobians:
+    """The exact projection of camera-frame points with its Jacobians: the one implementation.
 
     It runs the compiled :func:`ari_sfm.models.kernels.exact_point` and is used by :class:`ExactModel` and by the
-    numpy bundle adjustment (all corners of a camera in one call).
+    numpy bundle adjustment (all corners of a camera in one call); :func:`exact_pixels` gives the pixels alone.
 
     Args:
         X: camera-frame points (m, 3), mm.
@@ -186,17 +174,47 @@ def exact_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thi
         index: glass index n.
         medium_index: index n_m of the medium behind the window.
         distance_mm: near-face distance h > 0 (mm).
-        jacobians: compute the Jacobians.
         n_params: number of leading ``params`` columns kept in ``J_params``.
 
     Returns:
-        An :class:`ExactJacobians` (NaN pixels for points not beyond the far face); without ``jacobians``
-            a :class:`~ari_sfm.models.pinhole.Projection` (only ``uv`` set).
+        An :class:`ExactJacobians` (NaN pixels for points not beyond the far face).
 
     Raises:
         ValueError: ``distance_mm`` is None.
         ConvergenceError: a point's Newton iteration did not converge.
     """
+    return ExactJacobians(*_exact_batch(X, params, normal_cam, thickness_mm, index, medium_index, distance_mm, True,
+                                        n_params))
+
+
+def exact_pixels(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
+                 index: float, medium_index: float, distance_mm: float) -> np.ndarray:
+    """The exact projection of camera-frame points, the pixels alone (:func:`exact_project`'s arithmetic).
+
+    Args:
+        X: camera-frame points (m, 3), mm.
+        params: intrinsics (9,).
+        normal_cam: window normal in the camera frame, any non-zero vector.
+        thickness_mm: one plate thickness for all points, or (m,) one per point.
+        index: glass index n.
+        medium_index: index n_m of the medium behind the window.
+        distance_mm: near-face distance h > 0 (mm).
+
+    Returns:
+        Pixels (m, 2) (NaN for points not beyond the far face).
+
+    Raises:
+        ValueError: ``distance_mm`` is None.
+        ConvergenceError: a point's Newton iteration did not converge.
+    """
+    return _exact_batch(X, params, normal_cam, thickness_mm, index, medium_index, distance_mm, False, NUM_PARAMS)[0]
+
+
+def _exact_batch(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thickness_mm: float | np.ndarray,
+                 index: float, medium_index: float, distance_mm: float, jacobians: bool,
+                 n_params: int) -> tuple[np.ndarray, ...]:
+    """The compiled batch (:func:`ari_sfm.models.kernels.exact_batch`), its Newton failures checked: pixels
+    and, with ``jacobians``, the Jacobians."""
     if distance_mm is None:
         raise ValueError("ExactModel needs distance_mm (camera centre to near face, > 0)")
     nc, dn_dv = unit_normal_and_projector(normal_cam)
@@ -206,9 +224,7 @@ def exact_project(X: np.ndarray, params: np.ndarray, normal_cam: np.ndarray, thi
         X, np.array(params, dtype=np.float64), nc, dn_dv, h, _thickness_array(thickness_mm, len(X)),
         float(index), float(medium_index), int(n_params), bool(jacobians))
     _check_newton(status, failures, NEWTON_MAX_ITER, h, thickness_mm, index, medium_index)
-    if not jacobians:
-        return Projection(uv)
-    return ExactJacobians(uv, J_point, J_normal, J_params, J_thickness, J_distance)
+    return uv, J_point, J_normal, J_params, J_thickness, J_distance
 
 
 class ExactModel:
@@ -271,8 +287,8 @@ class ExactModel:
 
     def project(self, X_cam: np.ndarray) -> np.ndarray:
         """Pixels (N, 2) of camera-frame points (N, 3); NaN for points not beyond the far face."""
-        return exact_project(as_points(X_cam, 3), self.pinhole.params, self.normal_cam, self.thickness_mm,
-                             self.index, self.medium_index, self.distance_mm, jacobians=False).uv
+        return exact_pixels(as_points(X_cam, 3), self.pinhole.params, self.normal_cam, self.thickness_mm,
+                            self.index, self.medium_index, self.distance_mm)
 
     def project_with_jacobians(self, X_cam: np.ndarray) -> ExactJacobians:
         """Pixels and analytic Jacobians (implicit function theorem; see the module docstring).

@@ -77,19 +77,6 @@ def _f64(a: np.ndarray, dim: int) -> np.ndarray:
     return a.reshape(-1, dim)
 
 
-class Projection(NamedTuple):
-    """Pixels without derivatives: a window model's projection asked for no Jacobians (the fields of
-    :class:`~ari_sfm.models.ari.AriJacobians` and :class:`~ari_sfm.models.exact.ExactJacobians`, the
-    Jacobians None)."""
-
-    uv: np.ndarray  # (N, 2) pixels
-    J_point: None = None
-    J_normal: None = None
-    J_params: None = None
-    J_thickness: None = None
-    J_distance: None = None
-
-
 class PinholeJacobians(NamedTuple):
     """Pixels and their derivatives for N points (:func:`project_points`)."""
 
