@@ -25,6 +25,7 @@ from ari_sfm.colmap import adapter
 from ari_sfm.geometry import Pose
 
 from .problem import State
+from .steps import BlockStep
 
 log = logging.getLogger(__name__)
 
@@ -171,7 +172,7 @@ def first_block(model: adapter.ColmapModel, state: State, mount: str) -> Block |
 
 
 def slid_start(model: adapter.ColmapModel, state: State, first: Block, make_solver,
-                new_frames: int | None = None) -> tuple[State, list[dict]]:
+               new_frames: int | None = None) -> tuple[State, list[BlockStep]]:
     """A long chain's start by sliding blocks: ``first`` is refined from ``state`` (the input's start;
     ``make_solver(block_model, None)``), then again and again the ``new_frames`` (SLIDE_NEW_FRAMES)
     frames that see the most refined points, aligned to them (:func:`aligned`), with their points and
@@ -185,19 +186,19 @@ def slid_start(model: adapter.ColmapModel, state: State, first: Block, make_solv
     seen = np.zeros((F, P), bool)
     seen[model.image_frame[model.obs_image], model.obs_point] = True
     done, refined = np.zeros(F, bool), np.zeros(P, bool)
-    ref, block, held, blocks, floor = state, first, None, [], None
+    ref, block, held, floor = state, first, None, None
+    blocks: list[BlockStep] = []
     while True:
         res = make_solver(block.model, held).run(block_state(state, block), BLOCK_ITERATIONS,
                                                  relative_tolerance=BLOCK_TOLERANCE)
         per_observation = res.cost / len(block.model.obs_point)
-        blocks.append({"frames": len(block.frames), "held": 0 if held is None else len(held),
-                       "points3D": len(block.points), "cost": res.cost, "iterations": res.iterations,
-                       "linearizations": res.linearizations})
+        blocks.append(BlockStep(len(block.frames), 0 if held is None else len(held), len(block.points), res.cost,
+                                res.iterations, res.linearizations))
         log.info("refine-colmap: block of %d frames (%d held), %d points3D: cost %.6g after %d iterations",
-                 len(block.frames), blocks[-1]["held"], len(block.points), res.cost, res.iterations)
+                 len(block.frames), blocks[-1].held, len(block.points), res.cost, res.iterations)
         if floor is not None and per_observation > SLIDE_RETRY_COST * floor and step > 1:
             step = max(1, step // 2)  # too far a step along the chain for the aligned start: a shorter one
-            blocks[-1]["dropped"] = True
+            blocks[-1] = replace(blocks[-1], dropped=True)
             log.info("refine-colmap: that block did not converge to the noise: again with %d new frames", step)
         else:
             floor = per_observation if floor is None else floor
