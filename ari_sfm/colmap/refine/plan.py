@@ -136,8 +136,14 @@ class Setup:
 
 
 def estimates_distance(interface: Interface) -> bool:
-    """Whether the window's distance is estimated: under water, unless a declared plane holds it (in air it is
-    unobservable)."""
+    """Whether the window's distance is estimated: under water, unless a declared plane holds it.
+
+    Args:
+        interface: the plate (in air the distance is unobservable) and its declared plane.
+
+    Returns:
+        True when it is estimated.
+    """
     plane = interface.plane
     return interface.medium_index != 1.0 and not (plane is not None and plane.sigma_mm == 0)
 
