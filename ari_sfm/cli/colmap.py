@@ -69,7 +69,7 @@ def sfm_cmd(images: Path, window: Path, out: Path, matcher: str, overlap: int, f
             threads: int) -> None:
     """Structure from motion behind a flat window: COLMAP's SIFT, matching and incremental mapping (CPU),
     then refine-colmap with the exact refractive model, in one command."""
-    from ..colmap.sfm import SfmOptions, run_sfm
+    from ..colmap.sfm import Matcher, SfmOptions, run_sfm
 
     check_output_folder(out)
     check_number("--overlap", overlap, minimum=1)
@@ -80,7 +80,7 @@ def sfm_cmd(images: Path, window: Path, out: Path, matcher: str, overlap: int, f
     if baseline is not None:
         check_number("--baseline", baseline[2], minimum=0.0, strict_minimum=True)
     result = run_sfm(images, window, out, SfmOptions(
-        matcher=matcher, overlap=overlap, max_features=max_features, focal_px=focal_px, baseline=baseline,
+        matcher=Matcher(matcher), overlap=overlap, max_features=max_features, focal_px=focal_px, baseline=baseline,
         huber_px=huber_px, max_iterations=max_iterations, num_threads=threads, progress=True))
     report = result.refine.report
     rms = (f"; reprojection RMS {report.before.rms_px:.3f} px (COLMAP pinhole) -> "
