@@ -170,6 +170,7 @@ def import_colmap_fork_cmd(model_dir: Path, out: Path, units_mm: float) -> None:
 def refine_colmap_cmd(model_dir: Path, window: Path, out: Path, huber_px: float, max_iterations: int) -> None:
     """Refine the COLMAP model in MODEL_DIR (made behind a flat window) with the exact refractive model."""
     from ..colmap.refine import refine_colmap, write_refined
+    from ..colmap.refine.options import RefineColmapOptions
     from ..colmap.refine.window import load_window
 
     check_number("--huber-px", huber_px, 0.0, strict_minimum=True)
@@ -179,9 +180,9 @@ def refine_colmap_cmd(model_dir: Path, window: Path, out: Path, huber_px: float,
         raise AriSfmError(out, "-o/--out: is MODEL_DIR: refine-colmap does not overwrite its input model "
                                "(write to another folder)")
     spec = load_window(window)
-    result = refine_colmap(model_dir, spec.interface, mount=spec.mount, units_mm=spec.units_mm,
-                           scale_bar=spec.scale_bar, huber_px=huber_px, max_iterations=max_iterations, progress=True,
-                           plane_path=window, window_path=window)
+    options = RefineColmapOptions(mount=spec.mount, units_mm=spec.units_mm, scale_bar=spec.scale_bar,
+                                  huber_px=huber_px, max_iterations=max_iterations)
+    result = refine_colmap(model_dir, spec.interface, options, progress=True, plane_path=window, window_path=window)
     write_refined(result, out)
     r = result.report
     u = r.uncertainty
