@@ -35,6 +35,7 @@ import math
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -789,7 +790,7 @@ def disparity_json(result: SelfCalResult) -> dict[str, Any]:
             "rounds": [r.disparity.to_json() for r in result.rounds]}
 
 
-def write_self_calibration(result: SelfCalResult, out_dir) -> None:
+def write_self_calibration(result: SelfCalResult, out_dir: str | Path) -> None:
     """OUT/calibration.json and OUT/disparity.json, both or neither.
 
     Written in a temporary folder inside OUT, then renamed into place: a full disk or an interrupt leaves
@@ -799,8 +800,6 @@ def write_self_calibration(result: SelfCalResult, out_dir) -> None:
         result: the self-calibration.
         out_dir: OUT.
     """
-    from pathlib import Path
-
     from ..io import calibration_to_json, write_files_atomic
     from ..io.atomic import format_json, to_jsonable
 
@@ -830,7 +829,7 @@ def pick_frames(frames: Iterable[int], count: int | None) -> list[int]:
     return [frames[int(round(k))] for k in np.linspace(0, len(frames) - 1, count)]
 
 
-def check_not_input(out, inputs: Sequence[Any]) -> None:
+def check_not_input(out: str | Path, inputs: Sequence[Any]) -> None:
     """-o must neither be nor hold an input (its calibration.json would overwrite the start calibration).
 
     Args:
@@ -838,7 +837,6 @@ def check_not_input(out, inputs: Sequence[Any]) -> None:
         inputs: the input paths (None entries ignored).
     """
     import os
-    from pathlib import Path
 
     target = Path(os.path.realpath(out))
     for p in inputs:
@@ -849,8 +847,9 @@ def check_not_input(out, inputs: Sequence[Any]) -> None:
             raise AriSfmError(out, f"-o/--out would hold an input ({p}): write the self-calibration elsewhere")
 
 
-def self_calibrate_dataset(dataset_path, calibration_path, out, options: SelfCalOptions = SelfCalOptions(),
-                           detections_path=None, frames: int | None = 10,
+def self_calibrate_dataset(dataset_path: str | Path, calibration_path: str | Path, out: str | Path,
+                           options: SelfCalOptions = SelfCalOptions(), detections_path: str | Path | None = None,
+                           frames: int | None = 10,
                            depth_range_mm: tuple[float, float] | None = None, workers: int = 0,
                            scheduler: str | None = None, progress: bool = False) -> SelfCalResult:
     """``ari-sfm self-calibrate``: a particle experiment and its rig's calibration -> OUT.
@@ -875,7 +874,6 @@ def self_calibrate_dataset(dataset_path, calibration_path, out, options: SelfCal
         The self-calibration (its report with the inputs).
     """
     import os
-    from pathlib import Path
 
     from ..io.particles import read_detections
     from .engine import dask_client
