@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -246,7 +246,7 @@ class Reached:
     restarts: tuple[RestartStep, ...] = ()
     collapsed: bool = False  # the distance ran toward 0 (the restarts ran)
     sigmas: RefineUncertainty | None = None
-    counted: tuple[int, int] = field(default=(0, 0))  # (iterations, linearizations) of the solves counted so far
+    counted: tuple[int, int] = (0, 0)  # (iterations, linearizations) of the solves counted so far
 
     @property
     def state(self) -> State:
