@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import AriSfmError
 from ..geometry import angle_between_deg
-from ..init.exact_start import check_in_front, exact_start, hold_normals, window_cameras
+from ..init.exact_start import check_in_front, exact_start, hold_normals, planes_separate
 from ..models.registry import model_spec
 from ..records import Dataset, Interface, Observation, WindowPlane
 from ..results import OptimizerReport, OptimizerRun, OutlierReport, StageCamera, StageRecord, StageWindow
@@ -801,22 +801,6 @@ def _start_state(solver: _Solver, plan: tuple[Stage, ...], start: Start):
     return rig, solver, state
 
 
-def _plane_separates(solver: _Solver, state) -> bool:
-    """Each declared plane placed by its frame's pose in ``state`` lies between its cameras and their corners."""
-    from ..factors.window_plane import plane_in_world
-    from ..init.window_start import not_beyond
-
-    ds = solver.dataset
-    for w, (window, plane) in enumerate(zip(ds.window_list(), solver.planes)):
-        if plane is None:
-            continue
-        n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
-        if not_beyond(state.with_window(w, n_w, h_w), _corners(ds), ds.target, window.interface.thickness_mm, w,
-                      window_cameras(ds, w)) is not None:
-            return False
-    return True
-
-
 def _eased(solver: _Solver) -> _Solver:
     """``solver`` with every held part of a declared plane a prior of EASED_PLANE_DEG / EASED_PLANE_MM instead."""
     def ease(interface: Interface) -> Interface:
@@ -858,7 +842,8 @@ def _run_stages(solver: _Solver, rig: RigInit, state: RigState, plan: tuple[Stag
     already separates cameras and corners; with eased planes, each Snell stage first eased in)."""
     results: list[StageResult] = []
     for stage in plan:
-        if stage.skippable and not start.free_window_first and _plane_separates(solver, state):
+        if stage.skippable and not start.free_window_first and planes_separate(solver.dataset, solver.planes,
+                                                                               state):
             log.info("%s stage skipped: the declared plane at the ari poses separates cameras and corners", stage.label)
             continue
         if start.eased_planes and stage.snell and stage.with_plane:

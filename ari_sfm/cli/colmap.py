@@ -69,7 +69,7 @@ def sfm_cmd(images: Path, window: Path, out: Path, matcher: str, overlap: int, f
             threads: int) -> None:
     """Structure from motion behind a flat window: COLMAP's SIFT, matching and incremental mapping (CPU),
     then refine-colmap with the exact refractive model, in one command."""
-    from ..colmap.sfm import SfmOptions, run_sfm
+    from ..colmap.sfm import Matcher, SfmOptions, run_sfm
 
     check_output_folder(out)
     check_number("--overlap", overlap, minimum=1)
@@ -80,7 +80,7 @@ def sfm_cmd(images: Path, window: Path, out: Path, matcher: str, overlap: int, f
     if baseline is not None:
         check_number("--baseline", baseline[2], minimum=0.0, strict_minimum=True)
     result = run_sfm(images, window, out, SfmOptions(
-        matcher=matcher, overlap=overlap, max_features=max_features, focal_px=focal_px, baseline=baseline,
+        matcher=Matcher(matcher), overlap=overlap, max_features=max_features, focal_px=focal_px, baseline=baseline,
         huber_px=huber_px, max_iterations=max_iterations, num_threads=threads, progress=True))
     report = result.refine.report
     rms = (f"; reprojection RMS {report.before.rms_px:.3f} px (COLMAP pinhole) -> "
@@ -170,6 +170,7 @@ def import_colmap_fork_cmd(model_dir: Path, out: Path, units_mm: float) -> None:
 def refine_colmap_cmd(model_dir: Path, window: Path, out: Path, huber_px: float, max_iterations: int) -> None:
     """Refine the COLMAP model in MODEL_DIR (made behind a flat window) with the exact refractive model."""
     from ..colmap.refine import refine_colmap, write_refined
+    from ..colmap.refine.options import RefineColmapOptions
     from ..colmap.refine.window import load_window
 
     check_number("--huber-px", huber_px, 0.0, strict_minimum=True)
@@ -179,9 +180,9 @@ def refine_colmap_cmd(model_dir: Path, window: Path, out: Path, huber_px: float,
         raise AriSfmError(out, "-o/--out: is MODEL_DIR: refine-colmap does not overwrite its input model "
                                "(write to another folder)")
     spec = load_window(window)
-    result = refine_colmap(model_dir, spec.interface, mount=spec.mount, units_mm=spec.units_mm,
-                           scale_bar=spec.scale_bar, huber_px=huber_px, max_iterations=max_iterations, progress=True,
-                           plane_path=window, window_path=window)
+    options = RefineColmapOptions(mount=spec.mount, units_mm=spec.units_mm, scale_bar=spec.scale_bar,
+                                  huber_px=huber_px, max_iterations=max_iterations)
+    result = refine_colmap(model_dir, spec.interface, options, progress=True, plane_path=window, window_path=window)
     write_refined(result, out)
     r = result.report
     u = r.uncertainty

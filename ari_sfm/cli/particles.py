@@ -184,7 +184,8 @@ def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: 
                        intrinsics: str, refine_intrinsics: bool, refine_window: bool, backend: str,
                        depth_range: tuple[float, float] | None, workers: int, scheduler: str | None) -> None:
     """Volume self-calibration through the window: correct a drifted calibration from particle images."""
-    from ..particles.selfcal import SelfCalOptions, check_not_input, self_calibrate_dataset
+    from ..colmap.refine.options import Backend
+    from ..particles.selfcal import Intrinsics, SelfCalOptions, check_not_input, self_calibrate_dataset
 
     check_output_folder(out)
     check_not_input(out, [calibration, dataset, detections])
@@ -203,8 +204,9 @@ def self_calibrate_cmd(dataset: Path, calibration: Path, out: Path, detections: 
     options = SelfCalOptions(tolerance_px=tolerance_px, max_tolerance_px=max_tolerance_px,
                              final_tolerance_px=final_tolerance_px, min_cameras=min_cameras,
                              cells=(cells[0], cells[1], cells[2]), peak_radius_px=peak_radius_px, max_rounds=max_rounds,
-                             coarse_frames=coarse_frames, intrinsics="free" if refine_intrinsics else intrinsics,
-                             backend=backend)
+                             coarse_frames=coarse_frames,
+                             intrinsics=Intrinsics.FREE if refine_intrinsics else Intrinsics(intrinsics),
+                             backend=Backend(backend))
     if refine_window:
         click.echo("note: --refine-window is no longer needed: the window is held in the world and every camera "
                    "moves, so the window's pose relative to the cameras is always estimated", err=True)

@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Any
 
 from ..errors import AriSfmError
 from .refine import settings as REFINE
+from .refine.options import Choice
 
 if TYPE_CHECKING:
     from .refine.refine import RefineResult
@@ -40,11 +41,33 @@ EXHAUSTIVE_MAX_IMAGES = 200  # matcher "auto": exhaustive up to this many images
 SFM_FORMAT = "ari-sfm-sfm/1"
 
 
+class Matcher(Choice):
+    """The image pairs COLMAP matches: all of them, or each image with its successors in name order (long
+    surveys, no vocabulary tree); auto: exhaustive up to EXHAUSTIVE_MAX_IMAGES images, sequential beyond."""
+
+    AUTO = "auto"
+    EXHAUSTIVE = "exhaustive"
+    SEQUENTIAL = "sequential"
+
+    def resolved(self, images: int) -> Matcher:
+        """The matcher run on ``images`` images (auto resolved).
+
+        Args:
+            images: how many images.
+
+        Returns:
+            EXHAUSTIVE or SEQUENTIAL.
+        """
+        if self != Matcher.AUTO:
+            return self
+        return Matcher.EXHAUSTIVE if images <= EXHAUSTIVE_MAX_IMAGES else Matcher.SEQUENTIAL
+
+
 @dataclass(frozen=True)
 class SfmOptions:
-    """Options of :func:`run_sfm`, each with its default."""
+    """Options of :func:`run_sfm`, each with its default (a string mode is converted: ``matcher="auto"``)."""
 
-    matcher: str = "auto"  # exhaustive | sequential | auto (exhaustive up to EXHAUSTIVE_MAX_IMAGES images)
+    matcher: Matcher = Matcher.AUTO  # exhaustive | sequential | auto (exhaustive up to EXHAUSTIVE_MAX_IMAGES images)
     overlap: int = 10  # sequential matching: each image with this many successors (name order)
     max_features: int = 4000  # SIFT features per image
     focal_px: float | None = None  # the camera's focal length prior (px); None: COLMAP's (1.2 x the larger side)
@@ -54,6 +77,10 @@ class SfmOptions:
     num_threads: int = -1  # COLMAP's threads; -1: all cores
     seed: int = 0  # COLMAP's mapper random seed
     progress: bool = False  # a progress bar while the mapper registers images
+
+    def __post_init__(self) -> None:
+        """The matcher's string converted; one that names no matcher is one line of ValueError."""
+        object.__setattr__(self, "matcher", Matcher.parse(self.matcher, "matcher"))
 
 
 @dataclass(frozen=True)
@@ -86,15 +113,29 @@ def list_images(folder: Path) -> list[Path]:
 
 
 def check_sfm_paths(images: Path, out: Path) -> None:
-    """-o must not be the images folder nor inside it (COLMAP would find our files among the images)."""
+    """-o must not be the images folder nor inside it (COLMAP would find our files among the images).
+
+    Args:
+        images: the images folder.
+        out: the output folder.
+    """
     img, o = Path(os.path.realpath(images)), Path(os.path.realpath(out))
     if o == img or img in o.parents:
         raise AriSfmError(out, "-o/--out: is (inside) the images folder: choose a folder outside it")
 
 
 def check_images(files: list[Path]) -> tuple[int, int]:
-    """Every image decodes and has the first one's size (one PINHOLE camera for all, as COLMAP is run here):
-    else AriSfmError naming the first bad image (and how many more). Returns (width, height)."""
+    """Every image decodes and has the first one's size (one PINHOLE camera for all, as COLMAP is run here).
+
+    Args:
+        files: the images.
+
+    Returns:
+        (width, height).
+
+    Raises:
+        AriSfmError: naming the first bad image (and how many more).
+    """
     from PIL import Image, UnidentifiedImageError
 
     size: tuple[int, int] | None = None
@@ -130,7 +171,12 @@ MAX_THREADS = 1024
 
 
 def check_sfm_options(options: SfmOptions, image_size: tuple[int, int] | None = None) -> None:
-    """The options' values, before any COLMAP work (COLMAP itself aborts on some, e.g. threads < -1)."""
+    """The options' values, before any COLMAP work (COLMAP itself aborts on some, e.g. threads < -1).
+
+    Args:
+        options: the options.
+        image_size: the images' (width, height), once known: the focal prior is checked against it.
+    """
     if options.num_threads != -1 and not 1 <= options.num_threads <= MAX_THREADS:
         raise AriSfmError("--threads", f"must be -1 (all cores) or 1..{MAX_THREADS} (got {options.num_threads})")
     for option, value, low in (("--overlap", options.overlap, 1), ("--max-features", options.max_features, 1),
@@ -146,7 +192,20 @@ def check_sfm_options(options: SfmOptions, image_size: tuple[int, int] | None = 
 
 
 def run_sfm(images: str | Path, window: str | Path, out: str | Path, options: SfmOptions = SfmOptions()) -> SfmResult:
-    """Structure from motion behind a flat window: COLMAP's SfM, then refine-colmap; see the module docstring."""
+    """Structure from motion behind a flat window: COLMAP's SfM, then refine-colmap; see the module docstring.
+
+    Everything is checked before any COLMAP work (the options, the paths, the images, WINDOW.yaml and the
+    scale); then the steps (SFM_STEPS: :func:`colmap_step`, :func:`refine_step`) run with ``out`` held.
+
+    Args:
+        images: the folder of images (one camera, one size).
+        window: WINDOW.yaml (the plate, the mount, the scale unless ``options.baseline`` gives it).
+        out: the output folder.
+        options: the options.
+
+    Returns:
+        The counts, the output paths and refine-colmap's result.
+    """
     from ..io import exclusive_folder
     from .refine.window import load_window
 
@@ -165,11 +224,7 @@ def run_sfm(images: str | Path, window: str | Path, out: str | Path, options: Sf
         missing = [n for n in options.baseline[:2] if n not in names]
         if missing:
             raise AriSfmError(images, f"--baseline: no image {missing[0]} in this folder")
-    matcher = options.matcher
-    if matcher == "auto":
-        matcher = "exhaustive" if len(files) <= EXHAUSTIVE_MAX_IMAGES else "sequential"
-    if matcher not in ("exhaustive", "sequential"):
-        raise AriSfmError(None, f"--matcher must be exhaustive, sequential or auto (got {options.matcher!r})")
+    matcher = options.matcher.resolved(len(files))
     for name in ("colmap.partial", "colmap", "refined"):
         if (out / name).exists() and not (out / name).is_dir():
             raise AriSfmError(out / name, "is a file where sfm writes a folder: move it away or choose another -o")
@@ -178,23 +233,59 @@ def run_sfm(images: str | Path, window: str | Path, out: str | Path, options: Sf
         return _run_sfm(images, window, out, options, files, spec, matcher, held.created)
 
 
-def _run_sfm(images: Path, window: Path, out: Path, options: SfmOptions, files: list[Path], spec: Any, matcher: str,
-             created: bool) -> SfmResult:
-    """:func:`run_sfm` once its inputs are checked and ``out`` is held."""
-    from ..io import write_json_atomic
-    from .adapter import read_colmap
-    from .refine import refine_colmap, write_refined
+class SfmStep(Choice):
+    """The steps of ``ari-sfm sfm``, in order."""
 
-    partial, final = out / "colmap.partial", out / "colmap"
-    if partial.exists():  # a killed run's (this folder is held: no other run is using it)
-        shutil.rmtree(partial)
-    t0 = time.perf_counter()
+    COLMAP = "colmap"  # COLMAP's SfM in a child process (:func:`colmap_step`)
+    REFINE = "refine"  # refine-colmap on its model (:func:`refine_step`)
+
+
+SFM_STEPS = (SfmStep.COLMAP, SfmStep.REFINE)
+
+
+@dataclass(frozen=True)
+class ColmapStep:
+    """What COLMAP's SfM left in ``partial``: its largest model, read, and how it went."""
+
+    reconstruction: Any  # pycolmap.Reconstruction: the model with the most registered images (then points)
+    model_dir: Path  # its folder (``partial/sparse/<n>``)
+    registered: int
+    unregistered: tuple[str, ...]  # the images COLMAP did not register (names)
+    times: dict[str, float]  # s per COLMAP step: features, matching, mapping
+
+
+@dataclass(frozen=True)
+class RefineStep:
+    """refine-colmap's result on COLMAP's model and its time."""
+
+    result: RefineResult
+    time_s: float
+
+
+def colmap_step(images: Path, partial: Path, options: SfmOptions, matcher: Matcher, files: list[Path]) -> ColmapStep:
+    """COLMAP's SfM on ``images`` in a child process (:func:`_colmap_in_child`), its models in ``partial``.
+
+    Args:
+        images: the images folder.
+        partial: the work folder (``OUT/colmap.partial``).
+        options: the options (features, matching, threads, seed, focal prior, progress).
+        matcher: the matcher resolved (exhaustive or sequential).
+        files: the images COLMAP will read.
+
+    Returns:
+        The largest model and how the steps went.
+
+    Raises:
+        AriSfmError: COLMAP registered fewer than MIN_IMAGES images, or stopped (one line).
+    """
+    from .adapter import read_colmap
+
     times: dict[str, float] = {}
     bar = None  # progress: one bar for the steps, then the images the mapper registers
     what = {"features": f"SIFT features of {len(files)} images (CPU)", "matching": f"{matcher} matching",
             "mapping": "incremental mapping"}
     step: str | None = None  # the step running, since step_t0
-    step_t0 = t0
+    step_t0 = time.perf_counter()
 
     def on_step(name: str) -> None:
         nonlocal bar, step, step_t0
@@ -214,57 +305,96 @@ def _run_sfm(images: Path, window: Path, out: Path, options: SfmOptions, files: 
 
     focal_hint = "" if options.focal_px is None else f", or --focal-px {options.focal_px:g} is not their focal length"
     try:
-        try:
-            _colmap_in_child(images, partial, options, matcher, on_step,
-                             (lambda: bar.update(1)) if bar is not None else None)
-        except _NothingReconstructed:
-            raise AriSfmError(images, f"COLMAP registered none of the {len(files)} images (at least {MIN_IMAGES} "
-                                      f"needed): the images need more overlap or texture{focal_hint}") from None
-        finally:
-            if bar is not None:
-                bar.close()
-        times["mapping"] = time.perf_counter() - step_t0
-        model_dirs = sorted(p for p in (partial / "sparse").iterdir() if p.is_dir())
-        models = [(read_colmap(p), p) for p in model_dirs]
-        rec, model_dir = max(models, key=lambda m: (m[0].num_reg_images(), m[0].num_points3D()))
-        registered = rec.num_reg_images()
-        names = {im.name for im in rec.images.values() if _registered(im)}
-        unregistered = [p.name for p in files if p.name not in names]
-        if registered < MIN_IMAGES:
-            raise AriSfmError(images, f"COLMAP registered {registered} of {len(files)} images (at least {MIN_IMAGES} "
-                                      f"needed): the images need more overlap or texture{focal_hint}")
-        if unregistered:
-            log.warning("COLMAP did not register %d of the %d images: %s", len(unregistered), len(files),
-                        ", ".join(unregistered))
-        t_refine = time.perf_counter()
-        log.info("refine-colmap: %d images, %d points, the exact refractive model", registered, rec.num_points3D())
-        result = refine_colmap(rec, spec.interface, mount=spec.mount, units_mm=spec.units_mm, scale_bar=spec.scale_bar,
-                               baseline=options.baseline,
-                               huber_px=options.huber_px, max_iterations=options.max_iterations,
-                               progress=options.progress, path=images, plane_path=window)
-        times["refine"] = time.perf_counter() - t_refine
+        _colmap_in_child(images, partial, options, matcher, on_step,
+                         (lambda: bar.update(1)) if bar is not None else None)
+    except _NothingReconstructed:
+        raise AriSfmError(images, f"COLMAP registered none of the {len(files)} images (at least {MIN_IMAGES} "
+                                  f"needed): the images need more overlap or texture{focal_hint}") from None
+    finally:
+        if bar is not None:
+            bar.close()
+    times["mapping"] = time.perf_counter() - step_t0
+    model_dirs = sorted(p for p in (partial / "sparse").iterdir() if p.is_dir())
+    models = [(read_colmap(p), p) for p in model_dirs]
+    rec, model_dir = max(models, key=lambda m: (m[0].num_reg_images(), m[0].num_points3D()))
+    registered = rec.num_reg_images()
+    names = {im.name for im in rec.images.values() if _registered(im)}
+    unregistered = [p.name for p in files if p.name not in names]
+    if registered < MIN_IMAGES:
+        raise AriSfmError(images, f"COLMAP registered {registered} of {len(files)} images (at least {MIN_IMAGES} "
+                                  f"needed): the images need more overlap or texture{focal_hint}")
+    if unregistered:
+        log.warning("COLMAP did not register %d of the %d images: %s", len(unregistered), len(files),
+                    ", ".join(unregistered))
+    return ColmapStep(rec, model_dir, registered, tuple(unregistered), times)
+
+
+def refine_step(colmap: ColmapStep, spec: Any, options: SfmOptions, images: Path, window: Path) -> RefineStep:
+    """refine-colmap on COLMAP's model with WINDOW.yaml's plate, mount and scale (or the baseline).
+
+    Args:
+        colmap: COLMAP's step.
+        spec: the parsed WINDOW.yaml (:class:`~ari_sfm.colmap.refine.window.WindowSpec`).
+        options: the options (baseline, Huber threshold, iterations, progress).
+        images: the images folder (named in errors about the model).
+        window: WINDOW.yaml (named in errors about the declared plane).
+
+    Returns:
+        The refinement and its time.
+    """
+    from .refine import refine_colmap
+    from .refine.options import RefineColmapOptions
+
+    t_refine = time.perf_counter()
+    rec = colmap.reconstruction
+    log.info("refine-colmap: %d images, %d points, the exact refractive model", colmap.registered, rec.num_points3D())
+    refine_options = RefineColmapOptions(mount=spec.mount, units_mm=spec.units_mm, scale_bar=spec.scale_bar,
+                                         baseline=options.baseline, huber_px=options.huber_px,
+                                         max_iterations=options.max_iterations)
+    result = refine_colmap(rec, spec.interface, refine_options, progress=options.progress, path=images,
+                           plane_path=window)
+    return RefineStep(result, time.perf_counter() - t_refine)
+
+
+def _run_sfm(images: Path, window: Path, out: Path, options: SfmOptions, files: list[Path], spec: Any,
+             matcher: Matcher, created: bool) -> SfmResult:
+    """:func:`run_sfm` once its inputs are checked and ``out`` is held: the steps (SFM_STEPS), then the outputs
+    (COLMAP's model renamed into place, refine-colmap's, sfm.json)."""
+    from ..io import write_json_atomic
+    from .refine import write_refined
+
+    partial, final = out / "colmap.partial", out / "colmap"
+    if partial.exists():  # a killed run's (this folder is held: no other run is using it)
+        shutil.rmtree(partial)
+    t0 = time.perf_counter()
+    try:
+        colmap = colmap_step(images, partial, options, matcher, files)
+        refined = refine_step(colmap, spec, options, images, window)
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
         raise
     if final.exists():
         shutil.rmtree(final)
     partial.rename(final)
-    colmap_model = final / model_dir.relative_to(partial)
-    refined = write_refined(result, out / "refined")
+    colmap_model = final / colmap.model_dir.relative_to(partial)
+    result = refined.result
+    refined_dir = write_refined(result, out / "refined")
     summary = out / "sfm.json"
+    rec = colmap.reconstruction
+    times = colmap.times | {"refine": refined.time_s}
     write_json_atomic(summary, {
         "format": SFM_FORMAT,
         "images": str(images.resolve()), "window": str(window.resolve()),
-        "matcher": matcher, "num_images": len(files), "registered": registered, "points3D": rec.num_points3D(),
-        "unregistered": unregistered,
+        "matcher": matcher.value, "num_images": len(files), "registered": colmap.registered,
+        "points3D": rec.num_points3D(), "unregistered": list(colmap.unregistered),
         "units_mm": result.report.units_mm, "scale": "units_mm" if spec.units_mm is not None else
         "scale_bar" if spec.scale_bar is not None else "baseline" if options.baseline is not None else None,
         "baseline": None if result.report.baseline is None else result.report.baseline.to_json(),
         "colmap_model": str(colmap_model.relative_to(out)), "refined": "refined",
         "time_s": {k: round(v, 3) for k, v in times.items()} | {"total": round(time.perf_counter() - t0, 3)},
     })
-    return SfmResult(len(files), registered, rec.num_points3D(), colmap_model, refined, summary, result,
-                     tuple(unregistered))
+    return SfmResult(len(files), colmap.registered, rec.num_points3D(), colmap_model, refined_dir, summary, result,
+                     colmap.unregistered)
 
 
 def _registered(image: Any) -> bool:
@@ -286,7 +416,7 @@ CHILD_CODE = "from ari_sfm.colmap.sfm import _child_main; _child_main()"
 STDERR_KEPT = 40  # the COLMAP child's last stderr lines kept for the error message
 
 
-def _colmap_in_child(images: Path, partial: Path, options: SfmOptions, matcher: str, on_step, on_image) -> None:
+def _colmap_in_child(images: Path, partial: Path, options: SfmOptions, matcher: Matcher, on_step, on_image) -> None:
     """COLMAP's steps (:func:`ari_sfm.colmap.adapter.structure_from_motion`) in a child process, its models in
     ``partial/sparse``: a native abort (COLMAP's CHECK on a full disk, SQLite failing) ends the child, not this
     command, and becomes one AriSfmError line. The child reports its steps and registered images on stdout."""
@@ -297,7 +427,7 @@ def _colmap_in_child(images: Path, partial: Path, options: SfmOptions, matcher: 
     import threading
 
     args = {"images": str(images), "work": str(partial), "focal_px": options.focal_px,
-            "max_features": options.max_features, "seed": options.seed, "matcher": matcher,
+            "max_features": options.max_features, "seed": options.seed, "matcher": matcher.value,
             "overlap": options.overlap, "num_threads": options.num_threads,
             "verbose": logging.getLogger("ari_sfm").isEnabledFor(logging.INFO)}
     cmd = [sys.executable, "-c", CHILD_CODE, json.dumps(args)]

@@ -14,7 +14,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..errors import AriSfmError
-from ..records import Dataset, Observation
+from ..records import Dataset, Observation, WindowPlane
 from .window_start import distance_interval, moved_window, not_beyond, search_distance, search_normal, target_shift_mm
 
 log = logging.getLogger(__name__)
@@ -255,3 +255,28 @@ def check_in_front(dataset: Dataset, state) -> None:
             raise AriSfmError(dataset.observations_path or dataset.rig_path,
                               f"{where}: {what} at the start of the exact stage (distance {state.offset(w):.1f} mm; "
                               f"check {key}.thickness_mm, distance_mm and plane)")
+
+
+def planes_separate(dataset: Dataset, planes: Sequence[WindowPlane | None], state) -> bool:
+    """Whether each declared plane, placed by its frame's pose in ``state``, lies between its cameras and their corners.
+
+    A Snell stage can then start from the plane as placed (calibrate skips the free-window stage before it).
+
+    Args:
+        dataset: the dataset (its windows, target and observations).
+        planes: each window's declared plane (None where not declared).
+        state: the rig's state (its target poses place the planes).
+
+    Returns:
+        True when every declared plane separates its cameras from the corners they see.
+    """
+    from ..factors.window_plane import plane_in_world
+
+    for w, (window, plane) in enumerate(zip(dataset.window_list(), planes)):
+        if plane is None:
+            continue
+        n_w, h_w = plane_in_world(plane, state.world_from_target[plane.frame])
+        if not_beyond(state.with_window(w, n_w, h_w), _observations(dataset), dataset.target,
+                      window.interface.thickness_mm, w, window_cameras(dataset, w)) is not None:
+            return False
+    return True

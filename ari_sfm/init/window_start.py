@@ -38,10 +38,22 @@ AZIMUTHS = 8  # directions per ring
 
 def not_beyond(state, observations: Sequence[Observation], target: Target, thickness_mm: float, window: int = 0,
                cameras: Sequence[str] | None = None) -> tuple[str, str | None] | None:
-    """The first (camera, frame) that window ``window`` (its plane ``state.offset(window)``) does not
-    separate: a camera of ``cameras`` (default all: the window's cameras) not in front of its near face
-    (frame None), or a corner of that camera's view of the frame not beyond its far face (the exact model
-    has no ray there); None when all are fine."""
+    """The first (camera, frame) that window ``window`` (its plane ``state.offset(window)``) does not separate.
+
+    A camera not in front of its near face (frame None), or a corner of that camera's view of the frame not
+    beyond its far face (the exact model has no ray there).
+
+    Args:
+        state: the rig's state (its window, cameras and target poses).
+        observations: the corners.
+        target: the target (its points).
+        thickness_mm: the plate's thickness.
+        window: the window's index.
+        cameras: the cameras behind it (None: all).
+
+    Returns:
+        The (camera, frame or None), or None when all are fine.
+    """
     from .zhang import object_points
 
     n, h = np.asarray(state.normal(window), float), float(state.offset(window))
@@ -68,16 +80,36 @@ def not_beyond(state, observations: Sequence[Observation], target: Target, thick
 
 
 def target_shift_mm(medium_index: float, from_mm: float, to_mm: float) -> float:
-    """How far (mm, along the normal, away from the cameras) the targets move when the window moves
-    from ``from_mm`` to ``to_mm`` with their paraxial apparent depths kept: ``(n_m - 1)(from - to)``
-    (module docstring; 0 in air, where the distance is unobservable)."""
+    """How far the targets move when the window moves with their paraxial apparent depths kept.
+
+    ``(n_m - 1)(from - to)`` (module docstring; 0 in air, where the distance is unobservable).
+
+    Args:
+        medium_index: n_m.
+        from_mm: the window's distance before.
+        to_mm: its distance after.
+
+    Returns:
+        The shift in mm along the normal, away from the cameras.
+    """
     return (float(medium_index) - 1.0) * (float(from_mm) - float(to_mm))
 
 
 def moved_window(state, distance_mm: float, medium_index: float, window: int = 0):
-    """``state`` with window ``window`` at ``distance_mm`` and every target (frames and stacking poses) moved
-    along its normal so that each keeps its paraxial apparent depth (:func:`target_shift_mm`); the
-    state unchanged but for the distance when it has none."""
+    """``state`` with window ``window`` at ``distance_mm``, every target keeping its paraxial apparent depth.
+
+    Every target (frames and stacking poses) is moved along the normal (:func:`target_shift_mm`); a state
+    without a distance only gets the distance.
+
+    Args:
+        state: the rig's state.
+        distance_mm: the window's new plane offset.
+        medium_index: n_m (1: the targets stay).
+        window: the window's index.
+
+    Returns:
+        The moved state.
+    """
     from dataclasses import replace
 
     from ..geometry import Pose
@@ -93,11 +125,24 @@ def moved_window(state, distance_mm: float, medium_index: float, window: int = 0
 def distance_interval(state, observations: Sequence[Observation], target: Target, thickness_mm: float,
                       medium_index: float | None = None, window: int = 0, cameras: Sequence[str] | None = None
                       ) -> tuple[float, float]:
-    """(lo, hi) for window ``window``'s plane offset h (from camera 0 along its normal): every camera of
-    ``cameras`` (default all: the window's) in front of it (h > n . C) and every corner they observe beyond
-    the far face (h < n . X - thickness - added). hi <= lo when no distance fits. ``medium_index``: the
-    targets move with the window (:func:`moved_window` from its offset), so a corner at
-    depth z is beyond it while ``h < (z - thickness - added + (n_m - 1) h0) / n_m``; None: they stay."""
+    """The interval of window ``window``'s plane offset h (from camera 0 along its normal) that separates.
+
+    Every camera in front of it (h > n . C) and every corner they observe beyond the far face
+    (h < n . X - thickness - added).
+
+    Args:
+        state: the rig's state.
+        observations: the corners.
+        target: the target (its points).
+        thickness_mm: the plate's thickness.
+        medium_index: the targets move with the window (:func:`moved_window` from its offset), so a corner at
+            depth z is beyond it while ``h < (z - thickness - added + (n_m - 1) h0) / n_m``; None: they stay.
+        window: the window's index.
+        cameras: the cameras behind it (None: all).
+
+    Returns:
+        (lo, hi); hi <= lo when no distance fits.
+    """
     from .zhang import object_points
 
     n = np.asarray(state.normal(window), float)
@@ -121,9 +166,22 @@ def distance_interval(state, observations: Sequence[Observation], target: Target
 
 def search_distance(cost: Callable[[float], float], lo: float, hi: float, samples: int = 48,
                     current: float | None = None, refine: bool = True) -> float:
-    """The distance in (lo, hi) of least ``cost``: a grid of ``samples`` interior points (and
-    ``current`` when inside), then (``refine``) a bounded 1-D minimisation between the best point's
-    neighbours."""
+    """The distance in (lo, hi) of least ``cost``.
+
+    A grid of ``samples`` interior points (and ``current`` when inside), then (``refine``) a bounded 1-D
+    minimisation between the best point's neighbours.
+
+    Args:
+        cost: the cost of a distance.
+        lo: the interval's lower end.
+        hi: its upper end.
+        samples: interior grid points.
+        current: the current distance, scored too when inside.
+        refine: whether to refine the grid's best.
+
+    Returns:
+        The distance.
+    """
     from scipy.optimize import minimize_scalar
 
     grid = lo + (hi - lo) * np.arange(1, samples + 1) / (samples + 1)
@@ -146,7 +204,16 @@ def search_distance(cost: Callable[[float], float], lo: float, hi: float, sample
 
 def tilt_candidates(axis: np.ndarray, tilts_deg: Sequence[float] = TILTS_DEG, azimuths: int = AZIMUTHS
                     ) -> list[np.ndarray]:
-    """``axis`` and, for each tilt, ``azimuths`` directions turned that far from it."""
+    """``axis`` and, for each tilt, ``azimuths`` directions turned that far from it.
+
+    Args:
+        axis: the start normal.
+        tilts_deg: the rings' tilts.
+        azimuths: directions per ring.
+
+    Returns:
+        The unit directions: the axis first, then ring by ring.
+    """
     axis = unit(np.asarray(axis, float))
     helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     e1 = unit(helper - (helper @ axis) * axis)
@@ -174,10 +241,21 @@ def _grid_neighbours(k: int, rings: int, azimuths: int) -> list[int]:
 
 def search_normal(score: Callable[[np.ndarray], float], axis: np.ndarray,
                   tilts_deg: Sequence[float] = TILTS_DEG, azimuths: int = AZIMUTHS) -> np.ndarray:
-    """The candidate normal (:func:`tilt_candidates`) of least ``score``, coarse to fine: every other
-    azimuth of each ring first, then a descent over the grid (the best's unscored neighbours, until
-    the best has no better neighbour). On a landscape with one minimum over the grid this is the
-    whole grid's best, from about two thirds of the scores."""
+    """The candidate normal (:func:`tilt_candidates`) of least ``score``, coarse to fine.
+
+    Every other azimuth of each ring first, then a descent over the grid (the best's unscored neighbours,
+    until the best has no better neighbour). On a landscape with one minimum over the grid this is the whole
+    grid's best, from about two thirds of the scores.
+
+    Args:
+        score: the score of a normal (not finite: the worst).
+        axis: the start normal.
+        tilts_deg: the rings' tilts.
+        azimuths: directions per ring.
+
+    Returns:
+        The best normal.
+    """
     candidates = tilt_candidates(axis, tilts_deg, azimuths)
     rings = len(tilts_deg)
     scores: dict[int, float] = {}

@@ -35,6 +35,7 @@ import math
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -44,8 +45,6 @@ from ..errors import AriSfmError
 from ..geometry import rotation_angle_deg
 from .disparity import Cells, DisparityMap, ParticleSet, disparity_map, particle_disparities
 from .landmarks import (
-    BACKENDS,
-    INTRINSICS_MODES,
     UNKNOWN_PRIOR_PX,
     Gauge,
     IntrinsicsPrior,
@@ -58,6 +57,7 @@ from .selfcal_report import (
     Adjustment,
     BeforeAfter,
     Check,
+    Intrinsics,
     RoundSummary,
     SelfCalInputs,
     SelfCalOptions,
@@ -126,7 +126,13 @@ class SelfCalResult:
 
 
 def check_calibration(calibration: Calibration, cameras: Sequence[str], path: Any) -> None:
-    """The calibration projects with the exact model and is of the rig that recorded the particles."""
+    """The calibration projects with the exact model and is of the rig that recorded the particles.
+
+    Args:
+        calibration: the start.
+        cameras: the cameras of the particle detections.
+        path: the calibration named in errors.
+    """
     if calibration.model not in PROJECTING_EXACT:
         raise AriSfmError(path, f"self-calibration uses the exact refractive model; this calibration's model is "
                                 f"{calibration.model!r} (calibrate the target with --model exact)")
@@ -142,8 +148,21 @@ def check_calibration(calibration: Calibration, cameras: Sequence[str], path: An
 def match_particles(calibration: Calibration, frame: int, detections: Detections, tolerance_px: float,
                     min_cameras: int, volume: Any = None, depth_range_mm: Any = None,
                     match: Callable | None = None) -> FrameParticles:
-    """Match one frame (``match``: ``match_frame``'s signature, default the particles package's) and
-    triangulate the matches with the exact model."""
+    """Match one frame and triangulate the matches with the exact model.
+
+    Args:
+        calibration: the calibration matched with.
+        frame: the frame's number.
+        detections: its detections per camera.
+        tolerance_px: the matching tolerance.
+        min_cameras: the cameras a match must use.
+        volume: the measured box, if any.
+        depth_range_mm: the particles' world z range, if any.
+        match: ``match_frame``'s signature (default the particles package's).
+
+    Returns:
+        The frame's matches.
+    """
     from ..reconstruction.triangulate import triangulate_pixels
 
     if match is None:
@@ -275,17 +294,255 @@ def _gauge_length_mm(calibration: Calibration, particles: ParticleSet) -> float:
     return float(np.mean(np.linalg.norm(centres - centre, axis=1)))
 
 
+class FrameMatching:
+    """How the rounds match: the frames (all, or the coarse ones in the loose rounds), the matcher, how the
+    frames' tasks run, the progress; each matching is a numbered step of the progress."""
+
+    def __init__(self, calibration: Calibration, detections: Mapping[int, Detections], options: SelfCalOptions,
+                 volume: Any, depth_range_mm: Any, match: Callable | None, map_frames: MapFrames | None,
+                 bar: Any) -> None:
+        self.names = list(calibration.cameras)
+        self.detections = detections
+        self.options = options
+        self.volume = volume
+        self.depth_range_mm = depth_range_mm
+        self.match = match
+        self.map_frames = map_frames
+        self.bar = bar
+        self.run = map_frames or _threaded(options.threads, bar)
+        self.frames = sorted(detections)
+        self.coarse = _coarse_frames(self.frames, detections, self.names[0], options.coarse_frames)
+        self.step = 0
+
+    def frames_at(self, tolerance_px: float) -> list[int]:
+        """The frames matched at ``tolerance_px``: the coarse ones above COARSE_PX, else all.
+
+        Args:
+            tolerance_px: the matching tolerance.
+
+        Returns:
+            The frames.
+        """
+        return self.coarse if tolerance_px > COARSE_PX else self.frames
+
+    def matched(self, cal: Calibration, tolerance_px: float) -> ParticleSet:
+        """Every frame's matches at ``tolerance_px`` with ``cal``, triangulated, stacked.
+
+        Args:
+            cal: the calibration matched with.
+            tolerance_px: the matching tolerance.
+
+        Returns:
+            The matched particles.
+        """
+        use = self.frames_at(tolerance_px)
+        self.step += 1
+        self.bar.stage(f"self-calibration round {self.step}: matching at {tolerance_px:.3g} px", len(use))
+        o = self.options
+        found = self.run(match_particles, [(cal, f, self.detections[f], tolerance_px, o.min_cameras, self.volume,
+                                            self.depth_range_mm, self.match) for f in use])
+        if self.map_frames is not None:
+            self.bar.advance(len(use))
+        return _stack(found)
+
+    def disparity(self, cal: Calibration, box: Cells, particles: ParticleSet) -> DisparityMap:
+        """The disparity map of ``particles`` with ``cal`` in ``box``'s cells.
+
+        Args:
+            cal: the calibration.
+            box: the cells.
+            particles: the matched particles.
+
+        Returns:
+            The map (its inliers: the matches on their cells' peaks).
+        """
+        o = self.options
+        return disparity_map(self.names, box, particles, particle_disparities(cal, particles), o.peak_radius_px,
+                             o.field_radius_px, o.seed)
+
+    def measure(self, cal: Calibration, tolerance_px: float, box: Cells | None) -> Measurement:
+        """One round's matching: its matches, its cells' box and disparity map (None with too few matches).
+
+        Args:
+            cal: the calibration matched with.
+            tolerance_px: the matching tolerance.
+            box: the cells (None: around these matches).
+
+        Returns:
+            The measurement.
+        """
+        particles = self.matched(cal, tolerance_px)
+        if len(particles.xyz) < MIN_MATCHES:
+            return Measurement(tolerance_px, particles, box, None)
+        box = box or Cells.around(particles.xyz, self.options.cells)
+        dmap = self.disparity(cal, box, particles)
+        self.bar.note(f"{len(particles.xyz)} matches, {int(dmap.inlier.sum())} inliers, disparity "
+                      f"{_largest(dmap.rms_px):.3f} px")
+        log.info("self-calibration: tolerance %.3g px, %d matches, %d inliers, disparity RMS %s px",
+                 tolerance_px, len(particles.xyz), int(dmap.inlier.sum()), np.round(dmap.rms_px, 3).tolist())
+        return Measurement(tolerance_px, particles, box, dmap)
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One matching at a tolerance: the matches, the cells' box, the disparity map (None: too few matches)."""
+
+    tolerance_px: float
+    particles: ParticleSet
+    box: Cells | None
+    disparity: DisparityMap | None
+
+    @property
+    def inliers(self) -> int:
+        """Matches on their cells' disparity peaks (0 without a map)."""
+        return 0 if self.disparity is None else int(self.disparity.inlier.sum())
+
+
+@dataclass(frozen=True)
+class Rounds:
+    """Where the rounds have left a self-calibration: the calibration the next round matches with and at what
+    tolerance, the rounds so far and what the adjustments share (the cells, the gauge, the last fit)."""
+
+    current: Calibration
+    tolerance_px: float  # the next round's
+    first_tolerance_px: float  # the first round's, once widened
+    cells: Cells | None = None  # the disparity maps' box (the first adjusted round's, or the one given)
+    rounds: tuple[Round, ...] = ()
+    previous_rms_px: float | None = None  # the last adjusted round's largest disparity RMS
+    gauge: Gauge | None = None
+    refined: Refined | None = None  # the last bundle adjustment
+    last_particles: ParticleSet | None = None  # the last round's matches
+    stopped: bool = False  # a round found too little, or the disparities stopped falling
+    exhausted: bool = False  # max_rounds ran without a stop
+
+
+@dataclass(frozen=True)
+class Adjusting:
+    """What every round's bundle adjustment holds: the start, the intrinsics prior, which windows are in air."""
+
+    start: Calibration
+    prior: IntrinsicsPrior
+    in_air: list[bool]
+
+
+def _first_measurement(m: FrameMatching, at: Rounds, path: Any) -> Measurement:
+    """The first round's matching: its tolerance widened by WIDEN (up to max_tolerance_px) while it finds no
+    clear disparity peak; no confident matches even then is one error line."""
+    o = m.options
+    tol = at.tolerance_px
+    got = m.measure(at.current, tol, at.cells)
+    # no clear peak yet -> the drift may exceed the tolerance: widen it (up to max_tolerance_px)
+    while (got.disparity is None or got.inliers < FIRST_PEAK_MIN) and tol < o.max_tolerance_px:
+        tol = min(WIDEN * tol, o.max_tolerance_px)
+        log.info("self-calibration: no clear disparity peak: tolerance widened to %.3g px", tol)
+        got = m.measure(at.current, tol, at.cells)
+    if got.disparity is None or got.inliers < FIRST_PEAK_MIN:
+        used = len(m.frames_at(tol))
+        what = (f"{len(got.particles.xyz)} particles matched" if got.disparity is None else
+                f"{len(got.particles.xyz)} matches but no disparity peak ({got.inliers} on it)")
+        raise AriSfmError(path, f"no confident matches: {what} in {o.min_cameras} cameras at up to "
+                                f"{tol:g} px over {used} frames; try a larger --max-tolerance-px (the drift "
+                                "must fit in it), more --coarse-frames, fewer --cells, --min-cameras 3, or "
+                                "check that the calibration is of this rig")
+    return got
+
+
+def run_round(m: FrameMatching, a: Adjusting, at: Rounds, r: int, path: Any) -> Rounds:
+    """Round ``r``: match at the round's tolerance, measure the disparity, adjust on its inliers.
+
+    The rounds stop (``stopped``) when a later round finds too few inliers, or when the disparities stopped
+    falling at the final tolerance (that round kept as the final check). The next round matches at the final
+    tolerance once the adjustment fits at the noise (or the disparities stalled), else at half the tolerance.
+
+    Args:
+        m: how the rounds match.
+        a: what the adjustments hold.
+        at: where the previous rounds left the self-calibration.
+        r: the round's index (0: the first, whose tolerance widens).
+        path: the calibration named in errors.
+
+    Returns:
+        Where this round leaves it.
+    """
+    o = m.options
+    if r == 0:
+        got = _first_measurement(m, at, path)
+        at = replace(at, tolerance_px=got.tolerance_px, first_tolerance_px=got.tolerance_px)
+    else:
+        got = m.measure(at.current, at.tolerance_px, at.cells)
+        if got.disparity is None or got.inliers < MIN_MATCHES:
+            return replace(at, stopped=True)
+    dmap, particles, tol = got.disparity, got.particles, at.tolerance_px
+    assert dmap is not None  # a round with a disparity peak
+    at = replace(at, cells=got.box, last_particles=particles)
+    rms = _largest(dmap.rms_px)
+    stalled = at.previous_rms_px is not None and rms > (1.0 - o.min_improvement) * at.previous_rms_px
+    if stalled and tol <= o.final_tolerance_px:  # the disparities stopped falling: done
+        return replace(at, rounds=at.rounds + (Round(tol, len(particles.xyz), dmap, None),), stopped=True)
+    landmarks = _subset(particles, dmap.inlier, o.max_landmarks, o.seed + r)
+    gauge = at.gauge if at.gauge is not None else Gauge.of(a.start, a.in_air, _gauge_length_mm(a.start, landmarks))
+    m.bar.note(f"adjusting {len(landmarks.xyz)} particles")
+    noise = at.refined.adjustment.noise_px if at.refined else _first_noise(dmap)
+    refined = refine_with_landmarks(at.current, landmarks, gauge, a.prior, o.huber_px, o.max_iterations,
+                                    o.backend, noise)
+    adjustment = refined.adjustment
+    m.bar.note(f"adjusted: {adjustment.rms_px:.3f} px RMS on {adjustment.landmarks} particles")
+    # the next round: at the final tolerance once the correction fits at the noise, else halved
+    fits = adjustment.rms_px < o.final_tolerance_px / JUMP_NOISE
+    return replace(at, current=refined.calibration, previous_rms_px=rms, gauge=gauge, refined=refined,
+                   rounds=at.rounds + (Round(tol, len(particles.xyz), dmap, adjustment),),
+                   tolerance_px=o.final_tolerance_px if (stalled or fits) else max(o.final_tolerance_px, tol / 2.0))
+
+
+def final_check(m: FrameMatching, at: Rounds) -> Rounds:
+    """The final check: after a round that adjusted, the frames matched again with the corrected calibration.
+
+    At the next round's tolerance when max_rounds ran out, else at the last adjusted round's (after a round
+    that found too little: the last good one's).
+
+    Args:
+        m: how the rounds match.
+        at: where the rounds left the self-calibration.
+
+    Returns:
+        It with the final check's round.
+    """
+    last = at.rounds[-1]
+    if last.adjustment is None:  # the rounds ended on a check already
+        return at
+    tol = at.tolerance_px if at.exhausted else last.tolerance_px
+    particles = m.matched(at.current, tol)
+    assert at.cells is not None  # set by the round that adjusted
+    dmap = m.disparity(at.current, at.cells, particles)
+    m.bar.note(f"final: {len(particles.xyz)} matches, disparity {_largest(dmap.rms_px):.3f} px")
+    return replace(at, rounds=at.rounds + (Round(tol, len(particles.xyz), dmap, None),), last_particles=particles)
+
+
 def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections],
                    options: SelfCalOptions = SelfCalOptions(), volume: Any = None, depth_range_mm: Any = None,
                    match: Callable | None = None, map_frames: MapFrames | None = None,
                    cells_box: Cells | None = None, path: Any = "calibration", progress: Any = None) -> SelfCalResult:
-    """Volume self-calibration (module docstring) from ``detections`` {frame: {camera: (N, 2) px}}.
+    """Volume self-calibration (module docstring) from ``detections``.
 
-    ``match``: match_frame's signature (default: :func:`ari_sfm.particles.match.match_frame`);
-    ``map_frames(fn, args)``: how the frames' matching tasks ``fn(*a)`` run (default: ``options.threads``
-    threads of this process; :func:`dask_map` on a Client);
-    ``cells_box``: the disparity maps' box (default: the first round's matched particles);
-    ``progress``: a :class:`RoundProgress` (default: the log).
+    Steps: the rounds (:func:`run_round`, each matching, measuring and adjusting) until they stop or
+    ``options.max_rounds`` ran, the final check (:func:`final_check`), the trust checks (:func:`trust_checks`),
+    the report.
+
+    Args:
+        calibration: the start (exact model) of the rig that recorded the particles.
+        detections: {frame: {camera: (N, 2) px}}.
+        options: the options.
+        volume: the measured box (the matcher's depth limits), if any.
+        depth_range_mm: the particles' world z range, if any (instead of ``volume``).
+        match: ``match_frame``'s signature (default: :func:`ari_sfm.particles.match.match_frame`).
+        map_frames: ``map_frames(fn, args)``: how the frames' matching tasks ``fn(*a)`` run (default:
+            ``options.threads`` threads of this process; :func:`dask_map` on a Client).
+        cells_box: the disparity maps' box (default: the first round's matched particles).
+        path: the calibration named in errors.
+        progress: a :class:`RoundProgress` (default: the log).
+
+    Returns:
+        The corrected calibration, the disparity maps before and after, every round and the report.
     """
     t0 = time.perf_counter()
     names = list(calibration.cameras)
@@ -293,103 +550,30 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
         raise AriSfmError(path, "no particle detections to self-calibrate from")
     check_calibration(calibration, list(next(iter(detections.values()))), path)
     _check_options(options, len(names))
-    frames = sorted(detections)
-    bar = progress or _Silent()
-    run = map_frames or _threaded(options.threads, bar)
-    coarse = _coarse_frames(frames, detections, names[0], options.coarse_frames)
-    step = [0]
-
-    def matched(cal: Calibration, tol: float) -> ParticleSet:
-        use = coarse if tol > COARSE_PX else frames
-        step[0] += 1
-        bar.stage(f"self-calibration round {step[0]}: matching at {tol:.3g} px", len(use))
-        found = run(match_particles, [(cal, f, detections[f], tol, options.min_cameras, volume, depth_range_mm,
-                                       match) for f in use])
-        if map_frames is not None:
-            bar.advance(len(use))
-        return _stack(found)
-
-    def measure(cal: Calibration, tol: float, box: Cells | None):
-        """One round's matches, its cells' box and disparity map (None with too few matches)."""
-        particles = matched(cal, tol)
-        if len(particles.xyz) < MIN_MATCHES:
-            return particles, box, None
-        box = box or Cells.around(particles.xyz, options.cells)
-        dmap = disparity_map(names, box, particles, particle_disparities(cal, particles),
-                             options.peak_radius_px, options.field_radius_px, options.seed)
-        bar.note(f"{len(particles.xyz)} matches, {int(dmap.inlier.sum())} inliers, disparity "
-                 f"{_largest(dmap.rms_px):.3f} px")
-        log.info("self-calibration: tolerance %.3g px, %d matches, %d inliers, disparity RMS %s px",
-                 tol, len(particles.xyz), int(dmap.inlier.sum()), np.round(dmap.rms_px, 3).tolist())
-        return particles, box, dmap
-
+    m = FrameMatching(calibration, detections, options, volume, depth_range_mm, match, map_frames,
+                      progress or _Silent())
     free = free_intrinsics(calibration, options.intrinsics)
-    prior = IntrinsicsPrior.of(calibration, free, options.intrinsics)
-    in_air = [w.interface.medium_index == 1.0 for w in calibration.window_list()]
-    current, rounds, cells, prev_rms, tol = calibration, [], cells_box, None, float(options.tolerance_px)
-    gauge, first_tol, last_particles, refined = None, tol, None, None
-    exhausted = False
+    a = Adjusting(calibration, IntrinsicsPrior.of(calibration, free, options.intrinsics),
+                  [w.interface.medium_index == 1.0 for w in calibration.window_list()])
+    tol = float(options.tolerance_px)
+    at = Rounds(calibration, tol, tol, cells_box)
     for r in range(options.max_rounds):
-        particles, box, dmap = measure(current, tol, cells)
-        # the first round: no clear peak yet -> the drift may exceed the tolerance: widen it (up to max_tolerance_px)
-        while r == 0 and (dmap is None or dmap.inlier.sum() < FIRST_PEAK_MIN) and tol < options.max_tolerance_px:
-            tol = min(WIDEN * tol, options.max_tolerance_px)
-            log.info("self-calibration: no clear disparity peak: tolerance widened to %.3g px", tol)
-            particles, box, dmap = measure(current, tol, cells)
-        if r == 0:
-            first_tol = tol
-        if dmap is None or dmap.inlier.sum() < (FIRST_PEAK_MIN if r == 0 else MIN_MATCHES):
-            if r == 0:
-                used = len(coarse) if tol > COARSE_PX else len(frames)
-                what = (f"{len(particles.xyz)} particles matched" if dmap is None else
-                        f"{len(particles.xyz)} matches but no disparity peak ({int(dmap.inlier.sum())} on it)")
-                raise AriSfmError(path, f"no confident matches: {what} in {options.min_cameras} cameras at up to "
-                                        f"{tol:g} px over {used} frames; try a larger --max-tolerance-px (the drift "
-                                        "must fit in it), more --coarse-frames, fewer --cells, --min-cameras 3, or "
-                                        "check that the calibration is of this rig")
+        at = run_round(m, a, at, r, path)
+        if at.stopped:
             break
-        cells = box
-        last_particles = particles
-        rms = _largest(dmap.rms_px)
-        stalled = prev_rms is not None and rms > (1.0 - options.min_improvement) * prev_rms
-        if stalled and tol <= options.final_tolerance_px:  # the disparities stopped falling: done
-            rounds.append(Round(tol, len(particles.xyz), dmap, None))
-            break
-        prev_rms = rms
-        landmarks = _subset(particles, dmap.inlier, options.max_landmarks, options.seed + r)
-        if gauge is None:
-            gauge = Gauge.of(calibration, in_air, _gauge_length_mm(calibration, landmarks))
-        bar.note(f"adjusting {len(landmarks.xyz)} particles")
-        refined = refine_with_landmarks(current, landmarks, gauge, prior, options.huber_px, options.max_iterations,
-                                        options.backend, refined.adjustment.noise_px if refined else _first_noise(dmap))
-        current = refined.calibration
-        adjustment = refined.adjustment
-        rounds.append(Round(tol, len(particles.xyz), dmap, adjustment))
-        bar.note(f"adjusted: {adjustment.rms_px:.3f} px RMS on {adjustment.landmarks} particles")
-        # the next round: at the final tolerance once the correction fits at the noise, else halved
-        fits = adjustment.rms_px < options.final_tolerance_px / JUMP_NOISE
-        tol = options.final_tolerance_px if (stalled or fits) else max(options.final_tolerance_px, tol / 2.0)
     else:
-        exhausted = True  # max_rounds reached: the final check at the next round's tolerance
-    if not rounds:
+        at = replace(at, exhausted=True)  # max_rounds reached: the final check at the next round's tolerance
+    if not at.rounds:
         raise AriSfmError(path, "no confident matches (see the log)")
-    last = rounds[-1]
-    if last.adjustment is not None:  # the final check: match with the final calibration
-        tol = tol if exhausted else last.tolerance_px  # (after a round that found too little: the last good one's)
-        particles = matched(current, tol)
-        assert cells is not None  # set by the round that adjusted
-        dmap = disparity_map(names, cells, particles, particle_disparities(current, particles),
-                             options.peak_radius_px, options.field_radius_px, options.seed)
-        bar.note(f"final: {len(particles.xyz)} matches, disparity {_largest(dmap.rms_px):.3f} px")
-        rounds.append(Round(tol, len(particles.xyz), dmap, None))
-        last_particles = particles
+    at = final_check(m, at)
+    refined, current, rounds = at.refined, at.current, at.rounds
     if refined is None:
         raise AriSfmError(path, "no bundle adjustment ran (see the log)")
-    assert gauge is not None and last_particles is not None  # set by the round that adjusted
+    assert at.gauge is not None and at.last_particles is not None  # set by the round that adjusted
     after = rounds[-1].disparity
-    checks = trust_checks(calibration, current, detections, frames if rounds[-1].tolerance_px <= COARSE_PX else coarse,
-                          last_particles, after, first_tol, options)
-    report = _report(calibration, current, options, frames, rounds, gauge, refined, checks,
+    checks = trust_checks(calibration, current, detections, m.frames_at(rounds[-1].tolerance_px), at.last_particles,
+                          after, at.first_tolerance_px, options)
+    report = _report(calibration, current, options, m.frames, rounds, at.gauge, refined, checks,
                      time.perf_counter() - t0)
     for c in checks:
         if not c.passed:
@@ -400,12 +584,8 @@ def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections
 
 
 def _check_options(options: SelfCalOptions, cameras: int) -> None:
-    """The options' choices and the cameras they ask for, checked before self-calibration starts."""
-    if options.backend not in BACKENDS:
-        raise AriSfmError(None, f"--backend must be one of {', '.join(BACKENDS)} (got {options.backend!r})")
-    if options.intrinsics not in INTRINSICS_MODES:
-        raise AriSfmError(None, f"--intrinsics must be one of {', '.join(INTRINSICS_MODES)} "
-                                f"(got {options.intrinsics!r})")
+    """The cameras the options ask for, checked before self-calibration starts (the modes are checked by
+    :class:`SelfCalOptions` itself)."""
     if options.min_cameras > cameras:
         raise AriSfmError(None, f"--min-cameras {options.min_cameras} exceeds the rig's {cameras} cameras")
 
@@ -417,8 +597,18 @@ def _largest(values: np.ndarray) -> float:
 
 
 def converged(after: DisparityMap, options: SelfCalOptions) -> bool:
-    """Whether the final disparities are one noise level: every camera's RMS finite, within 1.5x of the
-    smallest and below half the peak radius (a correction from a ghost peak leaves px in some cameras)."""
+    """Whether the final disparities are one noise level.
+
+    Every camera's RMS finite, within 1.5x of the smallest and below half the peak radius (a correction from a
+    ghost peak leaves px in some cameras).
+
+    Args:
+        after: the final disparity map.
+        options: the options (the peak radius).
+
+    Returns:
+        True when they are.
+    """
     rms = after.rms_px
     return bool(np.all(np.isfinite(rms)) and rms.max() <= 1.5 * rms.min() and rms.max() < 0.5 * options.peak_radius_px)
 
@@ -451,7 +641,21 @@ def trust_checks(start: Calibration, final: Calibration, detections: Mapping[int
       lens left out, is refitted by the particles into cameras as wrong as it, at a low disparity): its
       robust RMSE against the gate's allowance; a start without a verdict passes.
     - ``start_principal_points`` (a warning): the start estimated every principal point
-      (:func:`~ari_sfm.particles.landmarks.guessed_principal_points`)."""
+      (:func:`~ari_sfm.particles.landmarks.guessed_principal_points`).
+
+    Args:
+        start: the start calibration.
+        final: the corrected calibration.
+        detections: {frame: {camera: (N, 2) px}}.
+        frames: the frames the final matching used.
+        particles: the final matches.
+        after: the final disparity map.
+        first_tolerance_px: the first round's tolerance (once widened).
+        options: the options.
+
+    Returns:
+        The checks.
+    """
     names = list(final.cameras)
     images = min(sum(len(detections[f][n]) for f in frames) for n in names)
     share = float(len(particles.xyz) / images) if images else 0.0
@@ -517,15 +721,15 @@ def _report(start: Calibration, final: Calibration, options: SelfCalOptions, fra
                if len(windows) == 1 else ""),
             "the scale: the sum of the distances between every pair of camera centres"]
     free = refined.covariance.cameras[names[0]].intrinsics
-    if options.intrinsics == "held" or not free:
-        held.append("the intrinsics" + ("" if options.intrinsics == "held" else
+    if options.intrinsics == Intrinsics.HELD or not free:
+        held.append("the intrinsics" + ("" if options.intrinsics == Intrinsics.HELD else
                                         " (the start has no uncertainty to weigh them with)"))
     else:
         held.append("the lens distortion but " + "/".join(free) if free else "the intrinsics")
     estimated = ["every camera's pose (camera 0 included)", "the particles"]
     if free:
         estimated.append(" ".join(free) + (" with the start calibration's sigmas as priors"
-                                           if options.intrinsics == "prior" else " (no prior)"))
+                                           if options.intrinsics == Intrinsics.PRIOR else " (no prior)"))
     adjustments = [r.adjustment for r in rounds if r.adjustment]
     fatal = [c for c in checks if c.fatal]
     return SelfCalReport(
@@ -535,7 +739,7 @@ def _report(start: Calibration, final: Calibration, options: SelfCalOptions, fra
         estimated=tuple(estimated),
         scale_how="prior on the sum of the distances between every pair of camera centres, at the starting "
                   "calibration's value", scale_sum_mm=gauge.scale_sum_mm,
-        scale_sigma_mm=_stiff_sigma(), backend=options.backend,
+        scale_sigma_mm=_stiff_sigma(), backend=options.backend.value,
         options=options,
         disparity_rms_px={n: BeforeAfter(float(before.rms_px[c]), float(after.rms_px[c])) for c, n in enumerate(names)},
         converged=converged(after, options), passed=all(c.passed for c in fatal), checks=tuple(checks),
@@ -553,10 +757,20 @@ def _stiff_sigma() -> float:
 
 
 def result_calibration(current: Calibration, refined: Refined, report: SelfCalReport) -> Calibration:
-    """The corrected calibration as calibration.json holds it: the self-calibration's own residuals (its
-    particles' reprojection residuals) and uncertainty (relative poses, estimated intrinsics); the target
-    calibration's stages, optimizer report, quality verdict, outliers and body poses dropped (they are of
-    the start, whose cameras have moved since)."""
+    """The corrected calibration as calibration.json holds it.
+
+    The self-calibration's own residuals (its particles' reprojection residuals) and uncertainty (relative
+    poses, estimated intrinsics); the target calibration's stages, optimizer report, quality verdict, outliers
+    and body poses dropped (they are of the start, whose cameras have moved since).
+
+    Args:
+        current: the corrected calibration as the last adjustment left it.
+        refined: the last adjustment (residuals, covariance).
+        report: the self-calibration's report (``self_calibration``).
+
+    Returns:
+        The calibration.
+    """
     from ..results import CameraUncertainty, ResidualStats, Uncertainty
 
     cov = refined.covariance
@@ -576,11 +790,16 @@ def disparity_json(result: SelfCalResult) -> dict[str, Any]:
             "rounds": [r.disparity.to_json() for r in result.rounds]}
 
 
-def write_self_calibration(result: SelfCalResult, out_dir) -> None:
-    """OUT/calibration.json and OUT/disparity.json, both or neither (written in a temporary folder inside
-    OUT, then renamed into place: a full disk or an interrupt leaves OUT's old files)."""
-    from pathlib import Path
+def write_self_calibration(result: SelfCalResult, out_dir: str | Path) -> None:
+    """OUT/calibration.json and OUT/disparity.json, both or neither.
 
+    Written in a temporary folder inside OUT, then renamed into place: a full disk or an interrupt leaves
+    OUT's old files.
+
+    Args:
+        result: the self-calibration.
+        out_dir: OUT.
+    """
     from ..io import calibration_to_json, write_files_atomic
     from ..io.atomic import format_json, to_jsonable
 
@@ -595,17 +814,29 @@ def write_self_calibration(result: SelfCalResult, out_dir) -> None:
 
 
 def pick_frames(frames: Iterable[int], count: int | None) -> list[int]:
-    """``count`` frames spread evenly over ``frames`` (all of them when None or more than there are)."""
+    """``count`` frames spread evenly over ``frames``.
+
+    Args:
+        frames: the frames.
+        count: how many (None, or more than there are: all).
+
+    Returns:
+        The frames, sorted.
+    """
     frames = sorted(int(f) for f in frames)
     if count is None or count >= len(frames):
         return frames
     return [frames[int(round(k))] for k in np.linspace(0, len(frames) - 1, count)]
 
 
-def check_not_input(out, inputs: Sequence[Any]) -> None:
-    """-o must neither be nor hold an input (its calibration.json would overwrite the start calibration)."""
+def check_not_input(out: str | Path, inputs: Sequence[Any]) -> None:
+    """-o must neither be nor hold an input (its calibration.json would overwrite the start calibration).
+
+    Args:
+        out: the output folder.
+        inputs: the input paths (None entries ignored).
+    """
     import os
-    from pathlib import Path
 
     target = Path(os.path.realpath(out))
     for p in inputs:
@@ -616,17 +847,33 @@ def check_not_input(out, inputs: Sequence[Any]) -> None:
             raise AriSfmError(out, f"-o/--out would hold an input ({p}): write the self-calibration elsewhere")
 
 
-def self_calibrate_dataset(dataset_path, calibration_path, out, options: SelfCalOptions = SelfCalOptions(),
-                           detections_path=None, frames: int | None = 10,
+def self_calibrate_dataset(dataset_path: str | Path, calibration_path: str | Path, out: str | Path,
+                           options: SelfCalOptions = SelfCalOptions(), detections_path: str | Path | None = None,
+                           frames: int | None = 10,
                            depth_range_mm: tuple[float, float] | None = None, workers: int = 0,
                            scheduler: str | None = None, progress: bool = False) -> SelfCalResult:
-    """``ari-sfm self-calibrate``: a particle experiment (DATASET_FORMAT 1.2) and its rig's calibration ->
-    OUT/calibration.json (the corrected calibration, ``self_calibration`` key) and OUT/disparity.json,
-    written together or not at all. ``frames``: how many of the detections' frames to use (spread evenly);
-    ``workers``/``scheduler``: the frames' matching on Dask (:func:`ari_sfm.particles.engine.dask_client`;
-    0 workers: ``options.threads`` threads in this process); ``progress``: a progress bar on stderr."""
+    """``ari-sfm self-calibrate``: a particle experiment and its rig's calibration -> OUT.
+
+    OUT/calibration.json (the corrected calibration, ``self_calibration`` key) and OUT/disparity.json, written
+    together or not at all.
+
+    Args:
+        dataset_path: the particle experiment (DATASET_FORMAT 1.2).
+        calibration_path: its rig's calibration.json (exact model).
+        out: OUT.
+        options: the options.
+        detections_path: a particles.parquet (default: the one rig.yaml names).
+        frames: how many of the detections' frames to use (spread evenly; None: all).
+        depth_range_mm: the particles' world z range, instead of rig.yaml's volume.
+        workers: Dask workers matching the frames (:func:`ari_sfm.particles.engine.dask_client`; 0:
+            ``options.threads`` threads in this process).
+        scheduler: a Dask scheduler's address, instead of local workers.
+        progress: a progress bar on stderr.
+
+    Returns:
+        The self-calibration (its report with the inputs).
+    """
     import os
-    from pathlib import Path
 
     from ..io.particles import read_detections
     from .engine import dask_client

@@ -1,12 +1,25 @@
 """What a volume self-calibration did, as records: calibration.json's ``self_calibration`` written by
 ``to_json`` and read back by ``from_json`` (the same record), with the options it ran with and its
-bundle adjustments' figures. Plain records: no numpy arrays, nothing computed here."""
+bundle adjustments' figures. Plain records: no numpy arrays, nothing computed here. The options' modes are
+str enums (:class:`Intrinsics`, :class:`~ari_sfm.colmap.refine.options.Backend`): written as their strings."""
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
+from enum import Enum
 from typing import Any
+
+from ..colmap.refine.options import Backend, Choice
+
+
+class Intrinsics(Choice):
+    """What self-calibration does with the intrinsics: fx fy cx cy (k1) estimated with the start's sigmas as
+    priors, held, or estimated without priors."""
+
+    PRIOR = "prior"
+    HELD = "held"
+    FREE = "free"
 
 
 @dataclass(frozen=True)
@@ -28,17 +41,36 @@ class SelfCalOptions:
     max_landmarks: int = 20000  # particles in one bundle adjustment (random subset beyond)
     huber_px: float = 1.0  # Huber threshold of the bundle adjustment
     max_iterations: int = 50  # Levenberg-Marquardt iterations per round
-    intrinsics: str = "prior"  # "prior": fx fy cx cy (k1) estimated, the start's sigmas as priors; "held"; "free"
-    backend: str = "numpy"  # "numpy" (points Schur + the project's LM) or "gtsam"
+    intrinsics: Intrinsics = Intrinsics.PRIOR  # prior: fx fy cx cy (k1) estimated, the start's sigmas as priors
+    backend: Backend = Backend.NUMPY  # numpy (points Schur + the project's LM) or gtsam
     seed: int = 0  # the landmark subset
     threads: int = 2  # frames matched in parallel in this process (no Dask)
 
+    def __post_init__(self) -> None:
+        """The modes' strings converted; one that names no mode is one line of ValueError."""
+        object.__setattr__(self, "intrinsics", Intrinsics.parse(self.intrinsics, "intrinsics"))
+        object.__setattr__(self, "backend", Backend.parse(self.backend, "backend"))
+
     def to_json(self) -> dict[str, Any]:
-        return {f.name: (list(v) if isinstance(v := getattr(self, f.name), tuple) else v) for f in fields(self)}
+        """The options as calibration.json's ``self_calibration.options`` holds them (modes as strings)."""
+        def plain(v: Any) -> Any:
+            return list(v) if isinstance(v, tuple) else v.value if isinstance(v, Enum) else v
+
+        return {f.name: plain(getattr(self, f.name)) for f in fields(self)}
 
     @classmethod
     def from_json(cls, d: object) -> SelfCalOptions:
-        """The options as ``to_json`` wrote them (keys this version does not know are ignored)."""
+        """The options as ``to_json`` wrote them (keys this version does not know are ignored).
+
+        Args:
+            d: the JSON object.
+
+        Returns:
+            The options.
+
+        Raises:
+            ValueError: a value of the wrong type, or a mode this version does not know (naming the key).
+        """
         known = {f.name: f for f in fields(cls)}
         kw: dict[str, Any] = {}  # (each value checked against its field's default type below)
         for key, value in _mapping(d, "options").items():

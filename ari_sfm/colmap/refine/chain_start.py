@@ -25,6 +25,7 @@ from ari_sfm.colmap import adapter
 from ari_sfm.geometry import Pose
 
 from .problem import State
+from .steps import BlockStep
 
 log = logging.getLogger(__name__)
 
@@ -54,8 +55,18 @@ class Block:
 
 
 def make_block(model: adapter.ColmapModel, frames: np.ndarray, points: np.ndarray | None = None) -> Block:
-    """The sub-model of ``frames`` (indices): their images, the points they see BLOCK_MIN_VIEWS times or more
-    (among ``points``, a mask, if given), and those observations (frames left with no observation dropped)."""
+    """The sub-model of ``frames``: their images, the points they see BLOCK_MIN_VIEWS times or more, those observations.
+
+    Frames left with no observation are dropped.
+
+    Args:
+        model: the whole model.
+        frames: the frames' indices.
+        points: a mask of the points that may be in it (None: any).
+
+    Returns:
+        The block.
+    """
     F, P = len(model.frame_ids), len(model.point3D_ids)
     fkeep = np.zeros(F, bool)
     fkeep[frames] = True
@@ -85,7 +96,15 @@ def make_block(model: adapter.ColmapModel, frames: np.ndarray, points: np.ndarra
 
 
 def block_state(state: State, block: Block) -> State:
-    """The state's values of a block's variables."""
+    """The state's values of a block's variables.
+
+    Args:
+        state: the whole state.
+        block: the block.
+
+    Returns:
+        The block's state.
+    """
     return replace(state, rig_from_world=tuple(state.rig_from_world[f] for f in block.frames),
                    sensor_from_rig=tuple(state.sensor_from_rig[i] for i in block.images), xyz=state.xyz[block.points])
 
@@ -95,8 +114,16 @@ def frame_centres(state: State) -> np.ndarray:
 
 
 def with_block(state: State, block: Block, refined: State) -> State:
-    """The whole state with a block's refined values written in (its frames, images' sensors, points;
-    the intrinsics and window are the block's)."""
+    """The whole state with a block's refined values written in.
+
+    Args:
+        state: the whole state.
+        block: the block.
+        refined: the block's refined state (its intrinsics and window are taken too).
+
+    Returns:
+        The whole state with the block's frames, images' sensors and points.
+    """
     frames, sensors, xyz = list(state.rig_from_world), list(state.sensor_from_rig), state.xyz.copy()
     for k, f in enumerate(block.frames):
         frames[f] = refined.rig_from_world[k]
@@ -108,12 +135,24 @@ def with_block(state: State, block: Block, refined: State) -> State:
 
 def aligned(model: adapter.ColmapModel, ref: State, state: State, refined: np.ndarray, frames: np.ndarray,
              points: np.ndarray | None = None) -> State:
-    """``state`` with ``frames`` (indices) and the points not ``refined`` (mask; among ``points``, a mask,
-    if given) placed from ``ref`` (the input's start) by similarities: each frame's carries the refined
-    points it sees from their place in ``ref`` to their place in ``state`` (a frame that sees fewer than
-    ALIGN_MIN_POINTS of them, or nearly collinear ones: its nearest such frame's); a point takes the
-    mean of its frames' images. The start built frame by frame from the input's local shape, so that a
-    bend the input accumulated along a long chain is not carried beyond the refined part."""
+    """``state`` with ``frames`` and the points not yet refined placed from ``ref`` by similarities.
+
+    Each frame's similarity carries the refined points it sees from their place in ``ref`` to their place in
+    ``state`` (a frame that sees fewer than ALIGN_MIN_POINTS of them, or nearly collinear ones: its nearest such
+    frame's); a point takes the mean of its frames' images. The start is built frame by frame from the input's
+    local shape, so that a bend the input accumulated along a long chain is not carried beyond the refined part.
+
+    Args:
+        model: the whole model.
+        ref: the input's start.
+        state: the state with the refined part.
+        refined: a mask of the refined points.
+        frames: the indices of the frames to place.
+        points: a mask of the points that may be placed (None: any).
+
+    Returns:
+        The state with those frames and points placed.
+    """
     from .truth import similarity
 
     F = len(model.frame_ids)
@@ -155,11 +194,20 @@ def aligned(model: adapter.ColmapModel, ref: State, state: State, refined: np.nd
 
 
 def first_block(model: adapter.ColmapModel, state: State, mount: str) -> Block | None:
-    """The first block of a long chain (mount camera, more than CHAIN_MIN_FRAMES frames, a point seen in
-    less than CHAIN_MAX_TRACK_FRACTION of the images on average): the
-    FIRST_BLOCK_FRAMES frames nearest the middle of the frame centres; None for a shorter model, mount
-    world (a window fixed in the world does not move with the aligned frames) or when the block lacks
-    a camera."""
+    """The first block of a long chain: the FIRST_BLOCK_FRAMES frames nearest the middle of the frame centres.
+
+    A long chain: mount camera, more than CHAIN_MIN_FRAMES frames, a point seen in less than
+    CHAIN_MAX_TRACK_FRACTION of the images on average.
+
+    Args:
+        model: the whole model.
+        state: the start state (its frame centres).
+        mount: ``camera`` or ``world``.
+
+    Returns:
+        The block; None for a shorter model, mount world (a window fixed in the world does not move with the
+        aligned frames) or when the block lacks a camera.
+    """
     if len(model.frame_ids) <= CHAIN_MIN_FRAMES or mount != "camera":
         return None
     if len(model.obs_image) / max(len(model.point3D_ids), 1) >= CHAIN_MAX_TRACK_FRACTION * len(model.image_ids):
@@ -171,33 +219,44 @@ def first_block(model: adapter.ColmapModel, state: State, mount: str) -> Block |
 
 
 def slid_start(model: adapter.ColmapModel, state: State, first: Block, make_solver,
-                new_frames: int | None = None) -> tuple[State, list[dict]]:
-    """A long chain's start by sliding blocks: ``first`` is refined from ``state`` (the input's start;
-    ``make_solver(block_model, None)``), then again and again the ``new_frames`` (SLIDE_NEW_FRAMES)
-    frames that see the most refined points, aligned to them (:func:`aligned`), with their points and
-    the refined frames that see ALIGN_MIN_POINTS of those, held (``make_solver(block_model, held)``,
-    ``held`` their indices in the block), until every frame is refined. Every solve is small and starts
-    near its optimum; a block that ends above SLIDE_RETRY_COST times the first block's cost per
-    observation is dropped and taken again with half as many new frames. Returns the start and the
-    blocks' records."""
+               new_frames: int | None = None) -> tuple[State, list[BlockStep]]:
+    """A long chain's start by sliding blocks.
+
+    ``first`` is refined from ``state``, then again and again the ``new_frames`` frames that see the most
+    refined points, aligned to them (:func:`aligned`), with their points and the refined frames that see
+    ALIGN_MIN_POINTS of those, held, until every frame is refined. Every solve is small and starts near its
+    optimum; a block that ends above SLIDE_RETRY_COST times the first block's cost per observation is dropped
+    and taken again with half as many new frames.
+
+    Args:
+        model: the whole model.
+        state: the input's start.
+        first: the first block (:func:`first_block`).
+        make_solver: ``make_solver(block_model, held)`` -> a Solver; ``held`` None for the first block, else the
+            indices in the block of its held frames.
+        new_frames: frames new to each later block (None: SLIDE_NEW_FRAMES).
+
+    Returns:
+        The start and the blocks' records.
+    """
     F, P = len(model.frame_ids), len(model.point3D_ids)
     step = new_frames or SLIDE_NEW_FRAMES
     seen = np.zeros((F, P), bool)
     seen[model.image_frame[model.obs_image], model.obs_point] = True
     done, refined = np.zeros(F, bool), np.zeros(P, bool)
-    ref, block, held, blocks, floor = state, first, None, [], None
+    ref, block, held, floor = state, first, None, None
+    blocks: list[BlockStep] = []
     while True:
         res = make_solver(block.model, held).run(block_state(state, block), BLOCK_ITERATIONS,
                                                  relative_tolerance=BLOCK_TOLERANCE)
         per_observation = res.cost / len(block.model.obs_point)
-        blocks.append({"frames": len(block.frames), "held": 0 if held is None else len(held),
-                       "points3D": len(block.points), "cost": res.cost, "iterations": res.iterations,
-                       "linearizations": res.linearizations})
+        blocks.append(BlockStep(len(block.frames), 0 if held is None else len(held), len(block.points), res.cost,
+                                res.iterations, res.linearizations))
         log.info("refine-colmap: block of %d frames (%d held), %d points3D: cost %.6g after %d iterations",
-                 len(block.frames), blocks[-1]["held"], len(block.points), res.cost, res.iterations)
+                 len(block.frames), blocks[-1].held, len(block.points), res.cost, res.iterations)
         if floor is not None and per_observation > SLIDE_RETRY_COST * floor and step > 1:
             step = max(1, step // 2)  # too far a step along the chain for the aligned start: a shorter one
-            blocks[-1]["dropped"] = True
+            blocks[-1] = replace(blocks[-1], dropped=True)
             log.info("refine-colmap: that block did not converge to the noise: again with %d new frames", step)
         else:
             floor = per_observation if floor is None else floor

@@ -38,7 +38,15 @@ class WindowPrior:
                         + ([self.plane.sigma_mm] if self.with_distance else []))
 
     def errors(self, normal: np.ndarray, distance: float) -> np.ndarray:
-        """Unwhitened errors of one window: [n - n_declared (3, with_normal), d - n . point (with_distance)]."""
+        """Unwhitened errors of one window.
+
+        Args:
+            normal: its unit normal.
+            distance: its distance.
+
+        Returns:
+            ``[n - n_declared (3, with_normal), d - n . point (with_distance)]``.
+        """
         e = []
         if self.with_normal:
             e.append(normal - self.plane.normal)
@@ -47,8 +55,12 @@ class WindowPrior:
         return np.concatenate(e) if e else np.zeros(0)
 
     def jacobians(self) -> tuple[np.ndarray, np.ndarray]:
-        """d(errors)/d(normal) (rows, 3) in the ambient 3-vector (chain with a tangent basis) and
-        d(errors)/d(distance) (rows,)."""
+        """The errors' derivatives.
+
+        Returns:
+            d(errors)/d(normal) (rows, 3) in the ambient 3-vector (chain with a tangent basis) and
+            d(errors)/d(distance) (rows,).
+        """
         rows: list[np.ndarray] = []
         dd: list[np.ndarray] = []
         if self.with_normal:
@@ -60,13 +72,29 @@ class WindowPrior:
         return np.vstack(rows), np.concatenate(dd)
 
     def cost(self, normals: np.ndarray, distances: np.ndarray) -> float:
-        """0.5 * sum of the squared whitened errors over every window."""
+        """0.5 * sum of the squared whitened errors over every window.
+
+        Args:
+            normals: (W, 3) the windows' normals.
+            distances: (W,) their distances.
+
+        Returns:
+            The cost.
+        """
         s = self.sigmas
         return float(sum(0.5 * np.sum((self.errors(n, float(d)) / s) ** 2) for n, d in zip(normals, distances)))
 
 
 def window_prior(plane: WindowPlane | None, estimate_distance: bool) -> WindowPrior | None:
-    """The prior a declared plane adds (None without a plane or when both parts are held)."""
+    """The prior a declared plane adds.
+
+    Args:
+        plane: the declared plane, if any.
+        estimate_distance: whether the distance is estimated (a distance prior needs it).
+
+    Returns:
+        The prior (None without a plane or when both parts are held).
+    """
     if plane is None:
         return None
     with_normal = plane.sigma_deg > 0

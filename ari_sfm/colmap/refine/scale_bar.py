@@ -70,7 +70,15 @@ class Baseline:
         return BAR_SIGMA_REL * self.length_mm
 
     def centre(self, state: Any, k: int) -> np.ndarray:
-        """Image ``(a, b)[k]``'s camera centre in the world: ``-P.R^T (P.t + S.R^T S.t)``."""
+        """Image ``(a, b)[k]``'s camera centre in the world: ``-P.R^T (P.t + S.R^T S.t)``.
+
+        Args:
+            state: the refinement's state.
+            k: 0 for image ``a``, 1 for ``b``.
+
+        Returns:
+            The centre (3,).
+        """
         i = (self.a, self.b)[k]
         P, S = state.rig_from_world[self.frames[k]], state.sensor_from_rig[i]
         return -P.R.T @ (P.t + S.R.T @ S.t)
@@ -85,8 +93,17 @@ class Baseline:
         return 0.5 * self.error(state) ** 2
 
     def jacobian(self, state: Any, layout: Any) -> tuple[np.ndarray, np.ndarray]:
-        """The reduced columns the error depends on and d error / d those columns (the problem's
-        tangents: a pose moves to ``(exp(w) R, t + v)``, columns ``[w, v]``; held poses have none)."""
+        """The reduced columns the error depends on and d error / d those columns.
+
+        The problem's tangents: a pose moves to ``(exp(w) R, t + v)``, columns ``[w, v]``; held poses have none.
+
+        Args:
+            state: the refinement's state.
+            layout: the problem's layout (the frames' and sensors' columns).
+
+        Returns:
+            The columns and the derivatives.
+        """
         d = self.centre(state, 0) - self.centre(state, 1)
         u = d / np.linalg.norm(d) / self.sigma_mm
         grad = np.zeros(layout.size + 1)  # index -1 (held) lands in the last, dropped entry

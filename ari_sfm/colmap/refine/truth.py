@@ -13,7 +13,15 @@ from .problem import State
 
 
 def similarity(A: np.ndarray, B: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Least-squares similarity (s, R, t) with ``B ~ s R A + t`` (Umeyama) for point sets (N, 3)."""
+    """Least-squares similarity with ``B ~ s R A + t`` (Umeyama).
+
+    Args:
+        A: (N, 3) points.
+        B: (N, 3) the same points elsewhere.
+
+    Returns:
+        (s, R, t).
+    """
     ma, mb = A.mean(axis=0), B.mean(axis=0)
     a, b = A - ma, B - mb
     U, S, Vt = np.linalg.svd(b.T @ a)
@@ -26,10 +34,20 @@ def similarity(A: np.ndarray, B: np.ndarray) -> tuple[float, np.ndarray, np.ndar
 
 def truth_errors(truth: SfmTruth, model: ColmapModel, xyz: np.ndarray, cam_from_world: dict[int, Pose]
                  ) -> dict[str, float]:
-    """Point RMS (mm) after the similarity that best aligns the points to the truth, camera-centre RMS
-    (mm) under the same similarity, and its scale error (%). Points and images are matched by id
-    (point3D_id k + 1 = truth point k, image_id i + 1 = truth image i, as reconstruction_from_arrays
-    writes them)."""
+    """Point RMS (mm) after the similarity best aligning the points to the truth, camera-centre RMS and scale error.
+
+    Points and images are matched by id (point3D_id k + 1 = truth point k, image_id i + 1 = truth image i, as
+    reconstruction_from_arrays writes them).
+
+    Args:
+        truth: the simulation.
+        model: the COLMAP model's arrays (its ids).
+        xyz: (P, 3) the estimated points.
+        cam_from_world: the estimated poses by image id.
+
+    Returns:
+        ``points_rms_mm``, ``centres_rms_mm`` (under the same similarity) and ``scale_error_pct``.
+    """
     X_true = truth.xyz[model.point3D_ids - 1]
     s, R, t = similarity(xyz, X_true)
     e = s * xyz @ R.T + t - X_true
@@ -42,7 +60,15 @@ def truth_errors(truth: SfmTruth, model: ColmapModel, xyz: np.ndarray, cam_from_
 
 
 def colmap_truth_errors(truth: SfmTruth, rec: Any) -> dict[str, float]:
-    """:func:`truth_errors` of a COLMAP reconstruction as it stands (its pinhole poses and points)."""
+    """:func:`truth_errors` of a COLMAP reconstruction as it stands (its pinhole poses and points).
+
+    Args:
+        truth: the simulation.
+        rec: the pycolmap.Reconstruction.
+
+    Returns:
+        As :func:`truth_errors`.
+    """
     model = model_from_reconstruction(rec)
     poses = {int(i): Pose(np.array(rec.image(int(i)).cam_from_world().rotation.matrix()),
                           np.array(rec.image(int(i)).cam_from_world().translation)) for i in model.image_ids}
@@ -51,9 +77,17 @@ def colmap_truth_errors(truth: SfmTruth, rec: Any) -> dict[str, float]:
 
 def window_errors(truth: SfmTruth, normals: np.ndarray, distances: np.ndarray,
                   first_rig_from_world: Pose | None = None) -> dict[str, float]:
-    """Normal angle (deg) and distance (mm) errors of the refined window: per housing (mount camera,
-    worst camera) or of the world window (mount world: in the first frame's rig coordinates,
-    ``first_rig_from_world`` the estimate's first frame)."""
+    """Normal angle (deg) and distance (mm) errors of the refined window.
+
+    Args:
+        truth: the simulation.
+        normals: the refined normals (per housing, or the world window's).
+        distances: the refined distances.
+        first_rig_from_world: the estimate's first frame (mount world: the errors are in its rig coordinates).
+
+    Returns:
+        ``normal_deg`` and ``distance_mm`` (mount camera: of the worst housing).
+    """
     if truth.mount == "camera":
         ang = max(angle_between_deg(n, m) for n, m in zip(normals, truth.normal_cam))
         dist = max(abs(d - h) for d, h in zip(distances, truth.distance_mm))
@@ -68,8 +102,17 @@ def window_errors(truth: SfmTruth, normals: np.ndarray, distances: np.ndarray,
 
 
 def truth_state(truth: SfmTruth, model: ColmapModel) -> State:
-    """The simulated truth as a refine-colmap state of ``model`` (ids as in :func:`truth_errors`): the
-    start of the truth-started refinement, the yardstick of a refinement from COLMAP's model."""
+    """The simulated truth as a refine-colmap state of ``model`` (ids as in :func:`truth_errors`).
+
+    The start of the truth-started refinement, the yardstick of a refinement from COLMAP's model.
+
+    Args:
+        truth: the simulation.
+        model: the COLMAP model's arrays.
+
+    Returns:
+        The state.
+    """
     params = tuple(np.r_[p[:2], p[2:4] + COLMAP_PIXEL_OFFSET] for p in truth.params)
     sensors = tuple(truth.sensor_from_rig[c] for c in model.image_camera)
     frames = tuple(truth.rig_from_world[int(f) - 1] for f in model.frame_ids)

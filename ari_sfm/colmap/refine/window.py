@@ -27,7 +27,7 @@ from ari_sfm.io.dataset import parse_interface
 from ari_sfm.io.structured import warn_unknown_keys
 from ari_sfm.records import Interface
 
-from .problem import MOUNTS
+from .options import Mount
 
 log = logging.getLogger(__name__)
 
@@ -39,22 +39,34 @@ class WindowSpec:
     """A parsed WINDOW.yaml."""
 
     interface: Interface
-    mount: str
+    mount: Mount
     units_mm: float | None = None
     scale_bar: tuple[int, int, float] | None = None
 
 
 def load_window(path: str | Path) -> WindowSpec:
-    """Read and validate WINDOW.yaml (one-line AriSfmError naming the file and the key)."""
+    """Read and validate WINDOW.yaml.
+
+    Args:
+        path: the file.
+
+    Returns:
+        The plate, the mount and the scale it gives.
+
+    Raises:
+        AriSfmError: one line naming the file and the key.
+    """
     path = Path(path)
     data = as_mapping(read_structured(path), path, "")
     warn_unknown_keys(data, WINDOW_KEYS, path)
     raw = require(data, "interface", path)
     mount = require(data, "mount", path)
-    if mount not in MOUNTS:
-        raise AriSfmError(path, f"mount must be one of {', '.join(MOUNTS)} (got {mount!r})")
+    try:
+        mount = Mount.parse(mount, "mount")
+    except ValueError as exc:
+        raise AriSfmError(path, str(exc)) from None
     if isinstance(raw, dict) and isinstance(raw.get("plane"), dict) and raw["plane"].get("frame") is None:
-        raw = dict(raw, plane=dict(raw["plane"], frame=mount))  # no target frames here: the mount's frame
+        raw = dict(raw, plane=dict(raw["plane"], frame=mount.value))  # no target frames here: the mount's frame
     interface = parse_interface(raw, path)
     units = data.get("units_mm")
     units = None if units is None else as_positive_float(units, path, "units_mm")
