@@ -25,7 +25,7 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Any, cast
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
@@ -37,6 +37,11 @@ from ..models.pinhole import PARAM_NAMES
 from ..solver.bundle import Rows, RowTerm
 from .disparity import ParticleSet
 from .selfcal_report import Adjustment, CameraSigma
+
+if TYPE_CHECKING:
+    from ..colmap.refine.gtsam_graph import GtsamRefinement
+    from ..colmap.refine.problem import Layout, RefractiveProblem, State
+    from ..colmap.refine.solver import Solver
 
 log = logging.getLogger(__name__)
 
@@ -445,7 +450,7 @@ def whitening_of(covariance: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- the solver
 
 
-class GaugeTerm(RowTerm):
+class GaugeTerm(RowTerm["State"]):
     """The gauge and scale rows (:meth:`Gauge.rows`) as a term of the bundle adjustment.
 
     Args:
@@ -453,11 +458,11 @@ class GaugeTerm(RowTerm):
         layout: The points problem's reduced layout.
     """
 
-    def __init__(self, gauge: Gauge, layout: Any) -> None:
+    def __init__(self, gauge: Gauge, layout: Layout) -> None:
         self.gauge = gauge
         self.layout = layout
 
-    def rows(self, x: Any) -> Rows:
+    def rows(self, x: State) -> Rows:
         """The gauge's whitened rows, dense over the reduced columns.
 
         Args:
@@ -475,7 +480,7 @@ class GaugeTerm(RowTerm):
         return cols[cols >= 0]
 
 
-class IntrinsicsPriorTerm(RowTerm):
+class IntrinsicsPriorTerm(RowTerm["State"]):
     """The start's intrinsics as a prior (:meth:`IntrinsicsPrior.rows`), weighed against ``noise_px``.
 
     Args:
@@ -484,12 +489,12 @@ class IntrinsicsPriorTerm(RowTerm):
         noise_px: The pixel noise the rows are whitened against.
     """
 
-    def __init__(self, prior: IntrinsicsPrior, layout: Any, noise_px: float) -> None:
+    def __init__(self, prior: IntrinsicsPrior, layout: Layout, noise_px: float) -> None:
         self.prior = prior
         self.layout = layout
         self.noise_px = noise_px
 
-    def rows(self, x: Any) -> Rows:
+    def rows(self, x: State) -> Rows:
         """The prior's whitened rows on the free intrinsics that have a prior.
 
         Args:
@@ -507,7 +512,8 @@ class IntrinsicsPriorTerm(RowTerm):
                          if col >= 0 and math.isfinite(self.prior.sigmas[c, j])], dtype=int)
 
 
-def _solver(problem: Any, huber_px: float | None, gauge: Gauge, prior: IntrinsicsPrior, noise_px: float) -> Any:
+def _solver(problem: RefractiveProblem, huber_px: float | None, gauge: Gauge, prior: IntrinsicsPrior,
+            noise_px: float) -> Solver:
     """Self-calibration's bundle adjustment: refine-colmap's points problem, the window held, with the gauge
     and the intrinsics prior as terms (Marquardt's damping from the particles alone)."""
     from ..colmap.refine.solver import Solver
@@ -516,7 +522,7 @@ def _solver(problem: Any, huber_px: float | None, gauge: Gauge, prior: Intrinsic
     return Solver(problem, huber_px, terms=terms, damp_observations_only=True)
 
 
-def _prior_term(solver: Any) -> IntrinsicsPriorTerm:
+def _prior_term(solver: Solver) -> IntrinsicsPriorTerm:
     """The solver's intrinsics prior term."""
     return next(t for t in solver.row_terms if isinstance(t, IntrinsicsPriorTerm))
 
@@ -597,7 +603,7 @@ def fitted_noise(solver, state) -> float:
 # --------------------------------------------------------------------------- GTSAM
 
 
-def _gtsam_refinement(solver: Any) -> Any:
+def _gtsam_refinement(solver: Solver) -> GtsamRefinement:
     """The same adjustment as a GTSAM graph: refine-colmap's, the solver's terms as factors."""
     from ..colmap.refine import gtsam_graph as gg
 

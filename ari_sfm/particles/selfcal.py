@@ -40,6 +40,8 @@ from typing import Any
 
 import numpy as np
 
+from ari_sfm.errors import ErrorPath
+
 from ..calibration.record import Calibration
 from ..errors import AriSfmError
 from ..geometry import rotation_angle_deg
@@ -125,7 +127,7 @@ class SelfCalResult:
 # --------------------------------------------------------------------------- matching
 
 
-def check_calibration(calibration: Calibration, cameras: Sequence[str], path: Any) -> None:
+def check_calibration(calibration: Calibration, cameras: Sequence[str], path: ErrorPath) -> None:
     """The calibration projects with the exact model and is of the rig that recorded the particles.
 
     Args:
@@ -425,7 +427,7 @@ class Adjusting:
     in_air: list[bool]
 
 
-def _first_measurement(m: FrameMatching, at: Rounds, path: Any) -> Measurement:
+def _first_measurement(m: FrameMatching, at: Rounds, path: ErrorPath) -> Measurement:
     """The first round's matching: its tolerance widened by WIDEN (up to max_tolerance_px) while it finds no
     clear disparity peak; no confident matches even then is one error line."""
     o = m.options
@@ -447,7 +449,7 @@ def _first_measurement(m: FrameMatching, at: Rounds, path: Any) -> Measurement:
     return got
 
 
-def run_round(m: FrameMatching, a: Adjusting, at: Rounds, r: int, path: Any) -> Rounds:
+def run_round(m: FrameMatching, a: Adjusting, at: Rounds, r: int, path: ErrorPath) -> Rounds:
     """Round ``r``: match at the round's tolerance, measure the disparity, adjust on its inliers.
 
     The rounds stop (``stopped``) when a later round finds too few inliers, or when the disparities stopped
@@ -521,7 +523,8 @@ def final_check(m: FrameMatching, at: Rounds) -> Rounds:
 def self_calibrate(calibration: Calibration, detections: Mapping[int, Detections],
                    options: SelfCalOptions = SelfCalOptions(), volume: Any = None, depth_range_mm: Any = None,
                    match: Callable | None = None, map_frames: MapFrames | None = None,
-                   cells_box: Cells | None = None, path: Any = "calibration", progress: Any = None) -> SelfCalResult:
+                   cells_box: Cells | None = None, path: ErrorPath = "calibration",
+                   progress: Any = None) -> SelfCalResult:
     """Volume self-calibration (module docstring) from ``detections``.
 
     Steps: the rounds (:func:`run_round`, each matching, measuring and adjusting) until they stop or

@@ -22,11 +22,15 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Generic, Protocol, TypeVar
 
 import numpy as np
 
 from .schur import NormalEquations, model_decrease, solve_damped
+
+StateT = TypeVar("StateT")  # a problem's values: opaque to the solver
+StateIn = TypeVar("StateIn", contravariant=True)  # the same, where only read (a term)
+Step = tuple[np.ndarray, np.ndarray]  # (global step, block steps)
 
 
 @dataclass(frozen=True)
@@ -95,14 +99,14 @@ def add_rows(system: NormalEquations, rows: Rows) -> None:
     system.error += 0.5 * float(rows.e @ rows.e)
 
 
-class Term(Protocol):
+class Term(Protocol[StateIn]):
     """A term of the cost besides the observations: its error and its share of the normal equations."""
 
-    def error(self, x: Any) -> float:
+    def error(self, x: StateIn) -> float:
         """The term's cost (0.5 |whitened error|^2) at ``x``."""
         ...
 
-    def add_to(self, system: NormalEquations, x: Any) -> None:
+    def add_to(self, system: NormalEquations, x: StateIn) -> None:
         """Add the term's linearisation at ``x`` to ``system``.
 
         Args:
@@ -112,13 +116,13 @@ class Term(Protocol):
         ...
 
 
-class RowTerm(ABC):
+class RowTerm(ABC, Generic[StateT]):
     """A term given by whitened rows on the reduced variables: written once, used by both backends."""
 
     linearized_error_is_error = True
 
     @abstractmethod
-    def rows(self, x: Any) -> Rows:
+    def rows(self, x: StateT) -> Rows:
         """The term's whitened rows at ``x``.
 
         Args:
@@ -140,7 +144,7 @@ class RowTerm(ABC):
         """
         raise NotImplementedError
 
-    def error(self, x: Any) -> float:
+    def error(self, x: StateT) -> float:
         """0.5 |e|^2 at ``x``.
 
         Args:
@@ -152,7 +156,7 @@ class RowTerm(ABC):
         e = self.rows(x).e
         return 0.5 * float(e @ e)
 
-    def add_to(self, system: NormalEquations, x: Any) -> None:
+    def add_to(self, system: NormalEquations, x: StateT) -> None:
         """Add the rows at ``x`` to ``system``.
 
         Args:
@@ -162,7 +166,7 @@ class RowTerm(ABC):
         add_rows(system, self.rows(x))
 
 
-class ObservationBlock(Protocol):
+class ObservationBlock(Protocol[StateT]):
     """The observations of an adjustment: residuals whose small blocks (frames or points) are eliminated."""
 
     @property
@@ -170,15 +174,15 @@ class ObservationBlock(Protocol):
         """Whether a linearisation's error is the nonlinear error at its point."""
         ...
 
-    def error(self, x: Any) -> float:
+    def error(self, x: StateT) -> float:
         """The observations' cost at ``x``."""
         ...
 
-    def linearize(self, x: Any) -> NormalEquations:
+    def linearize(self, x: StateT) -> NormalEquations:
         """The observations' normal equations at ``x``."""
         ...
 
-    def retract(self, x: Any, step: Any) -> Any:
+    def retract(self, x: StateT, step: Step) -> StateT:
         """``x`` moved by ``step``.
 
         Args:
@@ -191,7 +195,7 @@ class ObservationBlock(Protocol):
         ...
 
 
-class BundleAdjustment:
+class BundleAdjustment(Generic[StateT]):
     """Observations plus terms as one Levenberg-Marquardt problem.
 
     An :class:`ari_sfm.solver.levenberg_marquardt.LMProblem`.
@@ -203,7 +207,7 @@ class BundleAdjustment:
             e.g. a gauge or a scale bar, is a constraint and must not stiffen the damping).
     """
 
-    def __init__(self, observations: ObservationBlock, terms: Sequence[Term] = (),
+    def __init__(self, observations: ObservationBlock[StateT], terms: Sequence[Term[StateT]] = (),
                  damp_observations_only: bool = False) -> None:
         self.observations = observations
         self.terms = list(terms)
@@ -220,7 +224,7 @@ class BundleAdjustment:
         """Whether LM linearises its trial points (the observation block's choice)."""
         return bool(getattr(self.observations, "linearize_trials", False))
 
-    def error(self, x: Any) -> float:
+    def error(self, x: StateT) -> float:
         """The whole cost at ``x``.
 
         Args:
@@ -234,7 +238,7 @@ class BundleAdjustment:
             total += t.error(x)
         return total
 
-    def linearize(self, x: Any) -> NormalEquations:
+    def linearize(self, x: StateT) -> NormalEquations:
         """The normal equations at ``x``: the observations', then each term's rows added.
 
         Args:
@@ -276,7 +280,7 @@ class BundleAdjustment:
         """
         return model_decrease(system, *step)
 
-    def retract(self, x: Any, step: Any) -> Any:
+    def retract(self, x: StateT, step: Step) -> StateT:
         """``x`` moved by ``step`` (the observation block's manifold).
 
         Args:

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from ari_sfm.colmap import adapter
-from ari_sfm.errors import AriSfmError
+from ari_sfm.errors import AriSfmError, ErrorPath
 
 from .options import Backend, RefineColmapOptions
 from .paraxial import initial_state
@@ -70,7 +70,7 @@ def read_model(path: Path) -> Any:
     return rec
 
 
-def check_redundancy(model: adapter.ColmapModel, path: Any) -> None:
+def check_redundancy(model: adapter.ColmapModel, path: ErrorPath) -> None:
     """Refuse a model with too few observations for its unknowns (it would "converge" to 0 px).
 
     Args:
@@ -86,7 +86,7 @@ def check_redundancy(model: adapter.ColmapModel, path: Any) -> None:
                                 f"(cameras, poses, window, points); at least {MIN_REDUNDANCY:g} per unknown needed")
 
 
-def check_finite(model: adapter.ColmapModel, path: Any) -> None:
+def check_finite(model: adapter.ColmapModel, path: ErrorPath) -> None:
     """One line naming the first point3D, camera or image with a non-finite value, or a keypoint off its image.
 
     Args:
@@ -117,7 +117,7 @@ def check_finite(model: adapter.ColmapModel, path: Any) -> None:
                                 f"image ({int(outside.sum())} such observations)")
 
 
-def check_scale_options(options: RefineColmapOptions, path: Any, window_path: Any) -> None:
+def check_scale_options(options: RefineColmapOptions, path: ErrorPath, window_path: ErrorPath) -> None:
     """The scale given once, and a baseline only where the solver holds it.
 
     Args:
@@ -132,7 +132,7 @@ def check_scale_options(options: RefineColmapOptions, path: Any, window_path: An
 
 
 def units_mm(model: adapter.ColmapModel, units: float | None, scale_bar: tuple[int, int, float] | None,
-             path: Any, baseline: Baseline | None = None) -> float:
+             path: ErrorPath, baseline: Baseline | None = None) -> float:
     """mm per unit of the COLMAP model: from the baseline, the scale bar or ``units`` (else 1, with a warning).
 
     Args:
@@ -180,7 +180,8 @@ def units_mm(model: adapter.ColmapModel, units: float | None, scale_bar: tuple[i
     return factor
 
 
-def baseline_term(model: adapter.ColmapModel, baseline: tuple[str | int, str | int, float], path: Any) -> Baseline:
+def baseline_term(model: adapter.ColmapModel, baseline: tuple[str | int, str | int, float],
+                  path: ErrorPath) -> Baseline:
     """The baseline term of two images named by their names (or COLMAP image ids) and their centres' distance.
 
     Args:
@@ -222,7 +223,8 @@ class Scale:
         return "bar" if self.bar is not None else "baseline" if self.baseline is not None else None
 
 
-def resolve_scale(model: adapter.ColmapModel, options: RefineColmapOptions, path: Any, window_path: Any) -> Scale:
+def resolve_scale(model: adapter.ColmapModel, options: RefineColmapOptions, path: ErrorPath,
+                  window_path: ErrorPath) -> Scale:
     """The scale the options give, checked: mm per model unit, the scale bar and the baseline terms.
 
     Args:

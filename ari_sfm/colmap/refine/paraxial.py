@@ -11,12 +11,11 @@ window starts on the optical axis (mount camera) or on the mean viewing directio
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any
 
 import numpy as np
 
 from ari_sfm.colmap import adapter
-from ari_sfm.errors import AriSfmError
+from ari_sfm.errors import AriSfmError, ErrorPath
 from ari_sfm.geometry import Pose
 from ari_sfm.models import AriModel, PinholeModel
 from ari_sfm.records import Interface, WindowPlane
@@ -175,7 +174,7 @@ def to_scale(state: State, bar: ScaleBar | None, baseline: Baseline | None, wind
     return scaled(state, s, window), s
 
 
-def declared_start(model: adapter.ColmapModel, state: State, mount: str, plane: WindowPlane, path: Any) -> State:
+def declared_start(model: adapter.ColmapModel, state: State, mount: str, plane: WindowPlane, path: ErrorPath) -> State:
     """The start with the window at the declared plane, checked.
 
     Args:

@@ -13,12 +13,12 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import numpy as np
 
 from ari_sfm.colmap import adapter
-from ari_sfm.errors import AriSfmError
+from ari_sfm.errors import AriSfmError, ErrorPath
 from ari_sfm.records import Interface, WindowPlane
 
 from .chain_start import Block, first_block
@@ -126,8 +126,8 @@ class Setup:
     hold_normal: bool
     virtual: State  # the virtual cameras' start (at a declared plane, if any)
     candidates: tuple[float, ...]  # the start distances
-    window_path: Any = "WINDOW.yaml"  # the file named in errors about the start and the scale
-    path: Any = "reconstruction"  # the model named in errors
+    window_path: ErrorPath = "WINDOW.yaml"  # the file named in errors about the start and the scale
+    path: ErrorPath = "reconstruction"  # the model named in errors
 
     @property
     def plane(self) -> WindowPlane | None:
@@ -149,8 +149,8 @@ def estimates_distance(interface: Interface) -> bool:
 
 
 def setup(model: adapter.ColmapModel, interface: Interface, options: RefineColmapOptions, scale: Scale,
-          virtual: State, candidates: tuple[float, ...], window_path: Any = "WINDOW.yaml",
-          path: Any = "reconstruction") -> Setup:
+          virtual: State, candidates: tuple[float, ...], window_path: ErrorPath = "WINDOW.yaml",
+          path: ErrorPath = "reconstruction") -> Setup:
     """The refinement's problem and solver: the distance estimated under water unless a declared plane holds it,
     the normal held when the declared plane holds it.
 

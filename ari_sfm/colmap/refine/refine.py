@@ -37,7 +37,7 @@ from typing import Any
 
 from ari_sfm.calibration.record import Calibration
 from ari_sfm.colmap import adapter
-from ari_sfm.errors import AriSfmError
+from ari_sfm.errors import AriSfmError, ErrorPath
 from ari_sfm.io import save_calibration
 from ari_sfm.records import Interface
 
@@ -79,7 +79,8 @@ class RefineResult:
     report: RefineReport
 
 
-def _options(options: RefineColmapOptions | str | None, overrides: dict[str, Any], path: Any) -> RefineColmapOptions:
+def _options(options: RefineColmapOptions | str | None, overrides: dict[str, Any],
+             path: ErrorPath) -> RefineColmapOptions:
     """The options of a call: a record, or (the old positional form) the mount, with the keyword overrides; a
     value no option takes is one AriSfmError line naming ``path``."""
     if isinstance(options, str):  # refine_colmap(rec, interface, "camera", ...): the mount
@@ -91,7 +92,7 @@ def _options(options: RefineColmapOptions | str | None, overrides: dict[str, Any
         raise AriSfmError(path, str(exc)) from None
 
 
-def _reconstruction(reconstruction: Any, path: Any) -> tuple[Any, Any]:
+def _reconstruction(reconstruction: Any, path: ErrorPath) -> tuple[Any, Any]:
     """(pycolmap.Reconstruction, the path named in errors): the reconstruction given, or read from its folder."""
     if not isinstance(reconstruction, (str, Path)) and hasattr(reconstruction, "num_points3D"):
         return reconstruction, path
@@ -100,8 +101,8 @@ def _reconstruction(reconstruction: Any, path: Any) -> tuple[Any, Any]:
 
 
 def refine_colmap(reconstruction: Any, interface: Interface, options: RefineColmapOptions | str | None = None, *,
-                  path: Any = "reconstruction", plane_path: Any = "interface.plane",
-                  window_path: Any = "WINDOW.yaml", progress: bool = False, **overrides: Any) -> RefineResult:
+                  path: ErrorPath = "reconstruction", plane_path: ErrorPath = "interface.plane",
+                  window_path: ErrorPath = "WINDOW.yaml", progress: bool = False, **overrides: Any) -> RefineResult:
     """Refine a COLMAP reconstruction made behind a flat window with the exact refractive model.
 
     Steps: the options, the model read and checked, its scale, the start state (at the declared plane, if

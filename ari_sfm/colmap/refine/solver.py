@@ -119,7 +119,7 @@ class PointObservations:
         return self.problem.retract(x, dg, dp)
 
 
-class Solver(BundleAdjustment):
+class Solver(BundleAdjustment[State]):
     """refine-colmap's and self-calibration's bundle adjustment.
 
     The observations of a :class:`~ari_sfm.colmap.refine.problem.RefractiveProblem` plus its terms, solved by
@@ -137,7 +137,7 @@ class Solver(BundleAdjustment):
     """
 
     def __init__(self, problem: RefractiveProblem, huber_px: float | None, prior: WindowPrior | None = None,
-                 bar: ScaleBar | None = None, baseline: Baseline | None = None, terms: Sequence[RowTerm] = (),
+                 bar: ScaleBar | None = None, baseline: Baseline | None = None, terms: Sequence[RowTerm[State]] = (),
                  damp_observations_only: bool | None = None) -> None:
         self.problem = problem
         self.huber_px = huber_px
@@ -156,7 +156,7 @@ class Solver(BundleAdjustment):
             own.append(BaselineTerm(baseline, problem.layout))
         if damp_observations_only is None:
             damp_observations_only = bar is not None or baseline is not None or bool(terms)
-        self.row_terms: list[RowTerm] = [*own, *terms]
+        self.row_terms: list[RowTerm[State]] = [*own, *terms]
         super().__init__(block, self.row_terms, damp_observations_only)
 
     def cost(self, state: State) -> float:

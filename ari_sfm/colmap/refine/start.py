@@ -12,12 +12,11 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any
 
 import numpy as np
 
 from ari_sfm.colmap import adapter
-from ari_sfm.errors import AriSfmError
+from ari_sfm.errors import AriSfmError, ErrorPath
 from ari_sfm.records import Interface
 
 from .chain_start import Block, slid_start
@@ -82,7 +81,8 @@ def distance_candidates(interface: Interface, virtual: State, estimate_distance:
 
 
 def start_candidates(model: adapter.ColmapModel, state: State, interface: Interface,
-                     candidates: tuple[float, ...], units_given: bool, declared: bool, path: Any) -> tuple[float, ...]:
+                     candidates: tuple[float, ...], units_given: bool, declared: bool,
+                     path: ErrorPath) -> tuple[float, ...]:
     """The start distances whose window (plus plate) lies well in front of the near points.
 
     The near points are the 5th percentile of the observations' depths: in COLMAP's arbitrary units read as

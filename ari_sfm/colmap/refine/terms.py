@@ -19,7 +19,7 @@ from .problem import Layout, State
 from .scale_bar import Baseline, ScaleBar
 
 
-class WindowPriorTerm(RowTerm):
+class WindowPriorTerm(RowTerm[State]):
     """A declared plane's prior on every window's normal and distance (:mod:`.plane`).
 
     Args:
@@ -98,7 +98,7 @@ class WindowPriorTerm(RowTerm):
         system.error += self.error(x)
 
 
-class ScaleBarTerm(RowTerm):
+class ScaleBarTerm(RowTerm[State]):
     """A scale bar: its two points, moved out of the Schur elimination, ``length_mm`` apart.
 
     Args:
@@ -138,7 +138,7 @@ class ScaleBarTerm(RowTerm):
         return self.bar.cost(x.xyz)
 
 
-class BaselineTerm(RowTerm):
+class BaselineTerm(RowTerm[State]):
     """A baseline: two images' camera centres ``length_mm`` apart.
 
     Args:
