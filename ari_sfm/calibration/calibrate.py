@@ -12,8 +12,7 @@ import math
 import os
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, fields, replace
-from enum import Enum
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, cast
 
@@ -23,6 +22,7 @@ from ..errors import AriSfmError
 from ..geometry import angle_between_deg
 from ..init.exact_start import check_in_front, exact_start, hold_normals, planes_separate
 from ..models.registry import model_spec
+from ..options import Choice, with_overrides
 from ..records import Dataset, Interface, Observation, WindowPlane
 from ..results import OptimizerReport, OptimizerRun, OutlierReport, StageCamera, StageRecord, StageWindow
 from .evaluate import residual_stats
@@ -54,26 +54,20 @@ EASED_PLANE_MM = 0.5  # ... and a held face position as one of this
 PRINCIPAL_POINT_MAX_SIGMA = 0.02  # auto: a principal point less determined than this share of the image is held
 
 
-class PrincipalPoint(str, Enum):
+class PrincipalPoint(Choice):
     """How each camera's principal point is treated (``CalibrationOptions.principal_point``)."""
 
     AUTO = "auto"  # estimated; held at the image centre for the cameras whose views leave it undetermined
     FREE = "free"  # estimated for every camera
     CENTRE = "centre"  # held at the image centre (cameras without a K hint)
 
-    def __str__(self) -> str:
-        return self.value
 
-
-class Backend(str, Enum):
+class Backend(Choice):
     """The bundle-adjustment solver (``CalibrationOptions.backend``)."""
 
     AUTO = "auto"  # numpy
     NUMPY = "numpy"  # the vectorised problem, GTSAM's Levenberg-Marquardt path
     GTSAM = "gtsam"  # gtsam.LevenbergMarquardtOptimizer on the factor graph
-
-    def __str__(self) -> str:
-        return self.value
 
 
 
@@ -131,33 +125,15 @@ class CalibrationOptions:
         if not (math.isfinite(self.outlier_sigma) and self.outlier_sigma > 0):
             raise ValueError(f"outlier_sigma must be a finite number > 0 (got {self.outlier_sigma})")
         for name, mode in (("principal_point", PrincipalPoint), ("backend", Backend)):
-            object.__setattr__(self, name, _mode(name, mode, getattr(self, name)))
+            object.__setattr__(self, name, mode.parse(getattr(self, name), name))
         iterations = self.max_iterations
         if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 1:
             raise ValueError(f"max_iterations must be an integer >= 1 (got {iterations!r})")
 
 
-def _mode(name: str, mode: type[Enum], value: object) -> Enum:
-    """``value`` as a member of the enum ``mode`` (its string value accepted; ValueError naming the allowed values
-    otherwise)."""
-    try:
-        return mode(value)
-    except ValueError:
-        raise ValueError(f"{name} must be one of {', '.join(m.value for m in mode)} (got {value!r})") from None
-
-
 def _options(options: CalibrationOptions | None, overrides: dict) -> CalibrationOptions:
     """``options`` (default: the defaults) with the keyword ``overrides`` applied."""
-    names = {f.name for f in fields(CalibrationOptions)}
-    unknown = set(overrides) - names
-    if unknown:
-        raise TypeError(f"unknown calibrate option(s): {', '.join(sorted(unknown))} "
-                        f"(known: {', '.join(sorted(names))})")
-    if options is None:
-        return CalibrationOptions(**overrides)
-    if not isinstance(options, CalibrationOptions):
-        raise TypeError(f"options must be a CalibrationOptions (got {type(options).__name__})")
-    return replace(options, **overrides)
+    return with_overrides(CalibrationOptions, options, overrides, "calibrate")
 
 
 def distortion_support(dataset: Dataset) -> str | None:

@@ -28,8 +28,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ..errors import AriSfmError
+from ..options import Choice
 from .refine import settings as REFINE
-from .refine.options import Choice
 
 if TYPE_CHECKING:
     from .refine.refine import RefineResult

@@ -10,7 +10,8 @@ from dataclasses import dataclass, fields
 from enum import Enum
 from typing import Any
 
-from ..colmap.refine.options import Backend, Choice
+from ..colmap.refine.options import Backend
+from ..options import Choice
 
 
 class Intrinsics(Choice):

@@ -1,47 +1,16 @@
 """refine-colmap's options as one frozen record, its modes as enums.
 
-The modes are ``(str, Enum)``: a mode equals its string (``Mount.CAMERA == "camera"``), prints and formats as
-it and is written to JSON as it, so refine.json, calibration.json, messages and string comparisons are what
-they were with plain strings. A record built from strings converts them; a string that names no mode is one
-line of ``ValueError`` naming the allowed values. A light module: the command line reads it without pycolmap.
+The modes are :class:`ari_sfm.options.Choice` enums (each equals its string; refine.json, calibration.json and
+messages read as with plain strings). A light module: the command line reads it without pycolmap.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
-from enum import Enum
-from typing import Any, TypeVar
+from dataclasses import dataclass
+from typing import Any
+
+from ari_sfm.options import Choice, with_overrides
 
 from .settings import HUBER_PX, MAX_ITERATIONS
-
-C = TypeVar("C", bound="Choice")
-
-
-class Choice(str, Enum):
-    """A mode of an options record: its value is its string (``str()``, f-strings, JSON and ``==`` see it)."""
-
-    def __str__(self) -> str:
-        """The mode's string."""
-        return str(self.value)
-
-    @classmethod
-    def parse(cls: type[C], value: object, name: str) -> C:
-        """``value`` (a mode or its string) as a mode of this enum.
-
-        Args:
-            value: a member of this enum, or the string of one.
-            name: the option's name, for the error.
-
-        Returns:
-            The member.
-
-        Raises:
-            ValueError: one line naming the option and the allowed values.
-        """
-        try:
-            return cls(value)
-        except ValueError:
-            allowed = ", ".join(m.value for m in cls)
-            raise ValueError(f"{name} must be one of {allowed} (got {value!r})") from None
 
 
 class Mount(Choice):
@@ -122,13 +91,4 @@ def refine_options(options: RefineColmapOptions | None, overrides: dict[str, Any
         TypeError: an unknown option name, or ``options`` not a record.
         ValueError: a value no option takes (one line).
     """
-    names = {f.name for f in fields(RefineColmapOptions)}
-    unknown = set(overrides) - names
-    if unknown:
-        raise TypeError(f"unknown refine_colmap option(s): {', '.join(sorted(unknown))} "
-                        f"(known: {', '.join(sorted(names))})")
-    if options is None:
-        return RefineColmapOptions(**overrides)
-    if not isinstance(options, RefineColmapOptions):
-        raise TypeError(f"options must be a RefineColmapOptions (got {type(options).__name__})")
-    return replace(options, **overrides)
+    return with_overrides(RefineColmapOptions, options, overrides, "refine_colmap")
