@@ -132,17 +132,14 @@ class RowTerm(ABC, Generic[StateT]):
             The rows (errors, Jacobian, columns).
         """
 
+    @abstractmethod
     def columns(self) -> np.ndarray:
         """The reduced columns the term may depend on (the GTSAM factor's keys).
 
         Returns:
-            The columns (q,): those of its rows at the start or, when its rows are dense over the variables,
-            the ones they depend on.
-
-        Raises:
-            NotImplementedError: in this base class; each subclass names its columns.
+            The columns (q,): those its rows may have nonzero derivatives on (a term whose rows are dense
+            over the variables names the ones they depend on).
         """
-        raise NotImplementedError
 
     def error(self, x: StateT) -> float:
         """0.5 |e|^2 at ``x``.
