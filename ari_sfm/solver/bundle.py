@@ -90,12 +90,8 @@ def add_rows(system: NormalEquations, rows: Rows) -> None:
     cols = rows.cols
     if len(cols) == 0:
         return
-    if len(cols) == len(system.g_global) and np.array_equal(cols, np.arange(len(cols))):
-        system.U += rows.J.T @ rows.J
-        system.g_global += rows.J.T @ rows.e
-    else:
-        system.U[np.ix_(cols, cols)] += rows.J.T @ rows.J
-        system.g_global[cols] += rows.J.T @ rows.e
+    system.U[np.ix_(cols, cols)] += rows.J.T @ rows.J
+    system.g_global[cols] += rows.J.T @ rows.e
     system.error += 0.5 * float(rows.e @ rows.e)
 
 

@@ -3,6 +3,7 @@ chain's sliding start, a restart. Each reads as the mapping refine.json writes (
 ``dict(step) == step.to_json()``), and its counts are fields summed by name, not keys of a dict."""
 from __future__ import annotations
 
+from abc import abstractmethod
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -11,9 +12,9 @@ from typing import Any
 class StepRecord(Mapping[str, Any]):
     """A step result that also reads as its JSON mapping (the keys of :meth:`to_json`)."""
 
+    @abstractmethod
     def to_json(self) -> dict[str, Any]:
         """The record as refine.json (or the log) holds it."""
-        raise NotImplementedError
 
     def __getitem__(self, key: str) -> Any:
         """The JSON value of ``key``."""
